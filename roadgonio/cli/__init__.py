@@ -1,0 +1,57 @@
+"""The ``roadgonio`` command.
+
+Every module in this package that defines ``register(subparsers)`` adds one or more
+sub-commands; ``register`` must call ``parser.set_defaults(func=run)`` where ``run(args)`` returns
+the exit status. Errors of type :class:`~roadgonio.errors.RoadgonioError` are printed as one
+line (``roadgonio: error: ...``) with exit status 2, never as a traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+
+from .. import __version__
+from ..errors import RoadgonioError
+
+#: Order in which commands are listed in --help (others follow alphabetically).
+ORDER = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct"]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="roadgonio",
+        description="Simulate road-surface goniophotometers: fit road BRDF models to r-tables, compute "
+                    "the aperture-effect factor k_A of an instrument, its uncertainty, and correct "
+                    "measured r-tables.")
+    parser.add_argument("--version", action="version", version=f"roadgonio {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    names = [m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")]
+    names.sort(key=lambda n: (ORDER.index(n) if n in ORDER else len(ORDER), n))
+    for name in names:
+        mod = importlib.import_module(f"{__name__}.{name}")
+        if hasattr(mod, "register"):
+            mod.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except RoadgonioError as err:
+        print(f"roadgonio: error: {err}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("roadgonio: interrupted (finished results are kept; run the same command again to resume)",
+              file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,54 @@
+"""Errors that a user sees as a clear message instead of a traceback.
+
+Every input error names the file (or the option), the line or field, and what was expected.
+The CLI catches :class:`RoadgonioError` and prints ``roadgonio: error: <message>`` with exit
+status 2.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class RoadgonioError(Exception):
+    """Base class of the errors that are reported to the user without a traceback."""
+
+
+class InputError(RoadgonioError, ValueError):
+    """Bad input: names where (file, line, field) and what was expected.
+
+    Parameters
+    ----------
+    message:
+        What is wrong and what was expected.
+    path:
+        The file the input came from, or ``None`` for a command-line option or an API value.
+    line:
+        1-based line number in ``path``, if known.
+    field:
+        The key, column or option that is wrong, if known.
+    """
+
+    def __init__(self, message: str, *, path: str | Path | None = None,
+                 line: int | None = None, field: str | None = None):
+        self.path = None if path is None else str(path)
+        self.line = line
+        self.field = field
+        self.reason = message
+        where = []
+        if self.path is not None:
+            where.append(self.path if line is None else f"{self.path}:{line}")
+        elif line is not None:
+            where.append(f"line {line}")
+        if field is not None:
+            where.append(f"field '{field}'")
+        prefix = ", ".join(where)
+        super().__init__(f"{prefix}: {message}" if prefix else message)
+
+
+class GeometryError(RoadgonioError):
+    """The instrument geometry cannot be measured as asked (footprint off the sample,
+    source below the horizon, detector that does not see the sample...)."""
+
+
+class BackendError(RoadgonioError):
+    """A compute backend cannot run here (for example Dr.Jit's LLVM backend needs LLVM >= 16)."""

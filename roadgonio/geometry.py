@@ -1,0 +1,67 @@
+"""Angles and directions of road photometry (DESIGN.md section 1).
+
+Frame: sample in the plane z = 0, normal +z, origin at the nominal measurement point. Direction
+vectors point away from the surface.
+
+* Observation: elevation ``alpha`` above the surface, azimuth ``delta`` (0 by default):
+  ``w_o = (cos a cos d, cos a sin d, sin a)``.
+* Illumination: polar angle ``epsilon`` from the zenith and ``beta``, the angle between the
+  vertical planes of observation and illumination; beta = 0 is the far (forward, specular) side.
+  Source azimuth ``phi_i = delta + 180 deg - beta``:
+  ``w_i = (sin e cos phi_i, sin e sin phi_i, cos e)``.
+
+All functions are float64 numpy and broadcast over their arguments.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Standard r-table grid (CIE 144): 29 rows of tan(epsilon)...
+TAN_EPS_GRID = np.array([0, 0.25, 0.5, 0.75, 1, 1.25, 1.5, 1.75, 2, 2.5, 3, 3.5, 4, 4.5, 5, 5.5, 6,
+                         6.5, 7, 7.5, 8, 8.5, 9, 9.5, 10, 10.5, 11, 11.5, 12], dtype=np.float64)
+#: ... and 20 columns of beta in degrees.
+BETA_GRID_DEG = np.array([0, 2, 5, 10, 15, 20, 25, 30, 35, 40, 45, 60, 75, 90, 105, 120, 135, 150,
+                          165, 180], dtype=np.float64)
+#: Standard observation elevation of the r-tables (deg).
+ALPHA_STANDARD_DEG = 1.0
+
+
+def w_detector(alpha_deg, delta_deg=0.0) -> np.ndarray:
+    """Unit direction from the sample towards the detector, shape ``(..., 3)``."""
+    a = np.radians(np.asarray(alpha_deg, dtype=np.float64))
+    d = np.radians(np.asarray(delta_deg, dtype=np.float64))
+    a, d = np.broadcast_arrays(a, d)
+    return np.stack([np.cos(a) * np.cos(d), np.cos(a) * np.sin(d), np.sin(a)], axis=-1)
+
+
+def w_source(eps_rad, beta_deg, delta_deg=0.0) -> np.ndarray:
+    """Unit direction from the sample towards the source, shape ``(..., 3)``.
+
+    ``eps_rad`` is the polar angle epsilon in radians (use :func:`eps_from_tan` for a tan eps
+    grid); beta in degrees as in the r-tables.
+    """
+    e = np.asarray(eps_rad, dtype=np.float64)
+    phi = np.radians(np.asarray(delta_deg, dtype=np.float64) + 180.0
+                     - np.asarray(beta_deg, dtype=np.float64))
+    e, phi = np.broadcast_arrays(e, phi)
+    s = np.sin(e)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(e)], axis=-1)
+
+
+def eps_from_tan(tan_eps) -> np.ndarray:
+    """epsilon (rad) from tan(epsilon)."""
+    return np.arctan(np.asarray(tan_eps, dtype=np.float64))
+
+
+def cos3_eps(tan_eps) -> np.ndarray:
+    """cos^3(epsilon) from tan(epsilon), exact in float64: (1 + t^2)^(-3/2)."""
+    t = np.asarray(tan_eps, dtype=np.float64)
+    return (1.0 + t * t) ** -1.5
+
+
+def local_angles(w) -> tuple[np.ndarray, np.ndarray]:
+    """(polar angle theta [rad], azimuth phi [rad]) of unit vectors ``w`` (..., 3)."""
+    w = np.asarray(w, dtype=np.float64)
+    theta = np.arctan2(np.hypot(w[..., 0], w[..., 1]), w[..., 2])
+    phi = np.arctan2(w[..., 1], w[..., 0])
+    return theta, phi

@@ -1,0 +1,108 @@
+"""The aperture-effect factor k_A (paper eq. 2-3; DESIGN.md section 5) and its backends.
+
+    k_A(eps, beta) = ( S[f_road] / S[f_lambert] ) / ( f_road(nominal) / f_lambert )
+
+S[f] is the detector signal of the real instrument for a sample with BRDF f (eq. 3). The
+denominator is the ideal point geometry, always computed here in float64 numpy
+(:func:`ideal_ratio`), never rendered.
+
+A backend computes, for a list of cells (tan eps, beta), the ratio S[f_road]/S[f_lambert] and
+turns it into :class:`CellResult` objects. Backends register themselves in :data:`BACKENDS` (name ->
+factory ``factory(instrument, model, **settings) -> KaBackend``); the Mitsuba backend lives in
+:mod:`roadgonio.render` (the only subpackage that imports mitsuba), the quadrature backend in
+:mod:`roadgonio.ka.quadrature`.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, Callable, Protocol, Sequence
+
+import numpy as np
+
+from ..instrument import Instrument
+from ..model import RoadModel
+
+
+@dataclass(frozen=True)
+class CellResult:
+    """k_A at one cell, with its standard error (Monte Carlo) or error estimate (quadrature)."""
+
+    tan_eps: float
+    beta_deg: float
+    k_a: float
+    se: float
+    samples: int          # MC samples, or integrand evaluations for quadrature
+    seconds: float
+    extra: dict[str, Any] | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        if d["extra"] is None:
+            del d["extra"]
+        return d
+
+
+class KaBackend(Protocol):
+    """What a k_A backend provides."""
+
+    name: str
+
+    def settings(self) -> dict[str, Any]:
+        """Settings for provenance (sample counts, tolerances, variant, seed...)."""
+
+    def compute(self, cells: Sequence[tuple[float, float]],
+                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
+        """k_A for each (tan eps, beta deg) cell; calls ``on_cell`` as each cell finishes."""
+
+
+def ideal_ratio(model: RoadModel, instrument: Instrument, tan_eps: float, beta_deg: float) -> float:
+    """f_road(nominal) / f_lambert = pi f_road(w_i(eps, beta), w_o(alpha, delta)), float64."""
+    wi = instrument.w_i(tan_eps, beta_deg)
+    wo = instrument.w_o()
+    return float(math.pi * model.brdf(wi, wo))
+
+
+#: name -> "module:function" of the backend factories (imported lazily).
+BACKENDS: dict[str, str] = {
+    "mitsuba": "roadgonio.render.backend:make_backend",
+    "quadrature": "roadgonio.ka.quadrature:make_backend",
+}
+
+
+def make_backend(name: str, instrument: Instrument, model: RoadModel, **settings) -> KaBackend:
+    """Create a backend by name (lazy import, so numpy-only runs never import mitsuba)."""
+    import importlib
+
+    from ..errors import InputError
+    if name not in BACKENDS:
+        raise InputError(f"unknown backend {name!r}; expected one of {', '.join(BACKENDS)}", field="--backend")
+    mod_name, func = BACKENDS[name].split(":")
+    try:
+        mod = importlib.import_module(mod_name)
+    except ModuleNotFoundError as err:
+        if err.name and err.name.startswith("roadgonio"):
+            raise InputError(f"backend {name!r} is not available in this version", field="--backend") from None
+        raise
+    return getattr(mod, func)(instrument, model, **settings)
+
+
+def full_grid_cells() -> list[tuple[float, float]]:
+    """All 580 (tan eps, beta) cells of the standard grid, row by row."""
+    from ..geometry import BETA_GRID_DEG, TAN_EPS_GRID
+    return [(float(t), float(b)) for t in TAN_EPS_GRID for b in BETA_GRID_DEG]
+
+
+def ratio_se(road: np.ndarray, lam: np.ndarray) -> tuple[float, float]:
+    """Ratio of means <road>/<lam> of paired per-batch (or per-pixel) values and its standard error
+    by the delta method, float64."""
+    road = np.asarray(road, dtype=np.float64).ravel()
+    lam = np.asarray(lam, dtype=np.float64).ravel()
+    n = road.size
+    mr, ml = road.mean(), lam.mean()
+    ratio = mr / ml
+    if n < 2:
+        return float(ratio), float("inf")
+    resid = road - ratio * lam
+    se = math.sqrt(np.sum(resid * resid) / (n - 1) / n) / abs(ml)
+    return float(ratio), float(se)

@@ -1,0 +1,347 @@
+"""The road BRDF model (paper eq. 4 and Figure 3; DESIGN.md section 3).
+
+    f_r = [ k_diff + k_phong (cos Omega)^n_phong + k_retro (cos Omega')^n_retro + E ]
+          * g(theta_i) g(theta_r) / g(theta_r*)
+
+This module holds the **one** definition of the model: :func:`road_brdf` is a pure function over
+an array namespace ``xp`` (:class:`NumpyOps` here; the Dr.Jit plugin passes its own namespace with
+the same names), so the numpy quadrature integrator, the fitter and the Mitsuba plugin evaluate
+exactly the same formula.
+
+Numerical form (chosen so that float32 is accurate near the lobe peaks and nothing overflows):
+
+* lobes: ``cos Omega = 1 - h`` with the half-chord ``h = |w_o - R(w_i)|^2 / 2``
+  (``R`` = mirror about the normal), and ``cos^n = exp(n log(1 - h))``. A negative cosine
+  (``h >= 1``) contributes 0.
+* beta: ``atan2(|w_i x w_o|_z, -(w_i . w_o)_xy)``, exact near 0 and 180 deg; where the azimuth
+  is undefined (``theta_i = 0`` or ``theta_r = 0``) beta is taken as 180 deg, so E = 0 there.
+* E in log space: ``E = k_exp exp(p ln f + W ln x)`` with ``W = exp(min(1 + h f^2, 80))`` (power
+  reading) or ``W = 1`` and an extra factor ``exp(min(1 + h f^2, 80))`` (product reading);
+  the total exponent is capped at 80, so E never overflows float32.
+
+Variants:
+
+* ``"power"`` (default): ``E = k_exp f(e)^p x^(exp(1 + h f(e)^2))``, ``x = (pi - beta)/pi``.
+* ``"product"``: the printed paper read literally, ``E = k_exp f(e)^p x exp(1 + h f(e)^2)``.
+  DESIGN.md section 3 explains why the power reading is the default.
+
+Parameter bounds (checked by :class:`RoadParams`): every ``k_*`` in [0, 1e6] sr^-1;
+``n_phong``, ``n_retro`` in [0, 1e5]; ``p`` in [0, 50]; ``h`` in [-1e3, 1e3]; ``mu`` in [0, 1e3];
+``g_a``, ``g_b``, ``g_c`` finite with ``g_a t^2 + g_b t + g_c > 0`` on [theta_l, pi/2]; ``g_t`` in
+[-100, 100]; ``theta_l_deg`` in (85.3, 90]. Within these bounds and for directions in the upper
+hemisphere the model is finite and non-negative (tested); below the horizon it is 0.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from .errors import InputError
+from .geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
+
+#: Observation polar angle of the fitted tables, theta_r* (paper, Figure 3).
+THETA_R_STAR_DEG = 89.0
+THETA_R_STAR = math.radians(THETA_R_STAR_DEG)
+#: Smallest positive number used to keep logarithms finite (fits float32's normal range).
+TINY = 1e-30
+#: Cap on exponents, so that exp() never overflows float32 (exp(88.7) does).
+EXP_CAP = 80.0
+
+VARIANTS = ("power", "product")
+DEFAULT_VARIANT = "power"
+
+PARAM_NAMES = ("k_diff", "k_phong", "n_phong", "k_retro", "n_retro", "k_exp", "p", "h", "mu",
+               "g_a", "g_b", "g_c", "g_t", "theta_l_deg")
+#: Lower and upper bounds of each parameter (inclusive unless noted in the module docstring).
+PARAM_BOUNDS: dict[str, tuple[float, float]] = {
+    "k_diff": (0.0, 1e6), "k_phong": (0.0, 1e6), "k_retro": (0.0, 1e6), "k_exp": (0.0, 1e6),
+    "n_phong": (0.0, 1e5), "n_retro": (0.0, 1e5), "p": (0.0, 50.0), "h": (-1e3, 1e3),
+    "mu": (0.0, 1e3), "g_a": (-1e6, 1e6), "g_b": (-1e6, 1e6), "g_c": (-1e6, 1e6),
+    "g_t": (-100.0, 100.0), "theta_l_deg": (85.3, 90.0),
+}
+
+
+class NumpyOps:
+    """The array namespace of the model, float64 numpy. The Dr.Jit namespace in
+    :mod:`roadgonio.render` provides the same names."""
+
+    sqrt = staticmethod(np.sqrt)
+    sin = staticmethod(np.sin)
+    cos = staticmethod(np.cos)
+    exp = staticmethod(np.exp)
+    log = staticmethod(np.log)
+    atan2 = staticmethod(np.arctan2)
+    abs = staticmethod(np.abs)
+    maximum = staticmethod(np.maximum)
+    minimum = staticmethod(np.minimum)
+
+    @staticmethod
+    def where(cond, a, b):
+        return np.where(cond, a, b)
+
+    @staticmethod
+    def log1m(h):
+        """log(1 - h), accurate for small h."""
+        return np.log1p(-h)
+
+
+# ----------------------------------------------------------------------------------------------
+# The model, written once
+# ----------------------------------------------------------------------------------------------
+
+def active_terms(params: Mapping[str, Any]) -> frozenset[str]:
+    """Terms that cost something: the lobes/E with a non-zero coefficient and g if theta_l < 90.
+
+    Only usable with plain-float parameters; the Dr.Jit plugin computes it once from the
+    float values and re-traces when it changes.
+    """
+    terms = {name for name in ("k_diff", "k_phong", "k_retro", "k_exp") if float(params[name]) != 0.0}
+    if float(params["theta_l_deg"]) < 90.0:
+        terms.add("g")
+    return frozenset(terms)
+
+
+def _lobe(xp, h, n):
+    """(cos Omega)^n with cos Omega = 1 - h; 0 where the cosine is not positive."""
+    hc = xp.minimum(h, 0.9999999)
+    return xp.where(h < 1.0, xp.exp(n * xp.log1m(hc)), 0.0 * h)
+
+
+def g_attenuation(xp, P: Mapping[str, Any], theta):
+    """Grazing attenuation g(theta) = (a theta^2 + b theta + c)^t for theta > theta_l, else 1
+    (paper, Figure 3); theta in radians."""
+    theta_l = P["theta_l_deg"] * (math.pi / 180.0)
+    base = xp.maximum((P["g_a"] * theta + P["g_b"]) * theta + P["g_c"], TINY)
+    return xp.where(theta > theta_l, xp.exp(P["g_t"] * xp.log(base)), 1.0 + 0.0 * theta)
+
+
+def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
+              terms: frozenset[str] | None = None):
+    """The road BRDF f_r (sr^-1) of paper eq. 4, for local unit vectors.
+
+    Parameters
+    ----------
+    xp:
+        Array namespace (:class:`NumpyOps` or the Dr.Jit one).
+    P:
+        Parameters by their DESIGN.md names (floats, arrays or opaque Dr.Jit values).
+    wi, wo:
+        ``(x, y, z)`` component triples of the unit directions towards the source (``wi``) and
+        towards the detector (``wo``), in a frame whose z axis is the surface normal.
+    variant:
+        ``"power"`` (default) or ``"product"`` reading of the empirical term.
+    terms:
+        Which terms to evaluate (see :func:`active_terms`); ``None`` means all. A term left out
+        costs nothing.
+    """
+    if variant not in VARIANTS:
+        raise InputError(f"unknown model variant {variant!r}; expected one of {', '.join(VARIANTS)}",
+                         field="variant")
+    if terms is None:
+        terms = frozenset({"k_diff", "k_phong", "k_retro", "k_exp", "g"})
+    wix, wiy, wiz = wi
+    wox, woy, woz = wo
+    zero = 0.0 * (wiz + woz)
+    f = zero
+    if "k_diff" in terms:
+        f = f + P["k_diff"]
+    if "k_phong" in terms:
+        # half-chord to the mirror direction R(w_i) = (-x, -y, z): cos Omega = 1 - h
+        h = 0.5 * ((wox + wix) ** 2 + (woy + wiy) ** 2 + (woz - wiz) ** 2)
+        f = f + P["k_phong"] * _lobe(xp, h, P["n_phong"])
+    if "k_retro" in terms:
+        # half-chord to the source direction: cos Omega' = 1 - h'
+        h = 0.5 * ((wox - wix) ** 2 + (woy - wiy) ** 2 + (woz - wiz) ** 2)
+        f = f + P["k_retro"] * _lobe(xp, h, P["n_retro"])
+    need_theta = "k_exp" in terms or "g" in terms
+    if need_theta:
+        sin_ti = xp.sqrt(wix * wix + wiy * wiy)
+        sin_tr = xp.sqrt(wox * wox + woy * woy)
+        theta_i = xp.atan2(sin_ti, wiz)
+        theta_r = xp.atan2(sin_tr, woz)
+    if "k_exp" in terms:
+        cross = xp.abs(wix * woy - wiy * wox)
+        dot = wix * wox + wiy * woy
+        defined = sin_ti * sin_tr > 1e-12
+        beta = xp.where(defined, xp.atan2(cross, -dot), math.pi + zero)
+        # x = (pi - beta)/pi, ln x = ln(1 - beta/pi)
+        ln_x = xp.log1m(xp.minimum(beta * (1.0 / math.pi), 1.0 - 1e-7))
+        e = theta_i * theta_r * (1.0 / THETA_R_STAR)
+        cos_e = xp.cos(e)
+        f_e = xp.where(cos_e > 0.0, xp.sin(e) * cos_e / (cos_e * cos_e + P["mu"]), zero)
+        ln_f = xp.log(xp.maximum(f_e, TINY))
+        arg = xp.minimum(1.0 + P["h"] * f_e * f_e, EXP_CAP)
+        if variant == "power":
+            expo = P["p"] * ln_f + xp.exp(arg) * ln_x
+        else:  # product
+            expo = P["p"] * ln_f + ln_x + arg
+        f = f + P["k_exp"] * xp.exp(xp.minimum(expo, EXP_CAP))
+    if "g" in terms:
+        g_star = g_attenuation(xp, P, THETA_R_STAR + zero)
+        f = f * g_attenuation(xp, P, theta_i) * g_attenuation(xp, P, theta_r) / g_star
+    return xp.where((wiz > 0.0) & (woz > 0.0), f, zero)
+
+
+# ----------------------------------------------------------------------------------------------
+# Parameters and model objects (float64 numpy side)
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class RoadParams:
+    """Parameters of the road BRDF (DESIGN.md names and defaults), validated on construction."""
+
+    k_diff: float = 0.0
+    k_phong: float = 0.0
+    n_phong: float = 1.0
+    k_retro: float = 0.0
+    n_retro: float = 1.0
+    k_exp: float = 0.0
+    p: float = 1.0
+    h: float = 0.0
+    mu: float = 0.0
+    g_a: float = 0.0
+    g_b: float = 0.0
+    g_c: float = 1.0
+    g_t: float = 1.0
+    theta_l_deg: float = 90.0
+
+    def __post_init__(self):
+        for f in fields(self):
+            v = getattr(self, f.name)
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                raise InputError(f"expected a number, got {v!r}", field=f.name) from None
+            object.__setattr__(self, f.name, v)
+            lo, hi = PARAM_BOUNDS[f.name]
+            if not math.isfinite(v):
+                raise InputError(f"expected a finite number, got {v}", field=f.name)
+            if f.name == "theta_l_deg":
+                if not (lo < v <= hi):
+                    raise InputError(f"expected {lo} < theta_l_deg <= {hi} (paper: theta_l > 85.3 deg), got {v}",
+                                     field=f.name)
+            elif not (lo <= v <= hi):
+                raise InputError(f"expected a value in [{lo:g}, {hi:g}], got {v:g}", field=f.name)
+        if self.theta_l_deg < 90.0:
+            tl = math.radians(self.theta_l_deg)
+            pts = [tl, math.pi / 2]
+            if self.g_a != 0.0:
+                vertex = -self.g_b / (2 * self.g_a)
+                if tl < vertex < math.pi / 2:
+                    pts.append(vertex)
+            worst = min(self.g_a * t * t + self.g_b * t + self.g_c for t in pts)
+            if worst <= 0.0:
+                raise InputError("the grazing-attenuation polynomial g_a*theta^2 + g_b*theta + g_c must be "
+                                 f"> 0 for theta in [theta_l, 90 deg]; its minimum there is {worst:.4g}",
+                                 field="g_a/g_b/g_c")
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any], *, path: str | Path | None = None) -> "RoadParams":
+        unknown = sorted(set(d) - set(PARAM_NAMES))
+        if unknown:
+            raise InputError(f"unknown parameter(s) {', '.join(unknown)}; expected names from "
+                             f"{', '.join(PARAM_NAMES)}", path=path, field="params")
+        try:
+            return cls(**dict(d))
+        except InputError as err:
+            raise InputError(err.reason, path=path, field=f"params.{err.field}" if err.field else "params") from None
+
+    def to_dict(self) -> dict[str, float]:
+        return {name: getattr(self, name) for name in PARAM_NAMES}
+
+    def replace(self, **changes) -> "RoadParams":
+        return replace(self, **changes)
+
+
+@dataclass(frozen=True)
+class RoadModel:
+    """A road BRDF: a variant and its parameters. Evaluates in float64 numpy."""
+
+    params: RoadParams
+    variant: str = DEFAULT_VARIANT
+    name: str = "model"
+    meta: Mapping[str, Any] | None = None
+
+    def __post_init__(self):
+        if self.variant not in VARIANTS:
+            raise InputError(f"unknown model variant {self.variant!r}; expected one of {', '.join(VARIANTS)}",
+                             field="variant")
+
+    @classmethod
+    def lambert(cls, reflectance: float = 1.0) -> "RoadModel":
+        """A perfect diffuser: f_r = reflectance / pi."""
+        return cls(RoadParams(k_diff=reflectance / math.pi), name="lambert")
+
+    @property
+    def is_lambertian(self) -> bool:
+        P = self.params
+        return (P.k_phong == 0 and P.k_retro == 0 and P.k_exp == 0 and P.theta_l_deg >= 90.0)
+
+    def terms(self) -> frozenset[str]:
+        return active_terms(self.params.to_dict())
+
+    def brdf(self, wi, wo) -> np.ndarray:
+        """f_r for direction arrays ``wi`` (towards the source) and ``wo`` (towards the
+        detector), shape ``(..., 3)``; broadcasts."""
+        wi = np.asarray(wi, dtype=np.float64)
+        wo = np.asarray(wo, dtype=np.float64)
+        wi, wo = np.broadcast_arrays(wi, wo)
+        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            out = road_brdf(NumpyOps, self.params.to_dict(), (wi[..., 0], wi[..., 1], wi[..., 2]),
+                            (wo[..., 0], wo[..., 1], wo[..., 2]), self.variant, self.terms())
+        return np.asarray(out, dtype=np.float64)
+
+    def q(self, tan_eps, beta_deg, alpha_deg=ALPHA_STANDARD_DEG, delta_deg=0.0) -> np.ndarray:
+        """Luminance coefficient q = f_r for a source at (eps, beta) and the detector at alpha."""
+        wi = w_source(eps_from_tan(tan_eps), beta_deg, delta_deg)
+        wo = w_detector(alpha_deg, delta_deg)
+        return self.brdf(wi, wo)
+
+    def r(self, tan_eps, beta_deg, alpha_deg=ALPHA_STANDARD_DEG, delta_deg=0.0) -> np.ndarray:
+        """Reduced luminance coefficient r = q cos^3(eps) (sr^-1, not x 1e4)."""
+        return self.q(tan_eps, beta_deg, alpha_deg, delta_deg) * cos3_eps(tan_eps)
+
+    # -- files -----------------------------------------------------------------------------
+    def to_json_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"variant": self.variant, "params": self.params.to_dict(), "name": self.name}
+        if self.meta:
+            d.update({k: v for k, v in self.meta.items() if k not in d})
+        return d
+
+    @classmethod
+    def from_json_dict(cls, d: Mapping[str, Any], *, path: str | Path | None = None) -> "RoadModel":
+        if not isinstance(d, Mapping):
+            raise InputError("expected a JSON object with keys 'variant' and 'params'", path=path)
+        if "params" not in d or not isinstance(d["params"], Mapping):
+            raise InputError("missing or non-object 'params' (expected {\"variant\": ..., \"params\": {...}})",
+                             path=path, field="params")
+        variant = d.get("variant", DEFAULT_VARIANT)
+        if variant not in VARIANTS:
+            raise InputError(f"unknown variant {variant!r}; expected one of {', '.join(VARIANTS)}",
+                             path=path, field="variant")
+        params = RoadParams.from_dict(d["params"], path=path)
+        meta = {k: v for k, v in d.items() if k not in ("variant", "params", "name")}
+        name = str(d.get("name", Path(path).stem if path else "model"))
+        return cls(params, variant, name=name, meta=meta or None)
+
+    @classmethod
+    def load(cls, path: str | Path) -> "RoadModel":
+        path = Path(path)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as err:
+            raise InputError(f"cannot read model file ({err.strerror})", path=path) from None
+        try:
+            d = json.loads(text)
+        except json.JSONDecodeError as err:
+            raise InputError(f"not valid JSON: {err.msg}", path=path, line=err.lineno) from None
+        return cls.from_json_dict(d, path=path)
+
+    def save(self, path: str | Path) -> Path:
+        from .fileio import atomic_write_json
+        return atomic_write_json(path, self.to_json_dict())

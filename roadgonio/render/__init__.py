@@ -1,0 +1,77 @@
+"""The Mitsuba 3 side of roadgonio: the only subpackage that imports mitsuba and drjit.
+
+Nothing here runs at import time of :mod:`roadgonio`. The caller (the CLI, a bench script or a
+test fixture) picks the variant with :func:`set_variant`, which checks Dr.Jit's LLVM backend
+right after choosing the variant and before any kernel runs: with LLVM < 16 the first kernel
+would abort the whole process (LLVM 15: "Cannot select ... fminimum"), so we fail with a clear
+message instead.
+"""
+from __future__ import annotations
+
+import glob
+import os
+import re
+
+from ..errors import BackendError
+
+#: Default variant on a CPU machine; a CUDA variant is chosen when asked for and available.
+DEFAULT_VARIANT = "llvm_ad_rgb"
+MIN_LLVM = (16,)
+_INSTALL_HINT = ("install a newer libLLVM (Debian/Ubuntu: 'apt-get install -y libllvm19') or point "
+                 "DRJIT_LIBLLVM_PATH at a libLLVM.so of version 16 or newer")
+
+
+def _newest_system_llvm() -> str | None:
+    """Path of the newest libLLVM >= 16 in the usual system folders, or None."""
+    best = None
+    for pattern in ("/usr/lib/x86_64-linux-gnu/libLLVM*.so*", "/usr/lib/aarch64-linux-gnu/libLLVM*.so*",
+                    "/usr/lib64/libLLVM*.so*", "/usr/lib/llvm-*/lib/libLLVM*.so*"):
+        for p in glob.glob(pattern):
+            m = re.search(r"libLLVM[-.]?(\d+)", os.path.basename(p))
+            if m and int(m.group(1)) >= MIN_LLVM[0]:
+                v = int(m.group(1))
+                if best is None or v > best[0]:
+                    best = (v, p)
+    return None if best is None else best[1]
+
+
+def set_variant(variant: str | None = None):
+    """Select a Mitsuba variant (default ``llvm_ad_rgb``) and check the backend; returns ``mitsuba``.
+
+    Raises :class:`~roadgonio.errors.BackendError` with an install hint when mitsuba is missing,
+    the variant does not exist, or Dr.Jit's LLVM backend is older than 16.
+    """
+    variant = variant or os.environ.get("ROADGONIO_VARIANT", DEFAULT_VARIANT)
+    if variant.startswith("llvm") and "DRJIT_LIBLLVM_PATH" not in os.environ:
+        # drjit picks the newest system libLLVM by itself; help it where the library lives elsewhere
+        path = _newest_system_llvm()
+        if path is not None and not path.startswith(("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu")):
+            os.environ["DRJIT_LIBLLVM_PATH"] = path
+    try:
+        import drjit as dr
+        import mitsuba as mi
+    except ImportError as err:  # pragma: no cover - depends on the install
+        raise BackendError(f"the Mitsuba backend needs the packages mitsuba and drjit ({err}); "
+                           "run 'pip install mitsuba drjit'") from None
+    if variant not in mi.variants():
+        raise BackendError(f"Mitsuba variant {variant!r} is not available; this build has "
+                           f"{', '.join(mi.variants())}")
+    try:
+        mi.set_variant(variant)
+    except ImportError as err:
+        raise BackendError(f"cannot use Mitsuba variant {variant!r}: {err}. {_INSTALL_HINT}") from None
+    if variant.startswith("llvm"):
+        version = tuple(dr.detail.llvm_version())
+        if version < MIN_LLVM:
+            raise BackendError(f"Dr.Jit found LLVM {'.'.join(map(str, version))}, but roadgonio needs "
+                               f"LLVM >= 16 (older versions abort on the first kernel): {_INSTALL_HINT}")
+    return mi
+
+
+def llvm_version() -> tuple[int, ...] | None:
+    """LLVM version Dr.Jit uses (after :func:`set_variant` with an llvm variant), else None."""
+    import drjit as dr
+    try:
+        return tuple(dr.detail.llvm_version())
+    except Exception:  # pragma: no cover
+        return None

@@ -1,0 +1,339 @@
+"""r-tables: reading and writing (CSV and DIALux RTB), the CIE 144 characteristics S1, S2, Q0,
+and the bundled CIE standard tables R1-R4, C1, C2.
+
+Internally an :class:`RTable` holds r in sr^-1 (float64) on the standard grid
+(:data:`~roadgonio.geometry.TAN_EPS_GRID` x :data:`~roadgonio.geometry.BETA_GRID_DEG`), with
+NaN for blank ("not measured") cells. Files hold r x 10^4, as the published tables do.
+
+CSV layout (that of ``data/rtables/``)::
+
+    # source: ...            (optional comment lines starting with '#')
+    tan_eps,0,2,5,...,180    (header: beta in degrees)
+    0,294,294,...            (29 rows, first cell tan eps, then r x 1e4; empty cell = blank)
+
+RTB layout (DIALux ``.rtb``, whitespace separated)::
+
+    RTable.v1
+    <surface name>
+    <number of tan eps values>
+    <tan eps values>
+    <number of beta values>
+    <beta values in degrees>
+    <q0>
+    <r x 1e4 values, tan eps varying fastest>  (one line per beta)
+
+Scale: roadgonio writes r x 10^4, the scale of the printed CIE tables and of our CSV files, so an
+RTB file reads the same as the printed table. RTB has no blank marker: a blank cell is written
+as 0 and a 0 is read back as blank (no real road surface has r = 0).
+"""
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Iterable
+
+import numpy as np
+
+from .errors import InputError
+from .fileio import atomic_write_text
+from .geometry import BETA_GRID_DEG, TAN_EPS_GRID
+
+#: Scale of r in files (published tables store r x 10^4).
+R_SCALE = 1e4
+BUNDLED = ("R1", "R2", "R3", "R4", "C1", "C2")
+#: Published CIE values (DESIGN.md section 2).
+PUBLISHED_S1 = {"R1": 0.25, "R2": 0.58, "R3": 1.11, "R4": 1.55, "C1": 0.24, "C2": 0.97}
+PUBLISHED_Q0 = {"R1": 0.10, "R2": 0.07, "R3": 0.07, "R4": 0.08, "C1": 0.10, "C2": 0.07}
+GRID_TOL = 1e-9
+
+
+@dataclass(frozen=True)
+class RTable:
+    """An r-table: ``r[i, j]`` = r(tan_eps[i], beta[j]) in sr^-1, NaN where blank."""
+
+    r: np.ndarray
+    name: str = "table"
+    source: str = ""
+    tan_eps: np.ndarray = field(default_factory=lambda: TAN_EPS_GRID.copy())
+    beta_deg: np.ndarray = field(default_factory=lambda: BETA_GRID_DEG.copy())
+
+    def __post_init__(self):
+        r = np.asarray(self.r, dtype=np.float64)
+        object.__setattr__(self, "r", r)
+        if r.shape != (len(self.tan_eps), len(self.beta_deg)):
+            raise InputError(f"r has shape {r.shape}, expected {(len(self.tan_eps), len(self.beta_deg))}",
+                             field="r")
+
+    # -- derived -----------------------------------------------------------------------------
+    @property
+    def mask(self) -> np.ndarray:
+        """True where the cell is tabulated."""
+        return np.isfinite(self.r)
+
+    @property
+    def cells(self) -> list[tuple[float, float]]:
+        """(tan eps, beta deg) of every tabulated cell, row by row."""
+        ii, jj = np.nonzero(self.mask)
+        return [(float(self.tan_eps[i]), float(self.beta_deg[j])) for i, j in zip(ii, jj)]
+
+    @property
+    def r_max(self) -> float:
+        return float(np.nanmax(self.r))
+
+    def value(self, tan_eps: float, beta_deg: float) -> float:
+        i = _index(self.tan_eps, tan_eps, "tan_eps")
+        j = _index(self.beta_deg, beta_deg, "beta")
+        return float(self.r[i, j])
+
+    def s1(self) -> float:
+        """Specular factor S1 = r(beta=0, tan=2) / r(beta=0, tan=0) (CIE 144)."""
+        return self.value(2.0, 0.0) / self.value(0.0, 0.0)
+
+    def q0(self) -> float:
+        """Average luminance coefficient Q0 (sr^-1): mean of q over the solid angle of the
+        tabulated illumination directions (CIE 144).
+
+        With t = tan eps, q dOmega = r t dt dbeta. The integral is the trapezoidal rule over every
+        grid cell whose four corners are tabulated; Omega0 is the exact solid angle of the same
+        cells. CIE 144 uses a table of weighting factors that we do not have, so this agrees with
+        the published Q0 to a few percent (DESIGN.md section 2; data/rtables/SOURCES.md).
+        """
+        t = self.tan_eps
+        b = np.radians(self.beta_deg)
+        rt = self.r * t[:, None]
+        c = rt[:-1, :-1] + rt[:-1, 1:] + rt[1:, :-1] + rt[1:, 1:]
+        ok = np.isfinite(c)
+        dt = np.diff(t)[:, None]
+        db = np.diff(b)[None, :]
+        num = np.sum(np.where(ok, c / 4.0 * dt * db, 0.0))
+        g = 1.0 - 1.0 / np.sqrt(1.0 + t * t)
+        omega = np.sum(np.where(ok, np.diff(g)[:, None] * db, 0.0))
+        return float(num / omega)
+
+    def s2(self) -> float:
+        """S2 = Q0 / r(0, 0) (CIE 144)."""
+        return self.q0() / self.value(0.0, 0.0)
+
+    def same_grid(self, other: "RTable") -> bool:
+        return (self.r.shape == other.r.shape
+                and np.allclose(self.tan_eps, other.tan_eps, atol=GRID_TOL, rtol=0)
+                and np.allclose(self.beta_deg, other.beta_deg, atol=GRID_TOL, rtol=0))
+
+    def with_values(self, r: np.ndarray, name: str | None = None, source: str | None = None) -> "RTable":
+        return RTable(np.asarray(r, dtype=np.float64), name=self.name if name is None else name,
+                      source=self.source if source is None else source,
+                      tan_eps=self.tan_eps.copy(), beta_deg=self.beta_deg.copy())
+
+    # -- writing -----------------------------------------------------------------------------
+    def to_csv_text(self, scale: float = R_SCALE, digits: int = 6) -> str:
+        out = io.StringIO()
+        src = self.source or f"roadgonio table {self.name}"
+        for line in src.splitlines() or [""]:
+            out.write(f"# {line}\n" if not line.startswith("#") else line + "\n")
+        w = csv.writer(out, lineterminator="\n")
+        w.writerow(["tan_eps"] + [_fmt(b, 6) for b in self.beta_deg])
+        for i, t in enumerate(self.tan_eps):
+            w.writerow([_fmt(t, 6)] + ["" if not np.isfinite(v) else _fmt(v * scale, digits) for v in self.r[i]])
+        return out.getvalue()
+
+    def write_csv(self, path: str | Path, scale: float = R_SCALE, digits: int = 6) -> Path:
+        return atomic_write_text(path, self.to_csv_text(scale, digits))
+
+    def to_rtb_text(self) -> str:
+        lines = ["RTable.v1", self.name.replace("\n", " ") or "table",
+                 str(len(self.tan_eps)), " ".join(_fmt(t, 6) for t in self.tan_eps),
+                 str(len(self.beta_deg)), " ".join(_fmt(b, 6) for b in self.beta_deg),
+                 _fmt(self.q0(), 6)]
+        for j in range(len(self.beta_deg)):
+            col = self.r[:, j] * R_SCALE
+            lines.append(" ".join("0" if not np.isfinite(v) else _fmt(v, 6) for v in col))
+        return "\n".join(lines) + "\n"
+
+    def write_rtb(self, path: str | Path) -> Path:
+        return atomic_write_text(path, self.to_rtb_text())
+
+    def write(self, path: str | Path) -> Path:
+        """Write by suffix: ``.rtb`` as DIALux RTB, anything else as CSV."""
+        return self.write_rtb(path) if Path(path).suffix.lower() == ".rtb" else self.write_csv(path)
+
+
+def _fmt(v: float, digits: int) -> str:
+    s = f"{float(v):.{digits}g}"
+    return s
+
+
+def _index(grid: np.ndarray, value: float, what: str) -> int:
+    k = np.nonzero(np.abs(grid - value) <= GRID_TOL)[0]
+    if len(k) == 0:
+        raise InputError(f"{what} = {value:g} is not on the table grid", field=what)
+    return int(k[0])
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading
+# ----------------------------------------------------------------------------------------------
+
+def _parse_number(text: str, path, line: int, what: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise InputError(f"{what}: expected a number, got {text!r}", path=path, line=line) from None
+    if not math.isfinite(v):
+        raise InputError(f"{what}: expected a finite number, got {text!r}", path=path, line=line)
+    return v
+
+
+def _check_grid(values: list[float], expected: np.ndarray, what: str, path, line: int) -> None:
+    if len(values) != len(expected) or not np.allclose(values, expected, atol=1e-6, rtol=0):
+        exp = ",".join(_fmt(v, 6) for v in expected)
+        got = ",".join(_fmt(v, 6) for v in values)
+        raise InputError(f"{what} must be the standard grid ({len(expected)} values: {exp}); got "
+                         f"{len(values)} values: {got}", path=path, line=line)
+
+
+def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = None) -> RTable:
+    """Parse the CSV r-table layout; errors name the file and the line."""
+    lines = text.splitlines()
+    comments: list[str] = []
+    header_line = None
+    rows: list[tuple[int, list[str]]] = []
+    for lineno, raw in enumerate(lines, start=1):
+        s = raw.strip()
+        if not s:
+            continue
+        if s.startswith("#"):
+            if header_line is None:
+                comments.append(s.lstrip("#").strip())
+            continue
+        cells = next(csv.reader([raw]))
+        if header_line is None:
+            header_line = lineno
+            if cells[0].strip().lower() != "tan_eps":
+                raise InputError("missing header: expected a first row 'tan_eps,0,2,5,...,180' (beta in "
+                                 f"degrees), got {s[:60]!r}", path=path, line=lineno)
+            betas = [_parse_number(c.strip(), path, lineno, f"header column {k + 2}")
+                     for k, c in enumerate(cells[1:])]
+            _check_grid(betas, BETA_GRID_DEG, "the header's beta columns", path, lineno)
+            continue
+        rows.append((lineno, cells))
+    if header_line is None:
+        raise InputError("empty table: expected a header 'tan_eps,0,2,...,180' and 29 rows", path=path)
+    if not rows:
+        raise InputError("no data rows after the header: expected 29 rows of tan_eps and r x 1e4",
+                         path=path, line=header_line)
+    if len(rows) != len(TAN_EPS_GRID):
+        raise InputError(f"expected {len(TAN_EPS_GRID)} data rows (tan eps = 0 ... 12), found {len(rows)}",
+                         path=path, line=rows[-1][0])
+    r = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), np.nan)
+    for i, (lineno, cells) in enumerate(rows):
+        if len(cells) != len(BETA_GRID_DEG) + 1:
+            raise InputError(f"expected {len(BETA_GRID_DEG) + 1} cells (tan_eps and {len(BETA_GRID_DEG)} "
+                             f"beta columns), found {len(cells)}", path=path, line=lineno)
+        t = _parse_number(cells[0].strip(), path, lineno, "tan_eps")
+        if abs(t - TAN_EPS_GRID[i]) > 1e-6:
+            raise InputError(f"row {i + 1} must have tan_eps = {TAN_EPS_GRID[i]:g} (standard grid), got {t:g}",
+                             path=path, line=lineno)
+        for j, c in enumerate(cells[1:]):
+            c = c.strip()
+            if c == "":
+                continue
+            v = _parse_number(c, path, lineno, f"beta = {BETA_GRID_DEG[j]:g} column")
+            if v < 0:
+                raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: r must be >= 0, got {c}",
+                                 path=path, line=lineno)
+            r[i, j] = v / R_SCALE
+    if not np.isfinite(r).any():
+        raise InputError("the table has no values (every cell is blank)", path=path)
+    return RTable(r, name=name or Path(str(path)).stem, source="\n".join(comments))
+
+
+def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
+    """Parse a DIALux RTB file (values r x 1e4; 0 = blank)."""
+    lines = text.splitlines()
+    nonblank = [(k, l) for k, l in enumerate(lines, start=1) if l.strip()]
+    if not nonblank:
+        raise InputError("empty file: expected 'RTable.v1' on line 1", path=path)
+    if nonblank[0][1].strip() != "RTable.v1":
+        raise InputError(f"missing header: expected 'RTable.v1' on line 1, got {nonblank[0][1].strip()[:40]!r}",
+                         path=path, line=nonblank[0][0])
+    if len(nonblank) < 2:
+        raise InputError("missing surface name on line 2", path=path, line=nonblank[0][0])
+    name = nonblank[1][1].strip()
+    tokens: list[tuple[int, str]] = [(k, tok) for k, l in nonblank[2:] for tok in l.split()]
+    pos = 0
+
+    def take(what: str) -> tuple[int, float]:
+        nonlocal pos
+        if pos >= len(tokens):
+            last = tokens[-1][0] if tokens else nonblank[1][0]
+            raise InputError(f"file ends early: expected {what}", path=path, line=last)
+        k, tok = tokens[pos]
+        pos += 1
+        return k, _parse_number(tok, path, k, what)
+
+    k, n_t = take("the number of tan eps values")
+    tans = [take(f"tan eps value {i + 1}")[1] for i in range(int(n_t))]
+    _check_grid(tans, TAN_EPS_GRID, "the tan eps values", path, k)
+    k, n_b = take("the number of beta values")
+    betas = [take(f"beta value {i + 1}")[1] for i in range(int(n_b))]
+    _check_grid(betas, BETA_GRID_DEG, "the beta values", path, k)
+    take("q0")
+    r = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), np.nan)
+    for j in range(len(BETA_GRID_DEG)):
+        for i in range(len(TAN_EPS_GRID)):
+            k, v = take(f"r value (tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g})")
+            if v < 0:
+                raise InputError(f"r must be >= 0 (tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g}), "
+                                 f"got {v:g}", path=path, line=k)
+            if v > 0:
+                r[i, j] = v / R_SCALE
+    if pos != len(tokens):
+        raise InputError(f"{len(tokens) - pos} unexpected value(s) after the {r.size} r values",
+                         path=path, line=tokens[pos][0])
+    if not np.isfinite(r).any():
+        raise InputError("the table has no values (every cell is 0 = blank)", path=path)
+    return RTable(r, name=name, source=f"read from {Path(str(path)).name}")
+
+
+def read_table(path: str | Path) -> RTable:
+    """Read a table file: ``.rtb`` (DIALux) or CSV (anything else)."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except FileNotFoundError:
+        raise InputError("no such file", path=path) from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"cannot read the table ({err})", path=path) from None
+    text = text.replace("\r\n", "\n").replace("\r", "\n")
+    if path.suffix.lower() == ".rtb":
+        return parse_rtb(text, path=path)
+    return parse_csv(text, path=path)
+
+
+def bundled_table(name: str) -> RTable:
+    """One of the bundled CIE tables R1, R2, R3, R4, C1, C2 (case-insensitive)."""
+    key = name.strip().upper()
+    if key not in BUNDLED:
+        raise InputError(f"unknown table {name!r}; bundled tables are {', '.join(BUNDLED)}", field="table")
+    res = resources.files("roadgonio.data").joinpath("rtables", f"{key}.csv")
+    return parse_csv(res.read_text(encoding="utf-8"), path=f"roadgonio/data/rtables/{key}.csv", name=key)
+
+
+def load_table(spec: str | Path) -> RTable:
+    """A bundled table by name (``R3``) or a table file path."""
+    s = str(spec)
+    if s.strip().upper() in BUNDLED and not Path(s).exists():
+        return bundled_table(s)
+    p = Path(s)
+    if not p.exists():
+        raise InputError(f"not a bundled table ({', '.join(BUNDLED)}) and no such file", path=p)
+    return read_table(p)
+
+
+def iter_bundled() -> Iterable[RTable]:
+    for name in BUNDLED:
+        yield bundled_table(name)
