@@ -249,3 +249,22 @@ class Instrument:
             line = getattr(err, "lineno", None)
             raise InputError(f"not valid TOML: {getattr(err, 'msg', str(err))}", path=path, line=line) from None
         return cls.from_dict(d, path=path)
+
+
+def bundled_instruments() -> list[str]:
+    """Names of the instrument presets shipped in scenes/ (installed as roadgonio.scenes)."""
+    from importlib import resources
+    return sorted(p.name[:-5] for p in resources.files("roadgonio.scenes").iterdir() if p.name.endswith(".toml"))
+
+
+def load_instrument(spec: str | Path) -> Instrument:
+    """An instrument from a TOML file path, or a bundled preset by name (``lab``, ``portable``)."""
+    p = Path(spec)
+    if p.exists():
+        return Instrument.load(p)
+    names = bundled_instruments()
+    if str(spec) in names:
+        from importlib import resources
+        res = resources.files("roadgonio.scenes").joinpath(f"{spec}.toml")
+        return Instrument.load(Path(str(res)))
+    raise InputError(f"no such instrument file, and not a bundled preset ({', '.join(names)})", path=p)
