@@ -1,0 +1,130 @@
+"""``roadgonio ka``: the aperture-effect factor k_A of an instrument for a sample, one cell or a table."""
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+from ..errors import InputError
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "ka", help="aperture-effect factor k_A of an instrument (one cell or the whole r-table)",
+        description="Compute k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) for an instrument "
+                    "and a sample (DESIGN.md section 5). Without --tan-eps/--beta the whole 580-cell grid is "
+                    "computed and written to --out (ka.csv, ka_se.csv, ka.png, ka.json); an interrupted table "
+                    "resumes when the same command is run again.")
+    add_common_arguments(p)
+    p.add_argument("--tan-eps", type=float, metavar="T", help="one cell: tan(epsilon)")
+    p.add_argument("--beta", type=float, metavar="B", help="one cell: beta in degrees")
+    p.add_argument("--cells", choices=["all", "table"], default="all",
+                   help="all = the full 580-cell grid (default); table = only the cells tabulated in the "
+                        "sample's r-table (blank cells stay blank)")
+    p.add_argument("--out", metavar="DIR", help="output folder for a table (default: out/ka-INSTRUMENT-SAMPLE)")
+    p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
+    p.add_argument("--json", action="store_true",
+                   help='one cell: print {"k_a", "se", "samples", "seconds"}; table: print the summary as JSON')
+    p.set_defaults(func=run)
+
+
+def add_common_arguments(p) -> None:
+    """Options shared by the commands that compute k_A (ka, validate, uncertainty, correct)."""
+    p.add_argument("--instrument", required=True, metavar="FILE",
+                   help="instrument TOML file (scenes/*.toml) or a bundled preset name (lab, portable)")
+    p.add_argument("--sample", required=True, metavar="SAMPLE",
+                   help="bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file, a model.json, "
+                        "or 'lambert'")
+    p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature", "numpy-mc"],
+                   help="mitsuba (default; float32 ray tracing), quadrature (deterministic float64), "
+                        "numpy-mc (plain float64 Monte Carlo, slow; an oracle)")
+    p.add_argument("--accuracy", choices=["fast", "default", "precise"],
+                   help="preset on the measured speed-accuracy frontier (README); --rel-se overrides it")
+    p.add_argument("--rel-se", type=float, metavar="E",
+                   help="target relative standard error per cell (Monte Carlo backends) or relative tolerance "
+                        "(quadrature); default from --accuracy")
+    p.add_argument("--seed", type=int, default=0, help="random seed (Monte Carlo backends)")
+    p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU machine)")
+
+
+def backend_settings(args) -> dict:
+    """Backend keyword arguments from --accuracy / --rel-se / --seed / --variant."""
+    settings: dict = {}
+    if args.accuracy:
+        from ..ka.accuracy import ACCURACY
+        settings.update(ACCURACY[args.accuracy][args.backend])
+    if args.rel_se is not None:
+        if not (math.isfinite(args.rel_se) and 0 < args.rel_se < 1):
+            raise InputError(f"expected a relative error in (0, 1), got {args.rel_se}", field="--rel-se")
+        settings["rtol" if args.backend == "quadrature" else "rel_se"] = args.rel_se
+    if args.backend in ("mitsuba", "numpy-mc"):
+        settings["seed"] = args.seed
+    if args.backend == "mitsuba" and args.variant:
+        settings["variant"] = args.variant
+    return settings
+
+
+def load_inputs(args):
+    """(instrument, model) from --instrument and --sample."""
+    from ..instrument import load_instrument
+    from ..sample import resolve_sample
+    instrument = load_instrument(args.instrument)
+    model = resolve_sample(args.sample)
+    return instrument, model
+
+
+def run(args) -> int:
+    from ..ka import full_grid_cells, make_backend
+    from ..ka.table import run_cells, write_outputs
+    single = args.tan_eps is not None or args.beta is not None
+    if single and (args.tan_eps is None or args.beta is None):
+        raise InputError("give both --tan-eps and --beta for one cell (or neither for the whole table)",
+                         field="--tan-eps/--beta")
+    if single:
+        if not (math.isfinite(args.tan_eps) and args.tan_eps >= 0):
+            raise InputError(f"expected tan eps >= 0, got {args.tan_eps}", field="--tan-eps")
+        if not (math.isfinite(args.beta) and 0 <= args.beta <= 180):
+            raise InputError(f"expected 0 <= beta <= 180 deg, got {args.beta}", field="--beta")
+    instrument, model = load_inputs(args)
+    backend = make_backend(args.backend, instrument, model, **backend_settings(args))
+
+    if single:
+        t0 = time.perf_counter()
+        out_dir = Path(args.out) if args.out else None
+        run_ = run_cells(backend, [(args.tan_eps, args.beta)], instrument=instrument, model=model,
+                         out_dir=out_dir, fresh=args.fresh, progress=False)
+        c = run_.results[0]
+        seconds = c.seconds if run_.resumed else time.perf_counter() - t0
+        if args.json:
+            print(json.dumps({"k_a": c.k_a, "se": c.se, "samples": c.samples, "seconds": seconds}))
+        else:
+            print(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} +- {c.se:.2g} "
+                  f"(standard error; {c.samples} samples, {seconds:.2f} s, {backend.name} backend)")
+        return 0
+
+    if args.cells == "table":
+        from ..rtable import load_table
+        try:
+            table = load_table(args.sample)
+        except InputError:
+            raise InputError("--cells table needs a sample that is an r-table (bundled name or table file)",
+                             field="--cells") from None
+        cells = table.cells
+    else:
+        cells = full_grid_cells()
+    sample_name = Path(args.sample).stem if Path(args.sample).exists() else args.sample
+    out_dir = Path(args.out) if args.out else Path("out") / f"ka-{instrument.name}-{sample_name}"
+    run_ = run_cells(backend, cells, instrument=instrument, model=model, out_dir=out_dir, fresh=args.fresh)
+    meta = write_outputs(run_, out_dir, instrument=instrument, model=model, backend=backend,
+                         sample_spec=sample_name)
+    s = meta["summary"]
+    if args.json:
+        print(json.dumps({"out": str(out_dir), **s}, indent=2))
+    else:
+        print(f"k_A for {instrument.name} x {sample_name} ({backend.name}): {s['cells']} cells "
+              f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
+              f"worst relative SE {s['worst_rel_se']:.1e}, {run_.seconds:.1f} s.", file=sys.stdout)
+        print(f"wrote {out_dir}/ka.csv, ka_se.csv, ka.png, ka.json")
+    return 0

@@ -1,0 +1,220 @@
+"""Compute a k_A table (or one cell) with any backend: progress, resume, outputs, provenance.
+
+Output folder (``--out DIR``):
+
+* ``ka_cells.jsonl`` - the journal: one JSON line per finished cell, flushed and fsync'ed as each
+  cell finishes, headed by a fingerprint of the run (instrument, model, backend, settings). A run
+  interrupted at any point resumes from it; a journal of a *different* run is never mixed in
+  (clear error, use another folder or ``--fresh``).
+* ``ka.csv`` / ``ka_se.csv`` - k_A and its standard error in the r-table layout (rows tan eps,
+  columns beta; cells not computed stay blank).
+* ``ka.png`` - a map like the paper's Figure 4.
+* ``ka.json`` - provenance and summary: instrument, model, backend and settings, versions, cells.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import platform
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from ..errors import InputError
+from ..fileio import atomic_write_json, to_json
+from ..geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from ..instrument import Instrument
+from ..model import RoadModel
+from ..rtable import RTable
+from . import CellResult, KaBackend
+
+JOURNAL = "ka_cells.jsonl"
+
+
+def versions() -> dict[str, str]:
+    """Versions of the software that produced a result (mitsuba/drjit only if already imported)."""
+    import numpy
+    import scipy
+
+    from .. import __version__
+    v = {"roadgonio": __version__, "python": platform.python_version(), "numpy": numpy.__version__,
+         "scipy": scipy.__version__, "platform": platform.platform()}
+    for mod in ("mitsuba", "drjit"):
+        if mod in sys.modules:
+            v[mod] = getattr(sys.modules[mod], "__version__", "?")
+    if "mitsuba" in sys.modules:
+        try:
+            v["mitsuba_variant"] = sys.modules["mitsuba"].variant()
+            from ..render import llvm_version
+            lv = llvm_version()
+            if lv:
+                v["llvm"] = ".".join(map(str, lv))
+        except Exception:  # pragma: no cover
+            pass
+    return v
+
+
+def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) -> str:
+    """Hash of everything that determines the numbers of a run."""
+    payload = {"instrument": instrument.to_dict(), "model": {"variant": model.variant,
+                                                              "params": model.params.to_dict()},
+               "backend": backend.name, "settings": backend.settings()}
+    return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
+
+
+@dataclass
+class KaRun:
+    """A finished (or partly finished) k_A computation."""
+
+    results: list[CellResult]
+    seconds: float
+    resumed: int
+
+    def grid(self, attr: str = "k_a") -> np.ndarray:
+        out = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), np.nan)
+        for c in self.results:
+            i = int(np.argmin(np.abs(TAN_EPS_GRID - c.tan_eps)))
+            j = int(np.argmin(np.abs(BETA_GRID_DEG - c.beta_deg)))
+            if abs(TAN_EPS_GRID[i] - c.tan_eps) < 1e-9 and abs(BETA_GRID_DEG[j] - c.beta_deg) < 1e-9:
+                out[i, j] = getattr(c, attr)
+        return out
+
+
+def _cell_key(t: float, b: float) -> tuple[float, float]:
+    return (round(float(t), 9), round(float(b), 9))
+
+
+def _read_journal(path: Path, fp: str) -> dict[tuple[float, float], CellResult]:
+    done: dict[tuple[float, float], CellResult] = {}
+    if not path.exists():
+        return done
+    with path.open(encoding="utf-8") as f:
+        lines = f.read().splitlines()
+    if not lines:
+        return done
+    try:
+        head = json.loads(lines[0])
+    except json.JSONDecodeError:
+        raise InputError("the journal's first line is not valid JSON; move the folder away or use --fresh",
+                         path=path, line=1) from None
+    if head.get("fingerprint") != fp:
+        raise InputError("this folder holds results of a different run (instrument, model, backend or settings "
+                         "differ); use another --out folder, or --fresh to discard them", path=path, line=1)
+    for k, line in enumerate(lines[1:], start=2):
+        try:
+            d = json.loads(line)
+            c = CellResult(**d)
+        except (json.JSONDecodeError, TypeError):
+            if k == len(lines):   # a line cut short by an interruption: compute that cell again
+                break
+            raise InputError("corrupt journal line; move the folder away or use --fresh", path=path, line=k) from None
+        done[_cell_key(c.tan_eps, c.beta_deg)] = c
+    return done
+
+
+def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instrument: Instrument,
+              model: RoadModel, out_dir: str | Path | None = None, fresh: bool = False,
+              progress: bool = True) -> KaRun:
+    """Compute k_A at ``cells`` with ``backend``; with ``out_dir``, journal each cell and resume."""
+    t0 = time.perf_counter()
+    journal = None
+    done: dict[tuple[float, float], CellResult] = {}
+    fp = fingerprint(instrument, model, backend)
+    if out_dir is not None:
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        journal = out_dir / JOURNAL
+        if fresh and journal.exists():
+            journal.unlink()
+        done = _read_journal(journal, fp)
+        if not journal.exists() or journal.stat().st_size == 0:
+            with journal.open("w", encoding="utf-8") as f:
+                f.write(to_json({"fingerprint": fp, "backend": backend.name}, indent=None) + "\n")
+        else:
+            # rewrite without a cut-short last line, atomically, before appending
+            from ..fileio import atomic_write_text
+            atomic_write_text(journal, to_json({"fingerprint": fp, "backend": backend.name}, indent=None) + "\n"
+                              + "".join(to_json(c.to_dict(), indent=None) + "\n" for c in done.values()))
+    todo = [c for c in cells if _cell_key(*c) not in done]
+    resumed = len(cells) - len(todo)
+    bar = None
+    if progress and todo:
+        from tqdm import tqdm
+        bar = tqdm(total=len(cells), initial=resumed, unit="cell", desc=f"k_A ({backend.name})",
+                   file=sys.stderr, dynamic_ncols=True, disable=None)
+    fh = journal.open("a", encoding="utf-8") if journal is not None else None
+
+    def on_cell(c: CellResult) -> None:
+        done[_cell_key(c.tan_eps, c.beta_deg)] = c
+        if fh is not None:
+            fh.write(to_json(c.to_dict(), indent=None) + "\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix_str(f"tan={c.tan_eps:g} beta={c.beta_deg:g} k_A={c.k_a:.4g}")
+
+    try:
+        if todo:
+            returned = backend.compute(todo, on_cell=on_cell)
+            for c in returned:   # backends that do not call on_cell
+                if _cell_key(c.tan_eps, c.beta_deg) not in done:
+                    on_cell(c)
+    finally:
+        if fh is not None:
+            fh.close()
+        if bar is not None:
+            bar.close()
+    results = [done[_cell_key(*c)] for c in cells if _cell_key(*c) in done]
+    return KaRun(results=results, seconds=time.perf_counter() - t0, resumed=resumed)
+
+
+def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, model: RoadModel,
+                  backend: KaBackend, sample_spec: str, plot: bool = True) -> dict[str, Any]:
+    """Write ka.csv, ka_se.csv, ka.png and ka.json; returns the ka.json content."""
+    out_dir = Path(out_dir)
+    ka = run.grid("k_a")
+    se = run.grid("se")
+    label = f"k_A of instrument '{instrument.name}' for sample '{sample_spec}' ({backend.name} backend)"
+    RTable(ka, name="k_A", source=label).write_csv(out_dir / "ka.csv", scale=1.0, digits=7)
+    RTable(se, name="k_A standard error", source="standard error of " + label).write_csv(
+        out_dir / "ka_se.csv", scale=1.0, digits=4)
+    rel = np.array([c.se / abs(c.k_a) if c.k_a else math.inf for c in run.results])
+    finite_ka = np.array([c.k_a for c in run.results])
+    summary = {
+        "cells": len(run.results),
+        "k_a_min": float(finite_ka.min()) if finite_ka.size else None,
+        "k_a_max": float(finite_ka.max()) if finite_ka.size else None,
+        "worst_rel_se": float(rel.max()) if rel.size else None,
+        "samples": int(sum(c.samples for c in run.results)),
+        "seconds_total": float(sum(c.seconds for c in run.results)),
+        "seconds_wall_this_run": run.seconds,
+        "resumed_cells": run.resumed,
+    }
+    meta = {
+        "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (DESIGN.md section 5)",
+        "instrument": instrument.to_dict(),
+        "instrument_file": str(instrument.path) if instrument.path else None,
+        "sample": sample_spec,
+        "model": model.to_json_dict(),
+        "backend": backend.name,
+        "settings": backend.settings(),
+        "versions": versions(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "summary": summary,
+        "files": {"ka": "ka.csv", "se": "ka_se.csv", "map": "ka.png" if plot else None, "journal": JOURNAL},
+    }
+    atomic_write_json(out_dir / "ka.json", meta)
+    if plot:
+        from ..plots import table_map
+        table_map(ka, out_dir / "ka.png", title=f"Aperture-effect factor k_A: {instrument.name} x {sample_spec}",
+                  subtitle=f"{backend.name} backend, {summary['cells']} cells, worst rel. SE "
+                           f"{summary['worst_rel_se']:.1e}" if summary["worst_rel_se"] is not None else "",
+                  label="k_A (1 = no aperture effect)")
+    return meta

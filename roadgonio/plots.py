@@ -1,0 +1,68 @@
+"""Pictures shared by the commands (matplotlib, Agg backend, written atomically)."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .fileio import atomic_savefig
+from .geometry import BETA_GRID_DEG, TAN_EPS_GRID
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def table_map(values: np.ndarray, path: str | Path, *, title: str, label: str, centre: float | None = 1.0,
+              fmt: str = "{:.2f}", log: bool = True, annotate: bool = True,
+              tan_eps=TAN_EPS_GRID, beta_deg=BETA_GRID_DEG, subtitle: str = "") -> Path:
+    """An r-table-shaped map (rows tan eps, columns beta) like the paper's Figure 4: coloured
+    cells with their values written in; blank (NaN) cells left white.
+
+    ``centre`` puts a diverging colour map's midpoint at that value (k_A = 1: no aperture
+    effect); ``log`` uses a logarithmic colour scale (k_A spans 0.3 ... 5).
+    """
+    plt = _plt()
+    from matplotlib import colors
+    v = np.asarray(values, dtype=np.float64)
+    finite = v[np.isfinite(v)]
+    fig, ax = plt.subplots(figsize=(12, 10))
+    if finite.size:
+        lo, hi = float(finite.min()), float(finite.max())
+        if centre is not None:
+            if log and lo > 0:
+                span = max(abs(np.log10(lo / centre)), abs(np.log10(hi / centre)), 1e-3)
+                norm = colors.LogNorm(vmin=centre / 10 ** span, vmax=centre * 10 ** span)
+            else:
+                span = max(abs(lo - centre), abs(hi - centre), 1e-6)
+                norm = colors.Normalize(vmin=centre - span, vmax=centre + span)
+            cmap = plt.get_cmap("RdBu_r")
+        else:
+            norm = colors.LogNorm(vmin=lo, vmax=hi) if (log and lo > 0) else colors.Normalize(vmin=lo, vmax=hi)
+            cmap = plt.get_cmap("viridis")
+    else:
+        norm, cmap = colors.Normalize(0, 1), plt.get_cmap("viridis")
+    masked = np.ma.masked_invalid(v)
+    im = ax.imshow(masked, cmap=cmap, norm=norm, aspect="auto", interpolation="nearest")
+    ax.set_xticks(range(len(beta_deg)), [f"{b:g}" for b in beta_deg])
+    ax.set_yticks(range(len(tan_eps)), [f"{t:g}" for t in tan_eps])
+    ax.set_xlabel("beta (deg)")
+    ax.set_ylabel("tan eps")
+    ax.set_title(title + (f"\n{subtitle}" if subtitle else ""), fontsize=11)
+    if annotate:
+        for i in range(v.shape[0]):
+            for j in range(v.shape[1]):
+                if np.isfinite(v[i, j]):
+                    rgba = cmap(norm(v[i, j]))
+                    lum = 0.299 * rgba[0] + 0.587 * rgba[1] + 0.114 * rgba[2]
+                    ax.text(j, i, fmt.format(v[i, j]), ha="center", va="center", fontsize=6.5,
+                            color="white" if lum < 0.45 else "black")
+    cb = fig.colorbar(im, ax=ax, fraction=0.035, pad=0.02)
+    cb.set_label(label)
+    fig.tight_layout()
+    out = atomic_savefig(fig, path, dpi=110)
+    plt.close(fig)
+    return out
