@@ -62,6 +62,9 @@ def table_map(values: np.ndarray, path: str | Path, *, title: str, label: str, c
                             color="white" if lum < 0.45 else "black")
     cb = fig.colorbar(im, ax=ax, fraction=0.035, pad=0.02)
     cb.set_label(label)
+    from matplotlib import ticker
+    cb.ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%.3g"))
+    cb.ax.yaxis.set_minor_formatter(ticker.FormatStrFormatter("%.2g"))
     fig.tight_layout()
     out = atomic_savefig(fig, path, dpi=110)
     plt.close(fig)
