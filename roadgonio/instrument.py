@@ -247,6 +247,10 @@ class Instrument:
             d = tomllib.loads(text)
         except tomllib.TOMLDecodeError as err:
             line = getattr(err, "lineno", None)
+            if line is None:  # Python 3.11: only in the message, "(at line 5, column 14)"
+                import re
+                m = re.search(r"at line (\d+)", str(err))
+                line = int(m.group(1)) if m else None
             raise InputError(f"not valid TOML: {getattr(err, 'msg', str(err))}", path=path, line=line) from None
         return cls.from_dict(d, path=path)
 
