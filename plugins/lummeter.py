@@ -1,0 +1,122 @@
+"""Luminance-meter sensor as a Mitsuba 3 Python plugin (plugin name ``lummeter``); DESIGN.md
+section 4, the detector domain of paper eq. 3.
+
+Entrance pupil: a disc of radius R_D centred at D_D w_o(alpha, delta), normal to the axis towards
+the sample centre. Field stop: a circular disc of angular half-size gamma_D, conjugate to the plane
+normal to the axis at the focus distance F (``focus_m``; default D_D; ``inf`` = angular field).
+The rays and their etendue weights come from :func:`roadgonio.optics.detector_ray`, evaluated with
+the Dr.Jit namespace (nothing of the geometry is repeated here).
+
+Sampling: the film position sample (u in [0, 1]^2, one pixel = one stratum) is concentric-mapped
+to the unit field disc, so the pixels stratify the field exactly; the aperture sample is
+concentric-mapped to the unit pupil disc. Each ray's weight is the etendue factor normalised to 1
+on the axis; with a box reconstruction filter every pixel is the mean of its samples, and the
+**mean over all pixels** (reduce in float64) is the detector signal S[f] up to a constant
+(pupil area x field area x radiance units), the same constant for every BSDF.
+
+Zero pupil radius = pinhole (every ray starts at the pupil centre); zero field = a single
+direction (the axis, or for a pupil with a field of zero size, the rays of the pupil converging
+on the focus point).
+
+Properties: ``alpha_deg``, ``delta_deg`` (the observation direction), ``distance_m``,
+``pupil_radius_m``, ``field_half_angle_deg``, ``focus_m`` (float; ``inf`` or a value <= 0 means
+an angular field; default = ``distance_m``); plus the usual ``film`` and ``sampler`` children.
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from roadgonio.errors import InputError
+from roadgonio.instrument import Instrument
+from roadgonio.optics import DetectorGeometry, concentric_disc, detector_geometry, detector_ray
+from roadgonio.render.ops import DrJitOps
+
+DETECTOR_KEYS = ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m")
+
+
+def _python_floats(v) -> np.ndarray:
+    """A float64 vector as an object array of Python floats: it still supports ``k * v`` and
+    ``v[i]``, but its elements combine with Dr.Jit arrays as Python scalars (a numpy float64
+    times a Dr.Jit array would turn into a numpy array)."""
+    return np.array([float(x) for x in v], dtype=object)
+
+
+def jit_geometry(geo: DetectorGeometry) -> DetectorGeometry:
+    """Copy of ``geo`` whose vectors hold Python floats (see :func:`_python_floats`)."""
+    return DetectorGeometry(centre=_python_floats(geo.centre), axis=_python_floats(geo.axis),
+                            s=_python_floats(geo.s), t=_python_floats(geo.t),
+                            pupil_radius_m=float(geo.pupil_radius_m), focus_m=float(geo.focus_m),
+                            tan_field=float(geo.tan_field))
+
+
+def instrument_from_props(props) -> Instrument:
+    """The detector part of an :class:`Instrument` from the sensor's properties."""
+    obs = {}
+    for key in ("alpha_deg", "delta_deg"):
+        if props.has_property(key):
+            obs[key] = float(props.get(key))
+    det = {}
+    for key in DETECTOR_KEYS:
+        if props.has_property(key):
+            v = props.get(key)
+            if key == "focus_m":
+                v = "inf" if (isinstance(v, str) and v.strip().lower() in ("inf", "infinity")) else float(v)
+                if not isinstance(v, str) and (math.isinf(v) or v <= 0.0):
+                    v = "inf"
+            det[key] = v
+    det.setdefault("distance_m", 5.0)
+    return Instrument.from_dict({"observation": obs, "source": {"distance_m": 1.0}, "detector": det})
+
+
+class LumMeter(mi.Sensor):
+    """Luminance meter: exact circular pupil x circular field (see the module docstring)."""
+
+    def __init__(self, props):
+        mi.Sensor.__init__(self, props)
+        try:
+            self.instrument = instrument_from_props(props)
+        except InputError as err:
+            raise InputError(f"lummeter sensor: {err}") from None
+        self.geometry = detector_geometry(self.instrument)
+        self._geo = jit_geometry(self.geometry)
+        self.m_needs_sample_3 = True
+
+    def detector_dict(self) -> dict:
+        """The detector geometry as an instrument ``[observation]``/``[detector]`` dict."""
+        d = self.instrument.to_dict()
+        return {"observation": d["observation"], "detector": d["detector"]}
+
+    def rays(self, field_u, pupil_u):
+        """Origin, direction and etendue weight of the rays for unit-square samples
+        (field: film position, pupil: aperture sample); Dr.Jit arrays."""
+        fx, fy = concentric_disc(DrJitOps, field_u.x, field_u.y)
+        px, py = concentric_disc(DrJitOps, pupil_u.x, pupil_u.y)
+        return detector_ray(DrJitOps, self._geo, (px, py), (fx, fy))
+
+    def sample_ray(self, time, sample1, sample2, sample3, active=True):
+        o, d, w = self.rays(sample2, sample3)
+        ray = mi.Ray3f(mi.Point3f(o[0], o[1], o[2]), mi.Vector3f(d[0], d[1], d[2]))
+        ray.time = time
+        return ray, mi.Spectrum(w)
+
+    def sample_ray_differential(self, time, sample1, sample2, sample3, active=True):
+        ray, weight = self.sample_ray(time, sample1, sample2, sample3, active)
+        rd = mi.RayDifferential3f(ray)
+        rd.has_differentials = False
+        return rd, weight
+
+    def bbox(self):
+        c = self.geometry.centre
+        r = max(self.geometry.pupil_radius_m, 1e-6)
+        return mi.ScalarBoundingBox3f(mi.ScalarPoint3f(*(c - r)), mi.ScalarPoint3f(*(c + r)))
+
+    def to_string(self):
+        g = self.geometry
+        focus = "inf" if g.angular else f"{g.focus_m:g} m"
+        return (f"LumMeter[alpha={self.instrument.observation.alpha_deg:g} deg, "
+                f"D={self.instrument.detector.distance_m:g} m, R_D={g.pupil_radius_m:g} m, "
+                f"gamma={self.instrument.detector.field_half_angle_deg:g} deg, F={focus}]")

@@ -1,0 +1,152 @@
+"""The road BSDF as a Mitsuba 3 Python plugin (plugin name ``roadbsdf``).
+
+It evaluates :func:`roadgonio.model.road_brdf` (paper eq. 4, the project's one definition of the
+model) with the Dr.Jit namespace :class:`roadgonio.render.ops.DrJitOps`; nothing of the formula is
+repeated here.
+
+Properties (XML or ``mi.load_dict``):
+
+* the model parameters by their DESIGN.md names (``k_diff``, ``k_phong``, ``n_phong``, ``k_retro``,
+  ``n_retro``, ``k_exp``, ``p``, ``h``, ``mu``, ``g_a``, ``g_b``, ``g_c``, ``g_t``,
+  ``theta_l_deg``; floats, defaults as in :class:`roadgonio.model.RoadParams`, validated);
+* ``variant``: ``"power"`` (default) or ``"product"`` (structural);
+* ``channels``: ``"road"`` (default: every colour channel is f_road, an ordinary BSDF) or
+  ``"road_lambert"`` (rgb variants only): channel 0 = f_road, channels 1 and 2 = 1/pi, the
+  perfect diffuser. The detector signal then carries S[f_road] in R and S[f_lambert] in G and B,
+  computed from the same rays in the same pass (the k_A ratio of DESIGN.md section 5).
+
+Calling convention (mitsuba-cpu notes, section 2): ``si.wi`` is the local direction towards the
+sensor (the model's ``wo``), the ``wo`` argument is towards the light (the model's ``wi``);
+:meth:`eval` returns f cos(theta_light); :meth:`sample` draws the light direction from a
+cosine-weighted hemisphere (pdf = cos/pi) and returns the weight f cos/pdf = pi f.
+
+Parameters are stored as opaque ``mi.Float`` (``dr.opaque``), listed by :meth:`traverse` as
+non-differentiable, so changing a value never recompiles the kernel. The variant and the set of
+active terms (:func:`roadgonio.model.active_terms`) are structural: they decide which code is
+traced; the term set is recomputed from the values in :meth:`parameters_changed`.
+
+Registration: :func:`roadgonio.render.plugins.register_plugins` after ``set_variant``.
+"""
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+
+from roadgonio.errors import InputError
+from roadgonio.model import PARAM_NAMES, VARIANTS, RoadParams, active_terms, road_brdf
+from roadgonio.render.ops import DrJitOps
+
+CHANNELS = ("road", "road_lambert")
+INV_PI = 1.0 / math.pi
+
+
+class RoadBSDF(mi.BSDF):
+    """Road BSDF of paper eq. 4 (see the module docstring)."""
+
+    def __init__(self, props):
+        mi.BSDF.__init__(self, props)
+        values = {}
+        for name in PARAM_NAMES:
+            if props.has_property(name):
+                values[name] = float(props.get(name))
+        variant = str(props.get("variant", "power")) if props.has_property("variant") else "power"
+        channels = str(props.get("channels", "road")) if props.has_property("channels") else "road"
+        if variant not in VARIANTS:
+            raise InputError(f"unknown road BSDF variant {variant!r}; expected one of {', '.join(VARIANTS)}",
+                             field="variant")
+        if channels not in CHANNELS:
+            raise InputError(f"unknown channels {channels!r}; expected one of {', '.join(CHANNELS)}",
+                             field="channels")
+        if channels == "road_lambert" and not mi.is_rgb:
+            raise InputError("channels = 'road_lambert' needs an rgb variant (3 colour channels)",
+                             field="channels")
+        self.variant = variant
+        self.channels = channels
+        params = RoadParams.from_dict(values)          # validates the bounds
+        self._values = params.to_dict()
+        for name in PARAM_NAMES:
+            setattr(self, name, dr.opaque(mi.Float, self._values[name]))
+        self.terms = active_terms(self._values)
+        flags = mi.BSDFFlags.DiffuseReflection | mi.BSDFFlags.GlossyReflection | mi.BSDFFlags.FrontSide
+        self.m_components = [flags]
+        self.m_flags = flags
+
+    # -- parameters --------------------------------------------------------------------------
+    def traverse(self, cb):
+        for name in PARAM_NAMES:
+            cb.put(name, getattr(self, name), mi.ParamFlags.NonDifferentiable)
+
+    def parameters_changed(self, keys=[]):
+        for name in PARAM_NAMES:
+            v = getattr(self, name)
+            if not isinstance(v, mi.Float):
+                v = mi.Float(v)
+                setattr(self, name, v)
+            dr.make_opaque(v)
+        values = {name: float(getattr(self, name)[0]) for name in PARAM_NAMES}
+        RoadParams.from_dict(values)                   # out-of-bounds values are an error, not a NaN
+        self._values = values
+        self.terms = active_terms(values)
+
+    def set_model(self, params: RoadParams | dict, variant: str | None = None) -> None:
+        """Replace all parameters (and optionally the variant) from Python."""
+        values = (params if isinstance(params, RoadParams) else RoadParams.from_dict(params)).to_dict()
+        if variant is not None:
+            if variant not in VARIANTS:
+                raise InputError(f"unknown road BSDF variant {variant!r}", field="variant")
+            self.variant = variant
+        for name in PARAM_NAMES:
+            setattr(self, name, mi.Float(values[name]))
+        self.parameters_changed()
+
+    def model_values(self) -> dict[str, float]:
+        return dict(self._values)
+
+    # -- evaluation ----------------------------------------------------------------------------
+    def _params(self):
+        return {name: getattr(self, name) for name in PARAM_NAMES}
+
+    def _f(self, wi_sensor, wo_light):
+        """f_road with the model's convention: wi = towards the light, wo = towards the sensor."""
+        return road_brdf(DrJitOps, self._params(), (wo_light.x, wo_light.y, wo_light.z),
+                         (wi_sensor.x, wi_sensor.y, wi_sensor.z), self.variant, self.terms)
+
+    def _spectrum(self, f, scale, active):
+        """Colour value: f scale in every channel, or (f, 1/pi, 1/pi) scale (road_lambert)."""
+        if self.channels == "road_lambert":
+            value = mi.Color3f(f, INV_PI, INV_PI) * scale
+        else:
+            value = mi.Spectrum(f * scale)
+        return dr.select(active, value, 0.0)
+
+    def eval(self, ctx, si, wo, active=True):
+        cos_s = mi.Frame3f.cos_theta(si.wi)
+        cos_l = mi.Frame3f.cos_theta(wo)
+        active = active & (cos_s > 0.0) & (cos_l > 0.0)
+        return self._spectrum(self._f(si.wi, wo), cos_l, active)
+
+    def pdf(self, ctx, si, wo, active=True):
+        cos_s = mi.Frame3f.cos_theta(si.wi)
+        active = active & (cos_s > 0.0)
+        return dr.select(active, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0)
+
+    def eval_pdf(self, ctx, si, wo, active=True):
+        return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
+
+    def sample(self, ctx, si, sample1, sample2, active=True):
+        cos_s = mi.Frame3f.cos_theta(si.wi)
+        bs = dr.zeros(mi.BSDFSample3f)
+        bs.wo = mi.warp.square_to_cosine_hemisphere(sample2)
+        bs.pdf = mi.warp.square_to_cosine_hemisphere_pdf(bs.wo)
+        bs.eta = 1.0
+        bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
+        bs.sampled_component = mi.UInt32(0)
+        active = active & (cos_s > 0.0) & (bs.pdf > 0.0)
+        # weight = f cos / pdf with pdf = cos / pi
+        return bs, self._spectrum(self._f(si.wi, bs.wo), math.pi, active)
+
+    def to_string(self):
+        vals = ", ".join(f"{k}={self._values[k]:g}" for k in PARAM_NAMES)
+        return f"RoadBSDF[variant={self.variant}, channels={self.channels}, terms={sorted(self.terms)}, {vals}]"

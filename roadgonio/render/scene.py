@@ -1,0 +1,407 @@
+"""The goniophotometer as a Mitsuba 3 scene (DESIGN.md section 4).
+
+Parts of a scene, by id (the same ids for a scene built from a TOML instrument and for an XML scene):
+
+* ``"source"``: the source. A ``disk`` shape carrying an ``area`` emitter of uniform radiance
+  (the exit aperture, radius R_S, facing the sample centre), or a ``point`` emitter when R_S = 0.
+  Its placement is set per cell from the instrument's nominal geometry (``to_world`` /
+  ``position`` through ``mi.traverse``), so the scene is built and compiled once per instrument.
+  Units: the radiance is D_S^2 / (pi R_S^2) (point: intensity D_S^2), so the illuminance normal
+  to the source axis at the sample centre is about 1 lx.
+* ``"sample"``: the sample shape, carrying the road BSDF (``roadbsdf``). From a TOML instrument:
+  a trimesh rectangle ``size_x_m`` x ``size_y_m`` centred on the origin, or the instrument's mesh
+  file loaded with trimesh, converted to a ``mi.Mesh``. Its faces must face +z (one-sided).
+* ``"detector"``: the luminance meter (``lummeter`` sensor, :mod:`roadgonio.render.plugins.lummeter`).
+
+The integrator is always ``direct`` with ``emitter_samples = 1``, ``bsdf_samples = 0`` (emitter
+sampling only: the small source disc is found by every sample; mitsuba-cpu notes, section 7).
+
+**XML scenes.** An instrument TOML file may add ``[scene] xml = "file.xml"`` (relative to the TOML
+file). The TOML file still gives the nominal geometry (alpha, D_S, R_S, detector...): it defines
+the ideal geometry of k_A, the source placement per cell and the geometry checks. The XML file is
+loaded with ``mi.load_file`` and these parameters (usable as ``$name`` in the XML; give them
+``<default>`` values so the file also opens alone)::
+
+    alpha_deg delta_deg source_distance_m source_radius_m source_radiance detector_distance_m
+    pupil_radius_m field_half_angle_deg focus_m sample_size_x_m sample_size_y_m
+
+plus every key of an optional ``[scene.params]`` table (e.g. ``rim_height_m = 0.05``). The XML
+must contain the three parts above by id: a shape ``sample`` with a ``roadbsdf`` BSDF (its
+parameters are replaced by the model being computed), a ``lummeter`` sensor ``detector`` (its
+geometry must equal the TOML's ``[detector]``/``[observation]``), and a ``source`` (disk shape
+with an area emitter, or a point emitter). Everything else in the XML (baffles, housings, a sample
+holder, a non-flat sample) is simulated as it is. Example: ``scenes/holder.toml`` with
+``scenes/holder.xml``.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import BackendError, GeometryError, InputError
+from ..instrument import Instrument
+from ..model import RoadModel
+from ..optics import check_detector, check_source, detector_geometry, footprint_boundary, source_geometry
+from . import set_variant
+
+#: Ids of the scene parts (TOML-built and XML scenes alike).
+SOURCE_ID, SAMPLE_ID, DETECTOR_ID = "source", "sample", "detector"
+#: Channels of the road BSDF in the backend scene: R = f_road, G = B = 1/pi (perfect diffuser).
+ROAD, LAMBERT = 0, 1
+
+_XML_PARAM_KEYS = ("alpha_deg", "delta_deg", "source_distance_m", "source_radius_m", "source_radiance",
+                   "detector_distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m",
+                   "sample_size_x_m", "sample_size_y_m")
+
+
+def _mi():
+    import mitsuba as mi
+    return mi
+
+
+def film_dict(resolution: int, spp: int, sampler: str = "independent") -> tuple[dict, dict]:
+    film = {"type": "hdrfilm", "width": int(resolution), "height": int(resolution),
+            "rfilter": {"type": "box"}, "pixel_format": "rgb", "component_format": "float32"}
+    return film, {"type": sampler, "sample_count": int(spp)}
+
+
+def detector_props(instrument: Instrument) -> dict[str, Any]:
+    det = instrument.detector
+    return {"alpha_deg": float(instrument.observation.alpha_deg),
+            "delta_deg": float(instrument.observation.delta_deg),
+            "distance_m": float(det.distance_m), "pupil_radius_m": float(det.pupil_radius_m),
+            "field_half_angle_deg": float(det.field_half_angle_deg),
+            "focus_m": -1.0 if math.isinf(det.focus) else float(det.focus)}
+
+
+def source_radiance(instrument: Instrument) -> float:
+    """Radiance (disc) or intensity (point) giving ~1 lx normal to the axis at the sample centre."""
+    src = instrument.source
+    d2 = src.distance_m ** 2
+    return d2 if src.is_point else d2 / (math.pi * src.radius_m ** 2)
+
+
+def rectangle_trimesh(size_x_m: float, size_y_m: float):
+    import trimesh
+    hx, hy = size_x_m / 2.0, size_y_m / 2.0
+    v = np.array([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    return trimesh.Trimesh(vertices=v, faces=f, process=False)
+
+
+def load_trimesh(path: Path):
+    import trimesh
+    try:
+        mesh = trimesh.load(str(path), force="mesh")
+    except Exception as err:  # trimesh raises many kinds
+        raise InputError(f"cannot read the sample mesh ({err})", path=path, field="sample.mesh") from None
+    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
+        raise InputError("the sample mesh has no triangles", path=path, field="sample.mesh")
+    return mesh
+
+
+def check_mesh_orientation(mesh, where: str = "sample mesh") -> None:
+    """The sample is one-sided (faces must face +z): refuse a mesh facing downwards."""
+    normals = np.asarray(mesh.face_normals, dtype=np.float64)
+    area = np.asarray(mesh.area_faces, dtype=np.float64)
+    nz = float(np.sum(normals[:, 2] * area) / max(np.sum(area), 1e-300))
+    if nz <= 0.0:
+        raise InputError(f"the {where}'s faces point downwards (area-weighted mean normal z = {nz:.3g}); "
+                         "the sample surface is one-sided: reverse the face winding so that it faces +z")
+
+
+def to_mitsuba_mesh(mesh, bsdf, name: str = SAMPLE_ID):
+    """Convert a trimesh mesh to a ``mi.Mesh`` carrying ``bsdf``."""
+    mi = _mi()
+    import drjit as dr
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(mesh.faces, dtype=np.uint32)
+    props = mi.Properties()
+    props["bsdf"] = bsdf
+    m = mi.Mesh(name, len(v), len(f), props)
+    p = mi.traverse(m)
+    p["vertex_positions"] = dr.ravel(mi.Point3f(v[:, 0].astype(np.float32), v[:, 1].astype(np.float32),
+                                                v[:, 2].astype(np.float32)))
+    p["faces"] = dr.ravel(mi.Vector3u(f[:, 0], f[:, 1], f[:, 2]))
+    p.update()
+    return m
+
+
+def source_transform(instrument: Instrument, tan_eps: float, beta_deg: float):
+    """``to_world`` of the unit disc: centre D_S w_i, normal towards the sample centre, radius R_S."""
+    mi = _mi()
+    g = source_geometry(instrument, tan_eps, beta_deg)
+    r = max(g.radius_m, 0.0)
+    m = np.eye(4)
+    m[:3, 0] = r * g.s
+    m[:3, 1] = r * g.t
+    m[:3, 2] = g.axis
+    m[:3, 3] = g.centre
+    return mi.ScalarTransform4f(m.tolist())
+
+
+def check_beam(instrument: Instrument, tan_eps: float, beta_deg: float) -> None:
+    """The Mitsuba area emitter has no beam limit: accept a beam limit only where it cannot clip."""
+    src = instrument.source
+    if src.beam_half_angle_deg is None:
+        return
+    g = source_geometry(instrument, tan_eps, beta_deg)
+    x, y = footprint_boundary(instrument)
+    ang = np.linspace(0, 2 * np.pi, 32, endpoint=False)
+    sp = g.centre[None, :] + g.radius_m * (np.cos(ang)[:, None] * g.s + np.sin(ang)[:, None] * g.t)
+    pts = np.stack([x, y, np.zeros_like(x)], axis=-1)
+    d = pts[None, :, :] - np.concatenate([sp, g.centre[None, :]])[:, None, :]
+    cosang = (d @ g.axis) / np.linalg.norm(d, axis=-1)
+    if float(cosang.min()) < math.cos(math.radians(src.beam_half_angle_deg)):
+        raise BackendError(f"the source beam limit ({src.beam_half_angle_deg:g} deg) clips the light reaching the "
+                           f"detector footprint at tan eps = {tan_eps:g}, beta = {beta_deg:g}; the mitsuba backend "
+                           "does not model beam limits: use the quadrature backend")
+
+
+@dataclass
+class RoadScene:
+    """A built Mitsuba scene of one instrument and one road model (road + Lambert channels)."""
+
+    instrument: Instrument
+    model: RoadModel
+    scene: Any
+    params: Any
+    integrator: Any
+    sensor: Any
+    bsdf: Any
+    sample_shape: Any
+    source_kind: str                    # "disk" or "point"
+    resolution: int
+    xml: Path | None = None
+    flat_rectangle: bool = True
+    cell: tuple[float, float] | None = None
+    footprint: tuple[float, float, float, float] | None = None
+    info: dict = field(default_factory=dict)
+
+    # -- per cell --------------------------------------------------------------------------
+    def place_source(self, tan_eps: float, beta_deg: float) -> None:
+        """Move the source to the cell (no recompile); checks the horizon and beam limit."""
+        check_source(self.instrument, tan_eps, beta_deg)
+        check_beam(self.instrument, tan_eps, beta_deg)
+        if self.source_kind == "point":
+            c = self.instrument.source_centre(tan_eps, beta_deg)
+            self.params[f"{SOURCE_ID}.position"] = _mi().Point3f(*[float(v) for v in c])
+        else:
+            self.params[f"{SOURCE_ID}.to_world"] = source_transform(self.instrument, tan_eps, beta_deg)
+        self.params.update()
+        self.cell = (float(tan_eps), float(beta_deg))
+
+    def render(self, seed: int, spp: int) -> np.ndarray:
+        """One pass: the film as float64 (H, W, 3); channel 0 = road, 1 = Lambert (see :data:`ROAD`)."""
+        mi = _mi()
+        img = mi.render(self.scene, sensor=self.sensor, integrator=self.integrator, seed=int(seed), spp=int(spp))
+        return np.array(img, dtype=np.float64)
+
+    # -- checks ----------------------------------------------------------------------------
+    def check_hits(self, n_random: int = 1 << 16, n_rim: int = 128, seed: int = 7) -> dict:
+        """Render-time footprint check: the extreme rays of the detector bundle (pupil rim and
+        centre x field rim) and ``n_random`` random rays must all hit the sample shape."""
+        mi = _mi()
+        import drjit as dr
+        ang = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
+        # unit-square points whose concentric image is on the unit circle: invert via polar
+        rim = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
+        pupil = np.concatenate([rim, [[0.0, 0.0]]])
+        P, F = np.meshgrid(np.arange(len(pupil)), np.arange(len(rim)), indexing="ij")
+        pu, fu = pupil[P.ravel()], rim[F.ravel()]
+        rng = np.random.default_rng(seed)
+        r1, r2 = np.sqrt(rng.random(n_random)), np.sqrt(rng.random(n_random))
+        a1, a2 = rng.random(n_random) * 2 * np.pi, rng.random(n_random) * 2 * np.pi
+        pu = np.concatenate([pu, np.stack([r1 * np.cos(a1), r1 * np.sin(a1)], -1)])
+        fu = np.concatenate([fu, np.stack([r2 * np.cos(a2), r2 * np.sin(a2)], -1)])
+        from ..optics import detector_ray
+        from .ops import DrJitOps
+        from .plugins.lummeter import jit_geometry
+        geo = jit_geometry(detector_geometry(self.instrument))
+        px, py = mi.Float(pu[:, 0].astype(np.float32)), mi.Float(pu[:, 1].astype(np.float32))
+        fx, fy = mi.Float(fu[:, 0].astype(np.float32)), mi.Float(fu[:, 1].astype(np.float32))
+        o, d, _ = detector_ray(DrJitOps, geo, (px, py), (fx, fy))
+        ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d))
+        si = self.scene.ray_intersect(ray)
+        hit = si.is_valid() & (si.shape == mi.ShapePtr(self.sample_shape))
+        hit_np = np.array(hit, dtype=bool)
+        n_miss = int((~hit_np).sum())
+        if n_miss:
+            xs = np.array(si.p.x)[~hit_np]
+            valid = np.array(si.is_valid(), dtype=bool)[~hit_np]
+            what = "hit another part of the scene" if valid.any() else "miss every part of the scene"
+            raise GeometryError(
+                f"{n_miss} of {hit_np.size} detector rays do not hit the sample ({what}"
+                + (f", e.g. at x = {xs[valid][0]:.3f} m" if valid.any() else "")
+                + "): the detector footprint must lie on the sample; enlarge the sample or narrow the field")
+        pts = np.stack([np.array(si.p.x), np.array(si.p.y)], axis=-1)
+        return {"rays": int(hit_np.size), "x_range": (float(pts[:, 0].min()), float(pts[:, 0].max())),
+                "y_range": (float(pts[:, 1].min()), float(pts[:, 1].max()))}
+
+
+def _integrator():
+    return _mi().load_dict({"type": "direct", "emitter_samples": 1, "bsdf_samples": 0})
+
+
+def _bsdf_dict(model: RoadModel, channels: str) -> dict:
+    d = {"type": "roadbsdf", "variant": model.variant, "channels": channels}
+    d.update(model.params.to_dict())
+    return d
+
+
+def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 64, spp: int = 16,
+                variant: str | None = None, sampler: str = "independent", channels: str = "road_lambert",
+                check: bool = True) -> RoadScene:
+    """Build the scene of ``instrument`` with a sample of BSDF ``model`` (XML scene if the
+    instrument has ``[scene] xml``). Checks the detector footprint (errors, not wrong numbers)."""
+    mi = set_variant(variant)
+    from .plugins import register_plugins
+    register_plugins()
+    if check:
+        if instrument.sample.mesh is None:
+            footprint = check_detector(instrument)
+        else:
+            footprint_boundary(instrument)           # the detector must at least look downwards
+            footprint = None
+    scene_sec = instrument.extra.get("scene") if isinstance(instrument.extra, dict) else None
+    if scene_sec is not None and not hasattr(scene_sec, "get"):
+        raise InputError("expected a table [scene]", path=instrument.path, field="scene")
+    if scene_sec and scene_sec.get("xml"):
+        rs = _build_xml(instrument, model, scene_sec, resolution=resolution, spp=spp, sampler=sampler,
+                        channels=channels)
+    else:
+        rs = _build_toml(instrument, model, resolution=resolution, spp=spp, sampler=sampler, channels=channels)
+    if check:
+        rs.footprint = footprint
+        rs.info["hit_check"] = rs.check_hits()
+    return rs
+
+
+def _build_toml(instrument, model, *, resolution, spp, sampler, channels) -> RoadScene:
+    mi = _mi()
+    bsdf = mi.load_dict(_bsdf_dict(model, channels))
+    smp = instrument.sample
+    if smp.mesh is None:
+        tm = rectangle_trimesh(smp.size_x_m, smp.size_y_m)
+    else:
+        tm = load_trimesh(smp.mesh)
+        check_mesh_orientation(tm)
+    shape = to_mitsuba_mesh(tm, bsdf)
+    film, samp = film_dict(resolution, spp, sampler)
+    det = dict(type="lummeter", film=film, sampler=samp, **detector_props(instrument))
+    src = instrument.source
+    if src.is_point:
+        source = {"type": "point", "position": [0.0, 0.0, src.distance_m],
+                  "intensity": {"type": "uniform", "value": source_radiance(instrument)}}
+    else:
+        source = {"type": "disk", "to_world": source_transform(instrument, 0.0, 0.0),
+                  "emitter": {"type": "area", "radiance": {"type": "uniform", "value": source_radiance(instrument)}}}
+    scene = mi.load_dict({"type": "scene", DETECTOR_ID: det, SOURCE_ID: source, SAMPLE_ID: shape})
+    sensor = scene.sensors()[0]
+    return RoadScene(instrument=instrument, model=model, scene=scene, params=mi.traverse(scene),
+                     integrator=_integrator(), sensor=sensor, bsdf=bsdf, sample_shape=shape,
+                     source_kind="point" if src.is_point else "disk", resolution=resolution,
+                     flat_rectangle=smp.mesh is None)
+
+
+def xml_parameters(instrument: Instrument, scene_sec) -> dict[str, str]:
+    det, src, smp = instrument.detector, instrument.source, instrument.sample
+    p = {"alpha_deg": instrument.observation.alpha_deg, "delta_deg": instrument.observation.delta_deg,
+         "source_distance_m": src.distance_m, "source_radius_m": src.radius_m,
+         "source_radiance": source_radiance(instrument),
+         "detector_distance_m": det.distance_m, "pupil_radius_m": det.pupil_radius_m,
+         "field_half_angle_deg": det.field_half_angle_deg, "focus_m": -1.0 if math.isinf(det.focus) else det.focus,
+         "sample_size_x_m": smp.size_x_m or 0.0, "sample_size_y_m": smp.size_y_m or 0.0}
+    extra = scene_sec.get("params", {})
+    if not isinstance(extra, dict):
+        raise InputError("expected a table [scene.params]", path=instrument.path, field="scene.params")
+    for k, v in extra.items():
+        if k in _XML_PARAM_KEYS:
+            raise InputError(f"{k!r} is set from the instrument sections; remove it from [scene.params]",
+                             path=instrument.path, field=f"scene.params.{k}")
+        if isinstance(v, bool) or not isinstance(v, (int, float, str)):
+            raise InputError(f"expected a number or string, got {v!r}", path=instrument.path,
+                             field=f"scene.params.{k}")
+        p[k] = v
+    return {k: (repr(float(v)) if isinstance(v, (int, float)) else str(v)) for k, v in p.items()}
+
+
+def xml_path(instrument: Instrument, scene_sec) -> Path:
+    xml = scene_sec.get("xml")
+    if not isinstance(xml, str):
+        raise InputError(f"expected a file name, got {xml!r}", path=instrument.path, field="scene.xml")
+    path = Path(xml)
+    if not path.is_absolute() and instrument.path is not None:
+        path = Path(instrument.path).parent / path
+    if not path.exists():
+        raise InputError(f"XML scene {str(path)!r} does not exist", path=instrument.path, field="scene.xml")
+    return path
+
+
+def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channels) -> RoadScene:
+    mi = _mi()
+    path = xml_path(instrument, scene_sec)
+    params = xml_parameters(instrument, scene_sec)
+    try:
+        scene = mi.load_file(str(path), **params)
+    except Exception as err:
+        msg = str(err).strip().splitlines()
+        raise InputError(f"Mitsuba cannot load the XML scene: {msg[-1] if msg else err}", path=path) from None
+    shapes = {s.id(): s for s in scene.shapes()}
+    emitters = {e.id(): e for e in scene.emitters()}
+    sensors = {s.id(): s for s in scene.sensors()}
+    missing = []
+    if SAMPLE_ID not in shapes:
+        missing.append(f"a shape with id=\"{SAMPLE_ID}\"")
+    if DETECTOR_ID not in sensors:
+        missing.append(f"a sensor with id=\"{DETECTOR_ID}\" (type lummeter)")
+    source_kind = None
+    if SOURCE_ID in shapes and shapes[SOURCE_ID].emitter() is not None:
+        source_kind = "disk"
+    elif SOURCE_ID in emitters and emitters[SOURCE_ID].class_name() == "PointLight":
+        source_kind = "point"
+    else:
+        missing.append(f"a source with id=\"{SOURCE_ID}\" (a disk shape with an area emitter, or a point emitter)")
+    if missing:
+        raise InputError("the XML scene lacks " + "; ".join(missing), path=path)
+    sample = shapes[SAMPLE_ID]
+    sensor = sensors[DETECTOR_ID]
+    from .plugins import register_plugins
+    classes = register_plugins()
+    bsdf = sample.bsdf()
+    if not isinstance(bsdf, classes["roadbsdf"]):
+        raise InputError(f"the shape \"{SAMPLE_ID}\" must carry a BSDF of type roadbsdf, not {bsdf.class_name()}",
+                         path=path)
+    if not isinstance(sensor, classes["lummeter"]):
+        raise InputError(f"the sensor \"{DETECTOR_ID}\" must be of type lummeter, not {sensor.class_name()}",
+                         path=path)
+    if (source_kind == "point") != instrument.source.is_point:
+        raise InputError(f"the XML source is a {source_kind} source but the instrument's source radius is "
+                         f"{instrument.source.radius_m:g} m", path=path)
+    want = detector_props(instrument)
+    got = {"alpha_deg": sensor.instrument.observation.alpha_deg, "delta_deg": sensor.instrument.observation.delta_deg,
+           **{k: v for k, v in detector_props(sensor.instrument).items() if k not in ("alpha_deg", "delta_deg")}}
+    bad = [k for k in want if not math.isclose(float(want[k]), float(got[k]), rel_tol=1e-6, abs_tol=1e-12)]
+    if bad:
+        raise InputError("the XML detector differs from the instrument file in " +
+                         ", ".join(f"{k} ({got[k]:g} vs {want[k]:g})" for k in bad) +
+                         "; use the $parameters (e.g. value=\"$alpha_deg\")", path=path)
+    film = sensor.film()
+    if tuple(film.size()) != (resolution, resolution):
+        p = mi.traverse(scene)
+        p[f"{DETECTOR_ID}.film.size"] = mi.ScalarVector2u(resolution, resolution)
+        p[f"{DETECTOR_ID}.film.crop_size"] = mi.ScalarVector2u(resolution, resolution)
+        p.update()
+    bsdf.channels = channels
+    bsdf.set_model(model.params, model.variant)
+    if source_kind == "disk":
+        shapes[SOURCE_ID].emitter()  # present (checked above)
+    rs = RoadScene(instrument=instrument, model=model, scene=scene, params=mi.traverse(scene),
+                   integrator=_integrator(), sensor=sensor, bsdf=bsdf, sample_shape=sample,
+                   source_kind=source_kind, resolution=resolution, xml=path, flat_rectangle=False)
+    rs.info["xml_parameters"] = params
+    return rs
