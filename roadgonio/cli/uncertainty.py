@@ -1,0 +1,119 @@
+"""``roadgonio uncertainty``: Monte Carlo (JCGM 101) and GUM uncertainty of an r-table from the
+instrument's angle and position errors, with and without the aperture effect."""
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+from ..errors import InputError
+
+
+def _positive_int(text: str) -> int:
+    import argparse
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {v}")
+    return v
+
+
+def register(sub) -> None:
+    from ..uncertainty import INPUT_HELP, SPEC_HELP
+    keys = "; ".join(f"{k}: {v}" for k, v in INPUT_HELP.items())
+    p = sub.add_parser(
+        "uncertainty", help="Monte Carlo (GUM Supplement 1) uncertainty of a measured r-table from the "
+                            "instrument's angle/position errors",
+        description="Propagate the instrument's geometric errors to the r-table it measures, by the Monte Carlo "
+                    "method of JCGM 101:2008 beside the first-order GUM (with the JCGM 101 section 8 validation). "
+                    "Each trial draws ONE error set shared by every cell (errors of one instrument are correlated "
+                    "across the table) and computes the measured table without and with the aperture effect "
+                    "(k_A of the perturbed geometry from a validated surrogate over exact backend evaluations). "
+                    "Outputs per cell: mean, standard uncertainty, 95 % probabilistically symmetric and shortest "
+                    "coverage intervals, GUM u and its validation; distributions of Q0 and S1. "
+                    f"{SPEC_HELP}. Input keys: {keys}.")
+    p.add_argument("--instrument", required=True, metavar="FILE",
+                   help="instrument TOML file or a bundled preset name (lab, portable)")
+    p.add_argument("--sample", required=True, metavar="SAMPLE",
+                   help="'lambert', a bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file, "
+                        "or a model.json")
+    p.add_argument("--model-variant", choices=["power", "product"], help="model variant when fitting a table")
+    p.add_argument("--sigma", required=True, metavar="SPEC",
+                   help="standard deviations and distributions of the errors, e.g. 'alpha_deg=0.01,eps_deg=0.05:rect,"
+                        "beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,source_distance_m=0.002,"
+                        "detector_distance_m=0.005', or a TOML file with the same keys")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--trials", type=_positive_int, default=50_000, metavar="N",
+                   help="number of Monte Carlo trials (default 50000)")
+    g.add_argument("--adaptive", action="store_true",
+                   help="adaptive Monte Carlo, JCGM 101 7.9: batches until the mean, u and interval ends of every "
+                        "output are stable to --digits significant digits of u (at most --max-trials)")
+    p.add_argument("--digits", type=int, default=2, choices=[1, 2, 3],
+                   help="n_dig, significant digits of u for the adaptive rule and the GUM validation (default 2)")
+    p.add_argument("--max-trials", type=_positive_int, default=200_000, metavar="N",
+                   help="cap of the adaptive run (default 200000)")
+    p.add_argument("--batch", type=_positive_int, metavar="N", help="adaptive batch size (default max(100/(1-p), 10^4))")
+    p.add_argument("--coverage", type=float, default=0.95, metavar="P", help="coverage probability (default 0.95)")
+    p.add_argument("--seed", type=int, default=1, help="random seed (default 1); the same seed repeats the result")
+    p.add_argument("--illuminance", choices=["nominal", "measured"], default="nominal",
+                   help="nominal (default): the instrument is calibrated at the nominal geometry, so a source "
+                        "distance error scales E by (D_S0/D_S)^2 and the local incidence angle enters via "
+                        "cos(theta_i'); measured: horizontal illuminance measured in situ for every cell")
+    p.add_argument("--cells", choices=["standard", "all"], default="standard",
+                   help="standard (default): the tabulated cells of the CIE tables (396); all: the 580-cell grid")
+    p.add_argument("--no-aperture", action="store_true", help="skip the case with the aperture effect")
+    p.add_argument("--backend", default="quadrature", choices=["quadrature", "mitsuba"],
+                   help="k_A backend for the surrogate's exact evaluations (default quadrature: deterministic "
+                        "float64; Monte Carlo noise would blur the small changes the surrogate fits)")
+    p.add_argument("--rel-se", type=float, metavar="E",
+                   help="backend tolerance: quadrature rtol / mitsuba target relative SE (default 1e-5 / backend's)")
+    p.add_argument("--validation", type=int, default=8, metavar="N",
+                   help="held-out trials with exact k_A to measure the surrogate's error (default 8)")
+    p.add_argument("--threads", type=_positive_int, metavar="N", help="worker threads (default: up to 2)")
+    p.add_argument("--out", metavar="DIR", help="output folder (default out/uncertainty-INSTRUMENT-SAMPLE)")
+    p.add_argument("--no-plots", action="store_true", help="do not draw the PNG pictures")
+    p.add_argument("--json", action="store_true", help="print the summary as JSON instead of text")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from ..fileio import to_json
+    from ..instrument import load_instrument
+    from ..uncertainty import (parse_sigma_spec, resolve_sample_spec, result_dict, run_uncertainty,
+                               summary_lines, write_results)
+    spec = parse_sigma_spec(args.sigma, option="--sigma")
+    if not (0.5 < args.coverage < 1.0):
+        raise InputError(f"expected a coverage probability between 0.5 and 1, got {args.coverage:g}", field="--coverage")
+    if args.validation < 0:
+        raise InputError(f"expected a number >= 0, got {args.validation}", field="--validation")
+    settings: dict = {}
+    if args.rel_se is not None:
+        if not (math.isfinite(args.rel_se) and 0 < args.rel_se < 1):
+            raise InputError(f"expected a relative error in (0, 1), got {args.rel_se}", field="--rel-se")
+        settings["rtol" if args.backend == "quadrature" else "rel_se"] = args.rel_se
+    elif args.backend == "quadrature":
+        settings["rtol"] = 1e-5
+    if args.backend == "mitsuba":
+        settings["seed"] = args.seed
+    instrument = load_instrument(args.instrument)
+    model = resolve_sample_spec(args.sample, args.model_variant)
+    res = run_uncertainty(model, instrument, spec, trials=args.trials, adaptive=args.adaptive, seed=args.seed,
+                          coverage=args.coverage, n_dig=args.digits, max_trials=args.max_trials, batch=args.batch,
+                          illuminance=args.illuminance, cells=args.cells, aperture=not args.no_aperture,
+                          backend=args.backend, backend_settings=settings, n_validation=args.validation,
+                          threads=args.threads, progress=True)
+    sample_name = Path(args.sample).stem if Path(args.sample).suffix else args.sample
+    res.provenance["sample"] = args.sample
+    out = Path(args.out) if args.out else Path("out") / f"uncertainty-{instrument.name}-{sample_name}"
+    written = write_results(res, out, sample_name=sample_name, plots=not args.no_plots)
+    if args.json:
+        d = result_dict(res, cells=False)
+        d["written"] = [str(p) for p in written]
+        print(to_json(d))
+    else:
+        for line in summary_lines(res):
+            print(line)
+        print(f"wrote {len(written)} files to {out}", file=sys.stdout)
+    return 0
