@@ -57,11 +57,11 @@ def instrument_from_props(props) -> Instrument:
     """The detector part of an :class:`Instrument` from the sensor's properties."""
     obs = {}
     for key in ("alpha_deg", "delta_deg"):
-        if props.has_property(key):
+        if key in props:
             obs[key] = float(props.get(key))
     det = {}
     for key in DETECTOR_KEYS:
-        if props.has_property(key):
+        if key in props:
             v = props.get(key)
             if key == "focus_m":
                 v = "inf" if (isinstance(v, str) and v.strip().lower() in ("inf", "infinity")) else float(v)

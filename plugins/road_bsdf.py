@@ -49,10 +49,10 @@ class RoadBSDF(mi.BSDF):
         mi.BSDF.__init__(self, props)
         values = {}
         for name in PARAM_NAMES:
-            if props.has_property(name):
+            if name in props:
                 values[name] = float(props.get(name))
-        variant = str(props.get("variant", "power")) if props.has_property("variant") else "power"
-        channels = str(props.get("channels", "road")) if props.has_property("channels") else "road"
+        variant = str(props.get("variant", "power")) if "variant" in props else "power"
+        channels = str(props.get("channels", "road")) if "channels" in props else "road"
         if variant not in VARIANTS:
             raise InputError(f"unknown road BSDF variant {variant!r}; expected one of {', '.join(VARIANTS)}",
                              field="variant")
@@ -129,7 +129,7 @@ class RoadBSDF(mi.BSDF):
 
     def pdf(self, ctx, si, wo, active=True):
         cos_s = mi.Frame3f.cos_theta(si.wi)
-        active = active & (cos_s > 0.0)
+        active = active & (cos_s > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
         return dr.select(active, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0)
 
     def eval_pdf(self, ctx, si, wo, active=True):

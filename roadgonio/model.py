@@ -183,7 +183,9 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
         f = f + P["k_exp"] * xp.exp(xp.minimum(expo, EXP_CAP))
     if "g" in terms:
         g_star = g_attenuation(xp, P, THETA_R_STAR + zero)
-        f = f * g_attenuation(xp, P, theta_i) * g_attenuation(xp, P, theta_r) / g_star
+        # g(theta_r)/g* first: the ratio stays near 1 at the observation, so the product does not
+        # overflow float32 where the result itself is finite (e.g. g_t = -100 in the plugin)
+        f = f * (g_attenuation(xp, P, theta_i) * (g_attenuation(xp, P, theta_r) / g_star))
     return xp.where((wiz > 0.0) & (woz > 0.0), f, zero)
 
 

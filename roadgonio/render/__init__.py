@@ -61,11 +61,15 @@ def set_variant(variant: str | None = None):
     except ImportError as err:
         raise BackendError(f"cannot use Mitsuba variant {variant!r}: {err}. {_INSTALL_HINT}") from None
     if variant.startswith("llvm"):
-        version = tuple(dr.detail.llvm_version())
-        if version < MIN_LLVM:
-            raise BackendError(f"Dr.Jit found LLVM {'.'.join(map(str, version))}, but roadgonio needs "
-                               f"LLVM >= 16 (older versions abort on the first kernel): {_INSTALL_HINT}")
+        check_llvm_version(tuple(dr.detail.llvm_version()))
     return mi
+
+
+def check_llvm_version(version: tuple[int, ...]) -> None:
+    """Raise :class:`BackendError` (with an install hint) if Dr.Jit's LLVM is older than 16."""
+    if tuple(version) < MIN_LLVM:
+        raise BackendError(f"Dr.Jit found LLVM {'.'.join(map(str, version))}, but roadgonio needs "
+                           f"LLVM >= 16 (older versions abort on the first kernel): {_INSTALL_HINT}")
 
 
 def llvm_version() -> tuple[int, ...] | None:
