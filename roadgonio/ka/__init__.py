@@ -67,6 +67,7 @@ def ideal_ratio(model: RoadModel, instrument: Instrument, tan_eps: float, beta_d
 BACKENDS: dict[str, str] = {
     "mitsuba": "roadgonio.render.backend:make_backend",
     "quadrature": "roadgonio.ka.quadrature:make_backend",
+    "numpy-mc": "roadgonio.ka.montecarlo:make_backend",
 }
 
 

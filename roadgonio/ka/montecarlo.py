@@ -1,0 +1,186 @@
+"""Plain float64 numpy Monte Carlo of the detector signal (paper eq. 3; DESIGN.md sections 4-5).
+
+The same integral as :mod:`roadgonio.ka.quadrature` and the same estimator as the Mitsuba
+renderer: uniform points on the pupil, field and source discs (area-preserving concentric map of
+:mod:`roadgonio.optics`), the detector ray of the pair (pupil point, field point) with its etendue
+weight, the hit point x, the source coupling G and the road BRDF (:mod:`roadgonio.model`). Each
+sample contributes the paired values::
+
+    road = w f_road(w_i, w_o) G        lambert = w G / pi
+
+Samples come in batches of ``batch = m^2``; within a batch each disc is stratified (an m x m
+jittered grid on the unit square, randomly permuted per disc so the discs are not correlated),
+so the batch means are independent and identically distributed and the ratio of means
+<road>/<lambert> gets its standard error by the delta method over batches
+(:func:`roadgonio.ka.ratio_se`). Batches are added until the relative standard error of k_A is
+below ``rel_se`` (at least ``min_batches`` batches, at most ``max_samples`` samples).
+
+Every cell has its own random stream, seeded by (seed, tan eps, beta): a cell's result does not
+depend on which other cells are computed or in what order. This backend is the oracle and the
+speed baseline of the Mitsuba backend; it also handles the flat rectangular sample only.
+"""
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from .. import optics
+from ..errors import GeometryError, InputError
+from ..instrument import Instrument
+from ..model import NumpyOps, RoadModel, road_brdf
+from . import CellResult, ideal_ratio, ratio_se
+
+DEFAULT_REL_SE = 1e-3
+DEFAULT_BATCH = 1 << 14
+DEFAULT_MIN_BATCHES = 8
+DEFAULT_MAX_SAMPLES = 200_000_000
+
+
+def _stratified_disc(rng: np.random.Generator, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """m^2 stratified uniform points of the unit disc (jittered grid, concentric map), in random order."""
+    i = np.arange(m * m)
+    u1 = (i % m + rng.random(m * m)) / m
+    u2 = (i // m + rng.random(m * m)) / m
+    perm = rng.permutation(m * m)
+    return optics.concentric_disc(NumpyOps, u1[perm], u2[perm])
+
+
+class MonteCarloBackend:
+    """k_A by float64 Monte Carlo (see the module docstring)."""
+
+    name = "numpy-mc"
+
+    def __init__(self, instrument: Instrument, model: RoadModel, *, rel_se: float = DEFAULT_REL_SE,
+                 seed: int = 0, batch: int = DEFAULT_BATCH, min_batches: int = DEFAULT_MIN_BATCHES,
+                 max_samples: int = DEFAULT_MAX_SAMPLES, accuracy: str | None = None):
+        if accuracy is not None:
+            from .accuracy import preset
+            rel_se = preset(accuracy, self.name)["rel_se"]
+        try:
+            rel_se = float(rel_se)
+        except (TypeError, ValueError):
+            raise InputError(f"expected a number, got {rel_se!r}", field="rel_se") from None
+        if not (0.0 < rel_se < 1.0):
+            raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
+        m = int(round(math.sqrt(int(batch))))
+        if m < 2:
+            raise InputError(f"expected a batch of at least 4 samples, got {batch}", field="batch")
+        if int(min_batches) < 2:
+            raise InputError(f"expected at least 2 batches (for a standard error), got {min_batches}",
+                             field="min_batches")
+        if instrument.sample.mesh is not None:
+            raise InputError("the numpy Monte Carlo backend integrates over a flat rectangular sample only; for "
+                             "a mesh sample use the mitsuba backend (--backend mitsuba)", path=instrument.path,
+                             field="sample.mesh")
+        optics.check_detector(instrument)
+        self.instrument = instrument
+        self.model = model
+        self.rel_se = rel_se
+        self.seed = int(seed)
+        self.m = m
+        self.batch = m * m
+        self.min_batches = int(min_batches)
+        self.max_samples = int(max_samples)
+        self.accuracy = accuracy
+        self._P = model.params.to_dict()
+        self._terms = model.terms()
+        self._det = optics.detector_geometry(instrument)
+        det = instrument.detector
+        self._pupil = det.pupil_radius_m > 0.0
+        self._field = det.field_half_angle_deg > 0.0
+        self._source = instrument.source.radius_m > 0.0
+
+    def settings(self) -> dict[str, Any]:
+        return {"backend": self.name, "rel_se": self.rel_se, "seed": self.seed, "batch": self.batch,
+                "min_batches": self.min_batches, "max_samples": self.max_samples, "accuracy": self.accuracy,
+                "sampling": "stratified m x m jittered grid per disc per batch, concentric map",
+                "precision": "float64"}
+
+    def _disc(self, rng, active: bool):
+        if not active:
+            z = np.zeros(self.batch)
+            return z, z
+        return _stratified_disc(rng, self.m)
+
+    def _batch(self, rng: np.random.Generator, src: optics.SourceGeometry) -> tuple[float, float]:
+        """Mean of w f G and of w G over one batch."""
+        pupil = self._disc(rng, self._pupil)
+        field = self._disc(rng, self._field)
+        sdisc = self._disc(rng, self._source)
+        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            o, d, w = optics.detector_ray(NumpyOps, self._det, pupil, field)
+            x, y, valid = optics.hit_plane(NumpyOps, o, d)
+            sp = optics.source_point(src, sdisc)
+            wi, g = optics.source_coupling(NumpyOps, src, x, y, sp)
+            wo = (-d[0], -d[1], -d[2])
+            f = road_brdf(NumpyOps, self._P, wi, wo, self.model.variant, self._terms)
+            wg = np.where(valid, w * g, 0.0)
+            return float(np.mean(wg * f)), float(np.mean(wg))
+
+    def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
+        t0 = time.perf_counter()
+        tan_eps, beta_deg = float(tan_eps), float(beta_deg)
+        optics.check_source(self.instrument, tan_eps, beta_deg)
+        ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
+        if not (ideal > 0.0 and math.isfinite(ideal)):
+            raise GeometryError(f"the model is {ideal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "
+                                f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
+        src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
+        rng = np.random.default_rng([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6))])
+        road, lam = [], []
+        k = se = math.nan
+        max_batches = max(self.min_batches, self.max_samples // self.batch)
+        while len(road) < max_batches:
+            r, l_ = self._batch(rng, src)
+            road.append(r)
+            lam.append(l_ / math.pi)
+            if len(road) >= self.min_batches:
+                ratio, rse = ratio_se(np.array(road), np.array(lam))
+                k, se = ratio / ideal, rse / ideal
+                if se <= self.rel_se * abs(k):
+                    break
+        n = len(road) * self.batch
+        converged = bool(se <= self.rel_se * abs(k))
+        extra = {"batches": len(road), "converged": converged, "rel_se": se / abs(k) if k else math.inf}
+        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), samples=int(n),
+                          seconds=time.perf_counter() - t0, extra=extra)
+
+    def compute(self, cells: Sequence[tuple[float, float]],
+                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
+        out = []
+        for tan_eps, beta in cells:
+            res = self.compute_cell(tan_eps, beta)
+            out.append(res)
+            if on_cell is not None:
+                on_cell(res)
+        return out
+
+
+def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = DEFAULT_REL_SE, seed: int = 0,
+                 batch: int = DEFAULT_BATCH, min_batches: int = DEFAULT_MIN_BATCHES,
+                 max_samples: int = DEFAULT_MAX_SAMPLES, accuracy: str | None = None,
+                 **unknown) -> MonteCarloBackend:
+    """The float64 numpy Monte Carlo backend (``roadgonio.ka.make_backend("numpy-mc", ...)``).
+
+    Parameters
+    ----------
+    rel_se:
+        Target relative standard error of each k_A (default 1e-3).
+    seed:
+        Base seed; each cell's stream is seeded by (seed, tan eps, beta).
+    batch:
+        Samples per batch (rounded to a square m^2; default 16384).
+    min_batches, max_samples:
+        At least this many batches, at most this many samples per cell; a cell stopped by
+        ``max_samples`` reports its achieved standard error and ``extra["converged"] = False``.
+    accuracy:
+        ``"fast"``, ``"default"`` or ``"precise"`` (:mod:`roadgonio.ka.accuracy`); overrides ``rel_se``.
+    """
+    if unknown:
+        raise InputError(f"unknown numpy-mc setting(s) {', '.join(sorted(unknown))}; expected rel_se, seed, "
+                         "batch, min_batches, max_samples, accuracy", field=sorted(unknown)[0])
+    return MonteCarloBackend(instrument, model, rel_se=rel_se, seed=seed, batch=batch,
+                             min_batches=min_batches, max_samples=max_samples, accuracy=accuracy)
