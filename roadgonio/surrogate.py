@@ -16,9 +16,14 @@ Coordinates (per cell, all zero at the nominal geometry):
   BRDF is isotropic). Unlike (d eps, d beta) these stay regular at eps = 0;
 * ``x4`` = D_S - D_S0, ``x5`` = D_D - D_D0 (m): source and detector distances.
 
-Surrogate: ln k_A = full quadratic polynomial in the scaled coordinates z = x / s (s = a spread
-scale of each coordinate over the Monte Carlo trials), fitted by least squares over a central
-composite design shared by all cells: the centre, 2d axial points at +-``axial`` and a two-level
+Surrogate: ln k_A = quadratic polynomial in the scaled coordinates z = x / s (s = a spread scale
+of each coordinate over the Monte Carlo trials). Two designs, shared by all cells:
+
+* ``star`` (default of the command: 2d + 1 exact tables): the centre and 2d axial points at
+  +-``axial``; ln k_A = c0 + sum_j (b_j z_j + a_j z_j^2) (gradient and curvature of each
+  coordinate, no interactions), an exact fit;
+* ``ccd``: full quadratic, fitted by least squares over a central composite design: the centre,
+  2d axial points at +-``axial`` and a two-level
 factorial at +-``factorial`` (full for d <= 4, the resolution-V half fraction x5 = x1 x2 x3 x4 for
 d = 5), so all 1 + d + d(d+1)/2 coefficients are estimable. Coordinates whose spread is zero
 are left out. Because one design point has the same (x1, x4, x5) in every cell, a design point
@@ -41,7 +46,10 @@ COORDS = ("alpha_loc_deg", "src_eps_offset_deg", "src_phi_offset_deg", "source_d
 N_COORDS = len(COORDS)
 
 
-def design_points(d: int, axial: float = 2.5, factorial: float = 1.5) -> np.ndarray:
+DESIGNS = ("star", "ccd")
+
+
+def design_points(d: int, axial: float = 2.5, factorial: float = 1.5, kind: str = "ccd") -> np.ndarray:
     """Central composite design in d scaled coordinates, shape (K, d).
 
     Centre, 2d axial points at +-axial, two-level factorial points at +-factorial (full for
@@ -56,6 +64,8 @@ def design_points(d: int, axial: float = 2.5, factorial: float = 1.5) -> np.ndar
             p = np.zeros(d)
             p[j] = sgn * axial
             pts.append(p)
+    if kind == "star":
+        return np.asarray(pts, dtype=np.float64)
     if d <= 4:
         levels = list(itertools.product((-1.0, 1.0), repeat=d))
     elif d == 5:
@@ -66,17 +76,21 @@ def design_points(d: int, axial: float = 2.5, factorial: float = 1.5) -> np.ndar
     return np.asarray(pts, dtype=np.float64)
 
 
-def n_features(d: int) -> int:
-    return 1 + d + d * (d + 1) // 2
+def n_features(d: int, kind: str = "ccd") -> int:
+    return 1 + 2 * d if kind == "star" else 1 + d + d * (d + 1) // 2
 
 
-def features(z: np.ndarray) -> np.ndarray:
-    """Full quadratic features [1, z_j, z_j z_k (j <= k)] of scaled coordinates z (..., d)."""
+def features(z: np.ndarray, kind: str = "ccd") -> np.ndarray:
+    """Quadratic features of scaled coordinates z (..., d): full [1, z_j, z_j z_k (j <= k)] for
+    ``ccd``, diagonal [1, z_j, z_j^2] for ``star`` (no interactions)."""
     z = np.asarray(z, dtype=np.float64)
     d = z.shape[-1]
     cols = [np.ones(z.shape[:-1])]
     cols.extend(z[..., j] for j in range(d))
-    cols.extend(z[..., j] * z[..., k] for j in range(d) for k in range(j, d))
+    if kind == "star":
+        cols.extend(z[..., j] * z[..., j] for j in range(d))
+    else:
+        cols.extend(z[..., j] * z[..., k] for j in range(d) for k in range(j, d))
     return np.stack(cols, axis=-1)
 
 
@@ -89,9 +103,10 @@ class KaSurrogate:
     coef: np.ndarray           # (n_cells, F)
     ka_nominal: np.ndarray     # (n_cells,) exact k_A at the nominal geometry
     fit_rms_log: np.ndarray    # (n_cells,) RMS residual of ln k_A over the design points
+    kind: str = "ccd"
 
     @classmethod
-    def fit(cls, scale: np.ndarray, x_design: np.ndarray, ka_design: np.ndarray) -> "KaSurrogate":
+    def fit(cls, scale: np.ndarray, x_design: np.ndarray, ka_design: np.ndarray, kind: str = "ccd") -> "KaSurrogate":
         """Least-squares fit.
 
         ``x_design``: (K, n_cells, 5) coordinates of the design points in each cell;
@@ -106,20 +121,20 @@ class KaSurrogate:
                              f"cell {bad[1]}: {ka_design[tuple(bad)]!r})")
         y = np.log(ka_design)
         n_cells = ka_design.shape[1]
-        F = n_features(len(active))
+        F = n_features(len(active), kind)
         coef = np.empty((n_cells, F))
         rms = np.empty(n_cells)
         z = x_design[..., active] / scale[active]
-        phi_all = features(z)                       # (K, n_cells, F)
+        phi_all = features(z, kind)                 # (K, n_cells, F)
         for c in range(n_cells):
             phi = phi_all[:, c, :]
             sol, *_ = np.linalg.lstsq(phi, y[:, c], rcond=None)
             coef[c] = sol
             res = phi @ sol - y[:, c]
             rms[c] = math.sqrt(float(np.mean(res * res)))
-        return cls(scale=scale, active=active, coef=coef, ka_nominal=ka_design[0].copy(), fit_rms_log=rms)
+        return cls(scale=scale, active=active, coef=coef, ka_nominal=ka_design[0].copy(), fit_rms_log=rms, kind=kind)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """k_A at coordinates x (..., n_cells, 5) -> (..., n_cells)."""
         z = np.asarray(x, dtype=np.float64)[..., self.active] / self.scale[self.active]
-        return np.exp(np.einsum("...cf,cf->...c", features(z), self.coef))
+        return np.exp(np.einsum("...cf,cf->...c", features(z, self.kind), self.coef))

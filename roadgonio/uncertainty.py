@@ -82,7 +82,7 @@ from .errors import InputError
 from .geometry import BETA_GRID_DEG, TAN_EPS_GRID, cos3_eps, eps_from_tan, w_detector, w_source
 from .instrument import Instrument
 from .model import NumpyOps, RoadModel, road_brdf
-from .surrogate import N_COORDS, KaSurrogate, design_points
+from .surrogate import DESIGNS, N_COORDS, KaSurrogate, design_points
 
 #: Input names of a SPEC, in the column order of the trial matrices.
 INPUTS = ("alpha_deg", "eps_deg", "beta_deg", "tilt_x_deg", "tilt_y_deg", "source_distance_m",
@@ -566,7 +566,7 @@ class SurrogateReport:
     settings: dict[str, Any]
 
     def summary(self, u_rel: np.ndarray | None = None) -> dict[str, Any]:
-        d = {"design_points": self.design_points, "validation_trials": self.validation_trials,
+        d = {"design": self.surrogate.kind, "design_points": self.design_points, "validation_trials": self.validation_trials,
              "exact_evaluations": self.exact_evaluations, "seconds": self.seconds,
              "rel_err_max": float(np.max(self.rel_err_max)) if self.rel_err_max.size else 0.0,
              "rel_err_rms": float(math.sqrt(np.mean(self.rel_err_rms ** 2))) if self.rel_err_rms.size else 0.0,
@@ -587,7 +587,7 @@ class SurrogateReport:
 def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFactory, *,
                     seed_seq: np.random.SeedSequence, n_validation: int = 8, pilot: int = 2000,
                     backend_settings: Mapping[str, Any] | None = None, progress: bool = True,
-                    axial: float = 2.5, factorial: float = 1.5) -> SurrogateReport:
+                    design: str = "star", axial: float | None = None, factorial: float = 1.5) -> SurrogateReport:
     """Fit the k_A surrogate over the perturbed neighbourhood of every cell and validate it against
     exact k_A at ``n_validation`` held-out trials drawn from the input distribution."""
     t0 = time.perf_counter()
@@ -597,15 +597,19 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
     scale = np.max(np.std(xp, axis=0), axis=0)                  # (5,)
     scale = np.where(scale > 1e-12 * np.maximum(1.0, np.max(np.abs(xp), axis=(0, 1))), scale, 0.0)
     active = np.nonzero(scale > 0)[0]
-    Z = design_points(len(active), axial, factorial)
-    design = []
+    if design not in DESIGNS:
+        raise InputError(f"unknown surrogate design {design!r}; expected {' or '.join(DESIGNS)}", field="--surrogate")
+    if axial is None:
+        axial = 2.0 if design == "star" else 2.5
+    Z = design_points(len(active), axial, factorial, design)
+    pts = []
     for z in Z:
         x = np.zeros(N_COORDS)
         x[active] = z * scale[active]
-        design.append(x)
+        pts.append(x)
     Xv = spec.draw(rng_val, n_validation) if len(active) else np.zeros((0, len(INPUTS)))
     n = len(mm.cells)
-    total = (len(design) + len(Xv)) * n
+    total = (len(pts) + len(Xv)) * n
     bar = None
     if progress:
         from tqdm import tqdm
@@ -619,12 +623,12 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
         res = backend.compute(mm.cells_of(w), on_cell=(lambda _r: bar.update(1)) if bar is not None else None)
         return np.array([c.k_a for c in res]), np.array([c.se for c in res])
 
-    x_design = np.empty((len(design), n, N_COORDS))
-    ka_design = np.empty((len(design), n))
+    x_design = np.empty((len(pts), n, N_COORDS))
+    ka_design = np.empty((len(pts), n))
     rel_se = 0.0
     settings: dict[str, Any] = dict(backend_settings or {})
     try:
-        for k, x in enumerate(design):
+        for k, x in enumerate(pts):
             w = mm.dirs_from_offsets(x[1], x[2])
             x_design[k, :, 0] = x[0]
             x_design[k, :, 1:3] = mm._tangent(w)
@@ -633,7 +637,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
             ka, se = exact(mm.alpha0 + x[0], x[3], x[4], w)
             ka_design[k] = ka
             rel_se = max(rel_se, float(np.max(se / np.abs(ka))))
-        sur = KaSurrogate.fit(scale, x_design, ka_design)
+        sur = KaSurrogate.fit(scale, x_design, ka_design, design)
         err = np.zeros((len(Xv), n))
         if len(Xv):
             xv, wr = mm.surrogate_coords(Xv)
@@ -649,8 +653,8 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
     except Exception:  # noqa: BLE001 - provenance only
         pass
     return SurrogateReport(
-        surrogate=sur, design_points=len(design), validation_trials=len(Xv),
-        exact_evaluations=(len(design) + len(Xv)) * n, seconds=time.perf_counter() - t0,
+        surrogate=sur, design_points=len(pts), validation_trials=len(Xv),
+        exact_evaluations=(len(pts) + len(Xv)) * n, seconds=time.perf_counter() - t0,
         rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else np.zeros(n),
         rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else np.zeros(n),
         backend_rel_se_max=rel_se, settings=settings)
@@ -748,7 +752,8 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
                     max_trials: int = 200_000, batch: int | None = None, illuminance: str = "nominal",
                     cells: str = "standard", aperture: bool = True, backend: str = "quadrature",
                     backend_settings: Mapping[str, Any] | None = None,
-                    backend_factory: BackendFactory | None = None, n_validation: int = 8,
+                    backend_factory: BackendFactory | None = None, n_validation: int = 4,
+                    surrogate_design: str = "star",
                     threads: int | None = None, chunk: int = 256, progress: bool = True) -> UncertaintyResult:
     """Monte Carlo (and GUM) uncertainty of the r-table that ``instrument`` measures on a sample
     with BRDF ``model``, for the instrument errors ``spec`` (module docstring).
@@ -784,7 +789,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
         t = time.perf_counter()
         sur_report = build_surrogate(mm, spec, factory, seed_seq=ss_sur, n_validation=n_validation,
                                      backend_settings={"backend": backend, **dict(backend_settings or {})},
-                                     progress=progress)
+                                     design=surrogate_design, progress=progress)
         timings["surrogate"] = time.perf_counter() - t
     ev = _Evaluator(mm, sur_report.surrogate if sur_report else None, chunk, threads)
 

@@ -64,13 +64,17 @@ def register(sub) -> None:
     p.add_argument("--cells", choices=["standard", "all"], default="standard",
                    help="standard (default): the tabulated cells of the CIE tables (396); all: the 580-cell grid")
     p.add_argument("--no-aperture", action="store_true", help="skip the case with the aperture effect")
-    p.add_argument("--backend", default="quadrature", choices=["quadrature", "mitsuba"],
-                   help="k_A backend for the surrogate's exact evaluations (default quadrature: deterministic "
-                        "float64; Monte Carlo noise would blur the small changes the surrogate fits)")
+    p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature"],
+                   help="k_A backend of the surrogate's exact evaluations (default mitsuba with ONE seed for every "
+                        "design point, so the Monte Carlo noise largely cancels in the differences the surrogate "
+                        "fits; quadrature: deterministic float64, slower)")
     p.add_argument("--rel-se", type=float, metavar="E",
-                   help="backend tolerance: quadrature rtol / mitsuba target relative SE (default 1e-5 / backend's)")
-    p.add_argument("--validation", type=int, default=8, metavar="N",
-                   help="held-out trials with exact k_A to measure the surrogate's error (default 8)")
+                   help="backend tolerance: mitsuba target relative SE (default 3e-3) / quadrature rtol (default 1e-4)")
+    p.add_argument("--surrogate", choices=["star", "ccd"], default="star",
+                   help="design of exact k_A tables: star (default, 2d+1 tables: gradient and curvature per "
+                        "coordinate) or ccd (full quadratic with interactions, 27 tables for 5 coordinates)")
+    p.add_argument("--validation", type=int, default=4, metavar="N",
+                   help="held-out trials with exact k_A to measure the surrogate's error (default 4)")
     p.add_argument("--threads", type=_positive_int, metavar="N", help="worker threads (default: up to 2)")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/uncertainty-INSTRUMENT-SAMPLE)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the PNG pictures")
@@ -94,7 +98,9 @@ def run(args) -> int:
             raise InputError(f"expected a relative error in (0, 1), got {args.rel_se}", field="--rel-se")
         settings["rtol" if args.backend == "quadrature" else "rel_se"] = args.rel_se
     elif args.backend == "quadrature":
-        settings["rtol"] = 1e-5
+        settings["rtol"] = 1e-4
+    else:
+        settings["rel_se"] = 3e-3
     if args.backend == "mitsuba":
         settings["seed"] = args.seed
     instrument = load_instrument(args.instrument)
@@ -103,6 +109,7 @@ def run(args) -> int:
                           coverage=args.coverage, n_dig=args.digits, max_trials=args.max_trials, batch=args.batch,
                           illuminance=args.illuminance, cells=args.cells, aperture=not args.no_aperture,
                           backend=args.backend, backend_settings=settings, n_validation=args.validation,
+                          surrogate_design=args.surrogate,
                           threads=args.threads, progress=True)
     sample_name = Path(args.sample).stem if Path(args.sample).suffix else args.sample
     res.provenance["sample"] = args.sample
