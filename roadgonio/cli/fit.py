@@ -1,0 +1,109 @@
+"""``roadgonio fit TABLE``: fit the road BRDF model to an r-table."""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import sys
+from pathlib import Path
+
+from ..errors import InputError
+from ..model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS
+
+
+def register(sub) -> None:
+    p = sub.add_parser(
+        "fit", help="fit the road BRDF model to an r-table (bundled name or .csv/.rtb file)",
+        description="Fit the road BRDF model (paper eq. 4) to an r-table, skipping blank cells. Writes "
+                    "DIR/model.json (loadable with RoadModel.load), DIR/residuals.csv and DIR/fit.png. "
+                    "Deviations are in % of the table's maximum r, as in the paper.")
+    p.add_argument("table", help="bundled table name (R1..R4, C1, C2) or a .csv/.rtb file")
+    p.add_argument("--variant", default=DEFAULT_VARIANT, choices=VARIANTS,
+                   help=f"model variant (default {DEFAULT_VARIANT!r}, the paper's model)")
+    p.add_argument("--out", metavar="DIR", help="output folder (default fit-<table>-<variant>)")
+    p.add_argument("--json", action="store_true",
+                   help="print {table, variant, max_dev_pct, rms_dev_pct, params, seconds} as JSON")
+    p.add_argument("--seed", type=int, default=0, help="seed of the global search (default 0)")
+    p.add_argument("--fix", metavar="NAME=VALUE", action="append", default=[],
+                   help="hold a parameter at a value (repeatable), e.g. --fix n_phong=50; the grazing "
+                        "attenuation g_a..g_t, theta_l_deg is never fitted, set it here")
+    p.add_argument("--no-plot", action="store_true", help="do not write fit.png")
+    p.set_defaults(func=run)
+
+
+def _parse_fix(items: list[str]) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in PARAM_NAMES:
+            raise InputError(f"expected NAME=VALUE with NAME one of {', '.join(PARAM_NAMES)}, got {item!r}",
+                             field="--fix")
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise InputError(f"expected a number after '=', got {value!r}", field=f"--fix {name}") from None
+    return out
+
+
+def residuals_csv(result) -> str:
+    t = result.table
+    rm = result.r_model
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(["tan_eps", "beta_deg", "r_table_x1e4", "r_model_x1e4", "dev_pct_of_max_r"])
+    for i, te in enumerate(t.tan_eps):
+        for j, b in enumerate(t.beta_deg):
+            if not t.mask[i, j]:
+                continue
+            w.writerow([f"{te:g}", f"{b:g}", f"{t.r[i, j] * 1e4:.6g}", f"{rm[i, j] * 1e4:.6g}",
+                        f"{result.residual_pct[i, j]:.4f}"])
+    return out.getvalue()
+
+
+def run(args) -> int:
+    from ..fileio import atomic_write_text
+    from ..fit import fit_table
+    from ..rtable import load_table
+
+    table = load_table(args.table)
+    fixed = _parse_fix(args.fix)
+    out = Path(args.out) if args.out else Path(f"fit-{table.name}-{args.variant}")
+    if out.exists() and not out.is_dir():
+        raise InputError("expected a folder for the results, but it is a file", path=out, field="--out")
+
+    bar = None
+    try:
+        from tqdm import tqdm
+        bar = tqdm(total=1, desc=f"fit {table.name} ({args.variant})", unit="gen", file=sys.stderr,
+                   leave=False, disable=None)
+    except ImportError:  # pragma: no cover
+        pass
+
+    def progress(done: int, total: int) -> None:
+        if bar is not None:
+            bar.total = total
+            bar.n = done
+            bar.refresh()
+
+    try:
+        result = fit_table(table, args.variant, seed=args.seed, fixed=fixed, progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
+    out.mkdir(parents=True, exist_ok=True)
+    result.model.save(out / "model.json")
+    atomic_write_text(out / "residuals.csv", residuals_csv(result))
+    if not args.no_plot:
+        from ..fitplot import plot_fit
+        plot_fit(result, out / "fit.png")
+    if args.json:
+        print(json.dumps(result.to_json_dict(), indent=2))
+    else:
+        P = result.model.params
+        print(f"{table.name} ({args.variant}): max |dev| {result.max_dev_pct:.2f} %, RMS {result.rms_dev_pct:.2f} % "
+              f"of max r, {int(table.mask.sum())} cells, {result.seconds:.1f} s")
+        print("  " + ", ".join(f"{k}={getattr(P, k):.5g}" for k in PARAM_NAMES[:9]))
+        print(f"wrote {out / 'model.json'}, {out / 'residuals.csv'}"
+              + ("" if args.no_plot else f", {out / 'fit.png'}"))
+    return 0

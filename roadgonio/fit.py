@@ -1,0 +1,345 @@
+"""Fitting the road BRDF model (paper eq. 4, DESIGN.md section 3) to an r-table.
+
+Method (variable projection):
+
+* The table cells are the 1-degree observation geometry (alpha = 1 deg, theta_r = 89 deg =
+  theta_r*); the model's reduced luminance coefficient is ``r = f_r cos^3(eps)`` (DESIGN.md
+  section 2), evaluated through :func:`roadgonio.model.road_brdf` - the one definition of the model.
+* The four coefficients ``k_diff, k_phong, k_retro, k_exp`` enter linearly. For given shape
+  parameters ``n_phong, n_retro, p, h, mu`` they are the non-negative least-squares solution
+  (:func:`scipy.optimize.nnls`) of the tabulated cells. Blank cells are skipped.
+* The shape parameters are searched globally (:func:`scipy.optimize.differential_evolution`,
+  seeded, Latin-hypercube start) in transformed coordinates (log10 n, log10 mu, asinh h), then
+  polished locally (Nelder-Mead). This is robust against the many local minima of the lobes.
+* Residuals are absolute, in % of the table's maximum r - the paper's statistic. The outer
+  objective is ``RMS^2 + MAX_WEIGHT * L8^2`` where L8 is the 8-norm mean of the residuals, a smooth
+  stand-in for the maximum deviation: plain least squares leaves single cells far off (the paper
+  reports the maximum deviation as well as the RMS). The reported statistics are exactly the
+  paper's: ``max |r_model - r_table|`` and the RMS deviation over the tabulated cells, both in %
+  of ``max r`` of the table, evaluated with the final :class:`~roadgonio.model.RoadModel`.
+* The grazing attenuation g (``g_a, g_b, g_c, g_t, theta_l_deg``) is a user input, never fitted:
+  it never changes a 1-degree table value (DESIGN.md section 3). Pass it in ``fixed``.
+
+Any parameter can be held at a given value with ``fixed={"n_phong": 50.0, ...}``.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping
+
+import numpy as np
+from scipy.optimize import differential_evolution, minimize, nnls
+
+from . import __version__
+from .errors import InputError
+from .geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
+from .model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANTS, NumpyOps, RoadModel,
+                    RoadParams, road_brdf)
+from .rtable import RTable
+
+#: The coefficients that enter the model linearly (solved by NNLS).
+LINEAR = ("k_diff", "k_phong", "k_retro", "k_exp")
+#: The shape parameters searched globally.
+NONLINEAR = ("n_phong", "n_retro", "p", "h", "mu")
+#: Grazing-attenuation parameters: user inputs, never fitted.
+G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
+#: Weight of the smooth maximum (8-norm) in the objective; 0 = plain least squares.
+MAX_WEIGHT = 0.3
+#: Search box of the shape parameters (in their natural units; transformed internally).
+SEARCH_BOX: dict[str, tuple[float, float]] = {
+    "n_phong": (1.0, 1e5), "n_retro": (1.0, 1e5), "p": (0.0, 20.0), "h": (-1e3, 1e3),
+    "mu": (1e-6, 1e3),
+}
+#: Version of the fitting procedure (part of the cache key of :mod:`roadgonio.sample`).
+FIT_METHOD_VERSION = 1
+
+
+# ----------------------------------------------------------------------------------------------
+# Coordinates of the outer search
+# ----------------------------------------------------------------------------------------------
+
+def _to_z(name: str, v: float) -> float:
+    if name in ("n_phong", "n_retro", "mu"):
+        return math.log10(max(v, 1e-12))
+    if name == "h":
+        return math.asinh(v)
+    return v
+
+
+def _from_z(name: str, z: float) -> float:
+    if name in ("n_phong", "n_retro", "mu"):
+        return 10.0 ** z
+    if name == "h":
+        return math.sinh(z)
+    return z
+
+
+def _z_box(name: str) -> tuple[float, float]:
+    lo, hi = SEARCH_BOX[name]
+    return _to_z(name, lo), _to_z(name, hi)
+
+
+# ----------------------------------------------------------------------------------------------
+# Result
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class FitResult:
+    """The outcome of :func:`fit_table`.
+
+    ``residual_pct`` is ``(r_model - r_table) / max r_table * 100`` on the table grid (NaN at
+    blank cells); ``max_dev_pct`` and ``rms_dev_pct`` are its maximum absolute value and RMS over
+    the tabulated cells (the paper's fit statistics).
+    """
+
+    model: RoadModel
+    table: RTable
+    max_dev_pct: float
+    rms_dev_pct: float
+    seconds: float
+    residual_pct: np.ndarray = field(repr=False)
+    seed: int = 0
+    nfev: int = 0
+
+    @property
+    def variant(self) -> str:
+        return self.model.variant
+
+    @property
+    def r_model(self) -> np.ndarray:
+        """Model r (sr^-1) on the table grid, NaN at blank cells."""
+        return model_r_on_grid(self.model, self.table)
+
+    def to_json_dict(self) -> dict[str, Any]:
+        """Exactly the keys printed by ``roadgonio fit --json``."""
+        return {"table": self.table.name, "variant": self.model.variant,
+                "max_dev_pct": float(self.max_dev_pct), "rms_dev_pct": float(self.rms_dev_pct),
+                "params": self.model.params.to_dict(), "seconds": float(self.seconds)}
+
+
+# ----------------------------------------------------------------------------------------------
+# Helpers shared with the tests and the plot
+# ----------------------------------------------------------------------------------------------
+
+def table_hash(table: RTable) -> str:
+    """SHA-256 of the table's values and grid (blanks canonical), for provenance and caching."""
+    h = hashlib.sha256()
+    r = np.where(table.mask, table.r, -1.0).astype("<f8")
+    h.update(r.tobytes())
+    h.update(np.asarray(table.tan_eps, dtype="<f8").tobytes())
+    h.update(np.asarray(table.beta_deg, dtype="<f8").tobytes())
+    return h.hexdigest()
+
+
+def model_r_on_grid(model: RoadModel, table: RTable) -> np.ndarray:
+    """The model's r (sr^-1) on the table's grid, NaN where the table is blank."""
+    T, B = np.meshgrid(table.tan_eps, table.beta_deg, indexing="ij")
+    r = model.r(T, B)
+    return np.where(table.mask, r, np.nan)
+
+
+def deviations(model: RoadModel, table: RTable) -> tuple[np.ndarray, float, float]:
+    """(residual map in % of max r, max |dev| %, RMS dev %) of ``model`` against ``table``."""
+    res = (model_r_on_grid(model, table) - table.r) / table.r_max * 100.0
+    v = res[table.mask]
+    return res, float(np.max(np.abs(v))), float(np.sqrt(np.mean(v * v)))
+
+
+class _Problem:
+    """The tabulated cells of one table and the model's per-term columns on them."""
+
+    def __init__(self, table: RTable, variant: str, fixed: Mapping[str, float]):
+        m = table.mask
+        T, B = np.meshgrid(table.tan_eps, table.beta_deg, indexing="ij")
+        t, b = T[m], B[m]
+        wi = w_source(eps_from_tan(t), b)
+        wo = np.broadcast_to(w_detector(ALPHA_STANDARD_DEG), wi.shape)
+        self.wi = (wi[:, 0], wi[:, 1], wi[:, 2])
+        self.wo = (wo[:, 0], wo[:, 1], wo[:, 2])
+        self.c3 = cos3_eps(t)
+        self.rmax = table.r_max
+        self.y = table.r[m] / self.rmax  # table r in units of max r
+        self.variant = variant
+        self.fixed = dict(fixed)
+        self.free_lin = [k for k in LINEAR if k not in self.fixed]
+        self.free_nl = [k for k in NONLINEAR if k not in self.fixed]
+        self.base = RoadParams().to_dict()
+        self.base.update({k: v for k, v in self.fixed.items() if k in G_PARAMS})
+        self.nfev = 0
+
+    def shape_params(self, z) -> dict[str, float]:
+        P = dict(self.base)
+        P.update({k: v for k, v in self.fixed.items()})
+        for name, zi in zip(self.free_nl, z):
+            P[name] = _from_z(name, float(zi))
+        return P
+
+    def columns(self, P: Mapping[str, float]) -> dict[str, np.ndarray]:
+        """r-columns (in units of max r) of each linear term with unit coefficient; g is 1 at
+        every table cell so it is left out here (the final statistics include it)."""
+        Q = dict(P)
+        for k in LINEAR:
+            Q[k] = 1.0
+        out = {}
+        with np.errstate(all="ignore"):
+            for k in LINEAR:
+                col = road_brdf(NumpyOps, Q, self.wi, self.wo, self.variant, frozenset({k}))
+                out[k] = np.asarray(col, dtype=np.float64) * self.c3 / self.rmax
+        return out
+
+    def solve(self, z) -> tuple[dict[str, float], np.ndarray] | None:
+        """k's by NNLS and the residual vector (in units of max r); None if not evaluable."""
+        self.nfev += 1
+        P = self.shape_params(z)
+        cols = self.columns(P)
+        target = self.y.copy()
+        for k in LINEAR:
+            if k in self.fixed:
+                target = target - self.fixed[k] * cols[k]
+        ks = {k: float(self.fixed[k]) for k in LINEAR if k in self.fixed}
+        use, A = [], []
+        for k in self.free_lin:
+            c = cols[k]
+            if not np.all(np.isfinite(c)):
+                return None
+            s = float(np.max(np.abs(c)))
+            # a column that cannot reach 1e-9 of max r even at the bound k = 1e6 is useless
+            if s * PARAM_BOUNDS[k][1] < 1e-9 or s == 0.0:
+                ks[k] = 0.0
+                continue
+            use.append((k, s))
+            A.append(c / s)
+        if A:
+            try:
+                x, _ = nnls(np.stack(A, axis=1), target, maxiter=50 * len(A))
+            except RuntimeError:
+                return None
+            for (k, s), xi in zip(use, x):
+                kv = xi / s
+                if not math.isfinite(kv) or kv > PARAM_BOUNDS[k][1]:
+                    return None
+                ks[k] = kv
+        model = sum(ks[k] * cols[k] for k in LINEAR)
+        res = model - self.y
+        if not np.all(np.isfinite(res)):
+            return None
+        P.update(ks)
+        return P, res
+
+    def objective(self, z) -> float:
+        out = self.solve(z)
+        if out is None:
+            return 1e6
+        res = out[1] * 100.0
+        ms = float(np.mean(res * res))
+        l8 = float(np.mean(res ** 8) ** 0.25)
+        return ms + MAX_WEIGHT * l8
+
+
+def _check_fixed(fixed: Mapping[str, Any] | None) -> dict[str, float]:
+    out: dict[str, float] = {}
+    for k, v in (fixed or {}).items():
+        if k not in PARAM_NAMES:
+            raise InputError(f"unknown parameter {k!r}; expected one of {', '.join(PARAM_NAMES)}", field=k)
+        try:
+            out[k] = float(v)
+        except (TypeError, ValueError):
+            raise InputError(f"expected a number, got {v!r}", field=k) from None
+    # validates bounds (and the g polynomial) with the DESIGN.md messages
+    RoadParams(**out)
+    return out
+
+
+def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
+              fixed: dict | None = None,
+              progress: Callable[[int, int], None] | None = None,
+              maxiter: int = 120, popsize: int = 12) -> FitResult:
+    """Fit the road BRDF ``variant`` to ``table`` (blank cells skipped).
+
+    Parameters
+    ----------
+    table:
+        The r-table (r in sr^-1, NaN = blank).
+    variant:
+        Model variant (:data:`roadgonio.model.VARIANTS`); ``"power"`` is the paper's model.
+    seed:
+        Seed of the global search (results are reproducible for a given seed).
+    fixed:
+        Parameters held at given values (DESIGN.md names). The grazing attenuation g is never
+        fitted: its parameters keep their defaults unless given here.
+    progress:
+        Optional ``progress(done, total)`` callback, called once per generation of the global
+        search and once at the end.
+    maxiter, popsize:
+        Size of the global search (differential evolution).
+    """
+    if variant not in VARIANTS:
+        raise InputError(f"unknown model variant {variant!r}; expected one of {', '.join(VARIANTS)}",
+                         field="variant")
+    if not isinstance(table, RTable):
+        raise InputError("expected an RTable", field="table")
+    if int(table.mask.sum()) < 10:
+        raise InputError(f"table {table.name!r} has {int(table.mask.sum())} tabulated cells; a fit needs >= 10",
+                         field="table")
+    if not table.r_max > 0:
+        raise InputError(f"table {table.name!r} has no positive value", field="table")
+    fx = _check_fixed(fixed)
+    t0 = time.perf_counter()
+    prob = _Problem(table, variant, fx)
+    total = maxiter + 1
+    gen = [0]
+
+    if prob.free_nl:
+        bounds = [_z_box(n) for n in prob.free_nl]
+
+        def cb(*_args, **_kw):
+            gen[0] += 1
+            if progress is not None:
+                progress(min(gen[0], maxiter), total)
+            return False
+
+        de = differential_evolution(prob.objective, bounds, seed=seed, maxiter=maxiter, popsize=popsize,
+                                    tol=1e-7, atol=0.0, init="latinhypercube", polish=False,
+                                    mutation=(0.5, 1.0), recombination=0.7, callback=cb)
+        z = de.x
+        # local polish from the global optimum (Nelder-Mead: the objective is not smooth where
+        # an NNLS coefficient becomes active)
+        lo = np.array([b[0] for b in bounds])
+        hi = np.array([b[1] for b in bounds])
+
+        def bounded(zz):
+            return prob.objective(np.clip(zz, lo, hi))
+
+        loc = minimize(bounded, z, method="Nelder-Mead",
+                       options={"xatol": 1e-6, "fatol": 1e-9, "maxiter": 3000, "adaptive": True})
+        if loc.fun <= de.fun:
+            z = np.clip(loc.x, lo, hi)
+    else:
+        z = np.zeros(0)
+    sol = prob.solve(z)
+    if sol is None:
+        raise InputError(f"the fit of table {table.name!r} found no finite model", field="table")
+    P = sol[0]
+    params = RoadParams(**{k: float(min(max(P[k], PARAM_BOUNDS[k][0]), PARAM_BOUNDS[k][1]))
+                           if k != "theta_l_deg" else float(P[k]) for k in PARAM_NAMES})
+    seconds = time.perf_counter() - t0
+    tmp = RoadModel(params, variant, name=table.name)
+    res, mx, rms = deviations(tmp, table)
+    meta = {
+        "fit": {"max_dev_pct": mx, "rms_dev_pct": rms, "seconds": seconds, "seed": seed,
+                "method": "variable projection: NNLS for k_*, differential evolution + Nelder-Mead "
+                          f"for {', '.join(prob.free_nl) or 'nothing'}",
+                "objective": f"RMS^2 + {MAX_WEIGHT} * L8^2 of deviations in % of max r",
+                "fixed": fx, "cells": int(table.mask.sum()), "nfev": prob.nfev,
+                "roadgonio_version": __version__, "method_version": FIT_METHOD_VERSION},
+        "table": {"name": table.name, "source": table.source, "sha256": table_hash(table),
+                  "r_max": table.r_max, "cells": int(table.mask.sum())},
+    }
+    model = RoadModel(params, variant, name=table.name, meta=meta)
+    if progress is not None:
+        progress(total, total)
+    return FitResult(model=model, table=table, max_dev_pct=mx, rms_dev_pct=rms, seconds=seconds,
+                     residual_pct=res, seed=seed, nfev=prob.nfev)

@@ -1,0 +1,64 @@
+"""Picture of a fit: the table and the model as solid r-table surfaces (as in the paper's
+Figure 2: r over beta and tan eps) and a map of the residuals in % of max r."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from .fileio import atomic_savefig
+
+
+def plot_fit(result, path: str | Path) -> Path:
+    """Write ``fit.png`` for a :class:`~roadgonio.fit.FitResult`."""
+    import matplotlib
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+    from matplotlib.colors import TwoSlopeNorm
+
+    table = result.table
+    r_tab = table.r * 1e4
+    r_mod = result.r_model * 1e4
+    res = result.residual_pct
+    tan = table.tan_eps
+    beta = table.beta_deg
+    B, T = np.meshgrid(beta, tan)
+    zmax = float(np.nanmax([np.nanmax(r_tab), np.nanmax(r_mod)])) * 1.05
+
+    fig = plt.figure(figsize=(16, 5.6))
+    title = (f"{table.name}: model '{result.model.variant}'  -  max |dev| {result.max_dev_pct:.2f} %, "
+             f"RMS {result.rms_dev_pct:.2f} % of max r ({table.r_max * 1e4:.4g} x 1e-4 sr^-1)")
+    fig.suptitle(title, fontsize=12)
+    for k, (data, label) in enumerate([(r_tab, f"table {table.name}"), (r_mod, "model")]):
+        ax = fig.add_subplot(1, 3, k + 1, projection="3d")
+        Z = np.ma.masked_invalid(data)
+        ax.plot_surface(B, T, Z.filled(np.nan), cmap="viridis", vmin=0, vmax=zmax, rstride=1, cstride=1,
+                        linewidth=0.2, edgecolor="k", antialiased=True)
+        ax.set_xlabel("beta [deg]")
+        ax.set_ylabel("tan eps")
+        ax.set_zlabel("r x 1e4 [sr^-1]")
+        ax.set_zlim(0, zmax)
+        ax.set_title(label)
+        ax.view_init(elev=28, azim=-128)
+    ax = fig.add_subplot(1, 3, 3)
+    lim = max(float(np.nanmax(np.abs(res))), 1e-6)
+    im = ax.pcolormesh(np.arange(len(beta) + 1), np.arange(len(tan) + 1), np.ma.masked_invalid(res),
+                       cmap="RdBu_r", norm=TwoSlopeNorm(0.0, -lim, lim), edgecolors="face")
+    ax.set_xticks(np.arange(len(beta)) + 0.5)
+    ax.set_xticklabels([f"{b:g}" for b in beta], rotation=90, fontsize=7)
+    ax.set_yticks(np.arange(len(tan)) + 0.5)
+    ax.set_yticklabels([f"{t:g}" for t in tan], fontsize=7)
+    ax.set_xlabel("beta [deg]")
+    ax.set_ylabel("tan eps")
+    ax.invert_yaxis()
+    ax.set_facecolor("0.85")
+    i, j = np.unravel_index(np.nanargmax(np.abs(res)), res.shape)
+    ax.plot(j + 0.5, i + 0.5, marker="o", mfc="none", mec="k", ms=9)
+    ax.set_title(f"residual (model - table) in % of max r\nworst cell: tan {tan[i]:g}, beta {beta[j]:g} deg: "
+                 f"{res[i, j]:+.1f} %  (grey = blank)", fontsize=9)
+    fig.colorbar(im, ax=ax, label="% of max r", shrink=0.85)
+    fig.tight_layout(rect=(0, 0, 1, 0.94))
+    try:
+        return atomic_savefig(fig, path)
+    finally:
+        plt.close(fig)
