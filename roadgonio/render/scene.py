@@ -346,6 +346,13 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
     mi = _mi()
     path = xml_path(instrument, scene_sec)
     params = xml_parameters(instrument, scene_sec)
+    import re
+    used = set(re.findall(r"\$(\w+)", path.read_text(encoding="utf-8", errors="replace")))
+    unused = sorted(k for k in scene_sec.get("params", {}) if k not in used)
+    if unused:
+        raise InputError(f"[scene.params] key(s) {', '.join(unused)} are not used as $name in {path.name}",
+                         path=instrument.path, field="scene.params")
+    params = {k: v for k, v in params.items() if k in used}   # Mitsuba refuses unused parameters
     try:
         scene = mi.load_file(str(path), **params)
     except Exception as err:

@@ -1,0 +1,171 @@
+"""The Mitsuba k_A backend (roadgonio/render/backend.py) and scene (roadgonio/render/scene.py):
+k_A = 1 for a Lambertian sample, k_A -> 1 as the apertures shrink, the rendered ideal geometry
+against float64, the standard error against the scatter over seeds, and the error cases."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from roadgonio.errors import BackendError, GeometryError, InputError
+from roadgonio.instrument import Instrument
+from roadgonio.model import RoadModel, RoadParams
+
+pytestmark = pytest.mark.plugin
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+#: A non-Lambertian model with every term (Phong lobe n = 1000, retro lobe, steep E term, grazing g).
+ROAD = RoadModel(RoadParams(k_diff=0.05, k_phong=1.0, n_phong=1000.0, k_retro=0.2, n_retro=50.0,
+                            k_exp=0.1, p=1.0, h=2.0, mu=0.1, g_a=0.0, g_b=-1.0, g_c=2.6, g_t=2.0,
+                            theta_l_deg=88.0))
+#: float32 rounding of a pixel ratio R/G when every sample carries the same ratio.
+F32_RATIO_TOL = 1e-5
+
+
+def preset(name: str) -> Instrument:
+    return Instrument.load(SCENES / f"{name}.toml")
+
+
+CELLS = [(0.0, 0.0), (2.0, 0.0), (12.0, 0.0), (5.0, 45.0), (12.0, 180.0)]
+
+
+@pytest.mark.parametrize("name", ["lab", "portable"])
+def test_lambertian_sample_gives_one(name):
+    from roadgonio.render.backend import make_backend
+    for model in (RoadModel.lambert(), RoadModel.lambert(0.3)):
+        b = make_backend(preset(name), model, spp=4)
+        for r in b.compute(CELLS):
+            assert abs(r.k_a - 1.0) <= max(3 * r.se, F32_RATIO_TOL), r
+            assert r.extra["converged"]
+
+
+def test_zero_apertures_give_one_and_shrinking_converges():
+    from roadgonio.render.backend import make_backend
+    inst = preset("portable")
+    cell = (2.0, 0.0)
+    devs = []
+    for s in (1.0, 0.1, 0.0):
+        small = inst.with_changes(source={"radius_m": inst.source.radius_m * s},
+                                  detector={"pupil_radius_m": inst.detector.pupil_radius_m * s,
+                                            "field_half_angle_deg": inst.detector.field_half_angle_deg * s})
+        r = make_backend(small, ROAD, rel_se=2e-4).compute([cell])[0]
+        devs.append((abs(r.k_a - 1.0), r.se))
+    assert devs[0][0] > 0.05                        # the full instrument has a real aperture effect here
+    assert devs[1][0] < 0.2 * devs[0][0]            # a tenth of every aperture: much closer to 1
+    assert devs[2][0] <= F32_RATIO_TOL * 10         # zero apertures: the ideal geometry itself
+
+
+@pytest.mark.parametrize("cell", [(0.0, 0.0), (1.0, 0.0), (3.0, 20.0), (12.0, 0.0), (8.0, 150.0)])
+def test_ideal_geometry_rendered_matches_float64(mi, cell):
+    """Point source + single-ray detector: the road channel is f cos(eps) x (D_S^2 / D_S^2) and the
+    Lambert channel cos(eps)/pi, compared with the float64 model."""
+    from roadgonio.render.scene import build_scene
+    inst = preset("portable").with_changes(source={"radius_m": 0.0},
+                                           detector={"pupil_radius_m": 0.0, "field_half_angle_deg": 0.0})
+    rs = build_scene(inst, ROAD, resolution=4)
+    rs.place_source(*cell)
+    img = rs.render(seed=0, spp=1)
+    cos_e = 1.0 / math.sqrt(1.0 + cell[0] ** 2)
+    f = float(ROAD.brdf(inst.w_i(*cell), inst.w_o()))
+    # float32 of the model at this point (test_plugin_bsdf) plus float32 light transport
+    np.testing.assert_allclose(img[..., 0], f * cos_e, rtol=2e-5)
+    np.testing.assert_allclose(img[..., 1], cos_e / math.pi, rtol=2e-6)
+
+
+def test_standard_error_matches_scatter_over_seeds():
+    """The single-pass paired-pixel SE against the scatter of k_A over 24 seeds: the ratio of
+    the two is chi-distributed with 23 degrees of freedom (95 % within [0.72, 1.28])."""
+    from roadgonio.render.backend import make_backend
+    b = make_backend(preset("portable"), ROAD, rel_se=1.0, spp=16, resolution=32)
+    for cell in [(2.0, 0.0), (12.0, 0.0)]:
+        ks, ses = [], []
+        for s in range(24):
+            b.seed = s
+            r = b.compute_cell(*cell)
+            ks.append(r.k_a)
+            ses.append(r.se)
+        ratio = np.std(ks, ddof=1) / np.mean(ses)
+        assert 0.6 < ratio < 1.4, (cell, ratio)
+
+
+def test_adaptive_stopping_reaches_target():
+    from roadgonio.render.backend import make_backend
+    b = make_backend(preset("portable"), ROAD, rel_se=2e-3)
+    for r in b.compute([(12.0, 0.0), (0.0, 0.0)]):
+        assert r.extra["converged"] and r.se / r.k_a <= 2e-3
+        assert r.samples >= 16 * 64 * 64
+    capped = make_backend(preset("portable"), ROAD, rel_se=1e-6, max_samples=3 * 16 * 64 * 64)
+    r = capped.compute([(12.0, 0.0)])[0]
+    assert not r.extra["converged"] and r.samples <= 3 * 16 * 64 * 64 and r.se / r.k_a > 1e-6
+
+
+# -- errors, not wrong numbers -----------------------------------------------------------------
+
+def test_footprint_off_rectangle_is_an_error():
+    from roadgonio.render.backend import make_backend
+    inst = preset("portable").with_changes(sample={"size_x_m": 1.0})
+    with pytest.raises(GeometryError, match="footprint leaves the sample"):
+        make_backend(inst, ROAD)
+
+
+def test_footprint_off_mesh_is_an_error_at_render_time(tmp_path):
+    import trimesh
+
+    from roadgonio.render.backend import make_backend
+    from roadgonio.render.scene import rectangle_trimesh
+    small = rectangle_trimesh(1.0, 0.5)
+    small.export(tmp_path / "small.ply")
+    big = rectangle_trimesh(4.0, 1.0)
+    big.export(tmp_path / "big.ply")
+    d = preset("portable").to_dict()
+    d["sample"] = {"mesh": "small.ply"}
+    with pytest.raises(GeometryError, match="do not hit the sample"):
+        make_backend(Instrument.from_dict(d, path=tmp_path / "x.toml"), ROAD)
+    d["sample"] = {"mesh": "big.ply"}
+    r = make_backend(Instrument.from_dict(d, path=tmp_path / "x.toml"), RoadModel.lambert(), spp=4).compute([(1.0, 0.0)])
+    assert abs(r[0].k_a - 1.0) <= F32_RATIO_TOL
+    flipped = trimesh.Trimesh(big.vertices, big.faces[:, ::-1], process=False)
+    flipped.export(tmp_path / "flipped.ply")
+    d["sample"] = {"mesh": "flipped.ply"}
+    with pytest.raises(InputError, match="downwards"):
+        make_backend(Instrument.from_dict(d, path=tmp_path / "x.toml"), ROAD)
+
+
+def test_source_below_horizon_is_an_error():
+    from roadgonio.render.backend import make_backend
+    inst = preset("portable").with_changes(source={"radius_m": 0.09})
+    b = make_backend(inst, ROAD)
+    with pytest.raises(GeometryError, match="below the horizon"):
+        b.compute([(12.0, 0.0)])
+
+
+def test_detector_that_does_not_see_the_sample_is_an_error():
+    from roadgonio.render.backend import make_backend
+    inst = preset("portable").with_changes(observation={"alpha_deg": 0.2}, detector={"pupil_radius_m": 0.01})
+    with pytest.raises(GeometryError):
+        make_backend(inst, ROAD)
+
+
+def test_xml_scene_without_parts_is_an_error(tmp_path):
+    from roadgonio.render.backend import make_backend
+    (tmp_path / "empty.xml").write_text('<scene version="3.0.0"><shape type="rectangle" id="floor"/></scene>')
+    d = preset("portable").to_dict()
+    d["scene"] = {"xml": "empty.xml"}
+    with pytest.raises(InputError, match='id="sample".*id="detector".*id="source"'):
+        make_backend(Instrument.from_dict(d, path=tmp_path / "x.toml"), ROAD)
+
+
+def test_llvm_older_than_16_is_refused():
+    from roadgonio.render import check_llvm_version
+    with pytest.raises(BackendError, match="LLVM >= 16"):
+        check_llvm_version((15, 0, 6))
+    check_llvm_version((16, 0, 0))
+    check_llvm_version((19, 1, 7))
+
+
+def test_unknown_setting_is_an_input_error():
+    from roadgonio.render.backend import make_backend
+    with pytest.raises(InputError, match="unknown setting"):
+        make_backend(preset("portable"), ROAD, samples_per_pixel=3)
