@@ -1,0 +1,104 @@
+"""Benchmark of ``roadgonio uncertainty`` (issue 5 targets), measured side by side in one run.
+
+* no aperture effect: 50,000 Monte Carlo trials of the full table (the 396 tabulated cells of the
+  CIE tables, and the 580-cell grid), statistics included (target: < 5 s);
+* aperture effect: 10,000 trials with the validated k_A surrogate, the exact k_A evaluations of the
+  surrogate's design and of its held-out validation trials included (target: < 10 min), with the
+  surrogate's own error against the held-out exact evaluations.
+
+Sample: CIE R3 fitted on the fly (roadgonio.sample); instrument: the bundled portable preset.
+Prints a table and writes bench/results/uncertainty.csv. Usage::
+
+    python bench/bench_uncertainty.py [--quick] [--backend mitsuba|quadrature] [--no-aperture]
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SPEC = ("alpha_deg=0.01,eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,"
+        "source_distance_m=0.002,detector_distance_m=0.005")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="fewer trials (smoke test, not the targets)")
+    ap.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature"])
+    ap.add_argument("--rel-se", type=float, default=None, help="backend tolerance (default 3e-3 mitsuba, 1e-4 quadrature)")
+    ap.add_argument("--no-aperture", action="store_true", help="only the no-aperture rows")
+    ap.add_argument("--sample", default="R3")
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "uncertainty.csv"))
+    args = ap.parse_args()
+
+    from roadgonio.instrument import load_instrument
+    from roadgonio.sample import resolve_sample
+    from roadgonio.uncertainty import parse_sigma_spec, run_uncertainty
+
+    model = resolve_sample(args.sample)
+    inst = load_instrument("portable")
+    spec = parse_sigma_spec(SPEC)
+    n_no = 5_000 if args.quick else 50_000
+    n_ap = 1_000 if args.quick else 10_000
+    rows = []
+
+    for cells in ("standard", "all"):
+        t = time.perf_counter()
+        res = run_uncertainty(model, inst, spec, trials=n_no, seed=1, cells=cells, aperture=False, progress=False)
+        dt = time.perf_counter() - t
+        c = res.cases["no_aperture"]
+        n = len(res.cells)
+        rows.append({"case": "no_aperture", "cells": n, "trials": n_no, "backend": "-", "seconds": dt,
+                     "seconds_exact_ka": 0.0, "seconds_mc": res.seconds["monte_carlo"],
+                     "seconds_stats": res.seconds["statistics"], "target_s": 5.0,
+                     "u_rel_median_pct": 100 * float(np.median(c.mc["u"][:n] / c.mc["mean"][:n])),
+                     "sur_err_max_pct": "", "sur_err_rms_pct": "", "sur_err_over_u_max": "",
+                     "backend_rel_se_max": ""})
+
+    if not args.no_aperture:
+        settings = {"rel_se": args.rel_se or 3e-3, "seed": 0} if args.backend == "mitsuba" else {"rtol": args.rel_se or 1e-4}
+        t = time.perf_counter()
+        res = run_uncertainty(model, inst, spec, trials=n_ap, seed=1, cells="standard", aperture=True,
+                              backend=args.backend, backend_settings=settings, n_validation=4, progress=True)
+        dt = time.perf_counter() - t
+        c = res.cases["aperture"]
+        n = len(res.cells)
+        u_rel = c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
+        s = res.surrogate.summary(u_rel)
+        rows.append({"case": "aperture", "cells": n, "trials": n_ap, "backend": f"{args.backend} {settings}",
+                     "seconds": dt, "seconds_exact_ka": res.seconds["surrogate"],
+                     "seconds_mc": res.seconds["monte_carlo"], "seconds_stats": res.seconds["statistics"],
+                     "target_s": 600.0, "u_rel_median_pct": 100 * float(np.median(u_rel)),
+                     "sur_err_max_pct": 100 * s["rel_err_max"], "sur_err_rms_pct": 100 * s["rel_err_rms"],
+                     "sur_err_over_u_max": s["err_over_u_max"], "backend_rel_se_max": s["backend_rel_se_max"]})
+
+    for r in rows:
+        r["pass"] = "yes" if r["seconds"] < r["target_s"] else "NO"
+    cols = list(rows[0].keys())
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=cols)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()})
+    print(f"sample {args.sample} (fitted), instrument portable, SPEC {SPEC}, cpus {os.cpu_count()}, "
+          f"load {os.getloadavg()[0]:.1f}")
+    hdr = ("case", "cells", "trials", "seconds", "target_s", "pass", "seconds_exact_ka", "seconds_mc",
+           "seconds_stats", "u_rel_median_pct", "sur_err_max_pct", "sur_err_rms_pct", "sur_err_over_u_max",
+           "backend_rel_se_max")
+    print(" | ".join(hdr))
+    for r in rows:
+        print(" | ".join(f"{r[k]:.4g}" if isinstance(r[k], float) else str(r[k]) for k in hdr))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
