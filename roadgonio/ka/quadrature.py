@@ -46,81 +46,87 @@ from ..model import NumpyOps, RoadModel, road_brdf
 from .. import optics
 from . import CellResult, ideal_ratio
 
-#: Radial orders of the disc rule by level (the angular order is twice the radial one).
-RADIAL_ORDERS = (1, 2, 3, 4, 6, 8, 11, 16, 22, 32, 45, 64, 90, 128)
+#: Gauss-Legendre orders of one direction of a disc rule, by level.
+ORDERS = (1, 2, 3, 4, 6, 8, 11, 16, 22, 32, 45, 64, 90, 128, 180, 256)
 #: Number of integrand evaluations held in memory at once.
 CHUNK = 1 << 18
 #: Default cap on integrand evaluations of one estimate (pupil x field x source nodes).
 MAX_EVALS = 4_000_000
 #: Relative tolerance of the default preset.
 DEFAULT_RTOL = 1e-4
-#: Disc names in the order of the level tuples.
+#: Disc names; each disc has two directions (v: along the disc's t axis, h: along its s axis).
 DISCS = ("pupil", "field", "source")
-#: Level of the coarse rule that locates the integrand mass on each disc (see ``_focus``).
-FOCUS_PROBE_LEVEL = 2
+DIRS = ("pupil_v", "pupil_h", "field_v", "field_h", "source_v", "source_h")
+#: Level (both directions) of the coarse rule that locates the integrand mass on each disc.
+FOCUS_PROBE_LEVEL = 3
 #: Centroids closer to the disc centre than this leave the rule unmoved; larger ones are capped.
 FOCUS_MIN = 0.05
 FOCUS_MAX = 0.8
 
 
 @lru_cache(maxsize=None)
-def _polar_rule(level: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    if level < 0:
-        return np.zeros(1), np.zeros(1), np.ones(1)
-    if level >= len(RADIAL_ORDERS):
-        raise ValueError(f"disc rule level {level} beyond the table ({len(RADIAL_ORDERS) - 1})")
-    from scipy.special import roots_jacobi
-    n_r = RADIAL_ORDERS[level]
-    n_t = 2 * n_r
-    z, wz = roots_jacobi(n_r, 0.0, 1.0)        # weight (1 + z) on [-1, 1]
-    r = 0.5 * (1.0 + z)                         # r dr = (1 + z) dz / 4
-    wr = wz / wz.sum()
-    t = (np.arange(n_t) + 0.5) * (2.0 * math.pi / n_t)
-    R, T = np.meshgrid(r, t, indexing="ij")
-    W = np.repeat(wr[:, None] / n_t, n_t, axis=1)
-    return (R * np.cos(T)).ravel(), (R * np.sin(T)).ravel(), W.ravel()
+def _gauss(n: int) -> tuple[np.ndarray, np.ndarray]:
+    z, w = np.polynomial.legendre.leggauss(n)
+    return z, w
 
 
-@lru_cache(maxsize=256)
-def disc_rule(level: int, focus: complex = 0j) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+@lru_cache(maxsize=512)
+def disc_rule(level_v: int, level_h: int, focus: complex = 0j) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Product rule on the unit disc: nodes (x, y) and weights summing to 1.
 
-    ``level < 0`` is the centre alone (a disc of radius 0). Otherwise ``n_r = RADIAL_ORDERS[level]``
-    Gauss-Jacobi nodes in r (weight r dr on [0, 1]) times ``n_t = 2 n_r`` equally spaced angles
-    (offset by half a step): exact for polynomials in (x, y) of total degree ``2 n_r - 1``.
+    The disc is the image of the rectangle (s, phi) in [-1, 1] x [-pi/2, pi/2] under
+    ``(x, y) = (s cos phi, sin phi)`` (area element ``cos^2 phi ds dphi``): a smooth map onto the
+    disc that is exact in its boundary (no mask of a square), with Gauss-Legendre nodes in phi
+    (``ORDERS[level_v]``, the y direction, crowded towards y = +-1) and in s (``ORDERS[level_h]``,
+    the x direction). The two directions are refined independently, so an integrand that varies
+    along one axis only (the long axis of a grazing footprint) costs few nodes across it.
+    ``level_v < 0`` is the centre alone (a disc of radius 0).
 
-    ``focus`` (complex, ``|focus| < 1``) moves the rule by the disc automorphism
-    ``T(z) = (z + a) / (1 + conj(a) z)``: the rule's centre goes to ``a`` and the nodes crowd
-    towards the boundary point ``a / |a|`` (by ``(1 + |a|) / (1 - |a|)`` in linear density there).
-    The map is analytic and maps the disc and its boundary onto themselves, so the rule stays
-    exact in the boundary and spectrally convergent; the weights carry the Jacobian ``|T'(z)|^2``.
+    ``focus`` (complex c, ``|c| < 1``) crowds the nodes towards the boundary point ``c / |c|``:
+    the rule is built along a rotated axis v = c/|c| with ``v = (sin phi + b) / (1 + b sin phi)``,
+    ``b = |c|`` (a 1-D Moebius map of [-1, 1] onto itself, so the rule's centre goes to c and the
+    node density near the boundary point grows by ``(1 + b) / (1 - b)``), and the chord
+    coordinate ``x = s sqrt(1 - v^2)``. The map stays smooth (analytic) and onto the disc, exact in
+    the boundary; the weights carry its Jacobian ``(1 - b^2)^(3/2) cos^2 phi / (1 + b sin phi)^3``.
     """
-    x, y, w = _polar_rule(level)
-    if focus != 0 and level >= 0:
-        a = complex(focus)
-        z = x + 1j * y
-        den = 1.0 + a.conjugate() * z
-        tz = (z + a) / den
-        jac = (1.0 - abs(a) ** 2) ** 2 / np.abs(den) ** 4
-        x, y, w = tz.real.copy(), tz.imag.copy(), w * jac
-        w = w / w.sum()       # exact up to rounding: the map is onto the disc
-    x, y, w = np.array(x), np.array(y), np.array(w)
+    if level_v < 0 or level_h < 0:
+        x, y, w = np.zeros(1), np.zeros(1), np.ones(1)
+    else:
+        if max(level_v, level_h) >= len(ORDERS):
+            raise ValueError(f"disc rule level beyond the table ({len(ORDERS) - 1})")
+        zv, wv = _gauss(ORDERS[level_v])
+        zh, wh = _gauss(ORDERS[level_h])
+        phi = 0.5 * math.pi * zv
+        c, sn = np.cos(phi), np.sin(phi)
+        b = abs(complex(focus))
+        den = 1.0 + b * sn
+        v = (sn + b) / den                       # along the focus axis
+        half = math.sqrt(1.0 - b * b) * c / den  # half chord sqrt(1 - v^2)
+        jac = (1.0 - b * b) ** 1.5 * c * c / den ** 3
+        xl = (half[:, None] * zh[None, :]).ravel()
+        yl = np.repeat(v, zh.size)
+        w = ((wv * jac)[:, None] * wh[None, :]).ravel()
+        if b > 0.0:
+            # rotate the local +y axis onto the focus direction
+            ux, uy = complex(focus).real / b, complex(focus).imag / b
+            x, y = xl * uy + yl * ux, -xl * ux + yl * uy
+        else:
+            x, y = xl, yl
+        w = w / w.sum()       # the rule of the constant: exact up to rounding (and the focus map)
+    x, y, w = np.array(x, dtype=np.float64), np.array(y, dtype=np.float64), np.array(w, dtype=np.float64)
     for arr in (x, y, w):
         arr.setflags(write=False)
     return x, y, w
 
 
-def rule_size(level: int) -> int:
-    """Number of nodes of the disc rule of ``level``."""
-    return 1 if level < 0 else 2 * RADIAL_ORDERS[level] ** 2
+def rule_size(level_v: int, level_h: int) -> int:
+    """Number of nodes of a disc rule."""
+    return 1 if level_v < 0 or level_h < 0 else ORDERS[level_v] * ORDERS[level_h]
 
 
 def size(levels) -> int:
-    """Number of integrand evaluations of the product rule at ``levels`` (pupil, field, source)."""
-    n = 1
-    for lvl in levels:
-        n *= rule_size(lvl)
-    return n
+    """Number of integrand evaluations of the product rule at the six direction ``levels``."""
+    return rule_size(levels[0], levels[1]) * rule_size(levels[2], levels[3]) * rule_size(levels[4], levels[5])
 
 
 class QuadratureBackend:
@@ -129,7 +135,7 @@ class QuadratureBackend:
     name = "quadrature"
 
     def __init__(self, instrument: Instrument, model: RoadModel, *, rtol: float = DEFAULT_RTOL,
-                 max_evals: int = MAX_EVALS, start_level: int = 0, accuracy: str | None = None,
+                 max_evals: int = MAX_EVALS, start_level: int = 1, accuracy: str | None = None,
                  focus: bool = True):
         if accuracy is not None:
             from .accuracy import preset
@@ -171,11 +177,12 @@ class QuadratureBackend:
                 "discs": [d for d, a in zip(DISCS, self.active) if a], "precision": "float64"}
 
     # -- integrand ----------------------------------------------------------------------------
-    def _detector(self, lp: int, lf: int, fp: complex = 0j, ff: complex = 0j) -> dict[str, Any]:
+    def _detector(self, lp: tuple[int, int], lf: tuple[int, int], fp: complex = 0j,
+                  ff: complex = 0j) -> dict[str, Any]:
         key = (lp, lf, fp, ff)
         if key not in self._det_cache:
-            px, py, wp = disc_rule(lp, fp)
-            fx, fy, wf = disc_rule(lf, ff)
+            px, py, wp = disc_rule(*lp, fp)
+            fx, fy, wf = disc_rule(*lf, ff)
             PX = np.repeat(px, fx.size)
             PY = np.repeat(py, fx.size)
             FX = np.tile(fx, px.size)
@@ -186,17 +193,17 @@ class QuadratureBackend:
             if not np.all(valid):   # excluded by check_detector; kept as a guard
                 raise GeometryError("some detected rays do not reach the sample plane")
             wd = W * wgt
-            if len(self._det_cache) > 24:
+            if len(self._det_cache) > 32:
                 self._det_cache.clear()
             self._det_cache[key] = {"x": x, "y": y, "wo": (-d[0], -d[1], -d[2]), "w": wd / wd.sum(),
                                     "np": px.size, "nf": fx.size}
         return self._det_cache[key]
 
     def _estimate(self, src: optics.SourceGeometry, levels, focus=(0j, 0j, 0j), marginals: bool = False):
-        """(sum w f G, sum w G) over the product rule at ``levels`` (weights normalised); with
-        ``marginals`` also the integrand mass per node of each disc."""
-        det = self._detector(levels[0], levels[1], focus[0], focus[1])
-        sx, sy, ws = disc_rule(levels[2], focus[2])
+        """(sum w f G, sum w G) over the product rule at the six direction ``levels`` (weights
+        normalised); with ``marginals`` also the integrand mass per node of each disc."""
+        det = self._detector(tuple(levels[0:2]), tuple(levels[2:4]), focus[0], focus[1])
+        sx, sy, ws = disc_rule(levels[4], levels[5], focus[2])
         sp = optics.source_point(src, (sx, sy))
         sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape)[None, :] for c in sp)
         nd, ns = det["x"].size, sx.size
@@ -219,7 +226,7 @@ class QuadratureBackend:
                 road += float(wd @ (fg @ ws))
                 lam += float(wd @ (g @ ws))
                 if marginals:
-                    m = (fg / max(road, 1e-300) + g / max(lam, 1e-300)) * ws[None, :] * wd[:, None]
+                    m = (fg + g * self._nominal) * ws[None, :] * wd[:, None]
                     m_det[a:b] += m.sum(axis=1)
                     m_src += m.sum(axis=0)
         if not marginals:
@@ -232,10 +239,11 @@ class QuadratureBackend:
         disc (from a coarse rule), so that the nodes crowd where the signal comes from."""
         _, _, margs = self._estimate(src, levels, marginals=True)
         out = []
-        for lvl, m in zip(levels, margs):
-            x, y, _ = disc_rule(lvl)
+        for k, m in enumerate(margs):
+            lvv, lvh = levels[2 * k], levels[2 * k + 1]
+            x, y, _ = disc_rule(lvv, lvh)
             tot = m.sum()
-            if lvl < 0 or not (tot > 0.0 and math.isfinite(tot)):
+            if lvv < 0 or not (tot > 0.0 and math.isfinite(tot)):
                 out.append(0j)
                 continue
             c = complex(float(m @ x) / tot, float(m @ y) / tot)
@@ -243,8 +251,7 @@ class QuadratureBackend:
             if r < FOCUS_MIN:
                 out.append(0j)
             else:
-                r2 = min(r, FOCUS_MAX)
-                c = c * (r2 / r)
+                c = c * (min(r, FOCUS_MAX) / r)
                 out.append(complex(round(c.real, 3), round(c.imag, 3)))
         return tuple(out)
 
@@ -257,58 +264,89 @@ class QuadratureBackend:
         if not (nominal > 0.0 and math.isfinite(nominal)):
             raise GeometryError(f"the model is {nominal:g} at the nominal geometry (tan eps = {tan_eps:g}, "
                                 f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
+        self._nominal = nominal
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
-        act = [i for i, a in enumerate(self.active) if a]
+        # six directions (pupil v/h, field v/h, source v/h); a disc of radius 0 is one node
+        act = [2 * k + j for k, a in enumerate(self.active) if a for j in (0, 1)]
         evals = 0
         focus = (0j, 0j, 0j)
         if self.focus and act:
-            probe = tuple(FOCUS_PROBE_LEVEL if a else -1 for a in self.active)
+            probe = tuple(FOCUS_PROBE_LEVEL if i in act else -1 for i in range(6))
             focus = self._focus(src, probe)
             evals += size(probe)
-        cache: dict[tuple[int, int, int], float] = {}
+        cache: dict[tuple[int, ...], float] = {}
 
         def q(levels):
             nonlocal evals
+            levels = tuple(levels)
             if levels not in cache:
                 road, lam = self._estimate(src, levels, focus)
                 evals += size(levels)
                 cache[levels] = (road / lam) / nominal if lam > 0.0 else math.nan
             return cache[levels]
 
-        lv = [self.start_level if a else -1 for a in self.active]
+        lv = [self.start_level if i in act else -1 for i in range(6)]
         converged = True
-        deltas: dict[int, float] = {}
+        deltas: dict[int, float] = {}   # error share of each direction (change from one level down)
+        todo = set(act)                 # directions whose share must be (re)computed at lv
+        fresh: set[int] = set()
+        err = 0.0
+
+        def share_of(i):
+            down = list(lv)
+            down[i] -= 1
+            coarse = q(down)
+            # a coarser rule that saw no light at all (narrow beam) says nothing: a full share
+            return abs(base - coarse) if math.isfinite(coarse) else abs(base)
+
         while True:
-            base = q(tuple(lv))
-            # error share of each disc: the change from the next coarser rule of that disc
-            deltas = {}
-            for i in act:
-                down = list(lv)
-                down[i] -= 1
-                deltas[i] = abs(base - q(tuple(down)))
-            err = sum(deltas.values())
+            base = q(lv)
             if not math.isfinite(base):
-                converged = False
-                break
+                # no node sees light yet (a narrow source beam): refine every direction
+                nxt = [lvl + 1 if i in act else lvl for i, lvl in enumerate(lv)]
+                if not act or max(nxt) >= len(ORDERS) or size(nxt) > self.max_evals:
+                    raise GeometryError(
+                        f"no detected ray receives light from the source at tan eps = {tan_eps:g}, beta = "
+                        f"{beta_deg:g} (the source beam misses the detector footprint): k_A is undefined")
+                lv = nxt
+                continue
+            for i in todo:
+                deltas[i] = share_of(i)
+                fresh.add(i)
+            err = sum(deltas.values())
             if err <= self.rtol * abs(base):
-                break
+                # shares of directions not refined lately are stale: check them at the final levels
+                stale = set(act) - fresh
+                if not stale:
+                    break
+                for i in stale:
+                    deltas[i] = share_of(i)
+                    fresh.add(i)
+                err = sum(deltas.values())
+                if err <= self.rtol * abs(base):
+                    break
             share = self.rtol * abs(base) / len(act)
             refine = [i for i, d in deltas.items() if d > share] or [max(deltas, key=deltas.get)]
             nxt = list(lv)
             for i in refine:
                 nxt[i] += 1
-            if max(nxt) >= len(RADIAL_ORDERS) or size(nxt) > self.max_evals:
-                # within the cap, refine only the disc with the largest share
-                worst = max(deltas, key=deltas.get)
+            if max(nxt) >= len(ORDERS) or size(nxt) > self.max_evals:
+                # within the cap, refine only the direction with the largest share
+                refine = [max(deltas, key=deltas.get)]
                 nxt = list(lv)
-                nxt[worst] += 1
-                if nxt[worst] >= len(RADIAL_ORDERS) or size(nxt) > self.max_evals:
+                nxt[refine[0]] += 1
+                if nxt[refine[0]] >= len(ORDERS) or size(nxt) > self.max_evals:
                     converged = False
+                    for i in set(act) - fresh:
+                        deltas[i] = share_of(i)
+                    err = sum(deltas.values())
                     break
             lv = nxt
-        extra = {"levels": {DISCS[i]: lv[i] for i in act}, "converged": converged,
-                 "nodes": {DISCS[i]: rule_size(lv[i]) for i in act},
-                 "focus": {DISCS[i]: [focus[i].real, focus[i].imag] for i in act}}
+            todo = set(refine)
+            fresh = set()
+        extra = {"levels": {DIRS[i]: lv[i] for i in act}, "converged": converged,
+                 "nodes": {DISCS[k]: rule_size(lv[2 * k], lv[2 * k + 1]) for k in range(3) if self.active[k]},
+                 "focus": {DISCS[k]: [focus[k].real, focus[k].imag] for k in range(3) if self.active[k]}}
         if not converged:
             extra["note"] = (f"stopped at max_evals = {self.max_evals}: the estimated relative error "
                              f"{err / abs(base):.2e} exceeds rtol = {self.rtol:g}")
@@ -327,7 +365,7 @@ class QuadratureBackend:
 
 
 def make_backend(instrument: Instrument, model: RoadModel, *, rtol: float = DEFAULT_RTOL,
-                 accuracy: str | None = None, max_evals: int = MAX_EVALS, start_level: int = 0,
+                 accuracy: str | None = None, max_evals: int = MAX_EVALS, start_level: int = 1,
                  focus: bool = True, **unknown) -> QuadratureBackend:
     """The quadrature backend (``roadgonio.ka.make_backend("quadrature", ...)``).
 
@@ -341,10 +379,10 @@ def make_backend(instrument: Instrument, model: RoadModel, *, rtol: float = DEFA
         Cap on integrand evaluations of one estimate; a cell that reaches it reports the error it
         achieved with ``extra["converged"] = False``.
     start_level:
-        First level of each disc rule (level l has 2 n_r^2 nodes, n_r = RADIAL_ORDERS[l]).
+        First level of each direction of the disc rules (level l has ORDERS[l] Gauss nodes).
     focus:
         Move each disc rule towards the centroid of the integrand mass on that disc (a disc
-        automorphism, see :func:`disc_rule`); ``False`` keeps the centred polar rules.
+        automorphism, see :func:`disc_rule`); ``False`` keeps the centred rules.
     """
     if unknown:
         raise InputError(f"unknown quadrature setting(s) {', '.join(sorted(unknown))}; expected rtol, "
