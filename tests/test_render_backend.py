@@ -75,10 +75,12 @@ def test_ideal_geometry_rendered_matches_float64(mi, cell):
 
 
 def test_standard_error_matches_scatter_over_seeds():
-    """The single-pass paired-pixel SE against the scatter of k_A over 24 seeds: the ratio of
-    the two is chi-distributed with 23 degrees of freedom (95 % within [0.72, 1.28])."""
+    """The single-pass paired-pixel SE against the scatter of k_A over 24 seeds. For an exact SE
+    the ratio scatter/SE is chi-distributed with 23 degrees of freedom (97.5 % below 1.28). The
+    estimator is conservative by the spread of neighbouring stratum means (measured ratio 0.83-0.90
+    with the default multijitter sampler at 64 x 64 pixels): it must never be much too small."""
     from roadgonio.render.backend import make_backend
-    b = make_backend(preset("portable"), ROAD, rel_se=1.0, spp=16, resolution=32)
+    b = make_backend(preset("portable"), ROAD, rel_se=1.0, spp=16, resolution=64)
     for cell in [(2.0, 0.0), (12.0, 0.0)]:
         ks, ses = [], []
         for s in range(24):
@@ -87,7 +89,7 @@ def test_standard_error_matches_scatter_over_seeds():
             ks.append(r.k_a)
             ses.append(r.se)
         ratio = np.std(ks, ddof=1) / np.mean(ses)
-        assert 0.6 < ratio < 1.4, (cell, ratio)
+        assert 0.6 < ratio < 1.3, (cell, ratio)
 
 
 def test_adaptive_stopping_reaches_target():
