@@ -620,9 +620,15 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
             observation={"alpha_deg": alpha_loc, "delta_deg": mm.delta0},
             source={"distance_m": mm.ds0 + ds}, detector={"distance_m": mm.dd0 + dd})
         backend = factory(inst, mm.model)
+        if not settings_seen:
+            try:
+                settings_seen.update(backend.settings())
+            except Exception:  # noqa: BLE001 - provenance only
+                settings_seen["backend"] = getattr(backend, "name", "?")
         res = backend.compute(mm.cells_of(w), on_cell=(lambda _r: bar.update(1)) if bar is not None else None)
         return np.array([c.k_a for c in res]), np.array([c.se for c in res])
 
+    settings_seen: dict[str, Any] = {}
     x_design = np.empty((len(pts), n, N_COORDS))
     ka_design = np.empty((len(pts), n))
     rel_se = 0.0
@@ -648,10 +654,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
     finally:
         if bar is not None:
             bar.close()
-    try:
-        settings = dict(factory(mm.instrument, mm.model).settings())
-    except Exception:  # noqa: BLE001 - provenance only
-        pass
+    settings = {**settings, **settings_seen}
     return SurrogateReport(
         surrogate=sur, design_points=len(pts), validation_trials=len(Xv),
         exact_evaluations=(len(pts) + len(Xv)) * n, seconds=time.perf_counter() - t0,
