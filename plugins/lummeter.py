@@ -20,7 +20,9 @@ on the focus point).
 
 Properties: ``alpha_deg``, ``delta_deg`` (the observation direction), ``distance_m``,
 ``pupil_radius_m``, ``field_half_angle_deg``, ``focus_m`` (float; ``inf`` or a value <= 0 means
-an angular field; default = ``distance_m``); plus the usual ``film`` and ``sampler`` children.
+an angular field; default = ``distance_m``); ``mapping`` = ``"concentric"`` (default, the
+signal) or ``"square"`` (film = picture of the field plane, pixels outside the field stop 0;
+for images); plus the usual ``film`` and ``sampler`` children.
 """
 from __future__ import annotations
 
@@ -84,6 +86,10 @@ class LumMeter(mi.Sensor):
         self.geometry = detector_geometry(self.instrument)
         self._geo = jit_geometry(self.geometry)
         self.m_needs_sample_3 = True
+        #: "concentric" (pixels stratify the field disc: the signal) or "square" (a picture of the field)
+        self.mapping = str(props.get("mapping", "concentric")) if "mapping" in props else "concentric"
+        if self.mapping not in ("concentric", "square"):
+            raise InputError(f"lummeter sensor: mapping must be 'concentric' or 'square', got {self.mapping!r}")
 
     def detector_dict(self) -> dict:
         """The detector geometry as an instrument ``[observation]``/``[detector]`` dict."""
@@ -93,8 +99,15 @@ class LumMeter(mi.Sensor):
     def rays(self, field_u, pupil_u):
         """Origin, direction and etendue weight of the rays for unit-square samples
         (field: film position, pupil: aperture sample); Dr.Jit arrays."""
-        fx, fy = concentric_disc(DrJitOps, field_u.x, field_u.y)
         px, py = concentric_disc(DrJitOps, pupil_u.x, pupil_u.y)
+        if self.mapping == "square":
+            # picture of the field as the detector sees it: film (u, v) -> (1 - 2u, 1 - 2v) on the
+            # field plane (s, t) (t is "up" for delta = 0 and s points to the viewer's left), weight
+            # 0 outside the field stop; the mean over pixels is then pi/4 x the signal
+            fx, fy = 1.0 - 2.0 * field_u.x, 1.0 - 2.0 * field_u.y
+            o, d, w = detector_ray(DrJitOps, self._geo, (px, py), (fx, fy))
+            return o, d, dr.select(fx * fx + fy * fy <= 1.0, w, 0.0)
+        fx, fy = concentric_disc(DrJitOps, field_u.x, field_u.y)
         return detector_ray(DrJitOps, self._geo, (px, py), (fx, fy))
 
     def sample_ray(self, time, sample1, sample2, sample3, active=True):

@@ -1,0 +1,112 @@
+"""Benchmark: the full 580-cell k_A table of the portable preset for the R3 fit with the Mitsuba
+backend, side by side with the float64 numpy Monte Carlo of the same integral at the same
+relative standard error (roadgonio.ka.montecarlo).
+
+    python bench/bench_ka_mitsuba.py                 # numpy MC on every 10th cell (extrapolated)
+    python bench/bench_ka_mitsuba.py --mc-stride 1   # numpy MC on the full table too (slow)
+
+Targets (2-core machine): the Mitsuba table in under 60 s, and at least 5x faster than numpy MC
+at the same error. Prints a table and writes bench/results/ka_mitsuba.csv.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rel-se", type=float, default=1e-3)
+    ap.add_argument("--sample", default="R3")
+    ap.add_argument("--instrument", default=str(ROOT / "scenes" / "portable.toml"))
+    ap.add_argument("--mc-stride", type=int, default=10, help="numpy MC on every N-th cell (1 = all)")
+    ap.add_argument("--sampler", default=None, help="Mitsuba sampler (default: the backend's)")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "ka_mitsuba.csv"))
+    args = ap.parse_args(argv)
+
+    from roadgonio.instrument import Instrument
+    from roadgonio.ka import full_grid_cells
+    from roadgonio.ka.montecarlo import make_backend as make_mc
+    from roadgonio.render.backend import make_backend as make_mitsuba
+    from roadgonio.sample import resolve_sample
+
+    inst = Instrument.load(args.instrument)
+    model = resolve_sample(args.sample)
+    cells = full_grid_cells()
+
+    settings = {"rel_se": args.rel_se}
+    if args.sampler:
+        settings["sampler"] = args.sampler
+    t0 = time.perf_counter()
+    mb = make_mitsuba(inst, model, **settings)
+    t_build = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    mres = mb.compute(cells)
+    t_table = time.perf_counter() - t0
+    by_cell = {(r.tan_eps, r.beta_deg): r for r in mres}
+
+    sub = cells[:: args.mc_stride]
+    nb = make_mc(inst, model, rel_se=args.rel_se)
+    t0 = time.perf_counter()
+    nres = nb.compute(sub)
+    t_np = time.perf_counter() - t0
+
+    m_sub = [by_cell[c] for c in sub]
+    t_m_sub = sum(r.seconds for r in m_sub)
+    z = [abs(a.k_a - b.k_a) / math.hypot(a.se, b.se) for a, b in zip(m_sub, nres) if a.se > 0 or b.se > 0]
+    rel_m = max(r.se / abs(r.k_a) for r in mres)
+    rel_n = max(r.se / abs(r.k_a) for r in nres)
+    samples_m = sum(r.samples for r in mres)
+    samples_n = sum(r.samples for r in nres)
+    passes = [r.extra["passes"] for r in mres]
+
+    rows = [
+        {"backend": "mitsuba", "cells": len(cells), "seconds": round(t_table, 2), "build_s": round(t_build, 2),
+         "samples": samples_m, "samples_per_s": round(samples_m / t_table), "worst_rel_se": f"{rel_m:.3e}",
+         "passes": sum(passes), "max_passes": max(passes), "sampler": mb.sampler,
+         "k_a_min": f"{min(r.k_a for r in mres):.4f}", "k_a_max": f"{max(r.k_a for r in mres):.4f}"},
+        {"backend": "mitsuba (MC subset)", "cells": len(sub), "seconds": round(t_m_sub, 2), "build_s": "",
+         "samples": sum(r.samples for r in m_sub), "samples_per_s": round(sum(r.samples for r in m_sub) / t_m_sub),
+         "worst_rel_se": f"{max(r.se / abs(r.k_a) for r in m_sub):.3e}", "passes": sum(r.extra["passes"] for r in m_sub),
+         "max_passes": max(r.extra["passes"] for r in m_sub), "sampler": mb.sampler, "k_a_min": "", "k_a_max": ""},
+        {"backend": "numpy-mc (float64)", "cells": len(sub), "seconds": round(t_np, 2), "build_s": "",
+         "samples": samples_n, "samples_per_s": round(samples_n / t_np), "worst_rel_se": f"{rel_n:.3e}",
+         "passes": "", "max_passes": "", "sampler": "stratified batches", "k_a_min": "", "k_a_max": ""},
+    ]
+    speedup = t_np / t_m_sub
+    print(f"k_A table: instrument {inst.name}, sample {args.sample} ({model.variant}), target rel SE {args.rel_se:g}")
+    hdr = f"{'backend':22} {'cells':>5} {'seconds':>8} {'samples':>12} {'samples/s':>11} {'worst relSE':>11}"
+    print(hdr)
+    print("-" * len(hdr))
+    for r in rows:
+        print(f"{r['backend']:22} {r['cells']:5d} {r['seconds']:8.2f} {r['samples']:12d} {r['samples_per_s']:11.3g} "
+              f"{r['worst_rel_se']:>11}")
+    print(f"scene build {t_build:.2f} s; Mitsuba passes {sum(passes)} (max {max(passes)} per cell); "
+          f"k_A {rows[0]['k_a_min']} ... {rows[0]['k_a_max']}")
+    print(f"speed-up on the same {len(sub)} cells at the same target error: {speedup:.1f}x "
+          f"(numpy full table extrapolated: {t_np * len(cells) / len(sub):.0f} s)")
+    print(f"agreement Mitsuba vs numpy on those cells: max |z| = {max(z):.2f}, "
+          f"fraction |z| > 2: {np.mean(np.array(z) > 2):.2f} (expected ~0.05)")
+    print(f"targets: table < 60 s: {'yes' if t_table < 60 else 'NO'} ({t_table:.1f} s); "
+          f">= 5x numpy: {'yes' if speedup >= 5 else 'NO'} ({speedup:.1f}x)")
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]) + ["speedup_vs_numpy", "max_abs_z"])
+        w.writeheader()
+        for r in rows:
+            w.writerow({**r, "speedup_vs_numpy": f"{speedup:.2f}", "max_abs_z": f"{max(z):.2f}"})
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,161 @@
+"""Pictures of one measurement cell (``roadgonio render``): the detector's view of the sample
+(the field of view, with the luminance of the road sample) and the horizontal illuminance on
+the sample around the detector footprint; OpenEXR (float32) and PNG (colour bar, footprint
+outline).
+
+Units follow :mod:`roadgonio.render.scene`: the source gives ~1 lx normal to its axis at the
+sample centre, so the illuminance is in lx per lx and luminances in cd/m^2 per lx.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..fileio import atomic_write, atomic_write_json
+from ..instrument import Instrument
+from ..model import RoadModel
+from ..optics import footprint_boundary
+from .scene import LAMBERT, ROAD, build_scene
+
+
+def write_exr(path: Path, channels: dict[str, np.ndarray]) -> Path:
+    import OpenEXR
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
+    return atomic_write(path, lambda p: OpenEXR.File(header, data).write(str(p)))
+
+
+def _ortho_sensor(mi, x0, x1, y0, y1, nx, ny, spp, z_top=0.0):
+    """Orthographic camera looking straight down on the region [x0, x1] x [y0, y1]; its rays
+    start just above ``z_top`` (the top of the sample), so the source and other parts of the
+    scene above the sample do not hide it."""
+    cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+    sx, sy = 0.5 * (x1 - x0), 0.5 * (y1 - y0)
+    # camera frame: looks along -z; film x -> world +x, film y (down) -> world -y
+    m = np.array([[-sx, 0, 0, cx], [0, sy, 0, cy], [0, 0, -1.0, 10.0], [0, 0, 0, 1]])
+    return mi.load_dict({"type": "orthographic", "to_world": mi.ScalarTransform4f(m.tolist()),
+                         "near_clip": 10.0 - (z_top + 1e-3), "far_clip": 20.0,
+                         "film": {"type": "hdrfilm", "width": nx, "height": ny, "rfilter": {"type": "box"},
+                                  "pixel_format": "rgb"},
+                         "sampler": {"type": "multijitter", "sample_count": spp}})
+
+
+def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float, beta_deg: float, out_dir,
+                       *, resolution: int = 256, spp: int = 64, seed: int = 0, variant: str | None = None,
+                       sample_name: str = "sample") -> dict[str, Any]:
+    """Render the detector's view and the illuminance for one cell; write EXR, PNG and JSON."""
+    out_dir = Path(out_dir)
+    rs = build_scene(instrument, model, resolution=resolution, variant=variant, sampler="multijitter")
+    import mitsuba as mi
+    rs.place_source(tan_eps, beta_deg)
+    # the signal (concentric film) and its k_A estimate
+    from ..ka import ideal_ratio
+    from .backend import pooled_ratio
+    sig = rs.render(seed, spp)
+    ratio, se, mg = pooled_ratio([(spp, sig[..., ROAD], sig[..., LAMBERT])])
+    ideal = ideal_ratio(model, instrument, tan_eps, beta_deg)
+    # picture of the field of view
+    rs.sensor.mapping = "square"
+    try:
+        view = rs.render(seed + 1, spp)
+    finally:
+        rs.sensor.mapping = "concentric"
+    # illuminance around the footprint, seen from above (Lambert channel: L = E_h / pi)
+    fx, fy = footprint_boundary(instrument)
+    x0, x1 = float(fx.min()), float(fx.max())
+    y0, y1 = float(fy.min()), float(fy.max())
+    mx = 0.15 * (x1 - x0) + 1e-3
+    half_y = max(3.0 * 0.5 * (y1 - y0), 0.06 * (x1 - x0), 1e-3)
+    cy = 0.5 * (y0 + y1)
+    ex0, ex1, ey0, ey1 = x0 - mx, x1 + mx, cy - half_y, cy + half_y
+    nx, ny = 512, 128
+    z_top = float(rs.sample_shape.bbox().max.z)
+    cam = _ortho_sensor(mi, ex0, ex1, ey0, ey1, nx, ny, 16, z_top)
+    top = np.array(mi.render(rs.scene, sensor=cam, integrator=rs.integrator, seed=seed + 2, spp=16), dtype=np.float64)
+    E = math.pi * top[..., LAMBERT]
+    L_top = top[..., ROAD]
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    files = {}
+    files["view_exr"] = str(write_exr(out_dir / "view.exr", {"RGB": view, "L_road": view[..., ROAD],
+                                                             "L_lambert": view[..., LAMBERT]}))
+    files["illuminance_exr"] = str(write_exr(out_dir / "illuminance.exr", {"E_h": E, "L_road_top": L_top}))
+    info = {"instrument": instrument.name, "sample": sample_name, "tan_eps": tan_eps, "beta_deg": beta_deg,
+            "resolution": resolution, "spp": spp, "seed": seed,
+            "signal_road": float(np.mean(sig[..., ROAD])), "signal_lambert": mg,
+            "ratio": ratio, "ratio_se": se, "ideal_ratio": ideal,
+            "k_a_estimate": ratio / ideal if ideal > 0 else None,
+            "k_a_se": se / ideal if ideal > 0 else None,
+            "footprint_m": {"x": [x0, x1], "y": [y0, y1]},
+            "illuminance_window_m": {"x": [ex0, ex1], "y": [ey0, ey1]},
+            "units": "source gives ~1 lx normal to its axis at the sample centre: E in lx/lx, L in cd/m^2/lx"}
+    files["png"] = str(_png(out_dir / "render.png", instrument, view, E, (ex0, ex1, ey0, ey1), (fx, fy), info))
+    info["files"] = files
+    atomic_write_json(out_dir / "render.json", info)
+    return info
+
+
+def _hull(x, y):
+    """Closed outline (convex hull) of the footprint's extreme-ray hit points."""
+    pts = np.stack([x, y], -1)
+    try:
+        from scipy.spatial import ConvexHull
+        # scale y so a very elongated footprint is not a degenerate hull
+        sc = max(np.ptp(x), 1e-12) / max(np.ptp(y), 1e-12)
+        v = ConvexHull(pts * [1.0, sc]).vertices
+    except Exception:  # degenerate (a single ray): draw the points
+        return x, y
+    v = np.append(v, v[0])
+    return pts[v, 0], pts[v, 1]
+
+
+def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> Path:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from ..fileio import atomic_savefig
+    gamma = instrument.detector.field_half_angle_deg
+    fig, axes = plt.subplots(2, 1, figsize=(9, 8.5), gridspec_kw={"height_ratios": [1.25, 1]})
+    ax = axes[0]
+    L = view[..., ROAD]
+    ext = gamma if gamma > 0 else 1.0
+    vmax = float(np.percentile(L[L > 0], 99.5)) if np.any(L > 0) else 1.0
+    im = ax.imshow(L, extent=(-ext, ext, -ext, ext), origin="upper", cmap="magma", vmin=0, vmax=vmax)
+    t = np.linspace(0, 2 * np.pi, 200)
+    ax.plot(ext * np.cos(t), ext * np.sin(t), color="cyan", lw=1.0, label="field stop")
+    ax.set_aspect("equal")
+    ax.set_xlabel("field angle, horizontal (deg; left = +y)")
+    ax.set_ylabel("field angle, vertical (deg)")
+    ax.set_title(f"Detector's view: luminance of the sample (field half-angle {gamma:g} deg)", fontsize=10)
+    cb = fig.colorbar(im, ax=ax, shrink=0.9)
+    cb.set_label("luminance (cd/m$^2$ per lx)")
+    ax.text(0.02, 0.03, "near edge of the footprint at the bottom,\nfar edge at the top", transform=ax.transAxes,
+            color="white", fontsize=8, va="bottom")
+
+    ax = axes[1]
+    x0, x1, y0, y1 = window
+    im = ax.imshow(E, extent=(x0, x1, y0, y1), origin="upper", cmap="viridis", aspect="auto", vmin=0)
+    fx, fy = outline
+    hx, hy = _hull(fx, fy)
+    ax.plot(hx, hy, color="red", lw=1.2, label="detector footprint")
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_xlabel("x on the sample (m; detector towards +x)")
+    ax.set_ylabel("y (m)")
+    ax.set_title("Horizontal illuminance on the sample (not to scale: y stretched)", fontsize=10)
+    ax.legend(loc="upper right", fontsize=8)
+    cb = fig.colorbar(im, ax=ax, shrink=0.9)
+    cb.set_label("illuminance E$_h$ (lx per lx)")
+    ka = info["k_a_estimate"]
+    ka_txt = f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (this render)" if ka is not None else "k_A undefined"
+    fig.suptitle(f"{info['instrument']}, sample {info['sample']}: tan eps = {info['tan_eps']:g}, "
+                 f"beta = {info['beta_deg']:g} deg, alpha = {instrument.observation.alpha_deg:g} deg\n{ka_txt}",
+                 fontsize=11)
+    fig.tight_layout()
+    atomic_savefig(fig, path, dpi=110)
+    plt.close(fig)
+    return path
