@@ -171,3 +171,17 @@ def test_unknown_setting_is_an_input_error():
     from roadgonio.render.backend import make_backend
     with pytest.raises(InputError, match="unknown setting"):
         make_backend(preset("portable"), ROAD, samples_per_pixel=3)
+
+
+def test_xml_holder_scene_shades_the_footprint():
+    """scenes/holder.toml + holder.xml: a Lambertian sample still gives 1; the back wall changes
+    k_A of the R3-like model at grazing forward light and leaves cells lit from the side alone."""
+    from roadgonio.render.backend import make_backend
+    holder = Instrument.load(SCENES / "holder.toml")
+    assert abs(make_backend(holder, RoadModel.lambert(), spp=4).compute([(12.0, 10.0)])[0].k_a - 1.0) <= F32_RATIO_TOL
+    b = make_backend(holder, ROAD, rel_se=1e-3)
+    plain = make_backend(preset("lab"), ROAD, rel_se=1e-3)
+    shaded, free = b.compute([(12.0, 10.0), (2.0, 90.0)])
+    shaded0, free0 = plain.compute([(12.0, 10.0), (2.0, 90.0)])
+    assert abs(shaded.k_a - shaded0.k_a) > 5 * math.hypot(shaded.se, shaded0.se)
+    assert abs(free.k_a - free0.k_a) <= 4 * math.hypot(free.se, free0.se) + F32_RATIO_TOL

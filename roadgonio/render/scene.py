@@ -23,7 +23,8 @@ loaded with ``mi.load_file`` and these parameters (usable as ``$name`` in the XM
 ``<default>`` values so the file also opens alone)::
 
     alpha_deg delta_deg source_distance_m source_radius_m source_radiance detector_distance_m
-    pupil_radius_m field_half_angle_deg focus_m sample_size_x_m sample_size_y_m
+    pupil_radius_m field_half_angle_deg focus_m (-1 = inf) sample_size_x_m sample_size_y_m
+    sample_half_x_m sample_half_y_m
 
 plus every key of an optional ``[scene.params]`` table (e.g. ``rim_height_m = 0.05``). The XML
 must contain the three parts above by id: a shape ``sample`` with a ``roadbsdf`` BSDF (its
@@ -50,10 +51,13 @@ from . import set_variant
 
 #: Ids of the scene parts (TOML-built and XML scenes alike).
 SOURCE_ID, SAMPLE_ID, DETECTOR_ID = "source", "sample", "detector"
+#: Sources closer than this to the line of sight get the detector-ray check again per cell.
+SOURCE_NEAR_SIGHT_DEG = 10.0
 #: Channels of the road BSDF in the backend scene: R = f_road, G = B = 1/pi (perfect diffuser).
 ROAD, LAMBERT = 0, 1
 
 _XML_PARAM_KEYS = ("alpha_deg", "delta_deg", "source_distance_m", "source_radius_m", "source_radiance",
+                   "sample_half_x_m", "sample_half_y_m",
                    "detector_distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m",
                    "sample_size_x_m", "sample_size_y_m")
 
@@ -181,6 +185,7 @@ class RoadScene:
     cell: tuple[float, float] | None = None
     footprint: tuple[float, float, float, float] | None = None
     info: dict = field(default_factory=dict)
+    checked: bool = False
 
     # -- per cell --------------------------------------------------------------------------
     def place_source(self, tan_eps: float, beta_deg: float) -> None:
@@ -194,6 +199,11 @@ class RoadScene:
             self.params[f"{SOURCE_ID}.to_world"] = source_transform(self.instrument, tan_eps, beta_deg)
         self.params.update()
         self.cell = (float(tan_eps), float(beta_deg))
+        if self.checked:
+            # a source close to the line of sight could hide part of the footprint: check the rays again
+            cos_sep = float(np.dot(self.instrument.w_i(tan_eps, beta_deg), self.instrument.w_o()))
+            if cos_sep > math.cos(math.radians(SOURCE_NEAR_SIGHT_DEG)):
+                self.check_hits(n_random=1 << 12, n_rim=64)
 
     def render(self, seed: int, spp: int) -> np.ndarray:
         """One pass: the film as float64 (H, W, 3); channel 0 = road, 1 = Lambert (see :data:`ROAD`)."""
@@ -277,7 +287,9 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
         rs = _build_toml(instrument, model, resolution=resolution, spp=spp, sampler=sampler, channels=channels)
     if check:
         rs.footprint = footprint
+        rs.place_source(0.0, 0.0)              # the source out of the way (XML files may leave it anywhere)
         rs.info["hit_check"] = rs.check_hits()
+        rs.checked = True
     return rs
 
 
@@ -315,7 +327,8 @@ def xml_parameters(instrument: Instrument, scene_sec) -> dict[str, str]:
          "source_radiance": source_radiance(instrument),
          "detector_distance_m": det.distance_m, "pupil_radius_m": det.pupil_radius_m,
          "field_half_angle_deg": det.field_half_angle_deg, "focus_m": -1.0 if math.isinf(det.focus) else det.focus,
-         "sample_size_x_m": smp.size_x_m or 0.0, "sample_size_y_m": smp.size_y_m or 0.0}
+         "sample_size_x_m": smp.size_x_m or 0.0, "sample_size_y_m": smp.size_y_m or 0.0,
+         "sample_half_x_m": 0.5 * (smp.size_x_m or 0.0), "sample_half_y_m": 0.5 * (smp.size_y_m or 0.0)}
     extra = scene_sec.get("params", {})
     if not isinstance(extra, dict):
         raise InputError("expected a table [scene.params]", path=instrument.path, field="scene.params")
