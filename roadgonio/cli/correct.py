@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 
 from ..errors import InputError
+from ..model import VARIANTS
 
 
 def register(sub) -> None:
@@ -25,7 +26,7 @@ def register(sub) -> None:
     p.add_argument("--alternatives", default="auto", metavar="LIST",
                    help="alternative references for the model uncertainty: 'auto' (default: the two nearest CIE "
                         "tables by S1/Q0), 'none', or a comma-separated list of SAMPLEs")
-    p.add_argument("--model-variant", choices=["power", "product"], help="model variant when fitting a table")
+    p.add_argument("--model-variant", choices=list(VARIANTS), help="model variant when fitting a table")
     p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature"],
                    help="k_A backend (default mitsuba)")
     p.add_argument("--rel-se", type=float, metavar="E",

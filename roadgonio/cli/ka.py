@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
+from ..model import VARIANTS
 
 
 def register(sub) -> None:
@@ -37,6 +38,8 @@ def add_common_arguments(p) -> None:
     p.add_argument("--sample", required=True, metavar="SAMPLE",
                    help="bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file, a model.json, "
                         "or 'lambert'")
+    p.add_argument("--model-variant", choices=list(VARIANTS),
+                   help="model variant used when SAMPLE is a table to fit (default: the paper's 'power')")
     p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature", "numpy-mc"],
                    help="mitsuba (default; float32 ray tracing), quadrature (deterministic float64), "
                         "numpy-mc (plain float64 Monte Carlo, slow; an oracle)")
@@ -71,7 +74,7 @@ def load_inputs(args):
     from ..instrument import load_instrument
     from ..sample import resolve_sample
     instrument = load_instrument(args.instrument)
-    model = resolve_sample(args.sample)
+    model = resolve_sample(args.sample, getattr(args, "model_variant", None))
     return instrument, model
 
 

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
+from ..model import VARIANTS
 
 
 def _positive_int(text: str) -> int:
@@ -39,7 +40,7 @@ def register(sub) -> None:
     p.add_argument("--sample", required=True, metavar="SAMPLE",
                    help="'lambert', a bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file, "
                         "or a model.json")
-    p.add_argument("--model-variant", choices=["power", "product"], help="model variant when fitting a table")
+    p.add_argument("--model-variant", choices=list(VARIANTS), help="model variant when fitting a table")
     p.add_argument("--sigma", required=True, metavar="SPEC",
                    help="standard deviations and distributions of the errors, e.g. 'alpha_deg=0.01,eps_deg=0.05:rect,"
                         "beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,source_distance_m=0.002,"
