@@ -169,7 +169,6 @@ def test_degenerate_and_limited_instruments_agree_with_mc(inst):
 
 
 @pytest.mark.plugin
-@pytest.mark.slow
 def test_mitsuba_float32_against_quadrature(mi):
     """The float32 renderer against float64 quadrature: within 4 SE plus the measured float32 floor."""
     from roadgonio.ka.validate import FLOAT32_FLOOR, compare
