@@ -17,28 +17,44 @@ Numerical form (chosen so that float32 is accurate near the lobe peaks and nothi
   is undefined (``theta_i = 0`` or ``theta_r = 0``) beta is taken as 180 deg, so E = 0 there.
 * E in log space: ``E = k_exp exp(p ln f + W ln x)`` with ``W = exp(min(1 + h f^2, 80))`` (power
   reading) or ``W = 1`` and an extra factor ``exp(min(1 + h f^2, 80))`` (product reading);
-  the total exponent is capped at 80, so E never overflows float32.
+  the total exponent is capped at 80, so E never overflows float32. The smooth extension's
+  ``L = -ln x_s = -log1m(sin^2(beta/2))`` is accurate near beta = 0, and ``W L^n_beta`` is
+  ``exp(min(ln W + n_beta ln L, 80))`` (0 where L = 0).
 
 Variants:
 
 * ``"power"`` (default): ``E = k_exp f(e)^p x^(exp(1 + h f(e)^2))``, ``x = (pi - beta)/pi``.
 * ``"product"``: the printed paper read literally, ``E = k_exp f(e)^p x exp(1 + h f(e)^2)``.
   DESIGN.md section 3 explains why the power reading is the default.
-* ``"smooth"`` (roadgonio extension, not in the paper): ``E = k_exp f(e)^p x_s^(exp(1 + h sqrt(f(e))))``
-  with ``x_s = cos^2(beta/2) = (1 + cos beta)/2``. Same parameters and bounds. The paper's model
-  (fitted by roadgonio.fit) misses the paper's own target (max 9 %, RMS 2.6 % of max r) on R3 and
-  R4: its residual sits in the beta = 0...10 deg columns, where ``x^W`` has a cusp at beta = 0 while
-  the tables are flat-topped at moderate tan eps, and in how fast the beta-width shrinks
-  towards grazing (``exp(h f^2)`` grows too fast). ``x_s`` is flat at beta = 0 (1 - beta^2/4) and
-  still 0 at beta = 180 deg; ``sqrt(f)`` slows the narrowing. Measured fits (bench/bench_fit.py):
-  RMS / max in % of max r, power -> smooth: R3 3.9/12.2 -> 2.5/7.2, R4 5.5/17.5 -> 2.8/9.3,
-  C2 3.1/8.8 -> 2.3/7.5; on R1 the power model is as good (RMS 1.6 vs 1.6).
+* ``"smooth"`` (roadgonio extension, not in the paper):
+  ``E = k_exp f(e)^p exp(-W L(beta)^n_beta)``, ``W = exp(1 + h sqrt(f(e)))``,
+  ``L(beta) = -ln x_s``, ``x_s = cos^2(beta/2) = (1 + cos beta)/2``.
+  With ``n_beta = 1`` (its default) this is ``k_exp f^p x_s^W``. It uses one parameter more than
+  the paper's model, ``n_beta``, the exponent of the beta profile; the other variants ignore it.
+  Why: the paper's model (fitted by roadgonio.fit) misses the paper's own target (max 9 %, RMS
+  2.6 % of max r) on R3 and R4. Where its residual sits (``roadgonio fit R3 --variant power``
+  prints the worst cells; residuals.csv / fit.png hold the map): ~45 % of the squared residual in
+  the peak columns beta = 0...10 deg at tan eps >= 1.5 (signs alternating from column to column,
+  and the beta = 0 peak 11-16 % too low at tan eps >= 9), ~40 % at tan eps <= 1.25 (the model
+  is up to 12 % too high at beta = 15...75 deg, tan eps = 1...1.5), the rest < 20 %. ``x^W``
+  has one fixed peak shape (a cusp, ``exp(-W beta/pi)`` near beta = 0) and ``exp(h f^2)``
+  narrows it too fast towards grazing, so one W cannot fit the broad hump at tan eps ~ 1 and
+  the narrow grazing peak at once. ``L`` is ``sin^2(beta/2)`` near 0, so ``L^n_beta`` is a
+  stretched profile between a Gaussian (``n_beta = 1``, flat top) and a cusp (``n_beta = 1/2``:
+  ``L^(1/2) ~ beta/2``, the lower bound) - the fits choose 0.5 (R1) ... 1.06 (C1); ``sqrt(f)`` slows the
+  narrowing. ``L`` grows to ``-ln(1e-7)`` at beta = 180 deg (``x_s`` is floored at 1e-7, as
+  ``x`` is), so E is ~0 there unless W is tiny.
+  Measured fits (bench/bench_fit.py), max / RMS in % of max r, power -> smooth:
+  R1 4.2/1.55 -> 4.3/1.47, R2 9.1/3.0 -> 5.5/1.85, R3 12.3/4.0 -> 7.2/2.27,
+  R4 17.5/5.5 -> 7.7/2.12, C1 3.5/1.17 -> 2.7/0.77, C2 8.8/3.1 -> 7.8/2.21.
 
 Parameter bounds (checked by :class:`RoadParams`): every ``k_*`` in [0, 1e6] sr^-1;
 ``n_phong``, ``n_retro`` in [0, 1e5]; ``p`` in [0, 50]; ``h`` in [-1e3, 1e3]; ``mu`` in [0, 1e3];
 ``g_a``, ``g_b``, ``g_c`` finite with ``g_a t^2 + g_b t + g_c > 0`` on [theta_l, pi/2]; ``g_t`` in
-[-100, 100]; ``theta_l_deg`` in (85.3, 90]. Within these bounds and for directions in the upper
-hemisphere the model is finite and non-negative (tested); below the horizon it is 0.
+[-100, 100]; ``theta_l_deg`` in (85.3, 90]; ``n_beta`` in [0.5, 4] (dimensionless; below 1/2
+the profile would be steeper than a cusp at beta = 0, where a rounding-level beta would change E).
+Within these bounds and for directions in the upper hemisphere the model is finite and
+non-negative (tested); below the horizon it is 0.
 """
 from __future__ import annotations
 
@@ -65,13 +81,15 @@ VARIANTS = ("power", "product", "smooth")
 DEFAULT_VARIANT = "power"
 
 PARAM_NAMES = ("k_diff", "k_phong", "n_phong", "k_retro", "n_retro", "k_exp", "p", "h", "mu",
-               "g_a", "g_b", "g_c", "g_t", "theta_l_deg")
+               "g_a", "g_b", "g_c", "g_t", "theta_l_deg", "n_beta")
+#: Parameters used only by some variants (the others ignore them, and the fit leaves them alone).
+VARIANT_PARAMS: dict[str, tuple[str, ...]] = {"power": (), "product": (), "smooth": ("n_beta",)}
 #: Lower and upper bounds of each parameter (inclusive unless noted in the module docstring).
 PARAM_BOUNDS: dict[str, tuple[float, float]] = {
     "k_diff": (0.0, 1e6), "k_phong": (0.0, 1e6), "k_retro": (0.0, 1e6), "k_exp": (0.0, 1e6),
     "n_phong": (0.0, 1e5), "n_retro": (0.0, 1e5), "p": (0.0, 50.0), "h": (-1e3, 1e3),
     "mu": (0.0, 1e3), "g_a": (-1e6, 1e6), "g_b": (-1e6, 1e6), "g_c": (-1e6, 1e6),
-    "g_t": (-100.0, 100.0), "theta_l_deg": (85.3, 90.0),
+    "g_t": (-100.0, 100.0), "theta_l_deg": (85.3, 90.0), "n_beta": (0.5, 4.0),
 }
 
 
@@ -143,7 +161,7 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
         ``(x, y, z)`` component triples of the unit directions towards the source (``wi``) and
         towards the detector (``wo``), in a frame whose z axis is the surface normal.
     variant:
-        ``"power"`` (default) or ``"product"`` reading of the empirical term.
+        ``"power"`` (default), ``"product"`` or ``"smooth"`` (extension) form of the empirical term.
     terms:
         Which terms to evaluate (see :func:`active_terms`); ``None`` means all. A term left out
         costs nothing.
@@ -185,10 +203,14 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
         f_e = xp.where(cos_e > 0.0, xp.sin(e) * cos_e / (cos_e * cos_e + P["mu"]), zero)
         ln_f = xp.log(xp.maximum(f_e, TINY))
         arg = xp.minimum(1.0 + P["h"] * f_e * f_e, EXP_CAP)
-        if variant == "smooth":  # extension (module docstring): x_s = cos^2(beta/2), W = exp(1 + h sqrt f)
-            arg = xp.minimum(1.0 + P["h"] * xp.sqrt(f_e), EXP_CAP)
-            ln_xs = 2.0 * xp.log(xp.maximum(xp.cos(0.5 * beta), TINY))
-            expo = P["p"] * ln_f + xp.exp(arg) * ln_xs
+        if variant == "smooth":
+            # extension (module docstring): E = k f^p exp(-W L^n_beta), W = exp(1 + h sqrt f),
+            # L = -ln cos^2(beta/2) = -log1m(sin^2(beta/2))
+            ln_w = xp.minimum(1.0 + P["h"] * xp.sqrt(f_e), EXP_CAP)
+            s_half = xp.sin(0.5 * beta)
+            L = -xp.log1m(xp.minimum(s_half * s_half, 1.0 - 1e-7))
+            ln_wl = xp.minimum(ln_w + P["n_beta"] * xp.log(xp.maximum(L, TINY)), EXP_CAP)
+            expo = P["p"] * ln_f - xp.where(L > 0.0, xp.exp(ln_wl), zero)
         elif variant == "power":
             expo = P["p"] * ln_f + xp.exp(arg) * ln_x
         else:  # product
@@ -224,6 +246,7 @@ class RoadParams:
     g_c: float = 1.0
     g_t: float = 1.0
     theta_l_deg: float = 90.0
+    n_beta: float = 1.0
 
     def __post_init__(self):
         for f in fields(self):

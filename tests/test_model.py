@@ -128,7 +128,7 @@ def test_g_never_changes_a_one_degree_table_cell(variant):
 # the empirical term E, as documented for each variant
 # ----------------------------------------------------------------------------------------------
 
-def _E_reference(variant, k, p, h, mu, theta_i, theta_r, beta):
+def _E_reference(variant, k, p, h, mu, theta_i, theta_r, beta, n_beta=1.0):
     """E of DESIGN.md section 3 / the roadgonio.model docstring, written from the formulas."""
     e = theta_i * theta_r / THETA_R_STAR
     f = math.sin(e) * math.cos(e) / (math.cos(e) ** 2 + mu)
@@ -139,7 +139,8 @@ def _E_reference(variant, k, p, h, mu, theta_i, theta_r, beta):
         return k * f ** p * x * math.exp(1 + h * f * f)
     if variant == "smooth":
         xs = math.cos(beta / 2) ** 2
-        return k * f ** p * xs ** math.exp(1 + h * math.sqrt(f))
+        W = math.exp(1 + h * math.sqrt(f))
+        return k * f ** p * math.exp(-W * (-math.log(xs)) ** n_beta)
     raise AssertionError(variant)
 
 
@@ -153,6 +154,39 @@ def test_empirical_term_matches_documented_formula(variant, ti, tr, beta_deg, p,
     wo = _dir(tr, 0.0)
     ref = _E_reference(variant, 0.7, p, h, mu, math.radians(ti), math.radians(tr), math.radians(beta_deg))
     assert m.brdf(wi, wo) == pytest.approx(ref, rel=RTOL_EXPLOG, abs=1e-300)
+
+
+@pytest.mark.parametrize("n_beta", [0.5, 0.8, 1.7, 4.0])
+@pytest.mark.parametrize("ti,tr,beta_deg,p,h,mu", [
+    (60.0, 89.0, 0.5, 2.0, 0.5, 0.03), (80.0, 89.0, 10.0, 2.1, 1.6, 0.002), (84.0, 89.0, 2.0, 2.5, 2.5, 0.005),
+    (30.0, 70.0, 100.0, 1.0, -2.0, 0.0), (45.0, 45.0, 170.0, 3.0, 1.0, 1.0)])
+def test_smooth_beta_profile_exponent(n_beta, ti, tr, beta_deg, p, h, mu):
+    m = _model("smooth", k_exp=0.7, p=p, h=h, mu=mu, n_beta=n_beta)
+    ref = _E_reference("smooth", 0.7, p, h, mu, math.radians(ti), math.radians(tr), math.radians(beta_deg), n_beta)
+    assert m.brdf(_dir(ti, 180.0 - beta_deg), _dir(tr, 0.0)) == pytest.approx(ref, rel=RTOL_EXPLOG, abs=1e-300)
+
+
+def test_smooth_profile_shapes_and_limits():
+    """n_beta = 1 is x_s^W (Gaussian near beta = 0), n_beta = 1/2 (the bound) a cusp exp(-W beta/2);
+    the peak value at beta = 0 is k f^p for every n_beta; E falls monotonically in beta."""
+    T = np.full(7, 3.0)
+    B = np.array([0.0, 0.01, 0.1, 1.0, 5.0, 30.0, 180.0])
+    e = np.arctan(3.0) * math.radians(89.0) / THETA_R_STAR
+    f = math.sin(e) * math.cos(e) / (math.cos(e) ** 2 + 0.01)
+    W = math.exp(1 + 0.8 * math.sqrt(f))
+    for nb in (0.5, 1.0, 2.0, 4.0):
+        q = _model("smooth", k_exp=1.0, p=2.0, h=0.8, mu=0.01, n_beta=nb).q(T, B)
+        assert q[0] == pytest.approx(f ** 2, rel=RTOL_EXPLOG), nb
+        assert np.all(np.diff(q) <= 0.0), nb
+    b = np.radians(B[1:4])
+    gauss = _model("smooth", k_exp=1.0, p=2.0, h=0.8, mu=0.01, n_beta=1.0).q(T[1:4], B[1:4])
+    np.testing.assert_allclose(gauss, f ** 2 * np.cos(b / 2) ** (2 * W), rtol=RTOL_EXPLOG)
+    cusp = _model("smooth", k_exp=1.0, p=2.0, h=0.8, mu=0.01, n_beta=0.5).q(T[1:3], B[1:3])
+    np.testing.assert_allclose(cusp, f ** 2 * np.exp(-W * b[:2] / 2), rtol=1e-6)
+    # the paper's variants ignore n_beta
+    for v in ("power", "product"):
+        kw = dict(k_exp=1.0, p=2.0, h=0.8, mu=0.01)
+        np.testing.assert_array_equal(_model(v, **kw, n_beta=0.6).q(T, B), _model(v, **kw).q(T, B))
 
 
 def test_product_and_power_differ_as_documented():
@@ -194,6 +228,7 @@ def _extreme_directions():
 EXTREMES = {
     "k_diff": [0.0, 1e6], "k_phong": [0.0, 1e6], "k_retro": [0.0, 1e6], "k_exp": [0.0, 1e6],
     "n_phong": [0.0, 1e5], "n_retro": [0.0, 1e5], "p": [0.0, 50.0], "h": [-1e3, 0.0, 1e3], "mu": [0.0, 1e3],
+    "n_beta": [0.5, 1.0, 4.0],
 }
 
 
@@ -201,16 +236,17 @@ EXTREMES = {
 def test_finite_at_extreme_parameters_and_directions(variant):
     wi, wo = _extreme_directions()
     # every lobe at full strength, each shape parameter at each of its extremes
-    names = ["n_phong", "n_retro", "p", "h", "mu"]
+    names = ["n_phong", "n_retro", "p", "h", "mu"] + (["n_beta"] if variant == "smooth" else [])
     for combo in itertools.product(*(EXTREMES[n] for n in names)):
         P = dict(k_diff=1e6, k_phong=1e6, k_retro=1e6, k_exp=1e6, **dict(zip(names, combo)))
         _finite_nonneg(_model(variant, **P), wi, wo)
         _finite_nonneg(_model(variant, **P, **G_STRONG), wi, wo)
     # beta exactly 0 and 180 on the table grid, theta_i = 0 (tan = 0)
     T, B = np.meshgrid(TAN_EPS_GRID, [0.0, 180.0], indexing="ij")
-    m = _model(variant, k_exp=1e6, p=0.0, h=1e3, mu=0.0, k_phong=1e6, n_phong=1e5)
-    q = m.q(T, B)
-    assert np.all(np.isfinite(q)) and np.all(q >= 0)
+    for nb in EXTREMES["n_beta"]:
+        m = _model(variant, k_exp=1e6, p=0.0, h=1e3, mu=0.0, k_phong=1e6, n_phong=1e5, n_beta=nb)
+        q = m.q(T, B)
+        assert np.all(np.isfinite(q)) and np.all(q >= 0)
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
@@ -244,7 +280,7 @@ def test_below_horizon_is_zero():
 
 @pytest.mark.parametrize("field,value", [
     ("k_diff", -1e-3), ("k_phong", 2e6), ("n_phong", -1.0), ("n_retro", 1e6), ("p", 51.0), ("h", -1001.0),
-    ("mu", -0.1), ("g_t", 101.0), ("theta_l_deg", 85.3), ("theta_l_deg", 91.0), ("k_exp", float("nan")),
+    ("mu", -0.1), ("n_beta", 0.45), ("n_beta", 4.5), ("g_t", 101.0), ("theta_l_deg", 85.3), ("theta_l_deg", 91.0), ("k_exp", float("nan")),
     ("h", float("inf")), ("p", "two")])
 def test_invalid_parameter_raises_naming_the_field(field, value):
     with pytest.raises(InputError) as ei:
@@ -278,3 +314,67 @@ def test_model_json_round_trip(tmp_path):
     m2 = RoadModel.load(path)
     assert m2.params == m.params and m2.variant == "product" and m2.name == "x"
     assert m2.meta["fit"]["rms_dev_pct"] == 1.0
+
+
+# ----------------------------------------------------------------------------------------------
+# the "smooth" extension in the Dr.Jit plugin (float32): n_beta flows through PARAM_NAMES
+# ----------------------------------------------------------------------------------------------
+
+#: float32 plugin vs float64 model at the same (float32-representable) directions: relative
+#: SMOOTH_F32_REL_TOL + SMOOTH_F32_KAPPA_TOL * kappa, kappa = |d ln f / d w| (per radian, float64
+#: finite difference): float32 angles carry ~1e-7 rad of rounding, amplified by the model's own
+#: conditioning (same budget as tests/test_plugin_bsdf.py).
+SMOOTH_F32_REL_TOL = 2e-5
+SMOOTH_F32_KAPPA_TOL = 1e-5
+SMOOTH_F32_ABS_TOL = 1e-9
+
+
+def _kappa(model, wi, wo, ref, rng, d=1e-6):
+    k = np.zeros(len(ref))
+    for _ in range(3):
+        ti = _unit(wi + d * rng.normal(size=wi.shape))
+        to = _unit(wo + d * rng.normal(size=wo.shape))
+        ti[:, 2] = np.abs(ti[:, 2])
+        to[:, 2] = np.abs(to[:, 2])
+        ang = np.maximum(np.linalg.norm(ti - wi, axis=1) + np.linalg.norm(to - wo, axis=1), 1e-300)
+        k = np.maximum(k, np.abs(model.brdf(ti, to) - ref) / (np.maximum(ref, 1e-300) * ang))
+    return k
+
+
+@pytest.mark.plugin
+def test_smooth_variant_in_plugin_matches_numpy(mi, rng_seed):
+    import drjit as dr
+    from roadgonio.render.plugins import register_plugins
+    register_plugins()
+    rng = np.random.default_rng(rng_seed + 101)
+    for trial in range(8):
+        P = dict(k_diff=rng.uniform(0, 0.1), k_phong=rng.uniform(0, 1), n_phong=10 ** rng.uniform(0, 2),
+                 k_retro=rng.uniform(0, 0.1), n_retro=10 ** rng.uniform(0, 2), k_exp=rng.uniform(0.01, 0.2),
+                 p=rng.uniform(1, 3), h=rng.uniform(-2, 3), mu=10 ** rng.uniform(-4, 0),
+                 n_beta=float(rng.choice([0.5, 4.0])) if trial < 2 else rng.uniform(0.5, 2.0))
+        bsdf = mi.load_dict({"type": "roadbsdf", "variant": "smooth", **P})
+        assert float(mi.traverse(bsdf)["n_beta"][0]) == pytest.approx(P["n_beta"], rel=1e-6)
+        n = 6000
+        wl = _hemisphere(n, rng, 1e-3).astype(np.float32).astype(np.float64)   # towards the light
+        ws = _hemisphere(n, rng, 1e-3)
+        ws[: n // 2, :2] = -wl[: n // 2, :2] * rng.uniform(0.9, 1.1, (n // 2, 1))  # near beta = 0
+        ws = _unit(ws).astype(np.float32).astype(np.float64)
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.wi = mi.Vector3f(ws[:, 0], ws[:, 1], ws[:, 2])
+        si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+        ev = np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(wl[:, 0], wl[:, 1], wl[:, 2])), dtype=np.float64)
+        got = ev[0] / wl[:, 2].astype(np.float32)
+        model = _model("smooth", **P)
+        ref = model.brdf(wl, ws)
+        assert np.all(np.isfinite(got)) and np.all(got >= 0)
+        tol = (SMOOTH_F32_REL_TOL + SMOOTH_F32_KAPPA_TOL * _kappa(model, wl, ws, ref, rng)) * ref + SMOOTH_F32_ABS_TOL
+        assert np.all(np.abs(got - ref) <= tol), (trial, P, float((np.abs(got - ref) / tol).max()))
+    # a changed n_beta reaches the kernel through traverse / parameters_changed
+    params = mi.traverse(bsdf)
+    before = np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(wl[:, 0], wl[:, 1], wl[:, 2])))[0]
+    params["n_beta"] = 0.5 if P["n_beta"] > 1.0 else 2.0
+    params.update()
+    after = np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(wl[:, 0], wl[:, 1], wl[:, 2])))[0]
+    ref2 = _model("smooth", **{**P, "n_beta": float(params["n_beta"][0])}).brdf(wl, ws)
+    assert np.max(np.abs(after - before)) > 0
+    np.testing.assert_allclose(after / wl[:, 2].astype(np.float32), ref2, rtol=1e-3, atol=SMOOTH_F32_ABS_TOL)
