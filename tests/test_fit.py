@@ -24,11 +24,14 @@ RECOVERY_TABLE_TOL_PCT = 0.01
 RECOVERY_PARAM_RTOL = 0.01
 
 #: The plain global least-squares fit of the paper's ("power") model, as given in the task:
-#: (RMS %, max %) of max r.
+#: (RMS %, max %) of max r. The extension variant must beat both numbers strictly on every table.
 PLAIN_FIT = {"R1": (1.5, 6.4), "R2": (2.8, 9.6), "R3": (3.9, 12.2), "R4": (5.0, 19.8), "C1": (1.1, 3.9),
              "C2": (3.1, 9.1)}
-#: The paper's target (RMS %, max %) for R1, C2, R3, R4 (and a measured sample).
+#: The paper's target (RMS %, max %): "within" these on R1, C2, R3, R4 (and a measured sample).
 PAPER_TARGET = (2.6, 9.0)
+PAPER_TABLES = ("R1", "C2", "R3", "R4")
+#: The roadgonio extension variant that must meet both requirements.
+EXTENSION = "smooth"
 #: Measured quality of roadgonio's fits (bench/bench_fit.py), with a margin of 0.15 % (RMS) and
 #: 0.5 % (max) for optimiser noise / numerical differences between machines.
 #: power: the blended objective (RMS^2 + 0.3 L8^2) lowers the maximum where least squares leaves
@@ -36,8 +39,8 @@ PAPER_TARGET = (2.6, 9.0)
 EXPECTED = {
     ("R1", "power"): (1.55, 4.2), ("R2", "power"): (3.0, 9.15), ("R3", "power"): (3.96, 12.32),
     ("R4", "power"): (5.53, 17.5), ("C1", "power"): (1.17, 3.46), ("C2", "power"): (3.14, 8.77),
-    ("R1", "smooth"): (1.61, 4.32), ("R2", "smooth"): (1.87, 5.33), ("R3", "smooth"): (2.45, 7.15),
-    ("R4", "smooth"): (2.77, 9.3), ("C1", "smooth"): (0.77, 2.71), ("C2", "smooth"): (2.25, 7.5),
+    ("R1", "smooth"): (1.47, 4.30), ("R2", "smooth"): (1.85, 5.52), ("R3", "smooth"): (2.27, 7.23),
+    ("R4", "smooth"): (2.12, 7.67), ("C1", "smooth"): (0.77, 2.73), ("C2", "smooth"): (2.21, 7.82),
 }
 RMS_MARGIN, MAX_MARGIN = 0.15, 0.5
 
@@ -45,7 +48,7 @@ TRUE_PARAMS = {
     "power": dict(k_diff=0.01, k_phong=1.8, n_phong=34.5, k_retro=0.05, n_retro=11.3, k_exp=0.09, p=2.1,
                   h=0.5, mu=0.03),
     "smooth": dict(k_diff=0.03, k_phong=0.07, n_phong=2.3, k_retro=0.047, n_retro=10.7, k_exp=0.047, p=2.56,
-                   h=2.5, mu=0.0064),
+                   h=2.5, mu=0.0064, n_beta=0.8),
 }
 
 
@@ -145,28 +148,46 @@ def _check_quality(name, variant, res):
     assert res.rms_dev_pct <= rms_exp + RMS_MARGIN
     assert res.max_dev_pct <= max_exp + MAX_MARGIN
     plain_rms, plain_max = PLAIN_FIT[name]
-    if variant == "smooth":
-        # the extension beats the plain fit of the paper's model on the maximum everywhere, and
-        # on the RMS everywhere except R1 (where the paper's model is already as good: 1.5 vs 1.6)
-        assert res.max_dev_pct < plain_max
-        if name != "R1":
-            assert res.rms_dev_pct < plain_rms
-        if name in ("R1", "R3", "C2"):
-            assert res.rms_dev_pct <= PAPER_TARGET[0] and res.max_dev_pct <= PAPER_TARGET[1]
+    if variant == EXTENSION:
+        # beats the plain fit of the paper's model on every table, both statistics, strictly ...
+        assert res.rms_dev_pct < plain_rms, (name, res.rms_dev_pct, plain_rms)
+        assert res.max_dev_pct < plain_max, (name, res.max_dev_pct, plain_max)
+        # ... and meets the paper's target where the paper claims it
+        if name in PAPER_TABLES:
+            assert res.rms_dev_pct <= PAPER_TARGET[0] and res.max_dev_pct <= PAPER_TARGET[1], name
     else:
+        # the paper's model: the blended objective keeps the maximum at or below the plain fit's
         assert res.max_dev_pct <= plain_max + 0.2
+
+
+def test_variant_params_are_fitted_only_for_their_variant(fit_r3_power):
+    assert fit_r3_power.model.params.n_beta == 1.0        # default, ignored by "power"
+    assert fitmod.nonlinear_params("power") == fitmod.NONLINEAR
+    assert fitmod.nonlinear_params("smooth") == fitmod.NONLINEAR + ("n_beta",)
+    assert fitmod.max_weight("power") == fitmod.MAX_WEIGHT
+
+
+def test_worst_cells(fit_r3_power):
+    cells = fit_r3_power.worst_cells(3)
+    assert len(cells) == 3
+    devs = [abs(d) for _, _, d in cells]
+    assert devs == sorted(devs, reverse=True) and devs[0] == pytest.approx(fit_r3_power.max_dev_pct, rel=1e-12)
+    t = bundled_table("R3")
+    for tan, beta, d in cells:
+        i, j = list(t.tan_eps).index(tan), list(t.beta_deg).index(beta)
+        assert fit_r3_power.residual_pct[i, j] == d
 
 
 def test_fit_quality_r3_power(fit_r3_power):
     _check_quality("R3", "power", fit_r3_power)
 
 
-def test_fit_quality_r3_smooth():
-    _check_quality("R3", "smooth", fit_table(bundled_table("R3"), "smooth"))
+def test_fit_quality_r3_extension():
+    _check_quality("R3", EXTENSION, fit_table(bundled_table("R3"), EXTENSION))
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("variant", ["power", "smooth"])
+@pytest.mark.parametrize("variant", ["power", EXTENSION])
 @pytest.mark.parametrize("name", [n for n in BUNDLED if n != "R3"])
 def test_fit_quality_bundled(name, variant):
     _check_quality(name, variant, fit_table(bundled_table(name), variant))

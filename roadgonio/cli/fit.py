@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from ..model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS
+from ..model import DEFAULT_VARIANT, PARAM_NAMES, VARIANT_PARAMS, VARIANTS
 
 
 def register(sub) -> None:
@@ -103,7 +103,10 @@ def run(args) -> int:
         P = result.model.params
         print(f"{table.name} ({args.variant}): max |dev| {result.max_dev_pct:.2f} %, RMS {result.rms_dev_pct:.2f} % "
               f"of max r, {int(table.mask.sum())} cells, {result.seconds:.1f} s")
-        print("  " + ", ".join(f"{k}={getattr(P, k):.5g}" for k in PARAM_NAMES[:9]))
+        shown = PARAM_NAMES[:9] + VARIANT_PARAMS.get(args.variant, ())
+        print("  " + ", ".join(f"{k}={getattr(P, k):.5g}" for k in shown))
+        print("  worst cells (model - table, % of max r): " + "; ".join(
+            f"tan eps {t:g}, beta {b:g} deg: {d:+.2f} %" for t, b, d in result.worst_cells(3)))
         print(f"wrote {out / 'model.json'}, {out / 'residuals.csv'}"
               + ("" if args.no_plot else f", {out / 'fit.png'}"))
     return 0
