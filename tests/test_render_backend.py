@@ -107,7 +107,7 @@ def test_adaptive_stopping_reaches_target():
 
 def test_footprint_off_rectangle_is_an_error():
     from roadgonio.render.backend import make_backend
-    inst = preset("portable").with_changes(sample={"size_x_m": 1.0})
+    inst = preset("portable").with_changes(sample={"size_x_m": 0.3})
     with pytest.raises(GeometryError, match="footprint leaves the sample"):
         make_backend(inst, ROAD)
 
@@ -117,7 +117,7 @@ def test_footprint_off_mesh_is_an_error_at_render_time(tmp_path):
 
     from roadgonio.render.backend import make_backend
     from roadgonio.render.scene import rectangle_trimesh
-    small = rectangle_trimesh(1.0, 0.5)
+    small = rectangle_trimesh(0.3, 0.1)
     small.export(tmp_path / "small.ply")
     big = rectangle_trimesh(4.0, 1.0)
     big.export(tmp_path / "big.ply")

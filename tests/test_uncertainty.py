@@ -253,7 +253,8 @@ def test_aperture_case_with_surrogate_and_its_reported_error():
                           backend_factory=lambda i, m: StandIn(i, m, ka_smooth))
     ap, no = res.cases["aperture"], res.cases["no_aperture"]
     n = len(res.cells)
-    ka0 = np.array([ka_smooth(1.0, t, b, 1.0, 2.0) for t, b in zip(res.cells.tan_eps, res.cells.beta_deg)])
+    ka0 = np.array([ka_smooth(inst.observation.alpha_deg, t, b, inst.source.distance_m, inst.detector.distance_m)
+                    for t, b in zip(res.cells.tan_eps, res.cells.beta_deg)])
     assert np.max(np.abs(ap.nominal[:n] / (no.nominal[:n] * ka0) - 1)) < EXACT_TOL
     # the reported surrogate error equals the error against the stand-in at fresh trials, and is small
     rep = res.surrogate
@@ -263,7 +264,8 @@ def test_aperture_case_with_surrogate_and_its_reported_error():
     x, wr = mm.surrogate_coords(X)
     for t in range(5):
         cells = mm.cells_of(wr[t])
-        exact = np.array([ka_smooth(1.0 + x[t, 0, 0], tt, bb, 1.0 + X[t, 5], 2.0 + X[t, 6]) for tt, bb in cells])
+        exact = np.array([ka_smooth(inst.observation.alpha_deg + x[t, 0, 0], tt, bb, inst.source.distance_m + X[t, 5],
+                                     inst.detector.distance_m + X[t, 6]) for tt, bb in cells])
         err = np.max(np.abs(rep.surrogate(x[t:t + 1])[0] / exact - 1))
         assert err < 10 * max(np.max(rep.rel_err_max), 1e-6)
         assert err < 3e-3
