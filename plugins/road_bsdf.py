@@ -6,10 +6,11 @@ repeated here.
 
 Properties (XML or ``mi.load_dict``):
 
-* the model parameters by their DESIGN.md names (``k_diff``, ``k_phong``, ``n_phong``, ``k_retro``,
-  ``n_retro``, ``k_exp``, ``p``, ``h``, ``mu``, ``g_a``, ``g_b``, ``g_c``, ``g_t``,
-  ``theta_l_deg``; floats, defaults as in :class:`roadgonio.model.RoadParams`, validated);
-* ``variant``: ``"power"`` (default) or ``"product"`` (structural);
+* the model parameters by their names in :data:`roadgonio.model.PARAM_NAMES` (the DESIGN.md names
+  ``k_diff`` ... ``theta_l_deg``, plus ``n_beta`` of the ``smooth`` extension); floats, defaults
+  as in :class:`roadgonio.model.RoadParams`, validated;
+* ``variant``: one of :data:`roadgonio.model.VARIANTS` (``"power"``, the paper's model, by
+  default; ``"product"``; ``"smooth"``), structural;
 * ``channels``: ``"road"`` (default: every colour channel is f_road, an ordinary BSDF) or
   ``"road_lambert"`` (rgb variants only): channel 0 = f_road, channels 1 and 2 = 1/pi, the
   perfect diffuser. The detector signal then carries S[f_road] in R and S[f_lambert] in G and B,
@@ -35,7 +36,7 @@ import drjit as dr
 import mitsuba as mi
 
 from roadgonio.errors import InputError
-from roadgonio.model import PARAM_NAMES, VARIANTS, RoadParams, active_terms, road_brdf
+from roadgonio.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS, RoadParams, active_terms, road_brdf
 from roadgonio.render.ops import DrJitOps
 
 CHANNELS = ("road", "road_lambert")
@@ -51,7 +52,7 @@ class RoadBSDF(mi.BSDF):
         for name in PARAM_NAMES:
             if name in props:
                 values[name] = float(props.get(name))
-        variant = str(props.get("variant", "power")) if "variant" in props else "power"
+        variant = str(props.get("variant")) if "variant" in props else DEFAULT_VARIANT
         channels = str(props.get("channels", "road")) if "channels" in props else "road"
         if variant not in VARIANTS:
             raise InputError(f"unknown road BSDF variant {variant!r}; expected one of {', '.join(VARIANTS)}",
