@@ -1,8 +1,9 @@
 """Speed-accuracy trade of the k_A backends (not a test): error against a converged reference
-(precise float64 quadrature) versus seconds, over a ladder of tolerances (quadrature) and of target
-relative standard errors (mitsuba, numpy-mc), on representative cells of the portable preset with an
-R3-like model (the hardest specular cells included), plus the full 580-cell table for the
-quadrature. Writes bench/results/accuracy.csv and bench/results/pareto.png and prints the table.
+(precise float64 quadrature) versus seconds, over a ladder of tolerances (quadrature) and a ladder
+of fixed sample counts per cell (mitsuba, numpy-mc: one pass / a fixed number of batches), plus the
+accuracy presets fast/default/precise of every backend as their own points, on representative cells
+of the portable preset with an R3-like model (the hardest specular cells included), plus the full
+580-cell table for the quadrature. Writes bench/results/accuracy.csv and bench/results/pareto.png and prints the table.
 
     python bench/bench_accuracy.py [--instrument portable] [--no-mitsuba] [--no-full] [--quick]
 
@@ -29,11 +30,12 @@ from roadgonio.model import RoadModel, RoadParams
 #: numbers as tests/test_quadrature.py::R3LIKE.
 R3LIKE = dict(k_diff=0.028937, k_phong=1.8147, n_phong=34.467, k_retro=0.052577, n_retro=11.307,
               k_exp=0.088927, p=2.137, h=0.49843, mu=0.03123)
-#: Representative cells: specular peak (tan 4-12, beta 2-10), mid, tan 0 and beta 180. The beta = 0
-#: column of the portable preset is left out of the error ladder: there the footprint crosses the plane
-#: of the source disc (G has a kink), the quadrature converges only algebraically and cannot serve as a
-#: reference below ~1e-4 (see the report).
-CELLS = [(12.0, 2.0), (8.0, 10.0), (4.0, 2.0), (1.0, 90.0), (0.0, 0.0), (2.0, 180.0)]
+#: Representative cells: specular peak (tan 4-12, beta 0-10), mid, tan 0 and beta 180.
+CELLS = [(12.0, 0.0), (12.0, 2.0), (8.0, 10.0), (4.0, 2.0), (1.0, 90.0), (0.0, 0.0), (2.0, 180.0)]
+#: Fixed sample budgets per cell: Mitsuba (film resolution, spp) for one pass of resolution^2 x spp
+#: samples; numpy-mc batch sizes (m^2) with 8 batches.
+MITSUBA_BUDGETS = [(16, 4), (32, 4), (32, 16), (64, 16), (128, 16), (128, 64), (256, 64)]
+NUMPY_BATCHES = [16 ** 2, 32 ** 2, 64 ** 2, 128 ** 2, 256 ** 2]
 OUT = Path(__file__).resolve().parent / "results"
 FIELDS = ["backend", "setting", "value", "scope", "cells", "seconds", "max_rel_err", "rms_rel_err",
           "max_claimed", "not_converged", "samples", "ref_err"]
@@ -69,28 +71,37 @@ def main(argv=None) -> int:
     ref_err = max(r.se / r.k_a for r in ref.values())
     print(f"  {time.perf_counter() - t0:.1f} s, reference error <= {ref_err:.1e}", file=sys.stderr)
 
-    ladders = [("quadrature", "rtol", [1e-2, 1e-3, 1e-4, 1e-5] if args.quick else [1e-2, 1e-3, 3e-4, 1e-4, 1e-5, 1e-6])]
-    if not args.no_mitsuba:
-        ladders.append(("mitsuba", "rel_se", [1e-2, 3e-3, 1e-3] if args.quick else [1e-2, 3e-3, 1e-3, 3e-4, 1e-4]))
-    if not args.no_numpy_mc:
-        ladders.append(("numpy-mc", "rel_se", [1e-2, 3e-3] if args.quick else [1e-2, 3e-3, 1e-3]))
+    from roadgonio.ka.accuracy import ACCURACY
+    # (backend, setting name, value, backend settings); "preset" rows are the accuracy presets
+    ladder = [("quadrature", "rtol", v, {"rtol": v})
+              for v in ([1e-2, 1e-3, 1e-4, 1e-5] if args.quick else [1e-2, 1e-3, 3e-4, 1e-4, 1e-5, 1e-6])]
     if not args.no_mitsuba:
         from roadgonio.render import set_variant
         set_variant()
-    for name, key, values in ladders:
-        for v in values:
-            settings = {key: v}
-            if name != "quadrature":
-                settings["seed"] = 1
-            b = make_backend(name, inst, model, **settings)
-            if name == "mitsuba":      # compile outside the timing
-                b.compute([CELLS[-1]])
-            sec, mx, rms, claimed, nc, n = run_setting(b, CELLS, ref)
-            rows.append(dict(backend=name, setting=key, value=v, scope="cells", cells=len(CELLS), seconds=sec,
-                             max_rel_err=mx, rms_rel_err=rms, max_claimed=claimed, not_converged=nc, samples=n,
-                             ref_err=ref_err))
-            print(f"  {name:10s} {key}={v:<7g} {sec:8.2f} s  max err {mx:.2e}  claimed {claimed:.2e}",
-                  file=sys.stderr, flush=True)
+        budgets = MITSUBA_BUDGETS[:4] if args.quick else MITSUBA_BUDGETS
+        # rel_se 0.5 with min_passes 1: exactly one pass of resolution^2 x spp samples per cell
+        ladder += [("mitsuba", "samples", r * r * spp, {"rel_se": 0.5, "resolution": r, "spp": spp, "seed": 1})
+                   for r, spp in budgets]
+    if not args.no_numpy_mc:
+        batches = NUMPY_BATCHES[:3] if args.quick else NUMPY_BATCHES
+        ladder += [("numpy-mc", "samples", 8 * m2, {"rel_se": 0.5, "batch": m2, "min_batches": 8, "seed": 1})
+                   for m2 in batches]
+    for preset, per_backend in ACCURACY.items():
+        for name, settings in per_backend.items():
+            if (name == "mitsuba" and args.no_mitsuba) or (name == "numpy-mc" and args.no_numpy_mc):
+                continue
+            extra = {} if name == "quadrature" else {"seed": 1}
+            ladder.append((name, "preset", preset, {**settings, **extra}))
+    for name, key, v, settings in ladder:
+        b = make_backend(name, inst, model, **settings)
+        if name == "mitsuba":      # compile outside the timing
+            b.compute([CELLS[-1]])
+        sec, mx, rms, claimed, nc, n = run_setting(b, CELLS, ref)
+        rows.append(dict(backend=name, setting=key, value=v, scope="cells", cells=len(CELLS), seconds=sec,
+                         max_rel_err=mx, rms_rel_err=rms, max_claimed=claimed, not_converged=nc, samples=n,
+                         ref_err=ref_err))
+        print(f"  {name:10s} {key}={v!s:<7} {sec:8.2f} s  max err {mx:.2e}  claimed {claimed:.2e}",
+              file=sys.stderr, flush=True)
 
     if not args.no_full:
         cells = full_grid_cells()
@@ -116,33 +127,39 @@ def main(argv=None) -> int:
 
     print(f"\nk_A speed-accuracy, {inst.name} preset, R3-like model, {len(CELLS)} cells (reference: quadrature "
           f"rtol 1e-7, its error <= {ref_err:.1e})")
-    print(f"{'backend':10s} {'setting':>14s} {'scope':>10s} {'seconds':>8s} {'max err':>9s} {'rms err':>9s} "
+    print(f"{'backend':10s} {'setting':>16s} {'scope':>10s} {'seconds':>8s} {'max err':>9s} {'rms err':>9s} "
           f"{'claimed':>9s} {'not conv':>8s} {'samples':>10s}")
     for r in rows:
-        print(f"{r['backend']:10s} {r['setting'] + '=' + format(r['value'], 'g'):>14s} {r['scope']:>10s} "
+        print(f"{r['backend']:10s} {r['setting'] + '=' + format(r['value'], 'g' if not isinstance(r['value'], str) else ''):>16s} {r['scope']:>10s} "
               f"{r['seconds']:8.2f} {r['max_rel_err']:9.2e} {r['rms_rel_err']:9.2e} {r['max_claimed']:9.2e} "
               f"{r['not_converged']:8d} {r['samples']:10.3g}")
 
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from roadgonio.ka.accuracy import ACCURACY
     fig, ax = plt.subplots(figsize=(7.5, 5.2))
     marks = {"quadrature": "o-", "mitsuba": "s-", "numpy-mc": "^-"}
     for name in ("quadrature", "mitsuba", "numpy-mc"):
-        rr = [r for r in rows if r["backend"] == name and r["scope"] == "cells"]
+        rr = [r for r in rows if r["backend"] == name and r["scope"] == "cells" and r["setting"] != "preset"]
+        pp = [r for r in rows if r["backend"] == name and r["setting"] == "preset"]
         if not rr:
             continue
-        ax.loglog([r["seconds"] for r in rr], [max(r["max_rel_err"], 1e-9) for r in rr], marks[name], label=name)
+        line, = ax.loglog([r["seconds"] for r in rr], [max(r["max_rel_err"], 1e-9) for r in rr], marks[name],
+                          label=f"{name} ({'rtol' if name == 'quadrature' else 'samples per cell'})")
         for r in rr:
-            tag = [p for p, d in ACCURACY.items() if d.get(name, {}).get(r["setting"]) == r["value"]]
-            txt = f"{r['value']:g}" + (f" [{tag[0]}]" if tag else "")
+            txt = f"{r['value']:g}" if name == "quadrature" else f"{r['value'] / 1024:.0f}k"
             ax.annotate(txt, (r["seconds"], max(r["max_rel_err"], 1e-9)), fontsize=7, xytext=(4, 3),
                         textcoords="offset points")
+        for r in pp:
+            ax.loglog(r["seconds"], max(r["max_rel_err"], 1e-9), "*", ms=13, color=line.get_color(), mec="k", mew=0.6)
+            dy = -10 - 9 * list(ACCURACY).index(r["value"])   # presets on one point stay legible
+            ax.annotate(r["value"], (r["seconds"], max(r["max_rel_err"], 1e-9)), fontsize=8, xytext=(5, dy),
+                        textcoords="offset points", color=line.get_color(), weight="bold")
     ax.axhline(ref_err, color="0.6", ls=":", lw=1, label=f"reference error {ref_err:.0e}")
-    ax.set_xlabel(f"seconds for {len(CELLS)} cells (shared 2-core machine)")
+    ax.set_xlabel(f"seconds for {len(CELLS)} cells (2-core machine)")
     ax.set_ylabel("max relative error of k_A vs reference")
-    ax.set_title(f"k_A speed-accuracy: {inst.name} preset, R3-like model\n(labels: rtol / rel_se [preset])",
+    ax.set_title(f"k_A speed-accuracy: {inst.name} preset, R3-like model, {len(CELLS)} cells\n"
+                 "(stars: the --accuracy presets fast / default / precise)",
                  fontsize=10)
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
