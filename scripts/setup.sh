@@ -7,8 +7,13 @@ SUDO=""
 if [ "$(id -u)" != "0" ] && command -v sudo >/dev/null 2>&1; then SUDO="sudo"; fi
 
 have_llvm16() {
-  ls /usr/lib/x86_64-linux-gnu/libLLVM*.so* /usr/lib/aarch64-linux-gnu/libLLVM*.so* 2>/dev/null \
-    | grep -Eo 'libLLVM[-.]?[0-9]+' | grep -Eo '[0-9]+$' | awk '$1 >= 16 {found=1} END {exit !found}'
+  local f v
+  for f in /usr/lib/x86_64-linux-gnu/libLLVM*.so* /usr/lib/aarch64-linux-gnu/libLLVM*.so*; do
+    [ -e "$f" ] || continue
+    v=$(basename "$f" | sed -nE 's/^libLLVM-?([0-9]+).*/\1/p; s/^libLLVM\.so\.([0-9]+).*/\1/p' | head -n 1)
+    if [ -n "$v" ] && [ "$v" -ge 16 ]; then return 0; fi
+  done
+  return 1
 }
 if [ -n "${DRJIT_LIBLLVM_PATH:-}" ] || have_llvm16; then
   echo "setup: libLLVM >= 16 present"
@@ -21,5 +26,10 @@ else
 fi
 PY="${PYTHON:-python3}"
 "$PY" -m pip install -q --upgrade pip >/dev/null 2>&1 || true
-"$PY" -m pip install -q -e ".[test]"
+LOG="${TMPDIR:-/tmp}/roadgonio-setup-pip.log"
+if ! "$PY" -m pip install -q -e ".[test]" >"$LOG" 2>&1; then
+  cat "$LOG" >&2
+  echo "setup: pip install failed (log above, also in $LOG)" >&2
+  exit 1
+fi
 echo "setup: roadgonio installed ($("$PY" -c 'import roadgonio; print(roadgonio.__version__)'))"
