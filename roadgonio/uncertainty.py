@@ -587,7 +587,7 @@ class SurrogateReport:
 def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFactory, *,
                     seed_seq: np.random.SeedSequence, n_validation: int = 8, pilot: int = 2000,
                     backend_settings: Mapping[str, Any] | None = None, progress: bool = True,
-                    design: str = "star", axial: float | None = None, factorial: float = 1.5) -> SurrogateReport:
+                    design: str = "ccd", axial: float | None = None, factorial: float = 1.5) -> SurrogateReport:
     """Fit the k_A surrogate over the perturbed neighbourhood of every cell and validate it against
     exact k_A at ``n_validation`` held-out trials drawn from the input distribution."""
     t0 = time.perf_counter()
@@ -756,7 +756,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
                     cells: str = "standard", aperture: bool = True, backend: str = "quadrature",
                     backend_settings: Mapping[str, Any] | None = None,
                     backend_factory: BackendFactory | None = None, n_validation: int = 4,
-                    surrogate_design: str = "star",
+                    surrogate_design: str = "ccd",
                     threads: int | None = None, chunk: int = 256, progress: bool = True) -> UncertaintyResult:
     """Monte Carlo (and GUM) uncertainty of the r-table that ``instrument`` measures on a sample
     with BRDF ``model``, for the instrument errors ``spec`` (module docstring).

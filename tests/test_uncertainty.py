@@ -250,6 +250,7 @@ def test_aperture_case_with_surrogate_and_its_reported_error():
     spec = parse_sigma_spec(SPEC)
     inst = load_instrument("portable")
     res = run_uncertainty(MODEL, inst, spec, trials=3000, seed=4, progress=False, n_validation=3,
+                          surrogate_design="star",
                           backend_factory=lambda i, m: StandIn(i, m, ka_smooth))
     ap, no = res.cases["aperture"], res.cases["no_aperture"]
     n = len(res.cells)
@@ -310,7 +311,8 @@ def test_outputs_written(tmp_path):
     import json
     d = json.loads((tmp_path / "uncertainty.json").read_text())
     assert d["provenance"]["sigma"]["eps_deg"]["distribution"] == "rectangular"
-    assert d["surrogate"]["exact_evaluations"] == (11 + 1) * len(res.cells)
+    assert d["surrogate"]["design"] == "ccd" and d["surrogate"]["design_points"] == 27   # the default design
+    assert d["surrogate"]["exact_evaluations"] == (27 + 1) * len(res.cells)
     from roadgonio.rtable import read_table
     assert read_table(tmp_path / "no_aperture_u.csv").mask.sum() == len(res.cells)
 
