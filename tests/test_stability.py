@@ -11,7 +11,6 @@ import pytest
 
 from roadgonio import optics
 from roadgonio.errors import GeometryError
-from roadgonio.instrument import load_instrument
 from roadgonio.ka import make_backend
 from roadgonio.model import RoadModel, RoadParams
 

@@ -17,7 +17,7 @@ from roadgonio.instrument import load_instrument
 from roadgonio.ka import CellResult
 from roadgonio.model import RoadModel, RoadParams
 from roadgonio.rtable import bundled_table
-from roadgonio.uncertainty import (INPUTS, CellSet, MeasurementModel, _rotations, coverage_indices,
+from roadgonio.uncertainty import (CellSet, MeasurementModel, _rotations, coverage_indices,
                                    numerical_tolerance, parse_sigma_spec, q0_weights, run_uncertainty,
                                    summarize, write_results)
 

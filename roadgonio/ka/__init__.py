@@ -56,6 +56,22 @@ class KaBackend(Protocol):
         """k_A for each (tan eps, beta deg) cell; calls ``on_cell`` as each cell finishes."""
 
 
+class CellByCellBackend:
+    """Base of the backends that compute one cell at a time: subclasses define
+    ``compute_cell(tan_eps, beta_deg) -> CellResult``; :meth:`compute` runs the cells in order and
+    reports each as it finishes (so the table runner can journal it)."""
+
+    def compute(self, cells: Sequence[tuple[float, float]],
+                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
+        out = []
+        for tan_eps, beta_deg in cells:
+            res = self.compute_cell(float(tan_eps), float(beta_deg))
+            out.append(res)
+            if on_cell is not None:
+                on_cell(res)
+        return out
+
+
 def ideal_ratio(model: RoadModel, instrument: Instrument, tan_eps: float, beta_deg: float) -> float:
     """f_road(nominal) / f_lambert = pi f_road(w_i(eps, beta), w_o(alpha, delta)), float64."""
     wi = instrument.w_i(tan_eps, beta_deg)

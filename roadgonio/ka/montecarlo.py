@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -31,7 +31,7 @@ from .. import optics
 from ..errors import GeometryError, InputError
 from ..instrument import Instrument
 from ..model import NumpyOps, RoadModel, road_brdf
-from . import CellResult, ideal_ratio, ratio_se
+from . import CellByCellBackend, CellResult, ideal_ratio, ratio_se
 
 DEFAULT_REL_SE = 1e-3
 DEFAULT_BATCH = 1 << 14
@@ -48,7 +48,7 @@ def _stratified_disc(rng: np.random.Generator, m: int) -> tuple[np.ndarray, np.n
     return optics.concentric_disc(NumpyOps, u1[perm], u2[perm])
 
 
-class MonteCarloBackend:
+class MonteCarloBackend(CellByCellBackend):
     """k_A by float64 Monte Carlo (see the module docstring)."""
 
     name = "numpy-mc"
@@ -148,15 +148,6 @@ class MonteCarloBackend:
         return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), samples=int(n),
                           seconds=time.perf_counter() - t0, extra=extra)
 
-    def compute(self, cells: Sequence[tuple[float, float]],
-                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
-        out = []
-        for tan_eps, beta in cells:
-            res = self.compute_cell(tan_eps, beta)
-            out.append(res)
-            if on_cell is not None:
-                on_cell(res)
-        return out
 
 
 def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = DEFAULT_REL_SE, seed: int = 0,

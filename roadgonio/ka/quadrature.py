@@ -42,7 +42,7 @@ from __future__ import annotations
 import math
 import time
 from functools import lru_cache
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -50,7 +50,7 @@ from ..errors import GeometryError, InputError
 from ..instrument import Instrument
 from ..model import NumpyOps, RoadModel, road_brdf
 from .. import optics
-from . import CellResult, ideal_ratio
+from . import CellByCellBackend, CellResult, ideal_ratio
 
 #: Gauss-Legendre orders of one direction of a disc rule, by level.
 ORDERS = (1, 2, 3, 4, 6, 8, 11, 16, 22, 32, 45, 64, 90, 128, 180, 256)
@@ -135,7 +135,7 @@ def size(levels) -> int:
     return rule_size(levels[0], levels[1]) * rule_size(levels[2], levels[3]) * rule_size(levels[4], levels[5])
 
 
-class QuadratureBackend:
+class QuadratureBackend(CellByCellBackend):
     """k_A by adaptive polar Gauss quadrature of eq. 3 in float64 (see the module docstring)."""
 
     name = "quadrature"
@@ -359,15 +359,6 @@ class QuadratureBackend:
         return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(base), se=float(err),
                           samples=int(evals), seconds=time.perf_counter() - t0, extra=extra)
 
-    def compute(self, cells: Sequence[tuple[float, float]],
-                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
-        out = []
-        for tan_eps, beta in cells:
-            res = self.compute_cell(tan_eps, beta)
-            out.append(res)
-            if on_cell is not None:
-                on_cell(res)
-        return out
 
 
 def make_backend(instrument: Instrument, model: RoadModel, *, rtol: float = DEFAULT_RTOL,

@@ -34,13 +34,13 @@ from __future__ import annotations
 import math
 import time
 import zlib
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
 from ..errors import GeometryError, InputError
 from ..instrument import Instrument
-from ..ka import CellResult, ideal_ratio
+from ..ka import CellByCellBackend, CellResult, ideal_ratio
 from ..model import RoadModel
 from .scene import LAMBERT, ROAD, build_scene
 
@@ -78,7 +78,7 @@ def pooled_ratio(passes: Sequence[tuple[int, np.ndarray, np.ndarray]]) -> tuple[
     return ratio, math.sqrt(var) / mg, mg
 
 
-class MitsubaBackend:
+class MitsubaBackend(CellByCellBackend):
     """k_A by Mitsuba 3 (see the module docstring)."""
 
     name = NAME
@@ -176,15 +176,6 @@ class MitsubaBackend:
         return CellResult(tan_eps=float(tan_eps), beta_deg=float(beta_deg), k_a=float(k_a), se=float(k_se),
                           samples=int(n_samples), seconds=time.perf_counter() - t0, extra=extra)
 
-    def compute(self, cells: Sequence[tuple[float, float]],
-                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
-        out = []
-        for tan_eps, beta_deg in cells:
-            res = self.compute_cell(float(tan_eps), float(beta_deg))
-            out.append(res)
-            if on_cell is not None:
-                on_cell(res)
-        return out
 
 
 def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = 1e-3, seed: int = 0,

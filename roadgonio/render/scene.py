@@ -216,7 +216,6 @@ class RoadScene:
         """Render-time footprint check: the extreme rays of the detector bundle (pupil rim and
         centre x field rim) and ``n_random`` random rays must all hit the sample shape."""
         mi = _mi()
-        import drjit as dr
         ang = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
         # unit-square points whose concentric image is on the unit circle: invert via polar
         rim = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
