@@ -2,10 +2,10 @@
 uncertainty of the correction (backend error and reference-model dependence)."""
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 from ..errors import InputError
+from ._common import rel_se_setting
 from ..model import VARIANTS
 
 
@@ -51,9 +51,7 @@ def run(args) -> int:
         raise InputError(f"--measured: {err.reason}", path=err.path, line=err.line, field=err.field) from None
     settings: dict = {}
     if args.rel_se is not None:
-        if not (math.isfinite(args.rel_se) and 0 < args.rel_se < 1):
-            raise InputError(f"expected a relative error in (0, 1), got {args.rel_se}", field="--rel-se")
-        settings["rtol" if args.backend == "quadrature" else "rel_se"] = args.rel_se
+        settings.update(rel_se_setting(args.backend, args.rel_se))
     if args.backend == "mitsuba":
         settings["seed"] = args.seed
     for key in ("0,0", "2,0"):

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
+from ._common import rel_se_setting
 from ..model import VARIANTS
 
 
@@ -59,9 +60,7 @@ def backend_settings(args) -> dict:
         from ..ka.accuracy import ACCURACY
         settings.update(ACCURACY[args.accuracy][args.backend])
     if args.rel_se is not None:
-        if not (math.isfinite(args.rel_se) and 0 < args.rel_se < 1):
-            raise InputError(f"expected a relative error in (0, 1), got {args.rel_se}", field="--rel-se")
-        settings["rtol" if args.backend == "quadrature" else "rel_se"] = args.rel_se
+        settings.update(rel_se_setting(args.backend, args.rel_se))
     if args.backend in ("mitsuba", "numpy-mc"):
         settings["seed"] = args.seed
     if args.backend == "mitsuba" and args.variant:

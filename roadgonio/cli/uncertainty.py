@@ -2,11 +2,11 @@
 instrument's angle and position errors, with and without the aperture effect."""
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
 from ..errors import InputError
+from ._common import rel_se_setting
 from ..model import VARIANTS
 
 
@@ -97,9 +97,7 @@ def run(args) -> int:
         raise InputError(f"expected a number >= 0, got {args.validation}", field="--validation")
     settings: dict = {}
     if args.rel_se is not None:
-        if not (math.isfinite(args.rel_se) and 0 < args.rel_se < 1):
-            raise InputError(f"expected a relative error in (0, 1), got {args.rel_se}", field="--rel-se")
-        settings["rtol" if args.backend == "quadrature" else "rel_se"] = args.rel_se
+        settings.update(rel_se_setting(args.backend, args.rel_se))
     elif args.backend == "quadrature":
         settings["rtol"] = 1e-4
     else:
