@@ -194,7 +194,8 @@ def plot_before_after(c: Correction, path: Path) -> Path:
     a2.set_ylabel("tan eps")
     alts = ", ".join(c.alternatives) or "none"
     a2.set_title(f"k_A (reference {c.reference}) and u_rel of the correction\n(alternatives: {alts})", fontsize=10)
-    fig.colorbar(im, ax=a2, fraction=0.04, label="k_A")
+    from .plots import plain_colorbar_labels
+    plain_colorbar_labels(fig.colorbar(im, ax=a2, fraction=0.04, label="k_A"))
     fig.tight_layout()
     p = atomic_savefig(fig, path, dpi=120)
     plt.close(fig)

@@ -16,6 +16,13 @@ def _plt():
     return plt
 
 
+def plain_colorbar_labels(cb) -> None:
+    """Plain numbers on a colour bar (a log scale would otherwise print 9x10^-1)."""
+    from matplotlib import ticker
+    cb.ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%.3g"))
+    cb.ax.yaxis.set_minor_formatter(ticker.FormatStrFormatter("%.2g"))
+
+
 def table_map(values: np.ndarray, path: str | Path, *, title: str, label: str, centre: float | None = 1.0,
               fmt: str = "{:.2f}", log: bool = True, annotate: bool = True,
               tan_eps=TAN_EPS_GRID, beta_deg=BETA_GRID_DEG, subtitle: str = "") -> Path:
@@ -62,9 +69,7 @@ def table_map(values: np.ndarray, path: str | Path, *, title: str, label: str, c
                             color="white" if lum < 0.45 else "black")
     cb = fig.colorbar(im, ax=ax, fraction=0.035, pad=0.02)
     cb.set_label(label)
-    from matplotlib import ticker
-    cb.ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%.3g"))
-    cb.ax.yaxis.set_minor_formatter(ticker.FormatStrFormatter("%.2g"))
+    plain_colorbar_labels(cb)
     fig.tight_layout()
     out = atomic_savefig(fig, path, dpi=110)
     plt.close(fig)
