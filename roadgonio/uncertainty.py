@@ -1038,7 +1038,9 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
         a = res.adaptive
         lines.append(f"adaptive (JCGM 101 7.9, {a['n_dig']} digits): {a['batches']} batches of {a['batch']}, "
                      + ("converged" if a["converged"] else f"NOT converged at the cap of {a['max_trials']} trials "
-                        f"(worst 2s/delta = {max(a['worst_ratio'] or [0]):.2f})"))
+                        f"(worst 2s/delta = {max(a['worst_ratio'] or [0]):.2f}; about "
+                        f"{max(a['worst_ratio'] or [1]) ** 2:.0f}x more trials would be needed: raise --max-trials "
+                        f"(memory grows with trials x cells) or ask for fewer --digits)"))
     for name, c in res.cases.items():
         with np.errstate(divide="ignore", invalid="ignore"):
             u_rel = c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
