@@ -29,6 +29,13 @@ d = 5), so all 1 + d + d(d+1)/2 coefficients are estimable. Coordinates whose sp
 are left out. Because one design point has the same (x1, x4, x5) in every cell, a design point
 is one perturbed instrument and one backend call over all cells.
 
+Cells on the mirror plane (beta0 = 0 or 180 deg, tan eps > 0) are *folded*: the instrument and the
+BRDF are mirror symmetric about the plane of observation, so there k_A is an even function of the
+azimuthal offset x3, and the model's empirical term depends on |beta|, which puts a kink in it at
+x3 = 0 that no quadratic can follow (measured: the surrogate error reached 1.3 u(r) at tan eps
+2-4, beta 0 for a Phong exponent of 300). In folded cells the surrogate uses |x3| instead of x3
+(for ``star`` only linearly: its design has one level of |x3| besides 0).
+
 The surrogate's own error is measured against exact evaluations at held-out trials drawn from
 the actual input distribution (:func:`roadgonio.uncertainty.run_uncertainty` reports it).
 """
@@ -104,13 +111,33 @@ class KaSurrogate:
     ka_nominal: np.ndarray     # (n_cells,) exact k_A at the nominal geometry
     fit_rms_log: np.ndarray    # (n_cells,) RMS residual of ln k_A over the design points
     kind: str = "ccd"
+    fold: np.ndarray | None = None   # (n_cells,) True: the cell uses |x3| (module docstring)
+
+    @staticmethod
+    def _z(x: np.ndarray, scale: np.ndarray, active: np.ndarray, fold: np.ndarray | None) -> np.ndarray:
+        """Scaled active coordinates, with |x3| in folded cells; x is (..., n_cells, 5)."""
+        x = np.array(x, dtype=np.float64)
+        if fold is not None and np.any(fold):
+            x[..., fold, 2] = np.abs(x[..., fold, 2])
+        return x[..., active] / scale[active]
+
+    @staticmethod
+    def _features(z: np.ndarray, kind: str, active: np.ndarray, fold: np.ndarray | None) -> np.ndarray:
+        phi = features(z, kind)
+        if kind == "star" and fold is not None and np.any(fold) and 2 in active:
+            # one level of |x3| besides 0 in the star design: keep |x3| linear in folded cells
+            j = int(np.nonzero(active == 2)[0][0])
+            phi[..., fold, 1 + len(active) + j] = 0.0
+        return phi
 
     @classmethod
-    def fit(cls, scale: np.ndarray, x_design: np.ndarray, ka_design: np.ndarray, kind: str = "ccd") -> "KaSurrogate":
+    def fit(cls, scale: np.ndarray, x_design: np.ndarray, ka_design: np.ndarray, kind: str = "ccd",
+            fold: np.ndarray | None = None) -> "KaSurrogate":
         """Least-squares fit.
 
         ``x_design``: (K, n_cells, 5) coordinates of the design points in each cell;
-        ``ka_design``: (K, n_cells) exact k_A there (row 0 must be the nominal geometry).
+        ``ka_design``: (K, n_cells) exact k_A there (row 0 must be the nominal geometry);
+        ``fold``: (n_cells,) cells on the mirror plane, fitted in |x3|.
         """
         scale = np.asarray(scale, dtype=np.float64)
         active = np.nonzero(scale > 0)[0]
@@ -124,17 +151,19 @@ class KaSurrogate:
         F = n_features(len(active), kind)
         coef = np.empty((n_cells, F))
         rms = np.empty(n_cells)
-        z = x_design[..., active] / scale[active]
-        phi_all = features(z, kind)                 # (K, n_cells, F)
+        fold = None if fold is None else np.asarray(fold, dtype=bool)
+        phi_all = cls._features(cls._z(x_design, scale, active, fold), kind, active, fold)   # (K, n_cells, F)
         for c in range(n_cells):
             phi = phi_all[:, c, :]
             sol, *_ = np.linalg.lstsq(phi, y[:, c], rcond=None)
             coef[c] = sol
             res = phi @ sol - y[:, c]
             rms[c] = math.sqrt(float(np.mean(res * res)))
-        return cls(scale=scale, active=active, coef=coef, ka_nominal=ka_design[0].copy(), fit_rms_log=rms, kind=kind)
+        return cls(scale=scale, active=active, coef=coef, ka_nominal=ka_design[0].copy(), fit_rms_log=rms, kind=kind,
+                   fold=fold)
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
         """k_A at coordinates x (..., n_cells, 5) -> (..., n_cells)."""
-        z = np.asarray(x, dtype=np.float64)[..., self.active] / self.scale[self.active]
-        return np.exp(np.einsum("...cf,cf->...c", features(z, self.kind), self.coef))
+        z = self._z(x, self.scale, self.active, self.fold)
+        phi = self._features(z, self.kind, self.active, self.fold)
+        return np.exp(np.einsum("...cf,cf->...c", phi, self.coef))

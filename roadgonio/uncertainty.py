@@ -643,7 +643,10 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
             ka, se = exact(mm.alpha0 + x[0], x[3], x[4], w)
             ka_design[k] = ka
             rel_se = max(rel_se, float(np.max(se / np.abs(ka))))
-        sur = KaSurrogate.fit(scale, x_design, ka_design, design)
+        # cells on the mirror plane: k_A is even in the azimuthal offset, with a kink (surrogate docstring)
+        c = mm.cells
+        fold = (c.tan_eps > 0) & ((np.abs(c.beta_deg) < 1e-9) | (np.abs(c.beta_deg - 180.0) < 1e-9))
+        sur = KaSurrogate.fit(scale, x_design, ka_design, design, fold=fold)
         err = np.zeros((len(Xv), n))
         if len(Xv):
             xv, wr = mm.surrogate_coords(Xv)
