@@ -37,7 +37,7 @@ from roadgonio.instrument import Instrument
 from roadgonio.optics import DetectorGeometry, concentric_disc, detector_geometry, detector_ray
 from roadgonio.render.ops import DrJitOps
 
-DETECTOR_KEYS = ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m")
+DETECTOR_KEYS = ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity")
 
 
 def _python_floats(v) -> np.ndarray:
@@ -52,7 +52,7 @@ def jit_geometry(geo: DetectorGeometry) -> DetectorGeometry:
     return DetectorGeometry(centre=_python_floats(geo.centre), axis=_python_floats(geo.axis),
                             s=_python_floats(geo.s), t=_python_floats(geo.t),
                             pupil_radius_m=float(geo.pupil_radius_m), focus_m=float(geo.focus_m),
-                            tan_field=float(geo.tan_field))
+                            tan_field=float(geo.tan_field), kd_edge=float(geo.kd_edge))
 
 
 def instrument_from_props(props) -> Instrument:

@@ -17,6 +17,7 @@ plain dict, units in the names.
     pupil_radius_m = 0.01        # 0 = pinhole
     field_half_angle_deg = 0.15
     focus_m = 5.0                # default: distance_m; "inf" = angular field
+    # field_edge_sensitivity = 0.8  # k_D at the field-stop edge relative to the centre (default 1)
     [sample]
     size_x_m = 6.0               # along the observation azimuth
     size_y_m = 2.0               # or mesh = "file.ply" (relative to the TOML file)
@@ -94,12 +95,19 @@ class Source:
 @dataclass(frozen=True)
 class Detector:
     """Luminance meter: entrance pupil disc (``pupil_radius_m``) at ``distance_m``, circular field
-    stop of half-angle ``field_half_angle_deg`` conjugate to the plane at ``focus_m``."""
+    stop of half-angle ``field_half_angle_deg`` conjugate to the plane at ``focus_m``.
+
+    Sensitivity over the field (k_D of paper eq. 3): ``k_D(rho) = 1 - (1 - e) rho^2`` with rho the
+    distance from the field centre as a fraction of the field radius and ``e`` =
+    ``field_edge_sensitivity`` (k_D at the field-stop edge relative to the centre; 1 = uniform, the
+    default).
+    """
 
     distance_m: float = 5.0
     pupil_radius_m: float = 0.0
     field_half_angle_deg: float = 0.0
     focus_m: float | None = None  # None -> distance_m; math.inf -> angular field
+    field_edge_sensitivity: float = 1.0
 
     @property
     def focus(self) -> float:
@@ -166,6 +174,8 @@ class Instrument:
             det["focus_m"] = "inf"
         if det["focus_m"] is None:
             del det["focus_m"]
+        if det["field_edge_sensitivity"] == 1.0:
+            del det["field_edge_sensitivity"]
         src = asdict(self.source)
         if src["beam_half_angle_deg"] is None:
             del src["beam_half_angle_deg"]
@@ -202,13 +212,15 @@ class Instrument:
         if "detector" not in d:
             raise InputError("missing table [detector]", path=path, field="detector")
         t = d["detector"]
-        _check_keys(t, {"distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m"}, "detector", path)
+        _check_keys(t, {"distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity"},
+                    "detector", path)
         detector = Detector(
             distance_m=_num(t, "distance_m", "detector", path, required=True, lo=0.0, lo_open=True),
             pupil_radius_m=_num(t, "pupil_radius_m", "detector", path, default=0.0, lo=0.0),
             field_half_angle_deg=_num(t, "field_half_angle_deg", "detector", path, default=0.0, lo=0.0,
                                       hi=45.0, hi_open=True),
-            focus_m=_num(t, "focus_m", "detector", path, default=None, lo=0.0, lo_open=True, allow_inf=True))
+            focus_m=_num(t, "focus_m", "detector", path, default=None, lo=0.0, lo_open=True, allow_inf=True),
+            field_edge_sensitivity=_num(t, "field_edge_sensitivity", "detector", path, default=1.0, lo=0.0, hi=2.0))
         if detector.pupil_radius_m >= detector.distance_m:
             raise InputError(f"the pupil radius ({detector.pupil_radius_m:g} m) must be smaller than the "
                              f"detector distance ({detector.distance_m:g} m)", path=path, field="detector.pupil_radius_m")

@@ -9,7 +9,8 @@ Vectors are ``(x, y, z)`` triples of arrays (or of Python floats). Per-instrumen
 Detector (luminance meter). A detected ray runs from a pupil point ``p`` (disc of radius R_D
 about the pupil centre, normal to the axis ``a`` = -w_o) to a field point ``q`` on the field stop's
 conjugate plane at the focus distance F (disc of radius F tan gamma_D about the axis). Its weight
-is the etendue factor of the pair, normalised to 1 on the axis::
+is the etendue factor of the pair, normalised to 1 on the axis, times the field sensitivity k_D
+(:class:`~roadgonio.instrument.Detector`)::
 
     finite F:  weight = (F cos theta / |q - p|)^2        (= cos^2 theta dA_p dA_q / |q-p|^2 / (dA_p dA_q / F^2))
     F = inf:   weight = cos^4 theta                      (direction a + tan(gamma) u; cos theta dOmega = cos^4 theta du)
@@ -67,6 +68,7 @@ class DetectorGeometry:
     pupil_radius_m: float
     focus_m: float           # math.inf = angular field
     tan_field: float         # tan(gamma_D)
+    kd_edge: float = 1.0     # k_D at the field-stop edge (1 = uniform field sensitivity)
 
     @property
     def angular(self) -> bool:
@@ -92,7 +94,8 @@ def detector_geometry(instrument: Instrument) -> DetectorGeometry:
     s, t = orthonormal_frame(axis)
     return DetectorGeometry(centre=det.distance_m * w_o, axis=axis, s=s, t=t,
                             pupil_radius_m=det.pupil_radius_m, focus_m=det.focus,
-                            tan_field=math.tan(math.radians(det.field_half_angle_deg)))
+                            tan_field=math.tan(math.radians(det.field_half_angle_deg)),
+                            kd_edge=float(det.field_edge_sensitivity))
 
 
 def source_geometry(instrument: Instrument, tan_eps: float, beta_deg: float) -> SourceGeometry:
@@ -137,6 +140,9 @@ def detector_ray(xp, geo: DetectorGeometry, pupil_xy, field_xy):
         length = xp.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         cos_t = f / length
         weight = cos_t * cos_t * cos_t * cos_t
+    if geo.kd_edge != 1.0:
+        # field sensitivity k_D(rho) = 1 - (1 - e) rho^2 (paper eq. 3; Detector docstring)
+        weight = weight * (1.0 - (1.0 - geo.kd_edge) * (fx * fx + fy * fy))
     inv = 1.0 / length
     direction = (d[0] * inv, d[1] * inv, d[2] * inv)
     return origin, direction, weight

@@ -87,3 +87,23 @@ def test_geometry_errors():
     check_source(ins, 12.0, 0.0)
     with pytest.raises(GeometryError, match="below the horizon"):
         check_source(ins.with_changes(source={"radius_m": 0.5}), 12.0, 0.0)
+
+
+@pytest.mark.parametrize("edge", [0.0, 0.5, 1.7])
+def test_field_sensitivity_profile_kd(edge):
+    """k_D(rho) = 1 - (1 - e) rho^2 over the field: with a pinhole and a tiny angular field (cos^4 = 1
+    to 1e-10) the mean weight over the field disc is the disc average of k_D, 1 - (1 - e)/2."""
+    ins = load_instrument("portable").with_changes(detector={"pupil_radius_m": 0.0, "focus_m": "inf",
+                                                             "field_half_angle_deg": 0.001,
+                                                             "field_edge_sensitivity": edge})
+    geo = detector_geometry(ins)
+    n = 200_000
+    u = np.random.default_rng(SEED).random((2, n))
+    zero = np.zeros(n)
+    _, _, w = detector_ray(xp, geo, (zero, zero), concentric_disc(xp, u[0], u[1]))
+    exact = 1.0 - (1.0 - edge) / 2.0
+    assert abs(w.mean() - exact) < 4 * w.std() / math.sqrt(n) + 1e-9
+    # the profile is exactly 1 at the centre and e at the edge
+    _, _, w_c = detector_ray(xp, geo, (np.zeros(2), np.zeros(2)), (np.array([0.0, 1.0]), np.zeros(2)))
+    cos4 = math.cos(math.radians(0.001)) ** 4          # etendue factor at the field edge
+    assert w_c[0] == pytest.approx(1.0, abs=1e-12) and w_c[1] == pytest.approx(edge * cos4, abs=1e-12)

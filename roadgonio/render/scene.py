@@ -23,7 +23,7 @@ loaded with ``mi.load_file`` and these parameters (usable as ``$name`` in the XM
 ``<default>`` values so the file also opens alone)::
 
     alpha_deg delta_deg source_distance_m source_radius_m source_radiance detector_distance_m
-    pupil_radius_m field_half_angle_deg focus_m (-1 = inf) sample_size_x_m sample_size_y_m
+    pupil_radius_m field_half_angle_deg focus_m (-1 = inf) field_edge_sensitivity sample_size_x_m sample_size_y_m
     sample_half_x_m sample_half_y_m
 
 plus every key of an optional ``[scene.params]`` table (e.g. ``rim_height_m = 0.05``). The XML
@@ -59,7 +59,7 @@ ROAD, LAMBERT = 0, 1
 _XML_PARAM_KEYS = ("alpha_deg", "delta_deg", "source_distance_m", "source_radius_m", "source_radiance",
                    "sample_half_x_m", "sample_half_y_m",
                    "detector_distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m",
-                   "sample_size_x_m", "sample_size_y_m")
+                   "field_edge_sensitivity", "sample_size_x_m", "sample_size_y_m")
 
 
 def _mi():
@@ -79,7 +79,8 @@ def detector_props(instrument: Instrument) -> dict[str, Any]:
             "delta_deg": float(instrument.observation.delta_deg),
             "distance_m": float(det.distance_m), "pupil_radius_m": float(det.pupil_radius_m),
             "field_half_angle_deg": float(det.field_half_angle_deg),
-            "focus_m": -1.0 if math.isinf(det.focus) else float(det.focus)}
+            "focus_m": -1.0 if math.isinf(det.focus) else float(det.focus),
+            "field_edge_sensitivity": float(det.field_edge_sensitivity)}
 
 
 def source_radiance(instrument: Instrument) -> float:
@@ -326,6 +327,7 @@ def xml_parameters(instrument: Instrument, scene_sec) -> dict[str, str]:
          "source_radiance": source_radiance(instrument),
          "detector_distance_m": det.distance_m, "pupil_radius_m": det.pupil_radius_m,
          "field_half_angle_deg": det.field_half_angle_deg, "focus_m": -1.0 if math.isinf(det.focus) else det.focus,
+         "field_edge_sensitivity": det.field_edge_sensitivity,
          "sample_size_x_m": smp.size_x_m or 0.0, "sample_size_y_m": smp.size_y_m or 0.0,
          "sample_half_x_m": 0.5 * (smp.size_x_m or 0.0), "sample_half_y_m": 0.5 * (smp.size_y_m or 0.0)}
     extra = scene_sec.get("params", {})
