@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import rel_se_setting
 from ..model import VARIANTS
+from ._common import add_instrument_argument, rel_se_setting
 
 
 def register(sub) -> None:
@@ -19,8 +19,7 @@ def register(sub) -> None:
                     "Writes the corrected table (CSV and RTB), per-cell CSV, JSON with provenance and a "
                     "before/after plot.")
     p.add_argument("--measured", required=True, metavar="FILE", help="measured r-table (.csv or .rtb, r x 1e4)")
-    p.add_argument("--instrument", required=True, metavar="FILE",
-                   help="instrument TOML file or a bundled preset name (lab, portable)")
+    add_instrument_argument(p)
     p.add_argument("--reference", required=True, metavar="SAMPLE",
                    help="reference sample: bundled table (R1..R4, C1, C2, fitted on the fly), r-table file, model.json")
     p.add_argument("--alternatives", default="auto", metavar="LIST",

@@ -8,8 +8,13 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import rel_se_setting
 from ..model import VARIANTS
+from ._common import (
+    add_instrument_argument,
+    add_sample_argument,
+    load_inputs,
+    rel_se_setting,
+)
 
 
 def register(sub) -> None:
@@ -34,11 +39,8 @@ def register(sub) -> None:
 
 def add_common_arguments(p) -> None:
     """Options shared by the commands that compute k_A (ka, validate, uncertainty, correct)."""
-    p.add_argument("--instrument", required=True, metavar="FILE",
-                   help="instrument TOML file (scenes/*.toml) or a bundled preset name (lab, portable)")
-    p.add_argument("--sample", required=True, metavar="SAMPLE",
-                   help="bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file, a model.json, "
-                        "or 'lambert'")
+    add_instrument_argument(p)
+    add_sample_argument(p)
     p.add_argument("--model-variant", choices=list(VARIANTS),
                    help="model variant used when SAMPLE is a table to fit (default: the paper's 'power')")
     p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature", "numpy-mc"],
@@ -66,15 +68,6 @@ def backend_settings(args) -> dict:
     if args.backend == "mitsuba" and args.variant:
         settings["variant"] = args.variant
     return settings
-
-
-def load_inputs(args):
-    """(instrument, model) from --instrument and --sample."""
-    from ..instrument import load_instrument
-    from ..sample import resolve_sample
-    instrument = load_instrument(args.instrument)
-    model = resolve_sample(args.sample, getattr(args, "model_variant", None))
-    return instrument, model
 
 
 def run(args) -> int:

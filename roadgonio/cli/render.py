@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 from ..errors import InputError
+from ._common import add_instrument_argument, add_sample_argument, load_inputs
 
 
 def register(sub) -> None:
@@ -14,11 +15,8 @@ def register(sub) -> None:
                                    "view of the sample (luminance inside the field stop) and the horizontal "
                                    "illuminance around the detector footprint (footprint outlined). Writes "
                                    "view.exr, illuminance.exr, render.png and render.json to --out.")
-    p.add_argument("--instrument", required=True, metavar="FILE",
-                   help="instrument TOML file (or a preset name such as portable or lab)")
-    p.add_argument("--sample", required=True, metavar="SAMPLE",
-                   help="'lambert', a bundled table name (R1..R4, C1, C2; fitted on the fly), a table file, "
-                        "or a model .json")
+    add_instrument_argument(p)
+    add_sample_argument(p)
     p.add_argument("--tan-eps", type=float, required=True, metavar="T", help="tan(epsilon) of the source")
     p.add_argument("--beta", type=float, required=True, metavar="B", help="beta of the source (deg)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
@@ -27,20 +25,6 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default=None, help="Mitsuba variant (default llvm_ad_rgb)")
     p.set_defaults(func=run)
-
-
-def _instrument(spec: str):
-    from ..instrument import load_instrument
-    return load_instrument(spec)
-
-
-def _sample(spec: str):
-    try:
-        from ..sample import resolve_sample
-    except ImportError:  # pragma: no cover - older checkouts
-        from ..model import RoadModel
-        return RoadModel.lambert() if spec.lower() == "lambert" else RoadModel.load(spec)
-    return resolve_sample(spec)
 
 
 def run(args) -> int:
@@ -53,8 +37,7 @@ def run(args) -> int:
     if args.spp < 1 or math.isqrt(args.spp) ** 2 != args.spp:
         raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {args.spp}",
                          field="--spp")
-    instrument = _instrument(args.instrument)
-    model = _sample(args.sample)
+    instrument, model = load_inputs(args)
     from ..render.images import render_cell_images
     info = render_cell_images(instrument, model, args.tan_eps, args.beta, args.out, resolution=args.resolution,
                               spp=args.spp, seed=args.seed, variant=args.variant, sample_name=args.sample)

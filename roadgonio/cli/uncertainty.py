@@ -6,8 +6,8 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
-from ._common import rel_se_setting
 from ..model import VARIANTS
+from ._common import add_instrument_argument, add_sample_argument, rel_se_setting
 
 
 def _positive_int(text: str) -> int:
@@ -35,11 +35,8 @@ def register(sub) -> None:
                     "Outputs per cell: mean, standard uncertainty, 95 % probabilistically symmetric and shortest "
                     "coverage intervals, GUM u and its validation; distributions of Q0 and S1. "
                     f"{SPEC_HELP}. Input keys: {keys}.")
-    p.add_argument("--instrument", required=True, metavar="FILE",
-                   help="instrument TOML file or a bundled preset name (lab, portable)")
-    p.add_argument("--sample", required=True, metavar="SAMPLE",
-                   help="'lambert', a bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file, "
-                        "or a model.json")
+    add_instrument_argument(p)
+    add_sample_argument(p)
     p.add_argument("--model-variant", choices=list(VARIANTS), help="model variant when fitting a table")
     p.add_argument("--sigma", required=True, metavar="SPEC",
                    help="standard deviations and distributions of the errors, e.g. 'alpha_deg=0.01,eps_deg=0.05:rect,"
@@ -88,8 +85,14 @@ def register(sub) -> None:
 def run(args) -> int:
     from ..fileio import to_json
     from ..instrument import load_instrument
-    from ..uncertainty import (parse_sigma_spec, resolve_sample_spec, result_dict, run_uncertainty,
-                               summary_lines, write_results)
+    from ..uncertainty import (
+        parse_sigma_spec,
+        resolve_sample_spec,
+        result_dict,
+        run_uncertainty,
+        summary_lines,
+        write_results,
+    )
     spec = parse_sigma_spec(args.sigma, option="--sigma")
     if not (0.5 < args.coverage < 1.0):
         raise InputError(f"expected a coverage probability between 0.5 and 1, got {args.coverage:g}", field="--coverage")

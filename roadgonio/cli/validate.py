@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 from ..errors import InputError
+from ._common import add_instrument_argument, add_sample_argument, load_inputs
 
 
 def register(sub) -> None:
@@ -16,10 +17,8 @@ def register(sub) -> None:
                     "tan 4-12 x beta 0-10, mid cells); print each difference in standard errors; write "
                     "validate.csv, validate.json and validate.png. Exit status 1 when a cell disagrees by more than "
                     "4 standard errors plus the float32 floor of the renderer.")
-    p.add_argument("--instrument", required=True, metavar="FILE",
-                   help="instrument TOML file or a bundled preset name (lab, portable)")
-    p.add_argument("--sample", required=True, metavar="SAMPLE",
-                   help="bundled table name (fitted on the fly), an r-table file, a model.json, or 'lambert'")
+    add_instrument_argument(p)
+    add_sample_argument(p)
     p.add_argument("--against", choices=["mitsuba", "numpy-mc"], default="mitsuba",
                    help="Monte Carlo backend to check (default mitsuba)")
     p.add_argument("--cells", metavar="LIST",
@@ -37,21 +36,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _load(args):
-    from ..instrument import load_instrument
-    instrument = load_instrument(args.instrument)
-    try:
-        from ..sample import resolve_sample
-    except ImportError:  # the sample resolver is not there yet: lambert and model.json only
-        from ..model import RoadModel
-        if args.sample == "lambert":
-            return instrument, RoadModel.lambert()
-        if Path(args.sample).suffix == ".json":
-            return instrument, RoadModel.load(args.sample)
-        raise InputError("expected 'lambert' or a model .json file", field="--sample") from None
-    return instrument, resolve_sample(args.sample)
-
-
 def run(args) -> int:
     from ..ka.validate import parse_cells, validate, write_outputs
     for name, v in (("--rel-se", args.rel_se), ("--rtol", args.rtol)):
@@ -60,7 +44,7 @@ def run(args) -> int:
     if args.floor is not None and not (math.isfinite(args.floor) and args.floor >= 0):
         raise InputError(f"expected a floor >= 0, got {args.floor}", field="--floor")
     cells = parse_cells(args.cells)
-    instrument, model = _load(args)
+    instrument, model = load_inputs(args)
     mc_settings = {}
     if args.against == "mitsuba":
         if args.variant:
