@@ -88,3 +88,17 @@ def test_max_samples_reports_not_converged():
 def test_bad_settings(kwargs):
     with pytest.raises(InputError):
         make_backend("numpy-mc", lab(), r3like(), **kwargs)
+
+
+def test_accuracy_preset_reaches_the_backend_whole_and_explicit_settings_win():
+    """make_backend(..., accuracy=...) applies every setting of the preset (not only the target),
+    and an explicit setting overrides the preset's."""
+    from roadgonio.ka.accuracy import ACCURACY
+    inst = load_instrument("portable")
+    fast = ACCURACY["fast"]["numpy-mc"]
+    s = make_backend("numpy-mc", inst, RoadModel.lambert(), accuracy="fast").settings()
+    assert s["rel_se"] == fast["rel_se"] and s["batch"] == fast["batch"]
+    s = make_backend("numpy-mc", inst, RoadModel.lambert(), accuracy="fast", rel_se=0.05).settings()
+    assert s["rel_se"] == 0.05 and s["batch"] == fast["batch"]
+    q = make_backend("quadrature", inst, RoadModel.lambert(), accuracy="precise").settings()
+    assert q["rtol"] == ACCURACY["precise"]["quadrature"]["rtol"]

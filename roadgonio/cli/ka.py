@@ -56,11 +56,9 @@ def add_common_arguments(p) -> None:
 
 
 def backend_settings(args) -> dict:
-    """Backend keyword arguments from --accuracy / --rel-se / --seed / --variant."""
+    """Backend keyword arguments from --rel-se / --seed / --variant (--accuracy goes to make_backend,
+    which applies the preset under these)."""
     settings: dict = {}
-    if args.accuracy:
-        from ..ka.accuracy import ACCURACY
-        settings.update(ACCURACY[args.accuracy][args.backend])
     if args.rel_se is not None:
         settings.update(rel_se_setting(args.backend, args.rel_se))
     if args.backend in ("mitsuba", "numpy-mc"):
@@ -83,7 +81,7 @@ def run(args) -> int:
         if not (math.isfinite(args.beta) and 0 <= args.beta <= 180):
             raise InputError(f"expected 0 <= beta <= 180 deg, got {args.beta}", field="--beta")
     instrument, model = load_inputs(args)
-    backend = make_backend(args.backend, instrument, model, **backend_settings(args))
+    backend = make_backend(args.backend, instrument, model, accuracy=args.accuracy, **backend_settings(args))
 
     if single:
         t0 = time.perf_counter()

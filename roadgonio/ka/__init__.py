@@ -87,13 +87,21 @@ BACKENDS: dict[str, str] = {
 }
 
 
-def make_backend(name: str, instrument: Instrument, model: RoadModel, **settings) -> KaBackend:
-    """Create a backend by name (lazy import, so numpy-only runs never import mitsuba)."""
+def make_backend(name: str, instrument: Instrument, model: RoadModel, *, accuracy: str | None = None,
+                 **settings) -> KaBackend:
+    """Create a backend by name (lazy import, so numpy-only runs never import mitsuba).
+
+    ``accuracy`` (``"fast"``, ``"default"``, ``"precise"``) applies the preset of
+    :mod:`roadgonio.ka.accuracy` for this backend; explicit ``settings`` override it.
+    """
     import importlib
 
     from ..errors import InputError
     if name not in BACKENDS:
         raise InputError(f"unknown backend {name!r}; expected one of {', '.join(BACKENDS)}", field="--backend")
+    if accuracy is not None:
+        from .accuracy import preset
+        settings = {**preset(accuracy, name), **settings}
     mod_name, func = BACKENDS[name].split(":")
     try:
         mod = importlib.import_module(mod_name)

@@ -1,9 +1,10 @@
 """Accuracy presets of the k_A backends, placed on the measured speed-accuracy frontier
 (bench/bench_accuracy.py, bench/results/accuracy.csv and pareto.png).
 
-``ACCURACY[preset][backend]`` holds the settings passed to the backend factory: for the quadrature
-backend a relative tolerance ``rtol``, for the Monte Carlo backends (``mitsuba``, ``numpy-mc``) a
-target relative standard error ``rel_se``.
+``ACCURACY[preset][backend]`` holds the settings that ``roadgonio.ka.make_backend(name, ...,
+accuracy=preset)`` passes to the backend factory (explicit settings override them): for the
+quadrature backend a relative tolerance ``rtol``, for the Monte Carlo backends (``mitsuba``,
+``numpy-mc``) a target relative standard error ``rel_se`` and the size of the first pass.
 
 Measured points (bench/bench_accuracy.py on the idle 2-core machine, portable preset, R3-like
 model, 7 cells including the specular peak tan 12 / beta 0 and 2; max relative error against

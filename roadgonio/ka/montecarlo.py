@@ -55,10 +55,7 @@ class MonteCarloBackend(CellByCellBackend):
 
     def __init__(self, instrument: Instrument, model: RoadModel, *, rel_se: float = DEFAULT_REL_SE,
                  seed: int = 0, batch: int = DEFAULT_BATCH, min_batches: int = DEFAULT_MIN_BATCHES,
-                 max_samples: int = DEFAULT_MAX_SAMPLES, accuracy: str | None = None):
-        if accuracy is not None:
-            from .accuracy import preset
-            rel_se = preset(accuracy, self.name)["rel_se"]
+                 max_samples: int = DEFAULT_MAX_SAMPLES):
         try:
             rel_se = float(rel_se)
         except (TypeError, ValueError):
@@ -84,7 +81,6 @@ class MonteCarloBackend(CellByCellBackend):
         self.batch = m * m
         self.min_batches = int(min_batches)
         self.max_samples = int(max_samples)
-        self.accuracy = accuracy
         self._P = model.params.to_dict()
         self._terms = model.terms()
         self._det = optics.detector_geometry(instrument)
@@ -95,7 +91,7 @@ class MonteCarloBackend(CellByCellBackend):
 
     def settings(self) -> dict[str, Any]:
         return {"backend": self.name, "rel_se": self.rel_se, "seed": self.seed, "batch": self.batch,
-                "min_batches": self.min_batches, "max_samples": self.max_samples, "accuracy": self.accuracy,
+                "min_batches": self.min_batches, "max_samples": self.max_samples,
                 "sampling": "stratified m x m jittered grid per disc per batch, concentric map",
                 "precision": "float64"}
 
@@ -152,8 +148,7 @@ class MonteCarloBackend(CellByCellBackend):
 
 def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = DEFAULT_REL_SE, seed: int = 0,
                  batch: int = DEFAULT_BATCH, min_batches: int = DEFAULT_MIN_BATCHES,
-                 max_samples: int = DEFAULT_MAX_SAMPLES, accuracy: str | None = None,
-                 **unknown) -> MonteCarloBackend:
+                 max_samples: int = DEFAULT_MAX_SAMPLES, **unknown) -> MonteCarloBackend:
     """The float64 numpy Monte Carlo backend (``roadgonio.ka.make_backend("numpy-mc", ...)``).
 
     Parameters
@@ -167,11 +162,9 @@ def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = DE
     min_batches, max_samples:
         At least this many batches, at most this many samples per cell; a cell stopped by
         ``max_samples`` reports its achieved standard error and ``extra["converged"] = False``.
-    accuracy:
-        ``"fast"``, ``"default"`` or ``"precise"`` (:mod:`roadgonio.ka.accuracy`); overrides ``rel_se``.
     """
     if unknown:
         raise InputError(f"unknown numpy-mc setting(s) {', '.join(sorted(unknown))}; expected rel_se, seed, "
-                         "batch, min_batches, max_samples, accuracy", field=sorted(unknown)[0])
+                         "batch, min_batches, max_samples", field=sorted(unknown)[0])
     return MonteCarloBackend(instrument, model, rel_se=rel_se, seed=seed, batch=batch,
-                             min_batches=min_batches, max_samples=max_samples, accuracy=accuracy)
+                             min_batches=min_batches, max_samples=max_samples)

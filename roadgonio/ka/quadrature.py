@@ -141,11 +141,7 @@ class QuadratureBackend(CellByCellBackend):
     name = "quadrature"
 
     def __init__(self, instrument: Instrument, model: RoadModel, *, rtol: float = DEFAULT_RTOL,
-                 max_evals: int = MAX_EVALS, start_level: int = 1, accuracy: str | None = None,
-                 focus: bool = True):
-        if accuracy is not None:
-            from .accuracy import preset
-            rtol = preset(accuracy, "quadrature")["rtol"]
+                 max_evals: int = MAX_EVALS, start_level: int = 1, focus: bool = True):
         try:
             rtol = float(rtol)
         except (TypeError, ValueError):
@@ -163,7 +159,6 @@ class QuadratureBackend(CellByCellBackend):
         self.model = model
         self.rtol = rtol
         self.max_evals = int(max_evals)
-        self.accuracy = accuracy
         self.start_level = int(start_level)
         self.focus = bool(focus)
         self._P = model.params.to_dict()
@@ -178,7 +173,7 @@ class QuadratureBackend(CellByCellBackend):
     # -- provenance ---------------------------------------------------------------------------
     def settings(self) -> dict[str, Any]:
         return {"backend": self.name, "rtol": self.rtol, "max_evals": self.max_evals,
-                "accuracy": self.accuracy, "start_level": self.start_level, "focus": self.focus,
+                "start_level": self.start_level, "focus": self.focus,
                 "rule": "polar Gauss-Jacobi (r) x trapezoid (angle) per disc, adaptive per disc",
                 "discs": [d for d, a in zip(DISCS, self.active) if a], "precision": "float64"}
 
@@ -362,7 +357,7 @@ class QuadratureBackend(CellByCellBackend):
 
 
 def make_backend(instrument: Instrument, model: RoadModel, *, rtol: float = DEFAULT_RTOL,
-                 accuracy: str | None = None, max_evals: int = MAX_EVALS, start_level: int = 1,
+                 max_evals: int = MAX_EVALS, start_level: int = 1,
                  focus: bool = True, **unknown) -> QuadratureBackend:
     """The quadrature backend (``roadgonio.ka.make_backend("quadrature", ...)``).
 
@@ -370,8 +365,6 @@ def make_backend(instrument: Instrument, model: RoadModel, *, rtol: float = DEFA
     ----------
     rtol:
         Requested relative error of each k_A (default 1e-4).
-    accuracy:
-        ``"fast"``, ``"default"`` or ``"precise"`` (see :mod:`roadgonio.ka.accuracy`); overrides ``rtol``.
     max_evals:
         Cap on integrand evaluations of one estimate; a cell that reaches it reports the error it
         achieved with ``extra["converged"] = False``.
@@ -383,6 +376,6 @@ def make_backend(instrument: Instrument, model: RoadModel, *, rtol: float = DEFA
     """
     if unknown:
         raise InputError(f"unknown quadrature setting(s) {', '.join(sorted(unknown))}; expected rtol, "
-                         "accuracy, max_evals, start_level, focus", field=sorted(unknown)[0])
-    return QuadratureBackend(instrument, model, rtol=rtol, accuracy=accuracy, max_evals=max_evals,
+                         "max_evals, start_level, focus", field=sorted(unknown)[0])
+    return QuadratureBackend(instrument, model, rtol=rtol, max_evals=max_evals,
                              start_level=start_level, focus=focus)
