@@ -27,7 +27,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..errors import InputError
-from ..fileio import atomic_write_json, to_json
+from ..fileio import atomic_write_json, atomic_write_text, to_json
 from ..geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from ..instrument import Instrument
 from ..model import RoadModel
@@ -133,14 +133,9 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
         if fresh and journal.exists():
             journal.unlink()
         done = _read_journal(journal, fp)
-        if not journal.exists() or journal.stat().st_size == 0:
-            with journal.open("w", encoding="utf-8") as f:
-                f.write(to_json({"fingerprint": fp, "backend": backend.name}, indent=None) + "\n")
-        else:
-            # rewrite without a cut-short last line, atomically, before appending
-            from ..fileio import atomic_write_text
-            atomic_write_text(journal, to_json({"fingerprint": fp, "backend": backend.name}, indent=None) + "\n"
-                              + "".join(to_json(c.to_dict(), indent=None) + "\n" for c in done.values()))
+        # (re)write the header and the finished cells, dropping a cut-short last line, before appending
+        atomic_write_text(journal, to_json({"fingerprint": fp, "backend": backend.name}, indent=None) + "\n"
+                          + "".join(to_json(c.to_dict(), indent=None) + "\n" for c in done.values()))
     todo = [c for c in cells if _cell_key(*c) not in done]
     resumed = len(cells) - len(todo)
     bar = None
