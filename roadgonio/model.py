@@ -196,13 +196,14 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
         dot = wix * wox + wiy * woy
         defined = sin_ti * sin_tr > 1e-12
         beta = xp.where(defined, xp.atan2(cross, -dot), math.pi + zero)
-        # x = (pi - beta)/pi, ln x = ln(1 - beta/pi)
-        ln_x = xp.log1m(xp.minimum(beta * (1.0 / math.pi), 1.0 - 1e-7))
         e = theta_i * theta_r * (1.0 / THETA_R_STAR)
         cos_e = xp.cos(e)
         f_e = xp.where(cos_e > 0.0, xp.sin(e) * cos_e / (cos_e * cos_e + P["mu"]), zero)
         ln_f = xp.log(xp.maximum(f_e, TINY))
-        arg = xp.minimum(1.0 + P["h"] * f_e * f_e, EXP_CAP)
+        if variant != "smooth":
+            # the paper's x = (pi - beta)/pi, ln x = ln(1 - beta/pi), and 1 + h f^2
+            ln_x = xp.log1m(xp.minimum(beta * (1.0 / math.pi), 1.0 - 1e-7))
+            arg = xp.minimum(1.0 + P["h"] * f_e * f_e, EXP_CAP)
         if variant == "smooth":
             # extension (module docstring): E = k f^p exp(-W L^n_beta), W = exp(1 + h sqrt f),
             # L = -ln cos^2(beta/2) = -log1m(sin^2(beta/2))
