@@ -181,21 +181,11 @@ def plot_before_after(c: Correction, path: Path) -> Path:
     a1.set_title(f"{c.measured.name}: before / after the aperture-effect correction", fontsize=11)
     a1.legend(fontsize=8)
     a1.grid(alpha=0.3, which="both")
-    k = np.ma.masked_invalid(c.k_a)
-    span = float(max(abs(np.log10(np.nanmin(c.k_a))), abs(np.log10(np.nanmax(c.k_a))), 0.01))
-    from matplotlib import colors
-    im = a2.imshow(k, cmap="RdBu_r", norm=colors.LogNorm(10 ** -span, 10 ** span), aspect="auto",
-                   interpolation="nearest")
-    for i, j in zip(*np.nonzero(c.measured.mask)):
-        a2.text(j, i, f"{c.k_a[i, j]:.2f}\n{100 * c.u_rel[i, j]:.1f}%", ha="center", va="center", fontsize=4.6)
-    a2.set_xticks(range(len(BETA_GRID_DEG)), [f"{b:g}" for b in BETA_GRID_DEG], fontsize=7)
-    a2.set_yticks(range(len(TAN_EPS_GRID)), [f"{t:g}" for t in TAN_EPS_GRID], fontsize=7)
-    a2.set_xlabel("beta (deg)")
-    a2.set_ylabel("tan eps")
+    from .plots import draw_table_map
+    draw_table_map(a2, c.k_a, label="k_A", fontsize=4.6, tick_fontsize=7,
+                   text=lambda i, j: f"{c.k_a[i, j]:.2f}\n{100 * c.u_rel[i, j]:.1f}%")
     alts = ", ".join(c.alternatives) or "none"
     a2.set_title(f"k_A (reference {c.reference}) and u_rel of the correction\n(alternatives: {alts})", fontsize=10)
-    from .plots import plain_colorbar_labels
-    plain_colorbar_labels(fig.colorbar(im, ax=a2, fraction=0.04, label="k_A"))
     fig.tight_layout()
     p = atomic_savefig(fig, path, dpi=120)
     plt.close(fig)
