@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 from ..errors import InputError
+from ..ka.accuracy import PRESETS
 from ..model import VARIANTS
 from ._common import (
     add_instrument_argument,
@@ -24,7 +25,20 @@ def register(sub) -> None:
                     "and a sample (DESIGN.md section 5). Without --tan-eps/--beta the whole 580-cell grid is "
                     "computed and written to --out (ka.csv, ka_se.csv, ka.png, ka.json); an interrupted table "
                     "resumes when the same command is run again.")
-    add_common_arguments(p)
+    add_instrument_argument(p)
+    add_sample_argument(p)
+    p.add_argument("--model-variant", choices=list(VARIANTS),
+                   help="model variant used when SAMPLE is a table to fit (default: the paper's 'power')")
+    p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature", "numpy-mc"],
+                   help="mitsuba (default; float32 ray tracing), quadrature (deterministic float64), "
+                        "numpy-mc (plain float64 Monte Carlo, slow; an oracle)")
+    p.add_argument("--accuracy", choices=list(PRESETS),
+                   help="preset on the measured speed-accuracy frontier (README); --rel-se overrides it")
+    p.add_argument("--rel-se", type=float, metavar="E",
+                   help="target relative standard error per cell (Monte Carlo backends) or relative tolerance "
+                        "(quadrature); default from --accuracy")
+    p.add_argument("--seed", type=int, default=0, help="random seed (Monte Carlo backends)")
+    p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU machine)")
     p.add_argument("--tan-eps", type=float, metavar="T", help="one cell: tan(epsilon)")
     p.add_argument("--beta", type=float, metavar="B", help="one cell: beta in degrees")
     p.add_argument("--cells", choices=["all", "table"], default="all",
@@ -35,24 +49,6 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true",
                    help='one cell: print {"k_a", "se", "samples", "seconds"}; table: print the summary as JSON')
     p.set_defaults(func=run)
-
-
-def add_common_arguments(p) -> None:
-    """Options shared by the commands that compute k_A (ka, validate, uncertainty, correct)."""
-    add_instrument_argument(p)
-    add_sample_argument(p)
-    p.add_argument("--model-variant", choices=list(VARIANTS),
-                   help="model variant used when SAMPLE is a table to fit (default: the paper's 'power')")
-    p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature", "numpy-mc"],
-                   help="mitsuba (default; float32 ray tracing), quadrature (deterministic float64), "
-                        "numpy-mc (plain float64 Monte Carlo, slow; an oracle)")
-    p.add_argument("--accuracy", choices=["fast", "default", "precise"],
-                   help="preset on the measured speed-accuracy frontier (README); --rel-se overrides it")
-    p.add_argument("--rel-se", type=float, metavar="E",
-                   help="target relative standard error per cell (Monte Carlo backends) or relative tolerance "
-                        "(quadrature); default from --accuracy")
-    p.add_argument("--seed", type=int, default=0, help="random seed (Monte Carlo backends)")
-    p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU machine)")
 
 
 def backend_settings(args) -> dict:
