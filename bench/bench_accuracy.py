@@ -22,9 +22,9 @@ from pathlib import Path
 
 import numpy as np
 
-from roadgonio.instrument import load_instrument
-from roadgonio.ka import full_grid_cells, make_backend
-from roadgonio.model import RoadModel, RoadParams
+from roadgonio.instrument.config import load_instrument
+from roadgonio.engines import full_grid_cells, make_backend
+from roadgonio.surface.model import RoadModel, RoadParams
 
 #: R3-like model: least-squares fit of the power variant to CIE R3 (RMS 3.9 % of max r); the same
 #: numbers as tests/test_quadrature.py::R3LIKE.
@@ -71,12 +71,12 @@ def main(argv=None) -> int:
     ref_err = max(r.se / r.k_a for r in ref.values())
     print(f"  {time.perf_counter() - t0:.1f} s, reference error <= {ref_err:.1e}", file=sys.stderr)
 
-    from roadgonio.ka.accuracy import ACCURACY
+    from roadgonio.engines.accuracy import ACCURACY
     # (backend, setting name, value, backend settings); "preset" rows are the accuracy presets
     ladder = [("quadrature", "rtol", v, {"rtol": v})
               for v in ([1e-2, 1e-3, 1e-4, 1e-5] if args.quick else [1e-2, 1e-3, 3e-4, 1e-4, 1e-5, 1e-6])]
     if not args.no_mitsuba:
-        from roadgonio.render import set_variant
+        from roadgonio.engines.mitsuba import set_variant
         set_variant()
         budgets = MITSUBA_BUDGETS[:4] if args.quick else MITSUBA_BUDGETS
         # rel_se 0.5 with min_passes 1: exactly one pass of resolution^2 x spp samples per cell

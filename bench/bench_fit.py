@@ -17,8 +17,8 @@ import sys
 from pathlib import Path
 
 from roadgonio import __version__
-from roadgonio.fit import fit_table, max_weight
-from roadgonio.rtable import BUNDLED, bundled_table
+from roadgonio.surface.fit import fit_table, max_weight
+from roadgonio.surface.rtable import BUNDLED, bundled_table
 
 #: paper: max within 9 %, RMS within 2.6 % of max r on R1, C2, R3, R4
 PAPER_TABLES = ("R1", "C2", "R3", "R4")

@@ -1,6 +1,6 @@
 """Benchmark: the full 580-cell k_A table of the portable preset for the R3 fit with the Mitsuba
 backend, side by side with the float64 numpy Monte Carlo of the same integral at the same
-relative standard error (roadgonio.ka.montecarlo).
+relative standard error (roadgonio.engines.montecarlo).
 
     python bench/bench_ka_mitsuba.py                 # numpy MC on every 10th cell (extrapolated)
     python bench/bench_ka_mitsuba.py --mc-stride 1   # numpy MC on the full table too (slow)
@@ -32,11 +32,11 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "ka_mitsuba.csv"))
     args = ap.parse_args(argv)
 
-    from roadgonio.instrument import Instrument
-    from roadgonio.ka import full_grid_cells
-    from roadgonio.ka.montecarlo import make_backend as make_mc
-    from roadgonio.render.backend import make_backend as make_mitsuba
-    from roadgonio.sample import resolve_sample
+    from roadgonio.instrument.config import Instrument
+    from roadgonio.engines import full_grid_cells
+    from roadgonio.engines.montecarlo import make_backend as make_mc
+    from roadgonio.engines.mitsuba.backend import make_backend as make_mitsuba
+    from roadgonio.surface.sample import resolve_sample
 
     inst = Instrument.load(args.instrument)
     model = resolve_sample(args.sample)
@@ -61,7 +61,7 @@ def main(argv=None) -> int:
 
     m_sub = [by_cell[c] for c in sub]
     t_m_sub = sum(r.seconds for r in m_sub)
-    from roadgonio.ka.validate import FLOAT32_FLOOR, N_SIGMA
+    from roadgonio.engines.validate import FLOAT32_FLOOR, N_SIGMA
     floor = FLOAT32_FLOOR["mitsuba"]
     # z in combined standard errors; cells whose k_A is known to ~1e-9 (purely diffuse there) are
     # judged like `roadgonio validate`: |d| <= N_SIGMA * SE + float32 floor * |k|

@@ -6,7 +6,7 @@
   surrogate's design and of its held-out validation trials included (target: < 10 min), with the
   surrogate's own error against the held-out exact evaluations.
 
-Sample: CIE R3 fitted on the fly (roadgonio.sample); instrument: the bundled portable preset.
+Sample: CIE R3 fitted on the fly (roadgonio.surface.sample); instrument: the bundled portable preset.
 Prints a table and writes bench/results/uncertainty.csv. Usage::
 
     python bench/bench_uncertainty.py [--quick] [--backend mitsuba|quadrature] [--no-aperture]
@@ -36,8 +36,8 @@ def main() -> int:
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "uncertainty.csv"))
     args = ap.parse_args()
 
-    from roadgonio.instrument import load_instrument
-    from roadgonio.sample import resolve_sample
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.sample import resolve_sample
     from roadgonio.uncertainty import parse_sigma_spec, run_uncertainty
 
     model = resolve_sample(args.sample)

@@ -1,9 +1,9 @@
-"""Mitsuba 3 Python plugins of roadgonio (installed as ``roadgonio.render.plugins``).
+"""Mitsuba 3 Python plugins of roadgonio (installed as ``roadgonio.engines.mitsuba.plugins``).
 
-* ``roadbsdf`` (:mod:`.road_bsdf`): the road BSDF of paper eq. 4 from :mod:`roadgonio.model`;
+* ``roadbsdf`` (:mod:`.road_bsdf`): the road BSDF of paper eq. 4 from :mod:`roadgonio.surface.model`;
 * ``lummeter`` (:mod:`.lummeter`): the luminance-meter sensor (circular pupil x circular field).
 
-Call :func:`register_plugins` after :func:`roadgonio.render.set_variant`; it is idempotent per
+Call :func:`register_plugins` after :func:`roadgonio.engines.mitsuba.set_variant`; it is idempotent per
 variant. Importing this package does not import mitsuba.
 """
 from __future__ import annotations
@@ -25,7 +25,7 @@ def register_plugins() -> dict[str, type]:
     from roadgonio.errors import BackendError
     variant = mi.variant()
     if variant is None:
-        raise BackendError("no Mitsuba variant is set: call roadgonio.render.set_variant() first")
+        raise BackendError("no Mitsuba variant is set: call roadgonio.engines.mitsuba.set_variant() first")
     if variant in _REGISTERED:
         return _REGISTERED[variant]
     classes = {}

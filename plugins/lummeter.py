@@ -4,7 +4,7 @@ section 4, the detector domain of paper eq. 3.
 Entrance pupil: a disc of radius R_D centred at D_D w_o(alpha, delta), normal to the axis towards
 the sample centre. Field stop: a circular disc of angular half-size gamma_D, conjugate to the plane
 normal to the axis at the focus distance F (``focus_m``; default D_D; ``inf`` = angular field).
-The rays and their etendue weights come from :func:`roadgonio.optics.detector_ray`, evaluated with
+The rays and their etendue weights come from :func:`roadgonio.instrument.optics.detector_ray`, evaluated with
 the Dr.Jit namespace (nothing of the geometry is repeated here).
 
 Sampling: the film position sample (u in [0, 1]^2, one pixel = one stratum) is concentric-mapped
@@ -33,9 +33,9 @@ import mitsuba as mi
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.instrument import Instrument
-from roadgonio.optics import DetectorGeometry, concentric_disc, detector_geometry, detector_ray
-from roadgonio.render.ops import DrJitOps
+from roadgonio.instrument.config import Instrument
+from roadgonio.instrument.optics import DetectorGeometry, concentric_disc, detector_geometry, detector_ray
+from roadgonio.engines.mitsuba.ops import DrJitOps
 
 DETECTOR_KEYS = ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity")
 

@@ -1,15 +1,15 @@
 """The road BSDF as a Mitsuba 3 Python plugin (plugin name ``roadbsdf``).
 
-It evaluates :func:`roadgonio.model.road_brdf` (paper eq. 4, the project's one definition of the
-model) with the Dr.Jit namespace :class:`roadgonio.render.ops.DrJitOps`; nothing of the formula is
+It evaluates :func:`roadgonio.surface.model.road_brdf` (paper eq. 4, the project's one definition of the
+model) with the Dr.Jit namespace :class:`roadgonio.engines.mitsuba.ops.DrJitOps`; nothing of the formula is
 repeated here.
 
 Properties (XML or ``mi.load_dict``):
 
-* the model parameters by their names in :data:`roadgonio.model.PARAM_NAMES` (the DESIGN.md names
+* the model parameters by their names in :data:`roadgonio.surface.model.PARAM_NAMES` (the DESIGN.md names
   ``k_diff`` ... ``theta_l_deg``, plus ``n_beta`` of the ``smooth`` extension); floats, defaults
-  as in :class:`roadgonio.model.RoadParams`, validated;
-* ``variant``: one of :data:`roadgonio.model.VARIANTS` (``"power"``, the paper's model, by
+  as in :class:`roadgonio.surface.model.RoadParams`, validated;
+* ``variant``: one of :data:`roadgonio.surface.model.VARIANTS` (``"power"``, the paper's model, by
   default; ``"product"``; ``"smooth"``), structural;
 * ``channels``: ``"road"`` (default: every colour channel is f_road, an ordinary BSDF) or
   ``"road_lambert"`` (rgb variants only): channel 0 = f_road, channels 1 and 2 = 1/pi, the
@@ -23,10 +23,10 @@ cosine-weighted hemisphere (pdf = cos/pi) and returns the weight f cos/pdf = pi 
 
 Parameters are stored as opaque ``mi.Float`` (``dr.opaque``), listed by :meth:`traverse` as
 non-differentiable, so changing a value never recompiles the kernel. The variant and the set of
-active terms (:func:`roadgonio.model.active_terms`) are structural: they decide which code is
+active terms (:func:`roadgonio.surface.model.active_terms`) are structural: they decide which code is
 traced; the term set is recomputed from the values in :meth:`parameters_changed`.
 
-Registration: :func:`roadgonio.render.plugins.register_plugins` after ``set_variant``.
+Registration: :func:`roadgonio.engines.mitsuba.plugins.register_plugins` after ``set_variant``.
 """
 from __future__ import annotations
 
@@ -36,8 +36,8 @@ import drjit as dr
 import mitsuba as mi
 
 from roadgonio.errors import InputError
-from roadgonio.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS, RoadParams, active_terms, road_brdf
-from roadgonio.render.ops import DrJitOps
+from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS, RoadParams, active_terms, road_brdf
+from roadgonio.engines.mitsuba.ops import DrJitOps
 
 CHANNELS = ("road", "road_lambert")
 INV_PI = 1.0 / math.pi

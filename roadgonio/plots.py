@@ -5,8 +5,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .fileio import atomic_savefig
-from .geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.fileio import atomic_savefig
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 
 
 def _plt():

@@ -8,7 +8,7 @@ import pytest
 @pytest.fixture(scope="session")
 def mi():
     """Mitsuba with the CPU variant chosen here (never as an import side effect)."""
-    from roadgonio.render import set_variant
+    from roadgonio.engines.mitsuba import set_variant
     return set_variant("llvm_ad_rgb")
 
 

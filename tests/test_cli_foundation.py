@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from roadgonio.cli import main
-from roadgonio.model import RoadModel
-from roadgonio.rtable import bundled_table, read_table
+from roadgonio.surface.model import RoadModel
+from roadgonio.surface.rtable import bundled_table, read_table
 
 from test_rtable import bad_tables
 

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from roadgonio.cli import main
-from roadgonio.ka.table import JOURNAL
-from roadgonio.rtable import read_table
+from roadgonio.engines.runner import JOURNAL
+from roadgonio.surface.rtable import read_table
 
 pytestmark = pytest.mark.system
 #: The quadrature backend integrates a Lambertian sample exactly up to round-off.

@@ -1,4 +1,4 @@
-"""Tests of roadgonio.correct (r / k_A with the uncertainty of the correction) and the command.
+"""Tests of roadgonio.correction (r / k_A with the uncertainty of the correction) and the command.
 A stand-in k_A backend (analytic, model-dependent) replaces the exact backends in the unit tests."""
 from __future__ import annotations
 
@@ -9,11 +9,11 @@ import sys
 import numpy as np
 import pytest
 
-from roadgonio.correct import correct_table, nearest_standard_tables, write_correction
-from roadgonio.instrument import load_instrument
-from roadgonio.ka import CellResult
-from roadgonio.model import RoadModel, RoadParams
-from roadgonio.rtable import bundled_table, read_table
+from roadgonio.correction import correct_table, nearest_standard_tables, write_correction
+from roadgonio.instrument.config import load_instrument
+from roadgonio.engines import CellResult
+from roadgonio.surface.model import RoadModel, RoadParams
+from roadgonio.surface.rtable import bundled_table, read_table
 
 EXACT_TOL = 1e-12
 

@@ -1,4 +1,4 @@
-"""Fitting the road BRDF to r-tables (roadgonio.fit) and resolving samples (roadgonio.sample)."""
+"""Fitting the road BRDF to r-tables (roadgonio.surface.fit) and resolving samples (roadgonio.surface.sample)."""
 from __future__ import annotations
 
 import json
@@ -6,13 +6,13 @@ import json
 import numpy as np
 import pytest
 
-import roadgonio.fit as fitmod
+import roadgonio.surface.fit as fitmod
 from roadgonio.errors import InputError
-from roadgonio.fit import FitResult, deviations, fit_table
+from roadgonio.surface.fit import FitResult, deviations, fit_table
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
-from roadgonio.model import RoadModel, RoadParams
-from roadgonio.rtable import BUNDLED, bundled_table
-from roadgonio.sample import cache_dir, resolve_sample
+from roadgonio.surface.model import RoadModel, RoadParams
+from roadgonio.surface.rtable import BUNDLED, bundled_table
+from roadgonio.surface.sample import cache_dir, resolve_sample
 
 pytestmark = pytest.mark.unit
 

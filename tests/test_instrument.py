@@ -6,7 +6,7 @@ import math
 import pytest
 
 from roadgonio.errors import InputError
-from roadgonio.instrument import Instrument, bundled_instruments, load_instrument
+from roadgonio.instrument.config import Instrument, bundled_instruments, load_instrument
 
 pytestmark = pytest.mark.unit
 

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 
 from roadgonio.errors import InputError
-from roadgonio.instrument import load_instrument
-from roadgonio.ka import CellResult, full_grid_cells
-from roadgonio.ka.table import JOURNAL, run_cells, write_outputs
-from roadgonio.model import RoadModel, RoadParams
-from roadgonio.rtable import read_table
+from roadgonio.instrument.config import load_instrument
+from roadgonio.engines import CellResult, full_grid_cells
+from roadgonio.engines.runner import JOURNAL, run_cells, write_outputs
+from roadgonio.surface.model import RoadModel, RoadParams
+from roadgonio.surface.rtable import read_table
 
 pytestmark = pytest.mark.unit
 

@@ -1,4 +1,4 @@
-"""The road BRDF model (roadgonio.model): limiting cases, the documented variants, the grazing
+"""The road BRDF model (roadgonio.surface.model): limiting cases, the documented variants, the grazing
 attenuation g, finiteness within the documented bounds and parameter validation."""
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import pytest
 
 from roadgonio.errors import InputError
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, w_detector, w_source
-from roadgonio.model import (PARAM_BOUNDS, THETA_R_STAR, VARIANTS, NumpyOps, RoadModel, RoadParams,
+from roadgonio.surface.model import (PARAM_BOUNDS, THETA_R_STAR, VARIANTS, NumpyOps, RoadModel, RoadParams,
                              road_brdf)
 
 pytestmark = pytest.mark.unit
@@ -129,7 +129,7 @@ def test_g_never_changes_a_one_degree_table_cell(variant):
 # ----------------------------------------------------------------------------------------------
 
 def _E_reference(variant, k, p, h, mu, theta_i, theta_r, beta, n_beta=1.0):
-    """E of DESIGN.md section 3 / the roadgonio.model docstring, written from the formulas."""
+    """E of DESIGN.md section 3 / the roadgonio.surface.model docstring, written from the formulas."""
     e = theta_i * theta_r / THETA_R_STAR
     f = math.sin(e) * math.cos(e) / (math.cos(e) ** 2 + mu)
     x = (math.pi - beta) / math.pi
@@ -344,7 +344,7 @@ def _kappa(model, wi, wo, ref, rng, d=1e-6):
 @pytest.mark.plugin
 def test_smooth_variant_in_plugin_matches_numpy(mi, rng_seed):
     import drjit as dr
-    from roadgonio.render.plugins import register_plugins
+    from roadgonio.engines.mitsuba.plugins import register_plugins
     register_plugins()
     rng = np.random.default_rng(rng_seed + 101)
     for trial in range(8):

@@ -1,4 +1,4 @@
-"""The float64 numpy Monte Carlo backend (roadgonio.ka.montecarlo): agreement with the quadrature
+"""The float64 numpy Monte Carlo backend (roadgonio.engines.montecarlo): agreement with the quadrature
 within 4 standard errors (fixed seeds), Lambert = 1, reproducibility, the stopping rule."""
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from roadgonio.errors import InputError
-from roadgonio.instrument import load_instrument
-from roadgonio.ka import make_backend
-from roadgonio.model import RoadModel
+from roadgonio.instrument.config import load_instrument
+from roadgonio.engines import make_backend
+from roadgonio.surface.model import RoadModel
 
 from test_quadrature import lab, r3like
 
@@ -93,7 +93,7 @@ def test_bad_settings(kwargs):
 def test_accuracy_preset_reaches_the_backend_whole_and_explicit_settings_win():
     """make_backend(..., accuracy=...) applies every setting of the preset (not only the target),
     and an explicit setting overrides the preset's."""
-    from roadgonio.ka.accuracy import ACCURACY
+    from roadgonio.engines.accuracy import ACCURACY
     inst = load_instrument("portable")
     fast = ACCURACY["fast"]["numpy-mc"]
     s = make_backend("numpy-mc", inst, RoadModel.lambert(), accuracy="fast").settings()

@@ -1,4 +1,4 @@
-"""The instrument's ray geometry (roadgonio.optics) against independent results."""
+"""The instrument's ray geometry (roadgonio.instrument.optics) against independent results."""
 from __future__ import annotations
 
 import math
@@ -8,9 +8,9 @@ import pytest
 from scipy import stats
 
 from roadgonio.errors import GeometryError
-from roadgonio.instrument import load_instrument
-from roadgonio.model import NumpyOps as xp
-from roadgonio.optics import (check_detector, check_source, concentric_disc, detector_geometry,
+from roadgonio.instrument.config import load_instrument
+from roadgonio.surface.model import NumpyOps as xp
+from roadgonio.instrument.optics import (check_detector, check_source, concentric_disc, detector_geometry,
                               detector_ray, hit_plane, source_coupling, source_geometry, source_point)
 
 pytestmark = pytest.mark.unit

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from roadgonio.model import RoadModel, RoadParams
+from roadgonio.surface.model import RoadModel, RoadParams
 
 pytestmark = pytest.mark.plugin
 
@@ -65,7 +65,7 @@ def rand_params(rng, h_max=20.0) -> dict:
 
 @pytest.fixture(scope="module")
 def plug(mi):
-    from roadgonio.render.plugins import register_plugins
+    from roadgonio.engines.mitsuba.plugins import register_plugins
     register_plugins()
     import drjit as dr
 

@@ -1,4 +1,4 @@
-"""The luminance-meter sensor plugin (plugins/lummeter.py): its rays against roadgonio.optics in
+"""The luminance-meter sensor plugin (plugins/lummeter.py): its rays against roadgonio.instrument.optics in
 float64 numpy, and its Lambert signal against a float64 quadrature of the same ray bundle."""
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from roadgonio.instrument import Instrument
-from roadgonio.model import NumpyOps, RoadModel
-from roadgonio.optics import (concentric_disc, detector_geometry, detector_ray, hit_plane, source_coupling,
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import NumpyOps, RoadModel
+from roadgonio.instrument.optics import (concentric_disc, detector_geometry, detector_ray, hit_plane, source_coupling,
                               source_geometry, source_point)
 
 pytestmark = pytest.mark.plugin
@@ -40,8 +40,8 @@ CASES = {"focused": {}, "angular": {"focus_m": "inf"}, "pinhole": {"pupil_radius
 
 @pytest.fixture(scope="module")
 def make_sensor(mi):
-    from roadgonio.render.plugins import register_plugins
-    from roadgonio.render.scene import detector_props, film_dict
+    from roadgonio.engines.mitsuba.plugins import register_plugins
+    from roadgonio.engines.mitsuba.scene import detector_props, film_dict
     register_plugins()
 
     def make(inst, res=8):
@@ -93,7 +93,7 @@ def lambert_signal_quadrature(inst, tan_eps, beta, scale=1):
     D_S^2/(pi R_S^2), the scene's units)."""
     geo = detector_geometry(inst)
     src = source_geometry(inst, tan_eps, beta)
-    from roadgonio.render.scene import source_radiance
+    from roadgonio.engines.mitsuba.scene import source_radiance
     L = source_radiance(inst)
     ppx, ppy, pw = _disc_nodes(QUAD["pupil"][0] * scale, QUAD["pupil"][1] * scale)
     fx, fy, fw = _disc_nodes(QUAD["field"][0] * scale, QUAD["field"][1] * scale)
@@ -115,8 +115,8 @@ def lambert_signal_quadrature(inst, tan_eps, beta, scale=1):
 @pytest.mark.parametrize("case,cell", [("focused", (0.0, 0.0)), ("focused", (12.0, 90.0)),
                                        ("angular", (12.0, 120.0)), ("off_focus", (2.0, 180.0))])
 def test_lambert_signal_matches_float64_quadrature(mi, case, cell):
-    from roadgonio.render.backend import pair_variance
-    from roadgonio.render.scene import build_scene
+    from roadgonio.engines.mitsuba.backend import pair_variance
+    from roadgonio.engines.mitsuba.scene import build_scene
     inst = instrument(**CASES[case])
     ref1 = lambert_signal_quadrature(inst, *cell)
     ref = lambert_signal_quadrature(inst, *cell, scale=2)

@@ -1,4 +1,4 @@
-"""The float64 quadrature backend of k_A (roadgonio.ka.quadrature): disc rules, error control,
+"""The float64 quadrature backend of k_A (roadgonio.engines.quadrature): disc rules, error control,
 Lambert = 1 for any instrument, the ideal limit, geometry and input errors."""
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from roadgonio.errors import GeometryError, InputError
-from roadgonio.instrument import Instrument, load_instrument
-from roadgonio.ka import ideal_ratio, make_backend
-from roadgonio.ka.quadrature import disc_rule
-from roadgonio.model import RoadModel, RoadParams
+from roadgonio.instrument.config import Instrument, load_instrument
+from roadgonio.engines import ideal_ratio, make_backend
+from roadgonio.engines.quadrature import disc_rule
+from roadgonio.surface.model import RoadModel, RoadParams
 
 #: An R3-like road model: least-squares fit of the power variant to the CIE R3 table (RMS 3.9 % of
 #: max r, max 12 %), made with scipy.optimize.least_squares on (mod.r - R3)/max(R3) over the 490
@@ -115,7 +115,7 @@ def test_k_a_matches_ratio_definition_at_small_apertures():
 
 def test_settings_and_presets():
     b = make_backend("quadrature", lab(), r3like(), accuracy="fast")
-    from roadgonio.ka.accuracy import ACCURACY
+    from roadgonio.engines.accuracy import ACCURACY
     assert b.settings()["rtol"] == ACCURACY["fast"]["quadrature"]["rtol"]
     assert b.name == "quadrature"
     assert make_backend("quadrature", lab(), r3like(), rtol=3e-5).settings()["rtol"] == 3e-5
@@ -166,7 +166,7 @@ def test_on_cell_callback_and_order():
 def test_field_sensitivity_profile_in_the_quadrature_and_monte_carlo():
     """With k_D falling to 0.3 at the field edge: Lambert still gives k_A = 1, the quadrature and the
     float64 Monte Carlo agree within 4 SE, and k_A moves away from the uniform-field value."""
-    from roadgonio.ka import make_backend
+    from roadgonio.engines import make_backend
     inst = load_instrument("portable")
     vign = inst.with_changes(detector={"field_edge_sensitivity": 0.3})
     lam = make_backend("quadrature", vign, RoadModel.lambert(), rtol=1e-8).compute([(4.0, 0.0)])[0]

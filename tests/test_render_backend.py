@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from roadgonio.errors import BackendError, GeometryError, InputError
-from roadgonio.instrument import Instrument
-from roadgonio.model import RoadModel, RoadParams
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel, RoadParams
 
 pytestmark = pytest.mark.plugin
 
@@ -33,7 +33,7 @@ CELLS = [(0.0, 0.0), (2.0, 0.0), (12.0, 0.0), (5.0, 45.0), (12.0, 180.0)]
 
 @pytest.mark.parametrize("name", ["lab", "portable"])
 def test_lambertian_sample_gives_one(name):
-    from roadgonio.render.backend import make_backend
+    from roadgonio.engines.mitsuba.backend import make_backend
     for model in (RoadModel.lambert(), RoadModel.lambert(0.3)):
         b = make_backend(preset(name), model, spp=4)
         for r in b.compute(CELLS):
@@ -42,7 +42,7 @@ def test_lambertian_sample_gives_one(name):
 
 
 def test_zero_apertures_give_one_and_shrinking_converges():
-    from roadgonio.render.backend import make_backend
+    from roadgonio.engines.mitsuba.backend import make_backend
     inst = preset("portable")
     cell = (2.0, 0.0)
     devs = []
@@ -61,7 +61,7 @@ def test_zero_apertures_give_one_and_shrinking_converges():
 def test_ideal_geometry_rendered_matches_float64(mi, cell):
     """Point source + single-ray detector: the road channel is f cos(eps) x (D_S^2 / D_S^2) and the
     Lambert channel cos(eps)/pi, compared with the float64 model."""
-    from roadgonio.render.scene import build_scene
+    from roadgonio.engines.mitsuba.scene import build_scene
     inst = preset("portable").with_changes(source={"radius_m": 0.0},
                                            detector={"pupil_radius_m": 0.0, "field_half_angle_deg": 0.0})
     rs = build_scene(inst, ROAD, resolution=4)
@@ -79,7 +79,7 @@ def test_standard_error_matches_scatter_over_seeds():
     the ratio scatter/SE is chi-distributed with 23 degrees of freedom (97.5 % below 1.28). The
     estimator is conservative by the spread of neighbouring stratum means (measured ratio 0.83-0.90
     with the default multijitter sampler at 64 x 64 pixels): it must never be much too small."""
-    from roadgonio.render.backend import make_backend
+    from roadgonio.engines.mitsuba.backend import make_backend
     b = make_backend(preset("portable"), ROAD, rel_se=1.0, spp=16, resolution=64)
     for cell in [(2.0, 0.0), (12.0, 0.0)]:
         ks, ses = [], []
@@ -93,7 +93,7 @@ def test_standard_error_matches_scatter_over_seeds():
 
 
 def test_adaptive_stopping_reaches_target():
-    from roadgonio.render.backend import make_backend
+    from roadgonio.engines.mitsuba.backend import make_backend
     b = make_backend(preset("portable"), ROAD, rel_se=2e-3)
     for r in b.compute([(12.0, 0.0), (0.0, 0.0)]):
         assert r.extra["converged"] and r.se / r.k_a <= 2e-3
@@ -106,7 +106,7 @@ def test_adaptive_stopping_reaches_target():
 # -- errors, not wrong numbers -----------------------------------------------------------------
 
 def test_footprint_off_rectangle_is_an_error():
-    from roadgonio.render.backend import make_backend
+    from roadgonio.engines.mitsuba.backend import make_backend
     inst = preset("portable").with_changes(sample={"size_x_m": 0.3})
     with pytest.raises(GeometryError, match="footprint leaves the sample"):
         make_backend(inst, ROAD)
@@ -115,8 +115,8 @@ def test_footprint_off_rectangle_is_an_error():
 def test_footprint_off_mesh_is_an_error_at_render_time(tmp_path):
     import trimesh
 
-    from roadgonio.render.backend import make_backend
-    from roadgonio.render.scene import rectangle_trimesh
+    from roadgonio.engines.mitsuba.backend import make_backend
+    from roadgonio.engines.mitsuba.scene import rectangle_trimesh
     small = rectangle_trimesh(0.3, 0.1)
     small.export(tmp_path / "small.ply")
     big = rectangle_trimesh(4.0, 1.0)
@@ -136,7 +136,7 @@ def test_footprint_off_mesh_is_an_error_at_render_time(tmp_path):
 
 
 def test_source_below_horizon_is_an_error():
-    from roadgonio.render.backend import make_backend
+    from roadgonio.engines.mitsuba.backend import make_backend
     inst = preset("portable").with_changes(source={"radius_m": 0.09})
     b = make_backend(inst, ROAD)
     with pytest.raises(GeometryError, match="below the horizon"):
@@ -144,14 +144,14 @@ def test_source_below_horizon_is_an_error():
 
 
 def test_detector_that_does_not_see_the_sample_is_an_error():
-    from roadgonio.render.backend import make_backend
+    from roadgonio.engines.mitsuba.backend import make_backend
     inst = preset("portable").with_changes(observation={"alpha_deg": 0.2}, detector={"pupil_radius_m": 0.01})
     with pytest.raises(GeometryError):
         make_backend(inst, ROAD)
 
 
 def test_xml_scene_without_parts_is_an_error(tmp_path):
-    from roadgonio.render.backend import make_backend
+    from roadgonio.engines.mitsuba.backend import make_backend
     (tmp_path / "empty.xml").write_text('<scene version="3.0.0"><shape type="rectangle" id="floor"/></scene>')
     d = preset("portable").to_dict()
     d["scene"] = {"xml": "empty.xml"}
@@ -160,7 +160,7 @@ def test_xml_scene_without_parts_is_an_error(tmp_path):
 
 
 def test_llvm_older_than_16_is_refused():
-    from roadgonio.render import check_llvm_version
+    from roadgonio.engines.mitsuba import check_llvm_version
     with pytest.raises(BackendError, match="LLVM >= 16"):
         check_llvm_version((15, 0, 6))
     check_llvm_version((16, 0, 0))
@@ -168,7 +168,7 @@ def test_llvm_older_than_16_is_refused():
 
 
 def test_unknown_setting_is_an_input_error():
-    from roadgonio.render.backend import make_backend
+    from roadgonio.engines.mitsuba.backend import make_backend
     with pytest.raises(InputError, match="unknown setting"):
         make_backend(preset("portable"), ROAD, samples_per_pixel=3)
 
@@ -176,7 +176,7 @@ def test_unknown_setting_is_an_input_error():
 def test_xml_holder_scene_shades_the_footprint():
     """scenes/holder.toml + holder.xml: a Lambertian sample still gives 1; the back wall changes
     k_A of the R3-like model at grazing forward light and leaves cells lit from the side alone."""
-    from roadgonio.render.backend import make_backend
+    from roadgonio.engines.mitsuba.backend import make_backend
     holder = Instrument.load(SCENES / "holder.toml")
     assert abs(make_backend(holder, RoadModel.lambert(), spp=4).compute([(12.0, 10.0)])[0].k_a - 1.0) <= F32_RATIO_TOL
     b = make_backend(holder, ROAD, rel_se=1e-3)
@@ -190,8 +190,8 @@ def test_xml_holder_scene_shades_the_footprint():
 def test_field_sensitivity_profile_matches_the_quadrature():
     """The renderer takes k_D from the same optics.detector_ray: with the field edge at 0.3 it agrees
     with the float64 quadrature within 4 SE plus the float32 floor."""
-    from roadgonio.ka import make_backend as make
-    from roadgonio.ka.validate import FLOAT32_FLOOR
+    from roadgonio.engines import make_backend as make
+    from roadgonio.engines.validate import FLOAT32_FLOOR
     inst = preset("portable").with_changes(detector={"field_edge_sensitivity": 0.3})
     cells = [(4.0, 0.0), (12.0, 2.0)]
     r = make("mitsuba", inst, ROAD, rel_se=5e-4, seed=2).compute(cells)

@@ -1,4 +1,4 @@
-"""r-tables (roadgonio.rtable): the bundled CIE tables against the published S1 / Q0, CSV and
+"""r-tables (roadgonio.surface.rtable): the bundled CIE tables against the published S1 / Q0, CSV and
 RTB round trips, and bad input."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import pytest
 
 from roadgonio.errors import InputError
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
-from roadgonio.rtable import (BUNDLED, PUBLISHED_Q0, PUBLISHED_S1, RTable, bundled_table, load_table,
+from roadgonio.surface.rtable import (BUNDLED, PUBLISHED_Q0, PUBLISHED_S1, RTable, bundled_table, load_table,
                               read_table)
 
 pytestmark = pytest.mark.unit

@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from roadgonio import optics
+from roadgonio.instrument import optics
 from roadgonio.errors import GeometryError
-from roadgonio.ka import make_backend
-from roadgonio.model import RoadModel, RoadParams
+from roadgonio.engines import make_backend
+from roadgonio.surface.model import RoadModel, RoadParams
 
 from test_quadrature import R3LIKE, lab, r3like
 
@@ -170,8 +170,8 @@ def test_degenerate_and_limited_instruments_agree_with_mc(inst):
 @pytest.mark.plugin
 def test_mitsuba_float32_against_quadrature(mi):
     """The float32 renderer against float64 quadrature: within 4 SE plus the measured float32 floor."""
-    from roadgonio.ka.validate import FLOAT32_FLOOR, compare
-    pytest.importorskip("roadgonio.render.backend")
+    from roadgonio.engines.validate import FLOAT32_FLOOR, compare
+    pytest.importorskip("roadgonio.engines.mitsuba.backend")
     model = r3like()
     inst = lab()
     quad = make_backend("quadrature", inst, model, rtol=1e-6)

@@ -13,10 +13,10 @@ from scipy.stats import norm
 
 from roadgonio.errors import InputError
 from roadgonio.geometry import w_detector, w_source
-from roadgonio.instrument import load_instrument
-from roadgonio.ka import CellResult
-from roadgonio.model import RoadModel, RoadParams
-from roadgonio.rtable import bundled_table
+from roadgonio.instrument.config import load_instrument
+from roadgonio.engines import CellResult
+from roadgonio.surface.model import RoadModel, RoadParams
+from roadgonio.surface.rtable import bundled_table
 from roadgonio.uncertainty import (CellSet, MeasurementModel, _rotations, coverage_indices,
                                    numerical_tolerance, parse_sigma_spec, q0_weights, run_uncertainty,
                                    summarize, write_results)
@@ -313,7 +313,7 @@ def test_outputs_written(tmp_path):
     assert d["provenance"]["sigma"]["eps_deg"]["distribution"] == "rectangular"
     assert d["surrogate"]["design"] == "ccd" and d["surrogate"]["design_points"] == 27   # the default design
     assert d["surrogate"]["exact_evaluations"] == (27 + 1) * len(res.cells)
-    from roadgonio.rtable import read_table
+    from roadgonio.surface.rtable import read_table
     assert read_table(tmp_path / "no_aperture_u.csv").mask.sum() == len(res.cells)
 
 
@@ -355,7 +355,7 @@ def test_aperture_case_with_the_mitsuba_backend(mi):
     """The whole aperture path with the renderer: at zero error the aperture case is the no-aperture
     table times k_A, and k_A there agrees with an independent render (another seed) within their
     standard errors plus the surrogate's measured error; the surrogate stays below u(r)."""
-    from roadgonio.ka import make_backend
+    from roadgonio.engines import make_backend
     inst = load_instrument("portable")
     res = run_uncertainty(MODEL, inst, parse_sigma_spec(SPEC), trials=4000, seed=3, backend="mitsuba",
                           backend_settings={"rel_se": 1e-3, "seed": 11}, progress=False, n_validation=3)
@@ -394,7 +394,7 @@ def _kink_error():
 def test_surrogate_folds_the_azimuth_on_the_mirror_plane(monkeypatch):
     assert _kink_error() < KINK_TOL
     # without the fold the same cells are far off: the check can fail
-    import roadgonio.surrogate as sg
+    import roadgonio.uncertainty.surrogate as sg
     plain_fit = sg.KaSurrogate.fit.__func__
     monkeypatch.setattr(sg.KaSurrogate, "fit",
                         classmethod(lambda cls, *a, fold=None, **k: plain_fit(cls, *a, fold=None, **k)))

@@ -9,8 +9,8 @@ import math
 import pytest
 
 from roadgonio.cli import main
-from roadgonio.ka import CellResult
-from roadgonio.ka import validate as V
+from roadgonio.engines import CellResult
+from roadgonio.engines import validate as V
 
 from test_quadrature import r3like
 

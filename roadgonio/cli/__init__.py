@@ -12,8 +12,8 @@ import importlib
 import pkgutil
 import sys
 
-from .. import __version__
-from ..errors import RoadgonioError
+from roadgonio import __version__
+from roadgonio.errors import RoadgonioError
 
 #: Order in which commands are listed in --help (others follow alphabetically).
 ORDER = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct"]

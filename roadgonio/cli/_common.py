@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 
-from ..errors import InputError
+from roadgonio.errors import InputError
 
 
 def rel_se_setting(backend: str, value: float) -> dict[str, float]:
@@ -29,8 +29,8 @@ def add_sample_argument(p, name: str = "--sample", what: str = "") -> None:
 
 def load_inputs(args):
     """(instrument, model) from --instrument and --sample (and --model-variant where offered)."""
-    from ..instrument import load_instrument
-    from ..sample import resolve_sample
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.sample import resolve_sample
     instrument = load_instrument(args.instrument)
     model = resolve_sample(args.sample, getattr(args, "model_variant", None))
     return instrument, model

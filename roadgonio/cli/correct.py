@@ -4,9 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..errors import InputError
-from ..model import VARIANTS
-from ._common import add_instrument_argument, rel_se_setting
+from roadgonio.errors import InputError
+from roadgonio.surface.model import VARIANTS
+from roadgonio.cli._common import add_instrument_argument, rel_se_setting
 
 
 def register(sub) -> None:
@@ -38,11 +38,11 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..correct import correct_table, nearest_standard_tables, write_correction
-    from ..fileio import to_json
-    from ..instrument import load_instrument
-    from ..rtable import read_table
-    from ..uncertainty import resolve_sample_spec
+    from roadgonio.correction import correct_table, nearest_standard_tables, write_correction
+    from roadgonio.fileio import to_json
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.rtable import read_table
+    from roadgonio.uncertainty import resolve_sample_spec
 
     try:
         measured = read_table(args.measured)

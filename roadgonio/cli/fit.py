@@ -7,8 +7,8 @@ import json
 import sys
 from pathlib import Path
 
-from ..errors import InputError
-from ..model import DEFAULT_VARIANT, PARAM_NAMES, VARIANT_PARAMS, VARIANTS
+from roadgonio.errors import InputError
+from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANT_PARAMS, VARIANTS
 
 
 def register(sub) -> None:
@@ -62,9 +62,9 @@ def residuals_csv(result) -> str:
 
 
 def run(args) -> int:
-    from ..fileio import atomic_write_text
-    from ..fit import fit_table
-    from ..rtable import load_table
+    from roadgonio.fileio import atomic_write_text
+    from roadgonio.surface.fit import fit_table
+    from roadgonio.surface.rtable import load_table
 
     table = load_table(args.table)
     fixed = _parse_fix(args.fix)
@@ -95,7 +95,7 @@ def run(args) -> int:
     result.model.save(out / "model.json")
     atomic_write_text(out / "residuals.csv", residuals_csv(result))
     if not args.no_plot:
-        from ..fitplot import plot_fit
+        from roadgonio.surface.fitplot import plot_fit
         plot_fit(result, out / "fit.png")
     if args.json:
         print(json.dumps(result.to_json_dict(), indent=2))

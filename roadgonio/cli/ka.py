@@ -7,10 +7,10 @@ import sys
 import time
 from pathlib import Path
 
-from ..errors import InputError
-from ..ka.accuracy import PRESETS
-from ..model import VARIANTS
-from ._common import (
+from roadgonio.errors import InputError
+from roadgonio.engines.accuracy import PRESETS
+from roadgonio.surface.model import VARIANTS
+from roadgonio.cli._common import (
     add_instrument_argument,
     add_sample_argument,
     load_inputs,
@@ -65,8 +65,8 @@ def backend_settings(args) -> dict:
 
 
 def run(args) -> int:
-    from ..ka import full_grid_cells, make_backend
-    from ..ka.table import run_cells, write_outputs
+    from roadgonio.engines import full_grid_cells, make_backend
+    from roadgonio.engines.runner import run_cells, write_outputs
     single = args.tan_eps is not None or args.beta is not None
     if single and (args.tan_eps is None or args.beta is None):
         raise InputError("give both --tan-eps and --beta for one cell (or neither for the whole table)",
@@ -94,7 +94,7 @@ def run(args) -> int:
         return 0
 
     if args.cells == "table":
-        from ..rtable import load_table
+        from roadgonio.surface.rtable import load_table
         try:
             table = load_table(args.sample)
         except InputError:

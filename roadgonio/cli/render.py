@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import math
 
-from ..errors import InputError
-from ._common import add_instrument_argument, add_sample_argument, load_inputs
+from roadgonio.errors import InputError
+from roadgonio.cli._common import add_instrument_argument, add_sample_argument, load_inputs
 
 
 def register(sub) -> None:
@@ -38,7 +38,7 @@ def run(args) -> int:
         raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {args.spp}",
                          field="--spp")
     instrument, model = load_inputs(args)
-    from ..render.images import render_cell_images
+    from roadgonio.engines.mitsuba.images import render_cell_images
     info = render_cell_images(instrument, model, args.tan_eps, args.beta, args.out, resolution=args.resolution,
                               spp=args.spp, seed=args.seed, variant=args.variant, sample_name=args.sample)
     ka = info["k_a_estimate"]

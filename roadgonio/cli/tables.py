@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 
-from ..rtable import BUNDLED, PUBLISHED_Q0, PUBLISHED_S1, bundled_table, load_table
+from roadgonio.surface.rtable import BUNDLED, PUBLISHED_Q0, PUBLISHED_S1, bundled_table, load_table
 
 
 def register(sub) -> None:

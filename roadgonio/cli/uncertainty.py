@@ -5,9 +5,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from ..errors import InputError
-from ..model import VARIANTS
-from ._common import add_instrument_argument, add_sample_argument, rel_se_setting
+from roadgonio.errors import InputError
+from roadgonio.surface.model import VARIANTS
+from roadgonio.cli._common import add_instrument_argument, add_sample_argument, rel_se_setting
 
 
 def _positive_int(text: str) -> int:
@@ -22,7 +22,7 @@ def _positive_int(text: str) -> int:
 
 
 def register(sub) -> None:
-    from ..uncertainty import INPUT_HELP, SPEC_HELP
+    from roadgonio.uncertainty import INPUT_HELP, SPEC_HELP
     keys = "; ".join(f"{k}: {v}" for k, v in INPUT_HELP.items())
     p = sub.add_parser(
         "uncertainty", help="Monte Carlo (GUM Supplement 1) uncertainty of a measured r-table from the "
@@ -83,9 +83,9 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..fileio import to_json
-    from ..instrument import load_instrument
-    from ..uncertainty import (
+    from roadgonio.fileio import to_json
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.uncertainty import (
         parse_sigma_spec,
         resolve_sample_spec,
         result_dict,

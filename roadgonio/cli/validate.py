@@ -5,8 +5,8 @@ import math
 import sys
 from pathlib import Path
 
-from ..errors import InputError
-from ._common import add_instrument_argument, add_sample_argument, load_inputs
+from roadgonio.errors import InputError
+from roadgonio.cli._common import add_instrument_argument, add_sample_argument, load_inputs
 
 
 def register(sub) -> None:
@@ -37,7 +37,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from ..ka.validate import parse_cells, validate, write_outputs
+    from roadgonio.engines.validate import parse_cells, validate, write_outputs
     for name, v in (("--rel-se", args.rel_se), ("--rtol", args.rtol)):
         if not (math.isfinite(v) and 0 < v < 1):
             raise InputError(f"expected a relative value in (0, 1), got {v}", field=name)

@@ -8,8 +8,8 @@ detector's entrance pupil (disc), its field stop (disc) and the source's exit ap
 
 with the detector ray of the pair (pupil point p, field point q), its etendue weight w, the hit
 point x on the sample plane, w_o = minus the ray direction, and the source coupling G (all from
-:mod:`roadgonio.optics`, the one definition of the instrument's ray geometry). The BRDF is the one
-definition in :mod:`roadgonio.model`. k_A follows DESIGN.md section 5::
+:mod:`roadgonio.instrument.optics`, the one definition of the instrument's ray geometry). The BRDF is the one
+definition in :mod:`roadgonio.surface.model`. k_A follows DESIGN.md section 5::
 
     k_A = ( S[f_road] / S[1/pi] ) / ( pi f_road(nominal) )
 
@@ -33,7 +33,7 @@ edge, g's kink at theta_l) converges only algebraically; refinement stops at ``m
 integrand evaluations per estimate and the cell reports the error it achieved with
 ``extra["converged"] = False``.
 
-Only flat rectangular samples: the footprint check (:func:`roadgonio.optics.check_detector`) proves
+Only flat rectangular samples: the footprint check (:func:`roadgonio.instrument.optics.check_detector`) proves
 that every detected ray hits the sample, so the integral runs over the plane z = 0. A mesh sample
 needs the Mitsuba backend.
 """
@@ -46,11 +46,11 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import GeometryError, InputError
-from ..instrument import Instrument
-from ..model import NumpyOps, RoadModel, road_brdf
-from .. import optics
-from . import CellByCellBackend, CellResult, ideal_ratio
+from roadgonio.errors import GeometryError, InputError
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.instrument import optics
+from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio
 
 #: Gauss-Legendre orders of one direction of a disc rule, by level.
 ORDERS = (1, 2, 3, 4, 6, 8, 11, 16, 22, 32, 45, 64, 90, 128, 180, 256)
@@ -359,7 +359,7 @@ class QuadratureBackend(CellByCellBackend):
 def make_backend(instrument: Instrument, model: RoadModel, *, rtol: float = DEFAULT_RTOL,
                  max_evals: int = MAX_EVALS, start_level: int = 1,
                  focus: bool = True, **unknown) -> QuadratureBackend:
-    """The quadrature backend (``roadgonio.ka.make_backend("quadrature", ...)``).
+    """The quadrature backend (``roadgonio.engines.make_backend("quadrature", ...)``).
 
     Parameters
     ----------

@@ -1,7 +1,7 @@
 """Accuracy presets of the k_A backends, placed on the measured speed-accuracy frontier
 (bench/bench_accuracy.py, bench/results/accuracy.csv and pareto.png).
 
-``ACCURACY[preset][backend]`` holds the settings that ``roadgonio.ka.make_backend(name, ...,
+``ACCURACY[preset][backend]`` holds the settings that ``roadgonio.engines.make_backend(name, ...,
 accuracy=preset)`` passes to the backend factory (explicit settings override them): for the
 quadrature backend a relative tolerance ``rtol``, for the Monte Carlo backends (``mitsuba``,
 ``numpy-mc``) a target relative standard error ``rel_se`` and the size of the first pass.
@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ..errors import InputError
+from roadgonio.errors import InputError
 
 #: The Monte Carlo presets also set the size of the first pass (Mitsuba: resolution^2 x spp samples;
 #: numpy-mc: batch x 8): with the default pass of 64^2 x 16 every target down to ~1e-4 is already met

@@ -12,7 +12,7 @@ import glob
 import os
 import re
 
-from ..errors import BackendError
+from roadgonio.errors import BackendError
 
 #: Default variant on a CPU machine; a CUDA variant is chosen when asked for and available.
 DEFAULT_VARIANT = "llvm_ad_rgb"

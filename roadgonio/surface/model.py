@@ -31,7 +31,7 @@ Variants:
   ``L(beta) = -ln x_s``, ``x_s = cos^2(beta/2) = (1 + cos beta)/2``.
   With ``n_beta = 1`` (its default) this is ``k_exp f^p x_s^W``. It uses one parameter more than
   the paper's model, ``n_beta``, the exponent of the beta profile; the other variants ignore it.
-  Why: the paper's model (fitted by roadgonio.fit) misses the paper's own target (max 9 %, RMS
+  Why: the paper's model (fitted by roadgonio.surface.fit) misses the paper's own target (max 9 %, RMS
   2.6 % of max r) on R3 and R4. Where its residual sits (``roadgonio fit R3 --variant power``
   prints the worst cells; residuals.csv / fit.png hold the map): ~45 % of the squared residual in
   the peak columns beta = 0...10 deg at tan eps >= 1.5 (signs alternating from column to column,
@@ -66,8 +66,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .errors import InputError
-from .geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
+from roadgonio.errors import InputError
+from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
 
 #: Observation polar angle of the fitted tables, theta_r* (paper, Figure 3).
 THETA_R_STAR_DEG = 89.0
@@ -95,7 +95,7 @@ PARAM_BOUNDS: dict[str, tuple[float, float]] = {
 
 class NumpyOps:
     """The array namespace of the model, float64 numpy. The Dr.Jit namespace in
-    :mod:`roadgonio.render` provides the same names."""
+    :mod:`roadgonio.engines.mitsuba` provides the same names."""
 
     sqrt = staticmethod(np.sqrt)
     sin = staticmethod(np.sin)
@@ -382,5 +382,5 @@ class RoadModel:
         return cls.from_json_dict(d, path=path)
 
     def save(self, path: str | Path) -> Path:
-        from .fileio import atomic_write_json
+        from roadgonio.fileio import atomic_write_json
         return atomic_write_json(path, self.to_json_dict())

@@ -11,7 +11,7 @@ Parts of a scene, by id (the same ids for a scene built from a TOML instrument a
 * ``"sample"``: the sample shape, carrying the road BSDF (``roadbsdf``). From a TOML instrument:
   a trimesh rectangle ``size_x_m`` x ``size_y_m`` centred on the origin, or the instrument's mesh
   file loaded with trimesh, converted to a ``mi.Mesh``. Its faces must face +z (one-sided).
-* ``"detector"``: the luminance meter (``lummeter`` sensor, :mod:`roadgonio.render.plugins.lummeter`).
+* ``"detector"``: the luminance meter (``lummeter`` sensor, :mod:`roadgonio.engines.mitsuba.plugins.lummeter`).
 
 The integrator is always ``direct`` with ``emitter_samples = 1``, ``bsdf_samples = 0`` (emitter
 sampling only: the small source disc is found by every sample; mitsuba-cpu notes, section 7).
@@ -43,11 +43,11 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import BackendError, GeometryError, InputError
-from ..instrument import Instrument
-from ..model import RoadModel
-from ..optics import check_detector, check_source, detector_geometry, footprint_boundary, source_geometry
-from . import set_variant
+from roadgonio.errors import BackendError, GeometryError, InputError
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel
+from roadgonio.instrument.optics import check_detector, check_source, detector_geometry, footprint_boundary, source_geometry
+from roadgonio.engines.mitsuba import set_variant
 
 #: Ids of the scene parts (TOML-built and XML scenes alike).
 SOURCE_ID, SAMPLE_ID, DETECTOR_ID = "source", "sample", "detector"
@@ -228,9 +228,9 @@ class RoadScene:
         a1, a2 = rng.random(n_random) * 2 * np.pi, rng.random(n_random) * 2 * np.pi
         pu = np.concatenate([pu, np.stack([r1 * np.cos(a1), r1 * np.sin(a1)], -1)])
         fu = np.concatenate([fu, np.stack([r2 * np.cos(a2), r2 * np.sin(a2)], -1)])
-        from ..optics import detector_ray
-        from .ops import DrJitOps
-        from .plugins.lummeter import jit_geometry
+        from roadgonio.instrument.optics import detector_ray
+        from roadgonio.engines.mitsuba.ops import DrJitOps
+        from roadgonio.engines.mitsuba.plugins.lummeter import jit_geometry
         geo = jit_geometry(detector_geometry(self.instrument))
         px, py = mi.Float(pu[:, 0].astype(np.float32)), mi.Float(pu[:, 1].astype(np.float32))
         fx, fy = mi.Float(fu[:, 0].astype(np.float32)), mi.Float(fu[:, 1].astype(np.float32))
@@ -269,7 +269,7 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
     """Build the scene of ``instrument`` with a sample of BSDF ``model`` (XML scene if the
     instrument has ``[scene] xml``). Checks the detector footprint (errors, not wrong numbers)."""
     mi = set_variant(variant)
-    from .plugins import register_plugins
+    from roadgonio.engines.mitsuba.plugins import register_plugins
     register_plugins()
     if check:
         if instrument.sample.mesh is None:
@@ -391,7 +391,7 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
         raise InputError("the XML scene lacks " + "; ".join(missing), path=path)
     sample = shapes[SAMPLE_ID]
     sensor = sensors[DETECTOR_ID]
-    from .plugins import register_plugins
+    from roadgonio.engines.mitsuba.plugins import register_plugins
     classes = register_plugins()
     bsdf = sample.bsdf()
     if not isinstance(bsdf, classes["roadbsdf"]):

@@ -1,13 +1,13 @@
 """The Mitsuba k_A backend (``--backend mitsuba``): DESIGN.md section 5, paper eq. 2-3.
 
 For each cell (tan eps, beta) the source is moved in the once-built scene
-(:mod:`roadgonio.render.scene`) and passes of a fixed-size render are made. The road BSDF runs
+(:mod:`roadgonio.engines.mitsuba.scene`) and passes of a fixed-size render are made. The road BSDF runs
 with its channel trick, so every pixel carries S[f_road] (channel 0) and S[f_lambert] (channel 1)
 from the **same rays**. Statistics are float64 numpy:
 
     ratio = <R> / <G>,   k_A = ratio / ideal_ratio(model, instrument, tan, beta)
 
-with ``ideal_ratio`` = pi f_road(nominal) in float64 (:func:`roadgonio.ka.ideal_ratio`), never
+with ``ideal_ratio`` = pi f_road(nominal) in float64 (:func:`roadgonio.engines.ideal_ratio`), never
 rendered. Passes with different spp are pooled weighted by their sample counts.
 
 Standard error from a single pass: the pixels stratify the field of view (the film is
@@ -38,11 +38,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..errors import GeometryError, InputError
-from ..instrument import Instrument
-from ..ka import CellByCellBackend, CellResult, ideal_ratio
-from ..model import RoadModel
-from .scene import LAMBERT, ROAD, build_scene
+from roadgonio.errors import GeometryError, InputError
+from roadgonio.instrument.config import Instrument
+from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio
+from roadgonio.surface.model import RoadModel
+from roadgonio.engines.mitsuba.scene import LAMBERT, ROAD, build_scene
 
 NAME = "mitsuba"
 #: Samplers that stratify the samples of each pixel and want a square sample count.
@@ -108,7 +108,7 @@ class MitsubaBackend(CellByCellBackend):
         import drjit as dr
         import mitsuba as mi
 
-        from . import llvm_version
+        from roadgonio.engines.mitsuba import llvm_version
         s = {"backend": NAME, "variant": self.variant, "rel_se": self.rel_se, "seed": self.seed,
              "spp": self.spp, "resolution": self.resolution, "min_passes": self.min_passes,
              "max_samples": self.max_samples, "max_spp": self.max_spp, "sampler": self.sampler,

@@ -4,11 +4,11 @@ Method (variable projection):
 
 * The table cells are the 1-degree observation geometry (alpha = 1 deg, theta_r = 89 deg =
   theta_r*); the model's reduced luminance coefficient is ``r = f_r cos^3(eps)`` (DESIGN.md
-  section 2), evaluated through :func:`roadgonio.model.road_brdf` - the one definition of the model.
+  section 2), evaluated through :func:`roadgonio.surface.model.road_brdf` - the one definition of the model.
 * The four coefficients ``k_diff, k_phong, k_retro, k_exp`` enter linearly. For given shape
   parameters ``n_phong, n_retro, p, h, mu`` they are the non-negative least-squares solution
   (:func:`scipy.optimize.nnls`) of the tabulated cells. Blank cells are skipped.
-* Variant-only shape parameters (:data:`roadgonio.model.VARIANT_PARAMS`, e.g. ``n_beta`` of the
+* Variant-only shape parameters (:data:`roadgonio.surface.model.VARIANT_PARAMS`, e.g. ``n_beta`` of the
   ``"smooth"`` extension) are searched with the others for that variant only; for the paper's
   variants they are never fitted (they keep their defaults, which those variants ignore).
 * The shape parameters are searched globally (:func:`scipy.optimize.differential_evolution`,
@@ -23,7 +23,7 @@ Method (variable projection):
   R1, about: weight 0.3 -> RMS 1.49 %, max 4.0 %; 0.1 -> 1.47 %, 4.3 %; 0 -> 1.45 %, 5.3 %).
   The reported statistics are exactly the paper's: ``max |r_model - r_table|`` and the RMS
   deviation over the tabulated cells, both in % of ``max r`` of the table, evaluated with the
-  final :class:`~roadgonio.model.RoadModel`.
+  final :class:`~roadgonio.surface.model.RoadModel`.
 * The grazing attenuation g (``g_a, g_b, g_c, g_t, theta_l_deg``) is a user input, never fitted:
   it never changes a 1-degree table value (DESIGN.md section 3). Pass it in ``fixed``.
 
@@ -40,18 +40,18 @@ from typing import Any, Callable, Mapping
 import numpy as np
 from scipy.optimize import differential_evolution, minimize, nnls
 
-from . import __version__
-from .errors import InputError
-from .geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
-from .model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS, NumpyOps,
+from roadgonio import __version__
+from roadgonio.errors import InputError
+from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
+from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS, NumpyOps,
                     RoadModel, RoadParams, road_brdf)
-from .rtable import RTable
+from roadgonio.surface.rtable import RTable
 
 #: The coefficients that enter the model linearly (solved by NNLS).
 LINEAR = ("k_diff", "k_phong", "k_retro", "k_exp")
 #: The shape parameters searched globally (every variant) ...
 NONLINEAR = ("n_phong", "n_retro", "p", "h", "mu")
-#: ... plus the variant's own ones (:data:`roadgonio.model.VARIANT_PARAMS`), e.g. n_beta of "smooth".
+#: ... plus the variant's own ones (:data:`roadgonio.surface.model.VARIANT_PARAMS`), e.g. n_beta of "smooth".
 #: Grazing-attenuation parameters: user inputs, never fitted.
 G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
 #: Weight of the smooth maximum (8-norm) in the objective; 0 = plain least squares ...
@@ -63,7 +63,7 @@ SEARCH_BOX: dict[str, tuple[float, float]] = {
     "n_phong": (1.0, 1e5), "n_retro": (1.0, 1e5), "p": (0.0, 20.0), "h": (-1e3, 1e3),
     "mu": (1e-6, 1e3), "n_beta": (0.5, 2.0),
 }
-#: Version of the fitting procedure (part of the cache key of :mod:`roadgonio.sample`).
+#: Version of the fitting procedure (part of the cache key of :mod:`roadgonio.surface.sample`).
 FIT_METHOD_VERSION = 2
 
 
@@ -297,7 +297,7 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
     table:
         The r-table (r in sr^-1, NaN = blank).
     variant:
-        Model variant (:data:`roadgonio.model.VARIANTS`); ``"power"`` is the paper's model.
+        Model variant (:data:`roadgonio.surface.model.VARIANTS`); ``"power"`` is the paper's model.
     seed:
         Seed of the global search (results are reproducible for a given seed).
     fixed:

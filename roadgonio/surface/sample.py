@@ -4,7 +4,7 @@ A sample is one of:
 
 * ``"lambert"``: a perfect diffuser (:meth:`RoadModel.lambert`);
 * a bundled table name (``R1`` ... ``R4``, ``C1``, ``C2``) or a table file (``.csv`` / ``.rtb``):
-  the table is fitted on the fly (:func:`roadgonio.fit.fit_table`) and the fit is cached;
+  the table is fitted on the fly (:func:`roadgonio.surface.fit.fit_table`) and the fit is cached;
 * a model file (``.json``, as written by ``roadgonio fit``; loaded with :meth:`RoadModel.load`).
 
 Cache: ``$ROADGONIO_CACHE`` (default ``~/.cache/roadgonio``), one JSON model file per fit, keyed
@@ -20,10 +20,10 @@ import os
 import sys
 from pathlib import Path
 
-from . import __version__
-from .errors import InputError
-from .model import DEFAULT_VARIANT, VARIANTS, RoadModel
-from .rtable import BUNDLED, RTable, load_table
+from roadgonio import __version__
+from roadgonio.errors import InputError
+from roadgonio.surface.model import DEFAULT_VARIANT, VARIANTS, RoadModel
+from roadgonio.surface.rtable import BUNDLED, RTable, load_table
 
 TABLE_SUFFIXES = (".csv", ".rtb")
 EXPECTED = (f"'lambert', a bundled table name ({', '.join(BUNDLED)}), a table file (.csv/.rtb) "
@@ -37,7 +37,7 @@ def cache_dir() -> Path:
 
 
 def cache_key(table: RTable, variant: str) -> str:
-    from .fit import FIT_METHOD_VERSION, table_hash
+    from roadgonio.surface.fit import FIT_METHOD_VERSION, table_hash
     h = hashlib.sha256()
     h.update(f"{table_hash(table)}|{variant}|roadgonio {__version__}|fit {FIT_METHOD_VERSION}".encode())
     return h.hexdigest()
@@ -62,7 +62,7 @@ def _load_cached(path: Path, key: str) -> RoadModel | None:
 
 def fitted_model(table: RTable, variant: str | None = None, *, use_cache: bool = True) -> RoadModel:
     """The fitted model of ``table`` (cached on disk)."""
-    from .fit import fit_table
+    from roadgonio.surface.fit import fit_table
     variant = variant or DEFAULT_VARIANT
     if variant not in VARIANTS:
         raise InputError(f"unknown model variant {variant!r}; expected one of {', '.join(VARIANTS)}",
@@ -79,7 +79,7 @@ def fitted_model(table: RTable, variant: str | None = None, *, use_cache: bool =
         d = model.to_json_dict()
         d["cache_key"] = key
         try:
-            from .fileio import atomic_write_json
+            from roadgonio.fileio import atomic_write_json
             atomic_write_json(path, d)
         except OSError as err:  # a read-only cache must not stop the work
             print(f"roadgonio: warning: cannot write the fit cache {path} ({err.strerror})", file=sys.stderr)

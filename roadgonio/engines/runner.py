@@ -26,13 +26,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..errors import InputError
-from ..fileio import atomic_write_json, atomic_write_text, to_json
-from ..geometry import BETA_GRID_DEG, TAN_EPS_GRID
-from ..instrument import Instrument
-from ..model import RoadModel
-from ..rtable import RTable
-from . import CellResult, KaBackend
+from roadgonio.errors import InputError
+from roadgonio.fileio import atomic_write_json, atomic_write_text, to_json
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel
+from roadgonio.surface.rtable import RTable
+from roadgonio.engines import CellResult, KaBackend
 
 JOURNAL = "ka_cells.jsonl"
 
@@ -42,7 +42,7 @@ def versions() -> dict[str, str]:
     import numpy
     import scipy
 
-    from .. import __version__
+    from roadgonio import __version__
     v = {"roadgonio": __version__, "python": platform.python_version(), "numpy": numpy.__version__,
          "scipy": scipy.__version__, "platform": platform.platform()}
     for mod in ("mitsuba", "drjit"):
@@ -51,7 +51,7 @@ def versions() -> dict[str, str]:
     if "mitsuba" in sys.modules:
         try:
             v["mitsuba_variant"] = sys.modules["mitsuba"].variant()
-            from ..render import llvm_version
+            from roadgonio.engines.mitsuba import llvm_version
             lv = llvm_version()
             if lv:
                 v["llvm"] = ".".join(map(str, lv))
@@ -207,7 +207,7 @@ def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, mo
     }
     atomic_write_json(out_dir / "ka.json", meta)
     if plot:
-        from ..plots import table_map
+        from roadgonio.plots import table_map
         table_map(ka, out_dir / "ka.png", title=f"Aperture-effect factor k_A: {instrument.name} x {sample_spec}",
                   subtitle=f"{backend.name} backend, {summary['cells']} cells, worst rel. SE "
                            f"{summary['worst_rel_se']:.1e}" if summary["worst_rel_se"] is not None else "",

@@ -1,5 +1,5 @@
 """Ray geometry of the instrument (DESIGN.md section 4; the integration domains of paper eq. 3),
-written once over an array namespace ``xp`` like :mod:`roadgonio.model`, so the Mitsuba sensor
+written once over an array namespace ``xp`` like :mod:`roadgonio.surface.model`, so the Mitsuba sensor
 plugin, the numpy Monte Carlo and the quadrature integrator share it.
 
 Vectors are ``(x, y, z)`` triples of arrays (or of Python floats). Per-instrument constants
@@ -10,7 +10,7 @@ Detector (luminance meter). A detected ray runs from a pupil point ``p`` (disc o
 about the pupil centre, normal to the axis ``a`` = -w_o) to a field point ``q`` on the field stop's
 conjugate plane at the focus distance F (disc of radius F tan gamma_D about the axis). Its weight
 is the etendue factor of the pair, normalised to 1 on the axis, times the field sensitivity k_D
-(:class:`~roadgonio.instrument.Detector`)::
+(:class:`~roadgonio.instrument.config.Detector`)::
 
     finite F:  weight = (F cos theta / |q - p|)^2        (= cos^2 theta dA_p dA_q / |q-p|^2 / (dA_p dA_q / F^2))
     F = inf:   weight = cos^4 theta                      (direction a + tan(gamma) u; cos theta dOmega = cos^4 theta du)
@@ -26,8 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import GeometryError
-from .instrument import Instrument
+from roadgonio.errors import GeometryError
+from roadgonio.instrument.config import Instrument
 
 
 def orthonormal_frame(n) -> tuple[np.ndarray, np.ndarray]:
@@ -193,7 +193,7 @@ def footprint_boundary(instrument: Instrument, n: int = 96) -> tuple[np.ndarray,
     fx, fy = np.cos(ang), np.sin(ang)
     PX, FX = np.meshgrid(px, fx, indexing="ij")
     PY, FY = np.meshgrid(py, fy, indexing="ij")
-    from .model import NumpyOps
+    from roadgonio.surface.model import NumpyOps
     o, d, _ = detector_ray(NumpyOps, geo, (PX.ravel(), PY.ravel()), (FX.ravel(), FY.ravel()))
     if np.any(np.asarray(d[2]) >= 0.0):
         raise GeometryError("the detector does not see the sample plane: some detected rays point upwards "

@@ -9,8 +9,8 @@ denominator is the ideal point geometry, always computed here in float64 numpy
 A backend computes, for a list of cells (tan eps, beta), the ratio S[f_road]/S[f_lambert] and
 turns it into :class:`CellResult` objects. Backends register themselves in :data:`BACKENDS` (name ->
 factory ``factory(instrument, model, **settings) -> KaBackend``); the Mitsuba backend lives in
-:mod:`roadgonio.render` (the only subpackage that imports mitsuba), the quadrature backend in
-:mod:`roadgonio.ka.quadrature`.
+:mod:`roadgonio.engines.mitsuba` (the only subpackage that imports mitsuba), the quadrature backend in
+:mod:`roadgonio.engines.quadrature`.
 """
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ from typing import Any, Callable, Protocol, Sequence
 
 import numpy as np
 
-from ..instrument import Instrument
-from ..model import RoadModel
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel
 
 
 @dataclass(frozen=True)
@@ -81,9 +81,9 @@ def ideal_ratio(model: RoadModel, instrument: Instrument, tan_eps: float, beta_d
 
 #: name -> "module:function" of the backend factories (imported lazily).
 BACKENDS: dict[str, str] = {
-    "mitsuba": "roadgonio.render.backend:make_backend",
-    "quadrature": "roadgonio.ka.quadrature:make_backend",
-    "numpy-mc": "roadgonio.ka.montecarlo:make_backend",
+    "mitsuba": "roadgonio.engines.mitsuba.backend:make_backend",
+    "quadrature": "roadgonio.engines.quadrature:make_backend",
+    "numpy-mc": "roadgonio.engines.montecarlo:make_backend",
 }
 
 
@@ -92,15 +92,15 @@ def make_backend(name: str, instrument: Instrument, model: RoadModel, *, accurac
     """Create a backend by name (lazy import, so numpy-only runs never import mitsuba).
 
     ``accuracy`` (``"fast"``, ``"default"``, ``"precise"``) applies the preset of
-    :mod:`roadgonio.ka.accuracy` for this backend; explicit ``settings`` override it.
+    :mod:`roadgonio.engines.accuracy` for this backend; explicit ``settings`` override it.
     """
     import importlib
 
-    from ..errors import InputError
+    from roadgonio.errors import InputError
     if name not in BACKENDS:
         raise InputError(f"unknown backend {name!r}; expected one of {', '.join(BACKENDS)}", field="--backend")
     if accuracy is not None:
-        from .accuracy import preset
+        from roadgonio.engines.accuracy import preset
         settings = {**preset(accuracy, name), **settings}
     mod_name, func = BACKENDS[name].split(":")
     try:
@@ -114,7 +114,7 @@ def make_backend(name: str, instrument: Instrument, model: RoadModel, *, accurac
 
 def full_grid_cells() -> list[tuple[float, float]]:
     """All 580 (tan eps, beta) cells of the standard grid, row by row."""
-    from ..geometry import BETA_GRID_DEG, TAN_EPS_GRID
+    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
     return [(float(t), float(b)) for t in TAN_EPS_GRID for b in BETA_GRID_DEG]
 
 

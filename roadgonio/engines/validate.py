@@ -26,9 +26,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from ..errors import InputError
-from ..instrument import Instrument
-from ..model import RoadModel
+from roadgonio.errors import InputError
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel
 
 #: Pass threshold in combined standard errors.
 N_SIGMA = 4.0
@@ -78,7 +78,7 @@ def parse_cells(text: str | None) -> list[tuple[float, float]]:
     if text is None or text.strip() in ("", "extremes", "default"):
         return list(DEFAULT_CELLS)
     if text.strip() == "all":
-        from . import full_grid_cells
+        from roadgonio.engines import full_grid_cells
         return full_grid_cells()
     cells = []
     for item in text.split(","):
@@ -116,7 +116,7 @@ def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[flo
              on_cell: Callable[[CellComparison], None] | None = None) -> dict[str, Any]:
     """Run both backends on ``cells`` and compare them; returns a report dict with ``rows``
     (:class:`CellComparison`), ``ok``, ``settings`` and timings."""
-    from . import make_backend
+    from roadgonio.engines import make_backend
     if against not in ("mitsuba", "numpy-mc"):
         raise InputError(f"expected --against mitsuba or numpy-mc, got {against!r}", field="--against")
     cells = list(DEFAULT_CELLS) if cells is None else list(cells)
@@ -156,7 +156,7 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from ..fileio import atomic_savefig
+    from roadgonio.fileio import atomic_savefig
     rows = report["rows"]
     labels = [f"{r.tan_eps:g} / {r.beta_deg:g}" for r in rows]
     x = np.arange(len(rows))
@@ -192,14 +192,14 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
 
 def write_outputs(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]:
     """validate.csv, validate.json and validate.png in ``out_dir`` (atomic writes)."""
-    from ..fileio import atomic_write_json, atomic_write_text
+    from roadgonio.fileio import atomic_write_json, atomic_write_text
     out_dir = Path(out_dir)
     rows = report["rows"]
     paths = {"csv": atomic_write_text(out_dir / "validate.csv", rows_csv(rows))}
     doc = {k: v for k, v in report.items() if k != "rows"}
     doc["cells"] = [asdict(r) for r in rows]
     try:
-        from .. import __version__
+        from roadgonio import __version__
         doc["roadgonio_version"] = __version__
     except ImportError:  # pragma: no cover
         pass

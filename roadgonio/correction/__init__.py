@@ -25,10 +25,10 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from .errors import InputError
-from .instrument import Instrument
-from .model import RoadModel
-from .rtable import BUNDLED, RTable, bundled_table
+from roadgonio.errors import InputError
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel
+from roadgonio.surface.rtable import BUNDLED, RTable, bundled_table
 
 Factory = Callable[[Instrument, RoadModel], Any]
 
@@ -98,7 +98,7 @@ def correct_table(measured: RTable, instrument: Instrument, reference: RoadModel
     """r_measured / k_A(reference) with the uncertainty of the correction (module docstring)."""
     t0 = time.perf_counter()
     if factory is None:
-        from .ka import make_backend
+        from roadgonio.engines import make_backend
 
         def factory(inst, model):
             return make_backend(backend, inst, model, **dict(backend_settings or {}))
@@ -124,7 +124,7 @@ def correct_table(measured: RTable, instrument: Instrument, reference: RoadModel
     corrected = measured.with_values(measured.r / k, name=f"{measured.name}_corrected",
                                      source=f"{measured.name} corrected for the aperture effect: r / k_A "
                                             f"(reference {reference_name}, instrument {instrument.name})")
-    from . import __version__
+    from roadgonio import __version__
     prov = {"roadgonio": __version__, "numpy": np.__version__, "instrument": instrument.to_dict(),
             "instrument_file": str(instrument.path) if instrument.path else None,
             "reference": reference_name, "reference_model": reference.to_json_dict(),
@@ -136,8 +136,8 @@ def correct_table(measured: RTable, instrument: Instrument, reference: RoadModel
 
 
 def write_correction(c: Correction, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
-    from .fileio import atomic_write_json, atomic_write_text
-    from .geometry import BETA_GRID_DEG, TAN_EPS_GRID
+    from roadgonio.fileio import atomic_write_json, atomic_write_text
+    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     base = c.measured.name
@@ -158,9 +158,9 @@ def write_correction(c: Correction, out_dir: str | Path, *, plots: bool = True) 
 def plot_before_after(c: Correction, path: Path) -> Path:
     """Left: r x 1e4 against tan eps for a few beta columns, measured (dashed) and corrected (solid)
     with the correction's 95 % band. Right: map of k_A with the relative uncertainty of the correction."""
-    from .fileio import atomic_savefig
-    from .geometry import BETA_GRID_DEG, TAN_EPS_GRID
-    from .plots import _plt
+    from roadgonio.fileio import atomic_savefig
+    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+    from roadgonio.plots import _plt
     plt = _plt()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(15, 6.5), gridspec_kw={"width_ratios": [1, 1.15]})
     for n, beta in enumerate((0, 2, 5, 10, 20, 45)):
@@ -181,7 +181,7 @@ def plot_before_after(c: Correction, path: Path) -> Path:
     a1.set_title(f"{c.measured.name}: before / after the aperture-effect correction", fontsize=11)
     a1.legend(fontsize=8)
     a1.grid(alpha=0.3, which="both")
-    from .plots import draw_table_map
+    from roadgonio.plots import draw_table_map
     draw_table_map(a2, c.k_a, label="k_A", fontsize=4.6, tick_fontsize=7,
                    text=lambda i, j: f"{c.k_a[i, j]:.2f}\n{100 * c.u_rel[i, j]:.1f}%")
     alts = ", ".join(c.alternatives) or "none"

@@ -6,11 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .fileio import atomic_savefig
+from roadgonio.fileio import atomic_savefig
 
 
 def plot_fit(result, path: str | Path) -> Path:
-    """Write ``fit.png`` for a :class:`~roadgonio.fit.FitResult`."""
+    """Write ``fit.png`` for a :class:`~roadgonio.surface.fit.FitResult`."""
     import matplotlib
     matplotlib.use("Agg", force=False)
     import matplotlib.pyplot as plt

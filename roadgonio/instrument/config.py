@@ -34,8 +34,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .errors import InputError
-from .geometry import w_detector, w_source
+from roadgonio.errors import InputError
+from roadgonio.geometry import w_detector, w_source
 
 
 def _num(d: Mapping[str, Any], key: str, section: str, path, *, default=None, required=False,

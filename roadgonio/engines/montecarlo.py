@@ -1,9 +1,9 @@
 """Plain float64 numpy Monte Carlo of the detector signal (paper eq. 3; DESIGN.md sections 4-5).
 
-The same integral as :mod:`roadgonio.ka.quadrature` and the same estimator as the Mitsuba
+The same integral as :mod:`roadgonio.engines.quadrature` and the same estimator as the Mitsuba
 renderer: uniform points on the pupil, field and source discs (area-preserving concentric map of
-:mod:`roadgonio.optics`), the detector ray of the pair (pupil point, field point) with its etendue
-weight, the hit point x, the source coupling G and the road BRDF (:mod:`roadgonio.model`). Each
+:mod:`roadgonio.instrument.optics`), the detector ray of the pair (pupil point, field point) with its etendue
+weight, the hit point x, the source coupling G and the road BRDF (:mod:`roadgonio.surface.model`). Each
 sample contributes the paired values::
 
     road = w f_road(w_i, w_o) G        lambert = w G / pi
@@ -12,7 +12,7 @@ Samples come in batches of ``batch = m^2``; within a batch each disc is stratifi
 jittered grid on the unit square, randomly permuted per disc so the discs are not correlated),
 so the batch means are independent and identically distributed and the ratio of means
 <road>/<lambert> gets its standard error by the delta method over batches
-(:func:`roadgonio.ka.ratio_se`). Batches are added until the relative standard error of k_A is
+(:func:`roadgonio.engines.ratio_se`). Batches are added until the relative standard error of k_A is
 below ``rel_se`` (at least ``min_batches`` batches, at most ``max_samples`` samples).
 
 Every cell has its own random stream, seeded by (seed, tan eps, beta): a cell's result does not
@@ -27,11 +27,11 @@ from typing import Any
 
 import numpy as np
 
-from .. import optics
-from ..errors import GeometryError, InputError
-from ..instrument import Instrument
-from ..model import NumpyOps, RoadModel, road_brdf
-from . import CellByCellBackend, CellResult, ideal_ratio, ratio_se
+from roadgonio.instrument import optics
+from roadgonio.errors import GeometryError, InputError
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
 
 DEFAULT_REL_SE = 1e-3
 DEFAULT_BATCH = 1 << 14
@@ -149,7 +149,7 @@ class MonteCarloBackend(CellByCellBackend):
 def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = DEFAULT_REL_SE, seed: int = 0,
                  batch: int = DEFAULT_BATCH, min_batches: int = DEFAULT_MIN_BATCHES,
                  max_samples: int = DEFAULT_MAX_SAMPLES, **unknown) -> MonteCarloBackend:
-    """The float64 numpy Monte Carlo backend (``roadgonio.ka.make_backend("numpy-mc", ...)``).
+    """The float64 numpy Monte Carlo backend (``roadgonio.engines.make_backend("numpy-mc", ...)``).
 
     Parameters
     ----------

@@ -38,9 +38,9 @@ from typing import Iterable
 
 import numpy as np
 
-from .errors import InputError
-from .fileio import atomic_write_text
-from .geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.errors import InputError
+from roadgonio.fileio import atomic_write_text
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 
 #: Scale of r in files (published tables store r x 10^4).
 R_SCALE = 1e4

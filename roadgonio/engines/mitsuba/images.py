@@ -3,7 +3,7 @@
 the sample around the detector footprint; OpenEXR (float32) and PNG (colour bar, footprint
 outline).
 
-Units follow :mod:`roadgonio.render.scene`: the source gives ~1 lx normal to its axis at the
+Units follow :mod:`roadgonio.engines.mitsuba.scene`: the source gives ~1 lx normal to its axis at the
 sample centre, so the illuminance is in lx per lx and luminances in cd/m^2 per lx.
 """
 from __future__ import annotations
@@ -14,11 +14,11 @@ from typing import Any
 
 import numpy as np
 
-from ..fileio import atomic_write, atomic_write_json
-from ..instrument import Instrument
-from ..model import RoadModel
-from ..optics import footprint_boundary
-from .scene import LAMBERT, ROAD, build_scene
+from roadgonio.fileio import atomic_write, atomic_write_json
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel
+from roadgonio.instrument.optics import footprint_boundary
+from roadgonio.engines.mitsuba.scene import LAMBERT, ROAD, build_scene
 
 
 def write_exr(path: Path, channels: dict[str, np.ndarray]) -> Path:
@@ -52,8 +52,8 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     import mitsuba as mi
     rs.place_source(tan_eps, beta_deg)
     # the signal (concentric film) and its k_A estimate
-    from ..ka import ideal_ratio
-    from .backend import pooled_ratio
+    from roadgonio.engines import ideal_ratio
+    from roadgonio.engines.mitsuba.backend import pooled_ratio
     sig = rs.render(seed, spp)
     ratio, se, mg = pooled_ratio([(spp, sig[..., ROAD], sig[..., LAMBERT])])
     ideal = ideal_ratio(model, instrument, tan_eps, beta_deg)
@@ -117,7 +117,7 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from ..fileio import atomic_savefig
+    from roadgonio.fileio import atomic_savefig
     gamma = instrument.detector.field_half_angle_deg
     fig, axes = plt.subplots(2, 1, figsize=(9, 8.5), gridspec_kw={"height_ratios": [1.25, 1]})
     ax = axes[0]

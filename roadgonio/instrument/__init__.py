@@ -1,0 +1,11 @@
+"""The instrument: what a goniophotometer is (DESIGN.md section 4).
+
+* :mod:`.config` -- the instrument file (TOML) as frozen, validated dataclasses
+  (:class:`Instrument`, :class:`Source`, :class:`Detector`, :class:`Sample`), presets, loading;
+* :mod:`.optics` -- the ray geometry of the source disc and the luminance meter (pupil x field),
+  written once over an array namespace for numpy and Dr.Jit, and the footprint and validity checks.
+
+Nothing here imports mitsuba or drjit.
+"""
+from roadgonio.instrument.config import (  # noqa: F401
+    Detector, Instrument, Observation, Sample, Source, bundled_instruments, load_instrument)

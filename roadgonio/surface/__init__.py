@@ -1,0 +1,11 @@
+"""The road surface: what is measured (DESIGN.md sections 2-3).
+
+* :mod:`.model` -- the road BRDF of paper eq. 4 (and its named variants), one definition over an
+  array namespace shared by numpy (fitter, integrators) and Dr.Jit (the Mitsuba plugin);
+* :mod:`.rtable` -- r-tables: the CIE grid, the bundled R1-R4/C1/C2, CSV and DIALux RTB I/O,
+  S1, S2 and Q0;
+* :mod:`.fit` -- fitting the model to a table (least squares in % of max r, as the paper);
+* :mod:`.sample` -- resolving a SAMPLE argument (bundled name, table file, model.json, lambert)
+  to a model;
+* :mod:`.fitplot` -- the picture of a fit.
+"""

@@ -1,0 +1,74 @@
+"""The cells of an uncertainty run (the standard CIE region or all cells) and the Q0 weights (CIE 144)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from roadgonio.errors import InputError
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.uncertainty.spec import CELL_SETS
+
+# ----------------------------------------------------------------------------------------------
+# Cells, Q0 weights
+# ----------------------------------------------------------------------------------------------
+
+@lru_cache(maxsize=1)
+def standard_mask() -> np.ndarray:
+    """Tabulated cells of the CIE standard tables (the blank pattern is the same in every one)."""
+    from roadgonio.surface.rtable import bundled_table
+    return bundled_table("R3").mask.copy()
+
+
+@lru_cache(maxsize=1)
+def q0_weights() -> np.ndarray:
+    """Weights w (29 x 20) with Q0 = sum w r over the standard tabulated region.
+
+    :meth:`RTable.q0` is linear in r, so w[i, j] is Q0 of the table that is 1 at (i, j) and 0
+    elsewhere in the region (derived from RTable.q0 itself; the formula is not repeated here).
+    """
+    from roadgonio.surface.rtable import RTable
+    mask = standard_mask()
+    w = np.zeros(mask.shape)
+    base = np.where(mask, 0.0, np.nan)
+    for i, j in zip(*np.nonzero(mask)):
+        t = base.copy()
+        t[i, j] = 1.0
+        w[i, j] = RTable(t).q0()
+    return w
+
+
+@dataclass(frozen=True)
+class CellSet:
+    """The cells of the table that are computed, with their grid indices."""
+
+    tan_eps: np.ndarray
+    beta_deg: np.ndarray
+    ii: np.ndarray
+    jj: np.ndarray
+    which: str
+
+    @classmethod
+    def make(cls, which: str = "standard") -> "CellSet":
+        if which not in CELL_SETS:
+            raise InputError(f"unknown cell set {which!r}; expected standard or all", field="--cells")
+        mask = standard_mask() if which == "standard" else np.ones((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), bool)
+        ii, jj = np.nonzero(mask)
+        return cls(TAN_EPS_GRID[ii].copy(), BETA_GRID_DEG[jj].copy(), ii, jj, which)
+
+    def __len__(self) -> int:
+        return len(self.ii)
+
+    def index(self, tan_eps: float, beta_deg: float) -> int:
+        k = np.nonzero((np.abs(self.tan_eps - tan_eps) < 1e-9) & (np.abs(self.beta_deg - beta_deg) < 1e-9))[0]
+        if len(k) == 0:
+            raise InputError(f"cell (tan eps {tan_eps:g}, beta {beta_deg:g}) not in the cell set", field="cells")
+        return int(k[0])
+
+    def to_grid(self, values: np.ndarray) -> np.ndarray:
+        g = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), np.nan)
+        g[self.ii, self.jj] = values
+        return g
+
+

@@ -1,0 +1,144 @@
+"""The measurement model of one trial: perturbed geometry -> reported r (paper section 4.1)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from roadgonio.errors import InputError
+from roadgonio.geometry import cos3_eps, eps_from_tan, w_detector, w_source
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.uncertainty.surrogate import N_COORDS
+from roadgonio.uncertainty.cells import CellSet, q0_weights
+from roadgonio.uncertainty.spec import ILLUMINANCE
+
+# ----------------------------------------------------------------------------------------------
+# The measurement model of one trial
+# ----------------------------------------------------------------------------------------------
+
+def _rotations(tilt_x_deg: np.ndarray, tilt_y_deg: np.ndarray) -> np.ndarray:
+    """R = R_y(tilt_y) R_x(tilt_x), shape (m, 3, 3)."""
+    tx = np.radians(tilt_x_deg)
+    ty = np.radians(tilt_y_deg)
+    cx, sx, cy, sy = np.cos(tx), np.sin(tx), np.cos(ty), np.sin(ty)
+    z, o = np.zeros_like(tx), np.ones_like(tx)
+    rx = np.stack([np.stack([o, z, z], -1), np.stack([z, cx, -sx], -1), np.stack([z, sx, cx], -1)], -2)
+    ry = np.stack([np.stack([cy, z, sy], -1), np.stack([z, o, z], -1), np.stack([-sy, z, cy], -1)], -2)
+    return ry @ rx
+
+
+class MeasurementModel:
+    """r as the instrument reports it for error sets X (m, 7) over a cell set (module docstring)."""
+
+    def __init__(self, model: RoadModel, instrument: Instrument, cells: CellSet,
+                 illuminance: str = "nominal"):
+        if illuminance not in ILLUMINANCE:
+            raise InputError(f"unknown illuminance normalisation {illuminance!r}; expected nominal or measured",
+                             field="--illuminance")
+        self.model = model
+        self.instrument = instrument
+        self.cells = cells
+        self.illuminance = illuminance
+        self.alpha0 = instrument.observation.alpha_deg
+        self.delta0 = instrument.observation.delta_deg
+        self.ds0 = instrument.source.distance_m
+        self.dd0 = instrument.detector.distance_m
+        self.eps0 = eps_from_tan(cells.tan_eps)
+        self.cos2 = 1.0 / (1.0 + cells.tan_eps ** 2)
+        self.cos3 = cos3_eps(cells.tan_eps)
+        # nominal source direction and its tangent basis (surrogate coordinates)
+        self.wi0 = w_source(self.eps0, cells.beta_deg, self.delta0)
+        phi = np.radians(self.delta0 + 180.0 - cells.beta_deg)
+        self.e_eps = w_source(self.eps0 + 0.5 * math.pi, cells.beta_deg, self.delta0)  # d w / d eps
+        self._w0T = np.ascontiguousarray(self.wi0.T)
+        self._e0T = np.ascontiguousarray(self.e_eps.T)
+        self._P = model.params.to_dict()
+        self._terms = model.terms()
+        self.e_phi = np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], -1)
+        w = q0_weights()
+        self.q0_w = w[cells.ii, cells.jj]
+        self.i_00 = cells.index(0.0, 0.0)
+        self.i_20 = cells.index(2.0, 0.0)
+
+    # -- directions ----------------------------------------------------------------------------
+    def local_directions(self, X: np.ndarray) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+        """Source and detector directions in the sample frame: ``((wix, wiy, wiz), (wox, woy, woz))``,
+        source components (m, n), detector components (m, 1).
+
+        Exact rotations, no small-angle approximation: moving the source by d_eps along its
+        meridian is ``w(eps0 + d) = cos d w(eps0) + sin d w(eps0 + 90 deg)`` (both from
+        :func:`~roadgonio.geometry.w_source`), a beta error d_beta is a rotation about the normal
+        by -d_beta (phi_i = delta + 180 deg - beta), and the tilt applies ``R^T``.
+        """
+        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        m = len(X)
+        wo = w_detector(self.alpha0 + X[:, 0], self.delta0)                            # (m, 3)
+        de = np.radians(X[:, 1])[:, None]
+        db = -np.radians(X[:, 2])
+        c, s = np.cos(db), np.sin(db)
+        z, o = np.zeros(m), np.ones(m)
+        rz = np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+        R = _rotations(X[:, 3], X[:, 4])
+        Rt = np.swapaxes(R, -1, -2)
+        A = Rt @ rz                                                                   # (m, 3, 3)
+        P = A @ self._w0T                                                              # (m, 3, n)
+        Q = A @ self._e0T
+        cd, sd = np.cos(de), np.sin(de)
+        wi = tuple(cd * P[:, k, :] + sd * Q[:, k, :] for k in range(3))
+        wol = np.einsum("mij,mj->mi", Rt, wo)
+        return wi, tuple(wol[:, k:k + 1] for k in range(3))
+
+    def r_measured(self, X: np.ndarray, dirs=None) -> np.ndarray:
+        """r_meas without the aperture effect, (m, n) in sr^-1 (module docstring)."""
+        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        wi, wo = self.local_directions(X) if dirs is None else dirs
+        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            f = road_brdf(NumpyOps, self._P, wi, wo, self.model.variant, self._terms)
+        f = np.broadcast_to(f, wi[2].shape)
+        if self.illuminance == "nominal":
+            ds = self.ds0 + X[:, 5]
+            return f * wi[2] * ((self.ds0 / ds) ** 2)[:, None] * self.cos2[None, :]
+        return f * self.cos3[None, :]
+
+    def surrogate_coords(self, X: np.ndarray, dirs=None) -> tuple[np.ndarray, np.ndarray]:
+        """Surrogate coordinates (m, n, 5) (see :mod:`roadgonio.uncertainty.surrogate`) and the source
+        directions turned so the detector azimuth is delta0 (m, n, 3)."""
+        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        (wix, wiy, wiz), (wox, woy, woz) = self.local_directions(X) if dirs is None else dirs
+        alpha = np.degrees(np.arcsin(np.clip(woz[:, 0], -1.0, 1.0)))
+        gamma = math.radians(self.delta0) - np.arctan2(woy, wox)                      # (m, 1)
+        c, s = np.cos(gamma), np.sin(gamma)
+        wr = np.stack([c * wix - s * wiy, s * wix + c * wiy, wiz], -1)
+        x = np.empty(wr.shape[:2] + (N_COORDS,))
+        x[..., 0] = (alpha - self.alpha0)[:, None]
+        x[..., 1:3] = self._tangent(wr)
+        x[..., 3] = X[:, 5][:, None]
+        x[..., 4] = X[:, 6][:, None]
+        return x, wr
+
+    def _tangent(self, w: np.ndarray) -> np.ndarray:
+        d = w - self.wi0
+        return np.degrees(np.stack([np.sum(d * self.e_eps, -1), np.sum(d * self.e_phi, -1)], -1))
+
+    def dirs_from_offsets(self, off_eps_deg: float, off_phi_deg: float) -> np.ndarray:
+        """Unit source directions (n, 3) offset from the nominal ones along e_eps, e_phi."""
+        w = self.wi0 + math.radians(off_eps_deg) * self.e_eps + math.radians(off_phi_deg) * self.e_phi
+        return w / np.linalg.norm(w, axis=-1, keepdims=True)
+
+    def cells_of(self, w: np.ndarray) -> list[tuple[float, float]]:
+        """(tan eps, beta deg) of source directions w (n, 3) in a frame where the detector azimuth
+        is delta0; beta folded to [0, 180] (the BRDF and the instrument are mirror symmetric)."""
+        tan = np.hypot(w[:, 0], w[:, 1]) / w[:, 2]
+        phi = np.degrees(np.arctan2(w[:, 1], w[:, 0]))
+        beta = np.abs((self.delta0 + 180.0 - phi + 180.0) % 360.0 - 180.0)
+        return [(float(t), float(b)) for t, b in zip(tan, beta)]
+
+    def functionals(self, r: np.ndarray) -> np.ndarray:
+        """(m, n) -> (m, n + 2): the cells, then Q0 and S1."""
+        q0 = r @ self.q0_w
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s1 = r[:, self.i_20] / r[:, self.i_00]
+        return np.concatenate([r, q0[:, None], s1[:, None]], axis=1)
+
+

@@ -1,0 +1,202 @@
+"""Reports of an uncertainty run: JSON dict, CSV, PNG maps, summary lines."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from roadgonio.errors import InputError
+from roadgonio.surface.model import RoadModel
+from roadgonio.uncertainty.run import UncertaintyResult
+from roadgonio.uncertainty.spec import INPUTS
+
+# ----------------------------------------------------------------------------------------------
+# Results: summary, files, pictures
+# ----------------------------------------------------------------------------------------------
+
+OUTPUT_NAMES = ("Q0", "S1")
+
+
+def result_dict(res: UncertaintyResult, *, cells: bool = True) -> dict[str, Any]:
+    """JSON-ready results (per-cell arrays when ``cells``) with provenance."""
+    n = len(res.cells)
+    d: dict[str, Any] = {"trials": res.trials, "seed": res.seed, "coverage": res.coverage, "n_dig": res.n_dig,
+                         "adaptive": res.adaptive, "seconds": res.seconds, "provenance": res.provenance,
+                         "cases": {}}
+    for name, c in res.cases.items():
+        case: dict[str, Any] = {}
+        for k, label in ((n, "Q0"), (n + 1, "S1")):
+            case[label] = {"nominal": c.nominal[k], "mean": c.mc["mean"][k], "u": c.mc["u"][k],
+                           "symmetric_interval": [c.mc["sym_low"][k], c.mc["sym_high"][k]],
+                           "shortest_interval": [c.mc["short_low"][k], c.mc["short_high"][k]],
+                           "gum_u": c.gum["u"][k], "gum_interval": [c.gum["low"][k], c.gum["high"][k]],
+                           "gum_validated": bool(c.validation["validated"][k]),
+                           "d_low": c.validation["d_low"][k], "d_high": c.validation["d_high"][k],
+                           "delta": c.validation["delta"][k],
+                           "gum_contributions": dict(zip(INPUTS, c.gum["contribution"][:, k].tolist()))}
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u_rel = c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
+        case["cells_summary"] = {"u_rel_max": float(np.nanmax(u_rel)), "u_rel_median": float(np.nanmedian(u_rel)),
+                                 "gum_validated_fraction": float(np.mean(c.validation["validated"][:n])),
+                                 "u_mc_over_u_gum_max": float(np.nanmax(c.mc["u"][:n] / c.gum["u"][:n]))
+                                 if np.all(c.gum["u"][:n] > 0) else None}
+        if cells:
+            case["cells"] = {"tan_eps": res.cells.tan_eps, "beta_deg": res.cells.beta_deg,
+                             "nominal": c.nominal[:n], "mean": c.mc["mean"][:n], "u": c.mc["u"][:n],
+                             "sym_low": c.mc["sym_low"][:n], "sym_high": c.mc["sym_high"][:n],
+                             "short_low": c.mc["short_low"][:n], "short_high": c.mc["short_high"][:n],
+                             "gum_u": c.gum["u"][:n], "gum_validated": c.validation["validated"][:n].tolist()}
+        d["cases"][name] = case
+    if res.surrogate is not None:
+        ap = res.cases.get("aperture")
+        u_rel = None
+        if ap is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                u_rel = ap.mc["u"][:n] / np.abs(ap.mc["mean"][:n])
+        d["surrogate"] = res.surrogate.summary(u_rel)
+    return d
+
+
+def cells_csv_text(res: UncertaintyResult) -> str:
+    n = len(res.cells)
+    lines = ["case,tan_eps,beta_deg,r_nominal,mean,u,u_rel,sym_low,sym_high,short_low,short_high,"
+             "gum_u,gum_low,gum_high,gum_validated,d_low,d_high,delta"]
+    labels = [f"{t:g},{b:g}" for t, b in zip(res.cells.tan_eps, res.cells.beta_deg)] + ["Q0,", "S1,"]
+    for name, c in res.cases.items():
+        for k in range(n + 2):
+            mean = c.mc["mean"][k]
+            u_rel = c.mc["u"][k] / abs(mean) if mean != 0 else float("nan")
+            vals = [c.nominal[k], mean, c.mc["u"][k], u_rel, c.mc["sym_low"][k], c.mc["sym_high"][k],
+                    c.mc["short_low"][k], c.mc["short_high"][k], c.gum["u"][k], c.gum["low"][k], c.gum["high"][k]]
+            v = c.validation
+            lines.append(f"{name},{labels[k]}," + ",".join(f"{x:.8g}" for x in vals)
+                         + f",{int(bool(v['validated'][k]))},{v['d_low'][k]:.4g},{v['d_high'][k]:.4g},{v['delta'][k]:.4g}")
+    return "\n".join(lines) + "\n"
+
+
+def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: str = "sample",
+                  plots: bool = True) -> list[Path]:
+    """Write uncertainty.json, cells.csv, r-table CSVs of the mean and u per case, and the pictures."""
+    from roadgonio.fileio import atomic_write_json, atomic_write_text
+    from roadgonio.surface.rtable import RTable
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [atomic_write_json(out / "uncertainty.json", result_dict(res)),
+               atomic_write_text(out / "cells.csv", cells_csv_text(res))]
+    n = len(res.cells)
+    for name, c in res.cases.items():
+        src = (f"roadgonio uncertainty: {name.replace('_', ' ')}, {res.trials} trials, seed {res.seed}, "
+               f"sample {sample_name}")
+        for key, label in (("mean", "mean r x 1e4"), ("u", "standard uncertainty u(r) x 1e4")):
+            t = RTable(res.cells.to_grid(c.mc[key][:n]), name=f"{sample_name}_{key}", source=f"{src}: {label}")
+            written.append(t.write_csv(out / f"{name}_{key}.csv"))
+    if plots:
+        written.extend(plot_uncertainty_maps(res, out))
+        written.append(plot_q0_s1(res, out / "q0_s1_hist.png"))
+    return written
+
+
+def plot_uncertainty_maps(res: UncertaintyResult, out: Path) -> list[Path]:
+    from roadgonio.plots import table_map
+    n = len(res.cells)
+    paths = []
+    for name, c in res.cases.items():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u_rel = 100.0 * c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
+        ok = c.validation["validated"][:n]
+        title = (f"Relative standard uncertainty u(r)/r (%), {name.replace('_', ' ')}: "
+                 f"{res.trials} trials, seed {res.seed}")
+        sub = (f"GUM first-order result validated (JCGM 101 s. 8, {res.n_dig} digits) in {int(ok.sum())} of {n} cells; "
+               f"Q0 = {c.mc['mean'][n]:.4g} +- {c.mc['u'][n]:.2g}, S1 = {c.mc['mean'][n + 1]:.4g} +- {c.mc['u'][n + 1]:.2g}")
+        paths.append(table_map(res.cells.to_grid(u_rel), out / f"u_rel_{name}.png", title=title,
+                               label="u(r)/r (%)", centre=None, log=False, fmt="{:.2f}", subtitle=sub))
+    return paths
+
+
+def plot_q0_s1(res: UncertaintyResult, path: Path) -> Path:
+    """Histograms of Q0 and S1 (each case) with both coverage intervals and the GUM normal pdf."""
+    from roadgonio.fileio import atomic_savefig
+    from roadgonio.plots import _plt
+    plt = _plt()
+    n = len(res.cells)
+    cases = list(res.cases.items())
+    fig, axes = plt.subplots(len(cases), 2, figsize=(12, 4.2 * len(cases)), squeeze=False)
+    for row, (name, c) in enumerate(cases):
+        for col, (k, label, samples) in enumerate(((n, "Q0 (sr$^{-1}$)", c.q0_samples),
+                                                   (n + 1, "S1", c.s1_samples))):
+            ax = axes[row][col]
+            s = samples[np.isfinite(samples)]
+            ax.hist(s, bins=80, density=True, color="0.75", edgecolor="0.6", linewidth=0.3, label="Monte Carlo")
+            y, u = c.gum["y"][k], c.gum["u"][k]
+            if u > 0:
+                xs = np.linspace(min(s.min(), y - 4 * u), max(s.max(), y + 4 * u), 400)
+                ax.plot(xs, np.exp(-0.5 * ((xs - y) / u) ** 2) / (u * math.sqrt(2 * math.pi)), "C0-", lw=1.3,
+                        label=f"GUM normal, u = {u:.3g}")
+            top = ax.get_ylim()[1]
+            for lo, hi, style, lab, h in ((c.mc["sym_low"][k], c.mc["sym_high"][k], "C3--", "symmetric", 0.30),
+                                          (c.mc["short_low"][k], c.mc["short_high"][k], "C2-", "shortest", 0.22)):
+                ax.plot([lo, hi], [h * top, h * top], style, lw=2.2,
+                        label=f"{100 * res.coverage:g} % {lab}: [{lo:.5g}, {hi:.5g}]")
+            ax.axvline(c.nominal[k], color="k", lw=0.8, ls=":", label=f"nominal {c.nominal[k]:.5g}")
+            valid = "validated" if c.validation["validated"][k] else "NOT validated"
+            ax.set_title(f"{label.split(' ')[0]}, {name.replace('_', ' ')}: mean {c.mc['mean'][k]:.5g}, "
+                         f"u = {c.mc['u'][k]:.3g} (GUM {valid})", fontsize=10)
+            ax.set_xlabel(label)
+            ax.set_ylabel("probability density")
+            ax.legend(fontsize=7.5, loc="best", framealpha=0.85)
+            ax.ticklabel_format(axis="x", style="sci", scilimits=(-3, 4), useOffset=False)
+    fig.suptitle(f"Distributions of Q0 and S1 over {res.trials} Monte Carlo trials (seed {res.seed})", fontsize=11)
+    fig.tight_layout()
+    p = atomic_savefig(fig, path, dpi=110)
+    plt.close(fig)
+    return p
+
+
+def summary_lines(res: UncertaintyResult) -> list[str]:
+    n = len(res.cells)
+    lines = [f"{res.trials} trials (seed {res.seed}), {n} cells, coverage {100 * res.coverage:g} %"]
+    if res.adaptive:
+        a = res.adaptive
+        lines.append(f"adaptive (JCGM 101 7.9, {a['n_dig']} digits): {a['batches']} batches of {a['batch']}, "
+                     + ("converged" if a["converged"] else f"NOT converged at the cap of {a['max_trials']} trials "
+                        f"(worst 2s/delta = {max(a['worst_ratio'] or [0]):.2f}; about "
+                        f"{max(a['worst_ratio'] or [1]) ** 2:.0f}x more trials would be needed: raise --max-trials "
+                        f"(memory grows with trials x cells) or ask for fewer --digits)"))
+    for name, c in res.cases.items():
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u_rel = c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
+        lines.append(f"{name.replace('_', ' ')}: u(r)/r median {100 * np.nanmedian(u_rel):.3g} %, max "
+                     f"{100 * np.nanmax(u_rel):.3g} %; GUM validated in {int(c.validation['validated'][:n].sum())}"
+                     f"/{n} cells")
+        for k, label in ((n, "Q0"), (n + 1, "S1")):
+            lines.append(f"  {label}: {c.mc['mean'][k]:.5g} u = {c.mc['u'][k]:.3g} "
+                         f"[{c.mc['sym_low'][k]:.5g}, {c.mc['sym_high'][k]:.5g}] "
+                         f"(GUM u = {c.gum['u'][k]:.3g}, {'validated' if c.validation['validated'][k] else 'not validated'})")
+    if res.surrogate is not None:
+        s = result_dict(res, cells=False).get("surrogate", {})
+        lines.append(f"k_A surrogate: {s['exact_evaluations']} exact evaluations in {s['seconds']:.0f} s; error vs "
+                     f"held-out exact k_A: max {100 * s['rel_err_max']:.3g} %, rms {100 * s['rel_err_rms']:.3g} %"
+                     + (f", max/u(r) = {s['err_over_u_max']:.2g}" if "err_over_u_max" in s else ""))
+    return lines
+
+
+def resolve_sample_spec(spec: str, variant: str | None = None) -> RoadModel:
+    """SAMPLE -> RoadModel via :func:`roadgonio.surface.sample.resolve_sample` (lambert, bundled table fitted on
+    the fly, table file, model.json); a minimal fallback (lambert, model.json) if that module is absent."""
+    try:
+        from roadgonio.surface.sample import resolve_sample
+    except ModuleNotFoundError as err:
+        if err.name != "roadgonio.surface.sample":
+            raise
+        resolve_sample = None
+    if resolve_sample is not None:
+        return resolve_sample(spec, variant=variant) if variant else resolve_sample(spec)
+    if spec.strip().lower() == "lambert":
+        return RoadModel.lambert()
+    p = Path(spec)
+    if p.suffix.lower() == ".json":
+        return RoadModel.load(p)
+    raise InputError("this installation can only use 'lambert' or a model .json file (roadgonio.surface.sample missing)",
+                     field="--sample")

@@ -1,0 +1,377 @@
+"""Running an uncertainty evaluation: exact k_A tables, the surrogate fit, the trials, the adaptive rule (JCGM 101 7.9)."""
+from __future__ import annotations
+
+import math
+import os
+import platform
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from roadgonio.errors import InputError
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel
+from roadgonio.uncertainty.surrogate import DESIGNS, N_COORDS, KaSurrogate, design_points
+from roadgonio.uncertainty.cells import CellSet
+from roadgonio.uncertainty.gum import gum_propagation, gum_validation
+from roadgonio.uncertainty.measurement import MeasurementModel
+from roadgonio.uncertainty.spec import INPUTS, SigmaSpec
+from roadgonio.uncertainty.statistics import numerical_tolerance, summarize
+
+# ----------------------------------------------------------------------------------------------
+# Running
+# ----------------------------------------------------------------------------------------------
+
+BackendFactory = Callable[[Instrument, RoadModel], Any]
+
+
+def default_backend_factory(name: str, settings: Mapping[str, Any]) -> BackendFactory:
+    from roadgonio.engines import make_backend
+
+    def factory(instrument: Instrument, model: RoadModel):
+        return make_backend(name, instrument, model, **dict(settings))
+    return factory
+
+
+@dataclass
+class SurrogateReport:
+    surrogate: KaSurrogate
+    design_points: int
+    validation_trials: int
+    exact_evaluations: int
+    seconds: float
+    rel_err_max: np.ndarray      # (n_cells,) max over validation trials of |k_sur/k_exact - 1|
+    rel_err_rms: np.ndarray
+    backend_rel_se_max: float    # largest relative error estimate of the backend (se / k_A)
+    settings: dict[str, Any]
+
+    def summary(self, u_rel: np.ndarray | None = None) -> dict[str, Any]:
+        d = {"design": self.surrogate.kind, "design_points": self.design_points, "validation_trials": self.validation_trials,
+             "exact_evaluations": self.exact_evaluations, "seconds": self.seconds,
+             "rel_err_max": float(np.max(self.rel_err_max)) if self.rel_err_max.size else 0.0,
+             "rel_err_rms": float(math.sqrt(np.mean(self.rel_err_rms ** 2))) if self.rel_err_rms.size else 0.0,
+             "backend_rel_se_max": self.backend_rel_se_max,
+             "fit_rms_log_max": float(np.max(self.surrogate.fit_rms_log)),
+             "coordinate_scales": dict(zip(("alpha_loc_deg", "src_eps_offset_deg", "src_phi_offset_deg",
+                                            "source_distance_m", "detector_distance_m"),
+                                           self.surrogate.scale.tolist())),
+             "backend": self.settings}
+        if u_rel is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(u_rel > 0, self.rel_err_max / u_rel, np.inf)
+            d["err_over_u_max"] = float(np.max(ratio))
+            d["err_over_u_median"] = float(np.median(ratio))
+        return d
+
+
+def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFactory, *,
+                    seed_seq: np.random.SeedSequence, n_validation: int = 8, pilot: int = 2000,
+                    backend_settings: Mapping[str, Any] | None = None, progress: bool = True,
+                    design: str = "ccd", axial: float | None = None, factorial: float = 1.5) -> SurrogateReport:
+    """Fit the k_A surrogate over the perturbed neighbourhood of every cell and validate it against
+    exact k_A at ``n_validation`` held-out trials drawn from the input distribution."""
+    t0 = time.perf_counter()
+    rng_pilot, rng_val = [np.random.default_rng(s) for s in seed_seq.spawn(2)]
+    Xp = spec.draw(rng_pilot, pilot)
+    xp, _ = mm.surrogate_coords(Xp)
+    scale = np.max(np.std(xp, axis=0), axis=0)                  # (5,)
+    scale = np.where(scale > 1e-12 * np.maximum(1.0, np.max(np.abs(xp), axis=(0, 1))), scale, 0.0)
+    active = np.nonzero(scale > 0)[0]
+    if design not in DESIGNS:
+        raise InputError(f"unknown surrogate design {design!r}; expected {' or '.join(DESIGNS)}", field="--surrogate")
+    if axial is None:
+        axial = 2.0 if design == "star" else 2.5
+    Z = design_points(len(active), axial, factorial, design)
+    pts = []
+    for z in Z:
+        x = np.zeros(N_COORDS)
+        x[active] = z * scale[active]
+        pts.append(x)
+    Xv = spec.draw(rng_val, n_validation) if len(active) else np.zeros((0, len(INPUTS)))
+    n = len(mm.cells)
+    total = (len(pts) + len(Xv)) * n
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=total, desc="exact k_A (surrogate design)", unit="cell", leave=False)
+
+    def exact(alpha_loc: float, ds: float, dd: float, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        inst = mm.instrument.with_changes(
+            observation={"alpha_deg": alpha_loc, "delta_deg": mm.delta0},
+            source={"distance_m": mm.ds0 + ds}, detector={"distance_m": mm.dd0 + dd})
+        backend = factory(inst, mm.model)
+        if not settings_seen:
+            try:
+                settings_seen.update(backend.settings())
+            except Exception:  # noqa: BLE001 - provenance only
+                settings_seen["backend"] = getattr(backend, "name", "?")
+        res = backend.compute(mm.cells_of(w), on_cell=(lambda _r: bar.update(1)) if bar is not None else None)
+        return np.array([c.k_a for c in res]), np.array([c.se for c in res])
+
+    settings_seen: dict[str, Any] = {}
+    x_design = np.empty((len(pts), n, N_COORDS))
+    ka_design = np.empty((len(pts), n))
+    rel_se = 0.0
+    settings: dict[str, Any] = dict(backend_settings or {})
+    try:
+        for k, x in enumerate(pts):
+            w = mm.dirs_from_offsets(x[1], x[2])
+            x_design[k, :, 0] = x[0]
+            x_design[k, :, 1:3] = mm._tangent(w)
+            x_design[k, :, 3] = x[3]
+            x_design[k, :, 4] = x[4]
+            ka, se = exact(mm.alpha0 + x[0], x[3], x[4], w)
+            ka_design[k] = ka
+            rel_se = max(rel_se, float(np.max(se / np.abs(ka))))
+        # cells on the mirror plane: k_A is even in the azimuthal offset, with a kink (surrogate docstring)
+        c = mm.cells
+        fold = (c.tan_eps > 0) & ((np.abs(c.beta_deg) < 1e-9) | (np.abs(c.beta_deg - 180.0) < 1e-9))
+        sur = KaSurrogate.fit(scale, x_design, ka_design, design, fold=fold)
+        err = np.zeros((len(Xv), n))
+        if len(Xv):
+            xv, wr = mm.surrogate_coords(Xv)
+            for t in range(len(Xv)):
+                ka, se = exact(mm.alpha0 + xv[t, 0, 0], Xv[t, 5], Xv[t, 6], wr[t])
+                rel_se = max(rel_se, float(np.max(se / np.abs(ka))))
+                err[t] = sur(xv[t:t + 1])[0] / ka - 1.0
+    finally:
+        if bar is not None:
+            bar.close()
+    settings = {**settings, **settings_seen}
+    return SurrogateReport(
+        surrogate=sur, design_points=len(pts), validation_trials=len(Xv),
+        exact_evaluations=(len(pts) + len(Xv)) * n, seconds=time.perf_counter() - t0,
+        rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else np.zeros(n),
+        rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else np.zeros(n),
+        backend_rel_se_max=rel_se, settings=settings)
+
+
+@dataclass
+class CaseResult:
+    """Results of one case ("no_aperture" or "aperture") for the outputs: cells, then Q0, S1."""
+
+    name: str
+    nominal: np.ndarray
+    mc: dict[str, np.ndarray]
+    gum: dict[str, np.ndarray]
+    validation: dict[str, np.ndarray]
+    q0_samples: np.ndarray
+    s1_samples: np.ndarray
+
+
+@dataclass
+class UncertaintyResult:
+    cells: CellSet
+    cases: dict[str, CaseResult]
+    trials: int
+    seed: int
+    spec: SigmaSpec
+    coverage: float
+    n_dig: int
+    adaptive: dict[str, Any] | None
+    surrogate: SurrogateReport | None
+    provenance: dict[str, Any]
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+class _Evaluator:
+    """Evaluates trial blocks into output arrays (threads over chunks of trials)."""
+
+    def __init__(self, mm: MeasurementModel, surrogate: KaSurrogate | None, chunk: int, threads: int):
+        self.mm = mm
+        self.sur = surrogate
+        self.chunk = max(1, int(chunk))
+        self.threads = max(1, int(threads))
+
+    def block(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        mm = self.mm
+        dirs = mm.local_directions(X)
+        r = mm.r_measured(X, dirs)
+        out0 = mm.functionals(r)
+        if self.sur is None:
+            return out0, None
+        x, _ = mm.surrogate_coords(X, dirs)
+        return out0, mm.functionals(r * self.sur(x))
+
+    def __call__(self, X: np.ndarray, bar=None) -> tuple[np.ndarray, np.ndarray | None]:
+        M = len(X)
+        n_out = len(self.mm.cells) + 2
+        Y0 = np.empty((n_out, M))
+        Y1 = np.empty((n_out, M)) if self.sur is not None else None
+
+        def work(a: int) -> int:
+            b = min(M, a + self.chunk)
+            y0, y1 = self.block(X[a:b])
+            Y0[:, a:b] = y0.T
+            if Y1 is not None:
+                Y1[:, a:b] = y1.T
+            return b - a
+
+        starts = range(0, M, self.chunk)
+        if self.threads == 1 or M <= self.chunk:
+            for a in starts:
+                k = work(a)
+                if bar is not None:
+                    bar.update(k)
+        else:
+            with ThreadPoolExecutor(self.threads) as ex:
+                for k in ex.map(work, starts):
+                    if bar is not None:
+                        bar.update(k)
+        return Y0, Y1
+
+
+def provenance(instrument: Instrument, model: RoadModel, spec: SigmaSpec, **extra) -> dict[str, Any]:
+    import scipy
+
+    from roadgonio import __version__
+    return {"roadgonio": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
+            "python": platform.python_version(), "instrument": instrument.to_dict(),
+            "instrument_file": str(instrument.path) if instrument.path else None,
+            "model": model.to_json_dict(), "sigma": spec.to_dict(), "sigma_spec": spec.source,
+            "method": "JCGM 101:2008 Monte Carlo (propagation of distributions) beside JCGM 100 first-order GUM",
+            **extra}
+
+
+def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *, trials: int = 50_000,
+                    adaptive: bool = False, seed: int = 1, coverage: float = 0.95, n_dig: int = 2,
+                    max_trials: int = 200_000, batch: int | None = None, illuminance: str = "nominal",
+                    cells: str = "standard", aperture: bool = True, backend: str = "quadrature",
+                    backend_settings: Mapping[str, Any] | None = None,
+                    backend_factory: BackendFactory | None = None, n_validation: int = 4,
+                    surrogate_design: str = "ccd",
+                    threads: int | None = None, chunk: int = 256, progress: bool = True) -> UncertaintyResult:
+    """Monte Carlo (and GUM) uncertainty of the r-table that ``instrument`` measures on a sample
+    with BRDF ``model``, for the instrument errors ``spec`` (module docstring).
+
+    ``aperture=True`` adds the case with the aperture effect (k_A surrogate from ``backend``;
+    skipped with a note for an ideal instrument, where k_A = 1). ``adaptive=True`` applies the
+    JCGM 101 7.9 stopping rule (batches of ``batch`` = max(100/(1-p), 10^4) trials, all outputs
+    stabilised to ``n_dig`` significant digits of u, at most ``max_trials``).
+    """
+    if not (0.5 < coverage < 1.0):
+        raise InputError(f"expected a coverage probability 0.5 < p < 1, got {coverage:g}", field="--coverage")
+    if n_dig not in (1, 2, 3):
+        raise InputError(f"expected 1, 2 or 3 significant digits, got {n_dig}", field="--digits")
+    trials = int(trials)
+    if not adaptive and trials < 100:
+        raise InputError(f"expected at least 100 trials, got {trials}", field="--trials")
+    if threads is None:
+        threads = min(2, os.cpu_count() or 1)
+    timings: dict[str, float] = {}
+    cs = CellSet.make(cells)
+    mm = MeasurementModel(model, instrument, cs, illuminance)
+    ss = np.random.SeedSequence(int(seed))
+    ss_mc, ss_sur = ss.spawn(2)
+    rng = np.random.default_rng(ss_mc)
+
+    sur_report = None
+    notes: list[str] = []
+    if aperture and instrument.is_ideal():
+        notes.append("ideal instrument (point source, single-ray detector): k_A = 1, aperture case skipped")
+        aperture = False
+    if aperture:
+        factory = backend_factory or default_backend_factory(backend, backend_settings or {})
+        t = time.perf_counter()
+        sur_report = build_surrogate(mm, spec, factory, seed_seq=ss_sur, n_validation=n_validation,
+                                     backend_settings={"backend": backend, **dict(backend_settings or {})},
+                                     design=surrogate_design, progress=progress)
+        timings["surrogate"] = time.perf_counter() - t
+    ev = _Evaluator(mm, sur_report.surrogate if sur_report else None, chunk, threads)
+
+    t = time.perf_counter()
+    adaptive_info = None
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=None if adaptive else trials, desc="Monte Carlo trials", unit="trial", leave=False)
+    try:
+        if not adaptive:
+            X = spec.draw(rng, trials)
+            Y0, Y1 = ev(X, bar)
+        else:
+            Mb = int(batch) if batch else max(int(math.ceil(100.0 / (1.0 - coverage))), 10_000)
+            if Mb < 100:
+                raise InputError(f"expected a batch of at least 100 trials, got {Mb}", field="--batch")
+            blocks0, blocks1, per_batch = [], [], {"0": [], "1": []}
+            h = 0
+            converged = False
+            while True:
+                X = spec.draw(rng, Mb)
+                y0, y1 = ev(X, bar)
+                blocks0.append(y0)
+                per_batch["0"].append(_batch_stats(y0, coverage))
+                if y1 is not None:
+                    blocks1.append(y1)
+                    per_batch["1"].append(_batch_stats(y1, coverage))
+                h += 1
+                if h >= 2:
+                    status = [_stability(per_batch[k], np.concatenate(b, axis=1), n_dig)
+                              for k, b in (("0", blocks0), ("1", blocks1)) if b]
+                    if all(s["stable"] for s in status):
+                        converged = True
+                        break
+                if (h + 1) * Mb > max_trials:
+                    break
+            Y0 = np.concatenate(blocks0, axis=1)
+            Y1 = np.concatenate(blocks1, axis=1) if blocks1 else None
+            st = [_stability(per_batch[k], np.concatenate(b, axis=1), n_dig)
+                  for k, b in (("0", blocks0), ("1", blocks1)) if b] if h >= 2 else []
+            adaptive_info = {"batch": Mb, "batches": h, "trials": h * Mb, "converged": converged,
+                             "n_dig": n_dig, "max_trials": max_trials,
+                             "unstable_outputs": [int(s["unstable"]) for s in st],
+                             "worst_ratio": [float(s["worst_ratio"]) for s in st]}
+    finally:
+        if bar is not None:
+            bar.close()
+    timings["monte_carlo"] = time.perf_counter() - t
+    M = Y0.shape[1]
+
+    t = time.perf_counter()
+    cases: dict[str, CaseResult] = {}
+    funcs = {"no_aperture": lambda X: mm.functionals(mm.r_measured(X))}
+    if Y1 is not None:
+        funcs["aperture"] = lambda X: ev.block(X)[1]
+    for name, Y in (("no_aperture", Y0), ("aperture", Y1)):
+        if Y is None:
+            continue
+        mc = summarize(Y, coverage, threads=threads)
+        gum = gum_propagation(funcs[name], spec.sigmas, coverage)
+        val = gum_validation(gum, mc, n_dig)
+        cases[name] = CaseResult(name=name, nominal=gum["y"], mc=mc, gum=gum, validation=val,
+                                 q0_samples=Y[-2].copy(), s1_samples=Y[-1].copy())
+    timings["statistics"] = time.perf_counter() - t
+    prov = provenance(instrument, model, spec, trials=M, seed=int(seed), coverage=coverage, n_dig=n_dig,
+                      illuminance=illuminance, cells=cs.which, adaptive=adaptive, threads=threads,
+                      chunk=chunk, rng="numpy PCG64 via SeedSequence(seed).spawn(2)[0]", notes=notes,
+                      k_a_backend=(sur_report.settings if sur_report else None))
+    return UncertaintyResult(cells=cs, cases=cases, trials=M, seed=int(seed), spec=spec, coverage=coverage,
+                             n_dig=n_dig, adaptive=adaptive_info, surrogate=sur_report, provenance=prov,
+                             seconds=timings)
+
+
+def _batch_stats(Y: np.ndarray, p: float) -> dict[str, np.ndarray]:
+    s = summarize(Y, p)
+    return {"mean": s["mean"], "u": s["u"], "low": s["sym_low"], "high": s["sym_high"]}
+
+
+def _stability(batches: Sequence[Mapping[str, np.ndarray]], pooled: np.ndarray, n_dig: int) -> dict[str, Any]:
+    """JCGM 101 7.9.4 g)-j): 2 s <= delta for the mean, u and both interval ends of every output,
+    s the standard deviation of the batch results divided by sqrt(h), delta from the pooled u."""
+    h = len(batches)
+    u_pooled = pooled.std(axis=1, ddof=1)
+    delta = numerical_tolerance(u_pooled, n_dig)
+    worst = np.zeros(pooled.shape[0])
+    for key in ("mean", "u", "low", "high"):
+        v = np.stack([b[key] for b in batches])
+        s = v.std(axis=0, ddof=1) / math.sqrt(h)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(delta > 0, 2.0 * s / delta, np.where(s > 0, np.inf, 0.0))
+        worst = np.maximum(worst, ratio)
+    return {"stable": bool(np.all(worst <= 1.0)), "unstable": int(np.sum(worst > 1.0)),
+            "worst_ratio": float(np.max(worst))}
+
+

@@ -1,0 +1,162 @@
+"""Input distributions of the instrument's geometric errors (the SPEC of ``--sigma``): parsing and validation."""
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from roadgonio.errors import InputError
+
+#: Input names of a SPEC, in the column order of the trial matrices.
+INPUTS = ("alpha_deg", "eps_deg", "beta_deg", "tilt_x_deg", "tilt_y_deg", "source_distance_m",
+          "detector_distance_m")
+INPUT_HELP = {
+    "alpha_deg": "observation elevation error (deg)",
+    "eps_deg": "source polar angle error (deg)",
+    "beta_deg": "source azimuth (beta) error (deg)",
+    "tilt_x_deg": "sample tilt about x (observation azimuth axis; normal tilts sideways) (deg)",
+    "tilt_y_deg": "sample tilt about y (normal tilts towards the detector) (deg)",
+    "source_distance_m": "source distance error (m)",
+    "detector_distance_m": "detector distance error (m)",
+}
+DISTRIBUTIONS = {"normal": "normal", "gauss": "normal", "gaussian": "normal",
+                 "rect": "rect", "rectangular": "rect", "uniform": "rect"}
+ILLUMINANCE = ("nominal", "measured")
+CELL_SETS = ("standard", "all")
+SPEC_HELP = (
+    "SPEC is a comma-separated list KEY=SIGMA[:DIST] or the path of a TOML file with the same keys "
+    "(KEY = SIGMA, KEY = \"SIGMA:DIST\" or KEY = {sigma = SIGMA, distribution = \"DIST\"}, at top level "
+    "or in a [sigma] table). SIGMA is a standard deviation (>= 0) in the key's unit; DIST is normal "
+    "(default) or rect (rectangular with that standard deviation, half-width SIGMA*sqrt(3)). Keys: "
+    + ", ".join(INPUTS) + "; keys left out are 0. Example: "
+    "alpha_deg=0.01,eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,"
+    "source_distance_m=0.002,detector_distance_m=0.005")
+
+
+# ----------------------------------------------------------------------------------------------
+# SPEC
+# ----------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class SigmaSpec:
+    """Standard deviations and distributions of the seven input errors (order :data:`INPUTS`)."""
+
+    sigma: tuple[float, ...]
+    distribution: tuple[str, ...]
+    source: str = ""
+
+    @property
+    def sigmas(self) -> np.ndarray:
+        return np.asarray(self.sigma, dtype=np.float64)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {k: {"sigma": s, "distribution": "rectangular" if d == "rect" else "normal"}
+                for k, s, d in zip(INPUTS, self.sigma, self.distribution)}
+
+    def draw(self, rng: np.random.Generator, m: int) -> np.ndarray:
+        """m trials of the seven errors, shape (m, 7). Both a normal and a uniform variate are drawn
+        for every input, so the stream does not depend on the distributions chosen."""
+        z = rng.standard_normal((m, len(INPUTS)))
+        u = rng.random((m, len(INPUTS)))
+        rect = np.array([d == "rect" for d in self.distribution])
+        x = np.where(rect[None, :], (2.0 * u - 1.0) * math.sqrt(3.0), z)
+        return x * self.sigmas[None, :]
+
+
+def _parse_entry(key: str, value: Any, *, path, field_prefix: str = "") -> tuple[float, str]:
+    fld = f"{field_prefix}{key}"
+    dist = "normal"
+    if isinstance(value, Mapping):
+        extra = sorted(set(value) - {"sigma", "distribution"})
+        if extra or "sigma" not in value:
+            raise InputError("expected {sigma = NUMBER, distribution = \"normal\"|\"rect\"}", path=path, field=fld)
+        dist_text = str(value.get("distribution", "normal"))
+        value = value["sigma"]
+    elif isinstance(value, str):
+        text, _, dist_text = value.partition(":")
+        value = text.strip()
+        dist_text = dist_text.strip() or "normal"
+    else:
+        dist_text = "normal"
+    if isinstance(value, bool):
+        raise InputError(f"expected a number (standard deviation), got {value!r}", path=path, field=fld)
+    try:
+        sigma = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"expected a number (standard deviation), got {value!r}", path=path, field=fld) from None
+    if not math.isfinite(sigma):
+        raise InputError(f"expected a finite standard deviation, got {value!r}", path=path, field=fld)
+    if sigma < 0:
+        raise InputError(f"a standard deviation must be >= 0, got {sigma:g}", path=path, field=fld)
+    d = DISTRIBUTIONS.get(dist_text.lower())
+    if d is None:
+        raise InputError(f"unknown distribution {dist_text!r}; expected normal or rect", path=path, field=fld)
+    dist = d
+    return sigma, dist
+
+
+def _spec_from_mapping(d: Mapping[str, Any], *, path, field_prefix: str, source: str) -> SigmaSpec:
+    unknown = sorted(set(d) - set(INPUTS))
+    if unknown:
+        raise InputError(f"unknown key(s) {', '.join(unknown)}; expected some of {', '.join(INPUTS)}",
+                         path=path, field=field_prefix + unknown[0])
+    sig, dist = [], []
+    for k in INPUTS:
+        if k in d:
+            s, t = _parse_entry(k, d[k], path=path, field_prefix=field_prefix)
+        else:
+            s, t = 0.0, "normal"
+        sig.append(s)
+        dist.append(t)
+    return SigmaSpec(tuple(sig), tuple(dist), source=source)
+
+
+def parse_sigma_spec(spec: str | Path | Mapping[str, Any], *, option: str = "--sigma") -> SigmaSpec:
+    """Parse a SPEC (see :data:`SPEC_HELP`): a string ``KEY=SIGMA[:DIST],...``, a TOML file path,
+    or a mapping. Unknown keys, bad numbers, negative sigmas and unknown distributions raise
+    :class:`InputError` naming the option or file and the key."""
+    if isinstance(spec, Mapping):
+        return _spec_from_mapping(spec, path=None, field_prefix="", source="mapping")
+    text = str(spec).strip()
+    p = Path(text)
+    if text.lower().endswith(".toml") or (p.suffix and p.exists()):
+        try:
+            raw = p.read_text(encoding="utf-8")
+        except FileNotFoundError:
+            raise InputError(f"no such SPEC file (given to {option})", path=p) from None
+        except (OSError, UnicodeDecodeError) as err:
+            raise InputError(f"cannot read the SPEC file ({err})", path=p) from None
+        try:
+            d = tomllib.loads(raw)
+        except tomllib.TOMLDecodeError as err:
+            raise InputError(f"not valid TOML: {getattr(err, 'msg', str(err))}", path=p,
+                             line=getattr(err, "lineno", None)) from None
+        if "sigma" in d and isinstance(d["sigma"], Mapping):
+            if set(d) - {"sigma"}:
+                raise InputError("expected only a [sigma] table", path=p, field=sorted(set(d) - {"sigma"})[0])
+            return _spec_from_mapping(d["sigma"], path=p, field_prefix="sigma.", source=str(p))
+        return _spec_from_mapping(d, path=p, field_prefix="", source=str(p))
+    if not text:
+        raise InputError(f"empty SPEC; {SPEC_HELP}", field=option)
+    d: dict[str, str] = {}
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        key, eq, val = part.partition("=")
+        key = key.strip()
+        if not eq:
+            raise InputError(f"expected KEY=SIGMA[:DIST], got {part!r} (keys: {', '.join(INPUTS)})", field=option)
+        if key in d:
+            raise InputError(f"key {key!r} given twice", field=option)
+        d[key] = val.strip()
+    try:
+        return _spec_from_mapping(d, path=None, field_prefix=f"{option} ", source=text)
+    except InputError as err:
+        raise InputError(err.reason, field=err.field) from None
+
+
