@@ -19,15 +19,21 @@ def cell(k, se):
     return CellResult(tan_eps=4.0, beta_deg=2.0, k_a=k, se=se, samples=10, seconds=0.1)
 
 
+def quad_cell(k, bound):
+    return CellResult(tan_eps=4.0, beta_deg=2.0, k_a=k, se=math.nan, error_bound=bound, samples=10, seconds=0.1)
+
+
 @pytest.mark.unit
 def test_compare_pass_band():
-    q = cell(0.5, 0.0)
+    q = quad_cell(0.5, 0.0)
     assert V.compare(q, cell(0.5 + 3.9e-3, 1e-3)).ok
     assert not V.compare(q, cell(0.5 + 4.1e-3, 1e-3)).ok
     # the float32 floor widens the band by floor * k
     assert V.compare(q, cell(0.5 + 4.1e-3, 1e-3), floor=1e-3).ok
-    r = V.compare(cell(0.5, 3e-4), cell(0.501, 4e-4))
-    assert r.sigma == pytest.approx(5e-4) and r.z == pytest.approx(2.0)
+    # the quadrature's bound widens the band as a bound, it is not an SE: allowed = 4 SE + bound
+    r = V.compare(quad_cell(0.5, 3e-4), cell(0.501, 4e-4))
+    assert r.sigma == pytest.approx(4e-4) and r.allowed == pytest.approx(4 * 4e-4 + 3e-4) and r.ok
+    assert not V.compare(quad_cell(0.5, 3e-4), cell(0.5 + 4 * 4e-4 + 3.1e-4, 4e-4)).ok
     assert not V.compare(q, cell(math.nan, 1e-3)).ok
 
 

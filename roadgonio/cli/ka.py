@@ -66,7 +66,7 @@ def backend_settings(args) -> dict:
 
 def run(args) -> int:
     from roadgonio.engines import full_grid_cells, make_backend
-    from roadgonio.engines.runner import run_cells, write_outputs
+    from roadgonio.engines.runner import _precision_text, run_cells, write_outputs
     single = args.tan_eps is not None or args.beta is not None
     if single and (args.tan_eps is None or args.beta is None):
         raise InputError("give both --tan-eps and --beta for one cell (or neither for the whole table)",
@@ -87,10 +87,13 @@ def run(args) -> int:
         c = run_.results[0]
         seconds = c.seconds if run_.resumed else time.perf_counter() - t0
         if args.json:
-            print(json.dumps({"k_a": c.k_a, "se": c.se, "samples": c.samples, "seconds": seconds}))
+            print(json.dumps(_finite_json({"k_a": c.k_a, "se": c.se, "error_bound": c.error_bound,
+                                           "converged": c.converged, "samples": c.samples, "seconds": seconds})))
         else:
-            print(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} +- {c.se:.2g} "
-                  f"(standard error; {c.samples} samples, {seconds:.2f} s, {backend.name} backend)")
+            prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error")
+            print(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
+                  f"{c.samples} samples, {seconds:.2f} s, {backend.name} backend)"
+                  + ("" if c.converged else " -- NOT converged: the target was not reached"))
         return 0
 
     if args.cells == "table":
@@ -114,6 +117,13 @@ def run(args) -> int:
     else:
         print(f"k_A for {instrument.name} x {sample_name} ({backend.name}): {s['cells']} cells "
               f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
-              f"worst relative SE {s['worst_rel_se']:.1e}, {run_.seconds:.1f} s.", file=sys.stdout)
-        print(f"wrote {out_dir}/ka.csv, ka_se.csv, ka.png, ka.json")
+              f"{_precision_text(s)}, {run_.seconds:.1f} s.", file=sys.stdout)
+        print(f"wrote {out_dir}/" + ", ".join(f for f in meta["files"].values() if f and f != "ka_cells.jsonl")
+              + ", ka.json")
     return 0
+
+
+def _finite_json(d: dict) -> dict:
+    """NaN/inf -> None, so that --json output is valid JSON."""
+    import math
+    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}

@@ -83,7 +83,7 @@ def _grid_ka(factory: Factory, instrument: Instrument, model: RoadModel, table: 
     ii, jj = np.nonzero(table.mask)
     for i, j, c in zip(ii, jj, res):
         k[i, j] = c.k_a
-        se[i, j] = c.se
+        se[i, j] = c.standard_uncertainty()
     try:
         settings = dict(backend.settings())
     except Exception:  # noqa: BLE001 - provenance only

@@ -26,15 +26,41 @@ from roadgonio.surface.model import RoadModel
 
 @dataclass(frozen=True)
 class CellResult:
-    """k_A at one cell, with its standard error (Monte Carlo) or error estimate (quadrature)."""
+    """k_A at one cell with its precision; each field has one meaning.
+
+    ``se`` is a standard error (Monte Carlo backends; NaN for a deterministic backend) and
+    ``error_bound`` a deterministic bound on |k_A - true k_A| (quadrature; NaN for Monte Carlo).
+    ``converged`` is False when the backend stopped (sample or evaluation cap) before reaching its
+    target; such a value must never be reported as agreeing with anything.
+    """
 
     tan_eps: float
     beta_deg: float
     k_a: float
-    se: float
+    se: float             # standard error of k_a (Monte Carlo); NaN if deterministic
     samples: int          # MC samples, or integrand evaluations for quadrature
     seconds: float
     extra: dict[str, Any] | None = None
+    error_bound: float = math.nan   # deterministic error bound of k_a; NaN for Monte Carlo
+    converged: bool = True
+
+    def __post_init__(self):
+        # JSON (journal, outputs) carries NaN as null: read it back as NaN
+        for name in ("se", "error_bound"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, math.nan)
+
+    @property
+    def deterministic(self) -> bool:
+        """True when the precision is an error bound (quadrature), False for a standard error."""
+        return not math.isfinite(self.se) and math.isfinite(self.error_bound)
+
+    def standard_uncertainty(self) -> float:
+        """The standard uncertainty of k_a for an uncertainty budget: the standard error, or for a
+        deterministic bound b the rectangular-distribution value b / sqrt(3) (GUM, JCGM 100 4.3.7)."""
+        if math.isfinite(self.se):
+            return float(self.se)
+        return float(self.error_bound) / math.sqrt(3.0)
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

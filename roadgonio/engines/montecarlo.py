@@ -141,7 +141,7 @@ class MonteCarloBackend(CellByCellBackend):
         n = len(road) * self.batch
         converged = bool(se <= self.rel_se * abs(k))
         extra = {"batches": len(road), "converged": converged, "rel_se": se / abs(k) if k else math.inf}
-        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), samples=int(n),
+        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), converged=converged, samples=int(n),
                           seconds=time.perf_counter() - t0, extra=extra)
 
 

@@ -26,7 +26,7 @@ Error control ("two successive estimates agree"): the error share of each direct
 of k_A when that direction alone drops one level; directions whose share exceeds ``rtol / n`` are
 refined until the sum of the shares is below ``rtol * k_A`` (shares of directions not refined lately
 are re-checked at the final levels). The reported value is the finest estimate and
-``CellResult.se`` is the sum of the shares, an estimate of the error of the next coarser rules, so
+``CellResult.error_bound`` is the sum of the shares, an estimate of the error of the next coarser rules, so
 conservative for spectrally converging integrands (bench: true errors 2-10x below it). A cell whose
 integrand has a kink or a jump (the footprint crossing the plane of the source disc, a source beam
 edge, g's kink at theta_l) converges only algebraically; refinement stops at ``max_evals``
@@ -351,7 +351,8 @@ class QuadratureBackend(CellByCellBackend):
         if not converged:
             extra["note"] = (f"stopped at max_evals = {self.max_evals}: the estimated relative error "
                              f"{err / abs(base):.2e} exceeds rtol = {self.rtol:g}")
-        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(base), se=float(err),
+        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(base), se=math.nan,
+                          error_bound=float(err), converged=bool(converged),
                           samples=int(evals), seconds=time.perf_counter() - t0, extra=extra)
 
 

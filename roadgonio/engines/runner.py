@@ -170,23 +170,38 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
     return KaRun(results=results, seconds=time.perf_counter() - t0, resumed=resumed)
 
 
+def _precision_text(summary: dict[str, Any]) -> str:
+    """'worst rel. SE 1.5e-04' or 'worst rel. error bound 9.9e-04' (never one for the other)."""
+    for key, name in (("worst_rel_se", "worst rel. SE"), ("worst_rel_error_bound", "worst rel. error bound")):
+        if summary.get(key) is not None:
+            text = f"{name} {summary[key]:.1e}"
+            if summary.get("not_converged"):
+                text += f", {summary['not_converged']} cells NOT converged"
+            return text
+    return ""
+
+
 def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, model: RoadModel,
                   backend: KaBackend, sample_spec: str, plot: bool = True) -> dict[str, Any]:
     """Write ka.csv, ka_se.csv, ka.png and ka.json; returns the ka.json content."""
     out_dir = Path(out_dir)
     ka = run.grid("k_a")
-    se = run.grid("se")
     label = f"k_A of instrument '{instrument.name}' for sample '{sample_spec}' ({backend.name} backend)"
     RTable(ka, name="k_A", source=label).write_csv(out_dir / "ka.csv", scale=1.0, digits=7)
-    RTable(se, name="k_A standard error", source="standard error of " + label).write_csv(
-        out_dir / "ka_se.csv", scale=1.0, digits=4)
-    rel = np.array([c.se / abs(c.k_a) if c.k_a else math.inf for c in run.results])
+    # a standard error (Monte Carlo) and a deterministic error bound (quadrature) go to different files
+    deterministic = bool(run.results) and all(c.deterministic for c in run.results)
+    prec_field, prec_file, prec_name = (("error_bound", "ka_bound.csv", "k_A error bound") if deterministic
+                                        else ("se", "ka_se.csv", "k_A standard error"))
+    RTable(run.grid(prec_field), name=prec_name, source=f"{prec_name} of " + label).write_csv(
+        out_dir / prec_file, scale=1.0, digits=4)
+    rel = np.array([getattr(c, prec_field) / abs(c.k_a) if c.k_a else math.inf for c in run.results])
     finite_ka = np.array([c.k_a for c in run.results])
     summary = {
         "cells": len(run.results),
         "k_a_min": float(finite_ka.min()) if finite_ka.size else None,
         "k_a_max": float(finite_ka.max()) if finite_ka.size else None,
-        "worst_rel_se": float(rel.max()) if rel.size else None,
+        ("worst_rel_error_bound" if deterministic else "worst_rel_se"): float(rel.max()) if rel.size else None,
+        "not_converged": int(sum(not c.converged for c in run.results)),
         "samples": int(sum(c.samples for c in run.results)),
         "seconds_total": float(sum(c.seconds for c in run.results)),
         "seconds_wall_this_run": run.seconds,
@@ -203,13 +218,12 @@ def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, mo
         "versions": versions(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "summary": summary,
-        "files": {"ka": "ka.csv", "se": "ka_se.csv", "map": "ka.png" if plot else None, "journal": JOURNAL},
+        "files": {"ka": "ka.csv", prec_field: prec_file, "map": "ka.png" if plot else None, "journal": JOURNAL},
     }
     atomic_write_json(out_dir / "ka.json", meta)
     if plot:
         from roadgonio.plots import table_map
         table_map(ka, out_dir / "ka.png", title=f"Aperture-effect factor k_A: {instrument.name} x {sample_spec}",
-                  subtitle=f"{backend.name} backend, {summary['cells']} cells, worst rel. SE "
-                           f"{summary['worst_rel_se']:.1e}" if summary["worst_rel_se"] is not None else "",
+                  subtitle=f"{backend.name} backend, {summary['cells']} cells, " + _precision_text(summary),
                   label="k_A (1 = no aperture effect)")
     return meta

@@ -100,11 +100,11 @@ def parse_cells(text: str | None) -> list[tuple[float, float]]:
 def compare(quad, mc, floor: float = 0.0) -> CellComparison:
     """Compare a quadrature CellResult with a Monte Carlo CellResult of the same cell."""
     d = mc.k_a - quad.k_a
-    sigma = math.sqrt(mc.se ** 2 + quad.se ** 2)
-    allowed = N_SIGMA * sigma + floor * abs(quad.k_a)
+    sigma = mc.se  # a standard error; the quadrature's error bound is added as a bound, never as an SE
+    allowed = N_SIGMA * sigma + quad.error_bound + floor * abs(quad.k_a)
     z = d / sigma if sigma > 0 else (0.0 if d == 0 else math.copysign(math.inf, d))
     ok = bool(math.isfinite(d) and abs(d) <= allowed)
-    return CellComparison(tan_eps=quad.tan_eps, beta_deg=quad.beta_deg, k_quad=quad.k_a, err_quad=quad.se,
+    return CellComparison(tan_eps=quad.tan_eps, beta_deg=quad.beta_deg, k_quad=quad.k_a, err_quad=quad.error_bound,
                           k_mc=mc.k_a, se_mc=mc.se, diff=d, rel_diff=d / quad.k_a if quad.k_a else math.nan,
                           sigma=sigma, z=z, floor=floor, allowed=allowed, ok=ok, seconds_quad=quad.seconds,
                           seconds_mc=mc.seconds, samples_mc=mc.samples)

@@ -45,7 +45,7 @@ class SurrogateReport:
     seconds: float
     rel_err_max: np.ndarray      # (n_cells,) max over validation trials of |k_sur/k_exact - 1|
     rel_err_rms: np.ndarray
-    backend_rel_se_max: float    # largest relative error estimate of the backend (se / k_A)
+    backend_rel_se_max: float    # largest relative standard uncertainty of the backend (SE, or bound/sqrt 3)
     settings: dict[str, Any]
 
     def summary(self, u_rel: np.ndarray | None = None) -> dict[str, Any]:
@@ -109,7 +109,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
             except Exception:  # noqa: BLE001 - provenance only
                 settings_seen["backend"] = getattr(backend, "name", "?")
         res = backend.compute(mm.cells_of(w), on_cell=(lambda _r: bar.update(1)) if bar is not None else None)
-        return np.array([c.k_a for c in res]), np.array([c.se for c in res])
+        return np.array([c.k_a for c in res]), np.array([c.standard_uncertainty() for c in res])
 
     settings_seen: dict[str, Any] = {}
     x_design = np.empty((len(pts), n, N_COORDS))

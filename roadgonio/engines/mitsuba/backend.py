@@ -173,7 +173,7 @@ class MitsubaBackend(CellByCellBackend):
                  "rel_se": rel, "converged": converged}
         if ideal <= 0.0:
             extra["note"] = "the model is 0 at the nominal geometry: k_A is undefined"
-        return CellResult(tan_eps=float(tan_eps), beta_deg=float(beta_deg), k_a=float(k_a), se=float(k_se),
+        return CellResult(tan_eps=float(tan_eps), beta_deg=float(beta_deg), k_a=float(k_a), se=float(k_se), converged=bool(converged),
                           samples=int(n_samples), seconds=time.perf_counter() - t0, extra=extra)
 
 
