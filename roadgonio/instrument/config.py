@@ -36,6 +36,7 @@ import numpy as np
 
 from roadgonio.errors import InputError
 from roadgonio.geometry import w_detector, w_source
+from roadgonio.instrument.calibration import Calibration
 
 
 def _num(d: Mapping[str, Any], key: str, section: str, path, *, default=None, required=False,
@@ -141,6 +142,8 @@ class Instrument:
     name: str = "instrument"
     description: str = ""
     path: Path | None = None
+    #: How a signal becomes q: [calibration] (DESIGN.md section 5; roadgonio.instrument.calibration).
+    calibration: Calibration = field(default_factory=Calibration)
     #: Extra sections not interpreted here (kept for backends and provenance).
     extra: Mapping[str, Any] = field(default_factory=dict)
 
@@ -182,6 +185,8 @@ class Instrument:
         smp = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self.sample).items() if v is not None}
         d = {"instrument": {"name": self.name, "description": self.description},
              "observation": asdict(self.observation), "source": src, "detector": det, "sample": smp}
+        if not self.calibration.is_default:   # the default is left out, so Lambert fingerprints do not change
+            d["calibration"] = self.calibration.to_dict()
         d.update({k: dict(v) if isinstance(v, Mapping) else v for k, v in self.extra.items()})
         return d
 
@@ -240,10 +245,11 @@ class Instrument:
                             size_y_m=_num(sm, "size_y_m", "sample", path, default=2.0, lo=0.0, lo_open=True))
         meta = d.get("instrument", {})
         name = str(meta.get("name", path.stem if path is not None else "instrument"))
+        calibration = Calibration.from_dict(d.get("calibration", {}), path=path)
         extra = {k: v for k, v in d.items()
-                 if k not in ("observation", "source", "detector", "sample", "instrument")}
+                 if k not in ("observation", "source", "detector", "sample", "instrument", "calibration")}
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
-                   description=str(meta.get("description", "")), path=path, extra=extra)
+                   description=str(meta.get("description", "")), path=path, calibration=calibration, extra=extra)
 
     @classmethod
     def load(cls, path: str | Path) -> "Instrument":
