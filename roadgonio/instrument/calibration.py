@@ -38,6 +38,20 @@ class Calibration:
     mode: str = DEFAULT_MODE
     reference: str | None = None
 
+    def __post_init__(self):
+        if not isinstance(self.mode, str) or self.mode.strip().lower() not in MODES:
+            raise InputError(f"expected one of {', '.join(repr(m) for m in MODES)}, got {self.mode!r}",
+                             field="calibration.mode")
+        object.__setattr__(self, "mode", self.mode.strip().lower())
+        if self.mode == "reference":
+            if not isinstance(self.reference, (str, Path)) or not str(self.reference).strip():
+                raise InputError("mode = \"reference\" needs reference = SAMPLE (a bundled table name such as "
+                                 "\"R3\", a table file, a model.json or \"lambert\")", field="calibration.reference")
+            object.__setattr__(self, "reference", str(self.reference).strip())
+        elif self.reference is not None:
+            raise InputError(f"reference is only used with mode = \"reference\" (mode is {self.mode!r})",
+                             field="calibration.reference")
+
     @property
     def is_default(self) -> bool:
         return self.mode == DEFAULT_MODE
@@ -67,27 +81,17 @@ class Calibration:
         if extra:
             raise InputError(f"unknown key(s) {', '.join(extra)}; expected some of mode, reference",
                              path=path, field="calibration")
-        mode = d.get("mode", DEFAULT_MODE)
-        if not isinstance(mode, str) or mode.strip().lower() not in MODES:
-            raise InputError(f"expected one of {', '.join(repr(m) for m in MODES)}, got {mode!r}",
-                             path=path, field="calibration.mode")
-        mode = mode.strip().lower()
-        ref = d.get("reference")
-        if mode == "reference":
-            if not isinstance(ref, str) or not ref.strip():
-                raise InputError("mode = \"reference\" needs reference = SAMPLE (a bundled table name such as "
-                                 "\"R3\", a table file, a model.json or \"lambert\")", path=path,
-                                 field="calibration.reference")
-            ref = ref.strip()
-            p = Path(ref).expanduser()
+        try:
+            cal = cls(mode=d.get("mode", DEFAULT_MODE), reference=d.get("reference"))
+        except InputError as err:
+            raise InputError(err.reason, path=path, field=err.field) from None
+        if cal.reference is not None:
+            p = Path(cal.reference).expanduser()
             if p.suffix.lower() in _FILE_SUFFIXES:
                 if not p.is_absolute() and path is not None:
                     p = Path(path).parent / p
                 if not p.exists():
                     raise InputError(f"reference file {str(p)!r} does not exist", path=path,
                                      field="calibration.reference")
-                ref = str(p)
-        elif ref is not None:
-            raise InputError(f"reference is only used with mode = \"reference\" (mode is {mode!r})", path=path,
-                             field="calibration.reference")
-        return cls(mode=mode, reference=ref)
+                cal = cls(mode=cal.mode, reference=str(p))
+        return cal
