@@ -65,11 +65,11 @@ def independent_eta(inst: Instrument, tan_eps: float, beta_deg: float, n: int) -
     e_edge = det.field_edge_sensitivity
     tg = math.tan(math.radians(det.field_half_angle_deg))
     P = cp[None, :] + px[:, None] * u1 + py[:, None] * u2                          # pupil points
-    if math.isinf(det.focus):
+    if math.isinf(det.focus_distance_m):
         D = a[None, :] + tg * (fx[:, None] * u1 + fy[:, None] * u2)               # directions
         D = np.broadcast_to(D[None], (len(px),) + D.shape)
     else:
-        Q = cp + det.focus * a + det.focus * tg * (fx[:, None] * u1 + fy[:, None] * u2)
+        Q = cp + det.focus_distance_m * a + det.focus_distance_m * tg * (fx[:, None] * u1 + fy[:, None] * u2)
         D = Q[None, :, :] - P[:, None, :]
     L = np.linalg.norm(D, axis=-1)
     D = D / L[..., None]
