@@ -67,6 +67,7 @@ def test_cli_passes_and_writes_outputs(tmp_path, capsys):
     doc = json.loads((out / "validate.json").read_text())
     assert doc["ok"] is True and doc["against"] == "numpy-mc" and len(doc["cells"]) == 3
     assert "quadrature" in doc["settings"] and doc["model"]["params"]["n_phong"] == pytest.approx(34.467)
+    assert {"roadgonio", "mitsuba", "drjit", "numpy"} <= set(doc["versions"]) and doc["instrument"]["source"]
     assert (out / "validate.png").stat().st_size > 10_000
 
 

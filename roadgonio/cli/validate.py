@@ -63,6 +63,8 @@ def run(args) -> int:
 
     report = validate(instrument, model, cells, against=args.against, rel_se=args.rel_se, rtol=args.rtol,
                       seed=args.seed, floor=args.floor, mc_settings=mc_settings, on_cell=show)
+    from roadgonio.provenance import provenance
+    report.update(provenance(instrument=instrument, model=model, settings=report["settings"]))
     report["sample"] = sample_name
     paths = write_outputs(report, out_dir)
     rows = report["rows"]

@@ -124,13 +124,12 @@ def correct_table(measured: RTable, instrument: Instrument, reference: RoadModel
     corrected = measured.with_values(measured.r / k, name=f"{measured.name}_corrected",
                                      source=f"{measured.name} corrected for the aperture effect: r / k_A "
                                             f"(reference {reference_name}, instrument {instrument.name})")
-    from roadgonio import __version__
-    prov = {"roadgonio": __version__, "numpy": np.__version__, "instrument": instrument.to_dict(),
-            "instrument_file": str(instrument.path) if instrument.path else None,
-            "reference": reference_name, "reference_model": reference.to_json_dict(),
-            "alternatives": {n: m.to_json_dict() for n, m in alternatives.items()},
-            "backend": settings or {"backend": backend, **dict(backend_settings or {})},
-            "u_model": "max |k_A(alternative) - k_A(reference)| / sqrt(3) (rectangular)"}
+    from roadgonio.provenance import provenance
+    prov = provenance(instrument=instrument, model=reference, backend=str(settings.get("backend", backend)),
+                      settings=settings or {"backend": backend, **dict(backend_settings or {})},
+                      reference=reference_name,
+                      alternatives={n: m.to_json_dict() for n, m in alternatives.items()},
+                      u_model="max |k_A(alternative) - k_A(reference)| / sqrt(3) (rectangular)")
     return Correction(measured=measured, corrected=corrected, k_a=k, se=se, alternatives=alts, u_model=u_model,
                       u_rel=u_rel, reference=reference_name, provenance=prov, seconds=time.perf_counter() - t0)
 

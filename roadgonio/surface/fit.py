@@ -40,9 +40,9 @@ from typing import Any, Callable, Mapping
 import numpy as np
 from scipy.optimize import differential_evolution, minimize, nnls
 
-from roadgonio import __version__
 from roadgonio.errors import InputError
 from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
+from roadgonio.provenance import versions
 from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS, NumpyOps,
                     RoadModel, RoadParams, road_brdf)
 from roadgonio.surface.rtable import RTable
@@ -367,7 +367,7 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
                           f"for {', '.join(prob.free_nl) or 'nothing'}",
                 "objective": f"RMS^2 + {prob.max_weight} * L8^2 of deviations in % of max r",
                 "fixed": fx, "cells": int(table.mask.sum()), "nfev": prob.nfev,
-                "roadgonio_version": __version__, "method_version": FIT_METHOD_VERSION},
+                "versions": versions(), "method_version": FIT_METHOD_VERSION},
         "table": {"name": table.name, "source": table.source, "sha256": table_hash(table),
                   "r_max": table.r_max, "cells": int(table.mask.sum())},
     }
