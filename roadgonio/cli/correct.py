@@ -38,7 +38,7 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from roadgonio.correction import correct_table, nearest_standard_tables, write_correction
+    from roadgonio.correction import correct_table, resolve_alternatives, sample_name, write_correction
     from roadgonio.fileio import to_json
     from roadgonio.instrument.config import load_instrument
     from roadgonio.surface.rtable import read_table
@@ -61,15 +61,9 @@ def run(args) -> int:
     instrument = load_instrument(args.instrument)
     reference = resolve_sample_spec(args.reference, args.model_variant)
     select_variant(args.backend)
-    ref_name = Path(args.reference).stem if Path(args.reference).suffix else args.reference
-    alt_arg = args.alternatives.strip()
-    if alt_arg.lower() == "auto":
-        names = [n for n, _ in nearest_standard_tables(measured, 2, exclude=[ref_name])]
-    elif alt_arg.lower() in ("none", ""):
-        names = []
-    else:
-        names = [s.strip() for s in alt_arg.split(",") if s.strip()]
-    alternatives = {(Path(n).stem if Path(n).suffix else n): resolve_sample_spec(n, args.model_variant) for n in names}
+    ref_name = sample_name(args.reference)
+    alternatives = resolve_alternatives(args.alternatives, measured, reference_name=ref_name,
+                                        model_variant=args.model_variant)
     c = correct_table(measured, instrument, reference, reference_name=ref_name, alternatives=alternatives,
                       backend=args.backend, backend_settings=settings, progress=True)
     c.provenance["measured_file"] = str(args.measured)

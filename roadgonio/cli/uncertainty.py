@@ -98,13 +98,9 @@ def run(args) -> int:
         raise InputError(f"expected a coverage probability between 0.5 and 1, got {args.coverage:g}", field="--coverage")
     if args.validation < 0:
         raise InputError(f"expected a number >= 0, got {args.validation}", field="--validation")
-    settings: dict = {}
-    if args.rel_se is not None:
-        settings.update(rel_se_setting(args.backend, args.rel_se))
-    elif args.backend == "quadrature":
-        settings["rtol"] = 1e-4
-    else:
-        settings["rel_se"] = 3e-3
+    from roadgonio.uncertainty.run import DEFAULT_BACKEND_TOLERANCE
+    settings = rel_se_setting(args.backend, DEFAULT_BACKEND_TOLERANCE[args.backend] if args.rel_se is None
+                              else args.rel_se)
     if args.backend == "mitsuba":
         settings["seed"] = args.seed
     instrument = load_instrument(args.instrument)

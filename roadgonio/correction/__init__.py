@@ -47,6 +47,32 @@ def nearest_standard_tables(table: RTable, k: int = 2, exclude: Sequence[str] = 
     return d[:k]
 
 
+def sample_name(spec: str) -> str:
+    """Short name of a SAMPLE argument: a file's stem, else the argument (``R3``, ``lambert``)."""
+    return Path(spec).stem if Path(spec).suffix else spec
+
+
+def resolve_alternatives(spec: str | Sequence[str] | None, measured: RTable, *, reference_name: str,
+                         model_variant: str | None = None) -> dict[str, RoadModel]:
+    """The alternative references for the model uncertainty: ``"auto"`` = the two CIE tables
+    nearest to ``measured`` in (S1, Q0), the reference excluded; ``"none"``/``None`` = none; a
+    comma-separated text or a list of SAMPLEs = those (fitted or loaded like the reference)."""
+    from roadgonio.surface.sample import resolve_sample
+    if spec is None:
+        return {}
+    if isinstance(spec, str):
+        text = spec.strip()
+        if text.lower() == "auto":
+            names = [n for n, _ in nearest_standard_tables(measured, 2, exclude=[reference_name])]
+        elif text.lower() in ("none", ""):
+            names = []
+        else:
+            names = [s.strip() for s in text.split(",") if s.strip()]
+    else:
+        names = [str(s) for s in spec]
+    return {sample_name(n): resolve_sample(n, model_variant) for n in names}
+
+
 @dataclass
 class Correction:
     measured: RTable
