@@ -1,4 +1,4 @@
-"""Provenance of a result, built in one place (DESIGN.md; developers' guide, rule 7).
+"""Provenance of a result, built in one place (developers' guide, rule 7).
 
 Every output that carries results (``ka.json`` of a k_A table, ``validate.json``,
 ``uncertainty.json``, ``correction.json``, ``render.json``, the attrs of

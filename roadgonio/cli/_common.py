@@ -4,7 +4,8 @@ from __future__ import annotations
 from roadgonio.engines.accuracy import rel_se_setting  # noqa: F401 - the commands' --rel-se mapping
 
 
-INSTRUMENT_HELP = "instrument TOML file (scenes/*.toml) or a bundled preset name (lab, portable)"
+INSTRUMENT_HELP = ("instrument TOML file (keys and units: docs/conventions.md section 4; apertures are radii) or a "
+                   "bundled preset name (lab, portable)")
 SAMPLE_HELP = ("bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file (.csv/.rtb), "
                "a model.json, or 'lambert'")
 

@@ -23,7 +23,7 @@ def register(sub) -> None:
     p = sub.add_parser(
         "ka", help="aperture-effect factor k_A of an instrument (one cell or the whole r-table)",
         description="Compute k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) for an instrument "
-                    "and a sample (DESIGN.md section 5). Without --tan-eps/--beta the whole 580-cell grid is "
+                    "and a sample (docs/conventions.md section 5). Without --tan-eps/--beta the whole 580-cell grid is "
                     "computed and written to --out (ka.csv, ka_se.csv, ka.png, ka.json); an interrupted table "
                     "resumes when the same command is run again.")
     add_instrument_argument(p)

@@ -1,4 +1,4 @@
-"""Correction of a measured r-table for the aperture effect (paper eq. 2; DESIGN.md section 5):
+"""Correction of a measured r-table for the aperture effect (paper eq. 2; docs/conventions.md section 5):
 ``r_true = r_measured / k_A``, with k_A computed for a reference BRDF model close to the sample
 (paper section 4.1: "choosing the reference r-table closest to the sample behaviour").
 

@@ -186,7 +186,7 @@ def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, mo
         "resumed_cells": run.resumed,
     }
     meta = {
-        "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (DESIGN.md section 5)",
+        "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md section 5)",
         **provenance(instrument=instrument, model=model, backend=backend.name, settings=backend.settings()),
         "sample": sample_spec,
         "summary": summary,

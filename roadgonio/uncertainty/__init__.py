@@ -30,7 +30,7 @@ Measurement model (one trial)
 -----------------------------
 The instrument believes it measures at the nominal (alpha0, delta0) and (eps0, beta0) of the cell.
 True geometry: detector direction ``w_o(alpha0 + d_alpha, delta0)``, source direction
-``w_i(eps0 + d_eps, beta0 + d_beta)`` (DESIGN.md section 1), both in the laboratory frame; the
+``w_i(eps0 + d_eps, beta0 + d_beta)`` (docs/conventions.md section 1), both in the laboratory frame; the
 sample is tilted by ``R = R_y(tilt_y) R_x(tilt_x)`` (normal ``R e_z``), so the directions in the
 sample's own frame are ``w' = R^T w``. The road BRDF is evaluated only through
 :meth:`roadgonio.surface.model.RoadModel.brdf` on ``(w_i', w_o')``.
