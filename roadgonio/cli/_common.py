@@ -1,6 +1,8 @@
 """Helpers shared by the commands (not a command: modules starting with '_' are not discovered)."""
 from __future__ import annotations
 
+import sys
+
 from roadgonio.engines.accuracy import rel_se_setting  # noqa: F401 - the commands' --rel-se mapping
 
 
@@ -33,3 +35,25 @@ def select_variant(backend: str, variant: str | None = None) -> None:
     if backend == "mitsuba":
         from roadgonio.engines.mitsuba import set_variant
         set_variant(variant)
+
+
+# -- output: every command has --json and --quiet; progress bars only on a terminal -------------
+
+def add_output_options(p, json_help: str = "print the result as JSON instead of text") -> None:
+    """``--json`` (machine-readable result on stdout) and ``--quiet`` (nothing but errors), exclusive."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--json", action="store_true", help=json_help)
+    g.add_argument("-q", "--quiet", action="store_true",
+                   help="print nothing but errors (no summary, no progress bar); the exit status tells the result")
+
+
+def show_progress(args) -> bool:
+    """Progress bars only when stderr is a terminal (never into a log or a pipe), and not with --quiet."""
+    return not getattr(args, "quiet", False) and sys.stderr.isatty()
+
+
+def text_output(args):
+    """``print`` for the human-readable summary, or a no-op with --quiet or --json."""
+    if getattr(args, "quiet", False) or getattr(args, "json", False):
+        return lambda *a, **k: None
+    return print

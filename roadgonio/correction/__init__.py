@@ -167,8 +167,9 @@ def write_correction(c: Correction, out_dir: str | Path, *, plots: bool = True) 
     out.mkdir(parents=True, exist_ok=True)
     base = c.measured.name
     paths = [c.corrected.write_csv(out / f"{base}_corrected.csv"), c.corrected.write_rtb(out / f"{base}_corrected.rtb")]
-    lines = ["tan_eps,beta_deg,r_measured_x1e4,k_a,k_a_se,u_model," + ",".join(f"k_a_{n}" for n in c.alternatives)
-             + ",r_corrected_x1e4,u_rel_correction"]
+    header = (["tan_eps", "beta_deg", "r_measured_x1e4", "k_a", "k_a_se", "u_model"]
+              + [f"k_a_{n}" for n in c.alternatives] + ["r_corrected_x1e4", "u_rel_correction"])
+    lines = [",".join(header)]      # (joining the alternatives alone left an empty column when there were none)
     for i, j in zip(*np.nonzero(c.measured.mask)):
         alts = "".join(f",{a[i, j]:.6g}" for a in c.alternatives.values())
         lines.append(f"{TAN_EPS_GRID[i]:g},{BETA_GRID_DEG[j]:g},{c.measured.r[i, j] * 1e4:.6g},{c.k_a[i, j]:.6g},"
