@@ -1,4 +1,4 @@
-"""Instrument description (DESIGN.md section 4; docs/conventions.md): frozen dataclasses that
+"""Instrument description (docs/conventions.md section 4): frozen dataclasses that
 validate themselves on construction, built from TOML or a plain dict, units in the names.
 
 .. code-block:: toml
@@ -84,7 +84,7 @@ def _check_keys(d: Mapping[str, Any], allowed: set[str], section: str, path) -> 
 @dataclass(frozen=True)
 class Observation:
     """Observation direction: elevation ``alpha_deg`` above the surface (0 < alpha < 90) and
-    azimuth ``delta_deg`` (DESIGN.md section 1)."""
+    azimuth ``delta_deg`` (docs/conventions.md section 1)."""
 
     alpha_deg: float = 1.0
     delta_deg: float = 0.0
@@ -198,6 +198,10 @@ class Sample:
 
 
 _SECTIONS = ("observation", "source", "detector", "sample", "instrument")
+#: Sections kept as they are for the parts that read them: [scene] (the Mitsuba XML scene,
+#: roadgonio.engines.mitsuba.scene). [calibration] (docs/conventions.md section 5) is the field
+#: ``calibration`` (roadgonio.instrument.calibration; k_A in its mode: roadgonio.engines.calibration).
+EXTRA_SECTIONS = ("scene",)
 
 
 @dataclass(frozen=True)
@@ -324,9 +328,17 @@ class Instrument:
             sm["mesh"] = mesh
         sample = Sample(**sm)
         meta = d.get("instrument", {})
+        _check_keys(meta, {"name", "description"}, "instrument", None)
         name = str(meta.get("name", path.stem if path is not None else "instrument"))
         calibration = Calibration.from_dict(d.get("calibration", {}), path=path)
         extra = {k: v for k, v in d.items() if k not in _SECTIONS and k != "calibration"}
+        unknown = sorted(set(extra) - set(EXTRA_SECTIONS))
+        if unknown:
+            raise InputError(f"unknown section(s) [{'], ['.join(unknown)}]; expected some of "
+                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS + ('calibration',))}]", field=unknown[0])
+        for sec in EXTRA_SECTIONS:
+            if sec in extra and not isinstance(extra[sec], Mapping):
+                raise InputError(f"expected a table [{sec}]", field=sec)
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
                    description=str(meta.get("description", "")), path=path, calibration=calibration, extra=extra)
 
