@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
-from scipy.optimize import least_squares, nnls
+from scipy.optimize import least_squares, lsq_linear, nnls
 
 from roadgonio.correction.forward import LINEAR_TERMS, ForwardModel
 from roadgonio.errors import InputError
@@ -177,15 +177,17 @@ class _Problem:
             cols.append(c / s)
         model = np.zeros_like(target)
         if cols:
+            M = np.stack(cols, axis=1)
+            ub = np.array([PARAM_BOUNDS[k][1] * sc for k, _, sc in use])
             try:
-                x, _ = nnls(np.stack(cols, axis=1), target, maxiter=50 * len(cols))
+                x, _ = nnls(M, target, maxiter=50 * len(cols))
             except RuntimeError:
-                return None
-            for (k, j, s), xi in zip(use, x):
-                kv = xi / s
-                if not math.isfinite(kv) or kv > PARAM_BOUNDS[k][1]:
-                    return None
-                ks[k] = kv
+                x = np.full(len(cols), np.inf)
+            if not np.all(np.isfinite(x) & (x <= ub)):
+                # a coefficient beyond its bound (k_* <= 1e6): the bounded least squares instead
+                x = lsq_linear(M, target, bounds=(np.zeros(len(cols)), ub), method="bvls").x
+            for (k, j, sc), xi in zip(use, x):
+                ks[k] = float(min(max(xi / sc, 0.0), PARAM_BOUNDS[k][1]))
         for j, k in enumerate(LINEAR_TERMS):
             model = model + ks[k] * A[:, j]
         res = model - self.y * self.w

@@ -109,6 +109,8 @@ def _functional_text(f: dict[str, Any]) -> str:
 
 def plot_before_after(res, path: Path) -> Path:
     """The 20 beta columns: r x 1e4 against tan eps, as measured and as corrected (95 % band)."""
+    from matplotlib import ticker
+
     from roadgonio.plots import _plt
     plt = _plt()
     meas, corr = res.measured, res.corrected
@@ -124,8 +126,12 @@ def plot_before_after(res, path: Path) -> Path:
         ax.plot(t, meas.r[ok, j] * 1e4, "o--", color="0.45", ms=3, lw=0.9)
         ax.plot(t, rc, "-", color="C0", lw=1.6)
         ax.plot(t, model_r[ok, j] * 1e4, ":", color="C3", lw=1.0)
-        ax.set_title(f"beta = {beta:g} deg", fontsize=9)
+        change = 100.0 * (corr.r[ok, j] / meas.r[ok, j] - 1.0)
+        ax.set_title(f"beta = {beta:g} deg   (correction {change.min():+.1f} ... {change.max():+.1f} %)", fontsize=8)
         ax.set_yscale("log")
+        ax.yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(ticker.NullFormatter())
         ax.grid(alpha=0.3, which="both")
         ax.tick_params(labelsize=7)
         if j % 5 == 0:
@@ -136,14 +142,15 @@ def plot_before_after(res, path: Path) -> Path:
                plt.Line2D([], [], color="C0", lw=1.6, label="corrected = measured / k_A"),
                plt.matplotlib.patches.Patch(color="C0", alpha=0.25, label="corrected +- 2 u (about 95 %)"),
                plt.Line2D([], [], color="C3", ls=":", label=f"model used for k_A ({res.model.variant}), ideal geometry")]
-    fig.legend(handles=handles, loc="upper center", ncol=4, fontsize=9, bbox_to_anchor=(0.5, 0.955), frameon=False)
     fig.suptitle(f"{meas.name}: r-table before and after the aperture-effect correction   (instrument "
                  f"{res.provenance['instrument'].get('instrument', {}).get('name', '?')}, calibration "
                  f"{res.provenance.get('calibration', {}).get('mode', 'lambert')}, reference {res.reference})",
-                 fontsize=11, y=0.995)
-    fig.text(0.5, 0.965, "before:  " + _functional_text(res.before) + "\nafter:    " + _functional_text(res.after)
-             + "     (+- = standard uncertainty)", ha="center", va="top", fontsize=9, family="monospace")
-    fig.tight_layout(rect=(0, 0, 1, 0.915))
+                 fontsize=11, y=0.99)
+    fig.text(0.5, 0.962, "before:  " + _functional_text(res.before) + "\nafter:   " + _functional_text(res.after)
+             + "\n(+- = standard uncertainty; correction in a panel title = corrected / measured - 1)",
+             ha="center", va="top", fontsize=9, family="monospace")
+    fig.legend(handles=handles, loc="upper center", ncol=4, fontsize=9, bbox_to_anchor=(0.5, 0.915), frameon=False)
+    fig.tight_layout(rect=(0, 0, 1, 0.89))
     p = atomic_savefig(fig, path, dpi=100)
     plt.close(fig)
     return p
@@ -154,7 +161,10 @@ def plot_correction_map(res, path: Path) -> Path:
     from roadgonio.plots import _plt, draw_table_map
     plt = _plt()
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(20, 9))
-    draw_table_map(a1, res.k_a, label="k_A (measured / true; 1 = no aperture effect)", fontsize=5, tick_fontsize=7)
+    k = res.k_a[np.isfinite(res.k_a)]
+    wide = float(k.max() / k.min()) > 1.5
+    draw_table_map(a1, res.k_a, label="k_A (measured / true; 1 = no aperture effect)", fontsize=5, tick_fontsize=7,
+                   log=wide, fmt="{:.2f}" if wide else "{:.3f}")
     a1.set_title(f"{res.measured.name}: k_A used for the correction (corrected = measured / k_A)", fontsize=10)
     u = np.full(res.k_a.shape, np.nan)
     u[res.measured.mask] = 100.0 * res.budget.u_rel()

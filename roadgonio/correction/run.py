@@ -46,7 +46,7 @@ from roadgonio.errors import InputError
 from roadgonio.fileio import atomic_write_json, to_json
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import VARIANTS, RoadModel
-from roadgonio.surface.rtable import R_SCALE, RTable, read_table
+from roadgonio.surface.rtable import RTable, read_table
 
 #: Variants fitted by ``variant = "auto"``.
 AUTO_VARIANTS = ("power", "smooth")
@@ -92,7 +92,12 @@ def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
         if v is not None:
             return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)"
         path = Path(text)
-        u_table = read_table(path)
+        try:
+            u_table = read_table(path)
+        except InputError as err:
+            raise InputError(f"{err.reason} (expected a relative standard uncertainty like '1%' or 0.01, or an "
+                             "r-table file of per-cell standard uncertainties)", path=err.path, line=err.line,
+                             field="--u-measured") from None
         grid, what = u_table.r, f"per-cell standard uncertainties from {path.name} (independent cells)"
     missing = table.mask & ~(np.isfinite(grid) & (grid > 0))
     if missing.any():
@@ -119,9 +124,12 @@ def check_measured(table: RTable, path: str | Path | None = None) -> None:
                              path=path)
     if np.any(table.r[table.mask] <= 0):
         raise InputError("the measured table has zero values; blank a cell that was not measured", path=path)
+
+
+def _check_fit_cells(table: RTable) -> None:
     if int(table.mask.sum()) < 12:
         raise InputError(f"the measured table has {int(table.mask.sum())} values; a fit through the instrument "
-                         "needs at least 12", path=path)
+                         "needs at least 12 (or give --reference SAMPLE)", field="--measured")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -299,6 +307,8 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     """Correct ``measured`` with the model fitted through ``instrument`` (module docstring)."""
     t0 = time.perf_counter()
     check_measured(measured)
+    _check_fit_cells(measured)
+    sigma = _sigma(sigma)
     if variant != "auto" and variant not in VARIANTS:
         raise InputError(f"unknown model variant {variant!r}; expected auto or one of {', '.join(VARIANTS)}",
                          field="--model-variant")
@@ -413,6 +423,7 @@ def correct_with_reference(measured: RTable, instrument: Instrument, reference: 
     """r / k_A(reference) with the model dependence from ``alternatives`` (module docstring)."""
     t0 = time.perf_counter()
     check_measured(measured)
+    sigma = _sigma(sigma)
     u_grid, u_what = measured_uncertainty(u_measured, measured)
     out = Path(out_dir) if out_dir is not None else None
     cells = measured.cells
@@ -467,15 +478,76 @@ def _assemble(measured: RTable, instrument: Instrument, u_grid, k_b, se_b, budge
         before_budget.add("misalignment", budget.components["misalignment"])
     before = functionals(measured, before_budget.total())
     after = functionals(corrected, cov)
-    from roadgonio import __version__
-    from roadgonio.engines.runner import versions
-    prov = {"roadgonio": __version__, "versions": versions(), "instrument": instrument.to_dict(),
-            "instrument_file": str(instrument.path) if instrument.path else None,
-            "calibration": instrument.calibration.to_dict(), "model": model.to_json_dict(),
-            "reference": reference, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "before_uncertainty": "measurement" + (" and misalignment" if "misalignment" in budget.components else "")
-                                  + " only (the aperture effect is the bias the correction removes)"}
+    from roadgonio.provenance import provenance
+    info = steps[-1]["backend"]
+    prov = provenance(instrument=instrument, model=model, backend=info["backend"], settings=info["settings"],
+                      calibration=instrument.calibration.to_dict(), reference=reference,
+                      before_uncertainty="measurement" + (" and misalignment" if "misalignment" in budget.components
+                                                          else "") + " only (the aperture effect is the bias the "
+                                                                     "correction removes)")
     return CorrectionResult(measured=measured, corrected=corrected, u_corrected=u_table, u_measured=u_grid,
                             k_a=_grid(measured, k_b), k_se=_grid(measured, se_b), budget=budget, reference=reference,
                             model=model, fit=fit, alternatives=alternatives, before=before, after=after, steps=steps,
                             provenance=prov, seconds=time.perf_counter() - t0)
+
+
+def _sigma(sigma):
+    """A SigmaSpec from a SPEC text, a TOML file, a mapping or a SigmaSpec (None stays None)."""
+    if sigma is None:
+        return None
+    from roadgonio.uncertainty import SigmaSpec, parse_sigma_spec
+    return sigma if isinstance(sigma, SigmaSpec) else parse_sigma_spec(sigma, option="--sigma")
+
+
+def correct_measured(measured: RTable, instrument: Instrument, *, reference: Any = "self",
+                     reference_name: str | None = None, alternatives: Any = "auto", model_variant: str | None = None,
+                     **options: Any) -> CorrectionResult:
+    """Correct one measured table: ``reference="self"`` (default) fits the model through the
+    instrument (:func:`correct_self`; ``model_variant`` None = ``"auto"``); a SAMPLE (text) or a
+    :class:`RoadModel` takes the classic route (:func:`correct_with_reference`, ``alternatives`` as
+    :func:`roadgonio.correction.reference.resolve_alternatives`). ``options`` go to either."""
+    from roadgonio.correction.reference import resolve_alternatives, sample_name
+    if isinstance(reference, str) and reference.strip().lower() == "self":
+        return correct_self(measured, instrument, variant=model_variant or "auto", **options)
+    if isinstance(reference, RoadModel):
+        ref_model, name = reference, reference_name or reference.name or "reference"
+    else:
+        from roadgonio.surface.sample import resolve_sample
+        ref_model, name = resolve_sample(str(reference), model_variant), reference_name or sample_name(str(reference))
+    alts = alternatives if isinstance(alternatives, Mapping) else resolve_alternatives(
+        alternatives, measured, reference_name=name, model_variant=model_variant)
+    keep = {k: v for k, v in options.items() if k in ("u_measured", "sigma", "backend", "backend_settings",
+                                                      "accuracy", "factory", "out_dir", "misalignment_rays",
+                                                      "seed", "progress")}
+    return correct_with_reference(measured, instrument, ref_model, reference_name=name, alternatives=alts, **keep)
+
+
+def output_folders(names: Sequence[str], out_dir: str | Path) -> list[Path]:
+    """One folder per measured table: ``out_dir`` itself for one table, else ``out_dir/NAME``
+    (``NAME-2``, ... when two files share a name)."""
+    out = Path(out_dir)
+    if len(names) == 1:
+        return [out]
+    seen: dict[str, int] = {}
+    folders = []
+    for n in names:
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in n) or "table"
+        seen[safe] = seen.get(safe, 0) + 1
+        folders.append(out / (safe if seen[safe] == 1 else f"{safe}-{seen[safe]}"))
+    return folders
+
+
+def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str | Path, *, plots: bool = True,
+                  reference: Any = "self", **options: Any) -> list[tuple[CorrectionResult, Path, list[Path]]]:
+    """Correct several measured tables with one instrument; the instrument's artefacts (ray
+    bundles, eta, the reference calibration) are computed once. Returns (result, folder, files)."""
+    from roadgonio.correction.outputs import write_correction
+    folders = output_folders([t.name for t in tables], out_dir)
+    if isinstance(reference, str) and reference.strip().lower() == "self" and "artefacts" not in options:
+        options["artefacts"] = InstrumentArtefacts(instrument, rays=options.pop("rays", DEFAULT_RAYS),
+                                                   seed=options.get("seed", 0))
+    out = []
+    for table, folder in zip(tables, folders):
+        res = correct_measured(table, instrument, reference=reference, out_dir=folder, **options)
+        out.append((res, folder, write_correction(res, folder, plots=plots)))
+    return out
