@@ -390,3 +390,31 @@ def test_cli_several_files_json_list(tmp_path):
     assert out[1]["S1"] == pytest.approx(out[0]["S1"], rel=1e-9) and out[1]["Q0"] > out[0]["Q0"]
     for s in out:            # a Lambertian reference: k_A = 1, nothing changes
         assert s["k_a_min"] == pytest.approx(1.0, abs=1e-9) and s["k_a_max"] == pytest.approx(1.0, abs=1e-9)
+
+
+@pytest.mark.system
+def test_cli_reference_self_end_to_end(tmp_path):
+    """The default route from the command line on a small synthetic table (tests/data, the medium
+    instrument, beta 0 ... 20): every file, the JSON keys, the fit through the instrument."""
+    from pathlib import Path
+    data = Path(__file__).resolve().parent / "data"
+    meas = read_table(data / "synthetic_medium_lambert.csv")
+    keep = meas.r.copy()
+    keep[:, 6:] = np.nan
+    f = meas.with_values(keep, name="small").write_csv(tmp_path / "small.csv")
+    p = _run("--measured", str(f), "--instrument", str(data / "medium.toml"), "--backend", "quadrature",
+             "--accuracy", "fast", "--rays", "64", "--model-variant", "power", "--u-measured", "1%",
+             "--out", str(tmp_path / "o"), "--json")
+    assert p.returncode == 0, p.stderr
+    s = json.loads(p.stdout)
+    assert {"S1", "u_S1", "Q0", "u_Q0", "reference", "k_a_min", "k_a_max", "seconds"} <= set(s)
+    assert s["reference"].startswith("self (power") and s["fit"]["variant"] == "power"
+    assert 0.8 < s["k_a_min"] < s["k_a_max"] < 1.1 and s["u_S1"] > 0
+    names = {Path(x).name for x in s["written"]}
+    assert {"corrected.csv", "corrected_u.csv", "corrected.rtb", "correct.json", "correct_cells.csv",
+            "corrected_corr.csv", "before_after.png", "correction_map.png"} <= names
+    corr = read_table(tmp_path / "o" / "corrected.csv")
+    rows = list(csv.DictReader(line for line in open(tmp_path / "o" / "correct_cells.csv") if not line.startswith("#")))
+    assert len(rows) == int(corr.mask.sum()) == int(np.isfinite(keep).sum())
+    for x in rows[:20]:
+        assert float(x["r_corrected_x1e4"]) == pytest.approx(float(x["r_measured_x1e4"]) / float(x["k_a"]), rel=FILE_RTOL)
