@@ -217,6 +217,7 @@ class RoadScene:
         """Render-time footprint check: the extreme rays of the detector bundle (pupil rim and
         centre x field rim) and ``n_random`` random rays must all hit the sample shape."""
         mi = _mi()
+        import drjit as dr
         ang = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
         # unit-square points whose concentric image is on the unit circle: invert via polar
         rim = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
@@ -232,12 +233,16 @@ class RoadScene:
         from roadgonio.engines.mitsuba.ops import DrJitOps
         from roadgonio.engines.mitsuba.plugins.lummeter import jit_geometry
         geo = jit_geometry(detector_geometry(self.instrument))
-        px, py = mi.Float(pu[:, 0].astype(np.float32)), mi.Float(pu[:, 1].astype(np.float32))
-        fx, fy = mi.Float(fu[:, 0].astype(np.float32)), mi.Float(fu[:, 1].astype(np.float32))
+        # gathered, not loaded: a load's alignment hint depends on the buffer's address, so every
+        # new scene could compile its own kernel
+        idx = dr.arange(mi.UInt32, len(pu))
+        px, py, fx, fy = (dr.gather(mi.Float, mi.Float(v.astype(np.float32)), idx)
+                          for v in (pu[:, 0], pu[:, 1], fu[:, 0], fu[:, 1]))
         o, d, _ = detector_ray(DrJitOps, geo, (px, py), (fx, fy))
         ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d))
         si = self.scene.ray_intersect(ray)
-        hit = si.is_valid() & (si.shape == mi.ShapePtr(self.sample_shape))
+        # opaque: the shape pointer as a literal would make every new scene compile its own kernel
+        hit = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
         hit_np = np.array(hit, dtype=bool)
         n_miss = int((~hit_np).sum())
         if n_miss:
