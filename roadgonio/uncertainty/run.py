@@ -29,10 +29,13 @@ BackendFactory = Callable[[Instrument, RoadModel], Any]
 
 
 def default_backend_factory(name: str, settings: Mapping[str, Any]) -> BackendFactory:
+    """``factory(instrument, model, **more)``: the backend ``name`` with ``settings`` (and ``more``,
+    e.g. the ``plan`` of the Mitsuba engine: :func:`build_surrogate` replays the first table's plan)."""
     from roadgonio.engines import make_backend
 
-    def factory(instrument: Instrument, model: RoadModel):
-        return make_backend(name, instrument, model, **dict(settings))
+    def factory(instrument: Instrument, model: RoadModel, **more):
+        return make_backend(name, instrument, model, **{**dict(settings), **more})
+    factory.accepts_plan = name == "mitsuba"
     return factory
 
 
@@ -102,16 +105,23 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
         inst = mm.instrument.with_changes(
             observation={"alpha_deg": alpha_loc, "delta_deg": mm.delta0},
             source={"distance_m": mm.ds0 + ds}, detector={"distance_m": mm.dd0 + dd})
-        backend = factory(inst, mm.model)
+        # one compute() call per table (the batched engine); the Mitsuba engine replays the first
+        # table's pass plan with the same seed, so every table gets the same random numbers and the
+        # Monte Carlo noise cancels in the differences the surrogate fits
+        replay = {"plan": plan_seen["plan"]} if plan_seen and getattr(factory, "accepts_plan", False) else {}
+        backend = factory(inst, mm.model, **replay)
         if not settings_seen:
             try:
                 settings_seen.update(backend.settings())
             except Exception:  # noqa: BLE001 - provenance only
                 settings_seen["backend"] = getattr(backend, "name", "?")
         res = backend.compute(mm.cells_of(w), on_cell=(lambda _r: bar.update(1)) if bar is not None else None)
+        if not plan_seen and getattr(backend, "last_plan", None) is not None:
+            plan_seen["plan"] = backend.last_plan
         return np.array([c.k_a for c in res]), np.array([c.standard_uncertainty() for c in res])
 
     settings_seen: dict[str, Any] = {}
+    plan_seen: dict[str, Any] = {}
     x_design = np.empty((len(pts), n, N_COORDS))
     ka_design = np.empty((len(pts), n))
     rel_se = 0.0
