@@ -48,8 +48,11 @@ from roadgonio.errors import BackendError
 
 #: Lanes summed per device bin (float32); the host sums bins in float64.
 BIN_LOG2 = 12
-#: Data stored per detector ray between the ray kernel and the shading kernel.
+#: Data stored per detector ray between the ray kernel and the shading kernel: hit point,
+#: geometric and shading normals, ray direction, detector weight...
 RAY_FIELDS = ("px", "py", "pz", "nx", "ny", "nz", "sx", "sy", "sz", "dx", "dy", "dz", "w")
+#: ... and for a flat sample in the plane z = 0 (both normals +z) without the normals.
+FLAT_RAY_FIELDS = ("px", "py", "pz", "dx", "dy", "dz", "w")
 
 
 def _u32(values) -> mi.UInt32:
@@ -67,6 +70,8 @@ class KaBatch(mi.SamplingIntegrator):
         mi.SamplingIntegrator.__init__(self, props)
         #: trace shadow rays (False only where nothing can occlude the source: a flat sample alone)
         self.shadow = bool(props.get("shadow", True)) if "shadow" in props else True
+        #: the sample is the flat rectangle z = 0 facing +z (no normals stored per ray)
+        self.flat = bool(props.get("flat", False)) if "flat" in props else False
         self.emitter = None         # the canonical source (area emitter of a disk, or point emitter)
         self.frames = None          # 12 mi.Float arrays: c, s, t, a of every cell's source
         self.n_cells = 0
@@ -88,21 +93,29 @@ class KaBatch(mi.SamplingIntegrator):
 
     def set_cells(self, frames: np.ndarray) -> None:
         """Source frames of the cells, float64 (n_cells, 12): centre, s, t, axis (the axis points
-        from the source towards the sample centre)."""
+        from the source towards the sample centre, the centre is D_S times minus the axis). Only the
+        axis goes to the device: the kernel rebuilds the frame from it
+        (:func:`frame_from_axis`, the rule of :func:`roadgonio.engines.mitsuba.engine.source_frames`)."""
         frames = np.asarray(frames, dtype=np.float64)
         if frames.ndim != 2 or frames.shape[1] != 12:
             raise BackendError(f"expected source frames of shape (cells, 12), got {frames.shape}")
+        axis = frames[:, 9:12]
+        dist = np.linalg.norm(frames[:, 0:3], axis=1)
+        if len(frames) and (np.ptp(dist) > 1e-9 * max(dist.max(), 1.0)
+                            or np.abs(frames[:, 0:3] + dist[:, None] * axis).max() > 1e-9 * max(dist.max(), 1.0)):
+            raise BackendError("the source frames must be centred at one distance along minus their axes")
         # gathered per lane, so these are never loaded contiguously (no alignment-dependent kernels)
-        self.frames = [_f32(frames[:, k]) for k in range(12)]
+        self.frames = [_f32(axis[:, k]) for k in range(3)]
+        self.distance = dr.opaque(mi.Float, float(dist[0]) if len(dist) else 0.0)
         self.n_cells = len(frames)
 
     # -- shading -------------------------------------------------------------------------------
     def shade(self, scene, si, cell, u, active):
         """Road (x) and Lambert (y) contributions (``mi.Color3f``) of the source of ``cell`` at the
         hits ``si``, for the unit-square source samples ``u``; without the detector weight."""
-        f = [dr.gather(mi.Float, a, cell, active) for a in self.frames]
-        c, s, t, a = (mi.Vector3f(f[0], f[1], f[2]), mi.Vector3f(f[3], f[4], f[5]),
-                      mi.Vector3f(f[6], f[7], f[8]), mi.Vector3f(f[9], f[10], f[11]))
+        a = mi.Vector3f(*[dr.gather(mi.Float, v, cell, active) for v in self.frames])
+        s, t = frame_from_axis(a)
+        c = -self.distance * a
         v = mi.Vector3f(si.p) - c
         local = dr.zeros(mi.SurfaceInteraction3f)
         local.p = mi.Point3f(dr.dot(s, v), dr.dot(t, v), dr.dot(a, v))
@@ -144,18 +157,10 @@ class KaBatch(mi.SamplingIntegrator):
             out.append(v)
         return out
 
-    def lattice_params(self, n: int, z, shifts: np.ndarray, tent: bool = False) -> dict:
-        """Opaque kernel parameters of a lattice of size n (a power of two) with generating vector z
-        and shifts (replicates, 6); ``tent`` applies the baker's transform to every coordinate."""
-        log2n = int(n).bit_length() - 1
-        key = (int(n), tuple(int(v) for v in z))
-        cache = self.__dict__.setdefault("_lattice_cache", {})
-        if key not in cache:
-            cache[key] = {"n": int(n), "log2n": log2n, "mask": dr.opaque(mi.UInt32, int(n) - 1),
-                          "inv_n": dr.opaque(mi.Float, 1.0 / n), "shift_log2": dr.opaque(mi.UInt32, log2n),
-                          "z": [dr.opaque(mi.UInt32, int(v) & 0xFFFFFFFF) for v in z]}
-        return {**cache[key], "tent": bool(tent),
-                "shift": [_f32(shifts[:, d]) for d in range(shifts.shape[1])]}
+    @staticmethod
+    def lattice_params(n: int, z, shifts: np.ndarray, tent: bool = False) -> dict:
+        """See :func:`lattice_params`."""
+        return lattice_params(n, z, shifts, tent)
 
     def trace_detector(self, scene, sensor, lattice: dict, reps: int) -> tuple[dict, int]:
         """Trace the n x ``reps`` detector rays of a lattice (replicates 0 ... reps-1 of
@@ -171,8 +176,11 @@ class KaBatch(mi.SamplingIntegrator):
         hit = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
         w = dr.select(hit, mi.Float(w.x), 0.0)
         ns = si.sh_frame.n
-        data = dict(zip(RAY_FIELDS, (si.p.x, si.p.y, si.p.z, si.n.x, si.n.y, si.n.z, ns.x, ns.y, ns.z,
-                                     ray.d.x, ray.d.y, ray.d.z, w)))
+        if self.flat:
+            data = dict(zip(FLAT_RAY_FIELDS, (si.p.x, si.p.y, si.p.z, ray.d.x, ray.d.y, ray.d.z, w)))
+        else:
+            data = dict(zip(RAY_FIELDS, (si.p.x, si.p.y, si.p.z, si.n.x, si.n.y, si.n.z, ns.x, ns.y, ns.z,
+                                         ray.d.x, ray.d.y, ray.d.z, w)))
         misses = dr.sum(dr.select(hit, 0, 1))
         dr.eval(data, misses)
         return data, int(misses[0]) if dr.width(misses) else 0
@@ -194,12 +202,16 @@ class KaBatch(mi.SamplingIntegrator):
         cell = dr.gather(mi.UInt32, _u32(block_cell), k)
         rep = dr.gather(mi.UInt32, _u32(block_rep), k)
         r = (rep << lattice["shift_log2"]) + j
-        g = {key: dr.gather(mi.Float, rays[key], r) for key in RAY_FIELDS}
+        g = {key: dr.gather(mi.Float, rays[key], r) for key in rays}
         si = dr.zeros(mi.SurfaceInteraction3f)
         si.t = mi.Float(1.0)
         si.p = mi.Point3f(g["px"], g["py"], g["pz"])
-        si.n = mi.Normal3f(g["nx"], g["ny"], g["nz"])
-        si.sh_frame = mi.Frame3f(mi.Vector3f(g["sx"], g["sy"], g["sz"]))
+        if self.flat:
+            si.n = mi.Normal3f(0.0, 0.0, 1.0)
+            si.sh_frame = mi.Frame3f(mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0))
+        else:
+            si.n = mi.Normal3f(g["nx"], g["ny"], g["nz"])
+            si.sh_frame = mi.Frame3f(mi.Vector3f(g["sx"], g["sy"], g["sz"]))
         si.wi = si.sh_frame.to_local(-mi.Vector3f(g["dx"], g["dy"], g["dz"]))
         active = g["w"] > 0.0
         u4, u5 = self._lattice(j, rep, lattice, (4, 5))
@@ -213,6 +225,32 @@ class KaBatch(mi.SamplingIntegrator):
 
     def to_string(self):
         return f"KaBatch[cells={self.n_cells}, shadow={self.shadow}]"
+
+
+def frame_from_axis(a):
+    """Unit vectors (s, t) completing the unit axis ``a`` to a right-handed frame, on the device:
+    s = normalise(h x a) with h = +z, or +x when |a_z| >= 0.9; t = a x s."""
+    use_z = dr.abs(a.z) < 0.9
+    h = mi.Vector3f(dr.select(use_z, 0.0, 1.0), 0.0, dr.select(use_z, 1.0, 0.0))
+    s = dr.normalize(dr.cross(h, a))
+    return s, dr.cross(a, s)
+
+
+_LATTICE_CACHE: dict = {}
+
+
+def lattice_params(n: int, z, shifts: np.ndarray, tent: bool = False) -> dict:
+    """Opaque kernel parameters of a lattice of size n (a power of two) with generating vector z
+    and shifts (replicates, 6); ``tent`` applies the baker's transform to every coordinate. The
+    per-size constants are made once per variant (opaque values are device allocations)."""
+    log2n = int(n).bit_length() - 1
+    key = (mi.variant(), int(n), tuple(int(v) for v in z))
+    if key not in _LATTICE_CACHE:
+        _LATTICE_CACHE[key] = {"n": int(n), "log2n": log2n, "mask": dr.opaque(mi.UInt32, int(n) - 1),
+                               "inv_n": dr.opaque(mi.Float, 1.0 / n), "shift_log2": dr.opaque(mi.UInt32, log2n),
+                               "z": [dr.opaque(mi.UInt32, int(v) & 0xFFFFFFFF) for v in z]}
+    return {**_LATTICE_CACHE[key], "tent": bool(tent),
+            "shift": [_f32(shifts[:, d]) for d in range(shifts.shape[1])]}
 
 
 def canonical_source(radius_m: float, radiance: float):

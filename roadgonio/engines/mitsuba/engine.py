@@ -139,8 +139,9 @@ class BatchEngine:
                 [max(rs.instrument.source.radius_m, 1e-6)] * 3)
         rs.params.update()
         rs.cell = None
-        self.integrator = mi.load_dict({"type": "kabatch", "shadow": bool(self.can_occlude() if shadow is None
-                                                                         else shadow)})
+        flat = rs.flat_rectangle and rs.xml is None
+        self.integrator = mi.load_dict({"type": "kabatch", "flat": bool(flat),
+                                        "shadow": bool(self.can_occlude() if shadow is None else shadow)})
         self.integrator.set_sample(rs.sample_shape)
         src = rs.instrument.source
         self.emitter, self._emitter_shape = canonical_source(src.radius_m, source_radiance(rs.instrument))
@@ -205,7 +206,8 @@ class BatchEngine:
                 for i in left:
                     ratio, se, _ = stats[i].ratio_se()
                     run.converged[i] = relative(ratio, se) <= planner.rel_se
-            active = [i for i in active if i not in set(left)]
+            gone = set(left)
+            active = [i for i in active if i not in gone]
             for i in left:
                 self._check_lit(cells[i], stats[i])
             if on_done is not None and left:

@@ -58,6 +58,10 @@ from roadgonio.engines.mitsuba.lattice import MAX_LOG2, MIN_LOG2
 
 #: Safety factor on the 1/N rule (the SE estimate itself is noisy).
 SAFETY = 1.15
+#: Largest improvement of the per-point variance per doubling of the lattice size that the planner
+#: extrapolates (variance ~ n^-(2 gamma), gamma at most this); measured on the wide instrument's
+#: specular cells: gamma ~ 0.13 between n = 64 and 2^18.
+LATTICE_GAIN_MAX = 0.2
 #: A pass gives a cell at most this many times the samples it already has: the lattice's error
 #: falls faster than 1/sqrt(N) on smooth parts of the integrand, so a need extrapolated from a small
 #: first pass can be much too large; growing in steps re-measures it on the way.
@@ -80,6 +84,8 @@ class CellStats:
     b: np.ndarray = field(default_factory=lambda: np.zeros(3))
     #: a stratum with a single replicate (no variance estimate)
     single: bool = False
+    #: the same moments per stratum (for the per-point variance of each lattice size)
+    strata_b: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
 
     def add(self, pass_index: int, log2n: int, reps: np.ndarray, R: np.ndarray, G: np.ndarray) -> None:
         """Add all replicates of one stratum (at most one call per stratum)."""
@@ -100,6 +106,20 @@ class CellStats:
         d = ratio - self.r0
         var = max(self.b[0] - 2.0 * d * self.b[1] + d * d * self.b[2], 0.0)
         return ratio, math.sqrt(var) / sg, sg / n
+
+    def point_variances(self) -> list[tuple[int, float]]:
+        """(log2 n, variance per point of Y = R - r G) of each stratum, in pass order: the
+        variance of a replicate sum divided by its n points (a lattice's figure of merit)."""
+        ratio, _, _ = self.ratio_se()
+        if not math.isfinite(ratio):
+            return []
+        d = ratio - (self.r0 or 0.0)
+        out = []
+        for key in sorted(self.strata_b):
+            b = self.strata_b[key]
+            B = len(self.strata[key][0])
+            out.append((key[1], max(b[0] - 2.0 * d * b[1] + d * d * b[2], 0.0) / (B << key[1])))
+        return out
 
     def residuals(self, ratio: float) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
         return {k: (reps, R - ratio * G) for k, (reps, R, G) in self.strata.items()}
@@ -146,6 +166,7 @@ def add_strata(stats: Sequence[CellStats], pass_index: int, log2n: int, owner: n
             st.single = True
         else:
             st.b = st.b + moments[k]
+            st.strata_b[key] = moments[k]
 
 
 def relative(ratio: float, se: float) -> float:
@@ -223,19 +244,51 @@ class Planner:
             if room < (1 << MIN_LOG2) * self.min_replicates:
                 done["capped"].append(i)
                 continue
+            last = max((k[1] for k in st.strata), default=self.first_log2)
             if math.isfinite(rel) and rel > self.rel_se:
-                want = st.samples * ((rel / self.rel_se) ** 2 - 1.0) * SAFETY
+                want = self.more_samples(st, rel, last) * SAFETY
             else:
                 want = st.samples          # min_passes not reached, or no SE yet: as much again
             want = min(max(want, (1 << MIN_LOG2) * self.min_replicates), room, self.max_growth * st.samples)
             # never a smaller lattice than before: its points would be worth less than the ones the
             # cell has, and the pooled mean weighs every point alike
-            last = max((k[1] for k in st.strata), default=self.first_log2)
             log2n = max(self.log2_for(want / self.min_replicates), min(last, self.log2_for(room / self.min_replicates)))
             reps = max(self.min_replicates, int(math.ceil(want / (1 << log2n))))
             reps = min(reps, max(self.min_replicates, room >> log2n))
             requests[i] = (log2n, reps)
         return requests, done
+
+
+    def more_samples(self, st: CellStats, rel: float, last: int) -> float:
+        """Samples to add so that the pooled relative SE reaches the target: with a = (rel/target)^2
+        and b = a N v_new / V (v_new the per-point variance expected of the new points, V = N v the
+        current total), the pooled variance (V + N_new v_new) / (N + N_new)^2 meets the target for
+        x = N_new / N >= ((b - 2) + sqrt((b - 2)^2 - 4 (1 - a))) / 2 (x = a - 1 if v_new = v). The
+        new points are expected to be as good as the cell's last lattice, or better by the rate
+        :data:`LATTICE_GAIN_MAX` at most, as measured between its last two lattice sizes."""
+        a = (rel / self.rel_se) ** 2
+        pv = st.point_variances()
+        N = st.samples
+        total = sum(v * (1 << k) * len(st.strata[key][0]) for (k, v), key in zip(pv, sorted(st.strata_b)))
+        if not pv or not total > 0.0:
+            return N * (a - 1.0)
+        v_last = pv[-1][1]
+        gamma = 0.0
+        sizes = {}
+        for k, v in pv:
+            sizes[k] = v                                   # the latest estimate of each size
+        ks = sorted(sizes)
+        if len(ks) >= 2 and sizes[ks[-1]] > 0.0 and sizes[ks[-2]] > 0.0:
+            gamma = math.log(sizes[ks[-2]] / sizes[ks[-1]]) / ((ks[-1] - ks[-2]) * math.log(2.0))
+            gamma = min(max(gamma, 0.0), LATTICE_GAIN_MAX)
+        x = a - 1.0
+        for _ in range(2):                                 # the new size depends on the answer
+            log2n = max(self.log2_for(N * x / self.min_replicates), last)
+            v_new = v_last * 2.0 ** (-gamma * (log2n - pv[-1][0]))
+            b = a * N * v_new / total
+            disc = (b - 2.0) ** 2 - 4.0 * (1.0 - a)
+            x = max(((b - 2.0) + math.sqrt(max(disc, 0.0))) / 2.0, 0.0)
+        return N * x
 
 
 def covariance(stats: Sequence[CellStats], ratios: Sequence[float]) -> np.ndarray:
