@@ -86,10 +86,12 @@ class KaBatch(mi.SamplingIntegrator):
         self.sample_shape = shape
         self.bsdf = shape.bsdf()
 
-    def set_source(self, emitter) -> None:
+    def set_source(self, emitter, shape=None) -> None:
         """The canonical source: the area emitter of a disk centred at the origin with normal +z
-        (radius R_S), or a point emitter at the origin."""
+        (radius R_S) and that disk ``shape``, or a point emitter at the origin. The shape is kept
+        here: an area emitter only points back to its shape, which must outlive it."""
         self.emitter = emitter
+        self._source_shape = shape
 
     def set_cells(self, frames: np.ndarray) -> None:
         """Source frames of the cells, float64 (n_cells, 12): centre, s, t, axis (the axis points

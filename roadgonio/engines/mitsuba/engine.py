@@ -145,7 +145,7 @@ class BatchEngine:
         self.integrator.set_sample(rs.sample_shape)
         src = rs.instrument.source
         self.emitter, self._emitter_shape = canonical_source(src.radius_m, source_radiance(rs.instrument))
-        self.integrator.set_source(self.emitter)
+        self.integrator.set_source(self.emitter, self._emitter_shape)
         self.threads = int(dr.thread_count()) if hasattr(dr, "thread_count") else 1
 
     def can_occlude(self) -> bool:

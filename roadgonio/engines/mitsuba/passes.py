@@ -58,10 +58,10 @@ from roadgonio.engines.mitsuba.lattice import MAX_LOG2, MIN_LOG2
 
 #: Safety factor on the 1/N rule (the SE estimate itself is noisy).
 SAFETY = 1.15
-#: Largest improvement of the per-point variance per doubling of the lattice size that the planner
-#: extrapolates (variance ~ n^-(2 gamma), gamma at most this); measured on the wide instrument's
-#: specular cells: gamma ~ 0.13 between n = 64 and 2^18.
-LATTICE_GAIN_MAX = 0.2
+#: Largest rate at which the planner lets the per-point variance of a lattice fall with its size n
+#: (variance ~ n^-gamma, gamma measured between the cell's last two sizes, at most this); measured
+#: on the wide instrument's specular cells: gamma ~ 0.26 between n = 64 and 2^18.
+LATTICE_GAIN_MAX = 0.5
 #: A pass gives a cell at most this many times the samples it already has: the lattice's error
 #: falls faster than 1/sqrt(N) on smooth parts of the integrand, so a need extrapolated from a small
 #: first pass can be much too large; growing in steps re-measures it on the way.
