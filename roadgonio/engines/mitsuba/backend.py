@@ -99,7 +99,9 @@ class MitsubaBackend:
         self.plan = None if plan is None else Plan.from_dict(plan)
         self.planner = Planner(self.rel_se, first_pass=self.first_pass, min_replicates=self.min_replicates,
                                max_samples=self.max_samples, min_passes=self.min_passes)
-        self.rs = build_scene(instrument, model, variant=variant)
+        # the engine counts every detector ray it traces: the build-time check needs only the
+        # bundle's extreme rays and a few random ones
+        self.rs = build_scene(instrument, model, variant=variant, hit_rays=1 << 12)
         from roadgonio.engines.mitsuba.engine import BatchEngine
         self.engine = BatchEngine(self.rs)
         import mitsuba as mi
