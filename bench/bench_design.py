@@ -29,7 +29,7 @@ def _noop(x):
 def dask_overhead(n_tasks: int = 400) -> dict:
     """Round trip of trivial tasks on a 2-process local cluster: seconds per task."""
     from roadgonio.design.cluster import open_client
-    with open_client(2, mitsuba=False) as c:
+    with open_client(2, backend=None) as c:
         c.gather(c.map(_noop, range(20), pure=False))          # warm up
         t0 = time.perf_counter()
         c.gather(c.map(_noop, range(n_tasks), pure=False))
@@ -65,7 +65,7 @@ def main(argv=None) -> int:
     from roadgonio.design.cluster import open_client
     for label, workers in (("in-process", 0), ("dask 1 worker", 1), ("dask 2 workers", 2)):
         t_start = time.perf_counter()
-        with open_client(workers, mitsuba=True) as client:
+        with open_client(workers) as client:
             # warm every worker (variant, plugins, first kernels): measured as start-up, not throughput
             if client is not None:
                 run_design("portable", [f"source.radius_m=0.02:0.025:{2 * workers}"], client=client,

@@ -81,11 +81,11 @@ def test_tolerance():
 def test_focus_follows_the_detector_distance_of_a_sample_focused_base():
     base = load_instrument("portable")          # focus_m = distance_m = 1
     inst = G.build_instrument(base, {"detector.distance_m": 2.0})
-    assert inst.detector.distance_m == 2.0 and inst.detector.focus == 2.0
+    assert inst.detector.distance_m == 2.0 and inst.detector.focus_distance_m == 2.0
     inf = base.with_changes(detector={"focus_m": "inf"})
-    assert math.isinf(G.build_instrument(inf, {"detector.distance_m": 2.0}).detector.focus)
+    assert math.isinf(G.build_instrument(inf, {"detector.distance_m": 2.0}).detector.focus_distance_m)
     fixed = G.build_instrument(base, {"detector.distance_m": 2.0, "detector.focus_m": 1.5})
-    assert fixed.detector.focus == 1.5
+    assert fixed.detector.focus_distance_m == 1.5
 
 
 @pytest.mark.unit
@@ -293,6 +293,7 @@ def test_seeds_depend_only_on_the_root_and_the_point():
     assert all(0 <= s < 2 ** 31 for s in b)
 
 
+@pytest.mark.plugin
 def test_backend_refusal_is_a_reason_not_a_crash(tmp_path):
     """A beam limit the renderer cannot model is refused per point by the backend (on the worker);
     the point is kept, infeasible, with the backend's reason; the other point is computed."""

@@ -92,3 +92,26 @@ def test_two_worker_cluster_identical_to_in_process(dask_cluster, tmp_path):
     assert np.isfinite(ds_here["k_a"].values).sum() == 6 * 3
     # the k_A values are real Monte Carlo estimates, not a constant
     assert np.nanstd(ds_here["k_a"].values) > 0.01
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_uncertainty_exact_tables_on_a_local_cluster_are_identical():
+    """The surrogate's exact k_A tables are independent instruments: on a 2-process local cluster
+    the whole uncertainty result is the same as in this process."""
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.sample import resolve_sample
+    from roadgonio.uncertainty import parse_sigma_spec, run_uncertainty
+    spec = parse_sigma_spec("alpha_deg=0.01,eps_deg=0.05,beta_deg=0.1,source_distance_m=0.002,"
+                            "detector_distance_m=0.005")
+    kw = dict(trials=1000, seed=2, backend="mitsuba", surrogate_design="star", n_validation=1, progress=False,
+              backend_settings={"rel_se": 3e-3, "resolution": 32, "spp": 4, "seed": 2})
+    inst, model = load_instrument("portable"), resolve_sample("R3")
+    here = run_uncertainty(model, inst, spec, **kw)
+    dask = run_uncertainty(model, inst, spec, workers=2, **kw)
+    assert any("Dask" in n for n in dask.provenance["notes"])
+    assert np.array_equal(here.surrogate.rel_err_max, dask.surrogate.rel_err_max)
+    a, b = here.cases["aperture"], dask.cases["aperture"]
+    for k in a.mc:
+        assert np.array_equal(a.mc[k], b.mc[k]), k
+    assert here.surrogate.exact_evaluations == dask.surrogate.exact_evaluations == 12 * len(here.cells)

@@ -36,6 +36,14 @@ def load_inputs(args):
     return instrument, model
 
 
+def select_variant(backend: str, variant: str | None = None) -> None:
+    """The command is the entry point: choose the Mitsuba variant here (``--variant``, else
+    ``$ROADGONIO_VARIANT``, else llvm_ad_rgb) when the Mitsuba backend will run. Backends only check it."""
+    if backend == "mitsuba":
+        from roadgonio.engines.mitsuba import set_variant
+        set_variant(variant)
+
+
 # -- Dask: --workers N | --scheduler ADDRESS (design, uncertainty, correct) ------------------------
 
 def _workers(text: str) -> int:

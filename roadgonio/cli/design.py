@@ -7,7 +7,7 @@ from pathlib import Path
 
 from roadgonio.engines.accuracy import PRESETS
 from roadgonio.surface.model import VARIANTS
-from roadgonio.cli._common import add_dask_arguments, add_instrument_argument, rel_se_setting
+from roadgonio.cli._common import add_dask_arguments, add_instrument_argument, rel_se_setting, select_variant
 
 
 def register(sub) -> None:
@@ -56,6 +56,8 @@ def run(args) -> int:
     if args.rel_se is not None:
         settings.update(rel_se_setting(args.backend, args.rel_se))
     out = Path(args.out) if args.out else Path("out") / f"design-{base.name}"
+    if args.workers == 0:
+        select_variant(args.backend)        # in this process: the command is its entry point
     ds = run_design(base, args.vary, args.sample, tolerance=args.tolerance, cells=args.cells, backend=args.backend,
                     accuracy=args.accuracy, settings=settings, seed=args.seed, workers=args.workers,
                     scheduler=args.scheduler, out=out, fresh=args.fresh, plots=not args.no_plots,

@@ -89,40 +89,55 @@ class TableResult:
 # In the worker
 # ----------------------------------------------------------------------------------------------
 
-_READY: set[tuple[int, str | None]] = set()
+#: backend -> "module:function" preparing a worker process for it (lazy, like engines.BACKENDS: only
+#: the Mitsuba room imports mitsuba); ``function(variant, render_threads)``.
+PROCESS_SETUP: dict[str, str] = {"mitsuba": "roadgonio.engines.mitsuba.worker:prepare_process"}
+#: backend -> "module:function" checking (never changing) the driver's own process.
+PROCESS_CHECK: dict[str, str] = {"mitsuba": "roadgonio.engines.mitsuba.worker:check_process"}
+
+_READY: set[tuple[int, str, str | None]] = set()
 _READY_LOCK = threading.Lock()
 
 
-def init_engine(variant: str | None = None, render_threads: int | None = None) -> dict[str, Any]:
-    """Set the Mitsuba variant and register the roadgonio plugins in this process and thread
-    (idempotent); with ``render_threads``, size Dr.Jit's thread pool. Returns what was set."""
-    from roadgonio.engines.mitsuba import set_variant
-    from roadgonio.engines.mitsuba.plugins import register_plugins
-    mi = set_variant(variant)
-    register_plugins()
-    info = {"variant": mi.variant(), "pid": os.getpid()}
-    if render_threads:
-        import drjit as dr
-        dr.set_thread_count(int(render_threads))
-        info["render_threads"] = int(render_threads)
+def _resolve(ref: str):
+    import importlib
+    mod, func = ref.split(":")
+    return getattr(importlib.import_module(mod), func)
+
+
+def init_engine(backend: str = "mitsuba", variant: str | None = None,
+                render_threads: int | None = None) -> dict[str, Any]:
+    """Prepare this worker process and thread for ``backend`` (Mitsuba: the variant, the plugins,
+    Dr.Jit's pool); idempotent. Only for worker processes: they are entry points of their own."""
+    info: dict[str, Any] = {"pid": os.getpid()}
+    if backend in PROCESS_SETUP:
+        info.update(_resolve(PROCESS_SETUP[backend])(variant, render_threads))
     with _READY_LOCK:
-        _READY.add((threading.get_ident(), variant))
+        _READY.add((threading.get_ident(), backend, variant))
     return info
 
 
-def _ensure_engine(variant: str | None) -> None:
-    if (threading.get_ident(), variant) not in _READY:
-        init_engine(variant)
+def check_engine(backend: str, variant: str | None = None) -> None:
+    """In the driver's process: check (never change) what its entry point chose for ``backend``."""
+    if backend in PROCESS_CHECK:
+        _resolve(PROCESS_CHECK[backend])(variant)
+
+
+def _ensure_engine(backend: str, variant: str | None) -> None:
+    if (threading.get_ident(), backend, variant) not in _READY:
+        init_engine(backend, variant)
 
 
 def _worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
-def compute_table(task: TableTask) -> TableResult:
-    """Compute one :class:`TableTask` here. A :class:`~roadgonio.errors.RoadgonioError` (impossible
-    geometry, bad settings, missing backend) becomes the result's ``error``; anything else is a bug
-    and propagates."""
+def compute_table(task: TableTask, *, prepare: bool = True) -> TableResult:
+    """Compute one :class:`TableTask` in this process. On a worker (``prepare=True``) the process is
+    first prepared for the backend (:func:`init_engine`, idempotent); in the driver's own process
+    (``prepare=False``, :func:`map_tables` without a client) it is used as its entry point set it up.
+    A :class:`~roadgonio.errors.RoadgonioError` (impossible geometry, bad settings, missing backend)
+    becomes the result's ``error``; anything else is a bug and propagates."""
     from roadgonio.engines import make_backend
     from roadgonio.instrument.config import Instrument
     from roadgonio.surface.model import RoadModel
@@ -133,8 +148,8 @@ def compute_table(task: TableTask) -> TableResult:
         settings = dict(task.settings)
         if task.seed is not None and task.backend in SEEDED_BACKENDS:
             settings["seed"] = int(task.seed)
-        if task.backend == "mitsuba":
-            _ensure_engine(settings.get("variant"))
+        if prepare:
+            _ensure_engine(task.backend, settings.get("variant"))
         backend = make_backend(task.backend, inst, model, accuracy=task.accuracy, **settings)
         cells = backend.compute([(float(t), float(b)) for t, b in task.cells])
         try:
@@ -160,13 +175,15 @@ except ImportError:  # pragma: no cover
 
 
 class EngineSetup(_WorkerPlugin):
-    """Worker plugin: set the Mitsuba variant, register the plugins and size Dr.Jit's pool in the
-    worker's task thread when the worker starts. Failures (no mitsuba on that worker) are kept in
-    ``info`` and surface as the tasks' clear errors instead of killing the worker."""
+    """Worker plugin: prepare the worker for a backend when it starts (Mitsuba: set the variant,
+    register the plugins and size Dr.Jit's pool, in the worker's task thread). Failures (no
+    mitsuba on that worker) are kept in ``info`` and surface as the tasks' clear errors instead of
+    killing the worker."""
 
     name = "roadgonio-engine"
 
-    def __init__(self, variant: str | None = None, render_threads: int | None = None):
+    def __init__(self, backend: str = "mitsuba", variant: str | None = None, render_threads: int | None = None):
+        self.backend = backend
         self.variant = variant
         self.render_threads = render_threads
         self.info: dict[str, Any] = {}
@@ -176,7 +193,8 @@ class EngineSetup(_WorkerPlugin):
         n = self.render_threads or getattr(getattr(worker, "state", None), "nthreads", None) or 1
         executor = worker.executors.get("default")
         try:
-            self.info = await asyncio.get_running_loop().run_in_executor(executor, init_engine, self.variant, n)
+            self.info = await asyncio.get_running_loop().run_in_executor(executor, init_engine, self.backend,
+                                                                         self.variant, n)
         except RoadgonioError as err:
             self.info = {"error": str(err)}
 
@@ -198,11 +216,12 @@ def _check_address(address: str) -> str:
 
 
 @contextmanager
-def open_client(workers: int | None = None, scheduler: str | None = None, *, mitsuba: bool = True,
+def open_client(workers: int | None = None, scheduler: str | None = None, *, backend: str | None = "mitsuba",
                 variant: str | None = None, quiet: bool = True) -> Iterator[Any]:
     """A Dask client for :func:`map_tables` (module docstring), closed (with its local cluster) on
-    exit; yields ``None`` for ``workers=0`` (compute in this process). ``mitsuba`` registers the
-    :class:`EngineSetup` plugin (``variant``: Mitsuba variant, default ``llvm_ad_rgb``)."""
+    exit; yields ``None`` for ``workers=0`` (compute in this process). With ``backend`` (default
+    mitsuba) every worker is prepared for it by the :class:`EngineSetup` plugin (``variant``: the
+    Mitsuba variant, default ``$ROADGONIO_VARIANT`` or llvm_ad_rgb)."""
     if workers is not None and scheduler is not None:
         raise InputError("give --workers (a local cluster) or --scheduler (an existing one), not both",
                          field="--workers/--scheduler")
@@ -238,8 +257,8 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, mit
         client = Client(cluster)
     try:
         _check_workers(client)
-        if mitsuba:
-            client.register_plugin(EngineSetup(variant), name=EngineSetup.name)
+        if backend in PROCESS_SETUP:
+            client.register_plugin(EngineSetup(backend, variant), name=EngineSetup.name)
         yield client
     finally:
         client.close()
@@ -277,7 +296,7 @@ def map_tables(tasks: Sequence[TableTask], client=None, *,
     if client is None:
         out = []
         for t in tasks:
-            r = compute_table(t)
+            r = compute_table(t, prepare=False)
             if on_result is not None:
                 on_result(r)
             out.append(r)
@@ -330,6 +349,3 @@ def seeds_for(seed: int, n: int) -> list[int]:
     import numpy as np
     return [int(s.generate_state(1, dtype=np.uint32)[0] & 0x7FFFFFFF) for s in np.random.SeedSequence(int(seed)).spawn(n)]
 
-
-def _nan_if_none(v):
-    return math.nan if v is None else v

@@ -67,9 +67,10 @@ def detector_etendue(instrument: Instrument) -> float:
     """Etendue (m^2 sr) of the luminance meter: pupil disc x field stop (module docstring)."""
     det = instrument.detector
     gamma = math.radians(det.field_half_angle_deg)
-    if math.isinf(det.focus):
+    if det.angular_field:
         return math.pi * det.pupil_radius_m ** 2 * math.pi * math.sin(gamma) ** 2
-    return coaxial_disc_etendue(det.pupil_radius_m, det.focus * math.tan(gamma), det.focus)
+    f = det.focus_distance_m
+    return coaxial_disc_etendue(det.pupil_radius_m, f * math.tan(gamma), f)
 
 
 def mean_field_sensitivity(instrument: Instrument) -> float:

@@ -178,7 +178,8 @@ def plot_pareto(ds, path: Path) -> Path:
                 ms=6, lw=0.8, label=f"feasible ({int((feas & ok).sum())})")
     front = pareto_front(sig, dev)
     if front.size > 1:
-        ax.step(sig[front], dev[front], where="post", color="0.4", lw=1, ls="--", label="Pareto front")
+        ax.step(sig[front], dev[front], where="pre", color="0.4", lw=1, ls="--",
+                label="Pareto front (least deviation for at least that signal)")
     ax.axhline(tol, color="tab:orange", lw=1.2, label=f"tolerance {tol:g} %")
     if best >= 0:
         p = point_index(ds, best)

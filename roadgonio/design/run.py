@@ -253,8 +253,9 @@ def run_design(instrument, vary=None, samples="R3", *, tolerance: float | str = 
                 cluster_info = _cluster.describe(client)
                 _cluster.map_tables(tasks, client, on_result=on_result)
             else:
-                with _cluster.open_client(workers, scheduler, mitsuba=backend == "mitsuba",
-                                          variant=settings.get("variant")) as c:
+                with _cluster.open_client(workers, scheduler, backend=backend, variant=settings.get("variant")) as c:
+                    if c is None:
+                        _cluster.check_engine(backend, settings.get("variant"))
                     cluster_info = _cluster.describe(c)
                     t_compute = time.perf_counter()
                     _cluster.map_tables(tasks, c, on_result=on_result)

@@ -343,8 +343,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
             sur_report = build_surrogate(mm, spec, factory, client=client, **kw)
         elif distributed:
             from roadgonio.design.cluster import describe, open_client
-            with open_client(workers, scheduler, mitsuba=backend == "mitsuba",
-                             variant=(backend_settings or {}).get("variant")) as c:
+            with open_client(workers, scheduler, backend=backend, variant=(backend_settings or {}).get("variant")) as c:
                 notes.append(f"exact k_A tables on Dask: {describe(c)}")
                 sur_report = build_surrogate(mm, spec, factory, client=c, **kw)
         else:
