@@ -222,7 +222,7 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
     from roadgonio.design.outputs import read_design
     vary = ["source.distance_m=0.3,1.0", "source.radius_m=0.01,0.03"]
     ds = run_design("portable", vary, ["R3"], cells=CELLS, tolerance="4%", out=tmp_path, **QUAD)
-    assert dict(ds.sizes) == {"source.distance_m": 2, "source.radius_m": 2, "sample": 1, "tan_eps": 3, "beta_deg": 3}
+    assert dict(ds.sizes) == {"source.distance_m": 2, "source.radius_m": 2, "sample": 1, "tan_eps": 3, "beta": 3}
     kind = ds["kind"].values
     assert kind[0, 1] == "horizon" and "below the sample plane at tan eps 12, beta 0" in ds["reason"].values[0, 1]
     assert not ds["geometry_ok"].values[0, 1] and np.isnan(ds["k_a"].values[0, 1]).all()
@@ -333,7 +333,7 @@ def test_best_design_recomputed_with_ka_matches_its_row(tmp_path, capsys):
     assert row["feasible"] == "true"
     k_row = ds["k_a"].values.reshape(-1, 1, *ds["k_a"].shape[-2:])[best, 0]
     se_row = ds["se"].values.reshape(-1, 1, *ds["se"].shape[-2:])[best, 0]
-    tans, betas = ds["tan_eps"].values, ds["beta_deg"].values
+    tans, betas = ds["tan_eps"].values, ds["beta"].values
     # an independent run (another seed) agrees within 4 combined SE; the design's own seed repeats it exactly
     for seed, exact in ((12345, False), (int(row["seed"]), True)):
         ka_out = tmp_path / f"ka{seed}"

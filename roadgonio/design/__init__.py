@@ -14,12 +14,16 @@ Rooms:
 * :mod:`.run`: the journal (resume), the Dataset; :mod:`.outputs`: design.nc, design.csv, best.toml,
   pareto.png, tolerance_map.png.
 
-``design.nc`` layout: ``k_a``, ``se``, ``error_bound`` over (varied keys..., sample, tan_eps,
-beta_deg); per point ``max_abs_dev``, ``rms_dev``, ``worst_*``, ``signal``, ``footprint_length_m``,
+``design.nc`` layout: ``k_a``, ``se``, ``error_bound`` over (varied keys..., sample, tan_eps, beta);
+per point ``max_abs_dev``, ``rms_dev``, ``worst_*``, ``signal``, ``footprint_length_m``,
 ``geometry_ok``, ``feasible``, ``kind``, ``reason``, ``seed``; provenance in the attributes.
 
-The API is :func:`run_design` (``roadgonio.design.run_design(...)``); the package itself is
-callable too, so ``roadgonio.design(...)`` is the same call.
+The API is :func:`run_design`; the package itself is callable, so ``roadgonio.design(...)`` is the
+same call (a function of that name in :mod:`roadgonio` would be replaced by this package on its
+first import). It is an entry point: computing in this process with the Mitsuba backend, it keeps
+a variant you selected, else selects one (``variant`` setting, else ``$ROADGONIO_VARIANT``, else
+llvm_ad_rgb). Scripts that start a local cluster must guard the call with
+``if __name__ == "__main__":`` (worker processes are spawned and import the main module).
 """
 from __future__ import annotations
 
@@ -27,18 +31,22 @@ import sys
 import types
 
 
-def run_design(*args, **kwargs):
-    """Run a design study; see :func:`roadgonio.design.run.run_design`."""
+def run_design(instrument, vary=None, samples="R3", **kwargs):
+    """Run a design study and return its ``xarray.Dataset``: the arguments of
+    :func:`roadgonio.design.run.run_design` (base instrument, ``vary``, ``samples``, ``tolerance``,
+    ``cells``, ``backend``, ``accuracy``, ``settings``, ``seed``, ``workers``/``scheduler``/``client``,
+    ``out``, ...)."""
+    from roadgonio.design import cluster
     from roadgonio.design.run import run_design as _run
-    return _run(*args, **kwargs)
-
-
-run_design.__doc__ = "Run a design study and return its xarray Dataset (roadgonio.design.run.run_design)."
+    backend = kwargs.get("backend", "mitsuba")
+    here = kwargs.get("workers") == 0 and kwargs.get("scheduler") is None and kwargs.get("client") is None
+    if here and backend in cluster.PROCESS_SETUP:
+        cluster.init_engine(backend, (kwargs.get("settings") or {}).get("variant"))
+    return _run(instrument, vary, samples, **kwargs)
 
 
 class _CallableModule(types.ModuleType):
-    """``roadgonio.design(...)`` calls :func:`run_design` while ``roadgonio.design`` stays the package
-    (a function of that name in ``roadgonio`` would be replaced by the package on its first import)."""
+    """``roadgonio.design(...)`` calls :func:`run_design` while ``roadgonio.design`` stays the package."""
 
     def __call__(self, *args, **kwargs):
         return run_design(*args, **kwargs)

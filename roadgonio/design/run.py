@@ -374,12 +374,12 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
 
     dims = [s.key for s in specs]
     coords: dict[str, Any] = {s.key: np.array(s.values, dtype=np.float64) for s in specs}
-    coords.update({"sample": np.array([s.name for s in samples], dtype=object), "tan_eps": tans, "beta_deg": betas})
+    coords.update({"sample": np.array([s.name for s in samples], dtype=object), "tan_eps": tans, "beta": betas})
 
     def grid(v):
         return np.asarray(v).reshape(shape + np.asarray(v).shape[1:])
 
-    cell_dims = dims + ["sample", "tan_eps", "beta_deg"]
+    cell_dims = dims + ["sample", "tan_eps", "beta"]
     data = {
         "k_a": (cell_dims, grid(k_a), {"long_name": "aperture-effect factor k_A (DESIGN.md section 5)", "units": "1"}),
         "se": (cell_dims, grid(se), {"long_name": "standard error of k_A (Monte Carlo; NaN for deterministic backends)"}),
