@@ -191,7 +191,7 @@ def plot_pareto(ds, path: Path) -> Path:
     finite = sig[ok]
     if finite.size and finite.min() > 0 and finite.max() / finite.min() > 20:
         ax.set_xscale("log")
-    if dev[ok].size and np.nanmin(dev[ok]) > 0 and np.nanmax(dev[ok]) / np.nanmin(dev[ok]) > 50:
+    if dev[ok].size and np.nanmin(dev[ok]) > 0 and np.nanmax(dev[ok]) / np.nanmin(dev[ok]) > 10:
         ax.set_yscale("log")
     ax.set_xlabel("signal (detected flux for a Lambertian sample, relative to the base design)")
     ax.set_ylabel("max |k_A - 1| over cells and samples (%)")
@@ -215,6 +215,17 @@ def _edges(v: np.ndarray, log: bool) -> np.ndarray:
     mid = (x[1:] + x[:-1]) / 2
     e = np.concatenate([[x[0] - (mid[0] - x[0])], mid, [x[-1] + (x[-1] - mid[-1])]])
     return np.exp(e) if log else e
+
+
+def _signal_levels(lo: float, hi: float, n_max: int = 7) -> np.ndarray:
+    """Round iso-signal levels strictly inside (lo, hi): 1-2-5 per decade, thinned to <= n_max."""
+    out = []
+    for e in range(int(np.floor(np.log10(lo))), int(np.ceil(np.log10(hi))) + 1):
+        out += [m * 10.0 ** e for m in (1, 2, 5) if lo < m * 10.0 ** e < hi]
+    lv = np.array(out)
+    while lv.size > n_max:
+        lv = lv[::2]
+    return lv
 
 
 def plot_tolerance_map(ds, path: Path) -> Path | None:
@@ -264,7 +275,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
             pass
         fs = sig[np.isfinite(sig) & (sig > 0)]
         if fs.size >= 4 and fs.max() / fs.min() > 1.5:
-            lv = np.unique(np.array([v for v in (0.25, 0.5, 1, 2, 4, 8, 16, 32, 64) if fs.min() < v < fs.max()]))
+            lv = _signal_levels(float(fs.min()), float(fs.max()))
             if lv.size:
                 cs2 = ax.contour(X, Y, np.where(sig > 0, sig, np.nan), levels=lv, colors="white", linewidths=0.9,
                                  linestyles="--")
