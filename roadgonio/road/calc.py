@@ -154,6 +154,27 @@ def _counted(layout: Layout, x_point: float, x_lums: np.ndarray) -> np.ndarray:
     return (x_lums >= x_point - layout.before_h * h - 1e-9) & (x_lums <= x_point + layout.after_h * h + 1e-9)
 
 
+def contribution(luminaire: Luminaire, lum: np.ndarray, rotation_deg: float, tilt_deg: float, point: np.ndarray,
+                 observer: np.ndarray, table: RTable, order: str = "quadratic"):
+    """One luminaire's luminance at a road point for an observer (EN 13201-3 7.1.1), without the
+    maintenance factor, as weights on the table's cells: L = sum(w * r.ravel()[cells]) with
+    w = I(C, gamma) x (interpolation weight) / H^2. Returns (cells, w, tan epsilon); cells is None
+    where the table has no r for this (beta, tan epsilon)."""
+    beta, tan_e = incidence(lum, point, observer)
+    got = r_weights(table, beta, tan_e, order)
+    if got is None:
+        return None, None, tan_e
+    c, g = luminaire_angles(lum, rotation_deg, tilt_deg, point)
+    intens = float(luminaire.intensity(c, g))
+    if not np.isfinite(intens):
+        raise InputError(f"the luminaire data cover gamma up to {luminaire.gamma_max_deg:g} deg; this layout needs "
+                         f"gamma = {float(g):.1f} deg (C = {float(c):.1f} deg)", path=luminaire.source or None,
+                         field="gamma angles")
+    h = lum[2] - point[2]
+    cells, w = got
+    return cells, intens * w / (h * h), tan_e
+
+
 def luminance_operator(layout: Layout, luminaire: Luminaire, table: RTable, fld: Field | None = None) -> LuminanceOperator:
     """The EN 13201-3 luminance of every grid point for every observer, as weights on the cells of
     ``table``'s grid (the values of ``table`` are not used: only its grid and blank pattern)."""
@@ -166,28 +187,16 @@ def luminance_operator(layout: Layout, luminaire: Luminaire, table: RTable, fld:
     for p in range(n_p):
         point = np.array([fld.x[p], fld.y[p], 0.0])
         sel = np.nonzero(_counted(layout, fld.x[p], fld.luminaires[:, 0]))[0]
-        if len(sel) == 0:
-            continue
-        c, g = luminaire_angles(fld.luminaires[sel], fld.rotation_deg[sel], layout.tilt_deg, point)
-        intens = luminaire.intensity(c, g)
-        if np.any(np.isnan(intens)):
-            k = int(np.nonzero(np.isnan(intens))[0][0])
-            raise InputError(f"the luminaire data cover gamma up to {luminaire.gamma_max_deg:g} deg; this layout needs "
-                             f"gamma = {g[k]:.1f} deg (C = {c[k]:.1f} deg)", path=luminaire.source or None,
-                             field="gamma angles")
         for o in range(n_obs):
-            for k, li in enumerate(sel):
-                lum = fld.luminaires[li]
-                beta, tan_e = incidence(lum, point, fld.observers[o])
+            for li in sel:
+                got = contribution(luminaire, fld.luminaires[li], fld.rotation_deg[li], layout.tilt_deg, point,
+                                   fld.observers[o], table, layout.interpolation)
                 evaluated += 1
-                max_tan = max(max_tan, tan_e)
-                got = r_weights(table, beta, tan_e, layout.interpolation)
-                if got is None:
+                max_tan = max(max_tan, got[2])
+                if got[0] is None:
                     neglected += 1
                     continue
-                cells, w = got
-                h = lum[2]
-                np.add.at(W[o, p], cells, mf * intens[k] * w / (h * h))
+                np.add.at(W[o, p], got[0], mf * got[1])
     return LuminanceOperator(W, fld, neglected, evaluated, max_tan)
 
 
