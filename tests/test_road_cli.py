@@ -37,7 +37,7 @@ def test_road_several_tables_and_uncertainty(tmp_path, capsys):
     t.with_values(t.r * 0.02).write_csv(tmp_path / "corrected_u.csv")
     out = tmp_path / "o"
     assert main(["road", "--table", str(tmp_path / "R3_measured.csv"), "--table", "R3", "--u",
-                 str(tmp_path / "corrected_u.csv"), "--trials", "2000", "--out", str(out), "--json"]) == 0
+                 str(tmp_path / "corrected_u.csv"), "--trials", "2000", "--out", str(out), "--json", "--no-plots"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert [x["table"] for x in d] == ["R3_measured", "R3"]
     assert d[0]["L_av"] == pytest.approx(1.2 * d[1]["L_av"]) and d[0]["U_o"] == pytest.approx(d[1]["U_o"])
@@ -56,7 +56,7 @@ def test_road_text_output(tmp_path, capsys):
     assert main(["road", "--table", "R2", "--table", "R3", "--out", str(tmp_path), "--no-plots"]) == 0
     text = capsys.readouterr().out
     assert "R3 vs R2: L_av" in text and "M3" in text and "wrote 3 files" in text
-    assert main(["road", "--table", "R3", "--out", str(tmp_path / "q"), "--quiet"]) == 0
+    assert main(["road", "--table", "R3", "--out", str(tmp_path / "q"), "--quiet", "--no-plots"]) == 0
     assert capsys.readouterr().out == ""
 
 

@@ -85,8 +85,7 @@ class Layout:
         where = self.source or None
 
         def bad(key: str, expected: str, value: Any):
-            sec = next((s for s, keys in _SCHEMA.items() for k, (a, _) in keys.items() if a == key), "")
-            fld = next((f"[{sec}] {k}" for s, keys in _SCHEMA.items() for k, (a, _) in keys.items() if a == key), key)
+            fld = next((f"[{s}] {k}" for s, keys in _SCHEMA.items() for k, (a, _) in keys.items() if a == key), key)
             raise InputError(f"expected {expected}, got {value!r}", path=where, field=fld)
 
         if not (isinstance(self.lanes, int) and 1 <= self.lanes <= 12):
