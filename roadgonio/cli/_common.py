@@ -34,3 +34,11 @@ def load_inputs(args):
     instrument = load_instrument(args.instrument)
     model = resolve_sample(args.sample, getattr(args, "model_variant", None))
     return instrument, model
+
+
+def select_variant(backend: str, variant: str | None = None) -> None:
+    """The command is the entry point: choose the Mitsuba variant here (``--variant``, else
+    ``$ROADGONIO_VARIANT``, else llvm_ad_rgb) when the Mitsuba backend will run. Backends only check it."""
+    if backend == "mitsuba":
+        from roadgonio.engines.mitsuba import set_variant
+        set_variant(variant)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from roadgonio.errors import InputError
 from roadgonio.surface.model import VARIANTS
-from roadgonio.cli._common import add_instrument_argument, rel_se_setting
+from roadgonio.cli._common import add_instrument_argument, rel_se_setting, select_variant
 
 
 def register(sub) -> None:
@@ -60,6 +60,7 @@ def run(args) -> int:
                              path=args.measured)
     instrument = load_instrument(args.instrument)
     reference = resolve_sample_spec(args.reference, args.model_variant)
+    select_variant(args.backend)
     ref_name = Path(args.reference).stem if Path(args.reference).suffix else args.reference
     alt_arg = args.alternatives.strip()
     if alt_arg.lower() == "auto":

@@ -15,6 +15,7 @@ from roadgonio.cli._common import (
     add_sample_argument,
     load_inputs,
     rel_se_setting,
+    select_variant,
 )
 
 
@@ -77,6 +78,7 @@ def run(args) -> int:
         if not (math.isfinite(args.beta) and 0 <= args.beta <= 180):
             raise InputError(f"expected 0 <= beta <= 180 deg, got {args.beta}", field="--beta")
     instrument, model = load_inputs(args)
+    select_variant(args.backend, args.variant)
     backend = make_backend(args.backend, instrument, model, accuracy=args.accuracy, **backend_settings(args))
 
     if single:

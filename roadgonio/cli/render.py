@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 
 from roadgonio.errors import InputError
-from roadgonio.cli._common import add_instrument_argument, add_sample_argument, load_inputs
+from roadgonio.cli._common import add_instrument_argument, add_sample_argument, load_inputs, select_variant
 
 
 def register(sub) -> None:
@@ -38,6 +38,7 @@ def run(args) -> int:
         raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {args.spp}",
                          field="--spp")
     instrument, model = load_inputs(args)
+    select_variant("mitsuba", args.variant)
     from roadgonio.engines.mitsuba.images import render_cell_images
     info = render_cell_images(instrument, model, args.tan_eps, args.beta, args.out, resolution=args.resolution,
                               spp=args.spp, seed=args.seed, variant=args.variant, sample_name=args.sample)

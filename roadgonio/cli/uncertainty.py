@@ -7,7 +7,7 @@ from pathlib import Path
 
 from roadgonio.errors import InputError
 from roadgonio.surface.model import VARIANTS
-from roadgonio.cli._common import add_instrument_argument, add_sample_argument, rel_se_setting
+from roadgonio.cli._common import add_instrument_argument, add_sample_argument, rel_se_setting, select_variant
 
 
 def _positive_int(text: str) -> int:
@@ -109,6 +109,8 @@ def run(args) -> int:
         settings["seed"] = args.seed
     instrument = load_instrument(args.instrument)
     model = resolve_sample_spec(args.sample, args.model_variant)
+    if not args.no_aperture:
+        select_variant(args.backend)
     res = run_uncertainty(model, instrument, spec, trials=args.trials, adaptive=args.adaptive, seed=args.seed,
                           coverage=args.coverage, n_dig=args.digits, max_trials=args.max_trials, batch=args.batch,
                           illuminance=args.illuminance, cells=args.cells, aperture=not args.no_aperture,

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from roadgonio.errors import InputError
-from roadgonio.cli._common import add_instrument_argument, add_sample_argument, load_inputs
+from roadgonio.cli._common import add_instrument_argument, add_sample_argument, load_inputs, select_variant
 
 
 def register(sub) -> None:
@@ -45,6 +45,7 @@ def run(args) -> int:
         raise InputError(f"expected a floor >= 0, got {args.floor}", field="--floor")
     cells = parse_cells(args.cells)
     instrument, model = load_inputs(args)
+    select_variant(args.against, args.variant)
     mc_settings = {}
     if args.against == "mitsuba":
         if args.variant:

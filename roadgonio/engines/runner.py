@@ -51,10 +51,8 @@ def versions() -> dict[str, str]:
     if "mitsuba" in sys.modules:
         try:
             v["mitsuba_variant"] = sys.modules["mitsuba"].variant()
-            from roadgonio.engines.mitsuba import llvm_version
-            lv = llvm_version()
-            if lv:
-                v["llvm"] = ".".join(map(str, lv))
+            if "drjit" in sys.modules and str(v["mitsuba_variant"]).startswith("llvm"):
+                v["llvm"] = ".".join(map(str, sys.modules["drjit"].detail.llvm_version()))
         except Exception:  # pragma: no cover
             pass
     return v
