@@ -1,11 +1,12 @@
 """From the r-table to the road: a synthetic wide-instrument measurement of CIE R3, corrected, through
 the default EN 13201 layout (README "From the r-table to the road").
 
-1. k_A of the portable preset (25 mm source aperture at 1 m, 5 mm pupil at 1 m) for the R3 model,
-   quadrature backend: ``roadgonio ka --instrument portable --sample R3 --backend quadrature``.
+1. k_A of an instrument for the R3 model (default: the wide instrument of issue 10,
+   bench/wide_instrument.toml, Mitsuba backend; ``--instrument portable --backend quadrature`` for
+   the portable preset): ``roadgonio ka --instrument I --sample R3 --backend B``.
 2. The "measured" table: what that instrument reports for a true R3 surface, r_measured = k_A r_R3.
-3. ``roadgonio correct --measured measured.csv --instrument portable --reference R3 --backend
-   quadrature``: the corrected table and its per-cell relative uncertainty u_rel (backend error and
+3. ``roadgonio correct --measured measured.csv --instrument I --reference R3 --backend B``: the
+   corrected table and its per-cell relative uncertainty u_rel (backend error and
    reference-model spread over the two nearest CIE tables). Its standard uncertainty in the r-table
    layout is ``corrected_u.csv`` (written by `correct` when it does; otherwise built here as
    u_rel x r_corrected).
@@ -42,25 +43,28 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--work", default=str(ROOT / "out" / "bench-road"))
     ap.add_argument("--trials", type=int, default=20000)
+    ap.add_argument("--instrument", default=str(ROOT / "bench" / "wide_instrument.toml"))
+    ap.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature"])
     a = ap.parse_args()
-    work = Path(a.work)
+    label = Path(a.instrument).stem if Path(a.instrument).suffix else a.instrument
+    work = Path(a.work) / f"{label}-{a.backend}"
     work.mkdir(parents=True, exist_ok=True)
     from roadgonio.surface.rtable import bundled_table, read_table
 
     t0 = time.time()
-    roadgonio("ka", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature", "--out", str(work / "ka-R3"))
+    roadgonio("ka", "--instrument", a.instrument, "--sample", "R3", "--backend", a.backend, "--out", str(work / "ka-R3"))
     t_ka = time.time() - t0
     ka = read_table(work / "ka-R3" / "ka.csv")         # k_A in the r-table layout, unscaled
     r3 = bundled_table("R3")
     k = ka.r * 1e4                                     # read_table divides by 1e4; ka.csv is unscaled
-    measured = r3.with_values(r3.r * k, name="R3_measured_portable",
-                              source="synthetic: CIE R3 x k_A(portable, R3 model, quadrature)")
-    measured.write_csv(work / "R3_measured_portable.csv")
+    mname = f"R3_measured_{label}"
+    measured = r3.with_values(r3.r * k, name=mname, source=f"synthetic: CIE R3 x k_A({label}, R3 model, {a.backend})")
+    measured.write_csv(work / f"{mname}.csv")
     t1 = time.time()
-    roadgonio("correct", "--measured", str(work / "R3_measured_portable.csv"), "--instrument", "portable",
-              "--reference", "R3", "--backend", "quadrature", "--out", str(work / "corrected"), "--no-plots")
+    roadgonio("correct", "--measured", str(work / f"{mname}.csv"), "--instrument", a.instrument,
+              "--reference", "R3", "--backend", a.backend, "--out", str(work / "corrected"), "--no-plots")
     t_corr = time.time() - t1
-    corr_csv = work / "corrected" / "R3_measured_portable_corrected.csv"
+    corr_csv = work / "corrected" / f"{mname}_corrected.csv"
     u_csv = work / "corrected" / "corrected_u.csv"
     u_source = "corrected_u.csv written by roadgonio correct"
     if not u_csv.exists():
@@ -75,12 +79,12 @@ def main() -> None:
         corrected.with_values(corrected.r * u_rel, name="corrected_u").write_csv(u_csv)
         u_source = "u_rel_correction x r_corrected from correction_cells.csv (built by this script)"
     t2 = time.time()
-    out = json.loads(roadgonio("road", "--table", str(work / "R3_measured_portable.csv"), "--table", str(corr_csv),
+    out = json.loads(roadgonio("road", "--table", str(work / f"{mname}.csv"), "--table", str(corr_csv),
                                "--table", "R3", "--u", "-", "--u", str(u_csv), "--u", "-", "--trials", str(a.trials),
                                "--out", str(work / "road"), "--json"))
     t_road = time.time() - t2
     load = os.getloadavg()
-    print(f"k_A portable x R3 (quadrature): {np.nanmin(k):.3f} ... {np.nanmax(k):.3f}; uncertainty of the corrected "
+    print(f"k_A {label} x R3 ({a.backend}): {np.nanmin(k):.3f} ... {np.nanmax(k):.3f}; uncertainty of the corrected "
           f"table: {u_source}")
     print(f"{'table':34} {'L_av':>7} {'U_o':>6} {'U_l':>6} {'TI %':>6} class")
     rows = []
@@ -103,7 +107,7 @@ def main() -> None:
           f"U_l {c['U_l'] - m['U_l']:+.4f}, TI {c['TI'] - m['TI']:+.2f} points")
     print(f"time: ka {t_ka:.0f} s, correct {t_corr:.0f} s, road (with {a.trials} trials x 2) {t_road:.1f} s; "
           f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (2-core AMD EPYC, 24 GiB)")
-    res = ROOT / "bench" / "results" / "road_measured_vs_corrected.csv"
+    res = ROOT / "bench" / "results" / f"road_measured_vs_corrected_{label}.csv"
     keys = sorted({k2 for r in rows for k2 in r}, key=lambda s: (s not in ("table", "L_av", "U_o", "U_l", "TI", "class"), s))
     with open(res, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=keys)

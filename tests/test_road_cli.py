@@ -110,3 +110,36 @@ def test_classify_limits(tmp_path):
     assert class_by_s1(0.85, "R")[0] == "R3" and class_by_s1(1.35, "R")[0] == "R4"
     assert class_by_s1(0.399, "C")[0] == "C1" and class_by_s1(0.40, "C")[0] == "C2"
     assert class_by_s1(1.30, "N")[0] == "N4"
+
+
+def test_output_error_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["road", "--table", "R3", "--out", str(blocker / "sub"), "--no-plots"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("roadgonio: error:") and "output folder" in err and "\n" not in err
+    from roadgonio.errors import InputError
+    from roadgonio.road import report
+    out = tmp_path / "o"
+    real_fdopen = report.os.fdopen
+    opened = []
+
+    class FillsUp:  # the disk fills up while the second file is staged
+        def __init__(self, fd, mode):
+            self.fh = real_fdopen(fd, mode)
+            opened.append(self)
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            self.fh.close()
+
+        def write(self, data):
+            if len(opened) == 2:
+                raise OSError(28, "No space left on device")
+            return self.fh.write(data)
+    monkeypatch.setattr(report.os, "fdopen", FillsUp)
+    with pytest.raises(InputError, match="nothing was written"):
+        report.write_together(out, {"a.txt": "1", "b.txt": "2", "c.txt": "3"})
+    assert list(out.iterdir()) == []   # no result and no staged temporary file left

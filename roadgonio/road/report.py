@@ -24,20 +24,23 @@ def write_together(out_dir: Path, files: dict[str, bytes | str]) -> list[Path]:
     except OSError as err:
         raise InputError(f"cannot create the output folder ({err.strerror or err})", path=out_dir) from None
     staged: list[tuple[str, Path]] = []
+    renamed = 0
     try:
         for name, content in files.items():
             fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out_dir)
+            staged.append((name, Path(tmp)))
             with os.fdopen(fd, "wb") as fh:
                 fh.write(content.encode("utf-8") if isinstance(content, str) else content)
             os.chmod(tmp, 0o644)  # mkstemp makes 0600; results are ordinary files
-            staged.append((name, Path(tmp)))
         for name, tmp in staged:
-            os.replace(tmp, out_dir / name)
+            os.replace(tmp, out_dir / name)  # renames within a folder: they do not run out of space
+            renamed += 1
     except OSError as err:
         for _, tmp in staged:
             if tmp.exists():
                 tmp.unlink()
-        raise InputError(f"cannot write the outputs ({err.strerror or err}); nothing was written", path=out_dir) from None
+        done = "nothing was written" if renamed == 0 else f"{renamed} of {len(files)} files were written"
+        raise InputError(f"cannot write the outputs ({err.strerror or err}); {done}", path=out_dir) from None
     return [out_dir / n for n in files]
 
 
