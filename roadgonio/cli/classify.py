@@ -2,6 +2,8 @@
 and the nearest bundled CIE table in (S1, Q0)."""
 from __future__ import annotations
 
+from roadgonio.cli._common import add_output_options
+
 
 def register(sub) -> None:
     p = sub.add_parser("classify", help="CIE class of an r-table by S1 and Q0 (R1-R4, C1-C2, N1-N4)",
@@ -10,8 +12,7 @@ def register(sub) -> None:
                                    "0.60 <= N3 < 1.30 <= N4) and give its Q0 against the class standard and the "
                                    "nearest bundled CIE table in (S1, Q0).")
     p.add_argument("table", metavar="T", help="bundled name (R1..R4, C1, C2) or .csv/.rtb file")
-    p.add_argument("--json", action="store_true", help="print JSON")
-    p.add_argument("--quiet", action="store_true", help="print nothing but errors (and --json output)")
+    add_output_options(p, json_help="print JSON")
     p.set_defaults(func=run)
 
 

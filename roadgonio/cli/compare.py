@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from roadgonio.cli._common import add_output_options
+
 
 def register(sub) -> None:
     p = sub.add_parser("compare", help="compare two r-tables: ratio map B/A and S1/S2/Q0 side by side",
@@ -12,8 +14,7 @@ def register(sub) -> None:
     p.add_argument("b", metavar="B", help="second table")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/compare-A-B)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the ratio map")
-    p.add_argument("--json", action="store_true", help="print the comparison as JSON")
-    p.add_argument("--quiet", action="store_true", help="print nothing but errors (and --json output)")
+    add_output_options(p, json_help="print the comparison as JSON")
     p.set_defaults(func=run)
 
 

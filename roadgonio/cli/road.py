@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from roadgonio.cli._common import add_output_options
 from roadgonio.errors import InputError
 
 
@@ -35,8 +36,7 @@ def register(sub) -> None:
     p.add_argument("--correlation", choices=["both", "independent", "correlated"], default="both",
                    help="cell correlation assumed in the Monte Carlo (default both, as bounds)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the pictures")
-    p.add_argument("--json", action="store_true", help="print the results as JSON (a list with several tables)")
-    p.add_argument("--quiet", action="store_true", help="print nothing but errors (and --json output)")
+    add_output_options(p, json_help="print the results as JSON (a list with several tables)")
     p.set_defaults(func=run)
 
 
