@@ -16,7 +16,7 @@ def register(sub) -> None:
                     "uniformity U_o, longitudinal uniformity U_l per lane, threshold increment TI, edge illuminance "
                     "ratio R_EI) for a luminaire layout, and the EN 13201-2 M class met, with one or several r-tables "
                     "side by side. With --u (the table's standard uncertainty, r x 1e4 in the r-table CSV layout, as "
-                    "`roadgonio correct` writes it) a Monte Carlo gives u(L_av), u(U_o), u(U_l), 95 %% intervals and the "
+                    "`roadgonio correct` writes it) a Monte Carlo gives u(L_av), u(U_o), u(U_l), 95 % intervals and the "
                     "probability of meeting the class, for independent and for fully correlated cells. Without "
                     "--luminaire/--layout: roadgonio's illustrative cut-off luminaire and its default layout "
                     "(single-sided, 2 x 3.5 m lanes, H 10 m, S 30 m).")
