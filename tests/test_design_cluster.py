@@ -78,7 +78,7 @@ def test_two_worker_cluster_identical_to_in_process(dask_cluster, tmp_path):
     ds_here = run_design("portable", VARY, workers=0, out=tmp_path / "here", **kw)
     ds_dask = run_design("portable", VARY, scheduler=dask_cluster, out=tmp_path / "dask", **kw)
     assert int(ds_here.attrs["points_geometry_ok"]) == 6
-    prov = json.loads(ds_dask.attrs["provenance_json"])
+    prov = json.loads(ds_dask.attrs["provenance"])
     assert prov["cluster"]["workers"] == 2 and prov["cluster"]["mode"] == "dask"
     # computed on the two worker processes, not here
     workers = {json.loads(line)["worker"] for line in

@@ -1,13 +1,20 @@
 """``roadgonio design``: sweep instrument parameters on Dask; tolerance map, Pareto front, best design."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
 from roadgonio.engines.accuracy import PRESETS
 from roadgonio.surface.model import VARIANTS
-from roadgonio.cli._common import add_dask_arguments, add_instrument_argument, rel_se_setting, select_variant
+from roadgonio.cli._common import (
+    add_dask_arguments,
+    add_instrument_argument,
+    add_output_options,
+    rel_se_setting,
+    select_variant,
+    show_progress,
+    text_output,
+)
 
 
 def register(sub) -> None:
@@ -45,7 +52,7 @@ def register(sub) -> None:
     p.add_argument("--out", metavar="DIR", help="output folder (default out/design-INSTRUMENT)")
     p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
     p.add_argument("--no-plots", action="store_true", help="do not draw pareto.png / tolerance_map.png")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_output_options(p, "print the summary as JSON")
     p.set_defaults(func=run)
 
 
@@ -61,28 +68,30 @@ def run(args) -> int:
     ds = run_design(base, args.vary, args.sample, tolerance=args.tolerance, cells=args.cells, backend=args.backend,
                     accuracy=args.accuracy, settings=settings, seed=args.seed, workers=args.workers,
                     scheduler=args.scheduler, out=out, fresh=args.fresh, plots=not args.no_plots,
-                    model_variant=args.model_variant)
+                    model_variant=args.model_variant, progress=show_progress(args))
     s = summary(ds)
+    rc = 1 if s["tables_failed"] else 0
+    if s["tables_failed"] and not args.quiet:
+        print(f"roadgonio: {s['tables_failed']} tables failed (a worker died): run the same command again to retry "
+              "them", file=sys.stderr)
     if args.json:
         from roadgonio.fileio import to_json
         print(to_json(s))
-        return 1 if s["tables_failed"] else 0
-    print(f"design of '{base.name}': {s['points']} points ({' x '.join(s['varied']) or 'base only'}), "
-          f"{s['geometry_ok']} geometrically possible, {s['feasible']} within the tolerance {s['tolerance']:g}; "
-          f"{s['tables_computed']} tables computed, {s['tables_resumed']} resumed in {s['wall_s']:.1f} s"
-          + (f" ({s['design_points_per_hour']:.0f} design points/hour)" if "design_points_per_hour" in s else ""))
+        return rc
+    say = text_output(args)
+    say(f"design of '{base.name}': {s['points']} points ({' x '.join(s['varied']) or 'base only'}), "
+        f"{s['geometry_ok']} geometrically possible, {s['feasible']} within the tolerance {s['tolerance']:g}; "
+        f"{s['tables_computed']} tables computed, {s['tables_resumed']} resumed in {s['wall_s']:.1f} s"
+        + (f" ({s['design_points_per_hour']:.0f} design points/hour)" if "design_points_per_hour" in s else ""))
     if s["not_feasible_by_kind"]:
-        print("not feasible: " + ", ".join(f"{k} {v}" for k, v in sorted(s["not_feasible_by_kind"].items())))
+        say("not feasible: " + ", ".join(f"{k} {v}" for k, v in sorted(s["not_feasible_by_kind"].items())))
     b = s["best"]
     if b is None:
-        print("no design meets the tolerance: see pareto.png for the closest ones")
+        say("no design meets the tolerance: see pareto.png for the closest ones")
     else:
         vals = ", ".join(f"{k} = {b[k]:g}" for k in s["varied"]) or "the base design"
-        print(f"best: {vals}: signal {b['signal']:.3g} x base, max |k_A - 1| = {b['max_abs_dev']:.4f} "
-              f"(+- {b['worst_se']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
-              f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
-    if s["tables_failed"]:
-        print(f"{s['tables_failed']} tables failed (a worker died): run the same command again to retry them",
-              file=sys.stderr)
-    print(f"wrote {out}/" + ds.attrs.get("files", ""))
-    return 1 if s["tables_failed"] else 0
+        say(f"best: {vals}: signal {b['signal']:.3g} x base, max |k_A - 1| = {b['max_abs_dev']:.4f} "
+            f"(+- {b['worst_se']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
+            f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
+    say(f"wrote {out}/" + ds.attrs.get("files", ""))
+    return rc

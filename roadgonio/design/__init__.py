@@ -18,11 +18,11 @@ Rooms:
 per point ``max_abs_dev``, ``rms_dev``, ``worst_*``, ``signal``, ``footprint_length_m``,
 ``geometry_ok``, ``feasible``, ``kind``, ``reason``, ``seed``; provenance in the attributes.
 
-The API is :func:`run_design`; the package itself is callable, so ``roadgonio.design(...)`` is the
-same call (a function of that name in :mod:`roadgonio` would be replaced by this package on its
-first import). It is an entry point: computing in this process with the Mitsuba backend, it keeps
-a variant you selected, else selects one (``variant`` setting, else ``$ROADGONIO_VARIANT``, else
-llvm_ad_rgb). Scripts that start a local cluster must guard the call with
+The API is :func:`roadgonio.api.design`; this package is callable, so ``roadgonio.design(...)``
+(and :func:`run_design`) is the same call (a function of that name in :mod:`roadgonio` would be
+replaced by this package on its first import). It is an entry point: computing in this process with
+the Mitsuba backend, it keeps a variant you selected, else selects one (llvm_ad_rgb).
+:func:`roadgonio.design.run.run_design` (what the command runs) only checks the variant. Scripts that start a local cluster must guard the call with
 ``if __name__ == "__main__":`` (worker processes are spawned and import the main module).
 """
 from __future__ import annotations
@@ -31,18 +31,11 @@ import sys
 import types
 
 
-def run_design(instrument, vary=None, samples="R3", **kwargs):
-    """Run a design study and return its ``xarray.Dataset``: the arguments of
-    :func:`roadgonio.design.run.run_design` (base instrument, ``vary``, ``samples``, ``tolerance``,
-    ``cells``, ``backend``, ``accuracy``, ``settings``, ``seed``, ``workers``/``scheduler``/``client``,
-    ``out``, ...)."""
-    from roadgonio.design import cluster
-    from roadgonio.design.run import run_design as _run
-    backend = kwargs.get("backend", "mitsuba")
-    here = kwargs.get("workers") == 0 and kwargs.get("scheduler") is None and kwargs.get("client") is None
-    if here and backend in cluster.PROCESS_SETUP:
-        cluster.init_engine(backend, (kwargs.get("settings") or {}).get("variant"))
-    return _run(instrument, vary, samples, **kwargs)
+def run_design(*args, **kwargs):
+    """The API entry point :func:`roadgonio.api.design` (``roadgonio.design(...)``): returns the
+    design's ``xarray.Dataset``; chooses the Mitsuba variant when it computes in this process."""
+    from roadgonio.api import design
+    return design(*args, **kwargs)
 
 
 class _CallableModule(types.ModuleType):
@@ -50,6 +43,13 @@ class _CallableModule(types.ModuleType):
 
     def __call__(self, *args, **kwargs):
         return run_design(*args, **kwargs)
+
+    @property
+    def __signature__(self):
+        import inspect
+
+        from roadgonio.api import design
+        return inspect.signature(design)
 
 
 sys.modules[__name__].__class__ = _CallableModule

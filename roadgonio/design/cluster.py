@@ -28,7 +28,6 @@ seeding is per cell (``tests/test_design_cluster.py`` compares a 2-worker cluste
 from __future__ import annotations
 
 import logging
-import math
 import os
 import socket
 import threading

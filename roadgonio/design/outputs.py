@@ -1,7 +1,7 @@
 """Outputs of a design study (all written atomically, :mod:`roadgonio.fileio`):
 
 * ``design.nc``: the xarray Dataset (netCDF3 via scipy; booleans as int8, provenance as JSON in the
-  attributes ``provenance_json`` and ``base_instrument_json``);
+  attributes ``provenance`` and ``base_instrument_json``);
 * ``design.csv``: one row per design point: one column per varied key (named exactly as the key),
   then ``max_abs_dev, rms_dev, signal, feasible, reason``, then ``kind, worst_tan_eps,
   worst_beta_deg, worst_sample, worst_se, footprint_length_m, seed``;
@@ -139,7 +139,7 @@ def write_best(ds, path: Path) -> Path | None:
     changes = ", ".join(f"{k} = {v:g}" for k, v in point.items())
     d["instrument"] = {"name": f"{inst.name}-best",
                        "description": f"best design of a roadgonio design study of '{inst.name}': {changes}"}
-    prov = json.loads(ds.attrs.get("provenance_json", "{}"))
+    prov = json.loads(ds.attrs.get("provenance", "{}"))
     acc = prov.get("accuracy")
     samples = json.loads(ds.attrs["samples"])
     header = (f"The feasible design with the most signal (roadgonio design; {ds.attrs.get('created', '')}).\n"

@@ -33,15 +33,7 @@ from roadgonio.instrument.config import Instrument, load_instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.design import cluster as _cluster
 from roadgonio.design.feasibility import check_point
-from roadgonio.design.grid import (
-    VarySpec,
-    as_vary_specs,
-    grid_points,
-    grid_shape,
-    parse_tolerance,
-    point_changes,
-    sample_cells,
-)
+from roadgonio.design.grid import VarySpec, as_vary_specs, grid_points, grid_shape, parse_tolerance
 from roadgonio.design.metrics import SIGNAL_FORMULA, deviations, detector_etendue, signal_product, source_solid_angle
 
 JOURNAL = "design_points.jsonl"
@@ -268,20 +260,21 @@ def run_design(instrument, vary=None, samples="R3", *, tolerance: float | str = 
 
     ds = assemble(base=base, specs=specs, shape=shape, points=points, samples=smp, union=union, feas=feas,
                   inst_of=inst_of, done={**done, **failed}, seeds=seeds, tol=tol)
-    prov = {"roadgonio_design": "roadgonio.design.run_design", "fingerprint": fp, "backend": backend,
-            "accuracy": accuracy, "settings": settings, "seed": int(seed), "cells": str(cells),
-            "vary": [s.text or f"{s.key}=" + ",".join(map(repr, s.values)) for s in specs],
-            "samples": {s.name: {"spec": s.spec, "model": s.model.to_json_dict()} for s in smp},
-            "cluster": cluster_info, "backend_settings": next((d.get("settings") for d in done.values()
-                                                               if d.get("settings")), None)}
-    from roadgonio.engines.runner import versions
-    prov["versions"] = versions()
+    from roadgonio.provenance import provenance
+    used = next((d.get("settings") for d in done.values() if d.get("settings")), None)
+    prov = provenance(instrument=base, backend=backend, settings=used or settings,
+                      quantity="roadgonio design: k_A tables over a grid of instruments (roadgonio.design)",
+                      fingerprint=fp, accuracy=accuracy, requested_settings=settings, seed=int(seed), cells=str(cells),
+                      vary=[s.text or f"{s.key}=" + ",".join(map(repr, s.values)) for s in specs],
+                      samples={s.name: {"spec": s.spec, "model": s.model.to_json_dict()} for s in smp},
+                      seeds="SeedSequence(seed).spawn(points)[k], 31 bits, for every sample of point k",
+                      cluster=cluster_info, tolerance=tol)
     computed_now = len(tasks) - len(failed)
     ds.attrs.update({
-        "provenance_json": to_json(prov, indent=None),
+        "provenance": to_json(prov, indent=None),
         "tables_computed": int(computed_now), "tables_resumed": int(resumed), "tables_failed": len(failed),
         "compute_wall_s": float(compute_wall), "wall_s": float(time.perf_counter() - t_start),
-        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "created": prov["created"],
     })
     if computed_now and compute_wall > 0:
         pts_now = computed_now / max(len(smp), 1)
