@@ -14,7 +14,7 @@ from roadgonio.cli._common import show_progress
 
 pytestmark = pytest.mark.system
 
-COMMANDS = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct"]
+COMMANDS = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct", "design"]
 
 
 def _subparsers():

@@ -8,7 +8,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import tomllib
 
 import numpy as np
 import pytest
@@ -16,7 +15,7 @@ import pytest
 from roadgonio.cli import main
 from roadgonio.design import grid as G
 from roadgonio.design import metrics as M
-from roadgonio.design.feasibility import blocked_cells, check_geometry, check_point
+from roadgonio.design.feasibility import blocked_cells, check_point
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument, load_instrument
 
@@ -378,7 +377,21 @@ def test_ka_cells_list(tmp_path, capsys):
     assert "--cells" in capsys.readouterr().err
 
 
-@pytest.mark.unit
-def test_api_package_is_callable():
-    import roadgonio.design as D
-    assert callable(D) and D.run_design.__doc__
+def test_api_design_is_the_room_and_the_command_run():
+    """roadgonio.design(...) (the callable room) = api.design = what the command runs, with objects
+    as samples; the Dataset's dims are the varied keys, sample, tan_eps, beta."""
+    import roadgonio as rg
+    from roadgonio.design.run import run_design
+    from roadgonio.surface.model import RoadModel, RoadParams
+    model = RoadModel(RoadParams(k_diff=0.05, k_phong=0.4, n_phong=40))
+    vary = {"detector.pupil_radius_m": [0.002, 0.005]}
+    a = rg.design("portable", vary, [model, "lambert"], cells="12:0,2:0", backend="quadrature", accuracy="fast",
+                  workers=0)
+    b = run_design(load_instrument("portable"), vary, [("model", model), "lambert"], cells="12:0,2:0",
+                   backend="quadrature", accuracy="fast", workers=0, progress=False)
+    assert a["k_a"].dims == ("detector.pupil_radius_m", "sample", "tan_eps", "beta")
+    assert np.array_equal(a["k_a"].values, b["k_a"].values, equal_nan=True)
+    assert json.loads(a.attrs["provenance"])["versions"]["roadgonio"] == rg.__version__
+    assert a["k_a"].sel(sample="lambert").values[np.isfinite(a["k_a"].sel(sample="lambert").values)] == \
+        pytest.approx(1.0, abs=1e-12)
+    assert abs(float(a["k_a"].sel(sample="model", tan_eps=12, beta=0)[1]) - 1) > 1e-3

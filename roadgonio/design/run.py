@@ -181,8 +181,11 @@ def run_design(instrument, vary=None, samples="R3", *, tolerance: float | str = 
         feas.append(f)
 
     # -- journal -----------------------------------------------------------------------------
-    fp_payload = {"base": _cluster.absolute_instrument_dict(base), "vary": [[s.key, list(s.values)] for s in specs],
-                  "samples": [[s.name, s.model.to_json_dict(), [list(c) for c in s.cells]] for s in smp],
+    # what determines the numbers: not the instrument's name and description, nor the model's metadata
+    base_numbers = {k: v for k, v in _cluster.absolute_instrument_dict(base).items() if k != "instrument"}
+    fp_payload = {"base": base_numbers, "vary": [[s.key, list(s.values)] for s in specs],
+                  "samples": [[s.name, {"variant": s.model.variant, "params": s.model.params.to_dict()},
+                               [list(c) for c in s.cells]] for s in smp],
                   "backend": backend, "accuracy": accuracy, "settings": settings, "seed": int(seed)}
     fp = _fingerprint(fp_payload)
     done: dict[tuple[int, int], dict] = {}
