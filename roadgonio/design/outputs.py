@@ -148,7 +148,8 @@ def write_best(ds, path: Path) -> Path | None:
               f"{s['worst_tan_eps']:g}, beta {s['worst_beta_deg']:g} ({s['worst_sample']}); rms {s['rms_dev']:.4g}; "
               f"signal {s['signal']:.4g} x base\n"
               f"Reproduce its row: roadgonio ka --instrument best.toml --sample SAMPLE --backend {prov.get('backend')}"
-              + (f" --accuracy {acc}" if acc else "") + f" --seed {s['seed']} (samples: {', '.join(samples)})")
+              + (f" --accuracy {acc}" if acc else "")
+              + (f" --model-variant {prov['model_variant']}" if prov.get("model_variant") else "") + f" --seed {s['seed']} (samples: {', '.join(samples)})")
     return atomic_write_text(path, toml_text(d, header))
 
 
@@ -192,7 +193,10 @@ def plot_pareto(ds, path: Path) -> Path:
     if finite.size and finite.min() > 0 and finite.max() / finite.min() > 20:
         ax.set_xscale("log")
     if dev[ok].size and np.nanmin(dev[ok]) > 0 and np.nanmax(dev[ok]) / np.nanmin(dev[ok]) > 10:
+        from matplotlib import ticker
         ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(ticker.FormatStrFormatter("%g"))
     ax.set_xlabel("signal (detected flux for a Lambertian sample, relative to the base design)")
     ax.set_ylabel("max |k_A - 1| over cells and samples (%)")
     n_geo = int((~geo).sum())

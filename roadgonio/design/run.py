@@ -271,7 +271,7 @@ def run_design(instrument, vary=None, samples="R3", *, tolerance: float | str = 
                       vary=[s.text or f"{s.key}=" + ",".join(map(repr, s.values)) for s in specs],
                       samples={s.name: {"spec": s.spec, "model": s.model.to_json_dict()} for s in smp},
                       seeds="SeedSequence(seed).spawn(points)[k], 31 bits, for every sample of point k",
-                      cluster=cluster_info, tolerance=tol)
+                      cluster=cluster_info, tolerance=tol, model_variant=model_variant)
     computed_now = len(tasks) - len(failed)
     ds.attrs.update({
         "provenance": to_json(prov, indent=None),
