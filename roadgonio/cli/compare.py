@@ -30,7 +30,9 @@ def run(args) -> int:
     res = compare_tables(a, b)
     out = Path(args.out) if args.out else default_out(a, b)
     summary = {k: v for k, v in res.items() if k != "ratio"}
-    files = {"compare.csv": compare_csv(a, b, res["ratio"]), "compare.json": to_json(summary) + "\n"}
+    from roadgonio.provenance import provenance
+    files = {"compare.csv": compare_csv(a, b, res["ratio"]),
+             "compare.json": to_json({**summary, **provenance()}) + "\n"}
     if not args.no_plots:
         files["compare.png"] = compare_png(res, a, b)
     written = write_together(out, files)

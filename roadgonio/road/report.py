@@ -11,6 +11,7 @@ import numpy as np
 
 from roadgonio.errors import InputError
 from roadgonio.fileio import to_json
+from roadgonio.provenance import provenance
 from roadgonio.road.metrics import M_CLASSES
 
 METRICS = (("L_av", "L_av (cd/m²)", "min"), ("U_o", "U_o", "min"), ("U_l", "U_l", "min"), ("TI", "TI (%)", "max"))
@@ -170,7 +171,7 @@ def luminance_png(results) -> bytes:
 def road_files(results, summaries: list[dict], target: str | None, plots: bool = True) -> dict[str, bytes | str]:
     lay = results[0].installation.layout
     files: dict[str, bytes | str] = {
-        "road.json": to_json({"tables": summaries}) + "\n",
+        "road.json": to_json({"tables": summaries, **provenance(settings={"layout": lay.describe()})}) + "\n",
         "road_metrics.csv": metrics_csv(summaries),
         "road_luminance.csv": luminance_csv(results),
     }
