@@ -1,7 +1,7 @@
 """The batched k_A integrator as a Mitsuba 3 Python plugin (plugin name ``kabatch``): the detector
-signal S[f_road] and S[f_lambert] (DESIGN.md section 5, paper eq. 3) of **many cells per launch**.
+signal S[f_road] and S[f_lambert] (docs/conventions.md section 5, paper eq. 3) of **many cells per launch**.
 
-What a cell is made of (DESIGN.md section 4), all Mitsuba objects:
+What a cell is made of (docs/conventions.md section 4), all Mitsuba objects:
 
 * the detector: the ``lummeter`` sensor of the scene (:mod:`.lummeter`); its rays are traced once
   per launch with ``scene.ray_intersect`` and must all hit the sample (a ray that misses is counted

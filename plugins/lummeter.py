@@ -1,4 +1,4 @@
-"""Luminance-meter sensor as a Mitsuba 3 Python plugin (plugin name ``lummeter``); DESIGN.md
+"""Luminance-meter sensor as a Mitsuba 3 Python plugin (plugin name ``lummeter``); docs/conventions.md
 section 4, the detector domain of paper eq. 3.
 
 Entrance pupil: a disc of radius R_D centred at D_D w_o(alpha, delta), normal to the axis towards

@@ -1,4 +1,4 @@
-"""Angles and directions of road photometry (DESIGN.md section 1).
+"""Angles and directions of road photometry (docs/conventions.md section 1).
 
 Frame: sample in the plane z = 0, normal +z, origin at the nominal measurement point. Direction
 vectors point away from the surface.

@@ -171,3 +171,24 @@ def test_instrument_dict_round_trip(alpha, dist, pupil, field_deg, focus):
                                 "detector": det})
     again = Instrument.from_dict(ins.to_dict())
     assert again == ins
+
+
+@pytest.mark.parametrize("extra, field", [
+    ("[colour]\nred = 1\n", "colour"),
+    ("[instrument]\nnmae = \"x\"\n", "instrument"),
+    ("[calibration]\nmode = \"lamber\"\n", "calibration.mode"),
+    ("[calibration]\nmode = \"reference\"\n", "calibration.reference"),
+    ("[calibration]\nmode = \"absolute\"\n", "calibration.mode"),
+    ("[scene]\n", None),
+    ("[calibration]\nmode = \"lambert\"\n", None),
+])
+def test_sections_are_checked(tmp_path, extra, field):
+    """An unknown section or key is an error (a typo must not change the instrument); a calibration
+    mode the engines do not compute is refused rather than computed as Lambert."""
+    p = write(tmp_path, GOOD + extra)
+    if field is None:
+        Instrument.load(p)
+        return
+    with pytest.raises(InputError) as err:
+        Instrument.load(p)
+    assert err.value.field == field and str(p) in str(err.value)

@@ -122,7 +122,7 @@ def test_outputs_layout_and_provenance(tmp_path, setup):
     assert saved["model"]["params"]["n_phong"] == 200
     assert saved["summary"]["cells"] == len(cells)
     assert (tmp_path / "ka.png").stat().st_size > 10_000
-    assert meta["versions"]["roadgonio"]
+    assert {"roadgonio", "mitsuba", "drjit", "numpy", "scipy"} <= set(meta["versions"])
 
 
 def test_journal_is_written_in_batches_and_stays_complete(tmp_path, setup, monkeypatch):

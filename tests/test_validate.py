@@ -12,7 +12,6 @@ from roadgonio.cli import main
 from roadgonio.engines import CellResult
 from roadgonio.engines import validate as V
 
-from test_quadrature import r3like
 
 
 def cell(k, se):
@@ -52,9 +51,9 @@ def test_parse_cells():
 
 
 @pytest.mark.system
-def test_cli_passes_and_writes_outputs(tmp_path, capsys):
+def test_cli_passes_and_writes_outputs(tmp_path, capsys, r3like):
     model = tmp_path / "r3like.json"
-    r3like().save(model)
+    r3like.save(model)
     out = tmp_path / "val"
     rc = main(["validate", "--instrument", "lab", "--sample", str(model), "--against", "numpy-mc",
                "--cells", "12:0,0:180,4:2", "--rel-se", "3e-3", "--out", str(out)])
@@ -67,14 +66,15 @@ def test_cli_passes_and_writes_outputs(tmp_path, capsys):
     doc = json.loads((out / "validate.json").read_text())
     assert doc["ok"] is True and doc["against"] == "numpy-mc" and len(doc["cells"]) == 3
     assert "quadrature" in doc["settings"] and doc["model"]["params"]["n_phong"] == pytest.approx(34.467)
+    assert {"roadgonio", "mitsuba", "drjit", "numpy"} <= set(doc["versions"]) and doc["instrument"]["source"]
     assert (out / "validate.png").stat().st_size > 10_000
 
 
 @pytest.mark.system
-def test_cli_exit_1_on_disagreement(tmp_path, monkeypatch, capsys):
+def test_cli_exit_1_on_disagreement(tmp_path, monkeypatch, capsys, r3like):
     """With a zero-width pass band any Monte Carlo noise is a disagreement: exit status 1."""
     model = tmp_path / "m.json"
-    r3like().save(model)
+    r3like.save(model)
     monkeypatch.setattr(V, "N_SIGMA", 0.0)
     rc = main(["validate", "--instrument", "lab", "--sample", str(model), "--against", "numpy-mc",
                "--cells", "8:5", "--rel-se", "1e-2", "--floor", "0", "--out", str(tmp_path / "v")])

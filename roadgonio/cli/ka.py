@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -12,10 +11,13 @@ from roadgonio.engines.accuracy import PRESETS
 from roadgonio.surface.model import VARIANTS
 from roadgonio.cli._common import (
     add_instrument_argument,
+    add_output_options,
     add_sample_argument,
     load_inputs,
     rel_se_setting,
     select_variant,
+    show_progress,
+    text_output,
 )
 
 
@@ -23,7 +25,7 @@ def register(sub) -> None:
     p = sub.add_parser(
         "ka", help="aperture-effect factor k_A of an instrument (one cell or the whole r-table)",
         description="Compute k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) for an instrument "
-                    "and a sample (DESIGN.md section 5). Without --tan-eps/--beta the whole 580-cell grid is "
+                    "and a sample (docs/conventions.md section 5). Without --tan-eps/--beta the whole 580-cell grid is "
                     "computed and written to --out (ka.csv, ka_se.csv, ka.png, ka.json); an interrupted table "
                     "resumes when the same command is run again.")
     add_instrument_argument(p)
@@ -42,13 +44,14 @@ def register(sub) -> None:
     p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU machine)")
     p.add_argument("--tan-eps", type=float, metavar="T", help="one cell: tan(epsilon)")
     p.add_argument("--beta", type=float, metavar="B", help="one cell: beta in degrees")
-    p.add_argument("--cells", choices=["all", "table"], default="all",
+    p.add_argument("--cells", default="all", metavar="all|table|LIST",
                    help="all = the full 580-cell grid (default); table = only the cells tabulated in the "
-                        "sample's r-table (blank cells stay blank)")
+                        "sample's r-table (blank cells stay blank); LIST = T:B,T:B,... (tan eps : beta deg), "
+                        "e.g. 12:0,12:2,4:0")
     p.add_argument("--out", metavar="DIR", help="output folder for a table (default: out/ka-INSTRUMENT-SAMPLE)")
     p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
-    p.add_argument("--json", action="store_true",
-                   help='one cell: print {"k_a", "se", "samples", "seconds"}; table: print the summary as JSON')
+    add_output_options(p, 'one cell: print {"k_a", "se", "error_bound", "converged", "samples", "seconds"}; '
+                          "table: print the summary as JSON")
     p.set_defaults(func=run)
 
 
@@ -93,9 +96,9 @@ def run(args) -> int:
                                            "converged": c.converged, "samples": c.samples, "seconds": seconds})))
         else:
             prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error")
-            print(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
-                  f"{c.samples} samples, {seconds:.2f} s, {backend.name} backend)"
-                  + ("" if c.converged else " -- NOT converged: the target was not reached"))
+            text_output(args)(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
+                              f"{c.samples} samples, {seconds:.2f} s, {backend.name} backend)"
+                              + ("" if c.converged else " -- NOT converged: the target was not reached"))
         return 0
 
     if args.cells == "table":
@@ -106,22 +109,27 @@ def run(args) -> int:
             raise InputError("--cells table needs a sample that is an r-table (bundled name or table file)",
                              field="--cells") from None
         cells = table.cells
-    else:
+    elif args.cells.strip() == "all":
         cells = full_grid_cells()
+    else:
+        from roadgonio.engines.validate import parse_cells
+        cells = parse_cells(args.cells)
     sample_name = Path(args.sample).stem if Path(args.sample).exists() else args.sample
     out_dir = Path(args.out) if args.out else Path("out") / f"ka-{instrument.name}-{sample_name}"
-    run_ = run_cells(backend, cells, instrument=instrument, model=model, out_dir=out_dir, fresh=args.fresh)
+    run_ = run_cells(backend, cells, instrument=instrument, model=model, out_dir=out_dir, fresh=args.fresh,
+                     progress=show_progress(args))
     meta = write_outputs(run_, out_dir, instrument=instrument, model=model, backend=backend,
                          sample_spec=sample_name)
     s = meta["summary"]
+    say = text_output(args)
     if args.json:
         print(json.dumps({"out": str(out_dir), **s}, indent=2))
     else:
-        print(f"k_A for {instrument.name} x {sample_name} ({backend.name}): {s['cells']} cells "
-              f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
-              f"{_precision_text(s)}, {run_.seconds:.1f} s.", file=sys.stdout)
-        print(f"wrote {out_dir}/" + ", ".join(f for f in meta["files"].values() if f and f != "ka_cells.jsonl")
-              + ", ka.json")
+        say(f"k_A for {instrument.name} x {sample_name} ({backend.name}): {s['cells']} cells "
+            f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
+            f"{_precision_text(s)}, {run_.seconds:.1f} s.")
+        say(f"wrote {out_dir}/" + ", ".join(f for f in meta["files"].values() if f and f != "ka_cells.jsonl")
+            + ", ka.json")
     return 0
 
 

@@ -2,12 +2,20 @@
 instrument's angle and position errors, with and without the aperture effect."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 from roadgonio.errors import InputError
 from roadgonio.surface.model import VARIANTS
-from roadgonio.cli._common import add_instrument_argument, add_sample_argument, rel_se_setting, select_variant
+from roadgonio.cli._common import (
+    add_dask_arguments,
+    add_instrument_argument,
+    add_output_options,
+    add_sample_argument,
+    rel_se_setting,
+    select_variant,
+    show_progress,
+    text_output,
+)
 
 
 def _positive_int(text: str) -> int:
@@ -76,9 +84,10 @@ def register(sub) -> None:
     p.add_argument("--validation", type=int, default=4, metavar="N",
                    help="held-out trials with exact k_A to measure the surrogate's error (default 4)")
     p.add_argument("--threads", type=_positive_int, metavar="N", help="worker threads (default: up to 2)")
+    add_dask_arguments(p, "for the exact k_A tables of the surrogate design; default: in this process")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/uncertainty-INSTRUMENT-SAMPLE)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the PNG pictures")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON instead of text")
+    add_output_options(p, "print the summary as JSON instead of text")
     p.set_defaults(func=run)
 
 
@@ -98,13 +107,9 @@ def run(args) -> int:
         raise InputError(f"expected a coverage probability between 0.5 and 1, got {args.coverage:g}", field="--coverage")
     if args.validation < 0:
         raise InputError(f"expected a number >= 0, got {args.validation}", field="--validation")
-    settings: dict = {}
-    if args.rel_se is not None:
-        settings.update(rel_se_setting(args.backend, args.rel_se))
-    elif args.backend == "quadrature":
-        settings["rtol"] = 1e-4
-    else:
-        settings["rel_se"] = 3e-3
+    from roadgonio.uncertainty.run import DEFAULT_BACKEND_TOLERANCE
+    settings = rel_se_setting(args.backend, DEFAULT_BACKEND_TOLERANCE[args.backend] if args.rel_se is None
+                              else args.rel_se)
     if args.backend == "mitsuba":
         settings["seed"] = args.seed
     instrument = load_instrument(args.instrument)
@@ -116,7 +121,8 @@ def run(args) -> int:
                           illuminance=args.illuminance, cells=args.cells, aperture=not args.no_aperture,
                           backend=args.backend, backend_settings=settings, n_validation=args.validation,
                           surrogate_design=args.surrogate,
-                          threads=args.threads, progress=True)
+                          threads=args.threads, progress=show_progress(args), workers=args.workers,
+                          scheduler=args.scheduler)
     sample_name = Path(args.sample).stem if Path(args.sample).suffix else args.sample
     res.provenance["sample"] = args.sample
     out = Path(args.out) if args.out else Path("out") / f"uncertainty-{instrument.name}-{sample_name}"
@@ -126,7 +132,8 @@ def run(args) -> int:
         d["written"] = [str(p) for p in written]
         print(to_json(d))
     else:
+        say = text_output(args)
         for line in summary_lines(res):
-            print(line)
-        print(f"wrote {len(written)} files to {out}", file=sys.stdout)
+            say(line)
+        say(f"wrote {len(written)} files to {out}")
     return 0

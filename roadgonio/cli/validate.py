@@ -6,7 +6,14 @@ import sys
 from pathlib import Path
 
 from roadgonio.errors import InputError
-from roadgonio.cli._common import add_instrument_argument, add_sample_argument, load_inputs, select_variant
+from roadgonio.cli._common import (
+    add_instrument_argument,
+    add_output_options,
+    add_sample_argument,
+    load_inputs,
+    select_variant,
+    text_output,
+)
 
 
 def register(sub) -> None:
@@ -33,6 +40,8 @@ def register(sub) -> None:
                         "for the backend, 0 for numpy-mc)")
     p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb)")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/validate-INSTRUMENT-SAMPLE)")
+    add_output_options(p, "print {ok, against, n_sigma, floor, seconds, cells: [...]} as JSON at the end "
+                          "(no per-cell lines)")
     p.set_defaults(func=run)
 
 
@@ -53,24 +62,34 @@ def run(args) -> int:
     sample_name = Path(args.sample).stem if Path(args.sample).exists() else args.sample
     out_dir = Path(args.out) if args.out else Path("out") / f"validate-{instrument.name}-{sample_name}"
 
-    print(f"{'tan eps':>7} {'beta':>5} {'k_quad':>10} {'k_' + args.against:>12} {'diff/SE':>8} {'allowed':>8}  ok",
-          flush=True)
+    say = text_output(args)
+    say(f"{'tan eps':>7} {'beta':>5} {'k_quad':>10} {'k_' + args.against:>12} {'diff/SE':>8} {'allowed':>8}  ok",
+        flush=True)
 
     def show(r):
         allowed = r.allowed / r.sigma if r.sigma > 0 else math.inf
-        print(f"{r.tan_eps:7g} {r.beta_deg:5g} {r.k_quad:10.6f} {r.k_mc:12.6f} {r.z:+8.2f} {allowed:8.2f}  "
-              f"{'yes' if r.ok else 'NO'}", flush=True)
+        say(f"{r.tan_eps:7g} {r.beta_deg:5g} {r.k_quad:10.6f} {r.k_mc:12.6f} {r.z:+8.2f} {allowed:8.2f}  "
+            f"{'yes' if r.ok else 'NO'}", flush=True)
 
     report = validate(instrument, model, cells, against=args.against, rel_se=args.rel_se, rtol=args.rtol,
                       seed=args.seed, floor=args.floor, mc_settings=mc_settings, on_cell=show)
+    from roadgonio.provenance import provenance
+    report.update(provenance(instrument=instrument, model=model, settings=report["settings"]))
     report["sample"] = sample_name
     paths = write_outputs(report, out_dir)
     rows = report["rows"]
     bad = [r for r in rows if not r.ok]
     worst = max(rows, key=lambda r: abs(r.z))
-    print(f"{len(rows) - len(bad)} of {len(rows)} cells agree within {report['n_sigma']:g} SE + float32 floor "
-          f"{report['floor']:.1e} (worst {worst.z:+.2f} SE at tan eps {worst.tan_eps:g}, beta {worst.beta_deg:g}); "
-          f"{report['seconds']:.1f} s. Wrote {paths['csv']}, {paths['json'].name}, {paths['png'].name}.")
+    if args.json:
+        from dataclasses import asdict
+
+        from roadgonio.fileio import to_json
+        print(to_json({"ok": report["ok"], "against": report["against"], "n_sigma": report["n_sigma"],
+                       "floor": report["floor"], "seconds": report["seconds"], "out": str(out_dir),
+                       "cells": [asdict(r) for r in rows]}))
+    say(f"{len(rows) - len(bad)} of {len(rows)} cells agree within {report['n_sigma']:g} SE + float32 floor "
+        f"{report['floor']:.1e} (worst {worst.z:+.2f} SE at tan eps {worst.tan_eps:g}, beta {worst.beta_deg:g}); "
+        f"{report['seconds']:.1f} s. Wrote {paths['csv']}, {paths['json'].name}, {paths['png'].name}.")
     if bad:
         print("roadgonio validate: FAILED: " + ", ".join(f"({r.tan_eps:g}, {r.beta_deg:g}) {r.z:+.1f} SE"
                                                          for r in bad), file=sys.stderr)

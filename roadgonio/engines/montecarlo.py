@@ -1,4 +1,4 @@
-"""Plain float64 numpy Monte Carlo of the detector signal (paper eq. 3; DESIGN.md sections 4-5).
+"""Plain float64 numpy Monte Carlo of the detector signal (paper eq. 3; docs/conventions.md sections 4-5).
 
 The same integral as :mod:`roadgonio.engines.quadrature` and the same estimator as the Mitsuba
 renderer: uniform points on the pupil, field and source discs (area-preserving concentric map of

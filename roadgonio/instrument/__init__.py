@@ -1,4 +1,4 @@
-"""The instrument: what a goniophotometer is (DESIGN.md section 4).
+"""The instrument: what a goniophotometer is (docs/conventions.md section 4).
 
 * :mod:`.config` -- the instrument file (TOML) as frozen, validated dataclasses
   (:class:`Instrument`, :class:`Source`, :class:`Detector`, :class:`Sample`), presets, loading;

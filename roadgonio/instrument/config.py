@@ -1,4 +1,4 @@
-"""Instrument description (DESIGN.md section 4; docs/conventions.md): frozen dataclasses that
+"""Instrument description (docs/conventions.md section 4): frozen dataclasses that
 validate themselves on construction, built from TOML or a plain dict, units in the names.
 
 .. code-block:: toml
@@ -83,7 +83,7 @@ def _check_keys(d: Mapping[str, Any], allowed: set[str], section: str, path) -> 
 @dataclass(frozen=True)
 class Observation:
     """Observation direction: elevation ``alpha_deg`` above the surface (0 < alpha < 90) and
-    azimuth ``delta_deg`` (DESIGN.md section 1)."""
+    azimuth ``delta_deg`` (docs/conventions.md section 1)."""
 
     alpha_deg: float = 1.0
     delta_deg: float = 0.0
@@ -197,6 +197,27 @@ class Sample:
 
 
 _SECTIONS = ("observation", "source", "detector", "sample", "instrument")
+#: Sections kept as they are for the parts that read them: [scene] (the Mitsuba XML scene,
+#: roadgonio.engines.mitsuba.scene) and [calibration] (docs/conventions.md section 5).
+EXTRA_SECTIONS = ("scene", "calibration")
+#: Calibration modes of docs/conventions.md section 5, and those the k_A engines compute today.
+CALIBRATION_MODES = ("lambert", "absolute", "reference")
+COMPUTED_CALIBRATION_MODES = ("lambert",)
+
+
+def _check_calibration(cal: Mapping[str, Any]) -> None:
+    """[calibration]: a known mode, a reference only with mode "reference"; refuse a mode the k_A
+    engines do not compute yet rather than silently computing k_A of another calibration."""
+    _check_keys(cal, {"mode", "reference"}, "calibration", None)
+    mode = cal.get("mode", "lambert")
+    if mode not in CALIBRATION_MODES:
+        raise InputError(f"expected one of {', '.join(CALIBRATION_MODES)}, got {mode!r}", field="calibration.mode")
+    if (mode == "reference") != ("reference" in cal):
+        raise InputError("give reference = SAMPLE exactly when mode = \"reference\"", field="calibration.reference")
+    if mode not in COMPUTED_CALIBRATION_MODES:
+        raise InputError(f"calibration mode {mode!r} is not computed by this version (only "
+                         f"{', '.join(COMPUTED_CALIBRATION_MODES)}); k_A would silently be that of a Lambert "
+                         "calibration", field="calibration.mode")
 
 
 @dataclass(frozen=True)
@@ -317,8 +338,18 @@ class Instrument:
             sm["mesh"] = mesh
         sample = Sample(**sm)
         meta = d.get("instrument", {})
+        _check_keys(meta, {"name", "description"}, "instrument", None)
         name = str(meta.get("name", path.stem if path is not None else "instrument"))
         extra = {k: v for k, v in d.items() if k not in _SECTIONS}
+        unknown = sorted(set(extra) - set(EXTRA_SECTIONS))
+        if unknown:
+            raise InputError(f"unknown section(s) [{'], ['.join(unknown)}]; expected some of "
+                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS)}]", field=unknown[0])
+        for sec in EXTRA_SECTIONS:
+            if sec in extra and not isinstance(extra[sec], Mapping):
+                raise InputError(f"expected a table [{sec}]", field=sec)
+        if "calibration" in extra:
+            _check_calibration(extra["calibration"])
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
                    description=str(meta.get("description", "")), path=path, extra=extra)
 

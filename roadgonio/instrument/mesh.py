@@ -1,4 +1,4 @@
-"""The sample surface as a triangle mesh (DESIGN.md section 4): the flat rectangle of
+"""The sample surface as a triangle mesh (docs/conventions.md section 4): the flat rectangle of
 ``[sample] size_x_m`` x ``size_y_m`` or the instrument's mesh file, read with trimesh and checked.
 
 The sample is one-sided: its faces must face +z (the renderer sees no light on a face turned

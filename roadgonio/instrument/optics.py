@@ -1,4 +1,4 @@
-"""Ray geometry of the instrument (DESIGN.md section 4; the integration domains of paper eq. 3),
+"""Ray geometry of the instrument (docs/conventions.md section 4; the integration domains of paper eq. 3),
 written once over an array namespace ``xp`` like :mod:`roadgonio.surface.model`, so the Mitsuba sensor
 plugin, the numpy Monte Carlo and the quadrature integrator share it.
 

@@ -1,4 +1,4 @@
-"""The Mitsuba k_A backend (``--backend mitsuba``): DESIGN.md section 5, paper eq. 2-3.
+"""The Mitsuba k_A backend (``--backend mitsuba``): docs/conventions.md section 5, paper eq. 2-3.
 
 All cells of a ``compute`` call go through the batched engine (:mod:`roadgonio.engines.mitsuba.engine`,
 the ``kabatch`` integrator plugin): the scene is built once per instrument

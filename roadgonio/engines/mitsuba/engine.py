@@ -48,7 +48,7 @@ def cell_directions(instrument: Instrument, cells: Sequence[tuple[float, float]]
 
 def source_frames(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
     """(cells, 12) float64: centre D_S w_i, two unit vectors s, t across the disc and the axis
-    -w_i (towards the sample centre) of every cell's source disc (DESIGN.md section 4). The disc is
+    -w_i (towards the sample centre) of every cell's source disc (docs/conventions.md section 4). The disc is
     rotationally symmetric, so any orthonormal (s, t) describes the same source."""
     w = cell_directions(instrument, cells)
     axis = -w

@@ -2,7 +2,7 @@
 (:mod:`roadgonio.engines.mitsuba.engine`). Pure numpy; nothing here imports mitsuba.
 
 The detector signal of one cell is an integral over the unit cube [0, 1)^6 (pupil disc, field disc,
-source disc, each a concentric-mapped unit square; DESIGN.md section 4). A rank-1 lattice of
+source disc, each a concentric-mapped unit square; docs/conventions.md section 4). A rank-1 lattice of
 ``n = 2^k`` points with generating vector ``z`` is::
 
     u_j = frac(j z / n + Delta),   j = 0 ... n-1

@@ -1,4 +1,4 @@
-"""The goniophotometer as a Mitsuba 3 scene (DESIGN.md section 4).
+"""The goniophotometer as a Mitsuba 3 scene (docs/conventions.md section 4).
 
 Parts of a scene, by id (the same ids for a scene built from a TOML instrument and for an XML scene):
 
