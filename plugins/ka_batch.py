@@ -175,18 +175,20 @@ class KaBatch(mi.SamplingIntegrator):
         u0, u1, u2, u3 = self._lattice(j, rep, lattice, (0, 1, 2, 3))
         # lummeter: sample2 = film position -> field disc, sample3 = aperture -> pupil disc
         ray, w = sensor.sample_ray(0.0, 0.0, mi.Point2f(u2, u3), mi.Point2f(u0, u1))
-        si = scene.ray_intersect(ray)
+        # a flat sample needs only the hit point (its normals are +z); otherwise the shading frame too
+        flags = mi.RayFlags.Minimal if self.flat else (mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame)
+        si = scene.ray_intersect(ray, flags, False)
         hit = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
         w = dr.select(hit, mi.Float(w.x), 0.0)
-        ns = si.sh_frame.n
         if self.flat:
             data = dict(zip(FLAT_RAY_FIELDS, (si.p.x, si.p.y, si.p.z, ray.d.x, ray.d.y, ray.d.z, w)))
         else:
+            ns = si.sh_frame.n
             data = dict(zip(RAY_FIELDS, (si.p.x, si.p.y, si.p.z, si.n.x, si.n.y, si.n.z, ns.x, ns.y, ns.z,
                                          ray.d.x, ray.d.y, ray.d.z, w)))
-        misses = dr.sum(dr.select(hit, 0, 1))
-        dr.eval(data, misses)
-        return data, int(misses[0]) if dr.width(misses) else 0
+        miss = ~hit
+        dr.eval(data, miss)                 # one kernel traces the rays; the count reads the stored mask
+        return data, int(dr.count(miss)[0]) if dr.width(miss) else 0
 
     def block_sums(self, scene, rays: dict, lattice: dict, block_cell: np.ndarray,
                    block_rep: np.ndarray) -> np.ndarray:
