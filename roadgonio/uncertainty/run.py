@@ -33,10 +33,13 @@ DEFAULT_BACKEND_TOLERANCE = {"mitsuba": 3e-3, "quadrature": 1e-4}
 
 
 def default_backend_factory(name: str, settings: Mapping[str, Any]) -> BackendFactory:
+    """``factory(instrument, model, **more)``: the backend ``name`` with ``settings`` (and ``more``,
+    e.g. the ``plan`` of the Mitsuba engine: the exact tables replay the first table's plan)."""
     from roadgonio.engines import make_backend
 
-    def factory(instrument: Instrument, model: RoadModel):
-        return make_backend(name, instrument, model, **dict(settings))
+    def factory(instrument: Instrument, model: RoadModel, **more):
+        return make_backend(name, instrument, model, **{**dict(settings), **more})
+    factory.accepts_plan = name == "mitsuba"
     return factory
 
 
@@ -133,7 +136,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
         if client is None:
             exact = _exact_here(jobs, mm.model, factory, bar, settings_seen)
         else:
-            exact = _exact_on_dask(jobs, mm.model, client, task_backend, bar, settings_seen)
+            exact = _exact_on_dask(jobs, mm.model, client, task_backend, bar, settings_seen, factory)
         ka_design = np.array([exact[k][0] for k in range(len(pts))]).reshape(len(pts), n)
         rel_se = max([float(np.max(se / np.abs(ka))) for ka, se in exact] or [0.0])
         # cells on the mirror plane: k_A is even in the azimuthal offset, with a kink (surrogate docstring)
@@ -156,29 +159,47 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
         backend_rel_se_max=rel_se, settings=settings)
 
 
-def _exact_here(jobs, model: RoadModel, factory: BackendFactory, bar, settings_seen: dict) -> list:
-    """(k_A, standard uncertainty) arrays of every (instrument, cells) job, computed here in order."""
+def _exact_here(jobs, model: RoadModel, factory: BackendFactory, bar, settings_seen: dict,
+                plan_seen: dict | None = None) -> list:
+    """(k_A, standard uncertainty) arrays of every (instrument, cells) job, computed here in order,
+    one ``compute`` call per table (the batched engine). The Mitsuba engine replays the first table's
+    pass plan with the same seed, so every table gets the same random numbers and the Monte Carlo
+    noise cancels in the differences the surrogate fits (common random numbers); the plan is left
+    in ``plan_seen["plan"]``."""
     out = []
+    plan_seen = {} if plan_seen is None else plan_seen
+    replay = getattr(factory, "accepts_plan", False)
     for inst, cells in jobs:
-        backend = factory(inst, model)
+        backend = factory(inst, model, plan=plan_seen["plan"]) if replay and "plan" in plan_seen else factory(inst, model)
         if not settings_seen:
             try:
                 settings_seen.update(backend.settings())
             except Exception:  # noqa: BLE001 - provenance only
                 settings_seen["backend"] = getattr(backend, "name", "?")
         res = backend.compute(cells, on_cell=(lambda _r: bar.update(1)) if bar is not None else None)
+        if replay and "plan" not in plan_seen and getattr(backend, "last_plan", None) is not None:
+            plan_seen["plan"] = backend.last_plan
         out.append((np.array([c.k_a for c in res]), np.array([c.standard_uncertainty() for c in res])))
     return out
 
 
-def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, settings_seen: dict) -> list:
-    """As :func:`_exact_here`, on the workers of a Dask client (one task per table)."""
+def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, settings_seen: dict,
+                   factory: BackendFactory | None = None) -> list:
+    """As :func:`_exact_here`, on the workers of a Dask client (one task per table). For the Mitsuba
+    engine the first table is computed here, and its plan goes with every other task, so the numbers
+    are those of :func:`_exact_here`."""
     from roadgonio.design.cluster import TableTask, absolute_instrument_dict, map_tables
     from roadgonio.errors import BackendError, GeometryError, RoadgonioError
     if task_backend is None:
         raise InputError("distributing the exact tables needs a backend name and settings, not a backend factory",
                          field="--workers")
     name, settings = task_backend
+    first: list = []
+    if name == "mitsuba" and jobs and factory is not None and getattr(factory, "accepts_plan", False):
+        plan_seen: dict = {}
+        first = _exact_here(jobs[:1], model, factory, bar, settings_seen, plan_seen)
+        settings = {**dict(settings), "plan": plan_seen["plan"].to_dict()}
+        jobs = jobs[1:]
     mdict = model.to_json_dict()
     tasks = [TableTask(instrument=absolute_instrument_dict(inst), model=mdict, cells=tuple(cells), backend=name,
                        settings=dict(settings), key=k,
@@ -189,8 +210,8 @@ def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, settings_s
         if bar is not None:
             bar.update(len(tasks[r.key].cells))
 
-    results = map_tables(tasks, client, on_result=done)
-    out = []
+    results = map_tables(tasks, client, on_result=done) if tasks else []
+    out = list(first)
     for r in results:
         if not r.ok:
             err = {"GeometryError": GeometryError, "InputError": InputError,
