@@ -7,11 +7,12 @@ from roadgonio.errors import InputError
 
 
 def rel_se_setting(backend: str, value: float) -> dict[str, float]:
-    """The backend keyword for ``--rel-se``: a relative tolerance ``rtol`` for the quadrature, a
+    """The backend keyword for ``--rel-se``: a relative tolerance ``rtol`` for the quadrature and the
+    RQMC reference (its target error bound), a
     target relative standard error ``rel_se`` for the Monte Carlo backends. Checks 0 < value < 1."""
     if not (math.isfinite(value) and 0 < value < 1):
         raise InputError(f"expected a relative error in (0, 1), got {value}", field="--rel-se")
-    return {"rtol" if backend == "quadrature" else "rel_se": value}
+    return {"rtol" if backend in ("quadrature", "reference") else "rel_se": value}
 
 
 INSTRUMENT_HELP = "instrument TOML file (scenes/*.toml) or a bundled preset name (lab, portable)"

@@ -110,6 +110,7 @@ BACKENDS: dict[str, str] = {
     "mitsuba": "roadgonio.engines.mitsuba.backend:make_backend",
     "quadrature": "roadgonio.engines.quadrature:make_backend",
     "numpy-mc": "roadgonio.engines.montecarlo:make_backend",
+    "reference": "roadgonio.engines.reference:make_backend",
 }
 
 
