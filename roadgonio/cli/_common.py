@@ -15,6 +15,13 @@ def rel_se_setting(backend: str, value: float) -> dict[str, float]:
     return {"rtol" if backend in ("quadrature", "reference") else "rel_se": value}
 
 
+def check_seed(value: int, option: str = "--seed") -> int:
+    """A random seed must be >= 0 (numpy's SeedSequence takes none below)."""
+    if value is None or int(value) < 0:
+        raise InputError(f"expected a seed >= 0, got {value}", field=option)
+    return int(value)
+
+
 INSTRUMENT_HELP = "instrument TOML file (scenes/*.toml) or a bundled preset name (lab, portable)"
 SAMPLE_HELP = ("bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file (.csv/.rtb), "
                "a model.json, or 'lambert'")

@@ -68,10 +68,9 @@ class MonteCarloBackend(CellByCellBackend):
         if int(min_batches) < 2:
             raise InputError(f"expected at least 2 batches (for a standard error), got {min_batches}",
                              field="min_batches")
-        if instrument.sample.mesh is not None:
-            raise InputError("the numpy Monte Carlo backend integrates over a flat rectangular sample only; for "
-                             "a mesh sample use the mitsuba backend (--backend mitsuba)", path=instrument.path,
-                             field="sample.mesh")
+        # refuse what this backend does not model (an XML scene's extra parts, a mesh sample)
+        from roadgonio.engines.reference import check_numpy_scene
+        check_numpy_scene(instrument, "numpy-mc")
         optics.check_detector(instrument)
         self.instrument = instrument
         self.model = model

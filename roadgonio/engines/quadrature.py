@@ -150,10 +150,9 @@ class QuadratureBackend(CellByCellBackend):
             raise InputError(f"expected a relative tolerance 0 < rtol < 1, got {rtol:g}", field="rtol")
         if int(max_evals) < 1:
             raise InputError(f"expected a positive number of evaluations, got {max_evals}", field="max_evals")
-        if instrument.sample.mesh is not None:
-            raise InputError("the quadrature backend integrates over a flat rectangular sample only; for a mesh "
-                             "sample use the mitsuba backend (--backend mitsuba)", path=instrument.path,
-                             field="sample.mesh")
+        # refuse what this backend does not model (an XML scene's extra parts, a mesh sample)
+        from roadgonio.engines.reference import check_numpy_scene
+        check_numpy_scene(instrument, "quadrature")
         optics.check_detector(instrument)   # GeometryError: footprint off the sample / upward rays
         self.instrument = instrument
         self.model = model
