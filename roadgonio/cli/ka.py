@@ -29,10 +29,11 @@ def register(sub) -> None:
     add_sample_argument(p)
     p.add_argument("--model-variant", choices=list(VARIANTS),
                    help="model variant used when SAMPLE is a table to fit (default: the paper's 'power')")
-    p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature", "numpy-mc", "reference"],
+    p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature", "numpy-mc", "reference", "numpy-mc-mesh"],
                    help="mitsuba (default; float32 ray tracing), quadrature (deterministic float64), "
                         "numpy-mc (plain float64 Monte Carlo, slow; an oracle), reference (float64 randomised "
-                        "QMC with the kinks split off and a 99.9 %% error bound; converges on wide instruments)")
+                        "QMC with the kinks split off and a 99.9 %% error bound; converges on wide instruments), "
+                        "numpy-mc-mesh (float64 Monte Carlo with ray casting: mesh samples)")
     p.add_argument("--accuracy", choices=list(PRESETS),
                    help="preset on the measured speed-accuracy frontier (README); --rel-se overrides it")
     p.add_argument("--rel-se", type=float, metavar="E",
@@ -58,7 +59,7 @@ def backend_settings(args) -> dict:
     settings: dict = {}
     if args.rel_se is not None:
         settings.update(rel_se_setting(args.backend, args.rel_se))
-    if args.backend in ("mitsuba", "numpy-mc", "reference"):
+    if args.backend in ("mitsuba", "numpy-mc", "reference", "numpy-mc-mesh"):
         settings["seed"] = args.seed
     if args.backend == "mitsuba" and args.variant:
         settings["variant"] = args.variant

@@ -111,6 +111,7 @@ BACKENDS: dict[str, str] = {
     "quadrature": "roadgonio.engines.quadrature:make_backend",
     "numpy-mc": "roadgonio.engines.montecarlo:make_backend",
     "reference": "roadgonio.engines.reference:make_backend",
+    "numpy-mc-mesh": "roadgonio.engines.meshmc:make_backend",
 }
 
 
