@@ -126,10 +126,11 @@ class OutputGroup:
         save(self.path(name))
         return self.out_dir / name
 
-    def _final_of(self, filename: str | None) -> Path:
-        if filename and self.stage is not None:
+    def _final_of(self, filename: str | None, stage: Path | None) -> Path:
+        """The output file an OSError concerns (its staging path mapped to the destination)."""
+        if filename and stage is not None:
             f = Path(filename)
-            if f.parent == self.stage:
+            if f.parent == stage:
                 return self.out_dir / f.name
         return self.out_dir
 
@@ -154,14 +155,23 @@ class OutputGroup:
                             p.unlink()
                         except OSError:  # pragma: no cover
                             pass
-                    raise output_error(self._final_of(getattr(err, "filename", None)), err) from None
+                    raise output_error(self._final_of(getattr(err, "filename", None), stage), err) from None
                 return False
             if isinstance(exc, OSError):
-                raise output_error(self._final_of(getattr(exc, "filename", None)), exc) from None
+                raise output_error(self._final_of(getattr(exc, "filename", None), stage), exc) from None
             return False
         finally:
             if stage is not None:
                 shutil.rmtree(stage, ignore_errors=True)
+
+
+def check_writable(out_dir: str | Path) -> Path:
+    """Fail before the work, not after it: the output folder can be created and written (a
+    staging folder is made and removed). Raises the one-line :class:`InputError` of an output."""
+    out_dir = Path(out_dir)
+    with OutputGroup(out_dir):
+        pass
+    return out_dir
 
 
 def _jsonable(obj: Any) -> Any:

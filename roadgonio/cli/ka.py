@@ -13,6 +13,7 @@ from roadgonio.surface.model import VARIANTS
 from roadgonio.cli._common import (
     add_instrument_argument,
     add_sample_argument,
+    check_seed,
     load_inputs,
     rel_se_setting,
 )
@@ -57,6 +58,7 @@ def backend_settings(args) -> dict:
     """Backend keyword arguments from --rel-se / --seed / --variant (--accuracy goes to make_backend,
     which applies the preset under these)."""
     settings: dict = {}
+    check_seed(args.seed)
     if args.rel_se is not None:
         settings.update(rel_se_setting(args.backend, args.rel_se))
     if args.backend in ("mitsuba", "numpy-mc", "reference", "numpy-mc-mesh"):
@@ -80,6 +82,11 @@ def run(args) -> int:
             raise InputError(f"expected 0 <= beta <= 180 deg, got {args.beta}", field="--beta")
     instrument, model = load_inputs(args)
     backend = make_backend(args.backend, instrument, model, accuracy=args.accuracy, **backend_settings(args))
+    if single and not args.out:
+        args.on_interrupt = "interrupted: nothing was written (a single cell without --out does not resume)"
+    else:
+        args.on_interrupt = ("interrupted: the finished cells are kept in the output folder's journal; run the same "
+                             "command again to resume")
 
     if single:
         t0 = time.perf_counter()
@@ -95,7 +102,7 @@ def run(args) -> int:
             prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error")
             print(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
                   f"{c.samples} samples, {seconds:.2f} s, {backend.name} backend)"
-                  + ("" if c.converged else " -- NOT converged: the target was not reached"))
+                  + ("" if c.converged else _not_converged_text(c, args.rel_se)))
         return 0
 
     if args.cells == "table":
@@ -123,6 +130,17 @@ def run(args) -> int:
         print(f"wrote {out_dir}/" + ", ".join(f for f in meta["files"].values() if f and f != "ka_cells.jsonl")
               + ", ka.json")
     return 0
+
+
+def _not_converged_text(c, target) -> str:
+    """What a cell that stopped at its cap achieved, against what was asked."""
+    if c.deterministic:
+        got = f"relative error bound {c.error_bound / abs(c.k_a):.2g}" if c.k_a else "no bound"
+    else:
+        got = f"relative SE {c.se / abs(c.k_a):.2g}" if c.k_a else "no SE"
+    asked = f" (target {target:g})" if target is not None else ""
+    return (f" -- NOT converged: stopped at the backend's sample/evaluation cap with {got}{asked}; the value above "
+            "carries that larger uncertainty")
 
 
 def _finite_json(d: dict) -> dict:

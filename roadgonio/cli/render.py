@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 
 from roadgonio.errors import InputError
-from roadgonio.cli._common import add_instrument_argument, add_sample_argument, load_inputs
+from roadgonio.cli._common import add_instrument_argument, add_sample_argument, check_seed, load_inputs
 
 
 def register(sub) -> None:
@@ -24,7 +24,8 @@ def register(sub) -> None:
     p.add_argument("--spp", type=int, default=64, help="samples per pixel (a square; default 64)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default=None, help="Mitsuba variant (default llvm_ad_rgb)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, on_interrupt="interrupted: the pictures of this cell were not written (render starts "
+                                        "over when run again)")
 
 
 def run(args) -> int:
@@ -37,6 +38,7 @@ def run(args) -> int:
     if args.spp < 1 or math.isqrt(args.spp) ** 2 != args.spp:
         raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {args.spp}",
                          field="--spp")
+    check_seed(args.seed)
     instrument, model = load_inputs(args)
     from roadgonio.engines.mitsuba.images import render_cell_images
     info = render_cell_images(instrument, model, args.tan_eps, args.beta, args.out, resolution=args.resolution,

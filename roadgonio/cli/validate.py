@@ -71,6 +71,8 @@ def run(args) -> int:
         ref_settings["max_evals"] = args.ref_max_evals
     sample_name = Path(args.sample).stem if Path(args.sample).exists() else args.sample
     out_dir = Path(args.out) if args.out else Path("out") / f"validate-{instrument.name}-{sample_name}"
+    from roadgonio.fileio import check_writable
+    check_writable(out_dir)          # an unwritable --out fails now, not after the computation
     quiet = bool(args.json)
     if not quiet:
         print(f"{'tan eps':>7} {'beta':>5} {'k_ref':>10} {'k_' + args.against:>12} {'diff/SE':>8} {'allowed':>8}  "

@@ -62,6 +62,8 @@ class MonteCarloBackend(CellByCellBackend):
             raise InputError(f"expected a number, got {rel_se!r}", field="rel_se") from None
         if not (0.0 < rel_se < 1.0):
             raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
+        if isinstance(seed, bool) or int(seed) != seed or int(seed) < 0:
+            raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
         m = int(round(math.sqrt(int(batch))))
         if m < 2:
             raise InputError(f"expected a batch of at least 4 samples, got {batch}", field="batch")
@@ -119,6 +121,8 @@ class MonteCarloBackend(CellByCellBackend):
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
         optics.check_source(self.instrument, tan_eps, beta_deg)
+        from roadgonio.engines.reference import check_line_of_sight
+        check_line_of_sight(self.instrument, tan_eps, beta_deg)
         ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
         if not (ideal > 0.0 and math.isfinite(ideal)):
             raise GeometryError(f"the model is {ideal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "

@@ -243,6 +243,15 @@ class RoadScene:
         if n_miss:
             xs = np.array(si.p.x)[~hit_np]
             valid = np.array(si.is_valid(), dtype=bool)[~hit_np]
+            src_shape = next((s for s in self.scene.shapes() if s.id() == SOURCE_ID), None)
+            if src_shape is not None:
+                on_src = np.array(si.is_valid() & (si.shape == mi.ShapePtr(src_shape)), dtype=bool)[~hit_np]
+                if on_src.any():
+                    cell = (f" at tan eps = {self.cell[0]:g}, beta = {self.cell[1]:g}" if self.cell is not None else "")
+                    raise GeometryError(
+                        f"the source disc blocks the detector's line of sight{cell}: {int(on_src.sum())} of "
+                        f"{hit_np.size} detector rays hit the source before the sample (the source sits between "
+                        "the detector and its footprint); this cell cannot be measured with this geometry")
             what = "hit another part of the scene" if valid.any() else "miss every part of the scene"
             raise GeometryError(
                 f"{n_miss} of {hit_np.size} detector rays do not hit the sample ({what}"
