@@ -36,6 +36,7 @@ def main(argv=None) -> int:
     from roadgonio.engines import full_grid_cells
     from roadgonio.engines.montecarlo import make_backend as make_mc
     from roadgonio.engines.mitsuba.backend import make_backend as make_mitsuba
+    from roadgonio.engines.mitsuba import set_variant
     from roadgonio.surface.sample import resolve_sample
 
     inst = Instrument.load(args.instrument)
@@ -45,6 +46,7 @@ def main(argv=None) -> int:
     settings = {"rel_se": args.rel_se}
     if args.sampler:
         settings["sampler"] = args.sampler
+    set_variant()                      # the script is the entry point: it chooses the variant
     t0 = time.perf_counter()
     mb = make_mitsuba(inst, model, **settings)
     t_build = time.perf_counter() - t0

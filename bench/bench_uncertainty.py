@@ -61,6 +61,9 @@ def main() -> int:
                      "backend_rel_se_max": ""})
 
     if not args.no_aperture:
+        if args.backend == "mitsuba":
+            from roadgonio.engines.mitsuba import set_variant
+            set_variant()              # the script is the entry point: it chooses the variant
         settings = {"rel_se": args.rel_se or 3e-3, "seed": 0} if args.backend == "mitsuba" else {"rtol": args.rel_se or 1e-4}
         t = time.perf_counter()
         res = run_uncertainty(model, inst, spec, trials=n_ap, seed=1, cells="standard", aperture=True,

@@ -22,11 +22,16 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent / "tests"))
 
-from test_quadrature import r3like  # noqa: E402  (the R3-like model of the tests)
+from conftest import R3LIKE  # noqa: E402  (the R3-like model of the tests)
 
 from roadgonio.engines.reference import make_backend  # noqa: E402
 from roadgonio.engines.validate import parse_cells  # noqa: E402
 from roadgonio.instrument.config import load_instrument  # noqa: E402
+from roadgonio.surface.model import RoadModel, RoadParams  # noqa: E402
+
+
+def r3like() -> RoadModel:
+    return RoadModel(RoadParams(**R3LIKE), name="R3-like")
 
 #: The bench cells: the strong-aperture corner (beta 0-10, tan eps 2-12) where the quadrature fails,
 #: and easy cells elsewhere in the table.

@@ -1,4 +1,4 @@
-"""Luminance-meter sensor as a Mitsuba 3 Python plugin (plugin name ``lummeter``); DESIGN.md
+"""Luminance-meter sensor as a Mitsuba 3 Python plugin (plugin name ``lummeter``); docs/conventions.md
 section 4, the detector domain of paper eq. 3.
 
 Entrance pupil: a disc of radius R_D centred at D_D w_o(alpha, delta), normal to the axis towards
@@ -19,22 +19,22 @@ direction (the axis, or for a pupil with a field of zero size, the rays of the p
 on the focus point).
 
 Properties: ``alpha_deg``, ``delta_deg`` (the observation direction), ``distance_m``,
-``pupil_radius_m``, ``field_half_angle_deg``, ``focus_m`` (float; ``inf`` or a value <= 0 means
-an angular field; default = ``distance_m``); ``mapping`` = ``"concentric"`` (default, the
-signal) or ``"square"`` (film = picture of the field plane, pixels outside the field stop 0;
-for images); plus the usual ``film`` and ``sampler`` children.
+``pupil_radius_m``, ``field_half_angle_deg``, ``focus_m`` (float > 0; ``inf`` = an angular
+field, in XML ``value="inf"``; default = ``distance_m``), ``field_edge_sensitivity``; ``mapping`` =
+``"concentric"`` (default, the signal) or ``"square"`` (film = picture of the field plane, pixels
+outside the field stop 0; for images); plus the usual ``film`` and ``sampler`` children. They
+are validated like the ``[observation]``/``[detector]`` sections of an instrument file
+(:class:`~roadgonio.instrument.config.Observation`, :class:`~roadgonio.instrument.config.Detector`).
 """
 from __future__ import annotations
-
-import math
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.instrument.config import Instrument
-from roadgonio.instrument.optics import DetectorGeometry, concentric_disc, detector_geometry, detector_ray
+from roadgonio.instrument.config import Detector, Observation
+from roadgonio.instrument.optics import DetectorGeometry, concentric_disc, detector_ray, meter_geometry
 from roadgonio.engines.mitsuba.ops import DrJitOps
 
 DETECTOR_KEYS = ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity")
@@ -55,23 +55,12 @@ def jit_geometry(geo: DetectorGeometry) -> DetectorGeometry:
                             tan_field=float(geo.tan_field), kd_edge=float(geo.kd_edge))
 
 
-def instrument_from_props(props) -> Instrument:
-    """The detector part of an :class:`Instrument` from the sensor's properties."""
-    obs = {}
-    for key in ("alpha_deg", "delta_deg"):
-        if key in props:
-            obs[key] = float(props.get(key))
-    det = {}
-    for key in DETECTOR_KEYS:
-        if key in props:
-            v = props.get(key)
-            if key == "focus_m":
-                v = "inf" if (isinstance(v, str) and v.strip().lower() in ("inf", "infinity")) else float(v)
-                if not isinstance(v, str) and (math.isinf(v) or v <= 0.0):
-                    v = "inf"
-            det[key] = v
+def meter_from_props(props) -> tuple[Observation, Detector]:
+    """The observation and the detector of the sensor's properties (validated dataclasses)."""
+    obs = {key: float(props.get(key)) for key in ("alpha_deg", "delta_deg") if key in props}
+    det = {key: props.get(key) for key in DETECTOR_KEYS if key in props}
     det.setdefault("distance_m", 5.0)
-    return Instrument.from_dict({"observation": obs, "source": {"distance_m": 1.0}, "detector": det})
+    return Observation(**obs), Detector(**det)
 
 
 class LumMeter(mi.Sensor):
@@ -80,21 +69,16 @@ class LumMeter(mi.Sensor):
     def __init__(self, props):
         mi.Sensor.__init__(self, props)
         try:
-            self.instrument = instrument_from_props(props)
+            self.observation, self.detector = meter_from_props(props)
         except InputError as err:
             raise InputError(f"lummeter sensor: {err}") from None
-        self.geometry = detector_geometry(self.instrument)
+        self.geometry = meter_geometry(self.observation, self.detector)
         self._geo = jit_geometry(self.geometry)
         self.m_needs_sample_3 = True
         #: "concentric" (pixels stratify the field disc: the signal) or "square" (a picture of the field)
         self.mapping = str(props.get("mapping", "concentric")) if "mapping" in props else "concentric"
         if self.mapping not in ("concentric", "square"):
             raise InputError(f"lummeter sensor: mapping must be 'concentric' or 'square', got {self.mapping!r}")
-
-    def detector_dict(self) -> dict:
-        """The detector geometry as an instrument ``[observation]``/``[detector]`` dict."""
-        d = self.instrument.to_dict()
-        return {"observation": d["observation"], "detector": d["detector"]}
 
     def rays(self, field_u, pupil_u):
         """Origin, direction and etendue weight of the rays for unit-square samples
@@ -130,6 +114,6 @@ class LumMeter(mi.Sensor):
     def to_string(self):
         g = self.geometry
         focus = "inf" if g.angular else f"{g.focus_m:g} m"
-        return (f"LumMeter[alpha={self.instrument.observation.alpha_deg:g} deg, "
-                f"D={self.instrument.detector.distance_m:g} m, R_D={g.pupil_radius_m:g} m, "
-                f"gamma={self.instrument.detector.field_half_angle_deg:g} deg, F={focus}]")
+        return (f"LumMeter[alpha={self.observation.alpha_deg:g} deg, "
+                f"D={self.detector.distance_m:g} m, R_D={g.pupil_radius_m:g} m, "
+                f"gamma={self.detector.field_half_angle_deg:g} deg, F={focus}]")

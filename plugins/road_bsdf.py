@@ -6,7 +6,7 @@ repeated here.
 
 Properties (XML or ``mi.load_dict``):
 
-* the model parameters by their names in :data:`roadgonio.surface.model.PARAM_NAMES` (the DESIGN.md names
+* the model parameters by their names in :data:`roadgonio.surface.model.PARAM_NAMES` (the docs/conventions.md names
   ``k_diff`` ... ``theta_l_deg``, plus ``n_beta`` of the ``smooth`` extension); floats, defaults
   as in :class:`roadgonio.surface.model.RoadParams`, validated;
 * ``variant``: one of :data:`roadgonio.surface.model.VARIANTS` (``"power"``, the paper's model, by
@@ -14,7 +14,7 @@ Properties (XML or ``mi.load_dict``):
 * ``channels``: ``"road"`` (default: every colour channel is f_road, an ordinary BSDF) or
   ``"road_lambert"`` (rgb variants only): channel 0 = f_road, channels 1 and 2 = 1/pi, the
   perfect diffuser. The detector signal then carries S[f_road] in R and S[f_lambert] in G and B,
-  computed from the same rays in the same pass (the k_A ratio of DESIGN.md section 5).
+  computed from the same rays in the same pass (the k_A ratio of docs/conventions.md section 5).
 
 Calling convention (mitsuba-cpu notes, section 2): ``si.wi`` is the local direction towards the
 sensor (the model's ``wo``), the ``wo`` argument is towards the light (the model's ``wi``);

@@ -1,4 +1,4 @@
-"""Angles and directions of road photometry (DESIGN.md section 1).
+"""Angles and directions of road photometry (docs/conventions.md section 1).
 
 Frame: sample in the plane z = 0, normal +z, origin at the nominal measurement point. Direction
 vectors point away from the surface.
@@ -7,7 +7,7 @@ vectors point away from the surface.
   ``w_o = (cos a cos d, cos a sin d, sin a)``.
 * Illumination: polar angle ``epsilon`` from the zenith and ``beta``, the angle between the
   vertical planes of observation and illumination; beta = 0 is the far (forward, specular) side.
-  Source azimuth ``phi_i = delta + 180 deg - beta``:
+  Source azimuth ``phi_i = delta + 180 deg - beta`` (:func:`source_azimuth_rad`, written only there):
   ``w_i = (sin e cos phi_i, sin e sin phi_i, cos e)``.
 
 All functions are float64 numpy and broadcast over their arguments.
@@ -41,11 +41,43 @@ def w_source(eps_rad, beta_deg, delta_deg=0.0) -> np.ndarray:
     grid); beta in degrees as in the r-tables.
     """
     e = np.asarray(eps_rad, dtype=np.float64)
-    phi = np.radians(np.asarray(delta_deg, dtype=np.float64) + 180.0
-                     - np.asarray(beta_deg, dtype=np.float64))
+    phi = source_azimuth_rad(beta_deg, delta_deg)
     e, phi = np.broadcast_arrays(e, phi)
     s = np.sin(e)
     return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(e)], axis=-1)
+
+
+def source_azimuth_rad(beta_deg, delta_deg=0.0) -> np.ndarray:
+    """Azimuth of the source direction, ``phi_i = delta + 180 deg - beta`` (rad): the one
+    statement of the road-photometry azimuth convention (beta = 0 is the far side)."""
+    return np.radians(np.asarray(delta_deg, dtype=np.float64) + 180.0 - np.asarray(beta_deg, dtype=np.float64))
+
+
+def source_azimuth_tangent(beta_deg, delta_deg=0.0) -> np.ndarray:
+    """Unit horizontal vector along which the source direction moves as its azimuth phi_i grows
+    (i.e. as beta shrinks): ``d w_source / d phi_i / sin(eps)``, shape ``(..., 3)``."""
+    phi = source_azimuth_rad(beta_deg, delta_deg)
+    return np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], -1)
+
+
+def beta_rotation(d_beta_deg) -> np.ndarray:
+    """Rotations about the normal (shape ``(..., 3, 3)``) taking ``w_source(eps, beta)`` to
+    ``w_source(eps, beta + d_beta)``: a turn of the azimuth by -d_beta (phi_i = delta + 180 - beta)."""
+    a = -np.radians(np.asarray(d_beta_deg, dtype=np.float64))
+    c, s = np.cos(a), np.sin(a)
+    z, o = np.zeros_like(a), np.ones_like(a)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def source_cell(w, delta_deg=0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Inverse of :func:`w_source` for unit vectors ``w`` (..., 3) above the surface:
+    ``(tan eps, beta deg)`` with beta folded to [0, 180] (the road BRDF and the instrument are
+    mirror symmetric about the plane of observation)."""
+    w = np.asarray(w, dtype=np.float64)
+    tan = np.hypot(w[..., 0], w[..., 1]) / w[..., 2]
+    phi = np.degrees(np.arctan2(w[..., 1], w[..., 0]))
+    beta = np.abs((np.asarray(delta_deg, dtype=np.float64) + 180.0 - phi + 180.0) % 360.0 - 180.0)
+    return tan, beta
 
 
 def eps_from_tan(tan_eps) -> np.ndarray:

@@ -13,8 +13,6 @@ from roadgonio.cli import main
 from roadgonio.surface.model import RoadModel
 from roadgonio.surface.rtable import bundled_table, read_table
 
-from test_rtable import bad_tables
-
 pytestmark = pytest.mark.system
 
 
@@ -79,8 +77,8 @@ def test_fit_bad_options(args, words, capsys):
 
 
 @pytest.mark.parametrize("command", ["table", "fit"])
-@pytest.mark.parametrize("label,suffix,text,line,words", bad_tables(), ids=[b[0] for b in bad_tables()])
-def test_bad_table_file_exits_2_with_one_line(tmp_path, capsys, command, label, suffix, text, line, words):
+def test_bad_table_file_exits_2_with_one_line(tmp_path, capsys, command, bad_table):
+    label, suffix, text, line, words = bad_table
     path = tmp_path / f"bad{suffix}"
     path.write_text(text)
     assert main([command, str(path), "--out", str(tmp_path / "o")] if command == "fit"
@@ -97,9 +95,9 @@ def test_bad_table_file_exits_2_with_one_line(tmp_path, capsys, command, label, 
     assert not (tmp_path / "o").exists()
 
 
-def test_bad_table_via_subprocess(tmp_path):
+def test_bad_table_via_subprocess(tmp_path, bad_tables):
     path = tmp_path / "bad.csv"
-    label, suffix, text, line, words = bad_tables()[1]  # non-numeric cell
+    label, suffix, text, line, words = bad_tables[1]  # non-numeric cell
     path.write_text(text)
     for command in ("table", "fit"):
         p = subprocess.run([sys.executable, "-m", "roadgonio", command, str(path)], capture_output=True,

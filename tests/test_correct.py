@@ -2,6 +2,8 @@
 A stand-in k_A backend (analytic, model-dependent) replaces the exact backends in the unit tests."""
 from __future__ import annotations
 
+import csv
+import json
 import math
 import subprocess
 import sys
@@ -16,6 +18,8 @@ from roadgonio.surface.model import RoadModel, RoadParams
 from roadgonio.surface.rtable import bundled_table, read_table
 
 EXACT_TOL = 1e-12
+#: Correction files store 6 significant digits.
+FILE_RTOL = 1e-5
 
 
 class StandIn:
@@ -92,3 +96,49 @@ def test_cli_missing_measured_file(tmp_path):
     p = subprocess.run([sys.executable, "-m", "roadgonio", "correct", "--measured", str(tmp_path / "none.csv"),
                         "--instrument", "portable", "--reference", "lambert"], capture_output=True, text=True)
     assert p.returncode == 2 and "none.csv" in p.stderr and "Traceback" not in p.stderr
+
+
+@pytest.mark.system
+def test_cli_correct_runs_and_its_numbers_check_against_an_independent_backend(tmp_path, r3like):
+    """``roadgonio correct`` to success: corrected = measured / k_A, with k_A checked against the
+    float64 numpy Monte Carlo (an independent integrator) within 4 SE + the quadrature's bound +
+    the 6-digit file rounding; no progress bar into a pipe."""
+    from roadgonio.engines import make_backend
+    from roadgonio.surface.rtable import RTable
+    cells = [(0.0, 0.0), (0.0, 2.0), (0.25, 0.0), (0.25, 2.0), (2.0, 0.0), (12.0, 0.0), (12.0, 2.0), (8.0, 5.0)]
+    r3 = bundled_table("R3")
+    r = np.full_like(r3.r, np.nan)
+    for t, b in cells:
+        i, j = int(np.argmin(abs(r3.tan_eps - t))), int(np.argmin(abs(r3.beta_deg - b)))
+        r[i, j] = r3.r[i, j]
+    measured = RTable(r, name="meas").write_csv(tmp_path / "meas.csv")
+    model = tmp_path / "ref.json"
+    r3like.save(model)
+    p = subprocess.run([sys.executable, "-m", "roadgonio", "correct", "--measured", str(measured), "--instrument",
+                        "portable", "--reference", str(model), "--alternatives", "none", "--backend", "quadrature",
+                        "--rel-se", "1e-4", "--out", str(tmp_path / "o"), "--no-plots", "--json"],
+                       capture_output=True, text=True, timeout=900)
+    assert p.returncode == 0, p.stderr
+    assert p.stderr == ""                                  # no progress bar, no warning into a pipe
+    summary = json.loads(p.stdout)
+    assert summary["cells"] == len(cells) and summary["alternatives"] == {}
+    rows = list(csv.DictReader(open(tmp_path / "o" / "correction_cells.csv")))
+    assert sorted((float(x["tan_eps"]), float(x["beta_deg"])) for x in rows) == sorted(cells)
+    mc = {(c.tan_eps, c.beta_deg): c for c in
+          make_backend("numpy-mc", load_instrument("portable"), r3like, rel_se=1e-3, seed=5).compute(cells)}
+    back = read_table(tmp_path / "o" / "meas_corrected.csv")
+    for x in rows:
+        t, b = float(x["tan_eps"]), float(x["beta_deg"])
+        k, u = float(x["k_a"]), float(x["k_a_se"])          # quadrature: u = bound / sqrt(3)
+        bound = u * math.sqrt(3.0)
+        meas, corr = float(x["r_measured_x1e4"]), float(x["r_corrected_x1e4"])
+        assert corr == pytest.approx(meas / k, rel=FILE_RTOL)                    # corrected = measured / k_A
+        c = mc[(t, b)]
+        assert abs(meas / corr - c.k_a) <= 4 * c.se + bound + 2 * FILE_RTOL * c.k_a, (t, b, meas / corr, c)
+        assert float(x["u_rel_correction"]) == pytest.approx(u / k, rel=5e-3)   # u_rel = u / k (u has 3 digits)
+        i, j = int(np.argmin(abs(back.tan_eps - t))), int(np.argmin(abs(back.beta_deg - b)))
+        assert back.r[i, j] * 1e4 == pytest.approx(corr, rel=FILE_RTOL)
+    k = {(float(x["tan_eps"]), float(x["beta_deg"])): float(x["k_a"]) for x in rows}
+    assert summary["S1_after"] == pytest.approx(summary["S1_before"] * k[(0.0, 0.0)] / k[(2.0, 0.0)], rel=1e-4)
+    prov = json.loads((tmp_path / "o" / "correction.json").read_text())["provenance"]
+    assert prov["backend"] == "quadrature" and prov["settings"]["rtol"] == 1e-4 and prov["versions"]["numpy"]

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -251,3 +252,15 @@ def test_resolve_sample_fits_caches_and_refits_corrupt_entries(tmp_path, monkeyp
     t.with_values(r).write(table_file)
     resolve_sample(str(table_file))
     assert len(calls) == 4 and len(list((tmp_path / "cache").glob("*.json"))) == 2
+
+
+def test_fit_cache_lives_in_the_platform_cache_folder(tmp_path, monkeypatch):
+    """Without $ROADGONIO_CACHE the fits go to platformdirs' user cache folder (XDG on Linux)."""
+    import sys
+
+    import platformdirs
+    monkeypatch.delenv("ROADGONIO_CACHE", raising=False)
+    assert cache_dir() == Path(platformdirs.user_cache_dir("roadgonio", appauthor=False))
+    if sys.platform.startswith("linux"):
+        monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+        assert cache_dir() == tmp_path / "xdg" / "roadgonio"

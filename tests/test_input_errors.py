@@ -14,7 +14,6 @@ import pytest
 from roadgonio.cli import main
 from roadgonio.errors import InputError
 
-from test_quadrature import r3like
 
 pytestmark = pytest.mark.system
 
@@ -32,9 +31,9 @@ def one_line_error(capsys, rc, *must):
 
 
 @pytest.fixture
-def r3_file(tmp_path):
+def r3_file(tmp_path, r3like):
     p = tmp_path / "r3like.json"
-    r3like().save(p)
+    r3like.save(p)
     return p
 
 
@@ -87,9 +86,9 @@ def test_conflicting_mesh_and_size_is_an_error(tmp_path, capsys):
 
 
 @ISSUE8
-def test_denormal_radius_is_an_error_or_a_point(tmp_path, capsys):
+def test_denormal_radius_is_an_error_or_a_point(tmp_path, capsys, r3_file):
     p = write_instrument(tmp_path, GOOD.replace("radius_m = 0.005", "radius_m = 1e-300"))
-    rc = main(["ka", "--instrument", str(p), "--sample", str(_r3(tmp_path)), "--backend", "numpy-mc", "--tan-eps",
+    rc = main(["ka", "--instrument", str(p), "--sample", str(r3_file), "--backend", "numpy-mc", "--tan-eps",
                "1", "--beta", "0", "--json"])
     cap = capsys.readouterr()
     assert rc in (0, 2) and "Traceback" not in cap.err
@@ -107,13 +106,6 @@ def test_instrument_is_frozen():
         inst.extra["scene"] = {"xml": "x.xml"}
 
 
-def _r3(tmp_path):
-    p = tmp_path / "r3.json"
-    if not p.exists():
-        r3like().save(p)
-    return p
-
-
 # -- uncertainty SPECs against the geometry ------------------------------------------------------
 
 @pytest.mark.parametrize("spec, key", [("alpha_deg=10", "alpha_deg"), ("source_distance_m=5", "source_distance_m"),
@@ -125,26 +117,26 @@ def test_spec_out_of_the_geometry_is_refused_up_front(tmp_path, capsys, spec, ke
     assert not (tmp_path / "u").exists() or not any((tmp_path / "u").iterdir())
 
 
-def test_spec_out_of_the_footprint_is_refused_for_the_aperture_case():
+def test_spec_out_of_the_footprint_is_refused_for_the_aperture_case(r3like):
     """With the aperture effect the perturbed instrument is rebuilt: a detector-distance error that
     pushes the footprint off the sample is a SPEC error naming the key, before any k_A work."""
     from roadgonio.instrument.config import load_instrument
     from roadgonio.uncertainty.cells import CellSet
     from roadgonio.uncertainty.measurement import MeasurementModel
     from roadgonio.uncertainty.spec import check_spec_geometry, parse_sigma_spec
-    mm = MeasurementModel(r3like(), load_instrument("lab"), CellSet.make("standard"))
+    mm = MeasurementModel(r3like, load_instrument("lab"), CellSet.make("standard"))
     check_spec_geometry(parse_sigma_spec("detector_distance_m=0.005"), mm, aperture=True)   # fine
     with pytest.raises(InputError, match="detector_distance_m"):
         check_spec_geometry(parse_sigma_spec("detector_distance_m=2"), mm, aperture=True)
 
 
-def test_every_trial_is_checked():
+def test_every_trial_is_checked(r3like):
     from roadgonio.instrument.config import load_instrument
     from roadgonio.uncertainty.cells import CellSet
     from roadgonio.uncertainty.measurement import MeasurementModel
     from roadgonio.uncertainty.spec import INPUTS, check_trials, parse_sigma_spec
     spec = parse_sigma_spec("alpha_deg=0.1")
-    mm = MeasurementModel(r3like(), load_instrument("lab"), CellSet.make("standard"))
+    mm = MeasurementModel(r3like, load_instrument("lab"), CellSet.make("standard"))
     X = np.zeros((5, len(INPUTS)))
     check_trials(spec, mm, X)
     X[3, 0] = -1.2      # 12 sigma: the detector below the horizon
@@ -199,12 +191,12 @@ def test_negative_seed_is_an_error(tmp_path, capsys, argv):
     one_line_error(capsys, rc, "--seed", ">= 0")
 
 
-def test_backend_api_rejects_negative_seeds():
+def test_backend_api_rejects_negative_seeds(r3like):
     from roadgonio.engines import make_backend
     from roadgonio.instrument.config import load_instrument
     for name in ("numpy-mc", "reference"):
         with pytest.raises(InputError, match="seed"):
-            make_backend(name, load_instrument("lab"), r3like(), seed=-5)
+            make_backend(name, load_instrument("lab"), r3like, seed=-5)
 
 
 # -- outputs: one line, exit 2, all or nothing -------------------------------------------------

@@ -13,7 +13,6 @@ from roadgonio.engines.meshmc import MeshCaster
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument.config import Instrument, load_instrument
 
-from test_quadrature import r3like
 
 #: Agreement of two Monte Carlo results: within this many combined standard errors.
 N_SIGMA = 4.0
@@ -66,13 +65,13 @@ def test_caster_first_hit_and_shadow():
 
 
 @pytest.mark.unit
-def test_triangulated_plane_matches_the_flat_monte_carlo(tmp_path):
+def test_triangulated_plane_matches_the_flat_monte_carlo(tmp_path, r3like):
     """A plane cut into 800 shuffled triangles is the flat sample: both Monte Carlo estimators agree
     within their combined SE (the cell with the specular peak and a diffuse-like one)."""
     inst = load_instrument("lab")
     mesh = grid_mesh(tmp_path / "flat.ply", np.linspace(-1, 1, 41), np.linspace(-0.25, 0.25, 11), shuffle_seed=3)
     mi = with_mesh(inst, mesh)
-    model = r3like()
+    model = r3like
     for cell in [(12.0, 0.0), (2.0, 90.0)]:
         a = make_backend("numpy-mc-mesh", mi, model, rel_se=3e-3, seed=1).compute([cell])[0]
         b = make_backend("numpy-mc", inst, model, rel_se=3e-3, seed=2).compute([cell])[0]
@@ -82,7 +81,7 @@ def test_triangulated_plane_matches_the_flat_monte_carlo(tmp_path):
 
 
 @pytest.mark.unit
-def test_self_shadowing_is_modelled(tmp_path):
+def test_self_shadowing_is_modelled(tmp_path, r3like):
     """A wall between the source and the footprint shades it: the mesh Monte Carlo says no light
     reaches the detected area (without shadow rays it would return a plausible k_A)."""
     import trimesh
@@ -95,27 +94,27 @@ def test_self_shadowing_is_modelled(tmp_path):
     both.export(tmp_path / "walled.ply")
     mi = with_mesh(inst, tmp_path / "walled.ply")
     with pytest.raises(GeometryError, match="no detected ray receives light"):
-        make_backend("numpy-mc-mesh", mi, r3like(), rel_se=1e-2, min_batches=2).compute([(12.0, 0.0)])
+        make_backend("numpy-mc-mesh", mi, r3like, rel_se=1e-2, min_batches=2).compute([(12.0, 0.0)])
     # lit from behind the detector the wall does not matter
-    r = make_backend("numpy-mc-mesh", mi, r3like(), rel_se=1e-2, min_batches=2).compute([(1.0, 180.0)])[0]
+    r = make_backend("numpy-mc-mesh", mi, r3like, rel_se=1e-2, min_batches=2).compute([(1.0, 180.0)])[0]
     assert r.k_a > 0.5
 
 
 @pytest.mark.unit
-def test_mesh_off_the_footprint_and_xml_are_errors(tmp_path):
+def test_mesh_off_the_footprint_and_xml_are_errors(tmp_path, r3like):
     inst = load_instrument("lab")
     small = grid_mesh(tmp_path / "small.ply", np.linspace(-0.05, 0.05, 3), np.linspace(-0.05, 0.05, 3))
     with pytest.raises(GeometryError, match="miss the sample mesh"):
-        make_backend("numpy-mc-mesh", with_mesh(inst, small), r3like(), min_batches=2).compute([(2.0, 90.0)])
+        make_backend("numpy-mc-mesh", with_mesh(inst, small), r3like, min_batches=2).compute([(2.0, 90.0)])
     with pytest.raises(InputError, match="does not model a Mitsuba XML scene"):
-        make_backend("numpy-mc-mesh", load_instrument("holder"), r3like())
+        make_backend("numpy-mc-mesh", load_instrument("holder"), r3like)
     with pytest.raises(InputError, match="numpy-mc-mesh"):
-        make_backend("numpy-mc", with_mesh(inst, small), r3like())
+        make_backend("numpy-mc", with_mesh(inst, small), r3like)
 
 
 @pytest.mark.plugin
 @pytest.mark.slow
-def test_corrugated_mesh_agrees_with_mitsuba(tmp_path, mi):
+def test_corrugated_mesh_agrees_with_mitsuba(tmp_path, mi, r3like):
     """A corrugated sample (2 mm grooves, 40 um deep: slopes up to 3.6 deg, steeper than the 1 deg
     observation, so the detector sees the faces towards it, and the light at tan eps 12 (4.8 deg)
     is partly shadowed): the renderer and the independent numpy ray caster agree within their
@@ -131,7 +130,7 @@ def test_corrugated_mesh_agrees_with_mitsuba(tmp_path, mi):
                                    height=lambda x, y: -1e-4 + 0.0 * x))
     trimesh.util.concatenate([grooves, floor]).export(tmp_path / "groove.ply")
     m_inst = with_mesh(inst, tmp_path / "groove.ply")
-    model = r3like()
+    model = r3like
     for cell in [(12.0, 0.0), (4.0, 0.0), (1.0, 90.0)]:
         a = make_backend("numpy-mc-mesh", m_inst, model, rel_se=3e-3, seed=1).compute([cell])[0]
         b = make_backend("mitsuba", m_inst, model, rel_se=3e-3, seed=2).compute([cell])[0]

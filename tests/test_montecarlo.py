@@ -12,7 +12,6 @@ from roadgonio.instrument.config import load_instrument
 from roadgonio.engines import make_backend
 from roadgonio.surface.model import RoadModel
 
-from test_quadrature import lab, r3like
 
 pytestmark = pytest.mark.unit
 
@@ -24,9 +23,9 @@ N_SIGMA = 4.0
     ("lab", [(12.0, 0.0), (8.0, 2.0), (4.0, 10.0), (1.0, 90.0), (0.0, 0.0)]),
     ("portable", [(12.0, 10.0), (6.0, 5.0), (2.0, 0.0), (1.0, 180.0)]),
 ])
-def test_agrees_with_quadrature(name, cells):
+def test_agrees_with_quadrature(name, cells, r3like):
     inst = load_instrument(name)
-    model = r3like()
+    model = r3like
     quad = make_backend("quadrature", inst, model, rtol=1e-5)
     mc = make_backend("numpy-mc", inst, model, rel_se=1e-3, seed=11)
     z = []
@@ -48,8 +47,8 @@ def test_lambert_is_one():
         assert r.k_a == pytest.approx(1.0, abs=1e-12)
 
 
-def test_reproducible_and_order_independent():
-    inst, model = lab(), r3like()
+def test_reproducible_and_order_independent(lab, r3like):
+    inst, model = lab(), r3like
     a = make_backend("numpy-mc", inst, model, rel_se=3e-3, seed=5).compute([(8.0, 0.0), (2.0, 45.0)])
     b = make_backend("numpy-mc", inst, model, rel_se=3e-3, seed=5).compute([(2.0, 45.0), (8.0, 0.0)])
     assert a[0].k_a == b[1].k_a and a[1].k_a == b[0].k_a
@@ -57,8 +56,8 @@ def test_reproducible_and_order_independent():
     assert c[0].k_a != a[0].k_a
 
 
-def test_stopping_rule_reaches_rel_se():
-    inst, model = load_instrument("portable"), r3like()
+def test_stopping_rule_reaches_rel_se(r3like):
+    inst, model = load_instrument("portable"), r3like
     for rel in (1e-2, 2e-3):
         r = make_backend("numpy-mc", inst, model, rel_se=rel, seed=2, batch=1024).compute_cell(10.0, 2.0)
         assert r.extra["converged"]
@@ -66,9 +65,9 @@ def test_stopping_rule_reaches_rel_se():
         assert r.samples % 1024 == 0 and r.samples >= 8 * 1024
 
 
-def test_se_scales_as_inverse_sqrt_n():
+def test_se_scales_as_inverse_sqrt_n(r3like):
     """The reported SE follows 1/sqrt(N): quadrupling the samples halves it (within sampling noise)."""
-    inst, model = load_instrument("portable"), r3like()
+    inst, model = load_instrument("portable"), r3like
     se = []
     for n in (16, 64):
         b = make_backend("numpy-mc", inst, model, rel_se=1e-9, seed=3, batch=4096, min_batches=n,
@@ -77,8 +76,8 @@ def test_se_scales_as_inverse_sqrt_n():
     assert se[0] / se[1] == pytest.approx(2.0, rel=0.35)
 
 
-def test_max_samples_reports_not_converged():
-    b = make_backend("numpy-mc", load_instrument("portable"), r3like(), rel_se=1e-7, seed=0, batch=256,
+def test_max_samples_reports_not_converged(r3like):
+    b = make_backend("numpy-mc", load_instrument("portable"), r3like, rel_se=1e-7, seed=0, batch=256,
                      max_samples=256 * 8)
     r = b.compute_cell(12.0, 0.0)
     assert not r.extra["converged"] and r.samples == 256 * 8 and math.isfinite(r.se)
@@ -86,9 +85,9 @@ def test_max_samples_reports_not_converged():
 
 @pytest.mark.parametrize("kwargs", [{"rel_se": 0}, {"rel_se": 1.5}, {"batch": 1}, {"min_batches": 1},
                                     {"nonsense": True}])
-def test_bad_settings(kwargs):
+def test_bad_settings(kwargs, lab, r3like):
     with pytest.raises(InputError):
-        make_backend("numpy-mc", lab(), r3like(), **kwargs)
+        make_backend("numpy-mc", lab(), r3like, **kwargs)
 
 
 def test_accuracy_preset_reaches_the_backend_whole_and_explicit_settings_win():

@@ -46,7 +46,7 @@ def make_sensor(mi):
 
     def make(inst, res=8):
         film, sampler = film_dict(res, 4)
-        return mi.load_dict({"type": "lummeter", "film": film, "sampler": sampler, **detector_props(inst)})
+        return mi.load_dict({"type": "lummeter", "film": film, "sampler": sampler, **detector_props(inst.observation, inst.detector)})
     return make
 
 

@@ -13,27 +13,12 @@ from roadgonio.engines import ideal_ratio, make_backend
 from roadgonio.engines.quadrature import disc_rule
 from roadgonio.surface.model import RoadModel, RoadParams
 
-#: An R3-like road model: least-squares fit of the power variant to the CIE R3 table (RMS 3.9 % of
-#: max r, max 12 %), made with scipy.optimize.least_squares on (mod.r - R3)/max(R3) over the 490
-#: tabulated cells, log-parametrised k_* / n_* / mu; values rounded to 5 digits.
-R3LIKE = dict(k_diff=0.028937, k_phong=1.8147, n_phong=34.467, k_retro=0.052577, n_retro=11.307,
-              k_exp=0.088927, p=2.137, h=0.49843, mu=0.03123)
-
 #: Disc-rule exactness checked at this tolerance (float64 rounding of a few hundred nodes).
 RULE_TOL = 1e-12
 #: Lambertian sample: k_A = 1 up to float64 rounding of the two sums (identical up to 1/pi).
 LAMBERT_TOL = 1e-12
 #: The claimed error of a cell (CellResult.error_bound) may underestimate the true error by at most this factor.
 SE_HONESTY = 3.0
-
-
-def r3like() -> RoadModel:
-    return RoadModel(RoadParams(**R3LIKE), name="R3-like")
-
-
-def lab(**changes) -> Instrument:
-    inst = load_instrument("lab")
-    return inst.with_changes(**changes) if changes else inst
 
 
 pytestmark = pytest.mark.unit
@@ -58,33 +43,34 @@ def test_disc_rule_point_and_anisotropy():
     assert x.size == 16
 
 
-@pytest.mark.parametrize("inst", [
-    lab(),
-    load_instrument("portable"),
-    lab(detector={"focus_m": "inf"}),
-    lab(source={"radius_m": 0.0}),
-    lab(detector={"pupil_radius_m": 0.0}),
-    lab(detector={"field_half_angle_deg": 0.0}),
-    lab(source={"beam_half_angle_deg": 2.0}),
+@pytest.mark.parametrize("preset, changes", [
+    ("lab", {}),
+    ("portable", {}),
+    ("lab", {"detector": {"focus_m": "inf"}}),
+    ("lab", {"source": {"radius_m": 0.0}}),
+    ("lab", {"detector": {"pupil_radius_m": 0.0}}),
+    ("lab", {"detector": {"field_half_angle_deg": 0.0}}),
+    ("lab", {"source": {"beam_half_angle_deg": 2.0}}),
 ])
-def test_lambert_is_one_for_any_instrument(inst):
+def test_lambert_is_one_for_any_instrument(preset, changes):
+    inst = load_instrument(preset).with_changes(**changes)
     b = make_backend("quadrature", inst, RoadModel.lambert())
     for res in b.compute([(0.0, 0.0), (12.0, 0.0), (3.0, 180.0)]):
         assert res.k_a == pytest.approx(1.0, abs=LAMBERT_TOL)
         assert math.isfinite(res.error_bound) and res.error_bound <= 1e-10 and math.isnan(res.se)
 
 
-def test_ideal_instrument_gives_one():
+def test_ideal_instrument_gives_one(lab, r3like):
     inst = lab(source={"radius_m": 0.0}, detector={"pupil_radius_m": 0.0, "field_half_angle_deg": 0.0})
-    b = make_backend("quadrature", inst, r3like())
+    b = make_backend("quadrature", inst, r3like)
     for res in b.compute([(0.0, 0.0), (12.0, 0.0), (4.0, 5.0), (1.0, 180.0)]):
         assert res.k_a == pytest.approx(1.0, abs=1e-12)
         assert res.samples <= 2            # nothing to integrate: one node (plus the focus probe)
 
 
-def test_error_estimate_is_honest_and_meets_rtol():
+def test_error_estimate_is_honest_and_meets_rtol(lab, r3like):
     """rtol 1e-4 and 1e-3 results against a converged reference (rtol 1e-7) on the lab preset."""
-    model = r3like()
+    model = r3like
     ref = make_backend("quadrature", lab(), model, rtol=1e-7)
     cells = [(12.0, 0.0), (4.0, 10.0), (0.0, 0.0)]
     refs = {c: ref.compute_cell(*c) for c in cells}
@@ -98,56 +84,56 @@ def test_error_estimate_is_honest_and_meets_rtol():
             assert true_err <= SE_HONESTY * r.error_bound + 1e-12, (c, rtol, true_err, r.error_bound)
 
 
-def test_focus_and_plain_rules_agree():
-    model = r3like()
+def test_focus_and_plain_rules_agree(r3like):
+    model = r3like
     inst = load_instrument("portable")
     a = make_backend("quadrature", inst, model, rtol=1e-5, focus=True).compute_cell(3.0, 20.0)
     b = make_backend("quadrature", inst, model, rtol=1e-5, focus=False).compute_cell(3.0, 20.0)
     assert a.k_a == pytest.approx(b.k_a, abs=a.error_bound + b.error_bound)
 
 
-def test_k_a_matches_ratio_definition_at_small_apertures():
+def test_k_a_matches_ratio_definition_at_small_apertures(lab, r3like):
     """With tiny apertures the signal ratio tends to the ideal ratio: k_A -> 1."""
     inst = lab(source={"radius_m": 1e-5}, detector={"pupil_radius_m": 1e-5, "field_half_angle_deg": 1e-4})
-    r = make_backend("quadrature", inst, r3like(), rtol=1e-8).compute_cell(6.0, 2.0)
+    r = make_backend("quadrature", inst, r3like, rtol=1e-8).compute_cell(6.0, 2.0)
     assert r.k_a == pytest.approx(1.0, abs=1e-6)
 
 
-def test_settings_and_presets():
-    b = make_backend("quadrature", lab(), r3like(), accuracy="fast")
+def test_settings_and_presets(lab, r3like):
+    b = make_backend("quadrature", lab(), r3like, accuracy="fast")
     from roadgonio.engines.accuracy import ACCURACY
     assert b.settings()["rtol"] == ACCURACY["fast"]["quadrature"]["rtol"]
     assert b.name == "quadrature"
-    assert make_backend("quadrature", lab(), r3like(), rtol=3e-5).settings()["rtol"] == 3e-5
+    assert make_backend("quadrature", lab(), r3like, rtol=3e-5).settings()["rtol"] == 3e-5
 
 
 @pytest.mark.parametrize("kwargs", [{"rtol": 0.0}, {"rtol": 2.0}, {"rtol": "x"}, {"bogus": 1},
                                     {"accuracy": "ultra"}])
-def test_bad_settings(kwargs):
+def test_bad_settings(kwargs, lab, r3like):
     with pytest.raises(InputError):
-        make_backend("quadrature", lab(), r3like(), **kwargs)
+        make_backend("quadrature", lab(), r3like, **kwargs)
 
 
-def test_mesh_sample_points_to_mitsuba(tmp_path):
+def test_mesh_sample_points_to_mitsuba(tmp_path, lab, r3like):
     mesh = tmp_path / "s.ply"
     mesh.write_text("ply\n")
     d = lab().to_dict()
     d["sample"] = {"mesh": str(mesh)}
     inst = Instrument.from_dict(d)
     with pytest.raises(InputError, match="mitsuba"):
-        make_backend("quadrature", inst, r3like())
+        make_backend("quadrature", inst, r3like)
 
 
-def test_geometry_errors():
+def test_geometry_errors(lab, r3like):
     with pytest.raises(GeometryError, match="footprint"):
-        make_backend("quadrature", lab(sample={"size_x_m": 0.2}), r3like())
+        make_backend("quadrature", lab(sample={"size_x_m": 0.2}), r3like)
     inst = lab(source={"distance_m": 0.5, "radius_m": 0.1})
-    b = make_backend("quadrature", inst, r3like())
+    b = make_backend("quadrature", inst, r3like)
     with pytest.raises(GeometryError, match="horizon"):
         b.compute_cell(12.0, 0.0)
 
 
-def test_zero_nominal_brdf_is_an_error():
+def test_zero_nominal_brdf_is_an_error(lab):
     # a pure Phong lobe of huge exponent is 0 (underflow) at the nominal geometry of tan 0
     model = RoadModel(RoadParams(k_phong=1.0, n_phong=1e5))
     assert ideal_ratio(model, lab(), 0.0, 0.0) == 0.0
@@ -155,15 +141,15 @@ def test_zero_nominal_brdf_is_an_error():
         make_backend("quadrature", lab(), model).compute_cell(0.0, 0.0)
 
 
-def test_on_cell_callback_and_order():
+def test_on_cell_callback_and_order(lab, r3like):
     seen = []
     cells = [(2.0, 5.0), (0.0, 0.0)]
-    out = make_backend("quadrature", lab(), r3like()).compute(cells, on_cell=seen.append)
+    out = make_backend("quadrature", lab(), r3like).compute(cells, on_cell=seen.append)
     assert [(r.tan_eps, r.beta_deg) for r in out] == cells
     assert seen == out
 
 
-def test_field_sensitivity_profile_in_the_quadrature_and_monte_carlo():
+def test_field_sensitivity_profile_in_the_quadrature_and_monte_carlo(r3like_params):
     """With k_D falling to 0.3 at the field edge: Lambert still gives k_A = 1, the quadrature and the
     float64 Monte Carlo agree within 4 SE, and k_A moves away from the uniform-field value."""
     from roadgonio.engines import make_backend
@@ -171,7 +157,7 @@ def test_field_sensitivity_profile_in_the_quadrature_and_monte_carlo():
     vign = inst.with_changes(detector={"field_edge_sensitivity": 0.3})
     lam = make_backend("quadrature", vign, RoadModel.lambert(), rtol=1e-8).compute([(4.0, 0.0)])[0]
     assert abs(lam.k_a - 1.0) < 1e-9
-    model = RoadModel(RoadParams(**R3LIKE))
+    model = RoadModel(RoadParams(**r3like_params))
     cells = [(4.0, 0.0), (12.0, 2.0)]
     q = make_backend("quadrature", vign, model, rtol=1e-6).compute(cells)
     m = make_backend("numpy-mc", vign, model, rel_se=1e-3, seed=3).compute(cells)

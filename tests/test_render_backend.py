@@ -116,7 +116,7 @@ def test_footprint_off_mesh_is_an_error_at_render_time(tmp_path):
     import trimesh
 
     from roadgonio.engines.mitsuba.backend import make_backend
-    from roadgonio.engines.mitsuba.scene import rectangle_trimesh
+    from roadgonio.instrument.mesh import rectangle_trimesh
     small = rectangle_trimesh(0.3, 0.1)
     small.export(tmp_path / "small.ply")
     big = rectangle_trimesh(4.0, 1.0)
@@ -198,3 +198,42 @@ def test_field_sensitivity_profile_matches_the_quadrature():
     q = make("quadrature", inst, ROAD, rtol=1e-6).compute(cells)
     for a, b in zip(r, q):
         assert abs(a.k_a - b.k_a) <= 4 * a.se + b.error_bound + FLOAT32_FLOOR["mitsuba"] * abs(b.k_a)
+
+
+# -- constructors never change global state ---------------------------------------------------
+
+def test_building_a_backend_changes_no_global_state(mi):
+    import os
+
+    from roadgonio.engines.mitsuba.backend import make_backend
+    env, variant = dict(os.environ), mi.variant()
+    make_backend(preset("portable"), ROAD, spp=4)
+    make_backend(preset("portable"), ROAD, spp=4, variant=variant)
+    assert mi.variant() == variant and dict(os.environ) == env
+
+
+def test_a_backend_checks_the_variant_instead_of_choosing_it(mi):
+    from roadgonio.engines.mitsuba.backend import make_backend
+    with pytest.raises(BackendError, match=r"set_variant\('scalar_rgb'\)"):
+        make_backend(preset("portable"), ROAD, variant="scalar_rgb")
+    assert mi.variant() == "llvm_ad_rgb"
+
+
+def test_without_a_chosen_variant_the_backend_says_what_to_call():
+    import subprocess
+    import sys
+    code = ("import os, mitsuba\n"
+            "from roadgonio.errors import BackendError\n"
+            "from roadgonio.instrument.config import load_instrument\n"
+            "from roadgonio.surface.model import RoadModel\n"
+            "from roadgonio.engines.mitsuba.backend import make_backend\n"
+            "env = dict(os.environ)\n"
+            "try:\n"
+            "    make_backend(load_instrument('portable'), RoadModel.lambert())\n"
+            "except BackendError as e:\n"
+            "    print('ERR', e)\n"
+            "print('variant', mitsuba.variant(), 'env same', dict(os.environ) == env)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "ERR no Mitsuba variant is selected" in r.stdout and "set_variant" in r.stdout
+    assert "variant None env same True" in r.stdout

@@ -18,6 +18,8 @@ def test_render_writes_exr_png_json(tmp_path, capsys):
     assert rc == 0
     info = json.loads((out / "render.json").read_text())
     assert abs(info["k_a_estimate"] - 1.0) < 1e-5           # Lambert: exactly 1 up to float32
+    assert info["versions"]["mitsuba"] and info["versions"]["mitsuba_variant"] == "llvm_ad_rgb"
+    assert info["instrument"]["source"]["radius_m"] == 0.005 and info["settings"]["spp"] == 4
     import OpenEXR
     E = OpenEXR.File(str(out / "illuminance.exr")).channels()["E_h"].pixels
     assert E.dtype == np.float32

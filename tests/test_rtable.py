@@ -98,42 +98,8 @@ def test_load_table_by_name_and_path(tmp_path):
 # bad input: the error names the file, the line and what was expected
 # ----------------------------------------------------------------------------------------------
 
-def _csv_lines():
-    return bundled_table("R3").to_csv_text().splitlines()
-
-
-def bad_tables():
-    """(label, suffix, text, expected line or None, words the message must contain)."""
-    lines = _csv_lines()  # line 1: '# ...', line 2: header, line 3.. data
-    no_header = "\n".join(lines[:1] + lines[2:])
-    non_numeric = list(lines)
-    cells = non_numeric[6].split(",")
-    cells[3] = "abc"
-    non_numeric[6] = ",".join(cells)
-    wrong_grid = list(lines)
-    wrong_grid[1] = wrong_grid[1].replace(",45,", ",50,")
-    negative = list(lines)
-    cells = negative[10].split(",")
-    cells[5] = "-12"
-    negative[10] = ",".join(cells)
-    rtb = bundled_table("R3").to_rtb_text().splitlines()
-    rtb_neg = list(rtb)
-    rtb_neg[8] = rtb_neg[8].replace(rtb_neg[8].split()[0], "-5", 1)
-    return [
-        ("missing header", ".csv", no_header, 2, ["header", "tan_eps"]),
-        ("non-numeric cell", ".csv", "\n".join(non_numeric), 7, ["expected a number", "abc"]),
-        ("wrong grid", ".csv", "\n".join(wrong_grid), 2, ["standard grid"]),
-        ("negative value", ".csv", "\n".join(negative), 11, [">= 0", "-12"]),
-        ("empty file", ".csv", "", None, ["empty"]),
-        ("comments only", ".csv", "# nothing\n", None, ["empty"]),
-        ("rtb missing header", ".rtb", "\n".join(rtb[1:]), 1, ["RTable.v1"]),
-        ("rtb negative", ".rtb", "\n".join(rtb_neg), 9, [">= 0"]),
-        ("rtb empty", ".rtb", "", None, ["empty"]),
-    ]
-
-
-@pytest.mark.parametrize("label,suffix,text,line,words", bad_tables(), ids=[b[0] for b in bad_tables()])
-def test_bad_table_file(tmp_path, label, suffix, text, line, words):
+def test_bad_table_file(tmp_path, bad_table):
+    label, suffix, text, line, words = bad_table
     path = tmp_path / f"bad{suffix}"
     path.write_text(text)
     with pytest.raises(InputError) as ei:

@@ -14,7 +14,6 @@ from roadgonio.errors import GeometryError
 from roadgonio.engines import make_backend
 from roadgonio.surface.model import RoadModel, RoadParams
 
-from test_quadrature import R3LIKE, lab, r3like
 
 #: |k_A - 1| must scale as aperture^EXPONENT within this tolerance (smooth BRDF, small apertures).
 EXPONENT = 2.0
@@ -34,43 +33,43 @@ def finite_result(r, max_rel_err: float | None = None):
 
 @pytest.mark.unit
 @pytest.mark.parametrize("eps_deg", [80.0, 85.236, 88.0, 89.0, 89.9])
-def test_grazing_illumination(eps_deg):
+def test_grazing_illumination(eps_deg, lab, r3like):
     tan = math.tan(math.radians(eps_deg))
-    b = make_backend("quadrature", lab(), r3like(), rtol=1e-4)
+    b = make_backend("quadrature", lab(), r3like, rtol=1e-4)
     for beta in (0.0, 90.0, 180.0):
         finite_result(b.compute_cell(tan, beta), 1e-4)
 
 
 @pytest.mark.unit
-def test_grazing_source_below_horizon_is_an_error():
+def test_grazing_source_below_horizon_is_an_error(lab, r3like):
     # lab source: 5 mm radius at 5 m; its rim dips below the plane once 5 cos(eps) < 0.005 sin(eps)
-    b = make_backend("quadrature", lab(), r3like())
+    b = make_backend("quadrature", lab(), r3like)
     with pytest.raises(GeometryError):
         b.compute_cell(math.tan(math.radians(89.95)), 0.0)
 
 
 @pytest.mark.unit
 @pytest.mark.parametrize("alpha", [0.1, 0.5, 1.0, 10.0, 45.0, 89.0, 89.99])
-def test_observation_angles(alpha):
+def test_observation_angles(alpha, lab, r3like):
     """From nearly grazing to the zenith; the sample is made large enough for the footprint."""
     inst = lab(observation={"alpha_deg": alpha}, sample={"size_x_m": 60.0, "size_y_m": 2.0},
                detector={"field_half_angle_deg": 0.01})
-    b = make_backend("quadrature", inst, r3like(), rtol=1e-4)
+    b = make_backend("quadrature", inst, r3like, rtol=1e-4)
     for cell in [(0.0, 0.0), (12.0, 0.0), (3.0, 180.0)]:
         finite_result(b.compute_cell(*cell), 1e-4)
 
 
 @pytest.mark.unit
-def test_grazing_observation_leaves_a_small_sample():
+def test_grazing_observation_leaves_a_small_sample(lab, r3like):
     inst = lab(observation={"alpha_deg": 0.1})
     with pytest.raises(GeometryError, match="footprint"):
-        make_backend("quadrature", inst, r3like())
+        make_backend("quadrature", inst, r3like)
 
 
 @pytest.mark.unit
 @pytest.mark.parametrize("beta0", [0.0, 180.0])
-def test_beta_exactly_0_and_180_are_continuous(beta0):
-    b = make_backend("quadrature", lab(), r3like(), rtol=1e-7)
+def test_beta_exactly_0_and_180_are_continuous(beta0, lab, r3like):
+    b = make_backend("quadrature", lab(), r3like, rtol=1e-7)
     step = 1e-7 if beta0 == 0.0 else -1e-7
     for tan in (0.5, 12.0):
         a = b.compute_cell(tan, beta0)
@@ -80,16 +79,16 @@ def test_beta_exactly_0_and_180_are_continuous(beta0):
 
 
 @pytest.mark.unit
-@pytest.mark.parametrize("params", [
-    dict(k_diff=0.01, k_phong=1.0, n_phong=1e4),                       # very sharp specular lobe
-    dict(k_diff=0.01, k_retro=1.0, n_retro=1e4),                       # very sharp retro lobe
-    dict(R3LIKE, mu=0.0),                                              # mu at its lower bound
-    dict(R3LIKE, p=0.0, h=-5.0),
-    dict(R3LIKE, theta_l_deg=85.5, g_a=0.0, g_b=-10.0, g_c=16.5, g_t=2.0),   # g across theta_l
-    dict(R3LIKE, theta_l_deg=88.9, g_a=1.0, g_b=0.0, g_c=0.0, g_t=-3.0),
+@pytest.mark.parametrize("base, params", [
+    ({}, dict(k_diff=0.01, k_phong=1.0, n_phong=1e4)),                 # very sharp specular lobe
+    ({}, dict(k_diff=0.01, k_retro=1.0, n_retro=1e4)),                 # very sharp retro lobe
+    ("R3-like", dict(mu=0.0)),                                         # mu at its lower bound
+    ("R3-like", dict(p=0.0, h=-5.0)),
+    ("R3-like", dict(theta_l_deg=85.5, g_a=0.0, g_b=-10.0, g_c=16.5, g_t=2.0)),   # g across theta_l
+    ("R3-like", dict(theta_l_deg=88.9, g_a=1.0, g_b=0.0, g_c=0.0, g_t=-3.0)),
 ])
-def test_extreme_models_stay_finite(params):
-    model = RoadModel(RoadParams(**params))
+def test_extreme_models_stay_finite(base, params, r3like_params, lab):
+    model = RoadModel(RoadParams(**{**(r3like_params if base else {}), **params}))
     b = make_backend("quadrature", lab(), model, rtol=1e-3, max_evals=500_000)
     for cell in [(12.0, 0.0), (4.0, 2.0), (0.0, 0.0), (1.0, 180.0)]:
         r = b.compute_cell(*cell)
@@ -99,7 +98,7 @@ def test_extreme_models_stay_finite(params):
 
 
 @pytest.mark.unit
-def test_sharp_lobe_agrees_with_monte_carlo():
+def test_sharp_lobe_agrees_with_monte_carlo(lab):
     """n_phong = 1e4: quadrature and float64 MC agree within 4 SE (fixed seed)."""
     model = RoadModel(RoadParams(k_diff=0.01, k_phong=1.0, n_phong=1e4))
     inst = lab()
@@ -108,7 +107,7 @@ def test_sharp_lobe_agrees_with_monte_carlo():
     assert abs(m.k_a - q.k_a) <= 4 * m.se + q.error_bound
 
 
-def scaled(s: float):
+def scaled(lab, s: float):
     """The lab preset with every aperture (source radius, pupil radius, field) scaled by s."""
     return lab(source={"radius_m": 0.005 * s}, sample={"size_x_m": 6.0},
                detector={"pupil_radius_m": 0.005 * s, "field_half_angle_deg": 0.05 * s})
@@ -116,14 +115,14 @@ def scaled(s: float):
 
 @pytest.mark.unit
 @pytest.mark.parametrize("cell", [(2.0, 0.0), (6.0, 10.0), (10.0, 0.0)])
-def test_k_a_minus_one_scales_as_aperture_squared(cell):
+def test_k_a_minus_one_scales_as_aperture_squared(cell, lab, r3like_params):
     """For a smooth BRDF, k_A - 1 = c s^2 + O(s^4) in the aperture scale s (even in s: the
     first-order terms cancel over the symmetric discs). Fit the log-log slope."""
-    model = RoadModel(RoadParams(**dict(R3LIKE, k_exp=0.0)))     # lobes + diffuse: smooth
+    model = RoadModel(RoadParams(**dict(r3like_params, k_exp=0.0)))     # lobes + diffuse: smooth
     scales = np.array([0.125, 0.25, 0.5, 1.0])
     dev = []
     for s in scales:
-        r = make_backend("quadrature", scaled(s), model, rtol=1e-11).compute_cell(*cell)
+        r = make_backend("quadrature", scaled(lab, s), model, rtol=1e-11).compute_cell(*cell)
         finite_result(r)
         dev.append(abs(r.k_a - 1.0))
         assert r.error_bound < 1e-3 * dev[-1]       # the quadrature resolves k_A - 1 itself
@@ -132,36 +131,37 @@ def test_k_a_minus_one_scales_as_aperture_squared(cell):
 
 
 @pytest.mark.unit
-def test_large_apertures():
+def test_large_apertures(lab, r3like):
     inst = lab(source={"radius_m": 0.3}, detector={"pupil_radius_m": 0.2, "field_half_angle_deg": 1.0},
                sample={"size_x_m": 20.0, "size_y_m": 2.0}, observation={"alpha_deg": 5.0})
-    b = make_backend("quadrature", inst, r3like(), rtol=1e-3)
+    b = make_backend("quadrature", inst, r3like, rtol=1e-3)
     for cell in [(12.0, 0.0), (2.0, 90.0)]:
         finite_result(b.compute_cell(*cell))
 
 
 @pytest.mark.unit
-def test_sample_that_barely_covers_the_footprint():
+def test_sample_that_barely_covers_the_footprint(lab, r3like):
     inst = lab()
     xmin, xmax, ymin, ymax = optics.check_detector(inst)
     need_x = 2 * max(-xmin, xmax)
     need_y = 2 * max(-ymin, ymax)
     inside = inst.with_changes(sample={"size_x_m": need_x * (1 + 1e-9), "size_y_m": need_y * (1 + 1e-9)})
-    r = make_backend("quadrature", inside, r3like()).compute_cell(8.0, 2.0)
+    r = make_backend("quadrature", inside, r3like).compute_cell(8.0, 2.0)
     finite_result(r)
     for changes in ({"size_x_m": need_x * (1 - 1e-6)}, {"size_y_m": need_y * (1 - 1e-6)}):
         outside = inside.with_changes(sample=changes)
         with pytest.raises(GeometryError, match="footprint leaves the sample"):
-            make_backend("quadrature", outside, r3like())
+            make_backend("quadrature", outside, r3like)
         with pytest.raises(GeometryError):
-            make_backend("numpy-mc", outside, r3like())
+            make_backend("numpy-mc", outside, r3like)
 
 
 @pytest.mark.unit
-@pytest.mark.parametrize("inst", [lab(source={"radius_m": 0.0}), lab(detector={"focus_m": "inf"}),
-                                  lab(source={"beam_half_angle_deg": 3.0})])
-def test_degenerate_and_limited_instruments_agree_with_mc(inst):
-    model = r3like()
+@pytest.mark.parametrize("changes", [{"source": {"radius_m": 0.0}}, {"detector": {"focus_m": "inf"}},
+                                     {"source": {"beam_half_angle_deg": 3.0}}])
+def test_degenerate_and_limited_instruments_agree_with_mc(changes, lab, r3like):
+    inst = lab(**changes)
+    model = r3like
     for cell in [(10.0, 0.0), (2.0, 20.0)]:
         q = make_backend("quadrature", inst, model, rtol=1e-5).compute_cell(*cell)
         m = make_backend("numpy-mc", inst, model, rel_se=1e-3, seed=9).compute_cell(*cell)
@@ -170,11 +170,11 @@ def test_degenerate_and_limited_instruments_agree_with_mc(inst):
 
 
 @pytest.mark.plugin
-def test_mitsuba_float32_against_quadrature(mi):
+def test_mitsuba_float32_against_quadrature(mi, lab, r3like):
     """The float32 renderer against float64 quadrature: within 4 SE plus the measured float32 floor."""
     from roadgonio.engines.validate import FLOAT32_FLOOR, compare
     pytest.importorskip("roadgonio.engines.mitsuba.backend")
-    model = r3like()
+    model = r3like
     inst = lab()
     quad = make_backend("quadrature", inst, model, rtol=1e-6)
     mit = make_backend("mitsuba", inst, model, rel_se=1e-3, seed=3)

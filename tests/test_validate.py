@@ -13,7 +13,6 @@ from roadgonio.cli import main
 from roadgonio.engines import CellResult
 from roadgonio.engines import validate as V
 
-from test_quadrature import r3like
 
 
 def mc_cell(k, se, converged=True):
@@ -102,9 +101,9 @@ def test_parse_cells():
 
 
 @pytest.fixture
-def model_file(tmp_path):
+def model_file(tmp_path, r3like):
     path = tmp_path / "r3like.json"
-    r3like().save(path)
+    r3like.save(path)
     return path
 
 

@@ -24,7 +24,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="roadgonio",
         description="Simulate road-surface goniophotometers: fit road BRDF models to r-tables, compute "
                     "the aperture-effect factor k_A of an instrument, its uncertainty, and correct "
-                    "measured r-tables.")
+                    "measured r-tables.",
+        epilog="Physics conventions (angles, quantities, the BRDF model, instrument keys with units, k_A and the "
+               "calibration modes): docs/conventions.md, installed with the package as roadgonio/docs/conventions.md.")
     parser.add_argument("--version", action="version", version=f"roadgonio {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     names = [m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")]

@@ -1,28 +1,21 @@
 """Helpers shared by the commands (not a command: modules starting with '_' are not discovered)."""
 from __future__ import annotations
 
-import math
+import sys
 
-from roadgonio.errors import InputError
-
-
-def rel_se_setting(backend: str, value: float) -> dict[str, float]:
-    """The backend keyword for ``--rel-se``: a relative tolerance ``rtol`` for the quadrature and the
-    RQMC reference (its target error bound), a
-    target relative standard error ``rel_se`` for the Monte Carlo backends. Checks 0 < value < 1."""
-    if not (math.isfinite(value) and 0 < value < 1):
-        raise InputError(f"expected a relative error in (0, 1), got {value}", field="--rel-se")
-    return {"rtol" if backend in ("quadrature", "reference") else "rel_se": value}
+from roadgonio.engines.accuracy import rel_se_setting  # noqa: F401 - the commands' --rel-se mapping
 
 
 def check_seed(value: int, option: str = "--seed") -> int:
     """A random seed must be >= 0 (numpy's SeedSequence takes none below)."""
+    from roadgonio.errors import InputError
     if value is None or int(value) < 0:
         raise InputError(f"expected a seed >= 0, got {value}", field=option)
     return int(value)
 
 
-INSTRUMENT_HELP = "instrument TOML file (scenes/*.toml) or a bundled preset name (lab, portable)"
+INSTRUMENT_HELP = ("instrument TOML file (keys and units: docs/conventions.md section 4; apertures are radii) or a "
+                   "bundled preset name (lab, portable)")
 SAMPLE_HELP = ("bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file (.csv/.rtb), "
                "a model.json, or 'lambert'")
 
@@ -42,3 +35,33 @@ def load_inputs(args):
     instrument = load_instrument(args.instrument)
     model = resolve_sample(args.sample, getattr(args, "model_variant", None))
     return instrument, model
+
+
+def select_variant(backend: str, variant: str | None = None) -> None:
+    """The command is the entry point: choose the Mitsuba variant here (``--variant``, else
+    ``$ROADGONIO_VARIANT``, else llvm_ad_rgb) when the Mitsuba backend will run. Backends only check it."""
+    if backend == "mitsuba":
+        from roadgonio.engines.mitsuba import set_variant
+        set_variant(variant)
+
+
+# -- output: every command has --json and --quiet; progress bars only on a terminal -------------
+
+def add_output_options(p, json_help: str = "print the result as JSON instead of text") -> None:
+    """``--json`` (machine-readable result on stdout) and ``--quiet`` (nothing but errors), exclusive."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--json", action="store_true", help=json_help)
+    g.add_argument("-q", "--quiet", action="store_true",
+                   help="print nothing but errors (no summary, no progress bar); the exit status tells the result")
+
+
+def show_progress(args) -> bool:
+    """Progress bars only when stderr is a terminal (never into a log or a pipe), and not with --quiet."""
+    return not getattr(args, "quiet", False) and sys.stderr.isatty()
+
+
+def text_output(args):
+    """``print`` for the human-readable summary, or a no-op with --quiet or --json."""
+    if getattr(args, "quiet", False) or getattr(args, "json", False):
+        return lambda *a, **k: None
+    return print

@@ -6,7 +6,15 @@ from pathlib import Path
 
 from roadgonio.errors import InputError
 from roadgonio.surface.model import VARIANTS
-from roadgonio.cli._common import add_instrument_argument, check_seed, rel_se_setting
+from roadgonio.cli._common import (
+    add_instrument_argument,
+    check_seed,
+    add_output_options,
+    rel_se_setting,
+    select_variant,
+    show_progress,
+    text_output,
+)
 
 
 def register(sub) -> None:
@@ -33,13 +41,13 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0, help="random seed of the mitsuba backend")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/correct-MEASURED)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the before/after picture")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON")
+    add_output_options(p, "print the summary as JSON")
     p.set_defaults(func=run, on_interrupt="interrupted: nothing was written, and the k_A table computed so far is "
                                         "not kept (correct starts over when run again)")
 
 
 def run(args) -> int:
-    from roadgonio.correction import correct_table, nearest_standard_tables, write_correction
+    from roadgonio.correction import correct_table, resolve_alternatives, sample_name, write_correction
     from roadgonio.fileio import to_json
     from roadgonio.instrument.config import load_instrument
     from roadgonio.surface.rtable import read_table
@@ -62,17 +70,12 @@ def run(args) -> int:
                              path=args.measured)
     instrument = load_instrument(args.instrument)
     reference = resolve_sample_spec(args.reference, args.model_variant)
-    ref_name = Path(args.reference).stem if Path(args.reference).suffix else args.reference
-    alt_arg = args.alternatives.strip()
-    if alt_arg.lower() == "auto":
-        names = [n for n, _ in nearest_standard_tables(measured, 2, exclude=[ref_name])]
-    elif alt_arg.lower() in ("none", ""):
-        names = []
-    else:
-        names = [s.strip() for s in alt_arg.split(",") if s.strip()]
-    alternatives = {(Path(n).stem if Path(n).suffix else n): resolve_sample_spec(n, args.model_variant) for n in names}
+    select_variant(args.backend)
+    ref_name = sample_name(args.reference)
+    alternatives = resolve_alternatives(args.alternatives, measured, reference_name=ref_name,
+                                        model_variant=args.model_variant)
     c = correct_table(measured, instrument, reference, reference_name=ref_name, alternatives=alternatives,
-                      backend=args.backend, backend_settings=settings, progress=True)
+                      backend=args.backend, backend_settings=settings, progress=show_progress(args))
     c.provenance["measured_file"] = str(args.measured)
     out = Path(args.out) if args.out else Path("out") / f"correct-{measured.name}"
     written = write_correction(c, out, plots=not args.no_plots)
@@ -80,11 +83,12 @@ def run(args) -> int:
     if args.json:
         print(to_json({**s, "written": [str(p) for p in written]}))
     else:
-        print(f"{measured.name}: {s['cells']} cells corrected with k_A of {ref_name} "
-              f"(k_A {s['k_a_min']:.3g} ... {s['k_a_max']:.3g})")
-        print(f"  S1 {s['S1_before']:.4g} -> {s['S1_after']:.4g}, Q0 {s['Q0_before']:.4g} -> {s['Q0_after']:.4g}")
+        say = text_output(args)
+        say(f"{measured.name}: {s['cells']} cells corrected with k_A of {ref_name} "
+            f"(k_A {s['k_a_min']:.3g} ... {s['k_a_max']:.3g})")
+        say(f"  S1 {s['S1_before']:.4g} -> {s['S1_after']:.4g}, Q0 {s['Q0_before']:.4g} -> {s['Q0_after']:.4g}")
         alts = ", ".join(f"{n} (max dev {100 * v['max_rel_dev']:.2g} %)" for n, v in s["alternatives"].items()) or "none"
-        print(f"  correction uncertainty u_rel: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} %; "
-              f"backend error max {100 * s['backend_rel_se_max']:.2g} %; alternative references: {alts}")
-        print(f"wrote {len(written)} files to {out}")
+        say(f"  correction uncertainty u_rel: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} %; "
+            f"backend error max {100 * s['backend_rel_se_max']:.2g} %; alternative references: {alts}")
+        say(f"wrote {len(written)} files to {out}")
     return 0

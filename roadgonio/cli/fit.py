@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from roadgonio.cli._common import add_output_options, show_progress, text_output
 from roadgonio.errors import InputError
 from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANT_PARAMS, VARIANTS
 
@@ -21,8 +22,7 @@ def register(sub) -> None:
     p.add_argument("--variant", default=DEFAULT_VARIANT, choices=VARIANTS,
                    help=f"model variant (default {DEFAULT_VARIANT!r}, the paper's model)")
     p.add_argument("--out", metavar="DIR", help="output folder (default fit-<table>-<variant>)")
-    p.add_argument("--json", action="store_true",
-                   help="print {table, variant, max_dev_pct, rms_dev_pct, params, seconds} as JSON")
+    add_output_options(p, "print {table, variant, max_dev_pct, rms_dev_pct, params, seconds} as JSON")
     p.add_argument("--seed", type=int, default=0, help="seed of the global search (default 0)")
     p.add_argument("--fix", metavar="NAME=VALUE", action="append", default=[],
                    help="hold a parameter at a value (repeatable), e.g. --fix n_phong=50; the grazing "
@@ -74,12 +74,9 @@ def run(args) -> int:
         raise InputError("expected a folder for the results, but it is a file", path=out, field="--out")
 
     bar = None
-    try:
+    if show_progress(args):
         from tqdm import tqdm
-        bar = tqdm(total=1, desc=f"fit {table.name} ({args.variant})", unit="gen", file=sys.stderr,
-                   leave=False, disable=None)
-    except ImportError:  # pragma: no cover
-        pass
+        bar = tqdm(total=1, desc=f"fit {table.name} ({args.variant})", unit="gen", file=sys.stderr, leave=False)
 
     def progress(done: int, total: int) -> None:
         if bar is not None:
@@ -101,16 +98,17 @@ def run(args) -> int:
         if not args.no_plot:
             from roadgonio.surface.fitplot import plot_fit
             plot_fit(result, g.path("fit.png"))
+    say = text_output(args)
     if args.json:
         print(json.dumps(result.to_json_dict(), indent=2))
     else:
         P = result.model.params
-        print(f"{table.name} ({args.variant}): max |dev| {result.max_dev_pct:.2f} %, RMS {result.rms_dev_pct:.2f} % "
+        say(f"{table.name} ({args.variant}): max |dev| {result.max_dev_pct:.2f} %, RMS {result.rms_dev_pct:.2f} % "
               f"of max r, {int(table.mask.sum())} cells, {result.seconds:.1f} s")
         shown = PARAM_NAMES[:9] + VARIANT_PARAMS.get(args.variant, ())
-        print("  " + ", ".join(f"{k}={getattr(P, k):.5g}" for k in shown))
-        print("  worst cells (model - table, % of max r): " + "; ".join(
+        say("  " + ", ".join(f"{k}={getattr(P, k):.5g}" for k in shown))
+        say("  worst cells (model - table, % of max r): " + "; ".join(
             f"tan eps {t:g}, beta {b:g} deg: {d:+.2f} %" for t, b, d in result.worst_cells(3)))
-        print(f"wrote {out / 'model.json'}, {out / 'residuals.csv'}"
+        say(f"wrote {out / 'model.json'}, {out / 'residuals.csv'}"
               + ("" if args.no_plot else f", {out / 'fit.png'}"))
     return 0

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
@@ -12,10 +11,14 @@ from roadgonio.engines.accuracy import PRESETS
 from roadgonio.surface.model import VARIANTS
 from roadgonio.cli._common import (
     add_instrument_argument,
+    add_output_options,
     add_sample_argument,
     check_seed,
     load_inputs,
     rel_se_setting,
+    select_variant,
+    show_progress,
+    text_output,
 )
 
 
@@ -23,7 +26,7 @@ def register(sub) -> None:
     p = sub.add_parser(
         "ka", help="aperture-effect factor k_A of an instrument (one cell or the whole r-table)",
         description="Compute k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) for an instrument "
-                    "and a sample (DESIGN.md section 5). Without --tan-eps/--beta the whole 580-cell grid is "
+                    "and a sample (docs/conventions.md section 5). Without --tan-eps/--beta the whole 580-cell grid is "
                     "computed and written to --out (ka.csv, ka_se.csv, ka.png, ka.json); an interrupted table "
                     "resumes when the same command is run again.")
     add_instrument_argument(p)
@@ -49,8 +52,8 @@ def register(sub) -> None:
                         "sample's r-table (blank cells stay blank)")
     p.add_argument("--out", metavar="DIR", help="output folder for a table (default: out/ka-INSTRUMENT-SAMPLE)")
     p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
-    p.add_argument("--json", action="store_true",
-                   help='one cell: print {"k_a", "se", "samples", "seconds"}; table: print the summary as JSON')
+    add_output_options(p, 'one cell: print {"k_a", "se", "error_bound", "converged", "samples", "seconds"}; '
+                          "table: print the summary as JSON")
     p.set_defaults(func=run)
 
 
@@ -81,6 +84,7 @@ def run(args) -> int:
         if not (math.isfinite(args.beta) and 0 <= args.beta <= 180):
             raise InputError(f"expected 0 <= beta <= 180 deg, got {args.beta}", field="--beta")
     instrument, model = load_inputs(args)
+    select_variant(args.backend, args.variant)
     backend = make_backend(args.backend, instrument, model, accuracy=args.accuracy, **backend_settings(args))
     if single and not args.out:
         args.on_interrupt = "interrupted: nothing was written (a single cell without --out does not resume)"
@@ -100,9 +104,9 @@ def run(args) -> int:
                                            "converged": c.converged, "samples": c.samples, "seconds": seconds})))
         else:
             prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error")
-            print(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
-                  f"{c.samples} samples, {seconds:.2f} s, {backend.name} backend)"
-                  + ("" if c.converged else _not_converged_text(c, args.rel_se)))
+            text_output(args)(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
+                              f"{c.samples} samples, {seconds:.2f} s, {backend.name} backend)"
+                              + ("" if c.converged else _not_converged_text(c, args.rel_se)))
         return 0
 
     if args.cells == "table":
@@ -117,18 +121,20 @@ def run(args) -> int:
         cells = full_grid_cells()
     sample_name = Path(args.sample).stem if Path(args.sample).exists() else args.sample
     out_dir = Path(args.out) if args.out else Path("out") / f"ka-{instrument.name}-{sample_name}"
-    run_ = run_cells(backend, cells, instrument=instrument, model=model, out_dir=out_dir, fresh=args.fresh)
+    run_ = run_cells(backend, cells, instrument=instrument, model=model, out_dir=out_dir, fresh=args.fresh,
+                     progress=show_progress(args))
     meta = write_outputs(run_, out_dir, instrument=instrument, model=model, backend=backend,
                          sample_spec=sample_name)
     s = meta["summary"]
+    say = text_output(args)
     if args.json:
         print(json.dumps({"out": str(out_dir), **s}, indent=2))
     else:
-        print(f"k_A for {instrument.name} x {sample_name} ({backend.name}): {s['cells']} cells "
-              f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
-              f"{_precision_text(s)}, {run_.seconds:.1f} s.", file=sys.stdout)
-        print(f"wrote {out_dir}/" + ", ".join(f for f in meta["files"].values() if f and f != "ka_cells.jsonl")
-              + ", ka.json")
+        say(f"k_A for {instrument.name} x {sample_name} ({backend.name}): {s['cells']} cells "
+            f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
+            f"{_precision_text(s)}, {run_.seconds:.1f} s.")
+        say(f"wrote {out_dir}/" + ", ".join(f for f in meta["files"].values() if f and f != "ka_cells.jsonl")
+            + ", ka.json")
     return 0
 
 

@@ -6,7 +6,15 @@ from __future__ import annotations
 import math
 
 from roadgonio.errors import InputError
-from roadgonio.cli._common import add_instrument_argument, add_sample_argument, check_seed, load_inputs
+from roadgonio.cli._common import (
+    add_instrument_argument,
+    add_output_options,
+    add_sample_argument,
+    check_seed,
+    load_inputs,
+    select_variant,
+    text_output,
+)
 
 
 def register(sub) -> None:
@@ -24,6 +32,7 @@ def register(sub) -> None:
     p.add_argument("--spp", type=int, default=64, help="samples per pixel (a square; default 64)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default=None, help="Mitsuba variant (default llvm_ad_rgb)")
+    add_output_options(p, "print render.json (provenance, footprint, the k_A estimate, files) to stdout")
     p.set_defaults(func=run, on_interrupt="interrupted: the pictures of this cell were not written (render starts "
                                         "over when run again)")
 
@@ -40,14 +49,20 @@ def run(args) -> int:
                          field="--spp")
     check_seed(args.seed)
     instrument, model = load_inputs(args)
+    select_variant("mitsuba", args.variant)
     from roadgonio.engines.mitsuba.images import render_cell_images
     info = render_cell_images(instrument, model, args.tan_eps, args.beta, args.out, resolution=args.resolution,
                               spp=args.spp, seed=args.seed, variant=args.variant, sample_name=args.sample)
+    if args.json:
+        from roadgonio.fileio import to_json
+        print(to_json(info))
+        return 0
+    say = text_output(args)
     ka = info["k_a_estimate"]
-    print(f"{instrument.name}, sample {args.sample}, tan eps = {args.tan_eps:g}, beta = {args.beta:g} deg: "
+    say(f"{instrument.name}, sample {args.sample}, tan eps = {args.tan_eps:g}, beta = {args.beta:g} deg: "
           f"footprint x = {info['footprint_m']['x'][0]:.3f} ... {info['footprint_m']['x'][1]:.3f} m; "
           + (f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (one render; use 'roadgonio ka' for tables)"
              if ka is not None else "k_A undefined (model is 0 at the nominal geometry)"))
     for k, v in info["files"].items():
-        print(f"wrote {v}")
+        say(f"wrote {v}")
     return 0

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 
+from roadgonio.cli._common import add_output_options, text_output
 from roadgonio.surface.rtable import BUNDLED, PUBLISHED_Q0, PUBLISHED_S1, bundled_table, load_table
 
 
@@ -10,7 +11,7 @@ def register(sub) -> None:
     p = sub.add_parser("tables", help="list the bundled CIE r-tables with Q0, S1 and S2",
                        description="List the bundled CIE standard r-tables with their computed Q0, S1, S2 "
                                    "beside the published values.")
-    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    add_output_options(p, "print JSON instead of a table")
     p.set_defaults(func=run_tables)
 
     p = sub.add_parser("table", help="show or convert an r-table (bundled name or file)",
@@ -18,7 +19,7 @@ def register(sub) -> None:
                                    "(.rtb = DIALux RTB, anything else = CSV).")
     p.add_argument("table", help="bundled table name (R1..R4, C1, C2) or a .csv/.rtb file")
     p.add_argument("--to", metavar="FILE", help="write the table to FILE (.rtb or .csv)")
-    p.add_argument("--json", action="store_true", help="print the characteristics as JSON")
+    add_output_options(p, "print the characteristics as JSON")
     p.set_defaults(func=run_table)
 
 
@@ -31,11 +32,12 @@ def run_tables(args) -> int:
     if args.json:
         print(json.dumps(rows, indent=2))
         return 0
-    print(f"{'table':6} {'Q0':>7} {'(CIE)':>6} {'S1':>7} {'(CIE)':>6} {'S2':>6} {'cells':>6}")
+    say = text_output(args)
+    say(f"{'table':6} {'Q0':>7} {'(CIE)':>6} {'S1':>7} {'(CIE)':>6} {'S2':>6} {'cells':>6}")
     for r in rows:
-        print(f"{r['table']:6} {r['Q0']:7.4f} {r['Q0_published']:6.2f} {r['S1']:7.3f} "
-              f"{r['S1_published']:6.2f} {r['S2']:6.2f} {r['cells']:6d}")
-    print("Q0 by the trapezoidal rule over the tabulated cells (CIE 144 weights differ by a few %).")
+        say(f"{r['table']:6} {r['Q0']:7.4f} {r['Q0_published']:6.2f} {r['S1']:7.3f} "
+            f"{r['S1_published']:6.2f} {r['S2']:6.2f} {r['cells']:6d}")
+    say("Q0 by the trapezoidal rule over the tabulated cells (CIE 144 weights differ by a few %).")
     return 0
 
 
@@ -46,11 +48,12 @@ def run_table(args) -> int:
     if args.to:
         path = t.write(args.to)
         info["written"] = str(path)
+    say = text_output(args)
     if args.json:
         print(json.dumps(info, indent=2))
     else:
-        print(f"{t.name}: Q0 = {info['Q0']:.4f} sr^-1, S1 = {info['S1']:.3f}, S2 = {info['S2']:.2f}, "
+        say(f"{t.name}: Q0 = {info['Q0']:.4f} sr^-1, S1 = {info['S1']:.3f}, S2 = {info['S2']:.2f}, "
               f"{info['cells']} tabulated cells, max r = {info['r_max'] * 1e4:.4g} x 1e-4")
         if args.to:
-            print(f"wrote {info['written']}")
+            say(f"wrote {info['written']}")
     return 0

@@ -2,12 +2,20 @@
 instrument's angle and position errors, with and without the aperture effect."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 from roadgonio.errors import InputError
 from roadgonio.surface.model import VARIANTS
-from roadgonio.cli._common import add_instrument_argument, add_sample_argument, check_seed, rel_se_setting
+from roadgonio.cli._common import (
+    add_instrument_argument,
+    add_output_options,
+    add_sample_argument,
+    check_seed,
+    rel_se_setting,
+    select_variant,
+    show_progress,
+    text_output,
+)
 
 
 def _positive_int(text: str) -> int:
@@ -78,7 +86,7 @@ def register(sub) -> None:
     p.add_argument("--threads", type=_positive_int, metavar="N", help="worker threads (default: up to 2)")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/uncertainty-INSTRUMENT-SAMPLE)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the PNG pictures")
-    p.add_argument("--json", action="store_true", help="print the summary as JSON instead of text")
+    add_output_options(p, "print the summary as JSON instead of text")
     p.set_defaults(func=run, on_interrupt="interrupted: nothing was written; an uncertainty run keeps no partial "
                                         "results and starts over when run again")
 
@@ -100,23 +108,21 @@ def run(args) -> int:
         raise InputError(f"expected a coverage probability between 0.5 and 1, got {args.coverage:g}", field="--coverage")
     if args.validation < 0:
         raise InputError(f"expected a number >= 0, got {args.validation}", field="--validation")
-    settings: dict = {}
-    if args.rel_se is not None:
-        settings.update(rel_se_setting(args.backend, args.rel_se))
-    elif args.backend == "quadrature":
-        settings["rtol"] = 1e-4
-    else:
-        settings["rel_se"] = 3e-3
+    from roadgonio.uncertainty.run import DEFAULT_BACKEND_TOLERANCE
+    settings = rel_se_setting(args.backend, DEFAULT_BACKEND_TOLERANCE[args.backend] if args.rel_se is None
+                              else args.rel_se)
     if args.backend == "mitsuba":
         settings["seed"] = args.seed
     instrument = load_instrument(args.instrument)
     model = resolve_sample_spec(args.sample, args.model_variant)
+    if not args.no_aperture:
+        select_variant(args.backend)
     res = run_uncertainty(model, instrument, spec, trials=args.trials, adaptive=args.adaptive, seed=args.seed,
                           coverage=args.coverage, n_dig=args.digits, max_trials=args.max_trials, batch=args.batch,
                           illuminance=args.illuminance, cells=args.cells, aperture=not args.no_aperture,
                           backend=args.backend, backend_settings=settings, n_validation=args.validation,
                           surrogate_design=args.surrogate,
-                          threads=args.threads, progress=True)
+                          threads=args.threads, progress=show_progress(args))
     sample_name = Path(args.sample).stem if Path(args.sample).suffix else args.sample
     res.provenance["sample"] = args.sample
     out = Path(args.out) if args.out else Path("out") / f"uncertainty-{instrument.name}-{sample_name}"
@@ -126,7 +132,8 @@ def run(args) -> int:
         d["written"] = [str(p) for p in written]
         print(to_json(d))
     else:
+        say = text_output(args)
         for line in summary_lines(res):
-            print(line)
-        print(f"wrote {len(written)} files to {out}", file=sys.stdout)
+            say(line)
+        say(f"wrote {len(written)} files to {out}")
     return 0

@@ -7,7 +7,15 @@ import sys
 from pathlib import Path
 
 from roadgonio.errors import InputError
-from roadgonio.cli._common import add_instrument_argument, add_sample_argument, check_seed, load_inputs
+from roadgonio.cli._common import (
+    add_instrument_argument,
+    add_output_options,
+    add_sample_argument,
+    check_seed,
+    load_inputs,
+    select_variant,
+    text_output,
+)
 
 
 def register(sub) -> None:
@@ -45,8 +53,9 @@ def register(sub) -> None:
                    help="relative float32 floor added to the allowed difference (default: the measured value "
                         "for the backend, 0 for numpy-mc)")
     p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb)")
-    p.add_argument("--json", action="store_true", help="print the report as JSON (instead of the table)")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/validate-INSTRUMENT-SAMPLE)")
+    add_output_options(p, "print the report (verdict, counts, cells with their verdicts and reasons) as JSON instead "
+                          "of the table")
     p.set_defaults(func=run, on_interrupt="interrupted: nothing was written (validate starts over when run again)")
 
 
@@ -63,6 +72,7 @@ def run(args) -> int:
     check_seed(args.seed)
     cells = parse_cells(args.cells)
     instrument, model = load_inputs(args)
+    select_variant(args.against, args.variant)
     mc_settings = {}
     if args.against == "mitsuba" and args.variant:
         mc_settings["variant"] = args.variant
@@ -73,28 +83,26 @@ def run(args) -> int:
     out_dir = Path(args.out) if args.out else Path("out") / f"validate-{instrument.name}-{sample_name}"
     from roadgonio.fileio import check_writable
     check_writable(out_dir)          # an unwritable --out fails now, not after the computation
-    quiet = bool(args.json)
-    if not quiet:
-        print(f"{'tan eps':>7} {'beta':>5} {'k_ref':>10} {'k_' + args.against:>12} {'diff/SE':>8} {'allowed':>8}  "
-              "verdict", flush=True)
+    say = text_output(args)
+    say(f"{'tan eps':>7} {'beta':>5} {'k_ref':>10} {'k_' + args.against:>12} {'diff/SE':>8} {'allowed':>8}  verdict",
+        flush=True)
 
     def show(r):
-        if quiet:
-            return
         allowed = r.allowed / r.sigma if r.sigma > 0 else math.inf
         note = "" if r.verdict == "agree" else f"  ({r.reason})"
-        print(f"{r.tan_eps:7g} {r.beta_deg:5g} {r.k_ref:10.6f} {r.k_mc:12.6f} {r.z:+8.2f} {allowed:8.2f}  "
-              f"{r.verdict}{note}", flush=True)
+        say(f"{r.tan_eps:7g} {r.beta_deg:5g} {r.k_ref:10.6f} {r.k_mc:12.6f} {r.z:+8.2f} {allowed:8.2f}  "
+            f"{r.verdict}{note}", flush=True)
 
     report = validate(instrument, model, cells, against=args.against, reference=args.reference, rel_se=args.rel_se,
                       rtol=args.rtol, seed=args.seed, floor=args.floor, mc_settings=mc_settings,
                       ref_settings=ref_settings, on_cell=show)
+    from roadgonio.provenance import provenance
+    report.update(provenance(instrument=instrument, model=model, settings=report["settings"]))
     report["sample"] = sample_name
     paths = write_outputs(report, out_dir)
-    if quiet:
-        print(to_json(report_json(report)))
-    else:
-        print(summary_line(report) + f"; wrote {paths['csv']}, {paths['json'].name}, {paths['png'].name}.")
+    if args.json:
+        print(to_json({**report_json(report), "out": str(out_dir)}))
+    say(summary_line(report) + f"; wrote {paths['csv']}, {paths['json'].name}, {paths['png'].name}.")
     rows = report["rows"]
     bad = [r for r in rows if r.verdict == "disagree"]
     unsure = [r for r in rows if r.verdict == "inconclusive"]

@@ -1,4 +1,4 @@
-"""Correction of a measured r-table for the aperture effect (paper eq. 2; DESIGN.md section 5):
+"""Correction of a measured r-table for the aperture effect (paper eq. 2; docs/conventions.md section 5):
 ``r_true = r_measured / k_A``, with k_A computed for a reference BRDF model close to the sample
 (paper section 4.1: "choosing the reference r-table closest to the sample behaviour").
 
@@ -45,6 +45,32 @@ def nearest_standard_tables(table: RTable, k: int = 2, exclude: Sequence[str] = 
     d = [(n, math.hypot((v[0] - s1) / ss, (v[1] - q0) / sq)) for n, v in stats.items() if n not in ex]
     d.sort(key=lambda t: t[1])
     return d[:k]
+
+
+def sample_name(spec: str) -> str:
+    """Short name of a SAMPLE argument: a file's stem, else the argument (``R3``, ``lambert``)."""
+    return Path(spec).stem if Path(spec).suffix else spec
+
+
+def resolve_alternatives(spec: str | Sequence[str] | None, measured: RTable, *, reference_name: str,
+                         model_variant: str | None = None) -> dict[str, RoadModel]:
+    """The alternative references for the model uncertainty: ``"auto"`` = the two CIE tables
+    nearest to ``measured`` in (S1, Q0), the reference excluded; ``"none"``/``None`` = none; a
+    comma-separated text or a list of SAMPLEs = those (fitted or loaded like the reference)."""
+    from roadgonio.surface.sample import resolve_sample
+    if spec is None:
+        return {}
+    if isinstance(spec, str):
+        text = spec.strip()
+        if text.lower() == "auto":
+            names = [n for n, _ in nearest_standard_tables(measured, 2, exclude=[reference_name])]
+        elif text.lower() in ("none", ""):
+            names = []
+        else:
+            names = [s.strip() for s in text.split(",") if s.strip()]
+    else:
+        names = [str(s) for s in spec]
+    return {sample_name(n): resolve_sample(n, model_variant) for n in names}
 
 
 @dataclass
@@ -124,13 +150,12 @@ def correct_table(measured: RTable, instrument: Instrument, reference: RoadModel
     corrected = measured.with_values(measured.r / k, name=f"{measured.name}_corrected",
                                      source=f"{measured.name} corrected for the aperture effect: r / k_A "
                                             f"(reference {reference_name}, instrument {instrument.name})")
-    from roadgonio import __version__
-    prov = {"roadgonio": __version__, "numpy": np.__version__, "instrument": instrument.to_dict(),
-            "instrument_file": str(instrument.path) if instrument.path else None,
-            "reference": reference_name, "reference_model": reference.to_json_dict(),
-            "alternatives": {n: m.to_json_dict() for n, m in alternatives.items()},
-            "backend": settings or {"backend": backend, **dict(backend_settings or {})},
-            "u_model": "max |k_A(alternative) - k_A(reference)| / sqrt(3) (rectangular)"}
+    from roadgonio.provenance import provenance
+    prov = provenance(instrument=instrument, model=reference, backend=str(settings.get("backend", backend)),
+                      settings=settings or {"backend": backend, **dict(backend_settings or {})},
+                      reference=reference_name,
+                      alternatives={n: m.to_json_dict() for n, m in alternatives.items()},
+                      u_model="max |k_A(alternative) - k_A(reference)| / sqrt(3) (rectangular)")
     return Correction(measured=measured, corrected=corrected, k_a=k, se=se, alternatives=alts, u_model=u_model,
                       u_rel=u_rel, reference=reference_name, provenance=prov, seconds=time.perf_counter() - t0)
 
@@ -142,8 +167,9 @@ def write_correction(c: Correction, out_dir: str | Path, *, plots: bool = True) 
     out.mkdir(parents=True, exist_ok=True)
     base = c.measured.name
     paths = [c.corrected.write_csv(out / f"{base}_corrected.csv"), c.corrected.write_rtb(out / f"{base}_corrected.rtb")]
-    lines = ["tan_eps,beta_deg,r_measured_x1e4,k_a,k_a_se,u_model," + ",".join(f"k_a_{n}" for n in c.alternatives)
-             + ",r_corrected_x1e4,u_rel_correction"]
+    header = (["tan_eps", "beta_deg", "r_measured_x1e4", "k_a", "k_a_se", "u_model"]
+              + [f"k_a_{n}" for n in c.alternatives] + ["r_corrected_x1e4", "u_rel_correction"])
+    lines = [",".join(header)]      # (joining the alternatives alone left an empty column when there were none)
     for i, j in zip(*np.nonzero(c.measured.mask)):
         alts = "".join(f",{a[i, j]:.6g}" for a in c.alternatives.values())
         lines.append(f"{TAN_EPS_GRID[i]:g},{BETA_GRID_DEG[j]:g},{c.measured.r[i, j] * 1e4:.6g},{c.k_a[i, j]:.6g},"

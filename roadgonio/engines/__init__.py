@@ -1,4 +1,4 @@
-"""The aperture-effect factor k_A (paper eq. 2-3; DESIGN.md section 5) and its backends.
+"""The aperture-effect factor k_A (paper eq. 2-3; docs/conventions.md section 5) and its backends.
 
     k_A(eps, beta) = ( S[f_road] / S[f_lambert] ) / ( f_road(nominal) / f_lambert )
 

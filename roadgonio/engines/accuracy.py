@@ -27,6 +27,7 @@ passes grow (bench/results/accuracy.csv has the whole ladder).
 """
 from __future__ import annotations
 
+import math
 from typing import Any
 
 from roadgonio.errors import InputError
@@ -60,3 +61,13 @@ def preset(name: str, backend: str) -> dict[str, Any]:
         raise InputError(f"no accuracy preset for backend {backend!r}; presets exist for "
                          f"{', '.join(table)}", field="--backend")
     return dict(table[backend])
+
+
+def rel_se_setting(backend: str, value: float, field: str = "--rel-se") -> dict[str, float]:
+    """The backend keyword for one relative precision target: a relative tolerance ``rtol`` for the
+    quadrature and the RQMC reference (its target error bound), a target relative standard error ``rel_se`` for the Monte Carlo backends. Checks
+    0 < value < 1 (errors name ``field``: the option or the API argument)."""
+    if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            and 0 < value < 1):
+        raise InputError(f"expected a relative error in (0, 1), got {value}", field=field)
+    return {"rtol" if backend in ("quadrature", "reference") else "rel_se": float(value)}

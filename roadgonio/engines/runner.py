@@ -9,7 +9,8 @@ Output folder (``--out DIR``):
 * ``ka.csv`` / ``ka_se.csv`` - k_A and its standard error in the r-table layout (rows tan eps,
   columns beta; cells not computed stay blank).
 * ``ka.png`` - a map like the paper's Figure 4.
-* ``ka.json`` - provenance and summary: instrument, model, backend and settings, versions, cells.
+* ``ka.json`` - provenance (:func:`roadgonio.provenance.provenance`: instrument, model, backend and
+  settings, versions) and summary.
 """
 from __future__ import annotations
 
@@ -17,7 +18,6 @@ import hashlib
 import json
 import math
 import os
-import platform
 import sys
 import time
 from dataclasses import dataclass
@@ -30,34 +30,12 @@ from roadgonio.errors import InputError
 from roadgonio.fileio import atomic_write_json, atomic_write_text, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
+from roadgonio.provenance import provenance
 from roadgonio.surface.model import RoadModel
 from roadgonio.surface.rtable import RTable
 from roadgonio.engines import CellResult, KaBackend
 
 JOURNAL = "ka_cells.jsonl"
-
-
-def versions() -> dict[str, str]:
-    """Versions of the software that produced a result (mitsuba/drjit only if already imported)."""
-    import numpy
-    import scipy
-
-    from roadgonio import __version__
-    v = {"roadgonio": __version__, "python": platform.python_version(), "numpy": numpy.__version__,
-         "scipy": scipy.__version__, "platform": platform.platform()}
-    for mod in ("mitsuba", "drjit"):
-        if mod in sys.modules:
-            v[mod] = getattr(sys.modules[mod], "__version__", "?")
-    if "mitsuba" in sys.modules:
-        try:
-            v["mitsuba_variant"] = sys.modules["mitsuba"].variant()
-            from roadgonio.engines.mitsuba import llvm_version
-            lv = llvm_version()
-            if lv:
-                v["llvm"] = ".".join(map(str, lv))
-        except Exception:  # pragma: no cover
-            pass
-    return v
 
 
 def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) -> str:
@@ -208,15 +186,9 @@ def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, mo
         "resumed_cells": run.resumed,
     }
     meta = {
-        "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (DESIGN.md section 5)",
-        "instrument": instrument.to_dict(),
-        "instrument_file": str(instrument.path) if instrument.path else None,
+        "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md section 5)",
+        **provenance(instrument=instrument, model=model, backend=backend.name, settings=backend.settings()),
         "sample": sample_spec,
-        "model": model.to_json_dict(),
-        "backend": backend.name,
-        "settings": backend.settings(),
-        "versions": versions(),
-        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "summary": summary,
         "files": {"ka": "ka.csv", prec_field: prec_file, "map": "ka.png" if plot else None, "journal": JOURNAL},
     }

@@ -1,9 +1,15 @@
-"""The instrument: what a goniophotometer is (DESIGN.md section 4).
+"""The instrument: what a goniophotometer is (docs/conventions.md section 4).
 
 * :mod:`.config` -- the instrument file (TOML) as frozen, validated dataclasses
   (:class:`Instrument`, :class:`Source`, :class:`Detector`, :class:`Sample`), presets, loading;
 * :mod:`.optics` -- the ray geometry of the source disc and the luminance meter (pupil x field),
-  written once over an array namespace for numpy and Dr.Jit, and the footprint and validity checks.
+  written once over an array namespace for numpy and Dr.Jit, and the geometry checks (footprint
+  on the sample, source above the horizon, beam limit, the verdict of a traced hit check);
+* :mod:`.mesh` -- the sample surface as triangles (rectangle or mesh file, read with trimesh,
+  one-sided orientation check).
+
+Angles follow :mod:`roadgonio.geometry` (``w_source``/``w_detector``), the one place the
+azimuth convention is written.
 
 Nothing here imports mitsuba or drjit.
 """

@@ -1,5 +1,5 @@
-"""Instrument description (DESIGN.md section 4): frozen, validated dataclasses built from TOML or a
-plain dict, units in the names.
+"""Instrument description (docs/conventions.md section 4): frozen dataclasses that
+validate themselves on construction, built from TOML or a plain dict, units in the names.
 
 .. code-block:: toml
 
@@ -10,19 +10,25 @@ plain dict, units in the names.
     alpha_deg = 1.0              # delta_deg = 0.0
     [source]
     distance_m = 3.0
-    radius_m = 0.02              # 0 = point source
+    radius_m = 0.02              # radius of the exit aperture; 0 = point source
     # beam_half_angle_deg = 5.0  # optional: emission limited to a cone about the source axis
     [detector]
     distance_m = 5.0
-    pupil_radius_m = 0.01        # 0 = pinhole
+    pupil_radius_m = 0.01        # radius of the entrance pupil; 0 = pinhole
     field_half_angle_deg = 0.15
-    focus_m = 5.0                # default: distance_m; "inf" = angular field
+    focus_m = 5.0                # default: distance_m; "inf" (or TOML inf) = angular field
     # field_edge_sensitivity = 0.8  # k_D at the field-stop edge relative to the centre (default 1)
     [sample]
     size_x_m = 6.0               # along the observation azimuth
     size_y_m = 2.0               # or mesh = "file.ply" (relative to the TOML file)
 
 Whatever is not declared is not modelled: a zero radius is a point, no beam limit is no limit.
+
+Every dataclass checks its own values in ``__post_init__`` (``Source(distance_m=-1)`` raises an
+:class:`~roadgonio.errors.InputError` naming ``source.distance_m``), so an instrument built in
+Python is held to the same rules as one read from a file; :meth:`Instrument.from_dict` adds the
+file name to the error. A detector focused at infinity (an angular field) has
+``focus_m = math.inf``; files spell it ``"inf"`` (or TOML's bare ``inf``).
 """
 from __future__ import annotations
 
@@ -37,28 +43,34 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.geometry import w_detector, w_source
 
+_INF_WORDS = ("inf", "+inf", "infinity")
 
-def _num(d: Mapping[str, Any], key: str, section: str, path, *, default=None, required=False,
-         lo=None, hi=None, lo_open=False, hi_open=False, allow_inf=False) -> float | None:
-    field_name = f"{section}.{key}"
-    if key not in d:
-        if required:
-            raise InputError("missing (required)", path=path, field=field_name)
-        return default
-    v = d[key]
-    if allow_inf and isinstance(v, str) and v.strip().lower() in ("inf", "infinity"):
+
+def _number(v: Any, name: str, *, allow_inf: bool = False) -> float:
+    """``v`` as a float, or an InputError naming the field ``name``; ``"inf"`` where allowed."""
+    if allow_inf and isinstance(v, str) and v.strip().lower() in _INF_WORDS:
         return math.inf
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
         extra = ' or "inf"' if allow_inf else ""
-        raise InputError(f"expected a number{extra}, got {v!r}", path=path, field=field_name)
+        raise InputError(f"expected a number{extra}, got {v!r}", field=name)
     v = float(v)
-    if math.isnan(v) or (math.isinf(v) and not allow_inf):
-        raise InputError(f"expected a finite number, got {v}", path=path, field=field_name)
-    if lo is not None and (v < lo or (lo_open and v == lo)):
-        raise InputError(f"expected a value {'>' if lo_open else '>='} {lo:g}, got {v:g}", path=path, field=field_name)
-    if hi is not None and (v > hi or (hi_open and v == hi)):
-        raise InputError(f"expected a value {'<' if hi_open else '<='} {hi:g}, got {v:g}", path=path, field=field_name)
+    if math.isnan(v) or (v == -math.inf) or (math.isinf(v) and not allow_inf):
+        raise InputError(f"expected a finite number, got {v}", field=name)
     return v
+
+
+def _checked(obj, attr: str, name: str, *, lo=None, hi=None, lo_open=False, hi_open=False,
+             allow_inf=False, optional=False) -> None:
+    """Validate (and normalise to float) the field ``attr`` of the frozen dataclass ``obj``."""
+    v = getattr(obj, attr)
+    if v is None and optional:
+        return
+    v = _number(v, name, allow_inf=allow_inf)
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise InputError(f"expected a value {'>' if lo_open else '>='} {lo:g}, got {v:g}", field=name)
+    if hi is not None and (v > hi or (hi_open and v == hi)):
+        raise InputError(f"expected a value {'<' if hi_open else '<='} {hi:g}, got {v:g}", field=name)
+    object.__setattr__(obj, attr, v)
 
 
 def _check_keys(d: Mapping[str, Any], allowed: set[str], section: str, path) -> None:
@@ -70,8 +82,15 @@ def _check_keys(d: Mapping[str, Any], allowed: set[str], section: str, path) -> 
 
 @dataclass(frozen=True)
 class Observation:
+    """Observation direction: elevation ``alpha_deg`` above the surface (0 < alpha < 90) and
+    azimuth ``delta_deg`` (docs/conventions.md section 1)."""
+
     alpha_deg: float = 1.0
     delta_deg: float = 0.0
+
+    def __post_init__(self):
+        _checked(self, "alpha_deg", "observation.alpha_deg", lo=0.0, hi=90.0, lo_open=True, hi_open=True)
+        _checked(self, "delta_deg", "observation.delta_deg", lo=-360.0, hi=360.0)
 
     @property
     def w_o(self) -> np.ndarray:
@@ -80,12 +99,22 @@ class Observation:
 
 @dataclass(frozen=True)
 class Source:
-    """Disc exit aperture of radius ``radius_m`` at ``distance_m`` from the sample centre, facing
-    it, uniform radiance (Lambertian area emitter); optional beam cone."""
+    """Disc exit aperture of radius ``radius_m`` (0 = point source) at ``distance_m`` from the
+    sample centre, facing it, uniform radiance (Lambertian area emitter); optional beam cone of
+    half-angle ``beam_half_angle_deg`` (None = no beam limit)."""
 
     distance_m: float = 3.0
     radius_m: float = 0.0
     beam_half_angle_deg: float | None = None
+
+    def __post_init__(self):
+        _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True)
+        _checked(self, "radius_m", "source.radius_m", lo=0.0)
+        _checked(self, "beam_half_angle_deg", "source.beam_half_angle_deg", lo=0.0, hi=90.0, lo_open=True,
+                 optional=True)
+        if self.radius_m >= self.distance_m:
+            raise InputError(f"the source radius ({self.radius_m:g} m) must be smaller than its distance "
+                             f"({self.distance_m:g} m)", field="source.radius_m")
 
     @property
     def is_point(self) -> bool:
@@ -94,8 +123,10 @@ class Source:
 
 @dataclass(frozen=True)
 class Detector:
-    """Luminance meter: entrance pupil disc (``pupil_radius_m``) at ``distance_m``, circular field
-    stop of half-angle ``field_half_angle_deg`` conjugate to the plane at ``focus_m``.
+    """Luminance meter: entrance pupil disc of radius ``pupil_radius_m`` (0 = pinhole) at
+    ``distance_m``, circular field stop of half-angle ``field_half_angle_deg`` conjugate to the plane
+    at ``focus_m`` (None = not given: the focus follows ``distance_m``, i.e. the meter is focused on
+    the sample centre; ``math.inf`` = an angular field).
 
     Sensitivity over the field (k_D of paper eq. 3): ``k_D(rho) = 1 - (1 - e) rho^2`` with rho the
     distance from the field centre as a fraction of the field radius and ``e`` =
@@ -106,12 +137,29 @@ class Detector:
     distance_m: float = 5.0
     pupil_radius_m: float = 0.0
     field_half_angle_deg: float = 0.0
-    focus_m: float | None = None  # None -> distance_m; math.inf -> angular field
+    focus_m: float | None = None
     field_edge_sensitivity: float = 1.0
 
+    def __post_init__(self):
+        _checked(self, "distance_m", "detector.distance_m", lo=0.0, lo_open=True)
+        _checked(self, "pupil_radius_m", "detector.pupil_radius_m", lo=0.0)
+        _checked(self, "field_half_angle_deg", "detector.field_half_angle_deg", lo=0.0, hi=45.0, hi_open=True)
+        _checked(self, "focus_m", "detector.focus_m", lo=0.0, lo_open=True, allow_inf=True, optional=True)
+        _checked(self, "field_edge_sensitivity", "detector.field_edge_sensitivity", lo=0.0, hi=2.0)
+        if self.pupil_radius_m >= self.distance_m:
+            raise InputError(f"the pupil radius ({self.pupil_radius_m:g} m) must be smaller than the "
+                             f"detector distance ({self.distance_m:g} m)", field="detector.pupil_radius_m")
+
     @property
-    def focus(self) -> float:
+    def focus_distance_m(self) -> float:
+        """The distance (m) of the plane the field stop is conjugate to: ``focus_m``, or
+        ``distance_m`` when not given; ``math.inf`` for an angular field."""
         return self.distance_m if self.focus_m is None else self.focus_m
+
+    @property
+    def angular_field(self) -> bool:
+        """True when the meter is focused at infinity (its field is a cone of directions)."""
+        return math.isinf(self.focus_distance_m)
 
     @property
     def is_pinhole(self) -> bool:
@@ -125,11 +173,51 @@ class Detector:
 @dataclass(frozen=True)
 class Sample:
     """A flat rectangle ``size_x_m`` x ``size_y_m`` centred on the origin (x along the observation
-    azimuth), or a trimesh-readable mesh file."""
+    azimuth; default 6 m x 2 m), or a trimesh-readable mesh file (then no sizes)."""
 
-    size_x_m: float | None = 6.0
-    size_y_m: float | None = 2.0
+    size_x_m: float | None = None
+    size_y_m: float | None = None
     mesh: Path | None = None
+
+    def __post_init__(self):
+        if self.mesh is not None:
+            if self.size_x_m is not None or self.size_y_m is not None:
+                raise InputError("give either a mesh or the sizes of a rectangle, not both", field="sample.mesh")
+            if not isinstance(self.mesh, (str, Path)) or not str(self.mesh):
+                raise InputError(f"expected a file name, got {self.mesh!r}", field="sample.mesh")
+            mesh = Path(self.mesh)
+            if not mesh.exists():
+                raise InputError(f"mesh file {str(mesh)!r} does not exist", field="sample.mesh")
+            object.__setattr__(self, "mesh", mesh)
+            return
+        for attr, default in (("size_x_m", 6.0), ("size_y_m", 2.0)):
+            if getattr(self, attr) is None:
+                object.__setattr__(self, attr, default)
+            _checked(self, attr, f"sample.{attr}", lo=0.0, lo_open=True)
+
+
+_SECTIONS = ("observation", "source", "detector", "sample", "instrument")
+#: Sections kept as they are for the parts that read them: [scene] (the Mitsuba XML scene,
+#: roadgonio.engines.mitsuba.scene) and [calibration] (docs/conventions.md section 5).
+EXTRA_SECTIONS = ("scene", "calibration")
+#: Calibration modes of docs/conventions.md section 5, and those the k_A engines compute today.
+CALIBRATION_MODES = ("lambert", "absolute", "reference")
+COMPUTED_CALIBRATION_MODES = ("lambert",)
+
+
+def _check_calibration(cal: Mapping[str, Any]) -> None:
+    """[calibration]: a known mode, a reference only with mode "reference"; refuse a mode the k_A
+    engines do not compute yet rather than silently computing k_A of another calibration."""
+    _check_keys(cal, {"mode", "reference"}, "calibration", None)
+    mode = cal.get("mode", "lambert")
+    if mode not in CALIBRATION_MODES:
+        raise InputError(f"expected one of {', '.join(CALIBRATION_MODES)}, got {mode!r}", field="calibration.mode")
+    if (mode == "reference") != ("reference" in cal):
+        raise InputError("give reference = SAMPLE exactly when mode = \"reference\"", field="calibration.reference")
+    if mode not in COMPUTED_CALIBRATION_MODES:
+        raise InputError(f"calibration mode {mode!r} is not computed by this version (only "
+                         f"{', '.join(COMPUTED_CALIBRATION_MODES)}); k_A would silently be that of a Lambert "
+                         "calibration", field="calibration.mode")
 
 
 @dataclass(frozen=True)
@@ -143,6 +231,22 @@ class Instrument:
     path: Path | None = None
     #: Extra sections not interpreted here (kept for backends and provenance).
     extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        for attr, cls in (("observation", Observation), ("source", Source), ("detector", Detector),
+                          ("sample", Sample)):
+            if not isinstance(getattr(self, attr), cls):
+                raise InputError(f"expected a {cls.__name__}, got {type(getattr(self, attr)).__name__}", field=attr)
+        if not isinstance(self.name, str) or not isinstance(self.description, str):
+            raise InputError("expected text for the name and the description", field="instrument")
+        if self.path is not None:
+            object.__setattr__(self, "path", Path(self.path))
+        if not isinstance(self.extra, Mapping):
+            raise InputError(f"expected a mapping of extra sections, got {self.extra!r}", field="extra")
+        clash = sorted(set(self.extra) & set(_SECTIONS))
+        if clash:
+            raise InputError(f"section(s) {', '.join(clash)} are fields of the instrument, not extra sections",
+                             field="extra")
 
     # -- nominal geometry --------------------------------------------------------------------
     def w_o(self) -> np.ndarray:
@@ -169,11 +273,13 @@ class Instrument:
         return Instrument.from_dict(d, path=self.path)
 
     def to_dict(self) -> dict[str, Any]:
+        """The instrument in the form of its file (TOML/JSON): defaults left out, focus at infinity
+        spelled ``"inf"`` (JSON has no infinity); ``from_dict(to_dict())`` gives it back."""
         det = asdict(self.detector)
-        if det["focus_m"] is not None and math.isinf(det["focus_m"]):
-            det["focus_m"] = "inf"
         if det["focus_m"] is None:
             del det["focus_m"]
+        elif math.isinf(det["focus_m"]):
+            det["focus_m"] = "inf"
         if det["field_edge_sensitivity"] == 1.0:
             del det["field_edge_sensitivity"]
         src = asdict(self.source)
@@ -188,60 +294,62 @@ class Instrument:
     # -- construction ------------------------------------------------------------------------
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], *, path: str | Path | None = None) -> "Instrument":
+        """An instrument from the dict of an instrument file (unknown keys are errors; errors name
+        ``path``, the field and what was expected)."""
         path = Path(path) if path is not None else None
-        for sec in ("observation", "source", "detector", "sample", "instrument"):
+        try:
+            return cls._from_dict(d, path)
+        except InputError as err:
+            if err.path is not None:
+                raise
+            raise InputError(err.reason, path=path, line=err.line, field=err.field) from None
+
+    @classmethod
+    def _from_dict(cls, d: Mapping[str, Any], path: Path | None) -> "Instrument":
+        for sec in _SECTIONS:
             if sec in d and not isinstance(d[sec], Mapping):
-                raise InputError(f"expected a table [{sec}]", path=path, field=sec)
+                raise InputError(f"expected a table [{sec}]", field=sec)
         ob = d.get("observation", {})
-        _check_keys(ob, {"alpha_deg", "delta_deg"}, "observation", path)
-        observation = Observation(
-            alpha_deg=_num(ob, "alpha_deg", "observation", path, default=1.0, lo=0.0, hi=90.0, lo_open=True, hi_open=True),
-            delta_deg=_num(ob, "delta_deg", "observation", path, default=0.0, lo=-360.0, hi=360.0))
+        _check_keys(ob, {"alpha_deg", "delta_deg"}, "observation", None)
+        observation = Observation(**ob)
         if "source" not in d:
-            raise InputError("missing table [source]", path=path, field="source")
+            raise InputError("missing table [source]", field="source")
         s = d["source"]
-        _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg"}, "source", path)
-        source = Source(
-            distance_m=_num(s, "distance_m", "source", path, required=True, lo=0.0, lo_open=True),
-            radius_m=_num(s, "radius_m", "source", path, default=0.0, lo=0.0),
-            beam_half_angle_deg=_num(s, "beam_half_angle_deg", "source", path, default=None, lo=0.0,
-                                     hi=90.0, lo_open=True))
-        if source.radius_m >= source.distance_m:
-            raise InputError(f"the source radius ({source.radius_m:g} m) must be smaller than its distance "
-                             f"({source.distance_m:g} m)", path=path, field="source.radius_m")
+        _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg"}, "source", None)
+        if "distance_m" not in s:
+            raise InputError("missing (required)", field="source.distance_m")
+        source = Source(**s)
         if "detector" not in d:
-            raise InputError("missing table [detector]", path=path, field="detector")
+            raise InputError("missing table [detector]", field="detector")
         t = d["detector"]
         _check_keys(t, {"distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity"},
-                    "detector", path)
-        detector = Detector(
-            distance_m=_num(t, "distance_m", "detector", path, required=True, lo=0.0, lo_open=True),
-            pupil_radius_m=_num(t, "pupil_radius_m", "detector", path, default=0.0, lo=0.0),
-            field_half_angle_deg=_num(t, "field_half_angle_deg", "detector", path, default=0.0, lo=0.0,
-                                      hi=45.0, hi_open=True),
-            focus_m=_num(t, "focus_m", "detector", path, default=None, lo=0.0, lo_open=True, allow_inf=True),
-            field_edge_sensitivity=_num(t, "field_edge_sensitivity", "detector", path, default=1.0, lo=0.0, hi=2.0))
-        if detector.pupil_radius_m >= detector.distance_m:
-            raise InputError(f"the pupil radius ({detector.pupil_radius_m:g} m) must be smaller than the "
-                             f"detector distance ({detector.distance_m:g} m)", path=path, field="detector.pupil_radius_m")
-        sm = d.get("sample", {})
-        _check_keys(sm, {"size_x_m", "size_y_m", "mesh"}, "sample", path)
+                    "detector", None)
+        if "distance_m" not in t:
+            raise InputError("missing (required)", field="detector.distance_m")
+        detector = Detector(**t)
+        sm = dict(d.get("sample", {}))
+        _check_keys(sm, {"size_x_m", "size_y_m", "mesh"}, "sample", None)
         if "mesh" in sm:
-            if not isinstance(sm["mesh"], str) or not sm["mesh"]:
-                raise InputError(f"expected a file name, got {sm['mesh']!r}", path=path, field="sample.mesh")
+            if not isinstance(sm["mesh"], (str, Path)) or not str(sm["mesh"]):
+                raise InputError(f"expected a file name, got {sm['mesh']!r}", field="sample.mesh")
             mesh = Path(sm["mesh"])
             if not mesh.is_absolute() and path is not None:
                 mesh = path.parent / mesh
-            if not mesh.exists():
-                raise InputError(f"mesh file {str(mesh)!r} does not exist", path=path, field="sample.mesh")
-            sample = Sample(size_x_m=None, size_y_m=None, mesh=mesh)
-        else:
-            sample = Sample(size_x_m=_num(sm, "size_x_m", "sample", path, default=6.0, lo=0.0, lo_open=True),
-                            size_y_m=_num(sm, "size_y_m", "sample", path, default=2.0, lo=0.0, lo_open=True))
+            sm["mesh"] = mesh
+        sample = Sample(**sm)
         meta = d.get("instrument", {})
+        _check_keys(meta, {"name", "description"}, "instrument", None)
         name = str(meta.get("name", path.stem if path is not None else "instrument"))
-        extra = {k: v for k, v in d.items()
-                 if k not in ("observation", "source", "detector", "sample", "instrument")}
+        extra = {k: v for k, v in d.items() if k not in _SECTIONS}
+        unknown = sorted(set(extra) - set(EXTRA_SECTIONS))
+        if unknown:
+            raise InputError(f"unknown section(s) [{'], ['.join(unknown)}]; expected some of "
+                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS)}]", field=unknown[0])
+        for sec in EXTRA_SECTIONS:
+            if sec in extra and not isinstance(extra[sec], Mapping):
+                raise InputError(f"expected a table [{sec}]", field=sec)
+        if "calibration" in extra:
+            _check_calibration(extra["calibration"])
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
                    description=str(meta.get("description", "")), path=path, extra=extra)
 

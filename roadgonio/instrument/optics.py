@@ -1,4 +1,4 @@
-"""Ray geometry of the instrument (DESIGN.md section 4; the integration domains of paper eq. 3),
+"""Ray geometry of the instrument (docs/conventions.md section 4; the integration domains of paper eq. 3),
 written once over an array namespace ``xp`` like :mod:`roadgonio.surface.model`, so the Mitsuba sensor
 plugin, the numpy Monte Carlo and the quadrature integrator share it.
 
@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from roadgonio.errors import GeometryError
-from roadgonio.instrument.config import Instrument
+from roadgonio.instrument.config import Detector, Instrument, Observation
 
 
 def orthonormal_frame(n) -> tuple[np.ndarray, np.ndarray]:
@@ -84,18 +84,24 @@ class SourceGeometry:
     s: np.ndarray
     t: np.ndarray
     radius_m: float
-    cos_beam: float          # cos of the beam half-angle (-1: no beam limit)
+    cos_beam: float | None   # cos of the beam half-angle; None: no beam limit
 
 
 def detector_geometry(instrument: Instrument) -> DetectorGeometry:
-    det = instrument.detector
-    w_o = instrument.w_o()
+    """Constants of the instrument's luminance meter."""
+    return meter_geometry(instrument.observation, instrument.detector)
+
+
+def meter_geometry(observation: Observation, detector: Detector) -> DetectorGeometry:
+    """Constants of a luminance meter looking along ``observation`` (no source needed: the
+    sensor plugin knows only its own part of the instrument)."""
+    w_o = observation.w_o
     axis = -w_o
     s, t = orthonormal_frame(axis)
-    return DetectorGeometry(centre=det.distance_m * w_o, axis=axis, s=s, t=t,
-                            pupil_radius_m=det.pupil_radius_m, focus_m=det.focus,
-                            tan_field=math.tan(math.radians(det.field_half_angle_deg)),
-                            kd_edge=float(det.field_edge_sensitivity))
+    return DetectorGeometry(centre=detector.distance_m * w_o, axis=axis, s=s, t=t,
+                            pupil_radius_m=detector.pupil_radius_m, focus_m=detector.focus_distance_m,
+                            tan_field=math.tan(math.radians(detector.field_half_angle_deg)),
+                            kd_edge=float(detector.field_edge_sensitivity))
 
 
 def source_geometry(instrument: Instrument, tan_eps: float, beta_deg: float) -> SourceGeometry:
@@ -103,7 +109,7 @@ def source_geometry(instrument: Instrument, tan_eps: float, beta_deg: float) -> 
     w_i = instrument.w_i(tan_eps, beta_deg)
     axis = -w_i
     s, t = orthonormal_frame(axis)
-    cos_beam = -1.0 if src.beam_half_angle_deg is None else math.cos(math.radians(src.beam_half_angle_deg))
+    cos_beam = None if src.beam_half_angle_deg is None else math.cos(math.radians(src.beam_half_angle_deg))
     return SourceGeometry(centre=src.distance_m * w_i, axis=axis, s=s, t=t, radius_m=src.radius_m,
                           cos_beam=cos_beam)
 
@@ -173,7 +179,7 @@ def source_coupling(xp, src: SourceGeometry, x, y, spoint):
     cos_i = w[2]
     cos_s = -(w[0] * src.axis[0] + w[1] * src.axis[1] + w[2] * src.axis[2])
     ok = (cos_i > 0.0) & (cos_s > 0.0)
-    if src.cos_beam > -1.0:
+    if src.cos_beam is not None:
         ok = ok & (cos_s >= src.cos_beam)
     g = xp.where(ok, cos_i * cos_s / d2, 0.0 * d2)
     return w, g
@@ -235,3 +241,58 @@ def check_source(instrument: Instrument, tan_eps: float, beta_deg: float) -> Non
         raise GeometryError(f"the source is below the horizon at tan eps = {tan_eps:g}, beta = {beta_deg:g}: "
                             f"its disc (radius {src.radius_m:g} m at {src.distance_m:g} m) reaches "
                             f"{lowest:.4f} m below/at the sample plane")
+
+
+def beam_clips_footprint(instrument: Instrument, tan_eps: float, beta_deg: float, n: int = 32) -> bool:
+    """True if the source's beam limit (``beam_half_angle_deg``) cuts off light that reaches the
+    detector footprint at this cell: some ray from the source disc (rim points and centre) to the
+    footprint boundary leaves the cone. False when the source has no beam limit."""
+    src = instrument.source
+    if src.beam_half_angle_deg is None:
+        return False
+    g = source_geometry(instrument, tan_eps, beta_deg)
+    x, y = footprint_boundary(instrument)
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    sp = g.centre[None, :] + g.radius_m * (np.cos(ang)[:, None] * g.s + np.sin(ang)[:, None] * g.t)
+    pts = np.stack([x, y, np.zeros_like(x)], axis=-1)
+    d = pts[None, :, :] - np.concatenate([sp, g.centre[None, :]])[:, None, :]
+    cosang = (d @ g.axis) / np.linalg.norm(d, axis=-1)
+    return bool(float(cosang.min()) < g.cos_beam)
+
+
+def hit_check_points(n_random: int = 1 << 16, n_rim: int = 128, seed: int = 7) -> tuple[np.ndarray, np.ndarray]:
+    """Unit-disc points ``(pupil (N, 2), field (N, 2))`` of the rays a footprint check must trace:
+    the extreme rays of the detector bundle (pupil rim and centre x field rim) and ``n_random``
+    random pairs (uniform over both discs). Feed them to :func:`detector_ray`."""
+    ang = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
+    rim = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
+    pupil = np.concatenate([rim, [[0.0, 0.0]]])
+    P, F = np.meshgrid(np.arange(len(pupil)), np.arange(len(rim)), indexing="ij")
+    pu, fu = pupil[P.ravel()], rim[F.ravel()]
+    rng = np.random.default_rng(seed)
+    r1, r2 = np.sqrt(rng.random(n_random)), np.sqrt(rng.random(n_random))
+    a1, a2 = rng.random(n_random) * 2 * np.pi, rng.random(n_random) * 2 * np.pi
+    pu = np.concatenate([pu, np.stack([r1 * np.cos(a1), r1 * np.sin(a1)], -1)])
+    fu = np.concatenate([fu, np.stack([r2 * np.cos(a2), r2 * np.sin(a2)], -1)])
+    return pu, fu
+
+
+def judge_hits(on_sample, hit_anything, x, y) -> dict:
+    """Verdict of a footprint check over traced rays (boolean arrays: the ray hit the sample / hit
+    some part of the scene; x, y the hit points): every detected ray must land on the sample, else
+    a :class:`GeometryError` saying what the missing rays hit. Returns the ray count and the
+    footprint's extent."""
+    on_sample = np.asarray(on_sample, dtype=bool)
+    hit_anything = np.asarray(hit_anything, dtype=bool)
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    miss = ~on_sample
+    n_miss = int(miss.sum())
+    if n_miss:
+        elsewhere = hit_anything[miss]
+        what = "hit another part of the scene" if elsewhere.any() else "miss every part of the scene"
+        raise GeometryError(
+            f"{n_miss} of {on_sample.size} detector rays do not hit the sample ({what}"
+            + (f", e.g. at x = {x[miss][elsewhere][0]:.3f} m" if elsewhere.any() else "")
+            + "): the detector footprint must lie on the sample; enlarge the sample or narrow the field")
+    return {"rays": int(on_sample.size), "x_range": (float(x.min()), float(x.max())),
+            "y_range": (float(y.min()), float(y.max()))}

@@ -1,4 +1,4 @@
-"""The road surface: what is measured (DESIGN.md sections 2-3).
+"""The road surface: what is measured (docs/conventions.md sections 2-3).
 
 * :mod:`.model` -- the road BRDF of paper eq. 4 (and its named variants), one definition over an
   array namespace shared by numpy (fitter, integrators) and Dr.Jit (the Mitsuba plugin);

@@ -1,9 +1,9 @@
-"""Fitting the road BRDF model (paper eq. 4, DESIGN.md section 3) to an r-table.
+"""Fitting the road BRDF model (paper eq. 4, docs/conventions.md section 3) to an r-table.
 
 Method (variable projection):
 
 * The table cells are the 1-degree observation geometry (alpha = 1 deg, theta_r = 89 deg =
-  theta_r*); the model's reduced luminance coefficient is ``r = f_r cos^3(eps)`` (DESIGN.md
+  theta_r*); the model's reduced luminance coefficient is ``r = f_r cos^3(eps)`` (docs/conventions.md
   section 2), evaluated through :func:`roadgonio.surface.model.road_brdf` - the one definition of the model.
 * The four coefficients ``k_diff, k_phong, k_retro, k_exp`` enter linearly. For given shape
   parameters ``n_phong, n_retro, p, h, mu`` they are the non-negative least-squares solution
@@ -25,7 +25,7 @@ Method (variable projection):
   deviation over the tabulated cells, both in % of ``max r`` of the table, evaluated with the
   final :class:`~roadgonio.surface.model.RoadModel`.
 * The grazing attenuation g (``g_a, g_b, g_c, g_t, theta_l_deg``) is a user input, never fitted:
-  it never changes a 1-degree table value (DESIGN.md section 3). Pass it in ``fixed``.
+  it never changes a 1-degree table value (docs/conventions.md section 3). Pass it in ``fixed``.
 
 Any parameter can be held at a given value with ``fixed={"n_phong": 50.0, ...}``.
 """
@@ -40,9 +40,9 @@ from typing import Any, Callable, Mapping
 import numpy as np
 from scipy.optimize import differential_evolution, minimize, nnls
 
-from roadgonio import __version__
 from roadgonio.errors import InputError
 from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
+from roadgonio.provenance import versions
 from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS, NumpyOps,
                     RoadModel, RoadParams, road_brdf)
 from roadgonio.surface.rtable import RTable
@@ -281,7 +281,7 @@ def _check_fixed(fixed: Mapping[str, Any] | None) -> dict[str, float]:
             out[k] = float(v)
         except (TypeError, ValueError):
             raise InputError(f"expected a number, got {v!r}", field=k) from None
-    # validates bounds (and the g polynomial) with the DESIGN.md messages
+    # validates bounds (and the g polynomial) with the docs/conventions.md messages
     RoadParams(**out)
     return out
 
@@ -301,7 +301,7 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
     seed:
         Seed of the global search (results are reproducible for a given seed).
     fixed:
-        Parameters held at given values (DESIGN.md names). The grazing attenuation g is never
+        Parameters held at given values (docs/conventions.md names). The grazing attenuation g is never
         fitted: its parameters keep their defaults unless given here.
     progress:
         Optional ``progress(done, total)`` callback, called once per generation of the global
@@ -367,7 +367,7 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
                           f"for {', '.join(prob.free_nl) or 'nothing'}",
                 "objective": f"RMS^2 + {prob.max_weight} * L8^2 of deviations in % of max r",
                 "fixed": fx, "cells": int(table.mask.sum()), "nfev": prob.nfev,
-                "roadgonio_version": __version__, "method_version": FIT_METHOD_VERSION},
+                "versions": versions(), "method_version": FIT_METHOD_VERSION},
         "table": {"name": table.name, "source": table.source, "sha256": table_hash(table),
                   "r_max": table.r_max, "cells": int(table.mask.sum())},
     }

@@ -1,4 +1,4 @@
-"""The road BRDF model (paper eq. 4 and Figure 3; DESIGN.md section 3).
+"""The road BRDF model (paper eq. 4 and Figure 3; docs/conventions.md section 3).
 
     f_r = [ k_diff + k_phong (cos Omega)^n_phong + k_retro (cos Omega')^n_retro + E ]
           * g(theta_i) g(theta_r) / g(theta_r*)
@@ -25,7 +25,7 @@ Variants:
 
 * ``"power"`` (default): ``E = k_exp f(e)^p x^(exp(1 + h f(e)^2))``, ``x = (pi - beta)/pi``.
 * ``"product"``: the printed paper read literally, ``E = k_exp f(e)^p x exp(1 + h f(e)^2)``.
-  DESIGN.md section 3 explains why the power reading is the default.
+  docs/conventions.md section 3 explains why the power reading is the default.
 * ``"smooth"`` (roadgonio extension, not in the paper):
   ``E = k_exp f(e)^p exp(-W L(beta)^n_beta)``, ``W = exp(1 + h sqrt(f(e)))``,
   ``L(beta) = -ln x_s``, ``x_s = cos^2(beta/2) = (1 + cos beta)/2``.
@@ -156,7 +156,7 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
     xp:
         Array namespace (:class:`NumpyOps` or the Dr.Jit one).
     P:
-        Parameters by their DESIGN.md names (floats, arrays or opaque Dr.Jit values).
+        Parameters by their docs/conventions.md names (floats, arrays or opaque Dr.Jit values).
     wi, wo:
         ``(x, y, z)`` component triples of the unit directions towards the source (``wi``) and
         towards the detector (``wo``), in a frame whose z axis is the surface normal.
@@ -231,7 +231,7 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
 
 @dataclass(frozen=True)
 class RoadParams:
-    """Parameters of the road BRDF (DESIGN.md names and defaults), validated on construction."""
+    """Parameters of the road BRDF (docs/conventions.md names and defaults), validated on construction."""
 
     k_diff: float = 0.0
     k_phong: float = 0.0

@@ -7,7 +7,9 @@ A sample is one of:
   the table is fitted on the fly (:func:`roadgonio.surface.fit.fit_table`) and the fit is cached;
 * a model file (``.json``, as written by ``roadgonio fit``; loaded with :meth:`RoadModel.load`).
 
-Cache: ``$ROADGONIO_CACHE`` (default ``~/.cache/roadgonio``), one JSON model file per fit, keyed
+Cache: ``$ROADGONIO_CACHE``, else the platform's cache folder (``platformdirs.user_cache_dir("roadgonio")``:
+``~/.cache/roadgonio`` on Linux, ``~/Library/Caches/roadgonio`` on macOS, ``%LOCALAPPDATA%\\roadgonio\\Cache``
+on Windows), one JSON model file per fit, keyed
 by a SHA-256 of the table values and grid, the variant, the roadgonio version and the fitting
 method version. Files are written atomically; an entry that does not parse, does not validate or
 carries another key is refitted, never trusted.
@@ -31,9 +33,12 @@ EXPECTED = (f"'lambert', a bundled table name ({', '.join(BUNDLED)}), a table fi
 
 
 def cache_dir() -> Path:
-    """The fit cache folder: ``$ROADGONIO_CACHE`` or ``~/.cache/roadgonio``."""
+    """The fit cache folder: ``$ROADGONIO_CACHE``, else the platform's user cache folder."""
     env = os.environ.get("ROADGONIO_CACHE")
-    return Path(env).expanduser() if env else Path.home() / ".cache" / "roadgonio"
+    if env:
+        return Path(env).expanduser()
+    import platformdirs
+    return Path(platformdirs.user_cache_dir("roadgonio", appauthor=False))
 
 
 def cache_key(table: RTable, variant: str) -> str:

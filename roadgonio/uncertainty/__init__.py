@@ -30,7 +30,7 @@ Measurement model (one trial)
 -----------------------------
 The instrument believes it measures at the nominal (alpha0, delta0) and (eps0, beta0) of the cell.
 True geometry: detector direction ``w_o(alpha0 + d_alpha, delta0)``, source direction
-``w_i(eps0 + d_eps, beta0 + d_beta)`` (DESIGN.md section 1), both in the laboratory frame; the
+``w_i(eps0 + d_eps, beta0 + d_beta)`` (docs/conventions.md section 1), both in the laboratory frame; the
 sample is tilted by ``R = R_y(tilt_y) R_x(tilt_x)`` (normal ``R e_z``), so the directions in the
 sample's own frame are ``w' = R^T w``. The road BRDF is evaluated only through
 :meth:`roadgonio.surface.model.RoadModel.brdf` on ``(w_i', w_o')``.
@@ -72,3 +72,24 @@ from roadgonio.uncertainty.statistics import coverage_indices, numerical_toleran
 from roadgonio.uncertainty.gum import gum_propagation, gum_validation  # noqa: F401
 from roadgonio.uncertainty.run import BackendFactory, CaseResult, SurrogateReport, UncertaintyResult, _Evaluator, _batch_stats, _stability, build_surrogate, default_backend_factory, provenance, run_uncertainty  # noqa: F401
 from roadgonio.uncertainty.report import OUTPUT_NAMES, cells_csv_text, plot_q0_s1, plot_uncertainty_maps, resolve_sample_spec, result_dict, summary_lines, write_results  # noqa: F401
+
+
+class _CallableRoom(type(__import__("sys"))):
+    """``roadgonio.uncertainty`` is both this room and, called, the API function
+    :func:`roadgonio.api.uncertainty` (``rg.uncertainty("portable", "R3", "alpha_deg=0.01")``): the
+    package exports an ``uncertainty`` function, and the import system would put this subpackage
+    under that name anyway."""
+
+    def __call__(self, *args, **kwargs):
+        from roadgonio.api import uncertainty
+        return uncertainty(*args, **kwargs)
+
+    @property
+    def __signature__(self):
+        import inspect
+
+        from roadgonio.api import uncertainty
+        return inspect.signature(uncertainty)
+
+
+__import__("sys").modules[__name__].__class__ = _CallableRoom

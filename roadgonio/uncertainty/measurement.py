@@ -6,7 +6,15 @@ import math
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.geometry import cos3_eps, eps_from_tan, w_detector, w_source
+from roadgonio.geometry import (
+    beta_rotation,
+    cos3_eps,
+    eps_from_tan,
+    source_azimuth_tangent,
+    source_cell,
+    w_detector,
+    w_source,
+)
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
 from roadgonio.uncertainty.surrogate import N_COORDS
@@ -49,13 +57,12 @@ class MeasurementModel:
         self.cos3 = cos3_eps(cells.tan_eps)
         # nominal source direction and its tangent basis (surrogate coordinates)
         self.wi0 = w_source(self.eps0, cells.beta_deg, self.delta0)
-        phi = np.radians(self.delta0 + 180.0 - cells.beta_deg)
         self.e_eps = w_source(self.eps0 + 0.5 * math.pi, cells.beta_deg, self.delta0)  # d w / d eps
         self._w0T = np.ascontiguousarray(self.wi0.T)
         self._e0T = np.ascontiguousarray(self.e_eps.T)
         self._P = model.params.to_dict()
         self._terms = model.terms()
-        self.e_phi = np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], -1)
+        self.e_phi = source_azimuth_tangent(cells.beta_deg, self.delta0)                 # d w / d phi_i
         w = q0_weights()
         self.q0_w = w[cells.ii, cells.jj]
         self.i_00 = cells.index(0.0, 0.0)
@@ -68,17 +75,13 @@ class MeasurementModel:
 
         Exact rotations, no small-angle approximation: moving the source by d_eps along its
         meridian is ``w(eps0 + d) = cos d w(eps0) + sin d w(eps0 + 90 deg)`` (both from
-        :func:`~roadgonio.geometry.w_source`), a beta error d_beta is a rotation about the normal
-        by -d_beta (phi_i = delta + 180 deg - beta), and the tilt applies ``R^T``.
+        :func:`~roadgonio.geometry.w_source`), a beta error d_beta is the rotation about the normal
+        :func:`~roadgonio.geometry.beta_rotation`, and the tilt applies ``R^T``.
         """
         X = np.atleast_2d(np.asarray(X, dtype=np.float64))
-        m = len(X)
         wo = w_detector(self.alpha0 + X[:, 0], self.delta0)                            # (m, 3)
         de = np.radians(X[:, 1])[:, None]
-        db = -np.radians(X[:, 2])
-        c, s = np.cos(db), np.sin(db)
-        z, o = np.zeros(m), np.ones(m)
-        rz = np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+        rz = beta_rotation(X[:, 2])
         R = _rotations(X[:, 3], X[:, 4])
         Rt = np.swapaxes(R, -1, -2)
         A = Rt @ rz                                                                   # (m, 3, 3)
@@ -129,9 +132,7 @@ class MeasurementModel:
     def cells_of(self, w: np.ndarray) -> list[tuple[float, float]]:
         """(tan eps, beta deg) of source directions w (n, 3) in a frame where the detector azimuth
         is delta0; beta folded to [0, 180] (the BRDF and the instrument are mirror symmetric)."""
-        tan = np.hypot(w[:, 0], w[:, 1]) / w[:, 2]
-        phi = np.degrees(np.arctan2(w[:, 1], w[:, 0]))
-        beta = np.abs((self.delta0 + 180.0 - phi + 180.0) % 360.0 - 180.0)
+        tan, beta = source_cell(w, self.delta0)
         return [(float(t), float(b)) for t, b in zip(tan, beta)]
 
     def functionals(self, r: np.ndarray) -> np.ndarray:

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import math
 import os
-import platform
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -26,6 +25,10 @@ from roadgonio.uncertainty.statistics import numerical_tolerance, summarize
 # ----------------------------------------------------------------------------------------------
 
 BackendFactory = Callable[[Instrument, RoadModel], Any]
+#: Default tolerance of the exact k_A evaluations behind the surrogate, by backend: the Mitsuba
+#: target relative SE (one seed for every design point, so the noise largely cancels in the
+#: differences the surrogate fits) and the quadrature's relative tolerance.
+DEFAULT_BACKEND_TOLERANCE = {"mitsuba": 3e-3, "quadrature": 1e-4}
 
 
 def default_backend_factory(name: str, settings: Mapping[str, Any]) -> BackendFactory:
@@ -234,15 +237,11 @@ class _Evaluator:
 
 
 def provenance(instrument: Instrument, model: RoadModel, spec: SigmaSpec, **extra) -> dict[str, Any]:
-    import scipy
-
-    from roadgonio import __version__
-    return {"roadgonio": __version__, "numpy": np.__version__, "scipy": scipy.__version__,
-            "python": platform.python_version(), "instrument": instrument.to_dict(),
-            "instrument_file": str(instrument.path) if instrument.path else None,
-            "model": model.to_json_dict(), "sigma": spec.to_dict(), "sigma_spec": spec.source,
-            "method": "JCGM 101:2008 Monte Carlo (propagation of distributions) beside JCGM 100 first-order GUM",
-            **extra}
+    """Provenance of an uncertainty result (:func:`roadgonio.provenance.provenance` plus the error spec)."""
+    from roadgonio.provenance import provenance as build
+    return build(instrument=instrument, model=model, sigma=spec.to_dict(), sigma_spec=spec.source,
+                 method="JCGM 101:2008 Monte Carlo (propagation of distributions) beside JCGM 100 first-order GUM",
+                 **extra)
 
 
 def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *, trials: int = 50_000,
@@ -364,7 +363,8 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     prov = provenance(instrument, model, spec, trials=M, seed=int(seed), coverage=coverage, n_dig=n_dig,
                       illuminance=illuminance, cells=cs.which, adaptive=adaptive, threads=threads,
                       chunk=chunk, rng="numpy PCG64 via SeedSequence(seed).spawn(2)[0]", notes=notes,
-                      k_a_backend=(sur_report.settings if sur_report else None))
+                      backend=(sur_report.settings.get("backend") if sur_report else None),
+                      settings=(sur_report.settings if sur_report else None))
     return UncertaintyResult(cells=cs, cases=cases, trials=M, seed=int(seed), spec=spec, coverage=coverage,
                              n_dig=n_dig, adaptive=adaptive_info, surrogate=sur_report, provenance=prov,
                              seconds=timings)

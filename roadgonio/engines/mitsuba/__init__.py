@@ -1,10 +1,18 @@
 """The Mitsuba 3 side of roadgonio: the only subpackage that imports mitsuba and drjit.
 
-Nothing here runs at import time of :mod:`roadgonio`. The caller (the CLI, a bench script or a
-test fixture) picks the variant with :func:`set_variant`, which checks Dr.Jit's LLVM backend
+* :mod:`.scene` -- the goniophotometer as a Mitsuba scene (source, sample mesh, luminance meter);
+* :mod:`.backend` -- the k_A backend ``mitsuba``;
+* :mod:`.images` -- pictures of one cell (``roadgonio render``);
+* :mod:`.ops` -- the Dr.Jit array namespace of the shared formulas;
+* ``plugins`` (the top-level ``plugins/`` folder) -- the ``roadbsdf`` BSDF and ``lummeter`` sensor.
+
+Nothing here runs at import time of :mod:`roadgonio`. The variant is process state, so it is
+chosen once by the entry point (the ``roadgonio`` command, :func:`roadgonio.ka_table`, a bench
+script, the tests' ``mi`` fixture) with :func:`set_variant`, which checks Dr.Jit's LLVM backend
 right after choosing the variant and before any kernel runs: with LLVM < 16 the first kernel
 would abort the whole process (LLVM 15: "Cannot select ... fminimum"), so we fail with a clear
-message instead.
+message instead. Everything else (scene building, backends) only *checks* the chosen variant with
+:func:`require_variant` and never changes it or the environment.
 """
 from __future__ import annotations
 
@@ -36,7 +44,13 @@ def _newest_system_llvm() -> str | None:
 
 
 def set_variant(variant: str | None = None):
-    """Select a Mitsuba variant (default ``llvm_ad_rgb``) and check the backend; returns ``mitsuba``.
+    """Select a Mitsuba variant for this process and check the backend; returns ``mitsuba``.
+
+    The variant is ``variant``, else ``$ROADGONIO_VARIANT``, else ``llvm_ad_rgb``. This is the one
+    function of roadgonio that changes process state, and only entry points call it (the CLI, the
+    Python API, bench scripts, test fixtures). Before the first LLVM variant it may point
+    ``DRJIT_LIBLLVM_PATH`` at a libLLVM >= 16 outside the folders Dr.Jit searches itself (conda,
+    /usr/lib64, llvm-*/lib): Dr.Jit reads it only then.
 
     Raises :class:`~roadgonio.errors.BackendError` with an install hint when mitsuba is missing,
     the variant does not exist, or Dr.Jit's LLVM backend is older than 16.
@@ -66,6 +80,33 @@ def set_variant(variant: str | None = None):
                                "llvm_ad_rgb (--variant llvm_ad_rgb, the default)") from None
         raise BackendError(f"cannot use Mitsuba variant {variant!r}: {err}. {_INSTALL_HINT}") from None
     if variant.startswith("llvm"):
+        check_llvm_version(tuple(dr.detail.llvm_version()))
+    return mi
+
+
+def require_variant(variant: str | None = None):
+    """``mitsuba`` with a variant already chosen by the entry point (:func:`set_variant`); if
+    ``variant`` is given it must be the chosen one. Changes nothing: a scene or backend built
+    in the middle of a program must not switch the variant under the code around it.
+
+    Raises :class:`~roadgonio.errors.BackendError` saying what to call when no variant (or
+    another one) is selected, or when the LLVM backend is older than 16.
+    """
+    try:
+        import drjit as dr
+        import mitsuba as mi
+    except ImportError as err:  # pragma: no cover - depends on the install
+        raise BackendError(f"the Mitsuba backend needs the packages mitsuba and drjit ({err}); "
+                           "run 'pip install mitsuba drjit'") from None
+    current = mi.variant()
+    if current is None:
+        raise BackendError("no Mitsuba variant is selected: call roadgonio.engines.mitsuba.set_variant() "
+                           f"(e.g. set_variant({variant or DEFAULT_VARIANT!r})) first; the roadgonio command and "
+                           "roadgonio.ka_table do this for you")
+    if variant is not None and variant != current:
+        raise BackendError(f"the Mitsuba variant {current!r} is selected but {variant!r} was asked for: call "
+                           f"roadgonio.engines.mitsuba.set_variant({variant!r}) first")
+    if current.startswith("llvm"):
         check_llvm_version(tuple(dr.detail.llvm_version()))
     return mi
 

@@ -83,7 +83,12 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     files["view_exr"] = str(write_exr(out_dir / "view.exr", {"RGB": view, "L_road": view[..., ROAD],
                                                              "L_lambert": view[..., LAMBERT]}))
     files["illuminance_exr"] = str(write_exr(out_dir / "illuminance.exr", {"E_h": E, "L_road_top": L_top}))
-    info = {"instrument": instrument.name, "sample": sample_name, "tan_eps": tan_eps, "beta_deg": beta_deg,
+    from roadgonio.provenance import provenance
+    info = {**provenance(instrument=instrument, model=model, backend="mitsuba",
+                         settings={"resolution": resolution, "spp": spp, "seed": seed, "sampler": "multijitter",
+                                   "variant": mi.variant(), "illuminance_resolution": [nx, ny],
+                                   "illuminance_spp": 16}),
+            "sample": sample_name, "tan_eps": tan_eps, "beta_deg": beta_deg,
             "resolution": resolution, "spp": spp, "seed": seed,
             "signal_road": float(np.mean(sig[..., ROAD])), "signal_lambert": mg,
             "ratio": ratio, "ratio_se": se, "ideal_ratio": ideal,
@@ -152,7 +157,7 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
     cb.set_label("illuminance E$_h$ (lx per lx)")
     ka = info["k_a_estimate"]
     ka_txt = f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (this render)" if ka is not None else "k_A undefined"
-    fig.suptitle(f"{info['instrument']}, sample {info['sample']}: tan eps = {info['tan_eps']:g}, "
+    fig.suptitle(f"{instrument.name}, sample {info['sample']}: tan eps = {info['tan_eps']:g}, "
                  f"beta = {info['beta_deg']:g} deg, alpha = {instrument.observation.alpha_deg:g} deg\n{ka_txt}",
                  fontsize=11)
     fig.tight_layout()

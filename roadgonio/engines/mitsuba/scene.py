@@ -1,4 +1,4 @@
-"""The goniophotometer as a Mitsuba 3 scene (DESIGN.md section 4).
+"""The goniophotometer as a Mitsuba 3 scene (docs/conventions.md section 4).
 
 Parts of a scene, by id (the same ids for a scene built from a TOML instrument and for an XML scene):
 
@@ -9,8 +9,8 @@ Parts of a scene, by id (the same ids for a scene built from a TOML instrument a
   Units: the radiance is D_S^2 / (pi R_S^2) (point: intensity D_S^2), so the illuminance normal
   to the source axis at the sample centre is about 1 lx.
 * ``"sample"``: the sample shape, carrying the road BSDF (``roadbsdf``). From a TOML instrument:
-  a trimesh rectangle ``size_x_m`` x ``size_y_m`` centred on the origin, or the instrument's mesh
-  file loaded with trimesh, converted to a ``mi.Mesh``. Its faces must face +z (one-sided).
+  the instrument's sample as triangles (:func:`roadgonio.instrument.mesh.sample_trimesh`: its
+  rectangle or its checked mesh file), converted to a ``mi.Mesh`` here.
 * ``"detector"``: the luminance meter (``lummeter`` sensor, :mod:`roadgonio.engines.mitsuba.plugins.lummeter`).
 
 The integrator is always ``direct`` with ``emitter_samples = 1``, ``bsdf_samples = 0`` (emitter
@@ -23,7 +23,7 @@ loaded with ``mi.load_file`` and these parameters (usable as ``$name`` in the XM
 ``<default>`` values so the file also opens alone)::
 
     alpha_deg delta_deg source_distance_m source_radius_m source_radiance detector_distance_m
-    pupil_radius_m field_half_angle_deg focus_m (-1 = inf) field_edge_sensitivity sample_size_x_m sample_size_y_m
+    pupil_radius_m field_half_angle_deg focus_m (inf = angular field) field_edge_sensitivity sample_size_x_m sample_size_y_m
     sample_half_x_m sample_half_y_m
 
 plus every key of an optional ``[scene.params]`` table (e.g. ``rim_height_m = 0.05``). The XML
@@ -43,11 +43,22 @@ from typing import Any
 
 import numpy as np
 
-from roadgonio.errors import BackendError, GeometryError, InputError
-from roadgonio.instrument.config import Instrument
+from roadgonio.engines.mitsuba import require_variant
+from roadgonio.errors import BackendError, InputError
+from roadgonio.instrument.config import Detector, Instrument, Observation
+from roadgonio.instrument.mesh import sample_trimesh
+from roadgonio.instrument.optics import (
+    beam_clips_footprint,
+    check_detector,
+    check_source,
+    detector_geometry,
+    detector_ray,
+    footprint_boundary,
+    hit_check_points,
+    judge_hits,
+    source_geometry,
+)
 from roadgonio.surface.model import RoadModel
-from roadgonio.instrument.optics import check_detector, check_source, detector_geometry, footprint_boundary, source_geometry
-from roadgonio.engines.mitsuba import set_variant
 
 #: Ids of the scene parts (TOML-built and XML scenes alike).
 SOURCE_ID, SAMPLE_ID, DETECTOR_ID = "source", "sample", "detector"
@@ -73,14 +84,13 @@ def film_dict(resolution: int, spp: int, sampler: str = "independent") -> tuple[
     return film, {"type": sampler, "sample_count": int(spp)}
 
 
-def detector_props(instrument: Instrument) -> dict[str, Any]:
-    det = instrument.detector
-    return {"alpha_deg": float(instrument.observation.alpha_deg),
-            "delta_deg": float(instrument.observation.delta_deg),
-            "distance_m": float(det.distance_m), "pupil_radius_m": float(det.pupil_radius_m),
-            "field_half_angle_deg": float(det.field_half_angle_deg),
-            "focus_m": -1.0 if math.isinf(det.focus) else float(det.focus),
-            "field_edge_sensitivity": float(det.field_edge_sensitivity)}
+def detector_props(observation: Observation, detector: Detector) -> dict[str, Any]:
+    """Properties of the ``lummeter`` sensor for this meter (focus at infinity passes as ``math.inf``)."""
+    return {"alpha_deg": float(observation.alpha_deg), "delta_deg": float(observation.delta_deg),
+            "distance_m": float(detector.distance_m), "pupil_radius_m": float(detector.pupil_radius_m),
+            "field_half_angle_deg": float(detector.field_half_angle_deg),
+            "focus_m": float(detector.focus_distance_m),
+            "field_edge_sensitivity": float(detector.field_edge_sensitivity)}
 
 
 def source_radiance(instrument: Instrument) -> float:
@@ -88,35 +98,6 @@ def source_radiance(instrument: Instrument) -> float:
     src = instrument.source
     d2 = src.distance_m ** 2
     return d2 if src.is_point else d2 / (math.pi * src.radius_m ** 2)
-
-
-def rectangle_trimesh(size_x_m: float, size_y_m: float):
-    import trimesh
-    hx, hy = size_x_m / 2.0, size_y_m / 2.0
-    v = np.array([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]])
-    f = np.array([[0, 1, 2], [0, 2, 3]])
-    return trimesh.Trimesh(vertices=v, faces=f, process=False)
-
-
-def load_trimesh(path: Path):
-    import trimesh
-    try:
-        mesh = trimesh.load(str(path), force="mesh")
-    except Exception as err:  # trimesh raises many kinds
-        raise InputError(f"cannot read the sample mesh ({err})", path=path, field="sample.mesh") from None
-    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
-        raise InputError("the sample mesh has no triangles", path=path, field="sample.mesh")
-    return mesh
-
-
-def check_mesh_orientation(mesh, where: str = "sample mesh") -> None:
-    """The sample is one-sided (faces must face +z): refuse a mesh facing downwards."""
-    normals = np.asarray(mesh.face_normals, dtype=np.float64)
-    area = np.asarray(mesh.area_faces, dtype=np.float64)
-    nz = float(np.sum(normals[:, 2] * area) / max(np.sum(area), 1e-300))
-    if nz <= 0.0:
-        raise InputError(f"the {where}'s faces point downwards (area-weighted mean normal z = {nz:.3g}); "
-                         "the sample surface is one-sided: reverse the face winding so that it faces +z")
 
 
 def to_mitsuba_mesh(mesh, bsdf, name: str = SAMPLE_ID):
@@ -150,21 +131,12 @@ def source_transform(instrument: Instrument, tan_eps: float, beta_deg: float):
 
 
 def check_beam(instrument: Instrument, tan_eps: float, beta_deg: float) -> None:
-    """The Mitsuba area emitter has no beam limit: accept a beam limit only where it cannot clip."""
-    src = instrument.source
-    if src.beam_half_angle_deg is None:
-        return
-    g = source_geometry(instrument, tan_eps, beta_deg)
-    x, y = footprint_boundary(instrument)
-    ang = np.linspace(0, 2 * np.pi, 32, endpoint=False)
-    sp = g.centre[None, :] + g.radius_m * (np.cos(ang)[:, None] * g.s + np.sin(ang)[:, None] * g.t)
-    pts = np.stack([x, y, np.zeros_like(x)], axis=-1)
-    d = pts[None, :, :] - np.concatenate([sp, g.centre[None, :]])[:, None, :]
-    cosang = (d @ g.axis) / np.linalg.norm(d, axis=-1)
-    if float(cosang.min()) < math.cos(math.radians(src.beam_half_angle_deg)):
-        raise BackendError(f"the source beam limit ({src.beam_half_angle_deg:g} deg) clips the light reaching the "
-                           f"detector footprint at tan eps = {tan_eps:g}, beta = {beta_deg:g}; the mitsuba backend "
-                           "does not model beam limits: use the quadrature backend")
+    """The Mitsuba area emitter has no beam limit: accept a beam limit only where it cannot clip
+    (:func:`roadgonio.instrument.optics.beam_clips_footprint`)."""
+    if beam_clips_footprint(instrument, tan_eps, beta_deg):
+        raise BackendError(f"the source beam limit ({instrument.source.beam_half_angle_deg:g} deg) clips the light "
+                           f"reaching the detector footprint at tan eps = {tan_eps:g}, beta = {beta_deg:g}; the "
+                           "mitsuba backend does not model beam limits: use the quadrature backend")
 
 
 @dataclass
@@ -214,52 +186,31 @@ class RoadScene:
 
     # -- checks ----------------------------------------------------------------------------
     def check_hits(self, n_random: int = 1 << 16, n_rim: int = 128, seed: int = 7) -> dict:
-        """Render-time footprint check: the extreme rays of the detector bundle (pupil rim and
-        centre x field rim) and ``n_random`` random rays must all hit the sample shape."""
+        """Render-time footprint check: the rays of :func:`~roadgonio.instrument.optics.hit_check_points`
+        (extreme rays of the detector bundle and ``n_random`` random ones) are traced through the
+        scene and must all land on the sample shape (:func:`~roadgonio.instrument.optics.judge_hits`)."""
         mi = _mi()
-        ang = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
-        # unit-square points whose concentric image is on the unit circle: invert via polar
-        rim = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
-        pupil = np.concatenate([rim, [[0.0, 0.0]]])
-        P, F = np.meshgrid(np.arange(len(pupil)), np.arange(len(rim)), indexing="ij")
-        pu, fu = pupil[P.ravel()], rim[F.ravel()]
-        rng = np.random.default_rng(seed)
-        r1, r2 = np.sqrt(rng.random(n_random)), np.sqrt(rng.random(n_random))
-        a1, a2 = rng.random(n_random) * 2 * np.pi, rng.random(n_random) * 2 * np.pi
-        pu = np.concatenate([pu, np.stack([r1 * np.cos(a1), r1 * np.sin(a1)], -1)])
-        fu = np.concatenate([fu, np.stack([r2 * np.cos(a2), r2 * np.sin(a2)], -1)])
-        from roadgonio.instrument.optics import detector_ray
         from roadgonio.engines.mitsuba.ops import DrJitOps
         from roadgonio.engines.mitsuba.plugins.lummeter import jit_geometry
+        pu, fu = hit_check_points(n_random, n_rim, seed)
         geo = jit_geometry(detector_geometry(self.instrument))
         px, py = mi.Float(pu[:, 0].astype(np.float32)), mi.Float(pu[:, 1].astype(np.float32))
         fx, fy = mi.Float(fu[:, 0].astype(np.float32)), mi.Float(fu[:, 1].astype(np.float32))
         o, d, _ = detector_ray(DrJitOps, geo, (px, py), (fx, fy))
-        ray = mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d))
-        si = self.scene.ray_intersect(ray)
-        hit = si.is_valid() & (si.shape == mi.ShapePtr(self.sample_shape))
-        hit_np = np.array(hit, dtype=bool)
-        n_miss = int((~hit_np).sum())
-        if n_miss:
-            xs = np.array(si.p.x)[~hit_np]
-            valid = np.array(si.is_valid(), dtype=bool)[~hit_np]
-            src_shape = next((s for s in self.scene.shapes() if s.id() == SOURCE_ID), None)
-            if src_shape is not None:
-                on_src = np.array(si.is_valid() & (si.shape == mi.ShapePtr(src_shape)), dtype=bool)[~hit_np]
-                if on_src.any():
-                    cell = (f" at tan eps = {self.cell[0]:g}, beta = {self.cell[1]:g}" if self.cell is not None else "")
-                    raise GeometryError(
-                        f"the source disc blocks the detector's line of sight{cell}: {int(on_src.sum())} of "
-                        f"{hit_np.size} detector rays hit the source before the sample (the source sits between "
-                        "the detector and its footprint); this cell cannot be measured with this geometry")
-            what = "hit another part of the scene" if valid.any() else "miss every part of the scene"
-            raise GeometryError(
-                f"{n_miss} of {hit_np.size} detector rays do not hit the sample ({what}"
-                + (f", e.g. at x = {xs[valid][0]:.3f} m" if valid.any() else "")
-                + "): the detector footprint must lie on the sample; enlarge the sample or narrow the field")
-        pts = np.stack([np.array(si.p.x), np.array(si.p.y)], axis=-1)
-        return {"rays": int(hit_np.size), "x_range": (float(pts[:, 0].min()), float(pts[:, 0].max())),
-                "y_range": (float(pts[:, 1].min()), float(pts[:, 1].max()))}
+        si = self.scene.ray_intersect(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)))
+        on_sample = si.is_valid() & (si.shape == mi.ShapePtr(self.sample_shape))
+        src_shape = next((s for s in self.scene.shapes() if s.id() == SOURCE_ID), None)
+        if src_shape is not None:
+            # the source disc in the line of sight is its own error, with the cell (not "enlarge the sample")
+            on_src = np.array(si.is_valid() & (si.shape == mi.ShapePtr(src_shape)), dtype=bool)
+            if on_src.any():
+                cell = f" at tan eps = {self.cell[0]:g}, beta = {self.cell[1]:g}" if self.cell is not None else ""
+                raise GeometryError(
+                    f"the source disc blocks the detector's line of sight{cell}: {int(on_src.sum())} of "
+                    f"{on_src.size} detector rays hit the source before the sample (the source sits between "
+                    "the detector and its footprint); this cell cannot be measured with this geometry")
+        return judge_hits(np.array(on_sample, dtype=bool), np.array(si.is_valid(), dtype=bool),
+                          np.array(si.p.x), np.array(si.p.y))
 
 
 def _integrator():
@@ -277,7 +228,7 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
                 check: bool = True) -> RoadScene:
     """Build the scene of ``instrument`` with a sample of BSDF ``model`` (XML scene if the
     instrument has ``[scene] xml``). Checks the detector footprint (errors, not wrong numbers)."""
-    mi = set_variant(variant)
+    require_variant(variant)
     from roadgonio.engines.mitsuba.plugins import register_plugins
     register_plugins()
     if check:
@@ -306,14 +257,9 @@ def _build_toml(instrument, model, *, resolution, spp, sampler, channels) -> Roa
     mi = _mi()
     bsdf = mi.load_dict(_bsdf_dict(model, channels))
     smp = instrument.sample
-    if smp.mesh is None:
-        tm = rectangle_trimesh(smp.size_x_m, smp.size_y_m)
-    else:
-        tm = load_trimesh(smp.mesh)
-        check_mesh_orientation(tm)
-    shape = to_mitsuba_mesh(tm, bsdf)
+    shape = to_mitsuba_mesh(sample_trimesh(instrument), bsdf)
     film, samp = film_dict(resolution, spp, sampler)
-    det = dict(type="lummeter", film=film, sampler=samp, **detector_props(instrument))
+    det = dict(type="lummeter", film=film, sampler=samp, **detector_props(instrument.observation, instrument.detector))
     src = instrument.source
     if src.is_point:
         source = {"type": "point", "position": [0.0, 0.0, src.distance_m],
@@ -335,7 +281,7 @@ def xml_parameters(instrument: Instrument, scene_sec) -> dict[str, str]:
          "source_distance_m": src.distance_m, "source_radius_m": src.radius_m,
          "source_radiance": source_radiance(instrument),
          "detector_distance_m": det.distance_m, "pupil_radius_m": det.pupil_radius_m,
-         "field_half_angle_deg": det.field_half_angle_deg, "focus_m": -1.0 if math.isinf(det.focus) else det.focus,
+         "field_half_angle_deg": det.field_half_angle_deg, "focus_m": det.focus_distance_m,
          "field_edge_sensitivity": det.field_edge_sensitivity,
          "sample_size_x_m": smp.size_x_m or 0.0, "sample_size_y_m": smp.size_y_m or 0.0,
          "sample_half_x_m": 0.5 * (smp.size_x_m or 0.0), "sample_half_y_m": 0.5 * (smp.size_y_m or 0.0)}
@@ -412,10 +358,10 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
     if (source_kind == "point") != instrument.source.is_point:
         raise InputError(f"the XML source is a {source_kind} source but the instrument's source radius is "
                          f"{instrument.source.radius_m:g} m", path=path)
-    want = detector_props(instrument)
-    got = {"alpha_deg": sensor.instrument.observation.alpha_deg, "delta_deg": sensor.instrument.observation.delta_deg,
-           **{k: v for k, v in detector_props(sensor.instrument).items() if k not in ("alpha_deg", "delta_deg")}}
-    bad = [k for k in want if not math.isclose(float(want[k]), float(got[k]), rel_tol=1e-6, abs_tol=1e-12)]
+    want = detector_props(instrument.observation, instrument.detector)
+    got = detector_props(sensor.observation, sensor.detector)
+    bad = [k for k in want if not (want[k] == got[k] or
+                                   math.isclose(float(want[k]), float(got[k]), rel_tol=1e-6, abs_tol=1e-12))]
     if bad:
         raise InputError("the XML detector differs from the instrument file in " +
                          ", ".join(f"{k} ({got[k]:g} vs {want[k]:g})" for k in bad) +

@@ -1,0 +1,1 @@
+"""The documentation shipped with roadgonio: ``conventions.md``, the physics conventions."""

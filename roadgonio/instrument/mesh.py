@@ -1,0 +1,58 @@
+"""The sample surface as a triangle mesh (docs/conventions.md section 4): the flat rectangle of
+``[sample] size_x_m`` x ``size_y_m`` or the instrument's mesh file, read with trimesh and checked.
+
+The sample is one-sided: its faces must face +z (the renderer sees no light on a face turned
+away). Any backend that needs the sample as triangles takes it from :func:`sample_trimesh`; the
+conversion to a renderer's own mesh type lives with that renderer
+(:func:`roadgonio.engines.mitsuba.scene.to_mitsuba_mesh`).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from roadgonio.errors import InputError
+from roadgonio.instrument.config import Instrument
+
+
+def rectangle_trimesh(size_x_m: float, size_y_m: float):
+    """Two triangles: the rectangle ``size_x_m`` x ``size_y_m`` on z = 0 centred on the origin, facing +z."""
+    import trimesh
+    hx, hy = size_x_m / 2.0, size_y_m / 2.0
+    v = np.array([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]])
+    f = np.array([[0, 1, 2], [0, 2, 3]])
+    return trimesh.Trimesh(vertices=v, faces=f, process=False)
+
+
+def load_trimesh(path: str | Path):
+    """A trimesh-readable mesh file as one ``trimesh.Trimesh``; errors name the file."""
+    import trimesh
+    path = Path(path)
+    try:
+        mesh = trimesh.load(str(path), force="mesh")
+    except Exception as err:  # trimesh raises many kinds
+        raise InputError(f"cannot read the sample mesh ({err})", path=path, field="sample.mesh") from None
+    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
+        raise InputError("the sample mesh has no triangles", path=path, field="sample.mesh")
+    return mesh
+
+
+def check_mesh_orientation(mesh, where: str = "sample mesh") -> None:
+    """The sample is one-sided (faces must face +z): refuse a mesh facing downwards."""
+    normals = np.asarray(mesh.face_normals, dtype=np.float64)
+    area = np.asarray(mesh.area_faces, dtype=np.float64)
+    nz = float(np.sum(normals[:, 2] * area) / max(np.sum(area), 1e-300))
+    if nz <= 0.0:
+        raise InputError(f"the {where}'s faces point downwards (area-weighted mean normal z = {nz:.3g}); "
+                         "the sample surface is one-sided: reverse the face winding so that it faces +z")
+
+
+def sample_trimesh(instrument: Instrument):
+    """The instrument's sample as a checked trimesh: its rectangle, or its mesh file (which must face +z)."""
+    smp = instrument.sample
+    if smp.mesh is None:
+        return rectangle_trimesh(smp.size_x_m, smp.size_y_m)
+    tm = load_trimesh(smp.mesh)
+    check_mesh_orientation(tm)
+    return tm

@@ -1,0 +1,56 @@
+"""The one provenance builder (roadgonio.provenance) and the outputs that carry it."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from importlib import metadata
+
+import pytest
+
+from roadgonio import __version__
+from roadgonio.instrument.config import load_instrument
+from roadgonio.provenance import provenance, versions
+from roadgonio.surface.model import RoadModel, RoadParams
+
+pytestmark = pytest.mark.unit
+
+#: What every result says about the software that made it.
+VERSION_KEYS = {"roadgonio", "python", "platform", "numpy", "scipy", "mitsuba", "drjit"}
+
+
+def test_versions_name_the_installed_packages():
+    v = versions()
+    assert VERSION_KEYS <= set(v)
+    assert v["roadgonio"] == __version__
+    for name in ("numpy", "scipy", "mitsuba", "drjit"):
+        assert v[name] == metadata.version(name)
+
+
+def test_versions_do_not_import_mitsuba_or_drjit():
+    code = ("import sys\nfrom roadgonio.provenance import versions\nv = versions()\n"
+            "print(v['mitsuba'] is not None, v['drjit'] is not None, 'mitsuba' in sys.modules, 'drjit' in sys.modules)")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.split() == ["True", "True", "False", "False"]
+
+
+def test_provenance_block():
+    inst = load_instrument("portable")
+    model = RoadModel(RoadParams(k_diff=0.05, k_phong=0.3, n_phong=30))
+    p = provenance(instrument=inst, model=model, backend="quadrature", settings={"rtol": 1e-4}, sample="x")
+    assert set(p) == {"versions", "created", "instrument", "instrument_file", "model", "backend", "settings", "sample"}
+    assert p["instrument"] == inst.to_dict() and p["instrument_file"].endswith("portable.toml")
+    assert p["model"]["params"]["n_phong"] == 30 and p["settings"] == {"rtol": 1e-4}
+    json.dumps(p)                                     # JSON-ready as it is
+
+
+def test_uncertainty_result_carries_the_provenance(tmp_path):
+    from roadgonio.uncertainty import parse_sigma_spec, result_dict, run_uncertainty
+    model = RoadModel(RoadParams(k_diff=0.05, k_phong=0.3, n_phong=30))
+    res = run_uncertainty(model, load_instrument("portable"), parse_sigma_spec("alpha_deg=0.01"), trials=500,
+                          aperture=False, progress=False)
+    d = json.loads(json.dumps(result_dict(res, cells=False)))
+    prov = d["provenance"]
+    assert VERSION_KEYS <= set(prov["versions"]) and prov["instrument"]["source"]["distance_m"] == 1.0
+    assert prov["model"]["params"]["k_phong"] == 0.3 and prov["sigma"]["alpha_deg"]["sigma"] == 0.01
