@@ -282,7 +282,7 @@ class MeshMonteCarloBackend(CellByCellBackend):
             cos_i = np.einsum("ij,ij->i", wi, n)
             cos_s = -(wi @ src.axis)
             ok = (cos_i > 0.0) & (cos_s > 0.0)
-            if src.cos_beam > -1.0:
+            if src.cos_beam is not None:
                 ok &= cos_s >= src.cos_beam
             g = np.where(ok, cos_i * cos_s / (dist * dist), 0.0)
             lit = ok.copy()
