@@ -8,6 +8,7 @@ from roadgonio.errors import InputError
 from roadgonio.surface.model import VARIANTS
 from roadgonio.cli._common import (
     add_instrument_argument,
+    check_seed,
     add_output_options,
     rel_se_setting,
     select_variant,
@@ -41,7 +42,8 @@ def register(sub) -> None:
     p.add_argument("--out", metavar="DIR", help="output folder (default out/correct-MEASURED)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the before/after picture")
     add_output_options(p, "print the summary as JSON")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, on_interrupt="interrupted: nothing was written, and the k_A table computed so far is "
+                                        "not kept (correct starts over when run again)")
 
 
 def run(args) -> int:
@@ -55,6 +57,7 @@ def run(args) -> int:
         measured = read_table(args.measured)
     except InputError as err:
         raise InputError(f"--measured: {err.reason}", path=err.path, line=err.line, field=err.field) from None
+    check_seed(args.seed)
     settings: dict = {}
     if args.rel_se is not None:
         settings.update(rel_se_setting(args.backend, args.rel_se))

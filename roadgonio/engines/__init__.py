@@ -118,6 +118,8 @@ BACKENDS: dict[str, str] = {
     "mitsuba": "roadgonio.engines.mitsuba.backend:make_backend",
     "quadrature": "roadgonio.engines.quadrature:make_backend",
     "numpy-mc": "roadgonio.engines.montecarlo:make_backend",
+    "reference": "roadgonio.engines.reference:make_backend",
+    "numpy-mc-mesh": "roadgonio.engines.meshmc:make_backend",
 }
 
 
