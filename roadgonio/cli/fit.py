@@ -89,7 +89,7 @@ def run(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    from roadgonio.fileio import OutputGroup, to_json
+    from roadgonio.fileio import OutputGroup
     from roadgonio.surface.sample import check_not_degenerate
     check_not_degenerate(result.model, path=args.table if Path(args.table).suffix else None)
     with OutputGroup(out) as g:          # model.json, residuals.csv, fit.png: all or none

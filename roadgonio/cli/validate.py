@@ -1,7 +1,6 @@
 """``roadgonio validate``: a Monte Carlo backend judged against a float64 reference on the extreme cells."""
 from __future__ import annotations
 
-import json
 import math
 import sys
 from pathlib import Path
