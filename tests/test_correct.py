@@ -1,5 +1,6 @@
-"""Tests of roadgonio.correction (r / k_A with the uncertainty of the correction) and the command.
-A stand-in k_A backend (analytic, model-dependent) replaces the exact backends in the unit tests."""
+"""Tests of roadgonio.correction: the forward model of ray bundles, the fit through the instrument,
+the uncertainty budget and its functionals, the outputs and the command. Round trips of synthetic
+measurements are in tests/test_correct_roundtrip.py."""
 from __future__ import annotations
 
 import csv
@@ -11,134 +12,366 @@ import sys
 import numpy as np
 import pytest
 
-from roadgonio.correction import correct_table, nearest_standard_tables, write_correction
+from roadgonio.correction.budget import Budget, cie_class, functionals, q0_weights
+from roadgonio.correction.fit import assess_fit, fit_through_instrument
+from roadgonio.correction.forward import BundleBackend, ForwardModel, RayBundles
+from roadgonio.correction.run import (correct_measured, correct_self, measured_uncertainty, output_folders)
+from roadgonio.engines import CellResult, make_backend
+from roadgonio.errors import InputError
 from roadgonio.instrument.config import load_instrument
-from roadgonio.engines import CellResult
 from roadgonio.surface.model import RoadModel, RoadParams
-from roadgonio.surface.rtable import bundled_table, read_table
+from roadgonio.surface.rtable import RTable, bundled_table, read_table
 
-EXACT_TOL = 1e-12
-#: Correction files store 6 significant digits.
+#: Equal up to float64 rounding of a few operations.
+ROUND_TOL = 1e-12
+#: Six significant digits in the files.
 FILE_RTOL = 1e-5
+CELLS = [(0.0, 0.0), (2.0, 0.0), (6.0, 2.0), (12.0, 0.0), (12.0, 10.0), (3.0, 90.0), (1.0, 180.0)]
 
 
-class StandIn:
-    name = "stand-in"
+def ideal(base: str = "lab"):
+    return load_instrument(base).with_changes(source={"radius_m": 0.0},
+                                              detector={"pupil_radius_m": 0.0, "field_half_angle_deg": 0.0})
+
+
+def sub_table(table: RTable, cells) -> RTable:
+    r = np.full_like(table.r, np.nan)
+    for t, b in cells:
+        i, j = int(np.argmin(abs(table.tan_eps - t))), int(np.argmin(abs(table.beta_deg - b)))
+        r[i, j] = table.r[i, j]
+    return table.with_values(r)
+
+
+# ----------------------------------------------------------------------------------------------
+# The forward model
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.unit
+def test_forward_model_of_the_ideal_instrument_and_of_a_diffuser(r3like):
+    fm = ForwardModel(RayBundles.build(ideal(), CELLS, rays=8, replicates=2))
+    assert np.allclose(fm.k_a(r3like), 1.0, rtol=ROUND_TOL, atol=0)  # one ray: the nominal geometry
+    assert np.allclose(fm.r_measured(r3like), r3like.r(*np.array(CELLS).T), rtol=ROUND_TOL)
+    fm = ForwardModel(RayBundles.build(load_instrument("portable"), CELLS, rays=64))
+    assert np.allclose(fm.k_a(RoadModel.lambert(0.3)), 1.0, rtol=ROUND_TOL, atol=0)   # a diffuser: k_A = 1
+    assert np.max(np.abs(fm.k_a(r3like) - 1.0)) > 1e-2                               # ... a road: not
+
+
+@pytest.mark.unit
+def test_forward_model_is_linear_in_the_coefficients(r3like):
+    fm = ForwardModel(RayBundles.build(load_instrument("portable"), CELLS, rays=64))
+    P = r3like.params.to_dict()
+    B, N = fm.columns(P, r3like.variant)
+    theta = np.array([P[k] for k in ("k_diff", "k_phong", "k_retro", "k_exp")])
+    assert np.allclose(fm.r_measured(r3like), fm.bundles.cos3 * (B @ theta), rtol=ROUND_TOL)
+    assert np.allclose(N @ theta, r3like.brdf(fm.bundles.wi0, fm.bundles.wo0), rtol=ROUND_TOL)
+    twice = RoadModel(r3like.params.replace(**{k: 2 * P[k] for k in ("k_diff", "k_phong", "k_retro", "k_exp")}))
+    assert np.allclose(fm.k_a(twice), fm.k_a(r3like), rtol=ROUND_TOL)   # k_A does not see the scale
+
+
+@pytest.mark.unit
+def test_bundle_k_agrees_with_the_numpy_monte_carlo_within_their_errors(r3like):
+    """The bundles (RQMC, replicate standard error) against the independent numpy Monte Carlo."""
+    inst = load_instrument("portable")
+    bb = BundleBackend(inst, r3like, rays=512).compute(CELLS)
+    mc = make_backend("numpy-mc", inst, r3like, rel_se=1e-3, seed=4).compute(CELLS)
+    z = [(a.k_a - b.k_a) / math.hypot(a.se, b.se) for a, b in zip(bb, mc)]
+    assert max(abs(v) for v in z) < 4.0, z
+    assert max(abs(a.k_a - 1) for a in bb) > 0.02                   # a test that can fail
+
+
+@pytest.mark.unit
+def test_bundles_are_common_random_numbers_per_cell_index():
+    inst = load_instrument("portable")
+    a = RayBundles.build(inst, CELLS, rays=64)
+    b = RayBundles.build(inst, CELLS[:3], rays=64)
+    n = int(a.cell_start[3])
+    assert np.array_equal(a.wo[0][:n], b.wo[0]) and np.array_equal(a.a[:n], b.a)   # a cell's rays are its own
+    moved = RayBundles.build(inst.with_changes(observation={"alpha_deg": 1.001}), CELLS, rays=64,
+                             sizes=a.rays_per_cell)
+    d = np.abs(moved.wo[2] - a.wo[2])
+    assert 0 < d.max() < 1e-4                                        # the same unit points, moved smoothly
+
+
+@pytest.mark.unit
+def test_reference_calibration_forward_model(tmp_path, r3like):
+    r3like.save(tmp_path / "ref.json")
+    inst = load_instrument("portable").with_changes(calibration={"mode": "reference",
+                                                                  "reference": str(tmp_path / "ref.json")})
+    fm = ForwardModel(RayBundles.build(inst, CELLS, rays=64))
+    assert np.allclose(fm.k_a(r3like), 1.0, rtol=ROUND_TOL)          # the reference itself: 1
+    other = RoadModel(RoadParams(k_diff=0.05, k_phong=0.5, n_phong=10.0))
+    lam = ForwardModel(fm.bundles, calibration_mode="lambert")
+    assert np.allclose(fm.k_a(other), lam.k_a(other) / lam.k_a(r3like), rtol=ROUND_TOL)
+
+
+# ----------------------------------------------------------------------------------------------
+# The fit through the instrument
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.unit
+def test_fit_through_an_ideal_instrument_reaches_the_plain_least_squares_optimum():
+    """Through the ideal instrument and with a constant u the fit is the plain least squares in % of
+    max r; its multi-start must find the global optimum of the power model on R4, which a long
+    differential evolution (surface.fit with weight 0, three seeds, wide box) puts at 5.4904 %."""
+    t = bundled_table("R4")
+    fm = ForwardModel(RayBundles.build(ideal(), t.cells, rays=8, replicates=2))
+    y = t.r[t.mask]
+    f = fit_through_instrument(fm, y, np.full(y.size, 0.01 * t.r_max), variant="power")
+    rms = math.sqrt(f.chi2 / y.size)
+    assert rms == pytest.approx(5.49044, abs=2e-4), rms
+    assert f.stage_a[0] < f.stage_a[-1]                            # stage A saw distinct minima (a real landscape)
+
+
+@pytest.mark.unit
+def test_fit_recovers_a_model_measured_without_noise_and_its_covariance_scales(r3like):
+    """A table simulated through the instrument by the forward model itself, no noise: the fit
+    returns the simulated table (chi^2 ~ 0) and the parameter u scales with the stated u."""
+    inst = load_instrument("portable")
+    t = bundled_table("R3")
+    fm = ForwardModel(RayBundles.build(inst, t.cells, rays=64))
+    y = fm.r_measured(r3like)
+    f = fit_through_instrument(fm, y, 0.01 * y, variant="power", start_models=[r3like], stage_a=False)
+    assert f.chi2 < 1e-6 and np.max(np.abs(f.simulated / y - 1)) < 1e-6
+    g = assess_fit(fm, y, 0.02 * y, f.model)
+    u1, u2 = f.param_uncertainty(), g.param_uncertainty()
+    assert set(u1) == set(u2) and all(u2[k] == pytest.approx(2 * u1[k], rel=1e-6) for k in u1)
+    assert g.lnk_cov().shape == (len(y), len(y)) and np.all(np.diag(g.lnk_cov()) >= 0)
+
+
+# ----------------------------------------------------------------------------------------------
+# Budget and functionals
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.unit
+def test_functionals_uncertainty_independent_and_fully_correlated():
+    t = bundled_table("R3")
+    n = int(t.mask.sum())
+    ii, jj = np.nonzero(t.mask)
+    w = q0_weights(t.mask)
+    assert float(w @ t.r[t.mask]) == pytest.approx(t.q0(), rel=ROUND_TOL)
+    b = Budget(n)
+    b.add("measurement", np.full(n, 0.01))
+    f = functionals(t, b.total())
+    assert f["u_S1"] == pytest.approx(t.s1() * 0.01 * math.sqrt(2), rel=1e-12)
+    assert f["u_Q0"] == pytest.approx(0.01 * math.sqrt(np.sum((w * t.r[t.mask]) ** 2)), rel=1e-12)
+    c = Budget(n)
+    c.add_systematic("model", np.full(n, 0.01 * math.sqrt(3)))   # 1 % for every cell, fully correlated
+    g = functionals(t, c.total())
+    assert g["u_Q0"] == pytest.approx(0.01 * t.q0(), rel=1e-12) and g["u_S1"] < 1e-12 * t.s1()
+    assert g["class"]["R"] == "R3" and f["nearest_table"] == "R3"
+
+
+@pytest.mark.unit
+def test_cie_class_boundaries_and_probabilities():
+    assert [cie_class(s)["R"] for s in (0.2, 0.42, 0.8, 0.85, 1.349, 1.35, 3.0)] == \
+        ["R1", "R2", "R2", "R3", "R3", "R4", "R4"]
+    assert [cie_class(s)["C"] for s in (0.39, 0.40, 1.0)] == ["C1", "C2", "C2"]
+    c = cie_class(0.85, 0.05)
+    assert sum(c["p_R"].values()) == pytest.approx(1.0) and c["p_R"]["R2"] == pytest.approx(0.5, abs=1e-9)
+
+
+@pytest.mark.unit
+def test_measured_uncertainty_forms(tmp_path):
+    t = bundled_table("C2")
+    g, _ = measured_uncertainty("2%", t)
+    assert np.allclose(g[t.mask], 0.02 * t.r[t.mask], rtol=ROUND_TOL) and np.isnan(g[~t.mask]).all()
+    assert np.allclose(measured_uncertainty(0.02, t)[0][t.mask], g[t.mask], rtol=ROUND_TOL)
+    f = t.with_values(np.where(t.mask, 3e-4, np.nan)).write_csv(tmp_path / "u.csv")
+    assert np.allclose(measured_uncertainty(str(f), t)[0][t.mask], 3e-4, rtol=1e-6)
+    bad = t.with_values(np.where(t.mask, 3e-4, np.nan))
+    bad.r[4, 3] = np.nan
+    f2 = bad.write_csv(tmp_path / "u2.csv")
+    with pytest.raises(InputError, match="tan eps = 1, beta = 10") as err:
+        measured_uncertainty(str(f2), t)
+    assert "u2.csv" in str(err.value)
+    for text in ("120%", "0%", "abc%"):
+        with pytest.raises(InputError, match="--u-measured"):
+            measured_uncertainty(text, t)
+
+
+@pytest.mark.unit
+def test_output_folders_one_or_one_per_file(tmp_path):
+    assert output_folders(["a"], tmp_path) == [tmp_path]
+    assert output_folders(["a", "b", "a"], tmp_path) == [tmp_path / "a", tmp_path / "b", tmp_path / "a-2"]
+
+
+# ----------------------------------------------------------------------------------------------
+# The procedure with a stand-in backend (counts its work)
+# ----------------------------------------------------------------------------------------------
+
+class CountingBundle:
+    """A backend made of ray bundles with another seed than the forward model's (so rho is not 1),
+    counting the cells it computes."""
+
+    calls = 0
 
     def __init__(self, inst, model):
-        self.kp = model.params.k_phong
+        self.inner = BundleBackend(inst, model, rays=256, seed=99)
+        self.name = "counting-bundle"
 
     def settings(self):
-        return {"backend": self.name}
+        return {"backend": self.name, "seed": 99}
 
     def compute(self, cells, on_cell=None):
-        out = []
-        for t, b in cells:
-            c = CellResult(t, b, 1.0 + self.kp * t / 12 * math.exp(-b / 10), 1e-4, 1, 0.0)
-            out.append(c)
-            if on_cell:
-                on_cell(c)
-        return out
+        CountingBundle.calls += len(cells)
+        return self.inner.compute(cells, on_cell)
 
 
-def model(kp):
-    return RoadModel(RoadParams(k_diff=0.02, k_phong=kp, n_phong=40), name=f"kp{kp}")
-
-
-@pytest.mark.unit
-def test_correction_divides_by_ka_and_states_model_uncertainty():
-    meas = bundled_table("R3")
-    c = correct_table(meas, load_instrument("portable"), model(0.5), reference_name="ref",
-                      alternatives={"a": model(0.4), "b": model(0.8)}, factory=StandIn, progress=False)
-    m = meas.mask
-    ii, jj = np.nonzero(m)
-    k = 1 + 0.5 * meas.tan_eps[ii] / 12 * np.exp(-meas.beta_deg[jj] / 10)
-    assert np.max(np.abs(c.corrected.r[m] / (meas.r[m] / k) - 1)) < EXACT_TOL
-    dev = np.maximum(np.abs(0.1 * meas.tan_eps[ii] / 12 * np.exp(-meas.beta_deg[jj] / 10)),
-                     np.abs(0.3 * meas.tan_eps[ii] / 12 * np.exp(-meas.beta_deg[jj] / 10)))
-    assert np.allclose(c.u_model[m], dev / math.sqrt(3), rtol=EXACT_TOL, atol=1e-15)  # k_alt - k round-off
-    assert np.allclose(c.u_rel[m], np.sqrt(1e-8 + (dev / math.sqrt(3)) ** 2) / k, rtol=1e-9)
-    assert np.isnan(c.corrected.r[~m]).all()
-
-
-@pytest.mark.unit
-def test_nearest_standard_tables():
-    assert nearest_standard_tables(bundled_table("R3"), 1)[0] == ("R3", 0.0)
-    near = nearest_standard_tables(bundled_table("R3"), 2, exclude=["R3"])
-    assert len(near) == 2 and "R3" not in [n for n, _ in near] and near[0][1] <= near[1][1]
+def _measured_r2like(inst, noise=0.01, seed=3):
+    from roadgonio.correction.synthetic import r2_like_truth, standard_mask
+    m = standard_mask()
+    m[:, 6:] = False                        # beta 0 ... 20: a small table, the specular region
+    t = RTable(np.where(m, 1.0, np.nan))
+    truth = r2_like_truth()
+    k = np.array([c.k_a for c in BundleBackend(inst, truth, rays=128, seed=7).compute(t.cells)])
+    rng = np.random.default_rng(seed)
+    r = truth.r(*np.array(t.cells).T) * k * (1 + noise * rng.standard_normal(k.size))
+    g = np.full(m.shape, np.nan)
+    g[m] = r
+    return RTable(g, name="meas"), truth
 
 
 @pytest.mark.system
-def test_outputs_roundtrip(tmp_path):
-    meas = bundled_table("C2")
-    c = correct_table(meas, load_instrument("portable"), model(0.5), alternatives={"a": model(0.6)},
-                      factory=StandIn, progress=False)
-    paths = write_correction(c, tmp_path)
-    names = {p.name for p in paths}
-    assert {"C2_corrected.csv", "C2_corrected.rtb", "correction.json", "before_after.png"} <= names
-    back = read_table(tmp_path / "C2_corrected.rtb")
-    m = meas.mask
-    assert np.allclose(back.r[m], c.corrected.r[m], rtol=1e-5)       # 6 significant digits in the file
+def test_self_correction_resumes_from_its_journal_and_checkpoint(tmp_path):
+    inst = load_instrument("portable")
+    meas, _ = _measured_r2like(inst)
+    kw = dict(u_measured="1%", variant="power", factory=CountingBundle, rays=128, out_dir=tmp_path, progress=False,
+              starts=4, rounds=1)
+    CountingBundle.calls = 0
+    a = correct_self(meas, inst, **kw)
+    first = CountingBundle.calls
+    n = int(meas.mask.sum())
+    assert first == n * len(a.steps)
+    assert (tmp_path / "forward-1" / "ka_cells.jsonl").exists() and (tmp_path / "fit_state.json").exists()
+    CountingBundle.calls = 0
+    b = correct_self(meas, inst, **kw)
+    assert CountingBundle.calls == 0                               # every k_A table resumed from its journal
+    assert all(s["backend"]["resumed_cells"] == n for s in b.steps)
+    assert np.array_equal(a.corrected.r, b.corrected.r, equal_nan=True)
+    assert a.fit.model.params == b.fit.model.params                 # the fit came from the checkpoint
+
+
+@pytest.mark.system
+def test_several_tables_share_the_instrument_artefacts(tmp_path, monkeypatch):
+    from roadgonio.correction import correct_files, run as run_mod
+    inst = load_instrument("portable")
+    m1, _ = _measured_r2like(inst, seed=3)
+    m2, _ = _measured_r2like(inst, seed=4)
+    m2 = m2.with_values(m2.r, name="other")
+    built = []
+    orig = run_mod.ForwardModel
+
+    def counting(*a, **k):
+        built.append(1)
+        return orig(*a, **k)
+    monkeypatch.setattr(run_mod, "ForwardModel", counting)
+    done = correct_files([m1, m2], inst, tmp_path, plots=False, u_measured="1%", model_variant="power",
+                         factory=CountingBundle, rays=128, progress=False, starts=4, rounds=1)
+    assert len(built) == 1                                          # the bundles of the cells: once
+    assert [f for _, f, _ in done] == [tmp_path / "meas", tmp_path / "other"]
+    for res, folder, files in done:
+        names = {p.name for p in files}
+        assert {"corrected.csv", "corrected_u.csv", "corrected.rtb", "correct.json", "correct_cells.csv",
+                "corrected_corr.csv"} <= names
+        back = read_table(folder / "corrected.csv")
+        u = read_table(folder / "corrected_u.csv")
+        m = res.measured.mask
+        assert np.allclose(back.r[m], res.measured.r[m] / res.k_a[m], rtol=FILE_RTOL)
+        assert np.allclose(u.r[m], res.u_corrected.r[m], rtol=1e-3)
+        doc = json.loads((folder / "correct.json").read_text())
+        assert doc["summary"]["u_S1"] > 0 and doc["provenance"]["backend"] == "counting-bundle"
+        assert set(doc["summary"]["budget"]) >= {"measurement", "backend", "parameters", "total"}
+
+
+@pytest.mark.unit
+def test_budget_total_is_the_sum_of_its_components():
+    b = Budget(3)
+    b.add("measurement", np.array([0.01, 0.02, 0.03]))
+    b.add_systematic("model", np.array([0.0, 0.03, -0.03]))
+    c = b.total()
+    assert np.allclose(np.diag(c), [1e-4, 4e-4 + 3e-4, 9e-4 + 3e-4])
+    assert c[1, 2] == pytest.approx(-3e-4) and b.correlation()[1, 2] == pytest.approx(-3e-4 / math.sqrt(7e-4 * 12e-4))
+
+
+# ----------------------------------------------------------------------------------------------
+# The command
+# ----------------------------------------------------------------------------------------------
+
+def _run(*args, timeout=900):
+    return subprocess.run([sys.executable, "-m", "roadgonio", "correct", *args], capture_output=True, text=True,
+                          timeout=timeout)
 
 
 @pytest.mark.system
 def test_cli_measured_table_on_another_grid(tmp_path):
     f = tmp_path / "odd.csv"
     f.write_text("tan_eps,0,5,10\n0,300,300,300\n")
-    p = subprocess.run([sys.executable, "-m", "roadgonio", "correct", "--measured", str(f), "--instrument", "portable",
-                        "--reference", "lambert", "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    p = _run("--measured", str(f), "--instrument", "portable", "--reference", "lambert", "--out", str(tmp_path / "o"))
     assert p.returncode == 2 and "Traceback" not in p.stderr
     assert str(f) in p.stderr and "--measured" in p.stderr and "standard grid" in p.stderr
 
 
 @pytest.mark.system
-def test_cli_missing_measured_file(tmp_path):
-    p = subprocess.run([sys.executable, "-m", "roadgonio", "correct", "--measured", str(tmp_path / "none.csv"),
-                        "--instrument", "portable", "--reference", "lambert"], capture_output=True, text=True)
+def test_cli_errors_name_what_is_wrong(tmp_path):
+    p = _run("--measured", str(tmp_path / "none.csv"), "--instrument", "portable")
     assert p.returncode == 2 and "none.csv" in p.stderr and "Traceback" not in p.stderr
+    good = bundled_table("R3").write_csv(tmp_path / "m.csv")
+    p = _run("--measured", str(good), "--instrument", "portable", "--u-measured", "5 percent",
+             "--backend", "quadrature")
+    assert p.returncode == 2 and "--u-measured" in p.stderr and "Traceback" not in p.stderr
+    no_s1 = sub_table(bundled_table("R3"), [(0.0, 0.0), (1.0, 0.0), (0.5, 2.0)]).write_csv(tmp_path / "s.csv")
+    p = _run("--measured", str(no_s1), "--instrument", "portable", "--backend", "quadrature")
+    assert p.returncode == 2 and "tan eps = 2, beta = 0" in p.stderr and "s.csv" in p.stderr
 
 
 @pytest.mark.system
-def test_cli_correct_runs_and_its_numbers_check_against_an_independent_backend(tmp_path, r3like):
-    """``roadgonio correct`` to success: corrected = measured / k_A, with k_A checked against the
-    float64 numpy Monte Carlo (an independent integrator) within 4 SE + the quadrature's bound +
-    the 6-digit file rounding; no progress bar into a pipe."""
-    from roadgonio.engines import make_backend
-    from roadgonio.surface.rtable import RTable
+def test_cli_reference_route_checks_against_an_independent_backend(tmp_path, r3like):
+    """``roadgonio correct --reference SAMPLE`` to success: corrected = measured / k_A, with k_A
+    checked against the float64 numpy Monte Carlo (an independent integrator) within 4 SE + the
+    quadrature's bound + the file rounding; the stated u is the budget of u-measured and the
+    backend; no progress bar into a pipe."""
     cells = [(0.0, 0.0), (0.0, 2.0), (0.25, 0.0), (0.25, 2.0), (2.0, 0.0), (12.0, 0.0), (12.0, 2.0), (8.0, 5.0)]
-    r3 = bundled_table("R3")
-    r = np.full_like(r3.r, np.nan)
-    for t, b in cells:
-        i, j = int(np.argmin(abs(r3.tan_eps - t))), int(np.argmin(abs(r3.beta_deg - b)))
-        r[i, j] = r3.r[i, j]
-    measured = RTable(r, name="meas").write_csv(tmp_path / "meas.csv")
+    measured = sub_table(bundled_table("R3"), cells).with_values(sub_table(bundled_table("R3"), cells).r,
+                                                                 name="meas").write_csv(tmp_path / "meas.csv")
     model = tmp_path / "ref.json"
     r3like.save(model)
-    p = subprocess.run([sys.executable, "-m", "roadgonio", "correct", "--measured", str(measured), "--instrument",
-                        "portable", "--reference", str(model), "--alternatives", "none", "--backend", "quadrature",
-                        "--rel-se", "1e-4", "--out", str(tmp_path / "o"), "--no-plots", "--json"],
-                       capture_output=True, text=True, timeout=900)
+    p = _run("--measured", str(measured), "--instrument", "portable", "--reference", str(model), "--alternatives",
+             "none", "--backend", "quadrature", "--rel-se", "1e-4", "--u-measured", "2%", "--out", str(tmp_path / "o"),
+             "--no-plots", "--json")
     assert p.returncode == 0, p.stderr
-    assert p.stderr == ""                                  # no progress bar, no warning into a pipe
+    assert p.stderr == ""
     summary = json.loads(p.stdout)
-    assert summary["cells"] == len(cells) and summary["alternatives"] == {}
-    rows = list(csv.DictReader(open(tmp_path / "o" / "correction_cells.csv")))
+    assert summary["cells"] == len(cells) and summary["reference"] == "ref"
+    assert {"S1", "u_S1", "Q0", "u_Q0", "reference", "k_a_min", "k_a_max", "seconds"} <= set(summary)
+    rows = list(csv.DictReader(line for line in open(tmp_path / "o" / "correct_cells.csv") if not line.startswith("#")))
     assert sorted((float(x["tan_eps"]), float(x["beta_deg"])) for x in rows) == sorted(cells)
     mc = {(c.tan_eps, c.beta_deg): c for c in
           make_backend("numpy-mc", load_instrument("portable"), r3like, rel_se=1e-3, seed=5).compute(cells)}
-    back = read_table(tmp_path / "o" / "meas_corrected.csv")
     for x in rows:
         t, b = float(x["tan_eps"]), float(x["beta_deg"])
-        k, u = float(x["k_a"]), float(x["k_a_se"])          # quadrature: u = bound / sqrt(3)
-        bound = u * math.sqrt(3.0)
+        k, u = float(x["k_a"]), float(x["u_k_a_backend"])          # quadrature: u = bound / sqrt(3)
         meas, corr = float(x["r_measured_x1e4"]), float(x["r_corrected_x1e4"])
-        assert corr == pytest.approx(meas / k, rel=FILE_RTOL)                    # corrected = measured / k_A
+        assert corr == pytest.approx(meas / k, rel=FILE_RTOL)
         c = mc[(t, b)]
-        assert abs(meas / corr - c.k_a) <= 4 * c.se + bound + 2 * FILE_RTOL * c.k_a, (t, b, meas / corr, c)
-        assert float(x["u_rel_correction"]) == pytest.approx(u / k, rel=5e-3)   # u_rel = u / k (u has 3 digits)
-        i, j = int(np.argmin(abs(back.tan_eps - t))), int(np.argmin(abs(back.beta_deg - b)))
-        assert back.r[i, j] * 1e4 == pytest.approx(corr, rel=FILE_RTOL)
+        assert abs(meas / corr - c.k_a) <= 4 * c.se + u * math.sqrt(3) + 2 * FILE_RTOL * c.k_a, (t, b, meas / corr, c)
+        assert float(x["u_rel_total"]) == pytest.approx(math.hypot(0.02, u / k), rel=2e-3)
     k = {(float(x["tan_eps"]), float(x["beta_deg"])): float(x["k_a"]) for x in rows}
-    assert summary["S1_after"] == pytest.approx(summary["S1_before"] * k[(0.0, 0.0)] / k[(2.0, 0.0)], rel=1e-4)
-    prov = json.loads((tmp_path / "o" / "correction.json").read_text())["provenance"]
+    assert summary["S1"] == pytest.approx(summary["before"]["S1"] * k[(0.0, 0.0)] / k[(2.0, 0.0)], rel=1e-4)
+    prov = json.loads((tmp_path / "o" / "correct.json").read_text())["provenance"]
     assert prov["backend"] == "quadrature" and prov["settings"]["rtol"] == 1e-4 and prov["versions"]["numpy"]
+
+
+@pytest.mark.system
+def test_cli_several_files_json_list(tmp_path):
+    t = sub_table(bundled_table("R3"), [(0.0, 0.0), (0.0, 2.0), (0.25, 0.0), (0.25, 2.0), (2.0, 0.0), (12.0, 0.0)])
+    a = t.with_values(t.r, name="a").write_csv(tmp_path / "a.csv")
+    b = t.with_values(t.r * 1.1, name="b").write_csv(tmp_path / "b.csv")
+    p = _run("--measured", str(a), str(b), "--instrument", "portable", "--reference", "lambert", "--alternatives",
+             "none", "--backend", "quadrature", "--accuracy", "fast", "--out", str(tmp_path / "o"), "--json",
+             "--no-plots")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert [s["out"] for s in out] == [str(tmp_path / "o" / "a"), str(tmp_path / "o" / "b")]
+    assert out[1]["S1"] == pytest.approx(out[0]["S1"], rel=1e-9) and out[1]["Q0"] > out[0]["Q0"]
+    for s in out:            # a Lambertian reference: k_A = 1, nothing changes
+        assert s["k_a_min"] == pytest.approx(1.0, abs=1e-9) and s["k_a_max"] == pytest.approx(1.0, abs=1e-9)

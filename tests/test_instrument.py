@@ -178,13 +178,14 @@ def test_instrument_dict_round_trip(alpha, dist, pupil, field_deg, focus):
     ("[instrument]\nnmae = \"x\"\n", "instrument"),
     ("[calibration]\nmode = \"lamber\"\n", "calibration.mode"),
     ("[calibration]\nmode = \"reference\"\n", "calibration.reference"),
-    ("[calibration]\nmode = \"absolute\"\n", "calibration.mode"),
+    ("[calibration]\nmode = \"absolute\"\n", None),            # computed (roadgonio.engines.calibration)
+    ("[calibration]\nmode = \"absolute\"\nreference = \"R3\"\n", "calibration.reference"),
     ("[scene]\n", None),
     ("[calibration]\nmode = \"lambert\"\n", None),
 ])
 def test_sections_are_checked(tmp_path, extra, field):
-    """An unknown section or key is an error (a typo must not change the instrument); a calibration
-    mode the engines do not compute is refused rather than computed as Lambert."""
+    """An unknown section or key is an error (a typo must not change the instrument), and so is a
+    calibration that is not one of DESIGN.md section 5."""
     p = write(tmp_path, GOOD + extra)
     if field is None:
         Instrument.load(p)

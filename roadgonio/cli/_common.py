@@ -6,6 +6,14 @@ import sys
 from roadgonio.engines.accuracy import rel_se_setting  # noqa: F401 - the commands' --rel-se mapping
 
 
+def check_seed(value: int, option: str = "--seed") -> int:
+    """A random seed must be >= 0 (numpy's SeedSequence takes none below)."""
+    from roadgonio.errors import InputError
+    if value is None or int(value) < 0:
+        raise InputError(f"expected a seed >= 0, got {value}", field=option)
+    return int(value)
+
+
 INSTRUMENT_HELP = ("instrument TOML file (keys and units: docs/conventions.md section 4; apertures are radii) or a "
                    "bundled preset name (lab, portable)")
 SAMPLE_HELP = ("bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file (.csv/.rtb), "

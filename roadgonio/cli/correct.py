@@ -1,13 +1,16 @@
-"""``roadgonio correct``: divide a measured r-table by k_A of a reference model, with the
-uncertainty of the correction (backend error and reference-model dependence)."""
+"""``roadgonio correct``: correct measured r-tables for the aperture effect, with one uncertainty of
+the corrected table (roadgonio.correction)."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 from roadgonio.errors import InputError
+from roadgonio.engines.accuracy import PRESETS
 from roadgonio.surface.model import VARIANTS
 from roadgonio.cli._common import (
     add_instrument_argument,
+    check_seed,
     add_output_options,
     rel_se_setting,
     select_variant,
@@ -15,77 +18,140 @@ from roadgonio.cli._common import (
     text_output,
 )
 
+BACKENDS = ["mitsuba", "quadrature", "numpy-mc"]
+
 
 def register(sub) -> None:
     p = sub.add_parser(
-        "correct", help="correct a measured r-table for the aperture effect (r / k_A of a reference model)",
-        description="Divide a measured r-table (CSV or DIALux RTB, standard grid) by k_A computed for a reference "
-                    "BRDF model close to the sample, and state the uncertainty of that correction: the backend's "
-                    "error of k_A and how much k_A changes when the reference changes (by default the two CIE "
-                    "standard tables nearest to the measured table in S1/Q0; u_model = largest deviation / sqrt 3). "
-                    "Writes the corrected table (CSV and RTB), per-cell CSV, JSON with provenance and a "
-                    "before/after plot.")
-    p.add_argument("--measured", required=True, metavar="FILE", help="measured r-table (.csv or .rtb, r x 1e4)")
+        "correct", help="correct measured r-tables for the aperture effect, with the uncertainty of the result",
+        description="Correct a measured r-table (CSV or DIALux RTB, standard grid) for the aperture effect of the "
+                    "instrument that measured it: corrected r = measured r / k_A. With --reference self (the "
+                    "default) the road BRDF model is fitted THROUGH the instrument (the parameters whose simulated "
+                    "measurement, ideal r times k_A under the instrument's [calibration], best matches the table "
+                    "weighted by its uncertainty), and k_A of that model is computed with --backend; the measured "
+                    "detail is kept, the model gives only the factor. With --reference SAMPLE k_A is that of a given "
+                    "reference (paper section 4.1). One standard uncertainty per corrected cell, with correlations: "
+                    "the measurement's (--u-measured), the backend's, the fitted parameters', the model variant's "
+                    "(power vs smooth) and the instrument's misalignment (--sigma). Reports S1, S2, Q0 before and "
+                    "after with their uncertainties and the CIE class. Writes corrected.csv, corrected_u.csv, "
+                    "corrected.rtb, correct.json, correct_cells.csv, corrected_corr.csv, before_after.png and "
+                    "correction_map.png (one sub-folder per file when several are given); the k_A tables are "
+                    "journalled and an interrupted run resumes.")
+    p.add_argument("--measured", required=True, nargs="+", metavar="FILE",
+                   help="measured r-table(s) (.csv or .rtb, r x 1e4); several files share the instrument's work")
     add_instrument_argument(p)
-    p.add_argument("--reference", required=True, metavar="SAMPLE",
-                   help="reference sample: bundled table (R1..R4, C1, C2, fitted on the fly), r-table file, model.json")
+    p.add_argument("--reference", default="self", metavar="self|SAMPLE",
+                   help="self (default): fit the model through the instrument; or a reference SAMPLE (bundled table "
+                        "R1..R4, C1, C2 fitted on the fly, an r-table file, a model.json, lambert)")
     p.add_argument("--alternatives", default="auto", metavar="LIST",
-                   help="alternative references for the model uncertainty: 'auto' (default: the two nearest CIE "
-                        "tables by S1/Q0), 'none', or a comma-separated list of SAMPLEs")
-    p.add_argument("--model-variant", choices=list(VARIANTS), help="model variant when fitting a table")
-    p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature"],
-                   help="k_A backend (default mitsuba)")
+                   help="with --reference SAMPLE: alternative references for the model dependence, 'auto' (default: "
+                        "the two CIE tables nearest to the measured one by S1/Q0), 'none', or SAMPLEs separated by commas")
+    p.add_argument("--u-measured", default=None, metavar="U",
+                   help="standard uncertainty of the measured values: relative ('1%%' or 0.01, independent cells) or "
+                        "an r-table file (CSV/RTB, r x 1e4) of per-cell standard uncertainties; default 1%% (said in "
+                        "the output: give your own)")
+    p.add_argument("--sigma", metavar="SPEC",
+                   help="the instrument's misalignment, as for `roadgonio uncertainty` (e.g. 'alpha_deg=0.01,"
+                        "eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02', or a TOML file); default: not included")
+    p.add_argument("--model-variant", choices=["auto"] + list(VARIANTS), default=None,
+                   help="model variant fitted: auto (default with --reference self: power and smooth, the better "
+                        "fit is used and the other measures the model dependence), or one variant")
+    p.add_argument("--backend", default="mitsuba", choices=BACKENDS,
+                   help="k_A backend of the reported factor (default mitsuba; quadrature: deterministic float64)")
+    p.add_argument("--accuracy", choices=list(PRESETS), help="accuracy preset of the backend (as for `roadgonio ka`)")
     p.add_argument("--rel-se", type=float, metavar="E",
-                   help="target relative SE (mitsuba, default 1e-3) or relative tolerance (quadrature, default 1e-4)")
-    p.add_argument("--seed", type=int, default=0, help="random seed of the mitsuba backend")
-    p.add_argument("--out", metavar="DIR", help="output folder (default out/correct-MEASURED)")
-    p.add_argument("--no-plots", action="store_true", help="do not draw the before/after picture")
-    add_output_options(p, "print the summary as JSON")
+                   help="target relative SE (Monte Carlo backends) or relative tolerance (quadrature)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (backends and ray bundles)")
+    p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb)")
+    p.add_argument("--rays", type=int, default=512, metavar="N",
+                   help="rays per cell of the fit's forward model (power of two times 4; default 512)")
+    p.add_argument("--out", metavar="DIR", help="output folder (default out/correct-NAME)")
+    p.add_argument("--no-plots", action="store_true", help="do not draw the pictures")
+    add_output_options(p, "print the summary as JSON (a list for several files)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    from roadgonio.correction import correct_table, resolve_alternatives, sample_name, write_correction
+    from roadgonio.correction import correct_files
+    from roadgonio.correction.run import check_measured
     from roadgonio.fileio import to_json
     from roadgonio.instrument.config import load_instrument
     from roadgonio.surface.rtable import read_table
-    from roadgonio.uncertainty import resolve_sample_spec
 
-    try:
-        measured = read_table(args.measured)
-    except InputError as err:
-        raise InputError(f"--measured: {err.reason}", path=err.path, line=err.line, field=err.field) from None
+    tables = []
+    for f in args.measured:
+        try:
+            tables.append(read_table(f))
+        except InputError as err:
+            raise InputError(f"--measured: {err.reason}", path=err.path, line=err.line, field=err.field) from None
+        check_measured(tables[-1], f)
+    check_seed(args.seed)
+    instrument = load_instrument(args.instrument)
+    self_ref = args.reference.strip().lower() == "self"
+    if args.model_variant == "auto" and not self_ref:
+        raise InputError("--model-variant auto is for --reference self; give one variant for fitting a reference table",
+                         field="--model-variant")
+    if args.rays < 8:
+        raise InputError(f"expected at least 8 rays per cell, got {args.rays}", field="--rays")
     settings: dict = {}
     if args.rel_se is not None:
         settings.update(rel_se_setting(args.backend, args.rel_se))
-    if args.backend == "mitsuba":
+    if args.backend in ("mitsuba", "numpy-mc"):
         settings["seed"] = args.seed
-    for key in ("0,0", "2,0"):
-        t, b = (float(v) for v in key.split(","))
-        if not measured.mask[int((abs(measured.tan_eps - t) < 1e-9).argmax()), int((abs(measured.beta_deg - b) < 1e-9).argmax())]:
-            raise InputError(f"the measured table has no value at tan eps = {t:g}, beta = {b:g} (needed for S1)",
-                             path=args.measured)
-    instrument = load_instrument(args.instrument)
-    reference = resolve_sample_spec(args.reference, args.model_variant)
-    select_variant(args.backend)
-    ref_name = sample_name(args.reference)
-    alternatives = resolve_alternatives(args.alternatives, measured, reference_name=ref_name,
-                                        model_variant=args.model_variant)
-    c = correct_table(measured, instrument, reference, reference_name=ref_name, alternatives=alternatives,
-                      backend=args.backend, backend_settings=settings, progress=show_progress(args))
-    c.provenance["measured_file"] = str(args.measured)
-    out = Path(args.out) if args.out else Path("out") / f"correct-{measured.name}"
-    written = write_correction(c, out, plots=not args.no_plots)
-    s = c.summary()
-    if args.json:
-        print(to_json({**s, "written": [str(p) for p in written]}))
+    if args.backend == "mitsuba" and args.variant:
+        settings["variant"] = args.variant
+    select_variant(args.backend, args.variant)
+    u_measured = args.u_measured if args.u_measured is not None else "1%"
+    options = dict(u_measured=u_measured, sigma=args.sigma, backend=args.backend, backend_settings=settings,
+                   accuracy=args.accuracy, model_variant=args.model_variant, seed=args.seed,
+                   progress=show_progress(args))
+    if self_ref:
+        options["rays"] = args.rays
     else:
-        say = text_output(args)
-        say(f"{measured.name}: {s['cells']} cells corrected with k_A of {ref_name} "
-            f"(k_A {s['k_a_min']:.3g} ... {s['k_a_max']:.3g})")
-        say(f"  S1 {s['S1_before']:.4g} -> {s['S1_after']:.4g}, Q0 {s['Q0_before']:.4g} -> {s['Q0_after']:.4g}")
-        alts = ", ".join(f"{n} (max dev {100 * v['max_rel_dev']:.2g} %)" for n, v in s["alternatives"].items()) or "none"
-        say(f"  correction uncertainty u_rel: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} %; "
-            f"backend error max {100 * s['backend_rel_se_max']:.2g} %; alternative references: {alts}")
-        say(f"wrote {len(written)} files to {out}")
+        options["alternatives"] = args.alternatives
+    default_out = Path("out") / (f"correct-{tables[0].name}" if len(tables) == 1 else "correct")
+    out = Path(args.out) if args.out else default_out
+    done = correct_files(tables, instrument, out, plots=not args.no_plots, reference=args.reference, **options)
+    summaries = []
+    for (res, folder, written), f in zip(done, args.measured):
+        res.provenance["measured_file"] = str(f)
+        s = _json_summary(res, folder)
+        s["written"] = [str(p) for p in written]
+        summaries.append(s)
+    if args.json:
+        print(to_json(summaries[0] if len(summaries) == 1 else summaries))
+        return 0
+    say = text_output(args)
+    if args.u_measured is None:
+        say("note: no --u-measured given; the measurement's standard uncertainty was taken as 1 % of each value")
+    for s in summaries:
+        b = s["before"]
+        say(f"{s['measured']}: {s['cells']} cells corrected (reference {s['reference']}, calibration "
+            f"{s['calibration']}; k_A {s['k_a_min']:.3g} ... {s['k_a_max']:.3g})")
+        say(f"  before: S1 {_pm(b['S1'], b['u_S1'])}, Q0 {_pm(b['Q0'], b['u_Q0'])}, S2 {_pm(b['S2'], b['u_S2'])}: "
+            f"{b['class_R']} / {b['class_C']}, nearest CIE table {b['nearest_table']}")
+        say(f"  after:  S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
+            f"{s['class_R']} / {s['class_C']}, nearest CIE table {s['nearest_table']}")
+        comps = ", ".join(f"{k} {100 * v['u_rel_max']:.2g} %" for k, v in s["budget"].items() if k != "total")
+        say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} % "
+            f"(largest per component: {comps}); {s['seconds']:.1f} s")
+        say(f"  wrote {len(s['written'])} files to {s['out']}")
     return 0
+
+
+def _pm(v, u) -> str:
+    if u is None or not math.isfinite(u):
+        return f"{v:.4g}"
+    return f"{v:.4g} +- {u:.2g}"
+
+
+def _json_summary(res, folder: Path) -> dict:
+    s = res.summary()
+    keep = ("measured", "reference", "calibration", "cells", "S1", "u_S1", "Q0", "u_Q0", "S2", "u_S2", "class_R",
+            "class_C", "nearest_table", "k_a_min", "k_a_max", "u_rel_median", "u_rel_max", "before", "budget",
+            "seconds")
+    out = {k: s[k] for k in keep}
+    if "fit" in s:
+        out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio")}
+    out["out"] = str(folder)
+    return out

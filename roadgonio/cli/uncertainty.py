@@ -11,6 +11,7 @@ from roadgonio.cli._common import (
     add_instrument_argument,
     add_output_options,
     add_sample_argument,
+    check_seed,
     rel_se_setting,
     select_variant,
     show_progress,
@@ -88,7 +89,8 @@ def register(sub) -> None:
     p.add_argument("--out", metavar="DIR", help="output folder (default out/uncertainty-INSTRUMENT-SAMPLE)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the PNG pictures")
     add_output_options(p, "print the summary as JSON instead of text")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, on_interrupt="interrupted: nothing was written; an uncertainty run keeps no partial "
+                                        "results and starts over when run again")
 
 
 def run(args) -> int:
@@ -103,6 +105,7 @@ def run(args) -> int:
         write_results,
     )
     spec = parse_sigma_spec(args.sigma, option="--sigma")
+    check_seed(args.seed)
     if not (0.5 < args.coverage < 1.0):
         raise InputError(f"expected a coverage probability between 0.5 and 1, got {args.coverage:g}", field="--coverage")
     if args.validation < 0:

@@ -118,6 +118,8 @@ BACKENDS: dict[str, str] = {
     "mitsuba": "roadgonio.engines.mitsuba.backend:make_backend",
     "quadrature": "roadgonio.engines.quadrature:make_backend",
     "numpy-mc": "roadgonio.engines.montecarlo:make_backend",
+    "reference": "roadgonio.engines.reference:make_backend",
+    "numpy-mc-mesh": "roadgonio.engines.meshmc:make_backend",
 }
 
 
@@ -127,6 +129,8 @@ def make_backend(name: str, instrument: Instrument, model: RoadModel, *, accurac
 
     ``accuracy`` (``"fast"``, ``"default"``, ``"precise"``) applies the preset of
     :mod:`roadgonio.engines.accuracy` for this backend; explicit ``settings`` override it.
+    The backend returns k_A in the instrument's ``[calibration]`` mode
+    (:mod:`roadgonio.engines.calibration`; Lambert: the backend itself).
     """
     import importlib
 
@@ -143,7 +147,9 @@ def make_backend(name: str, instrument: Instrument, model: RoadModel, *, accurac
         if err.name and err.name.startswith("roadgonio"):
             raise InputError(f"backend {name!r} is not available in this version", field="--backend") from None
         raise
-    return getattr(mod, func)(instrument, model, **settings)
+    factory = getattr(mod, func)
+    from roadgonio.engines.calibration import calibrated   # the instrument's [calibration] mode (DESIGN 5)
+    return calibrated(lambda inst, m: factory(inst, m, **settings), instrument, model)
 
 
 def full_grid_cells() -> list[tuple[float, float]]:

@@ -69,9 +69,9 @@ def preset(name: str, backend: str) -> dict[str, Any]:
 
 def rel_se_setting(backend: str, value: float, field: str = "--rel-se") -> dict[str, float]:
     """The backend keyword for one relative precision target: a relative tolerance ``rtol`` for the
-    quadrature, a target relative standard error ``rel_se`` for the Monte Carlo backends. Checks
+    quadrature and the RQMC reference (its target error bound), a target relative standard error ``rel_se`` for the Monte Carlo backends. Checks
     0 < value < 1 (errors name ``field``: the option or the API argument)."""
     if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
             and 0 < value < 1):
         raise InputError(f"expected a relative error in (0, 1), got {value}", field=field)
-    return {"rtol" if backend == "quadrature" else "rel_se": float(value)}
+    return {"rtol" if backend in ("quadrature", "reference") else "rel_se": float(value)}

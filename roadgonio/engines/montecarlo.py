@@ -64,16 +64,17 @@ class MonteCarloBackend(CellByCellBackend):
             raise InputError(f"expected a number, got {rel_se!r}", field="rel_se") from None
         if not (0.0 < rel_se < 1.0):
             raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
+        if isinstance(seed, bool) or int(seed) != seed or int(seed) < 0:
+            raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
         m = int(round(math.sqrt(int(batch))))
         if m < 2:
             raise InputError(f"expected a batch of at least 4 samples, got {batch}", field="batch")
         if int(min_batches) < 2:
             raise InputError(f"expected at least 2 batches (for a standard error), got {min_batches}",
                              field="min_batches")
-        if instrument.sample.mesh is not None:
-            raise InputError("the numpy Monte Carlo backend integrates over a flat rectangular sample only; for "
-                             "a mesh sample use the mitsuba backend (--backend mitsuba)", path=instrument.path,
-                             field="sample.mesh")
+        # refuse what this backend does not model (an XML scene's extra parts, a mesh sample)
+        from roadgonio.engines.reference import check_numpy_scene
+        check_numpy_scene(instrument, "numpy-mc")
         optics.check_detector(instrument)
         self.instrument = instrument
         self.model = model
@@ -155,6 +156,8 @@ class MonteCarloBackend(CellByCellBackend):
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
         optics.check_source(self.instrument, tan_eps, beta_deg)
+        from roadgonio.engines.reference import check_line_of_sight
+        check_line_of_sight(self.instrument, tan_eps, beta_deg)
         ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
         if not (ideal > 0.0 and math.isfinite(ideal)):
             raise GeometryError(f"the model is {ideal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "

@@ -42,6 +42,7 @@ import numpy as np
 
 from roadgonio.errors import InputError
 from roadgonio.geometry import w_detector, w_source
+from roadgonio.instrument.calibration import Calibration
 
 _INF_WORDS = ("inf", "+inf", "infinity")
 
@@ -198,26 +199,9 @@ class Sample:
 
 _SECTIONS = ("observation", "source", "detector", "sample", "instrument")
 #: Sections kept as they are for the parts that read them: [scene] (the Mitsuba XML scene,
-#: roadgonio.engines.mitsuba.scene) and [calibration] (docs/conventions.md section 5).
-EXTRA_SECTIONS = ("scene", "calibration")
-#: Calibration modes of docs/conventions.md section 5, and those the k_A engines compute today.
-CALIBRATION_MODES = ("lambert", "absolute", "reference")
-COMPUTED_CALIBRATION_MODES = ("lambert",)
-
-
-def _check_calibration(cal: Mapping[str, Any]) -> None:
-    """[calibration]: a known mode, a reference only with mode "reference"; refuse a mode the k_A
-    engines do not compute yet rather than silently computing k_A of another calibration."""
-    _check_keys(cal, {"mode", "reference"}, "calibration", None)
-    mode = cal.get("mode", "lambert")
-    if mode not in CALIBRATION_MODES:
-        raise InputError(f"expected one of {', '.join(CALIBRATION_MODES)}, got {mode!r}", field="calibration.mode")
-    if (mode == "reference") != ("reference" in cal):
-        raise InputError("give reference = SAMPLE exactly when mode = \"reference\"", field="calibration.reference")
-    if mode not in COMPUTED_CALIBRATION_MODES:
-        raise InputError(f"calibration mode {mode!r} is not computed by this version (only "
-                         f"{', '.join(COMPUTED_CALIBRATION_MODES)}); k_A would silently be that of a Lambert "
-                         "calibration", field="calibration.mode")
+#: roadgonio.engines.mitsuba.scene). [calibration] (docs/conventions.md section 5) is the field
+#: ``calibration`` (roadgonio.instrument.calibration; k_A in its mode: roadgonio.engines.calibration).
+EXTRA_SECTIONS = ("scene",)
 
 
 @dataclass(frozen=True)
@@ -229,6 +213,8 @@ class Instrument:
     name: str = "instrument"
     description: str = ""
     path: Path | None = None
+    #: How a signal becomes q: [calibration] (DESIGN.md section 5; roadgonio.instrument.calibration).
+    calibration: Calibration = field(default_factory=Calibration)
     #: Extra sections not interpreted here (kept for backends and provenance).
     extra: Mapping[str, Any] = field(default_factory=dict)
 
@@ -241,9 +227,11 @@ class Instrument:
             raise InputError("expected text for the name and the description", field="instrument")
         if self.path is not None:
             object.__setattr__(self, "path", Path(self.path))
+        if not isinstance(self.calibration, Calibration):
+            raise InputError(f"expected a Calibration, got {type(self.calibration).__name__}", field="calibration")
         if not isinstance(self.extra, Mapping):
             raise InputError(f"expected a mapping of extra sections, got {self.extra!r}", field="extra")
-        clash = sorted(set(self.extra) & set(_SECTIONS))
+        clash = sorted(set(self.extra) & set(_SECTIONS + ("calibration",)))
         if clash:
             raise InputError(f"section(s) {', '.join(clash)} are fields of the instrument, not extra sections",
                              field="extra")
@@ -288,6 +276,8 @@ class Instrument:
         smp = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self.sample).items() if v is not None}
         d = {"instrument": {"name": self.name, "description": self.description},
              "observation": asdict(self.observation), "source": src, "detector": det, "sample": smp}
+        if not self.calibration.is_default:   # the default is left out, so Lambert fingerprints do not change
+            d["calibration"] = self.calibration.to_dict()
         d.update({k: dict(v) if isinstance(v, Mapping) else v for k, v in self.extra.items()})
         return d
 
@@ -340,18 +330,17 @@ class Instrument:
         meta = d.get("instrument", {})
         _check_keys(meta, {"name", "description"}, "instrument", None)
         name = str(meta.get("name", path.stem if path is not None else "instrument"))
-        extra = {k: v for k, v in d.items() if k not in _SECTIONS}
+        calibration = Calibration.from_dict(d.get("calibration", {}), path=path)
+        extra = {k: v for k, v in d.items() if k not in _SECTIONS and k != "calibration"}
         unknown = sorted(set(extra) - set(EXTRA_SECTIONS))
         if unknown:
             raise InputError(f"unknown section(s) [{'], ['.join(unknown)}]; expected some of "
-                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS)}]", field=unknown[0])
+                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS + ('calibration',))}]", field=unknown[0])
         for sec in EXTRA_SECTIONS:
             if sec in extra and not isinstance(extra[sec], Mapping):
                 raise InputError(f"expected a table [{sec}]", field=sec)
-        if "calibration" in extra:
-            _check_calibration(extra["calibration"])
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
-                   description=str(meta.get("description", "")), path=path, extra=extra)
+                   description=str(meta.get("description", "")), path=path, calibration=calibration, extra=extra)
 
     @classmethod
     def load(cls, path: str | Path) -> "Instrument":

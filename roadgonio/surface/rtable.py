@@ -56,6 +56,9 @@ from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 
 #: Scale of r in files (published tables store r x 10^4).
 R_SCALE = 1e4
+#: The largest r accepted from a table file (sr^-1): 125 times the largest CIE value (C1: 0.077), so a
+#: table in the wrong scale or an exponent typo (1e300) is an error, not a fit to nonsense.
+R_MAX_PLAUSIBLE = 10.0
 BUNDLED = ("R1", "R2", "R3", "R4", "C1", "C2")
 #: Published CIE values (DESIGN.md section 2).
 PUBLISHED_S1 = {"R1": 0.25, "R2": 0.58, "R3": 1.11, "R4": 1.55, "C1": 0.24, "C2": 0.97}
@@ -264,6 +267,10 @@ def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = Non
             if v < 0:
                 raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: r must be >= 0, got {c}",
                                  path=path, line=lineno)
+            if v / R_SCALE > R_MAX_PLAUSIBLE:
+                raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: r x 1e4 = {c} is not a plausible road value "
+                                 f"(expected r x 1e4 <= {R_MAX_PLAUSIBLE * R_SCALE:.0f}; the CIE tables peak "
+                                 "below 800): a typo, or a table not written as r x 1e4?", path=path, line=lineno)
             r[i, j] = v / R_SCALE
     if not np.isfinite(r).any():
         raise InputError("the table has no values (every cell is blank)", path=path)

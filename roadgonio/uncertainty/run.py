@@ -18,7 +18,7 @@ from roadgonio.uncertainty.surrogate import DESIGNS, N_COORDS, KaSurrogate, desi
 from roadgonio.uncertainty.cells import CellSet
 from roadgonio.uncertainty.gum import gum_propagation, gum_validation
 from roadgonio.uncertainty.measurement import MeasurementModel
-from roadgonio.uncertainty.spec import INPUTS, SigmaSpec
+from roadgonio.uncertainty.spec import INPUTS, SigmaSpec, check_spec_geometry, check_trials
 from roadgonio.uncertainty.statistics import numerical_tolerance, summarize
 
 # ----------------------------------------------------------------------------------------------
@@ -54,13 +54,14 @@ class SurrogateReport:
     rel_err_rms: np.ndarray
     backend_rel_se_max: float    # largest relative standard uncertainty of the backend (SE, or bound/sqrt 3)
     settings: dict[str, Any]
+    not_converged: int = 0       # exact evaluations that stopped at the backend's cap before its target
 
     def summary(self, u_rel: np.ndarray | None = None) -> dict[str, Any]:
         d = {"design": self.surrogate.kind, "design_points": self.design_points, "validation_trials": self.validation_trials,
              "exact_evaluations": self.exact_evaluations, "seconds": self.seconds,
              "rel_err_max": float(np.max(self.rel_err_max)) if self.rel_err_max.size else 0.0,
              "rel_err_rms": float(math.sqrt(np.mean(self.rel_err_rms ** 2))) if self.rel_err_rms.size else 0.0,
-             "backend_rel_se_max": self.backend_rel_se_max,
+             "backend_rel_se_max": self.backend_rel_se_max, "not_converged": self.not_converged,
              "fit_rms_log_max": float(np.max(self.surrogate.fit_rms_log)),
              "coordinate_scales": dict(zip(("alpha_loc_deg", "src_eps_offset_deg", "src_phi_offset_deg",
                                             "source_distance_m", "detector_distance_m"),
@@ -109,7 +110,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=total, desc="exact k_A (surrogate design)", unit="cell", leave=False)
+        bar = tqdm(total=total, desc="exact k_A (surrogate design)", unit="cell", leave=False, disable=None)
 
     settings_seen: dict[str, Any] = {}
 
@@ -137,6 +138,13 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
             exact = _exact_here(jobs, mm.model, factory, bar, settings_seen)
         else:
             exact = _exact_on_dask(jobs, mm.model, client, task_backend, bar, settings_seen, factory)
+        not_converged = [int(settings_seen.pop("_not_converged", 0))]
+        for (inst, _cells), (ka, _se) in zip(jobs, exact):
+            if not np.all(np.isfinite(ka)):
+                from roadgonio.errors import RoadgonioError
+                raise RoadgonioError(f"the k_A backend returned a non-finite value at alpha = "
+                                     f"{inst.observation.alpha_deg:.4g} deg, source distance {inst.source.distance_m:.4g} m, "
+                                     f"detector distance {inst.detector.distance_m:.4g} m")
         ka_design = np.array([exact[k][0] for k in range(len(pts))]).reshape(len(pts), n)
         rel_se = max([float(np.max(se / np.abs(ka))) for ka, se in exact] or [0.0])
         # cells on the mirror plane: k_A is even in the azimuthal offset, with a kink (surrogate docstring)
@@ -156,7 +164,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
         exact_evaluations=(len(pts) + len(Xv)) * n, seconds=time.perf_counter() - t0,
         rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else np.zeros(n),
         rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else np.zeros(n),
-        backend_rel_se_max=rel_se, settings=settings)
+        backend_rel_se_max=rel_se, settings=settings, not_converged=not_converged[0])
 
 
 def _exact_here(jobs, model: RoadModel, factory: BackendFactory, bar, settings_seen: dict,
@@ -179,6 +187,7 @@ def _exact_here(jobs, model: RoadModel, factory: BackendFactory, bar, settings_s
         res = backend.compute(cells, on_cell=(lambda _r: bar.update(1)) if bar is not None else None)
         if replay and "plan" not in plan_seen and getattr(backend, "last_plan", None) is not None:
             plan_seen["plan"] = backend.last_plan
+        settings_seen["_not_converged"] = settings_seen.get("_not_converged", 0) + sum(not c.converged for c in res)
         out.append((np.array([c.k_a for c in res]), np.array([c.standard_uncertainty() for c in res])))
     return out
 
@@ -217,8 +226,9 @@ def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, settings_s
             err = {"GeometryError": GeometryError, "InputError": InputError,
                    "BackendError": BackendError}.get(r.error_kind or "", RoadgonioError)
             raise err(r.error)
-        if not settings_seen and r.settings:
+        if r.settings and not (set(settings_seen) - {"_not_converged"}):
             settings_seen.update(r.settings)
+        settings_seen["_not_converged"] = settings_seen.get("_not_converged", 0) + sum(not c.converged for c in r.cells)
         out.append((np.array([c.k_a for c in r.cells]), np.array([c.standard_uncertainty() for c in r.cells])))
     return out
 
@@ -348,6 +358,8 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     if aperture and instrument.is_ideal():
         notes.append("ideal instrument (point source, single-ray detector): k_A = 1, aperture case skipped")
         aperture = False
+    # the SPEC against the geometry, before any work (and every trial below as it is drawn)
+    check_spec_geometry(spec, mm, aperture=aperture)
     if aperture:
         factory = backend_factory or default_backend_factory(backend, backend_settings or {})
         distributed = client is not None or scheduler is not None or workers not in (None, 0)
@@ -376,10 +388,12 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=None if adaptive else trials, desc="Monte Carlo trials", unit="trial", leave=False)
+        bar = tqdm(total=None if adaptive else trials, desc="Monte Carlo trials", unit="trial", leave=False,
+                   disable=None)
     try:
         if not adaptive:
             X = spec.draw(rng, trials)
+            check_trials(spec, mm, X)
             Y0, Y1 = ev(X, bar)
         else:
             Mb = int(batch) if batch else max(int(math.ceil(100.0 / (1.0 - coverage))), 10_000)
@@ -390,6 +404,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
             converged = False
             while True:
                 X = spec.draw(rng, Mb)
+                check_trials(spec, mm, X, first_index=h * Mb)
                 y0, y1 = ev(X, bar)
                 blocks0.append(y0)
                 per_batch["0"].append(_batch_stats(y0, coverage))
@@ -418,6 +433,9 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
             bar.close()
     timings["monte_carlo"] = time.perf_counter() - t
     M = Y0.shape[1]
+    for name, Y in (("without the aperture effect", Y0), ("with the aperture effect", Y1)):
+        if Y is not None:
+            _check_finite(Y, mm, name)
 
     t = time.perf_counter()
     cases: dict[str, CaseResult] = {}
@@ -441,6 +459,21 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     return UncertaintyResult(cells=cs, cases=cases, trials=M, seed=int(seed), spec=spec, coverage=coverage,
                              n_dig=n_dig, adaptive=adaptive_info, surrogate=sur_report, provenance=prov,
                              seconds=timings)
+
+
+def _check_finite(Y: np.ndarray, mm: MeasurementModel, case: str) -> None:
+    """Never a NaN statistic: an output that is not finite in some trial is an error naming it."""
+    from roadgonio.errors import RoadgonioError
+    bad_rows = np.nonzero(~np.all(np.isfinite(Y), axis=1))[0]
+    if bad_rows.size == 0:
+        return
+    n = len(mm.cells)
+    i = int(bad_rows[0])
+    what = ("Q0" if i == n else "S1 (r(2, 0) / r(0, 0))" if i == n + 1 else
+            f"r at tan eps = {mm.cells.tan_eps[i]:g}, beta = {mm.cells.beta_deg[i]:g}")
+    k = int(np.sum(~np.isfinite(Y[i])))
+    raise RoadgonioError(f"{what} is not finite in {k} of {Y.shape[1]} trials {case} (e.g. r(0, 0) = 0 makes S1 "
+                         "undefined): no statistics are written; check the sample model and the SPEC")
 
 
 def _batch_stats(Y: np.ndarray, p: float) -> dict[str, np.ndarray]:

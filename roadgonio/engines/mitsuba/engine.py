@@ -31,7 +31,7 @@ from roadgonio.engines.mitsuba import lattice as lat
 from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strata, covariance, relative
 from roadgonio.engines.mitsuba.scene import (SOURCE_NEAR_SIGHT_DEG, RoadScene, check_beam, source_radiance)
 from roadgonio.instrument.config import Instrument
-from roadgonio.instrument.optics import check_source, detector_geometry, source_geometry
+from roadgonio.instrument.optics import check_source, detector_geometry
 
 #: Largest number of detector rays traced (and stored: 13 floats each) per launch.
 MAX_RAYS = 1 << 21

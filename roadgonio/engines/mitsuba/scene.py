@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from roadgonio.engines.mitsuba import require_variant
-from roadgonio.errors import BackendError, InputError
+from roadgonio.errors import BackendError, GeometryError, InputError
 from roadgonio.instrument.config import Detector, Instrument, Observation
 from roadgonio.instrument.mesh import sample_trimesh
 from roadgonio.instrument.optics import (
@@ -204,6 +204,16 @@ class RoadScene:
         si = self.scene.ray_intersect(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)))
         # opaque: the shape pointer as a literal would make every new scene compile its own kernel
         on_sample = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
+        src_shape = next((s for s in self.scene.shapes() if s.id() == SOURCE_ID), None)
+        if src_shape is not None:
+            # the source disc in the line of sight is its own error, with the cell (not "enlarge the sample")
+            on_src = np.array(si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, src_shape)), dtype=bool)
+            if on_src.any():
+                cell = f" at tan eps = {self.cell[0]:g}, beta = {self.cell[1]:g}" if self.cell is not None else ""
+                raise GeometryError(
+                    f"the source disc blocks the detector's line of sight{cell}: {int(on_src.sum())} of "
+                    f"{on_src.size} detector rays hit the source before the sample (the source sits between "
+                    "the detector and its footprint); this cell cannot be measured with this geometry")
         return judge_hits(np.array(on_sample, dtype=bool), np.array(si.is_valid(), dtype=bool),
                           np.array(si.p.x), np.array(si.p.y))
 

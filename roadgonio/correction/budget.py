@@ -1,0 +1,232 @@
+"""The uncertainty of a corrected r-table (JCGM 100: GUM law of propagation, with correlations).
+
+The corrected table is ``r_c = m_c / k_c`` (m the measured r, k the aperture factor k_A under the
+instrument's calibration), so its relative covariance between cells c, d is the sum of the
+relative covariances of m and of k from independent sources::
+
+    C_cd = sum over components  cov( ln x_c, ln x_d )
+
+Components (each a covariance matrix over the measured cells, :class:`Budget`):
+
+* ``measurement``: the measurement's own standard uncertainty (``--u-measured``), independent
+  between cells (diagonal);
+* ``backend``: the k_A backend's standard uncertainty (``CellResult.standard_uncertainty()``:
+  standard error, or bound / sqrt 3), independent between cells;
+* ``parameters``: the fitted model's parameter covariance through the Jacobian of ln k_A
+  (:class:`roadgonio.correction.fit.ThroughFit`), correlated;
+* ``model``: the model dependence of k_A, a rectangular distribution of half-width delta_c = ln k_alt,c
+  - ln k_c (the other model variant, or the largest deviation over alternative references), one
+  underlying choice for the whole table: ``delta delta^T / 3`` (fully correlated);
+* ``misalignment``: the instrument's geometric errors (``--sigma SPEC``), first-order GUM with
+  sensitivities of ln(measured r) by central differences
+  (:func:`roadgonio.uncertainty.gum_propagation`), correlated;
+* ``convergence``: what the fit's last outer step still changed in k_A (rectangular, diagonal).
+
+The measurement noise also enters the fitted parameters; that cross-covariance is left out (it is
+of the order of the number of parameters over the number of cells of the measurement term).
+
+S1, S2 and Q0 (CIE 144) are functions of the table; their standard uncertainties follow from C by
+the same law: Q0 is linear in r (weights of :meth:`roadgonio.surface.rtable.RTable.q0`), S1 and S2
+are ratios.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+from roadgonio.surface.rtable import BUNDLED, RTable, bundled_table
+
+#: CIE 144 classes by S1: R1 < 0.42 <= R2 < 0.85 <= R3 < 1.35 <= R4; C1 < 0.40 <= C2.
+R_CLASS_BOUNDS = (("R1", 0.42), ("R2", 0.85), ("R3", 1.35), ("R4", math.inf))
+C_CLASS_BOUNDS = (("C1", 0.40), ("C2", math.inf))
+COMPONENTS = ("measurement", "backend", "parameters", "model", "misalignment", "convergence")
+
+
+def q0_weights(mask: np.ndarray) -> np.ndarray:
+    """Weights w over the tabulated cells (row-major order of ``mask``) with Q0 = w . r
+    (:meth:`RTable.q0` is linear in r; derived from it, not repeated)."""
+    ii, jj = np.nonzero(mask)
+    w = np.zeros(ii.size)
+    base = np.where(mask, 0.0, np.nan)
+    for k, (i, j) in enumerate(zip(ii, jj)):
+        t = base.copy()
+        t[i, j] = 1.0
+        w[k] = RTable(t).q0()
+    return w
+
+
+def cie_class(s1: float, u_s1: float | None = None) -> dict[str, Any]:
+    """The CIE 144 R and C classes of S1 and, with u(S1), the probability of each class under a
+    normal distribution N(S1, u^2)."""
+    def pick(bounds):
+        for name, hi in bounds:
+            if s1 < hi:
+                return name
+        return bounds[-1][0]
+
+    out: dict[str, Any] = {"R": pick(R_CLASS_BOUNDS), "C": pick(C_CLASS_BOUNDS)}
+    if u_s1 is not None and u_s1 > 0 and math.isfinite(u_s1):
+        from scipy.stats import norm
+        for key, bounds in (("p_R", R_CLASS_BOUNDS), ("p_C", C_CLASS_BOUNDS)):
+            lo, probs = -math.inf, {}
+            for name, hi in bounds:
+                probs[name] = float(norm.cdf(hi, s1, u_s1) - norm.cdf(lo, s1, u_s1))
+                lo = hi
+            out[key] = probs
+    return out
+
+
+def nearest_standard_table(s1: float, q0: float) -> tuple[str, float]:
+    """The bundled CIE table nearest in (S1, Q0), each scaled by its spread over the six tables."""
+    stats = {n: (bundled_table(n).s1(), bundled_table(n).q0()) for n in BUNDLED}
+    s1s = np.array([v[0] for v in stats.values()])
+    q0s = np.array([v[1] for v in stats.values()])
+    d = {n: math.hypot((v[0] - s1) / s1s.std(), (v[1] - q0) / q0s.std()) for n, v in stats.items()}
+    name = min(d, key=d.get)
+    return name, float(d[name])
+
+
+@dataclass
+class Budget:
+    """Relative covariance components over the measured cells (module docstring)."""
+
+    n: int
+    components: dict[str, np.ndarray] = field(default_factory=dict)
+    notes: dict[str, str] = field(default_factory=dict)
+
+    def add(self, name: str, cov_or_u: np.ndarray, note: str = "") -> None:
+        """Add a component: a (n, n) covariance of ln x, or a (n,) vector of relative standard
+        uncertainties of independent cells."""
+        a = np.asarray(cov_or_u, dtype=np.float64)
+        if a.shape == (self.n,):
+            a = np.diag(a * a)
+        if a.shape != (self.n, self.n):
+            raise ValueError(f"component {name}: expected ({self.n},) or ({self.n}, {self.n}), got {a.shape}")
+        self.components[name] = 0.5 * (a + a.T)
+        if note:
+            self.notes[name] = note
+
+    def add_systematic(self, name: str, delta: np.ndarray, note: str = "") -> None:
+        """A rectangular systematic of half-width ``delta`` (relative, per cell), one underlying
+        choice for all cells: delta delta^T / 3."""
+        d = np.asarray(delta, dtype=np.float64)
+        self.add(name, np.outer(d, d) / 3.0, note)
+
+    def total(self) -> np.ndarray:
+        out = np.zeros((self.n, self.n))
+        for c in self.components.values():
+            out = out + c
+        return out
+
+    def u_rel(self, name: str | None = None) -> np.ndarray:
+        c = self.total() if name is None else self.components[name]
+        return np.sqrt(np.maximum(np.diag(c), 0.0))
+
+    def correlation(self) -> np.ndarray:
+        c = self.total()
+        u = np.sqrt(np.maximum(np.diag(c), 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            r = c / np.outer(u, u)
+        r[~np.isfinite(r)] = 0.0
+        np.fill_diagonal(r, 1.0)
+        return r
+
+    def summary(self) -> dict[str, Any]:
+        out = {}
+        for name, c in self.components.items():
+            u = np.sqrt(np.maximum(np.diag(c), 0.0))
+            out[name] = {"u_rel_median": float(np.median(u)), "u_rel_max": float(np.max(u)),
+                         "note": self.notes.get(name, "")}
+        u = self.u_rel()
+        out["total"] = {"u_rel_median": float(np.median(u)), "u_rel_max": float(np.max(u))}
+        return out
+
+
+def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:
+    """S1, S2, Q0 of ``table`` with standard uncertainties from the relative covariance of its
+    tabulated cells (row-major order), and the CIE classes."""
+    mask = table.mask
+    r = table.r[mask]
+    ii, jj = np.nonzero(mask)
+    s1, q0 = table.s1(), table.q0()
+    s2 = q0 / table.value(0.0, 0.0)
+    out: dict[str, Any] = {"S1": s1, "Q0": q0, "S2": s2}
+    if cov_rel is not None:
+        i00 = _cell(table, ii, jj, 0.0, 0.0)
+        i20 = _cell(table, ii, jj, 2.0, 0.0)
+        w = q0_weights(mask)
+        g = w * r / q0                                     # d ln Q0 / d ln r_c
+        var_lnq0 = float(g @ cov_rel @ g)
+        var_lns1 = float(cov_rel[i20, i20] + cov_rel[i00, i00] - 2 * cov_rel[i20, i00])
+        cov_q_00 = float(g @ cov_rel[:, i00])
+        var_lns2 = float(var_lnq0 + cov_rel[i00, i00] - 2 * cov_q_00)
+        out.update(u_S1=s1 * math.sqrt(max(var_lns1, 0.0)), u_Q0=q0 * math.sqrt(max(var_lnq0, 0.0)),
+                   u_S2=s2 * math.sqrt(max(var_lns2, 0.0)))
+    out["class"] = cie_class(s1, out.get("u_S1"))
+    out["nearest_table"], out["nearest_distance"] = nearest_standard_table(s1, q0)
+    return out
+
+
+def _cell(table: RTable, ii, jj, t: float, b: float) -> int:
+    k = np.nonzero((np.abs(table.tan_eps[ii] - t) < 1e-9) & (np.abs(table.beta_deg[jj] - b) < 1e-9))[0]
+    if k.size == 0:
+        from roadgonio.errors import InputError
+        raise InputError(f"the table has no value at tan eps = {t:g}, beta = {b:g} (needed for S1)", field="measured")
+    return int(k[0])
+
+
+def misalignment_covariance(model, instrument, table: RTable, spec, *, illuminance: str = "nominal",
+                            rays: int = 256, seed: int = 0, rel_step: float = 0.5) -> tuple[np.ndarray, dict[str, Any]]:
+    """Relative covariance of the measured r over the table's cells from the instrument's
+    geometric errors ``spec`` (a :class:`roadgonio.uncertainty.SigmaSpec`), first-order GUM.
+
+    The measurement model is :class:`roadgonio.uncertainty.MeasurementModel` (the local angles of
+    a misaligned instrument, the illuminance normalisation), times k_A of the perturbed instrument
+    from ray bundles with common random numbers (:class:`roadgonio.correction.forward.BundleBackend`;
+    the perturbed instrument and its cells exactly as :func:`roadgonio.uncertainty.build_surrogate`
+    builds them). Sensitivities by central differences of ln r at +- ``rel_step`` sigma."""
+    from roadgonio.correction.forward import BundleBackend, RayBundles
+    from roadgonio.uncertainty import CellSet, MeasurementModel, gum_propagation
+    mask = table.mask
+    ii, jj = np.nonzero(mask)
+    cs = CellSet(table.tan_eps[ii].copy(), table.beta_deg[jj].copy(), ii, jj, "measured")
+    mm = MeasurementModel(model, instrument, cs, illuminance)
+    nominal = RayBundles.build(instrument, table.cells, rays=rays, seed=seed)
+    sizes = nominal.rays_per_cell
+
+    def k_of(X: np.ndarray) -> np.ndarray:
+        xv, wr = mm.surrogate_coords(X)
+        out = np.empty((len(X), len(cs)))
+        for t in range(len(X)):
+            inst = mm.instrument.with_changes(
+                observation={"alpha_deg": mm.alpha0 + float(xv[t, 0, 0]), "delta_deg": mm.delta0},
+                source={"distance_m": mm.ds0 + float(X[t, 5])}, detector={"distance_m": mm.dd0 + float(X[t, 6])})
+            be = BundleBackend(inst, model, rays=rays, seed=seed, eta_from_bundle=True,
+                               sizes_of=lambda _cells: sizes)
+            out[t] = [c.k_a for c in be.compute(mm.cells_of(wr[t]))]
+        return out
+
+    def func(X: np.ndarray) -> np.ndarray:
+        X = np.atleast_2d(X)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.log(mm.r_measured(X)) + np.log(k_of(X))
+
+    g = gum_propagation(func, spec.sigmas, 0.95, rel_step=rel_step)
+    sens = g["sensitivity"]                                 # (7, n) d ln r / d input
+    cov = sens.T @ np.diag(spec.sigmas ** 2) @ sens
+    from roadgonio.uncertainty import INPUTS
+    contrib = {k: float(np.max(np.abs(g["contribution"][i]))) for i, k in enumerate(INPUTS) if spec.sigmas[i] > 0}
+    return cov, {"method": "first-order GUM, central differences at +-%g sigma, k_A from ray bundles" % rel_step,
+                 "illuminance": illuminance, "max_rel_contribution": contrib, "sigma": spec.to_dict()}
+
+
+def systematic_delta(k_main: np.ndarray, k_alternatives: Mapping[str, np.ndarray]) -> np.ndarray:
+    """Per cell, the signed ln-deviation of the alternative farthest from ``k_main``."""
+    if not k_alternatives:
+        return np.zeros_like(k_main)
+    dev = np.stack([np.log(k) - np.log(k_main) for k in k_alternatives.values()])
+    pick = np.argmax(np.abs(dev), axis=0)
+    return dev[pick, np.arange(dev.shape[1])]

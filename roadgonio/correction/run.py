@@ -1,0 +1,553 @@
+"""Correcting a measured r-table: the whole procedure, for one table or several.
+
+``reference = "self"`` (the default; the only reference a user of an unknown surface really has):
+
+1. fit the BRDF model through the instrument (:mod:`roadgonio.correction.fit`) with the forward
+   model of fixed ray bundles (:mod:`roadgonio.correction.forward`), for each model variant asked
+   (``"auto"``: ``power`` and ``smooth``; the better fit, by chi^2, is used, the other one measures
+   the model dependence);
+2. compute k_A of the fitted model with the chosen backend (``mitsuba`` by default), journalled
+   and resumable like ``roadgonio ka`` (:func:`roadgonio.engines.runner.run_cells`,
+   ``DIR/forward-N/``);
+3. correct the bundles' own error with that table, ``rho = k_backend / k_bundle``, and refit from
+   the model (stage B only); if the refit changes the predicted k_A by more than ``tol`` times the
+   measurement's relative uncertainty in some cell, take the refitted model to step 2 (at most
+   ``max_outer`` tables), otherwise stop;
+4. corrected r = measured r / k_A(backend, final model): the measured detail is kept, the model is
+   used only for the factor;
+5. the budget (:mod:`roadgonio.correction.budget`) and S1, S2, Q0 before and after with their
+   standard uncertainties and CIE classes.
+
+``reference = SAMPLE`` keeps the classic route (paper section 4.1): k_A of a given reference
+model (bundled table fitted on the fly, table file, model.json), with the model dependence from
+alternative references (by default the two CIE tables nearest to the measured one).
+
+Several measured tables share the instrument's artefacts (:class:`InstrumentArtefacts`: ray
+bundles, eta, the reference calibration's columns), computed once.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Sequence
+
+import numpy as np
+
+from roadgonio.correction.budget import Budget, functionals, misalignment_covariance, systematic_delta
+from roadgonio.correction.fit import (DEFAULT_POLISH, DEFAULT_STARTS, ThroughFit, assess_fit, chi2_of,
+                                      fit_through_instrument)
+from roadgonio.correction.forward import DEFAULT_RAYS, ForwardModel, RayBundles
+from roadgonio.errors import InputError
+from roadgonio.fileio import atomic_write_json, to_json
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import VARIANTS, RoadModel
+from roadgonio.surface.rtable import RTable, read_table
+
+#: Variants fitted by ``variant = "auto"``.
+AUTO_VARIANTS = ("power", "smooth")
+#: Outer steps (backend tables) at most, and the stopping tolerance in units of the measurement's u.
+DEFAULT_MAX_OUTER = 3
+DEFAULT_TOL = 0.1
+#: Fit rounds with k frozen at the previous round's k_A in stage A (see fit_self).
+DEFAULT_ROUNDS = 2
+#: Latin-hypercube starts of the later rounds (which also start from the previous round's model).
+LATER_ROUND_STARTS = 4
+FIT_STATE = "fit_state.json"
+
+BackendFactory = Callable[[Instrument, RoadModel], Any]
+
+
+# ----------------------------------------------------------------------------------------------
+# Inputs
+# ----------------------------------------------------------------------------------------------
+
+def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
+    """Standard uncertainty (sr^-1, grid of ``table``) of every measured cell from ``spec``:
+    ``"1%"`` or a number in (0, 1) (relative), an :class:`RTable`, or the path of an r-table file
+    (CSV/RTB, r x 1e4) of standard uncertainties. Returns (grid, description)."""
+    if isinstance(spec, RTable):
+        grid, what = spec.r, f"per-cell table {spec.name}"
+        path = None
+    elif isinstance(spec, (int, float)) and not isinstance(spec, bool):
+        grid, what, path = _relative(float(spec), table, "--u-measured"), f"{100 * float(spec):g} % of each value", None
+    else:
+        text = str(spec).strip()
+        path = None
+        if text.endswith("%"):
+            try:
+                v = float(text[:-1]) / 100.0
+            except ValueError:
+                raise InputError(f"expected a percentage like '1%' or a table file, got {text!r}",
+                                 field="--u-measured") from None
+            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)"
+        try:
+            v = float(text)
+        except ValueError:
+            v = None
+        if v is not None:
+            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)"
+        path = Path(text)
+        try:
+            u_table = read_table(path)
+        except InputError as err:
+            raise InputError(f"{err.reason} (expected a relative standard uncertainty like '1%' or 0.01, or an "
+                             "r-table file of per-cell standard uncertainties)", path=err.path, line=err.line,
+                             field="--u-measured") from None
+        grid, what = u_table.r, f"per-cell standard uncertainties from {path.name} (independent cells)"
+    missing = table.mask & ~(np.isfinite(grid) & (grid > 0))
+    if missing.any():
+        i, j = np.argwhere(missing)[0]
+        raise InputError(f"no positive standard uncertainty for the measured cell tan eps = {table.tan_eps[i]:g}, "
+                         f"beta = {table.beta_deg[j]:g} ({int(missing.sum())} measured cells lack one); expected "
+                         "the r-table layout with r x 1e4 values", path=path, field="--u-measured")
+    return np.where(table.mask, grid, np.nan), what
+
+
+def _relative(v: float, table: RTable, fld: str) -> np.ndarray:
+    if not (math.isfinite(v) and 0.0 < v < 1.0):
+        raise InputError(f"expected a relative standard uncertainty between 0 and 100 %, got {v:g}", field=fld)
+    return np.where(table.mask, v * table.r, np.nan)
+
+
+def check_measured(table: RTable, path: str | Path | None = None) -> None:
+    """The measured table must have the S1 cells and positive values."""
+    for t, b in ((0.0, 0.0), (2.0, 0.0)):
+        i = int(np.argmin(np.abs(table.tan_eps - t)))
+        j = int(np.argmin(np.abs(table.beta_deg - b)))
+        if not table.mask[i, j]:
+            raise InputError(f"the measured table has no value at tan eps = {t:g}, beta = {b:g} (needed for S1)",
+                             path=path)
+    if np.any(table.r[table.mask] <= 0):
+        raise InputError("the measured table has zero values; blank a cell that was not measured", path=path)
+
+
+def _check_fit_cells(table: RTable) -> None:
+    if int(table.mask.sum()) < 12:
+        raise InputError(f"the measured table has {int(table.mask.sum())} values; a fit through the instrument "
+                         "needs at least 12 (or give --reference SAMPLE)", field="--measured")
+
+
+# ----------------------------------------------------------------------------------------------
+# Instrument artefacts (computed once for several tables)
+# ----------------------------------------------------------------------------------------------
+
+class InstrumentArtefacts:
+    """What depends only on the instrument: ray bundles and forward models per cell set (with eta
+    or the reference calibration's columns)."""
+
+    def __init__(self, instrument: Instrument, *, rays: int = DEFAULT_RAYS, seed: int = 0):
+        self.instrument = instrument
+        self.rays = int(rays)
+        self.seed = int(seed)
+        self._forward: dict[tuple, ForwardModel] = {}
+        self.seconds = 0.0
+
+    def forward(self, cells: Sequence[tuple[float, float]]) -> ForwardModel:
+        key = tuple((round(t, 9), round(b, 9)) for t, b in cells)
+        if key not in self._forward:
+            t0 = time.perf_counter()
+            bundles = RayBundles.build(self.instrument, cells, rays=self.rays, seed=self.seed)
+            self._forward[key] = ForwardModel(bundles)
+            self.seconds += time.perf_counter() - t0
+        return self._forward[key]
+
+
+# ----------------------------------------------------------------------------------------------
+# Result
+# ----------------------------------------------------------------------------------------------
+
+@dataclass
+class CorrectionResult:
+    measured: RTable
+    corrected: RTable
+    u_corrected: RTable              # standard uncertainty (sr^-1)
+    u_measured: np.ndarray           # grid (sr^-1)
+    k_a: np.ndarray                  # grid, backend k_A under the instrument's calibration
+    k_se: np.ndarray                 # grid, backend standard uncertainty of k_A
+    budget: Budget
+    reference: str
+    model: RoadModel
+    fit: ThroughFit | None
+    alternatives: dict[str, np.ndarray]   # name -> grid of k_A of the alternative model(s)
+    before: dict[str, Any]
+    after: dict[str, Any]
+    steps: list[dict[str, Any]]
+    provenance: dict[str, Any]
+    seconds: float
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def cells(self) -> list[tuple[float, float]]:
+        return self.measured.cells
+
+    def summary(self) -> dict[str, Any]:
+        a, b = self.after, self.before
+        m = self.measured.mask
+        k = self.k_a[m]
+        out = {"measured": self.measured.name, "reference": self.reference,
+               "calibration": self.provenance.get("calibration", {}).get("mode", "lambert"),
+               "cells": int(m.sum()), "k_a_min": float(np.min(k)), "k_a_max": float(np.max(k)),
+               "S1": a["S1"], "u_S1": a.get("u_S1"), "Q0": a["Q0"], "u_Q0": a.get("u_Q0"),
+               "S2": a["S2"], "u_S2": a.get("u_S2"), "class_R": a["class"]["R"], "class_C": a["class"]["C"],
+               "nearest_table": a["nearest_table"],
+               "before": {"S1": b["S1"], "u_S1": b.get("u_S1"), "Q0": b["Q0"], "u_Q0": b.get("u_Q0"), "S2": b["S2"],
+                          "u_S2": b.get("u_S2"), "class_R": b["class"]["R"], "class_C": b["class"]["C"],
+                          "nearest_table": b["nearest_table"]},
+               "u_rel_median": float(np.median(self.budget.u_rel())), "u_rel_max": float(np.max(self.budget.u_rel())),
+               "budget": self.budget.summary(), "seconds": self.seconds}
+        if self.fit is not None:
+            out["fit"] = self.fit.summary()
+        out["steps"] = self.steps
+        return out
+
+
+# ----------------------------------------------------------------------------------------------
+# The procedure
+# ----------------------------------------------------------------------------------------------
+
+def default_factory(backend: str, settings: Mapping[str, Any] | None = None,
+                    accuracy: str | None = None) -> BackendFactory:
+    from roadgonio.engines import make_backend
+
+    def factory(instrument: Instrument, model: RoadModel):
+        return make_backend(backend, instrument, model, accuracy=accuracy, **dict(settings or {}))
+    return factory
+
+
+def _backend_k(factory: BackendFactory, instrument: Instrument, model: RoadModel, cells, out_dir: Path | None,
+               progress: bool) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+    from roadgonio.engines.runner import run_cells
+    backend = factory(instrument, model)
+    run = run_cells(backend, cells, instrument=instrument, model=model, out_dir=out_dir, progress=progress)
+    k = np.array([c.k_a for c in run.results])
+    se = np.array([c.standard_uncertainty() for c in run.results])
+    if not (np.all(np.isfinite(k)) and np.all(k > 0)):
+        raise InputError("the backend returned a non-positive or non-finite k_A; cannot correct", field="k_A")
+    info = {"backend": backend.name, "settings": backend.settings(), "seconds": run.seconds,
+            "resumed_cells": run.resumed, "not_converged": int(sum(not c.converged for c in run.results)),
+            "journal": str(out_dir) if out_dir is not None else None}
+    return k, se, info
+
+
+def _say(progress: bool, text: str) -> None:
+    if progress and sys.stderr.isatty():
+        print(f"roadgonio correct: {text}", file=sys.stderr, flush=True)
+
+
+def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rho=None, seed: int = 0,
+             starts: int = DEFAULT_STARTS, polish: int = DEFAULT_POLISH, rounds: int = DEFAULT_ROUNDS,
+             stage_b: bool = True, name: str = "fit") -> ThroughFit:
+    """The multi-start fit through the instrument in ``rounds`` of stage A: the first freezes k_A
+    at 1 (the measured table fitted as if the instrument were ideal), each later one at the previous
+    round's k_A (the table that model would correct to), starting also from that model; then
+    stage B from the best distinct stage-A minima (``polish``). ``stage_b=False`` stops after stage
+    A (chi^2 through the bundles, no covariance)."""
+    k_frozen = np.ones_like(y)
+    best = None
+    for r in range(int(rounds)):
+        res = fit_through_instrument(fm, y, u, variant=variant, rho=rho, polish=polish, seed=seed + r,
+                                     starts=starts if best is None else LATER_ROUND_STARTS, k_frozen=k_frozen,
+                                     stage_b=False, name=name, start_models=[] if best is None else [best.model])
+        if best is not None and res.chi2 >= best.chi2 * (1.0 - 1e-6):
+            break
+        best = res
+        k_frozen = fm.k_a(best.model, rho)
+    if not stage_b:
+        return best
+    return fit_through_instrument(fm, y, u, variant=variant, rho=rho, start_models=[best.model], stage_a=False,
+                                  name=name)
+
+
+def _state_key(measured: RTable, u: np.ndarray, instrument: Instrument, settings: Mapping[str, Any]) -> str:
+    h = hashlib.sha256()
+    h.update(np.where(measured.mask, measured.r, -1.0).astype("<f8").tobytes())
+    h.update(np.where(measured.mask, u, -1.0).astype("<f8").tobytes())
+    h.update(to_json({"instrument": instrument.to_dict(), **dict(settings)}, indent=None).encode())
+    return h.hexdigest()[:20]
+
+
+class _FitState:
+    """Checkpoint of the fitted models of one correction (``DIR/fit_state.json``): a rerun with the
+    same inputs reuses them, so the journalled backend tables (same model, same fingerprint) resume."""
+
+    def __init__(self, out_dir: Path | None, key: str):
+        self.path = None if out_dir is None else Path(out_dir) / FIT_STATE
+        self.key = key
+        self.models: dict[str, dict] = {}
+        if self.path is not None and self.path.exists():
+            try:
+                d = json.loads(self.path.read_text(encoding="utf-8"))
+                if d.get("key") == key:
+                    self.models = dict(d.get("models", {}))
+            except (OSError, ValueError):
+                self.models = {}
+
+    def get(self, name: str) -> RoadModel | None:
+        d = self.models.get(name)
+        return RoadModel.from_json_dict(d) if d else None
+
+    def put(self, name: str, model: RoadModel) -> None:
+        self.models[name] = {"variant": model.variant, "params": model.params.to_dict(), "name": model.name}
+        if self.path is not None:
+            atomic_write_json(self.path, {"key": self.key, "models": self.models})
+
+
+def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = "1%", variant: str = "auto",
+                 sigma=None, backend: str = "mitsuba", backend_settings: Mapping[str, Any] | None = None,
+                 accuracy: str | None = None, factory: BackendFactory | None = None,
+                 out_dir: str | Path | None = None, artefacts: InstrumentArtefacts | None = None,
+                 rays: int = DEFAULT_RAYS, seed: int = 0, starts: int = DEFAULT_STARTS, polish: int = DEFAULT_POLISH,
+                 rounds: int = DEFAULT_ROUNDS, max_outer: int = DEFAULT_MAX_OUTER, tol: float = DEFAULT_TOL,
+                 misalignment_rays: int = 256, progress: bool = True) -> CorrectionResult:
+    """Correct ``measured`` with the model fitted through ``instrument`` (module docstring)."""
+    t0 = time.perf_counter()
+    check_measured(measured)
+    _check_fit_cells(measured)
+    sigma = _sigma(sigma)
+    if variant != "auto" and variant not in VARIANTS:
+        raise InputError(f"unknown model variant {variant!r}; expected auto or one of {', '.join(VARIANTS)}",
+                         field="--model-variant")
+    u_grid, u_what = measured_uncertainty(u_measured, measured)
+    out = Path(out_dir) if out_dir is not None else None
+    mask = measured.mask
+    cells = measured.cells
+    y, u = measured.r[mask], u_grid[mask]
+    u_rel = u / y
+    art = artefacts if artefacts is not None else InstrumentArtefacts(instrument, rays=rays, seed=seed)
+    _say(progress, f"{measured.name}: ray bundles of {len(cells)} cells")
+    fm = art.forward(cells)
+    factory = factory or default_factory(backend, backend_settings, accuracy)
+    settings_key = {"variant": variant, "rays": art.rays, "seed": art.seed, "starts": starts, "polish": polish,
+                    "rounds": rounds, "max_outer": max_outer, "tol": tol, "backend": backend,
+                    "backend_settings": dict(backend_settings or {}), "accuracy": accuracy}
+    state = _FitState(out, _state_key(measured, u_grid, instrument, settings_key))
+
+    # 1. fits through the instrument (bundles only)
+    variants = AUTO_VARIANTS if variant == "auto" else (variant,)
+    fits: dict[str, RoadModel] = {}
+    for v in variants:       # stage A of every variant (cheap), the better one goes on
+        m = state.get(f"stage-a-{v}")
+        if m is None:
+            _say(progress, f"{measured.name}: fitting the {v} model through the instrument")
+            m = fit_self(fm, y, u, v, seed=seed, starts=starts, polish=polish, rounds=rounds, stage_b=False,
+                         name=measured.name).model
+            state.put(f"stage-a-{v}", m)
+        fits[v] = m
+    chi2 = {v: chi2_of(fm, y, u, m) for v, m in fits.items()}
+    main_v = min(chi2, key=chi2.get)
+    model = state.get(f"fit-{main_v}")
+    if model is None:
+        model = fit_through_instrument(fm, y, u, variant=main_v, start_models=[fits[main_v]], stage_a=False,
+                                       seed=seed, name=measured.name).model
+        state.put(f"fit-{main_v}", model)
+    fits[main_v] = model
+    chi2[main_v] = chi2_of(fm, y, u, model)
+
+    # 2-3. backend tables and the bundles' correction rho
+    steps: list[dict[str, Any]] = []
+    rho = None
+    pred_change = np.zeros_like(y)
+    k_b = se_b = None
+    for it in range(1, int(max_outer) + 1):
+        _say(progress, f"{measured.name}: k_A of the fitted model ({backend}), step {it}")
+        k_b, se_b, info = _backend_k(factory, instrument, model, cells,
+                                     None if out is None else out / f"forward-{it}", progress)
+        rho = k_b / fm.k_a(model)
+        nxt = state.get(f"refit-{it}")
+        if nxt is None:
+            nxt = fit_through_instrument(fm, y, u, variant=main_v, rho=rho, start_models=[model], stage_a=False,
+                                         polish=1, seed=seed, name=measured.name).model
+            state.put(f"refit-{it}", nxt)
+        pred = fm.k_a(nxt, rho)
+        pred_change = np.abs(np.log(pred) - np.log(k_b))
+        worst = float(np.max(pred_change / u_rel))
+        steps.append({"step": it, "model": model.params.to_dict(), "backend": info,
+                      "rho_min": float(rho.min()), "rho_max": float(rho.max()),
+                      "refit_change_over_u_max": worst, "converged": worst <= tol})
+        if worst <= tol:
+            break
+        if it < max_outer:
+            model = nxt
+    final = assess_fit(fm, y, u, model, rho=rho, name=measured.name)
+
+    # model dependence: the other variant, refitted with the same rho
+    alternatives: dict[str, np.ndarray] = {}
+    for v, m in fits.items():
+        if v == main_v:
+            continue
+        alt = state.get(f"alt-{v}")
+        if alt is None:
+            alt = fit_through_instrument(fm, y, u, variant=v, rho=rho, start_models=[m], stage_a=False, polish=1,
+                                         seed=seed, name=measured.name).model
+            state.put(f"alt-{v}", alt)
+        alternatives[v] = fm.k_a(alt, rho)
+
+    budget = Budget(len(cells))
+    budget.add("measurement", u_rel, u_what)
+    budget.add("backend", se_b / k_b, f"{backend} k_A standard uncertainty (SE, or bound/sqrt 3)")
+    budget.add("parameters", final.lnk_cov(),
+               f"fitted {main_v} parameters (Birge ratio {final.birge:.3g}) through d ln k_A / d p")
+    if alternatives:
+        delta = systematic_delta(fm.k_a(model, rho), alternatives)
+        budget.add_systematic("model", delta, "model variant " + ", ".join(alternatives) + f" instead of {main_v}: "
+                              "rectangular, half-width |ln k_alt - ln k|, fully correlated")
+    mis_info = None
+    if sigma is not None:
+        _say(progress, f"{measured.name}: misalignment sensitivities")
+        cov, mis_info = misalignment_covariance(model, instrument, measured, sigma, rays=misalignment_rays, seed=seed)
+        budget.add("misalignment", cov, "instrument geometric errors (--sigma), first-order GUM")
+    if not steps[-1]["converged"]:
+        budget.add("convergence", pred_change / math.sqrt(3.0),
+                   "change of k_A the last refit still predicted (rectangular)")
+    reference = f"self ({main_v} model fitted through the instrument)"
+    res = _assemble(measured, instrument, u_grid, k_b, se_b, budget, reference, model, final,
+                    {k: _grid(measured, v) for k, v in alternatives.items()}, steps, t0)
+    res.provenance.update({"u_measured": u_what, "variant_asked": variant, "variant_used": main_v,
+                           "chi2_by_variant": chi2, "fitted_models": {v: m.to_json_dict() for v, m in fits.items()},
+                           "bundles": fm.bundles.summary(), "misalignment": mis_info,
+                           "settings": settings_key})
+    return res
+
+
+def correct_with_reference(measured: RTable, instrument: Instrument, reference: RoadModel, *,
+                           reference_name: str = "reference", alternatives: Mapping[str, RoadModel] | None = None,
+                           u_measured: Any = "1%", sigma=None, backend: str = "mitsuba",
+                           backend_settings: Mapping[str, Any] | None = None, accuracy: str | None = None,
+                           factory: BackendFactory | None = None, out_dir: str | Path | None = None,
+                           misalignment_rays: int = 256, seed: int = 0, progress: bool = True) -> CorrectionResult:
+    """r / k_A(reference) with the model dependence from ``alternatives`` (module docstring)."""
+    t0 = time.perf_counter()
+    check_measured(measured)
+    sigma = _sigma(sigma)
+    u_grid, u_what = measured_uncertainty(u_measured, measured)
+    out = Path(out_dir) if out_dir is not None else None
+    cells = measured.cells
+    mask = measured.mask
+    factory = factory or default_factory(backend, backend_settings, accuracy)
+    k_b, se_b, info = _backend_k(factory, instrument, reference, cells, None if out is None else out / "forward-1",
+                                 progress)
+    alts = {}
+    for k, (name, m) in enumerate(dict(alternatives or {}).items()):
+        alts[name] = _backend_k(factory, instrument, m, cells, None if out is None else out / f"alternative-{k + 1}",
+                                progress)[0]
+    budget = Budget(len(cells))
+    budget.add("measurement", u_grid[mask] / measured.r[mask], u_what)
+    budget.add("backend", se_b / k_b, f"{backend} k_A standard uncertainty (SE, or bound/sqrt 3)")
+    if alts:
+        budget.add_systematic("model", systematic_delta(k_b, alts),
+                              "alternative references " + ", ".join(alts) + ": rectangular, half-width the largest "
+                              "|ln k_alt - ln k|, fully correlated")
+    mis_info = None
+    if sigma is not None:
+        cov, mis_info = misalignment_covariance(reference, instrument, measured, sigma, rays=misalignment_rays,
+                                                seed=seed)
+        budget.add("misalignment", cov, "instrument geometric errors (--sigma), first-order GUM")
+    steps = [{"step": 1, "model": reference.params.to_dict(), "backend": info, "converged": True}]
+    res = _assemble(measured, instrument, u_grid, k_b, se_b, budget, reference_name, reference, None,
+                    {k: _grid(measured, v) for k, v in alts.items()}, steps, t0)
+    res.provenance.update({"u_measured": u_what, "reference_model": reference.to_json_dict(),
+                           "alternatives": {n: m.to_json_dict() for n, m in dict(alternatives or {}).items()},
+                           "misalignment": mis_info})
+    return res
+
+
+def _grid(table: RTable, values: np.ndarray) -> np.ndarray:
+    g = np.full(table.r.shape, np.nan)
+    g[table.mask] = values
+    return g
+
+
+def _assemble(measured: RTable, instrument: Instrument, u_grid, k_b, se_b, budget: Budget, reference: str,
+              model: RoadModel, fit: ThroughFit | None, alternatives, steps, t0) -> CorrectionResult:
+    mask = measured.mask
+    corrected_r = _grid(measured, measured.r[mask] / k_b)
+    label = f"{measured.name} corrected for the aperture effect (r / k_A; reference {reference}; instrument {instrument.name})"
+    corrected = measured.with_values(corrected_r, name=f"{measured.name}_corrected", source=label)
+    cov = budget.total()
+    u_abs = _grid(measured, corrected_r[mask] * np.sqrt(np.diag(cov)))
+    u_table = measured.with_values(u_abs, name=f"{measured.name}_corrected_u",
+                                   source="standard uncertainty of " + label)
+    before_budget = Budget(len(mask[mask]))
+    before_budget.add("measurement", u_grid[mask] / measured.r[mask])
+    if "misalignment" in budget.components:
+        before_budget.add("misalignment", budget.components["misalignment"])
+    before = functionals(measured, before_budget.total())
+    after = functionals(corrected, cov)
+    from roadgonio.provenance import provenance
+    info = steps[-1]["backend"]
+    prov = provenance(instrument=instrument, model=model, backend=info["backend"], settings=info["settings"],
+                      calibration=instrument.calibration.to_dict(), reference=reference,
+                      before_uncertainty="measurement" + (" and misalignment" if "misalignment" in budget.components
+                                                          else "") + " only (the aperture effect is the bias the "
+                                                                     "correction removes)")
+    return CorrectionResult(measured=measured, corrected=corrected, u_corrected=u_table, u_measured=u_grid,
+                            k_a=_grid(measured, k_b), k_se=_grid(measured, se_b), budget=budget, reference=reference,
+                            model=model, fit=fit, alternatives=alternatives, before=before, after=after, steps=steps,
+                            provenance=prov, seconds=time.perf_counter() - t0)
+
+
+def _sigma(sigma):
+    """A SigmaSpec from a SPEC text, a TOML file, a mapping or a SigmaSpec (None stays None)."""
+    if sigma is None:
+        return None
+    from roadgonio.uncertainty import SigmaSpec, parse_sigma_spec
+    return sigma if isinstance(sigma, SigmaSpec) else parse_sigma_spec(sigma, option="--sigma")
+
+
+def correct_measured(measured: RTable, instrument: Instrument, *, reference: Any = "self",
+                     reference_name: str | None = None, alternatives: Any = "auto", model_variant: str | None = None,
+                     **options: Any) -> CorrectionResult:
+    """Correct one measured table: ``reference="self"`` (default) fits the model through the
+    instrument (:func:`correct_self`; ``model_variant`` None = ``"auto"``); a SAMPLE (text) or a
+    :class:`RoadModel` takes the classic route (:func:`correct_with_reference`, ``alternatives`` as
+    :func:`roadgonio.correction.reference.resolve_alternatives`). ``options`` go to either."""
+    from roadgonio.correction.reference import resolve_alternatives, sample_name
+    if isinstance(reference, str) and reference.strip().lower() == "self":
+        return correct_self(measured, instrument, variant=model_variant or "auto", **options)
+    if isinstance(reference, RoadModel):
+        ref_model, name = reference, reference_name or reference.name or "reference"
+    else:
+        from roadgonio.surface.sample import resolve_sample
+        ref_model, name = resolve_sample(str(reference), model_variant), reference_name or sample_name(str(reference))
+    alts = alternatives if isinstance(alternatives, Mapping) else resolve_alternatives(
+        alternatives, measured, reference_name=name, model_variant=model_variant)
+    keep = {k: v for k, v in options.items() if k in ("u_measured", "sigma", "backend", "backend_settings",
+                                                      "accuracy", "factory", "out_dir", "misalignment_rays",
+                                                      "seed", "progress")}
+    return correct_with_reference(measured, instrument, ref_model, reference_name=name, alternatives=alts, **keep)
+
+
+def output_folders(names: Sequence[str], out_dir: str | Path) -> list[Path]:
+    """One folder per measured table: ``out_dir`` itself for one table, else ``out_dir/NAME``
+    (``NAME-2``, ... when two files share a name)."""
+    out = Path(out_dir)
+    if len(names) == 1:
+        return [out]
+    seen: dict[str, int] = {}
+    folders = []
+    for n in names:
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in n) or "table"
+        seen[safe] = seen.get(safe, 0) + 1
+        folders.append(out / (safe if seen[safe] == 1 else f"{safe}-{seen[safe]}"))
+    return folders
+
+
+def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str | Path, *, plots: bool = True,
+                  reference: Any = "self", **options: Any) -> list[tuple[CorrectionResult, Path, list[Path]]]:
+    """Correct several measured tables with one instrument; the instrument's artefacts (ray
+    bundles, eta, the reference calibration) are computed once. Returns (result, folder, files)."""
+    from roadgonio.correction.outputs import write_correction
+    folders = output_folders([t.name for t in tables], out_dir)
+    if isinstance(reference, str) and reference.strip().lower() == "self" and "artefacts" not in options:
+        options["artefacts"] = InstrumentArtefacts(instrument, rays=options.pop("rays", DEFAULT_RAYS),
+                                                   seed=options.get("seed", 0))
+    out = []
+    for table, folder in zip(tables, folders):
+        res = correct_measured(table, instrument, reference=reference, out_dir=folder, **options)
+        out.append((res, folder, write_correction(res, folder, plots=plots)))
+    return out

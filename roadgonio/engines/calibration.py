@@ -1,0 +1,312 @@
+"""k_A under the instrument's calibration (DESIGN.md section 5), for any backend, in one place.
+
+Every backend computes k_A under Lambert calibration (the ratio of the rendered signals of the
+sample and of a perfect diffuser, over the ideal point geometry)::
+
+    k_lam[f] = ( S[f] / S[1/pi] ) / ( pi f(nominal) )
+
+:class:`CalibratedBackend` wraps a backend and returns :class:`~roadgonio.engines.CellResult` in
+the instrument's ``[calibration] mode`` (:mod:`roadgonio.instrument.calibration`);
+:func:`roadgonio.engines.make_backend` applies it, so ``ka``, ``uncertainty``, ``correct``,
+``validate`` and the API all see the same k_A.
+
+* ``lambert``: the backend's result, unchanged.
+* ``absolute`` (paper eq. 2): the luminance meter reads L_D = S[f] / S_unif, S_unif the signal of a
+  uniform unit luminance over the field (same etendue and k_D weighting), and the illuminance is E_0,
+  the horizontal illuminance at the sample centre from the source disc. With E(x) the horizontal
+  illuminance at a point x of the sample (uniform source radiance L_e), S[1/pi] = S_unif <E> / pi, so::
+
+      k_abs = L_D / (E_0 f(nominal)) = k_lam * eta,      eta = <E> / E_0
+
+  where <E> is the etendue- and k_D-weighted mean illuminance over the detected footprint.
+  eta is pure geometry (independent of the BRDF): a Lambertian sample gives k_abs = eta, not 1.
+  It is computed here in float64 by a product Gauss rule over pupil x field x source disc
+  (:func:`illuminance_ratio`, the disc rules of :mod:`roadgonio.engines.quadrature`), refined
+  until two successive rules agree to ``eta_rtol``.
+  Limitation: eta is the bare geometry's; parts of a ``[scene] xml`` that shade the footprint or the
+  sample centre from the source are not in it (the backend's k_lam does see them, as a ratio).
+* ``reference`` (reference = SAMPLE with BRDF f_ref): q = (S[f] / S[f_ref]) f_ref(nominal), so::
+
+      k_ref = k_lam[f] / k_lam[f_ref]
+
+  with both k_lam from the same backend and settings (same seed: common random numbers). A
+  reference equal to the sample (same variant and parameters) gives exactly 1 (not computed).
+  Precision: for Monte Carlo backends the relative standard error is combined as if the two errors
+  were independent, ``rel_se = sqrt(rel_se_f^2 + rel_se_ref^2)``; the common random numbers make them
+  positively correlated, so this overstates the error (conservative). For deterministic backends the
+  relative bounds add (first-order worst case).
+"""
+from __future__ import annotations
+
+import json
+import math
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from roadgonio.engines import CellResult, KaBackend
+from roadgonio.errors import GeometryError
+from roadgonio.instrument import optics
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import NumpyOps, RoadModel
+
+#: Default relative tolerance of eta.
+ETA_RTOL = 1e-6
+#: Cap on the integrand evaluations of one eta estimate (detector nodes x source nodes).
+ETA_MAX_EVALS = 6_000_000
+#: Cells computed per chunk in the reference mode (reference first, then the sample).
+REFERENCE_CHUNK = 16
+
+InnerFactory = Callable[[Instrument, RoadModel], KaBackend]
+
+
+# ----------------------------------------------------------------------------------------------
+# eta = <E> / E_0 (absolute calibration)
+# ----------------------------------------------------------------------------------------------
+
+class _EtaIntegrator:
+    """eta of one instrument, cell by cell (module docstring). Each disc (pupil, field, source) has
+    two directions of the product rule :func:`roadgonio.engines.quadrature.disc_rule`, refined
+    separately: the error share of a direction is the change of eta when that direction alone
+    drops one level; directions whose share exceeds ``rtol / n`` are refined until the sum of the
+    shares is below ``rtol * eta`` (the estimate reported as the error). The detector nodes do not
+    depend on the cell and are cached."""
+
+    def __init__(self, instrument: Instrument):
+        optics.check_detector(instrument)
+        self.instrument = instrument
+        self.det = optics.detector_geometry(instrument)
+        d = instrument.detector
+        self.active = (d.pupil_radius_m > 0.0, d.field_half_angle_deg > 0.0, instrument.source.radius_m > 0.0)
+        self._cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def detector_nodes(self, levels: tuple[int, int, int, int]):
+        """(x, y, w): hit points of the detected rays of the pupil x field rule at ``levels``
+        (pupil v, pupil h, field v, field h) and their normalised weights (etendue x k_D x rule)."""
+        if levels not in self._cache:
+            from roadgonio.engines.quadrature import disc_rule
+            px, py, wp = disc_rule(levels[0], levels[1])
+            fx, fy, wf = disc_rule(levels[2], levels[3])
+            PX, FX = np.repeat(px, fx.size), np.tile(fx, px.size)
+            PY, FY = np.repeat(py, fx.size), np.tile(fy, px.size)
+            W = np.repeat(wp, fx.size) * np.tile(wf, px.size)
+            o, dvec, wgt = optics.detector_ray(NumpyOps, self.det, (PX, PY), (FX, FY))
+            x, y, valid = optics.hit_plane(NumpyOps, o, dvec)
+            if not np.all(valid):   # excluded by check_detector; kept as a guard
+                raise GeometryError("some detected rays do not reach the sample plane")
+            w = W * wgt
+            if len(self._cache) > 64:
+                self._cache.clear()
+            self._cache[levels] = (np.asarray(x), np.asarray(y), w / w.sum())
+        return self._cache[levels]
+
+    def _eta(self, src, levels) -> float:
+        """<E> / E_0 with the product rule at the six direction ``levels``."""
+        from roadgonio.engines.quadrature import disc_rule
+        x, y, w = self.detector_nodes(tuple(levels[:4]))
+        sx, sy, ws = disc_rule(levels[4], levels[5])
+        sp = optics.source_point(src, (sx, sy))
+        sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape)[None, :] for c in sp)
+        rows = max(1, (1 << 17) // sx.size)
+        mean = 0.0
+        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            for a in range(0, x.size, rows):
+                b = min(x.size, a + rows)
+                _, g = optics.source_coupling(NumpyOps, src, x[a:b, None], y[a:b, None], sp)
+                mean += float(w[a:b] @ (g @ ws))
+            _, g0 = optics.source_coupling(NumpyOps, src, np.zeros((1, 1)), np.zeros((1, 1)), sp)
+        e0 = float(np.asarray(g0)[0] @ ws)
+        if not e0 > 0.0:
+            raise GeometryError(f"the source does not light the sample centre at tan eps = {self._cell[0]:g}, "
+                                f"beta = {self._cell[1]:g} (E_0 = 0): absolute calibration is undefined there")
+        return mean / e0
+
+    def __call__(self, tan_eps: float, beta_deg: float, rtol: float = ETA_RTOL,
+                 max_evals: int = ETA_MAX_EVALS) -> tuple[float, float, bool]:
+        """(eta, error estimate, converged) at one cell."""
+        from roadgonio.engines.quadrature import ORDERS, size
+        optics.check_source(self.instrument, tan_eps, beta_deg)
+        self._cell = (tan_eps, beta_deg)
+        src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
+        act = [2 * k + j for k, a in enumerate(self.active) if a for j in (0, 1)]
+        cache: dict[tuple[int, ...], float] = {}
+
+        def q(levels):
+            levels = tuple(levels)
+            if levels not in cache:
+                cache[levels] = self._eta(src, levels)
+            return cache[levels]
+
+        lv = [2 if i in act else -1 for i in range(6)]
+        if not act:
+            return q(lv), 0.0, True
+        converged = True
+        while True:
+            base = q(lv)
+            shares = {}
+            for i in act:
+                down = list(lv)
+                down[i] -= 1
+                shares[i] = abs(base - q(down))
+            err = sum(shares.values())
+            if err <= rtol * abs(base):
+                break
+            limit = rtol * abs(base) / len(act)
+            refine = [i for i, d in shares.items() if d > limit] or [max(shares, key=shares.get)]
+            nxt = list(lv)
+            for i in refine:
+                nxt[i] += 1
+            if max(nxt) >= len(ORDERS) or size(nxt) > max_evals:
+                i = max(shares, key=shares.get)
+                nxt = list(lv)
+                nxt[i] += 1
+                if nxt[i] >= len(ORDERS) or size(nxt) > max_evals:
+                    converged = False
+                    break
+            lv = nxt
+        return float(base), float(err), converged
+
+
+_ETA_CACHE: dict[tuple[str, float, float, float], tuple[float, float, bool]] = {}
+
+
+def illuminance_ratio(instrument: Instrument, tan_eps: float, beta_deg: float, *,
+                      rtol: float = ETA_RTOL) -> tuple[float, float, bool]:
+    """eta = <E> / E_0 at one cell (module docstring), float64: ``(eta, error estimate, converged)``.
+
+    <E> is the mean horizontal illuminance over the detected footprint, weighted like the detector
+    signal (etendue x k_D); E_0 the horizontal illuminance at the sample centre; both from the
+    uniform source disc (a point source if its radius is 0). Cached per instrument and cell."""
+    key = (json.dumps(instrument.to_dict(), sort_keys=True, default=str), round(float(tan_eps), 9),
+           round(float(beta_deg), 9), float(rtol))
+    if key not in _ETA_CACHE:
+        integ = _INTEGRATORS.get(key[0])
+        if integ is None:
+            integ = _INTEGRATORS[key[0]] = _EtaIntegrator(instrument)
+            if len(_INTEGRATORS) > 8:
+                _INTEGRATORS.pop(next(iter(_INTEGRATORS)))
+        _ETA_CACHE[key] = integ(float(tan_eps), float(beta_deg), rtol)
+    return _ETA_CACHE[key]
+
+
+_INTEGRATORS: dict[str, _EtaIntegrator] = {}
+
+
+# ----------------------------------------------------------------------------------------------
+# The wrapper
+# ----------------------------------------------------------------------------------------------
+
+def same_model(a: RoadModel, b: RoadModel) -> bool:
+    """Same BRDF: same variant and parameters (names and metadata do not matter)."""
+    return a.variant == b.variant and a.params.to_dict() == b.params.to_dict()
+
+
+class CalibratedBackend:
+    """A k_A backend in the instrument's calibration mode around a Lambert-calibrated backend
+    (module docstring). ``make_inner(instrument, model)`` builds the wrapped backend; it is called
+    for the sample and, in the reference mode, once more for the reference."""
+
+    def __init__(self, make_inner: InnerFactory, instrument: Instrument, model: RoadModel, *,
+                 inner: KaBackend | None = None, eta_rtol: float = ETA_RTOL):
+        self.instrument = instrument
+        self.model = model
+        self.calibration = instrument.calibration
+        self.mode = self.calibration.mode
+        self.eta_rtol = float(eta_rtol)
+        self.inner = inner if inner is not None else make_inner(instrument, model)
+        self.name = self.inner.name
+        self.reference_model: RoadModel | None = None
+        self.reference_inner: KaBackend | None = None
+        self.identical = False
+        if self.mode == "absolute":
+            optics.check_detector(instrument)
+        elif self.mode == "reference":
+            self.reference_model = self.calibration.reference_model()
+            self.identical = same_model(model, self.reference_model)
+            if not self.identical:
+                self.reference_inner = make_inner(instrument, self.reference_model)
+
+    def settings(self) -> dict[str, Any]:
+        s = dict(self.inner.settings())
+        cal: dict[str, Any] = self.calibration.to_dict()
+        if self.mode == "absolute":
+            cal.update(eta="<E>/E_0 by float64 product Gauss rules (pupil x field x source)", eta_rtol=self.eta_rtol)
+        if self.mode == "reference":
+            cal.update(reference_model=self.reference_model.to_json_dict() if self.reference_model else None,
+                       se="independent-errors delta method (conservative under common random numbers)")
+        s["calibration"] = cal
+        return s
+
+    # -- one cell ---------------------------------------------------------------------------
+    def _absolute(self, c: CellResult) -> CellResult:
+        eta, eta_err, eta_ok = illuminance_ratio(self.instrument, c.tan_eps, c.beta_deg, rtol=self.eta_rtol)
+        bound = c.error_bound * eta + abs(c.k_a) * eta_err if math.isfinite(c.error_bound) else math.nan
+        extra = {**(c.extra or {}), "calibration": "absolute", "k_a_lambert": c.k_a, "eta": eta,
+                 "eta_error": eta_err, "eta_converged": eta_ok}
+        return CellResult(c.tan_eps, c.beta_deg, c.k_a * eta, c.se * eta, c.samples, c.seconds, extra,
+                          error_bound=bound, converged=c.converged and eta_ok)
+
+    def _reference(self, c: CellResult, r: CellResult) -> CellResult:
+        k = c.k_a / r.k_a
+        if math.isfinite(c.se) or math.isfinite(r.se):
+            rel = math.hypot(_rel(c.se, c.k_a), _rel(r.se, r.k_a))
+            se, bound = abs(k) * rel, math.nan
+        else:
+            se, bound = math.nan, abs(k) * (_rel(c.error_bound, c.k_a) + _rel(r.error_bound, r.k_a))
+        extra = {**(c.extra or {}), "calibration": "reference", "k_a_lambert": c.k_a,
+                 "k_a_lambert_reference": r.k_a}
+        return CellResult(c.tan_eps, c.beta_deg, k, se, c.samples + r.samples, c.seconds + r.seconds, extra,
+                          error_bound=bound, converged=c.converged and r.converged)
+
+    def _unity(self, tan_eps: float, beta_deg: float) -> CellResult:
+        deterministic = _is_deterministic(self.inner)
+        return CellResult(float(tan_eps), float(beta_deg), 1.0, math.nan if deterministic else 0.0, 0, 0.0,
+                          {"calibration": "reference", "note": "the reference is the sample: k_A = 1 exactly"},
+                          error_bound=0.0 if deterministic else math.nan, converged=True)
+
+    # -- the KaBackend interface --------------------------------------------------------------
+    def compute(self, cells: Sequence[tuple[float, float]],
+                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
+        cells = [(float(t), float(b)) for t, b in cells]
+        if self.mode == "lambert":
+            return self.inner.compute(cells, on_cell=on_cell)
+        out: list[CellResult] = []
+
+        def emit(c: CellResult) -> None:
+            out.append(c)
+            if on_cell is not None:
+                on_cell(c)
+
+        if self.mode == "absolute":
+            self.inner.compute(cells, on_cell=lambda c: emit(self._absolute(c)))
+            return out
+        if self.identical:
+            for t, b in cells:
+                emit(self._unity(t, b))
+            return out
+        for a in range(0, len(cells), REFERENCE_CHUNK):
+            chunk = cells[a:a + REFERENCE_CHUNK]
+            refs = {_key(r.tan_eps, r.beta_deg): r for r in self.reference_inner.compute(chunk)}
+            self.inner.compute(chunk, on_cell=lambda c: emit(self._reference(c, refs[_key(c.tan_eps, c.beta_deg)])))
+        return out
+
+
+def _key(t: float, b: float) -> tuple[float, float]:
+    return (round(float(t), 9), round(float(b), 9))
+
+
+def _rel(err: float, k: float) -> float:
+    return abs(err / k) if math.isfinite(err) and k != 0 else (0.0 if not math.isfinite(err) else math.inf)
+
+
+def _is_deterministic(backend: KaBackend) -> bool:
+    return getattr(backend, "name", "") == "quadrature"
+
+
+def calibrated(make_inner: InnerFactory, instrument: Instrument, model: RoadModel,
+               inner: KaBackend | None = None) -> KaBackend:
+    """``make_inner(instrument, model)`` in the instrument's calibration mode: the plain backend for
+    ``lambert``, a :class:`CalibratedBackend` otherwise."""
+    if instrument.calibration.is_default:
+        return inner if inner is not None else make_inner(instrument, model)
+    return CalibratedBackend(make_inner, instrument, model, inner=inner)
