@@ -65,3 +65,27 @@ def text_output(args):
     if getattr(args, "quiet", False) or getattr(args, "json", False):
         return lambda *a, **k: None
     return print
+
+
+# -- Dask: --workers N | --scheduler ADDRESS (design, uncertainty, correct) ------------------------
+
+def _workers(text: str) -> int:
+    import argparse
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {v}")
+    return v
+
+
+def add_dask_arguments(p, default_text: str) -> None:
+    """``--workers N | --scheduler ADDRESS`` (shared by the commands that run k_A tables on Dask)."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--workers", type=_workers, metavar="N",
+                   help=f"worker processes of a local Dask cluster (one thread each); 0 = compute in this process "
+                        f"({default_text})")
+    g.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on an existing Dask cluster, e.g. tcp://127.0.0.1:8786 (started with 'dask scheduler' "
+                        "and 'dask worker ADDRESS --nthreads 1' from the same environment as roadgonio)")

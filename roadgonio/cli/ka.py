@@ -47,9 +47,10 @@ def register(sub) -> None:
     p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU machine)")
     p.add_argument("--tan-eps", type=float, metavar="T", help="one cell: tan(epsilon)")
     p.add_argument("--beta", type=float, metavar="B", help="one cell: beta in degrees")
-    p.add_argument("--cells", choices=["all", "table"], default="all",
+    p.add_argument("--cells", default="all", metavar="all|table|LIST",
                    help="all = the full 580-cell grid (default); table = only the cells tabulated in the "
-                        "sample's r-table (blank cells stay blank)")
+                        "sample's r-table (blank cells stay blank); LIST = T:B,T:B,... (tan eps : beta deg), "
+                        "e.g. 12:0,12:2,4:0")
     p.add_argument("--out", metavar="DIR", help="output folder for a table (default: out/ka-INSTRUMENT-SAMPLE)")
     p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
     add_output_options(p, 'one cell: print {"k_a", "se", "error_bound", "converged", "samples", "seconds"}; '
@@ -117,8 +118,11 @@ def run(args) -> int:
             raise InputError("--cells table needs a sample that is an r-table (bundled name or table file)",
                              field="--cells") from None
         cells = table.cells
-    else:
+    elif args.cells.strip() == "all":
         cells = full_grid_cells()
+    else:
+        from roadgonio.engines.validate import parse_cells
+        cells = parse_cells(args.cells)
     sample_name = Path(args.sample).stem if Path(args.sample).exists() else args.sample
     out_dir = Path(args.out) if args.out else Path("out") / f"ka-{instrument.name}-{sample_name}"
     run_ = run_cells(backend, cells, instrument=instrument, model=model, out_dir=out_dir, fresh=args.fresh,
