@@ -317,5 +317,5 @@ def test_source_in_the_line_of_sight_names_the_cell_in_the_renderer(tmp_path, ca
                                                 "distance_m = 1.0\nradius_m = 0.08"))
     rc = main(["ka", "--instrument", str(p), "--sample", "lambert", "--backend", "mitsuba", "--tan-eps", "12",
                "--beta", "180", "--rel-se", "1e-2"])
-    line = one_line_error(capsys, rc, "blocks the detector's line of sight", "tan eps = 12, beta = 180")
+    line = one_line_error(capsys, rc, "line of sight", "tan eps = 12, beta = 180")
     assert "enlarge" not in line
