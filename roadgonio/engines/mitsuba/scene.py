@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from roadgonio.engines.mitsuba import require_variant
-from roadgonio.errors import BackendError, GeometryError, InputError
+from roadgonio.errors import BackendError, InputError
 from roadgonio.instrument.config import Detector, Instrument, Observation
 from roadgonio.instrument.mesh import sample_trimesh
 from roadgonio.instrument.optics import (
