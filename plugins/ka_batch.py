@@ -29,8 +29,9 @@ u = frac(((j z) mod n) / n + Delta_b) in [0, 1)^6 (pupil 2, field 2, source 2); 
 the generating vector z and the shifts are opaque kernel parameters (no recompilation between
 passes or instruments). Per replicate the ``n`` detector rays are traced once and shared by every
 cell of the launch; every (replicate, cell) pair is a block of n lanes whose road and Lambert sums
-are reduced on the device (``dr.scatter_reduce`` into bins of at most 2^12 lanes, float32) and
-returned to the host, which accumulates them in float64 (:mod:`roadgonio.engines.mitsuba.passes`).
+are reduced on the device (``dr.block_sum`` over bins of at most 2^12 lanes, float32, in a fixed
+order: a run repeats bit for bit) and returned to the host, which accumulates them in float64
+(:mod:`roadgonio.engines.mitsuba.passes`).
 
 :meth:`KaBatch.sample` is the same shading for one cell (:attr:`KaBatch.cell`) as an ordinary
 ``SamplingIntegrator``, so ``mi.render`` with this integrator renders the signal of one cell
@@ -174,18 +175,20 @@ class KaBatch(mi.SamplingIntegrator):
         u0, u1, u2, u3 = self._lattice(j, rep, lattice, (0, 1, 2, 3))
         # lummeter: sample2 = film position -> field disc, sample3 = aperture -> pupil disc
         ray, w = sensor.sample_ray(0.0, 0.0, mi.Point2f(u2, u3), mi.Point2f(u0, u1))
-        si = scene.ray_intersect(ray)
+        # a flat sample needs only the hit point (its normals are +z); otherwise the shading frame too
+        flags = mi.RayFlags.Minimal if self.flat else (mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame)
+        si = scene.ray_intersect(ray, flags, False)
         hit = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
         w = dr.select(hit, mi.Float(w.x), 0.0)
-        ns = si.sh_frame.n
         if self.flat:
             data = dict(zip(FLAT_RAY_FIELDS, (si.p.x, si.p.y, si.p.z, ray.d.x, ray.d.y, ray.d.z, w)))
         else:
+            ns = si.sh_frame.n
             data = dict(zip(RAY_FIELDS, (si.p.x, si.p.y, si.p.z, si.n.x, si.n.y, si.n.z, ns.x, ns.y, ns.z,
                                          ray.d.x, ray.d.y, ray.d.z, w)))
-        misses = dr.sum(dr.select(hit, 0, 1))
-        dr.eval(data, misses)
-        return data, int(misses[0]) if dr.width(misses) else 0
+        miss = ~hit
+        dr.eval(data, miss)                 # one kernel traces the rays; the count reads the stored mask
+        return data, int(dr.count(miss)[0]) if dr.width(miss) else 0
 
     def block_sums(self, scene, rays: dict, lattice: dict, block_cell: np.ndarray,
                    block_rep: np.ndarray) -> np.ndarray:
@@ -218,12 +221,13 @@ class KaBatch(mi.SamplingIntegrator):
         active = g["w"] > 0.0
         u4, u5 = self._lattice(j, rep, lattice, (4, 5))
         value = self.shade(scene, si, cell, mi.Point2f(u4, u5), active) * g["w"]
-        bins = lanes >> bin_log2
-        out = dr.zeros(mi.Float, 2 * bins)
-        b = (l >> dr.opaque(mi.UInt32, bin_log2)) * 2
-        dr.scatter_reduce(dr.ReduceOp.Add, out, value.x, b, active, mode=dr.ReduceMode.Local)
-        dr.scatter_reduce(dr.ReduceOp.Add, out, value.y, b + 1, active, mode=dr.ReduceMode.Local)
-        return np.array(out, dtype=np.float32).reshape(blocks, n >> bin_log2, 2)
+        # evaluated block sums, not atomic scatters: the order of the float32 additions is then fixed,
+        # so a run repeats bit for bit whatever the thread count
+        road, lam = mi.Float(value.x), mi.Float(value.y)
+        dr.eval(road, lam)                                   # one kernel for both channels
+        sums = [dr.block_sum(v, 1 << bin_log2, mode="evaluated") for v in (road, lam)]
+        out = np.stack([np.array(sums[0], dtype=np.float32), np.array(sums[1], dtype=np.float32)], axis=-1)
+        return out.reshape(blocks, n >> bin_log2, 2)
 
     def to_string(self):
         return f"KaBatch[cells={self.n_cells}, shadow={self.shadow}]"

@@ -104,7 +104,7 @@ def test_uncertainty_exact_tables_on_a_local_cluster_are_identical():
     spec = parse_sigma_spec("alpha_deg=0.01,eps_deg=0.05,beta_deg=0.1,source_distance_m=0.002,"
                             "detector_distance_m=0.005")
     kw = dict(trials=1000, seed=2, backend="mitsuba", surrogate_design="star", n_validation=1, progress=False,
-              backend_settings={"rel_se": 3e-3, "resolution": 32, "spp": 4, "seed": 2})
+              backend_settings={"rel_se": 3e-3, "first_pass": 256, "seed": 2})
     inst, model = load_instrument("portable"), resolve_sample("R3")
     here = run_uncertainty(model, inst, spec, **kw)
     dask = run_uncertainty(model, inst, spec, workers=2, **kw)

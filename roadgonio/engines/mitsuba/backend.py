@@ -23,8 +23,9 @@ least ``min_passes`` passes) or ``max_samples`` (then ``converged = False``). ``
 schedule of an earlier call (:attr:`MitsubaBackend.last_plan`): the same seed then gives every table
 the same random numbers (the uncertainty command's design points).
 
-Reproducibility: the same seed, cells and settings give the same numbers up to the float32 rounding
-order of the device sums (the two threads add bins in a varying order: ~1e-7 relative).
+Reproducibility: the same seed, cells and settings give the same numbers bit for bit, whatever the
+thread count (the device sums are evaluated block sums in a fixed order), and a cell's numbers do
+not depend on the cells batched with it (its lattices depend on the seed, pass and size only).
 """
 from __future__ import annotations
 

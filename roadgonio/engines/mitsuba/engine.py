@@ -35,8 +35,9 @@ from roadgonio.instrument.optics import check_source, detector_geometry
 
 #: Largest number of detector rays traced (and stored: 13 floats each) per launch.
 MAX_RAYS = 1 << 21
-#: Largest number of (ray, cell) lanes per shading launch.
-MAX_LANES = 1 << 26
+#: Largest number of (ray, cell) lanes per shading launch (their road and Lambert values are stored,
+#: 8 bytes a lane, for the evaluated block sums).
+MAX_LANES = 1 << 23
 
 
 def cell_directions(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
