@@ -308,3 +308,14 @@ def test_single_cell_json_carries_converged(capsys):
                "5", "--json"])
     d = json.loads(capsys.readouterr().out)
     assert rc == 0 and d["converged"] is True and d["se"] is None and d["error_bound"] > 0
+
+
+@pytest.mark.plugin
+def test_source_in_the_line_of_sight_names_the_cell_in_the_renderer(tmp_path, capsys):
+    """Before: 'rays do not hit the sample ... enlarge the sample', mid-table and without the cell."""
+    p = write_instrument(tmp_path, GOOD.replace("distance_m = 5.0\nradius_m = 0.005",
+                                                "distance_m = 1.0\nradius_m = 0.08"))
+    rc = main(["ka", "--instrument", str(p), "--sample", "lambert", "--backend", "mitsuba", "--tan-eps", "12",
+               "--beta", "180", "--rel-se", "1e-2"])
+    line = one_line_error(capsys, rc, "line of sight", "tan eps = 12, beta = 180")
+    assert "enlarge" not in line

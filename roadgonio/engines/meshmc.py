@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -46,26 +45,11 @@ SHADOW_EPS_M = 1e-9
 
 
 def load_mesh_triangles(instrument: Instrument) -> np.ndarray:
-    """The sample's triangles (T, 3, 3) in float64: the mesh file, or the flat rectangle."""
-    smp = instrument.sample
-    if smp.mesh is None:
-        hx, hy = smp.size_x_m / 2.0, smp.size_y_m / 2.0
-        v = np.array([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]])
-        return v[np.array([[0, 1, 2], [0, 2, 3]])]
-    import trimesh
-    path = Path(smp.mesh)
-    try:
-        mesh = trimesh.load(str(path), force="mesh")
-    except Exception as err:  # noqa: BLE001 - trimesh raises many kinds
-        raise InputError(f"cannot read the sample mesh ({err})", path=path, field="sample.mesh") from None
-    if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
-        raise InputError("the sample mesh has no triangles", path=path, field="sample.mesh")
-    tri = np.asarray(mesh.vertices, dtype=np.float64)[np.asarray(mesh.faces, dtype=np.int64)]
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    if float(n[:, 2].sum()) <= 0.0:
-        raise InputError("the sample mesh's faces point downwards (the sample surface is one-sided: reverse the "
-                         "face winding so that it faces +z)", path=path, field="sample.mesh")
-    return tri
+    """The sample's triangles (T, 3, 3) in float64, from the same checked trimesh the Mitsuba scene
+    uses (:func:`roadgonio.instrument.mesh.sample_trimesh`: the rectangle, or the mesh file facing +z)."""
+    from roadgonio.instrument.mesh import sample_trimesh
+    mesh = sample_trimesh(instrument)
+    return np.asarray(mesh.vertices, dtype=np.float64)[np.asarray(mesh.faces, dtype=np.int64)]
 
 
 class MeshCaster:

@@ -182,10 +182,6 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
         lines.append(f"k_A surrogate: {s['exact_evaluations']} exact evaluations in {s['seconds']:.0f} s; error vs "
                      f"held-out exact k_A: max {100 * s['rel_err_max']:.3g} %, rms {100 * s['rel_err_rms']:.3g} %"
                      + (f", max/u(r) = {s['err_over_u_max']:.2g}" if "err_over_u_max" in s else ""))
-        if s.get("not_converged"):
-            lines.append(f"WARNING: {s['not_converged']} of {s['exact_evaluations']} exact k_A evaluations stopped at the "
-                         f"backend's sample cap before its target (--rel-se): their larger uncertainty is included "
-                         f"(worst relative {s['backend_rel_se_max']:.2g})")
     return lines
 
 

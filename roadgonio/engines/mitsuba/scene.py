@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 
 from roadgonio.engines.mitsuba import require_variant
-from roadgonio.errors import BackendError, GeometryError, InputError
+from roadgonio.errors import BackendError, InputError
 from roadgonio.instrument.config import Detector, Instrument, Observation
 from roadgonio.instrument.mesh import sample_trimesh
 from roadgonio.instrument.optics import (
@@ -209,6 +209,7 @@ class RoadScene:
             # the source disc in the line of sight is its own error, with the cell (not "enlarge the sample")
             on_src = np.array(si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, src_shape)), dtype=bool)
             if on_src.any():
+                from roadgonio.errors import GeometryError
                 cell = f" at tan eps = {self.cell[0]:g}, beta = {self.cell[1]:g}" if self.cell is not None else ""
                 raise GeometryError(
                     f"the source disc blocks the detector's line of sight{cell}: {int(on_src.sum())} of "
