@@ -39,7 +39,7 @@ from roadgonio.errors import InputError
 if TYPE_CHECKING:  # pragma: no cover
     import xarray as xr
 
-    from roadgonio.correction import Correction
+    from roadgonio.correction import CorrectionResult
     from roadgonio.engines import CellResult
     from roadgonio.instrument.config import Instrument
     from roadgonio.surface.fit import FitResult
@@ -320,25 +320,40 @@ def fit(table, variant: str | None = None, *, seed: int = 0, fixed: Mapping[str,
     return fit_table(_table(table), variant or DEFAULT_VARIANT, seed=seed, fixed=dict(fixed or {}))
 
 
-def correct(measured, instrument, *, reference, alternatives: str | Sequence[str] | None = "auto",
-            backend: str = "mitsuba", accuracy: str | None = None, rel_se: float | None = None, seed: int = 0,
-            variant: str | None = None, model_variant: str | None = None, progress: bool = False) -> "Correction":
-    """Correct a measured r-table (name, file, RTable or DataArray) for the aperture effect:
-    r / k_A of ``reference`` (a SAMPLE), with the uncertainty of the correction; ``alternatives``
-    as ``roadgonio correct --alternatives`` (``"auto"``, ``"none"`` or SAMPLEs). Returns the
-    :class:`~roadgonio.correction.Correction` (``.corrected`` RTable, ``.k_a``, ``.u_rel``,
-    ``.summary()``; ``write_correction`` writes its files)."""
-    from roadgonio.correction import correct_table, resolve_alternatives
+def correct(measured, instrument, *, reference="self", alternatives: str | Sequence[str] | None = "auto",
+            u_measured: Any = "1%", sigma: Any = None, backend: str = "mitsuba", accuracy: str | None = None,
+            rel_se: float | None = None, seed: int = 0, variant: str | None = None,
+            model_variant: str | None = None, out: str | Path | None = None, progress: bool = False,
+            **options: Any) -> "CorrectionResult":
+    """Correct a measured r-table (name, file, RTable or DataArray) for the aperture effect, as
+    ``roadgonio correct``: ``reference="self"`` (default) fits the model through the instrument, a
+    SAMPLE (or a model) takes the classic route with ``alternatives`` (``"auto"``, ``"none"`` or
+    SAMPLEs). ``u_measured`` (``"1%"``, a fraction, or an r-table file of standard uncertainties)
+    and ``sigma`` (a misalignment SPEC) enter the uncertainty. Returns the
+    :class:`~roadgonio.correction.CorrectionResult` (``.corrected`` and ``.u_corrected`` RTables,
+    ``.k_a``, ``.budget``, ``.before`` / ``.after`` with S1, S2, Q0 and their u, ``.summary()``);
+    with ``out`` its files are written there (``roadgonio.correction.write_correction``)."""
+    from roadgonio.correction import correct_measured, write_correction
+    from roadgonio.surface.model import RoadModel
     table = _table(measured, "measured")
     inst = _instrument(instrument)
-    ref_model, ref_name, _ = _sample(reference, model_variant)
-    alts = resolve_alternatives(alternatives, table, reference_name=ref_name, model_variant=model_variant)
+    if isinstance(reference, str) and reference.strip().lower() == "self":
+        ref: Any = "self"
+        ref_name = None
+    else:
+        ref, ref_name, _ = _sample(reference, model_variant)
+        if not isinstance(ref, RoadModel):  # pragma: no cover - _sample returns models
+            raise InputError("expected a SAMPLE or 'self'", field="reference")
 
     def factory(ins, model):
         return _backend(backend, ins, model, accuracy=accuracy, seed=seed, variant=variant, rel_se=rel_se)
     _choose_variant(backend, variant)
-    return correct_table(table, inst, ref_model, reference_name=ref_name, alternatives=alts, backend=backend,
-                         factory=factory, progress=progress)
+    res = correct_measured(table, inst, reference=ref, reference_name=ref_name, alternatives=alternatives,
+                           model_variant=model_variant, u_measured=u_measured, sigma=sigma, backend=backend,
+                           factory=factory, seed=seed, out_dir=out, progress=progress, **options)
+    if out is not None:
+        write_correction(res, out)
+    return res
 
 
 def uncertainty(instrument, sample, sigma, *, trials: int = 50_000, adaptive: bool = False, seed: int = 1,

@@ -132,7 +132,7 @@ def plot_before_after(res, path: Path) -> Path:
         ax.yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
         ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
         ax.yaxis.set_minor_formatter(ticker.NullFormatter())
-        ax.grid(alpha=0.3, which="both")
+        ax.grid(alpha=0.3, which="major")
         ax.tick_params(labelsize=7)
         if j % 5 == 0:
             ax.set_ylabel("r x 10^4 (sr^-1)", fontsize=8)
@@ -150,7 +150,7 @@ def plot_before_after(res, path: Path) -> Path:
              + "\n(+- = standard uncertainty; correction in a panel title = corrected / measured - 1)",
              ha="center", va="top", fontsize=9, family="monospace")
     fig.legend(handles=handles, loc="upper center", ncol=4, fontsize=9, bbox_to_anchor=(0.5, 0.915), frameon=False)
-    fig.tight_layout(rect=(0, 0, 1, 0.89))
+    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.05, top=0.875, wspace=0.22, hspace=0.3)
     p = atomic_savefig(fig, path, dpi=100)
     plt.close(fig)
     return p
@@ -172,7 +172,7 @@ def plot_correction_map(res, path: Path) -> Path:
                    fmt="{:.1f}", fontsize=5, tick_fontsize=7)
     comps = ", ".join(res.budget.components)
     a2.set_title(f"u of the corrected table (%), components: {comps}", fontsize=10)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.04, right=0.97, bottom=0.07, top=0.95, wspace=0.12)
     p = atomic_savefig(fig, path, dpi=100)
     plt.close(fig)
     return p

@@ -320,7 +320,16 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     u_rel = u / y
     art = artefacts if artefacts is not None else InstrumentArtefacts(instrument, rays=rays, seed=seed)
     _say(progress, f"{measured.name}: ray bundles of {len(cells)} cells")
+    timings: dict[str, float] = {}
+    tick = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        timings[name] = timings.get(name, 0.0) + now - tick
+        tick = now
     fm = art.forward(cells)
+    lap("bundles")
     factory = factory or default_factory(backend, backend_settings, accuracy)
     settings_key = {"variant": variant, "rays": art.rays, "seed": art.seed, "starts": starts, "polish": polish,
                     "rounds": rounds, "max_outer": max_outer, "tol": tol, "backend": backend,
@@ -347,6 +356,7 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
         state.put(f"fit-{main_v}", model)
     fits[main_v] = model
     chi2[main_v] = chi2_of(fm, y, u, model)
+    lap("fit")
 
     # 2-3. backend tables and the bundles' correction rho
     steps: list[dict[str, Any]] = []
@@ -358,12 +368,14 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
         k_b, se_b, info = _backend_k(factory, instrument, model, cells,
                                      None if out is None else out / f"forward-{it}", progress)
         rho = k_b / fm.k_a(model)
+        lap("backend")
         nxt = state.get(f"refit-{it}")
         if nxt is None:
             nxt = fit_through_instrument(fm, y, u, variant=main_v, rho=rho, start_models=[model], stage_a=False,
                                          polish=1, seed=seed, name=measured.name).model
             state.put(f"refit-{it}", nxt)
         pred = fm.k_a(nxt, rho)
+        lap("refit")
         pred_change = np.abs(np.log(pred) - np.log(k_b))
         worst = float(np.max(pred_change / u_rel))
         steps.append({"step": it, "model": model.params.to_dict(), "backend": info,
@@ -386,6 +398,7 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
                                          seed=seed, name=measured.name).model
             state.put(f"alt-{v}", alt)
         alternatives[v] = fm.k_a(alt, rho)
+    lap("alternative")
 
     budget = Budget(len(cells))
     budget.add("measurement", u_rel, u_what)
@@ -396,11 +409,13 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
         delta = systematic_delta(fm.k_a(model, rho), alternatives)
         budget.add_systematic("model", delta, "model variant " + ", ".join(alternatives) + f" instead of {main_v}: "
                               "rectangular, half-width |ln k_alt - ln k|, fully correlated")
+    lap("budget")
     mis_info = None
     if sigma is not None:
         _say(progress, f"{measured.name}: misalignment sensitivities")
         cov, mis_info = misalignment_covariance(model, instrument, measured, sigma, rays=misalignment_rays, seed=seed)
         budget.add("misalignment", cov, "instrument geometric errors (--sigma), first-order GUM")
+        lap("misalignment")
     if not steps[-1]["converged"]:
         budget.add("convergence", pred_change / math.sqrt(3.0),
                    "change of k_A the last refit still predicted (rectangular)")
@@ -410,7 +425,7 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     res.provenance.update({"u_measured": u_what, "variant_asked": variant, "variant_used": main_v,
                            "chi2_by_variant": chi2, "fitted_models": {v: m.to_json_dict() for v, m in fits.items()},
                            "bundles": fm.bundles.summary(), "misalignment": mis_info,
-                           "settings": settings_key})
+                           "correction_settings": settings_key, "timings": timings})
     return res
 
 
