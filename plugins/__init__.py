@@ -1,7 +1,8 @@
 """Mitsuba 3 Python plugins of roadgonio (installed as ``roadgonio.engines.mitsuba.plugins``).
 
 * ``roadbsdf`` (:mod:`.road_bsdf`): the road BSDF of paper eq. 4 from :mod:`roadgonio.surface.model`;
-* ``lummeter`` (:mod:`.lummeter`): the luminance-meter sensor (circular pupil x circular field).
+* ``lummeter`` (:mod:`.lummeter`): the luminance-meter sensor (circular pupil x circular field);
+* ``kabatch`` (:mod:`.ka_batch`): the batched k_A integrator (many cells' sources per launch).
 
 Call :func:`register_plugins` after :func:`roadgonio.engines.mitsuba.set_variant`; it is idempotent per
 variant. Importing this package does not import mitsuba.
@@ -14,7 +15,8 @@ _REGISTERED: dict[str, dict[str, type]] = {}
 
 #: plugin name -> (module, class name, kind)
 PLUGINS = {"roadbsdf": ("road_bsdf", "RoadBSDF", "bsdf"),
-           "lummeter": ("lummeter", "LumMeter", "sensor")}
+           "lummeter": ("lummeter", "LumMeter", "sensor"),
+           "kabatch": ("ka_batch", "KaBatch", "integrator")}
 
 
 def register_plugins() -> dict[str, type]:
@@ -37,7 +39,8 @@ def register_plugins() -> dict[str, type]:
                 mod = importlib.reload(mod)
             mod._VARIANT = variant
         cls = getattr(mod, clsname)
-        register = mi.register_bsdf if kind == "bsdf" else mi.register_sensor
+        register = {"bsdf": mi.register_bsdf, "sensor": mi.register_sensor,
+                    "integrator": mi.register_integrator}[kind]
         register(name, lambda props, cls=cls: cls(props))
         classes[name] = cls
     _REGISTERED[variant] = classes

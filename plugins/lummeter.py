@@ -28,6 +28,8 @@ are validated like the ``[observation]``/``[detector]`` sections of an instrumen
 """
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -47,12 +49,45 @@ def _python_floats(v) -> np.ndarray:
     return np.array([float(x) for x in v], dtype=object)
 
 
-def jit_geometry(geo: DetectorGeometry) -> DetectorGeometry:
-    """Copy of ``geo`` whose vectors hold Python floats (see :func:`_python_floats`)."""
-    return DetectorGeometry(centre=_python_floats(geo.centre), axis=_python_floats(geo.axis),
-                            s=_python_floats(geo.s), t=_python_floats(geo.t),
-                            pupil_radius_m=float(geo.pupil_radius_m), focus_m=float(geo.focus_m),
-                            tan_field=float(geo.tan_field), kd_edge=float(geo.kd_edge))
+def _opaque_floats(v) -> np.ndarray:
+    """A float64 vector as an object array of opaque 1-wide ``mi.Float`` (kernel parameters, not
+    literals: a kernel traced with them is reused, without recompiling, for another instrument)."""
+    out = np.empty(len(v), dtype=object)
+    for i, x in enumerate(v):          # element by element: numpy would unpack a Dr.Jit array
+        out[i] = dr.opaque(mi.Float, float(x))
+    return out
+
+
+def jit_geometry(geo: DetectorGeometry, opaque: bool = True) -> DetectorGeometry:
+    """Copy of ``geo`` for Dr.Jit kernels. With ``opaque`` (default) the centre, axis, frame,
+    pupil radius, field and a finite focus distance are opaque ``mi.Float`` values, so changing the
+    instrument (uncertainty design points, instrument design) never recompiles a kernel; otherwise
+    Python floats (see :func:`_python_floats`), baked into the kernel as literals. Structural in
+    either case: whether the field is angular (focus at infinity) and whether k_D is uniform."""
+    if not opaque:
+        return DetectorGeometry(centre=_python_floats(geo.centre), axis=_python_floats(geo.axis),
+                                s=_python_floats(geo.s), t=_python_floats(geo.t),
+                                pupil_radius_m=float(geo.pupil_radius_m), focus_m=float(geo.focus_m),
+                                tan_field=float(geo.tan_field), kd_edge=float(geo.kd_edge))
+    focus = math.inf if geo.angular else dr.opaque(mi.Float, float(geo.focus_m))
+    return _OpaqueDetectorGeometry(centre=_opaque_floats(geo.centre), axis=_opaque_floats(geo.axis),
+                                   s=_opaque_floats(geo.s), t=_opaque_floats(geo.t),
+                                   pupil_radius_m=dr.opaque(mi.Float, float(geo.pupil_radius_m)),
+                                   focus_m=focus, tan_field=dr.opaque(mi.Float, float(geo.tan_field)),
+                                   kd_edge=float(geo.kd_edge), is_angular=geo.angular)
+
+
+class _OpaqueDetectorGeometry(DetectorGeometry):
+    """:class:`DetectorGeometry` whose numbers are opaque Dr.Jit scalars; ``angular`` is kept as a
+    Python bool (it decides which code is traced)."""
+
+    def __init__(self, *, is_angular: bool, **fields):
+        super().__init__(**fields)
+        object.__setattr__(self, "_angular", bool(is_angular))
+
+    @property
+    def angular(self) -> bool:
+        return self._angular
 
 
 def meter_from_props(props) -> tuple[Observation, Detector]:

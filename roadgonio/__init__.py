@@ -7,8 +7,9 @@ The Python API (for notebooks and scripts; :mod:`roadgonio.api`)::
     r3 = rg.read_table("R3")                                                   # xarray.DataArray of r
 
 :func:`ka_table`, :func:`ka_cell`, :func:`read_table`, :func:`write_table`, :func:`fit`,
-:func:`correct` and :func:`uncertainty` (the ``roadgonio.uncertainty`` room is callable: calling it
-runs :func:`roadgonio.api.uncertainty`).
+:func:`correct`, :func:`uncertainty` and :func:`design` (the ``roadgonio.uncertainty`` and
+``roadgonio.design`` rooms are callable: calling them runs :func:`roadgonio.api.uncertainty` and
+:func:`roadgonio.api.design`).
 
 The physics conventions (angles, BRDF model, instrument, k_A, calibration) are those of
 ``docs/conventions.md``, from Bernasconi et al., "Geometrical errors and their uncertainty in
@@ -20,7 +21,8 @@ when the caller asks for a variant. The rooms: :mod:`roadgonio.surface`,
 """
 __version__ = "0.1.0"
 
-__all__ = ["ka_table", "ka_cell", "read_table", "write_table", "fit", "correct", "uncertainty", "__version__"]
+__all__ = ["ka_table", "ka_cell", "read_table", "write_table", "fit", "correct", "uncertainty", "design",
+           "__version__"]
 
 _API = ("ka_table", "ka_cell", "read_table", "write_table", "fit", "correct")
 
@@ -30,9 +32,9 @@ def __getattr__(name: str):
     if name in _API:
         from roadgonio import api
         return getattr(api, name)
-    if name == "uncertainty":           # the room, callable as the API function
+    if name in ("uncertainty", "design"):   # the rooms, callable as the API functions
         import importlib
-        return importlib.import_module("roadgonio.uncertainty")
+        return importlib.import_module(f"roadgonio.{name}")
     raise AttributeError(f"module 'roadgonio' has no attribute {name!r}")
 
 

@@ -47,7 +47,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from roadgonio.surface.rtable import RTable
     from roadgonio.uncertainty.run import UncertaintyResult
 
-__all__ = ["ka_table", "ka_cell", "read_table", "write_table", "fit", "correct", "uncertainty"]
+__all__ = ["ka_table", "ka_cell", "read_table", "write_table", "fit", "correct", "uncertainty", "design"]
 
 #: Names of the Dataset / DataArray dimensions (the r-table rows and columns).
 TAN_EPS, BETA = "tan_eps", "beta"
@@ -392,3 +392,44 @@ def uncertainty(instrument, sample, sigma, *, trials: int = 50_000, adaptive: bo
                            illuminance=illuminance, surrogate_design=surrogate, n_validation=validation,
                            progress=progress, **options)
 
+
+def design(instrument, vary=None, samples="R3", *, tolerance: float | str = "5%", cells="all",
+           backend: str = "mitsuba", accuracy: str | None = None, rel_se: float | None = None, seed: int = 0,
+           workers: int | None = None, scheduler: str | None = None, client=None, out=None, fresh: bool = False,
+           progress: bool = False, plots: bool = True, model_variant: str | None = None,
+           variant: str | None = None) -> "xr.Dataset":
+    """A design study (``roadgonio design``): k_A tables over a grid of instruments, on Dask.
+
+    ``vary``: ``["source.radius_m=0.01:0.04:4", ...]`` or ``{key: values}``; ``samples``: one or more
+    samples; ``cells``: ``"all"``, ``"table"`` or ``"T:B,T:B,..."``; ``workers``/``scheduler``/``client``:
+    a local cluster of worker processes (default: one per core), an existing cluster, or
+    ``workers=0`` for this process. Returns the ``xarray.Dataset`` of ``design.nc`` (``k_a``, ``se``
+    over the varied keys x sample x tan_eps x beta; ``max_abs_dev``, ``signal``, ``feasible``,
+    ``reason``... per point; provenance in ``attrs["provenance"]``); with ``out`` also writes
+    design.csv, best.toml and the pictures (:mod:`roadgonio.design`). Scripts that start a local
+    cluster must guard the call with ``if __name__ == "__main__":``.
+    """
+    from roadgonio.design.run import run_design
+    from roadgonio.engines.accuracy import rel_se_setting
+    settings: dict[str, Any] = {}
+    if rel_se is not None:
+        settings.update(rel_se_setting(backend, rel_se, field="rel_se"))
+    if backend == "mitsuba" and variant is not None:
+        settings["variant"] = variant
+    if workers == 0 and scheduler is None and client is None:
+        _choose_variant(backend, variant)          # this process computes: it is the entry point
+
+    def one(x):
+        if isinstance(x, (str, Path)):
+            return str(x)
+        model, name, _ = _sample(x, model_variant)       # RoadModel, RTable, DataArray, fit result
+        return (name, model)
+
+    many = isinstance(samples, (list, tuple)) and not (len(samples) == 2 and isinstance(samples[0], str)
+                                                         and not isinstance(samples[1], (str, Path)))
+    samples = [one(x) if not isinstance(x, tuple) else x for x in samples] if many else [
+        samples if isinstance(samples, tuple) else one(samples)]
+    return run_design(_instrument(instrument), vary, samples,
+                      tolerance=tolerance, cells=cells, backend=backend, accuracy=accuracy, settings=settings,
+                      seed=seed, workers=workers, scheduler=scheduler, client=client, out=out, fresh=fresh,
+                      progress=progress, plots=plots, model_variant=model_variant)

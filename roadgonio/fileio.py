@@ -1,36 +1,177 @@
 """Atomic file output and small I/O helpers.
 
-Results are written to a temporary file in the destination folder and renamed into place, so an
-interrupted run never leaves a half-written result behind.
+* One file: :func:`atomic_write` writes to a temporary file in the destination folder and renames it
+  into place, so an interrupted run never leaves a half-written result behind.
+* Several files of one command: :class:`OutputGroup` writes them all into a hidden staging folder
+  inside the destination and moves them into place only when every one was written, so a command's
+  outputs appear together or not at all (a full disk or a failing plot leaves the folder as it was).
+* Files get the permissions of any file the user creates (``0666`` less the umask, typically
+  ``0644``), not the ``0600`` of :func:`tempfile.mkstemp`.
+* Every ``OSError`` on an output (read-only folder, missing or unwritable parent, ``/proc``, disk
+  full) becomes an :class:`~roadgonio.errors.InputError` naming the file: one line, exit status 2.
 """
 from __future__ import annotations
 
 import json
 import math
 import os
-import tempfile
+import secrets
+import shutil
 from pathlib import Path
 from typing import Any, Callable
 
+from roadgonio.errors import InputError
+
+#: Prefix of temporary files and staging folders (hidden; removed on success and on errors).
+TMP_PREFIX = ".roadgonio-tmp-"
+
+
+def output_error(path: str | Path, err: OSError) -> InputError:
+    """The one-line error of a failed output: the file, and the system's reason."""
+    reason = err.strerror or str(err)
+    return InputError(f"cannot write this output file ({reason})", path=path)
+
+
+def _make_dir(folder: Path, target: Path) -> None:
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise output_error(target, err) from None
+    if not folder.is_dir():
+        raise InputError("cannot write this output file (its folder is not a directory)", path=target)
+
+
+def _create(path: Path) -> int:
+    """A new file at ``path`` opened for writing, with mode 0666 less the umask (like ``open``)."""
+    return os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+
 
 def atomic_write(path: str | Path, writer: Callable[[Path], None]) -> Path:
-    """Call ``writer(tmp_path)`` then rename ``tmp_path`` to ``path`` atomically."""
+    """Call ``writer(tmp_path)`` then rename ``tmp_path`` to ``path`` atomically. The folder is
+    created if needed; an ``OSError`` becomes an :class:`InputError` naming ``path``."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
-    tmp_path = Path(tmp)
+    _make_dir(path.parent, path)
+    tmp_path = path.parent / f"{TMP_PREFIX}{secrets.token_hex(6)}-{path.name}"
     try:
+        os.close(_create(tmp_path))
         writer(tmp_path)
         os.replace(tmp_path, path)
+    except OSError as err:
+        raise output_error(path, err) from None
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        try:
+            if tmp_path.exists():
+                tmp_path.unlink()
+        except OSError:  # pragma: no cover - best effort
+            pass
     return path
 
 
 def atomic_write_text(path: str | Path, text: str) -> Path:
     return atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+
+
+class OutputGroup:
+    """The output files of one command, written together or not at all.
+
+    .. code-block:: python
+
+        with OutputGroup(out_dir) as out:
+            out.text("a.csv", text)
+            out.json("a.json", doc)
+            table.write_csv(out.path("b.csv"))     # any writer, into the staging folder
+            out.figure("a.png", lambda p: fig.savefig(p))
+
+    Inside the block every file goes to a hidden staging folder in ``out_dir``; when the block ends
+    without an error they are renamed into ``out_dir`` (same file system: each rename is atomic and
+    allocates nothing, so a full disk fails before any output appears). On an error the staging
+    folder is removed and ``out_dir`` keeps what it had. An ``OSError`` is re-raised as an
+    :class:`InputError` naming the output file it concerns.
+    """
+
+    def __init__(self, out_dir: str | Path):
+        self.out_dir = Path(out_dir)
+        self.stage: Path | None = None
+        self.names: list[str] = []
+
+    def __enter__(self) -> "OutputGroup":
+        _make_dir(self.out_dir, self.out_dir)
+        stage = self.out_dir / f"{TMP_PREFIX}{secrets.token_hex(6)}"
+        try:
+            stage.mkdir()
+        except OSError as err:
+            raise output_error(self.out_dir, err) from None
+        self.stage = stage
+        return self
+
+    def path(self, name: str) -> Path:
+        """Where to write output ``name`` now (in the staging folder)."""
+        if self.stage is None:
+            raise RuntimeError("OutputGroup.path() outside its with-block")
+        if Path(name).name != name or name.startswith("."):
+            raise ValueError(f"output names are plain file names, got {name!r}")
+        if name not in self.names:
+            self.names.append(name)
+        return self.stage / name
+
+    def text(self, name: str, text: str) -> Path:
+        p = self.path(name)
+        p.write_text(text, encoding="utf-8")
+        return self.out_dir / name
+
+    def json(self, name: str, obj: Any) -> Path:
+        return self.text(name, to_json(obj) + "\n")
+
+    def figure(self, name: str, save: Callable[[Path], Any]) -> Path:
+        save(self.path(name))
+        return self.out_dir / name
+
+    def _final_of(self, filename: str | None, stage: Path | None) -> Path:
+        """The output file an OSError concerns (its staging path mapped to the destination)."""
+        if filename and stage is not None:
+            f = Path(filename)
+            if f.parent == stage:
+                return self.out_dir / f.name
+        return self.out_dir
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        stage, self.stage = self.stage, None
+        try:
+            if exc_type is None:
+                moved: list[Path] = []
+                try:
+                    for name in self.names:
+                        src = stage / name
+                        if not src.exists():
+                            raise InputError("the command did not write this output file", path=self.out_dir / name)
+                        with open(src, "rb") as fh:     # on disk before any rename
+                            os.fsync(fh.fileno())
+                    for name in self.names:
+                        os.replace(stage / name, self.out_dir / name)
+                        moved.append(self.out_dir / name)
+                except OSError as err:
+                    for p in moved:       # not a partial set: take back what was already moved
+                        try:
+                            p.unlink()
+                        except OSError:  # pragma: no cover
+                            pass
+                    raise output_error(self._final_of(getattr(err, "filename", None), stage), err) from None
+                return False
+            if isinstance(exc, OSError):
+                raise output_error(self._final_of(getattr(exc, "filename", None), stage), exc) from None
+            return False
+        finally:
+            if stage is not None:
+                shutil.rmtree(stage, ignore_errors=True)
+
+
+def check_writable(out_dir: str | Path) -> Path:
+    """Fail before the work, not after it: the output folder can be created and written (a
+    staging folder is made and removed). Raises the one-line :class:`InputError` of an output."""
+    out_dir = Path(out_dir)
+    with OutputGroup(out_dir):
+        pass
+    return out_dir
 
 
 def _jsonable(obj: Any) -> Any:
@@ -55,6 +196,7 @@ def _jsonable(obj: Any) -> Any:
 
 
 def to_json(obj: Any, indent: int | None = 2) -> str:
+    """Strict JSON (NaN and infinities as null, numpy values as numbers)."""
     return json.dumps(_jsonable(obj), indent=indent, allow_nan=False)
 
 

@@ -71,7 +71,7 @@ def _bad_table_cases():
     negative[10] = ",".join(cells)
     rtb = bundled_table("R3").to_rtb_text().splitlines()
     rtb_neg = list(rtb)
-    rtb_neg[8] = rtb_neg[8].replace(rtb_neg[8].split()[0], "-5", 1)
+    rtb_neg[54] = "-5"  # line 55: the first r value (DIALux layout, one value per line)
     return [
         ("missing header", ".csv", no_header, 2, ["header", "tan_eps"]),
         ("non-numeric cell", ".csv", "\n".join(non_numeric), 7, ["expected a number", "abc"]),
@@ -80,7 +80,7 @@ def _bad_table_cases():
         ("empty file", ".csv", "", None, ["empty"]),
         ("comments only", ".csv", "# nothing\n", None, ["empty"]),
         ("rtb missing header", ".rtb", "\n".join(rtb[1:]), 1, ["RTable.v1"]),
-        ("rtb negative", ".rtb", "\n".join(rtb_neg), 9, [">= 0"]),
+        ("rtb negative", ".rtb", "\n".join(rtb_neg), 55, [">= 0"]),
         ("rtb empty", ".rtb", "", None, ["empty"]),
     ]
 

@@ -14,13 +14,18 @@ from roadgonio.cli._common import show_progress
 
 pytestmark = pytest.mark.system
 
-COMMANDS = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct"]
-
-
 def _subparsers():
     parser = build_parser()
     action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     return action.choices
+
+
+#: Every command the program has (discovered, so a new command is held to the same rule).
+COMMANDS = sorted(_subparsers())
+
+
+def test_the_commands_are_discovered():
+    assert {"tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct"} <= set(COMMANDS)
 
 
 @pytest.mark.parametrize("command", COMMANDS)

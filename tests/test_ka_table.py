@@ -125,6 +125,52 @@ def test_outputs_layout_and_provenance(tmp_path, setup):
     assert {"roadgonio", "mitsuba", "drjit", "numpy", "scipy"} <= set(meta["versions"])
 
 
+def test_journal_is_written_in_batches_and_stays_complete(tmp_path, setup, monkeypatch):
+    """Cells reported in quick succession are journalled by a few atomic rewrites, not one fsync per
+    cell; an interruption still leaves every reported cell in a journal that parses completely."""
+    import roadgonio.engines.runner as runner
+    ins, model = setup
+    writes = []
+    real = runner._write_journal
+    monkeypatch.setattr(runner, "_write_journal", lambda j, h, c: (writes.append(len(c)), real(j, h, c)))
+    monkeypatch.setattr(runner, "FLUSH_SECONDS", 3600.0)
+    cells = full_grid_cells()[:60]
+    with pytest.raises(Interrupted):
+        run_cells(StandIn(fail_after=45), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert writes == [0, 45]                                # the header, then once when interrupted
+    lines = (tmp_path / JOURNAL).read_text().splitlines()
+    assert len(lines) == 46 and all(json.loads(line) for line in lines)
+    monkeypatch.setattr(runner, "FLUSH_SECONDS", 0.0)       # every report flushes: the journal grows
+    writes.clear()
+    run = run_cells(StandIn(), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert run.resumed == 45 and writes[0] == 45 and writes[-1] == 60
+
+
+def test_finished_run_is_never_overwritten_by_another_even_without_its_journal(tmp_path, setup, monkeypatch):
+    ins, model = setup
+    cells = full_grid_cells()[:4]
+    b = StandIn(tag=0)
+    run = run_cells(b, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    meta = write_outputs(run, tmp_path, instrument=ins, model=model, backend=b, sample_spec="test", plot=False)
+    assert len(meta["fingerprint"]) == 16
+    (tmp_path / JOURNAL).unlink()
+    with pytest.raises(InputError, match="different run"):
+        run_cells(StandIn(tag=1), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    # the same run again (journal gone): allowed, recomputed
+    again = StandIn(tag=0)
+    run_cells(again, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert again.calls == cells
+    # another roadgonio version is another run
+    import roadgonio
+    monkeypatch.setattr(roadgonio, "__version__", roadgonio.__version__ + ".dev-other")
+    (tmp_path / JOURNAL).unlink()
+    with pytest.raises(InputError, match="different run"):
+        run_cells(StandIn(tag=0), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    fresh = StandIn(tag=0)
+    run_cells(fresh, cells, instrument=ins, model=model, out_dir=tmp_path, fresh=True, progress=False)
+    assert fresh.calls == cells and not (tmp_path / "ka.json").exists()
+
+
 def test_the_table_runner_does_not_import_the_mitsuba_room(tmp_path):
     """engines.runner sits below the backends: a quadrature table (journal, outputs, provenance)
     never imports roadgonio.engines.mitsuba, mitsuba or drjit."""

@@ -102,3 +102,20 @@ def test_accuracy_preset_reaches_the_backend_whole_and_explicit_settings_win():
     assert s["rel_se"] == 0.05 and s["batch"] == fast["batch"]
     q = make_backend("quadrature", inst, RoadModel.lambert(), accuracy="precise").settings()
     assert q["rtol"] == ACCURACY["precise"]["quadrature"]["rtol"]
+
+
+def test_buffered_draws_are_the_documented_stream():
+    """The batch points drawn into reused buffers are exactly those of ``_stratified_disc`` (the
+    definition of the scheme and of the seed's meaning), batch after batch."""
+    from roadgonio.engines.montecarlo import MonteCarloBackend, _stratified_disc
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.instrument.optics import concentric_disc
+    from roadgonio.surface.model import NumpyOps, RoadModel
+    b = MonteCarloBackend(load_instrument("portable"), RoadModel.lambert(), batch=64 ** 2)
+    r1, r2 = np.random.default_rng(9), np.random.default_rng(9)
+    for _ in range(3):
+        for k in range(3):
+            u = b._square(r1, k, True)
+            got = concentric_disc(NumpyOps, u[0], u[1])
+            want = _stratified_disc(r2, b.m)
+            assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])

@@ -8,6 +8,7 @@ import pytest
 from scipy import stats
 
 from roadgonio.errors import GeometryError
+from roadgonio.instrument import optics
 from roadgonio.instrument.config import load_instrument
 from roadgonio.surface.model import NumpyOps as xp
 from roadgonio.instrument.optics import (check_detector, check_source, concentric_disc, detector_geometry,
@@ -107,3 +108,26 @@ def test_field_sensitivity_profile_kd(edge):
     _, _, w_c = detector_ray(xp, geo, (np.zeros(2), np.zeros(2)), (np.array([0.0, 1.0]), np.zeros(2)))
     cos4 = math.cos(math.radians(0.001)) ** 4          # etendue factor at the field edge
     assert w_c[0] == pytest.approx(1.0, abs=1e-12) and w_c[1] == pytest.approx(edge * cos4, abs=1e-12)
+
+
+# -- the checks of the instrument room (used by the Mitsuba scene, numpy here) ------------------
+
+def test_beam_clip_check():
+    inst = load_instrument("portable")
+    assert not optics.beam_clips_footprint(inst, 4.0, 0.0)                             # no beam limit
+    assert optics.beam_clips_footprint(inst.with_changes(source={"beam_half_angle_deg": 0.01}), 4.0, 0.0)
+    assert not optics.beam_clips_footprint(inst.with_changes(source={"beam_half_angle_deg": 60.0}), 4.0, 0.0)
+
+
+def test_hit_check_points_and_verdict():
+    pu, fu = optics.hit_check_points(n_random=100, n_rim=8, seed=1)
+    assert pu.shape == fu.shape == (9 * 8 + 100, 2)
+    assert np.allclose(np.hypot(*fu[:72].T), 1.0) and np.all(np.hypot(*pu.T) <= 1.0 + 1e-12)
+    x, y = np.linspace(-1.0, 1.0, 5), np.zeros(5)
+    ok = optics.judge_hits(np.ones(5, bool), np.ones(5, bool), x, y)
+    assert ok == {"rays": 5, "x_range": (-1.0, 1.0), "y_range": (0.0, 0.0)}
+    on = np.array([True, True, False, True, True])
+    with pytest.raises(GeometryError, match="1 of 5 detector rays .*hit another part.*x = 0.000"):
+        optics.judge_hits(on, np.ones(5, bool), x, y)
+    with pytest.raises(GeometryError, match="miss every part"):
+        optics.judge_hits(on, on, x, y)

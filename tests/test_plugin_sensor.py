@@ -130,3 +130,14 @@ def test_lambert_signal_matches_float64_quadrature(mi, case, cell):
     se = math.sqrt(pair_variance(g))
     assert se < 1e-3 * mean
     assert abs(mean - ref) <= 4.0 * se + quad_err + 2e-6 * ref, (mean, ref, se, quad_err)
+
+
+def test_sensor_properties_are_validated_like_an_instrument_file(mi, make_sensor):
+    """focus_m = inf is an angular field (no -1 sentinel any more): a focus <= 0 is an error naming the key."""
+    from roadgonio.engines.mitsuba.scene import film_dict
+    film, sampler = film_dict(8, 4)
+    angular = mi.load_dict({"type": "lummeter", "film": film, "sampler": sampler, "distance_m": 5.0,
+                            "focus_m": math.inf, "field_half_angle_deg": 0.1})
+    assert angular.geometry.angular and angular.detector.focus_m == math.inf and "F=inf" in angular.to_string()
+    with pytest.raises(Exception, match="detector.focus_m"):
+        mi.load_dict({"type": "lummeter", "film": film, "sampler": sampler, "distance_m": 5.0, "focus_m": -1.0})

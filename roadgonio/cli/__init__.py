@@ -50,8 +50,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"roadgonio: error: {err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("roadgonio: interrupted (finished results are kept; run the same command again to resume)",
-              file=sys.stderr)
+        # each command says truthfully what an interruption keeps (``on_interrupt``, set by the
+        # command's parser or by its run() once it knows); no promise of a resume that does not exist
+        note = getattr(args, "on_interrupt", None) or "interrupted: nothing was written"
+        print(f"roadgonio: {note}", file=sys.stderr)
         return 130
 
 

@@ -6,6 +6,14 @@ import sys
 from roadgonio.engines.accuracy import rel_se_setting  # noqa: F401 - the commands' --rel-se mapping
 
 
+def check_seed(value: int, option: str = "--seed") -> int:
+    """A random seed must be >= 0 (numpy's SeedSequence takes none below)."""
+    from roadgonio.errors import InputError
+    if value is None or int(value) < 0:
+        raise InputError(f"expected a seed >= 0, got {value}", field=option)
+    return int(value)
+
+
 INSTRUMENT_HELP = ("instrument TOML file (keys and units: docs/conventions.md section 4; apertures are radii) or a "
                    "bundled preset name (lab, portable)")
 SAMPLE_HELP = ("bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file (.csv/.rtb), "
@@ -57,3 +65,27 @@ def text_output(args):
     if getattr(args, "quiet", False) or getattr(args, "json", False):
         return lambda *a, **k: None
     return print
+
+
+# -- Dask: --workers N | --scheduler ADDRESS (design, uncertainty, correct) ------------------------
+
+def _workers(text: str) -> int:
+    import argparse
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v < 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {v}")
+    return v
+
+
+def add_dask_arguments(p, default_text: str) -> None:
+    """``--workers N | --scheduler ADDRESS`` (shared by the commands that run k_A tables on Dask)."""
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--workers", type=_workers, metavar="N",
+                   help=f"worker processes of a local Dask cluster (one thread each); 0 = compute in this process "
+                        f"({default_text})")
+    g.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run on an existing Dask cluster, e.g. tcp://127.0.0.1:8786 (started with 'dask scheduler' "
+                        "and 'dask worker ADDRESS --nthreads 1' from the same environment as roadgonio)")

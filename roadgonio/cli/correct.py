@@ -10,6 +10,7 @@ from roadgonio.engines.accuracy import PRESETS
 from roadgonio.surface.model import VARIANTS
 from roadgonio.cli._common import (
     add_instrument_argument,
+    check_seed,
     add_output_options,
     rel_se_setting,
     select_variant,
@@ -84,6 +85,7 @@ def run(args) -> int:
         except InputError as err:
             raise InputError(f"--measured: {err.reason}", path=err.path, line=err.line, field=err.field) from None
         check_measured(tables[-1], f)
+    check_seed(args.seed)
     instrument = load_instrument(args.instrument)
     self_ref = args.reference.strip().lower() == "self"
     if args.model_variant == "auto" and not self_ref:

@@ -28,7 +28,7 @@ def register(sub) -> None:
                    help="hold a parameter at a value (repeatable), e.g. --fix n_phong=50; the grazing "
                         "attenuation g_a..g_t, theta_l_deg is never fitted, set it here")
     p.add_argument("--no-plot", action="store_true", help="do not write fit.png")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, on_interrupt="interrupted: no model was written (fit starts over when run again)")
 
 
 def _parse_fix(items: list[str]) -> dict[str, float]:
@@ -62,10 +62,11 @@ def residuals_csv(result) -> str:
 
 
 def run(args) -> int:
-    from roadgonio.fileio import atomic_write_text
     from roadgonio.surface.fit import fit_table
     from roadgonio.surface.rtable import load_table
 
+    from roadgonio.cli._common import check_seed
+    check_seed(args.seed)
     table = load_table(args.table)
     fixed = _parse_fix(args.fix)
     out = Path(args.out) if args.out else Path(f"fit-{table.name}-{args.variant}")
@@ -88,12 +89,15 @@ def run(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    out.mkdir(parents=True, exist_ok=True)
-    result.model.save(out / "model.json")
-    atomic_write_text(out / "residuals.csv", residuals_csv(result))
-    if not args.no_plot:
-        from roadgonio.surface.fitplot import plot_fit
-        plot_fit(result, out / "fit.png")
+    from roadgonio.fileio import OutputGroup
+    from roadgonio.surface.sample import check_not_degenerate
+    check_not_degenerate(result.model, path=args.table if Path(args.table).suffix else None)
+    with OutputGroup(out) as g:          # model.json, residuals.csv, fit.png: all or none
+        g.json("model.json", result.model.to_json_dict())
+        g.text("residuals.csv", residuals_csv(result))
+        if not args.no_plot:
+            from roadgonio.surface.fitplot import plot_fit
+            plot_fit(result, g.path("fit.png"))
     say = text_output(args)
     if args.json:
         print(json.dumps(result.to_json_dict(), indent=2))

@@ -13,6 +13,7 @@ from roadgonio.cli._common import (
     add_instrument_argument,
     add_output_options,
     add_sample_argument,
+    check_seed,
     load_inputs,
     rel_se_setting,
     select_variant,
@@ -32,9 +33,11 @@ def register(sub) -> None:
     add_sample_argument(p)
     p.add_argument("--model-variant", choices=list(VARIANTS),
                    help="model variant used when SAMPLE is a table to fit (default: the paper's 'power')")
-    p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature", "numpy-mc"],
+    p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature", "numpy-mc", "reference", "numpy-mc-mesh"],
                    help="mitsuba (default; float32 ray tracing), quadrature (deterministic float64), "
-                        "numpy-mc (plain float64 Monte Carlo, slow; an oracle)")
+                        "numpy-mc (plain float64 Monte Carlo, slow; an oracle), reference (float64 randomised "
+                        "QMC with the kinks split off and a 99.9 %% error bound; converges on wide instruments), "
+                        "numpy-mc-mesh (float64 Monte Carlo with ray casting: mesh samples)")
     p.add_argument("--accuracy", choices=list(PRESETS),
                    help="preset on the measured speed-accuracy frontier (README); --rel-se overrides it")
     p.add_argument("--rel-se", type=float, metavar="E",
@@ -44,9 +47,10 @@ def register(sub) -> None:
     p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU machine)")
     p.add_argument("--tan-eps", type=float, metavar="T", help="one cell: tan(epsilon)")
     p.add_argument("--beta", type=float, metavar="B", help="one cell: beta in degrees")
-    p.add_argument("--cells", choices=["all", "table"], default="all",
+    p.add_argument("--cells", default="all", metavar="all|table|LIST",
                    help="all = the full 580-cell grid (default); table = only the cells tabulated in the "
-                        "sample's r-table (blank cells stay blank)")
+                        "sample's r-table (blank cells stay blank); LIST = T:B,T:B,... (tan eps : beta deg), "
+                        "e.g. 12:0,12:2,4:0")
     p.add_argument("--out", metavar="DIR", help="output folder for a table (default: out/ka-INSTRUMENT-SAMPLE)")
     p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
     add_output_options(p, 'one cell: print {"k_a", "se", "error_bound", "converged", "samples", "seconds"}; '
@@ -58,9 +62,10 @@ def backend_settings(args) -> dict:
     """Backend keyword arguments from --rel-se / --seed / --variant (--accuracy goes to make_backend,
     which applies the preset under these)."""
     settings: dict = {}
+    check_seed(args.seed)
     if args.rel_se is not None:
         settings.update(rel_se_setting(args.backend, args.rel_se))
-    if args.backend in ("mitsuba", "numpy-mc"):
+    if args.backend in ("mitsuba", "numpy-mc", "reference", "numpy-mc-mesh"):
         settings["seed"] = args.seed
     if args.backend == "mitsuba" and args.variant:
         settings["variant"] = args.variant
@@ -82,6 +87,11 @@ def run(args) -> int:
     instrument, model = load_inputs(args)
     select_variant(args.backend, args.variant)
     backend = make_backend(args.backend, instrument, model, accuracy=args.accuracy, **backend_settings(args))
+    if single and not args.out:
+        args.on_interrupt = "interrupted: nothing was written (a single cell without --out does not resume)"
+    else:
+        args.on_interrupt = ("interrupted: the finished cells are kept in the output folder's journal; run the same "
+                             "command again to resume")
 
     if single:
         t0 = time.perf_counter()
@@ -97,7 +107,7 @@ def run(args) -> int:
             prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error")
             text_output(args)(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
                               f"{c.samples} samples, {seconds:.2f} s, {backend.name} backend)"
-                              + ("" if c.converged else " -- NOT converged: the target was not reached"))
+                              + ("" if c.converged else _not_converged_text(c, args.rel_se)))
         return 0
 
     if args.cells == "table":
@@ -108,8 +118,11 @@ def run(args) -> int:
             raise InputError("--cells table needs a sample that is an r-table (bundled name or table file)",
                              field="--cells") from None
         cells = table.cells
-    else:
+    elif args.cells.strip() == "all":
         cells = full_grid_cells()
+    else:
+        from roadgonio.engines.validate import parse_cells
+        cells = parse_cells(args.cells)
     sample_name = Path(args.sample).stem if Path(args.sample).exists() else args.sample
     out_dir = Path(args.out) if args.out else Path("out") / f"ka-{instrument.name}-{sample_name}"
     run_ = run_cells(backend, cells, instrument=instrument, model=model, out_dir=out_dir, fresh=args.fresh,
@@ -127,6 +140,17 @@ def run(args) -> int:
         say(f"wrote {out_dir}/" + ", ".join(f for f in meta["files"].values() if f and f != "ka_cells.jsonl")
             + ", ka.json")
     return 0
+
+
+def _not_converged_text(c, target) -> str:
+    """What a cell that stopped at its cap achieved, against what was asked."""
+    if c.deterministic:
+        got = f"relative error bound {c.error_bound / abs(c.k_a):.2g}" if c.k_a else "no bound"
+    else:
+        got = f"relative SE {c.se / abs(c.k_a):.2g}" if c.k_a else "no SE"
+    asked = f" (target {target:g})" if target is not None else ""
+    return (f" -- NOT converged: stopped at the backend's sample/evaluation cap with {got}{asked}; the value above "
+            "carries that larger uncertainty")
 
 
 def _finite_json(d: dict) -> dict:

@@ -10,6 +10,7 @@ from roadgonio.cli._common import (
     add_instrument_argument,
     add_output_options,
     add_sample_argument,
+    check_seed,
     load_inputs,
     select_variant,
     text_output,
@@ -32,7 +33,8 @@ def register(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default=None, help="Mitsuba variant (default llvm_ad_rgb)")
     add_output_options(p, "print render.json (provenance, footprint, the k_A estimate, files) to stdout")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, on_interrupt="interrupted: the pictures of this cell were not written (render starts "
+                                        "over when run again)")
 
 
 def run(args) -> int:
@@ -45,6 +47,7 @@ def run(args) -> int:
     if args.spp < 1 or math.isqrt(args.spp) ** 2 != args.spp:
         raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {args.spp}",
                          field="--spp")
+    check_seed(args.seed)
     instrument, model = load_inputs(args)
     select_variant("mitsuba", args.variant)
     from roadgonio.engines.mitsuba.images import render_cell_images

@@ -7,9 +7,11 @@ from pathlib import Path
 from roadgonio.errors import InputError
 from roadgonio.surface.model import VARIANTS
 from roadgonio.cli._common import (
+    add_dask_arguments,
     add_instrument_argument,
     add_output_options,
     add_sample_argument,
+    check_seed,
     rel_se_setting,
     select_variant,
     show_progress,
@@ -83,10 +85,12 @@ def register(sub) -> None:
     p.add_argument("--validation", type=int, default=4, metavar="N",
                    help="held-out trials with exact k_A to measure the surrogate's error (default 4)")
     p.add_argument("--threads", type=_positive_int, metavar="N", help="worker threads (default: up to 2)")
+    add_dask_arguments(p, "for the exact k_A tables of the surrogate design; default: in this process")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/uncertainty-INSTRUMENT-SAMPLE)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the PNG pictures")
     add_output_options(p, "print the summary as JSON instead of text")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, on_interrupt="interrupted: nothing was written; an uncertainty run keeps no partial "
+                                        "results and starts over when run again")
 
 
 def run(args) -> int:
@@ -101,6 +105,7 @@ def run(args) -> int:
         write_results,
     )
     spec = parse_sigma_spec(args.sigma, option="--sigma")
+    check_seed(args.seed)
     if not (0.5 < args.coverage < 1.0):
         raise InputError(f"expected a coverage probability between 0.5 and 1, got {args.coverage:g}", field="--coverage")
     if args.validation < 0:
@@ -119,7 +124,8 @@ def run(args) -> int:
                           illuminance=args.illuminance, cells=args.cells, aperture=not args.no_aperture,
                           backend=args.backend, backend_settings=settings, n_validation=args.validation,
                           surrogate_design=args.surrogate,
-                          threads=args.threads, progress=show_progress(args))
+                          threads=args.threads, progress=show_progress(args), workers=args.workers,
+                          scheduler=args.scheduler)
     sample_name = Path(args.sample).stem if Path(args.sample).suffix else args.sample
     res.provenance["sample"] = args.sample
     out = Path(args.out) if args.out else Path("out") / f"uncertainty-{instrument.name}-{sample_name}"

@@ -39,7 +39,7 @@ from scipy.optimize import least_squares, lsq_linear, nnls
 
 from roadgonio.correction.forward import LINEAR_TERMS, ForwardModel
 from roadgonio.errors import InputError
-from roadgonio.surface.fit import SEARCH_BOX, _from_z, _to_z, _z_box, nonlinear_params
+from roadgonio.surface.fit import _from_z, _to_z, _z_box, nonlinear_params
 from roadgonio.surface.model import PARAM_BOUNDS, PARAM_NAMES, RoadModel, RoadParams
 
 #: Starts of stage A (Latin hypercube over the search box), in addition to the given models.

@@ -105,11 +105,21 @@ def ideal_ratio(model: RoadModel, instrument: Instrument, tan_eps: float, beta_d
     return float(math.pi * model.brdf(wi, wo))
 
 
+def ideal_ratios(model: RoadModel, instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
+    """:func:`ideal_ratio` of many cells at once (float64 array, one value per cell)."""
+    from roadgonio.geometry import eps_from_tan, w_source
+    c = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    wi = w_source(eps_from_tan(c[:, 0]), c[:, 1], instrument.observation.delta_deg)
+    return math.pi * model.brdf(wi, instrument.w_o()[None, :])
+
+
 #: name -> "module:function" of the backend factories (imported lazily).
 BACKENDS: dict[str, str] = {
     "mitsuba": "roadgonio.engines.mitsuba.backend:make_backend",
     "quadrature": "roadgonio.engines.quadrature:make_backend",
     "numpy-mc": "roadgonio.engines.montecarlo:make_backend",
+    "reference": "roadgonio.engines.reference:make_backend",
+    "numpy-mc-mesh": "roadgonio.engines.meshmc:make_backend",
 }
 
 

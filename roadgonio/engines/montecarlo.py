@@ -1,4 +1,4 @@
-"""Plain float64 numpy Monte Carlo of the detector signal (paper eq. 3; DESIGN.md sections 4-5).
+"""Plain float64 numpy Monte Carlo of the detector signal (paper eq. 3; docs/conventions.md sections 4-5).
 
 The same integral as :mod:`roadgonio.engines.quadrature` and the same estimator as the Mitsuba
 renderer: uniform points on the pupil, field and source discs (area-preserving concentric map of
@@ -37,6 +37,8 @@ DEFAULT_REL_SE = 1e-3
 DEFAULT_BATCH = 1 << 14
 DEFAULT_MIN_BATCHES = 8
 DEFAULT_MAX_SAMPLES = 200_000_000
+#: Points per evaluation chunk of a batch (arrays of 32 KiB: reused by the allocator, not mapped).
+CHUNK = 4096
 
 
 def _stratified_disc(rng: np.random.Generator, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -62,16 +64,17 @@ class MonteCarloBackend(CellByCellBackend):
             raise InputError(f"expected a number, got {rel_se!r}", field="rel_se") from None
         if not (0.0 < rel_se < 1.0):
             raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
+        if isinstance(seed, bool) or int(seed) != seed or int(seed) < 0:
+            raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
         m = int(round(math.sqrt(int(batch))))
         if m < 2:
             raise InputError(f"expected a batch of at least 4 samples, got {batch}", field="batch")
         if int(min_batches) < 2:
             raise InputError(f"expected at least 2 batches (for a standard error), got {min_batches}",
                              field="min_batches")
-        if instrument.sample.mesh is not None:
-            raise InputError("the numpy Monte Carlo backend integrates over a flat rectangular sample only; for "
-                             "a mesh sample use the mitsuba backend (--backend mitsuba)", path=instrument.path,
-                             field="sample.mesh")
+        # refuse what this backend does not model (an XML scene's extra parts, a mesh sample)
+        from roadgonio.engines.reference import check_numpy_scene
+        check_numpy_scene(instrument, "numpy-mc")
         optics.check_detector(instrument)
         self.instrument = instrument
         self.model = model
@@ -95,31 +98,66 @@ class MonteCarloBackend(CellByCellBackend):
                 "sampling": "stratified m x m jittered grid per disc per batch, concentric map",
                 "precision": "float64"}
 
-    def _disc(self, rng, active: bool):
+    def _square(self, rng, k: int, active: bool):
+        """The m x m jittered points of disc ``k`` (0 pupil, 1 field, 2 source) on the unit square, in
+        random order, drawn exactly as :func:`_stratified_disc` draws them (the same random stream)
+        but into buffers reused from batch to batch; the concentric map is applied per chunk."""
+        n, m = self.batch, self.m
+        if not hasattr(self, "_bufs"):
+            i = np.arange(n)
+            self._grid = ((i % m).astype(np.float64), (i // m).astype(np.float64))
+            self._arange = np.arange(n)
+            self._bufs = [{name: np.empty(n) for name in ("r1", "r2", "u1", "u2")} | {"perm": np.empty(n, np.int64)}
+                          for _ in range(3)]
+            self._zeros = np.zeros(n)
         if not active:
-            z = np.zeros(self.batch)
-            return z, z
-        return _stratified_disc(rng, self.m)
+            return self._zeros, self._zeros
+        b = self._bufs[k]
+        rng.random(out=b["r1"])
+        rng.random(out=b["r2"])
+        np.copyto(b["perm"], self._arange)
+        rng.shuffle(b["perm"])                          # = rng.permutation(n)
+        for u, r, g in ((b["u1"], b["r1"], self._grid[0]), (b["u2"], b["r2"], self._grid[1])):
+            np.add(g, r, out=r)
+            np.multiply(r, 1.0 / m, out=r)
+            np.take(r, b["perm"], out=u)
+        return b["u1"], b["u2"]
 
     def _batch(self, rng: np.random.Generator, src: optics.SourceGeometry) -> tuple[float, float]:
-        """Mean of w f G and of w G over one batch."""
-        pupil = self._disc(rng, self._pupil)
-        field = self._disc(rng, self._field)
-        sdisc = self._disc(rng, self._source)
+        """Mean of w f G and of w G over one batch. The batch's points are drawn at once into reused
+        buffers (the same random stream as ever); the integrand is evaluated in chunks of
+        :data:`CHUNK` points, so its temporaries stay small enough to be reused by the allocator
+        instead of being mapped and unmapped by the kernel for every array."""
+        pupil = self._square(rng, 0, self._pupil)
+        field = self._square(rng, 1, self._field)
+        sdisc = self._square(rng, 2, self._source)
+        road = lam = 0.0
+
+        def disc(uv, active, a, b):
+            if not active:
+                return uv[0][a:b], uv[1][a:b]
+            return optics.concentric_disc(NumpyOps, uv[0][a:b], uv[1][a:b])
         with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-            o, d, w = optics.detector_ray(NumpyOps, self._det, pupil, field)
-            x, y, valid = optics.hit_plane(NumpyOps, o, d)
-            sp = optics.source_point(src, sdisc)
-            wi, g = optics.source_coupling(NumpyOps, src, x, y, sp)
-            wo = (-d[0], -d[1], -d[2])
-            f = road_brdf(NumpyOps, self._P, wi, wo, self.model.variant, self._terms)
-            wg = np.where(valid, w * g, 0.0)
-            return float(np.mean(wg * f)), float(np.mean(wg))
+            for a in range(0, self.batch, CHUNK):
+                b = a + CHUNK
+                o, d, w = optics.detector_ray(NumpyOps, self._det, disc(pupil, self._pupil, a, b),
+                                              disc(field, self._field, a, b))
+                x, y, valid = optics.hit_plane(NumpyOps, o, d)
+                sp = optics.source_point(src, disc(sdisc, self._source, a, b))
+                wi, g = optics.source_coupling(NumpyOps, src, x, y, sp)
+                wo = (-d[0], -d[1], -d[2])
+                f = road_brdf(NumpyOps, self._P, wi, wo, self.model.variant, self._terms)
+                wg = np.where(valid, w * g, 0.0)
+                road += float(np.dot(wg, f))
+                lam += float(np.sum(wg))
+        return road / self.batch, lam / self.batch
 
     def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
         optics.check_source(self.instrument, tan_eps, beta_deg)
+        from roadgonio.engines.reference import check_line_of_sight
+        check_line_of_sight(self.instrument, tan_eps, beta_deg)
         ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
         if not (ideal > 0.0 and math.isfinite(ideal)):
             raise GeometryError(f"the model is {ideal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "

@@ -150,10 +150,9 @@ class QuadratureBackend(CellByCellBackend):
             raise InputError(f"expected a relative tolerance 0 < rtol < 1, got {rtol:g}", field="rtol")
         if int(max_evals) < 1:
             raise InputError(f"expected a positive number of evaluations, got {max_evals}", field="max_evals")
-        if instrument.sample.mesh is not None:
-            raise InputError("the quadrature backend integrates over a flat rectangular sample only; for a mesh "
-                             "sample use the mitsuba backend (--backend mitsuba)", path=instrument.path,
-                             field="sample.mesh")
+        # refuse what this backend does not model (an XML scene's extra parts, a mesh sample)
+        from roadgonio.engines.reference import check_numpy_scene
+        check_numpy_scene(instrument, "quadrature")
         optics.check_detector(instrument)   # GeometryError: footprint off the sample / upward rays
         self.instrument = instrument
         self.model = model
@@ -261,6 +260,8 @@ class QuadratureBackend(CellByCellBackend):
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
         optics.check_source(self.instrument, tan_eps, beta_deg)
+        from roadgonio.engines.reference import check_line_of_sight
+        check_line_of_sight(self.instrument, tan_eps, beta_deg)
         nominal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg) / math.pi
         if not (nominal > 0.0 and math.isfinite(nominal)):
             raise GeometryError(f"the model is {nominal:g} at the nominal geometry (tan eps = {tan_eps:g}, "

@@ -2,15 +2,19 @@
 
 Output folder (``--out DIR``):
 
-* ``ka_cells.jsonl`` - the journal: one JSON line per finished cell, flushed and fsync'ed as each
-  cell finishes, headed by a fingerprint of the run (instrument, model, backend, settings). A run
-  interrupted at any point resumes from it; a journal of a *different* run is never mixed in
-  (clear error, use another folder or ``--fresh``).
+* ``ka_cells.jsonl`` - the journal: one JSON line per finished cell, headed by the fingerprint of
+  the run (instrument, model, backend, settings, roadgonio version). Backends report cells in
+  batches; the journal is rewritten atomically (temporary file, fsync, rename) at most every
+  :data:`FLUSH_SECONDS` and when the run ends or is interrupted, so it is always a complete file and
+  a run killed at any point loses at most the cells of the last interval: it resumes from the
+  journal. A journal of a *different* run is never mixed in (clear error, use another folder or
+  ``--fresh``).
 * ``ka.csv`` / ``ka_se.csv`` - k_A and its standard error in the r-table layout (rows tan eps,
   columns beta; cells not computed stay blank).
 * ``ka.png`` - a map like the paper's Figure 4.
 * ``ka.json`` - provenance (:func:`roadgonio.provenance.provenance`: instrument, model, backend and
-  settings, versions) and summary.
+  settings, versions), summary, and the run's ``fingerprint``: a finished run is never overwritten
+  by a different one, even when its journal is gone (clear error; ``--fresh`` discards it).
 """
 from __future__ import annotations
 
@@ -27,7 +31,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write_json, atomic_write_text, to_json
+from roadgonio.fileio import atomic_write, atomic_write_json, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
@@ -36,13 +40,17 @@ from roadgonio.surface.rtable import RTable
 from roadgonio.engines import CellResult, KaBackend
 
 JOURNAL = "ka_cells.jsonl"
+META = "ka.json"
+#: The journal is rewritten at most this often (seconds) while cells arrive.
+FLUSH_SECONDS = 1.0
 
 
 def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) -> str:
-    """Hash of everything that determines the numbers of a run."""
+    """Hash of everything that determines the numbers of a run, the roadgonio version included."""
+    from roadgonio import __version__
     payload = {"instrument": instrument.to_dict(), "model": {"variant": model.variant,
                                                               "params": model.params.to_dict()},
-               "backend": backend.name, "settings": backend.settings()}
+               "backend": backend.name, "settings": backend.settings(), "roadgonio": __version__}
     return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
 
 
@@ -96,24 +104,55 @@ def _read_journal(path: Path, fp: str) -> dict[tuple[float, float], CellResult]:
     return done
 
 
+def _check_finished_run(out_dir: Path, fp: str) -> None:
+    """Refuse to overwrite the outputs of a different finished run (its ka.json fingerprint)."""
+    meta = out_dir / META
+    if not meta.exists():
+        return
+    try:
+        old = json.loads(meta.read_text(encoding="utf-8")).get("fingerprint")
+    except (json.JSONDecodeError, AttributeError, OSError):
+        old = None
+    if old != fp:
+        why = ("holds the results of a different run (instrument, model, backend, settings or roadgonio version "
+               "differ)" if old else "holds results without a run fingerprint (an older roadgonio or another tool)")
+        raise InputError(f"this folder {why}; use another --out folder, or --fresh to discard them", path=meta)
+
+
+def _write_journal(journal: Path, header: dict, cells: Sequence[CellResult]) -> None:
+    """The whole journal, atomically and durably (temporary file, fsync, rename)."""
+    text = to_json(header, indent=None) + "\n" + "".join(to_json(c.to_dict(), indent=None) + "\n" for c in cells)
+
+    def writer(tmp: Path) -> None:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+    atomic_write(journal, writer)
+
+
 def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instrument: Instrument,
               model: RoadModel, out_dir: str | Path | None = None, fresh: bool = False,
               progress: bool = True) -> KaRun:
-    """Compute k_A at ``cells`` with ``backend``; with ``out_dir``, journal each cell and resume."""
+    """Compute k_A at ``cells`` with ``backend``; with ``out_dir``, journal the cells (batched atomic
+    rewrites, module docstring) and resume."""
     t0 = time.perf_counter()
     journal = None
     done: dict[tuple[float, float], CellResult] = {}
     fp = fingerprint(instrument, model, backend)
+    header = {"fingerprint": fp, "backend": backend.name}
     if out_dir is not None:
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         journal = out_dir / JOURNAL
-        if fresh and journal.exists():
-            journal.unlink()
+        if fresh:
+            for old in (journal, out_dir / META):
+                if old.exists():
+                    old.unlink()
+        _check_finished_run(out_dir, fp)
         done = _read_journal(journal, fp)
-        # (re)write the header and the finished cells, dropping a cut-short last line, before appending
-        atomic_write_text(journal, to_json({"fingerprint": fp, "backend": backend.name}, indent=None) + "\n"
-                          + "".join(to_json(c.to_dict(), indent=None) + "\n" for c in done.values()))
+        # (re)write the header and the finished cells, dropping a cut-short last line
+        _write_journal(journal, header, list(done.values()))
     todo = [c for c in cells if _cell_key(*c) not in done]
     resumed = len(cells) - len(todo)
     bar = None
@@ -121,14 +160,20 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
         from tqdm import tqdm
         bar = tqdm(total=len(cells), initial=resumed, unit="cell", desc=f"k_A ({backend.name})",
                    file=sys.stderr, dynamic_ncols=True, disable=None)
-    fh = journal.open("a", encoding="utf-8") if journal is not None else None
+    pending = [0]
+    last_flush = [time.monotonic()]
+
+    def flush() -> None:
+        if journal is not None and pending[0]:
+            _write_journal(journal, header, list(done.values()))
+            pending[0] = 0
+            last_flush[0] = time.monotonic()
 
     def on_cell(c: CellResult) -> None:
         done[_cell_key(c.tan_eps, c.beta_deg)] = c
-        if fh is not None:
-            fh.write(to_json(c.to_dict(), indent=None) + "\n")
-            fh.flush()
-            os.fsync(fh.fileno())
+        pending[0] += 1
+        if time.monotonic() - last_flush[0] >= FLUSH_SECONDS:
+            flush()
         if bar is not None:
             bar.update(1)
             bar.set_postfix_str(f"tan={c.tan_eps:g} beta={c.beta_deg:g} k_A={c.k_a:.4g}")
@@ -140,8 +185,7 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
                 if _cell_key(c.tan_eps, c.beta_deg) not in done:
                     on_cell(c)
     finally:
-        if fh is not None:
-            fh.close()
+        flush()
         if bar is not None:
             bar.close()
     results = [done[_cell_key(*c)] for c in cells if _cell_key(*c) in done]
@@ -187,12 +231,13 @@ def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, mo
     }
     meta = {
         "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md section 5)",
+        "fingerprint": fingerprint(instrument, model, backend),
         **provenance(instrument=instrument, model=model, backend=backend.name, settings=backend.settings()),
         "sample": sample_spec,
         "summary": summary,
         "files": {"ka": "ka.csv", prec_field: prec_file, "map": "ka.png" if plot else None, "journal": JOURNAL},
     }
-    atomic_write_json(out_dir / "ka.json", meta)
+    atomic_write_json(out_dir / META, meta)
     if plot:
         from roadgonio.plots import table_map
         table_map(ka, out_dir / "ka.png", title=f"Aperture-effect factor k_A: {instrument.name} x {sample_spec}",

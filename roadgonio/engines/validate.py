@@ -1,17 +1,32 @@
-"""Cross-validation of the k_A backends: deterministic float64 quadrature against a Monte Carlo
-backend (the float32 Mitsuba renderer by default, or the float64 numpy Monte Carlo).
+"""Cross-validation of the k_A backends: a Monte Carlo backend (the float32 Mitsuba renderer by
+default, or the float64 numpy Monte Carlo) judged against a float64 reference, cell by cell, with
+the right statistics for each kind of precision (DESIGN.md section 5, CellResult):
 
-For each cell the difference ``d = k_MC - k_quad`` is judged against its combined uncertainty::
+* the Monte Carlo result carries a standard error ``se_mc``;
+* the reference carries an error **bound** (the RQMC reference of :mod:`roadgonio.engines.reference`
+  by default: a 99.9 % replicate bound; or the tensor quadrature's estimate), or, for a mesh sample,
+  a standard error of its own (the numpy ray-casting Monte Carlo of :mod:`roadgonio.engines.meshmc`).
 
-    sigma = sqrt(se_MC^2 + err_quad^2)
-    pass  <=>  |d| <= N_SIGMA * sigma + floor * |k_quad|
+Standard errors combine in quadrature, a bound is added as a bound, never as an SE::
+
+    sigma   = sqrt(se_mc^2 + se_ref^2)                       (se_ref = 0 for a bounded reference)
+    allowed = N_SIGMA * sigma + bound_ref + floor * |k_ref|
 
 where ``floor`` is the relative float32 floor of the renderer (:data:`FLOAT32_FLOOR`; 0 for the
-float64 numpy Monte Carlo): the smallest relative difference the float32 renderer cannot go below
-however long it renders. How it was measured is documented at :data:`FLOAT32_FLOOR`.
-The quadrature's own error estimate enters sigma; a quadrature cell that did not converge (the
-beta = 0 column of instruments whose footprint crosses the plane of the source disc) carries its
-achieved error.
+float64 numpy Monte Carlo). Each cell gets one verdict:
+
+* **disagree**: ``|k_mc - k_ref| > allowed`` with a reference that converged (the difference is
+  real whatever the reference's own error), or a Monte Carlo value that is not finite;
+* **inconclusive**: the reference did not converge (a bound that was not reached says nothing),
+  or its bound takes more than :data:`REF_SHARE` of the test's band (``N_SIGMA sigma + floor |k|``)
+  or its standard error exceeds the tested one - then an agreement would only say the reference is
+  too coarse to see the difference; or the Monte Carlo backend stopped at its sample cap before its
+  target (its SE is honest, but the test is weaker than asked);
+* **agree**: otherwise.
+
+``roadgonio validate`` exits 0 only if every cell agrees, 1 if any disagrees, 3 if none disagrees
+but some are inconclusive. The RQMC reference is asked, per cell, for the bound that cell's test
+needs (half of :data:`REF_SHARE` of the band), so it does no more work than the comparison uses.
 
 The default cell set covers the extremes of the table: tan eps 0 and 12, beta 0 and 180, the
 specular peak region (tan 4-12 x beta 0-10) and mid cells.
@@ -32,6 +47,15 @@ from roadgonio.surface.model import RoadModel
 
 #: Pass threshold in combined standard errors.
 N_SIGMA = 4.0
+#: The reference's error bound may take at most this share of the test's band (N_SIGMA sigma + floor |k|);
+#: a wider bound makes the cell inconclusive (an agreement would only say the reference is too coarse).
+REF_SHARE = 0.25
+#: Verdicts, and the exit status of ``roadgonio validate`` for the worst one present.
+VERDICTS = ("agree", "disagree", "inconclusive")
+EXIT_STATUS = {"agree": 0, "disagree": 1, "inconclusive": 3}
+#: References: "auto" = the RQMC reference for a flat sample, the mesh Monte Carlo for a mesh sample.
+REFERENCES = ("auto", "reference", "quadrature", "numpy-mc-mesh")
+
 #: Relative float32 floor of the renderer, by backend name: a relative difference from the float64
 #: quadrature that longer renders would not remove. Measured (R3-like model, quadrature rtol 1e-7,
 #: mitsuba 3.9.1 llvm_ad_rgb, multijitter sampler): lab preset, 5 cells (tan 12/beta 0, 4/2, 0/0, 2/180,
@@ -48,28 +72,41 @@ DEFAULT_CELLS: tuple[tuple[float, float], ...] = (
     (2.0, 90.0), (1.0, 45.0),
 )
 
-CSV_FIELDS = ("tan_eps", "beta_deg", "k_quad", "err_quad", "k_mc", "se_mc", "diff", "rel_diff", "sigma",
-              "z", "floor", "allowed", "ok", "seconds_quad", "seconds_mc", "samples_mc")
+CSV_FIELDS = ("tan_eps", "beta_deg", "verdict", "k_ref", "bound_ref", "se_ref", "ref_converged", "k_mc", "se_mc",
+              "mc_converged", "diff", "rel_diff", "sigma", "z", "floor", "allowed", "needed_bound", "reason",
+              "seconds_ref", "seconds_mc", "samples_ref", "samples_mc")
 
 
 @dataclass(frozen=True)
 class CellComparison:
+    """The judgement of one cell (module docstring)."""
+
     tan_eps: float
     beta_deg: float
-    k_quad: float
-    err_quad: float
+    verdict: str          # "agree" | "disagree" | "inconclusive"
+    k_ref: float
+    bound_ref: float      # error bound of the reference (NaN if it carries a standard error)
+    se_ref: float         # standard error of the reference (NaN if it carries a bound)
+    ref_converged: bool
     k_mc: float
     se_mc: float
-    diff: float
+    mc_converged: bool
+    diff: float           # k_mc - k_ref
     rel_diff: float
-    sigma: float
+    sigma: float          # combined standard error sqrt(se_mc^2 + se_ref^2)
     z: float              # diff / sigma
     floor: float          # relative float32 floor applied
-    allowed: float        # N_SIGMA * sigma + floor * |k_quad|
-    ok: bool
-    seconds_quad: float
+    allowed: float        # N_SIGMA * sigma + bound_ref + floor * |k_ref|
+    needed_bound: float   # the widest reference bound the test accepts: REF_SHARE * (N_SIGMA sigma + floor |k|)
+    reason: str
+    seconds_ref: float
     seconds_mc: float
+    samples_ref: int
     samples_mc: int
+
+    @property
+    def ok(self) -> bool:
+        return self.verdict == "agree"
 
 
 def parse_cells(text: str | None) -> list[tuple[float, float]]:
@@ -97,46 +134,132 @@ def parse_cells(text: str | None) -> list[tuple[float, float]]:
     return cells
 
 
-def compare(quad, mc, floor: float = 0.0) -> CellComparison:
-    """Compare a quadrature CellResult with a Monte Carlo CellResult of the same cell."""
-    d = mc.k_a - quad.k_a
-    sigma = mc.se  # a standard error; the quadrature's error bound is added as a bound, never as an SE
-    allowed = N_SIGMA * sigma + quad.error_bound + floor * abs(quad.k_a)
-    z = d / sigma if sigma > 0 else (0.0 if d == 0 else math.copysign(math.inf, d))
-    ok = bool(math.isfinite(d) and abs(d) <= allowed)
-    return CellComparison(tan_eps=quad.tan_eps, beta_deg=quad.beta_deg, k_quad=quad.k_a, err_quad=quad.error_bound,
-                          k_mc=mc.k_a, se_mc=mc.se, diff=d, rel_diff=d / quad.k_a if quad.k_a else math.nan,
-                          sigma=sigma, z=z, floor=floor, allowed=allowed, ok=ok, seconds_quad=quad.seconds,
-                          seconds_mc=mc.seconds, samples_mc=mc.samples)
+def _finite(v) -> bool:
+    return v is not None and isinstance(v, (int, float)) and math.isfinite(v)
+
+
+def compare(ref, mc, floor: float = 0.0) -> CellComparison:
+    """Judge a Monte Carlo CellResult ``mc`` against a reference CellResult ``ref`` of the same cell
+    (module docstring): a reference with an ``error_bound`` adds it as a bound, one with an ``se``
+    combines it with the Monte Carlo SE in quadrature."""
+    k_ref, k_mc = float(ref.k_a), float(mc.k_a)
+    se_mc = float(mc.se)
+    has_se_ref = _finite(ref.se)
+    se_ref = float(ref.se) if has_se_ref else math.nan
+    bound = float(ref.error_bound) if not has_se_ref else math.nan
+    bound_term = bound if _finite(bound) else (0.0 if has_se_ref else math.inf)
+    sigma = math.sqrt(se_mc ** 2 + (se_ref ** 2 if has_se_ref else 0.0)) if _finite(se_mc) else math.nan
+    d = k_mc - k_ref
+    band = N_SIGMA * sigma + floor * abs(k_ref)
+    allowed = band + bound_term
+    needed = REF_SHARE * band
+    z = d / sigma if _finite(sigma) and sigma > 0 else (0.0 if d == 0 else math.copysign(math.inf, d))
+    ref_ok = bool(ref.converged) and (_finite(bound) or has_se_ref) and _finite(k_ref)
+    if not (_finite(k_mc) and _finite(se_mc)):
+        verdict, reason = "disagree", f"the {'Monte Carlo'} value or its SE is not finite (k = {k_mc}, SE = {se_mc})"
+    elif not ref_ok:
+        what = (f"bound {bound / abs(k_ref):.1e} relative" if _finite(bound) and k_ref else "no usable bound")
+        verdict, reason = "inconclusive", f"the reference did not converge ({what}; raise its cap or loosen --rtol)"
+    elif abs(d) > allowed:
+        verdict, reason = "disagree", (f"|diff| = {abs(d):.3g} > allowed {allowed:.3g} "
+                                       f"({N_SIGMA:g} SE + bound + floor); {z:+.1f} SE")
+    elif has_se_ref and se_ref > se_mc:
+        verdict, reason = "inconclusive", (f"the reference's SE {se_ref:.2g} exceeds the tested SE {se_mc:.2g}: "
+                                           "the check is weaker than the renderer")
+    elif not has_se_ref and bound > needed:
+        verdict, reason = "inconclusive", (f"the reference's bound {bound:.2g} is wider than the test needs "
+                                           f"(<= {needed:.2g}, {REF_SHARE:g} of the band)")
+    elif not bool(mc.converged):
+        verdict, reason = "inconclusive", (f"the Monte Carlo backend stopped at its sample cap with SE "
+                                           f"{se_mc / abs(k_mc) if k_mc else math.inf:.1e} relative, above its target")
+    else:
+        verdict, reason = "agree", f"{z:+.2f} SE, within {allowed / sigma if sigma > 0 else math.inf:.2f}"
+    return CellComparison(tan_eps=float(ref.tan_eps), beta_deg=float(ref.beta_deg), verdict=verdict, k_ref=k_ref,
+                          bound_ref=bound, se_ref=se_ref, ref_converged=bool(ref.converged), k_mc=k_mc, se_mc=se_mc,
+                          mc_converged=bool(mc.converged), diff=d, rel_diff=d / k_ref if k_ref else math.nan,
+                          sigma=sigma, z=z, floor=floor, allowed=allowed, needed_bound=needed, reason=reason,
+                          seconds_ref=float(ref.seconds), seconds_mc=float(mc.seconds),
+                          samples_ref=int(ref.samples), samples_mc=int(mc.samples))
+
+
+def counts(rows: Sequence[CellComparison]) -> dict[str, int]:
+    return {v: sum(r.verdict == v for r in rows) for v in VERDICTS}
+
+
+def overall(rows: Sequence[CellComparison]) -> str:
+    """The worst verdict present: disagree > inconclusive > agree."""
+    c = counts(rows)
+    return "disagree" if c["disagree"] else ("inconclusive" if c["inconclusive"] else "agree")
+
+
+def resolve_reference(instrument: Instrument, reference: str) -> str:
+    if reference not in REFERENCES:
+        raise InputError(f"expected --reference {', '.join(REFERENCES)}, got {reference!r}", field="--reference")
+    if reference == "auto":
+        return "numpy-mc-mesh" if instrument.sample.mesh is not None else "reference"
+    return reference
 
 
 def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[float, float]] | None = None, *,
-             against: str = "mitsuba", rel_se: float = 1e-3, rtol: float = 1e-5, seed: int = 0,
-             floor: float | None = None, mc_settings: dict[str, Any] | None = None,
+             against: str = "mitsuba", reference: str = "auto", rel_se: float = 1e-3, rtol: float | None = None,
+             seed: int = 0, floor: float | None = None, mc_settings: dict[str, Any] | None = None,
+             ref_settings: dict[str, Any] | None = None,
              on_cell: Callable[[CellComparison], None] | None = None) -> dict[str, Any]:
-    """Run both backends on ``cells`` and compare them; returns a report dict with ``rows``
-    (:class:`CellComparison`), ``ok``, ``settings`` and timings."""
+    """Run the Monte Carlo backend and the reference on ``cells`` and judge each cell; returns a
+    report dict with ``rows`` (:class:`CellComparison`), ``counts``, ``verdict``, ``exit_status``,
+    ``settings`` and timings. ``rtol`` fixes the reference's target (default: per cell, what the
+    test needs)."""
     from roadgonio.engines import make_backend
     if against not in ("mitsuba", "numpy-mc"):
         raise InputError(f"expected --against mitsuba or numpy-mc, got {against!r}", field="--against")
+    ref_name = resolve_reference(instrument, reference)
+    if ref_name == "numpy-mc-mesh" and against == "numpy-mc":
+        raise InputError("a mesh sample is checked against the numpy ray-casting Monte Carlo; --against numpy-mc "
+                         "(flat samples only) has nothing to compare there", field="--against")
     cells = list(DEFAULT_CELLS) if cells is None else list(cells)
     if floor is None:
         floor = FLOAT32_FLOOR.get(against, 0.0)
     t0 = time.perf_counter()
-    quad = make_backend("quadrature", instrument, model, rtol=rtol)
+    ref_kw = dict(ref_settings or {})
+    if ref_name == "quadrature":
+        ref_kw.setdefault("rtol", 1e-5 if rtol is None else rtol)
+    elif ref_name == "reference":
+        ref_kw.setdefault("seed", seed)
+        if rtol is not None:
+            ref_kw.setdefault("rtol", rtol)
+    else:
+        ref_kw.setdefault("seed", seed + 1)     # the mesh Monte Carlo: a stream apart from the tested one
+        ref_kw.setdefault("rel_se", rel_se)
+    ref = make_backend(ref_name, instrument, model, **ref_kw)
     mc = make_backend(against, instrument, model, rel_se=rel_se, seed=seed, **(mc_settings or {}))
     rows: list[CellComparison] = []
     for cell in cells:
-        q = quad.compute([cell])[0]
         m = mc.compute([cell])[0]
+        if ref_name == "reference" and rtol is None:
+            # ask the reference for half the bound this cell's test accepts
+            band = N_SIGMA * m.se + floor * abs(m.k_a) if _finite(m.se) and _finite(m.k_a) else math.nan
+            target = 0.5 * REF_SHARE * band / abs(m.k_a) if _finite(band) and m.k_a else ref.rtol
+            q = ref.compute_cell(cell[0], cell[1], rtol=min(max(target, 1e-7), 0.5))
+        else:
+            q = ref.compute([cell])[0]
         row = compare(q, m, floor)
         rows.append(row)
         if on_cell is not None:
             on_cell(row)
-    return {"ok": all(r.ok for r in rows), "rows": rows, "n_sigma": N_SIGMA, "floor": floor,
-            "against": against, "seconds": time.perf_counter() - t0,
-            "settings": {"quadrature": quad.settings(), against: mc.settings()},
+    verdict = overall(rows)
+    return {"verdict": verdict, "exit_status": EXIT_STATUS[verdict], "counts": counts(rows),
+            "ok": verdict == "agree", "rows": rows, "n_sigma": N_SIGMA, "ref_share": REF_SHARE, "floor": floor,
+            "against": against, "reference": ref_name, "seconds": time.perf_counter() - t0,
+            "settings": {ref_name: ref.settings(), against: mc.settings()},
             "instrument": instrument.to_dict(), "model": model.to_json_dict()}
+
+
+def summary_line(report: dict[str, Any]) -> str:
+    c = report["counts"]
+    n = sum(c.values())
+    return (f"validate: {c['agree']} agree, {c['disagree']} disagree, {c['inconclusive']} inconclusive "
+            f"(of {n} cells; {report['against']} against the {report['reference']} reference, "
+            f"{report['n_sigma']:g} SE + bound + float32 floor {report['floor']:.1e}; {report['seconds']:.1f} s)")
 
 
 def rows_csv(rows: Sequence[CellComparison]) -> str:
@@ -148,9 +271,21 @@ def rows_csv(rows: Sequence[CellComparison]) -> str:
     return buf.getvalue()
 
 
+def report_json(report: dict[str, Any]) -> dict[str, Any]:
+    """The JSON document of a report (validate.json, ``--json``)."""
+    doc = {k: v for k, v in report.items() if k != "rows"}
+    doc["cells"] = [asdict(r) for r in report["rows"]]
+    try:
+        from roadgonio import __version__
+        doc["roadgonio_version"] = __version__
+    except ImportError:  # pragma: no cover
+        pass
+    return doc
+
+
 def plot(report: dict[str, Any], path: str | Path) -> Path:
-    """Two panels: the difference of each cell in combined standard errors (with the pass band),
-    and both k_A values with their uncertainties."""
+    """Two panels: the difference of each cell in combined standard errors (with its pass band),
+    coloured by verdict, and both k_A values with their uncertainties."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -161,22 +296,26 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
     labels = [f"{r.tan_eps:g} / {r.beta_deg:g}" for r in rows]
     x = np.arange(len(rows))
     z = np.array([r.z for r in rows])
-    band = np.array([r.allowed / r.sigma if r.sigma > 0 else N_SIGMA for r in rows])
-    ok = np.array([r.ok for r in rows])
+    band = np.array([r.allowed / r.sigma if r.sigma > 0 and math.isfinite(r.allowed) else N_SIGMA for r in rows])
+    colour = {"agree": "tab:blue", "disagree": "tab:red", "inconclusive": "tab:orange"}
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(max(7.0, 0.6 * len(rows) + 2), 7.5), sharex=True)
-    ax1.bar(x, np.clip(z, -3 * N_SIGMA, 3 * N_SIGMA), color=np.where(ok, "tab:blue", "tab:red"))
+    ax1.bar(x, np.clip(np.nan_to_num(z), -3 * N_SIGMA, 3 * N_SIGMA), color=[colour[r.verdict] for r in rows])
     ax1.step(np.r_[x - 0.5, x[-1] + 0.5], np.r_[band, band[-1]], where="post", color="k", ls="--", lw=1,
-             label=f"allowed: {N_SIGMA:g} SE + float32 floor")
+             label=f"allowed: {N_SIGMA:g} SE + reference bound + float32 floor")
     ax1.step(np.r_[x - 0.5, x[-1] + 0.5], -np.r_[band, band[-1]], where="post", color="k", ls="--", lw=1)
     ax1.axhline(0, color="0.5", lw=0.8)
-    ax1.set_ylabel(f"(k_{report['against']} - k_quad) / SE")
-    ax1.legend(loc="upper right", fontsize=8)
-    verdict = "PASS" if report["ok"] else f"FAIL ({int((~ok).sum())} of {len(rows)} cells)"
-    ax1.set_title(f"k_A: quadrature vs {report['against']} - {verdict}")
-    kq = np.array([r.k_quad for r in rows])
+    ax1.set_ylabel(f"(k_{report['against']} - k_ref) / SE")
+    from matplotlib.patches import Patch
+    handles = ax1.get_legend_handles_labels()[0] + [Patch(color=c, label=v) for v, c in colour.items()]
+    ax1.legend(handles=handles, loc="upper right", fontsize=8)
+    c = report["counts"]
+    ax1.set_title(f"k_A: {report['against']} vs {report['reference']} reference - {report['verdict'].upper()} "
+                  f"({c['agree']} agree, {c['disagree']} disagree, {c['inconclusive']} inconclusive)")
+    kq = np.array([r.k_ref for r in rows])
     km = np.array([r.k_mc for r in rows])
-    ax2.errorbar(x - 0.12, kq, yerr=[r.err_quad for r in rows], fmt="o", ms=5, label="quadrature (float64)")
-    ax2.errorbar(x + 0.12, km, yerr=[r.se_mc for r in rows], fmt="s", ms=5, mfc="none",
+    err_ref = [r.bound_ref if math.isfinite(r.bound_ref) else r.se_ref for r in rows]
+    ax2.errorbar(x - 0.12, kq, yerr=np.nan_to_num(err_ref), fmt="o", ms=5, label=f"{report['reference']} (float64)")
+    ax2.errorbar(x + 0.12, km, yerr=np.nan_to_num([r.se_mc for r in rows]), fmt="s", ms=5, mfc="none",
                  label=f"{report['against']} (+-1 SE)")
     ax2.axhline(1.0, color="0.5", lw=0.8)
     ax2.set_ylabel("k_A")
@@ -191,18 +330,11 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
 
 
 def write_outputs(report: dict[str, Any], out_dir: str | Path) -> dict[str, Path]:
-    """validate.csv, validate.json and validate.png in ``out_dir`` (atomic writes)."""
-    from roadgonio.fileio import atomic_write_json, atomic_write_text
+    """validate.csv, validate.json and validate.png in ``out_dir``, all or none (one atomic group)."""
+    from roadgonio.fileio import OutputGroup
     out_dir = Path(out_dir)
-    rows = report["rows"]
-    paths = {"csv": atomic_write_text(out_dir / "validate.csv", rows_csv(rows))}
-    doc = {k: v for k, v in report.items() if k != "rows"}
-    doc["cells"] = [asdict(r) for r in rows]
-    try:
-        from roadgonio import __version__
-        doc["roadgonio_version"] = __version__
-    except ImportError:  # pragma: no cover
-        pass
-    paths["json"] = atomic_write_json(out_dir / "validate.json", doc)
-    paths["png"] = plot(report, out_dir / "validate.png")
-    return paths
+    with OutputGroup(out_dir) as out:
+        out.text("validate.csv", rows_csv(report["rows"]))
+        out.json("validate.json", report_json(report))
+        out.figure("validate.png", lambda p: plot(report, p))
+    return {"csv": out_dir / "validate.csv", "json": out_dir / "validate.json", "png": out_dir / "validate.png"}

@@ -142,7 +142,8 @@ def detector_ray(xp, geo: DetectorGeometry, pupil_xy, field_xy):
         f = geo.focus_m
         ft = f * geo.tan_field
         # q - p = F a + F tan(gamma) (fx s + fy t) - R_D (px s + py t)
-        d = _comb(f * a, s, ft * fx - rd * px, t, ft * fy - rd * py)
+        fa = (a[0] * f, a[1] * f, a[2] * f)     # component-wise: F may be an opaque Dr.Jit scalar
+        d = _comb(fa, s, ft * fx - rd * px, t, ft * fy - rd * py)
         length = xp.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
         cos_t = f / length
         weight = cos_t * cos_t * cos_t * cos_t

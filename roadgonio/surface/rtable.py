@@ -11,20 +11,32 @@ CSV layout (that of ``data/rtables/``)::
     tan_eps,0,2,5,...,180    (header: beta in degrees)
     0,294,294,...            (29 rows, first cell tan eps, then r x 1e4; empty cell = blank)
 
-RTB layout (DIALux ``.rtb``, whitespace separated)::
+RTB layout (DIALux ``.rtb``): "For every single information a new line will be used" (DIAL's
+support article "R-Tables in DIALux", DIALux 4.6 and later, English and German versions, and the
+"R-table in DIALux (engl)" PDF: https://evo.support-en.dial.de/support/solutions/articles/9000073306).
+For the 29 x 20 standard grid that is 634 lines::
 
-    RTable.v1
-    <surface name>
-    <number of tan eps values>
-    <tan eps values>
-    <number of beta values>
-    <beta values in degrees>
-    <q0>
-    <r x 1e4 values, tan eps varying fastest>  (one line per beta)
+    line 1        RTable.v1                 (must not be changed)
+    line 2        <name of the surface>     (shown in DIALux, e.g. "CIE R3")
+    line 3        <nEps>                    (number of tan eps values, 29)
+    lines 4-32    tan eps, one value per line
+    line 33       <nBeta>                   (number of beta values, 20)
+    lines 34-53   beta in degrees, one value per line
+    line 54       q0                        (Q0 in sr^-1)
+    lines 55-634  R(tan eps_i, beta_j), one value per line, tan eps varying fastest:
+                  R(eps_01, beta_01), R(eps_02, beta_01), ... R(eps_29, beta_01), R(eps_01, beta_02), ...
 
-Scale: roadgonio writes r x 10^4, the scale of the printed CIE tables and of our CSV files, so an
-RTB file reads the same as the printed table. RTB has no blank marker: a blank cell is written
-as 0 and a 0 is read back as blank (no real road surface has r = 0).
+(The article's example numbers the last value of the first beta column "line 84"; counting its own
+list it is line 83.) The article does not state the scale of the R values; it says the layout follows
+the r-tables of EN 13201, which print r x 10^4, and roadgonio writes r x 10^4 (so an RTB file reads
+like the printed table) with q0 in sr^-1. The reader checks the scale of a file against its own q0
+line (:func:`parse_rtb`).
+
+RTB has no blank marker. Blank ("not measured") cells are written as 0 and every 0 read is a blank,
+as in the electronic copies of the CIE tables (SOURCES.md). So that a 0 is never a blank in disguise,
+writing refuses a table with a real r = 0 cell (write CSV, which keeps 0 and blank apart).
+The reader is tolerant: values may share lines (roadgonio's older layout, one beta column per line),
+blank lines are skipped, CR/CRLF line ends and a decimal comma are accepted.
 """
 from __future__ import annotations
 
@@ -44,6 +56,9 @@ from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 
 #: Scale of r in files (published tables store r x 10^4).
 R_SCALE = 1e4
+#: The largest r accepted from a table file (sr^-1): 125 times the largest CIE value (C1: 0.077), so a
+#: table in the wrong scale or an exponent typo (1e300) is an error, not a fit to nonsense.
+R_MAX_PLAUSIBLE = 10.0
 BUNDLED = ("R1", "R2", "R3", "R4", "C1", "C2")
 #: Published CIE values (DESIGN.md section 2).
 PUBLISHED_S1 = {"R1": 0.25, "R2": 0.58, "R3": 1.11, "R4": 1.55, "C1": 0.24, "C2": 0.97}
@@ -144,13 +159,20 @@ class RTable:
         return atomic_write_text(path, self.to_csv_text(scale, digits))
 
     def to_rtb_text(self) -> str:
-        lines = ["RTable.v1", self.name.replace("\n", " ") or "table",
-                 str(len(self.tan_eps)), " ".join(_fmt(t, 6) for t in self.tan_eps),
-                 str(len(self.beta_deg)), " ".join(_fmt(b, 6) for b in self.beta_deg),
-                 _fmt(self.q0(), 6)]
+        """DIALux RTB text: one value per line (module docstring), r x 1e4, blanks as 0.
+
+        Raises :class:`InputError` if a cell holds r = 0: RTB would read it back as a blank."""
+        zero = np.argwhere(self.r == 0.0)
+        if len(zero):
+            i, j = zero[0]
+            raise InputError(f"cannot write RTB: r = 0 at tan eps = {self.tan_eps[i]:g}, beta = {self.beta_deg[j]:g} "
+                             f"({len(zero)} zero cell(s)); RTB stores blanks as 0, so a zero would come back as "
+                             "'not measured'. Write CSV (.csv), which keeps 0 and blank apart", field="r")
+        name = " ".join(self.name.split()) or "table"
+        lines = ["RTable.v1", name, str(len(self.tan_eps)), *(_fmt(t, 6) for t in self.tan_eps),
+                 str(len(self.beta_deg)), *(_fmt(b, 6) for b in self.beta_deg), _fmt(self.q0(), 6)]
         for j in range(len(self.beta_deg)):
-            col = self.r[:, j] * R_SCALE
-            lines.append(" ".join("0" if not np.isfinite(v) else _fmt(v, 6) for v in col))
+            lines.extend("0" if not np.isfinite(v) else _fmt(v, 6) for v in self.r[:, j] * R_SCALE)
         return "\n".join(lines) + "\n"
 
     def write_rtb(self, path: str | Path) -> Path:
@@ -245,58 +267,115 @@ def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = Non
             if v < 0:
                 raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: r must be >= 0, got {c}",
                                  path=path, line=lineno)
+            if v / R_SCALE > R_MAX_PLAUSIBLE:
+                raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: r x 1e4 = {c} is not a plausible road value "
+                                 f"(expected r x 1e4 <= {R_MAX_PLAUSIBLE * R_SCALE:.0f}; the CIE tables peak "
+                                 "below 800): a typo, or a table not written as r x 1e4?", path=path, line=lineno)
             r[i, j] = v / R_SCALE
     if not np.isfinite(r).any():
         raise InputError("the table has no values (every cell is blank)", path=path)
     return RTable(r, name=name or Path(str(path)).stem, source="\n".join(comments))
 
 
+#: A read RTB's q0 line agrees with the Q0 of its values within this (relative). Our trapezoidal Q0
+#: differs from the CIE 144 weights by up to 3.5 % on the standard tables (SOURCES.md), and files
+#: often carry the nominal q0 of their class; beyond this the reader says so in the table's source.
+RTB_Q0_AGREE = 0.15
+#: Scale candidates are told apart by factors of 10^4; a q0 line within this factor of one of them
+#: identifies the scale, otherwise the file is refused.
+RTB_Q0_SCALE_FACTOR = 2.0
+
+
+def _rtb_number(text: str, path, line: int, what: str) -> float:
+    if "," in text and "." not in text:  # decimal comma (German locale files)
+        text = text.replace(",", ".")
+    return _parse_number(text, path, line, what)
+
+
 def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
-    """Parse a DIALux RTB file (values r x 1e4; 0 = blank)."""
+    """Parse a DIALux RTB file (module docstring): R values r x 1e4, 0 = blank.
+
+    Tolerant of layout (one value per line as DIALux documents it, or several per line), blank
+    lines, a decimal comma. The scale of the values is checked against the file's own q0 line:
+    the values' Q0 read as r x 1e4 must match q0 (in sr^-1); a file whose values are r in sr^-1
+    (q0 in sr^-1), or whose q0 is scaled like the values (q0 x 1e4), is recognised by its q0 line
+    and read at that scale (the table's ``source`` says so); a q0 line that fits no scale is an error.
+    """
     lines = text.splitlines()
-    nonblank = [(k, l) for k, l in enumerate(lines, start=1) if l.strip()]
-    if not nonblank:
+    first = next((k for k, l in enumerate(lines) if l.strip()), None)
+    if first is None:
         raise InputError("empty file: expected 'RTable.v1' on line 1", path=path)
-    if nonblank[0][1].strip() != "RTable.v1":
-        raise InputError(f"missing header: expected 'RTable.v1' on line 1, got {nonblank[0][1].strip()[:40]!r}",
-                         path=path, line=nonblank[0][0])
-    if len(nonblank) < 2:
-        raise InputError("missing surface name on line 2", path=path, line=nonblank[0][0])
-    name = nonblank[1][1].strip()
-    tokens: list[tuple[int, str]] = [(k, tok) for k, l in nonblank[2:] for tok in l.split()]
+    if lines[first].strip() != "RTable.v1":
+        raise InputError(f"missing header: expected 'RTable.v1' on line 1, got {lines[first].strip()[:40]!r}",
+                         path=path, line=first + 1)
+    if first + 1 >= len(lines):
+        raise InputError("missing surface name on line 2", path=path, line=first + 1)
+    name = lines[first + 1].strip() or Path(str(path)).stem
+    tokens: list[tuple[int, str]] = [(k, tok) for k, l in enumerate(lines[first + 2:], start=first + 3)
+                                     for tok in l.split()]
     pos = 0
 
     def take(what: str) -> tuple[int, float]:
         nonlocal pos
         if pos >= len(tokens):
-            last = tokens[-1][0] if tokens else nonblank[1][0]
+            last = tokens[-1][0] if tokens else first + 2
             raise InputError(f"file ends early: expected {what}", path=path, line=last)
         k, tok = tokens[pos]
         pos += 1
-        return k, _parse_number(tok, path, k, what)
+        return k, _rtb_number(tok, path, k, what)
 
-    k, n_t = take("the number of tan eps values")
-    tans = [take(f"tan eps value {i + 1}")[1] for i in range(int(n_t))]
+    def count(what: str) -> tuple[int, int]:
+        k, v = take(what)
+        if v != int(v) or v < 1:
+            raise InputError(f"{what}: expected a whole number >= 1, got {v:g}", path=path, line=k)
+        return k, int(v)
+
+    k, n_t = count("the number of tan eps values")
+    tans = [take(f"tan eps value {i + 1}")[1] for i in range(n_t)]
     _check_grid(tans, TAN_EPS_GRID, "the tan eps values", path, k)
-    k, n_b = take("the number of beta values")
-    betas = [take(f"beta value {i + 1}")[1] for i in range(int(n_b))]
+    k, n_b = count("the number of beta values")
+    betas = [take(f"beta value {i + 1}")[1] for i in range(n_b)]
     _check_grid(betas, BETA_GRID_DEG, "the beta values", path, k)
-    take("q0")
-    r = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), np.nan)
+    q0_line, q0 = take("q0")
+    v = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), np.nan)
     for j in range(len(BETA_GRID_DEG)):
         for i in range(len(TAN_EPS_GRID)):
-            k, v = take(f"r value (tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g})")
-            if v < 0:
+            k, x = take(f"r value (tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g})")
+            if x < 0:
                 raise InputError(f"r must be >= 0 (tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g}), "
-                                 f"got {v:g}", path=path, line=k)
-            if v > 0:
-                r[i, j] = v / R_SCALE
+                                 f"got {x:g}", path=path, line=k)
+            if x > 0:
+                v[i, j] = x
     if pos != len(tokens):
-        raise InputError(f"{len(tokens) - pos} unexpected value(s) after the {r.size} r values",
+        raise InputError(f"{len(tokens) - pos} unexpected value(s) after the {v.size} r values",
                          path=path, line=tokens[pos][0])
-    if not np.isfinite(r).any():
+    if not np.isfinite(v).any():
         raise InputError("the table has no values (every cell is 0 = blank)", path=path)
-    return RTable(r, name=name, source=f"read from {Path(str(path)).name}")
+    scale, note = _rtb_scale(v, q0, path, q0_line)
+    src = f"read from {Path(str(path)).name}" + (f"; {note}" if note else "")
+    return RTable(v / scale, name=name, source=src)
+
+
+def _rtb_scale(values: np.ndarray, q0_line: float, path, line: int) -> tuple[float, str]:
+    """(divisor turning the file's values into r in sr^-1, note) from the file's q0 line."""
+    q0_x1e4 = RTable(values / R_SCALE).q0()  # Q0 of the values read as r x 1e4, sr^-1
+    if not q0_line > 0:
+        return R_SCALE, f"q0 line is {q0_line:g}: scale not checked, values read as r x 1e4"
+    if q0_line > 1.0:  # no road has Q0 > 1 sr^-1: q0 written at the values' scale (x 1e4)
+        candidates = [(R_SCALE, q0_line / R_SCALE, "q0 line read as q0 x 1e4 like the values")]
+    else:
+        candidates = [(R_SCALE, q0_line, ""), (1.0, q0_line, "values read as r in sr^-1 (their Q0 matches the q0 line)")]
+    for scale, q0_ref, note in candidates:
+        q0_values = q0_x1e4 * R_SCALE / scale
+        ratio = q0_values / q0_ref
+        if 1 / RTB_Q0_SCALE_FACTOR <= ratio <= RTB_Q0_SCALE_FACTOR:
+            if abs(ratio - 1) > RTB_Q0_AGREE:
+                note = (note + "; " if note else "") + (f"q0 line {q0_ref:.4g} sr^-1 differs from the values' Q0 "
+                                                        f"{q0_values:.4g} sr^-1 by {100 * (1 / ratio - 1):+.0f} %")
+            return scale, note
+    raise InputError(f"the q0 line ({q0_line:g}) fits no scale of the values: read as r x 1e4 they give "
+                     f"Q0 = {q0_x1e4:.4g} sr^-1, read as r in sr^-1 Q0 = {q0_x1e4 * R_SCALE:.4g} sr^-1; expected "
+                     "q0 in sr^-1 (e.g. 0.07) matching the values", path=path, line=line, field="q0")
 
 
 def read_table(path: str | Path) -> RTable:

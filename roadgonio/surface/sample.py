@@ -91,7 +91,27 @@ def fitted_model(table: RTable, variant: str | None = None, *, use_cache: bool =
     return model
 
 
+def check_not_degenerate(model: RoadModel, path=None) -> RoadModel:
+    """A model whose every coefficient k_diff, k_phong, k_retro, k_exp is 0 reflects nothing:
+    k_A = measured/nominal, S1 and the r-table are undefined for it (0/0). A clear error instead
+    of NaN results."""
+    P = model.params
+    if P.k_diff == 0 and P.k_phong == 0 and P.k_retro == 0 and P.k_exp == 0:
+        raise InputError("every coefficient (k_diff, k_phong, k_retro, k_exp) is 0: the model reflects nothing, "
+                         "so k_A, S1 and the r-table are undefined; expected at least one k_* > 0",
+                         path=path, field="params")
+    return model
+
+
 def resolve_sample(spec: str, variant: str | None = None) -> RoadModel:
+    """A road BRDF model from a sample specification, checked not to be degenerate (see
+    :func:`check_not_degenerate`)."""
+    s = str(spec).strip()
+    p = Path(s).expanduser()
+    return check_not_degenerate(_resolve_sample(spec, variant), path=p if p.suffix else None)
+
+
+def _resolve_sample(spec: str, variant: str | None = None) -> RoadModel:
     """A road BRDF model from a sample specification (see the module docstring).
 
     ``variant`` selects the model variant for fitted tables (default ``"power"``); for a model

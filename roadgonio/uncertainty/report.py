@@ -78,23 +78,26 @@ def cells_csv_text(res: UncertaintyResult) -> str:
 
 def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: str = "sample",
                   plots: bool = True) -> list[Path]:
-    """Write uncertainty.json, cells.csv, r-table CSVs of the mean and u per case, and the pictures."""
-    from roadgonio.fileio import atomic_write_json, atomic_write_text
+    """Write uncertainty.json, cells.csv, r-table CSVs of the mean and u per case, and the pictures,
+    all or none (:class:`roadgonio.fileio.OutputGroup`: a full disk leaves the folder as it was)."""
+    from roadgonio.fileio import OutputGroup
     from roadgonio.surface.rtable import RTable
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    written = [atomic_write_json(out / "uncertainty.json", result_dict(res)),
-               atomic_write_text(out / "cells.csv", cells_csv_text(res))]
-    n = len(res.cells)
-    for name, c in res.cases.items():
-        src = (f"roadgonio uncertainty: {name.replace('_', ' ')}, {res.trials} trials, seed {res.seed}, "
-               f"sample {sample_name}")
-        for key, label in (("mean", "mean r x 1e4"), ("u", "standard uncertainty u(r) x 1e4")):
-            t = RTable(res.cells.to_grid(c.mc[key][:n]), name=f"{sample_name}_{key}", source=f"{src}: {label}")
-            written.append(t.write_csv(out / f"{name}_{key}.csv"))
-    if plots:
-        written.extend(plot_uncertainty_maps(res, out))
-        written.append(plot_q0_s1(res, out / "q0_s1_hist.png"))
+    with OutputGroup(out) as g:
+        written = [g.json("uncertainty.json", result_dict(res)), g.text("cells.csv", cells_csv_text(res))]
+        n = len(res.cells)
+        for name, c in res.cases.items():
+            src = (f"roadgonio uncertainty: {name.replace('_', ' ')}, {res.trials} trials, seed {res.seed}, "
+                   f"sample {sample_name}")
+            for key, label in (("mean", "mean r x 1e4"), ("u", "standard uncertainty u(r) x 1e4")):
+                t = RTable(res.cells.to_grid(c.mc[key][:n]), name=f"{sample_name}_{key}", source=f"{src}: {label}")
+                t.write_csv(g.path(f"{name}_{key}.csv"))
+                written.append(out / f"{name}_{key}.csv")
+        if plots:
+            written.extend(out / p.name for p in plot_uncertainty_maps(res, g.stage))
+            written.append(out / plot_q0_s1(res, g.path("q0_s1_hist.png")).name)
+            for p in written:
+                g.path(p.name)      # every picture is part of the group
     return written
 
 

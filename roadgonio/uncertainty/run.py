@@ -4,6 +4,7 @@ from __future__ import annotations
 import math
 import os
 import time
+from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
@@ -17,7 +18,7 @@ from roadgonio.uncertainty.surrogate import DESIGNS, N_COORDS, KaSurrogate, desi
 from roadgonio.uncertainty.cells import CellSet
 from roadgonio.uncertainty.gum import gum_propagation, gum_validation
 from roadgonio.uncertainty.measurement import MeasurementModel
-from roadgonio.uncertainty.spec import INPUTS, SigmaSpec
+from roadgonio.uncertainty.spec import INPUTS, SigmaSpec, check_spec_geometry, check_trials
 from roadgonio.uncertainty.statistics import numerical_tolerance, summarize
 
 # ----------------------------------------------------------------------------------------------
@@ -32,10 +33,13 @@ DEFAULT_BACKEND_TOLERANCE = {"mitsuba": 3e-3, "quadrature": 1e-4}
 
 
 def default_backend_factory(name: str, settings: Mapping[str, Any]) -> BackendFactory:
+    """``factory(instrument, model, **more)``: the backend ``name`` with ``settings`` (and ``more``,
+    e.g. the ``plan`` of the Mitsuba engine: the exact tables replay the first table's plan)."""
     from roadgonio.engines import make_backend
 
-    def factory(instrument: Instrument, model: RoadModel):
-        return make_backend(name, instrument, model, **dict(settings))
+    def factory(instrument: Instrument, model: RoadModel, **more):
+        return make_backend(name, instrument, model, **{**dict(settings), **more})
+    factory.accepts_plan = name == "mitsuba"
     return factory
 
 
@@ -50,13 +54,14 @@ class SurrogateReport:
     rel_err_rms: np.ndarray
     backend_rel_se_max: float    # largest relative standard uncertainty of the backend (SE, or bound/sqrt 3)
     settings: dict[str, Any]
+    not_converged: int = 0       # exact evaluations that stopped at the backend's cap before its target
 
     def summary(self, u_rel: np.ndarray | None = None) -> dict[str, Any]:
         d = {"design": self.surrogate.kind, "design_points": self.design_points, "validation_trials": self.validation_trials,
              "exact_evaluations": self.exact_evaluations, "seconds": self.seconds,
              "rel_err_max": float(np.max(self.rel_err_max)) if self.rel_err_max.size else 0.0,
              "rel_err_rms": float(math.sqrt(np.mean(self.rel_err_rms ** 2))) if self.rel_err_rms.size else 0.0,
-             "backend_rel_se_max": self.backend_rel_se_max,
+             "backend_rel_se_max": self.backend_rel_se_max, "not_converged": self.not_converged,
              "fit_rms_log_max": float(np.max(self.surrogate.fit_rms_log)),
              "coordinate_scales": dict(zip(("alpha_loc_deg", "src_eps_offset_deg", "src_phi_offset_deg",
                                             "source_distance_m", "detector_distance_m"),
@@ -73,9 +78,15 @@ class SurrogateReport:
 def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFactory, *,
                     seed_seq: np.random.SeedSequence, n_validation: int = 8, pilot: int = 2000,
                     backend_settings: Mapping[str, Any] | None = None, progress: bool = True,
-                    design: str = "ccd", axial: float | None = None, factorial: float = 1.5) -> SurrogateReport:
+                    design: str = "ccd", axial: float | None = None, factorial: float = 1.5,
+                    client=None, task_backend: tuple[str, Mapping[str, Any]] | None = None) -> SurrogateReport:
     """Fit the k_A surrogate over the perturbed neighbourhood of every cell and validate it against
-    exact k_A at ``n_validation`` held-out trials drawn from the input distribution."""
+    exact k_A at ``n_validation`` held-out trials drawn from the input distribution.
+
+    The exact tables are independent instruments: with a Dask ``client``
+    (:func:`roadgonio.design.cluster.open_client`) they are computed on its workers as
+    :class:`~roadgonio.design.cluster.TableTask` of ``task_backend = (backend name, settings)``
+    (the same settings, hence the same numbers, as ``factory``), otherwise here with ``factory``."""
     t0 = time.perf_counter()
     rng_pilot, rng_val = [np.random.default_rng(s) for s in seed_seq.spawn(2)]
     Xp = spec.draw(rng_pilot, pilot)
@@ -99,57 +110,127 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=total, desc="exact k_A (surrogate design)", unit="cell", leave=False)
-
-    def exact(alpha_loc: float, ds: float, dd: float, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        inst = mm.instrument.with_changes(
-            observation={"alpha_deg": alpha_loc, "delta_deg": mm.delta0},
-            source={"distance_m": mm.ds0 + ds}, detector={"distance_m": mm.dd0 + dd})
-        backend = factory(inst, mm.model)
-        if not settings_seen:
-            try:
-                settings_seen.update(backend.settings())
-            except Exception:  # noqa: BLE001 - provenance only
-                settings_seen["backend"] = getattr(backend, "name", "?")
-        res = backend.compute(mm.cells_of(w), on_cell=(lambda _r: bar.update(1)) if bar is not None else None)
-        return np.array([c.k_a for c in res]), np.array([c.standard_uncertainty() for c in res])
+        bar = tqdm(total=total, desc="exact k_A (surrogate design)", unit="cell", leave=False, disable=None)
 
     settings_seen: dict[str, Any] = {}
+
+    def instrument_at(alpha_loc: float, ds: float, dd: float) -> Instrument:
+        return mm.instrument.with_changes(
+            observation={"alpha_deg": alpha_loc, "delta_deg": mm.delta0},
+            source={"distance_m": mm.ds0 + ds}, detector={"distance_m": mm.dd0 + dd})
+
+    # the exact tables: the design points, then the validation trials (all independent instruments)
+    jobs: list[tuple[Instrument, list[tuple[float, float]]]] = []
     x_design = np.empty((len(pts), n, N_COORDS))
-    ka_design = np.empty((len(pts), n))
-    rel_se = 0.0
-    settings: dict[str, Any] = dict(backend_settings or {})
+    for k, x in enumerate(pts):
+        w = mm.dirs_from_offsets(x[1], x[2])
+        x_design[k, :, 0] = x[0]
+        x_design[k, :, 1:3] = mm._tangent(w)
+        x_design[k, :, 3] = x[3]
+        x_design[k, :, 4] = x[4]
+        jobs.append((instrument_at(mm.alpha0 + x[0], x[3], x[4]), mm.cells_of(w)))
+    if len(Xv):
+        xv, wr = mm.surrogate_coords(Xv)
+        for t in range(len(Xv)):
+            jobs.append((instrument_at(mm.alpha0 + xv[t, 0, 0], Xv[t, 5], Xv[t, 6]), mm.cells_of(wr[t])))
     try:
-        for k, x in enumerate(pts):
-            w = mm.dirs_from_offsets(x[1], x[2])
-            x_design[k, :, 0] = x[0]
-            x_design[k, :, 1:3] = mm._tangent(w)
-            x_design[k, :, 3] = x[3]
-            x_design[k, :, 4] = x[4]
-            ka, se = exact(mm.alpha0 + x[0], x[3], x[4], w)
-            ka_design[k] = ka
-            rel_se = max(rel_se, float(np.max(se / np.abs(ka))))
+        if client is None:
+            exact = _exact_here(jobs, mm.model, factory, bar, settings_seen)
+        else:
+            exact = _exact_on_dask(jobs, mm.model, client, task_backend, bar, settings_seen, factory)
+        not_converged = [int(settings_seen.pop("_not_converged", 0))]
+        for (inst, _cells), (ka, _se) in zip(jobs, exact):
+            if not np.all(np.isfinite(ka)):
+                from roadgonio.errors import RoadgonioError
+                raise RoadgonioError(f"the k_A backend returned a non-finite value at alpha = "
+                                     f"{inst.observation.alpha_deg:.4g} deg, source distance {inst.source.distance_m:.4g} m, "
+                                     f"detector distance {inst.detector.distance_m:.4g} m")
+        ka_design = np.array([exact[k][0] for k in range(len(pts))]).reshape(len(pts), n)
+        rel_se = max([float(np.max(se / np.abs(ka))) for ka, se in exact] or [0.0])
         # cells on the mirror plane: k_A is even in the azimuthal offset, with a kink (surrogate docstring)
         c = mm.cells
         fold = (c.tan_eps > 0) & ((np.abs(c.beta_deg) < 1e-9) | (np.abs(c.beta_deg - 180.0) < 1e-9))
         sur = KaSurrogate.fit(scale, x_design, ka_design, design, fold=fold)
         err = np.zeros((len(Xv), n))
-        if len(Xv):
-            xv, wr = mm.surrogate_coords(Xv)
-            for t in range(len(Xv)):
-                ka, se = exact(mm.alpha0 + xv[t, 0, 0], Xv[t, 5], Xv[t, 6], wr[t])
-                rel_se = max(rel_se, float(np.max(se / np.abs(ka))))
-                err[t] = sur(xv[t:t + 1])[0] / ka - 1.0
+        for t in range(len(Xv)):
+            err[t] = sur(xv[t:t + 1])[0] / exact[len(pts) + t][0] - 1.0
     finally:
         if bar is not None:
             bar.close()
+    settings: dict[str, Any] = dict(backend_settings or {})
     settings = {**settings, **settings_seen}
     return SurrogateReport(
         surrogate=sur, design_points=len(pts), validation_trials=len(Xv),
         exact_evaluations=(len(pts) + len(Xv)) * n, seconds=time.perf_counter() - t0,
         rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else np.zeros(n),
         rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else np.zeros(n),
-        backend_rel_se_max=rel_se, settings=settings)
+        backend_rel_se_max=rel_se, settings=settings, not_converged=not_converged[0])
+
+
+def _exact_here(jobs, model: RoadModel, factory: BackendFactory, bar, settings_seen: dict,
+                plan_seen: dict | None = None) -> list:
+    """(k_A, standard uncertainty) arrays of every (instrument, cells) job, computed here in order,
+    one ``compute`` call per table (the batched engine). The Mitsuba engine replays the first table's
+    pass plan with the same seed, so every table gets the same random numbers and the Monte Carlo
+    noise cancels in the differences the surrogate fits (common random numbers); the plan is left
+    in ``plan_seen["plan"]``."""
+    out = []
+    plan_seen = {} if plan_seen is None else plan_seen
+    replay = getattr(factory, "accepts_plan", False)
+    for inst, cells in jobs:
+        backend = factory(inst, model, plan=plan_seen["plan"]) if replay and "plan" in plan_seen else factory(inst, model)
+        if not settings_seen:
+            try:
+                settings_seen.update(backend.settings())
+            except Exception:  # noqa: BLE001 - provenance only
+                settings_seen["backend"] = getattr(backend, "name", "?")
+        res = backend.compute(cells, on_cell=(lambda _r: bar.update(1)) if bar is not None else None)
+        if replay and "plan" not in plan_seen and getattr(backend, "last_plan", None) is not None:
+            plan_seen["plan"] = backend.last_plan
+        settings_seen["_not_converged"] = settings_seen.get("_not_converged", 0) + sum(not c.converged for c in res)
+        out.append((np.array([c.k_a for c in res]), np.array([c.standard_uncertainty() for c in res])))
+    return out
+
+
+def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, settings_seen: dict,
+                   factory: BackendFactory | None = None) -> list:
+    """As :func:`_exact_here`, on the workers of a Dask client (one task per table). For the Mitsuba
+    engine the first table is computed here, and its plan goes with every other task, so the numbers
+    are those of :func:`_exact_here`."""
+    from roadgonio.design.cluster import TableTask, absolute_instrument_dict, map_tables
+    from roadgonio.errors import BackendError, GeometryError, RoadgonioError
+    if task_backend is None:
+        raise InputError("distributing the exact tables needs a backend name and settings, not a backend factory",
+                         field="--workers")
+    name, settings = task_backend
+    first: list = []
+    if name == "mitsuba" and jobs and factory is not None and getattr(factory, "accepts_plan", False):
+        plan_seen: dict = {}
+        first = _exact_here(jobs[:1], model, factory, bar, settings_seen, plan_seen)
+        settings = {**dict(settings), "plan": plan_seen["plan"].to_dict()}
+        jobs = jobs[1:]
+    mdict = model.to_json_dict()
+    tasks = [TableTask(instrument=absolute_instrument_dict(inst), model=mdict, cells=tuple(cells), backend=name,
+                       settings=dict(settings), key=k,
+                       instrument_path=str(Path(inst.path).resolve()) if inst.path else None)
+             for k, (inst, cells) in enumerate(jobs)]
+
+    def done(r) -> None:
+        if bar is not None:
+            bar.update(len(tasks[r.key].cells))
+
+    results = map_tables(tasks, client, on_result=done) if tasks else []
+    out = list(first)
+    for r in results:
+        if not r.ok:
+            err = {"GeometryError": GeometryError, "InputError": InputError,
+                   "BackendError": BackendError}.get(r.error_kind or "", RoadgonioError)
+            raise err(r.error)
+        if r.settings and not (set(settings_seen) - {"_not_converged"}):
+            settings_seen.update(r.settings)
+        settings_seen["_not_converged"] = settings_seen.get("_not_converged", 0) + sum(not c.converged for c in r.cells)
+        out.append((np.array([c.k_a for c in r.cells]), np.array([c.standard_uncertainty() for c in r.cells])))
+    return out
 
 
 @dataclass
@@ -242,7 +323,8 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
                     backend_settings: Mapping[str, Any] | None = None,
                     backend_factory: BackendFactory | None = None, n_validation: int = 4,
                     surrogate_design: str = "ccd",
-                    threads: int | None = None, chunk: int = 256, progress: bool = True) -> UncertaintyResult:
+                    threads: int | None = None, chunk: int = 256, progress: bool = True,
+                    workers: int | None = None, scheduler: str | None = None, client=None) -> UncertaintyResult:
     """Monte Carlo (and GUM) uncertainty of the r-table that ``instrument`` measures on a sample
     with BRDF ``model``, for the instrument errors ``spec`` (module docstring).
 
@@ -250,6 +332,10 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     skipped with a note for an ideal instrument, where k_A = 1). ``adaptive=True`` applies the
     JCGM 101 7.9 stopping rule (batches of ``batch`` = max(100/(1-p), 10^4) trials, all outputs
     stabilised to ``n_dig`` significant digits of u, at most ``max_trials``).
+
+    The exact k_A tables of the surrogate design run on Dask with ``client``, ``workers`` (a local
+    cluster of that many worker processes) or ``scheduler`` (an existing cluster), else here
+    (:func:`roadgonio.design.cluster.open_client`); the numbers are the same either way.
     """
     if not (0.5 < coverage < 1.0):
         raise InputError(f"expected a coverage probability 0.5 < p < 1, got {coverage:g}", field="--coverage")
@@ -272,12 +358,28 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     if aperture and instrument.is_ideal():
         notes.append("ideal instrument (point source, single-ray detector): k_A = 1, aperture case skipped")
         aperture = False
+    # the SPEC against the geometry, before any work (and every trial below as it is drawn)
+    check_spec_geometry(spec, mm, aperture=aperture)
     if aperture:
         factory = backend_factory or default_backend_factory(backend, backend_settings or {})
+        distributed = client is not None or scheduler is not None or workers not in (None, 0)
+        if distributed and backend_factory is not None:
+            raise InputError("a custom backend factory cannot run on Dask workers; give a backend name",
+                             field="--workers")
         t = time.perf_counter()
-        sur_report = build_surrogate(mm, spec, factory, seed_seq=ss_sur, n_validation=n_validation,
-                                     backend_settings={"backend": backend, **dict(backend_settings or {})},
-                                     design=surrogate_design, progress=progress)
+        kw = dict(seed_seq=ss_sur, n_validation=n_validation,
+                  backend_settings={"backend": backend, **dict(backend_settings or {})},
+                  design=surrogate_design, progress=progress,
+                  task_backend=(backend, dict(backend_settings or {})))
+        if client is not None:
+            sur_report = build_surrogate(mm, spec, factory, client=client, **kw)
+        elif distributed:
+            from roadgonio.design.cluster import describe, open_client
+            with open_client(workers, scheduler, backend=backend, variant=(backend_settings or {}).get("variant")) as c:
+                notes.append(f"exact k_A tables on Dask: {describe(c)}")
+                sur_report = build_surrogate(mm, spec, factory, client=c, **kw)
+        else:
+            sur_report = build_surrogate(mm, spec, factory, **kw)
         timings["surrogate"] = time.perf_counter() - t
     ev = _Evaluator(mm, sur_report.surrogate if sur_report else None, chunk, threads)
 
@@ -286,10 +388,12 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     bar = None
     if progress:
         from tqdm import tqdm
-        bar = tqdm(total=None if adaptive else trials, desc="Monte Carlo trials", unit="trial", leave=False)
+        bar = tqdm(total=None if adaptive else trials, desc="Monte Carlo trials", unit="trial", leave=False,
+                   disable=None)
     try:
         if not adaptive:
             X = spec.draw(rng, trials)
+            check_trials(spec, mm, X)
             Y0, Y1 = ev(X, bar)
         else:
             Mb = int(batch) if batch else max(int(math.ceil(100.0 / (1.0 - coverage))), 10_000)
@@ -300,6 +404,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
             converged = False
             while True:
                 X = spec.draw(rng, Mb)
+                check_trials(spec, mm, X, first_index=h * Mb)
                 y0, y1 = ev(X, bar)
                 blocks0.append(y0)
                 per_batch["0"].append(_batch_stats(y0, coverage))
@@ -328,6 +433,9 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
             bar.close()
     timings["monte_carlo"] = time.perf_counter() - t
     M = Y0.shape[1]
+    for name, Y in (("without the aperture effect", Y0), ("with the aperture effect", Y1)):
+        if Y is not None:
+            _check_finite(Y, mm, name)
 
     t = time.perf_counter()
     cases: dict[str, CaseResult] = {}
@@ -351,6 +459,21 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     return UncertaintyResult(cells=cs, cases=cases, trials=M, seed=int(seed), spec=spec, coverage=coverage,
                              n_dig=n_dig, adaptive=adaptive_info, surrogate=sur_report, provenance=prov,
                              seconds=timings)
+
+
+def _check_finite(Y: np.ndarray, mm: MeasurementModel, case: str) -> None:
+    """Never a NaN statistic: an output that is not finite in some trial is an error naming it."""
+    from roadgonio.errors import RoadgonioError
+    bad_rows = np.nonzero(~np.all(np.isfinite(Y), axis=1))[0]
+    if bad_rows.size == 0:
+        return
+    n = len(mm.cells)
+    i = int(bad_rows[0])
+    what = ("Q0" if i == n else "S1 (r(2, 0) / r(0, 0))" if i == n + 1 else
+            f"r at tan eps = {mm.cells.tan_eps[i]:g}, beta = {mm.cells.beta_deg[i]:g}")
+    k = int(np.sum(~np.isfinite(Y[i])))
+    raise RoadgonioError(f"{what} is not finite in {k} of {Y.shape[1]} trials {case} (e.g. r(0, 0) = 0 makes S1 "
+                         "undefined): no statistics are written; check the sample model and the SPEC")
 
 
 def _batch_stats(Y: np.ndarray, p: float) -> dict[str, np.ndarray]:

@@ -160,3 +160,125 @@ def parse_sigma_spec(spec: str | Path | Mapping[str, Any], *, option: str = "--s
         raise InputError(err.reason, field=err.field) from None
 
 
+
+
+# ----------------------------------------------------------------------------------------------
+# The SPEC against the geometry: up front, and every trial
+# ----------------------------------------------------------------------------------------------
+
+#: A normal error is checked up front out to this many standard deviations (a rectangular one to
+#: its half-width sqrt(3) sigma); beyond it a trial is still checked when it is drawn.
+CHECK_SIGMAS = 6.0
+
+
+def extents(spec: SigmaSpec) -> np.ndarray:
+    """The largest error of each input that the up-front check covers (0 for sigma = 0)."""
+    return np.array([s * (math.sqrt(3.0) if d == "rect" else CHECK_SIGMAS)
+                     for s, d in zip(spec.sigma, spec.distribution)])
+
+
+def geometry_problems(mm, X: np.ndarray, *, aperture: bool = False) -> tuple[np.ndarray, list[str]]:
+    """For trials X (m, 7) of a :class:`~roadgonio.uncertainty.measurement.MeasurementModel`: a mask
+    of the trials whose perturbed geometry is not valid, and for each of them what is wrong."""
+    X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+    inst = mm.instrument
+    (wix, wiy, wiz), (wox, woy, woz) = mm.local_directions(X)
+    bad = np.zeros(len(X), dtype=bool)
+    why = [""] * len(X)
+
+    def flag(mask, text_of):
+        for k in np.nonzero(mask & ~bad)[0]:
+            why[k] = text_of(k)
+        bad[:] = bad | mask
+
+    alpha = mm.alpha0 + X[:, 0]
+    flag((alpha <= 0.0) | (alpha >= 90.0), lambda k: f"the observation angle alpha = {alpha[k]:.4g} deg is not in (0, 90)")
+    flag(woz[:, 0] <= 0.0, lambda k: "the detector is at or below the (tilted) sample's horizon")
+    low = np.min(wiz, axis=1)
+    cells = mm.cells
+
+    def src_text(k):
+        j = int(np.argmin(wiz[k]))
+        return (f"the source is at or below the (tilted) sample's horizon at tan eps = {cells.tan_eps[j]:g}, "
+                f"beta = {cells.beta_deg[j]:g}")
+    flag(low <= 0.0, src_text)
+    ds = mm.ds0 + X[:, 5]
+    flag(ds <= inst.source.radius_m, lambda k: f"the source distance {ds[k]:.4g} m is not larger than its radius "
+                                               f"({inst.source.radius_m:g} m)")
+    dd = mm.dd0 + X[:, 6]
+    flag(dd <= inst.detector.pupil_radius_m, lambda k: f"the detector distance {dd[k]:.4g} m is not larger than its "
+                                                       f"pupil radius ({inst.detector.pupil_radius_m:g} m)")
+    if aperture and bool(np.any(~bad)):
+        from roadgonio.errors import GeometryError
+        from roadgonio.instrument.optics import check_detector, check_source
+        for k in np.nonzero(~bad)[0]:
+            try:
+                pert = inst.with_changes(observation={"alpha_deg": float(alpha[k])},
+                                         source={"distance_m": float(ds[k])}, detector={"distance_m": float(dd[k])})
+                if pert.sample.mesh is None:
+                    check_detector(pert)
+                for t, b in zip(cells.tan_eps, cells.beta_deg):
+                    check_source(pert, float(t), float(b))
+            except (GeometryError, InputError) as err:
+                bad[k] = True
+                why[k] = str(getattr(err, "reason", err))
+    return bad, why
+
+
+def check_spec_geometry(spec: SigmaSpec, mm, *, aperture: bool, option: str = "--sigma") -> None:
+    """Validate a SPEC against the instrument up front: every input alone at +- its checked extent
+    (:data:`CHECK_SIGMAS` sigma, or the rectangular half-width) and the inputs together at that
+    distance in every sign combination must keep the geometry valid (detector and source above
+    the tilted horizon, distances larger than the apertures, the footprint on the sample and the
+    source above the plane with the aperture effect). Raises :class:`InputError` naming the key."""
+    ext = extents(spec)
+    active = [i for i in range(len(INPUTS)) if ext[i] > 0]
+    if not active:
+        return
+    trials, who = [], []
+    for i in active:
+        for sign in (-1.0, 1.0):
+            x = np.zeros(len(INPUTS))
+            x[i] = sign * ext[i]
+            trials.append(x)
+            who.append([i])
+    if len(active) > 1:
+        k = len(active)
+        for code in range(2 ** k):
+            x = np.zeros(len(INPUTS))
+            for b, i in enumerate(active):
+                x[i] = (1.0 if code >> b & 1 else -1.0) * ext[i] / math.sqrt(k)
+            trials.append(x)
+            who.append(active)
+    X = np.array(trials)
+    bad, why = geometry_problems(mm, X, aperture=False)
+    if aperture:
+        # the aperture case rebuilds the instrument per trial: check the single-input extremes
+        single = np.array([len(w) == 1 for w in who]) & ~bad
+        b2, w2 = geometry_problems(mm, X[single], aperture=True)
+        idx = np.nonzero(single)[0]
+        for j, k in enumerate(idx):
+            if b2[j]:
+                bad[k], why[k] = True, w2[j]
+    if np.any(bad):
+        k = int(np.nonzero(bad)[0][0])
+        keys = [INPUTS[i] for i in who[k]]
+        what = (f"{keys[0]} = {spec.sigma[who[k][0]]:g} ({spec.distribution[who[k][0]]})" if len(keys) == 1
+                else "the errors together (" + ", ".join(f"{INPUTS[i]} = {spec.sigma[i]:g}" for i in who[k]) + ")")
+        field = f"{option} {keys[0]}" if len(keys) == 1 else option
+        raise InputError(f"sigma {what} takes the geometry out of validity within {CHECK_SIGMAS:g} standard "
+                         f"deviations ({why[k]}); expected smaller standard deviations", field=field)
+
+
+def check_trials(spec: SigmaSpec, mm, X: np.ndarray, *, first_index: int = 0, option: str = "--sigma") -> None:
+    """Every drawn trial must have a valid geometry (the up-front check covers 6 sigma; a trial
+    beyond that is still caught here, never turned into a NaN or a silent zero)."""
+    bad, why = geometry_problems(mm, X)
+    if np.any(bad):
+        k = int(np.nonzero(bad)[0][0])
+        with np.errstate(divide="ignore", invalid="ignore"):
+            zs = np.where(spec.sigmas > 0, np.abs(X[k]) / spec.sigmas, 0.0)
+        i = int(np.argmax(zs))
+        raise InputError(f"trial {first_index + k + 1} draws {INPUTS[i]} = {X[k, i]:+.4g} ({zs[i]:.1f} sigma), "
+                         f"where {why[k]}; {int(bad.sum())} of {len(X)} trials of this batch are invalid: expected "
+                         "standard deviations that keep the geometry valid", field=f"{option} {INPUTS[i]}")

@@ -72,7 +72,12 @@ def set_variant(variant: str | None = None):
                            f"{', '.join(mi.variants())}")
     try:
         mi.set_variant(variant)
-    except ImportError as err:
+    except (ImportError, RuntimeError) as err:
+        if variant.startswith("cuda"):
+            # not an LLVM problem: no usable NVIDIA GPU / CUDA driver here
+            raise BackendError(f"cannot use Mitsuba variant {variant!r}: it needs an NVIDIA GPU with a working CUDA "
+                               f"driver, and none was found ({str(err).strip().rstrip('.')}); use the CPU variant "
+                               "llvm_ad_rgb (--variant llvm_ad_rgb, the default)") from None
         raise BackendError(f"cannot use Mitsuba variant {variant!r}: {err}. {_INSTALL_HINT}") from None
     if variant.startswith("llvm"):
         check_llvm_version(tuple(dr.detail.llvm_version()))

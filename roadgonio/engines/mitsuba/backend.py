@@ -1,56 +1,54 @@
-"""The Mitsuba k_A backend (``--backend mitsuba``): DESIGN.md section 5, paper eq. 2-3.
+"""The Mitsuba k_A backend (``--backend mitsuba``): docs/conventions.md section 5, paper eq. 2-3.
 
-For each cell (tan eps, beta) the source is moved in the once-built scene
-(:mod:`roadgonio.engines.mitsuba.scene`) and passes of a fixed-size render are made. The road BSDF runs
-with its channel trick, so every pixel carries S[f_road] (channel 0) and S[f_lambert] (channel 1)
-from the **same rays**. Statistics are float64 numpy:
+All cells of a ``compute`` call go through the batched engine (:mod:`roadgonio.engines.mitsuba.engine`,
+the ``kabatch`` integrator plugin): the scene is built once per instrument
+(:mod:`roadgonio.engines.mitsuba.scene`: road BSDF plugin, luminance-meter sensor, trimesh sample,
+disc area emitters), the detector rays are traced once per pass and shared by every cell, each
+cell's source is sampled at the same hits, and per-cell road and Lambert sums come back in float64::
 
-    ratio = <R> / <G>,   k_A = ratio / ideal_ratio(model, instrument, tan, beta)
+    ratio = sum R / sum G,   k_A = ratio / ideal_ratio(model, instrument, tan, beta)
 
 with ``ideal_ratio`` = pi f_road(nominal) in float64 (:func:`roadgonio.engines.ideal_ratio`), never
-rendered. Passes with different spp are pooled weighted by their sample counts.
+rendered.
 
-Standard error from a single pass: the pixels stratify the field of view (the film is
-concentric-mapped onto the field disc), so the pixel values are independent but not identically
-distributed; treating them as i.i.d. would add the between-pixel spread of the footprint
-radiance to the error. The variance of a pass mean is instead estimated from differences of
-horizontally adjacent pixels (paired strata) of the delta-method residual z = R - ratio G::
+Standard error: the marginal SE of each cell from independent replicates (randomly shifted lattices)
+by the delta method (:mod:`roadgonio.engines.mitsuba.passes`); cells computed together share rays, so
+their errors are correlated: :meth:`MitsubaBackend.covariance` gives the covariance matrix of the last
+``compute`` call (for the SE of a table functional), estimated from the shared replicates.
+``tests/test_engine.py`` checks the SE against the scatter over seeds, for cells batched together too.
 
-    Var(mean z) ~= sum over pairs (z_a - z_b)^2 / P^2          (P pixels)
+Passes sized from the target: a first pass of ``first_pass`` samples per cell, then the 1/N rule per
+cell (:class:`~roadgonio.engines.mitsuba.passes.Planner`); cells leave as they reach ``rel_se`` (at
+least ``min_passes`` passes) or ``max_samples`` (then ``converged = False``). ``plan`` replays the
+schedule of an earlier call (:attr:`MitsubaBackend.last_plan`): the same seed then gives every table
+the same random numbers (the uncertainty command's design points).
 
-which is unbiased for i.i.d. pixels and conservative (by the squared difference of neighbouring
-stratum means) otherwise; ``tests/test_render_backend.py`` checks it against the scatter over
-seeds.
-
-Stopping rule: after each pass, stop when rel SE(ratio) <= ``rel_se`` (and at least
-``min_passes`` passes); otherwise the next pass is sized from the 1/N law to reach the target
-(times 1.15, spp rounded up to spp x 4^k, between ``spp`` and ``max_spp``), within
-``max_samples``. The default sampler (multijitter) stratifies every pixel's pupil, field and
-source samples; the paired-pixel SE stays valid because pixels are seeded independently. A cell that stops at ``max_samples`` keeps its (larger) SE and is flagged
-``converged = False`` in ``CellResult.extra``.
+Reproducibility: the same seed, cells and settings give the same numbers bit for bit, whatever the
+thread count (the device sums are evaluated block sums in a fixed order), and a cell's numbers do
+not depend on the cells batched with it (its lattices depend on the seed, pass and size only).
 """
 from __future__ import annotations
 
 import math
 import time
-import zlib
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from roadgonio.errors import GeometryError, InputError
+from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
-from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio
+from roadgonio.engines import CellResult, ideal_ratios
 from roadgonio.surface.model import RoadModel
-from roadgonio.engines.mitsuba.scene import LAMBERT, ROAD, build_scene
+from roadgonio.engines.mitsuba.scene import build_scene
 
 NAME = "mitsuba"
-#: Samplers that stratify the samples of each pixel and want a square sample count.
-SQUARE_SAMPLERS = ("multijitter", "stratified")
-#: Default sampler: multijitter stratifies the pupil, field (within each pixel) and source samples;
-#: on the portable preset with the R3 fit it needs 4-13x fewer samples than independent sampling
-#: for the same SE (bench/bench_ka_mitsuba.py).
-DEFAULT_SAMPLER = "multijitter"
+#: Defaults of the batched engine.
+DEFAULT_FIRST_PASS = 1024
+DEFAULT_MIN_REPLICATES = 16
+DEFAULT_MAX_SAMPLES = 1 << 28
+#: Settings of the per-cell renderer this backend replaced (a clear error instead of a silent no-op).
+REMOVED = {"spp": "first_pass", "resolution": "first_pass", "max_spp": "max_samples",
+           "sampler": None}
 
 
 def pair_variance(z: np.ndarray) -> float:
@@ -78,31 +76,40 @@ def pooled_ratio(passes: Sequence[tuple[int, np.ndarray, np.ndarray]]) -> tuple[
     return ratio, math.sqrt(var) / mg, mg
 
 
-class MitsubaBackend(CellByCellBackend):
-    """k_A by Mitsuba 3 (see the module docstring)."""
+class MitsubaBackend:
+    """k_A by Mitsuba 3, all cells of a call batched (see the module docstring)."""
 
     name = NAME
 
     def __init__(self, instrument: Instrument, model: RoadModel, *, rel_se: float = 1e-3, seed: int = 0,
-                 spp: int = 16, resolution: int = 64, min_passes: int = 1, max_samples: int = 1 << 26,
-                 max_spp: int = 1024, sampler: str = DEFAULT_SAMPLER, variant: str | None = None):
-        for key, v, lo in (("rel_se", rel_se, 0.0), ("spp", spp, 1), ("resolution", resolution, 2),
-                           ("min_passes", min_passes, 1), ("max_samples", max_samples, 1), ("max_spp", max_spp, 1)):
+                 first_pass: int = DEFAULT_FIRST_PASS, min_replicates: int = DEFAULT_MIN_REPLICATES,
+                 min_passes: int = 1, max_samples: int = DEFAULT_MAX_SAMPLES, plan=None,
+                 variant: str | None = None):
+        for key, v, lo in (("rel_se", rel_se, 0.0), ("first_pass", first_pass, 32),
+                           ("min_replicates", min_replicates, 2), ("min_passes", min_passes, 1),
+                           ("max_samples", max_samples, 1)):
             if not isinstance(v, (int, float)) or isinstance(v, bool) or not v >= lo or not math.isfinite(v):
                 raise InputError(f"expected a number >= {lo}, got {v!r}", field=key)
         if rel_se <= 0:
             raise InputError(f"expected a relative standard error > 0, got {rel_se}", field="rel_se")
+        from roadgonio.engines.mitsuba.passes import Plan, Planner
         self.instrument, self.model = instrument, model
         self.rel_se, self.seed = float(rel_se), int(seed)
-        self.spp, self.resolution = int(spp), int(resolution)
-        self.min_passes, self.max_samples, self.max_spp = int(min_passes), int(max_samples), int(max(max_spp, spp))
-        self.sampler = sampler
-        if sampler in SQUARE_SAMPLERS and math.isqrt(self.spp) ** 2 != self.spp:
-            raise InputError(f"the {sampler} sampler needs a square spp (4, 16, 64...), got {self.spp}", field="spp")
-        self.rs = build_scene(instrument, model, resolution=self.resolution, spp=self.spp, variant=variant,
-                              sampler=sampler)
+        self.first_pass, self.min_replicates = int(first_pass), int(min_replicates)
+        self.min_passes, self.max_samples = int(min_passes), int(max_samples)
+        self.plan = None if plan is None else Plan.from_dict(plan)
+        self.planner = Planner(self.rel_se, first_pass=self.first_pass, min_replicates=self.min_replicates,
+                               max_samples=self.max_samples, min_passes=self.min_passes)
+        # the engine counts every detector ray it traces: the build-time check needs only the
+        # bundle's extreme rays and a few random ones
+        self.rs = build_scene(instrument, model, variant=variant, hit_rays=1 << 12)
+        from roadgonio.engines.mitsuba.engine import BatchEngine
+        self.engine = BatchEngine(self.rs)
         import mitsuba as mi
         self.variant = mi.variant()
+        self.last_run = None
+        #: the schedule of the last ``compute`` call (replay it with ``plan=``)
+        self.last_plan = None
 
     def settings(self) -> dict[str, Any]:
         import drjit as dr
@@ -110,83 +117,94 @@ class MitsubaBackend(CellByCellBackend):
 
         from roadgonio.engines.mitsuba import llvm_version
         s = {"backend": NAME, "variant": self.variant, "rel_se": self.rel_se, "seed": self.seed,
-             "spp": self.spp, "resolution": self.resolution, "min_passes": self.min_passes,
-             "max_samples": self.max_samples, "max_spp": self.max_spp, "sampler": self.sampler,
-             "integrator": "direct (emitter_samples=1, bsdf_samples=0)",
+             "first_pass": self.first_pass, "min_replicates": self.min_replicates,
+             "min_passes": self.min_passes, "max_samples": self.max_samples,
+             "engine": "batched (kabatch integrator: shared detector rays, one source per cell)",
+             "sampling": "randomly shifted rank-1 lattices (Korobov), independent replicates",
+             "integrator": "kabatch (emitter sampling, shadow rays " +
+                           ("on" if self.engine.integrator.shadow else "off: nothing can occlude") + ")",
              "detector": "lummeter (concentric-mapped field, pupil disc)",
-             "source": self.rs.source_kind, "se_estimator": "adjacent-pixel pairs, delta method",
+             "source": self.rs.source_kind, "se_estimator": "replicates, delta method (marginal per cell)",
              "mitsuba": mi.__version__, "drjit": dr.__version__}
+        if self.plan is not None:
+            s["plan"] = "replayed"
         if self.variant.startswith("llvm"):
             s["llvm"] = ".".join(map(str, llvm_version() or ()))
         if self.rs.xml is not None:
             s["xml"] = str(self.rs.xml)
         return s
 
-    def _pass_spp(self, want: float, room: int) -> int:
-        """spp of the next pass: ``want`` rounded up on the ladder spp x step^k, within
-        [spp, max_spp] and ``room``; step 4 for the stratifying samplers, so every spp stays a
-        perfect square when the first one is (multijitter/stratified round other counts)."""
-        step = 4 if self.sampler in SQUARE_SAMPLERS else 2
-        spp = self.spp
-        while spp < want and spp * step <= self.max_spp:
-            spp *= step
-        while spp > room and spp > 1:
-            spp //= step
-        return max(spp, 1)
-
-    def _seed(self, tan_eps: float, beta_deg: float, k: int) -> int:
-        key = f"{self.seed}:{tan_eps:.9g}:{beta_deg:.9g}:{k}".encode()
-        return zlib.crc32(key) & 0x7FFFFFFF
-
-    def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
+    def compute(self, cells: Sequence[tuple[float, float]],
+                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
+        """k_A of every cell (one batched run); ``on_cell`` is called for each cell as it finishes,
+        in batches (the cells that left the active set after a pass)."""
         t0 = time.perf_counter()
-        ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
-        self.rs.place_source(tan_eps, beta_deg)
-        pixels = self.resolution * self.resolution
-        passes: list[tuple[int, np.ndarray, np.ndarray]] = []
-        n_samples, spp = 0, self.spp
-        converged = False
-        while True:
-            img = self.rs.render(self._seed(tan_eps, beta_deg, len(passes)), spp)
-            passes.append((spp, img[..., ROAD], img[..., LAMBERT]))
-            n_samples += spp * pixels
-            ratio, se, mg = pooled_ratio(passes)
-            if not mg > 0.0:
-                raise GeometryError(f"the source lights none of the detector footprint at tan eps = {tan_eps:g}, "
-                                    f"beta = {beta_deg:g} (Lambert signal {mg:g}): is it shaded by a part of "
-                                    "the scene?")
-            rel = se / abs(ratio) if ratio != 0.0 else (0.0 if se == 0.0 else math.inf)
-            if rel <= self.rel_se and len(passes) >= self.min_passes:
-                converged = True
-                break
-            room = self.max_samples - n_samples
-            if room < pixels:
-                break
-            factor = (rel / self.rel_se) ** 2 if math.isfinite(rel) else 4.0
-            need = n_samples * max(factor - 1.0, 0.0) * 1.15
-            spp = self._pass_spp(need / pixels, room // pixels)
+        cells = [(float(t), float(b)) for t, b in cells]
+        ideal = [float(v) for v in ideal_ratios(self.model, self.instrument, cells)] if cells else []
+        results: list[CellResult | None] = [None] * len(cells)
+        last = [t0]
+
+        def done(indices, run) -> None:
+            now = time.perf_counter()
+            share = (now - last[0]) / max(len(indices), 1)     # the pass's wall time, shared out
+            last[0] = now
+            for i in indices:
+                results[i] = self._result(cells[i], ideal[i], run.stats[i], run.converged[i], share)
+                if on_cell is not None:
+                    on_cell(results[i])
+
+        run = self.engine.run(cells, self.planner, seed=self.seed, plan=self.plan, on_done=done)
+        self.last_run, self.last_plan = run, run.plan
+        self._ideal = np.array(ideal)
+        return [r for r in results]
+
+    def _result(self, cell, ideal: float, st, converged: bool, seconds: float) -> CellResult:
+        from roadgonio.engines.mitsuba.passes import relative
+        ratio, se, _ = st.ratio_se()
+        rel = relative(ratio, se)
         if ideal > 0.0:
             k_a, k_se = ratio / ideal, se / ideal
         else:
             k_a, k_se = math.nan, math.nan
-        extra = {"ratio": ratio, "ratio_se": se, "ideal_ratio": ideal, "passes": len(passes),
-                 "rel_se": rel, "converged": converged}
+        extra = {"ratio": ratio, "ratio_se": se, "ideal_ratio": ideal, "passes": st.passes,
+                 "replicates": int(sum(len(v[0]) for v in st.strata.values())), "rel_se": rel,
+                 "converged": bool(converged)}
         if ideal <= 0.0:
             extra["note"] = "the model is 0 at the nominal geometry: k_A is undefined"
-        return CellResult(tan_eps=float(tan_eps), beta_deg=float(beta_deg), k_a=float(k_a), se=float(k_se), converged=bool(converged),
-                          samples=int(n_samples), seconds=time.perf_counter() - t0, extra=extra)
+        return CellResult(tan_eps=cell[0], beta_deg=cell[1], k_a=float(k_a), se=float(k_se),
+                          converged=bool(converged), samples=int(st.samples), seconds=float(seconds), extra=extra)
 
+    def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
+        """One cell (a batch of one)."""
+        return self.compute([(tan_eps, beta_deg)])[0]
+
+    def covariance(self) -> np.ndarray:
+        """Covariance matrix of the k_A values of the last ``compute`` call (cells in its order):
+        the diagonal is SE^2; off-diagonal terms from the replicates the cells shared
+        (:func:`roadgonio.engines.mitsuba.passes.covariance`)."""
+        if self.last_run is None:
+            raise RuntimeError("no compute() call yet")
+        cov = self.last_run.covariance()
+        return cov / np.outer(self._ideal, self._ideal)
 
 
 def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = 1e-3, seed: int = 0,
-                 spp: int = 16, resolution: int = 64, min_passes: int = 1, max_samples: int = 1 << 26,
-                 max_spp: int = 1024, sampler: str = DEFAULT_SAMPLER, variant: str | None = None,
-                 **unknown) -> MitsubaBackend:
+                 first_pass: int = DEFAULT_FIRST_PASS, min_replicates: int = DEFAULT_MIN_REPLICATES,
+                 min_passes: int = 1, max_samples: int = DEFAULT_MAX_SAMPLES, plan=None,
+                 variant: str | None = None, **unknown) -> MitsubaBackend:
     """The Mitsuba k_A backend (:class:`MitsubaBackend`); builds and checks the scene now, so
     geometry errors surface before any cell is computed."""
+    removed = sorted(k for k in unknown if k in REMOVED)
+    if removed:
+        k = removed[0]
+        hint = f"; use {REMOVED[k]} (samples per cell in the first pass)" if REMOVED[k] == "first_pass" else (
+            f"; use {REMOVED[k]}" if REMOVED[k] else "")
+        raise InputError(f"the setting {k!r} belonged to the per-cell renderer and no longer exists: the batched "
+                         f"engine samples randomly shifted lattices and sizes its passes from rel_se{hint}",
+                         field=k)
     if unknown:
         raise InputError(f"unknown setting(s) {', '.join(sorted(unknown))} for the mitsuba backend; expected "
-                         "rel_se, seed, spp, resolution, min_passes, max_samples, max_spp, sampler, variant")
-    return MitsubaBackend(instrument, model, rel_se=rel_se, seed=seed, spp=spp, resolution=resolution,
-                          min_passes=min_passes, max_samples=max_samples, max_spp=max_spp, sampler=sampler,
-                          variant=variant)
+                         "rel_se, seed, first_pass, min_replicates, min_passes, max_samples, plan, variant")
+    return MitsubaBackend(instrument, model, rel_se=rel_se, seed=seed, first_pass=first_pass,
+                          min_replicates=min_replicates, min_passes=min_passes, max_samples=max_samples,
+                          plan=plan, variant=variant)

@@ -190,15 +190,31 @@ class RoadScene:
         (extreme rays of the detector bundle and ``n_random`` random ones) are traced through the
         scene and must all land on the sample shape (:func:`~roadgonio.instrument.optics.judge_hits`)."""
         mi = _mi()
+        import drjit as dr
         from roadgonio.engines.mitsuba.ops import DrJitOps
         from roadgonio.engines.mitsuba.plugins.lummeter import jit_geometry
         pu, fu = hit_check_points(n_random, n_rim, seed)
         geo = jit_geometry(detector_geometry(self.instrument))
-        px, py = mi.Float(pu[:, 0].astype(np.float32)), mi.Float(pu[:, 1].astype(np.float32))
-        fx, fy = mi.Float(fu[:, 0].astype(np.float32)), mi.Float(fu[:, 1].astype(np.float32))
+        # gathered, not loaded: a load's alignment hint depends on the buffer's address, so every
+        # new scene could compile its own kernel
+        idx = dr.arange(mi.UInt32, len(pu))
+        px, py, fx, fy = (dr.gather(mi.Float, mi.Float(v.astype(np.float32)), idx)
+                          for v in (pu[:, 0], pu[:, 1], fu[:, 0], fu[:, 1]))
         o, d, _ = detector_ray(DrJitOps, geo, (px, py), (fx, fy))
         si = self.scene.ray_intersect(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)))
-        on_sample = si.is_valid() & (si.shape == mi.ShapePtr(self.sample_shape))
+        # opaque: the shape pointer as a literal would make every new scene compile its own kernel
+        on_sample = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
+        src_shape = next((s for s in self.scene.shapes() if s.id() == SOURCE_ID), None)
+        if src_shape is not None:
+            # the source disc in the line of sight is its own error, with the cell (not "enlarge the sample")
+            on_src = np.array(si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, src_shape)), dtype=bool)
+            if on_src.any():
+                from roadgonio.errors import GeometryError
+                cell = f" at tan eps = {self.cell[0]:g}, beta = {self.cell[1]:g}" if self.cell is not None else ""
+                raise GeometryError(
+                    f"the source disc blocks the detector's line of sight{cell}: {int(on_src.sum())} of "
+                    f"{on_src.size} detector rays hit the source before the sample (the source sits between "
+                    "the detector and its footprint); this cell cannot be measured with this geometry")
         return judge_hits(np.array(on_sample, dtype=bool), np.array(si.is_valid(), dtype=bool),
                           np.array(si.p.x), np.array(si.p.y))
 
@@ -215,9 +231,11 @@ def _bsdf_dict(model: RoadModel, channels: str) -> dict:
 
 def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 64, spp: int = 16,
                 variant: str | None = None, sampler: str = "independent", channels: str = "road_lambert",
-                check: bool = True) -> RoadScene:
+                check: bool = True, hit_rays: int = 1 << 16) -> RoadScene:
     """Build the scene of ``instrument`` with a sample of BSDF ``model`` (XML scene if the
-    instrument has ``[scene] xml``). Checks the detector footprint (errors, not wrong numbers)."""
+    instrument has ``[scene] xml``). Checks the detector footprint (errors, not wrong numbers):
+    the extreme rays of the detector bundle and ``hit_rays`` random ones must hit the sample (the
+    batched engine, which counts every ray it traces, asks for fewer)."""
     require_variant(variant)
     from roadgonio.engines.mitsuba.plugins import register_plugins
     register_plugins()
@@ -238,7 +256,7 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
     if check:
         rs.footprint = footprint
         rs.place_source(0.0, 0.0)              # the source out of the way (XML files may leave it anywhere)
-        rs.info["hit_check"] = rs.check_hits()
+        rs.info["hit_check"] = rs.check_hits(n_random=int(hit_rays))
         rs.checked = True
     return rs
 

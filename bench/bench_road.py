@@ -1,0 +1,120 @@
+"""From the r-table to the road: a synthetic wide-instrument measurement of CIE R3, corrected, through
+the default EN 13201 layout (README "From the r-table to the road").
+
+1. k_A of an instrument for the R3 model (default: the wide instrument of issue 10,
+   bench/wide_instrument.toml, Mitsuba backend; ``--instrument portable --backend quadrature`` for
+   the portable preset): ``roadgonio ka --instrument I --sample R3 --backend B``.
+2. The "measured" table: what that instrument reports for a true R3 surface, r_measured = k_A r_R3.
+3. ``roadgonio correct --measured measured.csv --instrument I --reference R3 --backend B``: the
+   corrected table and its per-cell relative uncertainty u_rel (backend error and
+   reference-model spread over the two nearest CIE tables). Its standard uncertainty in the r-table
+   layout is ``corrected_u.csv`` (written by `correct` when it does; otherwise built here as
+   u_rel x r_corrected).
+4. ``roadgonio road --table measured --table corrected --table R3 --u corrected_u.csv``.
+
+Prints the metrics side by side with the machine load; writes bench/results/road_measured_vs_corrected.csv.
+Run: python bench/bench_road.py [--work DIR] [--trials N]
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def roadgonio(*args: str) -> str:
+    cmd = [sys.executable, "-m", "roadgonio", *args]
+    p = subprocess.run(cmd, capture_output=True, text=True)
+    if p.returncode != 0:
+        sys.exit(f"failed: {' '.join(cmd)}\n{p.stderr}")
+    return p.stdout
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--work", default=str(ROOT / "out" / "bench-road"))
+    ap.add_argument("--trials", type=int, default=20000)
+    ap.add_argument("--instrument", default=str(ROOT / "bench" / "wide_instrument.toml"))
+    ap.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature"])
+    a = ap.parse_args()
+    label = Path(a.instrument).stem if Path(a.instrument).suffix else a.instrument
+    work = Path(a.work) / f"{label}-{a.backend}"
+    work.mkdir(parents=True, exist_ok=True)
+    from roadgonio.surface.rtable import bundled_table, read_table
+
+    t0 = time.time()
+    roadgonio("ka", "--instrument", a.instrument, "--sample", "R3", "--backend", a.backend, "--out", str(work / "ka-R3"))
+    t_ka = time.time() - t0
+    ka = read_table(work / "ka-R3" / "ka.csv")         # k_A in the r-table layout, unscaled
+    r3 = bundled_table("R3")
+    k = ka.r * 1e4                                     # read_table divides by 1e4; ka.csv is unscaled
+    mname = f"R3_measured_{label}"
+    measured = r3.with_values(r3.r * k, name=mname, source=f"synthetic: CIE R3 x k_A({label}, R3 model, {a.backend})")
+    measured.write_csv(work / f"{mname}.csv")
+    t1 = time.time()
+    roadgonio("correct", "--measured", str(work / f"{mname}.csv"), "--instrument", a.instrument,
+              "--reference", "R3", "--backend", a.backend, "--out", str(work / "corrected"), "--no-plots")
+    t_corr = time.time() - t1
+    corr_csv = work / "corrected" / f"{mname}_corrected.csv"
+    u_csv = work / "corrected" / "corrected_u.csv"
+    u_source = "corrected_u.csv written by roadgonio correct"
+    if not u_csv.exists():
+        corrected = read_table(corr_csv)
+        u_rel = np.full(corrected.r.shape, np.nan)
+        with open(work / "corrected" / "correction_cells.csv") as fh:
+            for row in csv.DictReader(fh):
+                i = int(np.argmin(abs(corrected.tan_eps - float(row["tan_eps"]))))
+                j = int(np.argmin(abs(corrected.beta_deg - float(row["beta_deg"]))))
+                u_rel[i, j] = float(row["u_rel_correction"])
+        u_csv = work / "corrected_u.csv"
+        corrected.with_values(corrected.r * u_rel, name="corrected_u").write_csv(u_csv)
+        u_source = "u_rel_correction x r_corrected from correction_cells.csv (built by this script)"
+    t2 = time.time()
+    out = json.loads(roadgonio("road", "--table", str(work / f"{mname}.csv"), "--table", str(corr_csv),
+                               "--table", "R3", "--u", "-", "--u", str(u_csv), "--u", "-", "--trials", str(a.trials),
+                               "--out", str(work / "road"), "--json"))
+    t_road = time.time() - t2
+    load = os.getloadavg()
+    print(f"k_A {label} x R3 ({a.backend}): {np.nanmin(k):.3f} ... {np.nanmax(k):.3f}; uncertainty of the corrected "
+          f"table: {u_source}")
+    print(f"{'table':34} {'L_av':>7} {'U_o':>6} {'U_l':>6} {'TI %':>6} class")
+    rows = []
+    for d in out:
+        print(f"{d['table'][:34]:34} {d['L_av']:7.4f} {d['U_o']:6.4f} {d['U_l']:6.4f} {d['TI']:6.2f} {d['class']}")
+        row = {k2: d[k2] for k2 in ("table", "L_av", "U_o", "U_l", "TI", "class")}
+        u = d.get("uncertainty")
+        if u:
+            for mode in ("independent", "correlated"):
+                for m in ("L_av", "U_o", "U_l", "TI"):
+                    row[f"u_{m}_{mode}"] = u[mode][m]["u"]
+                    row[f"ci95_{m}_{mode}"] = "{:.4g}..{:.4g}".format(*u[mode][m]["ci95"])
+                row[f"P_meets_{u['target_class']}_{mode}"] = u[mode]["P_meets_target"]
+                print(f"  {mode:11} u: L_av {u[mode]['L_av']['u']:.4f} [{u[mode]['L_av']['ci95'][0]:.4f}, "
+                      f"{u[mode]['L_av']['ci95'][1]:.4f}], U_o {u[mode]['U_o']['u']:.4f}, U_l {u[mode]['U_l']['u']:.4f}, "
+                      f"TI {u[mode]['TI']['u']:.3f}; P(meets {u['target_class']}) {u[mode]['P_meets_target']:.3f}")
+        rows.append(row)
+    m, c = out[0], out[1]
+    print(f"measured -> corrected: L_av {100 * (c['L_av'] / m['L_av'] - 1):+.2f} %, U_o {c['U_o'] - m['U_o']:+.4f}, "
+          f"U_l {c['U_l'] - m['U_l']:+.4f}, TI {c['TI'] - m['TI']:+.2f} points")
+    print(f"time: ka {t_ka:.0f} s, correct {t_corr:.0f} s, road (with {a.trials} trials x 2) {t_road:.1f} s; "
+          f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (2-core AMD EPYC, 24 GiB)")
+    res = ROOT / "bench" / "results" / f"road_measured_vs_corrected_{label}.csv"
+    keys = sorted({k2 for r in rows for k2 in r}, key=lambda s: (s not in ("table", "L_av", "U_o", "U_l", "TI", "class"), s))
+    with open(res, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys)
+        w.writeheader()
+        w.writerows(rows)
+    print(f"wrote {res}")
+
+
+if __name__ == "__main__":
+    main()

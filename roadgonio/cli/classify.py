@@ -1,0 +1,36 @@
+"""``roadgonio classify T``: the CIE road-surface class of an r-table by S1 (R, C and N systems), its Q0,
+and the nearest bundled CIE table in (S1, Q0)."""
+from __future__ import annotations
+
+from roadgonio.cli._common import add_output_options
+
+
+def register(sub) -> None:
+    p = sub.add_parser("classify", help="CIE class of an r-table by S1 and Q0 (R1-R4, C1-C2, N1-N4)",
+                       description="Classify an r-table by its specular factor S1 with the CIE 144 class limits "
+                                   "(R1 < 0.42 <= R2 < 0.85 <= R3 < 1.35 <= R4; C1 < 0.40 <= C2; N1 < 0.28 <= N2 < "
+                                   "0.60 <= N3 < 1.30 <= N4) and give its Q0 against the class standard and the "
+                                   "nearest bundled CIE table in (S1, Q0).")
+    p.add_argument("table", metavar="T", help="bundled name (R1..R4, C1, C2) or .csv/.rtb file")
+    add_output_options(p, json_help="print JSON")
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    from roadgonio.fileio import to_json
+    from roadgonio.road.classify import classify
+    from roadgonio.surface.rtable import load_table
+
+    res = classify(load_table(args.table))
+    if args.json:
+        print(to_json(res))
+    elif not args.quiet:
+        print(f"{res['table']}: S1 = {res['S1']:.3f}, Q0 = {res['Q0']:.4f} sr^-1, S2 = {res['S2']:.2f}")
+        for system, c in res["classes"].items():
+            print(f"  {system} system: {c['class']} (S1 {c['S1_margin_to_limit']:.3f} from the nearest class limit); "
+                  f"standard Q0 {c['standard_Q0']:.2f}, this table x{c['Q0_scale']:.3f}"
+                  + ("" if c["bundled"] else " (standard table not bundled)"))
+        near = res["nearest_bundled"][0]
+        print(f"  nearest bundled table in (S1, Q0): {near['table']} (S1 {near['S1']:.3f}, Q0 {near['Q0']:.4f}; "
+              f"distance {near['distance']:.2f} spreads)")
+    return 0

@@ -1,0 +1,153 @@
+"""Geometric feasibility of a design point, with the reason when it is impossible.
+
+A design point is kept in the results whatever happens; when the instrument cannot measure the
+requested cells it is marked ``geometry_ok = False`` with a one-line reason. The checks, in order
+(the first that fails gives the reason):
+
+1. ``instrument``: the instrument file is valid (e.g. a source radius smaller than its distance);
+2. ``footprint``: the detector looks down at the sample and its footprint stays on a rectangular
+   sample (:func:`roadgonio.instrument.optics.check_detector`; for a mesh sample the Mitsuba
+   backend checks the hits at render time);
+3. ``horizon``: the whole source disc is above the sample plane at every requested cell
+   (:func:`roadgonio.instrument.optics.check_source`);
+4. ``line_of_sight``: the source disc does not block the detector's view of the footprint at any
+   requested cell (:func:`blocked_cells`: extreme rays of the detector bundle, pupil rim and centre
+   through the field rim, plus a grid of interior rays, intersected with the source disc). This
+   matters for sources behind the detector (beta near 180 deg) at grazing incidence; the
+   quadrature and numpy-mc backends do not model occlusion, so the design checks it for them.
+5. ``backend`` (on the worker): whatever the backend itself refuses (render-time ray hits of an
+   XML scene or a mesh, a beam limit the renderer cannot model, ...).
+
+The detector housing is not part of the instrument description (only its pupil), so light it
+might block on the way from the source to the sample is not checked.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from roadgonio.errors import GeometryError, InputError
+from roadgonio.instrument.config import Instrument
+from roadgonio.instrument import optics
+
+
+@dataclass(frozen=True)
+class Feasibility:
+    """Geometry verdict of one design point."""
+
+    ok: bool
+    kind: str = ""                  # "" | instrument | footprint | horizon | line_of_sight | backend
+    reason: str = ""
+    footprint: tuple[float, float, float, float] | None = None   # x_min, x_max, y_min, y_max (m)
+
+    @property
+    def footprint_length_m(self) -> float:
+        return math.nan if self.footprint is None else self.footprint[1] - self.footprint[0]
+
+
+def _cells_text(cells: Sequence[tuple[float, float]], n_max: int = 3) -> str:
+    """'tan eps 12, beta 0; tan eps 12, beta 2' or '100 cells: tan eps 10 ... 12, beta 0 ... 180'."""
+    if len(cells) <= n_max:
+        return "; ".join(f"tan eps {t:g}, beta {b:g}" for t, b in cells)
+    t = [c[0] for c in cells]
+    b = [c[1] for c in cells]
+    return f"{len(cells)} cells: tan eps {min(t):g} ... {max(t):g}, beta {min(b):g} ... {max(b):g}"
+
+
+def _bundle_rays(instrument: Instrument, n_rim: int = 32, n_inner: int = 5):
+    """Origins and unit directions of detector rays (pupil rim/centre/interior x field rim/interior)."""
+    from roadgonio.surface.model import NumpyOps
+    geo = optics.detector_geometry(instrument)
+    ang = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
+    rim = np.stack([np.cos(ang), np.sin(ang)], -1)
+    g = np.linspace(-1.0, 1.0, n_inner)
+    gx, gy = np.meshgrid(g, g)
+    inner = np.stack([gx.ravel(), gy.ravel()], -1)
+    inner = inner[np.hypot(inner[:, 0], inner[:, 1]) <= 1.0]
+    pupil = np.concatenate([rim, inner])
+    field = np.concatenate([rim, inner])
+    P, F = np.meshgrid(np.arange(len(pupil)), np.arange(len(field)), indexing="ij")
+    pu, fu = pupil[P.ravel()], field[F.ravel()]
+    o, d, _ = optics.detector_ray(NumpyOps, geo, (pu[:, 0], pu[:, 1]), (fu[:, 0], fu[:, 1]))
+    return np.stack([np.asarray(v, dtype=np.float64) * np.ones(len(pu)) for v in o], -1), \
+        np.stack([np.asarray(v, dtype=np.float64) for v in d], -1)
+
+
+def blocked_cells(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Cells at which the source disc intersects a detector ray between the pupil and the sample."""
+    src = instrument.source
+    if src.radius_m == 0.0 or not cells:
+        return []
+    w_o = instrument.w_o()
+    # only sources within (source angular radius + detector bundle angle + margin) of the line of sight can block
+    det = instrument.detector
+    bundle = math.atan2(det.pupil_radius_m, det.distance_m) + math.radians(det.field_half_angle_deg)
+    o, d = _bundle_rays(instrument)
+    t_plane = -o[:, 2] / d[:, 2]
+    out = []
+    for t, b in cells:
+        w_i = instrument.w_i(t, b)
+        sep = math.acos(max(-1.0, min(1.0, float(np.dot(w_i, w_o)))))
+        if sep > math.asin(min(1.0, src.radius_m / src.distance_m)) + 4 * bundle + math.radians(1.0):
+            continue
+        c = src.distance_m * w_i
+        dn = d @ w_i
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tt = ((c - o) @ w_i) / dn
+        p = o + tt[:, None] * d
+        r = np.linalg.norm(p - c, axis=1)
+        hit = (np.abs(dn) > 1e-12) & (tt > 0) & (tt < t_plane) & (r <= src.radius_m)
+        if bool(hit.any()):
+            out.append((t, b))
+    return out
+
+
+def check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> Feasibility:
+    """Checks 2-4 of the module docstring for ``instrument`` at ``cells``."""
+    try:
+        if instrument.sample.mesh is None:
+            fp = optics.check_detector(instrument)
+        else:
+            x, y = optics.footprint_boundary(instrument)
+            fp = (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
+    except GeometryError as err:
+        fp = None
+        try:
+            x, y = optics.footprint_boundary(instrument)
+            fp = (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
+        except GeometryError:
+            pass
+        return Feasibility(False, "footprint", str(err), fp)
+    below = []
+    for t, b in cells:
+        try:
+            optics.check_source(instrument, t, b)
+        except GeometryError:
+            below.append((t, b))
+    if below:
+        src = instrument.source
+        return Feasibility(False, "horizon", f"the source disc (radius {src.radius_m:g} m at {src.distance_m:g} m) "
+                                            f"reaches below the sample plane at {_cells_text(below)}", fp)
+    blocked = blocked_cells(instrument, cells)
+    if blocked:
+        src, det = instrument.source, instrument.detector
+        return Feasibility(False, "line_of_sight",
+                           f"the source disc (radius {src.radius_m:g} m at {src.distance_m:g} m) blocks the detector's "
+                           f"view of the sample (pupil {det.pupil_radius_m:g} m at {det.distance_m:g} m) at "
+                           f"{_cells_text(blocked)}", fp)
+    return Feasibility(True, footprint=fp)
+
+
+def check_point(base: Instrument, point: Mapping[str, float], cells: Sequence[tuple[float, float]]
+                ) -> tuple[Instrument | None, Feasibility]:
+    """Build the instrument of a grid point and check it; never raises for a bad point."""
+    from roadgonio.design.grid import build_instrument
+    try:
+        inst = build_instrument(base, point)
+    except InputError as err:
+        reason = err.reason if err.field is None else f"{err.field}: {err.reason}"
+        return None, Feasibility(False, "instrument", reason)
+    return inst, check_geometry(inst, cells)

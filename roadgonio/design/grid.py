@@ -1,0 +1,207 @@
+"""The design grid: ``--vary KEY=LO:HI:N[:log]`` specifications, the tolerance and the cells.
+
+Every grid point is a complete instrument: the base instrument file with the varied keys changed
+(:meth:`roadgonio.instrument.config.Instrument.with_changes`). KEY is an instrument-file key
+``section.key`` (DESIGN.md section 4), for example ``source.radius_m``, ``source.distance_m``,
+``detector.distance_m``, ``detector.pupil_radius_m``, ``detector.field_half_angle_deg``,
+``observation.alpha_deg``. Values:
+
+* ``LO:HI:N``      N values evenly spaced from LO to HI (both included);
+* ``LO:HI:N:log``  N values evenly spaced in log(value) (LO, HI > 0);
+* ``V1,V2,...``    the listed values.
+
+Values are rounded to 12 significant digits (0.02, not 0.019999999999999997), so the CSV, the
+instrument file of the best design and ``roadgonio ka`` all see the same numbers.
+
+Focus: a base instrument focused on the sample centre (``focus_m`` absent or equal to
+``distance_m``) stays focused on it when ``detector.distance_m`` is varied (unless
+``detector.focus_m`` is varied too); an instrument focused elsewhere, or at infinity, keeps its focus.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from roadgonio.errors import InputError
+from roadgonio.instrument.config import Instrument
+
+#: The numeric instrument keys a design may vary (section -> keys), DESIGN.md section 4.
+VARIABLE_KEYS: dict[str, tuple[str, ...]] = {
+    "observation": ("alpha_deg", "delta_deg"),
+    "source": ("distance_m", "radius_m", "beam_half_angle_deg"),
+    "detector": ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity"),
+    "sample": ("size_x_m", "size_y_m"),
+}
+ALL_KEYS = tuple(f"{s}.{k}" for s, keys in VARIABLE_KEYS.items() for k in keys)
+SYNTAX = "KEY=LO:HI:N, KEY=LO:HI:N:log or KEY=V1,V2,... (e.g. source.radius_m=0.01:0.04:4)"
+
+
+def _round(v: float) -> float:
+    return float(f"{v:.12g}")
+
+
+@dataclass(frozen=True)
+class VarySpec:
+    """One varied instrument key and its values."""
+
+    key: str
+    values: tuple[float, ...]
+    log: bool = False
+    text: str = ""
+
+    @property
+    def section(self) -> str:
+        return self.key.split(".", 1)[0]
+
+    @property
+    def name(self) -> str:
+        return self.key.split(".", 1)[1]
+
+
+def _number(text: str, spec: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise InputError(f"expected a number, got {text!r} in {spec!r}; syntax {SYNTAX}", field="--vary") from None
+    if not math.isfinite(v):
+        raise InputError(f"expected a finite number, got {text!r} in {spec!r}", field="--vary")
+    return v
+
+
+def parse_vary(spec: str) -> VarySpec:
+    """``"source.radius_m=0.01:0.04:4"`` -> :class:`VarySpec` (see the module docstring)."""
+    text = str(spec).strip()
+    if "=" not in text:
+        raise InputError(f"expected {SYNTAX}; got {text!r}", field="--vary")
+    key, rhs = (s.strip() for s in text.split("=", 1))
+    if key not in ALL_KEYS:
+        raise InputError(f"unknown instrument key {key!r}; expected one of {', '.join(ALL_KEYS)}", field="--vary")
+    if not rhs:
+        raise InputError(f"no values for {key}; expected {SYNTAX}", field="--vary")
+    log = False
+    if ":" in rhs:
+        parts = [p.strip() for p in rhs.split(":")]
+        if len(parts) == 4 and parts[3].lower() == "log":
+            log = True
+            parts = parts[:3]
+        elif len(parts) == 4 and parts[3].lower() in ("lin", "linear"):
+            parts = parts[:3]
+        if len(parts) != 3:
+            raise InputError(f"expected LO:HI:N or LO:HI:N:log for {key}, got {rhs!r}", field="--vary")
+        lo, hi = _number(parts[0], text), _number(parts[1], text)
+        try:
+            n = int(parts[2])
+        except ValueError:
+            raise InputError(f"expected a whole number of values N, got {parts[2]!r} in {text!r}", field="--vary") from None
+        if n < 1:
+            raise InputError(f"expected N >= 1 values, got {n} in {text!r}", field="--vary")
+        if n == 1 and lo != hi:
+            raise InputError(f"one value (N = 1) needs LO = HI, got {text!r}", field="--vary")
+        if log:
+            if lo <= 0 or hi <= 0:
+                raise InputError(f"a log grid needs LO, HI > 0, got {text!r}", field="--vary")
+            vals = np.geomspace(lo, hi, n)
+        else:
+            vals = np.linspace(lo, hi, n)
+        values = tuple(_round(v) for v in vals)
+    else:
+        values = tuple(_round(_number(v.strip(), text)) for v in rhs.split(",") if v.strip())
+    if len(set(values)) != len(values):
+        raise InputError(f"repeated values for {key} in {text!r}", field="--vary")
+    return VarySpec(key=key, values=values, log=log, text=text)
+
+
+def as_vary_specs(vary: Sequence[str | VarySpec] | Mapping[str, Sequence[float]] | None) -> list[VarySpec]:
+    """Vary specifications from strings, :class:`VarySpec` objects or a ``{key: values}`` mapping;
+    a key may appear once."""
+    if vary is None:
+        return []
+    specs: list[VarySpec] = []
+    if isinstance(vary, Mapping):
+        for key, values in vary.items():
+            if isinstance(values, str):
+                specs.append(parse_vary(f"{key}={values}"))
+            else:
+                specs.append(parse_vary(f"{key}=" + ",".join(repr(float(v)) for v in values)))
+    else:
+        for v in vary:
+            specs.append(v if isinstance(v, VarySpec) else parse_vary(v))
+    seen = set()
+    for s in specs:
+        if s.key in seen:
+            raise InputError(f"{s.key} is varied twice; give each key once", field="--vary")
+        seen.add(s.key)
+    return specs
+
+
+def grid_points(specs: Sequence[VarySpec]) -> list[dict[str, float]]:
+    """All combinations, the last key varying fastest (C order: the layout of ``design.nc``)."""
+    return [dict(zip((s.key for s in specs), combo)) for combo in itertools.product(*(s.values for s in specs))]
+
+
+def grid_shape(specs: Sequence[VarySpec]) -> tuple[int, ...]:
+    return tuple(len(s.values) for s in specs)
+
+
+def point_changes(base: Instrument, point: Mapping[str, float]) -> dict[str, dict[str, Any]]:
+    """The ``with_changes`` sections of a grid point (with the focus rule of the module docstring)."""
+    changes: dict[str, dict[str, Any]] = {}
+    for key, value in point.items():
+        sec, name = key.split(".", 1)
+        changes.setdefault(sec, {})[name] = float(value)
+    det = changes.get("detector", {})
+    if "distance_m" in det and "focus_m" not in det:
+        f = base.detector.focus_m
+        if f is not None and math.isfinite(f) and f == base.detector.distance_m:
+            det["focus_m"] = det["distance_m"]
+    return changes
+
+
+def build_instrument(base: Instrument, point: Mapping[str, float]) -> Instrument:
+    """The instrument of a grid point; raises :class:`InputError` for an invalid one (for example a
+    source radius larger than its distance)."""
+    return base.with_changes(**point_changes(base, point))
+
+
+def parse_tolerance(text: str | float) -> float:
+    """``"5%"`` -> 0.05, ``"0.05"`` -> 0.05: a tolerance on |k_A - 1|, a fraction or a percentage."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        v, pct = float(text), False
+    else:
+        s = str(text).strip()
+        pct = s.endswith("%")
+        try:
+            v = float(s[:-1] if pct else s)
+        except ValueError:
+            raise InputError(f"expected a fraction (0.05) or a percentage (5%), got {text!r}", field="--tolerance") from None
+    if pct:
+        v /= 100.0
+    if not (math.isfinite(v) and v > 0):
+        raise InputError(f"expected a tolerance > 0, got {text!r}", field="--tolerance")
+    if v >= 1 and not pct:
+        raise InputError(f"a tolerance of {v:g} on |k_A - 1| would accept k_A = 0; for a percentage write "
+                         f"'{v:g}%'", field="--tolerance")
+    return v
+
+
+def sample_cells(spec: str, sample: str) -> list[tuple[float, float]]:
+    """The cells computed for ``sample``: ``all`` (580-cell grid), ``table`` (the cells tabulated in
+    the sample's r-table) or a list ``T:B,T:B,...`` (tan eps : beta deg), parsed by the one cells
+    parser of the project (:func:`roadgonio.engines.validate.parse_cells`)."""
+    s = str(spec).strip()
+    if s == "table":
+        from roadgonio.surface.rtable import load_table
+        try:
+            table = load_table(sample)
+        except InputError:
+            raise InputError(f"--cells table needs samples that are r-tables (bundled name or table file); "
+                             f"{sample!r} is not", field="--cells") from None
+        return list(table.cells)
+    if s in ("", "extremes", "default"):
+        raise InputError("expected --cells all, table or a list T:B,T:B,...", field="--cells")
+    from roadgonio.engines.validate import parse_cells
+    return parse_cells(s)

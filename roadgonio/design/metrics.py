@@ -1,0 +1,119 @@
+"""Figures of merit of a design point: the signal (from the etendue and the source's solid angle)
+and the deviations of k_A from 1.
+
+Signal
+------
+The detected flux for a Lambertian sample of reflectance rho, lit by the source disc of radiance
+L_S at incidence epsilon, seen by the luminance meter of etendue G_D::
+
+    Phi = L_sample * G_D * <k_D>,      L_sample = (rho / pi) * E_h,      E_h = L_S * Omega_S * cos(eps)
+
+    Omega_S = pi R_S^2 / (R_S^2 + D_S^2)        projected solid angle of the source disc seen from the
+                                                sample centre on its axis (exact for a Lambertian disc:
+                                                E_normal = L_S Omega_S)
+    G_D     = pi^2 / 2 * (X - sqrt(X^2 - 4 R_D^2 r_F^2)),  X = R_D^2 + r_F^2 + F^2
+                                                etendue of the pupil disc (radius R_D) and the field disc
+                                                (radius r_F = F tan gamma_D) on the focus plane at F,
+                                                coaxial discs (exact); ~ (pi R_D^2) (pi tan^2 gamma_D)
+    G_D     = pi R_D^2 * pi sin^2 gamma_D       for an angular field (F = inf)
+    <k_D>   = 1 - (1 - e) / 2                   mean of k_D(rho) = 1 - (1 - e) rho^2 over the field disc
+
+For the same lamp (L_S), sample (rho) and cell (eps), the design's ``signal`` is relative to the base
+design::
+
+    signal = (Omega_S G_D <k_D>) / (Omega_S G_D <k_D>)_base
+
+It does not depend on the detector distance (etendue is conserved: a farther luminance meter sees a
+larger footprint), and it neglects the illuminance gradient over the footprint (which the Lambert
+calibration removes from k_A anyway). A point source or a pinhole detector has signal 0.
+
+Deviations
+----------
+Over the requested cells of every sample: ``max_abs_dev`` = max |k_A - 1|, ``rms_dev`` = the root
+mean square of k_A - 1, and the worst cell (tan eps, beta, sample) with its SE.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from roadgonio.instrument.config import Instrument
+
+SIGNAL_FORMULA = ("signal = (Omega_S G_D <k_D>) / (Omega_S G_D <k_D>)_base; Omega_S = pi R_S^2/(R_S^2+D_S^2) "
+                  "(projected solid angle of the source disc), G_D = pi^2/2 (X - sqrt(X^2 - 4 R_D^2 r_F^2)), "
+                  "X = R_D^2 + r_F^2 + F^2, r_F = F tan gamma_D (etendue of pupil and field discs; pi R_D^2 pi "
+                  "sin^2 gamma_D for F = inf), <k_D> = 1 - (1 - e)/2 (roadgonio.design.metrics)")
+
+
+def source_solid_angle(radius_m: float, distance_m: float) -> float:
+    """Projected solid angle (sr) of a Lambertian disc seen on its axis: E_normal / L_S."""
+    r2 = radius_m * radius_m
+    return math.pi * r2 / (r2 + distance_m * distance_m)
+
+
+def coaxial_disc_etendue(r1: float, r2: float, d: float) -> float:
+    """Etendue (m^2 sr) of two coaxial parallel discs of radii r1, r2 at distance d (exact)."""
+    if r1 == 0.0 or r2 == 0.0:
+        return 0.0
+    x = r1 * r1 + r2 * r2 + d * d
+    disc = x * x - 4.0 * r1 * r1 * r2 * r2
+    # cancellation-free form of x - sqrt(disc)
+    return 0.5 * math.pi ** 2 * (4.0 * r1 * r1 * r2 * r2) / (x + math.sqrt(max(disc, 0.0)))
+
+
+def detector_etendue(instrument: Instrument) -> float:
+    """Etendue (m^2 sr) of the luminance meter: pupil disc x field stop (module docstring)."""
+    det = instrument.detector
+    gamma = math.radians(det.field_half_angle_deg)
+    if det.angular_field:
+        return math.pi * det.pupil_radius_m ** 2 * math.pi * math.sin(gamma) ** 2
+    f = det.focus_distance_m
+    return coaxial_disc_etendue(det.pupil_radius_m, f * math.tan(gamma), f)
+
+
+def mean_field_sensitivity(instrument: Instrument) -> float:
+    """Area mean of k_D(rho) = 1 - (1 - e) rho^2 over the field disc."""
+    return 1.0 - (1.0 - instrument.detector.field_edge_sensitivity) / 2.0
+
+
+def signal_product(instrument: Instrument) -> float:
+    """Omega_S G_D <k_D> (sr m^2 sr): the design's signal up to L_S rho cos(eps) / pi."""
+    return (source_solid_angle(instrument.source.radius_m, instrument.source.distance_m)
+            * detector_etendue(instrument) * mean_field_sensitivity(instrument))
+
+
+def relative_signal(instrument: Instrument, base: Instrument) -> float:
+    """The design's signal relative to the base design (NaN if the base has none)."""
+    b = signal_product(base)
+    return signal_product(instrument) / b if b > 0 else math.nan
+
+
+def deviations(k_a: np.ndarray, se: np.ndarray) -> dict[str, float | int]:
+    """``max_abs_dev``, ``rms_dev`` and the index of the worst entry (flat, over the finite k_A) of
+    arrays of k_A and its SE of any shape; NaN entries (cells not requested) are ignored."""
+    k = np.asarray(k_a, dtype=np.float64).ravel()
+    s = np.asarray(se, dtype=np.float64).ravel()
+    ok = np.isfinite(k)
+    if not ok.any():
+        return {"max_abs_dev": math.nan, "rms_dev": math.nan, "worst": -1, "worst_se": math.nan, "cells": 0}
+    dev = np.where(ok, np.abs(k - 1.0), -np.inf)
+    i = int(np.argmax(dev))
+    return {"max_abs_dev": float(dev[i]), "rms_dev": float(np.sqrt(np.mean((k[ok] - 1.0) ** 2))),
+            "worst": i, "worst_se": float(s[i]), "cells": int(ok.sum())}
+
+
+def pareto_front(signal: Sequence[float], dev: Sequence[float]) -> np.ndarray:
+    """Indices of the non-dominated points (more signal and less deviation are better), by
+    increasing signal; points with a non-finite value are left out."""
+    s = np.asarray(signal, dtype=np.float64)
+    d = np.asarray(dev, dtype=np.float64)
+    idx = np.nonzero(np.isfinite(s) & np.isfinite(d))[0]
+    order = idx[np.lexsort((d[idx], -s[idx]))]       # signal descending, then deviation ascending
+    front, best = [], math.inf
+    for i in order:
+        if d[i] < best:
+            front.append(i)
+            best = d[i]
+    return np.array(front[::-1], dtype=int)

@@ -1,0 +1,311 @@
+"""Outputs of a design study (all written atomically, :mod:`roadgonio.fileio`):
+
+* ``design.nc``: the xarray Dataset (netCDF3 via scipy; booleans as int8, provenance as JSON in the
+  attributes ``provenance`` and ``base_instrument_json``);
+* ``design.csv``: one row per design point: one column per varied key (named exactly as the key),
+  then ``max_abs_dev, rms_dev, signal, feasible, reason``, then ``kind, worst_tan_eps,
+  worst_beta_deg, worst_sample, worst_se, footprint_length_m, seed``;
+* ``best.toml``: the feasible design with the most signal, a complete instrument file (opens with
+  ``roadgonio ka --instrument best.toml``; the header says how to reproduce its row);
+* ``pareto.png``: max |k_A - 1| against the signal, feasible points marked, the Pareto front, the
+  best labelled;
+* ``tolerance_map.png`` (two or more varied keys): max |k_A - 1| over the plane of the first two
+  varied keys (others at the best design's values), with the tolerance contour and iso-signal lines.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from roadgonio.fileio import atomic_write, atomic_write_text, atomic_savefig
+
+CSV_TAIL = ("max_abs_dev", "rms_dev", "signal", "feasible", "reason")
+CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_se", "footprint_length_m", "seed")
+
+
+def write_outputs(ds, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
+    out_dir = Path(out_dir)
+    files = [write_netcdf(ds, out_dir / "design.nc"), write_csv(ds, out_dir / "design.csv")]
+    best = write_best(ds, out_dir / "best.toml")
+    if best is not None:
+        files.append(best)
+    elif (out_dir / "best.toml").exists():
+        (out_dir / "best.toml").unlink()          # an earlier run's best is not this run's
+    if plots:
+        files.append(plot_pareto(ds, out_dir / "pareto.png"))
+        tm = plot_tolerance_map(ds, out_dir / "tolerance_map.png")
+        if tm is not None:
+            files.append(tm)
+    return files
+
+
+# ----------------------------------------------------------------------------------------------
+def write_netcdf(ds, path: Path) -> Path:
+    enc = ds.copy()
+    for k, v in list(enc.attrs.items()):
+        if not isinstance(v, (str, int, float, np.integer, np.floating)):
+            enc.attrs[k] = json.dumps(v)
+    return atomic_write(path, lambda p: enc.to_netcdf(p, engine="scipy", format="NETCDF3_64BIT"))
+
+
+def read_design(path: str | Path):
+    """Open a ``design.nc`` (booleans come back as booleans)."""
+    import xarray as xr
+    with xr.open_dataset(path, engine="scipy") as ds:
+        ds = ds.load()
+    for v in ("feasible", "geometry_ok"):
+        if v in ds:
+            ds[v] = ds[v].astype(bool)
+    return ds
+
+
+def _fmt(v) -> str:
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, (float, np.floating)):
+        return "" if not math.isfinite(float(v)) else repr(float(v))
+    if isinstance(v, (np.integer,)):
+        return str(int(v))
+    return str(v)
+
+
+def write_csv(ds, path: Path) -> Path:
+    dims = json.loads(ds.attrs["varied"])
+    from roadgonio.design.run import point_index
+    n = int(ds.attrs["points"])
+    flat = {c: ds[c].values.reshape(-1) for c in CSV_TAIL + CSV_EXTRA}
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(list(dims) + list(CSV_TAIL) + list(CSV_EXTRA))
+    for i in range(n):
+        p = point_index(ds, i)
+        w.writerow([_fmt(p[d]) for d in dims] + [_fmt(flat[c][i]) for c in CSV_TAIL + CSV_EXTRA])
+    return atomic_write_text(path, buf.getvalue())
+
+
+# ----------------------------------------------------------------------------------------------
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int):
+        return str(v)
+    if isinstance(v, float):
+        if math.isinf(v):
+            return '"inf"'
+        return repr(v)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def toml_text(d: dict[str, Any], header: str = "") -> str:
+    """A TOML document of tables of scalars (nested tables as [a.b])."""
+    lines = [("# " + ln).rstrip() for ln in header.splitlines()] if header else []
+
+    def table(name: str, t: dict[str, Any]) -> None:
+        scalars = {k: v for k, v in t.items() if not isinstance(v, dict)}
+        subs = {k: v for k, v in t.items() if isinstance(v, dict)}
+        if lines:
+            lines.append("")
+        lines.append(f"[{name}]")
+        for k, v in scalars.items():
+            lines.append(f"{k} = {_toml_value(v)}")
+        for k, v in subs.items():
+            table(f"{name}.{k}", v)
+
+    for name, t in d.items():
+        if isinstance(t, dict):
+            table(name, t)
+    return "\n".join(lines) + "\n"
+
+
+def write_best(ds, path: Path) -> Path | None:
+    from roadgonio.design.cluster import absolute_instrument_dict
+    from roadgonio.design.run import best_instrument, point_index, summary
+    inst = best_instrument(ds)
+    if inst is None:
+        return None
+    s = summary(ds)["best"]
+    point = point_index(ds, s["index"])
+    d = absolute_instrument_dict(inst)
+    changes = ", ".join(f"{k} = {v:g}" for k, v in point.items())
+    d["instrument"] = {"name": f"{inst.name}-best",
+                       "description": f"best design of a roadgonio design study of '{inst.name}': {changes}"}
+    prov = json.loads(ds.attrs.get("provenance", "{}"))
+    acc = prov.get("accuracy")
+    samples = json.loads(ds.attrs["samples"])
+    header = (f"The feasible design with the most signal (roadgonio design; {ds.attrs.get('created', '')}).\n"
+              f"Varied: {changes}\n"
+              f"max |k_A - 1| = {s['max_abs_dev']:.5g} (tolerance {ds.attrs['tolerance']:g}) at tan eps "
+              f"{s['worst_tan_eps']:g}, beta {s['worst_beta_deg']:g} ({s['worst_sample']}); rms {s['rms_dev']:.4g}; "
+              f"signal {s['signal']:.4g} x base\n"
+              f"Reproduce its row: roadgonio ka --instrument best.toml --sample SAMPLE --backend {prov.get('backend')}"
+              + (f" --accuracy {acc}" if acc else "")
+              + (f" --model-variant {prov['model_variant']}" if prov.get("model_variant") else "") + f" --seed {s['seed']} (samples: {', '.join(samples)})")
+    return atomic_write_text(path, toml_text(d, header))
+
+
+# ----------------------------------------------------------------------------------------------
+def _plt():
+    from roadgonio.plots import _plt as p
+    return p()
+
+
+def plot_pareto(ds, path: Path) -> Path:
+    plt = _plt()
+    dev = ds["max_abs_dev"].values.reshape(-1) * 100
+    sig = ds["signal"].values.reshape(-1)
+    feas = ds["feasible"].values.reshape(-1).astype(bool)
+    geo = ds["geometry_ok"].values.reshape(-1).astype(bool)
+    se = ds["worst_se"].values.reshape(-1) * 100
+    tol = float(ds.attrs["tolerance"]) * 100
+    best = int(ds.attrs["best_index"])
+    from roadgonio.design.metrics import pareto_front
+    from roadgonio.design.run import point_index
+    fig, ax = plt.subplots(figsize=(8, 5.5))
+    ok = np.isfinite(dev) & np.isfinite(sig)
+    bad = ok & ~feas
+    ax.errorbar(sig[bad], dev[bad], yerr=2 * np.nan_to_num(se[bad]), fmt="o", mfc="none", color="tab:red",
+                ms=6, lw=0.8, label=f"over tolerance ({int(bad.sum())})")
+    ax.errorbar(sig[feas & ok], dev[feas & ok], yerr=2 * np.nan_to_num(se[feas & ok]), fmt="o", color="tab:green",
+                ms=6, lw=0.8, label=f"feasible ({int((feas & ok).sum())})")
+    front = pareto_front(sig, dev)
+    if front.size > 1:
+        ax.step(sig[front], dev[front], where="pre", color="0.4", lw=1, ls="--",
+                label="Pareto front (least deviation for at least that signal)")
+    ax.axhline(tol, color="tab:orange", lw=1.2, label=f"tolerance {tol:g} %")
+    if best >= 0:
+        p = point_index(ds, best)
+        txt = "best: " + ", ".join(f"{k.split('.', 1)[1]}={v:g}" for k, v in p.items())
+        ax.plot([sig[best]], [dev[best]], marker="*", color="gold", mec="k", ms=16, ls="none", zorder=5)
+        ax.annotate(txt + f"\nsignal {sig[best]:.3g} x base, max |k_A-1| {dev[best]:.3g} %", (sig[best], dev[best]),
+                    xytext=(-10, 22), textcoords="offset points", ha="right", fontsize=8,
+                    arrowprops={"arrowstyle": "-", "color": "0.3"})
+    finite = sig[ok]
+    if finite.size and finite.min() > 0 and finite.max() / finite.min() > 20:
+        ax.set_xscale("log")
+    if dev[ok].size and np.nanmin(dev[ok]) > 0 and np.nanmax(dev[ok]) / np.nanmin(dev[ok]) > 10:
+        from matplotlib import ticker
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(ticker.FormatStrFormatter("%g"))
+    ax.set_xlabel("signal (detected flux for a Lambertian sample, relative to the base design)")
+    ax.set_ylabel("max |k_A - 1| over cells and samples (%)")
+    n_geo = int((~geo).sum())
+    samples = ", ".join(json.loads(ds.attrs["samples"]))
+    ax.set_title(f"{ds.attrs['title']}\nsamples {samples}; {int(ds.attrs['points'])} points, "
+                 f"{n_geo} geometrically impossible (not shown); error bars 2 SE", fontsize=10)
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    out = atomic_savefig(fig, path, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def _edges(v: np.ndarray, log: bool) -> np.ndarray:
+    v = np.asarray(v, dtype=np.float64)
+    if v.size == 1:
+        return np.array([v[0] * 0.9, v[0] * 1.1]) if log else np.array([v[0] - 0.5, v[0] + 0.5])
+    x = np.log(v) if log else v
+    mid = (x[1:] + x[:-1]) / 2
+    e = np.concatenate([[x[0] - (mid[0] - x[0])], mid, [x[-1] + (x[-1] - mid[-1])]])
+    return np.exp(e) if log else e
+
+
+def _signal_levels(lo: float, hi: float, n_max: int = 7) -> np.ndarray:
+    """Round iso-signal levels strictly inside (lo, hi): 1-2-5 per decade, thinned to <= n_max."""
+    out = []
+    for e in range(int(np.floor(np.log10(lo))), int(np.ceil(np.log10(hi))) + 1):
+        out += [m * 10.0 ** e for m in (1, 2, 5) if lo < m * 10.0 ** e < hi]
+    lv = np.array(out)
+    while lv.size > n_max:
+        lv = lv[::2]
+    return lv
+
+
+def plot_tolerance_map(ds, path: Path) -> Path | None:
+    """max |k_A - 1| over the plane of the first two varied keys (None if fewer than two vary)."""
+    dims = json.loads(ds.attrs["varied"])
+    dims2 = [d for d in dims if ds.sizes[d] > 1]
+    if len(dims2) < 2:
+        return None
+    xk, yk = dims2[0], dims2[1]
+    best = int(ds.attrs["best_index"])
+    from roadgonio.design.run import point_index
+    sel: dict[str, int] = {}
+    others = [d for d in dims if d not in (xk, yk)]
+    anchor = point_index(ds, best) if best >= 0 else {}
+    for d in others:
+        vals = ds[d].values
+        sel[d] = int(np.argmin(np.abs(vals - anchor[d]))) if d in anchor else 0
+    sub = ds.isel(sel) if sel else ds
+    dev = sub["max_abs_dev"].transpose(yk, xk).values * 100
+    sig = sub["signal"].transpose(yk, xk).values
+    geo = sub["geometry_ok"].transpose(yk, xk).values.astype(bool)
+    kind = sub["kind"].transpose(yk, xk).values
+    x, y = ds[xk].values, ds[yk].values
+    logs = json.loads(ds.attrs.get("log_axes", "[]"))
+    tol = float(ds.attrs["tolerance"]) * 100
+    plt = _plt()
+    from matplotlib import colors
+    fig, ax = plt.subplots(figsize=(8.5, 6.2))
+    fin = dev[np.isfinite(dev)]
+    vmax = max(float(fin.max()) if fin.size else 2 * tol, tol * 1.05)
+    vmin = min(float(fin.min()) if fin.size else tol / 10, tol * 0.95)
+    norm = colors.LogNorm(vmin=max(vmin, 1e-4), vmax=vmax) if vmin > 0 and vmax / max(vmin, 1e-12) > 10 else \
+        colors.Normalize(vmin=0, vmax=vmax)
+    cmap = plt.get_cmap("viridis").with_extremes(bad="0.85")
+    im = ax.pcolormesh(_edges(x, xk in logs), _edges(y, yk in logs), np.ma.masked_invalid(dev), cmap=cmap,
+                       norm=norm, shading="flat")
+    cb = fig.colorbar(im, ax=ax, pad=0.02)
+    cb.set_label("max |k_A - 1| (%)")
+    from roadgonio.plots import plain_colorbar_labels
+    plain_colorbar_labels(cb)
+    X, Y = np.meshgrid(x, y)
+    if np.isfinite(dev).sum() >= 4 and len(x) > 1 and len(y) > 1:
+        try:
+            cs = ax.contour(X, Y, np.ma.masked_invalid(dev), levels=[tol], colors="tab:orange", linewidths=2.2)
+            ax.clabel(cs, fmt={tol: f"tolerance {tol:g} %"}, fontsize=8)
+        except (ValueError, TypeError):
+            pass
+        fs = sig[np.isfinite(sig) & (sig > 0)]
+        if fs.size >= 4 and fs.max() / fs.min() > 1.5:
+            lv = _signal_levels(float(fs.min()), float(fs.max()))
+            if lv.size:
+                cs2 = ax.contour(X, Y, np.where(sig > 0, sig, np.nan), levels=lv, colors="white", linewidths=0.9,
+                                 linestyles="--")
+                ax.clabel(cs2, fmt=lambda v: f"signal x{v:g}", fontsize=7)
+    for (iy, ix) in zip(*np.nonzero(~geo)):
+        ax.text(x[ix], y[iy], {"footprint": "F", "horizon": "H", "line_of_sight": "L", "instrument": "I",
+                               "backend": "B"}.get(str(kind[iy, ix]), "x"), ha="center", va="center", fontsize=8,
+                color="0.35")
+    feas = sub["feasible"].transpose(yk, xk).values.astype(bool)
+    ax.plot(X[feas], Y[feas], ".", color="white", ms=3, ls="none")
+    if best >= 0:
+        ax.plot([anchor[xk]], [anchor[yk]], marker="*", color="gold", mec="k", ms=18, ls="none", label="best design")
+        ax.legend(loc="upper right", fontsize=8)
+    if xk in logs:
+        ax.set_xscale("log")
+    if yk in logs:
+        ax.set_yscale("log")
+    ax.set_xlabel(xk)
+    ax.set_ylabel(yk)
+    fixed = ", ".join(f"{d} = {float(ds[d].values[k]):g}" for d, k in sel.items())
+    samples = ", ".join(json.loads(ds.attrs["samples"]))
+    ax.set_title(f"{ds.attrs['title']}: max |k_A - 1| over cells and samples ({samples})"
+                 + (f"\nat {fixed}" if fixed else "")
+                 + "\ngrey letters: geometrically impossible (F footprint, H horizon, L line of sight, I instrument, "
+                   "B backend); dots: feasible", fontsize=8.5)
+    fig.tight_layout()
+    out = atomic_savefig(fig, path, dpi=120)
+    plt.close(fig)
+    return out

@@ -1,0 +1,270 @@
+"""The batched k_A engine: all cells of a table in a few Mitsuba launches, passes sized from the
+target (issue 9). The Mitsuba side is the ``kabatch`` integrator plugin
+(:mod:`roadgonio.engines.mitsuba.plugins.ka_batch`); the pass plan and the float64 statistics are
+:mod:`roadgonio.engines.mitsuba.passes`; the sample points :mod:`roadgonio.engines.mitsuba.lattice`.
+
+One pass: the active cells are grouped by the lattice size the planner chose for them; per group
+the detector rays of its replicates are traced once (chunks of at most :data:`MAX_RAYS` rays) and
+every cell's source is sampled at the same hits in one shading launch (chunks of at most
+:data:`MAX_LANES` lanes); the per-block road and Lambert sums come back to the host and are
+accumulated in float64. Dr.Jit's LLVM backend splits every large launch over its thread pool
+(``dr.thread_count()``, all cores by default); nothing here is specific to the CPU, so a CUDA
+variant runs the same code (not tested here: this machine has no GPU).
+
+Geometry checks (errors, not wrong numbers): the source of every cell must be above the horizon and
+its beam limit, if any, must not clip the footprint (:mod:`roadgonio.engines.mitsuba.scene`); a cell
+whose source lies within :data:`~roadgonio.engines.mitsuba.scene.SOURCE_NEAR_SIGHT_DEG` of the line
+of sight is checked for its disc hiding part of the detector bundle (:func:`source_blocks_view`);
+every traced detector ray must hit the sample (counted in every launch).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from roadgonio.errors import GeometryError
+from roadgonio.engines.mitsuba import lattice as lat
+from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strata, covariance, relative
+from roadgonio.engines.mitsuba.scene import (SOURCE_NEAR_SIGHT_DEG, RoadScene, check_beam, source_radiance)
+from roadgonio.instrument.config import Instrument
+from roadgonio.instrument.optics import check_source, detector_geometry
+
+#: Largest number of detector rays traced (and stored: 13 floats each) per launch.
+MAX_RAYS = 1 << 21
+#: Largest number of (ray, cell) lanes per shading launch (their road and Lambert values are stored,
+#: 8 bytes a lane, for the evaluated block sums).
+MAX_LANES = 1 << 23
+
+
+def cell_directions(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
+    """w_i of every cell, (cells, 3) float64 (:meth:`Instrument.w_i` over arrays)."""
+    from roadgonio.geometry import eps_from_tan, w_source
+    c = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    return w_source(eps_from_tan(c[:, 0]), c[:, 1], instrument.observation.delta_deg)
+
+
+def source_frames(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
+    """(cells, 12) float64: centre D_S w_i, two unit vectors s, t across the disc and the axis
+    -w_i (towards the sample centre) of every cell's source disc (docs/conventions.md section 4). The disc is
+    rotationally symmetric, so any orthonormal (s, t) describes the same source."""
+    w = cell_directions(instrument, cells)
+    axis = -w
+    helper = np.where(np.abs(axis[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
+    s = np.cross(helper, axis)
+    s /= np.linalg.norm(s, axis=1, keepdims=True)
+    t = np.cross(axis, s)
+    return np.concatenate([instrument.source.distance_m * w, s, t, axis], axis=1)
+
+
+def detector_bundle(instrument: Instrument, n: int = 1024, seed: int = 7) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rays of the detector (pupil rim x field rim, plus ``n`` random ones), float64: origins,
+    unit directions and the distance to the sample plane."""
+    from roadgonio.instrument.optics import detector_ray, hit_plane
+    from roadgonio.surface.model import NumpyOps
+    geo = detector_geometry(instrument)
+    ang = np.linspace(0.0, 2 * np.pi, 32, endpoint=False)
+    rim = np.stack([np.cos(ang), np.sin(ang)], -1)
+    rng = np.random.default_rng(seed)
+    r1, r2 = np.sqrt(rng.random(n)), np.sqrt(rng.random(n))
+    a1, a2 = rng.random(n) * 2 * np.pi, rng.random(n) * 2 * np.pi
+    pupil = np.concatenate([np.repeat(rim, len(rim), 0), np.stack([r1 * np.cos(a1), r1 * np.sin(a1)], -1)])
+    fieldp = np.concatenate([np.tile(rim, (len(rim), 1)), np.stack([r2 * np.cos(a2), r2 * np.sin(a2)], -1)])
+    o, d, _ = detector_ray(NumpyOps, geo, (pupil[:, 0], pupil[:, 1]), (fieldp[:, 0], fieldp[:, 1]))
+    x, y, _ = hit_plane(NumpyOps, o, d)
+    o, d = np.stack(o, -1), np.stack(d, -1)
+    t_plane = np.linalg.norm(np.stack([x, y, np.zeros_like(x)], -1) - o, axis=-1)
+    return o, d, t_plane
+
+
+def source_blocks_view(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
+    """Per cell, the fraction of detector rays (:func:`detector_bundle`) that cross the cell's source
+    disc before reaching the sample plane (float64 numpy)."""
+    if not cells or instrument.source.radius_m <= 0.0:
+        return np.zeros(len(cells))
+    o, d, t_plane = detector_bundle(instrument)
+    fr = source_frames(instrument, cells)
+    c, axis = fr[:, 0:3], fr[:, 9:12]
+    den = d @ axis.T                                             # (rays, cells)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (c @ axis.T).diagonal()[None, :] - (o @ axis.T)
+        t = t / den
+    p = o[:, None, :] + t[..., None] * d[:, None, :]
+    inside = np.linalg.norm(p - c[None, :, :], axis=-1) <= instrument.source.radius_m
+    blocked = (np.abs(den) > 1e-12) & (t > 0) & (t < t_plane[:, None]) & inside
+    return blocked.mean(axis=0)
+
+
+@dataclass
+class EngineRun:
+    """Result of :meth:`BatchEngine.run`: per cell (in the order asked) its statistics, whether it
+    reached the target, and the plan that was followed."""
+
+    stats: list[CellStats]
+    converged: list[bool]
+    plan: Plan
+    seconds: float
+    passes: int
+    launches: int
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def ratios(self) -> list[tuple[float, float, float]]:
+        return [s.ratio_se() for s in self.stats]
+
+    def covariance(self) -> np.ndarray:
+        return covariance(self.stats, [r for r, _, _ in self.ratios()])
+
+
+class BatchEngine:
+    """The batched engine over one built scene (:class:`~roadgonio.engines.mitsuba.scene.RoadScene`)."""
+
+    def __init__(self, rs: RoadScene, *, shadow: bool | None = None, tent: bool = False):
+        import drjit as dr
+        import mitsuba as mi
+
+        from roadgonio.engines.mitsuba.plugins import register_plugins
+        from roadgonio.engines.mitsuba.plugins.ka_batch import canonical_source
+        register_plugins()
+        self.rs = rs
+        self.instrument = rs.instrument
+        self.tent = bool(tent)
+        # the scene's own source is replaced by one per cell (not part of the scene): move it
+        # far below the sample plane, where no shadow ray can meet it
+        if rs.source_kind == "point":
+            rs.params["source.position"] = mi.Point3f(0.0, 0.0, -1e4)
+        else:
+            rs.params["source.to_world"] = mi.ScalarTransform4f().translate([0.0, 0.0, -1e4]).scale(
+                [max(rs.instrument.source.radius_m, 1e-6)] * 3)
+        rs.params.update()
+        rs.cell = None
+        flat = rs.flat_rectangle and rs.xml is None
+        self.integrator = mi.load_dict({"type": "kabatch", "flat": bool(flat),
+                                        "shadow": bool(self.can_occlude() if shadow is None else shadow)})
+        self.integrator.set_sample(rs.sample_shape)
+        src = rs.instrument.source
+        self.emitter, self._emitter_shape = canonical_source(src.radius_m, source_radiance(rs.instrument))
+        self.integrator.set_source(self.emitter, self._emitter_shape)
+        self.threads = int(dr.thread_count()) if hasattr(dr, "thread_count") else 1
+
+    def can_occlude(self) -> bool:
+        """Whether anything in the scene can shade the light reaching the sample: a flat rectangle
+        alone cannot (the sources are above its plane); meshes and XML scenes can."""
+        return not (self.rs.flat_rectangle and self.rs.xml is None)
+
+    # -- checks --------------------------------------------------------------------------------
+    def check_cells(self, cells: Sequence[tuple[float, float]]) -> None:
+        inst = self.instrument
+        for t, b in cells:
+            check_source(inst, t, b)
+            if inst.source.beam_half_angle_deg is not None:
+                check_beam(inst, t, b)
+        near = np.flatnonzero(cell_directions(inst, cells) @ inst.w_o() > math.cos(math.radians(SOURCE_NEAR_SIGHT_DEG)))
+        if near.size:
+            frac = source_blocks_view(inst, [cells[i] for i in near])
+            for i, f in zip(near, frac):
+                if f > 0.0:
+                    t, b = cells[i]
+                    raise GeometryError(f"the source disc hides {100 * f:.2g} % of the detector rays at tan eps = "
+                                        f"{t:g}, beta = {b:g}: it stands in the line of sight")
+
+    # -- the passes ----------------------------------------------------------------------------
+    def run(self, cells: Sequence[tuple[float, float]], planner: Planner, *, seed: int = 0,
+            plan: Plan | dict | None = None,
+            on_done: Callable[[list[int], EngineRun], None] | None = None) -> EngineRun:
+        """Compute the statistics of every cell; ``on_done(indices, run)`` is called after each pass
+        with the cells that left the active set. With ``plan`` the recorded schedule is replayed
+        (no adaptation; a cell is converged if it meets the target at the end)."""
+        t0 = time.perf_counter()
+        cells = [(float(t), float(b)) for t, b in cells]
+        n = len(cells)
+        self.check_cells(cells)
+        self.integrator.set_cells(source_frames(self.instrument, cells))
+        stats = [CellStats() for _ in range(n)]
+        run = EngineRun(stats=stats, converged=[False] * n, plan=Plan([[] for _ in range(n)]), seconds=0.0,
+                        passes=0, launches=0)
+        run.info["misses"] = 0
+        if plan is not None:
+            plan = Plan.from_dict(plan)
+            if len(plan.cells) != n:
+                raise ValueError(f"the plan is for {len(plan.cells)} cells, not {n}")
+        active = list(range(n))
+        requests = planner.first(n) if plan is None else plan.pass_requests(0)
+        p = 0
+        while requests:
+            self._pass(p, requests, stats, run, seed)
+            p += 1
+            if plan is None:
+                requests, done = planner.next(stats, active)
+                left = done["converged"] + done["capped"]
+                for i in done["converged"]:
+                    run.converged[i] = True
+            else:
+                requests = plan.pass_requests(p) if p < plan.passes else {}
+                left = [i for i in active if i not in requests]
+                for i in left:
+                    ratio, se, _ = stats[i].ratio_se()
+                    run.converged[i] = relative(ratio, se) <= planner.rel_se
+            gone = set(left)
+            active = [i for i in active if i not in gone]
+            for i in left:
+                self._check_lit(cells[i], stats[i])
+            if on_done is not None and left:
+                on_done(sorted(left), run)
+        run.passes = p
+        run.seconds = time.perf_counter() - t0
+        return run
+
+    def _check_lit(self, cell, st: CellStats) -> None:
+        _, sg = st.totals()
+        if not sg > 0.0:
+            raise GeometryError(f"the source lights none of the detector footprint at tan eps = {cell[0]:g}, "
+                                f"beta = {cell[1]:g} (Lambert signal {sg:g}): is it shaded by a part of the scene?")
+
+    def _pass(self, p: int, requests: dict[int, tuple[int, int]], stats, run: EngineRun, seed: int) -> None:
+        groups: dict[int, list[tuple[int, int]]] = {}
+        for i, (log2n, reps) in requests.items():
+            groups.setdefault(log2n, []).append((i, reps))
+            run.plan.cells[i].append((p, log2n, reps))
+        run.info.setdefault("passes", []).append(
+            {"cells": len(requests), "groups": len(groups),
+             "samples": int(sum(reps << log2n for log2n, reps in requests.values()))})
+        for log2n, members in sorted(groups.items()):
+            self._group(p, log2n, members, stats, run, seed)
+
+    def _group(self, p: int, log2n: int, members: list[tuple[int, int]], stats, run: EngineRun, seed: int) -> None:
+        rs, integ = self.rs, self.integrator
+        n = 1 << log2n
+        idx = np.array([i for i, _ in members], dtype=np.int64)
+        want = np.array([r for _, r in members], dtype=np.int64)
+        max_reps = int(want.max())
+        shifts = lat.shifts(seed, p, log2n, max_reps)
+        z = lat.generating_vector(n)
+        reps_per_chunk = max(1, MAX_RAYS >> log2n)
+        got_cell, got_rep, got = [], [], []
+        for r0 in range(0, max_reps, reps_per_chunk):
+            r1 = min(max_reps, r0 + reps_per_chunk)
+            lattice = integ.lattice_params(n, z, shifts[r0:r1], self.tent)
+            rays, misses = integ.trace_detector(rs.scene, rs.sensor, lattice, r1 - r0)
+            run.launches += 1
+            if misses:
+                raise GeometryError(f"{misses} of {(r1 - r0) * n} detector rays do not hit the sample: the detector "
+                                    "footprint must lie on the sample; enlarge the sample or narrow the field")
+            # blocks replicate-major: the rays of one replicate serve consecutive blocks
+            reps = np.arange(r0, r1)
+            mask = want[None, :] > reps[:, None]
+            bc = np.broadcast_to(idx[None, :], mask.shape)[mask]
+            br = np.broadcast_to(reps[:, None], mask.shape)[mask]
+            per_launch = max(1, MAX_LANES >> log2n)
+            for k0 in range(0, len(bc), per_launch):
+                k1 = min(len(bc), k0 + per_launch)
+                out = integ.block_sums(rs.scene, rays, lattice, bc[k0:k1], br[k0:k1] - r0)
+                run.launches += 1
+                got.append(out.astype(np.float64).sum(axis=1))          # (blocks, 2)
+                got_cell.append(bc[k0:k1])
+                got_rep.append(br[k0:k1])
+        cell, rep, val = np.concatenate(got_cell), np.concatenate(got_rep), np.concatenate(got)
+        order = np.lexsort((rep, cell))
+        add_strata(stats, p, log2n, cell[order], rep[order], val[order, 0], val[order, 1])

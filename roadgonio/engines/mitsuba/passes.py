@@ -1,0 +1,317 @@
+"""Passes of the batched k_A engine and their statistics, in float64 numpy (nothing here imports
+mitsuba): how many samples each cell gets in each pass, and the ratio estimator with its standard
+error and covariance.
+
+**Replicates.** A cell's samples come in replicates: one replicate is a randomly shifted rank-1
+lattice of n = 2^k points (:mod:`roadgonio.engines.mitsuba.lattice`), and in pass p the cell gets
+B replicates of one lattice size n. The shifts are a function of (seed, p, n) only
+(:func:`~roadgonio.engines.mitsuba.lattice.shifts`), so the replicates of one (pass, n) stratum
+are independent and identically distributed, and strata are independent of each other.
+
+**Estimator.** For every replicate the engine returns the sums R and G of the road and Lambert
+contributions over its n points; a cell's ratio is r = sum R / sum G over all its replicates, and
+k_A = r / ideal_ratio (the ideal in float64, :func:`roadgonio.engines.ideal_ratio`). Its standard
+error is the delta-method (linearised ratio) estimate over independent replicates: with
+Y = R - r G per replicate and s_q^2 the sample variance of Y over the B_q replicates of stratum q,
+
+    Var(r) ~= sum_q B_q s_q^2 / (sum G)^2        (needs B_q >= 2 in every stratum)
+
+which is unbiased for the variance of the linearised estimator whatever the lattice does within a
+replicate (the randomisation is only in the shifts). This is the **marginal** standard error of
+each cell.
+
+**Correlation between cells.** Cells in the same launch share the detector rays (and the source
+sample of each lattice point), so the errors of cells computed together are correlated (positively
+for neighbouring cells: one lattice that happens to over-weight the footprint under the source does
+so for all of them). Each cell's SE above stays its correct marginal SE. A functional of the table
+(S1, Q0, a fit, a mean over cells) needs the covariance as well: :meth:`RunStats.covariance` estimates
+it from the replicates the two cells share (same pass, same lattice size, same replicate index):
+
+    Cov(r_c, r_c') ~= sum_q m_q cov_q(Y_c, Y_c') / (sum G_c sum G_c')
+
+with m_q the number of shared replicates and cov_q their sample covariance; strata that are not
+shared are independent. Cells of different tables (other ``compute`` calls) are independent unless
+they replay the same plan with the same seed (common random numbers, see :class:`Plan`).
+
+**Passes.** The first pass gives every cell ``first_pass`` samples (B_min replicates of
+first_pass / B_min points). After each pass a cell whose relative SE is at or below the target
+leaves the active set; for the others the 1/N rule sizes the next pass,
+
+    N_more = N (rel / target)^2 - N, times 1.15 (safety)
+
+but at most :data:`MAX_GROWTH` N, and the cell gets the largest lattice n with B_min replicates of
+n <= N_more (at most :data:`MAX_LOG2`), but never a smaller one than it had (larger lattices have
+smaller error per point, and the pooled mean weighs every point alike), and ceil(N_more / n)
+replicates of it (at least B_min). Cells reaching ``max_samples`` stop and
+are flagged not converged. A :class:`Plan` records what every cell got; replaying it (uncertainty
+design points) gives every table the same random numbers.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from roadgonio.engines.mitsuba.lattice import MAX_LOG2, MIN_LOG2
+
+#: Safety factor on the 1/N rule (the SE estimate itself is noisy).
+SAFETY = 1.15
+#: Largest rate at which the planner lets the per-point variance of a lattice fall with its size n
+#: (variance ~ n^-gamma, gamma measured between the cell's last two sizes, at most this); measured
+#: on the wide instrument's specular cells: gamma ~ 0.26 between n = 64 and 2^18.
+LATTICE_GAIN_MAX = 0.5
+#: A pass gives a cell at most this many times the samples it already has: the lattice's error
+#: falls faster than 1/sqrt(N) on smooth parts of the integrand, so a need extrapolated from a small
+#: first pass can be much too large; growing in steps re-measures it on the way.
+MAX_GROWTH = 8.0
+
+
+@dataclass
+class CellStats:
+    """Replicate sums of one cell: per stratum key (pass, log2 n) the replicate indices and the
+    float64 sums R, G over each replicate's n points (kept for :func:`covariance`), and the moments
+    the standard error needs, centred on the cell's first ratio ``r0`` (no cancellation)."""
+
+    strata: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] = field(default_factory=dict)
+    samples: int = 0
+    passes: int = 0
+    r0: float | None = None
+    sum_r: float = 0.0
+    sum_g: float = 0.0
+    #: sum over strata of B/(B-1) x centred second moments of (Y0, G): b0 = Y0 Y0, b1 = Y0 G, b2 = G G
+    b: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: a stratum with a single replicate (no variance estimate)
+    single: bool = False
+    #: the same moments per stratum (for the per-point variance of each lattice size)
+    strata_b: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
+
+    def add(self, pass_index: int, log2n: int, reps: np.ndarray, R: np.ndarray, G: np.ndarray) -> None:
+        """Add all replicates of one stratum (at most one call per stratum)."""
+        add_strata([self], pass_index, log2n, np.zeros(len(R), dtype=np.int64), reps, R, G)
+
+    def totals(self) -> tuple[float, float]:
+        return self.sum_r, self.sum_g
+
+    def ratio_se(self) -> tuple[float, float, float]:
+        """(ratio, its standard error, mean Lambert signal per sample)."""
+        sr, sg = self.sum_r, self.sum_g
+        n = max(self.samples, 1)
+        if not sg > 0.0:
+            return math.nan, math.inf, sg / n
+        ratio = sr / sg
+        if self.single:
+            return ratio, math.inf, sg / n
+        d = ratio - self.r0
+        var = max(self.b[0] - 2.0 * d * self.b[1] + d * d * self.b[2], 0.0)
+        return ratio, math.sqrt(var) / sg, sg / n
+
+    def point_variances(self) -> list[tuple[int, float]]:
+        """(log2 n, variance per point of Y = R - r G) of each stratum, in pass order: the
+        variance of a replicate sum divided by its n points (a lattice's figure of merit)."""
+        ratio, _, _ = self.ratio_se()
+        if not math.isfinite(ratio):
+            return []
+        d = ratio - (self.r0 or 0.0)
+        out = []
+        for key in sorted(self.strata_b):
+            b = self.strata_b[key]
+            B = len(self.strata[key][0])
+            out.append((key[1], max(b[0] - 2.0 * d * b[1] + d * d * b[2], 0.0) / (B << key[1])))
+        return out
+
+    def residuals(self, ratio: float) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+        return {k: (reps, R - ratio * G) for k, (reps, R, G) in self.strata.items()}
+
+
+def add_strata(stats: Sequence[CellStats], pass_index: int, log2n: int, owner: np.ndarray, reps: np.ndarray,
+               R: np.ndarray, G: np.ndarray) -> None:
+    """Add one stratum (pass, log2 n) to several cells at once: replicate k belongs to
+    ``stats[owner[k]]``; ``owner`` must be sorted (vectorised over the cells)."""
+    key = (int(pass_index), int(log2n))
+    owner = np.asarray(owner, dtype=np.int64)
+    R, G = np.asarray(R, dtype=np.float64), np.asarray(G, dtype=np.float64)
+    reps = np.asarray(reps, dtype=np.int64)
+    if len(owner) == 0:
+        return
+    if np.any(owner[1:] < owner[:-1]):
+        raise ValueError("owner must be sorted")
+    starts = np.flatnonzero(np.r_[True, owner[1:] != owner[:-1]])
+    counts = np.diff(np.r_[starts, len(owner)])
+    sr, sg = np.add.reduceat(R, starts), np.add.reduceat(G, starts)
+    cells = [stats[int(o)] for o in owner[starts]]
+    for st in cells:
+        if key in st.strata:
+            raise ValueError(f"stratum {key} added twice")
+    r0 = np.array([st.r0 if st.r0 is not None else (a / b if b > 0.0 else 0.0)
+                   for st, a, b in zip(cells, sr, sg)])
+    seg = np.repeat(np.arange(len(starts)), counts)
+    Y0 = R - r0[seg] * G
+    y = Y0 - (np.add.reduceat(Y0, starts) / counts)[seg]
+    g = G - (sg / counts)[seg]
+    c = np.where(counts > 1, counts / np.maximum(counts - 1.0, 1.0), 0.0)
+    moments = np.stack([np.add.reduceat(y * y, starts), np.add.reduceat(y * g, starts),
+                        np.add.reduceat(g * g, starts)], axis=1) * c[:, None]
+    for k, st in enumerate(cells):
+        a, b = starts[k], starts[k] + counts[k]
+        st.strata[key] = (reps[a:b], R[a:b], G[a:b])
+        st.samples += int(counts[k]) << key[1]
+        st.passes = len({q[0] for q in st.strata})
+        st.sum_r += float(sr[k])
+        st.sum_g += float(sg[k])
+        if st.r0 is None:
+            st.r0 = float(r0[k])
+        if counts[k] < 2:
+            st.single = True
+        else:
+            st.b = st.b + moments[k]
+            st.strata_b[key] = moments[k]
+
+
+def relative(ratio: float, se: float) -> float:
+    if ratio != 0.0 and math.isfinite(ratio):
+        return abs(se / ratio)
+    return 0.0 if se == 0.0 else math.inf
+
+
+@dataclass
+class Plan:
+    """What every cell got: ``cells[i]`` is a list of (pass, log2 n, replicates) for the i-th cell of
+    the ``compute`` call. Replaying a plan (same seed) gives the same random numbers to every table
+    with the same number of cells (common random numbers)."""
+
+    cells: list[list[tuple[int, int, int]]]
+
+    def to_dict(self) -> dict:
+        return {"cells": [[list(e) for e in c] for c in self.cells]}
+
+    @classmethod
+    def from_dict(cls, d) -> "Plan":
+        if isinstance(d, Plan):
+            return d
+        return cls([[tuple(int(x) for x in e) for e in c] for c in d["cells"]])
+
+    @property
+    def passes(self) -> int:
+        return 1 + max((e[0] for c in self.cells for e in c), default=-1)
+
+    def pass_requests(self, p: int) -> dict[int, tuple[int, int]]:
+        """cell index -> (log2 n, replicates) in pass p."""
+        out = {}
+        for i, c in enumerate(self.cells):
+            for e in c:
+                if e[0] == p:
+                    out[i] = (e[1], e[2])
+        return out
+
+
+class Planner:
+    """Decides each pass's lattice size and replicates per active cell (module docstring)."""
+
+    def __init__(self, rel_se: float, *, first_pass: int = 1024, min_replicates: int = 16,
+                 max_samples: int = 1 << 28, min_passes: int = 1, max_log2: int = MAX_LOG2,
+                 max_growth: float = MAX_GROWTH):
+        self.rel_se = float(rel_se)
+        self.max_growth = float(max_growth)
+        self.min_replicates = max(2, int(min_replicates))
+        self.max_samples = int(max_samples)
+        self.min_passes = max(1, int(min_passes))
+        self.max_log2 = int(max_log2)
+        self.first_log2 = self.log2_for(first_pass / self.min_replicates)
+
+    def log2_for(self, points: float) -> int:
+        """log2 of the largest power of two <= ``points``, within the lattice table."""
+        k = int(math.floor(math.log2(max(points, 1.0))))
+        return int(min(max(k, MIN_LOG2), self.max_log2))
+
+    def first(self, n_cells: int) -> dict[int, tuple[int, int]]:
+        return {i: (self.first_log2, self.min_replicates) for i in range(n_cells)}
+
+    def next(self, stats: Sequence[CellStats], active: Iterable[int]) -> tuple[dict[int, tuple[int, int]], dict]:
+        """Requests of the next pass for the cells still ``active`` and the decisions taken:
+        ``{"converged": [...], "capped": [...]}`` (cells leaving the active set)."""
+        requests: dict[int, tuple[int, int]] = {}
+        done = {"converged": [], "capped": []}
+        for i in active:
+            st = stats[i]
+            ratio, se, _ = st.ratio_se()
+            rel = relative(ratio, se)
+            if rel <= self.rel_se and st.passes >= self.min_passes:
+                done["converged"].append(i)
+                continue
+            room = self.max_samples - st.samples
+            if room < (1 << MIN_LOG2) * self.min_replicates:
+                done["capped"].append(i)
+                continue
+            last = max((k[1] for k in st.strata), default=self.first_log2)
+            if math.isfinite(rel) and rel > self.rel_se:
+                want = self.more_samples(st, rel, last) * SAFETY
+            else:
+                want = st.samples          # min_passes not reached, or no SE yet: as much again
+            want = min(max(want, (1 << MIN_LOG2) * self.min_replicates), room, self.max_growth * st.samples)
+            # never a smaller lattice than before: its points would be worth less than the ones the
+            # cell has, and the pooled mean weighs every point alike
+            log2n = max(self.log2_for(want / self.min_replicates), min(last, self.log2_for(room / self.min_replicates)))
+            reps = max(self.min_replicates, int(math.ceil(want / (1 << log2n))))
+            reps = min(reps, max(self.min_replicates, room >> log2n))
+            requests[i] = (log2n, reps)
+        return requests, done
+
+
+    def more_samples(self, st: CellStats, rel: float, last: int) -> float:
+        """Samples to add so that the pooled relative SE reaches the target: with a = (rel/target)^2
+        and b = a N v_new / V (v_new the per-point variance expected of the new points, V = N v the
+        current total), the pooled variance (V + N_new v_new) / (N + N_new)^2 meets the target for
+        x = N_new / N >= ((b - 2) + sqrt((b - 2)^2 - 4 (1 - a))) / 2 (x = a - 1 if v_new = v). The
+        new points are expected to be as good as the cell's last lattice, or better by the rate
+        :data:`LATTICE_GAIN_MAX` at most, as measured between its last two lattice sizes."""
+        a = (rel / self.rel_se) ** 2
+        pv = st.point_variances()
+        N = st.samples
+        total = sum(v * (1 << k) * len(st.strata[key][0]) for (k, v), key in zip(pv, sorted(st.strata_b)))
+        if not pv or not total > 0.0:
+            return N * (a - 1.0)
+        v_last = pv[-1][1]
+        gamma = 0.0
+        sizes = {}
+        for k, v in pv:
+            sizes[k] = v                                   # the latest estimate of each size
+        ks = sorted(sizes)
+        if len(ks) >= 2 and sizes[ks[-1]] > 0.0 and sizes[ks[-2]] > 0.0:
+            gamma = math.log(sizes[ks[-2]] / sizes[ks[-1]]) / ((ks[-1] - ks[-2]) * math.log(2.0))
+            gamma = min(max(gamma, 0.0), LATTICE_GAIN_MAX)
+        x = a - 1.0
+        for _ in range(2):                                 # the new size depends on the answer
+            log2n = max(self.log2_for(N * x / self.min_replicates), last)
+            v_new = v_last * 2.0 ** (-gamma * (log2n - pv[-1][0]))
+            b = a * N * v_new / total
+            disc = (b - 2.0) ** 2 - 4.0 * (1.0 - a)
+            x = max(((b - 2.0) + math.sqrt(max(disc, 0.0))) / 2.0, 0.0)
+        return N * x
+
+
+def covariance(stats: Sequence[CellStats], ratios: Sequence[float]) -> np.ndarray:
+    """Covariance matrix of the ratios of ``stats`` (module docstring), float64."""
+    m = len(stats)
+    res = [st.residuals(r) for st, r in zip(stats, ratios)]
+    sg = np.array([st.totals()[1] for st in stats])
+    cov = np.zeros((m, m))
+    keys: dict[tuple[int, int], list[int]] = {}
+    for i, r in enumerate(res):
+        for k in r:
+            keys.setdefault(k, []).append(i)
+    for k, members in keys.items():
+        for a_pos, a in enumerate(members):
+            ra, ya = res[a][k]
+            for b in members[a_pos:]:
+                rb, yb = res[b][k]
+                common, ia, ib = np.intersect1d(ra, rb, return_indices=True)
+                if len(common) < 2:
+                    continue
+                c = len(common) * float(np.cov(ya[ia], yb[ib], ddof=1)[0, 1])
+                cov[a, b] += c
+                if a != b:
+                    cov[b, a] += c
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return cov / np.outer(sg, sg)

@@ -1,0 +1,87 @@
+"""Side-by-side comparison of two r-tables: the ratio map B / A and S1, S2, Q0 of both."""
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+
+from roadgonio.errors import InputError
+from roadgonio.surface.rtable import RTable
+
+
+def compare_tables(a: RTable, b: RTable) -> dict:
+    if not a.same_grid(b):
+        raise InputError(f"tables {a.name} and {b.name} are not on the same grid")
+    both = a.mask & b.mask
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(both & (a.r > 0), b.r / a.r, np.nan)
+    fin = ratio[np.isfinite(ratio)]
+    if fin.size == 0:
+        raise InputError(f"tables {a.name} and {b.name} share no cell with r > 0")
+    k = np.unravel_index(np.nanargmax(np.abs(np.log(ratio))), ratio.shape)
+    char = {}
+    for t in (a, b):
+        char[t.name] = {"S1": _try(t.s1), "S2": _try(t.s2), "Q0": t.q0(), "cells": int(t.mask.sum())}
+    return {"A": a.name, "B": b.name, "ratio": ratio, "characteristics": char,
+            "ratio_min": float(fin.min()), "ratio_max": float(fin.max()), "ratio_median": float(np.median(fin)),
+            "largest_change_at": {"tan_eps": float(a.tan_eps[k[0]]), "beta_deg": float(a.beta_deg[k[1]]),
+                                  "ratio": float(ratio[k])},
+            "cells_compared": int(np.isfinite(ratio).sum()),
+            "cells_only_in_A": int((a.mask & ~b.mask).sum()), "cells_only_in_B": int((b.mask & ~a.mask).sum())}
+
+
+def _try(fn):
+    try:
+        return float(fn())
+    except InputError:
+        return None
+
+
+def compare_csv(a: RTable, b: RTable, ratio: np.ndarray) -> str:
+    out = io.StringIO()
+    out.write(f"tan_eps,beta_deg,r_{_safe(a.name)}_x1e4,r_{_safe(b.name)}_x1e4,ratio_B_over_A\n")
+    for i, t in enumerate(a.tan_eps):
+        for j, be in enumerate(a.beta_deg):
+            if not (a.mask[i, j] or b.mask[i, j]):
+                continue
+            ra = "" if not a.mask[i, j] else f"{a.r[i, j] * 1e4:.6g}"
+            rb = "" if not b.mask[i, j] else f"{b.r[i, j] * 1e4:.6g}"
+            q = "" if not np.isfinite(ratio[i, j]) else f"{ratio[i, j]:.6g}"
+            out.write(f"{t:g},{be:g},{ra},{rb},{q}\n")
+    return out.getvalue()
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "table"
+
+
+def compare_png(result: dict, a: RTable, b: RTable) -> bytes:
+    from roadgonio.plots import _plt, draw_table_map
+    plt = _plt()
+    fig = plt.figure(figsize=(15, 9.5))
+    ax = fig.add_axes([0.05, 0.07, 0.66, 0.85])
+    draw_table_map(ax, result["ratio"], label=f"r({b.name}) / r({a.name})", centre=1.0, log=True, fmt="{:.2f}",
+                   fontsize=6.0, tick_fontsize=8)
+    ax.set_title(f"{b.name} / {a.name}: ratio of r, cell by cell (blank: not in both tables)", fontsize=11)
+    tx = fig.add_axes([0.77, 0.35, 0.22, 0.5])
+    tx.axis("off")
+    rows = [["", a.name[:14], b.name[:14]]]
+    ca, cb = result["characteristics"][a.name], result["characteristics"][b.name]
+    for key, fmt in (("S1", "{:.3f}"), ("S2", "{:.3f}"), ("Q0", "{:.4f}"), ("cells", "{:d}")):
+        rows.append([key] + [("-" if c[key] is None else fmt.format(c[key])) for c in (ca, cb)])
+    tab = tx.table(cellText=rows, loc="upper center", cellLoc="center")
+    tab.scale(1.0, 1.8)
+    tab.set_fontsize(11)
+    lc = result["largest_change_at"]
+    tx.text(0.0, 0.25, f"ratio {result['ratio_min']:.3g} ... {result['ratio_max']:.3g}\nmedian {result['ratio_median']:.3g}"
+            f"\nlargest change: x{lc['ratio']:.3g}\nat tan eps {lc['tan_eps']:g}, beta {lc['beta_deg']:g} deg",
+            fontsize=10, va="top", transform=tx.transAxes)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def default_out(a: RTable, b: RTable) -> Path:
+    return Path("out") / f"compare-{_safe(a.name)}-{_safe(b.name)}"

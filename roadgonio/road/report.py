@@ -1,0 +1,185 @@
+"""Outputs of ``roadgonio road``: JSON, CSV and pictures (metrics side by side, luminance maps),
+rendered in memory and written together."""
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from roadgonio.errors import InputError
+from roadgonio.fileio import to_json
+from roadgonio.provenance import provenance
+from roadgonio.road.metrics import M_CLASSES
+
+METRICS = (("L_av", "L_av (cd/m²)", "min"), ("U_o", "U_o", "min"), ("U_l", "U_l", "min"), ("TI", "TI (%)", "max"))
+
+
+def write_together(out_dir: Path, files: dict[str, bytes | str]) -> list[Path]:
+    """Write every file or none: all go to temporary files in ``out_dir`` first, then are renamed."""
+    out_dir = Path(out_dir)
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise InputError(f"cannot create the output folder ({err.strerror or err})", path=out_dir) from None
+    staged: list[tuple[str, Path]] = []
+    renamed = 0
+    try:
+        for name, content in files.items():
+            fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out_dir)
+            staged.append((name, Path(tmp)))
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(content.encode("utf-8") if isinstance(content, str) else content)
+            os.chmod(tmp, 0o644)  # mkstemp makes 0600; results are ordinary files
+        for name, tmp in staged:
+            os.replace(tmp, out_dir / name)  # renames within a folder: they do not run out of space
+            renamed += 1
+    except OSError as err:
+        for _, tmp in staged:
+            if tmp.exists():
+                tmp.unlink()
+        done = "nothing was written" if renamed == 0 else f"{renamed} of {len(files)} files were written"
+        raise InputError(f"cannot write the outputs ({err.strerror or err}); {done}", path=out_dir) from None
+    return [out_dir / n for n in files]
+
+
+def metrics_csv(summaries: list[dict]) -> str:
+    cols = ["table", "L_av", "U_o", "U_l", "TI", "R_EI", "class", "table_Q0", "table_S1"]
+    extra = ["u_L_av", "ci95_L_av", "u_U_o", "ci95_U_o", "u_U_l", "ci95_U_l", "u_TI", "P_meets"]
+    lines = [",".join(cols + ["correlation"] + extra)]
+    for s in summaries:
+        base = [s["table"]] + [_f(s[c]) for c in cols[1:]]
+        unc = s.get("uncertainty")
+        if not unc:
+            lines.append(",".join(base + [""] * (1 + len(extra))))
+            continue
+        for mode in ("independent", "correlated"):
+            if mode not in unc:
+                continue
+            m = unc[mode]
+            row = []
+            for k in ("L_av", "U_o", "U_l"):
+                row += [_f(m[k]["u"]), f"{m[k]['ci95'][0]:.5g}..{m[k]['ci95'][1]:.5g}"]
+            row += [_f(m["TI"]["u"]) if m["TI"] else "", _f(m["P_meets_target"])]
+            lines.append(",".join(base + [mode] + row))
+    return "\n".join(lines) + "\n"
+
+
+def luminance_csv(results) -> str:
+    lines = ["table,observer_lane,x_m,y_m,lane,centre_line,L_cd_m2"]
+    for res in results:
+        fld = res.installation.fld
+        for o in range(res.L.shape[0]):
+            for p in range(res.L.shape[1]):
+                lines.append(f"{res.table.name},{o + 1},{fld.x[p]:.4g},{fld.y[p]:.4g},{fld.lane[p] + 1},"
+                             f"{int(fld.centre[p])},{res.L[o, p]:.6g}")
+    return "\n".join(lines) + "\n"
+
+
+def _f(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, str):
+        return v
+    return f"{v:.6g}"
+
+
+def _png(fig) -> bytes:
+    from roadgonio.plots import _plt
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    _plt().close(fig)
+    return buf.getvalue()
+
+
+def metrics_png(summaries: list[dict], target: str | None, layout_text: str) -> bytes:
+    """Bars of L_av, U_o, U_l, TI per table with their 95 % intervals (both correlation bounds)
+    and the limits of the target class."""
+    from roadgonio.plots import _plt
+    plt = _plt()
+    n = len(summaries)
+    fig, axes = plt.subplots(1, 4, figsize=(4.2 * 4, 4.6 + 0.25 * n))
+    x = np.arange(n)
+    names = [s["table"] for s in summaries]
+    for ax, (key, label, kind) in zip(axes, METRICS):
+        vals = [s[key] if s[key] is not None else np.nan for s in summaries]
+        ax.bar(x, vals, color=[f"C{k}" for k in range(n)], alpha=0.75, width=0.6)
+        for k, s in enumerate(summaries):
+            unc = s.get("uncertainty") or {}
+            for off, mode, mk in ((-0.12, "independent", "o"), (0.12, "correlated", "s")):
+                m = (unc.get(mode) or {}).get(key)
+                if m:
+                    lo, hi = m["ci95"]
+                    ax.errorbar(k + off, m["nominal"], yerr=[[m["nominal"] - lo], [hi - m["nominal"]]], fmt=mk,
+                                color="k", ms=3, capsize=3, lw=1)
+            v = s[key]
+            if v is not None:
+                ax.text(k - 0.28, 0.5 * v, f"{v:.3g}", ha="left", va="center", fontsize=8)
+        if target and target in M_CLASSES:
+            lim = M_CLASSES[target][key]
+            ax.axhline(lim, color="r", ls="--", lw=1)
+            ax.text(n - 0.5, lim, f"{target} {'min' if kind == 'min' else 'max'} {lim:g}", color="r", fontsize=8,
+                    ha="right", va="bottom")
+        ax.set_xticks(x, names, rotation=20 if n > 2 else 0, fontsize=8)
+        ax.set_title(label)
+        ax.grid(axis="y", alpha=0.3)
+    classes = ", ".join(f"{s['table']}: {s['class'] or 'none'}" for s in summaries)
+    fig.suptitle(f"EN 13201 metrics: {classes}\n{layout_text}"
+                 + ("\nerror bars: 95 % intervals, o independent cells, □ fully correlated" if any(s.get('uncertainty') for s in summaries) else ""),
+                 fontsize=9)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def luminance_png(results) -> bytes:
+    """Luminance over the field, one row per table, one column per observer (lane)."""
+    from roadgonio.plots import _plt
+    plt = _plt()
+    n_t = len(results)
+    n_o = results[0].L.shape[0]
+    fld = results[0].installation.fld
+    lay = results[0].installation.layout
+    nx = fld.n_long
+    vmax = max(float(r.L.max()) for r in results)
+    fig, axes = plt.subplots(n_t, n_o, figsize=(5.2 * n_o + 1, 1.2 + 2.3 * n_t), squeeze=False,
+                             constrained_layout=True)
+    im = None
+    for t, res in enumerate(results):
+        for o in range(n_o):
+            ax = axes[t, o]
+            grid = res.L[o].reshape(lay.lanes * 3, nx)   # rows: y order of the points
+            ext = [0, lay.spacing_m, 0, lay.width_m]
+            im = ax.imshow(grid, origin="lower", extent=ext, aspect="auto", vmin=0, vmax=vmax, cmap="magma")
+            for y_row, x_off, _ in lay.rows():
+                xs = [x for x in (x_off, x_off + lay.spacing_m) if 0 <= x <= lay.spacing_m]
+                ax.plot(xs, [y_row] * len(xs), "c^", ms=7, clip_on=False)
+            for k in range(1, lay.lanes):
+                ax.axhline(k * lay.lane_width_m, color="w", ls="--", lw=0.8)
+            m = res.per_observer
+            ax.set_title(f"{res.table.name}, observer lane {o + 1}: L_av {m['L_av_obs'][o]:.3g}, "
+                         f"U_o {m['U_o_obs'][o]:.2f}, U_l {m['U_l_lane'][o]:.2f}", fontsize=8)
+            ax.set_xlabel("x along the road (m)", fontsize=8)
+            ax.set_ylabel("y (m)", fontsize=8)
+    cb = fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.03, pad=0.02)
+    cb.set_label("L (cd/m²)")
+    fig.suptitle("Road-surface luminance over the EN 13201-3 field (triangles: luminaires)", fontsize=10)
+    return _png(fig)
+
+
+def road_files(results, summaries: list[dict], target: str | None, plots: bool = True) -> dict[str, bytes | str]:
+    lay = results[0].installation.layout
+    files: dict[str, bytes | str] = {
+        "road.json": to_json({"tables": summaries, **provenance(settings={"layout": lay.describe()})}) + "\n",
+        "road_metrics.csv": metrics_csv(summaries),
+        "road_luminance.csv": luminance_csv(results),
+    }
+    if plots:
+        files["road_metrics.png"] = metrics_png(summaries, target, lay.describe())
+        files["road_luminance.png"] = luminance_png(results)
+    return files
+
+
+def _safe_name(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "table"
