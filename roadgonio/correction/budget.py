@@ -39,9 +39,14 @@ import numpy as np
 
 from roadgonio.surface.rtable import BUNDLED, RTable, bundled_table
 
-#: CIE 144 classes by S1: R1 < 0.42 <= R2 < 0.85 <= R3 < 1.35 <= R4; C1 < 0.40 <= C2.
-R_CLASS_BOUNDS = (("R1", 0.42), ("R2", 0.85), ("R3", 1.35), ("R4", math.inf))
-C_CLASS_BOUNDS = (("C1", 0.40), ("C2", math.inf))
+def _bounds(system: str) -> tuple[tuple[str, float], ...]:
+    """(class, upper S1 limit) of a class system, from the one table of the limits
+    (:data:`roadgonio.road.classify.CLASS_LIMITS`: R1 < 0.42 <= R2 < 0.85 <= R3 < 1.35 <= R4;
+    C1 < 0.40 <= C2; N1 < 0.28 <= N2 < 0.60 <= N3 < 1.30 <= N4)."""
+    from roadgonio.road.classify import CLASS_LIMITS
+    return tuple((name, hi) for name, _, hi in CLASS_LIMITS[system])
+
+
 COMPONENTS = ("measurement", "backend", "parameters", "model", "misalignment", "convergence")
 
 
@@ -59,7 +64,7 @@ def q0_weights(mask: np.ndarray) -> np.ndarray:
 
 
 def cie_class(s1: float, u_s1: float | None = None) -> dict[str, Any]:
-    """The CIE 144 R and C classes of S1 and, with u(S1), the probability of each class under a
+    """The CIE R, C and N classes of S1 and, with u(S1), the probability of each class under a
     normal distribution N(S1, u^2)."""
     def pick(bounds):
         for name, hi in bounds:
@@ -67,10 +72,11 @@ def cie_class(s1: float, u_s1: float | None = None) -> dict[str, Any]:
                 return name
         return bounds[-1][0]
 
-    out: dict[str, Any] = {"R": pick(R_CLASS_BOUNDS), "C": pick(C_CLASS_BOUNDS)}
+    systems = {k: _bounds(k) for k in ("R", "C", "N")}
+    out: dict[str, Any] = {k: pick(b) for k, b in systems.items()}
     if u_s1 is not None and u_s1 > 0 and math.isfinite(u_s1):
         from scipy.stats import norm
-        for key, bounds in (("p_R", R_CLASS_BOUNDS), ("p_C", C_CLASS_BOUNDS)):
+        for key, bounds in ((f"p_{k}", b) for k, b in systems.items()):
             lo, probs = -math.inf, {}
             for name, hi in bounds:
                 probs[name] = float(norm.cdf(hi, s1, u_s1) - norm.cdf(lo, s1, u_s1))

@@ -119,6 +119,12 @@ def plot_before_after(res, path: Path) -> Path:
     for j, ax in enumerate(axes.ravel()):
         beta = meas.beta_deg[j]
         ok = meas.mask[:, j]
+        if not ok.any():
+            ax.set_title(f"beta = {beta:g} deg   (not measured)", fontsize=8)
+            ax.tick_params(labelsize=7)
+            if j >= 15:
+                ax.set_xlabel("tan eps", fontsize=8)
+            continue
         t = meas.tan_eps[ok]
         rc = corr.r[ok, j] * 1e4
         band = 2.0 * res.u_corrected.r[ok, j] * 1e4
