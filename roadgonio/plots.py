@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -23,15 +24,63 @@ def plain_colorbar_labels(cb) -> None:
     cb.ax.yaxis.set_minor_formatter(ticker.FormatStrFormatter("%.2g"))
 
 
+class CellLabels:
+    """Text of many table cells, drawn onto the rendered picture by Pillow instead of as one
+    matplotlib ``Text`` artist per cell: 580 artists take 1.3 s to lay out and draw (measured,
+    2-core machine), Pillow's glyph rendering a few milliseconds. Positions are data coordinates of
+    their axes, converted to pixels after matplotlib has drawn the figure (:func:`save_figure`)."""
+
+    def __init__(self):
+        self.items: list[tuple[Any, float, float, str, tuple, float]] = []
+
+    def add(self, ax, x: float, y: float, text: str, color, fontsize: float) -> None:
+        self.items.append((ax, x, y, text, color, fontsize))
+
+
+def _font(size_px: float):
+    from PIL import ImageFont
+    import matplotlib
+    path = Path(matplotlib.get_data_path()) / "fonts" / "ttf" / "DejaVuSans.ttf"
+    return ImageFont.truetype(str(path), size=max(int(round(size_px)), 1))
+
+
+def save_figure(fig, path: str | Path, *, dpi: float = 110, labels: CellLabels | None = None) -> Path:
+    """Render ``fig`` with Agg at ``dpi``, draw ``labels`` on it with Pillow, and write the PNG
+    atomically (:func:`roadgonio.fileio.atomic_write`)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from PIL import Image, ImageDraw
+    from roadgonio.fileio import atomic_write
+    fig.set_dpi(dpi)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    img = Image.fromarray(np.asarray(canvas.buffer_rgba())).convert("RGB")
+    if labels is not None and labels.items:
+        draw = ImageDraw.Draw(img)
+        fonts: dict[float, Any] = {}
+        height = img.size[1]
+        for ax, x, y, text, color, fontsize in labels.items:
+            font = fonts.get(fontsize) or fonts.setdefault(fontsize, _font(fontsize * dpi / 72.0))
+            px, py = ax.transData.transform((x, y))
+            draw.text((float(px), height - float(py)), text, fill=color, font=font, anchor="mm")
+    return atomic_write(path, lambda p: img.save(p, format="PNG"))
+
+
+def new_figure(figsize=(12, 10)):
+    """A matplotlib ``Figure`` without pyplot (no global figure manager; importing pyplot costs
+    0.5 s of a command's start-up). Close nothing: it is garbage-collected."""
+    from matplotlib.figure import Figure
+    return Figure(figsize=figsize)
+
+
 def draw_table_map(ax, values: np.ndarray, *, label: str, centre: float | None = 1.0, log: bool = True,
                    fmt: str = "{:.2f}", text=None, fontsize: float = 6.5, tick_fontsize: float | None = None,
-                   tan_eps=TAN_EPS_GRID, beta_deg=BETA_GRID_DEG):
+                   tan_eps=TAN_EPS_GRID, beta_deg=BETA_GRID_DEG, labels: CellLabels | None = None):
     """Draw an r-table-shaped map (rows tan eps, columns beta) on ``ax`` with its colour bar;
     returns the image. Cells show ``fmt.format(value)`` or ``text(i, j)``; blank (NaN) cells stay
     white. ``centre`` puts a diverging colour map's midpoint at that value (k_A = 1: no aperture
-    effect); ``log`` uses a logarithmic colour scale (k_A spans 0.3 ... 5)."""
-    plt = _plt()
-    from matplotlib import colors
+    effect); ``log`` uses a logarithmic colour scale (k_A spans 0.3 ... 5). With ``labels`` the
+    cell texts are collected there for :func:`save_figure` (fast) instead of drawn as artists."""
+    from matplotlib import colormaps, colors
     v = np.asarray(values, dtype=np.float64)
     finite = v[np.isfinite(v)]
     if finite.size:
@@ -43,22 +92,28 @@ def draw_table_map(ax, values: np.ndarray, *, label: str, centre: float | None =
             else:
                 span = max(abs(lo - centre), abs(hi - centre), 1e-6)
                 norm = colors.Normalize(vmin=centre - span, vmax=centre + span)
-            cmap = plt.get_cmap("RdBu_r")
+            cmap = colormaps["RdBu_r"]
         else:
             norm = colors.LogNorm(vmin=lo, vmax=hi) if (log and lo > 0) else colors.Normalize(vmin=lo, vmax=hi)
-            cmap = plt.get_cmap("viridis")
+            cmap = colormaps["viridis"]
     else:
-        norm, cmap = colors.Normalize(0, 1), plt.get_cmap("viridis")
+        norm, cmap = colors.Normalize(0, 1), colormaps["viridis"]
     im = ax.imshow(np.ma.masked_invalid(v), cmap=cmap, norm=norm, aspect="auto", interpolation="nearest")
     ax.set_xticks(range(len(beta_deg)), [f"{b:g}" for b in beta_deg], fontsize=tick_fontsize)
     ax.set_yticks(range(len(tan_eps)), [f"{t:g}" for t in tan_eps], fontsize=tick_fontsize)
     ax.set_xlabel("beta (deg)")
     ax.set_ylabel("tan eps")
+    rgba_all = np.asarray(cmap(norm(np.where(np.isfinite(v), v, 1.0 if centre is None else centre))))
     for i, j in zip(*np.nonzero(np.isfinite(v))):
-        rgba = cmap(norm(v[i, j]))
+        rgba = rgba_all[i, j]        # one vectorised colour-map call (per cell: 1 ms each)
         lum = 0.299 * rgba[0] + 0.587 * rgba[1] + 0.114 * rgba[2]
-        ax.text(j, i, text(i, j) if text is not None else fmt.format(v[i, j]), ha="center", va="center",
-                fontsize=fontsize, color="white" if lum < 0.45 else "black")
+        s = text(i, j) if text is not None else fmt.format(v[i, j])
+        if not s:
+            continue
+        if labels is not None:
+            labels.add(ax, float(j), float(i), s, (255, 255, 255) if lum < 0.45 else (0, 0, 0), fontsize)
+        else:
+            ax.text(j, i, s, ha="center", va="center", fontsize=fontsize, color="white" if lum < 0.45 else "black")
     cb = ax.figure.colorbar(im, ax=ax, fraction=0.035, pad=0.02)
     cb.set_label(label)
     plain_colorbar_labels(cb)
@@ -68,13 +123,16 @@ def draw_table_map(ax, values: np.ndarray, *, label: str, centre: float | None =
 def table_map(values: np.ndarray, path: str | Path, *, title: str, label: str, centre: float | None = 1.0,
               fmt: str = "{:.2f}", log: bool = True, annotate: bool = True,
               tan_eps=TAN_EPS_GRID, beta_deg=BETA_GRID_DEG, subtitle: str = "") -> Path:
-    """An r-table-shaped map like the paper's Figure 4 (:func:`draw_table_map`) as a PNG."""
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(12, 10))
+    """An r-table-shaped map like the paper's Figure 4 (:func:`draw_table_map`) as a PNG.
+
+    Fixed margins instead of ``tight_layout`` (which renders the figure once more to measure it)
+    and the cell numbers drawn by Pillow (:class:`CellLabels`): 0.5 s instead of 3.1 s for a
+    580-cell table."""
+    fig = new_figure((12, 10))
+    ax = fig.add_axes((0.06, 0.06, 0.86, 0.86))
+    labels = CellLabels()
     draw_table_map(ax, values, label=label, centre=centre, log=log, fmt=fmt,
-                   text=None if annotate else (lambda i, j: ""), tan_eps=tan_eps, beta_deg=beta_deg)
+                   text=None if annotate else (lambda i, j: ""), tan_eps=tan_eps, beta_deg=beta_deg,
+                   labels=labels)
     ax.set_title(title + (f"\n{subtitle}" if subtitle else ""), fontsize=11)
-    fig.tight_layout()
-    out = atomic_savefig(fig, path, dpi=110)
-    plt.close(fig)
-    return out
+    return save_figure(fig, path, dpi=110, labels=labels)

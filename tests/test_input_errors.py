@@ -1,7 +1,6 @@
 """Bad inputs and faults (issue 10's probe classes): each gets a clear one-line error naming the
 file, the field and what was expected (exit 2), or a correct result - never a traceback, a NaN
-or a silently wrong number. Each test failed on the code before issue 10 (or is marked xfail
-where another issue lands the fix: the instrument-file validation is issue 8's)."""
+or a silently wrong number. Each test failed on the code before issues 8 and 10."""
 from __future__ import annotations
 
 import errno
@@ -16,9 +15,6 @@ from roadgonio.errors import InputError
 
 
 pytestmark = pytest.mark.system
-
-ISSUE8 = pytest.mark.xfail(strict=False, reason="instrument validation lands with issue 8")
-
 
 def one_line_error(capsys, rc, *must):
     err = capsys.readouterr().err.strip()
@@ -58,9 +54,8 @@ size_y_m = 0.5
 """
 
 
-# -- instrument files (issue 8 owns config.py; these state what the lead should expect) ----------
+# -- instrument files ------------------------------------------------------------------------------
 
-@ISSUE8
 def test_misspelt_section_is_an_error(tmp_path, capsys):
     p = write_instrument(tmp_path, GOOD.replace("[observation]", "[observaton]"))
     rc = main(["ka", "--instrument", str(p), "--sample", "lambert", "--backend", "quadrature", "--tan-eps", "1",
@@ -68,7 +63,6 @@ def test_misspelt_section_is_an_error(tmp_path, capsys):
     one_line_error(capsys, rc, "observaton")
 
 
-@ISSUE8
 def test_unknown_key_in_any_section_is_an_error(tmp_path, capsys):
     p = write_instrument(tmp_path, "[instrument]\nnmae = \"x\"\n" + GOOD)
     rc = main(["ka", "--instrument", str(p), "--sample", "lambert", "--backend", "quadrature", "--tan-eps", "1",
@@ -76,7 +70,6 @@ def test_unknown_key_in_any_section_is_an_error(tmp_path, capsys):
     one_line_error(capsys, rc, "nmae")
 
 
-@ISSUE8
 def test_conflicting_mesh_and_size_is_an_error(tmp_path, capsys):
     (tmp_path / "m.ply").write_text("ply\n")
     p = write_instrument(tmp_path, GOOD.replace("size_y_m = 0.5", "size_y_m = 0.5\nmesh = \"m.ply\""))
@@ -85,7 +78,6 @@ def test_conflicting_mesh_and_size_is_an_error(tmp_path, capsys):
     one_line_error(capsys, rc, "mesh")
 
 
-@ISSUE8
 def test_denormal_radius_is_an_error_or_a_point(tmp_path, capsys, r3_file):
     p = write_instrument(tmp_path, GOOD.replace("radius_m = 0.005", "radius_m = 1e-300"))
     rc = main(["ka", "--instrument", str(p), "--sample", str(r3_file), "--backend", "numpy-mc", "--tan-eps",
@@ -96,7 +88,6 @@ def test_denormal_radius_is_an_error_or_a_point(tmp_path, capsys, r3_file):
         assert math.isfinite(json.loads(cap.out)["k_a"])
 
 
-@ISSUE8
 def test_instrument_is_frozen():
     from dataclasses import FrozenInstanceError
 
@@ -232,6 +223,52 @@ def test_full_disk_leaves_no_partial_outputs(tmp_path, capsys, monkeypatch, r3_f
     one_line_error(capsys, rc, "validate.json", "No space left")
     assert not out.exists() or sorted(p.name for p in out.iterdir()) == []
     monkeypatch.setattr(F.OutputGroup, "json", real)
+
+
+@pytest.mark.parametrize("failing", ["table_map", "json"])
+def test_ka_table_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkeypatch, failing):
+    """ka writes ka.csv, ka_se.csv, ka.json and ka.png as one group: the disk fills while the map
+    (the last file) or the JSON is written, and none of them appears; the journal keeps the cells,
+    so the same command afterwards resumes them and writes the whole set."""
+    import roadgonio.fileio as F
+    import roadgonio.plots as P
+    import roadgonio.plotproc as PP
+    monkeypatch.setattr(PP, "FigureProcess", lambda enabled=True: _NoChild())   # draw in this process
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    if failing == "table_map":
+        monkeypatch.setattr(P, "table_map", full)
+    else:
+        monkeypatch.setattr(F.OutputGroup, "json", full)
+    out = tmp_path / "t"
+    argv = ["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature", "--cells", "1:0,2:0",
+            "--out", str(out)]
+    rc = main(argv)
+    one_line_error(capsys, rc, "No space left")
+    assert not (out / "ka.csv").exists() and not (out / "ka.json").exists() and not (out / "ka_bound.csv").exists()
+    assert not [q for q in out.iterdir() if q.name.startswith(".")]      # no staging folder left behind
+    monkeypatch.undo()
+    monkeypatch.setattr(PP, "FigureProcess", lambda enabled=True: _NoChild())
+    assert main(argv + ["--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["resumed_cells"] == 2
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [
+        "ka.csv", "ka.json", "ka.png", "ka_bound.csv", "ka_cells.jsonl"]
+
+
+class _NoChild:
+    """FigureProcess stand-in: draws in this process (so a monkeypatched roadgonio.plots applies)."""
+    fallbacks = 0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+    def call(self, name, *args, **kwargs):
+        import roadgonio.plots as P
+        return getattr(P, name)(*args, **kwargs)
 
 
 def test_outputs_are_world_readable(tmp_path):

@@ -4,6 +4,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import tomllib
+from pathlib import Path
 
 import pytest
 from hypothesis import given, settings
@@ -193,3 +194,27 @@ def test_sections_are_checked(tmp_path, extra, field):
     with pytest.raises(InputError) as err:
         Instrument.load(p)
     assert err.value.field == field and str(p) in str(err.value)
+
+
+def test_relative_mesh_survives_with_changes_and_a_rewrite(tmp_path, monkeypatch):
+    """A mesh named relative to an instrument file opened by a relative path: with_changes (what
+    `design` does for every grid point) and a to_dict/from_dict round trip keep the same file (the
+    path was once joined to the file's folder twice)."""
+    import numpy as np
+    import trimesh
+    folder = tmp_path / "inst"
+    folder.mkdir()
+    trimesh.Trimesh(vertices=np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0.0]]),
+                    faces=np.array([[0, 1, 2], [0, 2, 3]]), process=False).export(folder / "m.ply")
+    from roadgonio.design.outputs import toml_text        # the writer of design's best.toml
+    d = load_instrument("lab").to_dict()
+    d["sample"] = {"mesh": "m.ply"}
+    text = toml_text(d)
+    (folder / "x.toml").write_text(text)
+    monkeypatch.chdir(tmp_path)
+    inst = Instrument.load(Path("inst") / "x.toml")           # a relative file name
+    assert inst.sample.mesh.resolve() == (folder / "m.ply").resolve()
+    moved = inst.with_changes(source={"radius_m": 0.002})
+    assert moved.sample.mesh.resolve() == (folder / "m.ply").resolve()
+    again = Instrument.from_dict(moved.to_dict(), path=Path("inst") / "x.toml")
+    assert again.sample.mesh.resolve() == (folder / "m.ply").resolve()

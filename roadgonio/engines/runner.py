@@ -204,43 +204,49 @@ def _precision_text(summary: dict[str, Any]) -> str:
 
 
 def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, model: RoadModel,
-                  backend: KaBackend, sample_spec: str, plot: bool = True) -> dict[str, Any]:
-    """Write ka.csv, ka_se.csv, ka.png and ka.json; returns the ka.json content."""
+                  backend: KaBackend, sample_spec: str, plot: bool = True, figures=None) -> dict[str, Any]:
+    """Write ka.csv, ka_se.csv (or ka_bound.csv), ka.png and ka.json together or not at all
+    (:class:`roadgonio.fileio.OutputGroup`: a failed or full disk leaves the folder's previous
+    results and the journal as they were); returns the ka.json content. ``figures``
+    (:class:`roadgonio.plotproc.FigureProcess`) draws the map in a helper process."""
+    from roadgonio.fileio import OutputGroup
     out_dir = Path(out_dir)
     ka = run.grid("k_a")
     label = f"k_A of instrument '{instrument.name}' for sample '{sample_spec}' ({backend.name} backend)"
-    RTable(ka, name="k_A", source=label).write_csv(out_dir / "ka.csv", scale=1.0, digits=7)
-    # a standard error (Monte Carlo) and a deterministic error bound (quadrature) go to different files
-    deterministic = bool(run.results) and all(c.deterministic for c in run.results)
-    prec_field, prec_file, prec_name = (("error_bound", "ka_bound.csv", "k_A error bound") if deterministic
-                                        else ("se", "ka_se.csv", "k_A standard error"))
-    RTable(run.grid(prec_field), name=prec_name, source=f"{prec_name} of " + label).write_csv(
-        out_dir / prec_file, scale=1.0, digits=4)
-    rel = np.array([getattr(c, prec_field) / abs(c.k_a) if c.k_a else math.inf for c in run.results])
-    finite_ka = np.array([c.k_a for c in run.results])
-    summary = {
-        "cells": len(run.results),
-        "k_a_min": float(finite_ka.min()) if finite_ka.size else None,
-        "k_a_max": float(finite_ka.max()) if finite_ka.size else None,
-        ("worst_rel_error_bound" if deterministic else "worst_rel_se"): float(rel.max()) if rel.size else None,
-        "not_converged": int(sum(not c.converged for c in run.results)),
-        "samples": int(sum(c.samples for c in run.results)),
-        "seconds_total": float(sum(c.seconds for c in run.results)),
-        "seconds_wall_this_run": run.seconds,
-        "resumed_cells": run.resumed,
-    }
-    meta = {
-        "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md section 5)",
-        "fingerprint": fingerprint(instrument, model, backend),
-        **provenance(instrument=instrument, model=model, backend=backend.name, settings=backend.settings()),
-        "sample": sample_spec,
-        "summary": summary,
-        "files": {"ka": "ka.csv", prec_field: prec_file, "map": "ka.png" if plot else None, "journal": JOURNAL},
-    }
-    atomic_write_json(out_dir / META, meta)
-    if plot:
-        from roadgonio.plots import table_map
-        table_map(ka, out_dir / "ka.png", title=f"Aperture-effect factor k_A: {instrument.name} x {sample_spec}",
-                  subtitle=f"{backend.name} backend, {summary['cells']} cells, " + _precision_text(summary),
-                  label="k_A (1 = no aperture effect)")
+    with OutputGroup(out_dir) as group:      # all files or none
+        RTable(ka, name="k_A", source=label).write_csv(group.path("ka.csv"), scale=1.0, digits=7)
+        # a standard error (Monte Carlo) and a deterministic error bound (quadrature) go to different files
+        deterministic = bool(run.results) and all(c.deterministic for c in run.results)
+        prec_field, prec_file, prec_name = (("error_bound", "ka_bound.csv", "k_A error bound") if deterministic
+                                            else ("se", "ka_se.csv", "k_A standard error"))
+        RTable(run.grid(prec_field), name=prec_name, source=f"{prec_name} of " + label).write_csv(
+            group.path(prec_file), scale=1.0, digits=4)
+        rel = np.array([getattr(c, prec_field) / abs(c.k_a) if c.k_a else math.inf for c in run.results])
+        finite_ka = np.array([c.k_a for c in run.results])
+        summary = {
+            "cells": len(run.results),
+            "k_a_min": float(finite_ka.min()) if finite_ka.size else None,
+            "k_a_max": float(finite_ka.max()) if finite_ka.size else None,
+            ("worst_rel_error_bound" if deterministic else "worst_rel_se"): float(rel.max()) if rel.size else None,
+            "not_converged": int(sum(not c.converged for c in run.results)),
+            "samples": int(sum(c.samples for c in run.results)),
+            "seconds_total": float(sum(c.seconds for c in run.results)),
+            "seconds_wall_this_run": run.seconds,
+            "resumed_cells": run.resumed,
+        }
+        meta = {
+            "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md section 5)",
+            "fingerprint": fingerprint(instrument, model, backend),
+            **provenance(instrument=instrument, model=model, backend=backend.name, settings=backend.settings()),
+            "sample": sample_spec,
+            "summary": summary,
+            "files": {"ka": "ka.csv", prec_field: prec_file, "map": "ka.png" if plot else None, "journal": JOURNAL},
+        }
+        group.json(META, meta)
+        if plot:
+            from roadgonio.plotproc import InProcess
+            (figures or InProcess()).call(
+                "table_map", ka, group.path("ka.png"), title=f"Aperture-effect factor k_A: {instrument.name} x {sample_spec}",
+                subtitle=f"{backend.name} backend, {summary['cells']} cells, " + _precision_text(summary),
+                label="k_A (1 = no aperture effect)")
     return meta

@@ -204,6 +204,33 @@ _SECTIONS = ("observation", "source", "detector", "sample", "instrument")
 EXTRA_SECTIONS = ("scene",)
 
 
+class FrozenDict(dict):
+    """A read-only ``dict`` (nested mappings frozen too): an instrument's extra sections cannot be
+    changed after construction, like its other fields. A ``dict`` subclass, so it pickles (Dask
+    workers receive instruments), compares and serialises like a plain dict."""
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        for k, v in list(dict.items(self)):
+            if isinstance(v, Mapping) and not isinstance(v, FrozenDict):
+                dict.__setitem__(self, k, FrozenDict(v))
+            elif isinstance(v, list):
+                dict.__setitem__(self, k, tuple(v))
+
+    def _refuse(self, *args, **kwargs):
+        raise TypeError("an instrument is frozen: build a new one (dataclasses.replace or "
+                        "Instrument.with_changes) instead of changing its sections")
+
+    __setitem__ = __delitem__ = clear = pop = popitem = setdefault = update = _refuse
+    __ior__ = _refuse
+
+    def __reduce__(self):
+        return (FrozenDict, (dict(self),))
+
+    def __hash__(self):  # immutable, so hashable
+        return hash(tuple(sorted((k, repr(v)) for k, v in self.items())))
+
+
 @dataclass(frozen=True)
 class Instrument:
     observation: Observation = field(default_factory=Observation)
@@ -231,6 +258,7 @@ class Instrument:
             raise InputError(f"expected a Calibration, got {type(self.calibration).__name__}", field="calibration")
         if not isinstance(self.extra, Mapping):
             raise InputError(f"expected a mapping of extra sections, got {self.extra!r}", field="extra")
+        object.__setattr__(self, "extra", FrozenDict(self.extra))
         clash = sorted(set(self.extra) & set(_SECTIONS + ("calibration",)))
         if clash:
             raise InputError(f"section(s) {', '.join(clash)} are fields of the instrument, not extra sections",
@@ -324,7 +352,8 @@ class Instrument:
                 raise InputError(f"expected a file name, got {sm['mesh']!r}", field="sample.mesh")
             mesh = Path(sm["mesh"])
             if not mesh.is_absolute() and path is not None:
-                mesh = path.parent / mesh
+                # absolute, so that to_dict/from_dict (with_changes, best.toml) never joins it twice
+                mesh = (path.parent / mesh).absolute()
             sm["mesh"] = mesh
         sample = Sample(**sm)
         meta = d.get("instrument", {})

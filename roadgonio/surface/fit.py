@@ -40,7 +40,6 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping
 
 import numpy as np
-from scipy.optimize import differential_evolution, least_squares, minimize, nnls
 
 from roadgonio.errors import InputError
 from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
@@ -256,6 +255,7 @@ class _Problem:
             A.append(c / s)
         if A:
             try:
+                from scipy.optimize import nnls      # imported here: a cached fit never loads scipy.optimize
                 x, _ = nnls(np.stack(A, axis=1), target, maxiter=50 * len(A))
             except RuntimeError:
                 return None
@@ -351,6 +351,8 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
     gen = [0]
 
     if prob.free_nl:
+        # imported here, not at module level: a cached fit (every `ka` run) never loads scipy.optimize
+        from scipy.optimize import differential_evolution, least_squares, minimize
         bounds = [_z_box(n) for n in prob.free_nl]
 
         def cb(*_args, **_kw):

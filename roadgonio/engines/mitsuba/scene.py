@@ -9,7 +9,7 @@ Parts of a scene, by id (the same ids for a scene built from a TOML instrument a
   Units: the radiance is D_S^2 / (pi R_S^2) (point: intensity D_S^2), so the illuminance normal
   to the source axis at the sample centre is about 1 lx.
 * ``"sample"``: the sample shape, carrying the road BSDF (``roadbsdf``). From a TOML instrument:
-  the instrument's sample as triangles (:func:`roadgonio.instrument.mesh.sample_trimesh`: its
+  the instrument's sample as triangles (:func:`roadgonio.instrument.mesh.sample_triangles`: its
   rectangle or its checked mesh file), converted to a ``mi.Mesh`` here.
 * ``"detector"``: the luminance meter (``lummeter`` sensor, :mod:`roadgonio.engines.mitsuba.plugins.lummeter`).
 
@@ -46,7 +46,7 @@ import numpy as np
 from roadgonio.engines.mitsuba import require_variant
 from roadgonio.errors import BackendError, InputError
 from roadgonio.instrument.config import Detector, Instrument, Observation
-from roadgonio.instrument.mesh import sample_trimesh
+from roadgonio.instrument.mesh import sample_triangles
 from roadgonio.instrument.optics import (
     beam_clips_footprint,
     check_detector,
@@ -101,7 +101,8 @@ def source_radiance(instrument: Instrument) -> float:
 
 
 def to_mitsuba_mesh(mesh, bsdf, name: str = SAMPLE_ID):
-    """Convert a trimesh mesh to a ``mi.Mesh`` carrying ``bsdf``."""
+    """Convert a triangle mesh (anything with ``vertices`` and ``faces``: a trimesh, or
+    :class:`roadgonio.instrument.mesh.Triangles`) to a ``mi.Mesh`` carrying ``bsdf``."""
     mi = _mi()
     import drjit as dr
     v = np.asarray(mesh.vertices, dtype=np.float64)
@@ -265,7 +266,7 @@ def _build_toml(instrument, model, *, resolution, spp, sampler, channels) -> Roa
     mi = _mi()
     bsdf = mi.load_dict(_bsdf_dict(model, channels))
     smp = instrument.sample
-    shape = to_mitsuba_mesh(sample_trimesh(instrument), bsdf)
+    shape = to_mitsuba_mesh(sample_triangles(instrument), bsdf)
     film, samp = film_dict(resolution, spp, sampler)
     det = dict(type="lummeter", film=film, sampler=samp, **detector_props(instrument.observation, instrument.detector))
     src = instrument.source

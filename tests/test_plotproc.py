@@ -1,0 +1,77 @@
+"""The picture helper process (roadgonio.plotproc) and the fast table map (roadgonio.plots)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.plotproc import FigureProcess, InProcess
+
+pytestmark = pytest.mark.unit
+
+
+def _values(seed=0):
+    rng = np.random.default_rng(seed)
+    v = 0.5 + rng.random((len(TAN_EPS_GRID), len(BETA_GRID_DEG)))
+    v[3, 4] = np.nan                       # a blank cell stays white
+    return v
+
+
+def _pixels(path):
+    from PIL import Image
+    return np.asarray(Image.open(path).convert("RGB"), dtype=np.int16)
+
+
+def test_child_process_draws_the_same_picture_as_this_process(tmp_path):
+    v = _values()
+    kw = dict(title="k_A test", label="k_A")
+    InProcess().call("table_map", v, tmp_path / "here.png", **kw)
+    with FigureProcess() as fp:
+        assert fp.proc is not None
+        fp.call("table_map", v, tmp_path / "there.png", **kw)
+        assert fp.fallbacks == 0           # drawn by the child, not by the fallback
+    a, b = _pixels(tmp_path / "here.png"), _pixels(tmp_path / "there.png")
+    assert a.shape == b.shape
+    assert np.array_equal(a, b)
+
+
+def test_dead_child_falls_back_to_this_process(tmp_path):
+    v = _values(1)
+    with FigureProcess() as fp:
+        fp.proc.kill()
+        fp.proc.wait()
+        fp.call("table_map", v, tmp_path / "x.png", title="t", label="k")
+        assert fp.fallbacks == 1
+    assert (tmp_path / "x.png").stat().st_size > 10_000
+
+
+def test_error_in_the_child_is_raised_by_the_fallback(tmp_path):
+    """A picture that cannot be written is the command's error, exactly as without the helper."""
+    from roadgonio.errors import InputError
+    (tmp_path / "a-file").write_text("not a folder")
+    with FigureProcess() as fp:
+        with pytest.raises(InputError, match="a-file"):
+            fp.call("table_map", _values(), tmp_path / "a-file" / "x.png", title="t", label="k")
+        assert fp.fallbacks == 1
+    with pytest.raises(AttributeError):
+        InProcess().call("no_such_picture")
+
+
+def test_cell_numbers_are_drawn_in_their_cells(tmp_path):
+    """The Pillow-drawn numbers sit at the cell centres: a cell with text has dark pixels at its
+    centre on a light background, the blank cell has none (it is white)."""
+    v = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), 1.0)      # k_A = 1: near-white cells
+    v[0, 0] = np.nan
+    InProcess().call("table_map", v, tmp_path / "m.png", title="t", label="k")
+    img = _pixels(tmp_path / "m.png")
+    dark = (img.sum(axis=2) < 200)
+    # the axes span 6 %..92 % of the width minus the colour bar; find the image area as the
+    # bounding box of non-white, non-dark pixels is fragile, so check rows: text appears in
+    # many cells, i.e. the picture has many small dark blobs inside the axes
+    h, w = dark.shape
+    inner = dark[int(0.1 * h):int(0.9 * h), int(0.1 * w):int(0.8 * w)]
+    assert inner.mean() > 0.005
+    without = np.full_like(v, 1.0)
+    InProcess().call("table_map", without, tmp_path / "n.png", title="t", label="k", annotate=False)
+    inner_n = (_pixels(tmp_path / "n.png").sum(axis=2) < 200)[int(0.1 * h):int(0.9 * h), int(0.1 * w):int(0.8 * w)]
+    assert inner_n.mean() < inner.mean() / 5
