@@ -1,10 +1,14 @@
 """Dask for roadgonio: many independent k_A tables over worker processes.
 
 Used by ``roadgonio design`` (one table per design point and sample), by ``roadgonio uncertainty``
-(the exact tables of the surrogate design) and open to ``roadgonio correct`` (a batch of measured
-tables). The unit of work is :class:`TableTask`: *compute a k_A table for (instrument dict, model
-dict, cells, backend, settings, seed)*; :func:`compute_table` does it in whatever process it runs
-in, :func:`map_tables` maps it over a Dask client (or runs it here when the client is ``None``).
+(the exact tables of the surrogate design) and by ``roadgonio correct`` (one task per measured
+table). :func:`map_calls` is the one piece of Dask plumbing: *call a module-level function for
+every item, one task each, on the client's workers (or here when the client is ``None``)*, with
+an optional object shipped once to every worker, results in order, progress callbacks in
+completion order, cancellation on errors. The unit of work of the k_A tables is
+:class:`TableTask`: *compute a k_A table for (instrument dict, model dict, cells, backend,
+settings, seed)*; :func:`compute_table` does it in whatever process it runs in, :func:`map_tables`
+maps it with :func:`map_calls`.
 
 Clusters (:func:`open_client`):
 
@@ -35,6 +39,7 @@ import time
 import uuid
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
 
@@ -284,46 +289,99 @@ def describe(client) -> dict[str, Any]:
             "threads": int(sum(w.get("nthreads", 0) for w in ws.values()))}
 
 
-def map_tables(tasks: Sequence[TableTask], client=None, *,
-               on_result: Callable[[TableResult], None] | None = None) -> list[TableResult]:
-    """Compute every task (on the client's workers, or here if ``client`` is None); returns the
-    results in the order of ``tasks`` and calls ``on_result`` as each one finishes (in completion
-    order). A worker that dies on a task gives that task ``error_kind = "WorkerError"``; exceptions
-    that are not a RoadgonioError (bugs) are raised here. Unfinished tasks are cancelled when this
-    returns or raises (Ctrl-C)."""
-    tasks = list(tasks)
+def _call_task(item: Any, *, call: Callable, shared: Any = None, with_shared: bool = False,
+               backend: str | None = None, variant: str | None = None) -> Any:
+    """One task of :func:`map_calls` on a worker: prepare the process for ``backend`` (idempotent),
+    then ``call(item)`` or ``call(item, shared)``."""
+    if backend is not None:
+        _ensure_engine(backend, variant)
+    return call(item, shared) if with_shared else call(item)
+
+
+_NO_SHARED = object()
+
+
+def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any = _NO_SHARED,
+              backend: str | None = None, variant: str | None = None,
+              on_result: Callable[[int, Any], None] | None = None,
+              on_lost: Callable[[int, BaseException], Any] | None = None, name: str = "call") -> list[Any]:
+    """``func(item)`` for every item, one Dask task per item on the client's workers (or one after
+    the other in this process when ``client`` is None); returns the results in the order of
+    ``items`` and calls ``on_result(index, result)`` as each one finishes (completion order).
+
+    * ``func`` must be importable by the workers (a module-level function of roadgonio), ``items``
+      and the results picklable.
+    * ``shared``: one object every call needs (``func(item, shared)``), shipped once: scattered to
+      every worker (``broadcast``) instead of pickled into each task.
+    * ``backend`` / ``variant``: on a worker each task first prepares its process for that backend
+      (:func:`init_engine`: the Mitsuba variant and plugins; idempotent). In this process nothing
+      is prepared (its entry point chose the variant).
+    * A worker that dies on a task: ``on_lost(index, error)`` gives that item's result, or without
+      ``on_lost`` a :class:`~roadgonio.errors.BackendError` is raised. An exception raised by
+      ``func`` is raised here (the first one to finish). Unfinished tasks are cancelled when this
+      returns or raises (Ctrl-C).
+    """
+    items = list(items)
+    with_shared = shared is not _NO_SHARED
     if client is None:
         out = []
-        for t in tasks:
-            r = compute_table(t, prepare=False)
+        for i, item in enumerate(items):
+            r = func(item, shared) if with_shared else func(item)
             if on_result is not None:
-                on_result(r)
+                on_result(i, r)
             out.append(r)
         return out
     from distributed import KilledWorker, as_completed
     from distributed.comm.core import CommClosedError
+    if not items:
+        return []
     token = uuid.uuid4().hex[:12]
-    keys = [f"roadgonio-table-{token}-{i}" for i in range(len(tasks))]
-    futures = client.map(compute_table, tasks, key=keys, pure=False)
+    keys = [f"roadgonio-{name}-{token}-{i}" for i in range(len(items))]
+    # a list of one: scatter() would scatter a dict or a list element by element
+    shared_future = client.scatter([shared], broadcast=True, hash=False)[0] if with_shared else None
+    futures = client.map(_call_task, items, key=keys, pure=False, call=func, shared=shared_future,
+                         with_shared=with_shared, backend=backend, variant=variant)
     index = {f.key: i for i, f in enumerate(futures)}
-    results: list[TableResult | None] = [None] * len(tasks)
+    results: list[Any] = [None] * len(items)
     try:
         for fut in as_completed(futures):
             i = index[fut.key]
             try:
                 r = fut.result()
             except (KilledWorker, CommClosedError) as err:
-                r = TableResult(key=tasks[i].key, cells=[], error=f"a Dask worker died computing this table ({err})",
-                                error_kind="WorkerError")
+                if on_lost is None:
+                    raise BackendError(f"a Dask worker died computing task {i + 1} of {len(items)} ({err}); run the "
+                                       "same command again") from None
+                r = on_lost(i, err)
             results[i] = r
             fut.release()
             if on_result is not None:
-                on_result(r)
+                on_result(i, r)
     finally:
         pending = [f for f in futures if not f.done()]
         if pending:
             client.cancel(pending)
-    return results  # type: ignore[return-value]
+        if shared_future is not None:
+            shared_future.release()
+    return results
+
+
+def map_tables(tasks: Sequence[TableTask], client=None, *,
+               on_result: Callable[[TableResult], None] | None = None) -> list[TableResult]:
+    """Compute every task (on the client's workers, or here if ``client`` is None); returns the
+    results in the order of ``tasks`` and calls ``on_result`` as each one finishes (in completion
+    order). A worker that dies on a task gives that task ``error_kind = "WorkerError"``; exceptions
+    that are not a RoadgonioError (bugs) are raised here. Unfinished tasks are cancelled when this
+    returns or raises (Ctrl-C). (:func:`map_calls` of :func:`compute_table`.)"""
+    tasks = list(tasks)
+
+    def lost(i: int, err: BaseException) -> TableResult:
+        return TableResult(key=tasks[i].key, cells=[], error=f"a Dask worker died computing this table ({err})",
+                           error_kind="WorkerError")
+    # compute_table prepares a worker's process itself; in this process it uses what the entry point chose
+    func = compute_table if client is not None else partial(compute_table, prepare=False)
+    return map_calls(func, tasks, client, on_lost=lost, name="table",
+                     on_result=None if on_result is None else (lambda i, r: on_result(r)))
 
 
 def absolute_instrument_dict(instrument) -> dict[str, Any]:
