@@ -31,7 +31,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write, atomic_write_json, to_json
+from roadgonio.fileio import atomic_write, atomic_write_json, output_error, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
@@ -80,8 +80,14 @@ def _read_journal(path: Path, fp: str) -> dict[tuple[float, float], CellResult]:
     done: dict[tuple[float, float], CellResult] = {}
     if not path.exists():
         return done
-    with path.open(encoding="utf-8") as f:
-        lines = f.read().splitlines()
+    try:
+        with path.open(encoding="utf-8") as f:
+            lines = f.read().splitlines()
+    except OSError as err:
+        raise InputError(f"cannot read this journal ({err.strerror or err}); move the folder away or use --fresh",
+                         path=path) from None
+    except UnicodeDecodeError:
+        raise InputError("this journal is not a text file; move the folder away or use --fresh", path=path) from None
     if not lines:
         return done
     try:
@@ -111,7 +117,10 @@ def _check_finished_run(out_dir: Path, fp: str) -> None:
         return
     try:
         old = json.loads(meta.read_text(encoding="utf-8")).get("fingerprint")
-    except (json.JSONDecodeError, AttributeError, OSError):
+    except OSError as err:
+        raise InputError(f"cannot read this file ({err.strerror or err}) to check which run it belongs to; "
+                         "use another --out folder, or --fresh to discard it", path=meta) from None
+    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
         old = None
     if old != fp:
         why = ("holds the results of a different run (instrument, model, backend, settings or roadgonio version "
@@ -135,7 +144,8 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
               model: RoadModel, out_dir: str | Path | None = None, fresh: bool = False,
               progress: bool = True) -> KaRun:
     """Compute k_A at ``cells`` with ``backend``; with ``out_dir``, journal the cells (batched atomic
-    rewrites, module docstring) and resume."""
+    rewrites, module docstring) and resume. Every OSError on the journal (its folder cannot be
+    made, read-only or full disk, unreadable) is the one-line :class:`InputError` naming the file."""
     t0 = time.perf_counter()
     journal = None
     done: dict[tuple[float, float], CellResult] = {}
@@ -143,12 +153,18 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
     header = {"fingerprint": fp, "backend": backend.name}
     if out_dir is not None:
         out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
         journal = out_dir / JOURNAL
+        try:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise output_error(journal, err) from None
         if fresh:
             for old in (journal, out_dir / META):
-                if old.exists():
-                    old.unlink()
+                try:
+                    if old.exists():
+                        old.unlink()
+                except OSError as err:
+                    raise output_error(old, err) from None
         _check_finished_run(out_dir, fp)
         done = _read_journal(journal, fp)
         # (re)write the header and the finished cells, dropping a cut-short last line
