@@ -1,6 +1,7 @@
-"""What a correction writes (all atomically, :mod:`roadgonio.fileio`).
+"""What a correction writes: its outputs together or not at all (:class:`roadgonio.fileio.OutputGroup`).
 
-In the output folder::
+In the output folder (the first eight files are one group: a full disk or a failing picture
+leaves none of them, and the folder's previous set stays as it was)::
 
     corrected.csv        corrected r x 1e4, the r-table layout
     corrected_u.csv      its standard uncertainty, r x 1e4, same layout
@@ -12,6 +13,10 @@ In the output folder::
     correction_map.png   k_A and the relative uncertainty of the corrected table, cell by cell
     forward-N/           journalled k_A tables of the fitted model (resumable, like `roadgonio ka`)
     fit_state.json       checkpoint of the fitted models (a rerun with the same inputs reuses them)
+
+The journals (``forward-N/``, ``alternative-N/``) and ``fit_state.json`` are written while the
+correction runs, outside the group: they survive a failed output write, so the same command
+afterwards resumes and writes the whole set.
 """
 from __future__ import annotations
 
@@ -21,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from roadgonio.fileio import atomic_savefig, atomic_write_json, atomic_write_text
+from roadgonio.fileio import OutputGroup
 from roadgonio.surface.fit import model_r_on_grid
 
 FILES = {"corrected": "corrected.csv", "u": "corrected_u.csv", "rtb": "corrected.rtb", "json": "correct.json",
@@ -30,29 +35,41 @@ FILES = {"corrected": "corrected.csv", "u": "corrected_u.csv", "rtb": "corrected
 
 
 def write_correction(res, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
-    """Write every output of a :class:`~roadgonio.correction.run.CorrectionResult` to ``out_dir``."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [res.corrected.write_csv(out / FILES["corrected"]),
-             res.u_corrected.write_csv(out / FILES["u"], digits=4),
-             res.corrected.write_rtb(out / FILES["rtb"]),
-             atomic_write_text(out / FILES["cells"], cells_csv(res)),
-             atomic_write_text(out / FILES["correlation"], correlation_csv(res))]
-    if plots:
-        paths.append(plot_before_after(res, out / FILES["picture"]))
-        paths.append(plot_correction_map(res, out / FILES["map"]))
-    doc = {"summary": res.summary(), "provenance": res.provenance,
-           "files": {k: v for k, v in FILES.items() if plots or k not in ("picture", "map")},
-           "definitions": {
-               "corrected": "r_corrected = r_measured / k_A (k_A of the model under the instrument's calibration)",
-               "u": "standard uncertainty (k = 1) of r_corrected; relative components add in quadrature, with "
-                    "correlations between cells (corrected_corr.csv)",
-               "S1": "r(beta 0, tan 2) / r(beta 0, tan 0)", "Q0": "CIE 144 average luminance coefficient (sr^-1)",
-               "S2": "Q0 / r(0, 0)", "class": "CIE 144 by S1: R1 < 0.42 <= R2 < 0.85 <= R3 < 1.35 <= R4; "
-                                            "C1 < 0.40 <= C2; nearest_table by (S1, Q0)",
-               "before": "the measured table as reported, with the measurement's (and misalignment) uncertainty"}}
-    paths.insert(3, atomic_write_json(out / FILES["json"], doc))
+    """Write every output of a :class:`~roadgonio.correction.run.CorrectionResult` to ``out_dir``,
+    together or not at all (module docstring); an OSError is the one-line InputError naming the
+    file. Returns the paths (corrected.csv, corrected_u.csv, corrected.rtb, correct.json, ...)."""
+    with OutputGroup(out_dir) as group:
+        paths = [group.text(FILES["corrected"], res.corrected.to_csv_text()),
+                 group.text(FILES["u"], res.u_corrected.to_csv_text(digits=4)),
+                 group.text(FILES["rtb"], res.corrected.to_rtb_text()),
+                 group.text(FILES["cells"], cells_csv(res)),
+                 group.text(FILES["correlation"], correlation_csv(res))]
+        if plots:
+            paths.append(_group_figure(group, FILES["picture"], draw_before_after(res)))
+            paths.append(_group_figure(group, FILES["map"], draw_correction_map(res)))
+        paths.insert(3, group.json(FILES["json"], _json_doc(res, plots)))
     return paths
+
+
+def _group_figure(group: OutputGroup, name: str, fig) -> Path:
+    from roadgonio.plots import _plt
+    try:
+        return group.figure(name, lambda p: fig.savefig(p, format="png", dpi=100))
+    finally:
+        _plt().close(fig)
+
+
+def _json_doc(res, plots: bool) -> dict[str, Any]:
+    return {"summary": res.summary(), "provenance": res.provenance,
+            "files": {k: v for k, v in FILES.items() if plots or k not in ("picture", "map")},
+            "definitions": {
+                "corrected": "r_corrected = r_measured / k_A (k_A of the model under the instrument's calibration)",
+                "u": "standard uncertainty (k = 1) of r_corrected; relative components add in quadrature, with "
+                     "correlations between cells (corrected_corr.csv)",
+                "S1": "r(beta 0, tan 2) / r(beta 0, tan 0)", "Q0": "CIE 144 average luminance coefficient (sr^-1)",
+                "S2": "Q0 / r(0, 0)", "class": "CIE 144 by S1: R1 < 0.42 <= R2 < 0.85 <= R3 < 1.35 <= R4; "
+                                             "C1 < 0.40 <= C2; nearest_table by (S1, Q0)",
+                "before": "the measured table as reported, with the measurement's (and misalignment) uncertainty"}}
 
 
 def cells_csv(res) -> str:
@@ -107,7 +124,7 @@ def _functional_text(f: dict[str, Any]) -> str:
             f"S2 = {_fmt_u(f['S2'], f.get('u_S2'))}   class {cls['R']} / {cls['C']}, nearest CIE table {f['nearest_table']}")
 
 
-def plot_before_after(res, path: Path) -> Path:
+def draw_before_after(res):
     """The 20 beta columns: r x 1e4 against tan eps, as measured and as corrected (95 % band)."""
     from matplotlib import ticker
 
@@ -157,12 +174,10 @@ def plot_before_after(res, path: Path) -> Path:
              ha="center", va="top", fontsize=9, family="monospace")
     fig.legend(handles=handles, loc="upper center", ncol=4, fontsize=9, bbox_to_anchor=(0.5, 0.915), frameon=False)
     fig.subplots_adjust(left=0.05, right=0.99, bottom=0.05, top=0.875, wspace=0.22, hspace=0.3)
-    p = atomic_savefig(fig, path, dpi=100)
-    plt.close(fig)
-    return p
+    return fig
 
 
-def plot_correction_map(res, path: Path) -> Path:
+def draw_correction_map(res):
     """k_A per cell and the relative standard uncertainty of the corrected table, as maps."""
     from roadgonio.plots import _plt, draw_table_map
     plt = _plt()
@@ -179,6 +194,4 @@ def plot_correction_map(res, path: Path) -> Path:
     comps = ", ".join(res.budget.components)
     a2.set_title(f"u of the corrected table (%), components: {comps}", fontsize=10)
     fig.subplots_adjust(left=0.04, right=0.97, bottom=0.07, top=0.95, wspace=0.12)
-    p = atomic_savefig(fig, path, dpi=100)
-    plt.close(fig)
-    return p
+    return fig
