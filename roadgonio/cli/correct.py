@@ -9,6 +9,7 @@ from roadgonio.errors import InputError
 from roadgonio.engines.accuracy import PRESETS
 from roadgonio.surface.model import VARIANTS
 from roadgonio.cli._common import (
+    add_dask_arguments,
     add_instrument_argument,
     check_seed,
     add_output_options,
@@ -65,10 +66,14 @@ def register(sub) -> None:
     p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb)")
     p.add_argument("--rays", type=int, default=512, metavar="N",
                    help="rays per cell of the fit's forward model (power of two times 4; default 512)")
+    add_dask_arguments(p, "default: in this process; with several --measured files each file is one task on a "
+                          "worker, with the same results")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/correct-NAME)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the pictures")
     add_output_options(p, "print the summary as JSON (a list for several files)")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, on_interrupt="interrupted: the finished k_A cells and fitted models are kept in the "
+                                        "output folder (forward-N/ journals, fit_state.json) and the files already "
+                                        "corrected keep their outputs; run the same command again to resume")
 
 
 def run(args) -> int:
@@ -100,7 +105,8 @@ def run(args) -> int:
         settings["seed"] = args.seed
     if args.backend == "mitsuba" and args.variant:
         settings["variant"] = args.variant
-    select_variant(args.backend, args.variant)
+    if args.scheduler is None and args.workers in (None, 0):
+        select_variant(args.backend, args.variant)     # in this process: the command is its entry point
     u_measured = args.u_measured if args.u_measured is not None else "1%"
     options = dict(u_measured=u_measured, sigma=args.sigma, backend=args.backend, backend_settings=settings,
                    accuracy=args.accuracy, model_variant=args.model_variant, seed=args.seed,
@@ -111,7 +117,8 @@ def run(args) -> int:
         options["alternatives"] = args.alternatives
     default_out = Path("out") / (f"correct-{tables[0].name}" if len(tables) == 1 else "correct")
     out = Path(args.out) if args.out else default_out
-    done = correct_files(tables, instrument, out, plots=not args.no_plots, reference=args.reference, **options)
+    done = correct_files(tables, instrument, out, plots=not args.no_plots, reference=args.reference,
+                         workers=args.workers, scheduler=args.scheduler, **options)
     summaries = []
     for (res, folder, written), f in zip(done, args.measured):
         res.provenance["measured_file"] = str(f)

@@ -23,7 +23,9 @@ model (bundled table fitted on the fly, table file, model.json), with the model 
 alternative references (by default the two CIE tables nearest to the measured one).
 
 Several measured tables share the instrument's artefacts (:class:`InstrumentArtefacts`: ray
-bundles, eta, the reference calibration's columns), computed once.
+bundles, eta, the reference calibration's columns), computed once; each table's correction is
+one call, in this process or one Dask task per table on worker processes (:func:`correct_files`),
+with the same results.
 """
 from __future__ import annotations
 
@@ -552,17 +554,152 @@ def output_folders(names: Sequence[str], out_dir: str | Path) -> list[Path]:
     return folders
 
 
-def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str | Path, *, plots: bool = True,
-                  reference: Any = "self", **options: Any) -> list[tuple[CorrectionResult, Path, list[Path]]]:
-    """Correct several measured tables with one instrument; the instrument's artefacts (ray
-    bundles, eta, the reference calibration) are computed once. Returns (result, folder, files)."""
+def _is_self(reference: Any) -> bool:
+    return isinstance(reference, str) and reference.strip().lower() == "self"
+
+
+def _absolute_file(spec: Any) -> Any:
+    """A SAMPLE / --u-measured text naming an existing file, as an absolute path (workers may run in
+    another folder); anything else unchanged."""
+    if isinstance(spec, (str, Path)) and str(spec).strip() and not str(spec).strip().endswith("%"):
+        p = Path(str(spec).strip()).expanduser()
+        if p.suffix and p.exists():
+            return str(p.absolute())
+    return spec
+
+
+def _correct_task(job: tuple, shared: Mapping[str, Any]) -> tuple[CorrectionResult, list[Path]]:
+    """One measured table, start to finish: :func:`correct_measured` then :func:`write_correction`
+    into its folder (in this process, or as one Dask task on a worker: :func:`correct_files`)."""
     from roadgonio.correction.outputs import write_correction
+    table, folder, alternatives = job
+    options = dict(shared["options"])
+    if shared["artefacts"] is not None:
+        options["artefacts"] = shared["artefacts"]
+    if not _is_self(shared["reference"]):
+        options["alternatives"] = alternatives
+    res = correct_measured(table, shared["instrument"], reference=shared["reference"],
+                           reference_name=shared["reference_name"], out_dir=folder, **options)
+    if shared.get("cluster") is not None:
+        from roadgonio.design.cluster import _worker_name
+        res.provenance["cluster"] = {**shared["cluster"], "computed_by": _worker_name()}
+    return res, write_correction(res, folder, plots=shared["plots"])
+
+
+def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str | Path, *, plots: bool = True,
+                  reference: Any = "self", workers: int | None = None, scheduler: str | None = None, client=None,
+                  **options: Any) -> list[tuple[CorrectionResult, Path, list[Path]]]:
+    """Correct several measured tables with one instrument; returns (result, folder, files) per table.
+
+    Everything that does not depend on the table is done once, here, before any table: the
+    checks of every table and of ``u_measured`` / ``sigma``, the reference model and each table's
+    alternatives (``reference=SAMPLE``), the instrument's artefacts (``reference="self"``: the ray
+    bundles of every distinct cell set).
+
+    Each table's correction and outputs (:func:`correct_measured`, :func:`write_correction`) is
+    one call of :func:`_correct_task`: one after the other in this process by default, or one
+    Dask task each with ``client``, ``workers`` (a local cluster of that many worker processes;
+    0 = here) or ``scheduler`` (an existing cluster), through
+    :func:`roadgonio.design.cluster.map_calls`. The artefacts are built here and shipped to the
+    workers once (they pickle: plain numpy arrays and frozen dataclasses), so every table gets
+    the same bundles and the same seeds wherever it runs: the results are identical to the
+    in-process run whatever the number of workers. The workers write the journals and outputs
+    themselves, so with ``scheduler`` the output folder must be on a file system they share at
+    the same path (checked: a file the workers wrote that is not here is a clear error).
+    ``options["progress"]``: in this process the steps and k_A bars of each table; on Dask a bar
+    over the tables.
+    """
+    tables = list(tables)
     folders = output_folders([t.name for t in tables], out_dir)
-    if isinstance(reference, str) and reference.strip().lower() == "self" and "artefacts" not in options:
-        options["artefacts"] = InstrumentArtefacts(instrument, rays=options.pop("rays", DEFAULT_RAYS),
-                                                   seed=options.get("seed", 0))
+    self_ref = _is_self(reference)
+    progress = bool(options.get("progress", True))
+    distributed = client is not None or scheduler is not None or workers not in (None, 0)
+    if distributed and options.get("factory") is not None:
+        raise InputError("a custom backend factory cannot run on Dask workers; give a backend name",
+                         field="--workers")
+    # checks and table-independent work, once and before any table
+    for t in tables:
+        check_measured(t)
+        if self_ref:
+            _check_fit_cells(t)
+        measured_uncertainty(options.get("u_measured", "1%"), t)
+    options["sigma"] = _sigma(options.get("sigma"))
+    model_variant = options.pop("model_variant", None)
+    alternatives = options.pop("alternatives", "auto")
+    ref_name = options.pop("reference_name", None)
+    alts: list[Any] = [None] * len(tables)
+    if self_ref:
+        options["model_variant"] = model_variant
+        artefacts = options.pop("artefacts", None) or InstrumentArtefacts(
+            instrument, rays=options.pop("rays", DEFAULT_RAYS), seed=options.get("seed", 0))
+        options.pop("rays", None)
+        for t in tables:
+            artefacts.forward(t.cells)        # built here, shipped to the workers (module docstring)
+    else:
+        from roadgonio.correction.reference import resolve_alternatives, sample_name
+        from roadgonio.surface.sample import resolve_sample
+        artefacts = None
+        if not isinstance(reference, RoadModel):
+            ref_name = ref_name or sample_name(str(reference))
+            reference = resolve_sample(str(reference), model_variant)
+        ref_name = ref_name or reference.name or "reference"
+        alts = [alternatives if isinstance(alternatives, Mapping) else resolve_alternatives(
+            alternatives, t, reference_name=ref_name, model_variant=model_variant) for t in tables]
+        for k in ("rays", "artefacts", "starts", "polish", "rounds", "max_outer", "tol"):
+            options.pop(k, None)
+    shared = {"instrument": instrument, "artefacts": artefacts, "reference": reference, "reference_name": ref_name,
+              "plots": plots, "options": options, "cluster": None}
+    jobs = list(zip(tables, folders, alts))
+    if not distributed:
+        out = []
+        for job in jobs:
+            res, written = _correct_task(job, shared)
+            out.append((res, job[1], written))
+        return out
+    return _correct_on_dask(jobs, shared, client=client, workers=workers, scheduler=scheduler, progress=progress)
+
+
+def _correct_on_dask(jobs, shared, *, client, workers, scheduler, progress) -> list:
+    from roadgonio.design import cluster as _cluster
+    options = dict(shared["options"])
+    options["progress"] = False                  # no terminal on a worker: the bar over tables is here
+    if isinstance(options.get("u_measured"), (str, Path)):
+        options["u_measured"] = _absolute_file(options["u_measured"])
+    inst = shared["instrument"]
+    if inst.path is not None and not Path(inst.path).is_absolute():
+        import dataclasses
+        inst = dataclasses.replace(inst, path=Path(inst.path).absolute())   # an XML scene beside it
+    backend = options.get("backend", "mitsuba")
+    variant = dict(options.get("backend_settings") or {}).get("variant")
+    work = [(t, Path(f).absolute(), a) for t, f, a in jobs]
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=len(work), unit="table", desc=f"correct ({backend}, Dask)", file=sys.stderr,
+                   dynamic_ncols=True, disable=None)
+
+    def run(c) -> list:
+        info = _cluster.describe(c)
+        if bar is not None:
+            bar.set_description(f"correct ({backend}, {info['workers']} Dask workers)")
+        sh = {**shared, "instrument": inst, "options": options, "cluster": info}
+        return _cluster.map_calls(_correct_task, work, c, shared=sh, backend=backend, variant=variant,
+                                  name="correct", on_result=lambda i, r: bar.update(1) if bar is not None else None)
+    try:
+        if client is not None:
+            results = run(client)
+        else:
+            with _cluster.open_client(workers, scheduler, backend=backend, variant=variant) as c:
+                results = run(c)
+    finally:
+        if bar is not None:
+            bar.close()
     out = []
-    for table, folder in zip(tables, folders):
-        res = correct_measured(table, instrument, reference=reference, out_dir=folder, **options)
-        out.append((res, folder, write_correction(res, folder, plots=plots)))
+    for (t, folder, _), (res, written) in zip(jobs, results):
+        here = [Path(folder) / Path(p).name for p in written]
+        for p in here:
+            if not p.exists():
+                raise InputError("a Dask worker wrote this file on its own file system, not here: with --scheduler "
+                                 "the --out folder must be shared by the workers at the same path", path=p)
+        out.append((res, Path(folder), here))
     return out
