@@ -356,3 +356,152 @@ def test_source_in_the_line_of_sight_names_the_cell_in_the_renderer(tmp_path, ca
                "--beta", "180", "--rel-se", "1e-2"])
     line = one_line_error(capsys, rc, "line of sight", "tan eps = 12, beta = 180")
     assert "enlarge" not in line
+
+
+# -- correct: its outputs together or not at all; its journals fail in one line -----------------
+
+#: Every file ``correct`` writes per folder with pictures (journals and fit_state.json aside).
+CORRECT_OUTPUTS = ["before_after.png", "correct.json", "correct_cells.csv", "corrected.csv", "corrected.rtb",
+                   "corrected_corr.csv", "corrected_u.csv", "correction_map.png"]
+
+
+def _small_measured(tmp_path):
+    """The synthetic medium-instrument measurement (tests/data) cut to beta 0 and 2, every third
+    tan eps (22 cells with the S1 cells): a correction through the instrument in a few seconds."""
+    from pathlib import Path
+
+    from roadgonio.surface.rtable import read_table
+    data = Path(__file__).resolve().parent / "data"
+    meas = read_table(data / "synthetic_medium_lambert.csv")
+    keep = meas.r.copy()
+    keep[:, 2:] = np.nan
+    keep[[i for i in range(keep.shape[0]) if i % 3 and i != 8], :] = np.nan
+    return meas.with_values(keep, name="small").write_csv(tmp_path / "small.csv"), data / "medium.toml"
+
+
+def _correct_argv(tmp_path, out, *extra):
+    f, inst = _small_measured(tmp_path)
+    return ["correct", "--measured", str(f), "--instrument", str(inst), "--backend", "quadrature", "--accuracy",
+            "fast", "--rays", "64", "--model-variant", "power", "--out", str(out), *extra]
+
+
+@pytest.mark.parametrize("failing", ["json", "figure"])
+def test_correct_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkeypatch, failing):
+    """The disk fills while correct.json (the last file of the group) or before_after.png is
+    written: one line naming that file, exit 2, none of the eight outputs appears, no staging
+    folder is left; the journal and the fit checkpoint survive, so the same command afterwards
+    resumes every k_A cell and writes the whole set (before: the CSVs and the RTB stayed)."""
+    import roadgonio.fileio as F
+
+    def full(self, name, *args):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.path(name)))
+    monkeypatch.setattr(F.OutputGroup, failing, full)
+    out = tmp_path / "o"
+    argv = _correct_argv(tmp_path, out)
+    one_line_error(capsys, main(argv), "correct.json" if failing == "json" else "before_after.png", "No space left")
+    left = sorted(p.name for p in out.iterdir())
+    assert not set(left) & set(CORRECT_OUTPUTS) and not [n for n in left if n.startswith(".")], left
+    assert (out / "forward-1" / "ka_cells.jsonl").exists() and (out / "fit_state.json").exists()
+    if failing == "figure":
+        return
+    monkeypatch.undo()
+    assert main(argv) == 0
+    assert set(CORRECT_OUTPUTS) <= {p.name for p in out.iterdir()}
+    doc = json.loads((out / "correct.json").read_text())
+    n = doc["summary"]["cells"]
+    assert [s["backend"]["resumed_cells"] for s in doc["summary"]["steps"]][0] == n     # the journal was kept
+
+
+def _read_only(monkeypatch, folder):
+    """Make ``folder`` behave like a read-only file system, even for root: creating, replacing,
+    removing or opening for writing anything inside raises EROFS (reading still works)."""
+    import builtins
+    import io
+    import os
+    root = os.path.abspath(folder)
+
+    def inside(p) -> bool:
+        try:
+            return os.path.abspath(os.fspath(p)).startswith(root)
+        except TypeError:
+            return False
+
+    def ro(p):
+        return OSError(errno.EROFS, "Read-only file system", os.fspath(p))
+    real_open, real_io_open = os.open, io.open
+
+    def os_open(path, flags, *a, **k):
+        if inside(path) and flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT):
+            raise ro(path)
+        return real_open(path, flags, *a, **k)
+
+    def one(name):
+        real = getattr(os, name)
+
+        def f(path, *a, **k):
+            if inside(path):
+                if name == "mkdir" and os.path.isdir(path):
+                    raise FileExistsError(errno.EEXIST, "File exists", os.fspath(path))
+                raise ro(path)
+            return real(path, *a, **k)
+        return f
+
+    def two(name):
+        real = getattr(os, name)
+
+        def f(src, dst, *a, **k):
+            if inside(src) or inside(dst):
+                raise ro(dst)
+            return real(src, dst, *a, **k)
+        return f
+
+    def io_open(file, mode="r", *a, **k):
+        if isinstance(file, (str, bytes, os.PathLike)) and inside(file) and any(c in mode for c in "wax+"):
+            raise ro(file)
+        return real_io_open(file, mode, *a, **k)
+    monkeypatch.setattr(os, "open", os_open)
+    for n in ("mkdir", "unlink", "remove", "rmdir"):
+        monkeypatch.setattr(os, n, one(n))
+    for n in ("replace", "rename"):
+        monkeypatch.setattr(os, n, two(n))
+    monkeypatch.setattr(io, "open", io_open)
+    monkeypatch.setattr(builtins, "open", io_open)
+
+
+@pytest.mark.parametrize("case", ["correct-reference", "correct-self", "correct-resume", "ka-fresh"])
+def test_read_only_journal_is_one_line(tmp_path, capsys, monkeypatch, case):
+    """A journal on a read-only folder: the k_A journal of correct's classic route (before: a
+    traceback from making forward-1/), the fit checkpoint of the default route, the journal of a
+    resumed correction, and `ka --fresh` removing a journal (before: a traceback): one line naming
+    the file, exit 2."""
+    out = tmp_path / "o"
+    ref = ["--reference", "lambert", "--alternatives", "none", "--no-plots"]
+    if case == "ka-fresh":
+        argv = ["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature", "--cells", "1:0,2:0",
+                "--out", str(out)]
+        assert main(argv) == 0
+        argv.append("--fresh")
+        must = str(out / "ka_cells.jsonl")
+    elif case == "correct-self":
+        argv = _correct_argv(tmp_path, out, "--no-plots")
+        out.mkdir()
+        must = str(out / "fit_state.json")
+    else:
+        argv = _correct_argv(tmp_path, out, *ref)
+        if case == "correct-resume":
+            assert main(argv) == 0
+        else:
+            out.mkdir()
+        must = str(out / "forward-1" / "ka_cells.jsonl")
+    capsys.readouterr()
+    _read_only(monkeypatch, out)
+    one_line_error(capsys, main(argv), must, "Read-only file system")
+
+
+def test_unreadable_journal_is_one_line(tmp_path, capsys):
+    """A journal that cannot be read (here: a folder where the file should be; before: a traceback)."""
+    out = tmp_path / "o"
+    (out / "ka_cells.jsonl").mkdir(parents=True)
+    rc = main(["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature", "--cells", "1:0",
+               "--out", str(out)])
+    one_line_error(capsys, rc, str(out / "ka_cells.jsonl"), "cannot read this journal")
