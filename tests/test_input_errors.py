@@ -505,3 +505,16 @@ def test_unreadable_journal_is_one_line(tmp_path, capsys):
     rc = main(["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature", "--cells", "1:0",
                "--out", str(out)])
     one_line_error(capsys, rc, str(out / "ka_cells.jsonl"), "cannot read this journal")
+
+
+def test_ctrl_c_of_correct_says_it_resumes(tmp_path, capsys, monkeypatch):
+    """correct keeps its k_A journals and fitted models (the full-disk test above resumes from
+    them): Ctrl-C says so (before: 'nothing was written')."""
+    import roadgonio.correction as C
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(C, "correct_files", interrupted)
+    rc = main(_correct_argv(tmp_path, tmp_path / "o"))
+    err = capsys.readouterr().err
+    assert rc == 130 and "run the same command again to resume" in err and "nothing was written" not in err
