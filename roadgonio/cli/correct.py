@@ -143,6 +143,9 @@ def run(args) -> int:
         say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} % "
             f"(largest per component: {comps}); {s['seconds']:.1f} s")
         say(f"  wrote {len(s['written'])} files to {s['out']}")
+    cluster = done[0][0].provenance.get("cluster") if done else None
+    if cluster:
+        say(f"computed as {len(done)} Dask tasks on {cluster['workers']} workers ({cluster['scheduler']})")
     return 0
 
 
