@@ -2,7 +2,7 @@
 the default EN 13201 layout (README "From the r-table to the road").
 
 1. k_A of an instrument for the R3 model (default: the wide instrument of issue 10,
-   bench/wide_instrument.toml, Mitsuba backend; ``--instrument portable --backend quadrature`` for
+   scenes/wide.toml, Mitsuba backend; ``--instrument portable --backend quadrature`` for
    the portable preset): ``roadgonio ka --instrument I --sample R3 --backend B``.
 2. The "measured" table: what that instrument reports for a true R3 surface, r_measured = k_A r_R3.
 3. ``roadgonio correct --measured measured.csv --instrument I --reference R3 --backend B``: the
@@ -43,7 +43,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--work", default=str(ROOT / "out" / "bench-road"))
     ap.add_argument("--trials", type=int, default=20000)
-    ap.add_argument("--instrument", default=str(ROOT / "bench" / "wide_instrument.toml"))
+    ap.add_argument("--instrument", default=str(ROOT / "scenes" / "wide.toml"))
     ap.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature"])
     a = ap.parse_args()
     label = Path(a.instrument).stem if Path(a.instrument).suffix else a.instrument

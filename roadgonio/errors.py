@@ -52,3 +52,16 @@ class GeometryError(RoadgonioError):
 
 class BackendError(RoadgonioError):
     """A compute backend cannot run here (for example Dr.Jit's LLVM backend needs LLVM >= 16)."""
+
+
+def percent(fraction: float, digits: int = 3) -> str:
+    """A fraction as a percentage for messages: ``percent(0.997) == '99.7 %'`` (``:.2g`` would
+    print 1e+02 %), ``percent(2e-5) == '0.002 %'``."""
+    import math
+    p = 100.0 * float(fraction)
+    if not math.isfinite(p):
+        return f"{p} %"
+    if p == 0.0:
+        return "0 %"
+    decimals = max(0, digits - 1 - int(math.floor(math.log10(abs(p))))) if abs(p) < 10 ** digits else 0
+    return f"{p:.{decimals}f} %"

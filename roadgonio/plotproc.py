@@ -42,10 +42,20 @@ def _recv(stream) -> Any:
     return pickle.loads(data)
 
 
+def resolve(name: str):
+    """The drawing function ``name``: a function of :mod:`roadgonio.plots`, or ``"module:function"``
+    in a roadgonio module (e.g. ``"roadgonio.uncertainty.report:plot_q0_s1"``)."""
+    import importlib
+    module, _, func = name.rpartition(":") if ":" in name else ("roadgonio.plots", ":", name)
+    if module != "roadgonio" and not module.startswith("roadgonio."):
+        raise ValueError(f"only roadgonio's own drawing functions run in the figure process, got {name!r}")
+    return getattr(importlib.import_module(module), func)
+
+
 class FigureProcess:
     """A child process ready to draw (see the module docstring). Use as a context manager, or call
-    :meth:`close`. ``call(name, *args, **kwargs)`` runs ``roadgonio.plots.<name>`` there (or here,
-    if the child is unavailable) and returns its result."""
+    :meth:`close`. ``call(name, *args, **kwargs)`` runs the drawing function ``name`` (:func:`resolve`) there
+    (or here, if the child is unavailable) and returns its result."""
 
     def __init__(self, enabled: bool = True):
         self.proc: subprocess.Popen | None = None
@@ -69,8 +79,7 @@ class FigureProcess:
         self.close()
 
     def call(self, name: str, *args, **kwargs) -> Any:
-        from roadgonio import plots
-        func = getattr(plots, name)           # fails here, before any work, on a wrong name
+        func = resolve(name)                  # fails here, before any work, on a wrong name
         if self.proc is not None and self.proc.poll() is None:
             try:
                 _send(self.proc.stdin, (name, args, kwargs))
@@ -103,8 +112,7 @@ class InProcess:
     fallbacks = 0
 
     def call(self, name: str, *args, **kwargs) -> Any:
-        from roadgonio import plots
-        return getattr(plots, name)(*args, **kwargs)
+        return resolve(name)(*args, **kwargs)
 
     def close(self) -> None:
         pass
@@ -117,7 +125,7 @@ def _serve() -> int:
     from matplotlib.backends import backend_agg  # noqa: F401
     from matplotlib.figure import Figure  # noqa: F401
     from PIL import Image, ImageDraw, ImageFont  # noqa: F401
-    from roadgonio import plots
+    from roadgonio import plots  # noqa: F401
     stdin = sys.stdin.buffer
     stdout = os.fdopen(os.dup(1), "wb")      # the protocol's own channel; stray prints go to stderr
     os.dup2(2, 1)
@@ -125,9 +133,10 @@ def _serve() -> int:
         try:
             name, args, kwargs = _recv(stdin)
         except EOFError:
-            return 0
+            stdout.close()
+            os._exit(0)       # every answer is sent and every file closed: skip 0.2 s of interpreter teardown
         try:
-            _send(stdout, ("ok", getattr(plots, name)(*args, **kwargs)))
+            _send(stdout, ("ok", resolve(name)(*args, **kwargs)))
         except Exception as err:  # the parent redraws in its own process and reports any error itself
             _send(stdout, ("error", f"{type(err).__name__}: {err}"))
 

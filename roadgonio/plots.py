@@ -62,7 +62,7 @@ def save_figure(fig, path: str | Path, *, dpi: float = 110, labels: CellLabels |
             font = fonts.get(fontsize) or fonts.setdefault(fontsize, _font(fontsize * dpi / 72.0))
             px, py = ax.transData.transform((x, y))
             draw.text((float(px), height - float(py)), text, fill=color, font=font, anchor="mm")
-    return atomic_write(path, lambda p: img.save(p, format="PNG"))
+    return atomic_write(path, lambda p: img.save(p, format="PNG", compress_level=3))   # 4x faster than 6, 10 % larger
 
 
 def new_figure(figsize=(12, 10)):

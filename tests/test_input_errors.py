@@ -358,6 +358,15 @@ def test_source_in_the_line_of_sight_names_the_cell_in_the_renderer(tmp_path, ca
     assert "enlarge" not in line
 
 
+def test_percentages_in_messages_are_plain_numbers():
+    """A fraction near 1 in a message reads 99.7 %, not 1e+02 % (the source-occlusion error did)."""
+    from roadgonio.errors import percent
+    assert percent(0.997) == "99.7 %"
+    assert percent(1.0) == "100 %"
+    assert percent(0.0123) == "1.23 %"
+    assert "e" not in percent(2e-5)
+
+
 # -- correct: its outputs together or not at all; its journals fail in one line -----------------
 
 #: Every file ``correct`` writes per folder with pictures (journals and fit_state.json aside).

@@ -75,3 +75,22 @@ def test_cell_numbers_are_drawn_in_their_cells(tmp_path):
     InProcess().call("table_map", without, tmp_path / "n.png", title="t", label="k", annotate=False)
     inner_n = (_pixels(tmp_path / "n.png").sum(axis=2) < 200)[int(0.1 * h):int(0.9 * h), int(0.1 * w):int(0.8 * w)]
     assert inner_n.mean() < inner.mean() / 5
+
+
+def test_uncertainty_pictures_drawn_by_the_child_equal_those_drawn_here(tmp_path):
+    """`roadgonio uncertainty` sends its whole result to the figure process: it must pickle, and
+    the child's pictures are those this process draws."""
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.model import RoadModel
+    from roadgonio.uncertainty import parse_sigma_spec, run_uncertainty, write_results
+    res = run_uncertainty(RoadModel.lambert(), load_instrument("portable"), parse_sigma_spec("eps_deg=0.01"),
+                          trials=2000, seed=1, aperture=False, progress=False)
+    write_results(res, tmp_path / "here", plots=True)
+    with FigureProcess() as fp:
+        write_results(res, tmp_path / "there", plots=True, figures=fp)
+        assert fp.fallbacks == 0
+    pngs = sorted(p.name for p in (tmp_path / "here").glob("*.png"))
+    assert pngs == sorted(p.name for p in (tmp_path / "there").glob("*.png")) and len(pngs) >= 2
+    for name in pngs:
+        if name.startswith("u_rel"):     # the Agg+Pillow maps are deterministic pixel for pixel
+            assert np.array_equal(_pixels(tmp_path / "here" / name), _pixels(tmp_path / "there" / name))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
-from roadgonio.errors import InputError
+from roadgonio.errors import InputError, percent as _percent
 from roadgonio.engines.accuracy import PRESETS
 from roadgonio.surface.model import VARIANTS
 from roadgonio.cli._common import (
@@ -139,7 +139,7 @@ def run(args) -> int:
             f"{b['class_R']} / {b['class_C']}, nearest CIE table {b['nearest_table']}")
         say(f"  after:  S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
             f"{s['class_R']} / {s['class_C']}, nearest CIE table {s['nearest_table']}")
-        comps = ", ".join(f"{k} {100 * v['u_rel_max']:.2g} %" for k, v in s["budget"].items() if k != "total")
+        comps = ", ".join(f"{k} {_percent(v['u_rel_max'])}" for k, v in s["budget"].items() if k != "total")
         say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} % "
             f"(largest per component: {comps}); {s['seconds']:.1f} s")
         say(f"  wrote {len(s['written'])} files to {s['out']}")

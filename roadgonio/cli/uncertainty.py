@@ -94,6 +94,13 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    from roadgonio.plotproc import FigureProcess
+    # the pictures are drawn by a helper process that loads matplotlib while the trials run
+    with FigureProcess(enabled=not args.no_plots) as figures:
+        return _run(args, figures)
+
+
+def _run(args, figures) -> int:
     from roadgonio.fileio import to_json
     from roadgonio.instrument.config import load_instrument
     from roadgonio.uncertainty import (
@@ -129,7 +136,7 @@ def run(args) -> int:
     sample_name = Path(args.sample).stem if Path(args.sample).suffix else args.sample
     res.provenance["sample"] = args.sample
     out = Path(args.out) if args.out else Path("out") / f"uncertainty-{instrument.name}-{sample_name}"
-    written = write_results(res, out, sample_name=sample_name, plots=not args.no_plots)
+    written = write_results(res, out, sample_name=sample_name, plots=not args.no_plots, figures=figures)
     if args.json:
         d = result_dict(res, cells=False)
         d["written"] = [str(p) for p in written]

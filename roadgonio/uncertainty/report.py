@@ -77,10 +77,13 @@ def cells_csv_text(res: UncertaintyResult) -> str:
 
 
 def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: str = "sample",
-                  plots: bool = True) -> list[Path]:
+                  plots: bool = True, figures=None) -> list[Path]:
     """Write uncertainty.json, cells.csv, r-table CSVs of the mean and u per case, and the pictures,
-    all or none (:class:`roadgonio.fileio.OutputGroup`: a full disk leaves the folder as it was)."""
+    all or none (:class:`roadgonio.fileio.OutputGroup`: a full disk leaves the folder as it was).
+    ``figures`` (:class:`roadgonio.plotproc.FigureProcess`) draws the pictures in a helper process."""
     from roadgonio.fileio import OutputGroup
+    from roadgonio.plotproc import InProcess
+    figures = figures or InProcess()
     from roadgonio.surface.rtable import RTable
     out = Path(out_dir)
     with OutputGroup(out) as g:
@@ -94,8 +97,10 @@ def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: s
                 t.write_csv(g.path(f"{name}_{key}.csv"))
                 written.append(out / f"{name}_{key}.csv")
         if plots:
-            written.extend(out / p.name for p in plot_uncertainty_maps(res, g.stage))
-            written.append(out / plot_q0_s1(res, g.path("q0_s1_hist.png")).name)
+            maps = figures.call("roadgonio.uncertainty.report:plot_uncertainty_maps", res, g.stage)
+            written.extend(out / p.name for p in maps)
+            written.append(out / figures.call("roadgonio.uncertainty.report:plot_q0_s1", res,
+                                              g.path("q0_s1_hist.png")).name)
             for p in written:
                 g.path(p.name)      # every picture is part of the group
     return written

@@ -112,7 +112,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
         from tqdm import tqdm
         bar = tqdm(total=total, desc="exact k_A (surrogate design)", unit="cell", leave=False, disable=None)
 
-    settings_seen: dict[str, Any] = {}
+    tally = _ExactTally()
 
     def instrument_at(alpha_loc: float, ds: float, dd: float) -> Instrument:
         return mm.instrument.with_changes(
@@ -135,10 +135,9 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
             jobs.append((instrument_at(mm.alpha0 + xv[t, 0, 0], Xv[t, 5], Xv[t, 6]), mm.cells_of(wr[t])))
     try:
         if client is None:
-            exact = _exact_here(jobs, mm.model, factory, bar, settings_seen)
+            exact = _exact_here(jobs, mm.model, factory, bar, tally)
         else:
-            exact = _exact_on_dask(jobs, mm.model, client, task_backend, bar, settings_seen, factory)
-        not_converged = [int(settings_seen.pop("_not_converged", 0))]
+            exact = _exact_on_dask(jobs, mm.model, client, task_backend, bar, tally, factory)
         for (inst, _cells), (ka, _se) in zip(jobs, exact):
             if not np.all(np.isfinite(ka)):
                 from roadgonio.errors import RoadgonioError
@@ -158,16 +157,24 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
         if bar is not None:
             bar.close()
     settings: dict[str, Any] = dict(backend_settings or {})
-    settings = {**settings, **settings_seen}
+    settings = {**settings, **tally.settings}
     return SurrogateReport(
         surrogate=sur, design_points=len(pts), validation_trials=len(Xv),
         exact_evaluations=(len(pts) + len(Xv)) * n, seconds=time.perf_counter() - t0,
         rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else np.zeros(n),
         rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else np.zeros(n),
-        backend_rel_se_max=rel_se, settings=settings, not_converged=not_converged[0])
+        backend_rel_se_max=rel_se, settings=settings, not_converged=tally.not_converged)
 
 
-def _exact_here(jobs, model: RoadModel, factory: BackendFactory, bar, settings_seen: dict,
+@dataclass
+class _ExactTally:
+    """What the exact tables report besides their values: the backend's settings (provenance, from
+    the first table) and how many cells did not reach their target."""
+    settings: dict[str, Any] = field(default_factory=dict)
+    not_converged: int = 0
+
+
+def _exact_here(jobs, model: RoadModel, factory: BackendFactory, bar, tally: "_ExactTally",
                 plan_seen: dict | None = None) -> list:
     """(k_A, standard uncertainty) arrays of every (instrument, cells) job, computed here in order,
     one ``compute`` call per table (the batched engine). The Mitsuba engine replays the first table's
@@ -179,20 +186,20 @@ def _exact_here(jobs, model: RoadModel, factory: BackendFactory, bar, settings_s
     replay = getattr(factory, "accepts_plan", False)
     for inst, cells in jobs:
         backend = factory(inst, model, plan=plan_seen["plan"]) if replay and "plan" in plan_seen else factory(inst, model)
-        if not settings_seen:
+        if not tally.settings:
             try:
-                settings_seen.update(backend.settings())
+                tally.settings.update(backend.settings())
             except Exception:  # noqa: BLE001 - provenance only
-                settings_seen["backend"] = getattr(backend, "name", "?")
+                tally.settings["backend"] = getattr(backend, "name", "?")
         res = backend.compute(cells, on_cell=(lambda _r: bar.update(1)) if bar is not None else None)
         if replay and "plan" not in plan_seen and getattr(backend, "last_plan", None) is not None:
             plan_seen["plan"] = backend.last_plan
-        settings_seen["_not_converged"] = settings_seen.get("_not_converged", 0) + sum(not c.converged for c in res)
+        tally.not_converged += sum(not c.converged for c in res)
         out.append((np.array([c.k_a for c in res]), np.array([c.standard_uncertainty() for c in res])))
     return out
 
 
-def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, settings_seen: dict,
+def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, tally: "_ExactTally",
                    factory: BackendFactory | None = None) -> list:
     """As :func:`_exact_here`, on the workers of a Dask client (one task per table). For the Mitsuba
     engine the first table is computed here, and its plan goes with every other task, so the numbers
@@ -206,7 +213,7 @@ def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, settings_s
     first: list = []
     if name == "mitsuba" and jobs and factory is not None and getattr(factory, "accepts_plan", False):
         plan_seen: dict = {}
-        first = _exact_here(jobs[:1], model, factory, bar, settings_seen, plan_seen)
+        first = _exact_here(jobs[:1], model, factory, bar, tally, plan_seen)
         settings = {**dict(settings), "plan": plan_seen["plan"].to_dict()}
         jobs = jobs[1:]
     mdict = model.to_json_dict()
@@ -226,9 +233,9 @@ def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, settings_s
             err = {"GeometryError": GeometryError, "InputError": InputError,
                    "BackendError": BackendError}.get(r.error_kind or "", RoadgonioError)
             raise err(r.error)
-        if r.settings and not (set(settings_seen) - {"_not_converged"}):
-            settings_seen.update(r.settings)
-        settings_seen["_not_converged"] = settings_seen.get("_not_converged", 0) + sum(not c.converged for c in r.cells)
+        if r.settings and not tally.settings:
+            tally.settings.update(r.settings)
+        tally.not_converged += sum(not c.converged for c in r.cells)
         out.append((np.array([c.k_a for c in r.cells]), np.array([c.standard_uncertainty() for c in r.cells])))
     return out
 

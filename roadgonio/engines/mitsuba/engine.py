@@ -26,7 +26,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from roadgonio.errors import GeometryError
+from roadgonio.errors import GeometryError, percent as _percent
 from roadgonio.engines.mitsuba import lattice as lat
 from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strata, covariance, relative
 from roadgonio.engines.mitsuba.scene import (SOURCE_NEAR_SIGHT_DEG, RoadScene, check_beam, source_radiance)
@@ -167,7 +167,7 @@ class BatchEngine:
             for i, f in zip(near, frac):
                 if f > 0.0:
                     t, b = cells[i]
-                    raise GeometryError(f"the source disc hides {100 * f:.2g} % of the detector rays at tan eps = "
+                    raise GeometryError(f"the source disc hides {_percent(f)} of the detector rays at tan eps = "
                                         f"{t:g}, beta = {b:g}: it stands in the line of sight")
 
     # -- the passes ----------------------------------------------------------------------------
