@@ -559,8 +559,8 @@ def _is_self(reference: Any) -> bool:
 
 
 def _absolute_file(spec: Any) -> Any:
-    """A SAMPLE / --u-measured text naming an existing file, as an absolute path (workers may run in
-    another folder); anything else unchanged."""
+    """A --u-measured text naming an existing file, as an absolute path (workers may run in another
+    folder); a percentage, a number or an RTable unchanged."""
     if isinstance(spec, (str, Path)) and str(spec).strip() and not str(spec).strip().endswith("%"):
         p = Path(str(spec).strip()).expanduser()
         if p.suffix and p.exists():
@@ -633,8 +633,10 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
         artefacts = options.pop("artefacts", None) or InstrumentArtefacts(
             instrument, rays=options.pop("rays", DEFAULT_RAYS), seed=options.get("seed", 0))
         options.pop("rays", None)
+        # the ray bundles of every cell set, built here once. They pickle (numpy arrays and frozen
+        # dataclasses), so on Dask they are shipped to the workers (map_calls(shared=...)), not rebuilt there
         for t in tables:
-            artefacts.forward(t.cells)        # built here, shipped to the workers (module docstring)
+            artefacts.forward(t.cells)
     else:
         from roadgonio.correction.reference import resolve_alternatives, sample_name
         from roadgonio.surface.sample import resolve_sample
