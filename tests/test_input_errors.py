@@ -527,3 +527,27 @@ def test_ctrl_c_of_correct_says_it_resumes(tmp_path, capsys, monkeypatch):
     rc = main(_correct_argv(tmp_path, tmp_path / "o"))
     err = capsys.readouterr().err
     assert rc == 130 and "run the same command again to resume" in err and "nothing was written" not in err
+
+
+def test_design_journal_on_a_read_only_folder_is_one_line(tmp_path, capsys, monkeypatch):
+    """design's journal (design_points.jsonl) cannot be written: one line naming it, exit 2 (before:
+    a traceback)."""
+    out = tmp_path / "d"
+    out.mkdir()
+    _read_only(monkeypatch, out)
+    rc = main(["design", "--instrument", "lab", "--sample", "lambert", "--vary", "source.radius_m=0.002,0.004",
+               "--cells", "1:0", "--backend", "quadrature", "--workers", "0", "--no-plots", "--out", str(out)])
+    one_line_error(capsys, rc, str(out / "design_points.jsonl"), "Read-only file system")
+
+
+def test_q0_of_a_table_without_a_complete_grid_cell_is_nan_without_a_warning():
+    import warnings
+
+    import numpy as np
+
+    from roadgonio.surface.rtable import RTable
+    t = RTable(np.full((29, 20), np.nan), name="x")
+    t.r[5, 3] = 0.01
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert math.isnan(t.q0())

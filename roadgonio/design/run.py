@@ -28,7 +28,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write_text, to_json
+from roadgonio.fileio import atomic_write_text, output_error, to_json
 from roadgonio.instrument.config import Instrument, load_instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.design import cluster as _cluster
@@ -192,15 +192,18 @@ def run_design(instrument, vary=None, samples="R3", *, tolerance: float | str = 
     fh = None
     out_dir = Path(out) if out is not None else None
     if out_dir is not None:
-        out_dir.mkdir(parents=True, exist_ok=True)
         journal = out_dir / JOURNAL
-        if fresh and journal.exists():
-            journal.unlink()
-        done = _read_journal(journal, fp)
-        atomic_write_text(journal, to_json({"fingerprint": fp, "kind": "roadgonio design journal", "points": n,
-                                            "samples": [s.name for s in smp]}, indent=None) + "\n"
-                          + "".join(to_json(d, indent=None) + "\n" for d in done.values()))
-        fh = journal.open("a", encoding="utf-8")
+        try:                  # an OSError here is the one-line error naming the journal (exit 2)
+            out_dir.mkdir(parents=True, exist_ok=True)
+            if fresh and journal.exists():
+                journal.unlink()
+            done = _read_journal(journal, fp)
+            atomic_write_text(journal, to_json({"fingerprint": fp, "kind": "roadgonio design journal", "points": n,
+                                                "samples": [s.name for s in smp]}, indent=None) + "\n"
+                              + "".join(to_json(d, indent=None) + "\n" for d in done.values()))
+            fh = journal.open("a", encoding="utf-8")
+        except OSError as err:
+            raise output_error(journal, err) from None
     resumed = len(done)
 
     tasks: list[_cluster.TableTask] = []
@@ -233,9 +236,12 @@ def run_design(instrument, vary=None, samples="R3", *, tolerance: float | str = 
         else:
             done[(i, j)] = rec
             if fh is not None:
-                fh.write(to_json(rec, indent=None) + "\n")
-                fh.flush()
-                os.fsync(fh.fileno())
+                try:
+                    fh.write(to_json(rec, indent=None) + "\n")
+                    fh.flush()
+                    os.fsync(fh.fileno())
+                except OSError as err:
+                    raise output_error(journal, err) from None
         remaining[i] -= 1
         if bar is not None and remaining[i] == 0:
             bar.update(1)

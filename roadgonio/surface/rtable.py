@@ -127,6 +127,8 @@ class RTable:
         num = np.sum(np.where(ok, c / 4.0 * dt * db, 0.0))
         g = 1.0 - 1.0 / np.sqrt(1.0 + t * t)
         omega = np.sum(np.where(ok, np.diff(g)[:, None] * db, 0.0))
+        if not omega > 0.0:       # no grid cell with four tabulated corners: Q0 is undefined
+            return math.nan
         return float(num / omega)
 
     def s2(self) -> float:
