@@ -477,7 +477,8 @@ def summary(ds) -> dict[str, Any]:
                          "tables_computed": int(ds.attrs.get("tables_computed", 0)),
                          "tables_resumed": int(ds.attrs.get("tables_resumed", 0)),
                          "tables_failed": int(ds.attrs.get("tables_failed", 0)),
-                         "wall_s": float(ds.attrs.get("wall_s", math.nan))}
+                         "wall_s": float(ds.attrs.get("wall_s", math.nan)),
+                         "compute_wall_s": float(ds.attrs.get("compute_wall_s", math.nan))}
     if "design_points_per_hour" in ds.attrs:
         s["design_points_per_hour"] = float(ds.attrs["design_points_per_hour"])
     if best >= 0:
