@@ -551,3 +551,24 @@ def test_q0_of_a_table_without_a_complete_grid_cell_is_nan_without_a_warning():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert math.isnan(t.q0())
+
+
+def test_design_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkeypatch):
+    """The disk fills while design's last picture is written: none of design.nc, design.csv,
+    best.toml, pareto.png appears, one line names the file; the journal keeps the tables, so the
+    same command afterwards resumes them and writes the whole set."""
+    import roadgonio.design.outputs as O
+    real = O.plot_pareto
+
+    def full(ds, path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+    monkeypatch.setattr(O, "plot_pareto", full)
+    out = tmp_path / "d"
+    argv = ["design", "--instrument", "lab", "--sample", "lambert", "--vary", "source.radius_m=0.002,0.004",
+            "--cells", "1:0", "--backend", "quadrature", "--workers", "0", "--out", str(out)]
+    one_line_error(capsys, main(argv), "pareto.png", "No space left")
+    assert sorted(p.name for p in out.iterdir()) == ["design_points.jsonl"]
+    monkeypatch.setattr(O, "plot_pareto", real)
+    assert main(argv + ["--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["tables_resumed"] == 2
+    assert {"design.nc", "design.csv", "best.toml", "pareto.png"} <= {p.name for p in out.iterdir()}

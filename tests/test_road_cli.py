@@ -117,29 +117,22 @@ def test_output_error_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypat
     blocker.write_text("x")
     assert main(["road", "--table", "R3", "--out", str(blocker / "sub"), "--no-plots"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("roadgonio: error:") and "output folder" in err and "\n" not in err
+    assert err.startswith("roadgonio: error:") and "file/sub" in err and "Not a directory" in err and "\n" not in err
     from roadgonio.errors import InputError
     from roadgonio.road import report
     out = tmp_path / "o"
-    real_fdopen = report.os.fdopen
-    opened = []
+    import errno
+    from pathlib import Path
+    real_write = Path.write_bytes
+    written = []
 
-    class FillsUp:  # the disk fills up while the second file is staged
-        def __init__(self, fd, mode):
-            self.fh = real_fdopen(fd, mode)
-            opened.append(self)
-
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            self.fh.close()
-
-        def write(self, data):
-            if len(opened) == 2:
-                raise OSError(28, "No space left on device")
-            return self.fh.write(data)
-    monkeypatch.setattr(report.os, "fdopen", FillsUp)
-    with pytest.raises(InputError, match="nothing was written"):
+    def fills_up(self, data):  # the disk fills up while the second file is staged
+        if written:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self))
+        written.append(self)
+        return real_write(self, data)
+    monkeypatch.setattr(Path, "write_bytes", fills_up)
+    with pytest.raises(InputError, match="No space left") as info:
         report.write_together(out, {"a.txt": "1", "b.txt": "2", "c.txt": "3"})
+    assert "b.txt" in str(info.value)
     assert list(out.iterdir()) == []   # no result and no staged temporary file left

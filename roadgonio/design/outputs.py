@@ -30,19 +30,30 @@ CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_s
 
 
 def write_outputs(ds, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
+    """design.nc, design.csv, best.toml and the pictures, together or not at all
+    (:class:`roadgonio.fileio.OutputGroup`; the journal stays outside, so a failed write resumes)."""
+    from roadgonio.fileio import OutputGroup, output_error
     out_dir = Path(out_dir)
-    files = [write_netcdf(ds, out_dir / "design.nc"), write_csv(ds, out_dir / "design.csv")]
-    best = write_best(ds, out_dir / "best.toml")
-    if best is not None:
-        files.append(best)
-    elif (out_dir / "best.toml").exists():
-        (out_dir / "best.toml").unlink()          # an earlier run's best is not this run's
-    if plots:
-        files.append(plot_pareto(ds, out_dir / "pareto.png"))
-        tm = plot_tolerance_map(ds, out_dir / "tolerance_map.png")
-        if tm is not None:
-            files.append(tm)
-    return files
+    with OutputGroup(out_dir) as g:
+        files = [write_netcdf(ds, g.path("design.nc")), write_csv(ds, g.path("design.csv"))]
+        best = write_best(ds, g.path("best.toml"))
+        if best is None:
+            g.names.remove("best.toml")
+        else:
+            files.append(best)
+        if plots:
+            files.append(plot_pareto(ds, g.path("pareto.png")))
+            tm = plot_tolerance_map(ds, g.path("tolerance_map.png"))
+            if tm is None:
+                g.names.remove("tolerance_map.png")
+            else:
+                files.append(tm)
+    if best is None and (out_dir / "best.toml").exists():
+        try:
+            (out_dir / "best.toml").unlink()          # an earlier run's best is not this run's
+        except OSError as err:
+            raise output_error(out_dir / "best.toml", err) from None
+    return [out_dir / Path(f).name for f in files]
 
 
 # ----------------------------------------------------------------------------------------------

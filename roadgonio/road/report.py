@@ -3,8 +3,6 @@ rendered in memory and written together."""
 from __future__ import annotations
 
 import io
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -18,30 +16,13 @@ METRICS = (("L_av", "L_av (cd/m²)", "min"), ("U_o", "U_o", "min"), ("U_l", "U_l
 
 
 def write_together(out_dir: Path, files: dict[str, bytes | str]) -> list[Path]:
-    """Write every file or none: all go to temporary files in ``out_dir`` first, then are renamed."""
+    """Write every file or none (:class:`roadgonio.fileio.OutputGroup`); an OSError is the one-line
+    error naming the file."""
+    from roadgonio.fileio import OutputGroup
     out_dir = Path(out_dir)
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise InputError(f"cannot create the output folder ({err.strerror or err})", path=out_dir) from None
-    staged: list[tuple[str, Path]] = []
-    renamed = 0
-    try:
+    with OutputGroup(out_dir) as g:
         for name, content in files.items():
-            fd, tmp = tempfile.mkstemp(prefix=f".{name}.", suffix=".tmp", dir=out_dir)
-            staged.append((name, Path(tmp)))
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(content.encode("utf-8") if isinstance(content, str) else content)
-            os.chmod(tmp, 0o644)  # mkstemp makes 0600; results are ordinary files
-        for name, tmp in staged:
-            os.replace(tmp, out_dir / name)  # renames within a folder: they do not run out of space
-            renamed += 1
-    except OSError as err:
-        for _, tmp in staged:
-            if tmp.exists():
-                tmp.unlink()
-        done = "nothing was written" if renamed == 0 else f"{renamed} of {len(files)} files were written"
-        raise InputError(f"cannot write the outputs ({err.strerror or err}); {done}", path=out_dir) from None
+            g.path(name).write_bytes(content.encode("utf-8") if isinstance(content, str) else content)
     return [out_dir / n for n in files]
 
 

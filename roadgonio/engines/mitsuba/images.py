@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from roadgonio.fileio import atomic_write, atomic_write_json
+from roadgonio.fileio import atomic_write
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.instrument.optics import footprint_boundary
@@ -78,11 +78,9 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     E = math.pi * top[..., LAMBERT]
     L_top = top[..., ROAD]
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    files = {}
-    files["view_exr"] = str(write_exr(out_dir / "view.exr", {"RGB": view, "L_road": view[..., ROAD],
-                                                             "L_lambert": view[..., LAMBERT]}))
-    files["illuminance_exr"] = str(write_exr(out_dir / "illuminance.exr", {"E_h": E, "L_road_top": L_top}))
+    from roadgonio.fileio import OutputGroup
+    files = {"view_exr": str(out_dir / "view.exr"), "illuminance_exr": str(out_dir / "illuminance.exr"),
+             "png": str(out_dir / "render.png")}
     from roadgonio.provenance import provenance
     info = {**provenance(instrument=instrument, model=model, backend="mitsuba",
                          settings={"resolution": resolution, "spp": spp, "seed": seed, "sampler": "multijitter",
@@ -97,9 +95,12 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
             "footprint_m": {"x": [x0, x1], "y": [y0, y1]},
             "illuminance_window_m": {"x": [ex0, ex1], "y": [ey0, ey1]},
             "units": "source gives ~1 lx normal to its axis at the sample centre: E in lx/lx, L in cd/m^2/lx"}
-    files["png"] = str(_png(out_dir / "render.png", instrument, view, E, (ex0, ex1, ey0, ey1), (fx, fy), info))
     info["files"] = files
-    atomic_write_json(out_dir / "render.json", info)
+    with OutputGroup(out_dir) as stage:      # view.exr, illuminance.exr, render.png, render.json: all or none
+        write_exr(stage.path("view.exr"), {"RGB": view, "L_road": view[..., ROAD], "L_lambert": view[..., LAMBERT]})
+        write_exr(stage.path("illuminance.exr"), {"E_h": E, "L_road_top": L_top})
+        _png(stage.path("render.png"), instrument, view, E, (ex0, ex1, ey0, ey1), (fx, fy), info)
+        stage.json("render.json", info)
     return info
 
 
