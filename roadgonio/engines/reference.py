@@ -421,24 +421,9 @@ class ReferenceBackend(CellByCellBackend):
     def _lit_chord(self, px, py, src: optics.SourceGeometry):
         """Chord of the field disc, for each pupil point, between the rays that hit the sample in
         front of the source-disc plane (lit) and behind it: ``(x - c) . a_S > 0`` at the hit point
-        x is linear in the field-disc coordinates (module docstring)."""
-        det = self._det
-        a, s, t = det.axis, det.s, det.t
-        rd = det.pupil_radius_m
-        p = [det.centre[i] + rd * (s[i] * px + t[i] * py) for i in range(3)]
-        if det.angular:
-            d0 = [a[i] + 0.0 * px for i in range(3)]
-            k = det.tan_field
-        else:
-            d0 = [det.focus_m * a[i] - rd * (s[i] * px + t[i] * py) for i in range(3)]
-            k = det.focus_m * det.tan_field
-        ax = src.axis
-        A = sum((p[i] - src.centre[i]) * ax[i] for i in range(3))
-        d0a = sum(d0[i] * ax[i] for i in range(3))
-        # hit x = p + tau d with tau = -p_z / d_z > 0: (x - c).a_S > 0  <=>  p_z (d.a_S) - A d_z > 0
-        a0 = p[2] * d0a - A * d0[2]
-        a1 = k * (p[2] * float(s @ ax) - A * s[2])
-        a2 = k * (p[2] * float(t @ ax) - A * t[2])
+        x is linear in the field-disc coordinates (module docstring): the sign of L of
+        :meth:`_field_linear`."""
+        a0, a1, a2, _b0, _b1, _b2 = self._field_linear(px, py, src)
         return _chord(a0, a1, a2)
 
     def _mirror_chord(self, x, y, wo, src: optics.SourceGeometry):
