@@ -401,3 +401,14 @@ def test_surrogate_folds_the_azimuth_on_the_mirror_plane(monkeypatch):
     monkeypatch.setattr(sg.KaSurrogate, "fit",
                         classmethod(lambda cls, *a, fold=None, **k: plain_fit(cls, *a, fold=None, **k)))
     assert _kink_error() > 5 * KINK_TOL
+
+
+def test_heights_are_the_z_components_of_the_local_directions():
+    """The geometry check of every trial uses MeasurementModel.heights (z only); it must be the z
+    of the full directions for perturbed trials (alpha, eps, beta, both tilts)."""
+    mm = MeasurementModel(MODEL, load_instrument("portable"), CellSet.make("all"))
+    rng = np.random.default_rng(4)
+    X = rng.normal(0.0, [0.05, 0.2, 0.5, 0.3, 0.3, 0.0, 0.0], size=(37, 7))
+    (_, _, wiz), (_, _, woz) = mm.local_directions(X)
+    hz, hoz = mm.heights(X)
+    assert np.allclose(hz, wiz, rtol=0, atol=1e-14) and np.allclose(hoz, woz[:, 0], rtol=0, atol=1e-14)
