@@ -8,8 +8,7 @@ the default EN 13201 layout (README "From the r-table to the road").
 3. ``roadgonio correct --measured measured.csv --instrument I --reference R3 --backend B``: the
    corrected table and its per-cell relative uncertainty u_rel (backend error and
    reference-model spread over the two nearest CIE tables). Its standard uncertainty in the r-table
-   layout is ``corrected_u.csv`` (written by `correct` when it does; otherwise built here as
-   u_rel x r_corrected).
+   layout is ``corrected_u.csv``, written by `correct`.
 4. ``roadgonio road --table measured --table corrected --table R3 --u corrected_u.csv``.
 
 Prints the metrics side by side with the machine load; writes bench/results/road_measured_vs_corrected.csv.
@@ -64,20 +63,9 @@ def main() -> None:
     roadgonio("correct", "--measured", str(work / f"{mname}.csv"), "--instrument", a.instrument,
               "--reference", "R3", "--backend", a.backend, "--out", str(work / "corrected"), "--no-plots")
     t_corr = time.time() - t1
-    corr_csv = work / "corrected" / f"{mname}_corrected.csv"
+    corr_csv = work / "corrected" / "corrected.csv"          # correct's outputs (its README section)
     u_csv = work / "corrected" / "corrected_u.csv"
     u_source = "corrected_u.csv written by roadgonio correct"
-    if not u_csv.exists():
-        corrected = read_table(corr_csv)
-        u_rel = np.full(corrected.r.shape, np.nan)
-        with open(work / "corrected" / "correction_cells.csv") as fh:
-            for row in csv.DictReader(fh):
-                i = int(np.argmin(abs(corrected.tan_eps - float(row["tan_eps"]))))
-                j = int(np.argmin(abs(corrected.beta_deg - float(row["beta_deg"]))))
-                u_rel[i, j] = float(row["u_rel_correction"])
-        u_csv = work / "corrected_u.csv"
-        corrected.with_values(corrected.r * u_rel, name="corrected_u").write_csv(u_csv)
-        u_source = "u_rel_correction x r_corrected from correction_cells.csv (built by this script)"
     t2 = time.time()
     out = json.loads(roadgonio("road", "--table", str(work / f"{mname}.csv"), "--table", str(corr_csv),
                                "--table", "R3", "--u", "-", "--u", str(u_csv), "--u", "-", "--trials", str(a.trials),
