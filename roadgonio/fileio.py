@@ -165,6 +165,48 @@ class OutputGroup:
                 shutil.rmtree(stage, ignore_errors=True)
 
 
+def read_journal(path: str | Path, fingerprint: str, *, different: str,
+                 record: Callable[[dict], tuple[Any, Any]]) -> dict[Any, Any]:
+    """The finished records of a resumable run's journal (JSON lines: a header with the run's
+    ``fingerprint``, then one record per line), as ``{key: value}`` from ``record(line_dict)``.
+
+    A missing or empty journal gives ``{}``. A last line cut short by an interruption is dropped
+    (its work is done again); any other bad line, an unreadable file, or a header of another run
+    (``different`` says what differs) is the one-line :class:`InputError` naming the journal.
+    ``record`` raises KeyError, TypeError or ValueError on a line that is not a record."""
+    path = Path(path)
+    done: dict[Any, Any] = {}
+    if not path.exists():
+        return done
+    try:
+        with path.open(encoding="utf-8") as f:
+            lines = f.read().splitlines()
+    except OSError as err:
+        raise InputError(f"cannot read this journal ({err.strerror or err}); move the folder away or use --fresh",
+                         path=path) from None
+    except UnicodeDecodeError:
+        raise InputError("this journal is not a text file; move the folder away or use --fresh", path=path) from None
+    if not lines:
+        return done
+    try:
+        head = json.loads(lines[0])
+    except json.JSONDecodeError:
+        raise InputError("the journal's first line is not valid JSON; move the folder away or use --fresh",
+                         path=path, line=1) from None
+    if not isinstance(head, dict) or head.get("fingerprint") != fingerprint:
+        raise InputError(f"this folder holds {different}; use another --out folder, or --fresh to discard it",
+                         path=path, line=1)
+    for k, line in enumerate(lines[1:], start=2):
+        try:
+            key, value = record(json.loads(line))
+        except (KeyError, TypeError, ValueError):         # json.JSONDecodeError is a ValueError
+            if k == len(lines):     # cut short by an interruption: that work is done again
+                break
+            raise InputError("corrupt journal line; move the folder away or use --fresh", path=path, line=k) from None
+        done[key] = value
+    return done
+
+
 def check_writable(out_dir: str | Path) -> Path:
     """Fail before the work, not after it: the output folder can be created and written (a
     staging folder is made and removed). Raises the one-line :class:`InputError` of an output."""

@@ -6,7 +6,6 @@ from typing import Any
 
 import numpy as np
 
-from roadgonio.fileio import atomic_savefig
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 
 

@@ -28,7 +28,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write_text, output_error, to_json
+from roadgonio.fileio import atomic_write_text, output_error, read_journal, to_json
 from roadgonio.instrument.config import Instrument, load_instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.design import cluster as _cluster
@@ -99,30 +99,9 @@ def _fingerprint(payload: Mapping[str, Any]) -> str:
 
 
 def _read_journal(path: Path, fp: str) -> dict[tuple[int, int], dict]:
-    done: dict[tuple[int, int], dict] = {}
-    if not path.exists():
-        return done
-    lines = path.read_text(encoding="utf-8").splitlines()
-    if not lines:
-        return done
-    try:
-        head = json.loads(lines[0])
-    except json.JSONDecodeError:
-        raise InputError("the journal's first line is not valid JSON; move the folder away or use --fresh",
-                         path=path, line=1) from None
-    if head.get("fingerprint") != fp:
-        raise InputError("this folder holds a different design (base instrument, varied keys, samples, cells, backend, "
-                         "accuracy or seed differ); use another --out folder, or --fresh to discard it", path=path, line=1)
-    for k, line in enumerate(lines[1:], start=2):
-        try:
-            d = json.loads(line)
-            key = (int(d["point"]), int(d["sample"]))
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError):
-            if k == len(lines):     # cut short by an interruption: compute that table again
-                break
-            raise InputError("corrupt journal line; move the folder away or use --fresh", path=path, line=k) from None
-        done[key] = d
-    return done
+    return read_journal(path, fp, record=lambda d: ((int(d["point"]), int(d["sample"])), d),
+                        different="a different design (base instrument, varied keys, samples, cells, backend, "
+                                  "accuracy or seed differ)")
 
 
 def _record(r: _cluster.TableResult, point: int, sample: int, seed: int) -> dict[str, Any]:

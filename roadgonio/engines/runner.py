@@ -31,7 +31,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write, atomic_write_json, output_error, to_json
+from roadgonio.fileio import atomic_write, output_error, read_journal, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
@@ -76,38 +76,14 @@ def _cell_key(t: float, b: float) -> tuple[float, float]:
     return (round(float(t), 9), round(float(b), 9))
 
 
+def _journal_record(d: dict) -> tuple[tuple[float, float], CellResult]:
+    c = CellResult(**d)
+    return _cell_key(c.tan_eps, c.beta_deg), c
+
+
 def _read_journal(path: Path, fp: str) -> dict[tuple[float, float], CellResult]:
-    done: dict[tuple[float, float], CellResult] = {}
-    if not path.exists():
-        return done
-    try:
-        with path.open(encoding="utf-8") as f:
-            lines = f.read().splitlines()
-    except OSError as err:
-        raise InputError(f"cannot read this journal ({err.strerror or err}); move the folder away or use --fresh",
-                         path=path) from None
-    except UnicodeDecodeError:
-        raise InputError("this journal is not a text file; move the folder away or use --fresh", path=path) from None
-    if not lines:
-        return done
-    try:
-        head = json.loads(lines[0])
-    except json.JSONDecodeError:
-        raise InputError("the journal's first line is not valid JSON; move the folder away or use --fresh",
-                         path=path, line=1) from None
-    if head.get("fingerprint") != fp:
-        raise InputError("this folder holds results of a different run (instrument, model, backend or settings "
-                         "differ); use another --out folder, or --fresh to discard them", path=path, line=1)
-    for k, line in enumerate(lines[1:], start=2):
-        try:
-            d = json.loads(line)
-            c = CellResult(**d)
-        except (json.JSONDecodeError, TypeError):
-            if k == len(lines):   # a line cut short by an interruption: compute that cell again
-                break
-            raise InputError("corrupt journal line; move the folder away or use --fresh", path=path, line=k) from None
-        done[_cell_key(c.tan_eps, c.beta_deg)] = c
-    return done
+    return read_journal(path, fp, record=_journal_record,
+                        different="results of a different run (instrument, model, backend or settings differ)")
 
 
 def _check_finished_run(out_dir: Path, fp: str) -> None:

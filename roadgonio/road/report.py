@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 
-from roadgonio.errors import InputError
 from roadgonio.fileio import to_json
 from roadgonio.provenance import provenance
 from roadgonio.road.metrics import M_CLASSES
