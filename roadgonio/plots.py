@@ -58,7 +58,9 @@ def save_figure(fig, path: str | Path, *, dpi: float = 110, labels: CellLabels |
         fonts: dict[float, Any] = {}
         height = img.size[1]
         for ax, x, y, text, color, fontsize in labels.items:
-            font = fonts.get(fontsize) or fonts.setdefault(fontsize, _font(fontsize * dpi / 72.0))
+            font = fonts.get(fontsize)
+            if font is None:
+                font = fonts[fontsize] = _font(fontsize * dpi / 72.0)
             px, py = ax.transData.transform((x, y))
             draw.text((float(px), height - float(py)), text, fill=color, font=font, anchor="mm")
     return atomic_write(path, lambda p: img.save(p, format="PNG", compress_level=3))   # 4x faster than 6, 10 % larger
@@ -105,14 +107,14 @@ def draw_table_map(ax, values: np.ndarray, *, label: str, centre: float | None =
     rgba_all = np.asarray(cmap(norm(np.where(np.isfinite(v), v, 1.0 if centre is None else centre))))
     for i, j in zip(*np.nonzero(np.isfinite(v))):
         rgba = rgba_all[i, j]        # one vectorised colour-map call (per cell: 1 ms each)
-        lum = 0.299 * rgba[0] + 0.587 * rgba[1] + 0.114 * rgba[2]
+        dark = 0.299 * rgba[0] + 0.587 * rgba[1] + 0.114 * rgba[2] < 0.45       # white text on dark cells
         s = text(i, j) if text is not None else fmt.format(v[i, j])
         if not s:
             continue
         if labels is not None:
-            labels.add(ax, float(j), float(i), s, (255, 255, 255) if lum < 0.45 else (0, 0, 0), fontsize)
+            labels.add(ax, float(j), float(i), s, (255, 255, 255) if dark else (0, 0, 0), fontsize)
         else:
-            ax.text(j, i, s, ha="center", va="center", fontsize=fontsize, color="white" if lum < 0.45 else "black")
+            ax.text(j, i, s, ha="center", va="center", fontsize=fontsize, color="white" if dark else "black")
     cb = ax.figure.colorbar(im, ax=ax, fraction=0.035, pad=0.02)
     cb.set_label(label)
     plain_colorbar_labels(cb)

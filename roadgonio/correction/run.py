@@ -653,11 +653,9 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
               "plots": plots, "options": options, "cluster": None}
     jobs = list(zip(tables, folders, alts))
     if not distributed:
-        out = []
-        for job in jobs:
-            res, written = _correct_task(job, shared)
-            out.append((res, job[1], written))
-        return out
+        from roadgonio.design.cluster import map_calls
+        return [(res, job[1], written) for job, (res, written) in zip(jobs, map_calls(_correct_task, jobs, None,
+                                                                                     shared=shared))]
     return _correct_on_dask(jobs, shared, client=client, workers=workers, scheduler=scheduler, progress=progress)
 
 

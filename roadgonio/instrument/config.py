@@ -268,8 +268,10 @@ class Instrument:
     def w_o(self) -> np.ndarray:
         return self.observation.w_o
 
-    def w_i(self, tan_eps: float, beta_deg: float) -> np.ndarray:
-        return w_source(math.atan(tan_eps), beta_deg, self.observation.delta_deg)
+    def w_i(self, tan_eps, beta_deg) -> np.ndarray:
+        """Unit direction towards the source at (tan eps, beta): shape (3,), or (..., 3) for arrays."""
+        eps = np.arctan(np.asarray(tan_eps, dtype=np.float64)) if np.ndim(tan_eps) else math.atan(tan_eps)
+        return w_source(eps, beta_deg, self.observation.delta_deg)
 
     def source_centre(self, tan_eps: float, beta_deg: float) -> np.ndarray:
         return self.source.distance_m * self.w_i(tan_eps, beta_deg)

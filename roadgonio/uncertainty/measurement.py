@@ -69,16 +69,26 @@ class MeasurementModel:
         self.i_20 = cells.index(2.0, 0.0)
 
     # -- directions ----------------------------------------------------------------------------
+    def _directions(self, X: np.ndarray, rows) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
+        """The components ``rows`` (a slice or index list of x, y, z) of the source directions,
+        each (m, n), and of the detector direction, (m, len(rows)), in the sample frame
+        (:meth:`local_directions`)."""
+        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
+        wo = w_detector(self.alpha0 + X[:, 0], self.delta0)                            # (m, 3)
+        de = np.radians(X[:, 1])[:, None]
+        Rt = np.swapaxes(_rotations(X[:, 3], X[:, 4]), -1, -2)[:, rows, :]
+        A = Rt @ beta_rotation(X[:, 2])                                                # (m, r, 3)
+        P = A @ self._w0T                                                              # (m, r, n)
+        Q = A @ self._e0T
+        cd, sd = np.cos(de), np.sin(de)
+        wi = tuple(cd * P[:, k, :] + sd * Q[:, k, :] for k in range(P.shape[1]))
+        return wi, np.einsum("mij,mj->mi", Rt, wo)
+
     def heights(self, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Only the z components of :meth:`local_directions` (source (m, n), detector (m,)): what
         the geometry check of every trial needs, at a third of the work."""
-        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
-        wo = w_detector(self.alpha0 + X[:, 0], self.delta0)
-        de = np.radians(X[:, 1])[:, None]
-        Rt = np.swapaxes(_rotations(X[:, 3], X[:, 4]), -1, -2)
-        A2 = (Rt @ beta_rotation(X[:, 2]))[:, 2, :]                                     # (m, 3)
-        wiz = np.cos(de) * (A2 @ self._w0T) + np.sin(de) * (A2 @ self._e0T)
-        return wiz, np.einsum("mj,mj->m", Rt[:, 2, :], wo)
+        (wiz,), woz = self._directions(X, [2])
+        return wiz, woz[:, 0]
 
     def local_directions(self, X: np.ndarray) -> tuple[tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
         """Source and detector directions in the sample frame: ``((wix, wiy, wiz), (wox, woy, woz))``,
@@ -89,18 +99,7 @@ class MeasurementModel:
         :func:`~roadgonio.geometry.w_source`), a beta error d_beta is the rotation about the normal
         :func:`~roadgonio.geometry.beta_rotation`, and the tilt applies ``R^T``.
         """
-        X = np.atleast_2d(np.asarray(X, dtype=np.float64))
-        wo = w_detector(self.alpha0 + X[:, 0], self.delta0)                            # (m, 3)
-        de = np.radians(X[:, 1])[:, None]
-        rz = beta_rotation(X[:, 2])
-        R = _rotations(X[:, 3], X[:, 4])
-        Rt = np.swapaxes(R, -1, -2)
-        A = Rt @ rz                                                                   # (m, 3, 3)
-        P = A @ self._w0T                                                              # (m, 3, n)
-        Q = A @ self._e0T
-        cd, sd = np.cos(de), np.sin(de)
-        wi = tuple(cd * P[:, k, :] + sd * Q[:, k, :] for k in range(3))
-        wol = np.einsum("mij,mj->mi", Rt, wo)
+        wi, wol = self._directions(X, slice(None))
         return wi, tuple(wol[:, k:k + 1] for k in range(3))
 
     def r_measured(self, X: np.ndarray, dirs=None) -> np.ndarray:
