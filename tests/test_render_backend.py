@@ -200,8 +200,9 @@ def test_field_sensitivity_profile_matches_the_quadrature():
     inst = preset("portable").with_changes(detector={"field_edge_sensitivity": 0.3})
     cells = [(4.0, 0.0), (12.0, 2.0)]
     r = make("mitsuba", inst, ROAD, rel_se=5e-4, seed=2).compute(cells)
-    q = make("quadrature", inst, ROAD, rtol=1e-6).compute(cells)
+    q = make("quadrature", inst, ROAD, rtol=1e-4).compute(cells)      # 1e-6 stops at its cap at tan 4
     for a, b in zip(r, q):
+        assert a.converged and b.converged, (a, b)      # a bound that was not reached proves nothing
         assert abs(a.k_a - b.k_a) <= 4 * a.se + b.error_bound + FLOAT32_FLOOR["mitsuba"] * abs(b.k_a)
 
 
