@@ -159,11 +159,15 @@ def test_field_sensitivity_profile_in_the_quadrature_and_monte_carlo(r3like_para
     assert abs(lam.k_a - 1.0) < 1e-9
     model = RoadModel(RoadParams(**r3like_params))
     cells = [(4.0, 0.0), (12.0, 2.0)]
-    q = make_backend("quadrature", vign, model, rtol=1e-6).compute(cells)
+    # rtol 1e-4: at 1e-6 the vignetted cell (4, 0) stops at the cap (5e-6 reached), at 1e-5 the
+    # uniform one (2.8e-5); a comparison with a reference that did not converge proves nothing
+    q = make_backend("quadrature", vign, model, rtol=1e-4).compute(cells)
     m = make_backend("numpy-mc", vign, model, rel_se=1e-3, seed=3).compute(cells)
     for a, b in zip(q, m):
+        assert a.converged and b.converged, (a, b)
         assert abs(a.k_a - b.k_a) <= 4 * b.se + a.error_bound
-    uniform = make_backend("quadrature", inst, model, rtol=1e-6).compute(cells)
+    uniform = make_backend("quadrature", inst, model, rtol=1e-4).compute(cells)
+    assert all(u.converged for u in uniform)
     assert all(abs(a.k_a - u.k_a) > 10 * (a.error_bound + u.error_bound) for a, u in zip(q, uniform))
 
 

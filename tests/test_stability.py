@@ -125,6 +125,7 @@ def test_sharp_lobe_agrees_with_monte_carlo(lab):
     inst = lab()
     q = make_backend("quadrature", inst, model, rtol=1e-4).compute_cell(0.0, 0.0)
     m = make_backend("numpy-mc", inst, model, rel_se=2e-3, seed=4).compute_cell(0.0, 0.0)
+    assert q.converged and m.converged, (q, m)
     assert abs(m.k_a - q.k_a) <= 4 * m.se + q.error_bound
 
 
@@ -187,6 +188,7 @@ def test_degenerate_and_limited_instruments_agree_with_mc(changes, lab, r3like):
         q = make_backend("quadrature", inst, model, rtol=1e-5).compute_cell(*cell)
         m = make_backend("numpy-mc", inst, model, rel_se=1e-3, seed=9).compute_cell(*cell)
         finite_result(q)
+        assert q.converged and m.converged, (cell, q, m)
         assert abs(m.k_a - q.k_a) <= 4 * m.se + q.error_bound, (cell, q, m)
 
 
