@@ -1,0 +1,433 @@
+"""The instrument's housing: a box standing on the sample plane around the source and detector
+positions, with Lambertian inner walls and optional baffles (the ``[housing]`` table of an
+instrument file; docs/conventions.md section 4). Float64 numpy; nothing here imports mitsuba.
+
+.. code-block:: toml
+
+    [housing]
+    wall_reflectance = 0.05          # Lambertian reflectance of the inner walls and the lid, 0 ... 1
+    # baffle_reflectance = 0.05      # of both faces of every baffle (default: wall_reflectance)
+    # x_m = [-1.1, 1.1]              # inner extent along x (default: the parts + margin_m)
+    # y_m = [-0.1, 1.1]              # inner extent along y (default: the parts + margin_m)
+    # height_m = 1.1                 # inner height of the lid above the sample plane (default: the parts + margin_m)
+    # margin_m = 0.05                # clearance of the default box around the parts
+    # lid = true                     # false: an open top
+    baffles = [{x_m = 0.6, height_m = 0.01}]   # plates across the box (all of y) at x, from the sample plane up
+
+What the box must hold (the "parts"): the source disc of every cell of the standard grid
+(docs/conventions.md section 2; the instrument measures the whole table), the detector's entrance
+pupil and the detector footprint. The floor of the box is the sample: the road under the
+instrument. The sample therefore has to cover the floor (a gap would let light out through the
+road), and every detected ray must reach the footprint without meeting a baffle (an error, never a
+silent number).
+
+The box is made of thin panels (:class:`Panel`), each a rectangle with its reflecting face
+turned into the box: the walls at x = x_min, x_max, y = y_min, y_max (ids ``housing_wall_x_min``
+...), the lid at z = height (``housing_lid``) and the baffles (``housing_baffle_1`` ..., both
+faces reflect). The Mitsuba backend builds them into its scene
+(:mod:`roadgonio.engines.mitsuba.scene`); the geometry checks are here
+(:func:`check_detector_view`, :func:`check_sources`).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from roadgonio.errors import GeometryError, InputError
+
+#: Keys of the [housing] table.
+HOUSING_KEYS = ("wall_reflectance", "baffle_reflectance", "x_m", "y_m", "height_m", "margin_m", "lid", "baffles")
+#: Keys of one baffle.
+BAFFLE_KEYS = ("x_m", "height_m")
+#: Default clearance of the box around the parts (m).
+DEFAULT_MARGIN_M = 0.05
+#: Panels overlap their neighbours (and reach below the sample plane) by this much, so that no ray
+#: slips through a seam in float32.
+SEAM_M = 1e-4
+
+
+def _num(v: Any, name: str) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise InputError(f"expected a number, got {v!r}", field=name)
+    v = float(v)
+    if not math.isfinite(v):
+        raise InputError(f"expected a finite number, got {v}", field=name)
+    return v
+
+
+def _pair(v: Any, name: str) -> tuple[float, float]:
+    if isinstance(v, (str, bytes)) or not hasattr(v, "__len__") or len(v) != 2:
+        raise InputError(f"expected [lower, upper] in metres, got {v!r}", field=name)
+    lo, hi = _num(v[0], name), _num(v[1], name)
+    if not lo < hi:
+        raise InputError(f"expected lower < upper, got [{lo:g}, {hi:g}]", field=name)
+    return lo, hi
+
+
+@dataclass(frozen=True)
+class Baffle:
+    """A vertical plate across the box (over its whole y extent) at ``x_m``, from the sample
+    plane up to ``height_m`` (0 = no plate: a design may vary a baffle down to nothing)."""
+
+    x_m: float
+    height_m: float
+
+    def __post_init__(self):
+        object.__setattr__(self, "x_m", _num(self.x_m, "housing.baffles.x_m"))
+        h = _num(self.height_m, "housing.baffles.height_m")
+        if h < 0.0:
+            raise InputError(f"expected a height >= 0, got {h:g}", field="housing.baffles.height_m")
+        object.__setattr__(self, "height_m", h)
+
+
+@dataclass(frozen=True)
+class Panel:
+    """A rectangle of the housing: centre, half-axes ``u`` and ``v`` (m) and the unit normal of
+    its reflecting face (``u x v`` points along it); float64."""
+
+    id: str
+    centre: tuple[float, float, float]
+    u: tuple[float, float, float]
+    v: tuple[float, float, float]
+    normal: tuple[float, float, float]
+    reflectance: float
+    two_sided: bool = False
+    label: str = ""
+
+    def to_world(self) -> np.ndarray:
+        """4x4 matrix taking the unit square [-1, 1]^2 (z = 0, normal +z) onto the panel."""
+        m = np.eye(4)
+        m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = self.u, self.v, self.normal, self.centre
+        return m
+
+
+@dataclass(frozen=True)
+class Box:
+    """The resolved inner extent of the housing (m)."""
+
+    x: tuple[float, float]
+    y: tuple[float, float]
+    height: float
+
+
+@dataclass(frozen=True)
+class Housing:
+    """The ``[housing]`` table (module docstring); validated on construction, errors name
+    ``housing.KEY``."""
+
+    wall_reflectance: float
+    baffle_reflectance: float | None = None
+    x_m: tuple[float, float] | None = None
+    y_m: tuple[float, float] | None = None
+    height_m: float | None = None
+    margin_m: float = DEFAULT_MARGIN_M
+    lid: bool = True
+    baffles: tuple[Baffle, ...] = field(default_factory=tuple)
+
+    def __post_init__(self):
+        for name in ("wall_reflectance", "baffle_reflectance"):
+            v = getattr(self, name)
+            if v is None and name == "baffle_reflectance":
+                continue
+            v = _num(v, f"housing.{name}")
+            if not 0.0 <= v <= 1.0:
+                raise InputError(f"expected a reflectance in [0, 1], got {v:g}", field=f"housing.{name}")
+            object.__setattr__(self, name, v)
+        for name in ("x_m", "y_m"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, _pair(getattr(self, name), f"housing.{name}"))
+        if self.height_m is not None:
+            h = _num(self.height_m, "housing.height_m")
+            if h <= 0.0:
+                raise InputError(f"expected a height > 0, got {h:g}", field="housing.height_m")
+            object.__setattr__(self, "height_m", h)
+        m = _num(self.margin_m, "housing.margin_m")
+        if m < 0.0:
+            raise InputError(f"expected a margin >= 0, got {m:g}", field="housing.margin_m")
+        object.__setattr__(self, "margin_m", m)
+        if not isinstance(self.lid, bool):
+            raise InputError(f"expected true or false, got {self.lid!r}", field="housing.lid")
+        baffles = []
+        for k, b in enumerate(self.baffles or ()):
+            if isinstance(b, Baffle):
+                baffles.append(b)
+                continue
+            if not isinstance(b, Mapping):
+                raise InputError(f"expected a table {{x_m = ..., height_m = ...}}, got {b!r}",
+                                 field=f"housing.baffles.{k}")
+            extra = sorted(set(b) - set(BAFFLE_KEYS))
+            missing = [key for key in BAFFLE_KEYS if key not in b]
+            if extra or missing:
+                raise InputError(("unknown key(s) " + ", ".join(extra) + "; " if extra else "")
+                                 + f"a baffle needs exactly {', '.join(BAFFLE_KEYS)}", field=f"housing.baffles.{k}")
+            try:
+                baffles.append(Baffle(**b))
+            except InputError as err:
+                raise InputError(err.reason, field=f"housing.baffles.{k}.{err.field.rsplit('.', 1)[-1]}") from None
+        object.__setattr__(self, "baffles", tuple(baffles))
+
+    # -- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "Housing":
+        if not isinstance(d, Mapping):
+            raise InputError("expected a table [housing]", field="housing")
+        extra = sorted(set(d) - set(HOUSING_KEYS))
+        if extra:
+            raise InputError(f"unknown key(s) {', '.join(extra)}; expected some of {', '.join(HOUSING_KEYS)}",
+                             field="housing")
+        if "wall_reflectance" not in d:
+            raise InputError("missing (required): the Lambertian reflectance of the inner walls, 0 ... 1",
+                             field="housing.wall_reflectance")
+        kw = dict(d)
+        if "baffles" in kw:
+            b = kw["baffles"]
+            if isinstance(b, (str, bytes, Mapping)) or not hasattr(b, "__iter__"):
+                raise InputError(f"expected a list of tables [{{x_m = ..., height_m = ...}}], got {b!r}",
+                                 field="housing.baffles")
+            kw["baffles"] = tuple(b)
+        return cls(**kw)
+
+    @classmethod
+    def of(cls, instrument) -> "Housing | None":
+        """The housing of an instrument (its ``[housing]`` table), or None."""
+        sec = instrument.extra.get("housing") if hasattr(instrument.extra, "get") else None
+        return None if sec is None else cls.from_dict(sec)
+
+    @property
+    def baffle_reflectance_value(self) -> float:
+        return self.wall_reflectance if self.baffle_reflectance is None else self.baffle_reflectance
+
+    @property
+    def reflects(self) -> bool:
+        """True when some panel reflects light (else the housing only shades)."""
+        return self.wall_reflectance > 0.0 or (self.baffle_reflectance_value > 0.0 and
+                                               any(b.height_m > 0.0 for b in self.baffles))
+
+    # -- geometry -----------------------------------------------------------------------------
+    def box(self, instrument) -> Box:
+        """The inner extent: the given bounds, else the bounding box of the parts (module
+        docstring) plus ``margin_m`` (the lid: above the highest part)."""
+        lo, hi = parts_bounds(instrument)
+        m = self.margin_m
+        x = self.x_m if self.x_m is not None else (lo[0] - m, hi[0] + m)
+        y = self.y_m if self.y_m is not None else (lo[1] - m, hi[1] + m)
+        h = self.height_m if self.height_m is not None else hi[2] + m
+        return Box(x=(float(x[0]), float(x[1])), y=(float(y[0]), float(y[1])), height=float(h))
+
+    def panels(self, instrument) -> list[Panel]:
+        """The panels of the housing (module docstring): walls, lid (if any) and baffles of
+        height > 0, reflecting faces turned into the box."""
+        b = self.box(instrument)
+        (x0, x1), (y0, y1), h = b.x, b.y, b.height
+        e = SEAM_M
+        xc, yc = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
+        hx, hy = 0.5 * (x1 - x0) + e, 0.5 * (y1 - y0) + e
+        zc, hz = 0.5 * (h - e), 0.5 * (h + e)            # from z = -e to h
+        rw = self.wall_reflectance
+        out = [
+            Panel("housing_wall_x_min", (x0, yc, zc), (0.0, -hy, 0.0), (0.0, 0.0, hz), (1.0, 0.0, 0.0), rw,
+                  label=f"wall x = {x0:.3g} m"),
+            Panel("housing_wall_x_max", (x1, yc, zc), (0.0, hy, 0.0), (0.0, 0.0, hz), (-1.0, 0.0, 0.0), rw,
+                  label=f"wall x = {x1:.3g} m"),
+            Panel("housing_wall_y_min", (xc, y0, zc), (hx, 0.0, 0.0), (0.0, 0.0, hz), (0.0, 1.0, 0.0), rw,
+                  label=f"wall y = {y0:.3g} m"),
+            Panel("housing_wall_y_max", (xc, y1, zc), (-hx, 0.0, 0.0), (0.0, 0.0, hz), (0.0, -1.0, 0.0), rw,
+                  label=f"wall y = {y1:.3g} m"),
+        ]
+        if self.lid:
+            out.append(Panel("housing_lid", (xc, yc, h), (hx, 0.0, 0.0), (0.0, -hy, 0.0), (0.0, 0.0, -1.0), rw,
+                             label=f"lid z = {h:.3g} m"))
+        rb = self.baffle_reflectance_value
+        for k, bf in enumerate(self.baffles, start=1):
+            if bf.height_m <= 0.0:
+                continue
+            out.append(Panel(f"housing_baffle_{k}", (bf.x_m, yc, 0.5 * (bf.height_m - e)), (0.0, -hy, 0.0),
+                             (0.0, 0.0, 0.5 * (bf.height_m + e)), (1.0, 0.0, 0.0), rb, two_sided=True,
+                             label=f"baffle {k} (x = {bf.x_m:.3g} m, {1000 * bf.height_m:.3g} mm high)"))
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        d: dict[str, Any] = {"wall_reflectance": self.wall_reflectance}
+        if self.baffle_reflectance is not None:
+            d["baffle_reflectance"] = self.baffle_reflectance
+        for k in ("x_m", "y_m"):
+            if getattr(self, k) is not None:
+                d[k] = list(getattr(self, k))
+        if self.height_m is not None:
+            d["height_m"] = self.height_m
+        if self.margin_m != DEFAULT_MARGIN_M:
+            d["margin_m"] = self.margin_m
+        if not self.lid:
+            d["lid"] = False
+        if self.baffles:
+            d["baffles"] = [{"x_m": b.x_m, "height_m": b.height_m} for b in self.baffles]
+        return d
+
+
+# ----------------------------------------------------------------------------------------------
+# The parts the box must hold, and the checks
+# ----------------------------------------------------------------------------------------------
+
+def _disc_rim(centre, normal, radius: float, n: int = 64) -> np.ndarray:
+    """(n + 1, 3): n points on the rim of a disc and its centre."""
+    from roadgonio.instrument.optics import orthonormal_frame
+    s, t = orthonormal_frame(normal)
+    a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    rim = np.asarray(centre)[None, :] + radius * (np.cos(a)[:, None] * s + np.sin(a)[:, None] * t)
+    return np.concatenate([rim, np.asarray(centre, dtype=np.float64)[None, :]])
+
+
+def source_discs(instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
+    """(cells, 65, 3): rim points and centre of every cell's source disc (float64)."""
+    tb = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    w = instrument.w_i(tb[:, 0], tb[:, 1]).reshape(-1, 3)
+    r = instrument.source.radius_m
+    return np.stack([_disc_rim(instrument.source.distance_m * wi, -wi, r) for wi in w])
+
+
+def pupil_disc(instrument) -> np.ndarray:
+    w_o = instrument.w_o()
+    return _disc_rim(instrument.detector.distance_m * w_o, -w_o, instrument.detector.pupil_radius_m)
+
+
+def parts_bounds(instrument) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper corners of the bounding box of the parts: every grid cell's source disc,
+    the detector pupil and the detector footprint (float64)."""
+    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+    from roadgonio.instrument.optics import footprint_boundary
+    grid = [(float(t), float(b)) for t in TAN_EPS_GRID for b in BETA_GRID_DEG]
+    pts = [source_discs(instrument, grid).reshape(-1, 3), pupil_disc(instrument)]
+    fx, fy = footprint_boundary(instrument)
+    pts.append(np.stack([fx, fy, np.zeros_like(fx)], -1))
+    p = np.concatenate(pts)
+    return p.min(axis=0), p.max(axis=0)
+
+
+def _floor_check(instrument, box: Box) -> None:
+    """The sample must cover the floor of the box (the road under the instrument)."""
+    smp = instrument.sample
+    if smp.mesh is None:
+        lo = (-0.5 * smp.size_x_m, -0.5 * smp.size_y_m)
+        hi = (0.5 * smp.size_x_m, 0.5 * smp.size_y_m)
+        what = f"the sample ({smp.size_x_m:g} m x {smp.size_y_m:g} m, centred on the origin)"
+    else:
+        from roadgonio.instrument.mesh import sample_triangles
+        v = np.asarray(sample_triangles(instrument).vertices, dtype=np.float64)
+        lo, hi = tuple(v[:, :2].min(axis=0)), tuple(v[:, :2].max(axis=0))
+        what = "the sample mesh"
+    tol = 1e-9
+    if lo[0] > box.x[0] + tol or hi[0] < box.x[1] - tol or lo[1] > box.y[0] + tol or hi[1] < box.y[1] - tol:
+        need_x = 2 * max(abs(box.x[0]), abs(box.x[1]))
+        need_y = 2 * max(abs(box.y[0]), abs(box.y[1]))
+        raise GeometryError(
+            f"{what} does not cover the floor of the housing (x = {box.x[0]:.3f} ... {box.x[1]:.3f} m, "
+            f"y = {box.y[0]:.3f} ... {box.y[1]:.3f} m): the road under the instrument is the sample, and a gap "
+            f"would let light out through it; set [sample] size_x_m >= {need_x:.3f} and size_y_m >= {need_y:.3f}, "
+            "or give [housing] x_m / y_m")
+
+
+def _outside(points: np.ndarray, box: Box, lid: bool) -> str | None:
+    """Id and label of the first wall that the points (N, 3) reach or cross, or None."""
+    checks = [(points[:, 0].min() <= box.x[0], "housing_wall_x_min", f"the wall x = {box.x[0]:.3g} m"),
+              (points[:, 0].max() >= box.x[1], "housing_wall_x_max", f"the wall x = {box.x[1]:.3g} m"),
+              (points[:, 1].min() <= box.y[0], "housing_wall_y_min", f"the wall y = {box.y[0]:.3g} m"),
+              (points[:, 1].max() >= box.y[1], "housing_wall_y_max", f"the wall y = {box.y[1]:.3g} m"),
+              (lid and points[:, 2].max() >= box.height, "housing_lid", f"the lid z = {box.height:.3g} m")]
+    for bad, pid, label in checks:
+        if bad:
+            return f"{label} ({pid})"
+    return None
+
+
+def _detector_rays(instrument, n_random: int = 2048, n_rim: int = 32):
+    """Origins (N, 3), unit directions (N, 3) and distances to the sample plane of detector rays:
+    the extreme rays of the bundle and ``n_random`` random ones (float64)."""
+    from roadgonio.instrument.optics import detector_geometry, detector_ray, hit_check_points
+    from roadgonio.surface.model import NumpyOps
+    pu, fu = hit_check_points(n_random, n_rim, seed=11)
+    o, d, _ = detector_ray(NumpyOps, detector_geometry(instrument), (pu[:, 0], pu[:, 1]), (fu[:, 0], fu[:, 1]))
+    o = np.stack([np.broadcast_to(np.asarray(c, dtype=np.float64), pu[:, 0].shape) for c in o], -1)
+    d = np.stack([np.asarray(c, dtype=np.float64) for c in d], -1)
+    return o, d, -o[:, 2] / d[:, 2]
+
+
+def check_detector_view(instrument, housing: Housing) -> Box:
+    """The housing around the detector (errors, not wrong numbers): the sample covers the floor,
+    the pupil and the footprint lie inside the box, and no baffle meets a detected ray between the
+    pupil and the sample. Returns the box."""
+    from roadgonio.instrument.optics import footprint_boundary
+    box = housing.box(instrument)
+    if box.height <= 0.0:
+        raise GeometryError("the housing has no height")
+    _floor_check(instrument, box)
+    wall = _outside(pupil_disc(instrument), box, housing.lid)
+    if wall is not None:
+        raise GeometryError(f"the detector's entrance pupil (radius {instrument.detector.pupil_radius_m:g} m at "
+                            f"{instrument.detector.distance_m:g} m) is not inside the housing: it reaches {wall}; "
+                            "enlarge the housing (x_m, y_m, height_m)")
+    fx, fy = footprint_boundary(instrument)
+    wall = _outside(np.stack([fx, fy, np.zeros_like(fx)], -1), box, False)
+    if wall is not None:
+        raise GeometryError(f"the detector footprint is not inside the housing: it reaches {wall}")
+    o, d, t_plane = _detector_rays(instrument)
+    for k, bf in enumerate(housing.baffles, start=1):
+        if bf.height_m <= 0.0:
+            continue
+        if not box.x[0] < bf.x_m < box.x[1]:
+            raise GeometryError(f"baffle {k} (housing_baffle_{k}) at x = {bf.x_m:g} m is outside the housing "
+                                f"(x = {box.x[0]:.3g} ... {box.x[1]:.3g} m)")
+        if bf.height_m > box.height and housing.lid:
+            raise GeometryError(f"baffle {k} (housing_baffle_{k}) is {bf.height_m:g} m high, higher than the lid "
+                                f"({box.height:.3g} m)")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = (bf.x_m - o[:, 0]) / d[:, 0]
+        z = o[:, 2] + t * d[:, 2]
+        meet = np.isfinite(t) & (t > 0.0) & (t < t_plane)
+        blocked = meet & (z < bf.height_m)
+        if blocked.any():
+            clear = float(z[meet].min()) if meet.any() else math.nan
+            raise GeometryError(
+                f"baffle {k} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm high) blocks the "
+                f"detector's view: {int(blocked.sum())} of {blocked.size} checked detector rays meet it before the "
+                f"sample (the lowest detected ray passes {1000 * clear:.3g} mm above the sample plane there); lower "
+                "or move it")
+    return box
+
+
+def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, float]]) -> None:
+    """Every requested cell's source disc lies inside the box and crosses no baffle; else a
+    :class:`GeometryError` naming the first such cell, the wall or baffle, and how many cells."""
+    if not cells:
+        return
+    box = housing.box(instrument)
+    discs = source_discs(instrument, cells)
+    bad: list[tuple[tuple[float, float], str]] = []
+    for cell, pts in zip(cells, discs):
+        wall = _outside(pts, box, housing.lid)
+        if wall is None:
+            rim = pts[:-1]
+            nxt = np.roll(rim, -1, axis=0)
+            for k, bf in enumerate(housing.baffles, start=1):
+                if bf.height_m <= 0.0:
+                    continue
+                s0, s1 = rim[:, 0] - bf.x_m, nxt[:, 0] - bf.x_m
+                cross = (s0 * s1) <= 0.0
+                if cross.any():
+                    with np.errstate(divide="ignore", invalid="ignore"):
+                        f = np.where(s0 != s1, s0 / (s0 - s1), 0.0)
+                    z = rim[:, 2] + f * (nxt[:, 2] - rim[:, 2])
+                    if (z[cross] < bf.height_m).any():
+                        wall = f"baffle {k} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm high)"
+                        break
+        if wall is not None:
+            bad.append(((float(cell[0]), float(cell[1])), wall))
+    if bad:
+        (t, b), wall = bad[0]
+        more = f" (and {len(bad) - 1} more cells)" if len(bad) > 1 else ""
+        src = instrument.source
+        raise GeometryError(
+            f"the housing blocks the source at tan eps = {t:g}, beta = {b:g}{more}: its disc (radius "
+            f"{src.radius_m:g} m at {src.distance_m:g} m) reaches {wall}; enlarge the housing or leave the cell out")
