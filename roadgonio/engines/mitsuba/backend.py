@@ -132,6 +132,15 @@ class MitsubaBackend:
             s["llvm"] = ".".join(map(str, llvm_version() or ()))
         if self.rs.xml is not None:
             s["xml"] = str(self.rs.xml)
+        if self.engine.stray:
+            s["stray_light"] = {
+                "max_bounces": self.engine.max_bounces, "reflecting_parts": list(self.rs.part_ids),
+                "paths": "eye paths (BSDF sampling, next-event estimation at every vertex) and light paths from "
+                         f"the source (up to {self.engine.integrator.light_depth} reflections, connected to the "
+                         "footprint), balance-heuristic MIS",
+                "se_estimator": "replicates, delta method (k_a, k_a_direct, stray_fraction)"}
+        if self.rs.housing is not None:
+            s["housing"] = self.rs.housing.to_dict()
         return s
 
     def compute(self, cells: Sequence[tuple[float, float]],
@@ -171,8 +180,18 @@ class MitsubaBackend:
                  "converged": bool(converged)}
         if ideal <= 0.0:
             extra["note"] = "the model is 0 at the nominal geometry: k_A is undefined"
+        stray = {}
+        if st.direct:
+            # the direct light alone (today's k_A) and the stray fraction, from the same replicates
+            rd, rd_se = st.direct_ratio_se()
+            sf, sf_se = st.stray_fraction_se()
+            stray = dict(k_a_direct=float(rd / ideal) if ideal > 0.0 else math.nan,
+                         k_a_direct_se=float(rd_se / ideal) if ideal > 0.0 else math.nan,
+                         stray_fraction=float(sf), stray_fraction_se=float(sf_se))
+            extra["max_bounces"] = self.engine.max_bounces
         return CellResult(tan_eps=cell[0], beta_deg=cell[1], k_a=float(k_a), se=float(k_se),
-                          converged=bool(converged), samples=int(st.samples), seconds=float(seconds), extra=extra)
+                          converged=bool(converged), samples=int(st.samples), seconds=float(seconds), extra=extra,
+                          **stray)
 
     def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
         """One cell (a batch of one)."""
