@@ -32,6 +32,12 @@ class CellResult:
     ``error_bound`` a deterministic bound on |k_A - true k_A| (quadrature; NaN for Monte Carlo).
     ``converged`` is False when the backend stopped (sample or evaluation cap) before reaching its
     target; such a value must never be reported as agreeing with anything.
+
+    Stray light (issue 18): ``k_a`` is everything the scene does; ``k_a_direct`` the k_A of the
+    light that reaches the footprint straight from the source alone, and ``stray_fraction`` =
+    1 - S_direct[f] / S_total[f] of the road sample, each with its standard error (``k_a_direct_se``,
+    ``stray_fraction_se``). A backend that traces no stray light leaves them out: then
+    ``k_a_direct`` is ``k_a`` (with ``se``) and the stray fraction is 0 exactly.
     """
 
     tan_eps: float
@@ -43,12 +49,20 @@ class CellResult:
     extra: dict[str, Any] | None = None
     error_bound: float = math.nan   # deterministic error bound of k_a; NaN for Monte Carlo
     converged: bool = True
+    k_a_direct: float | None = None          # None: no stray light traced, = k_a
+    k_a_direct_se: float | None = None       # None: = se
+    stray_fraction: float | None = None      # None: 0 (no stray light traced)
+    stray_fraction_se: float | None = None   # None: 0
 
     def __post_init__(self):
         # JSON (journal, outputs) carries NaN as null: read it back as NaN
         for name in ("se", "error_bound"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, math.nan)
+        for name, default in (("k_a_direct", self.k_a), ("k_a_direct_se", self.se), ("stray_fraction", 0.0),
+                              ("stray_fraction_se", 0.0)):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, float(default))
 
     @property
     def deterministic(self) -> bool:
