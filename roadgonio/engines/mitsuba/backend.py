@@ -111,6 +111,12 @@ class MitsubaBackend:
         #: the schedule of the last ``compute`` call (replay it with ``plan=``)
         self.last_plan = None
 
+    @property
+    def stray_light(self) -> bool:
+        """True when the scene's reflecting parts make stray light (its results then carry
+        ``k_a_direct`` and ``stray_fraction``)."""
+        return bool(self.engine.stray)
+
     def settings(self) -> dict[str, Any]:
         import drjit as dr
         import mitsuba as mi
