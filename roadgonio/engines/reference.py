@@ -623,6 +623,11 @@ def check_numpy_scene(instrument: Instrument, backend: str, *, mesh_ok: bool = F
         raise InputError(f"the {backend} backend does not model {what} (its extra geometry would be ignored, "
                          "giving a different instrument); use --backend mitsuba, or an instrument file "
                          "without [scene]", path=instrument.path, field="scene")
+    housing = instrument.extra.get("housing") if hasattr(instrument.extra, "get") else None
+    if housing is not None:
+        raise InputError(f"the {backend} backend does not model a [housing] (its walls' shade and stray light would be "
+                         "ignored, giving a different instrument); use --backend mitsuba", path=instrument.path,
+                         field="housing")
     if instrument.sample.mesh is not None and not mesh_ok:
         alt = "numpy-mc-mesh (independent check) or mitsuba"
         raise InputError(f"the {backend} backend integrates over a flat rectangular sample only; for a mesh "
