@@ -213,6 +213,18 @@ def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, mo
                                             else ("se", "ka_se.csv", "k_A standard error"))
         RTable(run.grid(prec_field), name=prec_name, source=f"{prec_name} of " + label).write_csv(
             group.path(prec_file), scale=1.0, digits=4)
+        # stray light (issue 18): the direct light's k_A and the stray fraction, with their standard errors
+        stray = any(c.stray_fraction != 0.0 or c.k_a_direct != c.k_a for c in run.results)
+        stray_files = {}
+        if stray:
+            for fld, fname, what, digits in (("k_a_direct", "ka_direct.csv", "k_A of the direct light", 7),
+                                             ("k_a_direct_se", "ka_direct_se.csv", "standard error of k_A (direct)", 4),
+                                             ("stray_fraction", "stray_fraction.csv", "stray fraction", 6),
+                                             ("stray_fraction_se", "stray_fraction_se.csv",
+                                              "standard error of the stray fraction", 4)):
+                RTable(run.grid(fld), name=what, source=f"{what} of " + label).write_csv(
+                    group.path(fname), scale=1.0, digits=digits)
+                stray_files[fld] = fname
         rel = np.array([getattr(c, prec_field) / abs(c.k_a) if c.k_a else math.inf for c in run.results])
         finite_ka = np.array([c.k_a for c in run.results])
         summary = {
@@ -226,13 +238,19 @@ def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, mo
             "seconds_wall_this_run": run.seconds,
             "resumed_cells": run.resumed,
         }
+        if stray:
+            sf = np.array([c.stray_fraction for c in run.results])
+            summary["stray_fraction_max"] = float(sf.max())
+            summary["k_a_direct_min"] = float(min(c.k_a_direct for c in run.results))
+            summary["k_a_direct_max"] = float(max(c.k_a_direct for c in run.results))
         meta = {
             "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md section 5)",
             "fingerprint": fingerprint(instrument, model, backend),
             **provenance(instrument=instrument, model=model, backend=backend.name, settings=backend.settings()),
             "sample": sample_spec,
             "summary": summary,
-            "files": {"ka": "ka.csv", prec_field: prec_file, "map": "ka.png" if plot else None, "journal": JOURNAL},
+            "files": {"ka": "ka.csv", prec_field: prec_file, **stray_files, "map": "ka.png" if plot else None,
+                      "journal": JOURNAL},
         }
         group.json(META, meta)
         if plot:
