@@ -224,6 +224,16 @@ def ka_table(instrument, sample, *, backend: str = "mitsuba", accuracy: str | No
                         {"long_name": "error bound of k_A", "units": "1",
                          "description": "deterministic bound on |k_A - true k_A|; NaN for Monte Carlo"}),
         "converged": (dims, converged, {"long_name": "the cell was computed and reached its target"}),
+        # stray light (issue 18); without it k_a_direct = k_a and stray_fraction = 0
+        "k_a_direct": (dims, run.grid("k_a_direct"), {"long_name": "k_A of the direct light", "units": "1",
+                                                      "description": "light from the source straight to the "
+                                                                     "footprint only (no stray light)"}),
+        "k_a_direct_se": (dims, run.grid("k_a_direct_se"), {"long_name": "standard error of k_a_direct", "units": "1"}),
+        "stray_fraction": (dims, run.grid("stray_fraction"),
+                           {"long_name": "stray fraction of the road signal", "units": "1",
+                            "description": "1 - S_direct[f] / S_total[f]; 0 without stray light"}),
+        "stray_fraction_se": (dims, run.grid("stray_fraction_se"),
+                              {"long_name": "standard error of stray_fraction", "units": "1"}),
     }
     prov = provenance(instrument=inst, model=model, backend=b.name, settings=b.settings(), sample=name,
                       accuracy=accuracy, cells=len(todo))
