@@ -110,12 +110,18 @@ def _run(args, single: bool, figures) -> int:
         seconds = c.seconds if run_.resumed else time.perf_counter() - t0
         if args.json:
             print(json.dumps(_finite_json({"k_a": c.k_a, "se": c.se, "error_bound": c.error_bound,
-                                           "converged": c.converged, "samples": c.samples, "seconds": seconds})))
+                                           "converged": c.converged, "samples": c.samples, "seconds": seconds,
+                                           "k_a_direct": c.k_a_direct, "k_a_direct_se": c.k_a_direct_se,
+                                           "stray_fraction": c.stray_fraction,
+                                           "stray_fraction_se": c.stray_fraction_se})))
         else:
             prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error")
             text_output(args)(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
                               f"{c.samples} samples, {seconds:.2f} s, {backend.name} backend)"
-                              + ("" if c.converged else _not_converged_text(c, args.rel_se)))
+                              + ("" if c.converged else _not_converged_text(c, args.rel_se))
+                              + (f"; stray light {100 * c.stray_fraction:.2f} % +- {100 * c.stray_fraction_se:.2g} % of "
+                                 f"the signal, direct light alone k_A = {c.k_a_direct:.6f} +- {c.k_a_direct_se:.2g}"
+                                 if c.stray_fraction != 0.0 else ""))
         return 0
 
     if args.cells == "table":
@@ -144,7 +150,9 @@ def _run(args, single: bool, figures) -> int:
     else:
         say(f"k_A for {instrument.name} x {sample_name} ({backend.name}): {s['cells']} cells "
             f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
-            f"{_precision_text(s)}, {run_.seconds:.1f} s.")
+            f"{_precision_text(s)}, {run_.seconds:.1f} s."
+            + (f" Stray light: up to {100 * s['stray_fraction_max']:.1f} % of the signal; the direct light alone gives "
+               f"k_A {s['k_a_direct_min']:.3f} ... {s['k_a_direct_max']:.3f}." if "stray_fraction_max" in s else ""))
         say(f"wrote {out_dir}/" + ", ".join(f for f in meta["files"].values() if f and f != "ka_cells.jsonl")
             + ", ka.json")
     return 0
