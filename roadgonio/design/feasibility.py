@@ -15,7 +15,10 @@ requested cells it is marked ``geometry_ok = False`` with a one-line reason. The
    through the field rim, plus a grid of interior rays, intersected with the source disc). This
    matters for sources behind the detector (beta near 180 deg) at grazing incidence; the
    quadrature and numpy-mc backends do not model occlusion, so the design checks it for them.
-5. ``backend`` (on the worker): whatever the backend itself refuses (render-time ray hits of an
+5. ``housing``: a ``[housing]`` holds the detector's view and every requested cell's source disc
+   (:func:`roadgonio.instrument.housing.check_detector_view`, :func:`~roadgonio.instrument.housing.check_sources`:
+   the floor covered by the sample, no baffle in the line of sight, no source disc through a wall);
+6. ``backend`` (on the worker): whatever the backend itself refuses (render-time ray hits of an
    XML scene or a mesh, a beam limit the renderer cannot model, ...).
 
 The detector housing is not part of the instrument description (only its pupil), so light it
@@ -39,7 +42,7 @@ class Feasibility:
     """Geometry verdict of one design point."""
 
     ok: bool
-    kind: str = ""                  # "" | instrument | footprint | horizon | line_of_sight | backend
+    kind: str = ""                  # "" | instrument | footprint | horizon | line_of_sight | housing | backend
     reason: str = ""
     footprint: tuple[float, float, float, float] | None = None   # x_min, x_max, y_min, y_max (m)
 
@@ -143,6 +146,14 @@ def check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]])
                            f"the source disc (radius {src.radius_m:g} m at {src.distance_m:g} m) blocks the detector's "
                            f"view of the sample (pupil {det.pupil_radius_m:g} m at {det.distance_m:g} m) at "
                            f"{_cells_text(blocked)}", fp)
+    from roadgonio.instrument.housing import Housing, check_detector_view, check_sources
+    housing = Housing.of(instrument)
+    if housing is not None:
+        try:
+            check_detector_view(instrument, housing)
+            check_sources(instrument, housing, cells)
+        except GeometryError as err:
+            return Feasibility(False, "housing", str(err), fp)
     return Feasibility(True, footprint=fp)
 
 
