@@ -16,15 +16,18 @@ instrument file; docs/conventions.md section 4). Float64 numpy; nothing here imp
 
 What the box must hold (the "parts"): the source disc of every cell of the standard grid
 (docs/conventions.md section 2; the instrument measures the whole table), the detector's entrance
-pupil and the detector footprint. The floor of the box is the sample: the road under the
-instrument. The sample therefore has to cover the floor (a gap would let light out through the
-road), and every detected ray must reach the footprint without meeting a baffle (an error, never a
-silent number).
+pupil and the detector footprint. Every detected ray must reach the footprint without meeting a
+baffle (an error, never a silent number).
+
+The floor of the box is the road the instrument stands on: the sample ([sample], the surface
+measured, and the one a Lambert calibration replaces with a perfect diffuser) and, where the box
+is larger than a rectangular sample, the same road around it (panels ``housing_floor_*`` with the
+sample's BRDF, which a calibration leaves as it is). A mesh sample has to cover the floor itself.
 
 The box is made of thin panels (:class:`Panel`), each a rectangle with its reflecting face
 turned into the box: the walls at x = x_min, x_max, y = y_min, y_max (ids ``housing_wall_x_min``
-...), the lid at z = height (``housing_lid``) and the baffles (``housing_baffle_1`` ..., both
-faces reflect). The Mitsuba backend builds them into its scene
+...), the lid at z = height (``housing_lid``), the baffles (``housing_baffle_1`` ..., both
+faces reflect) and the road floor around the sample. The Mitsuba backend builds them into its scene
 (:mod:`roadgonio.engines.mitsuba.scene`); the geometry checks are here
 (:func:`check_detector_view`, :func:`check_sources`).
 """
@@ -93,9 +96,10 @@ class Panel:
     u: tuple[float, float, float]
     v: tuple[float, float, float]
     normal: tuple[float, float, float]
-    reflectance: float
+    reflectance: float                  # Lambertian reflectance; unused for the road floor
     two_sided: bool = False
     label: str = ""
+    road: bool = False                  # the road floor around the sample (the sample's BRDF)
 
     def to_world(self) -> np.ndarray:
         """4x4 matrix taking the unit square [-1, 1]^2 (z = 0, normal +z) onto the panel."""
@@ -240,6 +244,20 @@ class Housing:
         if self.lid:
             out.append(Panel("housing_lid", (xc, yc, h), (hx, 0.0, 0.0), (0.0, -hy, 0.0), (0.0, 0.0, -1.0), rw,
                              label=f"lid z = {h:.3g} m"))
+        smp = instrument.sample
+        if smp.mesh is None:
+            # the road around a rectangular sample, up to the walls: four strips of the floor z = 0
+            a, b = 0.5 * smp.size_x_m, 0.5 * smp.size_y_m
+            xa, xb = max(x0, -a), min(x1, a)
+            strips = [("housing_floor_x_min", (x0 - e, min(-a, x1)), (y0 - e, y1 + e)),
+                      ("housing_floor_x_max", (max(a, x0), x1 + e), (y0 - e, y1 + e)),
+                      ("housing_floor_y_min", (xa, xb), (y0 - e, min(-b, y1))),
+                      ("housing_floor_y_max", (xa, xb), (max(b, y0), y1 + e))]
+            for pid, (u0, u1), (v0, v1) in strips:
+                if u1 - u0 > e and v1 - v0 > e:
+                    out.append(Panel(pid, (0.5 * (u0 + u1), 0.5 * (v0 + v1), 0.0), (0.5 * (u1 - u0), 0.0, 0.0),
+                                     (0.0, 0.5 * (v1 - v0), 0.0), (0.0, 0.0, 1.0), 0.0, road=True,
+                                     label=f"road floor x = {u0:.3g} ... {u1:.3g} m, y = {v0:.3g} ... {v1:.3g} m"))
         rb = self.baffle_reflectance_value
         for k, bf in enumerate(self.baffles, start=1):
             if bf.height_m <= 0.0:
@@ -307,26 +325,22 @@ def parts_bounds(instrument) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _floor_check(instrument, box: Box) -> None:
-    """The sample must cover the floor of the box (the road under the instrument)."""
+    """A mesh sample must cover the floor of the box (around a rectangle the road floor panels do)."""
     smp = instrument.sample
     if smp.mesh is None:
-        lo = (-0.5 * smp.size_x_m, -0.5 * smp.size_y_m)
-        hi = (0.5 * smp.size_x_m, 0.5 * smp.size_y_m)
-        what = f"the sample ({smp.size_x_m:g} m x {smp.size_y_m:g} m, centred on the origin)"
-    else:
-        from roadgonio.instrument.mesh import sample_triangles
-        v = np.asarray(sample_triangles(instrument).vertices, dtype=np.float64)
-        lo, hi = tuple(v[:, :2].min(axis=0)), tuple(v[:, :2].max(axis=0))
-        what = "the sample mesh"
+        return
+    from roadgonio.instrument.mesh import sample_triangles
+    v = np.asarray(sample_triangles(instrument).vertices, dtype=np.float64)
+    lo, hi = tuple(v[:, :2].min(axis=0)), tuple(v[:, :2].max(axis=0))
+    what = "the sample mesh"
     tol = 1e-9
     if lo[0] > box.x[0] + tol or hi[0] < box.x[1] - tol or lo[1] > box.y[0] + tol or hi[1] < box.y[1] - tol:
         need_x = 2 * max(abs(box.x[0]), abs(box.x[1]))
         need_y = 2 * max(abs(box.y[0]), abs(box.y[1]))
         raise GeometryError(
             f"{what} does not cover the floor of the housing (x = {box.x[0]:.3f} ... {box.x[1]:.3f} m, "
-            f"y = {box.y[0]:.3f} ... {box.y[1]:.3f} m): the road under the instrument is the sample, and a gap "
-            f"would let light out through it; set [sample] size_x_m >= {need_x:.3f} and size_y_m >= {need_y:.3f}, "
-            "or give [housing] x_m / y_m")
+            f"y = {box.y[0]:.3f} ... {box.y[1]:.3f} m): a gap would let light out through the road; make the mesh "
+            f"at least {need_x:.3f} m x {need_y:.3f} m about the origin, or give [housing] x_m / y_m")
 
 
 def _outside(points: np.ndarray, box: Box, lid: bool) -> str | None:
@@ -355,7 +369,7 @@ def _detector_rays(instrument, n_random: int = 2048, n_rim: int = 32):
 
 
 def check_detector_view(instrument, housing: Housing) -> Box:
-    """The housing around the detector (errors, not wrong numbers): the sample covers the floor,
+    """The housing around the detector (errors, not wrong numbers): a mesh sample covers the floor,
     the pupil and the footprint lie inside the box, and no baffle meets a detected ray between the
     pupil and the sample. Returns the box."""
     from roadgonio.instrument.optics import footprint_boundary

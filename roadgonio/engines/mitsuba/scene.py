@@ -71,6 +71,8 @@ ROAD, LAMBERT = 0, 1
 DEFAULT_MAX_BOUNCES = 3
 #: Lanes of the numerical probe that tells a reflecting BSDF from a black one.
 PROBE_LANES = 4096
+#: Ids of the housing's road floor around the sample (roadgonio.instrument.housing).
+FLOOR_PREFIX = "housing_floor_"
 
 _XML_PARAM_KEYS = ("alpha_deg", "delta_deg", "source_distance_m", "source_radius_m", "source_radiance",
                    "sample_half_x_m", "sample_half_y_m",
@@ -296,14 +298,18 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
     return rs
 
 
-def housing_shapes(instrument: Instrument, housing) -> dict[str, dict]:
+def housing_shapes(instrument: Instrument, housing, model: RoadModel) -> dict[str, dict]:
     """The housing's panels (:meth:`roadgonio.instrument.housing.Housing.panels`) as Mitsuba
     ``rectangle`` shapes by id: Lambertian, reflecting towards the inside of the box (walls and
-    lid one-sided, baffles two-sided); a panel of reflectance 0 only shades."""
+    lid one-sided, baffles two-sided; a panel of reflectance 0 only shades), and the road floor
+    around the sample with the sample's BRDF in the ``road`` channels (the same value in the road
+    and the Lambert channel: a Lambert calibration replaces the sample, not the road around it)."""
     mi = _mi()
     out = {}
     for p in housing.panels(instrument):
         bsdf = {"type": "diffuse", "reflectance": {"type": "uniform", "value": float(p.reflectance)}}
+        if p.road:
+            bsdf = _bsdf_dict(model, "road")
         if p.two_sided:
             bsdf = {"type": "twosided", "bsdf": bsdf}
         out[p.id] = {"type": "rectangle", "to_world": mi.ScalarTransform4f(p.to_world().tolist()), "bsdf": bsdf}
@@ -326,7 +332,7 @@ def _build_toml(instrument, model, *, resolution, spp, sampler, channels, housin
                   "emitter": {"type": "area", "radiance": {"type": "uniform", "value": source_radiance(instrument)}}}
     parts = {"type": "scene", DETECTOR_ID: det, SOURCE_ID: source, SAMPLE_ID: shape}
     if housing is not None:
-        parts.update(housing_shapes(instrument, housing))
+        parts.update(housing_shapes(instrument, housing, model))
     scene = mi.load_dict(parts, optimize=False)          # keep every part (ids) apart: no merged meshes
     sensor = scene.sensors()[0]
     return RoadScene(instrument=instrument, model=model, scene=scene, params=mi.traverse(scene),
@@ -395,10 +401,11 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
             if key in objs:
                 key = f"{key}_{len(objs)}"
             objs[key] = obj
-        clash = sorted(set(objs) & set(housing_shapes(instrument, housing)))
+        panels = housing_shapes(instrument, housing, model)
+        clash = sorted(set(objs) & set(panels))
         if clash:
             raise InputError(f"the XML scene uses the id(s) {', '.join(clash)} of the [housing] panels", path=path)
-        objs.update(housing_shapes(instrument, housing))
+        objs.update(panels)
         scene = mi.load_dict(objs, optimize=False)
     shapes = {s.id(): s for s in scene.shapes()}
     emitters = {e.id(): e for e in scene.emitters()}
@@ -510,6 +517,12 @@ def _light_paths(rs: RoadScene, scene_sec) -> None:
     BSDF in the road/Lambert channels."""
     mi = _mi()
     reflecting, black = classify_parts(rs)
+    # the road floor around a flat sample lies in the sample's plane: it sends light to the footprint
+    # only through another reflecting part
+    lights = [s for s in reflecting if not (rs.flat_rectangle and s.id().startswith(FLOOR_PREFIX))]
+    if not lights:
+        black += [s.id() for s in reflecting]
+        reflecting = []
     given = scene_sec.get("max_bounces") if hasattr(scene_sec, "get") else None
     k = int(given) if given is not None else (DEFAULT_MAX_BOUNCES if reflecting else 1)
     rs.max_bounces = k
