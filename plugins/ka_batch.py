@@ -290,18 +290,33 @@ class KaBatch(mi.SamplingIntegrator):
         return dr.select(is_sample, value.x, grey), dr.select(is_sample, value.y, grey)
 
     def walk_u(self, lattice: dict, keys, dim: int, rep, j):
-        """Uniform numbers of the path dimension ``dim`` for the points j of replicates ``rep``: the
-        lattice's coordinate 6 + dim for the first :attr:`qmc_dims` path dimensions (the lattice then
-        has as many more dimensions), else a counter-based hash (TEA) of the replicate's key and j.
-        Either way a path is a function of (seed, pass, lattice size, replicate, j) only."""
-        if dim < self.qmc_dims:
-            return self._lattice(j, rep, lattice, (LATTICE_DIMS + dim,))[0]
+        """Uniform numbers of the path dimension ``dim`` for the points j of replicates ``rep``: a
+        coordinate of the lattice beyond its first six for the dimensions of :meth:`qmc_index` (the
+        lattice then has :attr:`qmc_dims` more), else a counter-based hash (TEA) of the replicate's key
+        and j. Either way a path is a function of (seed, pass, lattice size, replicate, j) only."""
+        q = self.qmc_index(dim)
+        if q is not None:
+            return self._lattice(j, rep, lattice, (LATTICE_DIMS + q,))[0]
         return mi.sample_tea_float32(dr.gather(mi.UInt32, keys[dim], rep), j, TEA_ROUNDS)
+
+    def qmc_index(self, dim: int) -> int | None:
+        """Which path dimensions come from the lattice (index among them), else None: the first
+        :data:`QMC_EYE_VERTICES` eye vertices' and the light path's source point and emitted
+        direction (measured on the housed portable instrument: lattice coordinates for the light
+        path's further reflection, or for all dimensions, left more variance than hashed ones)."""
+        eye = WALK_DIMS_PER_VERTEX * (self.max_bounces - 1)
+        n_eye = min(eye, WALK_DIMS_PER_VERTEX * QMC_EYE_VERTICES)
+        if dim < n_eye:
+            return dim
+        if self.light_depth and eye <= dim < eye + 4:
+            return n_eye + dim - eye
+        return None
 
     @property
     def qmc_dims(self) -> int:
         """Path dimensions taken from the lattice (the rest are hashed)."""
-        return min(self.walk_dims, QMC_PATH_DIMS)
+        eye = WALK_DIMS_PER_VERTEX * (self.max_bounces - 1)
+        return min(eye, WALK_DIMS_PER_VERTEX * QMC_EYE_VERTICES) + (4 if self.light_depth else 0)
 
     def _reflect(self, scene, si, bsdf, is_sample, tr, tg, pf, alive, u1, u2):
         """One reflection of the eye paths ``si``: sample the BSDF, multiply the road and Lambert
@@ -633,10 +648,10 @@ VERTEX_FIELDS = ("px", "py", "pz", "nx", "ny", "nz", "sx", "sy", "sz", "fx", "fy
 WALK_DIMS_PER_VERTEX = 5
 #: Rounds of the TEA hash of the path dimensions.
 TEA_ROUNDS = 8
-#: Dimensions of a detector sample (pupil 2, field 2, source 2) and how many path dimensions
-#: beyond them come from the lattice too.
+#: Dimensions of a detector sample (pupil 2, field 2, source 2).
 LATTICE_DIMS = 6
-QMC_PATH_DIMS = 32
+#: Eye-path vertices whose dimensions come from the lattice (:meth:`KaBatch.qmc_index`).
+QMC_EYE_VERTICES = 2
 #: Longest light paths (reflections before the connection to the footprint).
 LIGHT_DEPTH = 2
 INV_PI = 1.0 / math.pi
