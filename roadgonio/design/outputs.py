@@ -299,7 +299,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
                 ax.clabel(cs2, fmt=lambda v: f"signal x{v:g}", fontsize=7)
     for (iy, ix) in zip(*np.nonzero(~geo)):
         ax.text(x[ix], y[iy], {"footprint": "F", "horizon": "H", "line_of_sight": "L", "instrument": "I",
-                               "backend": "B"}.get(str(kind[iy, ix]), "x"), ha="center", va="center", fontsize=8,
+                               "housing": "W", "backend": "B"}.get(str(kind[iy, ix]), "x"), ha="center", va="center", fontsize=8,
                 color="0.35")
     feas = sub["feasible"].transpose(yk, xk).values.astype(bool)
     ax.plot(X[feas], Y[feas], ".", color="white", ms=3, ls="none")
@@ -317,7 +317,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
     ax.set_title(f"{ds.attrs['title']}: max |k_A - 1| over cells and samples ({samples})"
                  + (f"\nat {fixed}" if fixed else "")
                  + "\ngrey letters: geometrically impossible (F footprint, H horizon, L line of sight, I instrument, "
-                   "B backend); dots: feasible", fontsize=8.5)
+                   "W housing, B backend); dots: feasible", fontsize=8.5)
     fig.tight_layout()
     out = atomic_savefig(fig, path, dpi=120)
     plt.close(fig)
