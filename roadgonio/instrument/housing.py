@@ -89,7 +89,7 @@ class Baffle:
 @dataclass(frozen=True)
 class Panel:
     """A rectangle of the housing: centre, half-axes ``u`` and ``v`` (m) and the unit normal of
-    its reflecting face (``u x v`` points along it); float64."""
+    its reflecting face (``u x v`` points along it: a right-handed frame); float64."""
 
     id: str
     centre: tuple[float, float, float]
@@ -232,13 +232,13 @@ class Housing:
         zc, hz = 0.5 * (h - e), 0.5 * (h + e)            # from z = -e to h
         rw = self.wall_reflectance
         out = [
-            Panel("housing_wall_x_min", (x0, yc, zc), (0.0, -hy, 0.0), (0.0, 0.0, hz), (1.0, 0.0, 0.0), rw,
+            Panel("housing_wall_x_min", (x0, yc, zc), (0.0, hy, 0.0), (0.0, 0.0, hz), (1.0, 0.0, 0.0), rw,
                   label=f"wall x = {x0:.3g} m"),
-            Panel("housing_wall_x_max", (x1, yc, zc), (0.0, hy, 0.0), (0.0, 0.0, hz), (-1.0, 0.0, 0.0), rw,
+            Panel("housing_wall_x_max", (x1, yc, zc), (0.0, -hy, 0.0), (0.0, 0.0, hz), (-1.0, 0.0, 0.0), rw,
                   label=f"wall x = {x1:.3g} m"),
-            Panel("housing_wall_y_min", (xc, y0, zc), (hx, 0.0, 0.0), (0.0, 0.0, hz), (0.0, 1.0, 0.0), rw,
+            Panel("housing_wall_y_min", (xc, y0, zc), (-hx, 0.0, 0.0), (0.0, 0.0, hz), (0.0, 1.0, 0.0), rw,
                   label=f"wall y = {y0:.3g} m"),
-            Panel("housing_wall_y_max", (xc, y1, zc), (-hx, 0.0, 0.0), (0.0, 0.0, hz), (0.0, -1.0, 0.0), rw,
+            Panel("housing_wall_y_max", (xc, y1, zc), (hx, 0.0, 0.0), (0.0, 0.0, hz), (0.0, -1.0, 0.0), rw,
                   label=f"wall y = {y1:.3g} m"),
         ]
         if self.lid:
@@ -262,7 +262,7 @@ class Housing:
         for k, bf in enumerate(self.baffles, start=1):
             if bf.height_m <= 0.0:
                 continue
-            out.append(Panel(f"housing_baffle_{k}", (bf.x_m, yc, 0.5 * (bf.height_m - e)), (0.0, -hy, 0.0),
+            out.append(Panel(f"housing_baffle_{k}", (bf.x_m, yc, 0.5 * (bf.height_m - e)), (0.0, hy, 0.0),
                              (0.0, 0.0, 0.5 * (bf.height_m + e)), (1.0, 0.0, 0.0), rb, two_sided=True,
                              label=f"baffle {k} (x = {bf.x_m:.3g} m, {1000 * bf.height_m:.3g} mm high)"))
         return out
