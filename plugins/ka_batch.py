@@ -608,28 +608,30 @@ class KaBatch(mi.SamplingIntegrator):
         lam = sum((o[1] for o in out[1:]), out[0][1])
         return self._bin_sums(road, lam, len(block_cell), lattice)
 
-    def picture_lanes(self, scene, sensor, lattice: dict, keys, cell: int = 0) -> dict:
-        """One replicate of a one-cell launch (``roadgonio render``), per lane as float64 numpy:
+    def picture_lanes(self, scene, sensor, lattice: dict, keys, cell: int = 0, reps: int = 1) -> dict:
+        """``reps`` replicates of a one-cell launch (``roadgonio render``), per lane as float64 numpy
+        (``rep``: the lane's replicate):
         the film position (``u``, ``v``: the lattice's dimensions 2, 3, as :meth:`trace_paths` passes
         them to the sensor), the direct road and Lambert values (detector weight included), and the
         stray light as ``(road, Lambert, part)`` triples, one per contribution (next-event estimation
         at each eye vertex, the light-path strategies); ``part`` indexes :attr:`parts` by the last
         reflection before the footprint."""
-        rays, verts, _ = self.trace_paths(scene, sensor, lattice, 1, keys)
-        n = lattice["n"]
-        j = dr.arange(mi.UInt32, n)
-        rep = mi.UInt32(0) * j
+        rays, verts, _ = self.trace_paths(scene, sensor, lattice, int(reps), keys)
+        r = dr.arange(mi.UInt32, int(reps) * lattice["n"])
+        j = r & lattice["mask"]
+        rep = r >> lattice["shift_log2"]
         c = mi.UInt32(int(cell)) + 0 * j
         u, v = self._lattice(j, rep, lattice, (2, 3))
         u4, u5 = self._lattice(j, rep, lattice, (4, 5))
-        x0, w0 = self.vertex0(rays, j)
+        x0, w0 = self.vertex0(rays, r)
         direct = self.shade(scene, x0, c, mi.Point2f(u4, u5), w0 > 0.0) * w0
-        part1 = self.part_index(dr.gather(mi.ShapePtr, verts[0][1], j))
+        part1 = self.part_index(dr.gather(mi.ShapePtr, verts[0][1], r))
         out = [(road, lam, part1) for road, lam, _ in
-               (self.eye_light(scene, verts[k - 1], lattice, j, j, c, rep, keys, k) for k in self.eye_vertices())]
+               (self.eye_light(scene, verts[k - 1], lattice, r, j, c, rep, keys, k) for k in self.eye_vertices())]
         if self.light_depth:
-            out += self.path_light(scene, rays, verts[0], lattice, j, j, c, rep, keys)
-        res = {"u": u, "v": v, "direct_road": mi.Float(direct.x), "direct_lambert": mi.Float(direct.y)}
+            out += self.path_light(scene, rays, verts[0], lattice, r, j, c, rep, keys)
+        res = {"u": u, "v": v, "rep": mi.Float(rep), "direct_road": mi.Float(direct.x),
+               "direct_lambert": mi.Float(direct.y)}
         for q, (road, lam, part) in enumerate(out):
             res[f"road_{q}"], res[f"lambert_{q}"], res[f"part_{q}"] = road, lam, part
         dr.eval(res)

@@ -120,9 +120,11 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     return info
 
 
-#: Lanes of one replicate of the stray picture, and the replicates (for the standard error).
-STRAY_PICTURE_LOG2 = 17
-STRAY_PICTURE_REPLICATES = 8
+#: Points of one replicate of the stray picture, the replicates (many small lattices: the per-pixel
+#: means of one large lattice show its stripes), and the replicates per launch.
+STRAY_PICTURE_LOG2 = 12
+STRAY_PICTURE_REPLICATES = 256
+STRAY_PICTURE_BATCH = 32
 #: Pixels per side of the stray picture.
 STRAY_PICTURE_RESOLUTION = 96
 
@@ -158,15 +160,18 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
     by_part = np.zeros((replicates, P, 2))
     rs.sensor.mapping = "square"
     try:
-        for b in range(replicates):
-            lattice = integ.lattice_params(n, z, shifts[b:b + 1])
-            keys = [_u32(keys_all[b:b + 1, d]) for d in range(keys_all.shape[1])]
-            lanes = integ.picture_lanes(rs.scene, rs.sensor, lattice, keys)
+        for b0 in range(0, replicates, STRAY_PICTURE_BATCH):
+            b1 = min(replicates, b0 + STRAY_PICTURE_BATCH)
+            lattice = integ.lattice_params(n, z, shifts[b0:b1])
+            keys = [_u32(keys_all[b0:b1, d]) for d in range(keys_all.shape[1])]
+            lanes = integ.picture_lanes(rs.scene, rs.sensor, lattice, keys, reps=b1 - b0)
+            rep = b0 + lanes["rep"].astype(np.int64)
             pix = (np.minimum((lanes["v"] * res).astype(np.int64), res - 1) * res
                    + np.minimum((lanes["u"] * res).astype(np.int64), res - 1))
             counts += np.bincount(pix, minlength=res * res)
             sums[0] += np.bincount(pix, lanes["direct_road"], minlength=res * res)
-            reps[b, 0], reps[b, 1] = lanes["direct_road"].sum(), lanes["direct_lambert"].sum()
+            reps[:, 0] += np.bincount(rep, lanes["direct_road"], minlength=replicates)
+            reps[:, 1] += np.bincount(rep, lanes["direct_lambert"], minlength=replicates)
             q = 0
             while f"road_{q}" in lanes:
                 part = np.minimum(lanes[f"part_{q}"].astype(np.int64), P - 1)
@@ -175,9 +180,10 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
                 for p_ in range(P):
                     m = part == p_
                     sums[2 + p_] += np.bincount(pix[m], road[m], minlength=res * res)
-                    by_part[b, p_] += (road[m].sum(), lamb[m].sum())
-                reps[b, 2] += road.sum()
-                reps[b, 3] += lamb.sum()
+                    by_part[:, p_, 0] += np.bincount(rep[m], road[m], minlength=replicates)
+                    by_part[:, p_, 1] += np.bincount(rep[m], lamb[m], minlength=replicates)
+                reps[:, 2] += np.bincount(rep, road, minlength=replicates)
+                reps[:, 3] += np.bincount(rep, lamb, minlength=replicates)
                 q += 1
             del lanes
             dr.flush_malloc_cache()
