@@ -19,7 +19,7 @@ when the caller asks for a variant. The rooms: :mod:`roadgonio.surface`,
 :mod:`roadgonio.instrument`, :mod:`roadgonio.engines`, :mod:`roadgonio.uncertainty`,
 :mod:`roadgonio.correction`, :mod:`roadgonio.design`, :mod:`roadgonio.road` (README, Architecture).
 """
-__version__ = "0.1.0"
+from roadgonio._version import __version__
 
 __all__ = ["ka_table", "ka_cell", "read_table", "write_table", "fit", "correct", "uncertainty", "design",
            "__version__"]

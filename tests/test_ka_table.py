@@ -161,8 +161,8 @@ def test_finished_run_is_never_overwritten_by_another_even_without_its_journal(t
     run_cells(again, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
     assert again.calls == cells
     # another roadgonio version is another run
-    import roadgonio
-    monkeypatch.setattr(roadgonio, "__version__", roadgonio.__version__ + ".dev-other")
+    from roadgonio import _version
+    monkeypatch.setattr(_version, "__version__", _version.__version__ + ".dev-other")
     (tmp_path / JOURNAL).unlink()
     with pytest.raises(InputError, match="different run"):
         run_cells(StandIn(tag=0), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)

@@ -8,7 +8,7 @@ from importlib import metadata
 
 import pytest
 
-from roadgonio import __version__
+from roadgonio._version import __version__
 from roadgonio.instrument.config import load_instrument
 from roadgonio.provenance import provenance, versions
 from roadgonio.surface.model import RoadModel, RoadParams

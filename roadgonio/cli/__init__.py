@@ -12,7 +12,7 @@ import importlib
 import pkgutil
 import sys
 
-from roadgonio import __version__
+from roadgonio._version import __version__
 from roadgonio.errors import RoadgonioError
 
 #: Order in which commands are listed in --help (others follow alphabetically).

@@ -168,8 +168,8 @@ def compute_table(task: TableTask, *, prepare: bool = True) -> TableResult:
 
 
 def _worker_versions() -> dict[str, Any]:
-    import roadgonio
-    return {"roadgonio": roadgonio.__version__, "pid": os.getpid(), "file": roadgonio.__file__}
+    import roadgonio._version as version
+    return {"roadgonio": version.__version__, "pid": os.getpid(), "file": version.__file__}
 
 
 try:  # the plugin class needs distributed; roadgonio itself does not import it
@@ -271,12 +271,12 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
 
 
 def _check_workers(client) -> None:
-    import roadgonio
+    import roadgonio._version as version
     found = client.run(_worker_versions)
-    bad = {w: v["roadgonio"] for w, v in found.items() if v["roadgonio"] != roadgonio.__version__}
+    bad = {w: v["roadgonio"] for w, v in found.items() if v["roadgonio"] != version.__version__}
     if bad:
         raise BackendError(f"Dask workers run another roadgonio version ({', '.join(f'{w}: {v}' for w, v in bad.items())}; "
-                           f"this is {roadgonio.__version__}): start the workers from the same environment")
+                           f"this is {version.__version__}): start the workers from the same environment")
 
 
 def describe(client) -> dict[str, Any]:

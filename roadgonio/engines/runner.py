@@ -47,10 +47,10 @@ FLUSH_SECONDS = 1.0
 
 def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) -> str:
     """Hash of everything that determines the numbers of a run, the roadgonio version included."""
-    from roadgonio import __version__
+    from roadgonio import _version
     payload = {"instrument": instrument.to_dict(), "model": {"variant": model.variant,
                                                               "params": model.params.to_dict()},
-               "backend": backend.name, "settings": backend.settings(), "roadgonio": __version__}
+               "backend": backend.name, "settings": backend.settings(), "roadgonio": _version.__version__}
     return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
 
 

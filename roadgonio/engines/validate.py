@@ -276,7 +276,7 @@ def report_json(report: dict[str, Any]) -> dict[str, Any]:
     doc = {k: v for k, v in report.items() if k != "rows"}
     doc["cells"] = [asdict(r) for r in report["rows"]]
     try:
-        from roadgonio import __version__
+        from roadgonio._version import __version__
         doc["roadgonio_version"] = __version__
     except ImportError:  # pragma: no cover
         pass

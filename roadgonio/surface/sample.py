@@ -22,7 +22,7 @@ import os
 import sys
 from pathlib import Path
 
-from roadgonio import __version__
+from roadgonio._version import __version__
 from roadgonio.errors import InputError
 from roadgonio.surface.model import DEFAULT_VARIANT, VARIANTS, RoadModel
 from roadgonio.surface.rtable import BUNDLED, RTable, load_table
