@@ -10,7 +10,8 @@ import pytest
 
 from roadgonio.errors import InputError
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, w_detector, w_source
-from roadgonio.surface.model import (PARAM_BOUNDS, THETA_R_STAR, VARIANTS, NumpyOps, RoadModel, RoadParams,
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import (PARAM_BOUNDS, THETA_R_STAR, VARIANTS, RoadModel, RoadParams,
                              road_brdf)
 
 pytestmark = pytest.mark.unit

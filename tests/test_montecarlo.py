@@ -110,7 +110,8 @@ def test_buffered_draws_are_the_documented_stream():
     from roadgonio.engines.montecarlo import MonteCarloBackend, _stratified_disc
     from roadgonio.instrument.config import load_instrument
     from roadgonio.instrument.optics import concentric_disc
-    from roadgonio.surface.model import NumpyOps, RoadModel
+    from roadgonio.arrays import NumpyOps
+    from roadgonio.surface.model import RoadModel
     b = MonteCarloBackend(load_instrument("portable"), RoadModel.lambert(), batch=64 ** 2)
     r1, r2 = np.random.default_rng(9), np.random.default_rng(9)
     for _ in range(3):

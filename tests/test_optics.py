@@ -10,7 +10,7 @@ from scipy import stats
 from roadgonio.errors import GeometryError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import load_instrument
-from roadgonio.surface.model import NumpyOps as xp
+from roadgonio.arrays import NumpyOps as xp
 from roadgonio.instrument.optics import (check_detector, check_source, concentric_disc, detector_geometry,
                               detector_ray, hit_plane, source_coupling, source_geometry, source_point)
 

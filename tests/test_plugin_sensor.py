@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel
 from roadgonio.instrument.optics import (concentric_disc, detector_geometry, detector_ray, hit_plane, source_coupling,
                               source_geometry, source_point)
 

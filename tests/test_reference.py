@@ -61,7 +61,7 @@ def test_field_level_coordinates_integrate_the_lit_segment(r3like):
 
 
 def optics_ops():
-    from roadgonio.surface.model import NumpyOps
+    from roadgonio.arrays import NumpyOps
     return NumpyOps
 
 

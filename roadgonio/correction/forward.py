@@ -48,7 +48,8 @@ from roadgonio.errors import GeometryError, InputError
 from roadgonio.geometry import cos3_eps
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel, road_brdf
 
 #: The terms of the model that carry a linear coefficient (the columns of the forward model).
 LINEAR_TERMS = ("k_diff", "k_phong", "k_retro", "k_exp")

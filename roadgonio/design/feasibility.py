@@ -59,7 +59,7 @@ def _cells_text(cells: Sequence[tuple[float, float]], n_max: int = 3) -> str:
 
 def _bundle_rays(instrument: Instrument, n_rim: int = 32, n_inner: int = 5):
     """Origins and unit directions of detector rays (pupil rim/centre/interior x field rim/interior)."""
-    from roadgonio.surface.model import NumpyOps
+    from roadgonio.arrays import NumpyOps
     geo = optics.detector_geometry(instrument)
     ang = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
     rim = np.stack([np.cos(ang), np.sin(ang)], -1)

@@ -48,7 +48,8 @@ from roadgonio.engines import CellResult, KaBackend
 from roadgonio.errors import GeometryError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel
 
 #: Default relative tolerance of eta.
 ETA_RTOL = 1e-6

@@ -31,7 +31,8 @@ import numpy as np
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
 from roadgonio.engines.montecarlo import _stratified_disc
 from roadgonio.engines.reference import check_nominal, check_numpy_scene

@@ -30,7 +30,8 @@ import numpy as np
 from roadgonio.instrument import optics
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
 
 DEFAULT_REL_SE = 1e-3

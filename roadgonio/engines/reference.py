@@ -79,7 +79,8 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
 
 #: Default target of the relative error bound of each k_A.

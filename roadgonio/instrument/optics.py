@@ -200,7 +200,7 @@ def footprint_boundary(instrument: Instrument, n: int = 96) -> tuple[np.ndarray,
     fx, fy = np.cos(ang), np.sin(ang)
     PX, FX = np.meshgrid(px, fx, indexing="ij")
     PY, FY = np.meshgrid(py, fy, indexing="ij")
-    from roadgonio.surface.model import NumpyOps
+    from roadgonio.arrays import NumpyOps
     o, d, _ = detector_ray(NumpyOps, geo, (PX.ravel(), PY.ravel()), (FX.ravel(), FY.ravel()))
     if np.any(np.asarray(d[2]) >= 0.0):
         raise GeometryError("the detector does not see the sample plane: some detected rays point upwards "

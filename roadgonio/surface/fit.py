@@ -44,7 +44,8 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
 from roadgonio.provenance import versions
-from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS, NumpyOps,
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS,
                     RoadModel, RoadParams, road_brdf)
 from roadgonio.surface.rtable import RTable
 

@@ -16,7 +16,8 @@ from roadgonio.geometry import (
     w_source,
 )
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.uncertainty.surrogate import N_COORDS
 from roadgonio.uncertainty.cells import CellSet, q0_weights
 from roadgonio.uncertainty.spec import ILLUMINANCE

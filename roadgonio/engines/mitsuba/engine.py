@@ -64,7 +64,7 @@ def detector_bundle(instrument: Instrument, n: int = 1024, seed: int = 7) -> tup
     """Rays of the detector (pupil rim x field rim, plus ``n`` random ones), float64: origins,
     unit directions and the distance to the sample plane."""
     from roadgonio.instrument.optics import detector_ray, hit_plane
-    from roadgonio.surface.model import NumpyOps
+    from roadgonio.arrays import NumpyOps
     geo = detector_geometry(instrument)
     ang = np.linspace(0.0, 2 * np.pi, 32, endpoint=False)
     rim = np.stack([np.cos(ang), np.sin(ang)], -1)
