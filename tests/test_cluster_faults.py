@@ -27,7 +27,7 @@ CRASH_MODULE = textwrap.dedent('''
 def test_dead_worker_is_a_worker_error_and_the_rest_finishes(tmp_path):
     import dask
 
-    from roadgonio.design import cluster
+    from roadgonio.engines import cluster
     from roadgonio.instrument.config import load_instrument
     from roadgonio.surface.model import RoadModel
     (tmp_path / "rg_crash_backend.py").write_text(CRASH_MODULE)
@@ -57,7 +57,8 @@ def test_design_reports_a_worker_error_as_failed_with_a_retry_hint(tmp_path, mon
     """The design room's handling of a WorkerError result: the point is 'failed' (not infeasible,
     not a backend refusal), the reason says to run again, and nothing is journalled for it, so
     the next run computes it."""
-    from roadgonio.design import cluster, run_design
+    from roadgonio.design import run_design
+    from roadgonio.engines import cluster
 
     real = cluster.map_tables
     calls = {"n": 0}

@@ -1,5 +1,5 @@
 """``roadgonio correct`` on Dask (issue 12: ``--workers N`` / ``--scheduler``) and the generic
-:func:`roadgonio.design.cluster.map_calls` under it: on a local cluster of two worker processes
+:func:`roadgonio.engines.cluster.map_calls` under it: on a local cluster of two worker processes
 (started by the command, on the loopback interface, torn down by it) the corrected tables of two
 measured files are byte for byte those of the in-process run. The deterministic quadrature and
 small ray bundles keep it short; the same seeds and the same shipped bundles make Monte Carlo
@@ -71,7 +71,7 @@ def test_correct_two_files_on_two_workers_is_identical_to_in_process(tmp_path, c
 
 @pytest.fixture(scope="module")
 def client():
-    from roadgonio.design.cluster import open_client
+    from roadgonio.engines.cluster import open_client
     with open_client(workers=2, backend=None) as c:
         yield c
 
@@ -82,7 +82,7 @@ def test_map_calls_order_shared_object_and_errors(client):
     and fields), and the in-process route gives the same results."""
     import operator
 
-    from roadgonio.design.cluster import _check_address, map_calls
+    from roadgonio.engines.cluster import _check_address, map_calls
     from roadgonio.errors import InputError
     items = list(range(12))
     seen = []

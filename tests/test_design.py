@@ -286,7 +286,7 @@ def test_resume_reads_finished_tables_and_refuses_another_design(tmp_path):
 
 @pytest.mark.unit
 def test_seeds_depend_only_on_the_root_and_the_point():
-    from roadgonio.design.cluster import seeds_for
+    from roadgonio.engines.cluster import seeds_for
     a, b = seeds_for(7, 3), seeds_for(7, 10)
     assert a == b[:3] and len(set(b)) == 10 and seeds_for(8, 3) != a
     assert all(0 <= s < 2 ** 31 for s in b)

@@ -581,7 +581,7 @@ def _correct_task(job: tuple, shared: Mapping[str, Any]) -> tuple[CorrectionResu
     res = correct_measured(table, shared["instrument"], reference=shared["reference"],
                            reference_name=shared["reference_name"], out_dir=folder, **options)
     if shared.get("cluster") is not None:
-        from roadgonio.design.cluster import _worker_name
+        from roadgonio.engines.cluster import _worker_name
         res.provenance["cluster"] = {**shared["cluster"], "computed_by": _worker_name()}
     return res, write_correction(res, folder, plots=shared["plots"])
 
@@ -600,7 +600,7 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
     one call of :func:`_correct_task`: one after the other in this process by default, or one
     Dask task each with ``client``, ``workers`` (a local cluster of that many worker processes;
     0 = here) or ``scheduler`` (an existing cluster), through
-    :func:`roadgonio.design.cluster.map_calls`. The artefacts are built here and shipped to the
+    :func:`roadgonio.engines.cluster.map_calls`. The artefacts are built here and shipped to the
     workers once (they pickle: plain numpy arrays and frozen dataclasses), so every table gets
     the same bundles and the same seeds wherever it runs: the results are identical to the
     in-process run whatever the number of workers. The workers write the journals and outputs
@@ -653,14 +653,14 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
               "plots": plots, "options": options, "cluster": None}
     jobs = list(zip(tables, folders, alts))
     if not distributed:
-        from roadgonio.design.cluster import map_calls
+        from roadgonio.engines.cluster import map_calls
         return [(res, job[1], written) for job, (res, written) in zip(jobs, map_calls(_correct_task, jobs, None,
                                                                                      shared=shared))]
     return _correct_on_dask(jobs, shared, client=client, workers=workers, scheduler=scheduler, progress=progress)
 
 
 def _correct_on_dask(jobs, shared, *, client, workers, scheduler, progress) -> list:
-    from roadgonio.design import cluster as _cluster
+    from roadgonio.engines import cluster as _cluster
     options = dict(shared["options"])
     options["progress"] = False                  # no terminal on a worker: the bar over tables is here
     if isinstance(options.get("u_measured"), (str, Path)):

@@ -8,7 +8,7 @@ Rooms:
 * :mod:`.feasibility`: geometry checks of a point with the reason it is impossible (never a crash);
 * :mod:`.metrics`: the signal (etendue x source solid angle, formula documented there) and the
   deviations of k_A from 1;
-* :mod:`.cluster`: Dask (local cluster of worker processes or an existing scheduler), the
+* Dask (local cluster of worker processes or an existing scheduler): :mod:`roadgonio.engines.cluster`,
   :class:`~.cluster.TableTask` unit "k_A table of (instrument, model, cells, backend, settings,
   seed)" that ``uncertainty`` and ``correct`` reuse;
 * :mod:`.run`: the journal (resume), the Dataset; :mod:`.outputs`: design.nc, design.csv, best.toml,

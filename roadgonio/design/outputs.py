@@ -139,7 +139,7 @@ def toml_text(d: dict[str, Any], header: str = "") -> str:
 
 
 def write_best(ds, path: Path) -> Path | None:
-    from roadgonio.design.cluster import absolute_instrument_dict
+    from roadgonio.engines.cluster import absolute_instrument_dict
     from roadgonio.design.run import best_instrument, point_index, summary
     inst = best_instrument(ds)
     if inst is None:

@@ -9,7 +9,7 @@ another ``--out``). The tolerance is not part of the fingerprint: a rerun with a
 re-judges the finished tables at no cost.
 
 Seeds: design point k (C order of the grid) gets ``SeedSequence(seed).spawn(n_points)[k]``
-(:func:`roadgonio.design.cluster.seeds_for`) for all its samples, so the numbers do not depend on the
+(:func:`roadgonio.engines.cluster.seeds_for`) for all its samples, so the numbers do not depend on the
 number of workers, on the cluster or on the order in which tables finish, and ``roadgonio ka --seed
 S`` on ``best.toml`` reproduces the best design's tables exactly (S is in ``design.csv``).
 """
@@ -31,7 +31,7 @@ from roadgonio.errors import InputError
 from roadgonio.fileio import atomic_write_text, output_error, read_journal, to_json
 from roadgonio.instrument.config import Instrument, load_instrument
 from roadgonio.surface.model import RoadModel
-from roadgonio.design import cluster as _cluster
+from roadgonio.engines import cluster as _cluster
 from roadgonio.design.feasibility import check_point
 from roadgonio.design.grid import VarySpec, as_vary_specs, grid_points, grid_shape, parse_tolerance
 from roadgonio.design.metrics import SIGNAL_FORMULA, deviations, detector_etendue, signal_product, source_solid_angle
@@ -127,7 +127,7 @@ def run_design(instrument, vary=None, samples="R3", *, tolerance: float | str = 
     ``"5%"``); ``cells``: ``all``, ``table`` or ``"T:B,T:B,..."``; ``backend``/``accuracy``/
     ``settings``: as :func:`roadgonio.engines.make_backend`; ``seed``: root of the per-point seeds.
     Distribution: ``client`` (an existing ``distributed.Client``), else ``workers``/``scheduler`` as
-    :func:`roadgonio.design.cluster.open_client` (default: a local cluster, one process per core;
+    :func:`roadgonio.engines.cluster.open_client` (default: a local cluster, one process per core;
     ``workers=0`` computes here). With ``out``, journals every table (resumable) and writes
     design.nc, design.csv, best.toml, pareto.png and tolerance_map.png (``plots``).
     """
