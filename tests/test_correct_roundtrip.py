@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from roadgonio.correction.reference import nearest_standard_tables
+from roadgonio.surface.cie import nearest_bundled
 from roadgonio.correction.run import correct_measured
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.rtable import read_table
@@ -53,7 +53,7 @@ def test_round_trip_reference_self(mode):
     u_k = np.sqrt(np.maximum(res.budget.u_rel() ** 2 - res.budget.u_rel("measurement") ** 2, 0.0))
     assert np.mean(np.abs(k_err) <= 2 * u_k + 2e-3) >= COVERAGE_MIN
     # the classic route with the nearest CIE table as reference, beside it: clearly worse
-    near = nearest_standard_tables(meas, 1)[0][0]
+    near = nearest_bundled(meas.s1(), meas.q0(), 1)[0][0]
     ref = correct_measured(meas, inst, reference=near, alternatives="none", u_measured="1%", backend="quadrature",
                            accuracy="fast", progress=False)
     r = scores(ref, truth)

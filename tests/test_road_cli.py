@@ -105,7 +105,7 @@ def test_classify_bundled_tables_fall_in_their_own_class(capsys, name):
 
 
 def test_classify_limits(tmp_path):
-    from roadgonio.road.classify import class_by_s1
+    from roadgonio.surface.cie import class_by_s1
     assert class_by_s1(0.4199, "R")[0] == "R1" and class_by_s1(0.42, "R")[0] == "R2"
     assert class_by_s1(0.85, "R")[0] == "R3" and class_by_s1(1.35, "R")[0] == "R4"
     assert class_by_s1(0.399, "C")[0] == "C1" and class_by_s1(0.40, "C")[0] == "C2"

@@ -18,7 +18,7 @@ from roadgonio.engines import CellResult
 from roadgonio.surface.model import RoadModel, RoadParams
 from roadgonio.surface.rtable import bundled_table
 from roadgonio.uncertainty import (CellSet, MeasurementModel, _rotations, coverage_indices,
-                                   numerical_tolerance, parse_sigma_spec, q0_weights, run_uncertainty,
+                                   numerical_tolerance, parse_sigma_spec, run_uncertainty, standard_q0_weights,
                                    summarize, write_results)
 
 pytestmark = pytest.mark.unit
@@ -133,10 +133,22 @@ def test_source_distance_scales_by_inverse_square_and_measured_mode_ignores_it()
     assert np.allclose(mea.r_measured(X)[0], mea.r_measured(np.zeros((1, 7)))[0], rtol=EXACT_TOL)
 
 
-def test_q0_weights_reproduce_rtable_q0():
-    t = bundled_table("R3")
-    w = q0_weights()
-    assert abs(np.nansum(w * np.nan_to_num(t.r)) / t.q0() - 1) < EXACT_TOL
+def test_q0_weights_reproduce_the_trapezoidal_q0():
+    """Q0 from the weights equals the CIE 144 mean of q over the tabulated solid angle written out
+    here independently: the trapezoidal rule of r t over the complete grid cells (q dOmega =
+    r t dt dbeta) over the exact solid angle of the same cells."""
+    for name in ("R1", "R3", "C2"):
+        t = bundled_table(name)
+        te, b = t.tan_eps, np.radians(t.beta_deg)
+        rt = t.r * te[:, None]
+        c = rt[:-1, :-1] + rt[:-1, 1:] + rt[1:, :-1] + rt[1:, 1:]
+        ok = np.isfinite(c)
+        num = np.sum(np.where(ok, c / 4.0 * np.diff(te)[:, None] * np.diff(b)[None, :], 0.0))
+        g = 1.0 - 1.0 / np.sqrt(1.0 + te * te)
+        omega = np.sum(np.where(ok, np.diff(g)[:, None] * np.diff(b)[None, :], 0.0))
+        w = standard_q0_weights()
+        assert abs(np.nansum(w * np.nan_to_num(t.r)) / (num / omega) - 1) < EXACT_TOL
+        assert abs(t.q0() / (num / omega) - 1) < EXACT_TOL
 
 
 # -- statistics ------------------------------------------------------------------------------

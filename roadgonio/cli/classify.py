@@ -18,7 +18,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     from roadgonio.fileio import to_json
-    from roadgonio.road.classify import classify
+    from roadgonio.surface.cie import classify
     from roadgonio.surface.rtable import load_table
 
     res = classify(load_table(args.table))

@@ -110,26 +110,12 @@ class RTable:
 
     def q0(self) -> float:
         """Average luminance coefficient Q0 (sr^-1): mean of q over the solid angle of the
-        tabulated illumination directions (CIE 144).
-
-        With t = tan eps, q dOmega = r t dt dbeta. The integral is the trapezoidal rule over every
-        grid cell whose four corners are tabulated; Omega0 is the exact solid angle of the same
-        cells. CIE 144 uses a table of weighting factors that we do not have, so this agrees with
-        the published Q0 to a few percent (DESIGN.md section 2; data/rtables/SOURCES.md).
-        """
-        t = self.tan_eps
-        b = np.radians(self.beta_deg)
-        rt = self.r * t[:, None]
-        c = rt[:-1, :-1] + rt[:-1, 1:] + rt[1:, :-1] + rt[1:, 1:]
-        ok = np.isfinite(c)
-        dt = np.diff(t)[:, None]
-        db = np.diff(b)[None, :]
-        num = np.sum(np.where(ok, c / 4.0 * dt * db, 0.0))
-        g = 1.0 - 1.0 / np.sqrt(1.0 + t * t)
-        omega = np.sum(np.where(ok, np.diff(g)[:, None] * db, 0.0))
-        if not omega > 0.0:       # no grid cell with four tabulated corners: Q0 is undefined
+        tabulated illumination directions (CIE 144), ``sum(q0_weights(mask) * r)``
+        (:func:`q0_weights`); NaN when no grid cell has four tabulated corners."""
+        w = q0_weights(self.mask, self.tan_eps, self.beta_deg)
+        if w is None:
             return math.nan
-        return float(num / omega)
+        return float(np.sum(np.where(w > 0.0, w * self.r, 0.0)))
 
     def s2(self) -> float:
         """S2 = Q0 / r(0, 0) (CIE 144)."""
@@ -183,6 +169,34 @@ class RTable:
     def write(self, path: str | Path) -> Path:
         """Write by suffix: ``.rtb`` as DIALux RTB, anything else as CSV."""
         return self.write_rtb(path) if Path(path).suffix.lower() == ".rtb" else self.write_csv(path)
+
+
+def q0_weights(mask: np.ndarray, tan_eps: np.ndarray = TAN_EPS_GRID,
+               beta_deg: np.ndarray = BETA_GRID_DEG) -> np.ndarray | None:
+    """Weights w (the grid's shape) with Q0 = sum w r over the tabulated cells ``mask`` (CIE 144;
+    the one definition of Q0: :meth:`RTable.q0`, the correction's budget and the uncertainty of Q0
+    all use it); None when no grid cell has four tabulated corners (Q0 undefined).
+
+    With t = tan eps, q dOmega = r t dt dbeta. The integral is the trapezoidal rule over every grid
+    cell whose four corners are tabulated (each corner carries t/4 of the cell's dt dbeta), divided
+    by Omega0, the exact solid angle of the same cells (the area of dOmega = d(1 - cos eps) dbeta).
+    CIE 144 uses a table of weighting factors that we do not have, so this agrees with the
+    published Q0 to a few percent (roadgonio/data/rtables/SOURCES.md)."""
+    mask = np.asarray(mask, dtype=bool)
+    t = np.asarray(tan_eps, dtype=np.float64)
+    b = np.radians(np.asarray(beta_deg, dtype=np.float64))
+    quad = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, :-1] & mask[1:, 1:]
+    area = np.where(quad, np.diff(t)[:, None] * np.diff(b)[None, :] / 4.0, 0.0)
+    g = 1.0 - 1.0 / np.sqrt(1.0 + t * t)
+    omega = float(np.sum(np.where(quad, np.diff(g)[:, None] * np.diff(b)[None, :], 0.0)))
+    if not omega > 0.0:
+        return None
+    w = np.zeros(mask.shape)
+    w[:-1, :-1] += area
+    w[:-1, 1:] += area
+    w[1:, :-1] += area
+    w[1:, 1:] += area
+    return w * t[:, None] / omega
 
 
 def _fmt(v: float, digits: int) -> str:

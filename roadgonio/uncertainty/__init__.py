@@ -66,7 +66,7 @@ coefficients, y +- k u(y), and the JCGM 101 section 8 comparison (d_low, d_high 
 Rooms: :mod:`.spec`, :mod:`.cells`, :mod:`.measurement`, :mod:`.statistics`, :mod:`.gum`, :mod:`.run`, :mod:`.report`.
 """
 from roadgonio.uncertainty.spec import CELL_SETS, DISTRIBUTIONS, ILLUMINANCE, INPUTS, INPUT_HELP, SPEC_HELP, SigmaSpec, _parse_entry, _spec_from_mapping, parse_sigma_spec  # noqa: F401
-from roadgonio.uncertainty.cells import CellSet, q0_weights, standard_mask  # noqa: F401
+from roadgonio.uncertainty.cells import CellSet, standard_mask, standard_q0_weights  # noqa: F401
 from roadgonio.uncertainty.measurement import MeasurementModel, _rotations  # noqa: F401
 from roadgonio.uncertainty.statistics import coverage_indices, numerical_tolerance, summarize  # noqa: F401
 from roadgonio.uncertainty.gum import gum_propagation, gum_validation  # noqa: F401
