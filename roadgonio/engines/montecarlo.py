@@ -157,8 +157,7 @@ class MonteCarloBackend(CellByCellBackend):
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
         optics.check_source(self.instrument, tan_eps, beta_deg)
-        from roadgonio.engines.reference import check_line_of_sight
-        check_line_of_sight(self.instrument, tan_eps, beta_deg)
+        optics.check_line_of_sight(self.instrument, [(tan_eps, beta_deg)])
         ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
         if not (ideal > 0.0 and math.isfinite(ideal)):
             raise GeometryError(f"the model is {ideal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "

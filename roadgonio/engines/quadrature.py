@@ -261,8 +261,7 @@ class QuadratureBackend(CellByCellBackend):
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
         optics.check_source(self.instrument, tan_eps, beta_deg)
-        from roadgonio.engines.reference import check_line_of_sight
-        check_line_of_sight(self.instrument, tan_eps, beta_deg)
+        optics.check_line_of_sight(self.instrument, [(tan_eps, beta_deg)])
         nominal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg) / math.pi
         if not (nominal > 0.0 and math.isfinite(nominal)):
             raise GeometryError(f"the model is {nominal:g} at the nominal geometry (tan eps = {tan_eps:g}, "
