@@ -45,7 +45,8 @@ import numpy as np
 
 from roadgonio.engines import CellResult, ratio_se
 from roadgonio.engines.calibration import apply_calibration, centre_coupling, illuminance_ratio
-from roadgonio.errors import GeometryError, InputError
+from roadgonio.engines.cellcheck import check_cells, no_light
+from roadgonio.errors import InputError
 from roadgonio.geometry import cos3_eps
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
@@ -211,8 +212,7 @@ class RayBundles:
             lam = float(wg.sum())
             if not lam > 0.0:
                 t, b = cells[i]
-                raise GeometryError(f"no detected ray receives light from the source at tan eps = {t:g}, beta = "
-                                    f"{b:g}: k_A is undefined there")
+                raise no_light(t, b)
             a = wg / lam
             for k, arr in zip(("wix", "wiy", "wiz", "wox", "woy", "woz"), (*wi, *wo)):
                 parts[k].append(arr)
@@ -408,6 +408,7 @@ class BundleBackend:
                 on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
         t0 = time.perf_counter()
         cells = [(float(t), float(b)) for t, b in cells]
+        check_cells(self.instrument, self.model, cells)          # what every backend checks first
         sizes = self.sizes_of(cells) if self.sizes_of is not None else None
         bundles = RayBundles.build(self.instrument, cells, rays=self.rays, replicates=self.replicates,
                                    seed=self.seed, max_factor=self.max_factor, sizes=sizes)

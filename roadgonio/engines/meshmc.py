@@ -35,9 +35,10 @@ from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
-from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
+from roadgonio.engines import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.cellcheck import check_cell, no_light
 from roadgonio.engines.montecarlo import _stratified_disc
-from roadgonio.engines.reference import check_nominal, check_numpy_scene
+from roadgonio.engines.reference import check_numpy_scene
 
 DEFAULT_REL_SE = 1e-3
 DEFAULT_BATCH = 1 << 12
@@ -294,10 +295,7 @@ class MeshMonteCarloBackend(CellByCellBackend):
     def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
-        optics.check_source(self.instrument, tan_eps, beta_deg)
-        optics.check_line_of_sight(self.instrument, [(tan_eps, beta_deg)])
-        ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
-        check_nominal(ideal, tan_eps, beta_deg)
+        ideal = check_cell(self.instrument, self.model, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         rng = np.random.default_rng([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6)), 77])
         road, lam = [], []
@@ -309,8 +307,7 @@ class MeshMonteCarloBackend(CellByCellBackend):
             lam.append(l_ / math.pi)
             if len(road) >= self.min_batches:
                 if not np.sum(lam) > 0.0:
-                    raise GeometryError(f"no detected ray receives light from the source at tan eps = {tan_eps:g}, "
-                                        f"beta = {beta_deg:g}: k_A is undefined")
+                    raise no_light(tan_eps, beta_deg)
                 ratio, rse = ratio_se(np.array(road), np.array(lam))
                 k, se = ratio / ideal, rse / ideal
                 if se <= self.rel_se * abs(k):

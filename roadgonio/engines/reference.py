@@ -81,7 +81,8 @@ from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
-from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
+from roadgonio.engines import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.cellcheck import check_cell, no_light
 
 #: Default target of the relative error bound of each k_A.
 DEFAULT_RTOL = 1e-4
@@ -486,10 +487,7 @@ class ReferenceBackend(CellByCellBackend):
         target = self.rtol if rtol is None else float(rtol)
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
-        optics.check_source(self.instrument, tan_eps, beta_deg)
-        optics.check_line_of_sight(self.instrument, [(tan_eps, beta_deg)])
-        nominal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
-        check_nominal(nominal, tan_eps, beta_deg)
+        nominal = check_cell(self.instrument, self.model, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         self._level_coords = self._h_varies(src)
         R = self.replicates
@@ -528,12 +526,12 @@ class ReferenceBackend(CellByCellBackend):
                     converged = True
                     break
             elif self.dim == 0 or m >= 30:
-                raise_no_light(tan_eps, beta_deg)
+                raise no_light(tan_eps, beta_deg, "(the footprint lies behind the source disc, or the source beam misses it)")
             if 2 * evals > self.max_evals or m >= self.max_log2:   # the next level doubles the work
                 break
             m += 1
         if not math.isfinite(k):
-            raise_no_light(tan_eps, beta_deg)
+            raise no_light(tan_eps, beta_deg, "(the footprint lies behind the source disc, or the source beam misses it)")
         extra = {"points_per_replicate": npts, "replicates": R, "replicate_se": float(se),
                  "confidence": self.confidence, "t_factor": self.t_factor, "converged": converged,
                  "history": history[-4:], **map_info}
@@ -565,21 +563,6 @@ def _integer(v, name: str) -> int:
     if iv != v:
         raise InputError(f"expected an integer, got {v!r}", field=name)
     return iv
-
-
-def check_nominal(nominal: float, tan_eps: float, beta_deg: float) -> None:
-    """k_A = measured / nominal needs a positive, finite model value at the nominal geometry."""
-    from roadgonio.errors import GeometryError
-    if not (nominal > 0.0 and math.isfinite(nominal)):
-        raise GeometryError(f"the model is {nominal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "
-                            f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
-
-
-def raise_no_light(tan_eps: float, beta_deg: float):
-    from roadgonio.errors import GeometryError
-    raise GeometryError(f"no detected ray receives light from the source at tan eps = {tan_eps:g}, beta = "
-                        f"{beta_deg:g} (the footprint lies behind the source disc, or the source beam misses it): "
-                        "k_A is undefined")
 
 
 def check_numpy_scene(instrument: Instrument, backend: str, *, mesh_ok: bool = False) -> None:

@@ -11,10 +11,11 @@ accumulated in float64. Dr.Jit's LLVM backend splits every large launch over its
 (``dr.thread_count()``, all cores by default); nothing here is specific to the CPU, so a CUDA
 variant runs the same code (not tested here: this machine has no GPU).
 
-Geometry checks (errors, not wrong numbers): the source of every cell must be above the horizon and
-its beam limit, if any, must not clip the footprint (:mod:`roadgonio.engines.mitsuba.scene`); its
-disc must not block the detector's view (:func:`roadgonio.instrument.optics.source_blocks_view`, the
-test every backend uses); every traced detector ray must hit the sample (counted in every launch).
+Geometry checks (errors, not wrong numbers): the preamble of every backend
+(:func:`roadgonio.engines.cellcheck.check_cells`: the source above the horizon, its disc out of the
+detector's view, the model positive at the nominal geometry; the area emitter has no beam limit, so
+a beam limit that clips the footprint is refused); every traced detector ray must hit the sample
+(counted in every launch).
 """
 from __future__ import annotations
 
@@ -27,9 +28,9 @@ import numpy as np
 from roadgonio.errors import GeometryError
 from roadgonio.engines.mitsuba import lattice as lat
 from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strata, covariance, relative
-from roadgonio.engines.mitsuba.scene import RoadScene, check_beam, source_radiance
+from roadgonio.engines.mitsuba.scene import RoadScene, source_radiance
 from roadgonio.instrument.config import Instrument
-from roadgonio.instrument.optics import check_line_of_sight, check_source
+from roadgonio.engines.cellcheck import check_cells
 
 #: Largest number of detector rays traced (and stored: 13 floats each) per launch.
 MAX_RAYS = 1 << 21
@@ -116,12 +117,9 @@ class BatchEngine:
 
     # -- checks --------------------------------------------------------------------------------
     def check_cells(self, cells: Sequence[tuple[float, float]]) -> None:
-        inst = self.instrument
-        for t, b in cells:
-            check_source(inst, t, b)
-            if inst.source.beam_half_angle_deg is not None:
-                check_beam(inst, t, b)
-        check_line_of_sight(inst, cells)
+        """The preamble of every backend (:func:`roadgonio.engines.cellcheck.check_cells`); the area
+        emitter has no beam limit, so a clipping one is refused."""
+        check_cells(self.instrument, self.rs.model, cells, models_beam=False, backend="mitsuba")
 
     # -- the passes ----------------------------------------------------------------------------
     def run(self, cells: Sequence[tuple[float, float]], planner: Planner, *, seed: int = 0,
