@@ -12,13 +12,14 @@
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
 import secrets
 import shutil
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from roadgonio.errors import InputError
 
@@ -245,6 +246,15 @@ def _jsonable(obj: Any) -> Any:
 def to_json(obj: Any, indent: int | None = 2) -> str:
     """Strict JSON (NaN and infinities as null, numpy values as numbers)."""
     return json.dumps(_jsonable(obj), indent=indent, allow_nan=False)
+
+
+def fingerprint(payload: Mapping[str, Any], length: int = 16) -> str:
+    """The fingerprint of what determines a result (a journal's or a checkpoint's header): the
+    first ``length`` hex digits of the SHA-256 of ``payload`` with the roadgonio version added
+    (``{**payload, "roadgonio": __version__}``), as compact strict JSON (:func:`to_json`). Callers
+    put in the numbers (instrument and model values, backend settings, seeds...), not names."""
+    from roadgonio._version import __version__
+    return hashlib.sha256(to_json({**payload, "roadgonio": __version__}, indent=None).encode()).hexdigest()[:length]
 
 
 def atomic_write_json(path: str | Path, obj: Any) -> Path:

@@ -15,7 +15,6 @@ S`` on ``best.toml`` reproduces the best design's tables exactly (S is in ``desi
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -28,7 +27,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write_text, output_error, read_journal, to_json
+from roadgonio.fileio import atomic_write_text, fingerprint, output_error, read_journal, to_json
 from roadgonio.instrument.config import Instrument, load_instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.engines import cluster as _cluster
@@ -92,10 +91,6 @@ def _load_base(instrument) -> Instrument:
     p = Path(str(instrument))
     # an absolute path: with_changes re-reads relative mesh/XML paths against the file's folder
     return load_instrument(p.resolve() if p.exists() else instrument)
-
-
-def _fingerprint(payload: Mapping[str, Any]) -> str:
-    return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
 
 
 def _read_journal(path: Path, fp: str) -> dict[tuple[int, int], dict]:
@@ -166,7 +161,7 @@ def run_design(instrument, vary=None, samples="R3", *, tolerance: float | str = 
                   "samples": [[s.name, {"variant": s.model.variant, "params": s.model.params.to_dict()},
                                [list(c) for c in s.cells]] for s in smp],
                   "backend": backend, "accuracy": accuracy, "settings": settings, "seed": int(seed)}
-    fp = _fingerprint(fp_payload)
+    fp = fingerprint(fp_payload)
     done: dict[tuple[int, int], dict] = {}
     fh = None
     out_dir = Path(out) if out is not None else None

@@ -38,7 +38,6 @@ the instrument's ``[calibration] mode`` (:mod:`roadgonio.instrument.calibration`
 """
 from __future__ import annotations
 
-import json
 import math
 from typing import Any, Callable, Sequence
 
@@ -46,6 +45,7 @@ import numpy as np
 
 from roadgonio.engines import CellResult, KaBackend
 from roadgonio.errors import GeometryError, InputError
+from roadgonio.fileio import fingerprint
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
@@ -223,7 +223,7 @@ def illuminance_ratio(instrument: Instrument, tan_eps: float, beta_deg: float, *
     <E> is the mean horizontal illuminance over the detected footprint, weighted like the detector
     signal (etendue x k_D); E_0 the horizontal illuminance at the sample centre; both from the
     uniform source disc (a point source if its radius is 0). Cached per instrument and cell."""
-    key = (json.dumps(instrument.to_dict(), sort_keys=True, default=str), round(float(tan_eps), 9),
+    key = (fingerprint({"instrument": instrument.to_dict()}), round(float(tan_eps), 9),
            round(float(beta_deg), 9), float(rtol))
     if key not in _ETA_CACHE:
         integ = _INTEGRATORS.get(key[0])

@@ -18,7 +18,6 @@ Output folder (``--out DIR``):
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -31,7 +30,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write, output_error, read_journal, to_json
+from roadgonio.fileio import atomic_write, fingerprint as _fingerprint, output_error, read_journal, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
@@ -46,12 +45,11 @@ FLUSH_SECONDS = 1.0
 
 
 def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) -> str:
-    """Hash of everything that determines the numbers of a run, the roadgonio version included."""
-    from roadgonio import _version
-    payload = {"instrument": instrument.to_dict(), "model": {"variant": model.variant,
-                                                              "params": model.params.to_dict()},
-               "backend": backend.name, "settings": backend.settings(), "roadgonio": _version.__version__}
-    return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
+    """Fingerprint of everything that determines the numbers of a run (:func:`roadgonio.fileio.fingerprint`:
+    the instrument, the model's variant and parameters, the backend and its settings, the version)."""
+    return _fingerprint({"instrument": instrument.to_dict(), "model": {"variant": model.variant,
+                                                                        "params": model.params.to_dict()},
+                         "backend": backend.name, "settings": backend.settings()})
 
 
 @dataclass
