@@ -3,12 +3,12 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import sys
 from pathlib import Path
 
 from roadgonio.cli._common import add_output_options, show_progress, text_output
 from roadgonio.errors import InputError
+from roadgonio.fileio import to_json
 from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANT_PARAMS, VARIANTS
 
 
@@ -100,7 +100,7 @@ def run(args) -> int:
             plot_fit(result, g.path("fit.png"))
     say = text_output(args)
     if args.json:
-        print(json.dumps(result.to_json_dict(), indent=2))
+        print(to_json(result.to_json_dict()))
     else:
         P = result.model.params
         say(f"{table.name} ({args.variant}): max |dev| {result.max_dev_pct:.2f} %, RMS {result.rms_dev_pct:.2f} % "

@@ -1,12 +1,12 @@
 """``roadgonio ka``: the aperture-effect factor k_A of an instrument for a sample, one cell or a table."""
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
 
 from roadgonio.errors import InputError
+from roadgonio.fileio import to_json
 from roadgonio.engines.accuracy import PRESETS
 from roadgonio.surface.model import VARIANTS
 from roadgonio.cli._common import (
@@ -109,8 +109,8 @@ def _run(args, single: bool, figures) -> int:
         c = run_.results[0]
         seconds = c.seconds if run_.resumed else time.perf_counter() - t0
         if args.json:
-            print(json.dumps(_finite_json({"k_a": c.k_a, "se": c.se, "error_bound": c.error_bound,
-                                           "converged": c.converged, "samples": c.samples, "seconds": seconds})))
+            print(to_json({"k_a": c.k_a, "se": c.se, "error_bound": c.error_bound, "converged": c.converged,
+                           "samples": c.samples, "seconds": seconds}, indent=None))
         else:
             prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error")
             text_output(args)(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
@@ -140,7 +140,7 @@ def _run(args, single: bool, figures) -> int:
     s = meta["summary"]
     say = text_output(args)
     if args.json:
-        print(json.dumps({"out": str(out_dir), **s}, indent=2))
+        print(to_json({"out": str(out_dir), **s}))
     else:
         say(f"k_A for {instrument.name} x {sample_name} ({backend.name}): {s['cells']} cells "
             f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
@@ -161,7 +161,3 @@ def _not_converged_text(c, target) -> str:
             "carries that larger uncertainty")
 
 
-def _finite_json(d: dict) -> dict:
-    """NaN/inf -> None, so that --json output is valid JSON."""
-    import math
-    return {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in d.items()}

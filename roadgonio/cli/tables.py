@@ -1,8 +1,7 @@
 """``roadgonio tables`` (list the bundled tables) and ``roadgonio table`` (show or convert one)."""
 from __future__ import annotations
 
-import json
-
+from roadgonio.fileio import to_json
 from roadgonio.cli._common import add_output_options, text_output
 from roadgonio.surface.rtable import BUNDLED, PUBLISHED_Q0, PUBLISHED_S1, bundled_table, load_table
 
@@ -30,7 +29,7 @@ def run_tables(args) -> int:
         rows.append({"table": name, "Q0": t.q0(), "Q0_published": PUBLISHED_Q0[name], "S1": t.s1(),
                      "S1_published": PUBLISHED_S1[name], "S2": t.s2(), "cells": int(t.mask.sum())})
     if args.json:
-        print(json.dumps(rows, indent=2))
+        print(to_json(rows))
         return 0
     say = text_output(args)
     say(f"{'table':6} {'Q0':>7} {'(CIE)':>6} {'S1':>7} {'(CIE)':>6} {'S2':>6} {'cells':>6}")
@@ -50,7 +49,7 @@ def run_table(args) -> int:
         info["written"] = str(path)
     say = text_output(args)
     if args.json:
-        print(json.dumps(info, indent=2))
+        print(to_json(info))
     else:
         say(f"{t.name}: Q0 = {info['Q0']:.4f} sr^-1, S1 = {info['S1']:.3f}, S2 = {info['S2']:.2f}, "
               f"{info['cells']} tabulated cells, max r = {info['r_max'] * 1e4:.4g} x 1e-4")

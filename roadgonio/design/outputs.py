@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from roadgonio.fileio import atomic_write, atomic_write_text, atomic_savefig
+from roadgonio.fileio import atomic_write, atomic_write_text, atomic_savefig, to_json
 
 CSV_TAIL = ("max_abs_dev", "rms_dev", "signal", "feasible", "reason")
 CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_se", "footprint_length_m", "seed")
@@ -61,7 +61,7 @@ def write_netcdf(ds, path: Path) -> Path:
     enc = ds.copy()
     for k, v in list(enc.attrs.items()):
         if not isinstance(v, (str, int, float, np.integer, np.floating)):
-            enc.attrs[k] = json.dumps(v)
+            enc.attrs[k] = to_json(v, indent=None)
     return atomic_write(path, lambda p: enc.to_netcdf(p, engine="scipy", format="NETCDF3_64BIT"))
 
 
@@ -111,7 +111,7 @@ def _toml_value(v) -> str:
             return '"inf"'
         return repr(v)
     if isinstance(v, str):
-        return json.dumps(v)
+        return json.dumps(v)          # a TOML basic string (JSON's escapes are TOML's)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
