@@ -111,7 +111,7 @@ def main(argv=None) -> int:
     from roadgonio.engines import full_grid_cells, ideal_ratios, make_backend
     from roadgonio.instrument.config import load_instrument
     from roadgonio.surface.sample import resolve_sample
-    model = resolve_sample(args.sample)
+    model = resolve_sample(args.sample).model
     cells = full_grid_cells()
     rows = []
     print(f"k_A engine benchmark: sample {args.sample} ({model.variant}), target worst rel SE {args.rel_se:g}, "

@@ -530,7 +530,7 @@ def correct_measured(measured: RTable, instrument: Instrument, *, reference: Any
         ref_model, name = reference, reference_name or reference.name or "reference"
     else:
         from roadgonio.surface.sample import resolve_sample
-        ref_model, name = resolve_sample(str(reference), model_variant), reference_name or sample_name(str(reference))
+        ref_model, name = resolve_sample(str(reference), model_variant).model, reference_name or sample_name(str(reference))
     alts = alternatives if isinstance(alternatives, Mapping) else resolve_alternatives(
         alternatives, measured, reference_name=name, model_variant=model_variant)
     keep = {k: v for k, v in options.items() if k in ("u_measured", "sigma", "backend", "backend_settings",
@@ -643,7 +643,7 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
         artefacts = None
         if not isinstance(reference, RoadModel):
             ref_name = ref_name or sample_name(str(reference))
-            reference = resolve_sample(str(reference), model_variant)
+            reference = resolve_sample(str(reference), model_variant).model
         ref_name = ref_name or reference.name or "reference"
         alts = [alternatives if isinstance(alternatives, Mapping) else resolve_alternatives(
             alternatives, t, reference_name=ref_name, model_variant=model_variant) for t in tables]

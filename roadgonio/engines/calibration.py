@@ -44,7 +44,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from roadgonio.engines import CellResult, KaBackend
+from roadgonio.engines.result import CellResult, KaBackend
 from roadgonio.errors import GeometryError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument

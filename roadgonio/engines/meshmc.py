@@ -33,9 +33,9 @@ from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
-from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
+from roadgonio.engines.result import CellByCellBackend, CellResult, ideal_ratio, ratio_se
 from roadgonio.engines.montecarlo import _stratified_disc
-from roadgonio.engines.reference import check_nominal, check_numpy_scene
+from roadgonio.engines.reference import check_nominal
 
 DEFAULT_REL_SE = 1e-3
 DEFAULT_BATCH = 1 << 12
@@ -213,7 +213,6 @@ class MeshMonteCarloBackend(CellByCellBackend):
         if _integer(min_batches, "min_batches") < 2:
             raise InputError(f"expected at least 2 batches (for a standard error), got {min_batches}",
                              field="min_batches")
-        check_numpy_scene(instrument, self.name, mesh_ok=True)
         optics.footprint_boundary(instrument)    # the detector must look downwards
         self.instrument = instrument
         self.model = model

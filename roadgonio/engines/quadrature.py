@@ -51,7 +51,7 @@ from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.instrument import optics
-from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio
+from roadgonio.engines.result import CellByCellBackend, CellResult, ideal_ratio
 
 #: Gauss-Legendre orders of one direction of a disc rule, by level.
 ORDERS = (1, 2, 3, 4, 6, 8, 11, 16, 22, 32, 45, 64, 90, 128, 180, 256)
@@ -151,9 +151,6 @@ class QuadratureBackend(CellByCellBackend):
             raise InputError(f"expected a relative tolerance 0 < rtol < 1, got {rtol:g}", field="rtol")
         if int(max_evals) < 1:
             raise InputError(f"expected a positive number of evaluations, got {max_evals}", field="max_evals")
-        # refuse what this backend does not model (an XML scene's extra parts, a mesh sample)
-        from roadgonio.engines.reference import check_numpy_scene
-        check_numpy_scene(instrument, "quadrature")
         optics.check_detector(instrument)   # GeometryError: footprint off the sample / upward rays
         self.instrument = instrument
         self.model = model

@@ -81,7 +81,7 @@ from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
-from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
+from roadgonio.engines.result import CellByCellBackend, CellResult, ideal_ratio, ratio_se
 
 #: Default target of the relative error bound of each k_A.
 DEFAULT_RTOL = 1e-4
@@ -228,7 +228,6 @@ class ReferenceBackend(CellByCellBackend):
         seed = _integer(seed, "seed")
         if seed < 0:
             raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
-        check_numpy_scene(instrument, "reference")
         optics.check_detector(instrument)
         from scipy.stats import t as student_t
         self.instrument = instrument
@@ -611,23 +610,6 @@ def check_line_of_sight(instrument: Instrument, tan_eps: float, beta_deg: float,
         raise GeometryError(f"the source disc blocks the detector's line of sight at tan eps = {tan_eps:g}, beta = "
                             f"{beta_deg:g}: {int(blocked.sum())} of {blocked.size} checked detector rays meet the "
                             "source before the sample; this cell cannot be measured with this geometry")
-
-
-def check_numpy_scene(instrument: Instrument, backend: str, *, mesh_ok: bool = False) -> None:
-    """The numpy backends model the instrument's discs, an optional beam limit and a flat
-    rectangular sample (or, with ``mesh_ok``, a mesh); they refuse what else a scene declares
-    rather than ignore it: a Mitsuba XML scene (``[scene] xml``: its holder walls, rails...),
-    a mesh sample (unless ``mesh_ok``)."""
-    scene = instrument.extra.get("scene") if isinstance(instrument.extra, dict) or hasattr(instrument.extra, "get") else None
-    if scene:
-        what = "a Mitsuba XML scene" if isinstance(scene, dict) and "xml" in scene else "a [scene] section"
-        raise InputError(f"the {backend} backend does not model {what} (its extra geometry would be ignored, "
-                         "giving a different instrument); use --backend mitsuba, or an instrument file "
-                         "without [scene]", path=instrument.path, field="scene")
-    if instrument.sample.mesh is not None and not mesh_ok:
-        alt = "numpy-mc-mesh (independent check) or mitsuba"
-        raise InputError(f"the {backend} backend integrates over a flat rectangular sample only; for a mesh "
-                         f"sample use --backend {alt}", path=instrument.path, field="sample.mesh")
 
 
 #: Settings a caller may pass (``make_backend("reference", ..., **settings)``).

@@ -37,7 +37,7 @@ from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
 from roadgonio.surface.model import RoadModel
 from roadgonio.surface.rtable import RTable
-from roadgonio.engines import CellResult, KaBackend
+from roadgonio.engines.result import CellResult, KaBackend
 
 JOURNAL = "ka_cells.jsonl"
 META = "ka.json"

@@ -115,7 +115,7 @@ def parse_cells(text: str | None) -> list[tuple[float, float]]:
     if text is None or text.strip() in ("", "extremes", "default"):
         return list(DEFAULT_CELLS)
     if text.strip() == "all":
-        from roadgonio.engines import full_grid_cells
+        from roadgonio.engines.cells import full_grid_cells
         return full_grid_cells()
     cells = []
     for item in text.split(","):
@@ -209,7 +209,7 @@ def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[flo
     report dict with ``rows`` (:class:`CellComparison`), ``counts``, ``verdict``, ``exit_status``,
     ``settings`` and timings. ``rtol`` fixes the reference's target (default: per cell, what the
     test needs)."""
-    from roadgonio.engines import make_backend
+    from roadgonio.engines.registry import make_backend
     if against not in ("mitsuba", "numpy-mc"):
         raise InputError(f"expected --against mitsuba or numpy-mc, got {against!r}", field="--against")
     ref_name = resolve_reference(instrument, reference)

@@ -68,7 +68,7 @@ class Calibration:
             raise InputError("the instrument is not calibrated against a reference sample", field="calibration.mode")
         from roadgonio.surface.sample import resolve_sample
         try:
-            return resolve_sample(self.reference, variant)
+            return resolve_sample(self.reference, variant).model
         except InputError as err:
             raise InputError(f"[calibration] reference: {err.reason}", path=err.path, line=err.line,
                              field="calibration.reference") from None

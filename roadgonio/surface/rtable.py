@@ -121,6 +121,34 @@ class RTable:
         """S2 = Q0 / r(0, 0) (CIE 144)."""
         return self.q0() / self.value(0.0, 0.0)
 
+    # -- xarray (the Python API's r-table) ----------------------------------------------------
+    def to_dataarray(self):
+        """The table as an ``xarray.DataArray`` of r in sr^-1 (not r x 10^4) over ``tan_eps`` x
+        ``beta`` (degrees), NaN where blank; ``attrs`` name and source."""
+        import xarray as xr
+        return xr.DataArray(
+            self.r.copy(), dims=("tan_eps", "beta"),
+            coords={"tan_eps": ("tan_eps", self.tan_eps.copy(), {"long_name": "tan(epsilon)", "units": "1"}),
+                    "beta": ("beta", self.beta_deg.copy(), {"long_name": "beta", "units": "deg"})},
+            name="r", attrs={"name": self.name, "source": self.source, "units": "sr^-1",
+                             "long_name": "reduced luminance coefficient r = q cos^3(epsilon)",
+                             "note": "r itself, not r x 10^4; NaN = not measured"})
+
+    @classmethod
+    def from_dataarray(cls, da, what: str = "table") -> "RTable":
+        """An RTable from an r-table DataArray (dims ``tan_eps`` and ``beta`` on the CIE grid, r in
+        sr^-1); errors name ``what``."""
+        if set(da.dims) != {"tan_eps", "beta"}:
+            raise InputError(f"expected a DataArray with dims (tan_eps, beta), got {da.dims}", field=what)
+        da = da.transpose("tan_eps", "beta")
+        for dim, grid in (("tan_eps", TAN_EPS_GRID), ("beta", BETA_GRID_DEG)):
+            got = np.asarray(da[dim].values, dtype=np.float64)
+            if got.shape != grid.shape or np.max(np.abs(got - grid)) > GRID_TOL:
+                raise InputError(f"the {dim} coordinate is not the CIE grid ({', '.join(f'{v:g}' for v in grid)})",
+                                 field=what)
+        return cls(np.asarray(da.values, dtype=np.float64), name=str(da.attrs.get("name", da.name or "table")),
+                   source=str(da.attrs.get("source", "")))
+
     def same_grid(self, other: "RTable") -> bool:
         return (self.r.shape == other.r.shape
                 and np.allclose(self.tan_eps, other.tan_eps, atol=GRID_TOL, rtol=0)
@@ -419,13 +447,16 @@ def bundled_table(name: str) -> RTable:
 
 
 def load_table(spec: str | Path) -> RTable:
-    """A bundled table by name (``R3``) or a table file path."""
-    s = str(spec)
-    if s.strip().upper() in BUNDLED and not Path(s).exists():
-        return bundled_table(s)
-    p = Path(s)
+    """A bundled table by name (``R3``, any case) or a table file: a text with a suffix is a file,
+    one without is a bundled name (the rule of :mod:`roadgonio.surface.sample`)."""
+    s = str(spec).strip()
+    if isinstance(spec, str) and not Path(s).suffix:
+        if s.upper() in BUNDLED:
+            return bundled_table(s)
+        raise InputError(f"not a bundled table ({', '.join(BUNDLED)}) nor a table file (.csv/.rtb)", field="table")
+    p = Path(s).expanduser()
     if not p.exists():
-        raise InputError(f"not a bundled table ({', '.join(BUNDLED)}) and no such file", path=p)
+        raise InputError("no such table file", path=p)
     return read_table(p)
 
 

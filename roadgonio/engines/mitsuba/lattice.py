@@ -103,7 +103,7 @@ def shifts(seed: int, pass_index: int, log2n: int, count: int) -> np.ndarray:
     """``count`` independent uniform shifts (count, 6) of one pass and lattice size: a function of
     (seed, pass, lattice size) only, so a cell's replicate b of a pass is the same lattice
     whichever other cells share the launch."""
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(pass_index), int(log2n)])
+    rng = np.random.default_rng([int(seed), int(pass_index), int(log2n)])   # the full seed (no 32-bit reduction)
     return rng.random((int(count), DIMENSIONS))
 
 
