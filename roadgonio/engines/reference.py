@@ -48,8 +48,8 @@ Randomised QMC with replicate error bars. ``replicates`` (R, default 10) indepen
 Sobol' sequences (scipy.stats.qmc.Sobol, linear matrix scrambling with a digital shift) each give
 the paired means <w f G> and <w G / pi> over their first 2^m points; m grows by one until the
 error bound meets ``rtol``. The estimate is the ratio of the pooled means and its standard error
-the delta-method SE over the R replicate pairs (:func:`roadgonio.engines.ratio_se`); the reported
-``CellResult.error_bound`` is a confidence bound::
+the delta-method SE over the R replicate pairs (:func:`roadgonio.engines.result.ratio_se`); the reported
+``CellResult.confidence_bound`` is::
 
     bound = t_(R-1)(1 - (1 - confidence)/2) * SE       (confidence 0.999: 4.78 SE for R = 10)
 
@@ -59,8 +59,10 @@ is a *statistical* bound at the stated confidence, honest up to a 1e-3 chance pe
 (bench/make_reference_long.py). Against a lucky small SE at the stopping level (sequential
 stopping), a cell stops only when the bound meets the target *and* the previous level's estimate
 lies within its own bound of the new one. A cell that reaches ``max_evals`` integrand evaluations
-or ``max_log2`` reports ``converged = False`` with the bound it achieved. ``se`` is NaN (the
-validator needs the bound); the replicate SE is in ``extra["replicate_se"]``.
+or ``max_log2`` reports ``converged = False`` with the bound it achieved. The result carries both,
+each with its one meaning (:mod:`roadgonio.engines.result`): ``se`` is the replicate standard error
+(what an uncertainty budget uses), ``confidence_bound`` the Student-t bound at
+``confidence_level`` (what the validator adds as a bound); ``error_bound`` (deterministic) is NaN.
 
 What this reference does not split: a source beam limit (``beam_half_angle_deg``: a jump on a
 cone) and g's kink at theta_l are integrated as they are (RQMC stays unbiased and its error bars
@@ -540,8 +542,9 @@ class ReferenceBackend(CellByCellBackend):
             extra["note"] = (f"stopped at its cap (max_evals = {self.max_evals}, max_log2 = {self.max_log2}): the "
                              f"relative error bound {bound / abs(k):.2e} exceeds rtol = {target:g}")
         extra["rtol"] = target
-        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=math.nan, error_bound=float(bound),
-                          converged=converged, samples=int(evals), seconds=time.perf_counter() - t0, extra=extra)
+        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), confidence_bound=float(bound),
+                          confidence_level=self.confidence, converged=converged, samples=int(evals),
+                          seconds=time.perf_counter() - t0, extra=extra)
 
 
 def _number(v, name: str) -> float:
