@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from roadgonio.fileio import atomic_write, atomic_write_text, atomic_savefig
+from roadgonio.fileio import atomic_savefig, atomic_write_text, read_netcdf, write_netcdf
 
 CSV_TAIL = ("max_abs_dev", "rms_dev", "signal", "feasible", "reason")
 CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_se", "footprint_length_m", "seed")
@@ -57,23 +57,9 @@ def write_outputs(ds, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
 
 
 # ----------------------------------------------------------------------------------------------
-def write_netcdf(ds, path: Path) -> Path:
-    enc = ds.copy()
-    for k, v in list(enc.attrs.items()):
-        if not isinstance(v, (str, int, float, np.integer, np.floating)):
-            enc.attrs[k] = json.dumps(v)
-    return atomic_write(path, lambda p: enc.to_netcdf(p, engine="scipy", format="NETCDF3_64BIT"))
-
-
 def read_design(path: str | Path):
     """Open a ``design.nc`` (booleans come back as booleans)."""
-    import xarray as xr
-    with xr.open_dataset(path, engine="scipy") as ds:
-        ds = ds.load()
-    for v in ("feasible", "geometry_ok"):
-        if v in ds:
-            ds[v] = ds[v].astype(bool)
-    return ds
+    return read_netcdf(path, booleans=("feasible", "geometry_ok"))
 
 
 def _fmt(v) -> str:

@@ -161,15 +161,8 @@ class RTable:
 
     # -- writing -----------------------------------------------------------------------------
     def to_csv_text(self, scale: float = R_SCALE, digits: int = 6) -> str:
-        out = io.StringIO()
-        src = self.source or f"roadgonio table {self.name}"
-        for line in src.splitlines() or [""]:
-            out.write(f"# {line}\n" if not line.startswith("#") else line + "\n")
-        w = csv.writer(out, lineterminator="\n")
-        w.writerow(["tan_eps"] + [_fmt(b, 6) for b in self.beta_deg])
-        for i, t in enumerate(self.tan_eps):
-            w.writerow([_fmt(t, 6)] + ["" if not np.isfinite(v) else _fmt(v * scale, digits) for v in self.r[i]])
-        return out.getvalue()
+        return grid_csv_text(self.r, self.source or f"roadgonio table {self.name}", scale=scale, digits=digits,
+                             tan_eps=self.tan_eps, beta_deg=self.beta_deg)
 
     def write_csv(self, path: str | Path, scale: float = R_SCALE, digits: int = 6) -> Path:
         return atomic_write_text(path, self.to_csv_text(scale, digits))
@@ -197,6 +190,21 @@ class RTable:
     def write(self, path: str | Path) -> Path:
         """Write by suffix: ``.rtb`` as DIALux RTB, anything else as CSV."""
         return self.write_rtb(path) if Path(path).suffix.lower() == ".rtb" else self.write_csv(path)
+
+
+def grid_csv_text(values: np.ndarray, source: str, *, scale: float = 1.0, digits: int = 6,
+                  tan_eps: np.ndarray = TAN_EPS_GRID, beta_deg: np.ndarray = BETA_GRID_DEG) -> str:
+    """Any quantity over the grid (an r-table, k_A, its standard error...) in the r-table CSV layout
+    (module docstring): ``# source`` comment lines, the beta header, one row per tan eps, values
+    times ``scale`` (r-tables: :data:`R_SCALE`), a blank where the value is NaN."""
+    out = io.StringIO()
+    for line in str(source).splitlines() or [""]:
+        out.write(f"# {line}\n" if not line.startswith("#") else line + "\n")
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(["tan_eps"] + [_fmt(b, 6) for b in beta_deg])
+    for i, t in enumerate(tan_eps):
+        w.writerow([_fmt(t, 6)] + ["" if not np.isfinite(v) else _fmt(v * scale, digits) for v in values[i]])
+    return out.getvalue()
 
 
 def q0_weights(mask: np.ndarray, tan_eps: np.ndarray = TAN_EPS_GRID,
