@@ -289,3 +289,12 @@ def read_netcdf(path: str | Path, booleans: tuple[str, ...] = ()):
         if v in ds:
             ds[v] = ds[v].astype(bool)
     return ds
+
+
+def safe_name(name: str, fallback: str = "unnamed", max_len: int = 80) -> str:
+    """A name (an instrument's, a table's, a sample's) made safe as ONE folder or file name: letters,
+    digits, '-', '_' and '.', anything else '_', no leading dot (so never '.' or '..'), at most
+    ``max_len`` characters; ``fallback`` when nothing is left. Output folders derived from names
+    use it, so a name like '../x' cannot make a folder escape the working folder."""
+    out = "".join(c if (c.isascii() and c.isalnum()) or c in "-_." else "_" for c in str(name)).lstrip(".")
+    return out[:max_len] or fallback

@@ -186,22 +186,3 @@ def parse_tolerance(text: str | float) -> float:
         raise InputError(f"a tolerance of {v:g} on |k_A - 1| would accept k_A = 0; for a percentage write "
                          f"'{v:g}%'", field="--tolerance")
     return v
-
-
-def sample_cells(spec: str, sample: str) -> list[tuple[float, float]]:
-    """The cells computed for ``sample``: ``all`` (580-cell grid), ``table`` (the cells tabulated in
-    the sample's r-table) or a list ``T:B,T:B,...`` (tan eps : beta deg), parsed by the one cells
-    parser of the project (:func:`roadgonio.engines.validate.parse_cells`)."""
-    s = str(spec).strip()
-    if s == "table":
-        from roadgonio.surface.rtable import load_table
-        try:
-            table = load_table(sample)
-        except InputError:
-            raise InputError(f"--cells table needs samples that are r-tables (bundled name or table file); "
-                             f"{sample!r} is not", field="--cells") from None
-        return list(table.cells)
-    if s in ("", "extremes", "default"):
-        raise InputError("expected --cells all, table or a list T:B,T:B,...", field="--cells")
-    from roadgonio.engines.validate import parse_cells
-    return parse_cells(s)

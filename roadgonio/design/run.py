@@ -29,7 +29,7 @@ import numpy as np
 
 from roadgonio.errors import InputError
 from roadgonio.fileio import atomic_write_text, output_error, read_journal, to_json
-from roadgonio.instrument.config import Instrument, load_instrument
+from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.engines import cluster as _cluster
 from roadgonio.design.feasibility import check_point
@@ -50,48 +50,20 @@ class SampleSpec:
     cells: tuple[tuple[float, float], ...]
 
 
-def _sample_name(spec: str) -> str:
-    p = Path(spec)
-    return p.stem if p.suffix else str(spec)
-
-
-def resolve_samples(samples, cells: str, model_variant: str | None = None) -> list[SampleSpec]:
-    """Sample specifications (strings as for ``roadgonio ka --sample``, RoadModel objects or
-    ``(name, RoadModel)`` pairs) with the cells to compute for each."""
-    from roadgonio.design.grid import sample_cells as _cells
-    from roadgonio.surface.sample import resolve_sample
-    if samples is None or isinstance(samples, (str, RoadModel)) or (isinstance(samples, tuple) and len(samples) == 2
-                                                                      and isinstance(samples[1], RoadModel)):
-        samples = [samples] if samples is not None else []
+def resolve_samples(samples, cells, *, field: str = "cells") -> list[SampleSpec]:
+    """The samples of a study (:class:`~roadgonio.surface.sample.ResolvedSample`, resolved by the
+    caller: :func:`roadgonio.surface.sample.resolve_sample`) with the cells to compute for each
+    (:func:`roadgonio.engines.cells.select_cells`; ``"table"`` = each sample's tabulated cells)."""
+    from roadgonio.engines.cells import select_cells
     if not samples:
-        raise InputError("give at least one sample", field="--sample")
-    out: list[SampleSpec] = []
-    for k, s in enumerate(samples):
-        if isinstance(s, RoadModel):
-            name, model, spec = f"model{k + 1}", s, f"model{k + 1}"
-        elif isinstance(s, tuple):
-            name, model = str(s[0]), s[1]
-            spec = name
-        else:
-            spec = str(s)
-            name, model = _sample_name(spec), resolve_sample(spec, model_variant)
-        if str(cells).strip() == "table" and not isinstance(s, str):
-            raise InputError("--cells table needs samples given as r-tables", field="--cells")
-        c = tuple(_cells(cells, spec))
-        out.append(SampleSpec(name=name, spec=spec, model=model, cells=c))
+        raise InputError("give at least one sample", field="sample")
+    out = [SampleSpec(name=r.name, spec=r.spec or r.name, model=r.model,
+                      cells=tuple(select_cells(cells, r.table, on_grid=False, field=field))) for r in samples]
     names = [s.name for s in out]
     if len(set(names)) != len(names):
         raise InputError(f"two samples share the name {sorted(n for n in names if names.count(n) > 1)[0]!r}",
-                         field="--sample")
+                         field="sample")
     return out
-
-
-def _load_base(instrument) -> Instrument:
-    if isinstance(instrument, Instrument):
-        return instrument
-    p = Path(str(instrument))
-    # an absolute path: with_changes re-reads relative mesh/XML paths against the file's folder
-    return load_instrument(p.resolve() if p.exists() else instrument)
 
 
 def _fingerprint(payload: Mapping[str, Any]) -> str:
@@ -114,40 +86,38 @@ def _record(r: _cluster.TableResult, point: int, sample: int, seed: int) -> dict
     return rec
 
 
-def run_design(instrument, vary=None, samples="R3", *, tolerance: float | str = DEFAULT_TOLERANCE,
-               cells: str = "all", backend: str = "mitsuba", accuracy: str | None = None,
+def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFAULT_TOLERANCE,
+               cells="all", backend: str = "mitsuba", accuracy: str | None = None,
                settings: Mapping[str, Any] | None = None, seed: int = 0, workers: int | None = None,
                scheduler: str | None = None, client=None, out: str | Path | None = None, fresh: bool = False,
                progress: bool = True, plots: bool = True, model_variant: str | None = None):
-    """Run a design study and return it as an ``xarray.Dataset`` (also ``roadgonio.design(...)``).
+    """Run a design study and return it as an ``xarray.Dataset`` (the API is
+    :func:`roadgonio.api.design_study`, which resolves the inputs).
 
-    ``instrument``: the base design (file, preset name or Instrument); ``vary``: ``["KEY=LO:HI:N",
-    ...]`` or ``{key: values}`` (:mod:`roadgonio.design.grid`); ``samples``: one or more sample
-    specifications (as ``roadgonio ka --sample``); ``tolerance`` on |k_A - 1| (a fraction or
-    ``"5%"``); ``cells``: ``all``, ``table`` or ``"T:B,T:B,..."``; ``backend``/``accuracy``/
-    ``settings``: as :func:`roadgonio.engines.make_backend`; ``seed``: root of the per-point seeds.
-    Distribution: ``client`` (an existing ``distributed.Client``), else ``workers``/``scheduler`` as
+    ``base``: the base design; ``vary``: ``["KEY=LO:HI:N", ...]`` or ``{key: values}``
+    (:mod:`roadgonio.design.grid`); ``samples``: resolved samples
+    (:class:`~roadgonio.surface.sample.ResolvedSample`); ``tolerance`` on |k_A - 1| (a fraction or
+    ``"5%"``); ``cells``: a cell selection (:mod:`roadgonio.engines.cells`); ``backend``,
+    ``accuracy``, ``settings``: as :func:`roadgonio.engines.registry.make_backend` (settings resolved,
+    without the seed); ``seed``: root of the per-point seeds. Distribution: ``client`` (an existing
+    ``distributed.Client``), else ``workers``/``scheduler`` as
     :func:`roadgonio.engines.cluster.open_client` (default: a local cluster, one process per core;
     ``workers=0`` computes here). With ``out``, journals every table (resumable) and writes
     design.nc, design.csv, best.toml, pareto.png and tolerance_map.png (``plots``).
+    ``model_variant``: the variant the samples were fitted with (provenance, best.toml's header).
     """
-    from roadgonio.engines import BACKENDS
+    from roadgonio.engines.registry import backend_info, preset
     t_start = time.perf_counter()
-    if backend not in BACKENDS:
-        raise InputError(f"unknown backend {backend!r}; expected one of {', '.join(BACKENDS)}", field="--backend")
+    backend_info(backend)
     if accuracy is not None:
-        from roadgonio.engines.accuracy import preset
         preset(accuracy, backend)                       # a clear error now, not on every worker
     settings = dict(settings or {})
     tol = parse_tolerance(tolerance)
-    base = _load_base(instrument)
     specs: list[VarySpec] = as_vary_specs(vary)
     points = grid_points(specs)
     shape = grid_shape(specs)
-    smp = resolve_samples(samples, cells, model_variant)
+    smp = resolve_samples(samples, cells)
     union = sorted({c for s in smp for c in s.cells})
-    if not union:
-        raise InputError("no cells to compute", field="--cells")
     seeds = _cluster.seeds_for(seed, len(points))
 
     # -- geometry of every point (here: cheap, and never a crash) --------------------------------

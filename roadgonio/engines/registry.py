@@ -64,6 +64,7 @@ class BackendInfo:
     xml_scenes: bool = False         # models the extra parts of a Mitsuba XML scene ([scene] xml)
     beam_clipping: bool = True       # models a beam limit that clips the light on the footprint
     mitsuba: bool = False            # needs mitsuba/drjit and a selected variant (Dask workers set one up)
+    cell_correlation: str = ("independent: each cell has its own random numbers, seeded by (seed, tan eps, beta)")
 
     @property
     def deterministic(self) -> bool:
@@ -81,11 +82,15 @@ BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
                 precision="se", seeded=True, tolerance="rel_se",
                 presets={"fast": {"rel_se": 3e-3, "first_pass": 256}, "default": {"rel_se": 1e-3, "first_pass": 1024},
                          "precise": {"rel_se": 1e-4, "first_pass": 4096}},
-                meshes=True, xml_scenes=True, beam_clipping=False, mitsuba=True),
+                meshes=True, xml_scenes=True, beam_clipping=False, mitsuba=True,
+                cell_correlation="correlated: the cells computed in one run share the detector rays and replicates, "
+                                 "so their errors are positively correlated; each cell's SE is its marginal SE, a "
+                                 "table functional needs the covariance (MitsubaBackend.covariance())"),
     BackendInfo("quadrature", "roadgonio.engines.quadrature:make_backend",
                 "deterministic float64 tensor Gauss rules with an error bound (flat samples)",
                 precision="error_bound", seeded=False, tolerance="rtol",
-                presets={"fast": {"rtol": 1e-3}, "default": {"rtol": 1e-4}, "precise": {"rtol": 1e-6}}),
+                presets={"fast": {"rtol": 1e-3}, "default": {"rtol": 1e-4}, "precise": {"rtol": 1e-6}},
+                cell_correlation="deterministic: no random error; each cell's error is within its error_bound"),
     BackendInfo("numpy-mc", "roadgonio.engines.montecarlo:make_backend",
                 "plain float64 Monte Carlo (slow; an oracle; flat samples)",
                 precision="se", seeded=True, tolerance="rel_se", presets=_numpy_mc_presets(128 ** 2)),
@@ -191,15 +196,16 @@ def resolve_settings(name: str, *, accuracy: str | None = None, rel_se=None, see
 
 def make_backend(name: str, instrument, model, *, accuracy: str | None = None, rel_se=None, seed=None,
                  mitsuba_variant: str | None = None, settings: Mapping[str, Any] | None = None,
-                 fields: Mapping[str, str] | None = None):
+                 fields: Mapping[str, str] | None = None, **more_settings):
     """Build backend ``name`` for ``instrument`` and ``model`` (lazy import of its module), with
-    its settings resolved by :func:`resolve_settings`, the instrument checked against the
-    backend's capabilities, in the instrument's ``[calibration]`` mode
-    (:func:`roadgonio.engines.calibration.calibrated`). The Mitsuba backend needs a variant
-    selected by the entry point first (:func:`roadgonio.engines.mitsuba.set_variant`)."""
+    its settings resolved by :func:`resolve_settings` (``more_settings`` are explicit settings too,
+    e.g. ``rtol=1e-5``), the instrument checked against the backend's capabilities, in the
+    instrument's ``[calibration]`` mode (:func:`roadgonio.engines.calibration.calibrated`). The
+    Mitsuba backend needs a variant selected by the entry point first
+    (:func:`prepare_entry_point`)."""
     info = backend_info(name, (fields or {}).get("backend", "backend"))
     kw = resolve_settings(name, accuracy=accuracy, rel_se=rel_se, seed=seed, mitsuba_variant=mitsuba_variant,
-                          settings=settings, fields=fields)
+                          settings={**dict(settings or {}), **more_settings}, fields=fields)
     check_capabilities(info, instrument)
     factory = load_factory(info)
     from roadgonio.engines.calibration import calibrated
