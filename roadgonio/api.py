@@ -157,6 +157,93 @@ def _show(progress) -> bool:
 
 
 # ----------------------------------------------------------------------------------------------
+# What there is to choose from (the command line's choices)
+# ----------------------------------------------------------------------------------------------
+
+def backends() -> dict[str, str]:
+    """The k_A backends of the registry, name -> one-line summary."""
+    from roadgonio.engines.registry import BACKENDS
+    return {n: b.summary for n, b in BACKENDS.items()}
+
+
+def accuracy_presets() -> tuple[str, ...]:
+    from roadgonio.engines.registry import PRESETS
+    return PRESETS
+
+
+def model_variants() -> tuple[str, ...]:
+    from roadgonio.surface.model import VARIANTS
+    return VARIANTS
+
+
+def instrument_presets() -> list[str]:
+    from roadgonio.instrument.config import bundled_instruments
+    return bundled_instruments()
+
+
+def figure_process(enabled: bool = True):
+    """A helper process that draws the pictures while the computation runs (a context manager,
+    :class:`roadgonio.plotproc.FigureProcess`): pass it as ``figures=`` to the functions that draw."""
+    from roadgonio.plotproc import FigureProcess
+    return FigureProcess(enabled=enabled)
+
+
+def validation_report_json(report: Mapping[str, Any]) -> dict[str, Any]:
+    """The JSON document of a :func:`validate` report (validate.json, ``--json``)."""
+    from roadgonio.engines.validate import report_json
+    return report_json(report)
+
+
+def validation_summary_line(report: Mapping[str, Any]) -> str:
+    from roadgonio.engines.validate import summary_line
+    return summary_line(report)
+
+
+def sigma_spec_help() -> tuple[str, dict[str, str]]:
+    """The help text of a misalignment SPEC and of its keys (``roadgonio uncertainty --help``)."""
+    from roadgonio.uncertainty.spec import INPUT_HELP, SPEC_HELP
+    return SPEC_HELP, dict(INPUT_HELP)
+
+
+def uncertainty_result_json(res, cells: bool = False) -> dict[str, Any]:
+    """The JSON summary of an :func:`estimate_uncertainty` result (uncertainty.json without the cells)."""
+    from roadgonio.uncertainty.report import result_dict
+    return result_dict(res, cells=cells)
+
+
+def uncertainty_summary_lines(res) -> list[str]:
+    from roadgonio.uncertainty.report import summary_lines
+    return list(summary_lines(res))
+
+
+def design_keys() -> tuple[str, ...]:
+    """The instrument keys a design study can vary (``--vary KEY=...``)."""
+    from roadgonio.design.grid import ALL_KEYS
+    return tuple(ALL_KEYS)
+
+
+def design_summary(ds) -> dict[str, Any]:
+    """The summary of a :func:`design_study` Dataset: points, feasible, best design, timings."""
+    from roadgonio.design.run import summary
+    import json
+    s = summary(ds)
+    s.setdefault("instrument", json.loads(ds.attrs["base_instrument_json"]).get("instrument", {}).get("name", ""))
+    return s
+
+
+def precision_text(summary: Mapping[str, Any]) -> str:
+    """'worst rel. SE 1.5e-04' or 'worst rel. error bound 9.9e-04' of a k_A summary."""
+    from roadgonio.engines.runner import precision_text as _text
+    return _text(summary)
+
+
+def to_json(obj, indent: int | None = 2) -> str:
+    """JSON text of a result (NaN and infinity as null): :func:`roadgonio.fileio.to_json`."""
+    from roadgonio.fileio import to_json as _to_json
+    return _to_json(obj, indent=indent)
+
+
+# ----------------------------------------------------------------------------------------------
 # r-tables
 # ----------------------------------------------------------------------------------------------
 
@@ -231,10 +318,11 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
             raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
     result = fit_table(t, variant, seed=seed, fixed=fixed, progress=progress)
     check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
-    result.written = []
     if folder is not None:
+        import dataclasses
+
         from roadgonio.surface.fitplot import write_fit
-        result.written = write_fit(result, folder, plot=plot)
+        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot))
     return result
 
 
@@ -447,7 +535,6 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
                           surrogate_design=surrogate, threads=threads, progress=_show(progress), workers=workers,
                           scheduler=scheduler)
     res.provenance["sample"] = smp.spec or smp.name
-    res.written = []
     if folder is not None:
         from roadgonio.uncertainty.report import write_results
         res.written = write_results(res, folder, sample_name=smp.name, plots=plots, figures=figures)

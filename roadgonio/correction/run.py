@@ -182,6 +182,9 @@ class CorrectionResult:
     provenance: dict[str, Any]
     seconds: float
     extra: dict[str, Any] = field(default_factory=dict)
+    #: where its files were written (:func:`roadgonio.api.correct` with ``out``)
+    out: Path | None = None
+    written: list = field(default_factory=list)
 
     @property
     def cells(self) -> list[tuple[float, float]]:
