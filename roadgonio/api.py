@@ -224,7 +224,7 @@ def design_keys() -> tuple[str, ...]:
 
 def design_summary(ds) -> dict[str, Any]:
     """The summary of a :func:`design_study` Dataset: points, feasible, best design, timings."""
-    from roadgonio.design.run import summary
+    from roadgonio.design.dataset import summary
     import json
     s = summary(ds)
     s.setdefault("instrument", json.loads(ds.attrs["base_instrument_json"]).get("instrument", {}).get("name", ""))

@@ -74,7 +74,7 @@ def _fmt(v) -> str:
 
 def write_csv(ds, path: Path) -> Path:
     dims = json.loads(ds.attrs["varied"])
-    from roadgonio.design.run import point_index
+    from roadgonio.design.dataset import point_index
     n = int(ds.attrs["points"])
     flat = {c: ds[c].values.reshape(-1) for c in CSV_TAIL + CSV_EXTRA}
     buf = io.StringIO()
@@ -126,7 +126,7 @@ def toml_text(d: dict[str, Any], header: str = "") -> str:
 
 def write_best(ds, path: Path) -> Path | None:
     from roadgonio.engines.cluster import absolute_instrument_dict
-    from roadgonio.design.run import best_instrument, point_index, summary
+    from roadgonio.design.dataset import best_instrument, point_index, summary
     inst = best_instrument(ds)
     if inst is None:
         return None
@@ -166,7 +166,7 @@ def plot_pareto(ds, path: Path) -> Path:
     tol = float(ds.attrs["tolerance"]) * 100
     best = int(ds.attrs["best_index"])
     from roadgonio.design.metrics import pareto_front
-    from roadgonio.design.run import point_index
+    from roadgonio.design.dataset import point_index
     fig, ax = plt.subplots(figsize=(8, 5.5))
     ok = np.isfinite(dev) & np.isfinite(sig)
     bad = ok & ~feas
@@ -237,7 +237,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
         return None
     xk, yk = dims2[0], dims2[1]
     best = int(ds.attrs["best_index"])
-    from roadgonio.design.run import point_index
+    from roadgonio.design.dataset import point_index
     sel: dict[str, int] = {}
     others = [d for d in dims if d not in (xk, yk)]
     anchor = point_index(ds, best) if best >= 0 else {}
