@@ -17,7 +17,7 @@ from roadgonio.surface.model import RoadModel, RoadParams
 
 pytestmark = pytest.mark.plugin
 
-SCENES = Path(__file__).resolve().parents[1] / "scenes"
+SCENES = Path(__file__).resolve().parents[2] / "scenes"
 #: A non-Lambertian model with every term (Phong lobe n = 1000, retro lobe, steep E term, grazing g).
 ROAD = RoadModel(RoadParams(k_diff=0.05, k_phong=1.0, n_phong=1000.0, k_retro=0.2, n_retro=50.0,
                             k_exp=0.1, p=1.0, h=2.0, mu=0.1, g_a=0.0, g_b=-1.0, g_c=2.6, g_t=2.0,

@@ -18,7 +18,7 @@ from roadgonio.surface.rtable import read_table
 
 pytestmark = pytest.mark.system
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 #: Every file correct writes per folder with pictures (the journals and fit_state.json aside).
 OUTPUTS = ["before_after.png", "correct.json", "correct_cells.csv", "corrected.csv", "corrected.rtb",
            "corrected_corr.csv", "corrected_u.csv", "correction_map.png"]

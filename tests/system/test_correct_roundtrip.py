@@ -20,7 +20,7 @@ from roadgonio.correction.run import correct_measured
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.rtable import read_table
 
-DATA = Path(__file__).resolve().parent / "data"
+DATA = Path(__file__).resolve().parents[1] / "data"
 RMS_MAX, MAX_MAX, COVERAGE_MIN, S1_Z_MAX = 0.015, 0.06, 0.90, 2.0
 
 
@@ -91,7 +91,7 @@ def test_round_trip_wide_instrument_with_mitsuba(mode):
     from roadgonio.engines.calibration import illuminance_ratio
     from roadgonio.surface.fit import model_r_on_grid
     from roadgonio.surface.rtable import RTable
-    bench = Path(__file__).resolve().parents[1] / "bench" / "data"
+    bench = Path(__file__).resolve().parents[2] / "bench" / "data"
     inst = Instrument.load(bench / "wide.toml").with_changes(calibration={"mode": mode})
     k = read_table(bench / "wide_r2like_ka_numpymc.csv").r * 1e4
     m = standard_mask()

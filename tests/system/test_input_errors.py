@@ -380,7 +380,7 @@ def _small_measured(tmp_path):
     from pathlib import Path
 
     from roadgonio.surface.rtable import read_table
-    data = Path(__file__).resolve().parent / "data"
+    data = Path(__file__).resolve().parents[1] / "data"
     meas = read_table(data / "synthetic_medium_lambert.csv")
     keep = meas.r.copy()
     keep[:, 2:] = np.nan

@@ -8,7 +8,7 @@ import pytest
 
 pytestmark = [pytest.mark.system, pytest.mark.plugin]
 
-README = Path(__file__).resolve().parents[1] / "README.md"
+README = Path(__file__).resolve().parents[2] / "README.md"
 
 
 def python_blocks(text: str) -> list[str]:

@@ -10,7 +10,7 @@ import pytest
 
 pytestmark = pytest.mark.unit
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 MITSUBA_MODULES = ("mitsuba", "drjit", "roadgonio.engines.mitsuba")
 #: Who may import them: the Mitsuba room itself and the entry points that choose the variant.
 ALLOWED = ("roadgonio/engines/mitsuba/", "plugins/", "roadgonio/cli/", "roadgonio/api.py")

@@ -397,7 +397,7 @@ def test_cli_reference_self_end_to_end(tmp_path):
     """The default route from the command line on a small synthetic table (tests/data, the medium
     instrument, beta 0 ... 20): every file, the JSON keys, the fit through the instrument."""
     from pathlib import Path
-    data = Path(__file__).resolve().parent / "data"
+    data = Path(__file__).resolve().parents[1] / "data"
     meas = read_table(data / "synthetic_medium_lambert.csv")
     keep = meas.r.copy()
     keep[:, 6:] = np.nan

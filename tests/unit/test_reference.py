@@ -22,7 +22,7 @@ pytestmark = pytest.mark.unit
 MAP_TOL = 1e-7
 #: Monte Carlo agreement: within this many standard errors (plus the reference's bound).
 N_SIGMA = 4.0
-BENCH = Path(__file__).resolve().parent.parent / "bench" / "results" / "reference_long.csv"
+BENCH = Path(__file__).resolve().parents[2] / "bench" / "results" / "reference_long.csv"
 
 
 def test_segment_map_is_an_exact_change_of_variables():

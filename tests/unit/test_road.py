@@ -107,7 +107,7 @@ def test_luminance_one_luminaire_on_nodes_by_hand():
     observer = np.array([-60.0, 1.0, 1.5])
     cells, w, tan_e = calc.contribution(lum, L_lum, 0.0, 0.0, point, observer, t)
     L = float(np.dot(t.r.ravel()[cells], w))
-    csv_text = (Path(__file__).parents[1] / "roadgonio/data/rtables/R3.csv").read_text()
+    csv_text = (Path(__file__).resolve().parents[2] / "roadgonio/data/rtables/R3.csv").read_text()
     row = next(l for l in csv_text.splitlines() if l.startswith("1,"))
     r_file = float(row.split(",")[1])  # R3.csv, tan eps = 1, beta = 0: r x 1e4 as printed
     assert r_file == 362.0
