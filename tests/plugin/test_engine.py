@@ -13,7 +13,8 @@ import pytest
 from roadgonio.errors import GeometryError
 from roadgonio.surface.model import RoadModel
 
-from test_render_backend import F32_RATIO_TOL, ROAD, preset
+from helpers import ROAD, preset
+from test_render_backend import F32_RATIO_TOL
 
 pytestmark = pytest.mark.plugin
 

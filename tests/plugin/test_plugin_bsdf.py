@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from roadgonio.surface.model import RoadModel, RoadParams
+from helpers import rand_dirs, rand_params
 
 pytestmark = pytest.mark.plugin
 
@@ -41,26 +42,11 @@ def kappa(model, wl, ws, ref, d=1e-6):
     return np.abs(up - down) / (2 * d * np.maximum(ref, 1e-300))
 
 
-def rand_dirs(rng, n, max_cos=1.0):
-    cz = rng.random(n) * max_cos
-    phi = rng.random(n) * 2 * np.pi
-    s = np.sqrt(1 - cz ** 2)
-    w = np.stack([s * np.cos(phi), s * np.sin(phi), cz], -1)
-    return w.astype(np.float32).astype(np.float64)          # exactly representable in float32
-
-
 def near_mirror(rng, ws, spread):
     wl = ws * np.array([-1.0, -1.0, 1.0]) + rng.normal(0, spread, ws.shape)
     wl[:, 2] = np.abs(wl[:, 2]) + 1e-3
     wl /= np.linalg.norm(wl, axis=1)[:, None]
     return wl.astype(np.float32).astype(np.float64)
-
-
-def rand_params(rng, h_max=20.0) -> dict:
-    return dict(k_diff=rng.uniform(0, 1), k_phong=rng.uniform(0, 10), n_phong=10 ** rng.uniform(0, 4),
-                k_retro=rng.uniform(0, 1), n_retro=10 ** rng.uniform(0, 3), k_exp=rng.uniform(0, 1),
-                p=rng.uniform(0, 3), h=rng.uniform(-h_max, h_max), mu=rng.uniform(0, 2), g_a=0.0, g_b=-1.0,
-                g_c=2.0, g_t=rng.uniform(-5, 5), theta_l_deg=rng.uniform(85.4, 90.0))
 
 
 @pytest.fixture(scope="module")
@@ -166,16 +152,6 @@ def test_lambert_equals_mitsuba_diffuse(mi, plug, rng_seed):
     np.testing.assert_allclose(pdf_r, pdf_d, rtol=1e-6)
     np.testing.assert_allclose(w_r, w_d, rtol=1e-6)
     np.testing.assert_allclose(w_r[0], rho, rtol=1e-6)
-
-
-def test_numpy_model_is_reciprocal(rng_seed):
-    """Every term of the model as written (lobes, E with e = theta_i theta_r / theta_r*, beta,
-    g(theta_i) g(theta_r)) is symmetric in (w_i, w_o): the full model is reciprocal."""
-    rng = np.random.default_rng(rng_seed + 3)
-    for variant in ("power", "product"):
-        m = RoadModel(RoadParams(**rand_params(rng)), variant)
-        a, b = rand_dirs(rng, 2000), rand_dirs(rng, 2000)
-        np.testing.assert_allclose(m.brdf(a, b), m.brdf(b, a), rtol=1e-10, atol=1e-14)
 
 
 def test_plugin_reciprocity(plug, rng_seed):

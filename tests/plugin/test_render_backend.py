@@ -2,7 +2,7 @@
 (roadgonio/engines/mitsuba/scene.py): k_A = 1 for a Lambertian sample, k_A -> 1 as the apertures
 shrink, the rendered ideal geometry against float64, the standard error against the scatter over
 seeds, and the error cases. The engine's own tests (batching, plans, covariance) are in
-tests/test_engine.py."""
+tests/plugin/test_engine.py."""
 from __future__ import annotations
 
 import math
@@ -13,21 +13,14 @@ import pytest
 
 from roadgonio.errors import BackendError, GeometryError, InputError
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import RoadModel, RoadParams
+from roadgonio.surface.model import RoadModel
+from helpers import ROAD, preset
 
 pytestmark = pytest.mark.plugin
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
-#: A non-Lambertian model with every term (Phong lobe n = 1000, retro lobe, steep E term, grazing g).
-ROAD = RoadModel(RoadParams(k_diff=0.05, k_phong=1.0, n_phong=1000.0, k_retro=0.2, n_retro=50.0,
-                            k_exp=0.1, p=1.0, h=2.0, mu=0.1, g_a=0.0, g_b=-1.0, g_c=2.6, g_t=2.0,
-                            theta_l_deg=88.0))
 #: float32 rounding of a pixel ratio R/G when every sample carries the same ratio.
 F32_RATIO_TOL = 1e-5
-
-
-def preset(name: str) -> Instrument:
-    return Instrument.load(SCENES / f"{name}.toml")
 
 
 CELLS = [(0.0, 0.0), (2.0, 0.0), (12.0, 0.0), (5.0, 45.0), (12.0, 180.0)]
@@ -162,22 +155,6 @@ def test_xml_scene_without_parts_is_an_error(tmp_path):
         make_backend(Instrument.from_dict(d, path=tmp_path / "x.toml"), ROAD)
 
 
-def test_llvm_older_than_16_is_refused():
-    from roadgonio.engines.mitsuba import check_llvm_version
-    with pytest.raises(BackendError, match="LLVM >= 16"):
-        check_llvm_version((15, 0, 6))
-    check_llvm_version((16, 0, 0))
-    check_llvm_version((19, 1, 7))
-
-
-def test_unknown_setting_is_an_input_error():
-    from roadgonio.engines.mitsuba.backend import make_backend
-    with pytest.raises(InputError, match="unknown setting"):
-        make_backend(preset("portable"), ROAD, samples_per_pixel=3)
-    with pytest.raises(InputError, match="per-cell renderer.*first_pass"):
-        make_backend(preset("portable"), ROAD, spp=16)
-
-
 def test_xml_holder_scene_shades_the_footprint():
     """scenes/holder.toml + holder.xml: a Lambertian sample still gives 1; the back wall changes
     k_A of the R3-like model at grazing forward light and leaves cells lit from the side alone."""
@@ -223,23 +200,3 @@ def test_a_backend_checks_the_variant_instead_of_choosing_it(mi):
     with pytest.raises(BackendError, match=r"set_variant\('scalar_rgb'\)"):
         make_backend(preset("portable"), ROAD, variant="scalar_rgb")
     assert mi.variant() == "llvm_ad_rgb"
-
-
-def test_without_a_chosen_variant_the_backend_says_what_to_call():
-    import subprocess
-    import sys
-    code = ("import os, mitsuba\n"
-            "from roadgonio.errors import BackendError\n"
-            "from roadgonio.instrument.config import load_instrument\n"
-            "from roadgonio.surface.model import RoadModel\n"
-            "from roadgonio.engines.mitsuba.backend import make_backend\n"
-            "env = dict(os.environ)\n"
-            "try:\n"
-            "    make_backend(load_instrument('portable'), RoadModel.lambert())\n"
-            "except BackendError as e:\n"
-            "    print('ERR', e)\n"
-            "print('variant', mitsuba.variant(), 'env same', dict(os.environ) == env)\n")
-    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert r.returncode == 0, r.stderr
-    assert "ERR no Mitsuba variant is selected" in r.stdout and "set_variant" in r.stdout
-    assert "variant None env same True" in r.stdout

@@ -3,7 +3,7 @@
 (started by the command, on the loopback interface, torn down by it) the corrected tables of two
 measured files are byte for byte those of the in-process run. The deterministic quadrature and
 small ray bundles keep it short; the same seeds and the same shipped bundles make Monte Carlo
-backends identical too (tests/test_design_cluster.py checks that for Mitsuba tables)."""
+backends identical too (tests/system/test_design_cluster.py checks that for Mitsuba tables)."""
 from __future__ import annotations
 
 import json

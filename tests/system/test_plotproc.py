@@ -6,6 +6,7 @@ import pytest
 
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.plotproc import FigureProcess, InProcess
+from helpers import _pixels
 
 pytestmark = pytest.mark.unit
 
@@ -15,11 +16,6 @@ def _values(seed=0):
     v = 0.5 + rng.random((len(TAN_EPS_GRID), len(BETA_GRID_DEG)))
     v[3, 4] = np.nan                       # a blank cell stays white
     return v
-
-
-def _pixels(path):
-    from PIL import Image
-    return np.asarray(Image.open(path).convert("RGB"), dtype=np.int16)
 
 
 def test_child_process_draws_the_same_picture_as_this_process(tmp_path):
@@ -55,26 +51,6 @@ def test_error_in_the_child_is_raised_by_the_fallback(tmp_path):
         assert fp.fallbacks == 1
     with pytest.raises(AttributeError):
         InProcess().call("no_such_picture")
-
-
-def test_cell_numbers_are_drawn_in_their_cells(tmp_path):
-    """The Pillow-drawn numbers sit at the cell centres: a cell with text has dark pixels at its
-    centre on a light background, the blank cell has none (it is white)."""
-    v = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), 1.0)      # k_A = 1: near-white cells
-    v[0, 0] = np.nan
-    InProcess().call("table_map", v, tmp_path / "m.png", title="t", label="k")
-    img = _pixels(tmp_path / "m.png")
-    dark = (img.sum(axis=2) < 200)
-    # the axes span 6 %..92 % of the width minus the colour bar; find the image area as the
-    # bounding box of non-white, non-dark pixels is fragile, so check rows: text appears in
-    # many cells, i.e. the picture has many small dark blobs inside the axes
-    h, w = dark.shape
-    inner = dark[int(0.1 * h):int(0.9 * h), int(0.1 * w):int(0.8 * w)]
-    assert inner.mean() > 0.005
-    without = np.full_like(v, 1.0)
-    InProcess().call("table_map", without, tmp_path / "n.png", title="t", label="k", annotate=False)
-    inner_n = (_pixels(tmp_path / "n.png").sum(axis=2) < 200)[int(0.1 * h):int(0.9 * h), int(0.1 * w):int(0.8 * w)]
-    assert inner_n.mean() < inner.mean() / 5
 
 
 def test_uncertainty_pictures_drawn_by_the_child_equal_those_drawn_here(tmp_path):

@@ -104,14 +104,6 @@ def test_classify_bundled_tables_fall_in_their_own_class(capsys, name):
     assert d["nearest_bundled"][0]["table"] == name and d["nearest_bundled"][0]["distance"] == pytest.approx(0)
 
 
-def test_classify_limits(tmp_path):
-    from roadgonio.road.classify import class_by_s1
-    assert class_by_s1(0.4199, "R")[0] == "R1" and class_by_s1(0.42, "R")[0] == "R2"
-    assert class_by_s1(0.85, "R")[0] == "R3" and class_by_s1(1.35, "R")[0] == "R4"
-    assert class_by_s1(0.399, "C")[0] == "C1" and class_by_s1(0.40, "C")[0] == "C2"
-    assert class_by_s1(1.30, "N")[0] == "N4"
-
-
 def test_output_error_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
     blocker = tmp_path / "file"
     blocker.write_text("x")

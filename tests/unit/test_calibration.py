@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from roadgonio.engines import CellResult, make_backend
+from roadgonio.engines import make_backend
 from roadgonio.engines.calibration import CalibratedBackend, illuminance_ratio
 from roadgonio.errors import InputError
 from roadgonio.instrument.calibration import Calibration

@@ -1,8 +1,9 @@
 """roadgonio design: grid parsing, feasibility with reasons, the signal formula, the runner (journal,
-resume, seeds), the outputs, and the best design recomputed with ``roadgonio ka``.
+resume, seeds), the outputs and the API.
 
-Kept small: tiny grids, a few cells, the quadrature backend (deterministic, float64) or Mitsuba at
-``fast`` accuracy; the 2-worker cluster test is tests/test_design_cluster.py."""
+Kept small: tiny grids, a few cells, the quadrature backend (deterministic, float64). With Mitsuba:
+tests/plugin/test_design_plugin.py; the command and the best design recomputed with ``roadgonio ka``:
+tests/system/test_design_system.py; the 2-worker cluster: tests/system/test_design_cluster.py."""
 from __future__ import annotations
 
 import csv
@@ -12,7 +13,6 @@ import math
 import numpy as np
 import pytest
 
-from roadgonio.cli import main
 from roadgonio.design import grid as G
 from roadgonio.design import metrics as M
 from roadgonio.design.feasibility import blocked_cells, check_point
@@ -190,25 +190,6 @@ def test_impossible_points_get_their_reason():
     assert blocked_cells(load_instrument("lab"), cells) == []
 
 
-@pytest.mark.plugin
-def test_line_of_sight_check_agrees_with_the_rendered_ray_hits(mi):
-    """The design's occlusion check and the Mitsuba scene's own ray test (rays that hit the source
-    disc instead of the sample) flag the same cells."""
-    from roadgonio.engines.mitsuba.scene import build_scene
-    from roadgonio.errors import GeometryError
-    from roadgonio.surface.model import RoadModel
-    inst = load_instrument("portable").with_changes(source={"distance_m": 0.5, "radius_m": 0.04})
-    cells = [(t, 180.0) for t in (8.5, 9, 9.5, 10, 12)] + [(10.0, 165.0), (12.0, 150.0)]
-    rs = build_scene(inst, RoadModel.lambert())
-    rendered = []
-    for c in cells:
-        try:
-            rs.place_source(*c)
-        except GeometryError:
-            rendered.append(c)
-    assert rendered == blocked_cells(inst, cells) == [(9.5, 180.0), (10, 180.0), (12, 180.0)]
-
-
 # ----------------------------------------------------------------------------------------------
 # the runner
 # ----------------------------------------------------------------------------------------------
@@ -292,90 +273,9 @@ def test_seeds_depend_only_on_the_root_and_the_point():
     assert all(0 <= s < 2 ** 31 for s in b)
 
 
-@pytest.mark.plugin
-def test_backend_refusal_is_a_reason_not_a_crash(tmp_path):
-    """A beam limit the renderer cannot model is refused per point by the backend (on the worker);
-    the point is kept, infeasible, with the backend's reason; the other point is computed."""
-    from roadgonio.design import run_design
-    ds = run_design("portable", ["source.beam_half_angle_deg=1,60"], ["R3"], cells="4:2", backend="mitsuba",
-                    accuracy="fast", workers=0, progress=False, plots=False)
-    kind, reason = ds["kind"].values, ds["reason"].values
-    assert kind[0] == "backend" and "beam limit" in reason[0] and "R3" in reason[0]
-    assert ds["geometry_ok"].values.tolist() == [False, True] and np.isfinite(ds["k_a"].values[1]).all()
-
-
 # ----------------------------------------------------------------------------------------------
-# CLI and `roadgonio ka` agreement
+# the API
 # ----------------------------------------------------------------------------------------------
-
-def _ka_cells(path):
-    lines = path.read_text().splitlines()[1:]
-    return {(d["tan_eps"], d["beta_deg"]): d for d in map(json.loads, lines)}
-
-
-@pytest.mark.system
-def test_best_design_recomputed_with_ka_matches_its_row(tmp_path, capsys):
-    out = tmp_path / "d"
-    cells = "12:0,8:2,4:0,1:45"
-    rc = main(["design", "--instrument", "portable", "--vary", "source.radius_m=0.015:0.035:3",
-               "--vary", "detector.pupil_radius_m=0.003,0.005", "--sample", "R3", "--cells", cells,
-               "--accuracy", "fast", "--tolerance", "15%", "--workers", "0", "--seed", "3", "--out", str(out)])
-    assert rc == 0
-    text = capsys.readouterr().out
-    assert "best:" in text and "design points/hour" in text
-    from roadgonio.design.outputs import read_design
-    ds = read_design(out / "design.nc")
-    best = int(ds.attrs["best_index"])
-    assert best >= 0
-    rows = list(csv.DictReader((out / "design.csv").open()))
-    row = rows[best]
-    assert row["feasible"] == "true"
-    k_row = ds["k_a"].values.reshape(-1, 1, *ds["k_a"].shape[-2:])[best, 0]
-    se_row = ds["se"].values.reshape(-1, 1, *ds["se"].shape[-2:])[best, 0]
-    tans, betas = ds["tan_eps"].values, ds["beta"].values
-    # an independent run (another seed) agrees within 4 combined SE; the design's own seed repeats it exactly
-    for seed, exact in ((12345, False), (int(row["seed"]), True)):
-        ka_out = tmp_path / f"ka{seed}"
-        assert main(["ka", "--instrument", str(out / "best.toml"), "--sample", "R3", "--cells", cells,
-                     "--accuracy", "fast", "--seed", str(seed), "--out", str(ka_out)]) == 0
-        got = _ka_cells(ka_out / "ka_cells.jsonl")
-        assert len(got) == 4
-        for (t, b), c in got.items():
-            i, j = int(np.argmin(abs(tans - t))), int(np.argmin(abs(betas - b)))
-            if exact:
-                assert c["k_a"] == k_row[i, j] and c["se"] == se_row[i, j]
-            else:
-                assert abs(c["k_a"] - k_row[i, j]) <= 4 * math.hypot(c["se"], se_row[i, j]), (t, b)
-    dev = max(abs(c["k_a"] - 1) for c in got.values())
-    assert dev == pytest.approx(float(row["max_abs_dev"]), rel=1e-12)
-    header = (out / "best.toml").read_text().splitlines()[:4]
-    assert any(f"--seed {row['seed']}" in h for h in header)
-
-
-@pytest.mark.system
-@pytest.mark.parametrize("args, words", [
-    (["--vary", "source.radius=1:2:3"], "unknown instrument key"),
-    (["--vary", "source.radius_m=0.01:0.02:3", "--tolerance", "5"], "--tolerance"),
-    (["--vary", "source.radius_m=0.01:0.02:3", "--cells", "12:0,x"], "--cells"),
-    (["--vary", "source.radius_m=0.01:0.02:3", "--scheduler", "nonsense"], "--scheduler"),
-])
-def test_design_cli_bad_input_is_one_line(tmp_path, capsys, args, words):
-    rc = main(["design", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature",
-               "--out", str(tmp_path), *args])
-    err = capsys.readouterr().err
-    assert rc == 2 and words in err and err.count("\n") == 1 and "Traceback" not in err
-
-
-@pytest.mark.system
-def test_ka_cells_list(tmp_path, capsys):
-    out = tmp_path / "ka"
-    assert main(["ka", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature", "--accuracy", "fast",
-                 "--cells", "12:0,4:2", "--out", str(out), "--json"]) == 0
-    s = json.loads(capsys.readouterr().out)
-    assert s["cells"] == 2 and set(_ka_cells(out / "ka_cells.jsonl")) == {(12.0, 0.0), (4.0, 2.0)}
-    assert main(["ka", "--instrument", "portable", "--sample", "R3", "--cells", "12:0,4", "--out", str(out)]) == 2
-    assert "--cells" in capsys.readouterr().err
-
 
 def test_api_design_is_the_room_and_the_command_run():
     """roadgonio.design(...) (the callable room) = api.design = what the command runs, with objects

@@ -11,34 +11,12 @@ import pytest
 from roadgonio.engines import make_backend
 from roadgonio.engines.meshmc import MeshCaster
 from roadgonio.errors import GeometryError, InputError
-from roadgonio.instrument.config import Instrument, load_instrument
+from roadgonio.instrument.config import load_instrument
+from helpers import grid_mesh, with_mesh
 
 
 #: Agreement of two Monte Carlo results: within this many combined standard errors.
 N_SIGMA = 4.0
-
-
-def grid_mesh(path, xs, ys, height=lambda x, y: 0.0 * x, shuffle_seed=None):
-    import trimesh
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
-    V = np.stack([X.ravel(), Y.ravel(), height(X, Y).ravel()], 1)
-    ny = len(ys)
-    F = []
-    for i in range(len(xs) - 1):
-        for j in range(ny - 1):
-            a, b, c, d = i * ny + j, (i + 1) * ny + j, (i + 1) * ny + j + 1, i * ny + j + 1
-            F += [[a, b, c], [a, c, d]]
-    F = np.array(F)
-    if shuffle_seed is not None:
-        F = F[np.random.default_rng(shuffle_seed).permutation(len(F))]
-    trimesh.Trimesh(V, F, process=False).export(path)
-    return path
-
-
-def with_mesh(inst: Instrument, mesh) -> Instrument:
-    d = inst.to_dict()
-    d["sample"] = {"mesh": str(mesh)}
-    return Instrument.from_dict(d)
 
 
 @pytest.mark.unit
@@ -110,30 +88,3 @@ def test_mesh_off_the_footprint_and_xml_are_errors(tmp_path, r3like):
         make_backend("numpy-mc-mesh", load_instrument("holder"), r3like)
     with pytest.raises(InputError, match="numpy-mc-mesh"):
         make_backend("numpy-mc", with_mesh(inst, small), r3like)
-
-
-@pytest.mark.plugin
-@pytest.mark.slow
-def test_corrugated_mesh_agrees_with_mitsuba(tmp_path, mi, r3like):
-    """A corrugated sample (2 mm grooves, 40 um deep: slopes up to 3.6 deg, steeper than the 1 deg
-    observation, so the detector sees the faces towards it, and the light at tan eps 12 (4.8 deg)
-    is partly shadowed): the renderer and the independent numpy ray caster agree within their
-    combined SE + float32 floor."""
-    from roadgonio.engines.validate import FLOAT32_FLOOR
-    inst = load_instrument("lab")
-    import trimesh
-    grooves = trimesh.load(grid_mesh(tmp_path / "g.ply", np.linspace(-0.6, 0.6, 4801), np.linspace(-0.03, 0.03, 2),
-                                     height=lambda x, y: 2e-5 * np.cos(2 * np.pi * x / 2e-3)))
-    # a floor 0.1 mm below catches the few rays that slip through float32 cracks between the renderer's
-    # triangles (both integrators see it, so it changes nothing between them)
-    floor = trimesh.load(grid_mesh(tmp_path / "f.ply", np.linspace(-0.6, 0.6, 2), np.linspace(-0.03, 0.03, 2),
-                                   height=lambda x, y: -1e-4 + 0.0 * x))
-    trimesh.util.concatenate([grooves, floor]).export(tmp_path / "groove.ply")
-    m_inst = with_mesh(inst, tmp_path / "groove.ply")
-    model = r3like
-    for cell in [(12.0, 0.0), (4.0, 0.0), (1.0, 90.0)]:
-        a = make_backend("numpy-mc-mesh", m_inst, model, rel_se=3e-3, seed=1).compute([cell])[0]
-        b = make_backend("mitsuba", m_inst, model, rel_se=3e-3, seed=2).compute([cell])[0]
-        assert a.converged and b.converged, (cell, a, b)
-        allowed = N_SIGMA * math.hypot(a.se, b.se) + FLOAT32_FLOOR["mitsuba"] * abs(a.k_a)
-        assert abs(a.k_a - b.k_a) <= allowed, (cell, a.k_a, b.k_a)

@@ -178,7 +178,7 @@ def test_converged_means_the_estimate_met_rtol_also_at_the_cap():
     does not meet rtol is not. converged <=> error_bound <= rtol |k_A| in every case."""
     from roadgonio.engines import make_backend
     vign = load_instrument("portable").with_changes(detector={"field_edge_sensitivity": 0.3})
-    # a sharp lobe (n_phong 1000; the model of tests/test_render_backend.py)
+    # a sharp lobe (n_phong 1000; the model of tests/helpers.py ROAD)
     model = RoadModel(RoadParams(k_diff=0.05, k_phong=1.0, n_phong=1000.0, k_retro=0.2, n_retro=50.0, k_exp=0.1,
                                  p=1.0, h=2.0, mu=0.1, g_a=0.0, g_b=-1.0, g_c=2.6, g_t=2.0, theta_l_deg=88.0))
     seen = set()

@@ -15,7 +15,7 @@ from roadgonio.road.evaluate import Installation
 from roadgonio.road.layout import Layout, layout_from_dict, load_layout, read_layout
 from roadgonio.road.luminaire import Luminaire, bundled_luminaire_path, load_luminaire, read_ldt
 from roadgonio.road.mc import propagate
-from roadgonio.surface.rtable import RTable, bundled_table
+from roadgonio.surface.rtable import bundled_table
 
 pytestmark = pytest.mark.unit
 REL = 1e-9          # deterministic arithmetic, float64
@@ -384,3 +384,11 @@ def test_monte_carlo_input_checks():
         propagate(inst, t, u, trials=200)
     with pytest.raises(InputError, match="seed"):
         propagate(inst, t, t.with_values(t.r * 0.01), trials=200, seed=-1)
+
+
+def test_classify_limits(tmp_path):
+    from roadgonio.road.classify import class_by_s1
+    assert class_by_s1(0.4199, "R")[0] == "R1" and class_by_s1(0.42, "R")[0] == "R2"
+    assert class_by_s1(0.85, "R")[0] == "R3" and class_by_s1(1.35, "R")[0] == "R4"
+    assert class_by_s1(0.399, "C")[0] == "C1" and class_by_s1(0.40, "C")[0] == "C2"
+    assert class_by_s1(1.30, "N")[0] == "N4"

@@ -190,17 +190,3 @@ def test_degenerate_and_limited_instruments_agree_with_mc(changes, lab, r3like):
         finite_result(q)
         assert q.converged and m.converged, (cell, q, m)
         assert abs(m.k_a - q.k_a) <= 4 * m.se + q.error_bound, (cell, q, m)
-
-
-@pytest.mark.plugin
-def test_mitsuba_float32_against_quadrature(mi, lab, r3like):
-    """The float32 renderer against float64 quadrature: within 4 SE plus the measured float32 floor."""
-    from roadgonio.engines.validate import FLOAT32_FLOOR, compare
-    pytest.importorskip("roadgonio.engines.mitsuba.backend")
-    model = r3like
-    inst = lab()
-    quad = make_backend("quadrature", inst, model, rtol=1e-6)
-    mit = make_backend("mitsuba", inst, model, rel_se=1e-3, seed=3)
-    for cell in [(12.0, 0.0), (4.0, 2.0), (0.0, 0.0), (2.0, 180.0)]:
-        row = compare(quad.compute_cell(*cell), mit.compute([cell])[0], FLOAT32_FLOOR["mitsuba"])
-        assert row.ok, row

@@ -4,8 +4,6 @@ the exact backends here; the real backends are exercised by bench/bench_uncertai
 from __future__ import annotations
 
 import math
-import subprocess
-import sys
 
 import numpy as np
 import pytest
@@ -15,21 +13,17 @@ from roadgonio.errors import InputError
 from roadgonio.geometry import w_detector, w_source
 from roadgonio.instrument.config import load_instrument
 from roadgonio.engines import CellResult
-from roadgonio.surface.model import RoadModel, RoadParams
+from roadgonio.surface.model import RoadModel
 from roadgonio.surface.rtable import bundled_table
 from roadgonio.uncertainty import (CellSet, MeasurementModel, _rotations, coverage_indices,
                                    numerical_tolerance, parse_sigma_spec, q0_weights, run_uncertainty,
                                    summarize, write_results)
+from helpers import UNCERTAINTY_MODEL as MODEL, UNCERTAINTY_SPEC as SPEC
 
 pytestmark = pytest.mark.unit
 
 #: float64 round-off allowance of exact rewrites of the same geometry
 EXACT_TOL = 1e-12
-MODEL = RoadModel(RoadParams(k_diff=0.01, k_phong=0.5, n_phong=300, k_retro=0.005, n_retro=20, k_exp=0.05,
-                             p=2, h=1, mu=0.1), name="test")
-SPEC = "alpha_deg=0.01,eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,source_distance_m=0.002,detector_distance_m=0.005"
-
-
 class StandIn:
     """Analytic stand-in of a k_A backend: k_A of (alpha, tan eps, beta, D_S, D_D)."""
 
@@ -319,62 +313,7 @@ def test_outputs_written(tmp_path):
     assert read_table(tmp_path / "no_aperture_u.csv").mask.sum() == len(res.cells)
 
 
-@pytest.mark.system
-@pytest.mark.parametrize("args,words", [
-    (["--sigma", "alpha_deg=-1"], "--sigma alpha_deg"),
-    (["--sigma", "foo=1"], "unknown key"),
-    (["--sigma", "/nonexistent/s.toml"], "no such SPEC file"),
-])
-def test_cli_bad_input_is_one_line(tmp_path, args, words):
-    p = subprocess.run([sys.executable, "-m", "roadgonio", "uncertainty", "--instrument", "portable",
-                        "--sample", "lambert", "--no-aperture", "--trials", "200", "--out", str(tmp_path)] + args,
-                       capture_output=True, text=True)
-    assert p.returncode == 2 and words in p.stderr and "Traceback" not in p.stderr
-
-
-@pytest.mark.system
-def test_cli_runs_lambert(tmp_path):
-    p = subprocess.run([sys.executable, "-m", "roadgonio", "uncertainty", "--instrument", "lab", "--sample", "lambert",
-                        "--sigma", "eps_deg=0.05,source_distance_m=0.005", "--trials", "2000", "--no-aperture",
-                        "--no-plots", "--out", str(tmp_path), "--json"], capture_output=True, text=True)
-    assert p.returncode == 0, p.stderr
-    import json
-    d = json.loads(p.stdout)
-    assert d["trials"] == 2000 and set(d["cases"]) == {"no_aperture"}
-    # Lambert, 5 mm on 5 m: u(r)/r at eps = 0 is 2 u(D)/D = 0.2 % (first order; the eps error is
-    # second order there), to the MC standard error of u (1/sqrt(2M))
-    rows = [l.split(",") for l in (tmp_path / "cells.csv").read_text().splitlines()]
-    row = next(r for r in rows[1:] if r[0] == "no_aperture" and r[1] == "0" and r[2] == "0")
-    u_rel = float(row[rows[0].index("u_rel")])
-    assert abs(u_rel / 0.002 - 1) < 5 / math.sqrt(2 * 2000) + 1e-3
-
-
-# -- with a real k_A backend ---------------------------------------------------------------------
-
-@pytest.mark.slow
-@pytest.mark.system
-def test_aperture_case_with_the_mitsuba_backend(mi):
-    """The whole aperture path with the renderer: at zero error the aperture case is the no-aperture
-    table times k_A, and k_A there agrees with an independent render (another seed) within their
-    standard errors plus the surrogate's measured error; the surrogate stays below u(r)."""
-    from roadgonio.engines import make_backend
-    inst = load_instrument("portable")
-    res = run_uncertainty(MODEL, inst, parse_sigma_spec(SPEC), trials=4000, seed=3, backend="mitsuba",
-                          backend_settings={"rel_se": 1e-3, "seed": 11}, progress=False, n_validation=3)
-    ap, no = res.cases["aperture"], res.cases["no_aperture"]
-    cells = res.cells
-    picks = [k for k, (t, b) in enumerate(zip(cells.tan_eps, cells.beta_deg))
-             if (t, b) in {(12.0, 0.0), (12.0, 10.0), (4.0, 2.0), (1.0, 45.0), (0.0, 0.0)}]
-    assert len(picks) == 5
-    independent = make_backend("mitsuba", inst, MODEL, rel_se=1e-3, seed=12).compute(
-        [(float(cells.tan_eps[k]), float(cells.beta_deg[k])) for k in picks])
-    for k, ref in zip(picks, independent):
-        ka_in_table = ap.nominal[k] / no.nominal[k]
-        allowed = 4 * math.sqrt(2) * ref.se + res.surrogate.rel_err_max[k] * ref.k_a
-        assert abs(ka_in_table - ref.k_a) <= allowed, (cells.tan_eps[k], cells.beta_deg[k], ka_in_table, ref.k_a)
-    u_rel = ap.mc["u"][: len(cells.tan_eps)] / np.abs(ap.mc["mean"][: len(cells.tan_eps)])
-    assert res.surrogate.summary(u_rel)["err_over_u_max"] < 1.0
-
+# -- the surrogate at a kink ----------------------------------------------------------------------
 
 def ka_kink(a, t, b, ds, dd):
     """k_A with a sharp kink in |beta| at beta = 0 (like the model's empirical term)."""
