@@ -3,12 +3,10 @@ from __future__ import annotations
 
 import math
 
-import pytest
 
 import roadgonio as rg
 
 
-@pytest.mark.plugin
 def test_mitsuba_backend_keeps_the_selected_variant(mi, r3like):
     c = rg.ka_cell("portable", r3like, 4, 0, accuracy="fast", seed=3)
     assert mi.variant() == "llvm_ad_rgb" and math.isfinite(c.se) and math.isnan(c.error_bound)

@@ -3,13 +3,11 @@ rays, a backend's refusal."""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from roadgonio.design.feasibility import blocked_cells
 from roadgonio.instrument.config import load_instrument
 
 
-@pytest.mark.plugin
 def test_line_of_sight_check_agrees_with_the_rendered_ray_hits(mi):
     """The design's occlusion check and the Mitsuba scene's own ray test (rays that hit the source
     disc instead of the sample) flag the same cells."""
@@ -28,7 +26,6 @@ def test_line_of_sight_check_agrees_with_the_rendered_ray_hits(mi):
     assert rendered == blocked_cells(inst, cells) == [(9.5, 180.0), (10, 180.0), (12, 180.0)]
 
 
-@pytest.mark.plugin
 def test_backend_refusal_is_a_reason_not_a_crash(tmp_path):
     """A beam limit the renderer cannot model is refused per point by the backend (on the worker);
     the point is kept, infeasible, with the backend's reason; the other point is computed."""

@@ -16,7 +16,6 @@ from roadgonio.surface.model import RoadModel
 from helpers import ROAD, preset
 from test_render_backend import F32_RATIO_TOL
 
-pytestmark = pytest.mark.plugin
 
 #: Cells batched together: neighbours in the specular peak (strongly correlated), others far apart.
 BATCH = [(12.0, 0.0), (12.0, 2.0), (11.5, 0.0), (11.5, 2.0), (8.0, 0.0), (4.0, 0.0), (2.0, 10.0),

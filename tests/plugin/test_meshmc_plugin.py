@@ -14,7 +14,6 @@ from helpers import grid_mesh, with_mesh
 N_SIGMA = 4.0
 
 
-@pytest.mark.plugin
 @pytest.mark.slow
 def test_corrugated_mesh_agrees_with_mitsuba(tmp_path, mi, r3like):
     """A corrugated sample (2 mm grooves, 40 um deep: slopes up to 3.6 deg, steeper than the 1 deg

@@ -31,7 +31,6 @@ def _kappa(model, wi, wo, ref, rng, d=1e-6):
     return k
 
 
-@pytest.mark.plugin
 def test_smooth_variant_in_plugin_matches_numpy(mi, rng_seed):
     import drjit as dr
 

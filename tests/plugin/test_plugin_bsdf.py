@@ -11,7 +11,6 @@ import pytest
 from roadgonio.surface.model import RoadModel, RoadParams
 from helpers import rand_dirs, rand_params
 
-pytestmark = pytest.mark.plugin
 
 #: Relative tolerance of one float32 evaluation against float64 at the same (float32) directions:
 #: EVAL_REL_TOL + KAPPA_TOL * kappa, with kappa = |d ln f / d ln theta_i| the conditioning of the

@@ -12,7 +12,6 @@ from roadgonio.surface.model import NumpyOps, RoadModel
 from roadgonio.instrument.optics import (concentric_disc, detector_geometry, detector_ray, hit_plane, source_coupling,
                               source_geometry, source_point)
 
-pytestmark = pytest.mark.plugin
 
 #: float32 positions: ~6e-8 relative of coordinates up to D_D (m) -> absolute tolerance per metre.
 POS_TOL_PER_M = 1e-6

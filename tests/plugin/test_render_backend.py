@@ -16,7 +16,6 @@ from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
 from helpers import ROAD, preset
 
-pytestmark = pytest.mark.plugin
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
 #: float32 rounding of a pixel ratio R/G when every sample carries the same ratio.

@@ -6,7 +6,6 @@ import pytest
 from roadgonio.engines import make_backend
 
 
-@pytest.mark.plugin
 def test_mitsuba_float32_against_quadrature(mi, lab, r3like):
     """The float32 renderer against float64 quadrature: within 4 SE plus the measured float32 floor."""
     from roadgonio.engines.validate import FLOAT32_FLOOR, compare

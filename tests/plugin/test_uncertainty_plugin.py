@@ -14,7 +14,6 @@ from helpers import UNCERTAINTY_SPEC as SPEC
 
 
 @pytest.mark.slow
-@pytest.mark.system
 def test_aperture_case_with_the_mitsuba_backend(mi):
     """The whole aperture path with the renderer: at zero error the aperture case is the no-aperture
     table times k_A, and k_A there agrees with an independent render (another seed) within their

@@ -13,8 +13,6 @@ from roadgonio.cli import main
 from roadgonio.surface.model import RoadModel
 from roadgonio.surface.rtable import bundled_table, read_table
 
-pytestmark = pytest.mark.system
-
 
 def test_tables_json(capsys):
     assert main(["tables", "--json"]) == 0

@@ -12,7 +12,6 @@ from roadgonio.cli import main
 from roadgonio.engines.runner import JOURNAL
 from roadgonio.surface.rtable import read_table
 
-pytestmark = pytest.mark.system
 #: The quadrature backend integrates a Lambertian sample exactly up to round-off.
 LAMBERT_TOL = 1e-9
 

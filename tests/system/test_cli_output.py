@@ -12,7 +12,6 @@ import pytest
 from roadgonio.cli import build_parser, main
 from roadgonio.cli._common import show_progress
 
-pytestmark = pytest.mark.system
 
 def _subparsers():
     parser = build_parser()

@@ -7,7 +7,6 @@ import textwrap
 import numpy as np
 import pytest
 
-pytestmark = [pytest.mark.system]
 
 CRASH_MODULE = textwrap.dedent('''
     """Test helper installed in the Dask workers: a backend that kills its process."""

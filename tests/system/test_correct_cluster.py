@@ -16,7 +16,6 @@ import pytest
 from roadgonio.cli import main
 from roadgonio.surface.rtable import read_table
 
-pytestmark = pytest.mark.system
 
 DATA = Path(__file__).resolve().parents[1] / "data"
 #: Every file correct writes per folder with pictures (the journals and fit_state.json aside).

@@ -33,7 +33,6 @@ def scores(res, truth) -> dict:
             "s1_z": (res.after["S1"] - truth.s1()) / res.after["u_S1"]}
 
 
-@pytest.mark.system
 @pytest.mark.parametrize("mode", ["lambert", "absolute"])
 def test_round_trip_reference_self(mode):
     inst = Instrument.load(DATA / "medium.toml").with_changes(calibration={"mode": mode})
@@ -61,7 +60,6 @@ def test_round_trip_reference_self(mode):
     assert res.steps[-1]["converged"] and res.provenance["calibration"]["mode"] == mode
 
 
-@pytest.mark.system
 def test_synthetic_data_reproduce():
     """The stored measurements are what their generator makes (five cells, noise removed)."""
     from roadgonio.correction.synthetic import r2_like_truth
@@ -80,9 +78,8 @@ def test_synthetic_data_reproduce():
 
 
 @pytest.mark.slow
-@pytest.mark.plugin
 @pytest.mark.parametrize("mode", ["lambert", "absolute"])
-def test_round_trip_wide_instrument_with_mitsuba(mode):
+def test_round_trip_wide_instrument_with_mitsuba(mi, mode):
     """The wide-ish instrument of the issue (bench/data/wide.toml: k_A 0.30 ... 1.14, the footprint
     reaching under the source at grazing incidence); the measurement's k_A from the numpy Monte
     Carlo (bench/data/wide_r2like_ka_numpymc.csv, made by bench/bench_correct.py), absolute = that

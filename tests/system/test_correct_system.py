@@ -32,7 +32,6 @@ def _run(*args, timeout=900):
                           timeout=timeout)
 
 
-@pytest.mark.system
 def test_cli_measured_table_on_another_grid(tmp_path):
     f = tmp_path / "odd.csv"
     f.write_text("tan_eps,0,5,10\n0,300,300,300\n")
@@ -41,7 +40,6 @@ def test_cli_measured_table_on_another_grid(tmp_path):
     assert str(f) in p.stderr and "--measured" in p.stderr and "standard grid" in p.stderr
 
 
-@pytest.mark.system
 def test_cli_errors_name_what_is_wrong(tmp_path):
     p = _run("--measured", str(tmp_path / "none.csv"), "--instrument", "portable")
     assert p.returncode == 2 and "none.csv" in p.stderr and "Traceback" not in p.stderr
@@ -54,7 +52,6 @@ def test_cli_errors_name_what_is_wrong(tmp_path):
     assert p.returncode == 2 and "tan eps = 2, beta = 0" in p.stderr and "s.csv" in p.stderr
 
 
-@pytest.mark.system
 def test_cli_reference_route_checks_against_an_independent_backend(tmp_path, r3like):
     """``roadgonio correct --reference SAMPLE`` to success: corrected = measured / k_A, with k_A
     checked against the float64 numpy Monte Carlo (an independent integrator) within 4 SE + the
@@ -91,7 +88,6 @@ def test_cli_reference_route_checks_against_an_independent_backend(tmp_path, r3l
     assert prov["backend"] == "quadrature" and prov["settings"]["rtol"] == 1e-4 and prov["versions"]["numpy"]
 
 
-@pytest.mark.system
 def test_cli_several_files_json_list(tmp_path):
     t = sub_table(bundled_table("R3"), [(0.0, 0.0), (0.0, 2.0), (0.25, 0.0), (0.25, 2.0), (2.0, 0.0), (12.0, 0.0)])
     a = t.with_values(t.r, name="a").write_csv(tmp_path / "a.csv")
@@ -107,7 +103,6 @@ def test_cli_several_files_json_list(tmp_path):
         assert s["k_a_min"] == pytest.approx(1.0, abs=1e-9) and s["k_a_max"] == pytest.approx(1.0, abs=1e-9)
 
 
-@pytest.mark.system
 def test_cli_reference_self_end_to_end(tmp_path):
     """The default route from the command line on a small synthetic table (tests/data, the medium
     instrument, beta 0 ... 20): every file, the JSON keys, the fit through the instrument."""

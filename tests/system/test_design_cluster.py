@@ -13,7 +13,6 @@ import time
 import numpy as np
 import pytest
 
-pytestmark = [pytest.mark.system, pytest.mark.plugin]
 
 START_TIMEOUT_S = 90
 
@@ -71,7 +70,7 @@ CELLS = "12:0,8:2,2:180"
 
 
 @pytest.mark.timeout(600)
-def test_two_worker_cluster_identical_to_in_process(dask_cluster, tmp_path):
+def test_two_worker_cluster_identical_to_in_process(mi, dask_cluster, tmp_path):
     from roadgonio.design import run_design
     kw = dict(samples=["R3"], cells=CELLS, backend="mitsuba", accuracy="fast", seed=5, progress=False, plots=False)
     ds_here = run_design("portable", VARY, workers=0, out=tmp_path / "here", **kw)

@@ -17,9 +17,7 @@ def _ka_cells(path):
     return {(d["tan_eps"], d["beta_deg"]): d for d in map(json.loads, lines)}
 
 
-
-@pytest.mark.system
-def test_best_design_recomputed_with_ka_matches_its_row(tmp_path, capsys):
+def test_best_design_recomputed_with_ka_matches_its_row(mi, tmp_path, capsys):
     out = tmp_path / "d"
     cells = "12:0,8:2,4:0,1:45"
     rc = main(["design", "--instrument", "portable", "--vary", "source.radius_m=0.015:0.035:3",
@@ -57,7 +55,6 @@ def test_best_design_recomputed_with_ka_matches_its_row(tmp_path, capsys):
     assert any(f"--seed {row['seed']}" in h for h in header)
 
 
-@pytest.mark.system
 @pytest.mark.parametrize("args, words", [
     (["--vary", "source.radius=1:2:3"], "unknown instrument key"),
     (["--vary", "source.radius_m=0.01:0.02:3", "--tolerance", "5"], "--tolerance"),
@@ -71,8 +68,7 @@ def test_design_cli_bad_input_is_one_line(tmp_path, capsys, args, words):
     assert rc == 2 and words in err and err.count("\n") == 1 and "Traceback" not in err
 
 
-@pytest.mark.system
-def test_ka_cells_list(tmp_path, capsys):
+def test_ka_cells_list(mi, tmp_path, capsys):
     out = tmp_path / "ka"
     assert main(["ka", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature", "--accuracy", "fast",
                  "--cells", "12:0,4:2", "--out", str(out), "--json"]) == 0

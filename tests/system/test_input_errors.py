@@ -13,8 +13,6 @@ import pytest
 from roadgonio.cli import main
 
 
-pytestmark = pytest.mark.system
-
 def one_line_error(capsys, rc, *must):
     err = capsys.readouterr().err.strip()
     assert rc == 2, err
@@ -271,7 +269,6 @@ def test_source_in_the_line_of_sight_names_the_cell(tmp_path, capsys):
     assert "enlarge" not in line
 
 
-@pytest.mark.plugin
 def test_cuda_variant_without_gpu_says_gpu(capsys):
     rc = main(["ka", "--instrument", "lab", "--sample", "lambert", "--variant", "cuda_ad_rgb", "--tan-eps", "1",
                "--beta", "0"])
@@ -286,8 +283,7 @@ def test_single_cell_json_carries_converged(capsys):
     assert rc == 0 and d["converged"] is True and d["se"] is None and d["error_bound"] > 0
 
 
-@pytest.mark.plugin
-def test_source_in_the_line_of_sight_names_the_cell_in_the_renderer(tmp_path, capsys):
+def test_source_in_the_line_of_sight_names_the_cell_in_the_renderer(mi, tmp_path, capsys):
     """Before: 'rays do not hit the sample ... enlarge the sample', mid-table and without the cell."""
     p = write_instrument(tmp_path, GOOD.replace("distance_m = 5.0\nradius_m = 0.005",
                                                 "distance_m = 1.0\nradius_m = 0.08"))

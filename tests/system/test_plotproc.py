@@ -8,8 +8,6 @@ from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.plotproc import FigureProcess, InProcess
 from helpers import _pixels
 
-pytestmark = pytest.mark.unit
-
 
 def _values(seed=0):
     rng = np.random.default_rng(seed)

@@ -4,9 +4,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import pytest
 
-pytestmark = [pytest.mark.system, pytest.mark.plugin]
 
 README = Path(__file__).resolve().parents[2] / "README.md"
 
@@ -15,7 +13,7 @@ def python_blocks(text: str) -> list[str]:
     return re.findall(r"```python\n(.*?)```", text, flags=re.S)
 
 
-def test_readme_python_api_example_runs(tmp_path, monkeypatch, capsys):
+def test_readme_python_api_example_runs(mi, tmp_path, monkeypatch, capsys):
     section = README.read_text(encoding="utf-8").split("## Python API", 1)[1].split("\n## ", 1)[0]
     blocks = python_blocks(section)
     assert len(blocks) == 1 and "import roadgonio as rg" in blocks[0]

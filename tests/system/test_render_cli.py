@@ -4,14 +4,11 @@ from __future__ import annotations
 import json
 
 import numpy as np
-import pytest
 
 from roadgonio.cli import main
 
-pytestmark = [pytest.mark.system, pytest.mark.plugin]
 
-
-def test_render_writes_exr_png_json(tmp_path, capsys):
+def test_render_writes_exr_png_json(mi, tmp_path, capsys):
     out = tmp_path / "r"
     rc = main(["render", "--instrument", "lab", "--sample", "lambert", "--tan-eps", "0", "--beta", "0",
                "--out", str(out), "--resolution", "32", "--spp", "4"])

@@ -13,8 +13,6 @@ from roadgonio.road.layout import load_layout
 from roadgonio.road.luminaire import load_luminaire
 from roadgonio.surface.rtable import BUNDLED, bundled_table
 
-pytestmark = pytest.mark.system
-
 
 def test_road_out_of_the_box_json(tmp_path, capsys):
     assert main(["road", "--table", "R3", "--out", str(tmp_path), "--json"]) == 0

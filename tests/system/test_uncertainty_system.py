@@ -8,7 +8,6 @@ import sys
 import pytest
 
 
-@pytest.mark.system
 @pytest.mark.parametrize("args,words", [
     (["--sigma", "alpha_deg=-1"], "--sigma alpha_deg"),
     (["--sigma", "foo=1"], "unknown key"),
@@ -21,7 +20,6 @@ def test_cli_bad_input_is_one_line(tmp_path, args, words):
     assert p.returncode == 2 and words in p.stderr and "Traceback" not in p.stderr
 
 
-@pytest.mark.system
 def test_cli_runs_lambert(tmp_path):
     p = subprocess.run([sys.executable, "-m", "roadgonio", "uncertainty", "--instrument", "lab", "--sample", "lambert",
                         "--sigma", "eps_deg=0.05,source_distance_m=0.005", "--trials", "2000", "--no-aperture",

@@ -18,7 +18,6 @@ def model_file(tmp_path, r3like):
     return path
 
 
-@pytest.mark.system
 def test_cli_agrees_and_writes_outputs(tmp_path, capsys, model_file):
     out = tmp_path / "val"
     rc = main(["validate", "--instrument", "lab", "--sample", str(model_file), "--against", "numpy-mc",
@@ -46,7 +45,6 @@ def _umask() -> int:
     return m
 
 
-@pytest.mark.system
 def test_cli_json_is_the_report(tmp_path, capsys, model_file):
     rc = main(["validate", "--instrument", "lab", "--sample", str(model_file), "--against", "numpy-mc",
                "--cells", "2:90", "--rel-se", "3e-3", "--json", "--out", str(tmp_path / "v")])
@@ -54,7 +52,6 @@ def test_cli_json_is_the_report(tmp_path, capsys, model_file):
     assert rc == 0 and doc["counts"]["agree"] == 1 and doc["cells"][0]["verdict"] == "agree"
 
 
-@pytest.mark.system
 def test_cli_exit_1_on_disagreement(tmp_path, monkeypatch, capsys, model_file):
     """With a zero-width pass band any Monte Carlo noise is a disagreement: exit status 1."""
     monkeypatch.setattr(V, "N_SIGMA", 0.0)
@@ -65,7 +62,6 @@ def test_cli_exit_1_on_disagreement(tmp_path, monkeypatch, capsys, model_file):
     assert "FAILED" in capsys.readouterr().err
 
 
-@pytest.mark.system
 def test_cli_exit_3_when_the_reference_does_not_converge(tmp_path, capsys, model_file):
     """A reference capped far below what it needs cannot vouch for the renderer: inconclusive, exit 3."""
     rc = main(["validate", "--instrument", "wide", "--sample", str(model_file), "--against", "numpy-mc",
@@ -76,7 +72,6 @@ def test_cli_exit_3_when_the_reference_does_not_converge(tmp_path, capsys, model
     assert "INCONCLUSIVE" in cap.err
 
 
-@pytest.mark.system
 def test_cli_refuses_an_xml_scene_instead_of_blaming_the_renderer(tmp_path, capsys, model_file):
     rc = main(["validate", "--instrument", "holder", "--sample", str(model_file), "--against", "numpy-mc",
                "--cells", "2:90", "--out", str(tmp_path / "v")])
@@ -84,7 +79,6 @@ def test_cli_refuses_an_xml_scene_instead_of_blaming_the_renderer(tmp_path, caps
     assert rc == 2 and "scene" in err and "does not model" in err and len(err.strip().splitlines()) == 1
 
 
-@pytest.mark.system
 def test_cli_bad_input_is_exit_2(tmp_path):
     assert main(["validate", "--instrument", "lab", "--sample", "lambert", "--against", "numpy-mc",
                  "--cells", "12", "--out", str(tmp_path)]) == 2
@@ -94,7 +88,6 @@ def test_cli_bad_input_is_exit_2(tmp_path):
                  "--seed", "-1", "--out", str(tmp_path)]) == 2
 
 
-@pytest.mark.system
 @pytest.mark.slow
 def test_wide_instrument_quadrature_is_inconclusive_where_it_stops_short(tmp_path, capsys, model_file):
     """The issue's measurement: at tan eps 12 / beta 0 the tensor quadrature stops at its cap ~8 % off;
@@ -104,7 +97,6 @@ def test_wide_instrument_quadrature_is_inconclusive_where_it_stops_short(tmp_pat
     assert rc == 3 and "did not converge" in capsys.readouterr().out
 
 
-@pytest.mark.system
 @pytest.mark.slow
 def test_wide_instrument_agrees_with_a_converged_reference(tmp_path, capsys, model_file):
     """The strong-aperture corner of the wide instrument (where the quadrature fails): numpy-mc agrees

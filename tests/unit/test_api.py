@@ -14,7 +14,6 @@ from roadgonio.errors import InputError
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.surface.rtable import RTable, bundled_table
 
-pytestmark = pytest.mark.unit
 
 #: float64 round-off allowed beside the quadrature's error bound of a Lambertian k_A (= 1 exactly).
 ROUNDOFF = 4 * 2.2e-16

@@ -6,9 +6,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-import pytest
 
-pytestmark = pytest.mark.unit
 
 ROOT = Path(__file__).resolve().parents[2]
 MITSUBA_MODULES = ("mitsuba", "drjit", "roadgonio.engines.mitsuba")

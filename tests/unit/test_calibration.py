@@ -96,7 +96,6 @@ def independent_eta(inst: Instrument, tan_eps: float, beta_deg: float, n: int) -
     return float(np.sum(W * e) / np.sum(W) / e0)
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("base,changes,cells", [
     ("portable", {}, [(0.0, 0.0), (2.0, 0.0), (12.0, 0.0), (6.0, 180.0)]),
     ("lab", {"detector": {"field_edge_sensitivity": 0.7, "focus_m": "inf"}}, [(1.0, 30.0), (10.0, 2.0)]),
@@ -113,7 +112,6 @@ def test_eta_matches_an_independent_integral(base, changes, cells):
     assert max(abs(illuminance_ratio(inst, t, b)[0] - 1) for t, b in cells) > 4e-3
 
 
-@pytest.mark.unit
 def test_eta_of_the_point_instrument_is_one():
     inst = inst_with("lab", source={"radius_m": 0.0}, detector={"pupil_radius_m": 0.0, "field_half_angle_deg": 0.0})
     eta, err, ok = illuminance_ratio(inst, 3.0, 20.0)
@@ -124,7 +122,6 @@ def test_eta_of_the_point_instrument_is_one():
 # The [calibration] section
 # ----------------------------------------------------------------------------------------------
 
-@pytest.mark.unit
 def test_calibration_section_parsing(tmp_path):
     base = load_instrument("portable").to_dict()
     assert "calibration" not in base                       # Lambert (default) leaves fingerprints unchanged
@@ -144,7 +141,6 @@ def test_calibration_section_parsing(tmp_path):
     assert got.calibration.reference_model().params == r3like().params
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("section,needle", [
     ({"mode": "absolut"}, "calibration.mode"),
     ({"mode": "reference"}, "calibration.reference"),
@@ -167,13 +163,11 @@ def test_calibration_section_errors(section, needle):
 CELLS = [(0.0, 0.0), (2.0, 0.0), (6.0, 2.0), (12.0, 0.0), (3.0, 90.0)]
 
 
-@pytest.mark.unit
 def test_lambert_mode_is_the_backend_itself():
     b = make_backend("quadrature", load_instrument("portable"), r3like(), rtol=1e-3)
     assert not isinstance(b, CalibratedBackend) and b.name == "quadrature"
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("backend,settings", [("quadrature", {"rtol": 1e-4}), ("numpy-mc", {"rel_se": 1e-2})])
 def test_absolute_mode_lambertian_sample_gives_eta(backend, settings):
     inst = inst_with("portable", calibration={"mode": "absolute"})
@@ -188,7 +182,6 @@ def test_absolute_mode_lambertian_sample_gives_eta(backend, settings):
     assert max(abs(c.k_a - 1) for c in res) > 4e-3               # ... and eta is not 1
 
 
-@pytest.mark.unit
 def test_absolute_mode_scales_lambert_k_and_its_precision():
     lam = load_instrument("portable")
     inst = lam.with_changes(calibration={"mode": "absolute"})
@@ -201,7 +194,6 @@ def test_absolute_mode_scales_lambert_k_and_its_precision():
         assert math.isnan(b.se) and b.deterministic
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("backend,settings", [("quadrature", {"rtol": 1e-4}), ("numpy-mc", {"rel_se": 1e-2})])
 def test_reference_equal_to_sample_gives_exactly_one(tmp_path, backend, settings):
     r3like().save(tmp_path / "ref.json")
@@ -210,7 +202,6 @@ def test_reference_equal_to_sample_gives_exactly_one(tmp_path, backend, settings
     assert all(c.k_a == 1.0 and c.standard_uncertainty() == 0.0 for c in res)
 
 
-@pytest.mark.unit
 def test_reference_mode_is_the_ratio_of_lambert_k_with_common_random_numbers(tmp_path):
     sample = r3like()
     ref = RoadModel(RoadParams(k_diff=0.05, k_phong=0.5, n_phong=10.0), name="ref")

@@ -35,7 +35,6 @@ def ideal(base: str = "lab"):
 # The forward model
 # ----------------------------------------------------------------------------------------------
 
-@pytest.mark.unit
 def test_forward_model_of_the_ideal_instrument_and_of_a_diffuser(r3like):
     fm = ForwardModel(RayBundles.build(ideal(), CELLS, rays=8, replicates=2))
     assert np.allclose(fm.k_a(r3like), 1.0, rtol=ROUND_TOL, atol=0)  # one ray: the nominal geometry
@@ -45,7 +44,6 @@ def test_forward_model_of_the_ideal_instrument_and_of_a_diffuser(r3like):
     assert np.max(np.abs(fm.k_a(r3like) - 1.0)) > 1e-2                               # ... a road: not
 
 
-@pytest.mark.unit
 def test_forward_model_is_linear_in_the_coefficients(r3like):
     fm = ForwardModel(RayBundles.build(load_instrument("portable"), CELLS, rays=64))
     P = r3like.params.to_dict()
@@ -57,7 +55,6 @@ def test_forward_model_is_linear_in_the_coefficients(r3like):
     assert np.allclose(fm.k_a(twice), fm.k_a(r3like), rtol=ROUND_TOL)   # k_A does not see the scale
 
 
-@pytest.mark.unit
 def test_bundle_k_agrees_with_the_numpy_monte_carlo_within_their_errors(r3like):
     """The bundles (RQMC, replicate standard error) against the independent numpy Monte Carlo."""
     inst = load_instrument("portable")
@@ -68,7 +65,6 @@ def test_bundle_k_agrees_with_the_numpy_monte_carlo_within_their_errors(r3like):
     assert max(abs(a.k_a - 1) for a in bb) > 0.02                   # a test that can fail
 
 
-@pytest.mark.unit
 def test_bundles_are_common_random_numbers_per_cell_index():
     inst = load_instrument("portable")
     a = RayBundles.build(inst, CELLS, rays=64)
@@ -81,7 +77,6 @@ def test_bundles_are_common_random_numbers_per_cell_index():
     assert 0 < d.max() < 1e-4                                        # the same unit points, moved smoothly
 
 
-@pytest.mark.unit
 def test_reference_calibration_forward_model(tmp_path, r3like):
     r3like.save(tmp_path / "ref.json")
     inst = load_instrument("portable").with_changes(calibration={"mode": "reference",
@@ -97,7 +92,6 @@ def test_reference_calibration_forward_model(tmp_path, r3like):
 # The fit through the instrument
 # ----------------------------------------------------------------------------------------------
 
-@pytest.mark.unit
 def test_fit_through_an_ideal_instrument_reaches_the_plain_least_squares_optimum():
     """Through the ideal instrument and with a constant u the fit is the plain least squares in % of
     max r; its multi-start must find the global optimum of the power model on R4, which a long
@@ -111,7 +105,6 @@ def test_fit_through_an_ideal_instrument_reaches_the_plain_least_squares_optimum
     assert f.stage_a[0] < f.stage_a[-1]                            # stage A saw distinct minima (a real landscape)
 
 
-@pytest.mark.unit
 def test_plain_table_fit_reaches_the_optimum_the_instrument_fit_finds():
     """surface.fit's plain least squares (objective_weight 0) and the fit through an ideal instrument
     with a constant u minimise the same thing: both must reach the same optimum on R1 (power), where
@@ -126,7 +119,6 @@ def test_plain_table_fit_reaches_the_optimum_the_instrument_fit_finds():
     assert plain.rms_dev_pct < 1.46
 
 
-@pytest.mark.unit
 def test_fit_recovers_a_model_measured_without_noise_and_its_covariance_scales(r3like):
     """A table simulated through the instrument by the forward model itself, no noise: the fit
     returns the simulated table (chi^2 ~ 0) and the parameter u scales with the stated u."""
@@ -146,7 +138,6 @@ def test_fit_recovers_a_model_measured_without_noise_and_its_covariance_scales(r
 # Budget and functionals
 # ----------------------------------------------------------------------------------------------
 
-@pytest.mark.unit
 def test_functionals_uncertainty_independent_and_fully_correlated():
     t = bundled_table("R3")
     n = int(t.mask.sum())
@@ -165,7 +156,6 @@ def test_functionals_uncertainty_independent_and_fully_correlated():
     assert g["class"]["R"] == "R3" and f["nearest_table"] == "R3"
 
 
-@pytest.mark.unit
 def test_cie_class_boundaries_and_probabilities():
     assert [cie_class(s)["R"] for s in (0.2, 0.42, 0.8, 0.85, 1.349, 1.35, 3.0)] == \
         ["R1", "R2", "R2", "R3", "R3", "R4", "R4"]
@@ -174,7 +164,6 @@ def test_cie_class_boundaries_and_probabilities():
     assert sum(c["p_R"].values()) == pytest.approx(1.0) and c["p_R"]["R2"] == pytest.approx(0.5, abs=1e-9)
 
 
-@pytest.mark.unit
 def test_measured_uncertainty_forms(tmp_path):
     t = bundled_table("C2")
     g, _ = measured_uncertainty("2%", t)
@@ -193,7 +182,6 @@ def test_measured_uncertainty_forms(tmp_path):
             measured_uncertainty(text, t)
 
 
-@pytest.mark.unit
 def test_output_folders_one_or_one_per_file(tmp_path):
     assert output_folders(["a"], tmp_path) == [tmp_path]
     assert output_folders(["a", "b", "a"], tmp_path) == [tmp_path / "a", tmp_path / "b", tmp_path / "a-2"]
@@ -235,7 +223,6 @@ def _measured_r2like(inst, noise=0.01, seed=3):
     return RTable(g, name="meas"), truth
 
 
-@pytest.mark.system
 def test_self_correction_resumes_from_its_journal_and_checkpoint(tmp_path):
     inst = load_instrument("portable")
     meas, _ = _measured_r2like(inst)
@@ -255,7 +242,6 @@ def test_self_correction_resumes_from_its_journal_and_checkpoint(tmp_path):
     assert a.fit.model.params == b.fit.model.params                 # the fit came from the checkpoint
 
 
-@pytest.mark.system
 def test_several_tables_share_the_instrument_artefacts(tmp_path, monkeypatch):
     from roadgonio.correction import correct_files, run as run_mod
     inst = load_instrument("portable")
@@ -287,7 +273,6 @@ def test_several_tables_share_the_instrument_artefacts(tmp_path, monkeypatch):
         assert set(doc["summary"]["budget"]) >= {"measurement", "backend", "parameters", "total"}
 
 
-@pytest.mark.unit
 def test_budget_total_is_the_sum_of_its_components():
     b = Budget(3)
     b.add("measurement", np.array([0.01, 0.02, 0.03]))

@@ -26,7 +26,6 @@ CELLS = "12:0,4:2,0:0,12:180"
 # grid, tolerance, cells
 # ----------------------------------------------------------------------------------------------
 
-@pytest.mark.unit
 def test_parse_vary_linear_log_and_list():
     s = G.parse_vary("source.radius_m=0.01:0.04:4")
     assert s.key == "source.radius_m" and s.values == (0.01, 0.02, 0.03, 0.04) and not s.log
@@ -37,7 +36,6 @@ def test_parse_vary_linear_log_and_list():
     assert G.parse_vary("source.distance_m=1:1:1").values == (1.0,)
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("text, words", [
     ("source.radius=0.01:0.02:2", "unknown instrument key"),
     ("source.radius_m", "expected KEY=LO:HI:N"),
@@ -55,7 +53,6 @@ def test_parse_vary_errors_name_the_option(text, words):
     assert e.value.field == "--vary" and words in str(e.value)
 
 
-@pytest.mark.unit
 def test_vary_key_twice_and_grid_order():
     with pytest.raises(InputError, match="twice"):
         G.as_vary_specs(["source.radius_m=0.01,0.02", "source.radius_m=0.03,0.04"])
@@ -66,7 +63,6 @@ def test_vary_key_twice_and_grid_order():
     assert pts[3]["source.radius_m"] == 0.02
 
 
-@pytest.mark.unit
 def test_tolerance():
     assert G.parse_tolerance("5%") == pytest.approx(0.05) and G.parse_tolerance("0.02") == 0.02
     assert G.parse_tolerance(0.1) == 0.1
@@ -76,7 +72,6 @@ def test_tolerance():
         assert e.value.field == "--tolerance"
 
 
-@pytest.mark.unit
 def test_focus_follows_the_detector_distance_of_a_sample_focused_base():
     base = load_instrument("portable")          # focus_m = distance_m = 1
     inst = G.build_instrument(base, {"detector.distance_m": 2.0})
@@ -87,7 +82,6 @@ def test_focus_follows_the_detector_distance_of_a_sample_focused_base():
     assert fixed.detector.focus_distance_m == 1.5
 
 
-@pytest.mark.unit
 def test_sample_cells_all_table_list():
     assert len(G.sample_cells("all", "R3")) == 580
     table = G.sample_cells("table", "R3")
@@ -115,7 +109,6 @@ def _disc_rule(n_r: int, n_phi: int):
     return (R * np.cos(P)).ravel(), (R * np.sin(P)).ravel(), W.ravel()
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("r1, r2, d", [(0.005, 0.0026, 1.0), (0.3, 0.2, 0.5), (1.0, 1.0, 0.7)])
 def test_coaxial_disc_etendue_against_direct_integration(r1, r2, d):
     """G = int int cos t1 cos t2 / s^2 dA1 dA2 over two coaxial discs, by a product rule."""
@@ -128,7 +121,6 @@ def test_coaxial_disc_etendue_against_direct_integration(r1, r2, d):
     assert M.coaxial_disc_etendue(r1, r2, d) == pytest.approx(g, rel=1e-6)
 
 
-@pytest.mark.unit
 def test_source_solid_angle_is_the_illuminance_of_a_unit_radiance_disc():
     x, y, w = _disc_rule(32, 64)
     R, D = 0.4, 0.7
@@ -137,7 +129,6 @@ def test_source_solid_angle_is_the_illuminance_of_a_unit_radiance_disc():
     assert M.source_solid_angle(R, D) == pytest.approx(e, rel=1e-9)
 
 
-@pytest.mark.unit
 def test_relative_signal_scales_as_apertures_and_not_with_detector_distance():
     base = load_instrument("portable")
     assert M.relative_signal(base, base) == 1.0
@@ -159,7 +150,6 @@ def test_relative_signal_scales_as_apertures_and_not_with_detector_distance():
     assert M.relative_signal(point, base) == 0.0 and math.isnan(M.relative_signal(base, point))
 
 
-@pytest.mark.unit
 def test_deviations_and_pareto_front():
     k = np.array([[1.01, np.nan], [0.95, 1.02]])
     d = M.deviations(k, np.full_like(k, 0.001))
@@ -173,7 +163,6 @@ def test_deviations_and_pareto_front():
 # feasibility
 # ----------------------------------------------------------------------------------------------
 
-@pytest.mark.unit
 def test_impossible_points_get_their_reason():
     base = load_instrument("portable")
     cells = G.sample_cells("all", "R3")
@@ -265,7 +254,6 @@ def test_resume_reads_finished_tables_and_refuses_another_design(tmp_path):
                    plots=False, **QUAD)
 
 
-@pytest.mark.unit
 def test_seeds_depend_only_on_the_root_and_the_point():
     from roadgonio.design.cluster import seeds_for
     a, b = seeds_for(7, 3), seeds_for(7, 10)

@@ -21,7 +21,6 @@ from roadgonio.instrument.config import (
     load_instrument,
 )
 
-pytestmark = pytest.mark.unit
 
 GOOD = """
 [observation]

@@ -13,8 +13,6 @@ from roadgonio.engines.runner import JOURNAL, run_cells, write_outputs
 from roadgonio.surface.model import RoadModel, RoadParams
 from roadgonio.surface.rtable import read_table
 
-pytestmark = pytest.mark.unit
-
 
 class Interrupted(Exception):
     pass

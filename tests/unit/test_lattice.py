@@ -11,8 +11,6 @@ import pytest
 
 from roadgonio.engines.mitsuba import lattice as lat
 
-pytestmark = pytest.mark.unit
-
 
 @pytest.mark.parametrize("log2n", [4, 5, 6, 7, 8, 9, 10])
 def test_table_is_the_search_result(log2n):

@@ -19,7 +19,6 @@ from helpers import grid_mesh, with_mesh
 N_SIGMA = 4.0
 
 
-@pytest.mark.unit
 def test_caster_first_hit_and_shadow():
     tri = np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]],
                     [[0.0, 0.0, 0.5], [1.0, 0.0, 0.5], [0.0, 1.0, 0.5]]])
@@ -42,7 +41,6 @@ def test_caster_first_hit_and_shadow():
     assert i2[0] in (0, 1) and t2[0] == pytest.approx(8.0 / math.cos(a), rel=1e-12)
 
 
-@pytest.mark.unit
 def test_triangulated_plane_matches_the_flat_monte_carlo(tmp_path, r3like):
     """A plane cut into 800 shuffled triangles is the flat sample: both Monte Carlo estimators agree
     within their combined SE (the cell with the specular peak and a diffuse-like one)."""
@@ -58,7 +56,6 @@ def test_triangulated_plane_matches_the_flat_monte_carlo(tmp_path, r3like):
         assert a.se > 0 and a.converged
 
 
-@pytest.mark.unit
 def test_self_shadowing_is_modelled(tmp_path, r3like):
     """A wall between the source and the footprint shades it: the mesh Monte Carlo says no light
     reaches the detected area (without shadow rays it would return a plausible k_A)."""
@@ -78,7 +75,6 @@ def test_self_shadowing_is_modelled(tmp_path, r3like):
     assert r.k_a > 0.5
 
 
-@pytest.mark.unit
 def test_mesh_off_the_footprint_and_xml_are_errors(tmp_path, r3like):
     inst = load_instrument("lab")
     small = grid_mesh(tmp_path / "small.ply", np.linspace(-0.05, 0.05, 3), np.linspace(-0.05, 0.05, 3))

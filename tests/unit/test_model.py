@@ -14,7 +14,6 @@ from roadgonio.surface.model import (PARAM_BOUNDS, THETA_R_STAR, VARIANTS, Numpy
                              road_brdf)
 from helpers import _hemisphere, _model, _unit, rand_dirs, rand_params
 
-pytestmark = pytest.mark.unit
 
 #: float64 evaluation of closed forms: relative agreement expected to rounding.
 RTOL_EXACT = 1e-12

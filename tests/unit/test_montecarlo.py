@@ -13,8 +13,6 @@ from roadgonio.engines import make_backend
 from roadgonio.surface.model import RoadModel
 
 
-pytestmark = pytest.mark.unit
-
 #: Statistical agreement threshold (standard errors) for a fixed-seed comparison.
 N_SIGMA = 4.0
 

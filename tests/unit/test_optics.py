@@ -14,7 +14,6 @@ from roadgonio.surface.model import NumpyOps as xp
 from roadgonio.instrument.optics import (check_detector, check_source, concentric_disc, detector_geometry,
                               detector_ray, hit_plane, source_coupling, source_geometry, source_point)
 
-pytestmark = pytest.mark.unit
 SEED = 20261122
 
 

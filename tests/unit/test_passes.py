@@ -13,8 +13,6 @@ import pytest
 from roadgonio.engines.mitsuba.passes import (MAX_GROWTH, SAFETY, CellStats, Plan, Planner, add_strata,
                                               covariance, relative)
 
-pytestmark = pytest.mark.unit
-
 
 def synthetic(rng, reps, ratio=0.8, rel=0.05, rho=0.9, n=1024):
     """Replicate sums of n points: G around n, R = ratio G + noise (correlated with G)."""

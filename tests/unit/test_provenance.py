@@ -4,7 +4,6 @@ from __future__ import annotations
 import json
 from importlib import metadata
 
-import pytest
 
 from roadgonio import __version__
 from roadgonio.instrument.config import load_instrument
@@ -12,7 +11,6 @@ from roadgonio.provenance import provenance, versions
 from roadgonio.surface.model import RoadModel, RoadParams
 from helpers import VERSION_KEYS
 
-pytestmark = pytest.mark.unit
 
 def test_versions_name_the_installed_packages():
     v = versions()

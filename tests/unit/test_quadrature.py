@@ -21,9 +21,6 @@ LAMBERT_TOL = 1e-12
 SE_HONESTY = 3.0
 
 
-pytestmark = pytest.mark.unit
-
-
 @pytest.mark.parametrize("focus", [0j, 0.6j, 0.3 - 0.5j])
 def test_disc_rule_moments(focus):
     x, y, w = disc_rule(12, 12, focus)

@@ -16,7 +16,6 @@ from roadgonio.engines.reference import AdaptiveMap, ReferenceBackend, segment_m
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import load_instrument
 
-pytestmark = pytest.mark.unit
 
 #: Exactness of the maps, checked with 2^18 Sobol' points on smooth test functions (QMC error ~1e-9).
 MAP_TOL = 1e-7

@@ -17,7 +17,6 @@ from roadgonio.road.luminaire import Luminaire, bundled_luminaire_path, load_lum
 from roadgonio.road.mc import propagate
 from roadgonio.surface.rtable import bundled_table
 
-pytestmark = pytest.mark.unit
 REL = 1e-9          # deterministic arithmetic, float64
 FILE_ROUNDING = 5e-4  # the .ldt stores cd/klm with 3 decimals
 

@@ -10,7 +10,6 @@ from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.surface.rtable import (BUNDLED, PUBLISHED_Q0, PUBLISHED_S1, RTable, bundled_table, load_table,
                               read_table)
 
-pytestmark = pytest.mark.unit
 
 #: S1 is published with 2 decimals: agreement to rounding (half a unit of the last digit).
 S1_TOL_ABS = 0.005 + 1e-12

@@ -10,8 +10,6 @@ from roadgonio.errors import InputError
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.surface.rtable import RTB_Q0_AGREE, RTable, bundled_table, parse_rtb, read_table
 
-pytestmark = pytest.mark.unit
-
 
 def test_layout_is_dialux_one_value_per_line():
     t = bundled_table("R3")

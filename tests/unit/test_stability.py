@@ -31,7 +31,6 @@ def finite_result(r, max_rel_err: float | None = None):
         assert prec <= max_rel_err * r.k_a, r
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("eps_deg", [80.0, 85.236, 88.0, 89.0, 89.9])
 def test_grazing_illumination(eps_deg, lab, r3like):
     tan = math.tan(math.radians(eps_deg))
@@ -56,7 +55,6 @@ def source_in_line_of_sight(inst, tan, beta) -> bool:
     return sep < reach
 
 
-@pytest.mark.unit
 def test_grazing_source_below_horizon_is_an_error(lab, r3like):
     # lab source: 5 mm radius at 5 m; its rim dips below the plane once 5 cos(eps) < 0.005 sin(eps)
     b = make_backend("quadrature", lab(), r3like)
@@ -64,7 +62,6 @@ def test_grazing_source_below_horizon_is_an_error(lab, r3like):
         b.compute_cell(math.tan(math.radians(89.95)), 0.0)
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("alpha", [0.1, 0.5, 1.0, 10.0, 45.0, 89.0, 89.99])
 def test_observation_angles(alpha, lab, r3like):
     """From nearly grazing to the zenith; the sample is made large enough for the footprint."""
@@ -80,14 +77,12 @@ def test_observation_angles(alpha, lab, r3like):
         finite_result(b.compute_cell(*cell), 1e-4)
 
 
-@pytest.mark.unit
 def test_grazing_observation_leaves_a_small_sample(lab, r3like):
     inst = lab(observation={"alpha_deg": 0.1})
     with pytest.raises(GeometryError, match="footprint"):
         make_backend("quadrature", inst, r3like)
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("beta0", [0.0, 180.0])
 def test_beta_exactly_0_and_180_are_continuous(beta0, lab, r3like):
     b = make_backend("quadrature", lab(), r3like, rtol=1e-7)
@@ -99,7 +94,6 @@ def test_beta_exactly_0_and_180_are_continuous(beta0, lab, r3like):
         assert a.k_a == pytest.approx(c.k_a, abs=CONTINUITY_TOL)
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("base, params", [
     ({}, dict(k_diff=0.01, k_phong=1.0, n_phong=1e4)),                 # very sharp specular lobe
     ({}, dict(k_diff=0.01, k_retro=1.0, n_retro=1e4)),                 # very sharp retro lobe
@@ -118,7 +112,6 @@ def test_extreme_models_stay_finite(base, params, r3like_params, lab):
             assert r.error_bound <= 1e-3 * r.k_a
 
 
-@pytest.mark.unit
 def test_sharp_lobe_agrees_with_monte_carlo(lab):
     """n_phong = 1e4: quadrature and float64 MC agree within 4 SE (fixed seed)."""
     model = RoadModel(RoadParams(k_diff=0.01, k_phong=1.0, n_phong=1e4))
@@ -135,7 +128,6 @@ def scaled(lab, s: float):
                detector={"pupil_radius_m": 0.005 * s, "field_half_angle_deg": 0.05 * s})
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("cell", [(2.0, 0.0), (6.0, 10.0), (10.0, 0.0)])
 def test_k_a_minus_one_scales_as_aperture_squared(cell, lab, r3like_params):
     """For a smooth BRDF, k_A - 1 = c s^2 + O(s^4) in the aperture scale s (even in s: the
@@ -152,7 +144,6 @@ def test_k_a_minus_one_scales_as_aperture_squared(cell, lab, r3like_params):
     assert slope == pytest.approx(EXPONENT, abs=EXPONENT_TOL)
 
 
-@pytest.mark.unit
 def test_large_apertures(lab, r3like):
     inst = lab(source={"radius_m": 0.3}, detector={"pupil_radius_m": 0.2, "field_half_angle_deg": 1.0},
                sample={"size_x_m": 20.0, "size_y_m": 2.0}, observation={"alpha_deg": 5.0})
@@ -161,7 +152,6 @@ def test_large_apertures(lab, r3like):
         finite_result(b.compute_cell(*cell))
 
 
-@pytest.mark.unit
 def test_sample_that_barely_covers_the_footprint(lab, r3like):
     inst = lab()
     xmin, xmax, ymin, ymax = optics.check_detector(inst)
@@ -178,7 +168,6 @@ def test_sample_that_barely_covers_the_footprint(lab, r3like):
             make_backend("numpy-mc", outside, r3like)
 
 
-@pytest.mark.unit
 @pytest.mark.parametrize("changes", [{"source": {"radius_m": 0.0}}, {"detector": {"focus_m": "inf"}},
                                      {"source": {"beam_half_angle_deg": 3.0}}])
 def test_degenerate_and_limited_instruments_agree_with_mc(changes, lab, r3like):

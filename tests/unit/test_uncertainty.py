@@ -20,7 +20,6 @@ from roadgonio.uncertainty import (CellSet, MeasurementModel, _rotations, covera
                                    summarize, write_results)
 from helpers import UNCERTAINTY_MODEL as MODEL, UNCERTAINTY_SPEC as SPEC
 
-pytestmark = pytest.mark.unit
 
 #: float64 round-off allowance of exact rewrites of the same geometry
 EXACT_TOL = 1e-12
@@ -297,7 +296,6 @@ def test_ideal_instrument_skips_aperture_case():
     assert list(res.cases) == ["no_aperture"] and res.provenance["notes"]
 
 
-@pytest.mark.system
 def test_outputs_written(tmp_path):
     res = run_uncertainty(MODEL, load_instrument("portable"), parse_sigma_spec(SPEC), trials=1000, seed=1,
                           progress=False, n_validation=1, backend_factory=lambda i, m: StandIn(i, m, ka_smooth))

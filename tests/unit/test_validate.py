@@ -11,7 +11,6 @@ from roadgonio.engines import CellResult
 from roadgonio.engines import validate as V
 
 
-
 def mc_cell(k, se, converged=True):
     return CellResult(tan_eps=4.0, beta_deg=2.0, k_a=k, se=se, samples=10, seconds=0.1, converged=converged)
 
@@ -21,7 +20,6 @@ def ref_cell(k, bound, converged=True):
                       converged=converged)
 
 
-@pytest.mark.unit
 def test_pass_band_adds_the_bound_as_a_bound():
     q = ref_cell(0.5, 0.0)
     assert V.compare(q, mc_cell(0.5 + 3.9e-3, 1e-3)).verdict == "agree"
@@ -35,7 +33,6 @@ def test_pass_band_adds_the_bound_as_a_bound():
     assert V.compare(q, mc_cell(math.nan, 1e-3)).verdict == "disagree"
 
 
-@pytest.mark.unit
 def test_reference_that_did_not_converge_is_inconclusive_never_agree():
     """The landed defect: a quadrature stopped at its cap with a 13 % error estimate made every
     cell 'agree'. A reference that did not converge says nothing: inconclusive, whatever the values."""
@@ -45,7 +42,6 @@ def test_reference_that_did_not_converge_is_inconclusive_never_agree():
     assert V.compare(ref_cell(0.5, 1e-6, converged=False), mc_cell(0.5, 1e-3)).verdict == "inconclusive"
 
 
-@pytest.mark.unit
 def test_bound_wider_than_the_test_needs_is_inconclusive():
     se = 1e-3
     band = V.N_SIGMA * se
@@ -56,13 +52,11 @@ def test_bound_wider_than_the_test_needs_is_inconclusive():
     assert V.compare(ref_cell(0.5, 2e-3), mc_cell(0.5 + 6.1e-3, se)).verdict == "disagree"
 
 
-@pytest.mark.unit
 def test_monte_carlo_at_its_cap_is_inconclusive_unless_it_disagrees():
     assert V.compare(ref_cell(0.5, 1e-5), mc_cell(0.5001, 1e-3, converged=False)).verdict == "inconclusive"
     assert V.compare(ref_cell(0.5, 1e-5), mc_cell(0.51, 1e-3, converged=False)).verdict == "disagree"
 
 
-@pytest.mark.unit
 def test_reference_with_a_standard_error_combines_in_quadrature():
     ref = CellResult(tan_eps=4.0, beta_deg=2.0, k_a=0.5, se=3e-4, samples=10, seconds=0.1)
     r = V.compare(ref, mc_cell(0.5 + 1e-3, 4e-4))
@@ -72,7 +66,6 @@ def test_reference_with_a_standard_error_combines_in_quadrature():
     assert V.compare(ref2, mc_cell(0.5, 4e-4)).verdict == "inconclusive"
 
 
-@pytest.mark.unit
 def test_overall_verdict_and_exit_status():
     a = V.compare(ref_cell(0.5, 0.0), mc_cell(0.5, 1e-3))
     d = V.compare(ref_cell(0.5, 0.0), mc_cell(0.6, 1e-3))
@@ -83,7 +76,6 @@ def test_overall_verdict_and_exit_status():
     assert V.counts([a, i, d, a]) == {"agree": 2, "disagree": 1, "inconclusive": 1}
 
 
-@pytest.mark.unit
 def test_parse_cells():
     assert V.parse_cells(None) == list(V.DEFAULT_CELLS)
     assert V.parse_cells("12:0, 4:2.5") == [(12.0, 0.0), (4.0, 2.5)]
