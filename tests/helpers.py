@@ -1,0 +1,109 @@
+"""Helpers and test data shared by test files of more than one tier (tests/unit, tests/plugin,
+tests/system): plain functions and constants, no fixtures (those are in tests/conftest.py).
+tests/ is on sys.path (pytest puts the folder of the root conftest.py there): ``from helpers import ...``."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel, RoadParams
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+
+
+# -- meshes (tests/unit/test_meshmc.py, tests/plugin/test_meshmc_plugin.py) ---------------------
+
+def grid_mesh(path, xs, ys, height=lambda x, y: 0.0 * x, shuffle_seed=None):
+    import trimesh
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    V = np.stack([X.ravel(), Y.ravel(), height(X, Y).ravel()], 1)
+    ny = len(ys)
+    F = []
+    for i in range(len(xs) - 1):
+        for j in range(ny - 1):
+            a, b, c, d = i * ny + j, (i + 1) * ny + j, (i + 1) * ny + j + 1, i * ny + j + 1
+            F += [[a, b, c], [a, c, d]]
+    F = np.array(F)
+    if shuffle_seed is not None:
+        F = F[np.random.default_rng(shuffle_seed).permutation(len(F))]
+    trimesh.Trimesh(V, F, process=False).export(path)
+    return path
+
+
+def with_mesh(inst: Instrument, mesh) -> Instrument:
+    d = inst.to_dict()
+    d["sample"] = {"mesh": str(mesh)}
+    return Instrument.from_dict(d)
+
+
+# -- directions and models (tests/unit/test_model.py, tests/plugin/test_model_plugin.py) ----------
+
+def _unit(v):
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _hemisphere(n, rng, zmin=1e-6):
+    """Random directions in the upper hemisphere (uniform in solid angle, z >= zmin)."""
+    z = rng.uniform(zmin, 1.0, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    s = np.sqrt(1 - z * z)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=-1)
+
+
+def _model(variant="power", **kw):
+    return RoadModel(RoadParams(**kw), variant)
+
+
+# -- the uncertainty tests (tests/unit, tests/plugin and tests/system test_uncertainty*.py) -------
+
+#: The model of the uncertainty tests (every term, no fit).
+UNCERTAINTY_MODEL = RoadModel(RoadParams(k_diff=0.01, k_phong=0.5, n_phong=300, k_retro=0.005, n_retro=20,
+                                         k_exp=0.05, p=2, h=1, mu=0.1), name="test")
+#: Their SPEC: every input with a standard uncertainty.
+UNCERTAINTY_SPEC = ("alpha_deg=0.01,eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,source_distance_m=0.002,"
+                    "detector_distance_m=0.005")
+
+
+# -- versions ------------------------------------------------------------------------------------
+
+#: What every result says about the software that made it.
+VERSION_KEYS = {"roadgonio", "python", "platform", "numpy", "scipy", "mitsuba", "drjit"}
+
+
+# -- random BSDF inputs (tests/plugin/test_plugin_bsdf.py, tests/unit/test_model.py) -------------
+
+def rand_dirs(rng, n, max_cos=1.0):
+    cz = rng.random(n) * max_cos
+    phi = rng.random(n) * 2 * np.pi
+    s = np.sqrt(1 - cz ** 2)
+    w = np.stack([s * np.cos(phi), s * np.sin(phi), cz], -1)
+    return w.astype(np.float32).astype(np.float64)          # exactly representable in float32
+
+
+def rand_params(rng, h_max=20.0) -> dict:
+    return dict(k_diff=rng.uniform(0, 1), k_phong=rng.uniform(0, 10), n_phong=10 ** rng.uniform(0, 4),
+                k_retro=rng.uniform(0, 1), n_retro=10 ** rng.uniform(0, 3), k_exp=rng.uniform(0, 1),
+                p=rng.uniform(0, 3), h=rng.uniform(-h_max, h_max), mu=rng.uniform(0, 2), g_a=0.0, g_b=-1.0,
+                g_c=2.0, g_t=rng.uniform(-5, 5), theta_l_deg=rng.uniform(85.4, 90.0))
+
+
+def _pixels(path):
+    """A PNG as an (h, w, 3) int16 array."""
+    from PIL import Image
+    return np.asarray(Image.open(path).convert("RGB"), dtype=np.int16)
+
+
+# -- the Mitsuba backend's tests (tests/plugin/test_render_backend.py, test_engine.py) -----------
+
+#: A non-Lambertian model with every term (Phong lobe n = 1000, retro lobe, steep E term, grazing g).
+ROAD = RoadModel(RoadParams(k_diff=0.05, k_phong=1.0, n_phong=1000.0, k_retro=0.2, n_retro=50.0,
+                            k_exp=0.1, p=1.0, h=2.0, mu=0.1, g_a=0.0, g_b=-1.0, g_c=2.6, g_t=2.0,
+                            theta_l_deg=88.0))
+
+
+def preset(name: str) -> Instrument:
+    """An instrument preset of scenes/ loaded from its file."""
+    return Instrument.load(SCENES / f"{name}.toml")
