@@ -112,7 +112,7 @@ def _table(table, field: str = "table") -> "RTable":
             return load_table(table)
         except InputError as err:
             if err.path is not None:
-                raise
+                raise err.with_argument(field) from None
             raise InputError(err.reason, field=field) from None
     raise InputError("expected a bundled table name, a .csv/.rtb file, an RTable or an r-table DataArray, got "
                      f"{type(table).__name__}", field=field)
@@ -136,8 +136,8 @@ def _backend(backend: str, instrument, model, *, accuracy: str | None = None, re
     from roadgonio.engines.registry import backend_info, make_backend, prepare_entry_point
     backend_info(backend)
     prepare_entry_point(backend, mitsuba_variant)
-    return make_backend(backend, instrument, model, accuracy=accuracy, rel_se=rel_se, seed=seed,
-                        mitsuba_variant=mitsuba_variant, settings=settings)
+    return make_backend(backend, instrument, model, accuracy=accuracy, tolerance=rel_se, seed=seed,
+                        mitsuba_variant=mitsuba_variant, settings=settings, fields={"tolerance": "rel_se"})
 
 
 def _out(out, kind: str, *names: str) -> Path | None:
@@ -403,7 +403,7 @@ def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "
     :func:`ka_table`; with ``out`` the cell is journalled there (run again: read back)."""
     from roadgonio.engines.cells import check_cell
     from roadgonio.engines.runner import run_cells
-    t, bdeg = check_cell(tan_eps, beta, "tan_eps/beta")
+    t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
     b = _backend(backend, inst, smp.model, accuracy=accuracy, rel_se=rel_se, seed=seed,
@@ -424,7 +424,7 @@ def render(instrument, sample, tan_eps: float, beta: float, out, *, resolution: 
     (provenance, footprint, a one-render k_A estimate, files)."""
     from roadgonio.engines.cells import check_cell
     from roadgonio.engines.registry import check_seed, prepare_entry_point
-    t, bdeg = check_cell(tan_eps, beta, "tan_eps/beta")
+    t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
     resolution = _check_int(resolution, "resolution", 8, 2048)
     spp = _check_int(spp, "spp", 1)
     if math.isqrt(spp) ** 2 != spp:
@@ -522,8 +522,9 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         raise InputError(f"expected a coverage probability between 0.5 and 1, got {coverage!r}", field="coverage")
     if backend not in DEFAULT_BACKEND_TOLERANCE:
         raise InputError(f"expected backend {' or '.join(DEFAULT_BACKEND_TOLERANCE)}, got {backend!r}", field="backend")
-    settings = resolve_settings(backend, rel_se=DEFAULT_BACKEND_TOLERANCE[backend] if rel_se is None else rel_se,
-                                seed=seed if backend == "mitsuba" else None, mitsuba_variant=mitsuba_variant)
+    settings = resolve_settings(backend, tolerance=DEFAULT_BACKEND_TOLERANCE[backend] if rel_se is None else rel_se,
+                                seed=seed if backend == "mitsuba" else None, mitsuba_variant=mitsuba_variant,
+                                fields={"tolerance": "rel_se"})
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
     folder = _out(out, "uncertainty", inst.name, smp.name)
@@ -579,7 +580,8 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     rays = _check_int(rays, "rays", 8)
     from roadgonio.engines.registry import backend_info
     seeded = backend_info(backend).seeded
-    settings = resolve_settings(backend, rel_se=rel_se, seed=seed if seeded else None, mitsuba_variant=mitsuba_variant)
+    settings = resolve_settings(backend, tolerance=rel_se, seed=seed if seeded else None, mitsuba_variant=mitsuba_variant,
+                                fields={"tolerance": "rel_se"})
     if scheduler is None and workers in (None, 0):
         prepare_entry_point(backend, mitsuba_variant)     # in this process: the API is the entry point
     opts = dict(u_measured="1%" if u_measured is None else u_measured, sigma=sigma, backend=backend,
@@ -625,7 +627,7 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
     from roadgonio.design.run import run_design
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
     seed = check_seed(seed)
-    settings = resolve_settings(backend, rel_se=rel_se, mitsuba_variant=mitsuba_variant)
+    settings = resolve_settings(backend, tolerance=rel_se, mitsuba_variant=mitsuba_variant, fields={"tolerance": "rel_se"})
     base = _instrument(instrument)
     items = list(samples) if isinstance(samples, (list, tuple)) else [samples]
     resolved = [_sample(s, model_variant) for s in items]
@@ -667,7 +669,9 @@ def road(tables, *, u=None, luminaire=None, layout=None, target_class: str | Non
     target = str(target_class).upper() if target_class else None
     if correlation not in ("both", "independent", "correlated"):
         raise InputError(f"expected both, independent or correlated, got {correlation!r}", field="correlation")
-    trials = _check_int(trials, "trials", 1)
+    if isinstance(trials, int) and not isinstance(trials, bool) and trials < mc.MIN_TRIALS:
+        raise InputError(f"expected at least {mc.MIN_TRIALS} trials, got {trials}", field="trials")
+    trials = _check_int(trials, "trials", mc.MIN_TRIALS)
     seed = check_seed(seed)
     us = list(u) if isinstance(u, (list, tuple)) else ([] if u is None else [u])
     if not us:
@@ -677,7 +681,8 @@ def road(tables, *, u=None, luminaire=None, layout=None, target_class: str | Non
     elif len(us) == len(items):
         u_of = [None if x in ("-", "", None) else x for x in us]
     else:
-        raise InputError(f"give u once (for the last table) or once per table ({len(items)}), got {len(us)}", field="u")
+        raise InputError(f"give u once (for the last table) or once per table ({len(items)} tables), got {len(us)}",
+                         field="u")
     loaded = [_table(t) for t in items]
     names = [t.name for t in loaded]
     if len(set(names)) != len(names):  # same name twice (e.g. two files R3.csv): number them

@@ -64,18 +64,25 @@ def main(argv: list[str] | None = None) -> int:
 def _as_option(err: RoadgonioError, parser: argparse.ArgumentParser, args) -> RoadgonioError:
     """An InputError about an API argument (no file) names the command's option for it: the
     argument names are the options' destinations (``rel_se`` -> ``--rel-se``)."""
-    if not isinstance(err, InputError) or err.path is not None or not err.field:
+    if not isinstance(err, InputError):
         return err
     sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
     command = sub.choices.get(getattr(args, "command", None)) if sub is not None else None
     if command is None:
         return err
-    head, dot, rest = err.field.partition(".")
-    for action in command._actions:
-        longs = [o for o in action.option_strings if o.startswith("--")]
-        if action.dest == head and longs:
-            return InputError(err.reason, line=err.line, field=longs[0] + dot + rest)
-    return err
+    options = {a.dest: [o for o in a.option_strings if o.startswith("--")][0]
+               for a in command._actions if any(o.startswith("--") for o in a.option_strings)}
+
+    def named(text: str | None) -> str | None:
+        if not text:
+            return text
+        cut = min((i for i in (text.find("."), text.find(" ")) if i >= 0), default=len(text))
+        head, rest = text[:cut], text[cut:]
+        return options[head] + rest if head in options else text
+
+    if err.path is not None:       # a file's content: name the option that gave the file
+        return InputError(err.reason, path=err.path, line=err.line, field=err.field, argument=named(err.argument))
+    return InputError(err.reason, line=err.line, field=named(err.field), argument=named(err.argument))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -44,16 +44,18 @@ def on_the_grid(tan_eps: float, beta_deg: float) -> bool:
     return bool((np.abs(TAN_EPS_GRID - tan_eps) < CELL_TOL).any() and (np.abs(BETA_GRID_DEG - beta_deg) < CELL_TOL).any())
 
 
-def check_cell(tan_eps, beta_deg, field: str = "cells") -> tuple[float, float]:
-    """One cell as floats: tan eps >= 0 and 0 <= beta <= 180 deg, finite numbers (not bool)."""
-    for v, what in ((tan_eps, "tan eps"), (beta_deg, "beta")):
+def check_cell(tan_eps, beta_deg, field: str = "cells", beta_field: str | None = None) -> tuple[float, float]:
+    """One cell as floats: tan eps >= 0 and 0 <= beta <= 180 deg, finite numbers (not bool); errors
+    name ``field`` (and ``beta_field`` for beta when the two are given apart)."""
+    beta_field = beta_field or field
+    for v, what, f in ((tan_eps, "tan eps", field), (beta_deg, "beta", beta_field)):
         if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-            raise InputError(f"expected a number for {what}, got {v!r}", field=field)
+            raise InputError(f"expected a number for {what}, got {v!r}", field=f)
     t, b = float(tan_eps), float(beta_deg)
     if not (math.isfinite(t) and t >= 0.0):
         raise InputError(f"expected tan eps >= 0, got {tan_eps!r}", field=field)
     if not (math.isfinite(b) and 0.0 <= b <= 180.0):
-        raise InputError(f"expected 0 <= beta <= 180 deg, got {beta_deg!r}", field=field)
+        raise InputError(f"expected 0 <= beta <= 180 deg, got {beta_deg!r}", field=beta_field)
     return t, b
 
 

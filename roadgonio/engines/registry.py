@@ -118,7 +118,7 @@ def check_seed(seed, field: str = "seed") -> int:
         raise InputError(f"expected a whole number >= 0 as the seed, got {seed!r}", field=field)
     s = int(seed)
     if not 0 <= s <= SEED_MAX:
-        raise InputError(f"expected a seed from 0 to 2^63 - 1, got {s}", field=field)
+        raise InputError(f"expected a whole number >= 0 (at most 2^63 - 1) as the seed, got {s}", field=field)
     return s
 
 
@@ -162,21 +162,23 @@ def check_capabilities(info: BackendInfo, instrument) -> None:
                          f"sample use --backend {alt}", path=instrument.path, field="sample.mesh")
 
 
-def resolve_settings(name: str, *, accuracy: str | None = None, rel_se=None, seed=None,
+def resolve_settings(name: str, *, accuracy: str | None = None, tolerance=None, seed=None,
                      mitsuba_variant: str | None = None, settings: Mapping[str, Any] | None = None,
                      fields: Mapping[str, str] | None = None) -> dict[str, Any]:
     """The settings a backend is built with, resolved in one place: the accuracy preset, then the
-    one relative target ``rel_se`` (mapped to the backend's tolerance), then explicit ``settings``;
-    the seed (checked; an error for a deterministic backend), the Mitsuba variant (Mitsuba only).
-    ``fields`` maps argument names to what errors call them (``{"rel_se": "--rel-se"}``)."""
-    f = {"accuracy": "accuracy", "rel_se": "rel_se", "seed": "seed", "mitsuba_variant": "mitsuba_variant",
+    one relative target ``tolerance`` (a user's "relative SE or tolerance", in (0, 1), mapped to the
+    backend's own setting ``rel_se`` or ``rtol``), then explicit ``settings`` (the backend's own
+    keywords, checked by the backend); the seed (checked; an error for a deterministic backend),
+    the Mitsuba variant (Mitsuba only). ``fields`` maps these argument names to what errors call
+    them (``{"tolerance": "rel_se"}``)."""
+    f = {"accuracy": "accuracy", "tolerance": "tolerance", "seed": "seed", "mitsuba_variant": "mitsuba_variant",
          "settings": "settings", **(fields or {})}
     info = backend_info(name)
     out: dict[str, Any] = {}
     if accuracy is not None:
         out.update(preset(accuracy, name, f["accuracy"]))
-    if rel_se is not None:
-        out.update(tolerance_setting(name, rel_se, f["rel_se"]))
+    if tolerance is not None:
+        out.update(tolerance_setting(name, tolerance, f["tolerance"]))
     if seed is not None:
         if not info.seeded:
             raise InputError(f"the {name} backend is deterministic and takes no seed", field=f["seed"])
@@ -194,7 +196,7 @@ def resolve_settings(name: str, *, accuracy: str | None = None, rel_se=None, see
     return out
 
 
-def make_backend(name: str, instrument, model, *, accuracy: str | None = None, rel_se=None, seed=None,
+def make_backend(name: str, instrument, model, *, accuracy: str | None = None, tolerance=None, seed=None,
                  mitsuba_variant: str | None = None, settings: Mapping[str, Any] | None = None,
                  fields: Mapping[str, str] | None = None, **more_settings):
     """Build backend ``name`` for ``instrument`` and ``model`` (lazy import of its module), with
@@ -204,7 +206,7 @@ def make_backend(name: str, instrument, model, *, accuracy: str | None = None, r
     Mitsuba backend needs a variant selected by the entry point first
     (:func:`prepare_entry_point`)."""
     info = backend_info(name, (fields or {}).get("backend", "backend"))
-    kw = resolve_settings(name, accuracy=accuracy, rel_se=rel_se, seed=seed, mitsuba_variant=mitsuba_variant,
+    kw = resolve_settings(name, accuracy=accuracy, tolerance=tolerance, seed=seed, mitsuba_variant=mitsuba_variant,
                           settings={**dict(settings or {}), **more_settings}, fields=fields)
     check_capabilities(info, instrument)
     factory = load_factory(info)

@@ -461,7 +461,8 @@ def load_table(spec: str | Path) -> RTable:
     if isinstance(spec, str) and not Path(s).suffix:
         if s.upper() in BUNDLED:
             return bundled_table(s)
-        raise InputError(f"not a bundled table ({', '.join(BUNDLED)}) nor a table file (.csv/.rtb)", field="table")
+        raise InputError(f"{s!r} is not a bundled table ({', '.join(BUNDLED)}) nor a table file (.csv/.rtb)",
+                         field="table")
     p = Path(s).expanduser()
     if not p.exists():
         raise InputError("no such table file", path=p)

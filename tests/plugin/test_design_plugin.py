@@ -29,7 +29,7 @@ def test_line_of_sight_check_agrees_with_the_rendered_ray_hits(mi):
 def test_backend_refusal_is_a_reason_not_a_crash(tmp_path):
     """A beam limit the renderer cannot model is refused per point by the backend (on the worker);
     the point is kept, infeasible, with the backend's reason; the other point is computed."""
-    from roadgonio.design import run_design
+    from roadgonio import design_study as run_design
     ds = run_design("portable", ["source.beam_half_angle_deg=1,60"], ["R3"], cells="4:2", backend="mitsuba",
                     accuracy="fast", workers=0, progress=False, plots=False)
     kind, reason = ds["kind"].values, ds["reason"].values

@@ -190,12 +190,12 @@ def test_building_a_backend_changes_no_global_state(mi):
     from roadgonio.engines.mitsuba.backend import make_backend
     env, variant = dict(os.environ), mi.variant()
     make_backend(preset("portable"), ROAD, first_pass=256)
-    make_backend(preset("portable"), ROAD, first_pass=256, variant=variant)
+    make_backend(preset("portable"), ROAD, first_pass=256, mitsuba_variant=variant)
     assert mi.variant() == variant and dict(os.environ) == env
 
 
 def test_a_backend_checks_the_variant_instead_of_choosing_it(mi):
     from roadgonio.engines.mitsuba.backend import make_backend
     with pytest.raises(BackendError, match=r"set_variant\('scalar_rgb'\)"):
-        make_backend(preset("portable"), ROAD, variant="scalar_rgb")
+        make_backend(preset("portable"), ROAD, mitsuba_variant="scalar_rgb")
     assert mi.variant() == "llvm_ad_rgb"

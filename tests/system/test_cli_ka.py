@@ -49,7 +49,7 @@ def test_single_cell_json_keys(capsys):
     assert main(["ka", "--instrument", "portable", "--sample", "lambert", "--backend", "quadrature",
                  "--tan-eps", "12", "--beta", "0", "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
-    assert set(d) == {"k_a", "se", "error_bound", "converged", "samples", "seconds"}
+    assert set(d) == {"k_a", "se", "error_bound", "confidence_bound", "converged", "samples", "seconds"}
     assert abs(d["k_a"] - 1.0) < LAMBERT_TOL and d["samples"] > 0
 
 

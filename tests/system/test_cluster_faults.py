@@ -12,9 +12,12 @@ CRASH_MODULE = textwrap.dedent('''
     """Test helper installed in the Dask workers: a backend that kills its process."""
     import os
 
-    import roadgonio.engines as E
+    import dataclasses
 
-    E.BACKENDS["crash-worker"] = "rg_crash_backend:make_backend"
+    from roadgonio.engines.registry import BACKENDS
+
+    BACKENDS["crash-worker"] = dataclasses.replace(BACKENDS["quadrature"], name="crash-worker",
+                                                   factory="rg_crash_backend:make_backend")
 
 
     def make_backend(*args, **kwargs):
@@ -56,7 +59,7 @@ def test_design_reports_a_worker_error_as_failed_with_a_retry_hint(tmp_path, mon
     """The design room's handling of a WorkerError result: the point is 'failed' (not infeasible,
     not a backend refusal), the reason says to run again, and nothing is journalled for it, so
     the next run computes it."""
-    from roadgonio.design import run_design
+    from roadgonio import design_study as run_design
     from roadgonio.engines import cluster
 
     real = cluster.map_tables

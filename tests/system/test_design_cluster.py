@@ -71,7 +71,7 @@ CELLS = "12:0,8:2,2:180"
 
 @pytest.mark.timeout(600)
 def test_two_worker_cluster_identical_to_in_process(mi, dask_cluster, tmp_path):
-    from roadgonio.design import run_design
+    from roadgonio import design_study as run_design
     kw = dict(samples=["R3"], cells=CELLS, backend="mitsuba", accuracy="fast", seed=5, progress=False, plots=False)
     ds_here = run_design("portable", VARY, workers=0, out=tmp_path / "here", **kw)
     ds_dask = run_design("portable", VARY, scheduler=dask_cluster, out=tmp_path / "dask", **kw)
@@ -104,7 +104,7 @@ def test_uncertainty_exact_tables_on_a_local_cluster_are_identical():
                             "detector_distance_m=0.005")
     kw = dict(trials=1000, seed=2, backend="mitsuba", surrogate_design="star", n_validation=1, progress=False,
               backend_settings={"rel_se": 3e-3, "first_pass": 256, "seed": 2})
-    inst, model = load_instrument("portable"), resolve_sample("R3")
+    inst, model = load_instrument("portable"), resolve_sample("R3").model
     here = run_uncertainty(model, inst, spec, **kw)
     dask = run_uncertainty(model, inst, spec, workers=2, **kw)
     assert any("Dask" in n for n in dask.provenance["notes"])

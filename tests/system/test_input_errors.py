@@ -180,7 +180,7 @@ def test_full_disk_leaves_no_partial_outputs(tmp_path, capsys, monkeypatch, r3_f
 
 @pytest.mark.parametrize("failing", ["table_map", "json"])
 def test_ka_table_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkeypatch, failing):
-    """ka writes ka.csv, ka_se.csv, ka.json and ka.png as one group: the disk fills while the map
+    """ka writes ka.nc, ka.csv, ka_se.csv, ka.json and ka.png as one group: the disk fills while the map
     (the last file) or the JSON is written, and none of them appears; the journal keeps the cells,
     so the same command afterwards resumes them and writes the whole set."""
     import roadgonio.fileio as F
@@ -200,13 +200,14 @@ def test_ka_table_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkey
     rc = main(argv)
     one_line_error(capsys, rc, "No space left")
     assert not (out / "ka.csv").exists() and not (out / "ka.json").exists() and not (out / "ka_bound.csv").exists()
+    assert not (out / "ka.nc").exists()
     assert not [q for q in out.iterdir() if q.name.startswith(".")]      # no staging folder left behind
     monkeypatch.undo()
     monkeypatch.setattr(PP, "FigureProcess", lambda enabled=True: _NoChild())
     assert main(argv + ["--json"]) == 0
     assert json.loads(capsys.readouterr().out)["resumed_cells"] == 2
     assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [
-        "ka.csv", "ka.json", "ka.png", "ka_bound.csv", "ka_cells.jsonl"]
+        "ka.csv", "ka.json", "ka.nc", "ka.png", "ka_bound.csv", "ka_cells.jsonl"]
 
 
 class _NoChild:
@@ -228,7 +229,7 @@ class _NoChild:
 
 @pytest.mark.parametrize("argv, target, must", [
     (["uncertainty", "--instrument", "lab", "--sample", "lambert", "--sigma", "alpha_deg=0.01", "--no-aperture"],
-     "roadgonio.uncertainty.run_uncertainty", "starts over"),
+     "roadgonio.uncertainty.run.run_uncertainty", "starts over"),
     (["fit", "R3"], "roadgonio.surface.fit.fit_table", "starts over"),
     (["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "numpy-mc"],
      "roadgonio.engines.runner.run_cells", "resume"),
@@ -280,7 +281,9 @@ def test_single_cell_json_carries_converged(capsys):
     rc = main(["ka", "--instrument", "lab", "--sample", "R3", "--backend", "reference", "--tan-eps", "2", "--beta",
                "5", "--json"])
     d = json.loads(capsys.readouterr().out)
-    assert rc == 0 and d["converged"] is True and d["se"] is None and d["error_bound"] > 0
+    # one meaning per field: the RQMC reference gives an SE and a confidence bound, no deterministic bound
+    assert rc == 0 and d["converged"] is True and d["se"] > 0 and d["error_bound"] is None
+    assert d["confidence_bound"] > d["se"]
 
 
 def test_source_in_the_line_of_sight_names_the_cell_in_the_renderer(mi, tmp_path, capsys):

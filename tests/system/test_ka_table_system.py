@@ -9,13 +9,14 @@ def test_the_table_runner_does_not_import_the_mitsuba_room(tmp_path):
     import sys
     code = ("import sys\n"
             "from roadgonio.engines import make_backend\n"
-            "from roadgonio.engines.runner import run_cells, write_outputs\n"
+            "from roadgonio.engines.runner import ka_dataset, run_cells, write_outputs\n"
             "from roadgonio.instrument.config import load_instrument\n"
             "from roadgonio.surface.model import RoadModel\n"
             "inst, model = load_instrument('portable'), RoadModel.lambert()\n"
             "b = make_backend('quadrature', inst, model, accuracy='fast')\n"
             f"run = run_cells(b, [(1.0, 0.0)], instrument=inst, model=model, out_dir={str(tmp_path)!r}, progress=False)\n"
-            f"write_outputs(run, {str(tmp_path)!r}, instrument=inst, model=model, backend=b, sample_spec='lambert', plot=False)\n"
+            "ds = ka_dataset(run, instrument=inst, model=model, backend=b, sample='lambert')\n"
+            f"write_outputs(ds, {str(tmp_path)!r}, plot=False)\n"
             "print(sorted(m for m in sys.modules if m.startswith(('mitsuba', 'drjit', 'roadgonio.engines.mitsuba'))))\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr

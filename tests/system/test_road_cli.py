@@ -59,7 +59,7 @@ def test_road_text_output(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("extra,words", [
-    (["--u", "a.csv", "--u", "b.csv", "--u", "c.csv"], ["--u", "once per --table"]),
+    (["--u", "a.csv", "--u", "b.csv", "--u", "c.csv"], ["--u", "once per table"]),
     (["--class", "M9"], ["unknown class", "M9"]),
     (["--layout", "missing.toml"], ["missing.toml", "no such layout file"]),
     (["--luminaire", "missing.ldt"], ["missing.ldt", "no such luminaire file"]),

@@ -25,7 +25,8 @@ def test_ka_table_of_a_lambertian_sample_is_one_within_its_bound():
     """The issue's acceptance line: rg.ka_table('portable', 'lambert', backend='quadrature', accuracy='fast')."""
     ds = rg.ka_table("portable", "lambert", backend="quadrature", accuracy="fast")
     assert dict(ds.sizes) == {"tan_eps": 29, "beta": 20}
-    assert set(ds.data_vars) == {"k_a", "se", "error_bound", "converged"}
+    assert set(ds.data_vars) == {"k_a", "se", "error_bound", "confidence_bound", "confidence_level", "samples",
+                                 "seconds", "converged"}
     assert np.array_equal(ds.tan_eps, TAN_EPS_GRID) and np.array_equal(ds.beta, BETA_GRID_DEG)
     bound = ds.error_bound.values
     assert np.isfinite(bound).all() and np.isnan(ds.se).all()          # deterministic: a bound, no SE
@@ -50,7 +51,7 @@ def test_ka_table_some_cells_nan_elsewhere(r3like):
 
 
 def test_ka_table_input_errors(r3like):
-    with pytest.raises(InputError, match="cells='table'"):
+    with pytest.raises(InputError, match="'table' needs"):
         rg.ka_table("portable", "lambert", backend="quadrature", cells="table")
     with pytest.raises(InputError, match="not on the CIE grid"):
         rg.ka_table("portable", r3like, backend="quadrature", cells=[(3.3, 0)])
@@ -118,13 +119,13 @@ def test_correct_with_a_lambertian_reference_changes_nothing(tmp_path):
     assert c.provenance["backend"] == "quadrature" and c.summary()["cells"] == 6
 
 
-def test_uncertainty_wrapper_matches_the_room():
-    """rg.uncertainty (the callable room) is run_uncertainty with the command's defaults: same seed, same numbers."""
+def test_estimate_uncertainty_matches_the_room():
+    """rg.estimate_uncertainty is run_uncertainty with the command's defaults: same seed, same numbers."""
     from roadgonio.instrument.config import load_instrument
     from roadgonio.surface.model import RoadModel, RoadParams
     from roadgonio.uncertainty import parse_sigma_spec, run_uncertainty
     model = RoadModel(RoadParams(k_diff=0.05, k_phong=0.3, n_phong=30))
-    a = rg.uncertainty("portable", model, {"alpha_deg": 0.01, "eps_deg": "0.05:rect"}, trials=500, aperture=False)
+    a = rg.estimate_uncertainty("portable", model, {"alpha_deg": 0.01, "eps_deg": "0.05:rect"}, trials=500, aperture=False)
     b = run_uncertainty(model, load_instrument("portable"), parse_sigma_spec("alpha_deg=0.01,eps_deg=0.05:rect"),
                         trials=500, aperture=False, progress=False)
     assert np.array_equal(a.cases["no_aperture"].mc["u"], b.cases["no_aperture"].mc["u"])

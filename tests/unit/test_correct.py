@@ -282,3 +282,38 @@ def test_budget_total_is_the_sum_of_its_components():
     c = b.total()
     assert np.allclose(np.diag(c), [1e-4, 4e-4 + 3e-4, 9e-4 + 3e-4])
     assert c[1, 2] == pytest.approx(-3e-4) and b.correlation()[1, 2] == pytest.approx(-3e-4 / math.sqrt(7e-4 * 12e-4))
+
+
+def test_the_budget_takes_a_confidence_bounded_backend_by_its_se():
+    """A budget built on a backend that reports an SE and a 99.9 % confidence bound (the RQMC
+    reference) equals the one built on the same SE alone: the bound is never divided by sqrt 3 and
+    used as a standard uncertainty (it was: u = 4.78 SE / sqrt 3 = 2.8 SE)."""
+    import math
+
+    from roadgonio.correction.run import _backend_k
+    from roadgonio.engines.result import CellResult
+    from roadgonio.instrument.config import load_instrument
+
+    class Fixed:
+        name = "fixed"
+
+        def __init__(self, bounded: bool):
+            self.bounded = bounded
+
+        def settings(self):
+            return {"bounded": self.bounded}
+
+        def compute(self, cells, on_cell=None):
+            out = [CellResult(t, b, 1.0 + 0.01 * t, 0.002, 1, 0.0,
+                              confidence_bound=4.78 * 0.002 if self.bounded else math.nan,
+                              confidence_level=0.999 if self.bounded else math.nan) for t, b in cells]
+            for c in out:
+                if on_cell is not None:
+                    on_cell(c)
+            return out
+
+    cells = [(0.0, 0.0), (2.0, 0.0), (12.0, 0.0)]
+    inst, model = load_instrument("portable"), RoadModel.lambert()
+    k1, u1, _ = _backend_k(lambda i, m: Fixed(True), inst, model, cells, None, False)
+    k2, u2, _ = _backend_k(lambda i, m: Fixed(False), inst, model, cells, None, False)
+    assert np.array_equal(k1, k2) and np.array_equal(u1, u2) and np.all(u1 == 0.002)

@@ -82,16 +82,20 @@ def test_focus_follows_the_detector_distance_of_a_sample_focused_base():
     assert fixed.detector.focus_distance_m == 1.5
 
 
-def test_sample_cells_all_table_list():
-    assert len(G.sample_cells("all", "R3")) == 580
-    table = G.sample_cells("table", "R3")
-    assert 300 < len(table) < 580
-    assert G.sample_cells("12:0, 4:2.5", "R3") == [(12.0, 0.0), (4.0, 2.5)]
-    with pytest.raises(InputError, match="r-tables"):
-        G.sample_cells("table", "lambert")
+def test_design_cells_come_from_the_one_parser():
+    """A study's cells per sample: 'table' takes each sample's tabulated cells, and a sample
+    without a table is refused for it."""
+    from roadgonio.design.run import resolve_samples
+    from roadgonio.surface.sample import resolve_sample
+    r3, lam = resolve_sample("R3"), resolve_sample("lambert")
+    got = resolve_samples([r3], "table")
+    assert got[0].cells == tuple(r3.table.cells) and 300 < len(got[0].cells) < 580
+    assert len(resolve_samples([r3, lam], "all")[1].cells) == 580
+    with pytest.raises(InputError, match="r-table"):
+        resolve_samples([lam], "table")
     with pytest.raises(InputError) as e:
-        G.sample_cells("12:0,4", "R3")
-    assert e.value.field == "--cells"
+        resolve_samples([r3], "12:0,4")
+    assert e.value.field == "cells"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -165,7 +169,8 @@ def test_deviations_and_pareto_front():
 
 def test_impossible_points_get_their_reason():
     base = load_instrument("portable")
-    cells = G.sample_cells("all", "R3")
+    from roadgonio.engines.cells import full_grid_cells
+    cells = full_grid_cells()
     _, f = check_point(base, {"source.radius_m": 1.5}, cells)
     assert not f.ok and f.kind == "instrument" and "source.radius_m" in f.reason
     _, f = check_point(base, {"detector.field_half_angle_deg": 0.5}, cells)
@@ -187,7 +192,7 @@ QUAD = dict(backend="quadrature", accuracy="fast", workers=0, progress=False)
 
 
 def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
-    from roadgonio.design import run_design
+    from roadgonio import design_study as run_design
     from roadgonio.design.outputs import read_design
     vary = ["source.distance_m=0.3,1.0", "source.radius_m=0.01,0.03"]
     ds = run_design("portable", vary, ["R3"], cells=CELLS, tolerance="4%", out=tmp_path, **QUAD)
@@ -230,7 +235,7 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
 
 
 def test_resume_reads_finished_tables_and_refuses_another_design(tmp_path):
-    from roadgonio.design import run_design
+    from roadgonio import design_study as run_design
     vary = ["source.radius_m=0.01,0.025"]
     a = run_design("portable", vary, ["R3", "lambert"], cells="12:0,4:2", out=tmp_path, plots=False, **QUAD)
     assert a.attrs["tables_computed"] == 4
@@ -265,18 +270,25 @@ def test_seeds_depend_only_on_the_root_and_the_point():
 # the API
 # ----------------------------------------------------------------------------------------------
 
-def test_api_design_is_the_room_and_the_command_run():
-    """roadgonio.design(...) (the callable room) = api.design = what the command runs, with objects
-    as samples; the Dataset's dims are the varied keys, sample, tan_eps, beta."""
+def test_api_design_study_is_what_the_command_runs():
+    """rg.design_study(...) with objects as samples = roadgonio design with files: same numbers; the
+    Dataset's dims are the varied keys, sample, tan_eps, beta."""
     import roadgonio as rg
-    from roadgonio.design.run import run_design
+    from roadgonio.cli import main
     from roadgonio.surface.model import RoadModel, RoadParams
-    model = RoadModel(RoadParams(k_diff=0.05, k_phong=0.4, n_phong=40))
+    model = RoadModel(RoadParams(k_diff=0.05, k_phong=0.4, n_phong=40), name="model")
     vary = {"detector.pupil_radius_m": [0.002, 0.005]}
-    a = rg.design("portable", vary, [model, "lambert"], cells="12:0,2:0", backend="quadrature", accuracy="fast",
-                  workers=0)
-    b = run_design(load_instrument("portable"), vary, [("model", model), "lambert"], cells="12:0,2:0",
-                   backend="quadrature", accuracy="fast", workers=0, progress=False)
+    a = rg.design_study("portable", vary, [model, "lambert"], cells="12:0,2:0", backend="quadrature", accuracy="fast",
+                        workers=0)
+    import tempfile
+    with tempfile.TemporaryDirectory() as d:
+        model.save(f"{d}/model.json")
+        assert main(["design", "--instrument", "portable", "--vary", "detector.pupil_radius_m=0.002,0.005",
+                     "--sample", f"{d}/model.json", "--sample", "lambert", "--cells", "12:0,2:0", "--backend",
+                     "quadrature", "--accuracy", "fast", "--workers", "0", "--out", f"{d}/o", "--quiet",
+                     "--no-plots"]) == 0
+        from roadgonio.design.outputs import read_design
+        b = read_design(f"{d}/o/design.nc")
     assert a["k_a"].dims == ("detector.pupil_radius_m", "sample", "tan_eps", "beta")
     assert np.array_equal(a["k_a"].values, b["k_a"].values, equal_nan=True)
     assert json.loads(a.attrs["provenance"])["versions"]["roadgonio"] == rg.__version__

@@ -198,13 +198,13 @@ def test_fit_quality_bundled(name, variant):
 # ----------------------------------------------------------------------------------------------
 
 def test_resolve_sample_lambert_and_model_file(tmp_path):
-    m = resolve_sample("lambert")
+    m = resolve_sample("lambert").model
     assert m.is_lambertian and m.params.k_diff == pytest.approx(1 / np.pi)
     path = RoadModel(RoadParams(k_diff=0.02, k_exp=0.1), "smooth", name="mine").save(tmp_path / "m.json")
-    got = resolve_sample(str(path))
+    got = resolve_sample(str(path)).model
     assert got.variant == "smooth" and got.params.k_exp == 0.1
     with pytest.raises(InputError) as ei:
-        resolve_sample(str(path), variant="power")
+        resolve_sample(str(path), model_variant="power")
     assert ei.value.field == "variant"
 
 
@@ -228,19 +228,19 @@ def test_resolve_sample_fits_caches_and_refits_corrupt_entries(tmp_path, monkeyp
         return real(*a, **kw)
 
     monkeypatch.setattr(fitmod, "fit_table", counting)
-    m1 = resolve_sample(str(table_file))
+    m1 = resolve_sample(str(table_file)).model
     assert len(calls) == 1 and m1.variant == "power" and m1.name == "mysurface"
     _, mx, _ = deviations(m1, synthetic_table("power"))
     assert mx < RECOVERY_TABLE_TOL_PCT
     entries = list((tmp_path / "cache").glob("*.json"))
     assert len(entries) == 1 and not list((tmp_path / "cache").glob("*.tmp*"))
     # second call: from the cache, no fit
-    m2 = resolve_sample(str(table_file))
+    m2 = resolve_sample(str(table_file)).model
     assert len(calls) == 1 and m2.params == m1.params
     # corrupt entries are refitted, never trusted
     for junk in ("{not json", json.dumps({"variant": "power", "params": {"k_diff": -1}})):
         entries[0].write_text(junk)
-        m3 = resolve_sample(str(table_file))
+        m3 = resolve_sample(str(table_file)).model
         assert m3.params == m1.params
     assert len(calls) == 3
     RoadModel.load(entries[0])  # valid again

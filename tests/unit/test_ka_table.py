@@ -9,7 +9,7 @@ import pytest
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import load_instrument
 from roadgonio.engines import CellResult, full_grid_cells
-from roadgonio.engines.runner import JOURNAL, run_cells, write_outputs
+from roadgonio.engines.runner import JOURNAL, ka_dataset, run_cells, write_outputs
 from roadgonio.surface.model import RoadModel, RoadParams
 from roadgonio.surface.rtable import read_table
 
@@ -104,7 +104,8 @@ def test_outputs_layout_and_provenance(tmp_path, setup):
     cells = [c for c in full_grid_cells() if c[0] <= 1.0]
     backend = StandIn()
     run = run_cells(backend, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
-    meta = write_outputs(run, tmp_path, instrument=ins, model=model, backend=backend, sample_spec="test")
+    ds = ka_dataset(run, instrument=ins, model=model, backend=backend, sample="test")
+    meta = write_outputs(ds, tmp_path)
     ka = read_table(tmp_path / "ka.csv")
     se = read_table(tmp_path / "ka_se.csv")
     # the CSV reader scales by 1e-4 (r x 1e4 layout); k_A files are written unscaled
@@ -121,6 +122,14 @@ def test_outputs_layout_and_provenance(tmp_path, setup):
     assert saved["summary"]["cells"] == len(cells)
     assert (tmp_path / "ka.png").stat().st_size > 10_000
     assert {"roadgonio", "mitsuba", "drjit", "numpy", "scipy"} <= set(meta["versions"])
+    # ka.nc is the Dataset the CSVs were written from: the same numbers, units and meanings
+    from roadgonio.fileio import read_netcdf
+    nc = read_netcdf(tmp_path / "ka.nc", booleans=("converged",))
+    assert np.array_equal(nc.k_a.values, ds.k_a.values, equal_nan=True)
+    assert nc.k_a.attrs["units"] == "1" and "standard error" in nc.se.attrs["long_name"]
+    assert nc.attrs["Conventions"] == "CF-1.8" and json.loads(nc.attrs["provenance"])["backend"] == "stand-in"
+    assert nc.attrs["fingerprint"] == meta["fingerprint"] and "cell_correlation" in nc.attrs
+    assert int(nc.converged.sum()) == len(cells)
 
 
 def test_journal_is_written_in_batches_and_stays_complete(tmp_path, setup, monkeypatch):
@@ -149,7 +158,7 @@ def test_finished_run_is_never_overwritten_by_another_even_without_its_journal(t
     cells = full_grid_cells()[:4]
     b = StandIn(tag=0)
     run = run_cells(b, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
-    meta = write_outputs(run, tmp_path, instrument=ins, model=model, backend=b, sample_spec="test", plot=False)
+    meta = write_outputs(ka_dataset(run, instrument=ins, model=model, backend=b, sample="test"), tmp_path, plot=False)
     assert len(meta["fingerprint"]) == 16
     (tmp_path / JOURNAL).unlink()
     with pytest.raises(InputError, match="different run"):

@@ -91,15 +91,15 @@ def test_bad_settings(kwargs, lab, r3like):
 def test_accuracy_preset_reaches_the_backend_whole_and_explicit_settings_win():
     """make_backend(..., accuracy=...) applies every setting of the preset (not only the target),
     and an explicit setting overrides the preset's."""
-    from roadgonio.engines.accuracy import ACCURACY
+    from roadgonio.engines.registry import BACKENDS
     inst = load_instrument("portable")
-    fast = ACCURACY["fast"]["numpy-mc"]
+    fast = BACKENDS["numpy-mc"].presets["fast"]
     s = make_backend("numpy-mc", inst, RoadModel.lambert(), accuracy="fast").settings()
     assert s["rel_se"] == fast["rel_se"] and s["batch"] == fast["batch"]
     s = make_backend("numpy-mc", inst, RoadModel.lambert(), accuracy="fast", rel_se=0.05).settings()
     assert s["rel_se"] == 0.05 and s["batch"] == fast["batch"]
     q = make_backend("quadrature", inst, RoadModel.lambert(), accuracy="precise").settings()
-    assert q["rtol"] == ACCURACY["precise"]["quadrature"]["rtol"]
+    assert q["rtol"] == BACKENDS["quadrature"].presets["precise"]["rtol"]
 
 
 def test_buffered_draws_are_the_documented_stream():

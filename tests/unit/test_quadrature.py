@@ -98,8 +98,8 @@ def test_k_a_matches_ratio_definition_at_small_apertures(lab, r3like):
 
 def test_settings_and_presets(lab, r3like):
     b = make_backend("quadrature", lab(), r3like, accuracy="fast")
-    from roadgonio.engines.accuracy import ACCURACY
-    assert b.settings()["rtol"] == ACCURACY["fast"]["quadrature"]["rtol"]
+    from roadgonio.engines.registry import BACKENDS
+    assert b.settings()["rtol"] == BACKENDS["quadrature"].presets["fast"]["rtol"]
     assert b.name == "quadrature"
     assert make_backend("quadrature", lab(), r3like, rtol=3e-5).settings()["rtol"] == 3e-5
 

@@ -79,7 +79,7 @@ def test_adaptive_map_is_an_exact_change_of_variables():
 def test_lambert_sample_gives_one_exactly(lab):
     from roadgonio.surface.model import RoadModel
     r = make_backend("reference", load_instrument("wide"), RoadModel.lambert()).compute([(12.0, 0.0)])[0]
-    assert r.k_a == pytest.approx(1.0, abs=1e-12) and r.converged and r.error_bound < 1e-12
+    assert r.k_a == pytest.approx(1.0, abs=1e-12) and r.converged and r.confidence_bound < 1e-12
 
 
 def test_bound_is_honest_against_the_converged_quadrature(lab, r3like):
@@ -90,8 +90,11 @@ def test_bound_is_honest_against_the_converged_quadrature(lab, r3like):
     for cell in [(12.0, 0.0), (4.0, 2.0), (2.0, 180.0)]:
         r, q = ref.compute([cell])[0], quad.compute([cell])[0]
         assert q.converged and r.converged
-        assert abs(r.k_a - q.k_a) <= r.error_bound + q.error_bound, (cell, r.k_a, q.k_a, r.error_bound)
-        assert r.error_bound <= 1e-5 * r.k_a and math.isnan(r.se)
+        assert abs(r.k_a - q.k_a) <= r.confidence_bound + q.error_bound, (cell, r.k_a, q.k_a, r.confidence_bound)
+        assert r.confidence_bound <= 1e-5 * r.k_a and math.isnan(r.error_bound)
+        # one meaning per field: the SE is the replicates' SE, the confidence bound its Student-t multiple
+        assert math.isfinite(r.se) and r.confidence_bound == pytest.approx(r.extra["t_factor"] * r.se, rel=1e-12)
+        assert r.confidence_level == 0.999 and r.standard_uncertainty() == r.se
 
 
 def test_agrees_with_the_numpy_monte_carlo_on_the_wide_instrument(r3like):
@@ -101,7 +104,7 @@ def test_agrees_with_the_numpy_monte_carlo_on_the_wide_instrument(r3like):
     for cell in [(4.0, 0.0), (2.0, 5.0), (1.0, 90.0)]:
         r, m = ref.compute([cell])[0], mc.compute([cell])[0]
         assert r.converged and m.converged, (cell, r, m)
-        assert abs(r.k_a - m.k_a) <= N_SIGMA * m.se + r.error_bound, (cell, r.k_a, m.k_a)
+        assert abs(r.k_a - m.k_a) <= N_SIGMA * m.se + r.confidence_bound, (cell, r.k_a, m.k_a)
 
 
 def test_split_and_unsplit_integrands_agree(r3like):
@@ -111,12 +114,12 @@ def test_split_and_unsplit_integrands_agree(r3like):
     b = make_backend("reference", inst, r3like, rtol=2e-3, split=False, pilot_iterations=0,
                      max_evals=30_000_000).compute([(3.5, 0.0)])[0]
     assert a.converged and b.converged, (a, b)
-    assert abs(a.k_a - b.k_a) <= a.error_bound + b.error_bound
+    assert abs(a.k_a - b.k_a) <= a.confidence_bound + b.confidence_bound
 
 
 def test_a_capped_reference_says_it_did_not_converge(r3like):
     r = make_backend("reference", load_instrument("wide"), r3like, max_evals=20_000).compute([(12.0, 0.0)])[0]
-    assert not r.converged and r.error_bound > 1e-4 * r.k_a and "note" in r.extra
+    assert not r.converged and r.confidence_bound > 1e-4 * r.k_a and "note" in r.extra
     r = make_backend("reference", load_instrument("wide"), r3like, max_log2=10).compute([(12.0, 0.0)])[0]
     assert not r.converged
 
@@ -138,5 +141,5 @@ def test_wide_instrument_matches_the_long_run(r3like):
     for row in rows[:6]:
         cell = (float(row["tan_eps"]), float(row["beta_deg"]))
         r = ref.compute([cell])[0]
-        assert r.converged and r.error_bound <= 1e-4 * r.k_a
-        assert abs(r.k_a - float(row["k_long"])) <= r.error_bound + float(row["bound_long"]), cell
+        assert r.converged and r.confidence_bound <= 1e-4 * r.k_a
+        assert abs(r.k_a - float(row["k_long"])) <= r.confidence_bound + float(row["bound_long"]), cell

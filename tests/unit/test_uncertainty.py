@@ -15,7 +15,8 @@ from roadgonio.instrument.config import load_instrument
 from roadgonio.engines import CellResult
 from roadgonio.surface.model import RoadModel
 from roadgonio.surface.rtable import bundled_table
-from roadgonio.uncertainty import (CellSet, MeasurementModel, _rotations, coverage_indices,
+from roadgonio.uncertainty.measurement import _rotations
+from roadgonio.uncertainty import (CellSet, MeasurementModel, coverage_indices,
                                    numerical_tolerance, parse_sigma_spec, run_uncertainty, standard_q0_weights,
                                    summarize, write_results)
 from helpers import UNCERTAINTY_MODEL as MODEL, UNCERTAINTY_SPEC as SPEC

@@ -76,14 +76,26 @@ def test_overall_verdict_and_exit_status():
     assert V.counts([a, i, d, a]) == {"agree": 2, "disagree": 1, "inconclusive": 1}
 
 
-def test_parse_cells():
-    assert V.parse_cells(None) == list(V.DEFAULT_CELLS)
-    assert V.parse_cells("12:0, 4:2.5") == [(12.0, 0.0), (4.0, 2.5)]
-    assert len(V.parse_cells("all")) == 580
-    cells = V.parse_cells("extremes")
-    for must in [(0.0, 0.0), (0.0, 180.0), (12.0, 0.0), (12.0, 180.0)]:
-        assert must in cells
+def test_select_cells_is_the_one_parser():
+    """engines.cells.select_cells: the named selections, a TAN:BETA list, pairs; an empty selection,
+    a malformed item, a cell off the range, 'table' without a table and an off-grid cell where the
+    grid is required are one-line errors naming the field."""
+    from roadgonio.engines.cells import EXTREME_CELLS, select_cells
     from roadgonio.errors import InputError
-    for bad in ("12", "a:b", "1:200", "-1:0"):
-        with pytest.raises(InputError):
-            V.parse_cells(bad)
+    from roadgonio.surface.rtable import bundled_table
+    assert select_cells("extremes") == list(EXTREME_CELLS)
+    assert select_cells("12:0, 4:2.5") == [(12.0, 0.0), (4.0, 2.5)]
+    assert select_cells([(12, 0), (4.0, 2.5)]) == [(12.0, 0.0), (4.0, 2.5)]
+    assert len(select_cells("all")) == 580
+    r3 = bundled_table("R3")
+    assert select_cells("table", r3) == r3.cells and 300 < len(r3.cells) < 580
+    for must in [(0.0, 0.0), (0.0, 180.0), (12.0, 0.0), (12.0, 180.0)]:
+        assert must in EXTREME_CELLS
+    for bad in ("12", "a:b", "1:200", "-1:0", "", " ", [], [(1, 2, 3)], [(True, 0)], "12:0,4"):
+        with pytest.raises(InputError) as e:
+            select_cells(bad, field="--cells")
+        assert e.value.field == "--cells"
+    with pytest.raises(InputError, match="r-table"):
+        select_cells("table", None)
+    with pytest.raises(InputError, match="not on the CIE grid"):
+        select_cells("4:2.5", on_grid=True)
