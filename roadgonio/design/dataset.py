@@ -104,7 +104,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
 
     cell_dims = dims + ["sample", "tan_eps", "beta"]
     data = {
-        "k_a": (cell_dims, grid(k_a), {"long_name": "aperture-effect factor k_A (DESIGN.md section 5)", "units": "1"}),
+        "k_a": (cell_dims, grid(k_a), {"long_name": "aperture-effect factor k_A (docs/conventions.md section 5)", "units": "1"}),
         "se": (cell_dims, grid(se), {"long_name": "standard error of k_A (Monte Carlo; NaN for deterministic backends)"}),
         "error_bound": (cell_dims, grid(bound), {"long_name": "deterministic error bound of k_A (quadrature; NaN for "
                                                               "Monte Carlo)"}),

@@ -2,7 +2,7 @@
 
 Every grid point is a complete instrument: the base instrument file with the varied keys changed
 (:meth:`roadgonio.instrument.config.Instrument.with_changes`). KEY is an instrument-file key
-``section.key`` (DESIGN.md section 4), for example ``source.radius_m``, ``source.distance_m``,
+``section.key`` (docs/conventions.md section 4), for example ``source.radius_m``, ``source.distance_m``,
 ``detector.distance_m``, ``detector.pupil_radius_m``, ``detector.field_half_angle_deg``,
 ``observation.alpha_deg``. Values:
 
@@ -29,7 +29,7 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 
-#: The numeric instrument keys a design may vary (section -> keys), DESIGN.md section 4.
+#: The numeric instrument keys a design may vary (section -> keys), docs/conventions.md section 4.
 VARIABLE_KEYS: dict[str, tuple[str, ...]] = {
     "observation": ("alpha_deg", "delta_deg"),
     "source": ("distance_m", "radius_m", "beam_half_angle_deg"),

@@ -1,4 +1,4 @@
-"""k_A under the instrument's calibration (DESIGN.md section 5), for any backend, in one place.
+"""k_A under the instrument's calibration (docs/conventions.md section 5), for any backend, in one place.
 
 Every backend computes k_A under Lambert calibration (the ratio of the rendered signals of the
 sample and of a perfect diffuser, over the ideal point geometry)::

@@ -1,4 +1,4 @@
-"""Independent float64 numpy Monte Carlo of k_A for a **mesh** sample (paper eq. 3; DESIGN.md
+"""Independent float64 numpy Monte Carlo of k_A for a **mesh** sample (paper eq. 3; docs/conventions.md
 sections 4-5): the check of mesh scenes that the flat-plane integrators cannot give.
 
 The same estimator as :mod:`roadgonio.engines.montecarlo` (stratified pupil, field and source

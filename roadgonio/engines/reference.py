@@ -1,5 +1,5 @@
 """Float64 reference of k_A: randomised quasi-Monte Carlo with the integrand's kinks split off
-(paper eq. 3; DESIGN.md sections 3-5). The reference that ``roadgonio validate`` judges the
+(paper eq. 3; docs/conventions.md sections 3-5). The reference that ``roadgonio validate`` judges the
 renderers against.
 
 Why not the tensor Gauss quadrature (:mod:`roadgonio.engines.quadrature`)? Its rules converge
@@ -8,7 +8,7 @@ eq. 3 is not smooth in two places, and the product rule converges only algebraic
 (it stops at its evaluation cap 9-13 % off in the beta = 0 column of scenes/wide.toml):
 
 1. **The mirror plane (|beta| kink).** The empirical term depends on
-   ``beta = atan2(|(w_i x w_o)_z|, -(w_i . w_o)_xy)`` (DESIGN.md section 3): for a fixed detector
+   ``beta = atan2(|(w_i x w_o)_z|, -(w_i . w_o)_xy)`` (docs/conventions.md section 3): for a fixed detector
    ray (hit point x, direction w_o) it has a kink where the source point s crosses the vertical
    plane through x that contains w_o, i.e. on the line ``(s - x)_x w_o,y - (s - x)_y w_o,x = 0``.
    That condition is *linear* in the source-disc coordinates, so on the disc it is a chord.

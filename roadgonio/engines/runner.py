@@ -321,6 +321,7 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
                 files[field] = name
         if plot:
             files["map"] = "ka.png"
+        files["meta"] = META
         files["journal"] = JOURNAL
         meta = {"quantity": ds.attrs["quantity"], "fingerprint": ds.attrs["fingerprint"],
                 **_json.loads(ds.attrs["provenance"]), "precision": ds.attrs["precision"],

@@ -240,7 +240,7 @@ class Instrument:
     name: str = "instrument"
     description: str = ""
     path: Path | None = None
-    #: How a signal becomes q: [calibration] (DESIGN.md section 5; roadgonio.instrument.calibration).
+    #: How a signal becomes q: [calibration] (docs/conventions.md section 5; roadgonio.instrument.calibration).
     calibration: Calibration = field(default_factory=Calibration)
     #: Extra sections not interpreted here (kept for backends and provenance).
     extra: Mapping[str, Any] = field(default_factory=dict)

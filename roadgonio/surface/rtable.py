@@ -60,7 +60,7 @@ R_SCALE = 1e4
 #: table in the wrong scale or an exponent typo (1e300) is an error, not a fit to nonsense.
 R_MAX_PLAUSIBLE = 10.0
 BUNDLED = ("R1", "R2", "R3", "R4", "C1", "C2")
-#: Published CIE values (DESIGN.md section 2).
+#: Published CIE values (docs/conventions.md section 2).
 PUBLISHED_S1 = {"R1": 0.25, "R2": 0.58, "R3": 1.11, "R4": 1.55, "C1": 0.24, "C2": 0.97}
 PUBLISHED_Q0 = {"R1": 0.10, "R2": 0.07, "R3": 0.07, "R4": 0.08, "C1": 0.10, "C2": 0.07}
 GRID_TOL = 1e-9

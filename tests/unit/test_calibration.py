@@ -1,4 +1,4 @@
-"""Calibration modes (DESIGN.md section 5): the [calibration] section, eta = <E>/E_0 against an
+"""Calibration modes (docs/conventions.md section 5): the [calibration] section, eta = <E>/E_0 against an
 independent float64 integral, and the wrapper that every backend goes through."""
 from __future__ import annotations
 

@@ -185,7 +185,7 @@ def test_instrument_dict_round_trip(alpha, dist, pupil, field_deg, focus):
 ])
 def test_sections_are_checked(tmp_path, extra, field):
     """An unknown section or key is an error (a typo must not change the instrument), and so is a
-    calibration that is not one of DESIGN.md section 5."""
+    calibration that is not one of docs/conventions.md section 5."""
     p = write(tmp_path, GOOD + extra)
     if field is None:
         Instrument.load(p)

@@ -113,7 +113,7 @@ def test_g_never_changes_a_one_degree_table_cell(variant):
 # ----------------------------------------------------------------------------------------------
 
 def _E_reference(variant, k, p, h, mu, theta_i, theta_r, beta, n_beta=1.0):
-    """E of DESIGN.md section 3 / the roadgonio.surface.model docstring, written from the formulas."""
+    """E of docs/conventions.md section 3 / the roadgonio.surface.model docstring, written from the formulas."""
     e = theta_i * theta_r / THETA_R_STAR
     f = math.sin(e) * math.cos(e) / (math.cos(e) ** 2 + mu)
     x = (math.pi - beta) / math.pi
