@@ -15,7 +15,7 @@ from roadgonio.instrument.config import (
     Detector,
     Instrument,
     Observation,
-    Sample,
+    SampleGeometry,
     Source,
     bundled_instruments,
     load_instrument,
@@ -106,8 +106,8 @@ def test_missing_section_and_bad_toml(tmp_path):
     (lambda: Detector(distance_m=math.nan), "detector.distance_m"),
     (lambda: Observation(alpha_deg=0.0), "observation.alpha_deg"),
     (lambda: Observation(alpha_deg=True), "observation.alpha_deg"),
-    (lambda: Sample(size_x_m=0.0), "sample.size_x_m"),
-    (lambda: Sample(mesh="no-such-file.ply"), "sample.mesh"),
+    (lambda: SampleGeometry(size_x_m=0.0), "sample.size_x_m"),
+    (lambda: SampleGeometry(mesh="no-such-file.ply"), "sample.mesh"),
     (lambda: Instrument(source={"distance_m": 1.0}), "source"),
 ])
 def test_dataclasses_validate_on_construction(make, field):
@@ -121,7 +121,7 @@ def test_dataclasses_are_frozen_and_normalise_numbers():
     assert isinstance(s.distance_m, float) and s.is_point
     with pytest.raises(dataclasses.FrozenInstanceError):
         s.distance_m = 3.0  # type: ignore[misc]
-    assert Sample().size_x_m == 6.0 and Sample().size_y_m == 2.0
+    assert SampleGeometry().size_x_m == 6.0 and SampleGeometry().size_y_m == 2.0
 
 
 def test_focus_at_infinity_is_math_inf():
