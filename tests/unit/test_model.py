@@ -13,10 +13,9 @@ from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, w_detector, w_source
 from roadgonio.surface.model import (PARAM_BOUNDS, THETA_R_STAR, VARIANTS, NumpyOps, RoadModel, RoadParams,
                              road_brdf)
 from helpers import _hemisphere, _model, _unit, rand_dirs, rand_params
+from tolerances import ROUND_TOL as RTOL_EXACT  # float64 evaluation of closed forms
 
 
-#: float64 evaluation of closed forms: relative agreement expected to rounding.
-RTOL_EXACT = 1e-12
 #: Closed forms that go through exp/log of large exponents.
 RTOL_EXPLOG = 1e-9
 
