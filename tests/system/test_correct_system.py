@@ -69,7 +69,8 @@ def test_cli_reference_route_checks_against_an_independent_backend(tmp_path, r3l
     summary = json.loads(p.stdout)
     assert summary["cells"] == len(cells) and summary["reference"] == "ref"
     assert {"S1", "u_S1", "Q0", "u_Q0", "reference", "k_a_min", "k_a_max", "seconds"} <= set(summary)
-    rows = list(csv.DictReader(line for line in open(tmp_path / "o" / "correct_cells.csv") if not line.startswith("#")))
+    rows = list(csv.DictReader(line for line in (tmp_path / "o" / "correct_cells.csv").read_text().splitlines()
+                               if not line.startswith("#")))
     assert sorted((float(x["tan_eps"]), float(x["beta_deg"])) for x in rows) == sorted(cells)
     mc = {(c.tan_eps, c.beta_deg): c for c in
           make_backend("numpy-mc", load_instrument("portable"), r3like, rel_se=1e-3, seed=5).compute(cells)}
@@ -124,7 +125,8 @@ def test_cli_reference_self_end_to_end(tmp_path):
     assert {"corrected.csv", "corrected_u.csv", "corrected.rtb", "correct.json", "correct_cells.csv",
             "corrected_corr.csv", "before_after.png", "correction_map.png"} <= names
     corr = read_table(tmp_path / "o" / "corrected.csv")
-    rows = list(csv.DictReader(line for line in open(tmp_path / "o" / "correct_cells.csv") if not line.startswith("#")))
+    rows = list(csv.DictReader(line for line in (tmp_path / "o" / "correct_cells.csv").read_text().splitlines()
+                               if not line.startswith("#")))
     assert len(rows) == int(corr.mask.sum()) == int(np.isfinite(keep).sum())
     for x in rows[:20]:
         assert float(x["r_corrected_x1e4"]) == pytest.approx(float(x["r_measured_x1e4"]) / float(x["k_a"]), rel=FILE_RATIO_RTOL)

@@ -31,7 +31,7 @@ def test_best_design_recomputed_with_ka_matches_its_row(mi, tmp_path, capsys):
     ds = read_design(out / "design.nc")
     best = int(ds.attrs["best_index"])
     assert best >= 0
-    rows = list(csv.DictReader((out / "design.csv").open()))
+    rows = list(csv.DictReader((out / "design.csv").read_text().splitlines()))
     row = rows[best]
     assert row["feasible"] == "true"
     k_row = ds["k_a"].values.reshape(-1, 1, *ds["k_a"].shape[-2:])[best, 0]

@@ -135,7 +135,7 @@ def test_refuses_what_it_does_not_model(r3like):
 def test_wide_instrument_matches_the_long_run(r3like):
     """Every bench cell of bench/results/reference_long.csv (the long RQMC run): true error <= bound
     at the default target 1e-4, and converged (the hard corner takes minutes on a loaded machine)."""
-    rows = list(csv.DictReader(open(BENCH)))
+    rows = list(csv.DictReader(BENCH.read_text().splitlines()))
     ref = make_backend("reference", load_instrument("wide"), r3like)
     for row in rows[:6]:
         cell = (float(row["tan_eps"]), float(row["beta_deg"]))
