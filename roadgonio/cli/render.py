@@ -63,6 +63,6 @@ def run(args) -> int:
           f"footprint x = {info['footprint_m']['x'][0]:.3f} ... {info['footprint_m']['x'][1]:.3f} m; "
           + (f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (one render; use 'roadgonio ka' for tables)"
              if ka is not None else "k_A undefined (model is 0 at the nominal geometry)"))
-    for k, v in info["files"].items():
+    for v in info["files"].values():
         say(f"wrote {v}")
     return 0
