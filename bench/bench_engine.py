@@ -260,7 +260,7 @@ def main(argv=None) -> int:
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
-        def f(key, spec):
+        def f(key, spec, r=r):          # called in this iteration only
             v = r.get(key)
             return format(v, spec) if isinstance(v, (int, float)) and v is not None and not (
                 isinstance(v, float) and math.isnan(v)) else ""

@@ -2,8 +2,9 @@
 
 A test's tier is the folder it sits in, and is marked here from that folder (never by a decorator):
 
-* ``tests/unit`` -- marked ``unit``: numpy only, in this process, fast; it never imports mitsuba or
-  drjit (tests/unit/conftest.py makes them unimportable while a unit test runs);
+* ``tests/unit`` -- marked ``unit``: numpy only, in this process, fast (and the lint, which runs
+  ruff); it never imports mitsuba or drjit (tests/unit/conftest.py makes them unimportable while a
+  unit test runs);
 * ``tests/plugin`` -- marked ``plugin``: Mitsuba and Dr.Jit in this process; every test gets the
   Mitsuba variant of the ``mi`` fixture, and the tier is skipped, saying why, without LLVM >= 16;
 * ``tests/system`` -- marked ``system``: the command line, subprocesses, Dask clusters, end-to-end

@@ -186,7 +186,7 @@ class _Problem:
             if not np.all(np.isfinite(x) & (x <= ub)):
                 # a coefficient beyond its bound (k_* <= 1e6): the bounded least squares instead
                 x = lsq_linear(M, target, bounds=(np.zeros(len(cols)), ub), method="bvls").x
-            for (k, j, sc), xi in zip(use, x):
+            for (k, _j, sc), xi in zip(use, x):
                 ks[k] = float(min(max(xi / sc, 0.0), PARAM_BOUNDS[k][1]))
         for j, k in enumerate(LINEAR_TERMS):
             model = model + ks[k] * A[:, j]

@@ -709,7 +709,7 @@ def _correct_on_dask(jobs, shared, *, client, workers, scheduler, progress) -> l
         if bar is not None:
             bar.close()
     out = []
-    for (t, folder, _, _), (res, written) in zip(jobs, results):
+    for (_t, folder, _, _), (res, written) in zip(jobs, results):
         here = [Path(folder) / Path(p).name for p in written]
         for p in here:
             if not p.exists():

@@ -288,7 +288,8 @@ class CalibratedBackend:
         for a in range(0, len(cells), REFERENCE_CHUNK):
             chunk = cells[a:a + REFERENCE_CHUNK]
             refs = {_key(r.tan_eps, r.beta_deg): r for r in self.reference_inner.compute(chunk)}
-            self.inner.compute(chunk, on_cell=lambda c: emit(self._reference(c, refs[_key(c.tan_eps, c.beta_deg)])))
+            # on_cell is called inside compute(), in this iteration, with this chunk's refs (B023 cannot tell)
+            self.inner.compute(chunk, on_cell=lambda c: emit(self._reference(c, refs[_key(c.tan_eps, c.beta_deg)])))  # noqa: B023
         return out
 
 

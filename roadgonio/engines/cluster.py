@@ -254,8 +254,11 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
                              "start some with 'dask worker ADDRESS --nthreads 1'", field="--scheduler") from None
     else:
         n = workers if workers is not None else (os.cpu_count() or 1)
+        # no dashboard; the scheduler's HTTP server (health routes) still starts, on a free loopback
+        # port instead of 8787, which another cluster may hold (Dask then warns and leaks a socket)
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                dashboard_address=None, worker_dashboard_address=None,
+                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                                silence_logs=logging.ERROR if quiet else logging.WARNING)
         client = Client(cluster)
     try:

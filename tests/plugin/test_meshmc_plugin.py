@@ -10,8 +10,7 @@ from roadgonio.engines import make_backend
 from roadgonio.instrument.config import load_instrument
 
 from helpers import grid_mesh, with_mesh
-
-N_SIGMA = 4.0
+from tolerances import z_family
 
 
 @pytest.mark.slow
@@ -32,9 +31,10 @@ def test_corrugated_mesh_agrees_with_mitsuba(tmp_path, mi, r3like):
     trimesh.util.concatenate([grooves, floor]).export(tmp_path / "groove.ply")
     m_inst = with_mesh(inst, tmp_path / "groove.ply")
     model = r3like
-    for cell in [(12.0, 0.0), (4.0, 0.0), (1.0, 90.0)]:
+    cells = [(12.0, 0.0), (4.0, 0.0), (1.0, 90.0)]
+    for cell in cells:
         a = make_backend("numpy-mc-mesh", m_inst, model, rel_se=3e-3, seed=1).compute([cell])[0]
         b = make_backend("mitsuba", m_inst, model, rel_se=3e-3, seed=2).compute([cell])[0]
         assert a.converged and b.converged, (cell, a, b)
-        allowed = N_SIGMA * math.hypot(a.se, b.se) + FLOAT32_FLOOR["mitsuba"] * abs(a.k_a)
+        allowed = z_family(len(cells)) * math.hypot(a.se, b.se) + FLOAT32_FLOOR["mitsuba"] * abs(a.k_a)
         assert abs(a.k_a - b.k_a) <= allowed, (cell, a.k_a, b.k_a)

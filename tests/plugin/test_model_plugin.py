@@ -5,18 +5,10 @@ import numpy as np
 import pytest
 
 from helpers import _hemisphere, _model, _unit
+from tolerances import F32_EVAL_ATOL as SMOOTH_F32_ABS_TOL
+from tolerances import F32_EVAL_RTOL as SMOOTH_F32_REL_TOL
+from tolerances import F32_KAPPA_TOL as SMOOTH_F32_KAPPA_TOL
 
-#: float32 plugin vs float64 model at the same (float32-representable) directions: relative
-#: SMOOTH_F32_REL_TOL + SMOOTH_F32_KAPPA_TOL * kappa, kappa = |d ln f / d w| (per radian, float64
-#: finite difference): float32 angles carry ~1e-7 rad of rounding, amplified by the model's own
-#: conditioning (same budget as tests/plugin/test_plugin_bsdf.py).
-SMOOTH_F32_REL_TOL = 2e-5
-
-
-SMOOTH_F32_KAPPA_TOL = 1e-5
-
-
-SMOOTH_F32_ABS_TOL = 1e-9
 
 
 def _kappa(model, wi, wo, ref, rng, d=1e-6):

@@ -10,20 +10,11 @@ import pytest
 
 from roadgonio.surface.model import RoadModel, RoadParams
 from helpers import rand_dirs, rand_params
+from tolerances import F32_EVAL_ATOL as EVAL_ABS_TOL
+from tolerances import F32_EVAL_RTOL as EVAL_REL_TOL
+from tolerances import F32_KAPPA_TOL as KAPPA_TOL
 
 
-#: Relative tolerance of one float32 evaluation against float64 at the same (float32) directions:
-#: EVAL_REL_TOL + KAPPA_TOL * kappa, with kappa = |d ln f / d ln theta_i| the conditioning of the
-#: model itself at that point (float64 finite difference, :func:`kappa`). float32 rounds each
-#: operation by 6e-8 and the intermediate angles (theta, e = theta_i theta_r / theta_r*, the
-#: half-chord h) carry ~1e-7 relative error, which the model amplifies by its own conditioning:
-#: a Phong lobe by ~n h, a steep empirical term by p + 2 h f^2 (x W |ln x| in the power reading).
-#: Measured over 1.3e5 random evaluations: max err / (1 + kappa) = 2.5e-6. The half-chord lobe
-#: form keeps the lobes this good (the naive cos^n is off by ~n 1e-7, mitsuba-cpu notes section 6).
-EVAL_REL_TOL = 2e-5
-KAPPA_TOL = 1e-5
-#: Absolute floor for values that are tiny compared with the coefficients (sr^-1).
-EVAL_ABS_TOL = 1e-9
 #: Tolerance of comparisons between two float32 evaluations of the same quantity in different
 #: orders (reciprocity, weight vs eval/pdf): a few float32 ulps amplified as above.
 F32_PAIR_REL_TOL = 2e-4

@@ -12,6 +12,7 @@ from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel
 from roadgonio.instrument.optics import (concentric_disc, detector_geometry, detector_ray, hit_plane, source_coupling,
                               source_geometry, source_point)
+from tolerances import N_SIGMA
 
 
 #: float32 positions: ~6e-8 relative of coordinates up to D_D (m) -> absolute tolerance per metre.
@@ -129,7 +130,7 @@ def test_lambert_signal_matches_float64_quadrature(mi, case, cell):
     mean = float(g.mean())
     se = math.sqrt(pair_variance(g))
     assert se < 1e-3 * mean
-    assert abs(mean - ref) <= 4.0 * se + quad_err + 2e-6 * ref, (mean, ref, se, quad_err)
+    assert abs(mean - ref) <= N_SIGMA * se + quad_err + 2e-6 * ref, (mean, ref, se, quad_err)
 
 
 def test_sensor_properties_are_validated_like_an_instrument_file(mi, make_sensor):

@@ -40,7 +40,7 @@ def test_fit_json_and_outputs(tmp_path, capsys):
     m = RoadModel.load(out / "model.json")
     assert m.params.to_dict() == d["params"]
     assert m.meta["fit"]["max_dev_pct"] == pytest.approx(d["max_dev_pct"])
-    rows = list(csv.DictReader(open(out / "residuals.csv")))
+    rows = list(csv.DictReader((out / "residuals.csv").read_text().splitlines()))
     t = bundled_table("R3")
     assert len(rows) == int(t.mask.sum())
     devs = np.array([float(r["dev_pct_of_max_r"]) for r in rows])

@@ -104,7 +104,10 @@ def test_round_trip_wide_instrument_with_mitsuba(mi, mode):
     s = scores(res, truth)
     assert s["rms"] <= RMS_MAX and s["max"] <= MAX_MAX, s
     assert s["coverage"] >= COVERAGE_MIN and abs(s["s1_z"]) <= S1_Z_MAX, s
-    assert meas.s1() < truth.s1() - 5 * res.after["u_S1"]          # before: S1 far off
+    # before: S1 far off, below the truth with the Lambert calibration (k_A(2, 0) < k_A(0, 0)) and
+    # above it with the absolute one (k_A x eta, and eta(2, 0) / eta(0, 0) = 1.76 on this instrument)
+    side = 1.0 if mode == "absolute" else -1.0
+    assert side * (meas.s1() - truth.s1()) > 5 * res.after["u_S1"], (meas.s1(), truth.s1(), res.after["u_S1"])
 
 
 def k_grid_t(i: int) -> float:

@@ -4,6 +4,7 @@ import this roadgonio), on the loopback interface, torn down in a finally; resul
 identical to the in-process run, whatever the number of workers."""
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import subprocess
@@ -37,11 +38,13 @@ def dask_cluster(tmp_path):
     logs = tmp_path / "logs"
     logs.mkdir()
     procs = []
+    files = contextlib.ExitStack()            # the log files, closed once the processes are gone
     try:
         procs.append(subprocess.Popen(
             [sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1", "--port", "0",
              "--no-dashboard", "--scheduler-file", str(sched_file)],
-            cwd=tmp_path, env=env, stdout=open(logs / "scheduler.log", "w"), stderr=subprocess.STDOUT))
+            cwd=tmp_path, env=env, stdout=files.enter_context(open(logs / "scheduler.log", "w")),
+            stderr=subprocess.STDOUT))
         t0 = time.monotonic()
         while not sched_file.exists():
             if time.monotonic() - t0 > START_TIMEOUT_S or procs[0].poll() is not None:
@@ -55,7 +58,8 @@ def dask_cluster(tmp_path):
                 [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1", "--host",
                  "127.0.0.1", "--no-dashboard", "--name", f"w{k}", "--local-directory", str(tmp_path / f"w{k}"),
                  "--death-timeout", "60"],
-                cwd=tmp_path, env=env, stdout=open(logs / f"worker{k}.log", "w"), stderr=subprocess.STDOUT))
+                cwd=tmp_path, env=env, stdout=files.enter_context(open(logs / f"worker{k}.log", "w")),
+                stderr=subprocess.STDOUT))
         from distributed import Client
         with Client(address, timeout="30s") as c:
             c.wait_for_workers(2, timeout=START_TIMEOUT_S)
@@ -63,6 +67,7 @@ def dask_cluster(tmp_path):
     finally:
         _stop(procs[1:])
         _stop(procs[:1])
+        files.close()
 
 
 VARY = ["source.radius_m=0.015:0.035:3", "detector.field_half_angle_deg=0.1,0.15"]

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from roadgonio.cli import main
+from tolerances import z_family
 
 
 def _ka_cells(path):
@@ -30,13 +31,13 @@ def test_best_design_recomputed_with_ka_matches_its_row(mi, tmp_path, capsys):
     ds = read_design(out / "design.nc")
     best = int(ds.attrs["best_index"])
     assert best >= 0
-    rows = list(csv.DictReader((out / "design.csv").open()))
+    rows = list(csv.DictReader((out / "design.csv").read_text().splitlines()))
     row = rows[best]
     assert row["feasible"] == "true"
     k_row = ds["k_a"].values.reshape(-1, 1, *ds["k_a"].shape[-2:])[best, 0]
     se_row = ds["se"].values.reshape(-1, 1, *ds["se"].shape[-2:])[best, 0]
     tans, betas = ds["tan_eps"].values, ds["beta"].values
-    # an independent run (another seed) agrees within 4 combined SE; the design's own seed repeats it exactly
+    # an independent run (another seed) agrees within z combined SE; the design's own seed repeats it exactly
     for seed, exact in ((12345, False), (int(row["seed"]), True)):
         ka_out = tmp_path / f"ka{seed}"
         assert main(["ka", "--instrument", str(out / "best.toml"), "--sample", "R3", "--cells", cells,
@@ -48,7 +49,7 @@ def test_best_design_recomputed_with_ka_matches_its_row(mi, tmp_path, capsys):
             if exact:
                 assert c["k_a"] == k_row[i, j] and c["se"] == se_row[i, j]
             else:
-                assert abs(c["k_a"] - k_row[i, j]) <= 4 * math.hypot(c["se"], se_row[i, j]), (t, b)
+                assert abs(c["k_a"] - k_row[i, j]) <= z_family(len(got)) * math.hypot(c["se"], se_row[i, j]), (t, b)
     dev = max(abs(c["k_a"] - 1) for c in got.values())
     assert dev == pytest.approx(float(row["max_abs_dev"]), rel=1e-12)
     header = (out / "best.toml").read_text().splitlines()[:4]

@@ -24,7 +24,7 @@ def test_road_out_of_the_box_json(tmp_path, capsys):
     names = {p.name for p in tmp_path.iterdir()}
     assert names == {"road.json", "road_metrics.csv", "road_luminance.csv", "road_metrics.png", "road_luminance.png"}
     assert (tmp_path / "road_metrics.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    rows = list(csv.DictReader(open(tmp_path / "road_luminance.csv")))
+    rows = list(csv.DictReader((tmp_path / "road_luminance.csv").read_text().splitlines()))
     assert len(rows) == 2 * 60 and float(rows[0]["L_cd_m2"]) > 0
 
 
@@ -46,7 +46,7 @@ def test_road_several_tables_and_uncertainty(tmp_path, capsys):
     lo, hi = u["independent"]["U_o"]["ci95"]
     assert lo < d[1]["U_o"] + 1e-9 and hi > lo
     assert 0 <= u["independent"]["P_meets_target"] <= 1
-    rows = list(csv.DictReader(open(out / "road_metrics.csv")))
+    rows = list(csv.DictReader((out / "road_metrics.csv").read_text().splitlines()))
     assert [r["correlation"] for r in rows] == ["", "independent", "correlated"]
 
 
@@ -85,7 +85,7 @@ def test_compare_writes_ratio_map_and_characteristics(tmp_path, capsys):
     a, b = bundled_table("R3"), bundled_table("R4")
     assert d["characteristics"]["R3"]["S1"] == pytest.approx(a.s1())
     assert d["characteristics"]["R4"]["Q0"] == pytest.approx(b.q0())
-    rows = list(csv.DictReader(open(tmp_path / "compare.csv")))
+    rows = list(csv.DictReader((tmp_path / "compare.csv").read_text().splitlines()))
     assert len(rows) == int(a.mask.sum())
     r0 = next(r for r in rows if r["tan_eps"] == "12" and r["beta_deg"] == "0")
     assert float(r0["ratio_B_over_A"]) == pytest.approx(b.value(12, 0) / a.value(12, 0), rel=1e-5)

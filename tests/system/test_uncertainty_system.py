@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import pytest
+from tolerances import N_SIGMA
 
 
 @pytest.mark.parametrize("args,words", [
@@ -33,4 +34,4 @@ def test_cli_runs_lambert(tmp_path):
     rows = [l.split(",") for l in (tmp_path / "cells.csv").read_text().splitlines()]
     row = next(r for r in rows[1:] if r[0] == "no_aperture" and r[1] == "0" and r[2] == "0")
     u_rel = float(row[rows[0].index("u_rel")])
-    assert abs(u_rel / 0.002 - 1) < 5 / math.sqrt(2 * 2000) + 1e-3
+    assert abs(u_rel / 0.002 - 1) < N_SIGMA / math.sqrt(2 * 2000) + 1e-3

@@ -25,7 +25,7 @@ def test_cli_agrees_and_writes_outputs(tmp_path, capsys, model_file):
     text = capsys.readouterr().out
     assert rc == 0, text
     assert "validate: 3 agree, 0 disagree, 0 inconclusive (of 3 cells" in text
-    rows = list(csv.DictReader(open(out / "validate.csv")))
+    rows = list(csv.DictReader((out / "validate.csv").read_text().splitlines()))
     assert [(float(r["tan_eps"]), float(r["beta_deg"])) for r in rows] == [(12, 0), (0, 180), (4, 2)]
     assert all(r["verdict"] == "agree" and r["ref_converged"] == "True" for r in rows)
     # the reference was asked for the bound each test needs, and met it
@@ -105,5 +105,5 @@ def test_wide_instrument_agrees_with_a_converged_reference(tmp_path, capsys, mod
                "--cells", "12:0,12:2,8:5,4:0", "--rel-se", "2e-3", "--out", str(tmp_path / "v")])
     out = capsys.readouterr().out
     assert rc == 0, out
-    rows = list(csv.DictReader(open(tmp_path / "v" / "validate.csv")))
+    rows = list(csv.DictReader((tmp_path / "v" / "validate.csv").read_text().splitlines()))
     assert all(r["ref_converged"] == "True" and r["verdict"] == "agree" for r in rows)

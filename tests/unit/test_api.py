@@ -13,12 +13,11 @@ import roadgonio as rg
 from roadgonio.errors import InputError
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.surface.rtable import RTable, bundled_table
+from tolerances import FILE_RTOL
 
 
 #: float64 round-off allowed beside the quadrature's error bound of a Lambertian k_A (= 1 exactly).
 ROUNDOFF = 4 * 2.2e-16
-#: CSV/RTB files store 6 significant digits.
-FILE_RTOL = 5e-6
 
 
 def test_ka_table_of_a_lambertian_sample_is_one_within_its_bound():

@@ -13,11 +13,10 @@ from roadgonio.errors import InputError
 from roadgonio.instrument.calibration import Calibration
 from roadgonio.instrument.config import Instrument, load_instrument
 from roadgonio.surface.model import RoadModel, RoadParams
+from tolerances import ROUND_TOL
 
 #: eta is converged to 1e-6 (its default tolerance); the independent rule below to ~1e-8.
 ETA_TOL = 3e-6
-#: Quantities equal up to float64 rounding of a few operations.
-ROUND_TOL = 1e-12
 
 
 def inst_with(base: str = "portable", **sections) -> Instrument:

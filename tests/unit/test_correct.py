@@ -20,11 +20,8 @@ from roadgonio.errors import InputError
 from roadgonio.instrument.config import load_instrument
 from roadgonio.surface.model import RoadModel, RoadParams
 from roadgonio.surface.rtable import RTable, bundled_table, read_table
+from tolerances import FILE_RATIO_RTOL, ROUND_TOL
 
-#: Equal up to float64 rounding of a few operations.
-ROUND_TOL = 1e-12
-#: Six significant digits in the files.
-FILE_RTOL = 1e-5
 CELLS = [(0.0, 0.0), (2.0, 0.0), (6.0, 2.0), (12.0, 0.0), (12.0, 10.0), (3.0, 90.0), (1.0, 180.0)]
 
 
@@ -268,7 +265,7 @@ def test_several_tables_share_the_instrument_artefacts(tmp_path, monkeypatch):
         back = read_table(folder / "corrected.csv")
         u = read_table(folder / "corrected_u.csv")
         m = res.measured.mask
-        assert np.allclose(back.r[m], res.measured.r[m] / res.k_a[m], rtol=FILE_RTOL)
+        assert np.allclose(back.r[m], res.measured.r[m] / res.k_a[m], rtol=FILE_RATIO_RTOL)
         assert np.allclose(u.r[m], res.u_corrected.r[m], rtol=1e-3)
         doc = json.loads((folder / "correct.json").read_text())
         assert doc["summary"]["u_S1"] > 0 and doc["provenance"]["backend"] == "counting-bundle"

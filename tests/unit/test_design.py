@@ -210,7 +210,7 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
     best = int(ds.attrs["best_index"])
     assert feas.ravel()[best] and sig.ravel()[best] == np.max(sig[feas])
     # the CSV: one row per point, varied keys first, then the metrics; the impossible point keeps its reason
-    rows = list(csv.reader((tmp_path / "design.csv").open()))
+    rows = list(csv.reader((tmp_path / "design.csv").read_text().splitlines()))
     assert rows[0][:7] == ["source.distance_m", "source.radius_m", "max_abs_dev", "rms_dev", "signal", "feasible",
                            "reason"]
     assert len(rows) == 5 and rows[2][:2] == ["0.3", "0.03"] and rows[2][5] == "false" and "below the sample plane" in rows[2][6]

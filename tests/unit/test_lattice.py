@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from roadgonio.engines.mitsuba import lattice as lat
+from tolerances import N_SIGMA
 
 
 @pytest.mark.parametrize("log2n", [4, 5, 6, 7, 8, 9, 10])
@@ -43,7 +44,7 @@ def test_bad_sizes_are_refused():
 
 def test_shifted_lattice_is_unbiased_and_beats_independent_points():
     """A smooth non-periodic integrand over [0,1)^6 with known mean: the mean over 200 random
-    shifts is within 4 SE of the truth, and the spread per rule is far below that of n
+    shifts is within N_SIGMA SE of the truth, and the spread per rule is far below that of n
     independent points."""
     def f(u):
         return np.prod(1.0 + 0.5 * (u - 0.5) + 0.3 * np.cos(2.0 * u), axis=1)
@@ -52,7 +53,7 @@ def test_shifted_lattice_is_unbiased_and_beats_independent_points():
     rng = np.random.default_rng(11)
     est = np.array([f(lat.lattice_points(n, rng.random(lat.DIMENSIONS))).mean() for _ in range(200)])
     se = est.std(ddof=1) / math.sqrt(len(est))
-    assert abs(est.mean() - truth) <= 4 * se
+    assert abs(est.mean() - truth) <= N_SIGMA * se
     iid = np.array([f(rng.random((n, lat.DIMENSIONS))).mean() for _ in range(200)])
     assert est.std() < 0.3 * iid.std()
 

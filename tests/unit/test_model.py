@@ -14,10 +14,9 @@ from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import (PARAM_BOUNDS, THETA_R_STAR, VARIANTS, RoadModel, RoadParams,
                              road_brdf)
 from helpers import _hemisphere, _model, _unit, rand_dirs, rand_params
+from tolerances import ROUND_TOL as RTOL_EXACT  # float64 evaluation of closed forms
 
 
-#: float64 evaluation of closed forms: relative agreement expected to rounding.
-RTOL_EXACT = 1e-12
 #: Closed forms that go through exp/log of large exponents.
 RTOL_EXPLOG = 1e-9
 

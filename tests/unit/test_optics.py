@@ -13,6 +13,7 @@ from roadgonio.instrument.config import load_instrument
 from roadgonio.arrays import NumpyOps as xp
 from roadgonio.instrument.optics import (check_detector, check_source, concentric_disc, detector_geometry,
                               detector_ray, hit_plane, source_coupling, source_geometry, source_point)
+from tolerances import ALPHA, N_SIGMA
 
 SEED = 20261122
 
@@ -32,8 +33,8 @@ def test_concentric_map_is_uniform_on_the_disc():
     r2 = x * x + y * y
     assert r2.max() <= 1.0 + 1e-12
     # area preserving: r^2 and the angle are uniform
-    assert stats.kstest(r2, "uniform").pvalue > 1e-3
-    assert stats.kstest((np.arctan2(y, x) + np.pi) / (2 * np.pi), "uniform").pvalue > 1e-3
+    assert stats.kstest(r2, "uniform").pvalue > ALPHA
+    assert stats.kstest((np.arctan2(y, x) + np.pi) / (2 * np.pi), "uniform").pvalue > ALPHA
 
 
 @pytest.mark.parametrize("pupil, field_deg, focus", [(0.01, 0.3, 2.0), (0.05, 1.0, 1.0), (0.002, 0.05, 10.0)])
@@ -49,7 +50,7 @@ def test_mean_etendue_weight_matches_coaxial_discs(pupil, field_deg, focus):
     rho = focus * math.tan(math.radians(field_deg))
     exact = focus ** 2 * coaxial_disc_view_factor(pupil, rho, focus) / rho ** 2
     se = w.std() / math.sqrt(n)
-    assert abs(w.mean() - exact) < 4 * se + 1e-12
+    assert abs(w.mean() - exact) < N_SIGMA * se + 1e-12
 
 
 def test_axis_ray_hits_the_sample_centre_and_source_coupling_is_cos_eps_over_d2():
@@ -102,7 +103,7 @@ def test_field_sensitivity_profile_kd(edge):
     zero = np.zeros(n)
     _, _, w = detector_ray(xp, geo, (zero, zero), concentric_disc(xp, u[0], u[1]))
     exact = 1.0 - (1.0 - edge) / 2.0
-    assert abs(w.mean() - exact) < 4 * w.std() / math.sqrt(n) + 1e-9
+    assert abs(w.mean() - exact) < N_SIGMA * w.std() / math.sqrt(n) + 1e-9
     # the profile is exactly 1 at the centre and e at the edge
     _, _, w_c = detector_ray(xp, geo, (np.zeros(2), np.zeros(2)), (np.array([0.0, 1.0]), np.zeros(2)))
     cos4 = math.cos(math.radians(0.001)) ** 4          # etendue factor at the field edge
