@@ -317,7 +317,9 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
                             ("confidence_bound", "ka_confidence_bound.csv")):
             v = ds[field].values
             if np.isfinite(v).any():
-                group.text(name, grid_csv_text(v, f"{ds[field].attrs['long_name']} of " + label, digits=4))
+                group.text(name, grid_csv_text(v, f"{ds[field].attrs['long_name']} (instrument '{ds.attrs['instrument']}', "
+                                                  f"sample '{ds.attrs['sample']}', {ds.attrs['backend']} backend)",
+                                               digits=4))
                 files[field] = name
         if plot:
             files["map"] = "ka.png"
