@@ -307,3 +307,45 @@ def atomic_savefig(fig, path: str | Path, **kwargs) -> Path:
     fmt = Path(path).suffix.lstrip(".") or "png"
     kwargs.setdefault("dpi", 120)
     return atomic_write(path, lambda p: fig.savefig(p, format=fmt, **kwargs))
+
+
+def write_netcdf(ds, path: str | Path) -> Path:
+    """Write an ``xarray.Dataset`` as netCDF atomically (netCDF-3 64-bit offset through scipy, which
+    every install has): attributes that netCDF cannot hold (mappings, lists, booleans) are written as
+    JSON text; booleans data variables become int8 (xarray records their dtype and reads them back)."""
+    import numpy as np
+    enc = ds.copy()
+    for k, v in list(enc.attrs.items()):
+        if isinstance(v, bool) or not isinstance(v, (str, int, float, np.integer, np.floating)):
+            enc.attrs[k] = to_json(v, indent=None)
+    for name in list(enc.variables):
+        for k, v in list(enc[name].attrs.items()):
+            if isinstance(v, bool) or not isinstance(v, (str, int, float, np.integer, np.floating)):
+                enc[name].attrs[k] = to_json(v, indent=None)
+    return atomic_write(path, lambda p: enc.to_netcdf(p, engine="scipy", format="NETCDF3_64BIT"))
+
+
+def read_netcdf(path: str | Path, booleans: tuple[str, ...] = ()):
+    """Open a netCDF file written by :func:`write_netcdf` (loaded into memory; ``booleans`` come back
+    as booleans)."""
+    import xarray as xr
+    try:
+        with xr.open_dataset(path, engine="scipy") as ds:
+            ds = ds.load()
+    except FileNotFoundError:
+        raise InputError("no such file", path=path) from None
+    except (OSError, ValueError, TypeError) as err:
+        raise InputError(f"not a netCDF file roadgonio can read ({err})", path=path) from None
+    for v in booleans:
+        if v in ds:
+            ds[v] = ds[v].astype(bool)
+    return ds
+
+
+def safe_name(name: str, fallback: str = "unnamed", max_len: int = 80) -> str:
+    """A name (an instrument's, a table's, a sample's) made safe as ONE folder or file name: letters,
+    digits, '-', '_' and '.', anything else '_', no leading dot (so never '.' or '..'), at most
+    ``max_len`` characters; ``fallback`` when nothing is left. Output folders derived from names
+    use it, so a name like '../x' cannot make a folder escape the working folder."""
+    out = "".join(c if (c.isascii() and c.isalnum()) or c in "-_." else "_" for c in str(name)).lstrip(".")
+    return out[:max_len] or fallback

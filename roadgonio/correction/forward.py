@@ -1,5 +1,5 @@
 """The forward model of a measurement: what the instrument reports for a BRDF model, per cell, as a
-smooth function of the model's parameters (DESIGN.md sections 4-5; paper eq. 2-3).
+smooth function of the model's parameters (docs/conventions.md sections 4-5; paper eq. 2-3).
 
 The detector signal is linear in the BRDF. For a **fixed** set of rays per cell (a ray bundle:
 pupil point, field point, hit point, source point, with their weights, sampled once in float64 by

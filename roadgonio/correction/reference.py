@@ -35,4 +35,4 @@ def resolve_alternatives(spec: str | Sequence[str] | None, measured: RTable, *, 
             names = [s.strip() for s in text.split(",") if s.strip()]
     else:
         names = [str(s) for s in spec]
-    return {sample_name(n): resolve_sample(n, model_variant) for n in names}
+    return {sample_name(n): resolve_sample(n, model_variant).model for n in names}

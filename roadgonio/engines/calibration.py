@@ -1,4 +1,4 @@
-"""k_A under the instrument's calibration (DESIGN.md section 5), for any backend, in one place.
+"""k_A under the instrument's calibration (docs/conventions.md section 5), for any backend, in one place.
 
 Every backend computes k_A under Lambert calibration (the ratio of the rendered signals of the
 sample and of a perfect diffuser, over the ideal point geometry)::
@@ -43,7 +43,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from roadgonio.engines import CellResult, KaBackend
+from roadgonio.engines.result import CellResult, KaBackend
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.fileio import fingerprint
 from roadgonio.instrument import optics
@@ -334,7 +334,8 @@ class CalibratedBackend:
         for a in range(0, len(cells), REFERENCE_CHUNK):
             chunk = cells[a:a + REFERENCE_CHUNK]
             refs = {_key(r.tan_eps, r.beta_deg): r for r in self.reference_inner.compute(chunk)}
-            self.inner.compute(chunk, on_cell=lambda c: emit(self._reference(c, refs[_key(c.tan_eps, c.beta_deg)])))
+            # on_cell is called inside compute(), in this iteration, with this chunk's refs (B023 cannot tell)
+            self.inner.compute(chunk, on_cell=lambda c: emit(self._reference(c, refs[_key(c.tan_eps, c.beta_deg)])))  # noqa: B023
         return out
 
 

@@ -23,7 +23,7 @@ from roadgonio.errors import BackendError, GeometryError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
-from roadgonio.engines import ideal_ratio, ideal_ratios
+from roadgonio.engines.result import ideal_ratio, ideal_ratios
 
 
 def _check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]], models_beam: bool,

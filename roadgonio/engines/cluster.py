@@ -26,7 +26,7 @@ worker's thread count, so N one-thread workers use N cores, not N^2 threads), an
 checks it again (idempotent), so a worker that joins late or restarts is never left without them.
 
 Results do not depend on where a task runs: a task carries its seed, and the backend's own
-seeding is per cell (``tests/test_design_cluster.py`` compares a 2-worker cluster started with
+seeding is per cell (``tests/system/test_design_cluster.py`` compares a 2-worker cluster started with
 ``dask scheduler`` / ``dask worker`` against the in-process run, bit for bit).
 """
 from __future__ import annotations
@@ -45,8 +45,6 @@ from typing import Any, Callable, Iterator, Mapping, Sequence
 
 from roadgonio.errors import BackendError, InputError, RoadgonioError
 
-#: Backends whose results depend on a seed (the seed goes into their settings).
-SEEDED_BACKENDS = ("mitsuba", "numpy-mc")
 #: Seconds to wait for a scheduler to answer and for its first worker to join.
 CONNECT_TIMEOUT_S = 30.0
 
@@ -93,11 +91,11 @@ class TableResult:
 # In the worker
 # ----------------------------------------------------------------------------------------------
 
-#: backend -> "module:function" preparing a worker process for it (lazy, like engines.BACKENDS: only
-#: the Mitsuba room imports mitsuba); ``function(variant, render_threads)``.
-PROCESS_SETUP: dict[str, str] = {"mitsuba": "roadgonio.engines.mitsuba.worker:prepare_process"}
-#: backend -> "module:function" checking (never changing) the driver's own process.
-PROCESS_CHECK: dict[str, str] = {"mitsuba": "roadgonio.engines.mitsuba.worker:check_process"}
+#: "module:function" preparing a worker process for a backend that needs Mitsuba (the registry's
+#: ``mitsuba`` capability; lazy, so only the Mitsuba room imports mitsuba): ``function(variant,
+#: render_threads)``; and the one checking (never changing) the driver's own process.
+MITSUBA_SETUP = "roadgonio.engines.mitsuba.worker:prepare_process"
+MITSUBA_CHECK = "roadgonio.engines.mitsuba.worker:check_process"
 
 _READY: set[tuple[int, str, str | None]] = set()
 _READY_LOCK = threading.Lock()
@@ -113,9 +111,10 @@ def init_engine(backend: str = "mitsuba", variant: str | None = None,
                 render_threads: int | None = None) -> dict[str, Any]:
     """Prepare this worker process and thread for ``backend`` (Mitsuba: the variant, the plugins,
     Dr.Jit's pool); idempotent. Only for worker processes: they are entry points of their own."""
+    from roadgonio.engines.registry import backend_info
     info: dict[str, Any] = {"pid": os.getpid()}
-    if backend in PROCESS_SETUP:
-        info.update(_resolve(PROCESS_SETUP[backend])(variant, render_threads))
+    if backend_info(backend).mitsuba:
+        info.update(_resolve(MITSUBA_SETUP)(variant, render_threads))
     with _READY_LOCK:
         _READY.add((threading.get_ident(), backend, variant))
     return info
@@ -123,8 +122,9 @@ def init_engine(backend: str = "mitsuba", variant: str | None = None,
 
 def check_engine(backend: str, variant: str | None = None) -> None:
     """In the driver's process: check (never change) what its entry point chose for ``backend``."""
-    if backend in PROCESS_CHECK:
-        _resolve(PROCESS_CHECK[backend])(variant)
+    from roadgonio.engines.registry import backend_info
+    if backend_info(backend).mitsuba:
+        _resolve(MITSUBA_CHECK)(variant)
 
 
 def _ensure_engine(backend: str, variant: str | None) -> None:
@@ -142,7 +142,7 @@ def compute_table(task: TableTask, *, prepare: bool = True) -> TableResult:
     (``prepare=False``, :func:`map_tables` without a client) it is used as its entry point set it up.
     A :class:`~roadgonio.errors.RoadgonioError` (impossible geometry, bad settings, missing backend)
     becomes the result's ``error``; anything else is a bug and propagates."""
-    from roadgonio.engines import make_backend
+    from roadgonio.engines.registry import backend_info, make_backend
     from roadgonio.instrument.config import Instrument
     from roadgonio.surface.model import RoadModel
     t0 = time.perf_counter()
@@ -150,11 +150,10 @@ def compute_table(task: TableTask, *, prepare: bool = True) -> TableResult:
         inst = Instrument.from_dict(task.instrument, path=task.instrument_path)
         model = RoadModel.from_json_dict(task.model)
         settings = dict(task.settings)
-        if task.seed is not None and task.backend in SEEDED_BACKENDS:
-            settings["seed"] = int(task.seed)
+        seed = task.seed if (task.seed is not None and backend_info(task.backend).seeded) else None
         if prepare:
-            _ensure_engine(task.backend, settings.get("variant"))
-        backend = make_backend(task.backend, inst, model, accuracy=task.accuracy, **settings)
+            _ensure_engine(task.backend, settings.get("mitsuba_variant"))
+        backend = make_backend(task.backend, inst, model, accuracy=task.accuracy, seed=seed, settings=settings)
         cells = backend.compute([(float(t), float(b)) for t, b in task.cells])
         try:
             used = dict(backend.settings())
@@ -255,13 +254,17 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
                              "start some with 'dask worker ADDRESS --nthreads 1'", field="--scheduler") from None
     else:
         n = workers if workers is not None else (os.cpu_count() or 1)
+        # no dashboard; the scheduler's HTTP server (health routes) still starts, on a free loopback
+        # port instead of 8787, which another cluster may hold (Dask then warns and leaks a socket)
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
                                dashboard_address=None, worker_dashboard_address=None,
+                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                                silence_logs=logging.ERROR if quiet else logging.WARNING)
         client = Client(cluster)
     try:
         _check_workers(client)
-        if backend in PROCESS_SETUP:
+        from roadgonio.engines.registry import backend_info
+        if backend is not None and backend_info(backend).mitsuba:
             client.register_plugin(EngineSetup(backend, variant), name=EngineSetup.name)
         yield client
     finally:

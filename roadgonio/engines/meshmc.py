@@ -1,4 +1,4 @@
-"""Independent float64 numpy Monte Carlo of k_A for a **mesh** sample (paper eq. 3; DESIGN.md
+"""Independent float64 numpy Monte Carlo of k_A for a **mesh** sample (paper eq. 3; docs/conventions.md
 sections 4-5): the check of mesh scenes that the flat-plane integrators cannot give.
 
 The same estimator as :mod:`roadgonio.engines.montecarlo` (stratified pupil, field and source
@@ -35,10 +35,9 @@ from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
-from roadgonio.engines import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
 from roadgonio.engines.cellcheck import check_cell, no_light
 from roadgonio.engines.montecarlo import _stratified_disc
-from roadgonio.engines.reference import check_numpy_scene
 
 DEFAULT_REL_SE = 1e-3
 DEFAULT_BATCH = 1 << 12
@@ -216,7 +215,6 @@ class MeshMonteCarloBackend(CellByCellBackend):
         if _integer(min_batches, "min_batches") < 2:
             raise InputError(f"expected at least 2 batches (for a standard error), got {min_batches}",
                              field="min_batches")
-        check_numpy_scene(instrument, self.name, mesh_ok=True)
         optics.footprint_boundary(instrument)    # the detector must look downwards
         self.instrument = instrument
         self.model = model

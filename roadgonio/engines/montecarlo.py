@@ -32,7 +32,7 @@ from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
-from roadgonio.engines import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
 from roadgonio.engines.cellcheck import check_cell
 
 DEFAULT_REL_SE = 1e-3
@@ -75,8 +75,6 @@ class MonteCarloBackend(CellByCellBackend):
             raise InputError(f"expected at least 2 batches (for a standard error), got {min_batches}",
                              field="min_batches")
         # refuse what this backend does not model (an XML scene's extra parts, a mesh sample)
-        from roadgonio.engines.reference import check_numpy_scene
-        check_numpy_scene(instrument, "numpy-mc")
         optics.check_detector(instrument)
         self.instrument = instrument
         self.model = model

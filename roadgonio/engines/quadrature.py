@@ -1,4 +1,4 @@
-"""Deterministic float64 quadrature of the detector signal (paper eq. 3; DESIGN.md sections 4-5).
+"""Deterministic float64 quadrature of the detector signal (paper eq. 3; docs/conventions.md sections 4-5).
 
 The signal of the instrument for a sample with BRDF f is the six-fold integral of eq. 3 over the
 detector's entrance pupil (disc), its field stop (disc) and the source's exit aperture (disc)::
@@ -9,7 +9,7 @@ detector's entrance pupil (disc), its field stop (disc) and the source's exit ap
 with the detector ray of the pair (pupil point p, field point q), its etendue weight w, the hit
 point x on the sample plane, w_o = minus the ray direction, and the source coupling G (all from
 :mod:`roadgonio.instrument.optics`, the one definition of the instrument's ray geometry). The BRDF is the one
-definition in :mod:`roadgonio.surface.model`. k_A follows DESIGN.md section 5::
+definition in :mod:`roadgonio.surface.model`. k_A follows docs/conventions.md section 5::
 
     k_A = ( S[f_road] / S[1/pi] ) / ( pi f_road(nominal) )
 
@@ -51,7 +51,7 @@ from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.instrument import optics
-from roadgonio.engines import CellByCellBackend, CellResult
+from roadgonio.engines.result import CellByCellBackend, CellResult
 from roadgonio.engines.cellcheck import check_cell, no_light
 
 #: Gauss-Legendre orders of one direction of a disc rule, by level.
@@ -152,9 +152,6 @@ class QuadratureBackend(CellByCellBackend):
             raise InputError(f"expected a relative tolerance 0 < rtol < 1, got {rtol:g}", field="rtol")
         if int(max_evals) < 1:
             raise InputError(f"expected a positive number of evaluations, got {max_evals}", field="max_evals")
-        # refuse what this backend does not model (an XML scene's extra parts, a mesh sample)
-        from roadgonio.engines.reference import check_numpy_scene
-        check_numpy_scene(instrument, "quadrature")
         optics.check_detector(instrument)   # GeometryError: footprint off the sample / upward rays
         self.instrument = instrument
         self.model = model

@@ -1,5 +1,5 @@
 """Float64 reference of k_A: randomised quasi-Monte Carlo with the integrand's kinks split off
-(paper eq. 3; DESIGN.md sections 3-5). The reference that ``roadgonio validate`` judges the
+(paper eq. 3; docs/conventions.md sections 3-5). The reference that ``roadgonio validate`` judges the
 renderers against.
 
 Why not the tensor Gauss quadrature (:mod:`roadgonio.engines.quadrature`)? Its rules converge
@@ -8,7 +8,7 @@ eq. 3 is not smooth in two places, and the product rule converges only algebraic
 (it stops at its evaluation cap 9-13 % off in the beta = 0 column of scenes/wide.toml):
 
 1. **The mirror plane (|beta| kink).** The empirical term depends on
-   ``beta = atan2(|(w_i x w_o)_z|, -(w_i . w_o)_xy)`` (DESIGN.md section 3): for a fixed detector
+   ``beta = atan2(|(w_i x w_o)_z|, -(w_i . w_o)_xy)`` (docs/conventions.md section 3): for a fixed detector
    ray (hit point x, direction w_o) it has a kink where the source point s crosses the vertical
    plane through x that contains w_o, i.e. on the line ``(s - x)_x w_o,y - (s - x)_y w_o,x = 0``.
    That condition is *linear* in the source-disc coordinates, so on the disc it is a chord.
@@ -48,8 +48,8 @@ Randomised QMC with replicate error bars. ``replicates`` (R, default 10) indepen
 Sobol' sequences (scipy.stats.qmc.Sobol, linear matrix scrambling with a digital shift) each give
 the paired means <w f G> and <w G / pi> over their first 2^m points; m grows by one until the
 error bound meets ``rtol``. The estimate is the ratio of the pooled means and its standard error
-the delta-method SE over the R replicate pairs (:func:`roadgonio.engines.ratio_se`); the reported
-``CellResult.error_bound`` is a confidence bound::
+the delta-method SE over the R replicate pairs (:func:`roadgonio.engines.result.ratio_se`); the reported
+``CellResult.confidence_bound`` is::
 
     bound = t_(R-1)(1 - (1 - confidence)/2) * SE       (confidence 0.999: 4.78 SE for R = 10)
 
@@ -59,8 +59,10 @@ is a *statistical* bound at the stated confidence, honest up to a 1e-3 chance pe
 (bench/make_reference_long.py). Against a lucky small SE at the stopping level (sequential
 stopping), a cell stops only when the bound meets the target *and* the previous level's estimate
 lies within its own bound of the new one. A cell that reaches ``max_evals`` integrand evaluations
-or ``max_log2`` reports ``converged = False`` with the bound it achieved. ``se`` is NaN (the
-validator needs the bound); the replicate SE is in ``extra["replicate_se"]``.
+or ``max_log2`` reports ``converged = False`` with the bound it achieved. The result carries both,
+each with its one meaning (:mod:`roadgonio.engines.result`): ``se`` is the replicate standard error
+(what an uncertainty budget uses), ``confidence_bound`` the Student-t bound at
+``confidence_level`` (what the validator adds as a bound); ``error_bound`` (deterministic) is NaN.
 
 What this reference does not split: a source beam limit (``beam_half_angle_deg``: a jump on a
 cone) and g's kink at theta_l are integrated as they are (RQMC stays unbiased and its error bars
@@ -81,7 +83,7 @@ from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
-from roadgonio.engines import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
 from roadgonio.engines.cellcheck import check_cell, no_light
 
 #: Default target of the relative error bound of each k_A.
@@ -229,7 +231,6 @@ class ReferenceBackend(CellByCellBackend):
         seed = _integer(seed, "seed")
         if seed < 0:
             raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
-        check_numpy_scene(instrument, "reference")
         optics.check_detector(instrument)
         from scipy.stats import t as student_t
         self.instrument = instrument
@@ -539,8 +540,9 @@ class ReferenceBackend(CellByCellBackend):
             extra["note"] = (f"stopped at its cap (max_evals = {self.max_evals}, max_log2 = {self.max_log2}): the "
                              f"relative error bound {bound / abs(k):.2e} exceeds rtol = {target:g}")
         extra["rtol"] = target
-        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=math.nan, error_bound=float(bound),
-                          converged=converged, samples=int(evals), seconds=time.perf_counter() - t0, extra=extra)
+        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), confidence_bound=float(bound),
+                          confidence_level=self.confidence, converged=converged, samples=int(evals),
+                          seconds=time.perf_counter() - t0, extra=extra)
 
 
 def _number(v, name: str) -> float:
@@ -565,21 +567,6 @@ def _integer(v, name: str) -> int:
     return iv
 
 
-def check_numpy_scene(instrument: Instrument, backend: str, *, mesh_ok: bool = False) -> None:
-    """The numpy backends model the instrument's discs, an optional beam limit and a flat
-    rectangular sample (or, with ``mesh_ok``, a mesh); they refuse what else a scene declares
-    rather than ignore it: a Mitsuba XML scene (``[scene] xml``: its holder walls, rails...),
-    a mesh sample (unless ``mesh_ok``)."""
-    scene = instrument.extra.get("scene") if isinstance(instrument.extra, dict) or hasattr(instrument.extra, "get") else None
-    if scene:
-        what = "a Mitsuba XML scene" if isinstance(scene, dict) and "xml" in scene else "a [scene] section"
-        raise InputError(f"the {backend} backend does not model {what} (its extra geometry would be ignored, "
-                         "giving a different instrument); use --backend mitsuba, or an instrument file "
-                         "without [scene]", path=instrument.path, field="scene")
-    if instrument.sample.mesh is not None and not mesh_ok:
-        alt = "numpy-mc-mesh (independent check) or mitsuba"
-        raise InputError(f"the {backend} backend integrates over a flat rectangular sample only; for a mesh "
-                         f"sample use --backend {alt}", path=instrument.path, field="sample.mesh")
 
 
 #: Settings a caller may pass (``make_backend("reference", ..., **settings)``).

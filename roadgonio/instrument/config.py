@@ -172,7 +172,7 @@ class Detector:
 
 
 @dataclass(frozen=True)
-class Sample:
+class SampleGeometry:
     """A flat rectangle ``size_x_m`` x ``size_y_m`` centred on the origin (x along the observation
     azimuth; default 6 m x 2 m), or a trimesh-readable mesh file (then no sizes)."""
 
@@ -236,18 +236,18 @@ class Instrument:
     observation: Observation = field(default_factory=Observation)
     source: Source = field(default_factory=Source)
     detector: Detector = field(default_factory=Detector)
-    sample: Sample = field(default_factory=Sample)
+    sample: SampleGeometry = field(default_factory=SampleGeometry)
     name: str = "instrument"
     description: str = ""
     path: Path | None = None
-    #: How a signal becomes q: [calibration] (DESIGN.md section 5; roadgonio.instrument.calibration).
+    #: How a signal becomes q: [calibration] (docs/conventions.md section 5; roadgonio.instrument.calibration).
     calibration: Calibration = field(default_factory=Calibration)
     #: Extra sections not interpreted here (kept for backends and provenance).
     extra: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
         for attr, cls in (("observation", Observation), ("source", Source), ("detector", Detector),
-                          ("sample", Sample)):
+                          ("sample", SampleGeometry)):
             if not isinstance(getattr(self, attr), cls):
                 raise InputError(f"expected a {cls.__name__}, got {type(getattr(self, attr)).__name__}", field=attr)
         if not isinstance(self.name, str) or not isinstance(self.description, str):
@@ -357,7 +357,7 @@ class Instrument:
                 # absolute, so that to_dict/from_dict (with_changes, best.toml) never joins it twice
                 mesh = (path.parent / mesh).absolute()
             sm["mesh"] = mesh
-        sample = Sample(**sm)
+        sample = SampleGeometry(**sm)
         meta = d.get("instrument", {})
         _check_keys(meta, {"name", "description"}, "instrument", None)
         name = str(meta.get("name", path.stem if path is not None else "instrument"))

@@ -345,7 +345,7 @@ def sight_clearance(instrument: Instrument, cells) -> np.ndarray:
     best = np.full(len(lo), np.inf)
     phi = (math.sqrt(5.0) - 1.0) / 2.0
     for ak, bk in bundle_cones(detector_geometry(instrument)):
-        def f(sig):
+        def f(sig, ak=ak, bk=bk):
             return rho_min(sig) - (ak + bk * (zc + G * sig))
         a_, b_ = lo.copy(), hi.copy()
         best = np.minimum(best, np.minimum(f(a_), f(b_)))

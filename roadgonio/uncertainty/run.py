@@ -266,6 +266,9 @@ class UncertaintyResult:
     surrogate: SurrogateReport | None
     provenance: dict[str, Any]
     seconds: dict[str, float] = field(default_factory=dict)
+    #: where its files were written (:func:`roadgonio.api.estimate_uncertainty` with ``out``)
+    out: Path | None = None
+    written: list = field(default_factory=list)
 
 
 class _Evaluator:
