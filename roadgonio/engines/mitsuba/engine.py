@@ -31,6 +31,7 @@ from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strat
 from roadgonio.engines.mitsuba.scene import RoadScene, source_radiance
 from roadgonio.instrument.config import Instrument
 from roadgonio.engines.cellcheck import check_cells
+from roadgonio.engines.registry import backend_info
 
 #: Largest number of detector rays traced (and stored: 13 floats each) per launch.
 MAX_RAYS = 1 << 21
@@ -119,7 +120,8 @@ class BatchEngine:
     def check_cells(self, cells: Sequence[tuple[float, float]]) -> None:
         """The preamble of every backend (:func:`roadgonio.engines.cellcheck.check_cells`); the area
         emitter has no beam limit, so a clipping one is refused."""
-        check_cells(self.instrument, self.rs.model, cells, models_beam=False, backend="mitsuba")
+        check_cells(self.instrument, self.rs.model, cells, models_beam=backend_info("mitsuba").beam_clipping,
+                    backend="mitsuba")
 
     # -- the passes ----------------------------------------------------------------------------
     def run(self, cells: Sequence[tuple[float, float]], planner: Planner, *, seed: int = 0,
