@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     from roadgonio.surface.sample import resolve_sample
 
     set_variant()                      # the script is the entry point: it chooses the variant
-    model = resolve_sample(args.sample)
+    model = resolve_sample(args.sample).model
     cells = full_grid_cells()
     housed = Instrument.load(ROOT / "scenes" / "portable_housed.toml")
     runs = [("portable (no housing)", Instrument.load(ROOT / "scenes" / "portable.toml")),
