@@ -16,7 +16,7 @@ requested cells it is marked ``geometry_ok = False`` with a one-line reason. The
    refused by the backend for this reason, and the reverse). This matters for sources between the
    detector and the sample (beta near 180 deg at grazing incidence).
 5. ``housing``: a ``[housing]`` holds the detector's view and every requested cell's source disc
-   (:func:`roadgonio.instrument.housing.check_detector_view`, :func:`~roadgonio.instrument.housing.check_sources`:
+   (:func:`roadgonio.instrument.enclosure.check_detector_view`, :func:`~roadgonio.instrument.enclosure.check_sources`:
    no baffle in the line of sight, no source disc through a wall, the lid or a baffle);
 6. ``backend`` (on the worker): whatever the backend itself refuses (render-time ray hits of an
    XML scene or a mesh, a beam limit the renderer cannot model, ...).
@@ -101,7 +101,8 @@ def check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]])
                            f"the source disc (radius {src.radius_m:g} m at {src.distance_m:g} m) blocks the detector's "
                            f"view of the sample (pupil {det.pupil_radius_m:g} m at {det.distance_m:g} m) at "
                            f"{_cells_text(blocked)}", fp)
-    from roadgonio.instrument.housing import Housing, check_detector_view, check_sources
+    from roadgonio.instrument.enclosure import check_detector_view, check_sources
+    from roadgonio.instrument.housing import Housing
     housing = Housing.of(instrument)
     if housing is not None:
         try:

@@ -12,7 +12,8 @@ import pytest
 
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument.config import Instrument, load_instrument
-from roadgonio.instrument.housing import Baffle, Housing, check_detector_view, check_sources, parts_bounds
+from roadgonio.instrument.enclosure import check_detector_view, check_sources, housing_box, housing_panels, parts_bounds
+from roadgonio.instrument.housing import Baffle, Housing
 
 ROOT = Path(__file__).resolve().parents[2]
 HOUSED = ROOT / "scenes" / "portable_housed.toml"
@@ -49,7 +50,7 @@ def test_default_box_holds_every_part_with_the_margin():
     at tan 12, y = D_S sin eps at beta 90, z = D_S at tan 0."""
     inst = housed()
     lo, hi = parts_bounds(inst)
-    box = Housing.of(inst).box(inst)
+    box = housing_box(inst, Housing.of(inst))
     assert box.x == pytest.approx((lo[0] - 0.05, hi[0] + 0.05)) and box.y == pytest.approx((lo[1] - 0.05, hi[1] + 0.05))
     assert box.height == pytest.approx(hi[2] + 0.05)
     sin12 = math.sin(math.atan(12.0))
@@ -59,9 +60,9 @@ def test_default_box_holds_every_part_with_the_margin():
 def test_panels_face_into_the_box_and_the_floor_is_road_around_the_sample():
     inst = housed(baffles=[{"x_m": -0.6, "height_m": 0.02}, {"x_m": -0.7, "height_m": 0.0}])
     h = Housing.of(inst)
-    box = h.box(inst)
+    box = housing_box(inst, h)
     centre = np.array([sum(box.x) / 2, sum(box.y) / 2, box.height / 2])
-    panels = {p.id: p for p in h.panels(inst)}
+    panels = {p.id: p for p in housing_panels(inst, h)}
     assert "housing_baffle_2" not in panels                 # height 0: no plate
     for p in panels.values():
         m = p.to_world()

@@ -133,11 +133,11 @@ class BatchEngine:
     def check_cells(self, cells: Sequence[tuple[float, float]]) -> None:
         """The preamble of every backend (:func:`roadgonio.engines.cellcheck.check_cells`); the area
         emitter has no beam limit, so a clipping one is refused; a housing must hold every cell's
-        source (:func:`roadgonio.instrument.housing.check_sources`)."""
+        source (:func:`roadgonio.instrument.enclosure.check_sources`)."""
         check_cells(self.instrument, self.rs.model, cells, models_beam=backend_info("mitsuba").beam_clipping,
                     backend="mitsuba")
         if self.rs.housing is not None:
-            from roadgonio.instrument.housing import check_sources
+            from roadgonio.instrument.enclosure import check_sources
             check_sources(self.instrument, self.rs.housing, cells)
 
     # -- the passes ----------------------------------------------------------------------------
