@@ -21,7 +21,7 @@ from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument.config import Instrument, load_instrument
 from roadgonio.surface.model import RoadModel, RoadParams
 
-from conftest import R3LIKE
+from helpers import R3LIKE
 from tolerances import ALPHA, N_SIGMA
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
@@ -380,11 +380,12 @@ def test_housing_errors_name_the_cell_and_the_wall():
 
 
 def test_table_outputs_carry_the_stray_light(tmp_path):
-    from roadgonio.engines.runner import run_cells, write_outputs
+    from roadgonio.engines.runner import ka_dataset, run_cells, write_outputs
     inst = housed(0.05)
     b = mitsuba(inst, accuracy="fast")
     run = run_cells(b, CELLS[:3], instrument=inst, model=R3, out_dir=tmp_path, progress=False)
-    meta = write_outputs(run, tmp_path, instrument=inst, model=R3, backend=b, sample_spec="R3", plot=False)
+    ds = ka_dataset(run, instrument=inst, model=R3, backend=b, sample="R3")
+    meta = write_outputs(ds, tmp_path, plot=False)
     for f in ("ka_direct.csv", "ka_direct_se.csv", "stray_fraction.csv", "stray_fraction_se.csv"):
         assert (tmp_path / f).exists() and f in meta["files"].values()
     assert meta["summary"]["stray_fraction_max"] == max(r.stray_fraction for r in run.results) > 0.0
