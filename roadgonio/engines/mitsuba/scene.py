@@ -50,6 +50,7 @@ from roadgonio.instrument.mesh import sample_triangles
 from roadgonio.instrument.optics import (
     beam_clips_footprint,
     check_detector,
+    check_line_of_sight,
     check_source,
     detector_geometry,
     detector_ray,
@@ -62,8 +63,6 @@ from roadgonio.surface.model import RoadModel
 
 #: Ids of the scene parts (TOML-built and XML scenes alike).
 SOURCE_ID, SAMPLE_ID, DETECTOR_ID = "source", "sample", "detector"
-#: Sources closer than this to the line of sight get the detector-ray check again per cell.
-SOURCE_NEAR_SIGHT_DEG = 10.0
 #: Channels of the road BSDF in the backend scene: R = f_road, G = B = 1/pi (perfect diffuser).
 ROAD, LAMBERT = 0, 1
 #: Reflections followed per light path (the sample's own included) when the scene holds reflecting
@@ -177,12 +176,15 @@ class RoadScene:
 
     # -- per cell --------------------------------------------------------------------------
     def place_source(self, tan_eps: float, beta_deg: float) -> None:
-        """Move the source to the cell (no recompile); checks the horizon, the beam limit and the
-        housing."""
+        """Move the source to the cell (no recompile); checks the horizon, the beam limit, the
+        line of sight (the one test of every backend: :func:`~roadgonio.instrument.optics.check_line_of_sight`,
+        exact for the disc) and the housing."""
         check_source(self.instrument, tan_eps, beta_deg)
         check_beam(self.instrument, tan_eps, beta_deg)
+        if self.source_kind != "point":
+            check_line_of_sight(self.instrument, [(tan_eps, beta_deg)])
         if self.housing is not None and self.checked:
-            from roadgonio.instrument.housing import check_sources
+            from roadgonio.instrument.enclosure import check_sources
             check_sources(self.instrument, self.housing, [(tan_eps, beta_deg)])
         if self.source_kind == "point":
             c = self.instrument.source_centre(tan_eps, beta_deg)
@@ -191,11 +193,6 @@ class RoadScene:
             self.params[f"{SOURCE_ID}.to_world"] = source_transform(self.instrument, tan_eps, beta_deg)
         self.params.update()
         self.cell = (float(tan_eps), float(beta_deg))
-        if self.checked:
-            # a source close to the line of sight could hide part of the footprint: check the rays again
-            cos_sep = float(np.dot(self.instrument.w_i(tan_eps, beta_deg), self.instrument.w_o()))
-            if cos_sep > math.cos(math.radians(SOURCE_NEAR_SIGHT_DEG)):
-                self.check_hits(n_random=1 << 12, n_rim=64)
 
     def render(self, seed: int, spp: int) -> np.ndarray:
         """One pass: the film as float64 (H, W, 3); channel 0 = road, 1 = Lambert (see :data:`ROAD`)."""
@@ -223,24 +220,13 @@ class RoadScene:
         si = self.scene.ray_intersect(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)))
         # opaque: the shape pointer as a literal would make every new scene compile its own kernel
         on_sample = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
-        src_shape = next((s for s in self.scene.shapes() if s.id() == SOURCE_ID), None)
-        if src_shape is not None:
-            # the source disc in the line of sight is its own error, with the cell (not "enlarge the sample")
-            on_src = np.array(si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, src_shape)), dtype=bool)
-            if on_src.any():
-                from roadgonio.errors import GeometryError
-                cell = f" at tan eps = {self.cell[0]:g}, beta = {self.cell[1]:g}" if self.cell is not None else ""
-                raise GeometryError(
-                    f"the source disc blocks the detector's line of sight{cell}: {int(on_src.sum())} of "
-                    f"{on_src.size} detector rays hit the source before the sample (the source sits between "
-                    "the detector and its footprint); this cell cannot be measured with this geometry")
         other = si.is_valid() & ~on_sample
         if bool(dr.any(other)):
             # name the part that stands in the detector's view (a housing wall, a baffle, a holder)
             from roadgonio.errors import GeometryError
             for shape in self.scene.shapes():
                 k = int(dr.count(other & (si.shape == dr.opaque(mi.ShapePtr, shape)))[0])
-                if k and shape.id() != SOURCE_ID:
+                if k:
                     raise GeometryError(
                         f"{k} of {dr.width(other)} detector rays meet the part {shape.id()!r} before the sample: "
                         "it blocks the detector's view of its footprint (a part of the scene must not stand between "
@@ -278,7 +264,8 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
     scene_sec = instrument.extra.get("scene") if isinstance(instrument.extra, dict) else None
     if scene_sec is not None and not hasattr(scene_sec, "get"):
         raise InputError("expected a table [scene]", path=instrument.path, field="scene")
-    from roadgonio.instrument.housing import Housing, check_detector_view
+    from roadgonio.instrument.enclosure import check_detector_view
+    from roadgonio.instrument.housing import Housing
     housing = Housing.of(instrument)
     if check and housing is not None:
         check_detector_view(instrument, housing)
@@ -299,14 +286,15 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
 
 
 def housing_shapes(instrument: Instrument, housing, model: RoadModel) -> dict[str, dict]:
-    """The housing's panels (:meth:`roadgonio.instrument.housing.Housing.panels`) as Mitsuba
+    """The housing's panels (:func:`roadgonio.instrument.enclosure.housing_panels`) as Mitsuba
     ``rectangle`` shapes by id: Lambertian, reflecting towards the inside of the box (walls and
     lid one-sided, baffles two-sided; a panel of reflectance 0 only shades), and the road floor
     around the sample with the sample's BRDF in the ``road`` channels (the same value in the road
     and the Lambert channel: a Lambert calibration replaces the sample, not the road around it)."""
+    from roadgonio.instrument.enclosure import housing_panels
     mi = _mi()
     out = {}
-    for p in housing.panels(instrument):
+    for p in housing_panels(instrument, housing):
         bsdf = {"type": "diffuse", "reflectance": {"type": "uniform", "value": float(p.reflectance)}}
         if p.road:
             bsdf = _bsdf_dict(model, "road")
