@@ -178,8 +178,9 @@ class MitsubaBackend:
         ratio, se, _ = st.ratio_se()
         rel = relative(ratio, se)
         # the model is 0 at the nominal geometry: k_A (with or without stray light) is undefined
-        inv = 1.0 / ideal if ideal > 0.0 else math.nan
-        k_a, k_se = ratio * inv, se * inv
+        # (divided, not multiplied by 1 / ideal: the same float64 numbers as the engine without stray light)
+        div = ideal if ideal > 0.0 else math.nan
+        k_a, k_se = ratio / div, se / div
         extra = {"ratio": ratio, "ratio_se": se, "ideal_ratio": ideal, "passes": st.passes,
                  "replicates": int(sum(len(v[0]) for v in st.strata.values())), "rel_se": rel,
                  "converged": bool(converged)}
@@ -190,7 +191,7 @@ class MitsubaBackend:
             # the direct light alone (today's k_A) and the stray fraction, from the same replicates
             rd, rd_se = st.direct_ratio_se()
             sf, sf_se = st.stray_fraction_se()
-            stray = dict(k_a_direct=float(rd * inv), k_a_direct_se=float(rd_se * inv),
+            stray = dict(k_a_direct=float(rd / div), k_a_direct_se=float(rd_se / div),
                          stray_fraction=float(sf), stray_fraction_se=float(sf_se))
             extra["max_bounces"] = self.engine.max_bounces
         return CellResult(tan_eps=cell[0], beta_deg=cell[1], k_a=float(k_a), se=float(k_se),
