@@ -108,14 +108,15 @@ class _EtaIntegrator:
         sx, sy, ws = disc_rule(levels[4], levels[5])
         sp = optics.source_point(src, (sx, sy))
         sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape)[None, :] for c in sp)
+        sd = (sx[None, :], sy[None, :])
         rows = max(1, (1 << 17) // sx.size)
         mean = 0.0
         with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
             for a in range(0, x.size, rows):
                 b = min(x.size, a + rows)
-                _, g = optics.source_coupling(NumpyOps, src, x[a:b, None], y[a:b, None], sp)
+                _, g = optics.source_coupling(NumpyOps, src, x[a:b, None], y[a:b, None], sp, sd)
                 mean += float(w[a:b] @ (g @ ws))
-            _, g0 = optics.source_coupling(NumpyOps, src, np.zeros((1, 1)), np.zeros((1, 1)), sp)
+            _, g0 = optics.source_coupling(NumpyOps, src, np.zeros((1, 1)), np.zeros((1, 1)), sp, sd)
         e0 = float(np.asarray(g0)[0] @ ws)
         if not e0 > 0.0:
             raise GeometryError(f"the source does not light the sample centre at tan eps = {self._cell[0]:g}, "
