@@ -97,7 +97,7 @@ def _toml_value(v) -> str:
             return '"inf"'
         return repr(v)
     if isinstance(v, str):
-        return json.dumps(v)
+        return json.dumps(v)          # a TOML basic string (JSON's escapes are TOML's)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")

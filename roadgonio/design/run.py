@@ -15,7 +15,6 @@ S`` on ``best.toml`` reproduces the best design's tables exactly (S is in ``desi
 """
 from __future__ import annotations
 
-import hashlib
 import os
 import sys
 import time
@@ -25,7 +24,7 @@ from typing import Any, Mapping
 
 
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write_text, output_error, read_journal, to_json
+from roadgonio.fileio import atomic_write_text, fingerprint, output_error, read_journal, to_json
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.engines import cluster as _cluster
@@ -61,10 +60,6 @@ def resolve_samples(samples, cells, *, field: str = "cells") -> list[SampleSpec]
         raise InputError(f"two samples share the name {sorted(n for n in names if names.count(n) > 1)[0]!r}",
                          field="sample")
     return out
-
-
-def _fingerprint(payload: Mapping[str, Any]) -> str:
-    return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
 
 
 def _read_journal(path: Path, fp: str) -> dict[tuple[int, int], dict]:
@@ -133,7 +128,7 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
                   "samples": [[s.name, {"variant": s.model.variant, "params": s.model.params.to_dict()},
                                [list(c) for c in s.cells]] for s in smp],
                   "backend": backend, "accuracy": accuracy, "settings": settings, "seed": int(seed)}
-    fp = _fingerprint(fp_payload)
+    fp = fingerprint(fp_payload)
     done: dict[tuple[int, int], dict] = {}
     fh = None
     out_dir = Path(out) if out is not None else None
