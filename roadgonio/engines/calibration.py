@@ -225,7 +225,7 @@ def illuminance_ratio(instrument: Instrument, tan_eps: float, beta_deg: float, *
     <E> is the mean horizontal illuminance over the detected footprint, weighted like the detector
     signal (etendue x k_D); E_0 the horizontal illuminance at the sample centre; both from the
     uniform source disc (a point source if its radius is 0). Cached per instrument and cell."""
-    key = (fingerprint({"instrument": instrument.to_dict()}), round(float(tan_eps), 9),
+    key = (fingerprint({"instrument": instrument.to_dict(), "files": instrument.file_digests()}), round(float(tan_eps), 9),
            round(float(beta_deg), 9), float(rtol))
     if key not in _ETA_CACHE:
         integ = _INTEGRATORS.get(key[0])

@@ -110,13 +110,21 @@ APERTURE_KEYS = ("aperture_edge_radiance", "aperture_radiance_file")
 
 
 def _file_key(obj, attr: str, name: str) -> None:
-    """Normalise the file-name field ``attr`` to a Path (None stays None)."""
+    """Normalise the file-name field ``attr`` to an absolute Path (None stays None): a file named
+    relative to the working folder is the file read now, wherever the instrument goes next (a Dask
+    worker, a rewritten instrument file)."""
     v = getattr(obj, attr)
     if v is None:
         return
     if not isinstance(v, (str, Path)) or not str(v):
         raise InputError(f"expected a file name, got {v!r}", field=name)
-    object.__setattr__(obj, attr, Path(v))
+    object.__setattr__(obj, attr, Path(v).absolute())
+
+
+def _digests(obj, attrs) -> dict[str, str]:
+    """sha256 of the content of the files named by ``attrs`` of ``obj`` (those given)."""
+    from roadgonio.instrument.profiles import file_digest
+    return {a: file_digest(getattr(obj, a)) for a in attrs if getattr(obj, a) is not None}
 
 
 @dataclass(frozen=True)
@@ -178,6 +186,7 @@ class Source:
             aperture = profiles.ApertureProfile()
         object.__setattr__(self, "_beam", beam)
         object.__setattr__(self, "_aperture", aperture)
+        object.__setattr__(self, "_digests", _digests(self, ("beam_intensity_file", "aperture_radiance_file")))
 
     @property
     def is_point(self) -> bool:
@@ -246,6 +255,7 @@ class Detector:
             from roadgonio.instrument.profiles import read_field_map
             fmap = read_field_map(self.field_sensitivity)
         object.__setattr__(self, "_field_map", fmap)
+        object.__setattr__(self, "_digests", _digests(self, ("field_sensitivity",)))
         if self.pupil_radius_m >= self.distance_m:
             raise InputError(f"the pupil radius ({self.pupil_radius_m:g} m) must be smaller than the "
                              f"detector distance ({self.distance_m:g} m)", field="detector.pupil_radius_m")
@@ -400,6 +410,17 @@ class Instrument:
     def is_ideal(self) -> bool:
         """True if every aperture is zero (point source, single-ray detector)."""
         return self.source.is_point and self.detector.is_single_ray
+
+    def file_digests(self) -> dict[str, str]:
+        """sha256 of the content of every file the instrument reads numbers from (the source's and
+        the detector's tables, the sample mesh), by key: what a fingerprint of "what determines the
+        numbers" adds to :meth:`to_dict`, which names the files only."""
+        out = {f"source.{k}": v for k, v in self.source._digests.items()}
+        out.update({f"detector.{k}": v for k, v in self.detector._digests.items()})
+        if self.sample.mesh is not None:
+            from roadgonio.instrument.profiles import file_digest
+            out["sample.mesh"] = file_digest(self.sample.mesh)
+        return out
 
     def with_changes(self, **sections: Mapping[str, Any]) -> "Instrument":
         """A copy with some keys changed, e.g. ``with_changes(source={"radius_m": 0})``."""

@@ -181,6 +181,27 @@ def test_files_are_relative_to_the_instrument_file(tmp_path, tables):
     assert inst.with_changes(source={"radius_m": 0.01}).source.beam.kind == "table"
 
 
+def test_a_rewritten_table_is_another_instrument(tmp_path):
+    """The file names are the same, the numbers are not: the run's fingerprint (journal, resume) and
+    eta's cache see the files' contents (Instrument.file_digests), so nothing stale is reused."""
+    from roadgonio.engines.runner import fingerprint
+    base = load_instrument("portable")
+    p = write_table_csv(tmp_path / "beam.csv", "theta_deg,I", [0.0, 20.0, 40.0], [1.0, 0.8, 0.3])
+    m = write_map_csv(tmp_path / "map.csv", lambda x, y: 1.0 + 0.2 * y, 5)
+    first = base.with_changes(source={"beam_intensity_file": str(p)}, detector={"field_sensitivity": str(m)})
+    model = _road()
+    fp1 = fingerprint(first, model, make_backend("quadrature", first, model))
+    eta1 = illuminance_ratio(first, 12.0, 0.0)[0]
+    write_table_csv(p, "theta_deg,I", [0.0, 20.0, 40.0], [1.0, 0.5, 0.1])
+    write_map_csv(m, lambda x, y: 1.0 - 0.2 * y, 5)
+    second = base.with_changes(source={"beam_intensity_file": str(p)}, detector={"field_sensitivity": str(m)})
+    assert second.to_dict() == first.to_dict()
+    assert fingerprint(second, model, make_backend("quadrature", second, model)) != fp1
+    assert abs(illuminance_ratio(second, 12.0, 0.0)[0] - eta1) > 1e-3
+    assert set(second.file_digests()) == {"source.beam_intensity_file", "detector.field_sensitivity"}
+    assert base.file_digests() == {}
+
+
 @pytest.mark.parametrize("changes, field", [
     ({"beam_sigma_deg": 0.0}, "source.beam_sigma_deg"),
     ({"beam_sigma_deg": -1.0}, "source.beam_sigma_deg"),
