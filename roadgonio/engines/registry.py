@@ -84,7 +84,7 @@ BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
                 precision="se", seeded=True, tolerance="rel_se",
                 presets={"fast": {"rel_se": 3e-3, "first_pass": 256}, "default": {"rel_se": 1e-3, "first_pass": 1024},
                          "precise": {"rel_se": 1e-4, "first_pass": 4096}},
-                meshes=True, xml_scenes=True, beam_clipping=False, beam_profile=False, mitsuba=True,
+                meshes=True, xml_scenes=True, beam_clipping=False, mitsuba=True,
                 cell_correlation="correlated: the cells computed in one run share the detector rays and replicates, "
                                  "so their errors are positively correlated; each cell's SE is its marginal SE, a "
                                  "table functional needs the covariance (MitsubaBackend.covariance())"),

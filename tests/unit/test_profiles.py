@@ -425,16 +425,24 @@ def test_every_numpy_backend_models_the_profile(tmp_path, tables):
         assert a.converged and b.converged and abs(a.k_a - b.k_a) > 100 * (a.error_bound + b.error_bound)
 
 
-def test_the_mitsuba_backend_refuses_a_profiled_source_with_one_line():
-    """Until its kernel models the profile, the mitsuba backend refuses it (registry capability
-    beam_profile), naming the key; checked before any Mitsuba import."""
+def test_a_backend_without_the_capability_refuses_with_one_line(tmp_path):
+    """Every registered backend models the profile and the map (the registry's beam_profile and
+    field_map capabilities); one that did not would refuse the instrument, naming the key, before
+    computing anything (registry.check_capabilities, what make_backend calls)."""
+    import dataclasses
+    from roadgonio.engines.registry import BACKENDS, check_capabilities
+    assert all(b.beam_profile and b.field_map for b in BACKENDS.values())
     inst = load_instrument("portable").with_changes(source={"beam_sigma_deg": 3.0})
-    with pytest.raises(InputError) as err:
-        make_backend("mitsuba", inst, _road())
-    assert err.value.field == "source.beam_sigma_deg" and "\n" not in str(err.value)
-    from roadgonio.engines.registry import BACKENDS
-    assert {n for n, b in BACKENDS.items() if b.beam_profile} == {"quadrature", "numpy-mc", "reference",
-                                                                   "numpy-mc-mesh"}
+    mapped = load_instrument("portable").with_changes(
+        detector={"field_sensitivity": str(write_map_csv(tmp_path / "m.csv", lambda x, y: 1 + 0.1 * x, 3))})
+    for info, instrument, key in ((dataclasses.replace(BACKENDS["mitsuba"], beam_profile=False), inst,
+                                   "source.beam_sigma_deg"),
+                                  (dataclasses.replace(BACKENDS["numpy-mc"], field_map=False), mapped,
+                                   "detector.field_sensitivity")):
+        with pytest.raises(InputError) as err:
+            check_capabilities(info, instrument)
+        assert err.value.field == key and "\n" not in str(err.value)
+        check_capabilities(BACKENDS[info.name], instrument)
 
 
 # ----------------------------------------------------------------------------------------------

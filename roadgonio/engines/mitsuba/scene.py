@@ -243,11 +243,6 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
     the extreme rays of the detector bundle and ``hit_rays`` random ones must hit the sample (the
     batched engine, which counts every ray it traces, asks for fewer)."""
     require_variant(mitsuba_variant)
-    if instrument.source.profiled:
-        # the per-cell sources of the kabatch integrator (and the render's area emitter) are uniform discs
-        key = instrument.source.profile_keys[0]
-        raise InputError(f"the Mitsuba scene does not model a source radiance profile ({key}) yet; use a numpy "
-                         "backend (quadrature, numpy-mc, reference, numpy-mc-mesh)", path=instrument.path, field=key)
     from roadgonio.engines.mitsuba.plugins import register_plugins
     register_plugins()
     if check:
