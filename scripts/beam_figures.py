@@ -9,7 +9,6 @@ roadgonio.engines.calibration.illuminance: the backends' own integral of E).
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
