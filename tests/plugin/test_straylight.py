@@ -390,3 +390,24 @@ def test_table_outputs_carry_the_stray_light(tmp_path):
         assert (tmp_path / f).exists() and f in meta["files"].values()
     assert meta["summary"]["stray_fraction_max"] == max(r.stray_fraction for r in run.results) > 0.0
 
+
+@pytest.mark.parametrize("profile", [{"beam_sigma_deg": 12.0}, {"beam_cos_power": 20.0, "aperture_edge_radiance": 0.3}])
+def test_light_paths_carry_the_source_profile(profile):
+    """A profiled source (issue 18 item 4) lights the stray paths by its profile: the light paths
+    from the source (MIS with the eye paths) give the k_A and stray fraction of the eye paths with
+    next-event estimation alone (which weigh every source sample by the profile; tested against the
+    quadrature in test_profile_plugin). Walls of 0.2, where the light paths carry most of the stray
+    light; without the profile on the light paths k_A is 8-17 % higher at these cells (measured)."""
+    d = housed(0.2).to_dict()
+    d["source"].update(profile)
+    inst = Instrument.from_dict(d, path=SCENES / "portable_housed.toml")
+    cells = [(3.0, 30.0), (8.0, 90.0), (11.0, 40.0)]
+    both = mitsuba(inst, rel_se=3e-3, seed=1)
+    assert both.engine.integrator.light_depth == 2
+    eye = mitsuba(inst, rel_se=3e-3, seed=2)
+    eye.engine.integrator.light_depth = 0                 # eye paths + next-event estimation only
+    for a, b in zip(both.compute(cells), eye.compute(cells)):
+        assert a.stray_fraction > 0.05
+        for key, se in (("k_a", "se"), ("stray_fraction", "stray_fraction_se")):
+            va, vb = getattr(a, key), getattr(b, key)
+            assert abs(va - vb) <= N_SIGMA * math.hypot(getattr(a, se), getattr(b, se)), (key, a, b)

@@ -113,6 +113,7 @@ class BatchEngine:
         src = rs.instrument.source
         self.emitter, self._emitter_shape = canonical_source(src.radius_m, source_radiance(rs.instrument))
         self.integrator.set_source(self.emitter, self._emitter_shape)
+        self.integrator.set_profile(src)
         self.threads = int(dr.thread_count()) if hasattr(dr, "thread_count") else 1
         # stray light: paths through the reflecting parts (the scene decides, rs.stray; ``max_bounces``
         # forces the paths, e.g. to show that black parts give the direct engine's numbers bit for bit)
