@@ -22,7 +22,8 @@ function                 what (command)
 :func:`estimate_uncertainty`  JCGM 101 Monte Carlo uncertainty of the measured table (``uncertainty``)
 :func:`correct`          correct measured tables for the aperture effect (``correct``)
 :func:`design_study`     k_A over a grid of instruments on Dask (``design``)
-:func:`road`             EN 13201 road metrics of a layout with r-tables (``road``)
+:func:`road_metrics`     EN 13201 road metrics of a layout with r-tables (``road``; not ``road``: that
+                         name is the room :mod:`roadgonio.road`)
 :func:`compare_tables`   two tables side by side (``compare``)
 :func:`classify_table`   the CIE class of a table (``classify``)
 =======================  ======================================================================
@@ -64,7 +65,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from roadgonio.uncertainty.run import UncertaintyResult
 
 __all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
-           "validate", "estimate_uncertainty", "correct", "design_study", "road", "compare_tables",
+           "validate", "estimate_uncertainty", "correct", "design_study", "road_metrics", "compare_tables",
            "classify_table"]
 
 
@@ -254,19 +255,27 @@ def list_tables() -> list[dict[str, Any]]:
     rows = []
     for name in BUNDLED:
         t = bundled_table(name)
-        rows.append({"table": name, "Q0": t.q0(), "Q0_published": PUBLISHED_Q0[name], "S1": t.s1(),
-                     "S1_published": PUBLISHED_S1[name], "S2": t.s2(), "cells": int(t.mask.sum())})
+        rows.append({"table": name, "Q0": _value(t.q0()), "Q0_published": PUBLISHED_Q0[name], "S1": _value(t.s1()),
+                     "S1_published": PUBLISHED_S1[name], "S2": _value(t.s2()), "cells": int(t.mask.sum())})
     return rows
 
 
 def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
     """A table's Q0, S1, S2, cells and max r (``roadgonio table``); with ``to`` it is also written
-    there (``.rtb``: DIALux RTB, else CSV) and ``written`` names the file."""
+    there (``.rtb``: DIALux RTB, else CSV) and ``written`` names the file. A characteristic the
+    table lacks the cells for (S1 without r(0, 0) > 0 and r(2, 0); Q0 without a grid cell with four
+    tabulated corners; S2 without both) is None (missing), never NaN or infinity."""
     t = _table(table)
-    info = {"table": t.name, "Q0": t.q0(), "S1": t.s1(), "S2": t.s2(), "cells": int(t.mask.sum()), "r_max": t.r_max}
+    info = {"table": t.name, "Q0": _value(t.q0()), "S1": _value(t.s1()), "S2": _value(t.s2()),
+            "cells": int(t.mask.sum()), "r_max": _value(t.r_max)}
     if to is not None:
         info["written"] = str(t.write(to))
     return info
+
+
+def _value(v) -> float | None:
+    """A quantity of a result: a finite float, or None when it is missing (never NaN or infinity)."""
+    return float(v) if v is not None and math.isfinite(v) else None
 
 
 def read_table(path_or_name) -> "xr.DataArray":
@@ -646,7 +655,7 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
 # from the table to the road
 # ----------------------------------------------------------------------------------------------
 
-def road(tables, *, u=None, luminaire=None, layout=None, target_class: str | None = None, trials: int = 20_000,
+def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: str | None = None, trials: int = 20_000,
          seed: int = 0, correlation: str = "both", out=None, plots: bool = True) -> list[dict[str, Any]]:
     """EN 13201-3 road-surface luminance metrics of a luminaire layout with one or several r-tables
     side by side (``roadgonio road``). ``u``: the tables' standard uncertainties (r-table files, r x
@@ -742,4 +751,9 @@ def classify_table(table) -> dict[str, Any]:
     standard, and the bundled tables nearest in (S1, Q0) (``roadgonio classify``;
     :func:`roadgonio.surface.cie.classify`)."""
     from roadgonio.surface.cie import classify
-    return classify(_table(table))
+    try:
+        return classify(_table(table))
+    except InputError as err:
+        if isinstance(table, (str, Path)) and Path(str(table)).suffix and err.path is None:
+            raise InputError(err.reason, path=table, field=err.field) from None
+        raise
