@@ -250,8 +250,10 @@ class Instrument:
                           ("sample", SampleGeometry)):
             if not isinstance(getattr(self, attr), cls):
                 raise InputError(f"expected a {cls.__name__}, got {type(getattr(self, attr)).__name__}", field=attr)
-        if not isinstance(self.name, str) or not isinstance(self.description, str):
-            raise InputError("expected text for the name and the description", field="instrument")
+        for key in ("name", "description"):
+            if not isinstance(getattr(self, key), str):
+                raise InputError(f"expected text, got {type(getattr(self, key)).__name__} {getattr(self, key)!r}",
+                                 field=f"instrument.{key}")
         if self.path is not None:
             object.__setattr__(self, "path", Path(self.path))
         if not isinstance(self.calibration, Calibration):
@@ -360,7 +362,11 @@ class Instrument:
         sample = SampleGeometry(**sm)
         meta = d.get("instrument", {})
         _check_keys(meta, {"name", "description"}, "instrument", None)
-        name = str(meta.get("name", path.stem if path is not None else "instrument"))
+        for key in ("name", "description"):
+            if key in meta and not isinstance(meta[key], str):
+                raise InputError(f"expected text (a quoted string), got {type(meta[key]).__name__} {meta[key]!r}",
+                                 field=f"instrument.{key}")
+        name = meta.get("name", path.stem if path is not None else "instrument")
         calibration = Calibration.from_dict(d.get("calibration", {}), path=path)
         extra = {k: v for k, v in d.items() if k not in _SECTIONS and k != "calibration"}
         unknown = sorted(set(extra) - set(EXTRA_SECTIONS))
@@ -371,7 +377,7 @@ class Instrument:
             if sec in extra and not isinstance(extra[sec], Mapping):
                 raise InputError(f"expected a table [{sec}]", field=sec)
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
-                   description=str(meta.get("description", "")), path=path, calibration=calibration, extra=extra)
+                   description=meta.get("description", ""), path=path, calibration=calibration, extra=extra)
 
     @classmethod
     def load(cls, path: str | Path) -> "Instrument":
