@@ -430,15 +430,17 @@ def render(instrument, sample, tan_eps: float, beta: float, out, *, resolution: 
     """Pictures of one measurement cell with Mitsuba (``roadgonio render``): the detector's view of the
     sample (luminance inside the field stop) and the horizontal illuminance around the footprint, as
     view.exr, illuminance.exr, render.png and render.json in ``out``; returns render.json's content
-    (provenance, footprint, a one-render k_A estimate, files)."""
+    (provenance, footprint, a one-render k_A estimate, files). ``seed``: 0 ... 2^32 - 1 (Mitsuba's
+    samplers take a 32-bit seed)."""
     from roadgonio.engines.cells import check_cell
-    from roadgonio.engines.registry import check_seed, prepare_entry_point
+    from roadgonio.engines.registry import prepare_entry_point
+    from roadgonio.seeds import MITSUBA_SEED_MAX, check_seed
     t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
     resolution = _check_int(resolution, "resolution", 8, 2048)
     spp = _check_int(spp, "spp", 1)
     if math.isqrt(spp) ** 2 != spp:
         raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {spp}", field="spp")
-    seed = check_seed(seed)
+    seed = check_seed(seed, maximum=MITSUBA_SEED_MAX)
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
     folder = _out(out, "render", inst.name, smp.name)

@@ -255,7 +255,7 @@ def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rh
     k_frozen = np.ones_like(y)
     best = None
     for r in range(int(rounds)):
-        res = fit_through_instrument(fm, y, u, variant=variant, rho=rho, polish=polish, seed=seed + r,
+        res = fit_through_instrument(fm, y, u, variant=variant, rho=rho, polish=polish, seed=seed, restart=r,
                                      starts=starts if best is None else LATER_ROUND_STARTS, k_frozen=k_frozen,
                                      stage_b=False, name=name, start_models=[] if best is None else [best.model])
         if best is not None and res.chi2 >= best.chi2 * (1.0 - 1e-6):

@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from roadgonio.seeds import cell_key, check_seed, seed_entropy
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
@@ -204,9 +205,7 @@ class MeshMonteCarloBackend(CellByCellBackend):
         rel_se = _number(rel_se, "rel_se")
         if not (0.0 < rel_se < 1.0):
             raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
-        seed = _integer(seed, "seed")
-        if seed < 0:
-            raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
+        seed = check_seed(seed)
         m = int(round(math.sqrt(_integer(batch, "batch"))))
         if m < 2:
             raise InputError(f"expected a batch of at least 4 samples, got {batch}", field="batch")
@@ -311,7 +310,7 @@ class MeshMonteCarloBackend(CellByCellBackend):
         ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
         check_nominal(ideal, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
-        rng = np.random.default_rng([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6)), 77])
+        rng = np.random.default_rng(seed_entropy(self.seed, cell_key(tan_eps), cell_key(beta_deg), 77))
         road, lam = [], []
         k = se = math.nan
         max_batches = max(self.min_batches, self.max_samples // self.batch)

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from roadgonio.instrument import optics
+from roadgonio.seeds import cell_key, check_seed, seed_entropy
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
@@ -65,8 +66,7 @@ class MonteCarloBackend(CellByCellBackend):
             raise InputError(f"expected a number, got {rel_se!r}", field="rel_se") from None
         if not (0.0 < rel_se < 1.0):
             raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
-        if isinstance(seed, bool) or int(seed) != seed or int(seed) < 0:
-            raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
+        seed = check_seed(seed)
         m = int(round(math.sqrt(int(batch))))
         if m < 2:
             raise InputError(f"expected a batch of at least 4 samples, got {batch}", field="batch")
@@ -162,7 +162,7 @@ class MonteCarloBackend(CellByCellBackend):
             raise GeometryError(f"the model is {ideal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "
                                 f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
-        rng = np.random.default_rng([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6))])
+        rng = np.random.default_rng(seed_entropy(self.seed, cell_key(tan_eps), cell_key(beta_deg)))
         road, lam = [], []
         k = se = math.nan
         max_batches = max(self.min_batches, self.max_samples // self.batch)

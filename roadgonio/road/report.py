@@ -41,7 +41,7 @@ def metrics_csv(summaries: list[dict]) -> str:
             m = unc[mode]
             row = []
             for k in ("L_av", "U_o", "U_l"):
-                row += [_f(m[k]["u"]), f"{m[k]['ci95'][0]:.5g}..{m[k]['ci95'][1]:.5g}"]
+                row += ["", ""] if not m[k] else [_f(m[k]["u"]), f"{_f(m[k]['ci95'][0], '.5g')}..{_f(m[k]['ci95'][1], '.5g')}"]
             row += [_f(m["TI"]["u"]) if m["TI"] else "", _f(m["P_meets_target"])]
             lines.append(",".join(base + [mode] + row))
     return "\n".join(lines) + "\n"
@@ -58,13 +58,13 @@ def luminance_csv(results) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _f(v) -> str:
+def _f(v, fmt: str = ".6g") -> str:
     """A value for a CSV cell: blank when missing (None or NaN)."""
     if v is None:
         return ""
     if isinstance(v, str):
         return v
-    return f"{v:.6g}" if np.isfinite(v) else ""
+    return format(v, fmt) if np.isfinite(v) else ""
 
 
 def _t(v, fmt: str) -> str:
