@@ -438,6 +438,8 @@ def render(instrument, sample, tan_eps: float, beta: float, out, *, resolution: 
     t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
     resolution = _check_int(resolution, "resolution", 8, 2048)
     spp = _check_int(spp, "spp", 1)
+    from roadgonio.limits import check_size
+    check_size(resolution * resolution * spp, "render_samples", "spp")
     if math.isqrt(spp) ** 2 != spp:
         raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {spp}", field="spp")
     seed = check_seed(seed, maximum=MITSUBA_SEED_MAX)
@@ -521,10 +523,11 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         raise InputError(f"expected a SPEC text, a TOML file, a mapping or a SigmaSpec, got {type(sigma).__name__}",
                          field="sigma")
     seed = check_seed(seed)
-    trials = _check_int(trials, "trials", 1)
-    max_trials = _check_int(max_trials, "max_trials", 1)
+    from roadgonio.limits import check_size
+    trials = check_size(_check_int(trials, "trials", 1), "trials", "trials")
+    max_trials = check_size(_check_int(max_trials, "max_trials", 1), "trials", "max_trials")
     if batch is not None:
-        batch = _check_int(batch, "batch", 1)
+        batch = check_size(_check_int(batch, "batch", 1), "trials", "batch")
     digits = _check_int(digits, "digits", 1, 3)
     validation = _check_int(validation, "validation", 0)
     if threads is not None:
@@ -588,7 +591,8 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     if model_variant == "auto" and not self_ref:
         raise InputError("model_variant 'auto' is for reference 'self'; give one variant for fitting a reference "
                          "table", field="model_variant")
-    rays = _check_int(rays, "rays", 8)
+    from roadgonio.limits import check_size
+    rays = check_size(_check_int(rays, "rays", 8), "rays", "rays")
     from roadgonio.engines.registry import backend_info
     seeded = backend_info(backend).seeded
     settings = resolve_settings(backend, tolerance=rel_se, seed=seed if seeded else None, mitsuba_variant=mitsuba_variant,
@@ -682,7 +686,8 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
         raise InputError(f"expected both, independent or correlated, got {correlation!r}", field="correlation")
     if isinstance(trials, int) and not isinstance(trials, bool) and trials < mc.MIN_TRIALS:
         raise InputError(f"expected at least {mc.MIN_TRIALS} trials, got {trials}", field="trials")
-    trials = _check_int(trials, "trials", mc.MIN_TRIALS)
+    from roadgonio.limits import check_size
+    trials = check_size(_check_int(trials, "trials", mc.MIN_TRIALS), "trials", "trials")
     seed = check_seed(seed)
     us = list(u) if isinstance(u, (list, tuple)) else ([] if u is None else [u])
     if not us:

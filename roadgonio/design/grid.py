@@ -99,6 +99,8 @@ def parse_vary(spec: str) -> VarySpec:
             raise InputError(f"expected a whole number of values N, got {parts[2]!r} in {text!r}", field="--vary") from None
         if n < 1:
             raise InputError(f"expected N >= 1 values, got {n} in {text!r}", field="--vary")
+        from roadgonio.limits import check_size
+        check_size(n, "design_points", "--vary")
         if n == 1 and lo != hi:
             raise InputError(f"one value (N = 1) needs LO = HI, got {text!r}", field="--vary")
         if log:

@@ -17,6 +17,7 @@ S`` on ``best.toml`` reproduces the best design's tables exactly (S is in ``desi
 from __future__ import annotations
 
 import hashlib
+import math
 import os
 import sys
 import time
@@ -113,6 +114,8 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
     settings = dict(settings or {})
     tol = parse_tolerance(tolerance)
     specs: list[VarySpec] = as_vary_specs(vary)
+    from roadgonio.limits import check_size
+    check_size(math.prod(len(s.values) for s in specs), "design_points", "--vary")   # before the grid is built
     points = grid_points(specs)
     shape = grid_shape(specs)
     smp = resolve_samples(samples, cells)

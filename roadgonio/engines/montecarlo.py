@@ -22,6 +22,7 @@ speed baseline of the Mitsuba backend; it also handles the flat rectangular samp
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from typing import Any
 
@@ -67,7 +68,10 @@ class MonteCarloBackend(CellByCellBackend):
         if not (0.0 < rel_se < 1.0):
             raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
         seed = check_seed(seed)
-        m = int(round(math.sqrt(int(batch))))
+        from roadgonio.limits import check_size
+        if isinstance(batch, bool) or not isinstance(batch, numbers.Integral):
+            raise InputError(f"expected a whole number of samples per batch, got {batch!r}", field="batch")
+        m = int(round(math.sqrt(check_size(int(batch), "batch", "batch"))))
         if m < 2:
             raise InputError(f"expected a batch of at least 4 samples, got {batch}", field="batch")
         if int(min_batches) < 2:

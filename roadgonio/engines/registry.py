@@ -173,7 +173,8 @@ def resolve_settings(name: str, *, accuracy: str | None = None, tolerance=None, 
     if mitsuba_variant is not None:
         if not info.mitsuba:
             raise InputError(f"a Mitsuba variant is for the mitsuba backend, not {name}", field=f["mitsuba_variant"])
-        out["mitsuba_variant"] = str(mitsuba_variant)
+        from roadgonio.engines.mitsuba import check_variant_name
+        out["mitsuba_variant"] = check_variant_name(mitsuba_variant, f["mitsuba_variant"])
     if settings:
         if not hasattr(settings, "items"):
             raise InputError(f"expected a mapping of backend settings, got {settings!r}", field=f["settings"])

@@ -45,6 +45,13 @@ from roadgonio.geometry import w_detector, w_source
 from roadgonio.instrument.calibration import Calibration
 
 _INF_WORDS = ("inf", "+inf", "infinity")
+#: The longest length of an instrument (distances, a finite focus, the sample's sides), m: no
+#: goniophotometer is larger, and beyond it float arithmetic of the ray geometry overflows
+#: (1e300 m) or loses the sample (float32 rays of the renderer).
+MAX_LENGTH_M = 1000.0
+#: The smallest non-zero aperture radius, m: below a micrometre a disc is no aperture of an
+#: instrument (give 0 for a point source or a pinhole), and its area underflows (1e-300 m).
+MIN_APERTURE_M = 1e-6
 
 
 def _number(v: Any, name: str, *, allow_inf: bool = False) -> float:
@@ -61,8 +68,10 @@ def _number(v: Any, name: str, *, allow_inf: bool = False) -> float:
 
 
 def _checked(obj, attr: str, name: str, *, lo=None, hi=None, lo_open=False, hi_open=False,
-             allow_inf=False, optional=False) -> None:
-    """Validate (and normalise to float) the field ``attr`` of the frozen dataclass ``obj``."""
+             allow_inf=False, optional=False, length=False, aperture=False) -> None:
+    """Validate (and normalise to float) the field ``attr`` of the frozen dataclass ``obj``;
+    ``length``: at most :data:`MAX_LENGTH_M` (unless infinite where allowed); ``aperture``: 0 or
+    at least :data:`MIN_APERTURE_M`."""
     v = getattr(obj, attr)
     if v is None and optional:
         return
@@ -71,6 +80,11 @@ def _checked(obj, attr: str, name: str, *, lo=None, hi=None, lo_open=False, hi_o
         raise InputError(f"expected a value {'>' if lo_open else '>='} {lo:g}, got {v:g}", field=name)
     if hi is not None and (v > hi or (hi_open and v == hi)):
         raise InputError(f"expected a value {'<' if hi_open else '<='} {hi:g}, got {v:g}", field=name)
+    if length and math.isfinite(v) and v > MAX_LENGTH_M:
+        raise InputError(f"expected at most {MAX_LENGTH_M:g} m (no instrument is larger)"
+                         + (', or "inf" for a focus at infinity' if allow_inf else "") + f", got {v:g}", field=name)
+    if aperture and 0.0 < v < MIN_APERTURE_M:
+        raise InputError(f"expected 0 (a point) or a radius of at least {MIN_APERTURE_M:g} m, got {v:g}", field=name)
     object.__setattr__(obj, attr, v)
 
 
@@ -109,8 +123,8 @@ class Source:
     beam_half_angle_deg: float | None = None
 
     def __post_init__(self):
-        _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True)
-        _checked(self, "radius_m", "source.radius_m", lo=0.0)
+        _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True, length=True)
+        _checked(self, "radius_m", "source.radius_m", lo=0.0, aperture=True)
         _checked(self, "beam_half_angle_deg", "source.beam_half_angle_deg", lo=0.0, hi=90.0, lo_open=True,
                  optional=True)
         if self.radius_m >= self.distance_m:
@@ -142,10 +156,11 @@ class Detector:
     field_edge_sensitivity: float = 1.0
 
     def __post_init__(self):
-        _checked(self, "distance_m", "detector.distance_m", lo=0.0, lo_open=True)
-        _checked(self, "pupil_radius_m", "detector.pupil_radius_m", lo=0.0)
+        _checked(self, "distance_m", "detector.distance_m", lo=0.0, lo_open=True, length=True)
+        _checked(self, "pupil_radius_m", "detector.pupil_radius_m", lo=0.0, aperture=True)
         _checked(self, "field_half_angle_deg", "detector.field_half_angle_deg", lo=0.0, hi=45.0, hi_open=True)
-        _checked(self, "focus_m", "detector.focus_m", lo=0.0, lo_open=True, allow_inf=True, optional=True)
+        _checked(self, "focus_m", "detector.focus_m", lo=0.0, lo_open=True, allow_inf=True, optional=True,
+                 length=True)
         _checked(self, "field_edge_sensitivity", "detector.field_edge_sensitivity", lo=0.0, hi=2.0)
         if self.pupil_radius_m >= self.distance_m:
             raise InputError(f"the pupil radius ({self.pupil_radius_m:g} m) must be smaller than the "
@@ -194,7 +209,7 @@ class SampleGeometry:
         for attr, default in (("size_x_m", 6.0), ("size_y_m", 2.0)):
             if getattr(self, attr) is None:
                 object.__setattr__(self, attr, default)
-            _checked(self, attr, f"sample.{attr}", lo=0.0, lo_open=True)
+            _checked(self, attr, f"sample.{attr}", lo=0.0, lo_open=True, length=True)
 
 
 _SECTIONS = ("observation", "source", "detector", "sample", "instrument")
