@@ -202,9 +202,10 @@ class RoadScene:
         px, py, fx, fy = (dr.gather(mi.Float, mi.Float(v.astype(np.float32)), idx)
                           for v in (pu[:, 0], pu[:, 1], fu[:, 0], fu[:, 1]))
         o, d, _ = detector_ray(DrJitOps, geo, (px, py), (fx, fy))
-        si = self.scene.ray_intersect(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)))
-        # opaque: the shape pointer as a literal would make every new scene compile its own kernel
-        on_sample = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
+        from roadgonio.engines.mitsuba.plugins.ka_batch import intersect_sample
+        # an edge or a vertex of the sample mesh under a ray is a hit (one retry, ka_batch.RETRY_NUDGE)
+        si, on_sample = intersect_sample(self.scene, mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)), mi.RayFlags.All,
+                                         self.sample_shape)
         src_shape = next((s for s in self.scene.shapes() if s.id() == SOURCE_ID), None)
         if src_shape is not None:
             # the source disc in the line of sight is its own error, with the cell (not "enlarge the sample")
