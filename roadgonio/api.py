@@ -296,13 +296,16 @@ def write_table(da, path) -> Path:
 # ----------------------------------------------------------------------------------------------
 
 def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mapping[str, float] | None = None,
-        out=None, plot: bool = True, progress: Callable[[int, int], None] | None = None) -> "FitResult":
+        out=None, fresh: bool = False, plot: bool = True,
+        progress: Callable[[int, int], None] | None = None) -> "FitResult":
     """Fit the road BRDF model (paper eq. 4; ``model_variant`` default ``"power"``) to an r-table
     (name, file, RTable or DataArray). Returns the :class:`~roadgonio.surface.fit.FitResult`:
     ``.model`` (a RoadModel, usable as a sample), ``.max_dev_pct``, ``.rms_dev_pct`` (% of the
     table's max r). With ``out`` (a folder or :data:`AUTO` = ``fit-TABLE-VARIANT``) it writes
-    model.json, residuals.csv and (``plot``) fit.png, all or none; ``.written`` lists them.
-    ``progress(done, total)`` is called as the global search advances."""
+    model.json, residuals.csv and (``plot``) fit.png, all or none; ``.written`` lists them. A
+    folder holding a different fit's results (model.json's fingerprint: table, variant, seed,
+    fixed parameters, roadgonio version) is refused before the fit unless ``fresh``, which
+    replaces them. ``progress(done, total)`` is called as the global search advances."""
     from roadgonio.engines.registry import check_seed
     from roadgonio.surface.fit import fit_table
     from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS
@@ -325,13 +328,21 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
         folder = Path(f"fit-{_safe(t.name)}-{variant}") if isinstance(out, _Auto) else _out(out, "fit")
         if folder.exists() and not folder.is_dir():
             raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
+    from roadgonio import _version
+    from roadgonio.fileio import check_run_folder, run_fingerprint
+    from roadgonio.surface.fit import FIT_METHOD_VERSION, table_hash
+    from roadgonio.surface.fitplot import FIT_FILES
+    fp = run_fingerprint({"table": table_hash(t), "name": t.name, "variant": variant, "seed": seed,
+                          "fixed": dict(sorted(fixed.items())), "fit": FIT_METHOD_VERSION, "roadgonio": _version.__version__})
+    if folder is not None:
+        check_run_folder(folder, "model.json", fp, what="fit", fresh=bool(fresh), outputs=FIT_FILES)
     result = fit_table(t, variant, seed=seed, fixed=fixed, progress=progress)
     check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
     if folder is not None:
         import dataclasses
 
         from roadgonio.surface.fitplot import write_fit
-        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot))
+        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot, fingerprint=fp))
     return result
 
 
@@ -505,13 +516,16 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
                          surrogate: str = "ccd", validation: int = 4, threads: int | None = None,
                          workers: int | None = None, scheduler: str | None = None,
                          mitsuba_variant: str | None = None, model_variant: str | None = None,
-                         out=None, plots: bool = True, figures=None, progress: bool = False) -> "UncertaintyResult":
+                         out=None, fresh: bool = False, plots: bool = True, figures=None,
+                         progress: bool = False) -> "UncertaintyResult":
     """Monte Carlo (JCGM 101) and GUM uncertainty of the r-table that ``instrument`` measures on
     ``sample`` for the instrument errors ``sigma`` (a SPEC text like ``"alpha_deg=0.01,eps_deg=0.05:rect"``,
     a TOML file, a mapping of the same keys, or a SigmaSpec), without and (``aperture``) with the
     aperture effect (``roadgonio uncertainty``). Returns the
     :class:`~roadgonio.uncertainty.run.UncertaintyResult`; with ``out`` (a folder or :data:`AUTO`)
-    writes uncertainty.json, cells.csv, the r-table CSVs and the pictures (``.written``)."""
+    writes uncertainty.json, cells.csv, the r-table CSVs and the pictures (``.written``). A folder
+    holding a different run's results (uncertainty.json's fingerprint of the inputs and settings)
+    is refused before the work unless ``fresh``, which replaces them."""
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
     from roadgonio.uncertainty.run import DEFAULT_BACKEND_TOLERANCE, run_uncertainty
     from roadgonio.uncertainty.spec import SigmaSpec, parse_sigma_spec
@@ -542,6 +556,20 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
     folder = _out(out, "uncertainty", inst.name, smp.name)
+    fp = None
+    if folder is not None:
+        from roadgonio import _version
+        from roadgonio.engines.cluster import absolute_instrument_dict
+        from roadgonio.fileio import check_run_folder, run_fingerprint
+        from roadgonio.uncertainty.report import OUTPUT_FILES
+        fp = run_fingerprint({
+            "instrument": {k: v for k, v in absolute_instrument_dict(inst).items() if k != "instrument"},
+            "model": {"variant": smp.model.variant, "params": smp.model.params.to_dict()}, "sigma": spec.to_dict(),
+            "trials": trials, "adaptive": bool(adaptive), "digits": digits, "max_trials": max_trials, "batch": batch,
+            "seed": seed, "coverage": coverage, "cells": cells, "aperture": bool(aperture), "backend": backend,
+            "settings": settings, "illuminance": illuminance, "surrogate": surrogate, "validation": validation,
+            "roadgonio": _version.__version__})
+        check_run_folder(folder, "uncertainty.json", fp, what="uncertainty run", fresh=bool(fresh), outputs=OUTPUT_FILES)
     if aperture and workers in (None, 0) and scheduler is None:
         prepare_entry_point(backend, mitsuba_variant)
     res = run_uncertainty(smp.model, inst, spec, trials=trials, adaptive=adaptive, seed=seed, coverage=coverage,
@@ -552,7 +580,7 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     res.provenance["sample"] = smp.spec or smp.name
     if folder is not None:
         from roadgonio.uncertainty.report import write_results
-        res.written = write_results(res, folder, sample_name=smp.name, plots=plots, figures=figures)
+        res.written = write_results(res, folder, sample_name=smp.name, plots=plots, figures=figures, fingerprint=fp)
         res.out = folder
     return res
 

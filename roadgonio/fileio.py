@@ -207,6 +207,48 @@ def read_journal(path: str | Path, fingerprint: str, *, different: str,
     return done
 
 
+def run_fingerprint(payload: Any) -> str:
+    """A short hash of everything that determines a run's numbers (its inputs and settings, the
+    roadgonio version), written into the run's result file so a later run can tell whether a
+    folder holds its own results (:func:`check_run_folder`)."""
+    import hashlib
+    return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
+
+
+def check_run_folder(out_dir: str | Path, meta_name: str, fingerprint: str, *, what: str = "run",
+                     fresh: bool = False, outputs: tuple[str, ...] = ()) -> None:
+    """Refuse to replace the results of a different run: ``out_dir/meta_name`` (a JSON object) holds
+    the fingerprint of the run that wrote the folder; another fingerprint (or none) is the one-line
+    error naming that file and ``--fresh``. With ``fresh`` the folder's earlier ``outputs`` (the
+    command's own file names) are removed first, so no file of the other run stays beside the new
+    ones. The shared behaviour of every command that writes a run's results (``ka``, ``fit``,
+    ``uncertainty``; ``correct`` and ``design`` check their journals the same way)."""
+    out_dir = Path(out_dir)
+    meta = out_dir / meta_name
+    if fresh:
+        for name in outputs:
+            try:
+                (out_dir / name).unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as err:
+                raise output_error(out_dir / name, err) from None
+        return
+    if not meta.exists():
+        return
+    try:
+        old = json.loads(meta.read_text(encoding="utf-8")).get("fingerprint")
+    except OSError as err:
+        raise InputError(f"cannot read this file ({err.strerror or err}) to check which run it belongs to; "
+                         "use another --out folder, or --fresh to discard it", path=meta) from None
+    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        old = None
+    if old != fingerprint:
+        why = (f"holds the results of a different {what} (inputs, settings or roadgonio version differ)" if old else
+               "holds results without a run fingerprint (an older roadgonio or another tool)")
+        raise InputError(f"this folder {why}; use another --out folder, or --fresh to discard them", path=meta)
+
+
 def check_writable(out_dir: str | Path) -> Path:
     """Fail before the work, not after it: the output folder can be created and written (a
     staging folder is made and removed). Raises the one-line :class:`InputError` of an output."""
