@@ -53,6 +53,14 @@ def main(argv: list[str] | None = None) -> int:
     except RoadgonioError as err:
         print(f"roadgonio: error: {_as_option(err, parser, args)}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader of stdout went away (``roadgonio ... --json | head``): no traceback, the usual
+        # status of a process whose pipe closed (128 + SIGPIPE); stdout is pointed at /dev/null so the
+        # interpreter's final flush does not fail again
+        import os
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
     except KeyboardInterrupt:
         # each command says truthfully what an interruption keeps (``on_interrupt``, set by the
         # command's parser or by its run() once it knows); no promise of a resume that does not exist
