@@ -394,6 +394,11 @@ class Instrument:
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
                    description=meta.get("description", ""), path=path, calibration=calibration, extra=extra)
 
+    def to_toml(self, header: str = "") -> str:
+        """The instrument file's text (:meth:`to_dict` written as TOML by :func:`toml_text`, with
+        ``header`` as comment lines): ``Instrument.load`` of it gives this instrument back."""
+        return toml_text(self.to_dict(), header)
+
     @classmethod
     def load(cls, path: str | Path) -> "Instrument":
         """Load a TOML instrument file; errors name the file, the line or field, and what was expected."""
@@ -414,6 +419,80 @@ class Instrument:
                 line = int(m.group(1)) if m else None
             raise InputError(f"not valid TOML: {getattr(err, 'msg', str(err))}", path=path, line=line) from None
         return cls.from_dict(d, path=path)
+
+
+# ----------------------------------------------------------------------------------------------
+# Writing TOML (the reader is Python's tomllib): what the writer writes, the reader reads back
+# ----------------------------------------------------------------------------------------------
+
+_BARE_KEY = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-")
+_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
+def toml_string(s: str) -> str:
+    """A TOML basic string: backslash, quote and control characters (U+0000-U+001F, U+007F)
+    escaped, everything else as it is (TOML files are UTF-8). A lone surrogate has no TOML form."""
+    out = []
+    for ch in s:
+        if ch in _ESCAPES:
+            out.append(_ESCAPES[ch])
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04X}")
+        elif 0xD800 <= ord(ch) <= 0xDFFF:
+            raise InputError(f"cannot write {s!r} to TOML: it holds a lone surrogate (U+{ord(ch):04X}), which no "
+                             "TOML (UTF-8) text can hold", field="text")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
+def _toml_key(k) -> str:
+    k = str(k)
+    return k if k and set(k) <= _BARE_KEY else toml_string(k)
+
+
+def toml_value(v) -> str:
+    """A scalar or a list of scalars as TOML (an infinite float as the text "inf", as instrument
+    files spell a focus at infinity; NaN has no TOML form in roadgonio's files)."""
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        v = float(v)
+        if math.isnan(v):
+            raise InputError("cannot write NaN to an instrument file", field="value")
+        if math.isinf(v):
+            return '"inf"' if v > 0 else '"-inf"'
+        return repr(v)
+    if isinstance(v, str):
+        return toml_string(v)
+    if isinstance(v, Path):
+        return toml_string(str(v))
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def toml_text(d: Mapping[str, Any], header: str = "") -> str:
+    """A TOML document of tables of scalars (nested tables as ``[a.b]``), ``header`` as comment lines."""
+    lines = [("# " + ln).rstrip() for ln in header.splitlines()] if header else []
+
+    def table(name: str, t: Mapping[str, Any]) -> None:
+        scalars = {k: v for k, v in t.items() if not isinstance(v, Mapping)}
+        subs = {k: v for k, v in t.items() if isinstance(v, Mapping)}
+        if lines:
+            lines.append("")
+        lines.append(f"[{name}]")
+        for k, v in scalars.items():
+            lines.append(f"{_toml_key(k)} = {toml_value(v)}")
+        for k, v in subs.items():
+            table(f"{name}.{_toml_key(k)}", v)
+
+    for name, t in d.items():
+        if isinstance(t, Mapping):
+            table(_toml_key(name), t)
+    return "\n".join(lines) + "\n"
 
 
 def bundled_instruments() -> list[str]:

@@ -182,7 +182,7 @@ class RTable:
         text = grid_csv_text(self.r, self.source or f"roadgonio table {self.name}", scale=scale, digits=digits,
                              tan_eps=self.tan_eps, beta_deg=self.beta_deg)
         if scale == R_SCALE:
-            _reads_back(lambda: parse_csv(text, path="<table>", name=self.name), "CSV", text)
+            _reads_back(lambda: parse_csv(text, path="<table>", name=self.name), "CSV", text, self.r, digits)
         return text
 
     def write_csv(self, path: str | Path, scale: float = R_SCALE, digits: int = 6) -> Path:
@@ -210,7 +210,7 @@ class RTable:
         for j in range(len(self.beta_deg)):
             lines.extend("0" if np.isnan(v) else _fmt(v, 6) for v in self.r[:, j] * R_SCALE)
         text = "\n".join(lines) + "\n"
-        _reads_back(lambda: parse_rtb(text, path="<table>"), "RTB")
+        _reads_back(lambda: parse_rtb(text, path="<table>"), "RTB", None, self.r, 6)
         return text
 
     def write_rtb(self, path: str | Path) -> Path:
@@ -250,12 +250,20 @@ def _check_finite(r: np.ndarray, tan_eps: np.ndarray, beta_deg: np.ndarray, fmt:
                          f"{beta_deg[j]:g} ({len(bad)} cell(s)); expected a finite number", field="r")
 
 
-def _reads_back(read, fmt: str, csv_text: str | None = None) -> None:
+def _reads_back(read, fmt: str, csv_text: str | None = None, r: np.ndarray | None = None, digits: int = 6) -> None:
     """Run the reader on a text about to be written: its refusal becomes the writer's, one line
     with the reader's reason (a writer never writes what its reader refuses); for CSV the row's
-    tan eps is named."""
+    tan eps is named. The table read back must hold the blanks and the values ``r`` (within the
+    ``digits`` written)."""
     try:
-        read()
+        back = read()
+        if r is not None:
+            same = back.mask == np.isfinite(r)
+            close = np.isclose(back.r, r, rtol=10.0 ** (1 - digits), atol=1e-300) | ~np.isfinite(r)
+            if not (same.all() and close.all()):
+                i, j = np.argwhere(~(same & close))[0]
+                raise InputError(f"tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g} would read back as "
+                                 f"{back.r[i, j]:g} instead of {r[i, j]:g}", field="r")
     except InputError as err:
         where = ""
         if csv_text is not None and err.line is not None:
