@@ -328,12 +328,11 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
         folder = Path(f"fit-{_safe(t.name)}-{variant}") if isinstance(out, _Auto) else _out(out, "fit")
         if folder.exists() and not folder.is_dir():
             raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
-    from roadgonio import _version
-    from roadgonio.fileio import check_run_folder, run_fingerprint
+    from roadgonio.fileio import check_run_folder, fingerprint
     from roadgonio.surface.fit import FIT_METHOD_VERSION, table_hash
     from roadgonio.surface.fitplot import FIT_FILES
-    fp = run_fingerprint({"table": table_hash(t), "name": t.name, "variant": variant, "seed": seed,
-                          "fixed": dict(sorted(fixed.items())), "fit": FIT_METHOD_VERSION, "roadgonio": _version.__version__})
+    fp = fingerprint({"table": table_hash(t), "name": t.name, "variant": variant, "seed": seed,
+                      "fixed": dict(sorted(fixed.items())), "fit": FIT_METHOD_VERSION})
     if folder is not None:
         check_run_folder(folder, "model.json", fp, what="fit", fresh=bool(fresh), outputs=FIT_FILES)
     result = fit_table(t, variant, seed=seed, fixed=fixed, progress=progress)
@@ -558,17 +557,15 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     folder = _out(out, "uncertainty", inst.name, smp.name)
     fp = None
     if folder is not None:
-        from roadgonio import _version
         from roadgonio.engines.cluster import absolute_instrument_dict
-        from roadgonio.fileio import check_run_folder, run_fingerprint
+        from roadgonio.fileio import check_run_folder, fingerprint
         from roadgonio.uncertainty.report import OUTPUT_FILES
-        fp = run_fingerprint({
+        fp = fingerprint({
             "instrument": {k: v for k, v in absolute_instrument_dict(inst).items() if k != "instrument"},
             "model": {"variant": smp.model.variant, "params": smp.model.params.to_dict()}, "sigma": spec.to_dict(),
             "trials": trials, "adaptive": bool(adaptive), "digits": digits, "max_trials": max_trials, "batch": batch,
             "seed": seed, "coverage": coverage, "cells": cells, "aperture": bool(aperture), "backend": backend,
-            "settings": settings, "illuminance": illuminance, "surrogate": surrogate, "validation": validation,
-            "roadgonio": _version.__version__})
+            "settings": settings, "illuminance": illuminance, "surrogate": surrogate, "validation": validation})
         check_run_folder(folder, "uncertainty.json", fp, what="uncertainty run", fresh=bool(fresh), outputs=OUTPUT_FILES)
     if aperture and workers in (None, 0) and scheduler is None:
         prepare_entry_point(backend, mitsuba_variant)

@@ -12,13 +12,14 @@
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
 import secrets
 import shutil
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from roadgonio.errors import InputError
 
@@ -207,18 +208,10 @@ def read_journal(path: str | Path, fingerprint: str, *, different: str,
     return done
 
 
-def run_fingerprint(payload: Any) -> str:
-    """A short hash of everything that determines a run's numbers (its inputs and settings, the
-    roadgonio version), written into the run's result file so a later run can tell whether a
-    folder holds its own results (:func:`check_run_folder`)."""
-    import hashlib
-    return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
-
-
 def check_run_folder(out_dir: str | Path, meta_name: str, fingerprint: str, *, what: str = "run",
                      fresh: bool = False, outputs: tuple[str, ...] = ()) -> None:
     """Refuse to replace the results of a different run: ``out_dir/meta_name`` (a JSON object) holds
-    the fingerprint of the run that wrote the folder; another fingerprint (or none) is the one-line
+    the fingerprint (:func:`fingerprint`) of the run that wrote the folder; another fingerprint (or none) is the one-line
     error naming that file and ``--fresh``. With ``fresh`` the folder's earlier ``outputs`` (the
     command's own file names) are removed first, so no file of the other run stays beside the new
     ones. The shared behaviour of every command that writes a run's results (``ka``, ``fit``,
@@ -258,6 +251,47 @@ def check_writable(out_dir: str | Path) -> Path:
     return out_dir
 
 
+def read_toml(path: str | Path, what: str = "TOML file", *, missing: str | None = None) -> dict[str, Any]:
+    """The tables of a TOML file, or the one-line :class:`InputError` naming the file: ``no such
+    {what}`` (or ``missing``), ``cannot read the {what} (reason)``, or ``not valid TOML: reason``
+    with the LINE of the syntax error (and its column). The one TOML reader of roadgonio: instrument
+    files, road layouts, misalignment SPEC files."""
+    import tomllib
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(missing or f"no such {what}", path=path) from None
+    except UnicodeDecodeError:
+        raise InputError(f"cannot read the {what} (it is not UTF-8 text)", path=path) from None
+    except OSError as err:
+        raise InputError(f"cannot read the {what} ({err.strerror or err})", path=path) from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        line, column, reason = toml_error_position(err, text)
+        at = f" (column {column})" if column is not None else ""
+        raise InputError(f"not valid TOML: {reason}{at}", path=path, line=line) from None
+
+
+def toml_error_position(err: Exception, text: str) -> tuple[int | None, int | None, str]:
+    """(line, column, reason) of a ``tomllib.TOMLDecodeError`` raised on ``text``: from its
+    attributes (Python >= 3.14) or, on 3.11-3.13 where they are only in the message ("Invalid
+    value (at line 5, column 14)", "... (at end of document)"), parsed from it."""
+    import re
+    message = str(err)
+    at = re.search(r"\s*\(at line (\d+), column (\d+)\)\s*$", message)
+    end = re.search(r"\s*\(at end of document\)\s*$", message)
+    cut = at or end
+    reason = getattr(err, "msg", None) or (message[:cut.start()] if cut else message)
+    line, column = getattr(err, "lineno", None), getattr(err, "colno", None)
+    if line is None and at is not None:
+        line, column = int(at.group(1)), int(at.group(2))
+    elif line is None and end is not None:
+        line, column = text.count("\n") + 1, None
+    return line, column, reason
+
+
 _PLAIN = frozenset((float, int, bool, str, type(None)))
 
 
@@ -287,6 +321,15 @@ def _jsonable(obj: Any) -> Any:
 def to_json(obj: Any, indent: int | None = 2) -> str:
     """Strict JSON (NaN and infinities as null, numpy values as numbers)."""
     return json.dumps(_jsonable(obj), indent=indent, allow_nan=False)
+
+
+def fingerprint(payload: Mapping[str, Any], length: int = 16) -> str:
+    """The fingerprint of what determines a result (a journal's or a checkpoint's header): the
+    first ``length`` hex digits of the SHA-256 of ``payload`` with the roadgonio version added
+    (``{**payload, "roadgonio": __version__}``), as compact strict JSON (:func:`to_json`). Callers
+    put in the numbers (instrument and model values, backend settings, seeds...), not names."""
+    from roadgonio._version import __version__
+    return hashlib.sha256(to_json({**payload, "roadgonio": __version__}, indent=None).encode()).hexdigest()[:length]
 
 
 def atomic_write_json(path: str | Path, obj: Any) -> Path:

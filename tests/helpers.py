@@ -107,3 +107,56 @@ ROAD = RoadModel(RoadParams(k_diff=0.05, k_phong=1.0, n_phong=1000.0, k_retro=0.
 def preset(name: str) -> Instrument:
     """An instrument preset of scenes/ loaded from its file."""
     return Instrument.load(SCENES / f"{name}.toml")
+
+
+# -- flat meshes and cheap backend settings (tests/unit and tests/plugin: test_line_of_sight*, test_cellcheck*) --
+
+def flat_mesh(path, inst: Instrument) -> Instrument:
+    """``inst`` with its rectangular sample as a two-triangle mesh file at ``path``."""
+    import trimesh
+    hx, hy = inst.sample.size_x_m / 2, inst.sample.size_y_m / 2
+    trimesh.Trimesh([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]], [[0, 1, 2], [0, 2, 3]],
+                    process=False).export(path)
+    return with_mesh(inst, path)
+
+
+#: Cheap settings per backend, for tests that only ask whether a backend refuses a cell.
+FAST_SETTINGS = {"quadrature": {"rtol": 1e-2}, "numpy-mc": {"rel_se": 5e-2, "batch": 1024, "min_batches": 2},
+                 "reference": {"rtol": 5e-2, "min_log2": 6, "pilot_iterations": 0},
+                 "numpy-mc-mesh": {"rel_se": 5e-2, "batch": 1024, "min_batches": 2}, "mitsuba": {"rel_se": 1e-2}}
+
+
+def line_of_sight_edge_cells():
+    """(instrument, cell, blocked) near the edge where the source disc starts to block the detector's
+    view: about 50 um outside and 1.5-8 um inside, where the three ray-sampled checks the project had
+    before disagreed (tests/unit/test_line_of_sight.py says how)."""
+    from roadgonio.instrument.config import load_instrument
+    portable = load_instrument("portable")
+    near = portable.with_changes(source={"distance_m": 0.5, "radius_m": 0.04})
+    speck = portable.with_changes(source={"distance_m": 0.5, "radius_m": 1e-4})
+    return [
+        (near, (9.489, 180.0), False), (near, (9.4996, 180.0), True),
+        (near, (9.529, 179.5), False), (near, (9.5394, 179.5), True), (near, (9.5406, 179.5), True),
+        (near, (9.652, 179.0), False), (near, (9.6622, 179.0), True),
+        (near, (9.769, 178.7), False), (near, (9.7797, 178.7), True),
+        (near, (9.985, 178.3), False), (near, (9.9954, 178.3), True),
+        (speck, (47.7395, 179.9), True), (speck, (40.9174, 179.8), True), (speck, (40.9174, 179.78), False),
+    ]
+
+
+def backend_refuses(name: str, inst: Instrument, cell, model: RoadModel, tmp_path=None) -> bool:
+    """Whether backend ``name`` (cheap settings) refuses ``cell`` because the source blocks the
+    detector's view; any other refusal fails the test, and a computed cell must be finite."""
+    import math
+
+    from roadgonio.engines import make_backend
+    from roadgonio.errors import GeometryError
+    if name == "numpy-mc-mesh":
+        inst = flat_mesh(tmp_path / "flat.ply", inst)
+    try:
+        res = make_backend(name, inst, model, settings=FAST_SETTINGS[name]).compute([cell])
+    except GeometryError as err:
+        assert "line of sight" in str(err), err
+        return True
+    assert math.isfinite(res[0].k_a)
+    return False

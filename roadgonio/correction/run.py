@@ -29,7 +29,6 @@ with the same results.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import sys
@@ -45,7 +44,7 @@ from roadgonio.correction.fit import (DEFAULT_POLISH, DEFAULT_STARTS, ThroughFit
                                       fit_through_instrument)
 from roadgonio.correction.forward import DEFAULT_RAYS, ForwardModel, RayBundles
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write_json, safe_name, to_json
+from roadgonio.fileio import atomic_write_json, fingerprint, safe_name
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import VARIANTS, RoadModel
 from roadgonio.surface.rtable import RTable, read_table
@@ -269,11 +268,8 @@ def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rh
 
 
 def _state_key(measured: RTable, u: np.ndarray, instrument: Instrument, settings: Mapping[str, Any]) -> str:
-    h = hashlib.sha256()
-    h.update(np.where(measured.mask, measured.r, -1.0).astype("<f8").tobytes())
-    h.update(np.where(measured.mask, u, -1.0).astype("<f8").tobytes())
-    h.update(to_json({"instrument": instrument.to_dict(), **dict(settings)}, indent=None).encode())
-    return h.hexdigest()[:20]
+    return fingerprint({"measured": np.where(measured.mask, measured.r, -1.0), "u": np.where(measured.mask, u, -1.0),
+                        "instrument": instrument.to_dict(), **dict(settings)})
 
 
 class _FitState:

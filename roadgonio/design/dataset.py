@@ -142,8 +142,8 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     ds.attrs.update({
         "title": f"roadgonio design study of instrument '{base.name}'",
         "tolerance": float(tol),
-        "varied": json.dumps(dims),
-        "samples": json.dumps([s.name for s in samples]),
+        "varied": to_json(dims, indent=None),
+        "samples": to_json([s.name for s in samples], indent=None),
         "base_instrument_json": to_json(_cluster.absolute_instrument_dict(base), indent=None),
         "base_instrument_path": str(Path(base.path).resolve()) if base.path is not None else "",
         "base_signal_product": float(sb),
@@ -151,7 +151,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "points": int(n), "points_geometry_ok": int(geometry_ok.sum()), "points_feasible": int(feasible.sum()),
         "best_index": int(best),
         "best_point_json": to_json(points[best] if best >= 0 else None, indent=None),
-        "log_axes": json.dumps([s.key for s in specs if s.log]),
+        "log_axes": to_json([s.key for s in specs if s.log], indent=None),
     })
     return ds
 

@@ -16,7 +16,6 @@ S`` on ``best.toml`` reproduces the best design's tables exactly (S is in ``desi
 """
 from __future__ import annotations
 
-import hashlib
 import math
 import os
 import sys
@@ -26,9 +25,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 
-from roadgonio import _version
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write_text, output_error, read_journal, to_json
+from roadgonio.fileio import atomic_write_text, fingerprint, output_error, read_journal, to_json
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.engines import cluster as _cluster
@@ -64,10 +62,6 @@ def resolve_samples(samples, cells, *, field: str = "cells") -> list[SampleSpec]
         raise InputError(f"two samples share the name {sorted(n for n in names if names.count(n) > 1)[0]!r}",
                          field="sample")
     return out
-
-
-def _fingerprint(payload: Mapping[str, Any]) -> str:
-    return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
 
 
 def _read_journal(path: Path, fp: str) -> dict[tuple[int, int], dict]:
@@ -138,9 +132,8 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
                   "samples": [[s.name, {"variant": s.model.variant, "params": s.model.params.to_dict()},
                                [list(c) for c in s.cells]] for s in smp],
                   "backend": backend, "accuracy": accuracy, "settings": settings, "seed": int(seed),
-                  # how the points' seeds are derived, and the version (as a k_A run's fingerprint has it)
-                  "point_seeds": "roadgonio.seeds.point_seed", "roadgonio": _version.__version__}
-    fp = _fingerprint(fp_payload)
+                  "point_seeds": "roadgonio.seeds.point_seed"}     # how the points' seeds are derived
+    fp = fingerprint(fp_payload)
     done: dict[tuple[int, int], dict] = {}
     fh = None
     out_dir = Path(out) if out is not None else None

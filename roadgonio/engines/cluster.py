@@ -26,7 +26,7 @@ worker's thread count, so N one-thread workers use N cores, not N^2 threads), an
 checks it again (idempotent), so a worker that joins late or restarts is never left without them.
 
 Results do not depend on where a task runs: a task carries its seed, and the backend's own
-seeding is per cell (``tests/test_design_cluster.py`` compares a 2-worker cluster started with
+seeding is per cell (``tests/system/test_design_cluster.py`` compares a 2-worker cluster started with
 ``dask scheduler`` / ``dask worker`` against the in-process run, bit for bit).
 """
 from __future__ import annotations

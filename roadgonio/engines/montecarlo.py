@@ -30,11 +30,12 @@ import numpy as np
 
 from roadgonio.instrument import optics
 from roadgonio.seeds import cell_key, check_seed, seed_entropy
-from roadgonio.errors import GeometryError, InputError
+from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
-from roadgonio.engines.result import CellByCellBackend, CellResult, ideal_ratio, ratio_se
+from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.cellcheck import check_cell
 
 DEFAULT_REL_SE = 1e-3
 DEFAULT_BATCH = 1 << 14
@@ -158,13 +159,7 @@ class MonteCarloBackend(CellByCellBackend):
     def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
-        optics.check_source(self.instrument, tan_eps, beta_deg)
-        from roadgonio.engines.reference import check_line_of_sight
-        check_line_of_sight(self.instrument, tan_eps, beta_deg)
-        ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
-        if not (ideal > 0.0 and math.isfinite(ideal)):
-            raise GeometryError(f"the model is {ideal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "
-                                f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
+        ideal = check_cell(self.instrument, self.model, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         rng = np.random.default_rng(seed_entropy(self.seed, cell_key(tan_eps), cell_key(beta_deg)))
         road, lam = [], []

@@ -51,7 +51,8 @@ from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.instrument import optics
-from roadgonio.engines.result import CellByCellBackend, CellResult, ideal_ratio
+from roadgonio.engines.result import CellByCellBackend, CellResult
+from roadgonio.engines.cellcheck import check_cell, no_light
 
 #: Gauss-Legendre orders of one direction of a disc rule, by level.
 ORDERS = (1, 2, 3, 4, 6, 8, 11, 16, 22, 32, 45, 64, 90, 128, 180, 256)
@@ -257,13 +258,7 @@ class QuadratureBackend(CellByCellBackend):
     def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
-        optics.check_source(self.instrument, tan_eps, beta_deg)
-        from roadgonio.engines.reference import check_line_of_sight
-        check_line_of_sight(self.instrument, tan_eps, beta_deg)
-        nominal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg) / math.pi
-        if not (nominal > 0.0 and math.isfinite(nominal)):
-            raise GeometryError(f"the model is {nominal:g} at the nominal geometry (tan eps = {tan_eps:g}, "
-                                f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
+        nominal = check_cell(self.instrument, self.model, tan_eps, beta_deg) / math.pi
         self._nominal = nominal
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         # six directions (pupil v/h, field v/h, source v/h); a disc of radius 0 is one node
@@ -305,9 +300,7 @@ class QuadratureBackend(CellByCellBackend):
                 # no node sees light yet (a narrow source beam): refine every direction
                 nxt = [lvl + 1 if i in act else lvl for i, lvl in enumerate(lv)]
                 if not act or max(nxt) >= len(ORDERS) or size(nxt) > self.max_evals:
-                    raise GeometryError(
-                        f"no detected ray receives light from the source at tan eps = {tan_eps:g}, beta = "
-                        f"{beta_deg:g} (the source beam misses the detector footprint): k_A is undefined")
+                    raise no_light(tan_eps, beta_deg, "(the source beam misses the detector footprint)")
                 lv = nxt
                 continue
             for i in todo:

@@ -84,7 +84,8 @@ from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
-from roadgonio.engines.result import CellByCellBackend, CellResult, ideal_ratio, ratio_se
+from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.cellcheck import check_cell, no_light
 
 #: Default target of the relative error bound of each k_A.
 DEFAULT_RTOL = 1e-4
@@ -486,10 +487,7 @@ class ReferenceBackend(CellByCellBackend):
         target = self.rtol if rtol is None else float(rtol)
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
-        optics.check_source(self.instrument, tan_eps, beta_deg)
-        check_line_of_sight(self.instrument, tan_eps, beta_deg)
-        nominal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
-        check_nominal(nominal, tan_eps, beta_deg)
+        nominal = check_cell(self.instrument, self.model, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         self._level_coords = self._h_varies(src)
         R = self.replicates
@@ -528,12 +526,12 @@ class ReferenceBackend(CellByCellBackend):
                     converged = True
                     break
             elif self.dim == 0 or m >= 30:
-                raise_no_light(tan_eps, beta_deg)
+                raise no_light(tan_eps, beta_deg, "(the footprint lies behind the source disc, or the source beam misses it)")
             if 2 * evals > self.max_evals or m >= self.max_log2:   # the next level doubles the work
                 break
             m += 1
         if not math.isfinite(k):
-            raise_no_light(tan_eps, beta_deg)
+            raise no_light(tan_eps, beta_deg, "(the footprint lies behind the source disc, or the source beam misses it)")
         extra = {"points_per_replicate": npts, "replicates": R, "replicate_se": float(se),
                  "confidence": self.confidence, "t_factor": self.t_factor, "converged": converged,
                  "history": history[-4:], **map_info}
@@ -568,50 +566,6 @@ def _integer(v, name: str) -> int:
     return iv
 
 
-def check_nominal(nominal: float, tan_eps: float, beta_deg: float) -> None:
-    """k_A = measured / nominal needs a positive, finite model value at the nominal geometry."""
-    from roadgonio.errors import GeometryError
-    if not (nominal > 0.0 and math.isfinite(nominal)):
-        raise GeometryError(f"the model is {nominal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "
-                            f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
-
-
-def raise_no_light(tan_eps: float, beta_deg: float):
-    from roadgonio.errors import GeometryError
-    raise GeometryError(f"no detected ray receives light from the source at tan eps = {tan_eps:g}, beta = "
-                        f"{beta_deg:g} (the footprint lies behind the source disc, or the source beam misses it): "
-                        "k_A is undefined")
-
-
-def check_line_of_sight(instrument: Instrument, tan_eps: float, beta_deg: float, n: int = 48) -> None:
-    """The source disc must not stand between the detector and its footprint (it is an object of
-    the scene: a detector ray that meets it first sees the source, not the sample). Checked on the
-    rays from a grid of pupil points through a grid of field points (rims included)."""
-    from roadgonio.errors import GeometryError
-    src = instrument.source
-    if src.radius_m <= 0.0:
-        return
-    geo = optics.detector_geometry(instrument)
-    g = optics.source_geometry(instrument, tan_eps, beta_deg)
-    ang = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
-    rr = np.linspace(0.0, 1.0, 5)
-    ux = np.concatenate([r * np.cos(ang) for r in rr])
-    uy = np.concatenate([r * np.sin(ang) for r in rr])
-    P, F = np.meshgrid(np.arange(ux.size), np.arange(ux.size), indexing="ij")
-    o, d, _ = optics.detector_ray(NumpyOps, geo, (ux[P.ravel()], uy[P.ravel()]), (ux[F.ravel()], uy[F.ravel()]))
-    o = np.stack([np.broadcast_to(c, P.size) for c in o], 1)
-    d = np.stack(d, 1)
-    t_plane = -o[:, 2] / d[:, 2]
-    den = d @ g.axis
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_disc = ((g.centre - o) @ g.axis) / den
-    hit = o + np.where(np.isfinite(t_disc), t_disc, 0.0)[:, None] * d
-    inside = np.sum((hit - g.centre) ** 2, axis=1) <= src.radius_m ** 2
-    blocked = np.isfinite(t_disc) & (t_disc > 0.0) & (t_disc < t_plane) & inside
-    if np.any(blocked):
-        raise GeometryError(f"the source disc blocks the detector's line of sight at tan eps = {tan_eps:g}, beta = "
-                            f"{beta_deg:g}: {int(blocked.sum())} of {blocked.size} checked detector rays meet the "
-                            "source before the sample; this cell cannot be measured with this geometry")
 
 
 #: Settings a caller may pass (``make_backend("reference", ..., **settings)``).

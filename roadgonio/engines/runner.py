@@ -18,7 +18,6 @@ Output folder (``--out DIR``):
 """
 from __future__ import annotations
 
-import hashlib
 import os
 import sys
 import time
@@ -28,7 +27,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from roadgonio.fileio import atomic_write, check_run_folder, output_error, read_journal, to_json
+from roadgonio.fileio import atomic_write, check_run_folder, fingerprint as _fingerprint, output_error, read_journal, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
@@ -42,12 +41,11 @@ FLUSH_SECONDS = 1.0
 
 
 def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) -> str:
-    """Hash of everything that determines the numbers of a run, the roadgonio version included."""
-    from roadgonio import _version
-    payload = {"instrument": instrument.to_dict(), "model": {"variant": model.variant,
-                                                              "params": model.params.to_dict()},
-               "backend": backend.name, "settings": backend.settings(), "roadgonio": _version.__version__}
-    return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
+    """Fingerprint of everything that determines the numbers of a run (:func:`roadgonio.fileio.fingerprint`:
+    the instrument, the model's variant and parameters, the backend and its settings, the version)."""
+    return _fingerprint({"instrument": instrument.to_dict(), "model": {"variant": model.variant,
+                                                                        "params": model.params.to_dict()},
+                         "backend": backend.name, "settings": backend.settings()})
 
 
 @dataclass
@@ -303,7 +301,9 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
                             ("confidence_bound", "ka_confidence_bound.csv")):
             v = ds[field].values
             if np.isfinite(v).any():
-                group.text(name, grid_csv_text(v, f"{ds[field].attrs['long_name']} of " + label, digits=4))
+                group.text(name, grid_csv_text(v, f"{ds[field].attrs['long_name']} (instrument '{ds.attrs['instrument']}', "
+                                                  f"sample '{ds.attrs['sample']}', {ds.attrs['backend']} backend)",
+                                               digits=4))
                 files[field] = name
         if plot:
             files["map"] = "ka.png"

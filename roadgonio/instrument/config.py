@@ -33,7 +33,6 @@ file name to the error. A detector focused at infinity (an angular field) has
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -41,6 +40,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from roadgonio.errors import InputError
+from roadgonio.fileio import read_toml
 from roadgonio.geometry import w_detector, w_source
 from roadgonio.instrument.calibration import Calibration
 
@@ -403,22 +403,7 @@ class Instrument:
     def load(cls, path: str | Path) -> "Instrument":
         """Load a TOML instrument file; errors name the file, the line or field, and what was expected."""
         path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise InputError("no such instrument file", path=path) from None
-        except (OSError, UnicodeDecodeError) as err:
-            raise InputError(f"cannot read the instrument file ({err})", path=path) from None
-        try:
-            d = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as err:
-            line = getattr(err, "lineno", None)
-            if line is None:  # Python 3.11: only in the message, "(at line 5, column 14)"
-                import re
-                m = re.search(r"at line (\d+)", str(err))
-                line = int(m.group(1)) if m else None
-            raise InputError(f"not valid TOML: {getattr(err, 'msg', str(err))}", path=path, line=line) from None
-        return cls.from_dict(d, path=path)
+        return cls.from_dict(read_toml(path, "instrument file"), path=path)
 
 
 # ----------------------------------------------------------------------------------------------

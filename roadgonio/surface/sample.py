@@ -26,14 +26,12 @@ carries another key is refitted, never trusted.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from roadgonio._version import __version__
 from roadgonio.errors import InputError
 from roadgonio.surface.model import DEFAULT_VARIANT, VARIANTS, RoadModel
 from roadgonio.surface.rtable import BUNDLED, RTable, load_table
@@ -53,10 +51,11 @@ def cache_dir() -> Path:
 
 
 def cache_key(table: RTable, variant: str) -> str:
+    """What determines a fit's numbers (:func:`roadgonio.fileio.fingerprint`: the table's values, the
+    variant, the fit method's version and roadgonio's)."""
+    from roadgonio.fileio import fingerprint
     from roadgonio.surface.fit import FIT_METHOD_VERSION, table_hash
-    h = hashlib.sha256()
-    h.update(f"{table_hash(table)}|{variant}|roadgonio {__version__}|fit {FIT_METHOD_VERSION}".encode())
-    return h.hexdigest()
+    return fingerprint({"table": table_hash(table), "variant": variant, "fit": FIT_METHOD_VERSION}, length=64)
 
 
 def _cache_path(table: RTable, variant: str, key: str) -> Path:

@@ -87,6 +87,8 @@ def test_cli_reference_route_checks_against_an_independent_backend(tmp_path, r3l
     assert summary["S1"] == pytest.approx(summary["before"]["S1"] * k[(0.0, 0.0)] / k[(2.0, 0.0)], rel=1e-4)
     prov = json.loads((tmp_path / "o" / "correct.json").read_text())["provenance"]
     assert prov["backend"] == "quadrature" and prov["settings"]["rtol"] == 1e-4 and prov["versions"]["numpy"]
+    # the file the table came from reaches correct.json (it was set after the file had been written)
+    assert prov["measured_file"] == str(measured)
 
 
 def test_cli_several_files_json_list(tmp_path):

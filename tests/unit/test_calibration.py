@@ -222,3 +222,56 @@ def test_reference_mode_is_the_ratio_of_lambert_k_with_common_random_numbers(tmp
     res = make_backend("numpy-mc", inst2, sample, **s).compute(CELLS)
     assert max(abs(c.k_a - 1) for c in res) < ROUND_TOL
     assert max(abs(f.k_a - 1) for f in k_f) > 1e-2               # while k_lam itself is not 1
+
+
+# ----------------------------------------------------------------------------------------------
+# One definition of the modes: the wrapper and the correction's forward model share it
+# ----------------------------------------------------------------------------------------------
+
+def test_the_modes_in_one_place():
+    from roadgonio.engines.calibration import apply_calibration
+    k = np.array([0.9, 1.1])
+    assert apply_calibration("lambert", k) is k
+    assert np.array_equal(apply_calibration("absolute", k, eta=np.array([2.0, 0.5])), [1.8, 0.55])
+    assert np.array_equal(apply_calibration("reference", k, reference_reading=np.array([0.9, 2.2])),
+                          [1.0, 0.5])
+    assert apply_calibration("reference", 3.0, reference_reading=2.0, reference_nominal=4.0) == 6.0
+    with pytest.raises(InputError, match="calibration mode"):
+        apply_calibration("relative", k)
+    with pytest.raises(ValueError, match="eta"):
+        apply_calibration("absolute", k)
+
+
+@pytest.mark.parametrize("radius", [0.0, 0.03])
+def test_centre_coupling_closed_forms(radius):
+    """E_0 / (L A_S) at the sample centre: a coaxial disc at the zenith gives 1 / (R^2 + D^2) (the
+    irradiance pi L R^2 / (R^2 + D^2) of a Lambertian disc on its axis); a point source cos(eps)/D^2."""
+    from roadgonio.engines.calibration import centre_coupling
+    from roadgonio.instrument import optics
+    inst = inst_with(source={"radius_m": radius, "distance_m": 0.8})
+    zenith = centre_coupling(optics.source_geometry(inst, 0.0, 0.0))
+    assert zenith == pytest.approx(1.0 / (radius ** 2 + 0.8 ** 2), rel=ROUND_TOL)
+    if radius == 0.0:
+        g = centre_coupling(optics.source_geometry(inst, 3.0, 40.0))
+        assert g == pytest.approx(math.cos(math.atan(3.0)) / 0.8 ** 2, rel=ROUND_TOL)
+
+
+@pytest.mark.parametrize("mode", ["lambert", "absolute", "reference"])
+def test_forward_model_and_wrapper_calibrate_alike(tmp_path, mode):
+    """The forward model's k_A in each mode equals the wrapper's rule (apply_calibration) applied to
+    the same bundle's Lambert k_A, with the wrapper's eta: one definition, same numbers."""
+    from roadgonio.correction.forward import ForwardModel, RayBundles
+    from roadgonio.engines.calibration import apply_calibration
+    ref = RoadModel(RoadParams(k_diff=0.05, k_phong=0.5, n_phong=10.0), name="ref")
+    ref.save(tmp_path / "ref.json")
+    cal = {"mode": mode, **({"reference": str(tmp_path / "ref.json")} if mode == "reference" else {})}
+    inst = inst_with(calibration=cal)
+    cells = [(1.0, 0.0), (4.0, 30.0), (12.0, 180.0)]
+    bundles = RayBundles.build(inst, cells, rays=64)
+    lam = ForwardModel(bundles, calibration_mode="lambert")
+    eta = np.array([illuminance_ratio(inst, t, b)[0] for t, b in cells])
+    want = apply_calibration(mode, lam.k_a(r3like()), eta=eta, reference_reading=lam.k_a(ref))
+    got = ForwardModel(bundles).k_a(r3like())
+    assert np.allclose(got, want, rtol=ROUND_TOL, atol=0.0)
+    if mode != "lambert":
+        assert np.max(np.abs(got / lam.k_a(r3like()) - 1.0)) > 1e-3      # the mode does something here

@@ -15,7 +15,7 @@ Standard error: the marginal SE of each cell from independent replicates (random
 by the delta method (:mod:`roadgonio.engines.mitsuba.passes`); cells computed together share rays, so
 their errors are correlated: :meth:`MitsubaBackend.covariance` gives the covariance matrix of the last
 ``compute`` call (for the SE of a table functional), estimated from the shared replicates.
-``tests/test_engine.py`` checks the SE against the scatter over seeds, for cells batched together too.
+``tests/plugin/test_engine.py`` checks the SE against the scatter over seeds, for cells batched together too.
 
 Passes sized from the target: a first pass of ``first_pass`` samples per cell, then the 1/N rule per
 cell (:class:`~roadgonio.engines.mitsuba.passes.Planner`); cells leave as they reach ``rel_se`` (at
