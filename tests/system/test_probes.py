@@ -619,6 +619,24 @@ def _no_shared(r, t):
 
 for _b in ("numpy-mc", "reference", "numpy-mc-mesh"):
     probe(f"streams-{_b}", "seeds", "api", _stream_probe(_b), expect="ok", check=_no_shared)
+probe("streams-mitsuba", "seeds", "ka", _stream_probe("mitsuba"), expect="ok", check=_no_shared, needs_mitsuba=True)
+
+
+def _streams_of(run_of_seed):
+    """Streams shared by seeds 1 and 2^32 + 1 of a Monte Carlo whose only key is the seed."""
+    def action(t, monkeypatch):
+        return api(lambda: shared_streams(monkeypatch, lambda seed, _: run_of_seed(t, seed), (1, None),
+                                          (2 ** 32 + 1, None), (987654321, None)))
+    return action
+
+
+probe("streams-uncertainty", "seeds", "uncertainty",
+      _streams_of(lambda t, seed: __import__("roadgonio").estimate_uncertainty(
+          str(instrument(t)), str(model_file(t)), "alpha_deg=0.01", trials=500, aperture=False, seed=seed)),
+      expect="ok", check=_no_shared)
+probe("streams-road", "seeds", "road",
+      _streams_of(lambda t, seed: road_api()("R3", u=str(table_file(t, "u", r3_values() * 0.02)), trials=500,
+                                             seed=seed)), expect="ok", check=_no_shared)
 
 
 def _seed_changes_result(action_of_seed, value_of):
