@@ -345,16 +345,22 @@ def atomic_savefig(fig, path: str | Path, **kwargs) -> Path:
 
 def write_netcdf(ds, path: str | Path) -> Path:
     """Write an ``xarray.Dataset`` as netCDF atomically (netCDF-3 64-bit offset through scipy, which
-    every install has): attributes that netCDF cannot hold (mappings, lists, booleans) are written as
-    JSON text; booleans data variables become int8 (xarray records their dtype and reads them back)."""
+    every install has): attributes that netCDF cannot hold (mappings, lists, booleans, whole numbers
+    beyond 32 bits such as a 63-bit seed) are written as JSON text; booleans data variables become
+    int8 (xarray records their dtype and reads them back)."""
     import numpy as np
+
+    def holds(v) -> bool:
+        if isinstance(v, bool) or not isinstance(v, (str, int, float, np.integer, np.floating)):
+            return False
+        return not isinstance(v, (int, np.integer)) or -2 ** 31 <= int(v) < 2 ** 31
     enc = ds.copy()
     for k, v in list(enc.attrs.items()):
-        if isinstance(v, bool) or not isinstance(v, (str, int, float, np.integer, np.floating)):
+        if not holds(v):
             enc.attrs[k] = to_json(v, indent=None)
     for name in list(enc.variables):
         for k, v in list(enc[name].attrs.items()):
-            if isinstance(v, bool) or not isinstance(v, (str, int, float, np.integer, np.floating)):
+            if not holds(v):
                 enc[name].attrs[k] = to_json(v, indent=None)
     return atomic_write(path, lambda p: enc.to_netcdf(p, engine="scipy", format="NETCDF3_64BIT"))
 
