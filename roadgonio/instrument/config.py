@@ -391,6 +391,18 @@ class Instrument:
         for sec in EXTRA_SECTIONS:
             if sec in extra and not isinstance(extra[sec], Mapping):
                 raise InputError(f"expected a table [{sec}]", field=sec)
+        if "scene" in extra:
+            # [scene] (conventions.md section 4): xml, and [scene.params] only with xml (else they
+            # would be ignored); an empty [scene] is no scene
+            sc = extra["scene"]
+            _check_keys(sc, {"xml", "params"}, "scene", None)
+            if sc and "xml" not in sc:
+                raise InputError('missing (required in [scene]): the Mitsuba XML file, xml = "FILE.xml"',
+                                 field="scene.xml")
+            if sc and (not isinstance(sc["xml"], str) or not sc["xml"]):
+                raise InputError(f"expected a file name (text), got {sc['xml']!r}", field="scene.xml")
+            if "params" in sc and not isinstance(sc["params"], Mapping):
+                raise InputError("expected a table [scene.params]", field="scene.params")
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
                    description=meta.get("description", ""), path=path, calibration=calibration, extra=extra)
 

@@ -184,6 +184,9 @@ def test_instrument_dict_round_trip(alpha, dist, pupil, field_deg, focus):
     ("[calibration]\nmode = \"absolute\"\n", None),            # computed (roadgonio.engines.calibration)
     ("[calibration]\nmode = \"absolute\"\nreference = \"R3\"\n", "calibration.reference"),
     ("[scene]\n", None),
+    ("[scene]\nxlm = \"holder.xml\"\n", "scene"),                 # a typo of xml: not ignored
+    ("[scene.params]\nholder_h_m = 0.1\n", "scene.xml"),          # parameters of no XML file
+    ("[scene]\nxml = 5\n", "scene.xml"),
     ("[calibration]\nmode = \"lambert\"\n", None),
 ])
 def test_sections_are_checked(tmp_path, extra, field):
