@@ -275,6 +275,19 @@ class RoadParams:
         return replace(self, **changes)
 
 
+def _near_key(key: str, known) -> str | None:
+    """The known key that ``key`` is a misspelling of (case, one or two letters off), if any."""
+    import difflib
+    if not isinstance(key, str):
+        return None
+    low = key.strip().lower().replace("-", "_")
+    for k in known:
+        if low == k or low.rstrip("s") == k.rstrip("s"):
+            return k
+    hit = difflib.get_close_matches(low, list(known), n=1, cutoff=0.75)
+    return hit[0] if hit else None
+
+
 @dataclass(frozen=True)
 class RoadModel:
     """A road BRDF: a variant and its parameters. Evaluates in float64 numpy."""
@@ -348,6 +361,13 @@ class RoadModel:
                              path=path, field="variant")
         params = RoadParams.from_dict(d["params"], path=path)
         meta = {k: v for k, v in d.items() if k not in ("variant", "params", "name")}
+        for k in meta:
+            # further keys (fit statistics, provenance) are allowed (conventions.md section 3), but a
+            # misspelt key the reader reads ("varaint": "smooth") would silently leave its default
+            near = _near_key(k, ("variant", "params", "name"))
+            if near:
+                raise InputError(f"unknown key {k!r}; did you mean {near!r}? (a model file's keys are variant, params, "
+                                 "name, plus metadata)", path=path, field=k)
         name = d.get("name", Path(path).stem if path else "model")
         if not isinstance(name, str):
             raise InputError(f"expected text for the model's name, got {type(name).__name__} {name!r}", path=path,
