@@ -478,6 +478,34 @@ probe("correct-u-measured-text", "input", "correct",
 probe("validate-empty-cells", "input", "validate",
       lambda t: cli("validate", "--instrument", instrument(t), "--sample", "lambert", "--against", "numpy-mc",
                     "--cells", "", "--out", t / "v"), must=("--cells",))
+probe("instrument-scene-unknown-key", "input", "ka",
+      lambda t: cli(*_ka("--instrument", instrument(t, GOOD + '[scene]\nxlm = "holder.xml"\n'), "--sample", "lambert")),
+      must=("inst.toml", "scene", "xlm"))
+probe("instrument-scene-params-without-xml", "input", "ka",
+      lambda t: cli("ka", "--instrument", instrument(t, GOOD + '[scene.params]\nholder_h_m = 0.1\n'), "--sample",
+                    "lambert", "--backend", "mitsuba", "--cells", "1:0", "--accuracy", "fast"),
+      must=("inst.toml", "scene.xml"), needs_mitsuba=True)
+probe("model-variant-misspelt", "input", "ka",
+      lambda t: cli(*_ka("--instrument", instrument(t), "--sample", model_file(t, file="m.json", varaint="smooth"))),
+      must=("m.json", "varaint", "variant"))
+probe("sigma-file-sigma-as-text", "input", "uncertainty",
+      lambda t: cli("uncertainty", "--instrument", instrument(t), "--sample", model_file(t), "--sigma",
+                    instrument(t, '[sigma]\nalpha_deg = {sigma = "0.01"}\n', "spec.toml"), "--no-aperture",
+                    "--trials", "200", "--out", t / "u"), must=("spec.toml", "sigma.alpha_deg.sigma"))
+probe("sigma-file-unknown-key", "input", "uncertainty",
+      lambda t: cli("uncertainty", "--instrument", instrument(t), "--sample", model_file(t), "--sigma",
+                    instrument(t, 'alpha_deg = 0.01\nbeta = 0.1\n', "spec.toml"), "--no-aperture",
+                    "--trials", "200", "--out", t / "u"), must=("spec.toml", "beta"))
+probe("layout-number-as-text", "input", "road",
+      lambda t: cli("road", "--table", "R3", "--layout", instrument(t, '[road]\nlanes = "2"\n', "lay.toml"),
+                    "--no-plots", "--out", t / "o"), must=("lay.toml", "lanes"))
+probe("design-empty-cells", "input", "design",
+      lambda t: cli("design", "--instrument", instrument(t), "--sample", model_file(t), "--vary",
+                    "source.radius_m=0.005:0.01:2", "--cells", "", "--backend", "quadrature", "--workers", "0",
+                    "--out", t / "d"), must=("--cells",))
+probe("ka-cells-only-commas", "input", "ka",
+      lambda t: cli("ka", "--instrument", instrument(t), "--sample", "lambert", "--backend", "quadrature",
+                    "--cells", " , "), must=("--cells",))
 probe("table-unknown-name", "input", "table", lambda t: cli("table", "R9"), must=("R9",))
 probe("option-not-a-number", "input", "uncertainty",
       lambda t: cli("uncertainty", "--instrument", "lab", "--sample", "lambert", "--sigma", "alpha_deg=0.01",
@@ -570,6 +598,19 @@ probe("render-seed-2^32-1", "seeds", "render",
                     "--out", t / "r", "--seed", str(2 ** 32 - 1), "--resolution", "32", "--spp", "4", "--json"),
       expect="ok", check=lambda r, t: _assert(strict_json(r.out)["seed"] == 2 ** 32 - 1, r.out[:200]),
       needs_mitsuba=True)
+probe("cli-ka-seed-not-whole", "seeds", "ka",
+      lambda t: cli("ka", "--instrument", instrument(t), "--sample", "lambert", "--backend", "numpy-mc", "--tan-eps",
+                    "1", "--beta", "0", "--seed", "1.5"), must=("--seed",))
+probe("cli-design-seed-10^30", "seeds", "design",
+      lambda t: cli("design", "--instrument", instrument(t), "--sample", model_file(t), "--vary",
+                    "source.radius_m=0.01:0.02:2", "--backend", "numpy-mc", "--seed", str(10 ** 30), "--workers", "0",
+                    "--out", t / "d"), must=("--seed",))
+probe("cli-road-seed-text", "seeds", "road",
+      lambda t: cli("road", "--table", "R3", "--u", table_file(t, "u", r3_values() * 0.01), "--seed", "abc",
+                    "--no-plots", "--out", t / "o"), must=("--seed",))
+probe("api-road-seed-negative", "seeds", "api",
+      lambda t: api(lambda: __import__("roadgonio").road_metrics("R3", u=str(table_file(t, "u", r3_values() * 0.01)),
+                                                                 seed=-3)), must=("seed",))
 probe("cli-validate-seed-2^63", "seeds", "validate",
       lambda t: cli("validate", "--instrument", instrument(t), "--sample", "lambert", "--against", "numpy-mc",
                     "--seed", str(2 ** 63), "--out", t / "v"), must=("--seed",))
