@@ -122,12 +122,20 @@ def as_vary_specs(vary: Sequence[str | VarySpec] | Mapping[str, Sequence[float]]
     a key may appear once."""
     if vary is None:
         return []
+    if isinstance(vary, (str, VarySpec)):          # one specification (not its characters)
+        vary = [vary]
     specs: list[VarySpec] = []
     if isinstance(vary, Mapping):
         for key, values in vary.items():
             if isinstance(values, str):
                 specs.append(parse_vary(f"{key}={values}"))
             else:
+                if isinstance(values, (int, float)):
+                    values = [values]
+                bad = [v for v in values if isinstance(v, bool) or not isinstance(v, (int, float, np.integer,
+                                                                                      np.floating))]
+                if bad:
+                    raise InputError(f"expected numbers as the values of {key}, got {bad[0]!r}", field="--vary")
                 specs.append(parse_vary(f"{key}=" + ",".join(repr(float(v)) for v in values)))
     else:
         for v in vary:

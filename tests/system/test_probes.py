@@ -506,6 +506,16 @@ probe("design-empty-cells", "input", "design",
 probe("ka-cells-only-commas", "input", "ka",
       lambda t: cli("ka", "--instrument", instrument(t), "--sample", "lambert", "--backend", "quadrature",
                     "--cells", " , "), must=("--cells",))
+probe("api-design-vary-one-text", "input", "api",
+      lambda t: api(lambda: __import__("roadgonio").design_study(str(instrument(t)), "source.radius_m=0.005:0.01:2",
+                                                                 str(model_file(t)), backend="quadrature", workers=0,
+                                                                 cells=[(1, 0)])), expect="ok",
+      check=lambda r, t: _assert(r.value.sizes.get("source.radius_m", r.value.sizes.get("point")) == 2,
+                                 dict(r.value.sizes)))
+probe("api-design-vary-values-text", "input", "api",
+      lambda t: api(lambda: __import__("roadgonio").design_study(str(instrument(t)), {"source.radius_m": ["0.01", "x"]},
+                                                                 str(model_file(t)), backend="quadrature", workers=0,
+                                                                 cells=[(1, 0)])), must=("source.radius_m", "numbers"))
 probe("table-unknown-name", "input", "table", lambda t: cli("table", "R9"), must=("R9",))
 probe("option-not-a-number", "input", "uncertainty",
       lambda t: cli("uncertainty", "--instrument", "lab", "--sample", "lambert", "--sigma", "alpha_deg=0.01",
