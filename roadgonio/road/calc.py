@@ -318,5 +318,5 @@ def threshold_increment(l_v, l_av_initial):
     EN 13201-3). Broadcasts."""
     l_v = np.asarray(l_v, float)
     lav = np.asarray(l_av_initial, float)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):   # L_av -> 0: TI -> inf (callers: missing)
         return np.where(lav <= 5.0, 65.0 * l_v / lav ** 0.8, 95.0 * l_v / lav ** 1.05)

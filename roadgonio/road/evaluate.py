@@ -56,6 +56,9 @@ class Installation:
         m = metrics.luminance_metrics(L, self.fld.lane, self.fld.centre)
         gone = metrics.unknown(op.incomplete, self.fld.lane, self.fld.centre)
         ti = self.ti(m["L_av"]) if m["L_av"] > 0 else None
+        ti_overflow = ti is not None and not np.isfinite(ti)      # L_av so small that TI exceeds any float
+        if ti_overflow:
+            ti = None
         values = {"L_av": _known(m["L_av"], gone["L_av"]), "U_o": _known(m["U_o"], gone["U_o"]),
                   "U_l": _known(m["U_l"], gone["U_l"]),
                   "TI": None if ti is None or gone["TI"] else float(ti), "R_EI": self.edge["R_EI"]}
@@ -73,8 +76,12 @@ class Installation:
                                  "unknown, so these metrics cannot be given",
                        "points_unknown": int(op.incomplete.sum())}
         elif lost:
-            missing = {"metrics": lost + ["class"],
+            missing = {"metrics": lost + (["TI"] if ti_overflow else []) + ["class"],
                        "reason": "no light where a uniformity needs it (L_av or a lane's L_max is 0): undefined"}
+        elif ti_overflow:
+            missing = {"metrics": ["TI", "class"],
+                       "reason": f"L_av = {m['L_av']:.3g} cd/m^2 is so small that TI = 65 L_v / L_av^0.8 exceeds any "
+                                 "float (is the table r x 1e4?)"}
         cls = None if missing else metrics.best_class(values)
         return RoadResult(table=table, values=values, L=np.where(op.incomplete, np.nan, L), per_observer=m, cls=cls,
                           installation=self, operator=op, missing=missing)

@@ -93,7 +93,8 @@ def propagate(installation, table: RTable, u: RTable, *, trials: int = 20000, se
         gone = set((nominal.missing or {}).get("metrics", ()))
         for k in ("L_av", "U_o", "U_l", "TI"):
             v = vals[k]
-            if v is None or k in gone:       # not computable, or missing in the nominal table itself
+            if v is None or k in gone or not np.all(np.isfinite(v)):   # not computable, missing in the nominal
+                # table itself, or (TI) beyond any float in some trial
                 res[k] = None
                 continue
             lo, hi = np.quantile(v, [0.025, 0.975])

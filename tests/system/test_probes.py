@@ -1045,6 +1045,24 @@ probe("stderr-one-line-focus-1e300", "extremes", "ka",
                                                                 "field_half_angle_deg = 0.05\nfocus_m = 1e300")),
                     "--sample", "lambert", "--backend", "quadrature", "--tan-eps", "1", "--beta", "0", cwd=t),
       must=("detector.focus_m",))
+probe("correct-u-measured-1e-300", "extremes", "correct",
+      lambda t: sub("correct", "--measured", "R3", "--instrument", instrument(t), "--u-measured", "1e-300",
+                    "--backend", "quadrature", "--accuracy", "fast", "--alternatives", "none", "--no-plots",
+                    "--out", t / "c", cwd=t), must=("--u-measured",))
+
+
+def _quiet_finite_json(r, t):
+    assert not r.err.strip(), f"stderr: {r.err[:300]}"
+    no_float_junk(strict_json(r.out))
+
+
+probe("road-table-times-1e-300", "extremes", "road",
+      lambda t: sub("road", "--table", table_file(t, "tiny", r3_values() * 1e-300), "--no-plots", "--json",
+                    "--out", t / "o", cwd=t), expect="ok", check=_quiet_finite_json)
+probe("uncertainty-sigma-1e-300", "extremes", "uncertainty",
+      lambda t: sub("uncertainty", "--instrument", instrument(t), "--sample", model_file(t), "--sigma",
+                    "alpha_deg=1e-300", "--no-aperture", "--trials", "200", "--no-plots", "--json", "--out", t / "u",
+                    cwd=t), expect="ok", check=_quiet_finite_json)
 probe("fit-tiny-values", "extremes", "fit",
       lambda t: cli("fit", table_file(t, "tiny", r3_values() * 1e-290), "--json", "--no-plot", "--out", t / "f"),
       expect="either", must=("tiny.csv",),
