@@ -63,6 +63,30 @@ RAY_FIELDS = ("px", "py", "pz", "nx", "ny", "nz", "sx", "sy", "sz", "dx", "dy", 
 FLAT_RAY_FIELDS = ("px", "py", "pz", "dx", "dy", "dz", "w")
 
 
+#: A ray that misses the sample is traced once more from an origin moved sideways by this fraction of
+#: its distance from the origin of the scene (about 8 float32 ulps): Embree's ray-triangle test is
+#: not watertight, so a ray that lands exactly on an edge or a vertex shared by two triangles of the
+#: sample mesh (common in symmetric scan meshes, and the rectangle's own diagonal passes the sample
+#: centre, where a focused detector's rays meet) can slip between them. A ray that really misses
+#: the sample misses it again.
+RETRY_NUDGE = 1e-6
+
+
+def intersect_sample(scene, ray, flags, sample_shape, active=True):
+    """``(si, hit)``: the first intersection of ``ray`` and whether it is on ``sample_shape``,
+    with the one retry of :data:`RETRY_NUDGE` for a ray that slipped through an edge."""
+    sample = dr.opaque(mi.ShapePtr, sample_shape)
+    si = scene.ray_intersect(ray, flags, False, active)
+    hit = si.is_valid() & (si.shape == sample)
+    retry = active & ~hit
+    s, t = mi.coordinate_system(ray.d)
+    nudge = RETRY_NUDGE * dr.maximum(dr.norm(mi.Vector3f(ray.o)), 1.0)
+    ray2 = mi.Ray3f(ray.o + (s + t) * nudge, ray.d)
+    si2 = scene.ray_intersect(ray2, flags, False, retry)
+    hit2 = retry & si2.is_valid() & (si2.shape == sample)
+    return dr.select(hit2, si2, si), hit | hit2
+
+
 def _u32(values) -> mi.UInt32:
     return mi.UInt32(np.ascontiguousarray(values, dtype=np.uint32))
 
@@ -171,8 +195,8 @@ class KaBatch(mi.SamplingIntegrator):
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         """``SamplingIntegrator`` interface: the signal of the cell :attr:`cell` along ``ray``."""
-        si = scene.ray_intersect(ray, active)
-        hit = active & si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
+        si, hit = intersect_sample(scene, ray, mi.RayFlags.All, self.sample_shape, active)
+        hit = active & hit
         cell = mi.UInt32(0) + self.cell
         value = self.shade(scene, si, cell, sampler.next_2d(hit), hit)
         return mi.Spectrum(value), hit, []
@@ -211,8 +235,7 @@ class KaBatch(mi.SamplingIntegrator):
         ray, w = sensor.sample_ray(0.0, 0.0, mi.Point2f(u2, u3), mi.Point2f(u0, u1))
         # a flat sample needs only the hit point (its normals are +z); otherwise the shading frame too
         flags = mi.RayFlags.Minimal if self.flat else (mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame)
-        si = scene.ray_intersect(ray, flags, False)
-        hit = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
+        si, hit = intersect_sample(scene, ray, flags, self.sample_shape)
         w = dr.select(hit, mi.Float(w.x), 0.0)
         if self.flat:
             data = dict(zip(FLAT_RAY_FIELDS, (si.p.x, si.p.y, si.p.z, ray.d.x, ray.d.y, ray.d.z, w)))

@@ -18,7 +18,7 @@ modules, :mod:`roadgonio.surface`, :mod:`roadgonio.instrument`, :mod:`roadgonio.
 from roadgonio._version import __version__
 
 __all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
-           "validate", "estimate_uncertainty", "correct", "design_study", "road", "compare_tables", "classify_table",
+           "validate", "estimate_uncertainty", "correct", "design_study", "road_metrics", "compare_tables", "classify_table",
            "__version__"]
 _API = frozenset(__all__) - {"__version__"}
 

@@ -22,7 +22,8 @@ function                 what (command)
 :func:`estimate_uncertainty`  JCGM 101 Monte Carlo uncertainty of the measured table (``uncertainty``)
 :func:`correct`          correct measured tables for the aperture effect (``correct``)
 :func:`design_study`     k_A over a grid of instruments on Dask (``design``)
-:func:`road`             EN 13201 road metrics of a layout with r-tables (``road``)
+:func:`road_metrics`     EN 13201 road metrics of a layout with r-tables (``road``; not ``road``: that
+                         name is the room :mod:`roadgonio.road`)
 :func:`compare_tables`   two tables side by side (``compare``)
 :func:`classify_table`   the CIE class of a table (``classify``)
 =======================  ======================================================================
@@ -64,7 +65,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from roadgonio.uncertainty.run import UncertaintyResult
 
 __all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
-           "validate", "estimate_uncertainty", "correct", "design_study", "road", "compare_tables",
+           "validate", "estimate_uncertainty", "correct", "design_study", "road_metrics", "compare_tables",
            "classify_table"]
 
 
@@ -254,19 +255,27 @@ def list_tables() -> list[dict[str, Any]]:
     rows = []
     for name in BUNDLED:
         t = bundled_table(name)
-        rows.append({"table": name, "Q0": t.q0(), "Q0_published": PUBLISHED_Q0[name], "S1": t.s1(),
-                     "S1_published": PUBLISHED_S1[name], "S2": t.s2(), "cells": int(t.mask.sum())})
+        rows.append({"table": name, "Q0": _value(t.q0()), "Q0_published": PUBLISHED_Q0[name], "S1": _value(t.s1()),
+                     "S1_published": PUBLISHED_S1[name], "S2": _value(t.s2()), "cells": int(t.mask.sum())})
     return rows
 
 
 def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
     """A table's Q0, S1, S2, cells and max r (``roadgonio table``); with ``to`` it is also written
-    there (``.rtb``: DIALux RTB, else CSV) and ``written`` names the file."""
+    there (``.rtb``: DIALux RTB, else CSV) and ``written`` names the file. A characteristic the
+    table lacks the cells for (S1 without r(0, 0) > 0 and r(2, 0); Q0 without a grid cell with four
+    tabulated corners; S2 without both) is None (missing), never NaN or infinity."""
     t = _table(table)
-    info = {"table": t.name, "Q0": t.q0(), "S1": t.s1(), "S2": t.s2(), "cells": int(t.mask.sum()), "r_max": t.r_max}
+    info = {"table": t.name, "Q0": _value(t.q0()), "S1": _value(t.s1()), "S2": _value(t.s2()),
+            "cells": int(t.mask.sum()), "r_max": _value(t.r_max)}
     if to is not None:
         info["written"] = str(t.write(to))
     return info
+
+
+def _value(v) -> float | None:
+    """A quantity of a result: a finite float, or None when it is missing (never NaN or infinity)."""
+    return float(v) if v is not None and math.isfinite(v) else None
 
 
 def read_table(path_or_name) -> "xr.DataArray":
@@ -287,13 +296,16 @@ def write_table(da, path) -> Path:
 # ----------------------------------------------------------------------------------------------
 
 def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mapping[str, float] | None = None,
-        out=None, plot: bool = True, progress: Callable[[int, int], None] | None = None) -> "FitResult":
+        out=None, fresh: bool = False, plot: bool = True,
+        progress: Callable[[int, int], None] | None = None) -> "FitResult":
     """Fit the road BRDF model (paper eq. 4; ``model_variant`` default ``"power"``) to an r-table
     (name, file, RTable or DataArray). Returns the :class:`~roadgonio.surface.fit.FitResult`:
     ``.model`` (a RoadModel, usable as a sample), ``.max_dev_pct``, ``.rms_dev_pct`` (% of the
     table's max r). With ``out`` (a folder or :data:`AUTO` = ``fit-TABLE-VARIANT``) it writes
-    model.json, residuals.csv and (``plot``) fit.png, all or none; ``.written`` lists them.
-    ``progress(done, total)`` is called as the global search advances."""
+    model.json, residuals.csv and (``plot``) fit.png, all or none; ``.written`` lists them. A
+    folder holding a different fit's results (model.json's fingerprint: table, variant, seed,
+    fixed parameters, roadgonio version) is refused before the fit unless ``fresh``, which
+    replaces them. ``progress(done, total)`` is called as the global search advances."""
     from roadgonio.engines.registry import check_seed
     from roadgonio.surface.fit import fit_table
     from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS
@@ -316,13 +328,20 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
         folder = Path(f"fit-{_safe(t.name)}-{variant}") if isinstance(out, _Auto) else _out(out, "fit")
         if folder.exists() and not folder.is_dir():
             raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
+    from roadgonio.fileio import check_run_folder, fingerprint
+    from roadgonio.surface.fit import FIT_METHOD_VERSION, table_hash
+    from roadgonio.surface.fitplot import FIT_FILES
+    fp = fingerprint({"table": table_hash(t), "name": t.name, "variant": variant, "seed": seed,
+                      "fixed": dict(sorted(fixed.items())), "fit": FIT_METHOD_VERSION})
+    if folder is not None:
+        check_run_folder(folder, "model.json", fp, what="fit", fresh=bool(fresh), outputs=FIT_FILES)
     result = fit_table(t, variant, seed=seed, fixed=fixed, progress=progress)
     check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
     if folder is not None:
         import dataclasses
 
         from roadgonio.surface.fitplot import write_fit
-        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot))
+        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot, fingerprint=fp))
     return result
 
 
@@ -421,15 +440,19 @@ def render(instrument, sample, tan_eps: float, beta: float, out, *, resolution: 
     """Pictures of one measurement cell with Mitsuba (``roadgonio render``): the detector's view of the
     sample (luminance inside the field stop) and the horizontal illuminance around the footprint, as
     view.exr, illuminance.exr, render.png and render.json in ``out``; returns render.json's content
-    (provenance, footprint, a one-render k_A estimate, files)."""
+    (provenance, footprint, a one-render k_A estimate, files). ``seed``: 0 ... 2^32 - 1 (Mitsuba's
+    samplers take a 32-bit seed)."""
     from roadgonio.engines.cells import check_cell
-    from roadgonio.engines.registry import check_seed, prepare_entry_point
+    from roadgonio.engines.registry import prepare_entry_point
+    from roadgonio.seeds import MITSUBA_SEED_MAX, check_seed
     t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
     resolution = _check_int(resolution, "resolution", 8, 2048)
     spp = _check_int(spp, "spp", 1)
+    from roadgonio.limits import check_size
+    check_size(resolution * resolution * spp, "render_samples", "spp")
     if math.isqrt(spp) ** 2 != spp:
         raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {spp}", field="spp")
-    seed = check_seed(seed)
+    seed = check_seed(seed, maximum=MITSUBA_SEED_MAX)
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
     folder = _out(out, "render", inst.name, smp.name)
@@ -492,13 +515,16 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
                          surrogate: str = "ccd", validation: int = 4, threads: int | None = None,
                          workers: int | None = None, scheduler: str | None = None,
                          mitsuba_variant: str | None = None, model_variant: str | None = None,
-                         out=None, plots: bool = True, figures=None, progress: bool = False) -> "UncertaintyResult":
+                         out=None, fresh: bool = False, plots: bool = True, figures=None,
+                         progress: bool = False) -> "UncertaintyResult":
     """Monte Carlo (JCGM 101) and GUM uncertainty of the r-table that ``instrument`` measures on
     ``sample`` for the instrument errors ``sigma`` (a SPEC text like ``"alpha_deg=0.01,eps_deg=0.05:rect"``,
     a TOML file, a mapping of the same keys, or a SigmaSpec), without and (``aperture``) with the
     aperture effect (``roadgonio uncertainty``). Returns the
     :class:`~roadgonio.uncertainty.run.UncertaintyResult`; with ``out`` (a folder or :data:`AUTO`)
-    writes uncertainty.json, cells.csv, the r-table CSVs and the pictures (``.written``)."""
+    writes uncertainty.json, cells.csv, the r-table CSVs and the pictures (``.written``). A folder
+    holding a different run's results (uncertainty.json's fingerprint of the inputs and settings)
+    is refused before the work unless ``fresh``, which replaces them."""
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
     from roadgonio.uncertainty.run import DEFAULT_BACKEND_TOLERANCE, run_uncertainty
     from roadgonio.uncertainty.spec import SigmaSpec, parse_sigma_spec
@@ -510,10 +536,11 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         raise InputError(f"expected a SPEC text, a TOML file, a mapping or a SigmaSpec, got {type(sigma).__name__}",
                          field="sigma")
     seed = check_seed(seed)
-    trials = _check_int(trials, "trials", 1)
-    max_trials = _check_int(max_trials, "max_trials", 1)
+    from roadgonio.limits import check_size
+    trials = check_size(_check_int(trials, "trials", 1), "trials", "trials")
+    max_trials = check_size(_check_int(max_trials, "max_trials", 1), "trials", "max_trials")
     if batch is not None:
-        batch = _check_int(batch, "batch", 1)
+        batch = check_size(_check_int(batch, "batch", 1), "trials", "batch")
     digits = _check_int(digits, "digits", 1, 3)
     validation = _check_int(validation, "validation", 0)
     if threads is not None:
@@ -528,6 +555,18 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
     folder = _out(out, "uncertainty", inst.name, smp.name)
+    fp = None
+    if folder is not None:
+        from roadgonio.engines.cluster import absolute_instrument_dict
+        from roadgonio.fileio import check_run_folder, fingerprint
+        from roadgonio.uncertainty.report import OUTPUT_FILES
+        fp = fingerprint({
+            "instrument": {k: v for k, v in absolute_instrument_dict(inst).items() if k != "instrument"},
+            "model": {"variant": smp.model.variant, "params": smp.model.params.to_dict()}, "sigma": spec.to_dict(),
+            "trials": trials, "adaptive": bool(adaptive), "digits": digits, "max_trials": max_trials, "batch": batch,
+            "seed": seed, "coverage": coverage, "cells": cells, "aperture": bool(aperture), "backend": backend,
+            "settings": settings, "illuminance": illuminance, "surrogate": surrogate, "validation": validation})
+        check_run_folder(folder, "uncertainty.json", fp, what="uncertainty run", fresh=bool(fresh), outputs=OUTPUT_FILES)
     if aperture and workers in (None, 0) and scheduler is None:
         prepare_entry_point(backend, mitsuba_variant)
     res = run_uncertainty(smp.model, inst, spec, trials=trials, adaptive=adaptive, seed=seed, coverage=coverage,
@@ -538,7 +577,7 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     res.provenance["sample"] = smp.spec or smp.name
     if folder is not None:
         from roadgonio.uncertainty.report import write_results
-        res.written = write_results(res, folder, sample_name=smp.name, plots=plots, figures=figures)
+        res.written = write_results(res, folder, sample_name=smp.name, plots=plots, figures=figures, fingerprint=fp)
         res.out = folder
     return res
 
@@ -577,7 +616,8 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     if model_variant == "auto" and not self_ref:
         raise InputError("model_variant 'auto' is for reference 'self'; give one variant for fitting a reference "
                          "table", field="model_variant")
-    rays = _check_int(rays, "rays", 8)
+    from roadgonio.limits import check_size
+    rays = check_size(_check_int(rays, "rays", 8), "rays", "rays")
     from roadgonio.engines.registry import backend_info
     seeded = backend_info(backend).seeded
     settings = resolve_settings(backend, tolerance=rel_se, seed=seed if seeded else None, mitsuba_variant=mitsuba_variant,
@@ -646,7 +686,7 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
 # from the table to the road
 # ----------------------------------------------------------------------------------------------
 
-def road(tables, *, u=None, luminaire=None, layout=None, target_class: str | None = None, trials: int = 20_000,
+def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: str | None = None, trials: int = 20_000,
          seed: int = 0, correlation: str = "both", out=None, plots: bool = True) -> list[dict[str, Any]]:
     """EN 13201-3 road-surface luminance metrics of a luminaire layout with one or several r-tables
     side by side (``roadgonio road``). ``u``: the tables' standard uncertainties (r-table files, r x
@@ -671,7 +711,8 @@ def road(tables, *, u=None, luminaire=None, layout=None, target_class: str | Non
         raise InputError(f"expected both, independent or correlated, got {correlation!r}", field="correlation")
     if isinstance(trials, int) and not isinstance(trials, bool) and trials < mc.MIN_TRIALS:
         raise InputError(f"expected at least {mc.MIN_TRIALS} trials, got {trials}", field="trials")
-    trials = _check_int(trials, "trials", mc.MIN_TRIALS)
+    from roadgonio.limits import check_size
+    trials = check_size(_check_int(trials, "trials", mc.MIN_TRIALS), "trials", "trials")
     seed = check_seed(seed)
     us = list(u) if isinstance(u, (list, tuple)) else ([] if u is None else [u])
     if not us:
@@ -742,4 +783,9 @@ def classify_table(table) -> dict[str, Any]:
     standard, and the bundled tables nearest in (S1, Q0) (``roadgonio classify``;
     :func:`roadgonio.surface.cie.classify`)."""
     from roadgonio.surface.cie import classify
-    return classify(_table(table))
+    try:
+        return classify(_table(table))
+    except InputError as err:
+        if isinstance(table, (str, Path)) and Path(str(table)).suffix and err.path is None:
+            raise InputError(err.reason, path=table, field=err.field) from None
+        raise

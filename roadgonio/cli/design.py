@@ -49,7 +49,7 @@ def register(sub) -> None:
     add_backend(p, names=["mitsuba", "quadrature", "numpy-mc", "reference"], help_text="k_A backend (default mitsuba)")
     add_accuracy(p)
     p.add_argument("--rel-se", type=float, metavar="E", help="target relative SE per cell (overrides --accuracy)")
-    p.add_argument("--seed", type=int, default=0, help="root seed; design point k gets SeedSequence(seed).spawn(n)[k]")
+    p.add_argument("--seed", type=int, default=0, help="root seed (0 ... 2^63 - 1); design point k gets its own seed point_seed(seed, k), in design.csv")
     add_mitsuba_variant(p)
     add_dask_arguments(p, "default: a local cluster with one worker per core")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/design-INSTRUMENT)")

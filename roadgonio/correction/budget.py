@@ -105,7 +105,7 @@ def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:
     r = table.r[mask]
     ii, jj = np.nonzero(mask)
     s1, q0 = table.s1(), table.q0()
-    s2 = q0 / table.value(0.0, 0.0)
+    s2 = table.s2()
     out: dict[str, Any] = {"S1": s1, "Q0": q0, "S2": s2}
     if cov_rel is not None:
         i00 = _cell(table, ii, jj, 0.0, 0.0)
@@ -119,7 +119,8 @@ def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:
         out.update(u_S1=s1 * math.sqrt(max(var_lns1, 0.0)), u_Q0=q0 * math.sqrt(max(var_lnq0, 0.0)),
                    u_S2=s2 * math.sqrt(max(var_lns2, 0.0)))
     out["class"] = cie_class(s1, out.get("u_S1"))
-    out["nearest_table"], out["nearest_distance"] = nearest_bundled(s1, q0, 1)[0]
+    near = nearest_bundled(s1, q0, 1)
+    out["nearest_table"], out["nearest_distance"] = near[0] if near else (None, None)
     return out
 
 

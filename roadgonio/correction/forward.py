@@ -47,6 +47,7 @@ from roadgonio.engines import CellResult, ratio_se
 from roadgonio.engines.calibration import apply_calibration, centre_coupling, illuminance_ratio
 from roadgonio.engines.cellcheck import check_cells, no_light
 from roadgonio.errors import InputError
+from roadgonio.seeds import seed_entropy
 from roadgonio.geometry import cos3_eps
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
@@ -71,7 +72,7 @@ def _sobol_net(seed: int, replicate: int, n: int) -> np.ndarray:
     """A scrambled Sobol' net of n = 2^m points in [0, 1)^6 (read-only, cached)."""
     from scipy.stats import qmc
     m = int(round(math.log2(n)))
-    u = qmc.Sobol(6, scramble=True, seed=np.random.default_rng([seed, replicate, n])).random_base2(m)
+    u = qmc.Sobol(6, scramble=True, seed=np.random.default_rng(seed_entropy(seed, replicate, n))).random_base2(m)
     u.setflags(write=False)
     return u
 
@@ -82,7 +83,8 @@ def _unit_points(seed: int, indices: np.ndarray, replicate: int, n: int) -> np.n
     (seed, cell index, replicate)): randomised QMC that keeps the net's structure, independent between
     cells and replicates, and cheap (the net is scrambled once)."""
     net = (_sobol_net(seed, replicate, n) * 2.0 ** 32).astype(np.uint64)
-    shifts = np.array([np.random.default_rng([seed, int(i), replicate]).integers(0, 2 ** 32, 6, dtype=np.uint64)
+    shifts = np.array([np.random.default_rng(seed_entropy(seed, int(i), replicate, 1)).integers(0, 2 ** 32, 6,
+                                                                                            dtype=np.uint64)
                        for i in indices], dtype=np.uint64)
     u = np.bitwise_xor(net[None, :, :], shifts[:, None, :]).astype(np.float64)
     return (u + 0.5) * 2.0 ** -32

@@ -70,12 +70,26 @@ BackendFactory = Callable[[Instrument, RoadModel], Any]
 def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
     """Standard uncertainty (sr^-1, grid of ``table``) of every measured cell from ``spec``:
     ``"1%"`` or a number in (0, 1) (relative), an :class:`RTable`, or the path of an r-table file
-    (CSV/RTB, r x 1e4) of standard uncertainties. Returns (grid, description)."""
+    (CSV/RTB, r x 1e4) of standard uncertainties. At least :data:`U_REL_MIN` of each
+    value. Returns (grid, description)."""
+    grid, what, path = _measured_uncertainty(spec, table)
+    with np.errstate(invalid="ignore"):
+        tiny = table.mask & (grid < U_REL_MIN * table.r)
+    if tiny.any():
+        i, j = np.argwhere(tiny)[0]
+        raise InputError(f"a standard uncertainty below {U_REL_MIN:g} of the value (tan eps = {table.tan_eps[i]:g}, "
+                         f"beta = {table.beta_deg[j]:g}; {int(tiny.sum())} cells): no goniophotometer measures that "
+                         f"well, and the fit's weights 1/u^2 would overflow; expected at least {100 * U_REL_MIN:g} %",
+                         path=path, field="--u-measured")
+    return grid, what
+
+
+def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Path | None]:
     if isinstance(spec, RTable):
         grid, what = spec.r, f"per-cell table {spec.name}"
         path = None
     elif isinstance(spec, (int, float)) and not isinstance(spec, bool):
-        grid, what, path = _relative(float(spec), table, "--u-measured"), f"{100 * float(spec):g} % of each value", None
+        return _relative(float(spec), table, "--u-measured"), f"{100 * float(spec):g} % of each value", None
     else:
         text = str(spec).strip()
         path = None
@@ -85,13 +99,13 @@ def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
             except ValueError:
                 raise InputError(f"expected a percentage like '1%' or a table file, got {text!r}",
                                  field="--u-measured") from None
-            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)"
+            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)", None
         try:
             v = float(text)
         except ValueError:
             v = None
         if v is not None:
-            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)"
+            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)", None
         path = Path(text)
         try:
             u_table = read_table(path)
@@ -106,7 +120,12 @@ def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
         raise InputError(f"no positive standard uncertainty for the measured cell tan eps = {table.tan_eps[i]:g}, "
                          f"beta = {table.beta_deg[j]:g} ({int(missing.sum())} measured cells lack one); expected "
                          "the r-table layout with r x 1e4 values", path=path, field="--u-measured")
-    return np.where(table.mask, grid, np.nan), what
+    return np.where(table.mask, grid, np.nan), what, path
+
+
+#: The smallest relative standard uncertainty of a measured cell (0.0001 %): far below any
+#: goniophotometer's, far above where the fit's weights 1/u^2 overflow.
+U_REL_MIN = 1e-6
 
 
 def _relative(v: float, table: RTable, fld: str) -> np.ndarray:
@@ -254,7 +273,7 @@ def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rh
     k_frozen = np.ones_like(y)
     best = None
     for r in range(int(rounds)):
-        res = fit_through_instrument(fm, y, u, variant=variant, rho=rho, polish=polish, seed=seed + r,
+        res = fit_through_instrument(fm, y, u, variant=variant, rho=rho, polish=polish, seed=seed, restart=r,
                                      starts=starts if best is None else LATER_ROUND_STARTS, k_frozen=k_frozen,
                                      stage_b=False, name=name, start_models=[] if best is None else [best.model])
         if best is not None and res.chi2 >= best.chi2 * (1.0 - 1e-6):

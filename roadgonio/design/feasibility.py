@@ -43,7 +43,7 @@ class Feasibility:
     ok: bool
     kind: str = ""                  # "" | instrument | footprint | horizon | line_of_sight | housing | backend
     reason: str = ""
-    footprint: tuple[float, float, float, float] | None = None   # x_min, x_max, y_min, y_max (m)
+    footprint: tuple[float, float, float, float] | None = None   # x_min, x_max, y_min, y_max (m; x along delta)
 
     @property
     def footprint_length_m(self) -> float:
@@ -74,12 +74,12 @@ def check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]])
         if instrument.sample.mesh is None:
             fp = optics.check_detector(instrument)
         else:
-            x, y = optics.footprint_boundary(instrument)
+            x, y = optics.footprint_along_azimuth(instrument)
             fp = (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
     except GeometryError as err:
         fp = None
         try:
-            x, y = optics.footprint_boundary(instrument)
+            x, y = optics.footprint_along_azimuth(instrument)
             fp = (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
         except GeometryError:
             pass

@@ -22,12 +22,14 @@ speed baseline of the Mitsuba backend; it also handles the flat rectangular samp
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from typing import Any
 
 import numpy as np
 
 from roadgonio.instrument import optics
+from roadgonio.seeds import cell_key, check_seed, seed_entropy
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
@@ -66,9 +68,11 @@ class MonteCarloBackend(CellByCellBackend):
             raise InputError(f"expected a number, got {rel_se!r}", field="rel_se") from None
         if not (0.0 < rel_se < 1.0):
             raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
-        if isinstance(seed, bool) or int(seed) != seed or int(seed) < 0:
-            raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
-        m = int(round(math.sqrt(int(batch))))
+        seed = check_seed(seed)
+        from roadgonio.limits import check_size
+        if isinstance(batch, bool) or not isinstance(batch, numbers.Integral):
+            raise InputError(f"expected a whole number of samples per batch, got {batch!r}", field="batch")
+        m = int(round(math.sqrt(check_size(int(batch), "batch", "batch"))))
         if m < 2:
             raise InputError(f"expected a batch of at least 4 samples, got {batch}", field="batch")
         if int(min_batches) < 2:
@@ -158,7 +162,7 @@ class MonteCarloBackend(CellByCellBackend):
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
         ideal = check_cell(self.instrument, self.model, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
-        rng = np.random.default_rng([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6))])
+        rng = np.random.default_rng(seed_entropy(self.seed, cell_key(tan_eps), cell_key(beta_deg)))
         road, lam = [], []
         k = se = math.nan
         max_batches = max(self.min_batches, self.max_samples // self.batch)

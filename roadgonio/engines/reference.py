@@ -78,6 +78,7 @@ from typing import Any
 
 import numpy as np
 
+from roadgonio.seeds import cell_key, check_seed, seed_entropy
 from roadgonio.errors import InputError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
@@ -228,9 +229,7 @@ class ReferenceBackend(CellByCellBackend):
         max_evals = _integer(max_evals, "max_evals")
         if max_evals < 1:
             raise InputError(f"expected a positive number of evaluations, got {max_evals}", field="max_evals")
-        seed = _integer(seed, "seed")
-        if seed < 0:
-            raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
+        seed = check_seed(seed)
         optics.check_detector(instrument)
         from scipy.stats import t as student_t
         self.instrument = instrument
@@ -492,7 +491,7 @@ class ReferenceBackend(CellByCellBackend):
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         self._level_coords = self._h_varies(src)
         R = self.replicates
-        ss = np.random.SeedSequence([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6))])
+        ss = np.random.SeedSequence(seed_entropy(self.seed, cell_key(tan_eps), cell_key(beta_deg)))
         pilot_ss, *rep_ss = ss.spawn(R + 1)
         amap, evals, map_info = self._train(src, pilot_ss)
         dim = max(self.dim, 1)

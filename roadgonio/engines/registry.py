@@ -41,12 +41,10 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from roadgonio.errors import InputError
+from roadgonio.seeds import SEED_MAX, check_seed  # noqa: F401 - the seed range, written once in roadgonio.seeds
 
 #: The accuracy presets, by name.
 PRESETS = ("fast", "default", "precise")
-#: Seeds a user may give: whole numbers 0 <= seed <= SEED_MAX (they reach the generators in full:
-#: numpy's SeedSequence takes them as entropy, so two different seeds never share a stream).
-SEED_MAX = 2 ** 63 - 1
 
 
 @dataclass(frozen=True)
@@ -111,17 +109,6 @@ def backend_info(name: str, field: str = "backend") -> BackendInfo:
     if not isinstance(name, str) or name not in BACKENDS:
         raise InputError(f"unknown backend {name!r}; expected one of {', '.join(BACKENDS)}", field=field)
     return BACKENDS[name]
-
-
-def check_seed(seed, field: str = "seed") -> int:
-    """A seed as given by a user: a whole number 0 <= seed <= :data:`SEED_MAX` (not a bool, not a
-    float), returned as int; the full value reaches the generators."""
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
-        raise InputError(f"expected a whole number >= 0 as the seed, got {seed!r}", field=field)
-    s = int(seed)
-    if not 0 <= s <= SEED_MAX:
-        raise InputError(f"expected a whole number >= 0 (at most 2^63 - 1) as the seed, got {s}", field=field)
-    return s
 
 
 def check_relative(value, field: str) -> float:
@@ -204,7 +191,8 @@ def resolve_settings(name: str, *, accuracy: str | None = None, tolerance=None, 
     if mitsuba_variant is not None:
         if not info.mitsuba:
             raise InputError(f"a Mitsuba variant is for the mitsuba backend, not {name}", field=f["mitsuba_variant"])
-        out["mitsuba_variant"] = str(mitsuba_variant)
+        from roadgonio.engines.mitsuba import check_variant_name
+        out["mitsuba_variant"] = check_variant_name(mitsuba_variant, f["mitsuba_variant"])
     if settings:
         if not hasattr(settings, "items"):
             raise InputError(f"expected a mapping of backend settings, got {settings!r}", field=f["settings"])

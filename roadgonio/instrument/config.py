@@ -50,6 +50,13 @@ from roadgonio.geometry import w_detector, w_source
 from roadgonio.instrument.calibration import Calibration
 
 _INF_WORDS = ("inf", "+inf", "infinity")
+#: The longest length of an instrument (distances, a finite focus, the sample's sides), m: no
+#: goniophotometer is larger, and beyond it float arithmetic of the ray geometry overflows
+#: (1e300 m) or loses the sample (float32 rays of the renderer).
+MAX_LENGTH_M = 1000.0
+#: The smallest non-zero aperture radius, m: below a micrometre a disc is no aperture of an
+#: instrument (give 0 for a point source or a pinhole), and its area underflows (1e-300 m).
+MIN_APERTURE_M = 1e-6
 
 
 def _number(v: Any, name: str, *, allow_inf: bool = False) -> float:
@@ -66,8 +73,10 @@ def _number(v: Any, name: str, *, allow_inf: bool = False) -> float:
 
 
 def _checked(obj, attr: str, name: str, *, lo=None, hi=None, lo_open=False, hi_open=False,
-             allow_inf=False, optional=False) -> None:
-    """Validate (and normalise to float) the field ``attr`` of the frozen dataclass ``obj``."""
+             allow_inf=False, optional=False, length=False, aperture=False) -> None:
+    """Validate (and normalise to float) the field ``attr`` of the frozen dataclass ``obj``;
+    ``length``: at most :data:`MAX_LENGTH_M` (unless infinite where allowed); ``aperture``: 0 or
+    at least :data:`MIN_APERTURE_M`."""
     v = getattr(obj, attr)
     if v is None and optional:
         return
@@ -76,6 +85,11 @@ def _checked(obj, attr: str, name: str, *, lo=None, hi=None, lo_open=False, hi_o
         raise InputError(f"expected a value {'>' if lo_open else '>='} {lo:g}, got {v:g}", field=name)
     if hi is not None and (v > hi or (hi_open and v == hi)):
         raise InputError(f"expected a value {'<' if hi_open else '<='} {hi:g}, got {v:g}", field=name)
+    if length and math.isfinite(v) and v > MAX_LENGTH_M:
+        raise InputError(f"expected at most {MAX_LENGTH_M:g} m (no instrument is larger)"
+                         + (', or "inf" for a focus at infinity' if allow_inf else "") + f", got {v:g}", field=name)
+    if aperture and 0.0 < v < MIN_APERTURE_M:
+        raise InputError(f"expected 0 (a point) or a radius of at least {MIN_APERTURE_M:g} m, got {v:g}", field=name)
     object.__setattr__(obj, attr, v)
 
 
@@ -152,8 +166,8 @@ class Source:
 
     def __post_init__(self):
         from roadgonio.instrument import profiles
-        _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True)
-        _checked(self, "radius_m", "source.radius_m", lo=0.0)
+        _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True, length=True)
+        _checked(self, "radius_m", "source.radius_m", lo=0.0, aperture=True)
         _checked(self, "beam_half_angle_deg", "source.beam_half_angle_deg", lo=0.0, hi=90.0, lo_open=True,
                  optional=True)
         _checked(self, "beam_sigma_deg", "source.beam_sigma_deg", lo=0.0, lo_open=True, hi=1e6, optional=True)
@@ -241,10 +255,11 @@ class Detector:
     field_sensitivity: Path | None = None
 
     def __post_init__(self):
-        _checked(self, "distance_m", "detector.distance_m", lo=0.0, lo_open=True)
-        _checked(self, "pupil_radius_m", "detector.pupil_radius_m", lo=0.0)
+        _checked(self, "distance_m", "detector.distance_m", lo=0.0, lo_open=True, length=True)
+        _checked(self, "pupil_radius_m", "detector.pupil_radius_m", lo=0.0, aperture=True)
         _checked(self, "field_half_angle_deg", "detector.field_half_angle_deg", lo=0.0, hi=45.0, hi_open=True)
-        _checked(self, "focus_m", "detector.focus_m", lo=0.0, lo_open=True, allow_inf=True, optional=True)
+        _checked(self, "focus_m", "detector.focus_m", lo=0.0, lo_open=True, allow_inf=True, optional=True,
+                 length=True)
         _checked(self, "field_edge_sensitivity", "detector.field_edge_sensitivity", lo=0.0, hi=2.0)
         _file_key(self, "field_sensitivity", "detector.field_sensitivity")
         fmap = None
@@ -308,7 +323,7 @@ class SampleGeometry:
         for attr, default in (("size_x_m", 6.0), ("size_y_m", 2.0)):
             if getattr(self, attr) is None:
                 object.__setattr__(self, attr, default)
-            _checked(self, attr, f"sample.{attr}", lo=0.0, lo_open=True)
+            _checked(self, attr, f"sample.{attr}", lo=0.0, lo_open=True, length=True)
 
 
 def _resolve_file(sec: dict, key: str, section: str, path: Path | None) -> None:
@@ -338,17 +353,21 @@ MAX_BOUNCES_LIMIT = 64
 
 
 def check_extra_sections(extra: Mapping[str, Any]) -> None:
-    """Check [scene] (known keys; ``xml`` a file name, ``params`` a table, ``max_bounces`` a whole
-    number 1 ... 64) and [housing] (:class:`roadgonio.instrument.housing.Housing`)."""
+    """Check [scene] (known keys; ``xml`` a file name, ``params`` a table and only with ``xml``,
+    ``max_bounces`` a whole number 1 ... 64; an empty [scene] is no scene) and [housing] (:class:`roadgonio.instrument.housing.Housing`)."""
     scene = extra.get("scene")
     if scene is not None:
         if not isinstance(scene, Mapping):
             raise InputError("expected a table [scene]", field="scene")
         _check_keys(scene, set(SCENE_KEYS), "scene", None)
         if "xml" in scene and (not isinstance(scene["xml"], (str, Path)) or not str(scene["xml"])):
-            raise InputError(f"expected a file name, got {scene['xml']!r}", field="scene.xml")
+            raise InputError(f"expected a file name (text), got {scene['xml']!r}", field="scene.xml")
         if "params" in scene and not isinstance(scene["params"], Mapping):
             raise InputError("expected a table [scene.params]", field="scene.params")
+        if "params" in scene and "xml" not in scene:
+            # its $parameters would be ignored without the XML file they fill in
+            raise InputError('[scene.params] without the Mitsuba XML file they are for; expected xml = "FILE.xml"',
+                             field="scene.xml")
         if "max_bounces" in scene:
             v = scene["max_bounces"]
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= MAX_BOUNCES_LIMIT:
@@ -405,8 +424,10 @@ class Instrument:
                           ("sample", SampleGeometry)):
             if not isinstance(getattr(self, attr), cls):
                 raise InputError(f"expected a {cls.__name__}, got {type(getattr(self, attr)).__name__}", field=attr)
-        if not isinstance(self.name, str) or not isinstance(self.description, str):
-            raise InputError("expected text for the name and the description", field="instrument")
+        for key in ("name", "description"):
+            if not isinstance(getattr(self, key), str):
+                raise InputError(f"expected text, got {type(getattr(self, key)).__name__} {getattr(self, key)!r}",
+                                 field=f"instrument.{key}")
         if self.path is not None:
             object.__setattr__(self, "path", Path(self.path))
         if not isinstance(self.calibration, Calibration):
@@ -543,7 +564,11 @@ class Instrument:
         sample = SampleGeometry(**sm)
         meta = d.get("instrument", {})
         _check_keys(meta, {"name", "description"}, "instrument", None)
-        name = str(meta.get("name", path.stem if path is not None else "instrument"))
+        for key in ("name", "description"):
+            if key in meta and not isinstance(meta[key], str):
+                raise InputError(f"expected text (a quoted string), got {type(meta[key]).__name__} {meta[key]!r}",
+                                 field=f"instrument.{key}")
+        name = meta.get("name", path.stem if path is not None else "instrument")
         calibration = Calibration.from_dict(d.get("calibration", {}), path=path)
         extra = {k: v for k, v in d.items() if k not in _SECTIONS and k != "calibration"}
         unknown = sorted(set(extra) - set(EXTRA_SECTIONS))
@@ -554,13 +579,94 @@ class Instrument:
             if sec in extra and not isinstance(extra[sec], Mapping):
                 raise InputError(f"expected a table [{sec}]", field=sec)
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
-                   description=str(meta.get("description", "")), path=path, calibration=calibration, extra=extra)
+                   description=meta.get("description", ""), path=path, calibration=calibration, extra=extra)
+
+    def to_toml(self, header: str = "") -> str:
+        """The instrument file's text (:meth:`to_dict` written as TOML by :func:`toml_text`, with
+        ``header`` as comment lines): ``Instrument.load`` of it gives this instrument back."""
+        return toml_text(self.to_dict(), header)
 
     @classmethod
     def load(cls, path: str | Path) -> "Instrument":
         """Load a TOML instrument file; errors name the file, the line or field, and what was expected."""
         path = Path(path)
         return cls.from_dict(read_toml(path, "instrument file"), path=path)
+
+
+# ----------------------------------------------------------------------------------------------
+# Writing TOML (the reader is Python's tomllib): what the writer writes, the reader reads back
+# ----------------------------------------------------------------------------------------------
+
+_BARE_KEY = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-")
+_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
+def toml_string(s: str) -> str:
+    """A TOML basic string: backslash, quote and control characters (U+0000-U+001F, U+007F)
+    escaped, everything else as it is (TOML files are UTF-8). A lone surrogate has no TOML form."""
+    out = []
+    for ch in s:
+        if ch in _ESCAPES:
+            out.append(_ESCAPES[ch])
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04X}")
+        elif 0xD800 <= ord(ch) <= 0xDFFF:
+            raise InputError(f"cannot write {s!r} to TOML: it holds a lone surrogate (U+{ord(ch):04X}), which no "
+                             "TOML (UTF-8) text can hold", field="text")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
+def _toml_key(k) -> str:
+    k = str(k)
+    return k if k and set(k) <= _BARE_KEY else toml_string(k)
+
+
+def toml_value(v) -> str:
+    """A scalar, a list of scalars or of inline tables as TOML (an infinite float as the text "inf", as instrument
+    files spell a focus at infinity; NaN has no TOML form in roadgonio's files)."""
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        v = float(v)
+        if math.isnan(v):
+            raise InputError("cannot write NaN to an instrument file", field="value")
+        if math.isinf(v):
+            return '"inf"' if v > 0 else '"-inf"'
+        return repr(v)
+    if isinstance(v, str):
+        return toml_string(v)
+    if isinstance(v, Path):
+        return toml_string(str(v))
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    if isinstance(v, Mapping):          # an inline table inside a list (a [housing] baffle)
+        return "{" + ", ".join(f"{_toml_key(k)} = {toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def toml_text(d: Mapping[str, Any], header: str = "") -> str:
+    """A TOML document of tables of scalars (nested tables as ``[a.b]``), ``header`` as comment lines."""
+    lines = [("# " + ln).rstrip() for ln in header.splitlines()] if header else []
+
+    def table(name: str, t: Mapping[str, Any]) -> None:
+        scalars = {k: v for k, v in t.items() if not isinstance(v, Mapping)}
+        subs = {k: v for k, v in t.items() if isinstance(v, Mapping)}
+        if lines:
+            lines.append("")
+        lines.append(f"[{name}]")
+        for k, v in scalars.items():
+            lines.append(f"{_toml_key(k)} = {toml_value(v)}")
+        for k, v in subs.items():
+            table(f"{name}.{_toml_key(k)}", v)
+
+    for name, t in d.items():
+        if isinstance(t, Mapping):
+            table(_toml_key(name), t)
+    return "\n".join(lines) + "\n"
 
 
 def bundled_instruments() -> list[str]:

@@ -324,16 +324,34 @@ def footprint_boundary(instrument: Instrument, n: int = 96) -> tuple[np.ndarray,
     return np.asarray(x), np.asarray(y)
 
 
+def along_azimuth(x, y, delta_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points (x, y) of the sample plane in the frame whose x runs along the observation azimuth
+    ``delta_deg`` (the frame of the rectangular sample: docs/conventions.md section 4)."""
+    c, s = math.cos(math.radians(delta_deg)), math.sin(math.radians(delta_deg))
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    return c * x + s * y, -s * x + c * y
+
+
+def footprint_along_azimuth(instrument: Instrument, n: int = 96) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`footprint_boundary` in the frame of :func:`along_azimuth`: x along the observation
+    azimuth, y across it."""
+    x, y = footprint_boundary(instrument, n)
+    return along_azimuth(x, y, instrument.observation.delta_deg)
+
+
 def check_detector(instrument: Instrument) -> tuple[float, float, float, float]:
     """Check that the detector sees the sample and that the footprint stays on a rectangular
-    sample; returns the footprint bounds (xmin, xmax, ymin, ymax) in m."""
+    sample; returns the footprint bounds (xmin, xmax, ymin, ymax) in m, x along the observation
+    azimuth (the rectangle's frame: its side ``size_x_m`` runs along the azimuth delta, as
+    docs/conventions.md section 4 says, so turning the instrument about the vertical turns the
+    rectangle with it)."""
     det = instrument.detector
     a = math.radians(instrument.observation.alpha_deg)
     if det.distance_m * math.sin(a) - det.pupil_radius_m * math.cos(a) <= 0.0:
         raise GeometryError(f"the detector pupil reaches below the sample plane (alpha = "
                             f"{instrument.observation.alpha_deg:g} deg, pupil radius {det.pupil_radius_m:g} m "
                             f"at {det.distance_m:g} m)")
-    x, y = footprint_boundary(instrument)
+    x, y = footprint_along_azimuth(instrument)
     bounds = (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
     smp = instrument.sample
     if smp.mesh is None:
@@ -342,7 +360,8 @@ def check_detector(instrument: Instrument) -> tuple[float, float, float, float]:
             raise GeometryError(
                 f"the detector footprint leaves the sample: it spans x = {bounds[0]:.3f} ... {bounds[1]:.3f} m, "
                 f"y = {bounds[2]:.3f} ... {bounds[3]:.3f} m, but the sample is {smp.size_x_m:g} m x "
-                f"{smp.size_y_m:g} m (x = +-{hx:g}, y = +-{hy:g}); enlarge [sample] or narrow the field")
+                f"{smp.size_y_m:g} m (x = +-{hx:g}, y = +-{hy:g}; x along the observation azimuth); enlarge "
+                "[sample] or narrow the field")
     return bounds
 
 

@@ -74,8 +74,12 @@ def _parse_entry(key: str, value: Any, *, path, field_prefix: str = "") -> tuple
         extra = sorted(set(value) - {"sigma", "distribution"})
         if extra or "sigma" not in value:
             raise InputError("expected {sigma = NUMBER, distribution = \"normal\"|\"rect\"}", path=path, field=fld)
-        dist_text = str(value.get("distribution", "normal"))
+        dist_text = value.get("distribution", "normal")
         value = value["sigma"]
+        if not isinstance(dist_text, str):
+            raise InputError(f"expected text (normal or rect), got {dist_text!r}", path=path, field=fld + ".distribution")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):     # a table holds numbers as numbers
+            raise InputError(f"expected a number (standard deviation), got {value!r}", path=path, field=fld + ".sigma")
     elif isinstance(value, str):
         text, _, dist_text = value.partition(":")
         value = text.strip()

@@ -222,20 +222,30 @@ class RoadScene:
         px, py, fx, fy = (dr.gather(mi.Float, mi.Float(v.astype(np.float32)), idx)
                           for v in (pu[:, 0], pu[:, 1], fu[:, 0], fu[:, 1]))
         o, d, _ = detector_ray(DrJitOps, geo, (px, py), (fx, fy))
-        si = self.scene.ray_intersect(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)))
-        # opaque: the shape pointer as a literal would make every new scene compile its own kernel
-        on_sample = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
+        from roadgonio.engines.mitsuba.plugins.ka_batch import intersect_sample
+        # an edge or a vertex of the sample mesh under a ray is a hit (one retry, ka_batch.RETRY_NUDGE)
+        si, on_sample = intersect_sample(self.scene, mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)), mi.RayFlags.All,
+                                         self.sample_shape)
         other = si.is_valid() & ~on_sample
         if bool(dr.any(other)):
-            # name the part that stands in the detector's view (a housing wall, a baffle, a holder)
             from roadgonio.errors import GeometryError
+            cell = f" at tan eps = {self.cell[0]:g}, beta = {self.cell[1]:g}" if self.cell is not None else ""
             for shape in self.scene.shapes():
+                # opaque: the shape pointer as a literal would make every new scene compile its own kernel
                 k = int(dr.count(other & (si.shape == dr.opaque(mi.ShapePtr, shape)))[0])
-                if k:
+                if not k:
+                    continue
+                if shape.id() == SOURCE_ID:
+                    # the source disc in the line of sight is its own error, with the cell (not "enlarge the sample")
                     raise GeometryError(
-                        f"{k} of {dr.width(other)} detector rays meet the part {shape.id()!r} before the sample: "
-                        "it blocks the detector's view of its footprint (a part of the scene must not stand between "
-                        "the detector and the sample)")
+                        f"the source disc blocks the detector's line of sight{cell}: {k} of {dr.width(other)} "
+                        "detector rays hit the source before the sample (the source sits between the detector "
+                        "and its footprint); this cell cannot be measured with this geometry")
+                # name the part that stands in the detector's view (a housing wall, a baffle, a holder)
+                raise GeometryError(
+                    f"{k} of {dr.width(other)} detector rays meet the part {shape.id()!r} before the sample{cell}: "
+                    "it blocks the detector's view of its footprint (a part of the scene must not stand between "
+                    "the detector and the sample)")
         return judge_hits(np.array(on_sample, dtype=bool), np.array(si.is_valid(), dtype=bool),
                           np.array(si.p.x), np.array(si.p.y))
 
