@@ -47,7 +47,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from roadgonio.surface.rtable import RTable
     from roadgonio.uncertainty.run import UncertaintyResult
 
-__all__ = ["ka_table", "ka_cell", "read_table", "write_table", "fit", "correct", "uncertainty", "design"]
+__all__ = ["ka_table", "ka_cell", "read_table", "write_table", "fit", "correct", "uncertainty", "design",
+           "intercompare"]
 
 #: Names of the Dataset / DataArray dimensions (the r-table rows and columns).
 TAN_EPS, BETA = "tan_eps", "beta"
@@ -433,3 +434,21 @@ def design(instrument, vary=None, samples="R3", *, tolerance: float | str = "5%"
                       tolerance=tolerance, cells=cells, backend=backend, accuracy=accuracy, settings=settings,
                       seed=seed, workers=workers, scheduler=scheduler, client=client, out=out, fresh=fresh,
                       progress=progress, plots=plots, model_variant=model_variant)
+
+
+def intercompare(study, out=None, *, workers: int | None = None, scheduler: str | None = None, client=None,
+                 fresh: bool = False, progress: bool = False, plots: bool = True, variant: str | None = None):
+    """A virtual intercomparison (``roadgonio intercompare STUDY --out DIR``): every participant of
+    the study (a TOML file, a bundled study name or a :class:`roadgonio.intercomparison.study.Study`)
+    measures its surface in many realisations; returns the
+    :class:`~roadgonio.intercomparison.run.StudyRun` (``.dataset``: the ``xarray.Dataset`` of
+    intercompare.nc). ``workers``/``scheduler``/``client`` as :func:`design` (default: a local
+    cluster, one worker per core; ``workers=0`` computes here). With ``out`` the run is journalled
+    (resumable) and its files are written there (:mod:`roadgonio.intercomparison.outputs`)."""
+    from roadgonio.intercomparison.run import run_study
+    from roadgonio.intercomparison.study import Study, load_study
+    st = study if isinstance(study, Study) else load_study(study)
+    if workers == 0 and scheduler is None and client is None:
+        _choose_variant(st.backend, variant)          # this process computes: it is the entry point
+    return run_study(st, out, workers=workers, scheduler=scheduler, client=client, fresh=fresh, progress=progress,
+                     plots=plots, variant=variant)
