@@ -301,3 +301,25 @@ def test_participants_correcting_through_roadgonio_and_the_frozen_factor(tmp_pat
     valid = json.loads(ds.attrs["validation_json"])
     assert {r["figure"] for r in valid} >= {"share_En_le_1_weighted_mean", "share_consistent_cells"}
     assert all(r["realisations"] == 2 for r in valid)
+
+
+@pytest.mark.plugin
+@pytest.mark.timeout(600)
+def test_a_participant_correcting_with_the_surface_as_its_own_reference_reports_the_truth(tmp_path, collimated, mi):
+    """report = "reference" with the true surface as the reference sample: r / k_A(reference) is
+    r_true (1 + e) up to the k_A's own Monte Carlo error (the same backend computes both, with
+    different seeds), and the stated u adds that correction's budget to the repeatability."""
+    R, s = 20, 0.002
+    study = _study(tmp_path, [{"name": "LAB", "instrument": "lab", "noise_rel": s, "report": "reference",
+                               "reference": "R3", "stated": ["repeatability"]}, _coll("REF", 0.002)],
+                   realisations=R, corrected_realisations=0)
+    ds = run_study(study, workers=0, progress=False, plots=False).dataset
+    x = ds["r_reported"].sel(scenario="declared", participant="LAB").values
+    t = ds["truth"].values
+    fin = np.isfinite(t)                                       # the comparison's cells
+    rel = np.full(t.shape, np.nan)
+    rel[fin] = np.mean(x[:, fin], axis=0) / t[fin] - 1
+    # k_A with rel. SE 3e-3 (the study's tables) and 1e-3 (the correction's): 4 sigma, plus the noise
+    assert np.all(np.abs(rel[fin]) <= 4 * math.hypot(3e-3, 1e-3, s / math.sqrt(R)))
+    u = ds["u_stated"].sel(scenario="declared", participant="LAB").values / x
+    assert np.all(u[np.isfinite(u)] > s)                       # the correction's budget is stated on top
