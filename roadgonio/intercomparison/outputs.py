@@ -155,47 +155,52 @@ def plot_en_maps(ds, scenario: str, path: Path) -> Path:
 
 
 def plot_specular_row(ds, path: Path) -> Path:
-    """Degrees of equivalence against the weighted mean along beta = 0, relative to the truth:
-    median d_i with the median U(d_i) as error bar, and the 5-95 % spread of d_i over the
+    """Degrees of equivalence along beta = 0 relative to the truth: against the weighted mean (what
+    the pilot of a comparison sees, top) and against the truth (what only a simulation knows,
+    bottom); median d_i with the median U(d_i) as error bar, and the 5-95 % spread of d_i over the
     realisations (band)."""
     from roadgonio.plots import new_figure, save_figure
     scen = [s for s in ds.scenario.values.tolist() if np.isfinite(ds["d"].sel(scenario=s)).any()]
-    fig = new_figure((7.0 * len(scen), 5.6))
+    refs = [("weighted_mean", "against the weighted mean"), ("truth", "against the truth")]
+    fig = new_figure((7.0 * len(scen), 5.2 * len(refs)))
     names = ds.participant.values.tolist()
     cols = _colours(len(names))
     t = ds.tan_eps.values
     truth = ds["truth"].sel(beta=0.0).values
     ok = np.isfinite(truth)
-    for a, s in enumerate(scen):
-        ax = fig.add_subplot(1, len(scen), a + 1)
-        for p, name in enumerate(names):
-            d = ds["d"].sel(scenario=s, reference="weighted_mean", participant=name, beta=0.0).values.astype(float)
-            U = ds["U_d"].sel(scenario=s, reference="weighted_mean", participant=name, beta=0.0).values.astype(float)
-            good = np.isfinite(d).all(axis=1)
-            d, U = d[good], U[good]
-            if not len(d):
-                continue
-            rel = 100 * d[:, ok] / truth[ok]
-            Urel = 100 * U[:, ok] / truth[ok]
-            x = t[ok] + (p - (len(names) - 1) / 2) * 0.06
-            lo, hi = np.percentile(rel, [5, 95], axis=0)
-            ax.fill_between(x, lo, hi, color=cols[p], alpha=0.18, lw=0)
-            ax.errorbar(x, np.median(rel, axis=0), yerr=np.median(Urel, axis=0), fmt="o-", ms=3, lw=1, capsize=2,
-                        color=cols[p], label=name)
-        ax.axhline(0.0, color="k", lw=0.7)
-        ax.set_xlabel("tan eps (beta = 0, the specular row)")
-        ax.set_ylabel("d_i / r_true (%) against the weighted mean")
-        ax.set_title(f"{SCENARIO_TITLE.get(s, s)}\n(points: median d_i; bars: median U(d_i), k = "
-                     f"{float(ds.attrs.get('coverage_factor', 2.0)):g}; band: 5-95 % of d_i)", fontsize=9)
-        ax.grid(True, alpha=0.3)
-        ax.legend(fontsize=8, loc="best")
-    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.1, top=0.86, wspace=0.25)
-    return save_figure(fig, path, dpi=100)
+    k = float(ds.attrs.get("coverage_factor", 2.0))
+    for b, (ref, ref_text) in enumerate(refs):
+        for a, s in enumerate(scen):
+            ax = fig.add_subplot(len(refs), len(scen), b * len(scen) + a + 1)
+            for p, name in enumerate(names):
+                d = ds["d"].sel(scenario=s, reference=ref, participant=name, beta=0.0).values.astype(float)
+                U = ds["U_d"].sel(scenario=s, reference=ref, participant=name, beta=0.0).values.astype(float)
+                good = np.isfinite(d[:, ok]).all(axis=1)
+                d, U = d[good][:, ok], U[good][:, ok]
+                if not len(d):
+                    continue
+                rel = 100 * d / truth[ok]
+                Urel = 100 * U / truth[ok]
+                x = t[ok] + (p - (len(names) - 1) / 2) * 0.06
+                lo, hi = np.percentile(rel, [5, 95], axis=0)
+                ax.fill_between(x, lo, hi, color=cols[p], alpha=0.18, lw=0)
+                ax.errorbar(x, np.median(rel, axis=0), yerr=np.median(Urel, axis=0), fmt="o-", ms=3, lw=1,
+                            capsize=2, color=cols[p], label=name)
+            ax.axhline(0.0, color="k", lw=0.7)
+            ax.set_xlabel("tan eps (beta = 0, the specular row)")
+            ax.set_ylabel(f"d_i / r_true (%) {ref_text}")
+            ax.set_title(f"{SCENARIO_TITLE.get(s, s)}: {ref_text}\n(points: median d_i; bars: median U(d_i), "
+                         f"k = {k:g}; band: 5-95 % of d_i over the realisations)", fontsize=9)
+            ax.grid(True, alpha=0.3)
+            ax.legend(fontsize=8, loc="best")
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.06, top=0.94, wspace=0.25, hspace=0.35)
+    return save_figure(fig, path, dpi=95)
 
 
 def plot_sensitivity(sens: Sequence[dict[str, Any]], path: Path, top: int = 6) -> Path:
     """Per scenario and participant, the characteristics ranked by how much idealising each one
-    lowers the RMS of d_i / r_true (error bars: standard error over the realisations)."""
+    lowers the RMS of its own error x_i / r_true - 1 (its degree of equivalence against the truth;
+    error bars: standard error over the realisations)."""
     from roadgonio.plots import new_figure, save_figure
     scen = list(dict.fromkeys(r["scenario"] for r in sens))
     parts = list(dict.fromkeys(r["participant"] for r in sens))
@@ -212,12 +217,12 @@ def plot_sensitivity(sens: Sequence[dict[str, Any]], path: Path, top: int = 6) -
                     alpha=0.8, capsize=2)
             ax.set_yticks(y, [r["label"] for r in rows], fontsize=7)
             ax.axvline(0.0, color="k", lw=0.6)
-            ax.set_title(f"{name} ({SCENARIO_TITLE.get(s, s).split(' (')[0]}): RMS d/r = {rows[0]['rms_d_rel_pct']:.2f} %",
-                         fontsize=8)
+            ax.set_title(f"{name} ({SCENARIO_TITLE.get(s, s).split(' (')[0]}): RMS error "
+                         f"{rows[0]['rms_error_vs_truth_pct']:.2f} %", fontsize=8)
             ax.tick_params(axis="x", labelsize=7)
             if b == len(parts) - 1:
-                ax.set_xlabel("drop of RMS(d_i / r_true) when idealised (% of r)", fontsize=8)
-    fig.suptitle("Why they disagree: each characteristic idealised in turn (weighted-mean reference)", fontsize=11)
+                ax.set_xlabel("drop of RMS(x_i / r_true - 1) when idealised (% of r)", fontsize=8)
+    fig.suptitle("Why they disagree: each characteristic idealised in turn (error against the truth)", fontsize=11)
     fig.subplots_adjust(left=0.26, right=0.98, bottom=0.06, top=0.93, wspace=0.9, hspace=0.55)
     return save_figure(fig, path, dpi=95)
 
@@ -245,9 +250,10 @@ def plot_compatibility(summary: Sequence[dict[str, Any]], path: Path) -> Path:
                color=cols[a % 3], alpha=0.85, capsize=2, label=SCENARIO_TITLE.get(s, s))
     ax.set_xticks(np.arange(len(labels)), labels, fontsize=8)
     ax.set_ylabel("share of cells (%)")
-    ax.set_ylim(0, 105)
+    ax.set_ylim(0, 122)
+    ax.set_yticks(range(0, 101, 20))
     ax.set_title("Compatibility: |E_n| <= 1 against the weighted mean (mean over realisations)", fontsize=10)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="upper center", ncol=2)
     ax.grid(True, axis="y", alpha=0.3)
     fig.subplots_adjust(left=0.09, right=0.98, bottom=0.17, top=0.9)
     return save_figure(fig, path, dpi=100)

@@ -53,6 +53,8 @@ SURROGATE_VALIDATION = 4
 REFERENCES = st.METHODS + ("truth",)
 #: Step (deg, or m for the distances) of the central differences of the sensitivities d ln r / d X_k.
 SENS_STEP = 1e-5
+#: Version of the realisation records (what they hold); records of another version are computed again.
+REALISATION_FORMAT = 2
 
 
 # ----------------------------------------------------------------------------------------------
@@ -258,7 +260,7 @@ def _stage3_task(item: tuple, setup: sim.Setup) -> dict[str, Any]:
     m, corr, frozen_id = item
     corrections = {(name, m): (unpack(k), unpack(u)) for name, (k, u) in corr.items()}
     out = sim.realisation(setup, m, corrections)
-    rec: dict[str, Any] = {"kind": "realisation", "key": [m], "frozen_id": frozen_id}
+    rec: dict[str, Any] = {"kind": "realisation", "key": [m], "frozen_id": frozen_id, "format": REALISATION_FORMAT}
     for scen in sim.SCENARIOS + (sim.FROZEN,):
         o = out[scen]
         rec[scen] = {"x": pack(o["x"]), "u_rel": pack(o["u_rel"]), "full": o["full"],
@@ -267,8 +269,9 @@ def _stage3_task(item: tuple, setup: sim.Setup) -> dict[str, Any]:
 
 
 def frozen_factors(setup: sim.Setup, records: Mapping[tuple, dict], n_corrected: int) -> str:
-    """Set every self-correcting participant's frozen factor from its full corrections: the
-    geometric mean of their k and the RMS of their relative u; returns an identifier of the factors
+    """Set every self-correcting participant's frozen factor from its corrections: the geometric
+    mean of their k and the RMS of their relative u (used only by the check of that linearisation,
+    :data:`~roadgonio.intercomparison.simulate.FROZEN`); returns an identifier of the factors
     (realisations computed with other factors are computed again)."""
     h = hashlib.sha256()
     for p, pm in enumerate(setup.participants):
@@ -512,7 +515,7 @@ def _stages(ctx: Context, journal: _Journal, client, progress: bool, seconds: di
     items3 = []
     for m in range(study.realisations):
         rec = journal.done.get(("realisation", m))
-        if rec is not None and rec.get("frozen_id") == frozen_id:
+        if rec is not None and rec.get("frozen_id") == frozen_id and rec.get("format") == REALISATION_FORMAT:
             continue
         corr = {}
         for p, pm in enumerate(setup.participants):
@@ -763,9 +766,13 @@ def summary_rows(study: Study, setup: sim.Setup, xs, us, stats, full) -> list[di
 
 
 def sensitivity(study: Study, setup: sim.Setup, records: Mapping[tuple, dict]) -> list[dict[str, Any]]:
-    """The ranking: per scenario and participant, each characteristic idealised in turn; the drop
-    of the RMS of d_i / r_true (d w.r.t. the weighted mean) over cells and realisations, with its
-    standard error over realisations, and the share of |E_n| <= 1 before and after."""
+    """The ranking: per scenario and participant, each characteristic idealised in turn, ranked by
+    the drop of the RMS of the participant's own error ``x_i / r_true - 1`` (its degree of
+    equivalence against the truth, which only a simulation has) over cells and realisations, with
+    its standard error over realisations; beside it the share of cells where it is compatible with
+    the truth (|x_i - r_true| <= k u_i) and, against the weighted mean, the RMS of d_i / r_true and
+    the share of |E_n| <= 1, before and after."""
+    M = {m: i for i, m in enumerate(sim.METRICS)}
     out = []
     for scen in sim.SCENARIOS:
         variants = setup.variants(scen)
@@ -774,32 +781,35 @@ def sensitivity(study: Study, setup: sim.Setup, records: Mapping[tuple, dict]) -
             rec = records[("realisation", m)][scen]
             if rec.get("variants") is None:
                 continue
-            base.append(unpack(rec["baseline"]))          # (P, 4)
-            var.append(unpack(rec["variants"]))           # (V, 4)
+            base.append(unpack(rec["baseline"]))          # (P, metrics)
+            var.append(unpack(rec["variants"]))           # (V, metrics)
         if not base:
             continue
         B, Vv = np.array(base), np.array(var).reshape(len(base), len(variants), len(sim.METRICS))
         R = len(base)
         for v, (p, key, label) in enumerate(variants):
-            b = B[:, p]
-            x = Vv[:, v]
-            rms_b = np.sqrt(b[:, 0] / b[:, 3])
-            rms_v = np.sqrt(x[:, 0] / x[:, 3])
-            delta = rms_b - rms_v
+            b, x = B[:, p], Vv[:, v]
+            n_b, n_x = b[:, M["n_cells"]], x[:, M["n_cells"]]
+
+            def rms(a, n, key_):
+                return 100 * float(np.sqrt(a[:, M[key_]].sum() / n.sum()))
+            delta = np.sqrt(b[:, M["sum_err_rel2"]] / n_b) - np.sqrt(x[:, M["sum_err_rel2"]] / n_x)
             out.append({"scenario": scen, "participant": setup.participants[p].name, "characteristic": key,
                         "label": label,
-                        "rms_d_rel_pct": 100 * float(np.sqrt(b[:, 0].sum() / b[:, 3].sum())),
-                        "rms_d_rel_idealised_pct": 100 * float(np.sqrt(x[:, 0].sum() / x[:, 3].sum())),
+                        "rms_error_vs_truth_pct": rms(b, n_b, "sum_err_rel2"),
+                        "rms_error_vs_truth_idealised_pct": rms(x, n_x, "sum_err_rel2"),
                         "drop_pct": 100 * float(delta.mean()),
                         "drop_se_pct": 100 * float(delta.std(ddof=1) / math.sqrt(R)) if R > 1 else float("nan"),
-                        "share_compatible": float(b[:, 1].sum() / b[:, 3].sum()),
-                        "share_compatible_idealised": float(x[:, 1].sum() / x[:, 3].sum()),
-                        "rms_error_vs_truth_pct": 100 * float(np.sqrt(b[:, 2].sum() / b[:, 3].sum())),
-                        "rms_error_vs_truth_idealised_pct": 100 * float(np.sqrt(x[:, 2].sum() / x[:, 3].sum())),
+                        "share_compatible_truth": float(b[:, M["n_compatible_truth"]].sum() / n_b.sum()),
+                        "share_compatible_truth_idealised": float(x[:, M["n_compatible_truth"]].sum() / n_x.sum()),
+                        "rms_d_weighted_mean_pct": rms(b, n_b, "sum_d_rel2"),
+                        "rms_d_weighted_mean_idealised_pct": rms(x, n_x, "sum_d_rel2"),
+                        "share_compatible_weighted_mean": float(b[:, M["n_compatible"]].sum() / n_b.sum()),
+                        "share_compatible_weighted_mean_idealised": float(x[:, M["n_compatible"]].sum() / n_x.sum()),
                         "realisations": R})
     # ranked: largest drop first within each (scenario, participant)
-    out.sort(key=lambda r: (sim.SCENARIOS.index(r["scenario"]), [pm.name for pm in setup.participants].index(r["participant"]),
-                            -r["drop_pct"]))
+    names = [pm.name for pm in setup.participants]
+    out.sort(key=lambda r: (sim.SCENARIOS.index(r["scenario"]), names.index(r["participant"]), -r["drop_pct"]))
     for i, r in enumerate(out):
         prev = out[i - 1] if i else None
         r["rank"] = 1 if prev is None or (prev["scenario"], prev["participant"]) != (r["scenario"], r["participant"]) \

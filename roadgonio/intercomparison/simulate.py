@@ -57,15 +57,16 @@ from roadgonio.intercomparison import statistics as st
 
 #: Scenarios of a study: as declared, and every participant correcting with roadgonio.
 SCENARIOS = ("declared", "all_corrected")
-#: The validation of the frozen correction factor: every participant that corrects itself divides by
-#: its frozen factor even where a full correction of the realisation exists.
+#: The linearisation's check: every participant that corrects itself divides by its frozen factor
+#: (the geometric mean of its full corrections' k) instead of its own correction of the realisation.
 FROZEN = "all_corrected_frozen"
 #: Apertures that can be idealised: key -> (instrument section, key, label).
 APERTURES = {"source_aperture": ("source", "radius_m", "source aperture"),
              "detector_pupil": ("detector", "pupil_radius_m", "detector pupil"),
              "detector_field": ("detector", "field_half_angle_deg", "detector field")}
-#: Per-variant metrics of the realisation tasks (summed over the cells of one realisation).
-METRICS = ("sum_d_rel2", "n_compatible", "sum_err_rel2", "n_cells")
+#: Per-variant metrics of the realisation tasks (summed over the cells of one realisation): against
+#: the truth (the participant's own error) and against the weighted mean.
+METRICS = ("sum_err_rel2", "n_compatible_truth", "sum_d_rel2", "n_compatible", "n_cells")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -91,8 +92,8 @@ class ParticipantModel:
     u_reference_rel: np.ndarray | None = None # ... and the relative u of that correction (no measurement term)
     sens: np.ndarray | None = None            # (7, n) d ln r_meas / d X_k at the nominal geometry
     ideal: bool = False
-    k_frozen: np.ndarray | None = None        # report = self without a full correction of the realisation:
-    u_frozen_rel: np.ndarray | None = None    # the geometric mean of the full corrections' k, their RMS u
+    k_frozen: np.ndarray | None = None        # the frozen correction factor (scenario FROZEN only): the
+    u_frozen_rel: np.ndarray | None = None    # geometric mean of its full corrections' k, their RMS u
 
     @property
     def n(self) -> int:
@@ -151,7 +152,7 @@ class Setup:
             out.append(("calibration", f"calibration standard ({100 * pm.calibration_u_rel:g} %)"))
         for s in self.shared:
             if p in s.members:
-                out.append((f"shared:{s.name}", f"shared {s.kind.replace('_', ' ')} {s.name}"))
+                out.append((f"shared:{s.name}", f"shared {s.kind.replace('_', ' ')} '{s.name}'"))
         return out
 
     def variants(self, scenario: str) -> list[tuple[int, str, str]]:
@@ -295,10 +296,11 @@ def shared_components(setup: Setup) -> np.ndarray:
 
 
 def reported(setup: Setup, p: int, raw: np.ndarray, k_used: np.ndarray, mode: str,
-             correction: tuple[np.ndarray, np.ndarray] | None, idealise: str | None = None
-             ) -> tuple[np.ndarray, np.ndarray]:
+             correction: tuple[np.ndarray, np.ndarray] | None, idealise: str | None = None,
+             frozen: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """(reported r, stated relative u) of participant p from its raw table: ``mode`` raw,
-    reference or self (``correction`` = (k_self, u_rel of the correction) of that realisation)."""
+    reference or self (``correction`` = (k_self, u_rel) of its correction of that realisation; None:
+    not corrected, NaN; ``frozen``: its frozen factor instead)."""
     pm = setup.participants[p]
     base = stated_rel(setup, p)
     if mode == "raw":
@@ -306,11 +308,11 @@ def reported(setup: Setup, p: int, raw: np.ndarray, k_used: np.ndarray, mode: st
     if mode == "reference":
         k, u = pm.k_reference, pm.u_reference_rel
     else:
+        if frozen and not _identity(setup, p):
+            correction = None if pm.k_frozen is None else (pm.k_frozen, pm.u_frozen_rel)
         if correction is None:
-            if pm.k_frozen is None:
-                nan = np.full(pm.n, np.nan)
-                return nan, nan
-            correction = (pm.k_frozen, pm.u_frozen_rel)
+            nan = np.full(pm.n, np.nan)
+            return nan, nan
         k, u = correction
     x = raw / k_used if idealise == "correction" else raw / k
     return x, np.sqrt(base ** 2 + u ** 2)
@@ -324,10 +326,10 @@ def realisation(setup: Setup, m: int, corrections: dict[tuple[str, int], tuple[n
                 scenarios: Sequence[str] = SCENARIOS + (FROZEN,)) -> dict[str, Any]:
     """Realisation m: per scenario the reported tables x (P, n) and stated u (P, n), and the
     per-variant metrics (V, 4) of the idealisations (:data:`METRICS`; d w.r.t. the weighted mean).
-    ``corrections[(name, m)]``: the (k_self, u_rel) of the full corrections of the participants that
-    correct themselves; where there is none, their frozen factor (``k_frozen``) is used. The
-    scenario :data:`FROZEN` uses the frozen factor everywhere (the linearisation's validation; its
-    variants are not computed)."""
+    ``corrections[(name, m)]``: the (k_self, u_rel) of the corrections of the participants that
+    correct themselves (where a participant has none, the scenario is not compared in this
+    realisation). The scenario :data:`FROZEN` uses the frozen factors instead (the check of that
+    linearisation; no variants)."""
     d = draws(setup, m)
     check_draws(setup, d, m)
     raws = [raw_table(setup, d, p) for p in range(setup.P)]
@@ -335,12 +337,14 @@ def realisation(setup: Setup, m: int, corrections: dict[tuple[str, int], tuple[n
     out: dict[str, Any] = {"realisation": m}
     for scen in scenarios:
         modes = [mode_of(setup, p, scen) for p in range(setup.P)]
-        corr = [None if scen == FROZEN and modes[p] == "self" and not _identity(setup, p)
-                else _correction_of(setup, corrections, p, m, modes[p]) for p in range(setup.P)]
-        xs, us = zip(*[reported(setup, p, raws[p][0], raws[p][1], modes[p], corr[p]) for p in range(setup.P)])
+        corr = [_correction_of(setup, corrections, p, m, modes[p]) for p in range(setup.P)]
+        frozen = scen == FROZEN
+        xs, us = zip(*[reported(setup, p, raws[p][0], raws[p][1], modes[p], corr[p], frozen=frozen)
+                       for p in range(setup.P)])
         x, urel = np.array(xs), np.array(us)
         out[scen] = {"x": x, "u_rel": urel}
-        out[scen]["full"] = [modes[p] != "self" or corr[p] is not None for p in range(setup.P)]
+        out[scen]["full"] = [modes[p] != "self" or (corr[p] is not None and not (frozen and not _identity(setup, p)))
+                             for p in range(setup.P)]
         if not np.all(np.isfinite(x)) or scen == FROZEN:
             out[scen]["variants"] = None          # a participant without its correction here: not compared
             continue
@@ -375,13 +379,16 @@ def _correction_of(setup: Setup, corrections, p: int, m: int, mode: str):
 
 
 def _metrics(setup: Setup, x: np.ndarray, urel: np.ndarray, g_rel: np.ndarray) -> np.ndarray:
-    """(P, 4) metrics of one realisation: sum over cells of (d_i / r_true)^2 and the number of
-    |E_n| <= 1 (both w.r.t. the weighted mean), sum of (x_i / r_true - 1)^2, number of cells."""
+    """(P, 5) metrics of one realisation (:data:`METRICS`): the sum over cells of (x_i / r_true - 1)^2
+    and the number of cells where |x_i - r_true| <= k u_i (E_n against the truth <= 1), the sum of
+    (d_i / r_true)^2 and the number of |E_n| <= 1 against the weighted mean, the number of cells."""
     xt = x.T                                               # (n, P)
-    V = st.covariance((urel * x).T, (g_rel * x[None]).transpose(0, 2, 1))
+    ut = (urel * x).T
+    V = st.covariance(ut, (g_rel * x[None]).transpose(0, 2, 1))
     sp = st.Spectral(xt, V)
-    wm = st.weighted_mean(sp)
-    eq = st.equivalence_to(xt, V, wm, setup.coverage_factor)
+    eq = st.equivalence_to(xt, V, st.weighted_mean(sp), setup.coverage_factor)
     t = setup.truth[:, None]
-    return np.stack([np.sum((eq.d / t) ** 2, axis=0), np.sum(eq.compatible, axis=0),
-                     np.sum((xt / t - 1.0) ** 2, axis=0), np.full(setup.P, float(len(setup.truth)))], axis=1)
+    err = xt - t
+    return np.stack([np.sum((err / t) ** 2, axis=0), np.sum(np.abs(err) <= setup.coverage_factor * ut, axis=0),
+                     np.sum((eq.d / t) ** 2, axis=0), np.sum(eq.compatible, axis=0),
+                     np.full(setup.P, float(len(setup.truth)))], axis=1)
