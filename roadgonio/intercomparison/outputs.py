@@ -32,7 +32,6 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from roadgonio.fileio import atomic_write
 
 SCENARIO_TITLE = {"declared": "as declared", "all_corrected": "every participant corrects (roadgonio correct --reference self)"}
 
@@ -64,18 +63,15 @@ def write_outputs(run, out_dir: str | Path, *, plots: bool = True) -> list[Path]
 
 
 def write_netcdf(ds, path: Path) -> Path:
-    enc = ds.copy()
-    for k, v in list(enc.attrs.items()):
-        if not isinstance(v, (str, int, float, np.integer, np.floating)):
-            enc.attrs[k] = json.dumps(v)
-    return atomic_write(path, lambda p: enc.to_netcdf(p, engine="scipy", format="NETCDF3_64BIT"))
+    """intercompare.nc by the one netCDF writer (:func:`roadgonio.fileio.write_netcdf`)."""
+    from roadgonio.fileio import write_netcdf as write
+    return write(ds, path)
 
 
 def read_intercomparison(path: str | Path):
-    """Open an ``intercompare.nc``."""
-    import xarray as xr
-    with xr.open_dataset(path, engine="scipy") as ds:
-        return ds.load()
+    """Open an ``intercompare.nc`` (:func:`roadgonio.fileio.read_netcdf`)."""
+    from roadgonio.fileio import read_netcdf
+    return read_netcdf(path)
 
 
 def rows_csv(rows: Sequence[dict[str, Any]]) -> str:

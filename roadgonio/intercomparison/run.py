@@ -36,7 +36,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -292,13 +292,15 @@ def frozen_factors(setup: sim.Setup, records: Mapping[tuple, dict], n_corrected:
 # ----------------------------------------------------------------------------------------------
 
 def _fingerprint(study: Study, model, backend: str, settings, correction_settings) -> str:
-    from roadgonio import __version__
+    """Everything that determines the numbers except the number of realisations (and the labels):
+    the study, the surface model's variant and parameters (not its fit's metadata), the backend and
+    its settings, with the roadgonio version (:func:`roadgonio.fileio.fingerprint`)."""
+    from roadgonio.fileio import fingerprint
     d = study.to_dict()
     for k in ("realisations", "corrected_realisations", "file", "name", "description"):
         d.pop(k, None)
-    payload = {"study": d, "model": model.to_json_dict(), "backend": backend, "settings": settings,
-               "correction_settings": correction_settings, "roadgonio": __version__}
-    return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
+    return fingerprint({"study": d, "model": {"variant": model.variant, "params": model.params.to_dict()},
+                        "backend": backend, "settings": settings, "correction_settings": correction_settings})
 
 
 def _key(rec: Mapping[str, Any]) -> tuple:
@@ -358,7 +360,7 @@ def _bar(progress: bool, total: int, desc: str, initial: int = 0):
 
 def _map(func, items, client, shared, journal: _Journal, bar, backend: str | None, variant: str | None,
          name: str) -> None:
-    from roadgonio.design import cluster as _cluster
+    from roadgonio.engines import cluster as _cluster
 
     def done(_i, rec):
         journal.add(rec)
@@ -394,12 +396,12 @@ def check_study(study: Study) -> None:
 
 def run_study(study: Study | str | Path, out: str | Path | None = None, *, workers: int | None = None,
               scheduler: str | None = None, client=None, fresh: bool = False, progress: bool = True,
-              plots: bool = True, variant: str | None = None) -> StudyRun:
+              plots: bool = True, mitsuba_variant: str | None = None) -> StudyRun:
     """Run a study (module docstring) and return it; with ``out`` journal every task (resumable)
     and write intercompare.nc, intercompare.csv, sensitivity.csv and the pictures
     (:mod:`roadgonio.intercomparison.outputs`)."""
-    from roadgonio.design import cluster as _cluster
-    from roadgonio.engines.accuracy import rel_se_setting
+    from roadgonio.engines import cluster as _cluster
+    from roadgonio.engines.registry import backend_info, resolve_settings, tolerance_setting
     from roadgonio.surface.sample import resolve_sample
     from roadgonio.uncertainty.measurement import MeasurementModel
     from roadgonio.uncertainty.spec import check_spec_geometry
@@ -408,7 +410,7 @@ def run_study(study: Study | str | Path, out: str | Path | None = None, *, worke
         study = load_study(study)
     check_study(study)
     try:
-        model = resolve_sample(study.surface, study.model_variant)
+        model = resolve_sample(study.surface, study.model_variant, field="study.surface").model
     except InputError as err:
         raise InputError(err.reason, path=err.path or study.path, field="study.surface") from None
     cells = _cells(study.cells)
@@ -419,13 +421,12 @@ def run_study(study: Study | str | Path, out: str | Path | None = None, *, worke
                                 option=f"participant[{p + 1}].sigma")
         except InputError as err:
             raise InputError(f"{part.name}: {err.reason}", path=study.path, field=err.field) from None
-    settings = rel_se_setting(study.backend, study.tolerance, field="study.rel_se")
-    if study.backend == "mitsuba":
-        settings["seed"] = int(study.seed)
-        if variant is not None:
-            settings["variant"] = variant
+    seeded = backend_info(study.backend).seeded
+    settings = resolve_settings(study.backend, tolerance=study.tolerance, seed=study.seed if seeded else None,
+                                mitsuba_variant=mitsuba_variant,
+                                fields={"tolerance": "study.rel_se", "seed": "study.seed"})
     correction_settings = ({} if study.correction_rel_se is None else
-                           rel_se_setting(study.backend, study.correction_rel_se, "study.correction_rel_se"))
+                           tolerance_setting(study.backend, study.correction_rel_se, "study.correction_rel_se"))
     ctx = Context(study=study, model=model, cells=cells, backend=study.backend, settings=dict(settings),
                   correction_settings=correction_settings)
     fp = _fingerprint(study, model, study.backend, settings, correction_settings)
@@ -436,7 +437,7 @@ def run_study(study: Study | str | Path, out: str | Path | None = None, *, worke
     journal = _Journal(out_dir, fp, fresh)
     seconds: dict[str, float] = {}
     distributed = client is not None or scheduler is not None or workers not in (None, 0)
-    mvariant = settings.get("variant")
+    mvariant = mitsuba_variant
     # collimated participants need no k_A backend (k_A = 1, nothing to correct)
     engine = study.backend if any(not p.instrument.is_ideal() or p.report == "reference"
                                   for p in study.participants) else None

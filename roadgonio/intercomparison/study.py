@@ -49,7 +49,6 @@ like instrument files.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -372,19 +371,8 @@ def load_study(spec: str | Path) -> Study:
             p = Path(str(resources.files("roadgonio.studies").joinpath(f"{spec}.toml")))
         else:
             raise InputError(f"no such study file, and not a bundled study ({', '.join(names) or 'none'})", path=p)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"cannot read the study file ({err})", path=p) from None
-    try:
-        d = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as err:
-        line = getattr(err, "lineno", None)
-        if line is None:
-            import re
-            m = re.search(r"at line (\d+)", str(err))
-            line = int(m.group(1)) if m else None
-        raise InputError(f"not valid TOML: {getattr(err, 'msg', str(err))}", path=p, line=line) from None
+    from roadgonio.fileio import read_toml
+    d = read_toml(p, "study file")
     return study_from_dict(d, path=p)
 
 
