@@ -18,7 +18,8 @@ with its standard error over realisations) and one per scenario for the comparis
 share of consistent cells, error of each consensus against the truth, tau). ``sensitivity.csv``:
 the ranking of the characteristics. ``validation.csv``: the frozen correction factor against the
 full corrections (figures of merit with both on the same realisations, paired differences and
-their standard errors). Pictures: ``en_map_declared.png``, ``en_map_all_corrected.png``
+their standard errors). ``correlation.csv``: per pair of participants the correlation of their
+errors over the realisations beside the one their stated covariance declares. Pictures: ``en_map_declared.png``, ``en_map_all_corrected.png``
 (median E_n against the weighted mean per cell and participant), ``specular_row.png`` (degrees of
 equivalence with U along beta = 0), ``sensitivity.png`` (the ranking) and ``compatibility.png``.
 """
@@ -45,11 +46,13 @@ def write_outputs(run, out_dir: str | Path, *, plots: bool = True) -> list[Path]
     summ = json.loads(ds.attrs["summary_json"])
     sens = json.loads(ds.attrs["sensitivity_json"])
     valid = json.loads(ds.attrs.get("validation_json", "[]"))
+    corr = json.loads(ds.attrs.get("correlation_json", "[]"))
     with OutputGroup(out_dir) as g:
         files = [write_netcdf(ds, g.path("intercompare.nc")),
                  g.text("intercompare.csv", rows_csv(summ)), g.text("sensitivity.csv", rows_csv(sens)),
-                 g.text("validation.csv", rows_csv(valid)),
+                 g.text("validation.csv", rows_csv(valid)), g.text("correlation.csv", rows_csv(corr)),
                  g.json("intercompare.json", {"summary": summ, "sensitivity": sens, "validation": valid,
+                                              "correlation": corr,
                                               "seconds": json.loads(ds.attrs.get("seconds", "{}")),
                                               "provenance": json.loads(ds.attrs["provenance"])})]
         if plots:

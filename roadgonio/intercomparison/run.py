@@ -657,6 +657,7 @@ def assemble(study: Study, setup: sim.Setup, records: Mapping[tuple, dict], *, m
     sens = sensitivity(study, setup, records)
     summ = summary_rows(study, setup, xs, us, stats, full)
     valid = validation_rows(setup, xs, stats, full)
+    corr = correlation_rows(setup, xs, us, g_rel)
     prov = provenance(model=model, backend=study.backend, settings=settings,
                       quantity="roadgonio intercompare: a simulated key comparison of r-tables (issue 20)",
                       study=study.to_dict(), correction_settings=correction_settings, fingerprint=fingerprint,
@@ -671,7 +672,39 @@ def assemble(study: Study, setup: sim.Setup, records: Mapping[tuple, dict], *, m
                                   "roadgonio correct --reference self",
                      "provenance": to_json(prov, indent=None), "created": prov["created"]})
     return ds.assign_attrs(summary_json=to_json(summ, indent=None), sensitivity_json=to_json(sens, indent=None),
-                           validation_json=to_json(valid, indent=None))
+                           validation_json=to_json(valid, indent=None), correlation_json=to_json(corr, indent=None))
+
+
+def correlation_rows(setup: sim.Setup, xs, us, g_rel: np.ndarray) -> list[dict[str, Any]]:
+    """Per scenario and pair of participants: the correlation of their errors ``x / r_true - 1``
+    over the realisations (what the simulation produces), and the correlation their stated
+    covariance declares (``sum_s g_si g_sj / (u_i u_j)``, from the effects they share); each as the
+    median, 5 % and 95 % over the cells."""
+    out = []
+    names = [pm.name for pm in setup.participants]
+    for scen in sim.SCENARIOS:
+        x, u = xs[scen], us[scen]
+        ok = np.all(np.isfinite(x), axis=(1, 2))
+        R = int(ok.sum())
+        if R < 3:
+            continue
+        e = x[ok] / setup.truth - 1.0                              # (R, P, n)
+        e = e - e.mean(axis=0)
+        sd = np.sqrt(np.mean(e * e, axis=0))                       # (P, n)
+        declared_u = np.median(u[ok], axis=0)                      # (P, n) relative
+        for i in range(len(names)):
+            for j in range(i + 1, len(names)):
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    emp = np.mean(e[:, i] * e[:, j], axis=0) / (sd[i] * sd[j])
+                    dec = np.sum(g_rel[:, i] * g_rel[:, j], axis=0) / (declared_u[i] * declared_u[j])
+                emp, dec = emp[np.isfinite(emp)], dec[np.isfinite(dec)]
+                row = {"scenario": scen, "participant_a": names[i], "participant_b": names[j], "realisations": R}
+                for key, v in (("simulated", emp), ("stated", dec)):
+                    if v.size:
+                        lo, med, hi = np.percentile(v, [5, 50, 95])
+                        row.update({f"{key}_median": float(med), f"{key}_p05": float(lo), f"{key}_p95": float(hi)})
+                out.append(row)
+    return out
 
 
 def _figures(setup: sim.Setup, x: np.ndarray, st_: Mapping[str, Any], rows: np.ndarray) -> dict[str, np.ndarray]:

@@ -107,6 +107,11 @@ def test_a_shared_reference_tile_correlates_the_participants_as_it_should(tmp_pa
         rac = np.corrcoef(rel[0, :, i, j], rel[2, :, i, j])[0, 1]
         assert abs(np.arctanh(rab) - np.arctanh(expected)) < 4 * se_z
         assert abs(np.arctanh(rac)) < 4 * se_z
+    rows = {(r["participant_a"], r["participant_b"]): r for r in json.loads(run.dataset.attrs["correlation_json"])
+            if r["scenario"] == "declared"}
+    assert abs(np.arctanh(rows[("A", "B")]["simulated_median"]) - np.arctanh(expected)) < 4 * se_z
+    assert rows[("A", "B")]["stated_median"] == pytest.approx(ut ** 2 / (ut ** 2 + s ** 2), rel=1e-12)
+    assert abs(rows[("A", "C")]["simulated_median"]) < 4 * se_z and rows[("A", "C")]["stated_median"] == 0.0
     from roadgonio.intercomparison.simulate import shared_components
     g = shared_components(run.setup)
     assert g.shape == (1, 3, len(run.setup.truth)) and np.all(g[0, :2] == ut) and np.all(g[0, 2] == 0)
