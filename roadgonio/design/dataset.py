@@ -88,7 +88,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     signal_abs = np.array([signal_product(x) if x is not None else np.nan for x in inst_of])
     sb = signal_product(base)
     signal = signal_abs / sb if sb > 0 else np.full(n, np.nan)
-    omega = np.array([source_solid_angle(x.source.radius_m, x.source.distance_m) if x is not None else np.nan
+    omega = np.array([source_solid_angle(x.source.radius_m, x.source.length_m) if x is not None else np.nan
                       for x in inst_of])
     etendue = np.array([detector_etendue(x) if x is not None else np.nan for x in inst_of])
     fp_len = np.array([f.footprint_length_m for f in feas])

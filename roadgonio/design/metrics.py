@@ -79,8 +79,10 @@ def mean_field_sensitivity(instrument: Instrument) -> float:
 
 
 def signal_product(instrument: Instrument) -> float:
-    """Omega_S G_D <k_D> (sr m^2 sr): the design's signal up to L_S rho cos(eps) / pi."""
-    return (source_solid_angle(instrument.source.radius_m, instrument.source.distance_m)
+    """Omega_S G_D <k_D> (sr m^2 sr): the design's signal up to L_S rho cos(eps) / pi. Omega_S at
+    the source's ``length_m`` (D_S of an arc; of a fixed-height path its height, the distance at
+    eps = 0, where its signal is largest)."""
+    return (source_solid_angle(instrument.source.radius_m, instrument.source.length_m)
             * detector_etendue(instrument) * mean_field_sensitivity(instrument))
 
 

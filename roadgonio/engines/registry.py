@@ -63,6 +63,8 @@ class BackendInfo:
     meshes: bool = False             # models a mesh sample ([sample] mesh)
     xml_scenes: bool = False         # models the extra parts of a Mitsuba XML scene ([scene] xml)
     beam_clipping: bool = True       # models a beam limit that clips the light on the footprint
+    #: the source paths it models ([source] path: "arc", "fixed_height"; docs/conventions.md section 4)
+    source_paths: tuple[str, ...] = ("arc", "fixed_height")
     mitsuba: bool = False            # needs mitsuba/drjit and a selected variant (Dask workers set one up)
     cell_correlation: str = ("independent: each cell has its own random numbers, seeded by (seed, tan eps, beta)")
 
@@ -147,7 +149,7 @@ def tolerance_setting(backend: str, value, field: str = "rel_se") -> dict[str, f
 
 def check_capabilities(info: BackendInfo, instrument) -> None:
     """Refuse an instrument the backend does not model (never ignore part of it): a Mitsuba XML
-    scene's extra parts, a mesh sample. (A beam limit that clips the footprint is refused per cell
+    scene's extra parts, a mesh sample, a source path it does not move its source along. (A beam limit that clips the footprint is refused per cell
     by the backends that cannot model it.)"""
     scene = instrument.extra.get("scene") if hasattr(instrument.extra, "get") else None
     if scene and not info.xml_scenes:
@@ -160,6 +162,11 @@ def check_capabilities(info: BackendInfo, instrument) -> None:
         alt = " or ".join(n for n, b in BACKENDS.items() if b.meshes)
         raise InputError(f"the {info.name} backend integrates over a flat rectangular sample only; for a mesh "
                          f"sample use --backend {alt}", path=instrument.path, field="sample.mesh")
+    path = instrument.source.path
+    if path not in info.source_paths:
+        alt = " or ".join(n for n, b in BACKENDS.items() if path in b.source_paths)
+        raise InputError(f"the {info.name} backend does not model source.path = \"{path}\"; use --backend {alt}",
+                         path=instrument.path, field="source.path")
 
 
 def resolve_settings(name: str, *, accuracy: str | None = None, tolerance=None, seed=None,

@@ -98,28 +98,69 @@ class Observation:
         return w_detector(self.alpha_deg, self.delta_deg)
 
 
+#: The source paths (docs/conventions.md section 4): ``arc`` keeps the source at ``distance_m`` from
+#: the sample centre for every cell (a goniometer arm); ``fixed_height`` moves it along a straight
+#: line at ``height_m`` above the sample plane (a corridor goniophotometer), so its distance is
+#: ``height_m / cos eps`` (:func:`roadgonio.instrument.optics.source_distance_m`).
+SOURCE_PATHS = ("arc", "fixed_height")
+
+
 @dataclass(frozen=True)
 class Source:
-    """Disc exit aperture of radius ``radius_m`` (0 = point source) at ``distance_m`` from the
-    sample centre, facing it, uniform radiance (Lambertian area emitter); optional beam cone of
-    half-angle ``beam_half_angle_deg`` (None = no beam limit)."""
+    """Disc exit aperture of radius ``radius_m`` (0 = point source) facing the sample centre, uniform
+    radiance (Lambertian area emitter); optional beam cone of half-angle ``beam_half_angle_deg``
+    (None = no beam limit). Its centre is at ``distance_m`` from the sample centre for every cell
+    (``path = "arc"``, the default) or at ``height_m`` above the sample plane (``path =
+    "fixed_height"``: distance ``height_m / cos eps``, so the source's solid angle and the
+    illuminated area change with eps); the distance of a cell is
+    :func:`roadgonio.instrument.optics.source_distance_m`."""
 
-    distance_m: float = 3.0
+    distance_m: float | None = None
     radius_m: float = 0.0
     beam_half_angle_deg: float | None = None
+    path: str = "arc"
+    height_m: float | None = None
 
     def __post_init__(self):
-        _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True)
+        if self.path not in SOURCE_PATHS:
+            raise InputError(f"expected one of {', '.join(map(repr, SOURCE_PATHS))}, got {self.path!r}",
+                             field="source.path")
+        if self.path == "arc":
+            if self.height_m is not None:
+                raise InputError('height_m belongs to path = "fixed_height"; an arc has distance_m',
+                                 field="source.height_m")
+            if self.distance_m is None:
+                object.__setattr__(self, "distance_m", 3.0)
+            _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True)
+        else:
+            if self.distance_m is not None:
+                raise InputError('a fixed-height source has height_m, not distance_m (its distance is '
+                                 'height_m / cos eps)', field="source.distance_m")
+            if self.height_m is None:
+                raise InputError('missing (required for path = "fixed_height")', field="source.height_m")
+            _checked(self, "height_m", "source.height_m", lo=0.0, lo_open=True)
         _checked(self, "radius_m", "source.radius_m", lo=0.0)
         _checked(self, "beam_half_angle_deg", "source.beam_half_angle_deg", lo=0.0, hi=90.0, lo_open=True,
                  optional=True)
-        if self.radius_m >= self.distance_m:
-            raise InputError(f"the source radius ({self.radius_m:g} m) must be smaller than its distance "
-                             f"({self.distance_m:g} m)", field="source.radius_m")
+        if self.radius_m >= self.length_m:
+            raise InputError(f"the source radius ({self.radius_m:g} m) must be smaller than its "
+                             f"{self.length_key[:-2]} ({self.length_m:g} m)", field="source.radius_m")
 
     @property
     def is_point(self) -> bool:
         return self.radius_m == 0.0
+
+    @property
+    def length_key(self) -> str:
+        """The key of the source's one length: ``distance_m`` (arc) or ``height_m`` (fixed height)."""
+        return "distance_m" if self.path == "arc" else "height_m"
+
+    @property
+    def length_m(self) -> float:
+        """That length (m): D_S of an arc, the height of a fixed-height path (its distance at eps = 0,
+        the nearest the source comes). A distance error of the uncertainty budget is an error of this
+        length (every cell's distance scales with it)."""
+        return self.distance_m if self.path == "arc" else self.height_m
 
 
 @dataclass(frozen=True)
@@ -273,9 +314,6 @@ class Instrument:
         eps = np.arctan(np.asarray(tan_eps, dtype=np.float64)) if np.ndim(tan_eps) else math.atan(tan_eps)
         return w_source(eps, beta_deg, self.observation.delta_deg)
 
-    def source_centre(self, tan_eps: float, beta_deg: float) -> np.ndarray:
-        return self.source.distance_m * self.w_i(tan_eps, beta_deg)
-
     def detector_centre(self) -> np.ndarray:
         return self.detector.distance_m * self.w_o()
 
@@ -300,9 +338,9 @@ class Instrument:
             det["focus_m"] = "inf"
         if det["field_edge_sensitivity"] == 1.0:
             del det["field_edge_sensitivity"]
-        src = asdict(self.source)
-        if src["beam_half_angle_deg"] is None:
-            del src["beam_half_angle_deg"]
+        src = {k: v for k, v in asdict(self.source).items() if v is not None}
+        if src["path"] == "arc":
+            del src["path"]
         smp = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self.sample).items() if v is not None}
         d = {"instrument": {"name": self.name, "description": self.description},
              "observation": asdict(self.observation), "source": src, "detector": det, "sample": smp}
@@ -335,8 +373,8 @@ class Instrument:
         if "source" not in d:
             raise InputError("missing table [source]", field="source")
         s = d["source"]
-        _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg"}, "source", None)
-        if "distance_m" not in s:
+        _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg", "path", "height_m"}, "source", None)
+        if "distance_m" not in s and s.get("path", "arc") == "arc":
             raise InputError("missing (required)", field="source.distance_m")
         source = Source(**s)
         if "detector" not in d:

@@ -166,7 +166,7 @@ class Setup:
 
 def _aperture_text(inst, key: str) -> str:
     if key == "source_aperture":
-        return f"R_S/D_S = {math.degrees(inst.source.radius_m / inst.source.distance_m):.3g} deg"
+        return f"R_S/D_S = {math.degrees(inst.source.radius_m / inst.source.length_m):.3g} deg"
     if key == "detector_pupil":
         return f"R_D/D_D = {math.degrees(inst.detector.pupil_radius_m / inst.detector.distance_m):.3g} deg"
     return f"gamma_D = {inst.detector.field_half_angle_deg:g} deg"
