@@ -43,6 +43,7 @@ from roadgonio.errors import InputError
 from roadgonio.fileio import read_toml
 from roadgonio.geometry import w_detector, w_source
 from roadgonio.instrument.calibration import Calibration
+from roadgonio.instrument.coverage import MeasuredCells
 
 _INF_WORDS = ("inf", "+inf", "infinity")
 
@@ -283,6 +284,9 @@ class Instrument:
     path: Path | None = None
     #: How a signal becomes q: [calibration] (docs/conventions.md section 5; roadgonio.instrument.calibration).
     calibration: Calibration = field(default_factory=Calibration)
+    #: The cells it measures and how it fills the rest of its reported table: [cells]
+    #: (roadgonio.instrument.coverage; default: it measures every cell asked).
+    cells: MeasuredCells = field(default_factory=MeasuredCells)
     #: Extra sections not interpreted here (kept for backends and provenance).
     extra: Mapping[str, Any] = field(default_factory=dict)
 
@@ -297,10 +301,12 @@ class Instrument:
             object.__setattr__(self, "path", Path(self.path))
         if not isinstance(self.calibration, Calibration):
             raise InputError(f"expected a Calibration, got {type(self.calibration).__name__}", field="calibration")
+        if not isinstance(self.cells, MeasuredCells):
+            raise InputError(f"expected a MeasuredCells, got {type(self.cells).__name__}", field="cells")
         if not isinstance(self.extra, Mapping):
             raise InputError(f"expected a mapping of extra sections, got {self.extra!r}", field="extra")
         object.__setattr__(self, "extra", FrozenDict(self.extra))
-        clash = sorted(set(self.extra) & set(_SECTIONS + ("calibration",)))
+        clash = sorted(set(self.extra) & set(_SECTIONS + ("calibration", "cells")))
         if clash:
             raise InputError(f"section(s) {', '.join(clash)} are fields of the instrument, not extra sections",
                              field="extra")
@@ -346,6 +352,8 @@ class Instrument:
              "observation": asdict(self.observation), "source": src, "detector": det, "sample": smp}
         if not self.calibration.is_default:   # the default is left out, so Lambert fingerprints do not change
             d["calibration"] = self.calibration.to_dict()
+        if not self.cells.is_default:       # left out by default, like the calibration
+            d["cells"] = self.cells.to_dict()
         d.update({k: dict(v) if isinstance(v, Mapping) else v for k, v in self.extra.items()})
         return d
 
@@ -400,16 +408,18 @@ class Instrument:
         _check_keys(meta, {"name", "description"}, "instrument", None)
         name = str(meta.get("name", path.stem if path is not None else "instrument"))
         calibration = Calibration.from_dict(d.get("calibration", {}), path=path)
-        extra = {k: v for k, v in d.items() if k not in _SECTIONS and k != "calibration"}
+        cells = MeasuredCells.from_dict(d.get("cells", {}))
+        extra = {k: v for k, v in d.items() if k not in _SECTIONS and k not in ("calibration", "cells")}
         unknown = sorted(set(extra) - set(EXTRA_SECTIONS))
         if unknown:
             raise InputError(f"unknown section(s) [{'], ['.join(unknown)}]; expected some of "
-                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS + ('calibration',))}]", field=unknown[0])
+                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS + ('calibration', 'cells'))}]", field=unknown[0])
         for sec in EXTRA_SECTIONS:
             if sec in extra and not isinstance(extra[sec], Mapping):
                 raise InputError(f"expected a table [{sec}]", field=sec)
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
-                   description=str(meta.get("description", "")), path=path, calibration=calibration, extra=extra)
+                   description=str(meta.get("description", "")), path=path, calibration=calibration, cells=cells,
+                   extra=extra)
 
     @classmethod
     def load(cls, path: str | Path) -> "Instrument":
