@@ -9,7 +9,7 @@ comparison as declared (every participant reports its table raw), no corrections
 
 Run B, every participant correcting: the same study; every participant with an aperture effect
 corrects its table with ``roadgonio correct --reference self`` in the first ``--corrected``
-realisations (default 100: the corrected comparison is made on those; the raw one on all 200), the
+realisations (default 30: the corrected comparison is made on those; the raw one on all 200), the
 study file's setting. validation.csv compares the figures of merit with the full corrections and
 with a frozen correction factor (the geometric mean of those corrections' k_A) on the same
 realisations: the check of that linearisation. Target: within 30 minutes on 2 workers.
@@ -58,7 +58,7 @@ def one_run(study, out: Path, workers: int) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--realisations", type=int, default=200)
-    ap.add_argument("--corrected", type=int, default=100, help="corrected realisations per participant in run B")
+    ap.add_argument("--corrected", type=int, default=30, help="corrected realisations per participant in run B")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--only", choices=["raw", "corrected"], help="run only one of the two")
     ap.add_argument("--keep", metavar="DIR", help="keep the outputs of run B (and of run A in DIR/raw)")

@@ -6,22 +6,27 @@ calibration) measures a few cells and reports a full r-table; every other cell o
 from the measured ones. ``[cells] measured = [[tan_eps, beta_deg], ...]`` names the measured cells,
 ``fill`` how the rest is made. Without ``[cells]`` an instrument measures every cell asked.
 
-``fill = "tan_eps_then_beta"`` (the one rule; :func:`fill_cells`), on the reduced luminance
-coefficient r (smoother than q = r / cos^3 eps):
+``fill = "tan_eps_then_beta"`` (the one rule; :func:`fill_cells`), on the logarithm of the reduced
+luminance coefficient, ln r (r is smoother than q = r / cos^3 eps, and ln r keeps an interpolated
+specular peak, which spans orders of magnitude within a few degrees of beta, positive and within the
+range of its neighbours; linear interpolation of r itself overestimated the CIE R3 table's grazing
+cells next to the peak twenty-fold):
 
 1. **tan eps = 0 is one direction**: r(0, beta) does not depend on beta (the source is at the
    zenith), so the measured cells at tan eps = 0 (their mean if several) give the point tan eps = 0
    of every beta column.
-2. **In tan eps, per measured column**: for every beta that has measured cells, r is interpolated
-   piecewise linearly in tan eps through that column's points (with the point at tan eps = 0);
-   beyond the column's largest measured tan eps it is not extended (step 3 uses other columns).
-3. **Then in beta, per row**: at a cell (tan eps, beta), the columns whose measured range reaches
-   that tan eps give values at their betas, and r is interpolated piecewise linearly in beta between
-   the two nearest of them (held constant beyond the first and last of them).
+2. **In tan eps, per measured column**: for every beta that has measured cells, ln r is interpolated
+   piecewise linearly in tan eps through that column's points (with the point at tan eps = 0), and
+   beyond the column's largest measured tan eps it continues along the line through its last two
+   points (holding a column's end value instead overestimated R3's grazing cells at beta 25-30,
+   where r falls fast with tan eps, twenty-five-fold).
+3. **Then in beta, per row**: at a cell (tan eps, beta), every column gives its value at that tan
+   eps, and ln r is interpolated piecewise linearly in beta between the two nearest columns (held
+   constant beyond the first and last of them).
 
-So a measured cell is reported as measured, and a table that is linear in tan eps for every beta and
-linear in beta for every tan eps (r = a + tan eps (b + c beta)) is reproduced exactly. Piecewise
-linear interpolation is the simplest rule a device could publish; the interpolation error is part of
+So a measured cell is reported as measured, and a table whose logarithm is linear in tan eps for every
+beta and linear in beta for every tan eps (ln r = a + tan eps (b + c beta)) is reproduced exactly.
+Piecewise linear interpolation is the simplest rule a device could publish; the interpolation error is part of
 what such an instrument reports, and the comparison (:mod:`roadgonio.intercomparison`) shows it.
 """
 from __future__ import annotations
@@ -132,28 +137,30 @@ def fill_cells(tan_m, beta_m, r_m, tan_eps, beta_deg) -> np.ndarray:
     zero = np.abs(tan_m) < SAME_TOL
     if not zero.any():
         raise InputError("expected a measured cell at tan_eps = 0", field="cells.measured")
+    if not np.all(r_m > 0):
+        raise InputError("the fill interpolates ln r: every measured r must be positive", field="cells.measured")
+    r_m = np.log(r_m)
     r0 = float(np.mean(r_m[zero]))
     cols = np.unique(np.round(beta_m[~zero], 9))
-    # step 2: per column, its points in tan eps (with tan eps = 0) and its reach
-    col_t, col_r = [], []
-    for cb in cols:
+    # step 2: per column, its points in tan eps (with tan eps = 0), extended along its last segment
+    tt, bb = np.broadcast_arrays(tan_eps, beta_deg)
+    shape = tt.shape
+    tt, bb = tt.ravel(), bb.ravel()
+    if not len(cols):
+        return np.exp(np.full(tt.shape, r0)).reshape(shape)
+    vals = np.empty((len(cols), len(tt)))
+    for j, cb in enumerate(cols):
         k = (~zero) & (np.abs(beta_m - cb) < SAME_TOL)
         o = np.argsort(tan_m[k])
-        col_t.append(np.concatenate([[0.0], tan_m[k][o]]))
-        col_r.append(np.concatenate([[r0], r_m[k][o]]))
-    out = np.empty(np.broadcast(tan_eps, beta_deg).shape)
-    tt, bb = np.broadcast_arrays(tan_eps, beta_deg)
-    for i in np.ndindex(out.shape):
-        t, b = float(tt[i]), float(bb[i])
-        if t < SAME_TOL or not len(cols):
-            out[i] = r0
-            continue
-        # step 3: the columns that reach this tan eps, interpolated in beta
-        reach = [j for j in range(len(cols)) if col_t[j][-1] >= t - SAME_TOL]
-        if not reach:                                    # beyond every column: the farthest-reaching one
-            far = max(range(len(cols)), key=lambda j: col_t[j][-1])
-            reach = [far]
-        vb = np.array([cols[j] for j in reach])
-        vr = np.array([np.interp(t, col_t[j], col_r[j]) for j in reach])
-        out[i] = float(np.interp(b, vb, vr))
-    return out
+        ct = np.concatenate([[0.0], tan_m[k][o]])
+        cr = np.concatenate([[r0], r_m[k][o]])
+        v = np.interp(tt, ct, cr)
+        beyond = tt > ct[-1]
+        v[beyond] = cr[-1] + (tt[beyond] - ct[-1]) * (cr[-1] - cr[-2]) / (ct[-1] - ct[-2])
+        vals[j] = v
+    # step 3: per cell, in beta between the columns (held beyond the first and the last)
+    out = np.empty(len(tt))
+    for i in range(len(tt)):
+        out[i] = np.interp(bb[i], cols, vals[:, i])
+    out[tt < SAME_TOL] = r0
+    return np.exp(out).reshape(shape)

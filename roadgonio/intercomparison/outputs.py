@@ -212,7 +212,8 @@ def plot_sensitivity(sens: Sequence[dict[str, Any]], path: Path, top: int = 6) -
                 ax.set_axis_off()
                 continue
             y = np.arange(len(rows))[::-1]
-            ax.barh(y, [r["drop_pct"] for r in rows], xerr=[r["drop_se_pct"] for r in rows], color="tab:blue",
+            num = lambda v: np.nan if v is None else float(v)          # noqa: E731 (an SE of one realisation is None)
+            ax.barh(y, [num(r["drop_pct"]) for r in rows], xerr=[num(r["drop_se_pct"]) for r in rows], color="tab:blue",
                     alpha=0.8, capsize=2)
             ax.set_yticks(y, [r["label"] for r in rows], fontsize=7)
             ax.axvline(0.0, color="k", lw=0.6)

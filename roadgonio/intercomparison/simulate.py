@@ -17,6 +17,11 @@ Reported table of participant p in realisation m (all cells of the comparison at
   reference tile it shares with others (one draw per realisation for all of them);
 * ``e ~ N(0, noise_rel^2)`` independently in every cell: the repeatability.
 
+An instrument that measures only some cells (``[cells] measured``, a fixed-LED device) reports
+``raw`` at those cells and fills the others from them (:mod:`roadgonio.instrument.coverage`); its
+noise, misalignment and aperture effect at a filled cell are those of the measured cells it is
+interpolated from, and idealising ``fill`` (the sensitivity ranking) reports every cell measured.
+
 What it reports: ``raw`` (report = raw), ``raw / k_ref`` with k_ref the k_A of its instrument for
 its reference sample (``roadgonio correct --reference SAMPLE``: independent of the measured table),
 or ``raw / k_self`` with k_self the k_A of the model ``roadgonio correct --reference self`` fits to
@@ -142,6 +147,8 @@ class Setup:
                     out.append((key, f"{label} ({_aperture_text(inst, key)})"))
             if inst.calibration.mode != "lambert":
                 out.append(("calibration_mode", f"calibration mode {inst.calibration.mode} (vs lambert)"))
+        if not inst.cells.all_cells:
+            out.append(("fill", f"cells filled by {inst.cells.fill} ({len(inst.cells.measured)} of {pm.n} measured)"))
         from roadgonio.uncertainty.spec import INPUTS
         for k, name in enumerate(INPUTS):
             if pm.spec.sigma[k] > 0:
@@ -233,7 +240,16 @@ def raw_table(setup: Setup, d: Draws, p: int, idealise: str | None = None) -> tu
     elif idealise is not None and idealise in pm.k_ideal:
         k_used = k * (pm.k_ideal[idealise] / pm.k_nominal)
     noise = 1.0 + (0.0 if idealise == "noise" else pm.noise_rel) * d.z_noise[p]
-    return r * k_used * scale * noise, k_used
+    raw = r * k_used * scale * noise
+    cov = pm.mm.instrument.cells
+    if not cov.all_cells and idealise != "fill":
+        # the device reports its measured cells and fills the rest (roadgonio.instrument.coverage);
+        # k_used stays what a perfect correction divides by: raw / k_used = fill(raw_measured / k_measured)
+        t, b = pm.mm.cells.tan_eps, pm.mm.cells.beta_deg
+        filled = cov.fill_table(t, b, raw)
+        k_used = filled / cov.fill_table(t, b, raw / k_used)
+        raw = filled
+    return raw, k_used
 
 
 def check_draws(setup: Setup, d: Draws, m: int) -> None:

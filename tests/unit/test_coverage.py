@@ -16,8 +16,8 @@ from tolerances import ROUND_TOL
 
 
 def bilinear(t, b):
-    """Linear in tan eps for every beta, linear in beta for every tan eps, beta-free at tan eps = 0."""
-    return 0.07 + t * (0.02 - 1e-4 * b)
+    """ln r linear in tan eps for every beta, linear in beta for every tan eps, beta-free at tan eps = 0."""
+    return np.exp(-2.6 + t * (0.3 - 4e-3 * b))
 
 
 def test_the_fixed_led_preset_reproduces_its_measured_cells_and_a_bilinear_table():
@@ -28,39 +28,33 @@ def test_the_fixed_led_preset_reproduces_its_measured_cells_and_a_bilinear_table
     m = np.array([cs.index(t, b) for t, b in inst.cells.measured])
     noisy[m] = truth[m]
     filled = inst.cells.fill_table(cs.tan_eps, cs.beta_deg, noisy)
-    # inside the measured columns' reach the bilinear table comes back exactly ...
-    reach = {0.0: 12.0, 10.0: 12.0, 30.0: 6.0, 90.0: 5.0, 180.0: 5.0}
-    def covered(t, b):             # both bracketing columns reach tan eps
-        lo, hi = max(c for c in reach if c <= b), min(c for c in reach if c >= b)
-        return t <= reach[lo] and t <= reach[hi]
-    inside = np.array([covered(t, b) for t, b in zip(cs.tan_eps, cs.beta_deg)])
-    assert inside.sum() > 250
-    assert np.max(np.abs(filled[inside] - truth[inside])) <= ROUND_TOL
+    # the table whose ln r is bilinear comes back exactly, in every cell (the columns continue linearly) ...
+    assert np.max(np.abs(filled / truth - 1)) <= 1e-11
     # ... and the measured cells are reported as measured, whatever the others were
     assert np.array_equal(filled[m], truth[m])
     assert len(inst.cells.measured) == 27
 
 
 def test_hand_computed_fill():
-    # measured: zenith 1.0; beta 0: tan 1 -> 3, tan 2 -> 5; beta 90: tan 1 -> 2
-    tm, bm, rm = [0.0, 1.0, 2.0, 1.0], [0.0, 0.0, 0.0, 90.0], [1.0, 3.0, 5.0, 2.0]
+    # measured (ln r): zenith 1.0; beta 0: tan 1 -> 3, tan 2 -> 5; beta 90: tan 1 -> 2
+    tm, bm, rm = [0.0, 1.0, 2.0, 1.0], [0.0, 0.0, 0.0, 90.0], np.exp([1.0, 3.0, 5.0, 2.0])
     cases = {(0.0, 45.0): 1.0,          # the zenith for every beta
              (0.5, 0.0): 2.0,           # tan eps: halfway between 1 and 3
              (0.5, 90.0): 1.5,          # halfway between 1 and 2
              (1.0, 45.0): 2.5,          # then beta: halfway between 3 and 2
              (1.0, 180.0): 2.0,         # held beyond the last column
-             (1.5, 45.0): 4.0,          # beta 90 does not reach tan 1.5: beta 0's value (4) only
-             (3.0, 10.0): 5.0}          # beyond every column: the farthest one, held
+             (1.5, 45.0): 3.25,         # beta 90 continues its last segment to 2.5, beta 0 gives 4
+             (3.0, 10.0): 7 - 3 * 10 / 90}  # both continue (7 and 4), then beta
     t = np.array([k[0] for k in cases])
     b = np.array([k[1] for k in cases])
-    got = fill_cells(tm, bm, rm, t, b)
+    got = np.log(fill_cells(tm, bm, rm, t, b))
     assert np.allclose(got, list(cases.values()), rtol=0, atol=ROUND_TOL), dict(zip(cases, got))
 
 
 def test_an_instrument_without_cells_reports_what_it_measures():
     inst = load_instrument("lab")
     assert inst.cells.all_cells and "cells" not in inst.to_dict()
-    x = np.arange(5.0)
+    x = np.arange(1.0, 6.0)
     assert np.array_equal(inst.cells.fill_table(x, x, x), x)
 
 

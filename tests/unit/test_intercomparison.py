@@ -50,7 +50,7 @@ def test_bad_study_files_are_one_line_errors_naming_file_and_field(tmp_path, col
 
 def test_the_bundled_study_loads_and_participants_must_observe_alike(tmp_path, collimated):
     st = load_study("r3-comparison")
-    assert [p.instrument.name for p in st.participants] == ["lab", "portable", "wide-road", "collimated"]
+    assert [p.instrument.name for p in st.participants] == ["lab", "corridor", "fixed-led", "collimated"]
     assert {s.kind for s in st.shared} == {"reference_tile", "angle_standard"}
     other = tmp_path / "other.toml"
     other.write_text(COLLIMATED.replace('[source]', '[observation]\nalpha_deg = 1.5\n[source]'))

@@ -55,7 +55,7 @@ def test_the_arc_is_the_default_and_files_round_trip():
     assert "path" not in lab.to_dict()["source"]                    # arc fingerprints do not change
     c = corridor()
     assert Instrument.from_dict(c.to_dict()).source == c.source
-    assert c.source.length_key == "height_m" and c.source.length_m == 0.5
+    assert c.source.length_key == "height_m" and c.source.length_m == 1.0
 
 
 @pytest.mark.parametrize("source,field", [
