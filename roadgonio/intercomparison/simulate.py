@@ -173,6 +173,9 @@ class Setup:
 
 def _aperture_text(inst, key: str) -> str:
     if key == "source_aperture":
+        if inst.source.path == "fixed_height":
+            return (f"R_S/h = {math.degrees(inst.source.radius_m / inst.source.length_m):.3g} deg at tan eps 0, "
+                    f"x cos eps beyond")
         return f"R_S/D_S = {math.degrees(inst.source.radius_m / inst.source.length_m):.3g} deg"
     if key == "detector_pupil":
         return f"R_D/D_D = {math.degrees(inst.detector.pupil_radius_m / inst.detector.distance_m):.3g} deg"

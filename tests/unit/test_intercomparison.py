@@ -155,3 +155,31 @@ def test_resume_reuses_finished_realisations_and_gives_the_same_numbers(tmp_path
     with pytest.raises(InputError, match="different study"):
         run_study(make_study(tmp_path, parts, realisations=6, seed=8), out, workers=0, progress=False, plots=False)
     run_study(make_study(tmp_path, parts, realisations=3, seed=8), out, workers=0, progress=False, plots=False, fresh=True)
+
+
+def test_a_fixed_led_participant_reports_its_measured_cells_and_the_fill_of_them(tmp_path, collimated):
+    """A collimated instrument that measures only some cells ([cells], zero apertures, tiny noise):
+    its measured cells are the truth x (1 + noise), every other cell is the fill of them
+    (roadgonio.instrument.coverage, checked there), so its error against the truth is the fill's error
+    of the true table; idealising the fill removes it (the sensitivity ranking puts it first)."""
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.uncertainty.cells import CellSet
+    led = load_instrument("fixed-led")
+    cells = ",\n".join(f"[{t}, {b}]" for t, b in led.cells.measured)
+    (tmp_path / "led.toml").write_text(COLLIMATED.replace('name = "collimated"', 'name = "led"')
+                                       + f"[cells]\nmeasured = [\n{cells}\n]\n")
+    study = make_study(tmp_path, [coll("A", 1e-6), coll("LED", 1e-6, instrument="led.toml")], realisations=4)
+    run = run_study(study, workers=0, progress=False, plots=False)
+    ds = run.dataset
+    cs = CellSet.make("standard")
+    truth = ds["truth"].values[cs.ii, cs.jj]
+    fill = led.cells.fill_table(cs.tan_eps, cs.beta_deg, truth)
+    x = ds["r_reported"].sel(scenario="declared", participant="LED").values[..., cs.ii, cs.jj]
+    assert np.max(np.abs(x / fill - 1)) < 1e-5                        # the fill of the (noise-free) truth
+    measured = np.array([cs.index(t, b) for t, b in led.cells.measured])
+    assert np.max(np.abs(x[..., measured] / truth[measured] - 1)) < 1e-5
+    assert np.sqrt(np.mean((fill / truth - 1) ** 2)) > 0.05         # and the fill is far from the truth
+    sens = [r for r in json.loads(ds.attrs["sensitivity_json"])
+            if r["scenario"] == "declared" and r["participant"] == "LED"]
+    assert sens[0]["characteristic"] == "fill", sens[:3]
+    assert sens[0]["rms_error_vs_truth_idealised_pct"] < 0.01 * sens[0]["rms_error_vs_truth_pct"]
