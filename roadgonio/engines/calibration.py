@@ -25,6 +25,11 @@ the instrument's ``[calibration] mode`` (:mod:`roadgonio.instrument.calibration`
   until two successive rules agree to ``eta_rtol``.
   Limitation: eta is the bare geometry's; parts of a ``[scene] xml`` that shade the footprint or the
   sample centre from the source are not in it (the backend's k_lam does see them, as a ratio).
+  Stray light (a backend that reports ``stray_fraction`` > 0): the meter reads the total signal,
+  S_total[f] = S_direct[f] / (1 - stray_fraction), against the source's E_0 (no housing in its
+  calibration), so ``k_abs = k_lam_direct * eta / (1 - stray_fraction)``, and ``k_a_direct`` is
+  k_lam_direct * eta; its relative standard error combines those of k_lam_direct and of
+  1 - stray_fraction as if independent.
 * ``reference`` (reference = SAMPLE with BRDF f_ref): q = (S[f] / S[f_ref]) f_ref(nominal), so::
 
       k_ref = k_lam[f] / k_lam[f_ref]
@@ -34,7 +39,8 @@ the instrument's ``[calibration] mode`` (:mod:`roadgonio.instrument.calibration`
   Precision: for Monte Carlo backends the relative standard error is combined as if the two errors
   were independent, ``rel_se = sqrt(rel_se_f^2 + rel_se_ref^2)``; the common random numbers make them
   positively correlated, so this overstates the error (conservative). For deterministic backends the
-  relative bounds add (first-order worst case).
+  relative bounds add (first-order worst case). ``k_a_direct`` is formed the same way from the direct
+  light of both; the stray fraction is the sample's.
 """
 from __future__ import annotations
 
@@ -93,7 +99,8 @@ def apply_calibration(mode: str, k_lam, *, eta=None, reference_reading=None, ref
 
 def centre_coupling(src: optics.SourceGeometry, level_v: int = 6, level_h: int = 6) -> float:
     """E_0 / (L_e A_S): the mean source coupling G at the sample centre over the source disc (the
-    horizontal illuminance E_0 of eta's denominator per unit radiance and area), float64, by the
+    horizontal illuminance E_0 of eta's denominator per unit radiance and area; with the source's
+    beam profile, docs/conventions.md section 4.1), float64, by the
     product Gauss rule :func:`roadgonio.engines.quadrature.disc_rule` at ``(level_v, level_h)``
     (a point source: its single node)."""
     from roadgonio.engines.quadrature import disc_rule
@@ -103,7 +110,7 @@ def centre_coupling(src: optics.SourceGeometry, level_v: int = 6, level_h: int =
     sp = optics.source_point(src, (sx, sy))
     sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape) for c in sp)
     with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-        _, g = optics.source_coupling(NumpyOps, src, np.zeros(1), np.zeros(1), sp)
+        _, g = optics.source_coupling(NumpyOps, src, np.zeros(1), np.zeros(1), sp, (sx, sy))
     return float(np.asarray(g) @ ws)
 
 
@@ -154,12 +161,13 @@ class _EtaIntegrator:
         sx, sy, ws = disc_rule(levels[4], levels[5])
         sp = optics.source_point(src, (sx, sy))
         sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape)[None, :] for c in sp)
+        sd = (sx[None, :], sy[None, :])
         rows = max(1, (1 << 17) // sx.size)
         mean = 0.0
         with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
             for a in range(0, x.size, rows):
                 b = min(x.size, a + rows)
-                _, g = optics.source_coupling(NumpyOps, src, x[a:b, None], y[a:b, None], sp)
+                _, g = optics.source_coupling(NumpyOps, src, x[a:b, None], y[a:b, None], sp, sd)
                 mean += float(w[a:b] @ (g @ ws))
         e0 = centre_coupling(src, levels[4], levels[5])
         if not e0 > 0.0:
@@ -223,7 +231,7 @@ def illuminance_ratio(instrument: Instrument, tan_eps: float, beta_deg: float, *
     <E> is the mean horizontal illuminance over the detected footprint, weighted like the detector
     signal (etendue x k_D); E_0 the horizontal illuminance at the sample centre; both from the
     uniform source disc (a point source if its radius is 0). Cached per instrument and cell."""
-    key = (fingerprint({"instrument": instrument.to_dict()}), round(float(tan_eps), 9),
+    key = (fingerprint({"instrument": instrument.to_dict(), "files": instrument.file_digests()}), round(float(tan_eps), 9),
            round(float(beta_deg), 9), float(rtol))
     if key not in _ETA_CACHE:
         integ = _INTEGRATORS.get(key[0])
@@ -236,6 +244,33 @@ def illuminance_ratio(instrument: Instrument, tan_eps: float, beta_deg: float, *
 
 
 _INTEGRATORS: dict[str, _EtaIntegrator] = {}
+
+
+def illuminance(instrument: Instrument, tan_eps: float, beta_deg: float, x, y, *, level: int = 9) -> np.ndarray:
+    """The horizontal illuminance E(x_E, y_E) (paper eq. 3) at the points (x, y) of the sample plane
+    from the source of cell (tan eps, beta), in units of its on-axis radiance L_0 (lx per cd/m^2; a
+    point source: of its on-axis intensity, lx per cd, with its intensity cos theta P(theta)): the
+    shared source coupling (:func:`roadgonio.instrument.optics.source_coupling`, beam profile
+    included) integrated over the disc by the quadrature's product Gauss rule at ``level`` (the rule
+    of eta and the quadrature backend; 45 x 45 nodes at 9, converged to ~1e-10 for the smooth
+    profiles). float64, the shape of ``x``."""
+    from roadgonio.engines.quadrature import disc_rule
+    src = optics.source_geometry(instrument, tan_eps, beta_deg)
+    lv = level if src.radius_m > 0 else -1
+    sx, sy, ws = disc_rule(lv, lv)
+    sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape)[None, :]
+               for c in optics.source_point(src, (sx, sy)))
+    x, y = np.broadcast_arrays(np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64))
+    out = np.empty(x.size)
+    xf, yf = x.ravel(), y.ravel()
+    rows = max(1, (1 << 17) // sx.size)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+        for a in range(0, xf.size, rows):
+            _, g = optics.source_coupling(NumpyOps, src, xf[a:a + rows, None], yf[a:a + rows, None], sp,
+                                          (sx[None, :], sy[None, :]))
+            out[a:a + rows] = g @ ws
+    area = math.pi * src.radius_m ** 2 if src.radius_m > 0 else 1.0
+    return (out * area).reshape(x.shape)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -289,6 +324,14 @@ class CalibratedBackend:
         bound = c.error_bound * eta + abs(c.k_a) * eta_err if math.isfinite(c.error_bound) else math.nan
         extra = {**(c.extra or {}), "calibration": "absolute", "k_a_lambert": c.k_a, "eta": eta,
                  "eta_error": eta_err, "eta_converged": eta_ok}
+        if c.stray_fraction != 0.0:
+            # the meter reads the total signal against the source's own E_0 (module docstring)
+            kd = apply_calibration("absolute", c.k_a_direct, eta=eta)
+            k = kd / (1.0 - c.stray_fraction)
+            se = abs(k) * math.hypot(_rel(c.k_a_direct_se, c.k_a_direct), c.stray_fraction_se / (1.0 - c.stray_fraction))
+            return CellResult(c.tan_eps, c.beta_deg, k, se, c.samples, c.seconds, extra, error_bound=bound,
+                              converged=c.converged and eta_ok, k_a_direct=kd, k_a_direct_se=c.k_a_direct_se * eta,
+                              stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se)
         return CellResult(c.tan_eps, c.beta_deg, apply_calibration("absolute", c.k_a, eta=eta), c.se * eta,
                           c.samples, c.seconds, extra,
                           error_bound=bound, converged=c.converged and eta_ok)
@@ -302,14 +345,25 @@ class CalibratedBackend:
             se, bound = math.nan, abs(k) * (_rel(c.error_bound, c.k_a) + _rel(r.error_bound, r.k_a))
         extra = {**(c.extra or {}), "calibration": "reference", "k_a_lambert": c.k_a,
                  "k_a_lambert_reference": r.k_a}
+        stray = {}
+        if c.stray_fraction != 0.0 or r.stray_fraction != 0.0:
+            kd = apply_calibration("reference", c.k_a_direct, reference_reading=r.k_a_direct)
+            stray = dict(k_a_direct=kd, k_a_direct_se=abs(kd) * math.hypot(_rel(c.k_a_direct_se, c.k_a_direct),
+                                                                          _rel(r.k_a_direct_se, r.k_a_direct)),
+                         stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se)
         return CellResult(c.tan_eps, c.beta_deg, k, se, c.samples + r.samples, c.seconds + r.seconds, extra,
-                          error_bound=bound, converged=c.converged and r.converged)
+                          error_bound=bound, converged=c.converged and r.converged, **stray)
 
-    def _unity(self, tan_eps: float, beta_deg: float) -> CellResult:
+    def _unity(self, tan_eps: float, beta_deg: float, c: CellResult | None = None) -> CellResult:
+        """k_A = 1 exactly (the reference is the sample); with stray light the sample's stray fraction
+        from its own computation ``c``."""
         deterministic = _is_deterministic(self.inner)
-        return CellResult(float(tan_eps), float(beta_deg), 1.0, math.nan if deterministic else 0.0, 0, 0.0,
+        stray = {} if c is None else dict(k_a_direct=1.0, k_a_direct_se=0.0, stray_fraction=c.stray_fraction,
+                                           stray_fraction_se=c.stray_fraction_se)
+        return CellResult(float(tan_eps), float(beta_deg), 1.0, math.nan if deterministic else 0.0,
+                          0 if c is None else c.samples, 0.0 if c is None else c.seconds,
                           {"calibration": "reference", "note": "the reference is the sample: k_A = 1 exactly"},
-                          error_bound=0.0 if deterministic else math.nan, converged=True)
+                          error_bound=0.0 if deterministic else math.nan, converged=True, **stray)
 
     # -- the KaBackend interface --------------------------------------------------------------
     def compute(self, cells: Sequence[tuple[float, float]],
@@ -328,6 +382,10 @@ class CalibratedBackend:
             self.inner.compute(cells, on_cell=lambda c: emit(self._absolute(c)))
             return out
         if self.identical:
+            if getattr(self.inner, "stray_light", False):
+                # k_A = 1, but the stray fraction of the sample is still to be computed
+                self.inner.compute(cells, on_cell=lambda c: emit(self._unity(c.tan_eps, c.beta_deg, c)))
+                return out
             for t, b in cells:
                 emit(self._unity(t, b))
             return out

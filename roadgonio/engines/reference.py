@@ -325,7 +325,7 @@ class ReferenceBackend(CellByCellBackend):
                     v, w, ws = segment_map(us1, us2, cs)
                     sdisc = (v * sx - w * sy, v * sy + w * sx)
                 sp = optics.source_point(src, sdisc)
-                wi, g = optics.source_coupling(NumpyOps, src, xs, ys, sp)
+                wi, g = optics.source_coupling(NumpyOps, src, xs, ys, sp, sdisc)
                 f = road_brdf(NumpyOps, self._P, wi, wos, self.model.variant, self._terms)
                 wg = wd * ws * g
                 if idx is None:
