@@ -141,20 +141,20 @@ class KaBatch(mi.SamplingIntegrator):
 
     def set_cells(self, frames: np.ndarray) -> None:
         """Source frames of the cells, float64 (n_cells, 12): centre, s, t, axis (the axis points
-        from the source towards the sample centre, the centre is D_S times minus the axis). Only the
-        axis goes to the device: the kernel rebuilds the frame from it
+        from the source towards the sample centre, the centre is the cell's D_S times minus the axis;
+        D_S may differ between cells: a fixed-height source path). Only the axis and D_S go to the
+        device: the kernel rebuilds the frame from the axis
         (:func:`frame_from_axis`, the rule of :func:`roadgonio.engines.mitsuba.engine.source_frames`)."""
         frames = np.asarray(frames, dtype=np.float64)
         if frames.ndim != 2 or frames.shape[1] != 12:
             raise BackendError(f"expected source frames of shape (cells, 12), got {frames.shape}")
         axis = frames[:, 9:12]
         dist = np.linalg.norm(frames[:, 0:3], axis=1)
-        if len(frames) and (np.ptp(dist) > 1e-9 * max(dist.max(), 1.0)
-                            or np.abs(frames[:, 0:3] + dist[:, None] * axis).max() > 1e-9 * max(dist.max(), 1.0)):
-            raise BackendError("the source frames must be centred at one distance along minus their axes")
+        if len(frames) and np.abs(frames[:, 0:3] + dist[:, None] * axis).max() > 1e-9 * max(dist.max(), 1.0):
+            raise BackendError("the source frames must be centred along minus their axes")
         # gathered per lane, so these are never loaded contiguously (no alignment-dependent kernels)
         self.frames = [_f32(axis[:, k]) for k in range(3)]
-        self.distance = dr.opaque(mi.Float, float(dist[0]) if len(dist) else 0.0)
+        self.distance = _f32(dist)          # D_S per cell
         self.n_cells = len(frames)
 
     # -- shading -------------------------------------------------------------------------------
@@ -164,7 +164,7 @@ class KaBatch(mi.SamplingIntegrator):
         L cos theta_s A / d^2 and the lanes where it is valid."""
         a = mi.Vector3f(*[dr.gather(mi.Float, v, cell, active) for v in self.frames])
         s, t = frame_from_axis(a)
-        c = -self.distance * a
+        c = -dr.gather(mi.Float, self.distance, cell, active) * a
         v = mi.Vector3f(si.p) - c
         local = dr.zeros(mi.SurfaceInteraction3f)
         local.p = mi.Point3f(dr.dot(s, v), dr.dot(t, v), dr.dot(a, v))
@@ -572,7 +572,7 @@ class KaBatch(mi.SamplingIntegrator):
         alive = w0 > 0.0
         a = mi.Vector3f(*[dr.gather(mi.Float, v, cell, alive) for v in self.frames])
         s_ax, t_ax = frame_from_axis(a)
-        c = -self.distance * a
+        c = -dr.gather(mi.Float, self.distance, cell, alive) * a      # D_S of the lane's cell
         base = WALK_DIMS_PER_VERTEX * (self.max_bounces - 1)
         u = [self.walk_u(lattice, keys, base + q, rep, j) for q in range(4)]
         disk = mi.warp.square_to_uniform_disk_concentric(mi.Point2f(u[0], u[1])) * self.source_radius

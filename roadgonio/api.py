@@ -22,6 +22,7 @@ function                 what (command)
 :func:`estimate_uncertainty`  JCGM 101 Monte Carlo uncertainty of the measured table (``uncertainty``)
 :func:`correct`          correct measured tables for the aperture effect (``correct``)
 :func:`design_study`     k_A over a grid of instruments on Dask (``design``)
+:func:`intercompare`     a virtual key comparison of several instruments on Dask (``intercompare``)
 :func:`road_metrics`     EN 13201 road metrics of a layout with r-tables (``road``; not ``road``: that
                          name is the room :mod:`roadgonio.road`)
 :func:`compare_tables`   two tables side by side (``compare``)
@@ -65,7 +66,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from roadgonio.uncertainty.run import UncertaintyResult
 
 __all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
-           "validate", "estimate_uncertainty", "correct", "design_study", "road_metrics", "compare_tables",
+           "validate", "estimate_uncertainty", "correct", "design_study", "intercompare", "road_metrics", "compare_tables",
            "classify_table"]
 
 
@@ -680,6 +681,41 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
     if folder is not None:
         ds.attrs["out"] = str(folder)
     return ds
+
+
+def intercompare(study, out=None, *, workers: int | None = None, scheduler: str | None = None, client=None,
+                 fresh: bool = False, progress: bool = False, plots: bool = True,
+                 mitsuba_variant: str | None = None):
+    """A virtual intercomparison (``roadgonio intercompare STUDY``): the participants of the study
+    (a TOML file, the name of a bundled study such as ``"r3-comparison"``, or a
+    :class:`roadgonio.intercomparison.study.Study`) measure its surface in many realisations; returns
+    the :class:`~roadgonio.intercomparison.run.StudyRun` (``.dataset``: the ``xarray.Dataset`` of
+    intercompare.nc; :func:`intercomparison_summary`). ``workers``/``scheduler``/``client`` as
+    :func:`design_study` (default: a local cluster, one worker per core; ``workers=0`` computes
+    here). With ``out`` (a folder or :data:`AUTO`) the run is journalled (resumable) and its files
+    are written there (:mod:`roadgonio.intercomparison.outputs`). Scripts that start a local cluster
+    must guard the call with ``if __name__ == "__main__":``."""
+    from roadgonio.engines.registry import prepare_entry_point
+    from roadgonio.intercomparison.run import run_study
+    from roadgonio.intercomparison.study import Study, load_study
+    st = study if isinstance(study, Study) else load_study(study)
+    folder = _out(out, "intercompare", st.name)
+    if workers == 0 and scheduler is None and client is None:
+        prepare_entry_point(st.backend, mitsuba_variant)       # this process computes: it is the entry point
+    return run_study(st, folder, workers=workers, scheduler=scheduler, client=client, fresh=fresh,
+                     progress=_show(progress), plots=plots, mitsuba_variant=mitsuba_variant)
+
+
+def intercomparison_summary(run) -> dict[str, Any]:
+    """The summary of an :func:`intercompare` run: per scenario and participant (and for the
+    comparison) its figures of merit, the ranking of the characteristics, the frozen-factor check,
+    the seconds of each stage and the output folder."""
+    import json
+    ds = run.dataset
+    return {"summary": json.loads(ds.attrs["summary_json"]), "sensitivity": json.loads(ds.attrs["sensitivity_json"]),
+            "validation": json.loads(ds.attrs.get("validation_json", "[]")),
+            "seconds": json.loads(ds.attrs.get("seconds", "{}")), "out": ds.attrs.get("out"),
+            "files": ds.attrs.get("files", "")}
 
 
 # ----------------------------------------------------------------------------------------------

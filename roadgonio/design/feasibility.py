@@ -92,13 +92,13 @@ def check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]])
             below.append((t, b))
     if below:
         src = instrument.source
-        return Feasibility(False, "horizon", f"the source disc (radius {src.radius_m:g} m at {src.distance_m:g} m) "
+        return Feasibility(False, "horizon", f"the source disc (radius {src.radius_m:g} m, {src.length_key[:-2]} {src.length_m:g} m) "
                                             f"reaches below the sample plane at {_cells_text(below)}", fp)
     blocked = blocked_cells(instrument, cells)
     if blocked:
         src, det = instrument.source, instrument.detector
         return Feasibility(False, "line_of_sight",
-                           f"the source disc (radius {src.radius_m:g} m at {src.distance_m:g} m) blocks the detector's "
+                           f"the source disc (radius {src.radius_m:g} m, {src.length_key[:-2]} {src.length_m:g} m) blocks the detector's "
                            f"view of the sample (pupil {det.pupil_radius_m:g} m at {det.distance_m:g} m) at "
                            f"{_cells_text(blocked)}", fp)
     from roadgonio.instrument.enclosure import check_detector_view, check_sources

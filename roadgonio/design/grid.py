@@ -37,7 +37,7 @@ from roadgonio.instrument.config import Instrument
 #: The numeric instrument keys a design may vary (section -> keys), docs/conventions.md section 4.
 VARIABLE_KEYS: dict[str, tuple[str, ...]] = {
     "observation": ("alpha_deg", "delta_deg"),
-    "source": ("distance_m", "radius_m", "beam_half_angle_deg", "beam_sigma_deg", "beam_cos_power",
+    "source": ("distance_m", "height_m", "radius_m", "beam_half_angle_deg", "beam_sigma_deg", "beam_cos_power",
                "aperture_edge_radiance"),
     "detector": ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity"),
     "sample": ("size_x_m", "size_y_m"),

@@ -63,6 +63,8 @@ class BackendInfo:
     beam_clipping: bool = True       # models a beam limit that clips the light on the footprint
     beam_profile: bool = True        # models a source radiance profile ([source] beam_* / aperture_* keys)
     field_map: bool = True           # models a detector sensitivity map ([detector] field_sensitivity)
+    #: the source paths it models ([source] path: "arc", "fixed_height"; docs/conventions.md section 4)
+    source_paths: tuple[str, ...] = ("arc", "fixed_height")
     mitsuba: bool = False            # needs mitsuba/drjit and a selected variant (Dask workers set one up)
     cell_correlation: str = ("independent: each cell has its own random numbers, seeded by (seed, tan eps, beta)")
 
@@ -137,7 +139,8 @@ def tolerance_setting(backend: str, value, field: str = "rel_se") -> dict[str, f
 def check_capabilities(info: BackendInfo, instrument) -> None:
     """Refuse an instrument the backend does not model (never ignore part of it): a Mitsuba XML
     scene's extra parts, a [housing] (the backends that model XML scenes model it), a mesh sample, a
-    source radiance profile, a detector sensitivity map. (A beam limit that clips the footprint is
+    source radiance profile, a detector sensitivity map, a source path it does not move its
+    source along. (A beam limit that clips the footprint is
     refused per cell by the backends that cannot model it.)"""
     scene = instrument.extra.get("scene") if hasattr(instrument.extra, "get") else None
     if scene and not info.xml_scenes:
@@ -165,6 +168,11 @@ def check_capabilities(info: BackendInfo, instrument) -> None:
         alt = " or ".join(n for n, b in BACKENDS.items() if b.meshes)
         raise InputError(f"the {info.name} backend integrates over a flat rectangular sample only; for a mesh "
                          f"sample use --backend {alt}", path=instrument.path, field="sample.mesh")
+    path = instrument.source.path
+    if path not in info.source_paths:
+        alt = " or ".join(n for n, b in BACKENDS.items() if path in b.source_paths)
+        raise InputError(f"the {info.name} backend does not model source.path = \"{path}\"; use --backend {alt}",
+                         path=instrument.path, field="source.path")
 
 
 def resolve_settings(name: str, *, accuracy: str | None = None, tolerance=None, seed=None,

@@ -48,6 +48,7 @@ from roadgonio.errors import InputError
 from roadgonio.fileio import read_toml
 from roadgonio.geometry import w_detector, w_source
 from roadgonio.instrument.calibration import Calibration
+from roadgonio.instrument.coverage import MeasuredCells
 
 _INF_WORDS = ("inf", "+inf", "infinity")
 #: The longest length of an instrument (distances, a finite focus, the sample's sides), m: no
@@ -117,6 +118,13 @@ class Observation:
         return w_detector(self.alpha_deg, self.delta_deg)
 
 
+#: The source paths (docs/conventions.md section 4): ``arc`` keeps the source at ``distance_m`` from
+#: the sample centre for every cell (a goniometer arm); ``fixed_height`` moves it along a straight
+#: line at ``height_m`` above the sample plane (a corridor goniophotometer), so its distance is
+#: ``height_m / cos eps`` (:func:`roadgonio.instrument.optics.source_distance_m`).
+SOURCE_PATHS = ("arc", "fixed_height")
+
+
 #: The keys of [source] that shape its beam (docs/conventions.md section 4; roadgonio.instrument.profiles):
 #: the angular profile (at most one of the first three) and the aperture profile (at most one of the last two).
 BEAM_KEYS = ("beam_sigma_deg", "beam_cos_power", "beam_intensity_file")
@@ -143,9 +151,12 @@ def _digests(obj, attrs) -> dict[str, str]:
 
 @dataclass(frozen=True)
 class Source:
-    """Disc exit aperture of radius ``radius_m`` (0 = point source) at ``distance_m`` from the
-    sample centre, facing it; optional beam cone of half-angle ``beam_half_angle_deg`` (None = no
-    beam limit).
+    """Disc exit aperture of radius ``radius_m`` (0 = point source) facing the sample centre; optional
+    beam cone of half-angle ``beam_half_angle_deg`` (None = no beam limit). Its centre is at
+    ``distance_m`` from the sample centre for every cell (``path = "arc"``, the default) or at
+    ``height_m`` above the sample plane (``path = "fixed_height"``: distance ``height_m / cos eps``,
+    so the source's solid angle and the illuminated area change with eps); the distance of a cell is
+    :func:`roadgonio.instrument.optics.source_distance_m`.
 
     Its radiance is uniform (a Lambertian area emitter) unless a profile is given
     (:mod:`roadgonio.instrument.profiles`: ``L = L_0 A(rho) P(theta)``): an angular profile P, one of
@@ -155,7 +166,7 @@ class Source:
     ``aperture_radiance_file`` (CSV ``rho, relative_radiance``). Files are read on construction
     (a file name relative to an instrument file is resolved by :meth:`Instrument.from_dict`)."""
 
-    distance_m: float = 3.0
+    distance_m: float | None = None
     radius_m: float = 0.0
     beam_half_angle_deg: float | None = None
     beam_sigma_deg: float | None = None
@@ -163,21 +174,39 @@ class Source:
     beam_intensity_file: Path | None = None
     aperture_edge_radiance: float = 1.0
     aperture_radiance_file: Path | None = None
+    path: str = "arc"
+    height_m: float | None = None
 
     def __post_init__(self):
-        from roadgonio.instrument import profiles
-        _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True, length=True)
+        if self.path not in SOURCE_PATHS:
+            raise InputError(f"expected one of {', '.join(map(repr, SOURCE_PATHS))}, got {self.path!r}",
+                             field="source.path")
+        if self.path == "arc":
+            if self.height_m is not None:
+                raise InputError('height_m belongs to path = "fixed_height"; an arc has distance_m',
+                                 field="source.height_m")
+            if self.distance_m is None:
+                object.__setattr__(self, "distance_m", 3.0)
+            _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True, length=True)
+        else:
+            if self.distance_m is not None:
+                raise InputError('a fixed-height source has height_m, not distance_m (its distance is '
+                                 'height_m / cos eps)', field="source.distance_m")
+            if self.height_m is None:
+                raise InputError('missing (required for path = "fixed_height")', field="source.height_m")
+            _checked(self, "height_m", "source.height_m", lo=0.0, lo_open=True, length=True)
         _checked(self, "radius_m", "source.radius_m", lo=0.0, aperture=True)
         _checked(self, "beam_half_angle_deg", "source.beam_half_angle_deg", lo=0.0, hi=90.0, lo_open=True,
                  optional=True)
+        if self.radius_m >= self.length_m:
+            raise InputError(f"the source radius ({self.radius_m:g} m) must be smaller than its "
+                             f"{self.length_key[:-2]} ({self.length_m:g} m)", field="source.radius_m")
+        from roadgonio.instrument import profiles
         _checked(self, "beam_sigma_deg", "source.beam_sigma_deg", lo=0.0, lo_open=True, hi=1e6, optional=True)
         _checked(self, "beam_cos_power", "source.beam_cos_power", lo=0.0, hi=1e6, optional=True)
         _file_key(self, "beam_intensity_file", "source.beam_intensity_file")
         _checked(self, "aperture_edge_radiance", "source.aperture_edge_radiance", lo=0.0, hi=10.0)
         _file_key(self, "aperture_radiance_file", "source.aperture_radiance_file")
-        if self.radius_m >= self.distance_m:
-            raise InputError(f"the source radius ({self.radius_m:g} m) must be smaller than its distance "
-                             f"({self.distance_m:g} m)", field="source.radius_m")
         given = [k for k in BEAM_KEYS if getattr(self, k) is not None]
         if len(given) > 1:
             raise InputError(f"give at most one angular profile, not {' and '.join(given)}", field=f"source.{given[1]}")
@@ -205,6 +234,18 @@ class Source:
     @property
     def is_point(self) -> bool:
         return self.radius_m == 0.0
+
+    @property
+    def length_key(self) -> str:
+        """The key of the source's one length: ``distance_m`` (arc) or ``height_m`` (fixed height)."""
+        return "distance_m" if self.path == "arc" else "height_m"
+
+    @property
+    def length_m(self) -> float:
+        """That length (m): D_S of an arc, the height of a fixed-height path (its distance at eps = 0,
+        the nearest the source comes). A distance error of the uncertainty budget is an error of this
+        length (every cell's distance scales with it)."""
+        return self.distance_m if self.path == "arc" else self.height_m
 
     @property
     def beam(self):
@@ -416,6 +457,9 @@ class Instrument:
     path: Path | None = None
     #: How a signal becomes q: [calibration] (docs/conventions.md section 5; roadgonio.instrument.calibration).
     calibration: Calibration = field(default_factory=Calibration)
+    #: The cells it measures and how it fills the rest of its reported table: [cells]
+    #: (roadgonio.instrument.coverage; default: it measures every cell asked).
+    cells: MeasuredCells = field(default_factory=MeasuredCells)
     #: Extra sections not interpreted here (kept for backends and provenance).
     extra: Mapping[str, Any] = field(default_factory=dict)
 
@@ -432,10 +476,12 @@ class Instrument:
             object.__setattr__(self, "path", Path(self.path))
         if not isinstance(self.calibration, Calibration):
             raise InputError(f"expected a Calibration, got {type(self.calibration).__name__}", field="calibration")
+        if not isinstance(self.cells, MeasuredCells):
+            raise InputError(f"expected a MeasuredCells, got {type(self.cells).__name__}", field="cells")
         if not isinstance(self.extra, Mapping):
             raise InputError(f"expected a mapping of extra sections, got {self.extra!r}", field="extra")
         object.__setattr__(self, "extra", FrozenDict(self.extra))
-        clash = sorted(set(self.extra) & set(_SECTIONS + ("calibration",)))
+        clash = sorted(set(self.extra) & set(_SECTIONS + ("calibration", "cells")))
         if clash:
             raise InputError(f"section(s) {', '.join(clash)} are fields of the instrument, not extra sections",
                              field="extra")
@@ -452,9 +498,6 @@ class Instrument:
         """Unit direction towards the source at (tan eps, beta): shape (3,), or (..., 3) for arrays."""
         eps = np.arctan(np.asarray(tan_eps, dtype=np.float64)) if np.ndim(tan_eps) else math.atan(tan_eps)
         return w_source(eps, beta_deg, self.observation.delta_deg)
-
-    def source_centre(self, tan_eps: float, beta_deg: float) -> np.ndarray:
-        return self.source.distance_m * self.w_i(tan_eps, beta_deg)
 
     def detector_centre(self) -> np.ndarray:
         return self.detector.distance_m * self.w_o()
@@ -504,11 +547,18 @@ class Instrument:
                 src[k] = str(src[k])
         if src["aperture_edge_radiance"] == 1.0:
             del src["aperture_edge_radiance"]
+        for k in ("distance_m", "height_m"):
+            if src[k] is None:
+                del src[k]
+        if src["path"] == "arc":
+            del src["path"]
         smp = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self.sample).items() if v is not None}
         d = {"instrument": {"name": self.name, "description": self.description},
              "observation": asdict(self.observation), "source": src, "detector": det, "sample": smp}
         if not self.calibration.is_default:   # the default is left out, so Lambert fingerprints do not change
             d["calibration"] = self.calibration.to_dict()
+        if not self.cells.is_default:       # left out by default, like the calibration
+            d["cells"] = self.cells.to_dict()
         d.update({k: dict(v) if isinstance(v, Mapping) else v for k, v in self.extra.items()})
         return d
 
@@ -536,8 +586,9 @@ class Instrument:
         if "source" not in d:
             raise InputError("missing table [source]", field="source")
         s = dict(d["source"])
-        _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg", *BEAM_KEYS, *APERTURE_KEYS}, "source", None)
-        if "distance_m" not in s:
+        _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg", "path", "height_m", *BEAM_KEYS,
+                        *APERTURE_KEYS}, "source", None)
+        if "distance_m" not in s and s.get("path", "arc") == "arc":
             raise InputError("missing (required)", field="source.distance_m")
         for k in ("beam_intensity_file", "aperture_radiance_file"):
             _resolve_file(s, k, "source", path)
@@ -570,16 +621,18 @@ class Instrument:
                                  field=f"instrument.{key}")
         name = meta.get("name", path.stem if path is not None else "instrument")
         calibration = Calibration.from_dict(d.get("calibration", {}), path=path)
-        extra = {k: v for k, v in d.items() if k not in _SECTIONS and k != "calibration"}
+        cells = MeasuredCells.from_dict(d.get("cells", {}))
+        extra = {k: v for k, v in d.items() if k not in _SECTIONS and k not in ("calibration", "cells")}
         unknown = sorted(set(extra) - set(EXTRA_SECTIONS))
         if unknown:
             raise InputError(f"unknown section(s) [{'], ['.join(unknown)}]; expected some of "
-                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS + ('calibration',))}]", field=unknown[0])
+                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS + ('calibration', 'cells'))}]", field=unknown[0])
         for sec in EXTRA_SECTIONS:
             if sec in extra and not isinstance(extra[sec], Mapping):
                 raise InputError(f"expected a table [{sec}]", field=sec)
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
-                   description=meta.get("description", ""), path=path, calibration=calibration, extra=extra)
+                   description=meta.get("description", ""), path=path, calibration=calibration, cells=cells,
+                   extra=extra)
 
     def to_toml(self, header: str = "") -> str:
         """The instrument file's text (:meth:`to_dict` written as TOML by :func:`toml_text`, with

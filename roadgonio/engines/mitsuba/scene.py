@@ -105,9 +105,10 @@ def detector_props(observation: Observation, detector: Detector) -> dict[str, An
 
 
 def source_radiance(instrument: Instrument) -> float:
-    """Radiance (disc) or intensity (point) giving ~1 lx normal to the axis at the sample centre."""
+    """Radiance (disc) or intensity (point) giving ~1 lx normal to the axis at the sample centre (at
+    the nearest source distance of a fixed-height path: a scale only, k_A is a ratio)."""
     src = instrument.source
-    d2 = src.distance_m ** 2
+    d2 = src.length_m ** 2
     return d2 if src.is_point else d2 / (math.pi * src.radius_m ** 2)
 
 
@@ -192,7 +193,7 @@ class RoadScene:
             from roadgonio.instrument.enclosure import check_sources
             check_sources(self.instrument, self.housing, [(tan_eps, beta_deg)])
         if self.source_kind == "point":
-            c = self.instrument.source_centre(tan_eps, beta_deg)
+            c = source_geometry(self.instrument, tan_eps, beta_deg).centre
             self.params[f"{SOURCE_ID}.position"] = _mi().Point3f(*[float(v) for v in c])
         else:
             self.params[f"{SOURCE_ID}.to_world"] = source_transform(self.instrument, tan_eps, beta_deg)
@@ -328,7 +329,7 @@ def _build_toml(instrument, model, *, resolution, spp, sampler, channels, housin
     det = dict(type="lummeter", film=film, sampler=samp, **detector_props(instrument.observation, instrument.detector))
     src = instrument.source
     if src.is_point:
-        source = {"type": "point", "position": [0.0, 0.0, src.distance_m],
+        source = {"type": "point", "position": [0.0, 0.0, src.length_m],
                   "intensity": {"type": "uniform", "value": source_radiance(instrument)}}
     else:
         source = {"type": "disk", "to_world": source_transform(instrument, 0.0, 0.0),
@@ -346,6 +347,9 @@ def _build_toml(instrument, model, *, resolution, spp, sampler, channels, housin
 
 def xml_parameters(instrument: Instrument, scene_sec) -> dict[str, str]:
     det, src, smp = instrument.detector, instrument.source, instrument.sample
+    if src.path != "arc":
+        raise InputError(f'a Mitsuba XML scene takes one source_distance_m: source.path = "{src.path}" '
+                         'is modelled without [scene] xml only', path=instrument.path, field="source.path")
     p = {"alpha_deg": instrument.observation.alpha_deg, "delta_deg": instrument.observation.delta_deg,
          "source_distance_m": src.distance_m, "source_radius_m": src.radius_m,
          "source_radiance": source_radiance(instrument),
