@@ -30,7 +30,7 @@ import numpy as np
 from roadgonio.instrument import optics
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.surface.model import NumpyOps, RoadModel
 from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
 
 DEFAULT_REL_SE = 1e-3
@@ -84,8 +84,6 @@ class MonteCarloBackend(CellByCellBackend):
         self.batch = m * m
         self.min_batches = int(min_batches)
         self.max_samples = int(max_samples)
-        self._P = model.params.to_dict()
-        self._terms = model.terms()
         self._det = optics.detector_geometry(instrument)
         det = instrument.detector
         self._pupil = det.pupil_radius_m > 0.0
@@ -146,7 +144,7 @@ class MonteCarloBackend(CellByCellBackend):
                 sp = optics.source_point(src, disc(sdisc, self._source, a, b))
                 wi, g = optics.source_coupling(NumpyOps, src, x, y, sp)
                 wo = (-d[0], -d[1], -d[2])
-                f = road_brdf(NumpyOps, self._P, wi, wo, self.model.variant, self._terms)
+                f = self.model.evaluate(NumpyOps, wi, wo)
                 wg = np.where(valid, w * g, 0.0)
                 road += float(np.dot(wg, f))
                 lam += float(np.sum(wg))
