@@ -26,7 +26,8 @@ Boundary conditions, by reflecting the coefficients: even in beta at 0 and 180 d
 mirror symmetric about the plane of observation, so g is smooth across it); even at eps_max; at the
 pole (eps = 0, where beta is undefined) the row of coefficients is one value ``c`` and the row beyond
 it is ``2c - a_1``, so g takes one value at the pole whatever beta and grows from it linearly, as a
-smooth function of the direction does.
+smooth function of the direction does; the roughness penalty includes the second difference through
+the pole (from beta to 180 deg - beta), so the slopes at opposite azimuths agree.
 
 The free coefficients theta (``c``, then the rows 1..S_t of S_beta + 1 nodes each) enter g
 linearly, ``g = sum_p theta_p phi_p``: the simulated measurement through fixed ray bundles is
@@ -244,7 +245,27 @@ def _differences(grid: SplineGrid):
             D[k, a] += 1.0
             D[k, b] -= 2.0
             D[k, c] += 1.0
-        D = D @ T
-        D.setflags(write=False)
-        return D
-    return (op(rows_b), np.array(cb)), (op(rows_t), np.array(ct))
+        return D @ T
+
+    Dt = op(rows_t)
+    # through the pole: the eps difference at the pole along the great circle from beta to
+    # 180 deg - beta (the node there interpolated linearly in beta): a_1(beta) - 2 c + a_1(180 - beta),
+    # so the slopes at opposite azimuths agree, as those of a function smooth over the sphere do
+    beta, _ = grid.node_coordinates()
+    pole = []
+    for i in range(grid.s_beta + 1):
+        row = np.zeros(grid.n_params)
+        row[_theta_index(grid, i, 1)] += 1.0
+        row[0] -= 2.0
+        other = 180.0 - beta[i]
+        k = int(np.clip(np.searchsorted(beta, other) - 1, 0, grid.s_beta - 1))
+        w = (other - beta[k]) / (beta[k + 1] - beta[k])
+        row[_theta_index(grid, k, 1)] += 1.0 - w
+        row[_theta_index(grid, k + 1, 1)] += w
+        pole.append(row)
+    Dt = np.vstack([Dt, np.array(pole)])
+    ct = ct + [(i, 0) for i in range(grid.s_beta + 1)]
+    Db = op(rows_b)
+    Db.setflags(write=False)
+    Dt.setflags(write=False)
+    return (Db, np.array(cb)), (Dt, np.array(ct))
