@@ -131,11 +131,13 @@ class FlexPart:
                 w = w * ell[None, :]                      # g_D enters as l(alpha) g_D
             self._idx.append(idx)
             self._w.append(w)
+            N = np.zeros((self.n, self._G[k]))
+            for i, v in lookup(SplineOps, g, wi0, wo0):
+                np.add.at(N, (np.arange(self.n), np.rint(i).astype(np.int64)), v)
             if k == 0:                                    # the nominal value: g_C only (alpha = 1 deg: l = 0)
-                N = np.zeros((self.n, self._G[0]))
-                for i, v in lookup(SplineOps, g, wi0, wo0):
-                    np.add.at(N, (np.arange(self.n), np.rint(i).astype(np.int64)), v)
                 self._nominal = np.asarray(N @ self._T[0])
+            else:                                         # g_D at the nominal directions (diagnostics)
+                self._nominal_d = np.asarray(N @ self._T[1])
         self._bins = [self.cell_of[None, :] * G + idx for G, idx in zip(self._G, self._idx)]
 
     @property
@@ -170,6 +172,17 @@ class FlexPart:
 
     def g_nominal(self, theta: np.ndarray) -> np.ndarray:
         return self._nominal @ theta[:self.settings.n_c]
+
+    def surfaces_at_cells(self, theta: np.ndarray, cov: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """At the cells' nominal directions: g_C, its posterior standard deviation (with ``cov``) and
+        g_D (NaN without g_D) -- what the correction surface does to the table."""
+        n_c = self.settings.n_c
+        out = {"g_c": self._nominal @ theta[:n_c]}
+        if cov is not None:
+            out["sd_g_c"] = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", self._nominal, cov[:n_c, :n_c],
+                                                         self._nominal), 0.0))
+        out["g_d"] = (self._nominal_d @ theta[n_c:]) if self.settings.n_d else np.full(self.n, np.nan)
+        return out
 
     def k_a(self, theta: np.ndarray) -> np.ndarray:
         """k_A of the corrected model under the instrument's calibration (times rho)."""
@@ -431,3 +444,26 @@ def _spd_inverse(M: np.ndarray) -> np.ndarray:
     from scipy.linalg import cho_factor, cho_solve
     c = cho_factor(0.5 * (M + M.T), lower=True, check_finite=False)
     return cho_solve(c, np.eye(M.shape[0]), check_finite=False)
+
+
+def expected_posterior(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict, u_rel: Sequence[np.ndarray]) -> np.ndarray:
+    """The posterior covariance of theta that measurements through ``parts`` would give at the
+    surface ``theta`` with smoothing parameters ``lam`` (names of :func:`penalty_blocks`) and relative
+    standard uncertainties ``u_rel`` (per part and cell): the inverse of ``J^T W J + Lambda`` with
+    the measured values taken as the simulated ones (linearised: the posterior covariance of a
+    Gaussian model does not depend on the measured values). The design of a second aperture
+    (:mod:`roadgonio.design.second_aperture`) ranks candidates by it."""
+    settings = parts[0].settings
+    names, Ps = penalty_blocks(settings)
+    n_c, n_d = settings.n_c, settings.n_d
+    Lam = np.zeros((n_c + n_d, n_c + n_d))
+    Lam[:n_c, :n_c] = sum(float(lam[k]) * P for k, P in zip(names, Ps))
+    if n_d:
+        Lam[n_c:, n_c:] = d_prior(settings)
+    H = Lam.copy()
+    with one_blas_thread():
+        for p, ur in zip(parts, u_rel):
+            s, J = p.simulate(theta)
+            w = 1.0 / (np.asarray(ur, dtype=np.float64) * s) ** 2
+            H += J.T @ (w[:, None] * J)
+        return _spd_inverse(H)

@@ -49,7 +49,7 @@ from roadgonio.surface.rtable import RTable
 #: The backbone variants fitted and weighed by default.
 DEFAULT_VARIANTS = ("power", "smooth")
 #: Width (in grid cells) of the neighbourhood of the local Birge ratio.
-BIRGE_WIDTH_CELLS = 1.5
+BIRGE_WIDTH_CELLS = 2.0
 #: Components of the budget of a corrected table (in this order).
 COMPONENTS = ("measurement", "backend", "surface", "model", "bundle", "misalignment")
 
@@ -85,8 +85,11 @@ class InstrumentPart:
     u_corrected: RTable
     budget: Budget                    # of this instrument's own corrected table
     residual: np.ndarray              # grid, (simulated - measured) / u of the best variant
-    birge_local: np.ndarray           # grid, local Birge ratio (>= 0; the widening uses max(1, .))
-    simulated: np.ndarray             # grid, simulated measured r of the weighted model (best variant)
+    birge_local: np.ndarray           # grid, local Birge ratio
+    widening: np.ndarray              # grid, the factor on the surface and model components (>= 1)
+    simulated: np.ndarray             # grid, simulated measured r of the best variant's corrected model
+    model_r: np.ndarray               # grid, r of the best variant's corrected model at the nominal geometry
+    surfaces: dict[str, np.ndarray]   # grids of g_C, its posterior sd and g_D at the cells (best variant)
     backend_info: dict[str, Any]
     before: dict[str, Any]
     after: dict[str, Any]
@@ -151,15 +154,21 @@ def _grid(table: RTable, values: np.ndarray) -> np.ndarray:
 
 
 def local_birge(table: RTable, residual: np.ndarray, leverage: np.ndarray,
-                width: float = BIRGE_WIDTH_CELLS) -> np.ndarray:
-    """Per measured cell, the local Birge ratio: the square root of the mean over the neighbouring
+                width: float = BIRGE_WIDTH_CELLS) -> tuple[np.ndarray, np.ndarray]:
+    """Per measured cell, the local Birge ratio B_c: the square root of the mean over the neighbouring
     cells (Gaussian weights of ``width`` grid cells) of ``r^2 / (1 - h)``, r the normalised residual
-    and h the cell's leverage (its expected r^2 under the model is 1 - h)."""
+    and h the cell's leverage (its expected r^2 under the model is 1 - h); and the widening factor:
+    B_c where B_c^2 exceeds what noise alone gives at two standard deviations,
+    ``1 + 2 sqrt(2 / n_eff)`` (n_eff the effective number of cells in the neighbourhood), else 1.
+    Returns (B, widening)."""
     ii, jj = np.nonzero(table.mask)
     r2 = residual ** 2 / np.clip(1.0 - leverage, 0.05, 1.0)
     d2 = (ii[:, None] - ii[None, :]) ** 2 + (jj[:, None] - jj[None, :]) ** 2
     K = np.exp(-0.5 * d2 / width ** 2)
-    return np.sqrt(K @ r2 / K.sum(axis=1))
+    b2 = K @ r2 / K.sum(axis=1)
+    n_eff = K.sum(axis=1) ** 2 / (K * K).sum(axis=1)
+    widen = np.where(b2 > 1.0 + 2.0 * np.sqrt(2.0 / n_eff), np.sqrt(b2), 1.0)
+    return np.sqrt(b2), widen
 
 
 def _weights(log_ev: Sequence[float]) -> np.ndarray:
@@ -334,9 +343,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     Jb = np.vstack([best.parts[i].simulate(best.fit.theta)[1] for i in range(len(fms))])
     leverage = np.einsum("ij,jk,ik->i", Jb, best.fit.cov, Jb) / u_all ** 2
     resid = np.concatenate(best.fit.residual)
-    birge = np.concatenate([local_birge(t, resid[off[i]:off[i + 1]], leverage[off[i]:off[i + 1]])
-                            for i, t in enumerate(tables)])
-    widen = np.maximum(1.0, birge)
+    lb = [local_birge(t, resid[off[i]:off[i + 1]], leverage[off[i]:off[i + 1]]) for i, t in enumerate(tables)]
+    birge = np.concatenate([b for b, _ in lb])
+    widen = np.concatenate([w for _, w in lb])
     surf = np.zeros((N, N))
     model = np.zeros((N, N))
     for vf, lk, K in zip(vfits, lnk_v, jac_v):
@@ -399,12 +408,16 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         if mis_blocks[i] is not None:
             before_b.add("misalignment", mis_blocks[i])
         sim = np.concatenate([p.simulate(best.fit.theta, jacobian=False)[0] for p in best.parts])[sl]
+        bp = best.parts[i]
+        surfs = {k: _grid(t, v) for k, v in bp.surfaces_at_cells(best.fit.theta, best.fit.cov).items()}
+        model_r = _grid(t, bp.f0_nominal * np.exp(bp.g_nominal(best.fit.theta)) * bp.forward.bundles.cos3)
         parts_out.append(InstrumentPart(
             instrument=inst, measured=t, u_measured=u_grids[i][0], u_what=u_grids[i][1], k_a=k_grid,
             k_backend=_grid(t, k_back[i]), k_se=_grid(t, se_back[i]), corrected=corr,
             u_corrected=t.with_values(u_abs, name=f"{t.name}_corrected_u", source="standard uncertainty of " + corr.source),
-            budget=bud, residual=_grid(t, resid[sl]), birge_local=_grid(t, birge[sl]), simulated=_grid(t, sim),
-            backend_info=infos[i], before=functionals(t, before_b.total()), after=functionals(corr, bud.total())))
+            budget=bud, residual=_grid(t, resid[sl]), birge_local=_grid(t, birge[sl]),
+            widening=_grid(t, widen[sl]), simulated=_grid(t, sim),
+            model_r=model_r, surfaces=surfs, backend_info=infos[i], before=functionals(t, before_b.total()), after=functionals(corr, bud.total())))
     union = sorted({(round(c[0], 9), round(c[1], 9)) for t in tables for c in t.cells},
                    key=lambda c: (c[0], c[1]))
     base = tables[0]

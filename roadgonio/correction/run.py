@@ -60,6 +60,9 @@ DEFAULT_ROUNDS = 2
 #: Latin-hypercube starts of the later rounds (which also start from the previous round's model).
 LATER_ROUND_STARTS = 4
 FIT_STATE = "fit_state.json"
+#: Forward models of ``reference = "self"``: eq. 4 alone (issue 11), or eq. 4 times the correction
+#: surface (:mod:`roadgonio.correction.outside`).
+FORWARDS = ("eq4", "surface")
 
 BackendFactory = Callable[[Instrument, RoadModel], Any]
 
@@ -431,6 +434,21 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     return res
 
 
+def correct_self_surface(measured: RTable, instrument: Instrument, *, model_variant: str | None = None,
+                         artefacts: InstrumentArtefacts | None = None, max_outer: int | None = None,
+                         tol: float | None = None, **options: Any) -> CorrectionResult:
+    """``reference = "self"`` with the forward model that can follow a surface outside eq. 4: the
+    backbone variants times the correction surface (:func:`roadgonio.correction.outside.correct_surface`
+    through this one instrument), as a :class:`CorrectionResult`. ``model_variant`` None or
+    ``"auto"`` weighs every variant of :data:`roadgonio.correction.outside.DEFAULT_VARIANTS` by its
+    evidence; a variant name uses that one alone."""
+    from roadgonio.correction.outside import DEFAULT_VARIANTS, correct_surface, to_correction_result
+    variants = DEFAULT_VARIANTS if model_variant in (None, "auto") else (model_variant,)
+    res = correct_surface([measured], [instrument], artefacts=None if artefacts is None else [artefacts],
+                          variants=variants, **options)
+    return to_correction_result(res)
+
+
 def correct_with_reference(measured: RTable, instrument: Instrument, reference: RoadModel, *,
                            reference_name: str = "reference", alternatives: Mapping[str, RoadModel] | None = None,
                            u_measured: Any = "1%", sigma=None, backend: str = "mitsuba",
@@ -524,7 +542,12 @@ def correct_measured(measured: RTable, instrument: Instrument, *, reference: Any
     :class:`RoadModel` takes the classic route (:func:`correct_with_reference`, ``alternatives`` as
     :func:`roadgonio.correction.reference.resolve_alternatives`). ``options`` go to either."""
     from roadgonio.correction.reference import resolve_alternatives, sample_name
+    forward = options.pop("forward", "eq4")
+    if forward not in FORWARDS:
+        raise InputError(f"unknown forward model {forward!r}; expected one of {', '.join(FORWARDS)}", field="--forward")
     if isinstance(reference, str) and reference.strip().lower() == "self":
+        if forward == "surface":
+            return correct_self_surface(measured, instrument, model_variant=model_variant, **options)
         return correct_self(measured, instrument, variant=model_variant or "auto", **options)
     if isinstance(reference, RoadModel):
         ref_model, name = reference, reference_name or reference.name or "reference"
