@@ -27,7 +27,7 @@ from roadgonio.engines import full_grid_cells, make_backend
 from roadgonio.surface.model import RoadModel, RoadParams
 
 #: R3-like model: least-squares fit of the power variant to CIE R3 (RMS 3.9 % of max r); the same
-#: numbers as tests/test_quadrature.py::R3LIKE.
+#: numbers as tests/unit/test_quadrature.py::R3LIKE.
 R3LIKE = dict(k_diff=0.028937, k_phong=1.8147, n_phong=34.467, k_retro=0.052577, n_retro=11.307,
               k_exp=0.088927, p=2.137, h=0.49843, mu=0.03123)
 #: Representative cells: specular peak (tan 4-12, beta 0-10), mid, tan 0 and beta 180.

@@ -95,7 +95,7 @@ def row(case, calib, method, s, seconds, k_range=(np.nan, np.nan)) -> dict:
 
 def run_wide(rows: list, regenerate: bool) -> None:
     from roadgonio.correction import correct_files
-    from roadgonio.correction.reference import nearest_standard_tables
+    from roadgonio.surface.cie import nearest_bundled
     from roadgonio.engines.calibration import illuminance_ratio
     from roadgonio.engines.mitsuba import set_variant
     from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
@@ -117,7 +117,7 @@ def run_wide(rows: list, regenerate: bool) -> None:
             res, _, _ = correct_files([meas], inst, tmp, u_measured="1%", backend="mitsuba", progress=False)[0]
             rows.append(row("wide", mode, "self (fit through the instrument)", scores(res, truth),
                             time.perf_counter() - t0, (np.nanmin(res.k_a), np.nanmax(res.k_a))))
-            near = nearest_standard_tables(meas, 1)[0][0]
+            near = nearest_bundled(meas.s1(), meas.q0(), 1)[0][0]
             t0 = time.perf_counter()
             ref, _, _ = correct_files([meas], inst, Path(tmp) / "ref", reference=near, alternatives="auto",
                                       u_measured="1%", backend="mitsuba", progress=False)[0]

@@ -28,7 +28,7 @@ def _noop(x):
 
 def dask_overhead(n_tasks: int = 400) -> dict:
     """Round trip of trivial tasks on a 2-process local cluster: seconds per task."""
-    from roadgonio.design.cluster import open_client
+    from roadgonio.engines.cluster import open_client
     with open_client(2, backend=None) as c:
         c.gather(c.map(_noop, range(20), pure=False))          # warm up
         t0 = time.perf_counter()
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     rows, ref = [], None
     # warm up this process (variant, plugins, first kernel) so the in-process row measures work, not start-up
     run_design("portable", None, workers=0, **{**kw, "cells": "4:2"})
-    from roadgonio.design.cluster import open_client
+    from roadgonio.engines.cluster import open_client
     for label, workers in (("in-process", 0), ("dask 1 worker", 1), ("dask 2 workers", 2)):
         t_start = time.perf_counter()
         with open_client(workers) as client:

@@ -111,7 +111,7 @@ def main(argv=None) -> int:
     from roadgonio.engines import full_grid_cells, ideal_ratios, make_backend
     from roadgonio.instrument.config import load_instrument
     from roadgonio.surface.sample import resolve_sample
-    model = resolve_sample(args.sample)
+    model = resolve_sample(args.sample).model
     cells = full_grid_cells()
     rows = []
     print(f"k_A engine benchmark: sample {args.sample} ({model.variant}), target worst rel SE {args.rel_se:g}, "
@@ -260,7 +260,7 @@ def main(argv=None) -> int:
     print(hdr)
     print("-" * len(hdr))
     for r in rows:
-        def f(key, spec):
+        def f(key, spec, r=r):          # called in this iteration only
             v = r.get(key)
             return format(v, spec) if isinstance(v, (int, float)) and v is not None and not (
                 isinstance(v, float) and math.isnan(v)) else ""

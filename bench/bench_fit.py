@@ -16,7 +16,7 @@ import platform
 import sys
 from pathlib import Path
 
-from roadgonio import __version__
+from roadgonio._version import __version__
 from roadgonio.surface.fit import fit_table, max_weight
 from roadgonio.surface.rtable import BUNDLED, bundled_table
 

@@ -43,7 +43,7 @@ def main(argv=None) -> int:
     from roadgonio.surface.sample import resolve_sample
 
     inst = Instrument.load(args.instrument)
-    model = resolve_sample(args.sample)
+    model = resolve_sample(args.sample).model
     cells = full_grid_cells()
 
     settings = {"rel_se": args.rel_se}

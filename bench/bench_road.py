@@ -1,5 +1,5 @@
 """From the r-table to the road: a synthetic wide-instrument measurement of CIE R3, corrected, through
-the default EN 13201 layout (README "From the r-table to the road").
+the default EN 13201 layout (docs/road.md, "Measured vs corrected").
 
 1. k_A of an instrument for the R3 model (default: the wide instrument of issue 10,
    scenes/wide.toml, Mitsuba backend; ``--instrument portable --backend quadrature`` for
@@ -63,7 +63,7 @@ def main() -> None:
     roadgonio("correct", "--measured", str(work / f"{mname}.csv"), "--instrument", a.instrument,
               "--reference", "R3", "--backend", a.backend, "--out", str(work / "corrected"), "--no-plots")
     t_corr = time.time() - t1
-    corr_csv = work / "corrected" / "corrected.csv"          # correct's outputs (its README section)
+    corr_csv = work / "corrected" / "corrected.csv"          # correct's outputs (docs/correction.md, Outputs)
     u_csv = work / "corrected" / "corrected_u.csv"
     u_source = "corrected_u.csv written by roadgonio correct"
     t2 = time.time()

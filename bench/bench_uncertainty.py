@@ -40,7 +40,7 @@ def main() -> int:
     from roadgonio.surface.sample import resolve_sample
     from roadgonio.uncertainty import parse_sigma_spec, run_uncertainty
 
-    model = resolve_sample(args.sample)
+    model = resolve_sample(args.sample).model
     inst = load_instrument("portable")
     spec = parse_sigma_spec(SPEC)
     n_no = 5_000 if args.quick else 50_000

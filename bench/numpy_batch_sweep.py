@@ -4,7 +4,7 @@ import time
 from roadgonio.engines import make_backend, full_grid_cells
 from roadgonio.instrument.config import load_instrument
 from roadgonio.surface.sample import resolve_sample
-inst=load_instrument("portable"); model=resolve_sample("R3")
+inst=load_instrument("portable"); model=resolve_sample("R3").model
 cells=full_grid_cells()[::7]
 for batch in (16, 64, 256, 1024, 4096):
     b=make_backend("numpy-mc", inst, model, rel_se=1e-3, seed=1, batch=batch, max_samples=1<<22)

@@ -35,7 +35,7 @@ order: a run repeats bit for bit) and returned to the host, which accumulates th
 
 :meth:`KaBatch.sample` is the same shading for one cell (:attr:`KaBatch.cell`) as an ordinary
 ``SamplingIntegrator``, so ``mi.render`` with this integrator renders the signal of one cell
-(tests/test_engine.py compares it with the batched sums and with Mitsuba's ``direct`` integrator).
+(tests/plugin/test_engine.py compares it with the batched sums and with Mitsuba's ``direct`` integrator).
 
 Registration: :func:`roadgonio.engines.mitsuba.plugins.register_plugins` after ``set_variant``.
 """

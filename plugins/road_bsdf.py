@@ -79,7 +79,7 @@ class RoadBSDF(mi.BSDF):
         for name in PARAM_NAMES:
             cb.put(name, getattr(self, name), mi.ParamFlags.NonDifferentiable)
 
-    def parameters_changed(self, keys=[]):
+    def parameters_changed(self, keys=()):
         for name in PARAM_NAMES:
             v = getattr(self, name)
             if not isinstance(v, mi.Float):

@@ -1,4 +1,6 @@
-"""The Python API of roadgonio, for notebooks and scripts (exported from :mod:`roadgonio`).
+"""The Python API of roadgonio: one function per command, for notebooks, scripts and the command
+line (every ``roadgonio`` command parses its arguments and calls one function here; nothing
+under :mod:`roadgonio.cli` resolves an input itself).
 
 .. code-block:: python
 
@@ -6,299 +8,272 @@
     ds = rg.ka_table("portable", "R3", backend="quadrature", accuracy="fast")   # xarray.Dataset
     ds.k_a.sel(tan_eps=12, beta=0)
 
-* :func:`ka_table` -- k_A over the CIE grid as an ``xarray.Dataset`` (``k_a``, ``se``,
-  ``error_bound``, ``converged`` over ``tan_eps`` x ``beta``; NaN where not computed; provenance in
-  ``attrs``);
-* :func:`ka_cell` -- k_A at one cell (a :class:`~roadgonio.engines.CellResult`);
-* :func:`read_table` / :func:`write_table` -- an r-table as an ``xarray.DataArray`` of r in sr^-1
-  (not r x 10^4) on the CIE grid;
-* :func:`fit` -- fit the road BRDF model to an r-table;
-* :func:`correct` -- correct a measured r-table for the aperture effect;
-* :func:`uncertainty` -- Monte Carlo (JCGM 101) and GUM uncertainty of a measured r-table.
+=======================  ======================================================================
+function                 what (command)
+=======================  ======================================================================
+:func:`list_tables`      the bundled CIE tables with Q0, S1, S2 (``tables``)
+:func:`table_info`       one table's characteristics, optionally converted (``table``)
+:func:`read_table`       an r-table as an ``xarray.DataArray`` of r (sr^-1); :func:`write_table`
+:func:`fit`              fit the road BRDF model (paper eq. 4) to a table (``fit``)
+:func:`ka_table`         k_A over the CIE grid as an ``xarray.Dataset`` (``ka``)
+:func:`ka_cell`          k_A at one cell, a :class:`~roadgonio.engines.result.CellResult` (``ka --tan-eps``)
+:func:`render`           pictures of one cell with Mitsuba (``render``)
+:func:`validate`         a Monte Carlo backend judged against a float64 reference (``validate``)
+:func:`estimate_uncertainty`  JCGM 101 Monte Carlo uncertainty of the measured table (``uncertainty``)
+:func:`correct`          correct measured tables for the aperture effect (``correct``)
+:func:`design_study`     k_A over a grid of instruments on Dask (``design``)
+:func:`road`             EN 13201 road metrics of a layout with r-tables (``road``)
+:func:`compare_tables`   two tables side by side (``compare``)
+:func:`classify_table`   the CIE class of a table (``classify``)
+=======================  ======================================================================
 
-Instruments and samples are given as the command line takes them: an instrument is a preset
-name (``"lab"``, ``"portable"``), a TOML file or an :class:`~roadgonio.instrument.config.Instrument`;
-a sample is ``"lambert"``, a bundled table name (``"R3"``: fitted on the fly, cached), a table
-file (.csv/.rtb), a model file (.json), a :class:`~roadgonio.surface.model.RoadModel`, an
-:class:`~roadgonio.surface.rtable.RTable`, an r-table ``DataArray`` or a fit result. Conventions
-(angles, quantities, k_A, calibration): ``docs/conventions.md``.
+Inputs are resolved in ONE place (the section "Inputs" below), each by its room's one resolver: an
+instrument is a preset name (``"lab"``, ``"portable"``, ``"wide"``), a TOML file or an
+:class:`~roadgonio.instrument.config.Instrument`; a sample is anything
+:func:`roadgonio.surface.sample.resolve_sample` takes (``"lambert"``, a bundled table name, a
+table or model file, a RoadModel, an RTable, an r-table DataArray, a fit result); cells are what
+:func:`roadgonio.engines.cells.select_cells` takes; a backend, its accuracy preset, tolerance, seed
+and Mitsuba variant are resolved by :mod:`roadgonio.engines.registry`. ``model_variant`` is the
+road BRDF variant fitted to a table, ``mitsuba_variant`` the Mitsuba variant. Errors are
+:class:`~roadgonio.errors.InputError` naming the argument (the command line shows the option).
 
-The Mitsuba variant is process state: with ``backend="mitsuba"`` these functions keep a variant
-you already selected, else select ``variant`` (default ``llvm_ad_rgb``) -- they are the entry
-point, like the ``roadgonio`` command. Nothing heavy is imported until a function runs.
+The Mitsuba variant is process state: with a backend that needs Mitsuba these functions keep a
+variant you already selected, else select ``mitsuba_variant`` (default ``llvm_ad_rgb``): they are
+the entry point, like the ``roadgonio`` command. Nothing heavy is imported until a function runs.
+
+``out``: a folder to write the outputs to (None: write nothing), or :data:`AUTO` for the default
+folder the command uses (``out/ka-INSTRUMENT-SAMPLE``...; names made safe with
+:func:`roadgonio.fileio.safe_name`).
 """
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 from roadgonio.errors import InputError
 
 if TYPE_CHECKING:  # pragma: no cover
     import xarray as xr
 
-    from roadgonio.correction import CorrectionResult
-    from roadgonio.engines import CellResult
+    from roadgonio.engines.result import CellResult
     from roadgonio.instrument.config import Instrument
     from roadgonio.surface.fit import FitResult
-    from roadgonio.surface.model import RoadModel
     from roadgonio.surface.rtable import RTable
+    from roadgonio.surface.sample import ResolvedSample
     from roadgonio.uncertainty.run import UncertaintyResult
 
-__all__ = ["ka_table", "ka_cell", "read_table", "write_table", "fit", "correct", "uncertainty", "design"]
+__all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
+           "validate", "estimate_uncertainty", "correct", "design_study", "road", "compare_tables",
+           "classify_table"]
 
-#: Names of the Dataset / DataArray dimensions (the r-table rows and columns).
-TAN_EPS, BETA = "tan_eps", "beta"
+
+class _Auto:
+    """The default output folder of a command (``out=AUTO``)."""
+
+    def __repr__(self) -> str:
+        return "AUTO"
+
+
+AUTO = _Auto()
 
 
 # ----------------------------------------------------------------------------------------------
-# Inputs: what the command line accepts, plus the objects
+# Inputs: resolved here, once, by the rooms' resolvers
 # ----------------------------------------------------------------------------------------------
 
-def _instrument(instrument) -> "Instrument":
+def _instrument(instrument, field: str = "instrument") -> "Instrument":
+    """An Instrument from a preset name, a TOML file or an Instrument (a file's path made absolute,
+    so that relative mesh and XML paths never depend on the working folder later)."""
     from roadgonio.instrument.config import Instrument, load_instrument
     if isinstance(instrument, Instrument):
         return instrument
-    if isinstance(instrument, (str, Path)):
-        return load_instrument(instrument)
-    raise InputError(f"expected an instrument preset name, a TOML file or an Instrument, got {type(instrument).__name__}",
-                     field="instrument")
+    if isinstance(instrument, (str, Path)) and str(instrument).strip():
+        p = Path(instrument).expanduser()
+        return load_instrument(p.resolve() if p.exists() else instrument)
+    raise InputError("expected an instrument preset name, a TOML file or an Instrument, got "
+                     f"{type(instrument).__name__} {instrument!r}", field=field)
 
 
-def _table(table, what: str = "table") -> "RTable":
-    """An RTable from a bundled name, a file, an RTable or an r-table DataArray."""
-    from roadgonio.surface.rtable import RTable, load_table
-    if isinstance(table, RTable):
-        return table
+def _sample(sample, model_variant: str | None = None, field: str = "sample") -> "ResolvedSample":
+    from roadgonio.surface.sample import resolve_sample
+    return resolve_sample(sample, model_variant, field=field)
+
+
+def _table(table, field: str = "table") -> "RTable":
+    """An RTable from a bundled name, a .csv/.rtb file, an RTable or an r-table DataArray."""
+    from roadgonio.surface.rtable import load_table
+    from roadgonio.surface.sample import _as_table
+    t = _as_table(table)
+    if t is not None:
+        return t
     if isinstance(table, (str, Path)):
-        return load_table(table)
-    if _is_dataarray(table):
-        return _rtable_from_dataarray(table, what)
-    raise InputError(f"expected a bundled table name, a .csv/.rtb file, an RTable or an r-table DataArray, "
-                     f"got {type(table).__name__}", field=what)
-
-
-def _sample(sample, model_variant: str | None = None) -> tuple["RoadModel", str, "RTable | None"]:
-    """(model, a short name, the r-table if the sample is one)."""
-    from roadgonio.surface.fit import FitResult
-    from roadgonio.surface.model import RoadModel
-    from roadgonio.surface.rtable import BUNDLED, RTable
-    from roadgonio.surface.sample import TABLE_SUFFIXES, fitted_model, resolve_sample
-    if isinstance(sample, RoadModel):
-        return sample, sample.name or "model", None
-    if isinstance(sample, FitResult):
-        return sample.model, sample.table.name, sample.table
-    if isinstance(sample, RTable) or _is_dataarray(sample):
-        table = _table(sample, "sample")
-        return fitted_model(table, model_variant), table.name, table
-    if isinstance(sample, (str, Path)):
-        spec = str(sample)
-        model = resolve_sample(spec, model_variant)
-        p = Path(spec).expanduser()
-        is_table = (spec.strip().upper() in BUNDLED and not p.exists()) or p.suffix.lower() in TABLE_SUFFIXES
-        table = _table(spec, "sample") if is_table else None
-        return model, p.stem if p.suffix else spec, table
-    raise InputError("expected 'lambert', a bundled table name, a table or model file, a RoadModel, an RTable or "
-                     f"an r-table DataArray, got {type(sample).__name__}", field="sample")
-
-
-def _choose_variant(backend: str, variant: str | None) -> None:
-    """Entry-point choice of the Mitsuba variant: keep the caller's if one is selected and none is
-    asked for, else select the one asked for (default llvm_ad_rgb)."""
-    if backend != "mitsuba":
-        return
-    mi = sys.modules.get("mitsuba")
-    current = mi.variant() if mi is not None else None
-    if current is not None and variant in (None, current):
-        return
-    from roadgonio.engines.mitsuba import set_variant
-    set_variant(variant)
-
-
-def _backend(backend: str, instrument, model, *, accuracy: str | None, seed: int, variant: str | None,
-             rel_se: float | None, settings: Mapping[str, Any] | None = None):
-    from roadgonio.engines import make_backend
-    from roadgonio.engines.accuracy import rel_se_setting
-    kw: dict[str, Any] = dict(settings or {})
-    if rel_se is not None:
-        kw.update(rel_se_setting(backend, rel_se, field="rel_se"))
-    if backend in ("mitsuba", "numpy-mc"):
-        kw.setdefault("seed", int(seed))
-    if backend == "mitsuba" and variant is not None:
-        kw.setdefault("variant", variant)
-    _choose_variant(backend, variant)
-    return make_backend(backend, instrument, model, accuracy=accuracy, **kw)
-
-
-def _grid_cells(cells, table: "RTable | None") -> list[tuple[float, float]]:
-    from roadgonio.engines import full_grid_cells
-    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
-    if isinstance(cells, str):
-        if cells == "all":
-            return full_grid_cells()
-        if cells == "table":
-            if table is None:
-                raise InputError("cells='table' needs a sample that is an r-table (bundled name, table file, RTable)",
-                                 field="cells")
-            return table.cells
-        raise InputError(f"expected 'all', 'table' or a list of (tan_eps, beta) cells, got {cells!r}", field="cells")
-    out = []
-    for c in cells:
         try:
-            t, b = (float(v) for v in c)
-        except (TypeError, ValueError):
-            raise InputError(f"expected (tan_eps, beta) pairs, got {c!r}", field="cells") from None
-        if not (abs(TAN_EPS_GRID - t) < 1e-9).any() or not (abs(BETA_GRID_DEG - b) < 1e-9).any():
-            raise InputError(f"cell ({t:g}, {b:g}) is not on the CIE grid; use ka_cell for other cells",
-                             field="cells")
-        out.append((t, b))
-    return out
+            return load_table(table)
+        except InputError as err:
+            if err.path is not None:
+                raise err.with_argument(field) from None
+            raise InputError(err.reason, field=field) from None
+    raise InputError("expected a bundled table name, a .csv/.rtb file, an RTable or an r-table DataArray, got "
+                     f"{type(table).__name__}", field=field)
+
+
+def _check_int(value, field: str, lo: int = 0, hi: int | None = None) -> int:
+    """A whole number lo <= value <= hi (not a bool, not a float), or an InputError naming ``field``."""
+    import numbers
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise InputError(f"expected a whole number, got {value!r}", field=field)
+    v = int(value)
+    if v < lo or (hi is not None and v > hi):
+        raise InputError(f"expected a whole number from {lo} to {hi}, got {v}" if hi is not None
+                         else f"expected a whole number >= {lo}, got {v}", field=field)
+    return v
+
+
+def _backend(backend: str, instrument, model, *, accuracy: str | None = None, rel_se=None, seed=None,
+             mitsuba_variant: str | None = None, settings: Mapping[str, Any] | None = None):
+    """The backend, built through the registry after the entry point's choice of the Mitsuba variant."""
+    from roadgonio.engines.registry import backend_info, make_backend, prepare_entry_point
+    backend_info(backend)
+    prepare_entry_point(backend, mitsuba_variant)
+    return make_backend(backend, instrument, model, accuracy=accuracy, tolerance=rel_se, seed=seed,
+                        mitsuba_variant=mitsuba_variant, settings=settings, fields={"tolerance": "rel_se"})
+
+
+def _out(out, kind: str, *names: str) -> Path | None:
+    """The output folder: None, the given folder, or for :data:`AUTO` ``out/KIND-NAME-...``."""
+    if out is None:
+        return None
+    if isinstance(out, _Auto):
+        from roadgonio.fileio import safe_name
+        return Path("out") / "-".join([kind] + [safe_name(n) for n in names])
+    if not isinstance(out, (str, Path)) or not str(out).strip():
+        raise InputError(f"expected a folder name, got {out!r}", field="out")
+    return Path(out)
+
+
+def _show(progress) -> bool:
+    return bool(progress)
 
 
 # ----------------------------------------------------------------------------------------------
-# k_A
+# What there is to choose from (the command line's choices)
 # ----------------------------------------------------------------------------------------------
 
-def ka_table(instrument, sample, *, backend: str = "mitsuba", accuracy: str | None = "default",
-             cells: str | Sequence[tuple[float, float]] = "all", seed: int = 0, variant: str | None = None,
-             rel_se: float | None = None, progress: bool = False, model_variant: str | None = None,
-             settings: Mapping[str, Any] | None = None) -> "xr.Dataset":
-    """The aperture-effect factor k_A of ``instrument`` for ``sample`` over the CIE grid.
-
-    Parameters
-    ----------
-    instrument, sample:
-        As on the command line, or objects (module docstring).
-    backend:
-        ``"mitsuba"`` (float32 ray tracing), ``"quadrature"`` (deterministic float64) or
-        ``"numpy-mc"`` (float64 Monte Carlo, slow; an oracle).
-    accuracy:
-        ``"fast"``, ``"default"`` or ``"precise"`` (the presets of :mod:`roadgonio.engines.accuracy`);
-        ``rel_se`` (target relative standard error, or the quadrature's relative tolerance) and
-        ``settings`` (backend keywords) override it.
-    cells:
-        ``"all"`` (580 cells), ``"table"`` (the cells tabulated in the sample's r-table) or a list of
-        (tan_eps, beta) grid cells.
-    seed:
-        Seed of the Monte Carlo backends (same seed, same numbers).
-    variant:
-        Mitsuba variant (default: the selected one, else ``llvm_ad_rgb``).
-    progress:
-        Show a progress bar (on a terminal only).
-
-    Returns
-    -------
-    xarray.Dataset
-        Data variables ``k_a``, ``se`` (standard error; NaN for a deterministic backend),
-        ``error_bound`` (deterministic bound; NaN for Monte Carlo) and ``converged`` (True where
-        the cell was computed and reached its target) over dims ``tan_eps`` (29) and ``beta`` (20,
-        degrees); NaN (``converged`` False) where not computed. ``attrs["provenance"]`` holds the
-        provenance (:mod:`roadgonio.provenance`) as a JSON string; ``attrs`` also has flat keys
-        (instrument, sample, backend, accuracy, seed, roadgonio_version, created, ...).
-    """
-    import numpy as np
-    import xarray as xr
-
-    from roadgonio.engines.runner import run_cells
-    from roadgonio.fileio import to_json
-    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
-    from roadgonio.provenance import provenance
-    inst = _instrument(instrument)
-    model, name, table = _sample(sample, model_variant)
-    todo = _grid_cells(cells, table)
-    b = _backend(backend, inst, model, accuracy=accuracy, seed=seed, variant=variant, rel_se=rel_se,
-                 settings=settings)
-    run = run_cells(b, todo, instrument=inst, model=model, out_dir=None, progress=progress)
-    converged = np.nan_to_num(run.grid("converged"), nan=0.0).astype(bool)
-    coords = {TAN_EPS: (TAN_EPS, TAN_EPS_GRID.copy(), {"long_name": "tan(epsilon)", "units": "1"}),
-              BETA: (BETA, BETA_GRID_DEG.copy(), {"long_name": "beta", "units": "deg"})}
-    dims = (TAN_EPS, BETA)
-    data = {
-        "k_a": (dims, run.grid("k_a"), {"long_name": "aperture-effect factor k_A", "units": "1",
-                                        "description": "reported q / f(nominal); r_true = r_measured / k_A"}),
-        "se": (dims, run.grid("se"), {"long_name": "standard error of k_A", "units": "1",
-                                      "description": "Monte Carlo standard error; NaN for a deterministic backend"}),
-        "error_bound": (dims, run.grid("error_bound"),
-                        {"long_name": "error bound of k_A", "units": "1",
-                         "description": "deterministic bound on |k_A - true k_A|; NaN for Monte Carlo"}),
-        "converged": (dims, converged, {"long_name": "the cell was computed and reached its target"}),
-    }
-    prov = provenance(instrument=inst, model=model, backend=b.name, settings=b.settings(), sample=name,
-                      accuracy=accuracy, cells=len(todo))
-    attrs = {"title": f"k_A of instrument '{inst.name}' for sample '{name}' ({b.name} backend)",
-             "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md)",
-             "instrument": inst.name, "sample": name, "backend": b.name, "accuracy": str(accuracy),
-             "seed": int(seed), "cells_computed": len(run.results),
-             "cells_not_converged": int(sum(not c.converged for c in run.results)),
-             "roadgonio_version": prov["versions"]["roadgonio"], "created": prov["created"],
-             "provenance": to_json(prov, indent=None)}
-    return xr.Dataset(data, coords=coords, attrs=attrs)
+def backends() -> dict[str, str]:
+    """The k_A backends of the registry, name -> one-line summary."""
+    from roadgonio.engines.registry import BACKENDS
+    return {n: b.summary for n, b in BACKENDS.items()}
 
 
-def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "mitsuba",
-            accuracy: str | None = "default", seed: int = 0, variant: str | None = None,
-            rel_se: float | None = None, model_variant: str | None = None,
-            settings: Mapping[str, Any] | None = None) -> "CellResult":
-    """k_A at one cell (tan eps, beta in degrees; any cell, not only the grid's) as a
-    :class:`~roadgonio.engines.CellResult` (``k_a``, ``se``, ``error_bound``, ``converged``,
-    ``samples``, ``seconds``). Arguments as for :func:`ka_table`."""
-    for v, fld, ok in ((tan_eps, "tan_eps", lambda x: x >= 0), (beta, "beta", lambda x: 0 <= x <= 180)):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not ok(v):
-            raise InputError(f"expected {'tan eps >= 0' if fld == 'tan_eps' else '0 <= beta <= 180 deg'}, got {v!r}",
-                             field=fld)
-    inst = _instrument(instrument)
-    model, _, _ = _sample(sample, model_variant)
-    b = _backend(backend, inst, model, accuracy=accuracy, seed=seed, variant=variant, rel_se=rel_se,
-                 settings=settings)
-    return b.compute([(float(tan_eps), float(beta))])[0]
+def accuracy_presets() -> tuple[str, ...]:
+    from roadgonio.engines.registry import PRESETS
+    return PRESETS
+
+
+def model_variants() -> tuple[str, ...]:
+    from roadgonio.surface.model import VARIANTS
+    return VARIANTS
+
+
+def instrument_presets() -> list[str]:
+    from roadgonio.instrument.config import bundled_instruments
+    return bundled_instruments()
+
+
+def figure_process(enabled: bool = True):
+    """A helper process that draws the pictures while the computation runs (a context manager,
+    :class:`roadgonio.plotproc.FigureProcess`): pass it as ``figures=`` to the functions that draw."""
+    from roadgonio.plotproc import FigureProcess
+    return FigureProcess(enabled=enabled)
+
+
+def validation_report_json(report: Mapping[str, Any]) -> dict[str, Any]:
+    """The JSON document of a :func:`validate` report (validate.json, ``--json``)."""
+    from roadgonio.engines.validate import report_json
+    return report_json(report)
+
+
+def validation_summary_line(report: Mapping[str, Any]) -> str:
+    from roadgonio.engines.validate import summary_line
+    return summary_line(report)
+
+
+def sigma_spec_help() -> tuple[str, dict[str, str]]:
+    """The help text of a misalignment SPEC and of its keys (``roadgonio uncertainty --help``)."""
+    from roadgonio.uncertainty.spec import INPUT_HELP, SPEC_HELP
+    return SPEC_HELP, dict(INPUT_HELP)
+
+
+def uncertainty_result_json(res, cells: bool = False) -> dict[str, Any]:
+    """The JSON summary of an :func:`estimate_uncertainty` result (uncertainty.json without the cells)."""
+    from roadgonio.uncertainty.report import result_dict
+    return result_dict(res, cells=cells)
+
+
+def uncertainty_summary_lines(res) -> list[str]:
+    from roadgonio.uncertainty.report import summary_lines
+    return list(summary_lines(res))
+
+
+def design_keys() -> tuple[str, ...]:
+    """The instrument keys a design study can vary (``--vary KEY=...``)."""
+    from roadgonio.design.grid import ALL_KEYS
+    return tuple(ALL_KEYS)
+
+
+def design_summary(ds) -> dict[str, Any]:
+    """The summary of a :func:`design_study` Dataset: points, feasible, best design, timings."""
+    from roadgonio.design.dataset import summary
+    import json
+    s = summary(ds)
+    s.setdefault("instrument", json.loads(ds.attrs["base_instrument_json"]).get("instrument", {}).get("name", ""))
+    return s
+
+
+def precision_text(summary: Mapping[str, Any]) -> str:
+    """'worst rel. SE 1.5e-04' or 'worst rel. error bound 9.9e-04' of a k_A summary."""
+    from roadgonio.engines.runner import precision_text as _text
+    return _text(summary)
+
+
+def to_json(obj, indent: int | None = 2) -> str:
+    """JSON text of a result (NaN and infinity as null): :func:`roadgonio.fileio.to_json`."""
+    from roadgonio.fileio import to_json as _to_json
+    return _to_json(obj, indent=indent)
 
 
 # ----------------------------------------------------------------------------------------------
 # r-tables
 # ----------------------------------------------------------------------------------------------
 
-def _is_dataarray(obj) -> bool:
-    xr = sys.modules.get("xarray")
-    return xr is not None and isinstance(obj, xr.DataArray)
+def list_tables() -> list[dict[str, Any]]:
+    """The bundled CIE tables R1-R4, C1, C2: Q0, S1, S2 computed beside the published values, and
+    the number of tabulated cells (``roadgonio tables``)."""
+    from roadgonio.surface.rtable import BUNDLED, PUBLISHED_Q0, PUBLISHED_S1, bundled_table
+    rows = []
+    for name in BUNDLED:
+        t = bundled_table(name)
+        rows.append({"table": name, "Q0": t.q0(), "Q0_published": PUBLISHED_Q0[name], "S1": t.s1(),
+                     "S1_published": PUBLISHED_S1[name], "S2": t.s2(), "cells": int(t.mask.sum())})
+    return rows
 
 
-def _rtable_from_dataarray(da, what: str = "table") -> "RTable":
-    import numpy as np
-
-    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
-    from roadgonio.surface.rtable import RTable
-    if set(da.dims) != {TAN_EPS, BETA}:
-        raise InputError(f"expected a DataArray with dims ({TAN_EPS}, {BETA}), got {da.dims}", field=what)
-    da = da.transpose(TAN_EPS, BETA)
-    for dim, grid in ((TAN_EPS, TAN_EPS_GRID), (BETA, BETA_GRID_DEG)):
-        got = np.asarray(da[dim].values, dtype=np.float64)
-        if got.shape != grid.shape or np.max(np.abs(got - grid)) > 1e-9:
-            raise InputError(f"the {dim} coordinate is not the CIE grid ({', '.join(f'{v:g}' for v in grid)})",
-                             field=what)
-    return RTable(np.asarray(da.values, dtype=np.float64), name=str(da.attrs.get("name", da.name or "table")),
-                  source=str(da.attrs.get("source", "")))
-
-
-def _dataarray(table: "RTable") -> "xr.DataArray":
-    import xarray as xr
-    return xr.DataArray(
-        table.r.copy(), dims=(TAN_EPS, BETA),
-        coords={TAN_EPS: (TAN_EPS, table.tan_eps.copy(), {"long_name": "tan(epsilon)", "units": "1"}),
-                BETA: (BETA, table.beta_deg.copy(), {"long_name": "beta", "units": "deg"})},
-        name="r", attrs={"name": table.name, "source": table.source, "units": "sr^-1",
-                         "long_name": "reduced luminance coefficient r = q cos^3(epsilon)",
-                         "note": "r itself, not r x 10^4; NaN = not measured"})
+def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
+    """A table's Q0, S1, S2, cells and max r (``roadgonio table``); with ``to`` it is also written
+    there (``.rtb``: DIALux RTB, else CSV) and ``written`` names the file."""
+    t = _table(table)
+    info = {"table": t.name, "Q0": t.q0(), "S1": t.s1(), "S2": t.s2(), "cells": int(t.mask.sum()), "r_max": t.r_max}
+    if to is not None:
+        info["written"] = str(t.write(to))
+    return info
 
 
 def read_table(path_or_name) -> "xr.DataArray":
     """An r-table (bundled name ``"R3"``, or a .csv/.rtb file) as an ``xarray.DataArray`` of r in
     sr^-1 (not r x 10^4) with the CIE grid coordinates ``tan_eps`` and ``beta`` (degrees); blank
     cells are NaN; ``attrs`` name and source."""
-    from roadgonio.surface.rtable import RTable, load_table
-    table = path_or_name if isinstance(path_or_name, RTable) else load_table(path_or_name)
-    return _dataarray(table)
+    return _table(path_or_name).to_dataarray()
 
 
 def write_table(da, path) -> Path:
@@ -308,66 +283,223 @@ def write_table(da, path) -> Path:
 
 
 # ----------------------------------------------------------------------------------------------
-# fit, correct, uncertainty: thin wrappers of the rooms
+# fit
 # ----------------------------------------------------------------------------------------------
 
-def fit(table, variant: str | None = None, *, seed: int = 0, fixed: Mapping[str, float] | None = None) -> "FitResult":
-    """Fit the road BRDF model (paper eq. 4; ``variant`` default ``"power"``) to an r-table (name,
-    file, RTable or DataArray). Returns the :class:`~roadgonio.surface.fit.FitResult`: ``.model``
-    (a RoadModel, usable as a sample), ``.max_dev_pct``, ``.rms_dev_pct`` (% of the table's max r)."""
+def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mapping[str, float] | None = None,
+        out=None, plot: bool = True, progress: Callable[[int, int], None] | None = None) -> "FitResult":
+    """Fit the road BRDF model (paper eq. 4; ``model_variant`` default ``"power"``) to an r-table
+    (name, file, RTable or DataArray). Returns the :class:`~roadgonio.surface.fit.FitResult`:
+    ``.model`` (a RoadModel, usable as a sample), ``.max_dev_pct``, ``.rms_dev_pct`` (% of the
+    table's max r). With ``out`` (a folder or :data:`AUTO` = ``fit-TABLE-VARIANT``) it writes
+    model.json, residuals.csv and (``plot``) fit.png, all or none; ``.written`` lists them.
+    ``progress(done, total)`` is called as the global search advances."""
+    from roadgonio.engines.registry import check_seed
     from roadgonio.surface.fit import fit_table
-    from roadgonio.surface.model import DEFAULT_VARIANT
-    return fit_table(_table(table), variant or DEFAULT_VARIANT, seed=seed, fixed=dict(fixed or {}))
-
-
-def correct(measured, instrument, *, reference="self", alternatives: str | Sequence[str] | None = "auto",
-            u_measured: Any = "1%", sigma: Any = None, backend: str = "mitsuba", accuracy: str | None = None,
-            rel_se: float | None = None, seed: int = 0, variant: str | None = None,
-            model_variant: str | None = None, out: str | Path | None = None, progress: bool = False,
-            **options: Any) -> "CorrectionResult":
-    """Correct a measured r-table (name, file, RTable or DataArray) for the aperture effect, as
-    ``roadgonio correct``: ``reference="self"`` (default) fits the model through the instrument, a
-    SAMPLE (or a model) takes the classic route with ``alternatives`` (``"auto"``, ``"none"`` or
-    SAMPLEs). ``u_measured`` (``"1%"``, a fraction, or an r-table file of standard uncertainties)
-    and ``sigma`` (a misalignment SPEC) enter the uncertainty. Returns the
-    :class:`~roadgonio.correction.CorrectionResult` (``.corrected`` and ``.u_corrected`` RTables,
-    ``.k_a``, ``.budget``, ``.before`` / ``.after`` with S1, S2, Q0 and their u, ``.summary()``);
-    with ``out`` its files are written there (``roadgonio.correction.write_correction``)."""
-    from roadgonio.correction import correct_measured, write_correction
-    from roadgonio.surface.model import RoadModel
-    table = _table(measured, "measured")
-    inst = _instrument(instrument)
-    if isinstance(reference, str) and reference.strip().lower() == "self":
-        ref: Any = "self"
-        ref_name = None
-    else:
-        ref, ref_name, _ = _sample(reference, model_variant)
-        if not isinstance(ref, RoadModel):  # pragma: no cover - _sample returns models
-            raise InputError("expected a SAMPLE or 'self'", field="reference")
-
-    def factory(ins, model):
-        return _backend(backend, ins, model, accuracy=accuracy, seed=seed, variant=variant, rel_se=rel_se)
-    _choose_variant(backend, variant)
-    res = correct_measured(table, inst, reference=ref, reference_name=ref_name, alternatives=alternatives,
-                           model_variant=model_variant, u_measured=u_measured, sigma=sigma, backend=backend,
-                           factory=factory, seed=seed, out_dir=out, progress=progress, **options)
+    from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS
+    from roadgonio.surface.sample import check_not_degenerate
+    variant = model_variant or DEFAULT_VARIANT
+    if variant not in VARIANTS:
+        raise InputError(f"unknown model variant {variant!r}; expected one of {', '.join(VARIANTS)}",
+                         field="model_variant")
+    seed = check_seed(seed)
+    fixed = dict(fixed or {})
+    for name, value in fixed.items():
+        if name not in PARAM_NAMES:
+            raise InputError(f"expected NAME=VALUE with NAME one of {', '.join(PARAM_NAMES)}, got {name!r}",
+                             field="fixed")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise InputError(f"expected a finite number for {name}, got {value!r}", field="fixed")
+    t = _table(table)
+    folder = None
     if out is not None:
-        write_correction(res, out)
-    return res
+        folder = Path(f"fit-{_safe(t.name)}-{variant}") if isinstance(out, _Auto) else _out(out, "fit")
+        if folder.exists() and not folder.is_dir():
+            raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
+    result = fit_table(t, variant, seed=seed, fixed=fixed, progress=progress)
+    check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
+    if folder is not None:
+        import dataclasses
+
+        from roadgonio.surface.fitplot import write_fit
+        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot))
+    return result
 
 
-def uncertainty(instrument, sample, sigma, *, trials: int = 50_000, adaptive: bool = False, seed: int = 1,
-                coverage: float = 0.95, cells: str = "standard", aperture: bool = True, backend: str = "mitsuba",
-                rel_se: float | None = None, illuminance: str = "nominal", surrogate: str = "ccd",
-                validation: int = 4, model_variant: str | None = None, progress: bool = False,
-                **options: Any) -> "UncertaintyResult":
+def _safe(name: str) -> str:
+    from roadgonio.fileio import safe_name
+    return safe_name(name)
+
+
+# ----------------------------------------------------------------------------------------------
+# k_A
+# ----------------------------------------------------------------------------------------------
+
+def ka_table(instrument, sample, *, backend: str = "mitsuba", accuracy: str | None = None, cells="all",
+             seed: int | None = None, mitsuba_variant: str | None = None, rel_se: float | None = None,
+             settings: Mapping[str, Any] | None = None, model_variant: str | None = None, out=None,
+             fresh: bool = False, progress: bool = False, plot: bool = True, figures=None) -> "xr.Dataset":
+    """The aperture-effect factor k_A of ``instrument`` for ``sample`` over the CIE grid.
+
+    Parameters
+    ----------
+    instrument, sample:
+        As on the command line, or objects (module docstring).
+    backend:
+        A backend of the registry (:data:`roadgonio.engines.registry.BACKENDS`): ``"mitsuba"``
+        (float32 ray tracing), ``"quadrature"`` (deterministic float64), ``"reference"`` (float64
+        randomised QMC), ``"numpy-mc"``, ``"numpy-mc-mesh"``.
+    accuracy:
+        ``"fast"``, ``"default"`` or ``"precise"`` (the backend's presets); None = the backend's
+        defaults (= ``"default"``). ``rel_se`` (the one relative target: a standard error or a
+        tolerance, as the backend takes it) and ``settings`` (backend keywords) override it.
+    cells:
+        ``"all"`` (580 cells), ``"table"`` (the cells tabulated in the sample's r-table), a text
+        ``"T:B,..."`` or a list of (tan_eps, beta) grid cells.
+    seed:
+        Seed of the Monte Carlo and RQMC backends (same seed, same numbers; default 0); an error for
+        a deterministic backend.
+    out, fresh:
+        With ``out`` the cells are journalled (an interrupted run resumes; ``fresh`` discards an
+        earlier run's results) and ka.nc, ka.csv, ka_se.csv / ka_bound.csv, ka.png, ka.json are
+        written (:func:`roadgonio.engines.runner.write_outputs`).
+
+    Returns
+    -------
+    xarray.Dataset
+        :func:`roadgonio.engines.runner.ka_dataset`: ``k_a``, ``se`` (standard error),
+        ``error_bound`` (deterministic bound), ``confidence_bound`` and ``confidence_level``,
+        ``samples``, ``seconds``, ``converged`` over ``tan_eps`` (29) x ``beta`` (20, degrees);
+        NaN where not computed; the provenance in ``attrs["provenance"]`` (JSON), the summary in
+        ``attrs["summary"]`` and the output folder in ``attrs["out"]`` when written.
+    """
+    from roadgonio.engines.cells import select_cells
+    from roadgonio.engines.runner import ka_dataset, run_cells, summary, write_outputs
+    inst = _instrument(instrument)
+    smp = _sample(sample, model_variant)
+    todo = select_cells(cells, smp.table, on_grid=True)
+    b = _backend(backend, inst, smp.model, accuracy=accuracy, rel_se=rel_se, seed=seed,
+                 mitsuba_variant=mitsuba_variant, settings=settings)
+    folder = _out(out, "ka", inst.name, smp.name)
+    run = run_cells(b, todo, instrument=inst, model=smp.model, out_dir=folder, fresh=fresh, progress=_show(progress))
+    ds = ka_dataset(run, instrument=inst, model=smp.model, backend=b, sample=smp.name, accuracy=accuracy, seed=seed,
+                    cells_asked=len(todo))
+    if folder is not None:
+        meta = write_outputs(ds, folder, plot=plot, figures=figures)
+        ds.attrs["out"] = str(folder)
+        ds.attrs["files"] = ", ".join(f for k, f in meta["files"].items() if f and k != "journal")
+    from roadgonio.fileio import to_json
+    ds.attrs["summary"] = to_json(summary(ds), indent=None)
+    return ds
+
+
+def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "mitsuba",
+            accuracy: str | None = None, seed: int | None = None, mitsuba_variant: str | None = None,
+            rel_se: float | None = None, model_variant: str | None = None,
+            settings: Mapping[str, Any] | None = None, out=None, fresh: bool = False) -> "CellResult":
+    """k_A at one cell (tan eps, beta in degrees; any cell, not only the grid's) as a
+    :class:`~roadgonio.engines.result.CellResult` (``k_a``, ``se``, ``error_bound``,
+    ``confidence_bound``, ``converged``, ``samples``, ``seconds``). Arguments as for
+    :func:`ka_table`; with ``out`` the cell is journalled there (run again: read back)."""
+    from roadgonio.engines.cells import check_cell
+    from roadgonio.engines.runner import run_cells
+    t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
+    inst = _instrument(instrument)
+    smp = _sample(sample, model_variant)
+    b = _backend(backend, inst, smp.model, accuracy=accuracy, rel_se=rel_se, seed=seed,
+                 mitsuba_variant=mitsuba_variant, settings=settings)
+    folder = _out(out, "ka", inst.name, smp.name)
+    run = run_cells(b, [(t, bdeg)], instrument=inst, model=smp.model, out_dir=folder, fresh=fresh, progress=False)
+    cell = run.results[0]
+    if run.resumed:
+        object.__setattr__(cell, "extra", {**(cell.extra or {}), "resumed": True})
+    return cell
+
+
+def render(instrument, sample, tan_eps: float, beta: float, out, *, resolution: int = 256, spp: int = 64,
+           seed: int = 0, mitsuba_variant: str | None = None, model_variant: str | None = None) -> dict[str, Any]:
+    """Pictures of one measurement cell with Mitsuba (``roadgonio render``): the detector's view of the
+    sample (luminance inside the field stop) and the horizontal illuminance around the footprint, as
+    view.exr, illuminance.exr, render.png and render.json in ``out``; returns render.json's content
+    (provenance, footprint, a one-render k_A estimate, files)."""
+    from roadgonio.engines.cells import check_cell
+    from roadgonio.engines.registry import check_seed, prepare_entry_point
+    t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
+    resolution = _check_int(resolution, "resolution", 8, 2048)
+    spp = _check_int(spp, "spp", 1)
+    if math.isqrt(spp) ** 2 != spp:
+        raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {spp}", field="spp")
+    seed = check_seed(seed)
+    inst = _instrument(instrument)
+    smp = _sample(sample, model_variant)
+    folder = _out(out, "render", inst.name, smp.name)
+    if folder is None:
+        raise InputError("render writes pictures: give an output folder", field="out")
+    prepare_entry_point("mitsuba", mitsuba_variant)
+    from roadgonio.engines.mitsuba.images import render_cell_images
+    return render_cell_images(inst, smp.model, t, bdeg, folder, resolution=resolution, spp=spp, seed=seed,
+                              mitsuba_variant=mitsuba_variant, sample_name=smp.name)
+
+
+def validate(instrument, sample, *, against: str = "mitsuba", reference: str = "auto", cells="extremes",
+             rel_se: float = 1e-3, rtol: float | None = None, ref_max_evals: int | None = None, seed: int = 0,
+             floor: float | None = None, mitsuba_variant: str | None = None, model_variant: str | None = None,
+             out=None, on_cell: Callable | None = None) -> dict[str, Any]:
+    """A Monte Carlo backend (``against``) judged cell by cell against a float64 reference
+    (:mod:`roadgonio.engines.validate`): returns the report (``verdict``, ``exit_status``,
+    ``counts``, ``rows``...); with ``out`` writes validate.csv, validate.json and validate.png.
+    ``on_cell(row)`` is called as each cell is judged."""
+    from roadgonio.engines import validate as V
+    from roadgonio.engines.cells import select_cells
+    from roadgonio.engines.registry import check_relative, check_seed, prepare_entry_point
+    check_relative(rel_se, "rel_se")
+    if rtol is not None:
+        check_relative(rtol, "rtol")
+    if floor is not None and not (isinstance(floor, (int, float)) and math.isfinite(floor) and floor >= 0):
+        raise InputError(f"expected a floor >= 0, got {floor}", field="floor")
+    ref_settings = {}
+    if ref_max_evals is not None:
+        ref_settings["max_evals"] = _check_int(ref_max_evals, "ref_max_evals", 1)
+    seed = check_seed(seed)
+    todo = select_cells(cells, None)
+    inst = _instrument(instrument)
+    smp = _sample(sample, model_variant)
+    folder = _out(out, "validate", inst.name, smp.name)
+    if folder is not None:
+        from roadgonio.fileio import check_writable
+        check_writable(folder)          # an unwritable folder fails now, not after the computation
+    prepare_entry_point(against, mitsuba_variant)
+    report = V.validate(inst, smp.model, todo, against=against, reference=reference, rel_se=rel_se, rtol=rtol,
+                        seed=seed, floor=floor, mitsuba_variant=mitsuba_variant, ref_settings=ref_settings,
+                        on_cell=on_cell)
+    from roadgonio.provenance import provenance
+    report.update(provenance(instrument=inst, model=smp.model, settings=report["settings"]))
+    report["sample"] = smp.name
+    if folder is not None:
+        report["files"] = {k: str(v) for k, v in V.write_outputs(report, folder).items()}
+        report["out"] = str(folder)
+    return report
+
+
+# ----------------------------------------------------------------------------------------------
+# uncertainty, correction, design
+# ----------------------------------------------------------------------------------------------
+
+def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, adaptive: bool = False,
+                         digits: int = 2, max_trials: int = 200_000, batch: int | None = None, seed: int = 1,
+                         coverage: float = 0.95, cells: str = "standard", aperture: bool = True,
+                         backend: str = "mitsuba", rel_se: float | None = None, illuminance: str = "nominal",
+                         surrogate: str = "ccd", validation: int = 4, threads: int | None = None,
+                         workers: int | None = None, scheduler: str | None = None,
+                         mitsuba_variant: str | None = None, model_variant: str | None = None,
+                         out=None, plots: bool = True, figures=None, progress: bool = False) -> "UncertaintyResult":
     """Monte Carlo (JCGM 101) and GUM uncertainty of the r-table that ``instrument`` measures on
     ``sample`` for the instrument errors ``sigma`` (a SPEC text like ``"alpha_deg=0.01,eps_deg=0.05:rect"``,
-    a TOML file, a mapping of the same keys, or a SigmaSpec), without and (``aperture=True``) with
-    the aperture effect. Options as ``roadgonio uncertainty`` (more keywords of
-    :func:`roadgonio.uncertainty.run_uncertainty` pass through ``options``). Returns the
-    :class:`~roadgonio.uncertainty.UncertaintyResult`."""
-    from roadgonio.engines.accuracy import rel_se_setting
+    a TOML file, a mapping of the same keys, or a SigmaSpec), without and (``aperture``) with the
+    aperture effect (``roadgonio uncertainty``). Returns the
+    :class:`~roadgonio.uncertainty.run.UncertaintyResult`; with ``out`` (a folder or :data:`AUTO`)
+    writes uncertainty.json, cells.csv, the r-table CSVs and the pictures (``.written``)."""
+    from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
     from roadgonio.uncertainty.run import DEFAULT_BACKEND_TOLERANCE, run_uncertainty
     from roadgonio.uncertainty.spec import SigmaSpec, parse_sigma_spec
     if isinstance(sigma, SigmaSpec):
@@ -377,59 +509,237 @@ def uncertainty(instrument, sample, sigma, *, trials: int = 50_000, adaptive: bo
     else:
         raise InputError(f"expected a SPEC text, a TOML file, a mapping or a SigmaSpec, got {type(sigma).__name__}",
                          field="sigma")
-    inst = _instrument(instrument)
-    model, _, _ = _sample(sample, model_variant)
+    seed = check_seed(seed)
+    trials = _check_int(trials, "trials", 1)
+    max_trials = _check_int(max_trials, "max_trials", 1)
+    if batch is not None:
+        batch = _check_int(batch, "batch", 1)
+    digits = _check_int(digits, "digits", 1, 3)
+    validation = _check_int(validation, "validation", 0)
+    if threads is not None:
+        threads = _check_int(threads, "threads", 1)
+    if isinstance(coverage, bool) or not isinstance(coverage, (int, float)) or not (0.5 < coverage < 1.0):
+        raise InputError(f"expected a coverage probability between 0.5 and 1, got {coverage!r}", field="coverage")
     if backend not in DEFAULT_BACKEND_TOLERANCE:
-        raise InputError(f"expected backend mitsuba or quadrature, got {backend!r}", field="backend")
-    settings = rel_se_setting(backend, DEFAULT_BACKEND_TOLERANCE[backend] if rel_se is None else rel_se,
-                              field="rel_se")
-    if backend == "mitsuba":
-        settings["seed"] = int(seed)
-    if aperture:
-        _choose_variant(backend, options.pop("variant", None))
-    return run_uncertainty(model, inst, spec, trials=trials, adaptive=adaptive, seed=seed, coverage=coverage,
-                           cells=cells, aperture=aperture, backend=backend, backend_settings=settings,
-                           illuminance=illuminance, surrogate_design=surrogate, n_validation=validation,
-                           progress=progress, **options)
+        raise InputError(f"expected backend {' or '.join(DEFAULT_BACKEND_TOLERANCE)}, got {backend!r}", field="backend")
+    settings = resolve_settings(backend, tolerance=DEFAULT_BACKEND_TOLERANCE[backend] if rel_se is None else rel_se,
+                                seed=seed if backend == "mitsuba" else None, mitsuba_variant=mitsuba_variant,
+                                fields={"tolerance": "rel_se"})
+    inst = _instrument(instrument)
+    smp = _sample(sample, model_variant)
+    folder = _out(out, "uncertainty", inst.name, smp.name)
+    if aperture and workers in (None, 0) and scheduler is None:
+        prepare_entry_point(backend, mitsuba_variant)
+    res = run_uncertainty(smp.model, inst, spec, trials=trials, adaptive=adaptive, seed=seed, coverage=coverage,
+                          n_dig=digits, max_trials=max_trials, batch=batch, illuminance=illuminance, cells=cells,
+                          aperture=aperture, backend=backend, backend_settings=settings, n_validation=validation,
+                          surrogate_design=surrogate, threads=threads, progress=_show(progress), workers=workers,
+                          scheduler=scheduler)
+    res.provenance["sample"] = smp.spec or smp.name
+    if folder is not None:
+        from roadgonio.uncertainty.report import write_results
+        res.written = write_results(res, folder, sample_name=smp.name, plots=plots, figures=figures)
+        res.out = folder
+    return res
 
 
-def design(instrument, vary=None, samples="R3", *, tolerance: float | str = "5%", cells="all",
-           backend: str = "mitsuba", accuracy: str | None = None, rel_se: float | None = None, seed: int = 0,
-           workers: int | None = None, scheduler: str | None = None, client=None, out=None, fresh: bool = False,
-           progress: bool = False, plots: bool = True, model_variant: str | None = None,
-           variant: str | None = None) -> "xr.Dataset":
+def correct(measured, instrument, *, reference="self", alternatives: str | Sequence[str] | None = "auto",
+            u_measured: Any = None, sigma: Any = None, backend: str = "mitsuba", accuracy: str | None = None,
+            rel_se: float | None = None, seed: int = 0, mitsuba_variant: str | None = None,
+            model_variant: str | None = None, rays: int = 512, workers: int | None = None,
+            scheduler: str | None = None, out=None, plots: bool = True, progress: bool = False,
+            **options: Any):
+    """Correct measured r-tables for the aperture effect (``roadgonio correct``). ``measured``: one
+    table (name, file, RTable or DataArray) or a list of them (they share the instrument's work);
+    ``reference="self"`` (default) fits the model through the instrument, a SAMPLE takes the classic
+    route with ``alternatives`` (``"auto"``, ``"none"`` or SAMPLEs). ``u_measured`` (``"1%"``, the
+    default; a fraction; or an r-table file of standard uncertainties) and ``sigma`` (a misalignment
+    SPEC) enter the uncertainty. Returns the :class:`~roadgonio.correction.CorrectionResult`
+    (``.corrected``, ``.u_corrected``, ``.k_a``, ``.budget``, ``.before`` / ``.after``, ``.summary()``),
+    a list for a list; with ``out`` (a folder or :data:`AUTO`) the files are written (one sub-folder
+    per table for several), ``.out`` and ``.written`` say where. ``workers``/``scheduler``: one
+    Dask task per table (same results)."""
+    from roadgonio.correction import correct_files
+    from roadgonio.correction.run import check_measured
+    from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
+    many = isinstance(measured, (list, tuple))
+    items = list(measured) if many else [measured]
+    if not items:
+        raise InputError("expected at least one measured table", field="measured")
+    tables = []
+    for m in items:
+        t = _table(m, "measured")
+        check_measured(t, m if isinstance(m, (str, Path)) else None)
+        tables.append(t)
+    seed = check_seed(seed)
+    inst = _instrument(instrument)
+    self_ref = isinstance(reference, str) and reference.strip().lower() == "self"
+    if model_variant == "auto" and not self_ref:
+        raise InputError("model_variant 'auto' is for reference 'self'; give one variant for fitting a reference "
+                         "table", field="model_variant")
+    rays = _check_int(rays, "rays", 8)
+    from roadgonio.engines.registry import backend_info
+    seeded = backend_info(backend).seeded
+    settings = resolve_settings(backend, tolerance=rel_se, seed=seed if seeded else None, mitsuba_variant=mitsuba_variant,
+                                fields={"tolerance": "rel_se"})
+    if scheduler is None and workers in (None, 0):
+        prepare_entry_point(backend, mitsuba_variant)     # in this process: the API is the entry point
+    opts = dict(u_measured="1%" if u_measured is None else u_measured, sigma=sigma, backend=backend,
+                backend_settings=settings, accuracy=accuracy, model_variant=model_variant, seed=seed,
+                progress=_show(progress), **options)
+    if self_ref:
+        opts["rays"] = rays
+        ref: Any = "self"
+    else:
+        opts["alternatives"] = alternatives
+        ref_sample = _sample(reference, None if model_variant == "auto" else model_variant, field="reference")
+        ref = ref_sample.model
+        opts["reference_name"] = ref_sample.name
+    folder = _out(out, "correct", tables[0].name if len(tables) == 1 else "tables")
+    if out is not None and isinstance(out, _Auto) and len(tables) > 1:
+        folder = Path("out") / "correct"
+    files = [str(m) if isinstance(m, (str, Path)) else None for m in items]
+    done = correct_files(tables, inst, folder, plots=plots, reference=ref, workers=workers, scheduler=scheduler,
+                         measured_files=files, **opts)
+    results = []
+    for res, sub, written in done:
+        res.out, res.written = sub, written
+        results.append(res)
+    return results if many else results[0]
+
+
+def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str = "5%", cells="all",
+                 backend: str = "mitsuba", accuracy: str | None = None, rel_se: float | None = None, seed: int = 0,
+                 workers: int | None = None, scheduler: str | None = None, client=None, out=None, fresh: bool = False,
+                 progress: bool = False, plots: bool = True, model_variant: str | None = None,
+                 mitsuba_variant: str | None = None) -> "xr.Dataset":
     """A design study (``roadgonio design``): k_A tables over a grid of instruments, on Dask.
 
-    ``vary``: ``["source.radius_m=0.01:0.04:4", ...]`` or ``{key: values}``; ``samples``: one or more
-    samples; ``cells``: ``"all"``, ``"table"`` or ``"T:B,T:B,..."``; ``workers``/``scheduler``/``client``:
-    a local cluster of worker processes (default: one per core), an existing cluster, or
-    ``workers=0`` for this process. Returns the ``xarray.Dataset`` of ``design.nc`` (``k_a``, ``se``
-    over the varied keys x sample x tan_eps x beta; ``max_abs_dev``, ``signal``, ``feasible``,
-    ``reason``... per point; provenance in ``attrs["provenance"]``); with ``out`` also writes
-    design.csv, best.toml and the pictures (:mod:`roadgonio.design`). Scripts that start a local
-    cluster must guard the call with ``if __name__ == "__main__":``.
-    """
+    ``vary``: ``["source.radius_m=0.01:0.04:4", ...]`` or ``{key: values}``; ``samples``: one sample
+    or a list (anything :func:`roadgonio.surface.sample.resolve_sample` takes); ``cells``:
+    ``"all"``, ``"table"`` or ``"T:B,T:B,..."``; ``workers``/``scheduler``/``client``: a local
+    cluster of worker processes (default: one per core), an existing cluster, or ``workers=0`` for
+    this process. Returns the ``xarray.Dataset`` of ``design.nc`` (``k_a``, ``se`` over the varied
+    keys x sample x tan_eps x beta; ``max_abs_dev``, ``signal``, ``feasible``, ``reason``... per
+    point; provenance in ``attrs["provenance"]``); with ``out`` (a folder or :data:`AUTO`) also
+    design.csv, best.toml and the pictures. Scripts that start a local cluster must guard the call
+    with ``if __name__ == "__main__":``."""
     from roadgonio.design.run import run_design
-    from roadgonio.engines.accuracy import rel_se_setting
-    settings: dict[str, Any] = {}
-    if rel_se is not None:
-        settings.update(rel_se_setting(backend, rel_se, field="rel_se"))
-    if backend == "mitsuba" and variant is not None:
-        settings["variant"] = variant
+    from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
+    seed = check_seed(seed)
+    settings = resolve_settings(backend, tolerance=rel_se, mitsuba_variant=mitsuba_variant, fields={"tolerance": "rel_se"})
+    base = _instrument(instrument)
+    items = list(samples) if isinstance(samples, (list, tuple)) else [samples]
+    resolved = [_sample(s, model_variant) for s in items]
+    folder = _out(out, "design", base.name)
     if workers == 0 and scheduler is None and client is None:
-        _choose_variant(backend, variant)          # this process computes: it is the entry point
+        prepare_entry_point(backend, mitsuba_variant)          # this process computes: it is the entry point
+    ds = run_design(base, vary, resolved, tolerance=tolerance, cells=cells, backend=backend, accuracy=accuracy,
+                    settings=settings, seed=seed, workers=workers, scheduler=scheduler, client=client, out=folder,
+                    fresh=fresh, progress=_show(progress), plots=plots, model_variant=model_variant)
+    if folder is not None:
+        ds.attrs["out"] = str(folder)
+    return ds
 
-    def one(x):
-        if isinstance(x, (str, Path)):
-            return str(x)
-        model, name, _ = _sample(x, model_variant)       # RoadModel, RTable, DataArray, fit result
-        return (name, model)
 
-    many = isinstance(samples, (list, tuple)) and not (len(samples) == 2 and isinstance(samples[0], str)
-                                                         and not isinstance(samples[1], (str, Path)))
-    samples = [one(x) if not isinstance(x, tuple) else x for x in samples] if many else [
-        samples if isinstance(samples, tuple) else one(samples)]
-    return run_design(_instrument(instrument), vary, samples,
-                      tolerance=tolerance, cells=cells, backend=backend, accuracy=accuracy, settings=settings,
-                      seed=seed, workers=workers, scheduler=scheduler, client=client, out=out, fresh=fresh,
-                      progress=progress, plots=plots, model_variant=model_variant)
+# ----------------------------------------------------------------------------------------------
+# from the table to the road
+# ----------------------------------------------------------------------------------------------
+
+def road(tables, *, u=None, luminaire=None, layout=None, target_class: str | None = None, trials: int = 20_000,
+         seed: int = 0, correlation: str = "both", out=None, plots: bool = True) -> list[dict[str, Any]]:
+    """EN 13201-3 road-surface luminance metrics of a luminaire layout with one or several r-tables
+    side by side (``roadgonio road``). ``u``: the tables' standard uncertainties (r-table files, r x
+    1e4): one for the last table, or one per table (None or ``"-"`` for none); a Monte Carlo of
+    ``trials`` gives u and 95 % intervals of each metric and P(meets ``target_class``), for
+    independent and/or fully correlated cells (``correlation``). Without ``luminaire``/``layout``:
+    the bundled ones. Returns one summary per table; with ``out`` (a folder or :data:`AUTO`) writes
+    road.json, the CSVs and the pictures (the first summary's ``written``)."""
+    from roadgonio.engines.registry import check_seed
+    from roadgonio.road import mc, report
+    from roadgonio.road.evaluate import Installation
+    from roadgonio.road.layout import load_layout
+    from roadgonio.road.luminaire import load_luminaire
+    from roadgonio.road.metrics import M_CLASSES
+    items = list(tables) if isinstance(tables, (list, tuple)) else [tables]
+    if not items:
+        raise InputError("expected at least one table", field="table")
+    if target_class is not None and str(target_class).upper() not in M_CLASSES:
+        raise InputError(f"unknown class {target_class!r}; expected one of {', '.join(M_CLASSES)}", field="target_class")
+    target = str(target_class).upper() if target_class else None
+    if correlation not in ("both", "independent", "correlated"):
+        raise InputError(f"expected both, independent or correlated, got {correlation!r}", field="correlation")
+    if isinstance(trials, int) and not isinstance(trials, bool) and trials < mc.MIN_TRIALS:
+        raise InputError(f"expected at least {mc.MIN_TRIALS} trials, got {trials}", field="trials")
+    trials = _check_int(trials, "trials", mc.MIN_TRIALS)
+    seed = check_seed(seed)
+    us = list(u) if isinstance(u, (list, tuple)) else ([] if u is None else [u])
+    if not us:
+        u_of = [None] * len(items)
+    elif len(us) == 1:
+        u_of = [None] * (len(items) - 1) + [us[0]]
+    elif len(us) == len(items):
+        u_of = [None if x in ("-", "", None) else x for x in us]
+    else:
+        raise InputError(f"give u once (for the last table) or once per table ({len(items)} tables), got {len(us)}",
+                         field="u")
+    loaded = [_table(t) for t in items]
+    names = [t.name for t in loaded]
+    if len(set(names)) != len(names):  # same name twice (e.g. two files R3.csv): number them
+        loaded = [t.with_values(t.r, name=f"{t.name}#{k + 1}") for k, t in enumerate(loaded)]
+        names = [t.name for t in loaded]
+    inst = Installation(load_layout(layout), load_luminaire(luminaire))
+    modes = ("independent", "correlated") if correlation == "both" else (correlation,)
+    results, summaries = [], []
+    for t, uf in zip(loaded, u_of):
+        res = inst.evaluate(t)
+        if uf is not None:
+            ut = _table(uf, "u")
+            res.uncertainty = {"file": str(uf), **mc.propagate(inst, t, ut, trials=trials, seed=seed,
+                                                               correlations=modes, target_class=target,
+                                                               u_path=uf if isinstance(uf, (str, Path)) else None)}
+        results.append(res)
+        summaries.append(res.summary())
+    folder = _out(out, "road", *names)
+    if folder is not None:
+        files = report.road_files(results, summaries, target or summaries[0]["class"], plots=plots)
+        written = report.write_together(folder, files)
+        summaries[0]["written"] = [str(p) for p in written]
+        summaries[0]["out"] = str(folder)
+    summaries[0]["layout"] = inst.layout.describe()
+    summaries[0]["luminaire"] = {"name": inst.luminaire.name, "flux_lm": inst.luminaire.flux_lm}
+    return summaries
+
+
+def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
+    """Two r-tables side by side (``roadgonio compare``): the ratio r(B)/r(A) cell by cell with its
+    range and largest change, S1, S2, Q0 and cells of both; with ``out`` (a folder or
+    :data:`AUTO`) writes compare.csv, compare.json and (``plots``) compare.png."""
+    from roadgonio.fileio import to_json
+    from roadgonio.provenance import provenance
+    from roadgonio.road.compare import compare_csv, compare_png
+    from roadgonio.road.compare import compare_tables as _compare
+    from roadgonio.road.report import write_together
+    ta, tb = _table(a, "a"), _table(b, "b")
+    if ta.name == tb.name:
+        tb = tb.with_values(tb.r, name=tb.name + "#2")
+    res = _compare(ta, tb)
+    summary = {k: v for k, v in res.items() if k != "ratio"}
+    folder = _out(out, "compare", ta.name, tb.name)
+    if folder is not None:
+        files = {"compare.csv": compare_csv(ta, tb, res["ratio"]),
+                 "compare.json": to_json({**summary, **provenance()}) + "\n"}
+        if plots:
+            files["compare.png"] = compare_png(res, ta, tb)
+        summary["written"] = [str(p) for p in write_together(folder, files)]
+        summary["out"] = str(folder)
+    summary["a"], summary["b"] = ta.name, tb.name
+    return summary
+
+
+def classify_table(table) -> dict[str, Any]:
+    """The CIE class of an r-table by S1 in the R, C and N systems, its Q0 against the class
+    standard, and the bundled tables nearest in (S1, Q0) (``roadgonio classify``;
+    :func:`roadgonio.surface.cie.classify`)."""
+    from roadgonio.surface.cie import classify
+    return classify(_table(table))

@@ -26,14 +26,18 @@ class InputError(RoadgonioError, ValueError):
         1-based line number in ``path``, if known.
     field:
         The key, column or option that is wrong, if known.
+    argument:
+        The argument (an API parameter, or the command's option) that named the file, when the
+        error is about a file's content: ``odd.csv:1: --measured: the header's beta ...``.
     """
 
     def __init__(self, message: str, *, path: str | Path | None = None,
-                 line: int | None = None, field: str | None = None):
+                 line: int | None = None, field: str | None = None, argument: str | None = None):
         self.path = None if path is None else str(path)
         self.line = line
         self.field = field
         self.reason = message
+        self.argument = argument
         where = []
         if self.path is not None:
             where.append(self.path if line is None else f"{self.path}:{line}")
@@ -41,8 +45,16 @@ class InputError(RoadgonioError, ValueError):
             where.append(f"line {line}")
         if field is not None:
             where.append(f"field '{field}'")
+        if argument is not None:
+            where.append(argument)
         prefix = ", ".join(where)
         super().__init__(f"{prefix}: {message}" if prefix else message)
+
+    def with_argument(self, argument: str) -> "InputError":
+        """The same error, saying which argument named the file (kept if one is said already)."""
+        if self.argument is not None:
+            return self
+        return InputError(self.reason, path=self.path, line=self.line, field=self.field, argument=argument)
 
 
 class GeometryError(RoadgonioError):

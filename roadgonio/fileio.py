@@ -12,13 +12,14 @@
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
 import secrets
 import shutil
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Mapping
 
 from roadgonio.errors import InputError
 
@@ -216,6 +217,47 @@ def check_writable(out_dir: str | Path) -> Path:
     return out_dir
 
 
+def read_toml(path: str | Path, what: str = "TOML file", *, missing: str | None = None) -> dict[str, Any]:
+    """The tables of a TOML file, or the one-line :class:`InputError` naming the file: ``no such
+    {what}`` (or ``missing``), ``cannot read the {what} (reason)``, or ``not valid TOML: reason``
+    with the LINE of the syntax error (and its column). The one TOML reader of roadgonio: instrument
+    files, road layouts, misalignment SPEC files."""
+    import tomllib
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise InputError(missing or f"no such {what}", path=path) from None
+    except UnicodeDecodeError:
+        raise InputError(f"cannot read the {what} (it is not UTF-8 text)", path=path) from None
+    except OSError as err:
+        raise InputError(f"cannot read the {what} ({err.strerror or err})", path=path) from None
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as err:
+        line, column, reason = toml_error_position(err, text)
+        at = f" (column {column})" if column is not None else ""
+        raise InputError(f"not valid TOML: {reason}{at}", path=path, line=line) from None
+
+
+def toml_error_position(err: Exception, text: str) -> tuple[int | None, int | None, str]:
+    """(line, column, reason) of a ``tomllib.TOMLDecodeError`` raised on ``text``: from its
+    attributes (Python >= 3.14) or, on 3.11-3.13 where they are only in the message ("Invalid
+    value (at line 5, column 14)", "... (at end of document)"), parsed from it."""
+    import re
+    message = str(err)
+    at = re.search(r"\s*\(at line (\d+), column (\d+)\)\s*$", message)
+    end = re.search(r"\s*\(at end of document\)\s*$", message)
+    cut = at or end
+    reason = getattr(err, "msg", None) or (message[:cut.start()] if cut else message)
+    line, column = getattr(err, "lineno", None), getattr(err, "colno", None)
+    if line is None and at is not None:
+        line, column = int(at.group(1)), int(at.group(2))
+    elif line is None and end is not None:
+        line, column = text.count("\n") + 1, None
+    return line, column, reason
+
+
 _PLAIN = frozenset((float, int, bool, str, type(None)))
 
 
@@ -247,6 +289,15 @@ def to_json(obj: Any, indent: int | None = 2) -> str:
     return json.dumps(_jsonable(obj), indent=indent, allow_nan=False)
 
 
+def fingerprint(payload: Mapping[str, Any], length: int = 16) -> str:
+    """The fingerprint of what determines a result (a journal's or a checkpoint's header): the
+    first ``length`` hex digits of the SHA-256 of ``payload`` with the roadgonio version added
+    (``{**payload, "roadgonio": __version__}``), as compact strict JSON (:func:`to_json`). Callers
+    put in the numbers (instrument and model values, backend settings, seeds...), not names."""
+    from roadgonio._version import __version__
+    return hashlib.sha256(to_json({**payload, "roadgonio": __version__}, indent=None).encode()).hexdigest()[:length]
+
+
 def atomic_write_json(path: str | Path, obj: Any) -> Path:
     return atomic_write_text(path, to_json(obj) + "\n")
 
@@ -256,3 +307,45 @@ def atomic_savefig(fig, path: str | Path, **kwargs) -> Path:
     fmt = Path(path).suffix.lstrip(".") or "png"
     kwargs.setdefault("dpi", 120)
     return atomic_write(path, lambda p: fig.savefig(p, format=fmt, **kwargs))
+
+
+def write_netcdf(ds, path: str | Path) -> Path:
+    """Write an ``xarray.Dataset`` as netCDF atomically (netCDF-3 64-bit offset through scipy, which
+    every install has): attributes that netCDF cannot hold (mappings, lists, booleans) are written as
+    JSON text; booleans data variables become int8 (xarray records their dtype and reads them back)."""
+    import numpy as np
+    enc = ds.copy()
+    for k, v in list(enc.attrs.items()):
+        if isinstance(v, bool) or not isinstance(v, (str, int, float, np.integer, np.floating)):
+            enc.attrs[k] = to_json(v, indent=None)
+    for name in list(enc.variables):
+        for k, v in list(enc[name].attrs.items()):
+            if isinstance(v, bool) or not isinstance(v, (str, int, float, np.integer, np.floating)):
+                enc[name].attrs[k] = to_json(v, indent=None)
+    return atomic_write(path, lambda p: enc.to_netcdf(p, engine="scipy", format="NETCDF3_64BIT"))
+
+
+def read_netcdf(path: str | Path, booleans: tuple[str, ...] = ()):
+    """Open a netCDF file written by :func:`write_netcdf` (loaded into memory; ``booleans`` come back
+    as booleans)."""
+    import xarray as xr
+    try:
+        with xr.open_dataset(path, engine="scipy") as ds:
+            ds = ds.load()
+    except FileNotFoundError:
+        raise InputError("no such file", path=path) from None
+    except (OSError, ValueError, TypeError) as err:
+        raise InputError(f"not a netCDF file roadgonio can read ({err})", path=path) from None
+    for v in booleans:
+        if v in ds:
+            ds[v] = ds[v].astype(bool)
+    return ds
+
+
+def safe_name(name: str, fallback: str = "unnamed", max_len: int = 80) -> str:
+    """A name (an instrument's, a table's, a sample's) made safe as ONE folder or file name: letters,
+    digits, '-', '_' and '.', anything else '_', no leading dot (so never '.' or '..'), at most
+    ``max_len`` characters; ``fallback`` when nothing is left. Output folders derived from names
+    use it, so a name like '../x' cannot make a folder escape the working folder."""
+    out = "".join(c if (c.isascii() and c.isalnum()) or c in "-_." else "_" for c in str(name)).lstrip(".")
+    return out[:max_len] or fallback

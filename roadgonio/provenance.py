@@ -35,7 +35,7 @@ def _dist_version(dist: str) -> str | None:
 
 def versions() -> dict[str, str | None]:
     """Versions of the software that produced a result (None for a package that is not installed)."""
-    from roadgonio import __version__
+    from roadgonio._version import __version__
     v: dict[str, str | None] = {"roadgonio": __version__, "python": platform.python_version(),
                                 "platform": platform.platform()}
     v.update({name: _dist_version(dist) for name, dist in PACKAGES.items()})

@@ -6,4 +6,4 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 roadgonio ka --instrument scenes/portable.toml --sample R3 --out out/portable-R3 "$@"
-echo "Open out/portable-R3/ka.png for the k_A map; ka.csv / ka_se.csv hold the numbers, ka.json the provenance."
+echo "Open out/portable-R3/ka.png for the k_A map; ka.nc / ka.csv / ka_se.csv hold the numbers, ka.json the provenance."

@@ -1,8 +1,44 @@
-"""Shared fixtures. Tests are tiered by markers: unit (numpy), plugin (Mitsuba), system (CLI);
-slow ones are also marked ``slow`` and left out of the default run (``pytest -m slow``)."""
+"""Shared fixtures, and the tiers of the tests.
+
+A test's tier is the folder it sits in, and is marked here from that folder (never by a decorator):
+
+* ``tests/unit`` -- marked ``unit``: numpy only, in this process, fast (and the lint, which runs
+  ruff); it never imports mitsuba or drjit (tests/unit/conftest.py makes them unimportable while a
+  unit test runs);
+* ``tests/plugin`` -- marked ``plugin``: Mitsuba and Dr.Jit in this process; every test gets the
+  Mitsuba variant of the ``mi`` fixture, and the tier is skipped, saying why, without LLVM >= 16;
+* ``tests/system`` -- marked ``system``: the command line, subprocesses, Dask clusters, end-to-end
+  runs; a system test that needs Mitsuba asks for the ``mi`` fixture (so it is skipped with it).
+
+Long runs are also marked ``slow`` (a decorator: slowness is not a tier) and left out of the
+default run; ``pytest -m slow`` runs them. Tolerances are in tests/tolerances.py, helpers shared by
+files of different tiers in tests/helpers.py.
+"""
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
+
+TIERS = ("unit", "plugin", "system")
+_HERE = Path(__file__).resolve().parent
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark each test with its folder's tier and run the tiers in the order unit, plugin, system
+    (the fast ones first). A test outside the tier folders is an error."""
+    order = {}
+    for item in items:
+        try:
+            tier = Path(item.path).resolve().relative_to(_HERE).parts[0]
+        except ValueError:          # not under tests/ (e.g. a path given on the command line)
+            continue
+        if tier not in TIERS:
+            raise pytest.UsageError(f"{item.nodeid}: tests live in tests/unit, tests/plugin or tests/system "
+                                    "(see tests/conftest.py)")
+        item.add_marker(getattr(pytest.mark, tier))
+        order[item.nodeid] = TIERS.index(tier)
+    items.sort(key=lambda it: order.get(it.nodeid, len(TIERS)))     # stable: file order kept within a tier
 
 #: Parameters of a model close to the fit of CIE R3 (paper's power reading), shared by the tests.
 R3LIKE = dict(k_diff=0.028937, k_phong=1.8147, n_phong=34.467, k_retro=0.052577, n_retro=11.307,
@@ -12,16 +48,17 @@ R3LIKE = dict(k_diff=0.028937, k_phong=1.8147, n_phong=34.467, k_retro=0.052577,
 @pytest.fixture(scope="session")
 def mi():
     """Mitsuba with the CPU variant chosen here (never as an import side effect: scene and backend
-    constructors only check the variant, :func:`roadgonio.engines.mitsuba.require_variant`)."""
+    constructors only check the variant, :func:`roadgonio.engines.mitsuba.require_variant`).
+
+    Skips the test, with the reason, where the variant cannot be used: no mitsuba/drjit, or Dr.Jit's
+    LLVM older than 16 (:func:`roadgonio.engines.mitsuba.set_variant` checks it before any kernel
+    runs; LLVM 15 would abort the process at the first kernel)."""
     from roadgonio.engines.mitsuba import set_variant
-    return set_variant("llvm_ad_rgb")
-
-
-@pytest.fixture(autouse=True)
-def _mitsuba_variant_for_plugin_tests(request):
-    """Tests marked ``plugin`` build Mitsuba scenes: they get the variant of the ``mi`` fixture."""
-    if request.node.get_closest_marker("plugin") is not None:
-        request.getfixturevalue("mi")
+    from roadgonio.errors import BackendError
+    try:
+        return set_variant("llvm_ad_rgb")
+    except BackendError as err:
+        pytest.skip(f"Mitsuba's CPU variant is not usable here: {err}")
 
 
 @pytest.fixture(scope="session")

@@ -1,9 +1,12 @@
-"""The ``roadgonio`` command.
+"""The ``roadgonio`` command: one way in. Each command parses its arguments, calls ONE function of
+:mod:`roadgonio.api` and prints the result; it resolves no input itself (no instrument, sample,
+cells, backend, seed or preset: ``tests/unit/test_layers.py`` holds it to that).
 
 Every module in this package that defines ``register(subparsers)`` adds one or more
 sub-commands; ``register`` must call ``parser.set_defaults(func=run)`` where ``run(args)`` returns
 the exit status. Errors of type :class:`~roadgonio.errors.RoadgonioError` are printed as one
-line (``roadgonio: error: ...``) with exit status 2, never as a traceback.
+line (``roadgonio: error: ...``) with exit status 2, never as a traceback; an error the API raised
+about an argument names the command's option instead (``rel_se`` -> ``--rel-se``).
 """
 from __future__ import annotations
 
@@ -12,11 +15,12 @@ import importlib
 import pkgutil
 import sys
 
-from roadgonio import __version__
-from roadgonio.errors import RoadgonioError
+from roadgonio._version import __version__
+from roadgonio.errors import InputError, RoadgonioError
 
 #: Order in which commands are listed in --help (others follow alphabetically).
-ORDER = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct"]
+ORDER = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct", "design", "road",
+         "compare", "classify"]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -47,7 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(args.func(args) or 0)
     except RoadgonioError as err:
-        print(f"roadgonio: error: {err}", file=sys.stderr)
+        print(f"roadgonio: error: {_as_option(err, parser, args)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         # each command says truthfully what an interruption keeps (``on_interrupt``, set by the
@@ -55,6 +59,30 @@ def main(argv: list[str] | None = None) -> int:
         note = getattr(args, "on_interrupt", None) or "interrupted: nothing was written"
         print(f"roadgonio: {note}", file=sys.stderr)
         return 130
+
+
+def _as_option(err: RoadgonioError, parser: argparse.ArgumentParser, args) -> RoadgonioError:
+    """An InputError about an API argument (no file) names the command's option for it: the
+    argument names are the options' destinations (``rel_se`` -> ``--rel-se``)."""
+    if not isinstance(err, InputError):
+        return err
+    sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+    command = sub.choices.get(getattr(args, "command", None)) if sub is not None else None
+    if command is None:
+        return err
+    options = {a.dest: [o for o in a.option_strings if o.startswith("--")][0]
+               for a in command._actions if any(o.startswith("--") for o in a.option_strings)}
+
+    def named(text: str | None) -> str | None:
+        if not text:
+            return text
+        cut = min((i for i in (text.find("."), text.find(" ")) if i >= 0), default=len(text))
+        head, rest = text[:cut], text[cut:]
+        return options[head] + rest if head in options else text
+
+    if err.path is not None:       # a file's content: name the option that gave the file
+        return InputError(err.reason, path=err.path, line=err.line, field=err.field, argument=named(err.argument))
+    return InputError(err.reason, line=err.line, field=named(err.field), argument=named(err.argument))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,21 +1,15 @@
-"""Helpers shared by the commands (not a command: modules starting with '_' are not discovered)."""
+"""Helpers shared by the commands (not a command: modules starting with '_' are not discovered).
+
+The commands only parse arguments, call one function of :mod:`roadgonio.api` and print; the
+choices they offer (backends, presets, model variants) come from the API too."""
 from __future__ import annotations
 
 import sys
 
-from roadgonio.engines.accuracy import rel_se_setting  # noqa: F401 - the commands' --rel-se mapping
-
-
-def check_seed(value: int, option: str = "--seed") -> int:
-    """A random seed must be >= 0 (numpy's SeedSequence takes none below)."""
-    from roadgonio.errors import InputError
-    if value is None or int(value) < 0:
-        raise InputError(f"expected a seed >= 0, got {value}", field=option)
-    return int(value)
-
+from roadgonio import api
 
 INSTRUMENT_HELP = ("instrument TOML file (keys and units: docs/conventions.md section 4; apertures are radii) or a "
-                   "bundled preset name (lab, portable)")
+                   "bundled preset name (" + ", ".join(api.instrument_presets()) + ")")
 SAMPLE_HELP = ("bundled table name (R1..R4, C1, C2: fitted on the fly), an r-table file (.csv/.rtb), "
                "a model.json, or 'lambert'")
 
@@ -28,21 +22,27 @@ def add_sample_argument(p, name: str = "--sample", what: str = "") -> None:
     p.add_argument(name, required=True, metavar="SAMPLE", help=(what + ": " if what else "") + SAMPLE_HELP)
 
 
-def load_inputs(args):
-    """(instrument, model) from --instrument and --sample (and --model-variant where offered)."""
-    from roadgonio.instrument.config import load_instrument
-    from roadgonio.surface.sample import resolve_sample
-    instrument = load_instrument(args.instrument)
-    model = resolve_sample(args.sample, getattr(args, "model_variant", None))
-    return instrument, model
+def add_model_variant(p, help_text: str = "model variant fitted when SAMPLE is a table (default: the paper's "
+                                          "'power')", extra: tuple[str, ...] = ()) -> None:
+    p.add_argument("--model-variant", dest="model_variant", choices=list(extra) + list(api.model_variants()),
+                   help=help_text)
 
 
-def select_variant(backend: str, variant: str | None = None) -> None:
-    """The command is the entry point: choose the Mitsuba variant here (``--variant``, else
-    ``$ROADGONIO_VARIANT``, else llvm_ad_rgb) when the Mitsuba backend will run. Backends only check it."""
-    if backend == "mitsuba":
-        from roadgonio.engines.mitsuba import set_variant
-        set_variant(variant)
+def add_backend(p, default: str = "mitsuba", names=None, help_text: str | None = None) -> None:
+    backends = api.backends()
+    names = list(names or backends)
+    p.add_argument("--backend", default=default, choices=names,
+                   help=help_text or "; ".join(f"{n}: {backends[n]}" for n in names).replace("%", "%%"))
+
+
+def add_accuracy(p) -> None:
+    p.add_argument("--accuracy", choices=list(api.accuracy_presets()),
+                   help="preset on the measured speed-accuracy frontier (docs/benchmarks.md); --rel-se overrides it")
+
+
+def add_mitsuba_variant(p) -> None:
+    p.add_argument("--variant", dest="mitsuba_variant", metavar="VARIANT",
+                   help="Mitsuba variant (default llvm_ad_rgb; cuda_ad_rgb on a GPU machine)")
 
 
 # -- output: every command has --json and --quiet; progress bars only on a terminal -------------
@@ -67,6 +67,16 @@ def text_output(args):
     return print
 
 
+def print_json(obj) -> None:
+    """The result as JSON on stdout, written by the one JSON writer (NaN/inf as null)."""
+    print(api.to_json(obj))
+
+
+def out_arg(args):
+    """``--out DIR``, else the command's default folder (:data:`roadgonio.api.AUTO`)."""
+    return args.out if getattr(args, "out", None) else api.AUTO
+
+
 # -- Dask: --workers N | --scheduler ADDRESS (design, uncertainty, correct) ------------------------
 
 def _workers(text: str) -> int:
@@ -77,6 +87,17 @@ def _workers(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
     if v < 0:
         raise argparse.ArgumentTypeError(f"expected a number >= 0, got {v}")
+    return v
+
+
+def positive_int(text: str) -> int:
+    import argparse
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {v}")
     return v
 
 

@@ -2,7 +2,8 @@
 and the nearest bundled CIE table in (S1, Q0)."""
 from __future__ import annotations
 
-from roadgonio.cli._common import add_output_options
+from roadgonio import api
+from roadgonio.cli._common import add_output_options, print_json
 
 
 def register(sub) -> None:
@@ -17,13 +18,9 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from roadgonio.fileio import to_json
-    from roadgonio.road.classify import classify
-    from roadgonio.surface.rtable import load_table
-
-    res = classify(load_table(args.table))
+    res = api.classify_table(args.table)
     if args.json:
-        print(to_json(res))
+        print_json(res)
     elif not args.quiet:
         print(f"{res['table']}: S1 = {res['S1']:.3f}, Q0 = {res['Q0']:.4f} sr^-1, S2 = {res['S2']:.2f}")
         for system, c in res["classes"].items():

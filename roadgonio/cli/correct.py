@@ -3,23 +3,22 @@ the corrected table (roadgonio.correction)."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
-from roadgonio.errors import InputError, percent as _percent
-from roadgonio.engines.accuracy import PRESETS
-from roadgonio.surface.model import VARIANTS
+from roadgonio import api
 from roadgonio.cli._common import (
+    add_accuracy,
+    add_backend,
     add_dask_arguments,
     add_instrument_argument,
-    check_seed,
+    add_mitsuba_variant,
+    add_model_variant,
     add_output_options,
-    rel_se_setting,
-    select_variant,
+    out_arg,
+    print_json,
     show_progress,
     text_output,
 )
-
-BACKENDS = ["mitsuba", "quadrature", "numpy-mc"]
+from roadgonio.errors import percent as _percent
 
 
 def register(sub) -> None:
@@ -54,16 +53,15 @@ def register(sub) -> None:
     p.add_argument("--sigma", metavar="SPEC",
                    help="the instrument's misalignment, as for `roadgonio uncertainty` (e.g. 'alpha_deg=0.01,"
                         "eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02', or a TOML file); default: not included")
-    p.add_argument("--model-variant", choices=["auto"] + list(VARIANTS), default=None,
-                   help="model variant fitted: auto (default with --reference self: power and smooth, the better "
-                        "fit is used and the other measures the model dependence), or one variant")
-    p.add_argument("--backend", default="mitsuba", choices=BACKENDS,
-                   help="k_A backend of the reported factor (default mitsuba; quadrature: deterministic float64)")
-    p.add_argument("--accuracy", choices=list(PRESETS), help="accuracy preset of the backend (as for `roadgonio ka`)")
+    add_model_variant(p, "model variant fitted: auto (default with --reference self: power and smooth, the better "
+                         "fit is used and the other measures the model dependence), or one variant", extra=("auto",))
+    add_backend(p, names=["mitsuba", "quadrature", "numpy-mc", "reference"],
+                help_text="k_A backend of the reported factor (default mitsuba; quadrature: deterministic float64)")
+    add_accuracy(p)
     p.add_argument("--rel-se", type=float, metavar="E",
                    help="target relative SE (Monte Carlo backends) or relative tolerance (quadrature)")
     p.add_argument("--seed", type=int, default=0, help="random seed (backends and ray bundles)")
-    p.add_argument("--variant", help="Mitsuba variant (default llvm_ad_rgb)")
+    add_mitsuba_variant(p)
     p.add_argument("--rays", type=int, default=512, metavar="N",
                    help="rays per cell of the fit's forward model (power of two times 4; default 512)")
     add_dask_arguments(p, "default: in this process; with several --measured files each file is one task on a "
@@ -77,56 +75,19 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from roadgonio.correction import correct_files
-    from roadgonio.correction.run import check_measured
-    from roadgonio.fileio import to_json
-    from roadgonio.instrument.config import load_instrument
-    from roadgonio.surface.rtable import read_table
-
-    tables = []
-    for f in args.measured:
-        try:
-            tables.append(read_table(f))
-        except InputError as err:
-            raise InputError(f"--measured: {err.reason}", path=err.path, line=err.line, field=err.field) from None
-        check_measured(tables[-1], f)
-    check_seed(args.seed)
-    instrument = load_instrument(args.instrument)
-    self_ref = args.reference.strip().lower() == "self"
-    if args.model_variant == "auto" and not self_ref:
-        raise InputError("--model-variant auto is for --reference self; give one variant for fitting a reference table",
-                         field="--model-variant")
-    if args.rays < 8:
-        raise InputError(f"expected at least 8 rays per cell, got {args.rays}", field="--rays")
-    settings: dict = {}
-    if args.rel_se is not None:
-        settings.update(rel_se_setting(args.backend, args.rel_se))
-    if args.backend in ("mitsuba", "numpy-mc"):
-        settings["seed"] = args.seed
-    if args.backend == "mitsuba" and args.variant:
-        settings["variant"] = args.variant
-    if args.scheduler is None and args.workers in (None, 0):
-        select_variant(args.backend, args.variant)     # in this process: the command is its entry point
-    u_measured = args.u_measured if args.u_measured is not None else "1%"
-    options = dict(u_measured=u_measured, sigma=args.sigma, backend=args.backend, backend_settings=settings,
-                   accuracy=args.accuracy, model_variant=args.model_variant, seed=args.seed,
-                   progress=show_progress(args))
-    if self_ref:
-        options["rays"] = args.rays
-    else:
-        options["alternatives"] = args.alternatives
-    default_out = Path("out") / (f"correct-{tables[0].name}" if len(tables) == 1 else "correct")
-    out = Path(args.out) if args.out else default_out
-    done = correct_files(tables, instrument, out, plots=not args.no_plots, reference=args.reference,
-                         workers=args.workers, scheduler=args.scheduler, **options)
+    results = api.correct(list(args.measured), args.instrument, reference=args.reference,
+                          alternatives=args.alternatives, u_measured=args.u_measured, sigma=args.sigma,
+                          backend=args.backend, accuracy=args.accuracy, rel_se=args.rel_se, seed=args.seed,
+                          mitsuba_variant=args.mitsuba_variant, model_variant=args.model_variant, rays=args.rays,
+                          workers=args.workers, scheduler=args.scheduler, out=out_arg(args),
+                          plots=not args.no_plots, progress=show_progress(args))
     summaries = []
-    for (res, folder, written), f in zip(done, args.measured):
-        res.provenance["measured_file"] = str(f)
-        s = _json_summary(res, folder)
-        s["written"] = [str(p) for p in written]
+    for res in results:
+        s = _json_summary(res)
+        s["written"] = [str(p) for p in res.written]
         summaries.append(s)
     if args.json:
-        print(to_json(summaries[0] if len(summaries) == 1 else summaries))
+        print_json(summaries[0] if len(summaries) == 1 else summaries)
         return 0
     say = text_output(args)
     if args.u_measured is None:
@@ -143,19 +104,21 @@ def run(args) -> int:
         say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} % "
             f"(largest per component: {comps}); {s['seconds']:.1f} s")
         say(f"  wrote {len(s['written'])} files to {s['out']}")
-    cluster = done[0][0].provenance.get("cluster") if done else None
+    cluster = results[0].provenance.get("cluster") if results else None
     if cluster:
-        say(f"computed as {len(done)} Dask tasks on {cluster['workers']} workers ({cluster['scheduler']})")
+        say(f"computed as {len(results)} Dask tasks on {cluster['workers']} workers ({cluster['scheduler']})")
     return 0
 
 
 def _pm(v, u) -> str:
+    if v is None or not math.isfinite(v):
+        return "missing"
     if u is None or not math.isfinite(u):
         return f"{v:.4g}"
     return f"{v:.4g} +- {u:.2g}"
 
 
-def _json_summary(res, folder: Path) -> dict:
+def _json_summary(res) -> dict:
     s = res.summary()
     keep = ("measured", "reference", "calibration", "cells", "S1", "u_S1", "Q0", "u_Q0", "S2", "u_S2", "class_R",
             "class_C", "nearest_table", "k_a_min", "k_a_max", "u_rel_median", "u_rel_max", "before", "budget",
@@ -163,5 +126,5 @@ def _json_summary(res, folder: Path) -> dict:
     out = {k: s[k] for k in keep}
     if "fit" in s:
         out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio")}
-    out["out"] = str(folder)
+    out["out"] = str(res.out)
     return out

@@ -1,18 +1,16 @@
-"""``roadgonio render``: pictures of one measurement cell rendered with Mitsuba - the detector's
-view of the sample (its field of view with the road luminance) and the illuminance on the sample
-around the detector footprint - as OpenEXR (float32) and PNG, with a one-render k_A estimate."""
+"""``roadgonio render``: pictures of one measurement cell rendered with Mitsuba - the detector's view
+of the sample (its field of view with the road luminance) and the illuminance on the sample around
+the detector footprint - as OpenEXR (float32) and PNG, with a one-render k_A estimate."""
 from __future__ import annotations
 
-import math
-
-from roadgonio.errors import InputError
+from roadgonio import api
 from roadgonio.cli._common import (
     add_instrument_argument,
+    add_mitsuba_variant,
+    add_model_variant,
     add_output_options,
     add_sample_argument,
-    check_seed,
-    load_inputs,
-    select_variant,
+    print_json,
     text_output,
 )
 
@@ -25,44 +23,33 @@ def register(sub) -> None:
                                    "view.exr, illuminance.exr, render.png and render.json to --out.")
     add_instrument_argument(p)
     add_sample_argument(p)
-    p.add_argument("--tan-eps", type=float, required=True, metavar="T", help="tan(epsilon) of the source")
+    add_model_variant(p)
+    p.add_argument("--tan-eps", dest="tan_eps", type=float, required=True, metavar="T", help="tan(epsilon) of the source")
     p.add_argument("--beta", type=float, required=True, metavar="B", help="beta of the source (deg)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--resolution", type=int, default=256, help="detector-view pixels per side (default 256)")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel (a square; default 64)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--variant", default=None, help="Mitsuba variant (default llvm_ad_rgb)")
+    add_mitsuba_variant(p)
     add_output_options(p, "print render.json (provenance, footprint, the k_A estimate, files) to stdout")
     p.set_defaults(func=run, on_interrupt="interrupted: the pictures of this cell were not written (render starts "
                                         "over when run again)")
 
 
 def run(args) -> int:
-    if not (math.isfinite(args.tan_eps) and args.tan_eps >= 0):
-        raise InputError(f"expected tan eps >= 0, got {args.tan_eps}", field="--tan-eps")
-    if not (math.isfinite(args.beta) and -360 <= args.beta <= 360):
-        raise InputError(f"expected beta in degrees, got {args.beta}", field="--beta")
-    if not 8 <= args.resolution <= 2048:
-        raise InputError(f"expected 8 ... 2048, got {args.resolution}", field="--resolution")
-    if args.spp < 1 or math.isqrt(args.spp) ** 2 != args.spp:
-        raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {args.spp}",
-                         field="--spp")
-    check_seed(args.seed)
-    instrument, model = load_inputs(args)
-    select_variant("mitsuba", args.variant)
-    from roadgonio.engines.mitsuba.images import render_cell_images
-    info = render_cell_images(instrument, model, args.tan_eps, args.beta, args.out, resolution=args.resolution,
-                              spp=args.spp, seed=args.seed, variant=args.variant, sample_name=args.sample)
+    info = api.render(args.instrument, args.sample, args.tan_eps, args.beta, args.out, resolution=args.resolution,
+                      spp=args.spp, seed=args.seed, mitsuba_variant=args.mitsuba_variant,
+                      model_variant=args.model_variant)
     if args.json:
-        from roadgonio.fileio import to_json
-        print(to_json(info))
+        print_json(info)
         return 0
     say = text_output(args)
     ka = info["k_a_estimate"]
-    say(f"{instrument.name}, sample {args.sample}, tan eps = {args.tan_eps:g}, beta = {args.beta:g} deg: "
-          f"footprint x = {info['footprint_m']['x'][0]:.3f} ... {info['footprint_m']['x'][1]:.3f} m; "
-          + (f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (one render; use 'roadgonio ka' for tables)"
-             if ka is not None else "k_A undefined (model is 0 at the nominal geometry)"))
-    for k, v in info["files"].items():
+    say(f"{info['instrument']['instrument']['name']}, sample {info['sample']}, tan eps = {args.tan_eps:g}, "
+        f"beta = {args.beta:g} deg: footprint x = {info['footprint_m']['x'][0]:.3f} ... "
+        f"{info['footprint_m']['x'][1]:.3f} m; "
+        + (f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (one render; use 'roadgonio ka' for tables)"
+           if ka is not None else "k_A undefined (model is 0 at the nominal geometry)"))
+    for v in info["files"].values():
         say(f"wrote {v}")
     return 0

@@ -3,10 +3,9 @@ or several r-tables (e.g. measured and corrected), with the table's uncertainty 
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-from roadgonio.cli._common import add_output_options
-from roadgonio.errors import InputError
+from roadgonio import api
+from roadgonio.cli._common import add_output_options, out_arg, print_json
 
 
 def register(sub) -> None:
@@ -20,7 +19,7 @@ def register(sub) -> None:
                     "probability of meeting the class, for independent and for fully correlated cells. Without "
                     "--luminaire/--layout: roadgonio's illustrative cut-off luminaire and its default layout "
                     "(single-sided, 2 x 3.5 m lanes, H 10 m, S 30 m).")
-    p.add_argument("--table", action="append", required=True, metavar="T",
+    p.add_argument("--table", dest="tables", action="append", required=True, metavar="T",
                    help="r-table: bundled name (R1..R4, C1, C2) or .csv/.rtb file (r x 1e4); repeat for side by side")
     p.add_argument("--u", action="append", metavar="FILE",
                    help="standard uncertainty of a table (r x 1e4, r-table CSV layout). Once: for the last --table "
@@ -29,7 +28,7 @@ def register(sub) -> None:
     p.add_argument("--luminaire", metavar="FILE", help="EULUMDAT .ldt file (default: the bundled illustrative luminaire)")
     p.add_argument("--layout", metavar="FILE", help="layout TOML (default: the bundled default layout)")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/road-TABLES)")
-    p.add_argument("--class", dest="target", metavar="M", help="class to test in the Monte Carlo (default: the class "
+    p.add_argument("--class", dest="target_class", metavar="M", help="class to test in the Monte Carlo (default: the class "
                    "the table meets)")
     p.add_argument("--trials", type=int, default=20000, help="Monte Carlo trials (default 20000)")
     p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
@@ -40,66 +39,24 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def _pair_u(tables: list[str], us: list[str] | None) -> list[str | None]:
-    if not us:
-        return [None] * len(tables)
-    if len(us) == 1:
-        return [None] * (len(tables) - 1) + [us[0]]
-    if len(us) != len(tables):
-        raise InputError(f"give --u once (for the last table) or once per --table ({len(tables)}), got {len(us)}",
-                         field="--u")
-    return [None if u in ("-", "") else u for u in us]
-
-
 def run(args) -> int:
-    from roadgonio.fileio import to_json
-    from roadgonio.road import mc, report
-    from roadgonio.road.evaluate import Installation
-    from roadgonio.road.layout import load_layout
-    from roadgonio.road.luminaire import load_luminaire
-    from roadgonio.road.metrics import M_CLASSES
-    from roadgonio.surface.rtable import load_table, read_table
-
-    if args.target and args.target.upper() not in M_CLASSES:
-        raise InputError(f"unknown class {args.target!r}; expected one of {', '.join(M_CLASSES)}", field="--class")
-    target = args.target.upper() if args.target else None
-    u_files = _pair_u(args.table, args.u)
-    tables = [load_table(t) for t in args.table]
-    names = [t.name for t in tables]
-    if len(set(names)) != len(names):  # same name twice (e.g. two files R3.csv): number them
-        tables = [t.with_values(t.r, name=f"{t.name}#{k + 1}") for k, t in enumerate(tables)]
-    layout = load_layout(args.layout)
-    luminaire = load_luminaire(args.luminaire)
-    inst = Installation(layout, luminaire)
-    modes = ("independent", "correlated") if args.correlation == "both" else (args.correlation,)
-    results, summaries = [], []
-    for t, uf in zip(tables, u_files):
-        res = inst.evaluate(t)
-        if uf is not None:
-            try:
-                u = read_table(uf)
-            except InputError as err:
-                raise InputError(f"--u: {err.reason}", path=err.path, line=err.line, field=err.field) from None
-            res.uncertainty = {"file": str(uf), **mc.propagate(inst, t, u, trials=args.trials, seed=args.seed,
-                                                               correlations=modes, target_class=target, u_path=uf)}
-        results.append(res)
-        summaries.append(res.summary())
-    out = Path(args.out) if args.out else Path("out") / ("road-" + "-".join(report._safe_name(n) for n in names))
-    files = report.road_files(results, summaries, target or summaries[0]["class"], plots=not args.no_plots)
-    written = report.write_together(out, files)
+    summaries = api.road(args.tables, u=args.u, luminaire=args.luminaire, layout=args.layout,
+                         target_class=args.target_class, trials=args.trials, seed=args.seed,
+                         correlation=args.correlation, out=out_arg(args), plots=not args.no_plots)
     if args.json:
         keep = ("table", "L_av", "U_o", "U_l", "TI", "R_EI", "class", "U_l_per_lane", "uncertainty",
                 "neglected_contributions", "TI_note")
         rows = [{k: s[k] for k in keep if k in s} for s in summaries]
-        print(to_json(rows[0] if len(rows) == 1 else rows))
+        print_json(rows[0] if len(rows) == 1 else rows)
     elif not args.quiet:
-        _print(summaries, layout, luminaire, out, written)
+        _print(summaries)
     return 0
 
 
-def _print(summaries, layout, luminaire, out, written) -> None:
+def _print(summaries) -> None:
     w = sys.stdout.write
-    w(f"layout: {layout.describe()}\nluminaire: {luminaire.name} ({luminaire.flux_lm:g} lm)\n")
+    first = summaries[0]
+    w(f"layout: {first['layout']}\nluminaire: {first['luminaire']['name']} ({first['luminaire']['flux_lm']:g} lm)\n")
     w(f"{'table':14} {'L_av':>7} {'U_o':>6} {'U_l':>6} {'TI %':>6} {'R_EI':>6}  class  U_l per lane\n")
     for s in summaries:
         ti = "-" if s["TI"] is None else f"{s['TI']:.1f}"
@@ -129,4 +86,4 @@ def _print(summaries, layout, luminaire, out, written) -> None:
           "r-table (blank cells or tan > 12) and were neglected\n")
     if base["TI"] is None:
         w(f"TI not computed: {base['TI_note']}\n")
-    w(f"wrote {len(written)} files to {out}\n")
+    w(f"wrote {len(first['written'])} files to {first['out']}\n")

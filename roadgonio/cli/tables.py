@@ -1,10 +1,8 @@
 """``roadgonio tables`` (list the bundled tables) and ``roadgonio table`` (show or convert one)."""
 from __future__ import annotations
 
-import json
-
-from roadgonio.cli._common import add_output_options, text_output
-from roadgonio.surface.rtable import BUNDLED, PUBLISHED_Q0, PUBLISHED_S1, bundled_table, load_table
+from roadgonio import api
+from roadgonio.cli._common import add_output_options, print_json, text_output
 
 
 def register(sub) -> None:
@@ -24,13 +22,9 @@ def register(sub) -> None:
 
 
 def run_tables(args) -> int:
-    rows = []
-    for name in BUNDLED:
-        t = bundled_table(name)
-        rows.append({"table": name, "Q0": t.q0(), "Q0_published": PUBLISHED_Q0[name], "S1": t.s1(),
-                     "S1_published": PUBLISHED_S1[name], "S2": t.s2(), "cells": int(t.mask.sum())})
+    rows = api.list_tables()
     if args.json:
-        print(json.dumps(rows, indent=2))
+        print_json(rows)
         return 0
     say = text_output(args)
     say(f"{'table':6} {'Q0':>7} {'(CIE)':>6} {'S1':>7} {'(CIE)':>6} {'S2':>6} {'cells':>6}")
@@ -42,18 +36,18 @@ def run_tables(args) -> int:
 
 
 def run_table(args) -> int:
-    t = load_table(args.table)
-    info = {"table": t.name, "Q0": t.q0(), "S1": t.s1(), "S2": t.s2(), "cells": int(t.mask.sum()),
-            "r_max": t.r_max}
-    if args.to:
-        path = t.write(args.to)
-        info["written"] = str(path)
-    say = text_output(args)
+    info = api.table_info(args.table, to=args.to)
     if args.json:
-        print(json.dumps(info, indent=2))
-    else:
-        say(f"{t.name}: Q0 = {info['Q0']:.4f} sr^-1, S1 = {info['S1']:.3f}, S2 = {info['S2']:.2f}, "
-              f"{info['cells']} tabulated cells, max r = {info['r_max'] * 1e4:.4g} x 1e-4")
-        if args.to:
-            say(f"wrote {info['written']}")
+        print_json(info)
+        return 0
+    say = text_output(args)
+    say(f"{info['table']}: Q0 = {_f(info['Q0'], '.4f')} sr^-1, S1 = {_f(info['S1'], '.3f')}, S2 = {_f(info['S2'], '.2f')}, "
+        f"{info['cells']} tabulated cells, max r = {info['r_max'] * 1e4:.4g} x 1e-4")
+    if "written" in info:
+        say(f"wrote {info['written']}")
     return 0
+
+
+def _f(v, fmt: str) -> str:
+    """A characteristic, or 'missing' when the table lacks the cells it needs (NaN)."""
+    return "missing" if v is None or v != v else format(v, fmt)

@@ -2,37 +2,25 @@
 instrument's angle and position errors, with and without the aperture effect."""
 from __future__ import annotations
 
-from pathlib import Path
-
-from roadgonio.errors import InputError
-from roadgonio.surface.model import VARIANTS
+from roadgonio import api
 from roadgonio.cli._common import (
     add_dask_arguments,
     add_instrument_argument,
+    add_mitsuba_variant,
+    add_model_variant,
     add_output_options,
     add_sample_argument,
-    check_seed,
-    rel_se_setting,
-    select_variant,
+    out_arg,
+    positive_int,
+    print_json,
     show_progress,
     text_output,
 )
 
 
-def _positive_int(text: str) -> int:
-    import argparse
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {v}")
-    return v
-
-
 def register(sub) -> None:
-    from roadgonio.uncertainty import INPUT_HELP, SPEC_HELP
-    keys = "; ".join(f"{k}: {v}" for k, v in INPUT_HELP.items())
+    spec_help, input_help = api.sigma_spec_help()
+    keys = "; ".join(f"{k}: {v}" for k, v in input_help.items())
     p = sub.add_parser(
         "uncertainty", help="Monte Carlo (GUM Supplement 1) uncertainty of a measured r-table from the "
                             "instrument's angle/position errors",
@@ -43,25 +31,25 @@ def register(sub) -> None:
                     "(k_A of the perturbed geometry from a validated surrogate over exact backend evaluations). "
                     "Outputs per cell: mean, standard uncertainty, 95 % probabilistically symmetric and shortest "
                     "coverage intervals, GUM u and its validation; distributions of Q0 and S1. "
-                    f"{SPEC_HELP}. Input keys: {keys}.")
+                    f"{spec_help}. Input keys: {keys}.")
     add_instrument_argument(p)
     add_sample_argument(p)
-    p.add_argument("--model-variant", choices=list(VARIANTS), help="model variant when fitting a table")
+    add_model_variant(p)
     p.add_argument("--sigma", required=True, metavar="SPEC",
                    help="standard deviations and distributions of the errors, e.g. 'alpha_deg=0.01,eps_deg=0.05:rect,"
                         "beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,source_distance_m=0.002,"
                         "detector_distance_m=0.005', or a TOML file with the same keys")
     g = p.add_mutually_exclusive_group()
-    g.add_argument("--trials", type=_positive_int, default=50_000, metavar="N",
+    g.add_argument("--trials", type=positive_int, default=50_000, metavar="N",
                    help="number of Monte Carlo trials (default 50000)")
     g.add_argument("--adaptive", action="store_true",
                    help="adaptive Monte Carlo, JCGM 101 7.9: batches until the mean, u and interval ends of every "
                         "output are stable to --digits significant digits of u (at most --max-trials)")
     p.add_argument("--digits", type=int, default=2, choices=[1, 2, 3],
                    help="n_dig, significant digits of u for the adaptive rule and the GUM validation (default 2)")
-    p.add_argument("--max-trials", type=_positive_int, default=200_000, metavar="N",
+    p.add_argument("--max-trials", type=positive_int, default=200_000, metavar="N",
                    help="cap of the adaptive run (default 200000)")
-    p.add_argument("--batch", type=_positive_int, metavar="N", help="adaptive batch size (default max(100/(1-p), 10^4))")
+    p.add_argument("--batch", type=positive_int, metavar="N", help="adaptive batch size (default max(100/(1-p), 10^4))")
     p.add_argument("--coverage", type=float, default=0.95, metavar="P", help="coverage probability (default 0.95)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1); the same seed repeats the result")
     p.add_argument("--illuminance", choices=["nominal", "measured"], default="nominal",
@@ -84,7 +72,8 @@ def register(sub) -> None:
                         "for ccd)")
     p.add_argument("--validation", type=int, default=4, metavar="N",
                    help="held-out trials with exact k_A to measure the surrogate's error (default 4)")
-    p.add_argument("--threads", type=_positive_int, metavar="N", help="worker threads (default: up to 2)")
+    p.add_argument("--threads", type=positive_int, metavar="N", help="worker threads (default: up to 2)")
+    add_mitsuba_variant(p)
     add_dask_arguments(p, "for the exact k_A tables of the surrogate design; default: in this process")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/uncertainty-INSTRUMENT-SAMPLE)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the PNG pictures")
@@ -94,56 +83,22 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    from roadgonio.plotproc import FigureProcess
     # the pictures are drawn by a helper process that loads matplotlib while the trials run
-    with FigureProcess(enabled=not args.no_plots) as figures:
-        return _run(args, figures)
-
-
-def _run(args, figures) -> int:
-    from roadgonio.fileio import to_json
-    from roadgonio.instrument.config import load_instrument
-    from roadgonio.uncertainty import (
-        parse_sigma_spec,
-        resolve_sample_spec,
-        result_dict,
-        run_uncertainty,
-        summary_lines,
-        write_results,
-    )
-    spec = parse_sigma_spec(args.sigma, option="--sigma")
-    check_seed(args.seed)
-    if not (0.5 < args.coverage < 1.0):
-        raise InputError(f"expected a coverage probability between 0.5 and 1, got {args.coverage:g}", field="--coverage")
-    if args.validation < 0:
-        raise InputError(f"expected a number >= 0, got {args.validation}", field="--validation")
-    from roadgonio.uncertainty.run import DEFAULT_BACKEND_TOLERANCE
-    settings = rel_se_setting(args.backend, DEFAULT_BACKEND_TOLERANCE[args.backend] if args.rel_se is None
-                              else args.rel_se)
-    if args.backend == "mitsuba":
-        settings["seed"] = args.seed
-    instrument = load_instrument(args.instrument)
-    model = resolve_sample_spec(args.sample, args.model_variant)
-    if not args.no_aperture:
-        select_variant(args.backend)
-    res = run_uncertainty(model, instrument, spec, trials=args.trials, adaptive=args.adaptive, seed=args.seed,
-                          coverage=args.coverage, n_dig=args.digits, max_trials=args.max_trials, batch=args.batch,
-                          illuminance=args.illuminance, cells=args.cells, aperture=not args.no_aperture,
-                          backend=args.backend, backend_settings=settings, n_validation=args.validation,
-                          surrogate_design=args.surrogate,
-                          threads=args.threads, progress=show_progress(args), workers=args.workers,
-                          scheduler=args.scheduler)
-    sample_name = Path(args.sample).stem if Path(args.sample).suffix else args.sample
-    res.provenance["sample"] = args.sample
-    out = Path(args.out) if args.out else Path("out") / f"uncertainty-{instrument.name}-{sample_name}"
-    written = write_results(res, out, sample_name=sample_name, plots=not args.no_plots, figures=figures)
+    with api.figure_process(enabled=not args.no_plots) as figures:
+        res = api.estimate_uncertainty(
+            args.instrument, args.sample, args.sigma, trials=args.trials, adaptive=args.adaptive, digits=args.digits,
+            max_trials=args.max_trials, batch=args.batch, seed=args.seed, coverage=args.coverage, cells=args.cells,
+            aperture=not args.no_aperture, backend=args.backend, rel_se=args.rel_se, illuminance=args.illuminance,
+            surrogate=args.surrogate, validation=args.validation, threads=args.threads, workers=args.workers,
+            scheduler=args.scheduler, mitsuba_variant=args.mitsuba_variant, model_variant=args.model_variant,
+            out=out_arg(args), plots=not args.no_plots, figures=figures, progress=show_progress(args))
     if args.json:
-        d = result_dict(res, cells=False)
-        d["written"] = [str(p) for p in written]
-        print(to_json(d))
+        d = api.uncertainty_result_json(res)
+        d["written"] = [str(p) for p in res.written]
+        print_json(d)
     else:
         say = text_output(args)
-        for line in summary_lines(res):
+        for line in api.uncertainty_summary_lines(res):
             say(line)
-        say(f"wrote {len(written)} files to {out}")
+        say(f"wrote {len(res.written)} files to {res.out}")
     return 0

@@ -12,11 +12,11 @@ Rooms:
   misalignment), S1 / S2 / Q0 with their standard uncertainties, CIE classes;
 * :mod:`.run` -- the procedure (``reference = "self"``: fit through the instrument, k_A by the
   chosen backend, journalled; ``reference = SAMPLE``: the classic route), for one or several tables;
-* :mod:`.reference` -- nearest CIE tables and alternative references;
+* :mod:`.reference` -- the alternative references (the nearest CIE tables: :mod:`roadgonio.surface.cie`);
 * :mod:`.outputs` -- the files and pictures;
 * :mod:`.synthetic` -- synthetic measurements of a known surface (round trips).
 """
-from roadgonio.correction.reference import nearest_standard_tables, resolve_alternatives, sample_name  # noqa: F401
+from roadgonio.correction.reference import resolve_alternatives, sample_name  # noqa: F401
 from roadgonio.correction.run import (  # noqa: F401
     CorrectionResult, InstrumentArtefacts, correct_files, correct_measured, correct_self, correct_with_reference,
     measured_uncertainty)

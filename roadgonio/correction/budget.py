@@ -37,63 +37,10 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from roadgonio.surface.rtable import BUNDLED, RTable, bundled_table
-
-def _bounds(system: str) -> tuple[tuple[str, float], ...]:
-    """(class, upper S1 limit) of a class system, from the one table of the limits
-    (:data:`roadgonio.road.classify.CLASS_LIMITS`: R1 < 0.42 <= R2 < 0.85 <= R3 < 1.35 <= R4;
-    C1 < 0.40 <= C2; N1 < 0.28 <= N2 < 0.60 <= N3 < 1.30 <= N4)."""
-    from roadgonio.road.classify import CLASS_LIMITS
-    return tuple((name, hi) for name, _, hi in CLASS_LIMITS[system])
-
+from roadgonio.surface.cie import cie_class, nearest_bundled
+from roadgonio.surface.rtable import RTable, q0_weights
 
 COMPONENTS = ("measurement", "backend", "parameters", "model", "misalignment", "convergence")
-
-
-def q0_weights(mask: np.ndarray) -> np.ndarray:
-    """Weights w over the tabulated cells (row-major order of ``mask``) with Q0 = w . r
-    (:meth:`RTable.q0` is linear in r; derived from it, not repeated)."""
-    ii, jj = np.nonzero(mask)
-    w = np.zeros(ii.size)
-    base = np.where(mask, 0.0, np.nan)
-    for k, (i, j) in enumerate(zip(ii, jj)):
-        t = base.copy()
-        t[i, j] = 1.0
-        w[k] = RTable(t).q0()
-    return w
-
-
-def cie_class(s1: float, u_s1: float | None = None) -> dict[str, Any]:
-    """The CIE R, C and N classes of S1 and, with u(S1), the probability of each class under a
-    normal distribution N(S1, u^2)."""
-    def pick(bounds):
-        for name, hi in bounds:
-            if s1 < hi:
-                return name
-        return bounds[-1][0]
-
-    systems = {k: _bounds(k) for k in ("R", "C", "N")}
-    out: dict[str, Any] = {k: pick(b) for k, b in systems.items()}
-    if u_s1 is not None and u_s1 > 0 and math.isfinite(u_s1):
-        from scipy.stats import norm
-        for key, bounds in ((f"p_{k}", b) for k, b in systems.items()):
-            lo, probs = -math.inf, {}
-            for name, hi in bounds:
-                probs[name] = float(norm.cdf(hi, s1, u_s1) - norm.cdf(lo, s1, u_s1))
-                lo = hi
-            out[key] = probs
-    return out
-
-
-def nearest_standard_table(s1: float, q0: float) -> tuple[str, float]:
-    """The bundled CIE table nearest in (S1, Q0), each scaled by its spread over the six tables."""
-    stats = {n: (bundled_table(n).s1(), bundled_table(n).q0()) for n in BUNDLED}
-    s1s = np.array([v[0] for v in stats.values()])
-    q0s = np.array([v[1] for v in stats.values()])
-    d = {n: math.hypot((v[0] - s1) / s1s.std(), (v[1] - q0) / q0s.std()) for n, v in stats.items()}
-    name = min(d, key=d.get)
-    return name, float(d[name])
-
 
 @dataclass
 class Budget:
@@ -163,7 +110,7 @@ def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:
     if cov_rel is not None:
         i00 = _cell(table, ii, jj, 0.0, 0.0)
         i20 = _cell(table, ii, jj, 2.0, 0.0)
-        w = q0_weights(mask)
+        w = q0_weights(mask)[mask]
         g = w * r / q0                                     # d ln Q0 / d ln r_c
         var_lnq0 = float(g @ cov_rel @ g)
         var_lns1 = float(cov_rel[i20, i20] + cov_rel[i00, i00] - 2 * cov_rel[i20, i00])
@@ -172,7 +119,7 @@ def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:
         out.update(u_S1=s1 * math.sqrt(max(var_lns1, 0.0)), u_Q0=q0 * math.sqrt(max(var_lnq0, 0.0)),
                    u_S2=s2 * math.sqrt(max(var_lns2, 0.0)))
     out["class"] = cie_class(s1, out.get("u_S1"))
-    out["nearest_table"], out["nearest_distance"] = nearest_standard_table(s1, q0)
+    out["nearest_table"], out["nearest_distance"] = nearest_bundled(s1, q0, 1)[0]
     return out
 
 

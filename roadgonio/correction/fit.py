@@ -8,7 +8,7 @@ r_sim is smooth in p, and linear in the four coefficients k_*) and ``rho_c`` the
 the bundle's own error by an exact backend table (1 until one is known; see
 :func:`roadgonio.correction.run`). Every model parameter has the bounds of
 :data:`roadgonio.surface.model.PARAM_BOUNDS` (k_* >= 0, mu >= 0, ...); the grazing attenuation g is
-held at its given value (a user input, DESIGN.md section 3).
+held at its given value (a user input, docs/conventions.md section 3).
 
 Method (variable projection, like :mod:`roadgonio.surface.fit`): for given shape parameters z
 (``n_phong, n_retro, p, h, mu`` and the variant's own, in the transformed coordinates of
@@ -186,7 +186,7 @@ class _Problem:
             if not np.all(np.isfinite(x) & (x <= ub)):
                 # a coefficient beyond its bound (k_* <= 1e6): the bounded least squares instead
                 x = lsq_linear(M, target, bounds=(np.zeros(len(cols)), ub), method="bvls").x
-            for (k, j, sc), xi in zip(use, x):
+            for (k, _j, sc), xi in zip(use, x):
                 ks[k] = float(min(max(xi / sc, 0.0), PARAM_BOUNDS[k][1]))
         for j, k in enumerate(LINEAR_TERMS):
             model = model + ks[k] * A[:, j]

@@ -42,10 +42,11 @@ import scipy.sparse as sparse
 from scipy.linalg import cho_factor, cho_solve
 
 from roadgonio.correction.forward import ForwardModel
-from roadgonio.engines import ratio_se
+from roadgonio.engines.result import ratio_se
 from roadgonio.errors import InputError
 from roadgonio.surface.correction_surface import SplineGrid, SplineOps, alpha_coordinate, lookup
-from roadgonio.surface.model import NumpyOps, RoadModel
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel
 
 #: The default knots of g_C (fine: the narrow peak at beta = 0 and grazing incidence) and of g_D.
 C_GRID = SplineGrid(s_beta=24, beta_scale_deg=8.0, s_t=32, eps_step_deg=3.0, sec_gain=3.0, eps_max_deg=89.0)

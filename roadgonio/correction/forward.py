@@ -1,5 +1,5 @@
 """The forward model of a measurement: what the instrument reports for a BRDF model, per cell, as a
-smooth function of the model's parameters (DESIGN.md sections 4-5; paper eq. 2-3).
+smooth function of the model's parameters (docs/conventions.md sections 4-5; paper eq. 2-3).
 
 The detector signal is linear in the BRDF. For a **fixed** set of rays per cell (a ray bundle:
 pupil point, field point, hit point, source point, with their weights, sampled once in float64 by
@@ -44,11 +44,14 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from roadgonio.engines import CellResult, ratio_se
-from roadgonio.errors import GeometryError, InputError
+from roadgonio.engines.calibration import apply_calibration, centre_coupling, illuminance_ratio
+from roadgonio.engines.cellcheck import check_cells, no_light
+from roadgonio.errors import InputError
 from roadgonio.geometry import cos3_eps
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel, road_brdf
 
 #: The terms of the model that carry a linear coefficient (the columns of the forward model).
 LINEAR_TERMS = ("k_diff", "k_phong", "k_retro", "k_exp")
@@ -164,7 +167,7 @@ class RayBundles:
         for t, b in cells:
             optics.check_source(instrument, t, b)
         n_cells = len(cells)
-        g0 = np.array([_centre_coupling(optics.source_geometry(instrument, t, b)) for t, b in cells])
+        g0 = np.array([centre_coupling(optics.source_geometry(instrument, t, b)) for t, b in cells])
 
         def sample(idx: np.ndarray, n_rep: int):
             """Rays of the cells ``idx`` with n_rep rays per replicate: arrays (len(idx), R * n_rep)."""
@@ -209,8 +212,7 @@ class RayBundles:
             lam = float(wg.sum())
             if not lam > 0.0:
                 t, b = cells[i]
-                raise GeometryError(f"no detected ray receives light from the source at tan eps = {t:g}, beta = "
-                                    f"{b:g}: k_A is undefined there")
+                raise no_light(t, b)
             a = wg / lam
             for k, arr in zip(("wix", "wiy", "wiz", "wox", "woy", "woz"), (*wi, *wo)):
                 parts[k].append(arr)
@@ -243,17 +245,6 @@ class RayBundles:
 def _ess(wg: np.ndarray) -> float:
     s2 = float(np.sum(wg * wg))
     return float(np.sum(wg)) ** 2 / (wg.size * s2) if s2 > 0 else 0.0
-
-
-def _centre_coupling(src: optics.SourceGeometry) -> float:
-    """Mean source coupling G at the sample centre over the disc (E_0 / (L_e A_S)), float64 Gauss."""
-    from roadgonio.engines.quadrature import disc_rule
-    lv = 6 if src.radius_m > 0 else -1
-    sx, sy, ws = disc_rule(lv, lv)
-    sp = optics.source_point(src, (sx, sy))
-    sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape) for c in sp)
-    _, g = optics.source_coupling(NumpyOps, src, np.zeros(1), np.zeros(1), sp)
-    return float(np.asarray(g) @ ws)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -291,19 +282,15 @@ class ForwardModel:
         self.wo0 = tuple(np.full(n, bundles.wo0[k]) for k in range(3))
         self._cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._nominal_cache: dict[tuple, np.ndarray] = {}
-        if self.mode == "lambert":
-            self.kappa = np.ones(n)
-        elif self.mode == "absolute":
-            if eta is None:
-                from roadgonio.engines.calibration import illuminance_ratio
-                eta = np.array([illuminance_ratio(inst, t, b)[0] for t, b in bundles.cells])
-            self.kappa = np.asarray(eta, dtype=np.float64)
+        mean_ref = nom_ref = None
+        if self.mode == "absolute" and eta is None:
+            eta = np.array([illuminance_ratio(inst, t, b)[0] for t, b in bundles.cells])
         elif self.mode == "reference":
             reference = reference or inst.calibration.reference_model()
             mean_ref, nom_ref = self.model_columns_total(reference)
-            self.kappa = nom_ref / mean_ref
-        else:  # pragma: no cover - validated by Calibration
-            raise InputError(f"unknown calibration mode {self.mode!r}", field="calibration.mode")
+        eta = None if eta is None else np.asarray(eta, dtype=np.float64)
+        self.kappa = apply_calibration(self.mode, np.ones(n), eta=eta, reference_reading=mean_ref,
+                                       reference_nominal=nom_ref)
         self.reference = reference
 
     # -- columns -----------------------------------------------------------------------------
@@ -421,6 +408,7 @@ class BundleBackend:
                 on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
         t0 = time.perf_counter()
         cells = [(float(t), float(b)) for t, b in cells]
+        check_cells(self.instrument, self.model, cells)          # what every backend checks first
         sizes = self.sizes_of(cells) if self.sizes_of is not None else None
         bundles = RayBundles.build(self.instrument, cells, rays=self.rays, replicates=self.replicates,
                                    seed=self.seed, max_factor=self.max_factor, sizes=sizes)

@@ -3,28 +3,13 @@ alternative references whose k_A measures the model dependence of the classic ro
 (``roadgonio correct --reference SAMPLE``; paper section 4.1)."""
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
 
 from roadgonio.surface.model import RoadModel
-from roadgonio.surface.rtable import BUNDLED, RTable, bundled_table
-
-
-def nearest_standard_tables(table: RTable, k: int = 2, exclude: Sequence[str] = ()) -> list[tuple[str, float]]:
-    """The k bundled CIE tables nearest to ``table`` in (S1, Q0), each scaled by its standard
-    deviation over the six tables; returns (name, distance)."""
-    stats = {n: (bundled_table(n).s1(), bundled_table(n).q0()) for n in BUNDLED}
-    s1s = np.array([v[0] for v in stats.values()])
-    q0s = np.array([v[1] for v in stats.values()])
-    ss, sq = s1s.std(), q0s.std()
-    s1, q0 = table.s1(), table.q0()
-    ex = {e.upper() for e in exclude}
-    d = [(n, math.hypot((v[0] - s1) / ss, (v[1] - q0) / sq)) for n, v in stats.items() if n not in ex]
-    d.sort(key=lambda t: t[1])
-    return d[:k]
+from roadgonio.surface.cie import nearest_bundled
+from roadgonio.surface.rtable import RTable
 
 
 def sample_name(spec: str) -> str:
@@ -43,11 +28,11 @@ def resolve_alternatives(spec: str | Sequence[str] | None, measured: RTable, *, 
     if isinstance(spec, str):
         text = spec.strip()
         if text.lower() == "auto":
-            names = [n for n, _ in nearest_standard_tables(measured, 2, exclude=[reference_name])]
+            names = [n for n, _ in nearest_bundled(measured.s1(), measured.q0(), 2, exclude=[reference_name])]
         elif text.lower() in ("none", ""):
             names = []
         else:
             names = [s.strip() for s in text.split(",") if s.strip()]
     else:
         names = [str(s) for s in spec]
-    return {sample_name(n): resolve_sample(n, model_variant) for n in names}
+    return {sample_name(n): resolve_sample(n, model_variant).model for n in names}

@@ -29,7 +29,6 @@ with the same results.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import sys
@@ -45,7 +44,7 @@ from roadgonio.correction.fit import (DEFAULT_POLISH, DEFAULT_STARTS, ThroughFit
                                       fit_through_instrument)
 from roadgonio.correction.forward import DEFAULT_RAYS, ForwardModel, RayBundles
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write_json, to_json
+from roadgonio.fileio import atomic_write_json, fingerprint, safe_name
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import VARIANTS, RoadModel
 from roadgonio.surface.rtable import RTable, read_table
@@ -185,6 +184,9 @@ class CorrectionResult:
     provenance: dict[str, Any]
     seconds: float
     extra: dict[str, Any] = field(default_factory=dict)
+    #: where its files were written (:func:`roadgonio.api.correct` with ``out``)
+    out: Path | None = None
+    written: list = field(default_factory=list)
 
     @property
     def cells(self) -> list[tuple[float, float]]:
@@ -269,11 +271,8 @@ def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rh
 
 
 def _state_key(measured: RTable, u: np.ndarray, instrument: Instrument, settings: Mapping[str, Any]) -> str:
-    h = hashlib.sha256()
-    h.update(np.where(measured.mask, measured.r, -1.0).astype("<f8").tobytes())
-    h.update(np.where(measured.mask, u, -1.0).astype("<f8").tobytes())
-    h.update(to_json({"instrument": instrument.to_dict(), **dict(settings)}, indent=None).encode())
-    return h.hexdigest()[:20]
+    return fingerprint({"measured": np.where(measured.mask, measured.r, -1.0), "u": np.where(measured.mask, u, -1.0),
+                        "instrument": instrument.to_dict(), **dict(settings)})
 
 
 class _FitState:
@@ -553,7 +552,7 @@ def correct_measured(measured: RTable, instrument: Instrument, *, reference: Any
         ref_model, name = reference, reference_name or reference.name or "reference"
     else:
         from roadgonio.surface.sample import resolve_sample
-        ref_model, name = resolve_sample(str(reference), model_variant), reference_name or sample_name(str(reference))
+        ref_model, name = resolve_sample(str(reference), model_variant).model, reference_name or sample_name(str(reference))
     alts = alternatives if isinstance(alternatives, Mapping) else resolve_alternatives(
         alternatives, measured, reference_name=name, model_variant=model_variant)
     keep = {k: v for k, v in options.items() if k in ("u_measured", "sigma", "backend", "backend_settings",
@@ -571,7 +570,7 @@ def output_folders(names: Sequence[str], out_dir: str | Path) -> list[Path]:
     seen: dict[str, int] = {}
     folders = []
     for n in names:
-        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in n) or "table"
+        safe = safe_name(n, "table")
         seen[safe] = seen.get(safe, 0) + 1
         folders.append(out / (safe if seen[safe] == 1 else f"{safe}-{seen[safe]}"))
     return folders
@@ -595,7 +594,7 @@ def _correct_task(job: tuple, shared: Mapping[str, Any]) -> tuple[CorrectionResu
     """One measured table, start to finish: :func:`correct_measured` then :func:`write_correction`
     into its folder (in this process, or as one Dask task on a worker: :func:`correct_files`)."""
     from roadgonio.correction.outputs import write_correction
-    table, folder, alternatives = job
+    table, folder, alternatives, measured_file = job
     options = dict(shared["options"])
     if shared["artefacts"] is not None:
         options["artefacts"] = shared["artefacts"]
@@ -604,15 +603,22 @@ def _correct_task(job: tuple, shared: Mapping[str, Any]) -> tuple[CorrectionResu
     res = correct_measured(table, shared["instrument"], reference=shared["reference"],
                            reference_name=shared["reference_name"], out_dir=folder, **options)
     if shared.get("cluster") is not None:
-        from roadgonio.design.cluster import _worker_name
+        from roadgonio.engines.cluster import _worker_name
         res.provenance["cluster"] = {**shared["cluster"], "computed_by": _worker_name()}
+    if measured_file is not None:
+        res.provenance["measured_file"] = measured_file
+    if folder is None:                      # nothing to write (the Python API without out)
+        return res, []
     return res, write_correction(res, folder, plots=shared["plots"])
 
 
-def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str | Path, *, plots: bool = True,
+def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str | Path | None, *, plots: bool = True,
                   reference: Any = "self", workers: int | None = None, scheduler: str | None = None, client=None,
-                  **options: Any) -> list[tuple[CorrectionResult, Path, list[Path]]]:
+                  measured_files: Sequence[str | None] | None = None,
+                  **options: Any) -> list[tuple[CorrectionResult, Path | None, list[Path]]]:
     """Correct several measured tables with one instrument; returns (result, folder, files) per table.
+    With ``out_dir=None`` nothing is journalled or written (folder None, no files). ``measured_files``
+    (the files the tables were read from) go into each result's provenance before it is written.
 
     Everything that does not depend on the table is done once, here, before any table: the
     checks of every table and of ``u_measured`` / ``sigma``, the reference model and each table's
@@ -623,7 +629,7 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
     one call of :func:`_correct_task`: one after the other in this process by default, or one
     Dask task each with ``client``, ``workers`` (a local cluster of that many worker processes;
     0 = here) or ``scheduler`` (an existing cluster), through
-    :func:`roadgonio.design.cluster.map_calls`. The artefacts are built here and shipped to the
+    :func:`roadgonio.engines.cluster.map_calls`. The artefacts are built here and shipped to the
     workers once (they pickle: plain numpy arrays and frozen dataclasses), so every table gets
     the same bundles and the same seeds wherever it runs: the results are identical to the
     in-process run whatever the number of workers. The workers write the journals and outputs
@@ -633,10 +639,13 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
     over the tables.
     """
     tables = list(tables)
-    folders = output_folders([t.name for t in tables], out_dir)
+    folders = output_folders([t.name for t in tables], out_dir) if out_dir is not None else [None] * len(tables)
     self_ref = _is_self(reference)
     progress = bool(options.get("progress", True))
     distributed = client is not None or scheduler is not None or workers not in (None, 0)
+    if distributed and out_dir is None:
+        raise InputError("tables corrected on Dask workers are written by the workers: give an output folder",
+                         field="out")
     if distributed and options.get("factory") is not None:
         raise InputError("a custom backend factory cannot run on Dask workers; give a backend name",
                          field="--workers")
@@ -666,7 +675,7 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
         artefacts = None
         if not isinstance(reference, RoadModel):
             ref_name = ref_name or sample_name(str(reference))
-            reference = resolve_sample(str(reference), model_variant)
+            reference = resolve_sample(str(reference), model_variant).model
         ref_name = ref_name or reference.name or "reference"
         alts = [alternatives if isinstance(alternatives, Mapping) else resolve_alternatives(
             alternatives, t, reference_name=ref_name, model_variant=model_variant) for t in tables]
@@ -674,16 +683,17 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
             options.pop(k, None)
     shared = {"instrument": instrument, "artefacts": artefacts, "reference": reference, "reference_name": ref_name,
               "plots": plots, "options": options, "cluster": None}
-    jobs = list(zip(tables, folders, alts))
+    files = [None if f is None else str(f) for f in (measured_files or [None] * len(tables))]
+    jobs = list(zip(tables, folders, alts, files))
     if not distributed:
-        from roadgonio.design.cluster import map_calls
+        from roadgonio.engines.cluster import map_calls
         return [(res, job[1], written) for job, (res, written) in zip(jobs, map_calls(_correct_task, jobs, None,
                                                                                      shared=shared))]
     return _correct_on_dask(jobs, shared, client=client, workers=workers, scheduler=scheduler, progress=progress)
 
 
 def _correct_on_dask(jobs, shared, *, client, workers, scheduler, progress) -> list:
-    from roadgonio.design import cluster as _cluster
+    from roadgonio.engines import cluster as _cluster
     options = dict(shared["options"])
     options["progress"] = False                  # no terminal on a worker: the bar over tables is here
     if isinstance(options.get("u_measured"), (str, Path)):
@@ -693,8 +703,8 @@ def _correct_on_dask(jobs, shared, *, client, workers, scheduler, progress) -> l
         import dataclasses
         inst = dataclasses.replace(inst, path=Path(inst.path).absolute())   # an XML scene beside it
     backend = options.get("backend", "mitsuba")
-    variant = dict(options.get("backend_settings") or {}).get("variant")
-    work = [(t, Path(f).absolute(), a) for t, f, a in jobs]
+    variant = dict(options.get("backend_settings") or {}).get("mitsuba_variant")
+    work = [(t, Path(f).absolute(), a, m) for t, f, a, m in jobs]
     bar = None
     if progress:
         from tqdm import tqdm
@@ -718,7 +728,7 @@ def _correct_on_dask(jobs, shared, *, client, workers, scheduler, progress) -> l
         if bar is not None:
             bar.close()
     out = []
-    for (t, folder, _), (res, written) in zip(jobs, results):
+    for (_t, folder, _, _), (res, written) in zip(jobs, results):
         here = [Path(folder) / Path(p).name for p in written]
         for p in here:
             if not p.exists():

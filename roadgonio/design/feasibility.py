@@ -11,10 +11,10 @@ requested cells it is marked ``geometry_ok = False`` with a one-line reason. The
 3. ``horizon``: the whole source disc is above the sample plane at every requested cell
    (:func:`roadgonio.instrument.optics.check_source`);
 4. ``line_of_sight``: the source disc does not block the detector's view of the footprint at any
-   requested cell (:func:`blocked_cells`: extreme rays of the detector bundle, pupil rim and centre
-   through the field rim, plus a grid of interior rays, intersected with the source disc). This
-   matters for sources behind the detector (beta near 180 deg) at grazing incidence; the
-   quadrature and numpy-mc backends do not model occlusion, so the design checks it for them.
+   requested cell (:func:`blocked_cells`: the exact test of every backend,
+   :func:`roadgonio.instrument.optics.source_blocks_view`, so a point the pre-filter keeps is not
+   refused by the backend for this reason, and the reverse). This matters for sources between the
+   detector and the sample (beta near 180 deg at grazing incidence).
 5. ``backend`` (on the worker): whatever the backend itself refuses (render-time ray hits of an
    XML scene or a mesh, a beam limit the renderer cannot model, ...).
 
@@ -26,8 +26,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from typing import Mapping, Sequence
-
-import numpy as np
 
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument.config import Instrument
@@ -57,57 +55,13 @@ def _cells_text(cells: Sequence[tuple[float, float]], n_max: int = 3) -> str:
     return f"{len(cells)} cells: tan eps {min(t):g} ... {max(t):g}, beta {min(b):g} ... {max(b):g}"
 
 
-def _bundle_rays(instrument: Instrument, n_rim: int = 32, n_inner: int = 5):
-    """Origins and unit directions of detector rays (pupil rim/centre/interior x field rim/interior)."""
-    from roadgonio.surface.model import NumpyOps
-    geo = optics.detector_geometry(instrument)
-    ang = np.linspace(0.0, 2 * np.pi, n_rim, endpoint=False)
-    rim = np.stack([np.cos(ang), np.sin(ang)], -1)
-    g = np.linspace(-1.0, 1.0, n_inner)
-    gx, gy = np.meshgrid(g, g)
-    inner = np.stack([gx.ravel(), gy.ravel()], -1)
-    inner = inner[np.hypot(inner[:, 0], inner[:, 1]) <= 1.0]
-    pupil = np.concatenate([rim, inner])
-    field = np.concatenate([rim, inner])
-    P, F = np.meshgrid(np.arange(len(pupil)), np.arange(len(field)), indexing="ij")
-    pu, fu = pupil[P.ravel()], field[F.ravel()]
-    o, d, _ = optics.detector_ray(NumpyOps, geo, (pu[:, 0], pu[:, 1]), (fu[:, 0], fu[:, 1]))
-    return np.stack([np.asarray(v, dtype=np.float64) * np.ones(len(pu)) for v in o], -1), \
-        np.stack([np.asarray(v, dtype=np.float64) for v in d], -1)
-
-
 def blocked_cells(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
-    """Cells at which the source disc intersects a detector ray between the pupil and the sample."""
-    src = instrument.source
-    if src.radius_m == 0.0 or not cells:
+    """Cells at which the source disc blocks the detector's view: the test every backend applies
+    (:func:`roadgonio.instrument.optics.source_blocks_view`), so the pre-filter and the backends
+    agree cell by cell."""
+    if not cells:
         return []
-    w_o = instrument.w_o()
-    # only sources within (source angular radius + detector bundle angle + margin) of the line of sight can block
-    det = instrument.detector
-    bundle = math.atan2(det.pupil_radius_m, det.distance_m) + math.radians(det.field_half_angle_deg)
-    # every cell's source direction at once (580 scalar calls took 40 ms a point)
-    tb = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
-    w_all = instrument.w_i(tb[:, 0], tb[:, 1])
-    sep_all = np.arccos(np.clip(w_all @ np.asarray(w_o, dtype=np.float64), -1.0, 1.0))
-    near = sep_all <= math.asin(min(1.0, src.radius_m / src.distance_m)) + 4 * bundle + math.radians(1.0)
-    if not near.any():
-        return []
-    o, d = _bundle_rays(instrument)
-    t_plane = -o[:, 2] / d[:, 2]
-    out = []
-    for k in np.flatnonzero(near):
-        t, b = cells[k]
-        w_i = w_all[k]
-        c = src.distance_m * w_i
-        dn = d @ w_i
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tt = ((c - o) @ w_i) / dn
-        p = o + tt[:, None] * d
-        r = np.linalg.norm(p - c, axis=1)
-        hit = (np.abs(dn) > 1e-12) & (tt > 0) & (tt < t_plane) & (r <= src.radius_m)
-        if bool(hit.any()):
-            out.append((t, b))
-    return out
+    return [c for c, b in zip(cells, optics.source_blocks_view(instrument, cells)) if b]
 
 
 def check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> Feasibility:

@@ -2,7 +2,7 @@
 
 Every grid point is a complete instrument: the base instrument file with the varied keys changed
 (:meth:`roadgonio.instrument.config.Instrument.with_changes`). KEY is an instrument-file key
-``section.key`` (DESIGN.md section 4), for example ``source.radius_m``, ``source.distance_m``,
+``section.key`` (docs/conventions.md section 4), for example ``source.radius_m``, ``source.distance_m``,
 ``detector.distance_m``, ``detector.pupil_radius_m``, ``detector.field_half_angle_deg``,
 ``observation.alpha_deg``. Values:
 
@@ -29,7 +29,7 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 
-#: The numeric instrument keys a design may vary (section -> keys), DESIGN.md section 4.
+#: The numeric instrument keys a design may vary (section -> keys), docs/conventions.md section 4.
 VARIABLE_KEYS: dict[str, tuple[str, ...]] = {
     "observation": ("alpha_deg", "delta_deg"),
     "source": ("distance_m", "radius_m", "beam_half_angle_deg"),
@@ -186,22 +186,3 @@ def parse_tolerance(text: str | float) -> float:
         raise InputError(f"a tolerance of {v:g} on |k_A - 1| would accept k_A = 0; for a percentage write "
                          f"'{v:g}%'", field="--tolerance")
     return v
-
-
-def sample_cells(spec: str, sample: str) -> list[tuple[float, float]]:
-    """The cells computed for ``sample``: ``all`` (580-cell grid), ``table`` (the cells tabulated in
-    the sample's r-table) or a list ``T:B,T:B,...`` (tan eps : beta deg), parsed by the one cells
-    parser of the project (:func:`roadgonio.engines.validate.parse_cells`)."""
-    s = str(spec).strip()
-    if s == "table":
-        from roadgonio.surface.rtable import load_table
-        try:
-            table = load_table(sample)
-        except InputError:
-            raise InputError(f"--cells table needs samples that are r-tables (bundled name or table file); "
-                             f"{sample!r} is not", field="--cells") from None
-        return list(table.cells)
-    if s in ("", "extremes", "default"):
-        raise InputError("expected --cells all, table or a list T:B,T:B,...", field="--cells")
-    from roadgonio.engines.validate import parse_cells
-    return parse_cells(s)

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from roadgonio.fileio import atomic_write, atomic_write_text, atomic_savefig
+from roadgonio.fileio import atomic_savefig, atomic_write_text, read_netcdf, write_netcdf
 
 CSV_TAIL = ("max_abs_dev", "rms_dev", "signal", "feasible", "reason")
 CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_se", "footprint_length_m", "seed")
@@ -57,23 +57,9 @@ def write_outputs(ds, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
 
 
 # ----------------------------------------------------------------------------------------------
-def write_netcdf(ds, path: Path) -> Path:
-    enc = ds.copy()
-    for k, v in list(enc.attrs.items()):
-        if not isinstance(v, (str, int, float, np.integer, np.floating)):
-            enc.attrs[k] = json.dumps(v)
-    return atomic_write(path, lambda p: enc.to_netcdf(p, engine="scipy", format="NETCDF3_64BIT"))
-
-
 def read_design(path: str | Path):
     """Open a ``design.nc`` (booleans come back as booleans)."""
-    import xarray as xr
-    with xr.open_dataset(path, engine="scipy") as ds:
-        ds = ds.load()
-    for v in ("feasible", "geometry_ok"):
-        if v in ds:
-            ds[v] = ds[v].astype(bool)
-    return ds
+    return read_netcdf(path, booleans=("feasible", "geometry_ok"))
 
 
 def _fmt(v) -> str:
@@ -88,7 +74,7 @@ def _fmt(v) -> str:
 
 def write_csv(ds, path: Path) -> Path:
     dims = json.loads(ds.attrs["varied"])
-    from roadgonio.design.run import point_index
+    from roadgonio.design.dataset import point_index
     n = int(ds.attrs["points"])
     flat = {c: ds[c].values.reshape(-1) for c in CSV_TAIL + CSV_EXTRA}
     buf = io.StringIO()
@@ -111,7 +97,7 @@ def _toml_value(v) -> str:
             return '"inf"'
         return repr(v)
     if isinstance(v, str):
-        return json.dumps(v)
+        return json.dumps(v)          # a TOML basic string (JSON's escapes are TOML's)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
@@ -139,8 +125,8 @@ def toml_text(d: dict[str, Any], header: str = "") -> str:
 
 
 def write_best(ds, path: Path) -> Path | None:
-    from roadgonio.design.cluster import absolute_instrument_dict
-    from roadgonio.design.run import best_instrument, point_index, summary
+    from roadgonio.engines.cluster import absolute_instrument_dict
+    from roadgonio.design.dataset import best_instrument, point_index, summary
     inst = best_instrument(ds)
     if inst is None:
         return None
@@ -180,7 +166,7 @@ def plot_pareto(ds, path: Path) -> Path:
     tol = float(ds.attrs["tolerance"]) * 100
     best = int(ds.attrs["best_index"])
     from roadgonio.design.metrics import pareto_front
-    from roadgonio.design.run import point_index
+    from roadgonio.design.dataset import point_index
     fig, ax = plt.subplots(figsize=(8, 5.5))
     ok = np.isfinite(dev) & np.isfinite(sig)
     bad = ok & ~feas
@@ -251,7 +237,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
         return None
     xk, yk = dims2[0], dims2[1]
     best = int(ds.attrs["best_index"])
-    from roadgonio.design.run import point_index
+    from roadgonio.design.dataset import point_index
     sel: dict[str, int] = {}
     others = [d for d in dims if d not in (xk, yk)]
     anchor = point_index(ds, best) if best >= 0 else {}

@@ -139,7 +139,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
         table = RTable(np.where(bundled_table("R3").mask, 1.0, np.nan), name=getattr(model, "name", "sample"))
         cells = table.cells
         fm = ForwardModel(RayBundles.build(instrument, cells, rays=rays, seed=seed))
-        from roadgonio.surface.model import NumpyOps
+        from roadgonio.arrays import NumpyOps
         b = fm.bundles
         y = b.cell_sum(np.asarray(model.evaluate(NumpyOps, b.wi, b.wo), dtype=np.float64)) * b.cos3 * fm.kappa
         g = np.full(table.r.shape, np.nan)

@@ -1,4 +1,4 @@
-"""k_A under the instrument's calibration (DESIGN.md section 5), for any backend, in one place.
+"""k_A under the instrument's calibration (docs/conventions.md section 5), for any backend, in one place.
 
 Every backend computes k_A under Lambert calibration (the ratio of the rendered signals of the
 sample and of a perfect diffuser, over the ideal point geometry)::
@@ -38,17 +38,18 @@ the instrument's ``[calibration] mode`` (:mod:`roadgonio.instrument.calibration`
 """
 from __future__ import annotations
 
-import json
 import math
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from roadgonio.engines import CellResult, KaBackend
-from roadgonio.errors import GeometryError
+from roadgonio.engines.result import CellResult, KaBackend
+from roadgonio.errors import GeometryError, InputError
+from roadgonio.fileio import fingerprint
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel
 
 #: Default relative tolerance of eta.
 ETA_RTOL = 1e-6
@@ -58,6 +59,52 @@ ETA_MAX_EVALS = 6_000_000
 REFERENCE_CHUNK = 16
 
 InnerFactory = Callable[[Instrument, RoadModel], KaBackend]
+
+
+# ----------------------------------------------------------------------------------------------
+# The modes: k_A under the calibration from k_A under Lambert calibration (the one dispatch)
+# ----------------------------------------------------------------------------------------------
+
+def apply_calibration(mode: str, k_lam, *, eta=None, reference_reading=None, reference_nominal=1.0):
+    """k_A in calibration ``mode`` from the Lambert-calibrated ``k_lam`` (module docstring), floats or
+    arrays (one value per cell); the one definition of the modes, used by :class:`CalibratedBackend`
+    and by the correction's forward model (``k_lam = 1`` there gives its factor kappa)::
+
+        lambert     k_lam
+        absolute    k_lam * eta                                   (eta = <E>/E_0, :func:`illuminance_ratio`)
+        reference   k_lam * reference_nominal / reference_reading
+
+    ``reference_reading / reference_nominal`` is the reference's own k_lam over the same rays (same
+    backend and seed): its k_lam with ``reference_nominal = 1``, or its Lambert-calibrated reading
+    <f_ref> with ``reference_nominal`` = f_ref(nominal)."""
+    if mode == "lambert":
+        return k_lam
+    if mode == "absolute":
+        if eta is None:
+            raise ValueError("the absolute calibration needs eta = <E>/E_0")
+        return k_lam * eta
+    if mode == "reference":
+        if reference_reading is None:
+            raise ValueError("the reference calibration needs the reference's reading")
+        return k_lam * reference_nominal / reference_reading
+    raise InputError(f"unknown calibration mode {mode!r}; expected one of lambert, absolute, reference",
+                     field="calibration.mode")
+
+
+def centre_coupling(src: optics.SourceGeometry, level_v: int = 6, level_h: int = 6) -> float:
+    """E_0 / (L_e A_S): the mean source coupling G at the sample centre over the source disc (the
+    horizontal illuminance E_0 of eta's denominator per unit radiance and area), float64, by the
+    product Gauss rule :func:`roadgonio.engines.quadrature.disc_rule` at ``(level_v, level_h)``
+    (a point source: its single node)."""
+    from roadgonio.engines.quadrature import disc_rule
+    if not src.radius_m > 0:
+        level_v = level_h = -1
+    sx, sy, ws = disc_rule(level_v, level_h)
+    sp = optics.source_point(src, (sx, sy))
+    sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape) for c in sp)
+    with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+        _, g = optics.source_coupling(NumpyOps, src, np.zeros(1), np.zeros(1), sp)
+    return float(np.asarray(g) @ ws)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -114,8 +161,7 @@ class _EtaIntegrator:
                 b = min(x.size, a + rows)
                 _, g = optics.source_coupling(NumpyOps, src, x[a:b, None], y[a:b, None], sp)
                 mean += float(w[a:b] @ (g @ ws))
-            _, g0 = optics.source_coupling(NumpyOps, src, np.zeros((1, 1)), np.zeros((1, 1)), sp)
-        e0 = float(np.asarray(g0)[0] @ ws)
+        e0 = centre_coupling(src, levels[4], levels[5])
         if not e0 > 0.0:
             raise GeometryError(f"the source does not light the sample centre at tan eps = {self._cell[0]:g}, "
                                 f"beta = {self._cell[1]:g} (E_0 = 0): absolute calibration is undefined there")
@@ -177,7 +223,7 @@ def illuminance_ratio(instrument: Instrument, tan_eps: float, beta_deg: float, *
     <E> is the mean horizontal illuminance over the detected footprint, weighted like the detector
     signal (etendue x k_D); E_0 the horizontal illuminance at the sample centre; both from the
     uniform source disc (a point source if its radius is 0). Cached per instrument and cell."""
-    key = (json.dumps(instrument.to_dict(), sort_keys=True, default=str), round(float(tan_eps), 9),
+    key = (fingerprint({"instrument": instrument.to_dict()}), round(float(tan_eps), 9),
            round(float(beta_deg), 9), float(rtol))
     if key not in _ETA_CACHE:
         integ = _INTEGRATORS.get(key[0])
@@ -243,11 +289,12 @@ class CalibratedBackend:
         bound = c.error_bound * eta + abs(c.k_a) * eta_err if math.isfinite(c.error_bound) else math.nan
         extra = {**(c.extra or {}), "calibration": "absolute", "k_a_lambert": c.k_a, "eta": eta,
                  "eta_error": eta_err, "eta_converged": eta_ok}
-        return CellResult(c.tan_eps, c.beta_deg, c.k_a * eta, c.se * eta, c.samples, c.seconds, extra,
+        return CellResult(c.tan_eps, c.beta_deg, apply_calibration("absolute", c.k_a, eta=eta), c.se * eta,
+                          c.samples, c.seconds, extra,
                           error_bound=bound, converged=c.converged and eta_ok)
 
     def _reference(self, c: CellResult, r: CellResult) -> CellResult:
-        k = c.k_a / r.k_a
+        k = apply_calibration("reference", c.k_a, reference_reading=r.k_a)
         if math.isfinite(c.se) or math.isfinite(r.se):
             rel = math.hypot(_rel(c.se, c.k_a), _rel(r.se, r.k_a))
             se, bound = abs(k) * rel, math.nan
@@ -287,7 +334,8 @@ class CalibratedBackend:
         for a in range(0, len(cells), REFERENCE_CHUNK):
             chunk = cells[a:a + REFERENCE_CHUNK]
             refs = {_key(r.tan_eps, r.beta_deg): r for r in self.reference_inner.compute(chunk)}
-            self.inner.compute(chunk, on_cell=lambda c: emit(self._reference(c, refs[_key(c.tan_eps, c.beta_deg)])))
+            # on_cell is called inside compute(), in this iteration, with this chunk's refs (B023 cannot tell)
+            self.inner.compute(chunk, on_cell=lambda c: emit(self._reference(c, refs[_key(c.tan_eps, c.beta_deg)])))  # noqa: B023
         return out
 
 

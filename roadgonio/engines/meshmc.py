@@ -1,4 +1,4 @@
-"""Independent float64 numpy Monte Carlo of k_A for a **mesh** sample (paper eq. 3; DESIGN.md
+"""Independent float64 numpy Monte Carlo of k_A for a **mesh** sample (paper eq. 3; docs/conventions.md
 sections 4-5): the check of mesh scenes that the flat-plane integrators cannot give.
 
 The same estimator as :mod:`roadgonio.engines.montecarlo` (stratified pupil, field and source
@@ -13,7 +13,9 @@ casting against the sample's triangles (loaded with trimesh, as the Mitsuba scen
   visibility of the source point from x: a shadow ray against the mesh (self-shadowing of a rough
   surface, exactly what a mesh adds);
 * every detector ray must hit the mesh, and the source disc must not block the line of sight
-  before the sample: otherwise a :class:`~roadgonio.errors.GeometryError` names the cell.
+  (:func:`roadgonio.instrument.optics.source_blocks_view`, the test of every backend: it counts a
+  disc anywhere in the bundle above the plane z = 0, conservative for a mesh that rises above it):
+  otherwise a :class:`~roadgonio.errors.GeometryError` names the cell.
 
 Ray casting is vectorised numpy (Moeller-Trumbore on candidate pairs): triangles are binned on a
 uniform grid over the xy plane (bounding boxes dilated by one cell), a ray's candidates are the
@@ -31,10 +33,11 @@ import numpy as np
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
-from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel, road_brdf
+from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.cellcheck import check_cell, no_light
 from roadgonio.engines.montecarlo import _stratified_disc
-from roadgonio.engines.reference import check_nominal, check_numpy_scene
 
 DEFAULT_REL_SE = 1e-3
 DEFAULT_BATCH = 1 << 12
@@ -212,7 +215,6 @@ class MeshMonteCarloBackend(CellByCellBackend):
         if _integer(min_batches, "min_batches") < 2:
             raise InputError(f"expected at least 2 batches (for a standard error), got {min_batches}",
                              field="min_batches")
-        check_numpy_scene(instrument, self.name, mesh_ok=True)
         optics.footprint_boundary(instrument)    # the detector must look downwards
         self.instrument = instrument
         self.model = model
@@ -257,7 +259,6 @@ class MeshMonteCarloBackend(CellByCellBackend):
                                     f"tan eps = {cell[0]:g}, beta = {cell[1]:g}: the detector footprint must lie on "
                                     "the sample; enlarge the mesh or narrow the field")
             X = O + t[:, None] * D
-            self._check_source_occlusion(O, D, t, src, cell)
             n = self.caster.normal[tri]
             sp = np.stack([np.broadcast_to(c, w.shape) for c in optics.source_point(src, sdisc)], axis=1)
             v = sp - X
@@ -289,27 +290,10 @@ class MeshMonteCarloBackend(CellByCellBackend):
             wg = w * g
             return float(np.mean(wg * f)), float(np.mean(wg))
 
-    def _check_source_occlusion(self, O, D, t, src: optics.SourceGeometry, cell) -> None:
-        """The source disc (in the scene as an object) must not block a detector ray before the sample."""
-        if src.radius_m <= 0.0:
-            return
-        den = D @ src.axis
-        with np.errstate(divide="ignore", invalid="ignore"):
-            td = ((src.centre - O) @ src.axis) / den
-        P = O + np.where(np.isfinite(td), td, 0.0)[:, None] * D
-        r2 = np.sum((P - src.centre) ** 2, axis=1)
-        blocked = np.isfinite(td) & (td > 0) & (td < t) & (r2 <= src.radius_m ** 2)
-        if np.any(blocked):
-            raise GeometryError(f"the source disc blocks the detector's line of sight at tan eps = {cell[0]:g}, beta = "
-                                f"{cell[1]:g} ({int(blocked.sum())} of {blocked.size} rays hit the disc before the "
-                                "sample): this cell cannot be measured with this geometry")
-
     def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
-        optics.check_source(self.instrument, tan_eps, beta_deg)
-        ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
-        check_nominal(ideal, tan_eps, beta_deg)
+        ideal = check_cell(self.instrument, self.model, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         rng = np.random.default_rng([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6)), 77])
         road, lam = [], []
@@ -321,8 +305,7 @@ class MeshMonteCarloBackend(CellByCellBackend):
             lam.append(l_ / math.pi)
             if len(road) >= self.min_batches:
                 if not np.sum(lam) > 0.0:
-                    raise GeometryError(f"no detected ray receives light from the source at tan eps = {tan_eps:g}, "
-                                        f"beta = {beta_deg:g}: k_A is undefined")
+                    raise no_light(tan_eps, beta_deg)
                 ratio, rse = ratio_se(np.array(road), np.array(lam))
                 k, se = ratio / ideal, rse / ideal
                 if se <= self.rel_se * abs(k):

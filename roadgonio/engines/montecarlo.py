@@ -28,10 +28,12 @@ from typing import Any
 import numpy as np
 
 from roadgonio.instrument import optics
-from roadgonio.errors import GeometryError, InputError
+from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel
-from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel
+from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.cellcheck import check_cell
 
 DEFAULT_REL_SE = 1e-3
 DEFAULT_BATCH = 1 << 14
@@ -73,8 +75,6 @@ class MonteCarloBackend(CellByCellBackend):
             raise InputError(f"expected at least 2 batches (for a standard error), got {min_batches}",
                              field="min_batches")
         # refuse what this backend does not model (an XML scene's extra parts, a mesh sample)
-        from roadgonio.engines.reference import check_numpy_scene
-        check_numpy_scene(instrument, "numpy-mc")
         optics.check_detector(instrument)
         self.instrument = instrument
         self.model = model
@@ -153,13 +153,7 @@ class MonteCarloBackend(CellByCellBackend):
     def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
-        optics.check_source(self.instrument, tan_eps, beta_deg)
-        from roadgonio.engines.reference import check_line_of_sight
-        check_line_of_sight(self.instrument, tan_eps, beta_deg)
-        ideal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
-        if not (ideal > 0.0 and math.isfinite(ideal)):
-            raise GeometryError(f"the model is {ideal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "
-                                f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
+        ideal = check_cell(self.instrument, self.model, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         rng = np.random.default_rng([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6))])
         road, lam = [], []

@@ -1,4 +1,4 @@
-"""Deterministic float64 quadrature of the detector signal (paper eq. 3; DESIGN.md sections 4-5).
+"""Deterministic float64 quadrature of the detector signal (paper eq. 3; docs/conventions.md sections 4-5).
 
 The signal of the instrument for a sample with BRDF f is the six-fold integral of eq. 3 over the
 detector's entrance pupil (disc), its field stop (disc) and the source's exit aperture (disc)::
@@ -9,7 +9,7 @@ detector's entrance pupil (disc), its field stop (disc) and the source's exit ap
 with the detector ray of the pair (pupil point p, field point q), its etendue weight w, the hit
 point x on the sample plane, w_o = minus the ray direction, and the source coupling G (all from
 :mod:`roadgonio.instrument.optics`, the one definition of the instrument's ray geometry). The BRDF is the one
-definition in :mod:`roadgonio.surface.model`. k_A follows DESIGN.md section 5::
+definition in :mod:`roadgonio.surface.model`. k_A follows docs/conventions.md section 5::
 
     k_A = ( S[f_road] / S[1/pi] ) / ( pi f_road(nominal) )
 
@@ -48,9 +48,11 @@ import numpy as np
 
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.instrument import optics
-from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio
+from roadgonio.engines.result import CellByCellBackend, CellResult
+from roadgonio.engines.cellcheck import check_cell, no_light
 
 #: Gauss-Legendre orders of one direction of a disc rule, by level.
 ORDERS = (1, 2, 3, 4, 6, 8, 11, 16, 22, 32, 45, 64, 90, 128, 180, 256)
@@ -150,9 +152,6 @@ class QuadratureBackend(CellByCellBackend):
             raise InputError(f"expected a relative tolerance 0 < rtol < 1, got {rtol:g}", field="rtol")
         if int(max_evals) < 1:
             raise InputError(f"expected a positive number of evaluations, got {max_evals}", field="max_evals")
-        # refuse what this backend does not model (an XML scene's extra parts, a mesh sample)
-        from roadgonio.engines.reference import check_numpy_scene
-        check_numpy_scene(instrument, "quadrature")
         optics.check_detector(instrument)   # GeometryError: footprint off the sample / upward rays
         self.instrument = instrument
         self.model = model
@@ -259,13 +258,7 @@ class QuadratureBackend(CellByCellBackend):
     def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
-        optics.check_source(self.instrument, tan_eps, beta_deg)
-        from roadgonio.engines.reference import check_line_of_sight
-        check_line_of_sight(self.instrument, tan_eps, beta_deg)
-        nominal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg) / math.pi
-        if not (nominal > 0.0 and math.isfinite(nominal)):
-            raise GeometryError(f"the model is {nominal:g} at the nominal geometry (tan eps = {tan_eps:g}, "
-                                f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
+        nominal = check_cell(self.instrument, self.model, tan_eps, beta_deg) / math.pi
         self._nominal = nominal
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         # six directions (pupil v/h, field v/h, source v/h); a disc of radius 0 is one node
@@ -307,9 +300,7 @@ class QuadratureBackend(CellByCellBackend):
                 # no node sees light yet (a narrow source beam): refine every direction
                 nxt = [lvl + 1 if i in act else lvl for i, lvl in enumerate(lv)]
                 if not act or max(nxt) >= len(ORDERS) or size(nxt) > self.max_evals:
-                    raise GeometryError(
-                        f"no detected ray receives light from the source at tan eps = {tan_eps:g}, beta = "
-                        f"{beta_deg:g} (the source beam misses the detector footprint): k_A is undefined")
+                    raise no_light(tan_eps, beta_deg, "(the source beam misses the detector footprint)")
                 lv = nxt
                 continue
             for i in todo:

@@ -1,5 +1,5 @@
 """Float64 reference of k_A: randomised quasi-Monte Carlo with the integrand's kinks split off
-(paper eq. 3; DESIGN.md sections 3-5). The reference that ``roadgonio validate`` judges the
+(paper eq. 3; docs/conventions.md sections 3-5). The reference that ``roadgonio validate`` judges the
 renderers against.
 
 Why not the tensor Gauss quadrature (:mod:`roadgonio.engines.quadrature`)? Its rules converge
@@ -8,7 +8,7 @@ eq. 3 is not smooth in two places, and the product rule converges only algebraic
 (it stops at its evaluation cap 9-13 % off in the beta = 0 column of scenes/wide.toml):
 
 1. **The mirror plane (|beta| kink).** The empirical term depends on
-   ``beta = atan2(|(w_i x w_o)_z|, -(w_i . w_o)_xy)`` (DESIGN.md section 3): for a fixed detector
+   ``beta = atan2(|(w_i x w_o)_z|, -(w_i . w_o)_xy)`` (docs/conventions.md section 3): for a fixed detector
    ray (hit point x, direction w_o) it has a kink where the source point s crosses the vertical
    plane through x that contains w_o, i.e. on the line ``(s - x)_x w_o,y - (s - x)_y w_o,x = 0``.
    That condition is *linear* in the source-disc coordinates, so on the disc it is a chord.
@@ -48,8 +48,8 @@ Randomised QMC with replicate error bars. ``replicates`` (R, default 10) indepen
 Sobol' sequences (scipy.stats.qmc.Sobol, linear matrix scrambling with a digital shift) each give
 the paired means <w f G> and <w G / pi> over their first 2^m points; m grows by one until the
 error bound meets ``rtol``. The estimate is the ratio of the pooled means and its standard error
-the delta-method SE over the R replicate pairs (:func:`roadgonio.engines.ratio_se`); the reported
-``CellResult.error_bound`` is a confidence bound::
+the delta-method SE over the R replicate pairs (:func:`roadgonio.engines.result.ratio_se`); the reported
+``CellResult.confidence_bound`` is::
 
     bound = t_(R-1)(1 - (1 - confidence)/2) * SE       (confidence 0.999: 4.78 SE for R = 10)
 
@@ -59,8 +59,10 @@ is a *statistical* bound at the stated confidence, honest up to a 1e-3 chance pe
 (bench/make_reference_long.py). Against a lucky small SE at the stopping level (sequential
 stopping), a cell stops only when the bound meets the target *and* the previous level's estimate
 lies within its own bound of the new one. A cell that reaches ``max_evals`` integrand evaluations
-or ``max_log2`` reports ``converged = False`` with the bound it achieved. ``se`` is NaN (the
-validator needs the bound); the replicate SE is in ``extra["replicate_se"]``.
+or ``max_log2`` reports ``converged = False`` with the bound it achieved. The result carries both,
+each with its one meaning (:mod:`roadgonio.engines.result`): ``se`` is the replicate standard error
+(what an uncertainty budget uses), ``confidence_bound`` the Student-t bound at
+``confidence_level`` (what the validator adds as a bound); ``error_bound`` (deterministic) is NaN.
 
 What this reference does not split: a source beam limit (``beam_half_angle_deg``: a jump on a
 cone) and g's kink at theta_l are integrated as they are (RQMC stays unbiased and its error bars
@@ -79,8 +81,10 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel
-from roadgonio.engines import CellByCellBackend, CellResult, ideal_ratio, ratio_se
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel
+from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.cellcheck import check_cell, no_light
 
 #: Default target of the relative error bound of each k_A.
 DEFAULT_RTOL = 1e-4
@@ -227,7 +231,6 @@ class ReferenceBackend(CellByCellBackend):
         seed = _integer(seed, "seed")
         if seed < 0:
             raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
-        check_numpy_scene(instrument, "reference")
         optics.check_detector(instrument)
         from scipy.stats import t as student_t
         self.instrument = instrument
@@ -483,10 +486,7 @@ class ReferenceBackend(CellByCellBackend):
         target = self.rtol if rtol is None else float(rtol)
         t0 = time.perf_counter()
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
-        optics.check_source(self.instrument, tan_eps, beta_deg)
-        check_line_of_sight(self.instrument, tan_eps, beta_deg)
-        nominal = ideal_ratio(self.model, self.instrument, tan_eps, beta_deg)
-        check_nominal(nominal, tan_eps, beta_deg)
+        nominal = check_cell(self.instrument, self.model, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         self._level_coords = self._h_varies(src)
         R = self.replicates
@@ -525,12 +525,12 @@ class ReferenceBackend(CellByCellBackend):
                     converged = True
                     break
             elif self.dim == 0 or m >= 30:
-                raise_no_light(tan_eps, beta_deg)
+                raise no_light(tan_eps, beta_deg, "(the footprint lies behind the source disc, or the source beam misses it)")
             if 2 * evals > self.max_evals or m >= self.max_log2:   # the next level doubles the work
                 break
             m += 1
         if not math.isfinite(k):
-            raise_no_light(tan_eps, beta_deg)
+            raise no_light(tan_eps, beta_deg, "(the footprint lies behind the source disc, or the source beam misses it)")
         extra = {"points_per_replicate": npts, "replicates": R, "replicate_se": float(se),
                  "confidence": self.confidence, "t_factor": self.t_factor, "converged": converged,
                  "history": history[-4:], **map_info}
@@ -538,8 +538,9 @@ class ReferenceBackend(CellByCellBackend):
             extra["note"] = (f"stopped at its cap (max_evals = {self.max_evals}, max_log2 = {self.max_log2}): the "
                              f"relative error bound {bound / abs(k):.2e} exceeds rtol = {target:g}")
         extra["rtol"] = target
-        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=math.nan, error_bound=float(bound),
-                          converged=converged, samples=int(evals), seconds=time.perf_counter() - t0, extra=extra)
+        return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), confidence_bound=float(bound),
+                          confidence_level=self.confidence, converged=converged, samples=int(evals),
+                          seconds=time.perf_counter() - t0, extra=extra)
 
 
 def _number(v, name: str) -> float:
@@ -564,67 +565,6 @@ def _integer(v, name: str) -> int:
     return iv
 
 
-def check_nominal(nominal: float, tan_eps: float, beta_deg: float) -> None:
-    """k_A = measured / nominal needs a positive, finite model value at the nominal geometry."""
-    from roadgonio.errors import GeometryError
-    if not (nominal > 0.0 and math.isfinite(nominal)):
-        raise GeometryError(f"the model is {nominal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "
-                            f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
-
-
-def raise_no_light(tan_eps: float, beta_deg: float):
-    from roadgonio.errors import GeometryError
-    raise GeometryError(f"no detected ray receives light from the source at tan eps = {tan_eps:g}, beta = "
-                        f"{beta_deg:g} (the footprint lies behind the source disc, or the source beam misses it): "
-                        "k_A is undefined")
-
-
-def check_line_of_sight(instrument: Instrument, tan_eps: float, beta_deg: float, n: int = 48) -> None:
-    """The source disc must not stand between the detector and its footprint (it is an object of
-    the scene: a detector ray that meets it first sees the source, not the sample). Checked on the
-    rays from a grid of pupil points through a grid of field points (rims included)."""
-    from roadgonio.errors import GeometryError
-    src = instrument.source
-    if src.radius_m <= 0.0:
-        return
-    geo = optics.detector_geometry(instrument)
-    g = optics.source_geometry(instrument, tan_eps, beta_deg)
-    ang = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
-    rr = np.linspace(0.0, 1.0, 5)
-    ux = np.concatenate([r * np.cos(ang) for r in rr])
-    uy = np.concatenate([r * np.sin(ang) for r in rr])
-    P, F = np.meshgrid(np.arange(ux.size), np.arange(ux.size), indexing="ij")
-    o, d, _ = optics.detector_ray(NumpyOps, geo, (ux[P.ravel()], uy[P.ravel()]), (ux[F.ravel()], uy[F.ravel()]))
-    o = np.stack([np.broadcast_to(c, P.size) for c in o], 1)
-    d = np.stack(d, 1)
-    t_plane = -o[:, 2] / d[:, 2]
-    den = d @ g.axis
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_disc = ((g.centre - o) @ g.axis) / den
-    hit = o + np.where(np.isfinite(t_disc), t_disc, 0.0)[:, None] * d
-    inside = np.sum((hit - g.centre) ** 2, axis=1) <= src.radius_m ** 2
-    blocked = np.isfinite(t_disc) & (t_disc > 0.0) & (t_disc < t_plane) & inside
-    if np.any(blocked):
-        raise GeometryError(f"the source disc blocks the detector's line of sight at tan eps = {tan_eps:g}, beta = "
-                            f"{beta_deg:g}: {int(blocked.sum())} of {blocked.size} checked detector rays meet the "
-                            "source before the sample; this cell cannot be measured with this geometry")
-
-
-def check_numpy_scene(instrument: Instrument, backend: str, *, mesh_ok: bool = False) -> None:
-    """The numpy backends model the instrument's discs, an optional beam limit and a flat
-    rectangular sample (or, with ``mesh_ok``, a mesh); they refuse what else a scene declares
-    rather than ignore it: a Mitsuba XML scene (``[scene] xml``: its holder walls, rails...),
-    a mesh sample (unless ``mesh_ok``)."""
-    scene = instrument.extra.get("scene") if isinstance(instrument.extra, dict) or hasattr(instrument.extra, "get") else None
-    if scene:
-        what = "a Mitsuba XML scene" if isinstance(scene, dict) and "xml" in scene else "a [scene] section"
-        raise InputError(f"the {backend} backend does not model {what} (its extra geometry would be ignored, "
-                         "giving a different instrument); use --backend mitsuba, or an instrument file "
-                         "without [scene]", path=instrument.path, field="scene")
-    if instrument.sample.mesh is not None and not mesh_ok:
-        alt = "numpy-mc-mesh (independent check) or mitsuba"
-        raise InputError(f"the {backend} backend integrates over a flat rectangular sample only; for a mesh "
-                         f"sample use --backend {alt}", path=instrument.path, field="sample.mesh")
 
 
 #: Settings a caller may pass (``make_backend("reference", ..., **settings)``).

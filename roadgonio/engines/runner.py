@@ -18,9 +18,7 @@ Output folder (``--out DIR``):
 """
 from __future__ import annotations
 
-import hashlib
 import json
-import math
 import os
 import sys
 import time
@@ -31,13 +29,12 @@ from typing import Any, Sequence
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write, output_error, read_journal, to_json
+from roadgonio.fileio import atomic_write, fingerprint as _fingerprint, output_error, read_journal, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
 from roadgonio.surface.model import RoadModel
-from roadgonio.surface.rtable import RTable
-from roadgonio.engines import CellResult, KaBackend
+from roadgonio.engines.result import CellResult, KaBackend
 
 JOURNAL = "ka_cells.jsonl"
 META = "ka.json"
@@ -46,12 +43,11 @@ FLUSH_SECONDS = 1.0
 
 
 def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) -> str:
-    """Hash of everything that determines the numbers of a run, the roadgonio version included."""
-    from roadgonio import __version__
-    payload = {"instrument": instrument.to_dict(), "model": {"variant": model.variant,
-                                                              "params": model.params.to_dict()},
-               "backend": backend.name, "settings": backend.settings(), "roadgonio": __version__}
-    return hashlib.sha256(to_json(payload, indent=None).encode()).hexdigest()[:16]
+    """Fingerprint of everything that determines the numbers of a run (:func:`roadgonio.fileio.fingerprint`:
+    the instrument, the model's variant and parameters, the backend and its settings, the version)."""
+    return _fingerprint({"instrument": instrument.to_dict(), "model": {"variant": model.variant,
+                                                                        "params": model.params.to_dict()},
+                         "backend": backend.name, "settings": backend.settings()})
 
 
 @dataclass
@@ -184,7 +180,108 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
     return KaRun(results=results, seconds=time.perf_counter() - t0, resumed=resumed)
 
 
-def _precision_text(summary: dict[str, Any]) -> str:
+#: The data variables of a k_A Dataset from the fields of CellResult: (long name, units, description).
+FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
+    "k_a": ("aperture-effect factor k_A", "1",
+            "what the instrument reports as q over f(nominal), under its calibration (docs/conventions.md section 5); "
+            "r_true = r_measured / k_A"),
+    "se": ("standard error of k_A", "1", "a standard error (Monte Carlo, randomised QMC); NaN where the backend gives none"),
+    "error_bound": ("deterministic error bound of k_A", "1",
+                    "a deterministic bound on |k_A - true k_A| (quadrature); NaN otherwise"),
+    "confidence_bound": ("confidence bound of k_A", "1",
+                         "a statistical bound on |k_A - true k_A| holding with probability confidence_level (RQMC "
+                         "reference); NaN otherwise"),
+    "confidence_level": ("confidence level of confidence_bound", "1", "NaN where there is no confidence bound"),
+    "samples": ("samples or integrand evaluations of the cell", "1", ""),
+    "seconds": ("compute time of the cell", "s", "the pass's wall time shared out for batched backends"),
+    "converged": ("the cell was computed and reached its target", "", "false where not computed or stopped at a cap"),
+}
+#: Fields of CellResult that are not data variables.
+_NOT_DATA = ("tan_eps", "beta_deg", "extra")
+
+
+def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend: KaBackend, sample: str,
+               accuracy: str | None = None, seed: int | None = None, cells_asked: int | None = None):
+    """THE k_A result (built once, here): an ``xarray.Dataset`` over ``tan_eps`` (29) x ``beta``
+    (20, degrees) with one data variable per field of :class:`CellResult` (``k_a``, ``se``,
+    ``error_bound``, ``confidence_bound``, ``confidence_level``, ``samples``, ``seconds``,
+    ``converged``, and any field a backend adds), NaN (``converged`` False) where not computed.
+    CF-style attributes: units and long names per variable; on the Dataset the title, the source
+    (roadgonio's version), the precision kind of the backend and the cells' correlation, the
+    provenance (:func:`roadgonio.provenance.provenance`, as JSON text) and the run's fingerprint.
+    ``ka.nc`` is this Dataset (:func:`write_outputs`); the CSVs and ``ka.json`` are written from it."""
+    import dataclasses
+
+    import xarray as xr
+
+    from roadgonio.engines.registry import BACKENDS
+    from roadgonio.fileio import to_json
+    names = [f.name for f in dataclasses.fields(CellResult) if f.name not in _NOT_DATA]
+    dims = ("tan_eps", "beta")
+    data = {}
+    for name in names:
+        grid = run.grid(name)
+        if name == "converged":
+            grid = np.nan_to_num(grid, nan=0.0).astype(bool)
+        long_name, units, description = FIELD_ATTRS.get(name, (name.replace("_", " "), "1", ""))
+        attrs = {"long_name": long_name, **({"units": units} if units else {}),
+                 **({"description": description} if description else {})}
+        data[name] = (dims, grid, attrs)
+    info = BACKENDS.get(backend.name)
+    settings = backend.settings()
+    prov = provenance(instrument=instrument, model=model, backend=backend.name, settings=settings, sample=sample,
+                      accuracy=accuracy, cells=cells_asked if cells_asked is not None else len(run.results))
+    computed = [c for c in run.results]
+    attrs = {
+        "Conventions": "CF-1.8",
+        "title": f"k_A of instrument '{instrument.name}' for sample '{sample}' ({backend.name} backend)",
+        "source": f"roadgonio {prov['versions']['roadgonio']}",
+        "history": f"{prov['created']} computed by roadgonio",
+        "references": "Bernasconi et al., Geometrical errors and their uncertainty in goniophotometers: an application "
+                      "to road surface photometry (paper eq. 2-3); roadgonio docs/conventions.md section 5",
+        "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md section 5)",
+        "instrument": instrument.name, "sample": sample, "backend": backend.name,
+        "accuracy": "" if accuracy is None else str(accuracy),
+        "seed": -1 if seed is None else int(seed),
+        "precision": info.precision if info else "",
+        "cell_correlation": info.cell_correlation if info else "",
+        "cells_computed": len(computed),
+        "cells_not_converged": int(sum(not c.converged for c in computed)),
+        "resumed_cells": int(run.resumed),
+        "seconds_wall": float(run.seconds),
+        "fingerprint": fingerprint(instrument, model, backend),
+        "roadgonio_version": prov["versions"]["roadgonio"], "created": prov["created"],
+        "provenance": to_json(prov, indent=None),
+    }
+    coords = {"tan_eps": ("tan_eps", TAN_EPS_GRID.copy(), {"long_name": "tan(epsilon)", "units": "1"}),
+              "beta": ("beta", BETA_GRID_DEG.copy(), {"long_name": "beta", "units": "deg"})}
+    return xr.Dataset(data, coords=coords, attrs=attrs)
+
+
+def summary(ds) -> dict[str, Any]:
+    """The summary of a k_A Dataset (``ka.json``, the command's last line): cells, k_A range, the
+    worst relative precision of the kind the backend gives, cells not converged, samples, times."""
+    done = np.isfinite(ds["k_a"].values)
+    k = ds["k_a"].values[done]
+    out: dict[str, Any] = {"cells": int(done.sum()),
+                           "k_a_min": float(k.min()) if k.size else None,
+                           "k_a_max": float(k.max()) if k.size else None}
+    for field, key in (("se", "worst_rel_se"), ("error_bound", "worst_rel_error_bound"),
+                       ("confidence_bound", "worst_rel_confidence_bound")):
+        v = ds[field].values[done]
+        if v.size and np.isfinite(v).all():
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rel = np.where(k != 0, v / np.abs(k), np.inf)
+            out[key] = float(rel.max())
+    out.update(not_converged=int(ds.attrs["cells_not_converged"]),
+               samples=int(np.nansum(ds["samples"].values)),
+               seconds_total=float(np.nansum(ds["seconds"].values)),
+               seconds_wall_this_run=float(ds.attrs["seconds_wall"]),
+               resumed_cells=int(ds.attrs["resumed_cells"]))
+    return out
+
+
+def precision_text(summary: dict[str, Any]) -> str:
     """'worst rel. SE 1.5e-04' or 'worst rel. error bound 9.9e-04' (never one for the other)."""
     for key, name in (("worst_rel_se", "worst rel. SE"), ("worst_rel_error_bound", "worst rel. error bound")):
         if summary.get(key) is not None:
@@ -195,50 +292,46 @@ def _precision_text(summary: dict[str, Any]) -> str:
     return ""
 
 
-def write_outputs(run: KaRun, out_dir: str | Path, *, instrument: Instrument, model: RoadModel,
-                  backend: KaBackend, sample_spec: str, plot: bool = True, figures=None) -> dict[str, Any]:
-    """Write ka.csv, ka_se.csv (or ka_bound.csv), ka.png and ka.json together or not at all
-    (:class:`roadgonio.fileio.OutputGroup`: a failed or full disk leaves the folder's previous
-    results and the journal as they were); returns the ka.json content. ``figures``
+def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -> dict[str, Any]:
+    """Write the k_A Dataset ``ds`` (:func:`ka_dataset`) to ``out_dir`` together or not at all
+    (:class:`roadgonio.fileio.OutputGroup`: a failed or full disk leaves the folder's previous results
+    and the journal as they were): ``ka.nc`` (the Dataset), ``ka.csv`` (k_A), its precision in the
+    same layout (``ka_se.csv`` for a standard error, ``ka_bound.csv`` for a deterministic bound,
+    and ``ka_confidence_bound.csv`` beside ka_se.csv for a confidence bound), ``ka.png`` and
+    ``ka.json`` (provenance, summary, fingerprint, files); returns the ka.json content. ``figures``
     (:class:`roadgonio.plotproc.FigureProcess`) draws the map in a helper process."""
-    from roadgonio.fileio import OutputGroup
+    import json as _json
+
+    from roadgonio.fileio import OutputGroup, write_netcdf
+    from roadgonio.surface.rtable import grid_csv_text
     out_dir = Path(out_dir)
-    ka = run.grid("k_a")
-    label = f"k_A of instrument '{instrument.name}' for sample '{sample_spec}' ({backend.name} backend)"
+    label = ds.attrs["title"]
+    s = summary(ds)
+    files = {"netcdf": "ka.nc", "ka": "ka.csv"}
     with OutputGroup(out_dir) as group:      # all files or none
-        RTable(ka, name="k_A", source=label).write_csv(group.path("ka.csv"), scale=1.0, digits=7)
-        # a standard error (Monte Carlo) and a deterministic error bound (quadrature) go to different files
-        deterministic = bool(run.results) and all(c.deterministic for c in run.results)
-        prec_field, prec_file, prec_name = (("error_bound", "ka_bound.csv", "k_A error bound") if deterministic
-                                            else ("se", "ka_se.csv", "k_A standard error"))
-        RTable(run.grid(prec_field), name=prec_name, source=f"{prec_name} of " + label).write_csv(
-            group.path(prec_file), scale=1.0, digits=4)
-        rel = np.array([getattr(c, prec_field) / abs(c.k_a) if c.k_a else math.inf for c in run.results])
-        finite_ka = np.array([c.k_a for c in run.results])
-        summary = {
-            "cells": len(run.results),
-            "k_a_min": float(finite_ka.min()) if finite_ka.size else None,
-            "k_a_max": float(finite_ka.max()) if finite_ka.size else None,
-            ("worst_rel_error_bound" if deterministic else "worst_rel_se"): float(rel.max()) if rel.size else None,
-            "not_converged": int(sum(not c.converged for c in run.results)),
-            "samples": int(sum(c.samples for c in run.results)),
-            "seconds_total": float(sum(c.seconds for c in run.results)),
-            "seconds_wall_this_run": run.seconds,
-            "resumed_cells": run.resumed,
-        }
-        meta = {
-            "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md section 5)",
-            "fingerprint": fingerprint(instrument, model, backend),
-            **provenance(instrument=instrument, model=model, backend=backend.name, settings=backend.settings()),
-            "sample": sample_spec,
-            "summary": summary,
-            "files": {"ka": "ka.csv", prec_field: prec_file, "map": "ka.png" if plot else None, "journal": JOURNAL},
-        }
+        write_netcdf(ds, group.path("ka.nc"))
+        group.text("ka.csv", grid_csv_text(ds["k_a"].values, label, digits=7))
+        for field, name in (("se", "ka_se.csv"), ("error_bound", "ka_bound.csv"),
+                            ("confidence_bound", "ka_confidence_bound.csv")):
+            v = ds[field].values
+            if np.isfinite(v).any():
+                group.text(name, grid_csv_text(v, f"{ds[field].attrs['long_name']} (instrument '{ds.attrs['instrument']}', "
+                                                  f"sample '{ds.attrs['sample']}', {ds.attrs['backend']} backend)",
+                                               digits=4))
+                files[field] = name
+        if plot:
+            files["map"] = "ka.png"
+        files["meta"] = META
+        files["journal"] = JOURNAL
+        meta = {"quantity": ds.attrs["quantity"], "fingerprint": ds.attrs["fingerprint"],
+                **_json.loads(ds.attrs["provenance"]), "precision": ds.attrs["precision"],
+                "cell_correlation": ds.attrs["cell_correlation"], "summary": s, "files": files}
         group.json(META, meta)
         if plot:
             from roadgonio.plotproc import InProcess
             (figures or InProcess()).call(
-                "table_map", ka, group.path("ka.png"), title=f"Aperture-effect factor k_A: {instrument.name} x {sample_spec}",
-                subtitle=f"{backend.name} backend, {summary['cells']} cells, " + _precision_text(summary),
+                "table_map", ds["k_a"].values, group.path("ka.png"),
+                title=f"Aperture-effect factor k_A: {ds.attrs['instrument']} x {ds.attrs['sample']}",
+                subtitle=f"{ds.attrs['backend']} backend, {s['cells']} cells, " + precision_text(s),
                 label="k_A (1 = no aperture effect)")
     return meta

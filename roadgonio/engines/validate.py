@@ -1,11 +1,11 @@
 """Cross-validation of the k_A backends: a Monte Carlo backend (the float32 Mitsuba renderer by
 default, or the float64 numpy Monte Carlo) judged against a float64 reference, cell by cell, with
-the right statistics for each kind of precision (DESIGN.md section 5, CellResult):
+the right statistics for each kind of precision (docs/conventions.md section 5, :mod:`roadgonio.engines.result`):
 
 * the Monte Carlo result carries a standard error ``se_mc``;
-* the reference carries an error **bound** (the RQMC reference of :mod:`roadgonio.engines.reference`
-  by default: a 99.9 % replicate bound; or the tensor quadrature's estimate), or, for a mesh sample,
-  a standard error of its own (the numpy ray-casting Monte Carlo of :mod:`roadgonio.engines.meshmc`).
+* the reference carries a **bound** (the RQMC reference of :mod:`roadgonio.engines.reference`
+  by default: its 99.9 % ``confidence_bound``; or the tensor quadrature's deterministic
+  ``error_bound``), or, for a mesh sample, only a standard error of its own (the numpy ray-casting Monte Carlo of :mod:`roadgonio.engines.meshmc`).
 
 Standard errors combine in quadrature, a bound is added as a bound, never as an SE::
 
@@ -65,13 +65,6 @@ REFERENCES = ("auto", "reference", "quadrature", "numpy-mc-mesh")
 #: measurement (float32 rounding of a 1 m footprint coordinate is 6e-8 relative).
 FLOAT32_FLOOR: dict[str, float] = {"mitsuba": 1e-5, "numpy-mc": 0.0}
 
-#: (tan eps, beta deg) cells checked by default: the extremes, the specular peak, mid cells.
-DEFAULT_CELLS: tuple[tuple[float, float], ...] = (
-    (0.0, 0.0), (0.0, 180.0), (12.0, 0.0), (12.0, 180.0),
-    (12.0, 2.0), (12.0, 10.0), (8.0, 0.0), (8.0, 5.0), (4.0, 0.0), (4.0, 10.0),
-    (2.0, 90.0), (1.0, 45.0),
-)
-
 CSV_FIELDS = ("tan_eps", "beta_deg", "verdict", "k_ref", "bound_ref", "se_ref", "ref_converged", "k_mc", "se_mc",
               "mc_converged", "diff", "rel_diff", "sigma", "z", "floor", "allowed", "needed_bound", "reason",
               "seconds_ref", "seconds_mc", "samples_ref", "samples_mc")
@@ -109,44 +102,22 @@ class CellComparison:
         return self.verdict == "agree"
 
 
-def parse_cells(text: str | None) -> list[tuple[float, float]]:
-    """``"12:0,4:2.5"`` -> [(12, 0), (4, 2.5)]; ``None``/``"extremes"`` -> :data:`DEFAULT_CELLS`;
-    ``"all"`` -> the full grid."""
-    if text is None or text.strip() in ("", "extremes", "default"):
-        return list(DEFAULT_CELLS)
-    if text.strip() == "all":
-        from roadgonio.engines import full_grid_cells
-        return full_grid_cells()
-    cells = []
-    for item in text.split(","):
-        item = item.strip()
-        parts = item.split(":")
-        try:
-            if len(parts) != 2:
-                raise ValueError
-            t, b = float(parts[0]), float(parts[1])
-        except ValueError:
-            raise InputError(f"expected cells as TAN:BETA[,TAN:BETA...] (e.g. 12:0,4:2), 'extremes' or 'all'; "
-                             f"got {item!r}", field="--cells") from None
-        if not (math.isfinite(t) and t >= 0 and math.isfinite(b) and 0 <= b <= 180):
-            raise InputError(f"expected tan eps >= 0 and 0 <= beta <= 180 deg, got {item!r}", field="--cells")
-        cells.append((t, b))
-    return cells
-
-
 def _finite(v) -> bool:
     return v is not None and isinstance(v, (int, float)) and math.isfinite(v)
 
 
 def compare(ref, mc, floor: float = 0.0) -> CellComparison:
     """Judge a Monte Carlo CellResult ``mc`` against a reference CellResult ``ref`` of the same cell
-    (module docstring): a reference with an ``error_bound`` adds it as a bound, one with an ``se``
-    combines it with the Monte Carlo SE in quadrature."""
+    (module docstring): a reference with a bound (``confidence_bound`` or ``error_bound``) adds it as
+    a bound, one with only an ``se`` combines it with the Monte Carlo SE in quadrature."""
     k_ref, k_mc = float(ref.k_a), float(mc.k_a)
     se_mc = float(mc.se)
-    has_se_ref = _finite(ref.se)
-    se_ref = float(ref.se) if has_se_ref else math.nan
-    bound = float(ref.error_bound) if not has_se_ref else math.nan
+    # a bounded reference (the quadrature's deterministic bound, the RQMC reference's confidence
+    # bound) adds its bound; one with only a standard error combines it in quadrature
+    bound = float(ref.confidence_bound) if _finite(ref.confidence_bound) else (
+        float(ref.error_bound) if _finite(ref.error_bound) else math.nan)
+    has_se_ref = not _finite(bound) and _finite(ref.se)
+    se_ref = float(ref.se) if _finite(ref.se) else math.nan
     bound_term = bound if _finite(bound) else (0.0 if has_se_ref else math.inf)
     sigma = math.sqrt(se_mc ** 2 + (se_ref ** 2 if has_se_ref else 0.0)) if _finite(se_mc) else math.nan
     d = k_mc - k_ref
@@ -202,21 +173,23 @@ def resolve_reference(instrument: Instrument, reference: str) -> str:
 
 def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[float, float]] | None = None, *,
              against: str = "mitsuba", reference: str = "auto", rel_se: float = 1e-3, rtol: float | None = None,
-             seed: int = 0, floor: float | None = None, mc_settings: dict[str, Any] | None = None,
+             seed: int = 0, floor: float | None = None, mitsuba_variant: str | None = None,
+             mc_settings: dict[str, Any] | None = None,
              ref_settings: dict[str, Any] | None = None,
              on_cell: Callable[[CellComparison], None] | None = None) -> dict[str, Any]:
     """Run the Monte Carlo backend and the reference on ``cells`` and judge each cell; returns a
     report dict with ``rows`` (:class:`CellComparison`), ``counts``, ``verdict``, ``exit_status``,
     ``settings`` and timings. ``rtol`` fixes the reference's target (default: per cell, what the
     test needs)."""
-    from roadgonio.engines import make_backend
+    from roadgonio.engines.registry import make_backend
     if against not in ("mitsuba", "numpy-mc"):
         raise InputError(f"expected --against mitsuba or numpy-mc, got {against!r}", field="--against")
     ref_name = resolve_reference(instrument, reference)
     if ref_name == "numpy-mc-mesh" and against == "numpy-mc":
         raise InputError("a mesh sample is checked against the numpy ray-casting Monte Carlo; --against numpy-mc "
                          "(flat samples only) has nothing to compare there", field="--against")
-    cells = list(DEFAULT_CELLS) if cells is None else list(cells)
+    from roadgonio.engines.cells import EXTREME_CELLS
+    cells = list(EXTREME_CELLS) if cells is None else list(cells)
     if floor is None:
         floor = FLOAT32_FLOOR.get(against, 0.0)
     t0 = time.perf_counter()
@@ -230,8 +203,9 @@ def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[flo
     else:
         ref_kw.setdefault("seed", seed + 1)     # the mesh Monte Carlo: a stream apart from the tested one
         ref_kw.setdefault("rel_se", rel_se)
-    ref = make_backend(ref_name, instrument, model, **ref_kw)
-    mc = make_backend(against, instrument, model, rel_se=rel_se, seed=seed, **(mc_settings or {}))
+    ref = make_backend(ref_name, instrument, model, settings=ref_kw)
+    mc = make_backend(against, instrument, model, rel_se=rel_se, seed=seed, mitsuba_variant=mitsuba_variant,
+                      settings=mc_settings)
     rows: list[CellComparison] = []
     for cell in cells:
         m = mc.compute([cell])[0]
@@ -276,7 +250,7 @@ def report_json(report: dict[str, Any]) -> dict[str, Any]:
     doc = {k: v for k, v in report.items() if k != "rows"}
     doc["cells"] = [asdict(r) for r in report["rows"]]
     try:
-        from roadgonio import __version__
+        from roadgonio._version import __version__
         doc["roadgonio_version"] = __version__
     except ImportError:  # pragma: no cover
         pass

@@ -1,7 +1,7 @@
 """The instrument: what a goniophotometer is (docs/conventions.md section 4).
 
 * :mod:`.config` -- the instrument file (TOML) as frozen, validated dataclasses
-  (:class:`Instrument`, :class:`Source`, :class:`Detector`, :class:`Sample`), presets, loading;
+  (:class:`Instrument`, :class:`Source`, :class:`Detector`, :class:`SampleGeometry`), presets, loading;
 * :mod:`.optics` -- the ray geometry of the source disc and the luminance meter (pupil x field),
   written once over an array namespace for numpy and Dr.Jit, and the geometry checks (footprint
   on the sample, source above the horizon, beam limit, the verdict of a traced hit check);
@@ -14,4 +14,4 @@ azimuth convention is written.
 Nothing here imports mitsuba or drjit.
 """
 from roadgonio.instrument.config import (  # noqa: F401
-    Detector, Instrument, Observation, Sample, Source, bundled_instruments, load_instrument)
+    Detector, Instrument, Observation, SampleGeometry, Source, bundled_instruments, load_instrument)

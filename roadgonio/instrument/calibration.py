@@ -1,4 +1,4 @@
-"""How the instrument turns a detector signal into a luminance coefficient (DESIGN.md section 5):
+"""How the instrument turns a detector signal into a luminance coefficient (docs/conventions.md section 5):
 the ``[calibration]`` section of an instrument file, as a frozen, validated dataclass.
 
 .. code-block:: toml
@@ -21,7 +21,7 @@ from typing import Any, Mapping
 
 from roadgonio.errors import InputError
 
-#: Calibration modes (DESIGN.md section 5).
+#: Calibration modes (docs/conventions.md section 5).
 MODES = ("lambert", "absolute", "reference")
 DEFAULT_MODE = "lambert"
 #: Suffixes of a reference that is a file (resolved relative to the instrument file).
@@ -68,7 +68,7 @@ class Calibration:
             raise InputError("the instrument is not calibrated against a reference sample", field="calibration.mode")
         from roadgonio.surface.sample import resolve_sample
         try:
-            return resolve_sample(self.reference, variant)
+            return resolve_sample(self.reference, variant).model
         except InputError as err:
             raise InputError(f"[calibration] reference: {err.reason}", path=err.path, line=err.line,
                              field="calibration.reference") from None

@@ -33,7 +33,6 @@ file name to the error. A detector focused at infinity (an angular field) has
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -41,6 +40,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from roadgonio.errors import InputError
+from roadgonio.fileio import read_toml
 from roadgonio.geometry import w_detector, w_source
 from roadgonio.instrument.calibration import Calibration
 
@@ -172,7 +172,7 @@ class Detector:
 
 
 @dataclass(frozen=True)
-class Sample:
+class SampleGeometry:
     """A flat rectangle ``size_x_m`` x ``size_y_m`` centred on the origin (x along the observation
     azimuth; default 6 m x 2 m), or a trimesh-readable mesh file (then no sizes)."""
 
@@ -236,18 +236,18 @@ class Instrument:
     observation: Observation = field(default_factory=Observation)
     source: Source = field(default_factory=Source)
     detector: Detector = field(default_factory=Detector)
-    sample: Sample = field(default_factory=Sample)
+    sample: SampleGeometry = field(default_factory=SampleGeometry)
     name: str = "instrument"
     description: str = ""
     path: Path | None = None
-    #: How a signal becomes q: [calibration] (DESIGN.md section 5; roadgonio.instrument.calibration).
+    #: How a signal becomes q: [calibration] (docs/conventions.md section 5; roadgonio.instrument.calibration).
     calibration: Calibration = field(default_factory=Calibration)
     #: Extra sections not interpreted here (kept for backends and provenance).
     extra: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self):
         for attr, cls in (("observation", Observation), ("source", Source), ("detector", Detector),
-                          ("sample", Sample)):
+                          ("sample", SampleGeometry)):
             if not isinstance(getattr(self, attr), cls):
                 raise InputError(f"expected a {cls.__name__}, got {type(getattr(self, attr)).__name__}", field=attr)
         if not isinstance(self.name, str) or not isinstance(self.description, str):
@@ -357,7 +357,7 @@ class Instrument:
                 # absolute, so that to_dict/from_dict (with_changes, best.toml) never joins it twice
                 mesh = (path.parent / mesh).absolute()
             sm["mesh"] = mesh
-        sample = Sample(**sm)
+        sample = SampleGeometry(**sm)
         meta = d.get("instrument", {})
         _check_keys(meta, {"name", "description"}, "instrument", None)
         name = str(meta.get("name", path.stem if path is not None else "instrument"))
@@ -377,22 +377,7 @@ class Instrument:
     def load(cls, path: str | Path) -> "Instrument":
         """Load a TOML instrument file; errors name the file, the line or field, and what was expected."""
         path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise InputError("no such instrument file", path=path) from None
-        except (OSError, UnicodeDecodeError) as err:
-            raise InputError(f"cannot read the instrument file ({err})", path=path) from None
-        try:
-            d = tomllib.loads(text)
-        except tomllib.TOMLDecodeError as err:
-            line = getattr(err, "lineno", None)
-            if line is None:  # Python 3.11: only in the message, "(at line 5, column 14)"
-                import re
-                m = re.search(r"at line (\d+)", str(err))
-                line = int(m.group(1)) if m else None
-            raise InputError(f"not valid TOML: {getattr(err, 'msg', str(err))}", path=path, line=line) from None
-        return cls.from_dict(d, path=path)
+        return cls.from_dict(read_toml(path, "instrument file"), path=path)
 
 
 def bundled_instruments() -> list[str]:

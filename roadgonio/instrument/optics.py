@@ -200,7 +200,7 @@ def footprint_boundary(instrument: Instrument, n: int = 96) -> tuple[np.ndarray,
     fx, fy = np.cos(ang), np.sin(ang)
     PX, FX = np.meshgrid(px, fx, indexing="ij")
     PY, FY = np.meshgrid(py, fy, indexing="ij")
-    from roadgonio.surface.model import NumpyOps
+    from roadgonio.arrays import NumpyOps
     o, d, _ = detector_ray(NumpyOps, geo, (PX.ravel(), PY.ravel()), (FX.ravel(), FY.ravel()))
     if np.any(np.asarray(d[2]) >= 0.0):
         raise GeometryError("the detector does not see the sample plane: some detected rays point upwards "
@@ -242,6 +242,168 @@ def check_source(instrument: Instrument, tan_eps: float, beta_deg: float) -> Non
         raise GeometryError(f"the source is below the horizon at tan eps = {tan_eps:g}, beta = {beta_deg:g}: "
                             f"its disc (radius {src.radius_m:g} m at {src.distance_m:g} m) reaches "
                             f"{lowest:.4f} m below/at the sample plane")
+
+
+# ----------------------------------------------------------------------------------------------
+# Line of sight: does the source disc block part of the detector's view? (the one test)
+# ----------------------------------------------------------------------------------------------
+
+#: A source disc closer than this (m) to the detector's ray bundle counts as blocking it: the
+#: margin absorbs floating-point round-off on the conservative side (a nanometre).
+SIGHT_TOL_M = 1e-9
+#: Golden-section steps of the one-dimensional convex minimisation (0.618^90 ~ 1e-19 of the disc
+#: diameter: the minimum to float64 precision).
+_SIGHT_STEPS = 90
+
+
+def bundle_cones(geo: DetectorGeometry) -> tuple[tuple[float, float], ...]:
+    """The detector's ray bundle as a solid of revolution about its axis: the points of the rays
+    at axial distance zeta >= 0 from the pupil plane form the disc ``rho <= max_k (a_k + b_k zeta)``
+    (rho the distance from the axis). Returns the ``(a_k, b_k)``.
+
+    Focused at F: the ray of the pupil point p and field point q passes through ``(1 - t) p + t q``
+    at zeta = t F; over the pupil disc (radius R_D) and the field disc (radius R_F = F tan gamma),
+    both centred on the axis and normal to it, these points fill the Minkowski sum of two centred
+    discs, the disc of radius ``|1 - t| R_D + t R_F = max(R_D + t (R_F - R_D), t (R_F + R_D) - R_D)``
+    (two cones: pupil rim to field rim on the same side, and across the axis). Angular field: the
+    ray ``p + zeta (a + tan gamma u)`` fills the disc of radius ``R_D + zeta tan gamma`` (one cone).
+    """
+    rd = float(geo.pupil_radius_m)
+    if geo.angular:
+        return ((rd, float(geo.tan_field)),)
+    f = float(geo.focus_m)
+    rf = f * float(geo.tan_field)
+    return ((rd, (rf - rd) / f), (-rd, (rf + rd) / f))
+
+
+def _sight_frames(instrument: Instrument, cells) -> dict[str, np.ndarray]:
+    """Per cell (float64 arrays), the source disc in the detector's axial coordinates: its centre's
+    axial distance ``zc`` and radial offset ``U`` (3-vector), and two unit vectors of its plane,
+    ``E1`` (along which zeta grows, at the rate ``G`` = |d zeta / d sigma|) and ``E2`` (zeta constant)."""
+    geo = detector_geometry(instrument)
+    tb = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    a = np.asarray(geo.axis, dtype=np.float64)
+    w = np.atleast_2d(instrument.w_i(tb[:, 0], tb[:, 1]))
+    c = instrument.source.distance_m * w                      # disc centres
+    n = -w                                                     # disc normals (towards the sample centre)
+    # a unit vector of the disc plane along which zeta grows: the axis projected onto the plane
+    ap = a[None, :] - (n @ a)[:, None] * n
+    G = np.linalg.norm(ap, axis=1)
+    ok = G > 1e-12
+    s, _ = orthonormal_frame(a)            # any in-plane direction where the plane is normal to the axis
+    fallback = s[None, :] - (n @ s)[:, None] * n
+    fallback /= np.linalg.norm(fallback, axis=1, keepdims=True)
+    E1 = np.where(ok[:, None], ap / np.where(ok, G, 1.0)[:, None], fallback)
+    G = np.where(ok, G, 0.0)
+    E2 = np.cross(n, E1)
+    rel = c - geo.centre[None, :]
+    zc = rel @ a
+    U = rel - zc[:, None] * a[None, :]
+    V = E1 - G[:, None] * a[None, :]      # radial part of E1 (E2 has none: a . E2 = 0)
+    return {"zc": zc, "U": U, "V": V, "E2": E2, "G": G}
+
+
+def sight_clearance(instrument: Instrument, cells) -> np.ndarray:
+    """Radial clearance (m) between the source disc and the detector's ray bundle at each cell
+    (float64, one value per cell): the minimum over the points x of the disc in front of the pupil
+    plane of ``rho(x) - r(zeta(x))``, ``r`` the bundle's radius at axial distance zeta
+    (:func:`bundle_cones`). Positive: the disc stays that far outside the bundle; zero or negative:
+    it meets (reaches that deep into) the rays between the pupil and the sample plane.
+    ``+inf`` for a point source (it is no object of the scene) or a disc wholly behind the pupil.
+
+    Exact, not sampled: the rays' points between the pupil and the sample are exactly the points
+    with zeta > 0, z > 0 and ``rho <= r(zeta)`` (each ray leaves the pupil above the sample plane and
+    descends to it: :func:`check_detector`); the disc lies above the plane (:func:`check_source`,
+    a precondition), so only zeta >= 0 and ``rho <= r(zeta)`` remain. ``rho - (a_k + b_k zeta)`` is
+    convex over the disc (a distance to a line minus a linear function), and so is its minimum over
+    each chord of constant zeta (a point-to-segment distance, closed form) as a function of the
+    chord's position sigma: a golden-section search in sigma finds the minimum to float64 precision.
+    """
+    cells = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    out = np.full(len(cells), np.inf)
+    R = float(instrument.source.radius_m)
+    if R <= 0.0 or not len(cells):
+        return out
+    fr = _sight_frames(instrument, cells)
+    zc, U, V, E2, G = fr["zc"], fr["U"], fr["V"], fr["E2"], fr["G"]
+    # the part of the disc in front of the pupil plane: zeta = zc + G sigma >= 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lo = np.where(G > 0.0, np.maximum(-R, -zc / np.where(G > 0.0, G, 1.0)), np.where(zc >= 0.0, -R, np.inf))
+    hi = np.full_like(lo, R)
+    live = lo <= hi
+    if not live.any():
+        return out
+    zc, U, V, E2, G, lo, hi = (v[live] for v in (zc, U, V, E2, G, lo, hi))
+
+    def rho_min(sig):
+        """Distance from the axis of the nearest point of the disc's chord at sigma."""
+        base = U + sig[:, None] * V
+        h = np.sqrt(np.maximum(R * R - sig * sig, 0.0))
+        tau = np.clip(-np.einsum("ij,ij->i", base, E2), -h, h)
+        return np.linalg.norm(base + tau[:, None] * E2, axis=1)
+
+    best = np.full(len(lo), np.inf)
+    phi = (math.sqrt(5.0) - 1.0) / 2.0
+    for ak, bk in bundle_cones(detector_geometry(instrument)):
+        def f(sig, ak=ak, bk=bk):
+            return rho_min(sig) - (ak + bk * (zc + G * sig))
+        a_, b_ = lo.copy(), hi.copy()
+        best = np.minimum(best, np.minimum(f(a_), f(b_)))
+        x1, x2 = b_ - phi * (b_ - a_), a_ + phi * (b_ - a_)
+        f1, f2 = f(x1), f(x2)
+        for _ in range(_SIGHT_STEPS):
+            left = f1 <= f2                      # the minimum lies in [a, x2]
+            best = np.minimum(best, np.minimum(f1, f2))
+            b_ = np.where(left, x2, b_)
+            a_ = np.where(left, a_, x1)
+            x1n = np.where(left, b_ - phi * (b_ - a_), x2)
+            x2n = np.where(left, x1, a_ + phi * (b_ - a_))
+            new = np.where(left, x1n, x2n)
+            fn = f(new)
+            f1, f2 = np.where(left, fn, f2), np.where(left, f1, fn)
+            x1, x2 = x1n, x2n
+        best = np.minimum(best, np.minimum(f1, f2))
+    out[live] = best
+    return out
+
+
+def source_blocks_view(instrument: Instrument, cells) -> np.ndarray:
+    """True per cell where the source disc blocks part of the detector's view of the sample (it
+    stands between the detector and its footprint): the one line-of-sight test of every backend
+    and of the design's pre-filter. :func:`sight_clearance` <= :data:`SIGHT_TOL_M`, computed only
+    for the cells a bounding-sphere test cannot clear: a disc of radius R_S about c has every
+    point within R_S of c, so (rho and zeta being 1-Lipschitz and r convex) no point of it is in
+    the bundle when ``rho(c) - R_S > max(r(zeta(c) - R_S), r(zeta(c) + R_S))`` or
+    ``zeta(c) + R_S < 0``. The pre-filter is exact (it never clears a blocking disc)."""
+    cells = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    blocked = np.zeros(len(cells), dtype=bool)
+    R = float(instrument.source.radius_m)
+    if R <= 0.0 or not len(cells):
+        return blocked
+    geo = detector_geometry(instrument)
+    w = np.atleast_2d(instrument.w_i(cells[:, 0], cells[:, 1]))
+    rel = instrument.source.distance_m * w - geo.centre[None, :]
+    zc = rel @ geo.axis
+    rho_c = np.linalg.norm(rel - zc[:, None] * geo.axis[None, :], axis=1)
+    reach = np.max([np.maximum(ak + bk * (zc - R), ak + bk * (zc + R)) for ak, bk in bundle_cones(geo)], axis=0)
+    near = (zc + R >= 0.0) & (rho_c - R <= reach + SIGHT_TOL_M)
+    if near.any():
+        blocked[near] = sight_clearance(instrument, cells[near]) <= SIGHT_TOL_M
+    return blocked
+
+
+def check_line_of_sight(instrument: Instrument, cells) -> None:
+    """Raise :class:`GeometryError` naming the first cell (tan eps, beta) of ``cells`` at which the
+    source disc blocks the detector's view (:func:`source_blocks_view`)."""
+    cells = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    blocked = np.flatnonzero(source_blocks_view(instrument, cells))
+    if blocked.size:
+        t, b = cells[blocked[0]]
+        depth = -float(sight_clearance(instrument, cells[blocked[:1]])[0])
+        more = f" (and {blocked.size - 1} more of the {len(cells)} cells)" if blocked.size > 1 else ""
+        raise GeometryError(f"the source disc blocks the detector's line of sight at tan eps = {t:g}, beta = {b:g}"
+                            f"{more}: it reaches {max(depth, 0.0) * 1e3:.3g} mm into the detector's ray bundle "
+                            "between the pupil and the sample; this cell cannot be measured with this geometry")
 
 
 def beam_clips_footprint(instrument: Instrument, tan_eps: float, beta_deg: float, n: int = 32) -> bool:

@@ -53,7 +53,8 @@ def compare_csv(a: RTable, b: RTable, ratio: np.ndarray) -> str:
 
 
 def _safe(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "table"
+    from roadgonio.fileio import safe_name
+    return safe_name(name, "table")
 
 
 def compare_png(result: dict, a: RTable, b: RTable) -> bytes:

@@ -36,13 +36,13 @@ File keys (every section and key optional; an unknown section or key is an error
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import asdict, dataclass, fields
 from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
 
 from roadgonio.errors import InputError
+from roadgonio.fileio import read_toml
 
 ARRANGEMENTS = ("single-sided", "opposite", "staggered")
 INTERPOLATIONS = ("quadratic", "linear")
@@ -179,14 +179,7 @@ def layout_from_dict(data: Mapping[str, Any], *, path: str | Path | None = None,
 
 def read_layout(path: str | Path) -> Layout:
     path = Path(path)
-    try:
-        data = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError("no such layout file (expected a TOML file)", path=path) from None
-    except tomllib.TOMLDecodeError as err:
-        raise InputError(f"not valid TOML ({err})", path=path) from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"cannot read the layout file ({err})", path=path) from None
+    data = read_toml(path, "layout file", missing="no such layout file (expected a TOML file)")
     return layout_from_dict(data, path=path, name=path.stem)
 
 

@@ -41,14 +41,18 @@ def check_u_table(table: RTable, u: RTable, cells: np.ndarray, path=None) -> np.
     return uv
 
 
+#: The fewest Monte Carlo trials that give a 95 % interval at all.
+MIN_TRIALS = 100
+
+
 def propagate(installation, table: RTable, u: RTable, *, trials: int = 20000, seed: int = 0,
               correlations=CORRELATIONS, target_class: str | None = None, u_path=None) -> dict:
     """Monte Carlo of the road metrics under the table's standard uncertainty ``u`` (an RTable of
     u in sr^-1 on the same grid). Returns a JSON-ready dict."""
-    if trials < 100:
-        raise InputError(f"expected at least 100 trials, got {trials}", field="--trials")
+    if trials < MIN_TRIALS:
+        raise InputError(f"expected at least {MIN_TRIALS} trials, got {trials}", field="trials")
     if seed < 0:
-        raise InputError(f"expected a seed >= 0, got {seed}", field="--seed")
+        raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
     op = installation.operator(table)
     cells = op.used_cells
     r0 = np.nan_to_num(table.r.reshape(-1)[cells], nan=0.0)

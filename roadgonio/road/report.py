@@ -162,4 +162,5 @@ def road_files(results, summaries: list[dict], target: str | None, plots: bool =
 
 
 def _safe_name(name: str) -> str:
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name) or "table"
+    from roadgonio.fileio import safe_name
+    return safe_name(name, "table")

@@ -48,7 +48,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from roadgonio.surface.model import NumpyOps
+from roadgonio.arrays import NumpyOps
 
 #: sin of the r-tables' observation elevation (alpha = 1 deg).
 SIN_ALPHA0 = math.sin(math.radians(1.0))

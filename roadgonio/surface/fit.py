@@ -44,7 +44,8 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
 from roadgonio.provenance import versions
-from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS, NumpyOps,
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS,
                     RoadModel, RoadParams, road_brdf)
 from roadgonio.surface.rtable import RTable
 
@@ -131,6 +132,8 @@ class FitResult:
     residual_pct: np.ndarray = field(repr=False)
     seed: int = 0
     nfev: int = 0
+    #: the files written for it (:func:`roadgonio.api.fit` with ``out``)
+    written: list = field(default_factory=list, repr=False, compare=False)
 
     @property
     def variant(self) -> str:
@@ -140,6 +143,10 @@ class FitResult:
     def r_model(self) -> np.ndarray:
         """Model r (sr^-1) on the table grid, NaN at blank cells."""
         return model_r_on_grid(self.model, self.table)
+
+    def shown_params(self) -> tuple[str, ...]:
+        """The parameters a summary shows: the paper's nine and the variant's own."""
+        return PARAM_NAMES[:9] + VARIANT_PARAMS.get(self.variant, ())
 
     def worst_cells(self, n: int = 3) -> list[tuple[float, float, float]]:
         """The ``n`` tabulated cells with the largest |deviation|, worst first, as

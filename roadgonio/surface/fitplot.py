@@ -1,7 +1,10 @@
-"""Picture of a fit: the table and the model as solid r-table surfaces (as in the paper's
-Figure 2: r over beta and tan eps) and a map of the residuals in % of max r."""
+"""The outputs of a fit (``roadgonio fit --out DIR``): model.json, residuals.csv and fit.png, the
+picture of the table and the model as solid r-table surfaces (as in the paper's Figure 2: r over
+beta and tan eps) with a map of the residuals in % of max r."""
 from __future__ import annotations
 
+import csv
+import io
 from pathlib import Path
 
 import numpy as np
@@ -62,3 +65,32 @@ def plot_fit(result, path: str | Path) -> Path:
         return atomic_savefig(fig, path)
     finally:
         plt.close(fig)
+
+
+def residuals_csv(result) -> str:
+    """The residuals of a fit, one tabulated cell per row: tan eps, beta, r of the table and of the
+    model (x 1e4), the deviation in % of the table's maximum r."""
+    t = result.table
+    rm = result.r_model
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(["tan_eps", "beta_deg", "r_table_x1e4", "r_model_x1e4", "dev_pct_of_max_r"])
+    for i, te in enumerate(t.tan_eps):
+        for j, b in enumerate(t.beta_deg):
+            if not t.mask[i, j]:
+                continue
+            w.writerow([f"{te:g}", f"{b:g}", f"{t.r[i, j] * 1e4:.6g}", f"{rm[i, j] * 1e4:.6g}",
+                        f"{result.residual_pct[i, j]:.4f}"])
+    return out.getvalue()
+
+
+def write_fit(result, out_dir: str | Path, *, plot: bool = True) -> list[Path]:
+    """model.json, residuals.csv and (``plot``) fit.png in ``out_dir``, all or none."""
+    from roadgonio.fileio import OutputGroup
+    out_dir = Path(out_dir)
+    with OutputGroup(out_dir) as g:
+        g.json("model.json", result.model.to_json_dict())
+        g.text("residuals.csv", residuals_csv(result))
+        if plot:
+            plot_fit(result, g.path("fit.png"))
+    return [out_dir / n for n in ("model.json", "residuals.csv", "fit.png")[:3 if plot else 2]]

@@ -66,6 +66,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from roadgonio.arrays import NumpyOps
 from roadgonio.errors import InputError
 from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
 
@@ -91,30 +92,6 @@ PARAM_BOUNDS: dict[str, tuple[float, float]] = {
     "mu": (0.0, 1e3), "g_a": (-1e6, 1e6), "g_b": (-1e6, 1e6), "g_c": (-1e6, 1e6),
     "g_t": (-100.0, 100.0), "theta_l_deg": (85.3, 90.0), "n_beta": (0.5, 4.0),
 }
-
-
-class NumpyOps:
-    """The array namespace of the model, float64 numpy. The Dr.Jit namespace in
-    :mod:`roadgonio.engines.mitsuba` provides the same names."""
-
-    sqrt = staticmethod(np.sqrt)
-    sin = staticmethod(np.sin)
-    cos = staticmethod(np.cos)
-    exp = staticmethod(np.exp)
-    log = staticmethod(np.log)
-    atan2 = staticmethod(np.arctan2)
-    abs = staticmethod(np.abs)
-    maximum = staticmethod(np.maximum)
-    minimum = staticmethod(np.minimum)
-
-    @staticmethod
-    def where(cond, a, b):
-        return np.where(cond, a, b)
-
-    @staticmethod
-    def log1m(h):
-        """log(1 - h), accurate for small h."""
-        return np.log1p(-h)
 
 
 # ----------------------------------------------------------------------------------------------

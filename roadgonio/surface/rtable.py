@@ -60,7 +60,7 @@ R_SCALE = 1e4
 #: table in the wrong scale or an exponent typo (1e300) is an error, not a fit to nonsense.
 R_MAX_PLAUSIBLE = 10.0
 BUNDLED = ("R1", "R2", "R3", "R4", "C1", "C2")
-#: Published CIE values (DESIGN.md section 2).
+#: Published CIE values (docs/conventions.md section 2).
 PUBLISHED_S1 = {"R1": 0.25, "R2": 0.58, "R3": 1.11, "R4": 1.55, "C1": 0.24, "C2": 0.97}
 PUBLISHED_Q0 = {"R1": 0.10, "R2": 0.07, "R3": 0.07, "R4": 0.08, "C1": 0.10, "C2": 0.07}
 GRID_TOL = 1e-9
@@ -110,30 +110,44 @@ class RTable:
 
     def q0(self) -> float:
         """Average luminance coefficient Q0 (sr^-1): mean of q over the solid angle of the
-        tabulated illumination directions (CIE 144).
-
-        With t = tan eps, q dOmega = r t dt dbeta. The integral is the trapezoidal rule over every
-        grid cell whose four corners are tabulated; Omega0 is the exact solid angle of the same
-        cells. CIE 144 uses a table of weighting factors that we do not have, so this agrees with
-        the published Q0 to a few percent (DESIGN.md section 2; data/rtables/SOURCES.md).
-        """
-        t = self.tan_eps
-        b = np.radians(self.beta_deg)
-        rt = self.r * t[:, None]
-        c = rt[:-1, :-1] + rt[:-1, 1:] + rt[1:, :-1] + rt[1:, 1:]
-        ok = np.isfinite(c)
-        dt = np.diff(t)[:, None]
-        db = np.diff(b)[None, :]
-        num = np.sum(np.where(ok, c / 4.0 * dt * db, 0.0))
-        g = 1.0 - 1.0 / np.sqrt(1.0 + t * t)
-        omega = np.sum(np.where(ok, np.diff(g)[:, None] * db, 0.0))
-        if not omega > 0.0:       # no grid cell with four tabulated corners: Q0 is undefined
+        tabulated illumination directions (CIE 144), ``sum(q0_weights(mask) * r)``
+        (:func:`q0_weights`); NaN when no grid cell has four tabulated corners."""
+        w = q0_weights(self.mask, self.tan_eps, self.beta_deg)
+        if w is None:
             return math.nan
-        return float(num / omega)
+        return float(np.sum(np.where(w > 0.0, w * self.r, 0.0)))
 
     def s2(self) -> float:
         """S2 = Q0 / r(0, 0) (CIE 144)."""
         return self.q0() / self.value(0.0, 0.0)
+
+    # -- xarray (the Python API's r-table) ----------------------------------------------------
+    def to_dataarray(self):
+        """The table as an ``xarray.DataArray`` of r in sr^-1 (not r x 10^4) over ``tan_eps`` x
+        ``beta`` (degrees), NaN where blank; ``attrs`` name and source."""
+        import xarray as xr
+        return xr.DataArray(
+            self.r.copy(), dims=("tan_eps", "beta"),
+            coords={"tan_eps": ("tan_eps", self.tan_eps.copy(), {"long_name": "tan(epsilon)", "units": "1"}),
+                    "beta": ("beta", self.beta_deg.copy(), {"long_name": "beta", "units": "deg"})},
+            name="r", attrs={"name": self.name, "source": self.source, "units": "sr^-1",
+                             "long_name": "reduced luminance coefficient r = q cos^3(epsilon)",
+                             "note": "r itself, not r x 10^4; NaN = not measured"})
+
+    @classmethod
+    def from_dataarray(cls, da, what: str = "table") -> "RTable":
+        """An RTable from an r-table DataArray (dims ``tan_eps`` and ``beta`` on the CIE grid, r in
+        sr^-1); errors name ``what``."""
+        if set(da.dims) != {"tan_eps", "beta"}:
+            raise InputError(f"expected a DataArray with dims (tan_eps, beta), got {da.dims}", field=what)
+        da = da.transpose("tan_eps", "beta")
+        for dim, grid in (("tan_eps", TAN_EPS_GRID), ("beta", BETA_GRID_DEG)):
+            got = np.asarray(da[dim].values, dtype=np.float64)
+            if got.shape != grid.shape or np.max(np.abs(got - grid)) > GRID_TOL:
+                raise InputError(f"the {dim} coordinate is not the CIE grid ({', '.join(f'{v:g}' for v in grid)})",
+                                 field=what)
+        return cls(np.asarray(da.values, dtype=np.float64), name=str(da.attrs.get("name", da.name or "table")),
+                   source=str(da.attrs.get("source", "")))
 
     def same_grid(self, other: "RTable") -> bool:
         return (self.r.shape == other.r.shape
@@ -147,15 +161,8 @@ class RTable:
 
     # -- writing -----------------------------------------------------------------------------
     def to_csv_text(self, scale: float = R_SCALE, digits: int = 6) -> str:
-        out = io.StringIO()
-        src = self.source or f"roadgonio table {self.name}"
-        for line in src.splitlines() or [""]:
-            out.write(f"# {line}\n" if not line.startswith("#") else line + "\n")
-        w = csv.writer(out, lineterminator="\n")
-        w.writerow(["tan_eps"] + [_fmt(b, 6) for b in self.beta_deg])
-        for i, t in enumerate(self.tan_eps):
-            w.writerow([_fmt(t, 6)] + ["" if not np.isfinite(v) else _fmt(v * scale, digits) for v in self.r[i]])
-        return out.getvalue()
+        return grid_csv_text(self.r, self.source or f"roadgonio table {self.name}", scale=scale, digits=digits,
+                             tan_eps=self.tan_eps, beta_deg=self.beta_deg)
 
     def write_csv(self, path: str | Path, scale: float = R_SCALE, digits: int = 6) -> Path:
         return atomic_write_text(path, self.to_csv_text(scale, digits))
@@ -183,6 +190,49 @@ class RTable:
     def write(self, path: str | Path) -> Path:
         """Write by suffix: ``.rtb`` as DIALux RTB, anything else as CSV."""
         return self.write_rtb(path) if Path(path).suffix.lower() == ".rtb" else self.write_csv(path)
+
+
+def grid_csv_text(values: np.ndarray, source: str, *, scale: float = 1.0, digits: int = 6,
+                  tan_eps: np.ndarray = TAN_EPS_GRID, beta_deg: np.ndarray = BETA_GRID_DEG) -> str:
+    """Any quantity over the grid (an r-table, k_A, its standard error...) in the r-table CSV layout
+    (module docstring): ``# source`` comment lines, the beta header, one row per tan eps, values
+    times ``scale`` (r-tables: :data:`R_SCALE`), a blank where the value is NaN."""
+    out = io.StringIO()
+    for line in str(source).splitlines() or [""]:
+        out.write(f"# {line}\n" if not line.startswith("#") else line + "\n")
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(["tan_eps"] + [_fmt(b, 6) for b in beta_deg])
+    for i, t in enumerate(tan_eps):
+        w.writerow([_fmt(t, 6)] + ["" if not np.isfinite(v) else _fmt(v * scale, digits) for v in values[i]])
+    return out.getvalue()
+
+
+def q0_weights(mask: np.ndarray, tan_eps: np.ndarray = TAN_EPS_GRID,
+               beta_deg: np.ndarray = BETA_GRID_DEG) -> np.ndarray | None:
+    """Weights w (the grid's shape) with Q0 = sum w r over the tabulated cells ``mask`` (CIE 144;
+    the one definition of Q0: :meth:`RTable.q0`, the correction's budget and the uncertainty of Q0
+    all use it); None when no grid cell has four tabulated corners (Q0 undefined).
+
+    With t = tan eps, q dOmega = r t dt dbeta. The integral is the trapezoidal rule over every grid
+    cell whose four corners are tabulated (each corner carries t/4 of the cell's dt dbeta), divided
+    by Omega0, the exact solid angle of the same cells (the area of dOmega = d(1 - cos eps) dbeta).
+    CIE 144 uses a table of weighting factors that we do not have, so this agrees with the
+    published Q0 to a few percent (roadgonio/data/rtables/SOURCES.md)."""
+    mask = np.asarray(mask, dtype=bool)
+    t = np.asarray(tan_eps, dtype=np.float64)
+    b = np.radians(np.asarray(beta_deg, dtype=np.float64))
+    quad = mask[:-1, :-1] & mask[:-1, 1:] & mask[1:, :-1] & mask[1:, 1:]
+    area = np.where(quad, np.diff(t)[:, None] * np.diff(b)[None, :] / 4.0, 0.0)
+    g = 1.0 - 1.0 / np.sqrt(1.0 + t * t)
+    omega = float(np.sum(np.where(quad, np.diff(g)[:, None] * np.diff(b)[None, :], 0.0)))
+    if not omega > 0.0:
+        return None
+    w = np.zeros(mask.shape)
+    w[:-1, :-1] += area
+    w[:-1, 1:] += area
+    w[1:, :-1] += area
+    w[1:, 1:] += area
+    return w * t[:, None] / omega
 
 
 def _fmt(v: float, digits: int) -> str:
@@ -405,13 +455,17 @@ def bundled_table(name: str) -> RTable:
 
 
 def load_table(spec: str | Path) -> RTable:
-    """A bundled table by name (``R3``) or a table file path."""
-    s = str(spec)
-    if s.strip().upper() in BUNDLED and not Path(s).exists():
-        return bundled_table(s)
-    p = Path(s)
+    """A bundled table by name (``R3``, any case) or a table file: a text with a suffix is a file,
+    one without is a bundled name (the rule of :mod:`roadgonio.surface.sample`)."""
+    s = str(spec).strip()
+    if isinstance(spec, str) and not Path(s).suffix:
+        if s.upper() in BUNDLED:
+            return bundled_table(s)
+        raise InputError(f"{s!r} is not a bundled table ({', '.join(BUNDLED)}) nor a table file (.csv/.rtb)",
+                         field="table")
+    p = Path(s).expanduser()
     if not p.exists():
-        raise InputError(f"not a bundled table ({', '.join(BUNDLED)}) and no such file", path=p)
+        raise InputError("no such table file", path=p)
     return read_table(p)
 
 

@@ -1,11 +1,21 @@
-"""Resolve a sample specification to a road BRDF model (used by ``roadgonio ka --sample ...``).
+"""THE resolver of a SAMPLE (what every command's ``--sample`` and every API function's ``sample``
+takes): :func:`resolve_sample` turns it into a :class:`ResolvedSample` (name, model, table), and
+nothing else in roadgonio decides what a sample is or what it is called.
 
 A sample is one of:
 
 * ``"lambert"``: a perfect diffuser (:meth:`RoadModel.lambert`);
-* a bundled table name (``R1`` ... ``R4``, ``C1``, ``C2``) or a table file (``.csv`` / ``.rtb``):
-  the table is fitted on the fly (:func:`roadgonio.surface.fit.fit_table`) and the fit is cached;
-* a model file (``.json``, as written by ``roadgonio fit``; loaded with :meth:`RoadModel.load`).
+* a bundled table name (``R1`` ... ``R4``, ``C1``, ``C2``, any case) or a table file (``.csv`` /
+  ``.rtb``): the table is fitted on the fly (:func:`roadgonio.surface.fit.fit_table`) and the fit
+  is cached;
+* a model file (``.json``, as written by ``roadgonio fit``; loaded with :meth:`RoadModel.load`);
+* in Python also a :class:`RoadModel`, an :class:`RTable`, an r-table ``xarray.DataArray`` (dims
+  ``tan_eps``, ``beta``; :meth:`RTable.from_dataarray`) or a fit result (``.model``, ``.table``).
+
+A text is a file when it has a suffix (``.json``: a model; ``.csv``/``.rtb``: a table), else a
+bundled table name or ``lambert`` (:func:`roadgonio.surface.rtable.load_table` uses the same rule).
+Its name (outputs, folders, provenance) is the bundled name in capitals, ``lambert``, or the
+file's stem.
 
 Cache: ``$ROADGONIO_CACHE``, else the platform's cache folder (``platformdirs.user_cache_dir("roadgonio")``:
 ``~/.cache/roadgonio`` on Linux, ``~/Library/Caches/roadgonio`` on macOS, ``%LOCALAPPDATA%\\roadgonio\\Cache``
@@ -16,13 +26,12 @@ carries another key is refitted, never trusted.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
-from roadgonio import __version__
 from roadgonio.errors import InputError
 from roadgonio.surface.model import DEFAULT_VARIANT, VARIANTS, RoadModel
 from roadgonio.surface.rtable import BUNDLED, RTable, load_table
@@ -42,10 +51,11 @@ def cache_dir() -> Path:
 
 
 def cache_key(table: RTable, variant: str) -> str:
+    """What determines a fit's numbers (:func:`roadgonio.fileio.fingerprint`: the table's values, the
+    variant, the fit method's version and roadgonio's)."""
+    from roadgonio.fileio import fingerprint
     from roadgonio.surface.fit import FIT_METHOD_VERSION, table_hash
-    h = hashlib.sha256()
-    h.update(f"{table_hash(table)}|{variant}|roadgonio {__version__}|fit {FIT_METHOD_VERSION}".encode())
-    return h.hexdigest()
+    return fingerprint({"table": table_hash(table), "variant": variant, "fit": FIT_METHOD_VERSION}, length=64)
 
 
 def _cache_path(table: RTable, variant: str, key: str) -> Path:
@@ -103,42 +113,73 @@ def check_not_degenerate(model: RoadModel, path=None) -> RoadModel:
     return model
 
 
-def resolve_sample(spec: str, variant: str | None = None) -> RoadModel:
-    """A road BRDF model from a sample specification, checked not to be degenerate (see
-    :func:`check_not_degenerate`)."""
-    s = str(spec).strip()
-    p = Path(s).expanduser()
-    return check_not_degenerate(_resolve_sample(spec, variant), path=p if p.suffix else None)
+@dataclass(frozen=True)
+class ResolvedSample:
+    """A SAMPLE resolved once: ``name`` (for outputs and folders), the road BRDF ``model``, and the
+    r-table ``table`` when the sample is one (bundled, file, RTable, DataArray; else None).
+    ``spec`` is what was given, as text (provenance)."""
+
+    name: str
+    model: RoadModel
+    table: RTable | None = None
+    spec: str = ""
 
 
-def _resolve_sample(spec: str, variant: str | None = None) -> RoadModel:
-    """A road BRDF model from a sample specification (see the module docstring).
+def _check_variant(model_variant: str | None, field: str = "model_variant") -> None:
+    if model_variant is not None and model_variant not in VARIANTS:
+        raise InputError(f"unknown model variant {model_variant!r}; expected one of {', '.join(VARIANTS)}",
+                         field=field)
 
-    ``variant`` selects the model variant for fitted tables (default ``"power"``); for a model
-    file it must match the file's variant if given.
-    """
-    if variant is not None and variant not in VARIANTS:
-        raise InputError(f"unknown model variant {variant!r}; expected one of {', '.join(VARIANTS)}",
-                         field="variant")
-    s = str(spec).strip()
+
+def resolve_sample(sample, model_variant: str | None = None, *, field: str = "sample") -> ResolvedSample:
+    """The one resolver of a SAMPLE (module docstring): text or object -> :class:`ResolvedSample`,
+    the model checked not to be degenerate (:func:`check_not_degenerate`). ``model_variant``
+    chooses the variant fitted to a table (default ``"power"``); for a model file or object it
+    must equal the model's variant if given. Errors name ``field``."""
+    _check_variant(model_variant)
+    if isinstance(sample, RoadModel):
+        if model_variant is not None and sample.variant != model_variant:
+            raise InputError(f"the model has variant {sample.variant!r}, but variant {model_variant!r} was asked",
+                             field=field)
+        return ResolvedSample(sample.name or "model", check_not_degenerate(sample), None, sample.name or "model")
+    table = _as_table(sample)
+    if table is not None:
+        return ResolvedSample(table.name, check_not_degenerate(fitted_model(table, model_variant)), table, table.name)
+    if hasattr(sample, "model") and hasattr(sample, "table") and isinstance(sample.model, RoadModel):  # a fit result
+        return ResolvedSample(sample.table.name, check_not_degenerate(sample.model), sample.table, sample.table.name)
+    if not isinstance(sample, (str, Path)):
+        raise InputError("expected 'lambert', a bundled table name, a table or model file, a RoadModel, an RTable, "
+                         f"an r-table DataArray or a fit result, got {type(sample).__name__}", field=field)
+    s = str(sample).strip()
     if not s:
-        raise InputError(f"empty sample; expected {EXPECTED}", field="sample")
+        raise InputError(f"empty sample; expected {EXPECTED}", field=field)
     if s.lower() == "lambert":
-        return RoadModel.lambert()
+        return ResolvedSample("lambert", RoadModel.lambert(), None, s)
     p = Path(s).expanduser()
     suffix = p.suffix.lower()
     if suffix == ".json":
         if not p.exists():
             raise InputError(f"no such model file; expected {EXPECTED}", path=p)
         m = RoadModel.load(p)
-        if variant is not None and m.variant != variant:
-            raise InputError(f"the model file holds variant {m.variant!r}, but variant {variant!r} was asked",
+        if model_variant is not None and m.variant != model_variant:
+            raise InputError(f"the model file holds variant {m.variant!r}, but variant {model_variant!r} was asked",
                              path=p, field="variant")
-        return m
-    if s.upper() in BUNDLED and not p.exists():
-        return fitted_model(load_table(s), variant)
-    if suffix in TABLE_SUFFIXES:
-        if not p.exists():
+        return ResolvedSample(p.stem, check_not_degenerate(m, path=p), None, s)
+    if suffix in TABLE_SUFFIXES or (not suffix and s.upper() in BUNDLED):
+        if suffix and not p.exists():
             raise InputError(f"no such table file; expected {EXPECTED}", path=p)
-        return fitted_model(load_table(p), variant)
-    raise InputError(f"unknown sample {s!r}; expected {EXPECTED}", field="sample")
+        table = load_table(s)
+        path = p if suffix else None
+        name = p.stem if suffix else s.upper()
+        return ResolvedSample(name, check_not_degenerate(fitted_model(table, model_variant), path=path), table, s)
+    raise InputError(f"unknown sample {s!r}; expected {EXPECTED}", field=field)
+
+
+def _as_table(obj) -> RTable | None:
+    """An RTable from an RTable or an r-table DataArray, else None."""
+    if isinstance(obj, RTable):
+        return obj
+    xr = sys.modules.get("xarray")
+    if xr is not None and isinstance(obj, xr.DataArray):
+        return RTable.from_dataarray(obj)
+    return None

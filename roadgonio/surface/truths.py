@@ -55,7 +55,8 @@ import numpy as np
 
 from roadgonio.errors import InputError
 from roadgonio.geometry import ALPHA_STANDARD_DEG, BETA_GRID_DEG, TAN_EPS_GRID, cos3_eps, eps_from_tan, w_detector, w_source
-from roadgonio.surface.model import NumpyOps, RoadModel, RoadParams
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel, RoadParams
 
 #: eq. 4 (power reading) close to the fit of CIE R3: the truth inside the family.
 R3LIKE = dict(k_diff=0.028937, k_phong=1.8147, n_phong=34.467, k_retro=0.052577, n_retro=11.307,

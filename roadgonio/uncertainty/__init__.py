@@ -63,33 +63,15 @@ S1: mean, standard uncertainty, 95 % probabilistically symmetric and shortest co
 (JCGM 101 7.7), the GUM first-order estimate y = f(0), u(y) from finite-difference sensitivity
 coefficients, y +- k u(y), and the JCGM 101 section 8 comparison (d_low, d_high vs delta).
 
-Rooms: :mod:`.spec`, :mod:`.cells`, :mod:`.measurement`, :mod:`.statistics`, :mod:`.gum`, :mod:`.run`, :mod:`.report`.
+The API is :func:`roadgonio.api.estimate_uncertainty`. Modules: :mod:`.spec`, :mod:`.cells`, :mod:`.measurement`, :mod:`.statistics`, :mod:`.gum`, :mod:`.run`, :mod:`.report`.
 """
-from roadgonio.uncertainty.spec import CELL_SETS, DISTRIBUTIONS, ILLUMINANCE, INPUTS, INPUT_HELP, SPEC_HELP, SigmaSpec, _parse_entry, _spec_from_mapping, parse_sigma_spec  # noqa: F401
-from roadgonio.uncertainty.cells import CellSet, q0_weights, standard_mask  # noqa: F401
-from roadgonio.uncertainty.measurement import MeasurementModel, _rotations  # noqa: F401
+from roadgonio.uncertainty.spec import (CELL_SETS, DISTRIBUTIONS, ILLUMINANCE, INPUT_HELP, INPUTS,  # noqa: F401
+                                        SPEC_HELP, SigmaSpec, parse_sigma_spec)
+from roadgonio.uncertainty.cells import CellSet, standard_mask, standard_q0_weights  # noqa: F401
+from roadgonio.uncertainty.measurement import MeasurementModel  # noqa: F401
 from roadgonio.uncertainty.statistics import coverage_indices, numerical_tolerance, summarize  # noqa: F401
 from roadgonio.uncertainty.gum import gum_propagation, gum_validation  # noqa: F401
-from roadgonio.uncertainty.run import BackendFactory, CaseResult, SurrogateReport, UncertaintyResult, _Evaluator, _batch_stats, _stability, build_surrogate, default_backend_factory, provenance, run_uncertainty  # noqa: F401
-from roadgonio.uncertainty.report import OUTPUT_NAMES, cells_csv_text, plot_q0_s1, plot_uncertainty_maps, resolve_sample_spec, result_dict, summary_lines, write_results  # noqa: F401
-
-
-class _CallableRoom(type(__import__("sys"))):
-    """``roadgonio.uncertainty`` is both this room and, called, the API function
-    :func:`roadgonio.api.uncertainty` (``rg.uncertainty("portable", "R3", "alpha_deg=0.01")``): the
-    package exports an ``uncertainty`` function, and the import system would put this subpackage
-    under that name anyway."""
-
-    def __call__(self, *args, **kwargs):
-        from roadgonio.api import uncertainty
-        return uncertainty(*args, **kwargs)
-
-    @property
-    def __signature__(self):
-        import inspect
-
-        from roadgonio.api import uncertainty
-        return inspect.signature(uncertainty)
-
-
-__import__("sys").modules[__name__].__class__ = _CallableRoom
+from roadgonio.uncertainty.run import (BackendFactory, CaseResult, SurrogateReport,  # noqa: F401
+                                       UncertaintyResult, build_surrogate, default_backend_factory, run_uncertainty)
+from roadgonio.uncertainty.report import (OUTPUT_NAMES, cells_csv_text, plot_q0_s1,  # noqa: F401
+                                          plot_uncertainty_maps, result_dict, summary_lines, write_results)

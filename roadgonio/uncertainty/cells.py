@@ -21,22 +21,11 @@ def standard_mask() -> np.ndarray:
     return bundled_table("R3").mask.copy()
 
 
-@lru_cache(maxsize=1)
-def q0_weights() -> np.ndarray:
-    """Weights w (29 x 20) with Q0 = sum w r over the standard tabulated region.
-
-    :meth:`RTable.q0` is linear in r, so w[i, j] is Q0 of the table that is 1 at (i, j) and 0
-    elsewhere in the region (derived from RTable.q0 itself; the formula is not repeated here).
-    """
-    from roadgonio.surface.rtable import RTable
-    mask = standard_mask()
-    w = np.zeros(mask.shape)
-    base = np.where(mask, 0.0, np.nan)
-    for i, j in zip(*np.nonzero(mask)):
-        t = base.copy()
-        t[i, j] = 1.0
-        w[i, j] = RTable(t).q0()
-    return w
+def standard_q0_weights() -> np.ndarray:
+    """Weights w (29 x 20) with Q0 = sum w r over the standard tabulated region
+    (:func:`roadgonio.surface.rtable.q0_weights`, the one definition of Q0)."""
+    from roadgonio.surface.rtable import q0_weights
+    return q0_weights(standard_mask())
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,10 @@ from roadgonio.geometry import (
     w_source,
 )
 from roadgonio.instrument.config import Instrument
-from roadgonio.surface.model import NumpyOps, RoadModel, road_brdf
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.uncertainty.surrogate import N_COORDS
-from roadgonio.uncertainty.cells import CellSet, q0_weights
+from roadgonio.uncertainty.cells import CellSet, standard_q0_weights
 from roadgonio.uncertainty.spec import ILLUMINANCE
 
 # ----------------------------------------------------------------------------------------------
@@ -63,7 +64,7 @@ class MeasurementModel:
         self._P = model.params.to_dict()
         self._terms = model.terms()
         self.e_phi = source_azimuth_tangent(cells.beta_deg, self.delta0)                 # d w / d phi_i
-        w = q0_weights()
+        w = standard_q0_weights()
         self.q0_w = w[cells.ii, cells.jj]
         self.i_00 = cells.index(0.0, 0.0)
         self.i_20 = cells.index(2.0, 0.0)

@@ -84,7 +84,7 @@ def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: s
     from roadgonio.fileio import OutputGroup
     from roadgonio.plotproc import InProcess
     figures = figures or InProcess()
-    from roadgonio.surface.rtable import RTable
+    from roadgonio.surface.rtable import R_SCALE, grid_csv_text
     out = Path(out_dir)
     with OutputGroup(out) as g:
         written = [g.json("uncertainty.json", result_dict(res)), g.text("cells.csv", cells_csv_text(res))]
@@ -93,8 +93,8 @@ def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: s
             src = (f"roadgonio uncertainty: {name.replace('_', ' ')}, {res.trials} trials, seed {res.seed}, "
                    f"sample {sample_name}")
             for key, label in (("mean", "mean r x 1e4"), ("u", "standard uncertainty u(r) x 1e4")):
-                t = RTable(res.cells.to_grid(c.mc[key][:n]), name=f"{sample_name}_{key}", source=f"{src}: {label}")
-                t.write_csv(g.path(f"{name}_{key}.csv"))
+                g.text(f"{name}_{key}.csv", grid_csv_text(res.cells.to_grid(c.mc[key][:n]), f"{src}: {label}",
+                                                          scale=R_SCALE))
                 written.append(out / f"{name}_{key}.csv")
         if plots:
             maps = figures.call("roadgonio.uncertainty.report:plot_uncertainty_maps", res, g.stage)

@@ -84,8 +84,8 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
     exact k_A at ``n_validation`` held-out trials drawn from the input distribution.
 
     The exact tables are independent instruments: with a Dask ``client``
-    (:func:`roadgonio.design.cluster.open_client`) they are computed on its workers as
-    :class:`~roadgonio.design.cluster.TableTask` of ``task_backend = (backend name, settings)``
+    (:func:`roadgonio.engines.cluster.open_client`) they are computed on its workers as
+    :class:`~roadgonio.engines.cluster.TableTask` of ``task_backend = (backend name, settings)``
     (the same settings, hence the same numbers, as ``factory``), otherwise here with ``factory``."""
     t0 = time.perf_counter()
     rng_pilot, rng_val = [np.random.default_rng(s) for s in seed_seq.spawn(2)]
@@ -204,7 +204,7 @@ def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, tally: "_E
     """As :func:`_exact_here`, on the workers of a Dask client (one task per table). For the Mitsuba
     engine the first table is computed here, and its plan goes with every other task, so the numbers
     are those of :func:`_exact_here`."""
-    from roadgonio.design.cluster import TableTask, absolute_instrument_dict, map_tables
+    from roadgonio.engines.cluster import TableTask, absolute_instrument_dict, map_tables
     from roadgonio.errors import BackendError, GeometryError, RoadgonioError
     if task_backend is None:
         raise InputError("distributing the exact tables needs a backend name and settings, not a backend factory",
@@ -266,6 +266,9 @@ class UncertaintyResult:
     surrogate: SurrogateReport | None
     provenance: dict[str, Any]
     seconds: dict[str, float] = field(default_factory=dict)
+    #: where its files were written (:func:`roadgonio.api.estimate_uncertainty` with ``out``)
+    out: Path | None = None
+    written: list = field(default_factory=list)
 
 
 class _Evaluator:
@@ -342,7 +345,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
 
     The exact k_A tables of the surrogate design run on Dask with ``client``, ``workers`` (a local
     cluster of that many worker processes) or ``scheduler`` (an existing cluster), else here
-    (:func:`roadgonio.design.cluster.open_client`); the numbers are the same either way.
+    (:func:`roadgonio.engines.cluster.open_client`); the numbers are the same either way.
     """
     if not (0.5 < coverage < 1.0):
         raise InputError(f"expected a coverage probability 0.5 < p < 1, got {coverage:g}", field="--coverage")
@@ -381,7 +384,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
         if client is not None:
             sur_report = build_surrogate(mm, spec, factory, client=client, **kw)
         elif distributed:
-            from roadgonio.design.cluster import describe, open_client
+            from roadgonio.engines.cluster import describe, open_client
             with open_client(workers, scheduler, backend=backend, variant=(backend_settings or {}).get("variant")) as c:
                 notes.append(f"exact k_A tables on Dask: {describe(c)}")
                 sur_report = build_surrogate(mm, spec, factory, client=c, **kw)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -10,6 +9,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from roadgonio.errors import InputError
+from roadgonio.fileio import read_toml
 
 #: Input names of a SPEC, in the column order of the trial matrices.
 INPUTS = ("alpha_deg", "eps_deg", "beta_deg", "tilt_x_deg", "tilt_y_deg", "source_distance_m",
@@ -124,17 +124,7 @@ def parse_sigma_spec(spec: str | Path | Mapping[str, Any], *, option: str = "--s
     text = str(spec).strip()
     p = Path(text)
     if text.lower().endswith(".toml") or (p.suffix and p.exists()):
-        try:
-            raw = p.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            raise InputError(f"no such SPEC file (given to {option})", path=p) from None
-        except (OSError, UnicodeDecodeError) as err:
-            raise InputError(f"cannot read the SPEC file ({err})", path=p) from None
-        try:
-            d = tomllib.loads(raw)
-        except tomllib.TOMLDecodeError as err:
-            raise InputError(f"not valid TOML: {getattr(err, 'msg', str(err))}", path=p,
-                             line=getattr(err, "lineno", None)) from None
+        d = read_toml(p, "SPEC file", missing=f"no such SPEC file (given to {option})")
         if "sigma" in d and isinstance(d["sigma"], Mapping):
             if set(d) - {"sigma"}:
                 raise InputError("expected only a [sigma] table", path=p, field=sorted(set(d) - {"sigma"})[0])

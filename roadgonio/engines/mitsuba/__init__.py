@@ -84,6 +84,18 @@ def set_variant(variant: str | None = None):
     return mi
 
 
+def choose_variant(variant: str | None = None):
+    """The entry point's choice (the ``roadgonio`` command, the Python API): keep the variant already
+    selected in this process when none or the same is asked for (a notebook that chose one keeps
+    it), else :func:`set_variant`. Returns ``mitsuba``."""
+    import sys
+    mi = sys.modules.get("mitsuba")
+    current = mi.variant() if mi is not None else None
+    if current is not None and variant in (None, current):
+        return require_variant(current)
+    return set_variant(variant)
+
+
 def require_variant(variant: str | None = None):
     """``mitsuba`` with a variant already chosen by the entry point (:func:`set_variant`); if
     ``variant`` is given it must be the chosen one. Changes nothing: a scene or backend built

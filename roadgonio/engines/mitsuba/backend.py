@@ -15,7 +15,7 @@ Standard error: the marginal SE of each cell from independent replicates (random
 by the delta method (:mod:`roadgonio.engines.mitsuba.passes`); cells computed together share rays, so
 their errors are correlated: :meth:`MitsubaBackend.covariance` gives the covariance matrix of the last
 ``compute`` call (for the SE of a table functional), estimated from the shared replicates.
-``tests/test_engine.py`` checks the SE against the scatter over seeds, for cells batched together too.
+``tests/plugin/test_engine.py`` checks the SE against the scatter over seeds, for cells batched together too.
 
 Passes sized from the target: a first pass of ``first_pass`` samples per cell, then the 1/N rule per
 cell (:class:`~roadgonio.engines.mitsuba.passes.Planner`); cells leave as they reach ``rel_se`` (at
@@ -37,7 +37,7 @@ import numpy as np
 
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
-from roadgonio.engines import CellResult, ideal_ratios
+from roadgonio.engines.result import CellResult, ideal_ratios
 from roadgonio.surface.model import RoadModel
 from roadgonio.engines.mitsuba.scene import build_scene
 
@@ -84,7 +84,7 @@ class MitsubaBackend:
     def __init__(self, instrument: Instrument, model: RoadModel, *, rel_se: float = 1e-3, seed: int = 0,
                  first_pass: int = DEFAULT_FIRST_PASS, min_replicates: int = DEFAULT_MIN_REPLICATES,
                  min_passes: int = 1, max_samples: int = DEFAULT_MAX_SAMPLES, plan=None,
-                 variant: str | None = None):
+                 mitsuba_variant: str | None = None):
         for key, v, lo in (("rel_se", rel_se, 0.0), ("first_pass", first_pass, 32),
                            ("min_replicates", min_replicates, 2), ("min_passes", min_passes, 1),
                            ("max_samples", max_samples, 1)):
@@ -102,7 +102,7 @@ class MitsubaBackend:
                                max_samples=self.max_samples, min_passes=self.min_passes)
         # the engine counts every detector ray it traces: the build-time check needs only the
         # bundle's extreme rays and a few random ones
-        self.rs = build_scene(instrument, model, variant=variant, hit_rays=1 << 12)
+        self.rs = build_scene(instrument, model, mitsuba_variant=mitsuba_variant, hit_rays=1 << 12)
         from roadgonio.engines.mitsuba.engine import BatchEngine
         self.engine = BatchEngine(self.rs)
         import mitsuba as mi
@@ -116,7 +116,7 @@ class MitsubaBackend:
         import mitsuba as mi
 
         from roadgonio.engines.mitsuba import llvm_version
-        s = {"backend": NAME, "variant": self.variant, "rel_se": self.rel_se, "seed": self.seed,
+        s = {"backend": NAME, "mitsuba_variant": self.variant, "rel_se": self.rel_se, "seed": self.seed,
              "first_pass": self.first_pass, "min_replicates": self.min_replicates,
              "min_passes": self.min_passes, "max_samples": self.max_samples,
              "engine": "batched (kabatch integrator: shared detector rays, one source per cell)",
@@ -191,7 +191,7 @@ class MitsubaBackend:
 def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = 1e-3, seed: int = 0,
                  first_pass: int = DEFAULT_FIRST_PASS, min_replicates: int = DEFAULT_MIN_REPLICATES,
                  min_passes: int = 1, max_samples: int = DEFAULT_MAX_SAMPLES, plan=None,
-                 variant: str | None = None, **unknown) -> MitsubaBackend:
+                 mitsuba_variant: str | None = None, **unknown) -> MitsubaBackend:
     """The Mitsuba k_A backend (:class:`MitsubaBackend`); builds and checks the scene now, so
     geometry errors surface before any cell is computed."""
     removed = sorted(k for k in unknown if k in REMOVED)
@@ -204,7 +204,7 @@ def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = 1e
                          field=k)
     if unknown:
         raise InputError(f"unknown setting(s) {', '.join(sorted(unknown))} for the mitsuba backend; expected "
-                         "rel_se, seed, first_pass, min_replicates, min_passes, max_samples, plan, variant")
+                         "rel_se, seed, first_pass, min_replicates, min_passes, max_samples, plan, mitsuba_variant")
     return MitsubaBackend(instrument, model, rel_se=rel_se, seed=seed, first_pass=first_pass,
                           min_replicates=min_replicates, min_passes=min_passes, max_samples=max_samples,
-                          plan=plan, variant=variant)
+                          plan=plan, mitsuba_variant=mitsuba_variant)

@@ -11,27 +11,27 @@ accumulated in float64. Dr.Jit's LLVM backend splits every large launch over its
 (``dr.thread_count()``, all cores by default); nothing here is specific to the CPU, so a CUDA
 variant runs the same code (not tested here: this machine has no GPU).
 
-Geometry checks (errors, not wrong numbers): the source of every cell must be above the horizon and
-its beam limit, if any, must not clip the footprint (:mod:`roadgonio.engines.mitsuba.scene`); a cell
-whose source lies within :data:`~roadgonio.engines.mitsuba.scene.SOURCE_NEAR_SIGHT_DEG` of the line
-of sight is checked for its disc hiding part of the detector bundle (:func:`source_blocks_view`);
-every traced detector ray must hit the sample (counted in every launch).
+Geometry checks (errors, not wrong numbers): the preamble of every backend
+(:func:`roadgonio.engines.cellcheck.check_cells`: the source above the horizon, its disc out of the
+detector's view, the model positive at the nominal geometry; the area emitter has no beam limit, so
+a beam limit that clips the footprint is refused); every traced detector ray must hit the sample
+(counted in every launch).
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from roadgonio.errors import GeometryError, percent as _percent
+from roadgonio.errors import GeometryError
 from roadgonio.engines.mitsuba import lattice as lat
 from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strata, covariance, relative
-from roadgonio.engines.mitsuba.scene import (SOURCE_NEAR_SIGHT_DEG, RoadScene, check_beam, source_radiance)
+from roadgonio.engines.mitsuba.scene import RoadScene, source_radiance
 from roadgonio.instrument.config import Instrument
-from roadgonio.instrument.optics import check_source, detector_geometry
+from roadgonio.engines.cellcheck import check_cells
+from roadgonio.engines.registry import backend_info
 
 #: Largest number of detector rays traced (and stored: 13 floats each) per launch.
 MAX_RAYS = 1 << 21
@@ -58,44 +58,6 @@ def source_frames(instrument: Instrument, cells: Sequence[tuple[float, float]]) 
     s /= np.linalg.norm(s, axis=1, keepdims=True)
     t = np.cross(axis, s)
     return np.concatenate([instrument.source.distance_m * w, s, t, axis], axis=1)
-
-
-def detector_bundle(instrument: Instrument, n: int = 1024, seed: int = 7) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rays of the detector (pupil rim x field rim, plus ``n`` random ones), float64: origins,
-    unit directions and the distance to the sample plane."""
-    from roadgonio.instrument.optics import detector_ray, hit_plane
-    from roadgonio.surface.model import NumpyOps
-    geo = detector_geometry(instrument)
-    ang = np.linspace(0.0, 2 * np.pi, 32, endpoint=False)
-    rim = np.stack([np.cos(ang), np.sin(ang)], -1)
-    rng = np.random.default_rng(seed)
-    r1, r2 = np.sqrt(rng.random(n)), np.sqrt(rng.random(n))
-    a1, a2 = rng.random(n) * 2 * np.pi, rng.random(n) * 2 * np.pi
-    pupil = np.concatenate([np.repeat(rim, len(rim), 0), np.stack([r1 * np.cos(a1), r1 * np.sin(a1)], -1)])
-    fieldp = np.concatenate([np.tile(rim, (len(rim), 1)), np.stack([r2 * np.cos(a2), r2 * np.sin(a2)], -1)])
-    o, d, _ = detector_ray(NumpyOps, geo, (pupil[:, 0], pupil[:, 1]), (fieldp[:, 0], fieldp[:, 1]))
-    x, y, _ = hit_plane(NumpyOps, o, d)
-    o, d = np.stack(o, -1), np.stack(d, -1)
-    t_plane = np.linalg.norm(np.stack([x, y, np.zeros_like(x)], -1) - o, axis=-1)
-    return o, d, t_plane
-
-
-def source_blocks_view(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
-    """Per cell, the fraction of detector rays (:func:`detector_bundle`) that cross the cell's source
-    disc before reaching the sample plane (float64 numpy)."""
-    if not cells or instrument.source.radius_m <= 0.0:
-        return np.zeros(len(cells))
-    o, d, t_plane = detector_bundle(instrument)
-    fr = source_frames(instrument, cells)
-    c, axis = fr[:, 0:3], fr[:, 9:12]
-    den = d @ axis.T                                             # (rays, cells)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = (c @ axis.T).diagonal()[None, :] - (o @ axis.T)
-        t = t / den
-    p = o[:, None, :] + t[..., None] * d[:, None, :]
-    inside = np.linalg.norm(p - c[None, :, :], axis=-1) <= instrument.source.radius_m
-    blocked = (np.abs(den) > 1e-12) & (t > 0) & (t < t_plane[:, None]) & inside
-    return blocked.mean(axis=0)
 
 
 @dataclass
@@ -156,19 +118,10 @@ class BatchEngine:
 
     # -- checks --------------------------------------------------------------------------------
     def check_cells(self, cells: Sequence[tuple[float, float]]) -> None:
-        inst = self.instrument
-        for t, b in cells:
-            check_source(inst, t, b)
-            if inst.source.beam_half_angle_deg is not None:
-                check_beam(inst, t, b)
-        near = np.flatnonzero(cell_directions(inst, cells) @ inst.w_o() > math.cos(math.radians(SOURCE_NEAR_SIGHT_DEG)))
-        if near.size:
-            frac = source_blocks_view(inst, [cells[i] for i in near])
-            for i, f in zip(near, frac):
-                if f > 0.0:
-                    t, b = cells[i]
-                    raise GeometryError(f"the source disc hides {_percent(f)} of the detector rays at tan eps = "
-                                        f"{t:g}, beta = {b:g}: it stands in the line of sight")
+        """The preamble of every backend (:func:`roadgonio.engines.cellcheck.check_cells`); the area
+        emitter has no beam limit, so a clipping one is refused."""
+        check_cells(self.instrument, self.rs.model, cells, models_beam=backend_info("mitsuba").beam_clipping,
+                    backend="mitsuba")
 
     # -- the passes ----------------------------------------------------------------------------
     def run(self, cells: Sequence[tuple[float, float]], planner: Planner, *, seed: int = 0,

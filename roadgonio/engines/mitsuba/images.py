@@ -44,15 +44,15 @@ def _ortho_sensor(mi, x0, x1, y0, y1, nx, ny, spp, z_top=0.0):
 
 
 def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float, beta_deg: float, out_dir,
-                       *, resolution: int = 256, spp: int = 64, seed: int = 0, variant: str | None = None,
+                       *, resolution: int = 256, spp: int = 64, seed: int = 0, mitsuba_variant: str | None = None,
                        sample_name: str = "sample") -> dict[str, Any]:
     """Render the detector's view and the illuminance for one cell; write EXR, PNG and JSON."""
     out_dir = Path(out_dir)
-    rs = build_scene(instrument, model, resolution=resolution, variant=variant, sampler="multijitter")
+    rs = build_scene(instrument, model, resolution=resolution, mitsuba_variant=mitsuba_variant, sampler="multijitter")
     import mitsuba as mi
     rs.place_source(tan_eps, beta_deg)
     # the signal (concentric film) and its k_A estimate
-    from roadgonio.engines import ideal_ratio
+    from roadgonio.engines.result import ideal_ratio
     from roadgonio.engines.mitsuba.backend import pooled_ratio
     sig = rs.render(seed, spp)
     ratio, se, mg = pooled_ratio([(spp, sig[..., ROAD], sig[..., LAMBERT])])
@@ -84,7 +84,7 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     from roadgonio.provenance import provenance
     info = {**provenance(instrument=instrument, model=model, backend="mitsuba",
                          settings={"resolution": resolution, "spp": spp, "seed": seed, "sampler": "multijitter",
-                                   "variant": mi.variant(), "illuminance_resolution": [nx, ny],
+                                   "mitsuba_variant": mi.variant(), "illuminance_resolution": [nx, ny],
                                    "illuminance_spp": 16}),
             "sample": sample_name, "tan_eps": tan_eps, "beta_deg": beta_deg,
             "resolution": resolution, "spp": spp, "seed": seed,

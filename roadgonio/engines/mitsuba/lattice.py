@@ -19,7 +19,7 @@ Generating vectors are Korobov vectors ``z = (1, a, a^2, ..., a^5) mod n``; the 
 each ``n`` minimises the weighted figure of merit P_2 (:func:`p2_criterion`, product weights
 :data:`WEIGHT`) over :data:`CANDIDATES` odd candidates drawn with a fixed seed
 (:func:`search_korobov`). :data:`KOROBOV` holds the result for n = 2^4 ... 2^20; it was produced by
-``python -m roadgonio.engines.mitsuba.lattice`` (the same search), and ``tests/test_lattice.py``
+``python -m roadgonio.engines.mitsuba.lattice`` (the same search), and ``tests/unit/test_lattice.py``
 re-runs the search for the small sizes.
 """
 from __future__ import annotations
@@ -103,7 +103,7 @@ def shifts(seed: int, pass_index: int, log2n: int, count: int) -> np.ndarray:
     """``count`` independent uniform shifts (count, 6) of one pass and lattice size: a function of
     (seed, pass, lattice size) only, so a cell's replicate b of a pass is the same lattice
     whichever other cells share the launch."""
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(pass_index), int(log2n)])
+    rng = np.random.default_rng([int(seed), int(pass_index), int(log2n)])   # the full seed (no 32-bit reduction)
     return rng.random((int(count), DIMENSIONS))
 
 

@@ -1,5 +1,5 @@
 """The Dr.Jit array namespace of the model and the optics (same names as
-:class:`roadgonio.surface.model.NumpyOps`), so :func:`roadgonio.surface.model.road_brdf` and
+:class:`roadgonio.arrays.NumpyOps`), so :func:`roadgonio.surface.model.road_brdf` and
 :mod:`roadgonio.instrument.optics` run unchanged inside Mitsuba kernels (float32).
 
 Only this subpackage imports drjit, and only when :class:`DrJitOps` is first used.

@@ -231,13 +231,13 @@ def _bsdf_dict(model: RoadModel, channels: str) -> dict:
 
 
 def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 64, spp: int = 16,
-                variant: str | None = None, sampler: str = "independent", channels: str = "road_lambert",
+                mitsuba_variant: str | None = None, sampler: str = "independent", channels: str = "road_lambert",
                 check: bool = True, hit_rays: int = 1 << 16) -> RoadScene:
     """Build the scene of ``instrument`` with a sample of BSDF ``model`` (XML scene if the
     instrument has ``[scene] xml``). Checks the detector footprint (errors, not wrong numbers):
     the extreme rays of the detector bundle and ``hit_rays`` random ones must hit the sample (the
     batched engine, which counts every ray it traces, asks for fewer)."""
-    require_variant(variant)
+    require_variant(mitsuba_variant)
     from roadgonio.engines.mitsuba.plugins import register_plugins
     register_plugins()
     if check:

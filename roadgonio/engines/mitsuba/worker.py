@@ -4,7 +4,7 @@ A worker process is an entry point of its own: Mitsuba variants and the Python p
 (and, in some builds, thread) state, so each worker chooses the variant, registers the roadgonio
 plugins and sizes Dr.Jit's thread pool itself (:func:`prepare_process`). In the driver's own
 process nothing is changed: :func:`check_process` only checks what its entry point chose.
-Used by :mod:`roadgonio.design.cluster` through its lazy ``PROCESS_SETUP`` table, like the backends.
+Used by :mod:`roadgonio.engines.cluster` through its lazy ``PROCESS_SETUP`` table, like the backends.
 """
 from __future__ import annotations
 

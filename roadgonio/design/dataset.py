@@ -1,0 +1,213 @@
+"""The design Dataset (``design.nc``): assembled from the grid, the geometry checks and the tables
+(:func:`assemble`), and read back (:func:`point_index`, :func:`best_instrument`, :func:`summary`).
+:mod:`.run` builds it, :mod:`.outputs` writes it; both read it through this module.
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from roadgonio.fileio import to_json
+from roadgonio.instrument.config import Instrument
+from roadgonio.engines import cluster as _cluster
+from roadgonio.design.grid import VarySpec
+from roadgonio.design.metrics import SIGNAL_FORMULA, deviations, detector_etendue, signal_product, source_solid_angle
+
+def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, ...], points, samples, union,
+             feas, inst_of, done: Mapping[tuple[int, int], dict], seeds, tol: float):
+    """The Dataset of a design (layout in :mod:`roadgonio.design`)."""
+    import xarray as xr
+    n, ns = len(points), len(samples)
+    tans = np.array(sorted({t for t, _ in union}), dtype=np.float64)
+    betas = np.array(sorted({b for _, b in union}), dtype=np.float64)
+    ti = {float(t): k for k, t in enumerate(tans)}
+    bi = {float(b): k for k, b in enumerate(betas)}
+    k_a = np.full((n, ns, len(tans), len(betas)), np.nan)
+    se = np.full_like(k_a, np.nan)
+    bound = np.full_like(k_a, np.nan)
+    not_conv = np.zeros(n, dtype=np.int32)
+    seconds = np.zeros(n)
+    geometry_ok = np.array([f.ok for f in feas], dtype=bool)
+    kind = np.array([f.kind for f in feas], dtype=object)
+    reason = np.array([f.reason for f in feas], dtype=object)
+    for i in range(n):
+        if not feas[i].ok:
+            continue
+        for j, s in enumerate(samples):
+            rec = done.get((i, j))
+            if rec is None:
+                kind[i], reason[i] = "failed", "not computed (interrupted); run the same command again to finish"
+                continue
+            seconds[i] += float(rec.get("seconds") or 0.0)
+            if rec.get("error"):
+                if rec.get("error_kind") == "WorkerError":
+                    kind[i], reason[i] = "failed", f"{rec['error']}; run the same command again to retry"
+                else:
+                    geometry_ok[i] = False
+                    kind[i] = "backend"
+                    reason[i] = f"{samples[j].name}: {rec['error']}"
+                continue
+            for c, (t, b) in enumerate(s.cells):
+                a, bb = ti[float(t)], bi[float(b)]
+                k_a[i, j, a, bb] = _f(rec["k_a"][c])
+                se[i, j, a, bb] = _f(rec["se"][c])
+                bound[i, j, a, bb] = _f(rec["error_bound"][c])
+                not_conv[i] += 0 if rec["converged"][c] else 1
+    max_dev = np.full(n, np.nan)
+    rms = np.full(n, np.nan)
+    worst_t = np.full(n, np.nan)
+    worst_b = np.full(n, np.nan)
+    worst_se = np.full(n, np.nan)
+    worst_s = np.array([""] * n, dtype=object)
+    max_dev_s = np.full((n, ns), np.nan)
+    computed = np.zeros(n, dtype=bool)
+    for i in range(n):
+        if kind[i] in ("failed",) or not geometry_ok[i]:
+            continue
+        u = np.where(np.isfinite(se[i]), se[i], bound[i] / math.sqrt(3.0))
+        d = deviations(k_a[i], u)
+        if d["cells"] == 0:
+            continue
+        computed[i] = True
+        max_dev[i], rms[i], worst_se[i] = d["max_abs_dev"], d["rms_dev"], d["worst_se"]
+        js, a, bb = np.unravel_index(d["worst"], k_a[i].shape)
+        worst_t[i], worst_b[i], worst_s[i] = tans[a], betas[bb], samples[js].name
+        for j in range(ns):
+            v = np.abs(k_a[i, j] - 1.0)
+            max_dev_s[i, j] = np.nanmax(v) if np.isfinite(v).any() else np.nan
+    feasible = geometry_ok & computed & (max_dev <= tol)
+    for i in range(n):
+        if geometry_ok[i] and computed[i] and not feasible[i]:
+            kind[i] = "tolerance"
+            reason[i] = (f"max |k_A - 1| = {max_dev[i]:.4g} > tolerance {tol:g} at tan eps {worst_t[i]:g}, "
+                         f"beta {worst_b[i]:g} ({worst_s[i]})")
+    signal_abs = np.array([signal_product(x) if x is not None else np.nan for x in inst_of])
+    sb = signal_product(base)
+    signal = signal_abs / sb if sb > 0 else np.full(n, np.nan)
+    omega = np.array([source_solid_angle(x.source.radius_m, x.source.distance_m) if x is not None else np.nan
+                      for x in inst_of])
+    etendue = np.array([detector_etendue(x) if x is not None else np.nan for x in inst_of])
+    fp_len = np.array([f.footprint_length_m for f in feas])
+    fp_min = np.array([f.footprint[0] if f.footprint else np.nan for f in feas])
+    fp_max = np.array([f.footprint[1] if f.footprint else np.nan for f in feas])
+
+    dims = [s.key for s in specs]
+    coords: dict[str, Any] = {s.key: np.array(s.values, dtype=np.float64) for s in specs}
+    coords.update({"sample": np.array([s.name for s in samples], dtype=object), "tan_eps": tans, "beta": betas})
+
+    def grid(v):
+        return np.asarray(v).reshape(shape + np.asarray(v).shape[1:])
+
+    cell_dims = dims + ["sample", "tan_eps", "beta"]
+    data = {
+        "k_a": (cell_dims, grid(k_a), {"long_name": "aperture-effect factor k_A (docs/conventions.md section 5)", "units": "1"}),
+        "se": (cell_dims, grid(se), {"long_name": "standard error of k_A (Monte Carlo; NaN for deterministic backends)"}),
+        "error_bound": (cell_dims, grid(bound), {"long_name": "deterministic error bound of k_A (quadrature; NaN for "
+                                                              "Monte Carlo)"}),
+        "max_abs_dev": (dims, grid(max_dev), {"long_name": "max |k_A - 1| over the cells and samples"}),
+        "max_abs_dev_sample": (dims + ["sample"], grid(max_dev_s), {"long_name": "max |k_A - 1| over the cells, per sample"}),
+        "rms_dev": (dims, grid(rms), {"long_name": "root mean square of k_A - 1 over the cells and samples"}),
+        "worst_tan_eps": (dims, grid(worst_t), {"long_name": "tan eps of the worst cell"}),
+        "worst_beta_deg": (dims, grid(worst_b), {"long_name": "beta (deg) of the worst cell"}),
+        "worst_sample": (dims, grid(worst_s.astype(str)), {"long_name": "sample of the worst cell"}),
+        "worst_se": (dims, grid(worst_se), {"long_name": "standard uncertainty of k_A at the worst cell (SE, or bound/sqrt 3)"}),
+        "not_converged": (dims, grid(not_conv), {"long_name": "cells whose backend stopped before its target"}),
+        "signal": (dims, grid(signal), {"long_name": "detected flux for a Lambertian sample relative to the base design",
+                                        "formula": SIGNAL_FORMULA}),
+        "source_solid_angle_sr": (dims, grid(omega), {"long_name": "projected solid angle of the source disc at the sample"}),
+        "detector_etendue_m2sr": (dims, grid(etendue), {"long_name": "etendue of the luminance meter (pupil x field)"}),
+        "footprint_length_m": (dims, grid(fp_len), {"long_name": "length of the detector footprint along the observation azimuth"}),
+        "footprint_x_min_m": (dims, grid(fp_min), {}),
+        "footprint_x_max_m": (dims, grid(fp_max), {}),
+        "geometry_ok": (dims, grid(geometry_ok), {"long_name": "the instrument can measure every requested cell"}),
+        "feasible": (dims, grid(feasible), {"long_name": "geometry_ok and max_abs_dev <= tolerance"}),
+        "kind": (dims, grid(kind.astype(str)), {"long_name": "why not feasible: instrument, footprint, horizon, "
+                                                              "line_of_sight, backend, tolerance, failed"}),
+        "reason": (dims, grid(reason.astype(str)), {"long_name": "why not feasible (empty if feasible)"}),
+        "seed": (dims, grid(np.array(seeds, dtype=np.int32)), {"long_name": "backend seed of the design point "
+                                                                               "(roadgonio ka --seed)"}),
+        "seconds": (dims, grid(seconds), {"long_name": "compute time of the point's tables (s)"}),
+    }
+    ds = xr.Dataset({k: xr.Variable(d, v, a) for k, (d, v, a) in data.items()}, coords=coords)
+    feasible_idx = np.nonzero(feasible)[0]
+    best = -1
+    if feasible_idx.size:
+        order = sorted(feasible_idx, key=lambda i: (-signal_abs[i], max_dev[i], i))
+        best = int(order[0])
+    ds.attrs.update({
+        "title": f"roadgonio design study of instrument '{base.name}'",
+        "tolerance": float(tol),
+        "varied": to_json(dims, indent=None),
+        "samples": to_json([s.name for s in samples], indent=None),
+        "base_instrument_json": to_json(_cluster.absolute_instrument_dict(base), indent=None),
+        "base_instrument_path": str(Path(base.path).resolve()) if base.path is not None else "",
+        "base_signal_product": float(sb),
+        "signal_formula": SIGNAL_FORMULA,
+        "points": int(n), "points_geometry_ok": int(geometry_ok.sum()), "points_feasible": int(feasible.sum()),
+        "best_index": int(best),
+        "best_point_json": to_json(points[best] if best >= 0 else None, indent=None),
+        "log_axes": to_json([s.key for s in specs if s.log], indent=None),
+    })
+    return ds
+
+
+def _f(v) -> float:
+    return math.nan if v is None else float(v)
+
+
+def best_instrument(ds) -> Instrument | None:
+    """The best design of a design Dataset as a complete Instrument (None if no point is feasible)."""
+    point = json.loads(ds.attrs["best_point_json"])
+    if point is None:
+        return None
+    from roadgonio.design.grid import build_instrument
+    return build_instrument(base_instrument(ds), point)
+
+
+def base_instrument(ds) -> Instrument:
+    path = ds.attrs.get("base_instrument_path") or None
+    return Instrument.from_dict(json.loads(ds.attrs["base_instrument_json"]), path=path)
+
+
+def point_index(ds, i: int) -> dict[str, float]:
+    """The varied values of flat point ``i`` (C order)."""
+    dims = json.loads(ds.attrs["varied"])
+    shape = tuple(ds.sizes[d] for d in dims)
+    idx = np.unravel_index(i, shape) if dims else ()
+    return {d: float(ds[d].values[k]) for d, k in zip(dims, idx)}
+
+
+def summary(ds) -> dict[str, Any]:
+    """A short JSON-able summary of a design Dataset."""
+    dims = json.loads(ds.attrs["varied"])
+    best = int(ds.attrs["best_index"])
+    flat = {v: ds[v].values.reshape(-1) for v in ("max_abs_dev", "rms_dev", "signal", "feasible", "kind",
+                                                    "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_se",
+                                                    "seed", "footprint_length_m")}
+    kinds: dict[str, int] = {}
+    for k in flat["kind"]:
+        if k:
+            kinds[str(k)] = kinds.get(str(k), 0) + 1
+    s: dict[str, Any] = {"points": int(ds.attrs["points"]), "feasible": int(ds.attrs["points_feasible"]),
+                         "geometry_ok": int(ds.attrs["points_geometry_ok"]), "not_feasible_by_kind": kinds,
+                         "tolerance": float(ds.attrs["tolerance"]), "varied": dims,
+                         "tables_computed": int(ds.attrs.get("tables_computed", 0)),
+                         "tables_resumed": int(ds.attrs.get("tables_resumed", 0)),
+                         "tables_failed": int(ds.attrs.get("tables_failed", 0)),
+                         "wall_s": float(ds.attrs.get("wall_s", math.nan)),
+                         "compute_wall_s": float(ds.attrs.get("compute_wall_s", math.nan))}
+    if "design_points_per_hour" in ds.attrs:
+        s["design_points_per_hour"] = float(ds.attrs["design_points_per_hour"])
+    if best >= 0:
+        s["best"] = {"index": best, **point_index(ds, best),
+                     **{k: (v[best].item() if hasattr(v[best], "item") else v[best]) for k, v in flat.items()
+                        if k not in ("feasible", "kind")}}
+    else:
+        s["best"] = None
+    if "out" in ds.attrs:
+        s["out"] = ds.attrs["out"]
+    return s

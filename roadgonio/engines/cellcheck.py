@@ -1,0 +1,78 @@
+"""What every k_A backend checks at a cell before (and after) it integrates, written once.
+
+Before: the whole source disc above the sample plane (:func:`roadgonio.instrument.optics.check_source`);
+for a backend that does not model a source beam limit, no beam limit that clips the light reaching the
+footprint (:func:`roadgonio.instrument.optics.beam_clips_footprint`); the source disc out of the
+detector's view (:func:`roadgonio.instrument.optics.check_line_of_sight`); and a positive, finite model
+value at the nominal geometry, since k_A = measured / nominal (paper eq. 2): :func:`check_cell` returns
+that nominal value, pi f_road(nominal) (:func:`roadgonio.engines.ideal_ratio`), the denominator of k_A.
+
+After: a cell at which no detected ray receives light has no k_A (:func:`no_light`).
+
+Errors, not wrong numbers: :class:`~roadgonio.errors.GeometryError` (the geometry cannot be measured)
+or :class:`~roadgonio.errors.BackendError` (this backend cannot compute it), naming the cell.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from roadgonio.errors import BackendError, GeometryError
+from roadgonio.instrument import optics
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel
+from roadgonio.engines.result import ideal_ratio, ideal_ratios
+
+
+def _check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]], models_beam: bool,
+                    backend: str) -> None:
+    for t, b in cells:
+        optics.check_source(instrument, t, b)
+        if not models_beam and optics.beam_clips_footprint(instrument, t, b):
+            raise BackendError(f"the source beam limit ({instrument.source.beam_half_angle_deg:g} deg) clips the "
+                               f"light reaching the detector footprint at tan eps = {t:g}, beta = {b:g}; the "
+                               f"{backend} backend does not model beam limits: use the quadrature backend")
+    optics.check_line_of_sight(instrument, cells)
+
+
+def check_nominal(nominal: float, tan_eps: float, beta_deg: float) -> None:
+    """k_A = measured / nominal needs a positive, finite model value at the nominal geometry
+    (``nominal`` = pi f_road(nominal), :func:`roadgonio.engines.ideal_ratio`)."""
+    if not (nominal > 0.0 and math.isfinite(nominal)):
+        raise GeometryError(f"the model is {nominal / math.pi:g} at the nominal geometry (tan eps = {tan_eps:g}, "
+                            f"beta = {beta_deg:g}): k_A = measured/nominal is undefined there")
+
+
+def check_cell(instrument: Instrument, model: RoadModel, tan_eps: float, beta_deg: float, *,
+               models_beam: bool = True, backend: str = "this") -> float:
+    """The checks of the module docstring at one cell; returns pi f_road(nominal) (float64).
+    ``models_beam``: the backend integrates a source beam limit (else a clipping one is refused)."""
+    _check_geometry(instrument, [(tan_eps, beta_deg)], models_beam, backend)
+    nominal = ideal_ratio(model, instrument, tan_eps, beta_deg)
+    check_nominal(nominal, tan_eps, beta_deg)
+    return nominal
+
+
+def check_cells(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[float, float]], *,
+                models_beam: bool = True, backend: str = "this") -> np.ndarray:
+    """:func:`check_cell` for a list of cells at once (the line of sight and the nominal values
+    vectorised): raises for the first cell that fails, the horizon and beam first, then the line of
+    sight, then the nominal value; returns pi f_road(nominal) per cell
+    (:func:`roadgonio.engines.ideal_ratios`)."""
+    cells = [(float(t), float(b)) for t, b in cells]
+    if not cells:
+        return np.zeros(0)
+    _check_geometry(instrument, cells, models_beam, backend)
+    nominal = ideal_ratios(model, instrument, cells)
+    for (t, b), v in zip(cells, nominal):
+        check_nominal(float(v), t, b)
+    return nominal
+
+
+def no_light(tan_eps: float, beta_deg: float, why: str = "") -> GeometryError:
+    """The error of a cell at which no detected ray receives light from the source (k_A undefined);
+    ``why`` a parenthesised reason, e.g. ``"(the source beam misses the detector footprint)"``."""
+    return GeometryError(f"no detected ray receives light from the source at tan eps = {tan_eps:g}, beta = "
+                         f"{beta_deg:g}{' ' + why if why else ''}: k_A is undefined")

@@ -1,0 +1,411 @@
+"""Dask for roadgonio: many independent k_A tables over worker processes.
+
+Used by ``roadgonio design`` (one table per design point and sample), by ``roadgonio uncertainty``
+(the exact tables of the surrogate design) and by ``roadgonio correct`` (one task per measured
+table). :func:`map_calls` is the one piece of Dask plumbing: *call a module-level function for
+every item, one task each, on the client's workers (or here when the client is ``None``)*, with
+an optional object shipped once to every worker, results in order, progress callbacks in
+completion order, cancellation on errors. The unit of work of the k_A tables is
+:class:`TableTask`: *compute a k_A table for (instrument dict, model dict, cells, backend,
+settings, seed)*; :func:`compute_table` does it in whatever process it runs in, :func:`map_tables`
+maps it with :func:`map_calls`.
+
+Clusters (:func:`open_client`):
+
+* ``workers=N`` (default: the number of cores): a ``dask.distributed.LocalCluster`` of N worker
+  **processes** with one thread each, on the loopback interface, no dashboard;
+* ``scheduler="tcp://HOST:PORT"``: an existing cluster started with the standard commands
+  (``dask scheduler`` / ``dask worker tcp://HOST:PORT --nthreads 1``); the workers must import the
+  same roadgonio (same version; start them from the same environment);
+* ``workers=0``: no Dask, everything in the calling process.
+
+Mitsuba variants and Python plugins are per process (and, in some builds, per thread): every
+worker sets the variant and registers the plugins itself. A :class:`EngineSetup` worker plugin
+does it in the worker's task thread when the worker starts (and sets Dr.Jit's thread pool to the
+worker's thread count, so N one-thread workers use N cores, not N^2 threads), and every task
+checks it again (idempotent), so a worker that joins late or restarts is never left without them.
+
+Results do not depend on where a task runs: a task carries its seed, and the backend's own
+seeding is per cell (``tests/system/test_design_cluster.py`` compares a 2-worker cluster started with
+``dask scheduler`` / ``dask worker`` against the in-process run, bit for bit).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+import uuid
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import Any, Callable, Iterator, Mapping, Sequence
+
+from roadgonio.errors import BackendError, InputError, RoadgonioError
+
+#: Seconds to wait for a scheduler to answer and for its first worker to join.
+CONNECT_TIMEOUT_S = 30.0
+
+
+@dataclass(frozen=True)
+class TableTask:
+    """Compute k_A at ``cells`` for one instrument and one sample model.
+
+    ``instrument`` is :meth:`Instrument.to_dict` (with absolute file paths), ``model`` is
+    :meth:`RoadModel.to_json_dict`; ``accuracy`` a preset name, ``settings`` explicit backend
+    settings (they override the preset), ``seed`` the backend seed (Monte Carlo backends only).
+    ``key`` is the caller's identifier, returned unchanged in the result.
+    """
+
+    instrument: Mapping[str, Any]
+    model: Mapping[str, Any]
+    cells: tuple[tuple[float, float], ...]
+    backend: str = "mitsuba"
+    accuracy: str | None = None
+    settings: Mapping[str, Any] = field(default_factory=dict)
+    seed: int | None = None
+    instrument_path: str | None = None
+    key: Any = None
+
+
+@dataclass
+class TableResult:
+    """What :func:`compute_table` returns: the cells, or the reason it could not compute them."""
+
+    key: Any
+    cells: list                       # list[CellResult], in the order of the task's cells
+    settings: dict[str, Any] = field(default_factory=dict)
+    error: str | None = None          # one-line reason (RoadgonioError message) when nothing was computed
+    error_kind: str | None = None     # GeometryError | InputError | BackendError | WorkerError
+    seconds: float = 0.0
+    worker: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.error is None
+
+
+# ----------------------------------------------------------------------------------------------
+# In the worker
+# ----------------------------------------------------------------------------------------------
+
+#: "module:function" preparing a worker process for a backend that needs Mitsuba (the registry's
+#: ``mitsuba`` capability; lazy, so only the Mitsuba room imports mitsuba): ``function(variant,
+#: render_threads)``; and the one checking (never changing) the driver's own process.
+MITSUBA_SETUP = "roadgonio.engines.mitsuba.worker:prepare_process"
+MITSUBA_CHECK = "roadgonio.engines.mitsuba.worker:check_process"
+
+_READY: set[tuple[int, str, str | None]] = set()
+_READY_LOCK = threading.Lock()
+
+
+def _resolve(ref: str):
+    import importlib
+    mod, func = ref.split(":")
+    return getattr(importlib.import_module(mod), func)
+
+
+def init_engine(backend: str = "mitsuba", variant: str | None = None,
+                render_threads: int | None = None) -> dict[str, Any]:
+    """Prepare this worker process and thread for ``backend`` (Mitsuba: the variant, the plugins,
+    Dr.Jit's pool); idempotent. Only for worker processes: they are entry points of their own."""
+    from roadgonio.engines.registry import backend_info
+    info: dict[str, Any] = {"pid": os.getpid()}
+    if backend_info(backend).mitsuba:
+        info.update(_resolve(MITSUBA_SETUP)(variant, render_threads))
+    with _READY_LOCK:
+        _READY.add((threading.get_ident(), backend, variant))
+    return info
+
+
+def check_engine(backend: str, variant: str | None = None) -> None:
+    """In the driver's process: check (never change) what its entry point chose for ``backend``."""
+    from roadgonio.engines.registry import backend_info
+    if backend_info(backend).mitsuba:
+        _resolve(MITSUBA_CHECK)(variant)
+
+
+def _ensure_engine(backend: str, variant: str | None) -> None:
+    if (threading.get_ident(), backend, variant) not in _READY:
+        init_engine(backend, variant)
+
+
+def _worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+def compute_table(task: TableTask, *, prepare: bool = True) -> TableResult:
+    """Compute one :class:`TableTask` in this process. On a worker (``prepare=True``) the process is
+    first prepared for the backend (:func:`init_engine`, idempotent); in the driver's own process
+    (``prepare=False``, :func:`map_tables` without a client) it is used as its entry point set it up.
+    A :class:`~roadgonio.errors.RoadgonioError` (impossible geometry, bad settings, missing backend)
+    becomes the result's ``error``; anything else is a bug and propagates."""
+    from roadgonio.engines.registry import backend_info, make_backend
+    from roadgonio.instrument.config import Instrument
+    from roadgonio.surface.model import RoadModel
+    t0 = time.perf_counter()
+    try:
+        inst = Instrument.from_dict(task.instrument, path=task.instrument_path)
+        model = RoadModel.from_json_dict(task.model)
+        settings = dict(task.settings)
+        seed = task.seed if (task.seed is not None and backend_info(task.backend).seeded) else None
+        if prepare:
+            _ensure_engine(task.backend, settings.get("mitsuba_variant"))
+        backend = make_backend(task.backend, inst, model, accuracy=task.accuracy, seed=seed, settings=settings)
+        cells = backend.compute([(float(t), float(b)) for t, b in task.cells])
+        try:
+            used = dict(backend.settings())
+        except Exception:  # noqa: BLE001 - provenance only
+            used = {"backend": task.backend}
+        return TableResult(key=task.key, cells=list(cells), settings=used, seconds=time.perf_counter() - t0,
+                           worker=_worker_name())
+    except RoadgonioError as err:
+        return TableResult(key=task.key, cells=[], error=str(err), error_kind=type(err).__name__,
+                           seconds=time.perf_counter() - t0, worker=_worker_name())
+
+
+def _worker_versions() -> dict[str, Any]:
+    import roadgonio._version as version
+    return {"roadgonio": version.__version__, "pid": os.getpid(), "file": version.__file__}
+
+
+try:  # the plugin class needs distributed; roadgonio itself does not import it
+    from distributed import WorkerPlugin as _WorkerPlugin
+except ImportError:  # pragma: no cover
+    _WorkerPlugin = object
+
+
+class EngineSetup(_WorkerPlugin):
+    """Worker plugin: prepare the worker for a backend when it starts (Mitsuba: set the variant,
+    register the plugins and size Dr.Jit's pool, in the worker's task thread). Failures (no
+    mitsuba on that worker) are kept in ``info`` and surface as the tasks' clear errors instead of
+    killing the worker."""
+
+    name = "roadgonio-engine"
+
+    def __init__(self, backend: str = "mitsuba", variant: str | None = None, render_threads: int | None = None):
+        self.backend = backend
+        self.variant = variant
+        self.render_threads = render_threads
+        self.info: dict[str, Any] = {}
+
+    async def setup(self, worker):
+        import asyncio
+        n = self.render_threads or getattr(getattr(worker, "state", None), "nthreads", None) or 1
+        executor = worker.executors.get("default")
+        try:
+            self.info = await asyncio.get_running_loop().run_in_executor(executor, init_engine, self.backend,
+                                                                         self.variant, n)
+        except RoadgonioError as err:
+            self.info = {"error": str(err)}
+
+
+# ----------------------------------------------------------------------------------------------
+# In the caller
+# ----------------------------------------------------------------------------------------------
+
+def _check_address(address: str) -> str:
+    a = str(address).strip()
+    if "://" not in a:
+        a = "tcp://" + a
+    proto, rest = a.split("://", 1)
+    host, _, port = rest.rpartition(":")
+    if proto not in ("tcp", "tls", "inproc", "ws", "wss") or not host or not port.isdigit():
+        raise InputError(f"expected a scheduler address tcp://HOST:PORT (as printed by 'dask scheduler'), got "
+                         f"{address!r}", field="--scheduler")
+    return a
+
+
+@contextmanager
+def open_client(workers: int | None = None, scheduler: str | None = None, *, backend: str | None = "mitsuba",
+                variant: str | None = None, quiet: bool = True) -> Iterator[Any]:
+    """A Dask client for :func:`map_tables` (module docstring), closed (with its local cluster) on
+    exit; yields ``None`` for ``workers=0`` (compute in this process). With ``backend`` (default
+    mitsuba) every worker is prepared for it by the :class:`EngineSetup` plugin (``variant``: the
+    Mitsuba variant, default ``$ROADGONIO_VARIANT`` or llvm_ad_rgb)."""
+    if workers is not None and scheduler is not None:
+        raise InputError("give --workers (a local cluster) or --scheduler (an existing one), not both",
+                         field="--workers/--scheduler")
+    if scheduler is None and workers == 0:
+        yield None
+        return
+    if workers is not None and (not isinstance(workers, int) or workers < 0):
+        raise InputError(f"expected a number of workers >= 0, got {workers!r}", field="--workers")
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:  # pragma: no cover
+        raise BackendError("running on Dask needs the package dask[distributed] ('pip install \"dask[distributed]\"')") from None
+    cluster = None
+    if scheduler is not None:
+        address = _check_address(scheduler)
+        try:
+            client = Client(address, timeout=f"{CONNECT_TIMEOUT_S:g}s")
+        except (OSError, TimeoutError) as err:
+            raise InputError(f"cannot connect to the Dask scheduler at {address} ({err}); start one with "
+                             "'dask scheduler' and workers with 'dask worker ADDRESS --nthreads 1'",
+                             field="--scheduler") from None
+        try:
+            client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+        except (TimeoutError, OSError):
+            client.close()
+            raise InputError(f"no worker joined the Dask scheduler at {address} within {CONNECT_TIMEOUT_S:g} s; "
+                             "start some with 'dask worker ADDRESS --nthreads 1'", field="--scheduler") from None
+    else:
+        n = workers if workers is not None else (os.cpu_count() or 1)
+        # no dashboard; the scheduler's HTTP server (health routes) still starts, on a free loopback
+        # port instead of 8787, which another cluster may hold (Dask then warns and leaks a socket)
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                               dashboard_address=None, worker_dashboard_address=None,
+                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                               silence_logs=logging.ERROR if quiet else logging.WARNING)
+        client = Client(cluster)
+    try:
+        _check_workers(client)
+        from roadgonio.engines.registry import backend_info
+        if backend is not None and backend_info(backend).mitsuba:
+            client.register_plugin(EngineSetup(backend, variant), name=EngineSetup.name)
+        yield client
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def _check_workers(client) -> None:
+    import roadgonio._version as version
+    found = client.run(_worker_versions)
+    bad = {w: v["roadgonio"] for w, v in found.items() if v["roadgonio"] != version.__version__}
+    if bad:
+        raise BackendError(f"Dask workers run another roadgonio version ({', '.join(f'{w}: {v}' for w, v in bad.items())}; "
+                           f"this is {version.__version__}): start the workers from the same environment")
+
+
+def describe(client) -> dict[str, Any]:
+    """Scheduler address, number of workers and threads (for provenance and summaries)."""
+    if client is None:
+        return {"mode": "in-process", "workers": 0, "threads": 1}
+    info = client.scheduler_info()
+    ws = info.get("workers", {})
+    return {"mode": "dask", "scheduler": info.get("address"), "workers": len(ws),
+            "threads": int(sum(w.get("nthreads", 0) for w in ws.values()))}
+
+
+def _call_task(item: Any, *, call: Callable, shared: Any = None, with_shared: bool = False,
+               backend: str | None = None, variant: str | None = None) -> Any:
+    """One task of :func:`map_calls` on a worker: prepare the process for ``backend`` (idempotent),
+    then ``call(item)`` or ``call(item, shared)``."""
+    if backend is not None:
+        _ensure_engine(backend, variant)
+    return call(item, shared) if with_shared else call(item)
+
+
+_NO_SHARED = object()
+
+
+def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any = _NO_SHARED,
+              backend: str | None = None, variant: str | None = None,
+              on_result: Callable[[int, Any], None] | None = None,
+              on_lost: Callable[[int, BaseException], Any] | None = None, name: str = "call") -> list[Any]:
+    """``func(item)`` for every item, one Dask task per item on the client's workers (or one after
+    the other in this process when ``client`` is None); returns the results in the order of
+    ``items`` and calls ``on_result(index, result)`` as each one finishes (completion order).
+
+    * ``func`` must be importable by the workers (a module-level function of roadgonio), ``items``
+      and the results picklable.
+    * ``shared``: one object every call needs (``func(item, shared)``), shipped once: scattered to
+      every worker (``broadcast``) instead of pickled into each task.
+    * ``backend`` / ``variant``: on a worker each task first prepares its process for that backend
+      (:func:`init_engine`: the Mitsuba variant and plugins; idempotent). In this process nothing
+      is prepared (its entry point chose the variant).
+    * A worker that dies on a task: ``on_lost(index, error)`` gives that item's result, or without
+      ``on_lost`` a :class:`~roadgonio.errors.BackendError` is raised. An exception raised by
+      ``func`` is raised here (the first one to finish). Unfinished tasks are cancelled when this
+      returns or raises (Ctrl-C).
+    """
+    items = list(items)
+    with_shared = shared is not _NO_SHARED
+    if client is None:
+        out = []
+        for i, item in enumerate(items):
+            r = func(item, shared) if with_shared else func(item)
+            if on_result is not None:
+                on_result(i, r)
+            out.append(r)
+        return out
+    from distributed import KilledWorker, as_completed
+    from distributed.comm.core import CommClosedError
+    if not items:
+        return []
+    token = uuid.uuid4().hex[:12]
+    keys = [f"roadgonio-{name}-{token}-{i}" for i in range(len(items))]
+    # a list of one: scatter() would scatter a dict or a list element by element
+    shared_future = client.scatter([shared], broadcast=True, hash=False)[0] if with_shared else None
+    futures = client.map(_call_task, items, key=keys, pure=False, call=func, shared=shared_future,
+                         with_shared=with_shared, backend=backend, variant=variant)
+    index = {f.key: i for i, f in enumerate(futures)}
+    results: list[Any] = [None] * len(items)
+    try:
+        for fut in as_completed(futures):
+            i = index[fut.key]
+            try:
+                r = fut.result()
+            except (KilledWorker, CommClosedError) as err:
+                if on_lost is None:
+                    raise BackendError(f"a Dask worker died computing task {i + 1} of {len(items)} ({err}); run the "
+                                       "same command again") from None
+                r = on_lost(i, err)
+            results[i] = r
+            fut.release()
+            if on_result is not None:
+                on_result(i, r)
+    finally:
+        pending = [f for f in futures if not f.done()]
+        if pending:
+            client.cancel(pending)
+        if shared_future is not None:
+            shared_future.release()
+    return results
+
+
+def map_tables(tasks: Sequence[TableTask], client=None, *,
+               on_result: Callable[[TableResult], None] | None = None) -> list[TableResult]:
+    """Compute every task (on the client's workers, or here if ``client`` is None); returns the
+    results in the order of ``tasks`` and calls ``on_result`` as each one finishes (in completion
+    order). A worker that dies on a task gives that task ``error_kind = "WorkerError"``; exceptions
+    that are not a RoadgonioError (bugs) are raised here. Unfinished tasks are cancelled when this
+    returns or raises (Ctrl-C). (:func:`map_calls` of :func:`compute_table`.)"""
+    tasks = list(tasks)
+
+    def lost(i: int, err: BaseException) -> TableResult:
+        return TableResult(key=tasks[i].key, cells=[], error=f"a Dask worker died computing this table ({err})",
+                           error_kind="WorkerError")
+    # compute_table prepares a worker's process itself; in this process it uses what the entry point chose
+    func = compute_table if client is not None else partial(compute_table, prepare=False)
+    return map_calls(func, tasks, client, on_lost=lost, name="table",
+                     on_result=None if on_result is None else (lambda i, r: on_result(r)))
+
+
+def absolute_instrument_dict(instrument) -> dict[str, Any]:
+    """``instrument.to_dict()`` with the sample mesh and an XML scene as absolute paths, so a
+    worker in another folder (or on another machine with the same files) reads the same files."""
+    d = instrument.to_dict()
+    smp = d.get("sample", {})
+    if smp.get("mesh"):
+        smp["mesh"] = str(Path(smp["mesh"]).resolve())
+    scene = d.get("scene")
+    if isinstance(scene, dict) and scene.get("xml"):
+        xml = Path(scene["xml"])
+        if not xml.is_absolute() and instrument.path is not None:
+            xml = Path(instrument.path).parent / xml
+        d["scene"] = {**scene, "xml": str(xml.resolve())}
+    return d
+
+
+def seeds_for(seed: int, n: int) -> list[int]:
+    """``n`` backend seeds (31-bit) from ``SeedSequence(seed).spawn(n)``: the k-th depends only on
+    (seed, k), never on the number of workers or the order in which tasks finish."""
+    import numpy as np
+    return [int(s.generate_state(1, dtype=np.uint32)[0] & 0x7FFFFFFF) for s in np.random.SeedSequence(int(seed)).spawn(n)]
+

@@ -1,0 +1,229 @@
+"""The k_A backends and what each can do: ONE registry that the command line, the Python API,
+``design``, ``uncertainty``, ``correct`` and ``validate`` all read (docs/architecture.md, "How to
+add a backend").
+
+Each :class:`BackendInfo` says how to build the backend (a lazy ``"module:function"`` factory, so a
+numpy-only run never imports mitsuba), what its precision is (a standard error, a deterministic
+bound, or a standard error with a statistical confidence bound: :mod:`roadgonio.engines.result`),
+whether it takes a seed, its accuracy presets, what its one tolerance is called (``rel_se`` or
+``rtol``), and which instruments it models (mesh samples, Mitsuba XML scenes, a beam limit that
+clips the footprint). :func:`make_backend` resolves everything a backend needs in one place:
+preset < tolerance < explicit settings, the seed, the Mitsuba variant, the capability checks, and
+the instrument's calibration (:mod:`roadgonio.engines.calibration`).
+
+Accuracy presets, placed on the measured speed-accuracy frontier (bench/bench_accuracy.py,
+bench/results/accuracy.csv and pareto.png; portable preset, R3-like model, 7 cells including the
+specular peak tan 12 / beta 0 and 2, max relative error against quadrature at rtol 1e-7):
+
+========  ==============================  ==============================  ==============================
+preset    quadrature                      mitsuba (float32, batched)      numpy-mc (float64 oracle)
+========  ==============================  ==============================  ==============================
+fast      rtol 1e-3: err 6.0e-5           rel_se 3e-3, first pass 256:    rel_se 3e-3, batch 32^2:
+                                          err 1.3e-3                      err 4.8e-4
+default   rtol 1e-4: err 2.3e-5           rel_se 1e-3, first pass 1024:   rel_se 1e-3, batch 128^2:
+                                          err 1.6e-3 (SE 9.3e-4)          err 1.1e-4
+precise   rtol 1e-6: err 2.9e-7           rel_se 1e-4, first pass 4096:   rel_se 1e-4, batch 128^2:
+                                          err 1.1e-4                      err 1.1e-4
+========  ==============================  ==============================  ==============================
+
+The batched Mitsuba engine stops every cell at its target (a small first pass, then the 1/N rule per
+cell), so its presets sit on the measured front by construction; ``first_pass`` only matters for
+the easy cells. The reference's presets are the same tolerances as the quadrature's (its ``rtol``
+is the target of its confidence bound), the mesh Monte Carlo's the same as numpy-mc's. Timings of
+each preset: docs/benchmarks.md.
+"""
+from __future__ import annotations
+
+import importlib
+import math
+import numbers
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from roadgonio.errors import InputError
+
+#: The accuracy presets, by name.
+PRESETS = ("fast", "default", "precise")
+#: Seeds a user may give: whole numbers 0 <= seed <= SEED_MAX (they reach the generators in full:
+#: numpy's SeedSequence takes them as entropy, so two different seeds never share a stream).
+SEED_MAX = 2 ** 63 - 1
+
+
+@dataclass(frozen=True)
+class BackendInfo:
+    """One backend of the registry (module docstring)."""
+
+    name: str
+    factory: str                     # "module:function(instrument, model, **settings)"
+    summary: str                     # one line for --help and the docs
+    precision: str                   # "se" | "error_bound" | "se+confidence_bound"
+    seeded: bool                     # takes a seed (Monte Carlo / randomised QMC)
+    tolerance: str                   # the setting one relative target maps to: "rel_se" or "rtol"
+    presets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    meshes: bool = False             # models a mesh sample ([sample] mesh)
+    xml_scenes: bool = False         # models the extra parts of a Mitsuba XML scene ([scene] xml)
+    beam_clipping: bool = True       # models a beam limit that clips the light on the footprint
+    mitsuba: bool = False            # needs mitsuba/drjit and a selected variant (Dask workers set one up)
+    cell_correlation: str = ("independent: each cell has its own random numbers, seeded by (seed, tan eps, beta)")
+
+    @property
+    def deterministic(self) -> bool:
+        return self.precision == "error_bound"
+
+
+def _numpy_mc_presets(batch_default: int) -> dict[str, dict[str, Any]]:
+    return {"fast": {"rel_se": 3e-3, "batch": 32 ** 2}, "default": {"rel_se": 1e-3, "batch": batch_default},
+            "precise": {"rel_se": 1e-4, "batch": batch_default}}
+
+
+BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
+    BackendInfo("mitsuba", "roadgonio.engines.mitsuba.backend:make_backend",
+                "float32 ray tracing with Mitsuba 3 (the default; batched, many cells per launch)",
+                precision="se", seeded=True, tolerance="rel_se",
+                presets={"fast": {"rel_se": 3e-3, "first_pass": 256}, "default": {"rel_se": 1e-3, "first_pass": 1024},
+                         "precise": {"rel_se": 1e-4, "first_pass": 4096}},
+                meshes=True, xml_scenes=True, beam_clipping=False, mitsuba=True,
+                cell_correlation="correlated: the cells computed in one run share the detector rays and replicates, "
+                                 "so their errors are positively correlated; each cell's SE is its marginal SE, a "
+                                 "table functional needs the covariance (MitsubaBackend.covariance())"),
+    BackendInfo("quadrature", "roadgonio.engines.quadrature:make_backend",
+                "deterministic float64 tensor Gauss rules with an error bound (flat samples)",
+                precision="error_bound", seeded=False, tolerance="rtol",
+                presets={"fast": {"rtol": 1e-3}, "default": {"rtol": 1e-4}, "precise": {"rtol": 1e-6}},
+                cell_correlation="deterministic: no random error; each cell's error is within its error_bound"),
+    BackendInfo("numpy-mc", "roadgonio.engines.montecarlo:make_backend",
+                "plain float64 Monte Carlo (slow; an oracle; flat samples)",
+                precision="se", seeded=True, tolerance="rel_se", presets=_numpy_mc_presets(128 ** 2)),
+    BackendInfo("reference", "roadgonio.engines.reference:make_backend",
+                "float64 randomised QMC with the kinks split off: SE and a 99.9 % confidence bound (flat samples)",
+                precision="se+confidence_bound", seeded=True, tolerance="rtol",
+                presets={"fast": {"rtol": 1e-3}, "default": {"rtol": 1e-4}, "precise": {"rtol": 1e-5}}),
+    BackendInfo("numpy-mc-mesh", "roadgonio.engines.meshmc:make_backend",
+                "float64 Monte Carlo with ray casting and shadow rays (mesh samples)",
+                precision="se", seeded=True, tolerance="rel_se", presets=_numpy_mc_presets(1 << 12), meshes=True),
+)}
+
+
+def backend_info(name: str, field: str = "backend") -> BackendInfo:
+    """The registry entry of ``name`` (an InputError listing the backends otherwise)."""
+    if not isinstance(name, str) or name not in BACKENDS:
+        raise InputError(f"unknown backend {name!r}; expected one of {', '.join(BACKENDS)}", field=field)
+    return BACKENDS[name]
+
+
+def check_seed(seed, field: str = "seed") -> int:
+    """A seed as given by a user: a whole number 0 <= seed <= :data:`SEED_MAX` (not a bool, not a
+    float), returned as int; the full value reaches the generators."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise InputError(f"expected a whole number >= 0 as the seed, got {seed!r}", field=field)
+    s = int(seed)
+    if not 0 <= s <= SEED_MAX:
+        raise InputError(f"expected a whole number >= 0 (at most 2^63 - 1) as the seed, got {s}", field=field)
+    return s
+
+
+def check_relative(value, field: str) -> float:
+    """A relative target (standard error or tolerance): a finite number in (0, 1)."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (math.isfinite(value) and 0 < value < 1):
+        raise InputError(f"expected a relative error in (0, 1), got {value!r}", field=field)
+    return float(value)
+
+
+def preset(name: str, backend: str, field: str = "accuracy") -> dict[str, Any]:
+    """Settings of ``backend`` for the accuracy preset ``name``."""
+    info = backend_info(backend)
+    if name not in PRESETS:
+        raise InputError(f"unknown accuracy preset {name!r}; expected one of {', '.join(PRESETS)}", field=field)
+    if name not in info.presets:
+        raise InputError(f"the {backend} backend has no accuracy presets; give its settings", field=field)
+    return dict(info.presets[name])
+
+
+def tolerance_setting(backend: str, value, field: str = "rel_se") -> dict[str, float]:
+    """The backend keyword of one relative target: ``rtol`` (quadrature, reference: a relative
+    error bound) or ``rel_se`` (Monte Carlo: a relative standard error)."""
+    return {backend_info(backend).tolerance: check_relative(value, field)}
+
+
+def check_capabilities(info: BackendInfo, instrument) -> None:
+    """Refuse an instrument the backend does not model (never ignore part of it): a Mitsuba XML
+    scene's extra parts, a mesh sample. (A beam limit that clips the footprint is refused per cell
+    by the backends that cannot model it.)"""
+    scene = instrument.extra.get("scene") if hasattr(instrument.extra, "get") else None
+    if scene and not info.xml_scenes:
+        what = "a Mitsuba XML scene" if hasattr(scene, "get") and "xml" in scene else "a [scene] section"
+        alt = ", ".join(n for n, b in BACKENDS.items() if b.xml_scenes)
+        raise InputError(f"the {info.name} backend does not model {what} (its extra geometry would be ignored, "
+                         f"giving a different instrument); use --backend {alt}, or an instrument file "
+                         "without [scene]", path=instrument.path, field="scene")
+    if instrument.sample.mesh is not None and not info.meshes:
+        alt = " or ".join(n for n, b in BACKENDS.items() if b.meshes)
+        raise InputError(f"the {info.name} backend integrates over a flat rectangular sample only; for a mesh "
+                         f"sample use --backend {alt}", path=instrument.path, field="sample.mesh")
+
+
+def resolve_settings(name: str, *, accuracy: str | None = None, tolerance=None, seed=None,
+                     mitsuba_variant: str | None = None, settings: Mapping[str, Any] | None = None,
+                     fields: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """The settings a backend is built with, resolved in one place: the accuracy preset, then the
+    one relative target ``tolerance`` (a user's "relative SE or tolerance", in (0, 1), mapped to the
+    backend's own setting ``rel_se`` or ``rtol``), then explicit ``settings`` (the backend's own
+    keywords, checked by the backend); the seed (checked; an error for a deterministic backend),
+    the Mitsuba variant (Mitsuba only). ``fields`` maps these argument names to what errors call
+    them (``{"tolerance": "rel_se"}``)."""
+    f = {"accuracy": "accuracy", "tolerance": "tolerance", "seed": "seed", "mitsuba_variant": "mitsuba_variant",
+         "settings": "settings", **(fields or {})}
+    info = backend_info(name)
+    out: dict[str, Any] = {}
+    if accuracy is not None:
+        out.update(preset(accuracy, name, f["accuracy"]))
+    if tolerance is not None:
+        out.update(tolerance_setting(name, tolerance, f["tolerance"]))
+    if seed is not None:
+        if not info.seeded:
+            raise InputError(f"the {name} backend is deterministic and takes no seed", field=f["seed"])
+        out["seed"] = check_seed(seed, f["seed"])
+    if mitsuba_variant is not None:
+        if not info.mitsuba:
+            raise InputError(f"a Mitsuba variant is for the mitsuba backend, not {name}", field=f["mitsuba_variant"])
+        out["mitsuba_variant"] = str(mitsuba_variant)
+    if settings:
+        if not hasattr(settings, "items"):
+            raise InputError(f"expected a mapping of backend settings, got {settings!r}", field=f["settings"])
+        if "seed" in settings:
+            check_seed(settings["seed"], f["settings"] + ".seed")
+        out.update(settings)
+    return out
+
+
+def make_backend(name: str, instrument, model, *, accuracy: str | None = None, tolerance=None, seed=None,
+                 mitsuba_variant: str | None = None, settings: Mapping[str, Any] | None = None,
+                 fields: Mapping[str, str] | None = None, **more_settings):
+    """Build backend ``name`` for ``instrument`` and ``model`` (lazy import of its module), with
+    its settings resolved by :func:`resolve_settings` (``more_settings`` are explicit settings too,
+    e.g. ``rtol=1e-5``), the instrument checked against the backend's capabilities, in the
+    instrument's ``[calibration]`` mode (:func:`roadgonio.engines.calibration.calibrated`). The
+    Mitsuba backend needs a variant selected by the entry point first
+    (:func:`prepare_entry_point`)."""
+    info = backend_info(name, (fields or {}).get("backend", "backend"))
+    kw = resolve_settings(name, accuracy=accuracy, tolerance=tolerance, seed=seed, mitsuba_variant=mitsuba_variant,
+                          settings={**dict(settings or {}), **more_settings}, fields=fields)
+    check_capabilities(info, instrument)
+    factory = load_factory(info)
+    from roadgonio.engines.calibration import calibrated
+    return calibrated(lambda inst, m: factory(inst, m, **kw), instrument, model)
+
+
+def prepare_entry_point(backend: str, mitsuba_variant: str | None = None) -> None:
+    """What an entry point (the command, the Python API) does before building a backend that needs
+    Mitsuba: keep the variant already selected in this process unless another one is asked for,
+    else select ``mitsuba_variant`` (default ``$ROADGONIO_VARIANT`` or llvm_ad_rgb) and check
+    Dr.Jit's LLVM. Nothing for the numpy backends."""
+    if backend_info(backend).mitsuba:
+        from roadgonio.engines.mitsuba import choose_variant
+        choose_variant(mitsuba_variant)
+
+
+def load_factory(info: BackendInfo):
+    mod_name, func = info.factory.split(":")
+    return getattr(importlib.import_module(mod_name), func)

@@ -1,0 +1,134 @@
+"""What a k_A backend returns (docs/conventions.md section 5): :class:`CellResult`, one cell with
+its precision, the :class:`KaBackend` protocol, the ideal point geometry (paper eq. 2, computed in
+float64 numpy, never rendered) and the ratio-of-means standard error shared by the Monte Carlo
+backends.
+
+Each precision field has ONE meaning:
+
+* ``se``: a standard error (Monte Carlo and randomised quasi-Monte Carlo backends);
+* ``error_bound``: a deterministic bound on |k_A - true k_A| (the quadrature);
+* ``confidence_bound`` with ``confidence_level``: a statistical bound that holds with that
+  probability (the RQMC reference: a Student-t interval of its replicates, beside its ``se``).
+
+Fields that do not apply are NaN. A budget takes its standard uncertainty from
+:meth:`CellResult.standard_uncertainty` (the SE, or a deterministic bound as a rectangular
+distribution); a confidence bound is never divided by sqrt 3 or treated as an SE.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any, Callable, Protocol, Sequence
+
+import numpy as np
+
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel
+
+
+@dataclass(frozen=True)
+class CellResult:
+    """k_A at one cell with its precision (module docstring: each field has one meaning).
+
+    ``converged`` is False when the backend stopped (sample or evaluation cap) before reaching its
+    target; such a value must never be reported as agreeing with anything.
+    """
+
+    tan_eps: float
+    beta_deg: float
+    k_a: float
+    se: float             # standard error of k_a; NaN if the backend gives none
+    samples: int          # MC samples, or integrand evaluations for quadrature
+    seconds: float
+    extra: dict[str, Any] | None = None
+    error_bound: float = math.nan         # deterministic bound of |k_a - true|; NaN otherwise
+    converged: bool = True
+    confidence_bound: float = math.nan    # statistical bound of |k_a - true| at confidence_level; NaN otherwise
+    confidence_level: float = math.nan    # probability of confidence_bound (e.g. 0.999); NaN otherwise
+
+    def __post_init__(self):
+        # JSON (journal, outputs) carries NaN as null: read it back as NaN
+        for name in ("se", "error_bound", "confidence_bound", "confidence_level"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, math.nan)
+
+    @property
+    def deterministic(self) -> bool:
+        """True when the precision is a deterministic error bound (quadrature), not a standard error."""
+        return not math.isfinite(self.se) and math.isfinite(self.error_bound)
+
+    def standard_uncertainty(self) -> float:
+        """The standard uncertainty of k_a for an uncertainty budget: the standard error, or for a
+        deterministic bound b the rectangular-distribution value b / sqrt(3) (GUM, JCGM 100 4.3.7).
+        A confidence bound is not a standard uncertainty: a result that has one also has its SE."""
+        if math.isfinite(self.se):
+            return float(self.se)
+        return float(self.error_bound) / math.sqrt(3.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        if d["extra"] is None:
+            del d["extra"]
+        for name in ("confidence_bound", "confidence_level"):   # journals of backends without one stay as they were
+            if not math.isfinite(d[name]):
+                del d[name]
+        return d
+
+
+class KaBackend(Protocol):
+    """What a k_A backend provides."""
+
+    name: str
+
+    def settings(self) -> dict[str, Any]:
+        """Settings for provenance (sample counts, tolerances, variant, seed...)."""
+
+    def compute(self, cells: Sequence[tuple[float, float]],
+                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
+        """k_A for each (tan eps, beta deg) cell; calls ``on_cell`` as each cell finishes."""
+
+
+class CellByCellBackend:
+    """Base of the backends that compute one cell at a time: subclasses define
+    ``compute_cell(tan_eps, beta_deg) -> CellResult``; :meth:`compute` runs the cells in order and
+    reports each as it finishes (so the table runner can journal it)."""
+
+    def compute(self, cells: Sequence[tuple[float, float]],
+                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
+        out = []
+        for tan_eps, beta_deg in cells:
+            res = self.compute_cell(float(tan_eps), float(beta_deg))
+            out.append(res)
+            if on_cell is not None:
+                on_cell(res)
+        return out
+
+
+def ideal_ratio(model: RoadModel, instrument: Instrument, tan_eps: float, beta_deg: float) -> float:
+    """f_road(nominal) / f_lambert = pi f_road(w_i(eps, beta), w_o(alpha, delta)), float64."""
+    wi = instrument.w_i(tan_eps, beta_deg)
+    wo = instrument.w_o()
+    return float(math.pi * model.brdf(wi, wo))
+
+
+def ideal_ratios(model: RoadModel, instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
+    """:func:`ideal_ratio` of many cells at once (float64 array, one value per cell)."""
+    from roadgonio.geometry import eps_from_tan, w_source
+    c = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    wi = w_source(eps_from_tan(c[:, 0]), c[:, 1], instrument.observation.delta_deg)
+    return math.pi * model.brdf(wi, instrument.w_o()[None, :])
+
+
+def ratio_se(road: np.ndarray, lam: np.ndarray) -> tuple[float, float]:
+    """Ratio of means <road>/<lam> of paired per-batch (or per-pixel) values and its standard error
+    by the delta method, float64."""
+    road = np.asarray(road, dtype=np.float64).ravel()
+    lam = np.asarray(lam, dtype=np.float64).ravel()
+    n = road.size
+    mr, ml = road.mean(), lam.mean()
+    ratio = mr / ml
+    if n < 2:
+        return float(ratio), float("inf")
+    resid = road - ratio * lam
+    se = math.sqrt(np.sum(resid * resid) / (n - 1) / n) / abs(ml)
+    return float(ratio), float(se)

@@ -1,0 +1,101 @@
+"""CIE road-surface classes of an r-table by its specular factor S1 and the nearest bundled CIE
+standard table: written once here, used by ``roadgonio classify``, the correction's report and its
+choice of alternative references.
+
+Class limits (CIE 144:2001 and CIE 66:1984; as tabulated in W. van Bommel, Road Lighting:
+Fundamentals, Technology and Application, Springer 2015, Table 12.2 "R, C and N-class limits and
+class-standards"):
+
+    R1  S1 < 0.42          R2  0.42 <= S1 < 0.85   R3  0.85 <= S1 < 1.35   R4  1.35 <= S1
+    C1  S1 < 0.40          C2  0.40 <= S1
+    N1  S1 < 0.28          N2  0.28 <= S1 < 0.60   N3  0.60 <= S1 < 1.30   N4  1.30 <= S1
+
+with class-standard Q0: R1 0.10, R2 0.07, R3 0.07, R4 0.08, C1 0.10, C2 0.07, N1 0.10, N2 0.07,
+N3 0.07, N4 0.08 sr^-1 (the published Q0 of the bundled tables, roadgonio/data/rtables/SOURCES.md).
+A surface of class X is represented by the standard table X scaled by Q0 / Q0_standard. The N
+standard tables are not bundled (no public source, SOURCES.md). The "nearest" bundled table is the
+one closest in (S1, Q0), each coordinate scaled by its spread (population standard deviation) over
+the six bundled tables.
+"""
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+from typing import Any, Sequence
+
+from roadgonio.surface.rtable import BUNDLED, PUBLISHED_Q0, RTable, bundled_table
+
+#: system -> [(class, lower S1 limit inclusive, upper limit exclusive)]
+CLASS_LIMITS = {
+    "R": [("R1", -math.inf, 0.42), ("R2", 0.42, 0.85), ("R3", 0.85, 1.35), ("R4", 1.35, math.inf)],
+    "C": [("C1", -math.inf, 0.40), ("C2", 0.40, math.inf)],
+    "N": [("N1", -math.inf, 0.28), ("N2", 0.28, 0.60), ("N3", 0.60, 1.30), ("N4", 1.30, math.inf)],
+}
+STANDARD_Q0 = {**PUBLISHED_Q0, "N1": 0.10, "N2": 0.07, "N3": 0.07, "N4": 0.08}
+
+
+def class_by_s1(s1: float, system: str) -> tuple[str, float]:
+    """(class, distance of S1 to the nearest class limit) in ``system`` ('R', 'C' or 'N')."""
+    for name, lo, hi in CLASS_LIMITS[system]:
+        if lo <= s1 < hi:
+            return name, min(abs(s1 - lo), abs(hi - s1))
+    raise ValueError(f"S1 = {s1} outside every class")  # pragma: no cover (limits cover the line)
+
+
+def class_probabilities(s1: float, u_s1: float, system: str) -> dict[str, float]:
+    """The probability of each class of ``system`` for S1 distributed as N(s1, u_s1^2)."""
+    from scipy.stats import norm
+    return {name: float(norm.cdf(hi, s1, u_s1) - norm.cdf(lo, s1, u_s1)) for name, lo, hi in CLASS_LIMITS[system]}
+
+
+def cie_class(s1: float, u_s1: float | None = None) -> dict[str, Any]:
+    """The R, C and N classes of S1 (``{"R": "R3", "C": "C2", "N": "N3"}``) and, with a finite
+    u(S1) > 0, the probability of each class (``p_R``, ``p_C``, ``p_N``) under N(S1, u^2)."""
+    if not math.isfinite(s1):          # S1 missing (a blank r(0, 0) or r(2, 0)): no class
+        return {system: None for system in CLASS_LIMITS}
+    out: dict[str, Any] = {system: class_by_s1(s1, system)[0] for system in CLASS_LIMITS}
+    if u_s1 is not None and u_s1 > 0 and math.isfinite(u_s1):
+        for system in CLASS_LIMITS:
+            out[f"p_{system}"] = class_probabilities(s1, u_s1, system)
+    return out
+
+
+@lru_cache(maxsize=1)
+def _bundled_s1_q0() -> dict[str, tuple[float, float]]:
+    return {n: (bundled_table(n).s1(), bundled_table(n).q0()) for n in BUNDLED}
+
+
+def nearest_bundled(s1: float, q0: float, k: int | None = None,
+                    exclude: Sequence[str] = ()) -> list[tuple[str, float]]:
+    """The bundled CIE tables ordered by their distance to (S1, Q0), each coordinate scaled by its
+    spread over the six tables (module docstring): ``[(name, distance), ...]``, the first ``k``
+    (all with ``k=None``), without the names in ``exclude``."""
+    stats = _bundled_s1_q0()
+    s1s = [v[0] for v in stats.values()]
+    q0s = [v[1] for v in stats.values()]
+    ss, sq = _spread(s1s), _spread(q0s)
+    ex = {e.upper() for e in exclude}
+    d = sorted(((math.hypot((v[0] - s1) / ss, (v[1] - q0) / sq), n) for n, v in stats.items() if n not in ex))
+    out = [(n, dist) for dist, n in d]
+    return out if k is None else out[:k]
+
+
+def classify(table: RTable) -> dict[str, Any]:
+    """S1, Q0, S2 of ``table``, its class in each system with the margin of S1 to the nearest class
+    limit and the Q0 scale of the class standard, and the bundled tables by distance."""
+    s1, q0 = table.s1(), table.q0()
+    out: dict[str, Any] = {"table": table.name, "S1": s1, "Q0": q0, "S2": table.s2(), "classes": {}}
+    for system in CLASS_LIMITS:
+        name, margin = class_by_s1(s1, system)
+        out["classes"][system] = {"class": name, "S1_margin_to_limit": margin,
+                                  "standard_Q0": STANDARD_Q0[name], "Q0_scale": q0 / STANDARD_Q0[name],
+                                  "bundled": name in BUNDLED}
+    stats = _bundled_s1_q0()
+    out["nearest_bundled"] = [{"table": n, "distance": d, "S1": stats[n][0], "Q0": stats[n][1]}
+                              for n, d in nearest_bundled(s1, q0)]
+    return out
+
+
+def _spread(v: Sequence[float]) -> float:
+    m = sum(v) / len(v)
+    return math.sqrt(sum((x - m) ** 2 for x in v) / len(v))

@@ -1,0 +1,162 @@
+"""Helpers and test data shared by test files of more than one tier (tests/unit, tests/plugin,
+tests/system): plain functions and constants, no fixtures (those are in tests/conftest.py).
+tests/ is on sys.path (pytest puts the folder of the root conftest.py there): ``from helpers import ...``."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import RoadModel, RoadParams
+
+SCENES = Path(__file__).resolve().parents[1] / "scenes"
+
+
+# -- meshes (tests/unit/test_meshmc.py, tests/plugin/test_meshmc_plugin.py) ---------------------
+
+def grid_mesh(path, xs, ys, height=lambda x, y: 0.0 * x, shuffle_seed=None):
+    import trimesh
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    V = np.stack([X.ravel(), Y.ravel(), height(X, Y).ravel()], 1)
+    ny = len(ys)
+    F = []
+    for i in range(len(xs) - 1):
+        for j in range(ny - 1):
+            a, b, c, d = i * ny + j, (i + 1) * ny + j, (i + 1) * ny + j + 1, i * ny + j + 1
+            F += [[a, b, c], [a, c, d]]
+    F = np.array(F)
+    if shuffle_seed is not None:
+        F = F[np.random.default_rng(shuffle_seed).permutation(len(F))]
+    trimesh.Trimesh(V, F, process=False).export(path)
+    return path
+
+
+def with_mesh(inst: Instrument, mesh) -> Instrument:
+    d = inst.to_dict()
+    d["sample"] = {"mesh": str(mesh)}
+    return Instrument.from_dict(d)
+
+
+# -- directions and models (tests/unit/test_model.py, tests/plugin/test_model_plugin.py) ----------
+
+def _unit(v):
+    v = np.asarray(v, dtype=float)
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _hemisphere(n, rng, zmin=1e-6):
+    """Random directions in the upper hemisphere (uniform in solid angle, z >= zmin)."""
+    z = rng.uniform(zmin, 1.0, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    s = np.sqrt(1 - z * z)
+    return np.stack([s * np.cos(phi), s * np.sin(phi), z], axis=-1)
+
+
+def _model(variant="power", **kw):
+    return RoadModel(RoadParams(**kw), variant)
+
+
+# -- the uncertainty tests (tests/unit, tests/plugin and tests/system test_uncertainty*.py) -------
+
+#: The model of the uncertainty tests (every term, no fit).
+UNCERTAINTY_MODEL = RoadModel(RoadParams(k_diff=0.01, k_phong=0.5, n_phong=300, k_retro=0.005, n_retro=20,
+                                         k_exp=0.05, p=2, h=1, mu=0.1), name="test")
+#: Their SPEC: every input with a standard uncertainty.
+UNCERTAINTY_SPEC = ("alpha_deg=0.01,eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,source_distance_m=0.002,"
+                    "detector_distance_m=0.005")
+
+
+# -- versions ------------------------------------------------------------------------------------
+
+#: What every result says about the software that made it.
+VERSION_KEYS = {"roadgonio", "python", "platform", "numpy", "scipy", "mitsuba", "drjit"}
+
+
+# -- random BSDF inputs (tests/plugin/test_plugin_bsdf.py, tests/unit/test_model.py) -------------
+
+def rand_dirs(rng, n, max_cos=1.0):
+    cz = rng.random(n) * max_cos
+    phi = rng.random(n) * 2 * np.pi
+    s = np.sqrt(1 - cz ** 2)
+    w = np.stack([s * np.cos(phi), s * np.sin(phi), cz], -1)
+    return w.astype(np.float32).astype(np.float64)          # exactly representable in float32
+
+
+def rand_params(rng, h_max=20.0) -> dict:
+    return dict(k_diff=rng.uniform(0, 1), k_phong=rng.uniform(0, 10), n_phong=10 ** rng.uniform(0, 4),
+                k_retro=rng.uniform(0, 1), n_retro=10 ** rng.uniform(0, 3), k_exp=rng.uniform(0, 1),
+                p=rng.uniform(0, 3), h=rng.uniform(-h_max, h_max), mu=rng.uniform(0, 2), g_a=0.0, g_b=-1.0,
+                g_c=2.0, g_t=rng.uniform(-5, 5), theta_l_deg=rng.uniform(85.4, 90.0))
+
+
+def _pixels(path):
+    """A PNG as an (h, w, 3) int16 array."""
+    from PIL import Image
+    return np.asarray(Image.open(path).convert("RGB"), dtype=np.int16)
+
+
+# -- the Mitsuba backend's tests (tests/plugin/test_render_backend.py, test_engine.py) -----------
+
+#: A non-Lambertian model with every term (Phong lobe n = 1000, retro lobe, steep E term, grazing g).
+ROAD = RoadModel(RoadParams(k_diff=0.05, k_phong=1.0, n_phong=1000.0, k_retro=0.2, n_retro=50.0,
+                            k_exp=0.1, p=1.0, h=2.0, mu=0.1, g_a=0.0, g_b=-1.0, g_c=2.6, g_t=2.0,
+                            theta_l_deg=88.0))
+
+
+def preset(name: str) -> Instrument:
+    """An instrument preset of scenes/ loaded from its file."""
+    return Instrument.load(SCENES / f"{name}.toml")
+
+
+# -- flat meshes and cheap backend settings (tests/unit and tests/plugin: test_line_of_sight*, test_cellcheck*) --
+
+def flat_mesh(path, inst: Instrument) -> Instrument:
+    """``inst`` with its rectangular sample as a two-triangle mesh file at ``path``."""
+    import trimesh
+    hx, hy = inst.sample.size_x_m / 2, inst.sample.size_y_m / 2
+    trimesh.Trimesh([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]], [[0, 1, 2], [0, 2, 3]],
+                    process=False).export(path)
+    return with_mesh(inst, path)
+
+
+#: Cheap settings per backend, for tests that only ask whether a backend refuses a cell.
+FAST_SETTINGS = {"quadrature": {"rtol": 1e-2}, "numpy-mc": {"rel_se": 5e-2, "batch": 1024, "min_batches": 2},
+                 "reference": {"rtol": 5e-2, "min_log2": 6, "pilot_iterations": 0},
+                 "numpy-mc-mesh": {"rel_se": 5e-2, "batch": 1024, "min_batches": 2}, "mitsuba": {"rel_se": 1e-2}}
+
+
+def line_of_sight_edge_cells():
+    """(instrument, cell, blocked) near the edge where the source disc starts to block the detector's
+    view: about 50 um outside and 1.5-8 um inside, where the three ray-sampled checks the project had
+    before disagreed (tests/unit/test_line_of_sight.py says how)."""
+    from roadgonio.instrument.config import load_instrument
+    portable = load_instrument("portable")
+    near = portable.with_changes(source={"distance_m": 0.5, "radius_m": 0.04})
+    speck = portable.with_changes(source={"distance_m": 0.5, "radius_m": 1e-4})
+    return [
+        (near, (9.489, 180.0), False), (near, (9.4996, 180.0), True),
+        (near, (9.529, 179.5), False), (near, (9.5394, 179.5), True), (near, (9.5406, 179.5), True),
+        (near, (9.652, 179.0), False), (near, (9.6622, 179.0), True),
+        (near, (9.769, 178.7), False), (near, (9.7797, 178.7), True),
+        (near, (9.985, 178.3), False), (near, (9.9954, 178.3), True),
+        (speck, (47.7395, 179.9), True), (speck, (40.9174, 179.8), True), (speck, (40.9174, 179.78), False),
+    ]
+
+
+def backend_refuses(name: str, inst: Instrument, cell, model: RoadModel, tmp_path=None) -> bool:
+    """Whether backend ``name`` (cheap settings) refuses ``cell`` because the source blocks the
+    detector's view; any other refusal fails the test, and a computed cell must be finite."""
+    import math
+
+    from roadgonio.engines import make_backend
+    from roadgonio.errors import GeometryError
+    if name == "numpy-mc-mesh":
+        inst = flat_mesh(tmp_path / "flat.ply", inst)
+    try:
+        res = make_backend(name, inst, model, settings=FAST_SETTINGS[name]).compute([cell])
+    except GeometryError as err:
+        assert "line of sight" in str(err), err
+        return True
+    assert math.isfinite(res[0].k_a)
+    return False

@@ -1,0 +1,107 @@
+"""The foundation commands: ``roadgonio tables``, ``roadgonio table``, ``roadgonio fit``."""
+from __future__ import annotations
+
+import csv
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from roadgonio.cli import main
+from roadgonio.surface.model import RoadModel
+from roadgonio.surface.rtable import bundled_table, read_table
+
+
+def test_tables_json(capsys):
+    assert main(["tables", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert [r["table"] for r in rows] == ["R1", "R2", "R3", "R4", "C1", "C2"]
+    r3 = rows[2]
+    assert r3["S1"] == pytest.approx(bundled_table("R3").s1())
+
+
+def test_table_convert(tmp_path, capsys):
+    out = tmp_path / "r3.rtb"
+    assert main(["table", "R3", "--to", str(out), "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["written"] == str(out)
+    back = read_table(out)
+    np.testing.assert_array_equal(back.mask, bundled_table("R3").mask)
+
+
+def test_fit_json_and_outputs(tmp_path, capsys):
+    out = tmp_path / "res"
+    assert main(["fit", "R3", "--out", str(out), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert set(d) == {"table", "variant", "max_dev_pct", "rms_dev_pct", "params", "seconds"}
+    assert d["table"] == "R3" and d["variant"] == "power"
+    m = RoadModel.load(out / "model.json")
+    assert m.params.to_dict() == d["params"]
+    assert m.meta["fit"]["max_dev_pct"] == pytest.approx(d["max_dev_pct"])
+    rows = list(csv.DictReader((out / "residuals.csv").read_text().splitlines()))
+    t = bundled_table("R3")
+    assert len(rows) == int(t.mask.sum())
+    devs = np.array([float(r["dev_pct_of_max_r"]) for r in rows])
+    assert np.max(np.abs(devs)) == pytest.approx(d["max_dev_pct"], abs=1e-4)
+    assert (out / "fit.png").stat().st_size > 10_000
+    assert (out / "fit.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_fit_table_file_with_fix_and_variant(tmp_path, capsys):
+    src = bundled_table("C1").write(tmp_path / "mine.rtb")
+    out = tmp_path / "o"
+    assert main(["fit", str(src), "--variant", "smooth", "--fix", "n_retro=3", "--out", str(out),
+                 "--no-plot"]) == 0
+    text = capsys.readouterr().out
+    assert "C1 (smooth)" in text  # RTB carries the surface name and "RMS" in text
+    m = RoadModel.load(out / "model.json")
+    assert m.variant == "smooth" and m.params.n_retro == 3.0 and not (out / "fit.png").exists()
+
+
+@pytest.mark.parametrize("args,words", [
+    (["fit", "R3", "--fix", "n_phong"], ["--fix", "NAME=VALUE"]),
+    (["fit", "R3", "--fix", "p=abc"], ["--fix p", "number"]),
+    (["fit", "R3", "--fix", "p=99"], ["'p'", "[0, 50]"]),
+    (["fit", "Q7"], ["Q7", "bundled table"]),
+])
+def test_fit_bad_options(args, words, capsys):
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    for w in words:
+        assert w in err, err
+
+
+@pytest.mark.parametrize("command", ["table", "fit"])
+def test_bad_table_file_exits_2_with_one_line(tmp_path, capsys, command, bad_table):
+    label, suffix, text, line, words = bad_table
+    path = tmp_path / f"bad{suffix}"
+    path.write_text(text)
+    assert main([command, str(path), "--out", str(tmp_path / "o")] if command == "fit"
+                else [command, str(path)]) == 2
+    cap = capsys.readouterr()
+    err = cap.err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith("roadgonio: error: ") and str(path) in err
+    if line is not None:
+        assert f"{path}:{line}" in err
+    for w in words:
+        assert w in err
+    assert "Traceback" not in cap.err and cap.out == ""
+    assert not (tmp_path / "o").exists()
+
+
+def test_bad_table_via_subprocess(tmp_path, bad_tables):
+    path = tmp_path / "bad.csv"
+    label, suffix, text, line, words = bad_tables[1]  # non-numeric cell
+    path.write_text(text)
+    for command in ("table", "fit"):
+        p = subprocess.run([sys.executable, "-m", "roadgonio", command, str(path)], capture_output=True,
+                           text=True, timeout=120, cwd=tmp_path)
+        assert p.returncode == 2
+        assert p.stdout == ""
+        assert p.stderr.strip().splitlines() == [p.stderr.strip()]
+        assert f"{path}:{line}" in p.stderr and "expected a number" in p.stderr
+        assert "Traceback" not in p.stderr

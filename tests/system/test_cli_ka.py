@@ -1,0 +1,74 @@
+"""``roadgonio ka`` as a user runs it: a full table, resuming it, one cell as JSON, clean errors."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from roadgonio.cli import main
+from roadgonio.engines.runner import JOURNAL
+from roadgonio.surface.rtable import read_table
+
+#: The quadrature backend integrates a Lambertian sample exactly up to round-off.
+LAMBERT_TOL = 1e-9
+
+
+def test_full_table_then_resume(tmp_path, capsys):
+    out = tmp_path / "ka"
+    args = ["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature", "--out", str(out)]
+    assert main(args) == 0
+    ka = read_table(out / "ka.csv").r * 1e4            # k_A files are unscaled; the reader divides by 1e4
+    assert ka.shape == (29, 20) and np.isfinite(ka).all()
+    assert np.max(np.abs(ka - 1.0)) < LAMBERT_TOL       # a Lambertian sample: k_A = 1 for any instrument
+    meta = json.loads((out / "ka.json").read_text())
+    assert meta["backend"] == "quadrature" and meta["summary"]["cells"] == 580
+    assert meta["instrument"]["detector"]["field_half_angle_deg"] == 0.05
+    lines = (out / JOURNAL).read_text().splitlines()
+    assert len(lines) == 581
+    # drop the last 80 cells from the journal as if interrupted; the same command resumes
+    (out / JOURNAL).write_text("\n".join(lines[:-80]) + "\n")
+    capsys.readouterr()
+    assert main(args + ["--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["resumed_cells"] == 500 and summary["cells"] == 580
+
+
+def test_cells_table_needs_a_table_sample(tmp_path):
+    out = tmp_path / "ka"
+    fit = tmp_path / "m.json"
+    fit.write_text(json.dumps({"variant": "power", "params": {"k_diff": 0.03, "k_phong": 0.2, "n_phong": 30}}))
+    # --cells table needs an r-table sample
+    assert main(["ka", "--instrument", "lab", "--sample", str(fit), "--cells", "table", "--backend",
+                 "quadrature", "--out", str(out)]) == 2
+
+
+def test_single_cell_json_keys(capsys):
+    assert main(["ka", "--instrument", "portable", "--sample", "lambert", "--backend", "quadrature",
+                 "--tan-eps", "12", "--beta", "0", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert set(d) == {"k_a", "se", "error_bound", "confidence_bound", "converged", "samples", "seconds"}
+    assert abs(d["k_a"] - 1.0) < LAMBERT_TOL and d["samples"] > 0
+
+
+@pytest.mark.parametrize("extra, needle", [
+    (["--tan-eps", "2"], "--beta"),
+    (["--tan-eps", "-1", "--beta", "0"], "--tan-eps"),
+    (["--tan-eps", "1", "--beta", "200"], "--beta"),
+    (["--rel-se", "2", "--tan-eps", "1", "--beta", "0"], "--rel-se"),
+])
+def test_bad_options_are_one_line_errors(capsys, extra, needle):
+    assert main(["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature"] + extra) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("roadgonio: error:") and needle in err and "\n" not in err
+
+
+def test_footprint_off_the_sample_is_an_error_not_a_number(tmp_path):
+    bad = tmp_path / "small.toml"
+    bad.write_text(Path("scenes/portable.toml").read_text().replace("size_x_m = 1.0", "size_x_m = 0.3"))
+    r = subprocess.run([sys.executable, "-m", "roadgonio", "ka", "--instrument", str(bad), "--sample", "lambert",
+                        "--backend", "quadrature", "--tan-eps", "1", "--beta", "0"], capture_output=True, text=True)
+    assert r.returncode == 2 and "leaves the sample" in r.stderr and "Traceback" not in r.stderr

@@ -1,0 +1,69 @@
+"""Every command has --json and --quiet; progress bars appear only when stderr is a terminal."""
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import subprocess
+import sys
+
+import pytest
+
+from roadgonio.cli import build_parser, main
+from roadgonio.cli._common import show_progress
+
+
+def _subparsers():
+    parser = build_parser()
+    action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    return action.choices
+
+
+#: Every command the program has (discovered, so a new command is held to the same rule).
+COMMANDS = sorted(_subparsers())
+
+
+def test_the_commands_are_discovered():
+    assert {"tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct"} <= set(COMMANDS)
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_command_has_json_and_quiet(command):
+    sub = _subparsers()[command]
+    options = {o for a in sub._actions for o in a.option_strings}
+    assert {"--json", "--quiet", "-q"} <= options
+    with pytest.raises(SystemExit):                  # exclusive: one or the other
+        sub.parse_args(["--json", "--quiet"])
+
+
+def test_progress_only_on_a_terminal(monkeypatch):
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+    quiet, loud = argparse.Namespace(quiet=True), argparse.Namespace(quiet=False)
+    monkeypatch.setattr(sys, "stderr", io.StringIO())
+    assert not show_progress(loud)
+    monkeypatch.setattr(sys, "stderr", Tty())
+    assert show_progress(loud) and not show_progress(quiet)
+
+
+def test_quiet_prints_nothing_and_json_prints_json(tmp_path, capsys):
+    assert main(["table", "R3", "--to", str(tmp_path / "r3.rtb"), "--quiet"]) == 0
+    cap = capsys.readouterr()
+    assert cap.out == "" and cap.err == "" and (tmp_path / "r3.rtb").exists()
+    assert main(["tables", "--json"]) == 0
+    assert [r["table"] for r in json.loads(capsys.readouterr().out)] == ["R1", "R2", "R3", "R4", "C1", "C2"]
+    args = ["ka", "--instrument", "portable", "--sample", "lambert", "--backend", "quadrature", "--accuracy", "fast",
+            "--tan-eps", "12", "--beta", "0"]
+    assert main(args + ["--quiet"]) == 0
+    assert capsys.readouterr().out == ""
+    assert main(args) == 0 and "k_A(tan eps = 12, beta = 0)" in capsys.readouterr().out
+
+
+def test_no_progress_bar_into_a_pipe(tmp_path):
+    """A table run whose stderr is a pipe (a log file, CI) gets no progress bar, only the summary on stdout."""
+    r = subprocess.run([sys.executable, "-m", "roadgonio", "ka", "--instrument", "portable", "--sample", "lambert",
+                        "--backend", "quadrature", "--accuracy", "fast", "--out", str(tmp_path / "ka")],
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr == "" and "580 cells" in r.stdout

@@ -1,0 +1,89 @@
+"""A Dask worker that dies on a task: the task gets ``error_kind = "WorkerError"`` (never a hang or
+a traceback), the other tasks finish, and `design` reports the point as failed with a retry hint."""
+from __future__ import annotations
+
+import textwrap
+
+import numpy as np
+import pytest
+
+
+CRASH_MODULE = textwrap.dedent('''
+    """Test helper installed in the Dask workers: a backend that kills its process."""
+    import os
+
+    import dataclasses
+
+    from roadgonio.engines.registry import BACKENDS
+
+    BACKENDS["crash-worker"] = dataclasses.replace(BACKENDS["quadrature"], name="crash-worker",
+                                                   factory="rg_crash_backend:make_backend")
+
+
+    def make_backend(*args, **kwargs):
+        os._exit(7)
+''')
+
+
+@pytest.mark.timeout(300)
+def test_dead_worker_is_a_worker_error_and_the_rest_finishes(tmp_path):
+    import dask
+
+    from roadgonio.engines import cluster
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.model import RoadModel
+    (tmp_path / "rg_crash_backend.py").write_text(CRASH_MODULE)
+    inst = cluster.absolute_instrument_dict(load_instrument("lab"))
+    model = RoadModel.lambert().to_json_dict()
+    cells = ((1.0, 0.0), (2.0, 30.0))
+    tasks = [cluster.TableTask(instrument=inst, model=model, cells=cells, backend="quadrature", key="before"),
+             cluster.TableTask(instrument=inst, model=model, cells=cells, backend="crash-worker", key="crash"),
+             cluster.TableTask(instrument=inst, model=model, cells=cells, backend="quadrature", key="after")]
+    here = cluster.map_tables([tasks[0]], None)[0]
+    # one failure is enough for Dask to give up on a task (the default retries it on 3 workers)
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        with cluster.open_client(workers=2, backend=None) as client:
+            client.run(exec, f"import sys; sys.path.insert(0, {str(tmp_path)!r}); import rg_crash_backend")
+            results = cluster.map_tables(tasks, client)
+    by_key = {r.key: r for r in results}
+    assert [r.key for r in results] == ["before", "crash", "after"]          # the order of the tasks
+    crash = by_key["crash"]
+    assert not crash.ok and crash.error_kind == "WorkerError" and "worker died" in crash.error
+    for k in ("before", "after"):
+        r = by_key[k]
+        assert r.ok, r.error
+        assert np.array_equal([c.k_a for c in r.cells], [c.k_a for c in here.cells])   # deterministic backend
+
+
+def test_design_reports_a_worker_error_as_failed_with_a_retry_hint(tmp_path, monkeypatch):
+    """The design room's handling of a WorkerError result: the point is 'failed' (not infeasible,
+    not a backend refusal), the reason says to run again, and nothing is journalled for it, so
+    the next run computes it."""
+    from roadgonio import design_study as run_design
+    from roadgonio.engines import cluster
+
+    real = cluster.map_tables
+    calls = {"n": 0}
+
+    def flaky(tasks, client=None, *, on_result=None):
+        tasks = list(tasks)
+        first, rest = tasks[0], tasks[1:]
+        calls["n"] += 1
+        if calls["n"] == 1:
+            dead = cluster.TableResult(key=first.key, cells=[], error="a Dask worker died computing this table (test)",
+                                       error_kind="WorkerError")
+            if on_result is not None:
+                on_result(dead)
+            return [dead] + real(rest, client, on_result=on_result)
+        return real(tasks, client, on_result=on_result)
+
+    monkeypatch.setattr(cluster, "map_tables", flaky)
+    kw = dict(samples=["lambert"], cells="1:0,2:30", backend="quadrature", progress=False, plots=False, workers=0,
+              out=tmp_path / "d")
+    ds = run_design("lab", ["source.radius_m=0.002,0.004"], **kw)
+    reasons = [str(r) for r in ds["reason"].values]
+    assert any("worker died" in r and "again" in r for r in reasons), reasons
+    assert int(np.isfinite(ds["k_a"].values).sum()) == 2          # the other point's two cells
+    ds2 = run_design("lab", ["source.radius_m=0.002,0.004"], **kw)   # resume: the failed point is computed now
+    assert int(np.isfinite(ds2["k_a"].values).sum()) == 4
+    assert not any("worker died" in str(r) for r in ds2["reason"].values)

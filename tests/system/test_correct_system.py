@@ -1,0 +1,134 @@
+"""`roadgonio correct` from the command line (a subprocess each): errors, the reference route,
+several files, the default route."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from roadgonio.engines import make_backend
+from roadgonio.instrument.config import load_instrument
+from roadgonio.surface.rtable import RTable, bundled_table, read_table
+from tolerances import FILE_RATIO_RTOL, z_family
+
+
+def sub_table(table: RTable, cells) -> RTable:
+    """``table`` with only the given (tan eps, beta) cells kept."""
+    r = np.full_like(table.r, np.nan)
+    for t, b in cells:
+        i, j = int(np.argmin(abs(table.tan_eps - t))), int(np.argmin(abs(table.beta_deg - b)))
+        r[i, j] = table.r[i, j]
+    return table.with_values(r)
+
+
+def _run(*args, timeout=900):
+    return subprocess.run([sys.executable, "-m", "roadgonio", "correct", *args], capture_output=True, text=True,
+                          timeout=timeout)
+
+
+def test_cli_measured_table_on_another_grid(tmp_path):
+    f = tmp_path / "odd.csv"
+    f.write_text("tan_eps,0,5,10\n0,300,300,300\n")
+    p = _run("--measured", str(f), "--instrument", "portable", "--reference", "lambert", "--out", str(tmp_path / "o"))
+    assert p.returncode == 2 and "Traceback" not in p.stderr
+    assert str(f) in p.stderr and "--measured" in p.stderr and "standard grid" in p.stderr
+
+
+def test_cli_errors_name_what_is_wrong(tmp_path):
+    p = _run("--measured", str(tmp_path / "none.csv"), "--instrument", "portable")
+    assert p.returncode == 2 and "none.csv" in p.stderr and "Traceback" not in p.stderr
+    good = bundled_table("R3").write_csv(tmp_path / "m.csv")
+    p = _run("--measured", str(good), "--instrument", "portable", "--u-measured", "5 percent",
+             "--backend", "quadrature")
+    assert p.returncode == 2 and "--u-measured" in p.stderr and "Traceback" not in p.stderr
+    no_s1 = sub_table(bundled_table("R3"), [(0.0, 0.0), (1.0, 0.0), (0.5, 2.0)]).write_csv(tmp_path / "s.csv")
+    p = _run("--measured", str(no_s1), "--instrument", "portable", "--backend", "quadrature")
+    assert p.returncode == 2 and "tan eps = 2, beta = 0" in p.stderr and "s.csv" in p.stderr
+
+
+def test_cli_reference_route_checks_against_an_independent_backend(tmp_path, r3like):
+    """``roadgonio correct --reference SAMPLE`` to success: corrected = measured / k_A, with k_A
+    checked against the float64 numpy Monte Carlo (an independent integrator) within z SE + the
+    quadrature's bound + the file rounding; the stated u is the budget of u-measured and the
+    backend; no progress bar into a pipe."""
+    cells = [(0.0, 0.0), (0.0, 2.0), (0.25, 0.0), (0.25, 2.0), (2.0, 0.0), (12.0, 0.0), (12.0, 2.0), (8.0, 5.0)]
+    measured = sub_table(bundled_table("R3"), cells).with_values(sub_table(bundled_table("R3"), cells).r,
+                                                                 name="meas").write_csv(tmp_path / "meas.csv")
+    model = tmp_path / "ref.json"
+    r3like.save(model)
+    p = _run("--measured", str(measured), "--instrument", "portable", "--reference", str(model), "--alternatives",
+             "none", "--backend", "quadrature", "--rel-se", "1e-4", "--u-measured", "2%", "--out", str(tmp_path / "o"),
+             "--no-plots", "--json")
+    assert p.returncode == 0, p.stderr
+    assert p.stderr == ""
+    summary = json.loads(p.stdout)
+    assert summary["cells"] == len(cells) and summary["reference"] == "ref"
+    assert {"S1", "u_S1", "Q0", "u_Q0", "reference", "k_a_min", "k_a_max", "seconds"} <= set(summary)
+    rows = list(csv.DictReader(line for line in (tmp_path / "o" / "correct_cells.csv").read_text().splitlines()
+                               if not line.startswith("#")))
+    assert sorted((float(x["tan_eps"]), float(x["beta_deg"])) for x in rows) == sorted(cells)
+    mc = {(c.tan_eps, c.beta_deg): c for c in
+          make_backend("numpy-mc", load_instrument("portable"), r3like, rel_se=1e-3, seed=5).compute(cells)}
+    for x in rows:
+        t, b = float(x["tan_eps"]), float(x["beta_deg"])
+        k, u = float(x["k_a"]), float(x["u_k_a_backend"])          # quadrature: u = bound / sqrt(3)
+        meas, corr = float(x["r_measured_x1e4"]), float(x["r_corrected_x1e4"])
+        assert corr == pytest.approx(meas / k, rel=FILE_RATIO_RTOL)
+        c = mc[(t, b)]
+        allowed = z_family(len(rows)) * c.se + u * math.sqrt(3) + 2 * FILE_RATIO_RTOL * c.k_a
+        assert abs(meas / corr - c.k_a) <= allowed, (t, b, meas / corr, c)
+        assert float(x["u_rel_total"]) == pytest.approx(math.hypot(0.02, u / k), rel=2e-3)
+    k = {(float(x["tan_eps"]), float(x["beta_deg"])): float(x["k_a"]) for x in rows}
+    assert summary["S1"] == pytest.approx(summary["before"]["S1"] * k[(0.0, 0.0)] / k[(2.0, 0.0)], rel=1e-4)
+    prov = json.loads((tmp_path / "o" / "correct.json").read_text())["provenance"]
+    assert prov["backend"] == "quadrature" and prov["settings"]["rtol"] == 1e-4 and prov["versions"]["numpy"]
+    # the file the table came from reaches correct.json (it was set after the file had been written)
+    assert prov["measured_file"] == str(measured)
+
+
+def test_cli_several_files_json_list(tmp_path):
+    t = sub_table(bundled_table("R3"), [(0.0, 0.0), (0.0, 2.0), (0.25, 0.0), (0.25, 2.0), (2.0, 0.0), (12.0, 0.0)])
+    a = t.with_values(t.r, name="a").write_csv(tmp_path / "a.csv")
+    b = t.with_values(t.r * 1.1, name="b").write_csv(tmp_path / "b.csv")
+    p = _run("--measured", str(a), str(b), "--instrument", "portable", "--reference", "lambert", "--alternatives",
+             "none", "--backend", "quadrature", "--accuracy", "fast", "--out", str(tmp_path / "o"), "--json",
+             "--no-plots")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert [s["out"] for s in out] == [str(tmp_path / "o" / "a"), str(tmp_path / "o" / "b")]
+    assert out[1]["S1"] == pytest.approx(out[0]["S1"], rel=1e-9) and out[1]["Q0"] > out[0]["Q0"]
+    for s in out:            # a Lambertian reference: k_A = 1, nothing changes
+        assert s["k_a_min"] == pytest.approx(1.0, abs=1e-9) and s["k_a_max"] == pytest.approx(1.0, abs=1e-9)
+
+
+def test_cli_reference_self_end_to_end(tmp_path):
+    """The default route from the command line on a small synthetic table (tests/data, the medium
+    instrument, beta 0 ... 20): every file, the JSON keys, the fit through the instrument."""
+    from pathlib import Path
+    data = Path(__file__).resolve().parents[1] / "data"
+    meas = read_table(data / "synthetic_medium_lambert.csv")
+    keep = meas.r.copy()
+    keep[:, 6:] = np.nan
+    f = meas.with_values(keep, name="small").write_csv(tmp_path / "small.csv")
+    p = _run("--measured", str(f), "--instrument", str(data / "medium.toml"), "--backend", "quadrature",
+             "--accuracy", "fast", "--rays", "64", "--model-variant", "power", "--u-measured", "1%",
+             "--out", str(tmp_path / "o"), "--json")
+    assert p.returncode == 0, p.stderr
+    s = json.loads(p.stdout)
+    assert {"S1", "u_S1", "Q0", "u_Q0", "reference", "k_a_min", "k_a_max", "seconds"} <= set(s)
+    assert s["reference"].startswith("self (power") and s["fit"]["variant"] == "power"
+    assert 0.8 < s["k_a_min"] < s["k_a_max"] < 1.1 and s["u_S1"] > 0
+    names = {Path(x).name for x in s["written"]}
+    assert {"corrected.csv", "corrected_u.csv", "corrected.rtb", "correct.json", "correct_cells.csv",
+            "corrected_corr.csv", "before_after.png", "correction_map.png"} <= names
+    corr = read_table(tmp_path / "o" / "corrected.csv")
+    rows = list(csv.DictReader(line for line in (tmp_path / "o" / "correct_cells.csv").read_text().splitlines()
+                               if not line.startswith("#")))
+    assert len(rows) == int(corr.mask.sum()) == int(np.isfinite(keep).sum())
+    for x in rows[:20]:
+        assert float(x["r_corrected_x1e4"]) == pytest.approx(float(x["r_measured_x1e4"]) / float(x["k_a"]), rel=FILE_RATIO_RTOL)

@@ -1,0 +1,79 @@
+"""`roadgonio design` and `roadgonio ka` from the command line."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+
+from roadgonio.cli import main
+from tolerances import z_family
+
+
+def _ka_cells(path):
+    """The cells of a k_A journal (ka_cells.jsonl) by (tan eps, beta)."""
+    lines = path.read_text().splitlines()[1:]
+    return {(d["tan_eps"], d["beta_deg"]): d for d in map(json.loads, lines)}
+
+
+def test_best_design_recomputed_with_ka_matches_its_row(mi, tmp_path, capsys):
+    out = tmp_path / "d"
+    cells = "12:0,8:2,4:0,1:45"
+    rc = main(["design", "--instrument", "portable", "--vary", "source.radius_m=0.015:0.035:3",
+               "--vary", "detector.pupil_radius_m=0.003,0.005", "--sample", "R3", "--cells", cells,
+               "--accuracy", "fast", "--tolerance", "15%", "--workers", "0", "--seed", "3", "--out", str(out)])
+    assert rc == 0
+    text = capsys.readouterr().out
+    assert "best:" in text and "design points/hour" in text
+    from roadgonio.design.outputs import read_design
+    ds = read_design(out / "design.nc")
+    best = int(ds.attrs["best_index"])
+    assert best >= 0
+    rows = list(csv.DictReader((out / "design.csv").read_text().splitlines()))
+    row = rows[best]
+    assert row["feasible"] == "true"
+    k_row = ds["k_a"].values.reshape(-1, 1, *ds["k_a"].shape[-2:])[best, 0]
+    se_row = ds["se"].values.reshape(-1, 1, *ds["se"].shape[-2:])[best, 0]
+    tans, betas = ds["tan_eps"].values, ds["beta"].values
+    # an independent run (another seed) agrees within z combined SE; the design's own seed repeats it exactly
+    for seed, exact in ((12345, False), (int(row["seed"]), True)):
+        ka_out = tmp_path / f"ka{seed}"
+        assert main(["ka", "--instrument", str(out / "best.toml"), "--sample", "R3", "--cells", cells,
+                     "--accuracy", "fast", "--seed", str(seed), "--out", str(ka_out)]) == 0
+        got = _ka_cells(ka_out / "ka_cells.jsonl")
+        assert len(got) == 4
+        for (t, b), c in got.items():
+            i, j = int(np.argmin(abs(tans - t))), int(np.argmin(abs(betas - b)))
+            if exact:
+                assert c["k_a"] == k_row[i, j] and c["se"] == se_row[i, j]
+            else:
+                assert abs(c["k_a"] - k_row[i, j]) <= z_family(len(got)) * math.hypot(c["se"], se_row[i, j]), (t, b)
+    dev = max(abs(c["k_a"] - 1) for c in got.values())
+    assert dev == pytest.approx(float(row["max_abs_dev"]), rel=1e-12)
+    header = (out / "best.toml").read_text().splitlines()[:4]
+    assert any(f"--seed {row['seed']}" in h for h in header)
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--vary", "source.radius=1:2:3"], "unknown instrument key"),
+    (["--vary", "source.radius_m=0.01:0.02:3", "--tolerance", "5"], "--tolerance"),
+    (["--vary", "source.radius_m=0.01:0.02:3", "--cells", "12:0,x"], "--cells"),
+    (["--vary", "source.radius_m=0.01:0.02:3", "--scheduler", "nonsense"], "--scheduler"),
+])
+def test_design_cli_bad_input_is_one_line(tmp_path, capsys, args, words):
+    rc = main(["design", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature",
+               "--out", str(tmp_path), *args])
+    err = capsys.readouterr().err
+    assert rc == 2 and words in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_ka_cells_list(mi, tmp_path, capsys):
+    out = tmp_path / "ka"
+    assert main(["ka", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature", "--accuracy", "fast",
+                 "--cells", "12:0,4:2", "--out", str(out), "--json"]) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["cells"] == 2 and set(_ka_cells(out / "ka_cells.jsonl")) == {(12.0, 0.0), (4.0, 2.0)}
+    assert main(["ka", "--instrument", "portable", "--sample", "R3", "--cells", "12:0,4", "--out", str(out)]) == 2
+    assert "--cells" in capsys.readouterr().err

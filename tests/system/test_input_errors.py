@@ -1,0 +1,490 @@
+"""Bad inputs and faults (issue 10's probe classes): each gets a clear one-line error naming the
+file, the field and what was expected (exit 2), or a correct result - never a traceback, a NaN
+or a silently wrong number. Each test failed on the code before issues 8 and 10."""
+from __future__ import annotations
+
+import errno
+import json
+import math
+
+import numpy as np
+import pytest
+
+from roadgonio.cli import main
+
+
+def one_line_error(capsys, rc, *must):
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("roadgonio: error:"), err
+    for m in must:
+        assert m in lines[0], (m, lines[0])
+    return lines[0]
+
+
+@pytest.fixture
+def r3_file(tmp_path, r3like):
+    p = tmp_path / "r3like.json"
+    r3like.save(p)
+    return p
+
+
+def write_instrument(tmp_path, text, name="inst.toml"):
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+GOOD = """[observation]
+alpha_deg = 1.0
+[source]
+distance_m = 5.0
+radius_m = 0.005
+[detector]
+distance_m = 10.0
+pupil_radius_m = 0.005
+field_half_angle_deg = 0.05
+[sample]
+size_x_m = 2.0
+size_y_m = 0.5
+"""
+
+
+# -- instrument files ------------------------------------------------------------------------------
+
+def test_misspelt_section_is_an_error(tmp_path, capsys):
+    p = write_instrument(tmp_path, GOOD.replace("[observation]", "[observaton]"))
+    rc = main(["ka", "--instrument", str(p), "--sample", "lambert", "--backend", "quadrature", "--tan-eps", "1",
+               "--beta", "0"])
+    one_line_error(capsys, rc, "observaton")
+
+
+def test_unknown_key_in_any_section_is_an_error(tmp_path, capsys):
+    p = write_instrument(tmp_path, "[instrument]\nnmae = \"x\"\n" + GOOD)
+    rc = main(["ka", "--instrument", str(p), "--sample", "lambert", "--backend", "quadrature", "--tan-eps", "1",
+               "--beta", "0"])
+    one_line_error(capsys, rc, "nmae")
+
+
+def test_conflicting_mesh_and_size_is_an_error(tmp_path, capsys):
+    (tmp_path / "m.ply").write_text("ply\n")
+    p = write_instrument(tmp_path, GOOD.replace("size_y_m = 0.5", "size_y_m = 0.5\nmesh = \"m.ply\""))
+    rc = main(["ka", "--instrument", str(p), "--sample", "lambert", "--backend", "quadrature", "--tan-eps", "1",
+               "--beta", "0"])
+    one_line_error(capsys, rc, "mesh")
+
+
+def test_denormal_radius_is_an_error_or_a_point(tmp_path, capsys, r3_file):
+    p = write_instrument(tmp_path, GOOD.replace("radius_m = 0.005", "radius_m = 1e-300"))
+    rc = main(["ka", "--instrument", str(p), "--sample", str(r3_file), "--backend", "numpy-mc", "--tan-eps",
+               "1", "--beta", "0", "--json"])
+    cap = capsys.readouterr()
+    assert rc in (0, 2) and "Traceback" not in cap.err
+    if rc == 0:
+        assert math.isfinite(json.loads(cap.out)["k_a"])
+
+
+# -- uncertainty SPECs against the geometry ------------------------------------------------------
+
+@pytest.mark.parametrize("spec, key", [("alpha_deg=10", "alpha_deg"), ("source_distance_m=5", "source_distance_m"),
+                                       ("tilt_y_deg=0.5", "tilt_y_deg"), ("detector_distance_m=3", "detector_distance_m")])
+def test_spec_out_of_the_geometry_is_refused_up_front(tmp_path, capsys, spec, key):
+    rc = main(["uncertainty", "--instrument", "lab", "--sample", "R3", "--sigma", spec, "--trials", "200",
+               "--no-aperture", "--out", str(tmp_path / "u")])
+    one_line_error(capsys, rc, key, "out of validity")
+    assert not (tmp_path / "u").exists() or not any((tmp_path / "u").iterdir())
+
+
+def test_no_nan_statistic(tmp_path, capsys):
+    """A model with r(0, 0) = 0 (a narrow specular lobe only) makes S1 infinite in every trial: an
+    error naming S1, not NaN statistics written with exit 0."""
+    p = tmp_path / "spec.json"
+    p.write_text(json.dumps({"variant": "power", "params": {"k_phong": 1.0, "n_phong": 2000.0}}))
+    rc = main(["uncertainty", "--instrument", "lab", "--sample", str(p), "--sigma", "alpha_deg=0.01", "--trials",
+               "200", "--no-aperture", "--out", str(tmp_path / "u")])
+    one_line_error(capsys, rc, "S1", "not finite")
+
+
+# -- degenerate models, absurd tables, seeds -------------------------------------------------------
+
+@pytest.mark.parametrize("backend", ["numpy-mc", "quadrature", "reference"])
+def test_all_zero_model_is_an_error_not_nan(tmp_path, capsys, backend):
+    p = tmp_path / "zero.json"
+    p.write_text(json.dumps({"variant": "power", "params": {}}))
+    rc = main(["ka", "--instrument", "lab", "--sample", str(p), "--backend", backend, "--tan-eps", "2", "--beta",
+               "0", "--json"])
+    line = one_line_error(capsys, rc, "zero.json", "params", "reflects nothing")
+    assert "nan" not in line.lower()
+
+
+def test_table_with_an_absurd_value_is_an_error(tmp_path, capsys):
+    from roadgonio.surface.rtable import load_table
+    text = load_table("R3").to_csv_text()
+    lines = text.splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln.startswith("1,") or ln.startswith("1.0,"))
+    cells = lines[k].split(",")
+    cells[3] = "1e300"
+    lines[k] = ",".join(cells)
+    p = tmp_path / "bad.csv"
+    p.write_text("\n".join(lines) + "\n")
+    rc = main(["fit", str(p), "--out", str(tmp_path / "f")])
+    one_line_error(capsys, rc, "bad.csv", "1e300", "plausible")
+
+
+@pytest.mark.parametrize("argv", [
+    ["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "numpy-mc", "--tan-eps", "1", "--beta", "0"],
+    ["uncertainty", "--instrument", "lab", "--sample", "lambert", "--sigma", "alpha_deg=0.01", "--no-aperture"],
+    ["fit", "R3"],
+    ["validate", "--instrument", "lab", "--sample", "lambert", "--against", "numpy-mc"],
+])
+def test_negative_seed_is_an_error(tmp_path, capsys, argv):
+    rc = main(argv + ["--seed", "-1", "--out", str(tmp_path / "o")])
+    one_line_error(capsys, rc, "--seed", ">= 0")
+
+
+# -- outputs: one line, exit 2, all or nothing -------------------------------------------------
+
+def _validate_argv(model, out):
+    return ["validate", "--instrument", "lab", "--sample", str(model), "--against", "numpy-mc", "--cells", "2:90",
+            "--rel-se", "1e-2", "--out", str(out)]
+
+
+def test_output_under_a_file_is_one_line(tmp_path, capsys, r3_file):
+    f = tmp_path / "plain.txt"
+    f.write_text("x")
+    rc = main(_validate_argv(r3_file, f / "sub"))
+    one_line_error(capsys, rc, "cannot write")
+
+
+def test_output_in_proc_is_one_line(capsys, r3_file):
+    rc = main(_validate_argv(r3_file, "/proc/roadgonio-no-such-dir"))
+    one_line_error(capsys, rc, "/proc/roadgonio-no-such-dir", "cannot write")
+
+
+def test_full_disk_leaves_no_partial_outputs(tmp_path, capsys, monkeypatch, r3_file):
+    """The disk fills while the JSON is written (after the CSV): one line naming validate.json, exit 2,
+    and none of the three outputs appears (before: a traceback and a partial set)."""
+    import roadgonio.fileio as F
+    real = F.OutputGroup.json
+
+    def full(self, name, obj):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.path(name)))
+    monkeypatch.setattr(F.OutputGroup, "json", full)
+    out = tmp_path / "v"
+    rc = main(_validate_argv(r3_file, out))
+    one_line_error(capsys, rc, "validate.json", "No space left")
+    assert not out.exists() or sorted(p.name for p in out.iterdir()) == []
+    monkeypatch.setattr(F.OutputGroup, "json", real)
+
+
+@pytest.mark.parametrize("failing", ["table_map", "json"])
+def test_ka_table_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkeypatch, failing):
+    """ka writes ka.nc, ka.csv, ka_se.csv, ka.json and ka.png as one group: the disk fills while the map
+    (the last file) or the JSON is written, and none of them appears; the journal keeps the cells,
+    so the same command afterwards resumes them and writes the whole set."""
+    import roadgonio.fileio as F
+    import roadgonio.plots as P
+    import roadgonio.plotproc as PP
+    monkeypatch.setattr(PP, "FigureProcess", lambda enabled=True: _NoChild())   # draw in this process
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    if failing == "table_map":
+        monkeypatch.setattr(P, "table_map", full)
+    else:
+        monkeypatch.setattr(F.OutputGroup, "json", full)
+    out = tmp_path / "t"
+    argv = ["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature", "--cells", "1:0,2:0",
+            "--out", str(out)]
+    rc = main(argv)
+    one_line_error(capsys, rc, "No space left")
+    assert not (out / "ka.csv").exists() and not (out / "ka.json").exists() and not (out / "ka_bound.csv").exists()
+    assert not (out / "ka.nc").exists()
+    assert not [q for q in out.iterdir() if q.name.startswith(".")]      # no staging folder left behind
+    monkeypatch.undo()
+    monkeypatch.setattr(PP, "FigureProcess", lambda enabled=True: _NoChild())
+    assert main(argv + ["--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["resumed_cells"] == 2
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [
+        "ka.csv", "ka.json", "ka.nc", "ka.png", "ka_bound.csv", "ka_cells.jsonl"]
+
+
+class _NoChild:
+    """FigureProcess stand-in: draws in this process (so a monkeypatched roadgonio.plots applies)."""
+    fallbacks = 0
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+    def call(self, name, *args, **kwargs):
+        import roadgonio.plots as P
+        return getattr(P, name)(*args, **kwargs)
+
+
+# -- interruptions say what they keep ---------------------------------------------------------
+
+@pytest.mark.parametrize("argv, target, must", [
+    (["uncertainty", "--instrument", "lab", "--sample", "lambert", "--sigma", "alpha_deg=0.01", "--no-aperture"],
+     "roadgonio.uncertainty.run.run_uncertainty", "starts over"),
+    (["fit", "R3"], "roadgonio.surface.fit.fit_table", "starts over"),
+    (["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "numpy-mc"],
+     "roadgonio.engines.runner.run_cells", "resume"),
+])
+def test_ctrl_c_says_truthfully_what_happens(tmp_path, capsys, monkeypatch, argv, target, must):
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(target, interrupted)
+    rc = main(argv + ["--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 130 and must in err
+    if must == "starts over":
+        assert "run the same command again to resume" not in err
+
+
+# -- messages that name the real cause and the cell ---------------------------------------------
+
+def test_unreachable_rel_se_says_so(tmp_path, capsys, monkeypatch):
+    import roadgonio.engines.montecarlo as MC
+    real = MC.make_backend
+    monkeypatch.setattr(MC, "make_backend", lambda *a, **k: real(*a, **{**k, "max_samples": 1 << 16}))
+    rc = main(["ka", "--instrument", "lab", "--sample", "R3", "--backend", "numpy-mc", "--tan-eps", "12", "--beta",
+               "0", "--rel-se", "1e-7"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "NOT converged" in out and "relative SE" in out and "target 1e-07" in out
+    rc = main(["ka", "--instrument", "lab", "--sample", "R3", "--backend", "numpy-mc", "--tan-eps", "12", "--beta",
+               "0", "--rel-se", "1e-7", "--json"])
+    d = json.loads(capsys.readouterr().out)
+    assert d["converged"] is False and d["se"] > 1e-7 * d["k_a"]
+
+
+def test_source_in_the_line_of_sight_names_the_cell(tmp_path, capsys):
+    p = write_instrument(tmp_path, GOOD.replace("distance_m = 5.0\nradius_m = 0.005",
+                                                "distance_m = 1.0\nradius_m = 0.08"))
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", "numpy-mc", "--tan-eps", "12", "--beta",
+               "180"])
+    line = one_line_error(capsys, rc, "blocks the detector's line of sight", "tan eps = 12, beta = 180")
+    assert "enlarge" not in line
+
+
+def test_cuda_variant_without_gpu_says_gpu(capsys):
+    rc = main(["ka", "--instrument", "lab", "--sample", "lambert", "--variant", "cuda_ad_rgb", "--tan-eps", "1",
+               "--beta", "0"])
+    line = one_line_error(capsys, rc, "GPU")
+    assert "libLLVM" not in line
+
+
+def test_single_cell_json_carries_converged(capsys):
+    rc = main(["ka", "--instrument", "lab", "--sample", "R3", "--backend", "reference", "--tan-eps", "2", "--beta",
+               "5", "--json"])
+    d = json.loads(capsys.readouterr().out)
+    # one meaning per field: the RQMC reference gives an SE and a confidence bound, no deterministic bound
+    assert rc == 0 and d["converged"] is True and d["se"] > 0 and d["error_bound"] is None
+    assert d["confidence_bound"] > d["se"]
+
+
+def test_source_in_the_line_of_sight_names_the_cell_in_the_renderer(mi, tmp_path, capsys):
+    """Before: 'rays do not hit the sample ... enlarge the sample', mid-table and without the cell."""
+    p = write_instrument(tmp_path, GOOD.replace("distance_m = 5.0\nradius_m = 0.005",
+                                                "distance_m = 1.0\nradius_m = 0.08"))
+    rc = main(["ka", "--instrument", str(p), "--sample", "lambert", "--backend", "mitsuba", "--tan-eps", "12",
+               "--beta", "180", "--rel-se", "1e-2"])
+    line = one_line_error(capsys, rc, "line of sight", "tan eps = 12, beta = 180")
+    assert "enlarge" not in line
+
+
+# -- correct: its outputs together or not at all; its journals fail in one line -----------------
+
+#: Every file ``correct`` writes per folder with pictures (journals and fit_state.json aside).
+CORRECT_OUTPUTS = ["before_after.png", "correct.json", "correct_cells.csv", "corrected.csv", "corrected.rtb",
+                   "corrected_corr.csv", "corrected_u.csv", "correction_map.png"]
+
+
+def _small_measured(tmp_path):
+    """The synthetic medium-instrument measurement (tests/data) cut to beta 0 and 2, every third
+    tan eps (22 cells with the S1 cells): a correction through the instrument in a few seconds."""
+    from pathlib import Path
+
+    from roadgonio.surface.rtable import read_table
+    data = Path(__file__).resolve().parents[1] / "data"
+    meas = read_table(data / "synthetic_medium_lambert.csv")
+    keep = meas.r.copy()
+    keep[:, 2:] = np.nan
+    keep[[i for i in range(keep.shape[0]) if i % 3 and i != 8], :] = np.nan
+    return meas.with_values(keep, name="small").write_csv(tmp_path / "small.csv"), data / "medium.toml"
+
+
+def _correct_argv(tmp_path, out, *extra):
+    f, inst = _small_measured(tmp_path)
+    return ["correct", "--measured", str(f), "--instrument", str(inst), "--backend", "quadrature", "--accuracy",
+            "fast", "--rays", "64", "--model-variant", "power", "--out", str(out), *extra]
+
+
+@pytest.mark.parametrize("failing", ["json", "figure"])
+def test_correct_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkeypatch, failing):
+    """The disk fills while correct.json (the last file of the group) or before_after.png is
+    written: one line naming that file, exit 2, none of the eight outputs appears, no staging
+    folder is left; the journal and the fit checkpoint survive, so the same command afterwards
+    resumes every k_A cell and writes the whole set (before: the CSVs and the RTB stayed)."""
+    import roadgonio.fileio as F
+
+    def full(self, name, *args):
+        raise OSError(errno.ENOSPC, "No space left on device", str(self.path(name)))
+    monkeypatch.setattr(F.OutputGroup, failing, full)
+    out = tmp_path / "o"
+    argv = _correct_argv(tmp_path, out)
+    one_line_error(capsys, main(argv), "correct.json" if failing == "json" else "before_after.png", "No space left")
+    left = sorted(p.name for p in out.iterdir())
+    assert not set(left) & set(CORRECT_OUTPUTS) and not [n for n in left if n.startswith(".")], left
+    assert (out / "forward-1" / "ka_cells.jsonl").exists() and (out / "fit_state.json").exists()
+    if failing == "figure":
+        return
+    monkeypatch.undo()
+    assert main(argv) == 0
+    assert set(CORRECT_OUTPUTS) <= {p.name for p in out.iterdir()}
+    doc = json.loads((out / "correct.json").read_text())
+    n = doc["summary"]["cells"]
+    assert [s["backend"]["resumed_cells"] for s in doc["summary"]["steps"]][0] == n     # the journal was kept
+
+
+def _read_only(monkeypatch, folder):
+    """Make ``folder`` behave like a read-only file system, even for root: creating, replacing,
+    removing or opening for writing anything inside raises EROFS (reading still works)."""
+    import builtins
+    import io
+    import os
+    root = os.path.abspath(folder)
+
+    def inside(p) -> bool:
+        try:
+            return os.path.abspath(os.fspath(p)).startswith(root)
+        except TypeError:
+            return False
+
+    def ro(p):
+        return OSError(errno.EROFS, "Read-only file system", os.fspath(p))
+    real_open, real_io_open = os.open, io.open
+
+    def os_open(path, flags, *a, **k):
+        if inside(path) and flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT):
+            raise ro(path)
+        return real_open(path, flags, *a, **k)
+
+    def one(name):
+        real = getattr(os, name)
+
+        def f(path, *a, **k):
+            if inside(path):
+                if name == "mkdir" and os.path.isdir(path):
+                    raise FileExistsError(errno.EEXIST, "File exists", os.fspath(path))
+                raise ro(path)
+            return real(path, *a, **k)
+        return f
+
+    def two(name):
+        real = getattr(os, name)
+
+        def f(src, dst, *a, **k):
+            if inside(src) or inside(dst):
+                raise ro(dst)
+            return real(src, dst, *a, **k)
+        return f
+
+    def io_open(file, mode="r", *a, **k):
+        if isinstance(file, (str, bytes, os.PathLike)) and inside(file) and any(c in mode for c in "wax+"):
+            raise ro(file)
+        return real_io_open(file, mode, *a, **k)
+    monkeypatch.setattr(os, "open", os_open)
+    for n in ("mkdir", "unlink", "remove", "rmdir"):
+        monkeypatch.setattr(os, n, one(n))
+    for n in ("replace", "rename"):
+        monkeypatch.setattr(os, n, two(n))
+    monkeypatch.setattr(io, "open", io_open)
+    monkeypatch.setattr(builtins, "open", io_open)
+
+
+@pytest.mark.parametrize("case", ["correct-reference", "correct-self", "correct-resume", "ka-fresh"])
+def test_read_only_journal_is_one_line(tmp_path, capsys, monkeypatch, case):
+    """A journal on a read-only folder: the k_A journal of correct's classic route (before: a
+    traceback from making forward-1/), the fit checkpoint of the default route, the journal of a
+    resumed correction, and `ka --fresh` removing a journal (before: a traceback): one line naming
+    the file, exit 2."""
+    out = tmp_path / "o"
+    ref = ["--reference", "lambert", "--alternatives", "none", "--no-plots"]
+    if case == "ka-fresh":
+        argv = ["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature", "--cells", "1:0,2:0",
+                "--out", str(out)]
+        assert main(argv) == 0
+        argv.append("--fresh")
+        must = str(out / "ka_cells.jsonl")
+    elif case == "correct-self":
+        argv = _correct_argv(tmp_path, out, "--no-plots")
+        out.mkdir()
+        must = str(out / "fit_state.json")
+    else:
+        argv = _correct_argv(tmp_path, out, *ref)
+        if case == "correct-resume":
+            assert main(argv) == 0
+        else:
+            out.mkdir()
+        must = str(out / "forward-1" / "ka_cells.jsonl")
+    capsys.readouterr()
+    _read_only(monkeypatch, out)
+    one_line_error(capsys, main(argv), must, "Read-only file system")
+
+
+def test_unreadable_journal_is_one_line(tmp_path, capsys):
+    """A journal that cannot be read (here: a folder where the file should be; before: a traceback)."""
+    out = tmp_path / "o"
+    (out / "ka_cells.jsonl").mkdir(parents=True)
+    rc = main(["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature", "--cells", "1:0",
+               "--out", str(out)])
+    one_line_error(capsys, rc, str(out / "ka_cells.jsonl"), "cannot read this journal")
+
+
+def test_ctrl_c_of_correct_says_it_resumes(tmp_path, capsys, monkeypatch):
+    """correct keeps its k_A journals and fitted models (the full-disk test above resumes from
+    them): Ctrl-C says so (before: 'nothing was written')."""
+    import roadgonio.correction as C
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr(C, "correct_files", interrupted)
+    rc = main(_correct_argv(tmp_path, tmp_path / "o"))
+    err = capsys.readouterr().err
+    assert rc == 130 and "run the same command again to resume" in err and "nothing was written" not in err
+
+
+def test_design_journal_on_a_read_only_folder_is_one_line(tmp_path, capsys, monkeypatch):
+    """design's journal (design_points.jsonl) cannot be written: one line naming it, exit 2 (before:
+    a traceback)."""
+    out = tmp_path / "d"
+    out.mkdir()
+    _read_only(monkeypatch, out)
+    rc = main(["design", "--instrument", "lab", "--sample", "lambert", "--vary", "source.radius_m=0.002,0.004",
+               "--cells", "1:0", "--backend", "quadrature", "--workers", "0", "--no-plots", "--out", str(out)])
+    one_line_error(capsys, rc, str(out / "design_points.jsonl"), "Read-only file system")
+
+
+def test_design_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkeypatch):
+    """The disk fills while design's last picture is written: none of design.nc, design.csv,
+    best.toml, pareto.png appears, one line names the file; the journal keeps the tables, so the
+    same command afterwards resumes them and writes the whole set."""
+    import roadgonio.design.outputs as O
+    real = O.plot_pareto
+
+    def full(ds, path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+    monkeypatch.setattr(O, "plot_pareto", full)
+    out = tmp_path / "d"
+    argv = ["design", "--instrument", "lab", "--sample", "lambert", "--vary", "source.radius_m=0.002,0.004",
+            "--cells", "1:0", "--backend", "quadrature", "--workers", "0", "--out", str(out)]
+    one_line_error(capsys, main(argv), "pareto.png", "No space left")
+    assert sorted(p.name for p in out.iterdir()) == ["design_points.jsonl"]
+    monkeypatch.setattr(O, "plot_pareto", real)
+    assert main(argv + ["--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["tables_resumed"] == 2
+    assert {"design.nc", "design.csv", "best.toml", "pareto.png"} <= {p.name for p in out.iterdir()}

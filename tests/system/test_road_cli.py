@@ -1,0 +1,128 @@
+"""`roadgonio road`, `compare` and `classify` from the command line (issue 13)."""
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from roadgonio.cli import main
+from roadgonio.road.evaluate import Installation
+from roadgonio.road.layout import load_layout
+from roadgonio.road.luminaire import load_luminaire
+from roadgonio.surface.rtable import BUNDLED, bundled_table
+
+
+def test_road_out_of_the_box_json(tmp_path, capsys):
+    assert main(["road", "--table", "R3", "--out", str(tmp_path), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert {"table", "L_av", "U_o", "U_l", "TI", "class"} <= set(d)
+    want = Installation(load_layout(), load_luminaire()).evaluate(bundled_table("R3")).values
+    assert d["table"] == "R3" and d["L_av"] == pytest.approx(want["L_av"]) and d["class"] == "M3"
+    assert len(d["U_l_per_lane"]) == 2 and d["U_l"] == min(d["U_l_per_lane"])
+    names = {p.name for p in tmp_path.iterdir()}
+    assert names == {"road.json", "road_metrics.csv", "road_luminance.csv", "road_metrics.png", "road_luminance.png"}
+    assert (tmp_path / "road_metrics.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rows = list(csv.DictReader((tmp_path / "road_luminance.csv").read_text().splitlines()))
+    assert len(rows) == 2 * 60 and float(rows[0]["L_cd_m2"]) > 0
+
+
+def test_road_several_tables_and_uncertainty(tmp_path, capsys):
+    t = bundled_table("R3")
+    measured = t.with_values(t.r * 1.2, name="R3_measured")
+    measured.write_csv(tmp_path / "R3_measured.csv")
+    t.with_values(t.r * 0.02).write_csv(tmp_path / "corrected_u.csv")
+    out = tmp_path / "o"
+    assert main(["road", "--table", str(tmp_path / "R3_measured.csv"), "--table", "R3", "--u",
+                 str(tmp_path / "corrected_u.csv"), "--trials", "2000", "--out", str(out), "--json", "--no-plots"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert [x["table"] for x in d] == ["R3_measured", "R3"]
+    assert d[0]["L_av"] == pytest.approx(1.2 * d[1]["L_av"]) and d[0]["U_o"] == pytest.approx(d[1]["U_o"])
+    assert "uncertainty" not in d[0]
+    u = d[1]["uncertainty"]
+    assert u["trials"] == 2000 and set(u) >= {"independent", "correlated"}
+    assert u["correlated"]["L_av"]["u"] == pytest.approx(0.02 * d[1]["L_av"], rel=0.1)
+    lo, hi = u["independent"]["U_o"]["ci95"]
+    assert lo < d[1]["U_o"] + 1e-9 and hi > lo
+    assert 0 <= u["independent"]["P_meets_target"] <= 1
+    rows = list(csv.DictReader((out / "road_metrics.csv").read_text().splitlines()))
+    assert [r["correlation"] for r in rows] == ["", "independent", "correlated"]
+
+
+def test_road_text_output(tmp_path, capsys):
+    assert main(["road", "--table", "R2", "--table", "R3", "--out", str(tmp_path), "--no-plots"]) == 0
+    text = capsys.readouterr().out
+    assert "R3 vs R2: L_av" in text and "M3" in text and "wrote 3 files" in text
+    assert main(["road", "--table", "R3", "--out", str(tmp_path / "q"), "--quiet", "--no-plots"]) == 0
+    assert capsys.readouterr().out == ""
+
+
+@pytest.mark.parametrize("extra,words", [
+    (["--u", "a.csv", "--u", "b.csv", "--u", "c.csv"], ["--u", "once per table"]),
+    (["--class", "M9"], ["unknown class", "M9"]),
+    (["--layout", "missing.toml"], ["missing.toml", "no such layout file"]),
+    (["--luminaire", "missing.ldt"], ["missing.ldt", "no such luminaire file"]),
+    (["--u", "nothere.csv"], ["--u", "nothere.csv"]),
+    (["--trials", "5", "--u", "U"], ["at least 100 trials"]),
+])
+def test_road_bad_input_is_one_line_exit_2(tmp_path, capsys, monkeypatch, extra, words):
+    monkeypatch.chdir(tmp_path)
+    t = bundled_table("R3")
+    t.with_values(t.r * 0.02).write_csv(tmp_path / "U")
+    args = ["road", "--table", "R3", "--table", "R2", "--out", str(tmp_path / "o")] + extra
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("roadgonio: error:") and "\n" not in err
+    for w in words:
+        assert w in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_compare_writes_ratio_map_and_characteristics(tmp_path, capsys):
+    assert main(["compare", "R3", "R4", "--out", str(tmp_path), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    a, b = bundled_table("R3"), bundled_table("R4")
+    assert d["characteristics"]["R3"]["S1"] == pytest.approx(a.s1())
+    assert d["characteristics"]["R4"]["Q0"] == pytest.approx(b.q0())
+    rows = list(csv.DictReader((tmp_path / "compare.csv").read_text().splitlines()))
+    assert len(rows) == int(a.mask.sum())
+    r0 = next(r for r in rows if r["tan_eps"] == "12" and r["beta_deg"] == "0")
+    assert float(r0["ratio_B_over_A"]) == pytest.approx(b.value(12, 0) / a.value(12, 0), rel=1e-5)
+    assert d["ratio_max"] == pytest.approx(np.nanmax(b.r / a.r))
+    assert (tmp_path / "compare.png").stat().st_size > 10_000
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+def test_classify_bundled_tables_fall_in_their_own_class(capsys, name):
+    assert main(["classify", name, "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    system = name[0]
+    assert d["classes"][system]["class"] == name
+    assert d["nearest_bundled"][0]["table"] == name and d["nearest_bundled"][0]["distance"] == pytest.approx(0)
+
+
+def test_output_error_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["road", "--table", "R3", "--out", str(blocker / "sub"), "--no-plots"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("roadgonio: error:") and "file/sub" in err and "Not a directory" in err and "\n" not in err
+    from roadgonio.errors import InputError
+    from roadgonio.road import report
+    out = tmp_path / "o"
+    import errno
+    from pathlib import Path
+    real_write = Path.write_bytes
+    written = []
+
+    def fills_up(self, data):  # the disk fills up while the second file is staged
+        if written:
+            raise OSError(errno.ENOSPC, "No space left on device", str(self))
+        written.append(self)
+        return real_write(self, data)
+    monkeypatch.setattr(Path, "write_bytes", fills_up)
+    with pytest.raises(InputError, match="No space left") as info:
+        report.write_together(out, {"a.txt": "1", "b.txt": "2", "c.txt": "3"})
+    assert "b.txt" in str(info.value)
+    assert list(out.iterdir()) == []   # no result and no staged temporary file left

@@ -1,0 +1,37 @@
+"""`roadgonio uncertainty` from the command line (a subprocess each)."""
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+
+import pytest
+from tolerances import N_SIGMA
+
+
+@pytest.mark.parametrize("args,words", [
+    (["--sigma", "alpha_deg=-1"], "--sigma alpha_deg"),
+    (["--sigma", "foo=1"], "unknown key"),
+    (["--sigma", "/nonexistent/s.toml"], "no such SPEC file"),
+])
+def test_cli_bad_input_is_one_line(tmp_path, args, words):
+    p = subprocess.run([sys.executable, "-m", "roadgonio", "uncertainty", "--instrument", "portable",
+                        "--sample", "lambert", "--no-aperture", "--trials", "200", "--out", str(tmp_path)] + args,
+                       capture_output=True, text=True)
+    assert p.returncode == 2 and words in p.stderr and "Traceback" not in p.stderr
+
+
+def test_cli_runs_lambert(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "roadgonio", "uncertainty", "--instrument", "lab", "--sample", "lambert",
+                        "--sigma", "eps_deg=0.05,source_distance_m=0.005", "--trials", "2000", "--no-aperture",
+                        "--no-plots", "--out", str(tmp_path), "--json"], capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    import json
+    d = json.loads(p.stdout)
+    assert d["trials"] == 2000 and set(d["cases"]) == {"no_aperture"}
+    # Lambert, 5 mm on 5 m: u(r)/r at eps = 0 is 2 u(D)/D = 0.2 % (first order; the eps error is
+    # second order there), to the MC standard error of u (1/sqrt(2M))
+    rows = [l.split(",") for l in (tmp_path / "cells.csv").read_text().splitlines()]
+    row = next(r for r in rows[1:] if r[0] == "no_aperture" and r[1] == "0" and r[2] == "0")
+    u_rel = float(row[rows[0].index("u_rel")])
+    assert abs(u_rel / 0.002 - 1) < N_SIGMA / math.sqrt(2 * 2000) + 1e-3

@@ -1,0 +1,131 @@
+"""The Python API (roadgonio.api, exported from roadgonio): what a notebook user calls."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import roadgonio as rg
+from roadgonio.errors import InputError
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.surface.rtable import RTable, bundled_table
+from tolerances import FILE_RTOL
+
+
+#: float64 round-off allowed beside the quadrature's error bound of a Lambertian k_A (= 1 exactly).
+ROUNDOFF = 4 * 2.2e-16
+
+
+def test_ka_table_of_a_lambertian_sample_is_one_within_its_bound():
+    """The issue's acceptance line: rg.ka_table('portable', 'lambert', backend='quadrature', accuracy='fast')."""
+    ds = rg.ka_table("portable", "lambert", backend="quadrature", accuracy="fast")
+    assert dict(ds.sizes) == {"tan_eps": 29, "beta": 20}
+    assert set(ds.data_vars) == {"k_a", "se", "error_bound", "confidence_bound", "confidence_level", "samples",
+                                 "seconds", "converged"}
+    assert np.array_equal(ds.tan_eps, TAN_EPS_GRID) and np.array_equal(ds.beta, BETA_GRID_DEG)
+    bound = ds.error_bound.values
+    assert np.isfinite(bound).all() and np.isnan(ds.se).all()          # deterministic: a bound, no SE
+    assert (np.abs(ds.k_a.values - 1.0) <= bound + ROUNDOFF).all()
+    assert ds.converged.values.all()
+    prov = json.loads(ds.attrs["provenance"])
+    assert prov["backend"] == "quadrature" and prov["instrument"]["instrument"]["name"] == "portable"
+    assert {"roadgonio", "numpy", "mitsuba", "drjit"} <= set(prov["versions"])
+    assert ds.attrs["instrument"] == "portable" and ds.attrs["cells_computed"] == 580
+    for v in ds.attrs.values():                      # netCDF-safe attributes: text and numbers only
+        assert isinstance(v, (str, int, float)) and not isinstance(v, bool)
+
+
+def test_ka_table_some_cells_nan_elsewhere(r3like):
+    ds = rg.ka_table("portable", r3like, backend="quadrature", accuracy="fast", cells=[(12, 0), (0, 0)])
+    done = ds.k_a.notnull()
+    assert int(done.sum()) == 2 and bool(done.sel(tan_eps=12, beta=0)) and bool(done.sel(tan_eps=0, beta=0))
+    assert int(ds.converged.sum()) == 2 and np.isnan(ds.error_bound.values[~done.values]).all()
+    cell = rg.ka_cell("portable", r3like, 12, 0, backend="quadrature", accuracy="fast")
+    assert cell.k_a == float(ds.k_a.sel(tan_eps=12, beta=0))          # same backend, same settings
+    assert cell.k_a < 1.0 - 10 * cell.error_bound                   # an aperture effect, resolved
+
+
+def test_ka_table_input_errors(r3like):
+    with pytest.raises(InputError, match="'table' needs"):
+        rg.ka_table("portable", "lambert", backend="quadrature", cells="table")
+    with pytest.raises(InputError, match="not on the CIE grid"):
+        rg.ka_table("portable", r3like, backend="quadrature", cells=[(3.3, 0)])
+    with pytest.raises(InputError) as err:
+        rg.ka_table("portable", r3like, backend="quadrature", rel_se=2.0, cells=[(0, 0)])
+    assert err.value.field == "rel_se"
+    with pytest.raises(InputError, match="instrument"):
+        rg.ka_table(3, r3like, backend="quadrature")
+    with pytest.raises(InputError) as err:
+        rg.ka_cell("portable", r3like, -1, 0, backend="quadrature")
+    assert err.value.field == "tan_eps"
+
+
+def test_read_table_is_r_on_the_cie_grid(tmp_path):
+    da = rg.read_table("R3")
+    t = bundled_table("R3")
+    assert da.dims == ("tan_eps", "beta") and da.attrs["name"] == "R3" and da.attrs["units"] == "sr^-1"
+    assert np.array_equal(np.isnan(da.values), ~t.mask) and np.allclose(da.values[t.mask], t.r[t.mask], rtol=0)
+    assert 0.0005 < float(da.sel(tan_eps=0, beta=0)) < 0.05     # r itself (R3: 0.0294 sr^-1), not r x 1e4
+    for suffix in (".csv", ".rtb"):
+        path = rg.write_table(da, tmp_path / f"r3{suffix}")
+        back = rg.read_table(path)
+        assert np.allclose(back.values[t.mask], t.r[t.mask], rtol=FILE_RTOL) and np.isnan(back.values[~t.mask]).all()
+    with pytest.raises(InputError, match="CIE grid"):
+        rg.write_table(da.isel(beta=slice(0, 10)), tmp_path / "cut.csv")
+
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), blank=st.floats(0.0, 0.6), suffix=st.sampled_from([".csv", ".rtb"]),
+       spread=st.floats(0.0, 1.0))
+def test_table_file_round_trip_property(tmp_path_factory, seed, blank, suffix, spread):
+    """Property: any road-like r-table (R3's values each scaled by up to 10^spread either way, so a
+    plausible Q0 < 1 sr^-1 as the RTB reader expects; blanks anywhere but (0, 0)) survives
+    write_table + read_table to 6 significant digits, blanks staying blank."""
+    rng = np.random.default_rng(seed)
+    r = bundled_table("R3").r * 10.0 ** rng.uniform(-spread, spread, size=(29, 20))
+    r[rng.random((29, 20)) < blank] = np.nan
+    r[0, 0] = 0.03
+    path = tmp_path_factory.mktemp("rt") / f"t{suffix}"
+    rg.write_table(RTable(r, name="prop"), path)
+    back = rg.read_table(path).values
+    assert np.array_equal(np.isnan(back), np.isnan(r))
+    ok = np.isfinite(r)
+    assert np.allclose(back[ok], r[ok], rtol=FILE_RTOL, atol=0)
+
+
+def test_fit_wrapper_and_fit_result_as_a_sample():
+    res = rg.fit(rg.read_table("R3"), fixed={"n_phong": 30.0, "n_retro": 10.0, "p": 2.0, "h": 0.5, "mu": 0.03})
+    assert res.model.params.n_phong == 30.0 and res.rms_dev_pct < 10.0
+    c = rg.ka_cell("lab", res, 2, 0, backend="quadrature", accuracy="fast")   # a fit result is a sample
+    assert math.isfinite(c.k_a) and c.converged
+
+
+def test_correct_with_a_lambertian_reference_changes_nothing(tmp_path):
+    """k_A of a Lambertian reference is 1: the corrected table equals the measured one (quadrature bound)."""
+    t = bundled_table("C2")
+    sub = np.full_like(t.r, np.nan)
+    keep = [(0, 0), (0, 1), (1, 0), (1, 1), (8, 0), (8, 1)]   # a Q0 patch, (2, 0) for S1, a specular cell
+    for i, j in keep:
+        sub[i, j] = t.r[i, j]
+    c = rg.correct(RTable(sub, name="m"), "portable", reference="lambert", alternatives="none",
+                   backend="quadrature", accuracy="fast")
+    m = np.isfinite(sub)
+    assert np.allclose(c.corrected.r[m], sub[m], rtol=1e-12) and np.isnan(c.corrected.r[~m]).all()
+    assert c.provenance["backend"] == "quadrature" and c.summary()["cells"] == 6
+
+
+def test_estimate_uncertainty_matches_the_room():
+    """rg.estimate_uncertainty is run_uncertainty with the command's defaults: same seed, same numbers."""
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.model import RoadModel, RoadParams
+    from roadgonio.uncertainty import parse_sigma_spec, run_uncertainty
+    model = RoadModel(RoadParams(k_diff=0.05, k_phong=0.3, n_phong=30))
+    a = rg.estimate_uncertainty("portable", model, {"alpha_deg": 0.01, "eps_deg": "0.05:rect"}, trials=500, aperture=False)
+    b = run_uncertainty(model, load_instrument("portable"), parse_sigma_spec("alpha_deg=0.01,eps_deg=0.05:rect"),
+                        trials=500, aperture=False, progress=False)
+    assert np.array_equal(a.cases["no_aperture"].mc["u"], b.cases["no_aperture"].mc["u"])
+    assert a.spec.to_dict()["eps_deg"]["distribution"] == "rectangular"

@@ -1,0 +1,297 @@
+"""roadgonio design: grid parsing, feasibility with reasons, the signal formula, the runner (journal,
+resume, seeds), the outputs and the API.
+
+Kept small: tiny grids, a few cells, the quadrature backend (deterministic, float64). With Mitsuba:
+tests/plugin/test_design_plugin.py; the command and the best design recomputed with ``roadgonio ka``:
+tests/system/test_design_system.py; the 2-worker cluster: tests/system/test_design_cluster.py."""
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+
+from roadgonio.design import grid as G
+from roadgonio.design import metrics as M
+from roadgonio.design.feasibility import blocked_cells, check_point
+from roadgonio.errors import InputError
+from roadgonio.instrument.config import Instrument, load_instrument
+
+CELLS = "12:0,4:2,0:0,12:180"
+
+
+# ----------------------------------------------------------------------------------------------
+# grid, tolerance, cells
+# ----------------------------------------------------------------------------------------------
+
+def test_parse_vary_linear_log_and_list():
+    s = G.parse_vary("source.radius_m=0.01:0.04:4")
+    assert s.key == "source.radius_m" and s.values == (0.01, 0.02, 0.03, 0.04) and not s.log
+    s = G.parse_vary("detector.field_half_angle_deg=0.05:0.8:5:log")
+    assert s.log and s.values[0] == 0.05 and s.values[-1] == 0.8
+    assert np.allclose(np.diff(np.log(s.values)), math.log(16) / 4, rtol=1e-9)
+    assert G.parse_vary("observation.alpha_deg=1,0.5, 2").values == (1.0, 0.5, 2.0)
+    assert G.parse_vary("source.distance_m=1:1:1").values == (1.0,)
+
+
+@pytest.mark.parametrize("text, words", [
+    ("source.radius=0.01:0.02:2", "unknown instrument key"),
+    ("source.radius_m", "expected KEY=LO:HI:N"),
+    ("source.radius_m=0.01:0.02", "LO:HI:N"),
+    ("source.radius_m=0.01:0.02:x", "whole number"),
+    ("source.radius_m=0.01:0.02:0", "N >= 1"),
+    ("source.radius_m=0:0.02:3:log", "LO, HI > 0"),
+    ("source.radius_m=0.01:0.02:1", "LO = HI"),
+    ("source.radius_m=0.01,0.01", "repeated"),
+    ("source.radius_m=0.01:nan:3", "finite"),
+])
+def test_parse_vary_errors_name_the_option(text, words):
+    with pytest.raises(InputError) as e:
+        G.parse_vary(text)
+    assert e.value.field == "--vary" and words in str(e.value)
+
+
+def test_vary_key_twice_and_grid_order():
+    with pytest.raises(InputError, match="twice"):
+        G.as_vary_specs(["source.radius_m=0.01,0.02", "source.radius_m=0.03,0.04"])
+    specs = G.as_vary_specs({"source.radius_m": [0.01, 0.02], "detector.pupil_radius_m": "0.001:0.003:3"})
+    pts = G.grid_points(specs)
+    assert G.grid_shape(specs) == (2, 3) and len(pts) == 6
+    assert pts[1] == {"source.radius_m": 0.01, "detector.pupil_radius_m": 0.002}     # last key fastest
+    assert pts[3]["source.radius_m"] == 0.02
+
+
+def test_tolerance():
+    assert G.parse_tolerance("5%") == pytest.approx(0.05) and G.parse_tolerance("0.02") == 0.02
+    assert G.parse_tolerance(0.1) == 0.1
+    for bad in ("5", "abc", "-1%", "0"):
+        with pytest.raises(InputError) as e:
+            G.parse_tolerance(bad)
+        assert e.value.field == "--tolerance"
+
+
+def test_focus_follows_the_detector_distance_of_a_sample_focused_base():
+    base = load_instrument("portable")          # focus_m = distance_m = 1
+    inst = G.build_instrument(base, {"detector.distance_m": 2.0})
+    assert inst.detector.distance_m == 2.0 and inst.detector.focus_distance_m == 2.0
+    inf = base.with_changes(detector={"focus_m": "inf"})
+    assert math.isinf(G.build_instrument(inf, {"detector.distance_m": 2.0}).detector.focus_distance_m)
+    fixed = G.build_instrument(base, {"detector.distance_m": 2.0, "detector.focus_m": 1.5})
+    assert fixed.detector.focus_distance_m == 1.5
+
+
+def test_design_cells_come_from_the_one_parser():
+    """A study's cells per sample: 'table' takes each sample's tabulated cells, and a sample
+    without a table is refused for it."""
+    from roadgonio.design.run import resolve_samples
+    from roadgonio.surface.sample import resolve_sample
+    r3, lam = resolve_sample("R3"), resolve_sample("lambert")
+    got = resolve_samples([r3], "table")
+    assert got[0].cells == tuple(r3.table.cells) and 300 < len(got[0].cells) < 580
+    assert len(resolve_samples([r3, lam], "all")[1].cells) == 580
+    with pytest.raises(InputError, match="r-table"):
+        resolve_samples([lam], "table")
+    with pytest.raises(InputError) as e:
+        resolve_samples([r3], "12:0,4")
+    assert e.value.field == "cells"
+
+
+# ----------------------------------------------------------------------------------------------
+# signal formula
+# ----------------------------------------------------------------------------------------------
+
+def _disc_rule(n_r: int, n_phi: int):
+    """Gauss-Legendre in r (with the r dr Jacobian) x uniform in phi on the unit disc."""
+    z, w = np.polynomial.legendre.leggauss(n_r)
+    r = 0.5 * (z + 1)
+    wr = 0.5 * w * r
+    phi = (np.arange(n_phi) + 0.5) * 2 * np.pi / n_phi
+    R, P = np.meshgrid(r, phi, indexing="ij")
+    W = np.repeat(wr[:, None], n_phi, axis=1) * (2 * np.pi / n_phi)
+    return (R * np.cos(P)).ravel(), (R * np.sin(P)).ravel(), W.ravel()
+
+
+@pytest.mark.parametrize("r1, r2, d", [(0.005, 0.0026, 1.0), (0.3, 0.2, 0.5), (1.0, 1.0, 0.7)])
+def test_coaxial_disc_etendue_against_direct_integration(r1, r2, d):
+    """G = int int cos t1 cos t2 / s^2 dA1 dA2 over two coaxial discs, by a product rule."""
+    x1, y1, w1 = _disc_rule(24, 48)
+    x2, y2, w2 = _disc_rule(24, 48)
+    dx = r1 * x1[:, None] - r2 * x2[None, :]
+    dy = r1 * y1[:, None] - r2 * y2[None, :]
+    s2 = dx * dx + dy * dy + d * d
+    g = np.sum(w1[:, None] * w2[None, :] * d * d / (s2 * s2)) * (r1 * r1) * (r2 * r2)
+    assert M.coaxial_disc_etendue(r1, r2, d) == pytest.approx(g, rel=1e-6)
+
+
+def test_source_solid_angle_is_the_illuminance_of_a_unit_radiance_disc():
+    x, y, w = _disc_rule(32, 64)
+    R, D = 0.4, 0.7
+    s2 = (R * x) ** 2 + (R * y) ** 2 + D * D
+    e = np.sum(w * D * D / (s2 * s2)) * R * R            # cos_s cos_r / s^2 over the disc
+    assert M.source_solid_angle(R, D) == pytest.approx(e, rel=1e-9)
+
+
+def test_relative_signal_scales_as_apertures_and_not_with_detector_distance():
+    base = load_instrument("portable")
+    assert M.relative_signal(base, base) == 1.0
+    bigger_pupil = G.build_instrument(base, {"detector.pupil_radius_m": 0.01})
+    assert M.relative_signal(bigger_pupil, base) == pytest.approx(4.0, rel=1e-4)
+    wider_field = G.build_instrument(base, {"detector.field_half_angle_deg": 0.3})
+    assert M.relative_signal(wider_field, base) == pytest.approx(4.0, rel=1e-4)
+    bigger_source = G.build_instrument(base, {"source.radius_m": 0.05})
+    assert M.relative_signal(bigger_source, base) == pytest.approx(4.0, rel=2e-3)
+    farther_source = G.build_instrument(base, {"source.distance_m": 2.0})
+    assert M.relative_signal(farther_source, base) == pytest.approx(0.25, rel=2e-3)
+    # etendue is conserved: a farther luminance meter (still focused on the sample) gets the same flux,
+    # up to the exact-disc term of relative order (R_D / F)^2 = 2.5e-5 at the base's 1 m
+    far = M.relative_signal(G.build_instrument(base, {"detector.distance_m": 3.0}), base)
+    assert far == pytest.approx(1.0, abs=3e-5) and far > 1.0
+    half_edge = base.with_changes(detector={"field_edge_sensitivity": 0.5})
+    assert M.relative_signal(half_edge, base) == pytest.approx(0.75, rel=1e-12)
+    point = base.with_changes(source={"radius_m": 0.0})
+    assert M.relative_signal(point, base) == 0.0 and math.isnan(M.relative_signal(base, point))
+
+
+def test_deviations_and_pareto_front():
+    k = np.array([[1.01, np.nan], [0.95, 1.02]])
+    d = M.deviations(k, np.full_like(k, 0.001))
+    assert d["max_abs_dev"] == pytest.approx(0.05) and d["worst"] == 2 and d["cells"] == 3
+    assert d["rms_dev"] == pytest.approx(math.sqrt((0.01 ** 2 + 0.05 ** 2 + 0.02 ** 2) / 3))
+    front = M.pareto_front([1, 2, 3, 4, np.nan], [0.01, 0.03, 0.02, 0.05, 0.0])
+    assert front.tolist() == [0, 2, 3]          # (2, 0.03) is dominated by (3, 0.02)
+
+
+# ----------------------------------------------------------------------------------------------
+# feasibility
+# ----------------------------------------------------------------------------------------------
+
+def test_impossible_points_get_their_reason():
+    base = load_instrument("portable")
+    from roadgonio.engines.cells import full_grid_cells
+    cells = full_grid_cells()
+    _, f = check_point(base, {"source.radius_m": 1.5}, cells)
+    assert not f.ok and f.kind == "instrument" and "source.radius_m" in f.reason
+    _, f = check_point(base, {"detector.field_half_angle_deg": 0.5}, cells)
+    assert not f.ok and f.kind == "footprint" and "leaves the sample" in f.reason and f.footprint_length_m > 1.0
+    _, f = check_point(base, {"source.distance_m": 0.3, "source.radius_m": 0.03}, cells)
+    assert not f.ok and f.kind == "horizon" and "below the sample plane at 100 cells: tan eps 10 ... 12" in f.reason
+    _, f = check_point(base, {"source.distance_m": 0.5, "source.radius_m": 0.04}, cells)
+    assert not f.ok and f.kind == "line_of_sight" and "beta 180" in f.reason
+    inst, f = check_point(base, {}, cells)
+    assert f.ok and f.reason == "" and 0.4 < f.footprint_length_m < 0.5
+    assert blocked_cells(load_instrument("lab"), cells) == []
+
+
+# ----------------------------------------------------------------------------------------------
+# the runner
+# ----------------------------------------------------------------------------------------------
+
+QUAD = dict(backend="quadrature", accuracy="fast", workers=0, progress=False)
+
+
+def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
+    from roadgonio import design_study as run_design
+    from roadgonio.design.outputs import read_design
+    vary = ["source.distance_m=0.3,1.0", "source.radius_m=0.01,0.03"]
+    ds = run_design("portable", vary, ["R3"], cells=CELLS, tolerance="4%", out=tmp_path, **QUAD)
+    assert dict(ds.sizes) == {"source.distance_m": 2, "source.radius_m": 2, "sample": 1, "tan_eps": 3, "beta": 3}
+    kind = ds["kind"].values
+    assert kind[0, 1] == "horizon" and "below the sample plane at tan eps 12, beta 0" in ds["reason"].values[0, 1]
+    assert not ds["geometry_ok"].values[0, 1] and np.isnan(ds["k_a"].values[0, 1]).all()
+    assert ds["geometry_ok"].values[1].all() and ds["geometry_ok"].values[0, 0]
+    # metrics from the k_A array itself
+    k = ds["k_a"].values[1, 1]
+    assert ds["max_abs_dev"].values[1, 1] == pytest.approx(np.nanmax(np.abs(k - 1)))
+    dev, sig, feas = ds["max_abs_dev"].values, ds["signal"].values, ds["feasible"].values
+    assert np.array_equal(feas, ds["geometry_ok"].values & (dev <= 0.04))
+    assert sig[1, 0] == pytest.approx(1 / 6.25, rel=1e-3) and sig[1, 1] == pytest.approx(1.44, rel=1e-3)
+    best = int(ds.attrs["best_index"])
+    assert feas.ravel()[best] and sig.ravel()[best] == np.max(sig[feas])
+    # the CSV: one row per point, varied keys first, then the metrics; the impossible point keeps its reason
+    rows = list(csv.reader((tmp_path / "design.csv").read_text().splitlines()))
+    assert rows[0][:7] == ["source.distance_m", "source.radius_m", "max_abs_dev", "rms_dev", "signal", "feasible",
+                           "reason"]
+    assert len(rows) == 5 and rows[2][:2] == ["0.3", "0.03"] and rows[2][5] == "false" and "below the sample plane" in rows[2][6]
+    assert rows[2][7] == "horizon"
+    assert rows[2][2] == ""
+    # netCDF round trip
+    back = read_design(tmp_path / "design.nc")
+    assert np.array_equal(back["k_a"].values, ds["k_a"].values, equal_nan=True)
+    assert back["feasible"].dtype == bool and np.array_equal(back["feasible"].values, feas)
+    assert str(back["reason"].values[0, 1]) == str(ds["reason"].values[0, 1])
+    # best.toml is the complete instrument of the best point
+    best_inst = Instrument.load(tmp_path / "best.toml")
+    point = json.loads(ds.attrs["best_point_json"])
+    assert best_inst.source.distance_m == point["source.distance_m"]
+    assert best_inst.source.radius_m == point["source.radius_m"]
+    want = G.build_instrument(load_instrument("portable"), point).to_dict()
+    got = best_inst.to_dict()
+    for sec in ("observation", "source", "detector", "sample"):
+        assert got[sec] == want[sec], sec
+    for f in ("pareto.png", "tolerance_map.png"):
+        assert (tmp_path / f).stat().st_size > 10_000
+
+
+def test_resume_reads_finished_tables_and_refuses_another_design(tmp_path):
+    from roadgonio import design_study as run_design
+    vary = ["source.radius_m=0.01,0.025"]
+    a = run_design("portable", vary, ["R3", "lambert"], cells="12:0,4:2", out=tmp_path, plots=False, **QUAD)
+    assert a.attrs["tables_computed"] == 4
+    # a Lambertian sample has k_A = 1 exactly under Lambert calibration
+    assert np.allclose(a["k_a"].sel(sample="lambert").values[np.isfinite(a["k_a"].sel(sample="lambert").values)],
+                       1.0, atol=1e-9)
+    journal = tmp_path / "design_points.jsonl"
+    lines = journal.read_text().splitlines()
+    assert len(lines) == 5
+    journal.write_text("\n".join(lines[:3]) + "\n" + lines[3][: len(lines[3]) // 2])   # interrupted mid-line
+    b = run_design("portable", vary, ["R3", "lambert"], cells="12:0,4:2", out=tmp_path, plots=False, **QUAD)
+    assert b.attrs["tables_resumed"] == 2 and b.attrs["tables_computed"] == 2
+    assert np.array_equal(a["k_a"].values, b["k_a"].values, equal_nan=True)
+    # another tolerance re-judges without computing
+    c = run_design("portable", vary, ["R3", "lambert"], cells="12:0,4:2", out=tmp_path, plots=False,
+                   tolerance="0.1%", **QUAD)
+    assert c.attrs["tables_computed"] == 0 and not c["feasible"].values.any()
+    assert (c["kind"].values == "tolerance").all() and "> tolerance 0.001" in str(c["reason"].values[0])
+    with pytest.raises(InputError, match="different design"):
+        run_design("portable", ["source.radius_m=0.01,0.02"], ["R3", "lambert"], cells="12:0,4:2", out=tmp_path,
+                   plots=False, **QUAD)
+
+
+def test_seeds_depend_only_on_the_root_and_the_point():
+    from roadgonio.engines.cluster import seeds_for
+    a, b = seeds_for(7, 3), seeds_for(7, 10)
+    assert a == b[:3] and len(set(b)) == 10 and seeds_for(8, 3) != a
+    assert all(0 <= s < 2 ** 31 for s in b)
+
+
+# ----------------------------------------------------------------------------------------------
+# the API
+# ----------------------------------------------------------------------------------------------
+
+def test_api_design_study_is_what_the_command_runs():
+    """rg.design_study(...) with objects as samples = roadgonio design with files: same numbers; the
+    Dataset's dims are the varied keys, sample, tan_eps, beta."""
+    import roadgonio as rg
+    from roadgonio.cli import main
+    from roadgonio.surface.model import RoadModel, RoadParams
+    model = RoadModel(RoadParams(k_diff=0.05, k_phong=0.4, n_phong=40), name="model")
+    vary = {"detector.pupil_radius_m": [0.002, 0.005]}
+    a = rg.design_study("portable", vary, [model, "lambert"], cells="12:0,2:0", backend="quadrature", accuracy="fast",
+                        workers=0)
+    import tempfile
+    with tempfile.TemporaryDirectory() as d:
+        model.save(f"{d}/model.json")
+        assert main(["design", "--instrument", "portable", "--vary", "detector.pupil_radius_m=0.002,0.005",
+                     "--sample", f"{d}/model.json", "--sample", "lambert", "--cells", "12:0,2:0", "--backend",
+                     "quadrature", "--accuracy", "fast", "--workers", "0", "--out", f"{d}/o", "--quiet",
+                     "--no-plots"]) == 0
+        from roadgonio.design.outputs import read_design
+        b = read_design(f"{d}/o/design.nc")
+    assert a["k_a"].dims == ("detector.pupil_radius_m", "sample", "tan_eps", "beta")
+    assert np.array_equal(a["k_a"].values, b["k_a"].values, equal_nan=True)
+    assert json.loads(a.attrs["provenance"])["versions"]["roadgonio"] == rg.__version__
+    assert a["k_a"].sel(sample="lambert").values[np.isfinite(a["k_a"].sel(sample="lambert").values)] == \
+        pytest.approx(1.0, abs=1e-12)
+    assert abs(float(a["k_a"].sel(sample="model", tan_eps=12, beta=0)[1]) - 1) > 1e-3

@@ -1,0 +1,93 @@
+"""Bad input and failure handling below the command line: frozen configs, SPECs against the
+geometry, seeds, output permissions, message formatting (the command line's:
+tests/system/test_input_errors.py)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from roadgonio.errors import InputError
+
+
+def test_instrument_is_frozen():
+    from dataclasses import FrozenInstanceError
+
+    from roadgonio.instrument.config import load_instrument
+    inst = load_instrument("lab")
+    with pytest.raises((FrozenInstanceError, TypeError)):
+        inst.extra["scene"] = {"xml": "x.xml"}
+
+
+def test_spec_out_of_the_footprint_is_refused_for_the_aperture_case(r3like):
+    """With the aperture effect the perturbed instrument is rebuilt: a detector-distance error that
+    pushes the footprint off the sample is a SPEC error naming the key, before any k_A work."""
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.uncertainty.cells import CellSet
+    from roadgonio.uncertainty.measurement import MeasurementModel
+    from roadgonio.uncertainty.spec import check_spec_geometry, parse_sigma_spec
+    mm = MeasurementModel(r3like, load_instrument("lab"), CellSet.make("standard"))
+    check_spec_geometry(parse_sigma_spec("detector_distance_m=0.005"), mm, aperture=True)   # fine
+    with pytest.raises(InputError, match="detector_distance_m"):
+        check_spec_geometry(parse_sigma_spec("detector_distance_m=2"), mm, aperture=True)
+
+
+def test_every_trial_is_checked(r3like):
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.uncertainty.cells import CellSet
+    from roadgonio.uncertainty.measurement import MeasurementModel
+    from roadgonio.uncertainty.spec import INPUTS, check_trials, parse_sigma_spec
+    spec = parse_sigma_spec("alpha_deg=0.1")
+    mm = MeasurementModel(r3like, load_instrument("lab"), CellSet.make("standard"))
+    X = np.zeros((5, len(INPUTS)))
+    check_trials(spec, mm, X)
+    X[3, 0] = -1.2      # 12 sigma: the detector below the horizon
+    with pytest.raises(InputError, match=r"trial 4 draws alpha_deg = -1\.2"):
+        check_trials(spec, mm, X)
+
+
+def test_backend_api_rejects_negative_seeds(r3like):
+    from roadgonio.engines import make_backend
+    from roadgonio.instrument.config import load_instrument
+    for name in ("numpy-mc", "reference"):
+        with pytest.raises(InputError, match="seed"):
+            make_backend(name, load_instrument("lab"), r3like, seed=-5)
+
+
+def test_outputs_are_world_readable(tmp_path):
+    import os
+
+    from roadgonio.fileio import OutputGroup, atomic_write_text
+    mask = os.umask(0o022)
+    try:
+        p = atomic_write_text(tmp_path / "a.txt", "x")
+        with OutputGroup(tmp_path / "g") as g:
+            g.text("b.txt", "y")
+        assert (p.stat().st_mode & 0o777) == 0o644
+        assert ((tmp_path / "g" / "b.txt").stat().st_mode & 0o777) == 0o644
+        assert not [q for q in (tmp_path / "g").iterdir() if q.name.startswith(".")]
+    finally:
+        os.umask(mask)
+
+
+def test_percentages_in_messages_are_plain_numbers():
+    """A fraction near 1 in a message reads 99.7 %, not 1e+02 % (the source-occlusion error did)."""
+    from roadgonio.errors import percent
+    assert percent(0.997) == "99.7 %"
+    assert percent(1.0) == "100 %"
+    assert percent(0.0123) == "1.23 %"
+    assert "e" not in percent(2e-5)
+
+
+def test_q0_of_a_table_without_a_complete_grid_cell_is_nan_without_a_warning():
+    import warnings
+
+    import numpy as np
+
+    from roadgonio.surface.rtable import RTable
+    t = RTable(np.full((29, 20), np.nan), name="x")
+    t.r[5, 3] = 0.01
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert math.isnan(t.q0())

@@ -1,0 +1,178 @@
+"""The k_A table runner: journal, resume after an interruption, refusal to mix runs, outputs."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from roadgonio.errors import InputError
+from roadgonio.instrument.config import load_instrument
+from roadgonio.engines import CellResult, full_grid_cells
+from roadgonio.engines.runner import JOURNAL, ka_dataset, run_cells, write_outputs
+from roadgonio.surface.model import RoadModel, RoadParams
+from roadgonio.surface.rtable import read_table
+
+
+class Interrupted(Exception):
+    pass
+
+
+class StandIn:
+    """A deterministic backend whose k_A is a known function of the cell; can fail after N cells."""
+
+    name = "stand-in"
+
+    def __init__(self, fail_after=None, tag=0):
+        self.fail_after = fail_after
+        self.calls = []
+        self.tag = tag
+
+    def settings(self):
+        return {"tag": self.tag}
+
+    @staticmethod
+    def value(t, b):
+        return 1.0 + 0.01 * t * np.cos(np.radians(b))
+
+    def compute(self, cells, on_cell=None):
+        out = []
+        for k, (t, b) in enumerate(cells):
+            if self.fail_after is not None and k >= self.fail_after:
+                raise Interrupted()
+            self.calls.append((t, b))
+            c = CellResult(t, b, self.value(t, b), 1e-4, 1000, 0.001)
+            out.append(c)
+            if on_cell:
+                on_cell(c)
+        return out
+
+
+@pytest.fixture
+def setup():
+    return load_instrument("portable"), RoadModel(RoadParams(k_diff=0.05, k_phong=0.3, n_phong=200))
+
+
+def test_full_grid_has_580_cells():
+    cells = full_grid_cells()
+    assert len(cells) == 580 and len(set(cells)) == 580
+
+
+def test_resume_after_interruption_computes_each_cell_once(tmp_path, setup):
+    ins, model = setup
+    cells = full_grid_cells()[:50]
+    first = StandIn(fail_after=20)
+    with pytest.raises(Interrupted):
+        run_cells(first, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert len(first.calls) == 20
+    second = StandIn()
+    run = run_cells(second, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert run.resumed == 20
+    assert second.calls == cells[20:]                      # nothing computed twice
+    assert [(c.tan_eps, c.beta_deg) for c in run.results] == cells
+    assert all(c.k_a == StandIn.value(c.tan_eps, c.beta_deg) for c in run.results)
+
+
+def test_cut_short_last_line_is_recomputed(tmp_path, setup):
+    ins, model = setup
+    cells = full_grid_cells()[:5]
+    run_cells(StandIn(), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    j = tmp_path / JOURNAL
+    text = j.read_text()
+    j.write_text(text[: len(text) - 15])                   # the last line cut mid-way
+    again = StandIn()
+    run = run_cells(again, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert again.calls == [cells[-1]] and len(run.results) == 5
+
+
+def test_journal_of_another_run_is_refused(tmp_path, setup):
+    ins, model = setup
+    cells = full_grid_cells()[:3]
+    run_cells(StandIn(tag=0), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    with pytest.raises(InputError, match="different run"):
+        run_cells(StandIn(tag=1), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    other_model = RoadModel(RoadParams(k_diff=0.06))
+    with pytest.raises(InputError, match="different run"):
+        run_cells(StandIn(tag=0), cells, instrument=ins, model=other_model, out_dir=tmp_path, progress=False)
+    fresh = StandIn(tag=1)
+    run_cells(fresh, cells, instrument=ins, model=model, out_dir=tmp_path, fresh=True, progress=False)
+    assert fresh.calls == cells
+
+
+def test_outputs_layout_and_provenance(tmp_path, setup):
+    ins, model = setup
+    cells = [c for c in full_grid_cells() if c[0] <= 1.0]
+    backend = StandIn()
+    run = run_cells(backend, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    ds = ka_dataset(run, instrument=ins, model=model, backend=backend, sample="test")
+    meta = write_outputs(ds, tmp_path)
+    ka = read_table(tmp_path / "ka.csv")
+    se = read_table(tmp_path / "ka_se.csv")
+    # the CSV reader scales by 1e-4 (r x 1e4 layout); k_A files are written unscaled
+    got = ka.r * 1e4
+    rows = ka.tan_eps <= 1.0
+    expect = StandIn.value(ka.tan_eps[:, None], ka.beta_deg[None, :])
+    assert np.allclose(got[rows], expect[rows], rtol=1e-6)
+    assert np.all(np.isnan(got[~rows]))                    # not computed -> blank, never zero
+    assert np.allclose(se.r[rows] * 1e4, 1e-4)
+    saved = json.loads((tmp_path / "ka.json").read_text())
+    assert saved["backend"] == "stand-in" and saved["settings"] == {"tag": 0}
+    assert saved["instrument"]["source"]["radius_m"] == ins.source.radius_m
+    assert saved["model"]["params"]["n_phong"] == 200
+    assert saved["summary"]["cells"] == len(cells)
+    assert (tmp_path / "ka.png").stat().st_size > 10_000
+    assert {"roadgonio", "mitsuba", "drjit", "numpy", "scipy"} <= set(meta["versions"])
+    # ka.nc is the Dataset the CSVs were written from: the same numbers, units and meanings
+    from roadgonio.fileio import read_netcdf
+    nc = read_netcdf(tmp_path / "ka.nc", booleans=("converged",))
+    assert np.array_equal(nc.k_a.values, ds.k_a.values, equal_nan=True)
+    assert nc.k_a.attrs["units"] == "1" and "standard error" in nc.se.attrs["long_name"]
+    assert nc.attrs["Conventions"] == "CF-1.8" and json.loads(nc.attrs["provenance"])["backend"] == "stand-in"
+    assert nc.attrs["fingerprint"] == meta["fingerprint"] and "cell_correlation" in nc.attrs
+    assert int(nc.converged.sum()) == len(cells)
+
+
+def test_journal_is_written_in_batches_and_stays_complete(tmp_path, setup, monkeypatch):
+    """Cells reported in quick succession are journalled by a few atomic rewrites, not one fsync per
+    cell; an interruption still leaves every reported cell in a journal that parses completely."""
+    import roadgonio.engines.runner as runner
+    ins, model = setup
+    writes = []
+    real = runner._write_journal
+    monkeypatch.setattr(runner, "_write_journal", lambda j, h, c: (writes.append(len(c)), real(j, h, c)))
+    monkeypatch.setattr(runner, "FLUSH_SECONDS", 3600.0)
+    cells = full_grid_cells()[:60]
+    with pytest.raises(Interrupted):
+        run_cells(StandIn(fail_after=45), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert writes == [0, 45]                                # the header, then once when interrupted
+    lines = (tmp_path / JOURNAL).read_text().splitlines()
+    assert len(lines) == 46 and all(json.loads(line) for line in lines)
+    monkeypatch.setattr(runner, "FLUSH_SECONDS", 0.0)       # every report flushes: the journal grows
+    writes.clear()
+    run = run_cells(StandIn(), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert run.resumed == 45 and writes[0] == 45 and writes[-1] == 60
+
+
+def test_finished_run_is_never_overwritten_by_another_even_without_its_journal(tmp_path, setup, monkeypatch):
+    ins, model = setup
+    cells = full_grid_cells()[:4]
+    b = StandIn(tag=0)
+    run = run_cells(b, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    meta = write_outputs(ka_dataset(run, instrument=ins, model=model, backend=b, sample="test"), tmp_path, plot=False)
+    assert len(meta["fingerprint"]) == 16
+    (tmp_path / JOURNAL).unlink()
+    with pytest.raises(InputError, match="different run"):
+        run_cells(StandIn(tag=1), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    # the same run again (journal gone): allowed, recomputed
+    again = StandIn(tag=0)
+    run_cells(again, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert again.calls == cells
+    # another roadgonio version is another run
+    from roadgonio import _version
+    monkeypatch.setattr(_version, "__version__", _version.__version__ + ".dev-other")
+    (tmp_path / JOURNAL).unlink()
+    with pytest.raises(InputError, match="different run"):
+        run_cells(StandIn(tag=0), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    fresh = StandIn(tag=0)
+    run_cells(fresh, cells, instrument=ins, model=model, out_dir=tmp_path, fresh=True, progress=False)
+    assert fresh.calls == cells and not (tmp_path / "ka.json").exists()

@@ -1,0 +1,313 @@
+"""The road BRDF model (roadgonio.surface.model): limiting cases, the documented variants, the grazing
+attenuation g, finiteness within the documented bounds and parameter validation."""
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from roadgonio.errors import InputError
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, w_detector, w_source
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import (PARAM_BOUNDS, THETA_R_STAR, VARIANTS, RoadModel, RoadParams,
+                             road_brdf)
+from helpers import _hemisphere, _model, _unit, rand_dirs, rand_params
+from tolerances import ROUND_TOL as RTOL_EXACT  # float64 evaluation of closed forms
+
+
+#: Closed forms that go through exp/log of large exponents.
+RTOL_EXPLOG = 1e-9
+
+
+def _dir(theta_deg, phi_deg):
+    t, p = np.radians(theta_deg), np.radians(phi_deg)
+    return np.stack(np.broadcast_arrays(np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)), axis=-1)
+
+
+# ----------------------------------------------------------------------------------------------
+# limiting cases
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_lambertian_only_is_constant(variant):
+    rng = np.random.default_rng(1)
+    m = _model(variant, k_diff=0.123)
+    f = m.brdf(_hemisphere(2000, rng), _hemisphere(2000, rng))
+    np.testing.assert_allclose(f, 0.123, rtol=RTOL_EXACT, atol=0)
+    T, B = np.meshgrid(TAN_EPS_GRID, BETA_GRID_DEG, indexing="ij")
+    np.testing.assert_allclose(m.q(T, B), 0.123, rtol=RTOL_EXACT)
+    assert RoadModel.lambert(0.8).brdf([0, 0, 1], [1, 0, 0.1]) == pytest.approx(0.8 / math.pi, rel=RTOL_EXACT)
+
+
+@pytest.mark.parametrize("theta_o,phi_o", [(60.0, 0.0), (89.0, 30.0), (20.0, 200.0)])
+def test_phong_peak_at_mirror_direction(theta_o, phi_o):
+    m = _model(k_phong=2.0, n_phong=200.0)
+    wo = _dir(theta_o, phi_o)
+    th, ph = np.meshgrid(np.linspace(0.5, 89.5, 179), np.linspace(0, 359.5, 720), indexing="ij")
+    wi = _dir(th, ph)
+    f = m.brdf(wi, wo)
+    i = np.unravel_index(np.argmax(f), f.shape)
+    # the mirror of w_o is (theta_o, phi_o + 180)
+    assert th[i] == pytest.approx(theta_o, abs=0.5)
+    assert (ph[i] - phi_o - 180.0) % 360.0 == pytest.approx(0.0, abs=0.5) or \
+        (ph[i] - phi_o - 180.0) % 360.0 == pytest.approx(360.0, abs=0.5)
+    assert m.brdf(_dir(theta_o, phi_o + 180.0), wo) == pytest.approx(2.0, rel=RTOL_EXACT)
+    assert f.max() <= 2.0 * (1 + RTOL_EXACT)
+
+
+@pytest.mark.parametrize("theta_o,phi_o", [(60.0, 0.0), (89.0, 30.0), (20.0, 200.0)])
+def test_retro_peak_towards_the_source(theta_o, phi_o):
+    m = _model(k_retro=1.5, n_retro=150.0)
+    wo = _dir(theta_o, phi_o)
+    th, ph = np.meshgrid(np.linspace(0.5, 89.5, 179), np.linspace(0, 359.5, 720), indexing="ij")
+    f = m.brdf(_dir(th, ph), wo)
+    i = np.unravel_index(np.argmax(f), f.shape)
+    assert th[i] == pytest.approx(theta_o, abs=0.5)
+    assert min((ph[i] - phi_o) % 360.0, 360 - (ph[i] - phi_o) % 360.0) == pytest.approx(0.0, abs=0.5)
+    assert m.brdf(wo, wo) == pytest.approx(1.5, rel=RTOL_EXACT)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_r_is_q_cos3_eps(variant):
+    m = _model(variant, k_diff=0.02, k_phong=1.0, n_phong=30, k_retro=0.05, n_retro=10, k_exp=0.1, p=2,
+               h=0.5, mu=0.03)
+    T, B = np.meshgrid(TAN_EPS_GRID, BETA_GRID_DEG, indexing="ij")
+    eps = np.arctan(T)
+    np.testing.assert_allclose(m.r(T, B), m.q(T, B) * np.cos(eps) ** 3, rtol=RTOL_EXACT)
+    # q is f_r for the source at (eps, beta) and the detector at alpha = 1 deg
+    np.testing.assert_allclose(m.q(T, B), m.brdf(w_source(eps, B), w_detector(1.0)), rtol=RTOL_EXACT)
+
+
+# ----------------------------------------------------------------------------------------------
+# grazing attenuation g
+# ----------------------------------------------------------------------------------------------
+
+#: a strong attenuation that starts just above the paper's 85.3 deg limit
+G_STRONG = dict(theta_l_deg=85.31, g_a=-0.5, g_b=0.0, g_c=1.6, g_t=6.0)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_g_never_changes_a_one_degree_table_cell(variant):
+    base = dict(k_diff=0.02, k_phong=1.0, n_phong=30, k_retro=0.05, n_retro=10, k_exp=0.1, p=2, h=0.5, mu=0.03)
+    plain = _model(variant, **base)
+    att = _model(variant, **base, **G_STRONG)
+    T, B = np.meshgrid(TAN_EPS_GRID, BETA_GRID_DEG, indexing="ij")
+    assert T.size == 580
+    np.testing.assert_array_equal(att.r(T, B), plain.r(T, B))
+    # ... but it changes the BRDF near grazing observation (what the aperture effect samples)
+    for alpha in (0.3, 0.6, 2.0):
+        ratio = att.q(T, B, alpha_deg=alpha) / plain.q(T, B, alpha_deg=alpha)
+        assert np.max(np.abs(ratio - 1.0)) > 0.05, alpha
+    # and the factor is the documented one: g(theta_i) g(theta_r) / g(theta_r*)
+    g = lambda th: np.where(th > np.radians(85.31), (-0.5 * th * th + 1.6) ** 6.0, 1.0)  # noqa: E731
+    wi, wo = _dir(87.0, 180.0), _dir(89.6, 0.0)
+    expected = plain.brdf(wi, wo) * g(np.radians(87.0)) * g(np.radians(89.6)) / g(THETA_R_STAR)
+    assert att.brdf(wi, wo) == pytest.approx(expected, rel=RTOL_EXPLOG)
+
+
+# ----------------------------------------------------------------------------------------------
+# the empirical term E, as documented for each variant
+# ----------------------------------------------------------------------------------------------
+
+def _E_reference(variant, k, p, h, mu, theta_i, theta_r, beta, n_beta=1.0):
+    """E of docs/conventions.md section 3 / the roadgonio.surface.model docstring, written from the formulas."""
+    e = theta_i * theta_r / THETA_R_STAR
+    f = math.sin(e) * math.cos(e) / (math.cos(e) ** 2 + mu)
+    x = (math.pi - beta) / math.pi
+    if variant == "power":
+        return k * f ** p * x ** math.exp(1 + h * f * f)
+    if variant == "product":
+        return k * f ** p * x * math.exp(1 + h * f * f)
+    if variant == "smooth":
+        xs = math.cos(beta / 2) ** 2
+        W = math.exp(1 + h * math.sqrt(f))
+        return k * f ** p * math.exp(-W * (-math.log(xs)) ** n_beta)
+    raise AssertionError(variant)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("ti,tr,beta_deg,p,h,mu", [
+    (60.0, 89.0, 0.0, 2.0, 0.5, 0.03), (80.0, 89.0, 10.0, 2.1, 0.5, 0.03), (30.0, 70.0, 100.0, 1.0, -2.0, 0.0),
+    (84.0, 89.0, 2.0, 2.5, 0.02, 0.005), (75.0, 89.0, 5.0, 2.5, 2.5, 0.005), (45.0, 45.0, 170.0, 3.0, 1.0, 1.0)])
+def test_empirical_term_matches_documented_formula(variant, ti, tr, beta_deg, p, h, mu):
+    m = _model(variant, k_exp=0.7, p=p, h=h, mu=mu)
+    wi = _dir(ti, 180.0 - beta_deg)
+    wo = _dir(tr, 0.0)
+    ref = _E_reference(variant, 0.7, p, h, mu, math.radians(ti), math.radians(tr), math.radians(beta_deg))
+    assert m.brdf(wi, wo) == pytest.approx(ref, rel=RTOL_EXPLOG, abs=1e-300)
+
+
+@pytest.mark.parametrize("n_beta", [0.5, 0.8, 1.7, 4.0])
+@pytest.mark.parametrize("ti,tr,beta_deg,p,h,mu", [
+    (60.0, 89.0, 0.5, 2.0, 0.5, 0.03), (80.0, 89.0, 10.0, 2.1, 1.6, 0.002), (84.0, 89.0, 2.0, 2.5, 2.5, 0.005),
+    (30.0, 70.0, 100.0, 1.0, -2.0, 0.0), (45.0, 45.0, 170.0, 3.0, 1.0, 1.0)])
+def test_smooth_beta_profile_exponent(n_beta, ti, tr, beta_deg, p, h, mu):
+    m = _model("smooth", k_exp=0.7, p=p, h=h, mu=mu, n_beta=n_beta)
+    ref = _E_reference("smooth", 0.7, p, h, mu, math.radians(ti), math.radians(tr), math.radians(beta_deg), n_beta)
+    assert m.brdf(_dir(ti, 180.0 - beta_deg), _dir(tr, 0.0)) == pytest.approx(ref, rel=RTOL_EXPLOG, abs=1e-300)
+
+
+def test_smooth_profile_shapes_and_limits():
+    """n_beta = 1 is x_s^W (Gaussian near beta = 0), n_beta = 1/2 (the bound) a cusp exp(-W beta/2);
+    the peak value at beta = 0 is k f^p for every n_beta; E falls monotonically in beta."""
+    T = np.full(7, 3.0)
+    B = np.array([0.0, 0.01, 0.1, 1.0, 5.0, 30.0, 180.0])
+    e = np.arctan(3.0) * math.radians(89.0) / THETA_R_STAR
+    f = math.sin(e) * math.cos(e) / (math.cos(e) ** 2 + 0.01)
+    W = math.exp(1 + 0.8 * math.sqrt(f))
+    for nb in (0.5, 1.0, 2.0, 4.0):
+        q = _model("smooth", k_exp=1.0, p=2.0, h=0.8, mu=0.01, n_beta=nb).q(T, B)
+        assert q[0] == pytest.approx(f ** 2, rel=RTOL_EXPLOG), nb
+        assert np.all(np.diff(q) <= 0.0), nb
+    b = np.radians(B[1:4])
+    gauss = _model("smooth", k_exp=1.0, p=2.0, h=0.8, mu=0.01, n_beta=1.0).q(T[1:4], B[1:4])
+    np.testing.assert_allclose(gauss, f ** 2 * np.cos(b / 2) ** (2 * W), rtol=RTOL_EXPLOG)
+    cusp = _model("smooth", k_exp=1.0, p=2.0, h=0.8, mu=0.01, n_beta=0.5).q(T[1:3], B[1:3])
+    np.testing.assert_allclose(cusp, f ** 2 * np.exp(-W * b[:2] / 2), rtol=1e-6)
+    # the paper's variants ignore n_beta
+    for v in ("power", "product"):
+        kw = dict(k_exp=1.0, p=2.0, h=0.8, mu=0.01)
+        np.testing.assert_array_equal(_model(v, **kw, n_beta=0.6).q(T, B), _model(v, **kw).q(T, B))
+
+
+def test_product_and_power_differ_as_documented():
+    """At beta = 0 (x = 1) the power reading is k f^p while the product carries exp(1 + h f^2);
+    at beta = 90 deg (x = 1/2) the power reading is k f^p 2^-W, the product k f^p exp(1+hf^2)/2."""
+    kw = dict(k_exp=1.0, p=2.0, h=0.5, mu=0.03)
+    pw, pr = _model("power", **kw), _model("product", **kw)
+    T = np.array([1.0, 3.0, 8.0])
+    e = np.arctan(T) * math.radians(89.0) / THETA_R_STAR
+    f = np.sin(e) * np.cos(e) / (np.cos(e) ** 2 + 0.03)
+    W = np.exp(1 + 0.5 * f * f)
+    np.testing.assert_allclose(pw.q(T, 0.0), f ** 2, rtol=RTOL_EXPLOG)
+    np.testing.assert_allclose(pr.q(T, 0.0), f ** 2 * W, rtol=RTOL_EXPLOG)
+    np.testing.assert_allclose(pw.q(T, 90.0), f ** 2 * 0.5 ** W, rtol=RTOL_EXPLOG)
+    np.testing.assert_allclose(pr.q(T, 90.0), f ** 2 * 0.5 * W, rtol=RTOL_EXPLOG)
+    assert np.all(pr.q(T, 0.0) > pw.q(T, 0.0))
+
+
+# ----------------------------------------------------------------------------------------------
+# finite and non-negative within the documented bounds
+# ----------------------------------------------------------------------------------------------
+
+def _finite_nonneg(model, wi, wo):
+    f = model.brdf(wi, wo)
+    assert np.all(np.isfinite(f)), (model.params, model.variant)
+    assert np.all(f >= 0.0), (model.params, model.variant)
+
+
+def _extreme_directions():
+    th = [0.0, 1e-7, 30.0, 85.24, 89.0, 89.9999, 90.0 - 1e-9]
+    ph = [0.0, 1e-9, 90.0, 180.0, 180.0 - 1e-9, 270.0]
+    d = np.array([_dir(t, p) for t in th for p in ph])
+    d[:, 2] = np.maximum(d[:, 2], 1e-12)  # upper hemisphere, however grazing
+    d = _unit(d)
+    ii, jj = np.meshgrid(np.arange(len(d)), np.arange(len(d)), indexing="ij")
+    return d[ii.ravel()], d[jj.ravel()]
+
+
+EXTREMES = {
+    "k_diff": [0.0, 1e6], "k_phong": [0.0, 1e6], "k_retro": [0.0, 1e6], "k_exp": [0.0, 1e6],
+    "n_phong": [0.0, 1e5], "n_retro": [0.0, 1e5], "p": [0.0, 50.0], "h": [-1e3, 0.0, 1e3], "mu": [0.0, 1e3],
+    "n_beta": [0.5, 1.0, 4.0],
+}
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_finite_at_extreme_parameters_and_directions(variant):
+    wi, wo = _extreme_directions()
+    # every lobe at full strength, each shape parameter at each of its extremes
+    names = ["n_phong", "n_retro", "p", "h", "mu"] + (["n_beta"] if variant == "smooth" else [])
+    for combo in itertools.product(*(EXTREMES[n] for n in names)):
+        P = dict(k_diff=1e6, k_phong=1e6, k_retro=1e6, k_exp=1e6, **dict(zip(names, combo)))
+        _finite_nonneg(_model(variant, **P), wi, wo)
+        _finite_nonneg(_model(variant, **P, **G_STRONG), wi, wo)
+    # beta exactly 0 and 180 on the table grid, theta_i = 0 (tan = 0)
+    T, B = np.meshgrid(TAN_EPS_GRID, [0.0, 180.0], indexing="ij")
+    for nb in EXTREMES["n_beta"]:
+        m = _model(variant, k_exp=1e6, p=0.0, h=1e3, mu=0.0, k_phong=1e6, n_phong=1e5, n_beta=nb)
+        q = m.q(T, B)
+        assert np.all(np.isfinite(q)) and np.all(q >= 0)
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_finite_random_parameters_and_directions(variant):
+    hyp = pytest.importorskip("hypothesis")
+    st = pytest.importorskip("hypothesis.strategies")
+
+    def bounded(name):
+        lo, hi = PARAM_BOUNDS[name]
+        return st.floats(lo, hi, allow_nan=False, allow_infinity=False)
+
+    @hyp.settings(max_examples=150, deadline=None, derandomize=True)
+    @hyp.given(st.fixed_dictionaries({n: bounded(n) for n in EXTREMES}), st.integers(0, 2 ** 31 - 1))
+    def check(P, seed):
+        rng = np.random.default_rng(seed)
+        wi, wo = _hemisphere(64, rng, 1e-9), _hemisphere(64, rng, 1e-9)
+        _finite_nonneg(_model(variant, **P), wi, wo)
+
+    check()
+
+
+def test_below_horizon_is_zero():
+    m = _model(k_diff=1.0, k_phong=1.0, k_exp=1.0)
+    assert m.brdf([0.3, 0, -0.5], [0, 0, 1]) == 0.0
+    assert m.brdf([0, 0, 1], [0.3, 0.1, -0.01]) == 0.0
+
+
+# ----------------------------------------------------------------------------------------------
+# validation
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("field,value", [
+    ("k_diff", -1e-3), ("k_phong", 2e6), ("n_phong", -1.0), ("n_retro", 1e6), ("p", 51.0), ("h", -1001.0),
+    ("mu", -0.1), ("n_beta", 0.45), ("n_beta", 4.5), ("g_t", 101.0), ("theta_l_deg", 85.3), ("theta_l_deg", 91.0), ("k_exp", float("nan")),
+    ("h", float("inf")), ("p", "two")])
+def test_invalid_parameter_raises_naming_the_field(field, value):
+    with pytest.raises(InputError) as ei:
+        RoadParams(**{field: value})
+    assert ei.value.field == field
+    assert field in str(ei.value)
+
+
+def test_negative_g_polynomial_is_rejected():
+    with pytest.raises(InputError) as ei:
+        RoadParams(theta_l_deg=86.0, g_a=0.0, g_b=-1.0, g_c=1.0)  # 1 - theta < 0 at 90 deg
+    assert "g_" in ei.value.field
+
+
+def test_unknown_variant_and_parameter():
+    with pytest.raises(InputError) as ei:
+        RoadModel(RoadParams(), "nope")
+    assert ei.value.field == "variant"
+    with pytest.raises(InputError) as ei:
+        road_brdf(NumpyOps, RoadParams().to_dict(), (0, 0, 1), (0, 0, 1), "nope")
+    assert ei.value.field == "variant"
+    with pytest.raises(InputError) as ei:
+        RoadParams.from_dict({"k_dif": 1.0})
+    assert "k_dif" in str(ei.value)
+
+
+def test_model_json_round_trip(tmp_path):
+    m = RoadModel(RoadParams(k_diff=0.01, k_phong=1.2, n_phong=33.0, p=2.5, h=-3.0, mu=0.2, **G_STRONG),
+                  "product", name="x", meta={"fit": {"rms_dev_pct": 1.0}})
+    path = m.save(tmp_path / "m.json")
+    m2 = RoadModel.load(path)
+    assert m2.params == m.params and m2.variant == "product" and m2.name == "x"
+    assert m2.meta["fit"]["rms_dev_pct"] == 1.0
+
+
+# ----------------------------------------------------------------------------------------------
+# reciprocity of the model as written (the plugin's is tests/plugin/test_plugin_bsdf.py)
+# ----------------------------------------------------------------------------------------------
+
+def test_numpy_model_is_reciprocal(rng_seed):
+    """Every term of the model as written (lobes, E with e = theta_i theta_r / theta_r*, beta,
+    g(theta_i) g(theta_r)) is symmetric in (w_i, w_o): the full model is reciprocal."""
+    rng = np.random.default_rng(rng_seed + 3)
+    for variant in ("power", "product"):
+        m = RoadModel(RoadParams(**rand_params(rng)), variant)
+        a, b = rand_dirs(rng, 2000), rand_dirs(rng, 2000)
+        np.testing.assert_allclose(m.brdf(a, b), m.brdf(b, a), rtol=1e-10, atol=1e-14)

@@ -1,0 +1,133 @@
+"""The instrument's ray geometry (roadgonio.instrument.optics) against independent results."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from roadgonio.errors import GeometryError
+from roadgonio.instrument import optics
+from roadgonio.instrument.config import load_instrument
+from roadgonio.arrays import NumpyOps as xp
+from roadgonio.instrument.optics import (check_detector, check_source, concentric_disc, detector_geometry,
+                              detector_ray, hit_plane, source_coupling, source_geometry, source_point)
+from tolerances import ALPHA, N_SIGMA
+
+SEED = 20261122
+
+
+def coaxial_disc_view_factor(r1, r2, h):
+    """View factor from disc 1 (radius r1) to a coaxial parallel disc 2 (radius r2) at distance h
+    (standard radiative-exchange result)."""
+    R1, R2 = r1 / h, r2 / h
+    X = 1.0 + (1.0 + R2 * R2) / (R1 * R1)
+    q = (R2 / R1) ** 2
+    return 2.0 * q / (X + math.sqrt(X * X - 4.0 * q))   # = (X - sqrt(X^2 - 4q))/2 without cancellation
+
+
+def test_concentric_map_is_uniform_on_the_disc():
+    u = np.random.default_rng(SEED).random((2, 200_000))
+    x, y = concentric_disc(xp, u[0], u[1])
+    r2 = x * x + y * y
+    assert r2.max() <= 1.0 + 1e-12
+    # area preserving: r^2 and the angle are uniform
+    assert stats.kstest(r2, "uniform").pvalue > ALPHA
+    assert stats.kstest((np.arctan2(y, x) + np.pi) / (2 * np.pi), "uniform").pvalue > ALPHA
+
+
+@pytest.mark.parametrize("pupil, field_deg, focus", [(0.01, 0.3, 2.0), (0.05, 1.0, 1.0), (0.002, 0.05, 10.0)])
+def test_mean_etendue_weight_matches_coaxial_discs(pupil, field_deg, focus):
+    """Mean ray weight over pupil x field = G F^2 / (A_p A_q) with the exact etendue G of two
+    coaxial discs: checks the weight, the disc sampling and the pairing together."""
+    ins = load_instrument("portable").with_changes(detector={"pupil_radius_m": pupil, "field_half_angle_deg": field_deg,
+                                                             "focus_m": focus, "distance_m": max(focus, 2.0)})
+    geo = detector_geometry(ins)
+    n = 400_000
+    u = np.random.default_rng(SEED).random((4, n))
+    _, _, w = detector_ray(xp, geo, concentric_disc(xp, u[0], u[1]), concentric_disc(xp, u[2], u[3]))
+    rho = focus * math.tan(math.radians(field_deg))
+    exact = focus ** 2 * coaxial_disc_view_factor(pupil, rho, focus) / rho ** 2
+    se = w.std() / math.sqrt(n)
+    assert abs(w.mean() - exact) < N_SIGMA * se + 1e-12
+
+
+def test_axis_ray_hits_the_sample_centre_and_source_coupling_is_cos_eps_over_d2():
+    ins = load_instrument("portable")
+    geo = detector_geometry(ins)
+    zero = np.zeros(1)
+    o, d, w = detector_ray(xp, geo, (zero, zero), (zero, zero))
+    x, y, ok = hit_plane(xp, o, d)
+    assert ok.all() and abs(x[0]) < 1e-12 and abs(y[0]) < 1e-12 and w[0] == pytest.approx(1.0, abs=1e-15)
+    for t, b in [(0.0, 0.0), (1.0, 30.0), (12.0, 0.0)]:
+        src = source_geometry(ins, t, b)
+        sp = source_point(src, (zero, zero))
+        wdir, g = source_coupling(xp, src, zero, zero, sp)
+        assert np.allclose(np.array(wdir).ravel(), ins.w_i(t, b), atol=1e-14)
+        assert g[0] == pytest.approx(math.cos(math.atan(t)) / ins.source.distance_m ** 2, rel=1e-12)
+
+
+def test_angular_field_weight_is_cos4():
+    ins = load_instrument("portable").with_changes(detector={"focus_m": "inf", "pupil_radius_m": 0.0})
+    geo = detector_geometry(ins)
+    fx = np.array([0.0, 1.0, 0.5])
+    o, d, w = detector_ray(xp, geo, (np.zeros(3), np.zeros(3)), (fx, np.zeros(3)))
+    cos_t = np.array(d).T @ geo.axis
+    assert np.allclose(w, cos_t ** 4, rtol=1e-14)
+    assert math.degrees(math.acos(cos_t[1])) == pytest.approx(ins.detector.field_half_angle_deg, rel=1e-9)
+
+
+def test_geometry_errors():
+    ins = load_instrument("portable")
+    check_detector(ins)
+    with pytest.raises(GeometryError, match="leaves the sample"):
+        check_detector(ins.with_changes(sample={"size_x_m": 0.3}))
+    with pytest.raises(GeometryError, match="below"):
+        check_detector(ins.with_changes(observation={"alpha_deg": 0.2}, detector={"pupil_radius_m": 0.01}))
+    check_source(ins, 12.0, 0.0)
+    with pytest.raises(GeometryError, match="below the horizon"):
+        check_source(ins.with_changes(source={"radius_m": 0.5}), 12.0, 0.0)
+
+
+@pytest.mark.parametrize("edge", [0.0, 0.5, 1.7])
+def test_field_sensitivity_profile_kd(edge):
+    """k_D(rho) = 1 - (1 - e) rho^2 over the field: with a pinhole and a tiny angular field (cos^4 = 1
+    to 1e-10) the mean weight over the field disc is the disc average of k_D, 1 - (1 - e)/2."""
+    ins = load_instrument("portable").with_changes(detector={"pupil_radius_m": 0.0, "focus_m": "inf",
+                                                             "field_half_angle_deg": 0.001,
+                                                             "field_edge_sensitivity": edge})
+    geo = detector_geometry(ins)
+    n = 200_000
+    u = np.random.default_rng(SEED).random((2, n))
+    zero = np.zeros(n)
+    _, _, w = detector_ray(xp, geo, (zero, zero), concentric_disc(xp, u[0], u[1]))
+    exact = 1.0 - (1.0 - edge) / 2.0
+    assert abs(w.mean() - exact) < N_SIGMA * w.std() / math.sqrt(n) + 1e-9
+    # the profile is exactly 1 at the centre and e at the edge
+    _, _, w_c = detector_ray(xp, geo, (np.zeros(2), np.zeros(2)), (np.array([0.0, 1.0]), np.zeros(2)))
+    cos4 = math.cos(math.radians(0.001)) ** 4          # etendue factor at the field edge
+    assert w_c[0] == pytest.approx(1.0, abs=1e-12) and w_c[1] == pytest.approx(edge * cos4, abs=1e-12)
+
+
+# -- the checks of the instrument room (used by the Mitsuba scene, numpy here) ------------------
+
+def test_beam_clip_check():
+    inst = load_instrument("portable")
+    assert not optics.beam_clips_footprint(inst, 4.0, 0.0)                             # no beam limit
+    assert optics.beam_clips_footprint(inst.with_changes(source={"beam_half_angle_deg": 0.01}), 4.0, 0.0)
+    assert not optics.beam_clips_footprint(inst.with_changes(source={"beam_half_angle_deg": 60.0}), 4.0, 0.0)
+
+
+def test_hit_check_points_and_verdict():
+    pu, fu = optics.hit_check_points(n_random=100, n_rim=8, seed=1)
+    assert pu.shape == fu.shape == (9 * 8 + 100, 2)
+    assert np.allclose(np.hypot(*fu[:72].T), 1.0) and np.all(np.hypot(*pu.T) <= 1.0 + 1e-12)
+    x, y = np.linspace(-1.0, 1.0, 5), np.zeros(5)
+    ok = optics.judge_hits(np.ones(5, bool), np.ones(5, bool), x, y)
+    assert ok == {"rays": 5, "x_range": (-1.0, 1.0), "y_range": (0.0, 0.0)}
+    on = np.array([True, True, False, True, True])
+    with pytest.raises(GeometryError, match="1 of 5 detector rays .*hit another part.*x = 0.000"):
+        optics.judge_hits(on, np.ones(5, bool), x, y)
+    with pytest.raises(GeometryError, match="miss every part"):
+        optics.judge_hits(on, on, x, y)

@@ -1,0 +1,165 @@
+"""Pass planning and float64 statistics of the batched engine (roadgonio/engines/mitsuba/passes.py),
+on synthetic replicate sums with known distributions: the ratio SE from moments equals the direct
+delta-method formula and matches the scatter of the ratio; the covariance estimate matches the
+correlation built in; the planner follows the 1/N rule, never shrinks a cell's lattice, caps its
+growth, and stops cells at the target or the sample cap; a plan survives a round trip."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from roadgonio.engines.mitsuba.passes import (MAX_GROWTH, SAFETY, CellStats, Plan, Planner, add_strata,
+                                              covariance, relative)
+
+
+def synthetic(rng, reps, ratio=0.8, rel=0.05, rho=0.9, n=1024):
+    """Replicate sums of n points: G around n, R = ratio G + noise (correlated with G)."""
+    G = n * (1.0 + rel * rng.standard_normal(reps))
+    R = ratio * G * (1.0 + rel * np.sqrt(1 - rho * rho) * rng.standard_normal(reps))
+    return R, G
+
+
+def direct_se(strata):
+    R = np.concatenate([s[0] for s in strata])
+    G = np.concatenate([s[1] for s in strata])
+    r = R.sum() / G.sum()
+    var = sum(len(a) * np.var(a - r * b, ddof=1) for a, b in strata)
+    return r, math.sqrt(var) / G.sum()
+
+
+def test_moment_se_equals_direct_formula():
+    rng = np.random.default_rng(1)
+    st = CellStats()
+    strata = []
+    for p, (log2n, reps) in enumerate([(6, 16), (9, 20), (12, 16)]):
+        R, G = synthetic(rng, reps, n=1 << log2n)
+        st.add(p, log2n, np.arange(reps), R, G)
+        strata.append((R, G))
+    r, se, _ = st.ratio_se()
+    r2, se2 = direct_se(strata)
+    assert r == pytest.approx(r2, rel=1e-14)
+    assert se == pytest.approx(se2, rel=1e-9)
+    assert st.samples == 16 * 64 + 20 * 512 + 16 * 4096 and st.passes == 3
+
+
+def test_se_matches_scatter_of_the_ratio():
+    rng = np.random.default_rng(2)
+    rs, ses = [], []
+    for _ in range(400):
+        st = CellStats()
+        R, G = synthetic(rng, 16, rel=0.1, rho=0.5)
+        st.add(0, 10, np.arange(16), R, G)
+        r, se, _ = st.ratio_se()
+        rs.append(r)
+        ses.append(se)
+    ratio = np.std(rs, ddof=1) / math.sqrt(np.mean(np.square(ses)))
+    assert 0.9 < ratio < 1.1
+
+
+def test_single_replicate_has_no_se_and_zero_signal_has_no_ratio():
+    st = CellStats()
+    st.add(0, 8, np.arange(1), np.array([2.0]), np.array([4.0]))
+    assert st.ratio_se()[1] == math.inf
+    dark = CellStats()
+    dark.add(0, 8, np.arange(4), np.zeros(4), np.zeros(4))
+    r, se, g = dark.ratio_se()
+    assert math.isnan(r) and se == math.inf and g == 0.0
+    assert relative(0.0, 0.0) == 0.0 and relative(0.0, 1.0) == math.inf
+
+
+def test_add_strata_vectorised_equals_one_by_one_and_refuses_duplicates():
+    rng = np.random.default_rng(3)
+    owner = np.repeat([0, 2, 3], [16, 20, 16])
+    reps = np.concatenate([np.arange(16), np.arange(20), np.arange(16)])
+    R, G = synthetic(rng, len(owner))
+    many = [CellStats() for _ in range(4)]
+    add_strata(many, 0, 8, owner, reps, R, G)
+    for c in (0, 2, 3):
+        one = CellStats()
+        m = owner == c
+        one.add(0, 8, reps[m], R[m], G[m])
+        assert many[c].ratio_se() == pytest.approx(one.ratio_se(), rel=1e-12)
+    assert many[1].samples == 0
+    with pytest.raises(ValueError, match="twice"):
+        add_strata(many, 0, 8, owner, reps, R, G)
+    with pytest.raises(ValueError, match="sorted"):
+        add_strata(many, 1, 8, owner[::-1], reps, R, G)
+
+
+def test_covariance_of_cells_sharing_replicates():
+    """Two cells whose replicate sums share a common factor (as cells sharing detector rays do):
+    the estimated correlation of their ratios matches the scatter over many runs; cells in
+    different strata have zero covariance; the diagonal is SE^2."""
+    rng = np.random.default_rng(4)
+    ra, rb, est = [], [], []
+    for _ in range(300):
+        common = rng.standard_normal(16)
+        G = 1024 * (1 + 0.05 * rng.standard_normal(16))
+        Ra = 0.8 * G * (1 + 0.02 * (common + 0.5 * rng.standard_normal(16)))
+        Rb = 1.2 * G * (1 + 0.02 * (common + 0.5 * rng.standard_normal(16)))
+        s = [CellStats(), CellStats(), CellStats()]
+        add_strata(s, 0, 10, np.repeat([0, 1], 16), np.tile(np.arange(16), 2), np.r_[Ra, Rb], np.r_[G, G])
+        s[2].add(1, 10, np.arange(16), Ra, G)          # another pass: independent shifts
+        ratios = [x.ratio_se()[0] for x in s]
+        cov = covariance(s, ratios)
+        assert cov[0, 0] == pytest.approx(s[0].ratio_se()[1] ** 2, rel=1e-9)
+        assert cov[0, 2] == 0.0 and cov[1, 2] == 0.0
+        ra.append(ratios[0])
+        rb.append(ratios[1])
+        est.append(cov[0, 1] / math.sqrt(cov[0, 0] * cov[1, 1]))
+    emp = np.corrcoef(ra, rb)[0, 1]
+    assert emp > 0.5 and abs(np.mean(est) - emp) < 0.1
+
+
+def stats_with(rel, samples, log2n=6):
+    """A CellStats whose relative SE is about ``rel`` after ``samples`` samples of lattice 2^log2n."""
+    st = CellStats()
+    reps = samples >> log2n
+    k = np.arange(reps)
+    dev = np.where(k % 2 == 0, 1.0, -1.0) * rel * math.sqrt(reps)
+    G = np.full(reps, float(1 << log2n))
+    R = G * (1.0 + dev)
+    st.add(0, log2n, k, R, G)
+    return st
+
+
+def test_planner_first_pass_and_one_over_n_rule():
+    pl = Planner(1e-3, first_pass=1024, min_replicates=16)
+    assert pl.first(3) == {0: (6, 16), 1: (6, 16), 2: (6, 16)}
+    st = [stats_with(0.5e-3, 1024), stats_with(2e-3, 1024), stats_with(1e-2, 1024)]
+    rel = [relative(*s.ratio_se()[:2]) for s in st]
+    req, done = pl.next(st, [0, 1, 2])
+    assert done["converged"] == [0] and 0 not in req
+    log2n, reps = req[1]
+    want = 1024 * ((rel[1] / 1e-3) ** 2 - 1) * SAFETY
+    assert want <= reps << log2n < want + (16 << log2n) and log2n >= 6 and reps >= 16
+    log2n, reps = req[2]                                   # needs ~100x: capped at MAX_GROWTH
+    assert (reps << log2n) <= MAX_GROWTH * 1024 + (1 << log2n)
+
+
+def test_planner_never_shrinks_a_lattice_and_caps_samples():
+    pl = Planner(1e-3, first_pass=1024, min_replicates=16, max_samples=1 << 16)
+    st = [stats_with(1.05e-3, 1 << 14, log2n=10)]       # just above the target, on a large lattice
+    req, _ = pl.next(st, [0])
+    assert req[0][0] >= 10
+    capped = [stats_with(5e-3, 1 << 16, log2n=10)]
+    req, done = pl.next(capped, [0])
+    assert done["capped"] == [0] and not req
+    near = [stats_with(5e-3, (1 << 16) - 1024, log2n=6)]
+    req, _ = pl.next(near, [0])
+    assert sum(r << k for k, r in req.values()) <= 1024
+
+
+def test_min_passes_keeps_a_converged_cell():
+    pl = Planner(1e-3, first_pass=1024, min_passes=2)
+    req, done = pl.next([stats_with(1e-4, 1024)], [0])
+    assert 0 in req and not done["converged"]
+
+
+def test_plan_round_trip_and_requests():
+    plan = Plan([[(0, 6, 16), (1, 9, 20)], [(0, 6, 16)]])
+    again = Plan.from_dict(plan.to_dict())
+    assert again.cells == plan.cells and again.passes == 2
+    assert again.pass_requests(1) == {0: (9, 20)} and again.pass_requests(0) == {0: (6, 16), 1: (6, 16)}

@@ -1,0 +1,393 @@
+"""From the r-table to the road (issue 13): hand calculations of the EN 13201-3 luminance, a layout
+with an analytic answer, the r-table interpolation rule, TI, classes, the luminaire file, layouts,
+and the Monte Carlo judged against linear propagation."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from roadgonio.errors import InputError
+from roadgonio.road import calc, interp, metrics
+from roadgonio.road.evaluate import Installation
+from roadgonio.road.layout import Layout, layout_from_dict, load_layout, read_layout
+from roadgonio.road.luminaire import Luminaire, bundled_luminaire_path, load_luminaire, read_ldt
+from roadgonio.road.mc import propagate
+from roadgonio.surface.rtable import bundled_table
+
+REL = 1e-9          # deterministic arithmetic, float64
+FILE_ROUNDING = 5e-4  # the .ldt stores cd/klm with 3 decimals
+
+
+# ----------------------------------------------------------------------------------------------
+# an independent reader of the bundled EULUMDAT file (the LiTG line layout, by hand)
+# ----------------------------------------------------------------------------------------------
+
+def _hand_ldt(path: Path):
+    lines = path.read_bytes().decode("latin-1").replace("\r\n", "\n").split("\n")
+    isym, mc, ng = int(lines[2]), int(lines[3]), int(lines[5])
+    n_sets = int(lines[25])
+    flux = float(lines[26 + 2])                # 26c of the first set
+    conv = float(lines[23])
+    k = 26 + 6 * n_sets + 10                   # after the lamp sets and the 10 direct ratios
+    c = [float(v) for v in lines[k:k + mc]]
+    g = [float(v) for v in lines[k + mc:k + mc + ng]]
+    vals = [float(v) for v in lines[k + mc + ng:] if v.strip()]
+    assert isym == 3 and len(vals) == (mc // 2 + 1) * ng
+    stored = {(270.0 + i * 360.0 / mc) % 360.0: vals[i * ng:(i + 1) * ng] for i in range(mc // 2 + 1)}
+
+    def intensity_file(cc: float, gg: float) -> float:  # at nodes only, symmetry I(C) = I(180 - C)
+        cc = cc % 360.0
+        row = stored.get(cc) or stored[(180.0 - cc) % 360.0]
+        return row[g.index(gg)]
+    return intensity_file, flux * conv / 1000.0, c, g
+
+
+def test_bundled_luminaire_is_its_generator_output_and_reads_right():
+    from roadgonio.data.road import make_luminaire as gen
+    path = bundled_luminaire_path()
+    assert path.read_bytes() == gen.ldt_text().encode("latin-1")   # the committed file is the script's output
+    lum = read_ldt(path)
+    hand, scale, c, g = _hand_ldt(path)
+    assert lum.flux_lm == 10000.0 and lum.scale_cd == pytest.approx(scale)
+    cc, gg = np.meshgrid(c, g, indexing="ij")
+    np.testing.assert_allclose(lum.cd_per_klm, gen.intensity_cd_per_klm(cc, gg), atol=FILE_ROUNDING)
+    for cv, gv in ((0, 65), (15, 65), (165, 65), (195, 40), (270, 30), (90, 80), (300, 87.5)):
+        assert lum.interpolate(cv, gv) == pytest.approx(hand(cv, gv), abs=1e-12)
+    # the documented distribution emits the lamp flux (LORL 100 %) and nothing above the horizontal
+    assert lum.flux_from_table() == pytest.approx(10000.0, rel=2e-3)
+    assert np.all(lum.cd_per_klm[:, np.asarray(g) >= 90] == 0)
+
+
+def test_bilinear_intensity_between_nodes():
+    lum = load_luminaire()
+    hand, scale, *_ = _hand_ldt(bundled_luminaire_path())
+    c, g = 12.5, 66.25                                   # between C 10/15 and gamma 65/67.5
+    tc, tg = 0.5, 0.5
+    want = ((1 - tc) * (1 - tg) * hand(10, 65) + tc * (1 - tg) * hand(15, 65) + (1 - tc) * tg * hand(10, 67.5)
+            + tc * tg * hand(15, 67.5)) * scale
+    assert float(lum.intensity(c, g)) == pytest.approx(want, rel=REL)
+    assert math.isnan(float(Luminaire([0.0], [0.0, 80.0], [[1.0, 1.0]], 1000.0).intensity(0, 85)))
+
+
+@pytest.mark.parametrize("edit,words", [
+    (lambda L: L[:200], ["file ends early"]),
+    (lambda L: L[:28] + ["0"] + L[29:], ["lamp flux", "> 0"]),
+    (lambda L: L[:3] + ["abc"] + L[4:], ["not a readable EULUMDAT"]),
+    (lambda L: L[:2] + ["7"] + L[3:], ["Isym"]),
+])
+def test_bad_luminaire_file(tmp_path, edit, words):
+    lines = bundled_luminaire_path().read_bytes().decode("latin-1").split("\r\n")
+    p = tmp_path / "bad.ldt"
+    p.write_text("\r\n".join(edit(lines)), encoding="latin-1")
+    with pytest.raises(InputError) as ei:
+        read_ldt(p)
+    msg = str(ei.value)
+    assert str(p) in msg and "\n" not in msg
+    for w in words:
+        assert w in msg, msg
+
+
+# ----------------------------------------------------------------------------------------------
+# luminance at one grid point from one luminaire, by hand
+# ----------------------------------------------------------------------------------------------
+
+def test_luminance_one_luminaire_on_nodes_by_hand():
+    """Luminaire 10 m beyond the point, in line with the observer: C = 180, gamma = 45 deg
+    (nodes of the I-table), beta = 0, tan eps = 1 (a cell of the r-table)."""
+    lum = load_luminaire()
+    hand, scale, *_ = _hand_ldt(bundled_luminaire_path())
+    t = bundled_table("R3")
+    h = 10.0
+    L_lum = np.array([30.0, 1.0, h])
+    point = np.array([20.0, 1.0, 0.0])
+    observer = np.array([-60.0, 1.0, 1.5])
+    cells, w, tan_e = calc.contribution(lum, L_lum, 0.0, 0.0, point, observer, t)
+    L = float(np.dot(t.r.ravel()[cells], w))
+    csv_text = (Path(__file__).resolve().parents[2] / "roadgonio/data/rtables/R3.csv").read_text()
+    row = next(l for l in csv_text.splitlines() if l.startswith("1,"))
+    r_file = float(row.split(",")[1])  # R3.csv, tan eps = 1, beta = 0: r x 1e4 as printed
+    assert r_file == 362.0
+    want = hand(180.0, 45.0) * scale * (r_file / 1e4) / h ** 2
+    assert tan_e == pytest.approx(1.0) and L == pytest.approx(want, rel=REL)
+
+
+def test_luminance_one_luminaire_off_nodes_by_hand():
+    lum = load_luminaire()
+    t = bundled_table("R3")
+    L_lum, point, obs = np.array([33.0, 1.0, 9.0]), np.array([21.3, 4.1, 0.0]), np.array([-60.0, 5.25, 1.5])
+    d = point - L_lum
+    gamma = math.degrees(math.acos(-d[2] / np.linalg.norm(d)))
+    c = math.degrees(math.atan2(d[1], d[0])) % 360
+    tan_e = math.hypot(d[0], d[1]) / 9.0
+    u, v = point[:2] - obs[:2], L_lum[:2] - point[:2]
+    beta = math.degrees(math.acos(np.dot(u, v) / np.linalg.norm(u) / np.linalg.norm(v)))
+    # quadratic Lagrange by hand: tan nodes 1.25, 1.5, 1.75 and in each row beta nodes around beta
+    def three(grid, x):  # the two bracketing nodes and the nearer of their outer neighbours
+        g = list(grid)
+        i = max(k for k in range(len(g)) if g[k] <= x)
+        return [g[i - 1], g[i], g[i + 1]] if x - g[i - 1] <= g[i + 2] - x else [g[i], g[i + 1], g[i + 2]]
+    tn, bn = three(t.tan_eps, tan_e), three(t.beta_deg, beta)
+    assert tn == [1.0, 1.25, 1.5] and tn[1] <= tan_e <= tn[2]
+
+    def lag(nodes, x):
+        return [np.prod([(x - nodes[m]) / (nodes[k] - nodes[m]) for m in range(3) if m != k]) for k in range(3)]
+    r = sum(wt * sum(wb * t.value(tt, bb) for wb, bb in zip(lag(bn, beta), bn)) for wt, tt in zip(lag(tn, tan_e), tn))
+    want = float(lum.intensity(c, gamma)) * r / 81.0
+    cells, w, _ = calc.contribution(lum, L_lum, 0.0, 0.0, point, obs, t)
+    assert float(np.dot(t.r.ravel()[cells], w)) == pytest.approx(want, rel=REL)
+
+
+def test_angles_rotation_and_tilt():
+    lum = np.array([0.0, 0.0, 10.0])
+    c, g = calc.luminaire_angles(lum, 0.0, 0.0, np.array([0.0, 10.0, 0.0]))   # towards the road
+    assert (float(c), float(g)) == pytest.approx((90.0, 45.0))
+    c, g = calc.luminaire_angles(lum, 180.0, 0.0, np.array([-10.0, 0.0, 0.0]))  # row 2: C0 along -x
+    assert (float(c), float(g)) == pytest.approx((0.0, 45.0))
+    c, g = calc.luminaire_angles(lum, 0.0, 10.0, np.array([0.0, 10.0 * math.tan(math.radians(10)), 0.0]))
+    assert float(g) == pytest.approx(0.0, abs=1e-5)                            # tilt swings nadir to the road
+    beta, t = calc.incidence(lum, np.array([-10.0, 0.0, 0.0]), np.array([-70.0, 0.0, 1.5]))
+    assert (beta, t) == pytest.approx((0.0, 1.0))
+    beta, t = calc.incidence(lum, np.array([10.0, 0.0, 0.0]), np.array([-70.0, 0.0, 1.5]))
+    assert beta == pytest.approx(180.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# r-table interpolation (EN 13201-3 5.5: quadratic)
+# ----------------------------------------------------------------------------------------------
+
+def _poly_table(f):
+    t = bundled_table("C2")
+    T, B = np.meshgrid(t.tan_eps, t.beta_deg, indexing="ij")
+    return t.with_values(np.where(t.mask, f(T, B), np.nan))
+
+
+def test_quadratic_interpolation_is_exact_for_quadratics_and_linear_for_lines():
+    quad = _poly_table(lambda T, B: 0.01 + 0.002 * T + 0.0003 * T ** 2 + 1e-5 * B + 2e-7 * B ** 2 + 1e-6 * T * B)
+    f = lambda t, b: 0.01 + 0.002 * t + 0.0003 * t ** 2 + 1e-5 * b + 2e-7 * b ** 2 + 1e-6 * t * b  # noqa: E731
+    rng = np.random.default_rng(1)
+    for _ in range(200):
+        t, b = rng.uniform(0, 4.5), rng.uniform(0, 180)   # stencil rows up to tan 5: no blank cells
+        assert interp.r_value(quad, b, t) == pytest.approx(f(t, b), rel=1e-11)
+    cells, w = interp.r_weights(quad, 130.0, 4.8)           # row 5.5 blank at beta 130: linear fallback
+    assert len(cells) == 4 and np.all(quad.mask.ravel()[cells])
+    assert abs(interp.r_value(quad, 33.0, 2.6, "linear") - f(2.6, 33.0)) > 1e-7   # linear is not exact
+    lin = _poly_table(lambda T, B: 0.02 + 0.001 * T + 3e-5 * B)
+    assert interp.r_value(lin, 33.0, 2.6, "linear") == pytest.approx(0.02 + 0.0026 + 3e-5 * 33, rel=1e-12)
+
+
+def test_interpolation_never_uses_blank_cells():
+    t = bundled_table("R3")
+    assert interp.r_value(t, 5.0, 0.3) == pytest.approx(
+        sum(w * v for w, v in zip(interp._lagrange(np.array([0.0, 0.25, 0.5]), 0.3),
+                                   [t.value(x, 5.0) for x in (0.0, 0.25, 0.5)])), rel=1e-12)
+    assert interp.r_value(t, 2.0, 1.0) == t.value(1.0, 2.0)           # a node takes the node alone
+    assert math.isnan(interp.r_value(t, 90.0, 6.0))                   # blank region: no r
+    assert math.isnan(interp.r_value(t, 0.0, 12.5))                   # beyond tan 12
+    v = interp.r_value(t, 38.0, 5.5)                                   # row 5.5 tabulated up to 40 only
+    assert np.isfinite(v) and v > 0
+    cells, _ = interp.r_weights(t, 38.0, 5.5)
+    assert np.all(t.mask.ravel()[cells])
+
+
+# ----------------------------------------------------------------------------------------------
+# a layout with an analytic answer: constant r, isotropic luminaire
+# ----------------------------------------------------------------------------------------------
+
+def _isotropic(i0_cd=800.0):
+    return Luminaire([0.0], [0.0, 90.0, 180.0], [[i0_cd] * 3], 1000.0, name="isotropic")
+
+
+def test_constant_r_isotropic_luminaire_analytic_metrics():
+    """Every counted luminaire then gives L = MF r0 I0 / H^2, so L(point) = MF r0 I0 n(point) / H^2
+    with n the number of luminaires in [x - 5 H, x + 12 H] (tan eps <= 12)."""
+    lay = Layout(spacing_m=30.0, mounting_height_m=10.0, overhang_m=1.0, maintenance_factor=0.8)
+    r0 = 0.05
+    t = bundled_table("R3")
+    const = t.with_values(np.where(t.mask, r0, np.nan))
+    res = Installation(lay, _isotropic(800.0)).evaluate(const)
+    k = 0.8 * r0 * 800.0 / 100.0
+    xs = (np.arange(10) + 0.5) * 3.0
+    n = np.array([sum(1 for m in range(-5, 10) if x - 50 <= 30 * m <= x + 120) for x in xs])
+    assert list(n) == [6] * 7 + [5] * 3
+    lav, uo, ul = k * n.mean(), n.min() / n.mean(), n.min() / n.max()
+    assert res.values["L_av"] == pytest.approx(lav, rel=REL)
+    assert res.values["U_o"] == pytest.approx(uo, rel=REL)
+    assert res.values["U_l"] == pytest.approx(ul, rel=REL)
+    np.testing.assert_allclose(res.L, np.broadcast_to(k * np.tile(n, 6), res.L.shape), rtol=REL)
+
+
+def test_l_av_scales_with_the_table_uniformities_do_not():
+    inst = Installation(load_layout(), load_luminaire())
+    t = bundled_table("R3")
+    a = inst.evaluate(t).values
+    b = inst.evaluate(t.with_values(t.r * 1.7)).values
+    assert b["L_av"] == pytest.approx(1.7 * a["L_av"], rel=REL)
+    assert b["U_o"] == pytest.approx(a["U_o"], rel=REL) and b["U_l"] == pytest.approx(a["U_l"], rel=REL)
+    assert b["TI"] == pytest.approx(a["TI"] * 1.7 ** -0.8, rel=REL)       # TI = 65 L_v / L_av^0.8
+    c = inst.evaluate(bundled_table("R1")).values
+    assert abs(c["U_o"] - a["U_o"]) > 0.05                                 # the shape of the table matters
+
+
+def test_grid_rule_of_en_13201_3():
+    assert Layout(spacing_m=30).n_longitudinal == 10
+    assert Layout(spacing_m=24).n_longitudinal == 10
+    assert Layout(spacing_m=30.5).n_longitudinal == 11
+    assert Layout(spacing_m=45).n_longitudinal == 15
+    f = calc.build_field(Layout(spacing_m=36, lanes=3, lane_width_m=3.6))
+    assert f.n_long == 12 and f.spacing_d_m == pytest.approx(3.0)
+    assert f.x.min() == pytest.approx(1.5) and sorted(set(np.round(f.y, 9)))[:3] == pytest.approx([0.6, 1.8, 3.0])
+    assert list(f.observers[:, 0]) == [-60.0] * 3 and list(f.observers[:, 1]) == pytest.approx([1.8, 5.4, 9.0])
+    assert np.sum(f.centre) == 3 * 12
+
+
+# ----------------------------------------------------------------------------------------------
+# TI and R_EI by hand
+# ----------------------------------------------------------------------------------------------
+
+def test_veiling_luminance_by_hand():
+    lay = Layout(lanes=1, spacing_m=30.0, mounting_height_m=10.0, overhang_m=0.0)
+    i0 = 800.0
+    fld = calc.build_field(lay)
+    v = calc.veiling_luminance(lay, _isotropic(i0), fld)
+    x0 = -2.75 * 8.5
+    eye = np.array([x0, 1.75, 1.5])
+    sight = np.array([math.cos(math.radians(1)), 0, -math.sin(math.radians(1))])
+    lv = 0.0
+    for m in range(-3, 20):
+        d = np.array([30.0 * m, 0.0, 10.0]) - eye
+        if d[0] <= 0 or d[0] > 500 or d[2] > math.tan(math.radians(20)) * d[0] + 1e-9:
+            continue
+        dist = np.linalg.norm(d)
+        th = math.degrees(math.acos(d @ sight / dist))
+        lv += 10 * i0 * math.cos(math.radians(th)) / dist ** 2 / th ** 2
+    assert v["L_v"][0, 0] == pytest.approx(lv, rel=REL)
+    assert calc.threshold_increment(0.1, 1.0) == pytest.approx(6.5)
+    assert calc.threshold_increment(0.1, 6.0) == pytest.approx(95 * 0.1 / 6.0 ** 1.05)
+
+
+def test_ti_not_computable_without_luminaire_data_above_70_deg():
+    short = Luminaire([0.0], [0.0, 30.0, 60.0, 70.0], [[500.0] * 4], 1000.0)
+    lay = Layout(spacing_m=12.0, mounting_height_m=4.0, overhang_m=0.0, lanes=1)
+    v = calc.veiling_luminance(lay, short, calc.build_field(lay))
+    assert not v["computable"] and "70" in v["reason"]
+
+
+def test_horizontal_illuminance_by_hand():
+    lay = Layout(spacing_m=30.0, mounting_height_m=10.0, overhang_m=1.0, maintenance_factor=0.9)
+    fld = calc.build_field(lay)
+    e = calc.horizontal_illuminance(lay, _isotropic(500.0), np.array([7.0]), np.array([-2.0]), fld)
+    want = 0.9 * sum(500.0 * (1 + ((30 * m - 7.0) ** 2 + 9.0) / 100.0) ** -1.5 / 100.0
+                     for m in range(-5, 6) if abs(30 * m - 7.0) <= 50)
+    assert float(e[0]) == pytest.approx(want, rel=REL)
+
+
+# ----------------------------------------------------------------------------------------------
+# classes (EN 13201-2:2015 Table 1)
+# ----------------------------------------------------------------------------------------------
+
+def test_m_classes():
+    v = {"L_av": 1.0, "U_o": 0.40, "U_l": 0.60, "TI": 15.0, "R_EI": 0.30}
+    assert metrics.best_class(v) == "M3"                         # limits are inclusive
+    assert metrics.best_class({**v, "U_l": 0.599}) == "M5"
+    assert metrics.best_class({**v, "TI": 15.01}) == "M6"
+    assert metrics.best_class({**v, "TI": None}) == "M3"         # TI not computable: left out
+    assert metrics.best_class({**v, "L_av": 0.29}) is None
+    assert metrics.limiting_criteria("M2", v) == ["L_av", "U_l", "R_EI", "TI"]
+    arr = {k: np.array([x, x]) for k, x in v.items()}
+    arr["U_l"] = np.array([0.6, 0.3])
+    assert list(metrics.best_class_array(arr)) == [2, 6]
+
+
+# ----------------------------------------------------------------------------------------------
+# layouts
+# ----------------------------------------------------------------------------------------------
+
+def test_default_layout_is_the_documented_one():
+    lay = load_layout()
+    assert (lay.lanes, lay.lane_width_m, lay.arrangement, lay.mounting_height_m, lay.spacing_m, lay.overhang_m,
+            lay.tilt_deg, lay.maintenance_factor) == (2, 3.5, "single-sided", 10.0, 30.0, 1.0, 0.0, 0.8)
+
+
+@pytest.mark.parametrize("text,words", [
+    ("[raod]\nlanes = 2\n", ["unknown section [raod]"]),
+    ("[road]\nlane = 2\n", ["[road] lane", "unknown key"]),
+    ("[road]\nlanes = 2.5\n", ["[road] lanes", "whole number"]),
+    ("[installation]\nspacing_m = 'x'\n", ["spacing_m", "number"]),
+    ("[installation]\narrangement = 'twin'\n", ["arrangement", "single-sided"]),
+    ("[installation]\nmaintenance_factor = 1.3\n", ["maintenance_factor"]),
+    ("[installation]\nmounting_height_m = 1.8\n", ["mounting_height_m"]),
+    ("[road\n", ["not valid TOML"]),
+])
+def test_bad_layout(tmp_path, text, words):
+    p = tmp_path / "lay.toml"
+    p.write_text(text)
+    with pytest.raises(InputError) as ei:
+        read_layout(p)
+    msg = str(ei.value)
+    assert str(p) in msg and "\n" not in msg
+    for w in words:
+        assert w in msg, msg
+
+
+def test_arrangements_place_rows():
+    base = {"installation": {"spacing_m": 30.0, "overhang_m": 0.5}}
+    assert layout_from_dict(base).rows() == [(0.5, 0.0, 0.0)]
+    st = layout_from_dict({"installation": {**base["installation"], "arrangement": "staggered"}})
+    assert st.rows() == [(0.5, 0.0, 0.0), (6.5, 15.0, 180.0)]
+    op = Installation(layout_from_dict({"installation": {**base["installation"], "arrangement": "opposite"}}),
+                      load_luminaire()).evaluate(bundled_table("R3"))
+    one = Installation(layout_from_dict(base), load_luminaire()).evaluate(bundled_table("R3"))
+    assert op.values["L_av"] > 1.5 * one.values["L_av"]
+
+
+# ----------------------------------------------------------------------------------------------
+# Monte Carlo of the table's uncertainty
+# ----------------------------------------------------------------------------------------------
+
+def test_monte_carlo_matches_linear_propagation():
+    inst = Installation(load_layout(), load_luminaire())
+    t = bundled_table("R3")
+    u = t.with_values(t.r * 0.03)
+    n = 20000
+    res = propagate(inst, t, u, trials=n, seed=7)
+    op = inst.operator(t)
+    nominal = inst.evaluate(t)
+    o = int(np.argmin(nominal.per_observer["L_av_obs"]))      # the observer giving the operative L_av
+    a = op.W[o].mean(axis=0)                                  # dL_av / dr per cell
+    ur = np.nan_to_num(u.r.ravel())
+    for mode, want in (("independent", math.sqrt(np.sum((a * ur) ** 2))), ("correlated", float(np.sum(a * ur)))):
+        got = res[mode]["L_av"]["u"]
+        se = want / math.sqrt(2 * (n - 1))                    # standard error of a standard deviation
+        assert abs(got - want) < 4 * se, (mode, got, want, se)
+    # fully correlated and proportional: L scales, uniformities do not move
+    assert res["correlated"]["U_o"]["u"] < 1e-12 and res["correlated"]["U_l"]["u"] < 1e-12
+    # P(meets M3) under full correlation: L_av = L0 (1 + 0.03 z) >= 1.0 (U's fixed, TI far from 15 %)
+    from statistics import NormalDist
+    p = 1 - NormalDist().cdf((1.0 / nominal.values["L_av"] - 1) / 0.03)
+    got = res["correlated"]["P_meets_target"]
+    assert res["target_class"] == "M3" and abs(got - p) < 4 * math.sqrt(p * (1 - p) / n) + 1e-4
+
+
+def test_monte_carlo_input_checks():
+    inst = Installation(load_layout(), load_luminaire())
+    t = bundled_table("R3")
+    used = inst.operator(t).used_cells
+    i, j = np.unravel_index(used[len(used) // 2], t.r.shape)
+    ur = t.r * 0.01
+    ur[i, j] = np.nan
+    u = t.with_values(ur)
+    with pytest.raises(InputError, match=f"tan eps = {t.tan_eps[i]:g}, beta = {t.beta_deg[j]:g}"):
+        propagate(inst, t, u, trials=200)
+    with pytest.raises(InputError, match="seed"):
+        propagate(inst, t, t.with_values(t.r * 0.01), trials=200, seed=-1)
+
+
+def test_classify_limits(tmp_path):
+    from roadgonio.surface.cie import class_by_s1
+    assert class_by_s1(0.4199, "R")[0] == "R1" and class_by_s1(0.42, "R")[0] == "R2"
+    assert class_by_s1(0.85, "R")[0] == "R3" and class_by_s1(1.35, "R")[0] == "R4"
+    assert class_by_s1(0.399, "C")[0] == "C1" and class_by_s1(0.40, "C")[0] == "C2"
+    assert class_by_s1(1.30, "N")[0] == "N4"

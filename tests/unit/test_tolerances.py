@@ -1,0 +1,39 @@
+"""The tolerances module (tests/tolerances.py): one N_SIGMA, and the family threshold keeps the
+family-wise false-alarm probability of m cells at that of one N_SIGMA check."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import norm
+
+from tolerances import ALPHA, N_SIGMA, z_family
+
+
+def test_one_cell_is_one_n_sigma_check():
+    assert z_family(1) == pytest.approx(N_SIGMA, rel=1e-12)
+    assert ALPHA == pytest.approx(2 * norm.sf(N_SIGMA), rel=1e-12)
+
+
+@pytest.mark.parametrize("m", [2, 5, 30, 580, 10_000])
+def test_family_wise_false_alarm_is_that_of_one_check(m):
+    z = z_family(m)
+    per_cell = 2 * norm.sf(z)
+    assert 1 - (1 - per_cell) ** m == pytest.approx(ALPHA, rel=1e-9)
+    assert z > z_family(m - 1)                      # more cells, a wider per-cell band
+
+
+def test_family_threshold_by_simulation():
+    """Independent normal cells: the share of families of 30 with any |z| > z_family(30, alpha) is
+    the level (simulated at alpha = 0.05 instead of ALPHA, where it is measurable)."""
+    rng = np.random.default_rng(5)
+    m, families, alpha = 30, 200_000, 0.05
+    z = z_family(m, alpha)
+    hits = (np.abs(rng.standard_normal((families, m))) > z).any(axis=1).mean()
+    assert abs(hits - alpha) < N_SIGMA * math.sqrt(alpha * (1 - alpha) / families)
+
+
+def test_no_family_of_nothing():
+    with pytest.raises(ValueError):
+        z_family(0)

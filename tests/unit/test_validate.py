@@ -1,0 +1,101 @@
+"""roadgonio validate: the verdicts (agree / disagree / inconclusive) and the statistics behind them
+(the command, its outputs and exit statuses are tests/system/test_validate_system.py; the Mitsuba
+comparison itself is tests/plugin/test_stability_plugin.py)."""
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from roadgonio.engines import CellResult
+from roadgonio.engines import validate as V
+
+
+def mc_cell(k, se, converged=True):
+    return CellResult(tan_eps=4.0, beta_deg=2.0, k_a=k, se=se, samples=10, seconds=0.1, converged=converged)
+
+
+def ref_cell(k, bound, converged=True):
+    return CellResult(tan_eps=4.0, beta_deg=2.0, k_a=k, se=math.nan, error_bound=bound, samples=10, seconds=0.1,
+                      converged=converged)
+
+
+def test_pass_band_adds_the_bound_as_a_bound():
+    q = ref_cell(0.5, 0.0)
+    assert V.compare(q, mc_cell(0.5 + 3.9e-3, 1e-3)).verdict == "agree"
+    assert V.compare(q, mc_cell(0.5 + 4.1e-3, 1e-3)).verdict == "disagree"
+    # the float32 floor widens the band by floor * k
+    assert V.compare(q, mc_cell(0.5 + 4.1e-3, 1e-3), floor=1e-3).verdict == "agree"
+    # allowed = 4 SE + bound (never sqrt(SE^2 + bound^2))
+    r = V.compare(ref_cell(0.5, 1e-4), mc_cell(0.501, 4e-4))
+    assert r.sigma == pytest.approx(4e-4) and r.allowed == pytest.approx(4 * 4e-4 + 1e-4) and r.ok
+    assert V.compare(ref_cell(0.5, 1e-4), mc_cell(0.5 + 4 * 4e-4 + 1.1e-4, 4e-4)).verdict == "disagree"
+    assert V.compare(q, mc_cell(math.nan, 1e-3)).verdict == "disagree"
+
+
+def test_reference_that_did_not_converge_is_inconclusive_never_agree():
+    """The landed defect: a quadrature stopped at its cap with a 13 % error estimate made every
+    cell 'agree'. A reference that did not converge says nothing: inconclusive, whatever the values."""
+    r = V.compare(ref_cell(0.2979, 0.129, converged=False), mc_cell(0.2746, 2.7e-4))
+    assert r.verdict == "inconclusive" and "did not converge" in r.reason
+    # not even an exact match is an agreement then
+    assert V.compare(ref_cell(0.5, 1e-6, converged=False), mc_cell(0.5, 1e-3)).verdict == "inconclusive"
+
+
+def test_bound_wider_than_the_test_needs_is_inconclusive():
+    se = 1e-3
+    band = V.N_SIGMA * se
+    ok = V.compare(ref_cell(0.5, 0.99 * V.REF_SHARE * band), mc_cell(0.5, se))
+    wide = V.compare(ref_cell(0.5, 1.01 * V.REF_SHARE * band), mc_cell(0.5, se))
+    assert ok.verdict == "agree" and wide.verdict == "inconclusive" and "wider than the test needs" in wide.reason
+    # but a difference beyond even the wide band is a real disagreement
+    assert V.compare(ref_cell(0.5, 2e-3), mc_cell(0.5 + 6.1e-3, se)).verdict == "disagree"
+
+
+def test_monte_carlo_at_its_cap_is_inconclusive_unless_it_disagrees():
+    assert V.compare(ref_cell(0.5, 1e-5), mc_cell(0.5001, 1e-3, converged=False)).verdict == "inconclusive"
+    assert V.compare(ref_cell(0.5, 1e-5), mc_cell(0.51, 1e-3, converged=False)).verdict == "disagree"
+
+
+def test_reference_with_a_standard_error_combines_in_quadrature():
+    ref = CellResult(tan_eps=4.0, beta_deg=2.0, k_a=0.5, se=3e-4, samples=10, seconds=0.1)
+    r = V.compare(ref, mc_cell(0.5 + 1e-3, 4e-4))
+    assert r.sigma == pytest.approx(5e-4) and r.allowed == pytest.approx(4 * 5e-4) and r.verdict == "agree"
+    # a reference noisier than the tested backend cannot vouch for it
+    ref2 = CellResult(tan_eps=4.0, beta_deg=2.0, k_a=0.5, se=5e-4, samples=10, seconds=0.1)
+    assert V.compare(ref2, mc_cell(0.5, 4e-4)).verdict == "inconclusive"
+
+
+def test_overall_verdict_and_exit_status():
+    a = V.compare(ref_cell(0.5, 0.0), mc_cell(0.5, 1e-3))
+    d = V.compare(ref_cell(0.5, 0.0), mc_cell(0.6, 1e-3))
+    i = V.compare(ref_cell(0.5, 0.0, converged=False), mc_cell(0.5, 1e-3))
+    assert V.overall([a, a]) == "agree" and V.EXIT_STATUS["agree"] == 0
+    assert V.overall([a, i]) == "inconclusive" and V.EXIT_STATUS["inconclusive"] == 3
+    assert V.overall([a, i, d]) == "disagree" and V.EXIT_STATUS["disagree"] == 1
+    assert V.counts([a, i, d, a]) == {"agree": 2, "disagree": 1, "inconclusive": 1}
+
+
+def test_select_cells_is_the_one_parser():
+    """engines.cells.select_cells: the named selections, a TAN:BETA list, pairs; an empty selection,
+    a malformed item, a cell off the range, 'table' without a table and an off-grid cell where the
+    grid is required are one-line errors naming the field."""
+    from roadgonio.engines.cells import EXTREME_CELLS, select_cells
+    from roadgonio.errors import InputError
+    from roadgonio.surface.rtable import bundled_table
+    assert select_cells("extremes") == list(EXTREME_CELLS)
+    assert select_cells("12:0, 4:2.5") == [(12.0, 0.0), (4.0, 2.5)]
+    assert select_cells([(12, 0), (4.0, 2.5)]) == [(12.0, 0.0), (4.0, 2.5)]
+    assert len(select_cells("all")) == 580
+    r3 = bundled_table("R3")
+    assert select_cells("table", r3) == r3.cells and 300 < len(r3.cells) < 580
+    for must in [(0.0, 0.0), (0.0, 180.0), (12.0, 0.0), (12.0, 180.0)]:
+        assert must in EXTREME_CELLS
+    for bad in ("12", "a:b", "1:200", "-1:0", "", " ", [], [(1, 2, 3)], [(True, 0)], "12:0,4"):
+        with pytest.raises(InputError) as e:
+            select_cells(bad, field="--cells")
+        assert e.value.field == "--cells"
+    with pytest.raises(InputError, match="r-table"):
+        select_cells("table", None)
+    with pytest.raises(InputError, match="not on the CIE grid"):
+        select_cells("4:2.5", on_grid=True)
