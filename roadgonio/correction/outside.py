@@ -113,6 +113,8 @@ class SurfaceCorrection:
     provenance: dict[str, Any]
     seconds: float
     timings: dict[str, float] = field(default_factory=dict)
+    out: Path | None = None            # where the files were written (correction.files.correct_joint)
+    written: list = field(default_factory=list)
 
     @property
     def best(self) -> VariantFit:
