@@ -119,6 +119,11 @@ def run(args) -> int:
         comps = ", ".join(f"{k} {_percent(v['u_rel_max'])}" for k, v in s["budget"].items() if k != "total")
         say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} % "
             f"(largest per component: {comps}); {s['seconds']:.1f} s")
+        f = s.get("fit") or {}
+        if "cells_widened" in f:
+            say(f"  fit: {f['variant']} backbone x correction surface, Birge ratio {f['birge_ratio']:.2f} "
+                f"(local max {f['birge_local_max']:.2f}); u widened by the local Birge ratio in {f['cells_widened']} "
+                f"cells (at most x{f['widening_max']:.2f})")
         say(f"  wrote {len(s['written'])} files to {s['out']}")
     cluster = results[0].provenance.get("cluster") if results else None
     if cluster:
@@ -173,6 +178,7 @@ def _json_summary(res) -> dict:
             "seconds")
     out = {k: s[k] for k in keep}
     if "fit" in s:
-        out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio")}
+        out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio", "birge_local_max",
+                                               "cells_widened", "widening_max") if k in s["fit"]}
     out["out"] = str(res.out)
     return out

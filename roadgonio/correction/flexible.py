@@ -361,7 +361,8 @@ def _fit_surface(parts, measured, u, *, theta0, lam0) -> SurfaceFit:
         r = s - y
         obj = float(np.sum(W * r * r)) + float(th @ Lam @ th)
         steps = 0
-        for steps in range(1, max_steps + 1):
+        for step in range(1, max_steps + 1):
+            steps = step
             H = J.T @ (W[:, None] * J) + Lam
             grad = J.T @ (W * (y - s)) - Lam @ th
             d = cho_solve(cho_factor(H, check_finite=False), grad, check_finite=False)

@@ -502,5 +502,12 @@ class _FitView:
 
     def summary(self) -> dict[str, Any]:
         best = self._res.best
+        p = self._res.parts[0]
         return {"model": "eq. 4 backbone x correction surface", "variant": best.variant,
-                "birge_ratio": best.fit.birge, "variants": [v.summary() for v in self._res.variants]}
+                "chi2": best.fit.chi2, "dof": best.fit.dof, "edf": best.fit.edf, "birge_ratio": best.fit.birge,
+                "birge_local_max": float(np.nanmax(p.birge_local)),
+                "cells_widened": int(np.sum(p.widening > 1.0)),
+                "widening_max": float(np.nanmax(p.widening)),
+                "widening": "the surface and model components of u are multiplied by the local Birge ratio B_c "
+                            "where B_c^2 exceeds 1 + 2 sqrt(2 / n_eff) (noise alone rarely does), else by 1",
+                "variants": [v.summary() for v in self._res.variants]}

@@ -8,7 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from roadgonio.arrays import NumpyOps
 from roadgonio.correction.outside import combine, local_birge
 from roadgonio.surface.correction_surface import SplineGrid, SplineOps, spline_value
 from roadgonio.surface.rtable import RTable, bundled_table
