@@ -64,7 +64,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from roadgonio.uncertainty.run import UncertaintyResult
 
 __all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
-           "validate", "estimate_uncertainty", "correct", "design_study", "road", "compare_tables",
+           "validate", "estimate_uncertainty", "correct", "design_study", "second_aperture", "road", "compare_tables",
            "classify_table"]
 
 
@@ -670,6 +670,45 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
                          measured_files=files, u_measured="1%" if u_measured is None else u_measured, sigma=sigma,
                          backend=backend, backend_settings=settings, accuracy=accuracy, rays=rays, seed=seed,
                          progress=_show(progress), **options)
+
+
+def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured: Any = None, rays: int = 512,
+                    seed: int = 0, model_variant: str | None = None, min_signal: float | None = None, out=None,
+                    plots: bool = True, progress: bool = False):
+    """Which second aperture setting should the instrument have (``roadgonio design --second-aperture``,
+    issue 19)? Ranks every point of the ``vary`` grid (applied to ``instrument``) by the median
+    relative u of the one corrected table that a joint correction of the instrument and that
+    second setting would give (:mod:`roadgonio.design.second_aperture`), among the settings that
+    keep at least ``min_signal`` (default 0.25) of the instrument's signal; baselines: the
+    instrument alone and measuring twice. The surface: ``measured`` (a table the instrument
+    measured) or ``sample`` (anything :func:`roadgonio.surface.sample.resolve_sample` takes, or a
+    BRDF model). Returns the :class:`~roadgonio.design.second_aperture.SecondApertureResult`
+    (``.best``, ``.candidates``, ``.baselines``, ``.summary()``); with ``out`` second_aperture.csv,
+    .json, best_second.toml and second_aperture.png are written (``.out``, ``.written``)."""
+    from roadgonio.design.second_aperture import DEFAULT_MIN_SIGNAL, DEFAULT_U, second_aperture as _second
+    from roadgonio.design.second_aperture import write_second_aperture
+    from roadgonio.engines.registry import check_seed
+    inst = _instrument(instrument)
+    table = None if measured is None else _table(measured, "measured")
+    if table is not None:
+        from roadgonio.correction.run import check_measured
+        check_measured(table, measured if isinstance(measured, (str, Path)) else None)
+    smp = sample
+    if isinstance(sample, (str, Path)):
+        smp = _sample(sample, model_variant, field="sample").model
+    ms = DEFAULT_MIN_SIGNAL if min_signal is None else float(min_signal)
+    if not (0.0 <= ms <= 1.0):
+        raise InputError(f"expected a least signal between 0 and 1 (of the instrument's), got {min_signal!r}",
+                         field="--min-signal")
+    res = _second(inst, vary, measured=table, sample=smp, u_measured=DEFAULT_U if u_measured is None else u_measured,
+                  rays=_check_int(rays, "rays", 8), seed=check_seed(seed),
+                  model_variant=None if model_variant == "auto" else model_variant, min_signal=ms,
+                  progress=_show(progress))
+    folder = _out(out, "design", inst.name, "second")
+    res.out, res.written = folder, []
+    if folder is not None:
+        res.written = write_second_aperture(res, folder, plots=plots)
+    return res
 
 
 def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str = "5%", cells="all",

@@ -73,6 +73,8 @@ class SecondApertureResult:
     keys: list[str]
     seconds: float
     settings: dict[str, Any] = field(default_factory=dict)
+    out: Path | None = None
+    written: list = field(default_factory=list)
 
     @property
     def best(self) -> Candidate:
@@ -135,7 +137,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
         source = f"measured table {table.name}"
     else:
         from roadgonio.surface.sample import resolve_sample
-        model = resolve_sample(sample, model_variant) if isinstance(sample, str) else sample
+        model = resolve_sample(sample, model_variant).model if isinstance(sample, str) else sample
         table = RTable(np.where(bundled_table("R3").mask, 1.0, np.nan), name=getattr(model, "name", "sample"))
         cells = table.cells
         fm = ForwardModel(RayBundles.build(instrument, cells, rays=rays, seed=seed))
@@ -159,7 +161,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
         cov = expected_posterior(parts, theta, lam, urs)
         uu, us1, _ = _u_of(parts, theta, cov, urs, tables)
         return Candidate(label, changes, inst, float(np.median(uu)), float(np.sqrt(np.mean(uu ** 2))),
-                         float(np.max(uu)), float(us1), note)
+                         float(np.max(uu)), float(us1), note=note)
 
     baselines = [evaluate([part_a], [u_rel], [table], "alone", {}, instrument, "the instrument alone"),
                  evaluate([part_a, part_a], [u_rel, u_rel], [table, table], "twice", {}, instrument,
