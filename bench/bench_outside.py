@@ -173,7 +173,7 @@ def main() -> int:
             print_row(rows[-1])
     RESULTS.mkdir(exist_ok=True)
     with open(RESULTS / "outside.csv", "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS] + ["birge"], extrasaction="ignore")
+        wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS], extrasaction="ignore")
         wr.writeheader()
         wr.writerows(rows)
     print(f"wrote {RESULTS / 'outside.csv'}")
