@@ -18,7 +18,10 @@ cell's source frame, p' = (s.(p-c), t.(p-c), a.(p-c)), the area emitter samples 
 from p' (``Emitter.sample_direction``: uniform on the disc area, weight L cos theta_s A / d^2), and
 the sampled direction and point go back to the world frame. Distances and angles are invariant under
 the rigid motion, so this is exactly the emitter placed at the cell, without one emitter object (and
-one virtual call) per cell. The BSDF is evaluated for the world direction, and a shadow ray to the
+one virtual call) per cell. A source with a beam profile (docs/conventions.md section 4.1) weighs the
+sample by its relative radiance ``A(rho) P(theta)`` at the sampled point in the sampled direction,
+:func:`roadgonio.instrument.optics.source_radiance_factor` over Dr.Jit arrays in the canonical frame
+(axis +z, disc coordinates = the sampled point / R_S): the numpy backends' formula. The BSDF is evaluated for the world direction, and a shadow ray to the
 sampled source point is traced through the scene wherever the scene can occlude (XML scenes with
 holders, housings, baffles; mesh samples); the per-cell sources are not part of the scene, so they
 never shade each other.
@@ -45,7 +48,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from roadgonio.engines.mitsuba.ops import DrJitOps
 from roadgonio.errors import BackendError
+from roadgonio.instrument.optics import source_radiance_factor
 
 #: Lanes summed per device bin (float32); the host sums bins in float64.
 BIN_LOG2 = 12
@@ -80,6 +85,7 @@ class KaBatch(mi.SamplingIntegrator):
         self.cell = dr.opaque(mi.UInt32, 0)
         self.bsdf = None
         self.sample_shape = None
+        self.profile = None         # (beam, aperture, 1 / R_S) for Dr.Jit, or None: a uniform source
 
     # -- set-up --------------------------------------------------------------------------------
     def set_sample(self, shape) -> None:
@@ -93,6 +99,15 @@ class KaBatch(mi.SamplingIntegrator):
         here: an area emitter only points back to its shape, which must outlive it."""
         self.emitter = emitter
         self._source_shape = shape
+
+    def set_profile(self, source) -> None:
+        """The beam profile of the instrument's ``source`` (:class:`~roadgonio.instrument.config.Source`),
+        as kernel parameters: its numbers opaque (a new width reuses the kernel), its tables device
+        arrays; the kinds of profile are structural. Nothing for a uniform source (bit for bit as
+        before)."""
+        self.profile = None if not source.profiled else (
+            jit_beam(source.beam), jit_aperture(source.aperture),
+            dr.opaque(mi.Float, 1.0 / source.radius_m if source.radius_m > 0 else 0.0))
 
     def set_cells(self, frames: np.ndarray) -> None:
         """Source frames of the cells, float64 (n_cells, 12): centre, s, t, axis (the axis points
@@ -127,6 +142,12 @@ class KaBatch(mi.SamplingIntegrator):
         local.wavelengths = si.wavelengths
         ds, weight = self.emitter.sample_direction(local, u, active)
         active = active & (ds.pdf > 0.0)
+        if self.profile is not None:
+            # the source's relative radiance at the sampled point, in the canonical frame (axis +z)
+            beam, aperture, inv_r = self.profile
+            factor = source_radiance_factor(DrJitOps, beam, aperture, (ds.d.x, ds.d.y, ds.d.z),
+                                            (0.0, 0.0, 1.0), (ds.p.x * inv_r, ds.p.y * inv_r))
+            weight = weight * factor
         d = s * ds.d.x + t * ds.d.y + a * ds.d.z
         p_src = c + s * ds.p.x + t * ds.p.y + a * ds.p.z
         ctx = mi.BSDFContext()
@@ -240,6 +261,39 @@ def frame_from_axis(a):
     h = mi.Vector3f(dr.select(use_z, 0.0, 1.0), 0.0, dr.select(use_z, 1.0, 0.0))
     s = dr.normalize(dr.cross(h, a))
     return s, dr.cross(a, s)
+
+
+class _JitTable:
+    """A :class:`~roadgonio.instrument.profiles.UniformTable` for kernels: values on the device,
+    origin and step opaque, the size structural."""
+
+    def __init__(self, table):
+        self.values = mi.Float(np.ascontiguousarray(table.values, dtype=np.float32))
+        self.x0 = dr.opaque(mi.Float, float(table.x0))
+        self.step = dr.opaque(mi.Float, float(table.step))
+        self.n = int(table.n)
+
+
+class _JitProfile:
+    """A beam or aperture profile with its numbers as opaque kernel parameters (same attributes)."""
+
+    def __init__(self, profile, **numbers):
+        self.kind = profile.kind
+        self.uniform = profile.uniform
+        for k, v in numbers.items():
+            setattr(self, k, dr.opaque(mi.Float, float(v)))
+        self.table = None if profile.table is None else _JitTable(profile.table)
+
+
+def jit_beam(beam):
+    """:class:`~roadgonio.instrument.profiles.BeamProfile` for Dr.Jit kernels."""
+    return _JitProfile(beam, sigma_rad=beam.sigma_rad if np.isfinite(beam.sigma_rad) else 1e30, power=beam.power,
+                       theta_end_rad=beam.theta_end_rad)
+
+
+def jit_aperture(aperture):
+    """:class:`~roadgonio.instrument.profiles.ApertureProfile` for Dr.Jit kernels."""
+    return _JitProfile(aperture, edge=aperture.edge)
 
 
 _LATTICE_CACHE: dict = {}

@@ -20,7 +20,8 @@ on the focus point).
 
 Properties: ``alpha_deg``, ``delta_deg`` (the observation direction), ``distance_m``,
 ``pupil_radius_m``, ``field_half_angle_deg``, ``focus_m`` (float > 0; ``inf`` = an angular
-field, in XML ``value="inf"``; default = ``distance_m``), ``field_edge_sensitivity``; ``mapping`` =
+field, in XML ``value="inf"``; default = ``distance_m``), ``field_edge_sensitivity`` or ``field_sensitivity`` (the file of a
+sensitivity map, :mod:`roadgonio.instrument.profiles`); ``mapping`` =
 ``"concentric"`` (default, the signal) or ``"square"`` (film = picture of the field plane, pixels
 outside the field stop 0; for images); plus the usual ``film`` and ``sampler`` children. They
 are validated like the ``[observation]``/``[detector]`` sections of an instrument file
@@ -39,7 +40,8 @@ from roadgonio.instrument.config import Detector, Observation
 from roadgonio.instrument.optics import DetectorGeometry, concentric_disc, detector_ray, meter_geometry
 from roadgonio.engines.mitsuba.ops import DrJitOps
 
-DETECTOR_KEYS = ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity")
+DETECTOR_KEYS = ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity",
+                 "field_sensitivity")
 
 
 def _python_floats(v) -> np.ndarray:
@@ -63,18 +65,32 @@ def jit_geometry(geo: DetectorGeometry, opaque: bool = True) -> DetectorGeometry
     pupil radius, field and a finite focus distance are opaque ``mi.Float`` values, so changing the
     instrument (uncertainty design points, instrument design) never recompiles a kernel; otherwise
     Python floats (see :func:`_python_floats`), baked into the kernel as literals. Structural in
-    either case: whether the field is angular (focus at infinity) and whether k_D is uniform."""
+    either case: whether the field is angular (focus at infinity) and whether k_D is uniform. A
+    sensitivity map goes to the device as an array the kernel gathers from (its size is structural)."""
+    kd_map = None if geo.kd_map is None else _JitFieldMap(geo.kd_map)
     if not opaque:
         return DetectorGeometry(centre=_python_floats(geo.centre), axis=_python_floats(geo.axis),
                                 s=_python_floats(geo.s), t=_python_floats(geo.t),
                                 pupil_radius_m=float(geo.pupil_radius_m), focus_m=float(geo.focus_m),
-                                tan_field=float(geo.tan_field), kd_edge=float(geo.kd_edge))
+                                tan_field=float(geo.tan_field), kd_edge=float(geo.kd_edge), kd_map=kd_map,
+                                map_axes=tuple(float(v) for v in geo.map_axes))
     focus = math.inf if geo.angular else dr.opaque(mi.Float, float(geo.focus_m))
     return _OpaqueDetectorGeometry(centre=_opaque_floats(geo.centre), axis=_opaque_floats(geo.axis),
                                    s=_opaque_floats(geo.s), t=_opaque_floats(geo.t),
                                    pupil_radius_m=dr.opaque(mi.Float, float(geo.pupil_radius_m)),
                                    focus_m=focus, tan_field=dr.opaque(mi.Float, float(geo.tan_field)),
-                                   kd_edge=float(geo.kd_edge), is_angular=geo.angular)
+                                   kd_edge=float(geo.kd_edge), kd_map=kd_map,
+                                   map_axes=tuple(_opaque_floats(geo.map_axes)), is_angular=geo.angular)
+
+
+class _JitFieldMap:
+    """A :class:`~roadgonio.instrument.profiles.FieldMap` for Dr.Jit kernels: the same ``nx``,
+    ``ny`` and the values (row by row) as a device array that
+    :func:`~roadgonio.instrument.optics.map_bilinear` gathers from."""
+
+    def __init__(self, fmap):
+        self.nx, self.ny = fmap.nx, fmap.ny
+        self.flat = mi.Float(np.ascontiguousarray(fmap.flat, dtype=np.float32))
 
 
 class _OpaqueDetectorGeometry(DetectorGeometry):
@@ -94,6 +110,8 @@ def meter_from_props(props) -> tuple[Observation, Detector]:
     """The observation and the detector of the sensor's properties (validated dataclasses)."""
     obs = {key: float(props.get(key)) for key in ("alpha_deg", "delta_deg") if key in props}
     det = {key: props.get(key) for key in DETECTOR_KEYS if key in props}
+    if "field_sensitivity" in det:
+        det["field_sensitivity"] = str(det["field_sensitivity"])
     det.setdefault("distance_m", 5.0)
     return Observation(**obs), Detector(**det)
 

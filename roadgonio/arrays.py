@@ -24,10 +24,16 @@ class NumpyOps:
     abs = staticmethod(np.abs)
     maximum = staticmethod(np.maximum)
     minimum = staticmethod(np.minimum)
+    floor = staticmethod(np.floor)
 
     @staticmethod
     def where(cond, a, b):
         return np.where(cond, a, b)
+
+    @staticmethod
+    def take(table, index):
+        """``table[index]`` for a float array ``index`` of whole numbers within the table (a gather)."""
+        return np.take(table, np.asarray(index).astype(np.int64))
 
     @staticmethod
     def log1m(h):

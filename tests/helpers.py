@@ -160,3 +160,46 @@ def backend_refuses(name: str, inst: Instrument, cell, model: RoadModel, tmp_pat
         return True
     assert math.isfinite(res[0].k_a)
     return False
+
+
+# -- the source's beam and the detector's map (tests/unit/test_profiles.py, tests/plugin/test_profile_plugin.py)
+
+def ldt_text(g_deg, planes, c_deg=(0.0,), isym: int = 1) -> str:
+    """An EULUMDAT file (one item per line) with the intensities ``planes`` (one row per stored C
+    plane, cd/klm) at the gamma angles ``g_deg``; Isym 1 (rotational symmetry) stores one plane."""
+    g_deg = np.asarray(g_deg, dtype=np.float64)
+    c_deg = np.asarray(c_deg, dtype=np.float64)
+    dc = float(c_deg[1] - c_deg[0]) if c_deg.size > 1 else 0.0
+    lines = ["roadgonio tests", "1", str(isym), str(c_deg.size), f"{dc:g}", str(g_deg.size),
+             f"{g_deg[1] - g_deg[0]:g}", "report", "test source", "T1", "test.ldt", "tests",
+             "0", "0", "0", "0", "0", "0", "0", "0", "0", "100", "100", "1", "0",
+             "1", "1", "LED", "1000", "4000", "80", "1"]
+    lines += ["0"] * 10
+    lines += [f"{c:.10g}" for c in c_deg]
+    lines += [f"{g:.10g}" for g in g_deg]
+    for row in np.atleast_2d(planes):
+        lines += [f"{v:.12g}" for v in row]
+    return "\r\n".join(lines) + "\r\n"
+
+
+def write_table_csv(path, header: str, x, y) -> Path:
+    """A two-column CSV (``header`` then one row per node, full precision)."""
+    rows = [header] + [f"{a!r},{b!r}" for a, b in zip(np.asarray(x, dtype=float).tolist(),
+                                                        np.asarray(y, dtype=float).tolist())]
+    Path(path).write_text("\n".join(rows) + "\n")
+    return Path(path)
+
+
+def map_centres(n: int) -> np.ndarray:
+    """The pixel-centre coordinates of an n-pixel side of a sensitivity map over [-1, 1]."""
+    return -1.0 + (2.0 * np.arange(n) + 1.0) / n
+
+
+def write_map_csv(path, fn, nx: int, ny: int | None = None) -> Path:
+    """A sensitivity map of ``fn(x, y)`` (x right, y up) at the pixel centres, rows from the top."""
+    ny = nx if ny is None else ny
+    x = map_centres(nx)
+    y = map_centres(ny)[::-1]
+    X, Y = np.meshgrid(x, y)
+    np.savetxt(path, fn(X, Y), delimiter=",", fmt="%.17g")
+    return Path(path)

@@ -97,7 +97,8 @@ def _stacked_source(instrument: Instrument, cells: Sequence[tuple[float, float]]
         v = np.array([getattr(g, attr) for g in geos])          # (cells, 3)
         return tuple(np.repeat(v[:, k], n) for k in range(3))
     return optics.SourceGeometry(centre=stack("centre"), axis=stack("axis"), s=stack("s"), t=stack("t"),
-                                 radius_m=geos[0].radius_m, cos_beam=geos[0].cos_beam)
+                                 radius_m=geos[0].radius_m, cos_beam=geos[0].cos_beam, beam=geos[0].beam,
+                                 aperture=geos[0].aperture)
 
 
 @dataclass
@@ -179,7 +180,7 @@ class RayBundles:
             with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
                 o, d, w = optics.detector_ray(NumpyOps, det, pupil, field)
                 x, y, valid = optics.hit_plane(NumpyOps, o, d)
-                wi, g = optics.source_coupling(NumpyOps, src, x, y, optics.source_point(src, sdisc))
+                wi, g = optics.source_coupling(NumpyOps, src, x, y, optics.source_point(src, sdisc), sdisc)
             w = np.broadcast_to(np.asarray(w, dtype=np.float64), valid.shape)
             wg = np.where(valid, w * g, 0.0)
             shape = (len(idx), replicates * n_rep)

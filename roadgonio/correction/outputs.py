@@ -35,11 +35,19 @@ import numpy as np
 
 from roadgonio.fileio import OutputGroup
 from roadgonio.surface.fit import model_r_on_grid
+from roadgonio.surface.rtable import R_SCALE, grid_csv_text
 
 PICTURES = ("picture", "map", "residuals", "surface")
 FILES = {"corrected": "corrected.csv", "u": "corrected_u.csv", "rtb": "corrected.rtb", "json": "correct.json",
          "cells": "correct_cells.csv", "correlation": "corrected_corr.csv", "picture": "before_after.png",
          "map": "correction_map.png", "residuals": "residual_map.png", "surface": "correction_surface.png"}
+
+
+def u_csv_text(res) -> str:
+    """The corrected table's standard uncertainties in the r-table CSV layout (r x 1e4, 4 digits)."""
+    table = res.corrected
+    return grid_csv_text(res.u_corrected, "standard uncertainty of " + table.source, scale=R_SCALE, digits=4,
+                         tan_eps=table.tan_eps, beta_deg=table.beta_deg)
 
 
 def write_correction(res, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
@@ -48,7 +56,7 @@ def write_correction(res, out_dir: str | Path, *, plots: bool = True) -> list[Pa
     file. Returns the paths (corrected.csv, corrected_u.csv, corrected.rtb, correct.json, ...)."""
     with OutputGroup(out_dir) as group:
         paths = [group.text(FILES["corrected"], res.corrected.to_csv_text()),
-                 group.text(FILES["u"], res.u_corrected.to_csv_text(digits=4)),
+                 group.text(FILES["u"], u_csv_text(res)),
                  group.text(FILES["rtb"], res.corrected.to_rtb_text()),
                  group.text(FILES["cells"], cells_csv(res)),
                  group.text(FILES["correlation"], correlation_csv(res))]
@@ -103,7 +111,7 @@ def cells_csv(res) -> str:
     for k, (i, j) in enumerate(zip(ii, jj)):
         row = [f"{res.measured.tan_eps[i]:g}", f"{res.measured.beta_deg[j]:g}", f"{res.measured.r[i, j] * 1e4:.6g}",
                f"{res.u_measured[i, j] * 1e4:.4g}", f"{res.k_a[i, j]:.6g}", f"{res.k_se[i, j]:.3g}",
-               f"{res.corrected.r[i, j] * 1e4:.6g}", f"{res.u_corrected.r[i, j] * 1e4:.4g}", f"{u_tot[k]:.4g}"]
+               f"{res.corrected.r[i, j] * 1e4:.6g}", f"{res.u_corrected[i, j] * 1e4:.4g}", f"{u_tot[k]:.4g}"]
         row += [f"{u_comp[c][k]:.3g}" for c in comps]
         row += [f"{a[i, j]:.6g}" for a in res.alternatives.values()]
         row.append(f"{model_r[i, j] * 1e4:.6g}")
@@ -150,7 +158,7 @@ def draw_before_after(res):
             continue
         t = meas.tan_eps[ok]
         rc = corr.r[ok, j] * 1e4
-        band = 2.0 * res.u_corrected.r[ok, j] * 1e4
+        band = 2.0 * res.u_corrected[ok, j] * 1e4
         ax.fill_between(t, rc - band, rc + band, color="C0", alpha=0.25, lw=0)
         ax.plot(t, meas.r[ok, j] * 1e4, "o--", color="0.45", ms=3, lw=0.9)
         ax.plot(t, rc, "-", color="C0", lw=1.6)
@@ -278,7 +286,7 @@ def draw_joint_before_after(sc):
             continue
         t = corr.tan_eps[ok]
         rc = corr.r[ok, j] * 1e4
-        band = 2.0 * u.r[ok, j] * 1e4
+        band = 2.0 * u[ok, j] * 1e4
         ax.fill_between(t, rc - band, rc + band, color="C0", alpha=0.25, lw=0)
         for k, p in enumerate(sc.parts):
             okp = p.measured.mask[:, j]
@@ -350,7 +358,7 @@ def joint_cells_csv(sc) -> str:
     buf.write(",".join(head) + "\n")
     for k, (i, j) in enumerate(zip(ii, jj)):
         row = [f"{corr.tan_eps[i]:g}", f"{corr.beta_deg[j]:g}", f"{corr.r[i, j] * 1e4:.6g}",
-               f"{sc.u_corrected.r[i, j] * 1e4:.4g}", f"{u_tot[k]:.4g}"] + [f"{u_comp[c][k]:.3g}" for c in comps]
+               f"{sc.u_corrected[i, j] * 1e4:.4g}", f"{u_tot[k]:.4g}"] + [f"{u_comp[c][k]:.3g}" for c in comps]
         for p in sc.parts:
             row += [f"{p.measured.r[i, j] * 1e4:.6g}", f"{p.k_a[i, j]:.6g}", f"{p.corrected.r[i, j] * 1e4:.6g}",
                     f"{p.residual[i, j]:.3g}"]
@@ -383,7 +391,7 @@ def write_surface_correction(sc, out_dir: str | Path, *, plots: bool = True) -> 
         files.update({k: FILES[k] for k in PICTURES})
     with OutputGroup(out_dir) as group:
         paths = [group.text(FILES["corrected"], sc.corrected.to_csv_text()),
-                 group.text(FILES["u"], sc.u_corrected.to_csv_text(digits=4)),
+                 group.text(FILES["u"], u_csv_text(sc)),
                  group.text(FILES["rtb"], sc.corrected.to_rtb_text()),
                  group.json(FILES["json"], _joint_doc(sc, plots, files)),
                  group.text(FILES["cells"], joint_cells_csv(sc)),

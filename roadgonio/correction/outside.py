@@ -82,7 +82,7 @@ class InstrumentPart:
     k_backend: np.ndarray             # grid, backend k_A of the best backbone
     k_se: np.ndarray                  # grid, backend standard uncertainty of that k_A
     corrected: RTable
-    u_corrected: RTable
+    u_corrected: np.ndarray           # grid (sr^-1), standard uncertainty of ``corrected``
     budget: Budget                    # of this instrument's own corrected table
     residual: np.ndarray              # grid, (simulated - measured) / u of the best variant
     birge_local: np.ndarray           # grid, local Birge ratio
@@ -105,7 +105,7 @@ class SurfaceCorrection:
 
     parts: list[InstrumentPart]
     corrected: RTable
-    u_corrected: RTable
+    u_corrected: np.ndarray           # grid (sr^-1), standard uncertainty of ``corrected``
     budget: Budget                    # of the combined table (its measured cells, row-major)
     after: dict[str, Any]
     variants: list[VariantFit]
@@ -416,7 +416,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         parts_out.append(InstrumentPart(
             instrument=inst, measured=t, u_measured=u_grids[i][0], u_what=u_grids[i][1], k_a=k_grid,
             k_backend=_grid(t, k_back[i]), k_se=_grid(t, se_back[i]), corrected=corr,
-            u_corrected=t.with_values(u_abs, name=f"{t.name}_corrected_u", source="standard uncertainty of " + corr.source),
+            u_corrected=u_abs,
             budget=bud, residual=_grid(t, resid[sl]), birge_local=_grid(t, birge[sl]),
             widening=_grid(t, widen[sl]), simulated=_grid(t, sim),
             model_r=model_r, surfaces=surfs, backend_info=infos[i], before=functionals(t, before_b.total()), after=functionals(corr, bud.total())))
@@ -441,8 +441,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         comb_budget = Budget(len(order))
         for name, C in comps.items():
             comb_budget.add(name, Gm @ C @ Gm.T, notes[name])
-        u_comb = combined.with_values(_grid(combined, combined.r[combined.mask] * comb_budget.u_rel()),
-                                      name=f"{label}_corrected_u", source="standard uncertainty of " + src)
+        u_comb = _grid(combined, combined.r[combined.mask] * comb_budget.u_rel())
     after = functionals(combined, comb_budget.total())
     lap("assemble")
     from roadgonio.provenance import provenance

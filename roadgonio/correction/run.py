@@ -169,7 +169,7 @@ class InstrumentArtefacts:
 class CorrectionResult:
     measured: RTable
     corrected: RTable
-    u_corrected: RTable              # standard uncertainty (sr^-1)
+    u_corrected: np.ndarray          # grid (sr^-1), the corrected table's standard uncertainty
     u_measured: np.ndarray           # grid (sr^-1)
     k_a: np.ndarray                  # grid, backend k_A under the instrument's calibration
     k_se: np.ndarray                 # grid, backend standard uncertainty of k_A
@@ -489,8 +489,6 @@ def _assemble(measured: RTable, instrument: Instrument, u_grid, k_b, se_b, budge
     corrected = measured.with_values(corrected_r, name=f"{measured.name}_corrected", source=label)
     cov = budget.total()
     u_abs = _grid(measured, corrected_r[mask] * np.sqrt(np.diag(cov)))
-    u_table = measured.with_values(u_abs, name=f"{measured.name}_corrected_u",
-                                   source="standard uncertainty of " + label)
     before_budget = Budget(len(mask[mask]))
     before_budget.add("measurement", u_grid[mask] / measured.r[mask])
     if "misalignment" in budget.components:
@@ -504,7 +502,7 @@ def _assemble(measured: RTable, instrument: Instrument, u_grid, k_b, se_b, budge
                       before_uncertainty="measurement" + (" and misalignment" if "misalignment" in budget.components
                                                           else "") + " only (the aperture effect is the bias the "
                                                                      "correction removes)")
-    return CorrectionResult(measured=measured, corrected=corrected, u_corrected=u_table, u_measured=u_grid,
+    return CorrectionResult(measured=measured, corrected=corrected, u_corrected=u_abs, u_measured=u_grid,
                             k_a=_grid(measured, k_b), k_se=_grid(measured, se_b), budget=budget, reference=reference,
                             model=model, fit=fit, alternatives=alternatives, before=before, after=after, steps=steps,
                             provenance=prov, seconds=time.perf_counter() - t0)

@@ -15,7 +15,7 @@ from roadgonio.fileio import to_json
 from roadgonio.instrument.config import Instrument
 from roadgonio.engines import cluster as _cluster
 from roadgonio.design.grid import VarySpec
-from roadgonio.design.metrics import SIGNAL_FORMULA, deviations, detector_etendue, signal_product, source_solid_angle
+from roadgonio.design.metrics import SIGNAL_FORMULA, deviations, detector_etendue, profiled_solid_angle, signal_product
 
 def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, ...], points, samples, union,
              feas, inst_of, done: Mapping[tuple[int, int], dict], seeds, tol: float):
@@ -88,7 +88,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     signal_abs = np.array([signal_product(x) if x is not None else np.nan for x in inst_of])
     sb = signal_product(base)
     signal = signal_abs / sb if sb > 0 else np.full(n, np.nan)
-    omega = np.array([source_solid_angle(x.source.radius_m, x.source.distance_m) if x is not None else np.nan
+    omega = np.array([profiled_solid_angle(x) if x is not None else np.nan
                       for x in inst_of])
     etendue = np.array([detector_etendue(x) if x is not None else np.nan for x in inst_of])
     fp_len = np.array([f.footprint_length_m for f in feas])
@@ -118,7 +118,8 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "not_converged": (dims, grid(not_conv), {"long_name": "cells whose backend stopped before its target"}),
         "signal": (dims, grid(signal), {"long_name": "detected flux for a Lambertian sample relative to the base design",
                                         "formula": SIGNAL_FORMULA}),
-        "source_solid_angle_sr": (dims, grid(omega), {"long_name": "projected solid angle of the source disc at the sample"}),
+        "source_solid_angle_sr": (dims, grid(omega), {"long_name": "projected solid angle of the source disc at the sample "
+                                                                               "(E_normal / L_0 with its beam profile)"}),
         "detector_etendue_m2sr": (dims, grid(etendue), {"long_name": "etendue of the luminance meter (pupil x field)"}),
         "footprint_length_m": (dims, grid(fp_len), {"long_name": "length of the detector footprint along the observation azimuth"}),
         "footprint_x_min_m": (dims, grid(fp_min), {}),

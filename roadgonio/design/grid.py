@@ -4,7 +4,8 @@ Every grid point is a complete instrument: the base instrument file with the var
 (:meth:`roadgonio.instrument.config.Instrument.with_changes`). KEY is an instrument-file key
 ``section.key`` (docs/conventions.md section 4), for example ``source.radius_m``, ``source.distance_m``,
 ``detector.distance_m``, ``detector.pupil_radius_m``, ``detector.field_half_angle_deg``,
-``observation.alpha_deg``. Values:
+``observation.alpha_deg``, and the widths of the source's beam profile ``source.beam_sigma_deg``,
+``source.beam_cos_power``, ``source.aperture_edge_radiance``. Values:
 
 * ``LO:HI:N``      N values evenly spaced from LO to HI (both included);
 * ``LO:HI:N:log``  N values evenly spaced in log(value) (LO, HI > 0);
@@ -32,7 +33,8 @@ from roadgonio.instrument.config import Instrument
 #: The numeric instrument keys a design may vary (section -> keys), docs/conventions.md section 4.
 VARIABLE_KEYS: dict[str, tuple[str, ...]] = {
     "observation": ("alpha_deg", "delta_deg"),
-    "source": ("distance_m", "radius_m", "beam_half_angle_deg"),
+    "source": ("distance_m", "radius_m", "beam_half_angle_deg", "beam_sigma_deg", "beam_cos_power",
+               "aperture_edge_radiance"),
     "detector": ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity"),
     "sample": ("size_x_m", "size_y_m"),
 }

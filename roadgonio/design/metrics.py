@@ -17,6 +17,12 @@ L_S at incidence epsilon, seen by the luminance meter of etendue G_D::
                                                 coaxial discs (exact); ~ (pi R_D^2) (pi tan^2 gamma_D)
     G_D     = pi R_D^2 * pi sin^2 gamma_D       for an angular field (F = inf)
     <k_D>   = 1 - (1 - e) / 2                   mean of k_D(rho) = 1 - (1 - e) rho^2 over the field disc
+                                                (with a sensitivity map: its mean over the field disc)
+
+A source with a beam profile (radiance L_0 A(rho) P(theta), docs/conventions.md section 4) has
+``Omega_S = E_normal / L_0``, the illuminance on its axis at the sample centre per unit on-axis
+radiance, integrated over the disc (float64 Gauss rule): a narrower beam or a darker rim gives
+less signal from the same lamp.
 
 For the same lamp (L_S), sample (rho) and cell (eps), the design's ``signal`` is relative to the base
 design::
@@ -44,7 +50,9 @@ from roadgonio.instrument.config import Instrument
 SIGNAL_FORMULA = ("signal = (Omega_S G_D <k_D>) / (Omega_S G_D <k_D>)_base; Omega_S = pi R_S^2/(R_S^2+D_S^2) "
                   "(projected solid angle of the source disc), G_D = pi^2/2 (X - sqrt(X^2 - 4 R_D^2 r_F^2)), "
                   "X = R_D^2 + r_F^2 + F^2, r_F = F tan gamma_D (etendue of pupil and field discs; pi R_D^2 pi "
-                  "sin^2 gamma_D for F = inf), <k_D> = 1 - (1 - e)/2 (roadgonio.design.metrics)")
+                  "sin^2 gamma_D for F = inf), <k_D> = 1 - (1 - e)/2 (roadgonio.design.metrics); a beam profile "
+                  "L_0 A(rho) P(theta): Omega_S = E_normal / L_0 integrated over the disc, a sensitivity map: <k_D> "
+                  "its mean over the field")
 
 
 def source_solid_angle(radius_m: float, distance_m: float) -> float:
@@ -73,15 +81,45 @@ def detector_etendue(instrument: Instrument) -> float:
     return coaxial_disc_etendue(det.pupil_radius_m, f * math.tan(gamma), f)
 
 
+#: Level of the Gauss disc rules of the profiled source's Omega_S and the map's mean (45 x 45 nodes).
+PROFILE_RULE_LEVEL = 10
+
+
 def mean_field_sensitivity(instrument: Instrument) -> float:
-    """Area mean of k_D(rho) = 1 - (1 - e) rho^2 over the field disc."""
-    return 1.0 - (1.0 - instrument.detector.field_edge_sensitivity) / 2.0
+    """Area mean of k_D over the field disc: 1 - (1 - e)/2 for k_D(rho) = 1 - (1 - e) rho^2, or the
+    mean of the sensitivity map (:func:`roadgonio.instrument.optics.field_map_value`)."""
+    det = instrument.detector
+    if det.field_map is None:
+        return 1.0 - (1.0 - det.field_edge_sensitivity) / 2.0
+    from roadgonio.arrays import NumpyOps
+    from roadgonio.engines.quadrature import disc_rule
+    from roadgonio.instrument.optics import detector_geometry, field_map_value
+    fx, fy, w = disc_rule(PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL)
+    return float(field_map_value(NumpyOps, detector_geometry(instrument), fx, fy) @ w)
+
+
+def profiled_solid_angle(instrument: Instrument) -> float:
+    """Omega_S = E_normal / L_0 of the instrument's source (module docstring): the closed form of
+    :func:`source_solid_angle` for the uniform disc, otherwise the shared source coupling
+    (:func:`roadgonio.instrument.optics.source_coupling`, profile included) integrated over the disc
+    for the source overhead, at the sample centre."""
+    src = instrument.source
+    if not src.profiled or src.radius_m == 0.0:
+        return source_solid_angle(src.radius_m, src.distance_m)
+    from roadgonio.arrays import NumpyOps
+    from roadgonio.engines.quadrature import disc_rule
+    from roadgonio.instrument import optics
+    g = optics.source_geometry(instrument, 0.0, 0.0)
+    sx, sy, w = disc_rule(PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL)
+    sp = optics.source_point(g, (sx, sy))
+    sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape) for c in sp)
+    _, cpl = optics.source_coupling(NumpyOps, g, np.zeros(1), np.zeros(1), sp, (sx, sy))
+    return float(np.asarray(cpl) @ w) * math.pi * src.radius_m ** 2
 
 
 def signal_product(instrument: Instrument) -> float:
     """Omega_S G_D <k_D> (sr m^2 sr): the design's signal up to L_S rho cos(eps) / pi."""
-    return (source_solid_angle(instrument.source.radius_m, instrument.source.distance_m)
-            * detector_etendue(instrument) * mean_field_sensitivity(instrument))
+    return profiled_solid_angle(instrument) * detector_etendue(instrument) * mean_field_sensitivity(instrument)
 
 
 def relative_signal(instrument: Instrument, base: Instrument) -> float:

@@ -124,7 +124,8 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
     # -- journal -----------------------------------------------------------------------------
     # what determines the numbers: not the instrument's name and description, nor the model's metadata
     base_numbers = {k: v for k, v in _cluster.absolute_instrument_dict(base).items() if k != "instrument"}
-    fp_payload = {"base": base_numbers, "vary": [[s.key, list(s.values)] for s in specs],
+    files = base.file_digests()       # the contents of the files the base reads (only when it reads any)
+    fp_payload = {"base": base_numbers, **({"files": files} if files else {}), "vary": [[s.key, list(s.values)] for s in specs],
                   "samples": [[s.name, {"variant": s.model.variant, "params": s.model.params.to_dict()},
                                [list(c) for c in s.cells]] for s in smp],
                   "backend": backend, "accuracy": accuracy, "settings": settings, "seed": int(seed)}

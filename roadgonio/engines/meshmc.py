@@ -269,7 +269,13 @@ class MeshMonteCarloBackend(CellByCellBackend):
             ok = (cos_i > 0.0) & (cos_s > 0.0)
             if src.cos_beam is not None:
                 ok &= cos_s >= src.cos_beam
-            g = np.where(ok, cos_i * cos_s / (dist * dist), 0.0)
+            g = cos_i * cos_s / (dist * dist)
+            # the source's relative radiance at the sampled point in this direction (profiles; None = 1)
+            factor = optics.source_radiance_factor(NumpyOps, src.beam, src.aperture, (wi[:, 0], wi[:, 1], wi[:, 2]),
+                                                   src.axis, sdisc)
+            if factor is not None:
+                g = g * factor
+            g = np.where(ok, g, 0.0)
             lit = ok.copy()
             if np.any(lit):
                 sel = np.nonzero(lit)[0]

@@ -141,8 +141,9 @@ class MonteCarloBackend(CellByCellBackend):
                 o, d, w = optics.detector_ray(NumpyOps, self._det, disc(pupil, self._pupil, a, b),
                                               disc(field, self._field, a, b))
                 x, y, valid = optics.hit_plane(NumpyOps, o, d)
-                sp = optics.source_point(src, disc(sdisc, self._source, a, b))
-                wi, g = optics.source_coupling(NumpyOps, src, x, y, sp)
+                sd = disc(sdisc, self._source, a, b)
+                sp = optics.source_point(src, sd)
+                wi, g = optics.source_coupling(NumpyOps, src, x, y, sp, sd)
                 wo = (-d[0], -d[1], -d[2])
                 f = self.model.evaluate(NumpyOps, wi, wo)
                 wg = np.where(valid, w * g, 0.0)

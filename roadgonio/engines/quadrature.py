@@ -205,6 +205,7 @@ class QuadratureBackend(CellByCellBackend):
         sx, sy, ws = disc_rule(levels[4], levels[5], focus[2])
         sp = optics.source_point(src, (sx, sy))
         sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape)[None, :] for c in sp)
+        sd = (sx[None, :], sy[None, :])
         nd, ns = det["x"].size, sx.size
         rows = max(1, CHUNK // ns)
         road = lam = 0.0
@@ -218,7 +219,7 @@ class QuadratureBackend(CellByCellBackend):
                 x = det["x"][a:b, None]
                 y = det["y"][a:b, None]
                 wo = tuple(c[a:b, None] for c in det["wo"])
-                wi, g = optics.source_coupling(NumpyOps, src, x, y, sp)
+                wi, g = optics.source_coupling(NumpyOps, src, x, y, sp, sd)
                 f = road_brdf(NumpyOps, P, wi, wo, variant, terms)
                 wd = det["w"][a:b]
                 fg = f * g

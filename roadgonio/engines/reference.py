@@ -323,7 +323,7 @@ class ReferenceBackend(CellByCellBackend):
                     v, w, ws = segment_map(us1, us2, cs)
                     sdisc = (v * sx - w * sy, v * sy + w * sx)
                 sp = optics.source_point(src, sdisc)
-                wi, g = optics.source_coupling(NumpyOps, src, xs, ys, sp)
+                wi, g = optics.source_coupling(NumpyOps, src, xs, ys, sp, sdisc)
                 f = self.model.evaluate(NumpyOps, wi, wos)
                 wg = wd * ws * g
                 if idx is None:

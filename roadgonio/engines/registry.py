@@ -63,6 +63,8 @@ class BackendInfo:
     meshes: bool = False             # models a mesh sample ([sample] mesh)
     xml_scenes: bool = False         # models the extra parts of a Mitsuba XML scene ([scene] xml)
     beam_clipping: bool = True       # models a beam limit that clips the light on the footprint
+    beam_profile: bool = True        # models a source radiance profile ([source] beam_* / aperture_* keys)
+    field_map: bool = True           # models a detector sensitivity map ([detector] field_sensitivity)
     mitsuba: bool = False            # needs mitsuba/drjit and a selected variant (Dask workers set one up)
     cell_correlation: str = ("independent: each cell has its own random numbers, seeded by (seed, tan eps, beta)")
 
@@ -147,8 +149,8 @@ def tolerance_setting(backend: str, value, field: str = "rel_se") -> dict[str, f
 
 def check_capabilities(info: BackendInfo, instrument) -> None:
     """Refuse an instrument the backend does not model (never ignore part of it): a Mitsuba XML
-    scene's extra parts, a mesh sample. (A beam limit that clips the footprint is refused per cell
-    by the backends that cannot model it.)"""
+    scene's extra parts, a mesh sample, a source radiance profile, a detector sensitivity map. (A
+    beam limit that clips the footprint is refused per cell by the backends that cannot model it.)"""
     scene = instrument.extra.get("scene") if hasattr(instrument.extra, "get") else None
     if scene and not info.xml_scenes:
         what = "a Mitsuba XML scene" if hasattr(scene, "get") and "xml" in scene else "a [scene] section"
@@ -156,6 +158,15 @@ def check_capabilities(info: BackendInfo, instrument) -> None:
         raise InputError(f"the {info.name} backend does not model {what} (its extra geometry would be ignored, "
                          f"giving a different instrument); use --backend {alt}, or an instrument file "
                          "without [scene]", path=instrument.path, field="scene")
+    if instrument.source.profiled and not info.beam_profile:
+        key = instrument.source.profile_keys[0]
+        alt = ", ".join(n for n, b in BACKENDS.items() if b.beam_profile)
+        raise InputError(f"the {info.name} backend does not model a source radiance profile ({key}); use "
+                         f"--backend {alt}, or a source without it", path=instrument.path, field=key)
+    if instrument.detector.field_map is not None and not info.field_map:
+        alt = ", ".join(n for n, b in BACKENDS.items() if b.field_map)
+        raise InputError(f"the {info.name} backend does not model a detector sensitivity map; use --backend {alt}",
+                         path=instrument.path, field="detector.field_sensitivity")
     if instrument.sample.mesh is not None and not info.meshes:
         alt = " or ".join(n for n, b in BACKENDS.items() if b.meshes)
         raise InputError(f"the {info.name} backend integrates over a flat rectangular sample only; for a mesh "

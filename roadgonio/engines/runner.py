@@ -45,8 +45,9 @@ FLUSH_SECONDS = 1.0
 def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) -> str:
     """Fingerprint of everything that determines the numbers of a run (:func:`roadgonio.fileio.fingerprint`:
     the instrument, the model's variant and parameters, the backend and its settings, the version)."""
-    return _fingerprint({"instrument": instrument.to_dict(), "model": {"variant": model.variant,
-                                                                        "params": model.params.to_dict()},
+    files = instrument.file_digests()        # only when it reads files: other fingerprints stay as they were
+    return _fingerprint({"instrument": instrument.to_dict(), **({"files": files} if files else {}),
+                         "model": {"variant": model.variant, "params": model.params.to_dict()},
                          "backend": backend.name, "settings": backend.settings()})
 
 

@@ -12,12 +12,17 @@ validate themselves on construction, built from TOML or a plain dict, units in t
     distance_m = 3.0
     radius_m = 0.02              # radius of the exit aperture; 0 = point source
     # beam_half_angle_deg = 5.0  # optional: emission limited to a cone about the source axis
+    # beam_sigma_deg = 10.0      # optional angular profile: radiance exp(-theta^2 / 2 sigma^2), or
+    #                            # beam_cos_power = n (radiance cos^n), or beam_intensity_file = "led.ldt"
+    # aperture_edge_radiance = 0.7  # optional: radiance 1 - (1 - e) rho^2 over the exit aperture,
+    #                            # or aperture_radiance_file = "aperture.csv" (rho, relative_radiance)
     [detector]
     distance_m = 5.0
     pupil_radius_m = 0.01        # radius of the entrance pupil; 0 = pinhole
     field_half_angle_deg = 0.15
     focus_m = 5.0                # default: distance_m; "inf" (or TOML inf) = angular field
     # field_edge_sensitivity = 0.8  # k_D at the field-stop edge relative to the centre (default 1)
+    # field_sensitivity = "map.csv"  # or a 2-D map of k_D over the field stop (CSV grid or image)
     [sample]
     size_x_m = 6.0               # along the observation azimuth
     size_y_m = 2.0               # or mesh = "file.ply" (relative to the TOML file)
@@ -98,28 +103,120 @@ class Observation:
         return w_detector(self.alpha_deg, self.delta_deg)
 
 
+#: The keys of [source] that shape its beam (docs/conventions.md section 4; roadgonio.instrument.profiles):
+#: the angular profile (at most one of the first three) and the aperture profile (at most one of the last two).
+BEAM_KEYS = ("beam_sigma_deg", "beam_cos_power", "beam_intensity_file")
+APERTURE_KEYS = ("aperture_edge_radiance", "aperture_radiance_file")
+
+
+def _file_key(obj, attr: str, name: str) -> None:
+    """Normalise the file-name field ``attr`` to an absolute Path (None stays None): a file named
+    relative to the working folder is the file read now, wherever the instrument goes next (a Dask
+    worker, a rewritten instrument file)."""
+    v = getattr(obj, attr)
+    if v is None:
+        return
+    if not isinstance(v, (str, Path)) or not str(v):
+        raise InputError(f"expected a file name, got {v!r}", field=name)
+    object.__setattr__(obj, attr, Path(v).absolute())
+
+
+def _digests(obj, attrs) -> dict[str, str]:
+    """sha256 of the content of the files named by ``attrs`` of ``obj`` (those given)."""
+    from roadgonio.instrument.profiles import file_digest
+    return {a: file_digest(getattr(obj, a)) for a in attrs if getattr(obj, a) is not None}
+
+
 @dataclass(frozen=True)
 class Source:
     """Disc exit aperture of radius ``radius_m`` (0 = point source) at ``distance_m`` from the
-    sample centre, facing it, uniform radiance (Lambertian area emitter); optional beam cone of
-    half-angle ``beam_half_angle_deg`` (None = no beam limit)."""
+    sample centre, facing it; optional beam cone of half-angle ``beam_half_angle_deg`` (None = no
+    beam limit).
+
+    Its radiance is uniform (a Lambertian area emitter) unless a profile is given
+    (:mod:`roadgonio.instrument.profiles`: ``L = L_0 A(rho) P(theta)``): an angular profile P, one of
+    ``beam_sigma_deg`` (Gaussian in radiance, sigma in deg), ``beam_cos_power`` (radiance cos^n) or
+    ``beam_intensity_file`` (a tabulated intensity distribution, EULUMDAT .ldt or CSV ``theta_deg,
+    I``), and an aperture profile A, one of ``aperture_edge_radiance`` (``1 - (1 - e) rho^2``) or
+    ``aperture_radiance_file`` (CSV ``rho, relative_radiance``). Files are read on construction
+    (a file name relative to an instrument file is resolved by :meth:`Instrument.from_dict`)."""
 
     distance_m: float = 3.0
     radius_m: float = 0.0
     beam_half_angle_deg: float | None = None
+    beam_sigma_deg: float | None = None
+    beam_cos_power: float | None = None
+    beam_intensity_file: Path | None = None
+    aperture_edge_radiance: float = 1.0
+    aperture_radiance_file: Path | None = None
 
     def __post_init__(self):
+        from roadgonio.instrument import profiles
         _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True)
         _checked(self, "radius_m", "source.radius_m", lo=0.0)
         _checked(self, "beam_half_angle_deg", "source.beam_half_angle_deg", lo=0.0, hi=90.0, lo_open=True,
                  optional=True)
+        _checked(self, "beam_sigma_deg", "source.beam_sigma_deg", lo=0.0, lo_open=True, hi=1e6, optional=True)
+        _checked(self, "beam_cos_power", "source.beam_cos_power", lo=0.0, hi=1e6, optional=True)
+        _file_key(self, "beam_intensity_file", "source.beam_intensity_file")
+        _checked(self, "aperture_edge_radiance", "source.aperture_edge_radiance", lo=0.0, hi=10.0)
+        _file_key(self, "aperture_radiance_file", "source.aperture_radiance_file")
         if self.radius_m >= self.distance_m:
             raise InputError(f"the source radius ({self.radius_m:g} m) must be smaller than its distance "
                              f"({self.distance_m:g} m)", field="source.radius_m")
+        given = [k for k in BEAM_KEYS if getattr(self, k) is not None]
+        if len(given) > 1:
+            raise InputError(f"give at most one angular profile, not {' and '.join(given)}", field=f"source.{given[1]}")
+        if self.aperture_radiance_file is not None and self.aperture_edge_radiance != 1.0:
+            raise InputError("give either aperture_edge_radiance or aperture_radiance_file, not both",
+                             field="source.aperture_radiance_file")
+        if self.beam_intensity_file is not None:
+            beam = profiles.intensity_profile(self.beam_intensity_file)
+        elif self.beam_sigma_deg is not None:
+            beam = profiles.BeamProfile(kind="gaussian", sigma_rad=math.radians(self.beam_sigma_deg))
+        elif self.beam_cos_power is not None and self.beam_cos_power != 0.0:
+            beam = profiles.BeamProfile(kind="cos_power", power=self.beam_cos_power)
+        else:
+            beam = profiles.BeamProfile()
+        if self.aperture_radiance_file is not None:
+            aperture = profiles.aperture_table(self.aperture_radiance_file)
+        elif self.aperture_edge_radiance != 1.0:
+            aperture = profiles.ApertureProfile(kind="quadratic", edge=self.aperture_edge_radiance)
+        else:
+            aperture = profiles.ApertureProfile()
+        object.__setattr__(self, "_beam", beam)
+        object.__setattr__(self, "_aperture", aperture)
+        object.__setattr__(self, "_digests", _digests(self, ("beam_intensity_file", "aperture_radiance_file")))
 
     @property
     def is_point(self) -> bool:
         return self.radius_m == 0.0
+
+    @property
+    def beam(self):
+        """The angular profile P(theta) (:class:`roadgonio.instrument.profiles.BeamProfile`)."""
+        return self._beam
+
+    @property
+    def aperture(self):
+        """The aperture profile A(rho) (:class:`roadgonio.instrument.profiles.ApertureProfile`)."""
+        return self._aperture
+
+    @property
+    def profiled(self) -> bool:
+        """True when the radiance is not uniform (an angular or an aperture profile is given)."""
+        return not (self._beam.uniform and self._aperture.uniform)
+
+    @property
+    def profile_keys(self) -> list[str]:
+        """The keys that give this source a profile (for messages: ``source.beam_sigma_deg``, ...)."""
+        keys = [k for k in BEAM_KEYS if getattr(self, k) is not None and not (k == "beam_cos_power"
+                                                                              and self.beam_cos_power == 0.0)]
+        if self.aperture_radiance_file is not None:
+            keys.append("aperture_radiance_file")
+        elif self.aperture_edge_radiance != 1.0:
+            keys.append("aperture_edge_radiance")
+        return [f"source.{k}" for k in keys]
 
 
 @dataclass(frozen=True)
@@ -132,7 +229,8 @@ class Detector:
     Sensitivity over the field (k_D of paper eq. 3): ``k_D(rho) = 1 - (1 - e) rho^2`` with rho the
     distance from the field centre as a fraction of the field radius and ``e`` =
     ``field_edge_sensitivity`` (k_D at the field-stop edge relative to the centre; 1 = uniform, the
-    default).
+    default); or a 2-D map ``field_sensitivity`` (a CSV grid or a greyscale image over the field
+    stop, :mod:`roadgonio.instrument.profiles`; read on construction). The two are exclusive.
     """
 
     distance_m: float = 5.0
@@ -140,6 +238,7 @@ class Detector:
     field_half_angle_deg: float = 0.0
     focus_m: float | None = None
     field_edge_sensitivity: float = 1.0
+    field_sensitivity: Path | None = None
 
     def __post_init__(self):
         _checked(self, "distance_m", "detector.distance_m", lo=0.0, lo_open=True)
@@ -147,9 +246,24 @@ class Detector:
         _checked(self, "field_half_angle_deg", "detector.field_half_angle_deg", lo=0.0, hi=45.0, hi_open=True)
         _checked(self, "focus_m", "detector.focus_m", lo=0.0, lo_open=True, allow_inf=True, optional=True)
         _checked(self, "field_edge_sensitivity", "detector.field_edge_sensitivity", lo=0.0, hi=2.0)
+        _file_key(self, "field_sensitivity", "detector.field_sensitivity")
+        fmap = None
+        if self.field_sensitivity is not None:
+            if self.field_edge_sensitivity != 1.0:
+                raise InputError("give either field_edge_sensitivity or a field_sensitivity map, not both",
+                                 field="detector.field_sensitivity")
+            from roadgonio.instrument.profiles import read_field_map
+            fmap = read_field_map(self.field_sensitivity)
+        object.__setattr__(self, "_field_map", fmap)
+        object.__setattr__(self, "_digests", _digests(self, ("field_sensitivity",)))
         if self.pupil_radius_m >= self.distance_m:
             raise InputError(f"the pupil radius ({self.pupil_radius_m:g} m) must be smaller than the "
                              f"detector distance ({self.distance_m:g} m)", field="detector.pupil_radius_m")
+
+    @property
+    def field_map(self):
+        """The sensitivity map (:class:`roadgonio.instrument.profiles.FieldMap`), or None."""
+        return self._field_map
 
     @property
     def focus_distance_m(self) -> float:
@@ -195,6 +309,20 @@ class SampleGeometry:
             if getattr(self, attr) is None:
                 object.__setattr__(self, attr, default)
             _checked(self, attr, f"sample.{attr}", lo=0.0, lo_open=True)
+
+
+def _resolve_file(sec: dict, key: str, section: str, path: Path | None) -> None:
+    """A file name in ``sec[key]`` relative to the instrument file ``path``, made absolute (so that
+    to_dict/from_dict, with_changes and best.toml never join it twice)."""
+    if key not in sec:
+        return
+    v = sec[key]
+    if not isinstance(v, (str, Path)) or not str(v):
+        raise InputError(f"expected a file name, got {v!r}", field=f"{section}.{key}")
+    f = Path(v)
+    if not f.is_absolute() and path is not None:
+        f = (path.parent / f).absolute()
+    sec[key] = f
 
 
 _SECTIONS = ("observation", "source", "detector", "sample", "instrument")
@@ -283,6 +411,17 @@ class Instrument:
         """True if every aperture is zero (point source, single-ray detector)."""
         return self.source.is_point and self.detector.is_single_ray
 
+    def file_digests(self) -> dict[str, str]:
+        """sha256 of the content of every file the instrument reads numbers from (the source's and
+        the detector's tables, the sample mesh), by key: what a fingerprint of "what determines the
+        numbers" adds to :meth:`to_dict`, which names the files only."""
+        out = {f"source.{k}": v for k, v in self.source._digests.items()}
+        out.update({f"detector.{k}": v for k, v in self.detector._digests.items()})
+        if self.sample.mesh is not None:
+            from roadgonio.instrument.profiles import file_digest
+            out["sample.mesh"] = file_digest(self.sample.mesh)
+        return out
+
     def with_changes(self, **sections: Mapping[str, Any]) -> "Instrument":
         """A copy with some keys changed, e.g. ``with_changes(source={"radius_m": 0})``."""
         d = self.to_dict()
@@ -300,9 +439,19 @@ class Instrument:
             det["focus_m"] = "inf"
         if det["field_edge_sensitivity"] == 1.0:
             del det["field_edge_sensitivity"]
+        if det["field_sensitivity"] is None:
+            del det["field_sensitivity"]
+        else:
+            det["field_sensitivity"] = str(det["field_sensitivity"])
         src = asdict(self.source)
-        if src["beam_half_angle_deg"] is None:
-            del src["beam_half_angle_deg"]
+        for k in ("beam_half_angle_deg", "beam_sigma_deg", "beam_cos_power", "beam_intensity_file",
+                  "aperture_radiance_file"):
+            if src[k] is None:
+                del src[k]
+            elif isinstance(src[k], Path):
+                src[k] = str(src[k])
+        if src["aperture_edge_radiance"] == 1.0:
+            del src["aperture_edge_radiance"]
         smp = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self.sample).items() if v is not None}
         d = {"instrument": {"name": self.name, "description": self.description},
              "observation": asdict(self.observation), "source": src, "detector": det, "sample": smp}
@@ -334,18 +483,21 @@ class Instrument:
         observation = Observation(**ob)
         if "source" not in d:
             raise InputError("missing table [source]", field="source")
-        s = d["source"]
-        _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg"}, "source", None)
+        s = dict(d["source"])
+        _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg", *BEAM_KEYS, *APERTURE_KEYS}, "source", None)
         if "distance_m" not in s:
             raise InputError("missing (required)", field="source.distance_m")
+        for k in ("beam_intensity_file", "aperture_radiance_file"):
+            _resolve_file(s, k, "source", path)
         source = Source(**s)
         if "detector" not in d:
             raise InputError("missing table [detector]", field="detector")
-        t = d["detector"]
-        _check_keys(t, {"distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity"},
-                    "detector", None)
+        t = dict(d["detector"])
+        _check_keys(t, {"distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity",
+                        "field_sensitivity"}, "detector", None)
         if "distance_m" not in t:
             raise InputError("missing (required)", field="detector.distance_m")
+        _resolve_file(t, "field_sensitivity", "detector", path)
         detector = Detector(**t)
         sm = dict(d.get("sample", {}))
         _check_keys(sm, {"size_x_m", "size_y_m", "mesh"}, "sample", None)

@@ -15,9 +15,12 @@ is the etendue factor of the pair, normalised to 1 on the axis, times the field 
     finite F:  weight = (F cos theta / |q - p|)^2        (= cos^2 theta dA_p dA_q / |q-p|^2 / (dA_p dA_q / F^2))
     F = inf:   weight = cos^4 theta                      (direction a + tan(gamma) u; cos theta dOmega = cos^4 theta du)
 
-where theta is the angle between the ray and the axis. Source: a Lambertian disc of radius R_S at
-distance D_S along w_i, facing the sample centre; a sample point ``x`` receives from a source
-point ``s`` the geometric factor ``cos theta_i cos theta_s / |s - x|^2`` (times L_S dA_s).
+where theta is the angle between the ray and the axis, times k_D: the radial profile
+``1 - (1 - e) rho^2`` or the sensitivity map (:func:`field_map_value`). Source: a disc of radius R_S
+at distance D_S along w_i, facing the sample centre; a sample point ``x`` receives from a source
+point ``s`` the geometric factor ``cos theta_i cos theta_s / |s - x|^2`` times the source's relative
+radiance ``L / L_0`` at ``s`` in that direction (:func:`source_radiance_factor`: 1 for the uniform
+Lambertian disc; the profiles of :mod:`roadgonio.instrument.profiles`), times L_0 dA_s.
 """
 from __future__ import annotations
 
@@ -28,6 +31,7 @@ import numpy as np
 
 from roadgonio.errors import GeometryError
 from roadgonio.instrument.config import Detector, Instrument, Observation
+from roadgonio.instrument.profiles import ApertureProfile, BeamProfile, FieldMap, UniformTable
 
 
 def orthonormal_frame(n) -> tuple[np.ndarray, np.ndarray]:
@@ -69,6 +73,10 @@ class DetectorGeometry:
     focus_m: float           # math.inf = angular field
     tan_field: float         # tan(gamma_D)
     kd_edge: float = 1.0     # k_D at the field-stop edge (1 = uniform field sensitivity)
+    kd_map: FieldMap | None = None   # k_D as a map over the field stop (exclusive with kd_edge)
+    #: field-disc coordinates (along s, t) -> map coordinates (x right, y up as the meter looks):
+    #: x = m[0] f_s + m[1] f_t, y = m[2] f_s + m[3] f_t
+    map_axes: tuple = (-1.0, 0.0, 0.0, 1.0)
 
     @property
     def angular(self) -> bool:
@@ -85,6 +93,12 @@ class SourceGeometry:
     t: np.ndarray
     radius_m: float
     cos_beam: float | None   # cos of the beam half-angle; None: no beam limit
+    beam: BeamProfile = BeamProfile()              # angular profile P(theta) of the radiance
+    aperture: ApertureProfile = ApertureProfile()  # profile A(rho) of the radiance over the aperture
+
+    @property
+    def profiled(self) -> bool:
+        return not (self.beam.uniform and self.aperture.uniform)
 
 
 def detector_geometry(instrument: Instrument) -> DetectorGeometry:
@@ -98,10 +112,15 @@ def meter_geometry(observation: Observation, detector: Detector) -> DetectorGeom
     w_o = observation.w_o
     axis = -w_o
     s, t = orthonormal_frame(axis)
+    # the map's axes: x horizontal to the right as the meter looks along its axis, y up
+    d = math.radians(observation.delta_deg)
+    right = np.array([-math.sin(d), math.cos(d), 0.0])
+    up = np.cross(right, axis)
     return DetectorGeometry(centre=detector.distance_m * w_o, axis=axis, s=s, t=t,
                             pupil_radius_m=detector.pupil_radius_m, focus_m=detector.focus_distance_m,
                             tan_field=math.tan(math.radians(detector.field_half_angle_deg)),
-                            kd_edge=float(detector.field_edge_sensitivity))
+                            kd_edge=float(detector.field_edge_sensitivity), kd_map=detector.field_map,
+                            map_axes=(float(s @ right), float(t @ right), float(s @ up), float(t @ up)))
 
 
 def source_geometry(instrument: Instrument, tan_eps: float, beta_deg: float) -> SourceGeometry:
@@ -111,7 +130,7 @@ def source_geometry(instrument: Instrument, tan_eps: float, beta_deg: float) -> 
     s, t = orthonormal_frame(axis)
     cos_beam = None if src.beam_half_angle_deg is None else math.cos(math.radians(src.beam_half_angle_deg))
     return SourceGeometry(centre=src.distance_m * w_i, axis=axis, s=s, t=t, radius_m=src.radius_m,
-                          cos_beam=cos_beam)
+                          cos_beam=cos_beam, beam=src.beam, aperture=src.aperture)
 
 
 def _comb(c0, v1, k1, v2, k2):
@@ -150,6 +169,9 @@ def detector_ray(xp, geo: DetectorGeometry, pupil_xy, field_xy):
     if geo.kd_edge != 1.0:
         # field sensitivity k_D(rho) = 1 - (1 - e) rho^2 (paper eq. 3; Detector docstring)
         weight = weight * (1.0 - (1.0 - geo.kd_edge) * (fx * fx + fy * fy))
+    if geo.kd_map is not None:
+        # field sensitivity k_D(x_D, y_D) from the map (paper eq. 3)
+        weight = weight * field_map_value(xp, geo, fx, fy)
     inv = 1.0 / length
     direction = (d[0] * inv, d[1] * inv, d[2] * inv)
     return origin, direction, weight
@@ -169,10 +191,12 @@ def source_point(src: SourceGeometry, disc_xy):
     return _comb(src.centre, src.s, src.radius_m * dx, src.t, src.radius_m * dy)
 
 
-def source_coupling(xp, src: SourceGeometry, x, y, spoint):
+def source_coupling(xp, src: SourceGeometry, x, y, spoint, disc_xy=None):
     """From sample point (x, y, 0) to source point ``spoint``: the unit direction ``w`` towards the
-    source and the geometric factor ``G = cos theta_i cos theta_s / |s - x|^2`` (0 outside the beam
-    or below the horizon)."""
+    source and the geometric factor ``G = cos theta_i cos theta_s / |s - x|^2`` times the source's
+    relative radiance at ``spoint`` in that direction (:func:`source_radiance_factor`; the source
+    point's unit-disc coordinates ``disc_xy`` are needed for an aperture profile); 0 outside the
+    beam or below the horizon."""
     vx, vy, vz = spoint[0] - x, spoint[1] - y, spoint[2] + 0.0 * x
     d2 = vx * vx + vy * vy + vz * vz
     inv = 1.0 / xp.sqrt(d2)
@@ -182,8 +206,99 @@ def source_coupling(xp, src: SourceGeometry, x, y, spoint):
     ok = (cos_i > 0.0) & (cos_s > 0.0)
     if src.cos_beam is not None:
         ok = ok & (cos_s >= src.cos_beam)
-    g = xp.where(ok, cos_i * cos_s / d2, 0.0 * d2)
+    g = cos_i * cos_s / d2
+    factor = source_radiance_factor(xp, src.beam, src.aperture, w, src.axis, disc_xy)
+    if factor is not None:
+        g = g * factor
+    g = xp.where(ok, g, 0.0 * d2)
     return w, g
+
+
+def table_value(xp, table: UniformTable, x):
+    """The tabulated function at ``x``: linear interpolation between the samples of the uniform
+    grid (:class:`roadgonio.instrument.profiles.UniformTable`), ``x`` clamped to the grid. The
+    table's ``values`` are a numpy array for numpy and a Dr.Jit array inside a kernel."""
+    last = table.n - 1.0
+    t = xp.minimum(xp.maximum((x - table.x0) * (1.0 / table.step), 0.0), last)
+    k = xp.minimum(xp.floor(t), last - 1.0)
+    frac = t - k
+    v0 = xp.take(table.values, k)
+    v1 = xp.take(table.values, k + 1.0)
+    return v0 + frac * (v1 - v0)
+
+
+def source_radiance_factor(xp, beam: BeamProfile, aperture: ApertureProfile, w, axis, disc_xy=None):
+    """``L(s, theta) / L_0 = A(rho) P(theta)``: the relative radiance of the source point with
+    unit-disc coordinates ``disc_xy`` (rho^2 = x^2 + y^2) in the emission direction ``-w`` (``w``:
+    unit vector from the lit point towards the source point; ``axis``: the source's unit emission
+    axis); docs/conventions.md section 4, :mod:`roadgonio.instrument.profiles`. ``None`` for the
+    uniform Lambertian disc (factor 1, so the uniform source costs nothing and stays bit for bit).
+
+    The emission angle is formed without cancellation near the axis (float32 kernels): its sine
+    from the cross product ``|w x axis|`` and the half chord ``h = |w + axis|^2 / 2 = 1 - cos theta``
+    (the half-chord form of :mod:`roadgonio.surface.model`: ``cos^n = exp(n log(1 - h))``).
+    A tabulated profile is 0 beyond its last angle (a cell that needs it there is refused by
+    :func:`check_source`)."""
+    factor = None
+    if not beam.uniform:
+        if beam.kind == "cos_power":
+            hx, hy, hz = w[0] + axis[0], w[1] + axis[1], w[2] + axis[2]
+            h = xp.minimum(0.5 * (hx * hx + hy * hy + hz * hz), 1.0)
+            factor = xp.exp(beam.power * xp.log1m(h))
+        else:
+            cx = w[1] * axis[2] - w[2] * axis[1]
+            cy = w[2] * axis[0] - w[0] * axis[2]
+            cz = w[0] * axis[1] - w[1] * axis[0]
+            sin_t = xp.sqrt(cx * cx + cy * cy + cz * cz)
+            cos_t = -(w[0] * axis[0] + w[1] * axis[1] + w[2] * axis[2])
+            theta = xp.atan2(sin_t, cos_t)
+            if beam.kind == "gaussian":
+                u = theta * (1.0 / beam.sigma_rad)
+                factor = xp.exp(-0.5 * (u * u))
+            elif beam.kind == "table":
+                factor = xp.where(theta <= beam.theta_end_rad, table_value(xp, beam.table, theta), 0.0 * theta)
+            else:
+                raise ValueError(f"unknown angular profile {beam.kind!r}")
+    if not aperture.uniform:
+        if disc_xy is None:
+            raise ValueError("an aperture profile needs the source point's disc coordinates (disc_xy)")
+        rho2 = disc_xy[0] * disc_xy[0] + disc_xy[1] * disc_xy[1]
+        if aperture.kind == "quadratic":
+            a = 1.0 - (1.0 - aperture.edge) * rho2
+        elif aperture.kind == "table":
+            a = table_value(xp, aperture.table, xp.sqrt(rho2))
+        else:
+            raise ValueError(f"unknown aperture profile {aperture.kind!r}")
+        factor = a if factor is None else factor * a
+    return factor
+
+
+def map_bilinear(xp, fmap: FieldMap, mx, my):
+    """The sensitivity map at map coordinates (mx, my) in [-1, 1]^2 (x right, y up): bilinear
+    between the pixel centres (row 0 at the top), the border values extended to the edges.
+    Written as nested lerps, so a uniform map gives its value exactly."""
+    nx, ny = float(fmap.nx), float(fmap.ny)
+    u = xp.minimum(xp.maximum((mx + 1.0) * (0.5 * nx) - 0.5, 0.0), nx - 1.0)     # column
+    v = xp.minimum(xp.maximum((1.0 - my) * (0.5 * ny) - 0.5, 0.0), ny - 1.0)     # row from the top
+    i = xp.minimum(xp.floor(u), nx - 2.0)
+    j = xp.minimum(xp.floor(v), ny - 2.0)
+    a = u - i
+    b = v - j
+    k = j * nx + i
+    v00 = xp.take(fmap.flat, k)
+    v01 = xp.take(fmap.flat, k + 1.0)
+    v10 = xp.take(fmap.flat, k + nx)
+    v11 = xp.take(fmap.flat, k + (nx + 1.0))
+    top = v00 + a * (v01 - v00)
+    bottom = v10 + a * (v11 - v10)
+    return top + b * (bottom - top)
+
+
+def field_map_value(xp, geo: DetectorGeometry, fx, fy):
+    """k_D of the sensitivity map at the field-disc point (fx, fy) (unit disc along the meter's s, t
+    axes; :mod:`roadgonio.instrument.profiles` for the map's orientation)."""
+    m = geo.map_axes
+    return map_bilinear(xp, geo.kd_map, m[0] * fx + m[1] * fy, m[2] * fx + m[3] * fy)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -242,6 +357,27 @@ def check_source(instrument: Instrument, tan_eps: float, beta_deg: float) -> Non
         raise GeometryError(f"the source is below the horizon at tan eps = {tan_eps:g}, beta = {beta_deg:g}: "
                             f"its disc (radius {src.radius_m:g} m at {src.distance_m:g} m) reaches "
                             f"{lowest:.4f} m below/at the sample plane")
+    if src.beam.kind == "table":
+        need = footprint_emission_angle_deg(instrument, tan_eps, beta_deg)
+        have = math.degrees(src.beam.theta_end_rad)
+        if need > have:
+            raise GeometryError(f"the source's intensity table ({src.beam_intensity_file}) ends at theta = "
+                                f"{have:.4g} deg, but the detector footprint is seen at up to {need:.4g} deg from "
+                                f"the source axis at tan eps = {tan_eps:g}, beta = {beta_deg:g}: extend the table")
+
+
+def footprint_emission_angle_deg(instrument: Instrument, tan_eps: float, beta_deg: float, n: int = 32) -> float:
+    """The largest angle (deg) from the source axis at which the source sends light to the detector
+    footprint at this cell: over the rays from the disc's rim points and centre to the footprint
+    boundary (:func:`footprint_boundary`)."""
+    g = source_geometry(instrument, tan_eps, beta_deg)
+    x, y = footprint_boundary(instrument)
+    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    sp = g.centre[None, :] + g.radius_m * (np.cos(ang)[:, None] * g.s + np.sin(ang)[:, None] * g.t)
+    pts = np.stack([x, y, np.zeros_like(x)], axis=-1)
+    d = pts[None, :, :] - np.concatenate([sp, g.centre[None, :]])[:, None, :]
+    cosang = (d @ g.axis) / np.linalg.norm(d, axis=-1)
+    return math.degrees(math.acos(min(1.0, max(-1.0, float(cosang.min())))))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -413,14 +549,7 @@ def beam_clips_footprint(instrument: Instrument, tan_eps: float, beta_deg: float
     src = instrument.source
     if src.beam_half_angle_deg is None:
         return False
-    g = source_geometry(instrument, tan_eps, beta_deg)
-    x, y = footprint_boundary(instrument)
-    ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    sp = g.centre[None, :] + g.radius_m * (np.cos(ang)[:, None] * g.s + np.sin(ang)[:, None] * g.t)
-    pts = np.stack([x, y, np.zeros_like(x)], axis=-1)
-    d = pts[None, :, :] - np.concatenate([sp, g.centre[None, :]])[:, None, :]
-    cosang = (d @ g.axis) / np.linalg.norm(d, axis=-1)
-    return bool(float(cosang.min()) < g.cos_beam)
+    return footprint_emission_angle_deg(instrument, tan_eps, beta_deg, n) > src.beam_half_angle_deg
 
 
 def hit_check_points(n_random: int = 1 << 16, n_rim: int = 128, seed: int = 7) -> tuple[np.ndarray, np.ndarray]:

@@ -109,6 +109,7 @@ class BatchEngine:
         src = rs.instrument.source
         self.emitter, self._emitter_shape = canonical_source(src.radius_m, source_radiance(rs.instrument))
         self.integrator.set_source(self.emitter, self._emitter_shape)
+        self.integrator.set_profile(src)
         self.threads = int(dr.thread_count()) if hasattr(dr, "thread_count") else 1
 
     def can_occlude(self) -> bool:

@@ -4,7 +4,15 @@ the sample around the detector footprint; OpenEXR (float32) and PNG (colour bar,
 outline).
 
 Units follow :mod:`roadgonio.engines.mitsuba.scene`: the source gives ~1 lx normal to its axis at the
-sample centre, so the illuminance is in lx per lx and luminances in cd/m^2 per lx.
+sample centre, so the illuminance is in lx per lx and luminances in cd/m^2 per lx (a source with a
+beam profile: its on-axis radiance is the uniform disc's, so its illuminance is lower where the
+profile is below 1).
+
+A source with a beam profile (docs/conventions.md section 4.1) is rendered with the k_A engine's
+``kabatch`` integrator for this one cell (:class:`~roadgonio.engines.mitsuba.engine.BatchEngine`:
+the scene's uniform disc moved out of the way, the cell's source sampled with its profile), so all
+three pictures and the k_A estimate include the profile; a uniform source with Mitsuba's ``direct``
+integrator and the scene's own disc (the two are the same physics: tests/plugin/test_engine.py).
 """
 from __future__ import annotations
 
@@ -34,8 +42,11 @@ def _ortho_sensor(mi, x0, x1, y0, y1, nx, ny, spp, z_top=0.0):
     scene above the sample do not hide it."""
     cx, cy = 0.5 * (x0 + x1), 0.5 * (y0 + y1)
     sx, sy = 0.5 * (x1 - x0), 0.5 * (y1 - y0)
-    # camera frame: looks along -z; film x -> world +x, film y (down) -> world -y
-    m = np.array([[-sx, 0, 0, cx], [0, sy, 0, cy], [0, 0, -1.0, 10.0], [0, 0, 0, 1]])
+    # camera frame: looks along -z; film x -> world +x, film y (down) -> world -y. Mitsuba's
+    # orthographic camera spans [-1, 1] across the film's width and [-1, 1] / aspect across its
+    # height (aspect = nx / ny), so the y scale carries the aspect: the film then covers y0 ... y1
+    # (it covered a band 1/aspect as tall, drawn and recorded as y0 ... y1)
+    m = np.array([[-sx, 0, 0, cx], [0, sy * nx / ny, 0, cy], [0, 0, -1.0, 10.0], [0, 0, 0, 1]])
     return mi.load_dict({"type": "orthographic", "to_world": mi.ScalarTransform4f(m.tolist()),
                          "near_clip": 10.0 - (z_top + 1e-3), "far_clip": 20.0,
                          "film": {"type": "hdrfilm", "width": nx, "height": ny, "rfilter": {"type": "box"},
@@ -50,7 +61,15 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     out_dir = Path(out_dir)
     rs = build_scene(instrument, model, resolution=resolution, mitsuba_variant=mitsuba_variant, sampler="multijitter")
     import mitsuba as mi
-    rs.place_source(tan_eps, beta_deg)
+    if instrument.source.profiled:
+        from roadgonio.engines.mitsuba.engine import BatchEngine, source_frames
+        engine = BatchEngine(rs)                 # the profiled source of the cell, lit by the kabatch integrator
+        engine.check_cells([(tan_eps, beta_deg)])
+        engine.integrator.set_cells(source_frames(instrument, [(tan_eps, beta_deg)]))
+        rs.integrator = engine.integrator        # its cell 0
+        rs.cell = (float(tan_eps), float(beta_deg))
+    else:
+        rs.place_source(tan_eps, beta_deg)
     # the signal (concentric film) and its k_A estimate
     from roadgonio.engines.result import ideal_ratio
     from roadgonio.engines.mitsuba.backend import pooled_ratio
@@ -84,6 +103,7 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     from roadgonio.provenance import provenance
     info = {**provenance(instrument=instrument, model=model, backend="mitsuba",
                          settings={"resolution": resolution, "spp": spp, "seed": seed, "sampler": "multijitter",
+                                   "integrator": "kabatch (beam profile)" if instrument.source.profiled else "direct",
                                    "mitsuba_variant": mi.variant(), "illuminance_resolution": [nx, ny],
                                    "illuminance_spp": 16}),
             "sample": sample_name, "tan_eps": tan_eps, "beta_deg": beta_deg,

@@ -31,10 +31,17 @@ class DrJitOps:
     abs = staticmethod(dr.abs)
     maximum = staticmethod(dr.maximum)
     minimum = staticmethod(dr.minimum)
+    floor = staticmethod(dr.floor)
 
     @staticmethod
     def where(cond, a, b):
         return dr.select(cond, a, b)
+
+    @staticmethod
+    def take(table, index):
+        """``table[index]`` for a Float array ``index`` of whole numbers within the table: a gather
+        from the Dr.Jit array ``table`` (same type as ``index``)."""
+        return dr.gather(type(index), table, dr.uint32_array_t(type(index))(index))
 
     @staticmethod
     def log1m(h):

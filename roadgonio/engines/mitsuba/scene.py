@@ -24,6 +24,7 @@ loaded with ``mi.load_file`` and these parameters (usable as ``$name`` in the XM
 
     alpha_deg delta_deg source_distance_m source_radius_m source_radiance detector_distance_m
     pupil_radius_m field_half_angle_deg focus_m (inf = angular field) field_edge_sensitivity sample_size_x_m sample_size_y_m
+    field_sensitivity (only when the detector has a sensitivity map: its file)
     sample_half_x_m sample_half_y_m
 
 plus every key of an optional ``[scene.params]`` table (e.g. ``rim_height_m = 0.05``). The XML
@@ -70,7 +71,7 @@ ROAD, LAMBERT = 0, 1
 _XML_PARAM_KEYS = ("alpha_deg", "delta_deg", "source_distance_m", "source_radius_m", "source_radiance",
                    "sample_half_x_m", "sample_half_y_m",
                    "detector_distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m",
-                   "field_edge_sensitivity", "sample_size_x_m", "sample_size_y_m")
+                   "field_edge_sensitivity", "field_sensitivity", "sample_size_x_m", "sample_size_y_m")
 
 
 def _mi():
@@ -85,12 +86,16 @@ def film_dict(resolution: int, spp: int, sampler: str = "independent") -> tuple[
 
 
 def detector_props(observation: Observation, detector: Detector) -> dict[str, Any]:
-    """Properties of the ``lummeter`` sensor for this meter (focus at infinity passes as ``math.inf``)."""
-    return {"alpha_deg": float(observation.alpha_deg), "delta_deg": float(observation.delta_deg),
-            "distance_m": float(detector.distance_m), "pupil_radius_m": float(detector.pupil_radius_m),
-            "field_half_angle_deg": float(detector.field_half_angle_deg),
-            "focus_m": float(detector.focus_distance_m),
-            "field_edge_sensitivity": float(detector.field_edge_sensitivity)}
+    """Properties of the ``lummeter`` sensor for this meter (focus at infinity passes as ``math.inf``;
+    a sensitivity map as its file name)."""
+    props = {"alpha_deg": float(observation.alpha_deg), "delta_deg": float(observation.delta_deg),
+             "distance_m": float(detector.distance_m), "pupil_radius_m": float(detector.pupil_radius_m),
+             "field_half_angle_deg": float(detector.field_half_angle_deg),
+             "focus_m": float(detector.focus_distance_m),
+             "field_edge_sensitivity": float(detector.field_edge_sensitivity)}
+    if detector.field_sensitivity is not None:
+        props["field_sensitivity"] = str(detector.field_sensitivity)
+    return props
 
 
 def source_radiance(instrument: Instrument) -> float:
@@ -294,6 +299,8 @@ def xml_parameters(instrument: Instrument, scene_sec) -> dict[str, str]:
          "field_edge_sensitivity": det.field_edge_sensitivity,
          "sample_size_x_m": smp.size_x_m or 0.0, "sample_size_y_m": smp.size_y_m or 0.0,
          "sample_half_x_m": 0.5 * (smp.size_x_m or 0.0), "sample_half_y_m": 0.5 * (smp.size_y_m or 0.0)}
+    if det.field_sensitivity is not None:
+        p["field_sensitivity"] = str(det.field_sensitivity)
     extra = scene_sec.get("params", {})
     if not isinstance(extra, dict):
         raise InputError("expected a table [scene.params]", path=instrument.path, field="scene.params")
@@ -369,11 +376,16 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
                          f"{instrument.source.radius_m:g} m", path=path)
     want = detector_props(instrument.observation, instrument.detector)
     got = detector_props(sensor.observation, sensor.detector)
-    bad = [k for k in want if not (want[k] == got[k] or
-                                   math.isclose(float(want[k]), float(got[k]), rel_tol=1e-6, abs_tol=1e-12))]
+
+    def same(k):
+        a, b = want.get(k), got.get(k)
+        if isinstance(a, str) or isinstance(b, str) or a is None or b is None:
+            return a == b
+        return a == b or math.isclose(float(a), float(b), rel_tol=1e-6, abs_tol=1e-12)
+    bad = [k for k in sorted(set(want) | set(got)) if not same(k)]
     if bad:
         raise InputError("the XML detector differs from the instrument file in " +
-                         ", ".join(f"{k} ({got[k]:g} vs {want[k]:g})" for k in bad) +
+                         ", ".join(f"{k} ({got.get(k, 'none')} vs {want.get(k, 'none')})" for k in bad) +
                          "; use the $parameters (e.g. value=\"$alpha_deg\")", path=path)
     film = sensor.film()
     if tuple(film.size()) != (resolution, resolution):

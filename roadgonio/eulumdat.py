@@ -1,0 +1,167 @@
+"""EULUMDAT (.ldt) intensity tables I(C, gamma): the one reader of the package (base room, so the
+instrument's source profile and the road luminaires read their files the same way).
+
+Parsing is done by the ``eulumdat-py`` library (import name ``pyldt``, MIT, pure Python, PyPI;
+it expands the file's symmetry ISYM 0-4 to the full C range). Other candidates were looked at:
+``eulumdat`` (Rust bindings) has no wheel for this platform and needs a Rust toolchain to build,
+``luxpy`` is a large colour-science package with many dependencies. This module adds what a
+calculation needs on top of the parser: checks with one-line errors naming the file and the field
+(the library turns missing numbers into 0 and short files into short lists), absolute intensities,
+and interpolation.
+
+Conventions (EN 13201-3:2015 clause 6, EULUMDAT): gamma from the downward vertical of the
+luminaire (for an instrument's source: from its axis), C the azimuth. Absolute intensity = file
+value (cd per 1000 lm of lamp flux) x flux of the first lamp set / 1000 x the file's conversion
+factor.
+
+Interpolation in the I-table (EN 13201-3:2015 clause 5.3.2): linear in C and in gamma (bilinear),
+C periodic over 360 deg. Outside the file's gamma range the intensity is unknown (NaN): a
+calculation that needs it says so.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from roadgonio.errors import InputError
+
+_trapezoid = getattr(np, "trapezoid", None) or np.trapz
+
+
+@dataclass(frozen=True)
+class Luminaire:
+    """An intensity table: ``cd_per_klm[i, j]`` at C = ``c_deg[i]``, gamma = ``g_deg[j]``."""
+
+    c_deg: np.ndarray
+    g_deg: np.ndarray
+    cd_per_klm: np.ndarray
+    flux_lm: float
+    conversion: float = 1.0
+    name: str = "luminaire"
+    source: str = ""
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        c = np.asarray(self.c_deg, dtype=np.float64)
+        g = np.asarray(self.g_deg, dtype=np.float64)
+        i = np.asarray(self.cd_per_klm, dtype=np.float64)
+        object.__setattr__(self, "c_deg", c)
+        object.__setattr__(self, "g_deg", g)
+        object.__setattr__(self, "cd_per_klm", i)
+        where = self.source or self.name
+        if i.shape != (len(c), len(g)):
+            raise InputError(f"intensity table has shape {i.shape}, expected {(len(c), len(g))} (C x gamma)",
+                             path=where, field="intensities")
+        if len(g) < 2 or np.any(np.diff(g) <= 0) or g[0] < 0 or g[-1] > 180:
+            raise InputError("gamma angles must increase within 0 ... 180 deg (at least two)", path=where,
+                             field="gamma angles")
+        if len(c) < 1 or np.any(np.diff(c) <= 0) or c[0] < 0 or c[-1] >= 360:
+            raise InputError("C angles must increase within 0 ... 360 deg", path=where, field="C angles")
+        if not np.all(np.isfinite(i)) or np.any(i < 0):
+            raise InputError("intensities must be finite and >= 0", path=where, field="intensities")
+        if not (np.isfinite(self.flux_lm) and self.flux_lm > 0):
+            raise InputError(f"lamp flux must be > 0 lm, got {self.flux_lm:g}", path=where, field="lamp flux")
+        if not (np.isfinite(self.conversion) and self.conversion > 0):
+            raise InputError(f"conversion factor must be > 0, got {self.conversion:g}", path=where,
+                             field="conversion factor")
+
+    @property
+    def scale_cd(self) -> float:
+        """cd per file unit: flux / 1000 x conversion factor."""
+        return self.flux_lm / 1000.0 * self.conversion
+
+    @property
+    def gamma_max_deg(self) -> float:
+        return float(self.g_deg[-1])
+
+    def intensity(self, c_deg, g_deg) -> np.ndarray:
+        """Absolute intensity (cd) by bilinear interpolation; NaN outside the gamma range."""
+        return self.scale_cd * self.interpolate(c_deg, g_deg)
+
+    def interpolate(self, c_deg, g_deg) -> np.ndarray:
+        """File-unit intensity (cd/klm) by bilinear interpolation (C periodic); NaN outside gamma."""
+        c = np.mod(np.asarray(c_deg, dtype=np.float64), 360.0)
+        g = np.asarray(g_deg, dtype=np.float64)
+        c, g = np.broadcast_arrays(c, g)
+        if len(self.c_deg) == 1:  # rotationally symmetric
+            cg, table = np.array([0.0, 360.0]), np.vstack([self.cd_per_klm, self.cd_per_klm])
+        else:
+            cg = np.append(self.c_deg, self.c_deg[0] + 360.0)
+            table = np.vstack([self.cd_per_klm, self.cd_per_klm[:1]])
+            c = np.where(c < cg[0], c + 360.0, c)
+        i = np.clip(np.searchsorted(cg, c, side="right") - 1, 0, len(cg) - 2)
+        tc = (c - cg[i]) / (cg[i + 1] - cg[i])
+        gg = self.g_deg
+        inside = (g >= gg[0] - 1e-9) & (g <= gg[-1] + 1e-9)
+        gcl = np.clip(g, gg[0], gg[-1])
+        j = np.clip(np.searchsorted(gg, gcl, side="right") - 1, 0, len(gg) - 2)
+        tg = (gcl - gg[j]) / (gg[j + 1] - gg[j])
+        v = ((1 - tc) * (1 - tg) * table[i, j] + tc * (1 - tg) * table[i + 1, j]
+             + (1 - tc) * tg * table[i, j + 1] + tc * tg * table[i + 1, j + 1])
+        return np.where(inside, v, np.nan)
+
+    def flux_from_table(self) -> float:
+        """Luminaire flux (lm) integrated from the table (trapezoidal in gamma, C periodic)."""
+        g = np.radians(self.g_deg)
+        if len(self.c_deg) == 1:
+            dc = np.array([2 * np.pi])
+        else:
+            cg = np.radians(np.append(self.c_deg, self.c_deg[0] + 360.0))
+            dc = 0.5 * (np.diff(cg) + np.roll(np.diff(cg), 1))
+        per_plane = _trapezoid(self.cd_per_klm * np.sin(g)[None, :], g, axis=1)
+        return float(np.sum(per_plane * dc) * self.scale_cd)
+
+
+def read_ldt(path: str | Path) -> Luminaire:
+    """Read an EULUMDAT file through ``pyldt`` (eulumdat-py) and check it."""
+    from pyldt import LdtReader
+
+    path = Path(path)
+    if not path.exists():
+        raise InputError("no such luminaire file (expected an EULUMDAT .ldt file)", path=path)
+    try:
+        ldt = LdtReader.read(path)
+    except (ValueError, IndexError, ZeroDivisionError) as err:
+        raise InputError(f"not a readable EULUMDAT file ({err})", path=path) from None
+    except OSError as err:
+        raise InputError(f"cannot read the luminaire file ({err.strerror or err})", path=path) from None
+    h = ldt.header
+    if h.isym not in (0, 1, 2, 3, 4):
+        raise InputError(f"symmetry indicator Isym must be 0 ... 4, got {h.isym}", path=path, field="Isym (line 3)")
+    if h.mc < 1 or h.ng < 2:
+        raise InputError(f"expected Mc >= 1 C planes and Ng >= 2 gamma angles, got Mc = {h.mc}, Ng = {h.ng}",
+                         path=path, field="Mc/Ng (lines 4, 6)")
+    if h.isym in (2, 3) and h.mc % 2 or h.isym == 4 and h.mc % 4:
+        raise InputError(f"Mc = {h.mc} does not fit symmetry Isym = {h.isym}", path=path, field="Mc (line 4)")
+    if len(h.c_angles) != h.mc or len(h.g_angles) != h.ng:
+        raise InputError(f"file ends early: expected {h.mc} C angles and {h.ng} gamma angles", path=path,
+                         field="angles")
+    rows = ldt.intensities
+    if len(rows) != h.mc or any(len(r) != h.ng for r in rows):
+        raise InputError(f"file ends early: expected the intensities of {h.mc} x {h.ng} (C x gamma) after "
+                         "symmetry expansion", path=path, field="intensities")
+    if h.n_sets < 1 or not h.lamp_flux:
+        raise InputError("no lamp set: expected at least one set with its luminous flux", path=path,
+                         field="number of lamp sets (line 26)")
+    flux = float(h.lamp_flux[0])
+    conv = float(h.conv_factor) if h.conv_factor else 1.0
+    c = np.asarray(h.c_angles, dtype=np.float64)
+    i = np.asarray(rows, dtype=np.float64)
+    if h.mc > 1 and np.allclose(c, 0.0):  # some writers leave the C list at 0 for Isym 1; rebuild it
+        c = np.arange(h.mc) * 360.0 / h.mc
+    order = np.argsort(np.mod(c, 360.0), kind="stable")
+    c = np.mod(c, 360.0)[order]
+    i = i[order]
+    if h.isym == 1:
+        c, i = c[:1] * 0.0, i[:1]
+    name = (h.luminaire_name or path.stem).strip()
+    meta = {"file": str(path), "isym": h.isym, "mc": h.mc, "ng": h.ng, "lamp_flux_lm": flux,
+            "conversion_factor": conv, "lorl_pct": h.lorl, "luminaire_number": h.luminaire_number,
+            "parser": "eulumdat-py (pyldt)"}
+    try:
+        return Luminaire(c, np.asarray(h.g_angles, dtype=np.float64), i, flux, conv, name=name,
+                         source=str(path), meta=meta)
+    except InputError as err:
+        raise InputError(err.reason, path=path, field=err.field) from None

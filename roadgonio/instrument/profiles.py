@@ -1,0 +1,344 @@
+"""Profiles of the instrument beyond the uniform discs (docs/conventions.md section 4; the E(x_E, y_E)
+and k_D(x_D, y_D) of paper eq. 3): the source's radiance over its exit aperture and with the emission
+angle, and the detector's sensitivity map over its field stop.
+
+This module holds the profiles as data (frozen, float64, read-only) and reads the files that give
+them; the formulas that evaluate them are written once in :mod:`roadgonio.instrument.optics`
+(:func:`~roadgonio.instrument.optics.source_radiance_factor`,
+:func:`~roadgonio.instrument.optics.field_map_value`), over the array namespace, so the numpy
+integrators and the Mitsuba plugins evaluate the same code.
+
+**The source.** Its radiance at a point s of the exit aperture (``rho`` = |s - centre| / R_S) in an
+emission direction at the angle ``theta`` from the source axis is
+
+    L(s, theta) = L_0 * A(rho) * P(theta)
+
+(the uniform Lambertian disc: A = P = 1). The intensity of an element of the aperture is then
+``dI = L dA cos theta``, so its relative intensity distribution is ``i(theta) = P(theta) cos theta``.
+
+* ``A``: ``1 - (1 - e) rho^2`` with ``e = aperture_edge_radiance`` (the form of the detector's
+  ``field_edge_sensitivity``), or a table ``rho, relative_radiance`` (CSV, rho from 0 to 1).
+* ``P``: ``exp(-theta^2 / (2 sigma^2))`` (``beam_sigma_deg``: a Gaussian in radiance, so a wide one
+  is the uniform disc), ``cos^n theta`` (``beam_cos_power``: radiance, so the element's intensity is
+  ``cos^(n+1)``, the "generalised Lambertian" cos^m LED model with m = n + 1), or a tabulated
+  intensity distribution ``I(theta)`` (``beam_intensity_file``: EULUMDAT .ldt, rotationally
+  symmetric, gamma = theta, or a CSV ``theta_deg, I``), for which ``P = I(theta) / (I(0) cos theta)``.
+
+**Tables.** A table read from a file is interpolated by a cubic spline through its nodes,
+mirrored about 0 (C2, flat at the axis or the aperture's centre as an even profile is; error
+~h^4 |f''''| / 384 for nodes h apart: 1e-8 for a cos^6 beam tabulated every 0.5 deg), set to 0
+where it would dip below, and sampled once, in float64, on a uniform grid (:data:`ANGLE_STEP_DEG`,
+:data:`RHO_STEP`): the shared formula interpolates linearly between those samples
+(:class:`UniformTable`), which differs from the spline by at most step^2 / 8 max|f''| (1.5e-8
+max|P''| for angles in radians). Linear interpolation on a fine uniform grid costs a kernel two
+gathers and no search, and keeps the integrand smooth to that level (the quadrature and the
+reference converge as for a smooth profile). A table is read as a smooth function: a kink or a
+cut-off in it rings over about one node spacing (give nodes densely there).
+
+A tabulated intensity distribution covers the emission angles of its file only (at most
+:data:`THETA_END_MAX_DEG`); beyond them it is unknown, and a cell whose detector footprint is seen
+at larger angles from the source is refused (:func:`roadgonio.instrument.optics.check_source`).
+
+**The detector's sensitivity map** (``field_sensitivity``): relative sensitivity k_D over the field
+stop, a grid of values like an image of the field as the meter sees it: rows from the top
+(y = +1) down, columns from the left (x = -1) to the right, at the pixel centres of the square
+[-1, 1]^2 that circumscribes the field stop (x, y in units of the field-stop radius; x horizontal,
+to the right as the meter looks at the sample, y up). A CSV of numbers, or a greyscale image
+(PNG, TIFF: 8 or 16 bit, or 32-bit float). Bilinear between the pixel centres, the border values
+extended to the edges. The map is divided by its largest value (only relative sensitivities
+matter), so a uniform map is exactly 1 everywhere: the same instrument as no map.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from roadgonio.errors import InputError
+
+#: Grid step (deg) of a tabulated intensity distribution, as the formulas evaluate it.
+ANGLE_STEP_DEG = 0.01
+#: Grid step (fraction of the aperture radius) of a tabulated aperture radiance.
+RHO_STEP = 1e-3
+#: Emission angles beyond this (deg) are never tabulated: P = I / (I(0) cos theta) grows without
+#: bound towards 90 deg (and no footprint of a source that faces the sample is seen there).
+THETA_END_MAX_DEG = 89.0
+#: Largest sensitivity map accepted (values): a map finer than this is no more accurate.
+MAP_MAX_VALUES = 4096 * 4096
+
+
+def file_digest(path: str | Path) -> str:
+    """sha256 of a file's content (the identity of a table: same path, new content = new instrument)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+@dataclass(frozen=True, eq=False)
+class UniformTable:
+    """Samples ``values[k]`` of a function at ``x0 + k step`` (k = 0 ... n-1), float64, read-only;
+    evaluated by :func:`roadgonio.instrument.optics.table_value` (linear between samples, clamped to
+    the grid)."""
+
+    values: np.ndarray
+    x0: float
+    step: float
+
+    def __post_init__(self):
+        v = np.array(self.values, dtype=np.float64)
+        if v.ndim != 1 or v.size < 2:
+            raise ValueError("a uniform table needs at least two values")
+        v.setflags(write=False)
+        object.__setattr__(self, "values", v)
+        object.__setattr__(self, "x0", float(self.x0))
+        object.__setattr__(self, "step", float(self.step))
+
+    @property
+    def n(self) -> int:
+        return int(self.values.size)
+
+    @property
+    def x_end(self) -> float:
+        return self.x0 + (self.n - 1) * self.step
+
+
+@dataclass(frozen=True, eq=False)
+class BeamProfile:
+    """The angular factor P(theta) of the source radiance (module docstring): ``kind`` is
+    ``"lambertian"`` (P = 1), ``"gaussian"`` (``sigma_rad``), ``"cos_power"`` (``power``) or
+    ``"table"`` (``table`` over theta in radians, up to ``theta_end_rad``; 0 beyond)."""
+
+    kind: str = "lambertian"
+    sigma_rad: float = math.inf
+    power: float = 0.0
+    table: UniformTable | None = None
+    theta_end_rad: float = 0.5 * math.pi
+
+    @property
+    def uniform(self) -> bool:
+        return self.kind == "lambertian"
+
+
+@dataclass(frozen=True, eq=False)
+class ApertureProfile:
+    """The factor A(rho) of the source radiance over the exit aperture (module docstring): ``kind``
+    is ``"uniform"``, ``"quadratic"`` (``edge``: A = 1 - (1 - edge) rho^2) or ``"table"``
+    (``table`` over rho)."""
+
+    kind: str = "uniform"
+    edge: float = 1.0
+    table: UniformTable | None = None
+
+    @property
+    def uniform(self) -> bool:
+        return self.kind == "uniform"
+
+
+@dataclass(frozen=True, eq=False)
+class FieldMap:
+    """The detector's sensitivity map (module docstring): ``values`` (ny, nx) at the pixel centres
+    of [-1, 1]^2, rows from the top, largest value 1; ``flat`` the same values
+    row by row (what the formula gathers from)."""
+
+    values: np.ndarray
+    source: str = ""
+
+    def __post_init__(self):
+        v = np.array(self.values, dtype=np.float64)
+        v.setflags(write=False)
+        object.__setattr__(self, "values", v)
+        flat = v.ravel().copy()
+        flat.setflags(write=False)
+        object.__setattr__(self, "flat", flat)
+
+    @property
+    def nx(self) -> int:
+        return int(self.values.shape[1])
+
+    @property
+    def ny(self) -> int:
+        return int(self.values.shape[0])
+
+
+# ----------------------------------------------------------------------------------------------
+# Reading
+# ----------------------------------------------------------------------------------------------
+
+def _err(message: str, path, field: str, line: int | None = None) -> InputError:
+    return InputError(message, path=path, line=line, field=field)
+
+
+def _exists(path, field: str) -> Path:
+    if not isinstance(path, (str, Path)) or not str(path):
+        raise InputError(f"expected a file name, got {path!r}", field=field)
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"file {str(p)!r} does not exist", field=field)
+    return p
+
+
+def read_numbers_csv(path: Path, field: str, columns: int | None = None) -> tuple[np.ndarray, list[int]]:
+    """Rows of numbers of a CSV file (``#`` comments and blank lines skipped; a first line that is
+    not numbers is a header): a float64 array (rows, columns) and the file's line number of each row.
+    ``columns`` fixes the number of columns; otherwise every row must have the same number."""
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as err:
+        raise _err(f"cannot read the file ({err})", path, field) from None
+    rows, lines = [], []
+    header_seen = False
+    for no, raw in enumerate(text.splitlines(), start=1):
+        s = raw.split("#", 1)[0].strip()
+        if not s:
+            continue
+        cells = [c.strip() for c in s.split(",")]
+        try:
+            vals = [float(c) for c in cells]
+        except ValueError:
+            if not rows and not header_seen:
+                header_seen = True
+                if columns is not None and len(cells) != columns:
+                    raise _err(f"the header has {len(cells)} columns, expected {columns}", path, field, no) from None
+                continue
+            raise _err(f"expected {columns or 'comma-separated'} numbers, got {s!r}", path, field, no) from None
+        if not all(math.isfinite(v) for v in vals):
+            raise _err(f"expected finite numbers, got {s!r}", path, field, no)
+        want = columns if columns is not None else (len(rows[0]) if rows else len(vals))
+        if len(vals) != want:
+            raise _err(f"expected {want} numbers in a row, got {len(vals)}", path, field, no)
+        rows.append(vals)
+        lines.append(no)
+    if not rows:
+        raise _err("no numbers in the file", path, field)
+    return np.asarray(rows, dtype=np.float64), lines
+
+
+def _spline_grid(x: np.ndarray, y: np.ndarray, step: float, end: float) -> np.ndarray:
+    """The cubic spline through (x, y), x[0] = 0, sampled at 0, step, ..., end (end a multiple of
+    step; module docstring). The nodes are mirrored about 0 first: both profiles are even functions
+    (an intensity rotationally symmetric about the axis, a radiance symmetric about the aperture's
+    centre), so the spline is flat at 0 as the profile is. Values below 0 are set to 0."""
+    from scipy.interpolate import CubicSpline
+    n = int(round(end / step)) + 1
+    grid = np.arange(n) * step
+    grid[-1] = min(grid[-1], x[-1])
+    xs = np.concatenate([-x[:0:-1], x])
+    ys = np.concatenate([y[:0:-1], y])
+    return np.maximum(CubicSpline(xs, ys, bc_type="not-a-knot", extrapolate=False)(grid), 0.0)
+
+
+def _check_nodes(x: np.ndarray, y: np.ndarray, lines, path, field: str, what: str, lo: float, hi: float) -> None:
+    bad = np.flatnonzero(np.diff(x) <= 0)
+    if bad.size:
+        raise _err(f"the {what} must increase, but {x[bad[0] + 1]:g} follows {x[bad[0]]:g}", path, field,
+                   lines[bad[0] + 1])
+    if x[0] != lo:
+        raise _err(f"the {what} must start at {lo:g}, got {x[0]:g}", path, field, lines[0])
+    if x[-1] > hi:
+        raise _err(f"the {what} must not exceed {hi:g}, got {x[-1]:g}", path, field, lines[-1])
+    neg = np.flatnonzero(y < 0)
+    if neg.size:
+        raise _err(f"expected values >= 0, got {y[neg[0]]:g}", path, field, lines[neg[0]])
+
+
+def read_intensity_distribution(path: str | Path, field: str = "source.beam_intensity_file") -> tuple[np.ndarray, np.ndarray]:
+    """(theta_deg, I) of a rotationally symmetric intensity distribution: an EULUMDAT file (.ldt,
+    read by :func:`roadgonio.eulumdat.read_ldt`; gamma = theta) or a CSV ``theta_deg, I``."""
+    p = _exists(path, field)
+    if p.suffix.lower() == ".ldt":
+        from roadgonio.eulumdat import read_ldt
+        try:
+            lum = read_ldt(p)
+        except InputError as err:
+            raise _err(err.reason, p, f"{field} ({err.field})" if err.field else field) from None
+        table = lum.cd_per_klm
+        if table.shape[0] > 1:
+            spread = np.max(np.abs(table - table[:1])) / max(float(np.max(table)), 1e-300)
+            if spread > 1e-6:
+                raise _err(f"the source's intensity distribution must be rotationally symmetric about its axis "
+                           f"(Isym 1, or equal C planes), but its C planes differ by {spread:.2g} of the peak "
+                           f"(Isym = {lum.meta.get('isym')})", p, field)
+        theta, inten, lines = lum.g_deg, table[0], None
+    elif p.suffix.lower() == ".csv":
+        rows, lines = read_numbers_csv(p, field, columns=2)
+        theta, inten = rows[:, 0], rows[:, 1]
+    else:
+        raise _err(f"expected an EULUMDAT (.ldt) or CSV (.csv) file, got {p.name!r}", p, field)
+    lines = lines if lines is not None else [None] * len(theta)
+    if len(theta) < 2:
+        raise _err("expected at least two angles", p, field)
+    _check_nodes(theta, inten, lines, p, field, "angles theta (deg)", 0.0, 180.0)
+    if not inten[0] > 0.0:
+        raise _err(f"the intensity on the source axis (theta = 0) must be > 0, got {inten[0]:g}", p, field,
+                   lines[0])
+    return np.asarray(theta, dtype=np.float64), np.asarray(inten, dtype=np.float64)
+
+
+def intensity_profile(path: str | Path, field: str = "source.beam_intensity_file") -> BeamProfile:
+    """The :class:`BeamProfile` of a tabulated intensity distribution (module docstring):
+    ``P(theta) = I(theta) / (I(0) cos theta)`` on the uniform grid, up to the file's last angle
+    (at most :data:`THETA_END_MAX_DEG`)."""
+    theta, inten = read_intensity_distribution(path, field)
+    end = min(float(theta[-1]), THETA_END_MAX_DEG)
+    end = math.floor(end / ANGLE_STEP_DEG + 1e-9) * ANGLE_STEP_DEG
+    if end < ANGLE_STEP_DEG:
+        raise _err(f"the angles must reach at least {ANGLE_STEP_DEG:g} deg", path, field)
+    i = _spline_grid(theta, inten / inten[0], ANGLE_STEP_DEG, end)
+    grid = np.radians(np.arange(i.size) * ANGLE_STEP_DEG)
+    p = i / np.cos(grid)
+    return BeamProfile(kind="table", table=UniformTable(p, 0.0, math.radians(ANGLE_STEP_DEG)),
+                       theta_end_rad=float(grid[-1]))
+
+
+def aperture_table(path: str | Path, field: str = "source.aperture_radiance_file") -> ApertureProfile:
+    """The :class:`ApertureProfile` of a CSV ``rho, relative_radiance`` (rho from 0 to 1, the
+    fraction of the aperture radius)."""
+    p = _exists(path, field)
+    rows, lines = read_numbers_csv(p, field, columns=2)
+    if len(rows) < 2:
+        raise _err("expected at least two rows (rho = 0 and rho = 1)", p, field)
+    rho, rad = rows[:, 0], rows[:, 1]
+    _check_nodes(rho, rad, lines, p, field, "radii rho (fraction of the aperture radius)", 0.0, 1.0)
+    if rho[-1] != 1.0:
+        raise _err(f"the radii must end at 1 (the rim of the aperture), got {rho[-1]:g}", p, field, lines[-1])
+    if not np.any(rad > 0):
+        raise _err("the radiance is 0 over the whole aperture", p, field)
+    v = _spline_grid(rho, rad, RHO_STEP, 1.0)
+    return ApertureProfile(kind="table", table=UniformTable(v, 0.0, RHO_STEP))
+
+
+def _read_image(p: Path, field: str) -> np.ndarray:
+    from PIL import Image, UnidentifiedImageError
+    try:
+        with Image.open(p) as img:
+            mode = img.mode
+            if mode not in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
+                raise _err(f"expected a greyscale image (8 or 16 bit, or 32-bit float), got mode {mode}", p, field)
+            return np.asarray(img, dtype=np.float64)
+    except UnidentifiedImageError:
+        raise _err("not an image that can be read (expected a CSV grid, PNG or TIFF)", p, field) from None
+    except OSError as err:
+        raise _err(f"cannot read the image ({err})", p, field) from None
+
+
+def read_field_map(path: str | Path, field: str = "detector.field_sensitivity") -> FieldMap:
+    """The detector's sensitivity map (module docstring) from a CSV grid or a greyscale image."""
+    p = _exists(path, field)
+    if p.suffix.lower() == ".csv":
+        values, _ = read_numbers_csv(p, field)
+    elif p.suffix.lower() in (".png", ".tif", ".tiff"):
+        values = _read_image(p, field)
+    else:
+        raise _err(f"expected a CSV grid or a PNG/TIFF image, got {p.name!r}", p, field)
+    if values.ndim != 2 or values.shape[0] < 2 or values.shape[1] < 2:
+        raise _err(f"expected a map of at least 2 x 2 values, got {' x '.join(map(str, values.shape))}", p, field)
+    if values.size > MAP_MAX_VALUES:
+        raise _err(f"expected at most {MAP_MAX_VALUES} values, got {values.size}", p, field)
+    if not np.all(np.isfinite(values)) or np.any(values < 0):
+        raise _err("expected finite sensitivities >= 0", p, field)
+    scale = float(values.max())
+    if not scale > 0.0:
+        raise _err("the sensitivity is 0 everywhere", p, field)
+    return FieldMap(values / scale, str(p))
+
