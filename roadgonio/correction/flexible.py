@@ -14,8 +14,9 @@ rays. The fit maximises the posterior
 * ``P_C`` the squared second differences of g_C's node values along beta and eps (a P-spline
   roughness penalty: the prior "g_C is smooth", null space the constant, so the level is free);
   ``lambda`` is chosen by the data, by maximising the evidence (the marginal likelihood, Laplace
-  approximation at the mode; MacKay 1992, "Bayesian interpolation"), measured against generalised
-  cross-validation in bench/bench_correct_outside.py (docs/correction.md says which won and why);
+  approximation at the mode; MacKay 1992, "Bayesian interpolation"); the generalised
+  cross-validation score is computed beside it (``SurfaceFit.gcv``) but the two choices have not
+  been compared in a benchmark;
 * ``Q_D = (I + P_D) / sd_D^2``: a proper Gaussian prior on g_D, the extra log-derivative of the BRDF
   in ln alpha, of scale ``sd_D`` (default 1: the masking of a rough surface at grazing observation
   gives d ln f / d ln alpha ~ 1, eq. 4 without its g attenuation gives 0). One instrument barely

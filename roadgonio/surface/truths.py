@@ -1,5 +1,5 @@
 """Road BRDFs *outside* the paper's eq. 4: known surfaces for round trips of the correction
-(``bench/bench_correct_outside.py``, ``tests/test_correct_outside.py``). They are not fitted to
+(``bench/bench_outside.py``, ``tests/system/test_correct_outside.py``). They are not fitted to
 anything and make no claim to describe a real pavement; each is smooth, positive, isotropic and
 differs from eq. 4 in a way the issue names (docs/correction.md, "Surfaces outside eq. 4").
 
