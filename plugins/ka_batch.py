@@ -44,6 +44,8 @@ Registration: :func:`roadgonio.engines.mitsuba.plugins.register_plugins` after `
 """
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -85,6 +87,10 @@ class KaBatch(mi.SamplingIntegrator):
         self.cell = dr.opaque(mi.UInt32, 0)
         self.bsdf = None
         self.sample_shape = None
+        #: stray light (:meth:`set_parts`): the reflecting parts and the reflections per path
+        self.parts = []
+        self.max_bounces = 1
+        self.light_depth = 0
         self.profile = None         # (beam, aperture, 1 / R_S) for Dr.Jit, or None: a uniform source
 
     # -- set-up --------------------------------------------------------------------------------
@@ -128,9 +134,10 @@ class KaBatch(mi.SamplingIntegrator):
         self.n_cells = len(frames)
 
     # -- shading -------------------------------------------------------------------------------
-    def shade(self, scene, si, cell, u, active):
-        """Road (x) and Lambert (y) contributions (``mi.Color3f``) of the source of ``cell`` at the
-        hits ``si``, for the unit-square source samples ``u``; without the detector weight."""
+    def source_sample(self, si, cell, u, active):
+        """A point of the source disc of ``cell`` sampled from the points ``si.p`` (uniform on the
+        disc area, module docstring): world direction towards it, the point, the emitter weight
+        L cos theta_s A / d^2 and the lanes where it is valid."""
         a = mi.Vector3f(*[dr.gather(mi.Float, v, cell, active) for v in self.frames])
         s, t = frame_from_axis(a)
         c = -self.distance * a
@@ -150,6 +157,12 @@ class KaBatch(mi.SamplingIntegrator):
             weight = weight * factor
         d = s * ds.d.x + t * ds.d.y + a * ds.d.z
         p_src = c + s * ds.p.x + t * ds.p.y + a * ds.p.z
+        return d, p_src, weight, active, a
+
+    def shade(self, scene, si, cell, u, active):
+        """Road (x) and Lambert (y) contributions (``mi.Color3f``) of the source of ``cell`` at the
+        hits ``si``, for the unit-square source samples ``u``; without the detector weight."""
+        d, p_src, weight, active, _ = self.source_sample(si, cell, u, active)
         ctx = mi.BSDFContext()
         value = self.bsdf.eval(ctx, si, si.to_local(d), active)
         if self.shadow:
@@ -250,8 +263,453 @@ class KaBatch(mi.SamplingIntegrator):
         out = np.stack([np.array(sums[0], dtype=np.float32), np.array(sums[1], dtype=np.float32)], axis=-1)
         return out.reshape(blocks, n >> bin_log2, 2)
 
+    # -- stray light: paths through the reflecting parts of the scene --------------------------
+    def set_parts(self, shapes, max_bounces: int, source_radius: float = 0.0, source_radiance: float = 0.0) -> None:
+        """The reflecting parts of the scene (shapes, the sample first), the number of reflections
+        followed per light path, the sample's own included (``[scene] max_bounces``), and the
+        source's radius and radiance (for the light paths of :meth:`light_sums`; a point source has
+        none). See :meth:`trace_paths` for the two ways a path is found."""
+        if int(max_bounces) < 2:
+            raise BackendError(f"stray light needs max_bounces >= 2, got {max_bounces}")
+        self.parts = list(shapes)
+        # opaque: a pointer literal would make every scene compile its own kernel
+        self._part_ptrs = [dr.opaque(mi.ShapePtr, sh) for sh in self.parts]
+        self._sample_bsdf_ptr = dr.opaque(mi.BSDFPtr, self.bsdf)
+        self.max_bounces = int(max_bounces)
+        self.light_depth = min(self.max_bounces - 1, LIGHT_DEPTH) if source_radius > 0.0 else 0
+        self.source_radius = dr.opaque(mi.Float, float(source_radius))
+        # power of the Lambertian disc into its hemisphere: pi L A
+        self.flux = dr.opaque(mi.Float, float(math.pi * source_radiance * math.pi * source_radius ** 2))
+
+    @property
+    def walk_dims(self) -> int:
+        """Random dimensions a path uses beyond the lattice's six: per further eye vertex three to
+        sample the reflection that reaches it and two for its next-event estimation; for the light
+        paths two for the source point, two for the emitted direction, two per further reflection."""
+        light = (4 + 2 * (self.light_depth - 1)) if self.light_depth else 0
+        return WALK_DIMS_PER_VERTEX * (self.max_bounces - 1) + light
+
+    def reflecting(self, shape):
+        """Mask: the lanes' shapes are reflecting parts."""
+        m = mi.Bool(False)
+        for ptr in self._part_ptrs:
+            m = m | (shape == ptr)
+        return m
+
+    def part_index(self, shape):
+        """Index of each lane's shape in :attr:`parts` (``len(parts)`` for any other shape)."""
+        idx = mi.UInt32(len(self._part_ptrs))
+        for k in reversed(range(len(self._part_ptrs))):
+            idx = dr.select(shape == self._part_ptrs[k], k, idx)
+        return idx
+
+    @staticmethod
+    def channels(is_sample, value):
+        """(road, Lambert) of a BSDF value: at the sample its road (x) and Lambert (y) channels;
+        elsewhere the part's own value in both (its luminance if it is coloured)."""
+        grey = dr.select((value.x == value.y) & (value.y == value.z), value.x, mi.luminance(value))
+        return dr.select(is_sample, value.x, grey), dr.select(is_sample, value.y, grey)
+
+    def walk_u(self, lattice: dict, keys, dim: int, rep, j):
+        """Uniform numbers of the path dimension ``dim`` for the points j of replicates ``rep``: a
+        coordinate of the lattice beyond its first six for the dimensions of :meth:`qmc_index` (the
+        lattice then has :attr:`qmc_dims` more), else a counter-based hash (TEA) of the replicate's key
+        and j. Either way a path is a function of (seed, pass, lattice size, replicate, j) only."""
+        q = self.qmc_index(dim)
+        if q is not None:
+            return self._lattice(j, rep, lattice, (LATTICE_DIMS + q,))[0]
+        return mi.sample_tea_float32(dr.gather(mi.UInt32, keys[dim], rep), j, TEA_ROUNDS)
+
+    def qmc_index(self, dim: int) -> int | None:
+        """Which path dimensions come from the lattice (index among them), else None: the first
+        :data:`QMC_EYE_VERTICES` eye vertices' and the light path's source point and emitted
+        direction (measured on the housed portable instrument: lattice coordinates for the light
+        path's further reflection, or for all dimensions, left more variance than hashed ones)."""
+        eye = WALK_DIMS_PER_VERTEX * (self.max_bounces - 1)
+        n_eye = min(eye, WALK_DIMS_PER_VERTEX * QMC_EYE_VERTICES)
+        if dim < n_eye:
+            return dim
+        if self.light_depth and eye <= dim < eye + 4:
+            return n_eye + dim - eye
+        return None
+
+    @property
+    def qmc_dims(self) -> int:
+        """Path dimensions taken from the lattice (the rest are hashed)."""
+        eye = WALK_DIMS_PER_VERTEX * (self.max_bounces - 1)
+        return min(eye, WALK_DIMS_PER_VERTEX * QMC_EYE_VERTICES) + (4 if self.light_depth else 0)
+
+    def _reflect(self, scene, si, bsdf, is_sample, tr, tg, pf, alive, u1, u2):
+        """One reflection of the eye paths ``si``: sample the BSDF, multiply the road and Lambert
+        throughputs by the weight f cos / pdf (:meth:`channels`), trace to the next vertex (a
+        reflecting part, else the path ends), and the densities of the MIS weights
+        (:meth:`trace_paths`): ``pf`` times this step's density in area measure, and ``pr`` the
+        density of the reverse step (cosine sampling at the new vertex, area measure here)."""
+        bs, w = bsdf.sample(mi.BSDFContext(), si, u1, u2, alive)
+        wr, wg = self.channels(is_sample, w)
+        alive = alive & (bs.pdf > 0.0) & (mi.Frame3f.cos_theta(bs.wo) * mi.Frame3f.cos_theta(si.wi) > 0.0)
+        tr, tg = tr * wr, tg * wg
+        d = si.to_world(bs.wo)
+        nxt = scene.ray_intersect(si.spawn_ray(d), mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame,
+                                  False, alive)
+        alive = alive & nxt.is_valid() & self.reflecting(nxt.shape) & ((tr > 0.0) | (tg > 0.0))
+        inv_d2 = dr.rcp(dr.maximum(dr.square(nxt.t), MIN_D2))
+        pf = pf * bs.pdf * dr.abs(dr.dot(nxt.n, d)) * inv_d2
+        pr = dr.abs(mi.Frame3f.cos_theta(nxt.wi)) * INV_PI * dr.abs(dr.dot(si.n, d)) * inv_d2
+        zero = mi.Float(0.0)
+        return nxt, dr.select(alive, tr, zero), dr.select(alive, tg, zero), pf, pr
+
+    def trace_paths(self, scene, sensor, lattice: dict, reps: int, keys) -> tuple[dict, list, int]:
+        """:meth:`trace_detector` plus the further vertices of every eye path (one launch per
+        reflection).
+
+        Stray light reaches the footprint along paths source -> y_m -> ... -> y_1 -> x0 ->
+        detector (x0 the detector ray's hit on the sample; y the reflecting parts, the sample
+        included). Two strategies find them, combined by multiple importance sampling (balance
+        heuristic; Veach 1997, ch. 9): **eye paths** (these, independent of the cell): y_1 ... by
+        sampling each part's BSDF from x0, with next-event estimation to each cell's source at every
+        vertex (:meth:`stray_sums`); and **light paths** (per cell, :meth:`light_sums`): from a
+        point of the cell's source disc along a cosine-distributed direction to y_m, ..., then
+        connected to x0 by a shadow ray. Eye paths find the light that the sample's BRDF favours,
+        light paths the bright spots the source makes on the parts next to it. Light paths are
+        used for m <= :data:`LIGHT_DEPTH` (longer ones come from eye paths alone).
+
+        Returns the per-ray data of vertex 0 (exactly as :meth:`trace_detector`), the list of
+        further vertices ``(fields, shapes)`` (:data:`VERTEX_FIELDS`: position, normals, shading
+        frame, uv, the local direction back along the path, the road and Lambert throughputs up to
+        the vertex, the detector weight included (0 where the path has ended), and the densities
+        ``pf``, ``pr``) and the number of detector rays that missed the sample. ``keys``: per path
+        dimension a UInt32 array of one key per replicate (:meth:`walk_u`)."""
+        i = dr.arange(mi.UInt32, int(reps) * lattice["n"])
+        j = i & lattice["mask"]
+        rep = i >> lattice["shift_log2"]
+        u0, u1, u2, u3 = self._lattice(j, rep, lattice, (0, 1, 2, 3))
+        ray, w = sensor.sample_ray(0.0, 0.0, mi.Point2f(u2, u3), mi.Point2f(u0, u1))
+        si = scene.ray_intersect(ray, mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame, False)
+        hit = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
+        w = dr.select(hit, mi.Float(w.x), 0.0)
+        if self.flat:
+            data = dict(zip(FLAT_RAY_FIELDS, (si.p.x, si.p.y, si.p.z, ray.d.x, ray.d.y, ray.d.z, w)))
+        else:
+            ns = si.sh_frame.n
+            data = dict(zip(RAY_FIELDS, (si.p.x, si.p.y, si.p.z, si.n.x, si.n.y, si.n.z, ns.x, ns.y, ns.z,
+                                         ray.d.x, ray.d.y, ray.d.z, w)))
+        miss = ~hit
+        verts = []
+        u = [self.walk_u(lattice, keys, d, rep, j) for d in range(3)]
+        one = mi.Float(1.0)
+        nxt, tr, tg, pf, pr = self._reflect(scene, si, self.bsdf, mi.Bool(True), w, w, one, hit, u[0],
+                                            mi.Point2f(u[1], u[2]))
+        vert, shape = vertex_fields(nxt, tr, tg, pf, one, pr), nxt.shape
+        dr.eval(data, miss, vert, shape)       # one kernel: the detector rays and their first reflection
+        misses = int(dr.count(miss)[0]) if dr.width(miss) else 0
+        verts.append((vert, shape))
+        for k in range(2, max(self.eye_vertices()) + 1):
+            prev, pshape = verts[-1]
+            si = vertex_interaction(prev, pshape)
+            bsdf = si.bsdf()
+            base = WALK_DIMS_PER_VERTEX * (k - 1)
+            u = [self.walk_u(lattice, keys, base + d, rep, j) for d in range(3)]
+            alive = (prev["tr"] > 0.0) | (prev["tg"] > 0.0)
+            nxt, tr, tg, pf, pr = self._reflect(scene, si, bsdf, bsdf == self._sample_bsdf_ptr, prev["tr"],
+                                                prev["tg"], prev["pf"], alive, u[0], mi.Point2f(u[1], u[2]))
+            vert, shape = vertex_fields(nxt, tr, tg, pf, prev["pf"], pr), nxt.shape
+            dr.eval(vert, shape)
+            verts.append((vert, shape))
+        return data, verts, misses
+
+    def vertex_light(self, scene, si, g, cell, u, active, mis: int):
+        """Next-event estimation at eye-path vertices ``si`` (any reflecting part; ``g`` the
+        stored fields, throughputs and densities): road and Lambert contributions of the source of
+        ``cell``, a shadow ray always (the housing can shade), the part's BSDF by dispatch, and with
+        ``mis`` the balance-heuristic weight against the light path of the same vertices."""
+        d, p_src, weight, active, a = self.source_sample(si, cell, u, active)
+        bsdf = si.bsdf()
+        value = bsdf.eval(mi.BSDFContext(), si, si.to_local(d), active)
+        vr, vg = self.channels(bsdf == self._sample_bsdf_ptr, value)
+        active = active & ~scene.ray_test(si.spawn_ray_to(mi.Point3f(p_src)), active)
+        if mis:
+            # against the light paths of the same vertices (:meth:`path_light`): ls = the density
+            # with which the source's cosine emission reaches this vertex
+            v = mi.Vector3f(p_src) - mi.Vector3f(si.p)
+            inv_d2 = dr.rcp(dr.maximum(dr.dot(v, v), MIN_D2))
+            ls = dr.maximum(-dr.dot(a, d), 0.0) * INV_PI * dr.abs(dr.dot(si.n, d)) * inv_d2
+            if mis == 1:
+                others = ls
+            else:           # y_2: the eye prefix to y_1 + the light vertex; the light path through both
+                others = g["pp"] * ls + ls * g["pr"]
+            wgt = weight.x * g["pf"] / dr.maximum(g["pf"] + others, MIN_PDF)
+        else:
+            wgt = weight.x
+        zero = mi.Float(0.0)
+        return dr.select(active, vr * wgt * g["tr"], zero), dr.select(active, vg * wgt * g["tg"], zero)
+
+    def _blocks(self, lattice: dict, block_cell: np.ndarray, block_rep: np.ndarray):
+        """Lanes of a shading launch: (lanes, point j, cell, replicate, ray index) of the blocks."""
+        n = lattice["n"]
+        lanes = len(block_cell) * n
+        if lanes >= 1 << 32:
+            raise BackendError(f"a launch of {lanes} lanes exceeds 2^32; split it")
+        l = dr.arange(mi.UInt32, lanes)
+        kb = l >> lattice["shift_log2"]
+        j = l & lattice["mask"]
+        cell = dr.gather(mi.UInt32, _u32(block_cell), kb)
+        rep = dr.gather(mi.UInt32, _u32(block_rep), kb)
+        return lanes, j, cell, rep, (rep << lattice["shift_log2"]) + j
+
+    @staticmethod
+    def _bin_sums(road, lam, blocks: int, lattice: dict) -> np.ndarray:
+        bin_log2 = min(lattice["log2n"], BIN_LOG2)
+        dr.eval(road, lam)
+        sums = [dr.block_sum(v, 1 << bin_log2, mode="evaluated") for v in (road, lam)]
+        out = np.stack([np.array(sums[0], dtype=np.float32), np.array(sums[1], dtype=np.float32)], axis=-1)
+        return out.reshape(blocks, lattice["n"] >> bin_log2, 2)
+
+    def eye_light(self, scene, vertex: tuple, lattice: dict, r, j, cell, rep, keys, k: int):
+        """Per lane, the road and Lambert light reaching the detector through eye-path vertex
+        ``k`` >= 1 (``vertex`` = ``(fields, shapes)`` of :meth:`trace_paths`, ``r`` the lanes' path
+        indices); also the lanes' path fields."""
+        fields, shapes = vertex
+        g = {key: dr.gather(mi.Float, fields[key], r) for key in fields}
+        si = vertex_interaction(g, dr.gather(mi.ShapePtr, shapes, r))
+        active = (g["tr"] > 0.0) | (g["tg"] > 0.0)
+        base = WALK_DIMS_PER_VERTEX * (k - 1) + 3
+        u = mi.Point2f(self.walk_u(lattice, keys, base, rep, j), self.walk_u(lattice, keys, base + 1, rep, j))
+        road, lam = self.vertex_light(scene, si, g, cell, u, active, mis=k if k <= self.light_depth else 0)
+        return road, lam, si
+
+    def stray_sums(self, scene, vertex: tuple, lattice: dict, block_cell: np.ndarray, block_rep: np.ndarray,
+                   keys, k: int) -> np.ndarray:
+        """Road and Lambert sums over the blocks (as :meth:`block_sums`) of the eye paths' light
+        through vertex ``k`` >= 1 (:meth:`eye_light`), each block for its own cell."""
+        _, j, cell, rep, r = self._blocks(lattice, block_cell, block_rep)
+        road, lam, _ = self.eye_light(scene, vertex, lattice, r, j, cell, rep, keys, k)
+        return self._bin_sums(road, lam, len(block_cell), lattice)
+
+    def vertex0(self, rays: dict, r):
+        """The detector rays' hits on the sample (vertex 0) rebuilt from the stored ray data."""
+        g = {key: dr.gather(mi.Float, rays[key], r) for key in rays}
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.t = mi.Float(1.0)
+        si.p = mi.Point3f(g["px"], g["py"], g["pz"])
+        if self.flat:
+            si.n = mi.Normal3f(0.0, 0.0, 1.0)
+            si.sh_frame = mi.Frame3f(mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0))
+        else:
+            si.n = mi.Normal3f(g["nx"], g["ny"], g["nz"])
+            si.sh_frame = mi.Frame3f(mi.Vector3f(g["sx"], g["sy"], g["sz"]))
+        si.wi = si.sh_frame.to_local(-mi.Vector3f(g["dx"], g["dy"], g["dz"]))
+        return si, g["w"]
+
+    def _footprint_link(self, scene, x0, w0, y, wl, ok, onward: bool = False):
+        """Connection of light-path vertices ``y`` (``wl``: local direction towards the light) with
+        the detector hits ``x0`` (weights ``w0``): road and Lambert values of the link (x0's BRDF
+        cos, y's BRDF cos towards x0, 1/d^2; the light's flux and the MIS weight left out), the
+        density with which an eye path from x0 reaches y (area measure), with ``onward`` the density
+        with which it would go on from y along ``wl`` (solid angle; else None) and the visible lanes."""
+        ctx = mi.BSDFContext()
+        v = mi.Vector3f(x0.p) - mi.Vector3f(y.p)
+        d2 = dr.dot(v, v)
+        ok = ok & (d2 > MIN_D2)
+        inv_d2 = dr.rcp(dr.maximum(d2, MIN_D2))
+        e = v * dr.rsqrt(dr.maximum(d2, MIN_D2))                 # from y towards x0
+        wo0 = x0.to_local(-e)
+        f0, p0 = self.bsdf.eval_pdf(ctx, x0, wo0, ok)            # (f_road, 1/pi) cos at x0, and its density
+        p_eye = p0 * dr.abs(dr.dot(y.n, e)) * inv_d2
+        y.wi = y.to_local(e)                                     # towards the eye (x0)
+        bsdf = y.bsdf()
+        if onward:
+            value, p_on = bsdf.eval_pdf(ctx, y, wl, ok)
+        else:
+            value, p_on = bsdf.eval(ctx, y, wl, ok), None
+        fr, fg = self.channels(bsdf == self._sample_bsdf_ptr, value)
+        out = dr.abs(mi.Frame3f.cos_theta(y.wi)) / dr.maximum(dr.abs(mi.Frame3f.cos_theta(wl)), MIN_COS) * inv_d2
+        vis = ok & ~scene.ray_test(y.spawn_ray_to(mi.Point3f(x0.p)), ok)
+        return w0 * f0.x * fr * out, w0 * f0.y * fg * out, p_eye, p_on, vis
+
+    def path_light(self, scene, rays: dict, vertex1: tuple, lattice: dict, r, j, cell, rep, keys):
+        """Per lane, the stray light that the light paths carry (:meth:`trace_paths`), as
+        (road, Lambert, part index of the last reflection before the footprint) triples.
+
+        A light path starts at a uniform point s of the cell's source disc along a cosine-
+        distributed direction (power pi L A, times the source's relative radiance there for a
+        profiled source) and meets the part l_1. Light with one reflection
+        (s -> y_1 -> x0): l_1 is connected with the detector hit x0, weighted against the eye path
+        x0 -> y_1 + next-event estimation (:meth:`eye_light`). Light with two reflections
+        (s -> y_2 -> y_1 -> x0) has three strategies, weighted by the balance heuristic over the
+        densities (area measure; the source point's 1/A is common to all): the eye path
+        x0 -> y_1 -> y_2 + next-event estimation (e1 e2); the eye path's y_1 connected with the light
+        vertex y_2 = l_1 (e1 ls); the light path s -> l_1 = y_2 -> l_2 = y_1 (cosine reflection at
+        l_1) connected with x0 (ls l12). e1, e2: BSDF sampling from x0 and y_1; ls: the source's
+        cosine emission to y_2; l12: cosine sampling from y_2 to y_1."""
+        ctx = mi.BSDFContext()
+        flags = mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame
+        zero = mi.Float(0.0)
+        x0, w0 = self.vertex0(rays, r)
+        alive = w0 > 0.0
+        a = mi.Vector3f(*[dr.gather(mi.Float, v, cell, alive) for v in self.frames])
+        s_ax, t_ax = frame_from_axis(a)
+        c = -self.distance * a
+        base = WALK_DIMS_PER_VERTEX * (self.max_bounces - 1)
+        u = [self.walk_u(lattice, keys, base + q, rep, j) for q in range(4)]
+        disk = mi.warp.square_to_uniform_disk_concentric(mi.Point2f(u[0], u[1])) * self.source_radius
+        dl = mi.warp.square_to_cosine_hemisphere(mi.Point2f(u[2], u[3]))
+        d = s_ax * dl.x + t_ax * dl.y + a * dl.z
+        l1 = scene.ray_intersect(mi.Ray3f(mi.Point3f(c + s_ax * disk.x + t_ax * disk.y), d), flags, False, alive)
+        alive = alive & l1.is_valid() & self.reflecting(l1.shape) & (dl.z > 0.0)
+        ls = dl.z * INV_PI * dr.abs(dr.dot(l1.n, d)) * dr.rcp(dr.maximum(dr.square(l1.t), MIN_D2))
+        flux = mi.Float(0.0) + self.flux
+        if self.profile is not None:
+            # the source's relative radiance at the path's start and emission direction (canonical
+            # frame, axis +z; w points back towards the source): the same factor as next-event estimation
+            beam, aperture, inv_r = self.profile
+            factor = source_radiance_factor(DrJitOps, beam, aperture, (-dl.x, -dl.y, -dl.z), (0.0, 0.0, 1.0),
+                                            (disk.x * inv_r, disk.y * inv_r))
+            if factor is not None:
+                flux = flux * factor
+        wl1 = l1.to_local(-d)                                      # at l_1, towards the source
+        out = []
+        # one reflection: l_1 -> x0 (against the eye path: e1)
+        road, lam, e1, _, vis = self._footprint_link(scene, x0, w0, l1, wl1, alive)
+        mis = flux * ls / dr.maximum(ls + e1, MIN_PDF)
+        out.append((dr.select(vis, road * mis, zero), dr.select(vis, lam * mis, zero), self.part_index(l1.shape)))
+        if self.light_depth < 2:
+            return out
+        bsdf_l1 = l1.bsdf()
+        sample_l1 = bsdf_l1 == self._sample_bsdf_ptr
+        cos_l1 = dr.maximum(dr.abs(mi.Frame3f.cos_theta(wl1)), MIN_COS)
+        # two reflections, the eye path's vertex y_1 connected with y_2 = l_1
+        fields, shapes = vertex1
+        g = {key: dr.gather(mi.Float, fields[key], r) for key in fields}
+        y1 = vertex_interaction(g, dr.gather(mi.ShapePtr, shapes, r))
+        ok = alive & ((g["tr"] > 0.0) | (g["tg"] > 0.0))
+        v = mi.Vector3f(l1.p) - mi.Vector3f(y1.p)
+        d2 = dr.dot(v, v)
+        ok = ok & (d2 > MIN_D2)
+        inv_d2 = dr.rcp(dr.maximum(d2, MIN_D2))
+        e = v * dr.rsqrt(dr.maximum(d2, MIN_D2))                   # from y_1 towards l_1
+        bsdf_y1 = y1.bsdf()
+        wo1 = y1.to_local(e)
+        value, p1 = bsdf_y1.eval_pdf(ctx, y1, wo1, ok)
+        f1r, f1g = self.channels(bsdf_y1 == self._sample_bsdf_ptr, value)
+        e2 = p1 * dr.abs(dr.dot(l1.n, e)) * inv_d2
+        l1.wi = l1.to_local(-e)                                    # at l_1, towards y_1 (the eye side)
+        flr, flg = self.channels(sample_l1, bsdf_l1.eval(ctx, l1, wl1, ok))
+        cos_out = dr.abs(mi.Frame3f.cos_theta(l1.wi))
+        l12 = cos_out * INV_PI * dr.abs(dr.dot(y1.n, e)) * inv_d2
+        e1 = g["pf"]
+        mis = flux * e1 * ls / dr.maximum(e1 * e2 + e1 * ls + ls * l12, MIN_PDF)
+        link = cos_out / cos_l1 * inv_d2 * mis
+        vis = ok & ~scene.ray_test(y1.spawn_ray_to(mi.Point3f(l1.p)), ok)
+        out.append((dr.select(vis, g["tr"] * f1r * flr * link, zero), dr.select(vis, g["tg"] * f1g * flg * link, zero),
+                    self.part_index(y1.shape)))
+        # two reflections, l_1 reflects (cosine-distributed, on the side the light came from) to l_2 -> x0
+        q = base + 4
+        wn = mi.warp.square_to_cosine_hemisphere(mi.Point2f(self.walk_u(lattice, keys, q, rep, j),
+                                                            self.walk_u(lattice, keys, q + 1, rep, j)))
+        wn.z = dr.select(mi.Frame3f.cos_theta(wl1) < 0.0, -wn.z, wn.z)
+        l1.wi = wn
+        tr_, tg_ = self.channels(sample_l1, bsdf_l1.eval(ctx, l1, wl1, alive))
+        scale = flux * math.pi / cos_l1                              # f cos_out / (cos_out / pi), f = eval / cos_in
+        br, bg = tr_ * scale, tg_ * scale
+        d = l1.to_world(wn)
+        l2 = scene.ray_intersect(l1.spawn_ray(d), flags, False, alive)
+        alive = alive & l2.is_valid() & self.reflecting(l2.shape) & ((br > 0.0) | (bg > 0.0))
+        inv_t2 = dr.rcp(dr.maximum(dr.square(l2.t), MIN_D2))
+        l12 = dr.abs(wn.z) * INV_PI * dr.abs(dr.dot(l2.n, d)) * inv_t2
+        road, lam, e1, p_on, vis = self._footprint_link(scene, x0, w0, l2, l2.to_local(-d), alive, onward=True)
+        e2 = p_on * dr.abs(dr.dot(l1.n, d)) * inv_t2
+        mis = ls * l12 / dr.maximum(e1 * e2 + e1 * ls + ls * l12, MIN_PDF)
+        out.append((dr.select(vis, road * br * mis, zero), dr.select(vis, lam * bg * mis, zero),
+                    self.part_index(l2.shape)))
+        return out
+
+    def eye_vertices(self) -> list[int]:
+        """Eye-path vertices whose next-event estimation is used (all of them)."""
+        return list(range(1, self.max_bounces))
+
+    def light_sums(self, scene, rays: dict, vertex1: tuple, lattice: dict, block_cell: np.ndarray,
+                   block_rep: np.ndarray, keys) -> np.ndarray:
+        """Road and Lambert sums over the blocks (as :meth:`block_sums`) of the light paths
+        (:meth:`path_light`), each block for its own cell."""
+        _, j, cell, rep, r = self._blocks(lattice, block_cell, block_rep)
+        out = self.path_light(scene, rays, vertex1, lattice, r, j, cell, rep, keys)
+        road = sum((o[0] for o in out[1:]), out[0][0])
+        lam = sum((o[1] for o in out[1:]), out[0][1])
+        return self._bin_sums(road, lam, len(block_cell), lattice)
+
+    def picture_lanes(self, scene, sensor, lattice: dict, keys, cell: int = 0, reps: int = 1) -> dict:
+        """``reps`` replicates of a one-cell launch (``roadgonio render``), per lane as float64 numpy
+        (``rep``: the lane's replicate):
+        the film position (``u``, ``v``: the lattice's dimensions 2, 3, as :meth:`trace_paths` passes
+        them to the sensor), the direct road and Lambert values (detector weight included), and the
+        stray light as ``(road, Lambert, part)`` triples, one per contribution (next-event estimation
+        at each eye vertex, the light-path strategies); ``part`` indexes :attr:`parts` by the last
+        reflection before the footprint."""
+        rays, verts, _ = self.trace_paths(scene, sensor, lattice, int(reps), keys)
+        r = dr.arange(mi.UInt32, int(reps) * lattice["n"])
+        j = r & lattice["mask"]
+        rep = r >> lattice["shift_log2"]
+        c = mi.UInt32(int(cell)) + 0 * j
+        u, v = self._lattice(j, rep, lattice, (2, 3))
+        u4, u5 = self._lattice(j, rep, lattice, (4, 5))
+        x0, w0 = self.vertex0(rays, r)
+        direct = self.shade(scene, x0, c, mi.Point2f(u4, u5), w0 > 0.0) * w0
+        part1 = self.part_index(dr.gather(mi.ShapePtr, verts[0][1], r))
+        out = [(road, lam, part1) for road, lam, _ in
+               (self.eye_light(scene, verts[k - 1], lattice, r, j, c, rep, keys, k) for k in self.eye_vertices())]
+        if self.light_depth:
+            out += self.path_light(scene, rays, verts[0], lattice, r, j, c, rep, keys)
+        res = {"u": u, "v": v, "rep": mi.Float(rep), "direct_road": mi.Float(direct.x),
+               "direct_lambert": mi.Float(direct.y)}
+        for q, (road, lam, part) in enumerate(out):
+            res[f"road_{q}"], res[f"lambert_{q}"], res[f"part_{q}"] = road, lam, part
+        dr.eval(res)
+        return {k: np.array(val, dtype=np.float64) for k, val in res.items()}
+
     def to_string(self):
         return f"KaBatch[cells={self.n_cells}, shadow={self.shadow}]"
+
+
+#: Stored per eye-path vertex beyond the first (stray light): position, geometric normal, shading
+#: frame (s and n), uv, the local direction back along the path, the road and Lambert throughputs,
+#: and the densities of the MIS weights (:meth:`KaBatch.trace_paths`).
+VERTEX_FIELDS = ("px", "py", "pz", "nx", "ny", "nz", "sx", "sy", "sz", "fx", "fy", "fz", "u", "v",
+                 "wx", "wy", "wz", "tr", "tg", "pf", "pp", "pr")
+#: Path dimensions per further eye vertex: 1 + 2 to sample the reflection, 2 for the source sample.
+WALK_DIMS_PER_VERTEX = 5
+#: Rounds of the TEA hash of the path dimensions.
+TEA_ROUNDS = 8
+#: Dimensions of a detector sample (pupil 2, field 2, source 2).
+LATTICE_DIMS = 6
+#: Eye-path vertices whose dimensions come from the lattice (:meth:`KaBatch.qmc_index`).
+QMC_EYE_VERTICES = 2
+#: Longest light paths (reflections before the connection to the footprint).
+LIGHT_DEPTH = 2
+INV_PI = 1.0 / math.pi
+#: Guards of divisions (squared distance in m^2, densities, cosines).
+MIN_D2, MIN_PDF, MIN_COS = 1e-12, 1e-30, 1e-12
+
+
+def vertex_fields(si, tr, tg, pf, pp, pr) -> dict:
+    """The :data:`VERTEX_FIELDS` of eye-path vertices ``si``."""
+    s, n = si.sh_frame.s, si.sh_frame.n
+    return dict(zip(VERTEX_FIELDS, (si.p.x, si.p.y, si.p.z, si.n.x, si.n.y, si.n.z, s.x, s.y, s.z, n.x, n.y, n.z,
+                                    si.uv.x, si.uv.y, si.wi.x, si.wi.y, si.wi.z, tr, tg, pf, pp, pr)))
+
+
+def vertex_interaction(g: dict, shape):
+    """A ``SurfaceInteraction3f`` rebuilt from stored :data:`VERTEX_FIELDS` and shapes."""
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    si.t = mi.Float(1.0)
+    si.p = mi.Point3f(g["px"], g["py"], g["pz"])
+    si.n = mi.Normal3f(g["nx"], g["ny"], g["nz"])
+    s, n = mi.Vector3f(g["sx"], g["sy"], g["sz"]), mi.Vector3f(g["fx"], g["fy"], g["fz"])
+    si.sh_frame = mi.Frame3f(s, dr.cross(n, s), n)
+    si.uv = mi.Point2f(g["u"], g["v"])
+    si.wi = mi.Vector3f(g["wx"], g["wy"], g["wz"])
+    si.shape = shape
+    return si
 
 
 def frame_from_axis(a):

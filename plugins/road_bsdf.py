@@ -19,7 +19,12 @@ Properties (XML or ``mi.load_dict``):
 Calling convention (mitsuba-cpu notes, section 2): ``si.wi`` is the local direction towards the
 sensor (the model's ``wo``), the ``wo`` argument is towards the light (the model's ``wi``);
 :meth:`eval` returns f cos(theta_light); :meth:`sample` draws the light direction from a
-cosine-weighted hemisphere (pdf = cos/pi) and returns the weight f cos/pdf = pi f.
+cosine-weighted hemisphere (pdf = cos/pi), or, when the model has a Phong lobe, from the mixture
+(1 - P) cos/pi + P (n + 1)/(2 pi) (cos Omega)^n with P = :data:`LOBE_SHARE` and the model's own
+exponent n_phong about the mirror direction of ``si.wi`` (the stray-light paths meet the road's
+forward lobe at grazing angles: cosine sampling alone finds it rarely), and returns the weight
+f cos/pdf. :meth:`pdf` is the density of that mixture. The k_A engine samples only the source
+(next-event estimation), so neither changes the direct light.
 
 Parameters are stored as opaque ``mi.Float`` (``dr.opaque``), listed by :meth:`traverse` as
 non-differentiable, so changing a value never recompiles the kernel. The variant and the set of
@@ -36,11 +41,13 @@ import drjit as dr
 import mitsuba as mi
 
 from roadgonio.errors import InputError
-from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS, RoadParams, active_terms, road_brdf
+from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS, RoadParams, _lobe, active_terms, road_brdf
 from roadgonio.engines.mitsuba.ops import DrJitOps
 
 CHANNELS = ("road", "road_lambert")
 INV_PI = 1.0 / math.pi
+#: Share of the Phong-lobe samples in :meth:`RoadBSDF.sample` (models with a Phong lobe).
+LOBE_SHARE = 0.5
 
 
 class RoadBSDF(mi.BSDF):
@@ -128,10 +135,26 @@ class RoadBSDF(mi.BSDF):
         active = active & (cos_s > 0.0) & (cos_l > 0.0)
         return self._spectrum(self._f(si.wi, wo), cos_l, active)
 
+    @property
+    def _lobe_sampling(self) -> bool:
+        return "k_phong" in self.terms
+
+    def _lobe_pdf(self, wi_sensor, wo_light):
+        """(n + 1)/(2 pi) (cos Omega)^n about the mirror direction of ``wi_sensor`` (n = n_phong)."""
+        h = 0.5 * ((wo_light.x + wi_sensor.x) ** 2 + (wo_light.y + wi_sensor.y) ** 2
+                   + (wo_light.z - wi_sensor.z) ** 2)            # 1 - cos Omega (half-chord, as the model)
+        return (self.n_phong + 1.0) * (0.5 * INV_PI) * _lobe(DrJitOps, h, self.n_phong)
+
+    def _pdf(self, wi_sensor, wo_light):
+        cosine = mi.warp.square_to_cosine_hemisphere_pdf(wo_light)
+        if not self._lobe_sampling:
+            return cosine
+        return (1.0 - LOBE_SHARE) * cosine + LOBE_SHARE * self._lobe_pdf(wi_sensor, wo_light)
+
     def pdf(self, ctx, si, wo, active=True):
         cos_s = mi.Frame3f.cos_theta(si.wi)
         active = active & (cos_s > 0.0) & (mi.Frame3f.cos_theta(wo) > 0.0)
-        return dr.select(active, mi.warp.square_to_cosine_hemisphere_pdf(wo), 0.0)
+        return dr.select(active, self._pdf(si.wi, wo), 0.0)
 
     def eval_pdf(self, ctx, si, wo, active=True):
         return self.eval(ctx, si, wo, active), self.pdf(ctx, si, wo, active)
@@ -140,13 +163,23 @@ class RoadBSDF(mi.BSDF):
         cos_s = mi.Frame3f.cos_theta(si.wi)
         bs = dr.zeros(mi.BSDFSample3f)
         bs.wo = mi.warp.square_to_cosine_hemisphere(sample2)
-        bs.pdf = mi.warp.square_to_cosine_hemisphere_pdf(bs.wo)
+        if self._lobe_sampling:
+            # the Phong lobe about the mirror direction: cos alpha = u^(1/(n+1)) (sample1 picks the strategy)
+            mirror = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
+            cos_a = dr.power(sample2.x, dr.rcp(self.n_phong + 1.0))
+            sin_a = dr.safe_sqrt(1.0 - cos_a * cos_a)
+            phi = 2.0 * math.pi * sample2.y
+            lobe = mi.Frame3f(mirror).to_world(mi.Vector3f(sin_a * dr.cos(phi), sin_a * dr.sin(phi), cos_a))
+            bs.wo = dr.select(sample1 < LOBE_SHARE, lobe, bs.wo)
+        bs.pdf = self._pdf(si.wi, bs.wo)
         bs.eta = 1.0
         bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
         bs.sampled_component = mi.UInt32(0)
-        active = active & (cos_s > 0.0) & (bs.pdf > 0.0)
-        # weight = f cos / pdf with pdf = cos / pi
-        return bs, self._spectrum(self._f(si.wi, bs.wo), math.pi, active)
+        active = active & (cos_s > 0.0) & (bs.pdf > 0.0) & (mi.Frame3f.cos_theta(bs.wo) > 0.0)
+        bs.pdf = dr.select(active, bs.pdf, 0.0)        # a lobe sample below the horizon is no sample
+        # weight = f cos / pdf
+        cos_l = mi.Frame3f.cos_theta(bs.wo)
+        return bs, self._spectrum(self._f(si.wi, bs.wo), cos_l / dr.maximum(bs.pdf, 1e-30), active)
 
     def to_string(self):
         vals = ", ".join(f"{k}={self._values[k]:g}" for k in PARAM_NAMES)

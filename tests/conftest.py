@@ -20,6 +20,8 @@ from pathlib import Path
 
 import pytest
 
+from helpers import R3LIKE
+
 TIERS = ("unit", "plugin", "system")
 _HERE = Path(__file__).resolve().parent
 
@@ -40,9 +42,6 @@ def pytest_collection_modifyitems(config, items):
         order[item.nodeid] = TIERS.index(tier)
     items.sort(key=lambda it: order.get(it.nodeid, len(TIERS)))     # stable: file order kept within a tier
 
-#: Parameters of a model close to the fit of CIE R3 (paper's power reading), shared by the tests.
-R3LIKE = dict(k_diff=0.028937, k_phong=1.8147, n_phong=34.467, k_retro=0.052577, n_retro=11.307,
-              k_exp=0.088927, p=2.137, h=0.49843, mu=0.03123)
 
 
 @pytest.fixture(scope="session")

@@ -99,6 +99,10 @@ def _pixels(path):
 # -- the Mitsuba backend's tests (tests/plugin/test_render_backend.py, test_engine.py) -----------
 
 #: A non-Lambertian model with every term (Phong lobe n = 1000, retro lobe, steep E term, grazing g).
+#: Parameters of a model close to the fit of CIE R3 (paper's power reading), shared by the tests.
+R3LIKE = dict(k_diff=0.028937, k_phong=1.8147, n_phong=34.467, k_retro=0.052577, n_retro=11.307,
+              k_exp=0.088927, p=2.137, h=0.49843, mu=0.03123)
+
 ROAD = RoadModel(RoadParams(k_diff=0.05, k_phong=1.0, n_phong=1000.0, k_retro=0.2, n_retro=50.0,
                             k_exp=0.1, p=1.0, h=2.0, mu=0.1, g_a=0.0, g_b=-1.0, g_c=2.6, g_t=2.0,
                             theta_l_deg=88.0))

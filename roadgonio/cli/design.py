@@ -31,7 +31,8 @@ def register(sub) -> None:
                     "and whether it is feasible (geometry valid and max |k_A - 1| <= tolerance); geometrically "
                     "impossible points are kept with their reason. Writes design.nc, design.csv, best.toml (the "
                     "feasible design with the most signal), pareto.png and, for two varied keys, tolerance_map.png. "
-                    "Resumes an interrupted run. Keys: " + ", ".join(keys) + ".")
+                    "Resumes an interrupted run. Keys: " + ", ".join(keys)
+                    + ", housing.baffles.N.x_m, housing.baffles.N.height_m (N: a baffle of the base [housing]).")
     add_instrument_argument(p)
     p.add_argument("--vary", action="append", default=[], metavar="KEY=LO:HI:N",
                    help="an instrument key and its values: LO:HI:N (linear), LO:HI:N:log, or V1,V2,...; repeat for "

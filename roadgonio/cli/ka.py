@@ -63,12 +63,17 @@ def run(args) -> int:
         c = api.ka_cell(args.instrument, args.sample, args.tan_eps, args.beta, out=args.out, **common)
         if args.json:
             print_json({"k_a": c.k_a, "se": c.se, "error_bound": c.error_bound, "confidence_bound": c.confidence_bound,
-                        "converged": c.converged, "samples": c.samples, "seconds": c.seconds})
+                        "converged": c.converged, "samples": c.samples, "seconds": c.seconds,
+                        "k_a_direct": c.k_a_direct, "k_a_direct_se": c.k_a_direct_se,
+                        "stray_fraction": c.stray_fraction, "stray_fraction_se": c.stray_fraction_se})
         else:
             prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error")
             text_output(args)(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
                               f"{c.samples} samples, {c.seconds:.2f} s, {args.backend} backend)"
-                              + ("" if c.converged else _not_converged_text(c, args.rel_se)))
+                              + ("" if c.converged else _not_converged_text(c, args.rel_se))
+                              + (f"; stray light {100 * c.stray_fraction:.2f} % +- {100 * c.stray_fraction_se:.2g} % of "
+                                 f"the signal, direct light alone k_A = {c.k_a_direct:.6f} +- {c.k_a_direct_se:.2g}"
+                                 if c.stray_fraction != 0.0 else ""))
         return 0
 
     args.on_interrupt = ("interrupted: the finished cells are kept in the output folder's journal; run the same "
@@ -85,7 +90,9 @@ def run(args) -> int:
     say = text_output(args)
     say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {s['cells']} cells "
         f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
-        f"{api.precision_text(s)}, {s['seconds_wall_this_run']:.1f} s.")
+        f"{api.precision_text(s)}, {s['seconds_wall_this_run']:.1f} s."
+        + (f" Stray light: up to {100 * s['stray_fraction_max']:.1f} % of the signal; the direct light alone gives "
+           f"k_A {s['k_a_direct_min']:.3f} ... {s['k_a_direct_max']:.3f}." if "stray_fraction_max" in s else ""))
     say(f"wrote {ds.attrs['out']}/{ds.attrs['files']}")
     return 0
 

@@ -50,6 +50,12 @@ def run(args) -> int:
         f"{info['footprint_m']['x'][1]:.3f} m; "
         + (f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (one render; use 'roadgonio ka' for tables)"
            if ka is not None else "k_A undefined (model is 0 at the nominal geometry)"))
+    if "stray" in info:
+        st = info["stray"]
+        top = max(st["parts"], key=lambda k: st["parts"][k]["road"])
+        say(f"stray light: {100 * st['stray_fraction_road']:.2f} % of the road signal (most from {top}), "
+            f"{100 * st['stray_fraction_lambert']:.2f} % of the Lambert calibration's; k_A of the direct light alone "
+            f"~ {info['k_a_direct_estimate']:.4f} (stray.png shows where it enters the view)")
     for v in info["files"].values():
         say(f"wrote {v}")
     return 0

@@ -127,7 +127,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "geometry_ok": (dims, grid(geometry_ok), {"long_name": "the instrument can measure every requested cell"}),
         "feasible": (dims, grid(feasible), {"long_name": "geometry_ok and max_abs_dev <= tolerance"}),
         "kind": (dims, grid(kind.astype(str)), {"long_name": "why not feasible: instrument, footprint, horizon, "
-                                                              "line_of_sight, backend, tolerance, failed"}),
+                                                              "line_of_sight, housing, backend, tolerance, failed"}),
         "reason": (dims, grid(reason.astype(str)), {"long_name": "why not feasible (empty if feasible)"}),
         "seed": (dims, grid(np.array(seeds, dtype=np.int32)), {"long_name": "backend seed of the design point "
                                                                                "(roadgonio ka --seed)"}),

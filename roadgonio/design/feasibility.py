@@ -15,11 +15,15 @@ requested cells it is marked ``geometry_ok = False`` with a one-line reason. The
    :func:`roadgonio.instrument.optics.source_blocks_view`, so a point the pre-filter keeps is not
    refused by the backend for this reason, and the reverse). This matters for sources between the
    detector and the sample (beta near 180 deg at grazing incidence).
-5. ``backend`` (on the worker): whatever the backend itself refuses (render-time ray hits of an
+5. ``housing``: a ``[housing]`` holds the detector's view and every requested cell's source disc
+   (:func:`roadgonio.instrument.enclosure.check_detector_view`, :func:`~roadgonio.instrument.enclosure.check_sources`:
+   no baffle in the line of sight, no source disc through a wall, the lid or a baffle);
+6. ``backend`` (on the worker): whatever the backend itself refuses (render-time ray hits of an
    XML scene or a mesh, a beam limit the renderer cannot model, ...).
 
-The detector housing is not part of the instrument description (only its pupil), so light it
-might block on the way from the source to the sample is not checked.
+The detector's own housing (around its pupil) is not part of the instrument description, so light
+it might block on the way from the source to the sample is not checked (an instrument's [housing]
+is: check 5).
 """
 from __future__ import annotations
 
@@ -37,7 +41,7 @@ class Feasibility:
     """Geometry verdict of one design point."""
 
     ok: bool
-    kind: str = ""                  # "" | instrument | footprint | horizon | line_of_sight | backend
+    kind: str = ""                  # "" | instrument | footprint | horizon | line_of_sight | housing | backend
     reason: str = ""
     footprint: tuple[float, float, float, float] | None = None   # x_min, x_max, y_min, y_max (m)
 
@@ -97,6 +101,15 @@ def check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]])
                            f"the source disc (radius {src.radius_m:g} m at {src.distance_m:g} m) blocks the detector's "
                            f"view of the sample (pupil {det.pupil_radius_m:g} m at {det.distance_m:g} m) at "
                            f"{_cells_text(blocked)}", fp)
+    from roadgonio.instrument.enclosure import check_detector_view, check_sources
+    from roadgonio.instrument.housing import Housing
+    housing = Housing.of(instrument)
+    if housing is not None:
+        try:
+            check_detector_view(instrument, housing)
+            check_sources(instrument, housing, cells)
+        except GeometryError as err:
+            return Feasibility(False, "housing", str(err), fp)
     return Feasibility(True, footprint=fp)
 
 

@@ -4,8 +4,11 @@ Every grid point is a complete instrument: the base instrument file with the var
 (:meth:`roadgonio.instrument.config.Instrument.with_changes`). KEY is an instrument-file key
 ``section.key`` (docs/conventions.md section 4), for example ``source.radius_m``, ``source.distance_m``,
 ``detector.distance_m``, ``detector.pupil_radius_m``, ``detector.field_half_angle_deg``,
-``observation.alpha_deg``, and the widths of the source's beam profile ``source.beam_sigma_deg``,
-``source.beam_cos_power``, ``source.aperture_edge_radiance``. Values:
+``observation.alpha_deg``, the widths of the source's beam profile ``source.beam_sigma_deg``,
+``source.beam_cos_power``, ``source.aperture_edge_radiance``; the housing's ``housing.wall_reflectance``,
+``housing.baffle_reflectance``, ``housing.height_m``, ``housing.margin_m`` and, for a baffle declared in
+the base instrument's ``[housing] baffles`` (index N from 0; a height of 0 is no baffle),
+``housing.baffles.N.x_m`` and ``housing.baffles.N.height_m``. Values:
 
 * ``LO:HI:N``      N values evenly spaced from LO to HI (both included);
 * ``LO:HI:N:log``  N values evenly spaced in log(value) (LO, HI > 0);
@@ -22,6 +25,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import re
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
@@ -37,8 +41,11 @@ VARIABLE_KEYS: dict[str, tuple[str, ...]] = {
                "aperture_edge_radiance"),
     "detector": ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity"),
     "sample": ("size_x_m", "size_y_m"),
+    "housing": ("wall_reflectance", "baffle_reflectance", "height_m", "margin_m"),
 }
 ALL_KEYS = tuple(f"{s}.{k}" for s, keys in VARIABLE_KEYS.items() for k in keys)
+#: Keys of the baffles declared in the base instrument's [housing] (N = 0, 1, ...).
+BAFFLE_KEY = re.compile(r"^housing\.baffles\.(\d+)\.(x_m|height_m)$")
 SYNTAX = "KEY=LO:HI:N, KEY=LO:HI:N:log or KEY=V1,V2,... (e.g. source.radius_m=0.01:0.04:4)"
 
 
@@ -80,8 +87,9 @@ def parse_vary(spec: str) -> VarySpec:
     if "=" not in text:
         raise InputError(f"expected {SYNTAX}; got {text!r}", field="--vary")
     key, rhs = (s.strip() for s in text.split("=", 1))
-    if key not in ALL_KEYS:
-        raise InputError(f"unknown instrument key {key!r}; expected one of {', '.join(ALL_KEYS)}", field="--vary")
+    if key not in ALL_KEYS and not BAFFLE_KEY.match(key):
+        raise InputError(f"unknown instrument key {key!r}; expected one of {', '.join(ALL_KEYS)}, "
+                         "housing.baffles.N.x_m, housing.baffles.N.height_m", field="--vary")
     if not rhs:
         raise InputError(f"no values for {key}; expected {SYNTAX}", field="--vary")
     log = False
@@ -152,9 +160,24 @@ def grid_shape(specs: Sequence[VarySpec]) -> tuple[int, ...]:
 def point_changes(base: Instrument, point: Mapping[str, float]) -> dict[str, dict[str, Any]]:
     """The ``with_changes`` sections of a grid point (with the focus rule of the module docstring)."""
     changes: dict[str, dict[str, Any]] = {}
+    baffles = None
     for key, value in point.items():
+        m = BAFFLE_KEY.match(key)
+        if m:
+            # one baffle of the base instrument's [housing] list
+            if baffles is None:
+                sec = base.extra.get("housing") or {}
+                baffles = [dict(b) for b in sec.get("baffles", ())]
+            k = int(m.group(1))
+            if k >= len(baffles):
+                raise InputError(f"{key}: the base instrument declares {len(baffles)} baffle(s) in [housing] "
+                                 f"baffles; declare baffle {k} there (height_m = 0 is no baffle)", field="--vary")
+            baffles[k][m.group(2)] = float(value)
+            continue
         sec, name = key.split(".", 1)
         changes.setdefault(sec, {})[name] = float(value)
+    if baffles is not None:
+        changes.setdefault("housing", {})["baffles"] = baffles
     det = changes.get("detector", {})
     if "distance_m" in det and "focus_m" not in det:
         f = base.detector.focus_m

@@ -100,6 +100,8 @@ def _toml_value(v) -> str:
         return json.dumps(v)          # a TOML basic string (JSON's escapes are TOML's)
     if isinstance(v, (list, tuple)):
         return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):          # an inline table (e.g. a [housing] baffle)
+        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + "}"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 
@@ -283,7 +285,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
                 ax.clabel(cs2, fmt=lambda v: f"signal x{v:g}", fontsize=7)
     for (iy, ix) in zip(*np.nonzero(~geo)):
         ax.text(x[ix], y[iy], {"footprint": "F", "horizon": "H", "line_of_sight": "L", "instrument": "I",
-                               "backend": "B"}.get(str(kind[iy, ix]), "x"), ha="center", va="center", fontsize=8,
+                               "housing": "W", "backend": "B"}.get(str(kind[iy, ix]), "x"), ha="center", va="center", fontsize=8,
                 color="0.35")
     feas = sub["feasible"].transpose(yk, xk).values.astype(bool)
     ax.plot(X[feas], Y[feas], ".", color="white", ms=3, ls="none")
@@ -301,7 +303,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
     ax.set_title(f"{ds.attrs['title']}: max |k_A - 1| over cells and samples ({samples})"
                  + (f"\nat {fixed}" if fixed else "")
                  + "\ngrey letters: geometrically impossible (F footprint, H horizon, L line of sight, I instrument, "
-                   "B backend); dots: feasible", fontsize=8.5)
+                   "W housing, B backend); dots: feasible", fontsize=8.5)
     fig.tight_layout()
     out = atomic_savefig(fig, path, dpi=120)
     plt.close(fig)

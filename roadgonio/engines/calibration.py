@@ -25,6 +25,11 @@ the instrument's ``[calibration] mode`` (:mod:`roadgonio.instrument.calibration`
   until two successive rules agree to ``eta_rtol``.
   Limitation: eta is the bare geometry's; parts of a ``[scene] xml`` that shade the footprint or the
   sample centre from the source are not in it (the backend's k_lam does see them, as a ratio).
+  Stray light (a backend that reports ``stray_fraction`` > 0): the meter reads the total signal,
+  S_total[f] = S_direct[f] / (1 - stray_fraction), against the source's E_0 (no housing in its
+  calibration), so ``k_abs = k_lam_direct * eta / (1 - stray_fraction)``, and ``k_a_direct`` is
+  k_lam_direct * eta; its relative standard error combines those of k_lam_direct and of
+  1 - stray_fraction as if independent.
 * ``reference`` (reference = SAMPLE with BRDF f_ref): q = (S[f] / S[f_ref]) f_ref(nominal), so::
 
       k_ref = k_lam[f] / k_lam[f_ref]
@@ -34,7 +39,8 @@ the instrument's ``[calibration] mode`` (:mod:`roadgonio.instrument.calibration`
   Precision: for Monte Carlo backends the relative standard error is combined as if the two errors
   were independent, ``rel_se = sqrt(rel_se_f^2 + rel_se_ref^2)``; the common random numbers make them
   positively correlated, so this overstates the error (conservative). For deterministic backends the
-  relative bounds add (first-order worst case).
+  relative bounds add (first-order worst case). ``k_a_direct`` is formed the same way from the direct
+  light of both; the stray fraction is the sample's.
 """
 from __future__ import annotations
 
@@ -318,6 +324,14 @@ class CalibratedBackend:
         bound = c.error_bound * eta + abs(c.k_a) * eta_err if math.isfinite(c.error_bound) else math.nan
         extra = {**(c.extra or {}), "calibration": "absolute", "k_a_lambert": c.k_a, "eta": eta,
                  "eta_error": eta_err, "eta_converged": eta_ok}
+        if c.stray_fraction != 0.0:
+            # the meter reads the total signal against the source's own E_0 (module docstring)
+            kd = apply_calibration("absolute", c.k_a_direct, eta=eta)
+            k = kd / (1.0 - c.stray_fraction)
+            se = abs(k) * math.hypot(_rel(c.k_a_direct_se, c.k_a_direct), c.stray_fraction_se / (1.0 - c.stray_fraction))
+            return CellResult(c.tan_eps, c.beta_deg, k, se, c.samples, c.seconds, extra, error_bound=bound,
+                              converged=c.converged and eta_ok, k_a_direct=kd, k_a_direct_se=c.k_a_direct_se * eta,
+                              stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se)
         return CellResult(c.tan_eps, c.beta_deg, apply_calibration("absolute", c.k_a, eta=eta), c.se * eta,
                           c.samples, c.seconds, extra,
                           error_bound=bound, converged=c.converged and eta_ok)
@@ -331,14 +345,25 @@ class CalibratedBackend:
             se, bound = math.nan, abs(k) * (_rel(c.error_bound, c.k_a) + _rel(r.error_bound, r.k_a))
         extra = {**(c.extra or {}), "calibration": "reference", "k_a_lambert": c.k_a,
                  "k_a_lambert_reference": r.k_a}
+        stray = {}
+        if c.stray_fraction != 0.0 or r.stray_fraction != 0.0:
+            kd = apply_calibration("reference", c.k_a_direct, reference_reading=r.k_a_direct)
+            stray = dict(k_a_direct=kd, k_a_direct_se=abs(kd) * math.hypot(_rel(c.k_a_direct_se, c.k_a_direct),
+                                                                          _rel(r.k_a_direct_se, r.k_a_direct)),
+                         stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se)
         return CellResult(c.tan_eps, c.beta_deg, k, se, c.samples + r.samples, c.seconds + r.seconds, extra,
-                          error_bound=bound, converged=c.converged and r.converged)
+                          error_bound=bound, converged=c.converged and r.converged, **stray)
 
-    def _unity(self, tan_eps: float, beta_deg: float) -> CellResult:
+    def _unity(self, tan_eps: float, beta_deg: float, c: CellResult | None = None) -> CellResult:
+        """k_A = 1 exactly (the reference is the sample); with stray light the sample's stray fraction
+        from its own computation ``c``."""
         deterministic = _is_deterministic(self.inner)
-        return CellResult(float(tan_eps), float(beta_deg), 1.0, math.nan if deterministic else 0.0, 0, 0.0,
+        stray = {} if c is None else dict(k_a_direct=1.0, k_a_direct_se=0.0, stray_fraction=c.stray_fraction,
+                                           stray_fraction_se=c.stray_fraction_se)
+        return CellResult(float(tan_eps), float(beta_deg), 1.0, math.nan if deterministic else 0.0,
+                          0 if c is None else c.samples, 0.0 if c is None else c.seconds,
                           {"calibration": "reference", "note": "the reference is the sample: k_A = 1 exactly"},
-                          error_bound=0.0 if deterministic else math.nan, converged=True)
+                          error_bound=0.0 if deterministic else math.nan, converged=True, **stray)
 
     # -- the KaBackend interface --------------------------------------------------------------
     def compute(self, cells: Sequence[tuple[float, float]],
@@ -357,6 +382,10 @@ class CalibratedBackend:
             self.inner.compute(cells, on_cell=lambda c: emit(self._absolute(c)))
             return out
         if self.identical:
+            if getattr(self.inner, "stray_light", False):
+                # k_A = 1, but the stray fraction of the sample is still to be computed
+                self.inner.compute(cells, on_cell=lambda c: emit(self._unity(c.tan_eps, c.beta_deg, c)))
+                return out
             for t, b in cells:
                 emit(self._unity(t, b))
             return out

@@ -149,8 +149,9 @@ def tolerance_setting(backend: str, value, field: str = "rel_se") -> dict[str, f
 
 def check_capabilities(info: BackendInfo, instrument) -> None:
     """Refuse an instrument the backend does not model (never ignore part of it): a Mitsuba XML
-    scene's extra parts, a mesh sample, a source radiance profile, a detector sensitivity map. (A
-    beam limit that clips the footprint is refused per cell by the backends that cannot model it.)"""
+    scene's extra parts, a [housing] (the backends that model XML scenes model it), a mesh sample, a
+    source radiance profile, a detector sensitivity map. (A beam limit that clips the footprint is
+    refused per cell by the backends that cannot model it.)"""
     scene = instrument.extra.get("scene") if hasattr(instrument.extra, "get") else None
     if scene and not info.xml_scenes:
         what = "a Mitsuba XML scene" if hasattr(scene, "get") and "xml" in scene else "a [scene] section"
@@ -158,6 +159,12 @@ def check_capabilities(info: BackendInfo, instrument) -> None:
         raise InputError(f"the {info.name} backend does not model {what} (its extra geometry would be ignored, "
                          f"giving a different instrument); use --backend {alt}, or an instrument file "
                          "without [scene]", path=instrument.path, field="scene")
+    housing = instrument.extra.get("housing") if hasattr(instrument.extra, "get") else None
+    if housing is not None and not info.xml_scenes:
+        alt = ", ".join(n for n, b in BACKENDS.items() if b.xml_scenes)
+        raise InputError(f"the {info.name} backend does not model a [housing] (its walls' shade and stray light would "
+                         f"be ignored, giving a different instrument); use --backend {alt}", path=instrument.path,
+                         field="housing")
     if instrument.source.profiled and not info.beam_profile:
         key = instrument.source.profile_keys[0]
         alt = ", ".join(n for n, b in BACKENDS.items() if b.beam_profile)

@@ -10,6 +10,12 @@ Each precision field has ONE meaning:
 * ``confidence_bound`` with ``confidence_level``: a statistical bound that holds with that
   probability (the RQMC reference: a Student-t interval of its replicates, beside its ``se``).
 
+Stray light (issue 18): ``k_a`` is everything the scene does; ``k_a_direct`` the k_A of the light
+that reaches the footprint straight from the source alone, and ``stray_fraction`` =
+1 - S_direct[f] / S_total[f] of the road sample, each with its standard error (``k_a_direct_se``,
+``stray_fraction_se``). A backend that traces no stray light leaves them out: then ``k_a_direct``
+is ``k_a`` (with ``se``) and the stray fraction is 0 exactly.
+
 Fields that do not apply are NaN. A budget takes its standard uncertainty from
 :meth:`CellResult.standard_uncertainty` (the SE, or a deterministic bound as a rectangular
 distribution); a confidence bound is never divided by sqrt 3 or treated as an SE.
@@ -45,12 +51,20 @@ class CellResult:
     converged: bool = True
     confidence_bound: float = math.nan    # statistical bound of |k_a - true| at confidence_level; NaN otherwise
     confidence_level: float = math.nan    # probability of confidence_bound (e.g. 0.999); NaN otherwise
+    k_a_direct: float | None = None          # None: no stray light traced, = k_a
+    k_a_direct_se: float | None = None       # None: = se
+    stray_fraction: float | None = None      # None: 0 (no stray light traced)
+    stray_fraction_se: float | None = None   # None: 0
 
     def __post_init__(self):
         # JSON (journal, outputs) carries NaN as null: read it back as NaN
         for name in ("se", "error_bound", "confidence_bound", "confidence_level"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, math.nan)
+        for name, default in (("k_a_direct", self.k_a), ("k_a_direct_se", self.se), ("stray_fraction", 0.0),
+                              ("stray_fraction_se", 0.0)):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, float(default))
 
     @property
     def deterministic(self) -> bool:

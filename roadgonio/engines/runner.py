@@ -196,7 +196,22 @@ FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
     "samples": ("samples or integrand evaluations of the cell", "1", ""),
     "seconds": ("compute time of the cell", "s", "the pass's wall time shared out for batched backends"),
     "converged": ("the cell was computed and reached its target", "", "false where not computed or stopped at a cap"),
+    # stray light (issue 18; docs/conventions.md section 5): without it k_a_direct = k_a, stray_fraction = 0
+    "k_a_direct": ("k_A of the direct light", "1", "the light that reaches the footprint straight from the source "
+                                                 "only (no stray light from the scene's reflecting parts)"),
+    "k_a_direct_se": ("standard error of k_a_direct", "1", ""),
+    "stray_fraction": ("stray fraction of the road signal", "1", "1 - S_direct[f] / S_total[f]; 0 without stray light"),
+    "stray_fraction_se": ("standard error of stray_fraction", "1", ""),
 }
+#: The stray-light outputs (written when the scene made stray light): field -> file.
+STRAY_FILES = {"k_a_direct": "ka_direct.csv", "k_a_direct_se": "ka_direct_se.csv",
+               "stray_fraction": "stray_fraction.csv", "stray_fraction_se": "stray_fraction_se.csv"}
+
+
+def has_stray_light(ds) -> bool:
+    """Whether a k_A Dataset holds stray light (some cell's stray fraction is not 0)."""
+    sf = ds["stray_fraction"].values
+    return bool(np.any(np.nan_to_num(sf) != 0.0))
 #: Fields of CellResult that are not data variables.
 _NOT_DATA = ("tan_eps", "beta_deg", "extra")
 
@@ -279,6 +294,10 @@ def summary(ds) -> dict[str, Any]:
                seconds_total=float(np.nansum(ds["seconds"].values)),
                seconds_wall_this_run=float(ds.attrs["seconds_wall"]),
                resumed_cells=int(ds.attrs["resumed_cells"]))
+    if has_stray_light(ds):
+        kd = ds["k_a_direct"].values[done]
+        out.update(stray_fraction_max=float(np.nanmax(ds["stray_fraction"].values[done])),
+                   k_a_direct_min=float(kd.min()), k_a_direct_max=float(kd.max()))
     return out
 
 
@@ -298,7 +317,8 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
     (:class:`roadgonio.fileio.OutputGroup`: a failed or full disk leaves the folder's previous results
     and the journal as they were): ``ka.nc`` (the Dataset), ``ka.csv`` (k_A), its precision in the
     same layout (``ka_se.csv`` for a standard error, ``ka_bound.csv`` for a deterministic bound,
-    and ``ka_confidence_bound.csv`` beside ka_se.csv for a confidence bound), ``ka.png`` and
+    and ``ka_confidence_bound.csv`` beside ka_se.csv for a confidence bound; with stray light
+    ``ka_direct.csv``, ``stray_fraction.csv`` and their ``_se`` files), ``ka.png`` and
     ``ka.json`` (provenance, summary, fingerprint, files); returns the ka.json content. ``figures``
     (:class:`roadgonio.plotproc.FigureProcess`) draws the map in a helper process."""
     import json as _json
@@ -319,6 +339,12 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
                 group.text(name, grid_csv_text(v, f"{ds[field].attrs['long_name']} (instrument '{ds.attrs['instrument']}', "
                                                   f"sample '{ds.attrs['sample']}', {ds.attrs['backend']} backend)",
                                                digits=4))
+                files[field] = name
+        if has_stray_light(ds):
+            for field, name in STRAY_FILES.items():
+                group.text(name, grid_csv_text(ds[field].values, f"{ds[field].attrs['long_name']} (instrument "
+                                               f"'{ds.attrs['instrument']}', sample '{ds.attrs['sample']}', "
+                                               f"{ds.attrs['backend']} backend)", digits=7 if "se" not in field else 4))
                 files[field] = name
         if plot:
             files["map"] = "ka.png"

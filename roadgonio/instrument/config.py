@@ -326,10 +326,37 @@ def _resolve_file(sec: dict, key: str, section: str, path: Path | None) -> None:
 
 
 _SECTIONS = ("observation", "source", "detector", "sample", "instrument")
-#: Sections kept as they are for the parts that read them: [scene] (the Mitsuba XML scene,
-#: roadgonio.engines.mitsuba.scene). [calibration] (docs/conventions.md section 5) is the field
+#: Sections kept as they are for the parts that read them: [scene] (the Mitsuba XML scene and the
+#: light paths, roadgonio.engines.mitsuba.scene) and [housing] (roadgonio.instrument.housing); both
+#: are checked on construction. [calibration] (docs/conventions.md section 5) is the field
 #: ``calibration`` (roadgonio.instrument.calibration; k_A in its mode: roadgonio.engines.calibration).
-EXTRA_SECTIONS = ("scene",)
+EXTRA_SECTIONS = ("scene", "housing")
+#: Keys of [scene]: the XML file, its $parameters, and the reflections followed per light path.
+SCENE_KEYS = ("xml", "params", "max_bounces")
+#: Largest [scene] max_bounces.
+MAX_BOUNCES_LIMIT = 64
+
+
+def check_extra_sections(extra: Mapping[str, Any]) -> None:
+    """Check [scene] (known keys; ``xml`` a file name, ``params`` a table, ``max_bounces`` a whole
+    number 1 ... 64) and [housing] (:class:`roadgonio.instrument.housing.Housing`)."""
+    scene = extra.get("scene")
+    if scene is not None:
+        if not isinstance(scene, Mapping):
+            raise InputError("expected a table [scene]", field="scene")
+        _check_keys(scene, set(SCENE_KEYS), "scene", None)
+        if "xml" in scene and (not isinstance(scene["xml"], (str, Path)) or not str(scene["xml"])):
+            raise InputError(f"expected a file name, got {scene['xml']!r}", field="scene.xml")
+        if "params" in scene and not isinstance(scene["params"], Mapping):
+            raise InputError("expected a table [scene.params]", field="scene.params")
+        if "max_bounces" in scene:
+            v = scene["max_bounces"]
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= MAX_BOUNCES_LIMIT:
+                raise InputError(f"expected a whole number of reflections 1 ... {MAX_BOUNCES_LIMIT} (1 = the "
+                                 f"sample's own only), got {v!r}", field="scene.max_bounces")
+    if extra.get("housing") is not None:
+        from roadgonio.instrument.housing import Housing
+        Housing.from_dict(extra["housing"])
 
 
 class FrozenDict(dict):
@@ -391,6 +418,10 @@ class Instrument:
         if clash:
             raise InputError(f"section(s) {', '.join(clash)} are fields of the instrument, not extra sections",
                              field="extra")
+        try:
+            check_extra_sections(self.extra)
+        except InputError as err:
+            raise InputError(err.reason, path=self.path, field=err.field) from None
 
     # -- nominal geometry --------------------------------------------------------------------
     def w_o(self) -> np.ndarray:

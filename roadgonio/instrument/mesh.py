@@ -14,7 +14,6 @@ from pathlib import Path
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.instrument.config import Instrument
 
 
 def rectangle_trimesh(size_x_m: float, size_y_m: float):
@@ -63,15 +62,16 @@ def rectangle_triangles(size_x_m: float, size_y_m: float) -> Triangles:
                      np.array([[0, 1, 2], [0, 2, 3]]))
 
 
-def sample_triangles(instrument: Instrument):
-    """The sample's triangles for a renderer: the rectangle as :class:`Triangles`, or the checked mesh
+def sample_triangles(instrument):
+    """The sample's triangles for a renderer (``instrument``: an instrument.config.Instrument; not
+    imported here, config -> housing -> mesh would close a circle): the rectangle as :class:`Triangles`, or the checked mesh
     file (:func:`sample_trimesh`); both have ``vertices`` and ``faces``."""
     if instrument.sample.mesh is None:
         return rectangle_triangles(instrument.sample.size_x_m, instrument.sample.size_y_m)
     return sample_trimesh(instrument)
 
 
-def sample_trimesh(instrument: Instrument):
+def sample_trimesh(instrument):
     """The instrument's sample as a checked trimesh: its rectangle, or its mesh file (which must face +z)."""
     smp = instrument.sample
     if smp.mesh is None:

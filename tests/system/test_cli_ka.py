@@ -50,8 +50,11 @@ def test_single_cell_json_keys(capsys):
     assert main(["ka", "--instrument", "portable", "--sample", "lambert", "--backend", "quadrature",
                  "--tan-eps", "12", "--beta", "0", "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
-    assert set(d) == {"k_a", "se", "error_bound", "confidence_bound", "converged", "samples", "seconds"}
+    assert set(d) == {"k_a", "se", "error_bound", "confidence_bound", "converged", "samples", "seconds",
+                      "k_a_direct", "k_a_direct_se", "stray_fraction", "stray_fraction_se"}
     assert abs(d["k_a"] - 1.0) < LAMBERT_TOL and d["samples"] > 0
+    # no stray light in this backend: the direct light is everything, the stray fraction 0 exactly
+    assert d["k_a_direct"] == d["k_a"] and d["stray_fraction"] == 0.0 and d["stray_fraction_se"] == 0.0
 
 
 @pytest.mark.parametrize("extra, needle", [

@@ -111,6 +111,12 @@ class MitsubaBackend:
         #: the schedule of the last ``compute`` call (replay it with ``plan=``)
         self.last_plan = None
 
+    @property
+    def stray_light(self) -> bool:
+        """True when the scene's reflecting parts make stray light (its results then carry
+        ``k_a_direct`` and ``stray_fraction``)."""
+        return bool(self.engine.stray)
+
     def settings(self) -> dict[str, Any]:
         import drjit as dr
         import mitsuba as mi
@@ -132,6 +138,15 @@ class MitsubaBackend:
             s["llvm"] = ".".join(map(str, llvm_version() or ()))
         if self.rs.xml is not None:
             s["xml"] = str(self.rs.xml)
+        if self.engine.stray:
+            s["stray_light"] = {
+                "max_bounces": self.engine.max_bounces, "reflecting_parts": list(self.rs.part_ids),
+                "paths": "eye paths (BSDF sampling, next-event estimation at every vertex) and light paths from "
+                         f"the source (up to {self.engine.integrator.light_depth} reflections, connected to the "
+                         "footprint), balance-heuristic MIS",
+                "se_estimator": "replicates, delta method (k_a, k_a_direct, stray_fraction)"}
+        if self.rs.housing is not None:
+            s["housing"] = self.rs.housing.to_dict()
         return s
 
     def compute(self, cells: Sequence[tuple[float, float]],
@@ -162,17 +177,26 @@ class MitsubaBackend:
         from roadgonio.engines.mitsuba.passes import relative
         ratio, se, _ = st.ratio_se()
         rel = relative(ratio, se)
-        if ideal > 0.0:
-            k_a, k_se = ratio / ideal, se / ideal
-        else:
-            k_a, k_se = math.nan, math.nan
+        # the model is 0 at the nominal geometry: k_A (with or without stray light) is undefined
+        # (divided, not multiplied by 1 / ideal: the same float64 numbers as the engine without stray light)
+        div = ideal if ideal > 0.0 else math.nan
+        k_a, k_se = ratio / div, se / div
         extra = {"ratio": ratio, "ratio_se": se, "ideal_ratio": ideal, "passes": st.passes,
                  "replicates": int(sum(len(v[0]) for v in st.strata.values())), "rel_se": rel,
                  "converged": bool(converged)}
         if ideal <= 0.0:
             extra["note"] = "the model is 0 at the nominal geometry: k_A is undefined"
+        stray = {}
+        if st.direct:
+            # the direct light alone (today's k_A) and the stray fraction, from the same replicates
+            rd, rd_se = st.direct_ratio_se()
+            sf, sf_se = st.stray_fraction_se()
+            stray = dict(k_a_direct=float(rd / div), k_a_direct_se=float(rd_se / div),
+                         stray_fraction=float(sf), stray_fraction_se=float(sf_se))
+            extra["max_bounces"] = self.engine.max_bounces
         return CellResult(tan_eps=cell[0], beta_deg=cell[1], k_a=float(k_a), se=float(k_se),
-                          converged=bool(converged), samples=int(st.samples), seconds=float(seconds), extra=extra)
+                          converged=bool(converged), samples=int(st.samples), seconds=float(seconds), extra=extra,
+                          **stray)
 
     def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
         """One cell (a batch of one)."""

@@ -38,6 +38,9 @@ MAX_RAYS = 1 << 21
 #: Largest number of (ray, cell) lanes per shading launch (their road and Lambert values are stored,
 #: 8 bytes a lane, for the evaluated block sums).
 MAX_LANES = 1 << 23
+#: With stray light, the largest number of paths traced per launch (each further vertex stores 19
+#: floats a path: 2^19 paths x 2 vertices take 80 MB).
+MAX_PATHS = 1 << 19
 
 
 def cell_directions(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
@@ -83,7 +86,8 @@ class EngineRun:
 class BatchEngine:
     """The batched engine over one built scene (:class:`~roadgonio.engines.mitsuba.scene.RoadScene`)."""
 
-    def __init__(self, rs: RoadScene, *, shadow: bool | None = None, tent: bool = False):
+    def __init__(self, rs: RoadScene, *, shadow: bool | None = None, tent: bool = False,
+                 max_bounces: int | None = None):
         import drjit as dr
         import mitsuba as mi
 
@@ -111,18 +115,31 @@ class BatchEngine:
         self.integrator.set_source(self.emitter, self._emitter_shape)
         self.integrator.set_profile(src)
         self.threads = int(dr.thread_count()) if hasattr(dr, "thread_count") else 1
+        # stray light: paths through the reflecting parts (the scene decides, rs.stray; ``max_bounces``
+        # forces the paths, e.g. to show that black parts give the direct engine's numbers bit for bit)
+        self.max_bounces = int(max_bounces) if max_bounces is not None else rs.max_bounces
+        self.stray = bool(rs.stray or (max_bounces is not None and max_bounces > 1))
+        if self.stray:
+            if self.max_bounces < 2:
+                raise ValueError("stray light needs max_bounces >= 2")
+            self.integrator.set_parts([rs.sample_shape] + list(rs.parts), self.max_bounces, src.radius_m,
+                                      source_radiance(rs.instrument))
 
     def can_occlude(self) -> bool:
         """Whether anything in the scene can shade the light reaching the sample: a flat rectangle
-        alone cannot (the sources are above its plane); meshes and XML scenes can."""
-        return not (self.rs.flat_rectangle and self.rs.xml is None)
+        alone cannot (the sources are above its plane); meshes, XML scenes and housings can."""
+        return not (self.rs.flat_rectangle and self.rs.xml is None and self.rs.housing is None)
 
     # -- checks --------------------------------------------------------------------------------
     def check_cells(self, cells: Sequence[tuple[float, float]]) -> None:
         """The preamble of every backend (:func:`roadgonio.engines.cellcheck.check_cells`); the area
-        emitter has no beam limit, so a clipping one is refused."""
+        emitter has no beam limit, so a clipping one is refused; a housing must hold every cell's
+        source (:func:`roadgonio.instrument.enclosure.check_sources`)."""
         check_cells(self.instrument, self.rs.model, cells, models_beam=backend_info("mitsuba").beam_clipping,
                     backend="mitsuba")
+        if self.rs.housing is not None:
+            from roadgonio.instrument.enclosure import check_sources
+            check_sources(self.instrument, self.rs.housing, cells)
 
     # -- the passes ----------------------------------------------------------------------------
     def run(self, cells: Sequence[tuple[float, float]], planner: Planner, *, seed: int = 0,
@@ -196,12 +213,24 @@ class BatchEngine:
         max_reps = int(want.max())
         shifts = lat.shifts(seed, p, log2n, max_reps)
         z = lat.generating_vector(n)
-        reps_per_chunk = max(1, MAX_RAYS >> log2n)
-        got_cell, got_rep, got = [], [], []
+        if self.stray and integ.qmc_dims:
+            # the paths' first dimensions continue the lattice (shifts of their own)
+            z = lat.generating_vector(n, lat.DIMENSIONS + integ.qmc_dims)
+            shifts = np.concatenate([shifts, lat.walk_shifts(seed, p, log2n, max_reps, integ.qmc_dims)], axis=1)
+        reps_per_chunk = max(1, (MAX_PATHS if self.stray else MAX_RAYS) >> log2n)
+        got_cell, got_rep, got, got_stray = [], [], [], []
+        if self.stray:
+            from roadgonio.engines.mitsuba.plugins.ka_batch import _u32
+            keys_all = lat.walk_keys(seed, p, log2n, max_reps, integ.walk_dims)
         for r0 in range(0, max_reps, reps_per_chunk):
             r1 = min(max_reps, r0 + reps_per_chunk)
             lattice = integ.lattice_params(n, z, shifts[r0:r1], self.tent)
-            rays, misses = integ.trace_detector(rs.scene, rs.sensor, lattice, r1 - r0)
+            if self.stray:
+                keys = [_u32(keys_all[r0:r1, d]) for d in range(keys_all.shape[1])]
+                rays, verts, misses = integ.trace_paths(rs.scene, rs.sensor, lattice, r1 - r0, keys)
+                run.launches += len(verts)
+            else:
+                rays, misses = integ.trace_detector(rs.scene, rs.sensor, lattice, r1 - r0)
             run.launches += 1
             if misses:
                 raise GeometryError(f"{misses} of {(r1 - r0) * n} detector rays do not hit the sample: the detector "
@@ -219,6 +248,26 @@ class BatchEngine:
                 got.append(out.astype(np.float64).sum(axis=1))          # (blocks, 2)
                 got_cell.append(bc[k0:k1])
                 got_rep.append(br[k0:k1])
+                if self.stray:
+                    # the light through each further path vertex, next-event estimation to the block's cell
+                    ind = np.zeros((k1 - k0, 2))
+                    for k in integ.eye_vertices():
+                        ind += integ.stray_sums(rs.scene, verts[k - 1], lattice, bc[k0:k1], br[k0:k1] - r0, keys,
+                                                k).astype(np.float64).sum(axis=1)
+                        run.launches += 1
+                    if integ.light_depth:
+                        ind += integ.light_sums(rs.scene, rays, verts[0], lattice, bc[k0:k1], br[k0:k1] - r0,
+                                                keys).astype(np.float64).sum(axis=1)
+                        run.launches += 1
+                    got_stray.append(ind)
+            if self.stray:
+                del verts
         cell, rep, val = np.concatenate(got_cell), np.concatenate(got_rep), np.concatenate(got)
         order = np.lexsort((rep, cell))
-        add_strata(stats, p, log2n, cell[order], rep[order], val[order, 0], val[order, 1])
+        if self.stray:
+            # totals (direct + stray; exactly the direct sums where the stray sums are 0) and the direct light
+            tot = val + np.concatenate(got_stray)
+            add_strata(stats, p, log2n, cell[order], rep[order], tot[order, 0], tot[order, 1],
+                       val[order, 0], val[order, 1])
+        else:
+            add_strata(stats, p, log2n, cell[order], rep[order], val[order, 0], val[order, 1])

@@ -1,7 +1,9 @@
 """Pictures of one measurement cell (``roadgonio render``): the detector's view of the sample
 (the field of view, with the luminance of the road sample) and the horizontal illuminance on
 the sample around the detector footprint; OpenEXR (float32) and PNG (colour bar, footprint
-outline).
+outline). When the scene makes stray light (reflecting parts: an XML scene's walls, the
+[housing]), also where the stray light enters the detector's view and which part it comes from
+(:func:`stray_picture`: ``stray.png``, ``stray.exr``).
 
 Units follow :mod:`roadgonio.engines.mitsuba.scene`: the source gives ~1 lx normal to its axis at the
 sample centre, so the illuminance is in lx per lx and luminances in cd/m^2 per lx (a source with a
@@ -97,9 +99,13 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     E = math.pi * top[..., LAMBERT]
     L_top = top[..., ROAD]
 
+    stray = stray_picture(rs, tan_eps, beta_deg, seed=seed) if rs.stray else None
+
     from roadgonio.fileio import OutputGroup
     files = {"view_exr": str(out_dir / "view.exr"), "illuminance_exr": str(out_dir / "illuminance.exr"),
              "png": str(out_dir / "render.png")}
+    if stray is not None:
+        files.update(stray_png=str(out_dir / "stray.png"), stray_exr=str(out_dir / "stray.exr"))
     from roadgonio.provenance import provenance
     info = {**provenance(instrument=instrument, model=model, backend="mitsuba",
                          settings={"resolution": resolution, "spp": spp, "seed": seed, "sampler": "multijitter",
@@ -115,13 +121,188 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
             "footprint_m": {"x": [x0, x1], "y": [y0, y1]},
             "illuminance_window_m": {"x": [ex0, ex1], "y": [ey0, ey1]},
             "units": "source gives ~1 lx normal to its axis at the sample centre: E in lx/lx, L in cd/m^2/lx"}
+    if stray is not None:
+        info["stray"] = stray["summary"]
+        # this render's k_A with the stray light, and of the direct light alone (the direct integrator above)
+        info["k_a_direct_estimate"], info["k_a_direct_se"] = info["k_a_estimate"], info["k_a_se"]
+        tot = stray["summary"]
+        if ideal > 0:
+            info["k_a_estimate"], info["k_a_se"] = tot["ratio"] / ideal, tot["ratio_se"] / ideal
     info["files"] = files
     with OutputGroup(out_dir) as stage:      # view.exr, illuminance.exr, render.png, render.json: all or none
         write_exr(stage.path("view.exr"), {"RGB": view, "L_road": view[..., ROAD], "L_lambert": view[..., LAMBERT]})
         write_exr(stage.path("illuminance.exr"), {"E_h": E, "L_road_top": L_top})
         _png(stage.path("render.png"), instrument, view, E, (ex0, ex1, ey0, ey1), (fx, fy), info)
+        if stray is not None:
+            write_exr(stage.path("stray.exr"), stray["images"])
+            _stray_png(stage.path("stray.png"), instrument, stray, info)
         stage.json("render.json", info)
     return info
+
+
+#: Points of one replicate of the stray picture, the replicates (many small lattices: the per-pixel
+#: means of one large lattice show its stripes), and the replicates per launch.
+STRAY_PICTURE_LOG2 = 12
+STRAY_PICTURE_REPLICATES = 256
+STRAY_PICTURE_BATCH = 32
+#: Pixels per side of the stray picture.
+STRAY_PICTURE_RESOLUTION = 96
+
+
+def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: int = STRAY_PICTURE_LOG2,
+                  replicates: int = STRAY_PICTURE_REPLICATES, resolution: int = STRAY_PICTURE_RESOLUTION) -> dict:
+    """Where the stray light enters the detector's view and which part it comes from: the view of the
+    field stop (square mapping, as view.exr) sampled with the batched engine's paths for this one
+    cell (:meth:`KaBatch.picture_lanes`): per pixel the direct and the stray road luminance, the
+    stray luminance by the part of the last reflection before the footprint, and the road and
+    Lambert signals of the whole view with their stray parts (SE from ``replicates`` replicates).
+    Changes the scene's source placement (the engine's own source replaces it)."""
+    import drjit as dr
+
+    from roadgonio.engines.mitsuba import lattice as lat
+    from roadgonio.engines.mitsuba.engine import BatchEngine, source_frames
+    from roadgonio.engines.mitsuba.plugins.ka_batch import _u32
+    eng = BatchEngine(rs)
+    integ = eng.integrator
+    eng.check_cells([(tan_eps, beta_deg)])
+    integ.set_cells(source_frames(rs.instrument, [(tan_eps, beta_deg)]))
+    n = 1 << int(log2n)
+    z = lat.generating_vector(n, lat.DIMENSIONS + integ.qmc_dims)
+    shifts = np.concatenate([lat.shifts(seed, 0, log2n, replicates),
+                             lat.walk_shifts(seed, 0, log2n, replicates, integ.qmc_dims)], axis=1)
+    keys_all = lat.walk_keys(seed, 0, log2n, replicates, integ.walk_dims)
+    ids = [SAMPLE_LABEL] + [_part_label(rs, pid) for pid in rs.part_ids]
+    P = len(ids)
+    res = int(resolution)
+    sums = np.zeros((2 + P, res * res))             # direct road, stray road, stray road by part
+    counts = np.zeros(res * res)
+    reps = np.zeros((replicates, 4))                # direct road, direct Lambert, stray road, stray Lambert
+    by_part = np.zeros((replicates, P, 2))
+    rs.sensor.mapping = "square"
+    try:
+        for b0 in range(0, replicates, STRAY_PICTURE_BATCH):
+            b1 = min(replicates, b0 + STRAY_PICTURE_BATCH)
+            lattice = integ.lattice_params(n, z, shifts[b0:b1])
+            keys = [_u32(keys_all[b0:b1, d]) for d in range(keys_all.shape[1])]
+            lanes = integ.picture_lanes(rs.scene, rs.sensor, lattice, keys, reps=b1 - b0)
+            rep = b0 + lanes["rep"].astype(np.int64)
+            pix = (np.minimum((lanes["v"] * res).astype(np.int64), res - 1) * res
+                   + np.minimum((lanes["u"] * res).astype(np.int64), res - 1))
+            counts += np.bincount(pix, minlength=res * res)
+            sums[0] += np.bincount(pix, lanes["direct_road"], minlength=res * res)
+            reps[:, 0] += np.bincount(rep, lanes["direct_road"], minlength=replicates)
+            reps[:, 1] += np.bincount(rep, lanes["direct_lambert"], minlength=replicates)
+            q = 0
+            while f"road_{q}" in lanes:
+                part = np.minimum(lanes[f"part_{q}"].astype(np.int64), P - 1)
+                road, lamb = lanes[f"road_{q}"], lanes[f"lambert_{q}"]
+                sums[1] += np.bincount(pix, road, minlength=res * res)
+                for p_ in range(P):
+                    m = part == p_
+                    sums[2 + p_] += np.bincount(pix[m], road[m], minlength=res * res)
+                    by_part[:, p_, 0] += np.bincount(rep[m], road[m], minlength=replicates)
+                    by_part[:, p_, 1] += np.bincount(rep[m], lamb[m], minlength=replicates)
+                reps[:, 2] += np.bincount(rep, road, minlength=replicates)
+                reps[:, 3] += np.bincount(rep, lamb, minlength=replicates)
+                q += 1
+            del lanes
+            dr.flush_malloc_cache()
+    finally:
+        rs.sensor.mapping = "concentric"
+    with np.errstate(invalid="ignore", divide="ignore"):
+        img = (sums / np.maximum(counts, 1.0)).reshape(2 + P, res, res)
+    from roadgonio.engines.strayref import ratio_se
+    R, G = reps[:, 0] + reps[:, 2], reps[:, 1] + reps[:, 3]
+    ratio, ratio_se_ = ratio_se(R, G)
+    q_road, q_road_se = ratio_se(reps[:, 0], R)
+    q_lam, q_lam_se = ratio_se(reps[:, 1], G)
+    shares = by_part.sum(axis=0)
+    summary = {"cell": [float(tan_eps), float(beta_deg)], "max_bounces": eng.max_bounces,
+               "stray_fraction_road": 1.0 - q_road, "stray_fraction_road_se": q_road_se,
+               "stray_fraction_lambert": 1.0 - q_lam, "stray_fraction_lambert_se": q_lam_se,
+               "ratio": ratio, "ratio_se": ratio_se_,
+               "parts": {ids[p_]: {"road": float(shares[p_, 0] / R.sum()), "lambert": float(shares[p_, 1] / G.sum())}
+                         for p_ in range(P)},
+               "samples": int(n * replicates), "resolution": res,
+               "note": "shares of the whole signal (direct + stray) by the part of the last reflection before the "
+                       "footprint; road = the sample's channel, lambert = the calibration's perfect diffuser"}
+    images = {"L_direct": img[0], "L_stray": img[1], **{f"L_{ids[p_]}": img[2 + p_] for p_ in range(P)}}
+    return {"summary": summary, "images": images, "ids": ids, "stack": img}
+
+
+#: Name of the sample in the stray picture (the part of a path's last reflection may be the sample).
+SAMPLE_LABEL = "sample"
+
+
+def _part_label(rs, pid: str) -> str:
+    return pid
+
+
+def _stray_png(path: Path, instrument: Instrument, stray: dict, info) -> Path:
+    """stray.png: the stray fraction over the detector's view, the view in false colour by the part
+    the stray light last left before the footprint, and each part's share of the signal."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib import colormaps
+
+    from roadgonio.fileio import atomic_savefig
+    img, ids, summ = stray["stack"], stray["ids"], stray["summary"]
+    gamma = instrument.detector.field_half_angle_deg
+    ext = gamma if gamma > 0 else 1.0
+    res = img.shape[-1]
+    yy, xx = np.mgrid[0:res, 0:res]
+    inside = ((2 * (xx + 0.5) / res - 1) ** 2 + (2 * (yy + 0.5) / res - 1) ** 2) <= 1.0
+    total = img[0] + img[1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        frac = np.where(inside & (total > 0), img[1] / total, np.nan)
+    parts = img[2:]
+    colours = np.array([colormaps["tab10"](k % 10)[:3] for k in range(len(ids))])
+    stray_lum = parts.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mix = np.einsum("pij,pc->ijc", parts, colours) / np.maximum(stray_lum, 1e-300)[..., None]
+    scale = float(np.nanpercentile(stray_lum[inside], 99.0)) if np.any(stray_lum[inside] > 0) else 1.0
+    bright = np.clip(stray_lum / max(scale, 1e-300), 0.0, 1.0) ** 0.5
+    rgb = np.where(inside[..., None], mix * bright[..., None], 1.0)
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5.2), gridspec_kw={"width_ratios": [1, 1, 1.1]})
+    ax = axes[0]
+    im = ax.imshow(100 * frac, extent=(-ext, ext, -ext, ext), origin="upper", cmap="magma", vmin=0)
+    fig.colorbar(im, ax=ax, shrink=0.8).set_label("stray light, % of the road luminance")
+    ax.set_title("Stray fraction over the detector's view", fontsize=10)
+    ax = axes[1]
+    ax.imshow(rgb, extent=(-ext, ext, -ext, ext), origin="upper")
+    ax.set_title("Stray light by the part it last left\n(colour: part; brightness: stray luminance)", fontsize=10)
+    for a in axes[:2]:
+        t = np.linspace(0, 2 * np.pi, 200)
+        a.plot(ext * np.cos(t), ext * np.sin(t), color="cyan", lw=1.0)
+        a.set_xlabel("field angle, horizontal (deg)")
+        a.set_ylabel("field angle, vertical (deg)")
+        a.set_aspect("equal")
+    ax = axes[2]
+    road = np.array([100 * summ["parts"][i]["road"] for i in ids])
+    lam = np.array([100 * summ["parts"][i]["lambert"] for i in ids])
+    order = np.argsort(-(road + lam))
+    keep = [k for k in order if road[k] + lam[k] > 0]
+    yk = np.arange(len(keep))
+    ax.barh(yk - 0.2, road[keep], height=0.4, color=colours[keep], label="road sample")
+    ax.barh(yk + 0.2, lam[keep], height=0.4, color=colours[keep], alpha=0.45, hatch="//",
+            label="Lambert calibration (perfect diffuser)")
+    ax.set_yticks(yk, [ids[k] for k in keep], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("share of the detector signal (%)")
+    ax.legend(fontsize=8, loc="lower right")
+    ax.set_title("Which part the stray light comes from", fontsize=10)
+    ka = info.get("k_a_estimate")
+    kd = info.get("k_a_direct_estimate")
+    fig.suptitle(f"{instrument.name}, sample {info['sample']}: tan eps = {info['tan_eps']:g}, beta = {info['beta_deg']:g} deg: "
+                 f"stray light {100 * summ['stray_fraction_road']:.2f} % of the road signal, "
+                 f"{100 * summ['stray_fraction_lambert']:.2f} % of the Lambert calibration's"
+                 + (f"\nk_A ~ {ka:.4f} with the stray light, {kd:.4f} of the direct light (this render)"
+                    if ka is not None and kd is not None else ""), fontsize=11)
+    fig.tight_layout()
+    atomic_savefig(fig, path, dpi=100)
+    plt.close(fig)
+    return path
 
 
 def _hull(x, y):

@@ -83,12 +83,13 @@ def search_korobov(log2n: int, candidates: int = CANDIDATES, seed: int = SEARCH_
     return best_a
 
 
-def generating_vector(n: int) -> np.ndarray:
-    """The generating vector z (int64, length :data:`DIMENSIONS`) of the lattice of size n = 2^k."""
+def generating_vector(n: int, dims: int = DIMENSIONS) -> np.ndarray:
+    """The generating vector z (int64, length ``dims``, default :data:`DIMENSIONS`) of the lattice of
+    size n = 2^k; more dimensions (stray-light paths) continue the same Korobov vector."""
     k = int(n).bit_length() - 1
     if n != 1 << k or not (MIN_LOG2 <= k <= MAX_LOG2):
         raise ValueError(f"lattice size must be a power of two in 2^{MIN_LOG2} ... 2^{MAX_LOG2}, got {n}")
-    return korobov_vector(n, KOROBOV[k])
+    return korobov_vector(n, KOROBOV[k], dims)
 
 
 def lattice_points(n: int, shift: np.ndarray) -> np.ndarray:
@@ -105,6 +106,26 @@ def shifts(seed: int, pass_index: int, log2n: int, count: int) -> np.ndarray:
     whichever other cells share the launch."""
     rng = np.random.default_rng([int(seed), int(pass_index), int(log2n)])   # the full seed (no 32-bit reduction)
     return rng.random((int(count), DIMENSIONS))
+
+
+#: Tag of the random stream of the path keys (stray light), apart from the shifts' stream.
+WALK_STREAM = 0x57A7
+
+
+def walk_keys(seed: int, pass_index: int, log2n: int, count: int, dims: int) -> np.ndarray:
+    """``count`` rows of ``dims`` uint32 keys, one per replicate and path dimension beyond the
+    lattice's six (stray light: the reflections of a path and their next-event estimation, hashed
+    with the point index on the device). Like :func:`shifts`, a function of (seed, pass, lattice
+    size) only, from a stream of its own: the lattice shifts do not change when paths are traced."""
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(pass_index), int(log2n), WALK_STREAM])
+    return rng.integers(0, 1 << 32, size=(int(count), int(dims)), dtype=np.uint64).astype(np.uint32)
+
+
+def walk_shifts(seed: int, pass_index: int, log2n: int, count: int, dims: int) -> np.ndarray:
+    """Shifts (count, dims) of the lattice dimensions beyond the first six (stray-light paths), from
+    a stream of their own: :func:`shifts` gives the same first six whether or not paths are traced."""
+    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(pass_index), int(log2n), WALK_STREAM, 1])
+    return rng.random((int(count), int(dims)))
 
 
 def _main() -> None:  # pragma: no cover - the generator of KOROBOV

@@ -86,6 +86,9 @@ class CellStats:
     single: bool = False
     #: the same moments per stratum (for the per-point variance of each lattice size)
     strata_b: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
+    #: with stray light: per stratum the replicate sums of the direct light alone (R_d, G_d); the
+    #: sums R, G above are then the totals (direct + stray)
+    direct: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     def add(self, pass_index: int, log2n: int, reps: np.ndarray, R: np.ndarray, G: np.ndarray) -> None:
         """Add all replicates of one stratum (at most one call per stratum)."""
@@ -124,11 +127,46 @@ class CellStats:
     def residuals(self, ratio: float) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
         return {k: (reps, R - ratio * G) for k, (reps, R, G) in self.strata.items()}
 
+    def direct_ratio_se(self) -> tuple[float, float]:
+        """Ratio R_d / G_d of the direct light alone and its standard error (delta method over the
+        same replicates); the plain ratio where no stray light was traced."""
+        if not self.direct:
+            r, se, _ = self.ratio_se()
+            return r, se
+        return strata_ratio_se([self.direct[k] for k in sorted(self.strata)])
+
+    def stray_fraction_se(self) -> tuple[float, float]:
+        """Stray fraction of the road signal, 1 - R_d / R (R = direct + stray), and its standard
+        error (delta method); exactly (0, 0) where no stray light was traced."""
+        if not self.direct:
+            return 0.0, 0.0
+        keys = sorted(self.strata)
+        q, se = strata_ratio_se([(self.direct[k][0], self.strata[k][1]) for k in keys])
+        return 1.0 - q, se
+
+
+def strata_ratio_se(strata: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float]:
+    """Ratio sum(A) / sum(B) of paired replicate sums over independent strata, and its standard
+    error by the delta method (module docstring): Var = sum_q B_q s_q^2(A - r B) / (sum B)^2."""
+    sa = sum(float(np.sum(a)) for a, _ in strata)
+    sb = sum(float(np.sum(b)) for _, b in strata)
+    if not sb > 0.0:
+        return math.nan, math.inf
+    r = sa / sb
+    var = 0.0
+    for a, b in strata:
+        y = np.asarray(a, dtype=np.float64) - r * np.asarray(b, dtype=np.float64)
+        if y.size < 2:
+            return r, math.inf
+        var += y.size * float(np.var(y, ddof=1))
+    return r, math.sqrt(max(var, 0.0)) / abs(sb)
+
 
 def add_strata(stats: Sequence[CellStats], pass_index: int, log2n: int, owner: np.ndarray, reps: np.ndarray,
-               R: np.ndarray, G: np.ndarray) -> None:
+               R: np.ndarray, G: np.ndarray, Rd: np.ndarray | None = None, Gd: np.ndarray | None = None) -> None:
     """Add one stratum (pass, log2 n) to several cells at once: replicate k belongs to
-    ``stats[owner[k]]``; ``owner`` must be sorted (vectorised over the cells)."""
+    ``stats[owner[k]]``; ``owner`` must be sorted (vectorised over the cells). With stray light,
+    R and G are the totals and ``Rd``, ``Gd`` the direct light alone."""
     key = (int(pass_index), int(log2n))
     owner = np.asarray(owner, dtype=np.int64)
     R, G = np.asarray(R, dtype=np.float64), np.asarray(G, dtype=np.float64)
@@ -156,6 +194,8 @@ def add_strata(stats: Sequence[CellStats], pass_index: int, log2n: int, owner: n
     for k, st in enumerate(cells):
         a, b = starts[k], starts[k] + counts[k]
         st.strata[key] = (reps[a:b], R[a:b], G[a:b])
+        if Rd is not None:
+            st.direct[key] = (np.asarray(Rd[a:b], dtype=np.float64), np.asarray(Gd[a:b], dtype=np.float64))
         st.samples += int(counts[k]) << key[1]
         st.passes = len({q[0] for q in st.strata})
         st.sum_r += float(sr[k])

@@ -51,6 +51,7 @@ from roadgonio.instrument.mesh import sample_triangles
 from roadgonio.instrument.optics import (
     beam_clips_footprint,
     check_detector,
+    check_line_of_sight,
     check_source,
     detector_geometry,
     detector_ray,
@@ -63,10 +64,15 @@ from roadgonio.surface.model import RoadModel
 
 #: Ids of the scene parts (TOML-built and XML scenes alike).
 SOURCE_ID, SAMPLE_ID, DETECTOR_ID = "source", "sample", "detector"
-#: Sources closer than this to the line of sight get the detector-ray check again per cell.
-SOURCE_NEAR_SIGHT_DEG = 10.0
 #: Channels of the road BSDF in the backend scene: R = f_road, G = B = 1/pi (perfect diffuser).
 ROAD, LAMBERT = 0, 1
+#: Reflections followed per light path (the sample's own included) when the scene holds reflecting
+#: parts and ``[scene] max_bounces`` is not given.
+DEFAULT_MAX_BOUNCES = 3
+#: Lanes of the numerical probe that tells a reflecting BSDF from a black one.
+PROBE_LANES = 4096
+#: Ids of the housing's road floor around the sample (roadgonio.instrument.housing).
+FLOOR_PREFIX = "housing_floor_"
 
 _XML_PARAM_KEYS = ("alpha_deg", "delta_deg", "source_distance_m", "source_radius_m", "source_radiance",
                    "sample_half_x_m", "sample_half_y_m",
@@ -165,12 +171,26 @@ class RoadScene:
     footprint: tuple[float, float, float, float] | None = None
     info: dict = field(default_factory=dict)
     checked: bool = False
+    #: stray light: the reflecting parts other than the sample (shapes), their ids, the reflections
+    #: followed per path (1 = the sample's own only: direct light) and whether paths are traced
+    parts: list = field(default_factory=list)
+    part_ids: list = field(default_factory=list)
+    max_bounces: int = 1
+    stray: bool = False
+    housing: Any = None
 
     # -- per cell --------------------------------------------------------------------------
     def place_source(self, tan_eps: float, beta_deg: float) -> None:
-        """Move the source to the cell (no recompile); checks the horizon and beam limit."""
+        """Move the source to the cell (no recompile); checks the horizon, the beam limit, the
+        line of sight (the one test of every backend: :func:`~roadgonio.instrument.optics.check_line_of_sight`,
+        exact for the disc) and the housing."""
         check_source(self.instrument, tan_eps, beta_deg)
         check_beam(self.instrument, tan_eps, beta_deg)
+        if self.source_kind != "point":
+            check_line_of_sight(self.instrument, [(tan_eps, beta_deg)])
+        if self.housing is not None and self.checked:
+            from roadgonio.instrument.enclosure import check_sources
+            check_sources(self.instrument, self.housing, [(tan_eps, beta_deg)])
         if self.source_kind == "point":
             c = self.instrument.source_centre(tan_eps, beta_deg)
             self.params[f"{SOURCE_ID}.position"] = _mi().Point3f(*[float(v) for v in c])
@@ -178,11 +198,6 @@ class RoadScene:
             self.params[f"{SOURCE_ID}.to_world"] = source_transform(self.instrument, tan_eps, beta_deg)
         self.params.update()
         self.cell = (float(tan_eps), float(beta_deg))
-        if self.checked:
-            # a source close to the line of sight could hide part of the footprint: check the rays again
-            cos_sep = float(np.dot(self.instrument.w_i(tan_eps, beta_deg), self.instrument.w_o()))
-            if cos_sep > math.cos(math.radians(SOURCE_NEAR_SIGHT_DEG)):
-                self.check_hits(n_random=1 << 12, n_rim=64)
 
     def render(self, seed: int, spp: int) -> np.ndarray:
         """One pass: the film as float64 (H, W, 3); channel 0 = road, 1 = Lambert (see :data:`ROAD`)."""
@@ -210,17 +225,17 @@ class RoadScene:
         si = self.scene.ray_intersect(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)))
         # opaque: the shape pointer as a literal would make every new scene compile its own kernel
         on_sample = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
-        src_shape = next((s for s in self.scene.shapes() if s.id() == SOURCE_ID), None)
-        if src_shape is not None:
-            # the source disc in the line of sight is its own error, with the cell (not "enlarge the sample")
-            on_src = np.array(si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, src_shape)), dtype=bool)
-            if on_src.any():
-                from roadgonio.errors import GeometryError
-                cell = f" at tan eps = {self.cell[0]:g}, beta = {self.cell[1]:g}" if self.cell is not None else ""
-                raise GeometryError(
-                    f"the source disc blocks the detector's line of sight{cell}: {int(on_src.sum())} of "
-                    f"{on_src.size} detector rays hit the source before the sample (the source sits between "
-                    "the detector and its footprint); this cell cannot be measured with this geometry")
+        other = si.is_valid() & ~on_sample
+        if bool(dr.any(other)):
+            # name the part that stands in the detector's view (a housing wall, a baffle, a holder)
+            from roadgonio.errors import GeometryError
+            for shape in self.scene.shapes():
+                k = int(dr.count(other & (si.shape == dr.opaque(mi.ShapePtr, shape)))[0])
+                if k:
+                    raise GeometryError(
+                        f"{k} of {dr.width(other)} detector rays meet the part {shape.id()!r} before the sample: "
+                        "it blocks the detector's view of its footprint (a part of the scene must not stand between "
+                        "the detector and the sample)")
         return judge_hits(np.array(on_sample, dtype=bool), np.array(si.is_valid(), dtype=bool),
                           np.array(si.p.x), np.array(si.p.y))
 
@@ -254,11 +269,19 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
     scene_sec = instrument.extra.get("scene") if isinstance(instrument.extra, dict) else None
     if scene_sec is not None and not hasattr(scene_sec, "get"):
         raise InputError("expected a table [scene]", path=instrument.path, field="scene")
+    from roadgonio.instrument.enclosure import check_detector_view
+    from roadgonio.instrument.housing import Housing
+    housing = Housing.of(instrument)
+    if check and housing is not None:
+        check_detector_view(instrument, housing)
     if scene_sec and scene_sec.get("xml"):
         rs = _build_xml(instrument, model, scene_sec, resolution=resolution, spp=spp, sampler=sampler,
-                        channels=channels)
+                        channels=channels, housing=housing)
     else:
-        rs = _build_toml(instrument, model, resolution=resolution, spp=spp, sampler=sampler, channels=channels)
+        rs = _build_toml(instrument, model, resolution=resolution, spp=spp, sampler=sampler, channels=channels,
+                         housing=housing)
+    rs.housing = housing
+    _light_paths(rs, scene_sec or {})
     if check:
         rs.footprint = footprint
         rs.place_source(0.0, 0.0)              # the source out of the way (XML files may leave it anywhere)
@@ -267,7 +290,26 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
     return rs
 
 
-def _build_toml(instrument, model, *, resolution, spp, sampler, channels) -> RoadScene:
+def housing_shapes(instrument: Instrument, housing, model: RoadModel) -> dict[str, dict]:
+    """The housing's panels (:func:`roadgonio.instrument.enclosure.housing_panels`) as Mitsuba
+    ``rectangle`` shapes by id: Lambertian, reflecting towards the inside of the box (walls and
+    lid one-sided, baffles two-sided; a panel of reflectance 0 only shades), and the road floor
+    around the sample with the sample's BRDF in the ``road`` channels (the same value in the road
+    and the Lambert channel: a Lambert calibration replaces the sample, not the road around it)."""
+    from roadgonio.instrument.enclosure import housing_panels
+    mi = _mi()
+    out = {}
+    for p in housing_panels(instrument, housing):
+        bsdf = {"type": "diffuse", "reflectance": {"type": "uniform", "value": float(p.reflectance)}}
+        if p.road:
+            bsdf = _bsdf_dict(model, "road")
+        if p.two_sided:
+            bsdf = {"type": "twosided", "bsdf": bsdf}
+        out[p.id] = {"type": "rectangle", "to_world": mi.ScalarTransform4f(p.to_world().tolist()), "bsdf": bsdf}
+    return out
+
+
+def _build_toml(instrument, model, *, resolution, spp, sampler, channels, housing=None) -> RoadScene:
     mi = _mi()
     bsdf = mi.load_dict(_bsdf_dict(model, channels))
     smp = instrument.sample
@@ -281,7 +323,10 @@ def _build_toml(instrument, model, *, resolution, spp, sampler, channels) -> Roa
     else:
         source = {"type": "disk", "to_world": source_transform(instrument, 0.0, 0.0),
                   "emitter": {"type": "area", "radiance": {"type": "uniform", "value": source_radiance(instrument)}}}
-    scene = mi.load_dict({"type": "scene", DETECTOR_ID: det, SOURCE_ID: source, SAMPLE_ID: shape})
+    parts = {"type": "scene", DETECTOR_ID: det, SOURCE_ID: source, SAMPLE_ID: shape}
+    if housing is not None:
+        parts.update(housing_shapes(instrument, housing, model))
+    scene = mi.load_dict(parts, optimize=False)          # keep every part (ids) apart: no merged meshes
     sensor = scene.sensors()[0]
     return RoadScene(instrument=instrument, model=model, scene=scene, params=mi.traverse(scene),
                      integrator=_integrator(), sensor=sensor, bsdf=bsdf, sample_shape=shape,
@@ -327,7 +372,7 @@ def xml_path(instrument: Instrument, scene_sec) -> Path:
     return path
 
 
-def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channels) -> RoadScene:
+def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channels, housing=None) -> RoadScene:
     mi = _mi()
     path = xml_path(instrument, scene_sec)
     params = xml_parameters(instrument, scene_sec)
@@ -339,10 +384,24 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
                          path=instrument.path, field="scene.params")
     params = {k: v for k, v in params.items() if k in used}   # Mitsuba refuses unused parameters
     try:
-        scene = mi.load_file(str(path), **params)
+        scene = mi.load_file(str(path), optimize=False, **params)    # keep the parts (ids) apart
     except Exception as err:
         msg = str(err).strip().splitlines()
         raise InputError(f"Mitsuba cannot load the XML scene: {msg[-1] if msg else err}", path=path) from None
+    if housing is not None:
+        # the XML scene's objects and the housing's panels in one scene
+        objs: dict[str, Any] = {"type": "scene"}
+        for obj in list(scene.shapes()) + [e for e in scene.emitters() if e.shape() is None] + list(scene.sensors()):
+            key = obj.id() or f"_part{len(objs)}"
+            if key in objs:
+                key = f"{key}_{len(objs)}"
+            objs[key] = obj
+        panels = housing_shapes(instrument, housing, model)
+        clash = sorted(set(objs) & set(panels))
+        if clash:
+            raise InputError(f"the XML scene uses the id(s) {', '.join(clash)} of the [housing] panels", path=path)
+        objs.update(panels)
+        scene = mi.load_dict(objs, optimize=False)
     shapes = {s.id(): s for s in scene.shapes()}
     emitters = {e.id(): e for e in scene.emitters()}
     sensors = {s.id(): s for s in scene.sensors()}
@@ -402,3 +461,94 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
                    source_kind=source_kind, resolution=resolution, xml=path, flat_rectangle=False)
     rs.info["xml_parameters"] = params
     return rs
+
+
+# ----------------------------------------------------------------------------------------------
+# Stray light: which parts of the scene reflect, and how many reflections a path follows
+# ----------------------------------------------------------------------------------------------
+
+def probe_bsdf(bsdf, n: int = PROBE_LANES, seed: int = 1) -> tuple[float, float]:
+    """Largest reflected value of a BSDF over ``n`` random (uv, incident, outgoing) triples in the
+    upper hemisphere: (max of eval, max of the sample weight); both 0 for a black BSDF."""
+    mi = _mi()
+    import drjit as dr
+    rng = np.random.default_rng(seed)
+    u = rng.random((n, 8)).astype(np.float32)
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.t = mi.Float(1.0)
+    si.p = mi.Point3f(0.0, 0.0, 0.0)
+    si.n = mi.Normal3f(0.0, 0.0, 1.0)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+    si.uv = mi.Point2f(mi.Float(u[:, 0]), mi.Float(u[:, 1]))
+    si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(mi.Float(u[:, 2]), mi.Float(u[:, 3])))
+    wo = mi.warp.square_to_cosine_hemisphere(mi.Point2f(mi.Float(u[:, 4]), mi.Float(u[:, 5])))
+    ctx = mi.BSDFContext()
+    value = bsdf.eval(ctx, si, wo)
+    _, weight = bsdf.sample(ctx, si, mi.Float(u[:, 6]), mi.Point2f(mi.Float(u[:, 7]), mi.Float(u[:, 2])))
+    v = np.nan_to_num(np.array(value, dtype=np.float64))
+    w = np.nan_to_num(np.array(weight, dtype=np.float64))
+    return float(v.max(initial=0.0)), float(w.max(initial=0.0))
+
+
+def classify_parts(rs: RoadScene) -> tuple[list, list[str]]:
+    """The shapes of the scene other than the sample and the source whose BSDF reflects light
+    (:func:`probe_bsdf`), and the ids of those that only shade (black: reflectance 0)."""
+    reflecting, black = [], []
+    for shape in rs.scene.shapes():
+        if shape.id() in (SAMPLE_ID, SOURCE_ID):
+            continue
+        bsdf = shape.bsdf()
+        if bsdf is None or max(probe_bsdf(bsdf)) <= 0.0:
+            black.append(shape.id())
+        else:
+            reflecting.append(shape)
+    return reflecting, black
+
+
+def _light_paths(rs: RoadScene, scene_sec) -> None:
+    """Decide what the scene requires (issue 18: model only that): the light paths follow
+    ``[scene] max_bounces`` reflections (the sample's own included; default
+    :data:`DEFAULT_MAX_BOUNCES` when some part other than the sample reflects, else 1: the direct
+    light alone, exactly the engine without stray light). Paths are traced (``rs.stray``) when
+    max_bounces > 1 and either some part reflects, or max_bounces was given for a sample that is not
+    the flat rectangle (a mesh or XML sample may light itself). In that case every reflecting part
+    must have a BSDF that the paths can follow: no transmission, no perfectly specular (delta)
+    reflection (next-event estimation cannot reach the source through a mirror), no second road
+    BSDF in the road/Lambert channels."""
+    mi = _mi()
+    reflecting, black = classify_parts(rs)
+    # the road floor around a flat sample lies in the sample's plane: it sends light to the footprint
+    # only through another reflecting part
+    lights = [s for s in reflecting if not (rs.flat_rectangle and s.id().startswith(FLOOR_PREFIX))]
+    if not lights:
+        black += [s.id() for s in reflecting]
+        reflecting = []
+    given = scene_sec.get("max_bounces") if hasattr(scene_sec, "get") else None
+    k = int(given) if given is not None else (DEFAULT_MAX_BOUNCES if reflecting else 1)
+    rs.max_bounces = k
+    rs.stray = k > 1 and (bool(reflecting) or (given is not None and not rs.flat_rectangle))
+    rs.info["black_parts"] = black
+    rs.info["reflecting_parts"] = [s.id() for s in reflecting]
+    if not rs.stray:
+        return
+    from roadgonio.engines.mitsuba.plugins import register_plugins
+    road_cls = register_plugins()["roadbsdf"]
+    where = rs.xml if rs.xml is not None else rs.instrument.path
+    for shape in reflecting + [rs.sample_shape]:
+        bsdf = shape.bsdf()
+        flags = int(bsdf.flags())
+        name = shape.id() or "(a shape without id)"
+        if mi.has_flag(flags, mi.BSDFFlags.Transmission) or mi.has_flag(flags, mi.BSDFFlags.Null):
+            raise InputError(f"the part {name!r} transmits light ({bsdf.class_name()}); the stray-light paths follow "
+                             "reflections only: give it an opaque BSDF (diffuse, roughplastic, roughconductor...) or "
+                             "set [scene] max_bounces = 1", path=where)
+        if mi.has_flag(flags, mi.BSDFFlags.Delta):
+            raise InputError(f"the part {name!r} has a perfectly specular BSDF ({bsdf.class_name()}): a path ends "
+                             "with next-event estimation to the source, which no mirror reflection can reach; use a "
+                             "rough BSDF (roughconductor, roughplastic with alpha > 0) or set [scene] max_bounces = 1",
+                             path=where)
+        if shape.id() != SAMPLE_ID and isinstance(bsdf, road_cls) and bsdf.channels != "road":
+            raise InputError(f"the part {name!r} carries a road BSDF in the {bsdf.channels!r} channels: only the "
+                             "sample has a Lambert channel; give the part channels = \"road\"", path=where)
+    rs.parts = reflecting
+    rs.part_ids = [s.id() for s in reflecting]

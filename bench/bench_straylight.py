@@ -1,0 +1,108 @@
+"""Benchmark: the full 580-cell k_A table of the housed portable example (scenes/portable_housed.toml)
+at worst relative SE 1e-3, side by side with the same instrument without the housing
+(scenes/portable.toml: only [housing] differs), both cores used (Dr.Jit's thread pool), R3.
+Target (issue 18): the housed table within 10x the time of the bare one.
+
+    python bench/bench_straylight.py                  # 3 runs each, the median wall time
+    python bench/bench_straylight.py --reflectance 0.02 0.05 0.2
+
+Each instrument is built and run once untimed first (the kernels compile into Dr.Jit's cache),
+then ``--repeats`` times; the table reports the median wall time of the table (compute), its CPU
+time / wall time, the samples, the worst relative SE and the largest stray fraction, and the
+ratio to the bare instrument measured in the same run. Prints the table and the machine's load
+(measure on an idle machine: ``uptime`` load < 0.5) and writes bench/results/straylight.csv and
+straylight.txt.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _load() -> str:
+    try:
+        return ", ".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:  # pragma: no cover
+        return "?"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rel-se", type=float, default=1e-3)
+    ap.add_argument("--sample", default="R3")
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--reflectance", type=float, nargs="*", default=[],
+                    help="more rows: the housed example with these wall reflectances")
+    ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "straylight.csv"))
+    args = ap.parse_args(argv)
+
+    import drjit as dr
+
+    from roadgonio.engines import full_grid_cells
+    from roadgonio.engines.mitsuba import set_variant
+    from roadgonio.engines.mitsuba.backend import make_backend
+    from roadgonio.instrument.config import Instrument
+    from roadgonio.surface.sample import resolve_sample
+
+    set_variant()                      # the script is the entry point: it chooses the variant
+    model = resolve_sample(args.sample).model
+    cells = full_grid_cells()
+    housed = Instrument.load(ROOT / "scenes" / "portable_housed.toml")
+    runs = [("portable (no housing)", Instrument.load(ROOT / "scenes" / "portable.toml")),
+            (f"portable_housed (walls {housed.extra['housing']['wall_reflectance']:g})", housed)]
+    for rho in args.reflectance:
+        d = housed.to_dict()
+        d["housing"] = {**d["housing"], "wall_reflectance": rho}
+        runs.append((f"portable_housed (walls {rho:g})", Instrument.from_dict(d, path=housed.path)))
+    load_before = _load()
+    rows = []
+    for name, inst in runs:
+        b = make_backend(inst, model, rel_se=args.rel_se, seed=0)
+        b.compute(cells)                               # compile and warm up
+        walls, cpus = [], []
+        for _ in range(args.repeats):
+            c0, t0 = time.process_time(), time.perf_counter()
+            res = b.compute(cells)
+            walls.append(time.perf_counter() - t0)
+            cpus.append(time.process_time() - c0)
+        k = walls.index(statistics.median(walls))
+        rows.append({"instrument": name, "wall_s": walls[k], "cpu_s": cpus[k], "cpu_per_wall": cpus[k] / walls[k],
+                     "samples": sum(r.samples for r in res),
+                     "worst_rel_se": max(r.se / abs(r.k_a) for r in res),
+                     "not_converged": sum(not r.converged for r in res),
+                     "stray_fraction_max": max(r.stray_fraction for r in res),
+                     "k_a_min": min(r.k_a for r in res), "k_a_max": max(r.k_a for r in res),
+                     "walls_s": " ".join(f"{w:.3f}" for w in walls)})
+    base = rows[0]["wall_s"]
+    for r in rows:
+        r["ratio_to_bare"] = r["wall_s"] / base
+    lines = [f"bench_straylight: {len(cells)} cells, {args.sample}, worst rel SE {args.rel_se:g}, "
+             f"{dr.thread_count()} Dr.Jit threads on {os.cpu_count()} cores; load average before {load_before}, "
+             f"after {_load()}",
+             f"{'instrument':34s} {'wall s':>8s} {'ratio':>7s} {'cpu/wall':>8s} {'samples':>11s} {'worst rel SE':>12s} "
+             f"{'max stray':>9s} {'k_A range':>15s}"]
+    for r in rows:
+        lines.append(f"{r['instrument']:34s} {r['wall_s']:8.2f} {r['ratio_to_bare']:7.1f} {r['cpu_per_wall']:8.2f} "
+                     f"{r['samples']:11.3e} {r['worst_rel_se']:12.2e} {100 * r['stray_fraction_max']:8.1f}% "
+                     f"{r['k_a_min']:7.3f}-{r['k_a_max']:.3f}")
+    text = "\n".join(lines)
+    print(text)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    out.with_suffix(".txt").write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

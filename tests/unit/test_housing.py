@@ -1,0 +1,138 @@
+"""The [housing] table (roadgonio/instrument/housing.py) and the housing as design keys
+(roadgonio/design/grid.py): validation, the box and its panels, the geometry checks that name the
+cell and the part, and the docs' key table. Numpy only."""
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from roadgonio.errors import GeometryError, InputError
+from roadgonio.instrument.config import Instrument, load_instrument
+from roadgonio.instrument.enclosure import check_detector_view, check_sources, housing_box, housing_panels, parts_bounds
+from roadgonio.instrument.housing import Baffle, Housing
+
+ROOT = Path(__file__).resolve().parents[2]
+HOUSED = ROOT / "scenes" / "portable_housed.toml"
+
+
+def housed(**housing) -> Instrument:
+    d = load_instrument(str(HOUSED)).to_dict()
+    d["housing"] = {**d["housing"], **housing}
+    return Instrument.from_dict(d, path=HOUSED)
+
+
+@pytest.mark.parametrize("table, field", [
+    ({}, "housing.wall_reflectance"),
+    ({"wall_reflectance": -0.1}, "housing.wall_reflectance"),
+    ({"wall_reflectance": 0.1, "baffle_reflectance": 1.5}, "housing.baffle_reflectance"),
+    ({"wall_reflectance": 0.1, "x_m": [1.0]}, "housing.x_m"),
+    ({"wall_reflectance": 0.1, "height_m": 0}, "housing.height_m"),
+    ({"wall_reflectance": 0.1, "lid": "yes"}, "housing.lid"),
+    ({"wall_reflectance": 0.1, "baffles": {"x_m": 0.1}}, "housing.baffles"),
+    ({"wall_reflectance": 0.1, "baffles": [{"x_m": 0.1, "height": 0.1}]}, "housing.baffles.0"),
+    ({"wall_reflectance": 0.1, "baffles": [{"x_m": "a", "height_m": 0.1}]}, "housing.baffles.0.x_m"),
+    ({"wall_reflectance": 0.1, "walls": 0.1}, "housing"),
+])
+def test_bad_housing_is_one_error_naming_the_file_and_field(table, field):
+    d = load_instrument("portable").to_dict()
+    with pytest.raises(InputError) as err:
+        Instrument.from_dict({**d, "housing": table}, path="box.toml")
+    assert err.value.field == field and str(err.value).startswith("box.toml")
+
+
+def test_default_box_holds_every_part_with_the_margin():
+    """The default box is the bounding box of every grid cell's source disc, the pupil and the
+    footprint, plus margin_m on every side (and above); the portable's sources reach x = -D_S sin eps
+    at tan 12, y = D_S sin eps at beta 90, z = D_S at tan 0."""
+    inst = housed()
+    lo, hi = parts_bounds(inst)
+    box = housing_box(inst, Housing.of(inst))
+    assert box.x == pytest.approx((lo[0] - 0.05, hi[0] + 0.05)) and box.y == pytest.approx((lo[1] - 0.05, hi[1] + 0.05))
+    assert box.height == pytest.approx(hi[2] + 0.05)
+    sin12 = math.sin(math.atan(12.0))
+    assert lo[0] < -sin12 and hi[1] > sin12 and hi[2] == pytest.approx(1.0)
+
+
+def test_panels_face_into_the_box_and_the_floor_is_road_around_the_sample():
+    inst = housed(baffles=[{"x_m": -0.6, "height_m": 0.02}, {"x_m": -0.7, "height_m": 0.0}])
+    h = Housing.of(inst)
+    box = housing_box(inst, h)
+    centre = np.array([sum(box.x) / 2, sum(box.y) / 2, box.height / 2])
+    panels = {p.id: p for p in housing_panels(inst, h)}
+    assert "housing_baffle_2" not in panels                 # height 0: no plate
+    for p in panels.values():
+        m = p.to_world()
+        assert np.allclose(np.cross(m[:3, 0], m[:3, 1]) / np.linalg.norm(np.cross(m[:3, 0], m[:3, 1])), p.normal)
+        if p.id.startswith("housing_wall") or p.id == "housing_lid":
+            assert np.dot(centre - np.array(p.centre), p.normal) > 0      # reflecting face inwards
+            assert p.reflectance == 0.05 and not p.road
+    assert panels["housing_baffle_1"].two_sided and panels["housing_baffle_1"].centre[0] == -0.6
+    floor = {k: p for k, p in panels.items() if p.road}
+    # the sample is 1 m x 0.3 m: road strips at x < -0.5, x > 0.5 and y > 0.15 (the box starts at y = -0.075)
+    assert sorted(floor) == ["housing_floor_x_max", "housing_floor_x_min", "housing_floor_y_max"]
+    area = sum(4 * np.linalg.norm(p.u) * np.linalg.norm(p.v) for p in floor.values())
+    inside = (box.x[1] - box.x[0]) * (box.y[1] - box.y[0]) - 1.0 * (0.15 - box.y[0])
+    assert area == pytest.approx(inside, rel=2e-3)                  # up to the seams' overlap
+
+
+def test_a_source_through_a_wall_names_the_cell_and_the_wall():
+    inst = housed(x_m=[-0.99, 1.05])
+    with pytest.raises(GeometryError, match=r"tan eps = 12, beta = 0 \(and \d+ more cells\).*housing_wall_x_min"):
+        check_sources(inst, Housing.of(inst), [(1.0, 0.0), (12.0, 0.0), (11.5, 0.0)])
+    check_sources(inst, Housing.of(inst), [(1.0, 0.0), (5.0, 90.0)])
+    inst = housed(height_m=0.9)
+    with pytest.raises(GeometryError, match=r"tan eps = 0, beta = 0.*housing_lid"):
+        check_sources(inst, Housing.of(inst), [(0.0, 0.0)])
+    inst = housed(baffles=[{"x_m": -0.97, "height_m": 0.3}])       # through the disc at tan 4 (x = -0.970 m)
+    with pytest.raises(GeometryError, match=r"tan eps = 4, beta = 0.*baffle 1"):
+        check_sources(inst, Housing.of(inst), [(4.0, 0.0)])
+
+
+def test_a_baffle_in_the_line_of_sight_is_an_error_and_a_low_one_is_not():
+    """The lowest detected ray passes about (x - x_near) tan(alpha - field) above the sample at x."""
+    inst = housed(baffles=[{"x_m": 0.6, "height_m": 0.01}])
+    with pytest.raises(GeometryError, match=r"baffle 1 \(housing_baffle_1: x = 0.6 m, 10 mm high\) blocks the "
+                                            r"detector's view"):
+        check_detector_view(inst, Housing.of(inst))
+    inst = housed(baffles=[{"x_m": 0.6, "height_m": 0.004}])
+    check_detector_view(inst, Housing.of(inst))
+    inst = housed(x_m=[-1.05, 0.9])
+    with pytest.raises(GeometryError, match="pupil.*housing_wall_x_max"):
+        check_detector_view(inst, Housing.of(inst))
+
+
+def test_housing_design_keys():
+    from roadgonio.design.feasibility import check_point
+    from roadgonio.design.grid import build_instrument, parse_vary
+    from roadgonio.design.outputs import toml_text
+    assert parse_vary("housing.wall_reflectance=0.01:0.1:3:log").values == (0.01, 0.0316227766017, 0.1)
+    assert parse_vary("housing.baffles.0.height_m=0,0.01").values == (0.0, 0.01)
+    with pytest.raises(InputError, match="unknown instrument key"):
+        parse_vary("housing.baffles.x_m=0.1")
+    base = housed(baffles=[{"x_m": -0.6, "height_m": 0.0}])
+    inst = build_instrument(base, {"housing.wall_reflectance": 0.2, "housing.baffles.0.height_m": 0.02})
+    h = Housing.of(inst)
+    assert h.wall_reflectance == 0.2 and h.baffles == (Baffle(x_m=-0.6, height_m=0.02),)
+    with pytest.raises(InputError, match="declare baffle 1"):
+        build_instrument(base, {"housing.baffles.1.x_m": 0.1})
+    # best.toml round trip: the baffles as inline tables
+    text = toml_text({"housing": dict(inst.to_dict()["housing"])})
+    import tomllib
+    assert Housing.from_dict(tomllib.loads(text)["housing"]) == h
+    # a point whose baffle blocks the grazing sources' disc is infeasible with kind "housing"
+    _, f = check_point(base, {"housing.baffles.0.height_m": 0.3, "housing.baffles.0.x_m": -0.97},
+                       [(4.0, 0.0), (1.0, 0.0)])
+    assert not f.ok and f.kind == "housing" and "baffle 1" in f.reason
+
+
+def test_conventions_list_every_housing_and_scene_key():
+    from roadgonio.instrument.config import SCENE_KEYS
+    from roadgonio.instrument.housing import HOUSING_KEYS
+    text = (ROOT / "docs" / "conventions.md").read_text()
+    rows = [ln for ln in text.splitlines() if ln.startswith("|")]
+    keys = set(re.findall(r"`([a-z_]+)`", "\n".join(rows)))
+    assert set(HOUSING_KEYS) <= keys and set(SCENE_KEYS) - {"params"} <= keys
