@@ -66,7 +66,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from roadgonio.uncertainty.run import UncertaintyResult
 
 __all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
-           "validate", "estimate_uncertainty", "correct", "design_study", "intercompare", "road_metrics", "compare_tables",
+           "validate", "estimate_uncertainty", "correct", "design_study", "second_aperture", "intercompare",
+           "road_metrics", "compare_tables",
            "classify_table"]
 
 
@@ -588,7 +589,7 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
             rel_se: float | None = None, seed: int = 0, mitsuba_variant: str | None = None,
             model_variant: str | None = None, rays: int = 512, workers: int | None = None,
             scheduler: str | None = None, out=None, plots: bool = True, progress: bool = False,
-            **options: Any):
+            forward: str = "eq4", joint: bool = False, **options: Any):
     """Correct measured r-tables for the aperture effect (``roadgonio correct``). ``measured``: one
     table (name, file, RTable or DataArray) or a list of them (they share the instrument's work);
     ``reference="self"`` (default) fits the model through the instrument, a SAMPLE takes the classic
@@ -598,7 +599,28 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     (``.corrected``, ``.u_corrected``, ``.k_a``, ``.budget``, ``.before`` / ``.after``, ``.summary()``),
     a list for a list; with ``out`` (a folder or :data:`AUTO`) the files are written (one sub-folder
     per table for several), ``.out`` and ``.written`` say where. ``workers``/``scheduler``: one
-    Dask task per table (same results)."""
+    Dask task per table (same results).
+
+    ``forward`` (``reference="self"``): ``"eq4"`` (default) fits eq. 4 through the instrument;
+    ``"surface"`` fits eq. 4 times a smooth correction surface whose smoothing the data choose,
+    for surfaces outside eq. 4, with an uncertainty that includes the surface's posterior and the
+    Birge widening (docs/correction.md, "Outside eq. 4"). ``joint=True``: ``measured`` and
+    ``instrument`` are lists of equal length (at least two), the tables one surface measured by
+    the instruments (or aperture settings); one surface is fitted through all of them and one
+    corrected table returned (a :class:`~roadgonio.correction.outside.SurfaceCorrection`: ``.corrected``,
+    ``.u_corrected``, ``.budget``, ``.parts[i].k_a`` per instrument, ``.summary()``)."""
+    if joint:
+        return _correct_joint(measured, instrument, u_measured=u_measured, sigma=sigma, backend=backend,
+                              accuracy=accuracy, rel_se=rel_se, seed=seed, mitsuba_variant=mitsuba_variant,
+                              model_variant=model_variant, rays=rays, out=out, plots=plots, progress=progress,
+                              workers=workers, scheduler=scheduler, reference=reference, forward=forward, **options)
+    if forward not in ("eq4", "surface"):
+        raise InputError(f"unknown forward model {forward!r}; expected eq4 or surface", field="forward")
+    if isinstance(instrument, (list, tuple)):
+        if len(instrument) != 1:
+            raise InputError(f"{len(instrument)} instruments given without joint: several instruments correct one "
+                             "surface together (joint=True, --joint)", field="--instrument")
+        instrument = instrument[0]
     from roadgonio.correction import correct_files
     from roadgonio.correction.run import check_measured
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
@@ -628,8 +650,13 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     opts = dict(u_measured="1%" if u_measured is None else u_measured, sigma=sigma, backend=backend,
                 backend_settings=settings, accuracy=accuracy, model_variant=model_variant, seed=seed,
                 progress=_show(progress), **options)
+    if forward == "surface" and not self_ref:
+        raise InputError("the forward model 'surface' is fitted through the instrument: use it with reference "
+                         "'self'", field="forward")
     if self_ref:
         opts["rays"] = rays
+        if forward != "eq4":
+            opts["forward"] = forward
         ref: Any = "self"
     else:
         opts["alternatives"] = alternatives
@@ -647,6 +674,83 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
         res.out, res.written = sub, written
         results.append(res)
     return results if many else results[0]
+
+
+def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy, rel_se, seed, mitsuba_variant,
+                   model_variant, rays, out, plots, progress, workers, scheduler, reference, forward, **options):
+    """:func:`correct` with ``joint=True`` (one surface through several instruments)."""
+    from roadgonio.correction import correct_joint
+    from roadgonio.correction.run import check_measured
+    from roadgonio.engines.registry import backend_info, check_seed, prepare_entry_point, resolve_settings
+    if not (isinstance(reference, str) and reference.strip().lower() == "self"):
+        raise InputError("a joint correction fits one surface through the instruments: reference must be 'self'",
+                         field="--reference")
+    if forward not in ("eq4", "surface"):
+        raise InputError(f"unknown forward model {forward!r}; expected eq4 or surface", field="forward")
+    if workers not in (None, 0) or scheduler is not None:
+        raise InputError("a joint correction is one fit: it runs in this process (no --workers/--scheduler)",
+                         field="--workers")
+    items = list(measured) if isinstance(measured, (list, tuple)) else [measured]
+    insts = list(instrument) if isinstance(instrument, (list, tuple)) else [instrument]
+    if len(items) < 2 or len(items) != len(insts):
+        raise InputError(f"a joint correction takes one instrument per measured table, at least two; got "
+                         f"{len(items)} table(s) and {len(insts)} instrument(s)", field="--instrument")
+    tables = []
+    for m in items:
+        t = _table(m, "measured")
+        check_measured(t, m if isinstance(m, (str, Path)) else None)
+        tables.append(t)
+    seed = check_seed(seed)
+    instruments = [_instrument(i) for i in insts]
+    rays = _check_int(rays, "rays", 8)
+    settings = resolve_settings(backend, tolerance=rel_se, seed=seed if backend_info(backend).seeded else None,
+                                mitsuba_variant=mitsuba_variant, fields={"tolerance": "rel_se"})
+    prepare_entry_point(backend, mitsuba_variant)
+    folder = _out(out, "correct", "joint", *[t.name for t in tables])
+    files = [str(m) if isinstance(m, (str, Path)) else None for m in items]
+    return correct_joint(tables, instruments, folder, plots=plots, model_variant=model_variant,
+                         measured_files=files, u_measured="1%" if u_measured is None else u_measured, sigma=sigma,
+                         backend=backend, backend_settings=settings, accuracy=accuracy, rays=rays, seed=seed,
+                         progress=_show(progress), **options)
+
+
+def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured: Any = None, rays: int = 512,
+                    seed: int = 0, model_variant: str | None = None, min_signal: float | None = None, out=None,
+                    plots: bool = True, progress: bool = False):
+    """Which second aperture setting should the instrument have (``roadgonio design --second-aperture``,
+    issue 19)? Ranks every point of the ``vary`` grid (applied to ``instrument``) by the median
+    relative u of the one corrected table that a joint correction of the instrument and that
+    second setting would give (:mod:`roadgonio.design.second_aperture`), among the settings that
+    keep at least ``min_signal`` (default 0.25) of the instrument's signal; baselines: the
+    instrument alone and measuring twice. The surface: ``measured`` (a table the instrument
+    measured) or ``sample`` (anything :func:`roadgonio.surface.sample.resolve_sample` takes, or a
+    BRDF model). Returns the :class:`~roadgonio.design.second_aperture.SecondApertureResult`
+    (``.best``, ``.candidates``, ``.baselines``, ``.summary()``); with ``out`` second_aperture.csv,
+    .json, best_second.toml and second_aperture.png are written (``.out``, ``.written``)."""
+    from roadgonio.design.second_aperture import DEFAULT_MIN_SIGNAL, DEFAULT_U, second_aperture as _second
+    from roadgonio.design.second_aperture import write_second_aperture
+    from roadgonio.engines.registry import check_seed
+    inst = _instrument(instrument)
+    table = None if measured is None else _table(measured, "measured")
+    if table is not None:
+        from roadgonio.correction.run import check_measured
+        check_measured(table, measured if isinstance(measured, (str, Path)) else None)
+    smp = sample
+    if isinstance(sample, (str, Path)):
+        smp = _sample(sample, model_variant, field="sample").model
+    ms = DEFAULT_MIN_SIGNAL if min_signal is None else float(min_signal)
+    if not (0.0 <= ms <= 1.0):
+        raise InputError(f"expected a least signal between 0 and 1 (of the instrument's), got {min_signal!r}",
+                         field="--min-signal")
+    res = _second(inst, vary, measured=table, sample=smp, u_measured=DEFAULT_U if u_measured is None else u_measured,
+                  rays=_check_int(rays, "rays", 8), seed=check_seed(seed),
+                  model_variant=None if model_variant == "auto" else model_variant, min_signal=ms,
+                  progress=_show(progress))
+    folder = _out(out, "design", inst.name, "second")
+    res.out, res.written = folder, []
+    if folder is not None:
+        res.written = write_second_aperture(res, folder, plots=plots)
+    return res
 
 
 def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str = "5%", cells="all",

@@ -428,3 +428,53 @@ class BundleBackend:
             if on_cell is not None:
                 on_cell(c)
         return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Several instruments, one surface
+# ----------------------------------------------------------------------------------------------
+
+class _StackedBundles:
+    """What the fitter reads of the bundles of several forward models: the cells and cos^3 eps."""
+
+    def __init__(self, forwards: Sequence[ForwardModel]):
+        self.n_cells = int(sum(f.bundles.n_cells for f in forwards))
+        self.cos3 = np.concatenate([f.bundles.cos3 for f in forwards])
+
+
+class StackedForward:
+    """Several instruments' forward models (:class:`ForwardModel`) as one: the measured cells of
+    every instrument one after the other, so that one BRDF model is fitted through all of them by
+    :func:`roadgonio.correction.fit.fit_through_instrument` (it reads only the methods below).
+    ``rho`` arguments are the concatenated per-cell factors."""
+
+    def __init__(self, forwards: Sequence[ForwardModel]):
+        self.forwards = list(forwards)
+        self.bundles = _StackedBundles(self.forwards)
+        self.kappa = np.concatenate([f.kappa for f in self.forwards])
+        self._splits = np.cumsum([f.bundles.n_cells for f in self.forwards])[:-1]
+
+    def split(self, values: np.ndarray) -> list[np.ndarray]:
+        """Per-instrument pieces of a concatenated per-cell array."""
+        return np.split(np.asarray(values), self._splits)
+
+    def _rho(self, rho):
+        return [None] * len(self.forwards) if rho is None else self.split(rho)
+
+    def columns(self, P: Mapping[str, float], variant: str,
+                terms: Sequence[str] = LINEAR_TERMS) -> tuple[np.ndarray, np.ndarray]:
+        parts = [f.columns(P, variant, terms) for f in self.forwards]
+        return np.vstack([b for b, _ in parts]), np.vstack([n for _, n in parts])
+
+    def nominal_columns(self, P: Mapping[str, float], variant: str) -> np.ndarray:
+        return np.vstack([f.nominal_columns(P, variant) for f in self.forwards])
+
+    def model_columns_total(self, model: RoadModel) -> tuple[np.ndarray, np.ndarray]:
+        parts = [f.model_columns_total(model) for f in self.forwards]
+        return np.concatenate([m for m, _ in parts]), np.concatenate([n for _, n in parts])
+
+    def k_a(self, model: RoadModel, rho: np.ndarray | None = None) -> np.ndarray:
+        return np.concatenate([f.k_a(model, r) for f, r in zip(self.forwards, self._rho(rho))])
+
+    def r_measured(self, model: RoadModel, rho: np.ndarray | None = None) -> np.ndarray:
+        return np.concatenate([f.r_measured(model, r) for f, r in zip(self.forwards, self._rho(rho))])

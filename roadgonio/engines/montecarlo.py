@@ -33,7 +33,7 @@ from roadgonio.seeds import cell_key, check_seed, seed_entropy
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
-from roadgonio.surface.model import RoadModel, road_brdf
+from roadgonio.surface.model import RoadModel
 from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
 from roadgonio.engines.cellcheck import check_cell
 
@@ -88,8 +88,6 @@ class MonteCarloBackend(CellByCellBackend):
         self.batch = m * m
         self.min_batches = int(min_batches)
         self.max_samples = int(max_samples)
-        self._P = model.params.to_dict()
-        self._terms = model.terms()
         self._det = optics.detector_geometry(instrument)
         det = instrument.detector
         self._pupil = det.pupil_radius_m > 0.0
@@ -151,7 +149,7 @@ class MonteCarloBackend(CellByCellBackend):
                 sp = optics.source_point(src, sd)
                 wi, g = optics.source_coupling(NumpyOps, src, x, y, sp, sd)
                 wo = (-d[0], -d[1], -d[2])
-                f = road_brdf(NumpyOps, self._P, wi, wo, self.model.variant, self._terms)
+                f = self.model.evaluate(NumpyOps, wi, wo)
                 wg = np.where(valid, w * g, 0.0)
                 road += float(np.dot(wg, f))
                 lam += float(np.sum(wg))

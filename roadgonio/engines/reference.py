@@ -83,7 +83,7 @@ from roadgonio.errors import InputError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
-from roadgonio.surface.model import RoadModel, road_brdf
+from roadgonio.surface.model import RoadModel
 from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
 from roadgonio.engines.cellcheck import check_cell, no_light
 
@@ -246,8 +246,6 @@ class ReferenceBackend(CellByCellBackend):
         self.pilot_iterations = _integer(pilot_iterations, "pilot_iterations")
         self.pilot_points = _integer(pilot_points, "pilot_points")
         self.map_bins = _integer(map_bins, "map_bins")
-        self._P = model.params.to_dict()
-        self._terms = model.terms()
         self._det = optics.detector_geometry(instrument)
         det = instrument.detector
         self.active = (det.pupil_radius_m > 0.0, det.field_half_angle_deg > 0.0, instrument.source.radius_m > 0.0)
@@ -298,7 +296,7 @@ class ReferenceBackend(CellByCellBackend):
             evals = 0
             if not self.active[2]:
                 sides = [(None, None)]
-            elif self.split and "k_exp" in self._terms:
+            elif self.split and self.model.mirror_kink:
                 # both halves of the source disc cut on the mirror plane, each evaluated only where
                 # it is not empty (the chord misses the disc for most rays off the mirror plane)
                 mx, my, cm = self._mirror_chord(x, y, wo, src)
@@ -325,7 +323,7 @@ class ReferenceBackend(CellByCellBackend):
                     sdisc = (v * sx - w * sy, v * sy + w * sx)
                 sp = optics.source_point(src, sdisc)
                 wi, g = optics.source_coupling(NumpyOps, src, xs, ys, sp, sdisc)
-                f = road_brdf(NumpyOps, self._P, wi, wos, self.model.variant, self._terms)
+                f = self.model.evaluate(NumpyOps, wi, wos)
                 wg = wd * ws * g
                 if idx is None:
                     road += wg * f

@@ -320,6 +320,17 @@ class RoadModel:
     def terms(self) -> frozenset[str]:
         return active_terms(self.params.to_dict())
 
+    @property
+    def mirror_kink(self) -> bool:
+        """Whether f_r has a kink on the mirror plane (|beta| in the empirical term) that an
+        integrator should split on."""
+        return "k_exp" in self.terms()
+
+    def evaluate(self, xp, wi, wo):
+        """f_r for component triples ``wi``, ``wo`` over the array namespace ``xp`` (the interface
+        the float64 backends evaluate; :mod:`roadgonio.surface.truths` provides the same)."""
+        return road_brdf(xp, self.params.to_dict(), wi, wo, self.variant, self.terms())
+
     def brdf(self, wi, wo) -> np.ndarray:
         """f_r for direction arrays ``wi`` (towards the source) and ``wo`` (towards the
         detector), shape ``(..., 3)``; broadcasts."""
