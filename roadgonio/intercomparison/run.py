@@ -220,7 +220,7 @@ def truth_table(ctx: Context) -> np.ndarray:
 def _stage2_task(item: tuple, shared: Mapping[str, Any]) -> dict[str, Any]:
     """("self", p, m): correct realisation m's raw table of participant p through roadgonio;
     ("reference", p): the k_A of p's reference sample and the budget of that correction."""
-    from roadgonio.correction.run import correct_measured
+    from roadgonio.correction.files import correct_measured
     from roadgonio.surface.rtable import RTable
     setup: sim.Setup = shared["setup"]
     study: Study = shared["study"]
