@@ -139,10 +139,10 @@ def misalignment_covariance(model, instrument, table: RTable, spec, *, illuminan
 
     The measurement model is :class:`roadgonio.uncertainty.MeasurementModel` (the local angles of
     a misaligned instrument, the illuminance normalisation), times k_A of the perturbed instrument
-    from ray bundles with common random numbers (:class:`roadgonio.correction.forward.BundleBackend`;
+    from ray bundles with common random numbers (:class:`roadgonio.engines.bundle.BundleBackend`;
     the perturbed instrument and its cells exactly as :func:`roadgonio.uncertainty.build_surrogate`
     builds them). Sensitivities by central differences of ln r at +- ``rel_step`` sigma."""
-    from roadgonio.correction.forward import BundleBackend, RayBundles
+    from roadgonio.engines.bundle import BundleBackend, RayBundles
     from roadgonio.uncertainty import CellSet, MeasurementModel, gum_propagation
     mask = table.mask
     ii, jj = np.nonzero(mask)

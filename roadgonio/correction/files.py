@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-from roadgonio.correction.forward import DEFAULT_RAYS
+from roadgonio.engines.bundle import DEFAULT_RAYS
 from roadgonio.correction.outside import DEFAULT_VARIANTS, SurfaceCorrection, correct_surface, to_correction_result
 from roadgonio.correction.run import (FORWARDS, CorrectionResult, InstrumentArtefacts, _check_fit_cells, _sigma,
                                       check_measured, correct_self, correct_with_reference, measured_uncertainty)

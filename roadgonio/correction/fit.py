@@ -3,7 +3,7 @@ matches a measured table, weighted by the measurement's standard uncertainty::
 
     minimise  chi^2(p) = sum_c ( (r_sim,c(p) - r_meas,c) / u_c )^2,      r_sim,c = rho_c cos^3(eps_c) kappa_c <f_p>_c
 
-with the forward model of :mod:`roadgonio.correction.forward` (fixed float64 ray bundles, so
+with the forward model of :mod:`roadgonio.engines.bundle` (fixed float64 ray bundles, so
 r_sim is smooth in p, and linear in the four coefficients k_*) and ``rho_c`` the correction of
 the bundle's own error by an exact backend table (1 until one is known; see
 :func:`roadgonio.correction.run`). Every model parameter has the bounds of
@@ -37,7 +37,7 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 from scipy.optimize import least_squares, lsq_linear, nnls
 
-from roadgonio.correction.forward import LINEAR_TERMS, ForwardModel
+from roadgonio.engines.bundle import LINEAR_TERMS, ForwardModel
 from roadgonio.errors import InputError
 from roadgonio.seeds import seed_entropy
 from roadgonio.surface.fit import _from_z, _to_z, _z_box, nonlinear_params

@@ -4,7 +4,7 @@ with a regularisation whose strength the data choose (docs/correction.md, "Outsi
 
     f(w_i, w_o) = f_0(w_i, w_o) exp( g_C(beta, eps_i) + l(alpha) g_D(beta, eps_i) )
 
-For fixed ray bundles (:class:`roadgonio.correction.forward.RayBundles`) the simulated measurement
+For fixed ray bundles (:class:`roadgonio.engines.bundle.RayBundles`) the simulated measurement
 of cell c is ``s_c(theta) = rho_c cos^3(eps_c) kappa_c sum_k a_k f_0,k exp(g_k(theta))`` with g
 linear in the spline coefficients theta = (theta_C, theta_D); its Jacobian is a sum over the same
 rays. The fit maximises the posterior
@@ -42,7 +42,7 @@ import numpy as np
 import scipy.sparse as sparse
 from scipy.linalg import cho_factor, cho_solve
 
-from roadgonio.correction.forward import ForwardModel
+from roadgonio.engines.bundle import ForwardModel
 from roadgonio.engines.result import ratio_se
 from roadgonio.errors import InputError
 from roadgonio.surface.correction_surface import SplineGrid, SplineOps, alpha_coordinate, lookup

@@ -5,7 +5,7 @@ correction surface (:mod:`roadgonio.correction.flexible`), and an uncertainty th
 Procedure (:func:`correct_surface`):
 
 1. the backbone: every variant of ``variants`` fitted through all the instruments at once
-   (:class:`roadgonio.correction.forward.StackedForward`; stage A multi-start, the best by chi^2
+   (:class:`roadgonio.engines.bundle.StackedForward`; stage A multi-start, the best by chi^2
    polished, :func:`roadgonio.correction.run.fit_self`);
 2. k_A of the best backbone by the chosen backend through each instrument (journalled like
    ``roadgonio ka``), and the bundles' own error of it, ``rho = k_backend / k_bundle``;
@@ -40,7 +40,7 @@ import numpy as np
 from roadgonio.correction.budget import Budget, functionals, misalignment_covariance
 from roadgonio.correction.fit import fit_through_instrument
 from roadgonio.correction.flexible import FlexPart, SurfaceFit, SurfaceSettings, fit_surface, one_blas_thread
-from roadgonio.correction.forward import DEFAULT_RAYS, StackedForward
+from roadgonio.engines.bundle import DEFAULT_RAYS, StackedForward
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import VARIANTS, RoadModel

@@ -3,7 +3,7 @@
 ``reference = "self"`` (the default; the only reference a user of an unknown surface really has):
 
 1. fit the BRDF model through the instrument (:mod:`roadgonio.correction.fit`) with the forward
-   model of fixed ray bundles (:mod:`roadgonio.correction.forward`), for each model variant asked
+   model of fixed ray bundles (:mod:`roadgonio.engines.bundle`), for each model variant asked
    (``"auto"``: ``power`` and ``smooth``; the better fit, by chi^2, is used, the other one measures
    the model dependence);
 2. compute k_A of the fitted model with the chosen backend (``mitsuba`` by default), journalled
@@ -42,7 +42,7 @@ import numpy as np
 from roadgonio.correction.budget import Budget, functionals, misalignment_covariance, systematic_delta
 from roadgonio.correction.fit import (DEFAULT_POLISH, DEFAULT_STARTS, ThroughFit, assess_fit, chi2_of,
                                       fit_through_instrument)
-from roadgonio.correction.forward import DEFAULT_RAYS, ForwardModel, RayBundles
+from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
 from roadgonio.errors import InputError
 from roadgonio.fileio import atomic_write_json, fingerprint
 from roadgonio.instrument.config import Instrument

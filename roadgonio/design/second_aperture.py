@@ -114,7 +114,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     """Rank the second aperture settings of ``vary`` (module docstring). Exactly one of ``measured``
     (an r-table the instrument measured) and ``sample`` (a SAMPLE or a BRDF model) gives the surface."""
     from roadgonio.correction.flexible import FlexPart, SurfaceSettings, expected_posterior, fit_surface
-    from roadgonio.correction.forward import DEFAULT_RAYS, ForwardModel, RayBundles
+    from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
     from roadgonio.correction.run import fit_self, measured_uncertainty
     from roadgonio.design.grid import as_vary_specs, build_instrument, grid_points
     from roadgonio.design.metrics import relative_signal

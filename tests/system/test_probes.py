@@ -337,7 +337,7 @@ def shared_streams(monkeypatch, run: Callable[[int, Any], Any], a: tuple[int, An
                    c: tuple[int, Any]) -> set:
     """Streams that run(a) and run(b) share and run(c) (an unrelated seed) does not: the ones a
     seed opens (streams of fixed seeds, e.g. a geometry check's, are in every run)."""
-    from roadgonio.correction import forward
+    from roadgonio.engines import bundle as forward
     s = Streams(monkeypatch)
     got = []
     for seed, arg in (a, b, c):

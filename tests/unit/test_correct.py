@@ -13,7 +13,7 @@ from roadgonio.correction.budget import Budget, functionals
 from roadgonio.surface.cie import cie_class
 from roadgonio.surface.rtable import q0_weights
 from roadgonio.correction.fit import assess_fit, fit_through_instrument
-from roadgonio.correction.forward import BundleBackend, ForwardModel, RayBundles
+from roadgonio.engines.bundle import BundleBackend, ForwardModel, RayBundles
 from roadgonio.correction.files import output_folders
 from roadgonio.correction.run import correct_self, measured_uncertainty
 from roadgonio.engines import make_backend

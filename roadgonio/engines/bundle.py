@@ -478,3 +478,24 @@ class StackedForward:
 
     def r_measured(self, model: RoadModel, rho: np.ndarray | None = None) -> np.ndarray:
         return np.concatenate([f.r_measured(model, r) for f, r in zip(self.forwards, self._rho(rho))])
+
+
+def make_backend(instrument: Instrument, model: RoadModel, **settings) -> BundleBackend:
+    """The registry's factory (:mod:`roadgonio.engines.registry`): a :class:`BundleBackend` with
+    ``rays``, ``replicates``, ``seed``, ``max_factor`` (an unknown setting is a one-line error). The
+    bundle applies the instrument's calibration itself (:class:`ForwardModel`)."""
+    allowed = {"rays", "replicates", "seed", "max_factor"}
+    unknown = sorted(set(settings) - allowed)
+    if unknown:
+        raise InputError(f"unknown setting(s) {', '.join(unknown)} of the bundle backend; expected some of "
+                         f"{', '.join(sorted(allowed))}", field=unknown[0])
+    for key in ("rays", "replicates", "max_factor"):
+        v = settings.get(key)
+        least = 2 if key == "replicates" else 1
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least):
+            raise InputError(f"expected a whole number >= {least}, got {v!r}", field=key)
+    if settings.get("rays") is not None:
+        from roadgonio.limits import check_size
+        check_size(int(settings["rays"]), "rays", "rays")
+    return BundleBackend(instrument, model, **settings)
+
