@@ -28,6 +28,7 @@ residual, and the pictures for all instruments.
 from __future__ import annotations
 
 import io
+import math
 from pathlib import Path
 from typing import Any
 
@@ -41,6 +42,13 @@ PICTURES = ("picture", "map", "residuals", "surface")
 FILES = {"corrected": "corrected.csv", "u": "corrected_u.csv", "rtb": "corrected.rtb", "json": "correct.json",
          "cells": "correct_cells.csv", "correlation": "corrected_corr.csv", "picture": "before_after.png",
          "map": "correction_map.png", "residuals": "residual_map.png", "surface": "correction_surface.png"}
+
+
+def has_rtb(table) -> bool:
+    """Whether the corrected table can be written as RTB: the format needs Q0, which a table without
+    a grid cell of four tabulated corners does not have (the CSV is always written; correct.json
+    lists the files written)."""
+    return math.isfinite(table.q0())
 
 
 def u_csv_text(res) -> str:
@@ -57,9 +65,10 @@ def write_correction(res, out_dir: str | Path, *, plots: bool = True) -> list[Pa
     with OutputGroup(out_dir) as group:
         paths = [group.text(FILES["corrected"], res.corrected.to_csv_text()),
                  group.text(FILES["u"], u_csv_text(res)),
-                 group.text(FILES["rtb"], res.corrected.to_rtb_text()),
                  group.text(FILES["cells"], cells_csv(res)),
                  group.text(FILES["correlation"], correlation_csv(res))]
+        if has_rtb(res.corrected):
+            paths.insert(2, group.text(FILES["rtb"], res.corrected.to_rtb_text()))
         if plots:
             paths.append(_group_figure(group, FILES["picture"], draw_before_after(res)))
             paths.append(_group_figure(group, FILES["map"], draw_correction_map(res)))
@@ -67,7 +76,7 @@ def write_correction(res, out_dir: str | Path, *, plots: bool = True) -> list[Pa
             if sc is not None:
                 paths.append(_group_figure(group, FILES["residuals"], draw_residual_map(sc)))
                 paths.append(_group_figure(group, FILES["surface"], draw_surface_map(sc)))
-        paths.insert(3, group.json(FILES["json"], _json_doc(res, plots)))
+        paths.insert(3 if has_rtb(res.corrected) else 2, group.json(FILES["json"], _json_doc(res, plots)))
     return paths
 
 
@@ -82,7 +91,8 @@ def _group_figure(group: OutputGroup, name: str, fig) -> Path:
 def _json_doc(res, plots: bool) -> dict[str, Any]:
     return {"summary": res.summary(), "provenance": res.provenance,
             "files": {k: v for k, v in FILES.items() if (plots or k not in PICTURES)
-                      and (k not in ("residuals", "surface") or res.extra.get("surface") is not None)},
+                      and (k not in ("residuals", "surface") or res.extra.get("surface") is not None)
+                      and (k != "rtb" or has_rtb(res.corrected))},
             "definitions": {
                 "corrected": "r_corrected = r_measured / k_A (k_A of the model under the instrument's calibration)",
                 "u": "standard uncertainty (k = 1) of r_corrected; relative components add in quadrature, with "
@@ -387,15 +397,18 @@ def write_surface_correction(sc, out_dir: str | Path, *, plots: bool = True) -> 
     correction_map.png, residual_map.png, correction_surface.png."""
     files = {"corrected": FILES["corrected"], "u": FILES["u"], "rtb": FILES["rtb"], "json": FILES["json"],
              "cells": FILES["cells"], "correlation": FILES["correlation"]}
+    if not has_rtb(sc.corrected):
+        del files["rtb"]
     if plots:
         files.update({k: FILES[k] for k in PICTURES})
     with OutputGroup(out_dir) as group:
         paths = [group.text(FILES["corrected"], sc.corrected.to_csv_text()),
                  group.text(FILES["u"], u_csv_text(sc)),
-                 group.text(FILES["rtb"], sc.corrected.to_rtb_text()),
                  group.json(FILES["json"], _joint_doc(sc, plots, files)),
                  group.text(FILES["cells"], joint_cells_csv(sc)),
                  group.text(FILES["correlation"], _correlation_text(sc.corrected, sc.budget))]
+        if "rtb" in files:
+            paths.insert(2, group.text(FILES["rtb"], sc.corrected.to_rtb_text()))
         if plots:
             paths.append(_group_figure(group, FILES["picture"], draw_joint_before_after(sc)))
             paths.append(_group_figure(group, FILES["map"], draw_joint_map(sc)))
