@@ -172,7 +172,7 @@ def main(argv=None) -> int:
         rt, gt = sum(roads), sum(lams)
         r = rt.sum() / gt.sum()
 
-        def point_var(y):
+        def point_var(y, rep=rep):
             s = np.bincount(rep, y, minlength=reps)
             return float(np.var(s, ddof=1)) / n
 
