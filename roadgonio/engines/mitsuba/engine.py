@@ -137,8 +137,8 @@ class BatchEngine:
         emitter has no beam limit, so a clipping one is refused; a housing must hold every cell's
         source (:func:`roadgonio.instrument.enclosure.check_sources`). The scene, the instrument and
         the model are fixed for the engine's life, so cells that passed once are not checked again
-        (the housing's check takes ~0.1 s for the full table: 5 % of the housed example's table at
-        rel. SE 1e-3, bench/profile_straylight.py)."""
+        (the housing's check takes 0.065 s for the full table, 3 % of the housed example's table at
+        rel. SE 1e-3, at load 2.5)."""
         key = (id(self.rs.model), tuple((float(t), float(b)) for t, b in cells))
         if key in self._checked:
             return
