@@ -63,6 +63,30 @@ RAY_FIELDS = ("px", "py", "pz", "nx", "ny", "nz", "sx", "sy", "sz", "dx", "dy", 
 FLAT_RAY_FIELDS = ("px", "py", "pz", "dx", "dy", "dz", "w")
 
 
+#: A ray that misses the sample is traced once more from an origin moved sideways by this fraction of
+#: its distance from the origin of the scene (about 8 float32 ulps): Embree's ray-triangle test is
+#: not watertight, so a ray that lands exactly on an edge or a vertex shared by two triangles of the
+#: sample mesh (common in symmetric scan meshes, and the rectangle's own diagonal passes the sample
+#: centre, where a focused detector's rays meet) can slip between them. A ray that really misses
+#: the sample misses it again.
+RETRY_NUDGE = 1e-6
+
+
+def intersect_sample(scene, ray, flags, sample_shape, active=True):
+    """``(si, hit)``: the first intersection of ``ray`` and whether it is on ``sample_shape``,
+    with the one retry of :data:`RETRY_NUDGE` for a ray that slipped through an edge."""
+    sample = dr.opaque(mi.ShapePtr, sample_shape)
+    si = scene.ray_intersect(ray, flags, False, active)
+    hit = si.is_valid() & (si.shape == sample)
+    retry = active & ~hit
+    s, t = mi.coordinate_system(ray.d)
+    nudge = RETRY_NUDGE * dr.maximum(dr.norm(mi.Vector3f(ray.o)), 1.0)
+    ray2 = mi.Ray3f(ray.o + (s + t) * nudge, ray.d)
+    si2 = scene.ray_intersect(ray2, flags, False, retry)
+    hit2 = retry & si2.is_valid() & (si2.shape == sample)
+    return dr.select(hit2, si2, si), hit | hit2
+
+
 def _u32(values) -> mi.UInt32:
     return mi.UInt32(np.ascontiguousarray(values, dtype=np.uint32))
 
@@ -117,20 +141,20 @@ class KaBatch(mi.SamplingIntegrator):
 
     def set_cells(self, frames: np.ndarray) -> None:
         """Source frames of the cells, float64 (n_cells, 12): centre, s, t, axis (the axis points
-        from the source towards the sample centre, the centre is D_S times minus the axis). Only the
-        axis goes to the device: the kernel rebuilds the frame from it
+        from the source towards the sample centre, the centre is the cell's D_S times minus the axis;
+        D_S may differ between cells: a fixed-height source path). Only the axis and D_S go to the
+        device: the kernel rebuilds the frame from the axis
         (:func:`frame_from_axis`, the rule of :func:`roadgonio.engines.mitsuba.engine.source_frames`)."""
         frames = np.asarray(frames, dtype=np.float64)
         if frames.ndim != 2 or frames.shape[1] != 12:
             raise BackendError(f"expected source frames of shape (cells, 12), got {frames.shape}")
         axis = frames[:, 9:12]
         dist = np.linalg.norm(frames[:, 0:3], axis=1)
-        if len(frames) and (np.ptp(dist) > 1e-9 * max(dist.max(), 1.0)
-                            or np.abs(frames[:, 0:3] + dist[:, None] * axis).max() > 1e-9 * max(dist.max(), 1.0)):
-            raise BackendError("the source frames must be centred at one distance along minus their axes")
+        if len(frames) and np.abs(frames[:, 0:3] + dist[:, None] * axis).max() > 1e-9 * max(dist.max(), 1.0):
+            raise BackendError("the source frames must be centred along minus their axes")
         # gathered per lane, so these are never loaded contiguously (no alignment-dependent kernels)
         self.frames = [_f32(axis[:, k]) for k in range(3)]
-        self.distance = dr.opaque(mi.Float, float(dist[0]) if len(dist) else 0.0)
+        self.distance = _f32(dist)          # D_S per cell
         self.n_cells = len(frames)
 
     # -- shading -------------------------------------------------------------------------------
@@ -140,7 +164,7 @@ class KaBatch(mi.SamplingIntegrator):
         L cos theta_s A / d^2 and the lanes where it is valid."""
         a = mi.Vector3f(*[dr.gather(mi.Float, v, cell, active) for v in self.frames])
         s, t = frame_from_axis(a)
-        c = -self.distance * a
+        c = -dr.gather(mi.Float, self.distance, cell, active) * a
         v = mi.Vector3f(si.p) - c
         local = dr.zeros(mi.SurfaceInteraction3f)
         local.p = mi.Point3f(dr.dot(s, v), dr.dot(t, v), dr.dot(a, v))
@@ -171,8 +195,8 @@ class KaBatch(mi.SamplingIntegrator):
 
     def sample(self, scene, sampler, ray, medium=None, active=True):
         """``SamplingIntegrator`` interface: the signal of the cell :attr:`cell` along ``ray``."""
-        si = scene.ray_intersect(ray, active)
-        hit = active & si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
+        si, hit = intersect_sample(scene, ray, mi.RayFlags.All, self.sample_shape, active)
+        hit = active & hit
         cell = mi.UInt32(0) + self.cell
         value = self.shade(scene, si, cell, sampler.next_2d(hit), hit)
         return mi.Spectrum(value), hit, []
@@ -211,8 +235,7 @@ class KaBatch(mi.SamplingIntegrator):
         ray, w = sensor.sample_ray(0.0, 0.0, mi.Point2f(u2, u3), mi.Point2f(u0, u1))
         # a flat sample needs only the hit point (its normals are +z); otherwise the shading frame too
         flags = mi.RayFlags.Minimal if self.flat else (mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame)
-        si = scene.ray_intersect(ray, flags, False)
-        hit = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
+        si, hit = intersect_sample(scene, ray, flags, self.sample_shape)
         w = dr.select(hit, mi.Float(w.x), 0.0)
         if self.flat:
             data = dict(zip(FLAT_RAY_FIELDS, (si.p.x, si.p.y, si.p.z, ray.d.x, ray.d.y, ray.d.z, w)))
@@ -549,7 +572,7 @@ class KaBatch(mi.SamplingIntegrator):
         alive = w0 > 0.0
         a = mi.Vector3f(*[dr.gather(mi.Float, v, cell, alive) for v in self.frames])
         s_ax, t_ax = frame_from_axis(a)
-        c = -self.distance * a
+        c = -dr.gather(mi.Float, self.distance, cell, alive) * a      # D_S of the lane's cell
         base = WALK_DIMS_PER_VERTEX * (self.max_bounces - 1)
         u = [self.walk_u(lattice, keys, base + q, rep, j) for q in range(4)]
         disk = mi.warp.square_to_uniform_disk_concentric(mi.Point2f(u[0], u[1])) * self.source_radius

@@ -13,13 +13,14 @@ nothing heavy and never mitsuba or drjit: only :mod:`roadgonio.engines.mitsuba` 
 when the caller asks for a variant. The rooms, in import order (docs/architecture.md): the base
 modules, :mod:`roadgonio.surface`, :mod:`roadgonio.instrument`, :mod:`roadgonio.engines`,
 :mod:`roadgonio.uncertainty`, :mod:`roadgonio.correction`, :mod:`roadgonio.design`,
-:mod:`roadgonio.road`, then :mod:`roadgonio.api` and :mod:`roadgonio.cli`.
+:mod:`roadgonio.road`, :mod:`roadgonio.intercomparison`, then :mod:`roadgonio.api` and
+:mod:`roadgonio.cli`.
 """
 from roadgonio._version import __version__
 
 __all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
-           "validate", "estimate_uncertainty", "correct", "design_study", "road", "compare_tables", "classify_table",
-           "__version__"]
+           "validate", "estimate_uncertainty", "correct", "design_study", "second_aperture", "intercompare",
+           "road_metrics", "compare_tables", "classify_table", "__version__"]
 _API = frozenset(__all__) - {"__version__"}
 
 

@@ -22,7 +22,9 @@ function                 what (command)
 :func:`estimate_uncertainty`  JCGM 101 Monte Carlo uncertainty of the measured table (``uncertainty``)
 :func:`correct`          correct measured tables for the aperture effect (``correct``)
 :func:`design_study`     k_A over a grid of instruments on Dask (``design``)
-:func:`road`             EN 13201 road metrics of a layout with r-tables (``road``)
+:func:`intercompare`     a virtual key comparison of several instruments on Dask (``intercompare``)
+:func:`road_metrics`     EN 13201 road metrics of a layout with r-tables (``road``; not ``road``: that
+                         name is the room :mod:`roadgonio.road`)
 :func:`compare_tables`   two tables side by side (``compare``)
 :func:`classify_table`   the CIE class of a table (``classify``)
 =======================  ======================================================================
@@ -64,7 +66,8 @@ if TYPE_CHECKING:  # pragma: no cover
     from roadgonio.uncertainty.run import UncertaintyResult
 
 __all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
-           "validate", "estimate_uncertainty", "correct", "design_study", "road", "compare_tables",
+           "validate", "estimate_uncertainty", "correct", "design_study", "second_aperture", "intercompare",
+           "road_metrics", "compare_tables",
            "classify_table"]
 
 
@@ -254,19 +257,27 @@ def list_tables() -> list[dict[str, Any]]:
     rows = []
     for name in BUNDLED:
         t = bundled_table(name)
-        rows.append({"table": name, "Q0": t.q0(), "Q0_published": PUBLISHED_Q0[name], "S1": t.s1(),
-                     "S1_published": PUBLISHED_S1[name], "S2": t.s2(), "cells": int(t.mask.sum())})
+        rows.append({"table": name, "Q0": _value(t.q0()), "Q0_published": PUBLISHED_Q0[name], "S1": _value(t.s1()),
+                     "S1_published": PUBLISHED_S1[name], "S2": _value(t.s2()), "cells": int(t.mask.sum())})
     return rows
 
 
 def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
     """A table's Q0, S1, S2, cells and max r (``roadgonio table``); with ``to`` it is also written
-    there (``.rtb``: DIALux RTB, else CSV) and ``written`` names the file."""
+    there (``.rtb``: DIALux RTB, else CSV) and ``written`` names the file. A characteristic the
+    table lacks the cells for (S1 without r(0, 0) > 0 and r(2, 0); Q0 without a grid cell with four
+    tabulated corners; S2 without both) is None (missing), never NaN or infinity."""
     t = _table(table)
-    info = {"table": t.name, "Q0": t.q0(), "S1": t.s1(), "S2": t.s2(), "cells": int(t.mask.sum()), "r_max": t.r_max}
+    info = {"table": t.name, "Q0": _value(t.q0()), "S1": _value(t.s1()), "S2": _value(t.s2()),
+            "cells": int(t.mask.sum()), "r_max": _value(t.r_max)}
     if to is not None:
         info["written"] = str(t.write(to))
     return info
+
+
+def _value(v) -> float | None:
+    """A quantity of a result: a finite float, or None when it is missing (never NaN or infinity)."""
+    return float(v) if v is not None and math.isfinite(v) else None
 
 
 def read_table(path_or_name) -> "xr.DataArray":
@@ -287,13 +298,16 @@ def write_table(da, path) -> Path:
 # ----------------------------------------------------------------------------------------------
 
 def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mapping[str, float] | None = None,
-        out=None, plot: bool = True, progress: Callable[[int, int], None] | None = None) -> "FitResult":
+        out=None, fresh: bool = False, plot: bool = True,
+        progress: Callable[[int, int], None] | None = None) -> "FitResult":
     """Fit the road BRDF model (paper eq. 4; ``model_variant`` default ``"power"``) to an r-table
     (name, file, RTable or DataArray). Returns the :class:`~roadgonio.surface.fit.FitResult`:
     ``.model`` (a RoadModel, usable as a sample), ``.max_dev_pct``, ``.rms_dev_pct`` (% of the
     table's max r). With ``out`` (a folder or :data:`AUTO` = ``fit-TABLE-VARIANT``) it writes
-    model.json, residuals.csv and (``plot``) fit.png, all or none; ``.written`` lists them.
-    ``progress(done, total)`` is called as the global search advances."""
+    model.json, residuals.csv and (``plot``) fit.png, all or none; ``.written`` lists them. A
+    folder holding a different fit's results (model.json's fingerprint: table, variant, seed,
+    fixed parameters, roadgonio version) is refused before the fit unless ``fresh``, which
+    replaces them. ``progress(done, total)`` is called as the global search advances."""
     from roadgonio.engines.registry import check_seed
     from roadgonio.surface.fit import fit_table
     from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS
@@ -316,13 +330,20 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
         folder = Path(f"fit-{_safe(t.name)}-{variant}") if isinstance(out, _Auto) else _out(out, "fit")
         if folder.exists() and not folder.is_dir():
             raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
+    from roadgonio.fileio import check_run_folder, fingerprint
+    from roadgonio.surface.fit import FIT_METHOD_VERSION, table_hash
+    from roadgonio.surface.fitplot import FIT_FILES
+    fp = fingerprint({"table": table_hash(t), "name": t.name, "variant": variant, "seed": seed,
+                      "fixed": dict(sorted(fixed.items())), "fit": FIT_METHOD_VERSION})
+    if folder is not None:
+        check_run_folder(folder, "model.json", fp, what="fit", fresh=bool(fresh), outputs=FIT_FILES)
     result = fit_table(t, variant, seed=seed, fixed=fixed, progress=progress)
     check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
     if folder is not None:
         import dataclasses
 
         from roadgonio.surface.fitplot import write_fit
-        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot))
+        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot, fingerprint=fp))
     return result
 
 
@@ -421,15 +442,19 @@ def render(instrument, sample, tan_eps: float, beta: float, out, *, resolution: 
     """Pictures of one measurement cell with Mitsuba (``roadgonio render``): the detector's view of the
     sample (luminance inside the field stop) and the horizontal illuminance around the footprint, as
     view.exr, illuminance.exr, render.png and render.json in ``out``; returns render.json's content
-    (provenance, footprint, a one-render k_A estimate, files)."""
+    (provenance, footprint, a one-render k_A estimate, files). ``seed``: 0 ... 2^32 - 1 (Mitsuba's
+    samplers take a 32-bit seed)."""
     from roadgonio.engines.cells import check_cell
-    from roadgonio.engines.registry import check_seed, prepare_entry_point
+    from roadgonio.engines.registry import prepare_entry_point
+    from roadgonio.seeds import MITSUBA_SEED_MAX, check_seed
     t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
     resolution = _check_int(resolution, "resolution", 8, 2048)
     spp = _check_int(spp, "spp", 1)
+    from roadgonio.limits import check_size
+    check_size(resolution * resolution * spp, "render_samples", "spp")
     if math.isqrt(spp) ** 2 != spp:
         raise InputError(f"expected a square number of samples per pixel (4, 16, 64...), got {spp}", field="spp")
-    seed = check_seed(seed)
+    seed = check_seed(seed, maximum=MITSUBA_SEED_MAX)
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
     folder = _out(out, "render", inst.name, smp.name)
@@ -492,13 +517,16 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
                          surrogate: str = "ccd", validation: int = 4, threads: int | None = None,
                          workers: int | None = None, scheduler: str | None = None,
                          mitsuba_variant: str | None = None, model_variant: str | None = None,
-                         out=None, plots: bool = True, figures=None, progress: bool = False) -> "UncertaintyResult":
+                         out=None, fresh: bool = False, plots: bool = True, figures=None,
+                         progress: bool = False) -> "UncertaintyResult":
     """Monte Carlo (JCGM 101) and GUM uncertainty of the r-table that ``instrument`` measures on
     ``sample`` for the instrument errors ``sigma`` (a SPEC text like ``"alpha_deg=0.01,eps_deg=0.05:rect"``,
     a TOML file, a mapping of the same keys, or a SigmaSpec), without and (``aperture``) with the
     aperture effect (``roadgonio uncertainty``). Returns the
     :class:`~roadgonio.uncertainty.run.UncertaintyResult`; with ``out`` (a folder or :data:`AUTO`)
-    writes uncertainty.json, cells.csv, the r-table CSVs and the pictures (``.written``)."""
+    writes uncertainty.json, cells.csv, the r-table CSVs and the pictures (``.written``). A folder
+    holding a different run's results (uncertainty.json's fingerprint of the inputs and settings)
+    is refused before the work unless ``fresh``, which replaces them."""
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
     from roadgonio.uncertainty.run import DEFAULT_BACKEND_TOLERANCE, run_uncertainty
     from roadgonio.uncertainty.spec import SigmaSpec, parse_sigma_spec
@@ -510,10 +538,11 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         raise InputError(f"expected a SPEC text, a TOML file, a mapping or a SigmaSpec, got {type(sigma).__name__}",
                          field="sigma")
     seed = check_seed(seed)
-    trials = _check_int(trials, "trials", 1)
-    max_trials = _check_int(max_trials, "max_trials", 1)
+    from roadgonio.limits import check_size
+    trials = check_size(_check_int(trials, "trials", 1), "trials", "trials")
+    max_trials = check_size(_check_int(max_trials, "max_trials", 1), "trials", "max_trials")
     if batch is not None:
-        batch = _check_int(batch, "batch", 1)
+        batch = check_size(_check_int(batch, "batch", 1), "trials", "batch")
     digits = _check_int(digits, "digits", 1, 3)
     validation = _check_int(validation, "validation", 0)
     if threads is not None:
@@ -528,6 +557,18 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
     folder = _out(out, "uncertainty", inst.name, smp.name)
+    fp = None
+    if folder is not None:
+        from roadgonio.engines.cluster import absolute_instrument_dict
+        from roadgonio.fileio import check_run_folder, fingerprint
+        from roadgonio.uncertainty.report import OUTPUT_FILES
+        fp = fingerprint({
+            "instrument": {k: v for k, v in absolute_instrument_dict(inst).items() if k != "instrument"},
+            "model": {"variant": smp.model.variant, "params": smp.model.params.to_dict()}, "sigma": spec.to_dict(),
+            "trials": trials, "adaptive": bool(adaptive), "digits": digits, "max_trials": max_trials, "batch": batch,
+            "seed": seed, "coverage": coverage, "cells": cells, "aperture": bool(aperture), "backend": backend,
+            "settings": settings, "illuminance": illuminance, "surrogate": surrogate, "validation": validation})
+        check_run_folder(folder, "uncertainty.json", fp, what="uncertainty run", fresh=bool(fresh), outputs=OUTPUT_FILES)
     if aperture and workers in (None, 0) and scheduler is None:
         prepare_entry_point(backend, mitsuba_variant)
     res = run_uncertainty(smp.model, inst, spec, trials=trials, adaptive=adaptive, seed=seed, coverage=coverage,
@@ -538,7 +579,7 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     res.provenance["sample"] = smp.spec or smp.name
     if folder is not None:
         from roadgonio.uncertainty.report import write_results
-        res.written = write_results(res, folder, sample_name=smp.name, plots=plots, figures=figures)
+        res.written = write_results(res, folder, sample_name=smp.name, plots=plots, figures=figures, fingerprint=fp)
         res.out = folder
     return res
 
@@ -548,7 +589,7 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
             rel_se: float | None = None, seed: int = 0, mitsuba_variant: str | None = None,
             model_variant: str | None = None, rays: int = 512, workers: int | None = None,
             scheduler: str | None = None, out=None, plots: bool = True, progress: bool = False,
-            **options: Any):
+            forward: str = "eq4", joint: bool = False, **options: Any):
     """Correct measured r-tables for the aperture effect (``roadgonio correct``). ``measured``: one
     table (name, file, RTable or DataArray) or a list of them (they share the instrument's work);
     ``reference="self"`` (default) fits the model through the instrument, a SAMPLE takes the classic
@@ -558,7 +599,28 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     (``.corrected``, ``.u_corrected``, ``.k_a``, ``.budget``, ``.before`` / ``.after``, ``.summary()``),
     a list for a list; with ``out`` (a folder or :data:`AUTO`) the files are written (one sub-folder
     per table for several), ``.out`` and ``.written`` say where. ``workers``/``scheduler``: one
-    Dask task per table (same results)."""
+    Dask task per table (same results).
+
+    ``forward`` (``reference="self"``): ``"eq4"`` (default) fits eq. 4 through the instrument;
+    ``"surface"`` fits eq. 4 times a smooth correction surface whose smoothing the data choose,
+    for surfaces outside eq. 4, with an uncertainty that includes the surface's posterior and the
+    Birge widening (docs/correction.md, "Outside eq. 4"). ``joint=True``: ``measured`` and
+    ``instrument`` are lists of equal length (at least two), the tables one surface measured by
+    the instruments (or aperture settings); one surface is fitted through all of them and one
+    corrected table returned (a :class:`~roadgonio.correction.outside.SurfaceCorrection`: ``.corrected``,
+    ``.u_corrected``, ``.budget``, ``.parts[i].k_a`` per instrument, ``.summary()``)."""
+    if joint:
+        return _correct_joint(measured, instrument, u_measured=u_measured, sigma=sigma, backend=backend,
+                              accuracy=accuracy, rel_se=rel_se, seed=seed, mitsuba_variant=mitsuba_variant,
+                              model_variant=model_variant, rays=rays, out=out, plots=plots, progress=progress,
+                              workers=workers, scheduler=scheduler, reference=reference, forward=forward, **options)
+    if forward not in ("eq4", "surface"):
+        raise InputError(f"unknown forward model {forward!r}; expected eq4 or surface", field="forward")
+    if isinstance(instrument, (list, tuple)):
+        if len(instrument) != 1:
+            raise InputError(f"{len(instrument)} instruments given without joint: several instruments correct one "
+                             "surface together (joint=True, --joint)", field="--instrument")
+        instrument = instrument[0]
     from roadgonio.correction import correct_files
     from roadgonio.correction.run import check_measured
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
@@ -577,7 +639,8 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     if model_variant == "auto" and not self_ref:
         raise InputError("model_variant 'auto' is for reference 'self'; give one variant for fitting a reference "
                          "table", field="model_variant")
-    rays = _check_int(rays, "rays", 8)
+    from roadgonio.limits import check_size
+    rays = check_size(_check_int(rays, "rays", 8), "rays", "rays")
     from roadgonio.engines.registry import backend_info
     seeded = backend_info(backend).seeded
     settings = resolve_settings(backend, tolerance=rel_se, seed=seed if seeded else None, mitsuba_variant=mitsuba_variant,
@@ -587,8 +650,13 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     opts = dict(u_measured="1%" if u_measured is None else u_measured, sigma=sigma, backend=backend,
                 backend_settings=settings, accuracy=accuracy, model_variant=model_variant, seed=seed,
                 progress=_show(progress), **options)
+    if forward == "surface" and not self_ref:
+        raise InputError("the forward model 'surface' is fitted through the instrument: use it with reference "
+                         "'self'", field="forward")
     if self_ref:
         opts["rays"] = rays
+        if forward != "eq4":
+            opts["forward"] = forward
         ref: Any = "self"
     else:
         opts["alternatives"] = alternatives
@@ -606,6 +674,83 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
         res.out, res.written = sub, written
         results.append(res)
     return results if many else results[0]
+
+
+def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy, rel_se, seed, mitsuba_variant,
+                   model_variant, rays, out, plots, progress, workers, scheduler, reference, forward, **options):
+    """:func:`correct` with ``joint=True`` (one surface through several instruments)."""
+    from roadgonio.correction import correct_joint
+    from roadgonio.correction.run import check_measured
+    from roadgonio.engines.registry import backend_info, check_seed, prepare_entry_point, resolve_settings
+    if not (isinstance(reference, str) and reference.strip().lower() == "self"):
+        raise InputError("a joint correction fits one surface through the instruments: reference must be 'self'",
+                         field="--reference")
+    if forward not in ("eq4", "surface"):
+        raise InputError(f"unknown forward model {forward!r}; expected eq4 or surface", field="forward")
+    if workers not in (None, 0) or scheduler is not None:
+        raise InputError("a joint correction is one fit: it runs in this process (no --workers/--scheduler)",
+                         field="--workers")
+    items = list(measured) if isinstance(measured, (list, tuple)) else [measured]
+    insts = list(instrument) if isinstance(instrument, (list, tuple)) else [instrument]
+    if len(items) < 2 or len(items) != len(insts):
+        raise InputError(f"a joint correction takes one instrument per measured table, at least two; got "
+                         f"{len(items)} table(s) and {len(insts)} instrument(s)", field="--instrument")
+    tables = []
+    for m in items:
+        t = _table(m, "measured")
+        check_measured(t, m if isinstance(m, (str, Path)) else None)
+        tables.append(t)
+    seed = check_seed(seed)
+    instruments = [_instrument(i) for i in insts]
+    rays = _check_int(rays, "rays", 8)
+    settings = resolve_settings(backend, tolerance=rel_se, seed=seed if backend_info(backend).seeded else None,
+                                mitsuba_variant=mitsuba_variant, fields={"tolerance": "rel_se"})
+    prepare_entry_point(backend, mitsuba_variant)
+    folder = _out(out, "correct", "joint", *[t.name for t in tables])
+    files = [str(m) if isinstance(m, (str, Path)) else None for m in items]
+    return correct_joint(tables, instruments, folder, plots=plots, model_variant=model_variant,
+                         measured_files=files, u_measured="1%" if u_measured is None else u_measured, sigma=sigma,
+                         backend=backend, backend_settings=settings, accuracy=accuracy, rays=rays, seed=seed,
+                         progress=_show(progress), **options)
+
+
+def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured: Any = None, rays: int = 512,
+                    seed: int = 0, model_variant: str | None = None, min_signal: float | None = None, out=None,
+                    plots: bool = True, progress: bool = False):
+    """Which second aperture setting should the instrument have (``roadgonio design --second-aperture``,
+    issue 19)? Ranks every point of the ``vary`` grid (applied to ``instrument``) by the median
+    relative u of the one corrected table that a joint correction of the instrument and that
+    second setting would give (:mod:`roadgonio.design.second_aperture`), among the settings that
+    keep at least ``min_signal`` (default 0.25) of the instrument's signal; baselines: the
+    instrument alone and measuring twice. The surface: ``measured`` (a table the instrument
+    measured) or ``sample`` (anything :func:`roadgonio.surface.sample.resolve_sample` takes, or a
+    BRDF model). Returns the :class:`~roadgonio.design.second_aperture.SecondApertureResult`
+    (``.best``, ``.candidates``, ``.baselines``, ``.summary()``); with ``out`` second_aperture.csv,
+    .json, best_second.toml and second_aperture.png are written (``.out``, ``.written``)."""
+    from roadgonio.design.second_aperture import DEFAULT_MIN_SIGNAL, DEFAULT_U, second_aperture as _second
+    from roadgonio.design.second_aperture import write_second_aperture
+    from roadgonio.engines.registry import check_seed
+    inst = _instrument(instrument)
+    table = None if measured is None else _table(measured, "measured")
+    if table is not None:
+        from roadgonio.correction.run import check_measured
+        check_measured(table, measured if isinstance(measured, (str, Path)) else None)
+    smp = sample
+    if isinstance(sample, (str, Path)):
+        smp = _sample(sample, model_variant, field="sample").model
+    ms = DEFAULT_MIN_SIGNAL if min_signal is None else float(min_signal)
+    if not (0.0 <= ms <= 1.0):
+        raise InputError(f"expected a least signal between 0 and 1 (of the instrument's), got {min_signal!r}",
+                         field="--min-signal")
+    res = _second(inst, vary, measured=table, sample=smp, u_measured=DEFAULT_U if u_measured is None else u_measured,
+                  rays=_check_int(rays, "rays", 8), seed=check_seed(seed),
+                  model_variant=None if model_variant == "auto" else model_variant, min_signal=ms,
+                  progress=_show(progress))
+    folder = _out(out, "design", inst.name, "second")
+    res.out, res.written = folder, []
+    if folder is not None:
+        res.written = write_second_aperture(res, folder, plots=plots)
+    return res
 
 
 def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str = "5%", cells="all",
@@ -642,11 +787,46 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
     return ds
 
 
+def intercompare(study, out=None, *, workers: int | None = None, scheduler: str | None = None, client=None,
+                 fresh: bool = False, progress: bool = False, plots: bool = True,
+                 mitsuba_variant: str | None = None):
+    """A virtual intercomparison (``roadgonio intercompare STUDY``): the participants of the study
+    (a TOML file, the name of a bundled study such as ``"r3-comparison"``, or a
+    :class:`roadgonio.intercomparison.study.Study`) measure its surface in many realisations; returns
+    the :class:`~roadgonio.intercomparison.run.StudyRun` (``.dataset``: the ``xarray.Dataset`` of
+    intercompare.nc; :func:`intercomparison_summary`). ``workers``/``scheduler``/``client`` as
+    :func:`design_study` (default: a local cluster, one worker per core; ``workers=0`` computes
+    here). With ``out`` (a folder or :data:`AUTO`) the run is journalled (resumable) and its files
+    are written there (:mod:`roadgonio.intercomparison.outputs`). Scripts that start a local cluster
+    must guard the call with ``if __name__ == "__main__":``."""
+    from roadgonio.engines.registry import prepare_entry_point
+    from roadgonio.intercomparison.run import run_study
+    from roadgonio.intercomparison.study import Study, load_study
+    st = study if isinstance(study, Study) else load_study(study)
+    folder = _out(out, "intercompare", st.name)
+    if workers == 0 and scheduler is None and client is None:
+        prepare_entry_point(st.backend, mitsuba_variant)       # this process computes: it is the entry point
+    return run_study(st, folder, workers=workers, scheduler=scheduler, client=client, fresh=fresh,
+                     progress=_show(progress), plots=plots, mitsuba_variant=mitsuba_variant)
+
+
+def intercomparison_summary(run) -> dict[str, Any]:
+    """The summary of an :func:`intercompare` run: per scenario and participant (and for the
+    comparison) its figures of merit, the ranking of the characteristics, the frozen-factor check,
+    the seconds of each stage and the output folder."""
+    import json
+    ds = run.dataset
+    return {"summary": json.loads(ds.attrs["summary_json"]), "sensitivity": json.loads(ds.attrs["sensitivity_json"]),
+            "validation": json.loads(ds.attrs.get("validation_json", "[]")),
+            "seconds": json.loads(ds.attrs.get("seconds", "{}")), "out": ds.attrs.get("out"),
+            "files": ds.attrs.get("files", "")}
+
+
 # ----------------------------------------------------------------------------------------------
 # from the table to the road
 # ----------------------------------------------------------------------------------------------
 
-def road(tables, *, u=None, luminaire=None, layout=None, target_class: str | None = None, trials: int = 20_000,
+def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: str | None = None, trials: int = 20_000,
          seed: int = 0, correlation: str = "both", out=None, plots: bool = True) -> list[dict[str, Any]]:
     """EN 13201-3 road-surface luminance metrics of a luminaire layout with one or several r-tables
     side by side (``roadgonio road``). ``u``: the tables' standard uncertainties (r-table files, r x
@@ -671,7 +851,8 @@ def road(tables, *, u=None, luminaire=None, layout=None, target_class: str | Non
         raise InputError(f"expected both, independent or correlated, got {correlation!r}", field="correlation")
     if isinstance(trials, int) and not isinstance(trials, bool) and trials < mc.MIN_TRIALS:
         raise InputError(f"expected at least {mc.MIN_TRIALS} trials, got {trials}", field="trials")
-    trials = _check_int(trials, "trials", mc.MIN_TRIALS)
+    from roadgonio.limits import check_size
+    trials = check_size(_check_int(trials, "trials", mc.MIN_TRIALS), "trials", "trials")
     seed = check_seed(seed)
     us = list(u) if isinstance(u, (list, tuple)) else ([] if u is None else [u])
     if not us:
@@ -742,4 +923,9 @@ def classify_table(table) -> dict[str, Any]:
     standard, and the bundled tables nearest in (S1, Q0) (``roadgonio classify``;
     :func:`roadgonio.surface.cie.classify`)."""
     from roadgonio.surface.cie import classify
-    return classify(_table(table))
+    try:
+        return classify(_table(table))
+    except InputError as err:
+        if isinstance(table, (str, Path)) and Path(str(table)).suffix and err.path is None:
+            raise InputError(err.reason, path=table, field=err.field) from None
+        raise

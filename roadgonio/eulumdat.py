@@ -145,6 +145,7 @@ def read_ldt(path: str | Path) -> Luminaire:
     if h.n_sets < 1 or not h.lamp_flux:
         raise InputError("no lamp set: expected at least one set with its luminous flux", path=path,
                          field="number of lamp sets (line 26)")
+    _check_header(h, path)
     flux = float(h.lamp_flux[0])
     conv = float(h.conv_factor) if h.conv_factor else 1.0
     c = np.asarray(h.c_angles, dtype=np.float64)
@@ -165,3 +166,26 @@ def read_ldt(path: str | Path) -> Luminaire:
                          source=str(path), meta=meta)
     except InputError as err:
         raise InputError(err.reason, path=path, field=err.field) from None
+
+
+def _check_header(h, path: Path) -> None:
+    """Header values a road calculation depends on and that can be impossible or say something
+    this module does not model: one-line errors naming the file and the EULUMDAT line."""
+    if h.ityp not in (0, 1, 2, 3):
+        raise InputError(f"type indicator Ityp must be 0 ... 3, got {h.ityp}", path=path, field="Ityp (line 2)")
+    for name, v, line in (("DFF", h.dff, 22), ("LORL", h.lorl, 23)):
+        if not (np.isfinite(v) and 0.0 <= v <= 100.0):
+            raise InputError(f"{name} is a percentage of the lamp flux: expected 0 ... 100, got {v:g}", path=path,
+                             field=f"{name} (line {line})")
+    if h.tilt != 0.0:
+        raise InputError(f"the luminaire was measured tilted by {h.tilt:g} deg; the intensities would have to be "
+                         "turned back, which is not modelled: expected a tilt of 0 (give the layout's tilt in the "
+                         "layout file)", path=path, field="tilt during measurement (line 25)")
+    lamps = list(h.num_lamps or [])
+    if lamps and lamps[0] < 0:
+        raise InputError(f"number of lamps {lamps[0]} < 0 marks absolute photometry (intensities in cd, not cd per "
+                         "1000 lm of lamp flux), which is not supported: expected relative photometry (a number of "
+                         "lamps >= 1)", path=path, field="number of lamps (line 27)")
+    if lamps and lamps[0] == 0:
+        raise InputError("expected a number of lamps >= 1 in the first lamp set, got 0", path=path,
+                         field="number of lamps (line 27)")

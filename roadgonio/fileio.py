@@ -208,6 +208,40 @@ def read_journal(path: str | Path, fingerprint: str, *, different: str,
     return done
 
 
+def check_run_folder(out_dir: str | Path, meta_name: str, fingerprint: str, *, what: str = "run",
+                     fresh: bool = False, outputs: tuple[str, ...] = ()) -> None:
+    """Refuse to replace the results of a different run: ``out_dir/meta_name`` (a JSON object) holds
+    the fingerprint (:func:`fingerprint`) of the run that wrote the folder; another fingerprint (or none) is the one-line
+    error naming that file and ``--fresh``. With ``fresh`` the folder's earlier ``outputs`` (the
+    command's own file names) are removed first, so no file of the other run stays beside the new
+    ones. The shared behaviour of every command that writes a run's results (``ka``, ``fit``,
+    ``uncertainty``; ``correct`` and ``design`` check their journals the same way)."""
+    out_dir = Path(out_dir)
+    meta = out_dir / meta_name
+    if fresh:
+        for name in outputs:
+            try:
+                (out_dir / name).unlink()
+            except FileNotFoundError:
+                pass
+            except OSError as err:
+                raise output_error(out_dir / name, err) from None
+        return
+    if not meta.exists():
+        return
+    try:
+        old = json.loads(meta.read_text(encoding="utf-8")).get("fingerprint")
+    except OSError as err:
+        raise InputError(f"cannot read this file ({err.strerror or err}) to check which run it belongs to; "
+                         "use another --out folder, or --fresh to discard it", path=meta) from None
+    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+        old = None
+    if old != fingerprint:
+        why = (f"holds the results of a different {what} (inputs, settings or roadgonio version differ)" if old else
+               "holds results without a run fingerprint (an older roadgonio or another tool)")
+        raise InputError(f"this folder {why}; use another --out folder, or --fresh to discard them", path=meta)
+
+
 def check_writable(out_dir: str | Path) -> Path:
     """Fail before the work, not after it: the output folder can be created and written (a
     staging folder is made and removed). Raises the one-line :class:`InputError` of an output."""
@@ -311,16 +345,22 @@ def atomic_savefig(fig, path: str | Path, **kwargs) -> Path:
 
 def write_netcdf(ds, path: str | Path) -> Path:
     """Write an ``xarray.Dataset`` as netCDF atomically (netCDF-3 64-bit offset through scipy, which
-    every install has): attributes that netCDF cannot hold (mappings, lists, booleans) are written as
-    JSON text; booleans data variables become int8 (xarray records their dtype and reads them back)."""
+    every install has): attributes that netCDF cannot hold (mappings, lists, booleans, whole numbers
+    beyond 32 bits such as a 63-bit seed) are written as JSON text; booleans data variables become
+    int8 (xarray records their dtype and reads them back)."""
     import numpy as np
+
+    def holds(v) -> bool:
+        if isinstance(v, bool) or not isinstance(v, (str, int, float, np.integer, np.floating)):
+            return False
+        return not isinstance(v, (int, np.integer)) or -2 ** 31 <= int(v) < 2 ** 31
     enc = ds.copy()
     for k, v in list(enc.attrs.items()):
-        if isinstance(v, bool) or not isinstance(v, (str, int, float, np.integer, np.floating)):
+        if not holds(v):
             enc.attrs[k] = to_json(v, indent=None)
     for name in list(enc.variables):
         for k, v in list(enc[name].attrs.items()):
-            if isinstance(v, bool) or not isinstance(v, (str, int, float, np.integer, np.floating)):
+            if not holds(v):
                 enc[name].attrs[k] = to_json(v, indent=None)
     return atomic_write(path, lambda p: enc.to_netcdf(p, engine="scipy", format="NETCDF3_64BIT"))
 

@@ -23,8 +23,17 @@ ORDER = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "c
          "compare", "classify"]
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with the project's error line: a bad option is ONE line (``roadgonio: error: ...``,
+    naming the command and the option, with where to read more), exit status 2, like every other
+    input error (no usage block above it)."""
+
+    def error(self, message: str):
+        self.exit(2, f"roadgonio: error: {self.prog}: {message} (see '{self.prog} --help')\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="roadgonio",
         description="Simulate road-surface goniophotometers: fit road BRDF models to r-tables, compute "
                     "the aperture-effect factor k_A of an instrument, its uncertainty, and correct "
@@ -32,7 +41,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="Physics conventions (angles, quantities, the BRDF model, instrument keys with units, k_A and the "
                "calibration modes): docs/conventions.md, installed with the package as roadgonio/docs/conventions.md.")
     parser.add_argument("--version", action="version", version=f"roadgonio {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     names = [m.name for m in pkgutil.iter_modules(__path__) if not m.name.startswith("_")]
     names.sort(key=lambda n: (ORDER.index(n) if n in ORDER else len(ORDER), n))
     for name in names:
@@ -53,6 +62,14 @@ def main(argv: list[str] | None = None) -> int:
     except RoadgonioError as err:
         print(f"roadgonio: error: {_as_option(err, parser, args)}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # the reader of stdout went away (``roadgonio ... --json | head``): no traceback, the usual
+        # status of a process whose pipe closed (128 + SIGPIPE); stdout is pointed at /dev/null so the
+        # interpreter's final flush does not fail again
+        import os
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 141
     except KeyboardInterrupt:
         # each command says truthfully what an interruption keeps (``on_interrupt``, set by the
         # command's parser or by its run() once it knows); no promise of a resume that does not exist

@@ -22,12 +22,18 @@ def run(args) -> int:
     if args.json:
         print_json(res)
     elif not args.quiet:
-        print(f"{res['table']}: S1 = {res['S1']:.3f}, Q0 = {res['Q0']:.4f} sr^-1, S2 = {res['S2']:.2f}")
+        q0 = "missing" if res["Q0"] is None else f"{res['Q0']:.4f} sr^-1"
+        s2 = "missing" if res["S2"] is None else f"{res['S2']:.2f}"
+        print(f"{res['table']}: S1 = {res['S1']:.3f}, Q0 = {q0}, S2 = {s2}")
         for system, c in res["classes"].items():
+            scale = "missing" if c["Q0_scale"] is None else f"x{c['Q0_scale']:.3f}"
             print(f"  {system} system: {c['class']} (S1 {c['S1_margin_to_limit']:.3f} from the nearest class limit); "
-                  f"standard Q0 {c['standard_Q0']:.2f}, this table x{c['Q0_scale']:.3f}"
+                  f"standard Q0 {c['standard_Q0']:.2f}, this table {scale}"
                   + ("" if c["bundled"] else " (standard table not bundled)"))
-        near = res["nearest_bundled"][0]
-        print(f"  nearest bundled table in (S1, Q0): {near['table']} (S1 {near['S1']:.3f}, Q0 {near['Q0']:.4f}; "
-              f"distance {near['distance']:.2f} spreads)")
+        if res["nearest_bundled"]:
+            near = res["nearest_bundled"][0]
+            print(f"  nearest bundled table in (S1, Q0): {near['table']} (S1 {near['S1']:.3f}, Q0 {near['Q0']:.4f}; "
+                  f"distance {near['distance']:.2f} spreads)")
+        if res.get("missing"):
+            print(f"  missing: {res['missing']}")
     return 0

@@ -9,7 +9,6 @@ from roadgonio.cli._common import (
     add_accuracy,
     add_backend,
     add_dask_arguments,
-    add_instrument_argument,
     add_mitsuba_variant,
     add_model_variant,
     add_output_options,
@@ -37,9 +36,20 @@ def register(sub) -> None:
                     "corrected.rtb, correct.json, correct_cells.csv, corrected_corr.csv, before_after.png and "
                     "correction_map.png (one sub-folder per file when several are given); the k_A tables are "
                     "journalled and an interrupted run resumes.")
-    p.add_argument("--measured", required=True, nargs="+", metavar="FILE",
-                   help="measured r-table(s) (.csv or .rtb, r x 1e4); several files share the instrument's work")
-    add_instrument_argument(p)
+    p.add_argument("--measured", required=True, nargs="+", action="extend", metavar="FILE",
+                   help="measured r-table(s) (.csv or .rtb, r x 1e4); several files share the instrument's work; "
+                        "with --joint, repeat --measured FILE --instrument FILE per instrument")
+    p.add_argument("--instrument", required=True, action="append", metavar="FILE",
+                   help="instrument preset or TOML file (with --joint: one per --measured, in the same order)")
+    p.add_argument("--forward", choices=["eq4", "surface"], default=None,
+                   help="forward model fitted with --reference self: eq4 (default) the paper's eq. 4; surface: eq. 4 "
+                        "times a smooth correction surface over the incident direction whose smoothing the data "
+                        "choose, for surfaces outside eq. 4 (its u includes the surface's posterior, and is widened "
+                        "by the local Birge ratio where the residuals have structure); --joint implies surface")
+    p.add_argument("--joint", action="store_true",
+                   help="the --measured tables are ONE surface measured by the --instrument(s) (one per table, or one "
+                        "instrument with several aperture settings as several files): one surface is fitted through "
+                        "all of them and one corrected table written, with each instrument's k_A")
     p.add_argument("--reference", default="self", metavar="self|SAMPLE",
                    help="self (default): fit the model through the instrument; or a reference SAMPLE (bundled table "
                         "R1..R4, C1, C2 fitted on the fly, an r-table file, a model.json, lambert)")
@@ -75,7 +85,13 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    results = api.correct(list(args.measured), args.instrument, reference=args.reference,
+    if args.joint:
+        return _run_joint(args)
+    if len(args.instrument) != 1:
+        from roadgonio.errors import InputError
+        raise InputError(f"{len(args.instrument)} --instrument given without --joint: several instruments that "
+                         "measured one surface are corrected together with --joint", field="--instrument")
+    results = api.correct(list(args.measured), args.instrument[0], forward=args.forward or "eq4", reference=args.reference,
                           alternatives=args.alternatives, u_measured=args.u_measured, sigma=args.sigma,
                           backend=args.backend, accuracy=args.accuracy, rel_se=args.rel_se, seed=args.seed,
                           mitsuba_variant=args.mitsuba_variant, model_variant=args.model_variant, rays=args.rays,
@@ -103,10 +119,47 @@ def run(args) -> int:
         comps = ", ".join(f"{k} {_percent(v['u_rel_max'])}" for k, v in s["budget"].items() if k != "total")
         say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} % "
             f"(largest per component: {comps}); {s['seconds']:.1f} s")
+        f = s.get("fit") or {}
+        if "cells_widened" in f:
+            say(f"  fit: {f['variant']} backbone x correction surface, Birge ratio {f['birge_ratio']:.2f} "
+                f"(local max {f['birge_local_max']:.2f}); u widened by the local Birge ratio in {f['cells_widened']} "
+                f"cells (at most x{f['widening_max']:.2f})")
         say(f"  wrote {len(s['written'])} files to {s['out']}")
     cluster = results[0].provenance.get("cluster") if results else None
     if cluster:
         say(f"computed as {len(results)} Dask tasks on {cluster['workers']} workers ({cluster['scheduler']})")
+    return 0
+
+
+def _run_joint(args) -> int:
+    res = api.correct(list(args.measured), list(args.instrument), joint=True, reference=args.reference,
+                      u_measured=args.u_measured, sigma=args.sigma, backend=args.backend, accuracy=args.accuracy,
+                      rel_se=args.rel_se, seed=args.seed, mitsuba_variant=args.mitsuba_variant,
+                      model_variant=args.model_variant, rays=args.rays, workers=args.workers,
+                      scheduler=args.scheduler, out=out_arg(args), plots=not args.no_plots,
+                      progress=show_progress(args))
+    s = res.summary()
+    s["out"] = str(res.out)
+    s["written"] = [str(p) for p in res.written]
+    if args.json:
+        print_json(s)
+        return 0
+    say = text_output(args)
+    if args.u_measured is None:
+        say("note: no --u-measured given; the measurement's standard uncertainty was taken as 1 % of each value")
+    best = max(s["variants"], key=lambda v: v["weight"])
+    say(f"one surface through {len(res.parts)} instruments ({', '.join(s['instruments'])}): {s['cells']} cells, "
+        f"{best['variant']} backbone x correction surface, Birge ratio {best['birge_ratio']:.2f}")
+    for p in s["per_instrument"]:
+        b = p["before"]
+        say(f"  {p['instrument']}: k_A {p['k_a_min']:.3g} ... {p['k_a_max']:.3g}; as measured S1 "
+            f"{_pm(b['S1'], b['u_S1'])}, Q0 {_pm(b['Q0'], b['u_Q0'])}; its own corrected u median "
+            f"{100 * p['u_rel_median']:.3g} %")
+    say(f"  corrected: S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
+        f"{s['class_R']} / {s['class_C']}, nearest CIE table {s['nearest_table']}")
+    say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} %; "
+        f"{s['seconds']:.1f} s")
+    say(f"  wrote {len(s['written'])} files to {s['out']}")
     return 0
 
 
@@ -125,6 +178,7 @@ def _json_summary(res) -> dict:
             "seconds")
     out = {k: s[k] for k in keep}
     if "fit" in s:
-        out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio")}
+        out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio", "birge_local_max",
+                                               "cells_widened", "widening_max") if k in s["fit"]}
     out["out"] = str(res.out)
     return out

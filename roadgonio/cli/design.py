@@ -37,10 +37,23 @@ def register(sub) -> None:
     p.add_argument("--vary", action="append", default=[], metavar="KEY=LO:HI:N",
                    help="an instrument key and its values: LO:HI:N (linear), LO:HI:N:log, or V1,V2,...; repeat for "
                         "more keys (the grid is their product)")
-    p.add_argument("--sample", dest="samples", action="append", required=True, metavar="SAMPLE",
+    p.add_argument("--sample", dest="samples", action="append", default=[], metavar="SAMPLE",
                    help="bundled table name (R1..R4, C1, C2), an r-table file, a model.json or 'lambert'; repeat for "
                         "the surfaces you expect (max |k_A - 1| is over all of them)")
     add_model_variant(p)
+    p.add_argument("--second-aperture", action="store_true",
+                   help="instead of the k_A sweep: which second aperture setting (each point of the --vary grid applied "
+                        "to the instrument) minimises the u of the table a joint correction (`correct --joint`) of the "
+                        "two would give; the surface from --measured (a table this instrument measured) or one "
+                        "--sample; writes second_aperture.csv/.json/.png and best_second.toml")
+    p.add_argument("--measured", metavar="FILE", help="with --second-aperture: a table the instrument measured")
+    p.add_argument("--u-measured", default=None, metavar="U",
+                   help="with --second-aperture: the measurement's relative standard uncertainty (default 1.5%%)")
+    p.add_argument("--min-signal", type=float, default=None, metavar="F",
+                   help="with --second-aperture: least signal of the second setting, relative to the instrument's "
+                        "(default 0.25; smaller apertures always blur less)")
+    p.add_argument("--rays", type=int, default=512, metavar="N",
+                   help="with --second-aperture: rays per cell of the forward model (default 512)")
     p.add_argument("--tolerance", default="5%", metavar="T",
                    help="largest acceptable |k_A - 1|: a fraction (0.05) or a percentage (5%%); default 5%%")
     p.add_argument("--cells", default="all", metavar="all|table|LIST",
@@ -49,7 +62,7 @@ def register(sub) -> None:
     add_backend(p, names=["mitsuba", "quadrature", "numpy-mc", "reference"], help_text="k_A backend (default mitsuba)")
     add_accuracy(p)
     p.add_argument("--rel-se", type=float, metavar="E", help="target relative SE per cell (overrides --accuracy)")
-    p.add_argument("--seed", type=int, default=0, help="root seed; design point k gets SeedSequence(seed).spawn(n)[k]")
+    p.add_argument("--seed", type=int, default=0, help="root seed (0 ... 2^63 - 1); design point k gets its own seed point_seed(seed, k), in design.csv")
     add_mitsuba_variant(p)
     add_dask_arguments(p, "default: a local cluster with one worker per core")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/design-INSTRUMENT)")
@@ -60,6 +73,11 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    if args.second_aperture:
+        return _run_second(args)
+    if not args.samples:
+        from roadgonio.errors import InputError
+        raise InputError("expected at least one --sample (the surfaces you expect)", field="--sample")
     ds = api.design_study(args.instrument, args.vary, args.samples, tolerance=args.tolerance, cells=args.cells,
                           backend=args.backend, accuracy=args.accuracy, rel_se=args.rel_se, seed=args.seed,
                           workers=args.workers, scheduler=args.scheduler, out=out_arg(args), fresh=args.fresh,
@@ -91,3 +109,29 @@ def run(args) -> int:
             f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
     say(f"wrote {ds.attrs['out']}/" + ds.attrs.get("files", ""))
     return rc
+
+
+def _run_second(args) -> int:
+    from roadgonio.errors import InputError
+    if len(args.samples) > 1:
+        raise InputError("--second-aperture designs for one surface: give one --sample or --measured", field="--sample")
+    res = api.second_aperture(args.instrument, args.vary, measured=args.measured,
+                              sample=args.samples[0] if args.samples else None, u_measured=args.u_measured,
+                              rays=args.rays, seed=args.seed, model_variant=args.model_variant,
+                              min_signal=args.min_signal, out=out_arg(args), plots=not args.no_plots,
+                              progress=show_progress(args))
+    s = res.summary()
+    s["out"], s["written"] = str(res.out), [str(p) for p in res.written]
+    if args.json:
+        print_json(s)
+        return 0
+    say = text_output(args)
+    a, t, b = res.baselines[0], res.baselines[1], res.best
+    say(f"second aperture for '{res.instrument.name}' (surface from {res.surface_from}): {len(res.candidates)} "
+        f"settings, {res.seconds:.1f} s")
+    say(f"  alone: median u {100 * a.u_median:.2f} %, u(S1) {100 * a.u_s1_rel:.2f} %; measured twice: "
+        f"{100 * t.u_median:.2f} %, {100 * t.u_s1_rel:.2f} %")
+    say("  best second setting: " + ", ".join(f"{k} = {v:g}" for k, v in b.changes.items())
+        + f": median u {100 * b.u_median:.2f} %, u(S1) {100 * b.u_s1_rel:.2f} %, signal {b.signal:.2g} x")
+    say(f"  wrote {len(s['written'])} files to {s['out']}")
+    return 0

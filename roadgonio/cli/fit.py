@@ -24,6 +24,8 @@ def register(sub) -> None:
                    help="hold a parameter at a value (repeatable), e.g. --fix n_phong=50; the grazing "
                         "attenuation g_a..g_t, theta_l_deg is never fitted, set it here")
     p.add_argument("--no-plot", action="store_true", help="do not write fit.png")
+    p.add_argument("--fresh", action="store_true",
+                   help="replace the results of a different fit in --out (without it such a folder is refused)")
     p.set_defaults(func=run, on_interrupt="interrupted: no model was written (fit starts over when run again)")
 
 
@@ -54,7 +56,7 @@ def run(args) -> int:
 
     try:
         result = api.fit(args.table, args.model_variant, seed=args.seed, fixed=_parse_fix(args.fixed),
-                         out=out_arg(args), plot=not args.no_plot, progress=progress)
+                         out=out_arg(args), fresh=args.fresh, plot=not args.no_plot, progress=progress)
     finally:
         if bar is not None:
             bar.close()

@@ -29,7 +29,8 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--resolution", type=int, default=256, help="detector-view pixels per side (default 256)")
     p.add_argument("--spp", type=int, default=64, help="samples per pixel (a square; default 64)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0, help="seed of the renders (0 ... 2^32 - 1: Mitsuba's samplers take a "
+                   "32-bit seed; default 0)")
     add_mitsuba_variant(p)
     add_output_options(p, "print render.json (provenance, footprint, the k_A estimate, files) to stdout")
     p.set_defaults(func=run, on_interrupt="interrupted: the pictures of this cell were not written (render starts "

@@ -40,17 +40,22 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    summaries = api.road(args.tables, u=args.u, luminaire=args.luminaire, layout=args.layout,
+    summaries = api.road_metrics(args.tables, u=args.u, luminaire=args.luminaire, layout=args.layout,
                          target_class=args.target_class, trials=args.trials, seed=args.seed,
                          correlation=args.correlation, out=out_arg(args), plots=not args.no_plots)
     if args.json:
         keep = ("table", "L_av", "U_o", "U_l", "TI", "R_EI", "class", "U_l_per_lane", "uncertainty",
-                "neglected_contributions", "TI_note")
+                "neglected_contributions", "TI_note", "missing")
         rows = [{k: s[k] for k in keep if k in s} for s in summaries]
         print_json(rows[0] if len(rows) == 1 else rows)
     elif not args.quiet:
         _print(summaries)
     return 0
+
+
+def _v(v, fmt: str) -> str:
+    """A metric for the text table: '-' when missing."""
+    return "-" if v is None else format(v, fmt)
 
 
 def _print(summaries) -> None:
@@ -59,14 +64,23 @@ def _print(summaries) -> None:
     w(f"layout: {first['layout']}\nluminaire: {first['luminaire']['name']} ({first['luminaire']['flux_lm']:g} lm)\n")
     w(f"{'table':14} {'L_av':>7} {'U_o':>6} {'U_l':>6} {'TI %':>6} {'R_EI':>6}  class  U_l per lane\n")
     for s in summaries:
-        ti = "-" if s["TI"] is None else f"{s['TI']:.1f}"
-        lanes = " ".join(f"{v:.3f}" for v in s["U_l_per_lane"])
-        w(f"{s['table'][:14]:14} {s['L_av']:7.3f} {s['U_o']:6.3f} {s['U_l']:6.3f} {ti:>6} {s['R_EI']:6.3f}  "
-          f"{(s['class'] or 'none'):5}  {lanes}\n")
+        lanes = " ".join(_v(v, ".3f") for v in s["U_l_per_lane"])
+        cls = "-" if s.get("missing") else (s["class"] or "none")
+        w(f"{s['table'][:14]:14} {_v(s['L_av'], '.3f'):>7} {_v(s['U_o'], '.3f'):>6} {_v(s['U_l'], '.3f'):>6} "
+          f"{_v(s['TI'], '.1f'):>6} {_v(s['R_EI'], '.3f'):>6}  {cls:5}  {lanes}\n")
     base = summaries[0]
     for s in summaries[1:]:
-        w(f"  {s['table']} vs {base['table']}: L_av {100 * (s['L_av'] / base['L_av'] - 1):+.1f} %, "
-          f"U_o {s['U_o'] - base['U_o']:+.3f}, U_l {s['U_l'] - base['U_l']:+.3f}\n")
+        parts = []
+        if s["L_av"] is not None and base["L_av"]:
+            parts.append(f"L_av {100 * (s['L_av'] / base['L_av'] - 1):+.1f} %")
+        for k in ("U_o", "U_l"):
+            if s[k] is not None and base[k] is not None:
+                parts.append(f"{k} {s[k] - base[k]:+.3f}")
+        if parts:
+            w(f"  {s['table']} vs {base['table']}: {', '.join(parts)}\n")
+    for s in summaries:
+        if s.get("missing"):
+            w(f"{s['table']}: missing {', '.join(s['missing']['metrics'])}: {s['missing']['reason']}\n")
     for s in summaries:
         u = s.get("uncertainty")
         if not u:
@@ -80,10 +94,12 @@ def _print(summaries) -> None:
             for k in ("L_av", "U_o", "U_l", "TI"):
                 if m[k]:
                     parts.append(f"{k} {m[k]['nominal']:.3g} ± {m[k]['u']:.2g} [{m[k]['ci95'][0]:.3g}, {m[k]['ci95'][1]:.3g}]")
-            w(f"  {mode:11}: " + "; ".join(parts) + f"; P(meets {u['target_class']}) = {m['P_meets_target']:.3f}\n")
+            p = m["P_meets_target"]
+            w(f"  {mode:11}: " + "; ".join(parts)
+              + (f"; P(meets {u['target_class']}) = {p:.3f}" if p is not None else "; P(meets class): missing") + "\n")
     if any(s["neglected_contributions"] for s in summaries):
         w(f"note: {max(s['neglected_contributions'] for s in summaries)} luminaire contributions fell outside the "
-          "r-table (blank cells or tan > 12) and were neglected\n")
+          "CIE standard tables' region (their blank cells or tan > 12) and were neglected, as those tables do\n")
     if base["TI"] is None:
         w(f"TI not computed: {base['TI_note']}\n")
     w(f"wrote {len(first['written'])} files to {first['out']}\n")

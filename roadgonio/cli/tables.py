@@ -42,10 +42,25 @@ def run_table(args) -> int:
         return 0
     say = text_output(args)
     say(f"{info['table']}: Q0 = {_f(info['Q0'], '.4f')} sr^-1, S1 = {_f(info['S1'], '.3f')}, S2 = {_f(info['S2'], '.2f')}, "
-        f"{info['cells']} tabulated cells, max r = {info['r_max'] * 1e4:.4g} x 1e-4")
+        f"{info['cells']} tabulated cells, max r = {_f(None if info['r_max'] is None else info['r_max'] * 1e4, '.4g')} "
+        "x 1e-4")
+    missing = [k for k in ("S1", "Q0", "S2") if info[k] is None]
+    if missing:
+        say(f"  missing: {', '.join(missing)} ({_why_missing(missing)})")
     if "written" in info:
         say(f"wrote {info['written']}")
     return 0
+
+
+def _why_missing(missing) -> str:
+    why = []
+    if "S1" in missing:
+        why.append("S1 = r(beta 0, tan 2) / r(beta 0, tan 0) needs both cells, r(0, 0) > 0")
+    if "Q0" in missing:
+        why.append("Q0 needs a grid cell with four tabulated corners")
+    if "S2" in missing and "Q0" not in missing:
+        why.append("S2 = Q0 / r(0, 0) needs r(0, 0) > 0")
+    return "; ".join(why)
 
 
 def _f(v, fmt: str) -> str:

@@ -77,6 +77,8 @@ def register(sub) -> None:
     add_dask_arguments(p, "for the exact k_A tables of the surrogate design; default: in this process")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/uncertainty-INSTRUMENT-SAMPLE)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the PNG pictures")
+    p.add_argument("--fresh", action="store_true", help="replace the results of a different run in --out (without it "
+                                                        "such a folder is refused)")
     add_output_options(p, "print the summary as JSON instead of text")
     p.set_defaults(func=run, on_interrupt="interrupted: nothing was written; an uncertainty run keeps no partial "
                                         "results and starts over when run again")
@@ -91,7 +93,8 @@ def run(args) -> int:
             aperture=not args.no_aperture, backend=args.backend, rel_se=args.rel_se, illuminance=args.illuminance,
             surrogate=args.surrogate, validation=args.validation, threads=args.threads, workers=args.workers,
             scheduler=args.scheduler, mitsuba_variant=args.mitsuba_variant, model_variant=args.model_variant,
-            out=out_arg(args), plots=not args.no_plots, figures=figures, progress=show_progress(args))
+            out=out_arg(args), fresh=args.fresh, plots=not args.no_plots, figures=figures,
+            progress=show_progress(args))
     if args.json:
         d = api.uncertainty_result_json(res)
         d["written"] = [str(p) for p in res.written]

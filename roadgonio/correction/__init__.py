@@ -11,13 +11,17 @@ Rooms:
 * :mod:`.budget` -- the uncertainty budget (measurement, backend, parameters, model variant,
   misalignment), S1 / S2 / Q0 with their standard uncertainties, CIE classes;
 * :mod:`.run` -- the procedure (``reference = "self"``: fit through the instrument, k_A by the
-  chosen backend, journalled; ``reference = SAMPLE``: the classic route), for one or several tables;
+  chosen backend, journalled; ``reference = SAMPLE``: the classic route);
+* :mod:`.flexible`, :mod:`.outside` -- the forward model that follows a surface outside eq. 4 (eq. 4
+  backbone x correction surface, fitted linearly with the evidence choosing the smoothing), through
+  one instrument or several (issue 19);
+* :mod:`.files` -- the entry: one table, several tables of one instrument, several instruments;
 * :mod:`.reference` -- the alternative references (the nearest CIE tables: :mod:`roadgonio.surface.cie`);
 * :mod:`.outputs` -- the files and pictures;
 * :mod:`.synthetic` -- synthetic measurements of a known surface (round trips).
 """
 from roadgonio.correction.reference import resolve_alternatives, sample_name  # noqa: F401
 from roadgonio.correction.run import (  # noqa: F401
-    CorrectionResult, InstrumentArtefacts, correct_files, correct_measured, correct_self, correct_with_reference,
-    measured_uncertainty)
+    CorrectionResult, InstrumentArtefacts, correct_self, correct_with_reference, measured_uncertainty)
+from roadgonio.correction.files import correct_files, correct_joint, correct_measured  # noqa: F401
 from roadgonio.correction.outputs import write_correction  # noqa: F401

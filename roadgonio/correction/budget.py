@@ -105,30 +105,33 @@ def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:
     r = table.r[mask]
     ii, jj = np.nonzero(mask)
     s1, q0 = table.s1(), table.q0()
-    s2 = q0 / table.value(0.0, 0.0)
+    s2 = table.s2()
     out: dict[str, Any] = {"S1": s1, "Q0": q0, "S2": s2}
     if cov_rel is not None:
-        i00 = _cell(table, ii, jj, 0.0, 0.0)
-        i20 = _cell(table, ii, jj, 2.0, 0.0)
-        w = q0_weights(mask)[mask]
-        g = w * r / q0                                     # d ln Q0 / d ln r_c
-        var_lnq0 = float(g @ cov_rel @ g)
-        var_lns1 = float(cov_rel[i20, i20] + cov_rel[i00, i00] - 2 * cov_rel[i20, i00])
-        cov_q_00 = float(g @ cov_rel[:, i00])
-        var_lns2 = float(var_lnq0 + cov_rel[i00, i00] - 2 * cov_q_00)
-        out.update(u_S1=s1 * math.sqrt(max(var_lns1, 0.0)), u_Q0=q0 * math.sqrt(max(var_lnq0, 0.0)),
-                   u_S2=s2 * math.sqrt(max(var_lns2, 0.0)))
+        # a functional whose cells are missing is missing (None), never a traceback or NaN as a result
+        i00, i20 = _cell(table, ii, jj, 0.0, 0.0), _cell(table, ii, jj, 2.0, 0.0)
+        w = q0_weights(mask, table.tan_eps, table.beta_deg)
+        out.update(u_S1=None, u_Q0=None, u_S2=None)
+        if i00 is not None and i20 is not None and math.isfinite(s1):
+            var_lns1 = float(cov_rel[i20, i20] + cov_rel[i00, i00] - 2 * cov_rel[i20, i00])
+            out["u_S1"] = s1 * math.sqrt(max(var_lns1, 0.0))
+        if w is not None and math.isfinite(q0) and q0 > 0:
+            g = w[mask] * r / q0                               # d ln Q0 / d ln r_c
+            var_lnq0 = float(g @ cov_rel @ g)
+            out["u_Q0"] = q0 * math.sqrt(max(var_lnq0, 0.0))
+            if i00 is not None and math.isfinite(s2):
+                var_lns2 = float(var_lnq0 + cov_rel[i00, i00] - 2 * float(g @ cov_rel[:, i00]))
+                out["u_S2"] = s2 * math.sqrt(max(var_lns2, 0.0))
     out["class"] = cie_class(s1, out.get("u_S1"))
-    out["nearest_table"], out["nearest_distance"] = nearest_bundled(s1, q0, 1)[0]
+    near = nearest_bundled(s1, q0, 1)
+    out["nearest_table"], out["nearest_distance"] = near[0] if near else (None, None)
     return out
 
 
-def _cell(table: RTable, ii, jj, t: float, b: float) -> int:
+def _cell(table: RTable, ii, jj, t: float, b: float) -> int | None:
+    """The index of cell (t, b) among the tabulated cells, None when it is not tabulated."""
     k = np.nonzero((np.abs(table.tan_eps[ii] - t) < 1e-9) & (np.abs(table.beta_deg[jj] - b) < 1e-9))[0]
-    if k.size == 0:
-        from roadgonio.errors import InputError
-        raise InputError(f"the table has no value at tan eps = {t:g}, beta = {b:g} (needed for S1)", field="measured")
-    return int(k[0])
+    return int(k[0]) if k.size else None
 
 
 def misalignment_covariance(model, instrument, table: RTable, spec, *, illuminance: str = "nominal",
@@ -138,10 +141,10 @@ def misalignment_covariance(model, instrument, table: RTable, spec, *, illuminan
 
     The measurement model is :class:`roadgonio.uncertainty.MeasurementModel` (the local angles of
     a misaligned instrument, the illuminance normalisation), times k_A of the perturbed instrument
-    from ray bundles with common random numbers (:class:`roadgonio.correction.forward.BundleBackend`;
+    from ray bundles with common random numbers (:class:`roadgonio.engines.bundle.BundleBackend`;
     the perturbed instrument and its cells exactly as :func:`roadgonio.uncertainty.build_surrogate`
     builds them). Sensitivities by central differences of ln r at +- ``rel_step`` sigma."""
-    from roadgonio.correction.forward import BundleBackend, RayBundles
+    from roadgonio.engines.bundle import BundleBackend, RayBundles
     from roadgonio.uncertainty import CellSet, MeasurementModel, gum_propagation
     mask = table.mask
     ii, jj = np.nonzero(mask)

@@ -3,7 +3,7 @@ matches a measured table, weighted by the measurement's standard uncertainty::
 
     minimise  chi^2(p) = sum_c ( (r_sim,c(p) - r_meas,c) / u_c )^2,      r_sim,c = rho_c cos^3(eps_c) kappa_c <f_p>_c
 
-with the forward model of :mod:`roadgonio.correction.forward` (fixed float64 ray bundles, so
+with the forward model of :mod:`roadgonio.engines.bundle` (fixed float64 ray bundles, so
 r_sim is smooth in p, and linear in the four coefficients k_*) and ``rho_c`` the correction of
 the bundle's own error by an exact backend table (1 until one is known; see
 :func:`roadgonio.correction.run`). Every model parameter has the bounds of
@@ -37,8 +37,9 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 from scipy.optimize import least_squares, lsq_linear, nnls
 
-from roadgonio.correction.forward import LINEAR_TERMS, ForwardModel
+from roadgonio.engines.bundle import LINEAR_TERMS, ForwardModel
 from roadgonio.errors import InputError
+from roadgonio.seeds import seed_entropy
 from roadgonio.surface.fit import _from_z, _to_z, _z_box, nonlinear_params
 from roadgonio.surface.model import PARAM_BOUNDS, PARAM_NAMES, RoadModel, RoadParams
 
@@ -222,13 +223,15 @@ def _lhs(rng: np.random.Generator, n: int, lo: np.ndarray, hi: np.ndarray) -> np
 def fit_through_instrument(forward: ForwardModel, measured: np.ndarray, u: np.ndarray, *, variant: str,
                            rho: np.ndarray | None = None, start_models: Sequence[RoadModel] = (),
                            starts: int = DEFAULT_STARTS, polish: int = DEFAULT_POLISH, seed: int = 0,
-                           fixed: Mapping[str, float] | None = None, k_frozen: np.ndarray | None = None,
+                           restart: int = 0, fixed: Mapping[str, float] | None = None, k_frozen: np.ndarray | None = None,
                            stage_a: bool = True, stage_b: bool = True, max_nfev: int = 400,
                            progress: Callable[[str], None] | None = None, name: str = "fit") -> ThroughFit:
     """Fit the model ``variant`` to the measured r per cell (``measured``, sr^-1, with standard
     uncertainties ``u``) through ``forward`` (module docstring). ``k_frozen`` is stage A's estimate
     of k_A per cell (default: the forward model's k_A of the first start model, else 1).
-    ``stage_a=False`` polishes only from ``start_models`` (a refit after ``rho`` changed)."""
+    ``stage_a=False`` polishes only from ``start_models`` (a refit after ``rho`` changed). The
+    start points of stage A are drawn from the stream (``seed``, ``restart``) of
+    :func:`roadgonio.seeds.seed_entropy` (another seed never repeats them)."""
     t0 = time.perf_counter()
     fx = dict(fixed or {})
     unknown = sorted(set(fx) - set(PARAM_NAMES))
@@ -240,7 +243,7 @@ def fit_through_instrument(forward: ForwardModel, measured: np.ndarray, u: np.nd
     cand: list[tuple[float, np.ndarray]] = []
     z_starts = [prob.z_of(m) for m in start_models]
     if stage_a and prob.free_nl:
-        rng = np.random.default_rng([int(seed), 11])
+        rng = np.random.default_rng(seed_entropy(seed, int(restart), 11))
         z_starts = z_starts + list(_lhs(rng, int(starts), prob.lo, prob.hi))
         span = np.maximum(prob.hi - prob.lo, 1e-12)
 

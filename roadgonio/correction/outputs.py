@@ -11,16 +11,24 @@ leaves none of them, and the folder's previous set stays as it was)::
     corrected_corr.csv   correlation matrix of the corrected cells (labels "tan eps/beta")
     before_after.png     the 20 beta columns, measured and corrected with the 95 % band
     correction_map.png   k_A and the relative uncertainty of the corrected table, cell by cell
+    residual_map.png     (forward model "surface") the fit's residual in units of u and the local Birge ratio
+    correction_surface.png  (forward model "surface") the correction surface at the cells, its posterior
+                         sd, and g_D, the behaviour off alpha = 1 deg beyond the backbone's
     forward-N/           journalled k_A tables of the fitted model (resumable, like `roadgonio ka`)
     fit_state.json       checkpoint of the fitted models (a rerun with the same inputs reuses them)
 
 The journals (``forward-N/``, ``alternative-N/``) and ``fit_state.json`` are written while the
 correction runs, outside the group: they survive a failed output write, so the same command
 afterwards resumes and writes the whole set.
+
+Several instruments, one surface (:func:`write_surface_correction`): the same files for the one
+corrected table, ``correct_cells.csv`` with every instrument's measured r, k_A, corrected r and
+residual, and the pictures for all instruments.
 """
 from __future__ import annotations
 
 import io
+import math
 from pathlib import Path
 from typing import Any
 
@@ -30,9 +38,17 @@ from roadgonio.fileio import OutputGroup
 from roadgonio.surface.fit import model_r_on_grid
 from roadgonio.surface.rtable import R_SCALE, grid_csv_text
 
+PICTURES = ("picture", "map", "residuals", "surface")
 FILES = {"corrected": "corrected.csv", "u": "corrected_u.csv", "rtb": "corrected.rtb", "json": "correct.json",
          "cells": "correct_cells.csv", "correlation": "corrected_corr.csv", "picture": "before_after.png",
-         "map": "correction_map.png"}
+         "map": "correction_map.png", "residuals": "residual_map.png", "surface": "correction_surface.png"}
+
+
+def has_rtb(table) -> bool:
+    """Whether the corrected table can be written as RTB: the format needs Q0, which a table without
+    a grid cell of four tabulated corners does not have (the CSV is always written; correct.json
+    lists the files written)."""
+    return math.isfinite(table.q0())
 
 
 def u_csv_text(res) -> str:
@@ -49,13 +65,18 @@ def write_correction(res, out_dir: str | Path, *, plots: bool = True) -> list[Pa
     with OutputGroup(out_dir) as group:
         paths = [group.text(FILES["corrected"], res.corrected.to_csv_text()),
                  group.text(FILES["u"], u_csv_text(res)),
-                 group.text(FILES["rtb"], res.corrected.to_rtb_text()),
                  group.text(FILES["cells"], cells_csv(res)),
                  group.text(FILES["correlation"], correlation_csv(res))]
+        if has_rtb(res.corrected):
+            paths.insert(2, group.text(FILES["rtb"], res.corrected.to_rtb_text()))
         if plots:
             paths.append(_group_figure(group, FILES["picture"], draw_before_after(res)))
             paths.append(_group_figure(group, FILES["map"], draw_correction_map(res)))
-        paths.insert(3, group.json(FILES["json"], _json_doc(res, plots)))
+            sc = res.extra.get("surface")
+            if sc is not None:
+                paths.append(_group_figure(group, FILES["residuals"], draw_residual_map(sc)))
+                paths.append(_group_figure(group, FILES["surface"], draw_surface_map(sc)))
+        paths.insert(3 if has_rtb(res.corrected) else 2, group.json(FILES["json"], _json_doc(res, plots)))
     return paths
 
 
@@ -69,7 +90,9 @@ def _group_figure(group: OutputGroup, name: str, fig) -> Path:
 
 def _json_doc(res, plots: bool) -> dict[str, Any]:
     return {"summary": res.summary(), "provenance": res.provenance,
-            "files": {k: v for k, v in FILES.items() if plots or k not in ("picture", "map")},
+            "files": {k: v for k, v in FILES.items() if (plots or k not in PICTURES)
+                      and (k not in ("residuals", "surface") or res.extra.get("surface") is not None)
+                      and (k != "rtb" or has_rtb(res.corrected))},
             "definitions": {
                 "corrected": "r_corrected = r_measured / k_A (k_A of the model under the instrument's calibration)",
                 "u": "standard uncertainty (k = 1) of r_corrected; relative components add in quadrature, with "
@@ -86,7 +109,8 @@ def cells_csv(res) -> str:
     comps = list(res.budget.components)
     u_comp = {c: res.budget.u_rel(c) for c in comps}
     u_tot = res.budget.u_rel()
-    model_r = model_r_on_grid(res.model, res.measured)
+    sc = res.extra.get("surface")
+    model_r = sc.parts[0].model_r if sc is not None else model_r_on_grid(res.model, res.measured)
     sim = res.fit.simulated if res.fit is not None else None
     head = ["tan_eps", "beta_deg", "r_measured_x1e4", "u_measured_x1e4", "k_a", "u_k_a_backend",
             "r_corrected_x1e4", "u_corrected_x1e4", "u_rel_total"] + [f"u_rel_{c}" for c in comps] \
@@ -108,16 +132,7 @@ def cells_csv(res) -> str:
 
 
 def correlation_csv(res) -> str:
-    m = res.measured.mask
-    ii, jj = np.nonzero(m)
-    labels = [f"{res.measured.tan_eps[i]:g}/{res.measured.beta_deg[j]:g}" for i, j in zip(ii, jj)]
-    c = res.budget.correlation()
-    buf = io.StringIO()
-    buf.write("# correlation of the corrected cells (rows and columns labelled tan eps/beta)\n")
-    buf.write("cell," + ",".join(labels) + "\n")
-    for k, lab in enumerate(labels):
-        buf.write(lab + "," + ",".join(f"{v:.4f}" for v in c[k]) + "\n")
-    return buf.getvalue()
+    return _correlation_text(res.measured, res.budget)
 
 
 def _fmt_u(v: float | None, u: float | None, digits: int = 3) -> str:
@@ -139,7 +154,8 @@ def draw_before_after(res):
     from roadgonio.plots import _plt
     plt = _plt()
     meas, corr = res.measured, res.corrected
-    model_r = model_r_on_grid(res.model, meas)
+    sc = res.extra.get("surface")
+    model_r = sc.parts[0].model_r if sc is not None else model_r_on_grid(res.model, meas)
     fig, axes = plt.subplots(4, 5, figsize=(17, 13.5), sharex=True)
     for j, ax in enumerate(axes.ravel()):
         beta = meas.beta_deg[j]
@@ -172,7 +188,9 @@ def draw_before_after(res):
     handles = [plt.Line2D([], [], color="0.45", marker="o", ls="--", ms=3, label="measured (as the instrument reported)"),
                plt.Line2D([], [], color="C0", lw=1.6, label="corrected = measured / k_A"),
                plt.matplotlib.patches.Patch(color="C0", alpha=0.25, label="corrected +- 2 u (about 95 %)"),
-               plt.Line2D([], [], color="C3", ls=":", label=f"model used for k_A ({res.model.variant}), ideal geometry")]
+               plt.Line2D([], [], color="C3", ls=":", label=(f"model used for k_A ({res.model.variant}"
+                                                             + (" x correction surface" if sc is not None else "")
+                                                             + "), ideal geometry"))]
     fig.suptitle(f"{meas.name}: r-table before and after the aperture-effect correction   (instrument "
                  f"{res.provenance['instrument'].get('instrument', {}).get('name', '?')}, calibration "
                  f"{res.provenance.get('calibration', {}).get('mode', 'lambert')}, reference {res.reference})",
@@ -203,3 +221,210 @@ def draw_correction_map(res):
     a2.set_title(f"u of the corrected table (%), components: {comps}", fontsize=10)
     fig.subplots_adjust(left=0.04, right=0.97, bottom=0.07, top=0.95, wspace=0.12)
     return fig
+
+
+# ----------------------------------------------------------------------------------------------
+# The correction surface (one instrument or several): diagnostics and the joint outputs
+# ----------------------------------------------------------------------------------------------
+
+def draw_residual_map(sc):
+    """Per instrument: the fit's residual (simulated - measured) in units of the measurement's u, and
+    the local Birge ratio that widens u where the residuals have structure."""
+    from roadgonio.plots import _plt, draw_table_map
+    plt = _plt()
+    n = len(sc.parts)
+    fig, axes = plt.subplots(n, 2, figsize=(20, 8.5 * n), squeeze=False)
+    best = sc.best
+    for (a1, a2), p in zip(axes, sc.parts):
+        r = np.clip(p.residual, -4.0, 4.0)
+        draw_table_map(a1, r, label="(simulated - measured) / u  (clipped at +-4)", centre=0.0, log=False,
+                       fmt="{:+.1f}", fontsize=5, tick_fontsize=7)
+        rms = float(np.sqrt(np.nanmean(p.residual ** 2)))
+        a1.set_title(f"{p.name}: residual of the fit in units of u (RMS {rms:.2f}; {best.variant} backbone x "
+                     f"correction surface, Birge ratio {best.fit.birge:.2f})", fontsize=10)
+        draw_table_map(a2, p.birge_local, label="local Birge ratio B", centre=1.0, log=False, fmt="{:.2f}",
+                       fontsize=5, text=lambda i, j, p=p: f"{p.birge_local[i, j]:.2f}" + ("*" if p.widening[i, j] > 1 else ""),
+                       tick_fontsize=7)
+        a2.set_title(f"{p.name}: local Birge ratio over the neighbouring cells (max {np.nanmax(p.birge_local):.2f}; "
+                     f"* = u widened by B, {int(np.sum(p.widening > 1))} cells)", fontsize=10)
+    fig.subplots_adjust(left=0.04, right=0.97, bottom=0.05, top=0.95, wspace=0.12, hspace=0.25)
+    return fig
+
+
+def draw_surface_map(sc):
+    """The correction surface at the table's cells (best variant): the factor exp(g_C) it applies to
+    the backbone at alpha = 1 deg, its posterior standard deviation, and g_D, the extra
+    d ln f / d ln alpha (the behaviour off 1 deg that only a second aperture measures)."""
+    from roadgonio.plots import _plt, draw_table_map
+    plt = _plt()
+    p = sc.parts[0]
+    best = sc.best
+    fig, axes = plt.subplots(1, 3, figsize=(28, 9))
+    draw_table_map(axes[0], np.exp(p.surfaces["g_c"]), label="exp(g_C): factor on the backbone at alpha = 1 deg",
+                   centre=1.0, log=True, fmt="{:.2f}", fontsize=4.5, tick_fontsize=7)
+    axes[0].set_title(f"correction surface over the {best.variant} backbone (weight {best.weight:.2f})", fontsize=10)
+    draw_table_map(axes[1], 100.0 * p.surfaces.get("sd_g_c", np.full_like(p.k_a, np.nan)),
+                   label="posterior standard deviation of g_C (%)", centre=None, log=False, fmt="{:.1f}",
+                   fontsize=4.5, tick_fontsize=7)
+    axes[1].set_title("how well the data pin the surface down at each cell", fontsize=10)
+    draw_table_map(axes[2], p.surfaces["g_d"], label="g_D: extra d ln f / d ln alpha (prior sd "
+                   f"{sc.settings.d_prior_sd:g})", centre=0.0, log=False, fmt="{:+.2f}", fontsize=4.5, tick_fontsize=7)
+    axes[2].set_title("behaviour off alpha = 1 deg beyond the backbone's" + (
+        " (measured: several aperture settings)" if sc.joint else " (one aperture: mostly the prior)"), fontsize=10)
+    lam = ", ".join(f"{k} {v:.3g}" for k, v in best.fit.lam.items())
+    fig.suptitle(f"{' + '.join(q.measured.name for q in sc.parts)}: the correction surface (smoothing parameters "
+                 f"by the evidence: {lam}; edf {best.fit.edf:.0f} of {best.fit.n} cells)", fontsize=11)
+    fig.subplots_adjust(left=0.03, right=0.98, bottom=0.07, top=0.9, wspace=0.12)
+    return fig
+
+
+def draw_joint_before_after(sc):
+    """The 20 beta columns: every instrument's measured table and the one corrected table with its
+    95 % band."""
+    from matplotlib import ticker
+
+    from roadgonio.plots import _plt
+    plt = _plt()
+    corr, u = sc.corrected, sc.u_corrected
+    fig, axes = plt.subplots(4, 5, figsize=(17, 13.5), sharex=True)
+    markers = "osd^v<>"
+    for j, ax in enumerate(axes.ravel()):
+        beta = corr.beta_deg[j]
+        ok = corr.mask[:, j]
+        if not ok.any():
+            ax.set_title(f"beta = {beta:g} deg   (not measured)", fontsize=8)
+            continue
+        t = corr.tan_eps[ok]
+        rc = corr.r[ok, j] * 1e4
+        band = 2.0 * u[ok, j] * 1e4
+        ax.fill_between(t, rc - band, rc + band, color="C0", alpha=0.25, lw=0)
+        for k, p in enumerate(sc.parts):
+            okp = p.measured.mask[:, j]
+            ax.plot(p.measured.tan_eps[okp], p.measured.r[okp, j] * 1e4, markers[k % len(markers)] + "--",
+                    color=f"C{k + 1}", ms=3, lw=0.8)
+        ax.plot(t, rc, "-", color="C0", lw=1.6)
+        ax.set_title(f"beta = {beta:g} deg", fontsize=8)
+        ax.set_yscale("log")
+        ax.yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(ticker.NullFormatter())
+        ax.grid(alpha=0.3, which="major")
+        ax.tick_params(labelsize=7)
+        if j % 5 == 0:
+            ax.set_ylabel("r x 10^4 (sr^-1)", fontsize=8)
+        if j >= 15:
+            ax.set_xlabel("tan eps", fontsize=8)
+    handles = [plt.Line2D([], [], color=f"C{k + 1}", marker=markers[k % len(markers)], ls="--", ms=3,
+                          label=f"measured by {p.name}") for k, p in enumerate(sc.parts)]
+    handles += [plt.Line2D([], [], color="C0", lw=1.6, label="corrected (one table from all instruments)"),
+                plt.matplotlib.patches.Patch(color="C0", alpha=0.25, label="corrected +- 2 u (about 95 %)")]
+    fig.suptitle(f"{' + '.join(p.measured.name for p in sc.parts)}: one surface, {len(sc.parts)} instruments, one "
+                 "corrected table", fontsize=11, y=0.99)
+    lines = [f"{p.name:>12}: " + _functional_text(p.before) + "  (as measured)" for p in sc.parts]
+    lines.append(f"{'corrected':>12}: " + _functional_text(sc.after))
+    fig.text(0.5, 0.962, "\n".join(lines), ha="center", va="top", fontsize=8.5, family="monospace")
+    fig.legend(handles=handles, loc="upper center", ncol=len(handles), fontsize=9, bbox_to_anchor=(0.5, 0.9),
+               frameon=False)
+    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.05, top=0.86, wspace=0.22, hspace=0.3)
+    return fig
+
+
+def draw_joint_map(sc):
+    """k_A of every instrument and the relative u of the corrected table, as maps."""
+    from roadgonio.plots import _plt, draw_table_map
+    plt = _plt()
+    n = len(sc.parts)
+    fig, axes = plt.subplots(1, n + 1, figsize=(10 * (n + 1), 9))
+    for ax, p in zip(axes, sc.parts):
+        k = p.k_a[np.isfinite(p.k_a)]
+        wide = float(k.max() / k.min()) > 1.5
+        draw_table_map(ax, p.k_a, label="k_A (measured / true)", fontsize=4.5, tick_fontsize=7, log=wide,
+                       fmt="{:.2f}" if wide else "{:.3f}")
+        ax.set_title(f"{p.name}: k_A (its corrected table = measured / k_A)", fontsize=10)
+    uu = np.full(sc.corrected.r.shape, np.nan)
+    uu[sc.corrected.mask] = 100.0 * sc.budget.u_rel()
+    draw_table_map(axes[-1], uu, label="relative standard uncertainty (%)", centre=None, log=False, fmt="{:.1f}",
+                   fontsize=4.5, tick_fontsize=7)
+    axes[-1].set_title("u of the one corrected table (%): " + ", ".join(sc.budget.components), fontsize=10)
+    fig.subplots_adjust(left=0.03, right=0.98, bottom=0.07, top=0.95, wspace=0.12)
+    return fig
+
+
+def joint_cells_csv(sc) -> str:
+    """Per cell of the corrected table: the corrected r and u, each budget component, and per
+    instrument its measured r, k_A, corrected r and residual (NaN where it did not measure)."""
+    corr = sc.corrected
+    m = corr.mask
+    ii, jj = np.nonzero(m)
+    comps = list(sc.budget.components)
+    u_comp = {c: sc.budget.u_rel(c) for c in comps}
+    u_tot = sc.budget.u_rel()
+    head = ["tan_eps", "beta_deg", "r_corrected_x1e4", "u_corrected_x1e4", "u_rel_total"] + [f"u_rel_{c}" for c in comps]
+    for p in sc.parts:
+        n = p.name
+        head += [f"r_measured_{n}_x1e4", f"k_a_{n}", f"r_corrected_{n}_x1e4", f"residual_over_u_{n}"]
+    buf = io.StringIO()
+    buf.write("# " + corr.source + "\n")
+    buf.write(",".join(head) + "\n")
+    for k, (i, j) in enumerate(zip(ii, jj)):
+        row = [f"{corr.tan_eps[i]:g}", f"{corr.beta_deg[j]:g}", f"{corr.r[i, j] * 1e4:.6g}",
+               f"{sc.u_corrected[i, j] * 1e4:.4g}", f"{u_tot[k]:.4g}"] + [f"{u_comp[c][k]:.3g}" for c in comps]
+        for p in sc.parts:
+            row += [f"{p.measured.r[i, j] * 1e4:.6g}", f"{p.k_a[i, j]:.6g}", f"{p.corrected.r[i, j] * 1e4:.6g}",
+                    f"{p.residual[i, j]:.3g}"]
+        buf.write(",".join("" if v == "nan" else v for v in row) + "\n")
+    return buf.getvalue()
+
+
+def _joint_doc(sc, plots: bool, files: dict[str, str]) -> dict[str, Any]:
+    return {"summary": sc.summary(), "provenance": sc.provenance, "files": files,
+            "definitions": {
+                "corrected": "one table: per instrument r_measured / k_A (k_A of the eq. 4 backbone x correction "
+                             "surface fitted through all instruments), combined cell by cell by generalised least "
+                             "squares with the full covariance between the instruments",
+                "u": "standard uncertainty (k = 1) of the corrected table; relative components add with correlations "
+                     "(corrected_corr.csv)",
+                "k_a_<instrument>": "each instrument's k_A under its calibration (correct_cells.csv)",
+                "residual_over_u": "(simulated - measured) / u of the fit, per instrument",
+                "S1": "r(beta 0, tan 2) / r(beta 0, tan 0)", "Q0": "CIE 144 average luminance coefficient (sr^-1)"}}
+
+
+def write_surface_correction(sc, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
+    """Write a correction through one or several instruments
+    (:class:`roadgonio.correction.outside.SurfaceCorrection`), together or not at all: corrected.csv,
+    corrected_u.csv, corrected.rtb, correct.json, correct_cells.csv (every instrument's k_A, measured
+    and corrected values and residuals), corrected_corr.csv, and the pictures before_after.png,
+    correction_map.png, residual_map.png, correction_surface.png."""
+    files = {"corrected": FILES["corrected"], "u": FILES["u"], "rtb": FILES["rtb"], "json": FILES["json"],
+             "cells": FILES["cells"], "correlation": FILES["correlation"]}
+    if not has_rtb(sc.corrected):
+        del files["rtb"]
+    if plots:
+        files.update({k: FILES[k] for k in PICTURES})
+    with OutputGroup(out_dir) as group:
+        paths = [group.text(FILES["corrected"], sc.corrected.to_csv_text()),
+                 group.text(FILES["u"], u_csv_text(sc)),
+                 group.json(FILES["json"], _joint_doc(sc, plots, files)),
+                 group.text(FILES["cells"], joint_cells_csv(sc)),
+                 group.text(FILES["correlation"], _correlation_text(sc.corrected, sc.budget))]
+        if "rtb" in files:
+            paths.insert(2, group.text(FILES["rtb"], sc.corrected.to_rtb_text()))
+        if plots:
+            paths.append(_group_figure(group, FILES["picture"], draw_joint_before_after(sc)))
+            paths.append(_group_figure(group, FILES["map"], draw_joint_map(sc)))
+            paths.append(_group_figure(group, FILES["residuals"], draw_residual_map(sc)))
+            paths.append(_group_figure(group, FILES["surface"], draw_surface_map(sc)))
+    return paths
+
+
+def _correlation_text(table, budget) -> str:
+    m = table.mask
+    ii, jj = np.nonzero(m)
+    labels = [f"{table.tan_eps[i]:g}/{table.beta_deg[j]:g}" for i, j in zip(ii, jj)]
+    c = budget.correlation()
+    buf = io.StringIO()
+    buf.write("# correlation of the corrected cells (rows and columns labelled tan eps/beta)\n")
+    buf.write("cell," + ",".join(labels) + "\n")
+    for k, lab in enumerate(labels):
+        buf.write(lab + "," + ",".join(f"{v:.4f}" for v in c[k]) + "\n")
+    return buf.getvalue()

@@ -3,7 +3,7 @@
 ``reference = "self"`` (the default; the only reference a user of an unknown surface really has):
 
 1. fit the BRDF model through the instrument (:mod:`roadgonio.correction.fit`) with the forward
-   model of fixed ray bundles (:mod:`roadgonio.correction.forward`), for each model variant asked
+   model of fixed ray bundles (:mod:`roadgonio.engines.bundle`), for each model variant asked
    (``"auto"``: ``power`` and ``smooth``; the better fit, by chi^2, is used, the other one measures
    the model dependence);
 2. compute k_A of the fitted model with the chosen backend (``mitsuba`` by default), journalled
@@ -42,9 +42,9 @@ import numpy as np
 from roadgonio.correction.budget import Budget, functionals, misalignment_covariance, systematic_delta
 from roadgonio.correction.fit import (DEFAULT_POLISH, DEFAULT_STARTS, ThroughFit, assess_fit, chi2_of,
                                       fit_through_instrument)
-from roadgonio.correction.forward import DEFAULT_RAYS, ForwardModel, RayBundles
+from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write_json, fingerprint, safe_name
+from roadgonio.fileio import atomic_write_json, fingerprint
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import VARIANTS, RoadModel
 from roadgonio.surface.rtable import RTable, read_table
@@ -59,6 +59,9 @@ DEFAULT_ROUNDS = 2
 #: Latin-hypercube starts of the later rounds (which also start from the previous round's model).
 LATER_ROUND_STARTS = 4
 FIT_STATE = "fit_state.json"
+#: Forward models of ``reference = "self"``: eq. 4 alone (issue 11), or eq. 4 times the correction
+#: surface (:mod:`roadgonio.correction.outside`).
+FORWARDS = ("eq4", "surface")
 
 BackendFactory = Callable[[Instrument, RoadModel], Any]
 
@@ -70,12 +73,26 @@ BackendFactory = Callable[[Instrument, RoadModel], Any]
 def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
     """Standard uncertainty (sr^-1, grid of ``table``) of every measured cell from ``spec``:
     ``"1%"`` or a number in (0, 1) (relative), an :class:`RTable`, or the path of an r-table file
-    (CSV/RTB, r x 1e4) of standard uncertainties. Returns (grid, description)."""
+    (CSV/RTB, r x 1e4) of standard uncertainties. At least :data:`U_REL_MIN` of each
+    value. Returns (grid, description)."""
+    grid, what, path = _measured_uncertainty(spec, table)
+    with np.errstate(invalid="ignore"):
+        tiny = table.mask & (grid < U_REL_MIN * table.r)
+    if tiny.any():
+        i, j = np.argwhere(tiny)[0]
+        raise InputError(f"a standard uncertainty below {U_REL_MIN:g} of the value (tan eps = {table.tan_eps[i]:g}, "
+                         f"beta = {table.beta_deg[j]:g}; {int(tiny.sum())} cells): no goniophotometer measures that "
+                         f"well, and the fit's weights 1/u^2 would overflow; expected at least {100 * U_REL_MIN:g} %",
+                         path=path, field="--u-measured")
+    return grid, what
+
+
+def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Path | None]:
     if isinstance(spec, RTable):
         grid, what = spec.r, f"per-cell table {spec.name}"
         path = None
     elif isinstance(spec, (int, float)) and not isinstance(spec, bool):
-        grid, what, path = _relative(float(spec), table, "--u-measured"), f"{100 * float(spec):g} % of each value", None
+        return _relative(float(spec), table, "--u-measured"), f"{100 * float(spec):g} % of each value", None
     else:
         text = str(spec).strip()
         path = None
@@ -85,13 +102,13 @@ def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
             except ValueError:
                 raise InputError(f"expected a percentage like '1%' or a table file, got {text!r}",
                                  field="--u-measured") from None
-            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)"
+            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)", None
         try:
             v = float(text)
         except ValueError:
             v = None
         if v is not None:
-            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)"
+            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)", None
         path = Path(text)
         try:
             u_table = read_table(path)
@@ -106,7 +123,12 @@ def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
         raise InputError(f"no positive standard uncertainty for the measured cell tan eps = {table.tan_eps[i]:g}, "
                          f"beta = {table.beta_deg[j]:g} ({int(missing.sum())} measured cells lack one); expected "
                          "the r-table layout with r x 1e4 values", path=path, field="--u-measured")
-    return np.where(table.mask, grid, np.nan), what
+    return np.where(table.mask, grid, np.nan), what, path
+
+
+#: The smallest relative standard uncertainty of a measured cell (0.0001 %): far below any
+#: goniophotometer's, far above where the fit's weights 1/u^2 overflow.
+U_REL_MIN = 1e-6
 
 
 def _relative(v: float, table: RTable, fld: str) -> np.ndarray:
@@ -254,7 +276,7 @@ def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rh
     k_frozen = np.ones_like(y)
     best = None
     for r in range(int(rounds)):
-        res = fit_through_instrument(fm, y, u, variant=variant, rho=rho, polish=polish, seed=seed + r,
+        res = fit_through_instrument(fm, y, u, variant=variant, rho=rho, polish=polish, seed=seed, restart=r,
                                      starts=starts if best is None else LATER_ROUND_STARTS, k_frozen=k_frozen,
                                      stage_b=False, name=name, start_models=[] if best is None else [best.model])
         if best is not None and res.chi2 >= best.chi2 * (1.0 - 1e-6):
@@ -511,203 +533,3 @@ def _sigma(sigma):
         return None
     from roadgonio.uncertainty import SigmaSpec, parse_sigma_spec
     return sigma if isinstance(sigma, SigmaSpec) else parse_sigma_spec(sigma, option="--sigma")
-
-
-def correct_measured(measured: RTable, instrument: Instrument, *, reference: Any = "self",
-                     reference_name: str | None = None, alternatives: Any = "auto", model_variant: str | None = None,
-                     **options: Any) -> CorrectionResult:
-    """Correct one measured table: ``reference="self"`` (default) fits the model through the
-    instrument (:func:`correct_self`; ``model_variant`` None = ``"auto"``); a SAMPLE (text) or a
-    :class:`RoadModel` takes the classic route (:func:`correct_with_reference`, ``alternatives`` as
-    :func:`roadgonio.correction.reference.resolve_alternatives`). ``options`` go to either."""
-    from roadgonio.correction.reference import resolve_alternatives, sample_name
-    if isinstance(reference, str) and reference.strip().lower() == "self":
-        return correct_self(measured, instrument, variant=model_variant or "auto", **options)
-    if isinstance(reference, RoadModel):
-        ref_model, name = reference, reference_name or reference.name or "reference"
-    else:
-        from roadgonio.surface.sample import resolve_sample
-        ref_model, name = resolve_sample(str(reference), model_variant).model, reference_name or sample_name(str(reference))
-    alts = alternatives if isinstance(alternatives, Mapping) else resolve_alternatives(
-        alternatives, measured, reference_name=name, model_variant=model_variant)
-    keep = {k: v for k, v in options.items() if k in ("u_measured", "sigma", "backend", "backend_settings",
-                                                      "accuracy", "factory", "out_dir", "misalignment_rays",
-                                                      "seed", "progress")}
-    return correct_with_reference(measured, instrument, ref_model, reference_name=name, alternatives=alts, **keep)
-
-
-def output_folders(names: Sequence[str], out_dir: str | Path) -> list[Path]:
-    """One folder per measured table: ``out_dir`` itself for one table, else ``out_dir/NAME``
-    (``NAME-2``, ... when two files share a name)."""
-    out = Path(out_dir)
-    if len(names) == 1:
-        return [out]
-    seen: dict[str, int] = {}
-    folders = []
-    for n in names:
-        safe = safe_name(n, "table")
-        seen[safe] = seen.get(safe, 0) + 1
-        folders.append(out / (safe if seen[safe] == 1 else f"{safe}-{seen[safe]}"))
-    return folders
-
-
-def _is_self(reference: Any) -> bool:
-    return isinstance(reference, str) and reference.strip().lower() == "self"
-
-
-def _absolute_file(spec: Any) -> Any:
-    """A --u-measured text naming an existing file, as an absolute path (workers may run in another
-    folder); a percentage, a number or an RTable unchanged."""
-    if isinstance(spec, (str, Path)) and str(spec).strip() and not str(spec).strip().endswith("%"):
-        p = Path(str(spec).strip()).expanduser()
-        if p.suffix and p.exists():
-            return str(p.absolute())
-    return spec
-
-
-def _correct_task(job: tuple, shared: Mapping[str, Any]) -> tuple[CorrectionResult, list[Path]]:
-    """One measured table, start to finish: :func:`correct_measured` then :func:`write_correction`
-    into its folder (in this process, or as one Dask task on a worker: :func:`correct_files`)."""
-    from roadgonio.correction.outputs import write_correction
-    table, folder, alternatives, measured_file = job
-    options = dict(shared["options"])
-    if shared["artefacts"] is not None:
-        options["artefacts"] = shared["artefacts"]
-    if not _is_self(shared["reference"]):
-        options["alternatives"] = alternatives
-    res = correct_measured(table, shared["instrument"], reference=shared["reference"],
-                           reference_name=shared["reference_name"], out_dir=folder, **options)
-    if shared.get("cluster") is not None:
-        from roadgonio.engines.cluster import _worker_name
-        res.provenance["cluster"] = {**shared["cluster"], "computed_by": _worker_name()}
-    if measured_file is not None:
-        res.provenance["measured_file"] = measured_file
-    if folder is None:                      # nothing to write (the Python API without out)
-        return res, []
-    return res, write_correction(res, folder, plots=shared["plots"])
-
-
-def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str | Path | None, *, plots: bool = True,
-                  reference: Any = "self", workers: int | None = None, scheduler: str | None = None, client=None,
-                  measured_files: Sequence[str | None] | None = None,
-                  **options: Any) -> list[tuple[CorrectionResult, Path | None, list[Path]]]:
-    """Correct several measured tables with one instrument; returns (result, folder, files) per table.
-    With ``out_dir=None`` nothing is journalled or written (folder None, no files). ``measured_files``
-    (the files the tables were read from) go into each result's provenance before it is written.
-
-    Everything that does not depend on the table is done once, here, before any table: the
-    checks of every table and of ``u_measured`` / ``sigma``, the reference model and each table's
-    alternatives (``reference=SAMPLE``), the instrument's artefacts (``reference="self"``: the ray
-    bundles of every distinct cell set).
-
-    Each table's correction and outputs (:func:`correct_measured`, :func:`write_correction`) is
-    one call of :func:`_correct_task`: one after the other in this process by default, or one
-    Dask task each with ``client``, ``workers`` (a local cluster of that many worker processes;
-    0 = here) or ``scheduler`` (an existing cluster), through
-    :func:`roadgonio.engines.cluster.map_calls`. The artefacts are built here and shipped to the
-    workers once (they pickle: plain numpy arrays and frozen dataclasses), so every table gets
-    the same bundles and the same seeds wherever it runs: the results are identical to the
-    in-process run whatever the number of workers. The workers write the journals and outputs
-    themselves, so with ``scheduler`` the output folder must be on a file system they share at
-    the same path (checked: a file the workers wrote that is not here is a clear error).
-    ``options["progress"]``: in this process the steps and k_A bars of each table; on Dask a bar
-    over the tables.
-    """
-    tables = list(tables)
-    folders = output_folders([t.name for t in tables], out_dir) if out_dir is not None else [None] * len(tables)
-    self_ref = _is_self(reference)
-    progress = bool(options.get("progress", True))
-    distributed = client is not None or scheduler is not None or workers not in (None, 0)
-    if distributed and out_dir is None:
-        raise InputError("tables corrected on Dask workers are written by the workers: give an output folder",
-                         field="out")
-    if distributed and options.get("factory") is not None:
-        raise InputError("a custom backend factory cannot run on Dask workers; give a backend name",
-                         field="--workers")
-    # checks and table-independent work, once and before any table
-    for t in tables:
-        check_measured(t)
-        if self_ref:
-            _check_fit_cells(t)
-        measured_uncertainty(options.get("u_measured", "1%"), t)
-    options["sigma"] = _sigma(options.get("sigma"))
-    model_variant = options.pop("model_variant", None)
-    alternatives = options.pop("alternatives", "auto")
-    ref_name = options.pop("reference_name", None)
-    alts: list[Any] = [None] * len(tables)
-    if self_ref:
-        options["model_variant"] = model_variant
-        artefacts = options.pop("artefacts", None) or InstrumentArtefacts(
-            instrument, rays=options.pop("rays", DEFAULT_RAYS), seed=options.get("seed", 0))
-        options.pop("rays", None)
-        # the ray bundles of every cell set, built here once. They pickle (numpy arrays and frozen
-        # dataclasses), so on Dask they are shipped to the workers (map_calls(shared=...)), not rebuilt there
-        for t in tables:
-            artefacts.forward(t.cells)
-    else:
-        from roadgonio.correction.reference import resolve_alternatives, sample_name
-        from roadgonio.surface.sample import resolve_sample
-        artefacts = None
-        if not isinstance(reference, RoadModel):
-            ref_name = ref_name or sample_name(str(reference))
-            reference = resolve_sample(str(reference), model_variant).model
-        ref_name = ref_name or reference.name or "reference"
-        alts = [alternatives if isinstance(alternatives, Mapping) else resolve_alternatives(
-            alternatives, t, reference_name=ref_name, model_variant=model_variant) for t in tables]
-        for k in ("rays", "artefacts", "starts", "polish", "rounds", "max_outer", "tol"):
-            options.pop(k, None)
-    shared = {"instrument": instrument, "artefacts": artefacts, "reference": reference, "reference_name": ref_name,
-              "plots": plots, "options": options, "cluster": None}
-    files = [None if f is None else str(f) for f in (measured_files or [None] * len(tables))]
-    jobs = list(zip(tables, folders, alts, files))
-    if not distributed:
-        from roadgonio.engines.cluster import map_calls
-        return [(res, job[1], written) for job, (res, written) in zip(jobs, map_calls(_correct_task, jobs, None,
-                                                                                     shared=shared))]
-    return _correct_on_dask(jobs, shared, client=client, workers=workers, scheduler=scheduler, progress=progress)
-
-
-def _correct_on_dask(jobs, shared, *, client, workers, scheduler, progress) -> list:
-    from roadgonio.engines import cluster as _cluster
-    options = dict(shared["options"])
-    options["progress"] = False                  # no terminal on a worker: the bar over tables is here
-    if isinstance(options.get("u_measured"), (str, Path)):
-        options["u_measured"] = _absolute_file(options["u_measured"])
-    inst = shared["instrument"]
-    if inst.path is not None and not Path(inst.path).is_absolute():
-        import dataclasses
-        inst = dataclasses.replace(inst, path=Path(inst.path).absolute())   # an XML scene beside it
-    backend = options.get("backend", "mitsuba")
-    variant = dict(options.get("backend_settings") or {}).get("mitsuba_variant")
-    work = [(t, Path(f).absolute(), a, m) for t, f, a, m in jobs]
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(work), unit="table", desc=f"correct ({backend}, Dask)", file=sys.stderr,
-                   dynamic_ncols=True, disable=None)
-
-    def run(c) -> list:
-        info = _cluster.describe(c)
-        if bar is not None:
-            bar.set_description(f"correct ({backend}, {info['workers']} Dask workers)")
-        sh = {**shared, "instrument": inst, "options": options, "cluster": info}
-        return _cluster.map_calls(_correct_task, work, c, shared=sh, backend=backend, variant=variant,
-                                  name="correct", on_result=lambda i, r: bar.update(1) if bar is not None else None)
-    try:
-        if client is not None:
-            results = run(client)
-        else:
-            with _cluster.open_client(workers, scheduler, backend=backend, variant=variant) as c:
-                results = run(c)
-    finally:
-        if bar is not None:
-            bar.close()
-    out = []
-    for (_t, folder, _, _), (res, written) in zip(jobs, results):
-        here = [Path(folder) / Path(p).name for p in written]
-        for p in here:
-            if not p.exists():
-                raise InputError("a Dask worker wrote this file on its own file system, not here: with --scheduler "
-                                 "the --out folder must be shared by the workers at the same path", path=p)
-        out.append((res, Path(folder), here))
-    return out

@@ -129,7 +129,8 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "kind": (dims, grid(kind.astype(str)), {"long_name": "why not feasible: instrument, footprint, horizon, "
                                                               "line_of_sight, housing, backend, tolerance, failed"}),
         "reason": (dims, grid(reason.astype(str)), {"long_name": "why not feasible (empty if feasible)"}),
-        "seed": (dims, grid(np.array(seeds, dtype=np.int32)), {"long_name": "backend seed of the design point "
+        # 63-bit seeds as decimal text: netCDF-3 has no 64-bit integers (roadgonio.seeds.point_seed)
+        "seed": (dims, grid(np.array([str(int(v)) for v in seeds])), {"long_name": "backend seed of the design point "
                                                                                "(roadgonio ka --seed)"}),
         "seconds": (dims, grid(seconds), {"long_name": "compute time of the point's tables (s)"}),
     }
@@ -207,6 +208,7 @@ def summary(ds) -> dict[str, Any]:
         s["best"] = {"index": best, **point_index(ds, best),
                      **{k: (v[best].item() if hasattr(v[best], "item") else v[best]) for k, v in flat.items()
                         if k not in ("feasible", "kind")}}
+        s["best"]["seed"] = int(s["best"]["seed"])
     else:
         s["best"] = None
     if "out" in ds.attrs:

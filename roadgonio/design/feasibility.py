@@ -43,7 +43,7 @@ class Feasibility:
     ok: bool
     kind: str = ""                  # "" | instrument | footprint | horizon | line_of_sight | housing | backend
     reason: str = ""
-    footprint: tuple[float, float, float, float] | None = None   # x_min, x_max, y_min, y_max (m)
+    footprint: tuple[float, float, float, float] | None = None   # x_min, x_max, y_min, y_max (m; x along delta)
 
     @property
     def footprint_length_m(self) -> float:
@@ -74,12 +74,12 @@ def check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]])
         if instrument.sample.mesh is None:
             fp = optics.check_detector(instrument)
         else:
-            x, y = optics.footprint_boundary(instrument)
+            x, y = optics.footprint_along_azimuth(instrument)
             fp = (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
     except GeometryError as err:
         fp = None
         try:
-            x, y = optics.footprint_boundary(instrument)
+            x, y = optics.footprint_along_azimuth(instrument)
             fp = (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
         except GeometryError:
             pass
@@ -92,13 +92,13 @@ def check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]])
             below.append((t, b))
     if below:
         src = instrument.source
-        return Feasibility(False, "horizon", f"the source disc (radius {src.radius_m:g} m at {src.distance_m:g} m) "
+        return Feasibility(False, "horizon", f"the source disc (radius {src.radius_m:g} m, {src.length_key[:-2]} {src.length_m:g} m) "
                                             f"reaches below the sample plane at {_cells_text(below)}", fp)
     blocked = blocked_cells(instrument, cells)
     if blocked:
         src, det = instrument.source, instrument.detector
         return Feasibility(False, "line_of_sight",
-                           f"the source disc (radius {src.radius_m:g} m at {src.distance_m:g} m) blocks the detector's "
+                           f"the source disc (radius {src.radius_m:g} m, {src.length_key[:-2]} {src.length_m:g} m) blocks the detector's "
                            f"view of the sample (pupil {det.pupil_radius_m:g} m at {det.distance_m:g} m) at "
                            f"{_cells_text(blocked)}", fp)
     from roadgonio.instrument.enclosure import check_detector_view, check_sources

@@ -37,7 +37,7 @@ from roadgonio.instrument.config import Instrument
 #: The numeric instrument keys a design may vary (section -> keys), docs/conventions.md section 4.
 VARIABLE_KEYS: dict[str, tuple[str, ...]] = {
     "observation": ("alpha_deg", "delta_deg"),
-    "source": ("distance_m", "radius_m", "beam_half_angle_deg", "beam_sigma_deg", "beam_cos_power",
+    "source": ("distance_m", "height_m", "radius_m", "beam_half_angle_deg", "beam_sigma_deg", "beam_cos_power",
                "aperture_edge_radiance"),
     "detector": ("distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity"),
     "sample": ("size_x_m", "size_y_m"),
@@ -109,6 +109,8 @@ def parse_vary(spec: str) -> VarySpec:
             raise InputError(f"expected a whole number of values N, got {parts[2]!r} in {text!r}", field="--vary") from None
         if n < 1:
             raise InputError(f"expected N >= 1 values, got {n} in {text!r}", field="--vary")
+        from roadgonio.limits import check_size
+        check_size(n, "design_points", "--vary")
         if n == 1 and lo != hi:
             raise InputError(f"one value (N = 1) needs LO = HI, got {text!r}", field="--vary")
         if log:
@@ -130,12 +132,20 @@ def as_vary_specs(vary: Sequence[str | VarySpec] | Mapping[str, Sequence[float]]
     a key may appear once."""
     if vary is None:
         return []
+    if isinstance(vary, (str, VarySpec)):          # one specification (not its characters)
+        vary = [vary]
     specs: list[VarySpec] = []
     if isinstance(vary, Mapping):
         for key, values in vary.items():
             if isinstance(values, str):
                 specs.append(parse_vary(f"{key}={values}"))
             else:
+                if isinstance(values, (int, float)):
+                    values = [values]
+                bad = [v for v in values if isinstance(v, bool) or not isinstance(v, (int, float, np.integer,
+                                                                                      np.floating))]
+                if bad:
+                    raise InputError(f"expected numbers as the values of {key}, got {bad[0]!r}", field="--vary")
                 specs.append(parse_vary(f"{key}=" + ",".join(repr(float(v)) for v in values)))
     else:
         for v in vary:

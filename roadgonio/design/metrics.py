@@ -102,10 +102,11 @@ def profiled_solid_angle(instrument: Instrument) -> float:
     """Omega_S = E_normal / L_0 of the instrument's source (module docstring): the closed form of
     :func:`source_solid_angle` for the uniform disc, otherwise the shared source coupling
     (:func:`roadgonio.instrument.optics.source_coupling`, profile included) integrated over the disc
-    for the source overhead, at the sample centre."""
+    for the source overhead, at the sample centre (a fixed-height source is then at its height, where
+    its signal is largest)."""
     src = instrument.source
     if not src.profiled or src.radius_m == 0.0:
-        return source_solid_angle(src.radius_m, src.distance_m)
+        return source_solid_angle(src.radius_m, src.length_m)
     from roadgonio.arrays import NumpyOps
     from roadgonio.engines.quadrature import disc_rule
     from roadgonio.instrument import optics

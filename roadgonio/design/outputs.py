@@ -19,11 +19,11 @@ import io
 import json
 import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from roadgonio.fileio import atomic_savefig, atomic_write_text, read_netcdf, write_netcdf
+from roadgonio.instrument.config import toml_text
 
 CSV_TAIL = ("max_abs_dev", "rms_dev", "signal", "feasible", "reason")
 CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_se", "footprint_length_m", "seed")
@@ -87,44 +87,7 @@ def write_csv(ds, path: Path) -> Path:
 
 
 # ----------------------------------------------------------------------------------------------
-def _toml_value(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isinf(v):
-            return '"inf"'
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)          # a TOML basic string (JSON's escapes are TOML's)
-    if isinstance(v, (list, tuple)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):          # an inline table (e.g. a [housing] baffle)
-        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + "}"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
-def toml_text(d: dict[str, Any], header: str = "") -> str:
-    """A TOML document of tables of scalars (nested tables as [a.b])."""
-    lines = [("# " + ln).rstrip() for ln in header.splitlines()] if header else []
-
-    def table(name: str, t: dict[str, Any]) -> None:
-        scalars = {k: v for k, v in t.items() if not isinstance(v, dict)}
-        subs = {k: v for k, v in t.items() if isinstance(v, dict)}
-        if lines:
-            lines.append("")
-        lines.append(f"[{name}]")
-        for k, v in scalars.items():
-            lines.append(f"{k} = {_toml_value(v)}")
-        for k, v in subs.items():
-            table(f"{name}.{k}", v)
-
-    for name, t in d.items():
-        if isinstance(t, dict):
-            table(name, t)
-    return "\n".join(lines) + "\n"
-
+# best.toml: written by the instrument room's TOML writer (roadgonio.instrument.config.toml_text)
 
 def write_best(ds, path: Path) -> Path | None:
     from roadgonio.engines.cluster import absolute_instrument_dict

@@ -8,13 +8,15 @@ rest is computed; a journal of a different design is never mixed in (clear error
 another ``--out``). The tolerance is not part of the fingerprint: a rerun with another tolerance
 re-judges the finished tables at no cost.
 
-Seeds: design point k (C order of the grid) gets ``SeedSequence(seed).spawn(n_points)[k]``
-(:func:`roadgonio.engines.cluster.seeds_for`) for all its samples, so the numbers do not depend on the
+Seeds: design point k (C order of the grid) gets ``point_seed(seed, k)`` (:func:`roadgonio.seeds.point_seed`,
+:func:`roadgonio.engines.cluster.seeds_for`; the full range 0 ... 2^63 - 1, and two different root seeds
+never give a point the same seed) for all its samples, so the numbers do not depend on the
 number of workers, on the cluster or on the order in which tables finish, and ``roadgonio ka --seed
 S`` on ``best.toml`` reproduces the best design's tables exactly (S is in ``design.csv``).
 """
 from __future__ import annotations
 
+import math
 import os
 import sys
 import time
@@ -106,6 +108,8 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
     settings = dict(settings or {})
     tol = parse_tolerance(tolerance)
     specs: list[VarySpec] = as_vary_specs(vary)
+    from roadgonio.limits import check_size
+    check_size(math.prod(len(s.values) for s in specs), "design_points", "--vary")   # before the grid is built
     points = grid_points(specs)
     shape = grid_shape(specs)
     smp = resolve_samples(samples, cells)
@@ -128,7 +132,8 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
     fp_payload = {"base": base_numbers, **({"files": files} if files else {}), "vary": [[s.key, list(s.values)] for s in specs],
                   "samples": [[s.name, {"variant": s.model.variant, "params": s.model.params.to_dict()},
                                [list(c) for c in s.cells]] for s in smp],
-                  "backend": backend, "accuracy": accuracy, "settings": settings, "seed": int(seed)}
+                  "backend": backend, "accuracy": accuracy, "settings": settings, "seed": int(seed),
+                  "point_seeds": "roadgonio.seeds.point_seed"}     # how the points' seeds are derived
     fp = fingerprint(fp_payload)
     done: dict[tuple[int, int], dict] = {}
     fh = None
@@ -218,7 +223,7 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
                       fingerprint=fp, accuracy=accuracy, requested_settings=settings, seed=int(seed), cells=str(cells),
                       vary=[s.text or f"{s.key}=" + ",".join(map(repr, s.values)) for s in specs],
                       samples={s.name: {"spec": s.spec, "model": s.model.to_json_dict()} for s in smp},
-                      seeds="SeedSequence(seed).spawn(points)[k], 31 bits, for every sample of point k",
+                      seeds="roadgonio.seeds.point_seed(seed, k), 63 bits, for every sample of point k",
                       cluster=cluster_info, tolerance=tol, model_variant=model_variant)
     computed_now = len(tasks) - len(failed)
     ds.attrs.update({

@@ -404,8 +404,10 @@ def absolute_instrument_dict(instrument) -> dict[str, Any]:
 
 
 def seeds_for(seed: int, n: int) -> list[int]:
-    """``n`` backend seeds (31-bit) from ``SeedSequence(seed).spawn(n)``: the k-th depends only on
-    (seed, k), never on the number of workers or the order in which tasks finish."""
-    import numpy as np
-    return [int(s.generate_state(1, dtype=np.uint32)[0] & 0x7FFFFFFF) for s in np.random.SeedSequence(int(seed)).spawn(n)]
+    """``n`` backend seeds in the full range 0 ... 2^63 - 1, the k-th :func:`roadgonio.seeds.point_seed`
+    (seed, k): it depends only on (seed, k), never on the number of workers or the order in which
+    tasks finish; two different root seeds never give point k the same seed, and no two points of
+    one root share one."""
+    from roadgonio.seeds import point_seed
+    return [point_seed(seed, k) for k in range(int(n))]
 

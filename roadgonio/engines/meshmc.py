@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from roadgonio.seeds import cell_key, check_seed, seed_entropy
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
@@ -45,6 +46,11 @@ DEFAULT_MIN_BATCHES = 8
 DEFAULT_MAX_SAMPLES = 50_000_000
 #: Offset of shadow-ray origins along the normal (m), well above float64 rounding of metre coordinates.
 SHADOW_EPS_M = 1e-9
+#: Barycentric tolerance of the ray-triangle test: a ray that lands on an edge or a vertex shared by
+#: triangles hits them, whatever the rounding of u and v (computed from coordinates of metres, they
+#: are off by ~1e-15, more at grazing incidence); 1e-9 of a triangle's size is no hole and no overlap
+#: a footprint could notice.
+EDGE_TOL = 1e-9
 
 
 def load_mesh_triangles(instrument: Instrument) -> np.ndarray:
@@ -157,7 +163,7 @@ class MeshCaster:
             qvec = np.cross(tvec, e1)
             v = np.einsum("ij,ij->i", dd, qvec) * inv
             t = np.einsum("ij,ij->i", e2, qvec) * inv
-        hit = (det != 0.0) & (u >= 0.0) & (v >= 0.0) & (u + v <= 1.0) & (t > 0.0)
+        hit = (det != 0.0) & (u >= -EDGE_TOL) & (v >= -EDGE_TOL) & (u + v <= 1.0 + EDGE_TOL) & (t > 0.0)
         return np.where(hit, t, np.inf)
 
     def first_hit(self, o, d, chunk: int = 1 << 14):
@@ -206,10 +212,9 @@ class MeshMonteCarloBackend(CellByCellBackend):
         rel_se = _number(rel_se, "rel_se")
         if not (0.0 < rel_se < 1.0):
             raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
-        seed = _integer(seed, "seed")
-        if seed < 0:
-            raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
-        m = int(round(math.sqrt(_integer(batch, "batch"))))
+        seed = check_seed(seed)
+        from roadgonio.limits import check_size
+        m = int(round(math.sqrt(check_size(_integer(batch, "batch"), "batch", "batch"))))
         if m < 2:
             raise InputError(f"expected a batch of at least 4 samples, got {batch}", field="batch")
         if _integer(min_batches, "min_batches") < 2:
@@ -301,7 +306,7 @@ class MeshMonteCarloBackend(CellByCellBackend):
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
         ideal = check_cell(self.instrument, self.model, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
-        rng = np.random.default_rng([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6)), 77])
+        rng = np.random.default_rng(seed_entropy(self.seed, cell_key(tan_eps), cell_key(beta_deg), 77))
         road, lam = [], []
         k = se = math.nan
         max_batches = max(self.min_batches, self.max_samples // self.batch)

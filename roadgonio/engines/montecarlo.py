@@ -22,16 +22,18 @@ speed baseline of the Mitsuba backend; it also handles the flat rectangular samp
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from typing import Any
 
 import numpy as np
 
 from roadgonio.instrument import optics
+from roadgonio.seeds import cell_key, check_seed, seed_entropy
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
-from roadgonio.surface.model import RoadModel, road_brdf
+from roadgonio.surface.model import RoadModel
 from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
 from roadgonio.engines.cellcheck import check_cell
 
@@ -66,9 +68,11 @@ class MonteCarloBackend(CellByCellBackend):
             raise InputError(f"expected a number, got {rel_se!r}", field="rel_se") from None
         if not (0.0 < rel_se < 1.0):
             raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
-        if isinstance(seed, bool) or int(seed) != seed or int(seed) < 0:
-            raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
-        m = int(round(math.sqrt(int(batch))))
+        seed = check_seed(seed)
+        from roadgonio.limits import check_size
+        if isinstance(batch, bool) or not isinstance(batch, numbers.Integral):
+            raise InputError(f"expected a whole number of samples per batch, got {batch!r}", field="batch")
+        m = int(round(math.sqrt(check_size(int(batch), "batch", "batch"))))
         if m < 2:
             raise InputError(f"expected a batch of at least 4 samples, got {batch}", field="batch")
         if int(min_batches) < 2:
@@ -84,8 +88,6 @@ class MonteCarloBackend(CellByCellBackend):
         self.batch = m * m
         self.min_batches = int(min_batches)
         self.max_samples = int(max_samples)
-        self._P = model.params.to_dict()
-        self._terms = model.terms()
         self._det = optics.detector_geometry(instrument)
         det = instrument.detector
         self._pupil = det.pupil_radius_m > 0.0
@@ -147,7 +149,7 @@ class MonteCarloBackend(CellByCellBackend):
                 sp = optics.source_point(src, sd)
                 wi, g = optics.source_coupling(NumpyOps, src, x, y, sp, sd)
                 wo = (-d[0], -d[1], -d[2])
-                f = road_brdf(NumpyOps, self._P, wi, wo, self.model.variant, self._terms)
+                f = self.model.evaluate(NumpyOps, wi, wo)
                 wg = np.where(valid, w * g, 0.0)
                 road += float(np.dot(wg, f))
                 lam += float(np.sum(wg))
@@ -158,7 +160,7 @@ class MonteCarloBackend(CellByCellBackend):
         tan_eps, beta_deg = float(tan_eps), float(beta_deg)
         ideal = check_cell(self.instrument, self.model, tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
-        rng = np.random.default_rng([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6))])
+        rng = np.random.default_rng(seed_entropy(self.seed, cell_key(tan_eps), cell_key(beta_deg)))
         road, lam = [], []
         k = se = math.nan
         max_batches = max(self.min_batches, self.max_samples // self.batch)

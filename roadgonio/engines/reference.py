@@ -78,11 +78,12 @@ from typing import Any
 
 import numpy as np
 
+from roadgonio.seeds import cell_key, check_seed, seed_entropy
 from roadgonio.errors import InputError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
-from roadgonio.surface.model import RoadModel, road_brdf
+from roadgonio.surface.model import RoadModel
 from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
 from roadgonio.engines.cellcheck import check_cell, no_light
 
@@ -228,9 +229,7 @@ class ReferenceBackend(CellByCellBackend):
         max_evals = _integer(max_evals, "max_evals")
         if max_evals < 1:
             raise InputError(f"expected a positive number of evaluations, got {max_evals}", field="max_evals")
-        seed = _integer(seed, "seed")
-        if seed < 0:
-            raise InputError(f"expected a seed >= 0, got {seed}", field="seed")
+        seed = check_seed(seed)
         optics.check_detector(instrument)
         from scipy.stats import t as student_t
         self.instrument = instrument
@@ -247,8 +246,6 @@ class ReferenceBackend(CellByCellBackend):
         self.pilot_iterations = _integer(pilot_iterations, "pilot_iterations")
         self.pilot_points = _integer(pilot_points, "pilot_points")
         self.map_bins = _integer(map_bins, "map_bins")
-        self._P = model.params.to_dict()
-        self._terms = model.terms()
         self._det = optics.detector_geometry(instrument)
         det = instrument.detector
         self.active = (det.pupil_radius_m > 0.0, det.field_half_angle_deg > 0.0, instrument.source.radius_m > 0.0)
@@ -299,7 +296,7 @@ class ReferenceBackend(CellByCellBackend):
             evals = 0
             if not self.active[2]:
                 sides = [(None, None)]
-            elif self.split and "k_exp" in self._terms:
+            elif self.split and self.model.mirror_kink:
                 # both halves of the source disc cut on the mirror plane, each evaluated only where
                 # it is not empty (the chord misses the disc for most rays off the mirror plane)
                 mx, my, cm = self._mirror_chord(x, y, wo, src)
@@ -326,7 +323,7 @@ class ReferenceBackend(CellByCellBackend):
                     sdisc = (v * sx - w * sy, v * sy + w * sx)
                 sp = optics.source_point(src, sdisc)
                 wi, g = optics.source_coupling(NumpyOps, src, xs, ys, sp, sdisc)
-                f = road_brdf(NumpyOps, self._P, wi, wos, self.model.variant, self._terms)
+                f = self.model.evaluate(NumpyOps, wi, wos)
                 wg = wd * ws * g
                 if idx is None:
                     road += wg * f
@@ -492,7 +489,7 @@ class ReferenceBackend(CellByCellBackend):
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
         self._level_coords = self._h_varies(src)
         R = self.replicates
-        ss = np.random.SeedSequence([self.seed, int(round(tan_eps * 1e6)), int(round(beta_deg * 1e6))])
+        ss = np.random.SeedSequence(seed_entropy(self.seed, cell_key(tan_eps), cell_key(beta_deg)))
         pilot_ss, *rep_ss = ss.spawn(R + 1)
         amap, evals, map_info = self._train(src, pilot_ss)
         dim = max(self.dim, 1)

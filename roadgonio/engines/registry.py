@@ -3,7 +3,8 @@
 add a backend").
 
 Each :class:`BackendInfo` says how to build the backend (a lazy ``"module:function"`` factory, so a
-numpy-only run never imports mitsuba), what its precision is (a standard error, a deterministic
+numpy-only run never imports mitsuba; the ``bundle`` backend is the correction's forward model of
+fixed ray bundles, which applies the calibration itself), what its precision is (a standard error, a deterministic
 bound, or a standard error with a statistical confidence bound: :mod:`roadgonio.engines.result`),
 whether it takes a seed, its accuracy presets, what its one tolerance is called (``rel_se`` or
 ``rtol``), and which instruments it models (mesh samples, Mitsuba XML scenes, a beam limit that
@@ -26,6 +27,11 @@ precise   rtol 1e-6: err 2.9e-7           rel_se 1e-4, first pass 4096:   rel_se
                                           err 1.1e-4                      err 1.1e-4
 ========  ==============================  ==============================  ==============================
 
+The ``bundle`` backend (the correction's fixed ray bundles, 4 replicates) has no stopping rule; its
+presets are rays per cell, measured on the portable table of R3 (396 cells) against the quadrature
+at rtol 1e-6: fast 128 rays, max error 9.3e-3 (max rel SE 6.0e-3); default 512, 2.3e-3 (1.5e-3);
+precise 4096, 2.8e-4 (2.1e-4).
+
 The batched Mitsuba engine stops every cell at its target (a small first pass, then the 1/N rule per
 cell), so its presets sit on the measured front by construction; ``first_pass`` only matters for
 the easy cells. The reference's presets are the same tolerances as the quadrature's (its ``rtol``
@@ -41,12 +47,10 @@ from dataclasses import dataclass, field
 from typing import Any, Mapping
 
 from roadgonio.errors import InputError
+from roadgonio.seeds import SEED_MAX, check_seed  # noqa: F401 - the seed range, written once in roadgonio.seeds
 
 #: The accuracy presets, by name.
 PRESETS = ("fast", "default", "precise")
-#: Seeds a user may give: whole numbers 0 <= seed <= SEED_MAX (they reach the generators in full:
-#: numpy's SeedSequence takes them as entropy, so two different seeds never share a stream).
-SEED_MAX = 2 ** 63 - 1
 
 
 @dataclass(frozen=True)
@@ -58,14 +62,17 @@ class BackendInfo:
     summary: str                     # one line for --help and the docs
     precision: str                   # "se" | "error_bound" | "se+confidence_bound"
     seeded: bool                     # takes a seed (Monte Carlo / randomised QMC)
-    tolerance: str                   # the setting one relative target maps to: "rel_se" or "rtol"
+    tolerance: str | None            # the setting one relative target maps to: "rel_se", "rtol", or None (none)
     presets: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     meshes: bool = False             # models a mesh sample ([sample] mesh)
     xml_scenes: bool = False         # models the extra parts of a Mitsuba XML scene ([scene] xml)
     beam_clipping: bool = True       # models a beam limit that clips the light on the footprint
     beam_profile: bool = True        # models a source radiance profile ([source] beam_* / aperture_* keys)
     field_map: bool = True           # models a detector sensitivity map ([detector] field_sensitivity)
+    #: the source paths it models ([source] path: "arc", "fixed_height"; docs/conventions.md section 4)
+    source_paths: tuple[str, ...] = ("arc", "fixed_height")
     mitsuba: bool = False            # needs mitsuba/drjit and a selected variant (Dask workers set one up)
+    calibrates: bool = False         # applies the instrument's [calibration] itself (make_backend must not wrap it)
     cell_correlation: str = ("independent: each cell has its own random numbers, seeded by (seed, tan eps, beta)")
 
     @property
@@ -96,6 +103,14 @@ BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
     BackendInfo("numpy-mc", "roadgonio.engines.montecarlo:make_backend",
                 "plain float64 Monte Carlo (slow; an oracle; flat samples)",
                 precision="se", seeded=True, tolerance="rel_se", presets=_numpy_mc_presets(128 ** 2)),
+    BackendInfo("bundle", "roadgonio.engines.bundle:make_backend",
+                "float64 fixed ray bundles (randomised QMC, common random numbers): the forward model of `correct` "
+                "(flat samples)",
+                precision="se", seeded=True, tolerance=None,
+                presets={"fast": {"rays": 128}, "default": {"rays": 512}, "precise": {"rays": 4096}},
+                calibrates=True,
+                cell_correlation="independent: each cell's rays are seeded by (seed, the cell's index in the request); "
+                                 "the SE is the spread of 4 replicates (3 degrees of freedom)"),
     BackendInfo("reference", "roadgonio.engines.reference:make_backend",
                 "float64 randomised QMC with the kinks split off: SE and a 99.9 % confidence bound (flat samples)",
                 precision="se+confidence_bound", seeded=True, tolerance="rtol",
@@ -111,17 +126,6 @@ def backend_info(name: str, field: str = "backend") -> BackendInfo:
     if not isinstance(name, str) or name not in BACKENDS:
         raise InputError(f"unknown backend {name!r}; expected one of {', '.join(BACKENDS)}", field=field)
     return BACKENDS[name]
-
-
-def check_seed(seed, field: str = "seed") -> int:
-    """A seed as given by a user: a whole number 0 <= seed <= :data:`SEED_MAX` (not a bool, not a
-    float), returned as int; the full value reaches the generators."""
-    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
-        raise InputError(f"expected a whole number >= 0 as the seed, got {seed!r}", field=field)
-    s = int(seed)
-    if not 0 <= s <= SEED_MAX:
-        raise InputError(f"expected a whole number >= 0 (at most 2^63 - 1) as the seed, got {s}", field=field)
-    return s
 
 
 def check_relative(value, field: str) -> float:
@@ -144,13 +148,18 @@ def preset(name: str, backend: str, field: str = "accuracy") -> dict[str, Any]:
 def tolerance_setting(backend: str, value, field: str = "rel_se") -> dict[str, float]:
     """The backend keyword of one relative target: ``rtol`` (quadrature, reference: a relative
     error bound) or ``rel_se`` (Monte Carlo: a relative standard error)."""
-    return {backend_info(backend).tolerance: check_relative(value, field)}
+    info = backend_info(backend)
+    if info.tolerance is None:
+        raise InputError(f"the {backend} backend has no relative target (it draws a fixed number of rays per "
+                         "cell); give an accuracy preset or its settings (rays)", field=field)
+    return {info.tolerance: check_relative(value, field)}
 
 
 def check_capabilities(info: BackendInfo, instrument) -> None:
     """Refuse an instrument the backend does not model (never ignore part of it): a Mitsuba XML
     scene's extra parts, a [housing] (the backends that model XML scenes model it), a mesh sample, a
-    source radiance profile, a detector sensitivity map. (A beam limit that clips the footprint is
+    source radiance profile, a detector sensitivity map, a source path it does not move its
+    source along. (A beam limit that clips the footprint is
     refused per cell by the backends that cannot model it.)"""
     scene = instrument.extra.get("scene") if hasattr(instrument.extra, "get") else None
     if scene and not info.xml_scenes:
@@ -178,6 +187,11 @@ def check_capabilities(info: BackendInfo, instrument) -> None:
         alt = " or ".join(n for n, b in BACKENDS.items() if b.meshes)
         raise InputError(f"the {info.name} backend integrates over a flat rectangular sample only; for a mesh "
                          f"sample use --backend {alt}", path=instrument.path, field="sample.mesh")
+    path = instrument.source.path
+    if path not in info.source_paths:
+        alt = " or ".join(n for n, b in BACKENDS.items() if path in b.source_paths)
+        raise InputError(f"the {info.name} backend does not model source.path = \"{path}\"; use --backend {alt}",
+                         path=instrument.path, field="source.path")
 
 
 def resolve_settings(name: str, *, accuracy: str | None = None, tolerance=None, seed=None,
@@ -204,7 +218,8 @@ def resolve_settings(name: str, *, accuracy: str | None = None, tolerance=None, 
     if mitsuba_variant is not None:
         if not info.mitsuba:
             raise InputError(f"a Mitsuba variant is for the mitsuba backend, not {name}", field=f["mitsuba_variant"])
-        out["mitsuba_variant"] = str(mitsuba_variant)
+        from roadgonio.engines.mitsuba import check_variant_name
+        out["mitsuba_variant"] = check_variant_name(mitsuba_variant, f["mitsuba_variant"])
     if settings:
         if not hasattr(settings, "items"):
             raise InputError(f"expected a mapping of backend settings, got {settings!r}", field=f["settings"])
@@ -229,6 +244,8 @@ def make_backend(name: str, instrument, model, *, accuracy: str | None = None, t
     check_capabilities(info, instrument)
     factory = load_factory(info)
     from roadgonio.engines.calibration import calibrated
+    if info.calibrates:
+        return factory(instrument, model, **kw)
     return calibrated(lambda inst, m: factory(inst, m, **kw), instrument, model)
 
 

@@ -18,7 +18,6 @@ Output folder (``--out DIR``):
 """
 from __future__ import annotations
 
-import json
 import os
 import sys
 import time
@@ -28,8 +27,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write, fingerprint as _fingerprint, output_error, read_journal, to_json
+from roadgonio.fileio import atomic_write, check_run_folder, fingerprint as _fingerprint, output_error, read_journal, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
@@ -84,21 +82,9 @@ def _read_journal(path: Path, fp: str) -> dict[tuple[float, float], CellResult]:
 
 
 def _check_finished_run(out_dir: Path, fp: str) -> None:
-    """Refuse to overwrite the outputs of a different finished run (its ka.json fingerprint)."""
-    meta = out_dir / META
-    if not meta.exists():
-        return
-    try:
-        old = json.loads(meta.read_text(encoding="utf-8")).get("fingerprint")
-    except OSError as err:
-        raise InputError(f"cannot read this file ({err.strerror or err}) to check which run it belongs to; "
-                         "use another --out folder, or --fresh to discard it", path=meta) from None
-    except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-        old = None
-    if old != fp:
-        why = ("holds the results of a different run (instrument, model, backend, settings or roadgonio version "
-               "differ)" if old else "holds results without a run fingerprint (an older roadgonio or another tool)")
-        raise InputError(f"this folder {why}; use another --out folder, or --fresh to discard them", path=meta)
+    """Refuse to overwrite the outputs of a different finished run (its ka.json fingerprint):
+    :func:`roadgonio.fileio.check_run_folder`."""
+    check_run_folder(out_dir, META, fp, what="run")
 
 
 def _write_journal(journal: Path, header: dict, cells: Sequence[CellResult]) -> None:

@@ -48,8 +48,16 @@ from roadgonio.errors import InputError
 from roadgonio.fileio import read_toml
 from roadgonio.geometry import w_detector, w_source
 from roadgonio.instrument.calibration import Calibration
+from roadgonio.instrument.coverage import MeasuredCells
 
 _INF_WORDS = ("inf", "+inf", "infinity")
+#: The longest length of an instrument (distances, a finite focus, the sample's sides), m: no
+#: goniophotometer is larger, and beyond it float arithmetic of the ray geometry overflows
+#: (1e300 m) or loses the sample (float32 rays of the renderer).
+MAX_LENGTH_M = 1000.0
+#: The smallest non-zero aperture radius, m: below a micrometre a disc is no aperture of an
+#: instrument (give 0 for a point source or a pinhole), and its area underflows (1e-300 m).
+MIN_APERTURE_M = 1e-6
 
 
 def _number(v: Any, name: str, *, allow_inf: bool = False) -> float:
@@ -66,8 +74,10 @@ def _number(v: Any, name: str, *, allow_inf: bool = False) -> float:
 
 
 def _checked(obj, attr: str, name: str, *, lo=None, hi=None, lo_open=False, hi_open=False,
-             allow_inf=False, optional=False) -> None:
-    """Validate (and normalise to float) the field ``attr`` of the frozen dataclass ``obj``."""
+             allow_inf=False, optional=False, length=False, aperture=False) -> None:
+    """Validate (and normalise to float) the field ``attr`` of the frozen dataclass ``obj``;
+    ``length``: at most :data:`MAX_LENGTH_M` (unless infinite where allowed); ``aperture``: 0 or
+    at least :data:`MIN_APERTURE_M`."""
     v = getattr(obj, attr)
     if v is None and optional:
         return
@@ -76,6 +86,11 @@ def _checked(obj, attr: str, name: str, *, lo=None, hi=None, lo_open=False, hi_o
         raise InputError(f"expected a value {'>' if lo_open else '>='} {lo:g}, got {v:g}", field=name)
     if hi is not None and (v > hi or (hi_open and v == hi)):
         raise InputError(f"expected a value {'<' if hi_open else '<='} {hi:g}, got {v:g}", field=name)
+    if length and math.isfinite(v) and v > MAX_LENGTH_M:
+        raise InputError(f"expected at most {MAX_LENGTH_M:g} m (no instrument is larger)"
+                         + (', or "inf" for a focus at infinity' if allow_inf else "") + f", got {v:g}", field=name)
+    if aperture and 0.0 < v < MIN_APERTURE_M:
+        raise InputError(f"expected 0 (a point) or a radius of at least {MIN_APERTURE_M:g} m, got {v:g}", field=name)
     object.__setattr__(obj, attr, v)
 
 
@@ -101,6 +116,13 @@ class Observation:
     @property
     def w_o(self) -> np.ndarray:
         return w_detector(self.alpha_deg, self.delta_deg)
+
+
+#: The source paths (docs/conventions.md section 4): ``arc`` keeps the source at ``distance_m`` from
+#: the sample centre for every cell (a goniometer arm); ``fixed_height`` moves it along a straight
+#: line at ``height_m`` above the sample plane (a corridor goniophotometer), so its distance is
+#: ``height_m / cos eps`` (:func:`roadgonio.instrument.optics.source_distance_m`).
+SOURCE_PATHS = ("arc", "fixed_height")
 
 
 #: The keys of [source] that shape its beam (docs/conventions.md section 4; roadgonio.instrument.profiles):
@@ -129,9 +151,12 @@ def _digests(obj, attrs) -> dict[str, str]:
 
 @dataclass(frozen=True)
 class Source:
-    """Disc exit aperture of radius ``radius_m`` (0 = point source) at ``distance_m`` from the
-    sample centre, facing it; optional beam cone of half-angle ``beam_half_angle_deg`` (None = no
-    beam limit).
+    """Disc exit aperture of radius ``radius_m`` (0 = point source) facing the sample centre; optional
+    beam cone of half-angle ``beam_half_angle_deg`` (None = no beam limit). Its centre is at
+    ``distance_m`` from the sample centre for every cell (``path = "arc"``, the default) or at
+    ``height_m`` above the sample plane (``path = "fixed_height"``: distance ``height_m / cos eps``,
+    so the source's solid angle and the illuminated area change with eps); the distance of a cell is
+    :func:`roadgonio.instrument.optics.source_distance_m`.
 
     Its radiance is uniform (a Lambertian area emitter) unless a profile is given
     (:mod:`roadgonio.instrument.profiles`: ``L = L_0 A(rho) P(theta)``): an angular profile P, one of
@@ -141,7 +166,7 @@ class Source:
     ``aperture_radiance_file`` (CSV ``rho, relative_radiance``). Files are read on construction
     (a file name relative to an instrument file is resolved by :meth:`Instrument.from_dict`)."""
 
-    distance_m: float = 3.0
+    distance_m: float | None = None
     radius_m: float = 0.0
     beam_half_angle_deg: float | None = None
     beam_sigma_deg: float | None = None
@@ -149,21 +174,39 @@ class Source:
     beam_intensity_file: Path | None = None
     aperture_edge_radiance: float = 1.0
     aperture_radiance_file: Path | None = None
+    path: str = "arc"
+    height_m: float | None = None
 
     def __post_init__(self):
-        from roadgonio.instrument import profiles
-        _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True)
-        _checked(self, "radius_m", "source.radius_m", lo=0.0)
+        if self.path not in SOURCE_PATHS:
+            raise InputError(f"expected one of {', '.join(map(repr, SOURCE_PATHS))}, got {self.path!r}",
+                             field="source.path")
+        if self.path == "arc":
+            if self.height_m is not None:
+                raise InputError('height_m belongs to path = "fixed_height"; an arc has distance_m',
+                                 field="source.height_m")
+            if self.distance_m is None:
+                object.__setattr__(self, "distance_m", 3.0)
+            _checked(self, "distance_m", "source.distance_m", lo=0.0, lo_open=True, length=True)
+        else:
+            if self.distance_m is not None:
+                raise InputError('a fixed-height source has height_m, not distance_m (its distance is '
+                                 'height_m / cos eps)', field="source.distance_m")
+            if self.height_m is None:
+                raise InputError('missing (required for path = "fixed_height")', field="source.height_m")
+            _checked(self, "height_m", "source.height_m", lo=0.0, lo_open=True, length=True)
+        _checked(self, "radius_m", "source.radius_m", lo=0.0, aperture=True)
         _checked(self, "beam_half_angle_deg", "source.beam_half_angle_deg", lo=0.0, hi=90.0, lo_open=True,
                  optional=True)
+        if self.radius_m >= self.length_m:
+            raise InputError(f"the source radius ({self.radius_m:g} m) must be smaller than its "
+                             f"{self.length_key[:-2]} ({self.length_m:g} m)", field="source.radius_m")
+        from roadgonio.instrument import profiles
         _checked(self, "beam_sigma_deg", "source.beam_sigma_deg", lo=0.0, lo_open=True, hi=1e6, optional=True)
         _checked(self, "beam_cos_power", "source.beam_cos_power", lo=0.0, hi=1e6, optional=True)
         _file_key(self, "beam_intensity_file", "source.beam_intensity_file")
         _checked(self, "aperture_edge_radiance", "source.aperture_edge_radiance", lo=0.0, hi=10.0)
         _file_key(self, "aperture_radiance_file", "source.aperture_radiance_file")
-        if self.radius_m >= self.distance_m:
-            raise InputError(f"the source radius ({self.radius_m:g} m) must be smaller than its distance "
-                             f"({self.distance_m:g} m)", field="source.radius_m")
         given = [k for k in BEAM_KEYS if getattr(self, k) is not None]
         if len(given) > 1:
             raise InputError(f"give at most one angular profile, not {' and '.join(given)}", field=f"source.{given[1]}")
@@ -191,6 +234,18 @@ class Source:
     @property
     def is_point(self) -> bool:
         return self.radius_m == 0.0
+
+    @property
+    def length_key(self) -> str:
+        """The key of the source's one length: ``distance_m`` (arc) or ``height_m`` (fixed height)."""
+        return "distance_m" if self.path == "arc" else "height_m"
+
+    @property
+    def length_m(self) -> float:
+        """That length (m): D_S of an arc, the height of a fixed-height path (its distance at eps = 0,
+        the nearest the source comes). A distance error of the uncertainty budget is an error of this
+        length (every cell's distance scales with it)."""
+        return self.distance_m if self.path == "arc" else self.height_m
 
     @property
     def beam(self):
@@ -241,10 +296,11 @@ class Detector:
     field_sensitivity: Path | None = None
 
     def __post_init__(self):
-        _checked(self, "distance_m", "detector.distance_m", lo=0.0, lo_open=True)
-        _checked(self, "pupil_radius_m", "detector.pupil_radius_m", lo=0.0)
+        _checked(self, "distance_m", "detector.distance_m", lo=0.0, lo_open=True, length=True)
+        _checked(self, "pupil_radius_m", "detector.pupil_radius_m", lo=0.0, aperture=True)
         _checked(self, "field_half_angle_deg", "detector.field_half_angle_deg", lo=0.0, hi=45.0, hi_open=True)
-        _checked(self, "focus_m", "detector.focus_m", lo=0.0, lo_open=True, allow_inf=True, optional=True)
+        _checked(self, "focus_m", "detector.focus_m", lo=0.0, lo_open=True, allow_inf=True, optional=True,
+                 length=True)
         _checked(self, "field_edge_sensitivity", "detector.field_edge_sensitivity", lo=0.0, hi=2.0)
         _file_key(self, "field_sensitivity", "detector.field_sensitivity")
         fmap = None
@@ -308,7 +364,7 @@ class SampleGeometry:
         for attr, default in (("size_x_m", 6.0), ("size_y_m", 2.0)):
             if getattr(self, attr) is None:
                 object.__setattr__(self, attr, default)
-            _checked(self, attr, f"sample.{attr}", lo=0.0, lo_open=True)
+            _checked(self, attr, f"sample.{attr}", lo=0.0, lo_open=True, length=True)
 
 
 def _resolve_file(sec: dict, key: str, section: str, path: Path | None) -> None:
@@ -338,17 +394,21 @@ MAX_BOUNCES_LIMIT = 64
 
 
 def check_extra_sections(extra: Mapping[str, Any]) -> None:
-    """Check [scene] (known keys; ``xml`` a file name, ``params`` a table, ``max_bounces`` a whole
-    number 1 ... 64) and [housing] (:class:`roadgonio.instrument.housing.Housing`)."""
+    """Check [scene] (known keys; ``xml`` a file name, ``params`` a table and only with ``xml``,
+    ``max_bounces`` a whole number 1 ... 64; an empty [scene] is no scene) and [housing] (:class:`roadgonio.instrument.housing.Housing`)."""
     scene = extra.get("scene")
     if scene is not None:
         if not isinstance(scene, Mapping):
             raise InputError("expected a table [scene]", field="scene")
         _check_keys(scene, set(SCENE_KEYS), "scene", None)
         if "xml" in scene and (not isinstance(scene["xml"], (str, Path)) or not str(scene["xml"])):
-            raise InputError(f"expected a file name, got {scene['xml']!r}", field="scene.xml")
+            raise InputError(f"expected a file name (text), got {scene['xml']!r}", field="scene.xml")
         if "params" in scene and not isinstance(scene["params"], Mapping):
             raise InputError("expected a table [scene.params]", field="scene.params")
+        if "params" in scene and "xml" not in scene:
+            # its $parameters would be ignored without the XML file they fill in
+            raise InputError('[scene.params] without the Mitsuba XML file they are for; expected xml = "FILE.xml"',
+                             field="scene.xml")
         if "max_bounces" in scene:
             v = scene["max_bounces"]
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= MAX_BOUNCES_LIMIT:
@@ -397,6 +457,9 @@ class Instrument:
     path: Path | None = None
     #: How a signal becomes q: [calibration] (docs/conventions.md section 5; roadgonio.instrument.calibration).
     calibration: Calibration = field(default_factory=Calibration)
+    #: The cells it measures and how it fills the rest of its reported table: [cells]
+    #: (roadgonio.instrument.coverage; default: it measures every cell asked).
+    cells: MeasuredCells = field(default_factory=MeasuredCells)
     #: Extra sections not interpreted here (kept for backends and provenance).
     extra: Mapping[str, Any] = field(default_factory=dict)
 
@@ -405,16 +468,20 @@ class Instrument:
                           ("sample", SampleGeometry)):
             if not isinstance(getattr(self, attr), cls):
                 raise InputError(f"expected a {cls.__name__}, got {type(getattr(self, attr)).__name__}", field=attr)
-        if not isinstance(self.name, str) or not isinstance(self.description, str):
-            raise InputError("expected text for the name and the description", field="instrument")
+        for key in ("name", "description"):
+            if not isinstance(getattr(self, key), str):
+                raise InputError(f"expected text, got {type(getattr(self, key)).__name__} {getattr(self, key)!r}",
+                                 field=f"instrument.{key}")
         if self.path is not None:
             object.__setattr__(self, "path", Path(self.path))
         if not isinstance(self.calibration, Calibration):
             raise InputError(f"expected a Calibration, got {type(self.calibration).__name__}", field="calibration")
+        if not isinstance(self.cells, MeasuredCells):
+            raise InputError(f"expected a MeasuredCells, got {type(self.cells).__name__}", field="cells")
         if not isinstance(self.extra, Mapping):
             raise InputError(f"expected a mapping of extra sections, got {self.extra!r}", field="extra")
         object.__setattr__(self, "extra", FrozenDict(self.extra))
-        clash = sorted(set(self.extra) & set(_SECTIONS + ("calibration",)))
+        clash = sorted(set(self.extra) & set(_SECTIONS + ("calibration", "cells")))
         if clash:
             raise InputError(f"section(s) {', '.join(clash)} are fields of the instrument, not extra sections",
                              field="extra")
@@ -431,9 +498,6 @@ class Instrument:
         """Unit direction towards the source at (tan eps, beta): shape (3,), or (..., 3) for arrays."""
         eps = np.arctan(np.asarray(tan_eps, dtype=np.float64)) if np.ndim(tan_eps) else math.atan(tan_eps)
         return w_source(eps, beta_deg, self.observation.delta_deg)
-
-    def source_centre(self, tan_eps: float, beta_deg: float) -> np.ndarray:
-        return self.source.distance_m * self.w_i(tan_eps, beta_deg)
 
     def detector_centre(self) -> np.ndarray:
         return self.detector.distance_m * self.w_o()
@@ -483,11 +547,18 @@ class Instrument:
                 src[k] = str(src[k])
         if src["aperture_edge_radiance"] == 1.0:
             del src["aperture_edge_radiance"]
+        for k in ("distance_m", "height_m"):
+            if src[k] is None:
+                del src[k]
+        if src["path"] == "arc":
+            del src["path"]
         smp = {k: (str(v) if isinstance(v, Path) else v) for k, v in asdict(self.sample).items() if v is not None}
         d = {"instrument": {"name": self.name, "description": self.description},
              "observation": asdict(self.observation), "source": src, "detector": det, "sample": smp}
         if not self.calibration.is_default:   # the default is left out, so Lambert fingerprints do not change
             d["calibration"] = self.calibration.to_dict()
+        if not self.cells.is_default:       # left out by default, like the calibration
+            d["cells"] = self.cells.to_dict()
         d.update({k: dict(v) if isinstance(v, Mapping) else v for k, v in self.extra.items()})
         return d
 
@@ -515,8 +586,9 @@ class Instrument:
         if "source" not in d:
             raise InputError("missing table [source]", field="source")
         s = dict(d["source"])
-        _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg", *BEAM_KEYS, *APERTURE_KEYS}, "source", None)
-        if "distance_m" not in s:
+        _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg", "path", "height_m", *BEAM_KEYS,
+                        *APERTURE_KEYS}, "source", None)
+        if "distance_m" not in s and s.get("path", "arc") == "arc":
             raise InputError("missing (required)", field="source.distance_m")
         for k in ("beam_intensity_file", "aperture_radiance_file"):
             _resolve_file(s, k, "source", path)
@@ -543,24 +615,111 @@ class Instrument:
         sample = SampleGeometry(**sm)
         meta = d.get("instrument", {})
         _check_keys(meta, {"name", "description"}, "instrument", None)
-        name = str(meta.get("name", path.stem if path is not None else "instrument"))
+        for key in ("name", "description"):
+            if key in meta and not isinstance(meta[key], str):
+                raise InputError(f"expected text (a quoted string), got {type(meta[key]).__name__} {meta[key]!r}",
+                                 field=f"instrument.{key}")
+        name = meta.get("name", path.stem if path is not None else "instrument")
         calibration = Calibration.from_dict(d.get("calibration", {}), path=path)
-        extra = {k: v for k, v in d.items() if k not in _SECTIONS and k != "calibration"}
+        cells = MeasuredCells.from_dict(d.get("cells", {}))
+        extra = {k: v for k, v in d.items() if k not in _SECTIONS and k not in ("calibration", "cells")}
         unknown = sorted(set(extra) - set(EXTRA_SECTIONS))
         if unknown:
             raise InputError(f"unknown section(s) [{'], ['.join(unknown)}]; expected some of "
-                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS + ('calibration',))}]", field=unknown[0])
+                             f"[{'], ['.join(_SECTIONS + EXTRA_SECTIONS + ('calibration', 'cells'))}]", field=unknown[0])
         for sec in EXTRA_SECTIONS:
             if sec in extra and not isinstance(extra[sec], Mapping):
                 raise InputError(f"expected a table [{sec}]", field=sec)
         return cls(observation=observation, source=source, detector=detector, sample=sample, name=name,
-                   description=str(meta.get("description", "")), path=path, calibration=calibration, extra=extra)
+                   description=meta.get("description", ""), path=path, calibration=calibration, cells=cells,
+                   extra=extra)
+
+    def to_toml(self, header: str = "") -> str:
+        """The instrument file's text (:meth:`to_dict` written as TOML by :func:`toml_text`, with
+        ``header`` as comment lines): ``Instrument.load`` of it gives this instrument back."""
+        return toml_text(self.to_dict(), header)
 
     @classmethod
     def load(cls, path: str | Path) -> "Instrument":
         """Load a TOML instrument file; errors name the file, the line or field, and what was expected."""
         path = Path(path)
         return cls.from_dict(read_toml(path, "instrument file"), path=path)
+
+
+# ----------------------------------------------------------------------------------------------
+# Writing TOML (the reader is Python's tomllib): what the writer writes, the reader reads back
+# ----------------------------------------------------------------------------------------------
+
+_BARE_KEY = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_-")
+_ESCAPES = {"\\": "\\\\", '"': '\\"', "\b": "\\b", "\t": "\\t", "\n": "\\n", "\f": "\\f", "\r": "\\r"}
+
+
+def toml_string(s: str) -> str:
+    """A TOML basic string: backslash, quote and control characters (U+0000-U+001F, U+007F)
+    escaped, everything else as it is (TOML files are UTF-8). A lone surrogate has no TOML form."""
+    out = []
+    for ch in s:
+        if ch in _ESCAPES:
+            out.append(_ESCAPES[ch])
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04X}")
+        elif 0xD800 <= ord(ch) <= 0xDFFF:
+            raise InputError(f"cannot write {s!r} to TOML: it holds a lone surrogate (U+{ord(ch):04X}), which no "
+                             "TOML (UTF-8) text can hold", field="text")
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
+def _toml_key(k) -> str:
+    k = str(k)
+    return k if k and set(k) <= _BARE_KEY else toml_string(k)
+
+
+def toml_value(v) -> str:
+    """A scalar, a list of scalars or of inline tables as TOML (an infinite float as the text "inf", as instrument
+    files spell a focus at infinity; NaN has no TOML form in roadgonio's files)."""
+    if isinstance(v, (bool, np.bool_)):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        v = float(v)
+        if math.isnan(v):
+            raise InputError("cannot write NaN to an instrument file", field="value")
+        if math.isinf(v):
+            return '"inf"' if v > 0 else '"-inf"'
+        return repr(v)
+    if isinstance(v, str):
+        return toml_string(v)
+    if isinstance(v, Path):
+        return toml_string(str(v))
+    if isinstance(v, (list, tuple)):
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
+    if isinstance(v, Mapping):          # an inline table inside a list (a [housing] baffle)
+        return "{" + ", ".join(f"{_toml_key(k)} = {toml_value(x)}" for k, x in v.items()) + "}"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def toml_text(d: Mapping[str, Any], header: str = "") -> str:
+    """A TOML document of tables of scalars (nested tables as ``[a.b]``), ``header`` as comment lines."""
+    lines = [("# " + ln).rstrip() for ln in header.splitlines()] if header else []
+
+    def table(name: str, t: Mapping[str, Any]) -> None:
+        scalars = {k: v for k, v in t.items() if not isinstance(v, Mapping)}
+        subs = {k: v for k, v in t.items() if isinstance(v, Mapping)}
+        if lines:
+            lines.append("")
+        lines.append(f"[{name}]")
+        for k, v in scalars.items():
+            lines.append(f"{_toml_key(k)} = {toml_value(v)}")
+        for k, v in subs.items():
+            table(f"{name}.{_toml_key(k)}", v)
+
+    for name, t in d.items():
+        if isinstance(t, Mapping):
+            table(_toml_key(name), t)
+    return "\n".join(lines) + "\n"
 
 
 def bundled_instruments() -> list[str]:

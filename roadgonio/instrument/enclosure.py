@@ -90,7 +90,9 @@ def source_discs(instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray
     tb = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
     w = instrument.w_i(tb[:, 0], tb[:, 1]).reshape(-1, 3)
     r = instrument.source.radius_m
-    return np.stack([_disc_rim(instrument.source.distance_m * wi, -wi, r) for wi in w])
+    from roadgonio.instrument.optics import source_distance_m
+    dist = np.atleast_1d(source_distance_m(instrument.source, tb[:, 0]))
+    return np.stack([_disc_rim(d * wi, -wi, r) for d, wi in zip(dist, w)])
 
 
 def pupil_disc(instrument) -> np.ndarray:
@@ -231,4 +233,4 @@ def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, flo
         src = instrument.source
         raise GeometryError(
             f"the housing blocks the source at tan eps = {t:g}, beta = {b:g}{more}: its disc (radius "
-            f"{src.radius_m:g} m at {src.distance_m:g} m) reaches {wall}; enlarge the housing or leave the cell out")
+            f"{src.radius_m:g} m, {src.length_key[:-2]} {src.length_m:g} m) reaches {wall}; enlarge the housing or leave the cell out")

@@ -8,6 +8,7 @@ conversion to a renderer's own mesh type lives with that renderer
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,10 +17,11 @@ import numpy as np
 from roadgonio.errors import InputError
 
 
-def rectangle_trimesh(size_x_m: float, size_y_m: float):
-    """Two triangles: the rectangle ``size_x_m`` x ``size_y_m`` on z = 0 centred on the origin, facing +z."""
+def rectangle_trimesh(size_x_m: float, size_y_m: float, delta_deg: float = 0.0):
+    """Two triangles: the rectangle ``size_x_m`` x ``size_y_m`` on z = 0 centred on the origin, facing +z,
+    its side ``size_x_m`` along the observation azimuth ``delta_deg``."""
     import trimesh
-    t = rectangle_triangles(size_x_m, size_y_m)
+    t = rectangle_triangles(size_x_m, size_y_m, delta_deg)
     return trimesh.Trimesh(vertices=t.vertices, faces=t.faces, process=False)
 
 
@@ -55,11 +57,17 @@ class Triangles:
     faces: np.ndarray
 
 
-def rectangle_triangles(size_x_m: float, size_y_m: float) -> Triangles:
-    """The two triangles of :func:`rectangle_trimesh` as plain arrays (same vertices, same winding)."""
+def rectangle_triangles(size_x_m: float, size_y_m: float, delta_deg: float = 0.0) -> Triangles:
+    """The two triangles of :func:`rectangle_trimesh` as plain arrays (same vertices, same winding):
+    the side ``size_x_m`` runs along the observation azimuth ``delta_deg`` (docs/conventions.md
+    section 4), i.e. the rectangle is turned by delta about the vertical."""
     hx, hy = size_x_m / 2.0, size_y_m / 2.0
-    return Triangles(np.array([[-hx, -hy, 0.0], [hx, -hy, 0.0], [hx, hy, 0.0], [-hx, hy, 0.0]]),
-                     np.array([[0, 1, 2], [0, 2, 3]]))
+    local = np.array([[-hx, -hy], [hx, -hy], [hx, hy], [-hx, hy]])
+    c, s = math.cos(math.radians(delta_deg)), math.sin(math.radians(delta_deg))
+    if delta_deg % 360.0 == 0.0:
+        c, s = 1.0, 0.0                 # exactly the unturned rectangle
+    xy = np.stack([c * local[:, 0] - s * local[:, 1], s * local[:, 0] + c * local[:, 1]], axis=1)
+    return Triangles(np.column_stack([xy, np.zeros(4)]), np.array([[0, 1, 2], [0, 2, 3]]))
 
 
 def sample_triangles(instrument):
@@ -67,7 +75,8 @@ def sample_triangles(instrument):
     imported here, config -> housing -> mesh would close a circle): the rectangle as :class:`Triangles`, or the checked mesh
     file (:func:`sample_trimesh`); both have ``vertices`` and ``faces``."""
     if instrument.sample.mesh is None:
-        return rectangle_triangles(instrument.sample.size_x_m, instrument.sample.size_y_m)
+        return rectangle_triangles(instrument.sample.size_x_m, instrument.sample.size_y_m,
+                                   instrument.observation.delta_deg)
     return sample_trimesh(instrument)
 
 
@@ -75,7 +84,7 @@ def sample_trimesh(instrument):
     """The instrument's sample as a checked trimesh: its rectangle, or its mesh file (which must face +z)."""
     smp = instrument.sample
     if smp.mesh is None:
-        return rectangle_trimesh(smp.size_x_m, smp.size_y_m)
+        return rectangle_trimesh(smp.size_x_m, smp.size_y_m, instrument.observation.delta_deg)
     tm = load_trimesh(smp.mesh)
     check_mesh_orientation(tm)
     return tm

@@ -30,8 +30,23 @@ from dataclasses import dataclass
 import numpy as np
 
 from roadgonio.errors import GeometryError
-from roadgonio.instrument.config import Detector, Instrument, Observation
+from roadgonio.instrument.config import Detector, Instrument, Observation, Source
 from roadgonio.instrument.profiles import ApertureProfile, BeamProfile, FieldMap, UniformTable
+
+
+def source_distance_m(source: Source, tan_eps, xp=np):
+    """D_S of the cell at ``tan_eps`` (m; a float for a float, an array for an array): the source's
+    ``distance_m`` on an arc, ``height_m / cos eps = height_m sqrt(1 + tan^2 eps)`` on a
+    fixed-height path (docs/conventions.md section 4, the corridor goniophotometer). The one formula
+    every backend, the measurement model and the design's metrics use."""
+    if source.path == "arc":
+        if isinstance(tan_eps, (int, float)):
+            return float(source.distance_m)
+        return source.distance_m + 0.0 * xp.asarray(tan_eps)
+    if isinstance(tan_eps, (int, float)):
+        return float(source.height_m) * math.sqrt(1.0 + float(tan_eps) ** 2)
+    t = xp.asarray(tan_eps)
+    return source.height_m * xp.sqrt(1.0 + t * t)
 
 
 def orthonormal_frame(n) -> tuple[np.ndarray, np.ndarray]:
@@ -129,8 +144,8 @@ def source_geometry(instrument: Instrument, tan_eps: float, beta_deg: float) -> 
     axis = -w_i
     s, t = orthonormal_frame(axis)
     cos_beam = None if src.beam_half_angle_deg is None else math.cos(math.radians(src.beam_half_angle_deg))
-    return SourceGeometry(centre=src.distance_m * w_i, axis=axis, s=s, t=t, radius_m=src.radius_m,
-                          cos_beam=cos_beam, beam=src.beam, aperture=src.aperture)
+    return SourceGeometry(centre=source_distance_m(src, float(tan_eps)) * w_i, axis=axis, s=s, t=t,
+                          radius_m=src.radius_m, cos_beam=cos_beam, beam=src.beam, aperture=src.aperture)
 
 
 def _comb(c0, v1, k1, v2, k2):
@@ -324,16 +339,34 @@ def footprint_boundary(instrument: Instrument, n: int = 96) -> tuple[np.ndarray,
     return np.asarray(x), np.asarray(y)
 
 
+def along_azimuth(x, y, delta_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points (x, y) of the sample plane in the frame whose x runs along the observation azimuth
+    ``delta_deg`` (the frame of the rectangular sample: docs/conventions.md section 4)."""
+    c, s = math.cos(math.radians(delta_deg)), math.sin(math.radians(delta_deg))
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    return c * x + s * y, -s * x + c * y
+
+
+def footprint_along_azimuth(instrument: Instrument, n: int = 96) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`footprint_boundary` in the frame of :func:`along_azimuth`: x along the observation
+    azimuth, y across it."""
+    x, y = footprint_boundary(instrument, n)
+    return along_azimuth(x, y, instrument.observation.delta_deg)
+
+
 def check_detector(instrument: Instrument) -> tuple[float, float, float, float]:
     """Check that the detector sees the sample and that the footprint stays on a rectangular
-    sample; returns the footprint bounds (xmin, xmax, ymin, ymax) in m."""
+    sample; returns the footprint bounds (xmin, xmax, ymin, ymax) in m, x along the observation
+    azimuth (the rectangle's frame: its side ``size_x_m`` runs along the azimuth delta, as
+    docs/conventions.md section 4 says, so turning the instrument about the vertical turns the
+    rectangle with it)."""
     det = instrument.detector
     a = math.radians(instrument.observation.alpha_deg)
     if det.distance_m * math.sin(a) - det.pupil_radius_m * math.cos(a) <= 0.0:
         raise GeometryError(f"the detector pupil reaches below the sample plane (alpha = "
                             f"{instrument.observation.alpha_deg:g} deg, pupil radius {det.pupil_radius_m:g} m "
                             f"at {det.distance_m:g} m)")
-    x, y = footprint_boundary(instrument)
+    x, y = footprint_along_azimuth(instrument)
     bounds = (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
     smp = instrument.sample
     if smp.mesh is None:
@@ -342,7 +375,8 @@ def check_detector(instrument: Instrument) -> tuple[float, float, float, float]:
             raise GeometryError(
                 f"the detector footprint leaves the sample: it spans x = {bounds[0]:.3f} ... {bounds[1]:.3f} m, "
                 f"y = {bounds[2]:.3f} ... {bounds[3]:.3f} m, but the sample is {smp.size_x_m:g} m x "
-                f"{smp.size_y_m:g} m (x = +-{hx:g}, y = +-{hy:g}); enlarge [sample] or narrow the field")
+                f"{smp.size_y_m:g} m (x = +-{hx:g}, y = +-{hy:g}; x along the observation azimuth); enlarge "
+                "[sample] or narrow the field")
     return bounds
 
 
@@ -352,10 +386,11 @@ def check_source(instrument: Instrument, tan_eps: float, beta_deg: float) -> Non
         raise GeometryError(f"tan eps = {tan_eps} is not a valid illumination angle (expected 0 <= tan eps < inf)")
     src = instrument.source
     eps = math.atan(tan_eps)
-    lowest = src.distance_m * math.cos(eps) - src.radius_m * math.sin(eps)
+    dist = source_distance_m(src, float(tan_eps))
+    lowest = dist * math.cos(eps) - src.radius_m * math.sin(eps)
     if lowest <= 0.0:
         raise GeometryError(f"the source is below the horizon at tan eps = {tan_eps:g}, beta = {beta_deg:g}: "
-                            f"its disc (radius {src.radius_m:g} m at {src.distance_m:g} m) reaches "
+                            f"its disc (radius {src.radius_m:g} m at {dist:g} m) reaches "
                             f"{lowest:.4f} m below/at the sample plane")
     if src.beam.kind == "table":
         need = footprint_emission_angle_deg(instrument, tan_eps, beta_deg)
@@ -420,7 +455,7 @@ def _sight_frames(instrument: Instrument, cells) -> dict[str, np.ndarray]:
     tb = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
     a = np.asarray(geo.axis, dtype=np.float64)
     w = np.atleast_2d(instrument.w_i(tb[:, 0], tb[:, 1]))
-    c = instrument.source.distance_m * w                      # disc centres
+    c = source_distance_m(instrument.source, tb[:, 0])[:, None] * w      # disc centres
     n = -w                                                     # disc normals (towards the sample centre)
     # a unit vector of the disc plane along which zeta grows: the axis projected onto the plane
     ap = a[None, :] - (n @ a)[:, None] * n
@@ -518,7 +553,7 @@ def source_blocks_view(instrument: Instrument, cells) -> np.ndarray:
         return blocked
     geo = detector_geometry(instrument)
     w = np.atleast_2d(instrument.w_i(cells[:, 0], cells[:, 1]))
-    rel = instrument.source.distance_m * w - geo.centre[None, :]
+    rel = source_distance_m(instrument.source, cells[:, 0])[:, None] * w - geo.centre[None, :]
     zc = rel @ geo.axis
     rho_c = np.linalg.norm(rel - zc[:, None] * geo.axis[None, :], axis=1)
     reach = np.max([np.maximum(ak + bk * (zc - R), ak + bk * (zc + R)) for ak, bk in bundle_cones(geo)], axis=0)

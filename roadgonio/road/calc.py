@@ -22,8 +22,12 @@ EN 13201-3:2015):
 * Luminaires counted: those within 5 H before the point (towards the observer) and 12 H beyond it
   (away from the observer), in every row (the rule of CIE 140 as we read it; set by
   ``luminaires_before_h`` / ``luminaires_after_h``). 12 H in line is tan epsilon = 12, the end of
-  the r-table. Contributions whose (beta, tan epsilon) has no r (blank cells, tan > 12) are
-  neglected and counted.
+  the r-table. Contributions whose (beta, tan epsilon) has no r in the CIE standard tables either
+  (their blank region at tan >= 5.5 and large beta, tan > 12) are neglected and counted, as the
+  standard tables leave them. A contribution whose direction the standard tables tabulate but this
+  table leaves blank makes that point's luminance unknown (``LuminanceOperator.incomplete``): the
+  metrics that need the point are missing (:mod:`roadgonio.road.evaluate`), never computed without
+  the light.
 * Horizontal illuminance (for R_EI): E = MF sum_k I_k cos^3(epsilon) / H^2, luminaires within
   5 H (``luminaires_before_h``) on either side of the point.
 * Threshold increment: see :func:`veiling_luminance`.
@@ -39,7 +43,7 @@ from roadgonio.errors import InputError
 from roadgonio.road.interp import r_weights
 from roadgonio.road.layout import Layout
 from roadgonio.road.luminaire import Luminaire
-from roadgonio.surface.rtable import RTable
+from roadgonio.surface.rtable import RTable, standard_mask
 
 #: Threshold increment (CIE 140 / EN 13201-3): screening angle of the car roof, line of sight,
 #: range of luminaires counted, the observer's start distance factor and the veiling constant.
@@ -134,15 +138,23 @@ class LuminanceOperator:
 
     W: np.ndarray
     field: Field
-    neglected: int = 0          # contributions without an r value (blank cells, tan > 12)
+    neglected: int = 0          # contributions without r in the standard tables either (their blanks, tan > 12)
     evaluated: int = 0
     max_tan: float = 0.0
     notes: list = field(default_factory=list)
+    #: (n_obs, n_p): the point's luminance lacks a contribution whose direction the CIE standard
+    #: tables tabulate but this table leaves blank (the point's L is not known: missing)
+    incomplete: np.ndarray | None = None
+    #: (beta deg, tan eps) of such contributions (the first few, for the note)
+    missing_directions: list = field(default_factory=list)
+    missing_count: int = 0
 
     def luminance(self, table: RTable | np.ndarray) -> np.ndarray:
+        """L (cd/m^2) per observer and point; a negative value (the quadratic interpolation
+        overshooting near zero r) is 0: no luminance is negative."""
         r = table.r if isinstance(table, RTable) else np.asarray(table)
         flat = np.nan_to_num(r.reshape(-1), nan=0.0)
-        return self.W @ flat
+        return np.maximum(self.W @ flat, 0.0)
 
     @property
     def used_cells(self) -> np.ndarray:
@@ -181,6 +193,9 @@ def luminance_operator(layout: Layout, luminaire: Luminaire, table: RTable, fld:
     fld = fld or build_field(layout)
     n_obs, n_p = len(fld.observers), len(fld.x)
     W = np.zeros((n_obs, n_p, table.r.size))
+    incomplete = np.zeros((n_obs, n_p), dtype=bool)
+    missing: list[tuple[float, float]] = []
+    standard = RTable(np.where(standard_mask(), 1.0, np.nan))
     neglected = evaluated = 0
     max_tan = 0.0
     mf = layout.maintenance_factor
@@ -194,10 +209,17 @@ def luminance_operator(layout: Layout, luminaire: Luminaire, table: RTable, fld:
                 evaluated += 1
                 max_tan = max(max_tan, got[2])
                 if got[0] is None:
-                    neglected += 1
+                    beta, tan_e = incidence(fld.luminaires[li], point, fld.observers[o])
+                    if r_weights(standard, beta, tan_e, layout.interpolation) is not None:
+                        # the standard tables have r here, this table has not: L at the point is unknown
+                        incomplete[o, p] = True
+                        missing.append((beta, tan_e))
+                    else:
+                        neglected += 1      # outside the standard tables too: neglected, as they do
                     continue
                 np.add.at(W[o, p], got[0], mf * got[1])
-    return LuminanceOperator(W, fld, neglected, evaluated, max_tan)
+    return LuminanceOperator(W, fld, neglected, evaluated, max_tan, incomplete=incomplete,
+                             missing_directions=missing[:5], missing_count=len(missing))
 
 
 def horizontal_illuminance(layout: Layout, luminaire: Luminaire, x: np.ndarray, y: np.ndarray,
@@ -296,5 +318,5 @@ def threshold_increment(l_v, l_av_initial):
     EN 13201-3). Broadcasts."""
     l_v = np.asarray(l_v, float)
     lav = np.asarray(l_av_initial, float)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):   # L_av -> 0: TI -> inf (callers: missing)
         return np.where(lav <= 5.0, 65.0 * l_v / lav ** 0.8, 95.0 * l_v / lav ** 1.05)

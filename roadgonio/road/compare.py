@@ -15,27 +15,29 @@ def compare_tables(a: RTable, b: RTable) -> dict:
         raise InputError(f"tables {a.name} and {b.name} are not on the same grid")
     both = a.mask & b.mask
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(both & (a.r > 0), b.r / a.r, np.nan)
+        ratio = np.where(both & (a.r > 0), b.r / a.r, np.nan)     # r(A) = 0: the ratio is undefined (blank)
+        change = np.abs(np.log(ratio))                            # r(B) = 0: an infinite change
     fin = ratio[np.isfinite(ratio)]
     if fin.size == 0:
-        raise InputError(f"tables {a.name} and {b.name} share no cell with r > 0")
-    k = np.unravel_index(np.nanargmax(np.abs(np.log(ratio))), ratio.shape)
+        raise InputError(f"tables {a.name} and {b.name} share no cell with r(A) > 0: there is no ratio to compare; "
+                         "expected tables with common tabulated cells", field="b")
+    k = np.unravel_index(np.nanargmax(change), ratio.shape)
     char = {}
     for t in (a, b):
-        char[t.name] = {"S1": _try(t.s1), "S2": _try(t.s2), "Q0": t.q0(), "cells": int(t.mask.sum())}
+        char[t.name] = {"S1": _try(t.s1), "S2": _try(t.s2), "Q0": _try(t.q0), "cells": int(t.mask.sum())}
     return {"A": a.name, "B": b.name, "ratio": ratio, "characteristics": char,
             "ratio_min": float(fin.min()), "ratio_max": float(fin.max()), "ratio_median": float(np.median(fin)),
             "largest_change_at": {"tan_eps": float(a.tan_eps[k[0]]), "beta_deg": float(a.beta_deg[k[1]]),
                                   "ratio": float(ratio[k])},
             "cells_compared": int(np.isfinite(ratio).sum()),
+            "cells_ratio_undefined": int((both & ~(a.r > 0)).sum()),
             "cells_only_in_A": int((a.mask & ~b.mask).sum()), "cells_only_in_B": int((b.mask & ~a.mask).sum())}
 
 
 def _try(fn):
-    try:
-        return float(fn())
-    except InputError:
-        return None
+    """A characteristic, or None when the table lacks the cells it needs (missing, never NaN)."""
+    v = float(fn())
+    return v if np.isfinite(v) else None
 
 
 def compare_csv(a: RTable, b: RTable, ratio: np.ndarray) -> str:

@@ -48,14 +48,43 @@ class Installation:
         return calc.threshold_increment(self.l_v_max, np.asarray(l_av) / self.layout.maintenance_factor)
 
     def evaluate(self, table: RTable) -> "RoadResult":
+        """The metrics of ``table``. A metric that needs a point whose luminance is unknown (the
+        table lacks r where the CIE standard tables have it: :mod:`roadgonio.road.calc`), or a
+        uniformity of a field without light, is None (missing), and then the class is None too."""
         op = self.operator(table)
         L = op.luminance(table)
         m = metrics.luminance_metrics(L, self.fld.lane, self.fld.centre)
-        ti = self.ti(m["L_av"])
-        values = {"L_av": float(m["L_av"]), "U_o": float(m["U_o"]), "U_l": float(m["U_l"]),
-                  "TI": None if ti is None else float(ti), "R_EI": self.edge["R_EI"]}
-        return RoadResult(table=table, values=values, L=L, per_observer=m, cls=metrics.best_class(values),
-                          installation=self, operator=op)
+        gone = metrics.unknown(op.incomplete, self.fld.lane, self.fld.centre)
+        ti = self.ti(m["L_av"]) if m["L_av"] > 0 else None
+        ti_overflow = ti is not None and not np.isfinite(ti)      # L_av so small that TI exceeds any float
+        if ti_overflow:
+            ti = None
+        values = {"L_av": _known(m["L_av"], gone["L_av"]), "U_o": _known(m["U_o"], gone["U_o"]),
+                  "U_l": _known(m["U_l"], gone["U_l"]),
+                  "TI": None if ti is None or gone["TI"] else float(ti), "R_EI": self.edge["R_EI"]}
+        m = dict(m, L_av_obs=np.where(gone["obs"], np.nan, m["L_av_obs"]),
+                 U_o_obs=np.where(gone["obs"], np.nan, m["U_o_obs"]),
+                 U_l_lane=np.where(gone["lanes"], np.nan, m["U_l_lane"]))
+        missing = None
+        lost = [k for k in ("L_av", "U_o", "U_l") if values[k] is None]
+        if gone["L_av"] or gone["U_l"]:
+            dirs = "; ".join(f"beta {b:.1f} deg, tan eps {t:.2f}" for b, t in op.missing_directions[:3])
+            missing = {"metrics": [k for k in ("L_av", "U_o", "U_l", "TI") if gone[k]] + ["class"],
+                       "reason": f"the table has no r at {op.missing_count} luminaire contribution(s) whose direction "
+                                 f"the CIE standard tables tabulate (blank cells; e.g. {dirs}): the luminance of "
+                                 f"{int(op.incomplete.sum())} of {op.incomplete.size} (observer, point) pairs is "
+                                 "unknown, so these metrics cannot be given",
+                       "points_unknown": int(op.incomplete.sum())}
+        elif lost:
+            missing = {"metrics": lost + (["TI"] if ti_overflow else []) + ["class"],
+                       "reason": "no light where a uniformity needs it (L_av or a lane's L_max is 0): undefined"}
+        elif ti_overflow:
+            missing = {"metrics": ["TI", "class"],
+                       "reason": f"L_av = {m['L_av']:.3g} cd/m^2 is so small that TI = 65 L_v / L_av^0.8 exceeds any "
+                                 "float (is the table r x 1e4?)"}
+        cls = None if missing else metrics.best_class(values)
+        return RoadResult(table=table, values=values, L=np.where(op.incomplete, np.nan, L), per_observer=m, cls=cls,
+                          installation=self, operator=op, missing=missing)
 
 
 @dataclass
@@ -68,6 +97,8 @@ class RoadResult:
     installation: Installation
     operator: calc.LuminanceOperator
     uncertainty: dict | None = None
+    #: which metrics are missing and why (None: every metric is known)
+    missing: dict | None = None
 
     def summary(self) -> dict[str, Any]:
         inst = self.installation
@@ -75,22 +106,24 @@ class RoadResult:
         m = self.per_observer
         ti_note = "" if inst.veiling["computable"] else inst.veiling["reason"]
         out = {"table": self.table.name, **self.values, "class": self.cls,
-               "U_l_per_lane": [float(v) for v in m["U_l_lane"]],
-               "observers": [{"lane": k + 1, "x_m": float(o[0]), "y_m": float(o[1]), "L_av": float(m["L_av_obs"][k]),
-                              "U_o": float(m["U_o_obs"][k]), "U_l": float(m["U_l_lane"][k])}
+               "U_l_per_lane": [_known(v) for v in m["U_l_lane"]],
+               "observers": [{"lane": k + 1, "x_m": float(o[0]), "y_m": float(o[1]), "L_av": _known(m["L_av_obs"][k]),
+                              "U_o": _known(m["U_o_obs"][k]), "U_l": _known(m["U_l_lane"][k])}
                              for k, o in enumerate(inst.fld.observers)],
-               "L_min": float(self.L.min()), "L_max": float(self.L.max()),
+               "L_min": None if self.missing and self.missing.get("points_unknown") else float(np.nanmin(self.L)),
+               "L_max": None if self.missing and self.missing.get("points_unknown") else float(np.nanmax(self.L)),
+               "missing": self.missing,
                "TI_note": ti_note or "initial values (MF = 1 in L_v and L_av)",
                "L_v_max": inst.l_v_max, "R_EI_per_edge": inst.edge["per_edge"],
                "failed_criteria_of_next_class": None,
-               "table_Q0": self.table.q0(), "table_S1": _safe(self.table.s1),
+               "table_Q0": _safe(self.table.q0), "table_S1": _safe(self.table.s1),
                "neglected_contributions": self.operator.neglected, "evaluated_contributions": self.operator.evaluated,
                "grid": {"n_longitudinal": inst.fld.n_long, "D_m": inst.fld.spacing_d_m, "points_per_lane_across": 3},
                "layout": lay.to_dict(), "luminaire": {"name": inst.luminaire.name, "file": inst.luminaire.source,
                                                       "flux_lm": inst.luminaire.flux_lm}}
         order = list(metrics.M_CLASSES)
         nxt = order[order.index(self.cls) - 1] if self.cls in order[1:] else (order[-1] if self.cls is None else None)
-        if nxt:
+        if nxt and not self.missing:
             out["failed_criteria_of_next_class"] = {"class": nxt, "failed": metrics.limiting_criteria(nxt, self.values)}
         if self.uncertainty is not None:
             out["uncertainty"] = self.uncertainty
@@ -98,7 +131,11 @@ class RoadResult:
 
 
 def _safe(fn):
-    try:
-        return float(fn())
-    except Exception:  # a table without the S1 cells
-        return None
+    """A table characteristic, or None when the table lacks its cells (missing)."""
+    return _known(fn())
+
+
+def _known(v, unknown: bool = False) -> float | None:
+    """A metric as a float, or None when it is unknown or undefined (NaN)."""
+    v = float(v)
+    return None if unknown or not np.isfinite(v) else v

@@ -80,7 +80,7 @@ def propagate(installation, table: RTable, u: RTable, *, trials: int = 20000, se
             r = r0 + uv * z
             clipped += int(np.sum(r < 0))
             r = np.maximum(r, 0.0)
-            L = (r @ Wc.T).reshape(n, n_obs, n_p)
+            L = np.maximum(r @ Wc.T, 0.0).reshape(n, n_obs, n_p)     # as the nominal: no negative luminance
             m = metrics.luminance_metrics(L, fld.lane, fld.centre)
             for k in ("L_av", "U_o", "U_l"):
                 acc[k].append(m[k])
@@ -90,23 +90,30 @@ def propagate(installation, table: RTable, u: RTable, *, trials: int = 20000, se
         vals = {k: (np.concatenate(v) if v[0] is not None else None) for k, v in acc.items()}
         vals["R_EI"] = installation.edge["R_EI"]
         res = {}
+        gone = set((nominal.missing or {}).get("metrics", ()))
         for k in ("L_av", "U_o", "U_l", "TI"):
             v = vals[k]
-            if v is None:
+            if v is None or k in gone or not np.all(np.isfinite(v)):   # not computable, missing in the nominal
+                # table itself, or (TI) beyond any float in some trial
                 res[k] = None
                 continue
             lo, hi = np.quantile(v, [0.025, 0.975])
             res[k] = {"nominal": nominal.values[k], "mean": float(v.mean()), "u": float(v.std(ddof=1)),
                       "ci95": [float(lo), float(hi)]}
         ul = np.concatenate(lanes)
-        res["U_l_per_lane"] = [{"nominal": float(nominal.per_observer["U_l_lane"][k]), "u": float(ul[:, k].std(ddof=1))}
+        res["U_l_per_lane"] = [None if not np.isfinite(nominal.per_observer["U_l_lane"][k]) else
+                               {"nominal": float(nominal.per_observer["U_l_lane"][k]), "u": float(ul[:, k].std(ddof=1))}
                                for k in range(ul.shape[1])]
-        p = float(np.mean(metrics.meets_array(target, vals)))
-        res["P_meets_target"] = p
-        res["P_meets_target_se"] = float(np.sqrt(p * (1 - p) / trials))
-        best = metrics.best_class_array(vals)
-        names = list(metrics.M_CLASSES) + ["none"]
-        res["best_class_share"] = {names[k]: float(np.mean(best == k)) for k in range(len(names)) if np.any(best == k)}
+        if gone:          # the class needs every metric: no probability of meeting it
+            res["P_meets_target"] = res["P_meets_target_se"] = res["best_class_share"] = None
+        else:
+            p = float(np.mean(metrics.meets_array(target, vals)))
+            res["P_meets_target"] = p
+            res["P_meets_target_se"] = float(np.sqrt(p * (1 - p) / trials))
+            best = metrics.best_class_array(vals)
+            names = list(metrics.M_CLASSES) + ["none"]
+            res["best_class_share"] = {names[k]: float(np.mean(best == k)) for k in range(len(names))
+                                       if np.any(best == k)}
         res["clipped_values"] = clipped
         out[mode] = res
     return out

@@ -33,16 +33,38 @@ def luminance_metrics(L: np.ndarray, lane: np.ndarray, centre: np.ndarray) -> di
     ``L_av_obs``, ``U_o_obs`` (..., n_obs), ``U_l_lane`` (..., n_lanes)."""
     L = np.asarray(L, float)
     lav_obs = L.mean(axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        uo_obs = L.min(axis=-1) / lav_obs
-        n_lanes = L.shape[-2]
-        ul = []
-        for k in range(n_lanes):
-            line = L[..., k, (lane == k) & centre]
-            ul.append(line.min(axis=-1) / line.max(axis=-1))
+    uo_obs = luminance_ratio(L.min(axis=-1), lav_obs)        # NaN (undefined) without light
+    n_lanes = L.shape[-2]
+    ul = []
+    for k in range(n_lanes):
+        line = L[..., k, (lane == k) & centre]
+        ul.append(luminance_ratio(line.min(axis=-1), line.max(axis=-1)))
     ul = np.stack(ul, axis=-1)
     return {"L_av": lav_obs.min(axis=-1), "U_o": uo_obs.min(axis=-1), "U_l": ul.min(axis=-1),
             "L_av_obs": lav_obs, "U_o_obs": uo_obs, "U_l_lane": ul}
+
+
+def unknown(incomplete: np.ndarray | None, lane: np.ndarray, centre: np.ndarray) -> dict:
+    """Which metrics of :func:`luminance_metrics` are unknown when the luminance of some points is
+    (``incomplete`` (n_obs, n_p): True where a point's L lacks a contribution): an observer's L_av
+    and U_o need all its points, a lane's U_l its centre-line points for that lane's observer, the
+    operative values all observers / lanes (TI needs L_av). Booleans and per-observer/lane arrays."""
+    if incomplete is None or not np.any(incomplete):
+        n_obs = 0 if incomplete is None else incomplete.shape[0]
+        none = np.zeros(n_obs, dtype=bool)
+        return {"L_av": False, "U_o": False, "U_l": False, "TI": False, "obs": none, "lanes": none}
+    obs = incomplete.any(axis=1)
+    lanes = np.array([bool(incomplete[k, (lane == k) & centre].any()) for k in range(incomplete.shape[0])])
+    return {"L_av": bool(obs.any()), "U_o": bool(obs.any()), "U_l": bool(lanes.any()), "TI": bool(obs.any()),
+            "obs": obs, "lanes": lanes}
+
+
+def luminance_ratio(num: np.ndarray, den: np.ndarray) -> np.ndarray:
+    """num / den where den > 0, else NaN (a uniformity of a field without light is undefined)."""
+    num, den = np.broadcast_arrays(np.asarray(num, float), np.asarray(den, float))
+    out = np.full(num.shape, np.nan)
+    np.divide(num, den, out=out, where=den > 0)
+    return out
 
 
 def meets(cls: str, values: dict) -> bool:

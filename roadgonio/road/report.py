@@ -41,7 +41,7 @@ def metrics_csv(summaries: list[dict]) -> str:
             m = unc[mode]
             row = []
             for k in ("L_av", "U_o", "U_l"):
-                row += [_f(m[k]["u"]), f"{m[k]['ci95'][0]:.5g}..{m[k]['ci95'][1]:.5g}"]
+                row += ["", ""] if not m[k] else [_f(m[k]["u"]), f"{_f(m[k]['ci95'][0], '.5g')}..{_f(m[k]['ci95'][1], '.5g')}"]
             row += [_f(m["TI"]["u"]) if m["TI"] else "", _f(m["P_meets_target"])]
             lines.append(",".join(base + [mode] + row))
     return "\n".join(lines) + "\n"
@@ -54,16 +54,22 @@ def luminance_csv(results) -> str:
         for o in range(res.L.shape[0]):
             for p in range(res.L.shape[1]):
                 lines.append(f"{res.table.name},{o + 1},{fld.x[p]:.4g},{fld.y[p]:.4g},{fld.lane[p] + 1},"
-                             f"{int(fld.centre[p])},{res.L[o, p]:.6g}")
+                             f"{int(fld.centre[p])},{_f(res.L[o, p])}")
     return "\n".join(lines) + "\n"
 
 
-def _f(v) -> str:
+def _f(v, fmt: str = ".6g") -> str:
+    """A value for a CSV cell: blank when missing (None or NaN)."""
     if v is None:
         return ""
     if isinstance(v, str):
         return v
-    return f"{v:.6g}"
+    return format(v, fmt) if np.isfinite(v) else ""
+
+
+def _t(v, fmt: str) -> str:
+    """A value for a picture's text: 'missing' when missing."""
+    return "missing" if v is None or not np.isfinite(v) else format(v, fmt)
 
 
 def _png(fig) -> bytes:
@@ -122,7 +128,7 @@ def luminance_png(results) -> bytes:
     fld = results[0].installation.fld
     lay = results[0].installation.layout
     nx = fld.n_long
-    vmax = max(float(r.L.max()) for r in results)
+    vmax = max((float(np.nanmax(r.L)) for r in results if np.isfinite(r.L).any()), default=1.0) or 1.0
     fig, axes = plt.subplots(n_t, n_o, figsize=(5.2 * n_o + 1, 1.2 + 2.3 * n_t), squeeze=False,
                              constrained_layout=True)
     im = None
@@ -138,8 +144,8 @@ def luminance_png(results) -> bytes:
             for k in range(1, lay.lanes):
                 ax.axhline(k * lay.lane_width_m, color="w", ls="--", lw=0.8)
             m = res.per_observer
-            ax.set_title(f"{res.table.name}, observer lane {o + 1}: L_av {m['L_av_obs'][o]:.3g}, "
-                         f"U_o {m['U_o_obs'][o]:.2f}, U_l {m['U_l_lane'][o]:.2f}", fontsize=8)
+            ax.set_title(f"{res.table.name}, observer lane {o + 1}: L_av {_t(m['L_av_obs'][o], '.3g')}, "
+                         f"U_o {_t(m['U_o_obs'][o], '.2f')}, U_l {_t(m['U_l_lane'][o], '.2f')}", fontsize=8)
             ax.set_xlabel("x along the road (m)", fontsize=8)
             ax.set_ylabel("y (m)", fontsize=8)
     cb = fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.03, pad=0.02)

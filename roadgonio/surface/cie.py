@@ -23,6 +23,7 @@ import math
 from functools import lru_cache
 from typing import Any, Sequence
 
+from roadgonio.errors import InputError
 from roadgonio.surface.rtable import BUNDLED, PUBLISHED_Q0, RTable, bundled_table
 
 #: system -> [(class, lower S1 limit inclusive, upper limit exclusive)]
@@ -69,30 +70,51 @@ def nearest_bundled(s1: float, q0: float, k: int | None = None,
                     exclude: Sequence[str] = ()) -> list[tuple[str, float]]:
     """The bundled CIE tables ordered by their distance to (S1, Q0), each coordinate scaled by its
     spread over the six tables (module docstring): ``[(name, distance), ...]``, the first ``k``
-    (all with ``k=None``), without the names in ``exclude``."""
+    (all with ``k=None``), without the names in ``exclude``. A missing (NaN) S1 or Q0 is left out
+    of the distance; with both missing the list is empty."""
     stats = _bundled_s1_q0()
     s1s = [v[0] for v in stats.values()]
     q0s = [v[1] for v in stats.values()]
     ss, sq = _spread(s1s), _spread(q0s)
     ex = {e.upper() for e in exclude}
-    d = sorted(((math.hypot((v[0] - s1) / ss, (v[1] - q0) / sq), n) for n, v in stats.items() if n not in ex))
+    # a missing coordinate (NaN: S1 or Q0 the table lacks the cells for) is left out of the distance
+    use_s1, use_q0 = math.isfinite(s1), math.isfinite(q0)
+    if not (use_s1 or use_q0):
+        return []
+    d = sorted(((math.hypot((v[0] - s1) / ss if use_s1 else 0.0, (v[1] - q0) / sq if use_q0 else 0.0), n)
+                for n, v in stats.items() if n not in ex))
     out = [(n, dist) for dist, n in d]
     return out if k is None else out[:k]
 
 
 def classify(table: RTable) -> dict[str, Any]:
     """S1, Q0, S2 of ``table``, its class in each system with the margin of S1 to the nearest class
-    limit and the Q0 scale of the class standard, and the bundled tables by distance."""
+    limit and the Q0 scale of the class standard, and the bundled tables by distance.
+
+    The class is defined by S1: a table without it (r(beta 0, tan 0) blank or 0, or r(beta 0,
+    tan 2) blank) is an :class:`InputError` naming what is missing. Without Q0 (no grid cell with
+    four tabulated corners) Q0, the Q0 scale and the nearest tables are None / empty (missing)."""
     s1, q0 = table.s1(), table.q0()
-    out: dict[str, Any] = {"table": table.name, "S1": s1, "Q0": q0, "S2": table.s2(), "classes": {}}
+    if not math.isfinite(s1):
+        r00, r20 = table.value(0.0, 0.0), table.value(2.0, 0.0)
+        lack = [f"r(beta 0, tan eps 0) is {'blank' if math.isnan(r00) else f'{r00:g}'}"] if not r00 > 0 else []
+        if math.isnan(r20):
+            lack.append("r(beta 0, tan eps 2) is blank")
+        raise InputError("cannot classify: the CIE class is defined by S1 = r(beta 0, tan eps 2) / r(beta 0, tan eps 0), "
+                         f"and {' and '.join(lack)}; expected both cells, r(0, 0) > 0", field="S1")
+    q0_ok = math.isfinite(q0)
+    out: dict[str, Any] = {"table": table.name, "S1": s1, "Q0": q0 if q0_ok else None,
+                           "S2": table.s2() if q0_ok else None, "classes": {}}
     for system in CLASS_LIMITS:
         name, margin = class_by_s1(s1, system)
         out["classes"][system] = {"class": name, "S1_margin_to_limit": margin,
-                                  "standard_Q0": STANDARD_Q0[name], "Q0_scale": q0 / STANDARD_Q0[name],
+                                  "standard_Q0": STANDARD_Q0[name], "Q0_scale": q0 / STANDARD_Q0[name] if q0_ok else None,
                                   "bundled": name in BUNDLED}
     stats = _bundled_s1_q0()
     out["nearest_bundled"] = [{"table": n, "distance": d, "S1": stats[n][0], "Q0": stats[n][1]}
-                              for n, d in nearest_bundled(s1, q0)]
+                              for n, d in nearest_bundled(s1, q0)] if q0_ok else []
+    if not q0_ok:
+        out["missing"] = "Q0 (no grid cell with four tabulated corners): no Q0 scale, no nearest bundled table"
     return out
 
 

@@ -84,12 +84,20 @@ def residuals_csv(result) -> str:
     return out.getvalue()
 
 
-def write_fit(result, out_dir: str | Path, *, plot: bool = True) -> list[Path]:
-    """model.json, residuals.csv and (``plot``) fit.png in ``out_dir``, all or none."""
+#: The files a fit writes (``--fresh`` removes an earlier run's).
+FIT_FILES = ("model.json", "residuals.csv", "fit.png")
+
+
+def write_fit(result, out_dir: str | Path, *, plot: bool = True, fingerprint: str | None = None) -> list[Path]:
+    """model.json, residuals.csv and (``plot``) fit.png in ``out_dir``, all or none; model.json
+    carries the run's ``fingerprint`` (:func:`roadgonio.fileio.check_run_folder`)."""
     from roadgonio.fileio import OutputGroup
     out_dir = Path(out_dir)
+    doc = result.model.to_json_dict()
+    if fingerprint is not None:
+        doc["fingerprint"] = fingerprint
     with OutputGroup(out_dir) as g:
-        g.json("model.json", result.model.to_json_dict())
+        g.json("model.json", doc)
         g.text("residuals.csv", residuals_csv(result))
         if plot:
             plot_fit(result, g.path("fit.png"))

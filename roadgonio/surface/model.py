@@ -60,6 +60,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 from typing import Any, Mapping
@@ -229,10 +230,10 @@ class RoadParams:
     def __post_init__(self):
         for f in fields(self):
             v = getattr(self, f.name)
-            try:
-                v = float(v)
-            except (TypeError, ValueError):
-                raise InputError(f"expected a number, got {v!r}", field=f.name) from None
+            # a number, not text or a truth value that happens to convert ("0.03", true): no coercion
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
+                raise InputError(f"expected a number, got {type(v).__name__} {v!r}", field=f.name)
+            v = float(v)
             object.__setattr__(self, f.name, v)
             lo, hi = PARAM_BOUNDS[f.name]
             if not math.isfinite(v):
@@ -274,6 +275,19 @@ class RoadParams:
         return replace(self, **changes)
 
 
+def _near_key(key: str, known) -> str | None:
+    """The known key that ``key`` is a misspelling of (case, one or two letters off), if any."""
+    import difflib
+    if not isinstance(key, str):
+        return None
+    low = key.strip().lower().replace("-", "_")
+    for k in known:
+        if low == k or low.rstrip("s") == k.rstrip("s"):
+            return k
+    hit = difflib.get_close_matches(low, list(known), n=1, cutoff=0.75)
+    return hit[0] if hit else None
+
+
 @dataclass(frozen=True)
 class RoadModel:
     """A road BRDF: a variant and its parameters. Evaluates in float64 numpy."""
@@ -284,7 +298,12 @@ class RoadModel:
     meta: Mapping[str, Any] | None = None
 
     def __post_init__(self):
-        if self.variant not in VARIANTS:
+        if not isinstance(self.params, RoadParams):
+            raise InputError(f"expected RoadParams, got {type(self.params).__name__}", field="params")
+        if not isinstance(self.name, str):
+            raise InputError(f"expected text for the model's name, got {type(self.name).__name__} {self.name!r}",
+                             field="name")
+        if not isinstance(self.variant, str) or self.variant not in VARIANTS:
             raise InputError(f"unknown model variant {self.variant!r}; expected one of {', '.join(VARIANTS)}",
                              field="variant")
 
@@ -300,6 +319,17 @@ class RoadModel:
 
     def terms(self) -> frozenset[str]:
         return active_terms(self.params.to_dict())
+
+    @property
+    def mirror_kink(self) -> bool:
+        """Whether f_r has a kink on the mirror plane (|beta| in the empirical term) that an
+        integrator should split on."""
+        return "k_exp" in self.terms()
+
+    def evaluate(self, xp, wi, wo):
+        """f_r for component triples ``wi``, ``wo`` over the array namespace ``xp`` (the interface
+        the float64 backends evaluate; :mod:`roadgonio.surface.truths` provides the same)."""
+        return road_brdf(xp, self.params.to_dict(), wi, wo, self.variant, self.terms())
 
     def brdf(self, wi, wo) -> np.ndarray:
         """f_r for direction arrays ``wi`` (towards the source) and ``wo`` (towards the
@@ -337,12 +367,22 @@ class RoadModel:
             raise InputError("missing or non-object 'params' (expected {\"variant\": ..., \"params\": {...}})",
                              path=path, field="params")
         variant = d.get("variant", DEFAULT_VARIANT)
-        if variant not in VARIANTS:
+        if not isinstance(variant, str) or variant not in VARIANTS:
             raise InputError(f"unknown variant {variant!r}; expected one of {', '.join(VARIANTS)}",
                              path=path, field="variant")
         params = RoadParams.from_dict(d["params"], path=path)
         meta = {k: v for k, v in d.items() if k not in ("variant", "params", "name")}
-        name = str(d.get("name", Path(path).stem if path else "model"))
+        for k in meta:
+            # further keys (fit statistics, provenance) are allowed (conventions.md section 3), but a
+            # misspelt key the reader reads ("varaint": "smooth") would silently leave its default
+            near = _near_key(k, ("variant", "params", "name"))
+            if near:
+                raise InputError(f"unknown key {k!r}; did you mean {near!r}? (a model file's keys are variant, params, "
+                                 "name, plus metadata)", path=path, field=k)
+        name = d.get("name", Path(path).stem if path else "model")
+        if not isinstance(name, str):
+            raise InputError(f"expected text for the model's name, got {type(name).__name__} {name!r}", path=path,
+                             field="name")
         return cls(params, variant, name=name, meta=meta or None)
 
     @classmethod

@@ -97,7 +97,8 @@ class RTable:
 
     @property
     def r_max(self) -> float:
-        return float(np.nanmax(self.r))
+        """The largest tabulated r (NaN for a table without values)."""
+        return float(np.max(self.r[self.mask])) if self.mask.any() else math.nan
 
     def value(self, tan_eps: float, beta_deg: float) -> float:
         i = _index(self.tan_eps, tan_eps, "tan_eps")
@@ -105,8 +106,10 @@ class RTable:
         return float(self.r[i, j])
 
     def s1(self) -> float:
-        """Specular factor S1 = r(beta=0, tan=2) / r(beta=0, tan=0) (CIE 144)."""
-        return self.value(2.0, 0.0) / self.value(0.0, 0.0)
+        """Specular factor S1 = r(beta=0, tan=2) / r(beta=0, tan=0) (CIE 144); NaN (missing) when
+        r(0, 0) is blank or 0 or r(2, 0) is blank: a quantity that needs a missing value is missing,
+        never a division by zero (:func:`missing_ratio`)."""
+        return missing_ratio(self.value(2.0, 0.0), self.value(0.0, 0.0))
 
     def q0(self) -> float:
         """Average luminance coefficient Q0 (sr^-1): mean of q over the solid angle of the
@@ -118,8 +121,8 @@ class RTable:
         return float(np.sum(np.where(w > 0.0, w * self.r, 0.0)))
 
     def s2(self) -> float:
-        """S2 = Q0 / r(0, 0) (CIE 144)."""
-        return self.q0() / self.value(0.0, 0.0)
+        """S2 = Q0 / r(0, 0) (CIE 144); NaN (missing) when Q0 is undefined or r(0, 0) is blank or 0."""
+        return missing_ratio(self.q0(), self.value(0.0, 0.0))
 
     # -- xarray (the Python API's r-table) ----------------------------------------------------
     def to_dataarray(self):
@@ -146,8 +149,18 @@ class RTable:
             if got.shape != grid.shape or np.max(np.abs(got - grid)) > GRID_TOL:
                 raise InputError(f"the {dim} coordinate is not the CIE grid ({', '.join(f'{v:g}' for v in grid)})",
                                  field=what)
-        return cls(np.asarray(da.values, dtype=np.float64), name=str(da.attrs.get("name", da.name or "table")),
-                   source=str(da.attrs.get("source", "")))
+        name = da.attrs.get("name", da.name if da.name is not None else "table")
+        source = da.attrs.get("source", "")
+        for key, v in (("name", name), ("source", source)):
+            if not isinstance(v, str):
+                raise InputError(f"expected text for the table's {key} (attrs['{key}']), got {type(v).__name__} {v!r}",
+                                 field=f"{what}.{key}")
+        try:
+            r = np.asarray(da.values, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InputError(f"expected numbers (r in sr^-1), got values of dtype {da.dtype}", field=what) from None
+        check_r_values(r, what)
+        return cls(r, name=name, source=source)
 
     def same_grid(self, other: "RTable") -> bool:
         return (self.r.shape == other.r.shape
@@ -161,8 +174,16 @@ class RTable:
 
     # -- writing -----------------------------------------------------------------------------
     def to_csv_text(self, scale: float = R_SCALE, digits: int = 6) -> str:
-        return grid_csv_text(self.r, self.source or f"roadgonio table {self.name}", scale=scale, digits=digits,
+        """The CSV text (module docstring). An r-table (``scale`` = :data:`R_SCALE`) is read back by
+        :func:`parse_csv` before it is returned: a table the reader would refuse (negative,
+        infinite, implausible values, no value at all) raises the reader's reason as an
+        :class:`InputError` instead of being written."""
+        _check_finite(self.r, self.tan_eps, self.beta_deg, "CSV")
+        text = grid_csv_text(self.r, self.source or f"roadgonio table {self.name}", scale=scale, digits=digits,
                              tan_eps=self.tan_eps, beta_deg=self.beta_deg)
+        if scale == R_SCALE:
+            _reads_back(lambda: parse_csv(text, path="<table>", name=self.name), "CSV", text, self.r, digits)
+        return text
 
     def write_csv(self, path: str | Path, scale: float = R_SCALE, digits: int = 6) -> Path:
         return atomic_write_text(path, self.to_csv_text(scale, digits))
@@ -170,19 +191,27 @@ class RTable:
     def to_rtb_text(self) -> str:
         """DIALux RTB text: one value per line (module docstring), r x 1e4, blanks as 0.
 
-        Raises :class:`InputError` if a cell holds r = 0: RTB would read it back as a blank."""
+        Raises :class:`InputError` if a cell holds r = 0 (RTB would read it back as a blank), if Q0
+        is undefined (the q0 line), or if :func:`parse_rtb` would refuse the text (its reason)."""
+        _check_finite(self.r, self.tan_eps, self.beta_deg, "RTB")
         zero = np.argwhere(self.r == 0.0)
         if len(zero):
             i, j = zero[0]
             raise InputError(f"cannot write RTB: r = 0 at tan eps = {self.tan_eps[i]:g}, beta = {self.beta_deg[j]:g} "
                              f"({len(zero)} zero cell(s)); RTB stores blanks as 0, so a zero would come back as "
                              "'not measured'. Write CSV (.csv), which keeps 0 and blank apart", field="r")
+        q0 = self.q0()
+        if not math.isfinite(q0):
+            raise InputError("cannot write RTB: Q0 is undefined (no grid cell has four tabulated corners) and RTB "
+                             "needs its q0 line. Write CSV (.csv), which needs no Q0", field="q0")
         name = " ".join(self.name.split()) or "table"
         lines = ["RTable.v1", name, str(len(self.tan_eps)), *(_fmt(t, 6) for t in self.tan_eps),
                  str(len(self.beta_deg)), *(_fmt(b, 6) for b in self.beta_deg), _fmt(self.q0(), 6)]
         for j in range(len(self.beta_deg)):
-            lines.extend("0" if not np.isfinite(v) else _fmt(v, 6) for v in self.r[:, j] * R_SCALE)
-        return "\n".join(lines) + "\n"
+            lines.extend("0" if np.isnan(v) else _fmt(v, 6) for v in self.r[:, j] * R_SCALE)
+        text = "\n".join(lines) + "\n"
+        _reads_back(lambda: parse_rtb(text, path="<table>"), "RTB", None, self.r, 6)
+        return text
 
     def write_rtb(self, path: str | Path) -> Path:
         return atomic_write_text(path, self.to_rtb_text())
@@ -190,6 +219,69 @@ class RTable:
     def write(self, path: str | Path) -> Path:
         """Write by suffix: ``.rtb`` as DIALux RTB, anything else as CSV."""
         return self.write_rtb(path) if Path(path).suffix.lower() == ".rtb" else self.write_csv(path)
+
+
+def check_r_values(r: np.ndarray, field: str = "table") -> None:
+    """The values of an r-table given as an array (r in sr^-1, NaN = blank) obey the rules of the
+    table files' readers: finite where given, >= 0, at most :data:`R_MAX_PLAUSIBLE`, at least one."""
+    def where(mask) -> str:
+        i, j = np.argwhere(mask)[0]
+        return f"at tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g}" if r.shape == (
+            len(TAN_EPS_GRID), len(BETA_GRID_DEG)) else f"at index ({i}, {j})"
+    if r.ndim != 2:
+        raise InputError(f"expected a 2-D table (tan_eps x beta), got shape {r.shape}", field=field)
+    if np.isinf(r).any():
+        raise InputError(f"expected finite r (NaN = blank), got {r[np.isinf(r)][0]} {where(np.isinf(r))}", field=field)
+    if (r < 0).any():
+        raise InputError(f"r must be >= 0, got {r[r < 0][0]:g} {where(r < 0)}", field=field)
+    if (r > R_MAX_PLAUSIBLE).any():
+        raise InputError(f"r = {r[r > R_MAX_PLAUSIBLE][0]:g} sr^-1 {where(r > R_MAX_PLAUSIBLE)} is not a plausible road "
+                         f"value (expected r <= {R_MAX_PLAUSIBLE:g} sr^-1; r itself, not r x 1e4)", field=field)
+    if not np.isfinite(r).any():
+        raise InputError("the table has no values (every cell is blank)", field=field)
+
+
+def _check_finite(r: np.ndarray, tan_eps: np.ndarray, beta_deg: np.ndarray, fmt: str) -> None:
+    """An infinite r is no table value (NaN is a blank; a CSV would write it as one)."""
+    bad = np.argwhere(np.isinf(r))
+    if len(bad):
+        i, j = bad[0]
+        raise InputError(f"cannot write this r-table as {fmt}: r = {r[i, j]} at tan eps = {tan_eps[i]:g}, beta = "
+                         f"{beta_deg[j]:g} ({len(bad)} cell(s)); expected a finite number", field="r")
+
+
+def _reads_back(read, fmt: str, csv_text: str | None = None, r: np.ndarray | None = None, digits: int = 6) -> None:
+    """Run the reader on a text about to be written: its refusal becomes the writer's, one line
+    with the reader's reason (a writer never writes what its reader refuses); for CSV the row's
+    tan eps is named. The table read back must hold the blanks and the values ``r`` (within the
+    ``digits`` written)."""
+    try:
+        back = read()
+        if r is not None:
+            same = back.mask == np.isfinite(r)
+            close = np.isclose(back.r, r, rtol=10.0 ** (1 - digits), atol=1e-300) | ~np.isfinite(r)
+            if not (same.all() and close.all()):
+                i, j = np.argwhere(~(same & close))[0]
+                raise InputError(f"tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g} would read back as "
+                                 f"{back.r[i, j]:g} instead of {r[i, j]:g}", field="r")
+    except InputError as err:
+        where = ""
+        if csv_text is not None and err.line is not None:
+            lines = csv_text.splitlines()
+            if 0 < err.line <= len(lines) and not lines[err.line - 1].startswith(("#", "tan_eps")):
+                where = f"tan eps = {lines[err.line - 1].split(',')[0]}, "
+        raise InputError(f"cannot write this r-table as {fmt}: the file would not read back ({where}{err.reason})",
+                         field=err.field or "r") from None
+
+
+def missing_ratio(num: float, den: float) -> float:
+    """``num / den`` of two table quantities, or NaN (missing) when either is missing (NaN) or the
+    denominator is not > 0 (a characteristic such as S1 of a table with r(0, 0) = 0 is undefined,
+    not infinite)."""
+    num, den = float(num), float(den)
+    if not (math.isfinite(num) and math.isfinite(den) and den > 0.0):
+        return math.nan
+    return num / den
 
 
 def grid_csv_text(values: np.ndarray, source: str, *, scale: float = 1.0, digits: int = 6,
@@ -404,6 +496,12 @@ def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
     if not np.isfinite(v).any():
         raise InputError("the table has no values (every cell is 0 = blank)", path=path)
     scale, note = _rtb_scale(v, q0, path, q0_line)
+    big = np.argwhere(v / scale > R_MAX_PLAUSIBLE)
+    if len(big):
+        i, j = big[0]
+        raise InputError(f"r = {v[i, j] / scale:g} sr^-1 at tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g} "
+                         f"is not a plausible road value (expected r <= {R_MAX_PLAUSIBLE:g} sr^-1; the CIE tables peak "
+                         "below 0.08): a typo, or a table in another scale?", path=path, field="r")
     src = f"read from {Path(str(path)).name}" + (f"; {note}" if note else "")
     return RTable(v / scale, name=name, source=src)
 
@@ -443,6 +541,18 @@ def read_table(path: str | Path) -> RTable:
     if path.suffix.lower() == ".rtb":
         return parse_rtb(text, path=path)
     return parse_csv(text, path=path)
+
+
+_STANDARD_MASK: np.ndarray | None = None
+
+
+def standard_mask() -> np.ndarray:
+    """The tabulated cells of the CIE standard tables (R1-R4, C1, C2 share one blank pattern: 396
+    cells; rows with tan eps >= 5.5 end before beta = 180 deg). A copy."""
+    global _STANDARD_MASK
+    if _STANDARD_MASK is None:
+        _STANDARD_MASK = bundled_table("R3").mask.copy()
+    return _STANDARD_MASK.copy()
 
 
 def bundled_table(name: str) -> RTable:

@@ -18,7 +18,7 @@ distribution (normal, or rectangular with that standard deviation, half-width si
                        plane): tilts the normal sideways, towards +-y
 ``tilt_y_deg``         sample tilt about the y axis: tilts the normal towards/away from the
                        detector (changes the local alpha to first order)
-``source_distance_m``  source distance error D_S - D_S0
+``source_distance_m``  source distance error D_S - D_S0 (a fixed-height source: its height error, every D_S scaling with it)
 ``detector_distance_m`` detector distance error D_D - D_D0
 =====================  ====================================================================
 

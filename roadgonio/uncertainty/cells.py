@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
 
 import numpy as np
 
@@ -14,11 +13,10 @@ from roadgonio.uncertainty.spec import CELL_SETS
 # Cells, Q0 weights
 # ----------------------------------------------------------------------------------------------
 
-@lru_cache(maxsize=1)
 def standard_mask() -> np.ndarray:
-    """Tabulated cells of the CIE standard tables (the blank pattern is the same in every one)."""
-    from roadgonio.surface.rtable import bundled_table
-    return bundled_table("R3").mask.copy()
+    """Tabulated cells of the CIE standard tables (:func:`roadgonio.surface.rtable.standard_mask`)."""
+    from roadgonio.surface.rtable import standard_mask as mask
+    return mask()
 
 
 def standard_q0_weights() -> np.ndarray:

@@ -51,7 +51,9 @@ class MeasurementModel:
         self.illuminance = illuminance
         self.alpha0 = instrument.observation.alpha_deg
         self.delta0 = instrument.observation.delta_deg
-        self.ds0 = instrument.source.distance_m
+        #: the source's length: D_S of an arc, the height of a fixed-height path (every cell's D_S
+        #: scales with it, so a distance error X[:, 5] changes E by (ds0 / (ds0 + X5))^2 on both)
+        self.ds0 = instrument.source.length_m
         self.dd0 = instrument.detector.distance_m
         self.eps0 = eps_from_tan(cells.tan_eps)
         self.cos2 = 1.0 / (1.0 + cells.tan_eps ** 2)

@@ -76,18 +76,27 @@ def cells_csv_text(res: UncertaintyResult) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: The files an uncertainty run may write (``--fresh`` removes an earlier run's).
+OUTPUT_FILES = ("uncertainty.json", "cells.csv", "no_aperture_mean.csv", "no_aperture_u.csv", "aperture_mean.csv",
+                "aperture_u.csv", "u_rel_no_aperture.png", "u_rel_aperture.png", "q0_s1_hist.png")
+
+
 def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: str = "sample",
-                  plots: bool = True, figures=None) -> list[Path]:
+                  plots: bool = True, figures=None, fingerprint: str | None = None) -> list[Path]:
     """Write uncertainty.json, cells.csv, r-table CSVs of the mean and u per case, and the pictures,
     all or none (:class:`roadgonio.fileio.OutputGroup`: a full disk leaves the folder as it was).
-    ``figures`` (:class:`roadgonio.plotproc.FigureProcess`) draws the pictures in a helper process."""
+    ``figures`` (:class:`roadgonio.plotproc.FigureProcess`) draws the pictures in a helper process;
+    uncertainty.json carries the run's ``fingerprint`` (:func:`roadgonio.fileio.check_run_folder`)."""
     from roadgonio.fileio import OutputGroup
     from roadgonio.plotproc import InProcess
     figures = figures or InProcess()
     from roadgonio.surface.rtable import R_SCALE, grid_csv_text
     out = Path(out_dir)
     with OutputGroup(out) as g:
-        written = [g.json("uncertainty.json", result_dict(res)), g.text("cells.csv", cells_csv_text(res))]
+        doc = result_dict(res)
+        if fingerprint is not None:
+            doc["fingerprint"] = fingerprint
+        written = [g.json("uncertainty.json", doc), g.text("cells.csv", cells_csv_text(res))]
         n = len(res.cells)
         for name, c in res.cases.items():
             src = (f"roadgonio uncertainty: {name.replace('_', ' ')}, {res.trials} trials, seed {res.seed}, "

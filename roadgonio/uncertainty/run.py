@@ -117,7 +117,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
     def instrument_at(alpha_loc: float, ds: float, dd: float) -> Instrument:
         return mm.instrument.with_changes(
             observation={"alpha_deg": alpha_loc, "delta_deg": mm.delta0},
-            source={"distance_m": mm.ds0 + ds}, detector={"distance_m": mm.dd0 + dd})
+            source={mm.instrument.source.length_key: mm.ds0 + ds}, detector={"distance_m": mm.dd0 + dd})
 
     # the exact tables: the design points, then the validation trials (all independent instruments)
     jobs: list[tuple[Instrument, list[tuple[float, float]]]] = []
@@ -142,7 +142,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
             if not np.all(np.isfinite(ka)):
                 from roadgonio.errors import RoadgonioError
                 raise RoadgonioError(f"the k_A backend returned a non-finite value at alpha = "
-                                     f"{inst.observation.alpha_deg:.4g} deg, source distance {inst.source.distance_m:.4g} m, "
+                                     f"{inst.observation.alpha_deg:.4g} deg, source {inst.source.length_key[:-2]} {inst.source.length_m:.4g} m, "
                                      f"detector distance {inst.detector.distance_m:.4g} m")
         ka_design = np.array([exact[k][0] for k in range(len(pts))]).reshape(len(pts), n)
         rel_se = max([float(np.max(se / np.abs(ka))) for ka, se in exact] or [0.0])

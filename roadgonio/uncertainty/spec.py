@@ -74,8 +74,12 @@ def _parse_entry(key: str, value: Any, *, path, field_prefix: str = "") -> tuple
         extra = sorted(set(value) - {"sigma", "distribution"})
         if extra or "sigma" not in value:
             raise InputError("expected {sigma = NUMBER, distribution = \"normal\"|\"rect\"}", path=path, field=fld)
-        dist_text = str(value.get("distribution", "normal"))
+        dist_text = value.get("distribution", "normal")
         value = value["sigma"]
+        if not isinstance(dist_text, str):
+            raise InputError(f"expected text (normal or rect), got {dist_text!r}", path=path, field=fld + ".distribution")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):     # a table holds numbers as numbers
+            raise InputError(f"expected a number (standard deviation), got {value!r}", path=path, field=fld + ".sigma")
     elif isinstance(value, str):
         text, _, dist_text = value.partition(":")
         value = text.strip()
@@ -204,7 +208,7 @@ def geometry_problems(mm, X: np.ndarray, *, aperture: bool = False) -> tuple[np.
                 f"beta = {cells.beta_deg[j]:g}")
     flag(low <= 0.0, src_text)
     ds = mm.ds0 + X[:, 5]
-    flag(ds <= inst.source.radius_m, lambda k: f"the source distance {ds[k]:.4g} m is not larger than its radius "
+    flag(ds <= inst.source.radius_m, lambda k: f"the source {inst.source.length_key[:-2]} {ds[k]:.4g} m is not larger than its radius "
                                                f"({inst.source.radius_m:g} m)")
     dd = mm.dd0 + X[:, 6]
     flag(dd <= inst.detector.pupil_radius_m, lambda k: f"the detector distance {dd[k]:.4g} m is not larger than its "
@@ -215,7 +219,7 @@ def geometry_problems(mm, X: np.ndarray, *, aperture: bool = False) -> tuple[np.
         for k in np.nonzero(~bad)[0]:
             try:
                 pert = inst.with_changes(observation={"alpha_deg": float(alpha[k])},
-                                         source={"distance_m": float(ds[k])}, detector={"distance_m": float(dd[k])})
+                                         source={inst.source.length_key: float(ds[k])}, detector={"distance_m": float(dd[k])})
                 if pert.sample.mesh is None:
                     check_detector(pert)
                 for t, b in zip(cells.tan_eps, cells.beta_deg):

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from roadgonio.surface.cie import nearest_bundled
-from roadgonio.correction.run import correct_measured
+from roadgonio.correction.files import correct_measured
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.rtable import read_table
 

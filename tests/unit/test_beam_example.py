@@ -10,7 +10,7 @@ import math
 import numpy as np
 
 from roadgonio.arrays import NumpyOps
-from roadgonio.correction.forward import BundleBackend
+from roadgonio.engines.bundle import BundleBackend
 from roadgonio.engines import make_backend
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import load_instrument

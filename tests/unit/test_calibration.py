@@ -260,7 +260,7 @@ def test_centre_coupling_closed_forms(radius):
 def test_forward_model_and_wrapper_calibrate_alike(tmp_path, mode):
     """The forward model's k_A in each mode equals the wrapper's rule (apply_calibration) applied to
     the same bundle's Lambert k_A, with the wrapper's eta: one definition, same numbers."""
-    from roadgonio.correction.forward import ForwardModel, RayBundles
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
     from roadgonio.engines.calibration import apply_calibration
     ref = RoadModel(RoadParams(k_diff=0.05, k_phong=0.5, n_phong=10.0), name="ref")
     ref.save(tmp_path / "ref.json")

@@ -28,7 +28,7 @@ BAD = {
 }
 def backend(name: str, inst: Instrument, model: RoadModel, tmp_path):
     if name == "bundle":
-        from roadgonio.correction.forward import BundleBackend
+        from roadgonio.engines.bundle import BundleBackend
         return BundleBackend(inst, model, rays=64)
     if name == "numpy-mc-mesh":
         inst = flat_mesh(tmp_path / "flat.ply", inst)

@@ -13,8 +13,9 @@ from roadgonio.correction.budget import Budget, functionals
 from roadgonio.surface.cie import cie_class
 from roadgonio.surface.rtable import q0_weights
 from roadgonio.correction.fit import assess_fit, fit_through_instrument
-from roadgonio.correction.forward import BundleBackend, ForwardModel, RayBundles
-from roadgonio.correction.run import (correct_self, measured_uncertainty, output_folders)
+from roadgonio.engines.bundle import BundleBackend, ForwardModel, RayBundles
+from roadgonio.correction.files import output_folders
+from roadgonio.correction.run import correct_self, measured_uncertainty
 from roadgonio.engines import make_backend
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import load_instrument
@@ -314,3 +315,23 @@ def test_the_budget_takes_a_confidence_bounded_backend_by_its_se():
     k1, u1, _ = _backend_k(lambda i, m: Fixed(True), inst, model, cells, None, False)
     k2, u2, _ = _backend_k(lambda i, m: Fixed(False), inst, model, cells, None, False)
     assert np.array_equal(k1, k2) and np.array_equal(u1, u2) and np.all(u1 == 0.002)
+
+
+def test_functionals_of_a_table_without_a_full_grid_cell_are_missing_not_a_traceback():
+    """A sparse table (a fixed-LED device's measured cells) has S1 but no Q0: u_Q0 and S2 are None,
+    u_S1 is computed from the covariance, and the RTB (which needs Q0) is not written."""
+    from roadgonio.correction.budget import functionals
+    from roadgonio.correction.outputs import has_rtb
+    from roadgonio.surface.rtable import load_table
+    t = load_table("R3")
+    keep = np.zeros_like(t.mask)
+    keep[::3, ::4] = True
+    ti = list(t.tan_eps)
+    keep[ti.index(0.0), 0] = keep[ti.index(2.0), 0] = True
+    sparse = t.with_values(np.where(keep & t.mask, t.r, np.nan))
+    n = int(sparse.mask.sum())
+    f = functionals(sparse, np.eye(n) * 0.01 ** 2)
+    assert f["Q0"] is None or not np.isfinite(f["Q0"])
+    assert f["u_Q0"] is None and f["u_S2"] is None
+    assert f["u_S1"] == pytest.approx(f["S1"] * np.sqrt(2) * 0.01, rel=1e-12)
+    assert not has_rtb(sparse) and has_rtb(t)

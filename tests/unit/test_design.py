@@ -263,7 +263,40 @@ def test_seeds_depend_only_on_the_root_and_the_point():
     from roadgonio.engines.cluster import seeds_for
     a, b = seeds_for(7, 3), seeds_for(7, 10)
     assert a == b[:3] and len(set(b)) == 10 and seeds_for(8, 3) != a
-    assert all(0 <= s < 2 ** 31 for s in b)
+    assert all(0 <= s <= 2 ** 63 - 1 for s in b) and max(b) >= 2 ** 32       # the full range, not 31 bits
+
+
+def test_point_seeds_are_a_bijection_of_the_root_for_each_point():
+    """Point k of two different roots never shares a seed: root -> point_seed(root, k) is one-to-one
+    on 0 ... 2^63 - 1. Shown by inverting it, with an inverse written here from the mixer's steps
+    (x ^= x >> s undone by repeated shifts, a multiplication by an odd constant by its inverse
+    modulo 2^63): inverse(point_seed(root, k)) gives the root back for random 63-bit roots."""
+    import random
+
+    from roadgonio.seeds import SEED_MAX, _mix63, point_seed
+    M = 2 ** 63
+
+    def unxorshift(y, s):
+        x = y
+        for _ in range(63 // s + 1):
+            x = y ^ (x >> s)
+        return x
+
+    def unmix(y):
+        y = unxorshift(y, 32)
+        y = (y * pow(0x2545F4914F6CDD1D, -1, M)) % M
+        y = unxorshift(y, 29)
+        y = (y * pow(0x5DEECE66DA3B7F1, -1, M)) % M
+        return unxorshift(y, 31)
+
+    rnd = random.Random(20261122)
+    roots = [0, 1, 2 ** 31, 2 ** 32, SEED_MAX] + [rnd.randrange(M) for _ in range(2000)]
+    for k in (0, 1, 2, 1000, 2 ** 40):
+        for r in roots:
+            s = point_seed(r, k)
+            assert 0 <= s <= SEED_MAX
+            assert unmix(unmix(s) ^ k) == r, (r, k)
+    assert all(unmix(_mix63(x)) == x for x in roots)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -147,8 +147,10 @@ finite = st.floats(min_value=-1e3, max_value=1e3, allow_nan=False)
 @settings(max_examples=200, deadline=None)
 @given(distance=finite, radius=finite)
 def test_source_accepts_exactly_the_valid_discs(distance, radius):
-    """Property: a Source exists iff 0 <= radius < distance; otherwise the error names the field."""
-    valid = distance > 0 and 0 <= radius < distance
+    """Property: a Source exists iff 0 <= radius < distance and a non-zero radius is at least
+    MIN_APERTURE_M (1 um: a point is radius 0); otherwise the error names the field."""
+    from roadgonio.instrument.config import MIN_APERTURE_M
+    valid = distance > 0 and 0 <= radius < distance and (radius == 0 or radius >= MIN_APERTURE_M)
     if valid:
         s = Source(distance_m=distance, radius_m=radius)
         assert s.distance_m == distance and s.radius_m == radius
@@ -160,7 +162,8 @@ def test_source_accepts_exactly_the_valid_discs(distance, radius):
 
 @settings(max_examples=100, deadline=None)
 @given(alpha=st.floats(min_value=0.05, max_value=89.0), dist=st.floats(min_value=0.1, max_value=20.0),
-       pupil=st.floats(min_value=0.0, max_value=0.05), field_deg=st.floats(min_value=0.0, max_value=2.0),
+       pupil=st.one_of(st.just(0.0), st.floats(min_value=1e-6, max_value=0.05)),
+       field_deg=st.floats(min_value=0.0, max_value=2.0),
        focus=st.one_of(st.none(), st.just(math.inf), st.floats(min_value=0.1, max_value=50.0)))
 def test_instrument_dict_round_trip(alpha, dist, pupil, field_deg, focus):
     """Property: from_dict(to_dict(x)) == x for valid instruments (the file form loses nothing)."""
@@ -181,6 +184,9 @@ def test_instrument_dict_round_trip(alpha, dist, pupil, field_deg, focus):
     ("[calibration]\nmode = \"absolute\"\n", None),            # computed (roadgonio.engines.calibration)
     ("[calibration]\nmode = \"absolute\"\nreference = \"R3\"\n", "calibration.reference"),
     ("[scene]\n", None),
+    ("[scene]\nxlm = \"holder.xml\"\n", "scene"),                 # a typo of xml: not ignored
+    ("[scene.params]\nholder_h_m = 0.1\n", "scene.xml"),          # parameters of no XML file
+    ("[scene]\nxml = 5\n", "scene.xml"),
     ("[calibration]\nmode = \"lambert\"\n", None),
 ])
 def test_sections_are_checked(tmp_path, extra, field):

@@ -131,3 +131,26 @@ def test_hit_check_points_and_verdict():
         optics.judge_hits(on, np.ones(5, bool), x, y)
     with pytest.raises(GeometryError, match="miss every part"):
         optics.judge_hits(on, on, x, y)
+
+
+# -- the rectangle's x runs along the observation azimuth (docs/conventions.md section 4) ---------
+
+@pytest.mark.parametrize("delta", [0.0, 37.0, 90.0, -135.0, 270.0])
+def test_the_rectangle_turns_with_the_observation_azimuth(delta):
+    """Turning the whole instrument about the vertical turns its footprint and its rectangle alike:
+    the footprint bounds in the rectangle's frame are those at delta = 0, the 2 m x 0.5 m lab
+    sample holds the footprint at every delta, and the rectangle's corners, projected on the
+    azimuth direction written here, are +-size_x/2 (its vertices computed by the instrument room)."""
+    from roadgonio.instrument.mesh import rectangle_triangles
+    inst = load_instrument("lab").with_changes(observation={"delta_deg": delta})
+    ref = check_detector(load_instrument("lab"))
+    got = check_detector(inst)
+    assert got == pytest.approx(ref, abs=1e-9)
+    t = rectangle_triangles(2.0, 0.5, delta)
+    a = np.array([math.cos(math.radians(delta)), math.sin(math.radians(delta))])
+    b = np.array([-a[1], a[0]])
+    along, across = t.vertices[:, :2] @ a, t.vertices[:, :2] @ b
+    assert sorted(np.round(along, 12)) == [-1.0, -1.0, 1.0, 1.0] and sorted(np.round(across, 12)) == [-0.25, -0.25, 0.25, 0.25]
+    # a rectangle too short along the azimuth is refused whatever delta is
+    with pytest.raises(GeometryError, match="leaves the sample"):
+        check_detector(inst.with_changes(sample={"size_x_m": 0.01, "size_y_m": 2.0}))

@@ -20,10 +20,26 @@ import glob
 import os
 import re
 
-from roadgonio.errors import BackendError
+from roadgonio.errors import BackendError, InputError
 
 #: Default variant on a CPU machine; a CUDA variant is chosen when asked for and available.
 DEFAULT_VARIANT = "llvm_ad_rgb"
+#: The variants roadgonio runs on: the JIT RGB variants. The plugins carry f_road and 1/pi in two
+#: colour channels (a mono or spectral variant has not the same channels), and trace their
+#: Python code into kernels (a scalar variant runs it per ray, about 300x slower, and fails on
+#: the vector code).
+SUPPORTED_VARIANTS = ("llvm_ad_rgb", "cuda_ad_rgb")
+
+
+def check_variant_name(variant, field: str = "mitsuba_variant") -> str:
+    """``variant`` if roadgonio supports it (:data:`SUPPORTED_VARIANTS`), else the one-line
+    :class:`InputError` naming ``field``; imports nothing."""
+    if not isinstance(variant, str) or variant not in SUPPORTED_VARIANTS:
+        why = (" (a scalar variant runs the plugins per ray and is not supported)"
+               if isinstance(variant, str) and variant.startswith("scalar") else "")
+        raise InputError(f"Mitsuba variant {variant!r} is not one roadgonio runs on{why}; expected "
+                         f"{' or '.join(SUPPORTED_VARIANTS)} (default {DEFAULT_VARIANT})", field=field)
+    return variant
 MIN_LLVM = (16,)
 _INSTALL_HINT = ("install a newer libLLVM (Debian/Ubuntu: 'apt-get install -y libllvm19') or point "
                  "DRJIT_LIBLLVM_PATH at a libLLVM.so of version 16 or newer")
@@ -52,10 +68,15 @@ def set_variant(variant: str | None = None):
     ``DRJIT_LIBLLVM_PATH`` at a libLLVM >= 16 outside the folders Dr.Jit searches itself (conda,
     /usr/lib64, llvm-*/lib): Dr.Jit reads it only then.
 
-    Raises :class:`~roadgonio.errors.BackendError` with an install hint when mitsuba is missing,
-    the variant does not exist, or Dr.Jit's LLVM backend is older than 16.
+    Raises :class:`~roadgonio.errors.InputError` for a variant roadgonio does not run on
+    (:data:`SUPPORTED_VARIANTS`), before anything changes, and
+    :class:`~roadgonio.errors.BackendError` with an install hint when mitsuba is missing, the
+    variant does not exist in this build, or Dr.Jit's LLVM backend is older than 16.
     """
-    variant = variant or os.environ.get("ROADGONIO_VARIANT", DEFAULT_VARIANT)
+    if variant:
+        check_variant_name(variant)
+    else:
+        variant = check_variant_name(os.environ.get("ROADGONIO_VARIANT", DEFAULT_VARIANT), "ROADGONIO_VARIANT")
     if variant.startswith("llvm") and "DRJIT_LIBLLVM_PATH" not in os.environ:
         # drjit picks the newest system libLLVM by itself; help it where the library lives elsewhere
         path = _newest_system_llvm()

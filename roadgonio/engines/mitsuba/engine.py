@@ -51,7 +51,7 @@ def cell_directions(instrument: Instrument, cells: Sequence[tuple[float, float]]
 
 
 def source_frames(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
-    """(cells, 12) float64: centre D_S w_i, two unit vectors s, t across the disc and the axis
+    """(cells, 12) float64: centre D_S w_i (D_S of each cell: :func:`~roadgonio.instrument.optics.source_distance_m`), two unit vectors s, t across the disc and the axis
     -w_i (towards the sample centre) of every cell's source disc (docs/conventions.md section 4). The disc is
     rotationally symmetric, so any orthonormal (s, t) describes the same source."""
     w = cell_directions(instrument, cells)
@@ -60,7 +60,9 @@ def source_frames(instrument: Instrument, cells: Sequence[tuple[float, float]]) 
     s = np.cross(helper, axis)
     s /= np.linalg.norm(s, axis=1, keepdims=True)
     t = np.cross(axis, s)
-    return np.concatenate([instrument.source.distance_m * w, s, t, axis], axis=1)
+    from roadgonio.instrument.optics import source_distance_m
+    c = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    return np.concatenate([source_distance_m(instrument.source, c[:, 0])[:, None] * w, s, t, axis], axis=1)
 
 
 @dataclass

@@ -81,7 +81,7 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     # picture of the field of view
     rs.sensor.mapping = "square"
     try:
-        view = rs.render(seed + 1, spp)
+        view = rs.render(seed, spp)        # the same seed: seed + 1 would be another seed's signal stream
     finally:
         rs.sensor.mapping = "concentric"
     # illuminance around the footprint, seen from above (Lambert channel: L = E_h / pi)
@@ -95,7 +95,7 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     nx, ny = 512, 128
     z_top = float(rs.sample_shape.bbox().max.z)
     cam = _ortho_sensor(mi, ex0, ex1, ey0, ey1, nx, ny, 16, z_top)
-    top = np.array(mi.render(rs.scene, sensor=cam, integrator=rs.integrator, seed=seed + 2, spp=16), dtype=np.float64)
+    top = np.array(mi.render(rs.scene, sensor=cam, integrator=rs.integrator, seed=seed, spp=16), dtype=np.float64)
     E = math.pi * top[..., LAMBERT]
     L_top = top[..., ROAD]
 

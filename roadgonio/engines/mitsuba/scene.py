@@ -105,9 +105,10 @@ def detector_props(observation: Observation, detector: Detector) -> dict[str, An
 
 
 def source_radiance(instrument: Instrument) -> float:
-    """Radiance (disc) or intensity (point) giving ~1 lx normal to the axis at the sample centre."""
+    """Radiance (disc) or intensity (point) giving ~1 lx normal to the axis at the sample centre (at
+    the nearest source distance of a fixed-height path: a scale only, k_A is a ratio)."""
     src = instrument.source
-    d2 = src.distance_m ** 2
+    d2 = src.length_m ** 2
     return d2 if src.is_point else d2 / (math.pi * src.radius_m ** 2)
 
 
@@ -192,7 +193,7 @@ class RoadScene:
             from roadgonio.instrument.enclosure import check_sources
             check_sources(self.instrument, self.housing, [(tan_eps, beta_deg)])
         if self.source_kind == "point":
-            c = self.instrument.source_centre(tan_eps, beta_deg)
+            c = source_geometry(self.instrument, tan_eps, beta_deg).centre
             self.params[f"{SOURCE_ID}.position"] = _mi().Point3f(*[float(v) for v in c])
         else:
             self.params[f"{SOURCE_ID}.to_world"] = source_transform(self.instrument, tan_eps, beta_deg)
@@ -222,20 +223,30 @@ class RoadScene:
         px, py, fx, fy = (dr.gather(mi.Float, mi.Float(v.astype(np.float32)), idx)
                           for v in (pu[:, 0], pu[:, 1], fu[:, 0], fu[:, 1]))
         o, d, _ = detector_ray(DrJitOps, geo, (px, py), (fx, fy))
-        si = self.scene.ray_intersect(mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)))
-        # opaque: the shape pointer as a literal would make every new scene compile its own kernel
-        on_sample = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
+        from roadgonio.engines.mitsuba.plugins.ka_batch import intersect_sample
+        # an edge or a vertex of the sample mesh under a ray is a hit (one retry, ka_batch.RETRY_NUDGE)
+        si, on_sample = intersect_sample(self.scene, mi.Ray3f(mi.Point3f(*o), mi.Vector3f(*d)), mi.RayFlags.All,
+                                         self.sample_shape)
         other = si.is_valid() & ~on_sample
         if bool(dr.any(other)):
-            # name the part that stands in the detector's view (a housing wall, a baffle, a holder)
             from roadgonio.errors import GeometryError
+            cell = f" at tan eps = {self.cell[0]:g}, beta = {self.cell[1]:g}" if self.cell is not None else ""
             for shape in self.scene.shapes():
+                # opaque: the shape pointer as a literal would make every new scene compile its own kernel
                 k = int(dr.count(other & (si.shape == dr.opaque(mi.ShapePtr, shape)))[0])
-                if k:
+                if not k:
+                    continue
+                if shape.id() == SOURCE_ID:
+                    # the source disc in the line of sight is its own error, with the cell (not "enlarge the sample")
                     raise GeometryError(
-                        f"{k} of {dr.width(other)} detector rays meet the part {shape.id()!r} before the sample: "
-                        "it blocks the detector's view of its footprint (a part of the scene must not stand between "
-                        "the detector and the sample)")
+                        f"the source disc blocks the detector's line of sight{cell}: {k} of {dr.width(other)} "
+                        "detector rays hit the source before the sample (the source sits between the detector "
+                        "and its footprint); this cell cannot be measured with this geometry")
+                # name the part that stands in the detector's view (a housing wall, a baffle, a holder)
+                raise GeometryError(
+                    f"{k} of {dr.width(other)} detector rays meet the part {shape.id()!r} before the sample{cell}: "
+                    "it blocks the detector's view of its footprint (a part of the scene must not stand between "
+                    "the detector and the sample)")
         return judge_hits(np.array(on_sample, dtype=bool), np.array(si.is_valid(), dtype=bool),
                           np.array(si.p.x), np.array(si.p.y))
 
@@ -318,7 +329,7 @@ def _build_toml(instrument, model, *, resolution, spp, sampler, channels, housin
     det = dict(type="lummeter", film=film, sampler=samp, **detector_props(instrument.observation, instrument.detector))
     src = instrument.source
     if src.is_point:
-        source = {"type": "point", "position": [0.0, 0.0, src.distance_m],
+        source = {"type": "point", "position": [0.0, 0.0, src.length_m],
                   "intensity": {"type": "uniform", "value": source_radiance(instrument)}}
     else:
         source = {"type": "disk", "to_world": source_transform(instrument, 0.0, 0.0),
@@ -336,6 +347,9 @@ def _build_toml(instrument, model, *, resolution, spp, sampler, channels, housin
 
 def xml_parameters(instrument: Instrument, scene_sec) -> dict[str, str]:
     det, src, smp = instrument.detector, instrument.source, instrument.sample
+    if src.path != "arc":
+        raise InputError(f'a Mitsuba XML scene takes one source_distance_m: source.path = "{src.path}" '
+                         'is modelled without [scene] xml only', path=instrument.path, field="source.path")
     p = {"alpha_deg": instrument.observation.alpha_deg, "delta_deg": instrument.observation.delta_deg,
          "source_distance_m": src.distance_m, "source_radius_m": src.radius_m,
          "source_radiance": source_radiance(instrument),

@@ -47,6 +47,7 @@ from roadgonio.engines import CellResult, ratio_se
 from roadgonio.engines.calibration import apply_calibration, centre_coupling, illuminance_ratio
 from roadgonio.engines.cellcheck import check_cells, no_light
 from roadgonio.errors import InputError
+from roadgonio.seeds import seed_entropy
 from roadgonio.geometry import cos3_eps
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
@@ -71,7 +72,7 @@ def _sobol_net(seed: int, replicate: int, n: int) -> np.ndarray:
     """A scrambled Sobol' net of n = 2^m points in [0, 1)^6 (read-only, cached)."""
     from scipy.stats import qmc
     m = int(round(math.log2(n)))
-    u = qmc.Sobol(6, scramble=True, seed=np.random.default_rng([seed, replicate, n])).random_base2(m)
+    u = qmc.Sobol(6, scramble=True, seed=np.random.default_rng(seed_entropy(seed, replicate, n))).random_base2(m)
     u.setflags(write=False)
     return u
 
@@ -82,7 +83,8 @@ def _unit_points(seed: int, indices: np.ndarray, replicate: int, n: int) -> np.n
     (seed, cell index, replicate)): randomised QMC that keeps the net's structure, independent between
     cells and replicates, and cheap (the net is scrambled once)."""
     net = (_sobol_net(seed, replicate, n) * 2.0 ** 32).astype(np.uint64)
-    shifts = np.array([np.random.default_rng([seed, int(i), replicate]).integers(0, 2 ** 32, 6, dtype=np.uint64)
+    shifts = np.array([np.random.default_rng(seed_entropy(seed, int(i), replicate, 1)).integers(0, 2 ** 32, 6,
+                                                                                            dtype=np.uint64)
                        for i in indices], dtype=np.uint64)
     u = np.bitwise_xor(net[None, :, :], shifts[:, None, :]).astype(np.float64)
     return (u + 0.5) * 2.0 ** -32
@@ -426,3 +428,74 @@ class BundleBackend:
             if on_cell is not None:
                 on_cell(c)
         return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Several instruments, one surface
+# ----------------------------------------------------------------------------------------------
+
+class _StackedBundles:
+    """What the fitter reads of the bundles of several forward models: the cells and cos^3 eps."""
+
+    def __init__(self, forwards: Sequence[ForwardModel]):
+        self.n_cells = int(sum(f.bundles.n_cells for f in forwards))
+        self.cos3 = np.concatenate([f.bundles.cos3 for f in forwards])
+
+
+class StackedForward:
+    """Several instruments' forward models (:class:`ForwardModel`) as one: the measured cells of
+    every instrument one after the other, so that one BRDF model is fitted through all of them by
+    :func:`roadgonio.correction.fit.fit_through_instrument` (it reads only the methods below).
+    ``rho`` arguments are the concatenated per-cell factors."""
+
+    def __init__(self, forwards: Sequence[ForwardModel]):
+        self.forwards = list(forwards)
+        self.bundles = _StackedBundles(self.forwards)
+        self.kappa = np.concatenate([f.kappa for f in self.forwards])
+        self._splits = np.cumsum([f.bundles.n_cells for f in self.forwards])[:-1]
+
+    def split(self, values: np.ndarray) -> list[np.ndarray]:
+        """Per-instrument pieces of a concatenated per-cell array."""
+        return np.split(np.asarray(values), self._splits)
+
+    def _rho(self, rho):
+        return [None] * len(self.forwards) if rho is None else self.split(rho)
+
+    def columns(self, P: Mapping[str, float], variant: str,
+                terms: Sequence[str] = LINEAR_TERMS) -> tuple[np.ndarray, np.ndarray]:
+        parts = [f.columns(P, variant, terms) for f in self.forwards]
+        return np.vstack([b for b, _ in parts]), np.vstack([n for _, n in parts])
+
+    def nominal_columns(self, P: Mapping[str, float], variant: str) -> np.ndarray:
+        return np.vstack([f.nominal_columns(P, variant) for f in self.forwards])
+
+    def model_columns_total(self, model: RoadModel) -> tuple[np.ndarray, np.ndarray]:
+        parts = [f.model_columns_total(model) for f in self.forwards]
+        return np.concatenate([m for m, _ in parts]), np.concatenate([n for _, n in parts])
+
+    def k_a(self, model: RoadModel, rho: np.ndarray | None = None) -> np.ndarray:
+        return np.concatenate([f.k_a(model, r) for f, r in zip(self.forwards, self._rho(rho))])
+
+    def r_measured(self, model: RoadModel, rho: np.ndarray | None = None) -> np.ndarray:
+        return np.concatenate([f.r_measured(model, r) for f, r in zip(self.forwards, self._rho(rho))])
+
+
+def make_backend(instrument: Instrument, model: RoadModel, **settings) -> BundleBackend:
+    """The registry's factory (:mod:`roadgonio.engines.registry`): a :class:`BundleBackend` with
+    ``rays``, ``replicates``, ``seed``, ``max_factor`` (an unknown setting is a one-line error). The
+    bundle applies the instrument's calibration itself (:class:`ForwardModel`)."""
+    allowed = {"rays", "replicates", "seed", "max_factor"}
+    unknown = sorted(set(settings) - allowed)
+    if unknown:
+        raise InputError(f"unknown setting(s) {', '.join(unknown)} of the bundle backend; expected some of "
+                         f"{', '.join(sorted(allowed))}", field=unknown[0])
+    for key in ("rays", "replicates", "max_factor"):
+        v = settings.get(key)
+        least = 2 if key == "replicates" else 1
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < least):
+            raise InputError(f"expected a whole number >= {least}, got {v!r}", field=key)
+    if settings.get("rays") is not None:
+        from roadgonio.limits import check_size
+        check_size(int(settings["rays"]), "rays", "rays")
+    return BundleBackend(instrument, model, **settings)
+

@@ -1,0 +1,184 @@
+"""Benchmark of `roadgonio correct --forward surface` and `--joint` (issue 19): surfaces outside eq. 4.
+
+Truths (roadgonio.surface.truths; not fitted to anything): three outside eq. 4 -- ``microfacet``
+(GGX lobe with Smith masking), ``two_lobes`` (Beckmann + Cauchy lobes), ``table`` (CIE R3 made a BRDF,
+an alpha dependence other than eq. 4's) -- and one inside, ``eq4`` (R3-like power variant).
+Each is "measured" by two instruments, A (bench/data/outside_a.toml, wide-ish: k_A down to about
+0.5) and B (bench/data/outside_b.toml: A with a second field stop and pupil), with 1.5 % normal
+noise: r_measured = r_true x k_A x (1 + noise), k_A by the float64 reference integrator (rtol 1e-3,
+Lambert calibration; never the code under test), cached in bench/data/outside_ka_TRUTH_INST.csv
+(made when missing or with --regenerate).
+
+Each measured table is corrected with --reference self --forward surface (eq. 4 backbone x
+correction surface), through A alone, B alone, and A + B jointly (--joint), with --backend
+(default quadrature, deterministic float64). Scores against the truth, per corrected table:
+RMS and max |ln(corrected / true)|, the share of cells within 2u, cells beyond 4u, RMS of
+(error / u), S1 against the true S1 in units of u(S1), u(S1)/S1, and the seconds.
+
+Targets (issue 19): outside eq. 4 -- RMS <= 2.5 %, max <= 8 %, >= 90 % within 2u, no cell beyond
+4u, 0.5 <= RMS(err/u) <= 1.3, |z(S1)| <= 2, u(S1) <= 5 % of S1; inside eq. 4 -- RMS <= 1.5 %,
+max <= 6 %; joint better than each instrument alone on the out-of-family truths; time <= 60 s per
+396-cell table, <= 120 s joint. Prints a table (load average beside every row), writes
+bench/results/outside.csv.
+
+    python bench/bench_outside.py [--regenerate] [--truths microfacet,two_lobes,table,eq4]
+                                  [--backend quadrature] [--only single|joint]
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+DATA = HERE / "data"
+RESULTS = HERE / "results"
+TRUTHS = ("microfacet", "two_lobes", "table", "eq4")
+INSTRUMENTS = {"A": DATA / "outside_a.toml", "B": DATA / "outside_b.toml"}
+NOISE = 0.015
+TRUTH_RTOL = 1e-3
+
+
+def load() -> str:
+    return "%.1f/%.1f/%.1f" % os.getloadavg()
+
+
+def truth_ka(kind: str, which: str, regenerate: bool) -> np.ndarray:
+    """k_A of the truth through instrument ``which`` by the float64 reference integrator, cached."""
+    from roadgonio.correction.synthetic import standard_mask, synthesize
+    from roadgonio.instrument.config import Instrument
+    from roadgonio.surface.rtable import RTable, read_table
+    from roadgonio.surface.truths import make_truth
+    cache = DATA / f"outside_ka_{kind}_{which}.csv"
+    if cache.exists() and not regenerate:
+        return read_table(cache).r * 1e4
+    inst = Instrument.load(INSTRUMENTS[which])
+    t0 = time.perf_counter()
+    s = synthesize(make_truth(kind), inst, noise=0.0, backend="reference", backend_settings={"rtol": TRUTH_RTOL},
+                   mask=standard_mask())
+    RTable(s.k_a, name="k_a", source=f"k_A of the {kind} truth by {inst.name} (Lambert calibration), float64 "
+                                     f"reference integrator rtol {TRUTH_RTOL:g}, {time.perf_counter() - t0:.0f} s; "
+                                     "made by bench/bench_outside.py").write_csv(cache, scale=1.0, digits=10)
+    return s.k_a
+
+
+def measured(kind: str, which: str, k: np.ndarray, seed: int):
+    from roadgonio.correction.synthetic import standard_mask
+    from roadgonio.surface.fit import model_r_on_grid
+    from roadgonio.surface.rtable import RTable
+    from roadgonio.surface.truths import make_truth
+    m = standard_mask()
+    r_true = np.where(m, model_r_on_grid(make_truth(kind), RTable(np.where(m, 1.0, np.nan))), np.nan)
+    rng = np.random.default_rng(seed)
+    eps = np.zeros(m.shape)
+    eps[m] = NOISE * rng.standard_normal(int(m.sum()))
+    return (RTable(np.where(m, r_true * k * (1 + eps), np.nan), name=f"{kind}_{which}"),
+            RTable(r_true, name=f"{kind}_truth"))
+
+
+def scores(corrected, u_rel: np.ndarray, after: dict, truth) -> dict:
+    m = corrected.mask
+    err = np.log(corrected.r[m] / truth.r[m])
+    z = err / u_rel
+    s1_true = truth.s1()
+    return {"rms_pct": 100 * float(np.sqrt(np.mean(err ** 2))), "max_pct": 100 * float(np.max(np.abs(err))),
+            "within_2u_pct": 100 * float(np.mean(np.abs(z) <= 2)), "beyond_4u": int(np.sum(np.abs(z) > 4)),
+            "rms_z": float(np.sqrt(np.mean(z ** 2))), "S1_true": s1_true, "S1": after["S1"],
+            "z_S1": (after["S1"] - s1_true) / after["u_S1"], "u_S1_pct": 100 * after["u_S1"] / after["S1"],
+            "u_median_pct": 100 * float(np.median(u_rel))}
+
+
+def verdict(kind: str, s: dict) -> str:
+    if kind == "eq4":
+        ok = s["rms_pct"] <= 1.5 and s["max_pct"] <= 6.0
+    else:
+        ok = s["rms_pct"] <= 2.5 and s["max_pct"] <= 8.0
+    ok = ok and s["within_2u_pct"] >= 90 and s["beyond_4u"] == 0 and 0.5 <= s["rms_z"] <= 1.3 \
+        and abs(s["z_S1"]) <= 2 and s["u_S1_pct"] <= 5
+    return "met" if ok else "NOT met"
+
+
+COLS = [("truth", 10, "s"), ("method", 22, "s"), ("rms_pct", 6, ".2f"), ("max_pct", 6, ".2f"),
+        ("within_2u_pct", 6, ".1f"), ("beyond_4u", 4, "d"), ("rms_z", 5, ".2f"), ("S1_true", 6, ".3f"),
+        ("S1", 6, ".3f"), ("z_S1", 6, ".2f"), ("u_S1_pct", 6, ".2f"), ("u_median_pct", 6, ".2f"),
+        ("birge", 5, ".2f"), ("k_a_min", 5, ".2f"), ("seconds", 6, ".1f"), ("targets", 8, "s"), ("load", 14, "s")]
+HEAD = {"rms_pct": "RMS%", "max_pct": "max%", "within_2u_pct": "in2u%", "beyond_4u": ">4u", "rms_z": "rmsz",
+        "u_S1_pct": "uS1%", "u_median_pct": "umed%", "k_a_min": "kmin", "seconds": "s"}
+
+
+def print_row(r: dict) -> None:
+    out = []
+    for key, w, f in COLS:
+        v = r.get(key, "")
+        if v == "" or (isinstance(v, float) and not np.isfinite(v)):
+            out.append(" " * w)
+        else:
+            out.append(format(v, f).ljust(w) if f == "s" else format(v, f).rjust(w))
+    print("  ".join(out), flush=True)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--regenerate", action="store_true", help="recompute the cached reference k_A of the truths")
+    ap.add_argument("--truths", default=",".join(TRUTHS))
+    ap.add_argument("--backend", default="quadrature", help="k_A backend of the correction (default quadrature)")
+    ap.add_argument("--only", choices=["single", "joint"])
+    args = ap.parse_args()
+    from roadgonio import api
+    from roadgonio.instrument.config import Instrument
+    insts = {w: Instrument.load(p) for w, p in INSTRUMENTS.items()}
+    print(f"machine: {os.cpu_count()} cores; load average at start {load()}; backend {args.backend}; "
+          f"noise {100 * NOISE:g} %")
+    print("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
+    rows: list[dict] = []
+    for n, kind in enumerate(args.truths.split(",")):
+        tabs = {}
+        for w in INSTRUMENTS:
+            k = truth_ka(kind, w, args.regenerate)
+            tabs[w] = measured(kind, w, k, seed=100 + 10 * n + (w == "B"))
+            meas, truth = tabs[w]
+            m = meas.mask
+            err = np.log(meas.r[m] / truth.r[m])
+            rows.append({"truth": kind, "method": f"{w} as measured", "rms_pct": 100 * float(np.sqrt(np.mean(err ** 2))),
+                         "max_pct": 100 * float(np.max(np.abs(err))), "S1_true": truth.s1(), "S1": meas.s1(),
+                         "k_a_min": float(np.nanmin(k)), "load": load()})
+            print_row(rows[-1])
+        if args.only in (None, "single"):
+            for w in INSTRUMENTS:
+                meas, truth = tabs[w]
+                t0 = time.perf_counter()
+                res = api.correct(meas, insts[w], forward="surface", u_measured=f"{100 * NOISE:g}%",
+                                  backend=args.backend, seed=0)
+                sec = time.perf_counter() - t0
+                s = scores(res.corrected, res.budget.u_rel(), res.after, truth)
+                rows.append({"truth": kind, "method": f"{w} alone (surface)", **s, "birge": res.fit.birge,
+                             "k_a_min": float(np.nanmin(res.k_a)), "seconds": sec, "targets": verdict(kind, s),
+                             "load": load()})
+                print_row(rows[-1])
+        if args.only in (None, "joint"):
+            t0 = time.perf_counter()
+            res = api.correct([tabs["A"][0], tabs["B"][0]], [insts["A"], insts["B"]], joint=True,
+                              u_measured=f"{100 * NOISE:g}%", backend=args.backend, seed=0)
+            sec = time.perf_counter() - t0
+            truth = tabs["A"][1]
+            s = scores(res.corrected, res.budget.u_rel(), res.after, truth)
+            rows.append({"truth": kind, "method": "A + B joint", **s, "birge": res.best.fit.birge,
+                         "k_a_min": float(np.nanmin(res.parts[0].k_a)), "seconds": sec, "targets": verdict(kind, s),
+                         "load": load()})
+            print_row(rows[-1])
+    RESULTS.mkdir(exist_ok=True)
+    with open(RESULTS / "outside.csv", "w", newline="") as f:
+        wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS], extrasaction="ignore")
+        wr.writeheader()
+        wr.writerows(rows)
+    print(f"wrote {RESULTS / 'outside.csv'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

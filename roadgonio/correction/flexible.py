@@ -1,0 +1,472 @@
+"""A forward model that can follow a surface outside eq. 4: the backbone times the correction
+surface of :mod:`roadgonio.surface.correction_surface`, fitted through one or several instruments
+with a regularisation whose strength the data choose (docs/correction.md, "Outside eq. 4").
+
+    f(w_i, w_o) = f_0(w_i, w_o) exp( g_C(beta, eps_i) + l(alpha) g_D(beta, eps_i) )
+
+For fixed ray bundles (:class:`roadgonio.engines.bundle.RayBundles`) the simulated measurement
+of cell c is ``s_c(theta) = rho_c cos^3(eps_c) kappa_c sum_k a_k f_0,k exp(g_k(theta))`` with g
+linear in the spline coefficients theta = (theta_C, theta_D); its Jacobian is a sum over the same
+rays. The fit maximises the posterior
+
+    -2 ln p = sum_c ((s_c - y_c) / u_c)^2 + lambda theta_C^T P_C theta_C + theta_D^T Q_D theta_D
+
+* ``P_C`` the squared second differences of g_C's node values along beta and eps (a P-spline
+  roughness penalty: the prior "g_C is smooth", null space the constant, so the level is free);
+  ``lambda`` is chosen by the data, by maximising the evidence (the marginal likelihood, Laplace
+  approximation at the mode; MacKay 1992, "Bayesian interpolation"); the generalised
+  cross-validation score is computed beside it (``SurfaceFit.gcv``) but the two choices have not
+  been compared in a benchmark;
+* ``Q_D = (I + P_D) / sd_D^2``: a proper Gaussian prior on g_D, the extra log-derivative of the BRDF
+  in ln alpha, of scale ``sd_D`` (default 1: the masking of a rough surface at grazing observation
+  gives d ln f / d ln alpha ~ 1, eq. 4 without its g attenuation gives 0). One instrument barely
+  constrains g_D, so its posterior stays near this prior and widens u where k_A depends on it; two
+  aperture settings measure it.
+
+The mode is found by Levenberg-Marquardt (Gauss-Newton on the penalised sum of squares); lambda
+by alternating the mode with the exact maximum of the evidence of the problem linearised at the
+mode (the eigen-decomposition of the penalty relative to the Hessian makes every lambda cost O(n)).
+The posterior covariance of theta is the inverse Hessian at the mode, ``H = J^T W J + Lambda``,
+and the covariance of ln k_A follows by the Jacobian of ln k_A (:meth:`FlexPart.lnk_jacobian`).
+"""
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import numpy as np
+import scipy.sparse as sparse
+from scipy.linalg import cho_factor, cho_solve
+
+from roadgonio.engines.bundle import ForwardModel
+from roadgonio.engines.result import ratio_se
+from roadgonio.errors import InputError
+from roadgonio.surface.correction_surface import SplineGrid, SplineOps, alpha_coordinate, lookup
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.model import RoadModel
+
+#: The default knots of g_C (fine: the narrow peak at beta = 0 and grazing incidence) and of g_D.
+C_GRID = SplineGrid(s_beta=24, beta_scale_deg=8.0, s_t=32, eps_step_deg=3.0, sec_gain=3.0, eps_max_deg=89.0)
+D_GRID = SplineGrid(s_beta=6, beta_scale_deg=8.0, s_t=8, eps_step_deg=12.0, sec_gain=1.0, eps_max_deg=89.0)
+#: Prior standard deviation of g_D (d ln f / d ln alpha beyond the backbone's).
+D_PRIOR_SD = 1.0
+#: Range of log10(lambda / unit), unit = the data's mean weight per cell, mean(y^2 / u^2).
+LOG_LAM_RANGE = (-8.0, 6.0)
+#: Stop updating the smoothing parameters when none changes by more than this (in ln lambda).
+LAM_TOL = 0.05
+#: The peak region of the penalties (penalty_blocks).
+PEAK_BETA_DEG = 12.0
+PEAK_EPS_DEG = 45.0
+#: Stop the mode search when the penalised chi^2 changes by less than this (relative).
+MODE_RTOL = 1e-8
+MAX_MODE_STEPS = 60
+MAX_OUTER = 20
+#: Mode steps between two updates of the smoothing parameters, and their over-relaxation.
+INNER_STEPS = 2
+OVER_RELAX = 1.6
+
+
+@dataclass(frozen=True)
+class SurfaceSettings:
+    """How the correction surface is fitted (module docstring)."""
+
+    c_grid: SplineGrid = C_GRID
+    d_grid: SplineGrid | None = D_GRID
+    d_prior_sd: float = D_PRIOR_SD
+    peak_beta_deg: float = PEAK_BETA_DEG
+    peak_eps_deg: float = PEAK_EPS_DEG
+    lam: float | None = None         # one fixed smoothing parameter for every block instead of the evidence
+
+    def __post_init__(self):
+        if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
+            raise InputError(f"expected a positive prior standard deviation of g_D, got {self.d_prior_sd}",
+                             field="d_prior_sd")
+
+    @property
+    def n_c(self) -> int:
+        return self.c_grid.n_params
+
+    @property
+    def n_d(self) -> int:
+        return 0 if self.d_grid is None else self.d_grid.n_params
+
+    def to_dict(self) -> dict[str, Any]:
+        from dataclasses import asdict
+        return {"c_grid": asdict(self.c_grid), "d_grid": None if self.d_grid is None else asdict(self.d_grid),
+                "d_prior_sd": self.d_prior_sd, "peak_beta_deg": self.peak_beta_deg,
+                "peak_eps_deg": self.peak_eps_deg, "lam": self.lam}
+
+
+class FlexPart:
+    """One instrument's forward model of the backbone times the correction surface, over fixed ray
+    bundles (module docstring). ``rho`` corrects the bundle's own error of the backbone's reading
+    (``k_backend / k_bundle``, :mod:`roadgonio.correction.run`); 1 when not given."""
+
+    def __init__(self, forward: ForwardModel, backbone: RoadModel, settings: SurfaceSettings,
+                 rho: np.ndarray | None = None):
+        b = forward.bundles
+        self.forward, self.backbone, self.settings = forward, backbone, settings
+        self.n = b.n_cells
+        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            f0 = np.asarray(backbone.evaluate(NumpyOps, b.wi, b.wo), dtype=np.float64)
+            self.f0_nominal = np.asarray(backbone.brdf(b.wi0, b.wo0[None, :]), dtype=np.float64)
+        self.af0 = np.broadcast_to(f0, b.a.shape) * b.a
+        self.cell_of = np.repeat(np.arange(self.n), b.rays_per_cell)
+        self.rho = np.ones(self.n) if rho is None else np.asarray(rho, dtype=np.float64)
+        self.scale = b.cos3 * forward.kappa * self.rho
+        wo0 = tuple(np.full(self.n, b.wo0[k]) for k in range(3))
+        wi0 = tuple(b.wi0[:, k] for k in range(3))
+        self.grids = [settings.c_grid] + ([settings.d_grid] if settings.d_grid is not None else [])
+        self._T = [sparse.csr_matrix(g.padded_matrix()) for g in self.grids]
+        self._G = [int(np.prod(g.pad_shape)) for g in self.grids]
+        self._idx, self._w, self._nominal = [], [], []
+        ell = np.asarray(alpha_coordinate(NumpyOps, b.wo), dtype=np.float64)
+        for k, g in enumerate(self.grids):
+            pairs = lookup(SplineOps, g, b.wi, b.wo)
+            idx = np.stack([np.rint(i).astype(np.int64) for i, _ in pairs])
+            w = np.stack([np.broadcast_to(v, idx.shape[1:]) for _, v in pairs]).astype(np.float64)
+            if k == 1:
+                w = w * ell[None, :]                      # g_D enters as l(alpha) g_D
+            self._idx.append(idx)
+            self._w.append(w)
+            N = np.zeros((self.n, self._G[k]))
+            for i, v in lookup(SplineOps, g, wi0, wo0):
+                np.add.at(N, (np.arange(self.n), np.rint(i).astype(np.int64)), v)
+            if k == 0:                                    # the nominal value: g_C only (alpha = 1 deg: l = 0)
+                self._nominal = np.asarray(N @ self._T[0])
+            else:                                         # g_D at the nominal directions (diagnostics)
+                self._nominal_d = np.asarray(N @ self._T[1])
+        self._bins = [self.cell_of[None, :] * G + idx for G, idx in zip(self._G, self._idx)]
+
+    @property
+    def n_params(self) -> int:
+        return self.settings.n_c + self.settings.n_d
+
+    def _split(self, theta: np.ndarray) -> list[np.ndarray]:
+        return [theta[:self.settings.n_c], theta[self.settings.n_c:]][:len(self.grids)]
+
+    def g_rays(self, theta: np.ndarray) -> np.ndarray:
+        g = np.zeros(self.af0.shape)
+        for T, idx, w, th in zip(self._T, self._idx, self._w, self._split(theta)):
+            g += np.sum(w * (T @ th)[idx], axis=0)
+        return g
+
+    def mean_and_jacobian(self, theta: np.ndarray, jacobian: bool = True):
+        """(<f_0 exp g>_c, d/dtheta of it (cells, n_params) or None)."""
+        e = self.af0 * np.exp(np.minimum(self.g_rays(theta), 50.0))
+        mean = np.bincount(self.cell_of, weights=e, minlength=self.n)
+        if not jacobian:
+            return mean, None
+        cols = []
+        for T, G, w, bins in zip(self._T, self._G, self._w, self._bins):
+            M = np.bincount(bins.ravel(), weights=(w * e[None, :]).ravel(), minlength=self.n * G).reshape(self.n, G)
+            cols.append(np.asarray(M @ T))
+        return mean, np.hstack(cols)
+
+    def simulate(self, theta: np.ndarray, jacobian: bool = True):
+        """(simulated measured r per cell, its Jacobian in theta)."""
+        mean, J = self.mean_and_jacobian(theta, jacobian)
+        return self.scale * mean, (None if J is None else self.scale[:, None] * J)
+
+    def g_nominal(self, theta: np.ndarray) -> np.ndarray:
+        return self._nominal @ theta[:self.settings.n_c]
+
+    def surfaces_at_cells(self, theta: np.ndarray, cov: np.ndarray | None = None) -> dict[str, np.ndarray]:
+        """At the cells' nominal directions: g_C, its posterior standard deviation (with ``cov``) and
+        g_D (NaN without g_D) -- what the correction surface does to the table."""
+        n_c = self.settings.n_c
+        out = {"g_c": self._nominal @ theta[:n_c]}
+        if cov is not None:
+            out["sd_g_c"] = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", self._nominal, cov[:n_c, :n_c],
+                                                         self._nominal), 0.0))
+        out["g_d"] = (self._nominal_d @ theta[n_c:]) if self.settings.n_d else np.full(self.n, np.nan)
+        return out
+
+    def k_a(self, theta: np.ndarray) -> np.ndarray:
+        """k_A of the corrected model under the instrument's calibration (times rho)."""
+        mean, _ = self.mean_and_jacobian(theta, jacobian=False)
+        return self.forward.kappa * self.rho * mean / (self.f0_nominal * np.exp(self.g_nominal(theta)))
+
+    def lnk_jacobian(self, theta: np.ndarray) -> np.ndarray:
+        """d ln k_A / d theta, (cells, n_params)."""
+        mean, J = self.mean_and_jacobian(theta)
+        K = J / mean[:, None]
+        K[:, :self.settings.n_c] -= self._nominal
+        return K
+
+    def ratio_se(self, theta: np.ndarray) -> np.ndarray:
+        """Standard error (relative) of the bundle's estimate of <f_0 exp g> / <f_0> per cell, from
+        its replicates: the bundle's own error of what the correction surface changes in k_A."""
+        b = self.forward.bundles
+        e = self.af0 * np.exp(np.minimum(self.g_rays(theta), 50.0))
+        num = np.add.reduceat(e, b.seg).reshape(self.n, b.replicates)
+        den = np.add.reduceat(self.af0, b.seg).reshape(self.n, b.replicates)
+        out = np.empty(self.n)
+        for c in range(self.n):
+            r, se = ratio_se(num[c], den[c])
+            out[c] = se / r if r > 0 else math.inf
+        return out
+
+
+@dataclass
+class SurfaceFit:
+    """The fitted correction surface (posterior mode and covariance) through one or more parts."""
+
+    theta: np.ndarray
+    cov: np.ndarray
+    lam: dict
+    log_evidence: float
+    gcv: float
+    chi2: float
+    edf: float
+    n: int
+    settings: SurfaceSettings
+    residual: list[np.ndarray]             # (s - y) / u per part
+    steps: int
+    seconds: float
+    history: list[dict] = field(default_factory=list)
+
+    @property
+    def dof(self) -> float:
+        return max(self.n - self.edf, 1.0)
+
+    @property
+    def birge(self) -> float:
+        return math.sqrt(self.chi2 / self.dof)
+
+    def lnk_cov(self, part: FlexPart, other: FlexPart | None = None) -> np.ndarray:
+        """Posterior covariance of ln k_A between the cells of ``part`` (and of ``other``)."""
+        Ka = part.lnk_jacobian(self.theta)
+        Kb = Ka if other is None else other.lnk_jacobian(self.theta)
+        return Ka @ self.cov @ Kb.T
+
+    def summary(self) -> dict[str, Any]:
+        return {"lambda": self.lam, "log_evidence": self.log_evidence, "gcv": self.gcv, "chi2": self.chi2,
+                "edf": self.edf, "cells": self.n, "birge_ratio": self.birge, "steps": self.steps,
+                "seconds": self.seconds, "settings": self.settings.to_dict()}
+
+
+def penalty_blocks(settings: SurfaceSettings) -> tuple[list[str], list[np.ndarray]]:
+    """The roughness penalties of g_C, one smoothing parameter each: the squared second
+    differences along beta and along eps, each split into the peak region (difference centred at
+    beta <= PEAK_BETA_DEG and eps >= PEAK_EPS_DEG, where road BRDFs have their narrow specular peak)
+    and the rest. Returns (names, matrices over theta_C)."""
+    g = settings.c_grid
+    beta, eps = g.node_coordinates()
+    names, mats = [], []
+    for direction, (D, centre) in zip(("beta", "eps"), g.differences()):
+        peak = (beta[centre[:, 0]] <= settings.peak_beta_deg) & (eps[centre[:, 1]] >= settings.peak_eps_deg)
+        for region, sel in (("peak", peak), ("rest", ~peak)):
+            if sel.any():
+                Ds = D[sel]
+                names.append(f"{direction}_{region}")
+                mats.append(Ds.T @ Ds)
+    return names, mats
+
+
+def d_prior(settings: SurfaceSettings) -> np.ndarray:
+    """The prior precision of theta_D: (I + P_D) / sd_D^2 (module docstring)."""
+    if settings.d_grid is None:
+        return np.zeros((0, 0))
+    Db, Dt = settings.d_grid.penalties()
+    return (np.eye(settings.n_d) + Db + Dt) / settings.d_prior_sd ** 2
+
+
+@contextlib.contextmanager
+def one_blas_thread():
+    """Run the dense algebra with one OpenBLAS thread (numpy's and scipy's copies), restored after.
+    With its threads spinning while the other core is busy, OpenBLAS made the 858 x 858 Cholesky
+    factorisation of :func:`fit_surface` 18 times slower on the 2-core machine under load (130 ms
+    instead of 7 ms). The libraries are found among the process's mapped files (Linux); elsewhere,
+    or if a library has no such call, nothing changes."""
+    done = []
+    try:
+        with open("/proc/self/maps", encoding="utf-8") as maps:
+            libs = sorted({line.split()[-1] for line in maps if "openblas" in line.split()[-1].lower()})
+    except OSError:
+        libs = []
+    for path in libs:
+        try:
+            lib = ctypes.CDLL(path)
+        except OSError:
+            continue
+        for prefix in ("scipy_openblas_", "openblas_"):
+            for suffix in ("64_", ""):
+                set_ = getattr(lib, f"{prefix}set_num_threads{suffix}", None)
+                get_ = getattr(lib, f"{prefix}get_num_threads{suffix}", None)
+                if set_ is not None and get_ is not None:
+                    get_.restype = ctypes.c_int
+                    done.append((set_, int(get_())))
+                    set_(ctypes.c_int(1))
+                    break
+            else:
+                continue
+            break
+    try:
+        yield
+    finally:
+        for set_, n in done:
+            set_(ctypes.c_int(n))
+
+
+def fit_surface(parts: Sequence[FlexPart], measured: Sequence[np.ndarray], u: Sequence[np.ndarray], *,
+                theta0: np.ndarray | None = None, lam0: Sequence[float] | None = None) -> SurfaceFit:
+    """The posterior mode of theta through ``parts`` (one or several instruments sharing the
+    surface) for the measured r ``measured[i]`` with standard uncertainties ``u[i]`` (sr^-1), the
+    smoothing parameters by the evidence (module docstring). Dense algebra with one BLAS thread
+    (:func:`one_blas_thread`)."""
+    with one_blas_thread():
+        return _fit_surface(parts, measured, u, theta0=theta0, lam0=lam0)
+
+
+def _fit_surface(parts, measured, u, *, theta0, lam0) -> SurfaceFit:
+    t0 = time.perf_counter()
+    settings = parts[0].settings
+    y = np.concatenate([np.asarray(v, dtype=np.float64) for v in measured])
+    uu = np.concatenate([np.asarray(v, dtype=np.float64) for v in u])
+    if y.shape != uu.shape or not np.all(np.isfinite(uu) & (uu > 0)):
+        raise InputError("every measured cell needs a positive standard uncertainty", field="--u-measured")
+    W = 1.0 / uu ** 2
+    n = y.size
+    n_c, n_d = settings.n_c, settings.n_d
+    names, Ps = penalty_blocks(settings)
+    Q = d_prior(settings)
+    logdet_Q = float(np.linalg.slogdet(Q)[1]) if n_d else 0.0
+    one = np.ones(n_c)                          # theta_C of a constant g_C: the null space of every block
+    unit = float(np.mean(W * y * y))            # lambdas in units of the data's weight per cell
+    if settings.lam is not None:
+        lam = np.full(len(Ps), float(settings.lam))
+    else:
+        lam = np.full(len(Ps), unit * 0.1) if lam0 is None else np.array(lam0, dtype=np.float64)
+    theta = np.zeros(n_c + n_d) if theta0 is None else np.array(theta0, dtype=np.float64)
+
+    def prior(lam_):
+        L = np.zeros((n_c + n_d, n_c + n_d))
+        L[:n_c, :n_c] = sum(l * P for l, P in zip(lam_, Ps))
+        if n_d:
+            L[n_c:, n_c:] = Q
+        return L
+
+    def simulate(th, jac=True):
+        sims = [p.simulate(th, jac) for p in parts]
+        return np.concatenate([a for a, _ in sims]), (np.vstack([b for _, b in sims]) if jac else None)
+
+    def mode(th, Lam, max_steps=MAX_MODE_STEPS):
+        """Gauss-Newton on the penalised sum of squares with a backtracking line search (H is
+        positive definite: the direction always descends); one Cholesky factorisation a step."""
+        s, J = simulate(th)
+        r = s - y
+        obj = float(np.sum(W * r * r)) + float(th @ Lam @ th)
+        steps = 0
+        for step in range(1, max_steps + 1):
+            steps = step
+            H = J.T @ (W[:, None] * J) + Lam
+            grad = J.T @ (W * (y - s)) - Lam @ th
+            d = cho_solve(cho_factor(H, check_finite=False), grad, check_finite=False)
+            t, accepted = 1.0, False
+            while t > 1e-4:
+                cand = th + t * d
+                s2, _ = simulate(cand, jac=False)
+                r2 = s2 - y
+                obj2 = float(np.sum(W * r2 * r2)) + float(cand @ Lam @ cand)
+                if obj2 < obj:
+                    accepted = True
+                    break
+                t *= 0.25
+            if not accepted:
+                break
+            rel = (obj - obj2) / max(obj, 1e-300)
+            th, obj = cand, obj2
+            s, J = simulate(th)
+            if rel < MODE_RTOL:
+                break
+        return th, s, J, steps
+
+    history: list[dict] = []
+    steps_total = 0
+    fixed = settings.lam is not None
+    for outer in range(1 if fixed else MAX_OUTER):
+        Lam = prior(lam)
+        theta, s, J, steps = mode(theta, Lam, MAX_MODE_STEPS if outer == 0 else INNER_STEPS)
+        steps_total += steps
+        if fixed:
+            break
+        A = J.T @ (W[:, None] * J)
+        Hinv = _spd_inverse(A + Lam)
+        S = Lam[:n_c, :n_c]
+        Sinv = _spd_inverse(S + np.outer(one, one) * (np.trace(S) / n_c ** 2))
+        th_c = theta[:n_c]
+        new = lam.copy()
+        for j, P in enumerate(Ps):
+            num = float(np.sum(Sinv * P)) - float(np.sum(Hinv[:n_c, :n_c] * P))
+            den = float(th_c @ P @ th_c)
+            ratio = num / den if den > 0 and num > 0 else 0.1
+            # the generalized Fellner-Schall step, over-relaxed in ln lambda (its steps shrink
+            # geometrically in one direction; OVER_RELAX > 1 takes fewer of them)
+            new[j] = lam[j] * min(max(ratio, 1e-2), 1e2) ** (OVER_RELAX if outer > 0 else 1.0)
+        lo, hi = unit * 10.0 ** LOG_LAM_RANGE[0], unit * 10.0 ** LOG_LAM_RANGE[1]
+        new = np.clip(new, lo, hi)
+        moving = ~(((new >= hi) & (lam >= hi)) | ((new <= lo) & (lam <= lo)))     # not pinned at a bound
+        change = float(np.max(np.abs(np.log(new / lam))[moving])) if moving.any() else 0.0
+        history.append({"lambda": dict(zip(names, lam.tolist())), "steps": steps, "change": change})
+        lam = new
+        if change < LAM_TOL:
+            Lam = prior(lam)
+            theta, s, J, steps = mode(theta, Lam, MAX_MODE_STEPS)
+            steps_total += steps
+            break
+    Lam = prior(lam)
+    A = J.T @ (W[:, None] * J)
+    H = A + Lam
+    cov = _spd_inverse(H)
+    edf = float(np.sum(cov * A))
+    r = s - y
+    chi2 = float(np.sum(W * r * r))
+    pen = float(theta @ Lam @ theta)
+    S = Lam[:n_c, :n_c]
+    c = np.trace(S) / n_c ** 2
+    logdet_S = float(np.linalg.slogdet(S + c * np.outer(one, one))[1]) - math.log(c * n_c)
+    log_ev = -0.5 * (chi2 + pen + float(np.linalg.slogdet(H)[1]) - logdet_S - logdet_Q) - 0.5 * n * math.log(2 * math.pi) \
+        - float(np.sum(np.log(uu)))
+    gcv = n * chi2 / max(n - edf, 1.0) ** 2
+    res, start = [], 0
+    for p in parts:
+        res.append(r[start:start + p.n] / uu[start:start + p.n])
+        start += p.n
+    return SurfaceFit(theta=theta, cov=cov, lam=dict(zip(names, lam.tolist())), log_evidence=log_ev, gcv=gcv,
+                      chi2=chi2, edf=edf, n=n, settings=settings, residual=res, steps=steps_total,
+                      seconds=time.perf_counter() - t0, history=history)
+
+
+def _spd_inverse(M: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive definite matrix by Cholesky."""
+    from scipy.linalg import cho_factor, cho_solve
+    c = cho_factor(0.5 * (M + M.T), lower=True, check_finite=False)
+    return cho_solve(c, np.eye(M.shape[0]), check_finite=False)
+
+
+def expected_posterior(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict, u_rel: Sequence[np.ndarray]) -> np.ndarray:
+    """The posterior covariance of theta that measurements through ``parts`` would give at the
+    surface ``theta`` with smoothing parameters ``lam`` (names of :func:`penalty_blocks`) and relative
+    standard uncertainties ``u_rel`` (per part and cell): the inverse of ``J^T W J + Lambda`` with
+    the measured values taken as the simulated ones (linearised: the posterior covariance of a
+    Gaussian model does not depend on the measured values). The design of a second aperture
+    (:mod:`roadgonio.design.second_aperture`) ranks candidates by it."""
+    settings = parts[0].settings
+    names, Ps = penalty_blocks(settings)
+    n_c, n_d = settings.n_c, settings.n_d
+    Lam = np.zeros((n_c + n_d, n_c + n_d))
+    Lam[:n_c, :n_c] = sum(float(lam[k]) * P for k, P in zip(names, Ps))
+    if n_d:
+        Lam[n_c:, n_c:] = d_prior(settings)
+    H = Lam.copy()
+    with one_blas_thread():
+        for p, ur in zip(parts, u_rel):
+            s, J = p.simulate(theta)
+            w = 1.0 / (np.asarray(ur, dtype=np.float64) * s) ** 2
+            H += J.T @ (w[:, None] * J)
+        return _spd_inverse(H)

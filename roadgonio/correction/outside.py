@@ -1,0 +1,512 @@
+"""Correcting a surface that is not eq. 4, with one instrument or several (docs/correction.md,
+"Outside eq. 4"): the backbone (eq. 4, each variant fitted through the instruments) times the
+correction surface (:mod:`roadgonio.correction.flexible`), and an uncertainty that covers the model.
+
+Procedure (:func:`correct_surface`):
+
+1. the backbone: every variant of ``variants`` fitted through all the instruments at once
+   (:class:`roadgonio.engines.bundle.StackedForward`; stage A multi-start, the best by chi^2
+   polished, :func:`roadgonio.correction.run.fit_self`);
+2. k_A of the best backbone by the chosen backend through each instrument (journalled like
+   ``roadgonio ka``), and the bundles' own error of it, ``rho = k_backend / k_bundle``;
+3. for every variant, the correction surface through all the instruments (one surface shared by
+   them), its smoothing parameters by the evidence; the variants are then weighed by their
+   evidence (posterior model probabilities under equal priors, MacKay 1992), so a variant that fits
+   much worse gets no weight;
+4. per instrument, ln k_A and its covariance: the weighted mean over the variants of ln k_A of the
+   corrected model (times rho); the covariance is the weighted posterior covariance of the surface
+   (``surface``) plus the spread of the variants about the mean (``model``); where the normalised
+   residuals have structure the two are widened by the local Birge ratio (``max(1, B_c)``, B_c^2 the
+   leverage-corrected mean squared normalised residual over the neighbouring cells); plus the
+   bundle's own error of what the surface changes (``bundle``) and the backend's (``backend``);
+5. per instrument the corrected table r / k_A; with several instruments one table, per cell the
+   generalised least squares combination of the instruments' corrected values with the full
+   covariance between them (their surfaces are one, so their errors correlate).
+
+Results: :class:`SurfaceCorrection` (the combined table, its budget, each instrument's
+:class:`InstrumentPart`, the fits and their diagnostics); :func:`to_correction_result` gives the
+classic :class:`roadgonio.correction.run.CorrectionResult` of a single instrument.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from roadgonio.correction.budget import Budget, functionals, misalignment_covariance
+from roadgonio.correction.fit import fit_through_instrument
+from roadgonio.correction.flexible import FlexPart, SurfaceFit, SurfaceSettings, fit_surface, one_blas_thread
+from roadgonio.engines.bundle import DEFAULT_RAYS, StackedForward
+from roadgonio.errors import InputError
+from roadgonio.instrument.config import Instrument
+from roadgonio.surface.model import VARIANTS, RoadModel
+from roadgonio.surface.rtable import RTable
+
+#: The backbone variants fitted and weighed by default.
+DEFAULT_VARIANTS = ("power", "smooth")
+#: Width (in grid cells) of the neighbourhood of the local Birge ratio.
+BIRGE_WIDTH_CELLS = 2.0
+#: Components of the budget of a corrected table (in this order).
+COMPONENTS = ("measurement", "backend", "surface", "model", "bundle", "misalignment")
+
+
+@dataclass
+class VariantFit:
+    """One backbone variant with its correction surface."""
+
+    variant: str
+    backbone: RoadModel
+    backbone_chi2: float
+    fit: SurfaceFit
+    parts: list[FlexPart]
+    weight: float = 0.0
+
+    def summary(self) -> dict[str, Any]:
+        return {"variant": self.variant, "weight": self.weight, "backbone_chi2": self.backbone_chi2,
+                "backbone": self.backbone.to_json_dict(), **self.fit.summary()}
+
+
+@dataclass
+class InstrumentPart:
+    """One instrument's view: its measured table, k_A and its corrected table."""
+
+    instrument: Instrument
+    measured: RTable
+    u_measured: np.ndarray            # grid (sr^-1)
+    u_what: str
+    k_a: np.ndarray                   # grid, k_A of the corrected model (weighted over variants)
+    k_backend: np.ndarray             # grid, backend k_A of the best backbone
+    k_se: np.ndarray                  # grid, backend standard uncertainty of that k_A
+    corrected: RTable
+    u_corrected: np.ndarray           # grid (sr^-1), standard uncertainty of ``corrected``
+    budget: Budget                    # of this instrument's own corrected table
+    residual: np.ndarray              # grid, (simulated - measured) / u of the best variant
+    birge_local: np.ndarray           # grid, local Birge ratio
+    widening: np.ndarray              # grid, the factor on the surface and model components (>= 1)
+    simulated: np.ndarray             # grid, simulated measured r of the best variant's corrected model
+    model_r: np.ndarray               # grid, r of the best variant's corrected model at the nominal geometry
+    surfaces: dict[str, np.ndarray]   # grids of g_C, its posterior sd and g_D at the cells (best variant)
+    backend_info: dict[str, Any]
+    before: dict[str, Any]
+    after: dict[str, Any]
+
+    @property
+    def name(self) -> str:
+        return self.instrument.name
+
+
+@dataclass
+class SurfaceCorrection:
+    """The result of :func:`correct_surface`."""
+
+    parts: list[InstrumentPart]
+    corrected: RTable
+    u_corrected: np.ndarray           # grid (sr^-1), standard uncertainty of ``corrected``
+    budget: Budget                    # of the combined table (its measured cells, row-major)
+    after: dict[str, Any]
+    variants: list[VariantFit]
+    settings: SurfaceSettings
+    provenance: dict[str, Any]
+    seconds: float
+    timings: dict[str, float] = field(default_factory=dict)
+    out: Path | None = None            # where the files were written (correction.files.correct_joint)
+    written: list = field(default_factory=list)
+
+    @property
+    def best(self) -> VariantFit:
+        return max(self.variants, key=lambda v: v.weight)
+
+    @property
+    def joint(self) -> bool:
+        return len(self.parts) > 1
+
+    def summary(self) -> dict[str, Any]:
+        a = self.after
+        m = self.corrected.mask
+        u = self.budget.u_rel()
+        out = {"instruments": [p.name for p in self.parts], "cells": int(m.sum()),
+               "S1": a["S1"], "u_S1": a.get("u_S1"), "Q0": a["Q0"], "u_Q0": a.get("u_Q0"), "S2": a["S2"],
+               "u_S2": a.get("u_S2"), "class_R": a["class"]["R"], "class_C": a["class"]["C"],
+               "nearest_table": a["nearest_table"], "u_rel_median": float(np.median(u)),
+               "u_rel_max": float(np.max(u)), "budget": self.budget.summary(),
+               "variants": [v.summary() for v in self.variants], "seconds": self.seconds, "timings": self.timings}
+        out["per_instrument"] = [{
+            "instrument": p.name, "cells": int(p.measured.mask.sum()),
+            "k_a_min": float(np.nanmin(p.k_a)), "k_a_max": float(np.nanmax(p.k_a)),
+            "birge_ratio": float(math.sqrt(np.nanmean(p.residual ** 2))),
+            "birge_local_max": float(np.nanmax(p.birge_local)),
+            "before": {k: p.before.get(k) for k in ("S1", "u_S1", "Q0", "u_Q0")},
+            "after": {k: p.after.get(k) for k in ("S1", "u_S1", "Q0", "u_Q0")},
+            "u_rel_median": float(np.median(p.budget.u_rel())), "backend": p.backend_info} for p in self.parts]
+        return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Pieces
+# ----------------------------------------------------------------------------------------------
+
+def _grid(table: RTable, values: np.ndarray) -> np.ndarray:
+    g = np.full(table.r.shape, np.nan)
+    g[table.mask] = values
+    return g
+
+
+def local_birge(table: RTable, residual: np.ndarray, leverage: np.ndarray,
+                width: float = BIRGE_WIDTH_CELLS) -> tuple[np.ndarray, np.ndarray]:
+    """Per measured cell, the local Birge ratio B_c: the square root of the mean over the neighbouring
+    cells (Gaussian weights of ``width`` grid cells) of ``r^2 / (1 - h)``, r the normalised residual
+    and h the cell's leverage (its expected r^2 under the model is 1 - h); and the widening factor:
+    B_c where B_c^2 exceeds what noise alone gives at two standard deviations,
+    ``1 + 2 sqrt(2 / n_eff)`` (n_eff the effective number of cells in the neighbourhood), else 1.
+    Returns (B, widening)."""
+    ii, jj = np.nonzero(table.mask)
+    r2 = residual ** 2 / np.clip(1.0 - leverage, 0.05, 1.0)
+    d2 = (ii[:, None] - ii[None, :]) ** 2 + (jj[:, None] - jj[None, :]) ** 2
+    K = np.exp(-0.5 * d2 / width ** 2)
+    b2 = K @ r2 / K.sum(axis=1)
+    n_eff = K.sum(axis=1) ** 2 / (K * K).sum(axis=1)
+    widen = np.where(b2 > 1.0 + 2.0 * np.sqrt(2.0 / n_eff), np.sqrt(b2), 1.0)
+    return np.sqrt(b2), widen
+
+
+def _weights(log_ev: Sequence[float]) -> np.ndarray:
+    a = np.asarray(log_ev, dtype=np.float64)
+    w = np.exp(a - a.max())
+    return w / w.sum()
+
+
+def combine(lnr: Sequence[np.ndarray], cells: Sequence[list], cov_big: np.ndarray,
+            union: list) -> tuple[np.ndarray, np.ndarray]:
+    """Per cell of ``union``, the GLS combination of the instruments' ln r that have the cell, with
+    the 2x2 (or larger) covariance between them taken from ``cov_big`` (over the concatenated cells
+    of all instruments). Returns (ln r combined, G) with combined = G @ concatenated ln r, so the
+    combined covariance of any component C_big is ``G C_big G^T``."""
+    offsets = np.cumsum([0] + [len(c) for c in cells])
+    index = [{(round(t, 9), round(b, 9)): k for k, (t, b) in enumerate(c)} for c in cells]
+    G = np.zeros((len(union), int(offsets[-1])))
+    x = np.concatenate([np.asarray(v, dtype=np.float64) for v in lnr])
+    for n, (t, b) in enumerate(union):
+        key = (round(t, 9), round(b, 9))
+        rows = [offsets[i] + index[i][key] for i in range(len(cells)) if key in index[i]]
+        S = cov_big[np.ix_(rows, rows)]
+        try:
+            w = np.linalg.solve(S, np.ones(len(rows)))
+        except np.linalg.LinAlgError:
+            w = np.ones(len(rows))
+        w = w / w.sum()
+        G[n, rows] = w
+    return G @ x, G
+
+
+def _as_list(value, n: int, what: str) -> list:
+    if isinstance(value, (list, tuple)):
+        if len(value) != n:
+            raise InputError(f"expected one {what} per measured table ({n}), got {len(value)}", field=what)
+        return list(value)
+    return [value] * n
+
+
+# ----------------------------------------------------------------------------------------------
+# The procedure
+# ----------------------------------------------------------------------------------------------
+
+def correct_surface(tables: Sequence[RTable], instruments: Sequence[Instrument], *, u_measured: Any = "1%",
+                    sigma: Any = None, backend: str = "mitsuba", backend_settings: Mapping[str, Any] | None = None,
+                    accuracy: str | None = None, factory=None, out_dir: str | Path | None = None,
+                    artefacts: Sequence[Any] | None = None, rays: int = DEFAULT_RAYS, seed: int = 0,
+                    starts: int | None = None, polish: int | None = None, rounds: int | None = None,
+                    variants: Sequence[str] = DEFAULT_VARIANTS, settings: SurfaceSettings | None = None,
+                    misalignment_rays: int = 256, progress: bool = True) -> SurfaceCorrection:
+    """Correct one measured table per instrument with one surface behind them all (module
+    docstring). ``u_measured`` and ``sigma`` may be one value for all or one per table. The dense
+    algebra runs with one BLAS thread (:func:`roadgonio.correction.flexible.one_blas_thread`)."""
+    with one_blas_thread():
+        return _correct_surface(tables, instruments, u_measured=u_measured, sigma=sigma, backend=backend,
+                                backend_settings=backend_settings, accuracy=accuracy, factory=factory,
+                                out_dir=out_dir, artefacts=artefacts, rays=rays, seed=seed, starts=starts,
+                                polish=polish, rounds=rounds, variants=variants, settings=settings,
+                                misalignment_rays=misalignment_rays, progress=progress)
+
+
+def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend_settings, accuracy, factory,
+                     out_dir, artefacts, rays, seed, starts, polish, rounds, variants, settings, misalignment_rays,
+                     progress) -> SurfaceCorrection:
+    from roadgonio.correction import run as _run
+    t0 = time.perf_counter()
+    tables, instruments = list(tables), list(instruments)
+    if not tables or len(tables) != len(instruments):
+        raise InputError(f"expected one instrument per measured table, got {len(tables)} table(s) and "
+                         f"{len(instruments)} instrument(s)", field="--instrument")
+    variants = tuple(variants)
+    bad = [v for v in variants if v not in VARIANTS]
+    if not variants or bad:
+        raise InputError(f"unknown model variant(s) {', '.join(bad) or '(none)'}; expected some of "
+                         f"{', '.join(VARIANTS)}", field="--model-variant")
+    settings = settings or SurfaceSettings()
+    u_specs = _as_list(u_measured, len(tables), "--u-measured")
+    sigmas = [_run._sigma(s) for s in _as_list(sigma, len(tables), "--sigma")]
+    for t in tables:
+        _run.check_measured(t)
+        _run._check_fit_cells(t)
+    u_grids = [_run.measured_uncertainty(s, t) for s, t in zip(u_specs, tables)]
+    out = Path(out_dir) if out_dir is not None else None
+    arts = list(artefacts) if artefacts is not None else [
+        _run.InstrumentArtefacts(inst, rays=rays, seed=seed) for inst in instruments]
+    timings: dict[str, float] = {}
+    tick = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal tick
+        now = time.perf_counter()
+        timings[name] = timings.get(name, 0.0) + now - tick
+        tick = now
+
+    names = [t.name for t in tables]
+    label = " + ".join(names)
+    _run._say(progress, f"{label}: ray bundles")
+    fms = [a.forward(t.cells) for a, t in zip(arts, tables)]
+    ys = [t.r[t.mask] for t in tables]
+    us = [g[t.mask] for (g, _), t in zip(u_grids, tables)]
+    stacked = StackedForward(fms)
+    y_all, u_all = np.concatenate(ys), np.concatenate(us)
+    lap("bundles")
+    factory = factory or _run.default_factory(backend, backend_settings, accuracy)
+    fit_opts = {k: v for k, v in (("starts", starts), ("polish", polish), ("rounds", rounds)) if v is not None}
+    key_settings = {"variants": list(variants), "rays": [a.rays for a in arts], "seed": seed, **fit_opts,
+                    "backend": backend, "backend_settings": dict(backend_settings or {}), "accuracy": accuracy,
+                    "surface": settings.to_dict(), "instruments": [i.to_dict() for i in instruments[1:]]}
+    state = _run._FitState(out, _run._state_key(_stack_tables(tables), np.concatenate(
+        [g for g, _ in u_grids], axis=1), instruments[0], key_settings))
+
+    # 1. the backbones through every instrument at once
+    backbones: dict[str, RoadModel] = {}
+    for v in variants:
+        m = state.get(f"stage-a-{v}")
+        if m is None:
+            _run._say(progress, f"{label}: fitting the {v} backbone through the instrument(s)")
+            m = _run.fit_self(stacked, y_all, u_all, v, seed=seed, stage_b=False, name=label, **fit_opts).model
+            state.put(f"stage-a-{v}", m)
+        backbones[v] = m
+    chi2 = {v: float(np.sum(((stacked.r_measured(m) - y_all) / u_all) ** 2)) for v, m in backbones.items()}
+    main = min(chi2, key=chi2.get)
+    polished = state.get(f"fit-{main}")
+    if polished is None:
+        polished = fit_through_instrument(stacked, y_all, u_all, variant=main, start_models=[backbones[main]],
+                                          stage_a=False, seed=seed, name=label).model
+        state.put(f"fit-{main}", polished)
+    backbones[main] = polished
+    chi2[main] = float(np.sum(((stacked.r_measured(polished) - y_all) / u_all) ** 2))
+    lap("backbone")
+
+    # 2. backend k_A of the best backbone through each instrument; the bundles' error rho
+    k_back, se_back, infos, rhos = [], [], [], []
+    for i, (inst, t, fm) in enumerate(zip(instruments, tables, fms)):
+        _run._say(progress, f"{label}: k_A of the {main} backbone through {inst.name} ({backend})")
+        jdir = None if out is None else out / (f"forward-{i + 1}" if len(tables) > 1 else "forward-1")
+        k_b, se_b, info = _run._backend_k(factory, inst, polished, t.cells, jdir, progress)
+        k_back.append(k_b)
+        se_back.append(se_b)
+        infos.append(info)
+        rhos.append(k_b / fm.k_a(polished))
+    lap("backend")
+
+    # 3. the correction surface of every variant, and the variants' weights
+    vfits: list[VariantFit] = []
+    warm: tuple | None = None
+    for v in sorted(variants, key=lambda x: x != main):          # the best backbone first: a warm start
+        _run._say(progress, f"{label}: the correction surface over the {v} backbone")
+        parts = [FlexPart(fm, backbones[v], settings, rho) for fm, rho in zip(fms, rhos)]
+        sf = fit_surface(parts, ys, us, theta0=None if warm is None else warm[0],
+                         lam0=None if warm is None else warm[1])
+        if warm is None:
+            warm = (sf.theta, list(sf.lam.values()))
+        vfits.append(VariantFit(v, backbones[v], chi2[v], sf, parts))
+    for vf, w in zip(vfits, _weights([vf.fit.log_evidence for vf in vfits])):
+        vf.weight = float(w)
+    lap("surface")
+
+    # 4. ln k_A of every instrument, and its covariance components (concatenated cells)
+    n_i = [len(y) for y in ys]
+    off = np.cumsum([0] + n_i)
+    N = int(off[-1])
+    lnk = np.zeros(N)
+    lnk_v, jac_v = [], []
+    for vf in vfits:
+        lk = np.concatenate([np.log(p.k_a(vf.fit.theta)) for p in vf.parts])
+        K = np.vstack([p.lnk_jacobian(vf.fit.theta) for p in vf.parts])
+        lnk_v.append(lk)
+        jac_v.append(K)
+        lnk += vf.weight * lk
+    best = max(vfits, key=lambda v: v.weight)
+    Jb = np.vstack([best.parts[i].simulate(best.fit.theta)[1] for i in range(len(fms))])
+    leverage = np.einsum("ij,jk,ik->i", Jb, best.fit.cov, Jb) / u_all ** 2
+    resid = np.concatenate(best.fit.residual)
+    lb = [local_birge(t, resid[off[i]:off[i + 1]], leverage[off[i]:off[i + 1]]) for i, t in enumerate(tables)]
+    birge = np.concatenate([b for b, _ in lb])
+    widen = np.concatenate([w for _, w in lb])
+    surf = np.zeros((N, N))
+    model = np.zeros((N, N))
+    for vf, lk, K in zip(vfits, lnk_v, jac_v):
+        surf += vf.weight * (K @ vf.fit.cov @ K.T)
+        d = lk - lnk
+        model += vf.weight * np.outer(d, d)
+    surf *= np.outer(widen, widen)
+    model *= np.outer(widen, widen)
+    bundle = np.concatenate([p.ratio_se(best.fit.theta) for p in best.parts])
+    lap("covariance")
+
+    # misalignment (per instrument, independent between instruments)
+    mis_blocks, mis_info = [], []
+    for inst, t, sg in zip(instruments, tables, sigmas):
+        if sg is None:
+            mis_blocks.append(None)
+            mis_info.append(None)
+            continue
+        _run._say(progress, f"{label}: misalignment sensitivities of {inst.name}")
+        c, info = misalignment_covariance(polished, inst, t, sg, rays=misalignment_rays, seed=seed)
+        mis_blocks.append(c)
+        mis_info.append(info)
+    lap("misalignment")
+
+    # 5. the corrected tables, per instrument and combined
+    comps: dict[str, np.ndarray] = {}
+    meas = np.concatenate([u / y for u, y in zip(us, ys)])
+    comps["measurement"] = np.diag(meas ** 2)
+    comps["backend"] = np.diag(np.concatenate([s / k for s, k in zip(se_back, k_back)]) ** 2)
+    comps["surface"] = surf
+    comps["model"] = model
+    comps["bundle"] = np.diag(bundle ** 2)
+    if any(b is not None for b in mis_blocks):
+        M = np.zeros((N, N))
+        for i, b in enumerate(mis_blocks):
+            if b is not None:
+                M[off[i]:off[i + 1], off[i]:off[i + 1]] = b
+        comps["misalignment"] = M
+    notes = {"measurement": "the measured tables' own standard uncertainty (--u-measured), independent cells",
+             "backend": f"{backend} k_A of the {main} backbone: its standard uncertainty",
+             "surface": "posterior of the correction surface (evidence-weighted over the variants), widened by "
+                        "the local Birge ratio where the residuals have structure",
+             "model": "spread of the backbone variants' corrected k_A about their evidence-weighted mean",
+             "bundle": "the ray bundles' own error of the change the surface makes to k_A (replicates)",
+             "misalignment": "instrument geometric errors (--sigma), first-order GUM"}
+    lnr = [np.log(y) - lnk[off[i]:off[i + 1]] for i, y in enumerate(ys)]
+    parts_out: list[InstrumentPart] = []
+    for i, (inst, t) in enumerate(zip(instruments, tables)):
+        sl = slice(off[i], off[i + 1])
+        bud = Budget(n_i[i])
+        for name, C in comps.items():
+            bud.add(name, C[sl, sl], notes[name])
+        k_grid = _grid(t, np.exp(lnk[sl]))
+        corr = t.with_values(_grid(t, np.exp(lnr[i])), name=f"{t.name}_corrected",
+                             source=f"{t.name} corrected for the aperture effect (r / k_A; eq. 4 x correction surface "
+                                    f"fitted through {', '.join(i2.name for i2 in instruments)}; instrument {inst.name})")
+        u_abs = _grid(t, np.exp(lnr[i]) * bud.u_rel())
+        before_b = Budget(n_i[i])
+        before_b.add("measurement", meas[sl])
+        if mis_blocks[i] is not None:
+            before_b.add("misalignment", mis_blocks[i])
+        sim = np.concatenate([p.simulate(best.fit.theta, jacobian=False)[0] for p in best.parts])[sl]
+        bp = best.parts[i]
+        surfs = {k: _grid(t, v) for k, v in bp.surfaces_at_cells(best.fit.theta, best.fit.cov).items()}
+        model_r = _grid(t, bp.f0_nominal * np.exp(bp.g_nominal(best.fit.theta)) * bp.forward.bundles.cos3)
+        parts_out.append(InstrumentPart(
+            instrument=inst, measured=t, u_measured=u_grids[i][0], u_what=u_grids[i][1], k_a=k_grid,
+            k_backend=_grid(t, k_back[i]), k_se=_grid(t, se_back[i]), corrected=corr,
+            u_corrected=u_abs,
+            budget=bud, residual=_grid(t, resid[sl]), birge_local=_grid(t, birge[sl]),
+            widening=_grid(t, widen[sl]), simulated=_grid(t, sim),
+            model_r=model_r, surfaces=surfs, backend_info=infos[i], before=functionals(t, before_b.total()), after=functionals(corr, bud.total())))
+    union = sorted({(round(c[0], 9), round(c[1], 9)) for t in tables for c in t.cells},
+                   key=lambda c: (c[0], c[1]))
+    base = tables[0]
+    if len(tables) == 1:
+        combined, comb_budget = parts_out[0].corrected, parts_out[0].budget
+        u_comb = parts_out[0].u_corrected
+    else:
+        total = sum(comps.values())
+        lnc, G = combine(lnr, [t.cells for t in tables], total, union)
+        grid = np.full(base.r.shape, np.nan)
+        for (t_, b_), v in zip(union, lnc):
+            grid[int(np.argmin(np.abs(base.tan_eps - t_))), int(np.argmin(np.abs(base.beta_deg - b_)))] = math.exp(v)
+        src = (f"one surface measured by {', '.join(i.name for i in instruments)}, corrected for the aperture effect "
+               f"(r / k_A per instrument, combined cell by cell by generalised least squares)")
+        combined = base.with_values(grid, name=f"{label}_corrected", source=src)
+        # the combined table's cells in row-major order (= union order sorted like RTable.cells)
+        order = [union.index((round(t_, 9), round(b_, 9))) for t_, b_ in combined.cells]
+        Gm = G[order]
+        comb_budget = Budget(len(order))
+        for name, C in comps.items():
+            comb_budget.add(name, Gm @ C @ Gm.T, notes[name])
+        u_comb = _grid(combined, combined.r[combined.mask] * comb_budget.u_rel())
+    after = functionals(combined, comb_budget.total())
+    lap("assemble")
+    from roadgonio.provenance import provenance
+    prov = provenance(instrument=instruments[0], model=polished, backend=infos[0]["backend"],
+                      settings=infos[0]["settings"], reference="self (eq. 4 backbone x correction surface)",
+                      instruments=[i.to_dict() for i in instruments], u_measured=[w for _, w in u_grids],
+                      surface=settings.to_dict(), variants_asked=list(variants), variant_best_backbone=main,
+                      bundles=[fm.bundles.summary() for fm in fms], misalignment=mis_info,
+                      calibration=[i.calibration.to_dict() for i in instruments])
+    return SurfaceCorrection(parts=parts_out, corrected=combined, u_corrected=u_comb, budget=comb_budget, after=after,
+                             variants=vfits, settings=settings, provenance=prov, seconds=time.perf_counter() - t0,
+                             timings=timings)
+
+
+def _stack_tables(tables: Sequence[RTable]) -> RTable:
+    """One RTable-like object for the checkpoint key of several tables (their values one after the other)."""
+    r = np.concatenate([t.r for t in tables], axis=1)
+    return RTable(r, tan_eps=tables[0].tan_eps, beta_deg=np.arange(r.shape[1], dtype=np.float64))
+
+
+def to_correction_result(res: SurfaceCorrection):
+    """The :class:`roadgonio.correction.run.CorrectionResult` of a single-instrument correction
+    (the files and pictures of ``roadgonio correct``), the surface's diagnostics in ``extra``."""
+    from roadgonio.correction.run import CorrectionResult
+    if res.joint:
+        raise InputError("a correction through several instruments has one table per instrument; "
+                         "use write_surface_correction", field="--joint")
+    p = res.parts[0]
+    best = res.best
+    alternatives = {vf.variant: _grid(p.measured, vf.parts[0].k_a(vf.fit.theta)) for vf in res.variants
+                    if vf is not best}
+    steps = [{"step": 1, "model": best.backbone.params.to_dict(), "backend": p.backend_info, "converged": True}]
+    prov = dict(res.provenance)
+    prov["calibration"] = p.instrument.calibration.to_dict()
+    prov["u_measured"] = p.u_what
+    prov["timings"] = res.timings
+    out = CorrectionResult(measured=p.measured, corrected=p.corrected, u_corrected=p.u_corrected,
+                           u_measured=p.u_measured, k_a=p.k_a, k_se=p.k_se, budget=p.budget,
+                           reference=f"self ({best.variant} backbone x correction surface, fitted through the instrument)",
+                           model=best.backbone, fit=_FitView(res), alternatives=alternatives, before=p.before,
+                           after=p.after, steps=steps, provenance=prov, seconds=res.seconds)
+    out.extra["surface"] = res
+    return out
+
+
+class _FitView:
+    """What the classic outputs read of a fit (``simulated`` per measured cell, ``summary()``)."""
+
+    def __init__(self, res: SurfaceCorrection):
+        p = res.parts[0]
+        self.simulated = p.simulated[p.measured.mask]
+        self._res = res
+
+    @property
+    def birge(self) -> float:
+        return self._res.best.fit.birge
+
+    def summary(self) -> dict[str, Any]:
+        best = self._res.best
+        p = self._res.parts[0]
+        return {"model": "eq. 4 backbone x correction surface", "variant": best.variant,
+                "chi2": best.fit.chi2, "dof": best.fit.dof, "edf": best.fit.edf, "birge_ratio": best.fit.birge,
+                "birge_local_max": float(np.nanmax(p.birge_local)),
+                "cells_widened": int(np.sum(p.widening > 1.0)),
+                "widening_max": float(np.nanmax(p.widening)),
+                "widening": "the surface and model components of u are multiplied by the local Birge ratio B_c "
+                            "where B_c^2 exceeds 1 + 2 sqrt(2 / n_eff) (noise alone rarely does), else by 1",
+                "variants": [v.summary() for v in self._res.variants]}

@@ -1,0 +1,265 @@
+"""Which second aperture should my instrument have? (issue 19, item 3; docs/correction.md,
+"Two instruments, one surface").
+
+One instrument cannot tell the BRDF's behaviour off alpha = 1 deg from its shape in (beta, eps):
+both blur the same way. A second aperture setting (another field stop, pupil or source aperture of
+the same instrument, or another instrument) blurs differently, and the correction through both
+(:func:`roadgonio.correction.outside.correct_surface` with two tables) pins the surface down better.
+This design mode ranks candidate second settings by the uncertainty of the one corrected table they
+would give, before anything is measured:
+
+1. the surface: the correction surface (eq. 4 backbone x correction surface,
+   :mod:`roadgonio.correction.flexible`) fitted through the instrument to a measured table (``measured``),
+   or to what the instrument would measure of a SAMPLE (``sample``: any BRDF model; noise-free, with
+   the relative uncertainty ``u_measured``), its smoothing parameters by the evidence;
+2. per candidate (every point of the ``vary`` grid of :mod:`roadgonio.design.grid`, applied to the
+   instrument), the posterior covariance the two measurements would give at that surface
+   (:func:`roadgonio.correction.flexible.expected_posterior`: a linearised Gaussian posterior does
+   not depend on the measured values), hence each instrument's ln k_A covariance, and the
+   generalised-least-squares combination of the two corrected tables
+   (:func:`roadgonio.correction.outside.combine`);
+3. the candidates ranked by the median relative u of the combined table (u(S1) beside it), among
+   those whose signal (:func:`roadgonio.design.metrics.relative_signal`, relative to the instrument)
+   is at least ``min_signal`` (default 0.25: smaller apertures always blur less, so without a floor
+   on the light the answer is "the smallest"; a second field stop that keeps a quarter of the light
+   is a plausible one), with two baselines: the instrument alone, and the instrument measuring twice
+   (what a repetition buys without a second aperture).
+
+Left out of the expected u: the backend's and the bundles' own errors (small), the spread of the
+backbone variants, the misalignment.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from roadgonio.errors import InputError
+from roadgonio.instrument.config import Instrument
+
+DEFAULT_U = "1.5%"
+#: Least signal of a second setting, relative to the instrument's (module docstring).
+DEFAULT_MIN_SIGNAL = 0.25
+
+
+@dataclass
+class Candidate:
+    label: str
+    changes: dict[str, float]
+    instrument: Instrument | None
+    u_median: float
+    u_rms: float
+    u_max: float
+    u_s1_rel: float
+    signal: float = 1.0
+    note: str = ""
+
+    def row(self) -> dict[str, Any]:
+        return {"candidate": self.label, **{k: v for k, v in self.changes.items()}, "u_median_pct": 100 * self.u_median,
+                "u_rms_pct": 100 * self.u_rms, "u_max_pct": 100 * self.u_max, "u_S1_pct": 100 * self.u_s1_rel,
+                "signal": self.signal, "note": self.note}
+
+
+@dataclass
+class SecondApertureResult:
+    instrument: Instrument
+    surface_from: str
+    candidates: list[Candidate]          # ranked, best first (baselines excluded)
+    baselines: list[Candidate]           # the instrument alone, and measuring twice
+    keys: list[str]
+    seconds: float
+    settings: dict[str, Any] = field(default_factory=dict)
+    out: Path | None = None
+    written: list = field(default_factory=list)
+
+    @property
+    def best(self) -> Candidate:
+        return self.candidates[0]
+
+    def summary(self) -> dict[str, Any]:
+        return {"instrument": self.instrument.name, "surface_from": self.surface_from, "keys": self.keys,
+                "best": self.best.row(), "baselines": [b.row() for b in self.baselines],
+                "candidates": [c.row() for c in self.candidates], "seconds": self.seconds, "settings": self.settings}
+
+
+def _u_of(parts, theta, cov, u_rel, tables) -> tuple[np.ndarray, float, float]:
+    """(relative u per cell of the combined table, u(S1)/S1, S1) for parts sharing the surface."""
+    from roadgonio.correction.budget import functionals
+    from roadgonio.correction.outside import combine
+    K = [p.lnk_jacobian(theta) for p in parts]
+    n = [p.n for p in parts]
+    off = np.cumsum([0] + n)
+    big = np.zeros((off[-1], off[-1]))
+    for i, Ki in enumerate(K):
+        for j, Kj in enumerate(K):
+            big[off[i]:off[i + 1], off[j]:off[j + 1]] = Ki @ cov @ Kj.T
+    big += np.diag(np.concatenate([np.asarray(u, dtype=np.float64) ** 2 for u in u_rel]))
+    r_model = [p.f0_nominal * np.exp(p.g_nominal(theta)) * p.forward.bundles.cos3 for p in parts]
+    lnr, G = combine([np.log(r) for r in r_model], [t.cells for t in tables], big, tables[0].cells)
+    C = G @ big @ G.T
+    u = np.sqrt(np.maximum(np.diag(C), 0.0))
+    grid = np.full(tables[0].r.shape, np.nan)
+    grid[tables[0].mask] = np.exp(lnr)
+    f = functionals(tables[0].with_values(grid), C)
+    return u, f["u_S1"] / f["S1"], f["S1"]
+
+
+def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None, u_measured: Any = DEFAULT_U,
+                    rays: int | None = None, seed: int = 0, model_variant: str | None = None,
+                    min_signal: float = DEFAULT_MIN_SIGNAL, progress: bool = False) -> SecondApertureResult:
+    """Rank the second aperture settings of ``vary`` (module docstring). Exactly one of ``measured``
+    (an r-table the instrument measured) and ``sample`` (a SAMPLE or a BRDF model) gives the surface."""
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings, expected_posterior, fit_surface
+    from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
+    from roadgonio.correction.run import fit_self, measured_uncertainty
+    from roadgonio.design.grid import as_vary_specs, build_instrument, grid_points
+    from roadgonio.design.metrics import relative_signal
+    from roadgonio.surface.rtable import RTable, bundled_table
+    t0 = time.perf_counter()
+    if (measured is None) == (sample is None):
+        raise InputError("give either the measured table of the instrument or a SAMPLE to design for",
+                         field="--measured/--sample")
+    specs = as_vary_specs(vary)
+    if not specs:
+        raise InputError("expected at least one --vary KEY=... for the second aperture", field="--vary")
+    rays = int(rays or DEFAULT_RAYS)
+    settings = SurfaceSettings()
+    if measured is not None:
+        table = measured
+        cells = table.cells
+        fm = ForwardModel(RayBundles.build(instrument, cells, rays=rays, seed=seed))
+        u_grid, _ = measured_uncertainty(u_measured, table)
+        y, u = table.r[table.mask], u_grid[table.mask]
+        source = f"measured table {table.name}"
+    else:
+        from roadgonio.surface.sample import resolve_sample
+        model = resolve_sample(sample, model_variant).model if isinstance(sample, str) else sample
+        table = RTable(np.where(bundled_table("R3").mask, 1.0, np.nan), name=getattr(model, "name", "sample"))
+        cells = table.cells
+        fm = ForwardModel(RayBundles.build(instrument, cells, rays=rays, seed=seed))
+        from roadgonio.arrays import NumpyOps
+        b = fm.bundles
+        y = b.cell_sum(np.asarray(model.evaluate(NumpyOps, b.wi, b.wo), dtype=np.float64)) * b.cos3 * fm.kappa
+        g = np.full(table.r.shape, np.nan)
+        g[table.mask] = y
+        table = table.with_values(g)
+        u_grid, _ = measured_uncertainty(u_measured, table)
+        u = u_grid[table.mask]
+        source = f"sample {getattr(model, 'name', sample)} (noise-free, through the instrument)"
+    variant = model_variant or "smooth"
+    backbone = fit_self(fm, y, u, variant, seed=seed, stage_b=False, name=table.name).model
+    part_a = FlexPart(fm, backbone, settings)
+    fit = fit_surface([part_a], [y], [u])
+    theta, lam = fit.theta, fit.lam
+    u_rel = u / y
+
+    def evaluate(parts, urs, tables, label, changes, inst, note="") -> Candidate:
+        cov = expected_posterior(parts, theta, lam, urs)
+        uu, us1, _ = _u_of(parts, theta, cov, urs, tables)
+        return Candidate(label, changes, inst, float(np.median(uu)), float(np.sqrt(np.mean(uu ** 2))),
+                         float(np.max(uu)), float(us1), note=note)
+
+    baselines = [evaluate([part_a], [u_rel], [table], "alone", {}, instrument, "the instrument alone"),
+                 evaluate([part_a, part_a], [u_rel, u_rel], [table, table], "twice", {}, instrument,
+                          "the same setting measured twice (repetition only)")]
+    cands = []
+    points = grid_points(specs)
+    for k, point in enumerate(points):
+        inst_b = build_instrument(instrument, point)
+        try:
+            fm_b = ForwardModel(RayBundles.build(inst_b, cells, rays=rays, seed=seed + 1))
+        except InputError as err:
+            cands.append(Candidate(f"#{k + 1}", dict(point), None, math.inf, math.inf, math.inf, math.inf,
+                                   f"not feasible: {err.reason}"))
+            continue
+        except Exception as err:  # noqa: BLE001 - a geometry the second setting cannot measure
+            cands.append(Candidate(f"#{k + 1}", dict(point), None, math.inf, math.inf, math.inf, math.inf,
+                                   f"not feasible: {err}"))
+            continue
+        part_b = FlexPart(fm_b, backbone, settings)
+        c = evaluate([part_a, part_b], [u_rel, u_rel], [table, table], f"#{k + 1}", dict(point), inst_b)
+        c.signal = float(relative_signal(inst_b, instrument))
+        if not c.signal >= min_signal:
+            c.note = f"signal {c.signal:.3g} below {min_signal:g} of the instrument's"
+        cands.append(c)
+        if progress:
+            import sys
+            print(f"roadgonio design: second aperture {k + 1}/{len(points)}", file=sys.stderr, flush=True)
+    cands.sort(key=lambda c: (not (c.signal >= min_signal and math.isfinite(c.u_median)), c.u_median, c.u_s1_rel))
+    if not (cands and cands[0].signal >= min_signal and math.isfinite(cands[0].u_median)):
+        raise InputError(f"no second setting of the --vary grid keeps {min_signal:g} of the instrument's signal and "
+                         "can measure every cell", field="--vary")
+    return SecondApertureResult(instrument=instrument, surface_from=source, candidates=cands, baselines=baselines,
+                                keys=[s.key for s in specs], seconds=time.perf_counter() - t0,
+                                settings={"u_measured": str(u_measured), "rays": rays, "seed": seed,
+                                          "backbone": backbone.to_json_dict(), "lambda": lam, "min_signal": min_signal,
+                                          "surface": settings.to_dict()})
+
+
+def write_second_aperture(res: SecondApertureResult, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
+    """second_aperture.csv (every candidate and the baselines), second_aperture.json, best_second.toml
+    (the instrument file of the best second setting) and second_aperture.png, together or not at all."""
+    import csv
+    import io
+
+    from roadgonio.design.outputs import toml_text
+    from roadgonio.fileio import OutputGroup
+    rows = [b.row() for b in res.baselines] + [c.row() for c in res.candidates]
+    keys = ["candidate"] + res.keys + ["u_median_pct", "u_rms_pct", "u_max_pct", "u_S1_pct", "signal", "note"]
+    buf = io.StringIO()
+    buf.write(f"# second aperture for {res.instrument.name}: expected relative u of the one corrected table "
+              f"(surface from {res.surface_from}); best first after the two baselines\n")
+    w = csv.DictWriter(buf, fieldnames=keys, extrasaction="ignore", lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    with OutputGroup(out_dir) as group:
+        paths = [group.text("second_aperture.csv", buf.getvalue()), group.json("second_aperture.json", res.summary())]
+        if res.best.instrument is not None:
+            d = res.best.instrument.to_dict()
+            d.setdefault("instrument", {})["name"] = f"{res.instrument.name}-second"
+            paths.append(group.text("best_second.toml", toml_text(d, header=(
+                f"Second aperture setting of {res.instrument.name} that minimises the median u of the corrected table "
+                f"({100 * res.best.u_median:.2f} %; alone {100 * res.baselines[0].u_median:.2f} %, measured twice "
+                f"{100 * res.baselines[1].u_median:.2f} %). Made by roadgonio design --second-aperture."))))
+        if plots:
+            from roadgonio.plots import _plt
+            fig = draw_second_aperture(res)
+            try:
+                paths.append(group.figure("second_aperture.png", lambda p: fig.savefig(p, format="png", dpi=100)))
+            finally:
+                _plt().close(fig)
+    return paths
+
+
+def draw_second_aperture(res: SecondApertureResult):
+    """Median u and u(S1) of the corrected table for every candidate, the baselines as lines."""
+    from roadgonio.plots import _plt
+    plt = _plt()
+    ok = [c for c in res.candidates if math.isfinite(c.u_median)]
+    ok.sort(key=lambda c: tuple(c.changes[k] for k in res.keys))
+    labels = [", ".join(f"{k.split('.')[-1]}={c.changes[k]:g}" for k in res.keys) + f"\n(signal {c.signal:.2g})"
+              for c in ok]
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(14, 5.5))
+    x = np.arange(len(ok))
+    for ax, attr, what in ((a1, "u_median", "median relative u of the corrected table (%)"),
+                           (a2, "u_s1_rel", "u(S1) / S1 (%)")):
+        vals = [100 * getattr(c, attr) for c in ok]
+        bars = ax.bar(x, vals, color=["C2" if c is res.best else ("C0" if not c.note else "0.75") for c in ok])
+        for b, v in zip(bars, vals):
+            ax.text(b.get_x() + b.get_width() / 2, v, f"{v:.2f}", ha="center", va="bottom", fontsize=8)
+        for base, style in zip(res.baselines, ("--", ":")):
+            ax.axhline(100 * getattr(base, attr), color="0.3", ls=style, lw=1.2,
+                       label=f"{base.note} ({100 * getattr(base, attr):.2f})")
+        ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=8)
+        ax.set_ylabel(what)
+        ax.legend(fontsize=8, loc="upper right")
+        ax.grid(alpha=0.3, axis="y")
+    fig.suptitle(f"Second aperture for {res.instrument.name} (surface from {res.surface_from}); best: "
+                 + ", ".join(f"{k} = {res.best.changes[k]:g}" for k in res.keys), fontsize=10)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,271 @@
+"""The correction surface: a smooth factor over the incident direction that lets the BRDF model
+follow a surface eq. 4 cannot, and its derivative in the observation elevation (docs/correction.md,
+"A forward model outside eq. 4").
+
+    f(w_i, w_o) = f_0(w_i, w_o) exp( g_C(beta, eps_i) + l(alpha) g_D(beta, eps_i) )
+
+f_0 is the backbone (paper eq. 4, :mod:`roadgonio.surface.model`); ``beta`` is the angle between
+the vertical planes of illumination and observation of the ray pair, ``eps_i`` the polar angle of
+w_i (docs/conventions.md section 1; isotropic, beta folded to [0, 180 deg]), ``alpha`` the
+elevation of w_o and ``l(alpha) = ln(sin alpha / sin 1 deg)``. At alpha = 1 deg (the r-table's
+observation) the factor is ``exp(g_C)``: g_C is the correction of the table's shape; g_D is how much
+faster (per unit ln alpha) the BRDF changes off alpha = 1 deg than the backbone says, which only a
+second aperture setting can measure (item 3 of issue 19). Without g_D the behaviour off 1 deg is the
+backbone's.
+
+Each of g_C, g_D is a tensor-product cubic B-spline on unit-spaced knots in two smooth coordinates
+(:class:`SplineGrid`):
+
+* ``s_beta = S_beta ln(1 + beta / b0) / ln(1 + 180 deg / b0)``: knots dense at the mirror plane
+  (beta = 0), where road BRDFs have their narrow peak, sparse behind the source;
+* ``s_t = S_t raw(eps) / raw(eps_max)``, ``raw(eps) = eps / step - gain ln cos eps``: a knot every
+  ``step`` degrees far from grazing, denser towards grazing incidence (the ln cos term), held at
+  eps_max beyond it.
+
+Boundary conditions, by reflecting the coefficients: even in beta at 0 and 180 deg (the surface is
+mirror symmetric about the plane of observation, so g is smooth across it); even at eps_max; at the
+pole (eps = 0, where beta is undefined) the row of coefficients is one value ``c`` and the row beyond
+it is ``2c - a_1``, so g takes one value at the pole whatever beta and grows from it linearly, as a
+smooth function of the direction does; the roughness penalty includes the second difference through
+the pole (from beta to 180 deg - beta), so the slopes at opposite azimuths agree.
+
+The free coefficients theta (``c``, then the rows 1..S_t of S_beta + 1 nodes each) enter g
+linearly, ``g = sum_p theta_p phi_p``: the simulated measurement through fixed ray bundles is
+``sum_k a_k f_0,k exp(g_k)``, whose Jacobian in theta is again a sum over the same rays
+(:mod:`roadgonio.correction.flexible`).
+
+The formula is written once, over an array namespace ``xp`` (:func:`surface_coordinates`,
+:func:`bspline_weights`, :func:`lookup`, :func:`spline_value`); beside the names of
+:class:`roadgonio.surface.model.NumpyOps` it needs ``floor`` and ``gather(table, index)``, which
+:class:`SplineOps` adds for numpy (a Dr.Jit namespace would map them to ``dr.floor`` and
+``dr.gather``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from roadgonio.arrays import NumpyOps
+
+#: sin of the r-tables' observation elevation (alpha = 1 deg).
+SIN_ALPHA0 = math.sin(math.radians(1.0))
+
+
+class SplineOps(NumpyOps):
+    """:class:`~roadgonio.surface.model.NumpyOps` with the two operations a B-spline lookup needs."""
+
+    floor = staticmethod(np.floor)
+
+    @staticmethod
+    def gather(table, index):
+        """``table[index]`` for float indices that hold integers."""
+        return np.asarray(table)[np.rint(index).astype(np.int64)]
+
+
+@dataclass(frozen=True)
+class SplineGrid:
+    """The knots of one surface (module docstring). Plain floats, hashable (cached matrices)."""
+
+    s_beta: int = 32
+    beta_scale_deg: float = 8.0
+    s_t: int = 40
+    eps_step_deg: float = 3.0
+    sec_gain: float = 3.0
+    eps_max_deg: float = 89.0
+
+    @property
+    def pad_shape(self) -> tuple[int, int]:
+        """Shape of the padded coefficient grid: indices -1 .. S + 2 in each direction."""
+        return (self.s_beta + 4, self.s_t + 4)
+
+    @property
+    def n_params(self) -> int:
+        return 1 + self.s_t * (self.s_beta + 1)
+
+    def _raw_t(self, xp, eps_deg):
+        e = xp.minimum(eps_deg, self.eps_max_deg)
+        return e * (1.0 / self.eps_step_deg) - self.sec_gain * xp.log(xp.cos(e * (math.pi / 180.0)))
+
+    def s_beta_of(self, xp, beta_deg):
+        """The beta coordinate of the knots (module docstring), beta in degrees."""
+        return (self.s_beta / math.log(1.0 + 180.0 / self.beta_scale_deg)) * xp.log(
+            1.0 + beta_deg * (1.0 / self.beta_scale_deg))
+
+    def s_t_of(self, xp, eps_deg):
+        """The eps coordinate of the knots (module docstring), eps in degrees."""
+        return (self.s_t / float(self._raw_t(NumpyOps, np.float64(self.eps_max_deg)))) * self._raw_t(xp, eps_deg)
+
+    # -- the linear map theta -> padded grid, and the penalties -----------------------------
+    def padded_matrix(self) -> np.ndarray:
+        """(padded nodes, n_params): the padded coefficient grid is ``T @ theta`` (flattened row-major)."""
+        return _padded_matrix(self)
+
+    def penalties(self) -> tuple[np.ndarray, np.ndarray]:
+        """(P_beta, P_t): theta^T P theta = the sum of squared second differences of the node values
+        along beta and along eps (reflected neighbours included at the boundaries). Only the
+        constant is in the null space of P_beta + P_t."""
+        (Db, _), (Dt, _) = _differences(self)
+        return Db.T @ Db, Dt.T @ Dt
+
+    def differences(self):
+        """((D_beta, centre_beta), (D_t, centre_t)): the second-difference operators over theta, one
+        row per difference, and the (beta index, eps index) of each difference's centre node."""
+        return _differences(self)
+
+    def node_values(self, theta: np.ndarray) -> np.ndarray:
+        """(S_beta + 1, S_t + 1) node values (beta index, eps index) of ``theta``."""
+        return (self.padded_matrix() @ np.asarray(theta, dtype=np.float64)).reshape(self.pad_shape)[
+            1:self.s_beta + 2, 1:self.s_t + 2]
+
+    def node_coordinates(self) -> tuple[np.ndarray, np.ndarray]:
+        """(beta_deg, eps_deg) of the node lines (inverse of the coordinate maps)."""
+        sb = np.arange(self.s_beta + 1, dtype=np.float64)
+        beta = self.beta_scale_deg * np.expm1(sb * math.log(1.0 + 180.0 / self.beta_scale_deg) / self.s_beta)
+        e = np.linspace(0.0, self.eps_max_deg, 20001)
+        st = self.s_t_of(NumpyOps, e)
+        eps = np.interp(np.arange(self.s_t + 1, dtype=np.float64), st, e)
+        return beta, eps
+
+
+def surface_coordinates(xp, grid: SplineGrid, wi, wo):
+    """(s_beta, s_t) of ray pairs: ``wi``, ``wo`` component triples of unit vectors towards the
+    source and the detector. beta as in :func:`roadgonio.surface.model.road_brdf` (exact near 0
+    and 180 deg; 0 where the azimuth is undefined, at the pole, where g does not depend on it)."""
+    wix, wiy, wiz = wi
+    wox, woy, _ = wo
+    sin_ti = xp.sqrt(wix * wix + wiy * wiy)
+    sin_tr = xp.sqrt(wox * wox + woy * woy)
+    cross = xp.abs(wix * woy - wiy * wox)
+    dot = wix * wox + wiy * woy
+    beta = xp.where(sin_ti * sin_tr > 1e-12, xp.atan2(cross, -dot), 0.0 * sin_ti)
+    eps = xp.atan2(sin_ti, wiz)
+    return grid.s_beta_of(xp, beta * (180.0 / math.pi)), grid.s_t_of(xp, eps * (180.0 / math.pi))
+
+
+def alpha_coordinate(xp, wo):
+    """l(alpha) = ln(sin alpha / sin 1 deg) of the detector directions ``wo`` (component triple)."""
+    return xp.log(xp.maximum(wo[2], 1e-12) * (1.0 / SIN_ALPHA0))
+
+
+def bspline_weights(xp, s, upper: int):
+    """(i0, (w0, w1, w2, w3)): the uniform cubic B-spline basis at ``s`` clamped to [0, upper]:
+    the value is ``sum_k w_k a[i0 - 1 + k]`` over the padded coefficients (index shift +1)."""
+    s = xp.minimum(xp.maximum(s, 0.0), upper * (1.0 - 1e-12))
+    i0 = xp.floor(s)
+    u = s - i0
+    u2 = u * u
+    u3 = u2 * u
+    v = 1.0 - u
+    return i0, (v * v * v * (1.0 / 6.0), (3.0 * u3 - 6.0 * u2 + 4.0) * (1.0 / 6.0),
+                (-3.0 * u3 + 3.0 * u2 + 3.0 * u + 1.0) * (1.0 / 6.0), u3 * (1.0 / 6.0))
+
+
+def lookup(xp, grid: SplineGrid, wi, wo):
+    """The 16 (flat index into the padded grid, weight) pairs of the spline at ray pairs: its value
+    is ``sum_k weight_k padded[index_k]`` (indices as floats holding integers; row-major over
+    :attr:`SplineGrid.pad_shape`). The forward model accumulates the same pairs into its Jacobian."""
+    sb, st = surface_coordinates(xp, grid, wi, wo)
+    ib, wb = bspline_weights(xp, sb, grid.s_beta)
+    it, wt = bspline_weights(xp, st, grid.s_t)
+    n_t = float(grid.pad_shape[1])
+    return [((ib + a) * n_t + (it + b), wb[a] * wt[b]) for a in range(4) for b in range(4)]
+
+
+def spline_value(xp, grid: SplineGrid, padded, wi, wo):
+    """g at ray pairs for the padded coefficient grid ``padded`` (:meth:`SplineGrid.padded_matrix`
+    times theta)."""
+    out = None
+    for idx, w in lookup(xp, grid, wi, wo):
+        term = w * xp.gather(padded, idx)
+        out = term if out is None else out + term
+    return out
+
+
+def correction_factor(xp, c_grid: SplineGrid, c_padded, d_grid: SplineGrid | None, d_padded, wi, wo):
+    """exp(g_C + l(alpha) g_D): the factor that multiplies the backbone (module docstring);
+    ``d_grid`` None leaves out g_D."""
+    g = spline_value(xp, c_grid, c_padded, wi, wo)
+    if d_grid is not None:
+        g = g + alpha_coordinate(xp, wo) * spline_value(xp, d_grid, d_padded, wi, wo)
+    return xp.exp(g)
+
+
+def _reflect(i: int, hi: int) -> int:
+    if i < 0:
+        return -i
+    if i > hi:
+        return 2 * hi - i
+    return i
+
+
+def _theta_index(grid: SplineGrid, i: int, j: int) -> int:
+    return 1 + (j - 1) * (grid.s_beta + 1) + i
+
+
+@lru_cache(maxsize=8)
+def _padded_matrix(grid: SplineGrid) -> np.ndarray:
+    nb, nt = grid.pad_shape
+    T = np.zeros((nb * nt, grid.n_params))
+    for pi in range(nb):
+        i = _reflect(pi - 1, grid.s_beta)
+        for pj in range(nt):
+            j = pj - 1
+            row = pi * nt + pj
+            if j == 0:
+                T[row, 0] = 1.0
+            elif j == -1:                     # 2 c - a_{i,1}: odd about the pole value
+                T[row, 0] = 2.0
+                T[row, _theta_index(grid, i, 1)] = -1.0
+            else:
+                T[row, _theta_index(grid, i, _reflect(j, grid.s_t))] = 1.0
+    T.setflags(write=False)
+    return T
+
+
+@lru_cache(maxsize=8)
+def _differences(grid: SplineGrid):
+    nb, nt = grid.pad_shape
+    T = _padded_matrix(grid)
+    rows_b, rows_t, cb, ct = [], [], [], []
+    for i in range(grid.s_beta + 1):
+        for j in range(grid.s_t + 1):
+            c = (i + 1) * nt + (j + 1)
+            if j > 0:                          # the pole row is one value: no beta difference there
+                rows_b.append((c - nt, c, c + nt))
+                cb.append((i, j))
+            rows_t.append((c - 1, c, c + 1))
+            ct.append((i, j))
+
+    def op(rows):
+        D = np.zeros((len(rows), nb * nt))
+        for k, (a, b, c) in enumerate(rows):
+            D[k, a] += 1.0
+            D[k, b] -= 2.0
+            D[k, c] += 1.0
+        return D @ T
+
+    Dt = op(rows_t)
+    # through the pole: the eps difference at the pole along the great circle from beta to
+    # 180 deg - beta (the node there interpolated linearly in beta): a_1(beta) - 2 c + a_1(180 - beta),
+    # so the slopes at opposite azimuths agree, as those of a function smooth over the sphere do
+    beta, _ = grid.node_coordinates()
+    pole = []
+    for i in range(grid.s_beta + 1):
+        row = np.zeros(grid.n_params)
+        row[_theta_index(grid, i, 1)] += 1.0
+        row[0] -= 2.0
+        other = 180.0 - beta[i]
+        k = int(np.clip(np.searchsorted(beta, other) - 1, 0, grid.s_beta - 1))
+        w = (other - beta[k]) / (beta[k + 1] - beta[k])
+        row[_theta_index(grid, k, 1)] += 1.0 - w
+        row[_theta_index(grid, k + 1, 1)] += w
+        pole.append(row)
+    Dt = np.vstack([Dt, np.array(pole)])
+    ct = ct + [(i, 0) for i in range(grid.s_beta + 1)]
+    Db = op(rows_b)
+    Db.setflags(write=False)
+    Dt.setflags(write=False)
+    return (Db, np.array(cb)), (Dt, np.array(ct))

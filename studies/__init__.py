@@ -1,0 +1,1 @@
+"""Example studies of ``roadgonio intercompare`` (installed as ``roadgonio.studies``; usable by name)."""

@@ -1,0 +1,143 @@
+"""`roadgonio correct --forward surface` and `--joint` (issue 19): bad inputs, the outputs and
+round trips of a known surface through one instrument and through two."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from roadgonio import api
+from roadgonio.cli import main
+from roadgonio.correction.synthetic import r2_like_truth, synthesize
+from roadgonio.instrument.config import Instrument, load_instrument
+from roadgonio.surface.rtable import read_table
+
+DATA = Path(__file__).resolve().parents[1] / "data"
+MEDIUM = DATA / "medium.toml"
+MEASURED = DATA / "synthetic_medium_lambert.csv"
+TRUTH = DATA / "synthetic_medium_lambert_truth.csv"
+FAST = ["--backend", "quadrature", "--accuracy", "fast", "--rays", "64", "--model-variant", "power"]
+
+
+def one_line_error(capsys, rc, *must):
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("roadgonio: error:"), err
+    for m in must:
+        assert m in lines[0], (m, lines[0])
+
+
+@pytest.mark.parametrize("argv, must", [
+    (["--measured", str(MEASURED), str(MEASURED), "--instrument", str(MEDIUM), "--joint"],
+     ("--instrument", "one instrument per measured table")),
+    (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--instrument", str(MEDIUM)], ("--instrument", "--joint")),
+    (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--forward", "surface", "--reference", "R3"],
+     ("forward", "self")),
+    (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--measured", str(MEASURED), "--instrument",
+      str(MEDIUM), "--joint", "--reference", "R3"], ("--reference",)),
+])
+def test_joint_and_forward_bad_inputs(tmp_path, capsys, argv, must):
+    rc = main(["correct", *argv, *FAST, "--out", str(tmp_path / "o")])
+    one_line_error(capsys, rc, *must)
+    assert not (tmp_path / "o").exists()
+
+
+def _scores(corrected, u_rel, truth):
+    m = corrected.mask
+    err = np.log(corrected.r[m] / truth.r[m])
+    return float(np.sqrt(np.mean(err ** 2))), float(np.mean(np.abs(err) <= 2 * u_rel)), err / u_rel
+
+
+def test_forward_surface_round_trip_inside_eq4_writes_the_diagnostics(tmp_path, capsys):
+    """An eq. 4 surface (the medium synthetic measurement of the smooth-variant R2-like truth, 1 %
+    noise): the flexible model must not over-fit it (issue 19: no loss of accuracy inside the
+    family: its RMS error no worse than eq. 4's alone, + 0.2 %; measured 0.90 % vs 0.93 %), its u
+    covers the error, and the outputs carry the Birge ratio, the widening and the two diagnostic
+    pictures. 256 rays a cell (at 64 the bundles' own error, 0.95 % a cell, shows)."""
+    rms = {}
+    for forward in ("eq4", "surface"):
+        out = tmp_path / forward
+        rc = main(["correct", "--measured", str(MEASURED), "--instrument", str(MEDIUM), "--forward", forward,
+                   "--u-measured", "1%", "--backend", "quadrature", "--accuracy", "fast", "--rays", "256",
+                   "--model-variant", "smooth", "--out", str(out)])
+        assert rc == 0, capsys.readouterr().err
+        corrected, u = read_table(out / "corrected.csv"), read_table(out / "corrected_u.csv")
+        m = corrected.mask
+        rms[forward], within, z = _scores(corrected, u.r[m] / corrected.r[m], read_table(TRUTH))
+    assert rms["surface"] <= 0.012 and rms["surface"] <= rms["eq4"] + 0.002
+    assert within >= 0.90 and np.max(np.abs(z)) <= 4.0
+    for name in ("residual_map.png", "correction_surface.png", "before_after.png", "correct.json"):
+        assert (out / name).stat().st_size > 1000
+    doc = json.loads((out / "correct.json").read_text())
+    fit = doc["summary"]["fit"]
+    assert 0.7 < fit["birge_ratio"] < 1.3                     # an eq. 4 surface: the model fits
+    assert fit["cells_widened"] < 0.1 * doc["summary"]["cells"]
+    assert {"surface", "model", "measurement"} <= set(doc["summary"]["budget"])
+
+
+@pytest.fixture(scope="module")
+def two_instruments():
+    """The R2-like surface measured by medium and by medium with a narrower field stop and pupil,
+    k_A by the float64 reference integrator (not the code under test), 1 % noise."""
+    a = load_instrument(MEDIUM)
+    d = a.to_dict()
+    d["instrument"]["name"] = "medium-narrow"
+    d["detector"]["field_half_angle_deg"] = 0.1
+    d["detector"]["pupil_radius_m"] = 0.0025
+    b = Instrument.from_dict(d)
+    mask = read_table(MEASURED).mask
+    sa = synthesize(r2_like_truth(), a, noise=0.01, seed=5, backend="reference", backend_settings={"rtol": 1e-3},
+                    mask=mask, name="medium")
+    sb = synthesize(r2_like_truth(), b, noise=0.01, seed=6, backend="reference", backend_settings={"rtol": 1e-3},
+                    mask=mask, name="narrow")
+    return a, b, sa, sb
+
+
+@pytest.fixture(scope="module")
+def joint_and_alone(two_instruments):
+    a, b, sa, sb = two_instruments
+    opts = dict(u_measured="1%", backend="quadrature", accuracy="fast", rays=256, model_variant="smooth")
+    joint = api.correct([sa.measured, sb.measured], [a, b], joint=True, **opts)
+    alone = api.correct(sa.measured, a, forward="surface", **opts)
+    return joint, alone
+
+
+def test_joint_correction_of_two_instruments(two_instruments, joint_and_alone):
+    """One surface through both: one table, each instrument's k_A, the u of the joint table below
+    the first instrument's own (the second aperture adds information), and its error covered."""
+    a, b, sa, sb = two_instruments
+    joint, alone = joint_and_alone
+    assert [p.name for p in joint.parts] == ["medium", "medium-narrow"]
+    for p, s in zip(joint.parts, (sa, sb)):            # each instrument's k_A against the reference's
+        m = s.measured.mask
+        assert np.sqrt(np.mean(np.log(p.k_a[m] / s.k_a[m]) ** 2)) < 0.015
+    u_joint = joint.budget.u_rel()
+    rms, within, z = _scores(joint.corrected, u_joint, sa.truth)
+    assert rms <= 0.015 and within >= 0.90 and np.max(np.abs(z)) <= 4.0
+    assert np.median(u_joint) < np.median(alone.budget.u_rel())
+    s = joint.summary()
+    assert len(s["per_instrument"]) == 2 and math.isfinite(s["u_S1"])
+
+
+def test_second_aperture_predicts_the_joint_u_and_ranks_by_it(tmp_path, two_instruments, joint_and_alone):
+    """design --second-aperture: the expected median u of the joint table with the narrow setting
+    (predicted from the measured table of the first instrument, before the second measures) is
+    the u the joint correction then reports, within 30 % (the prediction leaves out the backend,
+    the bundles' and the variants' spread); the best candidate has the least u among those with
+    enough signal, and every candidate beats the instrument alone."""
+    a, b, sa, sb = two_instruments
+    joint, alone = joint_and_alone
+    res = api.second_aperture(a, ["detector.field_half_angle_deg=0.1,0.2", "detector.pupil_radius_m=0.0025"],
+                              measured=sa.measured, u_measured="1%", rays=256, model_variant="smooth", min_signal=0.0,
+                              out=tmp_path / "sa", plots=False)
+    narrow = [c for c in res.candidates if abs(c.changes["detector.field_half_angle_deg"] - 0.1) < 1e-9][0]
+    actual = float(np.median(joint.budget.u_rel()))
+    assert abs(narrow.u_median / actual - 1) < 0.30, (narrow.u_median, actual)
+    ok = [c for c in res.candidates if math.isfinite(c.u_median)]
+    assert res.best.u_median == min(c.u_median for c in ok)
+    assert all(c.u_median < res.baselines[0].u_median for c in ok)
+    assert (tmp_path / "sa" / "best_second.toml").exists()

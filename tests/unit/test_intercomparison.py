@@ -1,0 +1,185 @@
+"""roadgonio intercompare in this process with collimated participants (no k_A backend): the study
+file's one-line errors, the comparison's hand-checkable cases (consistent participants, a shared
+tile's correlation), the sensitivity ranking, resume."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from helpers_intercomparison import COLLIMATED, P_EN, coll, make_study, per_realisation_share, write_collimated
+from roadgonio.errors import InputError
+from roadgonio.intercomparison.run import run_study
+from roadgonio.intercomparison.study import load_study, study_from_dict
+
+
+@pytest.fixture()
+def collimated(tmp_path):
+    return write_collimated(tmp_path)
+
+
+@pytest.mark.parametrize("change, field, words", [
+    (lambda d: d["participant"][0].update(noise=0.1), "participant[1].noise", "unknown key"),
+    (lambda d: d["study"].update(realisation=3), "study.realisation", "unknown key"),
+    (lambda d: d.update(extra={}), "extra", "unknown key"),
+    (lambda d: d["participant"][1].update(report="reference"), "participant[2].reference", "needs reference"),
+    (lambda d: d["participant"][1].update(report="self", noise_rel=0.0), "participant[2].noise_rel", "noise_rel > 0"),
+    (lambda d: d["participant"][0].update(sigma="alpha=0.1"), "participant[1].sigma alpha", "unknown key"),
+    (lambda d: d["participant"][0].update(stated=["aperture"]), "participant[1].stated", "unknown stated"),
+    (lambda d: d["participant"][1].update(name="A"), "participant.name", "two participants"),
+    (lambda d: d["participant"][0].update(instrument="nope.toml"), "participant[1].instrument", "no such"),
+    (lambda d: d["shared"].append({"name": "t", "kind": "reference_tile", "u_rel": 0.01, "participants": ["A", "Z"]}),
+     "shared[1].participants", "no participant named"),
+    (lambda d: d["shared"].append({"name": "t", "kind": "angle_standard", "u_rel": 0.01, "participants": ["A", "B"]}),
+     "shared[1].u_rel", "not u_rel"),
+    (lambda d: d["study"].update(realisations=1), "study.realisations", ">= 2"),
+    (lambda d: d["study"].pop("surface"), "study.surface", "missing"),
+])
+def test_bad_study_files_are_one_line_errors_naming_file_and_field(tmp_path, collimated, change, field, words):
+    d = {"study": {"surface": "R3"}, "participant": [coll("A"), coll("B")], "shared": []}
+    change(d)
+    with pytest.raises(InputError) as err:
+        study_from_dict(d, path=tmp_path / "study.toml")
+    assert err.value.field == field
+    assert str(tmp_path / "study.toml") in str(err.value)
+    assert words in err.value.reason
+    assert "\n" not in str(err.value)
+
+
+def test_the_bundled_study_loads_and_participants_must_observe_alike(tmp_path, collimated):
+    st = load_study("r3-comparison")
+    assert [p.instrument.name for p in st.participants] == ["lab", "corridor", "fixed-led", "collimated"]
+    assert {s.kind for s in st.shared} == {"reference_tile", "angle_standard"}
+    other = tmp_path / "other.toml"
+    other.write_text(COLLIMATED.replace('[source]', '[observation]\nalpha_deg = 1.5\n[source]'))
+    study = make_study(tmp_path, [coll("A"), coll("B", instrument="other.toml")])
+    with pytest.raises(InputError, match="different directions"):
+        run_study(study, workers=0, progress=False, plots=False)
+
+
+def test_identical_collimated_participants_are_compatible_as_expected(tmp_path, collimated):
+    """Four collimated participants (k_A = 1) whose only error is independent noise that they
+    state: d_i / u(d_i) is N(0, 1), so |E_n| <= 1 in P(|Z| <= 2) = 95.45 % of the cells (against
+    the weighted mean and against the truth), the Birge ratio^2 has mean 1, the consistency check
+    passes in 95 %, and both consensus values carry tau^2 = 0 in most cells."""
+    R = 40
+    study = make_study(tmp_path, [coll(n, noise) for n, noise in (("A", 0.01), ("B", 0.02), ("C", 0.01), ("D", 0.03))],
+                   realisations=R)
+    ds = run_study(study, workers=0, progress=False, plots=False).dataset
+    for ref in ("weighted_mean", "truth"):
+        share = per_realisation_share(ds["E_n"].sel(scenario="declared", reference=ref)
+                                       .transpose("realisation", ...).values)
+        assert abs(share.mean() - P_EN) < 4 * share.std(ddof=1) / math.sqrt(R) + 1e-3
+    z = (ds["d"] / (ds["U_d"] / 2)).sel(scenario="declared", reference="weighted_mean").values
+    z = z[np.isfinite(z)]
+    assert float(np.std(z)) == pytest.approx(1.0, abs=4 / math.sqrt(2 * z.size / 4))
+    rb2 = ds["birge_ratio"].sel(scenario="declared").values ** 2
+    per = np.nanmean(rb2.reshape(R, -1), axis=1)
+    assert abs(per.mean() - 1.0) < 4 * per.std(ddof=1) / math.sqrt(R)
+    cons = np.nanmean(ds["consistent"].sel(scenario="declared").values.reshape(R, -1), axis=1)
+    assert abs(cons.mean() - 0.95) < 4 * cons.std(ddof=1) / math.sqrt(R) + 1e-3
+    # the truth is what an ideal instrument measures without error
+    assert np.nanmax(np.abs(ds["k_a_nominal"].values - 1.0)) == 0.0
+    # the all-corrected scenario of collimated instruments is the same comparison (nothing to correct)
+    a = ds["r_reported"].sel(scenario="declared").values
+    b = ds["r_reported"].sel(scenario="all_corrected").values
+    assert np.array_equal(a, b, equal_nan=True)
+
+
+def test_a_shared_reference_tile_correlates_the_participants_as_it_should(tmp_path, collimated):
+    """x_i = r (1 + c)(1 + e_i) with a tile error c ~ N(0, u_t^2) shared by A and B and independent
+    noise e_i ~ N(0, s^2): corr(x_A, x_B) = u_t^2 / (u_t^2 + s^2 + u_t^2 s^2) in every cell; C,
+    without the tile, is uncorrelated. The stated covariance carries the same u_t^2 x_A x_B."""
+    R, ut, s = 400, 0.01, 0.005
+    study = make_study(tmp_path, [coll("A", s, stated=["repeatability", "calibration"]),
+                              coll("B", s, stated=["repeatability", "calibration"]), coll("C", s)],
+                   [{"name": "tile", "kind": "reference_tile", "u_rel": ut, "participants": ["A", "B"]}],
+                   realisations=R)
+    run = run_study(study, workers=0, progress=False, plots=False)
+    x = run.dataset["r_reported"].sel(scenario="declared").values         # (P, R, 29, 20)
+    rel = x / run.dataset["truth"].values - 1.0
+    expected = ut ** 2 / (ut ** 2 + s ** 2 + ut ** 2 * s ** 2)
+    se_z = 1 / math.sqrt(R - 3)                                          # Fisher z of one cell
+    for (i, j) in ((0, 0), (12, 3), (28, 0)):
+        rab = np.corrcoef(rel[0, :, i, j], rel[1, :, i, j])[0, 1]
+        rac = np.corrcoef(rel[0, :, i, j], rel[2, :, i, j])[0, 1]
+        assert abs(np.arctanh(rab) - np.arctanh(expected)) < 4 * se_z
+        assert abs(np.arctanh(rac)) < 4 * se_z
+    rows = {(r["participant_a"], r["participant_b"]): r for r in json.loads(run.dataset.attrs["correlation_json"])
+            if r["scenario"] == "declared"}
+    assert abs(np.arctanh(rows[("A", "B")]["simulated_median"]) - np.arctanh(expected)) < 4 * se_z
+    assert rows[("A", "B")]["stated_median"] == pytest.approx(ut ** 2 / (ut ** 2 + s ** 2), rel=1e-12)
+    assert abs(rows[("A", "C")]["simulated_median"]) < 4 * se_z and rows[("A", "C")]["stated_median"] == 0.0
+    from roadgonio.intercomparison.simulate import shared_components
+    g = shared_components(run.setup)
+    assert g.shape == (1, 3, len(run.setup.truth)) and np.all(g[0, :2] == ut) and np.all(g[0, 2] == 0)
+    # with the correlation in the stated covariance, E_n against the weighted mean is as expected
+    en = run.dataset["E_n"].sel(scenario="declared", reference="weighted_mean").transpose("realisation", ...).values
+    share = per_realisation_share(en)
+    assert abs(share.mean() - P_EN) < 4 * share.std(ddof=1) / math.sqrt(R) + 1e-3
+
+
+def test_sensitivity_ranks_the_dominant_characteristic_first(tmp_path, collimated):
+    """A participant whose calibration standard is 10x its noise: idealising the calibration
+    lowers its RMS(d) most; a characteristic it does not have is not listed."""
+    study = make_study(tmp_path, [coll("A", 0.001, calibration_u_rel=0.01, stated=["repeatability", "calibration"]),
+                              coll("B", 0.002), coll("C", 0.002)], realisations=30)
+    run = run_study(study, workers=0, progress=False, plots=False)
+    sens = [r for r in json.loads(run.dataset.attrs["sensitivity_json"])
+            if r["scenario"] == "declared" and r["participant"] == "A"]
+    assert [r["characteristic"] for r in sens] == ["calibration", "noise"]
+    assert sens[0]["drop_pct"] > 4 * sens[0]["drop_se_pct"] > 0
+    assert sens[0]["rms_error_vs_truth_idealised_pct"] < 0.2 * sens[0]["rms_error_vs_truth_pct"]
+
+
+def test_resume_reuses_finished_realisations_and_gives_the_same_numbers(tmp_path, collimated):
+    parts = [coll("A", 0.01), coll("B", 0.02, calibration_u_rel=0.005)]
+    out = tmp_path / "out"
+    run_study(make_study(tmp_path, parts, realisations=4), out, workers=0, progress=False, plots=False)
+    journal = out / "intercompare_journal.jsonl"
+    lines4 = journal.read_text().splitlines()
+    # an interruption cut the last line short: it is dropped and its work done again
+    journal.write_text("\n".join(lines4[:-1]) + "\n" + lines4[-1][: len(lines4[-1]) // 2])
+    run_study(make_study(tmp_path, parts, realisations=6), out, workers=0, progress=False, plots=False)
+    lines6 = journal.read_text().splitlines()
+    assert lines6[:len(lines4) - 1] == lines4[:-1]                  # finished work kept as it was
+    assert len([ln for ln in lines6 if '"realisation"' in ln]) == 6
+    fresh = run_study(make_study(tmp_path, parts, realisations=6), tmp_path / "fresh", workers=0, progress=False,
+                      plots=False).dataset
+    from roadgonio.intercomparison.outputs import read_intercomparison
+    resumed = read_intercomparison(out / "intercompare.nc")
+    assert np.array_equal(resumed["r_reported"].values, fresh["r_reported"].values, equal_nan=True)
+    # a different study in the same folder is refused
+    with pytest.raises(InputError, match="different study"):
+        run_study(make_study(tmp_path, parts, realisations=6, seed=8), out, workers=0, progress=False, plots=False)
+    run_study(make_study(tmp_path, parts, realisations=3, seed=8), out, workers=0, progress=False, plots=False, fresh=True)
+
+
+def test_a_fixed_led_participant_reports_its_measured_cells_and_the_fill_of_them(tmp_path, collimated):
+    """A collimated instrument that measures only some cells ([cells], zero apertures, tiny noise):
+    its measured cells are the truth x (1 + noise), every other cell is the fill of them
+    (roadgonio.instrument.coverage, checked there), so its error against the truth is the fill's error
+    of the true table; idealising the fill removes it (the sensitivity ranking puts it first)."""
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.uncertainty.cells import CellSet
+    led = load_instrument("fixed-led")
+    cells = ",\n".join(f"[{t}, {b}]" for t, b in led.cells.measured)
+    (tmp_path / "led.toml").write_text(COLLIMATED.replace('name = "collimated"', 'name = "led"')
+                                       + f"[cells]\nmeasured = [\n{cells}\n]\n")
+    study = make_study(tmp_path, [coll("A", 1e-6), coll("LED", 1e-6, instrument="led.toml")], realisations=4)
+    run = run_study(study, workers=0, progress=False, plots=False)
+    ds = run.dataset
+    cs = CellSet.make("standard")
+    truth = ds["truth"].values[cs.ii, cs.jj]
+    fill = led.cells.fill_table(cs.tan_eps, cs.beta_deg, truth)
+    x = ds["r_reported"].sel(scenario="declared", participant="LED").values[..., cs.ii, cs.jj]
+    assert np.max(np.abs(x / fill - 1)) < 1e-5                        # the fill of the (noise-free) truth
+    measured = np.array([cs.index(t, b) for t, b in led.cells.measured])
+    assert np.max(np.abs(x[..., measured] / truth[measured] - 1)) < 1e-5
+    assert np.sqrt(np.mean((fill / truth - 1) ** 2)) > 0.05         # and the fill is far from the truth
+    sens = [r for r in json.loads(ds.attrs["sensitivity_json"])
+            if r["scenario"] == "declared" and r["participant"] == "LED"]
+    assert sens[0]["characteristic"] == "fill", sens[:3]
+    assert sens[0]["rms_error_vs_truth_idealised_pct"] < 0.01 * sens[0]["rms_error_vs_truth_pct"]
