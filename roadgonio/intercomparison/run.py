@@ -130,7 +130,16 @@ def _k_table(ctx: Context, instrument) -> np.ndarray:
 
 
 def idealised_instrument(instrument, key: str):
-    """The instrument with one characteristic idealised: an aperture zero, or Lambert calibration."""
+    """The instrument with one characteristic idealised: an aperture zero, Lambert calibration, or
+    (``source_path``) a fixed-height source moved onto an arc of radius its height, so the source's
+    distance, solid angle and footprint no longer change with eps (the arc's distance is the
+    corridor's own at tan eps = 0, where both instruments agree)."""
+    if key == "source_path":
+        d = instrument.to_dict()
+        src = {k: v for k, v in d["source"].items() if k not in ("path", "height_m")}
+        d["source"] = {**src, "distance_m": instrument.source.height_m}
+        from roadgonio.instrument.config import Instrument
+        return Instrument.from_dict(d, path=instrument.path)
     if key == "calibration_mode":
         d = instrument.to_dict()
         d.pop("calibration", None)
@@ -482,6 +491,8 @@ def _stages(ctx: Context, journal: _Journal, client, progress: bool, seconds: di
                 items1.append(("ideal", p, key))
         if part.instrument.calibration.mode != "lambert":
             items1.append(("ideal", p, "calibration_mode"))
+        if part.instrument.source.path == "fixed_height" and part.instrument.source.radius_m > 0:
+            items1.append(("ideal", p, "source_path"))
     todo = [it for it in items1 if it not in journal.done]
     _map(_stage1_task, todo, client, ctx, journal, _bar(progress, len(items1), "k_A of the participants",
                                                           len(items1) - len(todo)),

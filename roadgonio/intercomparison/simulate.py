@@ -147,6 +147,9 @@ class Setup:
                     out.append((key, f"{label} ({_aperture_text(inst, key)})"))
             if inst.calibration.mode != "lambert":
                 out.append(("calibration_mode", f"calibration mode {inst.calibration.mode} (vs lambert)"))
+            if inst.source.path == "fixed_height" and inst.source.radius_m > 0:
+                out.append(("source_path", f"source path at a fixed height {inst.source.height_m:g} m "
+                                           f"(vs an arc of radius {inst.source.height_m:g} m)"))
         if not inst.cells.all_cells:
             out.append(("fill", f"cells filled by {inst.cells.fill} ({len(inst.cells.measured)} of {pm.n} measured)"))
         from roadgonio.uncertainty.spec import INPUTS

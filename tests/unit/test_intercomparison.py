@@ -183,3 +183,26 @@ def test_a_fixed_led_participant_reports_its_measured_cells_and_the_fill_of_them
             if r["scenario"] == "declared" and r["participant"] == "LED"]
     assert sens[0]["characteristic"] == "fill", sens[:3]
     assert sens[0]["rms_error_vs_truth_idealised_pct"] < 0.01 * sens[0]["rms_error_vs_truth_pct"]
+
+
+def test_the_source_path_idealised_is_an_arc_of_radius_the_height():
+    """The ranking's `source_path` item: the corridor's source moved onto an arc of radius its
+    height. At tan eps = 0 both instruments are the same geometry (k_A equal within the quadrature's
+    bounds); at grazing incidence the corridor's source is height / cos eps away, so its solid angle
+    is cos^2 eps smaller and k_A differs."""
+    import roadgonio as rg
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.intercomparison.run import idealised_instrument
+    corridor = load_instrument("corridor")
+    arc = idealised_instrument(corridor, "source_path")
+    assert arc.source.path == "arc" and arc.source.distance_m == corridor.source.height_m
+    assert arc.detector == corridor.detector and arc.source.radius_m == corridor.source.radius_m
+    k = {}
+    for name, inst in (("corridor", corridor), ("arc", arc)):
+        k[name] = rg.ka_table(inst, "R3", backend="quadrature", accuracy="default", cells="0:0,12:0")
+    zero = {n: (float(d.k_a.sel(tan_eps=0.0, beta=0.0)), float(d.error_bound.sel(tan_eps=0.0, beta=0.0)))
+            for n, d in k.items()}
+    assert abs(zero["corridor"][0] - zero["arc"][0]) <= zero["corridor"][1] + zero["arc"][1] + 1e-12
+    g = {n: (float(d.k_a.sel(tan_eps=12.0, beta=0.0)), float(d.error_bound.sel(tan_eps=12.0, beta=0.0)))
+         for n, d in k.items()}
+    assert abs(g["corridor"][0] - g["arc"][0]) > 10 * (g["corridor"][1] + g["arc"][1])
