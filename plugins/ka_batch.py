@@ -264,20 +264,10 @@ class KaBatch(mi.SamplingIntegrator):
         cell = dr.gather(mi.UInt32, _u32(block_cell), k)
         rep = dr.gather(mi.UInt32, _u32(block_rep), k)
         r = (rep << lattice["shift_log2"]) + j
-        g = {key: dr.gather(mi.Float, rays[key], r) for key in rays}
-        si = dr.zeros(mi.SurfaceInteraction3f)
-        si.t = mi.Float(1.0)
-        si.p = mi.Point3f(g["px"], g["py"], g["pz"])
-        if self.flat:
-            si.n = mi.Normal3f(0.0, 0.0, 1.0)
-            si.sh_frame = mi.Frame3f(mi.Vector3f(1.0, 0.0, 0.0), mi.Vector3f(0.0, 1.0, 0.0), mi.Vector3f(0.0, 0.0, 1.0))
-        else:
-            si.n = mi.Normal3f(g["nx"], g["ny"], g["nz"])
-            si.sh_frame = mi.Frame3f(mi.Vector3f(g["sx"], g["sy"], g["sz"]))
-        si.wi = si.sh_frame.to_local(-mi.Vector3f(g["dx"], g["dy"], g["dz"]))
-        active = g["w"] > 0.0
+        si, w = self.vertex0(rays, r)
+        active = w > 0.0
         u4, u5 = self._lattice(j, rep, lattice, (4, 5))
-        value = self.shade(scene, si, cell, mi.Point2f(u4, u5), active) * g["w"]
+        value = self.shade(scene, si, cell, mi.Point2f(u4, u5), active) * w
         # evaluated block sums, not atomic scatters: the order of the float32 additions is then fixed,
         # so a run repeats bit for bit whatever the thread count
         road, lam = mi.Float(value.x), mi.Float(value.y)

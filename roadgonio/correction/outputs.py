@@ -80,6 +80,21 @@ def write_correction(res, out_dir: str | Path, *, plots: bool = True) -> list[Pa
     return paths
 
 
+def _style_beta_panel(ax, j: int) -> None:
+    """One beta column's panel of the 4 x 5 before/after grids: log r axis, labels on the edges."""
+    from matplotlib import ticker
+    ax.set_yscale("log")
+    ax.yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
+    ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
+    ax.yaxis.set_minor_formatter(ticker.NullFormatter())
+    ax.grid(alpha=0.3, which="major")
+    ax.tick_params(labelsize=7)
+    if j % 5 == 0:
+        ax.set_ylabel("r x 10^4 (sr^-1)", fontsize=8)
+    if j >= 15:
+        ax.set_xlabel("tan eps", fontsize=8)
+
+
 def _group_figure(group: OutputGroup, name: str, fig) -> Path:
     from roadgonio.plots import _plt
     try:
@@ -149,7 +164,6 @@ def _functional_text(f: dict[str, Any]) -> str:
 
 def draw_before_after(res):
     """The 20 beta columns: r x 1e4 against tan eps, as measured and as corrected (95 % band)."""
-    from matplotlib import ticker
 
     from roadgonio.plots import _plt
     plt = _plt()
@@ -175,16 +189,7 @@ def draw_before_after(res):
         ax.plot(t, model_r[ok, j] * 1e4, ":", color="C3", lw=1.0)
         change = 100.0 * (corr.r[ok, j] / meas.r[ok, j] - 1.0)
         ax.set_title(f"beta = {beta:g} deg   (correction {change.min():+.1f} ... {change.max():+.1f} %)", fontsize=8)
-        ax.set_yscale("log")
-        ax.yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
-        ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
-        ax.yaxis.set_minor_formatter(ticker.NullFormatter())
-        ax.grid(alpha=0.3, which="major")
-        ax.tick_params(labelsize=7)
-        if j % 5 == 0:
-            ax.set_ylabel("r x 10^4 (sr^-1)", fontsize=8)
-        if j >= 15:
-            ax.set_xlabel("tan eps", fontsize=8)
+        _style_beta_panel(ax, j)
     handles = [plt.Line2D([], [], color="0.45", marker="o", ls="--", ms=3, label="measured (as the instrument reported)"),
                plt.Line2D([], [], color="C0", lw=1.6, label="corrected = measured / k_A"),
                plt.matplotlib.patches.Patch(color="C0", alpha=0.25, label="corrected +- 2 u (about 95 %)"),
@@ -281,7 +286,6 @@ def draw_surface_map(sc):
 def draw_joint_before_after(sc):
     """The 20 beta columns: every instrument's measured table and the one corrected table with its
     95 % band."""
-    from matplotlib import ticker
 
     from roadgonio.plots import _plt
     plt = _plt()
@@ -304,16 +308,7 @@ def draw_joint_before_after(sc):
                     color=f"C{k + 1}", ms=3, lw=0.8)
         ax.plot(t, rc, "-", color="C0", lw=1.6)
         ax.set_title(f"beta = {beta:g} deg", fontsize=8)
-        ax.set_yscale("log")
-        ax.yaxis.set_major_locator(ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
-        ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
-        ax.yaxis.set_minor_formatter(ticker.NullFormatter())
-        ax.grid(alpha=0.3, which="major")
-        ax.tick_params(labelsize=7)
-        if j % 5 == 0:
-            ax.set_ylabel("r x 10^4 (sr^-1)", fontsize=8)
-        if j >= 15:
-            ax.set_xlabel("tan eps", fontsize=8)
+        _style_beta_panel(ax, j)
     handles = [plt.Line2D([], [], color=f"C{k + 1}", marker=markers[k % len(markers)], ls="--", ms=3,
                           label=f"measured by {p.name}") for k, p in enumerate(sc.parts)]
     handles += [plt.Line2D([], [], color="C0", lw=1.6, label="corrected (one table from all instruments)"),
