@@ -256,14 +256,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     out = Path(out_dir) if out_dir is not None else None
     arts = list(artefacts) if artefacts is not None else [
         _run.InstrumentArtefacts(inst, rays=rays, seed=seed) for inst in instruments]
-    timings: dict[str, float] = {}
-    tick = time.perf_counter()
-
-    def lap(name: str) -> None:
-        nonlocal tick
-        now = time.perf_counter()
-        timings[name] = timings.get(name, 0.0) + now - tick
-        tick = now
+    lap = _run.Laps()
+    timings = lap.timings
 
     names = [t.name for t in tables]
     label = " + ".join(names)

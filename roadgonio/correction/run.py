@@ -70,6 +70,20 @@ BackendFactory = Callable[[Instrument, RoadModel], Any]
 # Inputs
 # ----------------------------------------------------------------------------------------------
 
+class Laps:
+    """Wall time per named step of a correction (seconds, summed over repeats): ``lap("fit")``
+    charges the time since the previous lap to "fit"; ``timings`` holds the sums."""
+
+    def __init__(self) -> None:
+        self.timings: dict[str, float] = {}
+        self._tick = time.perf_counter()
+
+    def __call__(self, name: str) -> None:
+        now = time.perf_counter()
+        self.timings[name] = self.timings.get(name, 0.0) + now - self._tick
+        self._tick = now
+
+
 def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
     """Standard uncertainty (sr^-1, grid of ``table``) of every measured cell from ``spec``:
     ``"1%"`` or a number in (0, 1) (relative), an :class:`RTable`, or the path of an r-table file
@@ -343,14 +357,8 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     u_rel = u / y
     art = artefacts if artefacts is not None else InstrumentArtefacts(instrument, rays=rays, seed=seed)
     _say(progress, f"{measured.name}: ray bundles of {len(cells)} cells")
-    timings: dict[str, float] = {}
-    tick = time.perf_counter()
-
-    def lap(name: str) -> None:
-        nonlocal tick
-        now = time.perf_counter()
-        timings[name] = timings.get(name, 0.0) + now - tick
-        tick = now
+    lap = Laps()
+    timings = lap.timings
     fm = art.forward(cells)
     lap("bundles")
     factory = factory or default_factory(backend, backend_settings, accuracy)
