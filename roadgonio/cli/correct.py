@@ -108,6 +108,9 @@ def run(args) -> int:
     say = text_output(args)
     if args.u_measured is None:
         say("note: no --u-measured given; the measurement's standard uncertainty was taken as 1 % of each value")
+    limits = {(getattr(r, "provenance", None) or {}).get("forward_model_limits") for r in results} - {None}
+    for text in sorted(limits):
+        say(f"note: {text}")
     for s in summaries:
         b = s["before"]
         say(f"{s['measured']}: {s['cells']} cells corrected (reference {s['reference']}, calibration "
@@ -147,6 +150,8 @@ def _run_joint(args) -> int:
     say = text_output(args)
     if args.u_measured is None:
         say("note: no --u-measured given; the measurement's standard uncertainty was taken as 1 % of each value")
+    if (res.provenance or {}).get("forward_model_limits"):
+        say(f"note: {res.provenance['forward_model_limits']}")
     best = max(s["variants"], key=lambda v: v["weight"])
     say(f"one surface through {len(res.parts)} instruments ({', '.join(s['instruments'])}): {s['cells']} cells, "
         f"{best['variant']} backbone x correction surface, Birge ratio {best['birge_ratio']:.2f}")

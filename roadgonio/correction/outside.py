@@ -444,7 +444,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                       instruments=[i.to_dict() for i in instruments], u_measured=[w for _, w in u_grids],
                       surface=settings.to_dict(), variants_asked=list(variants), variant_best_backbone=main,
                       bundles=[fm.bundles.summary() for fm in fms], misalignment=mis_info,
-                      calibration=[i.calibration.to_dict() for i in instruments])
+                      calibration=[i.calibration.to_dict() for i in instruments],
+                      forward_model_limits=_run.forward_model_limits(instruments))
     return SurfaceCorrection(parts=parts_out, corrected=combined, u_corrected=u_comb, budget=comb_budget, after=after,
                              variants=vfits, settings=settings, provenance=prov, seconds=time.perf_counter() - t0,
                              timings=timings)

@@ -84,6 +84,19 @@ class Laps:
         self._tick = now
 
 
+def forward_model_limits(instruments) -> str | None:
+    """What the fit's ray bundles leave out of an instrument and the k_A backend keeps: the parts of
+    a ``[scene]`` or a ``[housing]`` (their shade and stray light). None when nothing is left out.
+    Recorded in the provenance (correct.json), never silent."""
+    left = sorted({sec for inst in instruments for sec in ("scene", "housing")
+                   if hasattr(inst.extra, "get") and inst.extra.get(sec)})
+    if not left:
+        return None
+    return (f"the fit's ray bundles do not model the instrument's [{'], ['.join(left)}] (their shade and "
+            "stray light): the model's parameters are fitted without them; the k_A that corrects the table is "
+            "the backend's, which models them")
+
+
 def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
     """Standard uncertainty (sr^-1, grid of ``table``) of every measured cell from ``spec``:
     ``"1%"`` or a number in (0, 1) (relative), an :class:`RTable`, or the path of an r-table file
@@ -526,6 +539,7 @@ def _assemble(measured: RTable, instrument: Instrument, u_grid, k_b, se_b, budge
     info = steps[-1]["backend"]
     prov = provenance(instrument=instrument, model=model, backend=info["backend"], settings=info["settings"],
                       calibration=instrument.calibration.to_dict(), reference=reference,
+                      forward_model_limits=forward_model_limits([instrument]),
                       before_uncertainty="measurement" + (" and misalignment" if "misalignment" in budget.components
                                                           else "") + " only (the aperture effect is the bias the "
                                                                      "correction removes)")

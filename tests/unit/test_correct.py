@@ -335,3 +335,12 @@ def test_functionals_of_a_table_without_a_full_grid_cell_are_missing_not_a_trace
     assert f["u_Q0"] is None and f["u_S2"] is None
     assert f["u_S1"] == pytest.approx(f["S1"] * np.sqrt(2) * 0.01, rel=1e-12)
     assert not has_rtb(sparse) and has_rtb(t)
+
+
+def test_what_the_fit_leaves_out_of_a_housed_instrument_is_said():
+    """The fit's ray bundles do not model a [housing] or a [scene]; correct.json says so."""
+    from roadgonio.correction.run import forward_model_limits
+    from roadgonio.instrument.config import load_instrument
+    assert forward_model_limits([load_instrument("portable")]) is None
+    note = forward_model_limits([load_instrument("portable"), load_instrument("portable_housed")])
+    assert note is not None and "[housing]" in note and "[scene]" not in note
