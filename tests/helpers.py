@@ -207,3 +207,25 @@ def write_map_csv(path, fn, nx: int, ny: int | None = None) -> Path:
     X, Y = np.meshgrid(x, y)
     np.savetxt(path, fn(X, Y), delimiter=",", fmt="%.17g")
     return Path(path)
+
+
+# -- TOML reading (tests/unit/test_toml_reading.py, tests/system/test_toml_reading_system.py) --
+GOOD_LAYOUT = Path(__file__).resolve().parents[1] / "roadgonio" / "data" / "road" / "default_layout.toml"
+
+
+def broken(tmp_path, good: str, line: int, name: str) -> Path:
+    """``good`` with line ``line`` (1-based) replaced by a key without a value."""
+    lines = good.splitlines()
+    lines[line - 1] = "broken_key ="
+    p = tmp_path / name
+    p.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    return p
+
+
+def instrument_text() -> str:
+    from roadgonio.instrument.config import load_instrument
+    return Path(load_instrument("portable").path).read_text(encoding="utf-8")
+
+
+def spec_text() -> str:
+    return "# misalignment\n[sigma]\nalpha_deg = 0.01\neps_deg = \"0.05:rect\"\nsource_distance_m = 0.002\n"

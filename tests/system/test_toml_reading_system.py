@@ -2,30 +2,10 @@
 (tests/unit/test_toml_reading.py: every reader through the API)."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
 from roadgonio.cli import main
-
-GOOD_LAYOUT = Path(__file__).resolve().parents[2] / "roadgonio" / "data" / "road" / "default_layout.toml"
-
-
-def broken(tmp_path, good: str, line: int, name: str) -> Path:
-    lines = good.splitlines()
-    lines[line - 1] = "broken_key ="
-    p = tmp_path / name
-    p.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return p
-
-
-def instrument_text() -> str:
-    from roadgonio.instrument.config import load_instrument
-    return Path(load_instrument("portable").path).read_text(encoding="utf-8")
-
-
-def spec_text() -> str:
-    return "# misalignment\n[sigma]\nalpha_deg = 0.01\neps_deg = \"0.05:rect\"\nsource_distance_m = 0.002\n"
+from helpers import GOOD_LAYOUT, broken, instrument_text, spec_text
 
 
 def cli_cases(tmp_path):

@@ -2,31 +2,10 @@
 roadgonio reads names the file and the LINE, in the API and on the command line (one line, exit 2)."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
 from roadgonio.errors import InputError
-
-GOOD_LAYOUT = Path(__file__).resolve().parents[2] / "roadgonio" / "data" / "road" / "default_layout.toml"
-
-
-def broken(tmp_path, good: str, line: int, name: str) -> Path:
-    """``good`` with line ``line`` (1-based) replaced by a key without a value."""
-    lines = good.splitlines()
-    lines[line - 1] = "broken_key ="
-    p = tmp_path / name
-    p.write_text("\n".join(lines) + "\n", encoding="utf-8")
-    return p
-
-
-def instrument_text() -> str:
-    from roadgonio.instrument.config import load_instrument
-    return Path(load_instrument("portable").path).read_text(encoding="utf-8")
-
-
-def spec_text() -> str:
-    return "# misalignment\n[sigma]\nalpha_deg = 0.01\neps_deg = \"0.05:rect\"\nsource_distance_m = 0.002\n"
+from helpers import GOOD_LAYOUT, broken, instrument_text, spec_text
 
 
 def best_toml(tmp_path) -> str:
