@@ -45,7 +45,7 @@ from scipy.linalg import cho_factor, cho_solve
 from roadgonio.engines.bundle import ForwardModel
 from roadgonio.engines.result import ratio_se
 from roadgonio.errors import InputError
-from roadgonio.surface.correction_surface import SplineGrid, SplineOps, alpha_coordinate, lookup
+from roadgonio.surface.correction_surface import SplineGrid, alpha_coordinate, lookup
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel
 
@@ -126,7 +126,7 @@ class FlexPart:
         self._idx, self._w, self._nominal = [], [], []
         ell = np.asarray(alpha_coordinate(NumpyOps, b.wo), dtype=np.float64)
         for k, g in enumerate(self.grids):
-            pairs = lookup(SplineOps, g, b.wi, b.wo)
+            pairs = lookup(NumpyOps, g, b.wi, b.wo)
             idx = np.stack([np.rint(i).astype(np.int64) for i, _ in pairs])
             w = np.stack([np.broadcast_to(v, idx.shape[1:]) for _, v in pairs]).astype(np.float64)
             if k == 1:
@@ -134,7 +134,7 @@ class FlexPart:
             self._idx.append(idx)
             self._w.append(w)
             N = np.zeros((self.n, self._G[k]))
-            for i, v in lookup(SplineOps, g, wi0, wo0):
+            for i, v in lookup(NumpyOps, g, wi0, wo0):
                 np.add.at(N, (np.arange(self.n), np.rint(i).astype(np.int64)), v)
             if k == 0:                                    # the nominal value: g_C only (alpha = 1 deg: l = 0)
                 self._nominal = np.asarray(N @ self._T[0])

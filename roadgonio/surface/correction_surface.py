@@ -35,10 +35,9 @@ linearly, ``g = sum_p theta_p phi_p``: the simulated measurement through fixed r
 (:mod:`roadgonio.correction.flexible`).
 
 The formula is written once, over an array namespace ``xp`` (:func:`surface_coordinates`,
-:func:`bspline_weights`, :func:`lookup`, :func:`spline_value`); beside the names of
-:class:`roadgonio.surface.model.NumpyOps` it needs ``floor`` and ``gather(table, index)``, which
-:class:`SplineOps` adds for numpy (a Dr.Jit namespace would map them to ``dr.floor`` and
-``dr.gather``).
+:func:`bspline_weights`, :func:`lookup`, :func:`spline_value`): the names of
+:class:`roadgonio.arrays.NumpyOps`, whose ``floor`` and ``take(table, index)`` (a gather) the
+B-spline lookup uses.
 """
 from __future__ import annotations
 
@@ -52,17 +51,6 @@ from roadgonio.arrays import NumpyOps
 
 #: sin of the r-tables' observation elevation (alpha = 1 deg).
 SIN_ALPHA0 = math.sin(math.radians(1.0))
-
-
-class SplineOps(NumpyOps):
-    """:class:`~roadgonio.surface.model.NumpyOps` with the two operations a B-spline lookup needs."""
-
-    floor = staticmethod(np.floor)
-
-    @staticmethod
-    def gather(table, index):
-        """``table[index]`` for float indices that hold integers."""
-        return np.asarray(table)[np.rint(index).astype(np.int64)]
 
 
 @dataclass(frozen=True)
@@ -179,7 +167,7 @@ def spline_value(xp, grid: SplineGrid, padded, wi, wo):
     times theta)."""
     out = None
     for idx, w in lookup(xp, grid, wi, wo):
-        term = w * xp.gather(padded, idx)
+        term = w * xp.take(padded, idx)
         out = term if out is None else out + term
     return out
 
