@@ -229,3 +229,19 @@ def instrument_text() -> str:
 
 def spec_text() -> str:
     return "# misalignment\n[sigma]\nalpha_deg = 0.01\neps_deg = \"0.05:rect\"\nsource_distance_m = 0.002\n"
+
+
+#: A small valid instrument file (flat 2 m x 0.5 m sample): the start of the input-error tests and probes.
+GOOD_INSTRUMENT = """[observation]
+alpha_deg = 1.0
+[source]
+distance_m = 5.0
+radius_m = 0.005
+[detector]
+distance_m = 10.0
+pupil_radius_m = 0.005
+field_half_angle_deg = 0.05
+[sample]
+size_x_m = 2.0
+size_y_m = 0.5
+"""

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from roadgonio.cli import main
+from helpers import GOOD_INSTRUMENT
 
 
 def one_line_error(capsys, rc, *must):
@@ -36,19 +37,7 @@ def write_instrument(tmp_path, text, name="inst.toml"):
     return p
 
 
-GOOD = """[observation]
-alpha_deg = 1.0
-[source]
-distance_m = 5.0
-radius_m = 0.005
-[detector]
-distance_m = 10.0
-pupil_radius_m = 0.005
-field_half_angle_deg = 0.05
-[sample]
-size_x_m = 2.0
-size_y_m = 0.5
-"""
+GOOD = GOOD_INSTRUMENT
 
 
 # -- instrument files ------------------------------------------------------------------------------

@@ -37,25 +37,13 @@ import numpy as np
 import pytest
 
 from roadgonio.errors import RoadgonioError
+from helpers import GOOD_INSTRUMENT
 
 CLASSES = ("input", "seeds", "blanks", "writers", "meshes", "extremes", "paths", "conventions", "overwrites")
 COMMANDS = ("tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct", "design", "road",
             "compare", "classify", "api")
 
-#: A small instrument (flat 2 m x 0.5 m sample) every probe starts from.
-GOOD = """[observation]
-alpha_deg = 1.0
-[source]
-distance_m = 5.0
-radius_m = 0.005
-[detector]
-distance_m = 10.0
-pupil_radius_m = 0.005
-field_half_angle_deg = 0.05
-[sample]
-size_x_m = 2.0
-size_y_m = 0.5
-"""
+GOOD = GOOD_INSTRUMENT
 
 #: A model close to the fit of CIE R3 (tests/conftest.py R3LIKE), so no probe waits for a fit.
 R3LIKE = dict(k_diff=0.028937, k_phong=1.8147, n_phong=34.467, k_retro=0.052577, n_retro=11.307,
