@@ -116,6 +116,10 @@ class KaBatch(mi.SamplingIntegrator):
         self.max_bounces = 1
         self.light_depth = 0
         self.profile = None         # (beam, aperture, 1 / R_S) for Dr.Jit, or None: a uniform source
+        #: the light paths' reflection at their first vertex l_1 samples the part's own BSDF (True;
+        #: the road's forward lobe) or a cosine-distributed direction (False: the former strategy,
+        #: kept so that the tests can compare the two estimators)
+        self.light_lobe = True
 
     # -- set-up --------------------------------------------------------------------------------
     def set_sample(self, shape) -> None:
@@ -298,8 +302,9 @@ class KaBatch(mi.SamplingIntegrator):
     def walk_dims(self) -> int:
         """Random dimensions a path uses beyond the lattice's six: per further eye vertex three to
         sample the reflection that reaches it and two for its next-event estimation; for the light
-        paths two for the source point, two for the emitted direction, two per further reflection."""
-        light = (4 + 2 * (self.light_depth - 1)) if self.light_depth else 0
+        paths two for the source point, two for the emitted direction, three per further reflection
+        (:meth:`_light_reflect`)."""
+        light = (4 + 3 * (self.light_depth - 1)) if self.light_depth else 0
         return WALK_DIMS_PER_VERTEX * (self.max_bounces - 1) + light
 
     def reflecting(self, shape):
@@ -357,7 +362,9 @@ class KaBatch(mi.SamplingIntegrator):
         throughputs by the weight f cos / pdf (:meth:`channels`), trace to the next vertex (a
         reflecting part, else the path ends), and the densities of the MIS weights
         (:meth:`trace_paths`): ``pf`` times this step's density in area measure, and ``pr`` the
-        density of the reverse step (cosine sampling at the new vertex, area measure here)."""
+        geometric factor |cos| / d^2 at ``si`` of the reverse step (a light path from the new vertex
+        back to ``si``; its density in solid angle, :meth:`_light_pdf`, depends on the direction the
+        light came from, so on the cell: :meth:`vertex_light` multiplies it in)."""
         bs, w = bsdf.sample(mi.BSDFContext(), si, u1, u2, alive)
         wr, wg = self.channels(is_sample, w)
         alive = alive & (bs.pdf > 0.0) & (mi.Frame3f.cos_theta(bs.wo) * mi.Frame3f.cos_theta(si.wi) > 0.0)
@@ -368,7 +375,7 @@ class KaBatch(mi.SamplingIntegrator):
         alive = alive & nxt.is_valid() & self.reflecting(nxt.shape) & ((tr > 0.0) | (tg > 0.0))
         inv_d2 = dr.rcp(dr.maximum(dr.square(nxt.t), MIN_D2))
         pf = pf * bs.pdf * dr.abs(dr.dot(nxt.n, d)) * inv_d2
-        pr = dr.abs(mi.Frame3f.cos_theta(nxt.wi)) * INV_PI * dr.abs(dr.dot(si.n, d)) * inv_d2
+        pr = dr.abs(dr.dot(si.n, d)) * inv_d2
         zero = mi.Float(0.0)
         return nxt, dr.select(alive, tr, zero), dr.select(alive, tg, zero), pf, pr
 
@@ -449,8 +456,13 @@ class KaBatch(mi.SamplingIntegrator):
             ls = dr.maximum(-dr.dot(a, d), 0.0) * INV_PI * dr.abs(dr.dot(si.n, d)) * inv_d2
             if mis == 1:
                 others = ls
-            else:           # y_2: the eye prefix to y_1 + the light vertex; the light path through both
-                others = g["pp"] * ls + ls * g["pr"]
+            else:           # y_2: the eye prefix to y_1 + the light vertex; the light path through both,
+                # which reflects at y_2 (the light from this cell's source) towards y_1 (si.wi)
+                w_eye = mi.Vector3f(si.wi)         # a copy: assigning si.wi writes into the field's storage
+                si.wi = si.to_local(d)
+                l12 = self._light_pdf(bsdf, si, w_eye, active) * g["pr"]
+                si.wi = w_eye
+                others = g["pp"] * ls + ls * l12
             wgt = weight.x * g["pf"] / dr.maximum(g["pf"] + others, MIN_PDF)
         else:
             wgt = weight.x
@@ -540,6 +552,31 @@ class KaBatch(mi.SamplingIntegrator):
         vis = ok & ~scene.ray_test(y.spawn_ray_to(mi.Point3f(x0.p)), ok)
         return w0 * f0.x * fr * out, w0 * f0.y * fg * out, p_eye, p_on, vis
 
+    def _light_pdf(self, bsdf, si, w_out, active):
+        """Density (solid angle) with which a light path that reached ``si`` (``si.wi``: local
+        direction towards the light) reflects along the local direction ``w_out``
+        (:meth:`_light_reflect`): the density of ``bsdf.sample`` with ``si.wi`` towards the light, or
+        with :attr:`light_lobe` off the cosine about the normal. The MIS weights of every strategy
+        that finds the same two-reflection path use this function (:meth:`vertex_light`,
+        :meth:`path_light`)."""
+        if not self.light_lobe:
+            return dr.abs(mi.Frame3f.cos_theta(w_out)) * INV_PI
+        return bsdf.pdf(mi.BSDFContext(), si, w_out, active)
+
+    def _light_reflect(self, bsdf, si, u1, u2, active):
+        """The light path's reflection at ``si`` (``si.wi``: local direction towards the light):
+        a local direction and its density (:meth:`_light_pdf`). The part's own BSDF sampling
+        (Mitsuba's ``sample`` with the light's direction in the place of the sensor's: the road
+        BSDF samples its Phong lobe about the mirror direction of the light, i.e. the forward lobe
+        a grazing source lights, mixed with the cosine; a diffuse part the cosine), or with
+        :attr:`light_lobe` off a cosine-distributed direction on the side the light came from."""
+        if not self.light_lobe:
+            wn = mi.warp.square_to_cosine_hemisphere(u2)
+            wn.z = dr.select(mi.Frame3f.cos_theta(si.wi) < 0.0, -wn.z, wn.z)
+            return wn, dr.abs(wn.z) * INV_PI
+        bs, _ = bsdf.sample(mi.BSDFContext(), si, u1, u2, active)
+        return bs.wo, bs.pdf
+
     def path_light(self, scene, rays: dict, vertex1: tuple, lattice: dict, r, j, cell, rep, keys):
         """Per lane, the stray light that the light paths carry (:meth:`trace_paths`), as
         (road, Lambert, part index of the last reflection before the footprint) triples.
@@ -554,7 +591,10 @@ class KaBatch(mi.SamplingIntegrator):
         x0 -> y_1 -> y_2 + next-event estimation (e1 e2); the eye path's y_1 connected with the light
         vertex y_2 = l_1 (e1 ls); the light path s -> l_1 = y_2 -> l_2 = y_1 (cosine reflection at
         l_1) connected with x0 (ls l12). e1, e2: BSDF sampling from x0 and y_1; ls: the source's
-        cosine emission to y_2; l12: cosine sampling from y_2 to y_1."""
+        cosine emission to y_2; l12: the light path's reflection at y_2 towards y_1
+        (:meth:`_light_reflect`: the part's BSDF sampling with the light's direction, so the road's
+        forward lobe; this density depends on where the light came from, so it is computed per cell
+        in every strategy's weight, :meth:`_light_pdf`)."""
         ctx = mi.BSDFContext()
         flags = mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame
         zero = mi.Float(0.0)
@@ -609,27 +649,32 @@ class KaBatch(mi.SamplingIntegrator):
         l1.wi = l1.to_local(-e)                                    # at l_1, towards y_1 (the eye side)
         flr, flg = self.channels(sample_l1, bsdf_l1.eval(ctx, l1, wl1, ok))
         cos_out = dr.abs(mi.Frame3f.cos_theta(l1.wi))
-        l12 = cos_out * INV_PI * dr.abs(dr.dot(y1.n, e)) * inv_d2
+        w_eye = mi.Vector3f(l1.wi)                                 # a copy (l1.wi is overwritten in place)
+        l1.wi = wl1                                                # the light path's view of l_1
+        l12 = self._light_pdf(bsdf_l1, l1, w_eye, ok) * dr.abs(dr.dot(y1.n, e)) * inv_d2
         e1 = g["pf"]
         mis = flux * e1 * ls / dr.maximum(e1 * e2 + e1 * ls + ls * l12, MIN_PDF)
         link = cos_out / cos_l1 * inv_d2 * mis
         vis = ok & ~scene.ray_test(y1.spawn_ray_to(mi.Point3f(l1.p)), ok)
         out.append((dr.select(vis, g["tr"] * f1r * flr * link, zero), dr.select(vis, g["tg"] * f1g * flg * link, zero),
                     self.part_index(y1.shape)))
-        # two reflections, l_1 reflects (cosine-distributed, on the side the light came from) to l_2 -> x0
+        # two reflections, l_1 reflects (:meth:`_light_reflect`) to l_2 -> x0
         q = base + 4
-        wn = mi.warp.square_to_cosine_hemisphere(mi.Point2f(self.walk_u(lattice, keys, q, rep, j),
-                                                            self.walk_u(lattice, keys, q + 1, rep, j)))
-        wn.z = dr.select(mi.Frame3f.cos_theta(wl1) < 0.0, -wn.z, wn.z)
+        l1.wi = wl1
+        wn, p_wn = self._light_reflect(bsdf_l1, l1, self.walk_u(lattice, keys, q, rep, j),
+                                       mi.Point2f(self.walk_u(lattice, keys, q + 1, rep, j),
+                                                  self.walk_u(lattice, keys, q + 2, rep, j)), alive)
+        alive = alive & (p_wn > 0.0)
         l1.wi = wn
         tr_, tg_ = self.channels(sample_l1, bsdf_l1.eval(ctx, l1, wl1, alive))
-        scale = flux * math.pi / cos_l1                              # f cos_out / (cos_out / pi), f = eval / cos_in
+        # f cos_out / p_wn, f = eval / cos_in
+        scale = flux * dr.abs(wn.z) / (cos_l1 * dr.maximum(p_wn, MIN_PDF))
         br, bg = tr_ * scale, tg_ * scale
         d = l1.to_world(wn)
         l2 = scene.ray_intersect(l1.spawn_ray(d), flags, False, alive)
         alive = alive & l2.is_valid() & self.reflecting(l2.shape) & ((br > 0.0) | (bg > 0.0))
         inv_t2 = dr.rcp(dr.maximum(dr.square(l2.t), MIN_D2))
-        l12 = dr.abs(wn.z) * INV_PI * dr.abs(dr.dot(l2.n, d)) * inv_t2
+        l12 = p_wn * dr.abs(dr.dot(l2.n, d)) * inv_t2
         road, lam, e1, p_on, vis = self._footprint_link(scene, x0, w0, l2, l2.to_local(-d), alive, onward=True)
         e2 = p_on * dr.abs(dr.dot(l1.n, d)) * inv_t2
         mis = ls * l12 / dr.maximum(e1 * e2 + e1 * ls + ls * l12, MIN_PDF)
