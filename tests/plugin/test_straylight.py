@@ -22,7 +22,7 @@ from roadgonio.instrument.config import Instrument, load_instrument
 from roadgonio.surface.model import RoadModel, RoadParams
 
 from helpers import R3LIKE
-from tolerances import ALPHA, N_SIGMA
+from tolerances import ALPHA, N_SIGMA, z_family
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
 R3 = RoadModel(RoadParams(**R3LIKE), name="R3-like")
@@ -411,3 +411,29 @@ def test_light_paths_carry_the_source_profile(profile):
         for key, se in (("k_a", "se"), ("stray_fraction", "stray_fraction_se")):
             va, vb = getattr(a, key), getattr(b, key)
             assert abs(va - vb) <= N_SIGMA * math.hypot(getattr(a, se), getattr(b, se)), (key, a, b)
+
+
+def test_lobe_sampling_at_the_light_paths_first_vertex_agrees_with_the_cosine():
+    """The light paths reflect at their first vertex l_1 by the part's own BSDF sampling (the road's
+    forward lobe where a grazing source lights the floor; ``KaBatch.light_lobe``), and every
+    strategy that finds the same two-reflection path weighs it with that sampling's density,
+    computed per cell (``KaBatch._light_pdf``). Against the former estimator (cosine reflection at
+    l_1 and the cosine density in the weights) at grazing cells, walls of 0.2, the same samples
+    (one pass of 2^18 points a cell), other seeds: k_A and the stray fraction agree within the
+    combined standard errors, and the lobe's are smaller (what it is for). Sampling the lobe but
+    weighing with the cosine density (a reverse pdf that disagrees with the sampling; measured once)
+    moves k_A by +0.5 %, +0.4 %, -0.7 % (8-18 SE) and the stray fraction by 0.0055 at the off-specular
+    cells (25-50 SE): this test fails then."""
+    cells = [(11.0, 35.0), (12.0, 60.0), (12.0, 0.0)]
+    z = z_family(2 * len(cells))
+    lobe = mitsuba(housed(0.2), rel_se=1.0, first_pass=1 << 18, seed=1)
+    assert lobe.engine.integrator.light_lobe and lobe.engine.integrator.light_depth == 2
+    cosine = mitsuba(housed(0.2), rel_se=1.0, first_pass=1 << 18, seed=2)
+    cosine.engine.integrator.light_lobe = False
+    for a, b in zip(lobe.compute(cells), cosine.compute(cells)):
+        assert a.samples == b.samples == 1 << 18
+        assert a.stray_fraction > 0.01
+        for key, se in (("k_a", "se"), ("stray_fraction", "stray_fraction_se")):
+            va, vb = getattr(a, key), getattr(b, key)
+            assert abs(va - vb) <= z * math.hypot(getattr(a, se), getattr(b, se)), (key, a, b)
+        assert a.se < b.se, (a.tan_eps, a.beta_deg, a.se, b.se)
