@@ -310,13 +310,20 @@ def housing_shapes(instrument: Instrument, housing, model: RoadModel) -> dict[st
     from roadgonio.instrument.enclosure import housing_panels
     mi = _mi()
     out = {}
+    shared: dict[str, Any] = {}
     for p in housing_panels(instrument, housing):
         bsdf = {"type": "diffuse", "reflectance": {"type": "uniform", "value": float(p.reflectance)}}
         if p.road:
             bsdf = _bsdf_dict(model, "road")
         if p.two_sided:
             bsdf = {"type": "twosided", "bsdf": bsdf}
-        out[p.id] = {"type": "rectangle", "to_world": mi.ScalarTransform4f(p.to_world().tolist()), "bsdf": bsdf}
+        # panels with the same BSDF share one instance: every distinct instance is traced (a road BSDF
+        # in Python) and compiled once more at each place a path vertex calls its part's BSDF
+        key = repr(bsdf)
+        if key not in shared:
+            shared[key] = mi.load_dict(bsdf)
+        out[p.id] = {"type": "rectangle", "to_world": mi.ScalarTransform4f(p.to_world().tolist()),
+                     "bsdf": shared[key]}
     return out
 
 
