@@ -16,6 +16,7 @@ tests): the full 580-cell table of scenes/portable_housed.toml at worst relative
    variance per point V of the whole residual.
 
     python bench/profile_straylight.py [--reflectance 0.05] [--rel-se 1e-3]
+    python bench/profile_straylight.py --variance-only --cells 12 60 12 105   # section 3 at these cells
 
 Prints the tables and writes bench/results/straylight_profile.txt.
 """
@@ -53,6 +54,9 @@ def main(argv=None) -> int:
     ap.add_argument("--log2n", type=int, default=10)
     ap.add_argument("--replicates", type=int, default=64)
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "straylight_profile.txt"))
+    ap.add_argument("--cells", type=float, nargs="*", default=None,
+                    help="tan eps, beta pairs for section 3 (default: the limiting cells of the table)")
+    ap.add_argument("--variance-only", action="store_true", help="section 3 only")
     args = ap.parse_args(argv)
 
     import drjit as dr
@@ -80,71 +84,72 @@ def main(argv=None) -> int:
            f"{args.rel_se:g}, {dr.thread_count()} Dr.Jit threads on {os.cpu_count()} cores; load average before "
            f"{_load()}"]
 
-    # 1. launches
-    spent, calls = collections.defaultdict(float), collections.Counter()
-    originals = {name: getattr(kb.KaBatch, name) for name in STEPS}
+    if not args.variance_only:
+        # 1. launches
+        spent, calls = collections.defaultdict(float), collections.Counter()
+        originals = {name: getattr(kb.KaBatch, name) for name in STEPS}
 
-    def timed(name, f):
-        @functools.wraps(f)
-        def g(*a, **k):
-            t = time.perf_counter()
-            r = f(*a, **k)
-            spent[name] += time.perf_counter() - t
-            calls[name] += 1
-            return r
-        return g
+        def timed(name, f):
+            @functools.wraps(f)
+            def g(*a, **k):
+                t = time.perf_counter()
+                r = f(*a, **k)
+                spent[name] += time.perf_counter() - t
+                calls[name] += 1
+                return r
+            return g
 
-    for name, f in originals.items():
-        setattr(kb.KaBatch, name, timed(name, f))
-    try:
-        b = make_backend(inst, model, rel_se=args.rel_se, seed=0)
-        b.compute(cells)                                       # compile and warm up
-        spent.clear()
-        calls.clear()
-        dr.set_flag(dr.JitFlag.KernelHistory, True)
-        dr.kernel_history()                                    # (clears it)
-        c0, t0 = time.process_time(), time.perf_counter()
-        res = b.compute(cells)
-        wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-        hist = dr.kernel_history()
-        dr.set_flag(dr.JitFlag.KernelHistory, False)
-    finally:
         for name, f in originals.items():
-            setattr(kb.KaBatch, name, f)
-    kernels = [e for e in hist if "codegen_time" in e]
-    exe = sum(e.get("execution_time", 0.0) for e in kernels) / 1e3
-    gen = sum(e.get("codegen_time", 0.0) for e in kernels) / 1e3
-    back = sum(e.get("backend_time", 0.0) for e in kernels) / 1e3
-    misses = sum(1 for e in kernels if not e.get("cache_hit", False))
-    out.append(f"\n1. launches: table {wall:.2f} s wall, CPU/wall {cpu / wall:.2f}; {len(kernels)} kernels: execution "
-               f"{exe:.2f} s, code generation (tracing to IR) {gen:.2f} s, backend compilation {back:.2f} s "
-               f"({misses} not in the kernel cache); the rest, {wall - exe - gen - back:.2f} s, is Python (tracing, "
-               "planner, statistics) and the reductions")
-    out.append(f"   {'step':14s} {'calls':>6s} {'wall s':>8s} {'share':>6s}")
-    for name in STEPS:
-        out.append(f"   {name:14s} {calls[name]:6d} {spent[name]:8.3f} {spent[name] / wall:6.1%}")
-    big = sorted(kernels, key=lambda e: -e.get("execution_time", 0.0))
-    by_ops = collections.defaultdict(lambda: [0, 0.0])
-    for e in big:
-        k = by_ops[e.get("operation_count", 0)]
-        k[0] += 1
-        k[1] += e.get("execution_time", 0.0) / 1e3
-    out.append("   kernels by size (operations: launches, execution s): " + "; ".join(
-        f"{ops}: {n}, {t:.3f}" for ops, (n, t) in sorted(by_ops.items(), key=lambda kv: -kv[1][1])[:6]))
+            setattr(kb.KaBatch, name, timed(name, f))
+        try:
+            b = make_backend(inst, model, rel_se=args.rel_se, seed=0)
+            b.compute(cells)                                       # compile and warm up
+            spent.clear()
+            calls.clear()
+            dr.set_flag(dr.JitFlag.KernelHistory, True)
+            dr.kernel_history()                                    # (clears it)
+            c0, t0 = time.process_time(), time.perf_counter()
+            res = b.compute(cells)
+            wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+            hist = dr.kernel_history()
+            dr.set_flag(dr.JitFlag.KernelHistory, False)
+        finally:
+            for name, f in originals.items():
+                setattr(kb.KaBatch, name, f)
+        kernels = [e for e in hist if "codegen_time" in e]
+        exe = sum(e.get("execution_time", 0.0) for e in kernels) / 1e3
+        gen = sum(e.get("codegen_time", 0.0) for e in kernels) / 1e3
+        back = sum(e.get("backend_time", 0.0) for e in kernels) / 1e3
+        misses = sum(1 for e in kernels if not e.get("cache_hit", False))
+        out.append(f"\n1. launches: table {wall:.2f} s wall, CPU/wall {cpu / wall:.2f}; {len(kernels)} kernels: execution "
+                   f"{exe:.2f} s, code generation (tracing to IR) {gen:.2f} s, backend compilation {back:.2f} s "
+                   f"({misses} not in the kernel cache); the rest, {wall - exe - gen - back:.2f} s, is Python (tracing, "
+                   "planner, statistics) and the reductions")
+        out.append(f"   {'step':14s} {'calls':>6s} {'wall s':>8s} {'share':>6s}")
+        for name in STEPS:
+            out.append(f"   {name:14s} {calls[name]:6d} {spent[name]:8.3f} {spent[name] / wall:6.1%}")
+        big = sorted(kernels, key=lambda e: -e.get("execution_time", 0.0))
+        by_ops = collections.defaultdict(lambda: [0, 0.0])
+        for e in big:
+            k = by_ops[e.get("operation_count", 0)]
+            k[0] += 1
+            k[1] += e.get("execution_time", 0.0) / 1e3
+        out.append("   kernels by size (operations: launches, execution s): " + "; ".join(
+            f"{ops}: {n}, {t:.3f}" for ops, (n, t) in sorted(by_ops.items(), key=lambda kv: -kv[1][1])[:6]))
 
-    # 2. the planner
-    S = np.array([r.samples for r in res], dtype=np.float64)
-    rel = np.array([r.se / abs(r.k_a) for r in res])
-    ideal = float(np.sum(S * (rel / args.rel_se) ** 2))
-    out.append(f"\n2. planner: {S.sum():.3e} samples (median {np.median(S):.0f} a cell, max {S.max():.0f}); every cell "
-               f"exactly at the target: {ideal:.3e} ({S.sum() / ideal:.2f}x fewer)")
-    for q, p in enumerate(b.last_run.info["passes"]):
-        out.append(f"   pass {q}: {p['cells']} cells, {p['groups']} lattice sizes, {p['samples']:.3e} samples")
-    out.append("   passes per cell: " + ", ".join(f"{k}: {v}" for k, v in
-                                                   sorted(collections.Counter(r.extra['passes'] for r in res).items())))
-    out.append("   most samples: " + "; ".join(
-        f"tan {res[i].tan_eps:g} beta {res[i].beta_deg:g}: {S[i]:.0f} (rel SE {rel[i]:.1e}, stray "
-        f"{100 * res[i].stray_fraction:.0f} %)" for i in np.argsort(-S)[:5]))
+        # 2. the planner
+        S = np.array([r.samples for r in res], dtype=np.float64)
+        rel = np.array([r.se / abs(r.k_a) for r in res])
+        ideal = float(np.sum(S * (rel / args.rel_se) ** 2))
+        out.append(f"\n2. planner: {S.sum():.3e} samples (median {np.median(S):.0f} a cell, max {S.max():.0f}); every cell "
+                   f"exactly at the target: {ideal:.3e} ({S.sum() / ideal:.2f}x fewer)")
+        for q, p in enumerate(b.last_run.info["passes"]):
+            out.append(f"   pass {q}: {p['cells']} cells, {p['groups']} lattice sizes, {p['samples']:.3e} samples")
+        out.append("   passes per cell: " + ", ".join(f"{k}: {v}" for k, v in
+                                                       sorted(collections.Counter(r.extra['passes'] for r in res).items())))
+        out.append("   most samples: " + "; ".join(
+            f"tan {res[i].tan_eps:g} beta {res[i].beta_deg:g}: {S[i]:.0f} (rel SE {rel[i]:.1e}, stray "
+            f"{100 * res[i].stray_fraction:.0f} %)" for i in np.argsort(-S)[:5]))
 
     # 3. the variance by strategy
     rs = build_scene(inst, model, hit_rays=1 << 12)
@@ -153,7 +158,8 @@ def main(argv=None) -> int:
     n, reps = 1 << args.log2n, args.replicates
     out.append(f"\n3. variance by strategy ({reps} replicates of {n} points, seed 0): share of the road / Lambert "
                "signal; variance per point of the residual (lattice) / mean square (plain MC), both / V")
-    for cell in CELLS:
+    sec3 = CELLS if not args.cells else tuple(zip(args.cells[0::2], args.cells[1::2]))
+    for cell in sec3:
         integ.set_cells(source_frames(inst, [cell]))
         z = lat.generating_vector(n, lat.DIMENSIONS + integ.qmc_dims)
         shifts = np.concatenate([lat.shifts(0, 0, args.log2n, reps),
