@@ -304,8 +304,12 @@ class KaBatch(mi.SamplingIntegrator):
         sample the reflection that reaches it and two for its next-event estimation; for the light
         paths two for the source point, two for the emitted direction, three per further reflection
         (:meth:`_light_reflect`)."""
-        light = (4 + 3 * (self.light_depth - 1)) if self.light_depth else 0
-        return WALK_DIMS_PER_VERTEX * (self.max_bounces - 1) + light
+        return WALK_DIMS_PER_VERTEX * (self.max_bounces - 1) + self.light_dims
+
+    @property
+    def light_dims(self) -> int:
+        """Random dimensions of a light path (:attr:`walk_dims`)."""
+        return (4 + 3 * (self.light_depth - 1)) if self.light_depth else 0
 
     def reflecting(self, shape):
         """Mask: the lanes' shapes are reflecting parts."""
@@ -340,14 +344,17 @@ class KaBatch(mi.SamplingIntegrator):
 
     def qmc_index(self, dim: int) -> int | None:
         """Which path dimensions come from the lattice (index among them), else None: the first
-        :data:`QMC_EYE_VERTICES` eye vertices' and the light path's source point and emitted
-        direction (measured on the housed portable instrument: lattice coordinates for the light
-        path's further reflection, or for all dimensions, left more variance than hashed ones)."""
+        :data:`QMC_EYE_VERTICES` eye vertices' and all of the light path's (source point, emitted
+        direction, the reflection at l_1). Measured on the housed portable instrument: lattice
+        coordinates for every dimension (the further eye vertices' too) left more variance than
+        hashed ones; for the light path's
+        reflection at l_1 they left more while it was cosine-distributed, and 1.4-2.3x less at the
+        limiting cells since it samples the part's BSDF (:meth:`_light_reflect`)."""
         eye = WALK_DIMS_PER_VERTEX * (self.max_bounces - 1)
         n_eye = min(eye, WALK_DIMS_PER_VERTEX * QMC_EYE_VERTICES)
         if dim < n_eye:
             return dim
-        if self.light_depth and eye <= dim < eye + 4:
+        if eye <= dim < eye + self.light_dims:
             return n_eye + dim - eye
         return None
 
@@ -355,7 +362,7 @@ class KaBatch(mi.SamplingIntegrator):
     def qmc_dims(self) -> int:
         """Path dimensions taken from the lattice (the rest are hashed)."""
         eye = WALK_DIMS_PER_VERTEX * (self.max_bounces - 1)
-        return min(eye, WALK_DIMS_PER_VERTEX * QMC_EYE_VERTICES) + (4 if self.light_depth else 0)
+        return min(eye, WALK_DIMS_PER_VERTEX * QMC_EYE_VERTICES) + self.light_dims
 
     def _reflect(self, scene, si, bsdf, is_sample, tr, tg, pf, alive, u1, u2):
         """One reflection of the eye paths ``si``: sample the BSDF, multiply the road and Lambert
