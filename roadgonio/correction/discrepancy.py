@@ -1,0 +1,182 @@
+"""The model-discrepancy component of a surface correction's budget: what the instruments cannot
+see (docs/correction.md, "What the instruments cannot see").
+
+The fitted model (backbone times correction surface, :mod:`roadgonio.correction.flexible`) can only
+follow the true BRDF as finely as its knots and its evidence-chosen smoothness allow. Write the rest
+as a discrepancy of the logarithm over the incident direction,
+
+    ln f_true(w_i, w_o) = ln f_model(w_i, w_o) + delta(x(w_i, w_o)),   x = (s_beta, s_t)
+
+(x the knot coordinates of the correction surface g_C, :func:`roadgonio.surface.correction_surface.surface_coordinates`;
+one unit = one knot spacing), delta a zero-mean Gaussian process with the squared-exponential
+correlation ``rho(x, x') = exp(-|x - x'|^2 / (2 ell^2))`` and variance sigma^2. Linearised about the
+model, an instrument's reading of cell c is multiplied by ``exp((K delta)_c)``, with
+
+    (K delta)_c = sum_k w_k delta(x_k),   w_k = a_k f_model,k / sum_l a_l f_model,l
+
+over the cell's fixed rays (their illuminance weights a_k, :class:`roadgonio.engines.bundle.RayBundles`),
+while the table wants ``delta(x0_c)`` at the nominal direction. Structure the fit cannot follow
+leaves the corrected ln r off by
+
+    e_c = (K delta)_c - delta(x0_c),
+    cov(e_c, e_d) = sigma^2 [ rho(x0_c, x0_d) - w_c . rho(X_c, x0_d) - w_d . rho(x0_c, X_d) + w_c^T rho(X_c, X_d) w_d ]
+
+(:func:`discrepancy_correlation`, the bracket): zero for an instrument that sees only the nominal
+direction (a delta function), sigma^2 for one whose blur is much wider than ell (its reading
+averages delta away, the table keeps it), and in between as the blur compares with ell. It
+correlates cells whose blurs overlap, and the same cell seen by two instruments (through delta(x0_c)).
+
+The rays of a cell are binned before the double sum: each goes to the nearest point of a square
+lattice of spacing ``h = BIN_FRACTION * ell`` in x; the double sum over the lattice images is then
+two small matrix products (rho is separable). Moving a point by at most h/2 in each coordinate changes
+the bracket by about ``(h / ell)^2 / 12`` (the variance of the rounding, h^2 / 12 per coordinate, in
+units of ell^2).
+
+The discrepancy is assumed: independent of the observation direction (g_D and the backbone carry
+that), stationary in x, zero-mean (the fit takes out what it can see), and not seen by the fit (the
+data are not used to shrink it: where the instruments resolve, e is small anyway).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from roadgonio.arrays import NumpyOps
+from roadgonio.surface.correction_surface import SplineGrid, surface_coordinates
+
+#: Side of the lattice the rays are binned on, in units of ell.
+BIN_FRACTION = 0.25
+#: Cell pairs whose supports are further apart than this many ell are uncorrelated (rho < 4e-6).
+CUTOFF_ELL = 5.0
+
+
+def se_correlation(xp, d2, ell: float):
+    """The squared-exponential correlation exp(-d^2 / (2 ell^2)) of delta at squared distance ``d2``."""
+    return xp.exp(d2 * (-0.5 / (ell * ell)))
+
+
+@dataclass(frozen=True)
+class Blur:
+    """One instrument's blur of delta on a lattice of spacing ``h`` (shared by every cell): per
+    cell the nominal point ``x0[c]`` and the image ``images[c]`` of the ray weights (summing to 1),
+    its element (a, b) the lattice point ``h (origins[c] + (a, b))``."""
+
+    x0: np.ndarray
+    origins: np.ndarray
+    images: tuple
+    h: float
+
+    @property
+    def n(self) -> int:
+        return int(self.x0.shape[0])
+
+
+def make_blur(x0: np.ndarray, x: np.ndarray, w: np.ndarray, cell_of: np.ndarray, ell: float,
+              bin_fraction: float = BIN_FRACTION) -> Blur:
+    """A :class:`Blur` from flat rays: coordinates ``x`` (rays, 2), weights ``w`` (rays,), the cell of
+    each ray ``cell_of`` and the cells' nominal points ``x0`` (cells, 2); each ray goes to its nearest
+    lattice point (spacing ``bin_fraction * ell``)."""
+    x0 = np.asarray(x0, dtype=np.float64)
+    x = np.asarray(x, dtype=np.float64)
+    w = np.asarray(w, dtype=np.float64)
+    cell_of = np.asarray(cell_of)
+    h = bin_fraction * ell
+    k = np.rint(x / h).astype(np.int64)
+    order = np.argsort(cell_of, kind="stable")
+    bounds = np.searchsorted(cell_of[order], np.arange(x0.shape[0] + 1))
+    origins, images = [], []
+    for c in range(x0.shape[0]):
+        sel = order[bounds[c]:bounds[c + 1]]
+        kc, wc = k[sel], w[sel]
+        o = kc.min(axis=0)
+        shape = tuple(kc.max(axis=0) - o + 1)
+        img = np.zeros(shape)
+        np.add.at(img, (kc[:, 0] - o[0], kc[:, 1] - o[1]), wc)
+        origins.append(o)
+        images.append(img / wc.sum())
+    return Blur(x0=x0, origins=np.array(origins, dtype=np.int64).reshape(-1, 2), images=tuple(images), h=h)
+
+
+def part_blur(part, theta: np.ndarray, ell: float) -> Blur:
+    """The blur of a :class:`roadgonio.correction.flexible.FlexPart` at the fitted surface ``theta``:
+    its rays in the knot coordinates of g_C, weighted by a_k f_model,k (module docstring)."""
+    b = part.forward.bundles
+    grid: SplineGrid = part.settings.c_grid
+    sb, st = surface_coordinates(NumpyOps, grid, b.wi, b.wo)
+    x = np.stack([np.broadcast_to(np.asarray(sb, dtype=np.float64), b.a.shape),
+                  np.broadcast_to(np.asarray(st, dtype=np.float64), b.a.shape)], axis=1)
+    w = part.af0 * np.exp(np.minimum(part.g_rays(theta), 50.0))
+    n = part.n
+    wo0 = tuple(np.full(n, b.wo0[k]) for k in range(3))
+    wi0 = tuple(b.wi0[:, k] for k in range(3))
+    s0b, s0t = surface_coordinates(NumpyOps, grid, wi0, wo0)
+    x0 = np.stack([np.asarray(s0b, dtype=np.float64), np.asarray(s0t, dtype=np.float64)], axis=1)
+    return make_blur(x0, x, w, part.cell_of, ell)
+
+
+def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = CUTOFF_ELL) -> np.ndarray:
+    """The bracket of the module docstring, cov(e_c, e_d) / sigma^2, over the concatenated cells of
+    ``blurs`` (several instruments: their cells one after the other; one lattice spacing). The
+    squared-exponential correlation is separable, so over the lattice images the double sum is
+    ``sum(I_c * (R_1 I_d R_2^T))`` with R_1, R_2 the correlations between the lattice lines. Pairs of
+    cells whose supports (nominal point and image) are further apart than ``cutoff_ell * ell`` get 0."""
+    h = blurs[0].h
+    if any(abs(b.h - h) > 1e-15 * h for b in blurs):
+        raise ValueError("the blurs must share one lattice spacing")
+    x0 = np.concatenate([b.x0 for b in blurs], axis=0)
+    org = np.concatenate([b.origins for b in blurs], axis=0)
+    imgs = [im for b in blurs for im in b.images]
+    ext = np.array([im.shape for im in imgs], dtype=np.int64)
+    n = x0.shape[0]
+    lo = np.minimum(org * h, x0) - cutoff_ell * ell
+    hi = np.maximum((org + ext - 1) * h, x0)
+    close = np.all((lo[:, None, :] <= hi[None, :, :]) & (lo[None, :, :] <= hi[:, None, :]), axis=2)
+
+    def line(o, m):                       # lattice coordinates of an image's lines
+        return h * (o + np.arange(m))
+
+    def rho1(a, b):                       # 1-D correlations between coordinate vectors
+        return se_correlation(np, np.subtract.outer(a, b) ** 2, ell)
+
+    lines = [(line(org[i, 0], ext[i, 0]), line(org[i, 1], ext[i, 1])) for i in range(n)]
+    # the nominal point of each cell against every image: rho(x0_c, X_d) . w_d
+    R = np.zeros((n, n))
+    ii, jj = np.nonzero(np.triu(close))
+    for i, j in zip(ii.tolist(), jj.tolist()):
+        (bi, ti), (bj, tj) = lines[i], lines[j]
+        Ii, Ij = imgs[i], imgs[j]
+        r00 = math.exp(-0.5 * float(np.sum((x0[i] - x0[j]) ** 2)) / (ell * ell))
+        r0j = float(rho1(x0[i, 0], bj) @ Ij @ rho1(x0[i, 1], tj))
+        ri0 = float(rho1(x0[j, 0], bi) @ Ii @ rho1(x0[j, 1], ti))
+        rij = float(np.sum(Ii * (rho1(bi, bj) @ Ij @ rho1(tj, ti))))
+        R[i, j] = R[j, i] = r00 - ri0 - r0j + rij
+    return R
+
+
+def second_difference_variance(ell: float) -> float:
+    """Variance of the unit-spaced second difference delta(x - 1) - 2 delta(x) + delta(x + 1) of a
+    unit-variance squared-exponential process of length ``ell``: 6 - 8 rho(1) + 2 rho(2)."""
+    return 6.0 - 8.0 * math.exp(-0.5 / ell ** 2) + 2.0 * math.exp(-2.0 / ell ** 2)
+
+
+def amplitude_from_penalty(lam: dict, ell: float, peak: np.ndarray) -> np.ndarray:
+    """Per cell, sigma^2 of delta from the evidence-chosen roughness of g_C (docs/correction.md):
+    the penalty ``lambda theta^T P theta`` is the prior that the second differences of g_C's node
+    values (one knot apart) have variance 1 / lambda; delta is given the same roughness below the
+    knot spacing, ``sigma^2 second_difference_variance(ell) = 1 / lambda``, averaged over the two
+    directions (beta, eps) of the cell's region (``peak``: bool per cell, the peak blocks of
+    :func:`roadgonio.correction.flexible.penalty_blocks`; a region without its own block takes the other's)."""
+    c = second_difference_variance(ell)
+
+    def inv(region):
+        vals = [1.0 / lam[f"{d}_{region}"] for d in ("beta", "eps") if f"{d}_{region}" in lam and lam[f"{d}_{region}"] > 0]
+        return float(np.mean(vals)) if vals else math.nan
+
+    v_peak, v_rest = inv("peak"), inv("rest")
+    if not math.isfinite(v_peak):
+        v_peak = v_rest
+    if not math.isfinite(v_rest):
+        v_rest = v_peak
+    return np.where(np.asarray(peak, dtype=bool), v_peak, v_rest) / c

@@ -1,0 +1,109 @@
+"""The discrepancy component of a surface correction (roadgonio/correction/discrepancy.py):
+var(delta(c) - (K delta)(c)) / sigma^2 through known blurs, against closed forms and a float64
+numeric integral written here apart from the code; the limiting cases (a delta-function instrument
+gives 0, a blur much wider than the correlation length gives sigma^2)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate
+
+from roadgonio.correction.discrepancy import (BIN_FRACTION, amplitude_from_penalty, discrepancy_correlation,
+                                              make_blur, second_difference_variance)
+
+#: Rounding every ray to the nearest lattice point (spacing BIN_FRACTION ell) moves it by a uniform
+#: error of variance h^2 / 12 per coordinate: the bracket changes by O((h / ell)^2 / 12) per term it enters;
+#: the tolerance allows (h / ell)^2 for the three terms (absolute, on a bracket in [0, 2]).
+COMPRESSION_TOL = BIN_FRACTION ** 2
+#: Gauss-Hermite nodes per dimension of the Gaussian blurs (exact for these smooth integrands to ~1e-12).
+GH_NODES = 40
+
+
+def gauss_blur(centre, sd, n=GH_NODES):
+    """Points and weights of a 2-D isotropic Gaussian blur (tensor Gauss-Hermite rule)."""
+    t, w = np.polynomial.hermite_e.hermegauss(n)
+    w = w / w.sum()
+    X, Y = np.meshgrid(centre[0] + sd * t, centre[1] + sd * t, indexing="ij")
+    return np.stack([X.ravel(), Y.ravel()], axis=1), np.outer(w, w).ravel()
+
+
+def blur_one_cell(x0, pts, wts, ell):
+    return make_blur(np.array([x0], dtype=float), pts, wts, np.zeros(len(wts), dtype=np.int64), ell)
+
+
+@pytest.mark.parametrize("ell, sd, shift", [(1.0, 0.3, 0.0), (1.0, 1.0, 0.0), (0.5, 2.0, 0.0), (1.0, 0.7, 0.8)])
+def test_gaussian_blur_against_the_closed_form(ell, sd, shift):
+    """Blur N(x0 + mu, sd^2 I), squared-exponential rho of length ell:
+    E[delta(x0) K delta] = l^2 / (l^2 + s^2) exp(-mu^2 / (2 (l^2 + s^2))), E[(K delta)^2] = l^2 / (l^2 + 2 s^2)."""
+    x0 = np.array([3.0, 5.0])
+    pts, wts = gauss_blur(x0 + [shift, 0.0], sd)
+    R = discrepancy_correlation([blur_one_cell(x0, pts, wts, ell)], ell)
+    l2, s2 = ell ** 2, sd ** 2
+    expect = 1.0 - 2.0 * l2 / (l2 + s2) * math.exp(-0.5 * shift ** 2 / (l2 + s2)) + l2 / (l2 + 2.0 * s2)
+    assert R.shape == (1, 1)
+    assert abs(R[0, 0] - expect) <= COMPRESSION_TOL, (R[0, 0], expect)
+
+
+def test_two_instruments_on_one_cell_correlate_through_the_nominal_value():
+    """cov(e_A, e_B) / sigma^2 = 1 - l^2/(l^2+a^2) - l^2/(l^2+b^2) + l^2/(l^2+a^2+b^2) for Gaussian blurs a, b."""
+    ell, a, b = 1.0, 0.5, 1.5
+    x0 = np.array([2.0, 2.0])
+    A = blur_one_cell(x0, *gauss_blur(x0, a), ell)
+    B = blur_one_cell(x0, *gauss_blur(x0, b), ell)
+    R = discrepancy_correlation([A, B], ell)
+    l2 = ell ** 2
+    cross = 1.0 - l2 / (l2 + a * a) - l2 / (l2 + b * b) + l2 / (l2 + a * a + b * b)
+    assert abs(R[0, 1] - cross) <= COMPRESSION_TOL and abs(R[1, 0] - R[0, 1]) < 1e-15
+    assert abs(R[0, 0] - (1 - 2 * l2 / (l2 + a * a) + l2 / (l2 + 2 * a * a))) <= COMPRESSION_TOL
+
+
+def test_box_blur_against_a_numeric_integral():
+    """A uniform square blur of side L centred on x0: the bracket is 1 - 2 m1^2 + m2^2 with
+    m1 = (1/L) int rho_1(x) dx and m2 = (1/L^2) int int rho_1(x - y) dx dy per dimension
+    (rho separable), both integrated here by scipy in float64."""
+    ell, L = 1.0, 2.5
+    rho1 = lambda d: math.exp(-0.5 * d * d / ell ** 2)
+    m1 = integrate.quad(lambda x: rho1(x), -L / 2, L / 2, epsabs=1e-13)[0] / L
+    m2 = integrate.dblquad(lambda y, x: rho1(x - y), -L / 2, L / 2, -L / 2, L / 2, epsabs=1e-12)[0] / L ** 2
+    expect = 1.0 - 2.0 * m1 ** 2 + m2 ** 2
+    n = 400
+    g = (np.arange(n) + 0.5) / n * L - L / 2
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel()], axis=1) + [10.0, 7.0]
+    R = discrepancy_correlation([blur_one_cell([10.0, 7.0], pts, np.full(n * n, 1.0 / n ** 2), ell)], ell)
+    assert abs(R[0, 0] - expect) <= COMPRESSION_TOL, (R[0, 0], expect)
+
+
+def test_limiting_cases():
+    """A delta-function instrument (every ray at the nominal point) gives exactly 0, and no covariance
+    with anything; a blur far wider than ell (sd 15 ell: 1 - 2/226 + 1/451 = 0.9934) gives nearly the
+    prior variance (1 in units of sigma^2); cells further apart than the cut-off do not correlate."""
+    ell = 1.0
+    x0 = np.array([[1.0, 1.0], [40.0, 40.0], [400.0, 400.0]])
+    wide = gauss_blur(x0[1], 15.0)
+    pts = np.concatenate([np.repeat(x0[:1], 50, axis=0), wide[0], x0[2:] + [[0.5, 0.0], [-0.5, 0.0]]])
+    wts = np.concatenate([np.full(50, 1 / 50), wide[1], [0.5, 0.5]])
+    cell_of = np.concatenate([np.zeros(50, dtype=np.int64), np.ones(GH_NODES ** 2, dtype=np.int64), [2, 2]])
+    R = discrepancy_correlation([make_blur(x0, pts, wts, cell_of, ell)], ell)
+    assert R[0, 0] == pytest.approx(0.0, abs=1e-14)
+    assert abs(R[0, 1]) < 1e-14 and R[0, 2] == 0.0
+    assert R[1, 1] == pytest.approx(1.0 - 2.0 / 226.0 + 1.0 / 451.0, abs=COMPRESSION_TOL)
+    assert R[1, 2] == 0.0
+    # two rays at +-ell/2 (on the lattice: exact): 1 - 2 rho(1/2) + (1 + rho(1)) / 2
+    assert R[2, 2] == pytest.approx(1.0 - 2.0 * math.exp(-0.125) + 0.5 * (1.0 + math.exp(-0.5)), rel=1e-12)
+    assert np.all(np.linalg.eigvalsh(R) >= -1e-12)
+
+
+def test_amplitude_matches_the_penalty_roughness():
+    """sigma^2 (6 - 8 rho(1) + 2 rho(2)) = 1 / lambda: checked by the variance of unit-spaced second
+    differences of the squared-exponential covariance written out here, per region."""
+    ell = 0.8
+    C = np.exp(-0.5 * (np.subtract.outer(np.arange(3.0), np.arange(3.0)) / ell) ** 2)
+    d = np.array([1.0, -2.0, 1.0])
+    assert second_difference_variance(ell) == pytest.approx(d @ C @ d, rel=1e-14)
+    lam = {"beta_peak": 4.0, "eps_peak": 16.0, "beta_rest": 100.0, "eps_rest": 400.0}
+    s2 = amplitude_from_penalty(lam, ell, np.array([True, False]))
+    assert s2[0] == pytest.approx((1 / 4 + 1 / 16) / 2 / (d @ C @ d), rel=1e-14)
+    assert s2[1] == pytest.approx((1 / 100 + 1 / 400) / 2 / (d @ C @ d), rel=1e-14)
