@@ -155,28 +155,36 @@ def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = C
     return R
 
 
-def second_difference_variance(ell: float) -> float:
-    """Variance of the unit-spaced second difference delta(x - 1) - 2 delta(x) + delta(x + 1) of a
-    unit-variance squared-exponential process of length ``ell``: 6 - 8 rho(1) + 2 rho(2)."""
-    return 6.0 - 8.0 * math.exp(-0.5 / ell ** 2) + 2.0 * math.exp(-2.0 / ell ** 2)
+def beyond_nyquist_variance(lam_beta: float, lam_eps: float, n_phi: int = 4096) -> float:
+    """The variance that the roughness prior of g_C puts at wavelengths its knots cannot represent.
+
+    The penalty ``lam_beta sum (Delta_beta^2 a)^2 + lam_eps sum (Delta_eps^2 a)^2`` over the node
+    values (unit spacing) is the precision of a Gaussian field whose spectral density, continued off
+    the lattice, is ``1 / (4 pi^2 (lam_beta k_b^4 + lam_eps k_t^4))`` (the second difference's
+    symbol, ``(2 - 2 cos k)^2``, is k^4 for small k). The knots represent wavenumbers inside the
+    Nyquist square |k_b|, |k_t| <= pi; the rest has the variance
+
+        sigma^2 = (1 / 4 pi^2) int_0^{2 pi} dphi / (2 r_0(phi)^2 (lam_beta cos^4 phi + lam_eps sin^4 phi)),
+
+    r_0 = pi / max(|cos phi|, |sin phi|) the square's edge (the radial integral is done exactly;
+    the angular one by the midpoint rule on ``n_phi`` points)."""
+    phi = (np.arange(n_phi) + 0.5) * (2.0 * math.pi / n_phi)
+    c, s_ = np.cos(phi), np.sin(phi)
+    r0 = math.pi / np.maximum(np.abs(c), np.abs(s_))
+    q = lam_beta * c ** 4 + lam_eps * s_ ** 4
+    return float(np.sum(1.0 / (2.0 * r0 ** 2 * q)) * (2.0 * math.pi / n_phi) / (4.0 * math.pi ** 2))
 
 
-def amplitude_from_penalty(lam: dict, ell: float, peak: np.ndarray) -> np.ndarray:
-    """Per cell, sigma^2 of delta from the evidence-chosen roughness of g_C (docs/correction.md):
-    the penalty ``lambda theta^T P theta`` is the prior that the second differences of g_C's node
-    values (one knot apart) have variance 1 / lambda; delta is given the same roughness below the
-    knot spacing, ``sigma^2 second_difference_variance(ell) = 1 / lambda``, averaged over the two
-    directions (beta, eps) of the cell's region (``peak``: bool per cell, the peak blocks of
-    :func:`roadgonio.correction.flexible.penalty_blocks`; a region without its own block takes the other's)."""
-    c = second_difference_variance(ell)
+def amplitude_from_penalty(lam: dict, peak: np.ndarray) -> np.ndarray:
+    """Per cell, sigma^2 of delta: :func:`beyond_nyquist_variance` of the evidence-chosen smoothing
+    parameters of the cell's region (``peak``: bool per cell; the blocks ``beta_peak``, ``eps_peak``,
+    ``beta_rest``, ``eps_rest`` of :func:`roadgonio.correction.flexible.penalty_blocks`; a region
+    without its own blocks takes the other's)."""
+    def region(name):
+        b, e = lam.get(f"beta_{name}"), lam.get(f"eps_{name}")
+        return None if b is None or e is None else beyond_nyquist_variance(b, e)
 
-    def inv(region):
-        vals = [1.0 / lam[f"{d}_{region}"] for d in ("beta", "eps") if f"{d}_{region}" in lam and lam[f"{d}_{region}"] > 0]
-        return float(np.mean(vals)) if vals else math.nan
-
-    v_peak, v_rest = inv("peak"), inv("rest")
-    if not math.isfinite(v_peak):
-        v_peak = v_rest
-    if not math.isfinite(v_rest):
-        v_rest = v_peak
-    return np.where(np.asarray(peak, dtype=bool), v_peak, v_rest) / c
+    v_peak, v_rest = region("peak"), region("rest")
+    v_peak = v_rest if v_peak is None else v_peak
+    v_rest = v_peak if v_rest is None else v_rest
+    return np.where(np.asarray(peak, dtype=bool), v_peak, v_rest)

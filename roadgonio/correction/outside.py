@@ -51,7 +51,7 @@ DEFAULT_VARIANTS = ("power", "smooth")
 #: Width (in grid cells) of the neighbourhood of the local Birge ratio.
 BIRGE_WIDTH_CELLS = 2.0
 #: Components of the budget of a corrected table (in this order).
-COMPONENTS = ("measurement", "backend", "surface", "model", "bundle", "misalignment")
+COMPONENTS = ("measurement", "backend", "surface", "model", "bundle", "discrepancy", "misalignment")
 
 
 @dataclass
@@ -351,6 +351,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     surf *= np.outer(widen, widen)
     model *= np.outer(widen, widen)
     bundle = np.concatenate([p.ratio_se(best.fit.theta) for p in best.parts])
+    disc = None
+    if settings.discrepancy_ell is not None:
+        disc, disc_info = discrepancy_covariance(vfits, best, settings)
     lap("covariance")
 
     # misalignment (per instrument, independent between instruments)
@@ -374,6 +377,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     comps["surface"] = surf
     comps["model"] = model
     comps["bundle"] = np.diag(bundle ** 2)
+    if disc is not None:
+        comps["discrepancy"] = disc
     if any(b is not None for b in mis_blocks):
         M = np.zeros((N, N))
         for i, b in enumerate(mis_blocks):
@@ -386,7 +391,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                         "the local Birge ratio where the residuals have structure",
              "model": "spread of the backbone variants' corrected k_A about their evidence-weighted mean",
              "bundle": "the ray bundles' own error of the change the surface makes to k_A (replicates)",
-             "misalignment": "instrument geometric errors (--sigma), first-order GUM"}
+             "misalignment": "instrument geometric errors (--sigma), first-order GUM",
+             "discrepancy": "structure of the surface finer than the correction surface's knots, which the "
+                            "instruments blur: var(delta(c) - (K delta)(c)) of a Gaussian process delta over the "
+                            "incident direction, its amplitude what the evidence-chosen roughness prior of the surface puts "
+                            "beyond the knots' Nyquist wavenumber"}
     lnr = [np.log(y) - lnk[off[i]:off[i + 1]] for i, y in enumerate(ys)]
     parts_out: list[InstrumentPart] = []
     for i, (inst, t) in enumerate(zip(instruments, tables)):
@@ -445,10 +454,35 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                       surface=settings.to_dict(), variants_asked=list(variants), variant_best_backbone=main,
                       bundles=[fm.bundles.summary() for fm in fms], misalignment=mis_info,
                       calibration=[i.calibration.to_dict() for i in instruments],
-                      forward_model_limits=_run.forward_model_limits(instruments))
+                      forward_model_limits=_run.forward_model_limits(instruments),
+                      discrepancy=disc_info if disc is not None else None)
     return SurfaceCorrection(parts=parts_out, corrected=combined, u_corrected=u_comb, budget=comb_budget, after=after,
                              variants=vfits, settings=settings, provenance=prov, seconds=time.perf_counter() - t0,
                              timings=timings)
+
+
+def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit,
+                           settings: SurfaceSettings) -> tuple[np.ndarray, dict[str, Any]]:
+    """The ``discrepancy`` component over the concatenated cells of the instruments
+    (:mod:`roadgonio.correction.discrepancy`): the bracket through each instrument's blur at the best
+    variant's surface, scaled per cell by sigma_c, sigma_c^2 the evidence-weighted mean over the
+    variants of what their smoothing parameters put beyond the knots' Nyquist wavenumber in the
+    cell's region. Returns (covariance, info)."""
+    from roadgonio.correction.discrepancy import amplitude_from_penalty, discrepancy_correlation, part_blur
+    ell = float(settings.discrepancy_ell)
+    cells = [c for p in best.parts for c in p.forward.bundles.cells]
+    eps = np.degrees(np.arctan([t for t, _ in cells]))
+    beta = np.array([b for _, b in cells])
+    peak = (beta <= settings.peak_beta_deg) & (eps >= settings.peak_eps_deg)
+    sig2 = sum(vf.weight * amplitude_from_penalty(vf.fit.lam, peak) for vf in vfits)
+    R = discrepancy_correlation([part_blur(p, best.fit.theta, ell) for p in best.parts], ell)
+    s = np.sqrt(sig2)
+    info = {"ell_knots": ell, "amplitude": "the roughness prior of g_C (evidence-chosen smoothing) beyond the "
+                                           "knots' Nyquist wavenumber, per region",
+            "sigma_peak": float(np.max(s[peak])) if peak.any() else None,
+            "sigma_rest": float(np.max(s[~peak])) if (~peak).any() else None,
+            "bracket_max": float(np.max(np.diag(R))), "bracket_median": float(np.median(np.diag(R)))}
+    return np.outer(s, s) * R, info
 
 
 def _stack_tables(tables: Sequence[RTable]) -> RTable:

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 from scipy import integrate
 
-from roadgonio.correction.discrepancy import (BIN_FRACTION, amplitude_from_penalty, discrepancy_correlation,
-                                              make_blur, second_difference_variance)
+from roadgonio.correction.discrepancy import (BIN_FRACTION, amplitude_from_penalty, beyond_nyquist_variance,
+                                              discrepancy_correlation, make_blur)
 
 #: Rounding every ray to the nearest lattice point (spacing BIN_FRACTION ell) moves it by a uniform
 #: error of variance h^2 / 12 per coordinate: the bracket changes by O((h / ell)^2 / 12) per term it enters;
@@ -96,14 +96,25 @@ def test_limiting_cases():
     assert np.all(np.linalg.eigvalsh(R) >= -1e-12)
 
 
-def test_amplitude_matches_the_penalty_roughness():
-    """sigma^2 (6 - 8 rho(1) + 2 rho(2)) = 1 / lambda: checked by the variance of unit-spaced second
-    differences of the squared-exponential covariance written out here, per region."""
-    ell = 0.8
-    C = np.exp(-0.5 * (np.subtract.outer(np.arange(3.0), np.arange(3.0)) / ell) ** 2)
-    d = np.array([1.0, -2.0, 1.0])
-    assert second_difference_variance(ell) == pytest.approx(d @ C @ d, rel=1e-14)
+@pytest.mark.parametrize("lam_b, lam_t", [(5.0, 5.0), (8.0, 40.0), (100.0, 3.0)])
+def test_beyond_nyquist_variance_against_a_cartesian_integral(lam_b, lam_t):
+    """sigma^2 = int over the plane outside the square |k_b|, |k_t| <= pi of
+    1 / (4 pi^2 (lam_b k_b^4 + lam_t k_t^4)), written here in Cartesian coordinates (4 quadrants):
+    the strip k_b > pi over all k_t >= 0 in closed form (int_0^inf dk / (A + B k^4) =
+    pi / (2 sqrt 2) A^(-3/4) B^(-1/4)), plus k_b < pi with k_t > pi by scipy after k_t = pi / t."""
+    a = math.pi / (2 * math.sqrt(2)) * lam_b ** -0.75 * lam_t ** -0.25 / (2 * math.pi ** 2) / (4 * math.pi ** 2)
+    f = lambda t, kb: (math.pi / t ** 2) / (4 * math.pi ** 2 * (lam_b * kb ** 4 + lam_t * (math.pi / t) ** 4))
+    b = integrate.dblquad(f, 0.0, math.pi, 0.0, 1.0, epsabs=1e-14, epsrel=1e-11)[0]
+    assert beyond_nyquist_variance(lam_b, lam_t) == pytest.approx(4 * (a + b), rel=1e-6)
+
+
+def test_amplitude_scales_as_one_over_lambda_and_follows_the_region():
+    """Doubling both smoothing parameters halves sigma^2 (the density is 1 / lambda); the peak
+    cells take the peak blocks' value, the others the rest's; no peak blocks: the rest's for all."""
+    assert beyond_nyquist_variance(10.0, 30.0) == pytest.approx(beyond_nyquist_variance(5.0, 15.0) / 2, rel=1e-12)
     lam = {"beta_peak": 4.0, "eps_peak": 16.0, "beta_rest": 100.0, "eps_rest": 400.0}
-    s2 = amplitude_from_penalty(lam, ell, np.array([True, False]))
-    assert s2[0] == pytest.approx((1 / 4 + 1 / 16) / 2 / (d @ C @ d), rel=1e-14)
-    assert s2[1] == pytest.approx((1 / 100 + 1 / 400) / 2 / (d @ C @ d), rel=1e-14)
+    s2 = amplitude_from_penalty(lam, np.array([True, False]))
+    assert s2[0] == pytest.approx(beyond_nyquist_variance(4.0, 16.0), rel=1e-14)
+    assert s2[1] == pytest.approx(beyond_nyquist_variance(100.0, 400.0), rel=1e-14)
+    only = amplitude_from_penalty({"beta_rest": 100.0, "eps_rest": 400.0}, np.array([True, False]))
+    assert np.all(only == s2[1])
