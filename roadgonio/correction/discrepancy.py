@@ -119,8 +119,8 @@ def part_blur(part, theta: np.ndarray, ell: float) -> Blur:
 def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = CUTOFF_ELL) -> np.ndarray:
     """The bracket of the module docstring, cov(e_c, e_d) / sigma^2, over the concatenated cells of
     ``blurs`` (several instruments: their cells one after the other; one lattice spacing). The
-    squared-exponential correlation is separable, so over the lattice images the double sum is
-    ``sum(I_c * (R_1 I_d R_2^T))`` with R_1, R_2 the correlations between the lattice lines. Pairs of
+    squared-exponential correlation is separable, so the double sum is ``sum(I_c * C_d)`` with C_d
+    the image of cell d convolved with rho along each lattice direction (out to the cut-off). Pairs of
     cells whose supports (nominal point and image) are further apart than ``cutoff_ell * ell`` get 0."""
     h = blurs[0].h
     if any(abs(b.h - h) > 1e-15 * h for b in blurs):
@@ -134,24 +134,42 @@ def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = C
     hi = np.maximum((org + ext - 1) * h, x0)
     close = np.all((lo[:, None, :] <= hi[None, :, :]) & (lo[None, :, :] <= hi[:, None, :]), axis=2)
 
-    def line(o, m):                       # lattice coordinates of an image's lines
-        return h * (o + np.arange(m))
+    K = int(math.ceil(cutoff_ell * ell / h))
+    kern = se_correlation(np, (h * np.arange(-K, K + 1, dtype=np.float64)) ** 2, ell)
 
-    def rho1(a, b):                       # 1-D correlations between coordinate vectors
-        return se_correlation(np, np.subtract.outer(a, b) ** 2, ell)
+    def smear(img):                       # the image times rho along both lattice directions, support + K
+        a = np.zeros((img.shape[0] + 2 * K, img.shape[1]))
+        for d in range(2 * K + 1):        # a[u] = sum_d kern[d] img[u - d]
+            a[d:d + img.shape[0]] += kern[d] * img
+        out = np.zeros((a.shape[0], img.shape[1] + 2 * K))
+        for d in range(2 * K + 1):
+            out[:, d:d + img.shape[1]] += kern[d] * a
+        return out
 
-    lines = [(line(org[i, 0], ext[i, 0]), line(org[i, 1], ext[i, 1])) for i in range(n)]
-    # the nominal point of each cell against every image: rho(x0_c, X_d) . w_d
+    def rho_line(x, o, m):                # rho between a coordinate and the lattice lines o .. o + m - 1
+        return se_correlation(np, (x - h * (o + np.arange(m))) ** 2, ell)
+
     R = np.zeros((n, n))
-    ii, jj = np.nonzero(np.triu(close))
-    for i, j in zip(ii.tolist(), jj.tolist()):
-        (bi, ti), (bj, tj) = lines[i], lines[j]
-        Ii, Ij = imgs[i], imgs[j]
-        r00 = math.exp(-0.5 * float(np.sum((x0[i] - x0[j]) ** 2)) / (ell * ell))
-        r0j = float(rho1(x0[i, 0], bj) @ Ij @ rho1(x0[i, 1], tj))
-        ri0 = float(rho1(x0[j, 0], bi) @ Ii @ rho1(x0[j, 1], ti))
-        rij = float(np.sum(Ii * (rho1(bi, bj) @ Ij @ rho1(tj, ti))))
-        R[i, j] = R[j, i] = r00 - ri0 - r0j + rij
+    for j in range(n):
+        partners = np.nonzero(close[j, :j + 1])[0]
+        if partners.size == 0:
+            continue
+        Ij = imgs[j]
+        Cj = smear(Ij)                    # Cj[a, b] = sum rho(lattice (oj - K + (a, b)), X_j) w_j
+        oj = org[j] - K
+        r0_j = {}
+        for i in partners.tolist():
+            Ii, oi = imgs[i], org[i]
+            r00 = math.exp(-0.5 * float(np.sum((x0[i] - x0[j]) ** 2)) / (ell * ell))
+            r0j = float(rho_line(x0[i, 0], org[j, 0], ext[j, 0]) @ Ij @ rho_line(x0[i, 1], org[j, 1], ext[j, 1]))
+            ri0 = float(rho_line(x0[j, 0], oi[0], ext[i, 0]) @ Ii @ rho_line(x0[j, 1], oi[1], ext[i, 1]))
+            lo_ = np.maximum(oi, oj)
+            hi_ = np.minimum(oi + ext[i], oj + np.array(Cj.shape))
+            rij = 0.0
+            if np.all(hi_ > lo_):
+                rij = float(np.sum(Ii[lo_[0] - oi[0]:hi_[0] - oi[0], lo_[1] - oi[1]:hi_[1] - oi[1]]
+                                   * Cj[lo_[0] - oj[0]:hi_[0] - oj[0], lo_[1] - oj[1]:hi_[1] - oj[1]]))
+            R[i, j] = R[j, i] = r00 - ri0 - r0j + rij
     return R
 
 

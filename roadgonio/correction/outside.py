@@ -18,7 +18,9 @@ Procedure (:func:`correct_surface`):
    (``surface``) plus the spread of the variants about the mean (``model``); where the normalised
    residuals have structure the two are widened by the local Birge ratio (``max(1, B_c)``, B_c^2 the
    leverage-corrected mean squared normalised residual over the neighbouring cells); plus the
-   bundle's own error of what the surface changes (``bundle``) and the backend's (``backend``);
+   bundle's own error of what the surface changes (``bundle``), the backend's (``backend``) and
+   what the instruments' blur hides below the surface's knots (``discrepancy``,
+   :func:`discrepancy_covariance`, :mod:`roadgonio.correction.discrepancy`);
 5. per instrument the corrected table r / k_A; with several instruments one table, per cell the
    generalised least squares combination of the instruments' corrected values with the full
    covariance between them (their surfaces are one, so their errors correlate).
@@ -133,7 +135,8 @@ class SurfaceCorrection:
                "u_S2": a.get("u_S2"), "class_R": a["class"]["R"], "class_C": a["class"]["C"],
                "nearest_table": a["nearest_table"], "u_rel_median": float(np.median(u)),
                "u_rel_max": float(np.max(u)), "budget": self.budget.summary(),
-               "variants": [v.summary() for v in self.variants], "seconds": self.seconds, "timings": self.timings}
+               "variants": [v.summary() for v in self.variants], "discrepancy": self.provenance.get("discrepancy"),
+               "seconds": self.seconds, "timings": self.timings}
         out["per_instrument"] = [{
             "instrument": p.name, "cells": int(p.measured.mask.sum()),
             "k_a_min": float(np.nanmin(p.k_a)), "k_a_max": float(np.nanmax(p.k_a)),
@@ -538,4 +541,5 @@ class _FitView:
                 "widening_max": float(np.nanmax(p.widening)),
                 "widening": "the surface and model components of u are multiplied by the local Birge ratio B_c "
                             "where B_c^2 exceeds 1 + 2 sqrt(2 / n_eff) (noise alone rarely does), else by 1",
+                "discrepancy": self._res.provenance.get("discrepancy"),
                 "variants": [v.summary() for v in self._res.variants]}

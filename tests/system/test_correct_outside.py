@@ -76,7 +76,12 @@ def test_forward_surface_round_trip_inside_eq4_writes_the_diagnostics(tmp_path, 
     fit = doc["summary"]["fit"]
     assert 0.7 < fit["birge_ratio"] < 1.3                     # an eq. 4 surface: the model fits
     assert fit["cells_widened"] < 0.1 * doc["summary"]["cells"]
-    assert {"surface", "model", "measurement"} <= set(doc["summary"]["budget"])
+    assert {"surface", "model", "measurement", "discrepancy"} <= set(doc["summary"]["budget"])
+    # the discrepancy (docs/correction.md, "What the instruments cannot see"): its own column, and on an
+    # eq. 4 surface (the evidence smooths the correction surface to its bound) next to nothing
+    header = [ln for ln in (out / "correct_cells.csv").read_text().splitlines() if not ln.startswith("#")][0]
+    assert "u_rel_discrepancy" in header.split(",")
+    assert fit["discrepancy"]["sigma_rest"] < 0.002
 
 
 @pytest.fixture(scope="module")

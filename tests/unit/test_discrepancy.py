@@ -88,7 +88,7 @@ def test_limiting_cases():
     cell_of = np.concatenate([np.zeros(50, dtype=np.int64), np.ones(GH_NODES ** 2, dtype=np.int64), [2, 2]])
     R = discrepancy_correlation([make_blur(x0, pts, wts, cell_of, ell)], ell)
     assert R[0, 0] == pytest.approx(0.0, abs=1e-14)
-    assert abs(R[0, 1]) < 1e-14 and R[0, 2] == 0.0
+    assert abs(R[0, 1]) < 1e-10 and R[0, 2] == 0.0          # 0 up to the rounding of the sums
     assert R[1, 1] == pytest.approx(1.0 - 2.0 / 226.0 + 1.0 / 451.0, abs=COMPRESSION_TOL)
     assert R[1, 2] == 0.0
     # two rays at +-ell/2 (on the lattice: exact): 1 - 2 rho(1/2) + (1 + rho(1)) / 2
