@@ -14,9 +14,10 @@ rays. The fit maximises the posterior
 * ``P_C`` the squared second differences of g_C's node values along beta and eps (a P-spline
   roughness penalty: the prior "g_C is smooth", null space the constant, so the level is free);
   ``lambda`` is chosen by the data, by maximising the evidence (the marginal likelihood, Laplace
-  approximation at the mode; MacKay 1992, "Bayesian interpolation"); the generalised
-  cross-validation score is computed beside it (``SurfaceFit.gcv``) but the two choices have not
-  been compared in a benchmark;
+  approximation at the mode; MacKay 1992, "Bayesian interpolation"), or, with
+  ``SurfaceSettings(smoothing="gcv")``, by minimising the generalised cross-validation score of the
+  problem linearised at the mode (:func:`_gcv_step`; compared with the evidence in
+  docs/correction.md, "Evidence or generalised cross-validation?");
 * ``Q_D = (I + P_D) / sd_D^2``: a proper Gaussian prior on g_D, the extra log-derivative of the BRDF
   in ln alpha, of scale ``sd_D`` (default 1: the masking of a rough surface at grazing observation
   gives d ln f / d ln alpha ~ 1, eq. 4 without its g attenuation gives 0). One instrument barely
@@ -488,7 +489,9 @@ def _gcv_step(J: np.ndarray, W: np.ndarray, z: np.ndarray, Ps: list[np.ndarray],
         th = cho_solve(c, b, check_finite=False)
         r = z - J @ th
         edf = float(np.trace(cho_solve(c, A, check_finite=False)))
-        return n * float(np.sum(W * r * r)) / max(n - edf, 1.0) ** 2
+        if n - edf <= 1e-9 * n:             # interpolation: the score is 0 / 0 there, not a minimum
+            return math.inf
+        return n * float(np.sum(W * r * r)) / (n - edf) ** 2
 
     x0 = np.log(lam)
     best = minimize(score, x0, method="Nelder-Mead", options={"xatol": 0.05, "fatol": 1e-9, "maxfev": 80})
