@@ -189,7 +189,7 @@ def main() -> int:
             print_row(rows[-1])
     RESULTS.mkdir(exist_ok=True)
     name = "outside.csv" if (args.smoothing, ell) == ("evidence", DISCREPANCY_ELL) else \
-        f"outside_{args.smoothing}_ell-{ell}.csv"
+        f"outside_{args.smoothing}_ell-{'none' if ell is None else format(ell, '.3g')}.csv"
     with open(RESULTS / name, "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS], extrasaction="ignore")
         wr.writeheader()

@@ -468,7 +468,7 @@ def _gcv_step(J: np.ndarray, W: np.ndarray, z: np.ndarray, Ps: list[np.ndarray],
               n_c: int, unit: float) -> np.ndarray:
     """The smoothing parameters that minimise the generalised cross-validation score
     ``n chi2(lambda) / (n - edf(lambda))^2`` of the problem linearised at the mode (working data
-    ``z = y - s + J theta``; Craven & Wahba 1979), searched in ln lambda from ``lam`` (Nelder-Mead
+    ``z = y - s + J theta``; docs/correction.md), searched in ln lambda from ``lam`` (Nelder-Mead
     within LOG_LAM_RANGE)."""
     from scipy.optimize import minimize
     A = J.T @ (W[:, None] * J)
