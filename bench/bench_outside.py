@@ -133,7 +133,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--regenerate", action="store_true", help="recompute the cached reference k_A of the truths")
     ap.add_argument("--truths", default=",".join(TRUTHS))
-    ap.add_argument("--backend", default="quadrature", help="k_A backend of the correction (default quadrature)")
+    ap.add_argument("--backend", default="quadrature",
+                    help="k_A backend of the correction (default quadrature; mitsuba, the default of `roadgonio "
+                         "correct`, writes outside_mitsuba.csv)")
     ap.add_argument("--only", choices=["single", "joint"])
     ap.add_argument("--smoothing", choices=["evidence", "gcv"], default="evidence",
                     help="how the data choose the surface's smoothing parameters (default evidence)")
@@ -190,6 +192,8 @@ def main() -> int:
     RESULTS.mkdir(exist_ok=True)
     name = "outside.csv" if (args.smoothing, ell) == ("evidence", DISCREPANCY_ELL) else \
         f"outside_{args.smoothing}_ell-{'none' if ell is None else format(ell, '.3g')}.csv"
+    if args.backend != "quadrature":
+        name = name.replace(".csv", f"_{args.backend}.csv")
     with open(RESULTS / name, "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS], extrasaction="ignore")
         wr.writeheader()
