@@ -157,7 +157,6 @@ def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = C
         Ij = imgs[j]
         Cj = smear(Ij)                    # Cj[a, b] = sum rho(lattice (oj - K + (a, b)), X_j) w_j
         oj = org[j] - K
-        r0_j = {}
         for i in partners.tolist():
             Ii, oi = imgs[i], org[i]
             r00 = math.exp(-0.5 * float(np.sum((x0[i] - x0[j]) ** 2)) / (ell * ell))

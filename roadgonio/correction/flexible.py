@@ -14,7 +14,7 @@ rays. The fit maximises the posterior
 * ``P_C`` the squared second differences of g_C's node values along beta and eps (a P-spline
   roughness penalty: the prior "g_C is smooth", null space the constant, so the level is free);
   ``lambda`` is chosen by the data, by maximising the evidence (the marginal likelihood, Laplace
-  approximation at the mode; MacKay 1992, "Bayesian interpolation"), or, with
+  approximation at the mode; docs/correction.md, "Outside eq. 4", and its sources), or, with
   ``SurfaceSettings(smoothing="gcv")``, by minimising the generalised cross-validation score of the
   problem linearised at the mode (:func:`_gcv_step`; compared with the evidence in
   docs/correction.md, "Evidence or generalised cross-validation?");

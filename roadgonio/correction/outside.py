@@ -11,7 +11,7 @@ Procedure (:func:`correct_surface`):
    ``roadgonio ka``), and the bundles' own error of it, ``rho = k_backend / k_bundle``;
 3. for every variant, the correction surface through all the instruments (one surface shared by
    them), its smoothing parameters by the evidence; the variants are then weighed by their
-   evidence (posterior model probabilities under equal priors, MacKay 1992), so a variant that fits
+   evidence (posterior model probabilities under equal priors; docs/correction.md), so a variant that fits
    much worse gets no weight;
 4. per instrument, ln k_A and its covariance: the weighted mean over the variants of ln k_A of the
    corrected model (times rho); the covariance is the weighted posterior covariance of the surface
