@@ -471,14 +471,28 @@ def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit,
     variant's surface, scaled per cell by sigma_c, sigma_c^2 the evidence-weighted mean over the
     variants of what their smoothing parameters put beyond the knots' Nyquist wavenumber in the
     cell's region. Returns (covariance, info)."""
+    return parts_discrepancy(best.parts, best.fit.theta, [(vf.weight, vf.fit.lam) for vf in vfits], settings)
+
+
+def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence[tuple[float, dict]],
+                      settings: SurfaceSettings, blurs: dict | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    """:func:`discrepancy_covariance` of instrument ``parts`` (:class:`roadgonio.correction.flexible.FlexPart`)
+    sharing the surface ``theta``, the amplitude from the (weight, smoothing parameters) pairs.
+    ``blurs`` caches each part's blur by ``id(part)`` (a design evaluates one part against many);
+    the same part twice (one setting measured twice) has the same blur, so its discrepancy is fully
+    correlated between the two: repetition does not average it away."""
     from roadgonio.correction.discrepancy import amplitude_from_penalty, discrepancy_correlation, part_blur
     ell = float(settings.discrepancy_ell)
-    cells = [c for p in best.parts for c in p.forward.bundles.cells]
+    cells = [c for p in parts for c in p.forward.bundles.cells]
     eps = np.degrees(np.arctan([t for t, _ in cells]))
     beta = np.array([b for _, b in cells])
     peak = (beta <= settings.peak_beta_deg) & (eps >= settings.peak_eps_deg)
-    sig2 = sum(vf.weight * amplitude_from_penalty(vf.fit.lam, peak) for vf in vfits)
-    R = discrepancy_correlation([part_blur(p, best.fit.theta, ell) for p in best.parts], ell)
+    sig2 = sum(w * amplitude_from_penalty(lam, peak) for w, lam in weighted_lam)
+    cache = {} if blurs is None else blurs
+    for p in parts:
+        if id(p) not in cache:
+            cache[id(p)] = part_blur(p, theta, ell)
+    R = discrepancy_correlation([cache[id(p)] for p in parts], ell)
     s = np.sqrt(sig2)
     info = {"ell_knots": ell, "amplitude": "the roughness prior of g_C (evidence-chosen smoothing) beyond the "
                                            "knots' Nyquist wavenumber, per region",

@@ -131,7 +131,7 @@ def test_joint_correction_of_two_instruments(two_instruments, joint_and_alone):
 def test_second_aperture_predicts_the_joint_u_and_ranks_by_it(tmp_path, two_instruments, joint_and_alone):
     """design --second-aperture: the expected median u of the joint table with the narrow setting
     (predicted from the measured table of the first instrument, before the second measures) is
-    the u the joint correction then reports, within 30 % (the prediction leaves out the backend,
+    the u the joint correction then reports, within 30 % (both with the discrepancy; the prediction leaves out the backend,
     the bundles' and the variants' spread); the best candidate has the least u among those with
     enough signal, and every candidate beats the instrument alone."""
     a, b, sa, sb = two_instruments

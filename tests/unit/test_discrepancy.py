@@ -118,3 +118,36 @@ def test_amplitude_scales_as_one_over_lambda_and_follows_the_region():
     assert s2[1] == pytest.approx(beyond_nyquist_variance(100.0, 400.0), rel=1e-14)
     only = amplitude_from_penalty({"beta_rest": 100.0, "eps_rest": 400.0}, np.array([True, False]))
     assert np.all(only == s2[1])
+
+
+def test_one_setting_twice_keeps_its_whole_discrepancy(r3like):
+    """parts_discrepancy: the same instrument part twice (one setting measured twice) has the same
+    blur, so the two blocks of the covariance and the block between them are equal (fully
+    correlated: repetition cannot average the discrepancy away), and the GLS combination of the two
+    keeps the single measurement's discrepancy variance exactly; a second part with a narrower
+    field stop correlates less with the first (a second aperture sees other detail)."""
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings
+    from roadgonio.correction.outside import combine, parts_discrepancy
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    cells = [(12.0, 0.0), (8.0, 2.0), (4.0, 10.0), (1.0, 30.0), (0.25, 90.0)]
+    settings = SurfaceSettings()
+    inst = load_instrument("wide")
+    a = FlexPart(ForwardModel(RayBundles.build(inst, cells, rays=64)), r3like, settings)
+    b = FlexPart(ForwardModel(RayBundles.build(inst.with_changes(detector={"field_half_angle_deg": 0.05}), cells,
+                                               rays=64, seed=1)), r3like, settings)
+    theta = np.zeros(a.n_params)
+    lam = {"beta_peak": 1.0, "eps_peak": 1.0, "beta_rest": 10.0, "eps_rest": 10.0}
+    n = len(cells)
+    twice, _ = parts_discrepancy([a, a], theta, [(1.0, lam)], settings)
+    assert np.allclose(twice[:n, :n], twice[n:, n:], rtol=0, atol=1e-15)
+    assert np.allclose(twice[:n, n:], twice[:n, :n], rtol=0, atol=1e-15)
+    assert np.all(np.diag(twice[:n, :n]) > 0)
+    # GLS of two equal measurements with an equal-weight covariance: G picks 1/2 and 1/2, and
+    # G D G^T of a fully correlated D is D's own block
+    big = twice + np.eye(2 * n) * 1e-4
+    _, G = combine([np.zeros(n), np.zeros(n)], [cells, cells], big, cells)
+    assert np.allclose(np.diag(G @ twice @ G.T), np.diag(twice[:n, :n]), rtol=1e-12, atol=0)
+    pair, _ = parts_discrepancy([a, b], theta, [(1.0, lam)], settings)
+    corr = np.diag(pair[:n, n:]) / np.sqrt(np.diag(pair[:n, :n]) * np.diag(pair[n:, n:]))
+    assert np.all(corr < 1.0 - 1e-6), corr
