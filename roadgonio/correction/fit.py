@@ -36,6 +36,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares, lsq_linear, nnls
+from scipy.stats import chi2 as chi2_dist
 
 from roadgonio.engines.bundle import LINEAR_TERMS, ForwardModel
 from roadgonio.errors import InputError
@@ -57,6 +58,11 @@ STAGE_B_FTOL = 1e-8
 #: Central-difference step in the transformed shape coordinates (covariance and k_A Jacobian).
 FD_STEP = 1e-4
 G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
+
+
+#: Significance level at which the fit's chi^2 says the model does not describe the measured table
+#: (``ThroughFit.misfit``; ``correct`` then points to ``--forward surface``).
+MISFIT_P = 0.01
 
 
 def _dz_dp(name: str, z: float) -> float:
@@ -91,6 +97,17 @@ class ThroughFit:
     def birge(self) -> float:
         return math.sqrt(self.chi2 / self.dof) if self.dof > 0 else math.inf
 
+    @property
+    def chi2_p_value(self) -> float:
+        """Pr{chi^2(dof) >= chi2}: how probable a misfit this large is if the model were right and
+        the measurement's stated u were its true standard uncertainty (nan without degrees of freedom)."""
+        return float(chi2_dist.sf(self.chi2, self.dof)) if self.dof > 0 else math.nan
+
+    @property
+    def misfit(self) -> bool:
+        """True when the data reject the model at :data:`MISFIT_P` (under the stated u)."""
+        return bool(self.chi2_p_value < MISFIT_P)
+
     def lnk_cov(self) -> np.ndarray:
         """Covariance of ln k_A between cells from the parameters: J C J^T."""
         if not self.free:
@@ -102,6 +119,7 @@ class ThroughFit:
 
     def summary(self) -> dict[str, Any]:
         return {"variant": self.model.variant, "chi2": self.chi2, "dof": self.dof, "birge_ratio": self.birge,
+                "chi2_p_value": self.chi2_p_value, "misfit": self.misfit,
                 "rms_normalised_residual": float(math.sqrt(np.mean(self.residual ** 2))),
                 "params": self.model.params.to_dict(), "u_params": self.param_uncertainty(),
                 "free": list(self.free), "starts": self.starts, "nfev": self.nfev, "seconds": self.seconds,

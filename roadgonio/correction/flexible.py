@@ -14,9 +14,10 @@ rays. The fit maximises the posterior
 * ``P_C`` the squared second differences of g_C's node values along beta and eps (a P-spline
   roughness penalty: the prior "g_C is smooth", null space the constant, so the level is free);
   ``lambda`` is chosen by the data, by maximising the evidence (the marginal likelihood, Laplace
-  approximation at the mode; MacKay 1992, "Bayesian interpolation"); the generalised
-  cross-validation score is computed beside it (``SurfaceFit.gcv``) but the two choices have not
-  been compared in a benchmark;
+  approximation at the mode; docs/correction.md, "Outside eq. 4", and its sources), or, with
+  ``SurfaceSettings(smoothing="gcv")``, by minimising the generalised cross-validation score of the
+  problem linearised at the mode (:func:`_gcv_step`; compared with the evidence in
+  docs/correction.md, "Evidence or generalised cross-validation?");
 * ``Q_D = (I + P_D) / sd_D^2``: a proper Gaussian prior on g_D, the extra log-derivative of the BRDF
   in ln alpha, of scale ``sd_D`` (default 1: the masking of a rough surface at grazing observation
   gives d ln f / d ln alpha ~ 1, eq. 4 without its g attenuation gives 0). One instrument barely
@@ -54,6 +55,11 @@ C_GRID = SplineGrid(s_beta=24, beta_scale_deg=8.0, s_t=32, eps_step_deg=3.0, sec
 D_GRID = SplineGrid(s_beta=6, beta_scale_deg=8.0, s_t=8, eps_step_deg=12.0, sec_gain=1.0, eps_max_deg=89.0)
 #: Prior standard deviation of g_D (d ln f / d ln alpha beyond the backbone's).
 D_PRIOR_SD = 1.0
+#: The criteria that can choose the smoothing parameters (SurfaceSettings.smoothing).
+SMOOTHING = ("evidence", "gcv")
+#: Correlation length of the model discrepancy in knot spacings of g_C (roadgonio.correction.discrepancy).
+#: 1 / pi: the inverse of the knots' Nyquist wavenumber (the discrepancy is what lies beyond it).
+DISCREPANCY_ELL = 1.0 / math.pi
 #: Range of log10(lambda / unit), unit = the data's mean weight per cell, mean(y^2 / u^2).
 LOG_LAM_RANGE = (-8.0, 6.0)
 #: Stop updating the smoothing parameters when none changes by more than this (in ln lambda).
@@ -65,6 +71,8 @@ PEAK_EPS_DEG = 45.0
 MODE_RTOL = 1e-8
 MAX_MODE_STEPS = 60
 MAX_OUTER = 20
+#: The GCV search (a Nelder-Mead minimisation at every update) stops updating after this many.
+MAX_OUTER_GCV = 6
 #: Mode steps between two updates of the smoothing parameters, and their over-relaxation.
 INNER_STEPS = 2
 OVER_RELAX = 1.6
@@ -80,11 +88,23 @@ class SurfaceSettings:
     peak_beta_deg: float = PEAK_BETA_DEG
     peak_eps_deg: float = PEAK_EPS_DEG
     lam: float | None = None         # one fixed smoothing parameter for every block instead of the evidence
+    #: how the data choose the smoothing parameters: "evidence" (the marginal likelihood) or "gcv"
+    #: (generalised cross-validation); bench/bench_outside.py --smoothing compares them
+    smoothing: str = "evidence"
+    #: correlation length (knot spacings of g_C) of the discrepancy delta the instruments cannot see
+    #: (:mod:`roadgonio.correction.discrepancy`); None leaves that component out of the budget
+    discrepancy_ell: float | None = DISCREPANCY_ELL
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
             raise InputError(f"expected a positive prior standard deviation of g_D, got {self.d_prior_sd}",
                              field="d_prior_sd")
+        if self.smoothing not in SMOOTHING:
+            raise InputError(f"expected the smoothing criterion to be one of {', '.join(SMOOTHING)}, got "
+                             f"{self.smoothing!r}", field="smoothing")
+        if self.discrepancy_ell is not None and not (self.discrepancy_ell > 0 and math.isfinite(self.discrepancy_ell)):
+            raise InputError(f"expected a positive correlation length of the discrepancy (knot spacings), got "
+                             f"{self.discrepancy_ell}", field="discrepancy_ell")
 
     @property
     def n_c(self) -> int:
@@ -98,7 +118,7 @@ class SurfaceSettings:
         from dataclasses import asdict
         return {"c_grid": asdict(self.c_grid), "d_grid": None if self.d_grid is None else asdict(self.d_grid),
                 "d_prior_sd": self.d_prior_sd, "peak_beta_deg": self.peak_beta_deg,
-                "peak_eps_deg": self.peak_eps_deg, "lam": self.lam}
+                "peak_eps_deg": self.peak_eps_deg, "lam": self.lam, "smoothing": self.smoothing, "discrepancy_ell": self.discrepancy_ell}
 
 
 class FlexPart:
@@ -401,7 +421,9 @@ def _fit_surface(parts, measured, u, *, theta0, lam0) -> SurfaceFit:
         Sinv = _spd_inverse(S + np.outer(one, one) * (np.trace(S) / n_c ** 2))
         th_c = theta[:n_c]
         new = lam.copy()
-        for j, P in enumerate(Ps):
+        if settings.smoothing == "gcv":
+            new = _gcv_step(J, W, y - s + J @ theta, Ps, Q, lam, n_c, unit)
+        for j, P in enumerate(Ps if settings.smoothing == "evidence" else []):
             num = float(np.sum(Sinv * P)) - float(np.sum(Hinv[:n_c, :n_c] * P))
             den = float(th_c @ P @ th_c)
             ratio = num / den if den > 0 and num > 0 else 0.1
@@ -414,7 +436,7 @@ def _fit_surface(parts, measured, u, *, theta0, lam0) -> SurfaceFit:
         change = float(np.max(np.abs(np.log(new / lam))[moving])) if moving.any() else 0.0
         history.append({"lambda": dict(zip(names, lam.tolist())), "steps": steps, "change": change})
         lam = new
-        if change < LAM_TOL:
+        if change < LAM_TOL or (settings.smoothing == "gcv" and outer + 1 >= MAX_OUTER_GCV):
             Lam = prior(lam)
             theta, s, J, steps = mode(theta, Lam, MAX_MODE_STEPS)
             steps_total += steps
@@ -440,6 +462,40 @@ def _fit_surface(parts, measured, u, *, theta0, lam0) -> SurfaceFit:
     return SurfaceFit(theta=theta, cov=cov, lam=dict(zip(names, lam.tolist())), log_evidence=log_ev, gcv=gcv,
                       chi2=chi2, edf=edf, n=n, settings=settings, residual=res, steps=steps_total,
                       seconds=time.perf_counter() - t0, history=history)
+
+
+def _gcv_step(J: np.ndarray, W: np.ndarray, z: np.ndarray, Ps: list[np.ndarray], Q: np.ndarray, lam: np.ndarray,
+              n_c: int, unit: float) -> np.ndarray:
+    """The smoothing parameters that minimise the generalised cross-validation score
+    ``n chi2(lambda) / (n - edf(lambda))^2`` of the problem linearised at the mode (working data
+    ``z = y - s + J theta``; docs/correction.md), searched in ln lambda from ``lam`` (Nelder-Mead
+    within LOG_LAM_RANGE)."""
+    from scipy.optimize import minimize
+    A = J.T @ (W[:, None] * J)
+    b = J.T @ (W * z)
+    n = z.size
+    n_d = A.shape[0] - n_c
+    lo, hi = math.log(unit) + LOG_LAM_RANGE[0] * math.log(10), math.log(unit) + LOG_LAM_RANGE[1] * math.log(10)
+
+    def score(loglam):
+        L = np.zeros_like(A)
+        L[:n_c, :n_c] = sum(math.exp(min(max(v, lo), hi)) * P for v, P in zip(loglam, Ps))
+        if n_d:
+            L[n_c:, n_c:] = Q
+        try:
+            c = cho_factor(A + L, check_finite=False)
+        except np.linalg.LinAlgError:
+            return math.inf
+        th = cho_solve(c, b, check_finite=False)
+        r = z - J @ th
+        edf = float(np.trace(cho_solve(c, A, check_finite=False)))
+        if n - edf <= 1e-9 * n:             # interpolation: the score is 0 / 0 there, not a minimum
+            return math.inf
+        return n * float(np.sum(W * r * r)) / (n - edf) ** 2
+
+    x0 = np.log(lam)
+    best = minimize(score, x0, method="Nelder-Mead", options={"xatol": 0.05, "fatol": 1e-9, "maxfev": 80})
+    return np.exp(np.clip(best.x, lo, hi))
 
 
 def _spd_inverse(M: np.ndarray) -> np.ndarray:

@@ -11,14 +11,16 @@ Procedure (:func:`correct_surface`):
    ``roadgonio ka``), and the bundles' own error of it, ``rho = k_backend / k_bundle``;
 3. for every variant, the correction surface through all the instruments (one surface shared by
    them), its smoothing parameters by the evidence; the variants are then weighed by their
-   evidence (posterior model probabilities under equal priors, MacKay 1992), so a variant that fits
+   evidence (posterior model probabilities under equal priors; docs/correction.md), so a variant that fits
    much worse gets no weight;
 4. per instrument, ln k_A and its covariance: the weighted mean over the variants of ln k_A of the
    corrected model (times rho); the covariance is the weighted posterior covariance of the surface
    (``surface``) plus the spread of the variants about the mean (``model``); where the normalised
    residuals have structure the two are widened by the local Birge ratio (``max(1, B_c)``, B_c^2 the
    leverage-corrected mean squared normalised residual over the neighbouring cells); plus the
-   bundle's own error of what the surface changes (``bundle``) and the backend's (``backend``);
+   bundle's own error of what the surface changes (``bundle``), the backend's (``backend``) and
+   what the instruments' blur hides below the surface's knots (``discrepancy``,
+   :func:`discrepancy_covariance`, :mod:`roadgonio.correction.discrepancy`);
 5. per instrument the corrected table r / k_A; with several instruments one table, per cell the
    generalised least squares combination of the instruments' corrected values with the full
    covariance between them (their surfaces are one, so their errors correlate).
@@ -51,7 +53,7 @@ DEFAULT_VARIANTS = ("power", "smooth")
 #: Width (in grid cells) of the neighbourhood of the local Birge ratio.
 BIRGE_WIDTH_CELLS = 2.0
 #: Components of the budget of a corrected table (in this order).
-COMPONENTS = ("measurement", "backend", "surface", "model", "bundle", "misalignment")
+COMPONENTS = ("measurement", "backend", "surface", "model", "bundle", "discrepancy", "misalignment")
 
 
 @dataclass
@@ -133,7 +135,8 @@ class SurfaceCorrection:
                "u_S2": a.get("u_S2"), "class_R": a["class"]["R"], "class_C": a["class"]["C"],
                "nearest_table": a["nearest_table"], "u_rel_median": float(np.median(u)),
                "u_rel_max": float(np.max(u)), "budget": self.budget.summary(),
-               "variants": [v.summary() for v in self.variants], "seconds": self.seconds, "timings": self.timings}
+               "variants": [v.summary() for v in self.variants], "discrepancy": self.provenance.get("discrepancy"),
+               "seconds": self.seconds, "timings": self.timings}
         out["per_instrument"] = [{
             "instrument": p.name, "cells": int(p.measured.mask.sum()),
             "k_a_min": float(np.nanmin(p.k_a)), "k_a_max": float(np.nanmax(p.k_a)),
@@ -351,6 +354,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     surf *= np.outer(widen, widen)
     model *= np.outer(widen, widen)
     bundle = np.concatenate([p.ratio_se(best.fit.theta) for p in best.parts])
+    disc = None
+    if settings.discrepancy_ell is not None:
+        disc, disc_info = discrepancy_covariance(vfits, best, settings)
     lap("covariance")
 
     # misalignment (per instrument, independent between instruments)
@@ -374,6 +380,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     comps["surface"] = surf
     comps["model"] = model
     comps["bundle"] = np.diag(bundle ** 2)
+    if disc is not None:
+        comps["discrepancy"] = disc
     if any(b is not None for b in mis_blocks):
         M = np.zeros((N, N))
         for i, b in enumerate(mis_blocks):
@@ -386,7 +394,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                         "the local Birge ratio where the residuals have structure",
              "model": "spread of the backbone variants' corrected k_A about their evidence-weighted mean",
              "bundle": "the ray bundles' own error of the change the surface makes to k_A (replicates)",
-             "misalignment": "instrument geometric errors (--sigma), first-order GUM"}
+             "misalignment": "instrument geometric errors (--sigma), first-order GUM",
+             "discrepancy": "structure of the surface finer than the correction surface's knots, which the "
+                            "instruments blur: var(delta(c) - (K delta)(c)) of a Gaussian process delta over the "
+                            "incident direction, its amplitude what the evidence-chosen roughness prior of the surface puts "
+                            "beyond the knots' Nyquist wavenumber"}
     lnr = [np.log(y) - lnk[off[i]:off[i + 1]] for i, y in enumerate(ys)]
     parts_out: list[InstrumentPart] = []
     for i, (inst, t) in enumerate(zip(instruments, tables)):
@@ -445,10 +457,49 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                       surface=settings.to_dict(), variants_asked=list(variants), variant_best_backbone=main,
                       bundles=[fm.bundles.summary() for fm in fms], misalignment=mis_info,
                       calibration=[i.calibration.to_dict() for i in instruments],
-                      forward_model_limits=_run.forward_model_limits(instruments))
+                      forward_model_limits=_run.forward_model_limits(instruments),
+                      discrepancy=disc_info if disc is not None else None)
     return SurfaceCorrection(parts=parts_out, corrected=combined, u_corrected=u_comb, budget=comb_budget, after=after,
                              variants=vfits, settings=settings, provenance=prov, seconds=time.perf_counter() - t0,
                              timings=timings)
+
+
+def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit,
+                           settings: SurfaceSettings) -> tuple[np.ndarray, dict[str, Any]]:
+    """The ``discrepancy`` component over the concatenated cells of the instruments
+    (:mod:`roadgonio.correction.discrepancy`): the bracket through each instrument's blur at the best
+    variant's surface, scaled per cell by sigma_c, sigma_c^2 the evidence-weighted mean over the
+    variants of what their smoothing parameters put beyond the knots' Nyquist wavenumber in the
+    cell's region. Returns (covariance, info)."""
+    return parts_discrepancy(best.parts, best.fit.theta, [(vf.weight, vf.fit.lam) for vf in vfits], settings)
+
+
+def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence[tuple[float, dict]],
+                      settings: SurfaceSettings, blurs: dict | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+    """:func:`discrepancy_covariance` of instrument ``parts`` (:class:`roadgonio.correction.flexible.FlexPart`)
+    sharing the surface ``theta``, the amplitude from the (weight, smoothing parameters) pairs.
+    ``blurs`` caches each part's blur by ``id(part)`` (a design evaluates one part against many);
+    the same part twice (one setting measured twice) has the same blur, so its discrepancy is fully
+    correlated between the two: repetition does not average it away."""
+    from roadgonio.correction.discrepancy import amplitude_from_penalty, discrepancy_correlation, part_blur
+    ell = float(settings.discrepancy_ell)
+    cells = [c for p in parts for c in p.forward.bundles.cells]
+    eps = np.degrees(np.arctan([t for t, _ in cells]))
+    beta = np.array([b for _, b in cells])
+    peak = (beta <= settings.peak_beta_deg) & (eps >= settings.peak_eps_deg)
+    sig2 = sum(w * amplitude_from_penalty(lam, peak) for w, lam in weighted_lam)
+    cache = {} if blurs is None else blurs
+    for p in parts:
+        if id(p) not in cache:
+            cache[id(p)] = part_blur(p, theta, ell)
+    R = discrepancy_correlation([cache[id(p)] for p in parts], ell)
+    s = np.sqrt(sig2)
+    info = {"ell_knots": ell, "amplitude": "the roughness prior of g_C (evidence-chosen smoothing) beyond the "
+                                           "knots' Nyquist wavenumber, per region",
+            "sigma_peak": float(np.max(s[peak])) if peak.any() else None,
+            "sigma_rest": float(np.max(s[~peak])) if (~peak).any() else None,
+            "bracket_max": float(np.max(np.diag(R))), "bracket_median": float(np.median(np.diag(R)))}
+    return np.outer(s, s) * R, info
 
 
 def _stack_tables(tables: Sequence[RTable]) -> RTable:
@@ -504,4 +555,5 @@ class _FitView:
                 "widening_max": float(np.nanmax(p.widening)),
                 "widening": "the surface and model components of u are multiplied by the local Birge ratio B_c "
                             "where B_c^2 exceeds 1 + 2 sqrt(2 / n_eff) (noise alone rarely does), else by 1",
+                "discrepancy": self._res.provenance.get("discrepancy"),
                 "variants": [v.summary() for v in self._res.variants]}

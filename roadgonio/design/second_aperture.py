@@ -25,8 +25,11 @@ would give, before anything is measured:
    is a plausible one), with two baselines: the instrument alone, and the instrument measuring twice
    (what a repetition buys without a second aperture).
 
-Left out of the expected u: the backend's and the bundles' own errors (small), the spread of the
-backbone variants, the misalignment.
+The expected u holds the measurement, the surface's posterior and the ``discrepancy`` (what both
+blurs hide below the knots, :func:`roadgonio.correction.outside.parts_discrepancy`; fully correlated
+between two measurements with one setting, so measuring twice does not average it away, while a
+second aperture that resolves more does). Left out: the backend's and the bundles' own errors
+(small), the spread of the backbone variants, the misalignment.
 """
 from __future__ import annotations
 
@@ -86,8 +89,9 @@ class SecondApertureResult:
                 "candidates": [c.row() for c in self.candidates], "seconds": self.seconds, "settings": self.settings}
 
 
-def _u_of(parts, theta, cov, u_rel, tables) -> tuple[np.ndarray, float, float]:
-    """(relative u per cell of the combined table, u(S1)/S1, S1) for parts sharing the surface."""
+def _u_of(parts, theta, cov, u_rel, tables, extra=None) -> tuple[np.ndarray, float, float]:
+    """(relative u per cell of the combined table, u(S1)/S1, S1) for parts sharing the surface;
+    ``extra``: a further covariance of ln k_A over the concatenated cells (the discrepancy)."""
     from roadgonio.correction.budget import functionals
     from roadgonio.correction.outside import combine
     K = [p.lnk_jacobian(theta) for p in parts]
@@ -98,6 +102,8 @@ def _u_of(parts, theta, cov, u_rel, tables) -> tuple[np.ndarray, float, float]:
         for j, Kj in enumerate(K):
             big[off[i]:off[i + 1], off[j]:off[j + 1]] = Ki @ cov @ Kj.T
     big += np.diag(np.concatenate([np.asarray(u, dtype=np.float64) ** 2 for u in u_rel]))
+    if extra is not None:
+        big += extra
     r_model = [p.f0_nominal * np.exp(p.g_nominal(theta)) * p.forward.bundles.cos3 for p in parts]
     lnr, G = combine([np.log(r) for r in r_model], [t.cells for t in tables], big, tables[0].cells)
     C = G @ big @ G.T
@@ -114,6 +120,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     """Rank the second aperture settings of ``vary`` (module docstring). Exactly one of ``measured``
     (an r-table the instrument measured) and ``sample`` (a SAMPLE or a BRDF model) gives the surface."""
     from roadgonio.correction.flexible import FlexPart, SurfaceSettings, expected_posterior, fit_surface
+    from roadgonio.correction.outside import parts_discrepancy
     from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
     from roadgonio.correction.run import fit_self, measured_uncertainty
     from roadgonio.design.grid import as_vary_specs, build_instrument, grid_points
@@ -157,9 +164,14 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     theta, lam = fit.theta, fit.lam
     u_rel = u / y
 
+    blurs: dict = {}
+
     def evaluate(parts, urs, tables, label, changes, inst, note="") -> Candidate:
         cov = expected_posterior(parts, theta, lam, urs)
-        uu, us1, _ = _u_of(parts, theta, cov, urs, tables)
+        disc = None
+        if settings.discrepancy_ell is not None:
+            disc, _ = parts_discrepancy(parts, theta, [(1.0, lam)], settings, blurs)
+        uu, us1, _ = _u_of(parts, theta, cov, urs, tables, disc)
         return Candidate(label, changes, inst, float(np.median(uu)), float(np.sqrt(np.mean(uu ** 2))),
                          float(np.max(uu)), float(us1), note=note)
 

@@ -44,7 +44,7 @@ stop, a grid of values like an image of the field as the meter sees it: rows fro
 (y = +1) down, columns from the left (x = -1) to the right, at the pixel centres of the square
 [-1, 1]^2 that circumscribes the field stop (x, y in units of the field-stop radius; x horizontal,
 to the right as the meter looks at the sample, y up). A CSV of numbers, or a greyscale image
-(PNG, TIFF: 8 or 16 bit, or 32-bit float). Bilinear between the pixel centres, the border values
+(PNG, TIFF: 8 or 16 bit, or 32-bit float; OpenEXR: one channel, Y, or equal R, G, B). Bilinear between the pixel centres, the border values
 extended to the edges. The map is divided by its largest value (only relative sensitivities
 matter), so a uniform map is exactly 1 everywhere: the same instrument as no map.
 """
@@ -317,20 +317,46 @@ def _read_image(p: Path, field: str) -> np.ndarray:
                 raise _err(f"expected a greyscale image (8 or 16 bit, or 32-bit float), got mode {mode}", p, field)
             return np.asarray(img, dtype=np.float64)
     except UnidentifiedImageError:
-        raise _err("not an image that can be read (expected a CSV grid, PNG or TIFF)", p, field) from None
+        raise _err("not an image that can be read (expected a CSV grid, PNG, TIFF or EXR)", p, field) from None
     except OSError as err:
         raise _err(f"cannot read the image ({err})", p, field) from None
 
 
+def _read_exr(p: Path, field: str) -> np.ndarray:
+    """One greyscale channel of an OpenEXR image (rows from the top, like a PNG): its only channel,
+    or ``Y``, or an RGB(A) image whose colour channels are equal; anything else is refused."""
+    import OpenEXR
+    try:
+        with OpenEXR.File(str(p)) as f:
+            channels = {k: np.asarray(v.pixels, dtype=np.float64) for k, v in f.channels().items()}
+    except Exception as err:          # OpenEXR raises plain exceptions for unreadable files
+        raise _err(f"cannot read the OpenEXR image ({err})", p, field) from None
+    grey = [v for v in channels.values() if v.ndim == 2]
+    if "Y" in channels and channels["Y"].ndim == 2:
+        return channels["Y"]
+    if len(channels) == 1 and len(grey) == 1:
+        return grey[0]
+    if len(channels) == 1:
+        (v,) = channels.values()
+        if v.ndim == 3 and v.shape[2] in (3, 4) and np.array_equal(v[..., 0], v[..., 1]) \
+                and np.array_equal(v[..., 0], v[..., 2]):
+            return v[..., 0]
+    raise _err("expected a greyscale OpenEXR image (one channel, a Y channel, or equal R, G, B), got channels "
+               + ", ".join(sorted(channels)), p, field)
+
+
 def read_field_map(path: str | Path, field: str = "detector.field_sensitivity") -> FieldMap:
-    """The detector's sensitivity map (module docstring) from a CSV grid or a greyscale image."""
+    """The detector's sensitivity map (module docstring) from a CSV grid or a greyscale image
+    (PNG, TIFF, or OpenEXR for a measured float map)."""
     p = _exists(path, field)
     if p.suffix.lower() == ".csv":
         values, _ = read_numbers_csv(p, field)
     elif p.suffix.lower() in (".png", ".tif", ".tiff"):
         values = _read_image(p, field)
+    elif p.suffix.lower() == ".exr":
+        values = _read_exr(p, field)
     else:
-        raise _err(f"expected a CSV grid or a PNG/TIFF image, got {p.name!r}", p, field)
+        raise _err(f"expected a CSV grid or a PNG/TIFF/EXR image, got {p.name!r}", p, field)
     if values.ndim != 2 or values.shape[0] < 2 or values.shape[1] < 2:
         raise _err(f"expected a map of at least 2 x 2 values, got {' x '.join(map(str, values.shape))}", p, field)
     if values.size > MAP_MAX_VALUES:

@@ -645,7 +645,7 @@ def assemble(study: Study, setup: sim.Setup, records: Mapping[tuple, dict], *, m
     data["consistent"] = (("scenario", "realisation", "tan_eps", "beta"),
                           to_grid(np.stack([np.where(stats[s]["ok"][:, None], stats[s]["consistent"], np.nan)
                                             for s in S])),
-                          {"long_name": "1 where the chi-squared check of Cox (2002) passes at the 5 % level",
+                          {"long_name": "1 where Cox's chi-squared consistency check passes at the 5 % level",
                            "units": "1"})
     data["full_correction"] = (("scenario", "participant", "realisation"),
                                np.stack([full[s].T for s in S]).astype(np.int8),

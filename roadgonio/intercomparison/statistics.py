@@ -5,29 +5,29 @@ participants, any leading shape: realisations x cells) and their stated covarian
 (..., P, P) (:func:`covariance`; independent results: ``V = diag(u^2)``). Correlations between
 participants (a reference tile or an angle standard they share) enter through ``V``.
 
+The methods, their published sources and the published examples they are checked against are in
+docs/intercomparison.md ("The statistics").
+
 Every consensus is a generalised least-squares (GLS) mean with the weight matrix
 ``W = (V + tau^2 I)^-1``::
 
     x_ref = 1^T W x / 1^T W 1,    u^2(x_ref) = 1 / 1^T W 1,    weights a = W 1 / 1^T W 1
 
-* ``tau^2 = 0``: the weighted mean of the comparison (M. G. Cox, "The evaluation of key comparison
-  data", Metrologia 39 (2002) 589-595, procedure A; for correlated results M. G. Cox, C. Eioe,
-  G. Mana, F. Pennecchi, "The generalized weighted mean of correlated quantities", Metrologia 43
-  (2006) S268-S275). For ``V = diag(u^2)`` it is sum(x/u^2) / sum(1/u^2) with u^2 = 1/sum(1/u^2).
-* DerSimonian-Laird (R. DerSimonian, N. Laird, "Meta-analysis in clinical trials", Controlled
-  Clinical Trials 7 (1986) 177-188): the moment estimator ``tau^2 = max(0, (Q - (P - 1)) / c)``
+* ``tau^2 = 0``: the weighted mean of the comparison (Cox's procedure A; with correlated results
+  the generalised weighted mean). For ``V = diag(u^2)`` it is sum(x/u^2) / sum(1/u^2) with
+  u^2 = 1/sum(1/u^2).
+* DerSimonian-Laird: the moment estimator ``tau^2 = max(0, (Q - (P - 1)) / c)``
   with Cochran's ``Q = (x - x_w 1)^T V^-1 (x - x_w 1)`` (x_w the weighted mean) and
   ``c = tr(V^-1) - 1^T V^-2 1 / 1^T V^-1 1``, which is ``E[Q] = (P - 1) + c tau^2`` for results
   ``x = mu 1 + b + e``, ``b ~ (0, tau^2 I)``, ``e ~ (0, V)``; for ``V = diag(u^2)``,
   ``c = sum w - sum w^2 / sum w`` (w = 1/u^2), their formula.
-* Mandel-Paule (R. C. Paule, J. Mandel, "Consensus values and weighting factors", J. Res. Natl.
-  Bur. Stand. 87 (1982) 377-385): the ``tau^2 >= 0`` at which the generalised
+* Mandel-Paule: the ``tau^2 >= 0`` at which the generalised
   ``Q(tau^2) = (x - x_ref 1)^T W (x - x_ref 1)`` equals its expectation ``P - 1`` (0 when
   ``Q(0) <= P - 1``). ``Q`` decreases monotonically in ``tau^2`` (dQ/dtau^2 = -r^T W^2 r), so the
   root is unique; it is found by bracketing and bisection to full float64 precision.
 
-Birge ratio (R. T. Birge, Phys. Rev. 40 (1932) 207-227): ``R_B = sqrt(Q / (P - 1))`` with Q of the
-weighted mean; the chi-squared consistency check of Cox (2002) passes where
+Birge ratio: ``R_B = sqrt(Q / (P - 1))`` with Q of the
+weighted mean; Cox's chi-squared consistency check passes where
 ``Pr{chi^2(P - 1) > Q} >= 0.05``.
 
 Degree of equivalence of participant i with respect to a reference value ``x_ref = a^T x`` (CIPM
@@ -39,7 +39,7 @@ the variance of ``x_i - a^T x`` under the stated covariance (the participant's c
 reference value it contributes to is the ``-2 (V a)_i`` in it), plus the consensus's own
 between-laboratory term ``tau^2 a^T a``, plus ``u_ext^2`` for a reference value that does not come
 from the participants (``a = 0``; the truth of a simulation has ``u_ext = 0``). For the weighted
-mean ``V a = u^2(x_ref) 1``, so ``u^2(d_i) = u_i^2 - u^2(x_ref)`` (Cox 2002, eq. 8). ``U(d_i) = k
+mean ``V a = u^2(x_ref) 1``, so ``u^2(d_i) = u_i^2 - u^2(x_ref)`` (docs/intercomparison.md). ``U(d_i) = k
 u(d_i)`` and the E_n number ``E_n = d_i / U(d_i)`` (ISO 13528:2015 E_n with k = 2); the participant
 is compatible where ``|E_n| <= 1``.
 
@@ -56,7 +56,7 @@ from roadgonio.errors import InputError
 
 #: Coverage factor of U(d_i) and E_n (ISO 13528: E_n with expanded uncertainties, k = 2).
 COVERAGE_FACTOR = 2.0
-#: Significance level of the chi-squared consistency check (Cox 2002, procedure A).
+#: Significance level of the chi-squared consistency check (Cox's procedure A).
 CHI2_ALPHA = 0.05
 #: Bisection steps of the Mandel-Paule root (each halves the bracket: 2^-80 of it is below float64).
 MP_BISECTIONS = 80
@@ -173,7 +173,7 @@ class Consensus:
 
 
 def weighted_mean(sp: Spectral) -> Consensus:
-    """The (generalised) weighted mean (Cox 2002; Cox et al. 2006 with correlations)."""
+    """The (generalised) weighted mean (GLS with correlations; docs/intercomparison.md)."""
     z = np.zeros(sp.x.shape[:-1])
     v, u, _ = sp.gls(z)
     return Consensus("weighted_mean", v, u, z, sp.weights(z))
@@ -185,12 +185,12 @@ def chi2_observed(sp: Spectral) -> np.ndarray:
 
 
 def birge_ratio(sp: Spectral) -> np.ndarray:
-    """R_B = sqrt(chi^2_obs / (P - 1)) (Birge 1932); about 1 for results consistent with their u."""
+    """R_B = sqrt(chi^2_obs / (P - 1)); about 1 for results consistent with their u."""
     return np.sqrt(chi2_observed(sp) / (sp.n - 1))
 
 
 def consistent(sp: Spectral, alpha: float = CHI2_ALPHA) -> np.ndarray:
-    """Cox (2002) procedure A: True where Pr{chi^2(P - 1) > chi^2_obs} >= alpha."""
+    """Cox's procedure A: True where Pr{chi^2(P - 1) > chi^2_obs} >= alpha."""
     from scipy.stats import chi2
     return chi2.sf(chi2_observed(sp), sp.n - 1) >= alpha
 

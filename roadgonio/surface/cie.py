@@ -2,9 +2,7 @@
 standard table: written once here, used by ``roadgonio classify``, the correction's report and its
 choice of alternative references.
 
-Class limits (CIE 144:2001 and CIE 66:1984; as tabulated in W. van Bommel, Road Lighting:
-Fundamentals, Technology and Application, Springer 2015, Table 12.2 "R, C and N-class limits and
-class-standards"):
+Class limits (CIE 144:2001 and CIE 66:1984):
 
     R1  S1 < 0.42          R2  0.42 <= S1 < 0.85   R3  0.85 <= S1 < 1.35   R4  1.35 <= S1
     C1  S1 < 0.40          C2  0.40 <= S1

@@ -17,8 +17,8 @@ Surfaces (``make_truth(kind)``; angles as in docs/conventions.md section 1):
 
 ``microfacet``
     a diffuse term plus a GGX (Trowbridge-Reitz) microfacet lobe with Smith height-correlated
-    masking-shadowing (Heitz 2014, "Understanding the masking-shadowing function in
-    microfacet-based BRDFs", eq. 99 with the GGX Lambda)::
+    masking-shadowing (the published form and its source: docs/correction.md, "How well it works
+    (outside eq. 4)")::
 
         f = k_d + k_s D(h) G2(w_i, w_o) / (4 cos ti cos tr)
         D = a^2 / (pi (a^2 cos^2 th + sin^2 th)^2),  G2 = 1 / (1 + L(w_i) + L(w_o)),

@@ -76,7 +76,12 @@ def test_forward_surface_round_trip_inside_eq4_writes_the_diagnostics(tmp_path, 
     fit = doc["summary"]["fit"]
     assert 0.7 < fit["birge_ratio"] < 1.3                     # an eq. 4 surface: the model fits
     assert fit["cells_widened"] < 0.1 * doc["summary"]["cells"]
-    assert {"surface", "model", "measurement"} <= set(doc["summary"]["budget"])
+    assert {"surface", "model", "measurement", "discrepancy"} <= set(doc["summary"]["budget"])
+    # the discrepancy (docs/correction.md, "What the instruments cannot see"): its own column, and on an
+    # eq. 4 surface (the evidence smooths the correction surface to its bound) next to nothing
+    header = [ln for ln in (out / "correct_cells.csv").read_text().splitlines() if not ln.startswith("#")][0]
+    assert "u_rel_discrepancy" in header.split(",")
+    assert fit["discrepancy"]["sigma_rest"] < 0.002
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +131,7 @@ def test_joint_correction_of_two_instruments(two_instruments, joint_and_alone):
 def test_second_aperture_predicts_the_joint_u_and_ranks_by_it(tmp_path, two_instruments, joint_and_alone):
     """design --second-aperture: the expected median u of the joint table with the narrow setting
     (predicted from the measured table of the first instrument, before the second measures) is
-    the u the joint correction then reports, within 30 % (the prediction leaves out the backend,
+    the u the joint correction then reports, within 30 % (both with the discrepancy; the prediction leaves out the backend,
     the bundles' and the variants' spread); the best candidate has the least u among those with
     enough signal, and every candidate beats the instrument alone."""
     a, b, sa, sb = two_instruments

@@ -132,3 +132,39 @@ def test_cli_reference_self_end_to_end(tmp_path):
     assert len(rows) == int(corr.mask.sum()) == int(np.isfinite(keep).sum())
     for x in rows[:20]:
         assert float(x["r_corrected_x1e4"]) == pytest.approx(float(x["r_measured_x1e4"]) / float(x["k_a"]), rel=FILE_RATIO_RTOL)
+
+
+def test_cli_says_when_the_data_reject_eq4(tmp_path):
+    """The eq. 4 route judges its own fit: the synthetic table (an eq. 4 surface, 1 % noise) fitted
+    with its own variant is not rejected (p >= MISFIT_P, no note); the same table with a bump of
+    +12 % over a block of cells at grazing incidence (what eq. 4 cannot follow) is rejected, and the
+    terminal says so and names --forward surface. The p-value is the chi^2 tail of the fit's own
+    chi^2 and degrees of freedom."""
+    from pathlib import Path
+
+    from scipy.stats import chi2 as chi2_dist
+
+    from roadgonio.correction.fit import MISFIT_P
+    data = Path(__file__).resolve().parents[1] / "data"
+    meas = read_table(data / "synthetic_medium_lambert.csv")
+    keep = meas.r.copy()
+    keep[:, 6:] = np.nan
+    bumped = keep.copy()
+    bumped[meas.tan_eps >= 5.0, :3] *= 1.12
+    args = ("--instrument", str(data / "medium.toml"), "--backend", "quadrature", "--accuracy", "fast", "--rays", "64",
+            "--model-variant", "smooth", "--u-measured", "1%", "--no-plots")
+    fits = {}
+    for name, values in (("inside", keep), ("bumped", bumped)):
+        f = meas.with_values(values, name=name).write_csv(tmp_path / f"{name}.csv")
+        p = _run("--measured", str(f), *args, "--out", str(tmp_path / name), "--json")
+        assert p.returncode == 0, p.stderr
+        fit = json.loads(p.stdout)["fit"]
+        assert fit["chi2_p_value"] == pytest.approx(chi2_dist.sf(fit["chi2"], fit["dof"]), rel=1e-9)
+        assert fit["misfit"] == (fit["chi2_p_value"] < MISFIT_P)
+        fits[name] = fit
+    assert not fits["inside"]["misfit"] and fits["bumped"]["misfit"], fits
+    p = _run("--measured", str(tmp_path / "bumped.csv"), *args, "--out", str(tmp_path / "bumped"))
+    assert p.returncode == 0, p.stderr
+    assert "the data reject the eq. 4 fit" in p.stdout and "--forward surface" in p.stdout
+    p = _run("--measured", str(tmp_path / "inside.csv"), *args, "--out", str(tmp_path / "inside"))
+    assert p.returncode == 0 and "reject" not in p.stdout

@@ -716,6 +716,36 @@ def test_an_image_map_reads_like_the_csv(tmp_path):
         Instrument.from_dict(d)
 
 
+def test_an_exr_map_reads_like_the_csv(tmp_path):
+    """A float OpenEXR map (a measured flat field): its one channel, its Y channel, or equal R, G, B
+    are the same map as the CSV of the same values; colour that differs between channels is refused
+    with the file and the field named."""
+    import OpenEXR
+    v = (np.outer(np.linspace(1, 0.5, 5), np.linspace(0.6, 1, 7))).astype(np.float32)
+    np.savetxt(tmp_path / "m.csv", v.astype(np.float64), delimiter=",", fmt="%.9g")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    rgb = np.stack([v, v, v], axis=-1)
+    for name, chans in (("one.exr", {"L": v}), ("y.exr", {"Y": v, "A": np.ones_like(v)}), ("rgb.exr", {"RGB": rgb})):
+        OpenEXR.File(header, chans).write(str(tmp_path / name))
+    d = load_instrument("portable").to_dict()
+    maps = []
+    for name in ("m.csv", "one.exr", "y.exr", "rgb.exr"):
+        d["detector"]["field_sensitivity"] = str(tmp_path / name)
+        maps.append(Instrument.from_dict(d).detector.field_map.values)
+    for m in maps[1:]:
+        assert m.shape == (5, 7) and np.allclose(m, maps[0], rtol=1e-7, atol=0)
+    rgb[..., 1] *= 0.9
+    OpenEXR.File(header, {"RGB": rgb}).write(str(tmp_path / "colour.exr"))
+    d["detector"]["field_sensitivity"] = str(tmp_path / "colour.exr")
+    with pytest.raises(InputError, match="greyscale OpenEXR") as err:
+        Instrument.from_dict(d)
+    assert err.value.path == str(tmp_path / "colour.exr") and err.value.field == "detector.field_sensitivity"
+    (tmp_path / "bad.exr").write_bytes(b"not an exr")
+    d["detector"]["field_sensitivity"] = str(tmp_path / "bad.exr")
+    with pytest.raises(InputError, match="cannot read the OpenEXR"):
+        Instrument.from_dict(d)
+
+
 # ----------------------------------------------------------------------------------------------
 # Design keys
 # ----------------------------------------------------------------------------------------------

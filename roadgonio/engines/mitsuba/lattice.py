@@ -10,7 +10,7 @@ source disc, each a concentric-mapped unit square; docs/conventions.md section 4
 With ``Delta`` uniform on [0, 1)^6, every point is uniform, so the lattice mean is an unbiased
 estimate of the integral; ``B`` lattices with independent shifts ("replicates") are independent and
 identically distributed, so their spread gives an honest standard error with ``B - 1`` degrees of
-freedom (L'Ecuyer & Lemieux, "Variance reduction via lattice rules", Management Science 46 (2000)).
+freedom (randomised quasi-Monte Carlo; docs/validation.md, "Precision, correlation, repeatability").
 For the road-photometry integrands the lattice mean has 2-50x less variance than the same number
 of independent points (measured with ``bench/bench_engine.py``; the sharp cells under a wide
 source gain least).

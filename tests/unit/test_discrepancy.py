@@ -1,0 +1,153 @@
+"""The discrepancy component of a surface correction (roadgonio/correction/discrepancy.py):
+var(delta(c) - (K delta)(c)) / sigma^2 through known blurs, against closed forms and a float64
+numeric integral written here apart from the code; the limiting cases (a delta-function instrument
+gives 0, a blur much wider than the correlation length gives sigma^2)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate
+
+from roadgonio.correction.discrepancy import (BIN_FRACTION, amplitude_from_penalty, beyond_nyquist_variance,
+                                              discrepancy_correlation, make_blur)
+
+#: Rounding every ray to the nearest lattice point (spacing BIN_FRACTION ell) moves it by a uniform
+#: error of variance h^2 / 12 per coordinate: the bracket changes by O((h / ell)^2 / 12) per term it enters;
+#: the tolerance allows (h / ell)^2 for the three terms (absolute, on a bracket in [0, 2]).
+COMPRESSION_TOL = BIN_FRACTION ** 2
+#: Gauss-Hermite nodes per dimension of the Gaussian blurs (exact for these smooth integrands to ~1e-12).
+GH_NODES = 40
+
+
+def gauss_blur(centre, sd, n=GH_NODES):
+    """Points and weights of a 2-D isotropic Gaussian blur (tensor Gauss-Hermite rule)."""
+    t, w = np.polynomial.hermite_e.hermegauss(n)
+    w = w / w.sum()
+    X, Y = np.meshgrid(centre[0] + sd * t, centre[1] + sd * t, indexing="ij")
+    return np.stack([X.ravel(), Y.ravel()], axis=1), np.outer(w, w).ravel()
+
+
+def blur_one_cell(x0, pts, wts, ell):
+    return make_blur(np.array([x0], dtype=float), pts, wts, np.zeros(len(wts), dtype=np.int64), ell)
+
+
+@pytest.mark.parametrize("ell, sd, shift", [(1.0, 0.3, 0.0), (1.0, 1.0, 0.0), (0.5, 2.0, 0.0), (1.0, 0.7, 0.8)])
+def test_gaussian_blur_against_the_closed_form(ell, sd, shift):
+    """Blur N(x0 + mu, sd^2 I), squared-exponential rho of length ell:
+    E[delta(x0) K delta] = l^2 / (l^2 + s^2) exp(-mu^2 / (2 (l^2 + s^2))), E[(K delta)^2] = l^2 / (l^2 + 2 s^2)."""
+    x0 = np.array([3.0, 5.0])
+    pts, wts = gauss_blur(x0 + [shift, 0.0], sd)
+    R = discrepancy_correlation([blur_one_cell(x0, pts, wts, ell)], ell)
+    l2, s2 = ell ** 2, sd ** 2
+    expect = 1.0 - 2.0 * l2 / (l2 + s2) * math.exp(-0.5 * shift ** 2 / (l2 + s2)) + l2 / (l2 + 2.0 * s2)
+    assert R.shape == (1, 1)
+    assert abs(R[0, 0] - expect) <= COMPRESSION_TOL, (R[0, 0], expect)
+
+
+def test_two_instruments_on_one_cell_correlate_through_the_nominal_value():
+    """cov(e_A, e_B) / sigma^2 = 1 - l^2/(l^2+a^2) - l^2/(l^2+b^2) + l^2/(l^2+a^2+b^2) for Gaussian blurs a, b."""
+    ell, a, b = 1.0, 0.5, 1.5
+    x0 = np.array([2.0, 2.0])
+    A = blur_one_cell(x0, *gauss_blur(x0, a), ell)
+    B = blur_one_cell(x0, *gauss_blur(x0, b), ell)
+    R = discrepancy_correlation([A, B], ell)
+    l2 = ell ** 2
+    cross = 1.0 - l2 / (l2 + a * a) - l2 / (l2 + b * b) + l2 / (l2 + a * a + b * b)
+    assert abs(R[0, 1] - cross) <= COMPRESSION_TOL and abs(R[1, 0] - R[0, 1]) < 1e-15
+    assert abs(R[0, 0] - (1 - 2 * l2 / (l2 + a * a) + l2 / (l2 + 2 * a * a))) <= COMPRESSION_TOL
+
+
+def test_box_blur_against_a_numeric_integral():
+    """A uniform square blur of side L centred on x0: the bracket is 1 - 2 m1^2 + m2^2 with
+    m1 = (1/L) int rho_1(x) dx and m2 = (1/L^2) int int rho_1(x - y) dx dy per dimension
+    (rho separable), both integrated here by scipy in float64."""
+    ell, L = 1.0, 2.5
+    rho1 = lambda d: math.exp(-0.5 * d * d / ell ** 2)
+    m1 = integrate.quad(lambda x: rho1(x), -L / 2, L / 2, epsabs=1e-13)[0] / L
+    m2 = integrate.dblquad(lambda y, x: rho1(x - y), -L / 2, L / 2, -L / 2, L / 2, epsabs=1e-12)[0] / L ** 2
+    expect = 1.0 - 2.0 * m1 ** 2 + m2 ** 2
+    n = 400
+    g = (np.arange(n) + 0.5) / n * L - L / 2
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    pts = np.stack([X.ravel(), Y.ravel()], axis=1) + [10.0, 7.0]
+    R = discrepancy_correlation([blur_one_cell([10.0, 7.0], pts, np.full(n * n, 1.0 / n ** 2), ell)], ell)
+    assert abs(R[0, 0] - expect) <= COMPRESSION_TOL, (R[0, 0], expect)
+
+
+def test_limiting_cases():
+    """A delta-function instrument (every ray at the nominal point) gives exactly 0, and no covariance
+    with anything; a blur far wider than ell (sd 15 ell: 1 - 2/226 + 1/451 = 0.9934) gives nearly the
+    prior variance (1 in units of sigma^2); cells further apart than the cut-off do not correlate."""
+    ell = 1.0
+    x0 = np.array([[1.0, 1.0], [40.0, 40.0], [400.0, 400.0]])
+    wide = gauss_blur(x0[1], 15.0)
+    pts = np.concatenate([np.repeat(x0[:1], 50, axis=0), wide[0], x0[2:] + [[0.5, 0.0], [-0.5, 0.0]]])
+    wts = np.concatenate([np.full(50, 1 / 50), wide[1], [0.5, 0.5]])
+    cell_of = np.concatenate([np.zeros(50, dtype=np.int64), np.ones(GH_NODES ** 2, dtype=np.int64), [2, 2]])
+    R = discrepancy_correlation([make_blur(x0, pts, wts, cell_of, ell)], ell)
+    assert R[0, 0] == pytest.approx(0.0, abs=1e-14)
+    assert abs(R[0, 1]) < 1e-10 and R[0, 2] == 0.0          # 0 up to the rounding of the sums
+    assert R[1, 1] == pytest.approx(1.0 - 2.0 / 226.0 + 1.0 / 451.0, abs=COMPRESSION_TOL)
+    assert R[1, 2] == 0.0
+    # two rays at +-ell/2 (on the lattice: exact): 1 - 2 rho(1/2) + (1 + rho(1)) / 2
+    assert R[2, 2] == pytest.approx(1.0 - 2.0 * math.exp(-0.125) + 0.5 * (1.0 + math.exp(-0.5)), rel=1e-12)
+    assert np.all(np.linalg.eigvalsh(R) >= -1e-12)
+
+
+@pytest.mark.parametrize("lam_b, lam_t", [(5.0, 5.0), (8.0, 40.0), (100.0, 3.0)])
+def test_beyond_nyquist_variance_against_a_cartesian_integral(lam_b, lam_t):
+    """sigma^2 = int over the plane outside the square |k_b|, |k_t| <= pi of
+    1 / (4 pi^2 (lam_b k_b^4 + lam_t k_t^4)), written here in Cartesian coordinates (4 quadrants):
+    the strip k_b > pi over all k_t >= 0 in closed form (int_0^inf dk / (A + B k^4) =
+    pi / (2 sqrt 2) A^(-3/4) B^(-1/4)), plus k_b < pi with k_t > pi by scipy after k_t = pi / t."""
+    a = math.pi / (2 * math.sqrt(2)) * lam_b ** -0.75 * lam_t ** -0.25 / (2 * math.pi ** 2) / (4 * math.pi ** 2)
+    f = lambda t, kb: (math.pi / t ** 2) / (4 * math.pi ** 2 * (lam_b * kb ** 4 + lam_t * (math.pi / t) ** 4))
+    b = integrate.dblquad(f, 0.0, math.pi, 0.0, 1.0, epsabs=1e-14, epsrel=1e-11)[0]
+    assert beyond_nyquist_variance(lam_b, lam_t) == pytest.approx(4 * (a + b), rel=1e-6)
+
+
+def test_amplitude_scales_as_one_over_lambda_and_follows_the_region():
+    """Doubling both smoothing parameters halves sigma^2 (the density is 1 / lambda); the peak
+    cells take the peak blocks' value, the others the rest's; no peak blocks: the rest's for all."""
+    assert beyond_nyquist_variance(10.0, 30.0) == pytest.approx(beyond_nyquist_variance(5.0, 15.0) / 2, rel=1e-12)
+    lam = {"beta_peak": 4.0, "eps_peak": 16.0, "beta_rest": 100.0, "eps_rest": 400.0}
+    s2 = amplitude_from_penalty(lam, np.array([True, False]))
+    assert s2[0] == pytest.approx(beyond_nyquist_variance(4.0, 16.0), rel=1e-14)
+    assert s2[1] == pytest.approx(beyond_nyquist_variance(100.0, 400.0), rel=1e-14)
+    only = amplitude_from_penalty({"beta_rest": 100.0, "eps_rest": 400.0}, np.array([True, False]))
+    assert np.all(only == s2[1])
+
+
+def test_one_setting_twice_keeps_its_whole_discrepancy(r3like):
+    """parts_discrepancy: the same instrument part twice (one setting measured twice) has the same
+    blur, so the two blocks of the covariance and the block between them are equal (fully
+    correlated: repetition cannot average the discrepancy away), and the GLS combination of the two
+    keeps the single measurement's discrepancy variance exactly; a second part with a narrower
+    field stop correlates less with the first (a second aperture sees other detail)."""
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings
+    from roadgonio.correction.outside import combine, parts_discrepancy
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    cells = [(12.0, 0.0), (8.0, 2.0), (4.0, 10.0), (1.0, 30.0), (0.25, 90.0)]
+    settings = SurfaceSettings()
+    inst = load_instrument("wide")
+    a = FlexPart(ForwardModel(RayBundles.build(inst, cells, rays=64)), r3like, settings)
+    b = FlexPart(ForwardModel(RayBundles.build(inst.with_changes(detector={"field_half_angle_deg": 0.05}), cells,
+                                               rays=64, seed=1)), r3like, settings)
+    theta = np.zeros(a.n_params)
+    lam = {"beta_peak": 1.0, "eps_peak": 1.0, "beta_rest": 10.0, "eps_rest": 10.0}
+    n = len(cells)
+    twice, _ = parts_discrepancy([a, a], theta, [(1.0, lam)], settings)
+    assert np.allclose(twice[:n, :n], twice[n:, n:], rtol=0, atol=1e-15)
+    assert np.allclose(twice[:n, n:], twice[:n, :n], rtol=0, atol=1e-15)
+    assert np.all(np.diag(twice[:n, :n]) > 0)
+    # GLS of two equal measurements with an equal-weight covariance: G picks 1/2 and 1/2, and
+    # G D G^T of a fully correlated D is D's own block
+    big = twice + np.eye(2 * n) * 1e-4
+    _, G = combine([np.zeros(n), np.zeros(n)], [cells, cells], big, cells)
+    assert np.allclose(np.diag(G @ twice @ G.T), np.diag(twice[:n, :n]), rtol=1e-12, atol=0)
+    pair, _ = parts_discrepancy([a, b], theta, [(1.0, lam)], settings)
+    corr = np.diag(pair[:n, n:]) / np.sqrt(np.diag(pair[:n, :n]) * np.diag(pair[n:, n:]))
+    assert np.all(corr < 1.0 - 1e-6), corr
