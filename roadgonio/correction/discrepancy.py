@@ -32,6 +32,16 @@ two small matrix products (rho is separable). Moving a point by at most h/2 in e
 the bracket by about ``(h / ell)^2 / 12`` (the variance of the rounding, h^2 / 12 per coordinate, in
 units of ell^2).
 
+**The pole.** In the knot coordinates the pole (eps = 0, where beta is undefined) is a line: every
+s_beta at s_t = 0 is the same direction, and the rays of a cell at or near normal incidence, whose
+beta runs over 0-180 deg, would look many correlation lengths apart. g_C closes the pole (one value
+there, growing linearly from it), and so does delta: it is the sum of two independent processes of
+variance sigma^2, ``delta = sqrt(1 - tau^2) delta_P(y) + tau delta_K(s_beta, s_t)`` with
+``tau = min(s_t, 1)`` and the polar coordinates ``y = s_t (cos beta, sin beta)`` (in eps knot
+spacings: the distance of two directions near the pole), so every point keeps the variance sigma^2,
+the pole is one point, and beyond the first knot ring delta is the knot-coordinate process alone
+(:func:`pole_components`). Their brackets add.
+
 The discrepancy is assumed: independent of the observation direction (g_D and the backbone carry
 that), stationary in x, zero-mean (the fit takes out what it can see), and not seen by the fit (the
 data are not used to shrink it: where the instruments resolve, e is small anyway).
@@ -61,12 +71,15 @@ def se_correlation(xp, d2, ell: float):
 class Blur:
     """One instrument's blur of delta on a lattice of spacing ``h`` (shared by every cell): per
     cell the nominal point ``x0[c]`` and the image ``images[c]`` of the ray weights (summing to 1),
-    its element (a, b) the lattice point ``h (origins[c] + (a, b))``."""
+    its element (a, b) the lattice point ``h (origins[c] + (a, b))``. For one component of a sum of
+    processes (:func:`pole_components`) the rays carry the component's weight g: the image sums to
+    sum w g and the nominal point has ``x0_weight[c]`` = g(x0_c) (None: 1)."""
 
     x0: np.ndarray
     origins: np.ndarray
     images: tuple
     h: float
+    x0_weight: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -74,10 +87,12 @@ class Blur:
 
 
 def make_blur(x0: np.ndarray, x: np.ndarray, w: np.ndarray, cell_of: np.ndarray, ell: float,
-              bin_fraction: float = BIN_FRACTION) -> Blur:
+              bin_fraction: float = BIN_FRACTION, g: np.ndarray | None = None,
+              g0: np.ndarray | None = None) -> Blur:
     """A :class:`Blur` from flat rays: coordinates ``x`` (rays, 2), weights ``w`` (rays,), the cell of
     each ray ``cell_of`` and the cells' nominal points ``x0`` (cells, 2); each ray goes to its nearest
-    lattice point (spacing ``bin_fraction * ell``)."""
+    lattice point (spacing ``bin_fraction * ell``). ``g``, ``g0``: a component's weight at the rays
+    and at the nominal points (:func:`pole_components`); the images are normalised by w alone."""
     x0 = np.asarray(x0, dtype=np.float64)
     x = np.asarray(x, dtype=np.float64)
     w = np.asarray(w, dtype=np.float64)
@@ -93,27 +108,65 @@ def make_blur(x0: np.ndarray, x: np.ndarray, w: np.ndarray, cell_of: np.ndarray,
         o = kc.min(axis=0)
         shape = tuple(kc.max(axis=0) - o + 1)
         img = np.zeros(shape)
-        np.add.at(img, (kc[:, 0] - o[0], kc[:, 1] - o[1]), wc)
+        np.add.at(img, (kc[:, 0] - o[0], kc[:, 1] - o[1]), wc if g is None else wc * g[sel])
         origins.append(o)
         images.append(img / wc.sum())
-    return Blur(x0=x0, origins=np.array(origins, dtype=np.int64).reshape(-1, 2), images=tuple(images), h=h)
+    return Blur(x0=x0, origins=np.array(origins, dtype=np.int64).reshape(-1, 2), images=tuple(images), h=h,
+                x0_weight=None if g0 is None else np.asarray(g0, dtype=np.float64))
 
 
-def part_blur(part, theta: np.ndarray, ell: float) -> Blur:
-    """The blur of a :class:`roadgonio.correction.flexible.FlexPart` at the fitted surface ``theta``:
-    its rays in the knot coordinates of g_C, weighted by a_k f_model,k (module docstring)."""
+def pole_components(sb, st, beta_deg) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The discrepancy as a sum of two independent processes of variance sigma^2 each, weighted so
+    that every point keeps the variance sigma^2 (module docstring, "the pole"):
+
+        delta(x) = sqrt(1 - tau^2) delta_P(y) + tau delta_K(s_beta, s_t),   tau = min(s_t, 1),
+        y = s_t (cos beta, sin beta)
+
+    delta_K over the knot coordinates (one unit = one knot spacing) and delta_P over the polar
+    coordinates y about the pole, in units of the eps knot spacing (there the pole is one point,
+    as it is one value of g_C, and a distance is the angle between the directions). Beyond the
+    first knot ring (s_t >= 1) delta is delta_K alone; at the pole delta_P alone. Returns
+    [(x, g), ...] per component: the coordinates (..., 2) and the weight g (...)."""
+    sb = np.asarray(sb, dtype=np.float64)
+    st = np.asarray(st, dtype=np.float64)
+    b = np.radians(np.asarray(beta_deg, dtype=np.float64))
+    sb, st, b = np.broadcast_arrays(sb, st, b)
+    tau = np.minimum(st, 1.0)
+    polar = np.stack([st * np.cos(b), st * np.sin(b)], axis=-1)
+    knots = np.stack([sb, st], axis=-1)
+    return [(polar, np.sqrt(np.maximum(1.0 - tau * tau, 0.0))), (knots, tau)]
+
+
+def part_blurs(part, theta: np.ndarray, ell: float) -> list[Blur]:
+    """The blurs of a :class:`roadgonio.correction.flexible.FlexPart` at the fitted surface ``theta``,
+    one per component of :func:`pole_components`: its rays weighted by a_k f_model,k (module docstring)."""
     b = part.forward.bundles
     grid: SplineGrid = part.settings.c_grid
     sb, st = surface_coordinates(NumpyOps, grid, b.wi, b.wo)
-    x = np.stack([np.broadcast_to(np.asarray(sb, dtype=np.float64), b.a.shape),
-                  np.broadcast_to(np.asarray(st, dtype=np.float64), b.a.shape)], axis=1)
+    beta = _beta_deg(b.wi, b.wo)
+    shape = b.a.shape
+    comps = pole_components(np.broadcast_to(np.asarray(sb, dtype=np.float64), shape),
+                            np.broadcast_to(np.asarray(st, dtype=np.float64), shape), np.broadcast_to(beta, shape))
     w = part.af0 * np.exp(np.minimum(part.g_rays(theta), 50.0))
     n = part.n
     wo0 = tuple(np.full(n, b.wo0[k]) for k in range(3))
     wi0 = tuple(b.wi0[:, k] for k in range(3))
     s0b, s0t = surface_coordinates(NumpyOps, grid, wi0, wo0)
-    x0 = np.stack([np.asarray(s0b, dtype=np.float64), np.asarray(s0t, dtype=np.float64)], axis=1)
-    return make_blur(x0, x, w, part.cell_of, ell)
+    comps0 = pole_components(s0b, s0t, _beta_deg(wi0, wo0))
+    return [make_blur(x0, x.reshape(-1, 2), w.ravel(), part.cell_of, ell, g=g.ravel(), g0=g0)
+            for (x, g), (x0, g0) in zip(comps, comps0)]
+
+
+def _beta_deg(wi, wo) -> np.ndarray:
+    """beta (deg) of ray pairs, as :func:`roadgonio.surface.correction_surface.surface_coordinates`
+    measures it (0 at the pole)."""
+    wix, wiy, _ = (np.asarray(c, dtype=np.float64) for c in wi)
+    wox, woy, _ = (np.asarray(c, dtype=np.float64) for c in wo)
+    sin_ti, sin_tr = np.hypot(wix, wiy), np.hypot(wox, woy)
+    cross = np.abs(wix * woy - wiy * wox)
+    dot = wix * wox + wiy * woy
+    ok = sin_ti * sin_tr > 1e-12
+    return np.where(ok, np.degrees(np.arctan2(cross, -dot)), 0.0)
 
 
 def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = CUTOFF_ELL) -> np.ndarray:
@@ -126,6 +179,7 @@ def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = C
     if any(abs(b.h - h) > 1e-15 * h for b in blurs):
         raise ValueError("the blurs must share one lattice spacing")
     x0 = np.concatenate([b.x0 for b in blurs], axis=0)
+    g0 = np.concatenate([np.ones(b.n) if b.x0_weight is None else b.x0_weight for b in blurs])
     org = np.concatenate([b.origins for b in blurs], axis=0)
     imgs = [im for b in blurs for im in b.images]
     ext = np.array([im.shape for im in imgs], dtype=np.int64)
@@ -149,6 +203,8 @@ def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = C
     def rho_line(x, o, m):                # rho between a coordinate and the lattice lines o .. o + m - 1
         return se_correlation(np, (x - h * (o + np.arange(m))) ** 2, ell)
 
+    active = (g0 != 0.0) | np.array([bool(np.any(im != 0.0)) for im in imgs], dtype=bool)
+    close &= active[:, None] & active[None, :]
     R = np.zeros((n, n))
     for j in range(n):
         partners = np.nonzero(close[j, :j + 1])[0]
@@ -159,9 +215,10 @@ def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = C
         oj = org[j] - K
         for i in partners.tolist():
             Ii, oi = imgs[i], org[i]
-            r00 = math.exp(-0.5 * float(np.sum((x0[i] - x0[j]) ** 2)) / (ell * ell))
-            r0j = float(rho_line(x0[i, 0], org[j, 0], ext[j, 0]) @ Ij @ rho_line(x0[i, 1], org[j, 1], ext[j, 1]))
-            ri0 = float(rho_line(x0[j, 0], oi[0], ext[i, 0]) @ Ii @ rho_line(x0[j, 1], oi[1], ext[i, 1]))
+            r00 = g0[i] * g0[j] * math.exp(-0.5 * float(np.sum((x0[i] - x0[j]) ** 2)) / (ell * ell))
+            r0j = g0[i] * float(rho_line(x0[i, 0], org[j, 0], ext[j, 0]) @ Ij
+                                @ rho_line(x0[i, 1], org[j, 1], ext[j, 1]))
+            ri0 = g0[j] * float(rho_line(x0[j, 0], oi[0], ext[i, 0]) @ Ii @ rho_line(x0[j, 1], oi[1], ext[i, 1]))
             lo_ = np.maximum(oi, oj)
             hi_ = np.minimum(oi + ext[i], oj + np.array(Cj.shape))
             rij = 0.0

@@ -481,7 +481,7 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     ``blurs`` caches each part's blur by ``id(part)`` (a design evaluates one part against many);
     the same part twice (one setting measured twice) has the same blur, so its discrepancy is fully
     correlated between the two: repetition does not average it away."""
-    from roadgonio.correction.discrepancy import amplitude_from_penalty, discrepancy_correlation, part_blur
+    from roadgonio.correction.discrepancy import amplitude_from_penalty, discrepancy_correlation, part_blurs
     ell = float(settings.discrepancy_ell)
     cells = [c for p in parts for c in p.forward.bundles.cells]
     eps = np.degrees(np.arctan([t for t, _ in cells]))
@@ -491,8 +491,9 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     cache = {} if blurs is None else blurs
     for p in parts:
         if id(p) not in cache:
-            cache[id(p)] = part_blur(p, theta, ell)
-    R = discrepancy_correlation([cache[id(p)] for p in parts], ell)
+            cache[id(p)] = part_blurs(p, theta, ell)
+    # the two independent components of delta (discrepancy.pole_components): their brackets add
+    R = sum(discrepancy_correlation([cache[id(p)][k] for p in parts], ell) for k in range(len(cache[id(parts[0])])))
     s = np.sqrt(sig2)
     info = {"ell_knots": ell, "amplitude": "the roughness prior of g_C (evidence-chosen smoothing) beyond the "
                                            "knots' Nyquist wavenumber, per region",

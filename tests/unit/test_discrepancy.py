@@ -151,3 +151,57 @@ def test_one_setting_twice_keeps_its_whole_discrepancy(r3like):
     pair, _ = parts_discrepancy([a, b], theta, [(1.0, lam)], settings)
     corr = np.diag(pair[:n, n:]) / np.sqrt(np.diag(pair[:n, :n]) * np.diag(pair[n:, n:]))
     assert np.all(corr < 1.0 - 1e-6), corr
+
+
+def _brute_bracket(comps_rays, comps_x0, w, ell):
+    """sum over the components of g0^2 - 2 g0 sum_k w_k g_k rho(x_k, x0) + sum_kl w_k w_l g_k g_l rho(x_k, x_l),
+    a float64 double sum over the rays themselves (no lattice), written apart from the code."""
+    total = 0.0
+    for (x, g), (x0, g0) in zip(comps_rays, comps_x0):
+        d0 = np.sum((x - x0) ** 2, axis=1)
+        dd = np.sum((x[:, None, :] - x[None, :, :]) ** 2, axis=2)
+        rho = lambda d2: np.exp(-0.5 * d2 / ell ** 2)
+        wg = w * g
+        total += g0 * g0 - 2.0 * g0 * float(wg @ rho(d0)) + float(wg @ rho(dd) @ wg)
+    return total
+
+
+def test_the_pole_is_one_point():
+    """pole_components: every point keeps the variance sigma^2 (g_P^2 + g_K^2 = 1); at s_t = 0 the
+    coordinates of every beta are one point, so rays at the pole spread over every beta are the
+    nominal direction itself (bracket 0, where the knot coordinates alone made it about 1); beyond
+    the first knot ring only the knot-coordinate process is left. The weighted bracket of a cell near
+    normal incidence (rays within s_t 0.4, every beta) agrees with a float64 double sum over its rays."""
+    from roadgonio.correction.discrepancy import pole_components
+    rng = np.random.default_rng(5)
+    n, ell = 300, 1.0 / math.pi
+    sb = rng.uniform(0.0, 24.0, n)
+    beta = rng.uniform(0.0, 180.0, n)
+    for st in (rng.uniform(0.0, 3.0, n), np.zeros(n)):
+        (y, gp), (x, gk) = pole_components(sb, st, beta)
+        assert np.allclose(gp ** 2 + gk ** 2, 1.0, rtol=0, atol=1e-12)
+    (y, gp), (x, gk) = pole_components(sb, np.zeros(n), beta)
+    assert np.all(y == 0.0) and np.all(gk == 0.0)
+    w = np.full(n, 1.0 / n)
+    x0c = pole_components(np.array([0.0]), np.array([0.0]), np.array([0.0]))
+    cell = np.zeros(n, dtype=np.int64)
+    R = sum(discrepancy_correlation([make_blur(c0[0], c[0], w, cell, ell, g=c[1], g0=c0[1])], ell)[0, 0]
+            for c, c0 in zip(pole_components(sb, np.zeros(n), beta), x0c))
+    raw = discrepancy_correlation([make_blur(np.array([[12.0, 0.0]]), np.stack([sb, np.zeros(n)], 1), w, cell,
+                                             ell)], ell)[0, 0]
+    assert R == pytest.approx(0.0, abs=1e-12) and raw > 0.9
+    # beyond the first ring: the knot-coordinate bracket alone
+    st = rng.uniform(1.0, 3.0, n)
+    comps, comps0 = pole_components(sb, st, beta), pole_components(np.array([12.0]), np.array([2.0]), np.array([90.0]))
+    two = sum(discrepancy_correlation([make_blur(c0[0], c[0], w, cell, ell, g=c[1], g0=c0[1])], ell)[0, 0]
+              for c, c0 in zip(comps, comps0))
+    one = discrepancy_correlation([make_blur(comps0[1][0], comps[1][0], w, cell, ell)], ell)[0, 0]
+    assert two == pytest.approx(one, abs=1e-12)
+    # near normal incidence: against the double sum over the rays
+    st = rng.uniform(0.0, 0.4, n)
+    comps, comps0 = pole_components(sb, st, beta), pole_components(np.array([0.0]), np.array([0.0]), np.array([0.0]))
+    got = sum(discrepancy_correlation([make_blur(c0[0], c[0], w, cell, ell, g=c[1], g0=c0[1])], ell)[0, 0]
+              for c, c0 in zip(comps, comps0))
+    expect = _brute_bracket(comps, [(c0[0][0], c0[1][0]) for c0 in comps0], w, ell)
+    assert abs(got - expect) <= COMPRESSION_TOL, (got, expect)
+    assert got < 0.5 * raw
