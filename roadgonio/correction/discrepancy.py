@@ -54,7 +54,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from roadgonio.arrays import NumpyOps
-from roadgonio.surface.correction_surface import SplineGrid, surface_coordinates
+from roadgonio.surface.correction_surface import SplineGrid, incident_angles, surface_coordinates
 
 #: Side of the lattice the rays are binned on, in units of ell.
 BIN_FRACTION = 0.25
@@ -143,7 +143,7 @@ def part_blurs(part, theta: np.ndarray, ell: float) -> list[Blur]:
     b = part.forward.bundles
     grid: SplineGrid = part.settings.c_grid
     sb, st = surface_coordinates(NumpyOps, grid, b.wi, b.wo)
-    beta = _beta_deg(b.wi, b.wo)
+    beta = np.asarray(incident_angles(NumpyOps, b.wi, b.wo)[0], dtype=np.float64)
     shape = b.a.shape
     comps = pole_components(np.broadcast_to(np.asarray(sb, dtype=np.float64), shape),
                             np.broadcast_to(np.asarray(st, dtype=np.float64), shape), np.broadcast_to(beta, shape))
@@ -152,21 +152,9 @@ def part_blurs(part, theta: np.ndarray, ell: float) -> list[Blur]:
     wo0 = tuple(np.full(n, b.wo0[k]) for k in range(3))
     wi0 = tuple(b.wi0[:, k] for k in range(3))
     s0b, s0t = surface_coordinates(NumpyOps, grid, wi0, wo0)
-    comps0 = pole_components(s0b, s0t, _beta_deg(wi0, wo0))
+    comps0 = pole_components(s0b, s0t, incident_angles(NumpyOps, wi0, wo0)[0])
     return [make_blur(x0, x.reshape(-1, 2), w.ravel(), part.cell_of, ell, g=g.ravel(), g0=g0)
             for (x, g), (x0, g0) in zip(comps, comps0)]
-
-
-def _beta_deg(wi, wo) -> np.ndarray:
-    """beta (deg) of ray pairs, as :func:`roadgonio.surface.correction_surface.surface_coordinates`
-    measures it (0 at the pole)."""
-    wix, wiy, _ = (np.asarray(c, dtype=np.float64) for c in wi)
-    wox, woy, _ = (np.asarray(c, dtype=np.float64) for c in wo)
-    sin_ti, sin_tr = np.hypot(wix, wiy), np.hypot(wox, woy)
-    cross = np.abs(wix * woy - wiy * wox)
-    dot = wix * wox + wiy * woy
-    ok = sin_ti * sin_tr > 1e-12
-    return np.where(ok, np.degrees(np.arctan2(cross, -dot)), 0.0)
 
 
 def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = CUTOFF_ELL) -> np.ndarray:

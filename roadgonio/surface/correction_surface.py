@@ -118,9 +118,9 @@ class SplineGrid:
         return beta, eps
 
 
-def surface_coordinates(xp, grid: SplineGrid, wi, wo):
-    """(s_beta, s_t) of ray pairs: ``wi``, ``wo`` component triples of unit vectors towards the
-    source and the detector. beta as in :func:`roadgonio.surface.model.road_brdf` (exact near 0
+def incident_angles(xp, wi, wo):
+    """(beta, eps) in degrees of ray pairs: ``wi``, ``wo`` component triples of unit vectors towards
+    the source and the detector. beta as in :func:`roadgonio.surface.model.road_brdf` (exact near 0
     and 180 deg; 0 where the azimuth is undefined, at the pole, where g does not depend on it)."""
     wix, wiy, wiz = wi
     wox, woy, _ = wo
@@ -130,7 +130,13 @@ def surface_coordinates(xp, grid: SplineGrid, wi, wo):
     dot = wix * wox + wiy * woy
     beta = xp.where(sin_ti * sin_tr > 1e-12, xp.atan2(cross, -dot), 0.0 * sin_ti)
     eps = xp.atan2(sin_ti, wiz)
-    return grid.s_beta_of(xp, beta * (180.0 / math.pi)), grid.s_t_of(xp, eps * (180.0 / math.pi))
+    return beta * (180.0 / math.pi), eps * (180.0 / math.pi)
+
+
+def surface_coordinates(xp, grid: SplineGrid, wi, wo):
+    """(s_beta, s_t) of ray pairs (:func:`incident_angles` on the knot grid)."""
+    beta_deg, eps_deg = incident_angles(xp, wi, wo)
+    return grid.s_beta_of(xp, beta_deg), grid.s_t_of(xp, eps_deg)
 
 
 def alpha_coordinate(xp, wo):
