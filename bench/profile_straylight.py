@@ -32,18 +32,13 @@ from pathlib import Path
 
 import numpy as np
 
+from bench_straylight import _load  # the same load-average line as the bench it profiles
+
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = ("trace_paths", "block_sums", "stray_sums", "light_sums")
 STRATEGIES = ("direct", "eye vertex 1 (NEE)", "eye vertex 2 (NEE)", "light path, 1 reflection",
               "light path, 2: eye y1 + light y2", "light path, 2 reflections")
 CELLS = ((11.0, 35.0), (12.0, 90.0), (12.0, 0.0), (3.0, 30.0), (1.0, 0.0))
-
-
-def _load() -> str:
-    try:
-        return ", ".join(f"{v:.2f}" for v in os.getloadavg())
-    except OSError:  # pragma: no cover
-        return "?"
 
 
 def main(argv=None) -> int:

@@ -37,7 +37,7 @@ import numpy as np
 import pytest
 
 from roadgonio.errors import RoadgonioError
-from helpers import GOOD_INSTRUMENT
+from helpers import GOOD_INSTRUMENT, grid_mesh
 
 CLASSES = ("input", "seeds", "blanks", "writers", "meshes", "extremes", "paths", "conventions", "overwrites")
 COMMANDS = ("tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct", "design", "road",
@@ -262,21 +262,6 @@ def ldt_with(tmp: Path, line: int, value: str) -> Path:
     p = tmp / "lum.ldt"
     p.write_text("\r\n".join(lines) + "\r\n", encoding="latin-1")
     return p
-
-
-def grid_mesh(path: Path, xs, ys) -> Path:
-    """A flat grid of quads (two triangles each) on z = 0, facing +z."""
-    import trimesh
-    X, Y = np.meshgrid(xs, ys, indexing="ij")
-    V = np.stack([X.ravel(), Y.ravel(), 0.0 * X.ravel()], 1)
-    ny = len(ys)
-    F = []
-    for i in range(len(xs) - 1):
-        for j in range(ny - 1):
-            a, b, c, d = i * ny + j, (i + 1) * ny + j, (i + 1) * ny + j + 1, i * ny + j + 1
-            F += [[a, b, c], [a, c, d]]
-    trimesh.Trimesh(V, np.array(F), process=False).export(path)
-    return path
 
 
 PINHOLE = GOOD.replace("pupil_radius_m = 0.005", "pupil_radius_m = 0.0").replace(
