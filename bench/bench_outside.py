@@ -24,8 +24,10 @@ bench/results/outside.csv.
     python bench/bench_outside.py [--regenerate] [--truths microfacet,two_lobes,table,eq4]
                                   [--backend quadrature] [--only single|joint]
                                   [--smoothing evidence|gcv] [--discrepancy-ell 1.0|none]
+                                  [--estimate combined|measured]
 
-``--smoothing`` chooses how the data set the surface's smoothing parameters (the evidence, the
+``--estimate measured`` makes the corrected table r / k_A alone (combined across instruments), as it was
+before the fitted surface's own value was weighed in. ``--smoothing`` chooses how the data set the surface's smoothing parameters (the evidence, the
 default, or generalised cross-validation); ``--discrepancy-ell`` the correlation length (knot
 spacings) of the discrepancy component of u, ``none`` to leave it out (what u was before it).
 """
@@ -139,6 +141,9 @@ def main() -> int:
     ap.add_argument("--only", choices=["single", "joint"])
     ap.add_argument("--smoothing", choices=["evidence", "gcv"], default="evidence",
                     help="how the data choose the surface's smoothing parameters (default evidence)")
+    ap.add_argument("--estimate", choices=["combined", "measured"], default="combined",
+                    help="the corrected table: r / k_A and the fitted surface's own value combined (default), or "
+                         "r / k_A alone (what it was before)")
     ap.add_argument("--discrepancy-ell", default=None,
                     help="correlation length of the discrepancy component (knot spacings; default the "
                          "library's), or none to leave it out")
@@ -146,12 +151,13 @@ def main() -> int:
     from roadgonio.correction.flexible import DISCREPANCY_ELL, SurfaceSettings
     ell = DISCREPANCY_ELL if args.discrepancy_ell is None else (
         None if args.discrepancy_ell.lower() == "none" else float(args.discrepancy_ell))
-    surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell)
+    surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell,
+                              model_estimate=args.estimate == "combined")
     from roadgonio import api
     from roadgonio.instrument.config import Instrument
     insts = {w: Instrument.load(p) for w, p in INSTRUMENTS.items()}
     print(f"machine: {os.cpu_count()} cores; load average at start {load()}; backend {args.backend}; "
-          f"noise {100 * NOISE:g} %; smoothing {args.smoothing}; discrepancy ell {ell}")
+          f"noise {100 * NOISE:g} %; smoothing {args.smoothing}; discrepancy ell {ell}; estimate {args.estimate}")
     print("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
     rows: list[dict] = []
     for n, kind in enumerate(args.truths.split(",")):
@@ -194,6 +200,8 @@ def main() -> int:
         f"outside_{args.smoothing}_ell-{'none' if ell is None else format(ell, '.3g')}.csv"
     if args.backend != "quadrature":
         name = name.replace(".csv", f"_{args.backend}.csv")
+    if args.estimate != "combined":
+        name = name.replace(".csv", f"_{args.estimate}.csv")
     with open(RESULTS / name, "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS], extrasaction="ignore")
         wr.writeheader()

@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -113,6 +114,18 @@ def make_blur(x0: np.ndarray, x: np.ndarray, w: np.ndarray, cell_of: np.ndarray,
         images.append(img / wc.sum())
     return Blur(x0=x0, origins=np.array(origins, dtype=np.int64).reshape(-1, 2), images=tuple(images), h=h,
                 x0_weight=None if g0 is None else np.asarray(g0, dtype=np.float64))
+
+
+def nominal_blur(blur: Blur, idx: Sequence[int]) -> Blur:
+    """The blur of an estimate that sees nothing of delta: the fitted model's own value at the
+    nominal directions of the cells ``idx`` of ``blur`` (no rays, an image of zeros), so its error
+    is ``-delta(x0_c)`` and :func:`discrepancy_correlation` gives it the bracket 1 with itself and
+    ``rho(x0_c, x0_d) - w_d . rho(x0_c, X_d)`` with an instrument's cell d."""
+    idx = np.asarray(idx, dtype=np.int64)
+    x0 = blur.x0[idx]
+    return Blur(x0=x0, origins=np.rint(x0 / blur.h).astype(np.int64).reshape(-1, 2),
+                images=tuple(np.zeros((1, 1)) for _ in idx), h=blur.h,
+                x0_weight=None if blur.x0_weight is None else blur.x0_weight[idx])
 
 
 def pole_components(sb, st, beta_deg) -> list[tuple[np.ndarray, np.ndarray]]:

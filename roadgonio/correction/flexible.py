@@ -48,6 +48,7 @@ from roadgonio.engines.result import ratio_se
 from roadgonio.errors import InputError
 from roadgonio.surface.correction_surface import SplineGrid, alpha_coordinate, lookup
 from roadgonio.arrays import NumpyOps
+from roadgonio.surface.fit import _from_z, _to_z, _z_box, nonlinear_params
 from roadgonio.surface.model import RoadModel
 
 #: The default knots of g_C (fine: the narrow peak at beta = 0 and grazing incidence) and of g_D.
@@ -55,6 +56,10 @@ C_GRID = SplineGrid(s_beta=24, beta_scale_deg=8.0, s_t=32, eps_step_deg=3.0, sec
 D_GRID = SplineGrid(s_beta=6, beta_scale_deg=8.0, s_t=8, eps_step_deg=12.0, sec_gain=1.0, eps_max_deg=89.0)
 #: Prior standard deviation of g_D (d ln f / d ln alpha beyond the backbone's).
 D_PRIOR_SD = 1.0
+#: Finite-difference step of the backbone's coordinates (ln of a term's coefficient, the fit's z of a
+#: shape parameter) for their derivatives (FlexPart.backbone_log_derivatives); a shape parameter this
+#: close to its search box's bound is held there, as the eq. 4 fit holds it.
+BACKBONE_FD_STEP = 1e-4
 #: The criteria that can choose the smoothing parameters (SurfaceSettings.smoothing).
 SMOOTHING = ("evidence", "gcv")
 #: Correlation length of the model discrepancy in knot spacings of g_C (roadgonio.correction.discrepancy).
@@ -94,6 +99,10 @@ class SurfaceSettings:
     #: correlation length (knot spacings of g_C) of the discrepancy delta the instruments cannot see
     #: (:mod:`roadgonio.correction.discrepancy`); None leaves that component out of the budget
     discrepancy_ell: float | None = DISCREPANCY_ELL
+    #: the corrected table also weighs the fitted surface's own value at each cell's nominal
+    #: direction against the instruments' r / k_A (generalised least squares with the full
+    #: covariance, roadgonio.correction.outside); False: the instruments' r / k_A alone
+    model_estimate: bool = True
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
@@ -118,7 +127,8 @@ class SurfaceSettings:
         from dataclasses import asdict
         return {"c_grid": asdict(self.c_grid), "d_grid": None if self.d_grid is None else asdict(self.d_grid),
                 "d_prior_sd": self.d_prior_sd, "peak_beta_deg": self.peak_beta_deg,
-                "peak_eps_deg": self.peak_eps_deg, "lam": self.lam, "smoothing": self.smoothing, "discrepancy_ell": self.discrepancy_ell}
+                "peak_eps_deg": self.peak_eps_deg, "lam": self.lam, "smoothing": self.smoothing, "discrepancy_ell": self.discrepancy_ell,
+                "model_estimate": self.model_estimate}
 
 
 class FlexPart:
@@ -194,6 +204,71 @@ class FlexPart:
 
     def g_nominal(self, theta: np.ndarray) -> np.ndarray:
         return self._nominal @ theta[:self.settings.n_c]
+
+    def ln_r_nominal(self, theta: np.ndarray) -> np.ndarray:
+        """ln r of the fitted model at the cells' nominal geometry (alpha = 1 deg: g_C alone):
+        ln(f_0 exp(g_C) cos^3 eps), the model's own estimate of the table."""
+        return np.log(self.f0_nominal) + self.g_nominal(theta) + np.log(self.forward.bundles.cos3)
+
+    def nominal_jacobian(self) -> np.ndarray:
+        """d :meth:`ln_r_nominal` / d theta, (cells, n_params): the basis of g_C at the nominal directions."""
+        J = np.zeros((self.n, self.n_params))
+        J[:, :self.settings.n_c] = self._nominal
+        return J
+
+    def backbone_log_derivatives(self) -> tuple[list[str], np.ndarray, np.ndarray]:
+        """The backbone's own coordinates q, free in the posterior beside theta: ln of every active
+        term's coefficient and the fit's coordinate z of every shape parameter of the variant (held at
+        a bound of the search box, as the eq. 4 fit holds it). Returns (names, d ln f_0 / d q at the
+        rays (P, *rays), d ln f_0 / d q at the nominal directions (cells, P)), central differences of
+        step :data:`BACKBONE_FD_STEP` (cached: the backbone and the rays are fixed)."""
+        if getattr(self, "_dq", None) is not None:
+            return self._dq
+        from roadgonio.engines.bundle import LINEAR_TERMS
+        b = self.forward.bundles
+        P0 = self.backbone.params.to_dict()
+        h = BACKBONE_FD_STEP
+        steps = []                                # (name, params at +h, params at -h)
+        for k in LINEAR_TERMS:
+            if P0[k] > 0.0:
+                steps.append((f"ln_{k}", {k: P0[k] * math.exp(h)}, {k: P0[k] * math.exp(-h)}))
+        for name in nonlinear_params(self.backbone.variant):
+            lo, hi = _z_box(name)
+            z = _to_z(name, P0[name])
+            if z - lo < 2 * h or hi - z < 2 * h:
+                continue
+            steps.append((f"z_{name}", {name: _from_z(name, z + h)}, {name: _from_z(name, z - h)}))
+        rays, nom = [], []
+        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            f_rays = np.asarray(self.backbone.evaluate(NumpyOps, b.wi, b.wo), dtype=np.float64)
+            for _, up, down in steps:
+                fr, fn = [], []
+                for change in (up, down):
+                    m = RoadModel(self.backbone.params.replace(**change), variant=self.backbone.variant)
+                    fr.append(np.asarray(m.evaluate(NumpyOps, b.wi, b.wo), dtype=np.float64))
+                    fn.append(np.asarray(m.brdf(b.wi0, b.wo0[None, :]), dtype=np.float64))
+                rays.append(np.where(f_rays > 0, (fr[0] - fr[1]) / (2 * h * np.where(f_rays > 0, f_rays, 1.0)), 0.0))
+                nom.append((fn[0] - fn[1]) / (2 * h * self.f0_nominal))
+        shape = self.af0.shape
+        D = np.stack([np.broadcast_to(r, shape) for r in rays]) if rays else np.zeros((0,) + shape)
+        Dn = np.stack(nom, axis=1) if nom else np.zeros((self.n, 0))
+        self._dq = ([n for n, _, _ in steps], D, Dn)
+        return self._dq
+
+    def backbone_jacobians(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """In the backbone's coordinates q (:meth:`backbone_log_derivatives`), at the surface theta:
+        (d simulated r / d q, d ln k_A / d q, d ln r_nominal / d q), each (cells, P)."""
+        _, D, Dn = self.backbone_log_derivatives()
+        e = self.af0 * np.exp(np.minimum(self.g_rays(theta), 50.0))
+        mean = np.bincount(self.cell_of, weights=e.ravel(), minlength=self.n)
+        dmean = np.stack([np.bincount(self.cell_of, weights=(e * d).ravel(), minlength=self.n) for d in D], axis=1) \
+            if D.shape[0] else np.zeros((self.n, 0))
+        return self.scale[:, None] * dmean, dmean / mean[:, None] - Dn, Dn
+
+    def full_jacobians(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(d ln k_A, d ln r_nominal) / d (theta, q): the columns of :func:`posterior_with_backbone`'s covariance."""
+        _, Kq, Nq = self.backbone_jacobians(theta)
+        return np.hstack([self.lnk_jacobian(theta), Kq]), np.hstack([self.nominal_jacobian(), Nq])
 
     def surfaces_at_cells(self, theta: np.ndarray, cov: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """At the cells' nominal directions: g_C, its posterior standard deviation (with ``cov``) and
@@ -505,24 +580,43 @@ def _spd_inverse(M: np.ndarray) -> np.ndarray:
     return cho_solve(c, np.eye(M.shape[0]), check_finite=False)
 
 
-def expected_posterior(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict, u_rel: Sequence[np.ndarray]) -> np.ndarray:
-    """The posterior covariance of theta that measurements through ``parts`` would give at the
-    surface ``theta`` with smoothing parameters ``lam`` (names of :func:`penalty_blocks`) and relative
-    standard uncertainties ``u_rel`` (per part and cell): the inverse of ``J^T W J + Lambda`` with
-    the measured values taken as the simulated ones (linearised: the posterior covariance of a
-    Gaussian model does not depend on the measured values). The design of a second aperture
-    (:mod:`roadgonio.design.second_aperture`) ranks candidates by it."""
+def posterior_with_backbone(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict,
+                            weights: Sequence[np.ndarray]) -> np.ndarray:
+    """The Laplace posterior covariance over (theta, q): the surface's coefficients and the
+    backbone's own coordinates q (:meth:`FlexPart.backbone_log_derivatives`, flat prior), the inverse
+    of ``J^T W J + Lambda`` at the surface ``theta`` with the weights ``W`` (1 / u^2 per part and
+    cell) and the roughness prior ``Lambda`` of the smoothing parameters ``lam`` (names of
+    :func:`penalty_blocks`; g_D's proper prior). The surface was fitted with the backbone held; this
+    lets the backbone move with it, so what the surface's stiffness forbids (a smooth surface: the
+    evidence at its bound) the backbone's parameters still carry. Directions the data cannot see at
+    all (a term's coefficient against the level of g_C) are dropped by a scaled pseudo-inverse: no
+    reading, model value or k_A depends on them. The parts share one backbone."""
     settings = parts[0].settings
     names, Ps = penalty_blocks(settings)
     n_c, n_d = settings.n_c, settings.n_d
-    Lam = np.zeros((n_c + n_d, n_c + n_d))
-    Lam[:n_c, :n_c] = sum(float(lam[k]) * P for k, P in zip(names, Ps))
+    n = n_c + n_d
+    n_q = len(parts[0].backbone_log_derivatives()[0])
+    H = np.zeros((n + n_q, n + n_q))
+    H[:n_c, :n_c] = sum(float(lam[k]) * P for k, P in zip(names, Ps))
     if n_d:
-        Lam[n_c:, n_c:] = d_prior(settings)
-    H = Lam.copy()
+        H[n_c:n, n_c:n] = d_prior(settings)
     with one_blas_thread():
-        for p, ur in zip(parts, u_rel):
-            s, J = p.simulate(theta)
-            w = 1.0 / (np.asarray(ur, dtype=np.float64) * s) ** 2
-            H += J.T @ (w[:, None] * J)
-        return _spd_inverse(H)
+        for p, w in zip(parts, weights):
+            _, J = p.simulate(theta)
+            Jq, _, _ = p.backbone_jacobians(theta)
+            Jf = np.hstack([J, Jq])
+            H += Jf.T @ (np.asarray(w, dtype=np.float64)[:, None] * Jf)
+        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        return np.linalg.pinv(H / np.outer(d, d), rcond=1e-12, hermitian=True) / np.outer(d, d)
+
+
+def expected_posterior(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict, u_rel: Sequence[np.ndarray]) -> np.ndarray:
+    """The posterior covariance over (theta, q) (:func:`posterior_with_backbone`) that measurements
+    through ``parts`` would give at the surface ``theta`` with smoothing parameters ``lam`` and
+    relative standard uncertainties ``u_rel`` (per part and cell), the measured values taken as the
+    simulated ones (linearised: the posterior covariance of a Gaussian model does not depend on the
+    measured values). The design of a second aperture (:mod:`roadgonio.design.second_aperture`)
+    ranks candidates by it."""
+    weights = [1.0 / (np.asarray(ur, dtype=np.float64) * p.simulate(theta, jacobian=False)[0]) ** 2
+               for p, ur in zip(parts, u_rel)]
+    return posterior_with_backbone(parts, theta, lam, weights)

@@ -103,13 +103,30 @@ def _group_figure(group: OutputGroup, name: str, fig) -> Path:
         _plt().close(fig)
 
 
+#: What the corrected table of a surface correction is, when it weighs the model's own value.
+MODEL_ESTIMATE_DEFINITION = (
+    "per cell, the generalised least squares combination (full covariance) of r_measured / k_A (k_A of the eq. 4 "
+    "backbone x correction surface fitted through the instrument(s)) and the fitted surface's own value at the "
+    "nominal geometry; w_model (correct_cells.csv) is the latter's weight")
+
+
+def _corrected_definition(sc, joint: bool) -> str:
+    if sc is not None and sc.model_weight is not None:
+        return MODEL_ESTIMATE_DEFINITION
+    if joint:
+        return ("one table: per instrument r_measured / k_A (k_A of the eq. 4 backbone x correction surface fitted "
+                "through all instruments), combined cell by cell by generalised least squares with the full "
+                "covariance between the instruments")
+    return "r_corrected = r_measured / k_A (k_A of the model under the instrument's calibration)"
+
+
 def _json_doc(res, plots: bool) -> dict[str, Any]:
     return {"summary": res.summary(), "provenance": res.provenance,
             "files": {k: v for k, v in FILES.items() if (plots or k not in PICTURES)
                       and (k not in ("residuals", "surface") or res.extra.get("surface") is not None)
                       and (k != "rtb" or has_rtb(res.corrected))},
             "definitions": {
-                "corrected": "r_corrected = r_measured / k_A (k_A of the model under the instrument's calibration)",
+                "corrected": _corrected_definition(res.extra.get("surface"), joint=False),
                 "u": "standard uncertainty (k = 1) of r_corrected; relative components add in quadrature, with "
                      "correlations between cells (corrected_corr.csv)",
                 "S1": "r(beta 0, tan 2) / r(beta 0, tan 0)", "Q0": "CIE 144 average luminance coefficient (sr^-1)",
@@ -130,6 +147,9 @@ def cells_csv(res) -> str:
     head = ["tan_eps", "beta_deg", "r_measured_x1e4", "u_measured_x1e4", "k_a", "u_k_a_backend",
             "r_corrected_x1e4", "u_corrected_x1e4", "u_rel_total"] + [f"u_rel_{c}" for c in comps] \
         + [f"k_a_{n}" for n in res.alternatives] + ["r_model_ideal_x1e4"] + (["r_simulated_x1e4"] if sim is not None else [])
+    weight = sc.model_weight if sc is not None else None
+    if weight is not None:
+        head += ["r_over_k_a_x1e4", "w_model"]
     buf = io.StringIO()
     buf.write("# " + res.corrected.source + "\n")
     buf.write(",".join(head) + "\n")
@@ -142,6 +162,8 @@ def cells_csv(res) -> str:
         row.append(f"{model_r[i, j] * 1e4:.6g}")
         if sim is not None:
             row.append(f"{sim[k] * 1e4:.6g}")
+        if weight is not None:
+            row += [f"{sc.parts[0].corrected.r[i, j] * 1e4:.6g}", f"{weight[i, j]:.4g}"]
         buf.write(",".join(row) + "\n")
     return buf.getvalue()
 
@@ -191,7 +213,9 @@ def draw_before_after(res):
         ax.set_title(f"beta = {beta:g} deg   (correction {change.min():+.1f} ... {change.max():+.1f} %)", fontsize=8)
         _style_beta_panel(ax, j)
     handles = [plt.Line2D([], [], color="0.45", marker="o", ls="--", ms=3, label="measured (as the instrument reported)"),
-               plt.Line2D([], [], color="C0", lw=1.6, label="corrected = measured / k_A"),
+               plt.Line2D([], [], color="C0", lw=1.6, label=("corrected (measured / k_A and the fitted surface, "
+                                                             "weighed by their u)" if sc is not None and
+                                                             sc.model_weight is not None else "corrected = measured / k_A")),
                plt.matplotlib.patches.Patch(color="C0", alpha=0.25, label="corrected +- 2 u (about 95 %)"),
                plt.Line2D([], [], color="C3", ls=":", label=(f"model used for k_A ({res.model.variant}"
                                                              + (" x correction surface" if sc is not None else "")
@@ -355,6 +379,8 @@ def joint_cells_csv(sc) -> str:
     u_comp = {c: sc.budget.u_rel(c) for c in comps}
     u_tot = sc.budget.u_rel()
     head = ["tan_eps", "beta_deg", "r_corrected_x1e4", "u_corrected_x1e4", "u_rel_total"] + [f"u_rel_{c}" for c in comps]
+    if sc.model_weight is not None:
+        head += ["w_model"]
     for p in sc.parts:
         n = p.name
         head += [f"r_measured_{n}_x1e4", f"k_a_{n}", f"r_corrected_{n}_x1e4", f"residual_over_u_{n}"]
@@ -364,6 +390,8 @@ def joint_cells_csv(sc) -> str:
     for k, (i, j) in enumerate(zip(ii, jj)):
         row = [f"{corr.tan_eps[i]:g}", f"{corr.beta_deg[j]:g}", f"{corr.r[i, j] * 1e4:.6g}",
                f"{sc.u_corrected[i, j] * 1e4:.4g}", f"{u_tot[k]:.4g}"] + [f"{u_comp[c][k]:.3g}" for c in comps]
+        if sc.model_weight is not None:
+            row.append(f"{sc.model_weight[i, j]:.4g}")
         for p in sc.parts:
             row += [f"{p.measured.r[i, j] * 1e4:.6g}", f"{p.k_a[i, j]:.6g}", f"{p.corrected.r[i, j] * 1e4:.6g}",
                     f"{p.residual[i, j]:.3g}"]
@@ -374,9 +402,7 @@ def joint_cells_csv(sc) -> str:
 def _joint_doc(sc, plots: bool, files: dict[str, str]) -> dict[str, Any]:
     return {"summary": sc.summary(), "provenance": sc.provenance, "files": files,
             "definitions": {
-                "corrected": "one table: per instrument r_measured / k_A (k_A of the eq. 4 backbone x correction "
-                             "surface fitted through all instruments), combined cell by cell by generalised least "
-                             "squares with the full covariance between the instruments",
+                "corrected": _corrected_definition(sc, joint=True),
                 "u": "standard uncertainty (k = 1) of the corrected table; relative components add with correlations "
                      "(corrected_corr.csv)",
                 "k_a_<instrument>": "each instrument's k_A under its calibration (correct_cells.csv)",

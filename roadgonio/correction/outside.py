@@ -21,9 +21,14 @@ Procedure (:func:`correct_surface`):
    bundle's own error of what the surface changes (``bundle``), the backend's (``backend``) and
    what the instruments' blur hides below the surface's knots (``discrepancy``,
    :func:`discrepancy_covariance`, :mod:`roadgonio.correction.discrepancy`);
-5. per instrument the corrected table r / k_A; with several instruments one table, per cell the
-   generalised least squares combination of the instruments' corrected values with the full
-   covariance between them (their surfaces are one, so their errors correlate).
+5. per instrument the corrected table r / k_A, and one table: per cell the generalised least
+   squares combination of the instruments' r / k_A and (``SurfaceSettings.model_estimate``, the
+   default) the fitted model's own value at the nominal geometry, with the full covariance between
+   them (their surfaces are one, so their errors correlate). The model's value has no measurement
+   noise; its errors are the surface's posterior and the discrepancy at the nominal direction,
+   ``-delta(x0)`` (:func:`roadgonio.correction.discrepancy.nominal_blur`). Where the data show the
+   surface smooth (small discrepancy) the model's value carries the cell and the table loses the
+   noise; where the instrument resolves structure the knots cannot carry, r / k_A does.
 
 Results: :class:`SurfaceCorrection` (the combined table, its budget, each instrument's
 :class:`InstrumentPart`, the fits and their diagnostics); :func:`to_correction_result` gives the
@@ -41,7 +46,8 @@ import numpy as np
 
 from roadgonio.correction.budget import Budget, functionals, misalignment_covariance
 from roadgonio.correction.fit import fit_through_instrument
-from roadgonio.correction.flexible import FlexPart, SurfaceFit, SurfaceSettings, fit_surface, one_blas_thread
+from roadgonio.correction.flexible import (FlexPart, SurfaceFit, SurfaceSettings, fit_surface, one_blas_thread,
+                                          posterior_with_backbone)
 from roadgonio.engines.bundle import DEFAULT_RAYS, StackedForward
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
@@ -66,6 +72,9 @@ class VariantFit:
     fit: SurfaceFit
     parts: list[FlexPart]
     weight: float = 0.0
+    #: posterior covariance over (theta, q), the backbone's coordinates free too
+    #: (:func:`roadgonio.correction.flexible.posterior_with_backbone`)
+    cov_full: np.ndarray | None = None
 
     def summary(self) -> dict[str, Any]:
         return {"variant": self.variant, "weight": self.weight, "backbone_chi2": self.backbone_chi2,
@@ -117,6 +126,9 @@ class SurfaceCorrection:
     timings: dict[str, float] = field(default_factory=dict)
     out: Path | None = None            # where the files were written (correction.files.correct_joint)
     written: list = field(default_factory=list)
+    #: grid: the weight of the fitted model's own value at the nominal geometry in the combined table
+    #: (the rest is the instruments' r / k_A); None without SurfaceSettings.model_estimate
+    model_weight: np.ndarray | None = None
 
     @property
     def best(self) -> VariantFit:
@@ -136,6 +148,12 @@ class SurfaceCorrection:
                "nearest_table": a["nearest_table"], "u_rel_median": float(np.median(u)),
                "u_rel_max": float(np.max(u)), "budget": self.budget.summary(),
                "variants": [v.summary() for v in self.variants], "discrepancy": self.provenance.get("discrepancy"),
+               "model_estimate": None if self.model_weight is None else {
+                   "what": "per cell, the weight of the fitted surface's own value at the nominal geometry in the "
+                           "corrected table (generalised least squares with the instruments' r / k_A)",
+                   "weight_median": float(np.nanmedian(self.model_weight)),
+                   "weight_min": float(np.nanmin(self.model_weight)),
+                   "weight_max": float(np.nanmax(self.model_weight))},
                "seconds": self.seconds, "timings": self.timings}
         out["per_instrument"] = [{
             "instrument": p.name, "cells": int(p.measured.mask.sum()),
@@ -203,6 +221,32 @@ def combine(lnr: Sequence[np.ndarray], cells: Sequence[list], cov_big: np.ndarra
         w = w / w.sum()
         G[n, rows] = w
     return G @ x, G
+
+
+def model_estimate_cells(cells: Sequence[list], union: list) -> list[tuple[int, int]]:
+    """Per cell of ``union``, (part, index) of the first part whose ``cells`` have it: where the
+    fitted model's own value at the nominal geometry is taken (it is the same surface in every part)."""
+    index = [{(round(t, 9), round(b, 9)): k for k, (t, b) in enumerate(c)} for c in cells]
+    out = []
+    for key in union:
+        i = next(i for i, ix in enumerate(index) if key in ix)
+        out.append((i, index[i][key]))
+    return out
+
+
+def nominal_estimate(parts: Sequence[FlexPart], theta: np.ndarray,
+                     nominal: Sequence[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
+    """The fitted model's own estimate of ln r at the nominal geometry of the cells ``nominal``
+    ((part, index) pairs, :func:`model_estimate_cells`) and its Jacobian in (theta, q), (cells,
+    n_params + backbone coordinates; :meth:`roadgonio.correction.flexible.FlexPart.full_jacobians`)."""
+    n_full = parts[0].n_params + len(parts[0].backbone_log_derivatives()[0])
+    if not nominal:
+        return np.zeros(0), np.zeros((0, n_full))
+    used = sorted({i for i, _ in nominal})
+    ln_r = {i: parts[i].ln_r_nominal(theta) for i in used}
+    jac = {i: parts[i].full_jacobians(theta)[1] for i in used}
+    return (np.array([ln_r[i][k] for i, k in nominal]),
+            np.vstack([jac[i][k][None, :] for i, k in nominal]))
 
 
 def _as_list(value, n: int, what: str) -> list:
@@ -321,23 +365,34 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                          lam0=None if warm is None else warm[1])
         if warm is None:
             warm = (sf.theta, list(sf.lam.values()))
-        vfits.append(VariantFit(v, backbones[v], chi2[v], sf, parts))
+        cov_full = posterior_with_backbone(parts, sf.theta, sf.lam, [1.0 / u ** 2 for u in us])
+        vfits.append(VariantFit(v, backbones[v], chi2[v], sf, parts, cov_full=cov_full))
     for vf, w in zip(vfits, _weights([vf.fit.log_evidence for vf in vfits])):
         vf.weight = float(w)
     lap("surface")
 
-    # 4. ln k_A of every instrument, and its covariance components (concatenated cells)
+    # 4. ln k_A of every instrument, and the covariance components of the estimates of ln r: every
+    #    instrument's r / k_A (its cells one after the other), then (settings.model_estimate) the
+    #    fitted model's own value at the nominal direction of every cell of the union
     n_i = [len(y) for y in ys]
     off = np.cumsum([0] + n_i)
     N = int(off[-1])
-    lnk = np.zeros(N)
-    lnk_v, jac_v = [], []
+    union = sorted({(round(c[0], 9), round(c[1], 9)) for t in tables for c in t.cells},
+                   key=lambda c: (c[0], c[1]))
+    nominal = model_estimate_cells([t.cells for t in tables], union) if settings.model_estimate else []
+    U = len(nominal)
+    lnk, lnp = np.zeros(N), np.zeros(U)
+    lnk_v, jac_v, lnp_v, jp_v = [], [], [], []
     for vf in vfits:
         lk = np.concatenate([np.log(p.k_a(vf.fit.theta)) for p in vf.parts])
-        K = np.vstack([p.lnk_jacobian(vf.fit.theta) for p in vf.parts])
+        K = np.vstack([p.full_jacobians(vf.fit.theta)[0] for p in vf.parts])
+        lp, Jp = nominal_estimate(vf.parts, vf.fit.theta, nominal)
         lnk_v.append(lk)
         jac_v.append(K)
+        lnp_v.append(lp)
+        jp_v.append(Jp)
         lnk += vf.weight * lk
+        lnp += vf.weight * lp
     best = max(vfits, key=lambda v: v.weight)
     Jb = np.vstack([best.parts[i].simulate(best.fit.theta)[1] for i in range(len(fms))])
     leverage = np.einsum("ij,jk,ik->i", Jb, best.fit.cov, Jb) / u_all ** 2
@@ -345,18 +400,24 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     lb = [local_birge(t, resid[off[i]:off[i + 1]], leverage[off[i]:off[i + 1]]) for i, t in enumerate(tables)]
     birge = np.concatenate([b for b, _ in lb])
     widen = np.concatenate([w for _, w in lb])
-    surf = np.zeros((N, N))
-    model = np.zeros((N, N))
-    for vf, lk, K in zip(vfits, lnk_v, jac_v):
-        surf += vf.weight * (K @ vf.fit.cov @ K.T)
-        d = lk - lnk
+    # the model's value at a cell is widened as much as the most widened instrument there
+    index = [{(round(t_, 9), round(b_, 9)): k for k, (t_, b_) in enumerate(t.cells)} for t in tables]
+    widen_all = np.concatenate([widen, [max(widen[off[i] + ix[union[j]]] for i, ix in enumerate(index)
+                                            if union[j] in ix) for j in range(U)]])
+    E = N + U
+    surf = np.zeros((E, E))
+    model = np.zeros((E, E))
+    for vf, lk, K, lp, Jp in zip(vfits, lnk_v, jac_v, lnp_v, jp_v):
+        J = np.vstack([-K, Jp])                   # d (ln r estimate) / d (theta, q): ln y - ln k_A, the model's value
+        surf += vf.weight * (J @ vf.cov_full @ J.T)
+        d = np.concatenate([-(lk - lnk), lp - lnp])
         model += vf.weight * np.outer(d, d)
-    surf *= np.outer(widen, widen)
-    model *= np.outer(widen, widen)
-    bundle = np.concatenate([p.ratio_se(best.fit.theta) for p in best.parts])
+    surf *= np.outer(widen_all, widen_all)
+    model *= np.outer(widen_all, widen_all)
+    bundle = np.concatenate([p.ratio_se(best.fit.theta) for p in best.parts] + [np.zeros(U)])
     disc = None
     if settings.discrepancy_ell is not None:
-        disc, disc_info = discrepancy_covariance(vfits, best, settings)
+        disc, disc_info = discrepancy_covariance(vfits, best, settings, nominal)
     lap("covariance")
 
     # misalignment (per instrument, independent between instruments)
@@ -375,15 +436,16 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     # 5. the corrected tables, per instrument and combined
     comps: dict[str, np.ndarray] = {}
     meas = np.concatenate([u / y for u, y in zip(us, ys)])
-    comps["measurement"] = np.diag(meas ** 2)
-    comps["backend"] = np.diag(np.concatenate([s / k for s, k in zip(se_back, k_back)]) ** 2)
+    pad = np.zeros(U)                             # the model's own value has no measurement, backend or bundle error
+    comps["measurement"] = np.diag(np.concatenate([meas, pad]) ** 2)
+    comps["backend"] = np.diag(np.concatenate([s / k for s, k in zip(se_back, k_back)] + [pad]) ** 2)
     comps["surface"] = surf
     comps["model"] = model
     comps["bundle"] = np.diag(bundle ** 2)
     if disc is not None:
         comps["discrepancy"] = disc
     if any(b is not None for b in mis_blocks):
-        M = np.zeros((N, N))
+        M = np.zeros((E, E))
         for i, b in enumerate(mis_blocks):
             if b is not None:
                 M[off[i]:off[i + 1], off[i]:off[i + 1]] = b
@@ -392,7 +454,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
              "backend": f"{backend} k_A of the {main} backbone: its standard uncertainty",
              "surface": "posterior of the correction surface (evidence-weighted over the variants), widened by "
                         "the local Birge ratio where the residuals have structure",
-             "model": "spread of the backbone variants' corrected k_A about their evidence-weighted mean",
+             "model": "spread of the backbone variants' corrected k_A (and model values) about their evidence-weighted mean",
              "bundle": "the ray bundles' own error of the change the surface makes to k_A (replicates)",
              "misalignment": "instrument geometric errors (--sigma), first-order GUM",
              "discrepancy": "structure of the surface finer than the correction surface's knots, which the "
@@ -418,7 +480,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         sim = np.concatenate([p.simulate(best.fit.theta, jacobian=False)[0] for p in best.parts])[sl]
         bp = best.parts[i]
         surfs = {k: _grid(t, v) for k, v in bp.surfaces_at_cells(best.fit.theta, best.fit.cov).items()}
-        model_r = _grid(t, bp.f0_nominal * np.exp(bp.g_nominal(best.fit.theta)) * bp.forward.bundles.cos3)
+        model_r = _grid(t, np.exp(bp.ln_r_nominal(best.fit.theta)))
         parts_out.append(InstrumentPart(
             instrument=inst, measured=t, u_measured=u_grids[i][0], u_what=u_grids[i][1], k_a=k_grid,
             k_backend=_grid(t, k_back[i]), k_se=_grid(t, se_back[i]), corrected=corr,
@@ -426,20 +488,21 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             budget=bud, residual=_grid(t, resid[sl]), birge_local=_grid(t, birge[sl]),
             widening=_grid(t, widen[sl]), simulated=_grid(t, sim),
             model_r=model_r, surfaces=surfs, backend_info=infos[i], before=functionals(t, before_b.total()), after=functionals(corr, bud.total())))
-    union = sorted({(round(c[0], 9), round(c[1], 9)) for t in tables for c in t.cells},
-                   key=lambda c: (c[0], c[1]))
     base = tables[0]
-    if len(tables) == 1:
+    model_weight = None
+    if len(tables) == 1 and not U:
         combined, comb_budget = parts_out[0].corrected, parts_out[0].budget
         u_comb = parts_out[0].u_corrected
     else:
         total = sum(comps.values())
-        lnc, G = combine(lnr, [t.cells for t in tables], total, union)
+        lnc, G = combine(lnr + ([lnp] if U else []), [t.cells for t in tables] + ([union] if U else []),
+                         total, union)
         grid = np.full(base.r.shape, np.nan)
         for (t_, b_), v in zip(union, lnc):
             grid[int(np.argmin(np.abs(base.tan_eps - t_))), int(np.argmin(np.abs(base.beta_deg - b_)))] = math.exp(v)
         src = (f"one surface measured by {', '.join(i.name for i in instruments)}, corrected for the aperture effect "
-               f"(r / k_A per instrument, combined cell by cell by generalised least squares)")
+               f"(r / k_A per instrument{' and the fitted surface at the nominal geometry' if U else ''}, combined "
+               f"cell by cell by generalised least squares)")
         combined = base.with_values(grid, name=f"{label}_corrected", source=src)
         # the combined table's cells in row-major order (= union order sorted like RTable.cells)
         order = [union.index((round(t_, 9), round(b_, 9))) for t_, b_ in combined.cells]
@@ -448,6 +511,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         for name, C in comps.items():
             comb_budget.add(name, Gm @ C @ Gm.T, notes[name])
         u_comb = _grid(combined, combined.r[combined.mask] * comb_budget.u_rel())
+        if U:
+            model_weight = _grid(combined, np.asarray(G[order][:, N:].sum(axis=1)))
     after = functionals(combined, comb_budget.total())
     lap("assemble")
     from roadgonio.provenance import provenance
@@ -461,29 +526,37 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                       discrepancy=disc_info if disc is not None else None)
     return SurfaceCorrection(parts=parts_out, corrected=combined, u_corrected=u_comb, budget=comb_budget, after=after,
                              variants=vfits, settings=settings, provenance=prov, seconds=time.perf_counter() - t0,
-                             timings=timings)
+                             timings=timings, model_weight=model_weight)
 
 
-def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit,
-                           settings: SurfaceSettings) -> tuple[np.ndarray, dict[str, Any]]:
+def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit, settings: SurfaceSettings,
+                           nominal: Sequence[tuple[int, int]] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """The ``discrepancy`` component over the concatenated cells of the instruments
     (:mod:`roadgonio.correction.discrepancy`): the bracket through each instrument's blur at the best
     variant's surface, scaled per cell by sigma_c, sigma_c^2 the evidence-weighted mean over the
     variants of what their smoothing parameters put beyond the knots' Nyquist wavenumber in the
-    cell's region. Returns (covariance, info)."""
-    return parts_discrepancy(best.parts, best.fit.theta, [(vf.weight, vf.fit.lam) for vf in vfits], settings)
+    cell's region; ``nominal``: the model's own estimates after the instruments' cells
+    (:func:`parts_discrepancy`). Returns (covariance, info)."""
+    return parts_discrepancy(best.parts, best.fit.theta, [(vf.weight, vf.fit.lam) for vf in vfits], settings,
+                             nominal=nominal)
 
 
 def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence[tuple[float, dict]],
-                      settings: SurfaceSettings, blurs: dict | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+                      settings: SurfaceSettings, blurs: dict | None = None,
+                      nominal: Sequence[tuple[int, int]] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """:func:`discrepancy_covariance` of instrument ``parts`` (:class:`roadgonio.correction.flexible.FlexPart`)
     sharing the surface ``theta``, the amplitude from the (weight, smoothing parameters) pairs.
     ``blurs`` caches each part's blur by ``id(part)`` (a design evaluates one part against many);
     the same part twice (one setting measured twice) has the same blur, so its discrepancy is fully
-    correlated between the two: repetition does not average it away."""
-    from roadgonio.correction.discrepancy import amplitude_from_penalty, discrepancy_correlation, part_blurs
+    correlated between the two: repetition does not average it away. ``nominal``: further estimates
+    after the parts' cells, the fitted model's own value at the nominal direction of cell k of part
+    i for each (i, k) (:func:`roadgonio.correction.discrepancy.nominal_blur`: error -delta(x0))."""
+    from roadgonio.correction.discrepancy import (amplitude_from_penalty, discrepancy_correlation, nominal_blur,
+                                                  part_blurs)
     ell = float(settings.discrepancy_ell)
-    cells = [c for p in parts for c in p.forward.bundles.cells]
+    nominal = list(nominal or [])
+    cells = [c for p in parts for c in p.forward.bundles.cells] + [parts[i].forward.bundles.cells[k]
+                                                                  for i, k in nominal]
     eps = np.degrees(np.arctan([t for t, _ in cells]))
     beta = np.array([b for _, b in cells])
     peak = (beta <= settings.peak_beta_deg) & (eps >= settings.peak_eps_deg)
@@ -492,14 +565,28 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     for p in parts:
         if id(p) not in cache:
             cache[id(p)] = part_blurs(p, theta, ell)
-    # the two independent components of delta (discrepancy.pole_components): their brackets add
-    R = sum(discrepancy_correlation([cache[id(p)][k] for p in parts], ell) for k in range(len(cache[id(parts[0])])))
+    n_comp = len(cache[id(parts[0])])
+    by_part = {}
+    for j, (i, k) in enumerate(nominal):
+        by_part.setdefault(i, []).append((j, k))
+    # the nominal estimates grouped by part; their rows put back in the order of ``nominal``
+    groups = sorted(by_part.items())
+    order = np.argsort([j for _, g in groups for j, _ in g], kind="stable")
+    n_par = sum(p.n for p in parts)
+    perm = np.concatenate([np.arange(n_par), n_par + order]).astype(np.int64) if nominal else None
+    R = 0.0
+    for c in range(n_comp):                # the components of delta (discrepancy.pole_components): brackets add
+        bl = [cache[id(p)][c] for p in parts] + [nominal_blur(cache[id(parts[i])][c], [k for _, k in g])
+                                                 for i, g in groups]
+        Rc = discrepancy_correlation(bl, ell)
+        R = R + (Rc if perm is None else Rc[np.ix_(perm, perm)])
     s = np.sqrt(sig2)
+    dR = np.diag(R)[:n_par]
     info = {"ell_knots": ell, "amplitude": "the roughness prior of g_C (evidence-chosen smoothing) beyond the "
                                            "knots' Nyquist wavenumber, per region",
             "sigma_peak": float(np.max(s[peak])) if peak.any() else None,
             "sigma_rest": float(np.max(s[~peak])) if (~peak).any() else None,
-            "bracket_max": float(np.max(np.diag(R))), "bracket_median": float(np.median(np.diag(R)))}
+            "bracket_max": float(np.max(dR)), "bracket_median": float(np.median(dR))}
     return np.outer(s, s) * R, info
 
 
@@ -525,11 +612,11 @@ def to_correction_result(res: SurfaceCorrection):
     prov["calibration"] = p.instrument.calibration.to_dict()
     prov["u_measured"] = p.u_what
     prov["timings"] = res.timings
-    out = CorrectionResult(measured=p.measured, corrected=p.corrected, u_corrected=p.u_corrected,
-                           u_measured=p.u_measured, k_a=p.k_a, k_se=p.k_se, budget=p.budget,
+    out = CorrectionResult(measured=p.measured, corrected=res.corrected, u_corrected=res.u_corrected,
+                           u_measured=p.u_measured, k_a=p.k_a, k_se=p.k_se, budget=res.budget,
                            reference=f"self ({best.variant} backbone x correction surface, fitted through the instrument)",
                            model=best.backbone, fit=_FitView(res), alternatives=alternatives, before=p.before,
-                           after=p.after, steps=steps, provenance=prov, seconds=res.seconds)
+                           after=res.after, steps=steps, provenance=prov, seconds=res.seconds)
     out.extra["surface"] = res
     return out
 

@@ -89,23 +89,22 @@ class SecondApertureResult:
                 "candidates": [c.row() for c in self.candidates], "seconds": self.seconds, "settings": self.settings}
 
 
-def _u_of(parts, theta, cov, u_rel, tables, extra=None) -> tuple[np.ndarray, float, float]:
+def _u_of(parts, theta, cov, u_rel, tables, extra=None, nominal=()) -> tuple[np.ndarray, float, float]:
     """(relative u per cell of the combined table, u(S1)/S1, S1) for parts sharing the surface;
-    ``extra``: a further covariance of ln k_A over the concatenated cells (the discrepancy)."""
+    ``extra``: a further covariance over the estimates (the discrepancy); ``nominal``: the fitted
+    model's own estimates at the nominal geometry, after the parts' cells
+    (:func:`roadgonio.correction.outside.model_estimate_cells`), combined with them as the correction does."""
     from roadgonio.correction.budget import functionals
-    from roadgonio.correction.outside import combine
-    K = [p.lnk_jacobian(theta) for p in parts]
-    n = [p.n for p in parts]
-    off = np.cumsum([0] + n)
-    big = np.zeros((off[-1], off[-1]))
-    for i, Ki in enumerate(K):
-        for j, Kj in enumerate(K):
-            big[off[i]:off[i + 1], off[j]:off[j + 1]] = Ki @ cov @ Kj.T
-    big += np.diag(np.concatenate([np.asarray(u, dtype=np.float64) ** 2 for u in u_rel]))
+    from roadgonio.correction.outside import combine, nominal_estimate
+    lp, Jp = nominal_estimate(parts, theta, nominal)
+    J = np.vstack([-p.full_jacobians(theta)[0] for p in parts] + [Jp])
+    big = J @ cov @ J.T
+    big += np.diag(np.concatenate([np.asarray(u, dtype=np.float64) ** 2 for u in u_rel] + [np.zeros(len(lp))]))
     if extra is not None:
         big += extra
-    r_model = [p.f0_nominal * np.exp(p.g_nominal(theta)) * p.forward.bundles.cos3 for p in parts]
-    lnr, G = combine([np.log(r) for r in r_model], [t.cells for t in tables], big, tables[0].cells)
+    union = [(round(t, 9), round(b, 9)) for t, b in tables[0].cells]
+    ests = [p.ln_r_nominal(theta) for p in parts] + ([lp] if len(lp) else [])
+    lnr, G = combine(ests, [t.cells for t in tables] + ([union] if len(lp) else []), big, tables[0].cells)
     C = G @ big @ G.T
     u = np.sqrt(np.maximum(np.diag(C), 0.0))
     grid = np.full(tables[0].r.shape, np.nan)
@@ -120,7 +119,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     """Rank the second aperture settings of ``vary`` (module docstring). Exactly one of ``measured``
     (an r-table the instrument measured) and ``sample`` (a SAMPLE or a BRDF model) gives the surface."""
     from roadgonio.correction.flexible import FlexPart, SurfaceSettings, expected_posterior, fit_surface
-    from roadgonio.correction.outside import parts_discrepancy
+    from roadgonio.correction.outside import model_estimate_cells, parts_discrepancy
     from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
     from roadgonio.correction.run import fit_self, measured_uncertainty
     from roadgonio.design.grid import as_vary_specs, build_instrument, grid_points
@@ -168,10 +167,13 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
 
     def evaluate(parts, urs, tables, label, changes, inst, note="") -> Candidate:
         cov = expected_posterior(parts, theta, lam, urs)
+        nominal = (model_estimate_cells([t.cells for t in tables], [(round(t, 9), round(b, 9))
+                                                                   for t, b in tables[0].cells])
+                   if settings.model_estimate else [])
         disc = None
         if settings.discrepancy_ell is not None:
-            disc, _ = parts_discrepancy(parts, theta, [(1.0, lam)], settings, blurs)
-        uu, us1, _ = _u_of(parts, theta, cov, urs, tables, disc)
+            disc, _ = parts_discrepancy(parts, theta, [(1.0, lam)], settings, blurs, nominal=nominal)
+        uu, us1, _ = _u_of(parts, theta, cov, urs, tables, disc, nominal)
         return Candidate(label, changes, inst, float(np.median(uu)), float(np.sqrt(np.mean(uu ** 2))),
                          float(np.max(uu)), float(us1), note=note)
 

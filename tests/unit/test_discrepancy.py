@@ -205,3 +205,52 @@ def test_the_pole_is_one_point():
     expect = _brute_bracket(comps, [(c0[0][0], c0[1][0]) for c0 in comps0], w, ell)
     assert abs(got - expect) <= COMPRESSION_TOL, (got, expect)
     assert got < 0.5 * raw
+
+
+def test_the_model_value_sees_nothing_of_delta():
+    """nominal_blur: the fitted model's own value at x0 has the error -delta(x0), so its bracket is
+    1 with itself, and with an instrument of Gaussian blur a at the same cell
+    cov(-delta(x0), K delta - delta(x0)) / sigma^2 = 1 - l^2 / (l^2 + a^2) (closed form); the GLS
+    of the two, with noise s^2 on the instrument only, has the weight of the closed-form 2x2 BLUE."""
+    from roadgonio.correction.discrepancy import nominal_blur
+    from roadgonio.correction.outside import combine
+    ell, a = 1.0, 0.8
+    x0 = np.array([2.0, 3.0])
+    A = blur_one_cell(x0, *gauss_blur(x0, a), ell)
+    R = discrepancy_correlation([A, nominal_blur(A, [0])], ell)
+    l2 = ell ** 2
+    assert R[1, 1] == pytest.approx(1.0, abs=1e-15)
+    assert abs(R[0, 1] - (1.0 - l2 / (l2 + a * a))) <= COMPRESSION_TOL
+    s2 = 0.3
+    C = R + np.diag([s2, 0.0])
+    _, G = combine([np.zeros(1), np.zeros(1)], [[(1.0, 0.0)], [(1.0, 0.0)]], C, [(1.0, 0.0)])
+    v_bb, v_aa, v_ab = C[0, 0], C[1, 1], C[0, 1]          # b: the instrument, a: the model's value
+    w_b = (v_aa - v_ab) / (v_aa + v_bb - 2.0 * v_ab)
+    assert G[0, 0] == pytest.approx(w_b, rel=1e-12) and G[0, 1] == pytest.approx(1.0 - w_b, rel=1e-12)
+
+
+def test_parts_discrepancy_puts_the_model_values_after_the_cells_in_their_order(r3like):
+    """parts_discrepancy(nominal=...): the model's values (bracket 1: their variance is sigma_c^2
+    itself) follow the instruments' cells in the order asked; asking in another order permutes them."""
+    from roadgonio.correction.discrepancy import amplitude_from_penalty
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings
+    from roadgonio.correction.outside import parts_discrepancy
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    cells = [(12.0, 0.0), (8.0, 2.0), (4.0, 10.0), (0.0, 0.0)]
+    settings = SurfaceSettings()
+    a = FlexPart(ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=64)), r3like, settings)
+    theta = np.zeros(a.n_params)
+    lam = {"beta_peak": 1.0, "eps_peak": 1.0, "beta_rest": 10.0, "eps_rest": 10.0}
+    n = len(cells)
+    plain, _ = parts_discrepancy([a], theta, [(1.0, lam)], settings)
+    ordered, _ = parts_discrepancy([a], theta, [(1.0, lam)], settings, nominal=[(0, k) for k in range(n)])
+    shuffled, _ = parts_discrepancy([a], theta, [(1.0, lam)], settings, nominal=[(0, 2), (0, 0), (0, 3), (0, 1)])
+    assert np.allclose(ordered[:n, :n], plain, rtol=0, atol=1e-15)
+    eps = np.degrees(np.arctan([t for t, _ in cells]))
+    peak = (np.array([b for _, b in cells]) <= settings.peak_beta_deg) & (eps >= settings.peak_eps_deg)
+    assert np.allclose(np.diag(ordered)[n:], amplitude_from_penalty(lam, peak), rtol=1e-12, atol=0)
+    perm = np.array([0, 1, 2, 3, n + 2, n + 0, n + 3, n + 1])
+    assert np.allclose(shuffled, ordered[np.ix_(perm, perm)], rtol=0, atol=1e-15)
+    # the instrument's error and the model's are positively correlated (both miss delta(x0))
+    assert np.all(np.diag(ordered[:n, n:]) > 0)
