@@ -5,6 +5,7 @@ Target (issue 18): the housed table within 10x the time of the bare one.
 
     python bench/bench_straylight.py                  # 3 runs each, the median wall time
     python bench/bench_straylight.py --reflectance 0.02 0.05 0.2
+    python bench/bench_straylight.py --command        # also the command a user runs, end to end
 
 Each instrument is built and run once untimed first (the kernels compile into Dr.Jit's cache),
 then ``--repeats`` times; the table reports the median wall time of the table (compute), its CPU
@@ -12,6 +13,12 @@ time / wall time, the samples, the worst relative SE and the largest stray fract
 ratio to the bare instrument measured in the same run. Prints the table and the machine's load
 (measure on an idle machine: ``uptime`` load < 0.5) and writes bench/results/straylight.csv and
 straylight.txt.
+
+``--command`` adds what a user waits for: ``roadgonio ka --instrument FILE --sample R3 --rel-se E
+--fresh -q`` in a fresh process (start-up, scene build, kernels from Dr.Jit's on-disk cache, the
+table, the files), bare and housed side by side, one untimed run each first, then the median of
+``--repeats``; written to bench/results/straylight_command.csv. The two ratios answer different
+questions (the computation itself, the command end to end) and are quoted apart.
 """
 from __future__ import annotations
 
@@ -41,6 +48,8 @@ def main(argv=None) -> int:
     ap.add_argument("--reflectance", type=float, nargs="*", default=[],
                     help="more rows: the housed example with these wall reflectances")
     ap.add_argument("--out", default=str(ROOT / "bench" / "results" / "straylight.csv"))
+    ap.add_argument("--command", action="store_true",
+                    help="also time the roadgonio ka command end to end in fresh processes")
     args = ap.parse_args(argv)
 
     import drjit as dr
@@ -101,7 +110,44 @@ def main(argv=None) -> int:
         w.writeheader()
         w.writerows(rows)
     out.with_suffix(".txt").write_text(text + "\n")
+    if args.command:
+        _command_rows(args, out)
     return 0
+
+
+def _command_rows(args, out: Path) -> None:
+    """The ``roadgonio ka`` command end to end (module docstring), bare and housed."""
+    import subprocess
+    import tempfile
+    files = [("portable (no housing)", ROOT / "scenes" / "portable.toml"),
+             ("portable_housed (walls 0.05)", ROOT / "scenes" / "portable_housed.toml")]
+    load_before = _load()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, f in files:
+            cmd = [sys.executable, "-m", "roadgonio", "ka", "--instrument", str(f), "--sample", args.sample,
+                   "--rel-se", f"{args.rel_se:g}", "--out", str(Path(tmp) / f.stem), "--fresh", "-q"]
+            walls = []
+            for i in range(args.repeats + 1):
+                t0 = time.perf_counter()
+                subprocess.run(cmd, check=True, capture_output=True)
+                if i:
+                    walls.append(time.perf_counter() - t0)
+            rows.append({"instrument": name, "command_wall_s": statistics.median(walls),
+                         "walls_s": " ".join(f"{w:.2f}" for w in walls)})
+    for r in rows:
+        r["ratio_to_bare"] = r["command_wall_s"] / rows[0]["command_wall_s"]
+    lines = [f"roadgonio ka end to end (fresh process each, median of {args.repeats}); load average before "
+             f"{load_before}, after {_load()}",
+             f"{'instrument':34s} {'wall s':>8s} {'ratio':>7s}  runs"]
+    lines += [f"{r['instrument']:34s} {r['command_wall_s']:8.2f} {r['ratio_to_bare']:7.2f}  {r['walls_s']}" for r in rows]
+    print("\n".join(lines))
+    path = out.with_name("straylight_command.csv")
+    with open(path, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    path.with_suffix(".txt").write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
