@@ -29,6 +29,9 @@ by alternating the mode with the exact maximum of the evidence of the problem li
 mode (the eigen-decomposition of the penalty relative to the Hessian makes every lambda cost O(n)).
 The posterior covariance of theta is the inverse Hessian at the mode, ``H = J^T W J + Lambda``,
 and the covariance of ln k_A follows by the Jacobian of ln k_A (:meth:`FlexPart.lnk_jacobian`).
+The uncertainty of a correction takes the posterior over (theta, q) instead, q the backbone's own
+coordinates, which the fit held (:func:`posterior_with_backbone`): a stiff surface does not make
+the backbone exact.
 """
 from __future__ import annotations
 

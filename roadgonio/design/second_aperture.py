@@ -25,11 +25,13 @@ would give, before anything is measured:
    is a plausible one), with two baselines: the instrument alone, and the instrument measuring twice
    (what a repetition buys without a second aperture).
 
-The expected u holds the measurement, the surface's posterior and the ``discrepancy`` (what both
+The expected u holds the measurement, the surface's posterior (the backbone's parameters free,
+:func:`roadgonio.correction.flexible.posterior_with_backbone`) and the ``discrepancy`` (what both
 blurs hide below the knots, :func:`roadgonio.correction.outside.parts_discrepancy`; fully correlated
 between two measurements with one setting, so measuring twice does not average it away, while a
-second aperture that resolves more does). Left out: the backend's and the bundles' own errors
-(small), the spread of the backbone variants, the misalignment.
+second aperture that resolves more does), of the table the correction gives: the instruments'
+r / k_A and the fitted surface's own value combined by generalised least squares. Left out: the
+backend's and the bundles' own errors (small), the spread of the backbone variants, the misalignment.
 """
 from __future__ import annotations
 
