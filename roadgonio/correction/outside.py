@@ -138,6 +138,16 @@ class SurfaceCorrection:
     def joint(self) -> bool:
         return len(self.parts) > 1
 
+    def model_estimate_summary(self) -> dict[str, Any] | None:
+        """How much the fitted surface's own value weighs in the corrected table (None without it)."""
+        if self.model_weight is None:
+            return None
+        return {"what": "per cell, the weight of the fitted surface's own value at the nominal geometry in the "
+                        "corrected table (generalised least squares with the instruments' r / k_A)",
+                "weight_median": float(np.nanmedian(self.model_weight)),
+                "weight_min": float(np.nanmin(self.model_weight)),
+                "weight_max": float(np.nanmax(self.model_weight))}
+
     def summary(self) -> dict[str, Any]:
         a = self.after
         m = self.corrected.mask
@@ -148,12 +158,7 @@ class SurfaceCorrection:
                "nearest_table": a["nearest_table"], "u_rel_median": float(np.median(u)),
                "u_rel_max": float(np.max(u)), "budget": self.budget.summary(),
                "variants": [v.summary() for v in self.variants], "discrepancy": self.provenance.get("discrepancy"),
-               "model_estimate": None if self.model_weight is None else {
-                   "what": "per cell, the weight of the fitted surface's own value at the nominal geometry in the "
-                           "corrected table (generalised least squares with the instruments' r / k_A)",
-                   "weight_median": float(np.nanmedian(self.model_weight)),
-                   "weight_min": float(np.nanmin(self.model_weight)),
-                   "weight_max": float(np.nanmax(self.model_weight))},
+               "model_estimate": self.model_estimate_summary(),
                "seconds": self.seconds, "timings": self.timings}
         out["per_instrument"] = [{
             "instrument": p.name, "cells": int(p.measured.mask.sum()),

@@ -255,6 +255,9 @@ class CorrectionResult:
                "budget": self.budget.summary(), "seconds": self.seconds}
         if self.fit is not None:
             out["fit"] = self.fit.summary()
+        sc = self.extra.get("surface")
+        if sc is not None:
+            out["model_estimate"] = sc.model_estimate_summary()
         out["steps"] = self.steps
         return out
 
