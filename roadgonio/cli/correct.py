@@ -132,6 +132,8 @@ def run(args) -> int:
             say(f"  fit: {f['variant']} backbone x correction surface, Birge ratio {f['birge_ratio']:.2f} "
                 f"(local max {f['birge_local_max']:.2f}); u widened by the local Birge ratio in {f['cells_widened']} "
                 f"cells (at most x{f['widening_max']:.2f})")
+        if s.get("model_estimate"):
+            say(_model_estimate_line(s["model_estimate"]))
         say(f"  wrote {len(s['written'])} files to {s['out']}")
     cluster = results[0].provenance.get("cluster") if results else None
     if cluster:
@@ -169,8 +171,15 @@ def _run_joint(args) -> int:
         f"{s['class_R']} / {s['class_C']}, nearest CIE table {s['nearest_table']}")
     say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} %; "
         f"{s['seconds']:.1f} s")
+    if s.get("model_estimate"):
+        say(_model_estimate_line(s["model_estimate"]))
     say(f"  wrote {len(s['written'])} files to {s['out']}")
     return 0
+
+
+def _model_estimate_line(m: dict) -> str:
+    return (f"  the table weighs r / k_A against the fitted surface's own value: its weight median "
+            f"{m['weight_median']:.2f} ({m['weight_min']:.2f} ... {m['weight_max']:.2f}; w_model in correct_cells.csv)")
 
 
 def _pm(v, u) -> str:
@@ -187,6 +196,8 @@ def _json_summary(res) -> dict:
             "class_C", "nearest_table", "k_a_min", "k_a_max", "u_rel_median", "u_rel_max", "before", "budget",
             "seconds")
     out = {k: s[k] for k in keep}
+    if s.get("model_estimate"):
+        out["model_estimate"] = s["model_estimate"]
     if "fit" in s:
         out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio", "chi2_p_value", "misfit", "birge_local_max",
                                                "cells_widened", "widening_max") if k in s["fit"]}

@@ -64,7 +64,9 @@ def test_forward_surface_round_trip_inside_eq4_writes_the_diagnostics(tmp_path, 
         rc = main(["correct", "--measured", str(MEASURED), "--instrument", str(MEDIUM), "--forward", forward,
                    "--u-measured", "1%", "--backend", "quadrature", "--accuracy", "fast", "--rays", "256",
                    "--model-variant", "smooth", "--out", str(out)])
-        assert rc == 0, capsys.readouterr().err
+        said = capsys.readouterr()
+        assert rc == 0, said.err
+        assert ("the fitted surface's own value" in said.out) == (forward == "surface"), said.out
         corrected, u = read_table(out / "corrected.csv"), read_table(out / "corrected_u.csv")
         m = corrected.mask
         rms[forward], within, z = _scores(corrected, u.r[m] / corrected.r[m], read_table(TRUTH))
