@@ -258,6 +258,11 @@ class FlexPart:
         self._dq = ([n for n, _, _ in steps], D, Dn)
         return self._dq
 
+    def forget_backbone_derivatives(self) -> None:
+        """Drop the cache of :meth:`backbone_log_derivatives` (a few arrays the size of the rays per
+        coordinate: a finished correction need not keep or ship them)."""
+        self._dq = None
+
     def backbone_jacobians(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """In the backbone's coordinates q (:meth:`backbone_log_derivatives`), at the surface theta:
         (d simulated r / d q, d ln k_A / d q, d ln r_nominal / d q), each (cells, P)."""

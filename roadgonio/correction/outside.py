@@ -423,6 +423,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     disc = None
     if settings.discrepancy_ell is not None:
         disc, disc_info = discrepancy_covariance(vfits, best, settings, nominal)
+    for vf in vfits:
+        for p in vf.parts:
+            p.forget_backbone_derivatives()
     lap("covariance")
 
     # misalignment (per instrument, independent between instruments)
