@@ -283,12 +283,17 @@ def draw_residual_map(sc):
 def draw_surface_map(sc):
     """The correction surface at the table's cells (best variant): the factor exp(g_C) it applies to
     the backbone at alpha = 1 deg, its posterior standard deviation, and g_D, the extra
-    d ln f / d ln alpha (the behaviour off 1 deg that only a second aperture measures)."""
+    d ln f / d ln alpha (the behaviour off 1 deg that only a second aperture measures); and, when the
+    table weighs it, the weight of the surface's own value in the corrected table."""
     from roadgonio.plots import _plt, draw_table_map
     plt = _plt()
     p = sc.parts[0]
     best = sc.best
-    fig, axes = plt.subplots(1, 3, figsize=(28, 9))
+    if sc.model_weight is None:
+        fig, axes = plt.subplots(1, 3, figsize=(28, 9))
+    else:
+        fig, axes = plt.subplots(2, 2, figsize=(20, 18))
+        axes = axes.ravel()
     draw_table_map(axes[0], np.exp(p.surfaces["g_c"]), label="exp(g_C): factor on the backbone at alpha = 1 deg",
                    centre=1.0, log=True, fmt="{:.2f}", fontsize=4.5, tick_fontsize=7)
     axes[0].set_title(f"correction surface over the {best.variant} backbone (weight {best.weight:.2f})", fontsize=10)
@@ -300,10 +305,18 @@ def draw_surface_map(sc):
                    f"{sc.settings.d_prior_sd:g})", centre=0.0, log=False, fmt="{:+.2f}", fontsize=4.5, tick_fontsize=7)
     axes[2].set_title("behaviour off alpha = 1 deg beyond the backbone's" + (
         " (measured: several aperture settings)" if sc.joint else " (one aperture: mostly the prior)"), fontsize=10)
+    if sc.model_weight is not None:
+        draw_table_map(axes[3], sc.model_weight, label="w_model: weight of the surface's own value (rest: r / k_A)",
+                       centre=0.5, log=False, fmt="{:.2f}", fontsize=4.5, tick_fontsize=7)
+        axes[3].set_title("where the corrected table follows the fitted surface (1) or the measurement (0)",
+                          fontsize=10)
     lam = ", ".join(f"{k} {v:.3g}" for k, v in best.fit.lam.items())
     fig.suptitle(f"{' + '.join(q.measured.name for q in sc.parts)}: the correction surface (smoothing parameters "
                  f"by the evidence: {lam}; edf {best.fit.edf:.0f} of {best.fit.n} cells)", fontsize=11)
-    fig.subplots_adjust(left=0.03, right=0.98, bottom=0.07, top=0.9, wspace=0.12)
+    if sc.model_weight is None:
+        fig.subplots_adjust(left=0.03, right=0.98, bottom=0.07, top=0.9, wspace=0.12)
+    else:
+        fig.subplots_adjust(left=0.04, right=0.97, bottom=0.04, top=0.95, wspace=0.15, hspace=0.12)
     return fig
 
 
