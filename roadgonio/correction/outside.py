@@ -15,8 +15,9 @@ Procedure (:func:`correct_surface`):
    much worse gets no weight;
 4. per instrument, ln k_A and its covariance: the weighted mean over the variants of ln k_A of the
    corrected model (times rho); the covariance is the weighted posterior covariance of the surface
-   and the backbone's coordinates (``surface``; :func:`roadgonio.correction.flexible.posterior_with_backbone`) plus the spread of the variants about the mean (``model``); where the normalised
-   residuals have structure the two are widened by the local Birge ratio (``max(1, B_c)``, B_c^2 the
+   and the backbone's coordinates (``surface``; :func:`roadgonio.correction.flexible.posterior_with_backbone`)
+   plus the spread of the variants about the mean (``model``); where the normalised residuals have
+   structure the two are widened by the local Birge ratio (``max(1, B_c)``, B_c^2 the
    leverage-corrected mean squared normalised residual over the neighbouring cells); plus the
    bundle's own error of what the surface changes (``bundle``), the backend's (``backend``) and
    what the instruments' blur hides below the surface's knots (``discrepancy``,
