@@ -160,7 +160,7 @@ def part_blurs(part, theta: np.ndarray, ell: float) -> list[Blur]:
     shape = b.a.shape
     comps = pole_components(np.broadcast_to(np.asarray(sb, dtype=np.float64), shape),
                             np.broadcast_to(np.asarray(st, dtype=np.float64), shape), np.broadcast_to(beta, shape))
-    w = part.af0 * np.exp(np.minimum(part.g_rays(theta), 50.0))
+    w = part.ray_weights(theta)
     n = part.n
     wo0 = tuple(np.full(n, b.wo0[k]) for k in range(3))
     wi0 = tuple(b.wi0[:, k] for k in range(3))

@@ -149,6 +149,7 @@ class FlexPart:
             self.f0_nominal = np.asarray(backbone.brdf(b.wi0, b.wo0[None, :]), dtype=np.float64)
         self.af0 = np.broadcast_to(f0, b.a.shape) * b.a
         self.cell_of = np.repeat(np.arange(self.n), b.rays_per_cell)
+        self._dq = None                                   # backbone_log_derivatives' cache
         self.rho = np.ones(self.n) if rho is None else np.asarray(rho, dtype=np.float64)
         self.scale = b.cos3 * forward.kappa * self.rho
         wo0 = tuple(np.full(self.n, b.wo0[k]) for k in range(3))
@@ -188,9 +189,13 @@ class FlexPart:
             g += np.sum(w * (T @ th)[idx], axis=0)
         return g
 
+    def ray_weights(self, theta: np.ndarray) -> np.ndarray:
+        """a_k f_model,k per ray: the bundle's weights times the backbone times exp(g) (g clipped at 50)."""
+        return self.af0 * np.exp(np.minimum(self.g_rays(theta), 50.0))
+
     def mean_and_jacobian(self, theta: np.ndarray, jacobian: bool = True):
         """(<f_0 exp g>_c, d/dtheta of it (cells, n_params) or None)."""
-        e = self.af0 * np.exp(np.minimum(self.g_rays(theta), 50.0))
+        e = self.ray_weights(theta)
         mean = np.bincount(self.cell_of, weights=e, minlength=self.n)
         if not jacobian:
             return mean, None
@@ -225,7 +230,7 @@ class FlexPart:
         a bound of the search box, as the eq. 4 fit holds it). Returns (names, d ln f_0 / d q at the
         rays (P, *rays), d ln f_0 / d q at the nominal directions (cells, P)), central differences of
         step :data:`BACKBONE_FD_STEP` (cached: the backbone and the rays are fixed)."""
-        if getattr(self, "_dq", None) is not None:
+        if self._dq is not None:
             return self._dq
         from roadgonio.engines.bundle import LINEAR_TERMS
         b = self.forward.bundles
@@ -267,16 +272,20 @@ class FlexPart:
         """In the backbone's coordinates q (:meth:`backbone_log_derivatives`), at the surface theta:
         (d simulated r / d q, d ln k_A / d q, d ln r_nominal / d q), each (cells, P)."""
         _, D, Dn = self.backbone_log_derivatives()
-        e = self.af0 * np.exp(np.minimum(self.g_rays(theta), 50.0))
+        e = self.ray_weights(theta)
         mean = np.bincount(self.cell_of, weights=e.ravel(), minlength=self.n)
         dmean = np.stack([np.bincount(self.cell_of, weights=(e * d).ravel(), minlength=self.n) for d in D], axis=1) \
             if D.shape[0] else np.zeros((self.n, 0))
         return self.scale[:, None] * dmean, dmean / mean[:, None] - Dn, Dn
 
-    def full_jacobians(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(d ln k_A, d ln r_nominal) / d (theta, q): the columns of :func:`posterior_with_backbone`'s covariance."""
-        _, Kq, Nq = self.backbone_jacobians(theta)
-        return np.hstack([self.lnk_jacobian(theta), Kq]), np.hstack([self.nominal_jacobian(), Nq])
+    def lnk_full_jacobian(self, theta: np.ndarray) -> np.ndarray:
+        """d ln k_A / d (theta, q): the rows of :func:`posterior_with_backbone`'s covariance for k_A."""
+        return np.hstack([self.lnk_jacobian(theta), self.backbone_jacobians(theta)[1]])
+
+    def nominal_full_jacobian(self) -> np.ndarray:
+        """d :meth:`ln_r_nominal` / d (theta, q) (the same at every theta: g_C enters linearly and the
+        backbone's derivatives at the nominal directions do not depend on the surface)."""
+        return np.hstack([self.nominal_jacobian(), self.backbone_log_derivatives()[2]])
 
     def surfaces_at_cells(self, theta: np.ndarray, cov: np.ndarray | None = None) -> dict[str, np.ndarray]:
         """At the cells' nominal directions: g_C, its posterior standard deviation (with ``cov``) and
@@ -305,7 +314,7 @@ class FlexPart:
         """Standard error (relative) of the bundle's estimate of <f_0 exp g> / <f_0> per cell, from
         its replicates: the bundle's own error of what the correction surface changes in k_A."""
         b = self.forward.bundles
-        e = self.af0 * np.exp(np.minimum(self.g_rays(theta), 50.0))
+        e = self.ray_weights(theta)
         num = np.add.reduceat(e, b.seg).reshape(self.n, b.replicates)
         den = np.add.reduceat(self.af0, b.seg).reshape(self.n, b.replicates)
         out = np.empty(self.n)

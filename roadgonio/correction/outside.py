@@ -206,6 +206,16 @@ def _weights(log_ev: Sequence[float]) -> np.ndarray:
     return w / w.sum()
 
 
+def cell_key(cell) -> tuple[float, float]:
+    """A (tan eps, beta) cell as a dictionary key that two tables' grids share (rounded to 1e-9)."""
+    return (round(cell[0], 9), round(cell[1], 9))
+
+
+def cell_index(cells) -> dict[tuple[float, float], int]:
+    """Where each cell of ``cells`` is, by :func:`cell_key`."""
+    return {cell_key(c): k for k, c in enumerate(cells)}
+
+
 def combine(lnr: Sequence[np.ndarray], cells: Sequence[list], cov_big: np.ndarray,
             union: list) -> tuple[np.ndarray, np.ndarray]:
     """Per cell of ``union``, the GLS combination of the instruments' ln r that have the cell, with
@@ -213,11 +223,11 @@ def combine(lnr: Sequence[np.ndarray], cells: Sequence[list], cov_big: np.ndarra
     of all instruments). Returns (ln r combined, G) with combined = G @ concatenated ln r, so the
     combined covariance of any component C_big is ``G C_big G^T``."""
     offsets = np.cumsum([0] + [len(c) for c in cells])
-    index = [{(round(t, 9), round(b, 9)): k for k, (t, b) in enumerate(c)} for c in cells]
+    index = [cell_index(c) for c in cells]
     G = np.zeros((len(union), int(offsets[-1])))
     x = np.concatenate([np.asarray(v, dtype=np.float64) for v in lnr])
-    for n, (t, b) in enumerate(union):
-        key = (round(t, 9), round(b, 9))
+    for n, cell in enumerate(union):
+        key = cell_key(cell)
         rows = [offsets[i] + index[i][key] for i in range(len(cells)) if key in index[i]]
         S = cov_big[np.ix_(rows, rows)]
         try:
@@ -232,7 +242,7 @@ def combine(lnr: Sequence[np.ndarray], cells: Sequence[list], cov_big: np.ndarra
 def model_estimate_cells(cells: Sequence[list], union: list) -> list[tuple[int, int]]:
     """Per cell of ``union``, (part, index) of the first part whose ``cells`` have it: where the
     fitted model's own value at the nominal geometry is taken (it is the same surface in every part)."""
-    index = [{(round(t, 9), round(b, 9)): k for k, (t, b) in enumerate(c)} for c in cells]
+    index = [cell_index(c) for c in cells]
     out = []
     for key in union:
         i = next(i for i, ix in enumerate(index) if key in ix)
@@ -244,13 +254,13 @@ def nominal_estimate(parts: Sequence[FlexPart], theta: np.ndarray,
                      nominal: Sequence[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
     """The fitted model's own estimate of ln r at the nominal geometry of the cells ``nominal``
     ((part, index) pairs, :func:`model_estimate_cells`) and its Jacobian in (theta, q), (cells,
-    n_params + backbone coordinates; :meth:`roadgonio.correction.flexible.FlexPart.full_jacobians`)."""
+    n_params + backbone coordinates; :meth:`roadgonio.correction.flexible.FlexPart.nominal_full_jacobian`)."""
     n_full = parts[0].n_params + len(parts[0].backbone_log_derivatives()[0])
     if not nominal:
         return np.zeros(0), np.zeros((0, n_full))
     used = sorted({i for i, _ in nominal})
     ln_r = {i: parts[i].ln_r_nominal(theta) for i in used}
-    jac = {i: parts[i].full_jacobians(theta)[1] for i in used}
+    jac = {i: parts[i].nominal_full_jacobian() for i in used}
     return (np.array([ln_r[i][k] for i, k in nominal]),
             np.vstack([jac[i][k][None, :] for i, k in nominal]))
 
@@ -383,15 +393,14 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     n_i = [len(y) for y in ys]
     off = np.cumsum([0] + n_i)
     N = int(off[-1])
-    union = sorted({(round(c[0], 9), round(c[1], 9)) for t in tables for c in t.cells},
-                   key=lambda c: (c[0], c[1]))
+    union = sorted({cell_key(c) for t in tables for c in t.cells})
     nominal = model_estimate_cells([t.cells for t in tables], union) if settings.model_estimate else []
     U = len(nominal)
     lnk, lnp = np.zeros(N), np.zeros(U)
     lnk_v, jac_v, lnp_v, jp_v = [], [], [], []
     for vf in vfits:
         lk = np.concatenate([np.log(p.k_a(vf.fit.theta)) for p in vf.parts])
-        K = np.vstack([p.full_jacobians(vf.fit.theta)[0] for p in vf.parts])
+        K = np.vstack([p.lnk_full_jacobian(vf.fit.theta) for p in vf.parts])
         lp, Jp = nominal_estimate(vf.parts, vf.fit.theta, nominal)
         lnk_v.append(lk)
         jac_v.append(K)
@@ -407,7 +416,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     birge = np.concatenate([b for b, _ in lb])
     widen = np.concatenate([w for _, w in lb])
     # the model's value at a cell is widened as much as the most widened instrument there
-    index = [{(round(t_, 9), round(b_, 9)): k for k, (t_, b_) in enumerate(t.cells)} for t in tables]
+    index = [cell_index(t.cells) for t in tables]
     widen_all = np.concatenate([widen, [max(widen[off[i] + ix[union[j]]] for i, ix in enumerate(index)
                                             if union[j] in ix) for j in range(U)]])
     E = N + U
@@ -514,7 +523,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                f"cell by cell by generalised least squares)")
         combined = base.with_values(grid, name=f"{label}_corrected", source=src)
         # the combined table's cells in row-major order (= union order sorted like RTable.cells)
-        order = [union.index((round(t_, 9), round(b_, 9))) for t_, b_ in combined.cells]
+        at = cell_index(union)
+        order = [at[cell_key(c)] for c in combined.cells]
         Gm = G[order]
         comb_budget = Budget(len(order))
         for name, C in comps.items():

@@ -97,14 +97,14 @@ def _u_of(parts, theta, cov, u_rel, tables, extra=None, nominal=()) -> tuple[np.
     model's own estimates at the nominal geometry, after the parts' cells
     (:func:`roadgonio.correction.outside.model_estimate_cells`), combined with them as the correction does."""
     from roadgonio.correction.budget import functionals
-    from roadgonio.correction.outside import combine, nominal_estimate
+    from roadgonio.correction.outside import cell_key, combine, nominal_estimate
     lp, Jp = nominal_estimate(parts, theta, nominal)
-    J = np.vstack([-p.full_jacobians(theta)[0] for p in parts] + [Jp])
+    J = np.vstack([-p.lnk_full_jacobian(theta) for p in parts] + [Jp])
     big = J @ cov @ J.T
     big += np.diag(np.concatenate([np.asarray(u, dtype=np.float64) ** 2 for u in u_rel] + [np.zeros(len(lp))]))
     if extra is not None:
         big += extra
-    union = [(round(t, 9), round(b, 9)) for t, b in tables[0].cells]
+    union = [cell_key(c) for c in tables[0].cells]
     ests = [p.ln_r_nominal(theta) for p in parts] + ([lp] if len(lp) else [])
     lnr, G = combine(ests, [t.cells for t in tables] + ([union] if len(lp) else []), big, tables[0].cells)
     C = G @ big @ G.T
@@ -121,7 +121,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     """Rank the second aperture settings of ``vary`` (module docstring). Exactly one of ``measured``
     (an r-table the instrument measured) and ``sample`` (a SAMPLE or a BRDF model) gives the surface."""
     from roadgonio.correction.flexible import FlexPart, SurfaceSettings, expected_posterior, fit_surface
-    from roadgonio.correction.outside import model_estimate_cells, parts_discrepancy
+    from roadgonio.correction.outside import cell_key, model_estimate_cells, parts_discrepancy
     from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
     from roadgonio.correction.run import fit_self, measured_uncertainty
     from roadgonio.design.grid import as_vary_specs, build_instrument, grid_points
@@ -169,8 +169,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
 
     def evaluate(parts, urs, tables, label, changes, inst, note="") -> Candidate:
         cov = expected_posterior(parts, theta, lam, urs)
-        nominal = (model_estimate_cells([t.cells for t in tables], [(round(t, 9), round(b, 9))
-                                                                   for t, b in tables[0].cells])
+        nominal = (model_estimate_cells([t.cells for t in tables], [cell_key(c) for c in tables[0].cells])
                    if settings.model_estimate else [])
         disc = None
         if settings.discrepancy_ell is not None:
