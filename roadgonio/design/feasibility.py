@@ -110,6 +110,8 @@ def check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]])
             check_sources(instrument, housing, cells)
         except GeometryError as err:
             return Feasibility(False, "housing", str(err), fp)
+        except InputError as err:      # the point's [housing] does not hold the detector's view
+            return Feasibility(False, "housing", f"{err.field}: {err.reason}" if err.field else err.reason, fp)
     return Feasibility(True, footprint=fp)
 
 

@@ -10,7 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
-from roadgonio.errors import GeometryError
+from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument.housing import SEAM_M, Box, Housing, Panel
 
 
@@ -134,15 +134,29 @@ def _floor_check(instrument, box: Box) -> None:
 
 def _outside(points: np.ndarray, box: Box, lid: bool) -> str | None:
     """Id and label of the first wall that the points (N, 3) reach or cross, or None."""
-    checks = [(points[:, 0].min() <= box.x[0], "housing_wall_x_min", f"the wall x = {box.x[0]:.3g} m"),
-              (points[:, 0].max() >= box.x[1], "housing_wall_x_max", f"the wall x = {box.x[1]:.3g} m"),
-              (points[:, 1].min() <= box.y[0], "housing_wall_y_min", f"the wall y = {box.y[0]:.3g} m"),
-              (points[:, 1].max() >= box.y[1], "housing_wall_y_max", f"the wall y = {box.y[1]:.3g} m"),
-              (lid and points[:, 2].max() >= box.height, "housing_lid", f"the lid z = {box.height:.3g} m")]
-    for bad, pid, label in checks:
+    hit = _wall_reached(points, box, lid)
+    return None if hit is None else hit[0]
+
+
+def _wall_reached(points: np.ndarray, box: Box, lid: bool) -> tuple[str, str] | None:
+    """("label (id)", axis) of the first wall that the points (N, 3) reach or cross (axis "x", "y"
+    or "z": the [housing] bound that places it), or None."""
+    checks = [(points[:, 0].min() <= box.x[0], "housing_wall_x_min", f"the wall x = {box.x[0]:.3g} m", "x"),
+              (points[:, 0].max() >= box.x[1], "housing_wall_x_max", f"the wall x = {box.x[1]:.3g} m", "x"),
+              (points[:, 1].min() <= box.y[0], "housing_wall_y_min", f"the wall y = {box.y[0]:.3g} m", "y"),
+              (points[:, 1].max() >= box.y[1], "housing_wall_y_max", f"the wall y = {box.y[1]:.3g} m", "y"),
+              (lid and points[:, 2].max() >= box.height, "housing_lid", f"the lid z = {box.height:.3g} m", "z")]
+    for bad, pid, label, axis in checks:
         if bad:
-            return f"{label} ({pid})"
+            return f"{label} ({pid})", axis
     return None
+
+
+def _bound_field(housing: Housing, axis: str) -> str:
+    """The [housing] key that places the walls of ``axis``: x_m, y_m or height_m when given, else
+    margin_m (the default box is the parts' bounding box plus the margin)."""
+    key = {"x": "x_m", "y": "y_m", "z": "height_m"}[axis]
+    return f"housing.{key}" if getattr(housing, key) is not None else "housing.margin_m"
 
 
 def _detector_rays(instrument, n_random: int = 2048, n_rim: int = 32):
@@ -158,33 +172,41 @@ def _detector_rays(instrument, n_random: int = 2048, n_rim: int = 32):
 
 
 def check_detector_view(instrument, housing: Housing) -> Box:
-    """The housing around the detector (errors, not wrong numbers): a mesh sample covers the floor,
-    the pupil and the footprint lie inside the box, and no baffle meets a detected ray between the
-    pupil and the sample. Returns the box."""
+    """The housing around the detector: a mesh sample covers the floor, the pupil and the footprint
+    lie inside the box, and no baffle meets a detected ray between the pupil and the sample. Returns
+    the box. These are checks of the instrument file, known before any computation: an
+    :class:`InputError` naming the file and the ``[housing]`` field (``housing.x_m``,
+    ``housing.baffles.0.x_m`` ...), never wrong numbers."""
     from roadgonio.instrument.optics import footprint_boundary
+
+    def bad(message: str, field: str) -> InputError:
+        return InputError(message, path=instrument.path, field=field)
+
     box = housing_box(instrument, housing)
     if box.height <= 0.0:
-        raise GeometryError("the housing has no height")
+        raise bad("the housing has no height; expected a height > 0", _bound_field(housing, "z"))
     _floor_check(instrument, box)
-    wall = _outside(pupil_disc(instrument), box, housing.lid)
-    if wall is not None:
-        raise GeometryError(f"the detector's entrance pupil (radius {instrument.detector.pupil_radius_m:g} m at "
-                            f"{instrument.detector.distance_m:g} m) is not inside the housing: it reaches {wall}; "
-                            "enlarge the housing (x_m, y_m, height_m)")
+    hit = _wall_reached(pupil_disc(instrument), box, housing.lid)
+    if hit is not None:
+        raise bad(f"the detector's entrance pupil (radius {instrument.detector.pupil_radius_m:g} m at "
+                  f"{instrument.detector.distance_m:g} m) is not inside the housing: it reaches {hit[0]}; "
+                  "expected a housing that holds it (enlarge x_m, y_m, height_m)", _bound_field(housing, hit[1]))
     fx, fy = footprint_boundary(instrument)
-    wall = _outside(np.stack([fx, fy, np.zeros_like(fx)], -1), box, False)
-    if wall is not None:
-        raise GeometryError(f"the detector footprint is not inside the housing: it reaches {wall}")
+    hit = _wall_reached(np.stack([fx, fy, np.zeros_like(fx)], -1), box, False)
+    if hit is not None:
+        raise bad(f"the detector footprint is not inside the housing: it reaches {hit[0]}; expected a housing "
+                  "that holds it", _bound_field(housing, hit[1]))
     o, d, t_plane = _detector_rays(instrument)
     for k, bf in enumerate(housing.baffles, start=1):
         if bf.height_m <= 0.0:
             continue
+        field = f"housing.baffles.{k - 1}"
         if not box.x[0] < bf.x_m < box.x[1]:
-            raise GeometryError(f"baffle {k} (housing_baffle_{k}) at x = {bf.x_m:g} m is outside the housing "
-                                f"(x = {box.x[0]:.3g} ... {box.x[1]:.3g} m)")
+            raise bad(f"baffle {k} (housing_baffle_{k}) at x = {bf.x_m:g} m is outside the housing; expected "
+                      f"x_m inside x = {box.x[0]:.3g} ... {box.x[1]:.3g} m", f"{field}.x_m")
         if bf.height_m > box.height and housing.lid:
-            raise GeometryError(f"baffle {k} (housing_baffle_{k}) is {bf.height_m:g} m high, higher than the lid "
-                                f"({box.height:.3g} m)")
+            raise bad(f"baffle {k} (housing_baffle_{k}) is {bf.height_m:g} m high; expected at most the lid's "
+                      f"height ({box.height:.3g} m)", f"{field}.height_m")
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (bf.x_m - o[:, 0]) / d[:, 0]
         z = o[:, 2] + t * d[:, 2]
@@ -192,11 +214,11 @@ def check_detector_view(instrument, housing: Housing) -> Box:
         blocked = meet & (z < bf.height_m)
         if blocked.any():
             clear = float(z[meet].min()) if meet.any() else math.nan
-            raise GeometryError(
+            raise bad(
                 f"baffle {k} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm high) blocks the "
                 f"detector's view: {int(blocked.sum())} of {blocked.size} checked detector rays meet it before the "
-                f"sample (the lowest detected ray passes {1000 * clear:.3g} mm above the sample plane there); lower "
-                "or move it")
+                f"sample (the lowest detected ray passes {1000 * clear:.3g} mm above the sample plane there); "
+                "expected a lower baffle or another x_m", f"{field}.height_m")
     return box
 
 

@@ -95,14 +95,31 @@ def test_a_source_through_a_wall_names_the_cell_and_the_wall():
 def test_a_baffle_in_the_line_of_sight_is_an_error_and_a_low_one_is_not():
     """The lowest detected ray passes about (x - x_near) tan(alpha - field) above the sample at x."""
     inst = housed(baffles=[{"x_m": 0.6, "height_m": 0.01}])
-    with pytest.raises(GeometryError, match=r"baffle 1 \(housing_baffle_1: x = 0.6 m, 10 mm high\) blocks the "
-                                            r"detector's view"):
+    with pytest.raises(InputError, match=r"baffle 1 \(housing_baffle_1: x = 0.6 m, 10 mm high\) blocks the "
+                                         r"detector's view") as err:
         check_detector_view(inst, Housing.of(inst))
+    assert err.value.field == "housing.baffles.0.height_m" and err.value.path == str(HOUSED)
     inst = housed(baffles=[{"x_m": 0.6, "height_m": 0.004}])
     check_detector_view(inst, Housing.of(inst))
     inst = housed(x_m=[-1.05, 0.9])
-    with pytest.raises(GeometryError, match="pupil.*housing_wall_x_max"):
+    with pytest.raises(InputError, match="pupil.*housing_wall_x_max") as err:
         check_detector_view(inst, Housing.of(inst))
+    assert err.value.field == "housing.x_m" and str(err.value).startswith(f"{HOUSED}, field 'housing.x_m': ")
+
+
+@pytest.mark.parametrize("housing, field", [
+    ({"baffles": [{"x_m": 0.3, "height_m": 0.0}, {"x_m": -5.0, "height_m": 0.02}]}, "housing.baffles.1.x_m"),
+    ({"x_m": [-0.5, 0.5], "y_m": [0.0, 1.05]}, "housing.x_m"),
+    ({"y_m": [0.0, 1.05]}, "housing.y_m"),
+    ({"margin_m": 0.0}, "housing.margin_m"),
+])
+def test_a_housing_that_cannot_hold_the_view_names_the_file_and_field(housing, field):
+    """Checks of the instrument file (no computation): the file and the [housing] field, like any
+    other bad input (the default box's walls come from margin_m)."""
+    inst = housed(**housing)
+    with pytest.raises(InputError) as err:
+        check_detector_view(inst, Housing.of(inst))
+    assert err.value.field == field and str(err.value).startswith(f"{HOUSED}, field '{field}': "), str(err.value)
 
 
 def test_housing_design_keys():
