@@ -731,6 +731,8 @@ def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured:
     from roadgonio.design.second_aperture import write_second_aperture
     from roadgonio.engines.registry import check_seed
     inst = _instrument(instrument)
+    from roadgonio.design.grid import as_vary_specs, check_vary
+    check_vary(inst, as_vary_specs(vary))                 # before the surface is fitted
     table = None if measured is None else _table(measured, "measured")
     if table is not None:
         from roadgonio.correction.run import check_measured
@@ -774,6 +776,8 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
     seed = check_seed(seed)
     settings = resolve_settings(backend, tolerance=rel_se, mitsuba_variant=mitsuba_variant, fields={"tolerance": "rel_se"})
     base = _instrument(instrument)
+    from roadgonio.design.grid import as_vary_specs, check_vary
+    check_vary(base, as_vary_specs(vary))                 # before the samples are fitted
     items = list(samples) if isinstance(samples, (list, tuple)) else [samples]
     resolved = [_sample(s, model_variant) for s in items]
     folder = _out(out, "design", base.name)

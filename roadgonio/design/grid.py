@@ -8,7 +8,8 @@ Every grid point is a complete instrument: the base instrument file with the var
 ``source.beam_cos_power``, ``source.aperture_edge_radiance``; the housing's ``housing.wall_reflectance``,
 ``housing.baffle_reflectance``, ``housing.height_m``, ``housing.margin_m`` and, for a baffle declared in
 the base instrument's ``[housing] baffles`` (index N from 0; a height of 0 is no baffle),
-``housing.baffles.N.x_m`` and ``housing.baffles.N.height_m``. Values:
+``housing.baffles.N.x_m`` and ``housing.baffles.N.height_m`` (the housing keys only for a base
+instrument with a ``[housing]``: :func:`check_vary` refuses the others before any computation). Values:
 
 * ``LO:HI:N``      N values evenly spaced from LO to HI (both included);
 * ``LO:HI:N:log``  N values evenly spaced in log(value) (LO, HI > 0);
@@ -156,6 +157,32 @@ def as_vary_specs(vary: Sequence[str | VarySpec] | Mapping[str, Sequence[float]]
             raise InputError(f"{s.key} is varied twice; give each key once", field="--vary")
         seen.add(s.key)
     return specs
+
+
+def check_vary(base: Instrument, specs: Sequence[VarySpec]) -> None:
+    """Refuse, before any computation, a varied key the base instrument cannot take: a ``housing.*``
+    key when the base has no ``[housing]`` (a design varies a housing, it does not add one: the
+    box's size, lid and baffles would be defaults nobody chose), or a baffle the base's
+    ``[housing] baffles`` does not declare."""
+    where = f" ({base.path})" if base.path is not None else ""
+    sec = base.extra.get("housing") if hasattr(base.extra, "get") else None
+    for s in specs:
+        if s.section != "housing":
+            continue
+        if sec is None:
+            raise InputError(f"{s.key}: the base instrument{where} has no [housing]; declare one in its file "
+                             "(docs/straylight.md) to vary the housing's keys", field="--vary")
+        m = BAFFLE_KEY.match(s.key)
+        if m:
+            n = len(sec.get("baffles", ()) or ())
+            k = int(m.group(1))
+            if k >= n:
+                raise InputError(f"{s.key}: the base instrument{where} declares {n} baffle(s) in [housing] baffles "
+                                 f"(N = 0 ... {n - 1}); declare baffle {k} there (height_m = 0 is no baffle)"
+                                 if n else
+                                 f"{s.key}: the base instrument{where} declares no baffles in [housing]; declare "
+                                 "them there, e.g. baffles = [{x_m = -0.5, height_m = 0.0}] (height_m = 0 is no "
+                                 "baffle)", field="--vary")
 
 
 def grid_points(specs: Sequence[VarySpec]) -> list[dict[str, float]]:

@@ -32,7 +32,7 @@ from roadgonio.surface.model import RoadModel
 from roadgonio.engines import cluster as _cluster
 from roadgonio.design.dataset import assemble
 from roadgonio.design.feasibility import check_point
-from roadgonio.design.grid import VarySpec, as_vary_specs, grid_points, grid_shape, parse_tolerance
+from roadgonio.design.grid import VarySpec, as_vary_specs, check_vary, grid_points, grid_shape, parse_tolerance
 
 JOURNAL = "design_points.jsonl"
 DEFAULT_TOLERANCE = 0.05
@@ -108,6 +108,7 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
     settings = dict(settings or {})
     tol = parse_tolerance(tolerance)
     specs: list[VarySpec] = as_vary_specs(vary)
+    check_vary(base, specs)
     from roadgonio.limits import check_size
     check_size(math.prod(len(s.values) for s in specs), "design_points", "--vary")   # before the grid is built
     points = grid_points(specs)

@@ -124,7 +124,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     from roadgonio.correction.outside import cell_key, model_estimate_cells, parts_discrepancy
     from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
     from roadgonio.correction.run import fit_self, measured_uncertainty
-    from roadgonio.design.grid import as_vary_specs, build_instrument, grid_points
+    from roadgonio.design.grid import as_vary_specs, build_instrument, check_vary, grid_points
     from roadgonio.design.metrics import relative_signal
     from roadgonio.surface.rtable import RTable, bundled_table
     t0 = time.perf_counter()
@@ -134,6 +134,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     specs = as_vary_specs(vary)
     if not specs:
         raise InputError("expected at least one --vary KEY=... for the second aperture", field="--vary")
+    check_vary(instrument, specs)
     rays = int(rays or DEFAULT_RAYS)
     settings = SurfaceSettings()
     if measured is not None:

@@ -477,3 +477,32 @@ def test_design_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkeypa
     assert main(argv + ["--json"]) == 0
     assert json.loads(capsys.readouterr().out)["tables_resumed"] == 2
     assert {"design.nc", "design.csv", "best.toml", "pareto.png"} <= {p.name for p in out.iterdir()}
+
+
+@pytest.mark.parametrize("instrument, vary, must", [
+    ("portable_housed", "housing.baffles.1.height_m=0,0.01", "declares no baffles"),
+    ("portable_housed", "housing.baffles.0.x_m=-0.5,-0.4", "declares no baffles"),
+    ("portable", "housing.wall_reflectance=0.1,0.2", "has no [housing]"),
+])
+@pytest.mark.parametrize("second", [False, True])
+def test_design_key_the_base_cannot_take_is_an_input_error(tmp_path, capsys, instrument, vary, must, second):
+    """A varied baffle the base does not declare, or a housing key of a base without [housing], is
+    known before any computation: exit 2, one line naming the --vary key (before: exit 0 with every
+    point infeasible, or a default housing added silently to best.toml)."""
+    argv = ["design", "--instrument", instrument, "--sample", "R3", "--vary", vary, "--workers", "0",
+            "--no-plots", "--out", str(tmp_path / "d")]
+    rc = main(argv + (["--second-aperture"] if second else []))
+    one_line_error(capsys, rc, "--vary", vary.split("=")[0], must)
+    assert not (tmp_path / "d").exists()
+
+
+def test_design_baffle_beyond_the_declared_ones_says_how_many(tmp_path):
+    from roadgonio.design.grid import as_vary_specs, check_vary
+    from roadgonio.errors import InputError
+    from roadgonio.instrument.config import Instrument, load_instrument
+    d = load_instrument("portable_housed").to_dict()
+    d["housing"]["baffles"] = [{"x_m": -0.5, "height_m": 0.0}]
+    base = Instrument.from_dict(d, path=tmp_path / "b.toml")
+    check_vary(base, as_vary_specs(["housing.baffles.0.height_m=0,0.01"]))
+    with pytest.raises(InputError, match=r"housing.baffles.1.height_m: .* declares 1 baffle\(s\) .*declare baffle 1"):
+        check_vary(base, as_vary_specs(["housing.baffles.1.height_m=0,0.01"]))
