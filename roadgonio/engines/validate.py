@@ -175,6 +175,21 @@ def resolve_reference(instrument: Instrument, reference: str) -> str:
     return reference
 
 
+def _check_modelled(instrument: Instrument, ref_name: str) -> None:
+    """validate needs a float64 reference of the whole instrument: none models a ``[housing]`` or a
+    ``[scene]`` (their parts are Mitsuba's alone), so such an instrument is refused up front with what
+    the user can do instead (the backends' own message would name a --backend validate does not have)."""
+    from roadgonio.engines.registry import BACKENDS
+    extra = instrument.extra if hasattr(instrument.extra, "get") else {}
+    for sec, what in (("housing", "a [housing] (its walls' shade and stray light)"),
+                      ("scene", "a [scene] section (its extra parts)")):
+        if extra.get(sec) is not None and not BACKENDS[ref_name].xml_scenes:
+            raise InputError(f"validate compares against a float64 reference, and none models {what}; validate "
+                             f"the instrument without its [{sec}] (the same geometry bare), or compute its k_A with "
+                             "'roadgonio ka --backend mitsuba' (docs/validation.md, Known limits)",
+                             path=instrument.path, field=sec)
+
+
 def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[float, float]] | None = None, *,
              against: str = "mitsuba", reference: str = "auto", rel_se: float = 1e-3, rtol: float | None = None,
              seed: int = 0, floor: float | None = None, mitsuba_variant: str | None = None,
@@ -189,6 +204,7 @@ def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[flo
     if against not in ("mitsuba", "numpy-mc"):
         raise InputError(f"expected --against mitsuba or numpy-mc, got {against!r}", field="--against")
     ref_name = resolve_reference(instrument, reference)
+    _check_modelled(instrument, ref_name)
     if ref_name == "numpy-mc-mesh" and against == "numpy-mc":
         raise InputError("a mesh sample is checked against the numpy ray-casting Monte Carlo; --against numpy-mc "
                          "(flat samples only) has nothing to compare there", field="--against")

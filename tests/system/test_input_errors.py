@@ -506,3 +506,12 @@ def test_design_baffle_beyond_the_declared_ones_says_how_many(tmp_path):
     check_vary(base, as_vary_specs(["housing.baffles.0.height_m=0,0.01"]))
     with pytest.raises(InputError, match=r"housing.baffles.1.height_m: .* declares 1 baffle\(s\) .*declare baffle 1"):
         check_vary(base, as_vary_specs(["housing.baffles.1.height_m=0,0.01"]))
+
+
+def test_validate_of_a_housed_instrument_says_what_the_user_can_do(tmp_path, capsys):
+    """No float64 reference models a [housing]: one line naming the file and the section, and advice
+    the command can follow (before: 'use --backend mitsuba', an option validate does not have)."""
+    rc = main(["validate", "--instrument", "portable_housed", "--sample", "lambert", "--out", str(tmp_path / "v")])
+    line = one_line_error(capsys, rc, "portable_housed.toml", "field 'housing'", "without its [housing]",
+                          "roadgonio ka --backend mitsuba")
+    assert "use --backend" not in line
