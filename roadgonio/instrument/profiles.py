@@ -165,6 +165,11 @@ class FieldMap:
 # Reading
 # ----------------------------------------------------------------------------------------------
 
+#: The header lines of the CSV tables (docs/conventions.md section 4).
+INTENSITY_HEADER = ("theta_deg", "I")
+APERTURE_HEADER = ("rho", "relative_radiance")
+
+
 def _err(message: str, path, field: str, line: int | None = None) -> InputError:
     return InputError(message, path=path, line=line, field=field)
 
@@ -173,15 +178,23 @@ def _exists(path, field: str) -> Path:
     if not isinstance(path, (str, Path)) or not str(path):
         raise InputError(f"expected a file name, got {path!r}", field=field)
     p = Path(path)
+    if p.is_dir():
+        raise InputError(f"{str(p)!r} is a directory; expected a file", field=field)
     if not p.is_file():
         raise InputError(f"file {str(p)!r} does not exist", field=field)
     return p
 
 
-def read_numbers_csv(path: Path, field: str, columns: int | None = None) -> tuple[np.ndarray, list[int]]:
+def read_numbers_csv(path: Path, field: str, columns: int | None = None,
+                     header: tuple[str, ...] | None = None) -> tuple[np.ndarray, list[int]]:
     """Rows of numbers of a CSV file (``#`` comments and blank lines skipped; a first line that is
     not numbers is a header): a float64 array (rows, columns) and the file's line number of each row.
-    ``columns`` fixes the number of columns; otherwise every row must have the same number."""
+    ``columns`` fixes the number of columns; otherwise every row must have the same number.
+    ``header``: the column names the file must start with (a table of two columns read in the wrong
+    order would otherwise pass or fail by accident); it fixes ``columns``."""
+    if header is not None:
+        columns = len(header)
+    want_header = ",".join(header) if header is not None else ""
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as err:
@@ -198,10 +211,14 @@ def read_numbers_csv(path: Path, field: str, columns: int | None = None) -> tupl
         except ValueError:
             if not rows and not header_seen:
                 header_seen = True
+                if header is not None and [c.lower() for c in cells] != [h.lower() for h in header]:
+                    raise _err(f"expected the header {want_header}, got {s!r}", path, field, no) from None
                 if columns is not None and len(cells) != columns:
                     raise _err(f"the header has {len(cells)} columns, expected {columns}", path, field, no) from None
                 continue
             raise _err(f"expected {columns or 'comma-separated'} numbers, got {s!r}", path, field, no) from None
+        if header is not None and not header_seen:
+            raise _err(f"expected the header {want_header} first, got {s!r}", path, field, no)
         if not all(math.isfinite(v) for v in vals):
             raise _err(f"expected finite numbers, got {s!r}", path, field, no)
         want = columns if columns is not None else (len(rows[0]) if rows else len(vals))
@@ -261,7 +278,7 @@ def read_intensity_distribution(path: str | Path, field: str = "source.beam_inte
                            f"(Isym = {lum.meta.get('isym')})", p, field)
         theta, inten, lines = lum.g_deg, table[0], None
     elif p.suffix.lower() == ".csv":
-        rows, lines = read_numbers_csv(p, field, columns=2)
+        rows, lines = read_numbers_csv(p, field, header=INTENSITY_HEADER)
         theta, inten = rows[:, 0], rows[:, 1]
     else:
         raise _err(f"expected an EULUMDAT (.ldt) or CSV (.csv) file, got {p.name!r}", p, field)
@@ -295,7 +312,7 @@ def aperture_table(path: str | Path, field: str = "source.aperture_radiance_file
     """The :class:`ApertureProfile` of a CSV ``rho, relative_radiance`` (rho from 0 to 1, the
     fraction of the aperture radius)."""
     p = _exists(path, field)
-    rows, lines = read_numbers_csv(p, field, columns=2)
+    rows, lines = read_numbers_csv(p, field, header=APERTURE_HEADER)
     if len(rows) < 2:
         raise _err("expected at least two rows (rho = 0 and rho = 1)", p, field)
     rho, rad = rows[:, 0], rows[:, 1]

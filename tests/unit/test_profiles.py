@@ -225,7 +225,10 @@ def test_bad_source_keys_name_the_field(changes, field):
     ("theta_deg,I\n0,1\n5,-0.5\n", ">= 0", 3),
     ("theta_deg,I\n0,0\n5,0.5\n", "axis", 2),
     ("theta_deg,I\n0,1\n5,x\n", "numbers", 3),
-    ("theta_deg,I,J\n0,1,2\n", "columns", 1),
+    ("theta_deg,I,J\n0,1,2\n", "expected the header theta_deg,I", 1),
+    ("angle,I\n0,1\n5,0.5\n", "expected the header theta_deg,I, got 'angle,I'", 1),
+    ("I,theta_deg\n1,0\n0.5,5\n", "expected the header theta_deg,I", 1),
+    ("# measured\n0,1\n5,0.5\n", "expected the header theta_deg,I first", 2),
 ])
 def test_bad_intensity_tables_name_file_line_and_field(tmp_path, text, needle, line):
     p = tmp_path / "beam.csv"
@@ -785,3 +788,19 @@ def test_beam_widths_are_design_keys(tmp_path):
         assert [got[0, 1], got[1, 0]] == [r.k_a for r in want]
     sig = ds["signal"].values
     assert sig[0] < sig[1] < 1.0                  # a narrower beam of the same peak radiance: less light
+
+
+@pytest.mark.parametrize("key", ["beam_intensity_file", "aperture_radiance_file"])
+def test_a_directory_for_a_table_says_it_is_a_directory(tmp_path, key):
+    """(before: "file '...' does not exist" of a folder that exists)"""
+    with pytest.raises(InputError, match="is a directory; expected a file") as err:
+        Source(distance_m=1.0, radius_m=0.01, **{key: tmp_path})
+    assert err.value.field == f"source.{key}"
+
+
+def test_an_aperture_table_needs_its_header(tmp_path):
+    p = tmp_path / "aperture.csv"
+    p.write_text("relative_radiance,rho\n1,0\n0.5,1\n")
+    with pytest.raises(InputError, match="expected the header rho,relative_radiance") as err:
+        Source(distance_m=1.0, radius_m=0.01, aperture_radiance_file=p)
+    assert err.value.path == str(p) and err.value.line == 1
