@@ -68,12 +68,16 @@ class BackendError(RoadgonioError):
 
 def percent(fraction: float, digits: int = 3) -> str:
     """A fraction as a percentage for messages: ``percent(0.997) == '99.7 %'`` (``:.2g`` would
-    print 1e+02 %), ``percent(2e-5) == '0.002 %'``."""
+    print 1e+02 %), ``percent(2e-5) == '0.00200 %'``; below 10^-digits % it says so,
+    ``percent(1.3e-9) == '<0.001 %'`` (not 0.000000130 %)."""
     import math
     p = 100.0 * float(fraction)
     if not math.isfinite(p):
         return f"{p} %"
     if p == 0.0:
         return "0 %"
+    floor = 10.0 ** -digits
+    if abs(p) < floor:
+        return f"<{floor:.{digits}f} %" if p > 0 else f">-{floor:.{digits}f} %"
     decimals = max(0, digits - 1 - int(math.floor(math.log10(abs(p))))) if abs(p) < 10 ** digits else 0
     return f"{p:.{decimals}f} %"

@@ -78,6 +78,8 @@ def test_percentages_in_messages_are_plain_numbers():
     assert percent(1.0) == "100 %"
     assert percent(0.0123) == "1.23 %"
     assert "e" not in percent(2e-5)
+    assert percent(2e-5) == "0.00200 %"
+    assert percent(1.3e-9) == "<0.001 %" and percent(-1.3e-9) == ">-0.001 %"   # (before: 0.000000130 %)
 
 
 def test_q0_of_a_table_without_a_complete_grid_cell_is_nan_without_a_warning():
