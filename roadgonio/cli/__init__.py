@@ -29,7 +29,9 @@ class _Parser(argparse.ArgumentParser):
     input error (no usage block above it)."""
 
     def error(self, message: str):
-        self.exit(2, f"roadgonio: error: {self.prog}: {message} (see '{self.prog} --help')\n")
+        # the top-level parser's prog is "roadgonio" itself: no "roadgonio: error: roadgonio: ..."
+        where = "" if self.prog == "roadgonio" else f"{self.prog}: "
+        self.exit(2, f"roadgonio: error: {where}{message} (see '{self.prog} --help')\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -53,7 +55,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
+    if extra:
+        # argparse reports unrecognised arguments from the top-level parser; name the command they were
+        # given to (``roadgonio correct: unrecognized arguments: B.toml``), which the user can look up
+        sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        command = sub.choices.get(getattr(args, "command", None)) if sub is not None else None
+        (command or parser).error(f"unrecognized arguments: {' '.join(extra)}")
     if not getattr(args, "func", None):
         parser.print_help()
         return 2

@@ -25,7 +25,9 @@ def register(sub) -> None:
         "ka", help="aperture-effect factor k_A of an instrument (one cell or the whole r-table)",
         description="Compute k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) for an instrument "
                     "and a sample (docs/conventions.md section 5). Without --tan-eps/--beta the whole 580-cell grid is "
-                    "computed and written to --out (ka.nc, ka.csv, ka_se.csv or ka_bound.csv, ka.png, ka.json); an "
+                    "computed and written to --out (ka.nc, ka.csv, ka_se.csv or ka_bound.csv, ka.png, ka.json; when "
+                    "the scene makes stray light, a reflecting [housing] or [scene] (docs/straylight.md), also "
+                    "ka_direct.csv, ka_direct_se.csv, stray_fraction.csv and stray_fraction_se.csv); an "
                     "interrupted table resumes when the same command is run again.")
     add_instrument_argument(p)
     add_sample_argument(p)

@@ -20,7 +20,9 @@ def register(sub) -> None:
                        description="Render one measurement cell of an instrument with Mitsuba: the detector's "
                                    "view of the sample (luminance inside the field stop) and the horizontal "
                                    "illuminance around the detector footprint (footprint outlined). Writes "
-                                   "view.exr, illuminance.exr, render.png and render.json to --out.")
+                                   "view.exr, illuminance.exr, render.png and render.json to --out, and stray.png and "
+                                   "stray.exr (where the stray light enters the view) when the scene makes stray "
+                                   "light (a reflecting [housing] or [scene], docs/straylight.md).")
     add_instrument_argument(p)
     add_sample_argument(p)
     add_model_variant(p)

@@ -67,3 +67,28 @@ def test_no_progress_bar_into_a_pipe(tmp_path):
                        capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr
     assert r.stderr == "" and "580 cells" in r.stdout
+
+
+@pytest.mark.parametrize("argv, must", [
+    (["correct", "--measured", "a.csv", "b.csv", "--instrument", "A.toml", "B.toml", "--joint"],
+     "roadgonio: error: roadgonio correct: unrecognized arguments: B.toml (see 'roadgonio correct --help')"),
+    (["--bogus"], "roadgonio: error: unrecognized arguments: --bogus (see 'roadgonio --help')"),
+    (["nocommand"], "roadgonio: error: argument COMMAND: invalid choice: 'nocommand'"),
+])
+def test_a_bad_argument_is_one_line_without_a_doubled_prefix(capsys, argv, must):
+    """(before: 'roadgonio: error: roadgonio: unrecognized arguments: B.toml')"""
+    from roadgonio.cli import main
+    with pytest.raises(SystemExit) as ex:
+        main(argv)
+    err = capsys.readouterr().err
+    assert ex.value.code == 2 and err.count("\n") == 1 and err.startswith(must), err
+    assert "roadgonio: error: roadgonio:" not in err
+
+
+def test_help_names_every_output():
+    """ka --help lists the stray-light tables, render --help the stray pictures."""
+    text = {c: " ".join(_subparsers()[c].format_help().split()) for c in ("ka", "render")}
+    for f in ("ka_direct.csv", "stray_fraction.csv"):
+        assert f in text["ka"]
+    for f in ("stray.png", "stray.exr", "render.json"):
+        assert f in text["render"]

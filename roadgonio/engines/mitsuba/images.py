@@ -103,7 +103,7 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
 
     from roadgonio.fileio import OutputGroup
     files = {"view_exr": str(out_dir / "view.exr"), "illuminance_exr": str(out_dir / "illuminance.exr"),
-             "png": str(out_dir / "render.png")}
+             "png": str(out_dir / "render.png"), "json": str(out_dir / "render.json")}
     if stray is not None:
         files.update(stray_png=str(out_dir / "stray.png"), stray_exr=str(out_dir / "stray.exr"))
     from roadgonio.provenance import provenance
