@@ -66,6 +66,22 @@ class BackendError(RoadgonioError):
     """A compute backend cannot run here (for example Dr.Jit's LLVM backend needs LLVM >= 16)."""
 
 
+class Interrupted(KeyboardInterrupt):
+    """A Ctrl-C that says what the interrupted work kept: the CLI prints ``roadgonio: <note>`` and
+    exits with status 130 (``note``: e.g. how many finished points a journal keeps)."""
+
+    def __init__(self, note: str):
+        super().__init__(note)
+        self.note = note
+
+
+def is_interrupt(err: BaseException) -> bool:
+    """A Ctrl-C: a KeyboardInterrupt, or the RuntimeError Mitsuba raises when the KeyboardInterrupt
+    arrives while it builds a scene (its message holds the wrapped ``KeyboardInterrupt``, e.g.
+    ``[parser.cpp:...] failed to instantiate ... KeyboardInterrupt``)."""
+    return isinstance(err, KeyboardInterrupt) or (isinstance(err, RuntimeError) and "KeyboardInterrupt" in str(err))
+
+
 def percent(fraction: float, digits: int = 3) -> str:
     """A fraction as a percentage for messages: ``percent(0.997) == '99.7 %'`` (``:.2g`` would
     print 1e+02 %), ``percent(2e-5) == '0.00200 %'``; below 10^-digits % it says so,

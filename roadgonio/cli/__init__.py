@@ -16,7 +16,7 @@ import pkgutil
 import sys
 
 from roadgonio._version import __version__
-from roadgonio.errors import InputError, RoadgonioError
+from roadgonio.errors import InputError, RoadgonioError, is_interrupt
 
 #: Order in which commands are listed in --help (others follow alphabetically).
 ORDER = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct", "design", "road",
@@ -78,10 +78,14 @@ def main(argv: list[str] | None = None) -> int:
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, sys.stdout.fileno())
         return 141
-    except KeyboardInterrupt:
-        # each command says truthfully what an interruption keeps (``on_interrupt``, set by the
-        # command's parser or by its run() once it knows); no promise of a resume that does not exist
-        note = getattr(args, "on_interrupt", None) or "interrupted: nothing was written"
+    except (KeyboardInterrupt, RuntimeError) as err:
+        # Ctrl-C, also when Mitsuba wraps it in a RuntimeError while building a scene (is_interrupt).
+        # Each command says truthfully what an interruption keeps (the Interrupted's note, raised by the
+        # work that knows what it journaled, else ``on_interrupt``, set by the command's parser or by its
+        # run() once it knows); no promise of a resume that does not exist
+        if not is_interrupt(err):
+            raise
+        note = getattr(err, "note", None) or getattr(args, "on_interrupt", None) or "interrupted: nothing was written"
         print(f"roadgonio: {note}", file=sys.stderr)
         return 130
 

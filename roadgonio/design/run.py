@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 
-from roadgonio.errors import InputError
+from roadgonio.errors import InputError, Interrupted, is_interrupt
 from roadgonio.fileio import atomic_write_text, fingerprint, output_error, read_journal, to_json
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
@@ -208,6 +208,13 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
                     cluster_info = _cluster.describe(c)
                     t_compute = time.perf_counter()
                     _cluster.map_tables(tasks, c, on_result=on_result)
+    except (KeyboardInterrupt, RuntimeError) as err:
+        if not is_interrupt(err) or out_dir is None:
+            raise
+        complete = sum(1 for i in range(n) if feas[i].ok and all((i, j) in done for j in range(len(smp))))
+        raise Interrupted(f"interrupted: {len(done)} finished tables ({complete} of {sum(f.ok for f in feas)} "
+                          f"feasible design points complete) are kept in {out_dir / JOURNAL}; run the same "
+                          "command again to resume them") from None
     finally:
         if fh is not None:
             fh.close()

@@ -515,3 +515,47 @@ def test_validate_of_a_housed_instrument_says_what_the_user_can_do(tmp_path, cap
     line = one_line_error(capsys, rc, "portable_housed.toml", "field 'housing'", "without its [housing]",
                           "roadgonio ka --backend mitsuba")
     assert "use --backend" not in line
+
+
+@pytest.mark.parametrize("exc", [KeyboardInterrupt(), RuntimeError(
+    '[parser.cpp:3350] failed to instantiate unknown plugin of type "lummeter": KeyboardInterrupt: <EMPTY MESSAGE>')])
+def test_ctrl_c_of_design_says_what_is_kept_and_resumes(tmp_path, capsys, monkeypatch, exc):
+    """Ctrl-C after one of three points: the message counts what the journal keeps and says a rerun
+    resumes (before: 'nothing was written'); Mitsuba's RuntimeError wrapping the KeyboardInterrupt is
+    the same interrupt (before: a traceback, exit 1). The rerun resumes the kept table."""
+    import roadgonio.engines.cluster as CL
+    real = CL.map_tables
+
+    def partial(tasks, client, on_result=None, **k):
+        real(tasks[:1], client, on_result=on_result, **k)
+        raise exc
+    monkeypatch.setattr(CL, "map_tables", partial)
+    argv = ["design", "--instrument", "lab", "--sample", "lambert", "--vary", "source.radius_m=0.002,0.004,0.006",
+            "--cells", "1:0", "--backend", "quadrature", "--workers", "0", "--no-plots", "--json",
+            "--out", str(tmp_path / "d")]
+    rc = main(argv)
+    err = capsys.readouterr().err
+    assert rc == 130 and err.startswith("roadgonio: interrupted: 1 finished tables (1 of 3 feasible design points "
+                                        "complete) are kept in") and "run the same command again to resume" in err
+    assert "Traceback" not in err and "nothing was written" not in err
+    monkeypatch.setattr(CL, "map_tables", real)
+    assert main(argv) == 0
+    s = json.loads(capsys.readouterr().out)
+    assert s["tables_resumed"] == 1 and s["tables_computed"] == 2
+
+
+def test_a_runtime_error_that_is_no_interrupt_is_not_hidden(tmp_path, monkeypatch):
+    def broken(*a, **k):
+        raise RuntimeError("something else")
+    monkeypatch.setattr("roadgonio.surface.fit.fit_table", broken)
+    with pytest.raises(RuntimeError, match="something else"):
+        main(["fit", "R3", "--out", str(tmp_path / "o")])
+
+
+def test_mitsuba_wrapping_the_interrupt_is_the_interrupt(tmp_path, capsys, monkeypatch):
+    def wrapped(*a, **k):
+        raise RuntimeError('[parser.cpp:3350] failed to instantiate unknown plugin: KeyboardInterrupt')
+    monkeypatch.setattr("roadgonio.surface.fit.fit_table", wrapped)
+    rc = main(["fit", "R3", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert rc == 130 and err == "roadgonio: interrupted: no model was written (fit starts over when run again)\n"
