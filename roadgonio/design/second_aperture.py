@@ -233,15 +233,25 @@ def write_second_aperture(res: SecondApertureResult, out_dir: str | Path, *, plo
     w.writeheader()
     for r in rows:
         w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    from roadgonio.provenance import provenance
+    prov = provenance(instrument=res.instrument, settings=res.settings,
+                      quantity="roadgonio design --second-aperture: expected u of the corrected table per second "
+                               "aperture setting (roadgonio.design.second_aperture)")
     with OutputGroup(out_dir) as group:
-        paths = [group.text("second_aperture.csv", buf.getvalue()), group.json("second_aperture.json", res.summary())]
+        paths = [group.text("second_aperture.csv", buf.getvalue()),
+                 group.json("second_aperture.json", {**res.summary(), "provenance": prov})]
         if res.best.instrument is not None:
             d = res.best.instrument.to_dict()
-            d.setdefault("instrument", {})["name"] = f"{res.instrument.name}-second"
+            changes = ", ".join(f"{k} = {v:g}" for k, v in res.best.changes.items())
+            # the base's description would describe the base (its field, its pupil): say what changed
+            d["instrument"] = {**d.get("instrument", {}), "name": f"{res.instrument.name}-second",
+                               "description": f"second aperture setting of '{res.instrument.name}' (roadgonio design "
+                                              f"--second-aperture): {changes}"}
             paths.append(group.text("best_second.toml", toml_text(d, header=(
                 f"Second aperture setting of {res.instrument.name} that minimises the median u of the corrected table "
                 f"({100 * res.best.u_median:.2f} %; alone {100 * res.baselines[0].u_median:.2f} %, measured twice "
-                f"{100 * res.baselines[1].u_median:.2f} %). Made by roadgonio design --second-aperture."))))
+                f"{100 * res.baselines[1].u_median:.2f} %). Varied: {changes}. Made by roadgonio design "
+                "--second-aperture."))))
         if plots:
             from roadgonio.plots import _plt
             fig = draw_second_aperture(res)
@@ -273,7 +283,14 @@ def draw_second_aperture(res: SecondApertureResult):
                        label=f"{base.note} ({100 * getattr(base, attr):.2f})")
         ax.set_xticks(x, labels, rotation=30, ha="right", fontsize=8)
         ax.set_ylabel(what)
-        ax.legend(fontsize=8, loc="upper right")
+        from matplotlib.patches import Patch
+        handles, _ = ax.get_legend_handles_labels()
+        handles += [Patch(color="C2", label="best second setting"), Patch(color="C0", label="candidate"),
+                    Patch(color="0.75", label=f"signal below {res.settings.get('min_signal', DEFAULT_MIN_SIGNAL):g} "
+                                              "of the instrument's (not ranked)")]
+        top = max(vals + [100 * getattr(base, attr) for base in res.baselines])
+        ax.set_ylim(0.0, 1.6 * top)             # room for the legend above the bars and the baselines
+        ax.legend(handles=handles, fontsize=8, loc="upper right")
         ax.grid(alpha=0.3, axis="y")
     fig.suptitle(f"Second aperture for {res.instrument.name} (surface from {res.surface_from}); best: "
                  + ", ".join(f"{k} = {res.best.changes[k]:g}" for k in res.keys), fontsize=10)

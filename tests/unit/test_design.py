@@ -328,3 +328,40 @@ def test_api_design_study_is_what_the_command_runs():
     assert a["k_a"].sel(sample="lambert").values[np.isfinite(a["k_a"].sel(sample="lambert").values)] == \
         pytest.approx(1.0, abs=1e-12)
     assert abs(float(a["k_a"].sel(sample="model", tan_eps=12, beta=0)[1]) - 1) > 1e-3
+
+
+def _second_result():
+    from roadgonio.design.grid import build_instrument
+    from roadgonio.design.second_aperture import Candidate, SecondApertureResult
+    from roadgonio.instrument.config import load_instrument
+    base = load_instrument("portable_housed")
+    cands = []
+    for k, (f, u, sig) in enumerate([(0.1, 0.012, 0.44), (0.05, 0.010, 0.11), (0.2, 0.016, 1.8)]):
+        p = {"detector.field_half_angle_deg": f}
+        cands.append(Candidate(f"#{k + 1}", p, build_instrument(base, p), u, u, 2 * u, u / 3, signal=sig,
+                               note="" if sig >= 0.25 else "signal low"))
+    bl = [Candidate("alone", {}, base, 0.02, 0.02, 0.03, 0.007, note="the instrument alone"),
+          Candidate("twice", {}, base, 0.018, 0.02, 0.03, 0.006, note="measured twice")]
+    return SecondApertureResult(base, "sample R3", cands, bl, ["detector.field_half_angle_deg"], 1.0,
+                                settings={"min_signal": 0.25})
+
+
+def test_second_aperture_outputs_say_what_changed_and_where_they_came_from(tmp_path):
+    """best_second.toml's description names the varied setting (before: the base's, '... 0.225 deg
+    field' over a file with another field); second_aperture.json carries the provenance."""
+    import json
+    import tomllib
+
+    from roadgonio.design.second_aperture import draw_second_aperture, write_second_aperture
+    res = _second_result()
+    write_second_aperture(res, tmp_path, plots=False)
+    d = tomllib.loads((tmp_path / "best_second.toml").read_text())
+    assert d["detector"]["field_half_angle_deg"] == 0.1
+    assert d["instrument"]["description"].endswith("detector.field_half_angle_deg = 0.1")
+    assert res.instrument.description not in d["instrument"]["description"]
+    prov = json.loads((tmp_path / "second_aperture.json").read_text())["provenance"]
+    assert {"versions", "created", "instrument", "instrument_file"} <= set(prov)
+    assert prov["instrument_file"] == str(res.instrument.path)
+    fig = draw_second_aperture(res)
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+    assert {"best second setting", "candidate"} <= set(labels) and any("signal below 0.25" in t for t in labels)
