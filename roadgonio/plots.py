@@ -17,8 +17,16 @@ def _plt():
 
 
 def plain_colorbar_labels(cb) -> None:
-    """Plain numbers on a colour bar (a log scale would otherwise print 9x10^-1)."""
-    from matplotlib import ticker
+    """Plain numbers on a colour bar (a log scale would otherwise print 9x10^-1). A log colour bar
+    spanning less than a decade gets round ticks over its whole range: its decade and 2 ... 9 ticks
+    would leave a range like 0.71 ... 1.41 labelled only at 0.8, 0.9 and 1, nothing above 1."""
+    from matplotlib import colors, ticker
+    norm = cb.norm
+    if isinstance(norm, colors.LogNorm) and norm.vmin is not None and norm.vmin > 0 and norm.vmax < 10 * norm.vmin:
+        ticks = [t for t in ticker.MaxNLocator(nbins=8).tick_values(norm.vmin, norm.vmax)
+                 if norm.vmin <= t <= norm.vmax]
+        cb.set_ticks(ticks)
+        cb.minorticks_off()
     cb.ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%.3g"))
     cb.ax.yaxis.set_minor_formatter(ticker.FormatStrFormatter("%.2g"))
 
