@@ -338,7 +338,10 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
     ax.set_xlabel("field angle, horizontal (deg; left = +y)")
     ax.set_ylabel("field angle, vertical (deg)")
     ax.set_title(f"Detector's view: luminance of the sample (field half-angle {gamma:g} deg)", fontsize=10)
-    cb = fig.colorbar(im, ax=ax, shrink=0.9)
+    # the colour bar beside the square view, both centred (fig.colorbar(ax=ax) anchors the square view
+    # at the right of its wide slot: a large blank area on its left)
+    from mpl_toolkits.axes_grid1 import make_axes_locatable
+    cb = fig.colorbar(im, cax=make_axes_locatable(ax).append_axes("right", size="4%", pad=0.15))
     cb.set_label("luminance (cd/m$^2$ per lx)")
     ax.text(0.02, 0.03, "near edge of the footprint at the bottom,\nfar edge at the top", transform=ax.transAxes,
             color="white", fontsize=8, va="bottom")
