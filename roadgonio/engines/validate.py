@@ -184,7 +184,7 @@ def _check_modelled(instrument: Instrument, ref_name: str) -> None:
     for sec, what in (("housing", "a [housing] (its walls' shade and stray light)"),
                       ("scene", "a [scene] section (its extra parts)")):
         if extra.get(sec) is not None and not BACKENDS[ref_name].xml_scenes:
-            raise InputError(f"validate compares against a float64 reference, and none models {what}; validate "
+            raise InputError(f"validate compares against a float64 reference, which does not model {what}; validate "
                              f"the instrument without its [{sec}] (the same geometry bare), or compute its k_A with "
                              "'roadgonio ka --backend mitsuba' (docs/validation.md, Known limits)",
                              path=instrument.path, field=sec)
