@@ -94,7 +94,9 @@ def test_forward_surface_round_trip_inside_eq4_writes_the_diagnostics(tmp_path, 
     # r / k_A is still there, cell by cell (6 significant digits in the file)
     assert np.allclose(cells["r_over_k_a_x1e4"], cells["r_measured_x1e4"] / cells["k_a"], rtol=2e-5, atol=0)
     assert doc["summary"]["model_estimate"]["weight_median"] == pytest.approx(np.median(cells["w_model"]), abs=1e-3)
-    assert fit["discrepancy"]["sigma_rest"] < 0.002
+    # an eq. 4 surface is smooth away from the peak quadrant (beta <= 12, eps >= 45 deg: b0e1)
+    away = {k: v for k, v in fit["discrepancy"]["sigma_by_region"].items() if k != "b0e1"}
+    assert len(away) == 3 and max(away.values()) < 0.002, fit["discrepancy"]["sigma_by_region"]
 
 
 @pytest.fixture(scope="module")
