@@ -91,10 +91,18 @@ def run(args) -> int:
     say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {s['cells']} cells "
         f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
         f"{api.precision_text(s)}, {s['seconds_wall_this_run']:.1f} s."
-        + (f" Stray light: up to {100 * s['stray_fraction_max']:.1f} % of the signal; the direct light alone gives "
-           f"k_A {s['k_a_direct_min']:.3f} ... {s['k_a_direct_max']:.3f}." if "stray_fraction_max" in s else ""))
+        + (_stray_text(s) if "stray_fraction_max" in s else ""))
     say(f"wrote {ds.attrs['out']}/{ds.attrs['files']}")
     return 0
+
+
+def _stray_text(s) -> str:
+    text = f" Stray light: up to {100 * s['stray_fraction_max']:.1f} % of the signal; "
+    if s.get("k_a_direct_min") is None:
+        return text + "no cell gets direct light from its source."
+    text += f"the direct light alone gives k_A {s['k_a_direct_min']:.3f} ... {s['k_a_direct_max']:.3f}"
+    n = s.get("cells_without_direct_light", 0)
+    return text + (f" ({n} cells get no direct light from their source)." if n else ".")
 
 
 def _not_converged_text(c, target) -> str:

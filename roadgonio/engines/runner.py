@@ -282,8 +282,11 @@ def summary(ds) -> dict[str, Any]:
                resumed_cells=int(ds.attrs["resumed_cells"]))
     if has_stray_light(ds):
         kd = ds["k_a_direct"].values[done]
+        ok = np.isfinite(kd)
         out.update(stray_fraction_max=float(np.nanmax(ds["stray_fraction"].values[done])),
-                   k_a_direct_min=float(kd.min()), k_a_direct_max=float(kd.max()))
+                   k_a_direct_min=float(kd[ok].min()) if ok.any() else None,
+                   k_a_direct_max=float(kd[ok].max()) if ok.any() else None,
+                   cells_without_direct_light=int((~ok).sum()))
     return out
 
 
