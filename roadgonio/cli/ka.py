@@ -76,8 +76,9 @@ def run(args) -> int:
                                  if c.stray_fraction != 0.0 else ""))
         return 0
 
-    args.on_interrupt = ("interrupted: the finished cells are kept in the output folder's journal; run the same "
-                         "command again to resume")
+    args.on_interrupt = ("interrupted: the finished cells are kept in the output folder's journal (with the Mitsuba "
+                         "backend also the other cells' last completed pass, ka_passes.json); run the same command "
+                         "again to resume")
     # a table's map is drawn by a helper process that loads matplotlib while the table is computed
     # (roadgonio.plotproc: 0.7 s of start-up a thread cannot hide)
     with api.figure_process() as figures:
