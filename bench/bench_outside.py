@@ -24,12 +24,18 @@ bench/results/outside.csv.
     python bench/bench_outside.py [--regenerate] [--truths microfacet,two_lobes,table,eq4]
                                   [--backend quadrature] [--only single|joint]
                                   [--smoothing evidence|gcv] [--discrepancy-ell 1.0|none]
-                                  [--estimate combined|measured]
+                                  [--estimate combined|measured] [--regions grid|peak]
+                                  [--beta-edges 12] [--eps-edges 45]
 
 ``--estimate measured`` makes the corrected table r / k_A alone (combined across instruments), as it was
 before the fitted surface's own value was weighed in. ``--smoothing`` chooses how the data set the surface's smoothing parameters (the evidence, the
 default, or generalised cross-validation); ``--discrepancy-ell`` the correlation length (knot
 spacings) of the discrepancy component of u, ``none`` to leave it out (what u was before it).
+``--regions grid`` (the default) gives the roughness penalty its own smoothing parameters in every
+band of beta (edges ``--beta-edges``, default 12 deg) times band of eps (``--eps-edges``, default
+45 deg); ``--regions peak`` the peak region (beta <= 12, eps >= 45 deg) and the rest, as before.
+The column ``lnev`` is the ln evidence of the best backbone variant (comparable between runs of the
+same truth and instruments only).
 """
 from __future__ import annotations
 
@@ -115,9 +121,9 @@ def verdict(kind: str, s: dict) -> str:
 COLS = [("truth", 10, "s"), ("method", 22, "s"), ("rms_pct", 6, ".2f"), ("max_pct", 6, ".2f"),
         ("within_2u_pct", 6, ".1f"), ("beyond_4u", 4, "d"), ("rms_z", 5, ".2f"), ("S1_true", 6, ".3f"),
         ("S1", 6, ".3f"), ("z_S1", 6, ".2f"), ("u_S1_pct", 6, ".2f"), ("u_median_pct", 6, ".2f"),
-        ("u_disc_median_pct", 6, ".2f"), ("birge", 5, ".2f"), ("k_a_min", 5, ".2f"), ("seconds", 6, ".1f"), ("targets", 8, "s"), ("load", 14, "s")]
+        ("u_disc_median_pct", 6, ".2f"), ("ln_evidence", 8, ".1f"), ("birge", 5, ".2f"), ("k_a_min", 5, ".2f"), ("seconds", 6, ".1f"), ("targets", 8, "s"), ("load", 14, "s")]
 HEAD = {"rms_pct": "RMS%", "max_pct": "max%", "within_2u_pct": "in2u%", "beyond_4u": ">4u", "rms_z": "rmsz",
-        "u_S1_pct": "uS1%", "u_median_pct": "umed%", "u_disc_median_pct": "udisc%", "k_a_min": "kmin", "seconds": "s"}
+        "u_S1_pct": "uS1%", "u_median_pct": "umed%", "u_disc_median_pct": "udisc%", "ln_evidence": "lnev", "k_a_min": "kmin", "seconds": "s"}
 
 
 def print_row(r: dict) -> None:
@@ -147,17 +153,27 @@ def main() -> int:
     ap.add_argument("--discrepancy-ell", default=None,
                     help="correlation length of the discrepancy component (knot spacings; default the "
                          "library's), or none to leave it out")
+    ap.add_argument("--regions", choices=["grid", "peak"], default="grid",
+                    help="the roughness penalty's regions, each with its own smoothing (default grid: the bands "
+                         "of --beta-edges times those of --eps-edges; peak: the peak region and the rest)")
+    ap.add_argument("--beta-edges", default="12", help="with --regions grid: band edges of beta (deg)")
+    ap.add_argument("--eps-edges", default="45", help="with --regions grid: band edges of eps (deg)")
     args = ap.parse_args()
     from roadgonio.correction.flexible import DISCREPANCY_ELL, SurfaceSettings
     ell = DISCREPANCY_ELL if args.discrepancy_ell is None else (
         None if args.discrepancy_ell.lower() == "none" else float(args.discrepancy_ell))
-    surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell,
+    edges = {}
+    if args.regions == "grid":
+        edges = {"grid_beta_edges_deg": tuple(float(e) for e in args.beta_edges.split(",")),
+                 "grid_eps_edges_deg": tuple(float(e) for e in args.eps_edges.split(","))}
+    surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell, regions=args.regions, **edges,
                               model_estimate=args.estimate == "combined")
     from roadgonio import api
     from roadgonio.instrument.config import Instrument
     insts = {w: Instrument.load(p) for w, p in INSTRUMENTS.items()}
     print(f"machine: {os.cpu_count()} cores; load average at start {load()}; backend {args.backend}; "
-          f"noise {100 * NOISE:g} %; smoothing {args.smoothing}; discrepancy ell {ell}; estimate {args.estimate}")
+          f"noise {100 * NOISE:g} %; smoothing {args.smoothing}; discrepancy ell {ell}; estimate {args.estimate}; "
+          f"regions {args.regions} {edges or ''}")
     print("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
     rows: list[dict] = []
     for n, kind in enumerate(args.truths.split(",")):
@@ -181,6 +197,7 @@ def main() -> int:
                 sec = time.perf_counter() - t0
                 s = scores(res.corrected, res.budget.u_rel(), res.after, truth, res.budget)
                 rows.append({"truth": kind, "method": f"{w} alone (surface)", **s, "birge": res.fit.birge,
+                             "ln_evidence": max(v["log_evidence"] for v in res.fit.summary()["variants"]),
                              "k_a_min": float(np.nanmin(res.k_a)), "seconds": sec, "targets": verdict(kind, s),
                              "load": load()})
                 print_row(rows[-1])
@@ -192,6 +209,7 @@ def main() -> int:
             truth = tabs["A"][1]
             s = scores(res.corrected, res.budget.u_rel(), res.after, truth, res.budget)
             rows.append({"truth": kind, "method": "A + B joint", **s, "birge": res.best.fit.birge,
+                         "ln_evidence": max(v.fit.log_evidence for v in res.variants),
                          "k_a_min": float(np.nanmin(res.parts[0].k_a)), "seconds": sec, "targets": verdict(kind, s),
                          "load": load()})
             print_row(rows[-1])
@@ -202,6 +220,11 @@ def main() -> int:
         name = name.replace(".csv", f"_{args.backend}.csv")
     if args.estimate != "combined":
         name = name.replace(".csv", f"_{args.estimate}.csv")
+    if args.regions == "peak":
+        name = name.replace(".csv", "_peak.csv")
+    elif (args.beta_edges, args.eps_edges) != ("12", "45"):
+        tag = f"{args.regions}-{args.beta_edges.replace(',', '-')}_{args.eps_edges.replace(',', '-')}"
+        name = name.replace(".csv", f"_{tag}.csv")
     with open(RESULTS / name, "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS], extrasaction="ignore")
         wr.writeheader()

@@ -641,8 +641,9 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
                          "table", field="model_variant")
     from roadgonio.limits import check_size
     rays = check_size(_check_int(rays, "rays", 8), "rays", "rays")
-    from roadgonio.engines.registry import backend_info
+    from roadgonio.engines.registry import backend_info, check_capabilities
     seeded = backend_info(backend).seeded
+    check_capabilities(backend_info(backend), inst)      # before any fitting, not after it
     settings = resolve_settings(backend, tolerance=rel_se, seed=seed if seeded else None, mitsuba_variant=mitsuba_variant,
                                 fields={"tolerance": "rel_se"})
     if scheduler is None and workers in (None, 0):
@@ -681,7 +682,8 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
     """:func:`correct` with ``joint=True`` (one surface through several instruments)."""
     from roadgonio.correction import correct_joint
     from roadgonio.correction.run import check_measured
-    from roadgonio.engines.registry import backend_info, check_seed, prepare_entry_point, resolve_settings
+    from roadgonio.engines.registry import (backend_info, check_capabilities, check_seed, prepare_entry_point,
+                                            resolve_settings)
     if not (isinstance(reference, str) and reference.strip().lower() == "self"):
         raise InputError("a joint correction fits one surface through the instruments: reference must be 'self'",
                          field="--reference")
@@ -702,6 +704,8 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
         tables.append(t)
     seed = check_seed(seed)
     instruments = [_instrument(i) for i in insts]
+    for i in instruments:
+        check_capabilities(backend_info(backend), i)     # before any fitting, not after it
     rays = _check_int(rays, "rays", 8)
     settings = resolve_settings(backend, tolerance=rel_se, seed=seed if backend_info(backend).seeded else None,
                                 mitsuba_variant=mitsuba_variant, fields={"tolerance": "rel_se"})
@@ -731,6 +735,12 @@ def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured:
     from roadgonio.design.second_aperture import write_second_aperture
     from roadgonio.engines.registry import check_seed
     inst = _instrument(instrument)
+    for v in ([vary] if isinstance(vary, str) else list(vary or [])):
+        key = str(v).split("=", 1)[0].strip()
+        if key.startswith(("housing.", "scene.")):
+            raise InputError(f"{key}: the second aperture's prediction (ray bundles through the optics) does not "
+                             "model a housing or scene parts; vary the optics (source, detector, observation)",
+                             field="--vary")
     from roadgonio.design.grid import as_vary_specs, check_vary
     check_vary(inst, as_vary_specs(vary))                 # before the surface is fitted
     table = None if measured is None else _table(measured, "measured")

@@ -97,11 +97,7 @@ def renders() -> None:
 
 
 def design() -> None:
-    base = HERE / "baffle_base.toml"
-    text = (ROOT / "scenes" / "portable_housed.toml").read_text()
-    base.write_text(text.replace("wall_reflectance = 0.05    # matt black paint",
-                                 "wall_reflectance = 0.05    # matt black paint\n"
-                                 "baffles = [{x_m = -0.5, height_m = 0.0}]   # varied by the design"))
+    base = ROOT / "scenes" / "portable_housed_baffle.toml"
     with tempfile.TemporaryDirectory() as tmp:
         subprocess.run([sys.executable, "-m", "roadgonio", "design", "--instrument", str(base), "--sample", "R3",
                         "--vary", "housing.wall_reflectance=0.005,0.01,0.02,0.05,0.1",
@@ -111,7 +107,6 @@ def design() -> None:
         shutil.copy(Path(tmp) / "tolerance_map.png", HERE / "design_tolerance_map.png")
         if (Path(tmp) / "best.toml").exists():
             shutil.copy(Path(tmp) / "best.toml", HERE / "design_best.toml")
-    base.unlink()
 
 
 def main(argv=None) -> int:

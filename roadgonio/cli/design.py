@@ -69,12 +69,30 @@ def register(sub) -> None:
     p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
     p.add_argument("--no-plots", action="store_true", help="do not draw pareto.png / tolerance_map.png")
     add_output_options(p, "print the summary as JSON")
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, _defaults={d: p.get_default(d) for d in _SWEEP_ONLY + _SECOND_ONLY})
+
+
+#: options of the k_A sweep that --second-aperture does not use (it predicts u from ray bundles of
+#: the whole table, no k_A backend, no tolerance) and the other way round
+_SWEEP_ONLY = ("tolerance", "cells", "backend", "accuracy", "rel_se", "workers", "scheduler", "fresh",
+               "mitsuba_variant")
+_SECOND_ONLY = ("measured", "u_measured", "min_signal", "rays")
+
+
+def _refuse_unused(args, names, why: str) -> None:
+    from roadgonio.errors import InputError
+    given = [n for n in names if getattr(args, n) != args._defaults[n]]
+    if given:
+        opts = ", ".join("--" + ("variant" if n == "mitsuba_variant" else n.replace("_", "-")) for n in given)
+        raise InputError(f"{opts} {'is' if len(given) == 1 else 'are'} not used {why}", field=opts.split(", ")[0])
 
 
 def run(args) -> int:
     if args.second_aperture:
+        _refuse_unused(args, _SWEEP_ONLY, "with --second-aperture (it predicts the corrected table's u over the "
+                                          "whole table from ray bundles: no k_A backend, cells or tolerance)")
         return _run_second(args)
+    _refuse_unused(args, _SECOND_ONLY, "without --second-aperture")
     if not args.samples:
         from roadgonio.errors import InputError
         raise InputError("expected at least one --sample (the surfaces you expect)", field="--sample")
@@ -129,6 +147,10 @@ def _run_second(args) -> int:
     a, t, b = res.baselines[0], res.baselines[1], res.best
     say(f"second aperture for '{res.instrument.name}' (surface from {res.surface_from}): {len(res.candidates)} "
         f"settings, {res.seconds:.1f} s")
+    extra = res.instrument.extra if hasattr(res.instrument.extra, "get") else {}
+    if extra.get("housing") is not None or extra.get("scene"):
+        say("  note: the prediction's ray bundles leave out the instrument's housing / scene parts (their shade "
+            "and stray light), as the surface fit of `correct` does")
     say(f"  alone: median u {100 * a.u_median:.2f} %, u(S1) {100 * a.u_s1_rel:.2f} %; measured twice: "
         f"{100 * t.u_median:.2f} %, {100 * t.u_s1_rel:.2f} %")
     say("  best second setting: " + ", ".join(f"{k} = {v:g}" for k, v in b.changes.items())

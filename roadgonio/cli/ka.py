@@ -78,8 +78,9 @@ def run(args) -> int:
                                  if c.stray_fraction != 0.0 else ""))
         return 0
 
-    args.on_interrupt = ("interrupted: the finished cells are kept in the output folder's journal; run the same "
-                         "command again to resume")
+    args.on_interrupt = ("interrupted: the finished cells are kept in the output folder's journal (with the Mitsuba "
+                         "backend also the other cells' last completed pass, ka_passes.json); run the same command "
+                         "again to resume")
     # a table's map is drawn by a helper process that loads matplotlib while the table is computed
     # (roadgonio.plotproc: 0.7 s of start-up a thread cannot hide)
     with api.figure_process() as figures:
@@ -93,10 +94,18 @@ def run(args) -> int:
     say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {s['cells']} cells "
         f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
         f"{api.precision_text(s)}, {s['seconds_wall_this_run']:.1f} s."
-        + (f" Stray light: up to {100 * s['stray_fraction_max']:.1f} % of the signal; the direct light alone gives "
-           f"k_A {s['k_a_direct_min']:.3f} ... {s['k_a_direct_max']:.3f}." if "stray_fraction_max" in s else ""))
+        + (_stray_text(s) if "stray_fraction_max" in s else ""))
     say(f"wrote {ds.attrs['out']}/{ds.attrs['files']}")
     return 0
+
+
+def _stray_text(s) -> str:
+    text = f" Stray light: up to {100 * s['stray_fraction_max']:.1f} % of the signal; "
+    if s.get("k_a_direct_min") is None:
+        return text + "no cell gets direct light from its source."
+    text += f"the direct light alone gives k_A {s['k_a_direct_min']:.3f} ... {s['k_a_direct_max']:.3f}"
+    n = s.get("cells_without_direct_light", 0)
+    return text + (f" ({n} cells get no direct light from their source)." if n else ".")
 
 
 def _not_converged_text(c, target) -> str:

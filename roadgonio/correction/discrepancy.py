@@ -250,16 +250,17 @@ def beyond_nyquist_variance(lam_beta: float, lam_eps: float, n_phi: int = 4096) 
     return float(np.sum(1.0 / (2.0 * r0 ** 2 * q)) * (2.0 * math.pi / n_phi) / (4.0 * math.pi ** 2))
 
 
-def amplitude_from_penalty(lam: dict, peak: np.ndarray) -> np.ndarray:
+def amplitude_from_penalty(lam: dict, region: np.ndarray) -> np.ndarray:
     """Per cell, sigma^2 of delta: :func:`beyond_nyquist_variance` of the evidence-chosen smoothing
-    parameters of the cell's region (``peak``: bool per cell; the blocks ``beta_peak``, ``eps_peak``,
-    ``beta_rest``, ``eps_rest`` of :func:`roadgonio.correction.flexible.penalty_blocks`; a region
-    without its own blocks takes the other's)."""
-    def region(name):
-        b, e = lam.get(f"beta_{name}"), lam.get(f"eps_{name}")
-        return None if b is None or e is None else beyond_nyquist_variance(b, e)
-
-    v_peak, v_rest = region("peak"), region("rest")
-    v_peak = v_rest if v_peak is None else v_peak
-    v_rest = v_peak if v_rest is None else v_rest
-    return np.where(np.asarray(peak, dtype=bool), v_peak, v_rest)
+    parameters of the cell's penalty region (``region``: its name per cell,
+    :func:`roadgonio.correction.flexible.penalty_region`; the blocks ``beta_<region>`` and
+    ``eps_<region>`` of :func:`roadgonio.correction.flexible.penalty_blocks`). A region without its
+    own blocks (no difference centred in it) takes the mean variance of the regions that have them."""
+    region = np.asarray(region)
+    names = {k.split("_", 1)[1] for k in lam if k.startswith("beta_")} & {k.split("_", 1)[1] for k in lam
+                                                                         if k.startswith("eps_")}
+    v = {n: beyond_nyquist_variance(lam[f"beta_{n}"], lam[f"eps_{n}"]) for n in sorted(names)}
+    if not v:
+        raise ValueError("no region has smoothing parameters along both beta and eps")
+    fallback = float(np.mean(list(v.values())))
+    return np.array([v.get(str(n), fallback) for n in region.ravel()], dtype=np.float64).reshape(region.shape)

@@ -75,6 +75,8 @@ LAM_TOL = 0.05
 #: The peak region of the penalties (penalty_blocks).
 PEAK_BETA_DEG = 12.0
 PEAK_EPS_DEG = 45.0
+#: How the penalties are split into regions (SurfaceSettings.regions, penalty_region).
+REGIONS = ("peak", "grid")
 #: Stop the mode search when the penalised chi^2 changes by less than this (relative).
 MODE_RTOL = 1e-8
 MAX_MODE_STEPS = 60
@@ -95,6 +97,13 @@ class SurfaceSettings:
     d_prior_sd: float = D_PRIOR_SD
     peak_beta_deg: float = PEAK_BETA_DEG
     peak_eps_deg: float = PEAK_EPS_DEG
+    #: the regions of the penalties, each with its own smoothing parameters (penalty_region):
+    #: "grid" (the bands of beta between grid_beta_edges_deg times those of eps between
+    #: grid_eps_edges_deg; by default the four quadrants about the peak region's corner) or "peak"
+    #: (beta <= peak_beta_deg and eps >= peak_eps_deg, and the rest; what it was before)
+    regions: str = "grid"
+    grid_beta_edges_deg: tuple[float, ...] = (PEAK_BETA_DEG,)
+    grid_eps_edges_deg: tuple[float, ...] = (PEAK_EPS_DEG,)
     lam: float | None = None         # one fixed smoothing parameter for every block instead of the evidence
     #: how the data choose the smoothing parameters: "evidence" (the marginal likelihood) or "gcv"
     #: (generalised cross-validation); bench/bench_outside.py --smoothing compares them
@@ -111,6 +120,15 @@ class SurfaceSettings:
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
             raise InputError(f"expected a positive prior standard deviation of g_D, got {self.d_prior_sd}",
                              field="d_prior_sd")
+        for name in ("grid_beta_edges_deg", "grid_eps_edges_deg"):
+            edges = tuple(float(e) for e in getattr(self, name))
+            if not all(math.isfinite(e) and 0.0 < e < 180.0 for e in edges) or list(edges) != sorted(set(edges)):
+                raise InputError(f"expected increasing band edges in degrees inside (0, 180), got {list(edges)}",
+                                 field=name)
+            object.__setattr__(self, name, edges)
+        if self.regions not in REGIONS:
+            raise InputError(f"expected the penalty regions to be one of {', '.join(REGIONS)}, got {self.regions!r}",
+                             field="regions")
         if self.smoothing not in SMOOTHING:
             raise InputError(f"expected the smoothing criterion to be one of {', '.join(SMOOTHING)}, got "
                              f"{self.smoothing!r}", field="smoothing")
@@ -130,7 +148,9 @@ class SurfaceSettings:
         from dataclasses import asdict
         return {"c_grid": asdict(self.c_grid), "d_grid": None if self.d_grid is None else asdict(self.d_grid),
                 "d_prior_sd": self.d_prior_sd, "peak_beta_deg": self.peak_beta_deg,
-                "peak_eps_deg": self.peak_eps_deg, "lam": self.lam, "smoothing": self.smoothing, "discrepancy_ell": self.discrepancy_ell,
+                "peak_eps_deg": self.peak_eps_deg, "regions": self.regions,
+                "grid_beta_edges_deg": list(self.grid_beta_edges_deg), "grid_eps_edges_deg": list(self.grid_eps_edges_deg),
+                "lam": self.lam, "smoothing": self.smoothing, "discrepancy_ell": self.discrepancy_ell,
                 "model_estimate": self.model_estimate}
 
 
@@ -362,21 +382,34 @@ class SurfaceFit:
                 "seconds": self.seconds, "settings": self.settings.to_dict()}
 
 
+def penalty_region(settings: SurfaceSettings, beta_deg, eps_deg) -> np.ndarray:
+    """The penalty region (a name) of each point (beta, eps) in degrees: with ``regions="peak"``,
+    "peak" where beta <= peak_beta_deg and eps >= peak_eps_deg (where road BRDFs have their narrow
+    specular peak) and "rest" elsewhere; with ``"grid"``, "b{i}e{j}" for the i-th band of beta
+    between ``grid_beta_edges_deg`` and the j-th of eps between ``grid_eps_edges_deg``."""
+    beta = np.asarray(beta_deg, dtype=np.float64)
+    eps = np.asarray(eps_deg, dtype=np.float64)
+    if settings.regions == "peak":
+        return np.where((beta <= settings.peak_beta_deg) & (eps >= settings.peak_eps_deg), "peak", "rest")
+    i = np.searchsorted(np.asarray(settings.grid_beta_edges_deg, dtype=np.float64), beta, side="left")
+    j = np.searchsorted(np.asarray(settings.grid_eps_edges_deg, dtype=np.float64), eps, side="right")
+    return np.char.add(np.char.add("b", i.astype(str)), np.char.add("e", j.astype(str)))
+
+
 def penalty_blocks(settings: SurfaceSettings) -> tuple[list[str], list[np.ndarray]]:
     """The roughness penalties of g_C, one smoothing parameter each: the squared second
-    differences along beta and along eps, each split into the peak region (difference centred at
-    beta <= PEAK_BETA_DEG and eps >= PEAK_EPS_DEG, where road BRDFs have their narrow specular peak)
-    and the rest. Returns (names, matrices over theta_C)."""
+    differences of the node values along beta and along eps, each split by the region of the
+    difference's centre (:func:`penalty_region`). Returns (names ``{direction}_{region}``,
+    matrices over theta_C)."""
     g = settings.c_grid
     beta, eps = g.node_coordinates()
     names, mats = [], []
     for direction, (D, centre) in zip(("beta", "eps"), g.differences()):
-        peak = (beta[centre[:, 0]] <= settings.peak_beta_deg) & (eps[centre[:, 1]] >= settings.peak_eps_deg)
-        for region, sel in (("peak", peak), ("rest", ~peak)):
-            if sel.any():
-                Ds = D[sel]
-                names.append(f"{direction}_{region}")
-                mats.append(Ds.T @ Ds)
+        region = penalty_region(settings, beta[centre[:, 0]], eps[centre[:, 1]])
+        for name in sorted(set(region.tolist()), key=lambda n: (n == "rest", n)):
+            Ds = D[region == name]
+            names.append(f"{direction}_{name}")
+            mats.append(Ds.T @ Ds)
     return names, mats
 
 

@@ -572,14 +572,15 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     i for each (i, k) (:func:`roadgonio.correction.discrepancy.nominal_blur`: error -delta(x0))."""
     from roadgonio.correction.discrepancy import (amplitude_from_penalty, discrepancy_correlation, nominal_blur,
                                                   part_blurs)
+    from roadgonio.correction.flexible import penalty_region
     ell = float(settings.discrepancy_ell)
     nominal = list(nominal or [])
     cells = [c for p in parts for c in p.forward.bundles.cells] + [parts[i].forward.bundles.cells[k]
                                                                   for i, k in nominal]
     eps = np.degrees(np.arctan([t for t, _ in cells]))
     beta = np.array([b for _, b in cells])
-    peak = (beta <= settings.peak_beta_deg) & (eps >= settings.peak_eps_deg)
-    sig2 = sum(w * amplitude_from_penalty(lam, peak) for w, lam in weighted_lam)
+    region = penalty_region(settings, beta, eps)
+    sig2 = sum(w * amplitude_from_penalty(lam, region) for w, lam in weighted_lam)
     cache = {} if blurs is None else blurs
     for p in parts:
         if id(p) not in cache:
@@ -603,8 +604,7 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     dR = np.diag(R)[:n_par]
     info = {"ell_knots": ell, "amplitude": "the roughness prior of g_C (evidence-chosen smoothing) beyond the "
                                            "knots' Nyquist wavenumber, per region",
-            "sigma_peak": float(np.max(s[peak])) if peak.any() else None,
-            "sigma_rest": float(np.max(s[~peak])) if (~peak).any() else None,
+            "sigma_by_region": {str(n): float(np.max(s[region == n])) for n in np.unique(region)},
             "bracket_max": float(np.max(dR)), "bracket_median": float(np.median(dR))}
     return np.outer(s, s) * R, info
 

@@ -18,6 +18,8 @@ Output folder (``--out DIR``):
 """
 from __future__ import annotations
 
+import inspect
+import json
 import os
 import sys
 import time
@@ -36,6 +38,9 @@ from roadgonio.engines.result import CellResult, KaBackend
 
 JOURNAL = "ka_cells.jsonl"
 META = "ka.json"
+#: A batched backend's state between passes (the cells not finished yet), so that a table cut short
+#: resumes from its last pass instead of from nothing; removed when the table is done.
+PASSES = "ka_passes.json"
 #: The journal is rewritten at most this often (seconds) while cells arrive.
 FLUSH_SECONDS = 1.0
 
@@ -118,7 +123,7 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
         except OSError as err:
             raise output_error(journal, err) from None
         if fresh:
-            for old in (journal, out_dir / META):
+            for old in (journal, out_dir / META, out_dir / PASSES):
                 try:
                     if old.exists():
                         old.unlink()
@@ -153,9 +158,13 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
             bar.update(1)
             bar.set_postfix_str(f"tan={c.tan_eps:g} beta={c.beta_deg:g} k_A={c.k_a:.4g}")
 
+    passes = None
+    if journal is not None and todo and "checkpoint" in inspect.signature(backend.compute).parameters:
+        passes = PassCheckpoint(out_dir / PASSES, fp)
     try:
         if todo:
-            returned = backend.compute(todo, on_cell=on_cell)
+            returned = (backend.compute(todo, on_cell=on_cell) if passes is None
+                        else backend.compute(todo, on_cell=on_cell, checkpoint=passes))
             for c in returned:   # backends that do not call on_cell
                 if _cell_key(c.tan_eps, c.beta_deg) not in done:
                     on_cell(c)
@@ -163,8 +172,40 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
         flush()
         if bar is not None:
             bar.close()
+    if passes is not None:
+        passes.clear()
     results = [done[_cell_key(*c)] for c in cells if _cell_key(*c) in done]
     return KaRun(results=results, seconds=time.perf_counter() - t0, resumed=resumed)
+
+
+class PassCheckpoint:
+    """The state a batched backend saves after each pass (``ka_passes.json``: the cells not
+    finished yet and their statistics, :meth:`roadgonio.engines.mitsuba.engine.KaEngine.run`),
+    under the run's fingerprint: a table interrupted mid-way resumes from its last completed pass
+    with the same numbers. A state of another run, or unreadable, is ignored (the cells are
+    computed again); JSON with every float exact."""
+
+    def __init__(self, path: Path, fp: str):
+        self.path, self.fp = Path(path), fp
+
+    def load(self) -> dict | None:
+        try:
+            doc = json.loads(self.path.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+        return doc.get("state") if isinstance(doc, dict) and doc.get("fingerprint") == self.fp else None
+
+    def save(self, state: dict) -> None:
+        atomic_write(self.path, lambda p: p.write_text(json.dumps({"fingerprint": self.fp, "state": state}),
+                                                       encoding="utf-8"))
+
+    def clear(self) -> None:
+        try:
+            self.path.unlink()
+        except FileNotFoundError:
+            pass
+        except OSError as err:
+            raise output_error(self.path, err) from None
 
 
 #: The data variables of a k_A Dataset from the fields of CellResult: (long name, units, description).
@@ -282,8 +323,11 @@ def summary(ds) -> dict[str, Any]:
                resumed_cells=int(ds.attrs["resumed_cells"]))
     if has_stray_light(ds):
         kd = ds["k_a_direct"].values[done]
+        ok = np.isfinite(kd)
         out.update(stray_fraction_max=float(np.nanmax(ds["stray_fraction"].values[done])),
-                   k_a_direct_min=float(kd.min()), k_a_direct_max=float(kd.max()))
+                   k_a_direct_min=float(kd[ok].min()) if ok.any() else None,
+                   k_a_direct_max=float(kd[ok].max()) if ok.any() else None,
+                   cells_without_direct_light=int((~ok).sum()))
     return out
 
 

@@ -223,7 +223,9 @@ def check_detector_view(instrument, housing: Housing) -> Box:
 
 
 def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, float]]) -> None:
-    """Every requested cell's source disc lies inside the box and crosses no baffle; else a
+    """Every requested cell's source disc lies inside the box, crosses no baffle, and no baffle stands
+    in the line from its centre to the sample centre (a baffle may shade part of the footprint, not
+    the nominal direction: no direct light there would make k_A meaningless); else a
     :class:`GeometryError` naming the first such cell, the wall or baffle, and how many cells."""
     if not cells:
         return
@@ -231,7 +233,7 @@ def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, flo
     discs = source_discs(instrument, cells)
     bad: list[tuple[tuple[float, float], str]] = []
     for cell, pts in zip(cells, discs):
-        wall = _outside(pts, box, housing.lid)
+        wall, sight = _outside(pts, box, housing.lid), False
         if wall is None:
             rim = pts[:-1]
             nxt = np.roll(rim, -1, axis=0)
@@ -247,12 +249,25 @@ def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, flo
                     if (z[cross] < bf.height_m).any():
                         wall = f"baffle {k} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm high)"
                         break
+                # the line from the disc's centre to the sample centre (the cell's nominal direction)
+                c = pts[-1]
+                if (c[0] - bf.x_m) * (0.0 - bf.x_m) < 0.0:
+                    z_line = c[2] * (bf.x_m / c[0])
+                    if z_line < bf.height_m:
+                        wall = (f"baffle {k} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm "
+                                f"high) stands in the source's line of sight to the sample centre (the line passes "
+                                f"{1000 * z_line:.3g} mm above the floor there); lower or move the baffle, or leave the "
+                                "cell out")
+                        sight = True
+                        break
         if wall is not None:
-            bad.append(((float(cell[0]), float(cell[1])), wall))
+            bad.append(((float(cell[0]), float(cell[1])), wall, sight))
     if bad:
-        (t, b), wall = bad[0]
+        (t, b), wall, sight = bad[0]
         more = f" (and {len(bad) - 1} more cells)" if len(bad) > 1 else ""
         src = instrument.source
+        if sight:
+            raise GeometryError(f"the housing blocks the source at tan eps = {t:g}, beta = {b:g}{more}: {wall}")
         raise GeometryError(
             f"the housing blocks the source at tan eps = {t:g}, beta = {b:g}{more}: its disc (radius "
             f"{src.radius_m:g} m, {src.length_key[:-2]} {src.length_m:g} m) reaches {wall}; enlarge the housing or leave the cell out")

@@ -121,6 +121,40 @@ def test_plan_replay_gives_common_random_numbers():
         make_backend("mitsuba", inst, ROAD, plan=a.last_plan).compute(BATCH[:3])
 
 
+
+def test_a_table_cut_short_between_passes_resumes_with_the_same_numbers(tmp_path):
+    """The engine saves its state after every pass (runner.PassCheckpoint); a table interrupted after
+    its first pass and resumed from that state gives every unfinished cell bit for bit the k_A, SE
+    and samples of the run that was not interrupted (a cell's numbers depend only on the seed, the
+    pass, the lattice size and its replicates); a state of other cells is ignored."""
+    from roadgonio.engines import make_backend
+    from roadgonio.engines.runner import PassCheckpoint
+    b = make_backend("mitsuba", preset("portable"), ROAD, rel_se=2e-4, seed=4)
+    full = {(r.tan_eps, r.beta_deg): r for r in b.compute(BATCH)}
+    assert b.last_run.passes >= 3
+
+    class StopAfterFirst(PassCheckpoint):
+        def save(self, state):
+            super().save(state)
+            raise KeyboardInterrupt
+
+    path = tmp_path / "ka_passes.json"
+    finished = []
+    with pytest.raises(KeyboardInterrupt):
+        b.compute(BATCH, on_cell=finished.append, checkpoint=StopAfterFirst(path, "fp"))
+    left = [c for c in BATCH if c not in {(r.tan_eps, r.beta_deg) for r in finished}]
+    assert 0 < len(left) <= len(BATCH)
+    state = PassCheckpoint(path, "fp").load()
+    assert state is not None and state["pass"] == 1 and [tuple(c) for c in state["cells"]] == left
+    assert PassCheckpoint(path, "another run").load() is None
+    again = b.compute(left, checkpoint=PassCheckpoint(path, "fp"))
+    assert b.last_run.info.get("resumed_from_pass") == 1
+    for r in again:
+        f = full[(r.tan_eps, r.beta_deg)]
+        assert (r.k_a, r.se, r.samples) == (f.k_a, f.se, f.samples)
+    fresh = b.compute(left[:-1], checkpoint=PassCheckpoint(path, "fp"))       # other cells: the state is ignored
+    assert "resumed_from_pass" not in b.last_run.info and len(fresh) == len(left) - 1
+
 @pytest.mark.parametrize("name", ["lab", "portable"])
 def test_batched_table_agrees_with_the_float64_quadrature(name):
     """The batched engine on cells across the table (the specular peak included) against the

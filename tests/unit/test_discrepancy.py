@@ -113,10 +113,10 @@ def test_amplitude_scales_as_one_over_lambda_and_follows_the_region():
     cells take the peak blocks' value, the others the rest's; no peak blocks: the rest's for all."""
     assert beyond_nyquist_variance(10.0, 30.0) == pytest.approx(beyond_nyquist_variance(5.0, 15.0) / 2, rel=1e-12)
     lam = {"beta_peak": 4.0, "eps_peak": 16.0, "beta_rest": 100.0, "eps_rest": 400.0}
-    s2 = amplitude_from_penalty(lam, np.array([True, False]))
+    s2 = amplitude_from_penalty(lam, np.array(["peak", "rest"]))
     assert s2[0] == pytest.approx(beyond_nyquist_variance(4.0, 16.0), rel=1e-14)
     assert s2[1] == pytest.approx(beyond_nyquist_variance(100.0, 400.0), rel=1e-14)
-    only = amplitude_from_penalty({"beta_rest": 100.0, "eps_rest": 400.0}, np.array([True, False]))
+    only = amplitude_from_penalty({"beta_rest": 100.0, "eps_rest": 400.0}, np.array(["peak", "rest"]))
     assert np.all(only == s2[1])
 
 
@@ -233,12 +233,12 @@ def test_parts_discrepancy_puts_the_model_values_after_the_cells_in_their_order(
     """parts_discrepancy(nominal=...): the model's values (bracket 1: their variance is sigma_c^2
     itself) follow the instruments' cells in the order asked; asking in another order permutes them."""
     from roadgonio.correction.discrepancy import amplitude_from_penalty
-    from roadgonio.correction.flexible import FlexPart, SurfaceSettings
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings, penalty_region
     from roadgonio.correction.outside import parts_discrepancy
     from roadgonio.engines.bundle import ForwardModel, RayBundles
     from roadgonio.instrument.config import load_instrument
     cells = [(12.0, 0.0), (8.0, 2.0), (4.0, 10.0), (0.0, 0.0)]
-    settings = SurfaceSettings()
+    settings = SurfaceSettings(regions="peak")
     a = FlexPart(ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=64)), r3like, settings)
     theta = np.zeros(a.n_params)
     lam = {"beta_peak": 1.0, "eps_peak": 1.0, "beta_rest": 10.0, "eps_rest": 10.0}
@@ -248,7 +248,8 @@ def test_parts_discrepancy_puts_the_model_values_after_the_cells_in_their_order(
     shuffled, _ = parts_discrepancy([a], theta, [(1.0, lam)], settings, nominal=[(0, 2), (0, 0), (0, 3), (0, 1)])
     assert np.allclose(ordered[:n, :n], plain, rtol=0, atol=1e-15)
     eps = np.degrees(np.arctan([t for t, _ in cells]))
-    peak = (np.array([b for _, b in cells]) <= settings.peak_beta_deg) & (eps >= settings.peak_eps_deg)
+    peak = penalty_region(settings, np.array([b for _, b in cells]), eps)
+    assert peak.tolist() == ["peak", "peak", "peak", "rest"]
     assert np.allclose(np.diag(ordered)[n:], amplitude_from_penalty(lam, peak), rtol=1e-12, atol=0)
     perm = np.array([0, 1, 2, 3, n + 2, n + 0, n + 3, n + 1])
     assert np.allclose(shuffled, ordered[np.ix_(perm, perm)], rtol=0, atol=1e-15)

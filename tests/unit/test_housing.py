@@ -92,6 +92,22 @@ def test_a_source_through_a_wall_names_the_cell_and_the_wall():
         check_sources(inst, Housing.of(inst), [(4.0, 0.0)])
 
 
+
+def test_a_baffle_in_the_sources_line_of_sight_to_the_sample_centre_is_an_error():
+    """At beta = 0 the source lies in the x-z plane and the line from it to the sample centre rises
+    1 / tan eps per metre of x, whatever the source distance: at x = -0.5 m it passes 0.5 / 12 =
+    41.7 mm above the floor for tan eps 12. A 40 mm baffle there only shades part of the footprint
+    (numbers); a 43 mm one stands in the nominal direction (an error naming the cell and the baffle;
+    the user's report: a 0.5 m baffle gave k_A 0.015 and no direct light)."""
+    for h in (0.043, 0.5):
+        inst = housed(baffles=[{"x_m": -0.5, "height_m": h}])
+        with pytest.raises(GeometryError, match=r"tan eps = 12, beta = 0.*baffle 1.*line of sight to the sample centre"):
+            check_sources(inst, Housing.of(inst), [(1.0, 0.0), (12.0, 0.0)])
+    inst = housed(baffles=[{"x_m": -0.5, "height_m": 0.040}])
+    check_sources(inst, Housing.of(inst), [(1.0, 0.0), (12.0, 0.0), (10.0, 0.0)])
+    inst = housed(baffles=[{"x_m": -0.5, "height_m": 0.043}])
+    check_sources(inst, Housing.of(inst), [(10.0, 0.0), (12.0, 90.0)])     # 50 mm; beta 90: the line is at x = 0
+
 def test_a_baffle_in_the_line_of_sight_is_an_error_and_a_low_one_is_not():
     """The lowest detected ray passes about (x - x_near) tan(alpha - field) above the sample at x."""
     inst = housed(baffles=[{"x_m": 0.6, "height_m": 0.01}])

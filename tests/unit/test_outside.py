@@ -68,6 +68,35 @@ def test_roughness_penalty_leaves_only_the_constant_free():
     assert rough @ P @ rough > 1.0
 
 
+
+@pytest.mark.parametrize("regions", ["peak", "grid"])
+def test_penalty_regions_split_the_roughness_penalty(regions):
+    """penalty_blocks: every second difference lies in exactly one region's block (the blocks sum to
+    the whole penalty, names unique); penalty_region puts the boundaries where the settings say
+    (peak: beta <= 12 deg and eps >= 45 deg; grid: a band of beta includes its upper edge, a band
+    of eps its lower edge, as the peak region does). The default grid is the four quadrants about
+    the peak region's corner."""
+    from roadgonio.correction.flexible import SurfaceSettings, penalty_blocks, penalty_region
+    settings = SurfaceSettings(c_grid=GRID, regions=regions, grid_beta_edges_deg=(12.0, 30.0),
+                               grid_eps_edges_deg=(45.0, 75.0))
+    names, mats = penalty_blocks(settings)
+    Pb, Pt = GRID.penalties()
+    assert len(set(names)) == len(names)
+    assert np.max(np.abs(sum(mats) - (Pb + Pt))) < ROUND_OFF * np.max(np.abs(Pb + Pt))
+    beta = np.array([0.0, 12.0, 12.5, 30.0, 31.0, 180.0])
+    eps = np.array([45.0, 44.9, 45.0, 75.0, 74.0, 89.0])
+    got = penalty_region(settings, beta, eps).tolist()
+    if regions == "peak":
+        assert got == ["peak", "rest", "rest", "rest", "rest", "rest"]
+        assert sorted({n.split("_", 1)[1] for n in names}) == ["peak", "rest"]
+    else:
+        assert got == ["b0e1", "b0e0", "b1e1", "b1e2", "b2e1", "b2e2"]
+        assert len(names) == 2 * 9
+    quadrants = SurfaceSettings(c_grid=GRID)
+    assert quadrants.regions == "grid"
+    assert penalty_region(quadrants, beta, eps).tolist() == ["b0e1", "b0e0", "b1e1", "b1e1", "b1e1", "b1e1"]
+    assert len(penalty_blocks(quadrants)[0]) == 2 * 4
+
 def _ggx_smith(wi, wo, k_d, k_s, a):
     """Independent float64 GGX + Smith height-correlated masking (Heitz 2014 eqs. 71, 99), from
     the angles: written apart from roadgonio.surface.truths."""

@@ -150,9 +150,11 @@ class MitsubaBackend:
         return s
 
     def compute(self, cells: Sequence[tuple[float, float]],
-                on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:
+                on_cell: Callable[[CellResult], None] | None = None, checkpoint=None) -> list[CellResult]:
         """k_A of every cell (one batched run); ``on_cell`` is called for each cell as it finishes,
-        in batches (the cells that left the active set after a pass)."""
+        in batches (the cells that left the active set after a pass). ``checkpoint``
+        (:class:`roadgonio.engines.runner.PassCheckpoint`): the state is saved after every pass and
+        a saved state of these cells is resumed (same numbers as without the interruption)."""
         t0 = time.perf_counter()
         cells = [(float(t), float(b)) for t, b in cells]
         ideal = [float(v) for v in ideal_ratios(self.model, self.instrument, cells)] if cells else []
@@ -168,7 +170,9 @@ class MitsubaBackend:
                 if on_cell is not None:
                     on_cell(results[i])
 
-        run = self.engine.run(cells, self.planner, seed=self.seed, plan=self.plan, on_done=done)
+        run = self.engine.run(cells, self.planner, seed=self.seed, plan=self.plan, on_done=done,
+                              resume=None if checkpoint is None else checkpoint.load(),
+                              on_pass=None if checkpoint is None else checkpoint.save)
         self.last_run, self.last_plan = run, run.plan
         self._ideal = np.array(ideal)
         return [r for r in results]

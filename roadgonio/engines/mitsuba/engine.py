@@ -154,10 +154,18 @@ class BatchEngine:
     # -- the passes ----------------------------------------------------------------------------
     def run(self, cells: Sequence[tuple[float, float]], planner: Planner, *, seed: int = 0,
             plan: Plan | dict | None = None,
-            on_done: Callable[[list[int], EngineRun], None] | None = None) -> EngineRun:
+            on_done: Callable[[list[int], EngineRun], None] | None = None,
+            resume: dict | None = None, on_pass: Callable[[dict], None] | None = None) -> EngineRun:
         """Compute the statistics of every cell; ``on_done(indices, run)`` is called after each pass
         with the cells that left the active set. With ``plan`` the recorded schedule is replayed
-        (no adaptation; a cell is converged if it meets the target at the end)."""
+        (no adaptation; a cell is converged if it meets the target at the end).
+
+        ``on_pass(state)`` (without ``plan``) is called after each pass with the cells still
+        active, their statistics and plan so far and the next pass's requests, plain JSON types;
+        ``resume`` is such a state: when its cells are ``cells`` (same order) and its seed is
+        ``seed``, the run continues from that pass, and since a cell's numbers depend only on
+        (seed, pass, lattice size, its replicates) it ends with the same numbers, bit for bit, as
+        the run that was cut short would have (else ``resume`` is ignored)."""
         t0 = time.perf_counter()
         cells = [(float(t), float(b)) for t, b in cells]
         n = len(cells)
@@ -174,6 +182,14 @@ class BatchEngine:
         active = list(range(n))
         requests = planner.first(n) if plan is None else plan.pass_requests(0)
         p = 0
+        if (resume is not None and plan is None and int(resume.get("seed", -1)) == int(seed)
+                and [tuple(float(x) for x in c) for c in resume.get("cells", [])] == cells):
+            stats[:] = [CellStats.from_dict(d) for d in resume["stats"]]
+            run.stats = stats
+            run.plan = Plan([[tuple(int(x) for x in e) for e in c] for c in resume["plan"]])
+            p = int(resume["pass"])
+            requests = {int(i): (int(a), int(b)) for i, a, b in resume["requests"]}
+            run.info["resumed_from_pass"] = p
         while requests:
             self._pass(p, requests, stats, run, seed)
             p += 1
@@ -194,6 +210,11 @@ class BatchEngine:
                 self._check_lit(cells[i], stats[i])
             if on_done is not None and left:
                 on_done(sorted(left), run)
+            if on_pass is not None and plan is None and requests:
+                on_pass({"pass": p, "seed": int(seed), "cells": [list(cells[i]) for i in active],
+                         "stats": [stats[i].to_dict() for i in active],
+                         "plan": [[list(e) for e in run.plan.cells[i]] for i in active],
+                         "requests": [[k, *requests[i]] for k, i in enumerate(active) if i in requests]})
         run.passes = p
         run.seconds = time.perf_counter() - t0
         return run

@@ -90,6 +90,31 @@ class CellStats:
     #: sums R, G above are then the totals (direct + stray)
     direct: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
+    def to_dict(self) -> dict:
+        """Plain JSON types, every float exactly (Python's repr round-trips a float64): the
+        checkpoint of a table cut short between passes (``engine.run(on_pass=...)``)."""
+        def key(k):
+            return f"{k[0]}:{k[1]}"
+        return {"strata": {key(k): [v[0].tolist(), v[1].tolist(), v[2].tolist()] for k, v in self.strata.items()},
+                "samples": self.samples, "passes": self.passes, "r0": self.r0, "sum_r": self.sum_r,
+                "sum_g": self.sum_g, "b": self.b.tolist(), "single": self.single,
+                "strata_b": {key(k): v.tolist() for k, v in self.strata_b.items()},
+                "direct": {key(k): [v[0].tolist(), v[1].tolist()] for k, v in self.direct.items()}}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "CellStats":
+        def key(s):
+            a, b = s.split(":")
+            return (int(a), int(b))
+        f64 = lambda v: np.asarray(v, dtype=np.float64)     # noqa: E731
+        return cls(strata={key(k): (np.asarray(v[0], dtype=np.int64), f64(v[1]), f64(v[2]))
+                           for k, v in d["strata"].items()},
+                   samples=int(d["samples"]), passes=int(d["passes"]),
+                   r0=None if d["r0"] is None else float(d["r0"]), sum_r=float(d["sum_r"]), sum_g=float(d["sum_g"]),
+                   b=f64(d["b"]), single=bool(d["single"]),
+                   strata_b={key(k): f64(v) for k, v in d["strata_b"].items()},
+                   direct={key(k): (f64(v[0]), f64(v[1])) for k, v in d["direct"].items()})
+
     def add(self, pass_index: int, log2n: int, reps: np.ndarray, R: np.ndarray, G: np.ndarray) -> None:
         """Add all replicates of one stratum (at most one call per stratum)."""
         add_strata([self], pass_index, log2n, np.zeros(len(R), dtype=np.int64), reps, R, G)
