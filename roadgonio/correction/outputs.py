@@ -311,12 +311,15 @@ def draw_surface_map(sc):
         axes[3].set_title("where the corrected table follows the fitted surface (1) or the measurement (0)",
                           fontsize=10)
     lam = ", ".join(f"{k} {v:.3g}" for k, v in best.fit.lam.items())
-    fig.suptitle(f"{' + '.join(q.measured.name for q in sc.parts)}: the correction surface (smoothing parameters "
-                 f"by the evidence: {lam}; edf {best.fit.edf:.0f} of {best.fit.n} cells)", fontsize=11)
+    import textwrap
+    title = (f"{' + '.join(q.measured.name for q in sc.parts)}: the correction surface (smoothing parameters by the "
+             f"evidence: {lam}; edf {best.fit.edf:.0f} of {best.fit.n} cells)")
+    fig.suptitle("\n".join(textwrap.wrap(title, 190 if sc.model_weight is None else 150)), fontsize=11)
     if sc.model_weight is None:
-        fig.subplots_adjust(left=0.03, right=0.98, bottom=0.07, top=0.9, wspace=0.12)
+        fig.subplots_adjust(left=0.03, right=0.97, bottom=0.07, top=0.88, wspace=0.12)
     else:
-        fig.subplots_adjust(left=0.04, right=0.97, bottom=0.04, top=0.95, wspace=0.15, hspace=0.12)
+        # the colour bars' tick labels (a minus sign for a negative weight) need room on the right
+        fig.subplots_adjust(left=0.04, right=0.95, bottom=0.04, top=0.94, wspace=0.17, hspace=0.12)
     return fig
 
 
