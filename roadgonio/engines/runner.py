@@ -29,7 +29,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from roadgonio.fileio import atomic_write, check_run_folder, fingerprint as _fingerprint, output_error, read_journal, to_json
+from roadgonio.fileio import atomic_write, atomic_write_text, check_run_folder, fingerprint as _fingerprint, output_error, read_journal, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
@@ -196,8 +196,7 @@ class PassCheckpoint:
         return doc.get("state") if isinstance(doc, dict) and doc.get("fingerprint") == self.fp else None
 
     def save(self, state: dict) -> None:
-        atomic_write(self.path, lambda p: p.write_text(json.dumps({"fingerprint": self.fp, "state": state}),
-                                                       encoding="utf-8"))
+        atomic_write_text(self.path, to_json({"fingerprint": self.fp, "state": state}, indent=None))
 
     def clear(self) -> None:
         try:

@@ -154,6 +154,10 @@ def test_a_table_cut_short_between_passes_resumes_with_the_same_numbers(tmp_path
         assert (r.k_a, r.se, r.samples) == (f.k_a, f.se, f.samples)
     fresh = b.compute(left[:-1], checkpoint=PassCheckpoint(path, "fp"))       # other cells: the state is ignored
     assert "resumed_from_pass" not in b.last_run.info and len(fresh) == len(left) - 1
+    PassCheckpoint(path, "fp").save({**state, "stats": [{"strata": None}] * len(left)})    # does not restore
+    broken = b.compute(left, checkpoint=PassCheckpoint(path, "fp"))
+    assert "resumed_from_pass" not in b.last_run.info
+    assert [r.k_a for r in broken] == [full[(r.tan_eps, r.beta_deg)].k_a for r in broken]
 
 @pytest.mark.parametrize("name", ["lab", "portable"])
 def test_batched_table_agrees_with_the_float64_quadrature(name):

@@ -182,13 +182,10 @@ class BatchEngine:
         active = list(range(n))
         requests = planner.first(n) if plan is None else plan.pass_requests(0)
         p = 0
-        if (resume is not None and plan is None and int(resume.get("seed", -1)) == int(seed)
-                and [tuple(float(x) for x in c) for c in resume.get("cells", [])] == cells):
-            stats[:] = [CellStats.from_dict(d) for d in resume["stats"]]
+        restored = self._restore(resume, cells, seed) if resume is not None and plan is None else None
+        if restored is not None:
+            stats[:], run.plan, p, requests = restored
             run.stats = stats
-            run.plan = Plan([[tuple(int(x) for x in e) for e in c] for c in resume["plan"]])
-            p = int(resume["pass"])
-            requests = {int(i): (int(a), int(b)) for i, a, b in resume["requests"]}
             run.info["resumed_from_pass"] = p
         while requests:
             self._pass(p, requests, stats, run, seed)
@@ -218,6 +215,23 @@ class BatchEngine:
         run.passes = p
         run.seconds = time.perf_counter() - t0
         return run
+
+    @staticmethod
+    def _restore(state: dict, cells: list[tuple[float, float]], seed: int):
+        """(stats, plan, pass, requests) of a saved state of exactly these cells and this seed, else
+        None (another run's state, or one that does not restore: the cells are computed afresh)."""
+        try:
+            if int(state.get("seed", -1)) != int(seed) or \
+                    [tuple(float(x) for x in c) for c in state.get("cells", [])] != cells:
+                return None
+            stats = [CellStats.from_dict(d) for d in state["stats"]]
+            plan = Plan([[tuple(int(x) for x in e) for e in c] for c in state["plan"]])
+            requests = {int(i): (int(a), int(b)) for i, a, b in state["requests"]}
+        except (TypeError, ValueError, KeyError, AttributeError):
+            return None
+        if len(stats) != len(cells) or len(plan.cells) != len(cells) or not requests:
+            return None
+        return stats, plan, int(state["pass"]), requests
 
     def _check_lit(self, cell, st: CellStats) -> None:
         _, sg = st.totals()
