@@ -12,8 +12,10 @@ rays. The fit maximises the posterior
     -2 ln p = sum_c ((s_c - y_c) / u_c)^2 + lambda theta_C^T P_C theta_C + theta_D^T Q_D theta_D
 
 * ``P_C`` the squared second differences of g_C's node values along beta and eps (a P-spline
-  roughness penalty: the prior "g_C is smooth", null space the constant, so the level is free);
-  ``lambda`` is chosen by the data, by maximising the evidence (the marginal likelihood, Laplace
+  roughness penalty: the prior "g_C is smooth", null space the constant, so the level is free),
+  split into regions with a ``lambda`` each per direction (:func:`penalty_region`: by default the four
+  quadrants about beta 12 deg, eps 45 deg, one the specular peak's; docs/correction.md, "Penalty
+  regions"); every ``lambda`` is chosen by the data, by maximising the evidence (the marginal likelihood, Laplace
   approximation at the mode; docs/correction.md, "Outside eq. 4", and its sources), or, with
   ``SurfaceSettings(smoothing="gcv")``, by minimising the generalised cross-validation score of the
   problem linearised at the mode (:func:`_gcv_step`; compared with the evidence in
@@ -72,7 +74,8 @@ DISCREPANCY_ELL = 1.0 / math.pi
 LOG_LAM_RANGE = (-8.0, 6.0)
 #: Stop updating the smoothing parameters when none changes by more than this (in ln lambda).
 LAM_TOL = 0.05
-#: The peak region of the penalties (penalty_blocks).
+#: The corner of the penalties' peak region (beta <= PEAK_BETA_DEG, eps >= PEAK_EPS_DEG) and of the
+#: default quadrants (penalty_region).
 PEAK_BETA_DEG = 12.0
 PEAK_EPS_DEG = 45.0
 #: How the penalties are split into regions (SurfaceSettings.regions, penalty_region).
