@@ -134,6 +134,8 @@ def run(args) -> int:
                 f"cells (at most x{f['widening_max']:.2f})")
         if s.get("model_estimate"):
             say(_model_estimate_line(s["model_estimate"]))
+        if s["resumed_cells"]:
+            say(_resumed_line(s["resumed_cells"]))
         say(f"  wrote {len(s['written'])} files to {s['out']}")
     cluster = results[0].provenance.get("cluster") if results else None
     if cluster:
@@ -173,6 +175,9 @@ def _run_joint(args) -> int:
         f"{s['seconds']:.1f} s")
     if s.get("model_estimate"):
         say(_model_estimate_line(s["model_estimate"]))
+    n = _resumed(p.get("backend") for p in s["per_instrument"])
+    if n:
+        say(_resumed_line(n))
     say(f"  wrote {len(s['written'])} files to {s['out']}")
     return 0
 
@@ -201,5 +206,16 @@ def _json_summary(res) -> dict:
     if "fit" in s:
         out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio", "chi2_p_value", "misfit", "birge_local_max",
                                                "cells_widened", "widening_max") if k in s["fit"]}
+    out["resumed_cells"] = _resumed(st.get("backend") for st in (s.get("steps") or []))
     out["out"] = str(res.out)
     return out
+
+
+def _resumed(infos) -> int:
+    """k_A cells the backends took from the output folder's journals (a rerun in the same folder)."""
+    return sum(int((i or {}).get("resumed_cells") or 0) for i in infos)
+
+
+def _resumed_line(n: int) -> str:
+    return (f"  resumed: {n} k_A cells from the output folder's journals (the fits are computed again: only the "
+            "k_A tables and the eq. 4 models are journalled)")

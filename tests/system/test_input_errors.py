@@ -332,11 +332,15 @@ def test_correct_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkeyp
     if failing == "figure":
         return
     monkeypatch.undo()
+    capsys.readouterr()
     assert main(argv) == 0
     assert set(CORRECT_OUTPUTS) <= {p.name for p in out.iterdir()}
     doc = json.loads((out / "correct.json").read_text())
     n = doc["summary"]["cells"]
     assert [s["backend"]["resumed_cells"] for s in doc["summary"]["steps"]][0] == n     # the journal was kept
+    said = capsys.readouterr()
+    total = sum(s["backend"]["resumed_cells"] for s in doc["summary"]["steps"])
+    assert f"resumed: {total} k_A cells" in said.out + said.err                     # and the terminal says so
 
 
 def _read_only(monkeypatch, folder):
