@@ -183,6 +183,29 @@ def _edges(v: np.ndarray, log: bool) -> np.ndarray:
     return np.exp(e) if log else e
 
 
+#: An iso-signal line shorter than this fraction of the map's diagonal is left out (a level that
+#: only clips a corner of the grid drew an unlabelled fragment).
+MIN_CONTOUR_FRACTION = 0.1
+
+
+def _visible_levels(X, Y, Z, levels, xlog: bool, ylog: bool) -> np.ndarray:
+    """The levels whose iso-lines over the grid are at least MIN_CONTOUR_FRACTION of the map's
+    diagonal long (lengths in axis units: log axes in decades of their span)."""
+    import contourpy
+    fx = (lambda v: np.log10(v)) if xlog else (lambda v: v)
+    fy = (lambda v: np.log10(v)) if ylog else (lambda v: v)
+    gx, gy = fx(np.asarray(X, dtype=float)), fy(np.asarray(Y, dtype=float))
+    sx, sy = float(np.ptp(gx)) or 1.0, float(np.ptp(gy)) or 1.0
+    gen = contourpy.contour_generator(gx / sx, gy / sy, np.ma.masked_invalid(np.asarray(Z, dtype=float)))
+    keep = []
+    for lv in levels:
+        lines = gen.lines(float(lv))
+        length = sum(float(np.sum(np.hypot(*np.diff(np.asarray(seg), axis=0).T))) for seg in lines if len(seg) > 1)
+        if length >= MIN_CONTOUR_FRACTION * math.sqrt(2.0):
+            keep.append(lv)
+    return np.asarray(keep, dtype=float)
+
+
 def _signal_levels(lo: float, hi: float, n_max: int = 7) -> np.ndarray:
     """Round iso-signal levels strictly inside (lo, hi): 1-2-5 per decade, thinned to <= n_max."""
     out = []
@@ -242,6 +265,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
         fs = sig[np.isfinite(sig) & (sig > 0)]
         if fs.size >= 4 and fs.max() / fs.min() > 1.5:
             lv = _signal_levels(float(fs.min()), float(fs.max()))
+            lv = _visible_levels(X, Y, np.where(sig > 0, sig, np.nan), lv, xk in logs, yk in logs)
             if lv.size:
                 cs2 = ax.contour(X, Y, np.where(sig > 0, sig, np.nan), levels=lv, colors="white", linewidths=0.9,
                                  linestyles="--")

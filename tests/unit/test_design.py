@@ -365,3 +365,19 @@ def test_second_aperture_outputs_say_what_changed_and_where_they_came_from(tmp_p
     fig = draw_second_aperture(res)
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert {"best second setting", "candidate"} <= set(labels) and any("signal below 0.25" in t for t in labels)
+
+
+def test_iso_signal_lines_that_only_clip_a_corner_are_left_out():
+    """The tolerance map's iso-signal levels (design.outputs._visible_levels): on Z = x + y over the
+    unit square, the level 1 crosses the map (length sqrt 2) and stays; the level 0.05 clips the corner
+    (length 0.05 sqrt 2, under MIN_CONTOUR_FRACTION of the diagonal) and goes (it drew an unlabelled
+    fragment); on a log axis the lengths are in decades."""
+    import numpy as np
+    from roadgonio.design.outputs import MIN_CONTOUR_FRACTION, _visible_levels
+    x = np.linspace(0.0, 1.0, 5)
+    X, Y = np.meshgrid(x, x)
+    assert MIN_CONTOUR_FRACTION * 2 ** 0.5 > 0.05 * 2 ** 0.5
+    assert _visible_levels(X, Y, X + Y, [0.05, 1.0], False, False).tolist() == [1.0]
+    xl = np.logspace(0, 2, 5)
+    XL, YL = np.meshgrid(xl, x)
+    assert _visible_levels(XL, YL, np.log10(XL) / 2 + YL, [0.05, 1.0], True, False).tolist() == [1.0]
