@@ -90,6 +90,9 @@ class Calibration:
             if p.suffix.lower() in _FILE_SUFFIXES:
                 if not p.is_absolute() and path is not None:
                     p = Path(path).parent / p
+                if p.is_dir():
+                    raise InputError(f"{str(p)!r} is a directory; expected a reference file", path=path,
+                                     field="calibration.reference")
                 if not p.exists():
                     raise InputError(f"reference file {str(p)!r} does not exist", path=path,
                                      field="calibration.reference")

@@ -357,6 +357,8 @@ class SampleGeometry:
             if not isinstance(self.mesh, (str, Path)) or not str(self.mesh):
                 raise InputError(f"expected a file name, got {self.mesh!r}", field="sample.mesh")
             mesh = Path(self.mesh)
+            if mesh.is_dir():
+                raise InputError(f"{str(mesh)!r} is a directory; expected a mesh file", field="sample.mesh")
             if not mesh.exists():
                 raise InputError(f"mesh file {str(mesh)!r} does not exist", field="sample.mesh")
             object.__setattr__(self, "mesh", mesh)

@@ -565,3 +565,29 @@ def test_mitsuba_wrapping_the_interrupt_is_the_interrupt(tmp_path, capsys, monke
     rc = main(["fit", "R3", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert rc == 130 and err == "roadgonio: interrupted: no model was written (fit starts over when run again)\n"
+
+
+@pytest.mark.parametrize("section, must", [
+    ('[scene]\nxml = "DIR"\n', ("scene.xml", "is a directory; expected an XML scene file")),
+    ('[calibration]\nmode = "reference"\nreference = "DIR"\n', ("calibration.reference", "is a directory")),
+])
+def test_a_directory_given_as_an_input_file_says_so(tmp_path, capsys, section, must):
+    """A folder where a file is expected is named as a folder (the tester's report: a directory as the
+    XML scene failed later with another message; a beam table said 'does not exist')."""
+    from pathlib import Path
+    d = tmp_path / "inputs.csv"
+    d.mkdir()
+    text = (Path(__file__).resolve().parents[2] / "scenes" / "portable.toml").read_text()
+    inst = tmp_path / "inst.toml"
+    inst.write_text(text + "\n" + section.replace("DIR", str(d)))
+    rc = main(["ka", "--instrument", str(inst), "--sample", "R3", "--tan-eps", "1", "--beta", "0", "--accuracy",
+               "fast"])
+    one_line_error(capsys, rc, "inst.toml", *must)
+
+
+def test_a_directory_given_as_the_mesh_says_so(tmp_path):
+    from roadgonio.errors import InputError
+    from roadgonio.instrument.config import SampleGeometry
+    with pytest.raises(InputError, match="is a directory; expected a mesh file") as err:
+        SampleGeometry(mesh=tmp_path)
+    assert err.value.field == "sample.mesh"

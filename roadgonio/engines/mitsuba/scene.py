@@ -388,6 +388,9 @@ def xml_path(instrument: Instrument, scene_sec) -> Path:
     path = Path(xml)
     if not path.is_absolute() and instrument.path is not None:
         path = Path(instrument.path).parent / path
+    if path.is_dir():
+        raise InputError(f"{str(path)!r} is a directory; expected an XML scene file", path=instrument.path,
+                         field="scene.xml")
     if not path.exists():
         raise InputError(f"XML scene {str(path)!r} does not exist", path=instrument.path, field="scene.xml")
     return path
