@@ -735,14 +735,9 @@ def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured:
     from roadgonio.design.second_aperture import write_second_aperture
     from roadgonio.engines.registry import check_seed
     inst = _instrument(instrument)
-    for v in ([vary] if isinstance(vary, str) else list(vary or [])):
-        key = str(v).split("=", 1)[0].strip()
-        if key.startswith(("housing.", "scene.")):
-            raise InputError(f"{key}: the second aperture's prediction (ray bundles through the optics) does not "
-                             "model a housing or scene parts; vary the optics (source, detector, observation)",
-                             field="--vary")
-    from roadgonio.design.grid import as_vary_specs, check_vary
-    check_vary(inst, as_vary_specs(vary))                 # before the surface is fitted
+    from roadgonio.design.grid import as_vary_specs
+    from roadgonio.design.second_aperture import check_second_keys
+    check_second_keys(inst, as_vary_specs(vary))          # before the sample's model is fitted
     table = None if measured is None else _table(measured, "measured")
     if table is not None:
         from roadgonio.correction.run import check_measured

@@ -115,6 +115,19 @@ def _u_of(parts, theta, cov, u_rel, tables, extra=None, nominal=()) -> tuple[np.
     return u, f["u_S1"] / f["S1"], f["S1"]
 
 
+def check_second_keys(instrument: Instrument, specs) -> None:
+    """Refuse, before any work, a varied key the prediction cannot honour: its ray bundles go through
+    the optics alone, so no housing or scene key, and (:func:`roadgonio.design.grid.check_vary`)
+    none the base instrument cannot take."""
+    from roadgonio.design.grid import check_vary
+    for s in specs:
+        if s.section in ("housing", "scene"):
+            raise InputError(f"{s.key}: the second aperture's prediction (ray bundles through the optics) does not "
+                             "model a housing or scene parts; vary the optics (source, detector, observation)",
+                             field="--vary")
+    check_vary(instrument, specs)
+
+
 def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None, u_measured: Any = DEFAULT_U,
                     rays: int | None = None, seed: int = 0, model_variant: str | None = None,
                     min_signal: float = DEFAULT_MIN_SIGNAL, progress: bool = False) -> SecondApertureResult:
@@ -124,7 +137,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     from roadgonio.correction.outside import cell_key, model_estimate_cells, parts_discrepancy
     from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
     from roadgonio.correction.run import fit_self, measured_uncertainty
-    from roadgonio.design.grid import as_vary_specs, build_instrument, check_vary, grid_points
+    from roadgonio.design.grid import as_vary_specs, build_instrument, grid_points
     from roadgonio.design.metrics import relative_signal
     from roadgonio.surface.rtable import RTable, bundled_table
     t0 = time.perf_counter()
@@ -134,7 +147,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     specs = as_vary_specs(vary)
     if not specs:
         raise InputError("expected at least one --vary KEY=... for the second aperture", field="--vary")
-    check_vary(instrument, specs)
+    check_second_keys(instrument, specs)
     rays = int(rays or DEFAULT_RAYS)
     settings = SurfaceSettings()
     if measured is not None:

@@ -180,7 +180,7 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
 
 class PassCheckpoint:
     """The state a batched backend saves after each pass (``ka_passes.json``: the cells not
-    finished yet and their statistics, :meth:`roadgonio.engines.mitsuba.engine.KaEngine.run`),
+    finished yet and their statistics, :meth:`roadgonio.engines.mitsuba.engine.BatchEngine.run`),
     under the run's fingerprint: a table interrupted mid-way resumes from its last completed pass
     with the same numbers. A state of another run, or unreadable, is ignored (the cells are
     computed again); JSON with every float exact."""

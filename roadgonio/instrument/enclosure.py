@@ -231,7 +231,7 @@ def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, flo
         return
     box = housing_box(instrument, housing)
     discs = source_discs(instrument, cells)
-    bad: list[tuple[tuple[float, float], str]] = []
+    bad: list[tuple[tuple[float, float], str, bool]] = []
     for cell, pts in zip(cells, discs):
         wall, sight = _outside(pts, box, housing.lid), False
         if wall is None:
