@@ -134,8 +134,9 @@ def run(args) -> int:
                 f"cells (at most x{f['widening_max']:.2f})")
         if s.get("model_estimate"):
             say(_model_estimate_line(s["model_estimate"]))
-        if s["resumed_cells"]:
-            say(_resumed_line(s["resumed_cells"]))
+        line = _resumed_line(s["resumed_cells"], s["resumed_surfaces"])
+        if line:
+            say(line)
         say(f"  wrote {len(s['written'])} files to {s['out']}")
     cluster = results[0].provenance.get("cluster") if results else None
     if cluster:
@@ -175,9 +176,9 @@ def _run_joint(args) -> int:
         f"{s['seconds']:.1f} s")
     if s.get("model_estimate"):
         say(_model_estimate_line(s["model_estimate"]))
-    n = _resumed(p.get("backend") for p in s["per_instrument"])
-    if n:
-        say(_resumed_line(n))
+    line = _resumed_line(_resumed(p.get("backend") for p in s["per_instrument"]), _resumed_surfaces(s["variants"]))
+    if line:
+        say(line)
     say(f"  wrote {len(s['written'])} files to {s['out']}")
     return 0
 
@@ -207,6 +208,7 @@ def _json_summary(res) -> dict:
         out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio", "chi2_p_value", "misfit", "birge_local_max",
                                                "cells_widened", "widening_max") if k in s["fit"]}
     out["resumed_cells"] = _resumed(st.get("backend") for st in (s.get("steps") or []))
+    out["resumed_surfaces"] = _resumed_surfaces((s.get("fit") or {}).get("variants"))
     out["out"] = str(res.out)
     return out
 
@@ -216,6 +218,13 @@ def _resumed(infos) -> int:
     return sum(int((i or {}).get("resumed_cells") or 0) for i in infos)
 
 
-def _resumed_line(n: int) -> str:
-    return (f"  resumed: {n} k_A cells from the output folder's journals (the fits are computed again: only the "
-            "k_A tables and the eq. 4 models are journalled)")
+def _resumed_surfaces(variants) -> int:
+    """Correction surfaces (``--forward surface``, one a backbone variant) taken from the journal."""
+    return sum(bool(v.get("resumed")) for v in (variants or []))
+
+
+def _resumed_line(cells: int, surfaces: int = 0) -> str | None:
+    """What a rerun in the same folder took from its journals (None: nothing)."""
+    parts = ([f"{cells} k_A cells"] if cells else []) + (
+        [f"{surfaces} correction surface{'s' if surfaces != 1 else ''}"] if surfaces else [])
+    return f"  resumed: {' and '.join(parts)} from the output folder's journals" if parts else None

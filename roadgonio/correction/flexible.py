@@ -42,7 +42,7 @@ import ctypes
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import scipy.sparse as sparse
@@ -364,6 +364,15 @@ class SurfaceFit:
     steps: int
     seconds: float
     history: list[dict] = field(default_factory=list)
+    #: True when the mode and the smoothing parameters came from a journalled fit (:meth:`state`)
+    resumed: bool = False
+
+    def state(self) -> dict[str, Any]:
+        """What a rerun needs to rebuild this fit without searching again (:func:`fit_surface`'s
+        ``state``): the mode and the smoothing parameters (exact floats; JSON keeps them), and the
+        search's own record."""
+        return {"theta": [float(v) for v in self.theta], "lam": {k: float(v) for k, v in self.lam.items()},
+                "steps": int(self.steps), "seconds": float(self.seconds), "history": list(self.history)}
 
     @property
     def dof(self) -> float:
@@ -382,7 +391,7 @@ class SurfaceFit:
     def summary(self) -> dict[str, Any]:
         return {"lambda": self.lam, "log_evidence": self.log_evidence, "gcv": self.gcv, "chi2": self.chi2,
                 "edf": self.edf, "cells": self.n, "birge_ratio": self.birge, "steps": self.steps,
-                "seconds": self.seconds, "settings": self.settings.to_dict()}
+                "seconds": self.seconds, "resumed": self.resumed, "settings": self.settings.to_dict()}
 
 
 def penalty_region(settings: SurfaceSettings, beta_deg, eps_deg) -> np.ndarray:
@@ -462,16 +471,23 @@ def one_blas_thread():
 
 
 def fit_surface(parts: Sequence[FlexPart], measured: Sequence[np.ndarray], u: Sequence[np.ndarray], *,
-                theta0: np.ndarray | None = None, lam0: Sequence[float] | None = None) -> SurfaceFit:
+                theta0: np.ndarray | None = None, lam0: Sequence[float] | None = None,
+                state: Mapping[str, Any] | None = None) -> SurfaceFit:
     """The posterior mode of theta through ``parts`` (one or several instruments sharing the
     surface) for the measured r ``measured[i]`` with standard uncertainties ``u[i]`` (sr^-1), the
     smoothing parameters by the evidence (module docstring). Dense algebra with one BLAS thread
-    (:func:`one_blas_thread`)."""
+    (:func:`one_blas_thread`).
+
+    ``state``: a finished fit's :meth:`SurfaceFit.state` for the same parts, data and settings (a
+    journal; the caller checks that they are the same): its mode and smoothing parameters are taken
+    as they are and only the quantities at the mode (covariance, evidence, residuals) are computed,
+    the same numbers as the fit that wrote it. A state that does not fit these settings (another
+    number of coefficients or other penalty regions) raises ValueError."""
     with one_blas_thread():
-        return _fit_surface(parts, measured, u, theta0=theta0, lam0=lam0)
+        return _fit_surface(parts, measured, u, theta0=theta0, lam0=lam0, state=state)
 
 
-def _fit_surface(parts, measured, u, *, theta0, lam0) -> SurfaceFit:
+def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
     t0 = time.perf_counter()
     settings = parts[0].settings
     y = np.concatenate([np.asarray(v, dtype=np.float64) for v in measured])
@@ -537,7 +553,14 @@ def _fit_surface(parts, measured, u, *, theta0, lam0) -> SurfaceFit:
     history: list[dict] = []
     steps_total = 0
     fixed = settings.lam is not None
-    for outer in range(1 if fixed else MAX_OUTER):
+    if state is not None:
+        theta = np.array(state["theta"], dtype=np.float64)
+        if theta.shape != (n_c + n_d,) or sorted(state["lam"]) != sorted(names):
+            raise ValueError("the journalled surface fit does not match these settings")
+        lam = np.array([float(state["lam"][k]) for k in names], dtype=np.float64)
+        s, J = simulate(theta)
+        history, steps_total = list(state.get("history", [])), int(state.get("steps", 0))
+    for outer in range(0 if state is not None else 1 if fixed else MAX_OUTER):
         Lam = prior(lam)
         theta, s, J, steps = mode(theta, Lam, MAX_MODE_STEPS if outer == 0 else INNER_STEPS)
         steps_total += steps
@@ -589,7 +612,7 @@ def _fit_surface(parts, measured, u, *, theta0, lam0) -> SurfaceFit:
         start += p.n
     return SurfaceFit(theta=theta, cov=cov, lam=dict(zip(names, lam.tolist())), log_evidence=log_ev, gcv=gcv,
                       chi2=chi2, edf=edf, n=n, settings=settings, residual=res, steps=steps_total,
-                      seconds=time.perf_counter() - t0, history=history)
+                      seconds=time.perf_counter() - t0, history=history, resumed=state is not None)
 
 
 def _gcv_step(J: np.ndarray, W: np.ndarray, z: np.ndarray, Ps: list[np.ndarray], Q: np.ndarray, lam: np.ndarray,

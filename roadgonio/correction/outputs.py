@@ -15,7 +15,7 @@ leaves none of them, and the folder's previous set stays as it was)::
     correction_surface.png  (forward model "surface") the correction surface at the cells, its posterior
                          sd, and g_D, the behaviour off alpha = 1 deg beyond the backbone's
     forward-N/           journalled k_A tables of the fitted model (resumable, like `roadgonio ka`)
-    fit_state.json       checkpoint of the fitted models (a rerun with the same inputs reuses them)
+    fit_state.json       checkpoint of the fitted models and correction surfaces (a rerun with the same inputs reuses them)
 
 The journals (``forward-N/``, ``alternative-N/``) and ``fit_state.json`` are written while the
 correction runs, outside the group: they survive a failed output write, so the same command

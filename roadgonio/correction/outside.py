@@ -377,8 +377,17 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     for v in sorted(variants, key=lambda x: x != main):          # the best backbone first: a warm start
         _run._say(progress, f"{label}: the correction surface over the {v} backbone")
         parts = [FlexPart(fm, backbones[v], settings, rho) for fm, rho in zip(fms, rhos)]
-        sf = fit_surface(parts, ys, us, theta0=None if warm is None else warm[0],
-                         lam0=None if warm is None else warm[1])
+        sf = None
+        journalled = state.get_surface(f"surface-{v}")
+        if journalled is not None:
+            try:
+                sf = fit_surface(parts, ys, us, state=journalled)
+            except (ValueError, KeyError, TypeError):
+                sf = None                          # a journal of other settings: fit again
+        if sf is None:
+            sf = fit_surface(parts, ys, us, theta0=None if warm is None else warm[0],
+                             lam0=None if warm is None else warm[1])
+            state.put_surface(f"surface-{v}", sf.state())
         if warm is None:
             warm = (sf.theta, list(sf.lam.values()))
         cov_full = posterior_with_backbone(parts, sf.theta, sf.lam, [1.0 / u ** 2 for u in us])

@@ -326,19 +326,24 @@ def _state_key(measured: RTable, u: np.ndarray, instrument: Instrument, settings
 
 class _FitState:
     """Checkpoint of the fitted models of one correction (``DIR/fit_state.json``): a rerun with the
-    same inputs reuses them, so the journalled backend tables (same model, same fingerprint) resume."""
+    same inputs reuses them, so the journalled backend tables (same model, same fingerprint) resume.
+    With ``--forward surface`` it also keeps each variant's correction surface (its mode and smoothing
+    parameters, :meth:`roadgonio.correction.flexible.SurfaceFit.state`), so a rerun does not search
+    for them again."""
 
     def __init__(self, out_dir: Path | None, key: str):
         self.path = None if out_dir is None else Path(out_dir) / FIT_STATE
         self.key = key
         self.models: dict[str, dict] = {}
+        self.surfaces: dict[str, dict] = {}
         if self.path is not None and self.path.exists():
             try:
                 d = json.loads(self.path.read_text(encoding="utf-8"))
                 if d.get("key") == key:
                     self.models = dict(d.get("models", {}))
+                    self.surfaces = dict(d.get("surfaces", {}))
             except (OSError, ValueError):
-                self.models = {}
+                self.models, self.surfaces = {}, {}
 
     def get(self, name: str) -> RoadModel | None:
         d = self.models.get(name)
@@ -346,8 +351,21 @@ class _FitState:
 
     def put(self, name: str, model: RoadModel) -> None:
         self.models[name] = {"variant": model.variant, "params": model.params.to_dict(), "name": model.name}
+        self._write()
+
+    def get_surface(self, name: str) -> dict | None:
+        return self.surfaces.get(name)
+
+    def put_surface(self, name: str, state: Mapping[str, Any]) -> None:
+        self.surfaces[name] = dict(state)
+        self._write()
+
+    def _write(self) -> None:
         if self.path is not None:
-            atomic_write_json(self.path, {"key": self.key, "models": self.models})
+            doc: dict[str, Any] = {"key": self.key, "models": self.models}
+            if self.surfaces:
+                doc["surfaces"] = self.surfaces
+            atomic_write_json(self.path, doc)
 
 
 def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = "1%", variant: str = "auto",

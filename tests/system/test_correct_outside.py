@@ -186,3 +186,22 @@ def test_second_aperture_predicts_the_joint_u_and_ranks_by_it(tmp_path, two_inst
     assert res.best.u_median == min(c.u_median for c in ok)
     assert all(c.u_median < res.baselines[0].u_median for c in ok)
     assert (tmp_path / "sa" / "best_second.toml").exists()
+
+
+def test_a_rerun_resumes_the_correction_surface_and_gives_the_same_table(tmp_path, capsys):
+    """A finished `correct --forward surface` rerun in the same folder takes the k_A table and the
+    correction surface from the folder's journals (fit_state.json) and writes the same numbers;
+    the terminal and --json say what was resumed."""
+    out = tmp_path / "out"
+    argv = ["correct", "--measured", str(MEASURED), "--instrument", str(MEDIUM), "--forward", "surface",
+            "--u-measured", "1%", *FAST, "--no-plots", "--out", str(out)]
+    assert main(argv + ["--json"]) == 0
+    first = json.loads(capsys.readouterr().out)
+    table = (out / "correct_cells.csv").read_bytes()
+    assert first["resumed_surfaces"] == 0
+    state = json.loads((out / "fit_state.json").read_text())
+    assert list(state["surfaces"]) == ["surface-power"]
+    assert main(argv) == 0
+    said = capsys.readouterr().out
+    assert "correction surface from the output folder's journals" in said, said
+    assert (out / "correct_cells.csv").read_bytes() == table

@@ -268,3 +268,32 @@ def test_backbone_jacobians_against_rebuilt_parts(r3like):
         assert np.allclose(Jq[:, j] / scale, d_sim / scale, rtol=0, atol=tol), name
         assert np.allclose(Kq[:, j], d_lnk, rtol=0, atol=tol), name
         assert np.allclose(Nq[:, j], d_nom, rtol=0, atol=tol), name
+
+
+def test_a_journalled_surface_fit_rebuilds_the_same_fit(r3like):
+    """fit_surface(state=...) (the journal a rerun of `correct --forward surface` resumes from):
+    the mode and smoothing parameters of a finished fit, through JSON, give the same covariance,
+    evidence and residuals bit for bit without searching again; a state of other settings (other
+    penalty regions) is refused, so the caller fits again instead of mixing settings."""
+    import json
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings, fit_surface
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    cells = [(t, b) for t in (0.0, 1.0, 3.0, 6.0, 12.0) for b in (0.0, 10.0, 30.0, 90.0, 180.0)]
+    fm = ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=32))
+    settings = SurfaceSettings()
+    y = fm.r_measured(r3like) * np.exp(np.random.default_rng(4).normal(0.0, 0.01, len(cells)))
+    u = 0.01 * y
+    part = FlexPart(fm, r3like, settings)
+    first = fit_surface([part], [y], [u])
+    state = json.loads(json.dumps(first.state()))
+    again = fit_surface([FlexPart(fm, r3like, settings)], [y], [u], state=state)
+    assert again.resumed and not first.resumed
+    assert np.array_equal(again.theta, first.theta) and again.lam == first.lam
+    assert np.array_equal(again.cov, first.cov)
+    assert again.log_evidence == first.log_evidence and again.chi2 == first.chi2 and again.edf == first.edf
+    assert all(np.array_equal(a, b) for a, b in zip(again.residual, first.residual))
+    assert again.steps == first.steps and again.history == first.history
+    other = SurfaceSettings(regions="peak")
+    with pytest.raises(ValueError):
+        fit_surface([FlexPart(fm, r3like, other)], [y], [u], state=state)
