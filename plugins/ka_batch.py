@@ -209,6 +209,15 @@ class KaBatch(mi.SamplingIntegrator):
         return []
 
     # -- batched launches ----------------------------------------------------------------------
+    def _ray_data(self, si, ray, w) -> dict:
+        """The detector rays' fields (:data:`FLAT_RAY_FIELDS` on a flat sample, else
+        :data:`RAY_FIELDS` with the geometric and shading normals) at their sample hits ``si``."""
+        if self.flat:
+            return dict(zip(FLAT_RAY_FIELDS, (si.p.x, si.p.y, si.p.z, ray.d.x, ray.d.y, ray.d.z, w)))
+        ns = si.sh_frame.n
+        return dict(zip(RAY_FIELDS, (si.p.x, si.p.y, si.p.z, si.n.x, si.n.y, si.n.z, ns.x, ns.y, ns.z,
+                                     ray.d.x, ray.d.y, ray.d.z, w)))
+
     @staticmethod
     def _lattice(j, rep, lattice, dims):
         """Lattice coordinates ``dims`` of point j of replicate ``rep`` (see the module docstring)."""
@@ -241,12 +250,7 @@ class KaBatch(mi.SamplingIntegrator):
         flags = mi.RayFlags.Minimal if self.flat else (mi.RayFlags.Minimal | mi.RayFlags.ShadingFrame)
         si, hit = intersect_sample(scene, ray, flags, self.sample_shape)
         w = dr.select(hit, mi.Float(w.x), 0.0)
-        if self.flat:
-            data = dict(zip(FLAT_RAY_FIELDS, (si.p.x, si.p.y, si.p.z, ray.d.x, ray.d.y, ray.d.z, w)))
-        else:
-            ns = si.sh_frame.n
-            data = dict(zip(RAY_FIELDS, (si.p.x, si.p.y, si.p.z, si.n.x, si.n.y, si.n.z, ns.x, ns.y, ns.z,
-                                         ray.d.x, ray.d.y, ray.d.z, w)))
+        data = self._ray_data(si, ray, w)
         miss = ~hit
         dr.eval(data, miss)                 # one kernel traces the rays; the count reads the stored mask
         return data, int(dr.count(miss)[0]) if dr.width(miss) else 0
@@ -415,12 +419,7 @@ class KaBatch(mi.SamplingIntegrator):
         si = scene.ray_intersect(ray, mi.RayFlags.Minimal | mi.RayFlags.UV | mi.RayFlags.ShadingFrame, False)
         hit = si.is_valid() & (si.shape == dr.opaque(mi.ShapePtr, self.sample_shape))
         w = dr.select(hit, mi.Float(w.x), 0.0)
-        if self.flat:
-            data = dict(zip(FLAT_RAY_FIELDS, (si.p.x, si.p.y, si.p.z, ray.d.x, ray.d.y, ray.d.z, w)))
-        else:
-            ns = si.sh_frame.n
-            data = dict(zip(RAY_FIELDS, (si.p.x, si.p.y, si.p.z, si.n.x, si.n.y, si.n.z, ns.x, ns.y, ns.z,
-                                         ray.d.x, ray.d.y, ray.d.z, w)))
+        data = self._ray_data(si, ray, w)
         miss = ~hit
         verts = []
         u = [self.walk_u(lattice, keys, d, rep, j) for d in range(3)]
