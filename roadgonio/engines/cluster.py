@@ -206,6 +206,21 @@ class EngineSetup(_WorkerPlugin):
 # In the caller
 # ----------------------------------------------------------------------------------------------
 
+#: What a script must do to start a local cluster (its workers are spawned processes that import
+#: the script again, so an unguarded module-level call would start a cluster in every worker).
+MAIN_GUARD = ('a script that starts a local Dask cluster (workers=N, or the default) must make the call under '
+              '\'if __name__ == "__main__":\' (each worker process imports the script again), or pass workers=0 '
+              'to compute in this process')
+
+
+def _bootstrapping() -> bool:
+    """True in a process that multiprocessing's spawn is still starting: it is importing the parent's
+    main module (a script calling roadgonio at module level), where starting processes is forbidden.
+    The same test as ``multiprocessing.spawn._check_not_importing_main``."""
+    import multiprocessing
+    return bool(getattr(multiprocessing.current_process(), "_inheriting", False))
+
+
 def _check_address(address: str) -> str:
     a = str(address).strip()
     if "://" not in a:
@@ -253,13 +268,24 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
             raise InputError(f"no worker joined the Dask scheduler at {address} within {CONNECT_TIMEOUT_S:g} s; "
                              "start some with 'dask worker ADDRESS --nthreads 1'", field="--scheduler") from None
     else:
+        if _bootstrapping():
+            raise InputError(MAIN_GUARD, field="workers")
         n = workers if workers is not None else (os.cpu_count() or 1)
         # no dashboard; the scheduler's HTTP server (health routes) still starts, on a free loopback
         # port instead of 8787, which another cluster may hold (Dask then warns and leaks a socket)
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
-                               dashboard_address=None, worker_dashboard_address=None,
-                               scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
-                               silence_logs=logging.ERROR if quiet else logging.WARNING)
+        try:
+            cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                   dashboard_address=None, worker_dashboard_address=None,
+                                   scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                                   silence_logs=logging.ERROR if quiet else logging.WARNING)
+        except RuntimeError as err:
+            if "failed to start" not in str(err):
+                raise
+            # the usual cause: each worker process imports the caller's script again (spawn), and
+            # the script, unguarded, starts a cluster there too (which multiprocessing forbids)
+            why = str(err).rstrip(".")
+            raise InputError(f"the local Dask cluster's worker processes did not start ({why}); {MAIN_GUARD}",
+                             field="workers") from None
         client = Client(cluster)
     try:
         _check_workers(client)

@@ -87,3 +87,32 @@ def test_design_reports_a_worker_error_as_failed_with_a_retry_hint(tmp_path, mon
     ds2 = run_design("lab", ["source.radius_m=0.002,0.004"], **kw)   # resume: the failed point is computed now
     assert int(np.isfinite(ds2["k_a"].values).sum()) == 4
     assert not any("worker died" in str(r) for r in ds2["reason"].values)
+
+
+SCRIPT_CALL = ('rg.design_study("lab", ["source.radius_m=0.002,0.004"], "lambert", cells="1:0", backend="quadrature", '
+               'workers=1, progress=False, plots=False)')
+
+
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("guarded", [False, True])
+def test_a_script_starting_a_local_cluster_needs_the_main_guard(tmp_path, guarded):
+    """A script calling the API with workers=N at module level (the docs' snippet as first
+    written): each spawned worker imports the script again and would start its own cluster. Before:
+    ~60 lines of multiprocessing and Dask tracebacks ending in 'RuntimeError: Nanny failed to
+    start'. Now the error's last line is the InputError that names the guard, and the guarded
+    script runs."""
+    import subprocess
+    import sys
+    body = f"import roadgonio.api as rg\nds = {SCRIPT_CALL}\nprint('k_a', float(ds['k_a'].max()))\n"
+    if guarded:
+        body = 'if __name__ == "__main__":\n' + textwrap.indent(body, "    ")
+    (tmp_path / "script.py").write_text(body)
+    r = subprocess.run([sys.executable, "script.py"], cwd=tmp_path, capture_output=True, text=True, timeout=240)
+    if guarded:
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.startswith("k_a 1.0")              # Lambert sample: k_A = 1
+        return
+    last = r.stderr.strip().splitlines()[-1]
+    assert r.returncode == 1 and last.startswith("roadgonio.errors.InputError: field 'workers': "), r.stderr
+    assert "if __name__ == \"__main__\":" in last and "workers=0" in last
+    assert "An attempt has been made to start a new process" not in r.stderr     # the children stop first
