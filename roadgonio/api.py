@@ -336,7 +336,9 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
     fp = fingerprint({"table": table_hash(t), "name": t.name, "variant": variant, "seed": seed,
                       "fixed": dict(sorted(fixed.items())), "fit": FIT_METHOD_VERSION})
     if folder is not None:
+        from roadgonio.fileio import check_writable
         check_run_folder(folder, "model.json", fp, what="fit", fresh=bool(fresh), outputs=FIT_FILES)
+        check_writable(folder)          # an unwritable folder fails now, not after the fit
     result = fit_table(t, variant, seed=seed, fixed=fixed, progress=progress)
     check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
     if folder is not None:
@@ -569,6 +571,8 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
             "seed": seed, "coverage": coverage, "cells": cells, "aperture": bool(aperture), "backend": backend,
             "settings": settings, "illuminance": illuminance, "surrogate": surrogate, "validation": validation})
         check_run_folder(folder, "uncertainty.json", fp, what="uncertainty run", fresh=bool(fresh), outputs=OUTPUT_FILES)
+        from roadgonio.fileio import check_writable
+        check_writable(folder)          # an unwritable folder fails now, not after the Monte Carlo
     if aperture and workers in (None, 0) and scheduler is None:
         prepare_entry_point(backend, mitsuba_variant)
     res = run_uncertainty(smp.model, inst, spec, trials=trials, adaptive=adaptive, seed=seed, coverage=coverage,

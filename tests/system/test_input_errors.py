@@ -591,3 +591,26 @@ def test_a_directory_given_as_the_mesh_says_so(tmp_path):
     with pytest.raises(InputError, match="is a directory; expected a mesh file") as err:
         SampleGeometry(mesh=tmp_path)
     assert err.value.field == "sample.mesh"
+
+
+@pytest.mark.parametrize("command", ["fit", "uncertainty"])
+def test_unwritable_out_is_refused_before_the_work(tmp_path, capsys, monkeypatch, command):
+    """`fit` and `uncertainty` check --out before computing, as ka/correct/validate/render/
+    intercompare do (before: the one-line error came after the whole fit or Monte Carlo)."""
+    import roadgonio.surface.fit as F
+    import roadgonio.uncertainty.run as U
+
+    def computed(*a, **k):
+        raise AssertionError("computed before the output folder was checked")
+    monkeypatch.setattr(F, "fit_table", computed)
+    monkeypatch.setattr(U, "run_uncertainty", computed)
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    out = ro / "res"
+    if command == "fit":
+        argv = ["fit", "R3", "--out", str(out)]
+    else:
+        argv = ["uncertainty", "--instrument", "lab", "--sample", "lambert", "--sigma", "alpha_deg=0.01",
+                "--backend", "quadrature", "--out", str(out)]
+    _read_only(monkeypatch, ro)
+    one_line_error(capsys, main(argv), str(out), "Read-only file system")
