@@ -103,8 +103,9 @@ def _sample(sample, model_variant: str | None = None, field: str = "sample") -> 
     return resolve_sample(sample, model_variant, field=field)
 
 
-def _table(table, field: str = "table") -> "RTable":
-    """An RTable from a bundled name, a .csv/.rtb file, an RTable or an r-table DataArray."""
+def _table(table, field: str = "table", quantity: str = "r") -> "RTable":
+    """An RTable from a bundled name, a .csv/.rtb file, an RTable or an r-table DataArray
+    (``quantity="u"``: a table of standard uncertainties, :func:`~roadgonio.surface.rtable.load_table`)."""
     from roadgonio.surface.rtable import load_table
     from roadgonio.surface.sample import _as_table
     t = _as_table(table)
@@ -112,7 +113,7 @@ def _table(table, field: str = "table") -> "RTable":
         return t
     if isinstance(table, (str, Path)):
         try:
-            return load_table(table)
+            return load_table(table, quantity)
         except InputError as err:
             if err.path is not None:
                 raise err.with_argument(field) from None
@@ -888,7 +889,7 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     for t, uf in zip(loaded, u_of):
         res = inst.evaluate(t)
         if uf is not None:
-            ut = _table(uf, "u")
+            ut = _table(uf, "u", quantity="u")
             res.uncertainty = {"file": str(uf), **mc.propagate(inst, t, ut, trials=trials, seed=seed,
                                                                correlations=modes, target_class=target,
                                                                u_path=uf if isinstance(uf, (str, Path)) else None)}

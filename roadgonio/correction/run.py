@@ -138,7 +138,7 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
             return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)", None
         path = Path(text)
         try:
-            u_table = read_table(path)
+            u_table = read_table(path, quantity="u")
         except InputError as err:
             raise InputError(f"{err.reason} (expected a relative standard uncertainty like '1%' or 0.01, or an "
                              "r-table file of per-cell standard uncertainties)", path=err.path, line=err.line,

@@ -59,6 +59,11 @@ R_SCALE = 1e4
 #: The largest r accepted from a table file (sr^-1): 125 times the largest CIE value (C1: 0.077), so a
 #: table in the wrong scale or an exponent typo (1e300) is an error, not a fit to nonsense.
 R_MAX_PLAUSIBLE = 10.0
+#: A CSV r-table whose largest value (r x 10^4) is below this is refused as written in sr^-1: 1 is the
+#: smallest value of any cell of the bundled CIE tables (C1; their largest values are 362 (R3) to 770
+#: (C1)), so any table holding even one CIE-like cell passes, while the same tables written in sr^-1
+#: have largest values 0.036 to 0.077. Not applied to tables of standard uncertainties (``quantity="u"``).
+R_X1E4_LARGEST_MIN = 1.0
 BUNDLED = ("R1", "R2", "R3", "R4", "C1", "C2")
 #: Published CIE values (docs/conventions.md section 2).
 PUBLISHED_S1 = {"R1": 0.25, "R2": 0.58, "R3": 1.11, "R4": 1.55, "C1": 0.24, "C2": 0.97}
@@ -361,8 +366,9 @@ def _check_grid(values: list[float], expected: np.ndarray, what: str, path, line
                          f"{len(values)} values: {got}", path=path, line=line)
 
 
-def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = None) -> RTable:
-    """Parse the CSV r-table layout; errors name the file and the line."""
+def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = None, quantity: str = "r") -> RTable:
+    """Parse the CSV r-table layout; errors name the file and the line. ``quantity`` is what the values
+    are, for the messages: ``"r"``, or ``"u"`` for a table of standard uncertainties of r."""
     lines = text.splitlines()
     comments: list[str] = []
     header_line = None
@@ -389,7 +395,7 @@ def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = Non
     if header_line is None:
         raise InputError("empty table: expected a header 'tan_eps,0,2,...,180' and 29 rows", path=path)
     if not rows:
-        raise InputError("no data rows after the header: expected 29 rows of tan_eps and r x 1e4",
+        raise InputError(f"no data rows after the header: expected 29 rows of tan_eps and {quantity} x 1e4",
                          path=path, line=header_line)
     if len(rows) != len(TAN_EPS_GRID):
         raise InputError(f"expected {len(TAN_EPS_GRID)} data rows (tan eps = 0 ... 12), found {len(rows)}",
@@ -409,12 +415,13 @@ def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = Non
                 continue
             v = _parse_number(c, path, lineno, f"beta = {BETA_GRID_DEG[j]:g} column")
             if v < 0:
-                raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: r must be >= 0, got {c}",
+                raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: {quantity} must be >= 0, got {c}",
                                  path=path, line=lineno)
             if v / R_SCALE > R_MAX_PLAUSIBLE:
-                raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: r x 1e4 = {c} is not a plausible road value "
-                                 f"(expected r x 1e4 <= {R_MAX_PLAUSIBLE * R_SCALE:.0f}; the CIE tables peak "
-                                 "below 800): a typo, or a table not written as r x 1e4?", path=path, line=lineno)
+                raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: {quantity} x 1e4 = {c} is not a plausible road "
+                                 f"value (expected {quantity} x 1e4 <= {R_MAX_PLAUSIBLE * R_SCALE:.0f}; the CIE tables "
+                                 f"peak below 800): a typo, or a table not written as {quantity} x 1e4?", path=path,
+                                 line=lineno)
             r[i, j] = v / R_SCALE
     if not np.isfinite(r).any():
         raise InputError("the table has no values (every cell is blank)", path=path)
@@ -528,8 +535,10 @@ def _rtb_scale(values: np.ndarray, q0_line: float, path, line: int) -> tuple[flo
                      "q0 in sr^-1 (e.g. 0.07) matching the values", path=path, line=line, field="q0")
 
 
-def read_table(path: str | Path) -> RTable:
-    """Read a table file: ``.rtb`` (DIALux) or CSV (anything else)."""
+def read_table(path: str | Path, quantity: str = "r") -> RTable:
+    """Read a table file: ``.rtb`` (DIALux) or CSV (anything else; ``quantity`` as :func:`parse_csv`).
+    No check of the scale: a k_A table (``ka.csv``, unscaled) reads too; :func:`load_table` is the
+    reader of a user's r-table."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
@@ -540,7 +549,17 @@ def read_table(path: str | Path) -> RTable:
     text = text.replace("\r\n", "\n").replace("\r", "\n")
     if path.suffix.lower() == ".rtb":
         return parse_rtb(text, path=path)
-    return parse_csv(text, path=path)
+    return parse_csv(text, path=path, quantity=quantity)
+
+
+def check_csv_scale(table: RTable, path: str | Path) -> None:
+    """Refuse a CSV r-table that looks written in sr^-1 instead of r x 10^4: its largest value x 10^4
+    below :data:`R_X1E4_LARGEST_MIN` (an RTB file's scale is told by its q0 line instead)."""
+    largest = float(np.nanmax(table.r)) * R_SCALE
+    if largest < R_X1E4_LARGEST_MIN:
+        raise InputError(f"the largest value is {largest:.4g}: this looks like r in sr^-1, but a CSV r-table holds "
+                         f"r x 1e4 (expected a largest value >= {R_X1E4_LARGEST_MIN:g}; the CIE tables' largest are "
+                         "362 to 770): multiply the values by 1e4", path=path)
 
 
 _STANDARD_MASK: np.ndarray | None = None
@@ -564,9 +583,11 @@ def bundled_table(name: str) -> RTable:
     return parse_csv(res.read_text(encoding="utf-8"), path=f"roadgonio/data/rtables/{key}.csv", name=key)
 
 
-def load_table(spec: str | Path) -> RTable:
+def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     """A bundled table by name (``R3``, any case) or a table file: a text with a suffix is a file,
-    one without is a bundled name (the rule of :mod:`roadgonio.surface.sample`)."""
+    one without is a bundled name (the rule of :mod:`roadgonio.surface.sample`). A CSV r-table
+    (``quantity="r"``) is checked for the scale (:func:`check_csv_scale`); ``quantity="u"``: a table
+    of standard uncertainties of r (no scale check; messages say u)."""
     s = str(spec).strip()
     if isinstance(spec, str) and not Path(s).suffix:
         if s.upper() in BUNDLED:
@@ -576,7 +597,10 @@ def load_table(spec: str | Path) -> RTable:
     p = Path(s).expanduser()
     if not p.exists():
         raise InputError("no such table file", path=p)
-    return read_table(p)
+    table = read_table(p, quantity)
+    if quantity == "r" and p.suffix.lower() != ".rtb":
+        check_csv_scale(table, p)
+    return table
 
 
 def iter_bundled() -> Iterable[RTable]:

@@ -109,3 +109,62 @@ def test_bad_table_file(tmp_path, bad_table):
     for w in words:
         assert w in msg, msg
     assert "\n" not in msg
+
+
+# ----------------------------------------------------------------------------------------------
+# scale: a CSV r-table written in sr^-1 (10^4 times too small) is refused, a u table is not
+# ----------------------------------------------------------------------------------------------
+
+def _unscaled_csv(tmp_path, name="R3"):
+    """The bundled table's CSV with every value divided by 1e4 (r in sr^-1), the same header."""
+    rows = []
+    for line in bundled_table(name).to_csv_text().splitlines():
+        if line.startswith("#") or line.startswith("tan_eps"):
+            rows.append(line)
+            continue
+        cells = line.split(",")
+        rows.append(",".join([cells[0]] + [f"{float(c) / 1e4:.6g}" if c else "" for c in cells[1:]]))
+    path = tmp_path / "unscaled.csv"
+    path.write_text("\n".join(rows) + "\n")
+    return path
+
+
+def test_csv_in_sr_is_refused_as_r_and_read_as_u(tmp_path):
+    path = _unscaled_csv(tmp_path)
+    with pytest.raises(InputError) as ei:
+        load_table(path)
+    msg = str(ei.value)
+    assert ei.value.path == str(path) and "\n" not in msg
+    assert "looks like r in sr^-1" in msg and "r x 1e4" in msg and "0.0362" in msg      # R3's largest, 362e-4
+    # the same numbers as standard uncertainties of r (u x 1e4 = 0.0362 is 0.01 % of R3's peak): accepted
+    assert np.nanmax(load_table(path, quantity="u").r) == pytest.approx(362e-8, rel=1e-12)
+    assert np.nanmax(read_table(path).r) == pytest.approx(362e-8, rel=1e-12)        # the plain reader (ka.csv) too
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+def test_the_scale_threshold_lies_between_the_cie_tables_and_their_sr_versions(name):
+    """R_X1E4_LARGEST_MIN (docs/inputs-outputs.md): at most the smallest cell of any bundled table,
+    above the largest value of that table written in sr^-1."""
+    from roadgonio.surface.rtable import R_SCALE, R_X1E4_LARGEST_MIN
+    r_x1e4 = bundled_table(name).r * R_SCALE
+    assert np.nanmin(r_x1e4) >= R_X1E4_LARGEST_MIN > np.nanmax(r_x1e4) / R_SCALE
+
+
+def test_no_shipped_r_table_trips_the_scale_check():
+    from pathlib import Path
+    root = Path(__file__).resolve().parents[2]
+    files = [p for p in (root / "tests" / "data").glob("*.csv") if not p.name.endswith("_ka.csv")]
+    assert len(files) >= 4
+    for p in files:
+        assert np.nanmax(load_table(p).r) > 0
+
+
+def test_negative_u_says_u(tmp_path):
+    p = bundled_table("R3").write_csv(tmp_path / "u.csv")
+    text = p.read_text().replace("\n5,", "\n5,-", 1)
+    p.write_text(text)
+    with pytest.raises(InputError, match=r"u must be >= 0, got -") as ei:
+        load_table(p, quantity="u")
+    assert "r must" not in str(ei.value)
+    with pytest.raises(InputError, match=r"r must be >= 0, got -"):
+        load_table(p)
