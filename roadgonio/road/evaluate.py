@@ -66,6 +66,7 @@ class Installation:
                  U_o_obs=np.where(gone["obs"], np.nan, m["U_o_obs"]),
                  U_l_lane=np.where(gone["lanes"], np.nan, m["U_l_lane"]))
         missing = None
+        ti_why = None        # why TI is missing when the veiling luminance is computable
         lost = [k for k in ("L_av", "U_o", "U_l") if values[k] is None]
         if gone["L_av"] or gone["U_l"]:
             dirs = "; ".join(f"beta {b:.1f} deg, tan eps {t:.2f}" for b, t in op.missing_directions[:3])
@@ -75,6 +76,9 @@ class Installation:
                                  f"{int(op.incomplete.sum())} of {op.incomplete.size} (observer, point) pairs is "
                                  "unknown, so these metrics cannot be given",
                        "points_unknown": int(op.incomplete.sum())}
+            if gone["TI"]:
+                ti_why = ("it needs L_av, which is unknown: the table is blank where luminaire contributions fall "
+                          "(see missing)")
         elif lost:
             missing = {"metrics": lost + (["TI"] if ti_overflow else []) + ["class"],
                        "reason": "no light where a uniformity needs it (L_av or a lane's L_max is 0): undefined"}
@@ -82,9 +86,12 @@ class Installation:
             missing = {"metrics": ["TI", "class"],
                        "reason": f"L_av = {m['L_av']:.3g} cd/m^2 is so small that TI = 65 L_v / L_av^0.8 exceeds any "
                                  "float (is the table r x 1e4?)"}
+        if ti_why is None and values["TI"] is None:
+            ti_why = (f"L_av = {m['L_av']:.3g} cd/m^2 is so small that TI exceeds any float (see missing)" if ti_overflow
+                      else "it needs L_av > 0 (no light on the field)" if not m["L_av"] > 0 else None)
         cls = None if missing else metrics.best_class(values)
         return RoadResult(table=table, values=values, L=np.where(op.incomplete, np.nan, L), per_observer=m, cls=cls,
-                          installation=self, operator=op, missing=missing)
+                          installation=self, operator=op, missing=missing, ti_missing=ti_why)
 
 
 @dataclass
@@ -99,12 +106,19 @@ class RoadResult:
     uncertainty: dict | None = None
     #: which metrics are missing and why (None: every metric is known)
     missing: dict | None = None
+    #: why TI is missing although the layout's veiling luminance is computable (None: not missing)
+    ti_missing: str | None = None
 
     def summary(self) -> dict[str, Any]:
         inst = self.installation
         lay = inst.layout
         m = self.per_observer
-        ti_note = "" if inst.veiling["computable"] else inst.veiling["reason"]
+        if not inst.veiling["computable"]:
+            ti_note = inst.veiling["reason"]
+        elif self.values["TI"] is None:
+            ti_note = self.ti_missing or "missing"
+        else:
+            ti_note = "initial values (MF = 1 in L_v and L_av)"
         out = {"table": self.table.name, **self.values, "class": self.cls,
                "U_l_per_lane": [_known(v) for v in m["U_l_lane"]],
                "observers": [{"lane": k + 1, "x_m": float(o[0]), "y_m": float(o[1]), "L_av": _known(m["L_av_obs"][k]),
@@ -113,7 +127,7 @@ class RoadResult:
                "L_min": None if self.missing and self.missing.get("points_unknown") else float(np.nanmin(self.L)),
                "L_max": None if self.missing and self.missing.get("points_unknown") else float(np.nanmax(self.L)),
                "missing": self.missing,
-               "TI_note": ti_note or "initial values (MF = 1 in L_v and L_av)",
+               "TI_note": ti_note,
                "L_v_max": inst.l_v_max, "R_EI_per_edge": inst.edge["per_edge"],
                "failed_criteria_of_next_class": None,
                "table_Q0": _safe(self.table.q0), "table_S1": _safe(self.table.s1),

@@ -126,3 +126,30 @@ def test_output_error_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypat
         report.write_together(out, {"a.txt": "1", "b.txt": "2", "c.txt": "3"})
     assert "b.txt" in str(info.value)
     assert list(out.iterdir()) == []   # no result and no staged temporary file left
+
+
+def test_road_says_why_ti_is_missing_and_u_files_speak_of_u(tmp_path, capsys):
+    """A blank cell the luminance needs (tan eps 5, beta 0): TI's note says why TI is missing (before:
+    'initial values (MF = 1 ...)', the note of a computed TI). A negative value in a --u file says u
+    (before: 'r must be >= 0')."""
+    t = bundled_table("R3")
+    r = t.r.copy()
+    i = int(np.argmin(abs(t.tan_eps - 5.0)))
+    r[i, 0] = np.nan
+    t.with_values(r).write_csv(tmp_path / "hole.csv")
+    assert main(["road", "--table", str(tmp_path / "hole.csv"), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["TI"] is None and "TI" in d["missing"]["metrics"]
+    assert "needs L_av" in d["TI_note"] and "initial values" not in d["TI_note"]
+    assert main(["road", "--table", str(tmp_path / "hole.csv")]) == 0
+    assert "TI not computed: it needs L_av, which is unknown" in capsys.readouterr().out
+    assert main(["road", "--table", "R3", "--json"]) == 0                 # a computed TI keeps its note
+    assert json.loads(capsys.readouterr().out)["TI_note"] == "initial values (MF = 1 in L_v and L_av)"
+    u = t.r * 0.01
+    u[i, 0] = -u[i, 0]
+    (tmp_path / "u.csv").write_text(t.with_values(np.abs(u)).to_csv_text().replace(
+        f"\n5,{t.r[i, 0] * 0.01 * 1e4:g},", f"\n5,{-t.r[i, 0] * 0.01 * 1e4:g},"))
+    assert ",-" in (tmp_path / "u.csv").read_text()
+    rc = main(["road", "--table", "R3", "--u", str(tmp_path / "u.csv"), "--trials", "2000"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "u must be >= 0" in err and "r must" not in err
