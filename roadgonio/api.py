@@ -122,6 +122,16 @@ def _table(table, field: str = "table", quantity: str = "r") -> "RTable":
                      f"{type(table).__name__}", field=field)
 
 
+def _labelled(table, t: "RTable") -> "RTable":
+    """A table read from a file, named by the file (``measured.rtb (R3)`` when the file stores another
+    name, as an RTB does; ``r3.csv``): the results of road and compare say which file they compared."""
+    if not isinstance(table, (str, Path)) or not Path(str(table)).suffix:
+        return t
+    p = Path(str(table))
+    label = p.name if t.name == p.stem else f"{p.name} ({t.name})"
+    return t.with_values(t.r, name=label)
+
+
 def _check_int(value, field: str, lo: int = 0, hi: int | None = None) -> int:
     """A whole number lo <= value <= hi (not a bool, not a float), or an InputError naming ``field``."""
     import numbers
@@ -879,10 +889,14 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
         raise InputError(f"give u once (for the last table) or once per table ({len(items)} tables), got {len(us)}",
                          field="u")
     loaded = [_table(t) for t in items]
+    folder_names = [t.name for t in loaded]
+    loaded = [_labelled(item, t) for item, t in zip(items, loaded)]
     names = [t.name for t in loaded]
     if len(set(names)) != len(names):  # same name twice (e.g. two files R3.csv): number them
         loaded = [t.with_values(t.r, name=f"{t.name}#{k + 1}") for k, t in enumerate(loaded)]
         names = [t.name for t in loaded]
+    from roadgonio.provenance import input_record
+    inputs = [input_record("table", item, t.name) for item, t in zip(items, loaded)]
     inst = Installation(load_layout(layout), load_luminaire(luminaire))
     modes = ("independent", "correlated") if correlation == "both" else (correlation,)
     results, summaries = [], []
@@ -890,14 +904,18 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
         res = inst.evaluate(t)
         if uf is not None:
             ut = _table(uf, "u", quantity="u")
+            inputs.append(input_record("u", uf, f"u of {t.name}"))
             res.uncertainty = {"file": str(uf), **mc.propagate(inst, t, ut, trials=trials, seed=seed,
                                                                correlations=modes, target_class=target,
                                                                u_path=uf if isinstance(uf, (str, Path)) else None)}
         results.append(res)
         summaries.append(res.summary())
-    folder = _out(out, "road", *names)
+    for argument, value in (("layout", layout), ("luminaire", luminaire)):
+        if value is not None:
+            inputs.append(input_record(argument, value))
+    folder = _out(out, "road", *folder_names)
     if folder is not None:
-        files = report.road_files(results, summaries, target or summaries[0]["class"], plots=plots)
+        files = report.road_files(results, summaries, target or summaries[0]["class"], plots=plots, inputs=inputs)
         written = report.write_together(folder, files)
         summaries[0]["written"] = [str(p) for p in written]
         summaries[0]["out"] = str(folder)
@@ -915,15 +933,18 @@ def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
     from roadgonio.road.compare import compare_csv, compare_png
     from roadgonio.road.compare import compare_tables as _compare
     from roadgonio.road.report import write_together
+    from roadgonio.provenance import input_record
     ta, tb = _table(a, "a"), _table(b, "b")
+    folder = _out(out, "compare", ta.name, tb.name)
+    ta, tb = _labelled(a, ta), _labelled(b, tb)
     if ta.name == tb.name:
         tb = tb.with_values(tb.r, name=tb.name + "#2")
     res = _compare(ta, tb)
     summary = {k: v for k, v in res.items() if k != "ratio"}
-    folder = _out(out, "compare", ta.name, tb.name)
     if folder is not None:
+        inputs = [input_record("a", a, ta.name), input_record("b", b, tb.name)]
         files = {"compare.csv": compare_csv(ta, tb, res["ratio"]),
-                 "compare.json": to_json({**summary, **provenance()}) + "\n"}
+                 "compare.json": to_json({**summary, **provenance(inputs=inputs)}) + "\n"}
         if plots:
             files["compare.png"] = compare_png(res, ta, tb)
         summary["written"] = [str(p) for p in write_together(folder, files)]

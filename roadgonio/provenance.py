@@ -12,15 +12,19 @@ same things in the same keys:
 * ``instrument`` (the instrument in its file form) and ``instrument_file``;
 * ``model`` (the road BRDF model: variant, parameters and its own metadata);
 * ``backend`` and ``settings`` (everything that determines the numbers);
+* ``inputs``: the files (absolute path and sha256 of the content) or names the result was computed
+  from, each with the argument that named it (:func:`input_record`);
 * ``created`` (local time, ISO 8601), plus any keys the caller adds.
 """
 from __future__ import annotations
 
+import hashlib
 import platform
 import sys
 import time
 from importlib import metadata
-from typing import Any
+from pathlib import Path
+from typing import Any, Sequence
 
 #: Distributions whose versions every result carries (name in the result -> distribution name).
 PACKAGES = {"numpy": "numpy", "scipy": "scipy", "mitsuba": "mitsuba", "drjit": "drjit"}
@@ -56,13 +60,40 @@ def versions() -> dict[str, str | None]:
     return v
 
 
+def file_sha256(path: str | Path) -> str:
+    """sha256 of a file's content (hex)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def input_record(argument: str, value: Any, label: str | None = None) -> dict[str, Any]:
+    """One input of a result: ``argument`` (what named it: ``--table``, ``--u``...), and for a file
+    its absolute ``path`` and ``sha256``, else its ``name`` (a bundled table's, or the object's
+    ``name`` / type); ``label``: the name the result shows it under."""
+    rec: dict[str, Any] = {"argument": argument}
+    if isinstance(value, (str, Path)) and Path(value).is_file():
+        rec.update(path=str(Path(value).absolute()), sha256=file_sha256(value))
+    elif isinstance(value, (str, Path)):
+        rec["name"] = str(value)
+    else:
+        rec["name"] = str(getattr(value, "name", None) or type(value).__name__)
+    if label is not None:
+        rec["label"] = label
+    return rec
+
+
 def provenance(*, instrument=None, model=None, backend: str | None = None,
-               settings: dict[str, Any] | None = None, **extra: Any) -> dict[str, Any]:
+               settings: dict[str, Any] | None = None, inputs: Sequence[dict[str, Any]] | None = None,
+               **extra: Any) -> dict[str, Any]:
     """The provenance block of a result (module docstring); ``extra`` keys are added as given.
 
     ``instrument`` is an :class:`~roadgonio.instrument.config.Instrument`, ``model`` a
     :class:`~roadgonio.surface.model.RoadModel` (or an already JSON-ready dict), ``backend`` the
-    backend's name and ``settings`` its settings (``KaBackend.settings()``).
+    backend's name and ``settings`` its settings (``KaBackend.settings()``), ``inputs`` the records
+    of :func:`input_record`.
     """
     out: dict[str, Any] = {"versions": versions(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
     if instrument is not None:
@@ -74,5 +105,7 @@ def provenance(*, instrument=None, model=None, backend: str | None = None,
         out["backend"] = backend
     if settings is not None:
         out["settings"] = dict(settings)
+    if inputs is not None:
+        out["inputs"] = [dict(r) for r in inputs]
     out.update(extra)
     return out

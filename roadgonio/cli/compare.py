@@ -24,9 +24,11 @@ def run(args) -> int:
     elif not args.quiet:
         a, b = res["a"], res["b"]
         ca, cb = res["characteristics"][a], res["characteristics"][b]
-        print(f"{'':8} {a[:16]:>16} {b[:16]:>16}")
-        for key, fmt in (("S1", "{:16.3f}"), ("S2", "{:16.3f}"), ("Q0", "{:16.4f}"), ("cells", "{:16d}")):
-            print(f"{key:8} " + " ".join("-".rjust(16) if c[key] is None else fmt.format(c[key]) for c in (ca, cb)))
+        n = max(16, len(a), len(b))        # a file's name in full (measured.rtb (R3))
+        print(f"{'':8} {a:>{n}} {b:>{n}}")
+        for key, fmt in (("S1", ".3f"), ("S2", ".3f"), ("Q0", ".4f"), ("cells", "d")):
+            print(f"{key:8} " + " ".join("-".rjust(n) if c[key] is None else format(c[key], f"{n}{fmt}")
+                                         for c in (ca, cb)))
         lc = res["largest_change_at"]
         print(f"r({b}) / r({a}) over {res['cells_compared']} cells: {res['ratio_min']:.3g} ... "
               f"{res['ratio_max']:.3g} (median {res['ratio_median']:.3g}); largest change x{lc['ratio']:.3g} at "

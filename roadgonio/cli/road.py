@@ -62,11 +62,12 @@ def _print(summaries) -> None:
     w = sys.stdout.write
     first = summaries[0]
     w(f"layout: {first['layout']}\nluminaire: {first['luminaire']['name']} ({first['luminaire']['flux_lm']:g} lm)\n")
-    w(f"{'table':14} {'L_av':>7} {'U_o':>6} {'U_l':>6} {'TI %':>6} {'R_EI':>6}  class  U_l per lane\n")
+    n = max([14] + [len(s["table"]) for s in summaries])       # a file's name in full (measured.rtb (R3))
+    w(f"{'table':{n}} {'L_av':>7} {'U_o':>6} {'U_l':>6} {'TI %':>6} {'R_EI':>6}  class  U_l per lane\n")
     for s in summaries:
         lanes = " ".join(_v(v, ".3f") for v in s["U_l_per_lane"])
         cls = "-" if s.get("missing") else (s["class"] or "none")
-        w(f"{s['table'][:14]:14} {_v(s['L_av'], '.3f'):>7} {_v(s['U_o'], '.3f'):>6} {_v(s['U_l'], '.3f'):>6} "
+        w(f"{s['table']:{n}} {_v(s['L_av'], '.3f'):>7} {_v(s['U_o'], '.3f'):>6} {_v(s['U_l'], '.3f'):>6} "
           f"{_v(s['TI'], '.1f'):>6} {_v(s['R_EI'], '.3f'):>6}  {cls:5}  {lanes}\n")
     base = summaries[0]
     for s in summaries[1:]:

@@ -50,7 +50,6 @@ matter), so a uniform map is exactly 1 everywhere: the same instrument as no map
 """
 from __future__ import annotations
 
-import hashlib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,7 +71,8 @@ MAP_MAX_VALUES = 4096 * 4096
 
 def file_digest(path: str | Path) -> str:
     """sha256 of a file's content (the identity of a table: same path, new content = new instrument)."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    from roadgonio.provenance import file_sha256
+    return file_sha256(path)
 
 
 @dataclass(frozen=True, eq=False)

@@ -69,7 +69,7 @@ def compare_png(result: dict, a: RTable, b: RTable) -> bytes:
     ax.set_title(f"{b.name} / {a.name}: ratio of r, cell by cell (blank: not in both tables)", fontsize=11)
     tx = fig.add_axes([0.77, 0.35, 0.22, 0.5])
     tx.axis("off")
-    rows = [["", a.name[:14], b.name[:14]]]
+    rows = [["", _short(a.name), _short(b.name)]]
     ca, cb = result["characteristics"][a.name], result["characteristics"][b.name]
     for key, fmt in (("S1", "{:.3f}"), ("S2", "{:.3f}"), ("Q0", "{:.4f}"), ("cells", "{:d}")):
         rows.append([key] + [("-" if c[key] is None else fmt.format(c[key])) for c in (ca, cb)])
@@ -84,6 +84,13 @@ def compare_png(result: dict, a: RTable, b: RTable) -> bytes:
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
     return buf.getvalue()
+
+
+def _short(name: str, n: int = 18) -> str:
+    """A table's name for a narrow cell: a file's stored name ``measured.rtb (R3)`` dropped first."""
+    if len(name) > n and " (" in name:
+        name = name.split(" (")[0]
+    return name if len(name) <= n else name[:n - 3] + "..."
 
 
 def default_out(a: RTable, b: RTable) -> Path:

@@ -154,10 +154,14 @@ def luminance_png(results) -> bytes:
     return _png(fig)
 
 
-def road_files(results, summaries: list[dict], target: str | None, plots: bool = True) -> dict[str, bytes | str]:
+def road_files(results, summaries: list[dict], target: str | None, plots: bool = True,
+               inputs: list[dict] | None = None) -> dict[str, bytes | str]:
+    """The files of ``roadgonio road``; ``inputs``: the provenance records of the input files
+    (:func:`roadgonio.provenance.input_record`)."""
     lay = results[0].installation.layout
     files: dict[str, bytes | str] = {
-        "road.json": to_json({"tables": summaries, **provenance(settings={"layout": lay.describe()})}) + "\n",
+        "road.json": to_json({"tables": summaries, **provenance(settings={"layout": lay.describe()}, inputs=inputs)})
+        + "\n",
         "road_metrics.csv": metrics_csv(summaries),
         "road_luminance.csv": luminance_csv(results),
     }

@@ -554,9 +554,9 @@ def read_table(path: str | Path, quantity: str = "r") -> RTable:
 
 def check_csv_scale(table: RTable, path: str | Path) -> None:
     """Refuse a CSV r-table that looks written in sr^-1 instead of r x 10^4: its largest value x 10^4
-    below :data:`R_X1E4_LARGEST_MIN` (an RTB file's scale is told by its q0 line instead)."""
+    above 0 and below :data:`R_X1E4_LARGEST_MIN` (an RTB file's scale is told by its q0 line instead)."""
     largest = float(np.nanmax(table.r)) * R_SCALE
-    if largest < R_X1E4_LARGEST_MIN:
+    if 0 < largest < R_X1E4_LARGEST_MIN:       # all zeros: no scale to judge (S1, Q0 are missing)
         raise InputError(f"the largest value is {largest:.4g}: this looks like r in sr^-1, but a CSV r-table holds "
                          f"r x 1e4 (expected a largest value >= {R_X1E4_LARGEST_MIN:g}; the CIE tables' largest are "
                          "362 to 770): multiply the values by 1e4", path=path)

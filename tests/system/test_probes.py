@@ -738,7 +738,7 @@ probe("classify-no-s1", "blanks", "classify", lambda t: cli("classify", diag(t),
 
 def _compare_check(r, t):
     d = strict_json(r.out)
-    assert d["characteristics"]["zerocol"]["S1"] is None, d["characteristics"]
+    assert d["characteristics"]["zerocol.csv"]["S1"] is None, d["characteristics"]    # named by its file
     for k in ("ratio_min", "ratio_max", "ratio_median"):
         assert d[k] is None or math.isfinite(d[k]), (k, d[k])
     text = (t / "c" / "compare.csv").read_text()
@@ -783,11 +783,19 @@ probe("road-table-blanks-text", "blanks", "road",
 probe("road-table-blank-00-is-fine", "blanks", "road",
       lambda t: cli("road", "--table", blank00(t), "--json", "--no-plots", "--out", t / "o"), expect="ok",
       check=lambda r, t: _assert(strict_json(r.out)["class"] == "M3", r.out[:300]))
+def _dark_table(scale: float):
+    from roadgonio.surface.rtable import RTable
+    return RTable(np.where(np.isfinite(r3_values()), scale, np.nan), name="dark")
+
+
+# an array, not a file: a CSV this dark is refused as r in sr^-1 (road-table-in-sr below)
 probe("road-no-light", "blanks", "road",
-      lambda t: cli("road", "--table", table_file(t, "dark", np.where(np.isfinite(r3_values()), 1e-12, np.nan)),
-                    "--json", "--no-plots", "--out", t / "o"), expect="ok",
-      check=lambda r, t: _assert(all(v is None or (math.isfinite(v) and v >= 0) for k, v in strict_json(r.out).items()
-                                     if k in ("L_av", "U_o", "U_l", "TI")), r.out[:400]))
+      lambda t: api(lambda: road_api()(_dark_table(1e-12), plots=False)), expect="ok",
+      check=lambda r, t: _assert(all(v is None or (math.isfinite(v) and v >= 0) for k, v in r.value[0].items()
+                                     if k in ("L_av", "U_o", "U_l", "TI")), str(r.value[0])[:400]))
+probe("road-table-in-sr", "input", "road",
+      lambda t: cli("road", "--table", table_file(t, "insr", r3_values() / 1e4), "--no-plots", "--out", t / "o"),
+      must=("insr.csv", "sr^-1", "r x 1e4"))
 
 
 probe("road-blanks-plots", "blanks", "road",
@@ -1029,9 +1037,12 @@ def _quiet_finite_json(r, t):
     no_float_junk(strict_json(r.out))
 
 
-probe("road-table-times-1e-300", "extremes", "road",
+probe("road-table-times-1e-300", "extremes", "road",          # as a file: refused as r in sr^-1
       lambda t: sub("road", "--table", table_file(t, "tiny", r3_values() * 1e-300), "--no-plots", "--json",
-                    "--out", t / "o", cwd=t), expect="ok", check=_quiet_finite_json)
+                    "--out", t / "o", cwd=t), must=("tiny.csv", "sr^-1"))
+probe("road-array-times-1e-300", "extremes", "road",
+      lambda t: api(lambda: road_api()(_dark_table(1e-300), plots=False)), expect="ok",
+      check=lambda r, t: no_float_junk(r.value[0]))
 probe("uncertainty-sigma-1e-300", "extremes", "uncertainty",
       lambda t: sub("uncertainty", "--instrument", instrument(t), "--sample", model_file(t), "--sigma",
                     "alpha_deg=1e-300", "--no-aperture", "--trials", "200", "--no-plots", "--json", "--out", t / "u",

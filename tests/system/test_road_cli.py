@@ -37,7 +37,7 @@ def test_road_several_tables_and_uncertainty(tmp_path, capsys):
     assert main(["road", "--table", str(tmp_path / "R3_measured.csv"), "--table", "R3", "--u",
                  str(tmp_path / "corrected_u.csv"), "--trials", "2000", "--out", str(out), "--json", "--no-plots"]) == 0
     d = json.loads(capsys.readouterr().out)
-    assert [x["table"] for x in d] == ["R3_measured", "R3"]
+    assert [x["table"] for x in d] == ["R3_measured.csv", "R3"]          # a file is named by its file name
     assert d[0]["L_av"] == pytest.approx(1.2 * d[1]["L_av"]) and d[0]["U_o"] == pytest.approx(d[1]["U_o"])
     assert "uncertainty" not in d[0]
     u = d[1]["uncertainty"]
@@ -153,3 +153,33 @@ def test_road_says_why_ti_is_missing_and_u_files_speak_of_u(tmp_path, capsys):
     rc = main(["road", "--table", "R3", "--u", str(tmp_path / "u.csv"), "--trials", "2000"])
     err = capsys.readouterr().err
     assert rc == 2 and "u must be >= 0" in err and "r must" not in err
+
+
+def test_road_and_compare_record_their_input_files(tmp_path, capsys):
+    """road.json and compare.json name the files compared (absolute path, sha256 of the content),
+    and a table read from a file is labelled by the file, with an RTB's stored name in brackets
+    (before: the RTB's stored name 'R3' everywhere, no input file in either JSON)."""
+    import hashlib
+    t = bundled_table("R3")
+    rtb = t.write_rtb(tmp_path / "measured.rtb")                   # stores the surface name R3
+    csv_path = t.with_values(t.r * 1.1, name="x").write_csv(tmp_path / "corrected.csv")
+    u_path = t.with_values(t.r * 0.01).write_csv(tmp_path / "corrected_u.csv")
+    sha = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in (rtb, csv_path, u_path)}
+    assert main(["road", "--table", str(rtb), "--table", str(csv_path), "--u", str(u_path), "--trials", "2000",
+                 "--out", str(tmp_path / "road"), "--no-plots"]) == 0
+    text = capsys.readouterr().out
+    assert "corrected.csv vs measured.rtb (R3)" in text
+    d = json.loads((tmp_path / "road" / "road.json").read_text())
+    assert [s["table"] for s in d["tables"]] == ["measured.rtb (R3)", "corrected.csv"]
+    got = {(r["argument"], r["path"], r["sha256"]) for r in d["inputs"]}
+    assert got == {("table", str(rtb.absolute()), sha[rtb]), ("table", str(csv_path.absolute()), sha[csv_path]),
+                   ("u", str(u_path.absolute()), sha[u_path])}
+    assert main(["compare", str(rtb), str(csv_path), "--out", str(tmp_path / "cmp"), "--no-plots"]) == 0
+    capsys.readouterr()
+    c = json.loads((tmp_path / "cmp" / "compare.json").read_text())
+    assert (c["A"], c["B"]) == ("measured.rtb (R3)", "corrected.csv")
+    assert [(r["argument"], r["path"], r["sha256"]) for r in c["inputs"]] == [
+        ("a", str(rtb.absolute()), sha[rtb]), ("b", str(csv_path.absolute()), sha[csv_path])]
+    assert main(["compare", "R3", str(csv_path), "--out", str(tmp_path / "cmp2"), "--no-plots"]) == 0
+    c = json.loads((tmp_path / "cmp2" / "compare.json").read_text())
+    assert c["A"] == "R3" and c["inputs"][0] == {"argument": "a", "name": "R3", "label": "R3"}   # a bundled name

@@ -168,3 +168,9 @@ def test_negative_u_says_u(tmp_path):
     assert "r must" not in str(ei.value)
     with pytest.raises(InputError, match=r"r must be >= 0, got -"):
         load_table(p)
+
+
+def test_an_all_zero_csv_has_no_scale_to_judge(tmp_path):
+    t = bundled_table("R3")
+    p = t.with_values(np.where(t.mask, 0.0, np.nan)).write_csv(tmp_path / "zeros.csv")
+    assert np.nanmax(load_table(p).r) == 0.0
