@@ -55,7 +55,7 @@ def result_dict(res: UncertaintyResult, *, cells: bool = True) -> dict[str, Any]
         if ap is not None:
             with np.errstate(divide="ignore", invalid="ignore"):
                 u_rel = ap.mc["u"][:n] / np.abs(ap.mc["mean"][:n])
-        d["surrogate"] = res.surrogate.summary(u_rel)
+        d["surrogate"] = res.surrogate.summary(u_rel, res.cells)
     return d
 
 
@@ -196,6 +196,12 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
         lines.append(f"k_A surrogate: {s['exact_evaluations']} exact evaluations in {s['seconds']:.0f} s; error vs "
                      f"held-out exact k_A: max {100 * s['rel_err_max']:.3g} %, rms {100 * s['rel_err_rms']:.3g} %"
                      + (f", max/u(r) = {s['err_over_u_max']:.2g}" if "err_over_u_max" in s else ""))
+        note = s.get("err_over_u_note")
+        if note:
+            worst = "; ".join(f"tan eps {w['tan_eps']:g}, beta {w['beta_deg']:g}: {w['err_over_u']:.2g} u(r)"
+                              for w in note["worst"])
+            lines.append(f"note: the surrogate's error exceeds {note['threshold']:g} u(r) in {note['cells_above']} of "
+                         f"{n} cells (worst: {worst}); the aperture case's u(r) there does not include it")
     return lines
 
 

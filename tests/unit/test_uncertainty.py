@@ -362,3 +362,37 @@ def test_heights_are_the_z_components_of_the_local_directions():
     (_, _, wiz), (_, _, woz) = mm.local_directions(X)
     hz, hoz = mm.heights(X)
     assert np.allclose(hz, wiz, rtol=0, atol=1e-14) and np.allclose(hoz, woz[:, 0], rtol=0, atol=1e-14)
+
+
+def ka_rough_at_12_0(a, t, b, ds, dd):
+    """ka_smooth, but at tan eps 12, beta 0 with a 2 % ripple no quadratic follows (like the noise of
+    a backend without a common seed)."""
+    ripple = 0.02 * math.sin(7e4 * (a + ds + dd)) if abs(t - 12) < 0.1 and abs(b) < 1 else 0.0
+    return ka_smooth(a, t, b, ds, dd) * (1 + ripple)
+
+
+def test_uncertainty_notes_a_surrogate_error_large_against_u():
+    """The surrogate's held-out error above SURROGATE_NOTE_ERR_OVER_U x u(r): one note line naming the
+    worst cells (before: only 'max/u(r) = 14' at the end of a line); none when the surrogate follows
+    k_A; the numbers themselves are unchanged."""
+    from roadgonio.uncertainty.report import result_dict, summary_lines
+    from roadgonio.uncertainty.run import SURROGATE_NOTE_ERR_OVER_U
+    kw = dict(trials=1000, seed=4, progress=False, n_validation=3, surrogate_design="star")
+    inst = load_instrument("portable")
+    smooth = run_uncertainty(MODEL, inst, parse_sigma_spec(SPEC), **kw,
+                             backend_factory=lambda i, m: StandIn(i, m, ka_smooth))
+    assert "err_over_u_note" not in result_dict(smooth)["surrogate"]
+    assert not [ln for ln in summary_lines(smooth) if ln.startswith("note:")]
+    rough = run_uncertainty(MODEL, inst, parse_sigma_spec(SPEC), **kw,
+                            backend_factory=lambda i, m: StandIn(i, m, ka_rough_at_12_0))
+    s = result_dict(rough)["surrogate"]
+    k = int(np.flatnonzero((rough.cells.tan_eps == 12) & (rough.cells.beta_deg == 0))[0])
+    n = len(rough.cells)
+    ap = rough.cases["aperture"]
+    ratio_12_0 = rough.surrogate.rel_err_max[k] / (ap.mc["u"][k] / abs(ap.mc["mean"][k]))
+    assert ratio_12_0 > SURROGATE_NOTE_ERR_OVER_U and s["err_over_u_max"] == pytest.approx(ratio_12_0, rel=1e-12)
+    note = s["err_over_u_note"]
+    assert note["worst"][0]["tan_eps"] == 12 and note["worst"][0]["beta_deg"] == 0 and note["cells_above"] >= 1
+    lines = [ln for ln in summary_lines(rough) if ln.startswith("note:")]
+    assert len(lines) == 1 and "tan eps 12, beta 0:" in lines[0] and f"of {n} cells" in lines[0]
+    assert f"max/u(r) = {ratio_12_0:.2g}" in summary_lines(rough)[-2]               # the number as before
