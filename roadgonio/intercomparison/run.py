@@ -29,10 +29,10 @@ realisations and cells at once (:func:`assemble`).
 from __future__ import annotations
 
 import base64
+import dataclasses
 import hashlib
 import math
 import os
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -89,6 +89,7 @@ class Context:
     backend: str
     settings: dict[str, Any]         # k_A tables of the surrogates and idealisations
     correction_settings: dict[str, Any]
+    progress: bool = False           # cell bars inside a stage-1 task (in this process only, not on Dask)
 
 
 def _cells(which: str):
@@ -116,12 +117,19 @@ def _measurement_model(ctx: Context, p: int):
     return MeasurementModel(ctx.model, part.instrument, ctx.cells, part.illuminance)
 
 
-def _k_table(ctx: Context, instrument) -> np.ndarray:
+def _k_table(ctx: Context, instrument, desc: str = "k_A") -> np.ndarray:
     from roadgonio.engines import make_backend
+    from roadgonio.progress import bar as progress_bar
     if instrument.is_ideal():
         return np.ones(len(ctx.cells))
     be = make_backend(ctx.backend, instrument, ctx.model, **ctx.settings)
-    res = be.compute(list(zip(ctx.cells.tan_eps.tolist(), ctx.cells.beta_deg.tolist())))
+    bar = progress_bar(len(ctx.cells), desc, unit="cell", enabled=ctx.progress, leave=False)
+    try:
+        res = be.compute(list(zip(ctx.cells.tan_eps.tolist(), ctx.cells.beta_deg.tolist())),
+                         on_cell=None if bar is None else (lambda _r: bar.update(1)))
+    finally:
+        if bar is not None:
+            bar.close()
     k = np.array([c.k_a for c in res])
     if not (np.all(np.isfinite(k)) and np.all(k > 0)):
         raise InputError(f"the k_A backend returned a non-positive or non-finite value for {instrument.name}",
@@ -155,7 +163,7 @@ def _stage1_task(item: tuple, ctx: Context) -> dict[str, Any]:
     part = ctx.study.participants[p]
     t0 = time.perf_counter()
     if kind == "ideal":
-        k = _k_table(ctx, idealised_instrument(part.instrument, item[2]))
+        k = _k_table(ctx, idealised_instrument(part.instrument, item[2]), f"k_A of {part.name}, {item[2]} idealised")
         return {"kind": "ideal", "key": [p, item[2]], "k": pack(k), "seconds": time.perf_counter() - t0}
     inst = part.instrument
     if inst.is_ideal():
@@ -163,14 +171,14 @@ def _stage1_task(item: tuple, ctx: Context) -> dict[str, Any]:
                 "note": "ideal (collimated) instrument: k_A = 1", "seconds": time.perf_counter() - t0}
     spec = total_spec(ctx.study, p)
     if not any(s > 0 for s in spec.sigma):
-        k = _k_table(ctx, inst)
+        k = _k_table(ctx, inst, f"k_A of {part.name}")
         return {"kind": "surrogate", "key": [p], "k_nominal": pack(k), "surrogate": None,
                 "note": "no misalignment: nominal k_A table", "seconds": time.perf_counter() - t0}
     from roadgonio.uncertainty.run import build_surrogate, default_backend_factory
     mm = _measurement_model(ctx, p)
     factory = default_backend_factory(ctx.backend, ctx.settings)
     rep = build_surrogate(mm, spec, factory, seed_seq=np.random.SeedSequence([ctx.study.seed, p]),
-                          n_validation=SURROGATE_VALIDATION, progress=False, backend_settings=ctx.settings)
+                          n_validation=SURROGATE_VALIDATION, progress=ctx.progress, backend_settings=ctx.settings)
     s = rep.surrogate
     sur = {"scale": pack(s.scale), "active": [int(a) for a in s.active], "coef": pack(s.coef),
            "ka_nominal": pack(s.ka_nominal), "fit_rms_log": pack(s.fit_rms_log), "kind": s.kind,
@@ -360,11 +368,9 @@ class _Journal:
 
 
 def _bar(progress: bool, total: int, desc: str, initial: int = 0):
-    if not progress or total <= initial:
-        return None
-    from tqdm import tqdm
-    return tqdm(total=total, initial=initial, desc=desc, unit="task", file=sys.stderr, dynamic_ncols=True,
-                disable=None)
+    """Tasks done / total of one stage (:func:`roadgonio.progress.bar`)."""
+    from roadgonio.progress import bar
+    return bar(total, desc, unit="task", initial=initial, enabled=progress)
 
 
 def _map(func, items, client, shared, journal: _Journal, bar, backend: str | None, variant: str | None,
@@ -494,7 +500,8 @@ def _stages(ctx: Context, journal: _Journal, client, progress: bool, seconds: di
         if part.instrument.source.path == "fixed_height" and part.instrument.source.radius_m > 0:
             items1.append(("ideal", p, "source_path"))
     todo = [it for it in items1 if it not in journal.done]
-    _map(_stage1_task, todo, client, ctx, journal, _bar(progress, len(items1), "k_A of the participants",
+    ctx1 = dataclasses.replace(ctx, progress=bool(progress) and client is None)     # cell bars: in this process
+    _map(_stage1_task, todo, client, ctx1, journal, _bar(progress, len(items1), "k_A of the participants",
                                                           len(items1) - len(todo)),
          study.backend, mvariant, "intercompare-ka")
     setup = build_setup(ctx, {it: journal.done[it] for it in items1})

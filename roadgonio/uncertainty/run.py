@@ -128,10 +128,8 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
     Xv = spec.draw(rng_val, n_validation) if len(active) else np.zeros((0, len(INPUTS)))
     n = len(mm.cells)
     total = (len(pts) + len(Xv)) * n
-    bar = None
-    if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=total, desc="exact k_A (surrogate design)", unit="cell", leave=False, disable=None)
+    from roadgonio.progress import bar as progress_bar
+    bar = progress_bar(total, "exact k_A (surrogate design)", unit="cell", leave=False, enabled=progress)
 
     tally = _ExactTally()
 
