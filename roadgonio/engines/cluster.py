@@ -202,6 +202,20 @@ class EngineSetup(_WorkerPlugin):
             self.info = {"error": str(err)}
 
 
+class IgnoreInterrupt(_WorkerPlugin):
+    """Worker plugin of a LOCAL cluster: its worker processes ignore SIGINT. A Ctrl-C on the terminal
+    reaches the whole process group; the driver stops the work and closes the cluster, and the
+    workers, interrupted too, only added a KeyboardInterrupt traceback each after its one line."""
+
+    name = "roadgonio-ignore-interrupt"
+
+    async def setup(self, worker):
+        import signal
+        import threading
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 # ----------------------------------------------------------------------------------------------
 # In the caller
 # ----------------------------------------------------------------------------------------------
@@ -290,13 +304,41 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
     try:
         _check_workers(client)
         from roadgonio.engines.registry import backend_info
+        if cluster is not None:
+            client.register_plugin(IgnoreInterrupt(), name=IgnoreInterrupt.name)
         if backend is not None and backend_info(backend).mitsuba:
             client.register_plugin(EngineSetup(backend, variant), name=EngineSetup.name)
         yield client
+    except BaseException:
+        # Ctrl-C or an error: the caller says what happened; closing the cluster with tasks and
+        # scattered data still on it makes Dask log "Removing worker ... lose scattered data" (ERROR)
+        # after that one line, so Dask's own log is silenced while the cluster closes
+        with _dask_logs_silenced():
+            _close(client, cluster)
+        raise
+    else:
+        _close(client, cluster)
+
+
+def _close(client, cluster) -> None:
+    client.close()
+    if cluster is not None:
+        cluster.close()
+
+
+@contextmanager
+def _dask_logs_silenced() -> Iterator[None]:
+    """Dask's loggers (``distributed.*``) at CRITICAL for the block, restored after."""
+    log = logging.getLogger("distributed")
+    children = [logging.getLogger(n) for n in list(logging.root.manager.loggerDict) if n.startswith("distributed.")]
+    saved = [(lg, lg.level) for lg in [log, *children]]
+    try:
+        for lg, _ in saved:
+            lg.setLevel(logging.CRITICAL)
+        yield
     finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+        for lg, level in saved:
+            lg.setLevel(level)
 
 
 def _check_workers(client) -> None:

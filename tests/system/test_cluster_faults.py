@@ -116,3 +116,28 @@ def test_a_script_starting_a_local_cluster_needs_the_main_guard(tmp_path, guarde
     assert r.returncode == 1 and last.startswith("roadgonio.errors.InputError: field 'workers': "), r.stderr
     assert "if __name__ == \"__main__\":" in last and "workers=0" in last
     assert "An attempt has been made to start a new process" not in r.stderr     # the children stop first
+
+
+@pytest.mark.timeout(300)
+def test_ctrl_c_with_scattered_data_closes_the_cluster_quietly(capfd):
+    """Ctrl-C while a local cluster holds scattered data and runs a task: the caller's one line is
+    the last word (before: Dask logged 'Removing worker ... lose scattered data' at ERROR after
+    it); the workers ignore SIGINT (a terminal's Ctrl-C reaches them too; before: a
+    KeyboardInterrupt traceback from each); Dask's log levels are restored afterwards."""
+    import logging
+    import os
+    import signal
+    import time
+
+    from roadgonio.engines import cluster
+    before = logging.getLogger("distributed.scheduler").level
+    with pytest.raises(KeyboardInterrupt):
+        with cluster.open_client(workers=1, backend=None) as client:
+            client.scatter([np.zeros(1000)], broadcast=True, hash=False)
+            for pid in client.run(os.getpid).values():       # the terminal's Ctrl-C reaches the workers too
+                os.kill(pid, signal.SIGINT)
+            time.sleep(3.0)                                   # (an idle worker died of it within a second)
+            raise KeyboardInterrupt
+    err = capfd.readouterr().err
+    assert "lose scattered data" not in err and "ERROR" not in err and "Traceback" not in err, err
+    assert logging.getLogger("distributed.scheduler").level == before
