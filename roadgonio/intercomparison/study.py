@@ -12,7 +12,8 @@
     # corrected_realisations = 200    # of them, how many are corrected by roadgonio (default: all)
     seed = 1
     coverage_factor = 2.0             # k of U(d_i) and E_n
-    backend = "mitsuba"               # k_A backend: mitsuba or quadrature
+    backend = "mitsuba"               # k_A backend: mitsuba, or quadrature (deterministic, ~40x slower
+                                      # here: docs/intercomparison.md, Time)
     # rel_se = 3e-3                   # its tolerance for the participants' k_A (mitsuba: target relative
                                       # SE; quadrature: rtol)
     # correction_rel_se = 1e-3        # the tolerance of the corrections' k_A (default: roadgonio correct's)
