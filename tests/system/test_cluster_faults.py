@@ -91,11 +91,23 @@ def test_design_reports_a_worker_error_as_failed_with_a_retry_hint(tmp_path, mon
 
 SCRIPT_CALL = ('rg.design_study("lab", ["source.radius_m=0.002,0.004"], "lambert", cells="1:0", backend="quadrature", '
                'workers=1, progress=False, plots=False)')
+STUDY = """[study]
+surface = "lambert"
+realisations = 2
+[[participant]]
+name = "A"
+instrument = "collimated"
+noise_rel = 0.01
+[[participant]]
+name = "B"
+instrument = "collimated"
+noise_rel = 0.01
+"""
 
 
 @pytest.mark.timeout(300)
-@pytest.mark.parametrize("guarded", [False, True])
-def test_a_script_starting_a_local_cluster_needs_the_main_guard(tmp_path, guarded):
+@pytest.mark.parametrize("guarded, call", [(False, "design"), (False, "intercompare"), (True, "design")])
+def test_a_script_starting_a_local_cluster_needs_the_main_guard(tmp_path, guarded, call):
     """A script calling the API with workers=N at module level (the docs' snippet as first
     written): each spawned worker imports the script again and would start its own cluster. Before:
     ~60 lines of multiprocessing and Dask tracebacks ending in 'RuntimeError: Nanny failed to
@@ -104,6 +116,9 @@ def test_a_script_starting_a_local_cluster_needs_the_main_guard(tmp_path, guarde
     import subprocess
     import sys
     body = f"import roadgonio.api as rg\nds = {SCRIPT_CALL}\nprint('k_a', float(ds['k_a'].max()))\n"
+    if call == "intercompare":                # the docs' snippet (docs/intercomparison.md)
+        (tmp_path / "study.toml").write_text(STUDY)
+        body = 'import roadgonio.api as rg\nrun = rg.intercompare("study.toml", "out", workers=1)\n'
     if guarded:
         body = 'if __name__ == "__main__":\n' + textwrap.indent(body, "    ")
     (tmp_path / "script.py").write_text(body)
