@@ -66,6 +66,12 @@ class BackendError(RoadgonioError):
     """A compute backend cannot run here (for example Dr.Jit's LLVM backend needs LLVM >= 16)."""
 
 
+class ModelWarning(UserWarning):
+    """Something about an input the user should read although the work goes on (a fitted model whose
+    specular peak no instrument can resolve, for instance): a Python warning in the API, printed once
+    by the command line as ``roadgonio: note: <message>`` on standard error."""
+
+
 class Interrupted(KeyboardInterrupt):
     """A Ctrl-C that says what the interrupted work kept: the CLI prints ``roadgonio: <note>`` and
     exits with status 130 (``note``: e.g. how many finished points a journal keeps)."""
