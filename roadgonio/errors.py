@@ -59,7 +59,16 @@ class InputError(RoadgonioError, ValueError):
 
 class GeometryError(RoadgonioError):
     """The instrument geometry cannot be measured as asked (footprint off the sample,
-    source below the horizon, detector that does not see the sample...)."""
+    source below the horizon, detector that does not see the sample...). ``path`` (the instrument
+    file) and ``field`` (the key to change), where the raiser knows them, lead the message as in
+    :class:`InputError`."""
+
+    def __init__(self, message: str, *, path: str | Path | None = None, field: str | None = None):
+        self.path = None if path is None else str(path)
+        self.field = field
+        self.reason = message
+        where = ([self.path] if self.path is not None else []) + ([f"field '{field}'"] if field else [])
+        super().__init__(f"{', '.join(where)}: {message}" if where else message)
 
 
 class BackendError(RoadgonioError):
