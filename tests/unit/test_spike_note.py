@@ -78,3 +78,23 @@ def test_the_command_line_says_it_once(capsys):
     assert "note" not in out
     assert main(argv[:4] + ["R2", "--model-variant", "smooth"] + argv[5:]) == 0
     assert "note" not in capsys.readouterr().err
+
+
+def test_auto_alternatives_never_use_a_spike_fit():
+    """`correct --reference` picks the two CIE tables nearest to the measured one as alternatives
+    for the model uncertainty; R2 is one of them for R1, R3, C1 and C2, and its power fit's spike
+    (k_A 0.43 at grazing beta 0 for any instrument) would be passed off as model uncertainty: the
+    alternative takes its smooth fit instead, and a note says so. Asked for explicitly, a table is
+    fitted as asked."""
+    from roadgonio.correction.reference import resolve_alternatives
+    from roadgonio.surface.rtable import bundled_table
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        alts = resolve_alternatives("auto", bundled_table("R3"), reference_name="R3")
+    assert "R2" in alts and alts["R2"].variant == "smooth"
+    assert all(not unresolved_spike(m)[0].size for m in alts.values())
+    notes = [str(w.message) for w in caught if issubclass(w.category, ModelWarning)]
+    assert len(notes) == 1 and notes[0].startswith("the alternative reference R2")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelWarning)
+        assert resolve_alternatives("R2", bundled_table("R3"), reference_name="R3")["R2"].variant == "power"
