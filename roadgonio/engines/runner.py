@@ -31,6 +31,7 @@ import numpy as np
 
 from roadgonio.fileio import atomic_write, atomic_write_text, check_run_folder, fingerprint as _fingerprint, output_error, read_journal, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.plots import count
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
 from roadgonio.surface.model import RoadModel
@@ -336,7 +337,7 @@ def precision_text(summary: dict[str, Any]) -> str:
         if summary.get(key) is not None:
             text = f"{name} {summary[key]:.1e}"
             if summary.get("not_converged"):
-                text += f", {summary['not_converged']} cells NOT converged"
+                text += f", {count(summary['not_converged'], 'cell')} NOT converged"
             return text
     return ""
 
@@ -385,9 +386,12 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
         group.json(META, meta)
         if plot:
             from roadgonio.plotproc import InProcess
+            k = ds["k_a"].values
+            # within 0.5 % of 1 everywhere, two decimals would print 1.00 on cells the colours tell apart
+            near_one = bool(np.isfinite(k).any()) and float(np.nanmax(np.abs(k - 1.0))) < 0.005
             (figures or InProcess()).call(
-                "table_map", ds["k_a"].values, group.path("ka.png"),
+                "table_map", k, group.path("ka.png"),
                 title=f"Aperture-effect factor k_A: {ds.attrs['instrument']} x {ds.attrs['sample']}",
-                subtitle=f"{ds.attrs['backend']} backend, {s['cells']} cells, " + precision_text(s),
-                label="k_A (1 = no aperture effect)")
+                subtitle=f"{ds.attrs['backend']} backend, {count(s['cells'], 'cell')}, " + precision_text(s),
+                label="k_A (1 = no aperture effect)", blank="not computed", fmt="{:.4f}" if near_one else "{:.2f}")
     return meta
