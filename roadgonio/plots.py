@@ -43,15 +43,16 @@ def _distinct_formatter(digits: int):
     return DistinctFormatter()
 
 
-def text_width_in(texts, fontsize: float) -> float:
-    """Width in inches of the widest of ``texts`` at ``fontsize`` points (matplotlib's own text
-    layout, without drawing a figure): to size a margin that holds long tick labels."""
+def text_width_in(texts, fontsize: float, dpi: float = 100) -> float:
+    """Width in inches of the widest of ``texts`` at ``fontsize`` points when drawn at ``dpi``
+    (matplotlib's own text layout, without drawing a figure; hinting makes it depend on the dpi by
+    up to 10 %): to size a margin that holds long tick labels."""
     from matplotlib.backends.backend_agg import RendererAgg
     from matplotlib.font_manager import FontProperties
-    renderer = RendererAgg(8, 8, 72)          # 72 dpi: pixels are points
+    renderer = RendererAgg(8, 8, dpi)
     font = FontProperties(size=fontsize)
     widths = [renderer.get_text_width_height_descent(str(t), font, ismath=False)[0] for t in texts]
-    return max(widths, default=0.0) / 72.0
+    return max(widths, default=0.0) / dpi
 
 
 #: The colour of blank cells (no value: not computed, not tabulated) on table maps, as fit.png has it:

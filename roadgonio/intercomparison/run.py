@@ -686,6 +686,11 @@ def assemble(study: Study, setup: sim.Setup, records: Mapping[tuple, dict], *, m
                            validation_json=to_json(valid, indent=None), correlation_json=to_json(corr, indent=None))
 
 
+#: The columns of correlation.csv (its header also when too few realisations give a correlation).
+CORRELATION_COLUMNS = ("scenario", "participant_a", "participant_b", "realisations", "simulated_median",
+                       "simulated_p05", "simulated_p95", "stated_median", "stated_p05", "stated_p95")
+
+
 def correlation_rows(setup: sim.Setup, xs, us, g_rel: np.ndarray) -> list[dict[str, Any]]:
     """Per scenario and pair of participants: the correlation of their errors ``x / r_true - 1``
     over the realisations (what the simulation produces), and the correlation their stated
@@ -738,6 +743,11 @@ def _figures(setup: sim.Setup, x: np.ndarray, st_: Mapping[str, Any], rows: np.n
     return out
 
 
+#: The columns of validation.csv (its header also when no realisation allows the check).
+VALIDATION_COLUMNS = ("figure", "participant", "realisations", "full", "frozen", "difference", "difference_se",
+                      "full_se")
+
+
 def validation_rows(setup: sim.Setup, xs, stats, full) -> list[dict[str, Any]]:
     """The frozen correction factor against the full corrections, on the realisations where every
     participant that corrects has a full correction: each figure of merit (:func:`_figures`) with
@@ -756,10 +766,11 @@ def validation_rows(setup: sim.Setup, xs, stats, full) -> list[dict[str, Any]]:
         cols = [(names[p], va[:, p], vb[:, p]) for p in range(va.shape[1])] if va.ndim == 2 else [("ALL", va, vb)]
         for who, x1, x2 in cols:
             diff = x2 - x1
-            out.append({"figure": key, "participant": who, "realisations": R, "full": float(x1.mean()),
-                        "frozen": float(x2.mean()), "difference": float(diff.mean()),
-                        "difference_se": float(diff.std(ddof=1) / math.sqrt(R)),
-                        "full_se": float(x1.std(ddof=1) / math.sqrt(R))})
+            row = {"figure": key, "participant": who, "realisations": R, "full": float(x1.mean()),
+                   "frozen": float(x2.mean()), "difference": float(diff.mean()),
+                   "difference_se": float(diff.std(ddof=1) / math.sqrt(R)),
+                   "full_se": float(x1.std(ddof=1) / math.sqrt(R))}
+            out.append({k: row[k] for k in VALIDATION_COLUMNS})
     return out
 
 

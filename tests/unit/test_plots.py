@@ -60,3 +60,20 @@ def test_blank_cells_are_grey_not_white_like_k_a_1(tmp_path):
     assert np.abs(img[int(0.3 * h), int(0.4 * w)] - grey).max() <= 2        # a blank cell mid-map
     from roadgonio.plots import count
     assert (count(1, "cell"), count(579, "cell")) == ("1 cell", "579 cells")
+
+
+def test_the_measured_text_width_is_what_matplotlib_draws():
+    """sensitivity.png sizes its left margin from text_width_in; a 72-dpi measure was 8 % short at
+    95 dpi and cut the labels off."""
+    from roadgonio.plots import new_figure, text_width_in
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    labels = ["misalignment alpha_deg (sigma 0.005)", "detector pupil (R_D/D_D = 0.0286 deg)", "x"]
+    for dpi in (95, 110):
+        fig = new_figure((5, 3))
+        fig.set_dpi(dpi)
+        canvas = FigureCanvasAgg(fig)
+        ax = fig.add_subplot(1, 1, 1)
+        ax.set_yticks(range(3), labels, fontsize=7)
+        canvas.draw()
+        drawn = max(t.get_window_extent().width for t in ax.get_yticklabels()) / dpi
+        assert abs(text_width_in(labels, 7, dpi=dpi) - drawn) < 0.01, (dpi, drawn)
