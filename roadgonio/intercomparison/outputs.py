@@ -35,6 +35,13 @@ from typing import Any, Sequence
 import numpy as np
 
 
+#: The columns of validation.csv (its header also when no realisation allows the check).
+VALIDATION_COLUMNS = ("figure", "participant", "realisations", "full", "frozen", "difference", "difference_se",
+                      "full_se")
+#: The columns of correlation.csv (its header also when too few realisations give a correlation).
+CORRELATION_COLUMNS = ("scenario", "participant_a", "participant_b", "realisations", "simulated_median",
+                       "simulated_p05", "simulated_p95", "stated_median", "stated_p05", "stated_p95")
+
 SCENARIO_TITLE = {"declared": "as declared", "all_corrected": "every participant corrects (roadgonio correct --reference self)"}
 
 
@@ -42,7 +49,6 @@ def write_outputs(run, out_dir: str | Path, *, plots: bool = True) -> list[Path]
     """intercompare.nc, intercompare.csv, sensitivity.csv, intercompare.json and the pictures,
     together or not at all (:class:`roadgonio.fileio.OutputGroup`; the journal stays outside)."""
     from roadgonio.fileio import OutputGroup
-    from roadgonio.intercomparison.run import CORRELATION_COLUMNS, VALIDATION_COLUMNS
     ds = run.dataset
     out_dir = Path(out_dir)
     summ = json.loads(ds.attrs["summary_json"])

@@ -686,11 +686,6 @@ def assemble(study: Study, setup: sim.Setup, records: Mapping[tuple, dict], *, m
                            validation_json=to_json(valid, indent=None), correlation_json=to_json(corr, indent=None))
 
 
-#: The columns of correlation.csv (its header also when too few realisations give a correlation).
-CORRELATION_COLUMNS = ("scenario", "participant_a", "participant_b", "realisations", "simulated_median",
-                       "simulated_p05", "simulated_p95", "stated_median", "stated_p05", "stated_p95")
-
-
 def correlation_rows(setup: sim.Setup, xs, us, g_rel: np.ndarray) -> list[dict[str, Any]]:
     """Per scenario and pair of participants: the correlation of their errors ``x / r_true - 1``
     over the realisations (what the simulation produces), and the correlation their stated
@@ -743,16 +738,12 @@ def _figures(setup: sim.Setup, x: np.ndarray, st_: Mapping[str, Any], rows: np.n
     return out
 
 
-#: The columns of validation.csv (its header also when no realisation allows the check).
-VALIDATION_COLUMNS = ("figure", "participant", "realisations", "full", "frozen", "difference", "difference_se",
-                      "full_se")
-
-
 def validation_rows(setup: sim.Setup, xs, stats, full) -> list[dict[str, Any]]:
     """The frozen correction factor against the full corrections, on the realisations where every
     participant that corrects has a full correction: each figure of merit (:func:`_figures`) with
     the full corrections and with the frozen factors, their mean paired difference and its standard
     error over those realisations. Empty when no realisation has both."""
+    from roadgonio.intercomparison.outputs import VALIDATION_COLUMNS
     rows_ok = np.all(full["all_corrected"], axis=1) & stats["all_corrected"]["ok"] & stats[sim.FROZEN]["ok"]
     R = int(rows_ok.sum())
     if R < 2:

@@ -212,8 +212,7 @@ def test_the_csv_files_have_their_header_row_even_without_rows(tmp_path, collima
     """validation.csv of a study without corrections was one newline (pandas: EmptyDataError);
     so is correlation.csv with fewer than 3 realisations."""
     import pandas as pd
-    from roadgonio.intercomparison.outputs import rows_csv
-    from roadgonio.intercomparison.run import CORRELATION_COLUMNS, VALIDATION_COLUMNS
+    from roadgonio.intercomparison.outputs import CORRELATION_COLUMNS, VALIDATION_COLUMNS, rows_csv
     empty = pd.read_csv(__import__("io").StringIO(rows_csv([], VALIDATION_COLUMNS)))
     assert list(empty.columns) == list(VALIDATION_COLUMNS) and len(empty) == 0
     out = tmp_path / "out"
