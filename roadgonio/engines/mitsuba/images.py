@@ -121,13 +121,39 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
             "footprint_m": {"x": [x0, x1], "y": [y0, y1]},
             "illuminance_window_m": {"x": [ex0, ex1], "y": [ey0, ey1]},
             "units": "source gives ~1 lx normal to its axis at the sample centre: E in lx/lx, L in cd/m^2/lx"}
+    definitions = {
+        "signal_road": "mean detector signal of the road sample over the view (this render, light straight from "
+                       "the source), in the units above",
+        "signal_lambert": "the same for the instrument's calibration (a perfect diffuser)",
+        "ratio": "the road's reading over the calibration's, as the instrument computes q; ratio_se its standard error",
+        "ideal_ratio": "the same ratio of the ideal point geometry (eq. 2)",
+        "k_a_estimate": "ratio / ideal_ratio: this render's k_A (one render; 'roadgonio ka' for tables); k_a_se its "
+                        "standard error"}
     if stray is not None:
         info["stray"] = stray["summary"]
-        # this render's k_A with the stray light, and of the direct light alone (the direct integrator above)
-        info["k_a_direct_estimate"], info["k_a_direct_se"] = info["k_a_estimate"], info["k_a_se"]
+        # everything without a suffix is what the instrument measures (stray light included); the direct
+        # integrator's numbers above carry _direct
         tot = stray["summary"]
+        for old_key, new_key in (("signal_road", "signal_road_direct"), ("signal_lambert", "signal_lambert_direct"),
+                                 ("ratio", "ratio_direct"), ("ratio_se", "ratio_direct_se")):
+            info[new_key] = info.pop(old_key)
+        info["ratio"], info["ratio_se"] = tot["ratio"], tot["ratio_se"]
+        info["k_a_direct_estimate"], info["k_a_direct_se"] = info["k_a_estimate"], info["k_a_se"]
         if ideal > 0:
             info["k_a_estimate"], info["k_a_se"] = tot["ratio"] / ideal, tot["ratio_se"] / ideal
+        definitions = {
+            "ratio": "the road's reading over the calibration's with the stray light (both see the housing), from the "
+                     "stray-light paths (stray.ratio); ratio_se its standard error",
+            "ideal_ratio": definitions["ideal_ratio"],
+            "k_a_estimate": "ratio / ideal_ratio: this render's k_A with the stray light; k_a_se its standard error",
+            "signal_road_direct": "mean detector signal of the road sample over the view, light straight from the "
+                                  "source only (the picture render.png), in the units above",
+            "signal_lambert_direct": "the same for the calibration (a perfect diffuser)",
+            "ratio_direct": "signal_road_direct / signal_lambert_direct; ratio_direct_se its standard error",
+            "k_a_direct_estimate": "ratio_direct / ideal_ratio: k_A of the direct light alone; k_a_direct_se its "
+                                   "standard error",
+            "stray": "the stray light of this cell: fractions of each signal and the shares by housing part"}
+    info["definitions"] = definitions
     info["files"] = files
     with OutputGroup(out_dir) as stage:      # view.exr, illuminance.exr, render.png, render.json: all or none
         write_exr(stage.path("view.exr"), {"RGB": view, "L_road": view[..., ROAD], "L_lambert": view[..., LAMBERT]})
