@@ -322,7 +322,7 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
     from roadgonio.engines.registry import check_seed
     from roadgonio.surface.fit import fit_table
     from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS
-    from roadgonio.surface.sample import check_not_degenerate
+    from roadgonio.surface.sample import check_not_degenerate, note_unresolved_spike
     variant = model_variant or DEFAULT_VARIANT
     if variant not in VARIANTS:
         raise InputError(f"unknown model variant {variant!r}; expected one of {', '.join(VARIANTS)}",
@@ -352,6 +352,7 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
         check_writable(folder)          # an unwritable folder fails now, not after the fit
     result = fit_table(t, variant, seed=seed, fixed=fixed, progress=progress)
     check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
+    note_unresolved_spike(result.model, t.name, fitted=True)
     if folder is not None:
         import dataclasses
 

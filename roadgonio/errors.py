@@ -59,11 +59,26 @@ class InputError(RoadgonioError, ValueError):
 
 class GeometryError(RoadgonioError):
     """The instrument geometry cannot be measured as asked (footprint off the sample,
-    source below the horizon, detector that does not see the sample...)."""
+    source below the horizon, detector that does not see the sample...). ``path`` (the instrument
+    file) and ``field`` (the key to change), where the raiser knows them, lead the message as in
+    :class:`InputError`."""
+
+    def __init__(self, message: str, *, path: str | Path | None = None, field: str | None = None):
+        self.path = None if path is None else str(path)
+        self.field = field
+        self.reason = message
+        where = ([self.path] if self.path is not None else []) + ([f"field '{field}'"] if field else [])
+        super().__init__(f"{', '.join(where)}: {message}" if where else message)
 
 
 class BackendError(RoadgonioError):
     """A compute backend cannot run here (for example Dr.Jit's LLVM backend needs LLVM >= 16)."""
+
+
+class ModelWarning(UserWarning):
+    """Something about an input the user should read although the work goes on (a fitted model whose
+    specular peak no instrument can resolve, for instance): a Python warning in the API, printed once
+    by the command line as ``roadgonio: note: <message>`` on standard error."""
 
 
 class Interrupted(KeyboardInterrupt):

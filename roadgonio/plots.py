@@ -16,10 +16,55 @@ def _plt():
     return plt
 
 
+def tick_labels(values, digits: int = 3, max_digits: int = 12) -> list[str]:
+    """Plain labels (``%.Ng``) of tick ``values`` with the fewest significant digits, at least
+    ``digits``, that tell every two different values apart: a colour bar over 0.998 ... 1.002 (one
+    k_A cell, or an instrument with k_A = 1) read 1, 1, 1, 1, 0.999, 0.999, 0.998 at 3 digits."""
+    vals = [float(v) for v in values]
+    distinct = len(set(vals))
+    n = digits
+    while n < max_digits and len({f"{v:.{n}g}" for v in vals}) < distinct:
+        n += 1
+    return [f"{v:.{n}g}" for v in vals]
+
+
+def _distinct_formatter(digits: int):
+    """A matplotlib tick formatter giving the labels of :func:`tick_labels` (it formats the ticks
+    of an axis together, so it can add digits until they differ)."""
+    from matplotlib import ticker
+
+    class DistinctFormatter(ticker.Formatter):
+        def __call__(self, x, pos=None):
+            return f"{x:.{digits}g}"
+
+        def format_ticks(self, values):
+            return tick_labels(values, digits)
+
+    return DistinctFormatter()
+
+
+def text_width_in(texts, fontsize: float, dpi: float = 100) -> float:
+    """Width in inches of the widest of ``texts`` at ``fontsize`` points when drawn at ``dpi``
+    (matplotlib's own text layout, without drawing a figure; hinting makes it depend on the dpi by
+    up to 10 %): to size a margin that holds long tick labels."""
+    from matplotlib.backends.backend_agg import RendererAgg
+    from matplotlib.font_manager import FontProperties
+    renderer = RendererAgg(8, 8, dpi)
+    font = FontProperties(size=fontsize)
+    widths = [renderer.get_text_width_height_descent(str(t), font, ismath=False)[0] for t in texts]
+    return max(widths, default=0.0) / dpi
+
+
+#: The colour of blank cells (no value: not computed, not tabulated) on table maps, as fit.png has it:
+#: on a diverging map white would read as the centre value (k_A = 1).
+BLANK_COLOUR = "0.85"
+
+
 def plain_colorbar_labels(cb) -> None:
-    """Plain numbers on a colour bar (a log scale would otherwise print 9x10^-1). A log colour bar
-    spanning less than a decade gets round ticks over its whole range: its decade and 2 ... 9 ticks
-    would leave a range like 0.71 ... 1.41 labelled only at 0.8, 0.9 and 1, nothing above 1."""
+    """Plain numbers on a colour bar (a log scale would otherwise print 9x10^-1), with as many
+    digits as make the labels differ (:func:`tick_labels`). A log colour bar spanning less than a
+    decade gets round ticks over its whole range: its decade and 2 ... 9 ticks would leave a range
+    like 0.71 ... 1.41 labelled only at 0.8, 0.9 and 1, nothing above 1."""
     from matplotlib import colors, ticker
     norm = cb.norm
     if isinstance(norm, colors.LogNorm) and norm.vmin is not None and norm.vmin > 0 and norm.vmax < 10 * norm.vmin:
@@ -27,8 +72,8 @@ def plain_colorbar_labels(cb) -> None:
                  if norm.vmin <= t <= norm.vmax]
         cb.set_ticks(ticks)
         cb.minorticks_off()
-    cb.ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%.3g"))
-    cb.ax.yaxis.set_minor_formatter(ticker.FormatStrFormatter("%.2g"))
+    cb.ax.yaxis.set_major_formatter(_distinct_formatter(3))
+    cb.ax.yaxis.set_minor_formatter(_distinct_formatter(2))
 
 
 class CellLabels:
@@ -42,6 +87,11 @@ class CellLabels:
 
     def add(self, ax, x: float, y: float, text: str, color, fontsize: float) -> None:
         self.items.append((ax, x, y, text, color, fontsize))
+
+
+def count(n: int, noun: str) -> str:
+    """'1 cell', '2 cells' (nouns with a plain -s plural)."""
+    return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
 def _font(size_px: float):
@@ -83,10 +133,11 @@ def new_figure(figsize=(12, 10)):
 
 def draw_table_map(ax, values: np.ndarray, *, label: str, centre: float | None = 1.0, log: bool = True,
                    fmt: str = "{:.2f}", text=None, fontsize: float = 6.5, tick_fontsize: float | None = None,
-                   tan_eps=TAN_EPS_GRID, beta_deg=BETA_GRID_DEG, labels: CellLabels | None = None):
+                   tan_eps=TAN_EPS_GRID, beta_deg=BETA_GRID_DEG, labels: CellLabels | None = None,
+                   grey_blanks: bool = False):
     """Draw an r-table-shaped map (rows tan eps, columns beta) on ``ax`` with its colour bar;
     returns the image. Cells show ``fmt.format(value)`` or ``text(i, j)``; blank (NaN) cells stay
-    white. ``centre`` puts a diverging colour map's midpoint at that value (k_A = 1: no aperture
+    white, or with ``grey_blanks`` are :data:`BLANK_COLOUR` (the caller says what grey means). ``centre`` puts a diverging colour map's midpoint at that value (k_A = 1: no aperture
     effect); ``log`` uses a logarithmic colour scale (k_A spans 0.3 ... 5). With ``labels`` the
     cell texts are collected there for :func:`save_figure` (fast) instead of drawn as artists."""
     from matplotlib import colormaps, colors
@@ -108,6 +159,8 @@ def draw_table_map(ax, values: np.ndarray, *, label: str, centre: float | None =
     else:
         norm, cmap = colors.Normalize(0, 1), colormaps["viridis"]
     im = ax.imshow(np.ma.masked_invalid(v), cmap=cmap, norm=norm, aspect="auto", interpolation="nearest")
+    if grey_blanks:
+        ax.set_facecolor(BLANK_COLOUR)
     ax.set_xticks(range(len(beta_deg)), [f"{b:g}" for b in beta_deg], fontsize=tick_fontsize)
     ax.set_yticks(range(len(tan_eps)), [f"{t:g}" for t in tan_eps], fontsize=tick_fontsize)
     ax.set_xlabel("beta (deg)")
@@ -131,8 +184,9 @@ def draw_table_map(ax, values: np.ndarray, *, label: str, centre: float | None =
 
 def table_map(values: np.ndarray, path: str | Path, *, title: str, label: str, centre: float | None = 1.0,
               fmt: str = "{:.2f}", log: bool = True, annotate: bool = True,
-              tan_eps=TAN_EPS_GRID, beta_deg=BETA_GRID_DEG, subtitle: str = "") -> Path:
-    """An r-table-shaped map like the paper's Figure 4 (:func:`draw_table_map`) as a PNG.
+              tan_eps=TAN_EPS_GRID, beta_deg=BETA_GRID_DEG, subtitle: str = "", blank: str | None = None) -> Path:
+    """An r-table-shaped map like the paper's Figure 4 (:func:`draw_table_map`) as a PNG. With
+    ``blank`` (e.g. "not computed") the cells without a value are grey and the title says so.
 
     Fixed margins instead of ``tight_layout`` (which renders the figure once more to measure it)
     and the cell numbers drawn by Pillow (:class:`CellLabels`): 0.5 s instead of 3.1 s for a
@@ -142,6 +196,9 @@ def table_map(values: np.ndarray, path: str | Path, *, title: str, label: str, c
     labels = CellLabels()
     draw_table_map(ax, values, label=label, centre=centre, log=log, fmt=fmt,
                    text=None if annotate else (lambda i, j: ""), tan_eps=tan_eps, beta_deg=beta_deg,
-                   labels=labels)
+                   labels=labels, grey_blanks=blank is not None)
+    n_blank = int(np.sum(~np.isfinite(np.asarray(values, dtype=np.float64))))
+    if blank is not None and n_blank:
+        subtitle = (subtitle + "; " if subtitle else "") + f"grey: {blank} ({count(n_blank, 'cell')})"
     ax.set_title(title + (f"\n{subtitle}" if subtitle else ""), fontsize=11)
     return save_figure(fig, path, dpi=110, labels=labels)

@@ -14,9 +14,10 @@ import argparse
 import importlib
 import pkgutil
 import sys
+import warnings
 
 from roadgonio._version import __version__
-from roadgonio.errors import InputError, RoadgonioError, is_interrupt
+from roadgonio.errors import InputError, ModelWarning, RoadgonioError, is_interrupt
 
 #: Order in which commands are listed in --help (others follow alphabetically).
 ORDER = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct", "design", "road",
@@ -66,7 +67,10 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     try:
-        return int(args.func(args) or 0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", ModelWarning)
+            warnings.showwarning = _show_note(set())
+            return int(args.func(args) or 0)
     except RoadgonioError as err:
         print(f"roadgonio: error: {_as_option(err, parser, args)}", file=sys.stderr)
         return 2
@@ -88,6 +92,21 @@ def main(argv: list[str] | None = None) -> int:
         note = getattr(err, "note", None) or getattr(args, "on_interrupt", None) or "interrupted: nothing was written"
         print(f"roadgonio: {note}", file=sys.stderr)
         return 130
+
+
+def _show_note(said: set):
+    """Print a :class:`ModelWarning` as ``roadgonio: note: ...`` on standard error, each text once
+    (a sample resolved twice says it once); other warnings as Python shows them."""
+    plain = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if not issubclass(category, ModelWarning):
+            return plain(message, category, filename, lineno, file, line)
+        text = str(message)
+        if text not in said:
+            said.add(text)
+            print(f"roadgonio: note: {text}", file=sys.stderr)
+    return show
 
 
 def _as_option(err: RoadgonioError, parser: argparse.ArgumentParser, args) -> RoadgonioError:

@@ -116,9 +116,9 @@ def run(args) -> int:
         say(f"{s['measured']}: {s['cells']} cells corrected (reference {s['reference']}, calibration "
             f"{s['calibration']}; k_A {s['k_a_min']:.3g} ... {s['k_a_max']:.3g})")
         say(f"  before: S1 {_pm(b['S1'], b['u_S1'])}, Q0 {_pm(b['Q0'], b['u_Q0'])}, S2 {_pm(b['S2'], b['u_S2'])}: "
-            f"{b['class_R']} / {b['class_C']}, nearest CIE table {b['nearest_table']}")
+            f"{_classes(b)}, nearest CIE table {b['nearest_table']}")
         say(f"  after:  S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
-            f"{s['class_R']} / {s['class_C']}, nearest CIE table {s['nearest_table']}")
+            f"{_classes(s)}, nearest CIE table {s['nearest_table']}")
         comps = ", ".join(f"{k} {_percent(v['u_rel_max'])}" for k, v in s["budget"].items() if k != "total")
         say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} % "
             f"(largest per component: {comps}); {s['seconds']:.1f} s")
@@ -171,7 +171,7 @@ def _run_joint(args) -> int:
             f"{_pm(b['S1'], b['u_S1'])}, Q0 {_pm(b['Q0'], b['u_Q0'])}; its own corrected u median "
             f"{100 * p['u_rel_median']:.3g} %")
     say(f"  corrected: S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
-        f"{s['class_R']} / {s['class_C']}, nearest CIE table {s['nearest_table']}")
+        f"{_classes(s)}, nearest CIE table {s['nearest_table']}")
     say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} %; "
         f"{s['seconds']:.1f} s")
     if s.get("model_estimate"):
@@ -186,6 +186,13 @@ def _run_joint(args) -> int:
 def _model_estimate_line(m: dict) -> str:
     return (f"  the table weighs r / k_A against the fitted surface's own value: its weight median "
             f"{m['weight_median']:.2f} ({m['weight_min']:.2f} ... {m['weight_max']:.2f}; w_model in correct_cells.csv)")
+
+
+def _classes(s: dict) -> str:
+    """'R2 / C2', or why there is no class (S1 needs r at tan eps 0 and 2, beta 0)."""
+    if s.get("class_R") is None or s.get("class_C") is None:
+        return "class missing (S1 missing)"
+    return f"{s['class_R']} / {s['class_C']}"
 
 
 def _pm(v, u) -> str:

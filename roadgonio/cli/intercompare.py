@@ -54,7 +54,8 @@ def run(args) -> int:
         if not allr.get("realisations"):
             say(f"{scen}: not compared (no realisation has every participant's table)")
             continue
-        say(f"{scen} ({allr['realisations']} realisations): Birge ratio median {allr['birge_ratio_median']:.2f}, "
+        n = allr["realisations"]
+        say(f"{scen} ({n} realisation{'' if n == 1 else 's'}): Birge ratio median {allr['birge_ratio_median']:.2f}, "
             f"consistent cells {100 * allr['share_consistent_cells']:.0f} %, every participant compatible with the "
             f"weighted mean in {100 * allr['share_all_compatible_weighted_mean']:.0f} % of the cells; RMS error "
             f"against the truth: weighted mean {allr['rms_error_weighted_mean_vs_truth_pct']:.2f} %, Mandel-Paule "
@@ -69,6 +70,12 @@ def run(args) -> int:
                 f"{r['stated_u_median_pct']:.2g} %, RMS error {r['rms_error_vs_truth_pct']:.2f} %, compatible with "
                 f"the truth in {100 * r['share_En_le_1_truth']:.0f} % and with the weighted mean in "
                 f"{100 * r['share_En_le_1_weighted_mean']:.0f} % of the cells" + (f"; most of it: {why}" if why else ""))
+    if not s["validation"]:
+        n = next((r.get("realisations") or 0 for r in summary if r["scenario"] == "all_corrected"
+                  and r["participant"] == "ALL"), 0)
+        say(f"validation.csv has its header only: checking the frozen correction factor against the full corrections "
+            f"needs at least 2 realisations in which every participant corrects (here {n}; the study's "
+            "corrected_realisations)")
     secs = s["seconds"]
     say(f"{secs['total']:.0f} s (k_A {secs.get('k_a', 0):.0f} s, corrections {secs.get('corrections', 0):.0f} s, "
         f"realisations {secs.get('realisations', 0):.0f} s); wrote {s['out']}/" + s["files"])

@@ -47,8 +47,8 @@ def register(sub) -> None:
                         "e.g. 12:0,12:2,4:0")
     p.add_argument("--out", metavar="DIR", help="output folder for a table (default: out/ka-INSTRUMENT-SAMPLE)")
     p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
-    add_output_options(p, 'one cell: print {"k_a", "se", "error_bound", "confidence_bound", "converged", "samples", '
-                          '"seconds"}; table: print the summary as JSON')
+    add_output_options(p, 'one cell: print {"k_a", "se", "error_bound", "confidence_bound", "confidence_level", '
+                          '"converged", "samples", "seconds", ...}; table: print the summary as JSON')
     p.set_defaults(func=run)
 
 
@@ -65,7 +65,7 @@ def run(args) -> int:
         c = api.ka_cell(args.instrument, args.sample, args.tan_eps, args.beta, out=args.out, **common)
         if args.json:
             print_json({"k_a": c.k_a, "se": c.se, "error_bound": c.error_bound, "confidence_bound": c.confidence_bound,
-                        "converged": c.converged, "samples": c.samples, "seconds": c.seconds,
+                        "confidence_level": c.confidence_level, "converged": c.converged, "samples": c.samples, "seconds": c.seconds,
                         "k_a_direct": c.k_a_direct, "k_a_direct_se": c.k_a_direct_se,
                         "stray_fraction": c.stray_fraction, "stray_fraction_se": c.stray_fraction_se})
         else:
@@ -91,7 +91,7 @@ def run(args) -> int:
         print_json({"out": ds.attrs["out"], **s})
         return 0
     say = text_output(args)
-    say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {s['cells']} cells "
+    say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {s['cells']} cell{'' if s['cells'] == 1 else 's'} "
         f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
         f"{api.precision_text(s)}, {s['seconds_wall_this_run']:.1f} s."
         + (_stray_text(s) if "stray_fraction_max" in s else ""))

@@ -35,4 +35,30 @@ def resolve_alternatives(spec: str | Sequence[str] | None, measured: RTable, *, 
             names = [s.strip() for s in text.split(",") if s.strip()]
     else:
         names = [str(s) for s in spec]
+        text = ""
+    if text.lower() == "auto" and model_variant is None:
+        return {sample_name(n): _auto_alternative(n) for n in names}
     return {sample_name(n): resolve_sample(n, model_variant).model for n in names}
+
+
+def _auto_alternative(name: str) -> RoadModel:
+    """A bundled table chosen as an alternative by roadgonio (not by the user): its default fit,
+    unless that fit has a spike at beta 0 that no aperture resolves (the power fits of R2 and R4,
+    :func:`roadgonio.surface.sample.unresolved_spike`), whose k_A (0.26-0.43 at grazing beta 0 for
+    any instrument) would pass the fit's artefact off as model uncertainty; then its smooth fit, and
+    a note says so."""
+    import warnings
+
+    from roadgonio.errors import ModelWarning
+    from roadgonio.surface.sample import resolve_sample, unresolved_spike
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ModelWarning)
+        model = resolve_sample(name).model
+    if not unresolved_spike(model)[0].size:
+        return model
+    warnings.warn(ModelWarning(
+        f"the alternative reference {name} (chosen as one of the two CIE tables nearest to the measured one) uses "
+        f"its smooth fit: its {model.variant} fit has a spike at beta 0 that no aperture resolves, which would pass "
+        "the fit's artefact off as model uncertainty (docs/inputs-outputs.md, \"A peak no instrument resolves\")"),
+        stacklevel=2)
+    return resolve_sample(name, "smooth").model

@@ -165,13 +165,9 @@ def _relative(v: float, table: RTable, fld: str) -> np.ndarray:
 
 
 def check_measured(table: RTable, path: str | Path | None = None) -> None:
-    """The measured table must have the S1 cells and positive values."""
-    for t, b in ((0.0, 0.0), (2.0, 0.0)):
-        i = int(np.argmin(np.abs(table.tan_eps - t)))
-        j = int(np.argmin(np.abs(table.beta_deg - b)))
-        if not table.mask[i, j]:
-            raise InputError(f"the measured table has no value at tan eps = {t:g}, beta = {b:g} (needed for S1)",
-                             path=path)
+    """The measured table's values must be positive (a cell not measured is blank). A table without
+    the S1 cells (tan eps 0 and 2 at beta 0) is corrected; S1, S2 and the class are then reported as
+    missing (docs/inputs-outputs.md, "Missing values")."""
     if np.any(table.r[table.mask] <= 0):
         raise InputError("the measured table has zero values; blank a cell that was not measured", path=path)
 

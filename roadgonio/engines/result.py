@@ -14,7 +14,8 @@ Stray light (issue 18): ``k_a`` is everything the scene does; ``k_a_direct`` the
 that reaches the footprint straight from the source alone, and ``stray_fraction`` =
 1 - S_direct[f] / S_total[f] of the road sample, each with its standard error (``k_a_direct_se``,
 ``stray_fraction_se``). A backend that traces no stray light leaves them out: then ``k_a_direct``
-is ``k_a`` (with ``se``) and the stray fraction is 0 exactly.
+is ``k_a`` (with ``se``: NaN for the quadrature, whose ``error_bound`` then bounds it) and the
+stray fraction is 0 exactly (``stray_fraction_se`` = 0: an exact value, not a missing SE).
 
 Fields that do not apply are NaN. A budget takes its standard uncertainty from
 :meth:`CellResult.standard_uncertainty` (the SE, or a deterministic bound as a rectangular

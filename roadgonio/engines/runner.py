@@ -31,6 +31,7 @@ import numpy as np
 
 from roadgonio.fileio import atomic_write, atomic_write_text, check_run_folder, fingerprint as _fingerprint, output_error, read_journal, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.plots import count
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
 from roadgonio.surface.model import RoadModel
@@ -225,9 +226,14 @@ FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
     # stray light (issue 18; docs/conventions.md section 5): without it k_a_direct = k_a, stray_fraction = 0
     "k_a_direct": ("k_A of the direct light", "1", "the light that reaches the footprint straight from the source "
                                                  "only (no stray light from the scene's reflecting parts)"),
-    "k_a_direct_se": ("standard error of k_a_direct", "1", ""),
+    "k_a_direct_se": ("standard error of k_a_direct", "1",
+                      "a standard error, as se; without stray light traced k_a_direct is k_a and this is se: NaN "
+                      "for a backend that gives a deterministic error_bound instead (quadrature), which then "
+                      "bounds k_a_direct too"),
     "stray_fraction": ("stray fraction of the road signal", "1", "1 - S_direct[f] / S_total[f]; 0 without stray light"),
-    "stray_fraction_se": ("standard error of stray_fraction", "1", ""),
+    "stray_fraction_se": ("standard error of stray_fraction", "1",
+                          "a standard error, as se; 0 without stray light traced, where the stray fraction is 0 "
+                          "exactly (no reflecting parts: not an estimate)"),
 }
 #: The stray-light outputs (written when the scene made stray light): field -> file.
 STRAY_FILES = {"k_a_direct": "ka_direct.csv", "k_a_direct_se": "ka_direct_se.csv",
@@ -249,7 +255,8 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
     ``error_bound``, ``confidence_bound``, ``confidence_level``, ``samples``, ``seconds``,
     ``converged``, and any field a backend adds), NaN (``converged`` False) where not computed.
     CF-style attributes: units and long names per variable; on the Dataset the title, the source
-    (roadgonio's version), the precision kind of the backend and the cells' correlation, the
+    (roadgonio's version), the seed the backend used (none for a deterministic backend: no ``seed``
+    attribute), the precision kind of the backend and the cells' correlation, the
     provenance (:func:`roadgonio.provenance.provenance`, as JSON text) and the run's fingerprint.
     ``ka.nc`` is this Dataset (:func:`write_outputs`); the CSVs and ``ka.json`` are written from it."""
     import dataclasses
@@ -284,7 +291,9 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md section 5)",
         "instrument": instrument.name, "sample": sample, "backend": backend.name,
         "accuracy": "" if accuracy is None else str(accuracy),
-        "seed": -1 if seed is None else int(seed),
+        # the seed the backend used (its default when none was given); a deterministic backend takes
+        # none and its Dataset has no seed attribute (was -1: a sentinel read as a seed)
+        **({"seed": int(settings.get("seed", seed))} if settings.get("seed", seed) is not None else {}),
         "precision": info.precision if info else "",
         "cell_correlation": info.cell_correlation if info else "",
         "cells_computed": len(computed),
@@ -330,13 +339,24 @@ def summary(ds) -> dict[str, Any]:
     return out
 
 
+def confidence_text(ds) -> str:
+    """' at confidence level 0.999' (the levels of a k_A Dataset's confidence bounds): a confidence
+    bound means nothing without its level, and ka_confidence_bound.csv has no column for it."""
+    levels = sorted({float(x) for x in np.asarray(ds["confidence_level"].values).ravel() if np.isfinite(x)})
+    if not levels:
+        return ""
+    if len(levels) == 1:
+        return f" at confidence level {levels[0]:g}"
+    return " at confidence levels " + ", ".join(f"{x:g}" for x in levels) + " (per cell: confidence_level in ka.nc)"
+
+
 def precision_text(summary: dict[str, Any]) -> str:
     """'worst rel. SE 1.5e-04' or 'worst rel. error bound 9.9e-04' (never one for the other)."""
     for key, name in (("worst_rel_se", "worst rel. SE"), ("worst_rel_error_bound", "worst rel. error bound")):
         if summary.get(key) is not None:
             text = f"{name} {summary[key]:.1e}"
             if summary.get("not_converged"):
-                text += f", {summary['not_converged']} cells NOT converged"
+                text += f", {count(summary['not_converged'], 'cell')} NOT converged"
             return text
     return ""
 
@@ -365,7 +385,8 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
                             ("confidence_bound", "ka_confidence_bound.csv")):
             v = ds[field].values
             if np.isfinite(v).any():
-                group.text(name, grid_csv_text(v, f"{ds[field].attrs['long_name']} (instrument '{ds.attrs['instrument']}', "
+                what = ds[field].attrs["long_name"] + (confidence_text(ds) if field == "confidence_bound" else "")
+                group.text(name, grid_csv_text(v, f"{what} (instrument '{ds.attrs['instrument']}', "
                                                   f"sample '{ds.attrs['sample']}', {ds.attrs['backend']} backend)",
                                                digits=4))
                 files[field] = name
@@ -385,9 +406,12 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
         group.json(META, meta)
         if plot:
             from roadgonio.plotproc import InProcess
+            k = ds["k_a"].values
+            # within 0.5 % of 1 everywhere, two decimals would print 1.00 on cells the colours tell apart
+            near_one = bool(np.isfinite(k).any()) and float(np.nanmax(np.abs(k - 1.0))) < 0.005
             (figures or InProcess()).call(
-                "table_map", ds["k_a"].values, group.path("ka.png"),
+                "table_map", k, group.path("ka.png"),
                 title=f"Aperture-effect factor k_A: {ds.attrs['instrument']} x {ds.attrs['sample']}",
-                subtitle=f"{ds.attrs['backend']} backend, {s['cells']} cells, " + precision_text(s),
-                label="k_A (1 = no aperture effect)")
+                subtitle=f"{ds.attrs['backend']} backend, {count(s['cells'], 'cell')}, " + precision_text(s),
+                label="k_A (1 = no aperture effect)", blank="not computed", fmt="{:.4f}" if near_one else "{:.2f}")
     return meta

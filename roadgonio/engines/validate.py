@@ -69,7 +69,8 @@ REFERENCES = ("auto", "reference", "quadrature", "numpy-mc-mesh")
 #: measurement (float32 rounding of a 1 m footprint coordinate is 6e-8 relative).
 FLOAT32_FLOOR: dict[str, float] = {"mitsuba": 1e-5, "numpy-mc": 0.0}
 
-CSV_FIELDS = ("tan_eps", "beta_deg", "verdict", "k_ref", "bound_ref", "se_ref", "ref_converged", "k_mc", "se_mc",
+CSV_FIELDS = ("tan_eps", "beta_deg", "verdict", "k_ref", "error_bound_ref", "confidence_bound_ref",
+              "confidence_level_ref", "se_ref", "ref_converged", "k_mc", "se_mc",
               "mc_converged", "diff", "rel_diff", "sigma", "z", "floor", "allowed", "needed_bound", "reason",
               "seconds_ref", "seconds_mc", "samples_ref", "samples_mc")
 
@@ -82,18 +83,21 @@ class CellComparison:
     beta_deg: float
     verdict: str          # "agree" | "disagree" | "inconclusive"
     k_ref: float
-    bound_ref: float      # error bound of the reference (NaN if it carries a standard error)
-    se_ref: float         # standard error of the reference (NaN if it carries a bound)
+    error_bound_ref: float       # deterministic error bound of the reference (the quadrature; else NaN)
+    confidence_bound_ref: float  # the reference's confidence bound (the RQMC reference; else NaN) ...
+    confidence_level_ref: float  # ... at this confidence level (NaN without one)
+    se_ref: float         # standard error of the reference (NaN if it gives none); combined with se_mc
+    #                       only when the reference has no bound (a mesh sample's Monte Carlo)
     ref_converged: bool
     k_mc: float
     se_mc: float
     mc_converged: bool
     diff: float           # k_mc - k_ref
     rel_diff: float
-    sigma: float          # combined standard error sqrt(se_mc^2 + se_ref^2)
+    sigma: float          # se_mc, or sqrt(se_mc^2 + se_ref^2) for a reference without a bound
     z: float              # diff / sigma
     floor: float          # relative float32 floor applied
-    allowed: float        # N_SIGMA * sigma + bound_ref + floor * |k_ref|
+    allowed: float        # N_SIGMA * sigma + the reference's bound (either kind) + floor * |k_ref|
     needed_bound: float   # the widest reference bound the test accepts: REF_SHARE * (N_SIGMA sigma + floor |k|)
     reason: str
     seconds_ref: float
@@ -104,6 +108,12 @@ class CellComparison:
     @property
     def ok(self) -> bool:
         return self.verdict == "agree"
+
+    @property
+    def bound_ref(self) -> float:
+        """The reference's bound that enters ``allowed``: its confidence bound or its deterministic
+        error bound, whichever it has (NaN: none)."""
+        return self.confidence_bound_ref if math.isfinite(self.confidence_bound_ref) else self.error_bound_ref
 
 
 def _finite(v) -> bool:
@@ -118,8 +128,10 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
     se_mc = float(mc.se)
     # a bounded reference (the quadrature's deterministic bound, the RQMC reference's confidence
     # bound) adds its bound; one with only a standard error combines it in quadrature
-    bound = float(ref.confidence_bound) if _finite(ref.confidence_bound) else (
-        float(ref.error_bound) if _finite(ref.error_bound) else math.nan)
+    conf = float(ref.confidence_bound) if _finite(ref.confidence_bound) else math.nan
+    err_bound = float(ref.error_bound) if _finite(ref.error_bound) else math.nan
+    level = float(ref.confidence_level) if _finite(conf) and _finite(getattr(ref, "confidence_level", None)) else math.nan
+    bound = conf if _finite(conf) else err_bound
     has_se_ref = not _finite(bound) and _finite(ref.se)
     se_ref = float(ref.se) if _finite(ref.se) else math.nan
     bound_term = bound if _finite(bound) else (0.0 if has_se_ref else math.inf)
@@ -150,7 +162,8 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
     else:
         verdict, reason = "agree", f"{z:+.2f} SE, within {allowed / sigma if sigma > 0 else math.inf:.2f}"
     return CellComparison(tan_eps=float(ref.tan_eps), beta_deg=float(ref.beta_deg), verdict=verdict, k_ref=k_ref,
-                          bound_ref=bound, se_ref=se_ref, ref_converged=bool(ref.converged), k_mc=k_mc, se_mc=se_mc,
+                          error_bound_ref=err_bound,
+                          confidence_bound_ref=conf, confidence_level_ref=level, se_ref=se_ref, ref_converged=bool(ref.converged), k_mc=k_mc, se_mc=se_mc,
                           mc_converged=bool(mc.converged), diff=d, rel_diff=d / k_ref if k_ref else math.nan,
                           sigma=sigma, z=z, floor=floor, allowed=allowed, needed_bound=needed, reason=reason,
                           seconds_ref=float(ref.seconds), seconds_mc=float(mc.seconds),
@@ -248,11 +261,22 @@ def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[flo
             "instrument": instrument.to_dict(), "model": model.to_json_dict()}
 
 
+#: How the references are named in the summary and the picture (the registry's names: "reference" is the
+#: RQMC reference, whose name alone read "the reference reference").
+REFERENCE_LABELS = {"reference": "RQMC reference (99.9 % confidence bound)",
+                    "quadrature": "quadrature reference (error bound)",
+                    "numpy-mc-mesh": "mesh Monte Carlo reference (SE)"}
+
+
+def reference_label(name: str) -> str:
+    return REFERENCE_LABELS.get(name, f"{name} reference")
+
+
 def summary_line(report: dict[str, Any]) -> str:
     c = report["counts"]
     n = sum(c.values())
     return (f"validate: {c['agree']} agree, {c['disagree']} disagree, {c['inconclusive']} inconclusive "
-            f"(of {n} cells; {report['against']} against the {report['reference']} reference, "
+            f"(of {n} cells; {report['against']} against the {reference_label(report['reference'])}, "
             f"{report['n_sigma']:g} SE + bound + float32 floor {report['floor']:.1e}; {report['seconds']:.1f} s)")
 
 
@@ -303,12 +327,14 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
     handles = ax1.get_legend_handles_labels()[0] + [Patch(color=c, label=v) for v, c in colour.items()]
     ax1.legend(handles=handles, loc="upper right", fontsize=8)
     c = report["counts"]
-    ax1.set_title(f"k_A: {report['against']} vs {report['reference']} reference - {report['verdict'].upper()} "
-                  f"({c['agree']} agree, {c['disagree']} disagree, {c['inconclusive']} inconclusive)")
+    ax1.set_title(f"k_A: {report['against']} vs the {reference_label(report['reference'])}\n"
+                  f"{report['verdict'].upper()}: {c['agree']} agree, {c['disagree']} disagree, "
+                  f"{c['inconclusive']} inconclusive", fontsize=10)
     kq = np.array([r.k_ref for r in rows])
     km = np.array([r.k_mc for r in rows])
     err_ref = [r.bound_ref if math.isfinite(r.bound_ref) else r.se_ref for r in rows]
-    ax2.errorbar(x - 0.12, kq, yerr=np.nan_to_num(err_ref), fmt="o", ms=5, label=f"{report['reference']} (float64)")
+    ax2.errorbar(x - 0.12, kq, yerr=np.nan_to_num(err_ref), fmt="o", ms=5,
+                 label=f"{reference_label(report['reference'])} (float64)")
     ax2.errorbar(x + 0.12, km, yerr=np.nan_to_num([r.se_mc for r in rows]), fmt="s", ms=5, mfc="none",
                  label=f"{report['against']} (+-1 SE)")
     ax2.axhline(1.0, color="0.5", lw=0.8)

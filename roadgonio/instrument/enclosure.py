@@ -132,12 +132,6 @@ def _floor_check(instrument, box: Box) -> None:
             f"at least {need_x:.3f} m x {need_y:.3f} m about the origin, or give [housing] x_m / y_m")
 
 
-def _outside(points: np.ndarray, box: Box, lid: bool) -> str | None:
-    """Id and label of the first wall that the points (N, 3) reach or cross, or None."""
-    hit = _wall_reached(points, box, lid)
-    return None if hit is None else hit[0]
-
-
 def _wall_reached(points: np.ndarray, box: Box, lid: bool) -> tuple[str, str] | None:
     """("label (id)", axis) of the first wall that the points (N, 3) reach or cross (axis "x", "y"
     or "z": the [housing] bound that places it), or None."""
@@ -231,9 +225,10 @@ def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, flo
         return
     box = housing_box(instrument, housing)
     discs = source_discs(instrument, cells)
-    bad: list[tuple[tuple[float, float], str, bool]] = []
+    bad: list[tuple[tuple[float, float], str, bool, str]] = []
     for cell, pts in zip(cells, discs):
-        wall, sight = _outside(pts, box, housing.lid), False
+        hit, sight = _wall_reached(pts, box, housing.lid), False
+        wall, key = (hit[0], _bound_field(housing, hit[1])) if hit is not None else (None, "housing")
         if wall is None:
             rim = pts[:-1]
             nxt = np.roll(rim, -1, axis=0)
@@ -248,6 +243,7 @@ def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, flo
                     z = rim[:, 2] + f * (nxt[:, 2] - rim[:, 2])
                     if (z[cross] < bf.height_m).any():
                         wall = f"baffle {k} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm high)"
+                        key = f"housing.baffles.{k - 1}.height_m"
                         break
                 # the line from the disc's centre to the sample centre (the cell's nominal direction)
                 c = pts[-1]
@@ -258,16 +254,19 @@ def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, flo
                                 f"high) stands in the source's line of sight to the sample centre (the line passes "
                                 f"{1000 * z_line:.3g} mm above the floor there); lower or move the baffle, or leave the "
                                 "cell out")
+                        key = f"housing.baffles.{k - 1}.height_m"
                         sight = True
                         break
         if wall is not None:
-            bad.append(((float(cell[0]), float(cell[1])), wall, sight))
+            bad.append(((float(cell[0]), float(cell[1])), wall, sight, key))
     if bad:
-        (t, b), wall, sight = bad[0]
+        (t, b), wall, sight, key = bad[0]
         more = f" (and {len(bad) - 1} more cells)" if len(bad) > 1 else ""
         src = instrument.source
         if sight:
-            raise GeometryError(f"the housing blocks the source at tan eps = {t:g}, beta = {b:g}{more}: {wall}")
+            raise GeometryError(f"the housing blocks the source at tan eps = {t:g}, beta = {b:g}{more}: {wall}",
+                                path=instrument.path, field=key)
         raise GeometryError(
             f"the housing blocks the source at tan eps = {t:g}, beta = {b:g}{more}: its disc (radius "
-            f"{src.radius_m:g} m, {src.length_key[:-2]} {src.length_m:g} m) reaches {wall}; enlarge the housing or leave the cell out")
+            f"{src.radius_m:g} m, {src.length_key[:-2]} {src.length_m:g} m) reaches {wall}; enlarge the housing or leave the cell out",
+            path=instrument.path, field=key)

@@ -365,7 +365,7 @@ def check_detector(instrument: Instrument) -> tuple[float, float, float, float]:
     if det.distance_m * math.sin(a) - det.pupil_radius_m * math.cos(a) <= 0.0:
         raise GeometryError(f"the detector pupil reaches below the sample plane (alpha = "
                             f"{instrument.observation.alpha_deg:g} deg, pupil radius {det.pupil_radius_m:g} m "
-                            f"at {det.distance_m:g} m)")
+                            f"at {det.distance_m:g} m)", path=instrument.path, field="detector.pupil_radius_m")
     x, y = footprint_along_azimuth(instrument)
     bounds = (float(x.min()), float(x.max()), float(y.min()), float(y.max()))
     smp = instrument.sample
@@ -376,7 +376,7 @@ def check_detector(instrument: Instrument) -> tuple[float, float, float, float]:
                 f"the detector footprint leaves the sample: it spans x = {bounds[0]:.3f} ... {bounds[1]:.3f} m, "
                 f"y = {bounds[2]:.3f} ... {bounds[3]:.3f} m, but the sample is {smp.size_x_m:g} m x "
                 f"{smp.size_y_m:g} m (x = +-{hx:g}, y = +-{hy:g}; x along the observation azimuth); enlarge "
-                "[sample] or narrow the field")
+                "[sample] or narrow the field", path=instrument.path, field="sample")
     return bounds
 
 
@@ -391,7 +391,7 @@ def check_source(instrument: Instrument, tan_eps: float, beta_deg: float) -> Non
     if lowest <= 0.0:
         raise GeometryError(f"the source is below the horizon at tan eps = {tan_eps:g}, beta = {beta_deg:g}: "
                             f"its disc (radius {src.radius_m:g} m at {dist:g} m) reaches "
-                            f"{lowest:.4f} m below/at the sample plane")
+                            f"{lowest:.4f} m below/at the sample plane", path=instrument.path, field="source.radius_m")
     if src.beam.kind == "table":
         need = footprint_emission_angle_deg(instrument, tan_eps, beta_deg)
         have = math.degrees(src.beam.theta_end_rad)

@@ -18,7 +18,8 @@ with its standard error over realisations) and one per scenario for the comparis
 share of consistent cells, error of each consensus against the truth, tau). ``sensitivity.csv``:
 the ranking of the characteristics. ``validation.csv``: the frozen correction factor against the
 full corrections (figures of merit with both on the same realisations, paired differences and
-their standard errors). ``correlation.csv``: per pair of participants the correlation of their
+their standard errors; its header row only when fewer than two realisations have every
+participant's full correction). ``correlation.csv``: per pair of participants the correlation of their
 errors over the realisations beside the one their stated covariance declares. Pictures: ``en_map_declared.png``, ``en_map_all_corrected.png``
 (median E_n against the weighted mean per cell and participant), ``specular_row.png`` (degrees of
 equivalence with U along beta = 0), ``sensitivity.png`` (the ranking) and ``compatibility.png``.
@@ -33,6 +34,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
+
+#: The columns of validation.csv (its header also when no realisation allows the check).
+VALIDATION_COLUMNS = ("figure", "participant", "realisations", "full", "frozen", "difference", "difference_se",
+                      "full_se")
+#: The columns of correlation.csv (its header also when too few realisations give a correlation).
+CORRELATION_COLUMNS = ("scenario", "participant_a", "participant_b", "realisations", "simulated_median",
+                       "simulated_p05", "simulated_p95", "stated_median", "stated_p05", "stated_p95")
 
 SCENARIO_TITLE = {"declared": "as declared", "all_corrected": "every participant corrects (roadgonio correct --reference self)"}
 
@@ -50,7 +58,7 @@ def write_outputs(run, out_dir: str | Path, *, plots: bool = True) -> list[Path]
     with OutputGroup(out_dir) as g:
         files = [write_netcdf(ds, g.path("intercompare.nc")),
                  g.text("intercompare.csv", rows_csv(summ)), g.text("sensitivity.csv", rows_csv(sens)),
-                 g.text("validation.csv", rows_csv(valid)), g.text("correlation.csv", rows_csv(corr)),
+                 g.text("validation.csv", rows_csv(valid, VALIDATION_COLUMNS)), g.text("correlation.csv", rows_csv(corr, CORRELATION_COLUMNS)),
                  g.json("intercompare.json", {"summary": summ, "sensitivity": sens, "validation": valid,
                                               "correlation": corr,
                                               "seconds": json.loads(ds.attrs.get("seconds", "{}")),
@@ -77,8 +85,10 @@ def read_intercomparison(path: str | Path):
     return read_netcdf(path)
 
 
-def rows_csv(rows: Sequence[dict[str, Any]]) -> str:
-    keys: list[str] = []
+def rows_csv(rows: Sequence[dict[str, Any]], columns: Sequence[str] = ()) -> str:
+    """CSV text of ``rows`` with a header row: ``columns`` first, then any other key in the order
+    met."""
+    keys: list[str] = list(columns)
     for r in rows:
         keys += [k for k in r if k not in keys]
     buf = io.StringIO()
@@ -161,7 +171,8 @@ def plot_specular_row(ds, path: Path) -> Path:
     from roadgonio.plots import new_figure, save_figure
     scen = [s for s in ds.scenario.values.tolist() if np.isfinite(ds["d"].sel(scenario=s)).any()]
     refs = [("weighted_mean", "against the weighted mean"), ("truth", "against the truth")]
-    fig = new_figure((7.0 * len(scen), 5.2 * len(refs)))
+    width = 7.0 * len(scen)
+    fig = new_figure((width, 5.2 * len(refs)))
     names = ds.participant.values.tolist()
     cols = _colours(len(names))
     t = ds.tan_eps.values
@@ -187,12 +198,14 @@ def plot_specular_row(ds, path: Path) -> Path:
                             capsize=2, color=cols[p], label=name)
             ax.axhline(0.0, color="k", lw=0.7)
             ax.set_xlabel("tan eps (beta = 0, the specular row)")
-            ax.set_ylabel(f"d_i / r_true (%) {ref_text}")
+            ax.set_ylabel(f"d_i / r_true (% of r) {ref_text}")
             ax.set_title(f"{SCENARIO_TITLE.get(s, s)}: {ref_text}\n(points: median d_i; bars: median U(d_i), "
                          f"k = {k:g}; band: 5-95 % of d_i over the realisations)", fontsize=9)
             ax.grid(True, alpha=0.3)
             ax.legend(fontsize=8, loc="best")
-    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.06, top=0.94, wspace=0.25, hspace=0.35)
+    # 0.95 in on the left: the tick labels (-17.5) and the y label (0.08 of one 7 in column cut it off)
+    fig.subplots_adjust(left=0.95 / width, right=1.0 - 0.15 / width, bottom=0.06, top=0.94, wspace=0.25,
+                        hspace=0.35)
     return save_figure(fig, path, dpi=95)
 
 
@@ -200,10 +213,15 @@ def plot_sensitivity(sens: Sequence[dict[str, Any]], path: Path, top: int = 6) -
     """Per scenario and participant, the characteristics ranked by how much idealising each one
     lowers the RMS of its own error x_i / r_true - 1 (its degree of equivalence against the truth;
     error bars: standard error over the realisations)."""
-    from roadgonio.plots import new_figure, save_figure
+    from roadgonio.plots import new_figure, save_figure, text_width_in
     scen = list(dict.fromkeys(r["scenario"] for r in sens))
     parts = list(dict.fromkeys(r["participant"] for r in sens))
-    fig = new_figure((7.5 * max(len(scen), 1), 2.4 * max(len(parts), 1) + 1.0))
+    ncol, nrow = max(len(scen), 1), max(len(parts), 1)
+    # margins in inches from the longest label (a fixed fraction cut them off in one column)
+    label_in = text_width_in([r["label"] for r in sens], 7, dpi=95) + 0.25
+    bar_in, right_in = 4.8, 0.25
+    width = ncol * (label_in + bar_in) + right_in
+    fig = new_figure((width, 2.4 * nrow + 1.0))
     for a, s in enumerate(scen):
         for b, name in enumerate(parts):
             ax = fig.add_subplot(max(len(parts), 1), max(len(scen), 1), b * len(scen) + a + 1)
@@ -223,16 +241,29 @@ def plot_sensitivity(sens: Sequence[dict[str, Any]], path: Path, top: int = 6) -
             if b == len(parts) - 1:
                 ax.set_xlabel("drop of RMS(x_i / r_true - 1) when idealised (% of r)", fontsize=8)
     fig.suptitle("Why they disagree: each characteristic idealised in turn (error against the truth)", fontsize=11)
-    fig.subplots_adjust(left=0.26, right=0.98, bottom=0.06, top=0.93, wspace=0.9, hspace=0.55)
+    fig.subplots_adjust(left=label_in / width, right=1.0 - right_in / width, bottom=0.06, top=0.93,
+                        wspace=label_in / bar_in, hspace=0.55)
     return save_figure(fig, path, dpi=95)
+
+
+def compared_scenarios(summary: Sequence[dict[str, Any]]) -> list[str]:
+    """The scenarios of the summary rows that some realisation compared (its comparison row has
+    realisations > 0), in their order."""
+    every = list(dict.fromkeys(r["scenario"] for r in summary))
+    compared = {r["scenario"] for r in summary if r["participant"] == "ALL" and r.get("realisations")}
+    return [s for s in every if s in compared]
 
 
 def plot_compatibility(summary: Sequence[dict[str, Any]], path: Path) -> Path:
     """Share of cells with |E_n| <= 1 against the weighted mean, per participant, as declared and
-    with every participant correcting; and the share of consistent cells of the comparison."""
+    with every participant correcting; and the share of consistent cells of the comparison. A
+    scenario no realisation compared (no corrections) has no bars and no legend entry: the title
+    says so."""
     from roadgonio.plots import new_figure, save_figure
-    scen = list(dict.fromkeys(r["scenario"] for r in summary))
-    parts = [r["participant"] for r in summary if r["scenario"] == scen[0] and r["participant"] != "ALL"]
+    every = list(dict.fromkeys(r["scenario"] for r in summary))
+    parts = [r["participant"] for r in summary if r["scenario"] == every[0] and r["participant"] != "ALL"]
+    scen = compared_scenarios(summary)
+    missing = [s for s in every if s not in scen]
     fig = new_figure((8.5, 4.8))
     ax = fig.add_subplot(1, 1, 1)
     w = 0.8 / max(len(scen), 1)
@@ -252,8 +283,11 @@ def plot_compatibility(summary: Sequence[dict[str, Any]], path: Path) -> Path:
     ax.set_ylabel("share of cells (%)")
     ax.set_ylim(0, 122)
     ax.set_yticks(range(0, 101, 20))
-    ax.set_title("Compatibility: |E_n| <= 1 against the weighted mean (mean over realisations)", fontsize=10)
-    ax.legend(fontsize=8, loc="upper center", ncol=2)
+    ax.set_title("Compatibility: |E_n| <= 1 against the weighted mean (mean over realisations)"
+                 + "".join(f"\n{SCENARIO_TITLE.get(s, s).split(' (')[0]}: not compared (no realisation has every "
+                           "participant's table)" for s in missing), fontsize=10)
+    if scen:
+        ax.legend(fontsize=8, loc="upper center", ncol=2)
     ax.grid(True, axis="y", alpha=0.3)
-    fig.subplots_adjust(left=0.09, right=0.98, bottom=0.17, top=0.9)
+    fig.subplots_adjust(left=0.09, right=0.98, bottom=0.17, top=0.9 - 0.04 * len(missing))
     return save_figure(fig, path, dpi=100)

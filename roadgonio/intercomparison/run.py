@@ -750,6 +750,7 @@ def validation_rows(setup: sim.Setup, xs, stats, full) -> list[dict[str, Any]]:
     participant that corrects has a full correction: each figure of merit (:func:`_figures`) with
     the full corrections and with the frozen factors, their mean paired difference and its standard
     error over those realisations. Empty when no realisation has both."""
+    from roadgonio.intercomparison.outputs import VALIDATION_COLUMNS
     rows_ok = np.all(full["all_corrected"], axis=1) & stats["all_corrected"]["ok"] & stats[sim.FROZEN]["ok"]
     R = int(rows_ok.sum())
     if R < 2:
@@ -763,10 +764,11 @@ def validation_rows(setup: sim.Setup, xs, stats, full) -> list[dict[str, Any]]:
         cols = [(names[p], va[:, p], vb[:, p]) for p in range(va.shape[1])] if va.ndim == 2 else [("ALL", va, vb)]
         for who, x1, x2 in cols:
             diff = x2 - x1
-            out.append({"figure": key, "participant": who, "realisations": R, "full": float(x1.mean()),
-                        "frozen": float(x2.mean()), "difference": float(diff.mean()),
-                        "difference_se": float(diff.std(ddof=1) / math.sqrt(R)),
-                        "full_se": float(x1.std(ddof=1) / math.sqrt(R))})
+            row = {"figure": key, "participant": who, "realisations": R, "full": float(x1.mean()),
+                   "frozen": float(x2.mean()), "difference": float(diff.mean()),
+                   "difference_se": float(diff.std(ddof=1) / math.sqrt(R)),
+                   "full_se": float(x1.std(ddof=1) / math.sqrt(R))}
+            out.append({k: row[k] for k in VALIDATION_COLUMNS})
     return out
 
 

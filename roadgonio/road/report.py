@@ -105,9 +105,12 @@ def metrics_png(summaries: list[dict], target: str | None, layout_text: str) -> 
                 ax.text(k - 0.28, 0.5 * v, f"{v:.3g}", ha="left", va="center", fontsize=8)
         if target and target in M_CLASSES:
             lim = M_CLASSES[target][key]
-            ax.axhline(lim, color="r", ls="--", lw=1)
-            ax.text(n - 0.5, lim, f"{target} {'min' if kind == 'min' else 'max'} {lim:g}", color="r", fontsize=8,
-                    ha="right", va="bottom")
+            # the limit's label in a legend that matplotlib places clear of the bars and error bars
+            # (a text at data x = n - 0.5 ran over the axes frame and into the next panel)
+            ax.axhline(lim, color="r", ls="--", lw=1, label=f"{target} {'min' if kind == 'min' else 'max'} {lim:g}")
+            lo, hi = ax.get_ylim()
+            ax.set_ylim(lo, max(hi, lim) * 1.25)                        # room for the legend above the bars
+            ax.legend(loc="best", fontsize=8, labelcolor="r", framealpha=0.9)
         ax.set_xticks(x, names, rotation=20 if n > 2 else 0, fontsize=8)
         ax.set_title(label)
         ax.grid(axis="y", alpha=0.3)

@@ -29,10 +29,14 @@ from __future__ import annotations
 import json
 import os
 import sys
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
-from roadgonio.errors import InputError
+import numpy as np
+
+from roadgonio.errors import InputError, ModelWarning
+from roadgonio.geometry import TAN_EPS_GRID
 from roadgonio.surface.model import DEFAULT_VARIANT, VARIANTS, RoadModel
 from roadgonio.surface.rtable import BUNDLED, RTable, load_table
 
@@ -113,6 +117,44 @@ def check_not_degenerate(model: RoadModel, path=None) -> RoadModel:
     return model
 
 
+#: A model whose r at alpha = 1 deg falls by more than SPIKE_DROP of its value at beta = 0 within
+#: SPIKE_WIDTH_DEG of beta = 0 has a peak there narrower than any instrument's aperture (the lab
+#: preset's source subtends 0.06 deg): what an instrument measures of it is the fit's artefact, not
+#: the surface's. The paper's power reading fitted to CIE R2 and R4 does this (the exponent
+#: exp(1 + h f^2) of eq. 4's empirical term reaches ~1e14 at grazing incidence); the bundled tables'
+#: other fits lose at most 0.4 % within 0.01 deg.
+SPIKE_WIDTH_DEG = 0.01
+SPIKE_DROP = 0.1
+
+
+def unresolved_spike(model: RoadModel) -> tuple[np.ndarray, np.ndarray]:
+    """The tan eps of the standard grid (> 0) where ``model``'s r(beta, tan eps) at alpha = 1 deg
+    falls by more than :data:`SPIKE_DROP` within :data:`SPIKE_WIDTH_DEG` of beta = 0, and the ratio
+    r(SPIKE_WIDTH_DEG) / r(0) there (what an instrument of any aperture sees of r(0), about)."""
+    t = TAN_EPS_GRID[TAN_EPS_GRID > 0]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r0 = np.asarray(model.r(t, 0.0), dtype=np.float64)
+        ratio = np.asarray(model.r(t, SPIKE_WIDTH_DEG), dtype=np.float64) / r0
+    bad = (r0 > 0) & (ratio < 1.0 - SPIKE_DROP)
+    return t[bad], ratio[bad]
+
+
+def note_unresolved_spike(model: RoadModel, name: str, *, fitted: bool) -> None:
+    """Warn (:class:`ModelWarning`) when ``model`` has a spike at beta = 0 no aperture resolves
+    (:func:`unresolved_spike`); ``fitted``: the model was fitted to a table here, so another
+    variant is the way out."""
+    t, ratio = unresolved_spike(model)
+    if not t.size:
+        return
+    what = f"{name} ({model.variant} fit)" if fitted else f"the model {name} ({model.variant})"
+    way = (f"; --model-variant smooth fits {name} without it" if fitted and model.variant != "smooth" else "")
+    warnings.warn(ModelWarning(
+        f"{what}: r at beta = 0 is a spike narrower than {SPIKE_WIDTH_DEG:g} deg for tan eps {t.min():g} ... "
+        f"{t.max():g} (r falls to {ratio.min():.2f} of its value within {SPIKE_WIDTH_DEG:g} deg), finer than any "
+        f"aperture resolves: k_A and corrections there are artefacts of the fit (k_A about {ratio.min():.2f} for "
+        f"any instrument with an aperture){way} (docs/conventions.md, section 3)"), stacklevel=3)
+
+
 @dataclass(frozen=True)
 class ResolvedSample:
     """A SAMPLE resolved once: ``name`` (for outputs and folders), the road BRDF ``model``, and the
@@ -144,9 +186,11 @@ def resolve_sample(sample, model_variant: str | None = None, *, field: str = "sa
         return ResolvedSample(sample.name or "model", check_not_degenerate(sample), None, sample.name or "model")
     table = _as_table(sample)
     if table is not None:
-        return ResolvedSample(table.name, check_not_degenerate(fitted_model(table, model_variant)), table, table.name)
+        return _noted(ResolvedSample(table.name, check_not_degenerate(fitted_model(table, model_variant)), table,
+                                     table.name), fitted=True)
     if hasattr(sample, "model") and hasattr(sample, "table") and isinstance(sample.model, RoadModel):  # a fit result
-        return ResolvedSample(sample.table.name, check_not_degenerate(sample.model), sample.table, sample.table.name)
+        return _noted(ResolvedSample(sample.table.name, check_not_degenerate(sample.model), sample.table,
+                                     sample.table.name), fitted=True)
     if not isinstance(sample, (str, Path)):
         raise InputError("expected 'lambert', a bundled table name, a table or model file, a RoadModel, an RTable, "
                          f"an r-table DataArray or a fit result, got {type(sample).__name__}", field=field)
@@ -164,15 +208,21 @@ def resolve_sample(sample, model_variant: str | None = None, *, field: str = "sa
         if model_variant is not None and m.variant != model_variant:
             raise InputError(f"the model file holds variant {m.variant!r}, but variant {model_variant!r} was asked",
                              path=p, field="variant")
-        return ResolvedSample(p.stem, check_not_degenerate(m, path=p), None, s)
+        return _noted(ResolvedSample(p.stem, check_not_degenerate(m, path=p), None, s), fitted=False)
     if suffix in TABLE_SUFFIXES or (not suffix and s.upper() in BUNDLED):
         if suffix and not p.exists():
             raise InputError(f"no such table file; expected {EXPECTED}", path=p)
         table = load_table(s)
         path = p if suffix else None
         name = p.stem if suffix else s.upper()
-        return ResolvedSample(name, check_not_degenerate(fitted_model(table, model_variant), path=path), table, s)
+        return _noted(ResolvedSample(name, check_not_degenerate(fitted_model(table, model_variant), path=path), table, s),
+                      fitted=True)
     raise InputError(f"unknown sample {s!r}; expected {EXPECTED}", field=field)
+
+
+def _noted(smp: ResolvedSample, *, fitted: bool) -> ResolvedSample:
+    note_unresolved_spike(smp.model, smp.name, fitted=fitted)
+    return smp
 
 
 def _as_table(obj) -> RTable | None:

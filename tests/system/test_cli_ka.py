@@ -50,11 +50,27 @@ def test_single_cell_json_keys(capsys):
     assert main(["ka", "--instrument", "portable", "--sample", "lambert", "--backend", "quadrature",
                  "--tan-eps", "12", "--beta", "0", "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
-    assert set(d) == {"k_a", "se", "error_bound", "confidence_bound", "converged", "samples", "seconds",
-                      "k_a_direct", "k_a_direct_se", "stray_fraction", "stray_fraction_se"}
+    assert set(d) == {"k_a", "se", "error_bound", "confidence_bound", "confidence_level", "converged", "samples",
+                      "seconds", "k_a_direct", "k_a_direct_se", "stray_fraction", "stray_fraction_se"}
     assert abs(d["k_a"] - 1.0) < LAMBERT_TOL and d["samples"] > 0
     # no stray light in this backend: the direct light is everything, the stray fraction 0 exactly
     assert d["k_a_direct"] == d["k_a"] and d["stray_fraction"] == 0.0 and d["stray_fraction_se"] == 0.0
+
+
+def test_a_confidence_bound_comes_with_its_level(tmp_path, capsys):
+    """The one-cell JSON gave confidence_bound without confidence_level, and the header of
+    ka_confidence_bound.csv did not state the level."""
+    args = ["ka", "--instrument", "portable", "--sample", "R3", "--backend", "reference", "--accuracy", "fast"]
+    out = tmp_path / "kref"
+    assert main(args + ["--cells", "12:0,5:0", "--out", str(out)]) == 0
+    level = json.loads((out / "ka.json").read_text())["settings"]["confidence"]
+    assert 0.5 < level < 1
+    head = (out / "ka_confidence_bound.csv").read_text().splitlines()[0]
+    assert head.startswith("#") and f"confidence level {level:g}" in head
+    capsys.readouterr()
+    assert main(args + ["--tan-eps", "12", "--beta", "0", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["confidence_level"] == level and d["confidence_bound"] > d["se"] > 0
 
 
 @pytest.mark.parametrize("extra, needle", [

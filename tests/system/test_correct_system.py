@@ -46,9 +46,15 @@ def test_cli_errors_name_what_is_wrong(tmp_path):
     p = _run("--measured", str(good), "--instrument", "portable", "--u-measured", "5 percent",
              "--backend", "quadrature")
     assert p.returncode == 2 and "--u-measured" in p.stderr and "Traceback" not in p.stderr
+    # a table without r(2, 0) is corrected; S1, S2 and the class are missing (docs/inputs-outputs.md,
+    # "Missing values"; it was refused, against the docs: trial 6, defect 8)
     no_s1 = sub_table(bundled_table("R3"), [(0.0, 0.0), (1.0, 0.0), (0.5, 2.0)]).write_csv(tmp_path / "s.csv")
-    p = _run("--measured", str(no_s1), "--instrument", "portable", "--backend", "quadrature")
-    assert p.returncode == 2 and "tan eps = 2, beta = 0" in p.stderr and "s.csv" in p.stderr
+    p = _run("--measured", str(no_s1), "--instrument", "portable", "--reference", "R3", "--alternatives", "none",
+             "--backend", "quadrature", "--accuracy", "fast", "--out", str(tmp_path / "s"))
+    assert p.returncode == 0, p.stderr
+    assert "3 cells corrected" in p.stdout and "S1 missing" in p.stdout and "class missing (S1 missing)" in p.stdout
+    corrected = read_table(tmp_path / "s" / "corrected.csv")
+    assert int(corrected.mask.sum()) == 3
 
 
 def test_cli_reference_route_checks_against_an_independent_backend(tmp_path, r3like):

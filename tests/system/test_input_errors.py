@@ -614,3 +614,27 @@ def test_unwritable_out_is_refused_before_the_work(tmp_path, capsys, monkeypatch
                 "--backend", "quadrature", "--out", str(out)]
     _read_only(monkeypatch, ro)
     one_line_error(capsys, main(argv), str(out), "Read-only file system")
+
+
+@pytest.mark.parametrize("extra, edit, argv, must", [
+    ("", ("focus_m = 1.0", 'focus_m = "inf"'), ["--tan-eps", "1", "--beta", "0", "--backend", "quadrature"],
+     ("field 'sample'", "the detector footprint leaves the sample")),
+    ("\n[housing]\nwall_reflectance = 0.05\nheight_m = 0.1\n", None, ["--cells", "12:0", "--accuracy", "fast"],
+     ("field 'housing.height_m'", "the housing blocks the source at tan eps = 12, beta = 0")),
+    ('\n[calibration]\nmode = "reference"\nreference = "R9"\n', None,
+     ["--tan-eps", "1", "--beta", "0", "--backend", "quadrature"],
+     ("field 'calibration.reference'", "unknown sample 'R9'")),
+])
+def test_geometry_and_calibration_errors_name_the_instrument_file(tmp_path, capsys, extra, edit, argv, must):
+    """Trial 6, defect 6: a footprint off the sample, a housing that blocks a source and an unknown
+    calibration reference named neither the instrument file nor the key to change."""
+    from pathlib import Path
+    text = (Path(__file__).resolve().parents[2] / "scenes" / "portable.toml").read_text()
+    if edit is not None:
+        assert edit[0] in text
+        text = text.replace(edit[0], edit[1])
+    inst = write_instrument(tmp_path, text + extra, name="my instrument.toml")
+    rc = main(["ka", "--instrument", str(inst), "--sample", "R3", *argv,
+               "--out", str(tmp_path / "o")])
+    line = one_line_error(capsys, rc, *must)
+    assert line.startswith(f"roadgonio: error: {inst}, "), line

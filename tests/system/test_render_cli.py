@@ -15,6 +15,9 @@ def test_render_writes_exr_png_json(mi, tmp_path, capsys):
     assert rc == 0
     info = json.loads((out / "render.json").read_text())
     assert abs(info["k_a_estimate"] - 1.0) < 1e-5           # Lambert: exactly 1 up to float32
+    # without a housing there is no stray light and no _direct twin; every field is defined
+    assert "ratio_direct" not in info and "stray" not in info
+    assert {"signal_road", "signal_lambert", "ratio", "k_a_estimate"} <= set(info["definitions"])
     assert info["versions"]["mitsuba"] and info["versions"]["mitsuba_variant"] == "llvm_ad_rgb"
     assert info["instrument"]["source"]["radius_m"] == 0.005 and info["settings"]["spp"] == 4
     import OpenEXR

@@ -38,3 +38,10 @@ def test_render_shows_the_stray_light_and_agrees_with_the_engine(mi, tmp_path, c
                                                                                 r.stray_fraction_se)
     assert sum(p["road"] for p in st["parts"].values()) == pytest.approx(st["stray_fraction_road"], rel=1e-9)
     assert st["stray_fraction_road"] > 0.05
+    # one meaning per field (trial 6): the unsuffixed ratio is the one k_a_estimate is made of (stray
+    # light included), the direct integrator's carry _direct, and every field is defined
+    assert info["k_a_estimate"] == pytest.approx(info["ratio"] / info["ideal_ratio"], rel=1e-12)
+    assert info["k_a_direct_estimate"] == pytest.approx(info["ratio_direct"] / info["ideal_ratio"], rel=1e-12)
+    assert info["ratio_direct"] == pytest.approx(info["signal_road_direct"] / info["signal_lambert_direct"], rel=1e-9)
+    assert "signal_road" not in info and "signal_lambert" not in info
+    assert {"ratio", "k_a_estimate", "ratio_direct", "k_a_direct_estimate"} <= set(info["definitions"])

@@ -28,8 +28,11 @@ def test_cli_agrees_and_writes_outputs(tmp_path, capsys, model_file):
     rows = list(csv.DictReader((out / "validate.csv").read_text().splitlines()))
     assert [(float(r["tan_eps"]), float(r["beta_deg"])) for r in rows] == [(12, 0), (0, 180), (4, 2)]
     assert all(r["verdict"] == "agree" and r["ref_converged"] == "True" for r in rows)
-    # the reference was asked for the bound each test needs, and met it
-    assert all(float(r["bound_ref"]) <= float(r["needed_bound"]) for r in rows)
+    # the reference was asked for the bound each test needs, and met it; the RQMC reference's bound
+    # is a confidence bound (with its level), never reported as a deterministic error bound
+    assert all(float(r["confidence_bound_ref"]) <= float(r["needed_bound"]) for r in rows)
+    assert all(float(r["confidence_level_ref"]) == 0.999 and r["error_bound_ref"] == "nan" for r in rows)
+    assert "against the RQMC reference (99.9 % confidence bound)" in text
     doc = json.loads((out / "validate.json").read_text())
     assert doc["verdict"] == "agree" and doc["exit_status"] == 0 and doc["reference"] == "reference"
     assert doc["counts"] == {"agree": 3, "disagree": 0, "inconclusive": 0} and len(doc["cells"]) == 3
@@ -60,6 +63,10 @@ def test_cli_exit_1_on_disagreement(tmp_path, monkeypatch, capsys, model_file):
                "--out", str(tmp_path / "v")])
     assert rc == 1
     assert "FAILED" in capsys.readouterr().err
+    # the quadrature's bound is deterministic: error_bound_ref, no confidence bound or level
+    row = next(csv.DictReader((tmp_path / "v" / "validate.csv").read_text().splitlines()))
+    assert float(row["error_bound_ref"]) > 0
+    assert row["confidence_bound_ref"] == "nan" and row["confidence_level_ref"] == "nan"
 
 
 def test_cli_exit_3_when_the_reference_does_not_converge(tmp_path, capsys, model_file):

@@ -40,6 +40,20 @@ def test_ka_table_of_a_lambertian_sample_is_one_within_its_bound():
     assert ds.attrs["instrument"] == "portable" and ds.attrs["cells_computed"] == 580
     for v in ds.attrs.values():                      # netCDF-safe attributes: text and numbers only
         assert isinstance(v, (str, int, float)) and not isinstance(v, bool)
+    assert "seed" not in ds.attrs                    # a deterministic backend takes no seed (was -1)
+    # the SE fields without stray light: k_a_direct is k_a with its se (none here: the bound covers it),
+    # the stray fraction is 0 exactly; both descriptions say so
+    assert np.isnan(ds.k_a_direct_se).all() and (ds.stray_fraction_se.values == 0.0).all()
+    assert "error_bound" in ds.k_a_direct_se.attrs["description"]
+    assert "exactly" in ds.stray_fraction_se.attrs["description"]
+
+
+def test_ka_table_records_the_seed_the_backend_used():
+    """Without a seed a Monte Carlo backend uses its default (0), and the Dataset says 0 (was -1)."""
+    for seed in (None, 5):
+        ds = rg.ka_table("portable", "lambert", backend="reference", accuracy="fast", cells=[(12, 0)], seed=seed)
+        assert ds.attrs["seed"] == (0 if seed is None else seed)
+        assert json.loads(ds.attrs["provenance"])["settings"]["seed"] == ds.attrs["seed"]
 
 
 def test_ka_table_some_cells_nan_elsewhere(r3like):

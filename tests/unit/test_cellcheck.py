@@ -67,4 +67,5 @@ def test_every_numpy_backend_refuses_with_the_same_message(name, check, tmp_path
         check_cell(inst, model, *cell)
     with pytest.raises(GeometryError) as got:
         backend(name, inst, model, tmp_path).compute([cell])
-    assert str(got.value) == str(err.value) and words in str(got.value)
+    # the same reason (the location may differ: the mesh backend's instrument is built here, without a file)
+    assert got.value.reason == err.value.reason and words in str(got.value)

@@ -253,3 +253,28 @@ def test_intercompare_shows_tasks_done_over_total_even_on_a_zero_size_terminal(t
     assert "realisations: 100%" in text and "6/6" in text
     quiet = _on_a_zero_size_terminal(monkeypatch, lambda: run_study(study, workers=0, progress=False, plots=False))
     assert quiet == ""
+
+
+def test_the_csv_files_have_their_header_row_even_without_rows(tmp_path, collimated):
+    """validation.csv of a study without corrections was one newline (pandas: EmptyDataError);
+    so is correlation.csv with fewer than 3 realisations."""
+    import pandas as pd
+    from roadgonio.intercomparison.outputs import CORRELATION_COLUMNS, VALIDATION_COLUMNS, rows_csv
+    empty = pd.read_csv(__import__("io").StringIO(rows_csv([], VALIDATION_COLUMNS)))
+    assert list(empty.columns) == list(VALIDATION_COLUMNS) and len(empty) == 0
+    out = tmp_path / "out"
+    run_study(make_study(tmp_path, [coll("A"), coll("B")], realisations=2), out, workers=0, progress=False, plots=False)
+    corr = pd.read_csv(out / "correlation.csv")                # 2 realisations: no correlation to give
+    assert list(corr.columns) == list(CORRELATION_COLUMNS) and len(corr) == 0
+    valid = pd.read_csv(out / "validation.csv")                # collimated: every realisation corrects
+    assert list(valid.columns) == list(VALIDATION_COLUMNS) and len(valid) > 0
+
+
+def test_a_scenario_no_realisation_compared_gets_no_bars_in_compatibility_png():
+    from roadgonio.intercomparison.outputs import compared_scenarios
+    rows = [{"scenario": "declared", "participant": "A"}, {"scenario": "declared", "participant": "ALL", "realisations": 20},
+            {"scenario": "all_corrected", "participant": "A"},
+            {"scenario": "all_corrected", "participant": "ALL", "realisations": 0}]
+    assert compared_scenarios(rows) == ["declared"]
+    rows[-1]["realisations"] = 2
+    assert compared_scenarios(rows) == ["declared", "all_corrected"]

@@ -391,3 +391,22 @@ def test_classify_limits(tmp_path):
     assert class_by_s1(0.85, "R")[0] == "R3" and class_by_s1(1.35, "R")[0] == "R4"
     assert class_by_s1(0.399, "C")[0] == "C1" and class_by_s1(0.40, "C")[0] == "C2"
     assert class_by_s1(1.30, "N")[0] == "N4"
+
+
+def test_class_limit_labels_stay_inside_their_panel(monkeypatch):
+    """road_metrics.png: 'M3 min 0.6' ran over the U_l panel's frame and 'M3 max 15' sat outside
+    the TI axes at the image edge. Every label of a limit is inside its own axes."""
+    from roadgonio.road import report
+    figs = []
+    monkeypatch.setattr(report, "_png", lambda fig: figs.append(fig) or b"")
+    rows = [{"table": name, "L_av": 1.1, "U_o": 0.55, "U_l": 0.62, "TI": 14.6, "class": "M3"} for name in ("R3", "corrected")]
+    report.metrics_png(rows, "M3", "layout")
+    fig = figs[0]
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    for ax, (key, _, kind) in zip(fig.axes, report.METRICS):
+        frame = ax.get_window_extent(renderer)
+        texts = [t for t in ax.texts + (ax.get_legend().texts if ax.get_legend() else []) if "M3" in t.get_text()]
+        assert [t.get_text() for t in texts] == [f"M3 {kind} {report.M_CLASSES['M3'][key]:g}"]
+        box = texts[0].get_window_extent(renderer)
+        assert frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 and box.y1 <= frame.y1, key

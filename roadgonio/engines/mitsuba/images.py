@@ -121,13 +121,39 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
             "footprint_m": {"x": [x0, x1], "y": [y0, y1]},
             "illuminance_window_m": {"x": [ex0, ex1], "y": [ey0, ey1]},
             "units": "source gives ~1 lx normal to its axis at the sample centre: E in lx/lx, L in cd/m^2/lx"}
+    definitions = {
+        "signal_road": "mean detector signal of the road sample over the view (this render, light straight from "
+                       "the source), in the units above",
+        "signal_lambert": "the same for the instrument's calibration (a perfect diffuser)",
+        "ratio": "the road's reading over the calibration's, as the instrument computes q; ratio_se its standard error",
+        "ideal_ratio": "the same ratio of the ideal point geometry (eq. 2)",
+        "k_a_estimate": "ratio / ideal_ratio: this render's k_A (one render; 'roadgonio ka' for tables); k_a_se its "
+                        "standard error"}
     if stray is not None:
         info["stray"] = stray["summary"]
-        # this render's k_A with the stray light, and of the direct light alone (the direct integrator above)
-        info["k_a_direct_estimate"], info["k_a_direct_se"] = info["k_a_estimate"], info["k_a_se"]
+        # everything without a suffix is what the instrument measures (stray light included); the direct
+        # integrator's numbers above carry _direct
         tot = stray["summary"]
+        for old_key, new_key in (("signal_road", "signal_road_direct"), ("signal_lambert", "signal_lambert_direct"),
+                                 ("ratio", "ratio_direct"), ("ratio_se", "ratio_direct_se")):
+            info[new_key] = info.pop(old_key)
+        info["ratio"], info["ratio_se"] = tot["ratio"], tot["ratio_se"]
+        info["k_a_direct_estimate"], info["k_a_direct_se"] = info["k_a_estimate"], info["k_a_se"]
         if ideal > 0:
             info["k_a_estimate"], info["k_a_se"] = tot["ratio"] / ideal, tot["ratio_se"] / ideal
+        definitions = {
+            "ratio": "the road's reading over the calibration's with the stray light (both see the housing), from the "
+                     "stray-light paths (stray.ratio); ratio_se its standard error",
+            "ideal_ratio": definitions["ideal_ratio"],
+            "k_a_estimate": "ratio / ideal_ratio: this render's k_A with the stray light; k_a_se its standard error",
+            "signal_road_direct": "mean detector signal of the road sample over the view, light straight from the "
+                                  "source only (the picture render.png), in the units above",
+            "signal_lambert_direct": "the same for the calibration (a perfect diffuser)",
+            "ratio_direct": "signal_road_direct / signal_lambert_direct; ratio_direct_se its standard error",
+            "k_a_direct_estimate": "ratio_direct / ideal_ratio: k_A of the direct light alone; k_a_direct_se its "
+                                   "standard error",
+            "stray": "the stray light of this cell: fractions of each signal and the shares by housing part"}
+    info["definitions"] = definitions
     info["files"] = files
     with OutputGroup(out_dir) as stage:      # view.exr, illuminance.exr, render.png, render.json: all or none
         write_exr(stage.path("view.exr"), {"RGB": view, "L_road": view[..., ROAD], "L_lambert": view[..., LAMBERT]})
@@ -326,32 +352,46 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
 
     from roadgonio.fileio import atomic_savefig
     gamma = instrument.detector.field_half_angle_deg
-    fig, axes = plt.subplots(2, 1, figsize=(9, 8.5), gridspec_kw={"height_ratios": [1.25, 1]})
+    point = gamma <= 0                      # a zero field: no view to draw, a short top panel saying so
+    fig, axes = plt.subplots(2, 1, figsize=(9, 5.8 if point else 8.5),
+                             gridspec_kw={"height_ratios": [0.3 if point else 1.25, 1]})
     ax = axes[0]
     L = view[..., ROAD]
-    ext = gamma if gamma > 0 else 1.0
-    vmax = float(np.percentile(L[L > 0], 99.5)) if np.any(L > 0) else 1.0
-    im = ax.imshow(L, extent=(-ext, ext, -ext, ext), origin="upper", cmap="magma", vmin=0, vmax=vmax)
-    t = np.linspace(0, 2 * np.pi, 200)
-    ax.plot(ext * np.cos(t), ext * np.sin(t), color="cyan", lw=1.0, label="field stop")
-    ax.set_aspect("equal")
-    ax.set_xlabel("field angle, horizontal (deg; left = +y)")
-    ax.set_ylabel("field angle, vertical (deg)")
-    ax.set_title(f"Detector's view: luminance of the sample (field half-angle {gamma:g} deg)", fontsize=10)
-    # the colour bar beside the square view, both centred (fig.colorbar(ax=ax) anchors the square view
-    # at the right of its wide slot: a large blank area on its left)
-    from mpl_toolkits.axes_grid1 import make_axes_locatable
-    cb = fig.colorbar(im, cax=make_axes_locatable(ax).append_axes("right", size="4%", pad=0.15))
-    cb.set_label("luminance (cd/m$^2$ per lx)")
-    ax.text(0.02, 0.03, "near edge of the footprint at the bottom,\nfar edge at the top", transform=ax.transAxes,
-            color="white", fontsize=8, va="bottom")
+    if not point:
+        vmax = float(np.percentile(L[L > 0], 99.5)) if np.any(L > 0) else 1.0
+        im = ax.imshow(L, extent=(-gamma, gamma, -gamma, gamma), origin="upper", cmap="magma", vmin=0, vmax=vmax)
+        t = np.linspace(0, 2 * np.pi, 200)
+        ax.plot(gamma * np.cos(t), gamma * np.sin(t), color="cyan", lw=1.0, label="field stop")
+        ax.set_aspect("equal")
+        ax.set_xlabel("field angle, horizontal (deg; left = +y)")
+        ax.set_ylabel("field angle, vertical (deg)")
+        ax.set_title(f"Detector's view: luminance of the sample (field half-angle {gamma:g} deg)", fontsize=10)
+        # the colour bar beside the square view, both centred (fig.colorbar(ax=ax) anchors the square view
+        # at the right of its wide slot: a large blank area on its left)
+        from mpl_toolkits.axes_grid1 import make_axes_locatable
+        cb = fig.colorbar(im, cax=make_axes_locatable(ax).append_axes("right", size="4%", pad=0.15))
+        cb.set_label("luminance (cd/m$^2$ per lx)")
+        # on a dark box: white text alone vanished on a bright view
+        ax.text(0.02, 0.03, "near edge of the footprint at the bottom,\nfar edge at the top", transform=ax.transAxes,
+                color="white", fontsize=8, va="bottom",
+                bbox={"facecolor": "black", "edgecolor": "none", "alpha": 0.6, "pad": 2.0})
+    else:
+        # a zero field sees one point of the sample: there is no view to draw (a +-1 deg disc was drawn)
+        ax.set_axis_off()
+        ax.set_title("Detector's view (field half-angle 0 deg)", fontsize=10)
+        ax.text(0.5, 0.5, "point field: no image\n(the detector sees one point of the sample)", ha="center",
+                va="center", fontsize=11, transform=ax.transAxes)
 
     ax = axes[1]
     x0, x1, y0, y1 = window
     im = ax.imshow(E, extent=(x0, x1, y0, y1), origin="upper", cmap="viridis", aspect="auto", vmin=0)
     fx, fy = outline
-    hx, hy = _hull(fx, fy)
-    ax.plot(hx, hy, color="red", lw=1.2, label="detector footprint")
+    if max(np.ptp(fx), np.ptp(fy)) <= 1e-9 * max(x1 - x0, y1 - y0):
+        # zero pupil and field: the footprint is a point (a zero-size outline drew nothing but its legend)
+        ax.plot([np.mean(fx)], [np.mean(fy)], "r+", ms=12, mew=1.5, ls="none", label="detector footprint (a point)")
+    else:
+        hx, hy = _hull(fx, fy)
+        ax.plot(hx, hy, color="red", lw=1.2, label="detector footprint")
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
     ax.set_xlabel("x on the sample (m; detector towards +x)")
