@@ -10,7 +10,6 @@ correction surface), which both use the helpers of :mod:`.run`.
 """
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -214,9 +213,8 @@ def _correct_on_dask(jobs, shared, *, client, workers, scheduler, progress) -> l
     work = [(t, Path(f).absolute(), a, m) for t, f, a, m in jobs]
     bar = None
     if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=len(work), unit="table", desc=f"correct ({backend}, Dask)", file=sys.stderr,
-                   dynamic_ncols=True, disable=None)
+        from roadgonio.progress import bar as progress_bar
+        bar = progress_bar(len(work), f"correct ({backend}, Dask)", unit="table")
 
     def run(c) -> list:
         info = _cluster.describe(c)

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import math
 import os
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -172,9 +171,8 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
     n_done0 = sum(1 for i in range(n) if not feas[i].ok or remaining.get(i, 0) == 0)
     bar = None
     if progress and tasks:
-        from tqdm import tqdm
-        bar = tqdm(total=n, initial=n_done0, unit="point", desc=f"design ({backend})", file=sys.stderr,
-                   dynamic_ncols=True, disable=None)
+        from roadgonio.progress import bar as progress_bar
+        bar = progress_bar(n, f"design ({backend})", unit="point", initial=n_done0)
 
     def on_result(r: _cluster.TableResult) -> None:
         i, j = r.key

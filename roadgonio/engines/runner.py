@@ -21,7 +21,6 @@ from __future__ import annotations
 import inspect
 import json
 import os
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -138,9 +137,8 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
     resumed = len(cells) - len(todo)
     bar = None
     if progress and todo:
-        from tqdm import tqdm
-        bar = tqdm(total=len(cells), initial=resumed, unit="cell", desc=f"k_A ({backend.name})",
-                   file=sys.stderr, dynamic_ncols=True, disable=None)
+        from roadgonio.progress import bar as progress_bar
+        bar = progress_bar(len(cells), f"k_A ({backend.name})", unit="cell", initial=resumed)
     pending = [0]
     last_flush = [time.monotonic()]
 

@@ -416,9 +416,8 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     adaptive_info = None
     bar = None
     if progress:
-        from tqdm import tqdm
-        bar = tqdm(total=None if adaptive else trials, desc="Monte Carlo trials", unit="trial", leave=False,
-                   disable=None)
+        from roadgonio.progress import bar as progress_bar
+        bar = progress_bar(None if adaptive else trials, "Monte Carlo trials", unit="trial", leave=False)
     try:
         if not adaptive:
             X = spec.draw(rng, trials)
