@@ -12,7 +12,7 @@
     # corrected_realisations = 200    # of them, how many are corrected by roadgonio (default: all)
     seed = 1
     coverage_factor = 2.0             # k of U(d_i) and E_n
-    backend = "mitsuba"               # k_A backend: mitsuba, or quadrature (deterministic, ~40x slower
+    backend = "mitsuba"               # k_A backend: mitsuba, or quadrature (deterministic, ~50x slower
                                       # here: docs/intercomparison.md, Time)
     # rel_se = 3e-3                   # its tolerance for the participants' k_A (mitsuba: target relative
                                       # SE; quadrature: rtol)
