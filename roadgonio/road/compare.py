@@ -65,8 +65,8 @@ def compare_png(result: dict, a: RTable, b: RTable) -> bytes:
     fig = plt.figure(figsize=(15, 9.5))
     ax = fig.add_axes([0.05, 0.07, 0.66, 0.85])
     draw_table_map(ax, result["ratio"], label=f"r({b.name}) / r({a.name})", centre=1.0, log=True, fmt="{:.2f}",
-                   fontsize=6.0, tick_fontsize=8)
-    ax.set_title(f"{b.name} / {a.name}: ratio of r, cell by cell (blank: not in both tables)", fontsize=11)
+                   fontsize=6.0, tick_fontsize=8, grey_blanks=True)
+    ax.set_title(f"{b.name} / {a.name}: ratio of r, cell by cell (grey: not in both tables)", fontsize=11)
     tx = fig.add_axes([0.77, 0.35, 0.22, 0.5])
     tx.axis("off")
     rows = [["", _short(a.name), _short(b.name)]]
