@@ -13,6 +13,22 @@ class RoadgonioError(Exception):
     """Base class of the errors that are reported to the user without a traceback."""
 
 
+def _located(message: str, *, path: str | None = None, line: int | None = None, field: str | None = None,
+             argument: str | None = None) -> str:
+    """``FILE:LINE, field 'F', ARGUMENT: message`` with whatever of them is known (the one layout of
+    every located error)."""
+    where = []
+    if path is not None:
+        where.append(path if line is None else f"{path}:{line}")
+    elif line is not None:
+        where.append(f"line {line}")
+    if field is not None:
+        where.append(f"field '{field}'")
+    if argument is not None:
+        where.append(argument)
+    return f"{', '.join(where)}: {message}" if where else message
+
+
 class InputError(RoadgonioError, ValueError):
     """Bad input: names where (file, line, field) and what was expected.
 
@@ -38,17 +54,7 @@ class InputError(RoadgonioError, ValueError):
         self.field = field
         self.reason = message
         self.argument = argument
-        where = []
-        if self.path is not None:
-            where.append(self.path if line is None else f"{self.path}:{line}")
-        elif line is not None:
-            where.append(f"line {line}")
-        if field is not None:
-            where.append(f"field '{field}'")
-        if argument is not None:
-            where.append(argument)
-        prefix = ", ".join(where)
-        super().__init__(f"{prefix}: {message}" if prefix else message)
+        super().__init__(_located(message, path=self.path, line=line, field=field, argument=argument))
 
     def with_argument(self, argument: str) -> "InputError":
         """The same error, saying which argument named the file (kept if one is said already)."""
@@ -67,8 +73,7 @@ class GeometryError(RoadgonioError):
         self.path = None if path is None else str(path)
         self.field = field
         self.reason = message
-        where = ([self.path] if self.path is not None else []) + ([f"field '{field}'"] if field else [])
-        super().__init__(f"{', '.join(where)}: {message}" if where else message)
+        super().__init__(_located(message, path=self.path, field=field))
 
 
 class BackendError(RoadgonioError):
@@ -112,3 +117,8 @@ def percent(fraction: float, digits: int = 3) -> str:
         return f"<{floor:.{digits}f} %" if p > 0 else f">-{floor:.{digits}f} %"
     decimals = max(0, digits - 1 - int(math.floor(math.log10(abs(p))))) if abs(p) < 10 ** digits else 0
     return f"{p:.{decimals}f} %"
+
+
+def count(n: int, noun: str) -> str:
+    """'1 cell', '2 cells' for messages and pictures (nouns with a plain -s plural)."""
+    return f"{n} {noun}" + ("" if n == 1 else "s")

@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from roadgonio.errors import count
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 
 
@@ -87,11 +88,6 @@ class CellLabels:
 
     def add(self, ax, x: float, y: float, text: str, color, fontsize: float) -> None:
         self.items.append((ax, x, y, text, color, fontsize))
-
-
-def count(n: int, noun: str) -> str:
-    """'1 cell', '2 cells' (nouns with a plain -s plural)."""
-    return f"{n} {noun}" + ("" if n == 1 else "s")
 
 
 def _font(size_px: float):

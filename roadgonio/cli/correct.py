@@ -17,7 +17,7 @@ from roadgonio.cli._common import (
     show_progress,
     text_output,
 )
-from roadgonio.errors import percent as _percent
+from roadgonio.errors import count, percent as _percent
 
 
 def register(sub) -> None:
@@ -232,6 +232,5 @@ def _resumed_surfaces(variants) -> int:
 
 def _resumed_line(cells: int, surfaces: int = 0) -> str | None:
     """What a rerun in the same folder took from its journals (None: nothing)."""
-    parts = ([f"{cells} k_A cells"] if cells else []) + (
-        [f"{surfaces} correction surface{'s' if surfaces != 1 else ''}"] if surfaces else [])
+    parts = ([count(cells, "k_A cell")] if cells else []) + ([count(surfaces, "correction surface")] if surfaces else [])
     return f"  resumed: {' and '.join(parts)} from the output folder's journals" if parts else None

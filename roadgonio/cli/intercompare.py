@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from roadgonio import api
+from roadgonio.errors import count
 from roadgonio.cli._common import (
     add_dask_arguments,
     add_mitsuba_variant,
@@ -54,8 +55,7 @@ def run(args) -> int:
         if not allr.get("realisations"):
             say(f"{scen}: not compared (no realisation has every participant's table)")
             continue
-        n = allr["realisations"]
-        say(f"{scen} ({n} realisation{'' if n == 1 else 's'}): Birge ratio median {allr['birge_ratio_median']:.2f}, "
+        say(f"{scen} ({count(allr['realisations'], 'realisation')}): Birge ratio median {allr['birge_ratio_median']:.2f}, "
             f"consistent cells {100 * allr['share_consistent_cells']:.0f} %, every participant compatible with the "
             f"weighted mean in {100 * allr['share_all_compatible_weighted_mean']:.0f} % of the cells; RMS error "
             f"against the truth: weighted mean {allr['rms_error_weighted_mean_vs_truth_pct']:.2f} %, Mandel-Paule "

@@ -17,7 +17,7 @@ from roadgonio.cli._common import (
     show_progress,
     text_output,
 )
-from roadgonio.errors import InputError
+from roadgonio.errors import InputError, count
 
 
 def register(sub) -> None:
@@ -91,7 +91,7 @@ def run(args) -> int:
         print_json({"out": ds.attrs["out"], **s})
         return 0
     say = text_output(args)
-    say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {s['cells']} cell{'' if s['cells'] == 1 else 's'} "
+    say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {count(s['cells'], 'cell')} "
         f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
         f"{api.precision_text(s)}, {s['seconds_wall_this_run']:.1f} s."
         + (_stray_text(s) if "stray_fraction_max" in s else ""))

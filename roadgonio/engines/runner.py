@@ -28,9 +28,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from roadgonio.errors import count
 from roadgonio.fileio import atomic_write, atomic_write_text, check_run_folder, fingerprint as _fingerprint, output_error, read_journal, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
-from roadgonio.plots import count
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
 from roadgonio.surface.model import RoadModel
@@ -135,10 +135,8 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
         _write_journal(journal, header, list(done.values()))
     todo = [c for c in cells if _cell_key(*c) not in done]
     resumed = len(cells) - len(todo)
-    bar = None
-    if progress and todo:
-        from roadgonio.progress import bar as progress_bar
-        bar = progress_bar(len(cells), f"k_A ({backend.name})", unit="cell", initial=resumed)
+    from roadgonio.progress import bar as progress_bar
+    bar = progress_bar(len(cells), f"k_A ({backend.name})", unit="cell", initial=resumed, enabled=progress)
     pending = [0]
     last_flush = [time.monotonic()]
 

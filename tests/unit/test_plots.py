@@ -58,7 +58,7 @@ def test_blank_cells_are_grey_not_white_like_k_a_1(tmp_path):
     grey = np.round(255 * np.array(colors.to_rgb(BLANK_COLOUR)))
     h, w, _ = img.shape
     assert np.abs(img[int(0.3 * h), int(0.4 * w)] - grey).max() <= 2        # a blank cell mid-map
-    from roadgonio.plots import count
+    from roadgonio.errors import count
     assert (count(1, "cell"), count(579, "cell")) == ("1 cell", "579 cells")
 
 
