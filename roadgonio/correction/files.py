@@ -211,10 +211,8 @@ def _correct_on_dask(jobs, shared, *, client, workers, scheduler, progress) -> l
     backend = options.get("backend", "mitsuba")
     variant = dict(options.get("backend_settings") or {}).get("mitsuba_variant")
     work = [(t, Path(f).absolute(), a, m) for t, f, a, m in jobs]
-    bar = None
-    if progress:
-        from roadgonio.progress import bar as progress_bar
-        bar = progress_bar(len(work), f"correct ({backend}, Dask)", unit="table")
+    from roadgonio.progress import bar as progress_bar
+    bar = progress_bar(len(work), f"correct ({backend}, Dask)", unit="table", enabled=progress)
 
     def run(c) -> list:
         info = _cluster.describe(c)

@@ -169,10 +169,8 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
     failed: dict[tuple[int, int], dict] = {}
     remaining = {i: sum((i, j) not in done for j in range(len(smp))) for i in range(n) if feas[i].ok}
     n_done0 = sum(1 for i in range(n) if not feas[i].ok or remaining.get(i, 0) == 0)
-    bar = None
-    if progress and tasks:
-        from roadgonio.progress import bar as progress_bar
-        bar = progress_bar(n, f"design ({backend})", unit="point", initial=n_done0)
+    from roadgonio.progress import bar as progress_bar
+    bar = progress_bar(n, f"design ({backend})", unit="point", initial=n_done0, enabled=progress and bool(tasks))
 
     def on_result(r: _cluster.TableResult) -> None:
         i, j = r.key

@@ -414,10 +414,9 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
 
     t = time.perf_counter()
     adaptive_info = None
-    bar = None
-    if progress:
-        from roadgonio.progress import bar as progress_bar
-        bar = progress_bar(None if adaptive else trials, "Monte Carlo trials", unit="trial", leave=False)
+    from roadgonio.progress import bar as progress_bar
+    bar = progress_bar(None if adaptive else trials, "Monte Carlo trials", unit="trial", leave=False,
+                       enabled=progress)
     try:
         if not adaptive:
             X = spec.draw(rng, trials)
