@@ -20,24 +20,21 @@ def sample_name(spec: str) -> str:
 def resolve_alternatives(spec: str | Sequence[str] | None, measured: RTable, *, reference_name: str,
                          model_variant: str | None = None) -> dict[str, RoadModel]:
     """The alternative references for the model uncertainty: ``"auto"`` = the two CIE tables
-    nearest to ``measured`` in (S1, Q0), the reference excluded; ``"none"``/``None`` = none; a
+    nearest to ``measured`` in (S1, Q0), the reference excluded (without ``model_variant`` never a
+    fit with an unresolved spike: :func:`_auto_alternative`); ``"none"``/``None`` = none; a
     comma-separated text or a list of SAMPLEs = those (fitted or loaded like the reference)."""
     from roadgonio.surface.sample import resolve_sample
     if spec is None:
         return {}
-    if isinstance(spec, str):
+    if isinstance(spec, str) and spec.strip().lower() == "auto":
+        names = [n for n, _ in nearest_bundled(measured.s1(), measured.q0(), 2, exclude=[reference_name])]
+        if model_variant is None:                       # roadgonio's choice: never a spike fit
+            return {sample_name(n): _auto_alternative(n) for n in names}
+    elif isinstance(spec, str):
         text = spec.strip()
-        if text.lower() == "auto":
-            names = [n for n, _ in nearest_bundled(measured.s1(), measured.q0(), 2, exclude=[reference_name])]
-        elif text.lower() in ("none", ""):
-            names = []
-        else:
-            names = [s.strip() for s in text.split(",") if s.strip()]
+        names = [] if text.lower() in ("none", "") else [s.strip() for s in text.split(",") if s.strip()]
     else:
         names = [str(s) for s in spec]
-        text = ""
-    if text.lower() == "auto" and model_variant is None:
-        return {sample_name(n): _auto_alternative(n) for n in names}
     return {sample_name(n): resolve_sample(n, model_variant).model for n in names}
 
 

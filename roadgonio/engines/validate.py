@@ -130,7 +130,7 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
     # bound) adds its bound; one with only a standard error combines it in quadrature
     conf = float(ref.confidence_bound) if _finite(ref.confidence_bound) else math.nan
     err_bound = float(ref.error_bound) if _finite(ref.error_bound) else math.nan
-    level = float(ref.confidence_level) if _finite(conf) and _finite(getattr(ref, "confidence_level", None)) else math.nan
+    level = float(ref.confidence_level) if _finite(conf) and _finite(ref.confidence_level) else math.nan
     bound = conf if _finite(conf) else err_bound
     has_se_ref = not _finite(bound) and _finite(ref.se)
     se_ref = float(ref.se) if _finite(ref.se) else math.nan
@@ -162,8 +162,8 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
     else:
         verdict, reason = "agree", f"{z:+.2f} SE, within {allowed / sigma if sigma > 0 else math.inf:.2f}"
     return CellComparison(tan_eps=float(ref.tan_eps), beta_deg=float(ref.beta_deg), verdict=verdict, k_ref=k_ref,
-                          error_bound_ref=err_bound,
-                          confidence_bound_ref=conf, confidence_level_ref=level, se_ref=se_ref, ref_converged=bool(ref.converged), k_mc=k_mc, se_mc=se_mc,
+                          error_bound_ref=err_bound, confidence_bound_ref=conf, confidence_level_ref=level,
+                          se_ref=se_ref, ref_converged=bool(ref.converged), k_mc=k_mc, se_mc=se_mc,
                           mc_converged=bool(mc.converged), diff=d, rel_diff=d / k_ref if k_ref else math.nan,
                           sigma=sigma, z=z, floor=floor, allowed=allowed, needed_bound=needed, reason=reason,
                           seconds_ref=float(ref.seconds), seconds_mc=float(mc.seconds),

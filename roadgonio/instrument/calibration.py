@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from roadgonio.errors import InputError
-from roadgonio.surface.rtable import BUNDLED
+from roadgonio.surface.sample import EXPECTED, is_named_sample
 
 #: Calibration modes (docs/conventions.md section 5).
 MODES = ("lambert", "absolute", "reference")
@@ -98,8 +98,7 @@ class Calibration:
                     raise InputError(f"reference file {str(p)!r} does not exist", path=path,
                                      field="calibration.reference")
                 cal = cls(mode=cal.mode, reference=str(p))
-            elif cal.reference.lower() != "lambert" and cal.reference.upper() not in BUNDLED:
-                raise InputError(f"unknown sample {cal.reference!r}; expected 'lambert', a bundled table name "
-                                 f"({', '.join(BUNDLED)}) or a file ({', '.join(_FILE_SUFFIXES)})", path=path,
+            elif not is_named_sample(cal.reference):
+                raise InputError(f"unknown sample {cal.reference!r}; expected {EXPECTED}", path=path,
                                  field="calibration.reference")
         return cal

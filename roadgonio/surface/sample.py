@@ -105,6 +105,12 @@ def fitted_model(table: RTable, variant: str | None = None, *, use_cache: bool =
     return model
 
 
+def is_named_sample(text: str) -> bool:
+    """``lambert`` or a bundled table name (any case): a SAMPLE that names no file."""
+    s = str(text).strip()
+    return s.lower() == "lambert" or s.upper() in BUNDLED
+
+
 def check_not_degenerate(model: RoadModel, path=None) -> RoadModel:
     """A model whose every coefficient k_diff, k_phong, k_retro, k_exp is 0 reflects nothing:
     k_A = measured/nominal, S1 and the r-table are undefined for it (0/0). A clear error instead
@@ -209,7 +215,7 @@ def resolve_sample(sample, model_variant: str | None = None, *, field: str = "sa
             raise InputError(f"the model file holds variant {m.variant!r}, but variant {model_variant!r} was asked",
                              path=p, field="variant")
         return _noted(ResolvedSample(p.stem, check_not_degenerate(m, path=p), None, s), fitted=False)
-    if suffix in TABLE_SUFFIXES or (not suffix and s.upper() in BUNDLED):
+    if suffix in TABLE_SUFFIXES or (not suffix and is_named_sample(s)):      # ("lambert" returned above)
         if suffix and not p.exists():
             raise InputError(f"no such table file; expected {EXPECTED}", path=p)
         table = load_table(s)
