@@ -310,7 +310,7 @@ def write_table(da, path) -> Path:
 
 def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mapping[str, float] | None = None,
         out=None, fresh: bool = False, plot: bool = True,
-        progress: Callable[[int, int], None] | None = None) -> "FitResult":
+        progress: bool | Callable[[int, int], None] = False) -> "FitResult":
     """Fit the road BRDF model (paper eq. 4; ``model_variant`` default ``"power"``) to an r-table
     (name, file, RTable or DataArray). Returns the :class:`~roadgonio.surface.fit.FitResult`:
     ``.model`` (a RoadModel, usable as a sample), ``.max_dev_pct``, ``.rms_dev_pct`` (% of the
@@ -318,9 +318,9 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
     model.json, residuals.csv and (``plot``) fit.png, all or none; ``.written`` lists them. A
     folder holding a different fit's results (model.json's fingerprint: table, variant, seed,
     fixed parameters, roadgonio version) is refused before the fit unless ``fresh``, which
-    replaces them. ``progress(done, total)`` is called as the global search advances."""
+    replaces them. ``progress``: True shows a bar on a terminal (as every command's), or a callable
+    ``progress(done, total)`` called as the global search advances."""
     from roadgonio.engines.registry import check_seed
-    from roadgonio.surface.fit import fit_table
     from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS
     from roadgonio.surface.sample import check_not_degenerate, note_unresolved_spike
     variant = model_variant or DEFAULT_VARIANT
@@ -350,7 +350,7 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
         from roadgonio.fileio import check_writable
         check_run_folder(folder, "model.json", fp, what="fit", fresh=bool(fresh), outputs=FIT_FILES)
         check_writable(folder)          # an unwritable folder fails now, not after the fit
-    result = fit_table(t, variant, seed=seed, fixed=fixed, progress=progress)
+    result = _fit_with_progress(t, variant, seed, fixed, progress)
     check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
     note_unresolved_spike(result.model, t.name, fitted=True)
     if folder is not None:
@@ -359,6 +359,25 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
         from roadgonio.surface.fitplot import write_fit
         result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot, fingerprint=fp))
     return result
+
+
+def _fit_with_progress(t, variant: str, seed: int, fixed: dict, progress):
+    """fit_table with ``progress`` a callable, or True for a bar (closed however the fit ends)."""
+    from roadgonio.surface.fit import fit_table
+    if callable(progress) or not progress:
+        return fit_table(t, variant, seed=seed, fixed=fixed, progress=progress or None)
+    from roadgonio.progress import bar
+    b = bar(1, f"fit {t.name} ({variant})", unit="gen", leave=False)
+
+    def tick(done: int, total: int) -> None:
+        if b is not None:
+            b.total, b.n = total, done
+            b.refresh()
+    try:
+        return fit_table(t, variant, seed=seed, fixed=fixed, progress=tick)
+    finally:
+        if b is not None:
+            b.close()
 
 
 def _safe(name: str) -> str:

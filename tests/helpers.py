@@ -245,3 +245,41 @@ field_half_angle_deg = 0.05
 size_x_m = 2.0
 size_y_m = 0.5
 """
+
+
+# -- progress bars on a terminal (tests/unit/test_intercomparison.py, tests/unit/test_fit.py) ---------
+
+def on_a_zero_size_terminal(monkeypatch, work):
+    """Run ``work()`` with stderr on a fresh pseudo-terminal, which reports 0 x 0 (like the one of
+    ``script``); returns what was written to it."""
+    import os
+    import sys
+    import threading
+    master, slave = os.openpty()
+    assert os.get_terminal_size(slave) == (0, 0)
+    chunks = []
+
+    def drain():
+        while True:
+            try:
+                data = os.read(master, 65536)
+            except OSError:
+                return
+            if not data:
+                return
+            chunks.append(data)
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    term = open(slave, "w", encoding="utf-8", closefd=False)
+    monkeypatch.setattr(sys, "stderr", term)
+    monkeypatch.setenv("COLUMNS", "100")
+    monkeypatch.setenv("LINES", "30")
+    try:
+        work()
+    finally:
+        term.flush()
+        monkeypatch.undo()
+        os.close(slave)
+        reader.join(timeout=5)
+        os.close(master)
+    return b"".join(chunks).decode("utf-8", "replace")

@@ -1,7 +1,6 @@
 """``roadgonio fit TABLE``: fit the road BRDF model to an r-table."""
 from __future__ import annotations
 
-import sys
 
 from roadgonio import api
 from roadgonio.cli._common import add_output_options, out_arg, print_json, show_progress, text_output
@@ -43,23 +42,8 @@ def _parse_fix(items: list[str]) -> dict[str, float]:
 
 
 def run(args) -> int:
-    bar = None
-    if show_progress(args):
-        from tqdm import tqdm
-        bar = tqdm(total=1, desc=f"fit {args.table} ({args.model_variant})", unit="gen", file=sys.stderr, leave=False)
-
-    def progress(done: int, total: int) -> None:
-        if bar is not None:
-            bar.total = total
-            bar.n = done
-            bar.refresh()
-
-    try:
-        result = api.fit(args.table, args.model_variant, seed=args.seed, fixed=_parse_fix(args.fixed),
-                         out=out_arg(args), fresh=args.fresh, plot=not args.no_plot, progress=progress)
-    finally:
-        if bar is not None:
-            bar.close()
+    result = api.fit(args.table, args.model_variant, seed=args.seed, fixed=_parse_fix(args.fixed),
+                     out=out_arg(args), fresh=args.fresh, plot=not args.no_plot, progress=show_progress(args))
     if args.json:
         print_json(result.to_json_dict())
         return 0

@@ -263,3 +263,29 @@ def test_fit_cache_lives_in_the_platform_cache_folder(tmp_path, monkeypatch):
     if sys.platform.startswith("linux"):
         monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
         assert cache_dir() == tmp_path / "xdg" / "roadgonio"
+
+
+def test_api_fit_draws_its_own_bar_on_a_terminal(fit_r3_power, monkeypatch):
+    """``api.fit(progress=True)`` shows the global search's progress on a terminal (the command
+    line passes its --quiet/terminal choice as a boolean, as for every other command; before, it
+    built a tqdm bar itself), and nothing with ``progress=False``; a callable still gets
+    (done, total)."""
+    from helpers import on_a_zero_size_terminal
+
+    import roadgonio.api as api
+
+    def fake_fit(t, variant, *, seed, fixed, progress=None):
+        if progress is not None:
+            for done in (1, 2, 3):
+                progress(done, 3)
+        return fit_r3_power
+    monkeypatch.setattr(fitmod, "fit_table", fake_fit)
+    shown = on_a_zero_size_terminal(monkeypatch, lambda: api.fit("R3", progress=True))
+    monkeypatch.setattr(fitmod, "fit_table", fake_fit)
+    assert "fit R3 (power)" in shown and "3/3" in shown
+    silent = on_a_zero_size_terminal(monkeypatch, lambda: api.fit("R3", progress=False))
+    assert silent == ""
+    monkeypatch.setattr(fitmod, "fit_table", fake_fit)
+    seen = []
+    api.fit("R3", progress=lambda d, t: seen.append((d, t)))
+    assert seen == [(1, 3), (2, 3), (3, 3)]

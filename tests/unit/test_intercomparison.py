@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from helpers import on_a_zero_size_terminal
 from helpers_intercomparison import COLLIMATED, P_EN, coll, make_study, per_realisation_share, write_collimated
 from roadgonio.errors import InputError
 from roadgonio.intercomparison.run import run_study
@@ -208,50 +209,14 @@ def test_the_source_path_idealised_is_an_arc_of_radius_the_height():
     assert abs(g["corridor"][0] - g["arc"][0]) > 10 * (g["corridor"][1] + g["arc"][1])
 
 
-def _on_a_zero_size_terminal(monkeypatch, work):
-    """Run ``work()`` with stderr on a fresh pseudo-terminal, which reports 0 x 0 (like the one of
-    ``script``); returns what was written to it."""
-    import os
-    import sys
-    import threading
-    master, slave = os.openpty()
-    assert os.get_terminal_size(slave) == (0, 0)
-    chunks = []
-
-    def drain():
-        while True:
-            try:
-                data = os.read(master, 65536)
-            except OSError:
-                return
-            if not data:
-                return
-            chunks.append(data)
-    reader = threading.Thread(target=drain, daemon=True)
-    reader.start()
-    term = open(slave, "w", encoding="utf-8", closefd=False)
-    monkeypatch.setattr(sys, "stderr", term)
-    monkeypatch.setenv("COLUMNS", "100")
-    monkeypatch.setenv("LINES", "30")
-    try:
-        work()
-    finally:
-        term.flush()
-        monkeypatch.undo()
-        os.close(slave)
-        reader.join(timeout=5)
-        os.close(master)
-    return b"".join(chunks).decode("utf-8", "replace")
-
-
-def test_intercompare_shows_tasks_done_over_total_even_on_a_zero_size_terminal(tmp_path, collimated, monkeypatch):
+def test_intercompare_shows_tasks_done_over_total_evenon_a_zero_size_terminal(tmp_path, collimated, monkeypatch):
     """The progress of every stage (tasks done / total) on a terminal, also one that reports 0 x 0,
     where tqdm's own sizing drew nothing at all (before: a 277 s run silent under `script`)."""
     study = make_study(tmp_path, [coll("A"), coll("B")], realisations=6)
-    text = _on_a_zero_size_terminal(monkeypatch, lambda: run_study(study, workers=0, progress=True, plots=False))
+    text = on_a_zero_size_terminal(monkeypatch, lambda: run_study(study, workers=0, progress=True, plots=False))
     assert "k_A of the participants: 100%" in text and "2/2" in text
     assert "realisations: 100%" in text and "6/6" in text
-    quiet = _on_a_zero_size_terminal(monkeypatch, lambda: run_study(study, workers=0, progress=False, plots=False))
+    quiet = on_a_zero_size_terminal(monkeypatch, lambda: run_study(study, workers=0, progress=False, plots=False))
     assert quiet == ""
 
 
