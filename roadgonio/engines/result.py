@@ -91,7 +91,10 @@ class CellResult:
 
 
 class KaBackend(Protocol):
-    """What a k_A backend provides."""
+    """What a k_A backend provides. A backend whose ``compute`` also takes ``checkpoint=`` (a
+    :class:`roadgonio.engines.runner.PassCheckpoint`, its state saved after every pass of a
+    batched run) says so with the class attribute ``checkpoints_passes = True``; the table runner
+    passes one only then (absent: False)."""
 
     name: str
 

@@ -18,7 +18,6 @@ Output folder (``--out DIR``):
 """
 from __future__ import annotations
 
-import inspect
 import json
 import os
 import time
@@ -156,7 +155,7 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
             bar.set_postfix_str(f"tan={c.tan_eps:g} beta={c.beta_deg:g} k_A={c.k_a:.4g}")
 
     passes = None
-    if journal is not None and todo and "checkpoint" in inspect.signature(backend.compute).parameters:
+    if journal is not None and todo and getattr(backend, "checkpoints_passes", False):
         passes = PassCheckpoint(out_dir / PASSES, fp)
     try:
         if todo:

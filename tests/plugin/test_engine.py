@@ -130,6 +130,7 @@ def test_a_table_cut_short_between_passes_resumes_with_the_same_numbers(tmp_path
     from roadgonio.engines import make_backend
     from roadgonio.engines.runner import PassCheckpoint
     b = make_backend("mitsuba", preset("portable"), ROAD, rel_se=2e-4, seed=4)
+    assert b.checkpoints_passes           # so the table runner hands it one (KaBackend)
     full = {(r.tan_eps, r.beta_deg): r for r in b.compute(BATCH)}
     assert b.last_run.passes >= 3
 

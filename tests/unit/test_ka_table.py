@@ -73,6 +73,35 @@ def test_resume_after_interruption_computes_each_cell_once(tmp_path, setup):
     assert all(c.k_a == StandIn.value(c.tan_eps, c.beta_deg) for c in run.results)
 
 
+class CheckpointingStandIn(StandIn):
+    """A stand-in that declares pass checkpoints (KaBackend.checkpoints_passes) and records what it got."""
+
+    checkpoints_passes = True
+
+    def compute(self, cells, on_cell=None, checkpoint=None):
+        self.checkpoint = checkpoint
+        return super().compute(cells, on_cell)
+
+
+def test_the_runner_hands_a_pass_checkpoint_only_to_a_backend_that_declares_it(tmp_path, setup):
+    """A backend that says checkpoints_passes gets a PassCheckpoint in the run's folder (and the file
+    is gone after a finished run); one that does not is called without the keyword (StandIn.compute
+    would raise TypeError on it); no folder, no checkpoint."""
+    from roadgonio.engines.runner import PassCheckpoint
+    ins, model = setup
+    cells = full_grid_cells()[:4]
+    b = CheckpointingStandIn()
+    run_cells(b, cells, instrument=ins, model=model, out_dir=tmp_path / "a", progress=False)
+    assert isinstance(b.checkpoint, PassCheckpoint)
+    assert b.checkpoint.path.parent == tmp_path / "a" and not b.checkpoint.path.exists()
+    plain = StandIn()
+    run = run_cells(plain, cells, instrument=ins, model=model, out_dir=tmp_path / "b", progress=False)
+    assert len(run.results) == 4
+    c = CheckpointingStandIn()
+    run_cells(c, cells, instrument=ins, model=model, out_dir=None, progress=False)
+    assert c.checkpoint is None
+
+
 def test_cut_short_last_line_is_recomputed(tmp_path, setup):
     ins, model = setup
     cells = full_grid_cells()[:5]

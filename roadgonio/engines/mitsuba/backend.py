@@ -80,6 +80,7 @@ class MitsubaBackend:
     """k_A by Mitsuba 3, all cells of a call batched (see the module docstring)."""
 
     name = NAME
+    checkpoints_passes = True       # compute(..., checkpoint=) saves and resumes its passes (KaBackend)
 
     def __init__(self, instrument: Instrument, model: RoadModel, *, rel_se: float = 1e-3, seed: int = 0,
                  first_pass: int = DEFAULT_FIRST_PASS, min_replicates: int = DEFAULT_MIN_REPLICATES,
