@@ -155,25 +155,36 @@ def tolerance_setting(backend: str, value, field: str = "rel_se") -> dict[str, f
     return {info.tolerance: check_relative(value, field)}
 
 
+def unmodelled_parts(info: BackendInfo, instrument) -> list[tuple[str, str, str]]:
+    """The instrument's parts beyond the flat sample and its apertures that ``info`` does not model,
+    as (section, what it is, what of it matters): a ``[scene]`` (its extra geometry) and a ``[housing]`` (its walls' shade
+    and stray light) need a backend that models XML scenes. One rule for :func:`check_capabilities`
+    and for ``validate``'s refusal (which gives its own advice)."""
+    extra = instrument.extra if hasattr(instrument.extra, "get") else {}
+    if info.xml_scenes:
+        return []
+    out = []
+    scene = extra.get("scene")
+    if scene:
+        out.append(("scene", "a Mitsuba XML scene" if hasattr(scene, "get") and "xml" in scene
+                    else "a [scene] section", "its extra geometry"))
+    if extra.get("housing") is not None:
+        out.append(("housing", "a [housing]", "its walls' shade and stray light"))
+    return out
+
+
 def check_capabilities(info: BackendInfo, instrument) -> None:
     """Refuse an instrument the backend does not model (never ignore part of it): a Mitsuba XML
     scene's extra parts, a [housing] (the backends that model XML scenes model it), a mesh sample, a
     source radiance profile, a detector sensitivity map, a source path it does not move its
     source along. (A beam limit that clips the footprint is
     refused per cell by the backends that cannot model it.)"""
-    scene = instrument.extra.get("scene") if hasattr(instrument.extra, "get") else None
-    if scene and not info.xml_scenes:
-        what = "a Mitsuba XML scene" if hasattr(scene, "get") and "xml" in scene else "a [scene] section"
+    for sec, what, part in unmodelled_parts(info, instrument):
         alt = ", ".join(n for n, b in BACKENDS.items() if b.xml_scenes)
-        raise InputError(f"the {info.name} backend does not model {what} (its extra geometry would be ignored, "
-                         f"giving a different instrument); use --backend {alt}, or an instrument file "
-                         "without [scene]", path=instrument.path, field="scene")
-    housing = instrument.extra.get("housing") if hasattr(instrument.extra, "get") else None
-    if housing is not None and not info.xml_scenes:
-        alt = ", ".join(n for n, b in BACKENDS.items() if b.xml_scenes)
-        raise InputError(f"the {info.name} backend does not model a [housing] (its walls' shade and stray light would "
-                         f"be ignored, giving a different instrument); use --backend {alt}", path=instrument.path,
-                         field="housing")
+        raise InputError(f"the {info.name} backend does not model {what} ({part} would be ignored, giving a "
+                         f"different instrument); use --backend {alt}"
+                         + (", or an instrument file without [scene]" if sec == "scene" else ""),
+                         path=instrument.path, field=sec)
     if instrument.source.profiled and not info.beam_profile:
         key = instrument.source.profile_keys[0]
         alt = ", ".join(n for n, b in BACKENDS.items() if b.beam_profile)

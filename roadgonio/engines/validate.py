@@ -192,15 +192,12 @@ def _check_modelled(instrument: Instrument, ref_name: str) -> None:
     """validate needs a float64 reference of the whole instrument: none models a ``[housing]`` or a
     ``[scene]`` (their parts are Mitsuba's alone), so such an instrument is refused up front with what
     the user can do instead (the backends' own message would name a --backend validate does not have)."""
-    from roadgonio.engines.registry import BACKENDS
-    extra = instrument.extra if hasattr(instrument.extra, "get") else {}
-    for sec, what in (("housing", "a [housing] (its walls' shade and stray light)"),
-                      ("scene", "a [scene] section (its extra parts)")):
-        if extra.get(sec) is not None and not BACKENDS[ref_name].xml_scenes:
-            raise InputError(f"validate compares against a float64 reference, which does not model {what}; validate "
-                             f"the instrument without its [{sec}] (the same geometry bare), or compute its k_A with "
-                             "'roadgonio ka --backend mitsuba' (docs/validation.md, Known limits)",
-                             path=instrument.path, field=sec)
+    from roadgonio.engines.registry import BACKENDS, unmodelled_parts
+    for sec, what, part in unmodelled_parts(BACKENDS[ref_name], instrument):
+        raise InputError(f"validate compares against a float64 reference, which does not model {what} ({part}); validate "
+                         f"the instrument without its [{sec}] (the same geometry bare), or compute its k_A with "
+                         "'roadgonio ka --backend mitsuba' (docs/validation.md, Known limits)",
+                         path=instrument.path, field=sec)
 
 
 def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[float, float]] | None = None, *,
