@@ -59,6 +59,9 @@ from roadgonio.surface.model import RoadModel
 #: The default knots of g_C (fine: the narrow peak at beta = 0 and grazing incidence) and of g_D.
 C_GRID = SplineGrid(s_beta=24, beta_scale_deg=8.0, s_t=32, eps_step_deg=3.0, sec_gain=3.0, eps_max_deg=89.0)
 D_GRID = SplineGrid(s_beta=6, beta_scale_deg=8.0, s_t=8, eps_step_deg=12.0, sec_gain=1.0, eps_max_deg=89.0)
+#: The fit's method, in the key of a correction's journal (fit_state.json): 2 chose the smoothing with
+#: the noise scale the residuals show (noise_scale), 1 with the stated u alone.
+SURFACE_FIT_VERSION = 2
 #: Prior standard deviation of g_D (d ln f / d ln alpha beyond the backbone's).
 D_PRIOR_SD = 1.0
 #: Finite-difference step of the backbone's coordinates (ln of a term's coefficient, the fit's z of a
@@ -364,6 +367,8 @@ class SurfaceFit:
     steps: int
     seconds: float
     history: list[dict] = field(default_factory=list)
+    #: the noise scale the smoothing was chosen with (:func:`noise_scale`; 1 when the stated u covers the residuals)
+    phi: float = 1.0
     #: True when the mode and the smoothing parameters came from a journalled fit (:meth:`state`)
     resumed: bool = False
 
@@ -372,7 +377,7 @@ class SurfaceFit:
         ``state``): the mode and the smoothing parameters (exact floats; JSON keeps them), and the
         search's own record."""
         return {"theta": [float(v) for v in self.theta], "lam": {k: float(v) for k, v in self.lam.items()},
-                "steps": int(self.steps), "seconds": float(self.seconds), "history": list(self.history)}
+                "phi": float(self.phi), "steps": int(self.steps), "seconds": float(self.seconds), "history": list(self.history)}
 
     @property
     def dof(self) -> float:
@@ -389,7 +394,7 @@ class SurfaceFit:
         return Ka @ self.cov @ Kb.T
 
     def summary(self) -> dict[str, Any]:
-        return {"lambda": self.lam, "log_evidence": self.log_evidence, "gcv": self.gcv, "chi2": self.chi2,
+        return {"lambda": self.lam, "noise_scale": self.phi, "log_evidence": self.log_evidence, "gcv": self.gcv, "chi2": self.chi2,
                 "edf": self.edf, "cells": self.n, "birge_ratio": self.birge, "steps": self.steps,
                 "seconds": self.seconds, "resumed": self.resumed, "settings": self.settings.to_dict()}
 
@@ -508,11 +513,13 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
         lam = np.full(len(Ps), unit * 0.1) if lam0 is None else np.array(lam0, dtype=np.float64)
     theta = np.zeros(n_c + n_d) if theta0 is None else np.array(theta0, dtype=np.float64)
 
-    def prior(lam_):
+    def prior(lam_, phi_):
+        """The prior's precision in units of the stated u: the roughness penalties (lambda already in
+        those units) and g_D's proper prior, scaled by the noise scale phi like the data's weight."""
         L = np.zeros((n_c + n_d, n_c + n_d))
         L[:n_c, :n_c] = sum(l * P for l, P in zip(lam_, Ps))
         if n_d:
-            L[n_c:, n_c:] = Q
+            L[n_c:, n_c:] = phi_ * Q
         return L
 
     def simulate(th, jac=True):
@@ -553,15 +560,17 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
     history: list[dict] = []
     steps_total = 0
     fixed = settings.lam is not None
+    phi = 1.0
     if state is not None:
         theta = np.array(state["theta"], dtype=np.float64)
         if theta.shape != (n_c + n_d,) or sorted(state["lam"]) != sorted(names):
             raise ValueError("the journalled surface fit does not match these settings")
         lam = np.array([float(state["lam"][k]) for k in names], dtype=np.float64)
+        phi = float(state["phi"])
         s, J = simulate(theta)
         history, steps_total = list(state.get("history", [])), int(state.get("steps", 0))
     for outer in range(0 if state is not None else 1 if fixed else MAX_OUTER):
-        Lam = prior(lam)
+        Lam = prior(lam, phi)
         theta, s, J, steps = mode(theta, Lam, MAX_MODE_STEPS if outer == 0 else INNER_STEPS)
         steps_total += steps
         if fixed:
@@ -571,13 +580,17 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
         S = Lam[:n_c, :n_c]
         Sinv = _spd_inverse(S + np.outer(one, one) * (np.trace(S) / n_c ** 2))
         th_c = theta[:n_c]
+        # the noise scale the residuals show, never below the stated u (phi >= 1): the
+        # Fellner-Schall step with an unknown scale multiplies by it (noise_scale)
+        r_now = s - y
+        phi_new = noise_scale(float(np.sum(W * r_now * r_now)), n, float(np.sum(Hinv * A)))
         new = lam.copy()
         if settings.smoothing == "gcv":
             new = _gcv_step(J, W, y - s + J @ theta, Ps, Q, lam, n_c, unit)
         for j, P in enumerate(Ps if settings.smoothing == "evidence" else []):
             num = float(np.sum(Sinv * P)) - float(np.sum(Hinv[:n_c, :n_c] * P))
             den = float(th_c @ P @ th_c)
-            ratio = num / den if den > 0 and num > 0 else 0.1
+            ratio = phi_new * num / den if den > 0 and num > 0 else 0.1
             # the generalized Fellner-Schall step, over-relaxed in ln lambda (its steps shrink
             # geometrically in one direction; OVER_RELAX > 1 takes fewer of them)
             new[j] = lam[j] * min(max(ratio, 1e-2), 1e2) ** (OVER_RELAX if outer > 0 else 1.0)
@@ -585,14 +598,15 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
         new = np.clip(new, lo, hi)
         moving = ~(((new >= hi) & (lam >= hi)) | ((new <= lo) & (lam <= lo)))     # not pinned at a bound
         change = float(np.max(np.abs(np.log(new / lam))[moving])) if moving.any() else 0.0
-        history.append({"lambda": dict(zip(names, lam.tolist())), "steps": steps, "change": change})
-        lam = new
+        change = max(change, abs(math.log(phi_new / phi)))
+        history.append({"lambda": dict(zip(names, lam.tolist())), "phi": phi, "steps": steps, "change": change})
+        lam, phi = new, phi_new
         if change < LAM_TOL or (settings.smoothing == "gcv" and outer + 1 >= MAX_OUTER_GCV):
-            Lam = prior(lam)
+            Lam = prior(lam, phi)
             theta, s, J, steps = mode(theta, Lam, MAX_MODE_STEPS)
             steps_total += steps
             break
-    Lam = prior(lam)
+    Lam = prior(lam, phi)
     A = J.T @ (W[:, None] * J)
     H = A + Lam
     cov = _spd_inverse(H)
@@ -603,16 +617,27 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
     S = Lam[:n_c, :n_c]
     c = np.trace(S) / n_c ** 2
     logdet_S = float(np.linalg.slogdet(S + c * np.outer(one, one))[1]) - math.log(c * n_c)
-    log_ev = -0.5 * (chi2 + pen + float(np.linalg.slogdet(H)[1]) - logdet_S - logdet_Q) - 0.5 * n * math.log(2 * math.pi) \
+    log_ev = -0.5 * (chi2 + pen + float(np.linalg.slogdet(H)[1]) - logdet_S - logdet_Q - n_d * math.log(phi)) \
+        - 0.5 * n * math.log(2 * math.pi) \
         - float(np.sum(np.log(uu)))
     gcv = n * chi2 / max(n - edf, 1.0) ** 2
     res, start = [], 0
     for p in parts:
         res.append(r[start:start + p.n] / uu[start:start + p.n])
         start += p.n
-    return SurfaceFit(theta=theta, cov=cov, lam=dict(zip(names, lam.tolist())), log_evidence=log_ev, gcv=gcv,
+    return SurfaceFit(theta=theta, cov=cov, lam=dict(zip(names, lam.tolist())), phi=phi, log_evidence=log_ev, gcv=gcv,
                       chi2=chi2, edf=edf, n=n, settings=settings, residual=res, steps=steps_total,
                       seconds=time.perf_counter() - t0, history=history, resumed=state is not None)
+
+
+def noise_scale(chi2: float, n: int, edf: float) -> float:
+    """phi = max(1, chi2 / (n - edf)): the variance of the residuals in units of the stated u^2 (the
+    Birge ratio squared), never below 1 (the stated u is the least noise there is). The smoothing
+    parameters are chosen with u^2 phi: a model that cannot follow the data (structure the backbone
+    and the knots cannot hold, a tabulated table's rounding) then makes the residuals, not a rough
+    surface the instrument cannot see, carry the misfit (the Fellner-Schall update with an unknown
+    scale; docs/correction.md, "The noise the residuals show")."""
+    return max(1.0, chi2 / max(n - edf, 1.0))
 
 
 def _gcv_step(J: np.ndarray, W: np.ndarray, z: np.ndarray, Ps: list[np.ndarray], Q: np.ndarray, lam: np.ndarray,

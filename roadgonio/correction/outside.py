@@ -37,6 +37,7 @@ classic :class:`roadgonio.correction.run.CorrectionResult` of a single instrumen
 """
 from __future__ import annotations
 
+import itertools
 import math
 import time
 from dataclasses import dataclass, field
@@ -47,7 +48,7 @@ import numpy as np
 
 from roadgonio.correction.budget import Budget, functionals, misalignment_covariance
 from roadgonio.correction.fit import fit_through_instrument
-from roadgonio.correction.flexible import (FlexPart, SurfaceFit, SurfaceSettings, fit_surface, one_blas_thread,
+from roadgonio.correction.flexible import (SURFACE_FIT_VERSION, FlexPart, SurfaceFit, SurfaceSettings, fit_surface, one_blas_thread,
                                           posterior_with_backbone)
 from roadgonio.engines.bundle import DEFAULT_RAYS, StackedForward
 from roadgonio.errors import InputError
@@ -229,14 +230,41 @@ def combine(lnr: Sequence[np.ndarray], cells: Sequence[list], cov_big: np.ndarra
     for n, cell in enumerate(union):
         key = cell_key(cell)
         rows = [offsets[i] + index[i][key] for i in range(len(cells)) if key in index[i]]
-        S = cov_big[np.ix_(rows, rows)]
-        try:
-            w = np.linalg.solve(S, np.ones(len(rows)))
-        except np.linalg.LinAlgError:
-            w = np.ones(len(rows))
-        w = w / w.sum()
-        G[n, rows] = w
+        G[n, rows] = convex_weights(cov_big[np.ix_(rows, rows)])
     return G @ x, G
+
+
+def convex_weights(S: np.ndarray) -> np.ndarray:
+    """The weights w >= 0, sum 1, of the least-variance combination w^T x of estimates x with
+    covariance ``S``: the GLS (best linear unbiased) weights when none is negative, else the best
+    over the subsets of the estimates. Strongly correlated estimates of unequal variance give GLS
+    weights outside [0, 1], a combined value outside the range of the estimates ("Peelle's
+    pertinent puzzle" of data evaluation), which follows the covariance model exactly where it is
+    least sure (a surface that does not fit: docs/correction.md, "Combining r / k_A and the
+    surface's own value"); a convex combination never extrapolates, and its variance w^T S w,
+    which the budget carries through G, is still exact for the weights used."""
+    k = S.shape[0]
+    best_w, best_v = np.full(k, 1.0 / k), math.inf
+    for size in range(k, 0, -1):
+        for subset in itertools.combinations(range(k), size):
+            sub = np.ix_(subset, subset)
+            try:
+                v = np.linalg.solve(S[sub], np.ones(size))
+            except np.linalg.LinAlgError:
+                continue
+            if not np.all(np.isfinite(v)) or v.sum() == 0:
+                continue
+            v = v / v.sum()
+            if np.any(v < 0):
+                continue
+            w = np.zeros(k)
+            w[list(subset)] = v
+            var = float(w @ S @ w)
+            if var < best_v:
+                best_w, best_v = w, var
+        if size == k and best_v < math.inf:
+            return best_w               # the GLS weights are all >= 0: they are the optimum
+    return best_w
 
 
 def model_estimate_cells(cells: Sequence[list], union: list) -> list[tuple[int, int]]:
@@ -335,7 +363,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     fit_opts = {k: v for k, v in (("starts", starts), ("polish", polish), ("rounds", rounds)) if v is not None}
     key_settings = {"variants": list(variants), "rays": [a.rays for a in arts], "seed": seed, **fit_opts,
                     "backend": backend, "backend_settings": dict(backend_settings or {}), "accuracy": accuracy,
-                    "surface": settings.to_dict(), "instruments": [i.to_dict() for i in instruments[1:]]}
+                    "surface": settings.to_dict(), "surface_fit": SURFACE_FIT_VERSION, "instruments": [i.to_dict() for i in instruments[1:]]}
     state = _run._FitState(out, _run._state_key(_stack_tables(tables), np.concatenate(
         [g for g, _ in u_grids], axis=1), instruments[0], key_settings))
 

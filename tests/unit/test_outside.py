@@ -297,3 +297,70 @@ def test_a_journalled_surface_fit_rebuilds_the_same_fit(r3like):
     other = SurfaceSettings(regions="peak")
     with pytest.raises(ValueError):
         fit_surface([FlexPart(fm, r3like, other)], [y], [u], state=state)
+
+
+def test_convex_weights_are_gls_unless_gls_extrapolates():
+    """flexible's table combination (outside.convex_weights): positive GLS weights are kept as they
+    are; for two strongly correlated estimates of unequal variance (Peelle's pertinent puzzle: the
+    GLS weight of the noisier one is negative, the combined value outside both) the weights are the
+    least-variance convex ones, checked against a fine scan of w in [0, 1] and of the simplex for
+    three estimates."""
+    import itertools
+    from roadgonio.correction.outside import convex_weights
+    S = np.array([[0.04, 0.01], [0.01, 0.02]])
+    gls = np.linalg.solve(S, np.ones(2))
+    np.testing.assert_allclose(convex_weights(S), gls / gls.sum(), rtol=0, atol=ROUND_OFF)
+    peelle = np.array([[0.01, 0.018], [0.018, 0.04]])          # correlation 0.9, sd 0.1 and 0.2
+    gls = np.linalg.solve(peelle, np.ones(2))
+    assert np.min(gls / gls.sum()) < 0                          # the case the convex rule is for
+    w = convex_weights(peelle)
+    assert np.all(w >= 0) and abs(w.sum() - 1) < ROUND_OFF
+    scan = np.linspace(0, 1, 2001)
+    var = [float(np.array([a, 1 - a]) @ peelle @ np.array([a, 1 - a])) for a in scan]
+    assert float(w @ peelle @ w) <= min(var) + ROUND_OFF
+    np.testing.assert_allclose(w, [1.0, 0.0], atol=ROUND_OFF)   # the less noisy estimate alone
+    rng = np.random.default_rng(11)
+    for _ in range(20):                                         # three estimates: against the simplex
+        L = rng.normal(size=(3, 3))
+        S3 = L @ L.T + 0.05 * np.eye(3)
+        w3 = convex_weights(S3)
+        assert np.all(w3 >= 0) and abs(w3.sum() - 1) < ROUND_OFF
+        grid = [np.array([a, b, 1 - a - b]) for a, b in itertools.product(np.linspace(0, 1, 101), repeat=2)
+                if a + b <= 1 + 1e-12]
+        assert float(w3 @ S3 @ w3) <= min(float(g @ S3 @ g) for g in grid) + ROUND_OFF
+
+
+def test_smoothing_is_chosen_with_the_noise_the_residuals_show(r3like, monkeypatch):
+    """fit_surface's noise scale phi = max(1, chi^2 / (n - edf)) (flexible.noise_scale): with data
+    five times noisier than the stated u around an eq. 4 truth (the backbone itself, so the right
+    surface is g = 0), the fit chooses smoother surfaces than with phi held at 1, and its ln k_A is
+    closer to the truth's; with noise-free data phi is 1 and the fit is the one with phi held at 1,
+    bit for bit (nothing changes where the stated u covers the residuals)."""
+    from roadgonio.correction import flexible
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings, fit_surface
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    cells = [(t, b) for t in (0.0, 0.5, 1.0, 2.0, 3.0, 4.5, 6.0, 9.0, 12.0) for b in (0.0, 5.0, 15.0, 30.0, 60.0, 120.0)]
+    fm = ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=32))
+    settings = SurfaceSettings()
+    y0 = fm.r_measured(r3like)
+    y = y0 * np.exp(np.random.default_rng(7).normal(0.0, 0.05, len(cells)))
+    u = 0.01 * y0
+
+    def fit(data, scaled):
+        if not scaled:
+            monkeypatch.setattr(flexible, "noise_scale", lambda chi2, n, edf: 1.0)
+        part = FlexPart(fm, r3like, settings)
+        f = fit_surface([part], [data], [u])
+        monkeypatch.undo()
+        return f, np.log(part.k_a(f.theta)) - np.log(part.k_a(np.zeros_like(f.theta)))
+    with_phi, dk_phi = fit(y, True)
+    without, dk_one = fit(y, False)
+    assert with_phi.phi > 4.0                                   # the residuals show ~25x the stated variance
+    assert abs(with_phi.phi - with_phi.chi2 / (with_phi.n - with_phi.edf)) < 0.5 * with_phi.phi
+    assert with_phi.edf < 0.7 * without.edf                     # a smoother surface
+    assert np.sqrt(np.mean(dk_phi ** 2)) < np.sqrt(np.mean(dk_one ** 2))
+    clean_phi, _ = fit(y0, True)
+    clean_one, _ = fit(y0, False)
+    assert clean_phi.phi == 1.0
+    assert np.array_equal(clean_phi.theta, clean_one.theta) and clean_phi.lam == clean_one.lam
