@@ -13,7 +13,9 @@ jittered grid on the unit square, randomly permuted per disc so the discs are no
 so the batch means are independent and identically distributed and the ratio of means
 <road>/<lambert> gets its standard error by the delta method over batches
 (:func:`roadgonio.engines.ratio_se`). Batches are added until the relative standard error of k_A is
-below ``rel_se`` (at least ``min_batches`` batches, at most ``max_samples`` samples).
+below ``rel_se`` (at least ``min_batches`` batches, at most ``max_samples`` samples). The SE has
+``batches - 1`` degrees of freedom, so at least 64 batches by default (:data:`DEFAULT_MIN_BATCHES`):
+with few batch means the estimated SE scatters and z = error / SE has Student's heavier tails.
 
 Every cell has its own random stream, seeded by (seed, tan eps, beta): a cell's result does not
 depend on which other cells are computed or in what order. This backend is the oracle and the
@@ -38,8 +40,13 @@ from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
 from roadgonio.engines.cellcheck import check_cell
 
 DEFAULT_REL_SE = 1e-3
-DEFAULT_BATCH = 1 << 14
-DEFAULT_MIN_BATCHES = 8
+DEFAULT_BATCH = 45 ** 2
+#: The SE comes from the scatter of the batch means, with (batches - 1) degrees of freedom, and a z
+#: computed with it follows Student's t, not a normal law: with 8 batches t_7 (RMS z 1.18, |z| > 4
+#: 80 times as often as a normal z; trial 7 measured RMS 1.35 at the fast preset). With 64 batches
+#: t_63 is within 2 % of normal in RMS, and the stopping rule (stop once the estimated SE meets
+#: rel_se) selects little on a low estimate (its relative scatter is 9 %).
+DEFAULT_MIN_BATCHES = 64
 DEFAULT_MAX_SAMPLES = 200_000_000
 #: Points per evaluation chunk of a batch (arrays of 32 KiB: reused by the allocator, not mapped).
 CHUNK = 4096
@@ -193,9 +200,9 @@ def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = DE
     seed:
         Base seed; each cell's stream is seeded by (seed, tan eps, beta).
     batch:
-        Samples per batch (rounded to a square m^2; default 16384).
+        Samples per batch (rounded to a square m^2; default 45^2 = 2025).
     min_batches, max_samples:
-        At least this many batches, at most this many samples per cell; a cell stopped by
+        At least this many batches (default 64: the SE's degrees of freedom plus one), at most this many samples per cell; a cell stopped by
         ``max_samples`` reports its achieved standard error and ``extra["converged"] = False``.
     """
     if unknown:

@@ -430,12 +430,7 @@ class ReferenceBackend(CellByCellBackend):
         """Chord of the source disc on the mirror plane of each detector ray (the vertical plane
         through the hit point containing w_o): ``(s - x)_x w_o,y - (s - x)_y w_o,x`` is linear in
         the source-disc coordinates. Returns the half ``>= 0`` as (n, c); the other half is (-n, -c)."""
-        r = src.radius_m
-        cx, cy = src.centre[0] - x, src.centre[1] - y
-        b0 = cx * wo[1] - cy * wo[0]
-        b1 = r * (src.s[0] * wo[1] - src.s[1] * wo[0])
-        b2 = r * (src.t[0] * wo[1] - src.t[1] * wo[0])
-        return _chord(b0, b1, b2)
+        return _chord(*optics.mirror_line(src, x, y, wo))
 
     # -- one cell -----------------------------------------------------------------------------
     def _train(self, src, ss: np.random.SeedSequence) -> tuple[AdaptiveMap, int, dict[str, Any]]:

@@ -206,6 +206,18 @@ def source_point(src: SourceGeometry, disc_xy):
     return _comb(src.centre, src.s, src.radius_m * dx, src.t, src.radius_m * dy)
 
 
+def mirror_line(src: SourceGeometry, x, y, wo):
+    """The mirror plane of a detector ray (the vertical plane through its hit point (x, y, 0)
+    containing w_o, where beta = 0 or 180 deg and an empirical term in |beta| has its kink) on the
+    source disc: ``(a0, a1, a2)`` with ``a0 + a1 dx + a2 dy = 0`` in the unit-disc coordinates
+    (``(s - x)_x w_o,y - (s - x)_y w_o,x`` is linear in them)."""
+    r = src.radius_m
+    a0 = (src.centre[0] - x) * wo[1] - (src.centre[1] - y) * wo[0]
+    a1 = r * (src.s[0] * wo[1] - src.s[1] * wo[0])
+    a2 = r * (src.t[0] * wo[1] - src.t[1] * wo[0])
+    return a0, a1, a2
+
+
 def source_coupling(xp, src: SourceGeometry, x, y, spoint, disc_xy=None):
     """From sample point (x, y, 0) to source point ``spoint``: the unit direction ``w`` towards the
     source and the geometric factor ``G = cos theta_i cos theta_s / |s - x|^2`` times the source's

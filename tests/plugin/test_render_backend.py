@@ -50,6 +50,23 @@ def test_zero_apertures_give_one_and_shrinking_converges():
     assert devs[2][0] <= F32_RATIO_TOL * 10         # zero apertures: the ideal geometry itself
 
 
+def test_every_aperture_zero_gives_exactly_one():
+    """Trial 7, defect 5: with every aperture zero (the collimated preset) the instrument is the
+    ideal geometry, where k_A = 1 by definition (docs/conventions.md section 5) and the float64
+    backends give 1.0. The renderer gave 1 +- 3e-7 (float32) with an SE of exactly 0 (every sample
+    the same ray): a z of infinity. Now k_A = 1.0 and SE 0 exactly, as the float64 backends;
+    the rendering of that geometry is checked against float64 in the next test."""
+    from roadgonio.engines.mitsuba.backend import make_backend
+    b = make_backend(preset("collimated"), ROAD)
+    res = b.compute(CELLS + [(5.0, 180.0)])
+    for r in res:
+        assert r.k_a == 1.0 and r.se == 0.0 and r.converged, r
+        assert r.k_a_direct == 1.0 and r.stray_fraction == 0.0
+    assert not np.any(b.covariance())
+    assert b.is_ideal_geometry
+    assert not make_backend(preset("portable"), ROAD).is_ideal_geometry
+
+
 @pytest.mark.parametrize("cell", [(0.0, 0.0), (1.0, 0.0), (3.0, 20.0), (12.0, 0.0), (8.0, 150.0)])
 def test_ideal_geometry_rendered_matches_float64(mi, cell):
     """Point source + single-ray detector: the road channel is f cos(eps) x (D_S^2 / D_S^2) and the

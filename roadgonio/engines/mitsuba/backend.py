@@ -109,6 +109,7 @@ class MitsubaBackend:
         import mitsuba as mi
         self.variant = mi.variant()
         self.last_run = None
+        self._ideal = None
         #: the schedule of the last ``compute`` call (replay it with ``plan=``)
         self.last_plan = None
 
@@ -158,6 +159,8 @@ class MitsubaBackend:
         a saved state of these cells is resumed (same numbers as without the interruption)."""
         t0 = time.perf_counter()
         cells = [(float(t), float(b)) for t, b in cells]
+        if self.is_ideal_geometry:
+            return self._ideal_results(cells, on_cell, t0)
         ideal = [float(v) for v in ideal_ratios(self.model, self.instrument, cells)] if cells else []
         results: list[CellResult | None] = [None] * len(cells)
         last = [t0]
@@ -177,6 +180,34 @@ class MitsubaBackend:
         self.last_run, self.last_plan = run, run.plan
         self._ideal = np.array(ideal)
         return [r for r in results]
+
+    @property
+    def is_ideal_geometry(self) -> bool:
+        """Every aperture zero on a bare flat sample (no housing, parts or XML scene): the
+        instrument is the ideal point geometry of docs/conventions.md section 5, where k_A = 1 by
+        definition. Rendering it would give 1 up to float32 rounding (~1e-7) with an SE of exactly 0
+        (every sample is the same ray): a z of infinity against the float64 backends, which give 1."""
+        rs = self.rs
+        return bool(self.instrument.is_ideal() and rs.flat_rectangle and rs.xml is None and not rs.parts
+                    and rs.housing is None and not self.engine.stray)
+
+    def _ideal_results(self, cells, on_cell, t0: float) -> list[CellResult]:
+        """k_A = 1 exactly, SE 0, for the ideal geometry (:attr:`is_ideal_geometry`), after the
+        checks every float64 backend makes at each cell (horizon, beam, nominal value)."""
+        from roadgonio.engines.cellcheck import check_cells
+        check_cells(self.instrument, self.model, cells, models_beam=False, backend=self.name)
+        self.last_run, self.last_plan = None, None
+        self._ideal = np.ones(len(cells))
+        out = []
+        for t, b in cells:
+            r = CellResult(tan_eps=t, beta_deg=b, k_a=1.0, se=0.0, converged=True, samples=0,
+                           seconds=(time.perf_counter() - t0) / max(len(cells), 1),
+                           extra={"ideal_geometry": True, "converged": True,
+                                  "note": "every aperture is zero: the ideal geometry, k_A = 1 by definition"})
+            out.append(r)
+            if on_cell is not None:
+                on_cell(r)
+        return out
 
     def _result(self, cell, ideal: float, st, converged: bool, seconds: float) -> CellResult:
         from roadgonio.engines.mitsuba.passes import relative
@@ -212,6 +243,8 @@ class MitsubaBackend:
         the diagonal is SE^2; off-diagonal terms from the replicates the cells shared
         (:func:`roadgonio.engines.mitsuba.passes.covariance`)."""
         if self.last_run is None:
+            if self._ideal is not None and self.is_ideal_geometry:
+                return np.zeros((self._ideal.size, self._ideal.size))   # exact results: no covariance
             raise RuntimeError("no compute() call yet")
         cov = self.last_run.covariance()
         return cov / np.outer(self._ideal, self._ideal)
