@@ -145,8 +145,8 @@ def _run_second(args) -> int:
         return 0
     say = text_output(args)
     a, t, b = res.baselines[0], res.baselines[1], res.best
-    say(f"second aperture for '{res.instrument.name}' (surface from {res.surface_from}): {len(res.candidates)} "
-        f"settings, {res.seconds:.1f} s")
+    say(f"second aperture for '{res.instrument.name}' (surface from {res.surface_from}; {res.settings['backbone_variant']} "
+        f"backbone, {res.settings['backbone_choice']}): {len(res.candidates)} settings, {res.seconds:.1f} s")
     extra = res.instrument.extra if hasattr(res.instrument.extra, "get") else {}
     if extra.get("housing") is not None or extra.get("scene"):
         say("  note: the prediction's ray bundles leave out the instrument's housing / scene parts (their shade "

@@ -31,7 +31,9 @@ blurs hide below the knots, :func:`roadgonio.correction.outside.parts_discrepanc
 between two measurements with one setting, so measuring twice does not average it away, while a
 second aperture that resolves more does), of the table the correction gives: the instruments'
 r / k_A and the fitted surface's own value combined by generalised least squares. Left out: the
-backend's and the bundles' own errors (small), the spread of the backbone variants, the misalignment.
+backend's and the bundles' own errors (small), the spread of the backbone variants (the backbone
+is the variant of larger evidence, the one the correction weighs ~1, or the one asked for), the
+misalignment.
 """
 from __future__ import annotations
 
@@ -134,7 +136,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     """Rank the second aperture settings of ``vary`` (module docstring). Exactly one of ``measured``
     (an r-table the instrument measured) and ``sample`` (a SAMPLE or a BRDF model) gives the surface."""
     from roadgonio.correction.flexible import FlexPart, SurfaceSettings, expected_posterior, fit_surface
-    from roadgonio.correction.outside import cell_key, model_estimate_cells, parts_discrepancy
+    from roadgonio.correction.outside import DEFAULT_VARIANTS, cell_key, model_estimate_cells, parts_discrepancy
     from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
     from roadgonio.correction.run import fit_self, measured_uncertainty
     from roadgonio.design.grid import as_vary_specs, build_instrument, grid_points
@@ -172,10 +174,15 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
         u_grid, _ = measured_uncertainty(u_measured, table)
         u = u_grid[table.mask]
         source = f"sample {getattr(model, 'name', sample)} (noise-free, through the instrument)"
-    variant = model_variant or "smooth"
-    backbone = fit_self(fm, y, u, variant, seed=seed, stage_b=False, name=table.name).model
-    part_a = FlexPart(fm, backbone, settings)
-    fit = fit_surface([part_a], [y], [u])
+    # the backbone the correction would take: correct --forward surface fits every variant of
+    # DEFAULT_VARIANTS and weighs them by their evidence; the prediction takes the one of larger
+    # evidence (the weights are ~0 and ~1 in practice), or the variant asked for
+    fits = []
+    for variant in ((model_variant,) if model_variant else DEFAULT_VARIANTS):
+        bb = fit_self(fm, y, u, variant, seed=seed, stage_b=False, name=table.name).model
+        pa = FlexPart(fm, bb, settings)
+        fits.append((fit_surface([pa], [y], [u]), variant, bb, pa))
+    fit, variant, backbone, part_a = max(fits, key=lambda f: f[0].log_evidence)
     theta, lam = fit.theta, fit.lam
     u_rel = u / y
 
@@ -225,7 +232,11 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     return SecondApertureResult(instrument=instrument, surface_from=source, candidates=cands, baselines=baselines,
                                 keys=[s.key for s in specs], seconds=time.perf_counter() - t0,
                                 settings={"u_measured": str(u_measured), "rays": rays, "seed": seed,
-                                          "backbone": backbone.to_json_dict(), "lambda": lam, "min_signal": min_signal,
+                                          "backbone": backbone.to_json_dict(), "backbone_variant": variant,
+                                          "backbone_choice": ("asked for (--model-variant)" if model_variant else
+                                                              "the larger evidence of " + ", ".join(DEFAULT_VARIANTS)
+                                                              + ", as correct --forward surface weighs them"),
+                                          "lambda": lam, "min_signal": min_signal,
                                           "surface": settings.to_dict()})
 
 

@@ -188,6 +188,23 @@ def test_second_aperture_predicts_the_joint_u_and_ranks_by_it(tmp_path, two_inst
     assert (tmp_path / "sa" / "best_second.toml").exists()
 
 
+def test_second_aperture_takes_the_backbone_the_correction_takes(two_instruments):
+    """Without --model-variant the prediction fits the backbone variants `correct --forward surface`
+    weighs and takes the one of larger evidence, the one the correction then weighs ~1 (trial 7,
+    defect 4: it took `smooth` always and predicted 4.6 times the u of a correction that chose
+    `power`); its baseline "alone" is the u the correction through the instrument alone reports,
+    within 30 % as above, and the output says which backbone it took and why."""
+    a, b, sa, sb = two_instruments
+    alone = api.correct(sa.measured, a, forward="surface", u_measured="1%", backend="quadrature", accuracy="fast",
+                        rays=256)
+    chosen = alone.extra["surface"].best.variant
+    res = api.second_aperture(a, ["detector.field_half_angle_deg=0.1"], measured=sa.measured, u_measured="1%",
+                              rays=256, min_signal=0.0, plots=False)
+    assert res.settings["backbone_variant"] == chosen and "evidence" in res.settings["backbone_choice"]
+    actual = float(np.median(alone.budget.u_rel()))
+    assert abs(res.baselines[0].u_median / actual - 1) < 0.30, (res.baselines[0].u_median, actual, chosen)
+
+
 def test_a_rerun_resumes_the_correction_surface_and_gives_the_same_table(tmp_path, capsys):
     """A finished `correct --forward surface` rerun in the same folder takes the k_A table and the
     correction surface from the folder's journals (fit_state.json) and writes the same numbers;
