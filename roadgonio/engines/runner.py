@@ -114,9 +114,19 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
     done: dict[tuple[float, float], CellResult] = {}
     fp = fingerprint(instrument, model, backend)
     header = {"fingerprint": fp, "backend": backend.name}
+    new_journal = made_dir = False
     if out_dir is not None:
         out_dir = Path(out_dir)
         journal = out_dir / JOURNAL
+        if not fresh and out_dir.is_dir():        # read only: the refusals of a folder in use come first
+            _check_finished_run(out_dir, fp)
+            done = _read_journal(journal, fp)
+    # the geometry every backend refuses (:func:`roadgonio.engines.cellcheck.check_cells`), for all the
+    # cells still to compute at once (the first bad cell and how many more), before the folder is touched
+    from roadgonio.instrument.optics import check_source_cells
+    check_source_cells(instrument, [c for c in cells if _cell_key(*c) not in done])
+    if out_dir is not None:
+        made_dir = not out_dir.exists()
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
@@ -130,6 +140,7 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
                     raise output_error(old, err) from None
         _check_finished_run(out_dir, fp)
         done = _read_journal(journal, fp)
+        new_journal = not journal.exists()
         # (re)write the header and the finished cells, dropping a cut-short last line
         _write_journal(journal, header, list(done.values()))
     todo = [c for c in cells if _cell_key(*c) not in done]
@@ -164,6 +175,12 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
             for c in returned:   # backends that do not call on_cell
                 if _cell_key(c.tan_eps, c.beta_deg) not in done:
                     on_cell(c)
+    except Exception:
+        # refused (or failed) before anything was done: leave no journal of only a header, nor a
+        # folder this run made ("nothing half-written"); a Ctrl-C keeps them (it says it resumes)
+        if new_journal and not done and not (passes is not None and passes.path.exists()):
+            _discard(journal, out_dir if made_dir else None)
+        raise
     finally:
         flush()
         if bar is not None:
@@ -172,6 +189,16 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
         passes.clear()
     results = [done[_cell_key(*c)] for c in cells if _cell_key(*c) in done]
     return KaRun(results=results, seconds=time.perf_counter() - t0, resumed=resumed)
+
+
+def _discard(journal: Path, folder: Path | None) -> None:
+    """Remove a journal that holds only its header, and ``folder`` when it is left empty."""
+    try:
+        journal.unlink(missing_ok=True)
+        if folder is not None and not any(folder.iterdir()):
+            folder.rmdir()
+    except OSError:
+        pass        # the refusal being raised is what the user must read
 
 
 class PassCheckpoint:

@@ -638,3 +638,78 @@ def test_geometry_and_calibration_errors_name_the_instrument_file(tmp_path, caps
                "--out", str(tmp_path / "o")])
     line = one_line_error(capsys, rc, *must)
     assert line.startswith(f"roadgonio: error: {inst}, "), line
+
+
+# -- trial 7, defects 6 and 10: refusals name the file, the field and the cells asked; nothing half-written
+
+def _portable_text(*edits):
+    from pathlib import Path
+    text = (Path(__file__).resolve().parents[2] / "scenes" / "portable.toml").read_text()
+    for old, new in edits:
+        assert old in text, old
+        text = text.replace(old, new)
+    return text
+
+
+def test_detector_looking_upwards_names_the_file_and_field(tmp_path, capsys):
+    """Trial 7, defect 6: 'some detected rays point upwards' named neither the instrument file nor
+    the key to change (its sibling, the pupil below the plane, did)."""
+    p = write_instrument(tmp_path, GOOD.replace("field_half_angle_deg = 0.05", "field_half_angle_deg = 1.5"),
+                         name="up.toml")
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", "quadrature", "--tan-eps", "1",
+               "--beta", "0"])
+    line = one_line_error(capsys, rc, "point upwards", "field 'detector.field_half_angle_deg'")
+    assert line.startswith(f"roadgonio: error: {p}, "), line
+
+
+def _short_beam_instrument(tmp_path):
+    """The portable with a beam table that ends at 3 deg (every cell needs more)."""
+    (tmp_path / "narrow.csv").write_text("theta_deg,I\n0,1\n1,0.9\n2,0.7\n3,0.5\n")
+    return write_instrument(tmp_path, _portable_text(("[detector]", 'beam_intensity_file = "narrow.csv"\n\n[detector]')),
+                            name="narrow.toml")
+
+
+@pytest.mark.parametrize("backend", ["quadrature", "mitsuba"])
+def test_short_beam_table_names_the_cell_asked_and_the_field(tmp_path, capsys, backend):
+    """Trial 7, defect 6: the Mitsuba backend refused a beam table at tan eps 0, beta 0 (where it parks
+    the source while building the scene), a cell the user did not ask for, with no field named."""
+    p = _short_beam_instrument(tmp_path)
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", backend, "--accuracy", "fast",
+               "--tan-eps", "1", "--beta", "30"])
+    line = one_line_error(capsys, rc, "field 'source.beam_intensity_file'", "at tan eps = 1, beta = 30:",
+                          "narrow.csv")
+    assert line.startswith(f"roadgonio: error: {p}, ") and "tan eps = 0" not in line, line
+
+
+@pytest.mark.parametrize("backend", ["quadrature", "mitsuba"])
+def test_many_cells_below_the_horizon_say_how_many_and_leave_nothing(tmp_path, capsys, backend):
+    """Trial 7, defects 6 and 10: a table with many cells below the horizon named the first only
+    (the housing check says how many more), printed '-0.0000 m below/at the sample plane' for a disc
+    touching the plane, and left a ka_cells.jsonl of only a header in --out."""
+    p = write_instrument(tmp_path, _portable_text(("radius_m = 0.025", "radius_m = 0.2")), name="big.toml")
+    out = tmp_path / "o"
+    cells = "4:0,5:0,6:0,1:0,12:0"      # tan eps 5 touches the plane exactly (1 m x cos = 0.2 m x sin)
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", backend, "--accuracy", "fast",
+               "--cells", cells, "--out", str(out)])
+    line = one_line_error(capsys, rc, "field 'source.radius_m'", "below the horizon at tan eps = 5, beta = 0 "
+                          "(and 2 more cells)", "reaches down to the sample plane")
+    assert "-0.0000" not in line
+    assert not out.exists()
+    out.mkdir()                          # a folder of the user's stays, and stays empty
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", backend, "--accuracy", "fast",
+               "--cells", "6:0", "--out", str(out)])
+    line = one_line_error(capsys, rc, "at tan eps = 6, beta = 0: its disc (radius 0.2 m at 1 m) reaches "
+                          f"{1000 * (0.2 * 6 - 1) / 37 ** 0.5:.4g} mm below the sample plane")
+    assert list(out.iterdir()) == []
+
+
+def test_a_refusal_inside_the_backend_leaves_no_journal(tmp_path, capsys):
+    """Trial 7, defect 10: a run refused after the journal was opened (here the source in the line of
+    sight, the backend's own check) removes the journal of only a header and the folder it made."""
+    p = write_instrument(tmp_path, GOOD.replace("distance_m = 5.0\nradius_m = 0.005",
+                                                "distance_m = 1.0\nradius_m = 0.08"))
+    out = tmp_path / "o"
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", "numpy-mc", "--cells", "12:180",
+               "--out", str(out)])
+    one_line_error(capsys, rc, "blocks the detector's line of sight")
+    assert not out.exists()
