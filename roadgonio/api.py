@@ -416,15 +416,22 @@ def ka_table(instrument, sample, *, backend: str = "mitsuba", accuracy: str | No
     out, fresh:
         With ``out`` the cells are journalled (an interrupted run resumes; ``fresh`` discards an
         earlier run's results) and ka.nc, ka.csv, ka_se.csv / ka_bound.csv, ka.png, ka.json are
-        written (:func:`roadgonio.engines.runner.write_outputs`).
+        written (:func:`roadgonio.engines.runner.write_outputs`). The folder keeps one table per
+        run: the files hold every cell its journal holds for this run (same instrument, model,
+        backend and settings), the cells asked (computed now or read back) and those of earlier
+        runs, so ``cells`` asking for a few cells into a folder with the full table leaves the full
+        table in the files.
 
     Returns
     -------
     xarray.Dataset
-        :func:`roadgonio.engines.runner.ka_dataset`: ``k_a``, ``se`` (standard error),
-        ``error_bound`` (deterministic bound), ``confidence_bound`` and ``confidence_level``,
-        ``samples``, ``seconds``, ``converged`` over ``tan_eps`` (29) x ``beta`` (20, degrees);
-        NaN where not computed; the provenance in ``attrs["provenance"]`` (JSON), the summary in
+        What ka.nc holds (:func:`roadgonio.engines.runner.ka_dataset`): ``k_a``, ``se`` (standard
+        error), ``error_bound`` (deterministic bound), ``confidence_bound`` and ``confidence_level``,
+        ``samples``, ``seconds``, ``converged`` over ``tan_eps`` (29) x ``beta`` (20, degrees), at
+        the cells asked and, with ``out``, every other cell the folder's table holds for this run
+        (above); NaN where not computed. ``attrs["cells_asked"]`` and ``attrs["resumed_cells"]``
+        count this call's selection and the part of it read back, ``attrs["cells_computed"]`` the
+        table's cells; the provenance in ``attrs["provenance"]`` (JSON), the summary in
         ``attrs["summary"]`` and the output folder in ``attrs["out"]`` when written.
     """
     from roadgonio.engines.cells import select_cells

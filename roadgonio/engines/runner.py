@@ -55,20 +55,42 @@ def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) ->
 
 @dataclass
 class KaRun:
-    """A finished (or partly finished) k_A computation."""
+    """A finished (or partly finished) k_A computation: ``results`` the cells asked, in their order
+    (computed now or ``resumed`` from the journal); ``table`` every cell of this run the output
+    folder's journal holds (the cells asked and those of earlier runs with the same fingerprint, so
+    a subset run into a folder with a larger table does not shrink the table files; None without a
+    folder: the cells asked)."""
 
     results: list[CellResult]
     seconds: float
     resumed: int
+    table: list[CellResult] | None = None
+
+    @property
+    def table_cells(self) -> list[CellResult]:
+        return self.results if self.table is None else self.table
 
     def grid(self, attr: str = "k_a") -> np.ndarray:
+        """``attr`` of the table's cells on the CIE grid (NaN where no cell is; cells off the grid left out)."""
         out = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), np.nan)
-        for c in self.results:
-            i = int(np.argmin(np.abs(TAN_EPS_GRID - c.tan_eps)))
-            j = int(np.argmin(np.abs(BETA_GRID_DEG - c.beta_deg)))
-            if abs(TAN_EPS_GRID[i] - c.tan_eps) < 1e-9 and abs(BETA_GRID_DEG[j] - c.beta_deg) < 1e-9:
-                out[i, j] = getattr(c, attr)
+        for c in self.table_cells:
+            ij = _grid_index(c)
+            if ij is not None:
+                out[ij] = getattr(c, attr)
         return out
+
+
+def _grid_index(c: CellResult) -> tuple[int, int] | None:
+    """The (row, column) of a cell on the CIE grid, None for a cell off the grid."""
+    i = int(np.argmin(np.abs(TAN_EPS_GRID - c.tan_eps)))
+    j = int(np.argmin(np.abs(BETA_GRID_DEG - c.beta_deg)))
+    if abs(TAN_EPS_GRID[i] - c.tan_eps) < 1e-9 and abs(BETA_GRID_DEG[j] - c.beta_deg) < 1e-9:
+        return i, j
+    return None
+
+
+def _on_grid(c: CellResult) -> bool:
+    return _grid_index(c) is not None
 
 
 def _cell_key(t: float, b: float) -> tuple[float, float]:
@@ -188,7 +210,8 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
     if passes is not None:
         passes.clear()
     results = [done[_cell_key(*c)] for c in cells if _cell_key(*c) in done]
-    return KaRun(results=results, seconds=time.perf_counter() - t0, resumed=resumed)
+    return KaRun(results=results, seconds=time.perf_counter() - t0, resumed=resumed,
+                 table=list(done.values()) if journal is not None else None)
 
 
 def _discard(journal: Path, folder: Path | None) -> None:
@@ -302,7 +325,7 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
     settings = backend.settings()
     prov = provenance(instrument=instrument, model=model, backend=backend.name, settings=settings, sample=sample,
                       accuracy=accuracy, cells=cells_asked if cells_asked is not None else len(run.results))
-    computed = [c for c in run.results]
+    computed = [c for c in run.table_cells if _on_grid(c)]     # the cells of the Dataset (the folder's table)
     attrs = {
         "Conventions": "CF-1.8",
         "title": f"k_A of instrument '{instrument.name}' for sample '{sample}' ({backend.name} backend)",
@@ -319,6 +342,7 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         "precision": info.precision if info else "",
         "cell_correlation": info.cell_correlation if info else "",
         "cells_computed": len(computed),
+        "cells_asked": int(cells_asked if cells_asked is not None else len(run.results)),
         "cells_not_converged": int(sum(not c.converged for c in computed)),
         "resumed_cells": int(run.resumed),
         "seconds_wall": float(run.seconds),
@@ -332,11 +356,14 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
 
 
 def summary(ds) -> dict[str, Any]:
-    """The summary of a k_A Dataset (``ka.json``, the command's last line): cells, k_A range, the
-    worst relative precision of the kind the backend gives, cells not converged, samples, times."""
+    """The summary of a k_A Dataset (``ka.json``, the command's last line): cells (of the table:
+    with an output folder, every cell its journal holds for this run), ``cells_asked`` (this run's
+    selection; ``resumed_cells`` of them were read back), k_A range, the worst relative precision of
+    the kind the backend gives, cells not converged, samples, times (all over the table's cells)."""
     done = np.isfinite(ds["k_a"].values)
     k = ds["k_a"].values[done]
     out: dict[str, Any] = {"cells": int(done.sum()),
+                           "cells_asked": int(ds.attrs.get("cells_asked", done.sum())),
                            "k_a_min": float(k.min()) if k.size else None,
                            "k_a_max": float(k.max()) if k.size else None}
     for field, key in (("se", "worst_rel_se"), ("error_bound", "worst_rel_error_bound"),
