@@ -713,3 +713,42 @@ def test_a_refusal_inside_the_backend_leaves_no_journal(tmp_path, capsys):
                "--out", str(out)])
     one_line_error(capsys, rc, "blocks the detector's line of sight")
     assert not out.exists()
+
+
+@pytest.mark.parametrize("extra, vary, must", [
+    ('[source]\nbeam_intensity_file = "narrow.csv"', "source.beam_sigma_deg=5,20", "gives source.beam_intensity_file"),
+    ('[detector]\nfield_sensitivity = "map.csv"', "detector.field_edge_sensitivity=0.5,1", "gives detector.field_sensitivity"),
+    ('[detector]\nfield_sensitivity = "map.csv"', "detector.field_edge_sensitivity=1", "gives detector.field_sensitivity"),
+    ("", "source.beam_sigma_deg=5,20 source.beam_cos_power=1,2", "cannot be varied together"),
+])
+@pytest.mark.parametrize("second", [False, True])
+def test_design_varying_an_alternative_of_the_base_is_an_input_error(tmp_path, capsys, extra, vary, must, second):
+    """Trial 7, defect 7: beam_sigma_deg varied on a base with a beam_intensity_file made every point
+    'infeasible' and exited 0; field_edge_sensitivity = 1 on a base with a sensitivity map was taken as
+    'not given' and kept the map under the label e = 1. Both are refused before any computation."""
+    (tmp_path / "narrow.csv").write_text("theta_deg,I\n0,1\n30,0.5\n60,0.1\n")
+    (tmp_path / "map.csv").write_text("1,1,1\n1,1,1\n1,1,1\n")
+    text = _portable_text()
+    if extra:
+        section, line = extra.split("\n")
+        text = text.replace(section, f"{section}\n{line}", 1)
+    p = write_instrument(tmp_path, text, name="base.toml")
+    argv = ["design", "--instrument", str(p), "--sample", "R3", "--no-plots", "--out", str(tmp_path / "d")]
+    for v in vary.split():
+        argv += ["--vary", v]
+    rc = main(argv + (["--second-aperture"] if second else ["--workers", "0", "--cells", "12:0"]))
+    one_line_error(capsys, rc, "--vary", vary.split("=")[0], must)
+    assert not (tmp_path / "d").exists()
+
+
+def test_design_with_every_point_refused_for_one_reason_is_an_input_error(tmp_path, capsys):
+    """Trial 7, defect 7: every point an invalid instrument for the same reason (source.height_m varied on
+    an arc source) is a user error, exit 2 naming the key, before anything is computed or written
+    (before: exit 0, 'no design meets the tolerance', the reason only in design.csv)."""
+    p = write_instrument(tmp_path, _portable_text(), name="base.toml")
+    rc = main(["design", "--instrument", str(p), "--sample", "R3", "--vary", "source.height_m=1,2", "--cells", "12:0",
+               "--workers", "0", "--no-plots", "--out", str(tmp_path / "d")])
+    line = one_line_error(capsys, rc, "field 'source.height_m'", "no design point is a valid instrument",
+                          "--vary source.height_m")
+    assert line.startswith(f"roadgonio: error: {p}, "), line
+    assert not (tmp_path / "d").exists()
