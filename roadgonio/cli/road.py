@@ -19,7 +19,7 @@ class _InOrder(argparse.Action):
         order.append((self.dest, values))
         namespace.table_u = order
         if self.dest == "tables":
-            setattr(namespace, "tables", [v for k, v in order if k == "tables"])
+            namespace.tables = [v for k, v in order if k == "tables"]
 
 
 def tables_and_u(order) -> tuple[list[str], list[str | None]]:
