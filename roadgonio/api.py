@@ -416,15 +416,22 @@ def ka_table(instrument, sample, *, backend: str = "mitsuba", accuracy: str | No
     out, fresh:
         With ``out`` the cells are journalled (an interrupted run resumes; ``fresh`` discards an
         earlier run's results) and ka.nc, ka.csv, ka_se.csv / ka_bound.csv, ka.png, ka.json are
-        written (:func:`roadgonio.engines.runner.write_outputs`).
+        written (:func:`roadgonio.engines.runner.write_outputs`). The folder keeps one table per
+        run: the files hold every cell its journal holds for this run (same instrument, model,
+        backend and settings), the cells asked (computed now or read back) and those of earlier
+        runs, so ``cells`` asking for a few cells into a folder with the full table leaves the full
+        table in the files.
 
     Returns
     -------
     xarray.Dataset
-        :func:`roadgonio.engines.runner.ka_dataset`: ``k_a``, ``se`` (standard error),
-        ``error_bound`` (deterministic bound), ``confidence_bound`` and ``confidence_level``,
-        ``samples``, ``seconds``, ``converged`` over ``tan_eps`` (29) x ``beta`` (20, degrees);
-        NaN where not computed; the provenance in ``attrs["provenance"]`` (JSON), the summary in
+        What ka.nc holds (:func:`roadgonio.engines.runner.ka_dataset`): ``k_a``, ``se`` (standard
+        error), ``error_bound`` (deterministic bound), ``confidence_bound`` and ``confidence_level``,
+        ``samples``, ``seconds``, ``converged`` over ``tan_eps`` (29) x ``beta`` (20, degrees), at
+        the cells asked and, with ``out``, every other cell the folder's table holds for this run
+        (above); NaN where not computed. ``attrs["cells_asked"]`` and ``attrs["resumed_cells"]``
+        count this call's selection and the part of it read back, ``attrs["cells_computed"]`` the
+        table's cells; the provenance in ``attrs["provenance"]`` (JSON), the summary in
         ``attrs["summary"]`` and the output folder in ``attrs["out"]`` when written.
     """
     from roadgonio.engines.cells import select_cells
@@ -874,7 +881,8 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
          seed: int = 0, correlation: str = "both", out=None, plots: bool = True) -> list[dict[str, Any]]:
     """EN 13201-3 road-surface luminance metrics of a luminaire layout with one or several r-tables
     side by side (``roadgonio road``). ``u``: the tables' standard uncertainties (r-table files, r x
-    1e4): one for the last table, or one per table (None or ``"-"`` for none); a Monte Carlo of
+    1e4): one for the last table, or one per table (None or ``"-"`` for none); a u file whose header
+    names another table than the CSV it goes with is an error (:func:`_check_u_belongs`); a Monte Carlo of
     ``trials`` gives u and 95 % intervals of each metric and P(meets ``target_class``), for
     independent and/or fully correlated cells (``correlation``). Without ``luminaire``/``layout``:
     the bundled ones. Returns one summary per table; with ``out`` (a folder or :data:`AUTO`) writes
@@ -920,10 +928,11 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     inst = Installation(load_layout(layout), load_luminaire(luminaire))
     modes = ("independent", "correlated") if correlation == "both" else (correlation,)
     results, summaries = [], []
-    for t, uf in zip(loaded, u_of):
+    for item, t, uf in zip(items, loaded, u_of):
         res = inst.evaluate(t)
         if uf is not None:
             ut = _table(uf, "u", quantity="u")
+            _check_u_belongs(item, t, uf, ut)
             inputs.append(input_record("u", uf, f"u of {t.name}"))
             res.uncertainty = {"file": str(uf), **mc.propagate(inst, t, ut, trials=trials, seed=seed,
                                                                correlations=modes, target_class=target,
@@ -942,6 +951,21 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     summaries[0]["layout"] = inst.layout.describe()
     summaries[0]["luminaire"] = {"name": inst.luminaire.name, "flux_lm": inst.luminaire.flux_lm}
     return summaries
+
+
+def _check_u_belongs(item, t: "RTable", uf, ut: "RTable") -> None:
+    """A table of standard uncertainties whose header names its table (``standard uncertainty of
+    <header>``, as ``correct`` writes corrected_u.csv) must go with a table of that header: checked
+    when the table is a CSV file with a header of its own (an RTB or a bundled table has none to
+    compare); a mismatch is an :class:`InputError` naming both."""
+    from roadgonio.surface.rtable import u_names_table
+    named = u_names_table(ut)
+    if named is None or not isinstance(item, (str, Path)) or Path(str(item)).suffix.lower() != ".csv":
+        return
+    own = (t.source or "").splitlines()[0].strip() if t.source else ""
+    if own and own != named:
+        raise InputError(f"{uf} is the standard uncertainty of '{named}', but it goes with the table {item}, whose "
+                         f"header says '{own}': give each --u right after the --table it belongs to", field="u")
 
 
 def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:

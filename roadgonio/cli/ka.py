@@ -91,8 +91,13 @@ def run(args) -> int:
         print_json({"out": ds.attrs["out"], **s})
         return 0
     say = text_output(args)
-    say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {count(s['cells'], 'cell')} "
-        f"({s['resumed_cells']} resumed), k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
+    if s["cells_asked"] == s["cells"]:
+        cells = f"{count(s['cells'], 'cell')} ({s['resumed_cells']} resumed), "
+    else:   # a subset of a larger table in the folder: the files hold the whole table
+        cells = (f"{count(s['cells_asked'], 'cell')} asked ({s['resumed_cells']} resumed); the folder's table holds "
+                 f"{count(s['cells'], 'cell')}: ")
+    say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {cells}"
+        f"k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
         f"{api.precision_text(s)}, {s['seconds_wall_this_run']:.1f} s."
         + (_stray_text(s) if "stray_fraction_max" in s else ""))
     say(f"wrote {ds.attrs['out']}/{ds.attrs['files']}")

@@ -2,10 +2,44 @@
 or several r-tables (e.g. measured and corrected), with the table's uncertainty propagated."""
 from __future__ import annotations
 
+import argparse
 import sys
 
 from roadgonio import api
 from roadgonio.cli._common import add_output_options, out_arg, print_json
+from roadgonio.errors import InputError
+
+
+class _InOrder(argparse.Action):
+    """Keeps --table and --u in the order they were given (``args.table_u``: (option, value)), so
+    that a --u goes with the --table just before it."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        order = list(getattr(namespace, "table_u", None) or [])
+        order.append((self.dest, values))
+        namespace.table_u = order
+        if self.dest == "tables":
+            namespace.tables = [v for k, v in order if k == "tables"]
+
+
+def tables_and_u(order) -> tuple[list[str], list[str | None]]:
+    """The tables and, per table, the --u that follows it (None where none does); a --u before any
+    --table, or two after one --table, is an :class:`InputError` naming --u."""
+    tables: list[str] = []
+    us: list[str | None] = []
+    for option, value in order:
+        if option == "tables":
+            tables.append(value)
+            us.append(None)
+        elif not tables:
+            raise InputError(f"--u {value} comes before any --table: give it right after the --table it belongs to",
+                             field="--u")
+        elif us[-1] is not None:
+            raise InputError(f"--u {us[-1]} and --u {value} both follow --table {tables[-1]}: give one --u right after "
+                             "the --table it belongs to", field="--u")
+        else:
+            us[-1] = value
+    return tables, [None if u in ("-", "") else u for u in us]
 
 
 def register(sub) -> None:
@@ -19,12 +53,14 @@ def register(sub) -> None:
                     "probability of meeting the class, for independent and for fully correlated cells. Without "
                     "--luminaire/--layout: roadgonio's illustrative cut-off luminaire and its default layout "
                     "(single-sided, 2 x 3.5 m lanes, H 10 m, S 30 m).")
-    p.add_argument("--table", dest="tables", action="append", required=True, metavar="T",
+    p.add_argument("--table", dest="tables", action=_InOrder, required=True, metavar="T",
                    help="r-table: bundled name (R1..R4, C1, C2) or .csv/.rtb file (r x 1e4); repeat for side by side")
-    p.add_argument("--u", action="append", metavar="FILE",
-                   help="standard uncertainty of a table (r x 1e4, r-table CSV layout). Once: for the last --table "
-                        "(the corrected one when measured and corrected are given in that order); or once per "
-                        "--table in order, '-' for none")
+    p.add_argument("--u", dest="u", action=_InOrder, metavar="FILE",
+                   help="standard uncertainty of the --table just before it (r x 1e4, r-table CSV layout, as "
+                        "`roadgonio correct` writes corrected_u.csv), e.g. --table measured.csv --table "
+                        "corrected.csv --u corrected_u.csv; at most one per --table. When the file's header "
+                        "names its table ('standard uncertainty of ...') and that table's CSV header names "
+                        "another, it is an error")
     p.add_argument("--luminaire", metavar="FILE", help="EULUMDAT .ldt file (default: the bundled illustrative luminaire)")
     p.add_argument("--layout", metavar="FILE", help="layout TOML (default: the bundled default layout)")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/road-TABLES)")
@@ -40,7 +76,8 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    summaries = api.road_metrics(args.tables, u=args.u, luminaire=args.luminaire, layout=args.layout,
+    tables, us = tables_and_u(args.table_u)
+    summaries = api.road_metrics(tables, u=us if any(u is not None for u in us) else None, luminaire=args.luminaire, layout=args.layout,
                          target_class=args.target_class, trials=args.trials, seed=args.seed,
                          correlation=args.correlation, out=out_arg(args), plots=not args.no_plots)
     if args.json:

@@ -36,7 +36,7 @@ import numpy as np
 
 from roadgonio.fileio import OutputGroup
 from roadgonio.surface.fit import model_r_on_grid
-from roadgonio.surface.rtable import R_SCALE, grid_csv_text
+from roadgonio.surface.rtable import R_SCALE, U_HEADER, grid_csv_text
 
 PICTURES = ("picture", "map", "residuals", "surface")
 FILES = {"corrected": "corrected.csv", "u": "corrected_u.csv", "rtb": "corrected.rtb", "json": "correct.json",
@@ -54,7 +54,7 @@ def has_rtb(table) -> bool:
 def u_csv_text(res) -> str:
     """The corrected table's standard uncertainties in the r-table CSV layout (r x 1e4, 4 digits)."""
     table = res.corrected
-    return grid_csv_text(res.u_corrected, "standard uncertainty of " + table.source, scale=R_SCALE, digits=4,
+    return grid_csv_text(res.u_corrected, U_HEADER + table.source, scale=R_SCALE, digits=4,
                          tan_eps=table.tan_eps, beta_deg=table.beta_deg)
 
 

@@ -44,6 +44,7 @@ class Feasibility:
     kind: str = ""                  # "" | instrument | footprint | horizon | line_of_sight | housing | backend
     reason: str = ""
     footprint: tuple[float, float, float, float] | None = None   # x_min, x_max, y_min, y_max (m; x along delta)
+    field: str = ""                 # kind "instrument": the instrument key the refusal names
 
     @property
     def footprint_length_m(self) -> float:
@@ -123,5 +124,5 @@ def check_point(base: Instrument, point: Mapping[str, float], cells: Sequence[tu
         inst = build_instrument(base, point)
     except InputError as err:
         reason = err.reason if err.field is None else f"{err.field}: {err.reason}"
-        return None, Feasibility(False, "instrument", reason)
+        return None, Feasibility(False, "instrument", reason, field=err.field or "")
     return inst, check_geometry(inst, cells)

@@ -33,7 +33,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.instrument.config import Instrument
+from roadgonio.instrument.config import APERTURE_KEYS, BEAM_KEYS, Instrument
 
 #: The numeric instrument keys a design may vary (section -> keys), docs/conventions.md section 4.
 VARIABLE_KEYS: dict[str, tuple[str, ...]] = {
@@ -159,12 +159,49 @@ def as_vary_specs(vary: Sequence[str | VarySpec] | Mapping[str, Sequence[float]]
     return specs
 
 
+#: Keys of which an instrument gives at most one (:mod:`roadgonio.instrument.config`): the source's
+#: angular profile, its aperture profile, the detector's field sensitivity.
+ALTERNATIVES: tuple[tuple[str, tuple[str, ...], str], ...] = (
+    ("source", BEAM_KEYS, "at most one angular profile"),
+    ("source", APERTURE_KEYS, "an edge radiance or a radiance file, not both"),
+    ("detector", ("field_edge_sensitivity", "field_sensitivity"), "an edge sensitivity or a sensitivity map, not both"),
+)
+
+
+def _gives(base: Instrument, section: str, key: str) -> bool:
+    """Whether the base instrument's file gives ``section.key`` (a value other than the default)."""
+    import dataclasses
+    obj = getattr(base, section)
+    default = next(f.default for f in dataclasses.fields(obj) if f.name == key)
+    return getattr(obj, key) != default
+
+
 def check_vary(base: Instrument, specs: Sequence[VarySpec]) -> None:
     """Refuse, before any computation, a varied key the base instrument cannot take: a ``housing.*``
     key when the base has no ``[housing]`` (a design varies a housing, it does not add one: the
     box's size, lid and baffles would be defaults nobody chose), or a baffle the base's
-    ``[housing] baffles`` does not declare."""
+    ``[housing] baffles`` does not declare; a key whose alternative (:data:`ALTERNATIVES`) the base
+    gives or the design varies too. ``detector.field_edge_sensitivity`` on a base with a
+    ``field_sensitivity`` map is refused for every value, 1 included: the value 1 would silently
+    keep the map (1 is the default, read as "not given"), so a point labelled e = 1 would not be
+    an instrument with a uniform edge; the map is not dropped behind the user's back either."""
     where = f" ({base.path})" if base.path is not None else ""
+    varied = {s.key for s in specs}
+    for s in specs:
+        for section, keys, why in ALTERNATIVES:
+            if s.section != section or s.name not in keys:
+                continue
+            for other in keys:
+                if other == s.name:
+                    continue
+                if f"{section}.{other}" in varied:
+                    raise InputError(f"{s.key} and {section}.{other} cannot be varied together ({why}); vary one of "
+                                     "them", field="--vary")
+                if _gives(base, section, other):
+                    raise InputError(f"{s.key}: the base instrument{where} gives {section}.{other} ({why}): a value "
+                                     f"of {s.name} would conflict with it or, at the default, leave {other} in place "
+                                     f"under a label that says otherwise; remove {section}.{other} from the base "
+                                     f"file to vary {s.key}", field="--vary")
     sec = base.extra.get("housing") if hasattr(base.extra, "get") else None
     for s in specs:
         if s.section != "housing":

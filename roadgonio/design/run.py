@@ -79,6 +79,25 @@ def _record(r: _cluster.TableResult, point: int, sample: int, seed: int) -> dict
     return rec
 
 
+def _refuse_same_input_error(base: Instrument, specs, feas) -> None:
+    """Every point an invalid instrument refused on the same key (e.g. ``source.height_m`` varied on
+    an arc source): an input error (exit 2), not a design result, raised before anything is
+    computed or written, naming the base file, the key and the --vary keys."""
+    if not feas or any(f.ok or f.kind != "instrument" for f in feas):
+        return
+    fields = {f.field for f in feas}
+    if len(fields) != 1:
+        return
+    reason = feas[0].reason
+    if feas[0].field and reason.startswith(feas[0].field + ": "):
+        reason = reason[len(feas[0].field) + 2:]
+    same = len({f.reason for f in feas}) == 1
+    varied = ", ".join(s.key for s in specs) or "nothing"
+    raise InputError(f"no design point is a valid instrument: {'every' if same else 'the first'} one of the {len(feas)} "
+                     f"is refused with '{reason}' (--vary {varied} on this base instrument); change the base file or "
+                     "the --vary keys", path=base.path, field=fields.pop() or None)
+
+
 def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFAULT_TOLERANCE,
                cells="all", backend: str = "mitsuba", accuracy: str | None = None,
                settings: Mapping[str, Any] | None = None, seed: int = 0, workers: int | None = None,
@@ -124,6 +143,7 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
         inst, f = check_point(base, p, union)
         inst_of.append(inst)
         feas.append(f)
+    _refuse_same_input_error(base, specs, feas)
 
     # -- journal -----------------------------------------------------------------------------
     # what determines the numbers: not the instrument's name and description, nor the model's metadata

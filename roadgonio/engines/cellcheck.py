@@ -1,6 +1,6 @@
 """What every k_A backend checks at a cell before (and after) it integrates, written once.
 
-Before: the whole source disc above the sample plane (:func:`roadgonio.instrument.optics.check_source`);
+Before: the whole source disc above the sample plane (:func:`roadgonio.instrument.optics.check_source_cells`);
 for a backend that does not model a source beam limit, no beam limit that clips the light reaching the
 footprint (:func:`roadgonio.instrument.optics.beam_clips_footprint`); the source disc out of the
 detector's view (:func:`roadgonio.instrument.optics.check_line_of_sight`); and a positive, finite model
@@ -28,8 +28,8 @@ from roadgonio.engines.result import ideal_ratio, ideal_ratios
 
 def _check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]], models_beam: bool,
                     backend: str) -> None:
+    optics.check_source_cells(instrument, cells)      # names the first bad cell and how many more
     for t, b in cells:
-        optics.check_source(instrument, t, b)
         if not models_beam and optics.beam_clips_footprint(instrument, t, b):
             raise BackendError(f"the source beam limit ({instrument.source.beam_half_angle_deg:g} deg) clips the "
                                f"light reaching the detector footprint at tan eps = {t:g}, beta = {b:g}; the "

@@ -55,20 +55,42 @@ def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) ->
 
 @dataclass
 class KaRun:
-    """A finished (or partly finished) k_A computation."""
+    """A finished (or partly finished) k_A computation: ``results`` the cells asked, in their order
+    (computed now or ``resumed`` from the journal); ``table`` every cell of this run the output
+    folder's journal holds (the cells asked and those of earlier runs with the same fingerprint, so
+    a subset run into a folder with a larger table does not shrink the table files; None without a
+    folder: the cells asked)."""
 
     results: list[CellResult]
     seconds: float
     resumed: int
+    table: list[CellResult] | None = None
+
+    @property
+    def table_cells(self) -> list[CellResult]:
+        return self.results if self.table is None else self.table
 
     def grid(self, attr: str = "k_a") -> np.ndarray:
+        """``attr`` of the table's cells on the CIE grid (NaN where no cell is; cells off the grid left out)."""
         out = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), np.nan)
-        for c in self.results:
-            i = int(np.argmin(np.abs(TAN_EPS_GRID - c.tan_eps)))
-            j = int(np.argmin(np.abs(BETA_GRID_DEG - c.beta_deg)))
-            if abs(TAN_EPS_GRID[i] - c.tan_eps) < 1e-9 and abs(BETA_GRID_DEG[j] - c.beta_deg) < 1e-9:
-                out[i, j] = getattr(c, attr)
+        for c in self.table_cells:
+            ij = _grid_index(c)
+            if ij is not None:
+                out[ij] = getattr(c, attr)
         return out
+
+
+def _grid_index(c: CellResult) -> tuple[int, int] | None:
+    """The (row, column) of a cell on the CIE grid, None for a cell off the grid."""
+    i = int(np.argmin(np.abs(TAN_EPS_GRID - c.tan_eps)))
+    j = int(np.argmin(np.abs(BETA_GRID_DEG - c.beta_deg)))
+    if abs(TAN_EPS_GRID[i] - c.tan_eps) < 1e-9 and abs(BETA_GRID_DEG[j] - c.beta_deg) < 1e-9:
+        return i, j
+    return None
+
+
+def _on_grid(c: CellResult) -> bool:
+    return _grid_index(c) is not None
 
 
 def _cell_key(t: float, b: float) -> tuple[float, float]:
@@ -114,9 +136,19 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
     done: dict[tuple[float, float], CellResult] = {}
     fp = fingerprint(instrument, model, backend)
     header = {"fingerprint": fp, "backend": backend.name}
+    new_journal = made_dir = False
     if out_dir is not None:
         out_dir = Path(out_dir)
         journal = out_dir / JOURNAL
+        if not fresh and out_dir.is_dir():        # read only: the refusals of a folder in use come first
+            _check_finished_run(out_dir, fp)
+            done = _read_journal(journal, fp)
+    # the geometry every backend refuses (:func:`roadgonio.engines.cellcheck.check_cells`), for all the
+    # cells still to compute at once (the first bad cell and how many more), before the folder is touched
+    from roadgonio.instrument.optics import check_source_cells
+    check_source_cells(instrument, [c for c in cells if _cell_key(*c) not in done])
+    if out_dir is not None:
+        made_dir = not out_dir.exists()
         try:
             out_dir.mkdir(parents=True, exist_ok=True)
         except OSError as err:
@@ -130,6 +162,7 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
                     raise output_error(old, err) from None
         _check_finished_run(out_dir, fp)
         done = _read_journal(journal, fp)
+        new_journal = not journal.exists()
         # (re)write the header and the finished cells, dropping a cut-short last line
         _write_journal(journal, header, list(done.values()))
     todo = [c for c in cells if _cell_key(*c) not in done]
@@ -164,6 +197,12 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
             for c in returned:   # backends that do not call on_cell
                 if _cell_key(c.tan_eps, c.beta_deg) not in done:
                     on_cell(c)
+    except Exception:
+        # refused (or failed) before anything was done: leave no journal of only a header, nor a
+        # folder this run made ("nothing half-written"); a Ctrl-C keeps them (it says it resumes)
+        if new_journal and not done and not (passes is not None and passes.path.exists()):
+            _discard(journal, out_dir if made_dir else None)
+        raise
     finally:
         flush()
         if bar is not None:
@@ -171,7 +210,18 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
     if passes is not None:
         passes.clear()
     results = [done[_cell_key(*c)] for c in cells if _cell_key(*c) in done]
-    return KaRun(results=results, seconds=time.perf_counter() - t0, resumed=resumed)
+    return KaRun(results=results, seconds=time.perf_counter() - t0, resumed=resumed,
+                 table=list(done.values()) if journal is not None else None)
+
+
+def _discard(journal: Path, folder: Path | None) -> None:
+    """Remove a journal that holds only its header, and ``folder`` when it is left empty."""
+    try:
+        journal.unlink(missing_ok=True)
+        if folder is not None and not any(folder.iterdir()):
+            folder.rmdir()
+    except OSError:
+        pass        # the refusal being raised is what the user must read
 
 
 class PassCheckpoint:
@@ -275,7 +325,7 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
     settings = backend.settings()
     prov = provenance(instrument=instrument, model=model, backend=backend.name, settings=settings, sample=sample,
                       accuracy=accuracy, cells=cells_asked if cells_asked is not None else len(run.results))
-    computed = [c for c in run.results]
+    computed = [c for c in run.table_cells if _on_grid(c)]     # the cells of the Dataset (the folder's table)
     attrs = {
         "Conventions": "CF-1.8",
         "title": f"k_A of instrument '{instrument.name}' for sample '{sample}' ({backend.name} backend)",
@@ -292,6 +342,7 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         "precision": info.precision if info else "",
         "cell_correlation": info.cell_correlation if info else "",
         "cells_computed": len(computed),
+        "cells_asked": int(cells_asked if cells_asked is not None else len(run.results)),
         "cells_not_converged": int(sum(not c.converged for c in computed)),
         "resumed_cells": int(run.resumed),
         "seconds_wall": float(run.seconds),
@@ -305,11 +356,14 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
 
 
 def summary(ds) -> dict[str, Any]:
-    """The summary of a k_A Dataset (``ka.json``, the command's last line): cells, k_A range, the
-    worst relative precision of the kind the backend gives, cells not converged, samples, times."""
+    """The summary of a k_A Dataset (``ka.json``, the command's last line): cells (of the table:
+    with an output folder, every cell its journal holds for this run), ``cells_asked`` (this run's
+    selection; ``resumed_cells`` of them were read back), k_A range, the worst relative precision of
+    the kind the backend gives, cells not converged, samples, times (all over the table's cells)."""
     done = np.isfinite(ds["k_a"].values)
     k = ds["k_a"].values[done]
     out: dict[str, Any] = {"cells": int(done.sum()),
+                           "cells_asked": int(ds.attrs.get("cells_asked", done.sum())),
                            "k_a_min": float(k.min()) if k.size else None,
                            "k_a_max": float(k.max()) if k.size else None}
     for field, key in (("se", "worst_rel_se"), ("error_bound", "worst_rel_error_bound"),

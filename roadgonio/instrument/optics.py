@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
@@ -345,8 +346,10 @@ def footprint_boundary(instrument: Instrument, n: int = 96) -> tuple[np.ndarray,
     from roadgonio.arrays import NumpyOps
     o, d, _ = detector_ray(NumpyOps, geo, (PX.ravel(), PY.ravel()), (FX.ravel(), FY.ravel()))
     if np.any(np.asarray(d[2]) >= 0.0):
-        raise GeometryError("the detector does not see the sample plane: some detected rays point upwards "
-                            "(alpha minus the field and pupil angles must stay above the horizon)")
+        raise GeometryError(f"the detector does not see the sample plane: some detected rays point upwards "
+                            f"(alpha = {instrument.observation.alpha_deg:g} deg minus the field and pupil angles must "
+                            f"stay above the horizon: narrow the field, shrink the pupil or raise observation.alpha_deg)",
+                            path=instrument.path, field="detector.field_half_angle_deg")
     x, y, _ = hit_plane(NumpyOps, o, d)
     return np.asarray(x), np.asarray(y)
 
@@ -392,33 +395,75 @@ def check_detector(instrument: Instrument) -> tuple[float, float, float, float]:
     return bounds
 
 
+def plane_clearance_text(height_m: float) -> str:
+    """How far a point at ``height_m`` (m, <= 0) reaches below the sample plane, for messages: in mm
+    with its real sign, or "down to the sample plane" within a nanometre (a disc whose rim just
+    touches the plane gives -1e-18 m from round-off: was printed as ``-0.0000 m below/at``)."""
+    if height_m > -1e-9:
+        return "down to the sample plane (its lowest point lies on it, to within 1 nm)"
+    return f"{-1000.0 * height_m:.4g} mm below the sample plane"
+
+
+def _cells_more(cells: Sequence[tuple[float, float]]) -> str:
+    """'tan eps = 5, beta = 0' for the first cell, '(and N more cells)' when there are others."""
+    t, b = cells[0]
+    more = f" (and {len(cells) - 1} more cells)" if len(cells) > 1 else ""
+    return f"tan eps = {t:g}, beta = {b:g}{more}"
+
+
 def check_source(instrument: Instrument, tan_eps: float, beta_deg: float) -> None:
-    """The whole source disc must be above the sample plane."""
-    if not math.isfinite(tan_eps) or tan_eps < 0:
-        raise GeometryError(f"tan eps = {tan_eps} is not a valid illumination angle (expected 0 <= tan eps < inf)")
+    """The whole source disc must be above the sample plane (:func:`check_source_cells` at one cell)."""
+    check_source_cells(instrument, [(tan_eps, beta_deg)])
+
+
+def check_source_cells(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> None:
+    """At every cell the whole source disc must be above the sample plane, and a tabulated beam
+    (``source.beam_intensity_file``) must reach every angle at which the source lights the detector
+    footprint. A :class:`GeometryError` naming the instrument file, the key to change, the first
+    such cell and how many more there are (the horizon first, then the table)."""
     src = instrument.source
-    eps = math.atan(tan_eps)
-    dist = source_distance_m(src, float(tan_eps))
-    lowest = dist * math.cos(eps) - src.radius_m * math.sin(eps)
-    if lowest <= 0.0:
-        raise GeometryError(f"the source is below the horizon at tan eps = {tan_eps:g}, beta = {beta_deg:g}: "
-                            f"its disc (radius {src.radius_m:g} m at {dist:g} m) reaches "
-                            f"{lowest:.4f} m below/at the sample plane", path=instrument.path, field="source.radius_m")
-    if src.beam.kind == "table":
-        need = footprint_emission_angle_deg(instrument, tan_eps, beta_deg)
-        have = math.degrees(src.beam.theta_end_rad)
+    below: list[tuple[float, float]] = []
+    lowest_first = dist_first = 0.0
+    for tan_eps, beta_deg in cells:
+        if not math.isfinite(tan_eps) or tan_eps < 0:
+            raise GeometryError(f"tan eps = {tan_eps} is not a valid illumination angle (expected 0 <= tan eps < inf)")
+        eps = math.atan(tan_eps)
+        dist = source_distance_m(src, float(tan_eps))
+        lowest = dist * math.cos(eps) - src.radius_m * math.sin(eps)
+        if lowest <= 0.0:
+            if not below:
+                lowest_first, dist_first = lowest, dist
+            below.append((float(tan_eps), float(beta_deg)))
+    if below:
+        raise GeometryError(f"the source is below the horizon at {_cells_more(below)}: its disc (radius "
+                            f"{src.radius_m:g} m at {dist_first:g} m) reaches {plane_clearance_text(lowest_first)}",
+                            path=instrument.path, field="source.radius_m")
+    if src.beam.kind != "table" or not cells:
+        return
+    have = math.degrees(src.beam.theta_end_rad)
+    boundary = footprint_boundary(instrument)
+    short: list[tuple[float, float]] = []
+    need_first = 0.0
+    for tan_eps, beta_deg in cells:
+        need = footprint_emission_angle_deg(instrument, tan_eps, beta_deg, boundary=boundary)
         if need > have:
-            raise GeometryError(f"the source's intensity table ({src.beam_intensity_file}) ends at theta = "
-                                f"{have:.4g} deg, but the detector footprint is seen at up to {need:.4g} deg from "
-                                f"the source axis at tan eps = {tan_eps:g}, beta = {beta_deg:g}: extend the table")
+            if not short:
+                need_first = need
+            short.append((float(tan_eps), float(beta_deg)))
+    if short:
+        raise GeometryError(f"the source's intensity table ({src.beam_intensity_file}) ends at theta = {have:.4g} deg, "
+                            f"but the detector footprint is seen at up to {need_first:.4g} deg from the source axis at "
+                            f"{_cells_more(short)}: extend the table or leave those cells out",
+                            path=instrument.path, field="source.beam_intensity_file")
 
 
-def footprint_emission_angle_deg(instrument: Instrument, tan_eps: float, beta_deg: float, n: int = 32) -> float:
+def footprint_emission_angle_deg(instrument: Instrument, tan_eps: float, beta_deg: float, n: int = 32,
+                                 boundary: tuple[np.ndarray, np.ndarray] | None = None) -> float:
     """The largest angle (deg) from the source axis at which the source sends light to the detector
     footprint at this cell: over the rays from the disc's rim points and centre to the footprint
-    boundary (:func:`footprint_boundary`)."""
+    boundary (:func:`footprint_boundary`; ``boundary``: its result, when the caller has it)."""
     g = source_geometry(instrument, tan_eps, beta_deg)
-    x, y = footprint_boundary(instrument)
+    x, y = footprint_boundary(instrument) if boundary is None else boundary
     ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
     sp = g.centre[None, :] + g.radius_m * (np.cos(ang)[:, None] * g.s + np.sin(ang)[:, None] * g.t)
     pts = np.stack([x, y, np.zeros_like(x)], axis=-1)

@@ -289,6 +289,18 @@ def missing_ratio(num: float, den: float) -> float:
     return num / den
 
 
+#: The first words of the header of a table's standard uncertainties (``corrected_u.csv``): the rest
+#: of the line is the header of the table it belongs to (:func:`u_names_table`).
+U_HEADER = "standard uncertainty of "
+
+
+def u_names_table(u: "RTable") -> str | None:
+    """The first header line of the table a table of standard uncertainties says it belongs to (its
+    header ``standard uncertainty of <that table's header>``, :data:`U_HEADER`), or None."""
+    first = (u.source or "").splitlines()[0] if u.source else ""
+    return first[len(U_HEADER):].strip() if first.startswith(U_HEADER) else None
+
+
 def grid_csv_text(values: np.ndarray, source: str, *, scale: float = 1.0, digits: int = 6,
                   tan_eps: np.ndarray = TAN_EPS_GRID, beta_deg: np.ndarray = BETA_GRID_DEG) -> str:
     """Any quantity over the grid (an r-table, k_A, its standard error...) in the r-table CSV layout

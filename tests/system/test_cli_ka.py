@@ -91,3 +91,22 @@ def test_footprint_off_the_sample_is_an_error_not_a_number(tmp_path):
     r = subprocess.run([sys.executable, "-m", "roadgonio", "ka", "--instrument", str(bad), "--sample", "lambert",
                         "--backend", "quadrature", "--tan-eps", "1", "--beta", "0"], capture_output=True, text=True)
     assert r.returncode == 2 and "leaves the sample" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_subset_into_a_folder_with_a_larger_table_says_so_and_keeps_it(tmp_path, capsys):
+    """Trial 7, defect 9: `ka --cells SUBSET` into a folder holding a larger table of the same run
+    replaced ka.csv with the subset; the files now keep the folder's table and the summary says
+    how many cells were asked and how many the table holds. api.ka_table returns what ka.nc holds."""
+    from roadgonio import api
+    out = tmp_path / "res"
+    base = ["ka", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature", "--accuracy", "fast",
+            "--out", str(out)]
+    assert main(base + ["--cells", "12:0,4:0,4:2,8:0"]) == 0
+    capsys.readouterr()
+    assert main(base + ["--cells", "12:0,4:0"]) == 0
+    said = capsys.readouterr().out
+    assert "2 cells asked (2 resumed); the folder's table holds 4 cells" in said, said
+    assert int(np.isfinite(read_table(out / "ka.csv").r).sum()) == 4
+    ds = api.ka_table("portable", "R3", backend="quadrature", accuracy="fast", cells="12:0", out=out, plot=False)
+    assert int(np.isfinite(ds["k_a"].values).sum()) == 4
+    assert (ds.attrs["cells_asked"], ds.attrs["resumed_cells"], ds.attrs["cells_computed"]) == (1, 1, 4)

@@ -638,3 +638,117 @@ def test_geometry_and_calibration_errors_name_the_instrument_file(tmp_path, caps
                "--out", str(tmp_path / "o")])
     line = one_line_error(capsys, rc, *must)
     assert line.startswith(f"roadgonio: error: {inst}, "), line
+
+
+# -- trial 7, defects 6 and 10: refusals name the file, the field and the cells asked; nothing half-written
+
+def _portable_text(*edits):
+    from pathlib import Path
+    text = (Path(__file__).resolve().parents[2] / "scenes" / "portable.toml").read_text()
+    for old, new in edits:
+        assert old in text, old
+        text = text.replace(old, new)
+    return text
+
+
+def test_detector_looking_upwards_names_the_file_and_field(tmp_path, capsys):
+    """Trial 7, defect 6: 'some detected rays point upwards' named neither the instrument file nor
+    the key to change (its sibling, the pupil below the plane, did)."""
+    p = write_instrument(tmp_path, GOOD.replace("field_half_angle_deg = 0.05", "field_half_angle_deg = 1.5"),
+                         name="up.toml")
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", "quadrature", "--tan-eps", "1",
+               "--beta", "0"])
+    line = one_line_error(capsys, rc, "point upwards", "field 'detector.field_half_angle_deg'")
+    assert line.startswith(f"roadgonio: error: {p}, "), line
+
+
+def _short_beam_instrument(tmp_path):
+    """The portable with a beam table that ends at 3 deg (every cell needs more)."""
+    (tmp_path / "narrow.csv").write_text("theta_deg,I\n0,1\n1,0.9\n2,0.7\n3,0.5\n")
+    return write_instrument(tmp_path, _portable_text(("[detector]", 'beam_intensity_file = "narrow.csv"\n\n[detector]')),
+                            name="narrow.toml")
+
+
+@pytest.mark.parametrize("backend", ["quadrature", "mitsuba"])
+def test_short_beam_table_names_the_cell_asked_and_the_field(tmp_path, capsys, backend):
+    """Trial 7, defect 6: the Mitsuba backend refused a beam table at tan eps 0, beta 0 (where it parks
+    the source while building the scene), a cell the user did not ask for, with no field named."""
+    p = _short_beam_instrument(tmp_path)
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", backend, "--accuracy", "fast",
+               "--tan-eps", "1", "--beta", "30"])
+    line = one_line_error(capsys, rc, "field 'source.beam_intensity_file'", "at tan eps = 1, beta = 30:",
+                          "narrow.csv")
+    assert line.startswith(f"roadgonio: error: {p}, ") and "tan eps = 0" not in line, line
+
+
+@pytest.mark.parametrize("backend", ["quadrature", "mitsuba"])
+def test_many_cells_below_the_horizon_say_how_many_and_leave_nothing(tmp_path, capsys, backend):
+    """Trial 7, defects 6 and 10: a table with many cells below the horizon named the first only
+    (the housing check says how many more), printed '-0.0000 m below/at the sample plane' for a disc
+    touching the plane, and left a ka_cells.jsonl of only a header in --out."""
+    p = write_instrument(tmp_path, _portable_text(("radius_m = 0.025", "radius_m = 0.2")), name="big.toml")
+    out = tmp_path / "o"
+    cells = "4:0,5:0,6:0,1:0,12:0"      # tan eps 5 touches the plane exactly (1 m x cos = 0.2 m x sin)
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", backend, "--accuracy", "fast",
+               "--cells", cells, "--out", str(out)])
+    line = one_line_error(capsys, rc, "field 'source.radius_m'", "below the horizon at tan eps = 5, beta = 0 "
+                          "(and 2 more cells)", "reaches down to the sample plane")
+    assert "-0.0000" not in line
+    assert not out.exists()
+    out.mkdir()                          # a folder of the user's stays, and stays empty
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", backend, "--accuracy", "fast",
+               "--cells", "6:0", "--out", str(out)])
+    line = one_line_error(capsys, rc, "at tan eps = 6, beta = 0: its disc (radius 0.2 m at 1 m) reaches "
+                          f"{1000 * (0.2 * 6 - 1) / 37 ** 0.5:.4g} mm below the sample plane")
+    assert list(out.iterdir()) == []
+
+
+def test_a_refusal_inside_the_backend_leaves_no_journal(tmp_path, capsys):
+    """Trial 7, defect 10: a run refused after the journal was opened (here the source in the line of
+    sight, the backend's own check) removes the journal of only a header and the folder it made."""
+    p = write_instrument(tmp_path, GOOD.replace("distance_m = 5.0\nradius_m = 0.005",
+                                                "distance_m = 1.0\nradius_m = 0.08"))
+    out = tmp_path / "o"
+    rc = main(["ka", "--instrument", str(p), "--sample", "R3", "--backend", "numpy-mc", "--cells", "12:180",
+               "--out", str(out)])
+    one_line_error(capsys, rc, "blocks the detector's line of sight")
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("extra, vary, must", [
+    ('[source]\nbeam_intensity_file = "narrow.csv"', "source.beam_sigma_deg=5,20", "gives source.beam_intensity_file"),
+    ('[detector]\nfield_sensitivity = "map.csv"', "detector.field_edge_sensitivity=0.5,1", "gives detector.field_sensitivity"),
+    ('[detector]\nfield_sensitivity = "map.csv"', "detector.field_edge_sensitivity=1", "gives detector.field_sensitivity"),
+    ("", "source.beam_sigma_deg=5,20 source.beam_cos_power=1,2", "cannot be varied together"),
+])
+@pytest.mark.parametrize("second", [False, True])
+def test_design_varying_an_alternative_of_the_base_is_an_input_error(tmp_path, capsys, extra, vary, must, second):
+    """Trial 7, defect 7: beam_sigma_deg varied on a base with a beam_intensity_file made every point
+    'infeasible' and exited 0; field_edge_sensitivity = 1 on a base with a sensitivity map was taken as
+    'not given' and kept the map under the label e = 1. Both are refused before any computation."""
+    (tmp_path / "narrow.csv").write_text("theta_deg,I\n0,1\n30,0.5\n60,0.1\n")
+    (tmp_path / "map.csv").write_text("1,1,1\n1,1,1\n1,1,1\n")
+    text = _portable_text()
+    if extra:
+        section, line = extra.split("\n")
+        text = text.replace(section, f"{section}\n{line}", 1)
+    p = write_instrument(tmp_path, text, name="base.toml")
+    argv = ["design", "--instrument", str(p), "--sample", "R3", "--no-plots", "--out", str(tmp_path / "d")]
+    for v in vary.split():
+        argv += ["--vary", v]
+    rc = main(argv + (["--second-aperture"] if second else ["--workers", "0", "--cells", "12:0"]))
+    one_line_error(capsys, rc, "--vary", vary.split("=")[0], must)
+    assert not (tmp_path / "d").exists()
+
+
+def test_design_with_every_point_refused_for_one_reason_is_an_input_error(tmp_path, capsys):
+    """Trial 7, defect 7: every point an invalid instrument for the same reason (source.height_m varied on
+    an arc source) is a user error, exit 2 naming the key, before anything is computed or written
+    (before: exit 0, 'no design meets the tolerance', the reason only in design.csv)."""
+    p = write_instrument(tmp_path, _portable_text(), name="base.toml")
+    rc = main(["design", "--instrument", str(p), "--sample", "R3", "--vary", "source.height_m=1,2", "--cells", "12:0",
+               "--workers", "0", "--no-plots", "--out", str(tmp_path / "d")])
+    line = one_line_error(capsys, rc, "field 'source.height_m'", "no design point is a valid instrument",
+                          "--vary source.height_m")
+    assert line.startswith(f"roadgonio: error: {p}, "), line
+    assert not (tmp_path / "d").exists()

@@ -50,6 +50,47 @@ def test_road_several_tables_and_uncertainty(tmp_path, capsys):
     assert [r["correlation"] for r in rows] == ["", "independent", "correlated"]
 
 
+def test_road_u_goes_with_the_table_just_before_it(tmp_path, capsys):
+    """Trial 7, defect 8: --u went to the last --table wherever it stood, so `--table A --u uA
+    --table B` put A's uncertainty on B without a word."""
+    t = bundled_table("R3")
+    t.with_values(t.r * 1.2, name="R3_measured").write_csv(tmp_path / "R3_measured.csv")
+    t.with_values(t.r * 0.02).write_csv(tmp_path / "u.csv")
+    assert main(["road", "--table", str(tmp_path / "R3_measured.csv"), "--u", str(tmp_path / "u.csv"), "--table", "R3",
+                 "--trials", "500", "--out", str(tmp_path / "o"), "--json", "--no-plots"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert [x["table"] for x in d] == ["R3_measured.csv", "R3"]
+    assert d[0]["uncertainty"]["file"] == str(tmp_path / "u.csv") and "uncertainty" not in d[1]
+
+
+def test_road_u_before_any_table_is_an_error(tmp_path, capsys):
+    rc = main(["road", "--u", str(tmp_path / "u.csv"), "--table", "R3", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and "--u" in err and "comes before any --table" in err, err
+    assert not (tmp_path / "o").exists()
+
+
+def test_road_u_naming_another_table_is_an_error(tmp_path, capsys):
+    """A u file whose header names its table ('standard uncertainty of <header>', as correct writes
+    corrected_u.csv) put after a CSV table with another header: an error naming both."""
+    t = bundled_table("R3")
+    t.with_values(t.r, source="R3 corrected for the aperture effect").write_csv(tmp_path / "corrected.csv")
+    t.with_values(t.r, source="the true table").write_csv(tmp_path / "truth.csv")
+    t.with_values(t.r * 0.02, source="standard uncertainty of R3 corrected for the aperture effect").write_csv(
+        tmp_path / "corrected_u.csv")
+    base = ["road", "--trials", "500", "--no-plots", "--json"]
+    rc = main(base + ["--table", str(tmp_path / "corrected.csv"), "--table", str(tmp_path / "truth.csv"),
+                      "--u", str(tmp_path / "corrected_u.csv"), "--out", str(tmp_path / "bad")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err, err
+    for w in ("--u", "corrected_u.csv", "'R3 corrected for the aperture effect'", "truth.csv", "'the true table'"):
+        assert w in err, (w, err)
+    assert not (tmp_path / "bad").exists()
+    assert main(base + ["--table", str(tmp_path / "truth.csv"), "--table", str(tmp_path / "corrected.csv"),
+                        "--u", str(tmp_path / "corrected_u.csv"), "--out", str(tmp_path / "good")]) == 0
+    assert "uncertainty" in json.loads(capsys.readouterr().out)[1]
+
+
 def test_road_text_output(tmp_path, capsys):
     assert main(["road", "--table", "R2", "--table", "R3", "--out", str(tmp_path), "--no-plots"]) == 0
     text = capsys.readouterr().out
@@ -59,7 +100,7 @@ def test_road_text_output(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("extra,words", [
-    (["--u", "a.csv", "--u", "b.csv", "--u", "c.csv"], ["--u", "once per table"]),
+    (["--u", "a.csv", "--u", "b.csv"], ["--u", "--u a.csv and --u b.csv both follow --table R2"]),
     (["--class", "M9"], ["unknown class", "M9"]),
     (["--layout", "missing.toml"], ["missing.toml", "no such layout file"]),
     (["--luminaire", "missing.ldt"], ["missing.ldt", "no such luminaire file"]),

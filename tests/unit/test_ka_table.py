@@ -9,6 +9,7 @@ import pytest
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import load_instrument
 from roadgonio.engines import CellResult, full_grid_cells
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.engines.runner import JOURNAL, ka_dataset, run_cells, write_outputs
 from roadgonio.surface.model import RoadModel, RoadParams
 from roadgonio.surface.rtable import read_table
@@ -205,3 +206,29 @@ def test_finished_run_is_never_overwritten_by_another_even_without_its_journal(t
     fresh = StandIn(tag=0)
     run_cells(fresh, cells, instrument=ins, model=model, out_dir=tmp_path, fresh=True, progress=False)
     assert fresh.calls == cells and not (tmp_path / "ka.json").exists()
+
+
+def test_a_subset_run_keeps_the_folders_whole_table(tmp_path, setup):
+    """Trial 7, defect 9: asking a few cells of a folder that holds a larger table of the same run
+    read them back and rewrote ka.csv/ka.nc with those cells only. The cells asked are the run's
+    ``results``; the table files (and the Dataset) keep every cell the journal holds."""
+    from roadgonio.engines.runner import summary
+    ins, model = setup
+    cells = full_grid_cells()[:30]
+    run_cells(StandIn(), cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    subset = [cells[3], cells[7]]
+    again = StandIn()
+    run = run_cells(again, subset, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert again.calls == [] and run.resumed == 2
+    assert [(c.tan_eps, c.beta_deg) for c in run.results] == subset
+    ds = ka_dataset(run, instrument=ins, model=model, backend=again, sample="test", cells_asked=len(subset))
+    write_outputs(ds, tmp_path, plot=False)
+    ka = read_table(tmp_path / "ka.csv").r * 1e4
+    assert int(np.isfinite(ka).sum()) == len(cells)
+    for t, b in cells:
+        i, j = list(TAN_EPS_GRID).index(t), list(BETA_GRID_DEG).index(b)
+        assert ka[i, j] == pytest.approx(StandIn.value(t, b), rel=1e-6)
+    s = summary(ds)
+    assert (s["cells"], s["cells_asked"], s["resumed_cells"]) == (len(cells), 2, 2)
+    assert json.loads((tmp_path / "ka.json").read_text())["summary"]["cells"] == len(cells)
+

@@ -181,15 +181,18 @@ class RoadScene:
     housing: Any = None
 
     # -- per cell --------------------------------------------------------------------------
-    def place_source(self, tan_eps: float, beta_deg: float) -> None:
+    def place_source(self, tan_eps: float, beta_deg: float, *, check: bool = True) -> None:
         """Move the source to the cell (no recompile); checks the horizon, the beam limit, the
         line of sight (the one test of every backend: :func:`~roadgonio.instrument.optics.check_line_of_sight`,
-        exact for the disc) and the housing."""
-        check_source(self.instrument, tan_eps, beta_deg)
-        check_beam(self.instrument, tan_eps, beta_deg)
-        if self.source_kind != "point":
-            check_line_of_sight(self.instrument, [(tan_eps, beta_deg)])
-        if self.housing is not None and self.checked:
+        exact for the disc) and the housing. ``check=False`` only parks the source out of the way
+        (:func:`build_scene`): that place is no cell the user asked for, so it is not checked (a beam
+        table too short for tan eps 0 was refused there, naming a cell nobody asked for)."""
+        if check:
+            check_source(self.instrument, tan_eps, beta_deg)
+            check_beam(self.instrument, tan_eps, beta_deg)
+            if self.source_kind != "point":
+                check_line_of_sight(self.instrument, [(tan_eps, beta_deg)])
+        if check and self.housing is not None and self.checked:
             from roadgonio.instrument.enclosure import check_sources
             check_sources(self.instrument, self.housing, [(tan_eps, beta_deg)])
         if self.source_kind == "point":
@@ -295,7 +298,7 @@ def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 6
     _light_paths(rs, scene_sec or {})
     if check:
         rs.footprint = footprint
-        rs.place_source(0.0, 0.0)              # the source out of the way (XML files may leave it anywhere)
+        rs.place_source(0.0, 0.0, check=False)   # the source out of the way (XML files may leave it anywhere)
         rs.info["hit_check"] = rs.check_hits(n_random=int(hit_rays))
         rs.checked = True
     return rs
