@@ -380,6 +380,13 @@ class SurfaceFit:
                 "phi": float(self.phi), "steps": int(self.steps), "seconds": float(self.seconds), "history": list(self.history)}
 
     @property
+    def prior_lam(self) -> dict:
+        """The roughness prior's precision in ln f itself, lambda / phi: the smoothing parameters
+        are in units of the stated u, and the prior of the model with the noise scale phi is
+        phi (lambda P)^-1 (:func:`noise_scale`); what the discrepancy's amplitude is read from."""
+        return {k: v / self.phi for k, v in self.lam.items()}
+
+    @property
     def dof(self) -> float:
         return max(self.n - self.edf, 1.0)
 
@@ -682,16 +689,27 @@ def _spd_inverse(M: np.ndarray) -> np.ndarray:
 
 
 def posterior_with_backbone(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict,
-                            weights: Sequence[np.ndarray]) -> np.ndarray:
+                            weights: Sequence[np.ndarray], phi: float = 1.0) -> np.ndarray:
     """The Laplace posterior covariance over (theta, q): the surface's coefficients and the
     backbone's own coordinates q (:meth:`FlexPart.backbone_log_derivatives`, flat prior), the inverse
     of ``J^T W J + Lambda`` at the surface ``theta`` with the weights ``W`` (1 / u^2 per part and
     cell) and the roughness prior ``Lambda`` of the smoothing parameters ``lam`` (names of
-    :func:`penalty_blocks`; g_D's proper prior). The surface was fitted with the backbone held; this
+    :func:`penalty_blocks`; g_D's proper prior times the noise scale ``phi``, as in the fit: both in
+    units of the stated u, :func:`noise_scale`). The surface was fitted with the backbone held; this
     lets the backbone move with it, so what the surface's stiffness forbids (a smooth surface: the
     evidence at its bound) the backbone's parameters still carry. Directions the data cannot see at
     all (a term's coefficient against the level of g_C) are dropped by a scaled pseudo-inverse: no
     reading, model value or k_A depends on them. The parts share one backbone."""
+    H = posterior_precision(parts, theta, lam, weights, phi)
+    with one_blas_thread():
+        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        return np.linalg.pinv(H / np.outer(d, d), rcond=1e-12, hermitian=True) / np.outer(d, d)
+
+
+def posterior_precision(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict,
+                        weights: Sequence[np.ndarray], phi: float = 1.0) -> np.ndarray:
+    """``J^T W J + Lambda`` over (theta, q) of :func:`posterior_with_backbone` (its inverse); its
+    (theta, theta) block is the fit's own Hessian when ``lam``, ``weights`` and ``phi`` are the fit's."""
     settings = parts[0].settings
     names, Ps = penalty_blocks(settings)
     n_c, n_d = settings.n_c, settings.n_d
@@ -700,18 +718,18 @@ def posterior_with_backbone(parts: Sequence[FlexPart], theta: np.ndarray, lam: d
     H = np.zeros((n + n_q, n + n_q))
     H[:n_c, :n_c] = sum(float(lam[k]) * P for k, P in zip(names, Ps))
     if n_d:
-        H[n_c:n, n_c:n] = d_prior(settings)
+        H[n_c:n, n_c:n] = phi * d_prior(settings)
     with one_blas_thread():
         for p, w in zip(parts, weights):
             _, J = p.simulate(theta)
             Jq, _, _ = p.backbone_jacobians(theta)
             Jf = np.hstack([J, Jq])
             H += Jf.T @ (np.asarray(w, dtype=np.float64)[:, None] * Jf)
-        d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-        return np.linalg.pinv(H / np.outer(d, d), rcond=1e-12, hermitian=True) / np.outer(d, d)
+    return H
 
 
-def expected_posterior(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict, u_rel: Sequence[np.ndarray]) -> np.ndarray:
+def expected_posterior(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict, u_rel: Sequence[np.ndarray],
+                       phi: float = 1.0) -> np.ndarray:
     """The posterior covariance over (theta, q) (:func:`posterior_with_backbone`) that measurements
     through ``parts`` would give at the surface ``theta`` with smoothing parameters ``lam`` and
     relative standard uncertainties ``u_rel`` (per part and cell), the measured values taken as the
@@ -720,4 +738,4 @@ def expected_posterior(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict, 
     ranks candidates by it."""
     weights = [1.0 / (np.asarray(ur, dtype=np.float64) * p.simulate(theta, jacobian=False)[0]) ** 2
                for p, ur in zip(parts, u_rel)]
-    return posterior_with_backbone(parts, theta, lam, weights)
+    return posterior_with_backbone(parts, theta, lam, weights, phi)

@@ -418,7 +418,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             state.put_surface(f"surface-{v}", sf.state())
         if warm is None:
             warm = (sf.theta, list(sf.lam.values()))
-        cov_full = posterior_with_backbone(parts, sf.theta, sf.lam, [1.0 / u ** 2 for u in us])
+        cov_full = posterior_with_backbone(parts, sf.theta, sf.lam, [1.0 / u ** 2 for u in us], sf.phi)
         vfits.append(VariantFit(v, backbones[v], chi2[v], sf, parts, cov_full=cov_full))
     for vf, w in zip(vfits, _weights([vf.fit.log_evidence for vf in vfits])):
         vf.weight = float(w)
@@ -593,7 +593,7 @@ def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit, settin
     variants of what their smoothing parameters put beyond the knots' Nyquist wavenumber in the
     cell's region; ``nominal``: the model's own estimates after the instruments' cells
     (:func:`parts_discrepancy`). Returns (covariance, info)."""
-    return parts_discrepancy(best.parts, best.fit.theta, [(vf.weight, vf.fit.lam) for vf in vfits], settings,
+    return parts_discrepancy(best.parts, best.fit.theta, [(vf.weight, vf.fit.prior_lam) for vf in vfits], settings,
                              nominal=nominal)
 
 

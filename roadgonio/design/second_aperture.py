@@ -189,12 +189,12 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     blurs: dict = {}
 
     def evaluate(parts, urs, tables, label, changes, inst, note="") -> Candidate:
-        cov = expected_posterior(parts, theta, lam, urs)
+        cov = expected_posterior(parts, theta, lam, urs, fit.phi)
         nominal = (model_estimate_cells([t.cells for t in tables], [cell_key(c) for c in tables[0].cells])
                    if settings.model_estimate else [])
         disc = None
         if settings.discrepancy_ell is not None:
-            disc, _ = parts_discrepancy(parts, theta, [(1.0, lam)], settings, blurs, nominal=nominal)
+            disc, _ = parts_discrepancy(parts, theta, [(1.0, fit.prior_lam)], settings, blurs, nominal=nominal)
         uu, us1, _ = _u_of(parts, theta, cov, urs, tables, disc, nominal)
         return Candidate(label, changes, inst, float(np.median(uu)), float(np.sqrt(np.mean(uu ** 2))),
                          float(np.max(uu)), float(us1), note=note)

@@ -364,3 +364,30 @@ def test_smoothing_is_chosen_with_the_noise_the_residuals_show(r3like, monkeypat
     clean_one, _ = fit(y0, False)
     assert clean_phi.phi == 1.0
     assert np.array_equal(clean_phi.theta, clean_one.theta) and clean_phi.lam == clean_one.lam
+
+
+def test_the_uncertainty_posterior_uses_the_fits_prior_and_noise_scale(r3like):
+    """The posterior the uncertainty takes (flexible.posterior_precision, over the surface and the
+    backbone's coordinates) has, in its surface block, the Hessian of the fit itself (the inverse of
+    SurfaceFit.cov) when the fit chose its smoothing with a noise scale phi > 1: g_D's prior is scaled
+    by phi in both (before, the fit's and the budget's priors would differ by (phi - 1) Q). And the
+    discrepancy's amplitude is read from the prior of that model, lambda / phi (SurfaceFit.prior_lam)."""
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings, d_prior, fit_surface, posterior_precision
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    cells = [(t, b) for t in (0.0, 1.0, 2.0, 4.5, 9.0, 12.0) for b in (0.0, 10.0, 45.0, 120.0)]
+    fm = ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=32))
+    y0 = fm.r_measured(r3like)
+    y = y0 * np.exp(np.random.default_rng(8).normal(0.0, 0.04, len(cells)))
+    u = 0.01 * y0
+    part = FlexPart(fm, r3like, SurfaceSettings())
+    f = fit_surface([part], [y], [u])
+    assert f.phi > 2.0
+    H = posterior_precision([part], f.theta, f.lam, [1.0 / u ** 2], f.phi)
+    n = part.n_params
+    own = np.linalg.inv(f.cov)
+    # the two differ by the inversion's round-off (~0.2 here, of entries up to 1e9) unless the g_D
+    # prior is scaled differently, which moves entries by (phi - 1) Q (~100 here)
+    gap = (f.phi - 1.0) * float(np.max(np.abs(d_prior(part.settings))))
+    assert float(np.max(np.abs(H[:n, :n] - own))) < 0.1 * gap
+    assert f.prior_lam == {k: v / f.phi for k, v in f.lam.items()}
