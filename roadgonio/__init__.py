@@ -17,6 +17,12 @@ modules, :mod:`roadgonio.surface`, :mod:`roadgonio.instrument`, :mod:`roadgonio.
 :mod:`roadgonio.cli`.
 """
 from roadgonio._version import __version__
+from roadgonio._checkout import bind as _bind
+
+# the data subpackages of this checkout, not of the one an editable install points at (_checkout)
+for _name in ("scenes", "docs", "studies"):
+    _bind(f"{__name__}.{_name}")
+del _name
 
 __all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
            "validate", "estimate_uncertainty", "correct", "design_study", "second_aperture", "intercompare",

@@ -26,6 +26,28 @@ TIERS = ("unit", "plugin", "system")
 _HERE = Path(__file__).resolve().parent
 
 
+def pytest_sessionstart(session):
+    """Fail at once, saying how to fix it, when the tests would run code of another checkout:
+    roadgonio imported from elsewhere than this checkout (a git worktree without
+    ``PYTHONPATH=<worktree>``), or a subpackage installed from a top-level folder (plugins/, scenes/,
+    docs/, studies/: pyproject.toml's package-dir) imported from another checkout than roadgonio
+    itself (an editable install's mapping; roadgonio._checkout binds them to roadgonio's own)."""
+    import importlib
+
+    import roadgonio
+    checkout = _HERE.parent
+    root = Path(roadgonio.__file__).resolve().parents[1]
+    if (checkout / "pyproject.toml").is_file() and root != checkout:
+        raise pytest.UsageError(f"these tests are in {checkout} but roadgonio is imported from {root}: "
+                                f"run them with PYTHONPATH={checkout}")
+    for name in ("roadgonio.engines.mitsuba.plugins", "roadgonio.scenes", "roadgonio.docs", "roadgonio.studies"):
+        where = Path(importlib.import_module(name).__file__).resolve()
+        if not where.is_relative_to(root):
+            raise pytest.UsageError(f"{name} is imported from {where.parent}, not from roadgonio's checkout {root} "
+                                    "(an editable install of another checkout?); roadgonio/_checkout.py binds it "
+                                    "to roadgonio's own folder when pyproject.toml maps it there")
+
+
 def pytest_collection_modifyitems(config, items):
     """Mark each test with its folder's tier and run the tiers in the order unit, plugin, system
     (the fast ones first). A test outside the tier folders is an error."""

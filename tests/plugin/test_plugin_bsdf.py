@@ -1,6 +1,10 @@
 """The road BSDF plugin (plugins/road_bsdf.py) against the float64 numpy model: the full BSDF test set
 (eval vs reference, Lambert = Mitsuba's diffuse, reciprocity, chi-square test of the sampling,
-sample weight = eval/pdf, no NaN/Inf at extremes)."""
+sample weight = eval/pdf, no NaN/Inf at extremes).
+
+The eval and reciprocity tests compare the plugin with the same ``road_brdf`` evaluated by numpy: they
+check the Dr.Jit port (float32, the w_i/w_o convention), not the formula; the formula (the lobes' shape,
+E, g) is checked in tests/unit/test_model.py."""
 from __future__ import annotations
 
 import math

@@ -8,6 +8,11 @@
 * black parts give the engine without stray light, bit for bit;
 * reproducibility and batching, honest standard errors, the checks of [scene] and [housing].
 (The render's stray picture: tests/system/test_render_stray.py.)
+
+The reference shares the ray geometry with the Mitsuba backend (roadgonio.instrument.optics: the
+detector rays, the source geometry, the plane hits; its docstring says so): a bug there would be in
+both. That geometry is checked on its own, against closed forms and independent integrals, by
+tests/unit/test_profiles.py.
 """
 from __future__ import annotations
 

@@ -41,13 +41,36 @@ def one_line(capsys, rc):
     return err[0]
 
 
+#: How many error bounds (quadrature) dropping the beam profile or the sensitivity map must move k_A
+#: at the test's cell: far beyond the integration error, so that a CLI that resolved the files but
+#: dropped one of them cannot pass (measured at DROPPED_FILE_RTOL: the beam 150, the map 1.2e4).
+DROPPED_FILE_BOUNDS = 20.0
+#: The quadrature's accuracy for that comparison (the beam profile, cos^3 theta, moves k_A by 1e-4 only).
+DROPPED_FILE_RTOL = 1e-6
+
+
 def test_a_profiled_instrument_file_runs_from_another_folder(tmp_path, capsys, monkeypatch):
+    """The command line's k_A of an instrument whose profile files are named relative to it, run
+    from another folder, is the API's k_A of the loaded instrument, bit for bit, and that instrument
+    uses both files: without either, k_A moves by more than DROPPED_FILE_BOUNDS error bounds."""
+    from roadgonio import api
+    from roadgonio.instrument.config import load_instrument
     inst = _files(tmp_path)
     monkeypatch.chdir(tmp_path.parent)
     rc = main(["ka", "--instrument", str(inst), "--sample", "R3", "--backend", "quadrature", "--tan-eps", "4",
                "--beta", "2", "--rel-se", "1e-4", "--json"])
     out = json.loads(capsys.readouterr().out)
-    assert rc == 0 and 0.5 < out["k_a"] < 1.5, out
+    assert rc == 0, out
+
+    def k_a(path, rel_se):
+        return api.ka_cell(load_instrument(path), "R3", 4.0, 2.0, backend="quadrature", rel_se=rel_se)
+    assert out["k_a"] == k_a(inst, 1e-4).k_a, out
+    full = k_a(inst, DROPPED_FILE_RTOL)
+    for key in ("beam_intensity_file", "field_sensitivity"):
+        text = "\n".join(ln for ln in INSTRUMENT.splitlines() if not ln.startswith(key))
+        (tmp_path / f"without_{key}.toml").write_text(text)
+        other = k_a(tmp_path / f"without_{key}.toml", DROPPED_FILE_RTOL)
+        assert abs(other.k_a - full.k_a) > DROPPED_FILE_BOUNDS * (full.error_bound + other.error_bound), (key, full, other)
 
 
 def test_a_bad_table_is_one_line_naming_file_line_and_key(tmp_path, capsys):

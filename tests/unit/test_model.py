@@ -69,6 +69,59 @@ def test_retro_peak_towards_the_source(theta_o, phi_o):
     assert m.brdf(wo, wo) == pytest.approx(1.5, rel=RTOL_EXACT)
 
 
+def _turned(v, omega_deg, towards):
+    """The unit vector at the angle ``omega_deg`` from the unit vector ``v``, turned towards the
+    normal (``"normal"``) or sideways (``"side"``, about the normal's plane): both stay above the
+    surface for the angles used here."""
+    v = np.asarray(v, float)
+    z = np.array([0.0, 0.0, 1.0])
+    u = z - (z @ v) * v if towards == "normal" else np.cross(z, v)
+    u = u / np.linalg.norm(u)
+    w = math.cos(math.radians(omega_deg)) * v + math.sin(math.radians(omega_deg)) * u
+    assert w[2] > 0.0
+    return w
+
+
+LOBES = {"phong": ("k_phong", "n_phong"), "retro": ("k_retro", "n_retro")}
+
+
+def _lobe_peak(lobe, wo):
+    """Where the lobe peaks for the detector direction ``wo``: the mirror direction (-x, -y, z)
+    of w_o for the Phong lobe, w_o itself for the retro lobe."""
+    return np.array([-wo[0], -wo[1], wo[2]]) if lobe == "phong" else np.array(wo, float)
+
+
+@pytest.mark.parametrize("lobe", sorted(LOBES))
+@pytest.mark.parametrize("n", [30.0, 200.0])
+@pytest.mark.parametrize("omega_deg", [2.0, 5.0, 10.0])
+@pytest.mark.parametrize("towards", ["normal", "side"])
+def test_lobe_shape_off_the_peak(lobe, n, omega_deg, towards):
+    """Away from its peak each lobe is k (cos Omega)^n, Omega the angle between w_i and the peak
+    direction, here from an explicit dot product (the model uses the half-chord form): checks the
+    exponent, which the peak tests (cos^n = 1 there) and the plugin tests (the same road_brdf) do not."""
+    k_name, n_name = LOBES[lobe]
+    m = _model(**{k_name: 1.7, n_name: n})
+    for theta_o, phi_o in [(60.0, 0.0), (85.0, 30.0), (20.0, 200.0)]:
+        wo = _dir(theta_o, phi_o)
+        wi = _turned(_lobe_peak(lobe, wo), omega_deg, towards)
+        cos_omega = wi @ _lobe_peak(lobe, wo)
+        assert math.degrees(math.acos(min(cos_omega, 1.0))) == pytest.approx(omega_deg, rel=1e-9)
+        assert m.brdf(wi, wo) == pytest.approx(1.7 * cos_omega ** n, rel=RTOL_EXPLOG), (theta_o, phi_o)
+
+
+@pytest.mark.parametrize("lobe", sorted(LOBES))
+@pytest.mark.parametrize("n", [30.0, 200.0])
+def test_lobe_half_width(lobe, n):
+    """Each lobe falls to half its peak at cos Omega = 2^(-1/n)."""
+    k_name, n_name = LOBES[lobe]
+    m = _model(**{k_name: 1.7, n_name: n})
+    half_deg = math.degrees(math.acos(2.0 ** (-1.0 / n)))
+    for theta_o, phi_o in [(60.0, 0.0), (20.0, 200.0)]:
+        wo = _dir(theta_o, phi_o)
+        wi = _turned(_lobe_peak(lobe, wo), half_deg, "side")
+        assert m.brdf(wi, wo) == pytest.approx(1.7 / 2.0, rel=RTOL_EXPLOG)
+
+
 @pytest.mark.parametrize("variant", VARIANTS)
 def test_r_is_q_cos3_eps(variant):
     m = _model(variant, k_diff=0.02, k_phong=1.0, n_phong=30, k_retro=0.05, n_retro=10, k_exp=0.1, p=2,

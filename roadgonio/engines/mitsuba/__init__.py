@@ -20,7 +20,12 @@ import glob
 import os
 import re
 
+from roadgonio._checkout import bind as _bind
 from roadgonio.errors import BackendError, InputError
+
+# the plugins of this checkout (plugins/), not of the one an editable install points at (roadgonio._checkout);
+# this imports plugins/__init__.py only, never mitsuba
+_bind(f"{__name__}.plugins")
 
 #: Default variant on a CPU machine; a CUDA variant is chosen when asked for and available.
 DEFAULT_VARIANT = "llvm_ad_rgb"
