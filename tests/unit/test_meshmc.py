@@ -83,3 +83,27 @@ def test_mesh_off_the_footprint_and_xml_are_errors(tmp_path, r3like):
         make_backend("numpy-mc-mesh", load_instrument("holder"), r3like)
     with pytest.raises(InputError, match="numpy-mc-mesh"):
         make_backend("numpy-mc", with_mesh(inst, small), r3like)
+
+
+def test_results_do_not_depend_on_the_grouping_of_batches(tmp_path, r3like, monkeypatch):
+    """Batches are evaluated several at a time (meshmc.GROUP_SAMPLES); their points are drawn batch
+    by batch and the stopping rule is applied after each batch, so k_A, its SE and the number of
+    batches are those of one batch at a time, bit for bit: at the minimum, past it (the 1/N rule),
+    and at max_samples."""
+    from roadgonio.engines import meshmc
+    inst = load_instrument("portable")
+    half_x, half_y = inst.sample.size_x_m / 2, inst.sample.size_y_m / 2
+    mi = with_mesh(inst, grid_mesh(tmp_path / "flat.ply", np.linspace(-half_x, half_x, 5),
+                                   np.linspace(-half_y, half_y, 3), shuffle_seed=2))
+    runs = [dict(rel_se=3e-3, min_batches=16), dict(rel_se=3e-4, min_batches=4),
+            dict(rel_se=1e-5, min_batches=4, max_samples=64 * 40)]
+    cells = [(12.0, 0.0), (2.0, 0.0)]
+    got = {}
+    for group in (64, 64 * 7, 64 * 1000):
+        monkeypatch.setattr(meshmc, "GROUP_SAMPLES", group)
+        got[group] = [(r.k_a, r.se, r.extra["batches"], r.converged) for kw in runs
+                      for r in make_backend("numpy-mc-mesh", mi, r3like, batch=64, seed=9, **kw).compute(cells)]
+    assert got[64] == got[64 * 7] == got[64 * 1000]
+    batches, converged = [g[2] for g in got[64]], [g[3] for g in got[64]]
+    assert batches[:2] == [16, 16] and all(b > 4 for b in batches[2:4]) and batches[4:] == [40, 40], batches
+    assert converged == [True] * 4 + [False] * 2
