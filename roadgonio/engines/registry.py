@@ -39,8 +39,8 @@ precise 4096, 2.8e-4 (2.1e-4).
 The batched Mitsuba engine stops every cell at its target (a small first pass, then the 1/N rule per
 cell), so its presets sit on the measured front by construction; ``first_pass`` only matters for
 the easy cells. The reference's presets are the same tolerances as the quadrature's (its ``rtol``
-is the target of its confidence bound), the mesh Monte Carlo's the same as numpy-mc's. Timings of
-each preset: docs/benchmarks.md.
+is the target of its confidence bound), the mesh Monte Carlo's the same ``rel_se`` as numpy-mc's
+in batches of its own (:data:`NUMPY_MC_MESH_PRESETS`). Timings of each preset: docs/benchmarks.md.
 """
 from __future__ import annotations
 
