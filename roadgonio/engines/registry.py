@@ -39,8 +39,8 @@ precise 4096, 2.8e-4 (2.1e-4).
 The batched Mitsuba engine stops every cell at its target (a small first pass, then the 1/N rule per
 cell), so its presets sit on the measured front by construction; ``first_pass`` only matters for
 the easy cells. The reference's presets are the same tolerances as the quadrature's (its ``rtol``
-is the target of its confidence bound), the mesh Monte Carlo's the same as numpy-mc's. Timings of
-each preset: docs/benchmarks.md.
+is the target of its confidence bound), the mesh Monte Carlo's the same ``rel_se`` as numpy-mc's
+in batches of its own (:data:`NUMPY_MC_MESH_PRESETS`). Timings of each preset: docs/benchmarks.md.
 """
 from __future__ import annotations
 
@@ -90,10 +90,12 @@ class BackendInfo:
 NUMPY_MC_PRESETS = {"fast": {"rel_se": 3e-3, "batch": 12 ** 2}, "default": {"rel_se": 1e-3, "batch": 45 ** 2},
                     "precise": {"rel_se": 1e-4, "batch": 64 ** 2}}
 
-
-def _numpy_mc_presets(batch_default: int) -> dict[str, dict[str, Any]]:
-    return {"fast": {"rel_se": 3e-3, "batch": 32 ** 2}, "default": {"rel_se": 1e-3, "batch": batch_default},
-            "precise": {"rel_se": 1e-4, "batch": batch_default}}
+#: numpy-mc-mesh's presets, the same way: about the sample counts of before at the minimum (fast
+#: 64 x 11^2 = 7744 for 8 x 32^2 = 8192; default and precise 64 x 23^2 = 33856 for 8 x 64^2 = 32768),
+#: in meshmc.DEFAULT_MIN_BATCHES = 64 batches at least: it stopped at 8, with the same t_7 z (mean z^2
+#: 1.40 over 720 results at fast, tests/unit/test_meshmc.py).
+NUMPY_MC_MESH_PRESETS = {"fast": {"rel_se": 3e-3, "batch": 11 ** 2}, "default": {"rel_se": 1e-3, "batch": 23 ** 2},
+                         "precise": {"rel_se": 1e-4, "batch": 23 ** 2}}
 
 
 BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
@@ -128,7 +130,7 @@ BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
                 presets={"fast": {"rtol": 1e-3}, "default": {"rtol": 1e-4}, "precise": {"rtol": 1e-5}}),
     BackendInfo("numpy-mc-mesh", "roadgonio.engines.meshmc:make_backend",
                 "float64 Monte Carlo with ray casting and shadow rays (mesh samples)",
-                precision="se", seeded=True, tolerance="rel_se", presets=_numpy_mc_presets(1 << 12), meshes=True),
+                precision="se", seeded=True, tolerance="rel_se", presets=NUMPY_MC_MESH_PRESETS, meshes=True),
 )}
 
 

@@ -83,3 +83,55 @@ def test_mesh_off_the_footprint_and_xml_are_errors(tmp_path, r3like):
         make_backend("numpy-mc-mesh", load_instrument("holder"), r3like)
     with pytest.raises(InputError, match="numpy-mc-mesh"):
         make_backend("numpy-mc", with_mesh(inst, small), r3like)
+
+
+def test_results_do_not_depend_on_the_grouping_of_batches(tmp_path, r3like, monkeypatch):
+    """Batches are evaluated several at a time (meshmc.GROUP_SAMPLES); their points are drawn batch
+    by batch and the stopping rule is applied after each batch, so k_A, its SE and the number of
+    batches are those of one batch at a time, bit for bit: at the minimum, past it (the 1/N rule),
+    and at max_samples."""
+    from roadgonio.engines import meshmc
+    inst = load_instrument("portable")
+    half_x, half_y = inst.sample.size_x_m / 2, inst.sample.size_y_m / 2
+    mi = with_mesh(inst, grid_mesh(tmp_path / "flat.ply", np.linspace(-half_x, half_x, 5),
+                                   np.linspace(-half_y, half_y, 3), shuffle_seed=2))
+    runs = [dict(rel_se=3e-3, min_batches=16), dict(rel_se=3e-4, min_batches=4),
+            dict(rel_se=1e-5, min_batches=4, max_samples=64 * 40)]
+    cells = [(12.0, 0.0), (2.0, 0.0)]
+    got = {}
+    for group in (64, 64 * 7, 64 * 1000):
+        monkeypatch.setattr(meshmc, "GROUP_SAMPLES", group)
+        got[group] = [(r.k_a, r.se, r.extra["batches"], r.converged) for kw in runs
+                      for r in make_backend("numpy-mc-mesh", mi, r3like, batch=64, seed=9, **kw).compute(cells)]
+    assert got[64] == got[64 * 7] == got[64 * 1000]
+    batches, converged = [g[2] for g in got[64]], [g[3] for g in got[64]]
+    assert batches[:2] == [16, 16] and all(b > 4 for b in batches[2:4]) and batches[4:] == [40, 40], batches
+    assert converged == [True] * 4 + [False] * 2
+
+
+def test_se_is_honest_at_the_fast_preset(tmp_path, r3like):
+    """The mesh Monte Carlo's SE, as numpy-mc's (tests/unit/test_montecarlo.py): from 8 batch means
+    it had 7 degrees of freedom and z = error / SE a t_7 law (mean z^2 7/5, far tails). On a flat
+    mesh (8 shuffled triangles over the portable preset's sample) the float64 reference of the flat
+    sample at precise is an independent truth (its SE added in quadrature, ~1 % of the mesh SE).
+    Over m = 720 results (120 seeds x 6 cells at --accuracy fast) the sum of z^2 of a correct
+    normal z is chi-square with m degrees of freedom: mean z^2 <= chi2.isf(ALPHA, m) / m (1.215),
+    and no |z| beyond z_family(m)."""
+    from scipy.stats import chi2
+    from tolerances import ALPHA
+    inst = load_instrument("portable")
+    half_x, half_y = inst.sample.size_x_m / 2, inst.sample.size_y_m / 2
+    mi = with_mesh(inst, grid_mesh(tmp_path / "flat.ply", np.linspace(-half_x, half_x, 3),
+                                   np.linspace(-half_y, half_y, 3), shuffle_seed=4))
+    cells = [(12.0, 0.0), (8.0, 0.0), (4.0, 2.0), (4.0, 0.0), (2.0, 0.0), (1.0, 0.0)]
+    ref = {(r.tan_eps, r.beta_deg): r
+           for r in make_backend("reference", inst, r3like, accuracy="precise", seed=5).compute(cells)}
+    z = []
+    for seed in range(1, 121):
+        for r in make_backend("numpy-mc-mesh", mi, r3like, accuracy="fast", seed=seed).compute(cells):
+            c = ref[(r.tan_eps, r.beta_deg)]
+            z.append((r.k_a - c.k_a) / math.hypot(r.se, c.se))
+    z = np.array(z)
+    m = z.size
+    assert float(np.mean(z * z)) <= chi2.isf(ALPHA, m) / m, (float(np.sqrt(np.mean(z * z))), m)
+    assert float(np.max(np.abs(z))) <= z_family(m), (float(np.max(np.abs(z))), m)
