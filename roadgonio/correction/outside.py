@@ -145,7 +145,8 @@ class SurfaceCorrection:
         if self.model_weight is None:
             return None
         return {"what": "per cell, the weight of the fitted surface's own value at the nominal geometry in the "
-                        "corrected table (generalised least squares with the instruments' r / k_A)",
+                        "corrected table (the least-variance convex combination with the instruments' r / k_A: "
+                        "generalised least squares where no weight is negative)",
                 "weight_median": float(np.nanmedian(self.model_weight)),
                 "weight_min": float(np.nanmin(self.model_weight)),
                 "weight_max": float(np.nanmax(self.model_weight))}
@@ -219,8 +220,8 @@ def cell_index(cells) -> dict[tuple[float, float], int]:
 
 def combine(lnr: Sequence[np.ndarray], cells: Sequence[list], cov_big: np.ndarray,
             union: list) -> tuple[np.ndarray, np.ndarray]:
-    """Per cell of ``union``, the GLS combination of the instruments' ln r that have the cell, with
-    the 2x2 (or larger) covariance between them taken from ``cov_big`` (over the concatenated cells
+    """Per cell of ``union``, the least-variance convex combination (:func:`convex_weights`: the GLS
+    one where no weight is negative) of the instruments' ln r that have the cell, with the 2x2 (or larger) covariance between them taken from ``cov_big`` (over the concatenated cells
     of all instruments). Returns (ln r combined, G) with combined = G @ concatenated ln r, so the
     combined covariance of any component C_big is ``G C_big G^T``."""
     offsets = np.cumsum([0] + [len(c) for c in cells])
@@ -240,8 +241,8 @@ def convex_weights(S: np.ndarray) -> np.ndarray:
     over the subsets of the estimates. Strongly correlated estimates of unequal variance give GLS
     weights outside [0, 1], a combined value outside the range of the estimates ("Peelle's
     pertinent puzzle" of data evaluation), which follows the covariance model exactly where it is
-    least sure (a surface that does not fit: docs/correction.md, "Combining r / k_A and the
-    surface's own value"); a convex combination never extrapolates, and its variance w^T S w,
+    least sure (a surface that does not fit: docs/correction.md, "The corrected table weighs the
+    model's own value"); a convex combination never extrapolates, and its variance w^T S w,
     which the budget carries through G, is still exact for the weights used."""
     k = S.shape[0]
     best_w, best_v = np.full(k, 1.0 / k), math.inf
@@ -557,7 +558,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             grid[int(np.argmin(np.abs(base.tan_eps - t_))), int(np.argmin(np.abs(base.beta_deg - b_)))] = math.exp(v)
         src = (f"one surface measured by {', '.join(i.name for i in instruments)}, corrected for the aperture effect "
                f"(r / k_A per instrument{' and the fitted surface at the nominal geometry' if U else ''}, combined "
-               f"cell by cell by generalised least squares)")
+               f"cell by cell with the least-variance non-negative weights)")
         combined = base.with_values(grid, name=f"{label}_corrected", source=src)
         # the combined table's cells in row-major order (= union order sorted like RTable.cells)
         at = cell_index(union)
