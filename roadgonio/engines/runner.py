@@ -160,8 +160,7 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
                         old.unlink()
                 except OSError as err:
                     raise output_error(old, err) from None
-        _check_finished_run(out_dir, fp)
-        done = _read_journal(journal, fp)
+        # the folder's run was checked and its journal read above (none when fresh or just made)
         new_journal = not journal.exists()
         # (re)write the header and the finished cells, dropping a cut-short last line
         _write_journal(journal, header, list(done.values()))
