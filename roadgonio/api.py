@@ -958,11 +958,11 @@ def _check_u_belongs(item, t: "RTable", uf, ut: "RTable") -> None:
     <header>``, as ``correct`` writes corrected_u.csv) must go with a table of that header: checked
     when the table is a CSV file with a header of its own (an RTB or a bundled table has none to
     compare); a mismatch is an :class:`InputError` naming both."""
-    from roadgonio.surface.rtable import u_names_table
+    from roadgonio.surface.rtable import header_line, u_names_table
     named = u_names_table(ut)
     if named is None or not isinstance(item, (str, Path)) or Path(str(item)).suffix.lower() != ".csv":
         return
-    own = (t.source or "").splitlines()[0].strip() if t.source else ""
+    own = header_line(t)
     if own and own != named:
         raise InputError(f"{uf} is the standard uncertainty of '{named}', but it goes with the table {item}, whose "
                          f"header says '{own}': give each --u right after the --table it belongs to", field="u")

@@ -294,10 +294,15 @@ def missing_ratio(num: float, den: float) -> float:
 U_HEADER = "standard uncertainty of "
 
 
+def header_line(t: "RTable") -> str:
+    """The first line of a table's header (its ``source``), "" when it has none."""
+    return t.source.splitlines()[0].strip() if t.source else ""
+
+
 def u_names_table(u: "RTable") -> str | None:
     """The first header line of the table a table of standard uncertainties says it belongs to (its
     header ``standard uncertainty of <that table's header>``, :data:`U_HEADER`), or None."""
-    first = (u.source or "").splitlines()[0] if u.source else ""
+    first = header_line(u)
     return first[len(U_HEADER):].strip() if first.startswith(U_HEADER) else None
 
 
