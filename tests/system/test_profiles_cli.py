@@ -70,6 +70,7 @@ def test_a_profiled_instrument_file_runs_from_another_folder(tmp_path, capsys, m
         text = "\n".join(ln for ln in INSTRUMENT.splitlines() if not ln.startswith(key))
         (tmp_path / f"without_{key}.toml").write_text(text)
         other = k_a(tmp_path / f"without_{key}.toml", DROPPED_FILE_RTOL)
+        assert full.converged and other.converged, (key, full, other)
         assert abs(other.k_a - full.k_a) > DROPPED_FILE_BOUNDS * (full.error_bound + other.error_bound), (key, full, other)
 
 

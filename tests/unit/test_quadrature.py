@@ -212,7 +212,7 @@ def _bound_holds_against_the_reference(inst, model, family: int) -> None:
     for accuracy in ("fast", "default"):
         for r in make_backend("quadrature", inst, model, accuracy=accuracy).compute(cells):
             c = ref[(r.tan_eps, r.beta_deg)]
-            assert r.converged
+            assert r.converged and c.converged, (r, c)
             assert abs(r.k_a - c.k_a) <= r.error_bound + z * c.se, (accuracy, r.tan_eps, r.beta_deg, r.k_a,
                                                                   c.k_a, r.error_bound, c.se)
 
