@@ -283,3 +283,32 @@ def on_a_zero_size_terminal(monkeypatch, work):
         reader.join(timeout=5)
         os.close(master)
     return b"".join(chunks).decode("utf-8", "replace")
+
+
+# -- SE honesty of a Monte Carlo backend (tests/unit/test_montecarlo.py, tests/unit/test_meshmc.py) --
+
+#: The cells of the SE-honesty tests: specular and grazing, on and off the plane of observation.
+SE_HONESTY_CELLS = [(12.0, 0.0), (8.0, 0.0), (4.0, 2.0), (4.0, 0.0), (2.0, 0.0), (1.0, 0.0)]
+
+
+def assert_se_is_honest(make_mc, reference, seeds) -> None:
+    """``make_mc(seed)`` a Monte Carlo backend, ``reference`` a converged float64 reference backend
+    of the same instrument: over every seed x cell of :data:`SE_HONESTY_CELLS`, z = (k_A - k_A,ref) /
+    hypot(SE, SE_ref) must look normal: mean z^2 <= chi2.isf(ALPHA, m) / m (the sum of m squared
+    normal z is chi-square with m degrees of freedom) and no |z| beyond z_family(m). Either side not
+    converged fails (a z of an unconverged side means nothing)."""
+    import math
+
+    from scipy.stats import chi2
+    from tolerances import ALPHA, z_family
+    ref = {(r.tan_eps, r.beta_deg): r for r in reference.compute(SE_HONESTY_CELLS)}
+    z = []
+    for seed in seeds:
+        for r in make_mc(seed).compute(SE_HONESTY_CELLS):
+            c = ref[(r.tan_eps, r.beta_deg)]
+            assert r.converged and c.converged, (r, c)
+            z.append((r.k_a - c.k_a) / math.hypot(r.se, c.se))
+    z = np.array(z)
+    m = z.size
+    assert float(np.mean(z * z)) <= chi2.isf(ALPHA, m) / m, (float(np.sqrt(np.mean(z * z))), m)
+    assert float(np.max(np.abs(z))) <= z_family(m), (float(np.max(np.abs(z))), m)

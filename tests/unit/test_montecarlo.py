@@ -133,20 +133,7 @@ def test_se_is_honest_at_the_fast_preset(r3like):
     cells of the portable preset, the reference at precise standing for the truth, its SE added in
     quadrature) the sum of z^2 of a correct normal z is chi-square with m degrees of freedom:
     mean z^2 <= chi2.isf(ALPHA, m) / m (1.215 for m = 720), and no |z| beyond z_family(m)."""
-    from scipy.stats import chi2
-    from tolerances import ALPHA
+    from helpers import assert_se_is_honest
     inst = load_instrument("portable")
-    cells = [(12.0, 0.0), (8.0, 0.0), (4.0, 2.0), (4.0, 0.0), (2.0, 0.0), (1.0, 0.0)]
-    ref = {(r.tan_eps, r.beta_deg): r
-           for r in make_backend("reference", inst, r3like, accuracy="precise", seed=5).compute(cells)}
-    z = []
-    for seed in range(1, 121):
-        mc = make_backend("numpy-mc", inst, r3like, accuracy="fast", seed=seed)
-        for r in mc.compute(cells):
-            c = ref[(r.tan_eps, r.beta_deg)]
-            assert r.converged and c.converged, (r, c)          # a z of an unconverged side means nothing
-            z.append((r.k_a - c.k_a) / math.hypot(r.se, c.se))
-    z = np.array(z)
-    m = z.size
-    assert float(np.mean(z * z)) <= chi2.isf(ALPHA, m) / m, (float(np.sqrt(np.mean(z * z))), m)
-    assert float(np.max(np.abs(z))) <= z_family(m)
+    assert_se_is_honest(lambda seed: make_backend("numpy-mc", inst, r3like, accuracy="fast", seed=seed),
+                        make_backend("reference", inst, r3like, accuracy="precise", seed=5), range(1, 121))
