@@ -248,6 +248,7 @@ def test_second_aperture_predicts_the_joint_u_and_ranks_by_it(tmp_path, two_inst
     assert (tmp_path / "sa" / "best_second.toml").exists()
 
 
+@pytest.mark.slow            # two backbone fits and a correction, ~60 s: in CI by -m slow
 def test_second_aperture_takes_the_backbone_the_correction_takes(two_instruments):
     """Without --model-variant the prediction fits the backbone variants `correct --forward surface`
     weighs and takes the one of larger evidence, the one the correction then weighs ~1 (trial 7,

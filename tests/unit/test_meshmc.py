@@ -109,6 +109,7 @@ def test_results_do_not_depend_on_the_grouping_of_batches(tmp_path, r3like, monk
     assert converged == [True] * 4 + [False] * 2
 
 
+@pytest.mark.slow            # 720 runs, ~28 s: in CI by -m slow, out of the README's default run
 def test_se_is_honest_at_the_fast_preset(tmp_path, r3like):
     """The mesh Monte Carlo's SE, as numpy-mc's (tests/unit/test_montecarlo.py): from 8 batch means
     it had 7 degrees of freedom and z = error / SE a t_7 law (mean z^2 7/5, far tails). On a flat

@@ -127,6 +127,7 @@ def test_buffered_draws_are_the_documented_stream():
             assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
 
 
+@pytest.mark.slow            # 720 runs, ~25 s: in CI by -m slow, out of the README's default run
 def test_se_is_honest_at_the_fast_preset(r3like):
     """Trial 7, defect 3: at --accuracy fast the SE came from 8 batch means (7 degrees of freedom),
     so z = error / SE had a t_7 law (RMS 1.18; measured 1.35). Over m = 720 results (120 seeds x 6
