@@ -41,7 +41,8 @@ import drjit as dr
 import mitsuba as mi
 
 from roadgonio.errors import InputError
-from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS, RoadParams, _lobe, active_terms, road_brdf
+from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_NAMES, VARIANTS, RoadParams, active_terms, phong_lobe,
+                                     road_brdf)
 from roadgonio.engines.mitsuba.ops import DrJitOps
 
 CHANNELS = ("road", "road_lambert")
@@ -140,10 +141,11 @@ class RoadBSDF(mi.BSDF):
         return "k_phong" in self.terms
 
     def _lobe_pdf(self, wi_sensor, wo_light):
-        """(n + 1)/(2 pi) (cos Omega)^n about the mirror direction of ``wi_sensor`` (n = n_phong)."""
-        h = 0.5 * ((wo_light.x + wi_sensor.x) ** 2 + (wo_light.y + wi_sensor.y) ** 2
-                   + (wo_light.z - wi_sensor.z) ** 2)            # 1 - cos Omega (half-chord, as the model)
-        return (self.n_phong + 1.0) * (0.5 * INV_PI) * _lobe(DrJitOps, h, self.n_phong)
+        """(n + 1)/(2 pi) (cos Omega)^n about the mirror direction of ``wi_sensor`` (n = n_phong): the
+        model's own lobe (:func:`roadgonio.surface.model.phong_lobe`; the model's wi is the light)."""
+        lobe = phong_lobe(DrJitOps, (wo_light.x, wo_light.y, wo_light.z), (wi_sensor.x, wi_sensor.y, wi_sensor.z),
+                          self.n_phong)
+        return (self.n_phong + 1.0) * (0.5 * INV_PI) * lobe
 
     def _pdf(self, wi_sensor, wo_light):
         cosine = mi.warp.square_to_cosine_hemisphere_pdf(wo_light)

@@ -117,6 +117,17 @@ def _lobe(xp, h, n):
     return xp.where(h < 1.0, xp.exp(n * xp.log1m(hc)), 0.0 * h)
 
 
+def phong_lobe(xp, wi, wo, n):
+    """(cos Omega)^n of the Phong lobe about the mirror direction ``R(w_i) = (-x, -y, z)``:
+    ``cos Omega = 1 - h`` with the half-chord ``h = |w_o - R(w_i)|^2 / 2`` (module docstring);
+    ``wi``, ``wo`` component triples. The lobe's shape, once: :func:`road_brdf` and the density
+    of the plugin's lobe sampling (``plugins/road_bsdf.py``) both take it from here."""
+    wix, wiy, wiz = wi
+    wox, woy, woz = wo
+    h = 0.5 * ((wox + wix) ** 2 + (woy + wiy) ** 2 + (woz - wiz) ** 2)
+    return _lobe(xp, h, n)
+
+
 def g_attenuation(xp, P: Mapping[str, Any], theta):
     """Grazing attenuation g(theta) = (a theta^2 + b theta + c)^t for theta > theta_l, else 1
     (paper, Figure 3); theta in radians."""
@@ -156,9 +167,7 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
     if "k_diff" in terms:
         f = f + P["k_diff"]
     if "k_phong" in terms:
-        # half-chord to the mirror direction R(w_i) = (-x, -y, z): cos Omega = 1 - h
-        h = 0.5 * ((wox + wix) ** 2 + (woy + wiy) ** 2 + (woz - wiz) ** 2)
-        f = f + P["k_phong"] * _lobe(xp, h, P["n_phong"])
+        f = f + P["k_phong"] * phong_lobe(xp, wi, wo, P["n_phong"])
     if "k_retro" in terms:
         # half-chord to the source direction: cos Omega' = 1 - h'
         h = 0.5 * ((wox - wix) ** 2 + (woy - wiy) ** 2 + (woz - wiz) ** 2)

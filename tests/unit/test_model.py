@@ -12,7 +12,7 @@ from roadgonio.errors import InputError
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, w_detector, w_source
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import (PARAM_BOUNDS, THETA_R_STAR, VARIANTS, RoadModel, RoadParams,
-                             road_brdf)
+                             phong_lobe, road_brdf)
 from helpers import _hemisphere, _model, _unit, rand_dirs, rand_params
 from tolerances import ROUND_TOL as RTOL_EXACT  # float64 evaluation of closed forms
 
@@ -120,6 +120,19 @@ def test_lobe_half_width(lobe, n):
         wo = _dir(theta_o, phi_o)
         wi = _turned(_lobe_peak(lobe, wo), half_deg, "side")
         assert m.brdf(wi, wo) == pytest.approx(1.7 / 2.0, rel=RTOL_EXPLOG)
+
+
+def test_phong_lobe_is_the_models_lobe():
+    """phong_lobe (the lobe's shape, shared with the plugin's lobe sampling) is the Phong term of
+    road_brdf exactly, and (cos Omega)^n about the mirror direction R(w_i) = (-x, -y, z)."""
+    rng = np.random.default_rng(14)
+    wi, wo = _hemisphere(3000, rng), _hemisphere(3000, rng)
+    triple = (lambda w: (w[:, 0], w[:, 1], w[:, 2]))
+    lobe = phong_lobe(NumpyOps, triple(wi), triple(wo), 40.0)
+    np.testing.assert_array_equal(lobe, _model(k_phong=1.0, n_phong=40.0).brdf(wi, wo))
+    cos_omega = np.einsum("ij,ij->i", wo, wi * np.array([-1.0, -1.0, 1.0]))
+    np.testing.assert_allclose(lobe, np.where(cos_omega > 0.0, np.maximum(cos_omega, 0.0) ** 40.0, 0.0),
+                               rtol=RTOL_EXPLOG, atol=1e-300)
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
