@@ -48,6 +48,7 @@ from functools import lru_cache
 import numpy as np
 
 from roadgonio.arrays import NumpyOps
+from roadgonio.geometry import pair_angles
 
 #: sin of the r-tables' observation elevation (alpha = 1 deg).
 SIN_ALPHA0 = math.sin(math.radians(1.0))
@@ -121,15 +122,9 @@ class SplineGrid:
 def incident_angles(xp, wi, wo):
     """(beta, eps) in degrees of ray pairs: ``wi``, ``wo`` component triples of unit vectors towards
     the source and the detector. beta as in :func:`roadgonio.surface.model.road_brdf` (exact near 0
-    and 180 deg; 0 where the azimuth is undefined, at the pole, where g does not depend on it)."""
-    wix, wiy, wiz = wi
-    wox, woy, _ = wo
-    sin_ti = xp.sqrt(wix * wix + wiy * wiy)
-    sin_tr = xp.sqrt(wox * wox + woy * woy)
-    cross = xp.abs(wix * woy - wiy * wox)
-    dot = wix * wox + wiy * woy
-    beta = xp.where(sin_ti * sin_tr > 1e-12, xp.atan2(cross, -dot), 0.0 * sin_ti)
-    eps = xp.atan2(sin_ti, wiz)
+    and 180 deg; 0 where the azimuth is undefined, at the pole, where g does not depend on it):
+    :func:`roadgonio.geometry.pair_angles`, eps its theta_i."""
+    eps, _, beta = pair_angles(xp, wi, wo, pole=0.0)
     return beta * (180.0 / math.pi), eps * (180.0 / math.pi)
 
 
