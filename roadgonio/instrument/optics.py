@@ -219,17 +219,20 @@ def mirror_line(src: SourceGeometry, x, y, wo):
     return a0, a1, a2
 
 
-def source_coupling(xp, src: SourceGeometry, x, y, spoint, disc_xy=None):
-    """From sample point (x, y, 0) to source point ``spoint``: the unit direction ``w`` towards the
+def source_coupling(xp, src: SourceGeometry, x, y, spoint, disc_xy=None, *, z=None, normal=None):
+    """From sample point (x, y, z) to source point ``spoint``: the unit direction ``w`` towards the
     source and the geometric factor ``G = cos theta_i cos theta_s / |s - x|^2`` times the source's
     relative radiance at ``spoint`` in that direction (:func:`source_radiance_factor`; the source
     point's unit-disc coordinates ``disc_xy`` are needed for an aperture profile); 0 outside the
-    beam or below the horizon."""
-    vx, vy, vz = spoint[0] - x, spoint[1] - y, spoint[2] + 0.0 * x
+    beam or below the sample point's horizon. The one statement of eq. 3's source term. By default
+    the point is on the plane z = 0 with the normal +z; a mesh sample passes the point's ``z`` and
+    its unit ``normal`` (a component triple)."""
+    vx, vy = spoint[0] - x, spoint[1] - y
+    vz = spoint[2] + 0.0 * x if z is None else spoint[2] - z
     d2 = vx * vx + vy * vy + vz * vz
     inv = 1.0 / xp.sqrt(d2)
     w = (vx * inv, vy * inv, vz * inv)
-    cos_i = w[2]
+    cos_i = w[2] if normal is None else w[0] * normal[0] + w[1] * normal[1] + w[2] * normal[2]
     cos_s = -(w[0] * src.axis[0] + w[1] * src.axis[1] + w[2] * src.axis[2])
     ok = (cos_i > 0.0) & (cos_s > 0.0)
     if src.cos_beam is not None:

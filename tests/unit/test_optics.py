@@ -68,6 +68,34 @@ def test_axis_ray_hits_the_sample_centre_and_source_coupling_is_cos_eps_over_d2(
         assert g[0] == pytest.approx(math.cos(math.atan(t)) / ins.source.distance_m ** 2, rel=1e-12)
 
 
+def test_source_coupling_at_a_point_above_the_plane_with_a_tilted_normal():
+    """source_coupling's optional point z and normal (a mesh face): the default is the plane z = 0
+    with the normal +z, bit for bit; otherwise G = (w . n)(-w . a) / d^2, 0 where the source is
+    behind the face or outside the beam, against an independent float64 evaluation."""
+    ins = load_instrument("portable").with_changes(source={"beam_half_angle_deg": 6.0})
+    src = source_geometry(ins, 1.0, 30.0)
+    rng = np.random.default_rng(SEED)
+    n_pts = 4000
+    x, y, z = rng.uniform(-0.2, 0.2, n_pts), rng.uniform(-0.1, 0.1, n_pts), rng.uniform(-0.01, 0.01, n_pts)
+    disc = concentric_disc(xp, rng.random(n_pts), rng.random(n_pts))
+    sp = source_point(src, disc)
+    w0, g0 = source_coupling(xp, src, x, y, sp, disc)
+    w1, g1 = source_coupling(xp, src, x, y, sp, disc, z=0.0 * x, normal=(0.0, 0.0, 1.0))
+    np.testing.assert_array_equal(g1, g0)
+    normal = rng.normal(size=(n_pts, 3)) * 0.5 + [0.0, 0.0, 1.0]
+    normal /= np.linalg.norm(normal, axis=1)[:, None]
+    away = -ins.w_i(1.0, 30.0)[:2] / np.linalg.norm(ins.w_i(1.0, 30.0)[:2])
+    normal[:50] = [0.95 * away[0], 0.95 * away[1], math.sqrt(1.0 - 0.95 ** 2)]   # faces turned away from the source
+    _, g = source_coupling(xp, src, x, y, sp, disc, z=z, normal=tuple(normal.T))
+    v = np.stack(sp, 1) - np.stack([x, y, z], 1)
+    d = np.linalg.norm(v, axis=1)
+    u = v / d[:, None]
+    cos_i, cos_s = np.einsum("ij,ij->i", u, normal), -(u @ src.axis)
+    want = np.where((cos_i > 0) & (cos_s >= math.cos(math.radians(6.0))), cos_i * cos_s / d ** 2, 0.0)
+    np.testing.assert_allclose(g, want, rtol=1e-12, atol=0.0)
+    assert (g == 0).any() and (g > 0).any() and np.all(g[:50] == 0.0)
+
+
 def test_angular_field_weight_is_cos4():
     ins = load_instrument("portable").with_changes(detector={"focus_m": "inf", "pupil_radius_m": 0.0})
     geo = detector_geometry(ins)
