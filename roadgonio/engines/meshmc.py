@@ -306,10 +306,7 @@ class MeshMonteCarloBackend(CellByCellBackend):
                 g[sel[shadow]] = 0.0
             # local frame of each face: the BRDF depends on the directions relative to n only
             wo = -D
-            a = np.where(np.abs(n[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
-            s = np.cross(a, n)
-            s /= np.linalg.norm(s, axis=1)[:, None]
-            tt = np.cross(n, s)
+            s, tt = optics.orthonormal_frame(n)
 
             def local(vec):
                 return (np.einsum("ij,ij->i", vec, s), np.einsum("ij,ij->i", vec, tt), np.einsum("ij,ij->i", vec, n))

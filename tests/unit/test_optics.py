@@ -96,6 +96,26 @@ def test_source_coupling_at_a_point_above_the_plane_with_a_tilted_normal():
     assert (g == 0).any() and (g > 0).any() and np.all(g[:50] == 0.0)
 
 
+def test_source_frames_of_many_cells_are_those_of_each_cell():
+    """optics.source_frames (the disc's placement, once): over arrays of cells it gives each cell's
+    source_geometry bit for bit (the Mitsuba engine and the numpy backends place the same disc), the
+    centre at D_S along w_i, the axis -w_i and (s, t, axis) a right-handed orthonormal frame; a
+    fixed-height path has its D_S per cell."""
+    for ins in (load_instrument("portable"), load_instrument("corridor")):
+        T, B = np.meshgrid([0.0, 0.5, 2.0, 12.0], [0.0, 45.0, 180.0], indexing="ij")
+        place = optics.source_frames(ins, T.ravel(), B.ravel())
+        for k, (t, b) in enumerate(zip(T.ravel(), B.ravel())):
+            one = source_geometry(ins, t, b)
+            for got, want in ((place.centre[k], one.centre), (place.axis[k], one.axis), (place.s[k], one.s),
+                              (place.t[k], one.t)):
+                np.testing.assert_array_equal(got, want)
+            assert place.distance_m[k] == optics.source_distance_m(ins.source, float(t))
+            np.testing.assert_allclose(place.centre[k], -place.distance_m[k] * place.axis[k], rtol=1e-15, atol=1e-15)
+        frame = np.stack([place.s, place.t, place.axis], axis=1)
+        np.testing.assert_allclose(frame @ np.swapaxes(frame, 1, 2), np.broadcast_to(np.eye(3), frame.shape), atol=1e-15)
+        np.testing.assert_allclose(np.linalg.det(frame), 1.0, rtol=1e-14)
+
+
 def test_angular_field_weight_is_cos4():
     ins = load_instrument("portable").with_changes(detector={"focus_m": "inf", "pupil_radius_m": 0.0})
     geo = detector_geometry(ins)

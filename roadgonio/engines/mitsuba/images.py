@@ -64,10 +64,10 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     rs = build_scene(instrument, model, resolution=resolution, mitsuba_variant=mitsuba_variant, sampler="multijitter")
     import mitsuba as mi
     if instrument.source.profiled:
-        from roadgonio.engines.mitsuba.engine import BatchEngine, source_frames
+        from roadgonio.engines.mitsuba.engine import BatchEngine, cell_sources
         engine = BatchEngine(rs)                 # the profiled source of the cell, lit by the kabatch integrator
         engine.check_cells([(tan_eps, beta_deg)])
-        engine.integrator.set_cells(source_frames(instrument, [(tan_eps, beta_deg)]))
+        engine.integrator.set_cells(*cell_sources(instrument, [(tan_eps, beta_deg)]))
         rs.integrator = engine.integrator        # its cell 0
         rs.cell = (float(tan_eps), float(beta_deg))
     else:
@@ -186,12 +186,12 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
     import drjit as dr
 
     from roadgonio.engines.mitsuba import lattice as lat
-    from roadgonio.engines.mitsuba.engine import BatchEngine, source_frames
+    from roadgonio.engines.mitsuba.engine import BatchEngine, cell_sources
     from roadgonio.engines.mitsuba.plugins.ka_batch import _u32
     eng = BatchEngine(rs)
     integ = eng.integrator
     eng.check_cells([(tan_eps, beta_deg)])
-    integ.set_cells(source_frames(rs.instrument, [(tan_eps, beta_deg)]))
+    integ.set_cells(*cell_sources(rs.instrument, [(tan_eps, beta_deg)]))
     n = 1 << int(log2n)
     z = lat.generating_vector(n, lat.DIMENSIONS + integ.qmc_dims)
     shifts = np.concatenate([lat.shifts(seed, 0, log2n, replicates),
