@@ -92,7 +92,7 @@ def mean_field_sensitivity(instrument: Instrument) -> float:
     if det.field_map is None:
         return 1.0 - (1.0 - det.field_edge_sensitivity) / 2.0
     from roadgonio.arrays import NumpyOps
-    from roadgonio.engines.quadrature import disc_rule
+    from roadgonio.engines.rules import disc_rule
     from roadgonio.instrument.optics import detector_geometry, field_map_value
     fx, fy, w = disc_rule(PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL)
     return float(field_map_value(NumpyOps, detector_geometry(instrument), fx, fy) @ w)
@@ -108,7 +108,7 @@ def profiled_solid_angle(instrument: Instrument) -> float:
     if not src.profiled or src.radius_m == 0.0:
         return source_solid_angle(src.radius_m, src.length_m)
     from roadgonio.arrays import NumpyOps
-    from roadgonio.engines.quadrature import disc_rule
+    from roadgonio.engines.rules import disc_rule
     from roadgonio.instrument import optics
     g = optics.source_geometry(instrument, 0.0, 0.0)
     sx, sy, w = disc_rule(PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL)
