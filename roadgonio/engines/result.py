@@ -139,7 +139,9 @@ def ideal_ratios(model: RoadModel, instrument: Instrument, cells: Sequence[tuple
 
 def ratio_se(road: np.ndarray, lam: np.ndarray) -> tuple[float, float]:
     """Ratio of means <road>/<lam> of paired per-batch (or per-pixel) values and its standard error
-    by the delta method, float64."""
+    by the delta method, float64 (inf with fewer than 2 pairs). The one statement for independent
+    batches; :func:`roadgonio.engines.mitsuba.passes.strata_ratio_se` is its generalisation to
+    independent strata of replicates (the Mitsuba engine's passes)."""
     road = np.asarray(road, dtype=np.float64).ravel()
     lam = np.asarray(lam, dtype=np.float64).ravel()
     n = road.size

@@ -237,11 +237,12 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
         rs.sensor.mapping = "concentric"
     with np.errstate(invalid="ignore", divide="ignore"):
         img = (sums / np.maximum(counts, 1.0)).reshape(2 + P, res, res)
-    from roadgonio.engines.strayref import ratio_se
+    from roadgonio.engines.mitsuba.passes import strata_ratio_se
     R, G = reps[:, 0] + reps[:, 2], reps[:, 1] + reps[:, 3]
-    ratio, ratio_se_ = ratio_se(R, G)
-    q_road, q_road_se = ratio_se(reps[:, 0], R)
-    q_lam, q_lam_se = ratio_se(reps[:, 1], G)
+    # the engine's ratio estimator over the independent replicates (one stratum)
+    ratio, ratio_se_ = strata_ratio_se([(R, G)])
+    q_road, q_road_se = strata_ratio_se([(reps[:, 0], R)])
+    q_lam, q_lam_se = strata_ratio_se([(reps[:, 1], G)])
     shares = by_part.sum(axis=0)
     summary = {"cell": [float(tan_eps), float(beta_deg)], "max_bounces": eng.max_bounces,
                "stray_fraction_road": 1.0 - q_road, "stray_fraction_road_se": q_road_se,
