@@ -34,10 +34,12 @@ linearly, ``g = sum_p theta_p phi_p``: the simulated measurement through fixed r
 ``sum_k a_k f_0,k exp(g_k)``, whose Jacobian in theta is again a sum over the same rays
 (:mod:`roadgonio.correction.flexible`).
 
-The formula is written once, over an array namespace ``xp`` (:func:`surface_coordinates`,
+The spline is written once, over an array namespace ``xp`` (:func:`surface_coordinates`,
 :func:`bspline_weights`, :func:`lookup`, :func:`spline_value`): the names of
 :class:`roadgonio.arrays.NumpyOps`, whose ``floor`` and ``take(table, index)`` (a gather) the
-B-spline lookup uses.
+B-spline lookup uses. The factor ``exp(g_C + l(alpha) g_D)`` itself (:func:`alpha_coordinate` for
+l, the exponent clipped at 50) is assembled in one place, over the forward model's cached lookups
+of its rays: ``FlexPart.g_rays`` and ``FlexPart.ray_weights`` in :mod:`roadgonio.correction.flexible`.
 """
 from __future__ import annotations
 
@@ -104,11 +106,6 @@ class SplineGrid:
         row per difference, and the (beta index, eps index) of each difference's centre node."""
         return _differences(self)
 
-    def node_values(self, theta: np.ndarray) -> np.ndarray:
-        """(S_beta + 1, S_t + 1) node values (beta index, eps index) of ``theta``."""
-        return (self.padded_matrix() @ np.asarray(theta, dtype=np.float64)).reshape(self.pad_shape)[
-            1:self.s_beta + 2, 1:self.s_t + 2]
-
     def node_coordinates(self) -> tuple[np.ndarray, np.ndarray]:
         """(beta_deg, eps_deg) of the node lines (inverse of the coordinate maps)."""
         sb = np.arange(self.s_beta + 1, dtype=np.float64)
@@ -171,15 +168,6 @@ def spline_value(xp, grid: SplineGrid, padded, wi, wo):
         term = w * xp.take(padded, idx)
         out = term if out is None else out + term
     return out
-
-
-def correction_factor(xp, c_grid: SplineGrid, c_padded, d_grid: SplineGrid | None, d_padded, wi, wo):
-    """exp(g_C + l(alpha) g_D): the factor that multiplies the backbone (module docstring);
-    ``d_grid`` None leaves out g_D."""
-    g = spline_value(xp, c_grid, c_padded, wi, wo)
-    if d_grid is not None:
-        g = g + alpha_coordinate(xp, wo) * spline_value(xp, d_grid, d_padded, wi, wo)
-    return xp.exp(g)
 
 
 def _reflect(i: int, hi: int) -> int:
