@@ -16,8 +16,9 @@ Properties (XML or ``mi.load_dict``):
   perfect diffuser. The detector signal then carries S[f_road] in R and S[f_lambert] in G and B,
   computed from the same rays in the same pass (the k_A ratio of docs/conventions.md section 5).
 
-Calling convention (mitsuba-cpu notes, section 2): ``si.wi`` is the local direction towards the
-sensor (the model's ``wo``), the ``wo`` argument is towards the light (the model's ``wi``);
+Calling convention (Mitsuba's, in Radiance mode; checked with a non-reciprocal term): ``si.wi`` is
+the local direction towards the sensor (the model's ``wo``), the ``wo`` argument is towards the
+light (the model's ``wi``);
 :meth:`eval` returns f cos(theta_light); :meth:`sample` draws the light direction from a
 cosine-weighted hemisphere (pdf = cos/pi), or, when the model has a Phong lobe, from the mixture
 (1 - P) cos/pi + P (n + 1)/(2 pi) (cos Omega)^n with P = :data:`LOBE_SHARE` and the model's own

@@ -1,4 +1,4 @@
-"""Independent float64 check of the stray light (issue 18): one diffuse wall beside the footprint,
+"""Independent float64 check of the stray light (docs/straylight.md, "Checks"): one diffuse wall beside the footprint,
 by plain Monte Carlo in numpy, written apart from the Mitsuba backend (it shares only the
 instrument's ray geometry, :mod:`roadgonio.instrument.optics`, and the BRDF model,
 :mod:`roadgonio.surface.model`).

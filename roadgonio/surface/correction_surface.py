@@ -10,7 +10,7 @@ w_i (docs/conventions.md section 1; isotropic, beta folded to [0, 180 deg]), ``a
 elevation of w_o and ``l(alpha) = ln(sin alpha / sin 1 deg)``. At alpha = 1 deg (the r-table's
 observation) the factor is ``exp(g_C)``: g_C is the correction of the table's shape; g_D is how much
 faster (per unit ln alpha) the BRDF changes off alpha = 1 deg than the backbone says, which only a
-second aperture setting can measure (item 3 of issue 19). Without g_D the behaviour off 1 deg is the
+second aperture setting can measure (docs/design.md, "Which second aperture?"). Without g_D the behaviour off 1 deg is the
 backbone's.
 
 Each of g_C, g_D is a tensor-product cubic B-spline on unit-spaced knots in two smooth coordinates

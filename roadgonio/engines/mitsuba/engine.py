@@ -1,5 +1,5 @@
 """The batched k_A engine: all cells of a table in a few Mitsuba launches, passes sized from the
-target (issue 9). The Mitsuba side is the ``kabatch`` integrator plugin
+target (docs/architecture.md, "How the k_A engine works"). The Mitsuba side is the ``kabatch`` integrator plugin
 (:mod:`roadgonio.engines.mitsuba.plugins.ka_batch`); the pass plan and the float64 statistics are
 :mod:`roadgonio.engines.mitsuba.passes`; the sample points :mod:`roadgonio.engines.mitsuba.lattice`.
 
