@@ -32,8 +32,11 @@ class BareKernel:
         self.terms = model.terms()
         self.radius = dr.opaque(mi.Float, instrument.source.radius_m)
 
-    def set_cells(self, frames: np.ndarray) -> None:
+    def set_cells(self, place) -> None:
+        """The cells' source discs: :func:`roadgonio.instrument.optics.source_frames` of the cells
+        (centre, s, t, axis: 12 float32 arrays)."""
         mi = self.mi
+        frames = np.concatenate([place.centre, place.s, place.t, place.axis], axis=1)
         self.frames = [mi.Float(np.ascontiguousarray(frames[:, k], dtype=np.float32)) for k in range(12)]
 
     def block_sums(self, lattice: dict, block_cell: np.ndarray, block_rep: np.ndarray) -> np.ndarray:

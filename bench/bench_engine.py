@@ -64,9 +64,11 @@ def replay_bare(bare, inst, cells, plan, seed) -> tuple[float, float, np.ndarray
     import drjit as dr  # noqa: F401
 
     from roadgonio.engines.mitsuba import lattice as lat
-    from roadgonio.engines.mitsuba.engine import MAX_LANES, source_frames
+    from roadgonio.engines.mitsuba.engine import MAX_LANES
+    from roadgonio.instrument.optics import source_frames
     from roadgonio.engines.mitsuba.plugins.ka_batch import lattice_params
-    bare.set_cells(source_frames(inst, cells))
+    c = np.asarray(cells, dtype=np.float64)
+    bare.set_cells(source_frames(inst, c[:, 0], c[:, 1]))
     sums = np.zeros((len(cells), 2))
     t0, c0 = time.perf_counter(), cpu_self()
     for p in range(plan.passes):

@@ -61,7 +61,7 @@ def main(argv=None) -> int:
     from roadgonio.engines.mitsuba import set_variant
     set_variant()
     from roadgonio.engines.mitsuba.backend import make_backend
-    from roadgonio.engines.mitsuba.engine import BatchEngine, source_frames
+    from roadgonio.engines.mitsuba.engine import BatchEngine, cell_sources
     from roadgonio.engines.mitsuba.plugins import ka_batch as kb
     from roadgonio.engines.mitsuba.scene import build_scene
     from roadgonio.instrument.config import Instrument
@@ -155,7 +155,7 @@ def main(argv=None) -> int:
                "signal; variance per point of the residual (lattice) / mean square (plain MC), both / V")
     sec3 = CELLS if not args.cells else tuple(zip(args.cells[0::2], args.cells[1::2]))
     for cell in sec3:
-        integ.set_cells(source_frames(inst, [cell]))
+        integ.set_cells(*cell_sources(inst, [cell]))
         z = lat.generating_vector(n, lat.DIMENSIONS + integ.qmc_dims)
         shifts = np.concatenate([lat.shifts(0, 0, args.log2n, reps),
                                  lat.walk_shifts(0, 0, args.log2n, reps, integ.qmc_dims)], axis=1)

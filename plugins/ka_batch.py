@@ -12,8 +12,9 @@ What a cell is made of (docs/conventions.md section 4), all Mitsuba objects:
   D_S w_i(eps, beta) and facing the sample centre (a ``point`` emitter when R_S = 0).
 
 Every cell's source is one rigid placement of the same disc: the integrator holds **one** area
-emitter at a canonical placement (centre at the origin, normal +z) and, per cell, the rigid frame
-(centre c, axes s, t, a; float32 arrays, one entry per cell). A hit point p is expressed in the
+emitter at a canonical placement (centre at the origin, normal +z) and, per cell, the axis a and
+D_S (float32 arrays, one entry per cell), from which the kernel builds the rigid frame: centre
+c = -D_S a and axes s, t (:func:`frame_from_axis`). A hit point p is expressed in the
 cell's source frame, p' = (s.(p-c), t.(p-c), a.(p-c)), the area emitter samples its disc as seen
 from p' (``Emitter.sample_direction``: uniform on the disc area, weight L cos theta_s A / d^2), and
 the sampled direction and point go back to the world frame. Distances and angles are invariant under
@@ -127,12 +128,11 @@ class KaBatch(mi.SamplingIntegrator):
         self.sample_shape = shape
         self.bsdf = shape.bsdf()
 
-    def set_source(self, emitter, shape=None) -> None:
+    def set_source(self, emitter) -> None:
         """The canonical source: the area emitter of a disk centred at the origin with normal +z
-        (radius R_S) and that disk ``shape``, or a point emitter at the origin. The shape is kept
-        here: an area emitter only points back to its shape, which must outlive it."""
+        (radius R_S), or a point emitter at the origin (:func:`canonical_source`). An area emitter
+        only points back to its disk shape: the caller keeps the shape alive."""
         self.emitter = emitter
-        self._source_shape = shape
 
     def set_profile(self, source) -> None:
         """The beam profile of the instrument's ``source`` (:class:`~roadgonio.instrument.config.Source`),
@@ -143,23 +143,23 @@ class KaBatch(mi.SamplingIntegrator):
             jit_beam(source.beam), jit_aperture(source.aperture),
             dr.opaque(mi.Float, 1.0 / source.radius_m if source.radius_m > 0 else 0.0))
 
-    def set_cells(self, frames: np.ndarray) -> None:
-        """Source frames of the cells, float64 (n_cells, 12): centre, s, t, axis (the axis points
-        from the source towards the sample centre, the centre is the cell's D_S times minus the axis;
-        D_S may differ between cells: a fixed-height source path). Only the axis and D_S go to the
-        device: the kernel rebuilds the frame from the axis
-        (:func:`frame_from_axis`, the rule of :func:`roadgonio.engines.mitsuba.engine.source_frames`)."""
-        frames = np.asarray(frames, dtype=np.float64)
-        if frames.ndim != 2 or frames.shape[1] != 12:
-            raise BackendError(f"expected source frames of shape (cells, 12), got {frames.shape}")
-        axis = frames[:, 9:12]
-        dist = np.linalg.norm(frames[:, 0:3], axis=1)
-        if len(frames) and np.abs(frames[:, 0:3] + dist[:, None] * axis).max() > 1e-9 * max(dist.max(), 1.0):
-            raise BackendError("the source frames must be centred along minus their axes")
+    def set_cells(self, axes: np.ndarray, distances: np.ndarray) -> None:
+        """The cells' sources, float64: unit axes (n_cells, 3), pointing from the source towards the
+        sample centre, and D_S (n_cells,), which may differ between cells (a fixed-height source
+        path); the centre is -D_S times the axis
+        (:func:`roadgonio.engines.mitsuba.engine.cell_sources`). The kernel rebuilds the disc's
+        frame from the axis (:func:`frame_from_axis`)."""
+        axes = np.asarray(axes, dtype=np.float64)
+        distances = np.asarray(distances, dtype=np.float64)
+        if axes.ndim != 2 or axes.shape[1] != 3 or distances.shape != (len(axes),):
+            raise BackendError(f"expected source axes of shape (cells, 3) and distances of shape (cells,), got "
+                               f"{axes.shape} and {distances.shape}")
+        if len(axes) and (np.abs(np.linalg.norm(axes, axis=1) - 1.0).max() > 1e-9 or not np.all(distances > 0.0)):
+            raise BackendError("the source axes must be unit vectors and the distances positive")
         # gathered per lane, so these are never loaded contiguously (no alignment-dependent kernels)
-        self.frames = [_f32(axis[:, k]) for k in range(3)]
-        self.distance = _f32(dist)          # D_S per cell
-        self.n_cells = len(frames)
+        self.frames = [_f32(axes[:, k]) for k in range(3)]
+        self.distance = _f32(distances)      # D_S per cell
+        self.n_cells = len(axes)
 
     # -- shading -------------------------------------------------------------------------------
     def source_sample(self, si, cell, u, active):
@@ -778,7 +778,8 @@ def vertex_interaction(g: dict, shape):
 
 def frame_from_axis(a):
     """Unit vectors (s, t) completing the unit axis ``a`` to a right-handed frame, on the device:
-    s = normalise(h x a) with h = +z, or +x when |a_z| >= 0.9; t = a x s."""
+    s = normalise(h x a) with h = +z, or +x when |a_z| >= 0.9; t = a x s. The device twin of
+    :func:`roadgonio.instrument.optics.orthonormal_frame` (same rule, float32)."""
     use_z = dr.abs(a.z) < 0.9
     h = mi.Vector3f(dr.select(use_z, 0.0, 1.0), 0.0, dr.select(use_z, 1.0, 0.0))
     s = dr.normalize(dr.cross(h, a))
@@ -847,10 +848,3 @@ def canonical_source(radius_m: float, radiance: float):
     em = mi.load_dict({"type": "point", "position": [0.0, 0.0, 0.0],
                        "intensity": {"type": "uniform", "value": radiance}})
     return em, None
-
-
-def source_frames(centres, s, t, axes) -> np.ndarray:
-    """Stack per-cell source frames (each (cells, 3), float64) into the (cells, 12) layout."""
-    return np.concatenate([np.asarray(v, dtype=np.float64) for v in (centres, s, t, axes)], axis=1)
-
-

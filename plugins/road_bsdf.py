@@ -16,8 +16,9 @@ Properties (XML or ``mi.load_dict``):
   perfect diffuser. The detector signal then carries S[f_road] in R and S[f_lambert] in G and B,
   computed from the same rays in the same pass (the k_A ratio of docs/conventions.md section 5).
 
-Calling convention (mitsuba-cpu notes, section 2): ``si.wi`` is the local direction towards the
-sensor (the model's ``wo``), the ``wo`` argument is towards the light (the model's ``wi``);
+Calling convention (Mitsuba's, in Radiance mode; checked with a non-reciprocal term): ``si.wi`` is
+the local direction towards the sensor (the model's ``wo``), the ``wo`` argument is towards the
+light (the model's ``wi``);
 :meth:`eval` returns f cos(theta_light); :meth:`sample` draws the light direction from a
 cosine-weighted hemisphere (pdf = cos/pi), or, when the model has a Phong lobe, from the mixture
 (1 - P) cos/pi + P (n + 1)/(2 pi) (cos Omega)^n with P = :data:`LOBE_SHARE` and the model's own
@@ -41,7 +42,8 @@ import drjit as dr
 import mitsuba as mi
 
 from roadgonio.errors import InputError
-from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS, RoadParams, _lobe, active_terms, road_brdf
+from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_NAMES, VARIANTS, RoadParams, active_terms, phong_lobe,
+                                     road_brdf)
 from roadgonio.engines.mitsuba.ops import DrJitOps
 
 CHANNELS = ("road", "road_lambert")
@@ -140,10 +142,11 @@ class RoadBSDF(mi.BSDF):
         return "k_phong" in self.terms
 
     def _lobe_pdf(self, wi_sensor, wo_light):
-        """(n + 1)/(2 pi) (cos Omega)^n about the mirror direction of ``wi_sensor`` (n = n_phong)."""
-        h = 0.5 * ((wo_light.x + wi_sensor.x) ** 2 + (wo_light.y + wi_sensor.y) ** 2
-                   + (wo_light.z - wi_sensor.z) ** 2)            # 1 - cos Omega (half-chord, as the model)
-        return (self.n_phong + 1.0) * (0.5 * INV_PI) * _lobe(DrJitOps, h, self.n_phong)
+        """(n + 1)/(2 pi) (cos Omega)^n about the mirror direction of ``wi_sensor`` (n = n_phong): the
+        model's own lobe (:func:`roadgonio.surface.model.phong_lobe`; the model's wi is the light)."""
+        lobe = phong_lobe(DrJitOps, (wo_light.x, wo_light.y, wo_light.z), (wi_sensor.x, wi_sensor.y, wi_sensor.z),
+                          self.n_phong)
+        return (self.n_phong + 1.0) * (0.5 * INV_PI) * lobe
 
     def _pdf(self, wi_sensor, wo_light):
         cosine = mi.warp.square_to_cosine_hemisphere_pdf(wo_light)

@@ -763,8 +763,8 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
 def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured: Any = None, rays: int = 512,
                     seed: int = 0, model_variant: str | None = None, min_signal: float | None = None, out=None,
                     plots: bool = True, progress: bool = False):
-    """Which second aperture setting should the instrument have (``roadgonio design --second-aperture``,
-    issue 19)? Ranks every point of the ``vary`` grid (applied to ``instrument``) by the median
+    """Which second aperture setting should the instrument have (``roadgonio design --second-aperture``;
+    docs/design.md, "Which second aperture?")? Ranks every point of the ``vary`` grid (applied to ``instrument``) by the median
     relative u of the one corrected table that a joint correction of the instrument and that
     second setting would give (:mod:`roadgonio.design.second_aperture`), among the settings that
     keep at least ``min_signal`` (default 0.25) of the instrument's signal; baselines: the

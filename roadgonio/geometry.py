@@ -10,7 +10,8 @@ vectors point away from the surface.
   Source azimuth ``phi_i = delta + 180 deg - beta`` (:func:`source_azimuth_rad`, written only there):
   ``w_i = (sin e cos phi_i, sin e sin phi_i, cos e)``.
 
-All functions are float64 numpy and broadcast over their arguments.
+All functions are float64 numpy and broadcast over their arguments, except :func:`pair_angles`,
+which is written over an array namespace ``xp`` so that the Dr.Jit plugins evaluate it too.
 """
 from __future__ import annotations
 
@@ -78,6 +79,28 @@ def source_cell(w, delta_deg=0.0) -> tuple[np.ndarray, np.ndarray]:
     phi = np.degrees(np.arctan2(w[..., 1], w[..., 0]))
     beta = np.abs((np.asarray(delta_deg, dtype=np.float64) + 180.0 - phi + 180.0) % 360.0 - 180.0)
     return tan, beta
+
+
+def pair_angles(xp, wi, wo, *, pole: float):
+    """(theta_i, theta_r, beta) in radians of ray pairs: ``wi``, ``wo`` component triples of unit
+    vectors towards the source and the detector in the sample's frame (z the normal), over the
+    array namespace ``xp`` (:class:`roadgonio.arrays.NumpyOps` or the Dr.Jit one). The one
+    statement of the angles of a ray pair: theta from the normal, and beta, the angle between the
+    vertical planes of illumination and observation (0 on the far side, as in
+    :func:`source_azimuth_rad`), folded to [0, pi] and formed as
+    ``atan2(|w_i x w_o|_z, -(w_i . w_o)_xy)``, exact near 0 and pi. Where the azimuth of either
+    direction is undefined (theta_i = 0 or theta_r = 0) beta is ``pole``: each caller says what it
+    needs there (the road BRDF pi, so its empirical term is 0; the correction surface 0)."""
+    wix, wiy, wiz = wi
+    wox, woy, woz = wo
+    sin_ti = xp.sqrt(wix * wix + wiy * wiy)
+    sin_tr = xp.sqrt(wox * wox + woy * woy)
+    theta_i = xp.atan2(sin_ti, wiz)
+    theta_r = xp.atan2(sin_tr, woz)
+    cross = xp.abs(wix * woy - wiy * wox)
+    dot = wix * wox + wiy * woy
+    beta = xp.where(sin_ti * sin_tr > 1e-12, xp.atan2(cross, -dot), pole + 0.0 * (wiz + woz))
+    return theta_i, theta_r, beta
 
 
 def eps_from_tan(tan_eps) -> np.ndarray:

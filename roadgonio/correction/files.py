@@ -3,7 +3,7 @@
 :func:`roadgonio.correction.run.correct_self`, or with eq. 4 times the correction surface,
 :func:`roadgonio.correction.outside.correct_surface`; or ``reference = SAMPLE``), several tables of
 one instrument (:func:`correct_files`, in this process or one Dask task per table), and several
-instruments that measured one surface (:func:`correct_joint`, issue 19).
+instruments that measured one surface (:func:`correct_joint`; docs/correction.md, "Outside eq. 4").
 
 It sits above :mod:`.run` (the eq. 4 procedure and its helpers) and :mod:`.outside` (the
 correction surface), which both use the helpers of :mod:`.run`.

@@ -59,7 +59,7 @@ DEFAULT_ROUNDS = 2
 #: Latin-hypercube starts of the later rounds (which also start from the previous round's model).
 LATER_ROUND_STARTS = 4
 FIT_STATE = "fit_state.json"
-#: Forward models of ``reference = "self"``: eq. 4 alone (issue 11), or eq. 4 times the correction
+#: Forward models of ``reference = "self"``: eq. 4 alone (docs/correction.md, "The method"), or eq. 4 times the correction
 #: surface (:mod:`roadgonio.correction.outside`).
 FORWARDS = ("eq4", "surface")
 

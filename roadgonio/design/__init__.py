@@ -9,8 +9,11 @@ Modules:
 * :mod:`.feasibility`: geometry checks of a point with the reason it is impossible (never a crash);
 * :mod:`.metrics`: the signal (etendue x source solid angle, formula documented there) and the
   deviations of k_A from 1;
-* :mod:`.run`: the journal (resume), the Dataset; :mod:`.outputs`: design.nc, design.csv, best.toml,
-  pareto.png, tolerance_map.png. The Dask plumbing is :mod:`roadgonio.engines.cluster`.
+* :mod:`.run`: the journal (resume), the Dataset; :mod:`.dataset`: the Dataset assembled and read
+  back; :mod:`.outputs`: design.nc, design.csv, best.toml, pareto.png, tolerance_map.png. The Dask
+  plumbing is :mod:`roadgonio.engines.cluster`;
+* :mod:`.second_aperture`: which second aperture an instrument should have (``roadgonio design
+  --second-aperture``).
 
 ``design.nc`` layout: ``k_a``, ``se``, ``error_bound`` over (varied keys..., sample, tan_eps, beta);
 per point ``max_abs_dev``, ``rms_dev``, ``worst_*``, ``signal``, ``footprint_length_m``,

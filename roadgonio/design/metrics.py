@@ -92,7 +92,7 @@ def mean_field_sensitivity(instrument: Instrument) -> float:
     if det.field_map is None:
         return 1.0 - (1.0 - det.field_edge_sensitivity) / 2.0
     from roadgonio.arrays import NumpyOps
-    from roadgonio.engines.quadrature import disc_rule
+    from roadgonio.engines.rules import disc_rule
     from roadgonio.instrument.optics import detector_geometry, field_map_value
     fx, fy, w = disc_rule(PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL)
     return float(field_map_value(NumpyOps, detector_geometry(instrument), fx, fy) @ w)
@@ -100,22 +100,17 @@ def mean_field_sensitivity(instrument: Instrument) -> float:
 
 def profiled_solid_angle(instrument: Instrument) -> float:
     """Omega_S = E_normal / L_0 of the instrument's source (module docstring): the closed form of
-    :func:`source_solid_angle` for the uniform disc, otherwise the shared source coupling
-    (:func:`roadgonio.instrument.optics.source_coupling`, profile included) integrated over the disc
-    for the source overhead, at the sample centre (a fixed-height source is then at its height, where
+    :func:`source_solid_angle` for the uniform disc, otherwise the mean source coupling over the disc
+    (:func:`roadgonio.engines.calibration.centre_coupling`, eta's E_0, profile included) times its
+    area, for the source overhead, at the sample centre (a fixed-height source is then at its height, where
     its signal is largest)."""
     src = instrument.source
     if not src.profiled or src.radius_m == 0.0:
         return source_solid_angle(src.radius_m, src.length_m)
-    from roadgonio.arrays import NumpyOps
-    from roadgonio.engines.quadrature import disc_rule
+    from roadgonio.engines.calibration import centre_coupling
     from roadgonio.instrument import optics
     g = optics.source_geometry(instrument, 0.0, 0.0)
-    sx, sy, w = disc_rule(PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL)
-    sp = optics.source_point(g, (sx, sy))
-    sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape) for c in sp)
-    _, cpl = optics.source_coupling(NumpyOps, g, np.zeros(1), np.zeros(1), sp, (sx, sy))
-    return float(np.asarray(cpl) @ w) * math.pi * src.radius_m ** 2
+    return centre_coupling(g, PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL) * math.pi * src.radius_m ** 2
 
 
 def signal_product(instrument: Instrument) -> float:

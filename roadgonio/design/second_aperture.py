@@ -1,4 +1,4 @@
-"""Which second aperture should my instrument have? (issue 19, item 3; docs/correction.md,
+"""Which second aperture should my instrument have? (docs/design.md, "Which second aperture?"; docs/correction.md,
 "Two instruments, one surface").
 
 One instrument cannot tell the BRDF's behaviour off alpha = 1 deg from its shape in (beta, eps):

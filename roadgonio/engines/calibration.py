@@ -21,7 +21,7 @@ the instrument's ``[calibration] mode`` (:mod:`roadgonio.instrument.calibration`
   where <E> is the etendue- and k_D-weighted mean illuminance over the detected footprint.
   eta is pure geometry (independent of the BRDF): a Lambertian sample gives k_abs = eta, not 1.
   It is computed here in float64 by a product Gauss rule over pupil x field x source disc
-  (:func:`illuminance_ratio`, the disc rules of :mod:`roadgonio.engines.quadrature`), refined
+  (:func:`illuminance_ratio`, the disc rules of :mod:`roadgonio.engines.rules`), refined
   until two successive rules agree to ``eta_rtol``.
   Limitation: eta is the bare geometry's; parts of a ``[scene] xml`` that shade the footprint or the
   sample centre from the source are not in it (the backend's k_lam does see them, as a ratio).
@@ -50,6 +50,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from roadgonio.engines.result import CellResult, KaBackend
+from roadgonio.engines.rules import ORDERS, DetectorNodes, disc_rule, size
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.fileio import fingerprint
 from roadgonio.instrument import optics
@@ -101,9 +102,8 @@ def centre_coupling(src: optics.SourceGeometry, level_v: int = 6, level_h: int =
     """E_0 / (L_e A_S): the mean source coupling G at the sample centre over the source disc (the
     horizontal illuminance E_0 of eta's denominator per unit radiance and area; with the source's
     beam profile, docs/conventions.md section 4.1), float64, by the
-    product Gauss rule :func:`roadgonio.engines.quadrature.disc_rule` at ``(level_v, level_h)``
+    product Gauss rule :func:`roadgonio.engines.rules.disc_rule` at ``(level_v, level_h)``
     (a point source: its single node)."""
-    from roadgonio.engines.quadrature import disc_rule
     if not src.radius_m > 0:
         level_v = level_h = -1
     sx, sy, ws = disc_rule(level_v, level_h)
@@ -120,7 +120,7 @@ def centre_coupling(src: optics.SourceGeometry, level_v: int = 6, level_h: int =
 
 class _EtaIntegrator:
     """eta of one instrument, cell by cell (module docstring). Each disc (pupil, field, source) has
-    two directions of the product rule :func:`roadgonio.engines.quadrature.disc_rule`, refined
+    two directions of the product rule :func:`roadgonio.engines.rules.disc_rule`, refined
     separately: the error share of a direction is the change of eta when that direction alone
     drops one level; directions whose share exceeds ``rtol / n`` are refined until the sum of the
     shares is below ``rtol * eta`` (the estimate reported as the error). The detector nodes do not
@@ -132,32 +132,13 @@ class _EtaIntegrator:
         self.det = optics.detector_geometry(instrument)
         d = instrument.detector
         self.active = (d.pupil_radius_m > 0.0, d.field_half_angle_deg > 0.0, instrument.source.radius_m > 0.0)
-        self._cache: dict[tuple[int, ...], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-
-    def detector_nodes(self, levels: tuple[int, int, int, int]):
-        """(x, y, w): hit points of the detected rays of the pupil x field rule at ``levels``
-        (pupil v, pupil h, field v, field h) and their normalised weights (etendue x k_D x rule)."""
-        if levels not in self._cache:
-            from roadgonio.engines.quadrature import disc_rule
-            px, py, wp = disc_rule(levels[0], levels[1])
-            fx, fy, wf = disc_rule(levels[2], levels[3])
-            PX, FX = np.repeat(px, fx.size), np.tile(fx, px.size)
-            PY, FY = np.repeat(py, fx.size), np.tile(fy, px.size)
-            W = np.repeat(wp, fx.size) * np.tile(wf, px.size)
-            o, dvec, wgt = optics.detector_ray(NumpyOps, self.det, (PX, PY), (FX, FY))
-            x, y, valid = optics.hit_plane(NumpyOps, o, dvec)
-            if not np.all(valid):   # excluded by check_detector; kept as a guard
-                raise GeometryError("some detected rays do not reach the sample plane")
-            w = W * wgt
-            if len(self._cache) > 64:
-                self._cache.clear()
-            self._cache[levels] = (np.asarray(x), np.asarray(y), w / w.sum())
-        return self._cache[levels]
+        #: the hit points and weights of the pupil x field rule, by levels (the quadrature's nodes)
+        self.detector_nodes = DetectorNodes(self.det)
 
     def _eta(self, src, levels) -> float:
         """<E> / E_0 with the product rule at the six direction ``levels``."""
-        from roadgonio.engines.quadrature import disc_rule
-        x, y, w = self.detector_nodes(tuple(levels[:4]))
+        nodes = self.detector_nodes(tuple(levels[0:2]), tuple(levels[2:4]))
+        x, y, w = nodes["x"], nodes["y"], nodes["w"]
         sx, sy, ws = disc_rule(levels[4], levels[5])
         sp = optics.source_point(src, (sx, sy))
         sp = tuple(np.broadcast_to(np.asarray(c, dtype=np.float64), sx.shape)[None, :] for c in sp)
@@ -178,7 +159,6 @@ class _EtaIntegrator:
     def __call__(self, tan_eps: float, beta_deg: float, rtol: float = ETA_RTOL,
                  max_evals: int = ETA_MAX_EVALS) -> tuple[float, float, bool]:
         """(eta, error estimate, converged) at one cell."""
-        from roadgonio.engines.quadrature import ORDERS, size
         optics.check_source(self.instrument, tan_eps, beta_deg)
         self._cell = (tan_eps, beta_deg)
         src = optics.source_geometry(self.instrument, tan_eps, beta_deg)
@@ -254,7 +234,6 @@ def illuminance(instrument: Instrument, tan_eps: float, beta_deg: float, x, y, *
     included) integrated over the disc by the quadrature's product Gauss rule at ``level`` (the rule
     of eta and the quadrature backend; 45 x 45 nodes at 9, converged to ~1e-10 for the smooth
     profiles). float64, the shape of ``x``."""
-    from roadgonio.engines.quadrature import disc_rule
     src = optics.source_geometry(instrument, tan_eps, beta_deg)
     lv = level if src.radius_m > 0 else -1
     sx, sy, ws = disc_rule(lv, lv)

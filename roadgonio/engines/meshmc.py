@@ -291,34 +291,22 @@ class MeshMonteCarloBackend(CellByCellBackend):
                                     "the sample; enlarge the mesh or narrow the field")
             X = O + t[:, None] * D
             n = self.caster.normal[tri]
-            sp = np.stack([np.broadcast_to(c, w.shape) for c in optics.source_point(src, sdisc)], axis=1)
-            v = sp - X
-            dist = np.linalg.norm(v, axis=1)
-            wi = v / dist[:, None]
-            cos_i = np.einsum("ij,ij->i", wi, n)
-            cos_s = -(wi @ src.axis)
-            ok = (cos_i > 0.0) & (cos_s > 0.0)
-            if src.cos_beam is not None:
-                ok &= cos_s >= src.cos_beam
-            g = cos_i * cos_s / (dist * dist)
-            # the source's relative radiance at the sampled point in this direction (profiles; None = 1)
-            factor = optics.source_radiance_factor(NumpyOps, src.beam, src.aperture, (wi[:, 0], wi[:, 1], wi[:, 2]),
-                                                   src.axis, sdisc)
-            if factor is not None:
-                g = g * factor
-            g = np.where(ok, g, 0.0)
-            lit = ok.copy()
+            sp = tuple(np.broadcast_to(c, w.shape) for c in optics.source_point(src, sdisc))
+            # eq. 3's source term at the hit point, with the face's normal (profiles included)
+            wt, g = optics.source_coupling(NumpyOps, src, X[:, 0], X[:, 1], sp, sdisc, z=X[:, 2],
+                                           normal=(n[:, 0], n[:, 1], n[:, 2]))
+            wi = np.stack(wt, axis=1)
+            g = np.array(g, dtype=np.float64)
+            lit = g > 0.0
             if np.any(lit):
                 sel = np.nonzero(lit)[0]
                 orig = X[sel] + SHADOW_EPS_M * n[sel]
-                shadow = self.caster.blocked(orig, wi[sel], dist[sel] - 2 * SHADOW_EPS_M)
+                dist = np.linalg.norm(np.stack(sp, axis=1)[sel] - X[sel], axis=1)
+                shadow = self.caster.blocked(orig, wi[sel], dist - 2 * SHADOW_EPS_M)
                 g[sel[shadow]] = 0.0
             # local frame of each face: the BRDF depends on the directions relative to n only
             wo = -D
-            a = np.where(np.abs(n[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
-            s = np.cross(a, n)
-            s /= np.linalg.norm(s, axis=1)[:, None]
-            tt = np.cross(n, s)
+            s, tt = optics.orthonormal_frame(n)
 
             def local(vec):
                 return (np.einsum("ij,ij->i", vec, s), np.einsum("ij,ij->i", vec, tt), np.einsum("ij,ij->i", vec, n))

@@ -15,7 +15,7 @@ definition in :mod:`roadgonio.surface.model`. k_A follows docs/conventions.md se
 
 Quadrature. Each disc is integrated with a product rule that is exact in its boundary (no mask of
 a square): the disc is the smooth image of a rectangle, ``(x, y) = (s cos phi, sin phi)``, with
-Gauss-Legendre nodes in ``phi`` and in ``s`` (:func:`disc_rule`). Each disc has two directions
+Gauss-Legendre nodes in ``phi`` and in ``s`` (:func:`roadgonio.engines.rules.disc_rule`). Each disc has two directions
 (along its t axis and its s axis), refined independently, so the six directions (pupil, field,
 source x 2) get only the nodes the integrand needs: the long axis of a grazing footprint gets many,
 the short axis few. A disc of radius 0 (point source, pinhole, zero field) is a single node. A
@@ -50,16 +50,15 @@ from typing import Any
 
 import numpy as np
 
-from roadgonio.errors import GeometryError, InputError
+from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.instrument import optics
 from roadgonio.engines.result import CellByCellBackend, CellResult
 from roadgonio.engines.cellcheck import check_cell, no_light
+from roadgonio.engines.rules import ORDERS, DetectorNodes, disc_rule, gauss_legendre, rule_size, size
 
-#: Gauss-Legendre orders of one direction of a disc rule, by level.
-ORDERS = (1, 2, 3, 4, 6, 8, 11, 16, 22, 32, 45, 64, 90, 128, 180, 256)
 #: Number of integrand evaluations held in memory at once.
 CHUNK = 1 << 18
 #: Default cap on integrand evaluations of one estimate (pupil x field x source nodes).
@@ -76,67 +75,12 @@ FOCUS_MIN = 0.05
 FOCUS_MAX = 0.8
 
 
-@lru_cache(maxsize=None)
-def _gauss(n: int) -> tuple[np.ndarray, np.ndarray]:
-    z, w = np.polynomial.legendre.leggauss(n)
-    return z, w
-
-
-@lru_cache(maxsize=512)
-def disc_rule(level_v: int, level_h: int, focus: complex = 0j) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Product rule on the unit disc: nodes (x, y) and weights summing to 1.
-
-    The disc is the image of the rectangle (s, phi) in [-1, 1] x [-pi/2, pi/2] under
-    ``(x, y) = (s cos phi, sin phi)`` (area element ``cos^2 phi ds dphi``): a smooth map onto the
-    disc that is exact in its boundary (no mask of a square), with Gauss-Legendre nodes in phi
-    (``ORDERS[level_v]``, the y direction, crowded towards y = +-1) and in s (``ORDERS[level_h]``,
-    the x direction). The two directions are refined independently, so an integrand that varies
-    along one axis only (the long axis of a grazing footprint) costs few nodes across it.
-    ``level_v < 0`` is the centre alone (a disc of radius 0).
-
-    ``focus`` (complex c, ``|c| < 1``) crowds the nodes towards the boundary point ``c / |c|``:
-    the rule is built along a rotated axis v = c/|c| with ``v = (sin phi + b) / (1 + b sin phi)``,
-    ``b = |c|`` (a 1-D Moebius map of [-1, 1] onto itself, so the rule's centre goes to c and the
-    node density near the boundary point grows by ``(1 + b) / (1 - b)``), and the chord
-    coordinate ``x = s sqrt(1 - v^2)``. The map stays smooth (analytic) and onto the disc, exact in
-    the boundary; the weights carry its Jacobian ``(1 - b^2)^(3/2) cos^2 phi / (1 + b sin phi)^3``.
-    """
-    if level_v < 0 or level_h < 0:
-        x, y, w = np.zeros(1), np.zeros(1), np.ones(1)
-    else:
-        if max(level_v, level_h) >= len(ORDERS):
-            raise ValueError(f"disc rule level beyond the table ({len(ORDERS) - 1})")
-        zv, wv = _gauss(ORDERS[level_v])
-        zh, wh = _gauss(ORDERS[level_h])
-        phi = 0.5 * math.pi * zv
-        c, sn = np.cos(phi), np.sin(phi)
-        b = abs(complex(focus))
-        den = 1.0 + b * sn
-        v = (sn + b) / den                       # along the focus axis
-        half = math.sqrt(1.0 - b * b) * c / den  # half chord sqrt(1 - v^2)
-        jac = (1.0 - b * b) ** 1.5 * c * c / den ** 3
-        xl = (half[:, None] * zh[None, :]).ravel()
-        yl = np.repeat(v, zh.size)
-        w = ((wv * jac)[:, None] * wh[None, :]).ravel()
-        if b > 0.0:
-            # rotate the local +y axis onto the focus direction
-            ux, uy = complex(focus).real / b, complex(focus).imag / b
-            x, y = xl * uy + yl * ux, -xl * ux + yl * uy
-        else:
-            x, y = xl, yl
-        w = w / w.sum()       # the rule of the constant: exact up to rounding (and the focus map)
-    x, y, w = np.array(x, dtype=np.float64), np.array(y, dtype=np.float64), np.array(w, dtype=np.float64)
-    for arr in (x, y, w):
-        arr.setflags(write=False)
-    return x, y, w
-
-
 def _segment_rule(level_v: int, level_h: int, c: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Product rule on the unit-disc segment ``{(v, w): v >= c}``: the map of :func:`disc_rule`
     with phi restricted to ``[asin c, pi/2]`` (``v = sin phi``, ``w = s cos phi``), smooth and exact
     in the boundary; weights summing to the segment's share of the disc area."""
-    zv, wv = _gauss(ORDERS[level_v])
-    zh, wh = _gauss(ORDERS[level_h])
+    zv, wv = gauss_legendre(ORDERS[level_v])
+    zh, wh = gauss_legendre(ORDERS[level_h])
     phi0 = math.asin(c)
     half_span = 0.5 * (0.5 * math.pi - phi0)
     phi = phi0 + half_span * (zv + 1.0)
@@ -169,16 +113,6 @@ def split_disc_rule(level_v: int, level_h: int, chord: tuple[float, float, float
     return out
 
 
-def rule_size(level_v: int, level_h: int) -> int:
-    """Number of nodes of a disc rule."""
-    return 1 if level_v < 0 or level_h < 0 else ORDERS[level_v] * ORDERS[level_h]
-
-
-def size(levels) -> int:
-    """Number of integrand evaluations of the product rule at the six direction ``levels``."""
-    return rule_size(levels[0], levels[1]) * rule_size(levels[2], levels[3]) * rule_size(levels[4], levels[5])
-
-
 class QuadratureBackend(CellByCellBackend):
     """k_A by adaptive polar Gauss quadrature of eq. 3 in float64 (see the module docstring)."""
 
@@ -208,7 +142,7 @@ class QuadratureBackend(CellByCellBackend):
         #: which discs are integrated (radius > 0); a zero disc is a single node
         self.active = (det.pupil_radius_m > 0.0, det.field_half_angle_deg > 0.0,
                        instrument.source.radius_m > 0.0)
-        self._det_cache: dict[tuple[int, int], dict[str, Any]] = {}
+        self._nodes = DetectorNodes(self._det)
         #: chord of the source disc on which this cell's source rule is cut (None: the whole disc)
         self._chord: tuple[float, float, float] | None = None
 
@@ -222,25 +156,7 @@ class QuadratureBackend(CellByCellBackend):
     # -- integrand ----------------------------------------------------------------------------
     def _detector(self, lp: tuple[int, int], lf: tuple[int, int], fp: complex = 0j,
                   ff: complex = 0j) -> dict[str, Any]:
-        key = (lp, lf, fp, ff)
-        if key not in self._det_cache:
-            px, py, wp = disc_rule(*lp, fp)
-            fx, fy, wf = disc_rule(*lf, ff)
-            PX = np.repeat(px, fx.size)
-            PY = np.repeat(py, fx.size)
-            FX = np.tile(fx, px.size)
-            FY = np.tile(fy, px.size)
-            W = np.repeat(wp, fx.size) * np.tile(wf, px.size)
-            o, d, wgt = optics.detector_ray(NumpyOps, self._det, (PX, PY), (FX, FY))
-            x, y, valid = optics.hit_plane(NumpyOps, o, d)
-            if not np.all(valid):   # excluded by check_detector; kept as a guard
-                raise GeometryError("some detected rays do not reach the sample plane")
-            wd = W * wgt
-            if len(self._det_cache) > 32:
-                self._det_cache.clear()
-            self._det_cache[key] = {"x": x, "y": y, "wo": (-d[0], -d[1], -d[2]), "w": wd / wd.sum(),
-                                    "np": px.size, "nf": fx.size}
-        return self._det_cache[key]
+        return self._nodes(lp, lf, fp, ff)
 
     def _estimate(self, src: optics.SourceGeometry, levels, focus=(0j, 0j, 0j), marginals: bool = False):
         """(sum w f G, sum w G) over the product rule at the six direction ``levels`` (weights

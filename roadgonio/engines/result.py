@@ -10,7 +10,7 @@ Each precision field has ONE meaning:
 * ``confidence_bound`` with ``confidence_level``: a statistical bound that holds with that
   probability (the RQMC reference: a Student-t interval of its replicates, beside its ``se``).
 
-Stray light (issue 18): ``k_a`` is everything the scene does; ``k_a_direct`` the k_A of the light
+Stray light (docs/conventions.md section 5, docs/straylight.md): ``k_a`` is everything the scene does; ``k_a_direct`` the k_A of the light
 that reaches the footprint straight from the source alone, and ``stray_fraction`` =
 1 - S_direct[f] / S_total[f] of the road sample, each with its standard error (``k_a_direct_se``,
 ``stray_fraction_se``). A backend that traces no stray light leaves them out: then ``k_a_direct``
@@ -139,7 +139,9 @@ def ideal_ratios(model: RoadModel, instrument: Instrument, cells: Sequence[tuple
 
 def ratio_se(road: np.ndarray, lam: np.ndarray) -> tuple[float, float]:
     """Ratio of means <road>/<lam> of paired per-batch (or per-pixel) values and its standard error
-    by the delta method, float64."""
+    by the delta method, float64 (inf with fewer than 2 pairs). The one statement for independent
+    batches; :func:`roadgonio.engines.mitsuba.passes.strata_ratio_se` is its generalisation to
+    independent strata of replicates (the Mitsuba engine's passes)."""
     road = np.asarray(road, dtype=np.float64).ravel()
     lam = np.asarray(lam, dtype=np.float64).ravel()
     n = road.size

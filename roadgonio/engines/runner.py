@@ -267,7 +267,7 @@ FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
     "samples": ("samples or integrand evaluations of the cell", "1", ""),
     "seconds": ("compute time of the cell", "s", "the pass's wall time shared out for batched backends"),
     "converged": ("the cell was computed and reached its target", "", "false where not computed or stopped at a cap"),
-    # stray light (issue 18; docs/conventions.md section 5): without it k_a_direct = k_a, stray_fraction = 0
+    # stray light (docs/conventions.md section 5; docs/straylight.md): without it k_a_direct = k_a, stray_fraction = 0
     "k_a_direct": ("k_A of the direct light", "1", "the light that reaches the footprint straight from the source "
                                                  "only (no stray light from the scene's reflecting parts)"),
     "k_a_direct_se": ("standard error of k_a_direct", "1",

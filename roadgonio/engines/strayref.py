@@ -1,4 +1,4 @@
-"""Independent float64 check of the stray light (issue 18): one diffuse wall beside the footprint,
+"""Independent float64 check of the stray light (docs/straylight.md, "Checks"): one diffuse wall beside the footprint,
 by plain Monte Carlo in numpy, written apart from the Mitsuba backend (it shares only the
 instrument's ray geometry, :mod:`roadgonio.instrument.optics`, and the BRDF model,
 :mod:`roadgonio.surface.model`).
@@ -38,6 +38,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from roadgonio.engines.result import ratio_se
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import NumpyOps, RoadModel
@@ -138,14 +139,6 @@ def batch_terms(instrument: Instrument, model: RoadModel, wall: Wall, tan_eps: f
     k = w * g_xy * wall.area * (wall.reflectance / math.pi) * g_yz * (4 * hx * hy) * g_zs * area_s
     out[2] = [np.sum(k * fr * fzr), np.sum(k * fl * fzl)]
     return out
-
-
-def ratio_se(num: np.ndarray, den: np.ndarray) -> tuple[float, float]:
-    """sum(num) / sum(den) over batches and its standard error (delta method)."""
-    num, den = np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
-    r = num.sum() / den.sum()
-    y = num - r * den
-    return float(r), float(math.sqrt(len(y) * np.var(y, ddof=1)) / abs(den.sum()))
 
 
 def reference(instrument: Instrument, model: RoadModel, wall: Wall, tan_eps: float, beta_deg: float, *,

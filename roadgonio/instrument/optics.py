@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
@@ -51,11 +51,16 @@ def source_distance_m(source: Source, tan_eps, xp=np):
 
 
 def orthonormal_frame(n) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors (s, t) completing the unit vector ``n`` to a right-handed frame (float64)."""
+    """Two unit vectors (s, t) completing the unit vector(s) ``n`` (shape (3,) or (..., 3)) to a
+    right-handed frame, float64: ``s = normalise(h x n)`` with the helper h = +z, or +x where
+    |n_z| >= 0.9, and ``t = n x s``. The one rule of the numpy side (the detector, the source
+    discs, a mesh face's local frame); ``plugins/ka_batch.py``'s ``frame_from_axis`` is its twin on
+    the device. The norm is a dot product per vector, so one vector and a stack of them give the
+    same bits."""
     n = np.asarray(n, dtype=np.float64)
-    helper = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    helper = np.where(np.abs(n[..., 2:3]) < 0.9, np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]))
     s = np.cross(helper, n)
-    s /= np.linalg.norm(s)
+    s = s / np.sqrt(np.matmul(s[..., None, :], s[..., :, None])[..., 0, :])
     t = np.cross(n, s)
     return s, t
 
@@ -139,13 +144,43 @@ def meter_geometry(observation: Observation, detector: Detector) -> DetectorGeom
                             map_axes=(float(s @ right), float(t @ right), float(s @ up), float(t @ up)))
 
 
-def source_geometry(instrument: Instrument, tan_eps: float, beta_deg: float) -> SourceGeometry:
-    src = instrument.source
+class SourcePlacement(NamedTuple):
+    """Where the source disc of a cell is (float64; one cell: vectors (3,) and a float D_S; many:
+    (..., 3) and (...,))."""
+
+    centre: np.ndarray       # D_S w_i
+    axis: np.ndarray         # -w_i, the emission axis, towards the sample centre
+    s: np.ndarray            # the disc's plane (:func:`orthonormal_frame` of the axis)
+    t: np.ndarray
+    distance_m: Any          # D_S (:func:`source_distance_m`)
+
+
+def source_frames(instrument: Instrument, tan_eps, beta_deg) -> SourcePlacement:
+    """The placement of the source disc of the cell(s) (tan eps, beta), written once
+    (docs/conventions.md section 4): centre ``D_S w_i`` at the cell's D_S, facing the sample centre
+    (axis ``-w_i``), with the frame (s, t) of :func:`orthonormal_frame`. Numbers (a float tan eps
+    is taken through :meth:`Instrument.w_i`'s scalar path) or arrays (broadcast). Used by
+    :func:`source_geometry` (one cell, the numpy backends) and by the Mitsuba engine (every cell
+    of a launch)."""
     w_i = instrument.w_i(tan_eps, beta_deg)
     axis = -w_i
     s, t = orthonormal_frame(axis)
+    if np.ndim(tan_eps) or np.ndim(beta_deg):
+        dist = np.broadcast_to(source_distance_m(instrument.source, np.asarray(tan_eps, dtype=np.float64)),
+                               w_i.shape[:-1])
+        centre = dist[..., None] * w_i
+    else:
+        dist = source_distance_m(instrument.source, float(tan_eps))
+        centre = dist * w_i
+    return SourcePlacement(centre, axis, s, t, dist)
+
+
+def source_geometry(instrument: Instrument, tan_eps: float, beta_deg: float) -> SourceGeometry:
+    """Constants of the source disc of one cell (its placement: :func:`source_frames`)."""
+    src = instrument.source
+    place = source_frames(instrument, tan_eps, beta_deg)
     cos_beam = None if src.beam_half_angle_deg is None else math.cos(math.radians(src.beam_half_angle_deg))
-    return SourceGeometry(centre=source_distance_m(src, float(tan_eps)) * w_i, axis=axis, s=s, t=t,
+    return SourceGeometry(centre=place.centre, axis=place.axis, s=place.s, t=place.t,
                           radius_m=src.radius_m, cos_beam=cos_beam, beam=src.beam, aperture=src.aperture)
 
 
@@ -219,17 +254,20 @@ def mirror_line(src: SourceGeometry, x, y, wo):
     return a0, a1, a2
 
 
-def source_coupling(xp, src: SourceGeometry, x, y, spoint, disc_xy=None):
-    """From sample point (x, y, 0) to source point ``spoint``: the unit direction ``w`` towards the
+def source_coupling(xp, src: SourceGeometry, x, y, spoint, disc_xy=None, *, z=None, normal=None):
+    """From sample point (x, y, z) to source point ``spoint``: the unit direction ``w`` towards the
     source and the geometric factor ``G = cos theta_i cos theta_s / |s - x|^2`` times the source's
     relative radiance at ``spoint`` in that direction (:func:`source_radiance_factor`; the source
     point's unit-disc coordinates ``disc_xy`` are needed for an aperture profile); 0 outside the
-    beam or below the horizon."""
-    vx, vy, vz = spoint[0] - x, spoint[1] - y, spoint[2] + 0.0 * x
+    beam or below the sample point's horizon. The one statement of eq. 3's source term. By default
+    the point is on the plane z = 0 with the normal +z; a mesh sample passes the point's ``z`` and
+    its unit ``normal`` (a component triple)."""
+    vx, vy = spoint[0] - x, spoint[1] - y
+    vz = spoint[2] + 0.0 * x if z is None else spoint[2] - z
     d2 = vx * vx + vy * vy + vz * vz
     inv = 1.0 / xp.sqrt(d2)
     w = (vx * inv, vy * inv, vz * inv)
-    cos_i = w[2]
+    cos_i = w[2] if normal is None else w[0] * normal[0] + w[1] * normal[1] + w[2] * normal[2]
     cos_s = -(w[0] * src.axis[0] + w[1] * src.axis[1] + w[2] * src.axis[2])
     ok = (cos_i > 0.0) & (cos_s > 0.0)
     if src.cos_beam is not None:

@@ -1,4 +1,4 @@
-"""A virtual intercomparison (key comparison) of road-surface goniophotometers (issue 20).
+"""A virtual intercomparison (key comparison) of road-surface goniophotometers (docs/intercomparison.md).
 
 Several participants (an instrument each, with its misalignment, repeatability, calibration and
 what it does with its table) measure one surface in many simulated realisations of a comparison;

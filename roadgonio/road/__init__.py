@@ -1,12 +1,13 @@
 """From the r-table to the road: EN 13201-3 luminance metrics of a luminaire layout computed with a
-measured or corrected r-table, with its uncertainty (issue 13).
+measured or corrected r-table, with its uncertainty (docs/road.md).
 
-Rooms: ``layout`` (the road and installation, a frozen dataclass from TOML), ``luminaire`` (EULUMDAT
-photometry through eulumdat-py), ``interp`` (r-table interpolation as cell weights), ``calc`` (the
-EN 13201-3 field, grid, observers, luminance operator, illuminance, veiling luminance), ``metrics``
-(L_av, U_o, U_l, EN 13201-2 M classes), ``evaluate`` (one evaluation; :class:`Installation`),
-``mc`` (Monte Carlo of the table's uncertainty), ``report`` (files and pictures), ``compare``
-(two tables side by side), ``classify`` (CIE classes by S1 and Q0).
+Modules: :mod:`.layout` (the road and installation, a frozen dataclass from TOML), :mod:`.luminaire`
+(EULUMDAT photometry through eulumdat-py), :mod:`.interp` (r-table interpolation as cell weights),
+:mod:`.calc` (the EN 13201-3 field, grid, observers, luminance operator, illuminance, veiling
+luminance), :mod:`.metrics` (L_av, U_o, U_l, EN 13201-2 M classes), :mod:`.evaluate` (one
+evaluation; :class:`Installation`), :mod:`.mc` (Monte Carlo of the table's uncertainty),
+:mod:`.report` (files and pictures), :mod:`.compare` (two tables side by side). The CIE classes by
+S1 are :mod:`roadgonio.surface.cie`.
 
 Typical use::
 

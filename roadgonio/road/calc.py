@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from roadgonio.errors import InputError
+from roadgonio.geometry import cos3_eps, source_cell
 from roadgonio.road.interp import r_weights
 from roadgonio.road.layout import Layout
 from roadgonio.road.luminaire import Luminaire
@@ -120,16 +121,17 @@ def luminaire_angles(lum: np.ndarray, rotation_deg, tilt_deg: float, target: np.
 
 
 def incidence(lum: np.ndarray, point: np.ndarray, observer: np.ndarray) -> tuple[float, float]:
-    """(beta in deg, tan epsilon) at a road point (z = 0) lit from ``lum``, seen from ``observer``."""
+    """(beta in deg, tan epsilon) at a road point (z = 0) lit from ``lum``, seen from ``observer``:
+    :func:`roadgonio.geometry.source_cell` of the direction towards the luminaire, with the
+    observation azimuth delta that of the observer seen from the point (0 where beta is undefined:
+    the luminaire overhead, or the observer above the point)."""
     h = lum[2] - point[2]
     v = np.asarray(lum[:2], float) - np.asarray(point[:2], float)
-    dist = float(np.hypot(*v))
-    tan_e = dist / h
     u = np.asarray(point[:2], float) - np.asarray(observer[:2], float)
-    if dist < 1e-9 or np.hypot(*u) < 1e-9:
-        return 0.0, tan_e
-    cb = float(np.dot(u, v) / (np.hypot(*u) * dist))
-    return math.degrees(math.acos(max(-1.0, min(1.0, cb)))), tan_e
+    tan_e, beta = source_cell(np.array([v[0], v[1], h]), math.degrees(math.atan2(-u[1], -u[0])))
+    if float(np.hypot(*v)) < 1e-9 or np.hypot(*u) < 1e-9:
+        return 0.0, float(tan_e)
+    return float(beta), float(tan_e)
 
 
 @dataclass
@@ -239,7 +241,7 @@ def horizontal_illuminance(layout: Layout, luminaire: Luminaire, x: np.ndarray, 
                              "needs more", path=luminaire.source or None, field="gamma angles")
         hz = lums[:, 2]
         dist_h = np.hypot(lums[:, 0] - x[p], lums[:, 1] - y[p])
-        cos3 = (1.0 + (dist_h / hz) ** 2) ** -1.5
+        cos3 = cos3_eps(dist_h / hz)
         out[p] = mf * np.sum(i * cos3 / hz ** 2)
     return out
 

@@ -7,5 +7,9 @@
 * :mod:`.fit` -- fitting the model to a table (least squares in % of max r, as the paper);
 * :mod:`.sample` -- resolving a SAMPLE argument (bundled name, table file, model.json, lambert)
   to a model;
-* :mod:`.fitplot` -- the picture of a fit.
+* :mod:`.fitplot` -- the picture of a fit;
+* :mod:`.cie` -- the CIE classes by S1 and the nearest bundled CIE standard table;
+* :mod:`.correction_surface` -- the smooth correction factor over the incident direction that lets
+  the model follow a surface eq. 4 cannot;
+* :mod:`.truths` -- known surfaces outside eq. 4, for round trips of the correction.
 """

@@ -10,7 +10,7 @@ w_i (docs/conventions.md section 1; isotropic, beta folded to [0, 180 deg]), ``a
 elevation of w_o and ``l(alpha) = ln(sin alpha / sin 1 deg)``. At alpha = 1 deg (the r-table's
 observation) the factor is ``exp(g_C)``: g_C is the correction of the table's shape; g_D is how much
 faster (per unit ln alpha) the BRDF changes off alpha = 1 deg than the backbone says, which only a
-second aperture setting can measure (item 3 of issue 19). Without g_D the behaviour off 1 deg is the
+second aperture setting can measure (docs/design.md, "Which second aperture?"). Without g_D the behaviour off 1 deg is the
 backbone's.
 
 Each of g_C, g_D is a tensor-product cubic B-spline on unit-spaced knots in two smooth coordinates
@@ -34,10 +34,12 @@ linearly, ``g = sum_p theta_p phi_p``: the simulated measurement through fixed r
 ``sum_k a_k f_0,k exp(g_k)``, whose Jacobian in theta is again a sum over the same rays
 (:mod:`roadgonio.correction.flexible`).
 
-The formula is written once, over an array namespace ``xp`` (:func:`surface_coordinates`,
+The spline is written once, over an array namespace ``xp`` (:func:`surface_coordinates`,
 :func:`bspline_weights`, :func:`lookup`, :func:`spline_value`): the names of
 :class:`roadgonio.arrays.NumpyOps`, whose ``floor`` and ``take(table, index)`` (a gather) the
-B-spline lookup uses.
+B-spline lookup uses. The factor ``exp(g_C + l(alpha) g_D)`` itself (:func:`alpha_coordinate` for
+l, the exponent clipped at 50) is assembled in one place, over the forward model's cached lookups
+of its rays: ``FlexPart.g_rays`` and ``FlexPart.ray_weights`` in :mod:`roadgonio.correction.flexible`.
 """
 from __future__ import annotations
 
@@ -48,6 +50,7 @@ from functools import lru_cache
 import numpy as np
 
 from roadgonio.arrays import NumpyOps
+from roadgonio.geometry import pair_angles
 
 #: sin of the r-tables' observation elevation (alpha = 1 deg).
 SIN_ALPHA0 = math.sin(math.radians(1.0))
@@ -103,11 +106,6 @@ class SplineGrid:
         row per difference, and the (beta index, eps index) of each difference's centre node."""
         return _differences(self)
 
-    def node_values(self, theta: np.ndarray) -> np.ndarray:
-        """(S_beta + 1, S_t + 1) node values (beta index, eps index) of ``theta``."""
-        return (self.padded_matrix() @ np.asarray(theta, dtype=np.float64)).reshape(self.pad_shape)[
-            1:self.s_beta + 2, 1:self.s_t + 2]
-
     def node_coordinates(self) -> tuple[np.ndarray, np.ndarray]:
         """(beta_deg, eps_deg) of the node lines (inverse of the coordinate maps)."""
         sb = np.arange(self.s_beta + 1, dtype=np.float64)
@@ -121,15 +119,9 @@ class SplineGrid:
 def incident_angles(xp, wi, wo):
     """(beta, eps) in degrees of ray pairs: ``wi``, ``wo`` component triples of unit vectors towards
     the source and the detector. beta as in :func:`roadgonio.surface.model.road_brdf` (exact near 0
-    and 180 deg; 0 where the azimuth is undefined, at the pole, where g does not depend on it)."""
-    wix, wiy, wiz = wi
-    wox, woy, _ = wo
-    sin_ti = xp.sqrt(wix * wix + wiy * wiy)
-    sin_tr = xp.sqrt(wox * wox + woy * woy)
-    cross = xp.abs(wix * woy - wiy * wox)
-    dot = wix * wox + wiy * woy
-    beta = xp.where(sin_ti * sin_tr > 1e-12, xp.atan2(cross, -dot), 0.0 * sin_ti)
-    eps = xp.atan2(sin_ti, wiz)
+    and 180 deg; 0 where the azimuth is undefined, at the pole, where g does not depend on it):
+    :func:`roadgonio.geometry.pair_angles`, eps its theta_i."""
+    eps, _, beta = pair_angles(xp, wi, wo, pole=0.0)
     return beta * (180.0 / math.pi), eps * (180.0 / math.pi)
 
 
@@ -176,15 +168,6 @@ def spline_value(xp, grid: SplineGrid, padded, wi, wo):
         term = w * xp.take(padded, idx)
         out = term if out is None else out + term
     return out
-
-
-def correction_factor(xp, c_grid: SplineGrid, c_padded, d_grid: SplineGrid | None, d_padded, wi, wo):
-    """exp(g_C + l(alpha) g_D): the factor that multiplies the backbone (module docstring);
-    ``d_grid`` None leaves out g_D."""
-    g = spline_value(xp, c_grid, c_padded, wi, wo)
-    if d_grid is not None:
-        g = g + alpha_coordinate(xp, wo) * spline_value(xp, d_grid, d_padded, wi, wo)
-    return xp.exp(g)
 
 
 def _reflect(i: int, hi: int) -> int:

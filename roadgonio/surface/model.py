@@ -13,8 +13,9 @@ Numerical form (chosen so that float32 is accurate near the lobe peaks and nothi
 * lobes: ``cos Omega = 1 - h`` with the half-chord ``h = |w_o - R(w_i)|^2 / 2``
   (``R`` = mirror about the normal), and ``cos^n = exp(n log(1 - h))``. A negative cosine
   (``h >= 1``) contributes 0.
-* beta: ``atan2(|w_i x w_o|_z, -(w_i . w_o)_xy)``, exact near 0 and 180 deg; where the azimuth
-  is undefined (``theta_i = 0`` or ``theta_r = 0``) beta is taken as 180 deg, so E = 0 there.
+* theta_i, theta_r and beta: :func:`roadgonio.geometry.pair_angles` (beta =
+  ``atan2(|w_i x w_o|_z, -(w_i . w_o)_xy)``, exact near 0 and 180 deg); where the azimuth is
+  undefined (``theta_i = 0`` or ``theta_r = 0``) beta is taken as 180 deg, so E = 0 there.
 * E in log space: ``E = k_exp exp(p ln f + W ln x)`` with ``W = exp(min(1 + h f^2, 80))`` (power
   reading) or ``W = 1`` and an extra factor ``exp(min(1 + h f^2, 80))`` (product reading);
   the total exponent is capped at 80, so E never overflows float32. The smooth extension's
@@ -69,7 +70,7 @@ import numpy as np
 
 from roadgonio.arrays import NumpyOps
 from roadgonio.errors import InputError
-from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
+from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, pair_angles, w_detector, w_source
 
 #: Observation polar angle of the fitted tables, theta_r* (paper, Figure 3).
 THETA_R_STAR_DEG = 89.0
@@ -117,6 +118,17 @@ def _lobe(xp, h, n):
     return xp.where(h < 1.0, xp.exp(n * xp.log1m(hc)), 0.0 * h)
 
 
+def phong_lobe(xp, wi, wo, n):
+    """(cos Omega)^n of the Phong lobe about the mirror direction ``R(w_i) = (-x, -y, z)``:
+    ``cos Omega = 1 - h`` with the half-chord ``h = |w_o - R(w_i)|^2 / 2`` (module docstring);
+    ``wi``, ``wo`` component triples. The lobe's shape, once: :func:`road_brdf` and the density
+    of the plugin's lobe sampling (``plugins/road_bsdf.py``) both take it from here."""
+    wix, wiy, wiz = wi
+    wox, woy, woz = wo
+    h = 0.5 * ((wox + wix) ** 2 + (woy + wiy) ** 2 + (woz - wiz) ** 2)
+    return _lobe(xp, h, n)
+
+
 def g_attenuation(xp, P: Mapping[str, Any], theta):
     """Grazing attenuation g(theta) = (a theta^2 + b theta + c)^t for theta > theta_l, else 1
     (paper, Figure 3); theta in radians."""
@@ -156,24 +168,15 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
     if "k_diff" in terms:
         f = f + P["k_diff"]
     if "k_phong" in terms:
-        # half-chord to the mirror direction R(w_i) = (-x, -y, z): cos Omega = 1 - h
-        h = 0.5 * ((wox + wix) ** 2 + (woy + wiy) ** 2 + (woz - wiz) ** 2)
-        f = f + P["k_phong"] * _lobe(xp, h, P["n_phong"])
+        f = f + P["k_phong"] * phong_lobe(xp, wi, wo, P["n_phong"])
     if "k_retro" in terms:
         # half-chord to the source direction: cos Omega' = 1 - h'
         h = 0.5 * ((wox - wix) ** 2 + (woy - wiy) ** 2 + (woz - wiz) ** 2)
         f = f + P["k_retro"] * _lobe(xp, h, P["n_retro"])
-    need_theta = "k_exp" in terms or "g" in terms
-    if need_theta:
-        sin_ti = xp.sqrt(wix * wix + wiy * wiy)
-        sin_tr = xp.sqrt(wox * wox + woy * woy)
-        theta_i = xp.atan2(sin_ti, wiz)
-        theta_r = xp.atan2(sin_tr, woz)
+    if "k_exp" in terms or "g" in terms:
+        # beta = pi where the azimuth is undefined, so E = 0 there (module docstring)
+        theta_i, theta_r, beta = pair_angles(xp, wi, wo, pole=math.pi)
     if "k_exp" in terms:
-        cross = xp.abs(wix * woy - wiy * wox)
-        dot = wix * wox + wiy * woy
-        defined = sin_ti * sin_tr > 1e-12
-        beta = xp.where(defined, xp.atan2(cross, -dot), math.pi + zero)
         e = theta_i * theta_r * (1.0 / THETA_R_STAR)
         cos_e = xp.cos(e)
         f_e = xp.where(cos_e > 0.0, xp.sin(e) * cos_e / (cos_e * cos_e + P["mu"]), zero)

@@ -54,7 +54,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.geometry import ALPHA_STANDARD_DEG, BETA_GRID_DEG, TAN_EPS_GRID, cos3_eps, eps_from_tan, w_detector, w_source
+from roadgonio.geometry import (ALPHA_STANDARD_DEG, BETA_GRID_DEG, TAN_EPS_GRID, cos3_eps, eps_from_tan, pair_angles,
+                                w_detector, w_source)
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, RoadParams
 
@@ -241,9 +242,9 @@ class TableTruth(TruthBRDF):
         alpha = np.arctan2(woz, np.hypot(wox, woy))
         eps_eq = np.degrees(np.clip(theta_i + self.params["kappa"] * (alpha - alpha0), 0.0, math.radians(89.9)))
         eps_i = np.degrees(np.minimum(theta_i, math.radians(89.9)))
-        cross = np.abs(wix * woy - wiy * wox)
-        dot = wix * wox + wiy * woy
-        beta = np.degrees(np.where(sin_ti * np.hypot(wox, woy) > 1e-12, np.arctan2(cross, -dot), 0.0))
+        # beta of the pair (0 at the pole, as the correction surface); theta_i stays hypot's (the
+        # truth's own form: pair_angles' sqrt(x^2 + y^2) differs from it in the last bit)
+        beta = np.degrees(pair_angles(NumpyOps, (wix, wiy, wiz), (wox, woy, woz), pole=0.0)[2])
         mask = (np.maximum(np.sin(alpha), 1e-300) / math.sin(alpha0)) ** self.params["gamma"]
         q = np.exp(self.ln_r(eps_eq, beta) + 3.0 * _ln_sec(eps_i))
         return np.where((wiz > 0.0) & (woz > 0.0), q * mask, 0.0)

@@ -37,8 +37,8 @@ def test_kabatch_shading_equals_direct_integrator_with_the_moved_source(mi):
     inst = preset("portable")
     b = one_pass(inst)
     cells = [(12.0, 0.0), (3.0, 45.0), (0.5, 180.0)]
-    b.engine.integrator.set_cells(__import__("roadgonio.engines.mitsuba.engine", fromlist=["x"])
-                                  .source_frames(inst, cells))
+    from roadgonio.engines.mitsuba.engine import cell_sources
+    b.engine.integrator.set_cells(*cell_sources(inst, cells))
     ref = build_scene(inst, ROAD, resolution=64, sampler="independent")
     for k, cell in enumerate(cells):
         b.engine.integrator.cell = mi.UInt32(k)

@@ -130,7 +130,7 @@ def dome_sums(mi, k_max: int, albedo: float, n_log2: int = 12, reps: int = 16, s
     import drjit as dr
 
     from roadgonio.engines.mitsuba import lattice as lat
-    from roadgonio.engines.mitsuba.engine import source_frames
+    from roadgonio.engines.mitsuba.engine import cell_sources
     from roadgonio.engines.mitsuba.plugins import register_plugins
     from roadgonio.engines.mitsuba.plugins.ka_batch import _u32, canonical_source
     register_plugins()
@@ -157,10 +157,10 @@ def dome_sums(mi, k_max: int, albedo: float, n_log2: int = 12, reps: int = 16, s
     integ = mi.load_dict({"type": "kabatch", "flat": True, "shadow": True})
     integ.set_sample(shapes["sample"])
     emitter, disc = canonical_source(R_S, L)
-    integ.set_source(emitter, disc)
+    integ.set_source(emitter)              # disc: kept alive here
     from roadgonio.instrument.config import Source
     inst = Instrument(source=Source(distance_m=D_S, radius_m=R_S))
-    integ.set_cells(source_frames(inst, [(1.0, 30.0)]))
+    integ.set_cells(*cell_sources(inst, [(1.0, 30.0)]))
     integ.set_parts([shapes["sample"], shapes["dome"]], k_max, R_S, L)
     n = 1 << n_log2
     z = lat.generating_vector(n, lat.DIMENSIONS + integ.qmc_dims)

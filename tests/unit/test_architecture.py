@@ -160,6 +160,51 @@ def test_the_command_line_calls_the_api_and_nothing_else():
     assert not bad, "the command line resolves inputs through roadgonio.api only:\n" + "\n".join(bad)
 
 
+#: Test oracles: float64 checks written apart from the code they check; production code never imports them.
+ORACLES = {"roadgonio.engines.strayref"}
+#: Packages whose docstring needs no module list: the commands are found by themselves; data is data.
+UNLISTED = {"roadgonio.cli", "roadgonio.data"}
+
+
+def oracle_imports(root: Path = ROOT) -> list[str]:
+    return [f"{module_name(p, root)}:{line} imports {mod}" for p in _sources(root) for line, mod in imports(p, root)
+            if mod in ORACLES and module_name(p, root) not in ORACLES]
+
+
+def room_list_mismatches(root: Path = ROOT) -> list[str]:
+    """Each room package's docstring lists its modules: every ``:mod:`` reference names an existing
+    module, and every module (and subpackage) of the room is named (``:mod:`.name``` or the full name)."""
+    import re
+    bad = []
+    for init in sorted((root / "roadgonio").rglob("__init__.py")):
+        pkg_dir = init.parent
+        pkg = module_name(init, root)
+        if pkg == "roadgonio" or pkg in UNLISTED or any(pkg.startswith(u + ".") for u in UNLISTED):
+            continue
+        doc = ast.get_docstring(ast.parse(init.read_text(encoding="utf-8"))) or ""
+        named = set()
+        for ref in re.findall(r":mod:`~?([\w.]+)`", doc):
+            full = pkg + ref if ref.startswith(".") else ref
+            path = root / full.replace(".", "/")
+            if not (path.with_suffix(".py").exists() or (path / "__init__.py").exists()):
+                bad.append(f"{pkg}: its docstring names {ref}, which does not exist")
+            named.add(full)
+        members = sorted({p.stem for p in pkg_dir.glob("*.py") if p.stem != "__init__"}
+                         | {d.name for d in pkg_dir.iterdir() if (d / "__init__.py").exists()})
+        bad += [f"{pkg}: its docstring does not name its module {m}" for m in members if f"{pkg}.{m}" not in named]
+    return bad
+
+
+def test_production_code_does_not_import_a_test_oracle():
+    bad = oracle_imports()
+    assert not bad, "test oracles imported by production code:\n" + "\n".join(bad)
+
+
+def test_room_docstrings_list_their_modules():
+    bad = room_list_mismatches()
+    assert not bad, "room docstrings out of date:\n" + "\n".join(bad)
+
+
 def test_the_rules_can_fail(tmp_path):
     """On a small tree: an upward import inside a function, a relative upward import, a lateral
     import between rooms of the same rank and a circle are all found."""
@@ -177,3 +222,20 @@ def test_the_rules_can_fail(tmp_path):
     assert any("surface.a:3" in b and "roadgonio.api" in b for b in bad)
     assert any("road.c" in b and "uncertainty" in b for b in bad)
     assert import_circle(tmp_path) is not None
+
+
+def test_the_list_and_oracle_rules_can_fail(tmp_path):
+    """On a small tree: a docstring naming a module that does not exist, a module the docstring does
+    not name, and an import of a test oracle are all found; a complete list passes."""
+    pkg = tmp_path / "roadgonio"
+    (pkg / "engines").mkdir(parents=True)
+    (pkg / "__init__.py").write_text("")
+    (pkg / "engines" / "__init__.py").write_text('"""Room.\n\n* :mod:`.a` -- a;\n* :mod:`.forward` -- gone.\n"""\n')
+    (pkg / "engines" / "a.py").write_text("from roadgonio.engines import strayref\n")
+    (pkg / "engines" / "b.py").write_text("")
+    (pkg / "engines" / "strayref.py").write_text("")
+    bad = room_list_mismatches(tmp_path)
+    assert any("forward" in b and "does not exist" in b for b in bad)
+    assert any("module b" in b for b in bad) and any("module strayref" in b for b in bad)
+    assert not any("module a" in b for b in bad)
+    assert oracle_imports(tmp_path) == ["roadgonio.engines.a:1 imports roadgonio.engines.strayref"]

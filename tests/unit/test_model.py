@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from roadgonio.errors import InputError
-from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, w_detector, w_source
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, pair_angles, w_detector, w_source
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import (PARAM_BOUNDS, THETA_R_STAR, VARIANTS, RoadModel, RoadParams,
-                             road_brdf)
+                             phong_lobe, road_brdf)
 from helpers import _hemisphere, _model, _unit, rand_dirs, rand_params
 from tolerances import ROUND_TOL as RTOL_EXACT  # float64 evaluation of closed forms
 
@@ -120,6 +120,41 @@ def test_lobe_half_width(lobe, n):
         wo = _dir(theta_o, phi_o)
         wi = _turned(_lobe_peak(lobe, wo), half_deg, "side")
         assert m.brdf(wi, wo) == pytest.approx(1.7 / 2.0, rel=RTOL_EXPLOG)
+
+
+def test_phong_lobe_is_the_models_lobe():
+    """phong_lobe (the lobe's shape, shared with the plugin's lobe sampling) is the Phong term of
+    road_brdf exactly, and (cos Omega)^n about the mirror direction R(w_i) = (-x, -y, z)."""
+    rng = np.random.default_rng(14)
+    wi, wo = _hemisphere(3000, rng), _hemisphere(3000, rng)
+    triple = (lambda w: (w[:, 0], w[:, 1], w[:, 2]))
+    lobe = phong_lobe(NumpyOps, triple(wi), triple(wo), 40.0)
+    np.testing.assert_array_equal(lobe, _model(k_phong=1.0, n_phong=40.0).brdf(wi, wo))
+    cos_omega = np.einsum("ij,ij->i", wo, wi * np.array([-1.0, -1.0, 1.0]))
+    np.testing.assert_allclose(lobe, np.where(cos_omega > 0.0, np.maximum(cos_omega, 0.0) ** 40.0, 0.0),
+                               rtol=RTOL_EXPLOG, atol=1e-300)
+
+
+def test_pair_angles_invert_the_cell_directions():
+    """geometry.pair_angles (the angles of a ray pair, once) gives back eps, 90 deg - alpha and beta
+    of w_source / w_detector at any observation azimuth, beta folded to [0, 180], and the caller's
+    pole value where beta is undefined; road_brdf's empirical term sees beta = 180 deg there."""
+    T, B = np.meshgrid(TAN_EPS_GRID[1:], np.r_[BETA_GRID_DEG, 200.0, 300.0], indexing="ij")
+    for delta in (0.0, 37.0):
+        wi, wo = w_source(np.arctan(T), B, delta), w_detector(1.0, delta)
+        wo = np.broadcast_to(wo, wi.shape)
+        ti, tr, beta = pair_angles(NumpyOps, tuple(np.moveaxis(wi, -1, 0)), tuple(np.moveaxis(wo, -1, 0)), pole=-1.0)
+        np.testing.assert_allclose(ti, np.arctan(T), rtol=RTOL_EXACT, atol=RTOL_EXACT)
+        np.testing.assert_allclose(tr, math.radians(89.0), rtol=RTOL_EXACT)
+        folded = np.where(B > 180.0, 360.0 - B, B)
+        np.testing.assert_allclose(np.degrees(beta), folded, rtol=RTOL_EXACT, atol=1e-9)
+    up, side = (0.0, 0.0, 1.0), (0.6, 0.0, 0.8)
+    for pole in (0.0, math.pi):
+        assert pair_angles(NumpyOps, up, side, pole=pole)[2] == pole
+        assert pair_angles(NumpyOps, side, up, pole=pole)[2] == pole
+    # at the pole the empirical term is E(beta = 180 deg) = 0: only k_diff is left
+    m = _model(k_diff=0.02, k_exp=1.0, p=1.0)
+    assert m.brdf(np.array(up), np.array(side)) == pytest.approx(0.02, rel=RTOL_EXACT)
 
 
 @pytest.mark.parametrize("variant", VARIANTS)

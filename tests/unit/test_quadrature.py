@@ -56,6 +56,42 @@ def test_disc_rule_point_and_anisotropy():
     assert x.size == 16
 
 
+def test_detector_nodes_are_written_once_for_the_quadrature_and_eta():
+    """The detected rays of the pupil x field rule (engines.rules.detector_nodes): weights that sum
+    to 1, hits on the sample plane along the rays, and the very nodes both the quadrature backend
+    and eta integrate over; neither eta nor the design's metrics import a backend module for them."""
+    import ast
+    from pathlib import Path
+
+    from roadgonio.arrays import NumpyOps
+    from roadgonio.engines import rules
+    from roadgonio.engines.calibration import _EtaIntegrator
+    from roadgonio.instrument import optics
+    inst = load_instrument("portable")
+    det = optics.detector_geometry(inst)
+    nodes = rules.detector_nodes(det, (3, 2), (2, 3), 0.3j, 0j)
+    assert nodes["x"].size == nodes["np"] * nodes["nf"] == 4 * 3 * 3 * 4
+    assert nodes["w"].sum() == pytest.approx(1.0, rel=RULE_TOL) and np.all(nodes["w"] > 0)
+    # each hit lies on its ray: from the pupil point along -wo down to z = 0
+    px, py, _ = disc_rule(3, 2, 0.3j)
+    o, _, _ = optics.detector_ray(NumpyOps, det, (np.repeat(px, nodes["nf"]), np.repeat(py, nodes["nf"])),
+                                  (np.zeros(nodes["x"].size), np.zeros(nodes["x"].size)))
+    t = o[2] / nodes["wo"][2]
+    np.testing.assert_allclose(nodes["x"], o[0] - t * nodes["wo"][0], atol=1e-12)
+    quad = make_backend("quadrature", inst, RoadModel.lambert())
+    quad = getattr(quad, "inner", quad)
+    eta = _EtaIntegrator(inst)
+    for lp, lf in [((2, 2), (3, 1)), ((-1, -1), (4, 4))]:
+        a, b = quad._detector(lp, lf), eta.detector_nodes(lp, lf)
+        for k in ("x", "y", "w"):
+            np.testing.assert_array_equal(a[k], b[k])
+    root = Path(rules.__file__).resolve().parents[2]
+    for rel in ("roadgonio/engines/calibration.py", "roadgonio/design/metrics.py"):
+        tree = ast.parse((root / rel).read_text(encoding="utf-8"))
+        mods = {n.module for n in ast.walk(tree) if isinstance(n, ast.ImportFrom)}
+        assert "roadgonio.engines.quadrature" not in mods, rel
+
+
 @pytest.mark.parametrize("preset, changes", [
     ("lab", {}),
     ("portable", {}),

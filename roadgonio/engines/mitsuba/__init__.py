@@ -2,6 +2,11 @@
 
 * :mod:`.scene` -- the goniophotometer as a Mitsuba scene (source, sample mesh, luminance meter);
 * :mod:`.backend` -- the k_A backend ``mitsuba``;
+* :mod:`.engine` -- the batched engine: all cells of a table in a few launches of the ``kabatch``
+  integrator;
+* :mod:`.passes` -- its passes and float64 statistics (the ratio estimator, its SE and covariance);
+* :mod:`.lattice` -- its sample points: randomly shifted rank-1 lattices;
+* :mod:`.worker` -- Mitsuba in a worker process (Dask);
 * :mod:`.images` -- pictures of one cell (``roadgonio render``);
 * :mod:`.ops` -- the Dr.Jit array namespace of the shared formulas;
 * ``plugins`` (the top-level ``plugins/`` folder) -- the ``roadbsdf`` BSDF and ``lummeter`` sensor.

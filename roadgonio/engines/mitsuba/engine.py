@@ -1,5 +1,5 @@
 """The batched k_A engine: all cells of a table in a few Mitsuba launches, passes sized from the
-target (issue 9). The Mitsuba side is the ``kabatch`` integrator plugin
+target (docs/architecture.md, "How the k_A engine works"). The Mitsuba side is the ``kabatch`` integrator plugin
 (:mod:`roadgonio.engines.mitsuba.plugins.ka_batch`); the pass plan and the float64 statistics are
 :mod:`roadgonio.engines.mitsuba.passes`; the sample points :mod:`roadgonio.engines.mitsuba.lattice`.
 
@@ -30,6 +30,7 @@ from roadgonio.engines.mitsuba import lattice as lat
 from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strata, covariance, relative
 from roadgonio.engines.mitsuba.scene import RoadScene, source_radiance
 from roadgonio.instrument.config import Instrument
+from roadgonio.instrument.optics import source_frames
 from roadgonio.engines.cellcheck import check_cells
 from roadgonio.engines.registry import backend_info
 
@@ -43,26 +44,13 @@ MAX_LANES = 1 << 23
 MAX_PATHS = 1 << 19
 
 
-def cell_directions(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
-    """w_i of every cell, (cells, 3) float64 (:meth:`Instrument.w_i` over arrays)."""
-    from roadgonio.geometry import eps_from_tan, w_source
+def cell_sources(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """(axes (cells, 3), D_S (cells,)), float64: what the ``kabatch`` plugin takes of every cell's
+    source disc (:meth:`KaBatch.set_cells`; it rebuilds the disc's frame from the axis). The
+    placement itself is :func:`roadgonio.instrument.optics.source_frames`, the numpy backends' too."""
     c = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
-    return w_source(eps_from_tan(c[:, 0]), c[:, 1], instrument.observation.delta_deg)
-
-
-def source_frames(instrument: Instrument, cells: Sequence[tuple[float, float]]) -> np.ndarray:
-    """(cells, 12) float64: centre D_S w_i (D_S of each cell: :func:`~roadgonio.instrument.optics.source_distance_m`), two unit vectors s, t across the disc and the axis
-    -w_i (towards the sample centre) of every cell's source disc (docs/conventions.md section 4). The disc is
-    rotationally symmetric, so any orthonormal (s, t) describes the same source."""
-    w = cell_directions(instrument, cells)
-    axis = -w
-    helper = np.where(np.abs(axis[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]), np.array([[1.0, 0.0, 0.0]]))
-    s = np.cross(helper, axis)
-    s /= np.linalg.norm(s, axis=1, keepdims=True)
-    t = np.cross(axis, s)
-    from roadgonio.instrument.optics import source_distance_m
-    c = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
-    return np.concatenate([source_distance_m(instrument.source, c[:, 0])[:, None] * w, s, t, axis], axis=1)
+    place = source_frames(instrument, c[:, 0], c[:, 1])
+    return place.axis, place.distance_m
 
 
 @dataclass
@@ -114,8 +102,9 @@ class BatchEngine:
                                         "shadow": bool(self.can_occlude() if shadow is None else shadow)})
         self.integrator.set_sample(rs.sample_shape)
         src = rs.instrument.source
+        # the disc shape is kept here: an area emitter only points back to its shape, which must outlive it
         self.emitter, self._emitter_shape = canonical_source(src.radius_m, source_radiance(rs.instrument))
-        self.integrator.set_source(self.emitter, self._emitter_shape)
+        self.integrator.set_source(self.emitter)
         self.integrator.set_profile(src)
         self.threads = int(dr.thread_count()) if hasattr(dr, "thread_count") else 1
         # stray light: paths through the reflecting parts (the scene decides, rs.stray; ``max_bounces``
@@ -170,7 +159,7 @@ class BatchEngine:
         cells = [(float(t), float(b)) for t, b in cells]
         n = len(cells)
         self.check_cells(cells)
-        self.integrator.set_cells(source_frames(self.instrument, cells))
+        self.integrator.set_cells(*cell_sources(self.instrument, cells))
         stats = [CellStats() for _ in range(n)]
         run = EngineRun(stats=stats, converged=[False] * n, plan=Plan([[] for _ in range(n)]), seconds=0.0,
                         passes=0, launches=0)

@@ -64,10 +64,10 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     rs = build_scene(instrument, model, resolution=resolution, mitsuba_variant=mitsuba_variant, sampler="multijitter")
     import mitsuba as mi
     if instrument.source.profiled:
-        from roadgonio.engines.mitsuba.engine import BatchEngine, source_frames
+        from roadgonio.engines.mitsuba.engine import BatchEngine, cell_sources
         engine = BatchEngine(rs)                 # the profiled source of the cell, lit by the kabatch integrator
         engine.check_cells([(tan_eps, beta_deg)])
-        engine.integrator.set_cells(source_frames(instrument, [(tan_eps, beta_deg)]))
+        engine.integrator.set_cells(*cell_sources(instrument, [(tan_eps, beta_deg)]))
         rs.integrator = engine.integrator        # its cell 0
         rs.cell = (float(tan_eps), float(beta_deg))
     else:
@@ -186,12 +186,12 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
     import drjit as dr
 
     from roadgonio.engines.mitsuba import lattice as lat
-    from roadgonio.engines.mitsuba.engine import BatchEngine, source_frames
+    from roadgonio.engines.mitsuba.engine import BatchEngine, cell_sources
     from roadgonio.engines.mitsuba.plugins.ka_batch import _u32
     eng = BatchEngine(rs)
     integ = eng.integrator
     eng.check_cells([(tan_eps, beta_deg)])
-    integ.set_cells(source_frames(rs.instrument, [(tan_eps, beta_deg)]))
+    integ.set_cells(*cell_sources(rs.instrument, [(tan_eps, beta_deg)]))
     n = 1 << int(log2n)
     z = lat.generating_vector(n, lat.DIMENSIONS + integ.qmc_dims)
     shifts = np.concatenate([lat.shifts(seed, 0, log2n, replicates),
@@ -237,11 +237,12 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
         rs.sensor.mapping = "concentric"
     with np.errstate(invalid="ignore", divide="ignore"):
         img = (sums / np.maximum(counts, 1.0)).reshape(2 + P, res, res)
-    from roadgonio.engines.strayref import ratio_se
+    from roadgonio.engines.mitsuba.passes import strata_ratio_se
     R, G = reps[:, 0] + reps[:, 2], reps[:, 1] + reps[:, 3]
-    ratio, ratio_se_ = ratio_se(R, G)
-    q_road, q_road_se = ratio_se(reps[:, 0], R)
-    q_lam, q_lam_se = ratio_se(reps[:, 1], G)
+    # the engine's ratio estimator over the independent replicates (one stratum)
+    ratio, ratio_se_ = strata_ratio_se([(R, G)])
+    q_road, q_road_se = strata_ratio_se([(reps[:, 0], R)])
+    q_lam, q_lam_se = strata_ratio_se([(reps[:, 1], G)])
     shares = by_part.sum(axis=0)
     summary = {"cell": [float(tan_eps), float(beta_deg)], "max_bounces": eng.max_bounces,
                "stray_fraction_road": 1.0 - q_road, "stray_fraction_road_se": q_road_se,

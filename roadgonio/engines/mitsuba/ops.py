@@ -9,7 +9,8 @@ Numerics: ``log1m(h) = log(1 - h)`` uses a 7-term series for ``h < 0.05``
 float32's 6e-8), and
 ``log(1 - h)`` above. The road model writes its lobes as ``exp(n log1m(h))`` with the half-chord
 ``h = 1 - cos Omega``, so a Phong lobe with n = 1e4 keeps float32 accuracy at its peak
-(mitsuba-cpu notes, sections 2 and 6: the naive ``cos^n`` was off by n * 1e-7).
+(the naive ``cos^n`` of a float32 cosine near 1 is off by about n * 1e-7, since 1 - cos Omega is
+quantised in steps of 6e-8 there).
 """
 from __future__ import annotations
 

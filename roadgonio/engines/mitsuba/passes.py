@@ -172,7 +172,10 @@ class CellStats:
 
 def strata_ratio_se(strata: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[float, float]:
     """Ratio sum(A) / sum(B) of paired replicate sums over independent strata, and its standard
-    error by the delta method (module docstring): Var = sum_q B_q s_q^2(A - r B) / (sum B)^2."""
+    error by the delta method (module docstring): Var = sum_q B_q s_q^2(A - r B) / (sum B)^2.
+    The stratified generalisation of :func:`roadgonio.engines.result.ratio_se`: with one stratum it
+    is that estimator (written with sums, and the residuals' own mean removed); (nan, inf) when
+    sum(B) is not positive, inf as the SE when a stratum has fewer than 2 replicates."""
     sa = sum(float(np.sum(a)) for a, _ in strata)
     sb = sum(float(np.sum(b)) for _, b in strata)
     if not sb > 0.0:

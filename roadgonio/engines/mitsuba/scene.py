@@ -14,7 +14,8 @@ Parts of a scene, by id (the same ids for a scene built from a TOML instrument a
 * ``"detector"``: the luminance meter (``lummeter`` sensor, :mod:`roadgonio.engines.mitsuba.plugins.lummeter`).
 
 The integrator is always ``direct`` with ``emitter_samples = 1``, ``bsdf_samples = 0`` (emitter
-sampling only: the small source disc is found by every sample; mitsuba-cpu notes, section 7).
+sampling only: the small source disc is found by every sample; the relative SE is that of MIS at
+about 1.6x the speed, while BSDF sampling alone almost never hits a 2 cm disc).
 
 **XML scenes.** An instrument TOML file may add ``[scene] xml = "file.xml"`` (relative to the TOML
 file). The TOML file still gives the nominal geometry (alpha, D_S, R_S, detector...): it defines
@@ -533,7 +534,7 @@ def classify_parts(rs: RoadScene) -> tuple[list, list[str]]:
 
 
 def _light_paths(rs: RoadScene, scene_sec) -> None:
-    """Decide what the scene requires (issue 18: model only that): the light paths follow
+    """Decide what the scene requires (model only that; docs/straylight.md, "What is modelled"): the light paths follow
     ``[scene] max_bounces`` reflections (the sample's own included; default
     :data:`DEFAULT_MAX_BOUNCES` when some part other than the sample reflects, else 1: the direct
     light alone, exactly the engine without stray light). Paths are traced (``rs.stray``) when
