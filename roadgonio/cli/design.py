@@ -123,7 +123,7 @@ def run(args) -> int:
     else:
         vals = ", ".join(f"{k} = {b[k]:g}" for k in s["varied"]) or "the base design"
         say(f"best: {vals}: signal {b['signal']:.3g} x base, max |k_A - 1| = {b['max_abs_dev']:.4f} "
-            f"(+- {b['worst_se']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
+            f"(+- {b['worst_u']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
             f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
     say(f"wrote {ds.attrs['out']}/" + ds.attrs.get("files", ""))
     return rc

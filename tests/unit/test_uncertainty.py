@@ -396,3 +396,22 @@ def test_uncertainty_notes_a_surrogate_error_large_against_u():
     lines = [ln for ln in summary_lines(rough) if ln.startswith("note:")]
     assert len(lines) == 1 and "tan eps 12, beta 0:" in lines[0] and f"of {n} cells" in lines[0]
     assert f"max/u(r) = {ratio_12_0:.2g}" in summary_lines(rough)[-2]               # the number as before
+
+
+def test_the_backends_standard_uncertainty_is_named_as_such():
+    """uncertainty.json's largest relative backend uncertainty was called backend_rel_se_max but held
+    the standard uncertainty: for a deterministic backend its bound / sqrt 3, not a standard error.
+    It is backend_rel_u_max."""
+    from roadgonio.uncertainty.report import result_dict
+    rel_bound = 3e-4
+
+    class Bounded(StandIn):
+        def compute(self, cells, on_cell=None):
+            return [CellResult(c.tan_eps, c.beta_deg, c.k_a, math.nan, 1, 0.0, error_bound=rel_bound * c.k_a)
+                    for c in super().compute(cells, on_cell)]
+
+    res = run_uncertainty(MODEL, load_instrument("portable"), parse_sigma_spec(SPEC), trials=500, seed=1,
+                          progress=False, n_validation=1, backend_factory=lambda i, m: Bounded(i, m, ka_smooth))
+    s = result_dict(res)["surrogate"]
+    assert "backend_rel_se_max" not in s
+    assert s["backend_rel_u_max"] == pytest.approx(rel_bound / math.sqrt(3.0), rel=EXACT_TOL)
