@@ -289,10 +289,11 @@ def same_model(a: RoadModel, b: RoadModel) -> bool:
 class CalibratedBackend:
     """A k_A backend in the instrument's calibration mode around a Lambert-calibrated backend
     (module docstring). ``make_inner(instrument, model)`` builds the wrapped backend; it is called
-    for the sample and, in the reference mode, once more for the reference."""
+    for the sample and, in the reference mode, once more for the reference. ``deterministic``: the
+    wrapped backend's precision is a deterministic bound (the registry's ``BackendInfo.deterministic``)."""
 
     def __init__(self, make_inner: InnerFactory, instrument: Instrument, model: RoadModel, *,
-                 inner: KaBackend | None = None, eta_rtol: float = ETA_RTOL):
+                 inner: KaBackend | None = None, eta_rtol: float = ETA_RTOL, deterministic: bool = False):
         self.instrument = instrument
         self.model = model
         self.calibration = instrument.calibration
@@ -300,6 +301,7 @@ class CalibratedBackend:
         self.eta_rtol = float(eta_rtol)
         self.inner = inner if inner is not None else make_inner(instrument, model)
         self.name = self.inner.name
+        self.deterministic = bool(deterministic)
         self.reference_model: RoadModel | None = None
         self.reference_inner: KaBackend | None = None
         self.identical = False
@@ -370,7 +372,7 @@ class CalibratedBackend:
     def _unity(self, tan_eps: float, beta_deg: float, c: CellResult | None = None) -> CellResult:
         """k_A = 1 exactly (the reference is the sample); with stray light the sample's stray fraction
         from its own computation ``c``."""
-        deterministic = _is_deterministic(self.inner)
+        deterministic = self.deterministic     # the registry's BackendInfo.deterministic (make_backend)
         stray = {} if c is None else dict(k_a_direct=1.0, k_a_direct_se=0.0, stray_fraction=c.stray_fraction,
                                            stray_fraction_se=c.stray_fraction_se)
         return CellResult(float(tan_eps), float(beta_deg), 1.0, math.nan if deterministic else 0.0,
@@ -418,14 +420,10 @@ def _rel(err: float, k: float) -> float:
     return abs(err / k) if math.isfinite(err) and k != 0 else (0.0 if not math.isfinite(err) else math.inf)
 
 
-def _is_deterministic(backend: KaBackend) -> bool:
-    return getattr(backend, "name", "") == "quadrature"
-
-
 def calibrated(make_inner: InnerFactory, instrument: Instrument, model: RoadModel,
-               inner: KaBackend | None = None) -> KaBackend:
+               inner: KaBackend | None = None, *, deterministic: bool = False) -> KaBackend:
     """``make_inner(instrument, model)`` in the instrument's calibration mode: the plain backend for
-    ``lambert``, a :class:`CalibratedBackend` otherwise."""
+    ``lambert``, a :class:`CalibratedBackend` otherwise (``deterministic``: as there)."""
     if instrument.calibration.is_default:
         return inner if inner is not None else make_inner(instrument, model)
-    return CalibratedBackend(make_inner, instrument, model, inner=inner)
+    return CalibratedBackend(make_inner, instrument, model, inner=inner, deterministic=deterministic)

@@ -26,10 +26,8 @@ from roadgonio.uncertainty.statistics import numerical_tolerance, summarize
 # ----------------------------------------------------------------------------------------------
 
 BackendFactory = Callable[[Instrument, RoadModel], Any]
-#: Default tolerance of the exact k_A evaluations behind the surrogate, by backend: the Mitsuba
-#: target relative SE (one seed for every design point, so the noise largely cancels in the
-#: differences the surrogate fits) and the quadrature's relative tolerance.
-DEFAULT_BACKEND_TOLERANCE = {"mitsuba": 3e-3, "quadrature": 1e-4}
+#: The backends of the exact k_A evaluations behind the surrogate, and their default tolerance:
+#: the registry's ``study_tolerance`` (:data:`roadgonio.engines.registry.BACKENDS`).
 
 
 def default_backend_factory(name: str, settings: Mapping[str, Any]) -> BackendFactory:

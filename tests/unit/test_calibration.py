@@ -199,6 +199,8 @@ def test_reference_equal_to_sample_gives_exactly_one(tmp_path, backend, settings
     inst = inst_with("portable", calibration={"mode": "reference", "reference": str(tmp_path / "ref.json")})
     res = make_backend(backend, inst, r3like(), **settings).compute(CELLS)
     assert all(c.k_a == 1.0 and c.standard_uncertainty() == 0.0 for c in res)
+    # one meaning per field: the deterministic backend's exact 1 has a bound of 0, a Monte Carlo one an SE of 0
+    assert all(c.deterministic == (backend == "quadrature") for c in res)
 
 
 def test_reference_mode_is_the_ratio_of_lambert_k_with_common_random_numbers(tmp_path):
