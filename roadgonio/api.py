@@ -378,8 +378,13 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
     if folder is not None:
         import dataclasses
 
+        from roadgonio.provenance import input_record, provenance
         from roadgonio.surface.fitplot import write_fit
-        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot, fingerprint=fp))
+        prov = provenance(inputs=[input_record("table", table)],
+                          settings={"model_variant": variant, "seed": seed, "fixed": dict(sorted(fixed.items())),
+                                    "method_version": FIT_METHOD_VERSION})
+        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot, fingerprint=fp,
+                                                               provenance=prov))
     return result
 
 

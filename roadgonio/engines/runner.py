@@ -346,7 +346,7 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         "resumed_cells": int(run.resumed),
         "seconds_wall": float(run.seconds),
         "fingerprint": fingerprint(instrument, model, backend),
-        "roadgonio_version": prov["versions"]["roadgonio"], "created": prov["created"],
+        "created": prov["created"],
         "provenance": to_json(prov, indent=None),
     }
     coords = {"tan_eps": ("tan_eps", TAN_EPS_GRID.copy(), {"long_name": "tan(epsilon)", "units": "1"}),
