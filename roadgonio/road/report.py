@@ -172,8 +172,3 @@ def road_files(results, summaries: list[dict], target: str | None, plots: bool =
         files["road_metrics.png"] = metrics_png(summaries, target, lay.describe())
         files["road_luminance.png"] = luminance_png(results)
     return files
-
-
-def _safe_name(name: str) -> str:
-    from roadgonio.fileio import safe_name
-    return safe_name(name, "table")

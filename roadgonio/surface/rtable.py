@@ -46,7 +46,6 @@ import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
@@ -618,8 +617,3 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     if quantity == "r" and p.suffix.lower() != ".rtb":
         check_csv_scale(table, p)
     return table
-
-
-def iter_bundled() -> Iterable[RTable]:
-    for name in BUNDLED:
-        yield bundled_table(name)
