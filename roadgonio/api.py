@@ -690,17 +690,12 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
                              "surface together (joint=True, --joint)", field="--instrument")
         instrument = instrument[0]
     from roadgonio.correction import correct_files
-    from roadgonio.correction.run import check_measured
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
     many = isinstance(measured, (list, tuple))
     items = list(measured) if many else [measured]
     if not items:
         raise InputError("expected at least one measured table", field="measured")
-    tables = []
-    for m in items:
-        t = _table(m, "measured")
-        check_measured(t, m if isinstance(m, (str, Path)) else None)
-        tables.append(t)
+    tables = _measured_tables(items)
     seed = check_seed(seed)
     inst = _instrument(instrument)
     self_ref = isinstance(reference, str) and reference.strip().lower() == "self"
@@ -745,11 +740,22 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     return results if many else results[0]
 
 
+def _measured_tables(items) -> list:
+    """The measured tables of a correction (names, files, RTables or DataArrays), each read and checked
+    (:func:`roadgonio.correction.run.check_measured`; a file's errors name the file)."""
+    from roadgonio.correction.run import check_measured
+    tables = []
+    for m in items:
+        t = _table(m, "measured")
+        check_measured(t, m if isinstance(m, (str, Path)) else None)
+        tables.append(t)
+    return tables
+
+
 def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy, rel_se, seed, mitsuba_variant,
                    model_variant, rays, out, plots, progress, workers, scheduler, reference, forward, **options):
     """:func:`correct` with ``joint=True`` (one surface through several instruments)."""
     from roadgonio.correction import correct_joint
-    from roadgonio.correction.run import check_measured
     from roadgonio.engines.registry import check_capabilities, check_seed, prepare_entry_point, resolve_settings
     if not (isinstance(reference, str) and reference.strip().lower() == "self"):
         raise InputError("a joint correction fits one surface through the instruments: reference must be 'self'",
@@ -764,11 +770,7 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
     if len(items) < 2 or len(items) != len(insts):
         raise InputError(f"a joint correction takes one instrument per measured table, at least two; got "
                          f"{len(items)} table(s) and {len(insts)} instrument(s)", field="--instrument")
-    tables = []
-    for m in items:
-        t = _table(m, "measured")
-        check_measured(t, m if isinstance(m, (str, Path)) else None)
-        tables.append(t)
+    tables = _measured_tables(items)
     seed = check_seed(seed)
     instruments = [_instrument(i) for i in insts]
     info = _command_backend("correct", backend)
