@@ -278,14 +278,14 @@ def _reads_back(read, fmt: str, csv_text: str | None = None, r: np.ndarray | Non
                          field=err.field or "r") from None
 
 
-def missing_ratio(num: float, den: float) -> float:
+def missing_ratio(num, den):
     """``num / den`` of two table quantities, or NaN (missing) when either is missing (NaN) or the
     denominator is not > 0 (a characteristic such as S1 of a table with r(0, 0) = 0 is undefined,
-    not infinite)."""
-    num, den = float(num), float(den)
-    if not (math.isfinite(num) and math.isfinite(den) and den > 0.0):
-        return math.nan
-    return num / den
+    not infinite). Elementwise for arrays (a float for two numbers)."""
+    n, d = np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
+    ok = np.isfinite(n) & np.isfinite(d) & (d > 0.0)
+    out = np.where(ok, n / np.where(ok, d, 1.0), np.nan)
+    return float(out) if out.ndim == 0 else out
 
 
 #: The first words of the header of a table's standard uncertainties (``corrected_u.csv``): the rest

@@ -415,3 +415,19 @@ def test_the_backends_standard_uncertainty_is_named_as_such():
     s = result_dict(res)["surrogate"]
     assert "backend_rel_se_max" not in s
     assert s["backend_rel_u_max"] == pytest.approx(rel_bound / math.sqrt(3.0), rel=EXACT_TOL)
+
+
+def test_s1_of_a_trial_follows_the_tables_missing_rule():
+    """The measurement model wrote S1 = r(2, 0) / r(0, 0) a third time, as a bare division: a trial
+    with r(0, 0) = 0 gave an infinite S1. It is rtable.missing_ratio (elementwise), as RTable.s1:
+    missing (NaN) where r(0, 0) is not > 0, the same number elsewhere."""
+    from roadgonio.surface.rtable import missing_ratio
+    mm = MeasurementModel(MODEL, load_instrument("portable"), CellSet.make("standard"))
+    r = np.tile(np.linspace(0.01, 0.02, len(mm.cells)), (3, 1))
+    r[1, mm.i_00] = 0.0
+    r[2, mm.i_00] = -1e-3
+    s1 = mm.functionals(r)[:, -1]
+    assert s1[0] == r[0, mm.i_20] / r[0, mm.i_00] and np.isnan(s1[1]) and np.isnan(s1[2])
+    assert missing_ratio(3.0, 2.0) == 1.5 and math.isnan(missing_ratio(1.0, 0.0))
+    assert np.array_equal(missing_ratio(np.array([3.0, 1.0, np.nan]), np.array([2.0, 0.0, 1.0])),
+                          [1.5, np.nan, np.nan], equal_nan=True)
