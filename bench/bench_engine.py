@@ -238,12 +238,12 @@ def main(argv=None) -> int:
                          "statistics_s": sec.get("statistics"),
                          "sur_err_max_pct": 100 * sur["rel_err_max"] if "rel_err_max" in sur else None,
                          "sur_err_over_u_max": sur.get("err_over_u_max"),
-                         "backend_rel_se_max": sur.get("backend_rel_se_max"), "load": load()})
+                         "backend_rel_u_max": sur.get("backend_rel_u_max"), "load": load()})
             r = rows[-1]
             print(f"  uncertainty{'' if plots else ' --no-plots'}: {uw:.1f} s wall, {uc:.1f} s CPU (exact k_A tables "
                   f"{r['exact_tables_s'] or 0:.1f} s, trials {r['trials_s'] or 0:.1f} s, statistics {r['statistics_s'] or 0:.1f} s), "
                   f"surrogate error max {r['sur_err_max_pct'] or float('nan'):.3g} % = {r['sur_err_over_u_max'] or float('nan'):.2g} u, "
-                  f"backend rel SE <= {r['backend_rel_se_max'] or float('nan'):.1e} "
+                  f"backend rel u <= {r['backend_rel_u_max'] or float('nan'):.1e} "
                   f"({'ok' if ok else 'FAILED: ' + out.stderr[-300:]}) (load {load()})", flush=True)
 
     fields = []

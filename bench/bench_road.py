@@ -84,10 +84,10 @@ def main() -> None:
             for mode in ("independent", "correlated"):
                 for m in ("L_av", "U_o", "U_l", "TI"):
                     row[f"u_{m}_{mode}"] = u[mode][m]["u"]
-                    row[f"ci95_{m}_{mode}"] = "{:.4g}..{:.4g}".format(*u[mode][m]["ci95"])
+                    row[f"cov95_{m}_{mode}"] = "{:.4g}..{:.4g}".format(*u[mode][m]["coverage_interval_95"])
                 row[f"P_meets_{u['target_class']}_{mode}"] = u[mode]["P_meets_target"]
-                print(f"  {mode:11} u: L_av {u[mode]['L_av']['u']:.4f} [{u[mode]['L_av']['ci95'][0]:.4f}, "
-                      f"{u[mode]['L_av']['ci95'][1]:.4f}], U_o {u[mode]['U_o']['u']:.4f}, U_l {u[mode]['U_l']['u']:.4f}, "
+                print(f"  {mode:11} u: L_av {u[mode]['L_av']['u']:.4f} [{u[mode]['L_av']['coverage_interval_95'][0]:.4f}, "
+                      f"{u[mode]['L_av']['coverage_interval_95'][1]:.4f}], U_o {u[mode]['U_o']['u']:.4f}, U_l {u[mode]['U_l']['u']:.4f}, "
                       f"TI {u[mode]['TI']['u']:.3f}; P(meets {u['target_class']}) {u[mode]['P_meets_target']:.3f}")
         rows.append(row)
     m, c = out[0], out[1]

@@ -174,10 +174,32 @@ def _show(progress) -> bool:
 # What there is to choose from (the command line's choices)
 # ----------------------------------------------------------------------------------------------
 
-def backends() -> dict[str, str]:
-    """The k_A backends of the registry, name -> one-line summary."""
-    from roadgonio.engines.registry import BACKENDS
-    return {n: b.summary for n, b in BACKENDS.items()}
+#: What a command needs of its k_A backend, as capabilities of the registry
+#: (:func:`roadgonio.engines.registry.backends_with`): the command line's ``--backend`` choices
+#: (:func:`backends`) and this module's check (:func:`_command_backend`) are the same query.
+BACKEND_NEEDS: dict[str, dict[str, Any]] = {"ka": {}, "design": {}, "correct": {},
+                                            "uncertainty": {"study_tolerance": True},
+                                            "intercompare": {"study_tolerance": True}}
+
+
+def backends(command: str | None = None) -> dict[str, str]:
+    """The k_A backends of the registry (those ``command`` takes: :data:`BACKEND_NEEDS`), name ->
+    one-line summary."""
+    from roadgonio.engines.registry import BACKENDS, backends_with
+    return {n: BACKENDS[n].summary for n in backends_with(**(BACKEND_NEEDS[command] if command else {}))}
+
+
+def study_tolerances() -> dict[str, tuple[str, float]]:
+    """The default tolerance of the k_A tables of ``uncertainty`` and ``intercompare``, by backend:
+    name -> (its setting, ``rel_se`` or ``rtol``; the value)."""
+    from roadgonio.engines.registry import BACKENDS, backends_with
+    return {n: (BACKENDS[n].tolerance, BACKENDS[n].study_tolerance) for n in backends_with(study_tolerance=True)}
+
+
+def _command_backend(command: str, backend: str, field: str = "backend"):
+    """The registry entry of ``backend`` if ``command`` takes it (an InputError listing those it takes)."""
+    from roadgonio.engines.registry import check_backend
+    return check_backend(backend, field, purpose=command, **BACKEND_NEEDS[command])
 
 
 def accuracy_presets() -> tuple[str, ...]:
@@ -356,8 +378,13 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
     if folder is not None:
         import dataclasses
 
+        from roadgonio.provenance import input_record, provenance
         from roadgonio.surface.fitplot import write_fit
-        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot, fingerprint=fp))
+        prov = provenance(inputs=[input_record("table", table)],
+                          settings={"model_variant": variant, "seed": seed, "fixed": dict(sorted(fixed.items())),
+                                    "method_version": FIT_METHOD_VERSION})
+        result = dataclasses.replace(result, written=write_fit(result, folder, plot=plot, fingerprint=fp,
+                                                               provenance=prov))
     return result
 
 
@@ -568,7 +595,7 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     holding a different run's results (uncertainty.json's fingerprint of the inputs and settings)
     is refused before the work unless ``fresh``, which replaces them."""
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
-    from roadgonio.uncertainty.run import DEFAULT_BACKEND_TOLERANCE, run_uncertainty
+    from roadgonio.uncertainty.run import run_uncertainty
     from roadgonio.uncertainty.spec import SigmaSpec, parse_sigma_spec
     if isinstance(sigma, SigmaSpec):
         spec = sigma
@@ -589,10 +616,9 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         threads = _check_int(threads, "threads", 1)
     if isinstance(coverage, bool) or not isinstance(coverage, (int, float)) or not (0.5 < coverage < 1.0):
         raise InputError(f"expected a coverage probability between 0.5 and 1, got {coverage!r}", field="coverage")
-    if backend not in DEFAULT_BACKEND_TOLERANCE:
-        raise InputError(f"expected backend {' or '.join(DEFAULT_BACKEND_TOLERANCE)}, got {backend!r}", field="backend")
-    settings = resolve_settings(backend, tolerance=DEFAULT_BACKEND_TOLERANCE[backend] if rel_se is None else rel_se,
-                                seed=seed if backend == "mitsuba" else None, mitsuba_variant=mitsuba_variant,
+    info = _command_backend("uncertainty", backend)
+    settings = resolve_settings(backend, tolerance=info.study_tolerance if rel_se is None else rel_se,
+                                seed=seed if info.seeded else None, mitsuba_variant=mitsuba_variant,
                                 fields={"tolerance": "rel_se"})
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
@@ -664,17 +690,12 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
                              "surface together (joint=True, --joint)", field="--instrument")
         instrument = instrument[0]
     from roadgonio.correction import correct_files
-    from roadgonio.correction.run import check_measured
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
     many = isinstance(measured, (list, tuple))
     items = list(measured) if many else [measured]
     if not items:
         raise InputError("expected at least one measured table", field="measured")
-    tables = []
-    for m in items:
-        t = _table(m, "measured")
-        check_measured(t, m if isinstance(m, (str, Path)) else None)
-        tables.append(t)
+    tables = _measured_tables(items)
     seed = check_seed(seed)
     inst = _instrument(instrument)
     self_ref = isinstance(reference, str) and reference.strip().lower() == "self"
@@ -683,10 +704,10 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
                          "table", field="model_variant")
     from roadgonio.limits import check_size
     rays = check_size(_check_int(rays, "rays", 8), "rays", "rays")
-    from roadgonio.engines.registry import backend_info, check_capabilities
-    seeded = backend_info(backend).seeded
-    check_capabilities(backend_info(backend), inst)      # before any fitting, not after it
-    settings = resolve_settings(backend, tolerance=rel_se, seed=seed if seeded else None, mitsuba_variant=mitsuba_variant,
+    from roadgonio.engines.registry import check_capabilities
+    info = _command_backend("correct", backend)
+    check_capabilities(info, inst)      # before any fitting, not after it
+    settings = resolve_settings(backend, tolerance=rel_se, seed=seed if info.seeded else None, mitsuba_variant=mitsuba_variant,
                                 fields={"tolerance": "rel_se"})
     if scheduler is None and workers in (None, 0):
         prepare_entry_point(backend, mitsuba_variant)     # in this process: the API is the entry point
@@ -719,13 +740,23 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     return results if many else results[0]
 
 
+def _measured_tables(items) -> list:
+    """The measured tables of a correction (names, files, RTables or DataArrays), each read and checked
+    (:func:`roadgonio.correction.run.check_measured`; a file's errors name the file)."""
+    from roadgonio.correction.run import check_measured
+    tables = []
+    for m in items:
+        t = _table(m, "measured")
+        check_measured(t, m if isinstance(m, (str, Path)) else None)
+        tables.append(t)
+    return tables
+
+
 def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy, rel_se, seed, mitsuba_variant,
                    model_variant, rays, out, plots, progress, workers, scheduler, reference, forward, **options):
     """:func:`correct` with ``joint=True`` (one surface through several instruments)."""
     from roadgonio.correction import correct_joint
-    from roadgonio.correction.run import check_measured
-    from roadgonio.engines.registry import (backend_info, check_capabilities, check_seed, prepare_entry_point,
-                                            resolve_settings)
+    from roadgonio.engines.registry import check_capabilities, check_seed, prepare_entry_point, resolve_settings
     if not (isinstance(reference, str) and reference.strip().lower() == "self"):
         raise InputError("a joint correction fits one surface through the instruments: reference must be 'self'",
                          field="--reference")
@@ -739,17 +770,14 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
     if len(items) < 2 or len(items) != len(insts):
         raise InputError(f"a joint correction takes one instrument per measured table, at least two; got "
                          f"{len(items)} table(s) and {len(insts)} instrument(s)", field="--instrument")
-    tables = []
-    for m in items:
-        t = _table(m, "measured")
-        check_measured(t, m if isinstance(m, (str, Path)) else None)
-        tables.append(t)
+    tables = _measured_tables(items)
     seed = check_seed(seed)
     instruments = [_instrument(i) for i in insts]
+    info = _command_backend("correct", backend)
     for i in instruments:
-        check_capabilities(backend_info(backend), i)     # before any fitting, not after it
+        check_capabilities(info, i)     # before any fitting, not after it
     rays = _check_int(rays, "rays", 8)
-    settings = resolve_settings(backend, tolerance=rel_se, seed=seed if backend_info(backend).seeded else None,
+    settings = resolve_settings(backend, tolerance=rel_se, seed=seed if info.seeded else None,
                                 mitsuba_variant=mitsuba_variant, fields={"tolerance": "rel_se"})
     prepare_entry_point(backend, mitsuba_variant)
     folder = _out(out, "correct", "joint", *[t.name for t in tables])
@@ -821,6 +849,7 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
     from roadgonio.design.run import run_design
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
     seed = check_seed(seed)
+    _command_backend("design", backend)
     settings = resolve_settings(backend, tolerance=rel_se, mitsuba_variant=mitsuba_variant, fields={"tolerance": "rel_se"})
     base = _instrument(instrument)
     from roadgonio.design.grid import as_vary_specs, check_vary

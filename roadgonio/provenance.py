@@ -1,7 +1,7 @@
 """Provenance of a result, built in one place (developers' guide, rule 7).
 
 Every output that carries results (``ka.json`` of a k_A table, ``validate.json``,
-``uncertainty.json``, ``correction.json``, ``render.json``, the attrs of
+``uncertainty.json``, ``correction.json``, ``render.json``, ``model.json`` of a fit, the attrs of
 :func:`roadgonio.ka_table`) takes its provenance from :func:`provenance`, so they all say the
 same things in the same keys:
 

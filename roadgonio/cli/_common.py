@@ -28,11 +28,12 @@ def add_model_variant(p, help_text: str = "model variant fitted when SAMPLE is a
                    help=help_text)
 
 
-def add_backend(p, default: str = "mitsuba", names=None, help_text: str | None = None) -> None:
-    backends = api.backends()
-    names = list(names or backends)
-    p.add_argument("--backend", default=default, choices=names,
-                   help=help_text or "; ".join(f"{n}: {backends[n]}" for n in names).replace("%", "%%"))
+def add_backend(p, command: str, default: str = "mitsuba", help_text: str | None = None) -> None:
+    """``--backend``: the choices are the backends the API takes for ``command`` (:func:`api.backends`)."""
+    backends = api.backends(command)
+    p.add_argument("--backend", default=default, choices=list(backends),
+                   help=(help_text + ": " if help_text else "")
+                   + "; ".join(f"{n}: {s}" for n, s in backends.items()).replace("%", "%%"))
 
 
 def add_accuracy(p) -> None:

@@ -65,7 +65,7 @@ def register(sub) -> None:
                         "eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02', or a TOML file); default: not included")
     add_model_variant(p, "model variant fitted: auto (default with --reference self: power and smooth, the better "
                          "fit is used and the other measures the model dependence), or one variant", extra=("auto",))
-    add_backend(p, names=["mitsuba", "quadrature", "numpy-mc", "reference"],
+    add_backend(p, "correct",
                 help_text="k_A backend of the reported factor (default mitsuba; quadrature: deterministic float64)")
     add_accuracy(p)
     p.add_argument("--rel-se", type=float, metavar="E",

@@ -59,7 +59,7 @@ def register(sub) -> None:
     p.add_argument("--cells", default="all", metavar="all|table|LIST",
                    help="all = the 580-cell grid (default); table = the cells tabulated in each sample's r-table; "
                         "LIST = T:B,T:B,... (tan eps : beta deg), e.g. 12:0,12:2,4:0")
-    add_backend(p, names=["mitsuba", "quadrature", "numpy-mc", "reference"], help_text="k_A backend (default mitsuba)")
+    add_backend(p, "design", help_text="k_A backend (default mitsuba)")
     add_accuracy(p)
     p.add_argument("--rel-se", type=float, metavar="E", help="target relative SE per cell (overrides --accuracy)")
     p.add_argument("--seed", type=int, default=0, help="root seed (0 ... 2^63 - 1); design point k gets its own seed point_seed(seed, k), in design.csv")
@@ -123,7 +123,7 @@ def run(args) -> int:
     else:
         vals = ", ".join(f"{k} = {b[k]:g}" for k in s["varied"]) or "the base design"
         say(f"best: {vals}: signal {b['signal']:.3g} x base, max |k_A - 1| = {b['max_abs_dev']:.4f} "
-            f"(+- {b['worst_se']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
+            f"(+- {b['worst_u']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
             f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
     say(f"wrote {ds.attrs['out']}/" + ds.attrs.get("files", ""))
     return rc

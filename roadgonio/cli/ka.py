@@ -32,7 +32,7 @@ def register(sub) -> None:
     add_instrument_argument(p)
     add_sample_argument(p)
     add_model_variant(p)
-    add_backend(p)
+    add_backend(p, "ka")
     add_accuracy(p)
     p.add_argument("--rel-se", type=float, metavar="E",
                    help="target relative standard error per cell (Monte Carlo backends) or relative tolerance "

@@ -131,7 +131,7 @@ def _print(summaries) -> None:
             parts = []
             for k in ("L_av", "U_o", "U_l", "TI"):
                 if m[k]:
-                    parts.append(f"{k} {m[k]['nominal']:.3g} ± {m[k]['u']:.2g} [{m[k]['ci95'][0]:.3g}, {m[k]['ci95'][1]:.3g}]")
+                    parts.append(f"{k} {m[k]['nominal']:.3g} ± {m[k]['u']:.2g} [{m[k]['coverage_interval_95'][0]:.3g}, {m[k]['coverage_interval_95'][1]:.3g}]")
             p = m["P_meets_target"]
             w(f"  {mode:11}: " + "; ".join(parts)
               + (f"; P(meets {u['target_class']}) = {p:.3f}" if p is not None else "; P(meets class): missing") + "\n")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from roadgonio import api
 from roadgonio.cli._common import (
+    add_backend,
     add_dask_arguments,
     add_instrument_argument,
     add_mitsuba_variant,
@@ -59,12 +60,13 @@ def register(sub) -> None:
     p.add_argument("--cells", choices=["standard", "all"], default="standard",
                    help="standard (default): the tabulated cells of the CIE tables (396); all: the 580-cell grid")
     p.add_argument("--no-aperture", action="store_true", help="skip the case with the aperture effect")
-    p.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature"],
-                   help="k_A backend of the surrogate's exact evaluations (default mitsuba with ONE seed for every "
-                        "design point, so the Monte Carlo noise largely cancels in the differences the surrogate "
-                        "fits; quadrature: deterministic float64, slower)")
+    add_backend(p, "uncertainty",
+                help_text="k_A backend of the surrogate's exact evaluations (default mitsuba with ONE seed for every "
+                          "design point, so the Monte Carlo noise largely cancels in the differences the surrogate "
+                          "fits; quadrature: deterministic float64, slower)")
     p.add_argument("--rel-se", type=float, metavar="E",
-                   help="backend tolerance: mitsuba target relative SE (default 3e-3) / quadrature rtol (default 1e-4)")
+                   help="backend tolerance (default " + ", ".join(
+                       f"{n}: {k} {v:g}" for n, (k, v) in api.study_tolerances().items()) + ")")
     p.add_argument("--surrogate", choices=["star", "ccd"], default="ccd",
                    help="design of exact k_A tables: ccd (default: full quadratic with interactions, 27 tables for "
                         "5 coordinates) or star (2d+1 = 11 tables: gradient and curvature per coordinate, about "

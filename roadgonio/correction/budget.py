@@ -40,8 +40,6 @@ import numpy as np
 from roadgonio.surface.cie import cie_class, nearest_bundled
 from roadgonio.surface.rtable import RTable, q0_weights
 
-COMPONENTS = ("measurement", "backend", "parameters", "model", "misalignment", "convergence")
-
 @dataclass
 class Budget:
     """Relative covariance components over the measured cells (module docstring)."""

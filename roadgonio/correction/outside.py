@@ -60,8 +60,6 @@ from roadgonio.surface.rtable import RTable
 DEFAULT_VARIANTS = ("power", "smooth")
 #: Width (in grid cells) of the neighbourhood of the local Birge ratio.
 BIRGE_WIDTH_CELLS = 2.0
-#: Components of the budget of a corrected table (in this order).
-COMPONENTS = ("measurement", "backend", "surface", "model", "bundle", "discrepancy", "misalignment")
 
 
 @dataclass

@@ -14,6 +14,7 @@ import numpy as np
 from roadgonio.fileio import to_json
 from roadgonio.instrument.config import Instrument
 from roadgonio.engines import cluster as _cluster
+from roadgonio.engines.result import standard_uncertainty
 from roadgonio.design.grid import VarySpec
 from roadgonio.design.metrics import SIGNAL_FORMULA, deviations, detector_etendue, profiled_solid_angle, signal_product
 
@@ -29,6 +30,8 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     k_a = np.full((n, ns, len(tans), len(betas)), np.nan)
     se = np.full_like(k_a, np.nan)
     bound = np.full_like(k_a, np.nan)
+    conf = np.full_like(k_a, np.nan)
+    level = np.full_like(k_a, np.nan)
     not_conv = np.zeros(n, dtype=np.int32)
     seconds = np.zeros(n)
     geometry_ok = np.array([f.ok for f in feas], dtype=bool)
@@ -56,24 +59,26 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                 k_a[i, j, a, bb] = _f(rec["k_a"][c])
                 se[i, j, a, bb] = _f(rec["se"][c])
                 bound[i, j, a, bb] = _f(rec["error_bound"][c])
+                # journals written before the confidence bound was kept have neither field
+                conf[i, j, a, bb] = _f((rec.get("confidence_bound") or [None] * len(s.cells))[c])
+                level[i, j, a, bb] = _f((rec.get("confidence_level") or [None] * len(s.cells))[c])
                 not_conv[i] += 0 if rec["converged"][c] else 1
     max_dev = np.full(n, np.nan)
     rms = np.full(n, np.nan)
     worst_t = np.full(n, np.nan)
     worst_b = np.full(n, np.nan)
-    worst_se = np.full(n, np.nan)
+    worst_u = np.full(n, np.nan)
     worst_s = np.array([""] * n, dtype=object)
     max_dev_s = np.full((n, ns), np.nan)
     computed = np.zeros(n, dtype=bool)
     for i in range(n):
         if kind[i] in ("failed",) or not geometry_ok[i]:
             continue
-        u = np.where(np.isfinite(se[i]), se[i], bound[i] / math.sqrt(3.0))
-        d = deviations(k_a[i], u)
+        d = deviations(k_a[i], standard_uncertainty(se[i], bound[i]))
         if d["cells"] == 0:
             continue
         computed[i] = True
-        max_dev[i], rms[i], worst_se[i] = d["max_abs_dev"], d["rms_dev"], d["worst_se"]
+        max_dev[i], rms[i], worst_u[i] = d["max_abs_dev"], d["rms_dev"], d["worst_u"]
         js, a, bb = np.unravel_index(d["worst"], k_a[i].shape)
         worst_t[i], worst_b[i], worst_s[i] = tans[a], betas[bb], samples[js].name
         for j in range(ns):
@@ -108,13 +113,19 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "se": (cell_dims, grid(se), {"long_name": "standard error of k_A (Monte Carlo; NaN for deterministic backends)"}),
         "error_bound": (cell_dims, grid(bound), {"long_name": "deterministic error bound of k_A (quadrature; NaN for "
                                                               "Monte Carlo)"}),
+        "confidence_bound": (cell_dims, grid(conf), {"long_name": "statistical bound of |k_A - true k_A| holding with "
+                                                                  "probability confidence_level (RQMC reference; NaN "
+                                                                  "otherwise)"}),
+        "confidence_level": (cell_dims, grid(level), {"long_name": "confidence level of confidence_bound (NaN without "
+                                                                   "one)"}),
         "max_abs_dev": (dims, grid(max_dev), {"long_name": "max |k_A - 1| over the cells and samples"}),
         "max_abs_dev_sample": (dims + ["sample"], grid(max_dev_s), {"long_name": "max |k_A - 1| over the cells, per sample"}),
         "rms_dev": (dims, grid(rms), {"long_name": "root mean square of k_A - 1 over the cells and samples"}),
         "worst_tan_eps": (dims, grid(worst_t), {"long_name": "tan eps of the worst cell"}),
         "worst_beta_deg": (dims, grid(worst_b), {"long_name": "beta (deg) of the worst cell"}),
         "worst_sample": (dims, grid(worst_s.astype(str)), {"long_name": "sample of the worst cell"}),
-        "worst_se": (dims, grid(worst_se), {"long_name": "standard uncertainty of k_A at the worst cell (SE, or bound/sqrt 3)"}),
+        "worst_u": (dims, grid(worst_u), {"long_name": "standard uncertainty of k_A at the worst cell (its SE, or its "
+                                                      "deterministic error bound / sqrt 3)"}),
         "not_converged": (dims, grid(not_conv), {"long_name": "cells whose backend stopped before its target"}),
         "signal": (dims, grid(signal), {"long_name": "detected flux for a Lambertian sample relative to the base design",
                                         "formula": SIGNAL_FORMULA}),
@@ -188,7 +199,7 @@ def summary(ds) -> dict[str, Any]:
     dims = json.loads(ds.attrs["varied"])
     best = int(ds.attrs["best_index"])
     flat = {v: ds[v].values.reshape(-1) for v in ("max_abs_dev", "rms_dev", "signal", "feasible", "kind",
-                                                    "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_se",
+                                                    "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u",
                                                     "seed", "footprint_length_m")}
     kinds: dict[str, int] = {}
     for k in flat["kind"]:

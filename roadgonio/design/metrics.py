@@ -124,18 +124,19 @@ def relative_signal(instrument: Instrument, base: Instrument) -> float:
     return signal_product(instrument) / b if b > 0 else math.nan
 
 
-def deviations(k_a: np.ndarray, se: np.ndarray) -> dict[str, float | int]:
-    """``max_abs_dev``, ``rms_dev`` and the index of the worst entry (flat, over the finite k_A) of
-    arrays of k_A and its SE of any shape; NaN entries (cells not requested) are ignored."""
+def deviations(k_a: np.ndarray, u: np.ndarray) -> dict[str, float | int]:
+    """``max_abs_dev``, ``rms_dev``, the index of the worst entry (flat, over the finite k_A) and its
+    standard uncertainty ``worst_u``, of arrays of k_A and its standard uncertainty of any shape;
+    NaN entries (cells not requested) are ignored."""
     k = np.asarray(k_a, dtype=np.float64).ravel()
-    s = np.asarray(se, dtype=np.float64).ravel()
+    s = np.asarray(u, dtype=np.float64).ravel()
     ok = np.isfinite(k)
     if not ok.any():
-        return {"max_abs_dev": math.nan, "rms_dev": math.nan, "worst": -1, "worst_se": math.nan, "cells": 0}
+        return {"max_abs_dev": math.nan, "rms_dev": math.nan, "worst": -1, "worst_u": math.nan, "cells": 0}
     dev = np.where(ok, np.abs(k - 1.0), -np.inf)
     i = int(np.argmax(dev))
     return {"max_abs_dev": float(dev[i]), "rms_dev": float(np.sqrt(np.mean((k[ok] - 1.0) ** 2))),
-            "worst": i, "worst_se": float(s[i]), "cells": int(ok.sum())}
+            "worst": i, "worst_u": float(s[i]), "cells": int(ok.sum())}
 
 
 def pareto_front(signal: Sequence[float], dev: Sequence[float]) -> np.ndarray:

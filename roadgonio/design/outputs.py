@@ -4,7 +4,7 @@
   attributes ``provenance`` and ``base_instrument_json``);
 * ``design.csv``: one row per design point: one column per varied key (named exactly as the key),
   then ``max_abs_dev, rms_dev, signal, feasible, reason``, then ``kind, worst_tan_eps,
-  worst_beta_deg, worst_sample, worst_se, footprint_length_m, seed``;
+  worst_beta_deg, worst_sample, worst_u, footprint_length_m, seed``;
 * ``best.toml``: the feasible design with the most signal, a complete instrument file (opens with
   ``roadgonio ka --instrument best.toml``; the header says how to reproduce its row);
 * ``pareto.png``: max |k_A - 1| against the signal, feasible points marked, the Pareto front, the
@@ -26,7 +26,7 @@ from roadgonio.fileio import atomic_savefig, atomic_write_text, read_netcdf, wri
 from roadgonio.instrument.config import toml_text
 
 CSV_TAIL = ("max_abs_dev", "rms_dev", "signal", "feasible", "reason")
-CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_se", "footprint_length_m", "seed")
+CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u", "footprint_length_m", "seed")
 
 
 def write_outputs(ds, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
@@ -127,7 +127,7 @@ def plot_pareto(ds, path: Path) -> Path:
     sig = ds["signal"].values.reshape(-1)
     feas = ds["feasible"].values.reshape(-1).astype(bool)
     geo = ds["geometry_ok"].values.reshape(-1).astype(bool)
-    se = ds["worst_se"].values.reshape(-1) * 100
+    u = ds["worst_u"].values.reshape(-1) * 100
     tol = float(ds.attrs["tolerance"]) * 100
     best = int(ds.attrs["best_index"])
     from roadgonio.design.metrics import pareto_front
@@ -135,9 +135,9 @@ def plot_pareto(ds, path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(8, 5.5))
     ok = np.isfinite(dev) & np.isfinite(sig)
     bad = ok & ~feas
-    ax.errorbar(sig[bad], dev[bad], yerr=2 * np.nan_to_num(se[bad]), fmt="o", mfc="none", color="tab:red",
+    ax.errorbar(sig[bad], dev[bad], yerr=2 * np.nan_to_num(u[bad]), fmt="o", mfc="none", color="tab:red",
                 ms=6, lw=0.8, label=f"over tolerance ({int(bad.sum())})")
-    ax.errorbar(sig[feas & ok], dev[feas & ok], yerr=2 * np.nan_to_num(se[feas & ok]), fmt="o", color="tab:green",
+    ax.errorbar(sig[feas & ok], dev[feas & ok], yerr=2 * np.nan_to_num(u[feas & ok]), fmt="o", color="tab:green",
                 ms=6, lw=0.8, label=f"feasible ({int((feas & ok).sum())})")
     front = pareto_front(sig, dev)
     if front.size > 1:

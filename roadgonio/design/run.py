@@ -36,7 +36,7 @@ from roadgonio.design.grid import VarySpec, as_vary_specs, check_vary, grid_poin
 JOURNAL = "design_points.jsonl"
 DEFAULT_TOLERANCE = 0.05
 #: The per-cell fields kept in the journal (in the order of the task's cells).
-_CELL_FIELDS = ("k_a", "se", "error_bound", "converged", "samples")
+_CELL_FIELDS = ("k_a", "se", "error_bound", "confidence_bound", "confidence_level", "converged", "samples")
 
 
 @dataclass(frozen=True)

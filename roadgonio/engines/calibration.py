@@ -41,6 +41,10 @@ the instrument's ``[calibration] mode`` (:mod:`roadgonio.instrument.calibration`
   positively correlated, so this overstates the error (conservative). For deterministic backends the
   relative bounds add (first-order worst case). ``k_a_direct`` is formed the same way from the direct
   light of both; the stray fraction is the sample's.
+
+A confidence bound with its level (the RQMC reference) is carried like the deterministic bound: in
+``absolute`` ``b * eta + |k_lam| eta_error`` at the same level; in ``reference`` the relative bounds
+add, at level at least 1 - (1 - L_f) - (1 - L_ref) (both hold with that probability, Bonferroni).
 """
 from __future__ import annotations
 
@@ -264,10 +268,11 @@ def same_model(a: RoadModel, b: RoadModel) -> bool:
 class CalibratedBackend:
     """A k_A backend in the instrument's calibration mode around a Lambert-calibrated backend
     (module docstring). ``make_inner(instrument, model)`` builds the wrapped backend; it is called
-    for the sample and, in the reference mode, once more for the reference."""
+    for the sample and, in the reference mode, once more for the reference. ``deterministic``: the
+    wrapped backend's precision is a deterministic bound (the registry's ``BackendInfo.deterministic``)."""
 
     def __init__(self, make_inner: InnerFactory, instrument: Instrument, model: RoadModel, *,
-                 inner: KaBackend | None = None, eta_rtol: float = ETA_RTOL):
+                 inner: KaBackend | None = None, eta_rtol: float = ETA_RTOL, deterministic: bool = False):
         self.instrument = instrument
         self.model = model
         self.calibration = instrument.calibration
@@ -275,6 +280,7 @@ class CalibratedBackend:
         self.eta_rtol = float(eta_rtol)
         self.inner = inner if inner is not None else make_inner(instrument, model)
         self.name = self.inner.name
+        self.deterministic = bool(deterministic)
         self.reference_model: RoadModel | None = None
         self.reference_inner: KaBackend | None = None
         self.identical = False
@@ -301,6 +307,9 @@ class CalibratedBackend:
     def _absolute(self, c: CellResult) -> CellResult:
         eta, eta_err, eta_ok = illuminance_ratio(self.instrument, c.tan_eps, c.beta_deg, rtol=self.eta_rtol)
         bound = c.error_bound * eta + abs(c.k_a) * eta_err if math.isfinite(c.error_bound) else math.nan
+        # a confidence bound (the RQMC reference) is scaled like the deterministic bound, at its own level
+        conf = dict(confidence_bound=c.confidence_bound * eta + abs(c.k_a) * eta_err
+                    if math.isfinite(c.confidence_bound) else math.nan, confidence_level=c.confidence_level)
         extra = {**(c.extra or {}), "calibration": "absolute", "k_a_lambert": c.k_a, "eta": eta,
                  "eta_error": eta_err, "eta_converged": eta_ok}
         if c.stray_fraction != 0.0:
@@ -310,10 +319,10 @@ class CalibratedBackend:
             se = abs(k) * math.hypot(_rel(c.k_a_direct_se, c.k_a_direct), c.stray_fraction_se / (1.0 - c.stray_fraction))
             return CellResult(c.tan_eps, c.beta_deg, k, se, c.samples, c.seconds, extra, error_bound=bound,
                               converged=c.converged and eta_ok, k_a_direct=kd, k_a_direct_se=c.k_a_direct_se * eta,
-                              stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se)
+                              stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se, **conf)
         return CellResult(c.tan_eps, c.beta_deg, apply_calibration("absolute", c.k_a, eta=eta), c.se * eta,
                           c.samples, c.seconds, extra,
-                          error_bound=bound, converged=c.converged and eta_ok)
+                          error_bound=bound, converged=c.converged and eta_ok, **conf)
 
     def _reference(self, c: CellResult, r: CellResult) -> CellResult:
         k = apply_calibration("reference", c.k_a, reference_reading=r.k_a)
@@ -322,6 +331,12 @@ class CalibratedBackend:
             se, bound = abs(k) * rel, math.nan
         else:
             se, bound = math.nan, abs(k) * (_rel(c.error_bound, c.k_a) + _rel(r.error_bound, r.k_a))
+        # confidence bounds (the RQMC reference) add like the deterministic bounds; the sum holds
+        # whenever both hold, so its level is at least 1 - (1 - L_c) - (1 - L_r) (Bonferroni)
+        conf = {}
+        if math.isfinite(c.confidence_bound) and math.isfinite(r.confidence_bound):
+            conf = dict(confidence_bound=abs(k) * (_rel(c.confidence_bound, c.k_a) + _rel(r.confidence_bound, r.k_a)),
+                        confidence_level=1.0 - ((1.0 - c.confidence_level) + (1.0 - r.confidence_level)))
         extra = {**(c.extra or {}), "calibration": "reference", "k_a_lambert": c.k_a,
                  "k_a_lambert_reference": r.k_a}
         stray = {}
@@ -331,12 +346,12 @@ class CalibratedBackend:
                                                                           _rel(r.k_a_direct_se, r.k_a_direct)),
                          stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se)
         return CellResult(c.tan_eps, c.beta_deg, k, se, c.samples + r.samples, c.seconds + r.seconds, extra,
-                          error_bound=bound, converged=c.converged and r.converged, **stray)
+                          error_bound=bound, converged=c.converged and r.converged, **conf, **stray)
 
     def _unity(self, tan_eps: float, beta_deg: float, c: CellResult | None = None) -> CellResult:
         """k_A = 1 exactly (the reference is the sample); with stray light the sample's stray fraction
         from its own computation ``c``."""
-        deterministic = _is_deterministic(self.inner)
+        deterministic = self.deterministic     # the registry's BackendInfo.deterministic (make_backend)
         stray = {} if c is None else dict(k_a_direct=1.0, k_a_direct_se=0.0, stray_fraction=c.stray_fraction,
                                            stray_fraction_se=c.stray_fraction_se)
         return CellResult(float(tan_eps), float(beta_deg), 1.0, math.nan if deterministic else 0.0,
@@ -384,14 +399,10 @@ def _rel(err: float, k: float) -> float:
     return abs(err / k) if math.isfinite(err) and k != 0 else (0.0 if not math.isfinite(err) else math.inf)
 
 
-def _is_deterministic(backend: KaBackend) -> bool:
-    return getattr(backend, "name", "") == "quadrature"
-
-
 def calibrated(make_inner: InnerFactory, instrument: Instrument, model: RoadModel,
-               inner: KaBackend | None = None) -> KaBackend:
+               inner: KaBackend | None = None, *, deterministic: bool = False) -> KaBackend:
     """``make_inner(instrument, model)`` in the instrument's calibration mode: the plain backend for
-    ``lambert``, a :class:`CalibratedBackend` otherwise."""
+    ``lambert``, a :class:`CalibratedBackend` otherwise (``deterministic``: as there)."""
     if instrument.calibration.is_default:
         return inner if inner is not None else make_inner(instrument, model)
-    return CalibratedBackend(make_inner, instrument, model, inner=inner)
+    return CalibratedBackend(make_inner, instrument, model, inner=inner, deterministic=deterministic)

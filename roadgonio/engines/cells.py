@@ -16,7 +16,6 @@ CSV outputs) requires every cell to be a node of the standard grid.
 from __future__ import annotations
 
 import math
-from typing import Sequence
 
 import numpy as np
 
@@ -116,9 +115,10 @@ def select_cells(selection, table=None, *, on_grid: bool = False, field: str = "
     return cells
 
 
-def grid_index(cells: Sequence[tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
-    """Row and column indices of grid cells in the standard grid (cells must be on it)."""
-    c = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
-    ii = np.array([int(np.argmin(np.abs(TAN_EPS_GRID - t))) for t in c[:, 0]], dtype=np.int64)
-    jj = np.array([int(np.argmin(np.abs(BETA_GRID_DEG - b))) for b in c[:, 1]], dtype=np.int64)
-    return ii, jj
+def grid_index(tan_eps: float, beta_deg: float) -> tuple[int, int] | None:
+    """The (row, column) of a cell on the CIE grid, None for a cell off the grid."""
+    i = int(np.argmin(np.abs(TAN_EPS_GRID - tan_eps)))
+    j = int(np.argmin(np.abs(BETA_GRID_DEG - beta_deg)))
+    if abs(TAN_EPS_GRID[i] - tan_eps) < CELL_TOL and abs(BETA_GRID_DEG[j] - beta_deg) < CELL_TOL:
+        return i, j
+    return None

@@ -69,12 +69,8 @@ class MonteCarloBackend(CellByCellBackend):
     def __init__(self, instrument: Instrument, model: RoadModel, *, rel_se: float = DEFAULT_REL_SE,
                  seed: int = 0, batch: int = DEFAULT_BATCH, min_batches: int = DEFAULT_MIN_BATCHES,
                  max_samples: int = DEFAULT_MAX_SAMPLES):
-        try:
-            rel_se = float(rel_se)
-        except (TypeError, ValueError):
-            raise InputError(f"expected a number, got {rel_se!r}", field="rel_se") from None
-        if not (0.0 < rel_se < 1.0):
-            raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
+        from roadgonio.engines.registry import check_relative
+        rel_se = check_relative(rel_se, "rel_se")
         seed = check_seed(seed)
         from roadgonio.limits import check_size
         if isinstance(batch, bool) or not isinstance(batch, numbers.Integral):

@@ -210,9 +210,8 @@ class ReferenceBackend(CellByCellBackend):
                  min_log2: int = DEFAULT_MIN_LOG2, max_evals: int = DEFAULT_MAX_EVALS, seed: int = 0,
                  split: bool = True, max_log2: int = 26, pilot_iterations: int = 3, pilot_points: int = 1 << 12,
                  map_bins: int = 64):
-        rtol = _number(rtol, "rtol")
-        if not (0.0 < rtol < 1.0):
-            raise InputError(f"expected a relative tolerance 0 < rtol < 1, got {rtol:g}", field="rtol")
+        from roadgonio.engines.registry import check_relative
+        rtol = check_relative(rtol, "rtol")
         confidence = _number(confidence, "confidence")
         if not (0.5 <= confidence < 1.0):
             raise InputError(f"expected a confidence in [0.5, 1), got {confidence:g}", field="confidence")

@@ -77,6 +77,10 @@ class BackendInfo:
     source_paths: tuple[str, ...] = ("arc", "fixed_height")
     mitsuba: bool = False            # needs mitsuba/drjit and a selected variant (Dask workers set one up)
     calibrates: bool = False         # applies the instrument's [calibration] itself (make_backend must not wrap it)
+    #: the default relative target (of its ``tolerance`` setting) of the many k_A tables of perturbed
+    #: instruments that ``uncertainty`` (the exact tables behind its surrogate) and ``intercompare``
+    #: compute; None: those commands do not offer the backend
+    study_tolerance: float | None = None
     cell_correlation: str = ("independent: each cell has its own random numbers, seeded by (seed, tan eps, beta)")
 
     @property
@@ -105,6 +109,9 @@ BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
                 presets={"fast": {"rel_se": 3e-3, "first_pass": 256}, "default": {"rel_se": 1e-3, "first_pass": 1024},
                          "precise": {"rel_se": 1e-4, "first_pass": 4096}},
                 meshes=True, xml_scenes=True, beam_clipping=False, mitsuba=True,
+                # one seed for every perturbed instrument: the noise largely cancels in the differences
+                # the uncertainty surrogate fits
+                study_tolerance=3e-3,
                 cell_correlation="correlated: the cells computed in one run share the detector rays and replicates, "
                                  "so their errors are positively correlated; each cell's SE is its marginal SE, a "
                                  "table functional needs the covariance (MitsubaBackend.covariance())"),
@@ -112,6 +119,7 @@ BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
                 "deterministic float64 tensor Gauss rules with an error bound (flat samples)",
                 precision="error_bound", seeded=False, tolerance="rtol",
                 presets={"fast": {"rtol": 1e-3}, "default": {"rtol": 1e-4}, "precise": {"rtol": 1e-6}},
+                study_tolerance=1e-4,
                 cell_correlation="deterministic: no random error; each cell's error is within its error_bound"),
     BackendInfo("numpy-mc", "roadgonio.engines.montecarlo:make_backend",
                 "plain float64 Monte Carlo (slow; an oracle; flat samples)",
@@ -138,6 +146,32 @@ def backend_info(name: str, field: str = "backend") -> BackendInfo:
     """The registry entry of ``name`` (an InputError listing the backends otherwise)."""
     if not isinstance(name, str) or name not in BACKENDS:
         raise InputError(f"unknown backend {name!r}; expected one of {', '.join(BACKENDS)}", field=field)
+    return BACKENDS[name]
+
+
+def _has(info: BackendInfo, capability: str, want) -> bool:
+    have = getattr(info, capability)          # an AttributeError for a capability that does not exist
+    if want is True and not isinstance(have, bool):
+        return have is not None               # e.g. study_tolerance=True: has one
+    return have == want
+
+
+def backends_with(**capabilities) -> tuple[str, ...]:
+    """The backends (in registry order) with each of ``capabilities``: a :class:`BackendInfo` field
+    and the value it must have (``seeded=True``, ``precision="se"``, ``mitsuba=False``);
+    ``True`` for a field that is not a flag means "has one" (``study_tolerance=True``). The one
+    query behind a command's ``--backend`` choices and the API's check (:func:`check_backend`)."""
+    return tuple(n for n, b in BACKENDS.items() if all(_has(b, k, v) for k, v in capabilities.items()))
+
+
+def check_backend(name: str, field: str = "backend", purpose: str = "", **capabilities) -> BackendInfo:
+    """The registry entry of ``name`` if it has ``capabilities`` (:func:`backends_with`), else an
+    InputError listing the backends that do (``purpose``: what they are for, e.g. "uncertainty")."""
+    allowed = backends_with(**capabilities)
+    if not isinstance(name, str) or name not in allowed:
+        what = "unknown backend" if not (isinstance(name, str) and name in BACKENDS) else "backend"
+        raise InputError(f"{what} {name!r}{' for ' + purpose if purpose and what == 'backend' else ''}; expected "
+                         f"one of {', '.join(allowed)}", field=field)
     return BACKENDS[name]
 
 
@@ -270,7 +304,7 @@ def make_backend(name: str, instrument, model, *, accuracy: str | None = None, t
     from roadgonio.engines.calibration import calibrated
     if info.calibrates:
         return factory(instrument, model, **kw)
-    return calibrated(lambda inst, m: factory(inst, m, **kw), instrument, model)
+    return calibrated(lambda inst, m: factory(inst, m, **kw), instrument, model, deterministic=info.deterministic)
 
 
 def prepare_entry_point(backend: str, mitsuba_variant: str | None = None) -> None:

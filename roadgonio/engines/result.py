@@ -76,9 +76,7 @@ class CellResult:
         """The standard uncertainty of k_a for an uncertainty budget: the standard error, or for a
         deterministic bound b the rectangular-distribution value b / sqrt(3) (GUM, JCGM 100 4.3.7).
         A confidence bound is not a standard uncertainty: a result that has one also has its SE."""
-        if math.isfinite(self.se):
-            return float(self.se)
-        return float(self.error_bound) / math.sqrt(3.0)
+        return float(standard_uncertainty(self.se, self.error_bound))
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -88,6 +86,13 @@ class CellResult:
             if not math.isfinite(d[name]):
                 del d[name]
         return d
+
+
+def standard_uncertainty(se, error_bound) -> np.ndarray:
+    """:meth:`CellResult.standard_uncertainty` of arrays of ``se`` and ``error_bound`` (any shape,
+    elementwise): the SE where it is finite, else the rectangular value ``error_bound / sqrt 3``."""
+    se = np.asarray(se, dtype=np.float64)
+    return np.where(np.isfinite(se), se, np.asarray(error_bound, dtype=np.float64) / math.sqrt(3.0))
 
 
 class KaBackend(Protocol):

@@ -33,6 +33,7 @@ from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
 from roadgonio.surface.model import RoadModel
+from roadgonio.engines.cells import grid_index
 from roadgonio.engines.result import CellResult, KaBackend
 
 JOURNAL = "ka_cells.jsonl"
@@ -74,23 +75,14 @@ class KaRun:
         """``attr`` of the table's cells on the CIE grid (NaN where no cell is; cells off the grid left out)."""
         out = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), np.nan)
         for c in self.table_cells:
-            ij = _grid_index(c)
+            ij = grid_index(c.tan_eps, c.beta_deg)
             if ij is not None:
                 out[ij] = getattr(c, attr)
         return out
 
 
-def _grid_index(c: CellResult) -> tuple[int, int] | None:
-    """The (row, column) of a cell on the CIE grid, None for a cell off the grid."""
-    i = int(np.argmin(np.abs(TAN_EPS_GRID - c.tan_eps)))
-    j = int(np.argmin(np.abs(BETA_GRID_DEG - c.beta_deg)))
-    if abs(TAN_EPS_GRID[i] - c.tan_eps) < 1e-9 and abs(BETA_GRID_DEG[j] - c.beta_deg) < 1e-9:
-        return i, j
-    return None
-
-
 def _on_grid(c: CellResult) -> bool:
-    return _grid_index(c) is not None
+    return grid_index(c.tan_eps, c.beta_deg) is not None
 
 
 def _cell_key(t: float, b: float) -> tuple[float, float]:
@@ -346,7 +338,7 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         "resumed_cells": int(run.resumed),
         "seconds_wall": float(run.seconds),
         "fingerprint": fingerprint(instrument, model, backend),
-        "roadgonio_version": prov["versions"]["roadgonio"], "created": prov["created"],
+        "created": prov["created"],
         "provenance": to_json(prov, indent=None),
     }
     coords = {"tan_eps": ("tan_eps", TAN_EPS_GRID.copy(), {"long_name": "tan(epsilon)", "units": "1"}),

@@ -290,11 +290,6 @@ def report_json(report: dict[str, Any]) -> dict[str, Any]:
     """The JSON document of a report (validate.json, ``--json``)."""
     doc = {k: v for k, v in report.items() if k != "rows"}
     doc["cells"] = [asdict(r) for r in report["rows"]]
-    try:
-        from roadgonio._version import __version__
-        doc["roadgonio_version"] = __version__
-    except ImportError:  # pragma: no cover
-        pass
     return doc
 
 

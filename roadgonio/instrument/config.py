@@ -333,10 +333,6 @@ class Detector:
         return math.isinf(self.focus_distance_m)
 
     @property
-    def is_pinhole(self) -> bool:
-        return self.pupil_radius_m == 0.0
-
-    @property
     def is_single_ray(self) -> bool:
         return self.pupil_radius_m == 0.0 and self.field_half_angle_deg == 0.0
 
@@ -500,9 +496,6 @@ class Instrument:
         """Unit direction towards the source at (tan eps, beta): shape (3,), or (..., 3) for arrays."""
         eps = np.arctan(np.asarray(tan_eps, dtype=np.float64)) if np.ndim(tan_eps) else math.atan(tan_eps)
         return w_source(eps, beta_deg, self.observation.delta_deg)
-
-    def detector_centre(self) -> np.ndarray:
-        return self.detector.distance_m * self.w_o()
 
     def is_ideal(self) -> bool:
         """True if every aperture is zero (point source, single-ray detector)."""

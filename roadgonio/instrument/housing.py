@@ -205,12 +205,6 @@ class Housing:
     def baffle_reflectance_value(self) -> float:
         return self.wall_reflectance if self.baffle_reflectance is None else self.baffle_reflectance
 
-    @property
-    def reflects(self) -> bool:
-        """True when some panel reflects light (else the housing only shades)."""
-        return self.wall_reflectance > 0.0 or (self.baffle_reflectance_value > 0.0 and
-                                               any(b.height_m > 0.0 for b in self.baffles))
-
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"wall_reflectance": self.wall_reflectance}
         if self.baffle_reflectance is not None:

@@ -98,10 +98,6 @@ class UniformTable:
     def n(self) -> int:
         return int(self.values.size)
 
-    @property
-    def x_end(self) -> float:
-        return self.x0 + (self.n - 1) * self.step
-
 
 @dataclass(frozen=True, eq=False)
 class BeamProfile:

@@ -61,9 +61,8 @@ REPORTS = ("raw", "self", "reference")
 STATED = ("repeatability", "misalignment", "calibration")
 SHARED_KINDS = ("reference_tile", "angle_standard")
 CELL_CHOICES = ("standard", "all")
-BACKENDS = ("mitsuba", "quadrature")
-#: Default tolerance of the k_A tables by backend (the uncertainty room's surrogate defaults).
-DEFAULT_REL_SE = {"mitsuba": 3e-3, "quadrature": 1e-4}
+#: The backends of a study and their default tolerance: the registry's ``study_tolerance``
+#: (:func:`roadgonio.engines.registry.backends_with`), shared with ``uncertainty``.
 
 _STUDY_KEYS = {"name", "description", "surface", "model_variant", "cells", "realisations", "corrected_realisations",
                "seed", "coverage_factor", "backend", "rel_se", "correction_rel_se"}
@@ -194,7 +193,17 @@ class Study:
 
     @property
     def tolerance(self) -> float:
-        return DEFAULT_REL_SE[self.backend] if self.rel_se is None else self.rel_se
+        """The relative target of the participants' k_A tables: ``rel_se`` as given, else the
+        backend's default (the registry's ``study_tolerance``); a ``rel_se`` or an ``rtol`` as the
+        backend takes it (:attr:`tolerance_setting`)."""
+        from roadgonio.engines.registry import backend_info
+        return backend_info(self.backend).study_tolerance if self.rel_se is None else self.rel_se
+
+    @property
+    def tolerance_setting(self) -> dict[str, float]:
+        """:attr:`tolerance` under the backend's name for it: ``{"rel_se": ...}`` or ``{"rtol": ...}``."""
+        from roadgonio.engines.registry import tolerance_setting
+        return tolerance_setting(self.backend, self.tolerance, "study.rel_se")
 
     def index(self, name: str) -> int:
         return [p.name for p in self.participants].index(name)
@@ -203,7 +212,7 @@ class Study:
         return {"name": self.name, "description": self.description, "surface": self.surface,
                 "model_variant": self.model_variant, "cells": self.cells, "realisations": self.realisations,
                 "corrected_realisations": self.n_corrected, "seed": self.seed,
-                "coverage_factor": self.coverage_factor, "backend": self.backend, "rel_se": self.tolerance,
+                "coverage_factor": self.coverage_factor, "backend": self.backend, "tolerance": self.tolerance_setting,
                 "correction_rel_se": self.correction_rel_se,
                 "participants": [p.to_dict() for p in self.participants],
                 "shared": [s.to_dict() for s in self.shared], "file": str(self.path) if self.path else None}
@@ -327,7 +336,8 @@ def study_from_dict(d: Mapping[str, Any], *, path: str | Path | None = None) -> 
         nc = int(_number(nc, "study.corrected_realisations", path, lo=0, hi=n, integer=True))
     seed = int(_number(s.get("seed", 1), "study.seed", path, lo=0, integer=True))
     k = _number(s.get("coverage_factor", 2.0), "study.coverage_factor", path, lo=0.0, lo_open=True, hi=10.0)
-    backend = _text(s.get("backend", "mitsuba"), "study.backend", path, choices=BACKENDS)
+    from roadgonio.engines.registry import backends_with
+    backend = _text(s.get("backend", "mitsuba"), "study.backend", path, choices=backends_with(study_tolerance=True))
     rel_se = s.get("rel_se")
     if rel_se is not None:
         rel_se = _number(rel_se, "study.rel_se", path, lo=0.0, lo_open=True, hi=0.1)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import io
-from pathlib import Path
 
 import numpy as np
 
@@ -91,7 +90,3 @@ def _short(name: str, n: int = 18) -> str:
     if len(name) > n and " (" in name:
         name = name.split(" (")[0]
     return name if len(name) <= n else name[:n - 3] + "..."
-
-
-def default_out(a: RTable, b: RTable) -> Path:
-    return Path("out") / f"compare-{_safe(a.name)}-{_safe(b.name)}"

@@ -36,7 +36,7 @@ File keys (every section and key optional; an unknown section or key is an error
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
@@ -190,6 +190,3 @@ def default_layout_path() -> Path:
 def load_layout(spec: str | Path | None = None) -> Layout:
     """The bundled default layout (``None``) or a layout TOML file."""
     return read_layout(default_layout_path() if spec is None else spec)
-
-
-LAYOUT_FIELDS = tuple(f.name for f in fields(Layout))

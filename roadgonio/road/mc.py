@@ -11,7 +11,8 @@ independent noise:
   same direction, e.g. a common calibration or reference-model error).
 
 Reported per metric: the nominal value, the trials' mean and standard deviation (the standard
-uncertainty), the 2.5 / 97.5 % quantiles (a 95 % interval), and the probability that the design
+uncertainty), the 2.5 / 97.5 % quantiles (``coverage_interval_95``: JCGM 101's probabilistically
+symmetric 95 % coverage interval, not a confidence interval), and the probability that the design
 meets a class (the fraction of trials that meet every computable criterion). The Monte Carlo
 standard error of a probability P from n trials is sqrt(P (1 - P) / n).
 """
@@ -99,7 +100,7 @@ def propagate(installation, table: RTable, u: RTable, *, trials: int = 20000, se
                 continue
             lo, hi = np.quantile(v, [0.025, 0.975])
             res[k] = {"nominal": nominal.values[k], "mean": float(v.mean()), "u": float(v.std(ddof=1)),
-                      "ci95": [float(lo), float(hi)]}
+                      "coverage_interval_95": [float(lo), float(hi)]}
         ul = np.concatenate(lanes)
         res["U_l_per_lane"] = [None if not np.isfinite(nominal.per_observer["U_l_lane"][k]) else
                                {"nominal": float(nominal.per_observer["U_l_lane"][k]), "u": float(ul[:, k].std(ddof=1))}

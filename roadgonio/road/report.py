@@ -27,7 +27,7 @@ def write_together(out_dir: Path, files: dict[str, bytes | str]) -> list[Path]:
 
 def metrics_csv(summaries: list[dict]) -> str:
     cols = ["table", "L_av", "U_o", "U_l", "TI", "R_EI", "class", "table_Q0", "table_S1"]
-    extra = ["u_L_av", "ci95_L_av", "u_U_o", "ci95_U_o", "u_U_l", "ci95_U_l", "u_TI", "P_meets"]
+    extra = ["u_L_av", "cov95_L_av", "u_U_o", "cov95_U_o", "u_U_l", "cov95_U_l", "u_TI", "P_meets"]
     lines = [",".join(cols + ["correlation"] + extra)]
     for s in summaries:
         base = [s["table"]] + [_f(s[c]) for c in cols[1:]]
@@ -41,7 +41,7 @@ def metrics_csv(summaries: list[dict]) -> str:
             m = unc[mode]
             row = []
             for k in ("L_av", "U_o", "U_l"):
-                row += ["", ""] if not m[k] else [_f(m[k]["u"]), f"{_f(m[k]['ci95'][0], '.5g')}..{_f(m[k]['ci95'][1], '.5g')}"]
+                row += ["", ""] if not m[k] else [_f(m[k]["u"]), f"{_f(m[k]['coverage_interval_95'][0], '.5g')}..{_f(m[k]['coverage_interval_95'][1], '.5g')}"]
             row += [_f(m["TI"]["u"]) if m["TI"] else "", _f(m["P_meets_target"])]
             lines.append(",".join(base + [mode] + row))
     return "\n".join(lines) + "\n"
@@ -97,7 +97,7 @@ def metrics_png(summaries: list[dict], target: str | None, layout_text: str) -> 
             for off, mode, mk in ((-0.12, "independent", "o"), (0.12, "correlated", "s")):
                 m = (unc.get(mode) or {}).get(key)
                 if m:
-                    lo, hi = m["ci95"]
+                    lo, hi = m["coverage_interval_95"]
                     ax.errorbar(k + off, m["nominal"], yerr=[[m["nominal"] - lo], [hi - m["nominal"]]], fmt=mk,
                                 color="k", ms=3, capsize=3, lw=1)
             v = s[key]
@@ -172,8 +172,3 @@ def road_files(results, summaries: list[dict], target: str | None, plots: bool =
         files["road_metrics.png"] = metrics_png(summaries, target, lay.describe())
         files["road_luminance.png"] = luminance_png(results)
     return files
-
-
-def _safe_name(name: str) -> str:
-    from roadgonio.fileio import safe_name
-    return safe_name(name, "table")

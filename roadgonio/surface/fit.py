@@ -43,7 +43,6 @@ import numpy as np
 
 from roadgonio.errors import InputError
 from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
-from roadgonio.provenance import versions
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS,
                     RoadModel, RoadParams, road_brdf)
@@ -440,7 +439,7 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
                           f"multi-start least squares for {', '.join(prob.free_nl) or 'nothing'}",
                 "objective": f"RMS^2 + {prob.max_weight} * L8^2 of deviations in % of max r",
                 "fixed": fx, "cells": int(table.mask.sum()), "nfev": prob.nfev,
-                "versions": versions(), "method_version": FIT_METHOD_VERSION},
+                "method_version": FIT_METHOD_VERSION},
         "table": {"name": table.name, "source": table.source, "sha256": table_hash(table),
                   "r_max": table.r_max, "cells": int(table.mask.sum())},
     }

@@ -88,14 +88,18 @@ def residuals_csv(result) -> str:
 FIT_FILES = ("model.json", "residuals.csv", "fit.png")
 
 
-def write_fit(result, out_dir: str | Path, *, plot: bool = True, fingerprint: str | None = None) -> list[Path]:
+def write_fit(result, out_dir: str | Path, *, plot: bool = True, fingerprint: str | None = None,
+              provenance: dict | None = None) -> list[Path]:
     """model.json, residuals.csv and (``plot``) fit.png in ``out_dir``, all or none; model.json
-    carries the run's ``fingerprint`` (:func:`roadgonio.fileio.check_run_folder`)."""
+    carries the run's ``fingerprint`` (:func:`roadgonio.fileio.check_run_folder`) and its
+    ``provenance`` (:func:`roadgonio.provenance.provenance`)."""
     from roadgonio.fileio import OutputGroup
     out_dir = Path(out_dir)
     doc = result.model.to_json_dict()
     if fingerprint is not None:
         doc["fingerprint"] = fingerprint
+    if provenance is not None:
+        doc["provenance"] = provenance
     with OutputGroup(out_dir) as g:
         g.json("model.json", doc)
         g.text("residuals.csv", residuals_csv(result))

@@ -46,7 +46,6 @@ import math
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import Iterable
 
 import numpy as np
 
@@ -279,14 +278,14 @@ def _reads_back(read, fmt: str, csv_text: str | None = None, r: np.ndarray | Non
                          field=err.field or "r") from None
 
 
-def missing_ratio(num: float, den: float) -> float:
+def missing_ratio(num, den):
     """``num / den`` of two table quantities, or NaN (missing) when either is missing (NaN) or the
     denominator is not > 0 (a characteristic such as S1 of a table with r(0, 0) = 0 is undefined,
-    not infinite)."""
-    num, den = float(num), float(den)
-    if not (math.isfinite(num) and math.isfinite(den) and den > 0.0):
-        return math.nan
-    return num / den
+    not infinite). Elementwise for arrays (a float for two numbers)."""
+    n, d = np.asarray(num, dtype=np.float64), np.asarray(den, dtype=np.float64)
+    ok = np.isfinite(n) & np.isfinite(d) & (d > 0.0)
+    out = np.where(ok, n / np.where(ok, d, 1.0), np.nan)
+    return float(out) if out.ndim == 0 else out
 
 
 #: The first words of the header of a table's standard uncertainties (``corrected_u.csv``): the rest
@@ -618,8 +617,3 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     if quantity == "r" and p.suffix.lower() != ".rtb":
         check_csv_scale(table, p)
     return table
-
-
-def iter_bundled() -> Iterable[RTable]:
-    for name in BUNDLED:
-        yield bundled_table(name)

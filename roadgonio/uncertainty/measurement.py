@@ -18,6 +18,7 @@ from roadgonio.geometry import (
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
+from roadgonio.surface.rtable import missing_ratio
 from roadgonio.uncertainty.surrogate import N_COORDS
 from roadgonio.uncertainty.cells import CellSet, standard_q0_weights
 from roadgonio.uncertainty.spec import ILLUMINANCE
@@ -151,8 +152,7 @@ class MeasurementModel:
     def functionals(self, r: np.ndarray) -> np.ndarray:
         """(m, n) -> (m, n + 2): the cells, then Q0 and S1."""
         q0 = r @ self.q0_w
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s1 = r[:, self.i_20] / r[:, self.i_00]
+        s1 = missing_ratio(r[:, self.i_20], r[:, self.i_00])       # NaN (missing) where r(0, 0) <= 0
         return np.concatenate([r, q0[:, None], s1[:, None]], axis=1)
 
 

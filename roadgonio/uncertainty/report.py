@@ -7,8 +7,6 @@ from typing import Any
 
 import numpy as np
 
-from roadgonio.errors import InputError
-from roadgonio.surface.model import RoadModel
 from roadgonio.uncertainty.run import UncertaintyResult
 from roadgonio.uncertainty.spec import INPUTS
 
@@ -203,23 +201,3 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
             lines.append(f"note: the surrogate's error exceeds {note['threshold']:g} u(r) in {note['cells_above']} of "
                          f"{n} cells (worst: {worst}); the aperture case's u(r) there does not include it")
     return lines
-
-
-def resolve_sample_spec(spec: str, variant: str | None = None) -> RoadModel:
-    """SAMPLE -> RoadModel via :func:`roadgonio.surface.sample.resolve_sample` (lambert, bundled table fitted on
-    the fly, table file, model.json); a minimal fallback (lambert, model.json) if that module is absent."""
-    try:
-        from roadgonio.surface.sample import resolve_sample
-    except ModuleNotFoundError as err:
-        if err.name != "roadgonio.surface.sample":
-            raise
-        resolve_sample = None
-    if resolve_sample is not None:
-        return resolve_sample(spec, variant=variant) if variant else resolve_sample(spec)
-    if spec.strip().lower() == "lambert":
-        return RoadModel.lambert()
-    p = Path(spec)
-    if p.suffix.lower() == ".json":
-        return RoadModel.load(p)
-    raise InputError("this installation can only use 'lambert' or a model .json file (roadgonio.surface.sample missing)",
-                     field="--sample")

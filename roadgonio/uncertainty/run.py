@@ -26,10 +26,8 @@ from roadgonio.uncertainty.statistics import numerical_tolerance, summarize
 # ----------------------------------------------------------------------------------------------
 
 BackendFactory = Callable[[Instrument, RoadModel], Any]
-#: Default tolerance of the exact k_A evaluations behind the surrogate, by backend: the Mitsuba
-#: target relative SE (one seed for every design point, so the noise largely cancels in the
-#: differences the surrogate fits) and the quadrature's relative tolerance.
-DEFAULT_BACKEND_TOLERANCE = {"mitsuba": 3e-3, "quadrature": 1e-4}
+#: The backends of the exact k_A evaluations behind the surrogate, and their default tolerance:
+#: the registry's ``study_tolerance`` (:data:`roadgonio.engines.registry.BACKENDS`).
 
 
 def default_backend_factory(name: str, settings: Mapping[str, Any]) -> BackendFactory:
@@ -61,7 +59,7 @@ class SurrogateReport:
     seconds: float
     rel_err_max: np.ndarray      # (n_cells,) max over validation trials of |k_sur/k_exact - 1|
     rel_err_rms: np.ndarray
-    backend_rel_se_max: float    # largest relative standard uncertainty of the backend (SE, or bound/sqrt 3)
+    backend_rel_u_max: float     # largest relative standard uncertainty of the backend (CellResult.standard_uncertainty)
     settings: dict[str, Any]
     not_converged: int = 0       # exact evaluations that stopped at the backend's cap before its target
 
@@ -73,7 +71,7 @@ class SurrogateReport:
              "exact_evaluations": self.exact_evaluations, "seconds": self.seconds,
              "rel_err_max": float(np.max(self.rel_err_max)) if self.rel_err_max.size else 0.0,
              "rel_err_rms": float(math.sqrt(np.mean(self.rel_err_rms ** 2))) if self.rel_err_rms.size else 0.0,
-             "backend_rel_se_max": self.backend_rel_se_max, "not_converged": self.not_converged,
+             "backend_rel_u_max": self.backend_rel_u_max, "not_converged": self.not_converged,
              "fit_rms_log_max": float(np.max(self.surrogate.fit_rms_log)),
              "coordinate_scales": dict(zip(("alpha_loc_deg", "src_eps_offset_deg", "src_phi_offset_deg",
                                             "source_distance_m", "detector_distance_m"),
@@ -157,14 +155,14 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
             exact = _exact_here(jobs, mm.model, factory, bar, tally)
         else:
             exact = _exact_on_dask(jobs, mm.model, client, task_backend, bar, tally, factory)
-        for (inst, _cells), (ka, _se) in zip(jobs, exact):
+        for (inst, _cells), (ka, _u) in zip(jobs, exact):
             if not np.all(np.isfinite(ka)):
                 from roadgonio.errors import RoadgonioError
                 raise RoadgonioError(f"the k_A backend returned a non-finite value at alpha = "
                                      f"{inst.observation.alpha_deg:.4g} deg, source {inst.source.length_key[:-2]} {inst.source.length_m:.4g} m, "
                                      f"detector distance {inst.detector.distance_m:.4g} m")
         ka_design = np.array([exact[k][0] for k in range(len(pts))]).reshape(len(pts), n)
-        rel_se = max([float(np.max(se / np.abs(ka))) for ka, se in exact] or [0.0])
+        rel_u = max([float(np.max(u / np.abs(ka))) for ka, u in exact] or [0.0])
         # cells on the mirror plane: k_A is even in the azimuthal offset, with a kink (surrogate docstring)
         c = mm.cells
         fold = (c.tan_eps > 0) & ((np.abs(c.beta_deg) < 1e-9) | (np.abs(c.beta_deg - 180.0) < 1e-9))
@@ -182,7 +180,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
         exact_evaluations=(len(pts) + len(Xv)) * n, seconds=time.perf_counter() - t0,
         rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else np.zeros(n),
         rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else np.zeros(n),
-        backend_rel_se_max=rel_se, settings=settings, not_converged=tally.not_converged)
+        backend_rel_u_max=rel_u, settings=settings, not_converged=tally.not_converged)
 
 
 @dataclass

@@ -43,7 +43,7 @@ def test_road_several_tables_and_uncertainty(tmp_path, capsys):
     u = d[1]["uncertainty"]
     assert u["trials"] == 2000 and set(u) >= {"independent", "correlated"}
     assert u["correlated"]["L_av"]["u"] == pytest.approx(0.02 * d[1]["L_av"], rel=0.1)
-    lo, hi = u["independent"]["U_o"]["ci95"]
+    lo, hi = u["independent"]["U_o"]["coverage_interval_95"]
     assert lo < d[1]["U_o"] + 1e-9 and hi > lo
     assert 0 <= u["independent"]["P_meets_target"] <= 1
     rows = list(csv.DictReader((out / "road_metrics.csv").read_text().splitlines()))

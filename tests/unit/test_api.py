@@ -146,3 +146,81 @@ def test_estimate_uncertainty_matches_the_room():
                         trials=500, aperture=False, progress=False)
     assert np.array_equal(a.cases["no_aperture"].mc["u"], b.cases["no_aperture"].mc["u"])
     assert a.spec.to_dict()["eps_deg"]["distribution"] == "rectangular"
+
+
+# ----------------------------------------------------------------------------------------------
+# A command's backends: the command line offers exactly what the API takes
+# ----------------------------------------------------------------------------------------------
+
+class _Reached(Exception):
+    """The command got past its checks of the arguments to its work (stopped there by the test)."""
+
+
+def _stop(*_a, **_k):
+    raise _Reached
+
+
+#: per command: the command line without --backend, the API call, and the work both reach (stopped)
+_BACKEND_COMMANDS = {
+    "design": (["design", "--instrument", "portable", "--vary", "source.radius_m=0.02", "--sample", "lambert",
+                "--cells", "4:0", "--workers", "0", "--no-plots", "--quiet"],
+               lambda b, out: rg.design_study("portable", ["source.radius_m=0.02"], "lambert", cells="4:0",
+                                              backend=b, workers=0, out=out, plots=False),
+               ("roadgonio.design.run", "run_design")),
+    "uncertainty": (["uncertainty", "--instrument", "portable", "--sample", "lambert", "--sigma", "alpha_deg=0.01",
+                     "--no-plots", "--quiet"],
+                    lambda b, out: rg.estimate_uncertainty("portable", "lambert", "alpha_deg=0.01", backend=b,
+                                                           out=out, plots=False),
+                    ("roadgonio.uncertainty.run", "run_uncertainty")),
+    "correct": (["correct", "--measured", "R3", "--instrument", "portable", "--no-plots", "--quiet"],
+                lambda b, out: rg.correct("R3", "portable", backend=b, out=out, plots=False),
+                ("roadgonio.correction", "correct_files")),
+}
+
+
+@pytest.mark.parametrize("command", list(_BACKEND_COMMANDS))
+def test_the_command_line_takes_the_backends_the_api_takes(command, tmp_path, monkeypatch, capsys):
+    """design and correct listed four backends and uncertainty two by hand, while the API took every
+    backend of the registry (design, correct) or checked its own copy of the list (uncertainty): the
+    two entry points took different arguments. For every registered backend (and an unknown name)
+    either both reach the command's work or both refuse with a one-line message listing the same
+    backends."""
+    import importlib
+    from roadgonio.cli import main
+    from roadgonio.engines import registry
+    argv, call, (module, work) = _BACKEND_COMMANDS[command]
+    monkeypatch.setattr(importlib.import_module(module), work, _stop)
+    monkeypatch.setattr(registry, "prepare_entry_point", lambda *a, **k: None)    # no Mitsuba variant needed
+    takes, refused = [], {}
+    for name in [*registry.BACKENDS, "nope"]:
+        try:
+            call(name, tmp_path / f"api-{name}")
+            raise AssertionError(f"{command}: the API neither refused {name} nor reached its work")
+        except _Reached:
+            api_takes = True
+        except InputError as err:
+            api_takes, refused[name] = False, str(err)
+        capsys.readouterr()
+        try:
+            rc = main(argv + ["--backend", name, "--out", str(tmp_path / f"cli-{name}")])
+        except _Reached:
+            cli_takes = True
+        except SystemExit as exc:          # argparse: --backend not among the choices
+            cli_takes, rc = False, exc.code
+        else:
+            cli_takes = False
+        err = capsys.readouterr().err.strip()
+        assert cli_takes == api_takes, (command, name, err, refused.get(name))
+        if api_takes:
+            takes.append(name)
+        else:
+            assert rc == 2 and "backend" in err and "error" in err.splitlines()[-1], err
+            refused[name] = (refused[name], err)
+    assert "quadrature" in takes and "nope" in refused
+    import re
+    for api_msg, err in refused.values():           # both refusals name exactly the backends taken
+        assert "\n" not in api_msg
+        assert api_msg.split("expected one of ")[1].split(", ") == takes, api_msg
+        assert re.findall(r"'([^']+)'", re.search(r"choose from ([^)]*)\)", err).group(1)) == takes, err
+    from roadgonio import api
+    assert list(api.backends(command)) == takes     # the choices the help offers

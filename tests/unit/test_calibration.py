@@ -199,6 +199,8 @@ def test_reference_equal_to_sample_gives_exactly_one(tmp_path, backend, settings
     inst = inst_with("portable", calibration={"mode": "reference", "reference": str(tmp_path / "ref.json")})
     res = make_backend(backend, inst, r3like(), **settings).compute(CELLS)
     assert all(c.k_a == 1.0 and c.standard_uncertainty() == 0.0 for c in res)
+    # one meaning per field: the deterministic backend's exact 1 has a bound of 0, a Monte Carlo one an SE of 0
+    assert all(c.deterministic == (backend == "quadrature") for c in res)
 
 
 def test_reference_mode_is_the_ratio_of_lambert_k_with_common_random_numbers(tmp_path):
@@ -275,3 +277,39 @@ def test_forward_model_and_wrapper_calibrate_alike(tmp_path, mode):
     assert np.allclose(got, want, rtol=ROUND_TOL, atol=0.0)
     if mode != "lambert":
         assert np.max(np.abs(got / lam.k_a(r3like()) - 1.0)) > 1e-3      # the mode does something here
+
+
+@pytest.mark.parametrize("mode", ["lambert", "absolute", "reference"])
+def test_the_reference_backend_keeps_its_confidence_bound_in_every_mode(tmp_path, mode):
+    """The RQMC reference reports an SE and a 99.9 % confidence bound; the calibration wrapper built
+    a new result from se and error_bound only, so under absolute and reference calibration the bound
+    and its level were lost (NaN in ka.nc, ka_confidence_bound.csv and validate). They are carried
+    like the deterministic bound: absolute b eta + |k| eta_error, reference the relative bounds added
+    at the Bonferroni level."""
+    ref = RoadModel(RoadParams(k_diff=0.05, k_phong=0.5, n_phong=10.0), name="ref")
+    ref.save(tmp_path / "ref.json")
+    lam = load_instrument("portable")
+    cal = {"mode": mode, **({"reference": str(tmp_path / "ref.json")} if mode == "reference" else {})}
+    inst = lam.with_changes(calibration=cal)
+    cells = [(2.0, 0.0), (6.0, 2.0)]
+    s = {"rtol": 1e-3, "seed": 5}
+    k_f = make_backend("reference", lam, r3like(), **s).compute(cells)
+    got = make_backend("reference", inst, r3like(), **s).compute(cells)
+    if mode == "reference":
+        k_r = make_backend("reference", lam, ref, **s).compute(cells)
+    for i, (f, c) in enumerate(zip(k_f, got)):
+        assert f.confidence_level == 0.999 and math.isfinite(f.confidence_bound)
+        assert math.isfinite(c.se) and math.isnan(c.error_bound)
+        if mode == "lambert":
+            assert (c.confidence_bound, c.confidence_level) == (f.confidence_bound, f.confidence_level)
+        elif mode == "absolute":
+            eta, eta_err, _ = illuminance_ratio(inst, f.tan_eps, f.beta_deg)
+            assert c.k_a == pytest.approx(f.k_a * eta, rel=ROUND_TOL)
+            assert c.confidence_bound == pytest.approx(f.confidence_bound * eta + f.k_a * eta_err, rel=ROUND_TOL)
+            assert c.confidence_level == 0.999
+        else:
+            r = k_r[i]
+            assert c.k_a == pytest.approx(f.k_a / r.k_a, rel=ROUND_TOL)
+            want = c.k_a * (f.confidence_bound / f.k_a + r.confidence_bound / r.k_a)
+            assert c.confidence_bound == pytest.approx(want, rel=ROUND_TOL)
+            assert c.confidence_level == pytest.approx(0.998, rel=ROUND_TOL)

@@ -209,6 +209,12 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
     assert sig[1, 0] == pytest.approx(1 / 6.25, rel=1e-3) and sig[1, 1] == pytest.approx(1.44, rel=1e-3)
     best = int(ds.attrs["best_index"])
     assert feas.ravel()[best] and sig.ravel()[best] == np.max(sig[feas])
+    # the worst cell's standard uncertainty is named u: the quadrature's bound / sqrt 3, not an SE
+    i = np.nanargmax(np.abs(k - 1))
+    assert np.isnan(ds["se"].values[1, 1]).all() and "worst_se" not in ds
+    assert ds["worst_u"].values[1, 1] == pytest.approx(ds["error_bound"].values[1, 1].ravel()[i] / math.sqrt(3),
+                                                       rel=1e-12)
+    assert np.isnan(ds["confidence_bound"].values).all() and np.isnan(ds["confidence_level"].values).all()
     # the CSV: one row per point, varied keys first, then the metrics; the impossible point keeps its reason
     rows = list(csv.reader((tmp_path / "design.csv").read_text().splitlines()))
     assert rows[0][:7] == ["source.distance_m", "source.radius_m", "max_abs_dev", "rms_dev", "signal", "feasible",
@@ -232,6 +238,30 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
         assert got[sec] == want[sec], sec
     for f in ("pareto.png", "tolerance_map.png"):
         assert (tmp_path / f).stat().st_size > 10_000
+
+
+def test_design_keeps_the_reference_backends_confidence_bound(tmp_path):
+    """design.nc kept k_a, se and error_bound only: the RQMC reference's 99.9 % confidence bound (the
+    reference backend is a design backend) was dropped. It is kept with its level, and the worst
+    cell's standard uncertainty is the reference's SE."""
+    from roadgonio import design_study as run_design
+    from roadgonio.design.outputs import read_design
+    from roadgonio.engines import make_backend
+    from roadgonio.surface.sample import resolve_sample
+    ds = run_design("portable", ["source.radius_m=0.02"], ["R3"], cells="2:0,6:2", backend="reference",
+                    accuracy="fast", workers=0, progress=False, plots=False, out=tmp_path)
+    back = read_design(tmp_path / "design.nc")
+    inst = G.build_instrument(load_instrument("portable"), {"source.radius_m": 0.02})
+    want = make_backend("reference", inst, resolve_sample("R3").model, accuracy="fast",
+                        seed=int(ds["seed"].values[0])).compute([(2.0, 0.0), (6.0, 2.0)])
+    for c in want:
+        cell = dict(sample="R3", tan_eps=c.tan_eps, beta=c.beta_deg)
+        for d in (ds, back):
+            assert float(d["k_a"].sel(cell)[0]) == c.k_a and float(d["se"].sel(cell)[0]) == c.se
+            assert float(d["confidence_bound"].sel(cell)[0]) == c.confidence_bound
+            assert float(d["confidence_level"].sel(cell)[0]) == c.confidence_level == 0.999
+    worst = max(want, key=lambda c: abs(c.k_a - 1))
+    assert float(ds["worst_u"].values[0]) == worst.se
 
 
 def test_resume_reads_finished_tables_and_refuses_another_design(tmp_path):

@@ -49,6 +49,24 @@ def test_bad_study_files_are_one_line_errors_naming_file_and_field(tmp_path, col
     assert "\n" not in str(err.value)
 
 
+def test_a_study_takes_the_backends_and_default_tolerances_of_the_uncertainty_command(tmp_path, collimated):
+    """The study listed its backends and their default tolerances itself (a copy of the uncertainty
+    room's table) and wrote the quadrature's rtol to its provenance as "rel_se". Both now come from
+    the registry's study_tolerance, and the provenance names the setting."""
+    from roadgonio import api
+    from roadgonio.engines.registry import BACKENDS
+    tolerances = api.study_tolerances()
+    assert list(tolerances) == list(api.backends("uncertainty")) == ["mitsuba", "quadrature"]
+    for name, (setting, value) in tolerances.items():
+        st = make_study(tmp_path, [coll("A"), coll("B")], backend=name)
+        assert st.tolerance == value and setting == BACKENDS[name].tolerance
+        assert st.to_dict()["tolerance"] == {setting: value} and "rel_se" not in st.to_dict()
+    assert make_study(tmp_path, [coll("A"), coll("B")], backend="quadrature", rel_se=1e-5).to_dict()["tolerance"] == \
+        {"rtol": 1e-5}
+    with pytest.raises(InputError, match="expected one of mitsuba, quadrature"):
+        make_study(tmp_path, [coll("A"), coll("B")], backend="numpy-mc")
+
+
 def test_the_bundled_study_loads_and_participants_must_observe_alike(tmp_path, collimated):
     st = load_study("r3-comparison")
     assert [p.instrument.name for p in st.participants] == ["lab", "corridor", "fixed-led", "collimated"]

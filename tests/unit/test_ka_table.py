@@ -59,6 +59,17 @@ def test_full_grid_has_580_cells():
     assert len(cells) == 580 and len(set(cells)) == 580
 
 
+def test_the_grid_index_of_a_cell_is_written_once():
+    """engines.cells.grid_index is the one (row, column) of a cell on the CIE grid (the runner had its
+    own copy; the one in cells had no caller): every grid cell maps to its place, a cell off the grid to None."""
+    from roadgonio.engines.cells import full_grid_cells, grid_index
+    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+    for t, b in full_grid_cells():
+        i, j = grid_index(t, b)
+        assert TAN_EPS_GRID[i] == t and BETA_GRID_DEG[j] == b
+    assert grid_index(0.3, 0.0) is None and grid_index(1.0, 3.0) is None and grid_index(1.0 + 1e-6, 0.0) is None
+
+
 def test_resume_after_interruption_computes_each_cell_once(tmp_path, setup):
     ins, model = setup
     cells = full_grid_cells()[:50]

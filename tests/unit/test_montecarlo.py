@@ -138,3 +138,14 @@ def test_se_is_honest_at_the_fast_preset(r3like):
     inst = load_instrument("portable")
     assert_se_is_honest(lambda seed: make_backend("numpy-mc", inst, r3like, accuracy="fast", seed=seed),
                         make_backend("reference", inst, r3like, accuracy="precise", seed=5), range(1, 121))
+
+
+@pytest.mark.parametrize("backend,setting", [("numpy-mc", "rel_se"), ("reference", "rtol")])
+def test_a_tolerance_in_quotes_is_refused_by_the_one_check(backend, setting):
+    """numpy-mc and the reference validated their tolerance by hand with float(), so "0.01" (a number
+    in quotes) was taken; they now use registry.check_relative, the one check of a relative target:
+    numbers are numbers, and the error names the setting."""
+    for bad in ("0.01", True, 0.0, 1.0, float("nan")):
+        with pytest.raises(InputError, match="relative error in \\(0, 1\\)") as err:
+            make_backend(backend, load_instrument("portable"), RoadModel.lambert(), settings={setting: bad})
+        assert err.value.field == setting

@@ -39,3 +39,27 @@ def test_uncertainty_result_carries_the_provenance(tmp_path):
     prov = d["provenance"]
     assert VERSION_KEYS <= set(prov["versions"]) and prov["instrument"]["source"]["distance_m"] == 1.0
     assert prov["model"]["params"]["k_phong"] == 0.3 and prov["sigma"]["alpha_deg"]["sigma"] == 0.01
+
+
+def test_a_fitted_model_file_carries_the_common_provenance(tmp_path):
+    """model.json of `fit` built its own block (meta.fit.versions, no created, no inputs) in keys no
+    other output uses; it now carries provenance() with the table as an input (its file and sha256)
+    and the fit's settings. validate.json and ka.nc no longer repeat roadgonio's version beside it."""
+    import roadgonio as rg
+    from roadgonio.engines.validate import report_json
+    from roadgonio.provenance import file_sha256
+    from roadgonio.surface.rtable import bundled_table
+    table = tmp_path / "r3.csv"
+    bundled_table("R3").write(table)
+    res = rg.fit(str(table), seed=3, fixed={"theta_l_deg": 88.0}, out=tmp_path / "f", plot=False)
+    doc = json.loads((tmp_path / "f" / "model.json").read_text())
+    prov = doc["provenance"]
+    assert {"versions", "created", "inputs", "settings"} <= set(prov) and prov["versions"]["roadgonio"] == __version__
+    assert prov["inputs"] == [{"argument": "table", "path": str(table.absolute()), "sha256": file_sha256(table)}]
+    assert prov["settings"]["model_variant"] == "power" and prov["settings"]["seed"] == 3
+    assert prov["settings"]["fixed"] == {"theta_l_deg": 88.0}
+    assert "versions" not in doc["fit"] and "versions" not in res.model.meta["fit"]
+    assert RoadModel.load(tmp_path / "f" / "model.json").params == res.model.params       # still a model file
+    assert "roadgonio_version" not in report_json({"rows": [], "settings": {}})
+    ds = rg.ka_table("portable", "lambert", backend="quadrature", accuracy="fast", cells="4:0")
+    assert "roadgonio_version" not in ds.attrs and json.loads(ds.attrs["provenance"])["versions"]["roadgonio"]

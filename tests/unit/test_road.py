@@ -369,6 +369,15 @@ def test_monte_carlo_matches_linear_propagation():
     p = 1 - NormalDist().cdf((1.0 / nominal.values["L_av"] - 1) / 0.03)
     got = res["correlated"]["P_meets_target"]
     assert res["target_class"] == "M3" and abs(got - p) < 4 * math.sqrt(p * (1 - p) / n) + 1e-4
+    # the 2.5 / 97.5 % quantiles are a Monte Carlo coverage interval (JCGM 101), named so (was "ci95"):
+    # under full correlation L_av is normal, L0 (1 + 0.03 z)
+    m = res["correlated"]["L_av"]
+    assert "ci95" not in m
+    sigma = 0.03 * nominal.values["L_av"]
+    z = NormalDist().inv_cdf(0.975)
+    q_se = math.sqrt(0.025 * 0.975 / n) / NormalDist().pdf(z) * sigma       # standard error of a quantile
+    for got_q, want_q in zip(m["coverage_interval_95"], (m["mean"] - z * sigma, m["mean"] + z * sigma)):
+        assert abs(got_q - want_q) < 4 * q_se, (got_q, want_q, q_se)
 
 
 def test_monte_carlo_input_checks():

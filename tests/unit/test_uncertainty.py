@@ -396,3 +396,38 @@ def test_uncertainty_notes_a_surrogate_error_large_against_u():
     lines = [ln for ln in summary_lines(rough) if ln.startswith("note:")]
     assert len(lines) == 1 and "tan eps 12, beta 0:" in lines[0] and f"of {n} cells" in lines[0]
     assert f"max/u(r) = {ratio_12_0:.2g}" in summary_lines(rough)[-2]               # the number as before
+
+
+def test_the_backends_standard_uncertainty_is_named_as_such():
+    """uncertainty.json's largest relative backend uncertainty was called backend_rel_se_max but held
+    the standard uncertainty: for a deterministic backend its bound / sqrt 3, not a standard error.
+    It is backend_rel_u_max."""
+    from roadgonio.uncertainty.report import result_dict
+    rel_bound = 3e-4
+
+    class Bounded(StandIn):
+        def compute(self, cells, on_cell=None):
+            return [CellResult(c.tan_eps, c.beta_deg, c.k_a, math.nan, 1, 0.0, error_bound=rel_bound * c.k_a)
+                    for c in super().compute(cells, on_cell)]
+
+    res = run_uncertainty(MODEL, load_instrument("portable"), parse_sigma_spec(SPEC), trials=500, seed=1,
+                          progress=False, n_validation=1, backend_factory=lambda i, m: Bounded(i, m, ka_smooth))
+    s = result_dict(res)["surrogate"]
+    assert "backend_rel_se_max" not in s
+    assert s["backend_rel_u_max"] == pytest.approx(rel_bound / math.sqrt(3.0), rel=EXACT_TOL)
+
+
+def test_s1_of_a_trial_follows_the_tables_missing_rule():
+    """The measurement model wrote S1 = r(2, 0) / r(0, 0) a third time, as a bare division: a trial
+    with r(0, 0) = 0 gave an infinite S1. It is rtable.missing_ratio (elementwise), as RTable.s1:
+    missing (NaN) where r(0, 0) is not > 0, the same number elsewhere."""
+    from roadgonio.surface.rtable import missing_ratio
+    mm = MeasurementModel(MODEL, load_instrument("portable"), CellSet.make("standard"))
+    r = np.tile(np.linspace(0.01, 0.02, len(mm.cells)), (3, 1))
+    r[1, mm.i_00] = 0.0
+    r[2, mm.i_00] = -1e-3
+    s1 = mm.functionals(r)[:, -1]
+    assert s1[0] == r[0, mm.i_20] / r[0, mm.i_00] and np.isnan(s1[1]) and np.isnan(s1[2])
+    assert missing_ratio(3.0, 2.0) == 1.5 and math.isnan(missing_ratio(1.0, 0.0))
+    assert np.array_equal(missing_ratio(np.array([3.0, 1.0, np.nan]), np.array([2.0, 0.0, 1.0])),
+                          [1.5, np.nan, np.nan], equal_nan=True)

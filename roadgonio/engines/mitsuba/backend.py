@@ -195,7 +195,9 @@ class MitsubaBackend:
         """k_A = 1 exactly, SE 0, for the ideal geometry (:attr:`is_ideal_geometry`), after the
         checks every float64 backend makes at each cell (horizon, beam, nominal value)."""
         from roadgonio.engines.cellcheck import check_cells
-        check_cells(self.instrument, self.model, cells, models_beam=False, backend=self.name)
+        from roadgonio.engines.registry import backend_info
+        check_cells(self.instrument, self.model, cells, models_beam=backend_info(self.name).beam_clipping,
+                    backend=self.name)
         self.last_run, self.last_plan = None, None
         self._ideal = np.ones(len(cells))
         out = []
