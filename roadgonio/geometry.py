@@ -112,11 +112,3 @@ def cos3_eps(tan_eps) -> np.ndarray:
     """cos^3(epsilon) from tan(epsilon), exact in float64: (1 + t^2)^(-3/2)."""
     t = np.asarray(tan_eps, dtype=np.float64)
     return (1.0 + t * t) ** -1.5
-
-
-def local_angles(w) -> tuple[np.ndarray, np.ndarray]:
-    """(polar angle theta [rad], azimuth phi [rad]) of unit vectors ``w`` (..., 3)."""
-    w = np.asarray(w, dtype=np.float64)
-    theta = np.arctan2(np.hypot(w[..., 0], w[..., 1]), w[..., 2])
-    phi = np.arctan2(w[..., 1], w[..., 0])
-    return theta, phi

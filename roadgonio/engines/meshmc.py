@@ -217,10 +217,9 @@ class MeshMonteCarloBackend(CellByCellBackend):
     def __init__(self, instrument: Instrument, model: RoadModel, *, rel_se: float = DEFAULT_REL_SE, seed: int = 0,
                  batch: int = DEFAULT_BATCH, min_batches: int = DEFAULT_MIN_BATCHES,
                  max_samples: int = DEFAULT_MAX_SAMPLES):
-        from roadgonio.engines.reference import _integer, _number
-        rel_se = _number(rel_se, "rel_se")
-        if not (0.0 < rel_se < 1.0):
-            raise InputError(f"expected a relative standard error 0 < rel_se < 1, got {rel_se:g}", field="rel_se")
+        from roadgonio.engines.reference import _integer
+        from roadgonio.engines.registry import check_relative
+        rel_se = check_relative(rel_se, "rel_se")
         seed = check_seed(seed)
         from roadgonio.limits import check_size
         m = int(round(math.sqrt(check_size(_integer(batch, "batch"), "batch", "batch"))))

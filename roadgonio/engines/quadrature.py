@@ -55,6 +55,7 @@ from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.instrument import optics
+from roadgonio.engines.registry import check_relative
 from roadgonio.engines.result import CellByCellBackend, CellResult
 from roadgonio.engines.cellcheck import check_cell, no_light
 from roadgonio.engines.rules import ORDERS, DetectorNodes, disc_rule, gauss_legendre, rule_size, size
@@ -120,12 +121,7 @@ class QuadratureBackend(CellByCellBackend):
 
     def __init__(self, instrument: Instrument, model: RoadModel, *, rtol: float = DEFAULT_RTOL,
                  max_evals: int = MAX_EVALS, start_level: int = 1, focus: bool = True):
-        try:
-            rtol = float(rtol)
-        except (TypeError, ValueError):
-            raise InputError(f"expected a number, got {rtol!r}", field="rtol") from None
-        if not (0.0 < rtol < 1.0):
-            raise InputError(f"expected a relative tolerance 0 < rtol < 1, got {rtol:g}", field="rtol")
+        rtol = check_relative(rtol, "rtol")
         if int(max_evals) < 1:
             raise InputError(f"expected a positive number of evaluations, got {max_evals}", field="max_evals")
         optics.check_detector(instrument)   # GeometryError: footprint off the sample / upward rays

@@ -156,8 +156,8 @@ def test_settings_and_presets(lab, r3like):
     assert make_backend("quadrature", lab(), r3like, rtol=3e-5).settings()["rtol"] == 3e-5
 
 
-@pytest.mark.parametrize("kwargs", [{"rtol": 0.0}, {"rtol": 2.0}, {"rtol": "x"}, {"bogus": 1},
-                                    {"accuracy": "ultra"}])
+@pytest.mark.parametrize("kwargs", [{"rtol": 0.0}, {"rtol": 2.0}, {"rtol": "x"}, {"rtol": "0.01"}, {"rtol": True},
+                                    {"bogus": 1}, {"accuracy": "ultra"}])
 def test_bad_settings(kwargs, lab, r3like):
     with pytest.raises(InputError):
         make_backend("quadrature", lab(), r3like, **kwargs)
