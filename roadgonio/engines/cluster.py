@@ -308,6 +308,16 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
             client.register_plugin(IgnoreInterrupt(), name=IgnoreInterrupt.name)
         if backend is not None and backend_info(backend).mitsuba:
             client.register_plugin(EngineSetup(backend, variant), name=EngineSetup.name)
+    except BaseException as err:
+        with _dask_logs_silenced():
+            _close(client, cluster)
+        from distributed.comm.core import CommClosedError
+        if isinstance(err, (CommClosedError, OSError)):
+            # a worker or the scheduler went away while the workers were being prepared
+            raise BackendError(f"the Dask cluster closed a connection while its workers were being prepared ({err}); "
+                               "run the same command again") from None
+        raise
+    try:
         yield client
     except BaseException:
         # Ctrl-C or an error: the caller says what happened; closing the cluster with tasks and
@@ -403,6 +413,7 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
             out.append(r)
         return out
     from distributed import KilledWorker, as_completed
+    from distributed.client import FutureCancelledError
     from distributed.comm.core import CommClosedError
     if not items:
         return []
@@ -419,7 +430,9 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
             i = index[fut.key]
             try:
                 r = fut.result()
-            except (KilledWorker, CommClosedError) as err:
+            except (KilledWorker, CommClosedError, FutureCancelledError) as err:
+                # FutureCancelledError: the task's input scattered to a worker that died went with it
+                # (Dask cannot recompute scattered data), so the scheduler forgot the task
                 if on_lost is None:
                     raise BackendError(f"a Dask worker died computing task {i + 1} of {len(items)} ({err}); run the "
                                        "same command again") from None

@@ -156,3 +156,34 @@ def test_ctrl_c_with_scattered_data_closes_the_cluster_quietly(capfd):
     err = capfd.readouterr().err
     assert "lose scattered data" not in err and "ERROR" not in err and "Traceback" not in err, err
     assert logging.getLogger("distributed.scheduler").level == before
+
+
+KILL_MODULE = textwrap.dedent('''
+    """Test helper installed in the Dask workers: a task function that kills its process."""
+    import os
+
+
+    def die(item, shared):
+        os._exit(7)
+''')
+
+
+@pytest.mark.timeout(300)
+def test_a_worker_dying_with_the_scattered_input_is_one_line_not_a_traceback(tmp_path):
+    """A task whose shared input was scattered to a worker that then dies: Dask cannot recompute
+    scattered data, cancels the task ('already forgotten') and the client got a
+    FutureCancelledError traceback (trial 8, `correct --scheduler` with a worker killed); it is the
+    same BackendError as any dead worker, whose message says to run the command again."""
+    from roadgonio.engines import cluster
+    from roadgonio.errors import BackendError
+    (tmp_path / "rg_kill_task.py").write_text(KILL_MODULE)
+    with cluster.open_client(workers=1, backend=None) as client:
+        client.run(exec, f"import sys; sys.path.insert(0, {str(tmp_path)!r}); import rg_kill_task")
+        import sys
+        sys.path.insert(0, str(tmp_path))
+        try:
+            import rg_kill_task
+            with pytest.raises(BackendError, match="run the same command again"):
+                cluster.map_calls(rg_kill_task.die, [1, 2], client, shared=np.zeros(1000), name="kill")
+        finally:
+            sys.path.remove(str(tmp_path))
