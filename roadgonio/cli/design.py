@@ -113,7 +113,7 @@ def run(args) -> int:
     say(f"design of '{s['instrument']}': {s['points']} points ({' x '.join(s['varied']) or 'base only'}), "
         f"{s['geometry_ok']} geometrically possible, {s['feasible']} within the tolerance {s['tolerance']:g}; "
         f"{s['tables_computed']} tables computed, {s['tables_resumed']} resumed in {s['wall_s']:.1f} s"
-        + (f" (the tables {s['compute_wall_s']:.1f} s, after the cluster's start: "
+        + (f" (the tables {s['compute_wall_s']:.1f} s{', after the cluster' + chr(39) + 's start' if s.get('on_cluster') else ''}: "
            f"{s['design_points_per_hour']:.0f} design points/hour)" if "design_points_per_hour" in s else ""))
     if s["not_feasible_by_kind"]:
         say("not feasible: " + ", ".join(f"{k} {v}" for k, v in sorted(s["not_feasible_by_kind"].items())))

@@ -215,6 +215,8 @@ def summary(ds) -> dict[str, Any]:
                          "compute_wall_s": float(ds.attrs.get("compute_wall_s", math.nan))}
     if "design_points_per_hour" in ds.attrs:
         s["design_points_per_hour"] = float(ds.attrs["design_points_per_hour"])
+    cluster = json.loads(ds.attrs.get("provenance", "{}")).get("cluster") or {}
+    s["on_cluster"] = cluster.get("mode") == "dask"
     if best >= 0:
         s["best"] = {"index": best, **point_index(ds, best),
                      **{k: (v[best].item() if hasattr(v[best], "item") else v[best]) for k, v in flat.items()

@@ -109,9 +109,9 @@ def write_best(ds, path: Path) -> Path | None:
               f"max |k_A - 1| = {s['max_abs_dev']:.5g} (tolerance {ds.attrs['tolerance']:g}) at tan eps "
               f"{s['worst_tan_eps']:g}, beta {s['worst_beta_deg']:g} ({s['worst_sample']}); rms {s['rms_dev']:.4g}; "
               f"signal {s['signal']:.4g} x base\n"
-              f"Reproduce its row: roadgonio ka --instrument best.toml --sample SAMPLE --backend {prov.get('backend')}"
+              f"Reproduce its row: roadgonio ka --instrument best.toml --sample {(prov.get('samples') or {}).get(s['worst_sample'], {}).get('spec') or s['worst_sample']} --backend {prov.get('backend')}"
               + (f" --accuracy {acc}" if acc else "")
-              + (f" --model-variant {prov['model_variant']}" if prov.get("model_variant") else "") + f" --seed {s['seed']} (samples: {', '.join(samples)})")
+              + (f" --model-variant {prov['model_variant']}" if prov.get("model_variant") else "") + f" --seed {s['seed']} (the sample of its worst cell; the study's samples: {', '.join(samples)})")
     return atomic_write_text(path, toml_text(d, header))
 
 

@@ -229,7 +229,7 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
             raise
         complete = sum(1 for i in range(n) if feas[i].ok and all((i, j) in done for j in range(len(smp))))
         raise Interrupted(f"interrupted: {len(done)} finished tables ({complete} of {sum(f.ok for f in feas)} "
-                          f"feasible design points complete) are kept in {out_dir / JOURNAL}; run the same "
+                          f"geometrically possible design points complete) are kept in {out_dir / JOURNAL}; run the same "
                           "command again to resume them") from None
     finally:
         if fh is not None:

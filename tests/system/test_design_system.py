@@ -27,6 +27,7 @@ def test_best_design_recomputed_with_ka_matches_its_row(mi, tmp_path, capsys):
     assert rc == 0
     text = capsys.readouterr().out
     assert "best:" in text and "design points/hour" in text
+    assert "cluster" not in text           # computed in this process (trial 8: "after the cluster's start")
     from roadgonio.design.outputs import read_design
     ds = read_design(out / "design.nc")
     best = int(ds.attrs["best_index"])
@@ -54,6 +55,8 @@ def test_best_design_recomputed_with_ka_matches_its_row(mi, tmp_path, capsys):
     assert dev == pytest.approx(float(row["max_abs_dev"]), rel=1e-12)
     header = (out / "best.toml").read_text().splitlines()[:4]
     assert any(f"--seed {row['seed']}" in h for h in header)
+    # the command to reproduce the row is complete: the sample, no placeholder (trial 8)
+    assert any("--sample R3 " in h for h in header) and not any("SAMPLE" in h for h in header)
 
 
 @pytest.mark.parametrize("args, words", [
