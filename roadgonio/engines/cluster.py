@@ -34,6 +34,7 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import sys
 import threading
 import time
 import uuid
@@ -370,6 +371,52 @@ def describe(client) -> dict[str, Any]:
             "threads": int(sum(w.get("nthreads", 0) for w in ws.values()))}
 
 
+#: Seconds between two looks at the cluster's workers while tasks are pending (:class:`WorkerWatch`).
+WATCH_INTERVAL_S = 10.0
+
+
+class WorkerWatch:
+    """Says once (on stderr, through ``say``) when the cluster has no worker left while tasks wait,
+    and once more when workers are back: Dask then waits silently for a worker, which a user cannot
+    tell from a slow table (with no progress bar, not on a terminal). Looks every ``interval`` s in a
+    daemon thread; :meth:`check` is one look (tested alone)."""
+
+    def __init__(self, client, say: Callable[[str], None] | None = None, interval: float = WATCH_INTERVAL_S):
+        self.client = client
+        self.say = say or (lambda text: print(text, file=sys.stderr, flush=True))
+        self.interval = float(interval)
+        self.waiting = False
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def check(self) -> None:
+        try:
+            n = len(self.client.scheduler_info().get("workers", {}))
+        except Exception:  # noqa: BLE001 - a closed scheduler is the caller's error to report
+            return
+        if n == 0 and not self.waiting:
+            address = getattr(self.client, "scheduler", None)
+            address = getattr(address, "address", None) or "the scheduler"
+            self.say(f"roadgonio: no Dask worker left on {address}: waiting for one (start one with 'dask worker "
+                     f"{address} --nthreads 1'; Ctrl-C stops, finished work is kept)")
+            self.waiting = True
+        elif n > 0 and self.waiting:
+            self.say(f"roadgonio: {n} Dask worker{'s' if n != 1 else ''} back; going on")
+            self.waiting = False
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.interval):
+            self.check()
+
+    def __enter__(self) -> "WorkerWatch":
+        self._thread = threading.Thread(target=self._run, name="roadgonio-worker-watch", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+
+
 def _call_task(item: Any, *, call: Callable, shared: Any = None, with_shared: bool = False,
                backend: str | None = None, variant: str | None = None) -> Any:
     """One task of :func:`map_calls` on a worker: prepare the process for ``backend`` (idempotent),
@@ -425,6 +472,7 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
                          with_shared=with_shared, backend=backend, variant=variant)
     index = {f.key: i for i, f in enumerate(futures)}
     results: list[Any] = [None] * len(items)
+    watch = WorkerWatch(client).__enter__()
     try:
         for fut in as_completed(futures):
             i = index[fut.key]
@@ -442,6 +490,7 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
             if on_result is not None:
                 on_result(i, r)
     finally:
+        watch.__exit__()
         pending = [f for f in futures if not f.done()]
         if pending:
             client.cancel(pending)

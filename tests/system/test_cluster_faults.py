@@ -187,3 +187,32 @@ def test_a_worker_dying_with_the_scattered_input_is_one_line_not_a_traceback(tmp
                 cluster.map_calls(rg_kill_task.die, [1, 2], client, shared=np.zeros(1000), name="kill")
         finally:
             sys.path.remove(str(tmp_path))
+
+
+@pytest.mark.timeout(300)
+def test_the_last_worker_gone_is_said_once_and_its_return_too():
+    """With no worker left Dask waits silently for one (trial 8: `design --scheduler` waited over a
+    minute without a word after its only worker was killed): the watch says so once, not at every
+    look, and says when workers are back; with workers it says nothing."""
+    import time
+
+    from roadgonio.engines import cluster
+    said: list[str] = []
+    with cluster.open_client(workers=1, backend=None) as client:
+        watch = cluster.WorkerWatch(client, say=said.append)
+        watch.check()
+        assert said == []
+        client.retire_workers(list(client.scheduler_info()["workers"]))
+        t0 = time.monotonic()
+        while client.scheduler_info()["workers"] and time.monotonic() - t0 < 30:
+            time.sleep(0.2)
+        watch.check()
+        watch.check()
+        assert len(said) == 1 and "no Dask worker left" in said[0] and "dask worker" in said[0]
+
+    class Back:                                  # the scheduler answers with a worker again
+        def scheduler_info(self):
+            return {"workers": {"w": {}}}
+    watch.client = Back()
+    watch.check()
+    assert len(said) == 2 and "back" in said[1]
