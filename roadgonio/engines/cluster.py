@@ -167,9 +167,33 @@ def compute_table(task: TableTask, *, prepare: bool = True) -> TableResult:
                            seconds=time.perf_counter() - t0, worker=_worker_name())
 
 
+_SOURCE_DIGEST: str | None = None
+
+
+def source_digest() -> str:
+    """A digest of the Python source this process's roadgonio runs (the package and the plugins'
+    folder, file names and contents), taken once per process: the version string cannot tell an
+    edited or upgraded checkout from the one a cluster's workers started with."""
+    global _SOURCE_DIGEST
+    if _SOURCE_DIGEST is None:
+        import hashlib
+
+        import roadgonio
+        from roadgonio._checkout import mapped_folders
+        roots = [Path(roadgonio.__file__).resolve().parent]
+        roots += [f for n, f in sorted(mapped_folders().items()) if n.endswith(".plugins")]
+        h = hashlib.sha256()
+        for root in roots:
+            for f in sorted(root.rglob("*.py")):
+                h.update(str(f.relative_to(root)).encode())
+                h.update(f.read_bytes())
+        _SOURCE_DIGEST = h.hexdigest()[:16]
+    return _SOURCE_DIGEST
+
+
 def _worker_versions() -> dict[str, Any]:
     import roadgonio._version as version
-    return {"roadgonio": version.__version__, "pid": os.getpid(), "file": version.__file__}
+    return {"roadgonio": version.__version__, "pid": os.getpid(), "file": version.__file__, "source": source_digest()}
 
 
 try:  # the plugin class needs distributed; roadgonio itself does not import it
@@ -359,6 +383,16 @@ def _check_workers(client) -> None:
     if bad:
         raise BackendError(f"Dask workers run another roadgonio version ({', '.join(f'{w}: {v}' for w, v in bad.items())}; "
                            f"this is {version.__version__}): start the workers from the same environment")
+    mine = source_digest()
+    other = sorted(w for w, v in found.items() if v.get("source") != mine)
+    try:
+        on_scheduler = client.run_on_scheduler(_worker_versions).get("source")
+    except Exception:  # noqa: BLE001 - a scheduler that cannot import roadgonio only relays tasks
+        on_scheduler = mine
+    if other or on_scheduler != mine:
+        who = (["the scheduler"] if on_scheduler != mine else []) + other
+        raise BackendError(f"the Dask cluster runs other roadgonio source than this process ({', '.join(who)}: the code "
+                           "was changed or upgraded after they started): restart the scheduler and the workers")
 
 
 def describe(client) -> dict[str, Any]:

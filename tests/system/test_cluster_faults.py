@@ -216,3 +216,23 @@ def test_the_last_worker_gone_is_said_once_and_its_return_too():
     watch.client = Back()
     watch.check()
     assert len(said) == 2 and "back" in said[1]
+
+
+def _pretend_other_source():
+    import roadgonio.engines.cluster as c
+    c._SOURCE_DIGEST = "0123456789abcdef"
+
+
+@pytest.mark.timeout(300)
+def test_workers_running_other_source_are_refused_in_one_line():
+    """A cluster started before the code changed (same version string, other source) gave a
+    KeyError or Dask's 'different environments' traceback mid-run (trial 8, defect 4): the workers'
+    source digest is checked with the version, and a mismatch is one line saying to restart them."""
+    from roadgonio.engines import cluster
+    from roadgonio.errors import BackendError
+    with cluster.open_client(workers=1, backend=None) as client:
+        cluster._check_workers(client)                       # the same source: accepted
+        client.run(_pretend_other_source)
+        with pytest.raises(BackendError, match="restart the scheduler and the workers") as err:
+            cluster._check_workers(client)
+        assert "\n" not in str(err.value)
