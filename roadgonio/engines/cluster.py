@@ -178,9 +178,8 @@ def source_digest() -> str:
     if _SOURCE_DIGEST is None:
         import hashlib
 
-        import roadgonio
         from roadgonio._checkout import mapped_folders
-        roots = [Path(roadgonio.__file__).resolve().parent]
+        roots = [Path(__file__).resolve().parents[1]]         # the roadgonio package
         roots += [f for n, f in sorted(mapped_folders().items()) if n.endswith(".plugins")]
         h = hashlib.sha256()
         for root in roots:
