@@ -4,6 +4,7 @@ backends (source_radiance_factor, map_bilinear) over Dr.Jit arrays; `render` sho
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from helpers import ROAD, preset, write_map_csv, write_table_csv
 from roadgonio.engines import make_backend
@@ -45,6 +46,7 @@ def _profiles(tmp_path):
             {"beam_intensity_file": str(p), "aperture_edge_radiance": 1.6}]
 
 
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_a_profiled_source_agrees_with_the_quadrature(mi, tmp_path):
     """The kabatch kernel weighs each source sample by the shared source_radiance_factor (float32):
     Gaussian, cos^n with a dark rim, a tabulated intensity with a bright rim; k_A within z_family SE +

@@ -43,6 +43,7 @@ def correct_argv(files, out):
 
 
 @pytest.mark.timeout(300)
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_correct_two_files_on_two_workers_is_identical_to_in_process(tmp_path, capsys):
     files = small_tables(tmp_path)
     assert main(correct_argv(files, tmp_path / "here") + ["--no-plots"]) == 0

@@ -122,6 +122,7 @@ RMS_SURFACE_OVER_EQ4_MAX = 0.7
 RMS_JOINT_MAX = 0.015
 
 
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_forward_surface_round_trip_inside_eq4_writes_the_diagnostics(tmp_path, capsys):
     """An eq. 4 surface (the medium synthetic measurement of the smooth-variant R2-like truth, 1 %
     noise): the flexible model must not over-fit it (issue 19: no loss of accuracy inside the
@@ -210,6 +211,7 @@ def joint_and_alone(two_instruments):
     return joint, alone
 
 
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_joint_correction_of_two_instruments(two_instruments, joint_and_alone):
     """One surface through both: one table, each instrument's k_A, the u of the joint table below
     the first instrument's own (the second aperture adds information), and its error covered."""
@@ -228,6 +230,7 @@ def test_joint_correction_of_two_instruments(two_instruments, joint_and_alone):
     assert len(s["per_instrument"]) == 2 and math.isfinite(s["u_S1"])
 
 
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_second_aperture_predicts_the_joint_u_and_ranks_by_it(tmp_path, two_instruments, joint_and_alone):
     """design --second-aperture: the expected median u of the joint table with the narrow setting
     (predicted from the measured table of the first instrument, before the second measures) is
@@ -266,6 +269,7 @@ def test_second_aperture_takes_the_backbone_the_correction_takes(two_instruments
     assert abs(res.baselines[0].u_median / actual - 1) < 0.30, (res.baselines[0].u_median, actual, chosen)
 
 
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_a_rerun_resumes_the_correction_surface_and_gives_the_same_table(tmp_path, capsys):
     """A finished `correct --forward surface` rerun in the same folder takes the k_A table and the
     correction surface from the folder's journals (fit_state.json) and writes the same numbers;
@@ -293,6 +297,7 @@ MAX_LNK_SECOND_DIFFERENCE = 0.25
 MAX_MEDIAN_U = 0.06
 
 
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_a_real_table_through_a_small_instrument_gives_a_smooth_k_a_and_a_convex_table():
     """A real table (CIE R3, two-digit values that eq. 4 leaves at Birge ratio ~3) corrected with
     --forward surface through the portable: k_A smooth down every beta column, the table's u of the

@@ -34,6 +34,7 @@ def scores(res, truth) -> dict:
 
 
 @pytest.mark.parametrize("mode", ["lambert", "absolute"])
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_round_trip_reference_self(mode):
     inst = Instrument.load(DATA / "medium.toml").with_changes(calibration={"mode": mode})
     meas = read_table(DATA / f"synthetic_medium_{mode}.csv")

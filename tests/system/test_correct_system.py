@@ -140,6 +140,7 @@ def test_cli_reference_self_end_to_end(tmp_path):
         assert float(x["r_corrected_x1e4"]) == pytest.approx(float(x["r_measured_x1e4"]) / float(x["k_a"]), rel=FILE_RATIO_RTOL)
 
 
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_cli_says_when_the_data_reject_eq4(tmp_path):
     """The eq. 4 route judges its own fit: the synthetic table (an eq. 4 surface, 1 % noise) fitted
     with its own variant is not rejected (p >= MISFIT_P, no note); the same table with a bump of

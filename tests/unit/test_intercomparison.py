@@ -107,6 +107,7 @@ def test_identical_collimated_participants_are_compatible_as_expected(tmp_path, 
     assert np.array_equal(a, b, equal_nan=True)
 
 
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_a_shared_reference_tile_correlates_the_participants_as_it_should(tmp_path, collimated):
     """x_i = r (1 + c)(1 + e_i) with a tile error c ~ N(0, u_t^2) shared by A and B and independent
     noise e_i ~ N(0, s^2): corr(x_A, x_B) = u_t^2 / (u_t^2 + s^2 + u_t^2 s^2) in every cell; C,

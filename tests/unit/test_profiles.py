@@ -616,6 +616,7 @@ def test_a_uniform_map_is_no_map_bit_for_bit(tmp_path):
 RADIAL_MAP_TOL = 1e-4
 
 
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_a_radial_map_equals_field_edge_sensitivity(tmp_path):
     base = load_instrument("portable")
     e = 0.3

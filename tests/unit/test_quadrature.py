@@ -220,6 +220,7 @@ def test_field_sensitivity_profile_in_the_quadrature_and_monte_carlo(r3like_para
     assert all(abs(a.k_a - u.k_a) > 10 * (a.error_bound + u.error_bound) for a, u in zip(q, uniform))
 
 
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_converged_means_the_estimate_met_rtol_also_at_the_cap():
     """A cell that reaches max_evals while a stale direction share still exceeds its part, but
     whose refreshed estimate meets rtol, is converged (it was reported as not converged with an

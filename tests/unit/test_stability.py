@@ -85,6 +85,7 @@ def test_grazing_observation_leaves_a_small_sample(lab, r3like):
 
 
 @pytest.mark.parametrize("beta0", [0.0, 180.0])
+@pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_beta_exactly_0_and_180_are_continuous(beta0, lab, r3like):
     b = make_backend("quadrature", lab(), r3like, rtol=1e-7)
     step = 1e-7 if beta0 == 0.0 else -1e-7
