@@ -441,12 +441,12 @@ class WorkerWatch:
         while not self._stop.wait(self.interval):
             self.check()
 
-    def __enter__(self) -> "WorkerWatch":
+    def start(self) -> "WorkerWatch":
         self._thread = threading.Thread(target=self._run, name="roadgonio-worker-watch", daemon=True)
         self._thread.start()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def stop(self) -> None:
         self._stop.set()
 
 
@@ -505,7 +505,7 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
                          with_shared=with_shared, backend=backend, variant=variant)
     index = {f.key: i for i, f in enumerate(futures)}
     results: list[Any] = [None] * len(items)
-    watch = WorkerWatch(client).__enter__()
+    watch = WorkerWatch(client).start()
     try:
         for fut in as_completed(futures):
             i = index[fut.key]
@@ -523,7 +523,7 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
             if on_result is not None:
                 on_result(i, r)
     finally:
-        watch.__exit__()
+        watch.stop()
         pending = [f for f in futures if not f.done()]
         if pending:
             client.cancel(pending)
