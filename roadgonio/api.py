@@ -637,7 +637,9 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         check_run_folder(folder, "uncertainty.json", fp, what="uncertainty run", fresh=bool(fresh), outputs=OUTPUT_FILES)
         from roadgonio.fileio import check_writable
         check_writable(folder)          # an unwritable folder fails now, not after the Monte Carlo
-    if aperture and workers in (None, 0) and scheduler is None:
+    if aperture:
+        # this process computes: every table in one process, and on Dask the Mitsuba engine's first
+        # table too (its pass plan goes with the other tables, the common random numbers)
         prepare_entry_point(backend, mitsuba_variant)
     res = run_uncertainty(smp.model, inst, spec, trials=trials, adaptive=adaptive, seed=seed, coverage=coverage,
                           n_dig=digits, max_trials=max_trials, batch=batch, illuminance=illuminance, cells=cells,

@@ -2,7 +2,7 @@
 
 Every input error names the file (or the option), the line or field, and what was expected.
 The CLI catches :class:`RoadgonioError` and prints ``roadgonio: error: <message>`` with exit
-status 2.
+status 2 (3 for :class:`WorkLostError`: work lost on a cluster, not bad input).
 """
 from __future__ import annotations
 
@@ -78,6 +78,16 @@ class GeometryError(RoadgonioError):
 
 class BackendError(RoadgonioError):
     """A compute backend cannot run here (for example Dr.Jit's LLVM backend needs LLVM >= 16)."""
+
+
+class WorkLostError(BackendError):
+    """Work lost outside the user's input: a Dask worker that died on a task more often than the
+    work retries it, a cluster that went away. Not bad input, so the command line exits with
+    status 3 (:data:`EXIT_WORK_LOST`), not 2; finished work is kept and the same command resumes."""
+
+
+#: the command line's exit status for :class:`WorkLostError` (2 is bad input, 130 an interruption)
+EXIT_WORK_LOST = 3
 
 
 class ModelWarning(UserWarning):

@@ -5,7 +5,8 @@ cells, backend, seed or preset: ``tests/unit/test_layers.py`` holds it to that).
 Every module in this package that defines ``register(subparsers)`` adds one or more
 sub-commands; ``register`` must call ``parser.set_defaults(func=run)`` where ``run(args)`` returns
 the exit status. Errors of type :class:`~roadgonio.errors.RoadgonioError` are printed as one
-line (``roadgonio: error: ...``) with exit status 2, never as a traceback; an error the API raised
+line (``roadgonio: error: ...``) with exit status 2 (3 for work lost on a Dask cluster,
+:class:`~roadgonio.errors.WorkLostError`: not bad input), never as a traceback; an error the API raised
 about an argument names the command's option instead (``rel_se`` -> ``--rel-se``).
 """
 from __future__ import annotations
@@ -17,7 +18,7 @@ import sys
 import warnings
 
 from roadgonio._version import __version__
-from roadgonio.errors import InputError, ModelWarning, RoadgonioError, is_interrupt
+from roadgonio.errors import EXIT_WORK_LOST, InputError, ModelWarning, RoadgonioError, WorkLostError, is_interrupt
 
 #: Order in which commands are listed in --help (others follow alphabetically).
 ORDER = ["tables", "table", "fit", "ka", "render", "validate", "uncertainty", "correct", "design", "road",
@@ -73,7 +74,7 @@ def main(argv: list[str] | None = None) -> int:
             return int(args.func(args) or 0)
     except RoadgonioError as err:
         print(f"roadgonio: error: {_as_option(err, parser, args)}", file=sys.stderr)
-        return 2
+        return EXIT_WORK_LOST if isinstance(err, WorkLostError) else 2
     except BrokenPipeError:
         # the reader of stdout went away (``roadgonio ... --json | head``): no traceback, the usual
         # status of a process whose pipe closed (128 + SIGPIPE); stdout is pointed at /dev/null so the

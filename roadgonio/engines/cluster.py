@@ -44,7 +44,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
 
-from roadgonio.errors import BackendError, InputError, RoadgonioError
+from roadgonio.errors import BackendError, InputError, RoadgonioError, WorkLostError
 
 #: Seconds to wait for a scheduler to answer and for its first worker to join.
 CONNECT_TIMEOUT_S = 30.0
@@ -338,7 +338,7 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
         from distributed.comm.core import CommClosedError
         if isinstance(err, (CommClosedError, OSError)):
             # a worker or the scheduler went away while the workers were being prepared
-            raise BackendError(f"the Dask cluster closed a connection while its workers were being prepared ({err}); "
+            raise WorkLostError(f"the Dask cluster closed a connection while its workers were being prepared ({err}); "
                                "run the same command again") from None
         raise
     try:
@@ -406,6 +406,8 @@ def describe(client) -> dict[str, Any]:
 
 #: Seconds between two looks at the cluster's workers while tasks are pending (:class:`WorkerWatch`).
 WATCH_INTERVAL_S = 10.0
+#: times :func:`map_calls` submits a task again whose scattered input died with its worker
+TASK_RETRIES = 2
 
 
 class WorkerWatch:
@@ -465,7 +467,8 @@ _NO_SHARED = object()
 def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any = _NO_SHARED,
               backend: str | None = None, variant: str | None = None,
               on_result: Callable[[int, Any], None] | None = None,
-              on_lost: Callable[[int, BaseException], Any] | None = None, name: str = "call") -> list[Any]:
+              on_lost: Callable[[int, BaseException], Any] | None = None, name: str = "call",
+              retries: int = TASK_RETRIES, say: Callable[[str], None] | None = None) -> list[Any]:
     """``func(item)`` for every item, one Dask task per item on the client's workers (or one after
     the other in this process when ``client`` is None); returns the results in the order of
     ``items`` and calls ``on_result(index, result)`` as each one finishes (completion order).
@@ -477,8 +480,12 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
     * ``backend`` / ``variant``: on a worker each task first prepares its process for that backend
       (:func:`init_engine`: the Mitsuba variant and plugins; idempotent). In this process nothing
       is prepared (its entry point chose the variant).
-    * A worker that dies on a task: ``on_lost(index, error)`` gives that item's result, or without
-      ``on_lost`` a :class:`~roadgonio.errors.BackendError` is raised. An exception raised by
+    * A worker that dies on a task: Dask computes it again on another (or the restarted) worker;
+      when the task's scattered input died with the worker (Dask then forgets the task), it is
+      submitted again with its input scattered again, up to ``retries`` times, saying so through
+      ``say`` (stderr). Beyond that (or on Dask's KilledWorker, after Dask's own retries)
+      ``on_lost(index, error)`` gives that item's result, or without ``on_lost`` a
+      :class:`~roadgonio.errors.WorkLostError` is raised (exit status 3). An exception raised by
       ``func`` is raised here (the first one to finish). Unfinished tasks are cancelled when this
       returns or raises (Ctrl-C).
     """
@@ -497,26 +504,54 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
     from distributed.comm.core import CommClosedError
     if not items:
         return []
+    say = say or (lambda text: print(text, file=sys.stderr, flush=True))
     token = uuid.uuid4().hex[:12]
     keys = [f"roadgonio-{name}-{token}-{i}" for i in range(len(items))]
-    # a list of one: scatter() would scatter a dict or a list element by element
-    shared_future = client.scatter([shared], broadcast=True, hash=False)[0] if with_shared else None
+
+    def scatter():
+        # a list of one: scatter() would scatter a dict or a list element by element
+        return client.scatter([shared], broadcast=True, hash=False)[0] if with_shared else None
+
+    shared_future = scatter()
+
+    def submit(i: int, key: str):
+        return client.submit(_call_task, items[i], key=key, pure=False, call=func, shared=shared_future,
+                             with_shared=with_shared, backend=backend, variant=variant)
+
     futures = client.map(_call_task, items, key=keys, pure=False, call=func, shared=shared_future,
                          with_shared=with_shared, backend=backend, variant=variant)
     index = {f.key: i for i, f in enumerate(futures)}
+    live = list(futures)
+    attempts = [0] * len(items)
     results: list[Any] = [None] * len(items)
-    watch = WorkerWatch(client).start()
+    watch = WorkerWatch(client, say=say).start()
     try:
-        for fut in as_completed(futures):
+        done = as_completed(futures)
+        for fut in done:
             i = index[fut.key]
             try:
                 r = fut.result()
             except (KilledWorker, CommClosedError, FutureCancelledError) as err:
                 # FutureCancelledError: the task's input scattered to a worker that died went with it
-                # (Dask cannot recompute scattered data), so the scheduler forgot the task
+                # (Dask cannot recompute scattered data), so the scheduler forgot the task; the task
+                # is submitted again (its input scattered again) up to ``retries`` times. KilledWorker:
+                # Dask itself already retried a task whose workers kept dying
+                fut.release()
+                if not isinstance(err, KilledWorker) and attempts[i] < retries:
+                    attempts[i] += 1
+                    say(f"roadgonio: a Dask worker died computing {name} {i + 1} of {len(items)}; computing it "
+                        f"again (retry {attempts[i]} of {retries})")
+                    if with_shared and shared_future.status != "finished":
+                        shared_future.release()
+                        shared_future = scatter()
+                    again = submit(i, f"{keys[i]}-retry{attempts[i]}")
+                    index[again.key] = i
+                    live.append(again)
+                    done.add(again)
+                    continue
                 if on_lost is None:
-                    raise BackendError(f"a Dask worker died computing task {i + 1} of {len(items)} ({err}); run the "
-                                       "same command again") from None
+                    raise WorkLostError(f"a Dask worker died computing {name} {i + 1} of {len(items)} ({err}); run "
+                                        "the same command again (finished work is kept)") from None
                 r = on_lost(i, err)
             results[i] = r
             fut.release()
@@ -524,7 +559,7 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
                 on_result(i, r)
     finally:
         watch.stop()
-        pending = [f for f in futures if not f.done()]
+        pending = [f for f in live if not f.done()]
         if pending:
             client.cancel(pending)
         if shared_future is not None:

@@ -222,7 +222,7 @@ def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, tally: "_E
     engine the first table is computed here, and its plan goes with every other task, so the numbers
     are those of :func:`_exact_here`."""
     from roadgonio.engines.cluster import TableTask, absolute_instrument_dict, map_tables
-    from roadgonio.errors import BackendError, GeometryError, RoadgonioError
+    from roadgonio.errors import BackendError, GeometryError, RoadgonioError, WorkLostError
     if task_backend is None:
         raise InputError("distributing the exact tables needs a backend name and settings, not a backend factory",
                          field="--workers")
@@ -247,9 +247,9 @@ def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, tally: "_E
     out = list(first)
     for r in results:
         if not r.ok:
-            err = {"GeometryError": GeometryError, "InputError": InputError,
-                   "BackendError": BackendError}.get(r.error_kind or "", RoadgonioError)
-            raise err(r.error)
+            err = {"GeometryError": GeometryError, "InputError": InputError, "BackendError": BackendError,
+                   "WorkerError": WorkLostError}.get(r.error_kind or "", RoadgonioError)
+            raise err(r.error + ("; run the same command again" if r.error_kind == "WorkerError" else ""))
         if r.settings and not tally.settings:
             tally.settings.update(r.settings)
         tally.not_converged += sum(not c.converged for c in r.cells)

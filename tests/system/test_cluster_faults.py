@@ -168,25 +168,105 @@ KILL_MODULE = textwrap.dedent('''
 ''')
 
 
+DIE_ONCE_MODULE = textwrap.dedent('''
+    """Test helper installed in the Dask workers: a task that kills its process the first time it
+    sees an item (a marker file remembers), and computes the second time."""
+    import os
+    from pathlib import Path
+
+    MARKERS = Path(__file__).parent / "markers"
+
+
+    def die_once(item, shared):
+        marker = MARKERS / f"died-{item}"
+        if not marker.exists():
+            marker.touch()
+            os._exit(7)
+        return item * 10 + float(shared.sum())
+''')
+
+
+def _with_module(tmp_path, name, text, client):
+    """``name`` importable here and in the workers (the restarted ones too: a spawned worker gets
+    this process's sys.path)."""
+    import importlib
+    import sys
+    (tmp_path / f"{name}.py").write_text(text)
+    sys.path.insert(0, str(tmp_path))
+    client.run(exec, f"import sys; sys.path.insert(0, {str(tmp_path)!r})")
+    return importlib.import_module(name)
+
+
 @pytest.mark.timeout(300)
-def test_a_worker_dying_with_the_scattered_input_is_one_line_not_a_traceback(tmp_path):
+def test_a_worker_dying_with_the_scattered_input_is_computed_again():
     """A task whose shared input was scattered to a worker that then dies: Dask cannot recompute
-    scattered data, cancels the task ('already forgotten') and the client got a
-    FutureCancelledError traceback (trial 8, `correct --scheduler` with a worker killed); it is the
-    same BackendError as any dead worker, whose message says to run the command again."""
+    scattered data and forgets the task ('already forgotten'); the client got a
+    FutureCancelledError traceback (trial 8, `correct --scheduler`), then stopped the whole run
+    (trial 9, `intercompare --scheduler`, exit 2 as if the input were bad) while the nanny had the
+    worker back within a second. The task is now submitted again with its input scattered again,
+    saying so, and the results are those of an undisturbed run."""
+    import sys
+    import tempfile
+    from pathlib import Path
+
     from roadgonio.engines import cluster
-    from roadgonio.errors import BackendError
-    (tmp_path / "rg_kill_task.py").write_text(KILL_MODULE)
-    with cluster.open_client(workers=1, backend=None) as client:
-        client.run(exec, f"import sys; sys.path.insert(0, {str(tmp_path)!r}); import rg_kill_task")
-        import sys
-        sys.path.insert(0, str(tmp_path))
+    shared = np.arange(4.0)
+    said: list[str] = []
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp_path = Path(tmp)
+        (tmp_path / "markers").mkdir()
         try:
-            import rg_kill_task
-            with pytest.raises(BackendError, match="run the same command again"):
-                cluster.map_calls(rg_kill_task.die, [1, 2], client, shared=np.zeros(1000), name="kill")
+            with cluster.open_client(workers=1, backend=None) as client:
+                mod = _with_module(tmp_path, "rg_die_once", DIE_ONCE_MODULE, client)
+                got = cluster.map_calls(mod.die_once, [1, 2], client, shared=shared, name="item", say=said.append)
         finally:
             sys.path.remove(str(tmp_path))
+            sys.modules.pop("rg_die_once", None)
+        assert sorted(p.name for p in (tmp_path / "markers").iterdir()) == ["died-1", "died-2"]  # both died once
+    assert got == [10 + 6.0, 20 + 6.0]
+    # item 2's task is lost with item 1's death too (one worker, one scattered input), so it may
+    # take a second round; never more, since each item dies once
+    retries = [s for s in said if "died" in s]
+    assert retries and all("computing it again (retry " in s and s.endswith(" of 2)") for s in retries), said
+
+
+@pytest.mark.timeout(300)
+def test_a_task_whose_worker_always_dies_is_work_lost_after_its_retries(tmp_path):
+    """A task that kills every worker it runs on: after ``TASK_RETRIES`` retries one line that says
+    to run the command again, a WorkLostError (exit status 3, not 2: it is not bad input)."""
+    import sys
+
+    from roadgonio.engines import cluster
+    from roadgonio.errors import WorkLostError
+    said: list[str] = []
+    try:
+        with cluster.open_client(workers=1, backend=None) as client:
+            mod = _with_module(tmp_path, "rg_kill_task", KILL_MODULE, client)
+            with pytest.raises(WorkLostError, match="run the same command again"):
+                cluster.map_calls(mod.die, [1], client, shared=np.zeros(1000), name="kill", say=said.append)
+    finally:
+        sys.path.remove(str(tmp_path))
+        sys.modules.pop("rg_kill_task", None)
+    assert [s for s in said if "died" in s][-1].endswith(f"(retry {cluster.TASK_RETRIES} of {cluster.TASK_RETRIES})")
+
+
+def test_work_lost_exits_with_status_3_and_bad_input_with_2(monkeypatch, capsys):
+    """The command line tells the two apart (scripts retry the one and fix the other)."""
+    from roadgonio import api
+    from roadgonio.cli import main
+    from roadgonio.errors import InputError, WorkLostError
+
+    def lost():
+        raise WorkLostError("a Dask worker died computing table 1 of 1; run the same command again")
+    monkeypatch.setattr(api, "list_tables", lost)
+    assert main(["tables"]) == 3
+    assert capsys.readouterr().err.strip() == ("roadgonio: error: a Dask worker died computing table 1 of 1; "
+                                               "run the same command again")
+
+    def bad():
+        raise InputError("expected something else", field="x")
+    monkeypatch.setattr(api, "list_tables", bad)
+    assert main(["tables"]) == 2
 
 
 @pytest.mark.timeout(300)

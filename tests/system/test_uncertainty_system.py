@@ -35,3 +35,22 @@ def test_cli_runs_lambert(tmp_path):
     row = next(r for r in rows[1:] if r[0] == "no_aperture" and r[1] == "0" and r[2] == "0")
     u_rel = float(row[rows[0].index("u_rel")])
     assert abs(u_rel / 0.002 - 1) < N_SIGMA / math.sqrt(2 * 2000) + 1e-3
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(900)
+def test_cli_mitsuba_tables_on_a_local_cluster(tmp_path):
+    """`uncertainty --workers 1` with the default Mitsuba backend, in a fresh process: the first
+    exact table is computed in the calling process (its pass plan goes with the others), which had
+    no Mitsuba variant selected there (trial 9: every such run stopped with 'no Mitsuba variant is
+    selected', exit 2). The API's identity with the in-process run is the slow test of
+    test_design_cluster.py; this one is the command as a user runs it."""
+    import json
+    p = subprocess.run([sys.executable, "-m", "roadgonio", "uncertainty", "--instrument", "portable", "--sample",
+                        "R3", "--sigma", "alpha_deg=0.01", "--trials", "500", "--surrogate", "star", "--validation",
+                        "1", "--rel-se", "3e-3", "--workers", "1", "--no-plots", "--out", str(tmp_path), "--json"],
+                       capture_output=True, text=True)
+    assert p.returncode == 0, p.stderr
+    d = json.loads((tmp_path / "uncertainty.json").read_text())
+    assert any("Dask" in n for n in d["provenance"]["notes"]), d["provenance"]["notes"]
+    assert d["surrogate"]["exact_evaluations"] > 0
