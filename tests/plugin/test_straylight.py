@@ -443,3 +443,37 @@ def test_lobe_sampling_at_the_light_paths_first_vertex_agrees_with_the_cosine():
             va, vb = getattr(a, key), getattr(b, key)
             assert abs(va - vb) <= z * math.hypot(getattr(a, se), getattr(b, se)), (key, a, b)
         assert a.se < b.se, (a.tan_eps, a.beta_deg, a.se, b.se)
+
+
+#: WALL_XML with a black roof at z = 0.21 m over y = -0.16 ... 0.15 m, x = -0.6 ... 0.6 m: at cell
+#: (tan eps 1, beta 90) it hides the whole wall from the whole source disc (the lines from the disc
+#: to the wall cross z = 0.21 at y <= 0.12), while the footprint still sees the source (the lines
+#: cross it at y >= 0.2) and the wall (below z = 0.2 all the way).
+ROOF = """    <shape type="rectangle" id="roof">
+        <transform name="to_world"><scale x="0.6" y="0.155" z="1"/><translate x="0" y="-0.005" z="0.21"/></transform>
+        <bsdf type="diffuse"><float name="reflectance" value="0"/></bsdf>
+    </shape>
+</scene>"""
+
+
+def test_a_part_the_source_cannot_see_sends_no_light(tmp_path):
+    """With max_bounces = 2 the only stray path is source -> wall -> footprint. A black roof that hides
+    the wall from the source leaves none: the stray fraction is 0 and k_A is the direct light's,
+    which the roof does not touch (equal to the run without it, same seed). Without the roof the
+    same cell has stray light far outside its error bar, so the test can fail: the next-event
+    estimation at a part's vertex must test the segment to the source for shading (without the
+    shadow ray it lit the wall through the roof, and no other test has a part shaded from the source)."""
+    cell = (1.0, 90.0)
+    (tmp_path / "roofed.xml").write_text(WALL_XML.replace("</scene>", ROOF))
+    results = {}
+    for name, xml in (("open", None), ("roofed", "roofed.xml")):
+        inst = wall_instrument(tmp_path, 0.8, max_bounces=2)
+        if xml is not None:
+            d = inst.to_dict()
+            d["scene"] = {**d["scene"], "xml": xml}
+            inst = Instrument.from_dict(d, path=tmp_path / "roofed.toml")
+        results[name] = mitsuba(inst, rel_se=1.0, first_pass=4096, seed=2).compute([cell])[0]
+    op, roofed = results["open"], results["roofed"]
+    assert op.stray_fraction > 20 * op.stray_fraction_se
+    assert roofed.stray_fraction == 0.0 and roofed.k_a == roofed.k_a_direct
+    assert roofed.k_a_direct == pytest.approx(op.k_a_direct, rel=F32_REL)

@@ -313,3 +313,21 @@ def test_the_reference_backend_keeps_its_confidence_bound_in_every_mode(tmp_path
             want = c.k_a * (f.confidence_bound / f.k_a + r.confidence_bound / r.k_a)
             assert c.confidence_bound == pytest.approx(want, rel=ROUND_TOL)
             assert c.confidence_level == pytest.approx(0.998, rel=ROUND_TOL)
+
+
+def test_absolute_mode_scales_the_monte_carlo_se_by_eta():
+    """Absolute calibration multiplies a Monte Carlo k_A by the deterministic eta = <E>/E_0, so its
+    standard error scales by eta too (same seed: the same points as the Lambert-mode run).
+    test_absolute_mode_scales_lambert_k_and_its_precision checks the bound of the quadrature only;
+    an SE left unscaled (the Lambert-mode SE reported beside k_abs) passed every test."""
+    lam = load_instrument("portable")
+    inst = lam.with_changes(calibration={"mode": "absolute"})
+    k_lam = make_backend("numpy-mc", lam, r3like(), rel_se=1e-2, seed=3).compute(CELLS)
+    k_abs = make_backend("numpy-mc", inst, r3like(), rel_se=1e-2, seed=3).compute(CELLS)
+    etas = []
+    for a, b in zip(k_lam, k_abs):
+        eta = illuminance_ratio(inst, a.tan_eps, a.beta_deg)[0]
+        etas.append(eta)
+        assert b.k_a == pytest.approx(a.k_a * eta, rel=ROUND_TOL)
+        assert b.se == pytest.approx(a.se * eta, rel=ROUND_TOL, abs=0.0)
+    assert max(abs(e - 1.0) for e in etas) > 4e-3           # eta is not 1: the check can fail

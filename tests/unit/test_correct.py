@@ -344,3 +344,109 @@ def test_what_the_fit_leaves_out_of_a_housed_instrument_is_said():
     assert forward_model_limits([load_instrument("portable")]) is None
     note = forward_model_limits([load_instrument("portable"), load_instrument("portable_housed")])
     assert note is not None and "[housing]" in note and "[scene]" not in note
+
+
+def test_corrected_table_and_its_uncertainty_in_closed_form():
+    """correct_with_reference with a backend of known k_A and SE per cell and no other component:
+    r_c = m / k and u(r_c) = r_c sqrt(u_m^2 + (se / k)^2) (relative uncertainties of independent
+    inputs add in quadrature, GUM), written out here cell by cell. The other tests of the corrected
+    u compare the files with the result object or only ask for u > 0: a u without its square root
+    (r_c u_rel^2, ~100 times too small at 1 %) passed them."""
+    import math
+
+    from roadgonio.correction.run import correct_with_reference
+    from roadgonio.engines.result import CellResult
+    from roadgonio.surface.rtable import load_table
+
+    def k_of(t, b):
+        return 1.0 + 0.02 * t - 0.001 * b
+
+    def se_of(t, b):
+        return 0.003 + 0.0005 * t
+
+    class Known:
+        name = "known"
+
+        def __init__(self, inst, model):
+            pass
+
+        def settings(self):
+            return {"backend": self.name}
+
+        def compute(self, cells, on_cell=None):
+            out = [CellResult(t, b, k_of(t, b), se_of(t, b), 1, 0.0) for t, b in cells]
+            for c in out:
+                if on_cell is not None:
+                    on_cell(c)
+            return out
+
+    table = load_table("R3")
+    res = correct_with_reference(table, load_instrument("portable"), RoadModel.lambert(), u_measured="2%",
+                                 factory=Known, progress=False)
+    for (t, b), m in zip(table.cells, table.r[table.mask]):
+        i, j = list(table.tan_eps).index(t), list(table.beta_deg).index(b)
+        k, se = k_of(t, b), se_of(t, b)
+        rc = m / k
+        assert res.corrected.r[i, j] == pytest.approx(rc, rel=ROUND_TOL, abs=0.0)
+        assert res.u_corrected[i, j] == pytest.approx(rc * math.hypot(0.02, se / k), rel=ROUND_TOL, abs=0.0)
+
+
+def test_parameter_covariance_is_birge_scaled_with_n_minus_p_degrees_of_freedom(r3like):
+    """assess_fit with the shape parameters held (``fixed``): the four coefficients k_* are the free
+    parameters and r_sim is linear in them, so the covariance is s^2 (J^T J)^-1 with J = d r_sim /
+    d k / u (central differences of the forward model, exact for a linear function up to rounding)
+    and s^2 = chi^2 / (n - p) when that exceeds 1 (the Birge ratio squared; a table 5 % off the model
+    in a pattern gives chi^2 / dof ~ 20), written out here. With n - p in place of n (the
+    residual degrees of freedom forgotten) the covariance of this 16-cell fit is 25 % too small."""
+    from roadgonio.surface.fit import nonlinear_params
+    inst = load_instrument("portable")
+    cells = bundled_table("R3").cells[::25]
+    fm = ForwardModel(RayBundles.build(inst, cells, rays=64))
+    n = len(cells)
+    y = fm.r_measured(r3like) * (1.0 + 0.05 * np.cos(np.arange(n)))
+    u = 0.01 * y
+    P = r3like.params.to_dict()
+    fixed = {k: P[k] for k in nonlinear_params("power")}
+    f = assess_fit(fm, y, u, r3like, fixed=fixed)
+    lin = ("k_diff", "k_phong", "k_retro", "k_exp")
+    assert sorted(f.free) == sorted(lin)
+    J = np.empty((n, len(f.free)))
+    for j, k in enumerate(f.free):
+        h = 1e-3 * P[k]
+        up = fm.r_measured(RoadModel(r3like.params.replace(**{k: P[k] + h})))
+        down = fm.r_measured(RoadModel(r3like.params.replace(**{k: P[k] - h})))
+        J[:, j] = (up - down) / (2.0 * h) / u
+    res = (fm.r_measured(r3like) - y) / u
+    s2 = float(res @ res) / (n - len(f.free))
+    assert s2 > 2.0                                         # the Birge scaling is active
+    np.testing.assert_allclose(f.cov, s2 * np.linalg.inv(J.T @ J), rtol=1e-6)
+
+
+def test_model_component_takes_the_farthest_alternative_on_either_side():
+    """correct_with_reference's model dependence (budget.systematic_delta): per cell, the ln-deviation
+    of the alternative farthest from the reference, whichever its sign, and the component
+    delta delta^T / 3. With two alternatives, one above and one farther below, the one below sets
+    the half-width; the signed maximum (the one above, smaller) passed every test, which give one
+    alternative at most."""
+    from roadgonio.correction.budget import systematic_delta
+    k = np.array([1.0, 2.0, 0.5])
+    alts = {"above": k * np.exp([0.01, 0.03, 0.002]), "below": k * np.exp([-0.02, 0.01, -0.004])}
+    d = systematic_delta(k, alts)
+    np.testing.assert_allclose(d, [-0.02, 0.03, -0.004], rtol=ROUND_TOL, atol=0.0)
+    b = Budget(3)
+    b.add_systematic("model", d)
+    np.testing.assert_allclose(np.sqrt(np.diag(b.total())), np.abs([-0.02, 0.03, -0.004]) / math.sqrt(3.0),
+                               rtol=ROUND_TOL, atol=0.0)
+
+
+def test_cie_class_probabilities_use_u_as_a_standard_deviation():
+    """P(class) of S1 ~ N(s1, u^2) off a class limit, in closed form with erfc: S1 = 0.80, u = 0.05
+    is one u below the R2/R3 limit 0.85, so P(R3) = 1 - Phi(1) = 0.1587 and P(R2) = Phi(1) -
+    Phi(-7.6). The other test sits on a limit, where P = 1/2 whatever the spread: the variance
+    passed as scipy's scale (u^2, P(R3) ~ 1e-89) passed it."""
+    def phi(x):                                  # the normal CDF, accurate in the lower tail too
+        return 0.5 * math.erfc(-x / math.sqrt(2.0))
+    p = cie_class(0.80, 0.05)["p_R"]
+    assert p["R3"] == pytest.approx(phi(11.0) - phi(1.0), rel=1e-9)
+    assert p["R2"] == pytest.approx(phi(1.0) - phi(-7.6), rel=1e-9)
+    assert p["R1"] == pytest.approx(phi(-7.6), rel=1e-6) and p["R4"] == pytest.approx(1.0 - phi(11.0), abs=1e-15)

@@ -149,3 +149,20 @@ def test_a_tolerance_in_quotes_is_refused_by_the_one_check(backend, setting):
         with pytest.raises(InputError, match="relative error in \\(0, 1\\)") as err:
             make_backend(backend, load_instrument("portable"), RoadModel.lambert(), settings={setting: bad})
         assert err.value.field == setting
+
+
+def test_k_a_and_its_se_do_not_depend_on_the_scale_of_the_brdf(r3like):
+    """k_A = (S[f] / S[1/pi]) / (pi f(nominal)) is homogeneous of degree 0 in f, and so is its
+    standard error: the same seed with every coefficient k_* times 10 draws the same points, so
+    k_A and SE agree to rounding. The SE of the ratio of means must be divided by pi f(nominal)
+    like the ratio itself (an SE left in the ratio's units scales with f; at a cell where
+    pi f(nominal) > 1 it is too large, which no agreement test within N_SIGMA SE can see)."""
+    inst = load_instrument("portable")
+    P = r3like.params
+    scaled = RoadModel(P.replace(**{k: 10.0 * getattr(P, k) for k in ("k_diff", "k_phong", "k_retro", "k_exp")}))
+    for cell in [(12.0, 10.0), (1.0, 180.0)]:
+        a = make_backend("numpy-mc", inst, r3like, rel_se=3e-3, seed=4).compute_cell(*cell)
+        b = make_backend("numpy-mc", inst, scaled, rel_se=3e-3, seed=4).compute_cell(*cell)
+        assert a.samples == b.samples
+        assert b.k_a == pytest.approx(a.k_a, rel=1e-12)
+        assert b.se == pytest.approx(a.se, rel=1e-9, abs=0.0)

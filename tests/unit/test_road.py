@@ -419,3 +419,20 @@ def test_class_limit_labels_stay_inside_their_panel(monkeypatch):
         assert [t.get_text() for t in texts] == [f"M3 {kind} {report.M_CLASSES['M3'][key]:g}"]
         box = texts[0].get_window_extent(renderer)
         assert frame.x0 <= box.x0 and box.x1 <= frame.x1 and frame.y0 <= box.y0 and box.y1 <= frame.y1, key
+
+
+def test_bilinear_intensity_reproduces_a_bilinear_table_exactly():
+    """Bilinear interpolation is exact for I = a + b C + c gamma + d C gamma on any grid (unequal
+    steps here), at points with tc != tg: written out, not interpolated. The other test takes the
+    cell's centre (tc = tg = 1/2), where the two cross terms' weights are equal and a swap of their
+    table entries (I(C_1, gamma_0) <-> I(C_0, gamma_1)) does not show."""
+    def f(c, g):
+        return 100.0 + 2.0 * c + 3.0 * g + 0.05 * c * g
+    c_grid = np.array([0.0, 10.0, 15.0, 30.0, 60.0, 90.0, 180.0, 270.0, 300.0])
+    g_grid = np.array([0.0, 20.0, 45.0, 50.0, 65.0, 67.5, 80.0, 90.0])
+    cc, gg = np.meshgrid(c_grid, g_grid, indexing="ij")
+    lum = Luminaire(c_grid, g_grid, f(cc, gg), 1000.0)
+    rng = np.random.default_rng(8)
+    c = rng.uniform(0.0, 300.0, 200)                     # inside the C range: no periodic wrap
+    g = rng.uniform(0.0, 90.0, 200)
+    np.testing.assert_allclose(lum.interpolate(c, g), f(c, g), rtol=REL, atol=0.0)
