@@ -19,7 +19,7 @@ import os
 import secrets
 import shutil
 from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 from roadgonio.errors import InputError
 
@@ -90,10 +90,14 @@ class OutputGroup:
     :class:`InputError` naming the output file it concerns.
     """
 
-    def __init__(self, out_dir: str | Path):
+    def __init__(self, out_dir: str | Path, *, replaces: Sequence[str] = ()):
         self.out_dir = Path(out_dir)
         self.stage: Path | None = None
         self.names: list[str] = []
+        #: the command's own output names: those this group did not write are removed once the new
+        #: files are in place (an earlier run's file, e.g. a picture not asked for this time, never
+        #: stays beside the new ones; and nothing is removed by a run that fails)
+        self.replaces = tuple(replaces)
 
     def __enter__(self) -> "OutputGroup":
         _make_dir(self.out_dir, self.out_dir)
@@ -150,6 +154,12 @@ class OutputGroup:
                     for name in self.names:
                         os.replace(stage / name, self.out_dir / name)
                         moved.append(self.out_dir / name)
+                    for name in self.replaces:
+                        if name not in self.names:
+                            try:
+                                (self.out_dir / name).unlink()
+                            except FileNotFoundError:
+                                pass
                 except OSError as err:
                     for p in moved:       # not a partial set: take back what was already moved
                         try:
@@ -215,17 +225,15 @@ def check_run_folder(out_dir: str | Path, meta_name: str, fingerprint: str, *, w
     error naming that file and ``--fresh``. With ``fresh`` the folder's earlier ``outputs`` (the
     command's own file names) are removed first, so no file of the other run stays beside the new
     ones. The shared behaviour of every command that writes a run's results (``ka``, ``fit``,
-    ``uncertainty``; ``correct`` and ``design`` check their journals the same way)."""
+    ``uncertainty``; ``correct`` and ``design`` check their journals the same way).
+
+    ``fresh`` removes nothing here: the command's writer, an :class:`OutputGroup` with
+    ``replaces=outputs``, removes the earlier run's files that the new run does not write, once the
+    new ones are in place; a run that stops before (bad input found later, an error, Ctrl-C) leaves
+    the folder as it was."""
     out_dir = Path(out_dir)
     meta = out_dir / meta_name
     if fresh:
-        for name in outputs:
-            try:
-                (out_dir / name).unlink()
-            except FileNotFoundError:
-                pass
-            except OSError as err:
-                raise output_error(out_dir / name, err) from None
         return
     if not meta.exists():
         return

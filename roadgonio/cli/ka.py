@@ -57,6 +57,9 @@ def run(args) -> int:
     if single and (args.tan_eps is None or args.beta is None):
         raise InputError("give both --tan-eps and --beta for one cell (or neither for the whole table)",
                          field="--tan-eps/--beta")
+    if single and args.cells != "all":
+        raise InputError("--cells chooses the cells of a table, --tan-eps/--beta one cell: give one of them",
+                         field="--cells")
     common = dict(backend=args.backend, accuracy=args.accuracy, seed=args.seed, mitsuba_variant=args.mitsuba_variant,
                   rel_se=args.rel_se, model_variant=args.model_variant, fresh=args.fresh)
     if single:

@@ -146,7 +146,7 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
         except OSError as err:
             raise output_error(journal, err) from None
         if fresh:
-            for old in (journal, out_dir / META, out_dir / PASSES):
+            for old in (journal, out_dir / PASSES, *(out_dir / name for name in TABLE_FILES)):
                 try:
                     if old.exists():
                         old.unlink()
@@ -274,6 +274,13 @@ FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
 #: The stray-light outputs (written when the scene made stray light): field -> file.
 STRAY_FILES = {"k_a_direct": "ka_direct.csv", "k_a_direct_se": "ka_direct_se.csv",
                "stray_fraction": "stray_fraction.csv", "stray_fraction_se": "stray_fraction_se.csv"}
+
+
+#: every file a k_A table can write (:func:`write_outputs`), journal and pass state aside: a table
+#: written removes those of an earlier one it does not write (a ka_se.csv beside a new ka_bound.csv),
+#: and ``fresh`` removes them with the journal (a table of cells the journal no longer holds)
+TABLE_FILES = ("ka.nc", "ka.csv", "ka_se.csv", "ka_bound.csv", "ka_confidence_bound.csv", *STRAY_FILES.values(),
+               "ka.png", META)
 
 
 def has_stray_light(ds) -> bool:
@@ -418,7 +425,7 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
     label = ds.attrs["title"]
     s = summary(ds)
     files = {"netcdf": "ka.nc", "ka": "ka.csv"}
-    with OutputGroup(out_dir) as group:      # all files or none
+    with OutputGroup(out_dir, replaces=TABLE_FILES) as group:      # all files or none
         write_netcdf(ds, group.path("ka.nc"))
         group.text("ka.csv", grid_csv_text(ds["k_a"].values, label, digits=7))
         for field, name in (("se", "ka_se.csv"), ("error_bound", "ka_bound.csv"),

@@ -100,7 +100,7 @@ def write_fit(result, out_dir: str | Path, *, plot: bool = True, fingerprint: st
         doc["fingerprint"] = fingerprint
     if provenance is not None:
         doc["provenance"] = provenance
-    with OutputGroup(out_dir) as g:
+    with OutputGroup(out_dir, replaces=FIT_FILES) as g:
         g.json("model.json", doc)
         g.text("residuals.csv", residuals_csv(result))
         if plot:

@@ -90,7 +90,7 @@ def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: s
     figures = figures or InProcess()
     from roadgonio.surface.rtable import R_SCALE, grid_csv_text
     out = Path(out_dir)
-    with OutputGroup(out) as g:
+    with OutputGroup(out, replaces=OUTPUT_FILES) as g:
         doc = result_dict(res)
         if fingerprint is not None:
             doc["fingerprint"] = fingerprint

@@ -752,3 +752,57 @@ def test_design_with_every_point_refused_for_one_reason_is_an_input_error(tmp_pa
                           "--vary source.height_m")
     assert line.startswith(f"roadgonio: error: {p}, "), line
     assert not (tmp_path / "d").exists()
+
+
+def _files(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
+
+
+def test_fresh_with_bad_input_found_late_keeps_the_old_results(tmp_path, capsys):
+    """`uncertainty --fresh` removed the folder's results before checking the SPEC against the
+    instrument, so a SPEC refused then left an empty folder (trial 9, D2: 9 files -> 0). --fresh
+    now replaces the files when the new ones are written: a run that stops before changes nothing;
+    one that writes fewer files (no pictures) leaves none of the earlier run's beside its own."""
+    out = tmp_path / "U"
+    base = ["uncertainty", "--instrument", "lab", "--sample", "lambert", "--no-aperture", "--trials", "500",
+            "--out", str(out), "-q"]
+    assert main(base + ["--sigma", "alpha_deg=0.01"]) == 0
+    before = _files(out)
+    assert "u_rel_no_aperture.png" in before and "uncertainty.json" in before
+    capsys.readouterr()
+    one_line_error(capsys, main(base + ["--sigma", "alpha_deg=5", "--fresh"]), "--sigma alpha_deg")
+    assert _files(out) == before
+    assert main(base + ["--sigma", "alpha_deg=0.02", "--fresh", "--no-plots"]) == 0
+    after = _files(out)
+    assert not any(name.endswith(".png") for name in after), sorted(after)
+    assert json.loads(after["uncertainty.json"])["fingerprint"] != json.loads(before["uncertainty.json"])["fingerprint"]
+
+
+def test_ka_fresh_one_cell_leaves_no_table_of_the_discarded_journal(tmp_path, capsys):
+    """`ka --fresh --tan-eps T --beta B` into a table's folder removed ka.json and the journal but left
+    the old table's ka.csv/ka.nc/ka.png (trial 9, D3): the folder claimed a table without its
+    provenance. --fresh now discards the table files with the journal; --cells with one cell is an
+    error (it was silently ignored)."""
+    out = tmp_path / "K"
+    base = ["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature", "--accuracy", "fast",
+            "--out", str(out), "-q"]
+    assert main(base + ["--cells", "12:0,4:0"]) == 0
+    assert {"ka.csv", "ka.nc", "ka.json", "ka_bound.csv", "ka_cells.jsonl"} <= set(_files(out))
+    assert main(base + ["--fresh", "--tan-eps", "1", "--beta", "0"]) == 0
+    assert set(_files(out)) == {"ka_cells.jsonl"}
+    journal = (out / "ka_cells.jsonl").read_text().splitlines()
+    assert len(journal) == 2 and json.loads(journal[1])["tan_eps"] == 1.0
+    capsys.readouterr()
+    one_line_error(capsys, main(base + ["--cells", "4:0", "--tan-eps", "1", "--beta", "0"]), "--cells")
+
+
+def test_a_table_written_again_keeps_no_file_of_the_earlier_backend(tmp_path):
+    """A Monte Carlo table then, --fresh, a bounded one: ka_se.csv of the first must not stay beside
+    the second's ka_bound.csv (the folder would hold two precisions of two runs)."""
+    out = tmp_path / "K"
+    base = ["ka", "--instrument", "lab", "--sample", "lambert", "--cells", "12:0,4:0", "--out", str(out), "-q"]
+    assert main(base + ["--backend", "numpy-mc", "--rel-se", "0.02"]) == 0
+    assert "ka_se.csv" in _files(out)
+    assert main(base + ["--backend", "quadrature", "--accuracy", "fast", "--fresh"]) == 0
+    files = _files(out)
+    assert "ka_bound.csv" in files and "ka_se.csv" not in files, sorted(files)
