@@ -2,7 +2,7 @@
 
 Every input error names the file (or the option), the line or field, and what was expected.
 The CLI catches :class:`RoadgonioError` and prints ``roadgonio: error: <message>`` with exit
-status 2 (3 for :class:`WorkLostError`: work lost on a cluster, not bad input).
+status 2 (4 for :class:`WorkLostError`: work lost on a cluster, not bad input; `validate` uses 1 and 3 for its verdicts).
 """
 from __future__ import annotations
 
@@ -83,11 +83,12 @@ class BackendError(RoadgonioError):
 class WorkLostError(BackendError):
     """Work lost outside the user's input: a Dask worker that died on a task more often than the
     work retries it, a cluster that went away. Not bad input, so the command line exits with
-    status 3 (:data:`EXIT_WORK_LOST`), not 2; finished work is kept and the same command resumes."""
+    status 4 (:data:`EXIT_WORK_LOST`), not 2 (bad input) or 3 (`validate`: inconclusive); run the same
+    command again (the commands with a journal resume from it)."""
 
 
 #: the command line's exit status for :class:`WorkLostError` (2 is bad input, 130 an interruption)
-EXIT_WORK_LOST = 3
+EXIT_WORK_LOST = 4
 
 
 class ModelWarning(UserWarning):

@@ -5,7 +5,7 @@ cells, backend, seed or preset: ``tests/unit/test_layers.py`` holds it to that).
 Every module in this package that defines ``register(subparsers)`` adds one or more
 sub-commands; ``register`` must call ``parser.set_defaults(func=run)`` where ``run(args)`` returns
 the exit status. Errors of type :class:`~roadgonio.errors.RoadgonioError` are printed as one
-line (``roadgonio: error: ...``) with exit status 2 (3 for work lost on a Dask cluster,
+line (``roadgonio: error: ...``) with exit status 2 (4 for work lost on a Dask cluster,
 :class:`~roadgonio.errors.WorkLostError`: not bad input), never as a traceback; an error the API raised
 about an argument names the command's option instead (``rel_se`` -> ``--rel-se``).
 """

@@ -485,7 +485,7 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
       submitted again with its input scattered again, up to ``retries`` times, saying so through
       ``say`` (stderr). Beyond that (or on Dask's KilledWorker, after Dask's own retries)
       ``on_lost(index, error)`` gives that item's result, or without ``on_lost`` a
-      :class:`~roadgonio.errors.WorkLostError` is raised (exit status 3). An exception raised by
+      :class:`~roadgonio.errors.WorkLostError` is raised (exit status 4). An exception raised by
       ``func`` is raised here (the first one to finish). Unfinished tasks are cancelled when this
       returns or raises (Ctrl-C).
     """

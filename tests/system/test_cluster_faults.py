@@ -233,7 +233,7 @@ def test_a_worker_dying_with_the_scattered_input_is_computed_again():
 @pytest.mark.timeout(300)
 def test_a_task_whose_worker_always_dies_is_work_lost_after_its_retries(tmp_path):
     """A task that kills every worker it runs on: after ``TASK_RETRIES`` retries one line that says
-    to run the command again, a WorkLostError (exit status 3, not 2: it is not bad input)."""
+    to run the command again, a WorkLostError (exit status 4, not 2: it is not bad input; 3 is validate's inconclusive)."""
     import sys
 
     from roadgonio.engines import cluster
@@ -250,7 +250,7 @@ def test_a_task_whose_worker_always_dies_is_work_lost_after_its_retries(tmp_path
     assert [s for s in said if "died" in s][-1].endswith(f"(retry {cluster.TASK_RETRIES} of {cluster.TASK_RETRIES})")
 
 
-def test_work_lost_exits_with_status_3_and_bad_input_with_2(monkeypatch, capsys):
+def test_work_lost_exits_with_status_4_and_bad_input_with_2(monkeypatch, capsys):
     """The command line tells the two apart (scripts retry the one and fix the other)."""
     from roadgonio import api
     from roadgonio.cli import main
@@ -259,7 +259,7 @@ def test_work_lost_exits_with_status_3_and_bad_input_with_2(monkeypatch, capsys)
     def lost():
         raise WorkLostError("a Dask worker died computing table 1 of 1; run the same command again")
     monkeypatch.setattr(api, "list_tables", lost)
-    assert main(["tables"]) == 3
+    assert main(["tables"]) == 4
     assert capsys.readouterr().err.strip() == ("roadgonio: error: a Dask worker died computing table 1 of 1; "
                                                "run the same command again")
 
