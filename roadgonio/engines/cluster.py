@@ -464,6 +464,22 @@ def _call_task(item: Any, *, call: Callable, shared: Any = None, with_shared: bo
 _NO_SHARED = object()
 
 
+def scatter_shared(client, shared: Any):
+    """``shared`` scattered to every worker (``broadcast``), as one future. With no worker running
+    (the last one died, a new one not yet up) Dask's scatter gives up after its connect timeout
+    ("No valid workers found"; trial 9: `intercompare --scheduler` then crashed with a traceback
+    while a new worker was starting): this waits for a worker, as the tasks do, for as long as it
+    takes (:class:`WorkerWatch` says so; Ctrl-C stops)."""
+    while True:
+        try:
+            client.wait_for_workers(1)
+            # a list of one: scatter() would scatter a dict or a list element by element
+            return client.scatter([shared], broadcast=True, hash=False)[0]
+        except (TimeoutError, ValueError) as err:
+            if "No valid workers" not in str(err):
+                raise
+
+
 def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any = _NO_SHARED,
               backend: str | None = None, variant: str | None = None,
               on_result: Callable[[int, Any], None] | None = None,
@@ -509,8 +525,7 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
     keys = [f"roadgonio-{name}-{token}-{i}" for i in range(len(items))]
 
     def scatter():
-        # a list of one: scatter() would scatter a dict or a list element by element
-        return client.scatter([shared], broadcast=True, hash=False)[0] if with_shared else None
+        return scatter_shared(client, shared) if with_shared else None
 
     shared_future = scatter()
 
@@ -539,8 +554,8 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
                 fut.release()
                 if not isinstance(err, KilledWorker) and attempts[i] < retries:
                     attempts[i] += 1
-                    say(f"roadgonio: a Dask worker died computing {name} {i + 1} of {len(items)}; computing it "
-                        f"again (retry {attempts[i]} of {retries})")
+                    say(f"roadgonio: {name} {i + 1} of {len(items)} was lost with a Dask worker that died; computing "
+                        f"it again (retry {attempts[i]} of {retries})")
                     if with_shared and shared_future.status != "finished":
                         shared_future.release()
                         shared_future = scatter()

@@ -316,3 +316,33 @@ def test_workers_running_other_source_are_refused_in_one_line():
         with pytest.raises(BackendError, match="restart the scheduler and the workers") as err:
             cluster._check_workers(client)
         assert "\n" not in str(err.value)
+
+
+def test_scattering_the_shared_input_waits_for_a_worker():
+    """With no worker running, Dask's scatter gives up after its connect timeout ('No valid workers
+    found'), and `intercompare --scheduler` crashed with that traceback when its retry re-scattered
+    the shared input while a new worker was starting (trial 9, D9). The scatter now waits for a
+    worker as the tasks do; any other error is raised."""
+    from roadgonio.engines.cluster import scatter_shared
+
+    class Client:
+        def __init__(self, failures):
+            self.failures = list(failures)
+            self.waits = self.scatters = 0
+
+        def wait_for_workers(self, n):
+            assert n == 1
+            self.waits += 1
+
+        def scatter(self, data, broadcast, hash):
+            assert broadcast and not hash and len(data) == 1
+            self.scatters += 1
+            if self.failures:
+                raise self.failures.pop(0)
+            return ["future of " + data[0]]
+
+    c = Client([TimeoutError("No valid workers found"), ValueError("No valid workers found")])
+    assert scatter_shared(c, "shared") == "future of shared"
+    assert c.scatters == 3 and c.waits == 3
+    with pytest.raises(ValueError, match="something else"):
+        scatter_shared(Client([ValueError("something else")]), "shared")

@@ -12,20 +12,26 @@ _BLOCKED = ("mitsuba", "drjit")
 
 class _Blocked:
     """``import mitsuba`` / ``import drjit`` raise ImportError inside the block (a ``None`` in
-    sys.modules makes the import system raise); what was imported before is put back after."""
+    sys.modules makes the import system raise), and their submodules already imported (by a plugin
+    test earlier in this process: under pytest-xdist the tiers mix in a worker) are out of
+    sys.modules too: a lazy submodule's attribute access imports its parent, which hypothesis does
+    when it scans sys.modules for constants. What was imported before is put back after."""
 
     def __enter__(self):
-        self.saved = {name: sys.modules.get(name) for name in _BLOCKED}
+        prefixes = tuple(f"{name}." for name in _BLOCKED)
+        self.saved = {name: mod for name, mod in list(sys.modules.items())
+                      if name in _BLOCKED or name.startswith(prefixes)}
+        for name in self.saved:
+            del sys.modules[name]
         for name in _BLOCKED:
             sys.modules[name] = None
         return self
 
     def __exit__(self, *exc):
-        for name, module in self.saved.items():
-            if module is None:
-                sys.modules.pop(name, None)
-            else:
-                sys.modules[name] = module
+        for name in _BLOCKED:
+            if sys.modules.get(name, 0) is None:
+                del sys.modules[name]
+        sys.modules.update(self.saved)
         return False
 
 
