@@ -21,7 +21,7 @@ DOCS = ROOT / "docs"
 
 #: Lines of the README's shell blocks that set up a clone rather than use roadgonio: not run here
 #: (the set-up installs packages, the test command is this suite).
-SETUP = ("git clone ", "cd ", "bash scripts/example.sh", "python3 -m pytest")
+SETUP = ("git clone ", "cd ", "bash scripts/example.sh", "python3 -m pytest")   # prefixes: "... -n 2" too
 #: Files the README's comments name (``# dir/a.csv, b.png``: b.png is in dir/ too).
 FILE = re.compile(r"[\w./-]+\.(?:csv|png|json|jsonl|rtb|nc|toml|exr)\b")
 #: A duration in a printed line (``0.1 s``), which the README cannot promise.
