@@ -274,7 +274,9 @@ def summary_line(report: dict[str, Any]) -> str:
     n = sum(c.values())
     return (f"validate: {c['agree']} agree, {c['disagree']} disagree, {c['inconclusive']} inconclusive "
             f"(of {n} cells; {report['against']} against the {reference_label(report['reference'])}, "
-            f"{report['n_sigma']:g} SE + bound + float32 floor {report['floor']:.1e}; {report['seconds']:.1f} s)")
+            f"{report['n_sigma']:g} SE + bound"
+            + (f" + float32 floor {report['floor']:.1e}" if report["floor"] > 0 else "")   # numpy-mc: float64, none
+            + f"; {report['seconds']:.1f} s)")
 
 
 def rows_csv(rows: Sequence[CellComparison]) -> str:
@@ -282,7 +284,9 @@ def rows_csv(rows: Sequence[CellComparison]) -> str:
     w = csv.DictWriter(buf, fieldnames=CSV_FIELDS, lineterminator="\n")
     w.writeheader()
     for r in rows:
-        w.writerow({k: (f"{v:.9g}" if isinstance(v, float) else v) for k, v in asdict(r).items()})
+        # a missing value is a blank cell, never "nan" (docs/inputs-outputs.md, "Missing values")
+        w.writerow({k: ((f"{v:.9g}" if math.isfinite(v) else "") if isinstance(v, float) else v)
+                    for k, v in asdict(r).items()})
     return buf.getvalue()
 
 

@@ -31,7 +31,8 @@ SPEC_HELP = (
     "SPEC is a comma-separated list KEY=SIGMA[:DIST] or the path of a TOML file with the same keys "
     "(KEY = SIGMA, KEY = \"SIGMA:DIST\" or KEY = {sigma = SIGMA, distribution = \"DIST\"}, at top level "
     "or in a [sigma] table). SIGMA is a standard deviation (>= 0) in the key's unit; DIST is normal "
-    "(default) or rect (rectangular with that standard deviation, half-width SIGMA*sqrt(3)). Keys: "
+    "(default; also gauss, gaussian) or rect (also rectangular, uniform: rectangular with that standard "
+    "deviation, half-width SIGMA*sqrt(3)). Keys: "
     + ", ".join(INPUTS) + "; keys left out are 0. Example: "
     "alpha_deg=0.01,eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,"
     "source_distance_m=0.002,detector_distance_m=0.005")
@@ -98,7 +99,8 @@ def _parse_entry(key: str, value: Any, *, path, field_prefix: str = "") -> tuple
         raise InputError(f"a standard deviation must be >= 0, got {sigma:g}", path=path, field=fld)
     d = DISTRIBUTIONS.get(dist_text.lower())
     if d is None:
-        raise InputError(f"unknown distribution {dist_text!r}; expected normal or rect", path=path, field=fld)
+        raise InputError(f"unknown distribution {dist_text!r}; expected normal (gauss, gaussian) or rect "
+                         "(rectangular, uniform)", path=path, field=fld)
     dist = d
     return sigma, dist
 

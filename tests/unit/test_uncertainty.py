@@ -64,6 +64,19 @@ def test_spec_parses_string_and_toml(tmp_path):
     assert t.sigma[3:] == (0.0,) * 4
 
 
+def test_every_distribution_name_the_parser_takes_is_documented():
+    """The names accepted are the names the docs, the help and the error list (trial 9, D7:
+    `uniform` and `gauss` ran while the contract said normal or rect only)."""
+    from roadgonio.uncertainty.spec import DISTRIBUTIONS, SPEC_HELP
+    from pathlib import Path
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "uncertainty.md").read_text()
+    with pytest.raises(InputError) as e:
+        parse_sigma_spec("eps_deg=0.1:cauchy")
+    for name, canonical in DISTRIBUTIONS.items():
+        assert parse_sigma_spec(f"eps_deg=0.1:{name}").distribution[1] == canonical
+        assert f"`{name}`" in doc and name in SPEC_HELP and name in str(e.value), name
+
+
 @pytest.mark.parametrize("text,field,words", [
     ("alpha_deg=-0.01", "--sigma alpha_deg", ">= 0"),
     ("alpha_deg=abc", "--sigma alpha_deg", "expected a number"),
