@@ -17,7 +17,7 @@ def register(sub) -> None:
     p.add_argument("--variant", dest="model_variant", default="power", choices=api.model_variants(),
                    help="model variant (default 'power', the paper's model)")
     p.add_argument("--out", metavar="DIR", help="output folder (default fit-<table>-<variant>)")
-    add_output_options(p, "print {table, variant, max_dev_pct, rms_dev_pct, params, seconds} as JSON")
+    add_output_options(p, "print {table, variant, max_dev_pct, rms_dev_pct, params, descriptors, seconds} as JSON")
     p.add_argument("--seed", type=int, default=0, help="seed of the global search (default 0)")
     p.add_argument("--fix", dest="fixed", metavar="NAME=VALUE", action="append", default=[],
                    help="hold a parameter at a value (repeatable), e.g. --fix n_phong=50; the grazing "
@@ -53,6 +53,15 @@ def run(args) -> int:
         f"of max r, {int(result.table.mask.sum())} cells, {result.seconds:.1f} s")
     shown = result.shown_params()
     say("  " + ", ".join(f"{k}={getattr(P, k):.5g}" for k in shown))
+    d = result.descriptors()
+
+    def pair(k: str) -> str:
+        t, m = d["table"][k], d["model"][k]
+        if t is None or m is None:
+            return f"{k} table {t if t is None else f'{t:.4g}'}, model {m if m is None else f'{m:.4g}'}"
+        return f"{k} table {t:.4g}, model {m:.4g} ({100 * (m / t - 1):+.1f} %)"
+    say("  " + "; ".join(pair(k) for k in ("Q0", "S1", "S2")) + " (CIE 144; the model is the sample later "
+        "commands use)")
     say("  worst cells (model - table, % of max r): " + "; ".join(
         f"tan eps {t:g}, beta {b:g} deg: {d:+.2f} %" for t, b, d in result.worst_cells(3)))
     say("wrote " + ", ".join(str(p) for p in result.written))

@@ -159,11 +159,24 @@ class FitResult:
             out.append((float(self.table.tan_eps[i]), float(self.table.beta_deg[j]), float(res[i, j])))
         return out
 
+    def descriptors(self) -> dict[str, dict[str, float | None]]:
+        """Q0, S1 and S2 (CIE 144) of the table and of the model's table on the same cells,
+        ``{"table": {...}, "model": {...}}`` (None where missing): what a photometrist compares,
+        since the model's table is the sample every later command uses, not the table itself."""
+        model_table = RTable(self.r_model, name=f"{self.table.name} ({self.variant} model)",
+                             tan_eps=self.table.tan_eps, beta_deg=self.table.beta_deg)
+
+        def of(t: RTable) -> dict[str, float | None]:
+            return {k: (float(v) if np.isfinite(v) else None) for k, v in
+                    (("Q0", t.q0()), ("S1", t.s1()), ("S2", t.s2()))}
+        return {"table": of(self.table), "model": of(model_table)}
+
     def to_json_dict(self) -> dict[str, Any]:
         """Exactly the keys printed by ``roadgonio fit --json``."""
         return {"table": self.table.name, "variant": self.model.variant,
                 "max_dev_pct": float(self.max_dev_pct), "rms_dev_pct": float(self.rms_dev_pct),
-                "params": self.model.params.to_dict(), "seconds": float(self.seconds)}
+                "params": self.model.params.to_dict(), "descriptors": self.descriptors(),
+                "seconds": float(self.seconds)}
 
 
 # ----------------------------------------------------------------------------------------------

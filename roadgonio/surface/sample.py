@@ -152,7 +152,9 @@ def note_unresolved_spike(model: RoadModel, name: str, *, fitted: bool) -> None:
     t, ratio = unresolved_spike(model)
     if not t.size:
         return
-    what = f"{name} ({model.variant} fit)" if fitted else f"the model {name} ({model.variant})"
+    # a model file's name is the table it was fitted to (model.json's "name"), not the file's stem
+    own = getattr(model, "name", None) or name
+    what = f"{name} ({model.variant} fit)" if fitted else f"the model of {own} ({model.variant})"
     way = (f"; --model-variant smooth fits {name} without it" if fitted and model.variant != "smooth" else "")
     warnings.warn(ModelWarning(
         f"{what}: r at beta = 0 is a spike narrower than {SPIKE_WIDTH_DEG:g} deg for tan eps {t.min():g} ... "

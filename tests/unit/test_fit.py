@@ -12,7 +12,7 @@ from roadgonio.errors import InputError
 from roadgonio.surface.fit import FitResult, deviations, fit_table
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.surface.model import RoadModel, RoadParams
-from roadgonio.surface.rtable import BUNDLED, bundled_table
+from roadgonio.surface.rtable import BUNDLED, RTable, bundled_table
 from roadgonio.surface.sample import cache_dir, resolve_sample
 
 
@@ -98,8 +98,15 @@ def test_fit_result_api(fit_r3_power, tmp_path):
     assert res.rms_dev_pct == pytest.approx(np.sqrt(np.mean(dev ** 2)), rel=1e-12)
     # JSON keys exactly as documented
     d = res.to_json_dict()
-    assert set(d) == {"table", "variant", "max_dev_pct", "rms_dev_pct", "params", "seconds"}
+    assert set(d) == {"table", "variant", "max_dev_pct", "rms_dev_pct", "params", "descriptors", "seconds"}
     json.dumps(d)
+    # Q0/S1/S2 of the table and of the model's own table on the same cells (trial 9: the fitted R3 has
+    # a Q0 5 % below the table's, which nothing said): the model's from its r at the grid, written apart
+    r_model = np.where(t.mask, res.model.r(T, B), np.nan)
+    mt = RTable(r_model)
+    assert d["descriptors"]["table"] == pytest.approx({"Q0": t.q0(), "S1": t.s1(), "S2": t.s2()}, rel=1e-12, abs=0.0)
+    assert d["descriptors"]["model"] == pytest.approx({"Q0": mt.q0(), "S1": mt.s1(), "S2": mt.s2()}, rel=1e-12, abs=0.0)
+    assert r_model[0, 0] / t.r[0, 0] != pytest.approx(1.0, rel=1e-3)     # the two differ: not one table twice
     # model file: loads, and carries fit statistics and table provenance
     m = RoadModel.load(res.model.save(tmp_path / "model.json"))
     assert m.params == res.model.params and m.variant == "power"
