@@ -131,7 +131,7 @@ def _print(summaries) -> None:
             parts = []
             for k in ("L_av", "U_o", "U_l", "TI"):
                 if m[k]:
-                    parts.append(f"{k} {m[k]['nominal']:.3g} ± {m[k]['u']:.2g} [{m[k]['coverage_interval_95'][0]:.3g}, {m[k]['coverage_interval_95'][1]:.3g}]")
+                    parts.append(_with_u(k, m[k]['nominal'], m[k]['u'], m[k]['coverage_interval_95']))
             p = m["P_meets_target"]
             w(f"  {mode:11}: " + "; ".join(parts)
               + (f"; P(meets {u['target_class']}) = {p:.3f}" if p is not None else "; P(meets class): missing") + "\n")
@@ -141,3 +141,13 @@ def _print(summaries) -> None:
     if base["TI"] is None:
         w(f"TI not computed: {base['TI_note']}\n")
     w(f"wrote {len(first['written'])} files to {first['out']}\n")
+
+
+def _with_u(name: str, value: float, u: float, interval) -> str:
+    """``L_av 1.1076 ± 0.0012 [1.1053, 1.1098]``: u to two significant digits, the value and the
+    interval's ends to the same decimal place (three significant digits printed [1.11, 1.11] for an
+    interval of width 0.005, trial 9)."""
+    import math
+    decimals = max(0, 1 - math.floor(math.log10(u))) if u > 0 and math.isfinite(u) else 3
+    lo, hi = interval
+    return f"{name} {value:.{decimals}f} ± {u:.2g} [{lo:.{decimals}f}, {hi:.{decimals}f}]"

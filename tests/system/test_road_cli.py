@@ -224,3 +224,12 @@ def test_road_and_compare_record_their_input_files(tmp_path, capsys):
     assert main(["compare", "R3", str(csv_path), "--out", str(tmp_path / "cmp2"), "--no-plots"]) == 0
     c = json.loads((tmp_path / "cmp2" / "compare.json").read_text())
     assert c["A"] == "R3" and c["inputs"][0] == {"argument": "a", "name": "R3", "label": "R3"}   # a bundled name
+
+
+def test_a_metric_with_its_u_is_printed_to_the_decimal_place_of_u():
+    """u to two significant digits, the value and the interval to the same decimal place: three
+    significant digits printed 'L_av 1.11 ± 0.0012 [1.11, 1.11]' (trial 9)."""
+    from roadgonio.cli.road import _with_u
+    assert _with_u("L_av", 1.10761, 0.0012, (1.10534, 1.10981)) == "L_av 1.1076 ± 0.0012 [1.1053, 1.1098]"
+    assert _with_u("TI", 9.83, 2.3, (5.4, 14.2)) == "TI 9.8 ± 2.3 [5.4, 14.2]"
+    assert _with_u("U_o", 0.557, 0.0, (0.557, 0.557)) == "U_o 0.557 ± 0 [0.557, 0.557]"
