@@ -79,6 +79,11 @@ OUTPUT_FILES = ("uncertainty.json", "cells.csv", "no_aperture_mean.csv", "no_ape
                 "aperture_u.csv", "u_rel_no_aperture.png", "u_rel_aperture.png", "q0_s1_hist.png")
 
 
+#: a u below this fraction of the value is round-off of float64 arithmetic, not an uncertainty
+#: (Q0 under errors of the source distance with the illuminance measured in situ: 1e-17)
+ROUND_OFF_REL = 1e-12
+
+
 def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: str = "sample",
                   plots: bool = True, figures=None, fingerprint: str | None = None) -> list[Path]:
     """Write uncertainty.json, cells.csv, r-table CSVs of the mean and u per case, and the pictures,
@@ -186,6 +191,11 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
                      f"{100 * np.nanmax(u_rel):.3g} %; GUM validated in {int(c.validation['validated'][:n].sum())}"
                      f"/{n} cells")
         for k, label in ((n, "Q0"), (n + 1, "S1")):
+            if abs(c.mc["u"][k]) <= ROUND_OFF_REL * abs(c.mc["mean"][k]):
+                # the errors do not change it: a u of round-off, which the GUM validation would judge
+                lines.append(f"  {label}: {c.mc['mean'][k]:.5g}, not changed by these errors (u at round-off, "
+                             f"{c.mc['u'][k]:.1g})")
+                continue
             lines.append(f"  {label}: {c.mc['mean'][k]:.5g} u = {c.mc['u'][k]:.3g} "
                          f"[{c.mc['sym_low'][k]:.5g}, {c.mc['sym_high'][k]:.5g}] "
                          f"(GUM u = {c.gum['u'][k]:.3g}, {'validated' if c.validation['validated'][k] else 'not validated'})")

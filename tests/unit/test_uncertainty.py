@@ -444,3 +444,19 @@ def test_s1_of_a_trial_follows_the_tables_missing_rule():
     assert missing_ratio(3.0, 2.0) == 1.5 and math.isnan(missing_ratio(1.0, 0.0))
     assert np.array_equal(missing_ratio(np.array([3.0, 1.0, np.nan]), np.array([2.0, 0.0, 1.0])),
                           [1.5, np.nan, np.nan], equal_nan=True)
+
+
+def test_a_quantity_the_errors_cannot_change_is_said_so_not_judged_by_the_gum():
+    """Source-distance errors with the illuminance measured in situ change no r: Q0 and S1 got a u of
+    1e-17 and 'not validated' by the GUM validation of that round-off (trial 9). The summary says
+    they are not changed; with the nominal illuminance the same errors give Q0 a real u."""
+    from roadgonio.uncertainty.report import summary_lines
+    spec = parse_sigma_spec("source_distance_m=0.002")
+    kw = dict(trials=2000, seed=3, aperture=False, progress=False)
+    measured = summary_lines(run_uncertainty(MODEL, load_instrument("portable"), spec, illuminance="measured", **kw))
+    nominal = summary_lines(run_uncertainty(MODEL, load_instrument("portable"), spec, illuminance="nominal", **kw))
+    for label in ("Q0", "S1"):
+        line = next(ln for ln in measured if ln.strip().startswith(f"{label}:"))
+        assert "not changed by these errors" in line and "validated" not in line, line
+    q0 = next(ln for ln in nominal if ln.strip().startswith("Q0:"))
+    assert " u = " in q0 and "not changed" not in q0, q0
