@@ -297,15 +297,25 @@ def list_tables() -> list[dict[str, Any]]:
 
 def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
     """A table's Q0, S1, S2, cells and max r (``roadgonio table``); with ``to`` it is also written
-    there (``.rtb``: DIALux RTB, else CSV) and ``written`` names the file. A characteristic the
+    there (``.rtb``: DIALux RTB, ``.csv``: CSV) and ``written`` names the file. A characteristic the
     table lacks the cells for (S1 without r(0, 0) > 0 and r(2, 0); Q0 without a grid cell with four
     tabulated corners; S2 without both) is None (missing), never NaN or infinity."""
     t = _table(table)
     info = {"table": t.name, "Q0": _value(t.q0()), "S1": _value(t.s1()), "S2": _value(t.s2()),
             "cells": int(t.mask.sum()), "r_max": _value(t.r_max)}
     if to is not None:
-        info["written"] = str(t.write(to))
+        info["written"] = str(t.write(_table_file(to, "to")))
     return info
+
+
+def _table_file(path, field: str) -> Path:
+    """A file an r-table is written to: .csv or .rtb (the two formats every command reads back;
+    'x.xlsx' got CSV text that `ka --sample` then refused)."""
+    path = Path(path)
+    if path.suffix.lower() not in (".csv", ".rtb"):
+        raise InputError(f"expected a .csv or .rtb file to write the table to, got '{path.suffix or path.name}'",
+                         path=path, field=field)
+    return path
 
 
 def _value(v) -> float | None:
@@ -322,8 +332,9 @@ def read_table(path_or_name) -> "xr.DataArray":
 
 def write_table(da, path) -> Path:
     """Write an r-table DataArray (as from :func:`read_table`; an RTable works too) to ``path``:
-    ``.rtb`` as DIALux RTB, anything else as CSV (both store r x 10^4, as published tables do)."""
-    return _table(da).write(path)
+    ``.rtb`` as DIALux RTB, ``.csv`` as CSV (both store r x 10^4, as published tables do; another
+    suffix is an :class:`InputError`)."""
+    return _table(da).write(_table_file(path, "path"))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -14,7 +14,7 @@ def register(sub) -> None:
 
     p = sub.add_parser("table", help="show or convert an r-table (bundled name or file)",
                        description="Show an r-table's characteristics, or convert it with --to "
-                                   "(.rtb = DIALux RTB, anything else = CSV).")
+                                   "(.rtb = DIALux RTB, .csv = CSV).")
     p.add_argument("table", help="bundled table name (R1..R4, C1, C2) or a .csv/.rtb file")
     p.add_argument("--to", metavar="FILE", help="write the table to FILE (.rtb or .csv)")
     add_output_options(p, "print the characteristics as JSON")

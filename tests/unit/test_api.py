@@ -93,6 +93,11 @@ def test_read_table_is_r_on_the_cie_grid(tmp_path):
         assert np.allclose(back.values[t.mask], t.r[t.mask], rtol=FILE_RTOL) and np.isnan(back.values[~t.mask]).all()
     with pytest.raises(InputError, match="CIE grid"):
         rg.write_table(da.isel(beta=slice(0, 10)), tmp_path / "cut.csv")
+    # a suffix no command reads back is refused, not written as CSV text (trial 9: 'x.xlsx')
+    for name in ("r3.xlsx", "r3"):
+        with pytest.raises(InputError, match=r"expected a \.csv or \.rtb file") as err:
+            rg.table_info("R3", to=tmp_path / name)
+        assert err.value.field == "to" and not (tmp_path / name).exists()
 
 
 @settings(max_examples=25, deadline=None)
