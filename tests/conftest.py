@@ -137,6 +137,8 @@ def _bad_table_cases():
         ("negative value", ".csv", "\n".join(negative), 11, [">= 0", "-12"]),
         ("empty file", ".csv", "", None, ["empty"]),
         ("comments only", ".csv", "# nothing\n", None, ["empty"]),
+        ("semicolons", ".csv", "\n".join(ln.replace(",", ";") for ln in lines), 2, ["separator", "comma",
+                                                                                   "semicolons"]),
         ("rtb missing header", ".rtb", "\n".join(rtb[1:]), 1, ["RTable.v1"]),
         ("rtb negative", ".rtb", "\n".join(rtb_neg), 55, [">= 0"]),
         ("rtb empty", ".rtb", "", None, ["empty"]),
@@ -144,7 +146,7 @@ def _bad_table_cases():
 
 
 _BAD_IDS = ["missing header", "non-numeric cell", "wrong grid", "negative value", "empty file", "comments only",
-            "rtb missing header", "rtb negative", "rtb empty"]
+            "semicolons", "rtb missing header", "rtb negative", "rtb empty"]
 
 
 @pytest.fixture(params=range(len(_BAD_IDS)), ids=_BAD_IDS)

@@ -400,6 +400,12 @@ def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = Non
         cells = next(csv.reader([raw]))
         if header_line is None:
             header_line = lineno
+            if cells[0].strip().lower() != "tan_eps" and len(cells) == 1 and (";" in s or "\t" in s) \
+                    and s.replace("\t", ";").split(";")[0].strip().lower() == "tan_eps":
+                # a spreadsheet's export with another separator: the header is there
+                raise InputError("the separator must be a comma: this header is split by "
+                                 f"{'semicolons' if ';' in s else 'tabs'} ({s[:40]!r}...); export the table as "
+                                 "comma-separated CSV", path=path, line=lineno)
             if cells[0].strip().lower() != "tan_eps":
                 raise InputError("missing header: expected a first row 'tan_eps,0,2,5,...,180' (beta in "
                                  f"degrees), got {s[:60]!r}", path=path, line=lineno)
