@@ -492,6 +492,10 @@ def ka_table(instrument, sample, *, backend: str = "mitsuba", accuracy: str | No
     return ds
 
 
+#: the last tan eps of the CIE grid (an r-table's last row)
+TAN_EPS_MAX_TABLE = 12.0
+
+
 def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "mitsuba",
             accuracy: str | None = None, seed: int | None = None, mitsuba_variant: str | None = None,
             rel_se: float | None = None, model_variant: str | None = None,
@@ -505,6 +509,13 @@ def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "
     t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
+    if t > TAN_EPS_MAX_TABLE and (smp.table is not None or (smp.model.meta or {}).get("table")):
+        import warnings
+
+        from roadgonio.errors import ModelWarning
+        warnings.warn(ModelWarning(f"tan eps {t:g} is beyond the r-tables' last row (tan eps {TAN_EPS_MAX_TABLE:g}): "
+                                   f"the model of {smp.name} there is an extrapolation of its fit, not a "
+                                   "measured value"), stacklevel=2)
     b = _backend(backend, inst, smp.model, accuracy=accuracy, rel_se=rel_se, seed=seed,
                  mitsuba_variant=mitsuba_variant, settings=settings)
     folder = _out(out, "ka", inst.name, smp.name)

@@ -229,3 +229,17 @@ def test_the_command_line_takes_the_backends_the_api_takes(command, tmp_path, mo
         assert re.findall(r"'([^']+)'", re.search(r"choose from ([^)]*)\)", err).group(1)) == takes, err
     from roadgonio import api
     assert list(api.backends(command)) == takes     # the choices the help offers
+
+
+def test_a_cell_beyond_the_tables_last_row_notes_the_extrapolation(r3like):
+    """tan eps 100 for a sample fitted to a table: computed, with a note that the model is there an
+    extrapolation of the fit (trial 9: no word); none for a model that is no fit (Lambert)."""
+    from roadgonio.errors import ModelWarning
+    with pytest.warns(ModelWarning, match="beyond the r-tables' last row"):
+        c = rg.ka_cell("lab", "R3", 100.0, 0.0, backend="quadrature", accuracy="fast")
+    assert np.isfinite(c.k_a)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ModelWarning)
+        rg.ka_cell("lab", "lambert", 100.0, 0.0, backend="quadrature", accuracy="fast")
+        rg.ka_cell("lab", "R3", 12.0, 0.0, backend="quadrature", accuracy="fast")
