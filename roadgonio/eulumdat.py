@@ -179,8 +179,8 @@ def _check_header(h, path: Path) -> None:
                              field=f"{name} (line {line})")
     if h.tilt != 0.0:
         raise InputError(f"the luminaire was measured tilted by {h.tilt:g} deg; the intensities would have to be "
-                         "turned back, which is not modelled: expected a tilt of 0 (give the layout's tilt in the "
-                         "layout file)", path=path, field="tilt during measurement (line 25)")
+                         "turned back, which is not modelled: expected a tilt of 0 (a road luminaire's tilt goes in "
+                         "the layout file; an instrument's source is aimed by the instrument's geometry)", path=path, field="tilt during measurement (line 25)")
     lamps = list(h.num_lamps or [])
     if lamps and lamps[0] < 0:
         raise InputError(f"number of lamps {lamps[0]} < 0 marks absolute photometry (intensities in cd, not cd per "
