@@ -262,3 +262,30 @@ def test_a_scenario_no_realisation_compared_gets_no_bars_in_compatibility_png():
     assert compared_scenarios(rows) == ["declared"]
     rows[-1]["realisations"] = 2
     assert compared_scenarios(rows) == ["declared", "all_corrected"]
+
+
+def test_the_frozen_factor_is_the_geometric_mean_of_every_correction_and_the_rms_of_their_u():
+    """The frozen factor of a self-correcting participant (scenario all_corrected_frozen): the
+    geometric mean of the k of all its corrections (realisations 0 ... n_corrected - 1) and the RMS
+    of their relative u, per cell; a participant without corrections has none. Written out with
+    numpy over 3 corrections of 2 cells (mutation audit 9b: a factor leaving out the last
+    correction passed every test but a Mitsuba plugin test)."""
+    from types import SimpleNamespace
+
+    from roadgonio.intercomparison.run import frozen_factors, pack
+    rng = np.random.default_rng(5)
+    ks = rng.uniform(0.8, 1.3, (3, 2))
+    us = rng.uniform(0.005, 0.03, (3, 2))
+    records = {("self", 0, m): {"k": pack(ks[m]), "u_rel": pack(us[m])} for m in range(3)}
+    setup = SimpleNamespace(participants=[SimpleNamespace(k_frozen=None, u_frozen_rel=None),
+                                          SimpleNamespace(k_frozen=np.ones(2), u_frozen_rel=np.ones(2))])
+    ident = frozen_factors(setup, records, 3)
+    a, b = setup.participants
+    want_k = np.array([math.prod(ks[:, j]) ** (1 / 3) for j in range(2)])
+    want_u = np.array([math.sqrt(sum(us[:, j] ** 2) / 3) for j in range(2)])
+    np.testing.assert_allclose(a.k_frozen, want_k, rtol=1e-12, atol=0.0)
+    np.testing.assert_allclose(a.u_frozen_rel, want_u, rtol=1e-12, atol=0.0)
+    assert b.k_frozen is None and b.u_frozen_rel is None
+    # the identifier changes with the factors (realisations computed with other factors are redone)
+    records[("self", 0, 2)] = {"k": pack(ks[2] * 1.01), "u_rel": pack(us[2])}
+    assert frozen_factors(setup, records, 3) != ident
