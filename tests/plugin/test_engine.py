@@ -213,3 +213,23 @@ def test_both_threads_are_used_by_default(mi):
 
     import drjit as dr
     assert dr.thread_count() >= min(2, os.cpu_count() or 1)
+
+
+def test_a_replayed_plan_gives_each_cell_its_replicates_and_never_a_replicate_twice():
+    """A plan where two cells share a lattice size in a pass with different replicate counts, and
+    pass 1 uses the size of pass 0: each cell's statistics hold exactly the strata and replicates
+    of its plan, its sample count is their sum, and no replicate's sums come back (pass 1 has shifts
+    of its own). Mutation audit 9b: a cell given one replicate more than its plan (the group's mask
+    by >= instead of >), and shifts that ignore the pass (pass 1 repeating pass 0's replicates, an
+    SE too small), passed every test."""
+    from roadgonio.engines import make_backend
+    plan = {"cells": [[[0, 8, 16], [1, 8, 16]], [[0, 8, 16], [1, 8, 24]]]}
+    b = make_backend("mitsuba", preset("portable"), ROAD, seed=3, plan=plan)
+    res = b.compute([(2.0, 0.0), (4.0, 30.0)])
+    for i, r in enumerate(res):
+        want = plan["cells"][i]
+        assert r.samples == sum(reps << n for _, n, reps in want)
+        st = b.last_run.stats[i]
+        assert {k: len(v[0]) for k, v in st.strata.items()} == {(p, n): reps for p, n, reps in want}
+        sums = np.concatenate([st.strata[k][2] for k in sorted(st.strata)])      # the Lambert sums G
+        assert len(np.unique(sums)) == len(sums)

@@ -142,3 +142,21 @@ def test_sensor_properties_are_validated_like_an_instrument_file(mi, make_sensor
     assert angular.geometry.angular and angular.detector.focus_m == math.inf and "F=inf" in angular.to_string()
     with pytest.raises(Exception, match="detector.focus_m"):
         mi.load_dict({"type": "lummeter", "film": film, "sampler": sampler, "distance_m": 5.0, "focus_m": -1.0})
+
+
+@pytest.mark.parametrize("dark, rows, cols", [("left", slice(None), slice(0, 14)), ("top", slice(0, 14), slice(None))])
+def test_the_square_view_is_the_field_as_the_meter_sees_it(mi, tmp_path, dark, rows, cols):
+    """The ``square`` mapping (render's view.exr) is a picture of the field plane oriented like a
+    field sensitivity map (docs/conventions.md: x to the right as the meter looks, y up, rows from
+    the top): a map that is 0 on the left (top) half leaves the left (top) of the 32 x 32 view
+    black and the rest lit. Mutation audit 9b: a view mirrored left-right passed every test."""
+    from helpers import ROAD, preset, write_map_csv
+    from roadgonio.engines.mitsuba.scene import LAMBERT, build_scene
+    fn = {"left": lambda x, y: np.where(x < 0, 0.0, 1.0) + 0 * y, "top": lambda x, y: np.where(y > 0, 0.0, 1.0) + 0 * x}
+    path = write_map_csv(tmp_path / f"{dark}.csv", fn[dark], 64)
+    rs = build_scene(preset("lab").with_changes(detector={"field_sensitivity": str(path)}), ROAD, resolution=32)
+    rs.place_source(2.0, 0.0)
+    rs.sensor.mapping = "square"
+    img = rs.render(1, 16)[..., LAMBERT]
+    flipped = img[::-1, ::-1]
+    assert np.all(img[rows, cols] == 0.0) and flipped[rows, cols].mean() > 0.0

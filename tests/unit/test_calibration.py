@@ -189,7 +189,7 @@ def test_absolute_mode_scales_lambert_k_and_its_precision():
     for a, b in zip(k_lam, k_abs):
         eta, eta_err, _ = illuminance_ratio(inst, a.tan_eps, a.beta_deg)
         assert b.k_a == pytest.approx(a.k_a * eta, rel=ROUND_TOL)
-        assert b.error_bound == pytest.approx(a.error_bound * eta + a.k_a * eta_err, rel=ROUND_TOL)
+        assert b.error_bound == pytest.approx(a.error_bound * eta + a.k_a * eta_err, rel=ROUND_TOL, abs=0.0)
         assert math.isnan(b.se) and b.deterministic
 
 
@@ -215,7 +215,7 @@ def test_reference_mode_is_the_ratio_of_lambert_k_with_common_random_numbers(tmp
     got = make_backend("numpy-mc", inst, sample, **s).compute(CELLS)
     for f, r, c in zip(k_f, k_r, got):
         assert c.k_a == f.k_a / r.k_a                           # same seed, same numbers: exact
-        assert c.se == pytest.approx(c.k_a * math.hypot(f.se / f.k_a, r.se / r.k_a), rel=ROUND_TOL)
+        assert c.se == pytest.approx(c.k_a * math.hypot(f.se / f.k_a, r.se / r.k_a), rel=ROUND_TOL, abs=0.0)
     # a reference proportional to the sample gives 1 up to rounding: the rays are common
     (RoadModel(RoadParams(**{**sample.params.to_dict(), **{k: 2 * getattr(sample.params, k) for k in
                                                            ("k_diff", "k_phong", "k_retro", "k_exp")}}))
@@ -255,7 +255,7 @@ def test_centre_coupling_closed_forms(radius):
     assert zenith == pytest.approx(1.0 / (radius ** 2 + 0.8 ** 2), rel=ROUND_TOL)
     if radius == 0.0:
         g = centre_coupling(optics.source_geometry(inst, 3.0, 40.0))
-        assert g == pytest.approx(math.cos(math.atan(3.0)) / 0.8 ** 2, rel=ROUND_TOL)
+        assert g == pytest.approx(math.cos(math.atan(3.0)) / 0.8 ** 2, rel=ROUND_TOL, abs=0.0)
 
 
 @pytest.mark.parametrize("mode", ["lambert", "absolute", "reference"])
@@ -305,13 +305,13 @@ def test_the_reference_backend_keeps_its_confidence_bound_in_every_mode(tmp_path
         elif mode == "absolute":
             eta, eta_err, _ = illuminance_ratio(inst, f.tan_eps, f.beta_deg)
             assert c.k_a == pytest.approx(f.k_a * eta, rel=ROUND_TOL)
-            assert c.confidence_bound == pytest.approx(f.confidence_bound * eta + f.k_a * eta_err, rel=ROUND_TOL)
+            assert c.confidence_bound == pytest.approx(f.confidence_bound * eta + f.k_a * eta_err, rel=ROUND_TOL, abs=0.0)
             assert c.confidence_level == 0.999
         else:
             r = k_r[i]
             assert c.k_a == pytest.approx(f.k_a / r.k_a, rel=ROUND_TOL)
             want = c.k_a * (f.confidence_bound / f.k_a + r.confidence_bound / r.k_a)
-            assert c.confidence_bound == pytest.approx(want, rel=ROUND_TOL)
+            assert c.confidence_bound == pytest.approx(want, rel=ROUND_TOL, abs=0.0)
             assert c.confidence_level == pytest.approx(0.998, rel=ROUND_TOL)
 
 

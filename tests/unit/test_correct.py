@@ -143,16 +143,16 @@ def test_functionals_uncertainty_independent_and_fully_correlated():
     n = int(t.mask.sum())
     ii, jj = np.nonzero(t.mask)
     w = q0_weights(t.mask)[t.mask]
-    assert float(w @ t.r[t.mask]) == pytest.approx(t.q0(), rel=ROUND_TOL)
+    assert float(w @ t.r[t.mask]) == pytest.approx(t.q0(), rel=ROUND_TOL, abs=0.0)
     b = Budget(n)
     b.add("measurement", np.full(n, 0.01))
     f = functionals(t, b.total())
-    assert f["u_S1"] == pytest.approx(t.s1() * 0.01 * math.sqrt(2), rel=1e-12)
-    assert f["u_Q0"] == pytest.approx(0.01 * math.sqrt(np.sum((w * t.r[t.mask]) ** 2)), rel=1e-12)
+    assert f["u_S1"] == pytest.approx(t.s1() * 0.01 * math.sqrt(2), rel=1e-12, abs=0.0)
+    assert f["u_Q0"] == pytest.approx(0.01 * math.sqrt(np.sum((w * t.r[t.mask]) ** 2)), rel=1e-12, abs=0.0)
     c = Budget(n)
     c.add_systematic("model", np.full(n, 0.01 * math.sqrt(3)))   # 1 % for every cell, fully correlated
     g = functionals(t, c.total())
-    assert g["u_Q0"] == pytest.approx(0.01 * t.q0(), rel=1e-12) and g["u_S1"] < 1e-12 * t.s1()
+    assert g["u_Q0"] == pytest.approx(0.01 * t.q0(), rel=1e-12, abs=0.0) and g["u_S1"] < 1e-12 * t.s1()
     assert g["class"]["R"] == "R3" and f["nearest_table"] == "R3"
 
 
@@ -333,7 +333,7 @@ def test_functionals_of_a_table_without_a_full_grid_cell_are_missing_not_a_trace
     f = functionals(sparse, np.eye(n) * 0.01 ** 2)
     assert f["Q0"] is None or not np.isfinite(f["Q0"])
     assert f["u_Q0"] is None and f["u_S2"] is None
-    assert f["u_S1"] == pytest.approx(f["S1"] * np.sqrt(2) * 0.01, rel=1e-12)
+    assert f["u_S1"] == pytest.approx(f["S1"] * np.sqrt(2) * 0.01, rel=1e-12, abs=0.0)
     assert not has_rtb(sparse) and has_rtb(t)
 
 

@@ -92,7 +92,7 @@ def test_limiting_cases():
     assert R[1, 1] == pytest.approx(1.0 - 2.0 / 226.0 + 1.0 / 451.0, abs=COMPRESSION_TOL)
     assert R[1, 2] == 0.0
     # two rays at +-ell/2 (on the lattice: exact): 1 - 2 rho(1/2) + (1 + rho(1)) / 2
-    assert R[2, 2] == pytest.approx(1.0 - 2.0 * math.exp(-0.125) + 0.5 * (1.0 + math.exp(-0.5)), rel=1e-12)
+    assert R[2, 2] == pytest.approx(1.0 - 2.0 * math.exp(-0.125) + 0.5 * (1.0 + math.exp(-0.5)), rel=1e-12, abs=0.0)
     assert np.all(np.linalg.eigvalsh(R) >= -1e-12)
 
 
@@ -111,11 +111,11 @@ def test_beyond_nyquist_variance_against_a_cartesian_integral(lam_b, lam_t):
 def test_amplitude_scales_as_one_over_lambda_and_follows_the_region():
     """Doubling both smoothing parameters halves sigma^2 (the density is 1 / lambda); the peak
     cells take the peak blocks' value, the others the rest's; no peak blocks: the rest's for all."""
-    assert beyond_nyquist_variance(10.0, 30.0) == pytest.approx(beyond_nyquist_variance(5.0, 15.0) / 2, rel=1e-12)
+    assert beyond_nyquist_variance(10.0, 30.0) == pytest.approx(beyond_nyquist_variance(5.0, 15.0) / 2, rel=1e-12, abs=0.0)
     lam = {"beta_peak": 4.0, "eps_peak": 16.0, "beta_rest": 100.0, "eps_rest": 400.0}
     s2 = amplitude_from_penalty(lam, np.array(["peak", "rest"]))
-    assert s2[0] == pytest.approx(beyond_nyquist_variance(4.0, 16.0), rel=1e-14)
-    assert s2[1] == pytest.approx(beyond_nyquist_variance(100.0, 400.0), rel=1e-14)
+    assert s2[0] == pytest.approx(beyond_nyquist_variance(4.0, 16.0), rel=1e-14, abs=0.0)
+    assert s2[1] == pytest.approx(beyond_nyquist_variance(100.0, 400.0), rel=1e-14, abs=0.0)
     only = amplitude_from_penalty({"beta_rest": 100.0, "eps_rest": 400.0}, np.array(["peak", "rest"]))
     assert np.all(only == s2[1])
 

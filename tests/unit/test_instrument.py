@@ -103,6 +103,8 @@ def test_missing_section_and_bad_toml(tmp_path):
     (lambda: Detector(distance_m=5.0, focus_m=0.0), "detector.focus_m"),
     (lambda: Detector(distance_m=5.0, field_half_angle_deg=50.0), "detector.field_half_angle_deg"),
     (lambda: Detector(distance_m=5.0, pupil_radius_m=6.0), "detector.pupil_radius_m"),
+    (lambda: Detector(distance_m=5.0, field_edge_sensitivity=2.5), "detector.field_edge_sensitivity"),
+    (lambda: Detector(distance_m=5.0, field_edge_sensitivity=-0.1), "detector.field_edge_sensitivity"),
     (lambda: Detector(distance_m=math.nan), "detector.distance_m"),
     (lambda: Observation(alpha_deg=0.0), "observation.alpha_deg"),
     (lambda: Observation(alpha_deg=True), "observation.alpha_deg"),

@@ -38,7 +38,7 @@ def test_lambertian_only_is_constant(variant):
     np.testing.assert_allclose(f, 0.123, rtol=RTOL_EXACT, atol=0)
     T, B = np.meshgrid(TAN_EPS_GRID, BETA_GRID_DEG, indexing="ij")
     np.testing.assert_allclose(m.q(T, B), 0.123, rtol=RTOL_EXACT)
-    assert RoadModel.lambert(0.8).brdf([0, 0, 1], [1, 0, 0.1]) == pytest.approx(0.8 / math.pi, rel=RTOL_EXACT)
+    assert RoadModel.lambert(0.8).brdf([0, 0, 1], [1, 0, 0.1]) == pytest.approx(0.8 / math.pi, rel=RTOL_EXACT, abs=0.0)
 
 
 @pytest.mark.parametrize("theta_o,phi_o", [(60.0, 0.0), (89.0, 30.0), (20.0, 200.0)])
@@ -106,7 +106,7 @@ def test_lobe_shape_off_the_peak(lobe, n, omega_deg, towards):
         wi = _turned(_lobe_peak(lobe, wo), omega_deg, towards)
         cos_omega = wi @ _lobe_peak(lobe, wo)
         assert math.degrees(math.acos(min(cos_omega, 1.0))) == pytest.approx(omega_deg, rel=1e-9)
-        assert m.brdf(wi, wo) == pytest.approx(1.7 * cos_omega ** n, rel=RTOL_EXPLOG), (theta_o, phi_o)
+        assert m.brdf(wi, wo) == pytest.approx(1.7 * cos_omega ** n, rel=RTOL_EXPLOG, abs=0.0), (theta_o, phi_o)
 
 
 @pytest.mark.parametrize("lobe", sorted(LOBES))
@@ -154,7 +154,7 @@ def test_pair_angles_invert_the_cell_directions():
         assert pair_angles(NumpyOps, side, up, pole=pole)[2] == pole
     # at the pole the empirical term is E(beta = 180 deg) = 0: only k_diff is left
     m = _model(k_diff=0.02, k_exp=1.0, p=1.0)
-    assert m.brdf(np.array(up), np.array(side)) == pytest.approx(0.02, rel=RTOL_EXACT)
+    assert m.brdf(np.array(up), np.array(side)) == pytest.approx(0.02, rel=RTOL_EXACT, abs=0.0)
 
 
 @pytest.mark.parametrize("variant", VARIANTS)
@@ -192,7 +192,7 @@ def test_g_never_changes_a_one_degree_table_cell(variant):
     g = lambda th: np.where(th > np.radians(85.31), (-0.5 * th * th + 1.6) ** 6.0, 1.0)  # noqa: E731
     wi, wo = _dir(87.0, 180.0), _dir(89.6, 0.0)
     expected = plain.brdf(wi, wo) * g(np.radians(87.0)) * g(np.radians(89.6)) / g(THETA_R_STAR)
-    assert att.brdf(wi, wo) == pytest.approx(expected, rel=RTOL_EXPLOG)
+    assert att.brdf(wi, wo) == pytest.approx(expected, rel=RTOL_EXPLOG, abs=0.0)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -247,7 +247,7 @@ def test_smooth_profile_shapes_and_limits():
     W = math.exp(1 + 0.8 * math.sqrt(f))
     for nb in (0.5, 1.0, 2.0, 4.0):
         q = _model("smooth", k_exp=1.0, p=2.0, h=0.8, mu=0.01, n_beta=nb).q(T, B)
-        assert q[0] == pytest.approx(f ** 2, rel=RTOL_EXPLOG), nb
+        assert q[0] == pytest.approx(f ** 2, rel=RTOL_EXPLOG, abs=0.0), nb
         assert np.all(np.diff(q) <= 0.0), nb
     b = np.radians(B[1:4])
     gauss = _model("smooth", k_exp=1.0, p=2.0, h=0.8, mu=0.01, n_beta=1.0).q(T[1:4], B[1:4])

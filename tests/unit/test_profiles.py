@@ -772,7 +772,7 @@ def test_beam_widths_are_design_keys(tmp_path):
     n, R, D = 4.0, base.source.radius_m, base.source.distance_m
     tr = math.atan(R / D)
     omega = M.profiled_solid_angle(G.build_instrument(base, {"source.beam_cos_power": n}))
-    assert omega == pytest.approx(2 * math.pi * (1 - math.cos(tr) ** (n + 2)) / (n + 2), rel=1e-10)
+    assert omega == pytest.approx(2 * math.pi * (1 - math.cos(tr) ** (n + 2)) / (n + 2), rel=1e-10, abs=0.0)
     assert M.profiled_solid_angle(base) == M.source_solid_angle(R, D)
     p = write_map_csv(tmp_path / "m.csv", lambda x, y: 1.0 + 0.5 * x, 11)       # max 1 + 0.5 * 10/11
     mapped = base.with_changes(detector={"field_sensitivity": str(p)})

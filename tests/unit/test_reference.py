@@ -94,7 +94,7 @@ def test_bound_is_honest_against_the_converged_quadrature(lab, r3like):
         assert abs(r.k_a - q.k_a) <= r.confidence_bound + q.error_bound, (cell, r.k_a, q.k_a, r.confidence_bound)
         assert r.confidence_bound <= 1e-5 * r.k_a and math.isnan(r.error_bound)
         # one meaning per field: the SE is the replicates' SE, the confidence bound its Student-t multiple
-        assert math.isfinite(r.se) and r.confidence_bound == pytest.approx(r.extra["t_factor"] * r.se, rel=1e-12)
+        assert math.isfinite(r.se) and r.confidence_bound == pytest.approx(r.extra["t_factor"] * r.se, rel=1e-12, abs=0.0)
         assert r.confidence_level == 0.999 and r.standard_uncertainty() == r.se
 
 

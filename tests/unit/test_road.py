@@ -170,19 +170,19 @@ def test_quadratic_interpolation_is_exact_for_quadratics_and_linear_for_lines():
     rng = np.random.default_rng(1)
     for _ in range(200):
         t, b = rng.uniform(0, 4.5), rng.uniform(0, 180)   # stencil rows up to tan 5: no blank cells
-        assert interp.r_value(quad, b, t) == pytest.approx(f(t, b), rel=1e-11)
+        assert interp.r_value(quad, b, t) == pytest.approx(f(t, b), rel=1e-11, abs=0.0)
     cells, w = interp.r_weights(quad, 130.0, 4.8)           # row 5.5 blank at beta 130: linear fallback
     assert len(cells) == 4 and np.all(quad.mask.ravel()[cells])
     assert abs(interp.r_value(quad, 33.0, 2.6, "linear") - f(2.6, 33.0)) > 1e-7   # linear is not exact
     lin = _poly_table(lambda T, B: 0.02 + 0.001 * T + 3e-5 * B)
-    assert interp.r_value(lin, 33.0, 2.6, "linear") == pytest.approx(0.02 + 0.0026 + 3e-5 * 33, rel=1e-12)
+    assert interp.r_value(lin, 33.0, 2.6, "linear") == pytest.approx(0.02 + 0.0026 + 3e-5 * 33, rel=1e-12, abs=0.0)
 
 
 def test_interpolation_never_uses_blank_cells():
     t = bundled_table("R3")
     assert interp.r_value(t, 5.0, 0.3) == pytest.approx(
         sum(w * v for w, v in zip(interp._lagrange(np.array([0.0, 0.25, 0.5]), 0.3),
-                                   [t.value(x, 5.0) for x in (0.0, 0.25, 0.5)])), rel=1e-12)
+                                   [t.value(x, 5.0) for x in (0.0, 0.25, 0.5)])), rel=1e-12, abs=0.0)
     assert interp.r_value(t, 2.0, 1.0) == t.value(1.0, 2.0)           # a node takes the node alone
     assert math.isnan(interp.r_value(t, 90.0, 6.0))                   # blank region: no r
     assert math.isnan(interp.r_value(t, 0.0, 12.5))                   # beyond tan 12
@@ -436,3 +436,99 @@ def test_bilinear_intensity_reproduces_a_bilinear_table_exactly():
     c = rng.uniform(0.0, 300.0, 200)                     # inside the C range: no periodic wrap
     g = rng.uniform(0.0, 90.0, 200)
     np.testing.assert_allclose(lum.interpolate(c, g), f(c, g), rtol=REL, atol=0.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# U_l, the centre lines, the TI formula's boundary and R_EI by hand (mutation audit 9b: each of
+# these could be changed without any test failing)
+# ----------------------------------------------------------------------------------------------
+
+def test_u_l_is_each_lanes_centre_line_seen_by_that_lanes_observer_and_the_lowest_lane():
+    """EN 13201-3: U_l = L_min / L_max along the centre line of a lane, for the observer in that
+    lane; the operative U_l is the lowest over the lanes. A field of 2 lanes x 3 rows x 4 points
+    whose luminance differs per observer, row and point; the expected values are written out."""
+    lane = np.repeat([0, 0, 0, 1, 1, 1], 4)
+    centre = np.tile(np.repeat([False, True, False], 4), 2)
+    L = np.full((2, 24), 5.0)                  # (observer, point); the outer rows are never used
+    L[0, 4:8] = [1.0, 2.0, 4.0, 2.0]           # lane 1's centre line seen from lane 1: U_l = 1/4
+    L[1, 4:8] = [3.0, 3.0, 3.0, 3.0]           # ... seen from lane 2's observer: not lane 1's U_l
+    L[0, 16:20] = [9.0, 9.0, 9.0, 9.0]         # lane 2's centre line seen from lane 1's observer
+    L[1, 16:20] = [2.0, 3.0, 5.0, 4.0]         # ... from lane 2's own observer: U_l = 2/5
+    L[:, 0:4] = 0.5                            # an outer row of lane 1: in U_o, never in U_l
+    m = metrics.luminance_metrics(L, lane, centre)
+    np.testing.assert_allclose(m["U_l_lane"], [1.0 / 4.0, 2.0 / 5.0], rtol=REL, atol=0.0)
+    assert m["U_l"] == pytest.approx(1.0 / 4.0, rel=REL, abs=0.0)
+    # and over Monte Carlo trials (leading axis), lane by lane
+    both = metrics.luminance_metrics(np.stack([L, L[::-1]]), lane, centre)
+    np.testing.assert_allclose(both["U_l_lane"][0], [1.0 / 4.0, 2.0 / 5.0], rtol=REL, atol=0.0)
+    np.testing.assert_allclose(both["U_l_lane"][1], [3.0 / 3.0, 9.0 / 9.0], rtol=REL, atol=0.0)
+
+
+def test_the_centre_points_are_on_each_lanes_centre_line():
+    """EN 13201-3 7.1.4: 3 points across each lane, the middle one on the lane's centre line
+    (y = (k + 1/2) W_L), which is the line U_l is taken along; the observers stand on it too."""
+    lay = Layout(spacing_m=30.0, lanes=3, lane_width_m=3.6)
+    f = calc.build_field(lay)
+    want = {k: (k + 0.5) * 3.6 for k in range(3)}
+    assert np.sum(f.centre) == 3 * f.n_long
+    for k in range(3):
+        on = f.centre & (f.lane == k)
+        np.testing.assert_allclose(f.y[on], want[k], rtol=0.0, atol=1e-12)
+        assert f.observers[k, 1] == pytest.approx(want[k], rel=0.0, abs=1e-12)
+
+
+def test_threshold_increment_at_its_boundary_is_the_low_luminance_formula():
+    """CIE 140 / EN 13201-3: TI = 65 L_v / L_av^0.8 for L_av <= 5 cd/m^2 (the boundary included),
+    95 L_v / L_av^1.05 above; the two differ at 5 (17.95 vs 17.56 L_v)."""
+    assert float(calc.threshold_increment(0.3, 5.0)) == pytest.approx(65 * 0.3 / 5.0 ** 0.8, rel=REL, abs=0.0)
+    assert float(calc.threshold_increment(0.3, 5.0 + 1e-9)) == pytest.approx(95 * 0.3 / (5.0 + 1e-9) ** 1.05,
+                                                                             rel=REL, abs=0.0)
+
+
+def test_edge_illuminance_ratio_by_hand():
+    """R_EI (EN 13201-2:2015): on each edge, mean E_h over a strip just outside over that over a
+    strip just inside, strips min(5 m, W / 2) wide with ceil(w / 1.5 m) >= 3 points across at the
+    centres of equal parts and the field's longitudinal points; the operative value is the lower
+    edge. One row over the road at y = 1 m (isotropic luminaire, E_h = I cos^3 eps / H^2 from the
+    luminaires within 5 H along the road): the two edges differ, so the minimum matters."""
+    lay = Layout(spacing_m=30.0, mounting_height_m=10.0, overhang_m=1.0, lanes=2, lane_width_m=3.5,
+                 maintenance_factor=0.8)
+    i0, h, width = 700.0, 10.0, 7.0
+    strip = 3.5                                          # min(5, 7 / 2)
+    off = np.array([0.5, 1.5, 2.5]) * strip / 3          # ceil(3.5 / 1.5) = 3 points across
+    xs = (np.arange(10) + 0.5) * 3.0                     # the field's 10 points along (S = 30 m)
+
+    def e_mean(ys):
+        total = 0.0
+        for x in xs:
+            for y in ys:
+                for m in range(-3, 5):
+                    if abs(30.0 * m - x) <= 5 * h:
+                        d2 = (30.0 * m - x) ** 2 + (1.0 - y) ** 2
+                        total += 0.8 * i0 * (1 + d2 / h ** 2) ** -1.5 / h ** 2
+        return total / (len(xs) * len(ys))
+    low = e_mean(-off) / e_mean(off)                     # y = 0 edge: outside / inside
+    high = e_mean(width + off) / e_mean(width - off)     # y = W edge
+    got = calc.edge_illuminance_ratio(lay, _isotropic(i0), calc.build_field(lay))
+    assert abs(low - high) > 0.05
+    assert got["per_edge"]["y = 0 edge"] == pytest.approx(low, rel=REL, abs=0.0)
+    assert got["per_edge"]["y = W edge"] == pytest.approx(high, rel=REL, abs=0.0)
+    assert got["R_EI"] == pytest.approx(min(low, high), rel=REL, abs=0.0)
+
+
+def test_the_conversion_factor_of_an_eulumdat_file_scales_its_intensities(tmp_path):
+    """EULUMDAT line 24, the conversion factor for luminous intensities: I (cd) = table (cd/klm) x
+    lamp flux / 1000 x factor. The bundled file has factor 1, where leaving it out does not show;
+    the same file with 2.5 gives 2.5 times the intensities (and the luminances)."""
+    src = bundled_luminaire_path()
+    lines = src.read_bytes().decode("latin-1").split("\r\n")
+    assert lines[23].strip() == "1"
+    lines[23] = "2.5"
+    path = tmp_path / "factor.ldt"
+    path.write_bytes("\r\n".join(lines).encode("latin-1"))
+    hand, scale, *_ = _hand_ldt(path)
+    assert scale == pytest.approx(10000.0 / 1000.0 * 2.5, rel=REL, abs=0.0)
+    one, two = read_ldt(src), read_ldt(path)
+    for c, g in ((0.0, 65.0), (90.0, 30.0), (195.0, 40.0)):
+        assert float(two.intensity(c, g)) == pytest.approx(hand(c, g) * scale, rel=REL, abs=0.0)
+        assert float(two.intensity(c, g)) == pytest.approx(2.5 * float(one.intensity(c, g)), rel=REL, abs=0.0)

@@ -77,7 +77,7 @@ def test_q0_is_the_trapezoid_over_the_exact_solid_angle(name):
     """RTable.q0 (q0_weights) against the rule written out by hand, on a bundled table and on a
     random table with its blanks."""
     for t in (bundled_table(name), _synthetic()):
-        assert t.q0() == pytest.approx(_q0_by_hand(t), rel=ROUND_TOL)
+        assert t.q0() == pytest.approx(_q0_by_hand(t), rel=ROUND_TOL, abs=0.0)
 
 
 def test_q0_of_a_constant_q_table_is_that_q():
@@ -167,8 +167,8 @@ def test_csv_in_sr_is_refused_as_r_and_read_as_u(tmp_path):
     assert ei.value.path == str(path) and "\n" not in msg
     assert "looks like r in sr^-1" in msg and "r x 1e4" in msg and "0.0362" in msg      # R3's largest, 362e-4
     # the same numbers as standard uncertainties of r (u x 1e4 = 0.0362 is 0.01 % of R3's peak): accepted
-    assert np.nanmax(load_table(path, quantity="u").r) == pytest.approx(362e-8, rel=1e-12)
-    assert np.nanmax(read_table(path).r) == pytest.approx(362e-8, rel=1e-12)        # the plain reader (ka.csv) too
+    assert np.nanmax(load_table(path, quantity="u").r) == pytest.approx(362e-8, rel=1e-12, abs=0.0)
+    assert np.nanmax(read_table(path).r) == pytest.approx(362e-8, rel=1e-12, abs=0.0)        # the plain reader (ka.csv) too
 
 
 @pytest.mark.parametrize("name", BUNDLED)

@@ -1,0 +1,61 @@
+"""The journals of resumable runs (mutation audit 9b: nothing tested the reader's rule for a bad
+line that is not the last, nor that the intercomparison's journal gives every record back under
+its own key; both could be changed without a test failing)."""
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from roadgonio.errors import InputError
+from roadgonio.fileio import read_journal
+
+
+def _record(d):
+    return (d["a"], d["b"]), d["v"]
+
+
+def _write(path, lines):
+    path.write_text("".join(line + "\n" for line in lines), encoding="utf-8")
+
+
+def test_a_cut_short_last_line_is_dropped_and_any_other_bad_line_is_an_error(tmp_path):
+    head = json.dumps({"fingerprint": "fp"})
+    good = [json.dumps({"a": i, "b": 10 - i, "v": i * 1.5}) for i in range(3)]
+    path = tmp_path / "journal.jsonl"
+    _write(path, [head, *good])
+    assert read_journal(path, "fp", different="x", record=_record) == {(i, 10 - i): i * 1.5 for i in range(3)}
+    _write(path, [head, *good, good[0][:7]])                 # interrupted while writing the last line
+    assert read_journal(path, "fp", different="x", record=_record) == {(i, 10 - i): i * 1.5 for i in range(3)}
+    for bad_at in (1, 2):                                     # a bad line before the last: not an interruption
+        lines = [head, *good]
+        lines.insert(1 + bad_at, '{"a": 1, "b"')
+        _write(path, lines)
+        with pytest.raises(InputError, match="corrupt journal line") as err:
+            read_journal(path, "fp", different="x", record=_record)
+        assert err.value.line == 2 + bad_at and err.value.path == str(path)
+    _write(path, [json.dumps({"fingerprint": "other"}), *good])
+    with pytest.raises(InputError, match="holds another run"):
+        read_journal(path, "fp", different="another run", record=_record)
+
+
+def test_the_intercomparison_journal_gives_every_record_back_under_its_own_key(tmp_path):
+    """Records of one kind share their first key element (participant p) and differ in the second
+    (the aperture idealised, the realisation of a correction): a reopened journal holds each one."""
+    from roadgonio.intercomparison.run import _Journal
+    recs = [{"kind": "ideal", "key": [0, "source_aperture"], "k": 1.0},
+            {"kind": "ideal", "key": [0, "detector_pupil"], "k": 2.0},
+            {"kind": "self", "key": [1, 0], "k": 3.0},
+            {"kind": "self", "key": [1, 1], "k": 4.0},
+            {"kind": "realisation", "key": [0], "k": 5.0},
+            {"kind": "reference", "key": [1], "k": 6.0}]
+    j = _Journal(tmp_path, "fp", fresh=False)
+    for r in recs:
+        j.add(r)
+    j.close()
+    again = _Journal(tmp_path, "fp", fresh=False)
+    again.close()
+    assert len(again.done) == len(recs)
+    assert sorted(r["k"] for r in again.done.values()) == [r["k"] for r in recs]
+    for r in recs:
+        assert r in again.done.values()
