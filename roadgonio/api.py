@@ -376,12 +376,11 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
             raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
     from roadgonio.fileio import check_run_folder, fingerprint
     from roadgonio.surface.fit import FIT_METHOD_VERSION, table_hash
-    from roadgonio.surface.fitplot import FIT_FILES
     fp = fingerprint({"table": table_hash(t), "name": t.name, "variant": variant, "seed": seed,
                       "fixed": dict(sorted(fixed.items())), "fit": FIT_METHOD_VERSION})
     if folder is not None:
         from roadgonio.fileio import check_writable
-        check_run_folder(folder, "model.json", fp, what="fit", fresh=bool(fresh), outputs=FIT_FILES)
+        check_run_folder(folder, "model.json", fp, what="fit", fresh=bool(fresh))
         check_writable(folder)          # an unwritable folder fails now, not after the fit
     result = _fit_with_progress(t, variant, seed, fixed, progress)
     check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
@@ -492,10 +491,6 @@ def ka_table(instrument, sample, *, backend: str = "mitsuba", accuracy: str | No
     return ds
 
 
-#: the last tan eps of the CIE grid (an r-table's last row)
-TAN_EPS_MAX_TABLE = 12.0
-
-
 def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "mitsuba",
             accuracy: str | None = None, seed: int | None = None, mitsuba_variant: str | None = None,
             rel_se: float | None = None, model_variant: str | None = None,
@@ -509,11 +504,12 @@ def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "
     t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
-    if t > TAN_EPS_MAX_TABLE and (smp.table is not None or (smp.model.meta or {}).get("table")):
+    from roadgonio.geometry import TAN_EPS_GRID
+    if t > TAN_EPS_GRID[-1] and (smp.table is not None or (smp.model.meta or {}).get("table")):
         import warnings
 
         from roadgonio.errors import ModelWarning
-        warnings.warn(ModelWarning(f"tan eps {t:g} is beyond the r-tables' last row (tan eps {TAN_EPS_MAX_TABLE:g}): "
+        warnings.warn(ModelWarning(f"tan eps {t:g} is beyond the r-tables' last row (tan eps {TAN_EPS_GRID[-1]:g}): "
                                    f"the model of {smp.name} there is an extrapolation of its fit, not a "
                                    "measured value"), stacklevel=2)
     b = _backend(backend, inst, smp.model, accuracy=accuracy, rel_se=rel_se, seed=seed,
@@ -649,14 +645,13 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     if folder is not None:
         from roadgonio.engines.cluster import absolute_instrument_dict
         from roadgonio.fileio import check_run_folder, fingerprint
-        from roadgonio.uncertainty.report import OUTPUT_FILES
         fp = fingerprint({
             "instrument": {k: v for k, v in absolute_instrument_dict(inst).items() if k != "instrument"},
             "model": {"variant": smp.model.variant, "params": smp.model.params.to_dict()}, "sigma": spec.to_dict(),
             "trials": trials, "adaptive": bool(adaptive), "digits": digits, "max_trials": max_trials, "batch": batch,
             "seed": seed, "coverage": coverage, "cells": cells, "aperture": bool(aperture), "backend": backend,
             "settings": settings, "illuminance": illuminance, "surrogate": surrogate, "validation": validation})
-        check_run_folder(folder, "uncertainty.json", fp, what="uncertainty run", fresh=bool(fresh), outputs=OUTPUT_FILES)
+        check_run_folder(folder, "uncertainty.json", fp, what="uncertainty run", fresh=bool(fresh))
         from roadgonio.fileio import check_writable
         check_writable(folder)          # an unwritable folder fails now, not after the Monte Carlo
     if aperture:

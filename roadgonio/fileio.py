@@ -219,17 +219,15 @@ def read_journal(path: str | Path, fingerprint: str, *, different: str,
 
 
 def check_run_folder(out_dir: str | Path, meta_name: str, fingerprint: str, *, what: str = "run",
-                     fresh: bool = False, outputs: tuple[str, ...] = ()) -> None:
+                     fresh: bool = False) -> None:
     """Refuse to replace the results of a different run: ``out_dir/meta_name`` (a JSON object) holds
     the fingerprint (:func:`fingerprint`) of the run that wrote the folder; another fingerprint (or none) is the one-line
-    error naming that file and ``--fresh``. With ``fresh`` the folder's earlier ``outputs`` (the
-    command's own file names) are removed first, so no file of the other run stays beside the new
-    ones. The shared behaviour of every command that writes a run's results (``ka``, ``fit``,
+    error naming that file and ``--fresh``; ``fresh`` skips the check. The shared behaviour of every command that writes a run's results (``ka``, ``fit``,
     ``uncertainty``; ``correct`` and ``design`` check their journals the same way).
 
-    ``fresh`` removes nothing here: the command's writer, an :class:`OutputGroup` with
-    ``replaces=outputs``, removes the earlier run's files that the new run does not write, once the
-    new ones are in place; a run that stops before (bad input found later, an error, Ctrl-C) leaves
+    Nothing is removed here: the command's writer, an :class:`OutputGroup` with ``replaces`` (the
+    command's own file names), removes the earlier run's files that the new run does not write, once
+    the new ones are in place; a run that stops before (bad input found later, an error, Ctrl-C) leaves
     the folder as it was."""
     out_dir = Path(out_dir)
     meta = out_dir / meta_name

@@ -57,9 +57,8 @@ def run(args) -> int:
 
     def pair(k: str) -> str:
         t, m = d["table"][k], d["model"][k]
-        if t is None or m is None:
-            return f"{k} table {t if t is None else f'{t:.4g}'}, model {m if m is None else f'{m:.4g}'}"
-        return f"{k} table {t:.4g}, model {m:.4g} ({100 * (m / t - 1):+.1f} %)"
+        text = f"{k} table {'missing' if t is None else f'{t:.4g}'}, model {'missing' if m is None else f'{m:.4g}'}"
+        return text if t is None or m is None else f"{text} ({100 * (m / t - 1):+.1f} %)"
     say("  " + "; ".join(pair(k) for k in ("Q0", "S1", "S2")) + " (CIE 144; the model is the sample later "
         "commands use)")
     say("  worst cells (model - table, % of max r): " + "; ".join(

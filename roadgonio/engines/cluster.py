@@ -533,8 +533,7 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
         return client.submit(_call_task, items[i], key=key, pure=False, call=func, shared=shared_future,
                              with_shared=with_shared, backend=backend, variant=variant)
 
-    futures = client.map(_call_task, items, key=keys, pure=False, call=func, shared=shared_future,
-                         with_shared=with_shared, backend=backend, variant=variant)
+    futures = [submit(i, keys[i]) for i in range(len(items))]
     index = {f.key: i for i, f in enumerate(futures)}
     live = list(futures)
     attempts = [0] * len(items)
