@@ -781,9 +781,9 @@ def summary_rows(study: Study, setup: sim.Setup, xs, us, stats, full) -> list[di
         ok = st_["ok"]
         R = int(ok.sum())
         for p, pm in enumerate(setup.participants):
-            mode = sim.mode_of(setup, p, scen)
-            row: dict[str, Any] = {"scenario": scen, "participant": pm.name, "reports": mode, "realisations": R,
-                                   "full_corrections": int(np.sum(full[scen][ok, p])) if mode == "self" else None}
+            row: dict[str, Any] = {"scenario": scen, "participant": pm.name,
+                                   "reports": sim.reports_as(setup, p, scen), "realisations": R}
+            row["full_corrections"] = int(np.sum(full[scen][ok, p])) if row["reports"] == "self" else None
             if R == 0:
                 rows.append(row)
                 continue

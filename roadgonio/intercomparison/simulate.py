@@ -344,6 +344,14 @@ def mode_of(setup: Setup, p: int, scenario: str) -> str:
     return "self" if scenario in ("all_corrected", FROZEN) else setup.participants[p].report
 
 
+def reports_as(setup: Setup, p: int, scenario: str) -> str:
+    """What participant p reports in ``scenario``, as the summary says it: its :func:`mode_of`,
+    except that a collimated instrument (k_A = 1) asked to correct itself has nothing to correct
+    and reports its table raw."""
+    mode = mode_of(setup, p, scenario)
+    return "raw" if mode == "self" and _identity(setup, p) else mode
+
+
 def realisation(setup: Setup, m: int, corrections: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]],
                 scenarios: Sequence[str] = SCENARIOS + (FROZEN,)) -> dict[str, Any]:
     """Realisation m: per scenario the reported tables x (P, n) and stated u (P, n), and the

@@ -105,6 +105,11 @@ def test_identical_collimated_participants_are_compatible_as_expected(tmp_path, 
     a = ds["r_reported"].sel(scenario="declared").values
     b = ds["r_reported"].sel(scenario="all_corrected").values
     assert np.array_equal(a, b, equal_nan=True)
+    # ... and the summary says so: a collimated participant reports its table raw there, not 'self'
+    rows = json.loads(ds.attrs["summary_json"])
+    ours = [r for r in rows if r["participant"] != "ALL"]
+    assert {r["scenario"] for r in ours} >= {"declared", "all_corrected"}
+    assert all(r["reports"] == "raw" and r["full_corrections"] is None for r in ours)
 
 
 @pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
