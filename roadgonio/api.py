@@ -976,11 +976,11 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     inst = Installation(load_layout(layout), load_luminaire(luminaire))
     modes = ("independent", "correlated") if correlation == "both" else (correlation,)
     results, summaries = [], []
-    for item, t, uf in zip(items, loaded, u_of):
+    for item, t, own_name, uf in zip(items, loaded, folder_names, u_of):
         res = inst.evaluate(t)
         if uf is not None:
             ut = _table(uf, "u", quantity="u")
-            _check_u_belongs(item, t, uf, ut)
+            _check_u_belongs(item, t, uf, ut, own_name)
             inputs.append(input_record("u", uf, f"u of {t.name}"))
             res.uncertainty = {"file": str(uf), **mc.propagate(inst, t, ut, trials=trials, seed=seed,
                                                                correlations=modes, target_class=target,
@@ -1001,12 +1001,27 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     return summaries
 
 
-def _check_u_belongs(item, t: "RTable", uf, ut: "RTable") -> None:
+def _check_u_belongs(item, t: "RTable", uf, ut: "RTable", own_name: str | None = None) -> None:
     """A table of standard uncertainties whose header names its table (``standard uncertainty of
     <header>``, as ``correct`` writes corrected_u.csv) must go with a table of that header: checked
     when the table is a CSV file with a header of its own (an RTB or a bundled table has none to
-    compare); a mismatch is an :class:`InputError` naming both."""
-    from roadgonio.surface.rtable import header_line, u_names_table
+    compare). One that ``roadgonio uncertainty`` wrote names its sample (``..., sample R3: standard
+    uncertainty u(r) x 1e4``): it must go with the table of that name (``own_name``, the name the
+    table was read under: a bundled name or the file's), and its ``_mean.csv`` is not a u at all.
+    A mismatch is an :class:`InputError` naming both."""
+    from roadgonio.surface.rtable import header_line, u_names_sample, u_names_table
+    by_sample = u_names_sample(ut)
+    if by_sample is not None:
+        sample, is_u = by_sample
+        if not is_u:
+            raise InputError(f"{uf} is the mean table roadgonio uncertainty wrote for sample '{sample}', not its "
+                             "standard uncertainty: give the <case>_u.csv beside it", field="u")
+        own = own_name if own_name is not None else t.name
+        if sample != own:
+            raise InputError(f"{uf} is the standard uncertainty roadgonio uncertainty computed for sample '{sample}', "
+                             f"but it goes with the table {item} ('{own}'): give each --u right after the --table "
+                             "it belongs to", field="u")
+        return
     named = u_names_table(ut)
     if named is None or not isinstance(item, (str, Path)) or Path(str(item)).suffix.lower() != ".csv":
         return

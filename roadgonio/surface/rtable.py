@@ -43,6 +43,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+import re
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -296,6 +297,19 @@ U_HEADER = "standard uncertainty of "
 def header_line(t: "RTable") -> str:
     """The first line of a table's header (its ``source``), "" when it has none."""
     return t.source.splitlines()[0].strip() if t.source else ""
+
+
+#: The header ``roadgonio uncertainty`` writes on its tables (``<case>_u.csv``, ``<case>_mean.csv``,
+#: :func:`roadgonio.uncertainty.report.write_results`): the sample's name and what the table holds.
+UNCERTAINTY_HEADER = re.compile(r"^roadgonio uncertainty: .*, sample (?P<sample>.+): (?P<what>mean r x 1e4|"
+                                r"standard uncertainty u\(r\) x 1e4)$")
+
+
+def u_names_sample(u: "RTable") -> tuple[str, bool] | None:
+    """(sample name, whether it is a standard uncertainty) of a table ``roadgonio uncertainty`` wrote
+    (:data:`UNCERTAINTY_HEADER`; False: its mean table), or None for any other header."""
+    m = UNCERTAINTY_HEADER.match(header_line(u))
+    return None if m is None else (m["sample"], m["what"].startswith("standard"))
 
 
 def u_names_table(u: "RTable") -> str | None:

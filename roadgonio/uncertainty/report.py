@@ -84,6 +84,14 @@ OUTPUT_FILES = ("uncertainty.json", "cells.csv", "no_aperture_mean.csv", "no_ape
 ROUND_OFF_REL = 1e-12
 
 
+def table_header(case: str, trials: int, seed: int, sample_name: str, key: str) -> str:
+    """The header line of ``<case>_<key>.csv`` (key ``mean`` or ``u``): it names the sample, so that
+    ``roadgonio road --u`` can tell which table a u belongs to
+    (:data:`roadgonio.surface.rtable.UNCERTAINTY_HEADER` reads it back)."""
+    label = {"mean": "mean r x 1e4", "u": "standard uncertainty u(r) x 1e4"}[key]
+    return f"roadgonio uncertainty: {case.replace('_', ' ')}, {trials} trials, seed {seed}, sample {sample_name}: {label}"
+
+
 def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: str = "sample",
                   plots: bool = True, figures=None, fingerprint: str | None = None) -> list[Path]:
     """Write uncertainty.json, cells.csv, r-table CSVs of the mean and u per case, and the pictures,
@@ -102,10 +110,9 @@ def write_results(res: UncertaintyResult, out_dir: str | Path, *, sample_name: s
         written = [g.json("uncertainty.json", doc), g.text("cells.csv", cells_csv_text(res))]
         n = len(res.cells)
         for name, c in res.cases.items():
-            src = (f"roadgonio uncertainty: {name.replace('_', ' ')}, {res.trials} trials, seed {res.seed}, "
-                   f"sample {sample_name}")
-            for key, label in (("mean", "mean r x 1e4"), ("u", "standard uncertainty u(r) x 1e4")):
-                g.text(f"{name}_{key}.csv", grid_csv_text(res.cells.to_grid(c.mc[key][:n]), f"{src}: {label}",
+            for key in ("mean", "u"):
+                g.text(f"{name}_{key}.csv", grid_csv_text(res.cells.to_grid(c.mc[key][:n]),
+                                                          table_header(name, res.trials, res.seed, sample_name, key),
                                                           scale=R_SCALE))
                 written.append(out / f"{name}_{key}.csv")
         if plots:

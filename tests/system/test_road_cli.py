@@ -91,6 +91,33 @@ def test_road_u_naming_another_table_is_an_error(tmp_path, capsys):
     assert "uncertainty" in json.loads(capsys.readouterr().out)[1]
 
 
+def test_road_u_written_by_uncertainty_must_go_with_its_sample(tmp_path, capsys):
+    """A u file as `roadgonio uncertainty` writes it names its sample (trial 9: R3's u put on R2
+    passed without a word): after the table of another name it is an error naming both, after its
+    own table (bundled, or a file of that name) it is used, and its _mean.csv is refused as a u."""
+    from roadgonio.uncertainty.report import table_header
+    t = bundled_table("R3")
+    for sample, key in (("R3", "u"), ("R3", "mean"), ("myr3", "u")):
+        t.with_values(t.r * (0.01 if key == "u" else 1.0),
+                      source=table_header("aperture", 10_000, 1, sample, key)).write_csv(
+            tmp_path / f"{sample}_aperture_{key}.csv")
+    t.write_csv(tmp_path / "myr3.csv")
+    base = ["road", "--trials", "500", "--no-plots", "--json"]
+    for tables, u, words in ((["R3", "R2"], "R3_aperture_u.csv", ["'R3'", "R2", "R3_aperture_u.csv"]),
+                             (["R2"], "myr3_aperture_u.csv", ["'myr3'", "R2"]),
+                             (["R3"], "R3_aperture_mean.csv", ["mean table", "R3_aperture_mean.csv", "_u.csv"])):
+        args = [a for x in tables for a in ("--table", x)] + ["--u", str(tmp_path / u), "--out", str(tmp_path / "bad")]
+        rc = main(base + args)
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and "\n" not in err and "--u" in err, err
+        for w in words:
+            assert w in err, (w, err)
+        assert not (tmp_path / "bad").exists()
+    for table, u in (("R3", "R3_aperture_u.csv"), (str(tmp_path / "myr3.csv"), "myr3_aperture_u.csv")):
+        assert main(base + ["--table", "R2", "--table", table, "--u", str(tmp_path / u)]) == 0
+        assert "uncertainty" in json.loads(capsys.readouterr().out)[1]
+
+
 def test_road_text_output(tmp_path, capsys):
     assert main(["road", "--table", "R2", "--table", "R3", "--out", str(tmp_path), "--no-plots"]) == 0
     text = capsys.readouterr().out
