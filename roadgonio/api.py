@@ -583,7 +583,7 @@ def validate(instrument, sample, *, against: str = "mitsuba", reference: str = "
                         seed=seed, floor=floor, mitsuba_variant=mitsuba_variant, ref_settings=ref_settings,
                         on_cell=on_cell)
     from roadgonio.provenance import provenance
-    report.update(provenance(instrument=inst, model=smp.model, settings=report["settings"]))
+    report["provenance"] = provenance(instrument=inst, model=smp.model, settings=report["settings"])
     report["sample"] = smp.name
     if folder is not None:
         report["files"] = {k: str(v) for k, v in V.write_outputs(report, folder).items()}
@@ -1051,7 +1051,7 @@ def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
     if folder is not None:
         inputs = [input_record("a", a, ta.name), input_record("b", b, tb.name)]
         files = {"compare.csv": compare_csv(ta, tb, res["ratio"]),
-                 "compare.json": to_json({**summary, **provenance(inputs=inputs)}) + "\n"}
+                 "compare.json": to_json({**summary, "provenance": provenance(inputs=inputs)}) + "\n"}
         if plots:
             files["compare.png"] = compare_png(res, ta, tb)
         summary["written"] = [str(p) for p in write_together(folder, files)]

@@ -48,7 +48,7 @@ def run(args) -> int:
         return 0
     say = text_output(args)
     ka = info["k_a_estimate"]
-    say(f"{info['instrument']['instrument']['name']}, sample {info['sample']}, tan eps = {args.tan_eps:g}, "
+    say(f"{info['provenance']['instrument']['instrument']['name']}, sample {info['sample']}, tan eps = {args.tan_eps:g}, "
         f"beta = {args.beta:g} deg: footprint x = {info['footprint_m']['x'][0]:.3f} ... "
         f"{info['footprint_m']['x'][1]:.3f} m; "
         + (f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (one render; use 'roadgonio ka' for tables)"

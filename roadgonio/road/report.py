@@ -163,7 +163,8 @@ def road_files(results, summaries: list[dict], target: str | None, plots: bool =
     (:func:`roadgonio.provenance.input_record`)."""
     lay = results[0].installation.layout
     files: dict[str, bytes | str] = {
-        "road.json": to_json({"tables": summaries, **provenance(settings={"layout": lay.describe()}, inputs=inputs)})
+        "road.json": to_json({"tables": summaries, "provenance": provenance(settings={"layout": lay.describe()},
+                                                                              inputs=inputs)})
         + "\n",
         "road_metrics.csv": metrics_csv(summaries),
         "road_luminance.csv": luminance_csv(results),

@@ -82,7 +82,7 @@ def test_render_shows_the_profiled_illuminance(mi, tmp_path):
     from roadgonio.engines.mitsuba.scene import source_radiance
     inst = preset("portable").with_changes(source={"beam_sigma_deg": 5.0, "aperture_edge_radiance": 0.5})
     info = rg.render(inst, "R3", 1.0, 30.0, tmp_path / "r", resolution=64, spp=16)
-    assert info["settings"]["integrator"].startswith("kabatch")
+    assert info["provenance"]["settings"]["integrator"].startswith("kabatch")
     with OpenEXR.File(str(tmp_path / "r" / "illuminance.exr")) as f:
         E = np.asarray(f.channels()["E_h"].pixels, dtype=np.float64)
     (x0, x1), (y0, y1) = info["illuminance_window_m"]["x"], info["illuminance_window_m"]["y"]

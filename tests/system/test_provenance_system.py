@@ -20,6 +20,6 @@ def test_road_and_compare_outputs_carry_the_versions(tmp_path):
     from roadgonio.cli import main
     assert main(["road", "--table", "R3", "--out", str(tmp_path / "road"), "--no-plots", "--quiet"]) == 0
     road = json.loads((tmp_path / "road" / "road.json").read_text())
-    assert VERSION_KEYS <= set(road["versions"]) and "lanes" in road["settings"]["layout"]
+    assert VERSION_KEYS <= set(road["provenance"]["versions"]) and "lanes" in road["provenance"]["settings"]["layout"]
     assert main(["compare", "R3", "R2", "--out", str(tmp_path / "cmp"), "--no-plots", "--quiet"]) == 0
-    assert VERSION_KEYS <= set(json.loads((tmp_path / "cmp" / "compare.json").read_text())["versions"])
+    assert VERSION_KEYS <= set(json.loads((tmp_path / "cmp" / "compare.json").read_text())["provenance"]["versions"])

@@ -18,8 +18,9 @@ def test_render_writes_exr_png_json(mi, tmp_path, capsys):
     # without a housing there is no stray light and no _direct twin; every field is defined
     assert "ratio_direct" not in info and "stray" not in info
     assert {"signal_road", "signal_lambert", "ratio", "k_a_estimate"} <= set(info["definitions"])
-    assert info["versions"]["mitsuba"] and info["versions"]["mitsuba_variant"] == "llvm_ad_rgb"
-    assert info["instrument"]["source"]["radius_m"] == 0.005 and info["settings"]["spp"] == 4
+    prov = info["provenance"]           # the common block, as in every result file
+    assert prov["versions"]["mitsuba"] and prov["versions"]["mitsuba_variant"] == "llvm_ad_rgb"
+    assert prov["instrument"]["source"]["radius_m"] == 0.005 and prov["settings"]["spp"] == 4
     import OpenEXR
     E = OpenEXR.File(str(out / "illuminance.exr")).channels()["E_h"].pixels
     assert E.dtype == np.float32

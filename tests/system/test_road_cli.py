@@ -239,18 +239,18 @@ def test_road_and_compare_record_their_input_files(tmp_path, capsys):
     assert "corrected.csv vs measured.rtb (R3)" in text
     d = json.loads((tmp_path / "road" / "road.json").read_text())
     assert [s["table"] for s in d["tables"]] == ["measured.rtb (R3)", "corrected.csv"]
-    got = {(r["argument"], r["path"], r["sha256"]) for r in d["inputs"]}
+    got = {(r["argument"], r["path"], r["sha256"]) for r in d["provenance"]["inputs"]}
     assert got == {("table", str(rtb.absolute()), sha[rtb]), ("table", str(csv_path.absolute()), sha[csv_path]),
                    ("u", str(u_path.absolute()), sha[u_path])}
     assert main(["compare", str(rtb), str(csv_path), "--out", str(tmp_path / "cmp"), "--no-plots"]) == 0
     capsys.readouterr()
     c = json.loads((tmp_path / "cmp" / "compare.json").read_text())
     assert (c["A"], c["B"]) == ("measured.rtb (R3)", "corrected.csv")
-    assert [(r["argument"], r["path"], r["sha256"]) for r in c["inputs"]] == [
+    assert [(r["argument"], r["path"], r["sha256"]) for r in c["provenance"]["inputs"]] == [
         ("a", str(rtb.absolute()), sha[rtb]), ("b", str(csv_path.absolute()), sha[csv_path])]
     assert main(["compare", "R3", str(csv_path), "--out", str(tmp_path / "cmp2"), "--no-plots"]) == 0
     c = json.loads((tmp_path / "cmp2" / "compare.json").read_text())
-    assert c["A"] == "R3" and c["inputs"][0] == {"argument": "a", "name": "R3", "label": "R3"}   # a bundled name
+    assert c["A"] == "R3" and c["provenance"]["inputs"][0] == {"argument": "a", "name": "R3", "label": "R3"}   # a bundled name
 
 
 def test_a_metric_with_its_u_is_printed_to_the_decimal_place_of_u():

@@ -39,7 +39,7 @@ def test_cli_agrees_and_writes_outputs(tmp_path, capsys, model_file):
     doc = json.loads((out / "validate.json").read_text())
     assert doc["verdict"] == "agree" and doc["exit_status"] == 0 and doc["reference"] == "reference"
     assert doc["counts"] == {"agree": 3, "disagree": 0, "inconclusive": 0} and len(doc["cells"]) == 3
-    assert "reference" in doc["settings"] and doc["model"]["params"]["n_phong"] == pytest.approx(34.467)
+    assert "reference" in doc["settings"] and doc["provenance"]["model"]["params"]["n_phong"] == pytest.approx(34.467)
     assert (out / "validate.png").stat().st_size > 10_000
     assert oct((out / "validate.csv").stat().st_mode & 0o777) == oct(0o666 & ~_umask())
 

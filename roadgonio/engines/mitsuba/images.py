@@ -107,11 +107,12 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     if stray is not None:
         files.update(stray_png=str(out_dir / "stray.png"), stray_exr=str(out_dir / "stray.exr"))
     from roadgonio.provenance import provenance
-    info = {**provenance(instrument=instrument, model=model, backend="mitsuba",
-                         settings={"resolution": resolution, "spp": spp, "seed": seed, "sampler": "multijitter",
-                                   "integrator": "kabatch (beam profile)" if instrument.source.profiled else "direct",
-                                   "mitsuba_variant": mi.variant(), "illuminance_resolution": [nx, ny],
-                                   "illuminance_spp": 16}),
+    prov = provenance(instrument=instrument, model=model, backend="mitsuba",
+                      settings={"resolution": resolution, "spp": spp, "seed": seed, "sampler": "multijitter",
+                                "integrator": "kabatch (beam profile)" if instrument.source.profiled else "direct",
+                                "mitsuba_variant": mi.variant(), "illuminance_resolution": [nx, ny],
+                                "illuminance_spp": 16})
+    info = {"provenance": prov,
             "sample": sample_name, "tan_eps": tan_eps, "beta_deg": beta_deg,
             "resolution": resolution, "spp": spp, "seed": seed,
             "signal_road": float(np.mean(sig[..., ROAD])), "signal_lambert": mg,
