@@ -130,3 +130,21 @@ def test_layout_tilt_limits_are_inclusive(tmp_path):
         p = tmp_path / f"t{v}.toml"
         p.write_text(f"[installation]\ntilt_deg = {v}\n")
         assert read_layout(p).tilt_deg == float(v)
+
+
+def test_unknown_luminances_are_blank_cells(installation):
+    """A table blank where the luminance needs it (tan eps 5, beta 0): the points whose L is unknown
+    are blank in road_luminance.csv (a CSV has no NaN), the others keep their number."""
+    t = bundled_table("R3")
+    r = t.r.copy()
+    r[int(np.argmin(abs(t.tan_eps - 5.0))), 0] = np.nan
+    res = installation.evaluate(t.with_values(r))
+    unknown = np.isnan(res.L)
+    assert unknown.any() and not unknown.all()
+    text = luminance_csv([res])
+    assert "nan" not in text.lower()
+    rows = _rows(text)
+    n_p = res.L.shape[1]
+    for k, row in enumerate(rows):
+        o, p = divmod(k, n_p)
+        assert (row["L_cd_m2"] == "") == bool(unknown[o, p])
