@@ -1,0 +1,81 @@
+"""What `roadgonio correct` writes, column by column (roadgonio/correction/outputs.py): with a
+backend of known k_A and SE per cell every number of correct_cells.csv and corrected_u.csv is
+known in closed form. Mutation audit 10: u_measured written in sr^-1 instead of x 1e4, and the
+k_A and SE columns swapped, passed every test."""
+from __future__ import annotations
+
+import csv
+import math
+
+import pytest
+
+from roadgonio.correction.outputs import cells_csv, u_csv_text
+from roadgonio.correction.run import correct_with_reference
+from roadgonio.engines.result import CellResult
+from roadgonio.instrument.config import load_instrument
+from roadgonio.surface.model import RoadModel
+from roadgonio.surface.rtable import load_table, parse_csv
+
+DIGITS_6 = 5e-6      # %.6g
+DIGITS_4 = 5e-4      # %.4g
+DIGITS_3 = 5e-3      # %.3g
+
+
+def k_of(t, b):
+    return 1.0 + 0.02 * t - 0.001 * b
+
+
+def se_of(t, b):
+    return 0.003 + 0.0005 * t
+
+
+class Known:
+    name = "known"
+
+    def __init__(self, inst, model):
+        pass
+
+    def settings(self):
+        return {"backend": self.name}
+
+    def compute(self, cells, on_cell=None):
+        out = [CellResult(t, b, k_of(t, b), se_of(t, b), 1, 0.0) for t, b in cells]
+        for c in out:
+            if on_cell is not None:
+                on_cell(c)
+        return out
+
+
+@pytest.fixture(scope="module")
+def corrected():
+    table = load_table("R3")
+    res = correct_with_reference(table, load_instrument("portable"), RoadModel.lambert(), u_measured="2%",
+                                 factory=Known, progress=False)
+    return table, res
+
+
+def test_cells_csv_columns_in_closed_form(corrected):
+    table, res = corrected
+    rows = list(csv.DictReader([ln for ln in cells_csv(res).splitlines() if not ln.startswith("#")]))
+    assert len(rows) == int(table.mask.sum())
+    for row in rows:
+        t, b = float(row["tan_eps"]), float(row["beta_deg"])
+        m = table.value(t, b)
+        k, se = k_of(t, b), se_of(t, b)
+        rc = m / k
+        assert float(row["r_measured_x1e4"]) == pytest.approx(m * 1e4, rel=DIGITS_6, abs=0.0)
+        assert float(row["u_measured_x1e4"]) == pytest.approx(0.02 * m * 1e4, rel=DIGITS_4, abs=0.0)
+        assert float(row["k_a"]) == pytest.approx(k, rel=DIGITS_6, abs=0.0)
+        assert float(row["u_k_a_backend"]) == pytest.approx(se, rel=DIGITS_3, abs=0.0)
+        assert float(row["r_corrected_x1e4"]) == pytest.approx(rc * 1e4, rel=DIGITS_6, abs=0.0)
+        u = rc * math.hypot(0.02, se / k)
+        assert float(row["u_corrected_x1e4"]) == pytest.approx(u * 1e4, rel=DIGITS_4, abs=0.0)
+        assert float(row["u_rel_total"]) == pytest.approx(u / rc, rel=DIGITS_4, abs=0.0)
+
+
+def test_corrected_u_csv_is_u_times_1e4_in_the_table_layout(corrected):
+    table, res = corrected
+    u = parse_csv(u_csv_text(res), path="corrected_u.csv", quantity="u")
+    for (t, b), m in zip(table.cells, table.r[table.mask]):
+        k, se = k_of(t, b), se_of(t, b)
+        assert u.value(t, b) == pytest.approx(m / k * math.hypot(0.02, se / k), rel=DIGITS_4, abs=0.0)

@@ -1,0 +1,111 @@
+"""roadgonio/eulumdat.py beyond the bundled file (tests/unit/test_road.py reads that one): the
+interpolation's edges (the last gamma angle, a C grid that does not start at 0), the flux of an
+uneven C grid, which lamp set scales the intensities, and the header checks. Mutation audit 10:
+each of these could be changed without any test failing."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from roadgonio.errors import InputError
+from roadgonio.eulumdat import Luminaire, read_ldt
+from roadgonio.road.luminaire import bundled_luminaire_path
+
+REL = 1e-12
+
+
+def _lines():
+    return bundled_luminaire_path().read_bytes().decode("latin-1").split("\r\n")
+
+
+def _write(tmp_path, lines, name="edit.ldt"):
+    p = tmp_path / name
+    p.write_bytes("\r\n".join(lines).encode("latin-1"))
+    return p
+
+
+# 0-based line indices of the EULUMDAT header (LiTG layout): DFF line 22, LORL 23, conversion factor
+# 24, tilt 25, number of lamp sets 26, then per set: number of lamps, type, flux, colour, CRI, watts
+DFF, LORL, CONV, TILT, SETS, LAMPS, FLUX = 21, 22, 23, 24, 25, 26, 28
+
+
+def test_the_header_lines_are_where_these_tests_edit_them():
+    lines = _lines()
+    assert [lines[k].strip() for k in (DFF, LORL, CONV, TILT, SETS, LAMPS, FLUX)] == \
+        ["100", "100", "1", "0", "1", "1", "10000"]
+
+
+def test_the_last_gamma_angle_is_inside_the_table():
+    """The table's last gamma angle is a node: its value, not 'outside the range' (NaN); just beyond
+    it the intensity is unknown."""
+    c, g = np.array([0.0, 90.0, 180.0, 270.0]), np.array([0.0, 30.0, 60.0, 80.0])
+    table = np.arange(16.0).reshape(4, 4) + 1.0
+    lum = Luminaire(c, g, table, 1000.0)
+    np.testing.assert_allclose(lum.interpolate(c, np.full(4, 80.0)), table[:, -1], rtol=REL, atol=0.0)
+    assert float(lum.interpolate(45.0, 0.0)) == pytest.approx(0.5 * (table[0, 0] + table[1, 0]), rel=REL, abs=0.0)
+    assert np.isnan(float(lum.interpolate(0.0, 80.01)))
+
+
+def test_c_is_periodic_when_the_first_plane_is_not_at_zero():
+    """C planes 10 ... 350: C = 5 lies between C = 350 and C = 370 (= 10), three quarters of the way
+    to 10; C = 355 and -5 are the same direction."""
+    c = np.arange(10.0, 351.0, 20.0)
+    g = np.array([0.0, 45.0, 90.0])
+    table = np.outer(1.0 + c / 100.0, [1.0, 2.0, 3.0])
+    lum = Luminaire(c, g, table, 1000.0)
+    want = 0.25 * table[-1, 1] + 0.75 * table[0, 1]
+    assert float(lum.interpolate(5.0, 45.0)) == pytest.approx(want, rel=REL, abs=0.0)
+    assert float(lum.interpolate(-5.0, 45.0)) == pytest.approx(float(lum.interpolate(355.0, 45.0)), rel=REL, abs=0.0)
+    assert float(lum.interpolate(355.0, 45.0)) == pytest.approx(0.75 * table[-1, 1] + 0.25 * table[0, 1], rel=REL,
+                                                                abs=0.0)
+
+
+def test_flux_of_an_uneven_c_grid_is_the_integral_of_the_interpolated_table():
+    """The flux is the integral of I sin(gamma) over the sphere of the table as interpolated
+    (piecewise linear in C, periodic): the C integral at each gamma node by adaptive quadrature of
+    :meth:`Luminaire.interpolate` itself, then the trapezoidal rule in gamma (the method's own rule
+    in gamma). C planes unevenly spaced and intensities that vary with C."""
+    c = np.array([0.0, 20.0, 30.0, 90.0, 150.0, 200.0, 300.0])
+    g = np.array([0.0, 20.0, 40.0, 60.0, 75.0, 90.0])
+    table = 100.0 + 80.0 * np.cos(np.radians(c))[:, None] * np.sin(np.radians(g))[None, :] + 3.0 * g[None, :]
+    lum = Luminaire(c, g, table, 2000.0, conversion=1.5)
+    per_gamma = [quad(lambda cc, gv=gv: float(lum.interpolate(cc, gv)), 0.0, 360.0, points=list(c), limit=200,
+                      epsabs=0.0, epsrel=1e-12)[0] for gv in g]
+    gr = np.radians(g)
+    inner = np.array(per_gamma) * np.pi / 180.0 * np.sin(gr)
+    want = float(np.sum(0.5 * (inner[1:] + inner[:-1]) * np.diff(gr))) * 2000.0 / 1000.0 * 1.5
+    assert lum.flux_from_table() == pytest.approx(want, rel=1e-9, abs=0.0)
+
+
+def test_the_first_lamp_set_scales_the_intensities(tmp_path):
+    """EULUMDAT: cd per 1000 lm of the lamp flux; with two lamp sets the first one's flux (10000 lm)
+    scales the table, not the sum of the sets."""
+    lines = _lines()
+    lines[SETS] = "2"
+    second = ["2", "LED spare", "5000", "3000", "80", "40"]
+    lines = lines[:FLUX + 4] + second + lines[FLUX + 4:]
+    two = read_ldt(_write(tmp_path, lines))
+    one = read_ldt(bundled_luminaire_path())
+    assert two.flux_lm == 10000.0 and two.scale_cd == pytest.approx(10.0, rel=REL, abs=0.0)
+    for cg in ((0.0, 65.0), (90.0, 30.0), (195.0, 40.0)):
+        assert float(two.intensity(*cg)) == pytest.approx(float(one.intensity(*cg)), rel=REL, abs=0.0)
+
+
+@pytest.mark.parametrize("index,value,words", [
+    (DFF, "101", ["DFF (line 22)", "0 ... 100"]),
+    (LORL, "150", ["LORL (line 23)", "0 ... 100"]),
+    (LAMPS, "-1", ["number of lamps (line 27)", "absolute photometry"]),
+    (TILT, "-5", ["tilt during measurement (line 25)", "-5"]),
+    (TILT, "5", ["tilt during measurement (line 25)", "5"]),
+])
+def test_header_values_outside_what_is_modelled_are_refused(tmp_path, index, value, words):
+    lines = _lines()
+    lines[index] = value
+    p = _write(tmp_path, lines)
+    with pytest.raises(InputError) as ei:
+        read_ldt(p)
+    msg = str(ei.value)
+    assert str(p) in msg and "\n" not in msg
+    for w in words:
+        assert w in msg, msg

@@ -1,0 +1,76 @@
+"""roadgonio/fileio.py: a command's outputs appear together or not at all, and replace the earlier
+run's outputs of the same command (mutation audit 10: not removing the earlier run's files, and not
+taking back the files already moved when a later rename fails, passed every unit test); and the
+numbers CSV reader (roadgonio/instrument/profiles.py) refuses a text line among the numbers (read
+as a second header it was skipped)."""
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from roadgonio import fileio
+from roadgonio.errors import InputError
+from roadgonio.fileio import OutputGroup
+from roadgonio.instrument.profiles import read_numbers_csv
+
+
+def test_an_earlier_runs_outputs_not_written_again_are_removed(tmp_path):
+    out = tmp_path / "o"
+    with OutputGroup(out, replaces=("a.txt", "b.png", "c.csv")) as g:
+        g.text("a.txt", "1")
+        g.text("b.png", "old picture")
+    (out / "mine.txt").write_text("the user's")
+    with OutputGroup(out, replaces=("a.txt", "b.png", "c.csv")) as g:
+        g.text("a.txt", "2")
+        g.text("c.csv", "3")
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt", "c.csv", "mine.txt"]
+    assert (out / "a.txt").read_text() == "2"
+
+
+def test_a_run_that_fails_removes_and_replaces_nothing(tmp_path):
+    out = tmp_path / "o"
+    with OutputGroup(out, replaces=("a.txt", "b.txt")) as g:
+        g.text("a.txt", "1")
+        g.text("b.txt", "1")
+    with pytest.raises(RuntimeError):
+        with OutputGroup(out, replaces=("a.txt", "b.txt")) as g:
+            g.text("a.txt", "2")
+            raise RuntimeError("the command failed")
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt", "b.txt"]
+    assert (out / "a.txt").read_text() == "1"
+
+
+def test_a_failed_rename_takes_back_the_files_already_moved(tmp_path, monkeypatch):
+    """The second of three renames fails (a full or vanished folder): the first file, already in
+    place, is removed again, so no partial set is left; the error names the file that failed."""
+    out = tmp_path / "o"
+    out.mkdir()
+    real = os.replace
+    calls = []
+
+    def flaky(src, dst):
+        calls.append(dst)
+        if len(calls) == 2:
+            raise OSError(28, "No space left on device", str(src))
+        return real(src, dst)
+
+    monkeypatch.setattr(fileio.os, "replace", flaky)
+    with pytest.raises(InputError) as err:
+        with OutputGroup(out) as g:
+            for name in ("a.txt", "b.txt", "c.txt"):
+                g.text(name, name)
+    assert "b.txt" in str(err.value) and "No space left" in str(err.value)
+    assert list(out.iterdir()) == []
+
+
+def test_a_text_line_among_the_numbers_is_an_error(tmp_path):
+    p = tmp_path / "t.csv"
+    p.write_text("0,1\n5,0.8\nten,0.5\n10,0.5\n")
+    with pytest.raises(InputError) as err:
+        read_numbers_csv(p, "source.beam_intensity_file")
+    assert err.value.line == 3 and "ten,0.5" in str(err.value)
+    p.write_text("theta,I\n0,1\n5,0.8\nangle,I\n10,0.5\n")       # a second header is no header
+    with pytest.raises(InputError) as err:
+        read_numbers_csv(p, "source.beam_intensity_file")
+    assert err.value.line == 4
