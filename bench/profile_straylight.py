@@ -3,8 +3,10 @@ tests): the full 580-cell table of scenes/portable_housed.toml at worst relative
 
 1. **Launches**: wall seconds per engine step (trace_paths: the detector rays and the eye paths;
    block_sums: the direct light; stray_sums: next-event estimation at eye vertices 1 and 2;
-   light_sums: the light paths' three strategies), and Dr.Jit's kernel history of the same run:
-   execution vs code generation (tracing into IR) per kernel, backend compilations (cache misses).
+   light_sums: the light paths' three strategies; the engine reads the sums back only after a
+   pass's last launch, so this is the Python tracing and launching of each step, the kernels run
+   meanwhile), and Dr.Jit's kernel history of the same run: execution vs code generation (tracing
+   into IR) per kernel, backend compilations (cache misses).
 2. **The planner**: samples per pass, passes per cell, the cells that need the most samples, and
    the samples a planner that gave every cell exactly the target would have used
    (samples x (achieved rel SE / target)^2 summed; a lower bound, no pass can know it).

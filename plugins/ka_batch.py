@@ -88,6 +88,18 @@ def intersect_sample(scene, ray, flags, sample_shape, active=True):
     return dr.select(hit2, si2, si), hit | hit2
 
 
+class _Deferred:
+    """A value still being computed on the device (``defer=True`` of the launch methods): calling it
+    waits for the kernels and returns it. Dr.Jit's LLVM backend launches asynchronously (so does
+    CUDA), so Python traces the next kernel while this one runs."""
+
+    def __init__(self, read):
+        self._read = read
+
+    def __call__(self):
+        return self._read()
+
+
 def _u32(values) -> mi.UInt32:
     return mi.UInt32(np.ascontiguousarray(values, dtype=np.uint32))
 
@@ -236,7 +248,7 @@ class KaBatch(mi.SamplingIntegrator):
         """See :func:`lattice_params`."""
         return lattice_params(n, z, shifts, tent)
 
-    def trace_detector(self, scene, sensor, lattice: dict, reps: int) -> tuple[dict, int]:
+    def trace_detector(self, scene, sensor, lattice: dict, reps: int, defer: bool = False) -> tuple[dict, int]:
         """Trace the n x ``reps`` detector rays of a lattice (replicates 0 ... reps-1 of
         ``lattice["shift"]``); returns the evaluated per-ray data and the number of rays that
         missed the sample."""
@@ -253,19 +265,20 @@ class KaBatch(mi.SamplingIntegrator):
         data = self._ray_data(si, ray, w)
         miss = ~hit
         dr.eval(data, miss)                 # one kernel traces the rays; the count reads the stored mask
-        return data, int(dr.count(miss)[0]) if dr.width(miss) else 0
+        count = _Deferred(lambda: int(dr.count(miss)[0]) if dr.width(miss) else 0)
+        return data, (count if defer else count())
 
     def block_sums(self, scene, rays: dict, lattice: dict, block_cell: np.ndarray,
-                   block_rep: np.ndarray) -> np.ndarray:
+                   block_rep: np.ndarray, defer: bool = False) -> np.ndarray:
         """Road and Lambert sums over the blocks (float32 numpy, (blocks, bins per block, 2)):
         block k is the n lattice points of replicate ``block_rep[k]`` (an index into ``rays``) for
-        the source of cell ``block_cell[k]``."""
-        n, log2n = lattice["n"], lattice["log2n"]
+        the source of cell ``block_cell[k]``. With ``defer`` a :class:`_Deferred` (the kernels run
+        while Python traces the next ones; calling it waits and returns the array)."""
+        n = lattice["n"]
         blocks = len(block_cell)
         lanes = blocks * n
         if lanes >= 1 << 32:
             raise BackendError(f"a launch of {lanes} lanes exceeds 2^32; split it")
-        bin_log2 = min(log2n, BIN_LOG2)
         l = dr.arange(mi.UInt32, lanes)
         k = l >> lattice["shift_log2"]
         j = l & lattice["mask"]
@@ -276,13 +289,7 @@ class KaBatch(mi.SamplingIntegrator):
         active = w > 0.0
         u4, u5 = self._lattice(j, rep, lattice, (4, 5))
         value = self.shade(scene, si, cell, mi.Point2f(u4, u5), active) * w
-        # evaluated block sums, not atomic scatters: the order of the float32 additions is then fixed,
-        # so a run repeats bit for bit whatever the thread count
-        road, lam = mi.Float(value.x), mi.Float(value.y)
-        dr.eval(road, lam)                                   # one kernel for both channels
-        sums = [dr.block_sum(v, 1 << bin_log2, mode="evaluated") for v in (road, lam)]
-        out = np.stack([np.array(sums[0], dtype=np.float32), np.array(sums[1], dtype=np.float32)], axis=-1)
-        return out.reshape(blocks, n >> bin_log2, 2)
+        return self._bin_sums(mi.Float(value.x), mi.Float(value.y), blocks, lattice, defer)
 
     # -- stray light: paths through the reflecting parts of the scene --------------------------
     def set_parts(self, shapes, max_bounces: int, source_radius: float = 0.0, source_radiance: float = 0.0) -> None:
@@ -390,7 +397,7 @@ class KaBatch(mi.SamplingIntegrator):
         zero = mi.Float(0.0)
         return nxt, dr.select(alive, tr, zero), dr.select(alive, tg, zero), pf, pr
 
-    def trace_paths(self, scene, sensor, lattice: dict, reps: int, keys) -> tuple[dict, list, int]:
+    def trace_paths(self, scene, sensor, lattice: dict, reps: int, keys, defer: bool = False) -> tuple[dict, list, int]:
         """:meth:`trace_detector` plus the further vertices of every eye path (one launch per
         reflection).
 
@@ -428,7 +435,7 @@ class KaBatch(mi.SamplingIntegrator):
                                             mi.Point2f(u[1], u[2]))
         vert, shape = vertex_fields(nxt, tr, tg, pf, one, pr), nxt.shape
         dr.eval(data, miss, vert, shape)       # one kernel: the detector rays and their first reflection
-        misses = int(dr.count(miss)[0]) if dr.width(miss) else 0
+        misses = _Deferred(lambda: int(dr.count(miss)[0]) if dr.width(miss) else 0)
         verts.append((vert, shape))
         for k in range(2, max(self.eye_vertices()) + 1):
             prev, pshape = verts[-1]
@@ -442,7 +449,7 @@ class KaBatch(mi.SamplingIntegrator):
             vert, shape = vertex_fields(nxt, tr, tg, pf, prev["pf"], pr), nxt.shape
             dr.eval(vert, shape)
             verts.append((vert, shape))
-        return data, verts, misses
+        return data, verts, (misses if defer else misses())
 
     def vertex_light(self, scene, si, g, cell, u, active, mis: int):
         """Next-event estimation at eye-path vertices ``si`` (any reflecting part; ``g`` the
@@ -489,12 +496,20 @@ class KaBatch(mi.SamplingIntegrator):
         return lanes, j, cell, rep, (rep << lattice["shift_log2"]) + j
 
     @staticmethod
-    def _bin_sums(road, lam, blocks: int, lattice: dict) -> np.ndarray:
+    def _bin_sums(road, lam, blocks: int, lattice: dict, defer: bool = False):
+        """Per-bin sums of the lanes' road and Lambert values, (blocks, bins per block, 2) float32
+        numpy, or with ``defer`` a :class:`_Deferred` of it: the launch and the reduction are
+        asynchronous on the LLVM backend, and only reading them back waits."""
         bin_log2 = min(lattice["log2n"], BIN_LOG2)
-        dr.eval(road, lam)
+        # evaluated block sums, not atomic scatters: the order of the float32 additions is then fixed,
+        # so a run repeats bit for bit whatever the thread count
+        dr.eval(road, lam)                                   # one kernel for both channels
         sums = [dr.block_sum(v, 1 << bin_log2, mode="evaluated") for v in (road, lam)]
-        out = np.stack([np.array(sums[0], dtype=np.float32), np.array(sums[1], dtype=np.float32)], axis=-1)
-        return out.reshape(blocks, lattice["n"] >> bin_log2, 2)
+
+        def read():
+            out = np.stack([np.array(sums[0], dtype=np.float32), np.array(sums[1], dtype=np.float32)], axis=-1)
+            return out.reshape(blocks, lattice["n"] >> bin_log2, 2)
+        return _Deferred(read) if defer else read()
 
     def eye_light(self, scene, vertex: tuple, lattice: dict, r, j, cell, rep, keys, k: int):
         """Per lane, the road and Lambert light reaching the detector through eye-path vertex
@@ -510,12 +525,12 @@ class KaBatch(mi.SamplingIntegrator):
         return road, lam, si
 
     def stray_sums(self, scene, vertex: tuple, lattice: dict, block_cell: np.ndarray, block_rep: np.ndarray,
-                   keys, k: int) -> np.ndarray:
+                   keys, k: int, defer: bool = False) -> np.ndarray:
         """Road and Lambert sums over the blocks (as :meth:`block_sums`) of the eye paths' light
         through vertex ``k`` >= 1 (:meth:`eye_light`), each block for its own cell."""
         _, j, cell, rep, r = self._blocks(lattice, block_cell, block_rep)
         road, lam, _ = self.eye_light(scene, vertex, lattice, r, j, cell, rep, keys, k)
-        return self._bin_sums(road, lam, len(block_cell), lattice)
+        return self._bin_sums(road, lam, len(block_cell), lattice, defer)
 
     def vertex0(self, rays: dict, r):
         """The detector rays' hits on the sample (vertex 0) rebuilt from the stored ray data."""
@@ -693,14 +708,14 @@ class KaBatch(mi.SamplingIntegrator):
         return list(range(1, self.max_bounces))
 
     def light_sums(self, scene, rays: dict, vertex1: tuple, lattice: dict, block_cell: np.ndarray,
-                   block_rep: np.ndarray, keys) -> np.ndarray:
+                   block_rep: np.ndarray, keys, defer: bool = False) -> np.ndarray:
         """Road and Lambert sums over the blocks (as :meth:`block_sums`) of the light paths
         (:meth:`path_light`), each block for its own cell."""
         _, j, cell, rep, r = self._blocks(lattice, block_cell, block_rep)
         out = self.path_light(scene, rays, vertex1, lattice, r, j, cell, rep, keys)
         road = sum((o[0] for o in out[1:]), out[0][0])
         lam = sum((o[1] for o in out[1:]), out[0][1])
-        return self._bin_sums(road, lam, len(block_cell), lattice)
+        return self._bin_sums(road, lam, len(block_cell), lattice, defer)
 
     def picture_lanes(self, scene, sensor, lattice: dict, keys, cell: int = 0, reps: int = 1) -> dict:
         """``reps`` replicates of a one-cell launch (``roadgonio render``), per lane as float64 numpy

@@ -233,3 +233,24 @@ def test_a_replayed_plan_gives_each_cell_its_replicates_and_never_a_replicate_tw
         assert {k: len(v[0]) for k, v in st.strata.items()} == {(p, n): reps for p, n, reps in want}
         sums = np.concatenate([st.strata[k][2] for k in sorted(st.strata)])      # the Lambert sums G
         assert len(np.unique(sums)) == len(sums)
+
+
+@pytest.mark.parametrize("name", ["portable", "portable_housed"])
+def test_missed_detector_rays_are_an_error_after_the_deferred_launches(name, monkeypatch):
+    """The engine reads a pass's sums back only after its last launch (the kernels run while Python
+    traces the next ones); a detector ray that missed the sample is still an error, with its count:
+    a launch's miss count (made 3 here, with and without stray light) reaches the GeometryError."""
+    from roadgonio.engines import make_backend
+    from roadgonio.engines.mitsuba.plugins import ka_batch as kb
+    b = make_backend("mitsuba", preset(name), ROAD, rel_se=1.0, first_pass=1024)
+    launch = "trace_paths" if b.engine.stray else "trace_detector"
+    assert b.engine.stray == (name == "portable_housed")
+    traced = getattr(kb.KaBatch, launch)
+
+    def three_missed(self, *a, defer=False, **k):
+        out = traced(self, *a, defer=defer, **k)
+        return out[:-1] + (kb._Deferred(lambda: 3) if defer else 3,)
+
+    monkeypatch.setattr(kb.KaBatch, launch, three_missed)
+    with pytest.raises(GeometryError, match="^3 of 1024 detector rays do not hit the sample"):
+        b.compute([(2.0, 0.0), (4.0, 30.0)])

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from roadgonio.engines.mitsuba.passes import (MAX_GROWTH, SAFETY, CellStats, Plan, Planner, add_strata,
-                                              covariance, relative)
+                                              covariance, relative, strata_ratio_se, strata_ratio_se_many,
+                                              stray_ratios)
 
 
 def synthetic(rng, reps, ratio=0.8, rel=0.05, rho=0.9, n=1024):
@@ -67,6 +68,61 @@ def test_single_replicate_has_no_se_and_zero_signal_has_no_ratio():
     r, se, g = dark.ratio_se()
     assert math.isnan(r) and se == math.inf and g == 0.0
     assert relative(0.0, 0.0) == 0.0 and relative(0.0, 1.0) == math.inf
+
+
+def test_strata_ratio_se_of_many_cells_equals_each_cell_alone():
+    """The vectorised ratio and SE over many cells (the direct light and the stray fraction of a
+    table at once) are each cell's delta-method formula (strata of different sizes, cells of
+    different numbers of strata, ratios 0.3-3); a stratum with one replicate or none gives SE inf,
+    a cell without signal or without strata (nan, inf), without disturbing its neighbours."""
+    rng = np.random.default_rng(7)
+    cells = []
+    for _ in range(40):
+        cells.append([synthetic(rng, int(rng.integers(2, 40)), ratio=float(rng.uniform(0.3, 3.0)),
+                                n=1 << int(rng.integers(6, 12)))
+                      for _ in range(int(rng.integers(1, 5)))])
+    special = {3: cells[3] + [(np.array([1.0]), np.array([2.0]))],        # one replicate
+               8: cells[8] + [(np.zeros(0), np.zeros(0))],                  # none
+               11: [(np.zeros(5), np.zeros(5))],                           # no signal
+               20: []}                                                     # no strata
+    cells = [special.get(i, c) for i, c in enumerate(cells)]
+    r, se = strata_ratio_se_many(cells)
+    for i, c in enumerate(cells):
+        if i in (11, 20):
+            assert math.isnan(r[i]) and se[i] == math.inf
+            continue
+        if i in (3, 8):
+            assert r[i] == pytest.approx(sum(a.sum() for a, _ in c) / sum(b.sum() for _, b in c), rel=1e-14, abs=0.0)
+            assert se[i] == math.inf
+        else:
+            r2, se2 = direct_se(c)
+            assert r[i] == pytest.approx(r2, rel=1e-14, abs=0.0)
+            assert se[i] == pytest.approx(se2, rel=1e-12, abs=0.0)
+        assert (r[i], se[i]) == strata_ratio_se(c)            # one cell alone: the same numbers
+
+
+def test_stray_ratios_are_the_cells_own():
+    """:func:`stray_ratios` (a table's direct light and stray fraction at once) against each cell's
+    :meth:`CellStats.direct_ratio_se` / :meth:`CellStats.stray_fraction_se`, and the formulas."""
+    rng = np.random.default_rng(8)
+    stats = []
+    for _ in range(12):
+        st = CellStats()
+        for p in range(int(rng.integers(1, 4))):
+            reps = int(rng.integers(2, 30))
+            Rd, Gd = synthetic(rng, reps, ratio=float(rng.uniform(0.5, 2.0)))
+            stray = np.abs(rng.normal(0.2, 0.05, reps)) * Rd
+            add_strata([st], p, 8, np.zeros(reps, dtype=np.int64), np.arange(reps), Rd + stray, Gd + 0.5 * stray, Rd, Gd)
+        stats.append(st)
+    rd, rd_se, sf, sf_se = stray_ratios(stats)
+    for k, st in enumerate(stats):
+        keys = sorted(st.strata)
+        assert (rd[k], rd_se[k]) == st.direct_ratio_se()
+        assert (sf[k], sf_se[k]) == st.stray_fraction_se()
+        r2, se2 = direct_se([st.direct[q] for q in keys])
+        assert rd[k] == pytest.approx(r2, rel=1e-14, abs=0.0) and rd_se[k] == pytest.approx(se2, rel=1e-12, abs=0.0)
+        q2, qse2 = direct_se([(st.direct[q][0], st.strata[q][1]) for q in keys])
+        assert sf[k] == pytest.approx(1.0 - q2, rel=1e-13, abs=0.0) and sf_se[k] == pytest.approx(qse2, rel=1e-12, abs=0.0)
 
 
 def test_add_strata_vectorised_equals_one_by_one_and_refuses_duplicates():

@@ -157,6 +157,7 @@ class MitsubaBackend:
         in batches (the cells that left the active set after a pass). ``checkpoint``
         (:class:`roadgonio.engines.runner.PassCheckpoint`): the state is saved after every pass and
         a saved state of these cells is resumed (same numbers as without the interruption)."""
+        from roadgonio.engines.mitsuba.passes import stray_ratios
         t0 = time.perf_counter()
         cells = [(float(t), float(b)) for t, b in cells]
         if self.is_ideal_geometry:
@@ -169,8 +170,11 @@ class MitsubaBackend:
             now = time.perf_counter()
             share = (now - last[0]) / max(len(indices), 1)     # the pass's wall time, shared out
             last[0] = now
+            # the direct light's ratio and the stray fraction of all these cells at once (vectorised)
+            with_stray = [i for i in indices if run.stats[i].direct]
+            stray = dict(zip(with_stray, zip(*stray_ratios([run.stats[i] for i in with_stray])))) if with_stray else {}
             for i in indices:
-                results[i] = self._result(cells[i], ideal[i], run.stats[i], run.converged[i], share)
+                results[i] = self._result(cells[i], ideal[i], run.stats[i], run.converged[i], share, stray.get(i))
                 if on_cell is not None:
                     on_cell(results[i])
 
@@ -211,7 +215,9 @@ class MitsubaBackend:
                 on_cell(r)
         return out
 
-    def _result(self, cell, ideal: float, st, converged: bool, seconds: float) -> CellResult:
+    def _result(self, cell, ideal: float, st, converged: bool, seconds: float, stray_se=None) -> CellResult:
+        """The cell's result; ``stray_se``: its (direct ratio, SE, stray fraction, SE) if already
+        computed (:func:`~roadgonio.engines.mitsuba.passes.stray_ratios`), else from ``st``."""
         from roadgonio.engines.mitsuba.passes import relative
         ratio, se, _ = st.ratio_se()
         rel = relative(ratio, se)
@@ -227,8 +233,11 @@ class MitsubaBackend:
         stray = {}
         if st.direct:
             # the direct light alone (today's k_A) and the stray fraction, from the same replicates
-            rd, rd_se = st.direct_ratio_se()
-            sf, sf_se = st.stray_fraction_se()
+            if stray_se is None:
+                rd, rd_se = st.direct_ratio_se()
+                sf, sf_se = st.stray_fraction_se()
+            else:
+                rd, rd_se, sf, sf_se = (float(v) for v in stray_se)
             stray = dict(k_a_direct=float(rd / div), k_a_direct_se=float(rd_se / div),
                          stray_fraction=float(sf), stray_fraction_se=float(sf_se))
             extra["max_bounces"] = self.engine.max_bounces

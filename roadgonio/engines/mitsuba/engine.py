@@ -236,10 +236,16 @@ class BatchEngine:
         run.info.setdefault("passes", []).append(
             {"cells": len(requests), "groups": len(groups),
              "samples": int(sum(reps << log2n for log2n, reps in requests.values()))})
-        for log2n, members in sorted(groups.items()):
-            self._group(p, log2n, members, stats, run, seed)
+        # every group's kernels are launched before any result is read back: Dr.Jit launches
+        # asynchronously, so Python traces the next kernels while the previous ones run
+        pending = [self._group(p, log2n, members, stats, run, seed) for log2n, members in sorted(groups.items())]
+        for finish in pending:
+            finish()
 
-    def _group(self, p: int, log2n: int, members: list[tuple[int, int]], stats, run: EngineRun, seed: int) -> None:
+    def _group(self, p: int, log2n: int, members: list[tuple[int, int]], stats, run: EngineRun,
+               seed: int) -> Callable[[], None]:
+        """Launch the kernels of one lattice size's group; returns the function that reads their
+        sums back (waiting for them), checks the detector rays and adds the strata to ``stats``."""
         rs, integ = self.rs, self.integrator
         n = 1 << log2n
         idx = np.array([i for i, _ in members], dtype=np.int64)
@@ -252,7 +258,7 @@ class BatchEngine:
             z = lat.generating_vector(n, lat.DIMENSIONS + integ.qmc_dims)
             shifts = np.concatenate([shifts, lat.walk_shifts(seed, p, log2n, max_reps, integ.qmc_dims)], axis=1)
         reps_per_chunk = max(1, (MAX_PATHS if self.stray else MAX_RAYS) >> log2n)
-        got_cell, got_rep, got, got_stray = [], [], [], []
+        got_cell, got_rep, got, got_stray, got_misses = [], [], [], [], []
         if self.stray:
             from roadgonio.engines.mitsuba.plugins.ka_batch import _u32
             keys_all = lat.walk_keys(seed, p, log2n, max_reps, integ.walk_dims)
@@ -261,14 +267,12 @@ class BatchEngine:
             lattice = integ.lattice_params(n, z, shifts[r0:r1], self.tent)
             if self.stray:
                 keys = [_u32(keys_all[r0:r1, d]) for d in range(keys_all.shape[1])]
-                rays, verts, misses = integ.trace_paths(rs.scene, rs.sensor, lattice, r1 - r0, keys)
+                rays, verts, misses = integ.trace_paths(rs.scene, rs.sensor, lattice, r1 - r0, keys, defer=True)
                 run.launches += len(verts)
             else:
-                rays, misses = integ.trace_detector(rs.scene, rs.sensor, lattice, r1 - r0)
+                rays, misses = integ.trace_detector(rs.scene, rs.sensor, lattice, r1 - r0, defer=True)
             run.launches += 1
-            if misses:
-                raise GeometryError(f"{misses} of {(r1 - r0) * n} detector rays do not hit the sample: the detector "
-                                    "footprint must lie on the sample; enlarge the sample or narrow the field")
+            got_misses.append((misses, (r1 - r0) * n))
             # blocks replicate-major: the rays of one replicate serve consecutive blocks
             reps = np.arange(r0, r1)
             mask = want[None, :] > reps[:, None]
@@ -277,31 +281,45 @@ class BatchEngine:
             per_launch = max(1, MAX_LANES >> log2n)
             for k0 in range(0, len(bc), per_launch):
                 k1 = min(len(bc), k0 + per_launch)
-                out = integ.block_sums(rs.scene, rays, lattice, bc[k0:k1], br[k0:k1] - r0)
+                got.append(integ.block_sums(rs.scene, rays, lattice, bc[k0:k1], br[k0:k1] - r0, defer=True))
                 run.launches += 1
-                got.append(out.astype(np.float64).sum(axis=1))          # (blocks, 2)
                 got_cell.append(bc[k0:k1])
                 got_rep.append(br[k0:k1])
                 if self.stray:
                     # the light through each further path vertex, next-event estimation to the block's cell
-                    ind = np.zeros((k1 - k0, 2))
+                    ind = []
                     for k in integ.eye_vertices():
-                        ind += integ.stray_sums(rs.scene, verts[k - 1], lattice, bc[k0:k1], br[k0:k1] - r0, keys,
-                                                k).astype(np.float64).sum(axis=1)
+                        ind.append(integ.stray_sums(rs.scene, verts[k - 1], lattice, bc[k0:k1], br[k0:k1] - r0, keys,
+                                                    k, defer=True))
                         run.launches += 1
                     if integ.light_depth:
-                        ind += integ.light_sums(rs.scene, rays, verts[0], lattice, bc[k0:k1], br[k0:k1] - r0,
-                                                keys).astype(np.float64).sum(axis=1)
+                        ind.append(integ.light_sums(rs.scene, rays, verts[0], lattice, bc[k0:k1], br[k0:k1] - r0,
+                                                    keys, defer=True))
                         run.launches += 1
-                    got_stray.append(ind)
+                    got_stray.append((k1 - k0, ind))
             if self.stray:
                 del verts
-        cell, rep, val = np.concatenate(got_cell), np.concatenate(got_rep), np.concatenate(got)
-        order = np.lexsort((rep, cell))
-        if self.stray:
-            # totals (direct + stray; exactly the direct sums where the stray sums are 0) and the direct light
-            tot = val + np.concatenate(got_stray)
-            add_strata(stats, p, log2n, cell[order], rep[order], tot[order, 0], tot[order, 1],
-                       val[order, 0], val[order, 1])
-        else:
-            add_strata(stats, p, log2n, cell[order], rep[order], val[order, 0], val[order, 1])
+
+        def finish() -> None:
+            for misses, rays in got_misses:
+                if misses():
+                    raise GeometryError(f"{misses()} of {rays} detector rays do not hit the sample: the detector "
+                                        "footprint must lie on the sample; enlarge the sample or narrow the field")
+            cell, rep = np.concatenate(got_cell), np.concatenate(got_rep)
+            val = np.concatenate([out().astype(np.float64).sum(axis=1) for out in got])      # (blocks, 2)
+            order = np.lexsort((rep, cell))
+            if self.stray:
+                # the stray sums in the order they were added before (vertex 1, vertex 2, light paths)
+                stray = []
+                for blocks, ind in got_stray:
+                    acc = np.zeros((blocks, 2))
+                    for out in ind:
+                        acc += out().astype(np.float64).sum(axis=1)
+                    stray.append(acc)
+                # totals (direct + stray; exactly the direct sums where the stray sums are 0) and the direct light
+                tot = val + np.concatenate(stray)
+                add_strata(stats, p, log2n, cell[order], rep[order], tot[order, 0], tot[order, 1],
+                           val[order, 0], val[order, 1])
+            else:
+                add_strata(stats, p, log2n, cell[order], rep[order], val[order, 0], val[order, 1])
+        return finish

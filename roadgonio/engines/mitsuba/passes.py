@@ -175,19 +175,63 @@ def strata_ratio_se(strata: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[fl
     error by the delta method (module docstring): Var = sum_q B_q s_q^2(A - r B) / (sum B)^2.
     The stratified generalisation of :func:`roadgonio.engines.result.ratio_se`: with one stratum it
     is that estimator (written with sums, and the residuals' own mean removed); (nan, inf) when
-    sum(B) is not positive, inf as the SE when a stratum has fewer than 2 replicates."""
-    sa = sum(float(np.sum(a)) for a, _ in strata)
-    sb = sum(float(np.sum(b)) for _, b in strata)
-    if not sb > 0.0:
-        return math.nan, math.inf
-    r = sa / sb
-    var = 0.0
-    for a, b in strata:
-        y = np.asarray(a, dtype=np.float64) - r * np.asarray(b, dtype=np.float64)
-        if y.size < 2:
-            return r, math.inf
-        var += y.size * float(np.var(y, ddof=1))
-    return r, math.sqrt(max(var, 0.0)) / abs(sb)
+    sum(B) is not positive, inf as the SE when a stratum has fewer than 2 replicates. One cell of
+    :func:`strata_ratio_se_many` (the same numbers bit for bit)."""
+    r, se = strata_ratio_se_many([strata])
+    return float(r[0]), float(se[0])
+
+
+def strata_ratio_se_many(cells: Sequence[Sequence[tuple[np.ndarray, np.ndarray]]]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`strata_ratio_se` of many cells at once (vectorised over all their strata; a table's
+    cells cost ~0.1 s one by one, 7 % of the housed example's table): arrays of the ratios and
+    their standard errors. Every sum runs in a fixed order (the replicates of a stratum, then the
+    strata of a cell, in the order given), the same as :func:`add_strata`'s totals: a stratum's
+    sums are those :class:`CellStats` accumulates, so A = R gives exactly its ratio."""
+    m = len(cells)
+    ratio, se = np.full(m, math.nan), np.full(m, math.inf)
+    # a stratum without replicates adds nothing to the sums and leaves no variance estimate (SE inf)
+    empty = np.array([any(len(a) == 0 for a, _ in c) for c in cells], dtype=bool)
+    kept = [[(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)) for a, b in c if len(a)]
+            for c in cells]
+    live = [i for i in range(m) if kept[i]]                          # cells without strata: (nan, inf)
+    if not live:
+        return ratio, se
+    strata = [ab for i in live for ab in kept[i]]
+    per_cell = np.array([len(kept[i]) for i in live], dtype=np.int64)
+    m = len(live)
+    counts = np.array([len(a) for a, _ in strata], dtype=np.int64)
+    A = np.concatenate([a for a, _ in strata])
+    B = np.concatenate([b for _, b in strata])
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    cstarts = np.r_[0, np.cumsum(per_cell)[:-1]]
+    sa = np.add.reduceat(np.add.reduceat(A, starts), cstarts)
+    sb = np.add.reduceat(np.add.reduceat(B, starts), cstarts)
+    ok = sb > 0.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(ok, sa / np.where(ok, sb, 1.0), math.nan)
+    seg = np.repeat(np.arange(len(strata)), counts)                 # stratum of each replicate
+    cell_of = np.repeat(np.arange(m), per_cell)                     # cell of each stratum
+    y = A - np.where(ok, r, 0.0)[cell_of][seg] * B
+    dev = y - (np.add.reduceat(y, starts) / counts)[seg]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        v = counts * np.add.reduceat(dev * dev, starts) / (counts - 1.0)
+    single = (np.add.reduceat((counts < 2).astype(np.int64), cstarts) > 0) | empty[live]
+    var = np.add.reduceat(np.where(counts < 2, 0.0, v), cstarts)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_err = np.sqrt(np.maximum(var, 0.0)) / np.abs(np.where(ok, sb, 1.0))
+    idx = np.asarray(live)
+    ratio[idx[ok]] = r[ok]
+    se[idx[ok & ~single]] = s_err[ok & ~single]
+    return ratio, se
+
+
+def stray_ratios(stats: Sequence["CellStats"]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(direct ratio, its SE, stray fraction, its SE) of many cells at once
+    (:meth:`CellStats.direct_ratio_se`, :meth:`CellStats.stray_fraction_se`, the same numbers)."""
+    keys = [sorted(st.strata) for st in stats]
+    rd, rd_se = strata_ratio_se_many([[st.direct[k] for k in ks] for st, ks in zip(stats, keys)])
+    q, q_se = strata_ratio_se_many([[(st.direct[k][0], st.strata[k][1]) for k in ks] for st, ks in zip(stats, keys)])
+    return rd, rd_se, 1.0 - q, q_se
 
 
 def add_strata(stats: Sequence[CellStats], pass_index: int, log2n: int, owner: np.ndarray, reps: np.ndarray,
