@@ -346,51 +346,6 @@ def test_what_the_fit_leaves_out_of_a_housed_instrument_is_said():
     assert note is not None and "[housing]" in note and "[scene]" not in note
 
 
-def test_corrected_table_and_its_uncertainty_in_closed_form():
-    """correct_with_reference with a backend of known k_A and SE per cell and no other component:
-    r_c = m / k and u(r_c) = r_c sqrt(u_m^2 + (se / k)^2) (relative uncertainties of independent
-    inputs add in quadrature, GUM), written out here cell by cell. The other tests of the corrected
-    u compare the files with the result object or only ask for u > 0: a u without its square root
-    (r_c u_rel^2, ~100 times too small at 1 %) passed them."""
-    import math
-
-    from roadgonio.correction.run import correct_with_reference
-    from roadgonio.engines.result import CellResult
-    from roadgonio.surface.rtable import load_table
-
-    def k_of(t, b):
-        return 1.0 + 0.02 * t - 0.001 * b
-
-    def se_of(t, b):
-        return 0.003 + 0.0005 * t
-
-    class Known:
-        name = "known"
-
-        def __init__(self, inst, model):
-            pass
-
-        def settings(self):
-            return {"backend": self.name}
-
-        def compute(self, cells, on_cell=None):
-            out = [CellResult(t, b, k_of(t, b), se_of(t, b), 1, 0.0) for t, b in cells]
-            for c in out:
-                if on_cell is not None:
-                    on_cell(c)
-            return out
-
-    table = load_table("R3")
-    res = correct_with_reference(table, load_instrument("portable"), RoadModel.lambert(), u_measured="2%",
-                                 factory=Known, progress=False)
-    for (t, b), m in zip(table.cells, table.r[table.mask]):
-        i, j = list(table.tan_eps).index(t), list(table.beta_deg).index(b)
-        k, se = k_of(t, b), se_of(t, b)
-        rc = m / k
-        assert res.corrected.r[i, j] == pytest.approx(rc, rel=ROUND_TOL, abs=0.0)
-        assert res.u_corrected[i, j] == pytest.approx(rc * math.hypot(0.02, se / k), rel=ROUND_TOL, abs=0.0)
-
-
 def test_parameter_covariance_is_birge_scaled_with_n_minus_p_degrees_of_freedom(r3like):
     """assess_fit with the shape parameters held (``fixed``): the four coefficients k_* are the free
     parameters and r_sim is linear in them, so the covariance is s^2 (J^T J)^-1 with J = d r_sim /

@@ -15,6 +15,7 @@ from roadgonio.engines.result import CellResult
 from roadgonio.instrument.config import load_instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.surface.rtable import load_table, parse_csv
+from tolerances import ROUND_TOL
 
 DIGITS_6 = 5e-6      # %.6g
 DIGITS_4 = 5e-4      # %.4g
@@ -79,3 +80,20 @@ def test_corrected_u_csv_is_u_times_1e4_in_the_table_layout(corrected):
     for (t, b), m in zip(table.cells, table.r[table.mask]):
         k, se = k_of(t, b), se_of(t, b)
         assert u.value(t, b) == pytest.approx(m / k * math.hypot(0.02, se / k), rel=DIGITS_4, abs=0.0)
+
+
+def test_corrected_table_and_its_uncertainty_in_closed_form():
+    """correct_with_reference with a backend of known k_A and SE per cell and no other component:
+    r_c = m / k and u(r_c) = r_c sqrt(u_m^2 + (se / k)^2) (relative uncertainties of independent
+    inputs add in quadrature, GUM), written out here cell by cell. The other tests of the corrected
+    u compare the files with the result object or only ask for u > 0: a u without its square root
+    (r_c u_rel^2, ~100 times too small at 1 %) passed them."""
+    table = load_table("R3")
+    res = correct_with_reference(table, load_instrument("portable"), RoadModel.lambert(), u_measured="2%",
+                                 factory=Known, progress=False)
+    for (t, b), m in zip(table.cells, table.r[table.mask]):
+        i, j = list(table.tan_eps).index(t), list(table.beta_deg).index(b)
+        k, se = k_of(t, b), se_of(t, b)
+        rc = m / k
+        assert res.corrected.r[i, j] == pytest.approx(rc, rel=ROUND_TOL, abs=0.0)
+        assert res.u_corrected[i, j] == pytest.approx(rc * math.hypot(0.02, se / k), rel=ROUND_TOL, abs=0.0)
