@@ -222,6 +222,19 @@ def broken(tmp_path, good: str, line: int, name: str) -> Path:
     return p
 
 
+def refused_in_one_line(call, path, words) -> None:
+    """``call()`` raises an InputError whose message is one line naming ``path`` and every one of ``words``."""
+    import pytest
+
+    from roadgonio.errors import InputError
+    with pytest.raises(InputError) as ei:
+        call()
+    msg = str(ei.value)
+    assert str(path) in msg and "\n" not in msg, msg
+    for w in words:
+        assert w in msg, msg
+
+
 def instrument_text() -> str:
     from roadgonio.instrument.config import load_instrument
     return Path(load_instrument("portable").path).read_text(encoding="utf-8")

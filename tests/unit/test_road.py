@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import refused_in_one_line
 from roadgonio.errors import InputError
 from roadgonio.road import calc, interp, metrics
 from roadgonio.road.evaluate import Installation
@@ -82,12 +83,7 @@ def test_bad_luminaire_file(tmp_path, edit, words):
     lines = bundled_luminaire_path().read_bytes().decode("latin-1").split("\r\n")
     p = tmp_path / "bad.ldt"
     p.write_text("\r\n".join(edit(lines)), encoding="latin-1")
-    with pytest.raises(InputError) as ei:
-        read_ldt(p)
-    msg = str(ei.value)
-    assert str(p) in msg and "\n" not in msg
-    for w in words:
-        assert w in msg, msg
+    refused_in_one_line(lambda: read_ldt(p), p, words)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -320,16 +316,16 @@ def test_default_layout_is_the_documented_one():
     ("[installation]\nmaintenance_factor = 1.3\n", ["maintenance_factor"]),
     ("[installation]\nmounting_height_m = 1.8\n", ["mounting_height_m"]),
     ("[road\n", ["not valid TOML"]),
+    # a value of the wrong type or outside its range (mutation audit 10)
+    ("[installation]\nspacing_m = true\n", ["[installation] spacing_m", "number"]),
+    ("[road]\nlanes = true\n", ["[road] lanes", "whole number"]),
+    ("[installation]\ntilt_deg = 61\n", ["[installation] tilt_deg", "[-30, 60]"]),
+    ("[installation]\ntilt_deg = -31\n", ["[installation] tilt_deg", "[-30, 60]"]),
 ])
 def test_bad_layout(tmp_path, text, words):
     p = tmp_path / "lay.toml"
     p.write_text(text)
-    with pytest.raises(InputError) as ei:
-        read_layout(p)
-    msg = str(ei.value)
-    assert str(p) in msg and "\n" not in msg
-    for w in words:
-        assert w in msg, msg
+    refused_in_one_line(lambda: read_layout(p), p, words)
 
 
 def test_arrangements_place_rows():
