@@ -40,9 +40,8 @@ def _ratio_se_one_by_one(strata):
 def _stray_ratios_one_by_one(stats):
     out = []
     for st in stats:
-        keys = sorted(st.strata)
-        rd, rd_se = _ratio_se_one_by_one([st.direct[k] for k in keys])
-        q, q_se = _ratio_se_one_by_one([(st.direct[k][0], st.strata[k][1]) for k in keys])
+        rd, rd_se = _ratio_se_one_by_one(st.direct_strata())
+        q, q_se = _ratio_se_one_by_one(st.stray_strata())
         out.append((rd, rd_se, 1.0 - q, q_se))
     return tuple(np.array(v) for v in zip(*out))
 

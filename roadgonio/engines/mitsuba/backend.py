@@ -216,8 +216,9 @@ class MitsubaBackend:
         return out
 
     def _result(self, cell, ideal: float, st, converged: bool, seconds: float, stray_se=None) -> CellResult:
-        """The cell's result; ``stray_se``: its (direct ratio, SE, stray fraction, SE) if already
-        computed (:func:`~roadgonio.engines.mitsuba.passes.stray_ratios`), else from ``st``."""
+        """The cell's result; ``stray_se``: with stray light traced (``st.direct``), its (direct
+        ratio, SE, stray fraction, SE), computed with the pass's other cells
+        (:func:`~roadgonio.engines.mitsuba.passes.stray_ratios`)."""
         from roadgonio.engines.mitsuba.passes import relative
         ratio, se, _ = st.ratio_se()
         rel = relative(ratio, se)
@@ -233,11 +234,7 @@ class MitsubaBackend:
         stray = {}
         if st.direct:
             # the direct light alone (today's k_A) and the stray fraction, from the same replicates
-            if stray_se is None:
-                rd, rd_se = st.direct_ratio_se()
-                sf, sf_se = st.stray_fraction_se()
-            else:
-                rd, rd_se, sf, sf_se = (float(v) for v in stray_se)
+            rd, rd_se, sf, sf_se = (float(v) for v in stray_se)
             stray = dict(k_a_direct=float(rd / div), k_a_direct_se=float(rd_se / div),
                          stray_fraction=float(sf), stray_fraction_se=float(sf_se))
             extra["max_bounces"] = self.engine.max_bounces

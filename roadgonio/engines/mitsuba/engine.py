@@ -301,9 +301,10 @@ class BatchEngine:
                 del verts
 
         def finish() -> None:
-            for misses, rays in got_misses:
-                if misses():
-                    raise GeometryError(f"{misses()} of {rays} detector rays do not hit the sample: the detector "
+            for read_misses, rays in got_misses:
+                misses = read_misses()
+                if misses:
+                    raise GeometryError(f"{misses} of {rays} detector rays do not hit the sample: the detector "
                                         "footprint must lie on the sample; enlarge the sample or narrow the field")
             cell, rep = np.concatenate(got_cell), np.concatenate(got_rep)
             val = np.concatenate([out().astype(np.float64).sum(axis=1) for out in got])      # (blocks, 2)

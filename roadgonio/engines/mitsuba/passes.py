@@ -152,21 +152,29 @@ class CellStats:
     def residuals(self, ratio: float) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
         return {k: (reps, R - ratio * G) for k, (reps, R, G) in self.strata.items()}
 
+    def direct_strata(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per stratum, the replicates' (R_d, G_d) of the direct light alone (with stray light traced)."""
+        return [self.direct[k] for k in sorted(self.strata)]
+
+    def stray_strata(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per stratum, the replicates' (R_d, R): the road's direct light against its total, whose
+        ratio is 1 - the stray fraction (with stray light traced)."""
+        return [(self.direct[k][0], self.strata[k][1]) for k in sorted(self.strata)]
+
     def direct_ratio_se(self) -> tuple[float, float]:
         """Ratio R_d / G_d of the direct light alone and its standard error (delta method over the
         same replicates); the plain ratio where no stray light was traced."""
         if not self.direct:
             r, se, _ = self.ratio_se()
             return r, se
-        return strata_ratio_se([self.direct[k] for k in sorted(self.strata)])
+        return strata_ratio_se(self.direct_strata())
 
     def stray_fraction_se(self) -> tuple[float, float]:
         """Stray fraction of the road signal, 1 - R_d / R (R = direct + stray), and its standard
         error (delta method); exactly (0, 0) where no stray light was traced."""
         if not self.direct:
             return 0.0, 0.0
-        keys = sorted(self.strata)
-        q, se = strata_ratio_se([(self.direct[k][0], self.strata[k][1]) for k in keys])
+        q, se = strata_ratio_se(self.stray_strata())
         return 1.0 - q, se
 
 
@@ -227,10 +235,10 @@ def strata_ratio_se_many(cells: Sequence[Sequence[tuple[np.ndarray, np.ndarray]]
 
 def stray_ratios(stats: Sequence["CellStats"]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(direct ratio, its SE, stray fraction, its SE) of many cells at once
-    (:meth:`CellStats.direct_ratio_se`, :meth:`CellStats.stray_fraction_se`, the same numbers)."""
-    keys = [sorted(st.strata) for st in stats]
-    rd, rd_se = strata_ratio_se_many([[st.direct[k] for k in ks] for st, ks in zip(stats, keys)])
-    q, q_se = strata_ratio_se_many([[(st.direct[k][0], st.strata[k][1]) for k in ks] for st, ks in zip(stats, keys)])
+    (:meth:`CellStats.direct_ratio_se`, :meth:`CellStats.stray_fraction_se`, the same numbers), of
+    cells with stray light traced."""
+    rd, rd_se = strata_ratio_se_many([st.direct_strata() for st in stats])
+    q, q_se = strata_ratio_se_many([st.stray_strata() for st in stats])
     return rd, rd_se, 1.0 - q, q_se
 
 
