@@ -25,7 +25,7 @@ bench/results/outside.csv.
                                   [--backend quadrature] [--only single|joint]
                                   [--smoothing evidence|gcv] [--discrepancy-ell 1.0|none]
                                   [--estimate combined|measured] [--regions grid|peak]
-                                  [--beta-edges 12] [--eps-edges 45]
+                                  [--beta-edges 12] [--eps-edges 45] [--seeds 1]
 
 ``--estimate measured`` makes the corrected table r / k_A alone (combined across instruments), as it was
 before the fitted surface's own value was weighed in. ``--smoothing`` chooses how the data set the surface's smoothing parameters (the evidence, the
@@ -34,7 +34,11 @@ spacings) of the discrepancy component of u, ``none`` to leave it out (what u wa
 ``--regions grid`` (the default) gives the roughness penalty its own smoothing parameters in every
 band of beta (edges ``--beta-edges``, default 12 deg) times band of eps (``--eps-edges``, default
 45 deg); ``--regions peak`` the peak region (beta <= 12, eps >= 45 deg) and the rest, as before.
-The column ``lnev`` is the ln evidence of the best backbone variant (comparable between runs of the
+``--seeds N`` measures every truth N times, with N noise realisations (the first is the single run's;
+a truth's seeds do not depend on which other truths run), and ends with a summary per truth and
+method: the median and range of RMS, max and u(S1) / S1 over the seeds, and in how many of them
+every target was met (the maximum error moves with the noise: one realisation's verdict is not the
+method's). The column ``lnev`` is the ln evidence of the best backbone variant (comparable between runs of the
 same truth and instruments only).
 """
 from __future__ import annotations
@@ -137,6 +141,28 @@ def print_row(r: dict) -> None:
     print("  ".join(out), flush=True)
 
 
+def noise_seed(kind: str, which: str, rep: int = 0) -> int:
+    """The noise's seed of truth ``kind`` through instrument ``which``, realisation ``rep`` (0: the
+    single run's, as it always was for the full list of truths)."""
+    base = 100 + 10 * TRUTHS.index(kind) + (which == "B") if kind in TRUTHS else 100 + (which == "B")
+    return base + 1000 * rep
+
+
+def print_summary(rows: list[dict], n_seeds: int) -> None:
+    """Median [min, max] of RMS, max and u(S1)/S1 over the seeds, and how many met every target."""
+    print(f"\nover {n_seeds} noise realisations: median [min, max]; met = every target of issue 19 met")
+    print(f"{'truth':10s}  {'method':22s}  {'RMS %':>20s}  {'max %':>20s}  {'u(S1)/S1 %':>20s}  met")
+    keys = dict.fromkeys((r["truth"], r["method"]) for r in rows if "targets" in r)
+    for truth, method in keys:
+        sel = [r for r in rows if (r["truth"], r["method"]) == (truth, method)]
+        cols = []
+        for key in ("rms_pct", "max_pct", "u_S1_pct"):
+            v = np.array([r[key] for r in sel])
+            cols.append(f"{np.median(v):6.2f} [{v.min():5.2f}, {v.max():5.2f}]")
+        met = sum(r["targets"] == "met" for r in sel)
+        print(f"{truth:10s}  {method:22s}  " + "  ".join(f"{c:>20s}" for c in cols) + f"  {met}/{len(sel)}")
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--regenerate", action="store_true", help="recompute the cached reference k_A of the truths")
@@ -158,7 +184,11 @@ def main() -> int:
                          "of --beta-edges times those of --eps-edges; peak: the peak region and the rest)")
     ap.add_argument("--beta-edges", default="12", help="with --regions grid: band edges of beta (deg)")
     ap.add_argument("--eps-edges", default="45", help="with --regions grid: band edges of eps (deg)")
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="noise realisations per truth (default 1); with more, a summary over them at the end")
     args = ap.parse_args()
+    if args.seeds < 1:
+        ap.error("--seeds must be at least 1")
     from roadgonio.correction.flexible import DISCREPANCY_ELL, SurfaceSettings
     ell = DISCREPANCY_ELL if args.discrepancy_ell is None else (
         None if args.discrepancy_ell.lower() == "none" else float(args.discrepancy_ell))
@@ -176,17 +206,17 @@ def main() -> int:
           f"regions {args.regions} {edges or ''}")
     print("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
     rows: list[dict] = []
-    for n, kind in enumerate(args.truths.split(",")):
+    for kind, rep in ((kind, rep) for kind in args.truths.split(",") for rep in range(args.seeds)):
         tabs = {}
         for w in INSTRUMENTS:
             k = truth_ka(kind, w, args.regenerate)
-            tabs[w] = measured(kind, w, k, seed=100 + 10 * n + (w == "B"))
+            tabs[w] = measured(kind, w, k, seed=noise_seed(kind, w, rep))
             meas, truth = tabs[w]
             m = meas.mask
             err = np.log(meas.r[m] / truth.r[m])
             rows.append({"truth": kind, "method": f"{w} as measured", "rms_pct": 100 * float(np.sqrt(np.mean(err ** 2))),
                          "max_pct": 100 * float(np.max(np.abs(err))), "S1_true": truth.s1(), "S1": meas.s1(),
-                         "k_a_min": float(np.nanmin(k)), "load": load()})
+                         "k_a_min": float(np.nanmin(k)), "load": load(), "seed": rep})
             print_row(rows[-1])
         if args.only in (None, "single"):
             for w in INSTRUMENTS:
@@ -199,7 +229,7 @@ def main() -> int:
                 rows.append({"truth": kind, "method": f"{w} alone (surface)", **s, "birge": res.fit.birge,
                              "ln_evidence": max(v["log_evidence"] for v in res.fit.summary()["variants"]),
                              "k_a_min": float(np.nanmin(res.k_a)), "seconds": sec, "targets": verdict(kind, s),
-                             "load": load()})
+                             "load": load(), "seed": rep})
                 print_row(rows[-1])
         if args.only in (None, "joint"):
             t0 = time.perf_counter()
@@ -211,8 +241,10 @@ def main() -> int:
             rows.append({"truth": kind, "method": "A + B joint", **s, "birge": res.best.fit.birge,
                          "ln_evidence": max(v.fit.log_evidence for v in res.variants),
                          "k_a_min": float(np.nanmin(res.parts[0].k_a)), "seconds": sec, "targets": verdict(kind, s),
-                         "load": load()})
+                         "load": load(), "seed": rep})
             print_row(rows[-1])
+    if args.seeds > 1:
+        print_summary(rows, args.seeds)
     RESULTS.mkdir(exist_ok=True)
     name = "outside.csv" if (args.smoothing, ell) == ("evidence", DISCREPANCY_ELL) else \
         f"outside_{args.smoothing}_ell-{'none' if ell is None else format(ell, '.3g')}.csv"
@@ -225,8 +257,11 @@ def main() -> int:
     elif (args.beta_edges, args.eps_edges) != ("12", "45"):
         tag = f"{args.regions}-{args.beta_edges.replace(',', '-')}_{args.eps_edges.replace(',', '-')}"
         name = name.replace(".csv", f"_{tag}.csv")
+    if args.seeds > 1:
+        name = name.replace(".csv", f"_seeds-{args.seeds}.csv")
     with open(RESULTS / name, "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS], extrasaction="ignore")
+        wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS] + (["seed"] if args.seeds > 1 else []),
+                            extrasaction="ignore")
         wr.writeheader()
         wr.writerows(rows)
     print(f"wrote {RESULTS / name}")
