@@ -62,6 +62,11 @@ def test_spec_parses_string_and_toml(tmp_path):
     t = parse_sigma_spec(str(f))
     assert t.sigma[:3] == (0.01, 0.05, 0.1) and t.distribution[:3] == ("normal", "rect", "rect")
     assert t.sigma[3:] == (0.0,) * 4
+    # a table without a distribution is normal; a sigma of 0 is valid (mutation audit 11)
+    f.write_text('tilt_x_deg = {sigma = 0.02}\ndetector_distance_m = 0\n')
+    t = parse_sigma_spec(str(f))
+    assert (t.sigma[3], t.distribution[3], t.sigma[6]) == (0.02, "normal", 0.0)
+    assert parse_sigma_spec("alpha_deg=0").sigma[0] == 0.0
 
 
 def test_every_distribution_name_the_parser_takes_is_documented():
@@ -84,6 +89,8 @@ def test_every_distribution_name_the_parser_takes_is_documented():
     ("eps_deg=0.1:cauchy", "--sigma eps_deg", "unknown distribution"),
     ("eps_deg", "--sigma", "KEY=SIGMA"),
     ("eps_deg=nan", "--sigma eps_deg", "finite"),
+    ("eps_deg=inf", "--sigma eps_deg", "finite"),                       # mutation audit 11: inf was accepted
+    ("eps_deg=0.1,eps_deg=0.2", "--sigma", "given twice"),              # ... and the last of two kept
 ])
 def test_spec_errors_name_option_and_key(text, field, words):
     with pytest.raises(InputError) as e:
@@ -91,12 +98,19 @@ def test_spec_errors_name_option_and_key(text, field, words):
     assert e.value.field == field and words in str(e.value)
 
 
-def test_spec_file_errors_name_file(tmp_path):
+@pytest.mark.parametrize("text, field", [
+    ("alpha_deg = -1\n", "alpha_deg"),
+    # mutation audit 11: each of these was accepted by a changed reader and passed every test
+    ("alpha_deg = true\n", "alpha_deg"),
+    ("alpha_deg = {distribution = \"rect\"}\n", "alpha_deg"),
+    ("alpha_deg = {sigma = \"0.1\"}\n", "alpha_deg.sigma"),
+    ("[sigma]\nalpha_deg = 0.1\n[extra]\nx = 1\n", "extra"),
+])
+def test_spec_file_errors_name_file(tmp_path, text, field):
+    from helpers import refused_in_one_line
     f = tmp_path / "bad.toml"
-    f.write_text("alpha_deg = -1\n")
-    with pytest.raises(InputError) as e:
-        parse_sigma_spec(str(f))
-    assert str(f) in str(e.value) and "alpha_deg" in str(e.value)
+    f.write_text(text)
+    refused_in_one_line(lambda: parse_sigma_spec(str(f)), f, [field])
 
 
 def test_rectangular_draw_has_the_given_standard_deviation():
