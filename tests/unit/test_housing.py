@@ -130,7 +130,7 @@ def test_a_source_through_a_wall_names_the_cell_and_the_wall():
     check_sources(housed(height_m=1.005), Housing.of(housed(height_m=1.005)), [(0.0, 0.0)])
     check_sources(housed(height_m=0.9, lid=False), Housing.of(housed(height_m=0.9, lid=False)), [(0.0, 0.0)])
     inst = housed(baffles=[{"x_m": -0.97, "height_m": 0.3}])       # through the disc at tan 4 (x = -0.970 m)
-    with pytest.raises(GeometryError, match=r"tan eps = 4, beta = 0.*baffle 1"):
+    with pytest.raises(GeometryError, match=r"tan eps = 4, beta = 0: its disc \(radius .*\) reaches baffle 1"):
         check_sources(inst, Housing.of(inst), [(4.0, 0.0)])
 
 
