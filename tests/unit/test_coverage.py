@@ -49,6 +49,16 @@ def test_hand_computed_fill():
     b = np.array([k[1] for k in cases])
     got = np.log(fill_cells(tm, bm, rm, t, b))
     assert np.allclose(got, list(cases.values()), rtol=0, atol=ROUND_TOL), dict(zip(cases, got))
+    # two cells at tan eps = 0 (one direction): their mean starts every column (mutation audit 11: the
+    # first of them passed every test)
+    two = np.log(fill_cells([0.0, 0.0, 1.0], [0.0, 90.0, 0.0], np.exp([1.0, 2.0, 3.0]), [0.0, 0.5], [45.0, 0.0]))
+    assert np.allclose(two, [1.5, 2.25], rtol=0, atol=ROUND_TOL), two
+    # a column given out of order is sorted by tan eps: up, down, up again, then on along the last
+    # segment (mutation audit 11: the points in the order given passed every test)
+    zig = np.log(fill_cells([0.0, 3.0, 1.0, 2.0], [0.0] * 4, np.exp([0.0, 2.0, 3.0, 1.0]), [1.5, 4.0], [0.0, 0.0]))
+    assert np.allclose(zig, [2.0, 3.0], rtol=0, atol=ROUND_TOL), zig
+    with pytest.raises(InputError, match="positive"):
+        fill_cells([0.0, 1.0], [0.0, 0.0], [1.0, 0.0], [0.5], [0.0])
 
 
 def test_an_instrument_without_cells_reports_what_it_measures():
@@ -66,6 +76,10 @@ def test_an_instrument_without_cells_reports_what_it_measures():
     ({"measured": [[0.0, 0.0]], "fill": "spline"}, "tan_eps_then_beta"),
     ({"measured": []}, "at least one"),
     ({"measure": [[0.0, 0.0]]}, "unknown key"),
+    # mutation audit 11: each of these was accepted by a changed reader and passed every test
+    ({"measured": [[0.0, 0.0], [-1.0, 0.0]]}, "tan_eps >= 0"),
+    ({"measured": [[0.0, 0.0], [True, 0.0]]}, "entry 2"),
+    ({"measured": [[0.0, 0.0], [float("inf"), 0.0]]}, "entry 2"),
 ])
 def test_bad_cells_sections_are_one_line_errors(cells, msg):
     d = load_instrument("lab").to_dict()

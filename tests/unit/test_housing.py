@@ -36,12 +36,33 @@ def housed(**housing) -> Instrument:
     ({"wall_reflectance": 0.1, "baffles": [{"x_m": 0.1, "height": 0.1}]}, "housing.baffles.0"),
     ({"wall_reflectance": 0.1, "baffles": [{"x_m": "a", "height_m": 0.1}]}, "housing.baffles.0.x_m"),
     ({"wall_reflectance": 0.1, "walls": 0.1}, "housing"),
+    # mutation audit 11: each of these was accepted by a changed reader and passed every test
+    ({"wall_reflectance": True}, "housing.wall_reflectance"),
+    ({"wall_reflectance": 0.1, "margin_m": -0.01}, "housing.margin_m"),
+    ({"wall_reflectance": 0.1, "height_m": float("inf")}, "housing.height_m"),
+    ({"wall_reflectance": 0.1, "x_m": [0.5, 0.5]}, "housing.x_m"),
+    ({"wall_reflectance": 0.1, "y_m": [1.0, -1.0]}, "housing.y_m"),
+    ({"wall_reflectance": 0.1, "x_m": [-1.0, 0.0, 1.0]}, "housing.x_m"),
+    ({"wall_reflectance": 0.1, "baffles": [{"x_m": 0.1}]}, "housing.baffles.0"),
+    ({"wall_reflectance": 0.1, "baffles": [{"x_m": 0.1, "height_m": -0.01}]}, "housing.baffles.0.height_m"),
 ])
 def test_bad_housing_is_one_error_naming_the_file_and_field(table, field):
     d = load_instrument("portable").to_dict()
     with pytest.raises(InputError) as err:
         Instrument.from_dict({**d, "housing": table}, path="box.toml")
     assert err.value.field == field and str(err.value).startswith("box.toml")
+
+
+def test_housing_values_at_their_limits_are_accepted_and_round_trip():
+    """Reflectances 0 and 1, a margin of 0 and a baffle of height 0 are valid; to_dict gives back
+    every key that differs from its default (mutation audit 11: refusing each limit, or dropping
+    lid = false from to_dict, passed every test)."""
+    for table in ({"wall_reflectance": 0.0, "baffle_reflectance": 1.0, "margin_m": 0.0},
+                  {"wall_reflectance": 1.0, "baffles": [{"x_m": 0.1, "height_m": 0.0}]},
+                  {"wall_reflectance": 0.2, "baffle_reflectance": 0.4, "x_m": [-1.2, 1.1], "y_m": [-0.3, 1.2],
+                   "height_m": 1.3, "margin_m": 0.02, "lid": False, "baffles": [{"x_m": 0.6, "height_m": 0.01}]}):
+        h = Housing.from_dict(table)
+        assert h.to_dict() == table and Housing.from_dict(h.to_dict()) == h
 
 
 def test_default_box_holds_every_part_with_the_margin():
@@ -58,7 +79,7 @@ def test_default_box_holds_every_part_with_the_margin():
 
 
 def test_panels_face_into_the_box_and_the_floor_is_road_around_the_sample():
-    inst = housed(baffles=[{"x_m": -0.6, "height_m": 0.02}, {"x_m": -0.7, "height_m": 0.0}])
+    inst = housed(baffles=[{"x_m": -0.6, "height_m": 0.02}, {"x_m": -0.7, "height_m": 0.0}], baffle_reflectance=0.3)
     h = Housing.of(inst)
     box = housing_box(inst, h)
     centre = np.array([sum(box.x) / 2, sum(box.y) / 2, box.height / 2])
@@ -71,6 +92,9 @@ def test_panels_face_into_the_box_and_the_floor_is_road_around_the_sample():
             assert np.dot(centre - np.array(p.centre), p.normal) > 0      # reflecting face inwards
             assert p.reflectance == 0.05 and not p.road
     assert panels["housing_baffle_1"].two_sided and panels["housing_baffle_1"].centre[0] == -0.6
+    assert panels["housing_baffle_1"].reflectance == 0.3              # its own reflectance, not the walls'
+    open_top = housed(lid=False)
+    assert "housing_lid" not in {p.id for p in housing_panels(open_top, Housing.of(open_top))}
     floor = {k: p for k, p in panels.items() if p.road}
     # the sample is 1 m x 0.3 m: road strips at x < -0.5, x > 0.5 and y > 0.15 (the box starts at y = -0.075)
     assert sorted(floor) == ["housing_floor_x_max", "housing_floor_x_min", "housing_floor_y_max"]
@@ -81,14 +105,32 @@ def test_panels_face_into_the_box_and_the_floor_is_road_around_the_sample():
 
 def test_a_source_through_a_wall_names_the_cell_and_the_wall():
     inst = housed(x_m=[-0.99, 1.05])
-    with pytest.raises(GeometryError, match=r"tan eps = 12, beta = 0 \(and \d+ more cells\).*housing_wall_x_min"):
+    with pytest.raises(GeometryError, match=r"tan eps = 12, beta = 0 \(and 1 more cells\).*housing_wall_x_min"):
         check_sources(inst, Housing.of(inst), [(1.0, 0.0), (12.0, 0.0), (11.5, 0.0)])
     check_sources(inst, Housing.of(inst), [(1.0, 0.0), (5.0, 90.0)])
+    # the wall at the disc's edge: 0.5 mm inside it blocks, 0.5 mm outside not (mutation audit 11:
+    # a wall 1 mm into the disc passed every test)
+    from roadgonio.instrument.enclosure import source_discs
+    edge = float(source_discs(inst, [(12.0, 0.0)])[0][:, 0].min())
+    for shift, blocks in ((5e-4, True), (-5e-4, False)):
+        at = housed(x_m=[edge + shift, 1.05])
+        if blocks:
+            with pytest.raises(GeometryError, match=r"tan eps = 12, beta = 0:.*housing_wall_x_min"):
+                check_sources(at, Housing.of(at), [(12.0, 0.0)])
+        else:
+            check_sources(at, Housing.of(at), [(12.0, 0.0)])
     inst = housed(height_m=0.9)
     with pytest.raises(GeometryError, match=r"tan eps = 0, beta = 0.*housing_lid"):
         check_sources(inst, Housing.of(inst), [(0.0, 0.0)])
+    # the zenith source's disc is level at z = D_S = 1 m: a lid 5 mm lower blocks it, 5 mm higher not;
+    # an open top never does (mutation audit 11: a 1 cm tolerance and a lid that blocks when open passed)
+    inst = housed(height_m=0.995)
+    with pytest.raises(GeometryError, match=r"tan eps = 0, beta = 0.*housing_lid"):
+        check_sources(inst, Housing.of(inst), [(0.0, 0.0)])
+    check_sources(housed(height_m=1.005), Housing.of(housed(height_m=1.005)), [(0.0, 0.0)])
+    check_sources(housed(height_m=0.9, lid=False), Housing.of(housed(height_m=0.9, lid=False)), [(0.0, 0.0)])
     inst = housed(baffles=[{"x_m": -0.97, "height_m": 0.3}])       # through the disc at tan 4 (x = -0.970 m)
-    with pytest.raises(GeometryError, match=r"tan eps = 4, beta = 0.*baffle 1"):
+    with pytest.raises(GeometryError, match=r"tan eps = 4, beta = 0: its disc \(radius .*\) reaches baffle 1"):
         check_sources(inst, Housing.of(inst), [(4.0, 0.0)])
 
 
@@ -117,6 +159,10 @@ def test_a_baffle_in_the_line_of_sight_is_an_error_and_a_low_one_is_not():
     assert err.value.field == "housing.baffles.0.height_m" and err.value.path == str(HOUSED)
     inst = housed(baffles=[{"x_m": 0.6, "height_m": 0.004}])
     check_detector_view(inst, Housing.of(inst))
+    # a baffle beyond the footprint (the rays end on the sample before it) does not block the view
+    # (mutation audit 11: rays followed through the sample plane passed every test)
+    inst = housed(baffles=[{"x_m": -0.6, "height_m": 0.02}])
+    check_detector_view(inst, Housing.of(inst))
     inst = housed(x_m=[-1.05, 0.9])
     with pytest.raises(InputError, match="pupil.*housing_wall_x_max") as err:
         check_detector_view(inst, Housing.of(inst))
@@ -128,6 +174,8 @@ def test_a_baffle_in_the_line_of_sight_is_an_error_and_a_low_one_is_not():
     ({"x_m": [-0.5, 0.5], "y_m": [0.0, 1.05]}, "housing.x_m"),
     ({"y_m": [0.0, 1.05]}, "housing.y_m"),
     ({"margin_m": 0.0}, "housing.margin_m"),
+    ({"baffles": [{"x_m": -0.3, "height_m": 1.2}]}, "housing.baffles.0.height_m"),     # through the lid
+    ({"baffles": [{"x_m": 1.06, "height_m": 0.02}]}, "housing.baffles.0.x_m"),         # 1 cm beyond the wall
 ])
 def test_a_housing_that_cannot_hold_the_view_names_the_file_and_field(housing, field):
     """Checks of the instrument file (no computation): the file and the [housing] field, like any
@@ -169,3 +217,30 @@ def test_conventions_list_every_housing_and_scene_key():
     rows = [ln for ln in text.splitlines() if ln.startswith("|")]
     keys = set(re.findall(r"`([a-z_]+)`", "\n".join(rows)))
     assert set(HOUSING_KEYS) <= keys and set(SCENE_KEYS) - {"params"} <= keys
+
+
+def test_the_source_discs_of_a_fixed_height_source_are_at_its_distance():
+    """The housing checks place each cell's source disc at that cell's distance: height / cos eps on
+    a fixed-height path (mutation audit 11: the height for every cell passed every test)."""
+    from roadgonio.instrument.enclosure import source_discs
+    inst = load_instrument("corridor")
+    cells = [(0.0, 0.0), (2.0, 30.0), (12.0, 0.0)]
+    for (t, _), disc in zip(cells, source_discs(inst, cells)):
+        assert np.linalg.norm(disc[-1]) == pytest.approx(inst.source.height_m * math.hypot(1.0, t), rel=1e-12)
+        assert np.allclose(np.linalg.norm(disc[:-1] - disc[-1], axis=1), inst.source.radius_m, rtol=1e-12, atol=0.0)
+
+
+def test_a_mesh_sample_must_cover_the_floor_of_the_housing(tmp_path):
+    """A mesh sample is the housing's floor: short of the box in x or in y it is an error (light
+    would leave through the gap); covering it, not (mutation audit 11: a check of x alone passed
+    every test)."""
+    from helpers import grid_mesh, with_mesh
+    inst = housed()
+    box = housing_box(inst, Housing.of(inst))
+    xs, ys = [box.x[0] - 0.01, box.x[1] + 0.01], [box.y[0] - 0.01, box.y[1] + 0.01]
+    for k, (mx, my) in enumerate(((xs, [box.y[0] + 0.03, ys[1]]), (xs, [ys[0], 0.15]), ([-0.5, xs[1]], ys))):
+        mesh = with_mesh(inst, grid_mesh(tmp_path / f"short{k}.ply", mx, my))
+        with pytest.raises(GeometryError, match="does not cover the floor of the housing"):
+            check_detector_view(mesh, Housing.of(mesh))
+    whole = with_mesh(inst, grid_mesh(tmp_path / "whole.ply", xs, ys))
+    check_detector_view(whole, Housing.of(whole))

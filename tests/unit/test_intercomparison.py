@@ -320,3 +320,146 @@ def test_a_shared_effects_draws_are_independent_of_every_participants_own_draws(
         for k in range(own.shape[1]):
             r = np.corrcoef(tile, own[:, k])[0, 1]
             assert abs(math.atanh(r)) * math.sqrt(m - 3) < z_lim, (p, k, r)
+
+
+def _csv_rows(path):
+    import csv
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_the_csv_summaries_are_the_numbers_of_intercompare_nc(tmp_path, collimated):
+    """intercompare.csv, correlation.csv and sensitivity.csv against the same figures recomputed
+    with numpy from the arrays of intercompare.nc (reported r, stated u, E_n, d, Birge ratio,
+    consistency, consensus values and tau^2); the sensitivity's unidealised figures are the
+    summary's, its ranks count 1, 2, ... in order of the drop. Three collimated participants, A and C
+    sharing a reference tile (a stated correlation), B with an unstated calibration error (tau^2 >
+    0). Mutation audit 11: SEs over R instead of sqrt(R), an RMS as a mean |error|, the stated u
+    not in %, tau^2 for tau, every consensus' error as the weighted mean's, the correlation's
+    percentiles mislabelled or its errors not centred, the pair's names swapped, a share of the
+    weighted mean's compatibility for the truth's, and ranks all 1 passed every test."""
+    from roadgonio.intercomparison.run import REFERENCES
+    from roadgonio.intercomparison.statistics import METHODS
+    R, ut = 5, 0.01
+    noise = {"A": 0.005, "B": 0.01, "C": 0.004}
+    parts = [coll("A", noise["A"], stated=["repeatability", "calibration"]),
+             coll("B", noise["B"], calibration_u_rel=0.03),
+             coll("C", noise["C"], stated=["repeatability", "calibration"])]
+    study = make_study(tmp_path, parts, [{"name": "tile", "kind": "reference_tile", "u_rel": ut,
+                                          "participants": ["A", "C"]}], realisations=R)
+    out = tmp_path / "out"
+    ds = run_study(study, out, workers=0, progress=False, plots=False).dataset
+    truth = ds["truth"].values
+    cell = np.isfinite(truth)
+    t = truth[cell]
+    dec = ds.sel(scenario="declared")
+    summary = {r["participant"]: r for r in _csv_rows(out / "intercompare.csv") if r["scenario"] == "declared"}
+
+    def near(row, want):
+        for key, v in want.items():
+            assert float(row[key]) == pytest.approx(float(v), rel=1e-5, abs=1e-12), (key, row[key], v)
+
+    X = dec["r_reported"].values[:, :, cell]                        # (participant, realisation, cell)
+    U = dec["u_stated"].values[:, :, cell] / X                       # relative
+    for p, name in enumerate(noise):
+        err = X[p] / t - 1.0
+        d = dec["d"].sel(reference="weighted_mean", participant=name).values[:, cell].astype(np.float64)
+        want = {"realisations": R, "repeatability_pct": 100 * noise[name], "stated_u_median_pct": 100 * np.median(U[p]),
+                "rms_error_vs_truth_pct": 100 * np.sqrt(np.mean(err ** 2)),
+                "max_abs_mean_error_vs_truth_pct": 100 * np.max(np.abs(err.mean(axis=0))),
+                "rms_d_weighted_mean_pct": 100 * np.sqrt(np.mean((d / t) ** 2))}
+        for ref in REFERENCES:
+            share = np.mean(np.abs(dec["E_n"].sel(reference=ref, participant=name).values[:, cell]) <= 1.0, axis=1)
+            want[f"share_En_le_1_{ref}"] = share.mean()
+            want[f"share_En_le_1_{ref}_se"] = share.std(ddof=1) / math.sqrt(R)
+        near(summary[name], want)
+    cons = dec["consistent"].values[:, cell].mean(axis=1)
+    en = dec["E_n"].sel(reference="weighted_mean").values[:, :, cell]
+    want = {"birge_ratio_median": np.median(dec["birge_ratio"].values[:, cell]), "share_consistent_cells": cons.mean(),
+            "share_consistent_cells_se": cons.std(ddof=1) / math.sqrt(R),
+            "share_all_compatible_weighted_mean": np.mean(np.all(np.abs(en) <= 1.0, axis=0))}
+    for m in METHODS:
+        v = dec["reference_value"].sel(consensus=m).values[:, cell]
+        want[f"rms_error_{m}_vs_truth_pct"] = 100 * np.sqrt(np.mean((v / t - 1.0) ** 2))
+    for m in ("mandel_paule", "dersimonian_laird"):
+        want[f"tau_rel_median_{m}_pct"] = 100 * np.median(np.sqrt(dec["tau2"].sel(consensus=m).values[:, cell]) / t)
+        assert want[f"tau_rel_median_{m}_pct"] > 0.0                 # B's unstated error: the case shows tau
+    near(summary["ALL"], want)
+    # correlation.csv: per pair, the errors' correlation over the realisations and the stated one
+    e = X / t - 1.0
+    e = e - e.mean(axis=1, keepdims=True)
+    sd = np.sqrt(np.mean(e * e, axis=1))
+    u_med = np.median(U, axis=1)
+    g = np.array([ut, 0.0, ut])
+    corr = [r for r in _csv_rows(out / "correlation.csv") if r["scenario"] == "declared"]
+    assert [(r["participant_a"], r["participant_b"]) for r in corr] == [("A", "B"), ("A", "C"), ("B", "C")]
+    for r, (i, j) in zip(corr, ((0, 1), (0, 2), (1, 2))):
+        emp = np.mean(e[i] * e[j], axis=0) / (sd[i] * sd[j])
+        stated = g[i] * g[j] / (u_med[i] * u_med[j])
+        want = {"realisations": R}
+        for key, v in (("simulated", emp), ("stated", stated)):
+            lo, med, hi = np.percentile(v, [5, 50, 95])
+            want.update({f"{key}_median": med, f"{key}_p05": lo, f"{key}_p95": hi})
+        near(r, want)
+    assert float(corr[1]["stated_median"]) > 0.5 and u_med[0, 0] != u_med[2, 0]    # A, C: a tile, their own u
+    # sensitivity.csv: the figures before idealising are the summary's; ranked by the drop
+    sens = [r for r in _csv_rows(out / "sensitivity.csv") if r["scenario"] == "declared"]
+    for name in noise:
+        mine = [r for r in sens if r["participant"] == name]
+        assert [int(r["rank"]) for r in mine] == list(range(1, len(mine) + 1)) and len(mine) >= 2
+        drops = [float(r["drop_pct"]) for r in mine]
+        assert drops == sorted(drops, reverse=True)
+        s = summary[name]
+        for r in mine:
+            near(r, {"rms_error_vs_truth_pct": s["rms_error_vs_truth_pct"],
+                     "rms_d_weighted_mean_pct": s["rms_d_weighted_mean_pct"],
+                     "share_compatible_truth": s["share_En_le_1_truth"],
+                     "share_compatible_weighted_mean": s["share_En_le_1_weighted_mean"], "realisations": R})
+
+
+def test_validation_rows_pair_the_full_and_the_frozen_figures():
+    """validation.csv's rows from known full and frozen tables: per figure and participant the mean
+    over the realisations where every participant has its full correction (realisation 1 lacks one:
+    left out), the mean paired difference frozen - full, its SE and the full figure's SE; no rows
+    with fewer than two such realisations (mutation audit 11: the difference's sign, full and
+    frozen swapped and full_se as the difference's SE passed every test)."""
+    from types import SimpleNamespace
+
+    from roadgonio.intercomparison import simulate as sim
+    from roadgonio.intercomparison.outputs import VALIDATION_COLUMNS
+    from roadgonio.intercomparison.run import comparison, validation_rows
+    rng = np.random.default_rng(2)
+    R, P, n = 6, 3, 8
+    truth = rng.uniform(0.01, 0.05, n)
+    urel = np.full((R, P, n), 0.01)
+    xs = {"all_corrected": truth * (1 + 0.01 * rng.standard_normal((R, P, n)))}
+    xs[sim.FROZEN] = xs["all_corrected"] * (1 + 0.004 + 0.002 * rng.standard_normal((R, P, n)))
+    stats = {s: comparison(xs[s], urel, np.zeros((0, P, n)), truth, 2.0) for s in xs}
+    full = {"all_corrected": np.ones((R, P), dtype=bool)}
+    full["all_corrected"][1, 2] = False
+    setup = SimpleNamespace(truth=truth, participants=[SimpleNamespace(name=c) for c in "ABC"])
+    rows = validation_rows(setup, xs, stats, full)
+    assert rows and all(list(r) == list(VALIDATION_COLUMNS) for r in rows)
+    by = {(r["figure"], r["participant"]): r for r in rows}
+    keep = np.arange(R) != 1
+    m = int(keep.sum())
+
+    def check(row, a, b):
+        assert row["realisations"] == m
+        want = {"full": a.mean(), "frozen": b.mean(), "difference": (b - a).mean(),
+                "difference_se": (b - a).std(ddof=1) / math.sqrt(m), "full_se": a.std(ddof=1) / math.sqrt(m)}
+        for key, v in want.items():
+            assert row[key] == pytest.approx(v, rel=1e-12, abs=1e-15), key
+        assert abs(want["difference"]) > 1e-6                             # the frozen tables are 0.4 % higher
+    for p, name in enumerate("ABC"):
+        rms = {s: 100 * np.sqrt(np.mean((xs[s][keep, p] / truth - 1.0) ** 2, axis=1)) for s in xs}
+        check(by[("rms_error_vs_truth_pct", name)], rms["all_corrected"], rms[sim.FROZEN])
+    allc = {s: np.mean(np.all(np.abs(stats[s]["equivalence"]["weighted_mean"]["E_n"][keep]) <= 1.0, axis=1), axis=1)
+            for s in xs}
+    row = by[("share_all_compatible_weighted_mean", "ALL")]
+    assert row["full"] == pytest.approx(allc["all_corrected"].mean(), rel=1e-12)
+    assert row["frozen"] == pytest.approx(allc[sim.FROZEN].mean(), rel=1e-12)
+    full["all_corrected"][3:, 0] = False                                     # two realisations left: rows
+    assert validation_rows(setup, xs, stats, full)
+    full["all_corrected"][0, 0] = False                                      # one: none
+    assert validation_rows(setup, xs, stats, full) == []

@@ -68,6 +68,10 @@ def test_single_replicate_has_no_se_and_zero_signal_has_no_ratio():
     r, se, g = dark.ratio_se()
     assert math.isnan(r) and se == math.inf and g == 0.0
     assert relative(0.0, 0.0) == 0.0 and relative(0.0, 1.0) == math.inf
+    # without stray light traced: the direct light is the cell's own ratio, the stray fraction exactly 0
+    st = CellStats()
+    st.add(0, 8, np.arange(16), *synthetic(np.random.default_rng(4), 16))
+    assert st.direct_ratio_se() == st.ratio_se()[:2] and st.stray_fraction_se() == (0.0, 0.0)
 
 
 def test_strata_ratio_se_of_many_cells_equals_each_cell_alone():
@@ -130,13 +134,17 @@ def test_add_strata_vectorised_equals_one_by_one_and_refuses_duplicates():
     owner = np.repeat([0, 2, 3], [16, 20, 16])
     reps = np.concatenate([np.arange(16), np.arange(20), np.arange(16)])
     R, G = synthetic(rng, len(owner))
+    Rd, Gd = 0.8 * R, 0.9 * G                   # with stray light: each cell's own direct sums
     many = [CellStats() for _ in range(4)]
-    add_strata(many, 0, 8, owner, reps, R, G)
+    add_strata(many, 0, 8, owner, reps, R, G, Rd, Gd)
     for c in (0, 2, 3):
         one = CellStats()
         m = owner == c
         one.add(0, 8, reps[m], R[m], G[m])
         assert many[c].ratio_se() == pytest.approx(one.ratio_se(), rel=1e-12, abs=0.0)
+        # mutation audit 11: every cell getting the first cell's direct sums passed every test
+        np.testing.assert_array_equal(many[c].direct[(0, 8)][0], Rd[m])
+        np.testing.assert_array_equal(many[c].direct[(0, 8)][1], Gd[m])
     assert many[1].samples == 0
     with pytest.raises(ValueError, match="twice"):
         add_strata(many, 0, 8, owner, reps, R, G)
@@ -236,9 +244,15 @@ def test_cell_stats_survive_the_checkpoint_round_trip_exactly():
     one = CellStats()
     one.add(0, 6, np.arange(16), *synthetic(rng, 16, n=64))
     one.add(1, 9, np.arange(1), *synthetic(rng, 1, n=512))         # a stratum of one replicate
-    for st in (*full, one):
+    stray = CellStats()                                              # with stray light: the direct sums too
+    for p in range(2):
+        R, G = synthetic(rng, 16)
+        add_strata([stray], p, 8, np.zeros(16, dtype=np.int64), np.arange(16), R, G, 0.7 * R, 0.9 * G)
+    for st in (*full, one, stray):
         back = CellStats.from_dict(json.loads(json.dumps(st.to_dict())))
         assert back.ratio_se() == st.ratio_se() and back.single == st.single
+        # mutation audit 11: a reader swapping or dropping the direct sums passed every test
+        assert back.direct_ratio_se() == st.direct_ratio_se() and back.stray_fraction_se() == st.stray_fraction_se()
         assert back.point_variances() == st.point_variances()
         assert (back.samples, back.passes, back.r0, back.sum_r, back.sum_g) == \
             (st.samples, st.passes, st.r0, st.sum_r, st.sum_g)

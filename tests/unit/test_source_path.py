@@ -64,6 +64,7 @@ def test_the_arc_is_the_default_and_files_round_trip():
     ({"path": "fixed_height", "height_m": 1.0, "distance_m": 1.0}, "source.distance_m"),
     ({"distance_m": 1.0, "height_m": 1.0}, "source.height_m"),
     ({"path": "fixed_height", "height_m": -1.0}, "source.height_m"),
+    ({"path": "fixed_height", "height_m": 0.0}, "source.height_m"),     # mutation audit 11: 0 was accepted
     ({"path": "fixed_height", "height_m": 0.01, "radius_m": 0.02}, "source.radius_m"),
 ])
 def test_bad_source_paths_are_one_line_errors(source, field):

@@ -62,6 +62,11 @@ def test_spec_parses_string_and_toml(tmp_path):
     t = parse_sigma_spec(str(f))
     assert t.sigma[:3] == (0.01, 0.05, 0.1) and t.distribution[:3] == ("normal", "rect", "rect")
     assert t.sigma[3:] == (0.0,) * 4
+    # a table without a distribution is normal; a sigma of 0 is valid (mutation audit 11)
+    f.write_text('tilt_x_deg = {sigma = 0.02}\ndetector_distance_m = 0\n')
+    t = parse_sigma_spec(str(f))
+    assert (t.sigma[3], t.distribution[3], t.sigma[6]) == (0.02, "normal", 0.0)
+    assert parse_sigma_spec("alpha_deg=0").sigma[0] == 0.0
 
 
 def test_every_distribution_name_the_parser_takes_is_documented():
@@ -84,6 +89,8 @@ def test_every_distribution_name_the_parser_takes_is_documented():
     ("eps_deg=0.1:cauchy", "--sigma eps_deg", "unknown distribution"),
     ("eps_deg", "--sigma", "KEY=SIGMA"),
     ("eps_deg=nan", "--sigma eps_deg", "finite"),
+    ("eps_deg=inf", "--sigma eps_deg", "finite"),                       # mutation audit 11: inf was accepted
+    ("eps_deg=0.1,eps_deg=0.2", "--sigma", "given twice"),              # ... and the last of two kept
 ])
 def test_spec_errors_name_option_and_key(text, field, words):
     with pytest.raises(InputError) as e:
@@ -91,12 +98,19 @@ def test_spec_errors_name_option_and_key(text, field, words):
     assert e.value.field == field and words in str(e.value)
 
 
-def test_spec_file_errors_name_file(tmp_path):
+@pytest.mark.parametrize("text, field", [
+    ("alpha_deg = -1\n", "alpha_deg"),
+    # mutation audit 11: each of these was accepted by a changed reader and passed every test
+    ("alpha_deg = true\n", "alpha_deg"),
+    ("alpha_deg = {distribution = \"rect\"}\n", "alpha_deg"),
+    ("alpha_deg = {sigma = \"0.1\"}\n", "alpha_deg.sigma"),
+    ("[sigma]\nalpha_deg = 0.1\n[extra]\nx = 1\n", "extra"),
+])
+def test_spec_file_errors_name_file(tmp_path, text, field):
+    from helpers import refused_in_one_line
     f = tmp_path / "bad.toml"
-    f.write_text("alpha_deg = -1\n")
-    with pytest.raises(InputError) as e:
-        parse_sigma_spec(str(f))
-    assert str(f) in str(e.value) and "alpha_deg" in str(e.value)
+    f.write_text(text)
+    refused_in_one_line(lambda: parse_sigma_spec(str(f)), f, [field])
 
 
 def test_rectangular_draw_has_the_given_standard_deviation():
@@ -336,6 +350,89 @@ def test_outputs_written(tmp_path):
     from roadgonio.surface.rtable import read_table
     assert read_table(tmp_path / "no_aperture_u.csv").mask.sum() == len(res.cells)
 
+
+
+def known_result():
+    """An UncertaintyResult of two cases whose every output differs (cells, then Q0 and S1): the
+    outputs' columns and keys can be told apart."""
+    from roadgonio.uncertainty.run import CaseResult, UncertaintyResult
+    cells = CellSet.make("standard")
+    n = len(cells)
+    cases = {}
+    for c, name in enumerate(("no_aperture", "aperture")):
+        base = 1e-2 * (1.0 + 0.01 * np.arange(n + 2)) * (1.0 + 0.3 * c)
+        u = base * (0.02 + 1e-4 * np.arange(n + 2))
+        u[n], u[n + 1] = base[n] * 1e-6, base[n + 1] * 1e-14       # Q0: a small u; S1: round-off
+        mean = base * 1.01
+        mc = {"mean": mean, "u": u, "sym_low": mean - 2.0 * u, "sym_high": mean + 2.1 * u,
+              "short_low": mean - 1.9 * u, "short_high": mean + 2.2 * u}
+        gum = {"y": base, "u": 1.05 * u, "low": base - 2.05 * u, "high": base + 2.15 * u,
+               "contribution": np.outer(np.arange(1.0, 8.0), u)}
+        validation = {"validated": np.arange(n + 2) % 3 == 0, "d_low": 1e-4 * (1 + np.arange(n + 2)),
+                      "d_high": 2e-4 * (1 + np.arange(n + 2)), "delta": 5e-5 * (1 + np.arange(n + 2))}
+        cases[name] = CaseResult(name, base, mc, gum, validation, np.zeros(0), np.zeros(0))
+    return UncertaintyResult(cells=cells, cases=cases, trials=1000, seed=3, spec=parse_sigma_spec(SPEC),
+                             coverage=0.95, n_dig=2, adaptive=None, surrogate=None, provenance={"notes": []})
+
+
+def test_outputs_column_by_column(tmp_path):
+    """cells.csv, uncertainty.json, the <case>_mean / <case>_u tables and the summary lines of a
+    result whose every output differs: each number under its own header, the cells' tan eps and
+    beta, then Q0 and S1 of each case (mutation audit 11: swapped columns, Q0 and S1 swapped or
+    left out, the u table holding the mean, unscaled tables, a round-off threshold of 1e-3 passed
+    every test)."""
+    import csv
+    import io
+    import json
+    from roadgonio.surface.rtable import read_table, u_names_sample
+    from roadgonio.uncertainty.report import cells_csv_text, summary_lines
+    res = known_result()
+    cells, n = res.cells, len(res.cells)
+    rows = list(csv.DictReader(io.StringIO(cells_csv_text(res))))
+    assert len(rows) == 2 * (n + 2)
+    for name, c in res.cases.items():
+        mine = [r for r in rows if r["case"] == name]
+        assert [r["tan_eps"] for r in mine[n:]] == ["Q0", "S1"] and [r["beta_deg"] for r in mine[n:]] == ["", ""]
+        for k, r in enumerate(mine):
+            if k < n:
+                assert (float(r["tan_eps"]), float(r["beta_deg"])) == (cells.tan_eps[k], cells.beta_deg[k])
+            want = {"r_nominal": c.nominal[k], "mean": c.mc["mean"][k], "u": c.mc["u"][k],
+                    "u_rel": c.mc["u"][k] / c.mc["mean"][k], "gum_u": c.gum["u"][k], "gum_low": c.gum["low"][k],
+                    "gum_high": c.gum["high"][k], **{key: c.mc[key][k] for key in
+                                                     ("sym_low", "sym_high", "short_low", "short_high")}}
+            for key, v in want.items():
+                assert float(r[key]) == pytest.approx(v, rel=1e-7, abs=0.0), (name, k, key)
+            assert int(r["gum_validated"]) == int(c.validation["validated"][k])
+            for key in ("d_low", "d_high", "delta"):
+                assert float(r[key]) == pytest.approx(c.validation[key][k], rel=1e-3, abs=0.0), (name, k, key)
+    paths = write_results(res, tmp_path, sample_name="known", plots=False)
+    d = json.loads((tmp_path / "uncertainty.json").read_text())
+    for name, c in res.cases.items():
+        case = d["cases"][name]
+        for k, label in ((n, "Q0"), (n + 1, "S1")):
+            q = case[label]
+            assert (q["nominal"], q["mean"], q["u"], q["gum_u"]) == (c.nominal[k], c.mc["mean"][k], c.mc["u"][k],
+                                                                     c.gum["u"][k])
+            assert q["symmetric_interval"] == [c.mc["sym_low"][k], c.mc["sym_high"][k]]
+            assert q["shortest_interval"] == [c.mc["short_low"][k], c.mc["short_high"][k]]
+            assert q["gum_interval"] == [c.gum["low"][k], c.gum["high"][k]]
+            assert q["gum_contributions"]["alpha_deg"] == c.gum["contribution"][0, k]
+            assert q["gum_contributions"]["detector_distance_m"] == c.gum["contribution"][6, k]
+        u_rel = c.mc["u"][:n] / c.mc["mean"][:n]
+        assert case["cells_summary"]["u_rel_max"] == pytest.approx(u_rel.max(), rel=1e-15)
+        assert case["cells_summary"]["u_rel_median"] == pytest.approx(np.median(u_rel), rel=1e-15)
+        assert case["cells"]["gum_u"] == c.gum["u"][:n].tolist() and case["cells"]["u"] == c.mc["u"][:n].tolist()
+        for key in ("mean", "u"):
+            t = read_table(tmp_path / f"{name}_{key}.csv")
+            assert u_names_sample(t) == ("known", key == "u")
+            np.testing.assert_allclose(t.r[cells.ii, cells.jj], c.mc[key][:n], rtol=1e-5, atol=0.0)
+    assert {p.name for p in paths} == {"uncertainty.json", "cells.csv", "no_aperture_mean.csv", "no_aperture_u.csv",
+                                       "aperture_mean.csv", "aperture_u.csv"}
+    lines = summary_lines(res)
+    q0 = [ln for ln in lines if ln.startswith("  Q0")]
+    s1 = [ln for ln in lines if ln.startswith("  S1")]
+    assert all("u = " in ln and "not changed" not in ln for ln in q0)      # u/Q0 = 1e-6: a u, not round-off
+    assert all("not changed by these errors" in ln for ln in s1)           # u/S1 = 1e-14: round-off
 
 # -- the surrogate at a kink ----------------------------------------------------------------------
 
