@@ -179,15 +179,17 @@ class RTable:
 
     # -- writing -----------------------------------------------------------------------------
     def to_csv_text(self, scale: float = R_SCALE, digits: int = 6) -> str:
-        """The CSV text (module docstring). An r-table (``scale`` = :data:`R_SCALE`) is read back by
-        :func:`parse_csv` before it is returned: a table the reader would refuse (negative,
-        infinite, implausible values, no value at all) raises the reader's reason as an
+        """The CSV text (module docstring). An r-table (``scale`` = :data:`R_SCALE`) is read back as
+        :func:`load_table` reads it (:func:`parse_csv`, then :func:`check_csv_table`) before it is
+        returned: a table the reader would refuse (negative, infinite, implausible values, no value
+        at all, a largest value that looks like sr^-1, a k_A header) raises the reader's reason as an
         :class:`InputError` instead of being written."""
         _check_finite(self.r, self.tan_eps, self.beta_deg, "CSV")
         text = grid_csv_text(self.r, self.source or f"roadgonio table {self.name}", scale=scale, digits=digits,
                              tan_eps=self.tan_eps, beta_deg=self.beta_deg)
         if scale == R_SCALE:
-            _reads_back(lambda: parse_csv(text, path="<table>", name=self.name), "CSV", text, self.r, digits)
+            _reads_back(lambda: check_csv_table(parse_csv(text, path="<table>", name=self.name), "<table>"), "CSV",
+                        text, self.r, digits)
         return text
 
     def write_csv(self, path: str | Path, scale: float = R_SCALE, digits: int = 6) -> Path:
@@ -634,6 +636,17 @@ def read_ka_table(path: str | Path):
                            "long_name": "aperture-effect factor k_A", "note": "NaN = not computed"})
 
 
+def check_csv_table(table: RTable, path: str | Path, quantity: str = "r") -> RTable:
+    """The checks of a CSV table file beyond its parsing, once for the reader (:func:`load_table`)
+    and the writer's read-back (:meth:`RTable.to_csv_text`), so a table that is written can be read:
+    not a k_A table (:func:`check_not_ka`), and for r (not ``quantity="u"``) the scale
+    (:func:`check_csv_scale`). Returns the table."""
+    check_not_ka(table, path)
+    if quantity == "r":
+        check_csv_scale(table, path)
+    return table
+
+
 def check_csv_scale(table: RTable, path: str | Path) -> None:
     """Refuse a CSV r-table that looks written in sr^-1 instead of r x 10^4: its largest value x 10^4
     above 0 and below :data:`R_X1E4_LARGEST_MIN` (an RTB file's scale is told by its q0 line instead)."""
@@ -670,7 +683,7 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     one without is a bundled name (the rule of :mod:`roadgonio.surface.sample`). A CSV r-table
     (``quantity="r"``) is checked for the scale (:func:`check_csv_scale`); ``quantity="u"``: a table
     of standard uncertainties of r (no scale check; messages say u). A k_A table is refused
-    (:func:`check_not_ka`)."""
+    (:func:`check_not_ka`). The CSV checks are :func:`check_csv_table`, which the writer applies too."""
     s = str(spec).strip()
     if isinstance(spec, str) and not Path(s).suffix:
         if s.upper() in BUNDLED:
@@ -681,8 +694,4 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     if not p.exists():
         raise InputError("no such table file", path=p)
     table = read_table(p, quantity)
-    if p.suffix.lower() != ".rtb":
-        check_not_ka(table, p)
-        if quantity == "r":
-            check_csv_scale(table, p)
-    return table
+    return table if p.suffix.lower() == ".rtb" else check_csv_table(table, p, quantity)

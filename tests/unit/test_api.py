@@ -139,6 +139,45 @@ def test_a_ka_table_is_not_read_as_an_r_table_but_as_k_a(tmp_path):
     assert err.value.path == str(r3)
 
 
+@pytest.mark.parametrize("largest", [0.0335, 0.999, 1.001])
+def test_write_table_refuses_what_read_table_refuses(tmp_path, largest):
+    """(trial 10 D3) rg.write_table wrote a CSV whose largest value (r x 1e4) was 0.0335, which
+    rg.read_table then refused as r in sr^-1: the writer's read-back lacked the reader's scale check.
+    Either side of the threshold the writer and the reader now agree: refused when written (one
+    line, the reader's reason, nothing on disk) or read back as written."""
+    from roadgonio.surface.rtable import R_SCALE, grid_csv_text
+    r3 = rg.read_table("R3")
+    da = (r3 * (largest / R_SCALE / float(r3.max()))).assign_attrs(name="x")
+    path = tmp_path / "x.csv"
+    by_hand = tmp_path / "by_hand.csv"
+    by_hand.write_text(grid_csv_text(da.values, "by hand", scale=R_SCALE))
+    try:
+        rg.read_table(by_hand)
+        reader_refuses = None
+    except InputError as err:
+        reader_refuses = err.reason
+    if reader_refuses is None:
+        back = rg.write_table(da, path)
+        assert np.allclose(rg.read_table(back).values, da.values, rtol=FILE_RTOL, equal_nan=True)
+        assert largest > 1
+        return
+    assert largest < 1 and "looks like r in sr^-1" in reader_refuses
+    with pytest.raises(InputError) as err:
+        rg.write_table(da, path)
+    assert "would not read back" in str(err.value) and reader_refuses in str(err.value)
+    assert "\n" not in str(err.value) and not path.exists()
+
+
+def test_write_table_refuses_a_ka_table_as_r(tmp_path):
+    """(trial 10 D3) The writer's read-back is the reader's: a k_A DataArray (header 'k_A of ...')
+    written as an r-table would be refused by rg.read_table, so it is refused when written."""
+    from pathlib import Path
+    bench = Path(__file__).resolve().parents[2] / "bench" / "data" / "outside_ka_table_A.csv"
+    with pytest.raises(InputError, match=r"would not read back \(this is a k_A table") as err:
+        rg.write_table(rg.read_ka_table(bench), tmp_path / "k.csv")
+    assert "\n" not in str(err.value) and not (tmp_path / "k.csv").exists()
+
+
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), blank=st.floats(0.0, 0.6), suffix=st.sampled_from([".csv", ".rtb"]),
        spread=st.floats(0.0, 1.0))
