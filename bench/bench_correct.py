@@ -46,13 +46,13 @@ def wide_ka(regenerate: bool) -> np.ndarray:
     """k_A (Lambert calibration) of the truth for the wide instrument, numpy Monte Carlo, cached."""
     from roadgonio.correction.synthetic import r2_like_truth, synthesize
     from roadgonio.instrument.config import Instrument
-    from roadgonio.surface.rtable import RTable, read_table
+    from roadgonio.surface.rtable import KA_HEADER, RTable, read_table
     if KA_CACHE.exists() and not regenerate:
-        return read_table(KA_CACHE).r * 1e4
+        return read_table(KA_CACHE, quantity="k_A").r
     inst = Instrument.load(DATA / "wide.toml")
     t0 = time.perf_counter()
     s = synthesize(r2_like_truth(), inst, backend="numpy-mc", backend_settings={"rel_se": 1e-3, "seed": 12345})
-    RTable(s.k_a, name="k_a", source=f"k_A of {r2_like_truth().name} by {inst.name} (Lambert calibration), numpy "
+    RTable(s.k_a, name="k_a", source=f"{KA_HEADER}{r2_like_truth().name} by {inst.name} (Lambert calibration), numpy "
                                      f"Monte Carlo rel. SE 1e-3 seed 12345, {time.perf_counter() - t0:.0f} s; made by "
                                      "bench/bench_correct.py").write_csv(KA_CACHE, scale=1.0, digits=10)
     return s.k_a

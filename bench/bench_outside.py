@@ -69,16 +69,16 @@ def truth_ka(kind: str, which: str, regenerate: bool) -> np.ndarray:
     """k_A of the truth through instrument ``which`` by the float64 reference integrator, cached."""
     from roadgonio.correction.synthetic import standard_mask, synthesize
     from roadgonio.instrument.config import Instrument
-    from roadgonio.surface.rtable import RTable, read_table
+    from roadgonio.surface.rtable import KA_HEADER, RTable, read_table
     from roadgonio.surface.truths import make_truth
     cache = DATA / f"outside_ka_{kind}_{which}.csv"
     if cache.exists() and not regenerate:
-        return read_table(cache).r * 1e4
+        return read_table(cache, quantity="k_A").r
     inst = Instrument.load(INSTRUMENTS[which])
     t0 = time.perf_counter()
     s = synthesize(make_truth(kind), inst, noise=0.0, backend="reference", backend_settings={"rtol": TRUTH_RTOL},
                    mask=standard_mask())
-    RTable(s.k_a, name="k_a", source=f"k_A of the {kind} truth by {inst.name} (Lambert calibration), float64 "
+    RTable(s.k_a, name="k_a", source=f"{KA_HEADER}the {kind} truth by {inst.name} (Lambert calibration), float64 "
                                      f"reference integrator rtol {TRUTH_RTOL:g}, {time.perf_counter() - t0:.0f} s; "
                                      "made by bench/bench_outside.py").write_csv(cache, scale=1.0, digits=10)
     return s.k_a

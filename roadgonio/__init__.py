@@ -24,7 +24,7 @@ for _name in ("scenes", "docs", "studies"):
     _bind(f"{__name__}.{_name}")
 del _name
 
-__all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
+__all__ = ["AUTO", "list_tables", "table_info", "read_table", "read_ka_table", "write_table", "fit", "ka_table", "ka_cell", "render",
            "validate", "estimate_uncertainty", "correct", "design_study", "second_aperture", "intercompare",
            "road_metrics", "compare_tables", "classify_table", "__version__"]
 _API = frozenset(__all__) - {"__version__"}

@@ -14,6 +14,7 @@ function                 what (command)
 :func:`list_tables`      the bundled CIE tables with Q0, S1, S2 (``tables``)
 :func:`table_info`       one table's characteristics, optionally converted (``table``)
 :func:`read_table`       an r-table as an ``xarray.DataArray`` of r (sr^-1); :func:`write_table`
+:func:`read_ka_table`    a k_A table (``ka.csv``) as an ``xarray.DataArray`` of k_A
 :func:`fit`              fit the road BRDF model (paper eq. 4) to a table (``fit``)
 :func:`ka_table`         k_A over the CIE grid as an ``xarray.Dataset`` (``ka``)
 :func:`ka_cell`          k_A at one cell, a :class:`~roadgonio.engines.result.CellResult` (``ka --tan-eps``)
@@ -65,7 +66,7 @@ if TYPE_CHECKING:  # pragma: no cover
     from roadgonio.surface.sample import ResolvedSample
     from roadgonio.uncertainty.run import UncertaintyResult
 
-__all__ = ["AUTO", "list_tables", "table_info", "read_table", "write_table", "fit", "ka_table", "ka_cell", "render",
+__all__ = ["AUTO", "list_tables", "table_info", "read_table", "read_ka_table", "write_table", "fit", "ka_table", "ka_cell", "render",
            "validate", "estimate_uncertainty", "correct", "design_study", "second_aperture", "intercompare",
            "road_metrics", "compare_tables",
            "classify_table"]
@@ -328,6 +329,20 @@ def read_table(path_or_name) -> "xr.DataArray":
     sr^-1 (not r x 10^4) with the CIE grid coordinates ``tan_eps`` and ``beta`` (degrees); blank
     cells are NaN; ``attrs`` name and source."""
     return _table(path_or_name).to_dataarray()
+
+
+def read_ka_table(path) -> "xr.DataArray":
+    """A k_A table file (``ka.csv`` or ``ka_direct.csv`` of ``roadgonio ka``: the r-table layout,
+    k_A unscaled, its header ``# k_A of ...``) as an ``xarray.DataArray`` of k_A on the CIE grid,
+    NaN where not computed. :func:`read_table` refuses such a file (it is not an r-table), and this
+    refuses a file without that header."""
+    from roadgonio.surface.rtable import read_ka_table as _read
+    if not isinstance(path, (str, Path)):
+        raise InputError(f"expected the path of a k_A table (ka.csv), got {type(path).__name__}", field="path")
+    try:
+        return _read(Path(path).expanduser())
+    except InputError as err:
+        raise err.with_argument("path") from None
 
 
 def write_table(da, path) -> Path:

@@ -129,13 +129,15 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
             except ValueError:
                 raise InputError(f"expected a percentage like '1%' or a table file, got {text!r}",
                                  field="--u-measured") from None
-            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)", None
+            return (_relative(v, table, "--u-measured", text), f"{100 * v:g} % of each value (relative, independent cells)",
+                    None)
         try:
             v = float(text)
         except ValueError:
             v = None
         if v is not None:
-            return _relative(v, table, "--u-measured"), f"{100 * v:g} % of each value (relative, independent cells)", None
+            return (_relative(v, table, "--u-measured", text), f"{100 * v:g} % of each value (relative, independent cells)",
+                    None)
         path = Path(text)
         try:
             u_table = read_table(path, quantity="u")
@@ -158,9 +160,12 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
 U_REL_MIN = 1e-6
 
 
-def _relative(v: float, table: RTable, fld: str) -> np.ndarray:
+def _relative(v: float, table: RTable, fld: str, given: str | None = None) -> np.ndarray:
+    """``v`` x each value; ``given`` is what the user wrote (``"150%"``), echoed by the error."""
     if not (math.isfinite(v) and 0.0 < v < 1.0):
-        raise InputError(f"expected a relative standard uncertainty between 0 and 100 %, got {v:g}", field=fld)
+        raise InputError("expected a relative standard uncertainty between 0 and 100 % (exclusive: a fraction "
+                         f"0 < u < 1 or a percentage 0% < u < 100%), got {given if given is not None else f'{v:g}'}",
+                         field=fld)
     return np.where(table.mask, v * table.r, np.nan)
 
 

@@ -33,6 +33,7 @@ from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
 from roadgonio.surface.model import RoadModel
+from roadgonio.surface.rtable import KA_HEADER
 from roadgonio.engines.cells import grid_index
 from roadgonio.engines.result import CellResult, KaBackend
 
@@ -260,7 +261,7 @@ FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
     "seconds": ("compute time of the cell", "s", "the pass's wall time shared out for batched backends"),
     "converged": ("the cell was computed and reached its target", "", "false where not computed or stopped at a cap"),
     # stray light (docs/conventions.md section 5; docs/straylight.md): without it k_a_direct = k_a, stray_fraction = 0
-    "k_a_direct": ("k_A of the direct light", "1", "the light that reaches the footprint straight from the source "
+    "k_a_direct": (f"{KA_HEADER}the direct light", "1", "the light that reaches the footprint straight from the source "
                                                  "only (no stray light from the scene's reflecting parts)"),
     "k_a_direct_se": ("standard error of k_a_direct", "1",
                       "a standard error, as se; without stray light traced k_a_direct is k_a and this is se: NaN "
@@ -326,7 +327,7 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
     computed = [c for c in run.table_cells if _on_grid(c)]     # the cells of the Dataset (the folder's table)
     attrs = {
         "Conventions": "CF-1.8",
-        "title": f"k_A of instrument '{instrument.name}' for sample '{sample}' ({backend.name} backend)",
+        "title": f"{KA_HEADER}instrument '{instrument.name}' for sample '{sample}' ({backend.name} backend)",
         "source": f"roadgonio {prov['versions']['roadgonio']}",
         "history": f"{prov['created']} computed by roadgonio",
         "references": "Bernasconi et al., Geometrical errors and their uncertainty in goniophotometers: an application "

@@ -196,8 +196,9 @@ def check_detector_view(instrument, housing: Housing) -> Box:
             continue
         field = f"housing.baffles.{k - 1}"
         if not box.x[0] < bf.x_m < box.x[1]:
-            raise bad(f"baffle {k} (housing_baffle_{k}) at x = {bf.x_m:g} m is outside the housing; expected "
-                      f"x_m inside x = {box.x[0]:.3g} ... {box.x[1]:.3g} m", f"{field}.x_m")
+            raise bad(f"baffle {k} (housing_baffle_{k}) at x = {bf.x_m:.10g} m is not inside the housing; expected "
+                      f"x_m strictly between the walls, {box.x[0]:.10g} < x_m < {box.x[1]:.10g} m (a baffle on a "
+                      "wall is part of the wall)", f"{field}.x_m")
         if bf.height_m > box.height and housing.lid:
             raise bad(f"baffle {k} (housing_baffle_{k}) is {bf.height_m:g} m high; expected at most the lid's "
                       f"height ({box.height:.3g} m)", f"{field}.height_m")

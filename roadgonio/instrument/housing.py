@@ -12,7 +12,8 @@ instrument file; docs/conventions.md section 4). Float64 numpy; nothing here imp
     # height_m = 1.1                 # inner height of the lid above the sample plane (default: the parts + margin_m)
     # margin_m = 0.05                # clearance of the default box around the parts
     # lid = true                     # false: an open top
-    baffles = [{x_m = 0.6, height_m = 0.01}]   # plates across the box (all of y) at x, from the sample plane up
+    baffles = [{x_m = 0.6, height_m = 0.01}]   # plates across the box (all of y) at x, from the sample plane up;
+                                               # each at its own x, strictly between the walls x_min < x < x_max
 
 What the box must hold (the "parts"): the source disc of every cell of the standard grid
 (docs/conventions.md section 2; the instrument measures the whole table), the detector's entrance
@@ -172,6 +173,13 @@ class Housing:
                 baffles.append(Baffle(**b))
             except InputError as err:
                 raise InputError(err.reason, field=f"housing.baffles.{k}.{err.field.rsplit('.', 1)[-1]}") from None
+        for k, b in enumerate(baffles):
+            for j in range(k):
+                if abs(b.x_m - baffles[j].x_m) < SEAM_M:
+                    raise InputError(f"baffles {j} and {k} (housing_baffle_{j + 1} and housing_baffle_{k + 1}) stand at "
+                                     f"the same x = {b.x_m:.10g} m (within {1000 * SEAM_M:g} mm): two plates in one "
+                                     "plane; expected each baffle at its own x (give one baffle the larger height)",
+                                     field=f"housing.baffles.{k}.x_m")
         object.__setattr__(self, "baffles", tuple(baffles))
 
     # -- construction -------------------------------------------------------------------------

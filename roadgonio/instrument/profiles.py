@@ -40,10 +40,12 @@ A tabulated intensity distribution covers the emission angles of its file only (
 at larger angles from the source is refused (:func:`roadgonio.instrument.optics.check_source`).
 
 **The detector's sensitivity map** (``field_sensitivity``): relative sensitivity k_D over the field
-stop, a grid of values like an image of the field as the meter sees it: rows from the top
-(y = +1) down, columns from the left (x = -1) to the right, at the pixel centres of the square
-[-1, 1]^2 that circumscribes the field stop (x, y in units of the field-stop radius; x horizontal,
-to the right as the meter looks at the sample, y up). A CSV of numbers, or a greyscale image
+stop, a square grid of n x n values (n >= 2) like an image of the field as the meter sees it: rows
+from the top (y = +1) down, columns from the left (x = -1) to the right, at the centres of the
+square pixels of the square [-1, 1]^2 that circumscribes the field stop (x, y in units of the
+field-stop radius; x horizontal, to the right as the meter looks at the sample, y up). A CSV of n
+lines of n comma-separated numbers and nothing else (no header line: a line that is not numbers
+is an error, so neither a header nor a point list ``x,y,k`` passes as a map), or a greyscale image
 (PNG, TIFF: 8 or 16 bit, or 32-bit float; OpenEXR: one channel, Y, or equal R, G, B). Bilinear between the pixel centres, the border values
 extended to the edges. The map is divided by its largest value (only relative sensitivities
 matter), so a uniform map is exactly 1 everywhere: the same instrument as no map.
@@ -182,12 +184,15 @@ def _exists(path, field: str) -> Path:
 
 
 def read_numbers_csv(path: Path, field: str, columns: int | None = None,
-                     header: tuple[str, ...] | None = None) -> tuple[np.ndarray, list[int]]:
-    """Rows of numbers of a CSV file (``#`` comments and blank lines skipped; a first line that is
-    not numbers is a header): a float64 array (rows, columns) and the file's line number of each row.
-    ``columns`` fixes the number of columns; otherwise every row must have the same number.
-    ``header``: the column names the file must start with (a table of two columns read in the wrong
-    order would otherwise pass or fail by accident); it fixes ``columns``."""
+                     header: tuple[str, ...] | None = None,
+                     expected: str = "comma-separated numbers") -> tuple[np.ndarray, list[int]]:
+    """Rows of numbers of a CSV file (``#`` comments and blank lines skipped): a float64 array (rows,
+    columns) and the file's line number of each row. ``columns`` fixes the number of columns;
+    otherwise every row must have the same number. ``header``: the column names the file must start
+    with (a table of two columns read in the wrong order would otherwise pass or fail by accident);
+    it fixes ``columns``. Without ``header`` the file has none: every line is a row of numbers, and
+    a line that is not (a header the file should not have) is an error naming it, never skipped;
+    ``expected`` says what the rows are in that error."""
     if header is not None:
         columns = len(header)
     want_header = ",".join(header) if header is not None else ""
@@ -205,13 +210,14 @@ def read_numbers_csv(path: Path, field: str, columns: int | None = None,
         try:
             vals = [float(c) for c in cells]
         except ValueError:
-            if not rows and not header_seen:
+            if header is not None and not rows and not header_seen:
                 header_seen = True
-                if header is not None and [c.lower() for c in cells] != [h.lower() for h in header]:
+                if [c.lower() for c in cells] != [h.lower() for h in header]:
                     raise _err(f"expected the header {want_header}, got {s!r}", path, field, no) from None
-                if columns is not None and len(cells) != columns:
-                    raise _err(f"the header has {len(cells)} columns, expected {columns}", path, field, no) from None
                 continue
+            if header is None and not rows:
+                raise _err(f"expected {expected} from the first line on (no header line), got {s!r}", path, field,
+                           no) from None
             raise _err(f"expected {columns or 'comma-separated'} numbers, got {s!r}", path, field, no) from None
         if header is not None and not header_seen:
             raise _err(f"expected the header {want_header} first, got {s!r}", path, field, no)
@@ -363,7 +369,7 @@ def read_field_map(path: str | Path, field: str = "detector.field_sensitivity") 
     (PNG, TIFF, or OpenEXR for a measured float map)."""
     p = _exists(path, field)
     if p.suffix.lower() == ".csv":
-        values, _ = read_numbers_csv(p, field)
+        values, _ = read_numbers_csv(p, field, expected="rows of sensitivities (the map's grid)")
     elif p.suffix.lower() in (".png", ".tif", ".tiff"):
         values = _read_image(p, field)
     elif p.suffix.lower() == ".exr":
@@ -372,6 +378,11 @@ def read_field_map(path: str | Path, field: str = "detector.field_sensitivity") 
         raise _err(f"expected a CSV grid or a PNG/TIFF/EXR image, got {p.name!r}", p, field)
     if values.ndim != 2 or values.shape[0] < 2 or values.shape[1] < 2:
         raise _err(f"expected a map of at least 2 x 2 values, got {' x '.join(map(str, values.shape))}", p, field)
+    if values.shape[0] != values.shape[1]:
+        raise _err(f"expected a square map (n rows of n values: square pixels over the square [-1, 1]^2 around "
+                   f"the field stop), got {values.shape[0]} rows of {values.shape[1]} values"
+                   + (" (a list of points x,y,k is not a map: give the grid)" if values.shape[1] == 3 else ""),
+                   p, field)
     if values.size > MAP_MAX_VALUES:
         raise _err(f"expected at most {MAP_MAX_VALUES} values, got {values.size}", p, field)
     if not np.all(np.isfinite(values)) or np.any(values < 0):

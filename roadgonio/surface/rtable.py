@@ -179,15 +179,17 @@ class RTable:
 
     # -- writing -----------------------------------------------------------------------------
     def to_csv_text(self, scale: float = R_SCALE, digits: int = 6) -> str:
-        """The CSV text (module docstring). An r-table (``scale`` = :data:`R_SCALE`) is read back by
-        :func:`parse_csv` before it is returned: a table the reader would refuse (negative,
-        infinite, implausible values, no value at all) raises the reader's reason as an
+        """The CSV text (module docstring). An r-table (``scale`` = :data:`R_SCALE`) is read back as
+        :func:`load_table` reads it (:func:`parse_csv`, then :func:`check_csv_table`) before it is
+        returned: a table the reader would refuse (negative, infinite, implausible values, no value
+        at all, a largest value that looks like sr^-1, a k_A header) raises the reader's reason as an
         :class:`InputError` instead of being written."""
         _check_finite(self.r, self.tan_eps, self.beta_deg, "CSV")
         text = grid_csv_text(self.r, self.source or f"roadgonio table {self.name}", scale=scale, digits=digits,
                              tan_eps=self.tan_eps, beta_deg=self.beta_deg)
         if scale == R_SCALE:
-            _reads_back(lambda: parse_csv(text, path="<table>", name=self.name), "CSV", text, self.r, digits)
+            _reads_back(lambda: check_csv_table(parse_csv(text, path="<table>", name=self.name), "<table>"), "CSV",
+                        text, self.r, digits)
         return text
 
     def write_csv(self, path: str | Path, scale: float = R_SCALE, digits: int = 6) -> Path:
@@ -319,6 +321,18 @@ def u_names_table(u: "RTable") -> str | None:
     return first[len(U_HEADER):].strip() if first.startswith(U_HEADER) else None
 
 
+#: The first words of the header of a k_A table: the title of a k_A Dataset (``ka.csv``,
+#: :func:`roadgonio.engines.runner.ka_dataset`), ``ka_direct.csv`` and the benches' cached k_A
+#: tables. A k_A table has the r-table layout but holds k_A unscaled: this header is what tells it
+#: from an r-table (:func:`load_table` refuses it, :func:`read_ka_table` reads it).
+KA_HEADER = "k_A of "
+
+
+def names_ka(t: "RTable") -> bool:
+    """Whether a table read from a file says it is a k_A table (its header, :data:`KA_HEADER`)."""
+    return header_line(t).startswith(KA_HEADER)
+
+
 def grid_csv_text(values: np.ndarray, source: str, *, scale: float = 1.0, digits: int = 6,
                   tan_eps: np.ndarray = TAN_EPS_GRID, beta_deg: np.ndarray = BETA_GRID_DEG) -> str:
     """Any quantity over the grid (an r-table, k_A, its standard error...) in the r-table CSV layout
@@ -398,7 +412,10 @@ def _check_grid(values: list[float], expected: np.ndarray, what: str, path, line
 
 def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = None, quantity: str = "r") -> RTable:
     """Parse the CSV r-table layout; errors name the file and the line. ``quantity`` is what the values
-    are, for the messages: ``"r"``, or ``"u"`` for a table of standard uncertainties of r."""
+    are: ``"r"``, or ``"u"`` for a table of standard uncertainties of r (both written x 1e4), or
+    ``"k_A"`` (unscaled, no plausibility bound: the returned table's ``r`` holds k_A itself)."""
+    scale = 1.0 if quantity == "k_A" else R_SCALE
+    scaled = f"{quantity} x 1e4" if scale == R_SCALE else quantity
     lines = text.splitlines()
     comments: list[str] = []
     header_line = None
@@ -431,7 +448,7 @@ def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = Non
     if header_line is None:
         raise InputError("empty table: expected a header 'tan_eps,0,2,...,180' and 29 rows", path=path)
     if not rows:
-        raise InputError(f"no data rows after the header: expected 29 rows of tan_eps and {quantity} x 1e4",
+        raise InputError(f"no data rows after the header: expected 29 rows of tan_eps and {scaled}",
                          path=path, line=header_line)
     if len(rows) != len(TAN_EPS_GRID):
         raise InputError(f"expected {len(TAN_EPS_GRID)} data rows (tan eps = 0 ... 12), found {len(rows)}",
@@ -453,12 +470,12 @@ def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = Non
             if v < 0:
                 raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: {quantity} must be >= 0, got {c}",
                                  path=path, line=lineno)
-            if v / R_SCALE > R_MAX_PLAUSIBLE:
+            if scale == R_SCALE and v / R_SCALE > R_MAX_PLAUSIBLE:
                 raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: {quantity} x 1e4 = {c} is not a plausible road "
                                  f"value (expected {quantity} x 1e4 <= {R_MAX_PLAUSIBLE * R_SCALE:.0f}; the CIE tables "
                                  f"peak below 800): a typo, or a table not written as {quantity} x 1e4?", path=path,
                                  line=lineno)
-            r[i, j] = v / R_SCALE
+            r[i, j] = v / scale
     if not np.isfinite(r).any():
         raise InputError("the table has no values (every cell is blank)", path=path)
     return RTable(r, name=name or Path(str(path)).stem, source="\n".join(comments))
@@ -573,8 +590,8 @@ def _rtb_scale(values: np.ndarray, q0_line: float, path, line: int) -> tuple[flo
 
 def read_table(path: str | Path, quantity: str = "r") -> RTable:
     """Read a table file: ``.rtb`` (DIALux) or CSV (anything else; ``quantity`` as :func:`parse_csv`).
-    No check of the scale: a k_A table (``ka.csv``, unscaled) reads too; :func:`load_table` is the
-    reader of a user's r-table."""
+    No check of the scale nor of the header: :func:`load_table` is the reader of a user's r-table,
+    :func:`read_ka_table` of a k_A table."""
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8-sig")
@@ -586,6 +603,48 @@ def read_table(path: str | Path, quantity: str = "r") -> RTable:
     if path.suffix.lower() == ".rtb":
         return parse_rtb(text, path=path)
     return parse_csv(text, path=path, quantity=quantity)
+
+
+def check_not_ka(table: RTable, path: str | Path) -> None:
+    """Refuse a k_A table (``ka.csv``: its header :data:`KA_HEADER`) read as an r-table: it holds k_A
+    unscaled, which an r-table reader would divide by 1e4 and call r in sr^-1."""
+    if names_ka(table):
+        raise InputError(f"this is a k_A table (its header {header_line(table)[:60]!r}), not an r-table: it holds "
+                         "k_A unscaled, not r x 1e4; expected an r-table here (read a k_A table with "
+                         "roadgonio.read_ka_table)", path=path)
+
+
+def read_ka_table(path: str | Path):
+    """A k_A table file (``ka.csv``, ``ka_direct.csv``: the r-table CSV layout with k_A unscaled and
+    the header :data:`KA_HEADER`) as an ``xarray.DataArray`` of k_A over ``tan_eps`` x ``beta``
+    (degrees), NaN where blank; ``attrs`` name, source, units. A file without that header is
+    refused (an r-table read as k_A would be 1e4 too large)."""
+    import xarray as xr
+    path = Path(path)
+    if path.suffix.lower() != ".csv":
+        raise InputError(f"expected a k_A table as CSV (.csv, as ka.csv), got {path.suffix or path.name!r}", path=path)
+    t = read_table(path, quantity="k_A")
+    if not names_ka(t):
+        first = header_line(t)
+        raise InputError(f"not a k_A table: expected a first comment line '# {KA_HEADER}...' (as roadgonio writes "
+                         f"ka.csv), got {('# ' + first) if first else 'none'!r}", path=path)
+    return xr.DataArray(
+        t.r.copy(), dims=("tan_eps", "beta"),
+        coords={"tan_eps": ("tan_eps", t.tan_eps.copy(), {"long_name": "tan(epsilon)", "units": "1"}),
+                "beta": ("beta", t.beta_deg.copy(), {"long_name": "beta", "units": "deg"})},
+        name="k_a", attrs={"name": t.name, "source": t.source, "units": "1",
+                           "long_name": "aperture-effect factor k_A", "note": "NaN = not computed"})
+
+
+def check_csv_table(table: RTable, path: str | Path, quantity: str = "r") -> RTable:
+    """The checks of a CSV table file beyond its parsing, once for the reader (:func:`load_table`)
+    and the writer's read-back (:meth:`RTable.to_csv_text`), so a table that is written can be read:
+    not a k_A table (:func:`check_not_ka`), and for r (not ``quantity="u"``) the scale
+    (:func:`check_csv_scale`). Returns the table."""
+    check_not_ka(table, path)
+    if quantity == "r":
+        check_csv_scale(table, path)
+    return table
 
 
 def check_csv_scale(table: RTable, path: str | Path) -> None:
@@ -623,7 +682,8 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     """A bundled table by name (``R3``, any case) or a table file: a text with a suffix is a file,
     one without is a bundled name (the rule of :mod:`roadgonio.surface.sample`). A CSV r-table
     (``quantity="r"``) is checked for the scale (:func:`check_csv_scale`); ``quantity="u"``: a table
-    of standard uncertainties of r (no scale check; messages say u)."""
+    of standard uncertainties of r (no scale check; messages say u). A k_A table is refused
+    (:func:`check_not_ka`). The CSV checks are :func:`check_csv_table`, which the writer applies too."""
     s = str(spec).strip()
     if isinstance(spec, str) and not Path(s).suffix:
         if s.upper() in BUNDLED:
@@ -634,6 +694,4 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     if not p.exists():
         raise InputError("no such table file", path=p)
     table = read_table(p, quantity)
-    if quantity == "r" and p.suffix.lower() != ".rtb":
-        check_csv_scale(table, p)
-    return table
+    return table if p.suffix.lower() == ".rtb" else check_csv_table(table, p, quantity)

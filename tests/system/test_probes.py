@@ -197,6 +197,15 @@ def table_file(tmp: Path, name: str, r: np.ndarray, suffix: str = ".csv") -> Pat
     return RTable(r, name=name).write(tmp / f"{name}{suffix}")
 
 
+def hand_table_file(tmp: Path, name: str, r: np.ndarray) -> Path:
+    """A CSV r-table of ``r`` (x 1e4) as a user writes it by hand: not through roadgonio's writer,
+    which refuses what its reader would (trial 10 D3)."""
+    from roadgonio.surface.rtable import R_SCALE, grid_csv_text
+    p = tmp / f"{name}.csv"
+    p.write_text(grid_csv_text(r, name, scale=R_SCALE))
+    return p
+
+
 def edited(name: str, edit: Callable[[np.ndarray], None]) -> Callable[[Path], Path]:
     def make(tmp: Path) -> Path:
         r = r3_values()
@@ -794,7 +803,7 @@ probe("road-no-light", "blanks", "road",
       check=lambda r, t: _assert(all(v is None or (math.isfinite(v) and v >= 0) for k, v in r.value[0].items()
                                      if k in ("L_av", "U_o", "U_l", "TI")), str(r.value[0])[:400]))
 probe("road-table-in-sr", "input", "road",
-      lambda t: cli("road", "--table", table_file(t, "insr", r3_values() / 1e4), "--no-plots", "--out", t / "o"),
+      lambda t: cli("road", "--table", hand_table_file(t, "insr", r3_values() / 1e4), "--no-plots", "--out", t / "o"),
       must=("insr.csv", "sr^-1", "r x 1e4"))
 
 
@@ -1038,7 +1047,7 @@ def _quiet_finite_json(r, t):
 
 
 probe("road-table-times-1e-300", "extremes", "road",          # as a file: refused as r in sr^-1
-      lambda t: sub("road", "--table", table_file(t, "tiny", r3_values() * 1e-300), "--no-plots", "--json",
+      lambda t: sub("road", "--table", hand_table_file(t, "tiny", r3_values() * 1e-300), "--no-plots", "--json",
                     "--out", t / "o", cwd=t), must=("tiny.csv", "sr^-1"))
 probe("road-array-times-1e-300", "extremes", "road",
       lambda t: api(lambda: road_api()(_dark_table(1e-300), plots=False)), expect="ok",
@@ -1048,7 +1057,7 @@ probe("uncertainty-sigma-1e-300", "extremes", "uncertainty",
                     "alpha_deg=1e-300", "--no-aperture", "--trials", "200", "--no-plots", "--json", "--out", t / "u",
                     cwd=t), expect="ok", check=_quiet_finite_json)
 probe("fit-tiny-values", "extremes", "fit",
-      lambda t: cli("fit", table_file(t, "tiny", r3_values() * 1e-290), "--json", "--no-plot", "--out", t / "f"),
+      lambda t: cli("fit", hand_table_file(t, "tiny", r3_values() * 1e-290), "--json", "--no-plot", "--out", t / "f"),
       expect="either", must=("tiny.csv",),
       check=lambda r, t: _assert(strict_json(r.out)["max_dev_pct"] < 50, r.out[:300]))
 

@@ -100,6 +100,84 @@ def test_read_table_is_r_on_the_cie_grid(tmp_path):
         assert err.value.field == "to" and not (tmp_path / name).exists()
 
 
+def _refused_as_r_table(path) -> str:
+    with pytest.raises(InputError) as err:
+        rg.read_table(path)
+    msg = str(err.value)
+    assert err.value.path == str(path) and "\n" not in msg
+    assert "this is a k_A table" in msg and "not an r-table" in msg and "multiply" not in msg
+    return msg
+
+
+def test_a_ka_table_is_not_read_as_an_r_table_but_as_k_a(tmp_path):
+    """(trial 10 D2) ka.csv has the r-table layout with k_A unscaled: rg.read_table divided it by 1e4
+    and labelled it sr^-1 (k_A of a Lambert sample, all 1, passed the scale check), and refused one
+    whose k_A are all below 1 with the advice to multiply by 1e4. It is refused as a k_A table, and
+    rg.read_ka_table reads it unscaled: the ka writer's own file, the bench's cached k_A tables and
+    a table reading low."""
+    from pathlib import Path
+    from roadgonio.surface.rtable import KA_HEADER, grid_csv_text
+    out = tmp_path / "ka"
+    ds = rg.ka_table("portable", "lambert", backend="quadrature", accuracy="fast", cells=[(0, 0), (12, 0)], out=out,
+                     plot=False)
+    _refused_as_r_table(out / "ka.csv")
+    k = rg.read_ka_table(out / "ka.csv")
+    assert k.attrs["units"] == "1" and k.dims == ("tan_eps", "beta")
+    assert np.array_equal(np.isnan(k.values), np.isnan(ds.k_a.values))
+    ok = np.isfinite(k.values)
+    assert np.allclose(k.values[ok], ds.k_a.values[ok], rtol=1e-6, atol=0)     # ka.csv holds 7 digits
+    bench = Path(__file__).resolve().parents[2] / "bench" / "data" / "outside_ka_table_A.csv"
+    _refused_as_r_table(bench)
+    assert float(rg.read_ka_table(bench).sel(tan_eps=0, beta=0)) == 1.023537187     # as written, unscaled
+    low = tmp_path / "ka_below1.csv"
+    low.write_text(grid_csv_text(np.full((29, 20), 0.95), f"{KA_HEADER}instrument 'low' for sample 'R3'"))
+    _refused_as_r_table(low)
+    assert np.all(rg.read_ka_table(low).values == 0.95)
+    r3 = rg.write_table(rg.read_table("R3"), tmp_path / "r3.csv")
+    with pytest.raises(InputError, match="not a k_A table") as err:
+        rg.read_ka_table(r3)                               # an r-table never passes as k_A (1e4 too large)
+    assert err.value.path == str(r3)
+
+
+@pytest.mark.parametrize("largest", [0.0335, 0.999, 1.001])
+def test_write_table_refuses_what_read_table_refuses(tmp_path, largest):
+    """(trial 10 D3) rg.write_table wrote a CSV whose largest value (r x 1e4) was 0.0335, which
+    rg.read_table then refused as r in sr^-1: the writer's read-back lacked the reader's scale check.
+    Either side of the threshold the writer and the reader now agree: refused when written (one
+    line, the reader's reason, nothing on disk) or read back as written."""
+    from roadgonio.surface.rtable import R_SCALE, grid_csv_text
+    r3 = rg.read_table("R3")
+    da = (r3 * (largest / R_SCALE / float(r3.max()))).assign_attrs(name="x")
+    path = tmp_path / "x.csv"
+    by_hand = tmp_path / "by_hand.csv"
+    by_hand.write_text(grid_csv_text(da.values, "by hand", scale=R_SCALE))
+    try:
+        rg.read_table(by_hand)
+        reader_refuses = None
+    except InputError as err:
+        reader_refuses = err.reason
+    if reader_refuses is None:
+        back = rg.write_table(da, path)
+        assert np.allclose(rg.read_table(back).values, da.values, rtol=FILE_RTOL, equal_nan=True)
+        assert largest > 1
+        return
+    assert largest < 1 and "looks like r in sr^-1" in reader_refuses
+    with pytest.raises(InputError) as err:
+        rg.write_table(da, path)
+    assert "would not read back" in str(err.value) and reader_refuses in str(err.value)
+    assert "\n" not in str(err.value) and not path.exists()
+
+
+def test_write_table_refuses_a_ka_table_as_r(tmp_path):
+    """(trial 10 D3) The writer's read-back is the reader's: a k_A DataArray (header 'k_A of ...')
+    written as an r-table would be refused by rg.read_table, so it is refused when written."""
+    from pathlib import Path
+    bench = Path(__file__).resolve().parents[2] / "bench" / "data" / "outside_ka_table_A.csv"
+    with pytest.raises(InputError, match=r"would not read back \(this is a k_A table") as err:
+        rg.write_table(rg.read_ka_table(bench), tmp_path / "k.csv")
+    assert "\n" not in str(err.value) and not (tmp_path / "k.csv").exists()
+
+
 @settings(max_examples=25, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), blank=st.floats(0.0, 0.6), suffix=st.sampled_from([".csv", ".rtb"]),
        spread=st.floats(0.0, 1.0))

@@ -182,6 +182,15 @@ def test_measured_uncertainty_forms(tmp_path):
             measured_uncertainty(text, t)
 
 
+@pytest.mark.parametrize("given, echo", [("150%", "got 150%"), (" 150% ", "got 150%"), ("1.5", "got 1.5"),
+                                         (1.5, "got 1.5"), ("-2%", "got -2%")])
+def test_a_relative_u_out_of_range_echoes_what_was_written(given, echo):
+    """(trial 10 D12) '--u-measured 150%' was reported as 'got 1.5': the error says what the user wrote."""
+    with pytest.raises(InputError, match="between 0 and 100 %") as err:
+        measured_uncertainty(given, bundled_table("C2"))
+    assert str(err.value).endswith(echo) and err.value.field == "--u-measured"
+
+
 def test_output_folders_one_or_one_per_file(tmp_path):
     assert output_folders(["a"], tmp_path) == [tmp_path]
     assert output_folders(["a", "b", "a"], tmp_path) == [tmp_path / "a", tmp_path / "b", tmp_path / "a-2"]

@@ -169,6 +169,31 @@ def test_a_baffle_in_the_line_of_sight_is_an_error_and_a_low_one_is_not():
     assert err.value.field == "housing.x_m" and str(err.value).startswith(f"{HOUSED}, field 'housing.x_m': ")
 
 
+def test_a_baffle_on_a_wall_is_refused_with_the_open_bounds():
+    """(trial 10 D12) A baffle at x = -1.05 in a box from -1.05 was refused as 'outside', the message
+    saying 'inside x = -1.05 ... 1.05': the bounds are excluded, and the message says so exactly. Just
+    inside them it is no error of the box."""
+    for x in (-1.05, 1.05, -1.2):
+        inst = housed(x_m=[-1.05, 1.05], baffles=[{"x_m": x, "height_m": 0.004}])
+        with pytest.raises(InputError) as err:
+            check_detector_view(inst, Housing.of(inst))
+        assert err.value.field == "housing.baffles.0.x_m" and "\n" not in str(err.value)
+        assert "strictly between the walls, -1.05 < x_m < 1.05 m" in err.value.reason
+        assert f"at x = {x:g} m is not inside" in err.value.reason
+    inst = housed(x_m=[-1.05, 1.05], baffles=[{"x_m": -1.0499, "height_m": 0.004}])
+    check_detector_view(inst, Housing.of(inst))
+
+
+def test_two_baffles_at_the_same_x_are_refused_naming_both():
+    """(trial 10 D12) Two baffles at one x (coplanar plates) were accepted without a word."""
+    with pytest.raises(InputError) as err:
+        housed(baffles=[{"x_m": -0.7, "height_m": 0.0}, {"x_m": -0.5, "height_m": 0.02},
+                        {"x_m": -0.5, "height_m": 0.01}])
+    assert err.value.field == "housing.baffles.2.x_m" and err.value.path == str(HOUSED)
+    assert "baffles 1 and 2" in err.value.reason and "same x = -0.5 m" in err.value.reason
+    housed(baffles=[{"x_m": -0.5, "height_m": 0.02}, {"x_m": -0.499, "height_m": 0.01}])     # 1 mm apart: two plates
+
+
 @pytest.mark.parametrize("housing, field", [
     ({"baffles": [{"x_m": 0.3, "height_m": 0.0}, {"x_m": -5.0, "height_m": 0.02}]}, "housing.baffles.1.x_m"),
     ({"x_m": [-0.5, 0.5], "y_m": [0.0, 1.05]}, "housing.x_m"),

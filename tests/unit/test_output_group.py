@@ -70,7 +70,7 @@ def test_a_text_line_among_the_numbers_is_an_error(tmp_path):
     with pytest.raises(InputError) as err:
         read_numbers_csv(p, "source.beam_intensity_file")
     assert err.value.line == 3 and "ten,0.5" in str(err.value)
-    p.write_text("theta,I\n0,1\n5,0.8\nangle,I\n10,0.5\n")       # a second header is no header
+    p.write_text("theta_deg,I\n0,1\n5,0.8\nangle,I\n10,0.5\n")       # a second header is no header
     with pytest.raises(InputError) as err:
-        read_numbers_csv(p, "source.beam_intensity_file")
+        read_numbers_csv(p, "source.beam_intensity_file", header=("theta_deg", "I"))
     assert err.value.line == 4

@@ -596,7 +596,7 @@ def test_a_uniform_map_is_no_map_bit_for_bit(tmp_path):
     """A constant map (any value: only relative sensitivities matter) is the uniform field: the same
     numbers to the last bit, in the deterministic and the Monte Carlo backend (same seed)."""
     base = load_instrument("portable")
-    p = write_map_csv(tmp_path / "flat.csv", lambda x, y: 0.7 + 0.0 * x, 9, 7)
+    p = write_map_csv(tmp_path / "flat.csv", lambda x, y: 0.7 + 0.0 * x, 9)
     inst = base.with_changes(detector={"field_sensitivity": str(p)})
     assert inst.detector.field_map is not None and np.all(inst.detector.field_map.values == 1.0)
     model = _road()
@@ -649,7 +649,7 @@ def test_a_gradient_map_against_an_independent_integral(tmp_path, gx, gy, delta)
     as the meter looks, y up, rows from the top) against the independent rule's own frames; a
     gradient up the field weights the far part of the footprint, so eta moves by far more than the
     tolerance."""
-    nx, ny = 21, 15
+    nx = ny = 15
     p = write_map_csv(tmp_path / "grad.csv", lambda x, y: 1.0 + gx * x + gy * y, nx, ny)
     base = load_instrument("portable").with_changes(observation={"delta_deg": delta})
     inst = base.with_changes(detector={"field_sensitivity": str(p)})
@@ -702,10 +702,48 @@ def test_bad_maps_name_the_file_and_field(tmp_path, text, needle):
         Instrument.from_dict(d)
 
 
+def _map_error(tmp_path, name: str, text: str | None = None) -> InputError:
+    p = tmp_path / name
+    if text is not None:
+        p.write_text(text)
+    d = load_instrument("portable").to_dict()
+    d["detector"]["field_sensitivity"] = str(p)
+    with pytest.raises(InputError) as err:
+        Instrument.from_dict(d)
+    assert err.value.path == str(p) and err.value.field == "detector.field_sensitivity"
+    assert "\n" not in str(err.value)
+    return err.value
+
+
+def test_a_csv_map_is_a_square_grid_of_numbers_and_nothing_else(tmp_path):
+    """(trial 10 D1) A CSV map is n lines of n numbers (conventions.md 4.1). A laboratory's point
+    list x,y,k with a header was read as a 9 x 3 image (the header skipped) and an 11 x 7 grid was
+    stretched over the square field; both are refused in one line naming the file, what it found
+    and what was expected. A header-less first row of numbers is the map's top row, not a header."""
+    points = "x,y,k\n" + "".join(f"{x},{y},1\n" for x in (0, 1, 2) for y in (0, 1, 2))
+    err = _map_error(tmp_path, "points_header.csv", points)
+    assert err.line == 1 and "no header line" in err.reason and "'x,y,k'" in err.reason
+    err = _map_error(tmp_path, "points.csv", points.split("\n", 1)[1])
+    assert "square" in err.reason and "9 rows of 3 values" in err.reason and "list of points" in err.reason
+    err = _map_error(tmp_path, "rect.csv", "".join(",".join(["1"] * 7) + "\n" for _ in range(11)))
+    assert "square" in err.reason and "11 rows of 7 values" in err.reason
+    err = _map_error(tmp_path, "late.csv", "1,1\nk,k\n")
+    assert err.line == 2
+    from PIL import Image
+    Image.fromarray(np.full((4, 6), 200, np.uint8)).save(tmp_path / "rect.png")
+    assert "4 rows of 6 values" in _map_error(tmp_path, "rect.png").reason
+    p = tmp_path / "top.csv"
+    p.write_text("# measured field uniformity\n0.5,0.25,1\n\n1,1,1\n1,1,1\n")
+    d = load_instrument("portable").to_dict()
+    d["detector"]["field_sensitivity"] = str(p)
+    got = Instrument.from_dict(d).detector.field_map.values
+    assert got.shape == (3, 3) and np.array_equal(got[0], [0.5, 0.25, 1.0]) and np.all(got[1:] == 1.0)
+
+
 def test_an_image_map_reads_like_the_csv(tmp_path):
     """A 16-bit greyscale PNG of the same values (rows from the top) is the same map."""
     from PIL import Image
-    v = np.round(np.outer(np.linspace(1, 0.5, 6), np.linspace(0.6, 1, 8)) * 60000).astype(np.uint16)
+    v = np.round(np.outer(np.linspace(1, 0.5, 7), np.linspace(0.6, 1, 7)) * 60000).astype(np.uint16)
     Image.fromarray(v).save(tmp_path / "m.png")
     np.savetxt(tmp_path / "m.csv", v.astype(float), delimiter=",")
     d = load_instrument("portable").to_dict()
@@ -713,7 +751,7 @@ def test_an_image_map_reads_like_the_csv(tmp_path):
     for name in ("m.png", "m.csv"):
         d["detector"]["field_sensitivity"] = str(tmp_path / name)
         maps.append(Instrument.from_dict(d).detector.field_map.values)
-    assert maps[0].shape == (6, 8) and np.array_equal(maps[0], maps[1])
+    assert maps[0].shape == (7, 7) and np.array_equal(maps[0], maps[1])
     Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tmp_path / "rgb.png")
     d["detector"]["field_sensitivity"] = str(tmp_path / "rgb.png")
     with pytest.raises(InputError, match="greyscale"):
@@ -725,7 +763,7 @@ def test_an_exr_map_reads_like_the_csv(tmp_path):
     are the same map as the CSV of the same values; colour that differs between channels is refused
     with the file and the field named."""
     import OpenEXR
-    v = (np.outer(np.linspace(1, 0.5, 5), np.linspace(0.6, 1, 7))).astype(np.float32)
+    v = (np.outer(np.linspace(1, 0.5, 6), np.linspace(0.6, 1, 6))).astype(np.float32)
     np.savetxt(tmp_path / "m.csv", v.astype(np.float64), delimiter=",", fmt="%.9g")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     rgb = np.stack([v, v, v], axis=-1)
@@ -737,7 +775,7 @@ def test_an_exr_map_reads_like_the_csv(tmp_path):
         d["detector"]["field_sensitivity"] = str(tmp_path / name)
         maps.append(Instrument.from_dict(d).detector.field_map.values)
     for m in maps[1:]:
-        assert m.shape == (5, 7) and np.allclose(m, maps[0], rtol=1e-7, atol=0)
+        assert m.shape == (6, 6) and np.allclose(m, maps[0], rtol=1e-7, atol=0)
     rgb[..., 1] *= 0.9
     OpenEXR.File(header, {"RGB": rgb}).write(str(tmp_path / "colour.exr"))
     d["detector"]["field_sensitivity"] = str(tmp_path / "colour.exr")

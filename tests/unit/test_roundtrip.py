@@ -18,7 +18,8 @@ from roadgonio.fileio import to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import MAX_LENGTH_M, MIN_APERTURE_M, Detector, Instrument, Observation, SampleGeometry, Source
 from roadgonio.surface.model import PARAM_BOUNDS, PARAM_NAMES, VARIANTS, RoadModel, RoadParams
-from roadgonio.surface.rtable import R_MAX_PLAUSIBLE, RTable, parse_csv, parse_rtb
+from roadgonio.surface.rtable import (R_MAX_PLAUSIBLE, R_SCALE, R_X1E4_LARGEST_MIN, RTable, check_csv_table, parse_csv,
+                                      parse_rtb)
 
 SHAPE = (len(TAN_EPS_GRID), len(BETA_GRID_DEG))
 
@@ -43,11 +44,15 @@ def tables(draw):
 def reader_refuses(r: np.ndarray, fmt: str) -> bool:
     """Whether the table's values break a rule of the file readers (written here from the readers'
     documented rules, apart from the writer): a value that is infinite, negative or above
-    R_MAX_PLAUSIBLE, no value at all; for RTB also a zero (it would read as a blank), no grid cell
-    with four tabulated corners (no q0 line), or Q0 > 1 sr^-1 (its q0 line would read as x 1e4)."""
+    R_MAX_PLAUSIBLE, no value at all; for CSV also a largest value, as written (r x 1e4, 6 digits),
+    above 0 and below R_X1E4_LARGEST_MIN (it looks like sr^-1: docs/inputs-outputs.md; trial 10 D3,
+    the writer's read-back lacked this rule); for RTB also a zero (it would read as a blank), no grid
+    cell with four tabulated corners (no q0 line), or Q0 > 1 sr^-1 (its q0 line would read as x 1e4)."""
     given = ~np.isnan(r)
     v = r[given]
     if np.isinf(v).any() or (v < 0).any() or (v > R_MAX_PLAUSIBLE).any() or not given.any():
+        return True
+    if fmt == "csv" and 0.0 < float(f"{np.max(v) * R_SCALE:.6g}") < R_X1E4_LARGEST_MIN:
         return True
     if fmt == "rtb":
         if (v == 0).any():
@@ -72,7 +77,8 @@ def test_a_table_writer_writes_what_its_reader_reads(r, fmt):
         assert reader_refuses(r, fmt), f"refused a table its reader would read: {msg}"
         return
     assert not reader_refuses(r, fmt), "wrote a table its reader refuses"
-    back = parse_csv(text, path="probe.csv") if fmt == "csv" else parse_rtb(text, path="probe.rtb")
+    back = check_csv_table(parse_csv(text, path="probe.csv"), "probe.csv") if fmt == "csv" else parse_rtb(
+        text, path="probe.rtb")
     np.testing.assert_array_equal(back.mask, ~np.isnan(r))
     given = ~np.isnan(r)
     np.testing.assert_allclose(back.r[given], r[given], rtol=1e-5, atol=1e-300)
