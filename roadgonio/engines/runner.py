@@ -267,7 +267,8 @@ FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
                       "a standard error, as se; without stray light traced k_a_direct is k_a and this is se: NaN "
                       "for a backend that gives a deterministic error_bound instead (quadrature), which then "
                       "bounds k_a_direct too"),
-    "stray_fraction": ("stray fraction of the road signal", "1", "1 - S_direct[f] / S_total[f]; 0 without stray light"),
+    "stray_fraction": ("stray fraction of the road signal (a fraction: 0.3 is 30 %)", "1",
+                       "1 - S_direct[f] / S_total[f]; 0 without stray light"),
     "stray_fraction_se": ("standard error of stray_fraction", "1",
                           "a standard error, as se; 0 without stray light traced, where the stray fraction is 0 "
                           "exactly (no reflecting parts: not an estimate)"),
@@ -459,7 +460,8 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
             near_one = bool(np.isfinite(k).any()) and float(np.nanmax(np.abs(k - 1.0))) < 0.005
             (figures or InProcess()).call(
                 "table_map", k, group.path("ka.png"),
-                title=f"Aperture-effect factor k_A: {ds.attrs['instrument']} x {ds.attrs['sample']}",
+                title=f"Aperture-effect factor k_A: {ds.attrs['instrument']} x {ds.attrs['sample']}"
+                      + (" (stray light included; ka_direct.csv without)" if has_stray_light(ds) else ""),
                 subtitle=f"{ds.attrs['backend']} backend, {count(s['cells'], 'cell')}, " + precision_text(s),
                 label="k_A (1 = no aperture effect)", blank="not computed", fmt="{:.4f}" if near_one else "{:.2f}")
     return meta

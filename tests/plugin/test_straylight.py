@@ -395,6 +395,8 @@ def test_table_outputs_carry_the_stray_light(tmp_path):
     for f in ("ka_direct.csv", "ka_direct_se.csv", "stray_fraction.csv", "stray_fraction_se.csv"):
         assert (tmp_path / f).exists() and f in meta["files"].values()
     assert meta["summary"]["stray_fraction_max"] == max(r.stray_fraction for r in run.results) > 0.0
+    # the file holds a fraction while the console prints per cent: its header says which (trial 10 D10)
+    assert "a fraction: 0.3 is 30 %" in (tmp_path / "stray_fraction.csv").read_text().splitlines()[0]
 
 
 @pytest.mark.parametrize("profile", [{"beam_sigma_deg": 12.0}, {"beam_cos_power": 20.0, "aperture_edge_radiance": 0.3}])
