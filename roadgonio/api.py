@@ -706,7 +706,7 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     if isinstance(instrument, (list, tuple)):
         if len(instrument) != 1:
             raise InputError(f"{len(instrument)} instruments given without joint: several instruments correct one "
-                             "surface together (joint=True, --joint)", field="--instrument")
+                             "surface together (joint=True, --joint)", field="instrument")
         instrument = instrument[0]
     from roadgonio.correction import correct_files
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
@@ -778,17 +778,17 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
     from roadgonio.engines.registry import check_capabilities, check_seed, prepare_entry_point, resolve_settings
     if not (isinstance(reference, str) and reference.strip().lower() == "self"):
         raise InputError("a joint correction fits one surface through the instruments: reference must be 'self'",
-                         field="--reference")
+                         field="reference")
     if forward not in ("eq4", "surface"):
         raise InputError(f"unknown forward model {forward!r}; expected eq4 or surface", field="forward")
     if workers not in (None, 0) or scheduler is not None:
         raise InputError("a joint correction is one fit: it runs in this process (no --workers/--scheduler)",
-                         field="--workers")
+                         field="workers")
     items = list(measured) if isinstance(measured, (list, tuple)) else [measured]
     insts = list(instrument) if isinstance(instrument, (list, tuple)) else [instrument]
     if len(items) < 2 or len(items) != len(insts):
         raise InputError(f"a joint correction takes one instrument per measured table, at least two; got "
-                         f"{len(items)} table(s) and {len(insts)} instrument(s)", field="--instrument")
+                         f"{len(items)} table(s) and {len(insts)} instrument(s)", field="instrument")
     tables = _measured_tables(items)
     seed = check_seed(seed)
     instruments = [_instrument(i) for i in insts]
@@ -837,7 +837,7 @@ def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured:
     ms = DEFAULT_MIN_SIGNAL if min_signal is None else float(min_signal)
     if not (0.0 <= ms <= 1.0):
         raise InputError(f"expected a least signal between 0 and 1 (of the instrument's), got {min_signal!r}",
-                         field="--min-signal")
+                         field="min_signal")
     res = _second(inst, vary, measured=table, sample=smp, u_measured=DEFAULT_U if u_measured is None else u_measured,
                   rays=_check_int(rays, "rays", 8), seed=check_seed(seed),
                   model_variant=None if model_variant == "auto" else model_variant, min_signal=ms,

@@ -54,6 +54,21 @@ def test_joint_and_forward_bad_inputs(tmp_path, capsys, argv, must):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("args, kwargs, field", [
+    ([[MEASURED, MEASURED], [MEDIUM]], {}, "instrument"),
+    ([[MEASURED, MEASURED], [MEDIUM, MEDIUM]], {"reference": "R3"}, "reference"),
+    ([[MEASURED, MEASURED], [MEDIUM, MEDIUM]], {"workers": 2}, "workers"),
+])
+def test_api_errors_name_the_api_arguments(tmp_path, args, kwargs, field):
+    """trial 10 D11: from Python the refusals named the command line's options ('--instrument',
+    '--reference'); the API names its arguments and the CLI (above) its options."""
+    from roadgonio.errors import InputError
+    with pytest.raises(InputError) as err:
+        api.correct(*args, joint=True, out=tmp_path / "o", **kwargs)
+    assert err.value.field == field and "--" not in str(err.value).split(":")[0]
+    assert not (tmp_path / "o").exists()
+
+
 
 HOUSED = Path(__file__).resolve().parents[2] / "scenes" / "portable_housed.toml"
 
