@@ -112,22 +112,29 @@ def _show_note(said: set):
 
 def _as_option(err: RoadgonioError, parser: argparse.ArgumentParser, args) -> RoadgonioError:
     """An InputError about an API argument (no file) names the command's option for it: the
-    argument names are the options' destinations (``rel_se`` -> ``--rel-se``)."""
+    argument names are the options' destinations or their names (``rel_se`` -> ``--rel-se``;
+    ``measured/sample`` -> ``--measured/--sample``). The rooms name API arguments, never options
+    (trial 10 D11: ``rg.correct`` said field '--instrument'); this is the one place that maps them."""
     if not isinstance(err, InputError):
         return err
     sub = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
     command = sub.choices.get(getattr(args, "command", None)) if sub is not None else None
     if command is None:
         return err
-    options = {a.dest: [o for o in a.option_strings if o.startswith("--")][0]
-               for a in command._actions if any(o.startswith("--") for o in a.option_strings)}
+    options: dict[str, str] = {}
+    for a in command._actions:
+        long = [o for o in a.option_strings if o.startswith("--")]
+        if long:
+            options.setdefault(a.dest, long[0])
+            for o in long:
+                options.setdefault(o[2:].replace("-", "_"), o)
 
     def named(text: str | None) -> str | None:
         if not text:
             return text
         cut = min((i for i in (text.find("."), text.find(" ")) if i >= 0), default=len(text))
         head, rest = text[:cut], text[cut:]
-        return options[head] + rest if head in options else text
+        return "/".join(options.get(h, h) for h in head.split("/")) + rest
 
     if err.path is not None:       # a file's content: name the option that gave the file
         return InputError(err.reason, path=err.path, line=err.line, field=err.field, argument=named(err.argument))

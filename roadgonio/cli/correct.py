@@ -45,7 +45,8 @@ def register(sub) -> None:
                    help="forward model fitted with --reference self: eq4 (default) the paper's eq. 4; surface: eq. 4 "
                         "times a smooth correction surface over the incident direction whose smoothing the data "
                         "choose, for surfaces outside eq. 4 (its u includes the surface's posterior, and is widened "
-                        "by the local Birge ratio where the residuals have structure); --joint implies surface")
+                        "by the local Birge ratio where the residuals have structure); --joint fits surface (eq4 is refused "
+                        "with it)")
     p.add_argument("--joint", action="store_true",
                    help="the --measured tables are ONE surface measured by the --instrument(s) (one per table, or one "
                         "instrument with several aperture settings as several files): one surface is fitted through "
@@ -146,6 +147,7 @@ def run(args) -> int:
 
 def _run_joint(args) -> int:
     res = api.correct(list(args.measured), list(args.instrument), joint=True, reference=args.reference,
+                      forward=args.forward,
                       u_measured=args.u_measured, sigma=args.sigma, backend=args.backend, accuracy=args.accuracy,
                       rel_se=args.rel_se, seed=args.seed, mitsuba_variant=args.mitsuba_variant,
                       model_variant=args.model_variant, rays=args.rays, workers=args.workers,

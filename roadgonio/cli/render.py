@@ -22,15 +22,20 @@ def register(sub) -> None:
                                    "illuminance around the detector footprint (footprint outlined). Writes "
                                    "view.exr, illuminance.exr, render.png and render.json to --out, and stray.png and "
                                    "stray.exr (where the stray light enters the view) when the scene makes stray "
-                                   "light (a reflecting [housing] or [scene], docs/straylight.md).")
+                                   "light (a reflecting [housing] or [scene], docs/straylight.md). With stray light "
+                                   "the k_A estimate and stray.png come from a fixed stray-light run (96 x 96 "
+                                   "pixels, 2^20 samples) that --resolution and --spp do not change; they set "
+                                   "view.exr, render.png and k_A of the direct light.")
     add_instrument_argument(p)
     add_sample_argument(p)
     add_model_variant(p)
     p.add_argument("--tan-eps", dest="tan_eps", type=float, required=True, metavar="T", help="tan(epsilon) of the source")
     p.add_argument("--beta", type=float, required=True, metavar="B", help="beta of the source (deg)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--resolution", type=int, default=256, help="detector-view pixels per side (default 256)")
-    p.add_argument("--spp", type=int, default=64, help="samples per pixel (a square; default 64)")
+    p.add_argument("--resolution", type=int, default=256, help="detector-view pixels per side (default 256; not "
+                   "stray.png's, see above)")
+    p.add_argument("--spp", type=int, default=64, help="samples per pixel (a square; default 64; not the stray-light "
+                   "run's, see above)")
     p.add_argument("--seed", type=int, default=0, help="seed of the renders (0 ... 2^32 - 1: Mitsuba's samplers take a "
                    "32-bit seed; default 0)")
     add_mitsuba_variant(p)
@@ -59,6 +64,10 @@ def run(args) -> int:
         say(f"stray light: {100 * st['stray_fraction_road']:.2f} % of the road signal (most from {top}), "
             f"{100 * st['stray_fraction_lambert']:.2f} % of the Lambert calibration's; k_A of the direct light alone "
             f"~ {info['k_a_direct_estimate']:.4f} (stray.png shows where it enters the view)")
+        # trial 10 D5: the headline k_A and stray.png do not follow --resolution/--spp; say what they used
+        say(f"k_A with stray light and stray.png: the stray-light run's {st['resolution']} x {st['resolution']} "
+            f"pixels and {st['samples']} samples (fixed; --resolution {args.resolution} and --spp {args.spp} "
+            "set view.exr, render.png and the direct k_A)")
     for v in info["files"].values():
         say(f"wrote {v}")
     return 0

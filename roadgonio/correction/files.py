@@ -49,7 +49,7 @@ def correct_measured(measured: RTable, instrument: Instrument, *, reference: Any
     from roadgonio.correction.reference import resolve_alternatives, sample_name
     forward = options.pop("forward", "eq4")
     if forward not in FORWARDS:
-        raise InputError(f"unknown forward model {forward!r}; expected one of {', '.join(FORWARDS)}", field="--forward")
+        raise InputError(f"unknown forward model {forward!r}; expected one of {', '.join(FORWARDS)}", field="forward")
     if isinstance(reference, str) and reference.strip().lower() == "self":
         if forward == "surface":
             return correct_self_surface(measured, instrument, model_variant=model_variant, **options)
@@ -154,7 +154,7 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
                          field="out")
     if distributed and options.get("factory") is not None:
         raise InputError("a custom backend factory cannot run on Dask workers; give a backend name",
-                         field="--workers")
+                         field="workers")
     # checks and table-independent work, once and before any table
     for t in tables:
         check_measured(t)
@@ -254,7 +254,7 @@ def correct_joint(tables: Sequence[RTable], instruments: Sequence[Instrument], o
     tables, instruments = list(tables), list(instruments)
     if len(tables) < 2 or len(tables) != len(instruments):
         raise InputError(f"a joint correction takes one --instrument per --measured table, at least two; got "
-                         f"{len(tables)} table(s) and {len(instruments)} instrument(s)", field="--joint")
+                         f"{len(tables)} table(s) and {len(instruments)} instrument(s)", field="joint")
     variants = DEFAULT_VARIANTS if model_variant in (None, "auto") else (model_variant,)
     options["sigma"] = _sigma(options.get("sigma")) if not isinstance(options.get("sigma"), (list, tuple)) \
         else [_sigma(s) for s in options["sigma"]]

@@ -138,7 +138,7 @@ class _Problem:
             raise InputError("expected one measured value and one uncertainty per cell of the forward model",
                              field="measured")
         if not (np.all(np.isfinite(self.u)) and np.all(self.u > 0)):
-            raise InputError("every measured cell needs a positive standard uncertainty", field="--u-measured")
+            raise InputError("every measured cell needs a positive standard uncertainty", field="u_measured")
         self.w = 1.0 / self.u
         self.variant = variant
         self.fixed = dict(fixed)

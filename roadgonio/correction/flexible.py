@@ -505,7 +505,7 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
     y = np.concatenate([np.asarray(v, dtype=np.float64) for v in measured])
     uu = np.concatenate([np.asarray(v, dtype=np.float64) for v in u])
     if y.shape != uu.shape or not np.all(np.isfinite(uu) & (uu > 0)):
-        raise InputError("every measured cell needs a positive standard uncertainty", field="--u-measured")
+        raise InputError("every measured cell needs a positive standard uncertainty", field="u_measured")
     W = 1.0 / uu ** 2
     n = y.size
     n_c, n_d = settings.n_c, settings.n_d

@@ -330,15 +330,15 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     tables, instruments = list(tables), list(instruments)
     if not tables or len(tables) != len(instruments):
         raise InputError(f"expected one instrument per measured table, got {len(tables)} table(s) and "
-                         f"{len(instruments)} instrument(s)", field="--instrument")
+                         f"{len(instruments)} instrument(s)", field="instrument")
     variants = tuple(variants)
     bad = [v for v in variants if v not in VARIANTS]
     if not variants or bad:
         raise InputError(f"unknown model variant(s) {', '.join(bad) or '(none)'}; expected some of "
-                         f"{', '.join(VARIANTS)}", field="--model-variant")
+                         f"{', '.join(VARIANTS)}", field="model_variant")
     settings = settings or SurfaceSettings()
-    u_specs = _as_list(u_measured, len(tables), "--u-measured")
-    sigmas = [_run._sigma(s) for s in _as_list(sigma, len(tables), "--sigma")]
+    u_specs = _as_list(u_measured, len(tables), "u_measured")
+    sigmas = [_run._sigma(s) for s in _as_list(sigma, len(tables), "sigma")]
     for t in tables:
         _run.check_measured(t)
         _run._check_fit_cells(t)
@@ -657,7 +657,7 @@ def to_correction_result(res: SurfaceCorrection):
     from roadgonio.correction.run import CorrectionResult
     if res.joint:
         raise InputError("a correction through several instruments has one table per instrument; "
-                         "use write_surface_correction", field="--joint")
+                         "use write_surface_correction", field="joint")
     p = res.parts[0]
     best = res.best
     alternatives = {vf.variant: _grid(p.measured, vf.parts[0].k_a(vf.fit.theta)) for vf in res.variants

@@ -110,8 +110,13 @@ def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
         raise InputError(f"a standard uncertainty below {U_REL_MIN:g} of the value (tan eps = {table.tan_eps[i]:g}, "
                          f"beta = {table.beta_deg[j]:g}; {int(tiny.sum())} cells): no goniophotometer measures that "
                          f"well, and the fit's weights 1/u^2 would overflow; expected at least {100 * U_REL_MIN:g} %",
-                         path=path, field="--u-measured")
+                         path=path, **_u_where(path))
     return grid, what
+
+
+def _u_where(path: Path | None) -> dict:
+    """Where an error about ``u_measured`` is: the argument that named the file, or the argument itself."""
+    return {"argument": "u_measured"} if path is not None else {"field": "u_measured"}
 
 
 def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Path | None]:
@@ -119,7 +124,7 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
         grid, what = spec.r, f"per-cell table {spec.name}"
         path = None
     elif isinstance(spec, (int, float)) and not isinstance(spec, bool):
-        return _relative(float(spec), table, "--u-measured"), f"{100 * float(spec):g} % of each value", None
+        return _relative(float(spec), table, "u_measured"), f"{100 * float(spec):g} % of each value", None
     else:
         text = str(spec).strip()
         path = None
@@ -128,15 +133,15 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
                 v = float(text[:-1]) / 100.0
             except ValueError:
                 raise InputError(f"expected a percentage like '1%' or a table file, got {text!r}",
-                                 field="--u-measured") from None
-            return (_relative(v, table, "--u-measured", text), f"{100 * v:g} % of each value (relative, independent cells)",
+                                 field="u_measured") from None
+            return (_relative(v, table, "u_measured", text), f"{100 * v:g} % of each value (relative, independent cells)",
                     None)
         try:
             v = float(text)
         except ValueError:
             v = None
         if v is not None:
-            return (_relative(v, table, "--u-measured", text), f"{100 * v:g} % of each value (relative, independent cells)",
+            return (_relative(v, table, "u_measured", text), f"{100 * v:g} % of each value (relative, independent cells)",
                     None)
         path = Path(text)
         try:
@@ -144,14 +149,14 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
         except InputError as err:
             raise InputError(f"{err.reason} (expected a relative standard uncertainty like '1%' or 0.01, or an "
                              "r-table file of per-cell standard uncertainties)", path=err.path, line=err.line,
-                             field="--u-measured") from None
+                             field=err.field, argument="u_measured") from None
         grid, what = u_table.r, f"per-cell standard uncertainties from {path.name} (independent cells)"
     missing = table.mask & ~(np.isfinite(grid) & (grid > 0))
     if missing.any():
         i, j = np.argwhere(missing)[0]
         raise InputError(f"no positive standard uncertainty for the measured cell tan eps = {table.tan_eps[i]:g}, "
                          f"beta = {table.beta_deg[j]:g} ({int(missing.sum())} measured cells lack one); expected "
-                         "the r-table layout with r x 1e4 values", path=path, field="--u-measured")
+                         "the r-table layout with r x 1e4 values", path=path, **_u_where(path))
     return np.where(table.mask, grid, np.nan), what, path
 
 
@@ -180,7 +185,7 @@ def check_measured(table: RTable, path: str | Path | None = None) -> None:
 def _check_fit_cells(table: RTable) -> None:
     if int(table.mask.sum()) < 12:
         raise InputError(f"the measured table has {int(table.mask.sum())} values; a fit through the instrument "
-                         "needs at least 12 (or give --reference SAMPLE)", field="--measured")
+                         "needs at least 12 (or give --reference SAMPLE)", field="measured")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -383,7 +388,7 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     sigma = _sigma(sigma)
     if variant != "auto" and variant not in VARIANTS:
         raise InputError(f"unknown model variant {variant!r}; expected auto or one of {', '.join(VARIANTS)}",
-                         field="--model-variant")
+                         field="model_variant")
     u_grid, u_what = measured_uncertainty(u_measured, measured)
     out = Path(out_dir) if out_dir is not None else None
     mask = measured.mask
@@ -576,4 +581,4 @@ def _sigma(sigma):
     if sigma is None:
         return None
     from roadgonio.uncertainty import SigmaSpec, parse_sigma_spec
-    return sigma if isinstance(sigma, SigmaSpec) else parse_sigma_spec(sigma, option="--sigma")
+    return sigma if isinstance(sigma, SigmaSpec) else parse_sigma_spec(sigma, option="sigma")

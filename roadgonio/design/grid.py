@@ -76,9 +76,9 @@ def _number(text: str, spec: str) -> float:
     try:
         v = float(text)
     except ValueError:
-        raise InputError(f"expected a number, got {text!r} in {spec!r}; syntax {SYNTAX}", field="--vary") from None
+        raise InputError(f"expected a number, got {text!r} in {spec!r}; syntax {SYNTAX}", field="vary") from None
     if not math.isfinite(v):
-        raise InputError(f"expected a finite number, got {text!r} in {spec!r}", field="--vary")
+        raise InputError(f"expected a finite number, got {text!r} in {spec!r}", field="vary")
     return v
 
 
@@ -86,13 +86,13 @@ def parse_vary(spec: str) -> VarySpec:
     """``"source.radius_m=0.01:0.04:4"`` -> :class:`VarySpec` (see the module docstring)."""
     text = str(spec).strip()
     if "=" not in text:
-        raise InputError(f"expected {SYNTAX}; got {text!r}", field="--vary")
+        raise InputError(f"expected {SYNTAX}; got {text!r}", field="vary")
     key, rhs = (s.strip() for s in text.split("=", 1))
     if key not in ALL_KEYS and not BAFFLE_KEY.match(key):
         raise InputError(f"unknown instrument key {key!r}; expected one of {', '.join(ALL_KEYS)}, "
-                         "housing.baffles.N.x_m, housing.baffles.N.height_m", field="--vary")
+                         "housing.baffles.N.x_m, housing.baffles.N.height_m", field="vary")
     if not rhs:
-        raise InputError(f"no values for {key}; expected {SYNTAX}", field="--vary")
+        raise InputError(f"no values for {key}; expected {SYNTAX}", field="vary")
     log = False
     if ":" in rhs:
         parts = [p.strip() for p in rhs.split(":")]
@@ -102,21 +102,21 @@ def parse_vary(spec: str) -> VarySpec:
         elif len(parts) == 4 and parts[3].lower() in ("lin", "linear"):
             parts = parts[:3]
         if len(parts) != 3:
-            raise InputError(f"expected LO:HI:N or LO:HI:N:log for {key}, got {rhs!r}", field="--vary")
+            raise InputError(f"expected LO:HI:N or LO:HI:N:log for {key}, got {rhs!r}", field="vary")
         lo, hi = _number(parts[0], text), _number(parts[1], text)
         try:
             n = int(parts[2])
         except ValueError:
-            raise InputError(f"expected a whole number of values N, got {parts[2]!r} in {text!r}", field="--vary") from None
+            raise InputError(f"expected a whole number of values N, got {parts[2]!r} in {text!r}", field="vary") from None
         if n < 1:
-            raise InputError(f"expected N >= 1 values, got {n} in {text!r}", field="--vary")
+            raise InputError(f"expected N >= 1 values, got {n} in {text!r}", field="vary")
         from roadgonio.limits import check_size
-        check_size(n, "design_points", "--vary")
+        check_size(n, "design_points", "vary")
         if n == 1 and lo != hi:
-            raise InputError(f"one value (N = 1) needs LO = HI, got {text!r}", field="--vary")
+            raise InputError(f"one value (N = 1) needs LO = HI, got {text!r}", field="vary")
         if log:
             if lo <= 0 or hi <= 0:
-                raise InputError(f"a log grid needs LO, HI > 0, got {text!r}", field="--vary")
+                raise InputError(f"a log grid needs LO, HI > 0, got {text!r}", field="vary")
             vals = np.geomspace(lo, hi, n)
         else:
             vals = np.linspace(lo, hi, n)
@@ -124,7 +124,7 @@ def parse_vary(spec: str) -> VarySpec:
     else:
         values = tuple(_round(_number(v.strip(), text)) for v in rhs.split(",") if v.strip())
     if len(set(values)) != len(values):
-        raise InputError(f"repeated values for {key} in {text!r}", field="--vary")
+        raise InputError(f"repeated values for {key} in {text!r}", field="vary")
     return VarySpec(key=key, values=values, log=log, text=text)
 
 
@@ -146,7 +146,7 @@ def as_vary_specs(vary: Sequence[str | VarySpec] | Mapping[str, Sequence[float]]
                 bad = [v for v in values if isinstance(v, bool) or not isinstance(v, (int, float, np.integer,
                                                                                       np.floating))]
                 if bad:
-                    raise InputError(f"expected numbers as the values of {key}, got {bad[0]!r}", field="--vary")
+                    raise InputError(f"expected numbers as the values of {key}, got {bad[0]!r}", field="vary")
                 specs.append(parse_vary(f"{key}=" + ",".join(repr(float(v)) for v in values)))
     else:
         for v in vary:
@@ -154,7 +154,7 @@ def as_vary_specs(vary: Sequence[str | VarySpec] | Mapping[str, Sequence[float]]
     seen = set()
     for s in specs:
         if s.key in seen:
-            raise InputError(f"{s.key} is varied twice; give each key once", field="--vary")
+            raise InputError(f"{s.key} is varied twice; give each key once", field="vary")
         seen.add(s.key)
     return specs
 
@@ -196,19 +196,19 @@ def check_vary(base: Instrument, specs: Sequence[VarySpec]) -> None:
                     continue
                 if f"{section}.{other}" in varied:
                     raise InputError(f"{s.key} and {section}.{other} cannot be varied together ({why}); vary one of "
-                                     "them", field="--vary")
+                                     "them", field="vary")
                 if _gives(base, section, other):
                     raise InputError(f"{s.key}: the base instrument{where} gives {section}.{other} ({why}): a value "
                                      f"of {s.name} would conflict with it or, at the default, leave {other} in place "
                                      f"under a label that says otherwise; remove {section}.{other} from the base "
-                                     f"file to vary {s.key}", field="--vary")
+                                     f"file to vary {s.key}", field="vary")
     sec = base.extra.get("housing") if hasattr(base.extra, "get") else None
     for s in specs:
         if s.section != "housing":
             continue
         if sec is None:
             raise InputError(f"{s.key}: the base instrument{where} has no [housing]; declare one in its file "
-                             "(docs/straylight.md) to vary the housing's keys", field="--vary")
+                             "(docs/straylight.md) to vary the housing's keys", field="vary")
         m = BAFFLE_KEY.match(s.key)
         if m:
             n = len(sec.get("baffles", ()) or ())
@@ -219,7 +219,7 @@ def check_vary(base: Instrument, specs: Sequence[VarySpec]) -> None:
                                  if n else
                                  f"{s.key}: the base instrument{where} declares no baffles in [housing]; declare "
                                  "them there, e.g. baffles = [{x_m = -0.5, height_m = 0.0}] (height_m = 0 is no "
-                                 "baffle)", field="--vary")
+                                 "baffle)", field="vary")
 
 
 def grid_points(specs: Sequence[VarySpec]) -> list[dict[str, float]]:
@@ -245,7 +245,7 @@ def point_changes(base: Instrument, point: Mapping[str, float]) -> dict[str, dic
             k = int(m.group(1))
             if k >= len(baffles):
                 raise InputError(f"{key}: the base instrument declares {len(baffles)} baffle(s) in [housing] "
-                                 f"baffles; declare baffle {k} there (height_m = 0 is no baffle)", field="--vary")
+                                 f"baffles; declare baffle {k} there (height_m = 0 is no baffle)", field="vary")
             baffles[k][m.group(2)] = float(value)
             continue
         sec, name = key.split(".", 1)
@@ -276,12 +276,12 @@ def parse_tolerance(text: str | float) -> float:
         try:
             v = float(s[:-1] if pct else s)
         except ValueError:
-            raise InputError(f"expected a fraction (0.05) or a percentage (5%), got {text!r}", field="--tolerance") from None
+            raise InputError(f"expected a fraction (0.05) or a percentage (5%), got {text!r}", field="tolerance") from None
     if pct:
         v /= 100.0
     if not (math.isfinite(v) and v > 0):
-        raise InputError(f"expected a tolerance > 0, got {text!r}", field="--tolerance")
+        raise InputError(f"expected a tolerance > 0, got {text!r}", field="tolerance")
     if v >= 1 and not pct:
         raise InputError(f"a tolerance of {v:g} on |k_A - 1| would accept k_A = 0; for a percentage write "
-                         f"'{v:g}%'", field="--tolerance")
+                         f"'{v:g}%'", field="tolerance")
     return v

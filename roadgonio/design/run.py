@@ -128,7 +128,7 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
     specs: list[VarySpec] = as_vary_specs(vary)
     check_vary(base, specs)
     from roadgonio.limits import check_size
-    check_size(math.prod(len(s.values) for s in specs), "design_points", "--vary")   # before the grid is built
+    check_size(math.prod(len(s.values) for s in specs), "design_points", "vary")   # before the grid is built
     points = grid_points(specs)
     shape = grid_shape(specs)
     smp = resolve_samples(samples, cells)

@@ -126,7 +126,7 @@ def check_second_keys(instrument: Instrument, specs) -> None:
         if s.section in ("housing", "scene"):
             raise InputError(f"{s.key}: the second aperture's prediction (ray bundles through the optics) does not "
                              "model a housing or scene parts; vary the optics (source, detector, observation)",
-                             field="--vary")
+                             field="vary")
     check_vary(instrument, specs)
 
 
@@ -145,10 +145,10 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     t0 = time.perf_counter()
     if (measured is None) == (sample is None):
         raise InputError("give either the measured table of the instrument or a SAMPLE to design for",
-                         field="--measured/--sample")
+                         field="measured/sample")
     specs = as_vary_specs(vary)
     if not specs:
-        raise InputError("expected at least one --vary KEY=... for the second aperture", field="--vary")
+        raise InputError("expected at least one --vary KEY=... for the second aperture", field="vary")
     check_second_keys(instrument, specs)
     rays = int(rays or DEFAULT_RAYS)
     settings = SurfaceSettings()
@@ -228,7 +228,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     cands.sort(key=lambda c: (not (c.signal >= min_signal and math.isfinite(c.u_median)), c.u_median, c.u_s1_rel))
     if not (cands and cands[0].signal >= min_signal and math.isfinite(cands[0].u_median)):
         raise InputError(f"no second setting of the --vary grid keeps {min_signal:g} of the instrument's signal and "
-                         "can measure every cell", field="--vary")
+                         "can measure every cell", field="vary")
     return SecondApertureResult(instrument=instrument, surface_from=source, candidates=cands, baselines=baselines,
                                 keys=[s.key for s in specs], seconds=time.perf_counter() - t0,
                                 settings={"u_measured": str(u_measured), "rays": rays, "seed": seed,

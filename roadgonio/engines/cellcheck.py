@@ -29,11 +29,12 @@ from roadgonio.engines.result import ideal_ratio, ideal_ratios
 def _check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]], models_beam: bool,
                     backend: str) -> None:
     optics.check_source_cells(instrument, cells)      # names the first bad cell and how many more
-    for t, b in cells:
-        if not models_beam and optics.beam_clips_footprint(instrument, t, b):
-            raise BackendError(f"the source beam limit ({instrument.source.beam_half_angle_deg:g} deg) clips the "
-                               f"light reaching the detector footprint at tan eps = {t:g}, beta = {b:g}; the "
-                               f"{backend} backend does not model beam limits: use the quadrature backend")
+    clips = np.flatnonzero(optics.beam_clips_cells(instrument, cells)) if not models_beam else ()
+    if len(clips):
+        t, b = cells[clips[0]]
+        raise BackendError(f"the source beam limit ({instrument.source.beam_half_angle_deg:g} deg) clips the "
+                           f"light reaching the detector footprint at tan eps = {t:g}, beta = {b:g}; the "
+                           f"{backend} backend does not model beam limits: use the quadrature backend")
     optics.check_line_of_sight(instrument, cells)
 
 

@@ -267,7 +267,7 @@ def _check_address(address: str) -> str:
     host, _, port = rest.rpartition(":")
     if proto not in ("tcp", "tls", "inproc", "ws", "wss") or not host or not port.isdigit():
         raise InputError(f"expected a scheduler address tcp://HOST:PORT (as printed by 'dask scheduler'), got "
-                         f"{address!r}", field="--scheduler")
+                         f"{address!r}", field="scheduler")
     return a
 
 
@@ -280,12 +280,12 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
     Mitsuba variant, default ``$ROADGONIO_VARIANT`` or llvm_ad_rgb)."""
     if workers is not None and scheduler is not None:
         raise InputError("give --workers (a local cluster) or --scheduler (an existing one), not both",
-                         field="--workers/--scheduler")
+                         field="workers/scheduler")
     if scheduler is None and workers == 0:
         yield None
         return
     if workers is not None and (not isinstance(workers, int) or workers < 0):
-        raise InputError(f"expected a number of workers >= 0, got {workers!r}", field="--workers")
+        raise InputError(f"expected a number of workers >= 0, got {workers!r}", field="workers")
     try:
         from distributed import Client, LocalCluster
     except ImportError:  # pragma: no cover
@@ -298,13 +298,13 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
         except (OSError, TimeoutError) as err:
             raise InputError(f"cannot connect to the Dask scheduler at {address} ({err}); start one with "
                              "'dask scheduler' and workers with 'dask worker ADDRESS --nthreads 1'",
-                             field="--scheduler") from None
+                             field="scheduler") from None
         try:
             client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
         except (TimeoutError, OSError):
             client.close()
             raise InputError(f"no worker joined the Dask scheduler at {address} within {CONNECT_TIMEOUT_S:g} s; "
-                             "start some with 'dask worker ADDRESS --nthreads 1'", field="--scheduler") from None
+                             "start some with 'dask worker ADDRESS --nthreads 1'", field="scheduler") from None
     else:
         if _bootstrapping():
             raise InputError(MAIN_GUARD, field="workers")

@@ -182,7 +182,7 @@ def overall(rows: Sequence[CellComparison]) -> str:
 
 def resolve_reference(instrument: Instrument, reference: str) -> str:
     if reference not in REFERENCES:
-        raise InputError(f"expected --reference {', '.join(REFERENCES)}, got {reference!r}", field="--reference")
+        raise InputError(f"expected --reference {', '.join(REFERENCES)}, got {reference!r}", field="reference")
     if reference == "auto":
         return "numpy-mc-mesh" if instrument.sample.mesh is not None else "reference"
     return reference
@@ -212,12 +212,12 @@ def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[flo
     test needs)."""
     from roadgonio.engines.registry import make_backend
     if against not in ("mitsuba", "numpy-mc"):
-        raise InputError(f"expected --against mitsuba or numpy-mc, got {against!r}", field="--against")
+        raise InputError(f"expected --against mitsuba or numpy-mc, got {against!r}", field="against")
     ref_name = resolve_reference(instrument, reference)
     _check_modelled(instrument, ref_name)
     if ref_name == "numpy-mc-mesh" and against == "numpy-mc":
         raise InputError("a mesh sample is checked against the numpy ray-casting Monte Carlo; --against numpy-mc "
-                         "(flat samples only) has nothing to compare there", field="--against")
+                         "(flat samples only) has nothing to compare there", field="against")
     from roadgonio.engines.cells import EXTREME_CELLS
     cells = list(EXTREME_CELLS) if cells is None else list(cells)
     if floor is None:

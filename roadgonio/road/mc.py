@@ -64,14 +64,14 @@ def propagate(installation, table: RTable, u: RTable, *, trials: int = 20000, se
     nominal = installation.evaluate(table)
     target = target_class or nominal.cls or "M6"
     if target not in metrics.M_CLASSES:
-        raise InputError(f"unknown class {target!r}; expected one of {', '.join(metrics.M_CLASSES)}", field="--class")
+        raise InputError(f"unknown class {target!r}; expected one of {', '.join(metrics.M_CLASSES)}", field="class")
     out = {"trials": trials, "seed": seed, "target_class": target, "u_cells_used": int(len(cells)),
            "u_rel_median_used_cells": float(np.median(uv / np.where(r0 > 0, r0, np.nan))),
            "method": "Monte Carlo, r + u z per trial, r clipped at 0; luminance linear in r"}
     rng = np.random.default_rng(seed)
     for mode in correlations:
         if mode not in CORRELATIONS:
-            raise InputError(f"unknown correlation {mode!r}; expected {' | '.join(CORRELATIONS)}", field="--correlation")
+            raise InputError(f"unknown correlation {mode!r}; expected {' | '.join(CORRELATIONS)}", field="correlation")
         acc = {k: [] for k in ("L_av", "U_o", "U_l", "TI")}
         lanes = []
         clipped = 0

@@ -39,7 +39,7 @@ class CellSet:
     @classmethod
     def make(cls, which: str = "standard") -> "CellSet":
         if which not in CELL_SETS:
-            raise InputError(f"unknown cell set {which!r}; expected standard or all", field="--cells")
+            raise InputError(f"unknown cell set {which!r}; expected standard or all", field="cells")
         mask = standard_mask() if which == "standard" else np.ones((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), bool)
         ii, jj = np.nonzero(mask)
         return cls(TAN_EPS_GRID[ii].copy(), BETA_GRID_DEG[jj].copy(), ii, jj, which)

@@ -45,7 +45,7 @@ class MeasurementModel:
                  illuminance: str = "nominal"):
         if illuminance not in ILLUMINANCE:
             raise InputError(f"unknown illuminance normalisation {illuminance!r}; expected nominal or measured",
-                             field="--illuminance")
+                             field="illuminance")
         self.model = model
         self.instrument = instrument
         self.cells = cells

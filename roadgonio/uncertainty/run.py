@@ -114,7 +114,7 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
     scale = np.where(scale > 1e-12 * np.maximum(1.0, np.max(np.abs(xp), axis=(0, 1))), scale, 0.0)
     active = np.nonzero(scale > 0)[0]
     if design not in DESIGNS:
-        raise InputError(f"unknown surrogate design {design!r}; expected {' or '.join(DESIGNS)}", field="--surrogate")
+        raise InputError(f"unknown surrogate design {design!r}; expected {' or '.join(DESIGNS)}", field="surrogate")
     if axial is None:
         axial = 2.0 if design == "star" else 2.5
     Z = design_points(len(active), axial, factorial, design)
@@ -225,7 +225,7 @@ def _exact_on_dask(jobs, model: RoadModel, client, task_backend, bar, tally: "_E
     from roadgonio.errors import BackendError, GeometryError, RoadgonioError, WorkLostError
     if task_backend is None:
         raise InputError("distributing the exact tables needs a backend name and settings, not a backend factory",
-                         field="--workers")
+                         field="workers")
     name, settings = task_backend
     first: list = []
     if name == "mitsuba" and jobs and factory is not None and getattr(factory, "accepts_plan", False):
@@ -365,12 +365,12 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     (:func:`roadgonio.engines.cluster.open_client`); the numbers are the same either way.
     """
     if not (0.5 < coverage < 1.0):
-        raise InputError(f"expected a coverage probability 0.5 < p < 1, got {coverage:g}", field="--coverage")
+        raise InputError(f"expected a coverage probability 0.5 < p < 1, got {coverage:g}", field="coverage")
     if n_dig not in (1, 2, 3):
-        raise InputError(f"expected 1, 2 or 3 significant digits, got {n_dig}", field="--digits")
+        raise InputError(f"expected 1, 2 or 3 significant digits, got {n_dig}", field="digits")
     trials = int(trials)
     if not adaptive and trials < 100:
-        raise InputError(f"expected at least 100 trials, got {trials}", field="--trials")
+        raise InputError(f"expected at least 100 trials, got {trials}", field="trials")
     if threads is None:
         threads = min(2, os.cpu_count() or 1)
     timings: dict[str, float] = {}
@@ -392,7 +392,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
         distributed = client is not None or scheduler is not None or workers not in (None, 0)
         if distributed and backend_factory is not None:
             raise InputError("a custom backend factory cannot run on Dask workers; give a backend name",
-                             field="--workers")
+                             field="workers")
         t = time.perf_counter()
         kw = dict(seed_seq=ss_sur, n_validation=n_validation,
                   backend_settings={"backend": backend, **dict(backend_settings or {})},
@@ -423,7 +423,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
         else:
             Mb = int(batch) if batch else max(int(math.ceil(100.0 / (1.0 - coverage))), 10_000)
             if Mb < 100:
-                raise InputError(f"expected a batch of at least 100 trials, got {Mb}", field="--batch")
+                raise InputError(f"expected a batch of at least 100 trials, got {Mb}", field="batch")
             blocks0, blocks1, per_batch = [], [], {"0": [], "1": []}
             h = 0
             converged = False

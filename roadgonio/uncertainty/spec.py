@@ -121,7 +121,7 @@ def _spec_from_mapping(d: Mapping[str, Any], *, path, field_prefix: str, source:
     return SigmaSpec(tuple(sig), tuple(dist), source=source)
 
 
-def parse_sigma_spec(spec: str | Path | Mapping[str, Any], *, option: str = "--sigma") -> SigmaSpec:
+def parse_sigma_spec(spec: str | Path | Mapping[str, Any], *, option: str = "sigma") -> SigmaSpec:
     """Parse a SPEC (see :data:`SPEC_HELP`): a string ``KEY=SIGMA[:DIST],...``, a TOML file path,
     or a mapping. Unknown keys, bad numbers, negative sigmas and unknown distributions raise
     :class:`InputError` naming the option or file and the key."""
@@ -232,7 +232,7 @@ def geometry_problems(mm, X: np.ndarray, *, aperture: bool = False) -> tuple[np.
     return bad, why
 
 
-def check_spec_geometry(spec: SigmaSpec, mm, *, aperture: bool, option: str = "--sigma") -> None:
+def check_spec_geometry(spec: SigmaSpec, mm, *, aperture: bool, option: str = "sigma") -> None:
     """Validate a SPEC against the instrument up front: every input alone at +- its checked extent
     (:data:`CHECK_SIGMAS` sigma, or the rectangular half-width) and the inputs together at that
     distance in every sign combination must keep the geometry valid (detector and source above
@@ -277,7 +277,7 @@ def check_spec_geometry(spec: SigmaSpec, mm, *, aperture: bool, option: str = "-
                          f"deviations ({why[k]}); expected smaller standard deviations", field=field)
 
 
-def check_trials(spec: SigmaSpec, mm, X: np.ndarray, *, first_index: int = 0, option: str = "--sigma") -> None:
+def check_trials(spec: SigmaSpec, mm, X: np.ndarray, *, first_index: int = 0, option: str = "sigma") -> None:
     """Every drawn trial must have a valid geometry (the up-front check covers 6 sigma; a trial
     beyond that is still caught here, never turned into a NaN or a silent zero)."""
     bad, why = geometry_problems(mm, X)

@@ -93,7 +93,7 @@ def test_map_calls_order_shared_object_and_errors(client):
     assert map_calls(abs, [-3, 4], client) == [3, 4]
     with pytest.raises(InputError) as e:
         map_calls(_check_address, ["tcp://127.0.0.1:8786", "no-port-here"], client)
-    assert e.value.field == "--scheduler" and "no-port-here" in str(e.value)
+    assert e.value.field == "scheduler" and "no-port-here" in str(e.value)
 
 
 def test_correct_api_refuses_a_custom_factory_on_dask(tmp_path):

@@ -47,10 +47,30 @@ def one_line_error(capsys, rc, *must):
      ("forward", "self")),
     (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--measured", str(MEASURED), "--instrument",
       str(MEDIUM), "--joint", "--reference", "R3"], ("--reference",)),
+    # trial 10 D7: an explicit --forward eq4 was dropped without a word and the surface fitted
+    (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--measured", str(MEASURED), "--instrument",
+      str(MEDIUM), "--joint", "--forward", "eq4"], ("field '--forward'", "eq4 cannot be used")),
 ])
 def test_joint_and_forward_bad_inputs(tmp_path, capsys, argv, must):
     rc = main(["correct", *argv, *FAST, "--out", str(tmp_path / "o")])
     one_line_error(capsys, rc, *must)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("args, kwargs, field", [
+    ([[MEASURED, MEASURED], [MEDIUM]], {}, "instrument"),
+    ([[MEASURED, MEASURED], [MEDIUM, MEDIUM]], {"reference": "R3"}, "reference"),
+    ([[MEASURED, MEASURED], [MEDIUM, MEDIUM]], {"forward": "eq4"}, "forward"),
+    ([[MEASURED, MEASURED], [MEDIUM, MEDIUM]], {"workers": 2}, "workers"),
+])
+def test_api_errors_name_the_api_arguments(tmp_path, args, kwargs, field):
+    """trial 10 D11: from Python the refusals named the command line's options ('--instrument',
+    '--reference'); the API names its arguments and the CLI (above) its options. trial 10 D7: an
+    explicit forward='eq4' with joint=True is refused, not replaced by the surface fit."""
+    from roadgonio.errors import InputError
+    with pytest.raises(InputError) as err:
+        api.correct(*args, joint=True, out=tmp_path / "o", **kwargs)
+    assert err.value.field == field and "--" not in str(err.value).split(":")[0]
     assert not (tmp_path / "o").exists()
 
 

@@ -10,6 +10,9 @@ from roadgonio.cli import main
 
 def test_render_writes_exr_png_json(mi, tmp_path, capsys):
     out = tmp_path / "r"
+    out.mkdir()                 # an earlier housed render's stray pictures, and a file of the user's
+    for name in ("stray.png", "stray.exr", "notes.txt"):
+        (out / name).write_text("earlier")
     rc = main(["render", "--instrument", "lab", "--sample", "lambert", "--tan-eps", "0", "--beta", "0",
                "--out", str(out), "--resolution", "32", "--spp", "4"])
     assert rc == 0
@@ -30,6 +33,9 @@ def test_render_writes_exr_png_json(mi, tmp_path, capsys):
     assert view.shape == (32, 32, 3) and view[0, 0, 1] == 0.0 and view[16, 16, 1] > 0  # outside/inside the field stop
     assert (out / "render.png").stat().st_size > 10_000
     assert "k_A ~" in capsys.readouterr().out
+    # trial 10 D4: a render without stray light removes the earlier run's stray pictures, nothing else
+    assert not (out / "stray.png").exists() and not (out / "stray.exr").exists()
+    assert (out / "notes.txt").read_text() == "earlier"
 
 
 def test_render_bad_input_is_one_line(tmp_path, capsys):

@@ -25,9 +25,16 @@ def test_render_shows_the_stray_light_and_agrees_with_the_engine(mi, tmp_path, c
     out = tmp_path / "r"
     rc = main(["render", "--instrument", str(SCENES / "portable_housed.toml"), "--sample", "R3", "--tan-eps", "10",
                "--beta", "45", "--out", str(out), "--resolution", "32", "--spp", "4"])
-    assert rc == 0 and "stray light:" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert rc == 0 and "stray light:" in printed
     info = json.loads((out / "render.json").read_text())
     st = info["stray"]
+    # trial 10 D5: the stray part does not follow --resolution 32 / --spp 4, and the output says so
+    assert st["resolution"] == 96 and st["samples"] == 1 << 20
+    assert "96 x 96 pixels and 1048576 samples (fixed; --resolution 32 and --spp 4" in printed
+    from roadgonio.engines.mitsuba import images
+    assert (images.STRAY_PICTURE_RESOLUTION, images.STRAY_PICTURE_LOG2 + math.log2(images.STRAY_PICTURE_REPLICATES)) \
+        == (96, 20), "render --help and docs/straylight.md quote 96 x 96 pixels, 2^20 samples"
     assert (out / "stray.png").stat().st_size > 20_000
     inst = load_instrument(str(SCENES / "portable_housed.toml"))
     from roadgonio.surface.sample import resolve_sample

@@ -178,7 +178,7 @@ def test_measured_uncertainty_forms(tmp_path):
         measured_uncertainty(str(f2), t)
     assert "u2.csv" in str(err.value)
     for text in ("120%", "0%", "abc%"):
-        with pytest.raises(InputError, match="--u-measured"):
+        with pytest.raises(InputError, match="field 'u_measured'"):       # the API's argument (trial 10 D11)
             measured_uncertainty(text, t)
 
 

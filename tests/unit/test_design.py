@@ -47,10 +47,10 @@ def test_parse_vary_linear_log_and_list():
     ("source.radius_m=0.01,0.01", "repeated"),
     ("source.radius_m=0.01:nan:3", "finite"),
 ])
-def test_parse_vary_errors_name_the_option(text, words):
+def test_parse_vary_errors_name_the_argument(text, words):
     with pytest.raises(InputError) as e:
         G.parse_vary(text)
-    assert e.value.field == "--vary" and words in str(e.value)
+    assert e.value.field == "vary" and words in str(e.value)
 
 
 def test_vary_key_twice_and_grid_order():
@@ -69,7 +69,7 @@ def test_tolerance():
     for bad in ("5", "abc", "-1%", "0"):
         with pytest.raises(InputError) as e:
             G.parse_tolerance(bad)
-        assert e.value.field == "--tolerance"
+        assert e.value.field == "tolerance"
 
 
 def test_focus_follows_the_detector_distance_of_a_sample_focused_base():

@@ -167,6 +167,78 @@ def test_beam_clip_check():
     assert not optics.beam_clips_footprint(inst.with_changes(source={"beam_half_angle_deg": 60.0}), 4.0, 0.0)
 
 
+def _brute_emission_angle_deg(inst, tan_eps, beta_deg, n=32):
+    """The largest angle from the source axis over the rays from the disc's n rim points and centre
+    to every point of the footprint boundary (what the beam check computed at each cell before
+    trial 10 D14), written apart from the code under test."""
+    g = source_geometry(inst, tan_eps, beta_deg)
+    x, y = optics.footprint_boundary(inst)
+    worst = -1.0
+    for k in range(n + 1):
+        ang = 2 * math.pi * k / n
+        sp = g.centre + (g.radius_m * (math.cos(ang) * g.s + math.sin(ang) * g.t) if k < n else 0.0)
+        d = np.stack([x - sp[0], y - sp[1], -sp[2] + 0 * x], axis=-1)
+        worst = max(worst, float(np.degrees(np.arccos(np.clip(d @ g.axis / np.sqrt((d * d).sum(-1)), -1, 1))).max()))
+    return worst
+
+
+def _centre_angle_deg(inst, tan_eps, beta_deg):
+    """The largest angle over the rays from the disc's centre alone (the quick lower bound)."""
+    g = source_geometry(inst, tan_eps, beta_deg)
+    x, y = optics.footprint_boundary(inst)
+    d = np.stack([x - g.centre[0], y - g.centre[1], -g.centre[2] + 0 * x], axis=-1)
+    return float(np.degrees(np.arccos(np.clip(d @ g.axis / np.sqrt((d * d).sum(-1)), -1, 1))).max())
+
+
+#: float64 round-off of an angle of a few degrees through acos (the hull and the brute force sum
+#: their dot products in different orders)
+ANGLE_TOL_DEG = 1e-9
+BEAM_CELLS = [(0.0, 0.0), (5.0, 0.0), (12.0, 30.0), (2.0, 90.0), (1.0, 180.0)]
+
+
+def test_beam_clip_check_agrees_with_every_footprint_point():
+    """trial 10 D14: the check now looks at the footprint's convex hull after quick bounds from the
+    disc's centre; its angles and verdicts must be those of every boundary point, also just either
+    side of a cell's angle and where only the full computation can tell (a limit between the
+    centre's angle and the disc's), and above 90 deg (wide preset: no convex cone)."""
+    inst = load_instrument("portable")
+    brute = [_brute_emission_angle_deg(inst, t, b) for t, b in BEAM_CELLS]
+    got = optics.footprint_emission_angles_deg(inst, BEAM_CELLS)
+    assert np.allclose(got, brute, rtol=0, atol=ANGLE_TOL_DEG)
+    for limit in (90.0, 10.0, 5.0):
+        clips = optics.beam_clips_cells(inst.with_changes(source={"beam_half_angle_deg": limit}), BEAM_CELLS)
+        assert clips.tolist() == [a > limit for a in brute]
+    t, b = BEAM_CELLS[1]
+    lo, full = _centre_angle_deg(inst, t, b), brute[1]
+    assert full - lo > 0.5                                     # the disc adds ~1.4 deg at 1 m
+    for limit, clip in (((lo + full) / 2, True), (full - 1e-6, True), (full + 1e-6, False)):
+        assert optics.beam_clips_footprint(inst.with_changes(source={"beam_half_angle_deg": limit}), t, b) is clip
+    wide = load_instrument("wide")
+    assert optics.footprint_emission_angle_deg(wide, 12.0, 0.0) == pytest.approx(
+        _brute_emission_angle_deg(wide, 12.0, 0.0), abs=ANGLE_TOL_DEG)
+    assert _brute_emission_angle_deg(wide, 12.0, 0.0) > 90.0
+
+
+def test_beam_clip_check_of_a_table_reads_the_footprint_once(monkeypatch):
+    """trial 10 D14: a 90 deg limit made a table 13-80x slower, the footprint's ~9300 boundary points
+    being traced and compared with 33 source points at each of the 580 cells. Now the footprint is
+    traced once per table and a limit that clips nowhere is settled by the quick bounds alone."""
+    inst = load_instrument("portable").with_changes(source={"beam_half_angle_deg": 90.0})
+    cells = [(t, b) for t in (0.0, 0.5, 1.0, 2.0, 5.0, 8.0, 12.0) for b in (0.0, 10.0, 30.0, 90.0, 180.0)]
+    calls = {"boundary": 0, "full": 0}
+    boundary, full = optics.footprint_boundary, optics.footprint_emission_angles_deg
+
+    def count(name, f):
+        def wrapped(*a, **k):
+            calls[name] += 1
+            return f(*a, **k)
+        return wrapped
+    monkeypatch.setattr(optics, "footprint_boundary", count("boundary", boundary))
+    monkeypatch.setattr(optics, "footprint_emission_angles_deg", count("full", full))
+    assert not optics.beam_clips_cells(inst, cells).any()
+    assert calls == {"boundary": 1, "full": 0}
+
+
 def test_hit_check_points_and_verdict():
     pu, fu = optics.hit_check_points(n_random=100, n_rim=8, seed=1)
     assert pu.shape == fu.shape == (9 * 8 + 100, 2)

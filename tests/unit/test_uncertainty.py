@@ -83,16 +83,16 @@ def test_every_distribution_name_the_parser_takes_is_documented():
 
 
 @pytest.mark.parametrize("text,field,words", [
-    ("alpha_deg=-0.01", "--sigma alpha_deg", ">= 0"),
-    ("alpha_deg=abc", "--sigma alpha_deg", "expected a number"),
-    ("alfa_deg=0.1", "--sigma alfa_deg", "unknown key"),
-    ("eps_deg=0.1:cauchy", "--sigma eps_deg", "unknown distribution"),
-    ("eps_deg", "--sigma", "KEY=SIGMA"),
-    ("eps_deg=nan", "--sigma eps_deg", "finite"),
-    ("eps_deg=inf", "--sigma eps_deg", "finite"),                       # mutation audit 11: inf was accepted
-    ("eps_deg=0.1,eps_deg=0.2", "--sigma", "given twice"),              # ... and the last of two kept
+    ("alpha_deg=-0.01", "sigma alpha_deg", ">= 0"),
+    ("alpha_deg=abc", "sigma alpha_deg", "expected a number"),
+    ("alfa_deg=0.1", "sigma alfa_deg", "unknown key"),
+    ("eps_deg=0.1:cauchy", "sigma eps_deg", "unknown distribution"),
+    ("eps_deg", "sigma", "KEY=SIGMA"),
+    ("eps_deg=nan", "sigma eps_deg", "finite"),
+    ("eps_deg=inf", "sigma eps_deg", "finite"),                       # mutation audit 11: inf was accepted
+    ("eps_deg=0.1,eps_deg=0.2", "sigma", "given twice"),              # ... and the last of two kept
 ])
-def test_spec_errors_name_option_and_key(text, field, words):
+def test_spec_errors_name_argument_and_key(text, field, words):
     with pytest.raises(InputError) as e:
         parse_sigma_spec(text)
     assert e.value.field == field and words in str(e.value)

@@ -56,6 +56,10 @@ def _ortho_sensor(mi, x0, x1, y0, y1, nx, ny, spp, z_top=0.0):
                          "sampler": {"type": "multijitter", "sample_count": spp}})
 
 
+#: Every file ``roadgonio render`` writes (the last two only when the scene makes stray light).
+RENDER_FILES = ("view.exr", "illuminance.exr", "render.png", "render.json", "stray.png", "stray.exr")
+
+
 def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float, beta_deg: float, out_dir,
                        *, resolution: int = 256, spp: int = 64, seed: int = 0, mitsuba_variant: str | None = None,
                        sample_name: str = "sample") -> dict[str, Any]:
@@ -156,7 +160,9 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
             "stray": "the stray light of this cell: fractions of each signal and the shares by housing part"}
     info["definitions"] = definitions
     info["files"] = files
-    with OutputGroup(out_dir) as stage:      # view.exr, illuminance.exr, render.png, render.json: all or none
+    # all or none; a render without stray light removes an earlier housed render's stray.png and
+    # stray.exr (trial 10 D4: they stayed beside the new pictures, of another instrument and cell)
+    with OutputGroup(out_dir, replaces=RENDER_FILES) as stage:
         write_exr(stage.path("view.exr"), {"RGB": view, "L_road": view[..., ROAD], "L_lambert": view[..., LAMBERT]})
         write_exr(stage.path("illuminance.exr"), {"E_h": E, "L_road_top": L_top})
         _png(stage.path("render.png"), instrument, view, E, (ex0, ex1, ey0, ey1), (fx, fy), info)
