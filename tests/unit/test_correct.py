@@ -188,7 +188,7 @@ def test_a_relative_u_out_of_range_echoes_what_was_written(given, echo):
     """(trial 10 D12) '--u-measured 150%' was reported as 'got 1.5': the error says what the user wrote."""
     with pytest.raises(InputError, match="between 0 and 100 %") as err:
         measured_uncertainty(given, bundled_table("C2"))
-    assert str(err.value).endswith(echo) and err.value.field == "--u-measured"
+    assert str(err.value).endswith(echo) and err.value.field == "u_measured"
 
 
 def test_output_folders_one_or_one_per_file(tmp_path):
