@@ -11,7 +11,8 @@ Writes into docs/straylight/:
 * ``tables.csv``: per (table, reflectance) the largest stray fraction, the largest change of k_A and
   max |k_A - 1| with and without the stray light, and their cells;
 * ``stray_12_0.png``, ``stray_11_40.png``: ``roadgonio render`` stray pictures of two cells;
-* ``design.csv``, ``design_tolerance_map.png``: the design study of the wall paint and a baffle.
+* ``design.csv``, ``design_tolerance_map.png``, ``design_pareto.png``: the design study of the wall
+  paint and a baffle (max |k_A - 1| point by point: the housing does not change the signal).
 
 Every number comes from the Mitsuba backend at the stated target (seed 0); rerun after a change.
 """
@@ -105,6 +106,7 @@ def design() -> None:
                         "--tolerance", "19%", "--accuracy", "fast", "--workers", "1", "--out", tmp], check=True)
         shutil.copy(Path(tmp) / "design.csv", HERE / "design.csv")
         shutil.copy(Path(tmp) / "tolerance_map.png", HERE / "design_tolerance_map.png")
+        shutil.copy(Path(tmp) / "pareto.png", HERE / "design_pareto.png")
         if (Path(tmp) / "best.toml").exists():
             shutil.copy(Path(tmp) / "best.toml", HERE / "design_best.toml")
 

@@ -125,6 +125,14 @@ def run(args) -> int:
         say(f"best: {vals}: signal {b['signal']:.3g} x base, max |k_A - 1| = {b['max_abs_dev']:.4f} "
             f"(+- {b['worst_u']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
             f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
+        if (b.get("max_stray_fraction") or 0.0) > 0.0:
+            say(f"  its stray light: up to {100 * b['max_stray_fraction']:.2f} % (+- {100 * b['max_stray_u']:.1g}) of the "
+                f"road signal at tan eps {b['max_stray_tan_eps']:g}, beta {b['max_stray_beta_deg']:g} "
+                f"({b['max_stray_sample']}); without it max |k_A,direct - 1| = {b['max_abs_dev_direct']:.4f} "
+                "(every point's: design.csv)")
+    if s.get("same_signal") is not None and not args.no_plots:
+        say(f"every design point has the same signal ({s['same_signal']:.4g} x base): pareto.png shows max |k_A - 1| "
+            "point by point instead of against the signal")
     say(f"wrote {ds.attrs['out']}/" + ds.attrs.get("files", ""))
     return rc
 

@@ -365,24 +365,38 @@ def draw_joint_before_after(sc):
 
 
 def draw_joint_map(sc):
-    """k_A of every instrument and the relative u of the corrected table, as maps."""
+    """k_A of every instrument and the relative u of the corrected table, as maps.
+
+    Constrained layout keeps each colour bar's label clear of the next panel's axis label, and the
+    panels are tall enough (JOINT_MAP_PANEL_IN) for the cell numbers at JOINT_MAP_CELL_FONT pt to be
+    read at the PNG's 100 dpi (trial 10 D13: 4.5 pt was ~6 px high and the labels overlapped)."""
     from roadgonio.plots import _plt, draw_table_map
     plt = _plt()
     n = len(sc.parts)
-    fig, axes = plt.subplots(1, n + 1, figsize=(10 * (n + 1), 9))
+    w, h = JOINT_MAP_PANEL_IN
+    fig, axes = plt.subplots(1, n + 1, figsize=(w * (n + 1), h), layout="constrained")
+    fs = JOINT_MAP_CELL_FONT
     for ax, p in zip(axes, sc.parts):
         k = p.k_a[np.isfinite(p.k_a)]
         wide = float(k.max() / k.min()) > 1.5
-        draw_table_map(ax, p.k_a, label="k_A (measured / true)", fontsize=4.5, tick_fontsize=7, log=wide,
+        draw_table_map(ax, p.k_a, label="k_A (measured / true)", fontsize=fs, tick_fontsize=8, log=wide,
                        fmt="{:.2f}" if wide else "{:.3f}")
-        ax.set_title(f"{p.name}: k_A (its corrected table = measured / k_A)", fontsize=10)
+        ax.set_title(f"{p.name}: k_A (its corrected table = measured / k_A)", fontsize=11)
     uu = np.full(sc.corrected.r.shape, np.nan)
     uu[sc.corrected.mask] = 100.0 * sc.budget.u_rel()
     draw_table_map(axes[-1], uu, label="relative standard uncertainty (%)", centre=None, log=False, fmt="{:.1f}",
-                   fontsize=4.5, tick_fontsize=7)
-    axes[-1].set_title("u of the one corrected table (%): " + ", ".join(sc.budget.components), fontsize=10)
-    fig.subplots_adjust(left=0.03, right=0.98, bottom=0.07, top=0.95, wspace=0.12)
+                   fontsize=fs, tick_fontsize=8)
+    import textwrap
+    axes[-1].set_title("\n".join(textwrap.wrap("u of the one corrected table (%): " + ", ".join(sc.budget.components),
+                                                 90)), fontsize=11)
+    fig.get_layout_engine().set(w_pad=0.15, wspace=0.04)
     return fig
+
+
+#: Size (inches) of one panel of the joint correction_map.png (a 580-cell table: 20 x 29 cells) and
+#: the font (pt) of its cell numbers: at 100 dpi a cell is ~45 x 37 px and "0.978" ~30 x 10 px.
+JOINT_MAP_PANEL_IN = (11.5, 12.5)
+JOINT_MAP_CELL_FONT = 7.0
 
 
 def joint_cells_csv(sc) -> str:

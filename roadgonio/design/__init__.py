@@ -15,7 +15,9 @@ Modules:
 * :mod:`.second_aperture`: which second aperture an instrument should have (``roadgonio design
   --second-aperture``).
 
-``design.nc`` layout: ``k_a``, ``se``, ``error_bound`` over (varied keys..., sample, tan_eps, beta);
-per point ``max_abs_dev``, ``rms_dev``, ``worst_*``, ``signal``, ``footprint_length_m``,
-``geometry_ok``, ``feasible``, ``kind``, ``reason``, ``seed``; provenance in the attributes.
+``design.nc`` layout: ``k_a``, ``se``, ``error_bound``, ``confidence_*`` and the stray light
+``k_a_direct``, ``stray_fraction`` (with their ``_se``) over (varied keys..., sample, tan_eps, beta);
+per point ``max_abs_dev``, ``rms_dev``, ``worst_*``, ``max_abs_dev_direct``, ``max_stray_*``,
+``signal``, ``footprint_length_m``, ``geometry_ok``, ``feasible``, ``kind``, ``reason``, ``seed``;
+provenance in the attributes.
 """

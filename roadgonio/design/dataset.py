@@ -16,7 +16,8 @@ from roadgonio.instrument.config import Instrument
 from roadgonio.engines import cluster as _cluster
 from roadgonio.engines.result import standard_uncertainty
 from roadgonio.design.grid import VarySpec
-from roadgonio.design.metrics import SIGNAL_FORMULA, deviations, detector_etendue, profiled_solid_angle, signal_product
+from roadgonio.design.metrics import (SIGNAL_FORMULA, deviations, detector_etendue, profiled_solid_angle, signal_product,
+                                      stray_metrics)
 
 def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, ...], points, samples, union,
              feas, inst_of, done: Mapping[tuple[int, int], dict], seeds, tol: float):
@@ -32,6 +33,8 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     bound = np.full_like(k_a, np.nan)
     conf = np.full_like(k_a, np.nan)
     level = np.full_like(k_a, np.nan)
+    # stray light (CellResult: 0 and k_a without it); NaN for tables journaled before they were kept
+    stray = {f: np.full_like(k_a, np.nan) for f in STRAY_CELL_FIELDS}
     not_conv = np.zeros(n, dtype=np.int32)
     seconds = np.zeros(n)
     geometry_ok = np.array([f.ok for f in feas], dtype=bool)
@@ -62,6 +65,8 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                 # journals written before the confidence bound was kept have neither field
                 conf[i, j, a, bb] = _f((rec.get("confidence_bound") or [None] * len(s.cells))[c])
                 level[i, j, a, bb] = _f((rec.get("confidence_level") or [None] * len(s.cells))[c])
+                for f, arr in stray.items():
+                    arr[i, j, a, bb] = _f((rec.get(f) or [None] * len(s.cells))[c])
                 not_conv[i] += 0 if rec["converged"][c] else 1
     max_dev = np.full(n, np.nan)
     rms = np.full(n, np.nan)
@@ -70,6 +75,12 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     worst_u = np.full(n, np.nan)
     worst_s = np.array([""] * n, dtype=object)
     max_dev_s = np.full((n, ns), np.nan)
+    max_stray = np.full(n, np.nan)
+    stray_t = np.full(n, np.nan)
+    stray_b = np.full(n, np.nan)
+    stray_u = np.full(n, np.nan)
+    stray_s = np.array([""] * n, dtype=object)
+    max_dev_direct = np.full(n, np.nan)
     computed = np.zeros(n, dtype=bool)
     for i in range(n):
         if kind[i] in ("failed",) or not geometry_ok[i]:
@@ -81,6 +92,11 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         max_dev[i], rms[i], worst_u[i] = d["max_abs_dev"], d["rms_dev"], d["worst_u"]
         js, a, bb = np.unravel_index(d["worst"], k_a[i].shape)
         worst_t[i], worst_b[i], worst_s[i] = tans[a], betas[bb], samples[js].name
+        st = stray_metrics(stray["stray_fraction"][i], stray["k_a_direct"][i], stray["stray_fraction_se"][i])
+        max_stray[i], stray_u[i], max_dev_direct[i] = st["max_stray_fraction"], st["stray_u"], st["max_abs_dev_direct"]
+        if st["stray_worst"] >= 0:
+            js, a, bb = np.unravel_index(st["stray_worst"], k_a[i].shape)
+            stray_t[i], stray_b[i], stray_s[i] = tans[a], betas[bb], samples[js].name
         for j in range(ns):
             v = np.abs(k_a[i, j] - 1.0)
             max_dev_s[i, j] = np.nanmax(v) if np.isfinite(v).any() else np.nan
@@ -118,6 +134,15 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                                                                   "otherwise)"}),
         "confidence_level": (cell_dims, grid(level), {"long_name": "confidence level of confidence_bound (NaN without "
                                                                    "one)"}),
+        "k_a_direct": (cell_dims, grid(stray["k_a_direct"]), {"long_name": "k_A of the direct light alone (no stray "
+                                                                          "light; = k_a without it)", "units": "1"}),
+        "k_a_direct_se": (cell_dims, grid(stray["k_a_direct_se"]), {"long_name": "standard error of k_a_direct (as se)",
+                                                                    "units": "1"}),
+        "stray_fraction": (cell_dims, grid(stray["stray_fraction"]), {
+            "long_name": "stray fraction of the road signal, 1 - S_direct / S_total (a fraction: 0.3 is 30 %; 0 "
+                         "without stray light)", "units": "1"}),
+        "stray_fraction_se": (cell_dims, grid(stray["stray_fraction_se"]), {
+            "long_name": "standard error of stray_fraction (0 without stray light: exact)", "units": "1"}),
         "max_abs_dev": (dims, grid(max_dev), {"long_name": "max |k_A - 1| over the cells and samples"}),
         "max_abs_dev_sample": (dims + ["sample"], grid(max_dev_s), {"long_name": "max |k_A - 1| over the cells, per sample"}),
         "rms_dev": (dims, grid(rms), {"long_name": "root mean square of k_A - 1 over the cells and samples"}),
@@ -126,6 +151,20 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "worst_sample": (dims, grid(worst_s.astype(str)), {"long_name": "sample of the worst cell"}),
         "worst_u": (dims, grid(worst_u), {"long_name": "standard uncertainty of k_A at the worst cell (its SE, or its "
                                                       "deterministic error bound / sqrt 3)"}),
+        "max_abs_dev_direct": (dims, grid(max_dev_direct), {
+            "long_name": "max |k_A,direct - 1| over the cells and samples: the aperture effect without the stray "
+                         "light (= max_abs_dev without stray light)", "units": "1"}),
+        "max_stray_fraction": (dims, grid(max_stray), {
+            "long_name": "largest stray fraction of the road signal over the cells and samples (a fraction: 0.3 is "
+                         "30 %; 0 without stray light)", "units": "1"}),
+        "max_stray_tan_eps": (dims, grid(stray_t), {"long_name": "tan eps of the cell of max_stray_fraction (NaN "
+                                                                 "without stray light)"}),
+        "max_stray_beta_deg": (dims, grid(stray_b), {"long_name": "beta of the cell of max_stray_fraction (NaN "
+                                                                  "without stray light)", "units": "deg"}),
+        "max_stray_sample": (dims, grid(stray_s.astype(str)), {"long_name": "sample of the cell of max_stray_fraction "
+                                                                           "(empty without stray light)"}),
+        "max_stray_u": (dims, grid(stray_u), {"long_name": "standard error of max_stray_fraction at its cell",
+                                              "units": "1"}),
         "not_converged": (dims, grid(not_conv), {"long_name": "cells whose backend stopped before its target"}),
         "signal": (dims, grid(signal), {"long_name": "detected flux for a Lambertian sample relative to the base design",
                                         "formula": SIGNAL_FORMULA}),
@@ -168,6 +207,11 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     return ds
 
 
+#: The stray-light fields of a table's cells kept in the journal and design.nc
+#: (:class:`roadgonio.engines.result.CellResult`).
+STRAY_CELL_FIELDS = ("k_a_direct", "k_a_direct_se", "stray_fraction", "stray_fraction_se")
+
+
 def _f(v) -> float:
     return math.nan if v is None else float(v)
 
@@ -194,13 +238,32 @@ def point_index(ds, i: int) -> dict[str, float]:
     return {d: float(ds[d].values[k]) for d, k in zip(dims, idx)}
 
 
+#: Signals within this relative spread are one signal (:func:`same_signal`).
+SAME_SIGNAL_RTOL = 1e-9
+
+
+def same_signal(ds) -> float | None:
+    """The signal (x base) that every design point with a max |k_A - 1| shares, when there are two or
+    more such points and their signals agree within SAME_SIGNAL_RTOL (a design of keys that do not
+    change the detected flux: the housing's paint and baffles, the sample size): there is then no
+    trade-off of signal against |k_A - 1| to draw. None otherwise."""
+    sig = np.asarray(ds["signal"].values, dtype=np.float64).reshape(-1)
+    dev = np.asarray(ds["max_abs_dev"].values, dtype=np.float64).reshape(-1)
+    s = sig[np.isfinite(sig) & np.isfinite(dev)]
+    if s.size < 2 or not np.all(np.abs(s - s[0]) <= SAME_SIGNAL_RTOL * abs(s[0])):
+        return None
+    return float(s[0])
+
+
 def summary(ds) -> dict[str, Any]:
     """A short JSON-able summary of a design Dataset."""
     dims = json.loads(ds.attrs["varied"])
     best = int(ds.attrs["best_index"])
     flat = {v: ds[v].values.reshape(-1) for v in ("max_abs_dev", "rms_dev", "signal", "feasible", "kind",
                                                     "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u",
-                                                    "seed", "footprint_length_m")}
+                                                    "seed", "footprint_length_m", "max_stray_fraction",
+                                                    "max_stray_tan_eps", "max_stray_beta_deg", "max_stray_sample",
+                                                    "max_stray_u", "max_abs_dev_direct") if v in ds}
     kinds: dict[str, int] = {}
     for k in flat["kind"]:
         if k:
@@ -213,6 +276,7 @@ def summary(ds) -> dict[str, Any]:
                          "tables_failed": int(ds.attrs.get("tables_failed", 0)),
                          "wall_s": float(ds.attrs.get("wall_s", math.nan)),
                          "compute_wall_s": float(ds.attrs.get("compute_wall_s", math.nan))}
+    s["same_signal"] = same_signal(ds)
     if "design_points_per_hour" in ds.attrs:
         s["design_points_per_hour"] = float(ds.attrs["design_points_per_hour"])
     cluster = json.loads(ds.attrs.get("provenance", "{}")).get("cluster") or {}

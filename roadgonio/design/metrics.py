@@ -37,6 +37,16 @@ Deviations
 ----------
 Over the requested cells of every sample: ``max_abs_dev`` = max |k_A - 1|, ``rms_dev`` = the root
 mean square of k_A - 1, and the worst cell (tan eps, beta, sample) with its SE.
+
+Stray light
+-----------
+Of an instrument with reflecting parts (a ``[housing]``, docs/straylight.md), from the same tables
+(:class:`roadgonio.engines.result.CellResult`'s ``stray_fraction`` and ``k_a_direct``, the k_A
+Dataset's variables of those names): ``max_stray_fraction`` = the largest stray fraction of the
+road signal over the cells and samples (a fraction; the cell where it is, with its SE), and
+``max_abs_dev_direct`` = max |k_A,direct - 1|, the instrument's own aperture effect without the
+stray light. Without stray light they are 0 and ``max_abs_dev`` (the k_A Dataset's stray fraction is
+0 exactly and its k_a_direct is k_a), and the cell of the largest stray fraction is none.
 """
 from __future__ import annotations
 
@@ -137,6 +147,30 @@ def deviations(k_a: np.ndarray, u: np.ndarray) -> dict[str, float | int]:
     i = int(np.argmax(dev))
     return {"max_abs_dev": float(dev[i]), "rms_dev": float(np.sqrt(np.mean((k[ok] - 1.0) ** 2))),
             "worst": i, "worst_u": float(s[i]), "cells": int(ok.sum())}
+
+
+def stray_metrics(stray_fraction: np.ndarray, k_a_direct: np.ndarray,
+                  stray_se: np.ndarray | None = None) -> dict[str, float | int]:
+    """``max_stray_fraction`` (over the finite entries), the flat index ``stray_worst`` of where it is
+    (-1 when it is not above 0: no stray light, no cell to name) with its SE ``stray_u``, and
+    ``max_abs_dev_direct`` = max |k_A,direct - 1|, of arrays of any shape (sample x tan eps x beta);
+    NaN entries (cells not requested, or tables journaled before these were kept) are ignored, and
+    all-NaN arrays give NaN."""
+    sf = np.asarray(stray_fraction, dtype=np.float64).ravel()
+    kd = np.asarray(k_a_direct, dtype=np.float64).ravel()
+    se = np.full_like(sf, np.nan) if stray_se is None else np.asarray(stray_se, dtype=np.float64).ravel()
+    out: dict[str, float | int] = {"max_stray_fraction": math.nan, "stray_worst": -1, "stray_u": math.nan,
+                                   "max_abs_dev_direct": math.nan}
+    ok = np.isfinite(sf)
+    if ok.any():
+        i = int(np.argmax(np.where(ok, sf, -np.inf)))
+        out["max_stray_fraction"] = float(sf[i])
+        if sf[i] > 0.0:
+            out["stray_worst"], out["stray_u"] = i, float(se[i])
+    okd = np.isfinite(kd)
+    if okd.any():
+        out["max_abs_dev_direct"] = float(np.max(np.abs(kd[okd] - 1.0)))
+    return out
 
 
 def pareto_front(signal: Sequence[float], dev: Sequence[float]) -> np.ndarray:

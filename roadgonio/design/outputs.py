@@ -4,11 +4,15 @@
   attributes ``provenance`` and ``base_instrument_json``);
 * ``design.csv``: one row per design point: one column per varied key (named exactly as the key),
   then ``max_abs_dev, rms_dev, signal, feasible, reason``, then ``kind, worst_tan_eps,
-  worst_beta_deg, worst_sample, worst_u, footprint_length_m, seed``;
+  worst_beta_deg, worst_sample, worst_u, footprint_length_m, seed``, then the stray light
+  (:func:`roadgonio.design.metrics.stray_metrics`) ``max_abs_dev_direct, max_stray_fraction,
+  max_stray_tan_eps, max_stray_beta_deg, max_stray_sample, max_stray_u``;
 * ``best.toml``: the feasible design with the most signal, a complete instrument file (opens with
   ``roadgonio ka --instrument best.toml``; the header says how to reproduce its row);
 * ``pareto.png``: max |k_A - 1| against the signal, feasible points marked, the Pareto front, the
-  best labelled;
+  best labelled; when every point has the same signal (:func:`roadgonio.design.dataset.same_signal`:
+  a housing's paint and baffles), max |k_A - 1| point by point instead, with max |k_A,direct - 1|
+  beside it when there is stray light, and the title says why;
 * ``tolerance_map.png`` (two or more varied keys): max |k_A - 1| over the plane of the first two
   varied keys (others at the best design's values), with the tolerance contour and iso-signal lines.
 """
@@ -26,7 +30,9 @@ from roadgonio.fileio import atomic_savefig, atomic_write_text, read_netcdf, wri
 from roadgonio.instrument.config import toml_text
 
 CSV_TAIL = ("max_abs_dev", "rms_dev", "signal", "feasible", "reason")
-CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u", "footprint_length_m", "seed")
+CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u", "footprint_length_m", "seed",
+             "max_abs_dev_direct", "max_stray_fraction", "max_stray_tan_eps", "max_stray_beta_deg", "max_stray_sample",
+             "max_stray_u")
 
 
 def write_outputs(ds, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
@@ -122,6 +128,10 @@ def _plt():
 
 
 def plot_pareto(ds, path: Path) -> Path:
+    from roadgonio.design.dataset import same_signal
+    same = same_signal(ds)
+    if same is not None:
+        return plot_points(ds, path, same)
     plt = _plt()
     dev = ds["max_abs_dev"].values.reshape(-1) * 100
     sig = ds["signal"].values.reshape(-1)
@@ -166,6 +176,60 @@ def plot_pareto(ds, path: Path) -> Path:
     ax.set_title(f"{ds.attrs['title']}\nsamples {samples}; {int(ds.attrs['points'])} points, "
                  f"{n_geo} geometrically impossible (not shown); error bars 2 SE", fontsize=10)
     ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8, loc="best")
+    fig.tight_layout()
+    out = atomic_savefig(fig, path, dpi=120)
+    plt.close(fig)
+    return out
+
+
+#: More design points than this: pareto.png by point labels every k-th point only.
+MAX_POINT_LABELS = 40
+
+
+def plot_points(ds, path: Path, signal: float) -> Path:
+    """pareto.png of a design whose points all have the same signal: max |k_A - 1| (2 SE bars)
+    point by point, feasible or not, the tolerance, max |k_A,direct - 1| (the aperture effect
+    without the stray light) beside it when some point has stray light, the best starred; the
+    title says that there is no trade-off of signal to draw."""
+    plt = _plt()
+    from roadgonio.design.dataset import point_index
+    dev = ds["max_abs_dev"].values.reshape(-1) * 100
+    feas = ds["feasible"].values.reshape(-1).astype(bool)
+    u = ds["worst_u"].values.reshape(-1) * 100
+    tol = float(ds.attrs["tolerance"]) * 100
+    best = int(ds.attrs["best_index"])
+    idx = np.nonzero(np.isfinite(dev))[0]
+    x = np.arange(idx.size)
+    fig, ax = plt.subplots(figsize=(max(8.0, min(16.0, 3.0 + 0.35 * idx.size)), 6.0))
+    for sel, style, label in ((~feas[idx], dict(mfc="none", color="tab:red"), "over tolerance"),
+                              (feas[idx], dict(color="tab:green"), "feasible")):
+        ax.errorbar(x[sel], dev[idx][sel], yerr=2 * np.nan_to_num(u[idx][sel]), fmt="o", ms=6, lw=0.8,
+                    label=f"max |k_A - 1|, {label} ({int(sel.sum())})", **style)
+    if "max_stray_fraction" in ds and np.nanmax(np.append(ds["max_stray_fraction"].values.reshape(-1)[idx], 0.0)) > 0:
+        direct = ds["max_abs_dev_direct"].values.reshape(-1)[idx] * 100
+        ax.plot(x, direct, "x", color="0.35", ms=7, label="max |k_A,direct - 1| (without the stray light)")
+    ax.axhline(tol, color="tab:orange", lw=1.2, label=f"tolerance {tol:g} %")
+    if best >= 0 and best in set(idx.tolist()):
+        k = int(np.nonzero(idx == best)[0][0])
+        ax.plot([k], [dev[best]], marker="*", color="gold", mec="k", ms=16, ls="none", zorder=5, label="best design")
+    step = max(1, math.ceil(idx.size / MAX_POINT_LABELS))
+    labels = [", ".join(f"{v:g}" for v in point_index(ds, int(i)).values()) for i in idx]
+    ax.set_xticks(x[::step], labels[::step], rotation=60, ha="right", fontsize=7)
+    dims = json.loads(ds.attrs["varied"])
+    ax.set_xlabel("design point: " + ", ".join(dims), fontsize=9)
+    ax.set_ylabel("max |k_A - 1| over cells and samples (%)")
+    n_geo = int((~ds["geometry_ok"].values.reshape(-1).astype(bool)).sum())
+    samples = ", ".join(json.loads(ds.attrs["samples"]))
+    import textwrap
+    width = int(fig.get_size_inches()[0] * 13)          # characters of a 9 pt line across the figure
+    ax.set_title("\n".join(textwrap.wrap(
+        f"{ds.attrs['title']}: every point has the same signal ({signal:.4g} x base), so there is no trade-off of "
+        f"signal against |k_A - 1| to draw: max |k_A - 1| point by point. Samples {samples}; "
+        f"{int(ds.attrs['points'])} points, {n_geo} geometrically impossible (not shown); error bars 2 SE", width)),
+        fontsize=9)
+    ax.set_xlim(-0.5, idx.size - 0.5)
+    ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
     out = atomic_savefig(fig, path, dpi=120)

@@ -29,14 +29,17 @@ from roadgonio.fileio import atomic_write_text, fingerprint, output_error, read_
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.engines import cluster as _cluster
-from roadgonio.design.dataset import assemble
+from roadgonio.design.dataset import STRAY_CELL_FIELDS, assemble
 from roadgonio.design.feasibility import check_point
 from roadgonio.design.grid import VarySpec, as_vary_specs, check_vary, grid_points, grid_shape, parse_tolerance
 
 JOURNAL = "design_points.jsonl"
 DEFAULT_TOLERANCE = 0.05
 #: The per-cell fields kept in the journal (in the order of the task's cells).
-_CELL_FIELDS = ("k_a", "se", "error_bound", "confidence_bound", "confidence_level", "converged", "samples")
+#: The stray-light fields (k_a_direct, stray_fraction and their SEs) are journaled since trial 10
+#: D10; a journal written before has none and resumes with them NaN in design.nc.
+_CELL_FIELDS = ("k_a", "se", "error_bound", "confidence_bound", "confidence_level", "converged", "samples",
+                *STRAY_CELL_FIELDS)
 
 
 @dataclass(frozen=True)

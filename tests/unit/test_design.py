@@ -163,6 +163,112 @@ def test_deviations_and_pareto_front():
     assert front.tolist() == [0, 2, 3]          # (2, 0.03) is dominated by (3, 0.02)
 
 
+def _ka_dataset(k_a, k_a_direct, stray, stray_se):
+    """A hand-made k_A table of the layout of the ka Dataset (roadgonio.engines.runner.ka_dataset)
+    over tan eps 2, 5 x beta 0, 35: k_a, se and the stray-light variables; NaN = cell not computed."""
+    import xarray as xr
+    cells = dict(tan_eps=[2.0, 5.0], beta=[0.0, 35.0])
+    v = {"k_a": k_a, "se": np.full((2, 2), 0.001), "k_a_direct": k_a_direct, "k_a_direct_se": np.full((2, 2), 0.001),
+         "stray_fraction": stray, "stray_fraction_se": stray_se}
+    return xr.Dataset({k: (("tan_eps", "beta"), np.asarray(x, dtype=float)) for k, x in v.items()}, coords=cells)
+
+
+def _journal_record(ds, cells, *, stray=True):
+    """The design journal's record of a table (roadgonio.design.run._record) from its ka Dataset; without
+    ``stray`` as a journal written before the stray-light fields were kept."""
+    fields = ["k_a", "se", "error_bound", "k_a_direct", "k_a_direct_se", "stray_fraction", "stray_fraction_se"]
+    rec = {"converged": [True] * len(cells), "seconds": 0.1}
+    for f in fields[:3] if not stray else fields:
+        rec[f] = [float(ds[f].sel(tan_eps=t, beta=b)) if f in ds else None for t, b in cells]
+    return rec
+
+
+def test_stray_light_metrics_per_design_point_from_the_ka_tables(tmp_path, monkeypatch):
+    """trial 10 D10: a housing design's design.nc and design.csv carried neither the stray fraction nor
+    k_A of the direct light. Per point: the largest stray fraction over the cells and samples and its
+    cell, and max |k_A,direct - 1|; 0 and max |k_A - 1| without stray light, NaN for tables of an
+    older journal; and every point has the same signal (the housing does not change it)."""
+    from roadgonio.design.dataset import assemble, same_signal, summary
+    from roadgonio.design.outputs import read_design, write_outputs
+    from roadgonio.design.run import SampleSpec
+    nan = np.nan
+    base = load_instrument("portable_housed")
+    specs = G.as_vary_specs(["housing.wall_reflectance=0.01,0.05,0.1"])
+    points = G.grid_points(specs)
+    a_cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
+    b_cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 35.0))                    # B does not measure tan 5, beta 0
+    samples = [SampleSpec("A", "A", None, a_cells), SampleSpec("B", "B", None, b_cells)]
+    union = sorted(set(a_cells) | set(b_cells))
+    checked = [check_point(base, p, union) for p in points]
+    # point 0: stray light, largest 0.04 in B at tan 2, beta 35; |k_A,direct - 1| largest 0.12 in A at tan 2, beta 35
+    tables = {(0, 0): _ka_dataset([[1.03, 0.91], [1.06, 1.08]], [[1.02, 0.88], [1.05, 1.07]],
+                                  [[0.01, 0.02], [0.03, 0.005]], [[1e-3, 2e-3], [3e-3, 1e-3]]),
+              (0, 1): _ka_dataset([[0.96, 1.05], [nan, 1.0]], [[0.95, 1.0], [nan, 1.0]],
+                                  [[0.0, 0.04], [nan, 0.01]], [[1e-3, 4e-3], [nan, 1e-3]]),
+              # point 1: no stray light (what a backend without reflecting parts gives: 0, k_a_direct = k_a)
+              (1, 0): _ka_dataset([[1.1, 0.97], [1.0, 1.0]], [[1.1, 0.97], [1.0, 1.0]], np.zeros((2, 2)),
+                                  np.zeros((2, 2))),
+              (1, 1): _ka_dataset([[0.99, 1.0], [nan, 1.01]], [[0.99, 1.0], [nan, 1.01]], np.zeros((2, 2)),
+                                  np.zeros((2, 2)))}
+    done = {key: _journal_record(t, samples[key[1]].cells) for key, t in tables.items()}
+    # point 2: tables of a journal written before the stray-light fields were kept
+    for j in (0, 1):
+        done[(2, j)] = _journal_record(tables[(0, j)], samples[j].cells, stray=False)
+    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples, union=union,
+                  feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
+                  seeds=[1, 2, 3], tol=0.2)
+    assert ds["max_stray_fraction"].values.tolist()[:2] == [0.04, 0.0]
+    assert ds["max_stray_tan_eps"].values[0] == 2.0 and ds["max_stray_beta_deg"].values[0] == 35.0
+    assert ds["max_stray_sample"].values[0] == "B" and ds["max_stray_u"].values[0] == 4e-3
+    assert ds["max_abs_dev_direct"].values[0] == pytest.approx(0.12, abs=1e-12)
+    assert ds["max_abs_dev"].values[0] == pytest.approx(0.09, abs=1e-12)
+    # no stray light: no cell to name, and the direct-light deviation is the deviation
+    assert np.isnan(ds["max_stray_tan_eps"].values[1]) and ds["max_stray_sample"].values[1] == ""
+    assert ds["max_abs_dev_direct"].values[1] == ds["max_abs_dev"].values[1] == pytest.approx(0.1, abs=1e-12)
+    # an old journal: unknown, not 0
+    assert np.isnan(ds["max_stray_fraction"].values[2]) and np.isnan(ds["max_abs_dev_direct"].values[2])
+    assert ds["max_abs_dev"].values[2] == ds["max_abs_dev"].values[0]
+    # the cell values are kept too, as in the ka Dataset
+    assert float(ds["stray_fraction"].sel({"sample": "B", "tan_eps": 2.0, "beta": 35.0})[0]) == 0.04
+    assert float(ds["k_a_direct"].sel({"sample": "A", "tan_eps": 2.0, "beta": 35.0})[0]) == 0.88
+    # the housing does not change the signal: nothing to draw against it
+    assert same_signal(ds) == 1.0 and summary(ds)["same_signal"] == 1.0
+    best = summary(ds)["best"]                  # the same signal: the least max |k_A - 1|, point 0 (point 2 ties later)
+    assert best["index"] == 0 and best["max_stray_fraction"] == 0.04 and best["max_stray_sample"] == "B"
+    # design.nc and design.csv carry them, with long names and units in the netCDF file; pareto.png
+    # is drawn point by point (one signal: against it, every point fell on one vertical line)
+    from roadgonio.design import outputs as O
+    drawn = []
+    monkeypatch.setattr(O, "plot_points", lambda d, path, signal, real=O.plot_points: drawn.append(signal) or
+                        real(d, path, signal))
+    write_outputs(ds, tmp_path)
+    assert drawn == [1.0] and (tmp_path / "pareto.png").stat().st_size > 10_000
+    back = read_design(tmp_path / "design.nc")
+    for v in ("max_stray_fraction", "max_stray_tan_eps", "max_stray_beta_deg", "max_stray_sample", "max_stray_u",
+              "max_abs_dev_direct", "stray_fraction", "k_a_direct"):
+        assert back[v].attrs["long_name"], v
+        if v == "max_stray_sample":
+            assert [str(x) for x in back[v].values] == ["B", "", ""]
+        else:
+            assert np.array_equal(back[v].values, ds[v].values, equal_nan=True), v
+    assert back["max_stray_fraction"].attrs["units"] == "1" and back["max_stray_beta_deg"].attrs["units"] == "deg"
+    rows = list(csv.DictReader((tmp_path / "design.csv").read_text().splitlines()))
+    assert [r["max_stray_fraction"] for r in rows] == ["0.04", "0.0", ""]
+    assert [r["max_stray_sample"] for r in rows] == ["B", "", ""]
+    assert [r["max_stray_tan_eps"] for r in rows] == ["2.0", "", ""]
+    assert float(rows[0]["max_abs_dev_direct"]) == pytest.approx(0.12, abs=1e-12) and rows[2]["max_abs_dev_direct"] == ""
+
+
+def test_stray_metrics_of_arrays():
+    st = M.stray_metrics([[0.0, 0.0], [np.nan, 0.0]], [[1.0, 0.9], [np.nan, 1.05]])
+    assert st["max_stray_fraction"] == 0.0 and st["stray_worst"] == -1 and math.isnan(st["stray_u"])
+    assert st["max_abs_dev_direct"] == pytest.approx(0.1, abs=1e-12)
+    st = M.stray_metrics([[0.1, 0.3], [np.nan, 0.2]], [[1.0, 1.0], [np.nan, 1.0]], [[1, 2], [3, 4]])
+    assert st["max_stray_fraction"] == 0.3 and st["stray_worst"] == 1 and st["stray_u"] == 2.0
+    st = M.stray_metrics([np.nan], [np.nan])
+    assert math.isnan(st["max_stray_fraction"]) and math.isnan(st["max_abs_dev_direct"]) and st["stray_worst"] == -1
+
+
 # ----------------------------------------------------------------------------------------------
 # feasibility
 # ----------------------------------------------------------------------------------------------
@@ -222,6 +328,15 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
     assert len(rows) == 5 and rows[2][:2] == ["0.3", "0.03"] and rows[2][5] == "false" and "below the sample plane" in rows[2][6]
     assert rows[2][7] == "horizon"
     assert rows[2][2] == ""
+    # no housing: no stray light, 0 (not unknown) on every computed point, and k_A,direct is k_A
+    # (trial 10 D10: the columns are there for every design)
+    assert rows[0][14:] == ["max_abs_dev_direct", "max_stray_fraction", "max_stray_tan_eps", "max_stray_beta_deg",
+                            "max_stray_sample", "max_stray_u"]
+    ok = ds["geometry_ok"].values
+    assert (ds["max_stray_fraction"].values[ok] == 0.0).all() and np.isnan(ds["max_stray_tan_eps"].values).all()
+    assert np.array_equal(ds["max_abs_dev_direct"].values, ds["max_abs_dev"].values, equal_nan=True)
+    from roadgonio.design.dataset import same_signal
+    assert same_signal(ds) is None
     # netCDF round trip
     back = read_design(tmp_path / "design.nc")
     assert np.array_equal(back["k_a"].values, ds["k_a"].values, equal_nan=True)
