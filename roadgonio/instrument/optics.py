@@ -570,7 +570,7 @@ def _hull_angles_deg(instrument: Instrument, tb: np.ndarray, n: int,
 
 
 def footprint_emission_angles_deg(instrument: Instrument, cells: Sequence[tuple[float, float]],
-                                  n: int = 32) -> np.ndarray:
+                                  n: int = 32, outline=None) -> np.ndarray:
     """Per cell, the largest angle (deg) from the source axis at which the source sends light to the
     detector footprint: over the rays from the disc's rim points and centre to the footprint
     boundary (:func:`footprint_boundary`).
@@ -580,11 +580,12 @@ def footprint_emission_angles_deg(instrument: Instrument, cells: Sequence[tuple[
     points of the plane seen from a source point within theta of the axis form a convex set, and
     when every hull vertex lies in it so does every boundary point. A cell whose angle is 90 deg or
     more (no such cone) is recomputed over all the boundary points. (Over all the points at every
-    cell this took ~20 ms a cell, 12 s for a table: trial 10 D14.)"""
+    cell this took ~20 ms a cell, 12 s for a table: trial 10 D14.) ``outline``: the result of
+    :func:`footprint_hull` when the caller has it."""
     tb = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
     if not len(tb):
         return np.zeros(0)
-    boundary, hull = footprint_hull(instrument)
+    boundary, hull = footprint_hull(instrument) if outline is None else outline
     out = _hull_angles_deg(instrument, tb, n, hull)
     for i in np.flatnonzero(out >= 90.0):
         out[i] = _emission_angles_deg(instrument, tb[i:i + 1], n, boundary)[0]
@@ -780,7 +781,8 @@ def beam_clips_cells(instrument: Instrument, cells: Sequence[tuple[float, float]
     theta = instrument.source.beam_half_angle_deg
     if theta is None or not len(tb):
         return clips
-    _, hull = footprint_hull(instrument)
+    outline = footprint_hull(instrument)
+    hull = outline[1]
     place = source_frames(instrument, tb[:, 0], tb[:, 1])
     c, a = place.centre.reshape(-1, 3), place.axis.reshape(-1, 3)
     pts = np.stack([hull[0], hull[1], np.zeros_like(hull[0])], axis=-1)
@@ -794,7 +796,7 @@ def beam_clips_cells(instrument: Instrument, cells: Sequence[tuple[float, float]
     clips[lo > theta + _BEAM_MARGIN_DEG] = True
     unsure = np.flatnonzero((lo <= theta + _BEAM_MARGIN_DEG) & (hi >= theta - _BEAM_MARGIN_DEG))
     if unsure.size:
-        clips[unsure] = footprint_emission_angles_deg(instrument, tb[unsure], n) > theta
+        clips[unsure] = footprint_emission_angles_deg(instrument, tb[unsure], n, outline=outline) > theta
     return clips
 
 

@@ -237,6 +237,12 @@ def test_beam_clip_check_of_a_table_reads_the_footprint_once(monkeypatch):
     monkeypatch.setattr(optics, "footprint_emission_angles_deg", count("full", full))
     assert not optics.beam_clips_cells(inst, cells).any()
     assert calls == {"boundary": 1, "full": 0}
+    # a limit at one cell's own angle leaves that cell to the full computation, which takes the
+    # outline the quick bounds traced instead of tracing it again
+    limit = float(full(load_instrument("portable"), [(5.0, 0.0)])[0])
+    calls.update(boundary=0, full=0)
+    optics.beam_clips_cells(inst.with_changes(source={"beam_half_angle_deg": limit}), cells)
+    assert calls == {"boundary": 1, "full": 1}
 
 
 def test_hit_check_points_and_verdict():
