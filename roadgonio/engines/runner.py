@@ -33,7 +33,7 @@ from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
 from roadgonio.surface.model import RoadModel
-from roadgonio.surface.rtable import KA_HEADER
+from roadgonio.surface.rtable import KA_HEADER, grid_coords
 from roadgonio.engines.cells import grid_index
 from roadgonio.engines.result import CellResult, KaBackend
 
@@ -350,9 +350,7 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         "created": prov["created"],
         "provenance": to_json(prov, indent=None),
     }
-    coords = {"tan_eps": ("tan_eps", TAN_EPS_GRID.copy(), {"long_name": "tan(epsilon)", "units": "1"}),
-              "beta": ("beta", BETA_GRID_DEG.copy(), {"long_name": "beta", "units": "deg"})}
-    return xr.Dataset(data, coords=coords, attrs=attrs)
+    return xr.Dataset(data, coords=grid_coords(), attrs=attrs)
 
 
 def summary(ds) -> dict[str, Any]:

@@ -136,9 +136,7 @@ class RTable:
         import xarray as xr
         return xr.DataArray(
             self.r.copy(), dims=("tan_eps", "beta"),
-            coords={"tan_eps": ("tan_eps", self.tan_eps.copy(), {"long_name": "tan(epsilon)", "units": "1"}),
-                    "beta": ("beta", self.beta_deg.copy(), {"long_name": "beta", "units": "deg"})},
-            name="r", attrs={"name": self.name, "source": self.source, "units": "sr^-1",
+            coords=grid_coords(self.tan_eps, self.beta_deg), name="r", attrs={"name": self.name, "source": self.source, "units": "sr^-1",
                              "long_name": "reduced luminance coefficient r = q cos^3(epsilon)",
                              "note": "r itself, not r x 10^4; NaN = not measured"})
 
@@ -319,6 +317,13 @@ def u_names_table(u: "RTable") -> str | None:
     header ``standard uncertainty of <that table's header>``, :data:`U_HEADER`), or None."""
     first = header_line(u)
     return first[len(U_HEADER):].strip() if first.startswith(U_HEADER) else None
+
+
+def grid_coords(tan_eps: np.ndarray = TAN_EPS_GRID, beta_deg: np.ndarray = BETA_GRID_DEG) -> dict:
+    """The ``tan_eps`` and ``beta`` coordinates (with their long names and units) of every table
+    over the grid as xarray: r-tables, k_A tables and the k_A Dataset."""
+    return {"tan_eps": ("tan_eps", np.array(tan_eps, dtype=np.float64), {"long_name": "tan(epsilon)", "units": "1"}),
+            "beta": ("beta", np.array(beta_deg, dtype=np.float64), {"long_name": "beta", "units": "deg"})}
 
 
 #: The first words of the header of a k_A table: the title of a k_A Dataset (``ka.csv``,
@@ -630,9 +635,7 @@ def read_ka_table(path: str | Path):
                          f"ka.csv), got {('# ' + first) if first else 'none'!r}", path=path)
     return xr.DataArray(
         t.r.copy(), dims=("tan_eps", "beta"),
-        coords={"tan_eps": ("tan_eps", t.tan_eps.copy(), {"long_name": "tan(epsilon)", "units": "1"}),
-                "beta": ("beta", t.beta_deg.copy(), {"long_name": "beta", "units": "deg"})},
-        name="k_a", attrs={"name": t.name, "source": t.source, "units": "1",
+        coords=grid_coords(t.tan_eps, t.beta_deg), name="k_a", attrs={"name": t.name, "source": t.source, "units": "1",
                            "long_name": "aperture-effect factor k_A", "note": "NaN = not computed"})
 
 
