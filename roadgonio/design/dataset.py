@@ -15,6 +15,7 @@ from roadgonio.fileio import to_json
 from roadgonio.instrument.config import Instrument
 from roadgonio.engines import cluster as _cluster
 from roadgonio.engines.result import standard_uncertainty
+from roadgonio.engines.runner import STRAY_FILES, field_attrs
 from roadgonio.design.grid import VarySpec
 from roadgonio.design.metrics import (SIGNAL_FORMULA, deviations, detector_etendue, profiled_solid_angle, signal_product,
                                       stray_metrics)
@@ -134,15 +135,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                                                                   "otherwise)"}),
         "confidence_level": (cell_dims, grid(level), {"long_name": "confidence level of confidence_bound (NaN without "
                                                                    "one)"}),
-        "k_a_direct": (cell_dims, grid(stray["k_a_direct"]), {"long_name": "k_A of the direct light alone (no stray "
-                                                                          "light; = k_a without it)", "units": "1"}),
-        "k_a_direct_se": (cell_dims, grid(stray["k_a_direct_se"]), {"long_name": "standard error of k_a_direct (as se)",
-                                                                    "units": "1"}),
-        "stray_fraction": (cell_dims, grid(stray["stray_fraction"]), {
-            "long_name": "stray fraction of the road signal, 1 - S_direct / S_total (a fraction: 0.3 is 30 %; 0 "
-                         "without stray light)", "units": "1"}),
-        "stray_fraction_se": (cell_dims, grid(stray["stray_fraction_se"]), {
-            "long_name": "standard error of stray_fraction (0 without stray light: exact)", "units": "1"}),
+        **{f: (cell_dims, grid(arr), field_attrs(f)) for f, arr in stray.items()},   # as in the k_A Dataset
         "max_abs_dev": (dims, grid(max_dev), {"long_name": "max |k_A - 1| over the cells and samples"}),
         "max_abs_dev_sample": (dims + ["sample"], grid(max_dev_s), {"long_name": "max |k_A - 1| over the cells, per sample"}),
         "rms_dev": (dims, grid(rms), {"long_name": "root mean square of k_A - 1 over the cells and samples"}),
@@ -207,9 +200,9 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     return ds
 
 
-#: The stray-light fields of a table's cells kept in the journal and design.nc
-#: (:class:`roadgonio.engines.result.CellResult`).
-STRAY_CELL_FIELDS = ("k_a_direct", "k_a_direct_se", "stray_fraction", "stray_fraction_se")
+#: The stray-light fields of a table's cells kept in the journal and design.nc: those the k_A table
+#: writes (:data:`roadgonio.engines.runner.STRAY_FILES`; :class:`roadgonio.engines.result.CellResult`).
+STRAY_CELL_FIELDS = tuple(STRAY_FILES)
 
 
 def _f(v) -> float:

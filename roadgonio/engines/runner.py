@@ -285,6 +285,14 @@ TABLE_FILES = ("ka.nc", "ka.csv", "ka_se.csv", "ka_bound.csv", "ka_confidence_bo
                "ka.png", META)
 
 
+def field_attrs(name: str) -> dict[str, str]:
+    """The attributes (long name, units, description) of a field of the k_A result as a data variable
+    (:data:`FIELD_ATTRS`): of the k_A Dataset, and of the same fields in design.nc."""
+    long_name, units, description = FIELD_ATTRS.get(name, (name.replace("_", " "), "1", ""))
+    return {"long_name": long_name, **({"units": units} if units else {}),
+            **({"description": description} if description else {})}
+
+
 def has_stray_light(ds) -> bool:
     """Whether a k_A Dataset holds stray light (some cell's stray fraction is not 0)."""
     sf = ds["stray_fraction"].values
@@ -317,10 +325,7 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         grid = run.grid(name)
         if name == "converged":
             grid = np.nan_to_num(grid, nan=0.0).astype(bool)
-        long_name, units, description = FIELD_ATTRS.get(name, (name.replace("_", " "), "1", ""))
-        attrs = {"long_name": long_name, **({"units": units} if units else {}),
-                 **({"description": description} if description else {})}
-        data[name] = (dims, grid, attrs)
+        data[name] = (dims, grid, field_attrs(name))
     info = BACKENDS.get(backend.name)
     settings = backend.settings()
     prov = provenance(instrument=instrument, model=model, backend=backend.name, settings=settings, sample=sample,
