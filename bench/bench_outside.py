@@ -147,8 +147,7 @@ def print_row(r: dict) -> None:
 def noise_seed(kind: str, which: str, rep: int = 0) -> int:
     """The noise's seed of truth ``kind`` through instrument ``which``, realisation ``rep`` (0: the
     single run's, as it always was for the full list of truths)."""
-    base = 100 + 10 * TRUTHS.index(kind) + (which == "B") if kind in TRUTHS else 100 + (which == "B")
-    return base + 1000 * rep
+    return 100 + 10 * TRUTHS.index(kind) + (which == "B") + 1000 * rep
 
 
 def print_summary(rows: list[dict], n_seeds: int) -> None:
