@@ -1058,7 +1058,7 @@ def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
     :data:`AUTO`) writes compare.csv, compare.json and (``plots``) compare.png."""
     from roadgonio.fileio import to_json
     from roadgonio.provenance import provenance
-    from roadgonio.road.compare import compare_csv, compare_png
+    from roadgonio.road.compare import COMPARE_FILES, compare_csv, compare_png
     from roadgonio.road.compare import compare_tables as _compare
     from roadgonio.road.report import write_together
     from roadgonio.provenance import input_record
@@ -1075,7 +1075,7 @@ def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
                  "compare.json": to_json({**summary, "provenance": provenance(inputs=inputs)}) + "\n"}
         if plots:
             files["compare.png"] = compare_png(res, ta, tb)
-        summary["written"] = [str(p) for p in write_together(folder, files)]
+        summary["written"] = [str(p) for p in write_together(folder, files, replaces=COMPARE_FILES)]
         summary["out"] = str(folder)
     summary["a"], summary["b"] = ta.name, tb.name
     return summary
