@@ -155,16 +155,32 @@ def _backend(backend: str, instrument, model, *, accuracy: str | None = None, re
                         mitsuba_variant=mitsuba_variant, settings=settings, fields={"tolerance": "rel_se"})
 
 
-def _out(out, kind: str, *names: str) -> Path | None:
-    """The output folder: None, the given folder, or for :data:`AUTO` ``out/KIND-NAME-...``."""
+def _out(out, kind: str, *names: str, auto: Path | None = None) -> Path | None:
+    """The output folder: None, the given folder, or for :data:`AUTO` ``auto`` (default
+    ``out/KIND-NAME-...``), checked by :func:`_results_folder`."""
     if out is None:
         return None
     if isinstance(out, _Auto):
         from roadgonio.fileio import safe_name
-        return Path("out") / "-".join([kind] + [safe_name(n) for n in names])
+        return _results_folder(auto or Path("out") / "-".join([kind] + [safe_name(n) for n in names]))
     if not isinstance(out, (str, Path)) or not str(out).strip():
         raise InputError(f"expected a folder name, got {out!r}", field="out")
-    return Path(out)
+    return _results_folder(Path(out))
+
+
+def _results_folder(folder: Path) -> Path:
+    """Every command's check of its output folder (trial 11 D10): a folder, or a path where one can
+    be made; a file there (or in place of a folder above it) is the one-line error saying a folder
+    was expected, instead of the system's "File exists" about the first output file."""
+    if folder.exists() and not folder.is_dir():
+        raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
+    for above in folder.parents:
+        if above.exists():
+            if not above.is_dir():
+                raise InputError(f"expected a folder for the results, but {above} is a file", path=folder,
+                                 field="out")
+            break
+    return folder
 
 
 def _show(progress) -> bool:
@@ -386,9 +402,7 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
     t = _table(table)
     folder = None
     if out is not None:
-        folder = Path(f"fit-{_safe(t.name)}-{variant}") if isinstance(out, _Auto) else _out(out, "fit")
-        if folder.exists() and not folder.is_dir():
-            raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
+        folder = _out(out, "fit", auto=Path(f"fit-{_safe(t.name)}-{variant}"))
     from roadgonio.fileio import check_run_folder, fingerprint
     from roadgonio.surface.fit import FIT_METHOD_VERSION, table_hash
     fp = fingerprint({"table": table_hash(t), "name": t.name, "variant": variant, "seed": seed,

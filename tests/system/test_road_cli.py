@@ -189,7 +189,8 @@ def test_output_error_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypat
     blocker.write_text("x")
     assert main(["road", "--table", "R3", "--out", str(blocker / "sub"), "--no-plots"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("roadgonio: error:") and "file/sub" in err and "Not a directory" in err and "\n" not in err
+    assert err.startswith("roadgonio: error:") and "file/sub" in err and "\n" not in err
+    assert f"expected a folder for the results, but {blocker} is a file" in err
     from roadgonio.errors import InputError
     from roadgonio.road import report
     out = tmp_path / "o"
