@@ -899,7 +899,8 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
     keys x sample x tan_eps x beta; ``max_abs_dev``, ``signal``, ``feasible``, ``reason``... per
     point; provenance in ``attrs["provenance"]``); with ``out`` (a folder or :data:`AUTO`) also
     design.csv, best.toml and the pictures. Scripts that start a local cluster must guard the call
-    with ``if __name__ == "__main__":``."""
+    with ``if __name__ == "__main__":`` (an unguarded call raises
+    :class:`~roadgonio.errors.InputError` before any worker starts)."""
     from roadgonio.design.run import run_design
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
     seed = check_seed(seed)
@@ -932,7 +933,8 @@ def intercompare(study, out=None, *, workers: int | None = None, scheduler: str 
     :func:`design_study` (default: a local cluster, one worker per core; ``workers=0`` computes
     here). With ``out`` (a folder or :data:`AUTO`) the run is journalled (resumable) and its files
     are written there (:mod:`roadgonio.intercomparison.outputs`). Scripts that start a local cluster
-    must guard the call with ``if __name__ == "__main__":``."""
+    must guard the call with ``if __name__ == "__main__":`` (an unguarded call raises
+    :class:`~roadgonio.errors.InputError` before any worker starts)."""
     from roadgonio.engines.registry import prepare_entry_point
     from roadgonio.intercomparison.run import run_study
     from roadgonio.intercomparison.study import Study, load_study
