@@ -262,11 +262,12 @@ def test_ctrl_c_says_truthfully_what_happens(tmp_path, capsys, monkeypatch, argv
     def interrupted(*a, **k):
         raise KeyboardInterrupt
     monkeypatch.setattr(target, interrupted)
-    rc = main(argv + ["--out", str(tmp_path / "o")])
+    rc = main(argv + ["--out", str(tmp_path / "o" / "deeper")])
     err = capsys.readouterr().err
     assert rc == 130 and must in err
-    if must == "starts over":
+    if must == "starts over":       # nothing was written: not even the folders (trial 11 D11)
         assert "run the same command again to resume" not in err
+        assert list(tmp_path.iterdir()) == []
 
 
 # -- messages that name the real cause and the cell ---------------------------------------------
