@@ -966,7 +966,8 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
          seed: int = 0, correlation: str = "both", out=None, plots: bool = True) -> list[dict[str, Any]]:
     """EN 13201-3 road-surface luminance metrics of a luminaire layout with one or several r-tables
     side by side (``roadgonio road``). ``u``: the tables' standard uncertainties (r-table files, r x
-    1e4): one for the last table, or one per table (None or ``"-"`` for none); a u file whose header
+    1e4): one (not in a list) for the last table, or a list with one entry per table (None or
+    ``"-"`` for none); a u file whose header
     names another table than the CSV it goes with is an error (:func:`_check_u_belongs`); a Monte Carlo of
     ``trials`` gives u and 95 % intervals of each metric and P(meets ``target_class``), for
     independent and/or fully correlated cells (``correlation``). Without ``luminaire``/``layout``:
@@ -991,16 +992,15 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     from roadgonio.limits import check_size
     trials = check_size(_check_int(trials, "trials", mc.MIN_TRIALS), "trials", "trials")
     seed = check_seed(seed)
-    us = list(u) if isinstance(u, (list, tuple)) else ([] if u is None else [u])
-    if not us:
+    if u is None:
         u_of = [None] * len(items)
-    elif len(us) == 1:
-        u_of = [None] * (len(items) - 1) + [us[0]]
-    elif len(us) == len(items):
-        u_of = [None if x in ("-", "", None) else x for x in us]
-    else:
-        raise InputError(f"give u once (for the last table) or once per table ({len(items)} tables), got {len(us)}",
-                         field="u")
+    elif not isinstance(u, (list, tuple)):      # one u: the last table's
+        u_of = [None] * (len(items) - 1) + [u]
+    elif len(u) == len(items):
+        u_of = [None if x in ("-", "", None) else x for x in u]
+    else:   # trial 11 D11: a one-entry list for two tables was put on the last table
+        raise InputError(f"a list of u has one entry per table (None for none): expected {len(items)}, got {len(u)}; "
+                         "a single u, not in a list, goes with the last table", field="u")
     loaded = [_table(t) for t in items]
     folder_names = [t.name for t in loaded]
     loaded = [_labelled(item, t) for item, t in zip(items, loaded)]
