@@ -364,7 +364,9 @@ def read_ka_table(path) -> "xr.DataArray":
 def write_table(da, path) -> Path:
     """Write an r-table DataArray (as from :func:`read_table`; an RTable works too) to ``path``:
     ``.rtb`` as DIALux RTB, ``.csv`` as CSV (both store r x 10^4, as published tables do; another
-    suffix is an :class:`InputError`)."""
+    suffix is an :class:`InputError`). The CSV header is ``attrs["source"]`` (the RTB's name line
+    ``attrs["name"]``): a table computed from another keeps that one's attrs (xarray arithmetic),
+    so give it its own ``source`` (README's example)."""
     return _table(da).write(_table_file(path, "path"))
 
 
