@@ -184,10 +184,10 @@ def _text(raw: bytes) -> str:
     return (raw[3:] if raw[:3] == b"\xef\xbb\xbf" else raw).decode("latin-1")
 
 
-def _numbers_after_lamp_sets(text: str, n_sets: int) -> int:
-    """How many numbers follow the lamp sets (direct ratios, C angles, gamma angles, intensities):
-    lines 1-12 are one line each, lines 13-26 one number each (blank lines skipped), then 6 lines
-    per lamp set, as the parser walks them."""
+def _values_after_lamp_sets(text: str, n_sets: int) -> int:
+    """How many values (blank-separated; any text counts) follow the lamp sets (direct ratios, C
+    angles, gamma angles, intensities): lines 1-12 are one line each, lines 13-26 one number each
+    (blank lines skipped), then 6 lines per lamp set, as the parser walks them."""
     lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
     i = 12
     for _ in range(14):
@@ -200,21 +200,22 @@ def _numbers_after_lamp_sets(text: str, n_sets: int) -> int:
 
 def _check_count(h, text: str, path: Path) -> None:
     """The EULUMDAT layout fixes the file's length from Isym, Mc and Ng: 10 direct ratios, Mc C
-    angles, Ng gamma angles and the stored planes' Ng intensities each. A file with fewer numbers
+    angles, Ng gamma angles and the stored planes' Ng intensities each. A file with fewer values
     ends early; one with more (a full table labelled Isym 1, an Ng one short) would be read shifted
     or in part, so both are refused."""
     planes = _STORED_PLANES[h.isym](h.mc)
     want = 10 + h.mc + h.ng + planes * h.ng
-    got = _numbers_after_lamp_sets(text, h.n_sets)
+    got = _values_after_lamp_sets(text, h.n_sets)
     layout = (f"10 direct ratios, {h.mc} C angles, {h.ng} gamma angles and the intensities of Isym {h.isym}: "
               f"{planes} x {h.ng}")
     if got < want:
-        raise InputError(f"file ends early: {got} numbers after the lamp sets, the header announces {want} "
+        raise InputError(f"file ends early: {got} values after the lamp sets, the header announces {want} "
                          f"({layout})", path=path, field="intensities (Isym, Mc, Ng: lines 3, 4, 6)")
     if got > want:
         extra = got - want
-        raise InputError(f"{extra} number{'s' if extra > 1 else ''} after the intensities the header announces "
-                         f"({layout}); expected the file to end there", path=path, field="intensities (Isym, Mc, Ng: lines 3, 4, 6)")
+        raise InputError(f"{extra} value{'s' if extra > 1 else ''} after the intensities the header announces "
+                         f"({layout}); expected the file to end there", path=path,
+                         field="intensities (Isym, Mc, Ng: lines 3, 4, 6)")
 
 
 def _check_header(h, path: Path) -> None:

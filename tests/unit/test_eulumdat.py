@@ -133,13 +133,13 @@ def test_a_file_whose_numbers_match_its_header_is_read(tmp_path):
 
 @pytest.mark.parametrize("edit,words", [
     # a full table labelled Isym 1 (a known bad export): 4 x 4 intensities where 1 x 4 are announced
-    (_set(ISYM, "1"), ["12 numbers after the intensities", "Isym 1: 1 x 4", "expected the file to end"]),
+    (_set(ISYM, "1"), ["12 values after the intensities", "Isym 1: 1 x 4", "expected the file to end"]),
     # Ng one short: every intensity would be read one place off, the last 4 + 1 numbers left over
-    (_set(NG, "3"), ["5 numbers after the intensities", "Isym 0: 4 x 3", "expected the file to end"]),
+    (_set(NG, "3"), ["5 values after the intensities", "Isym 0: 4 x 3", "expected the file to end"]),
     # one stray number at the end
-    (lambda lines: lines[:-1] + ["7", ""], ["1 number after the intensities", "expected the file to end"]),
+    (lambda lines: lines[:-1] + ["7", ""], ["1 value after the intensities", "expected the file to end"]),
     # one intensity missing
-    (lambda lines: lines[:-2] + [""], ["file ends early", "33 numbers", "announces 34", "4 x 4"]),
+    (lambda lines: lines[:-2] + [""], ["file ends early", "33 values", "announces 34", "4 x 4"]),
 ])
 def test_a_file_with_more_or_fewer_numbers_than_its_header_announces_is_refused(tmp_path, edit, words):
     """The EULUMDAT layout fixes how many numbers follow the lamp sets (10 direct ratios, Mc C angles,
