@@ -155,16 +155,32 @@ def _backend(backend: str, instrument, model, *, accuracy: str | None = None, re
                         mitsuba_variant=mitsuba_variant, settings=settings, fields={"tolerance": "rel_se"})
 
 
-def _out(out, kind: str, *names: str) -> Path | None:
-    """The output folder: None, the given folder, or for :data:`AUTO` ``out/KIND-NAME-...``."""
+def _out(out, kind: str, *names: str, auto: Path | None = None) -> Path | None:
+    """The output folder: None, the given folder, or for :data:`AUTO` ``auto`` (default
+    ``out/KIND-NAME-...``), checked by :func:`_results_folder`."""
     if out is None:
         return None
     if isinstance(out, _Auto):
         from roadgonio.fileio import safe_name
-        return Path("out") / "-".join([kind] + [safe_name(n) for n in names])
+        return _results_folder(auto or Path("out") / "-".join([kind] + [safe_name(n) for n in names]))
     if not isinstance(out, (str, Path)) or not str(out).strip():
         raise InputError(f"expected a folder name, got {out!r}", field="out")
-    return Path(out)
+    return _results_folder(Path(out))
+
+
+def _results_folder(folder: Path) -> Path:
+    """Every command's check of its output folder (trial 11 D10): a folder, or a path where one can
+    be made; a file there (or in place of a folder above it) is the one-line error saying a folder
+    was expected, instead of the system's "File exists" about the first output file."""
+    if folder.exists() and not folder.is_dir():
+        raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
+    for above in folder.parents:
+        if above.exists():
+            if not above.is_dir():
+                raise InputError(f"expected a folder for the results, but {above} is a file", path=folder,
+                                 field="out")
+            break
+    return folder
 
 
 def _show(progress) -> bool:
@@ -348,7 +364,9 @@ def read_ka_table(path) -> "xr.DataArray":
 def write_table(da, path) -> Path:
     """Write an r-table DataArray (as from :func:`read_table`; an RTable works too) to ``path``:
     ``.rtb`` as DIALux RTB, ``.csv`` as CSV (both store r x 10^4, as published tables do; another
-    suffix is an :class:`InputError`)."""
+    suffix is an :class:`InputError`). The CSV header is ``attrs["source"]`` (the RTB's name line
+    ``attrs["name"]``): a table computed from another keeps that one's attrs (xarray arithmetic),
+    so give it its own ``source`` (README's example)."""
     return _table(da).write(_table_file(path, "path"))
 
 
@@ -386,9 +404,7 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
     t = _table(table)
     folder = None
     if out is not None:
-        folder = Path(f"fit-{_safe(t.name)}-{variant}") if isinstance(out, _Auto) else _out(out, "fit")
-        if folder.exists() and not folder.is_dir():
-            raise InputError("expected a folder for the results, but it is a file", path=folder, field="out")
+        folder = _out(out, "fit", auto=Path(f"fit-{_safe(t.name)}-{variant}"))
     from roadgonio.fileio import check_run_folder, fingerprint
     from roadgonio.surface.fit import FIT_METHOD_VERSION, table_hash
     fp = fingerprint({"table": table_hash(t), "name": t.name, "variant": variant, "seed": seed,
@@ -885,7 +901,8 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
     keys x sample x tan_eps x beta; ``max_abs_dev``, ``signal``, ``feasible``, ``reason``... per
     point; provenance in ``attrs["provenance"]``); with ``out`` (a folder or :data:`AUTO`) also
     design.csv, best.toml and the pictures. Scripts that start a local cluster must guard the call
-    with ``if __name__ == "__main__":``."""
+    with ``if __name__ == "__main__":`` (an unguarded call raises
+    :class:`~roadgonio.errors.InputError` before any worker starts)."""
     from roadgonio.design.run import run_design
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
     seed = check_seed(seed)
@@ -918,7 +935,8 @@ def intercompare(study, out=None, *, workers: int | None = None, scheduler: str 
     :func:`design_study` (default: a local cluster, one worker per core; ``workers=0`` computes
     here). With ``out`` (a folder or :data:`AUTO`) the run is journalled (resumable) and its files
     are written there (:mod:`roadgonio.intercomparison.outputs`). Scripts that start a local cluster
-    must guard the call with ``if __name__ == "__main__":``."""
+    must guard the call with ``if __name__ == "__main__":`` (an unguarded call raises
+    :class:`~roadgonio.errors.InputError` before any worker starts)."""
     from roadgonio.engines.registry import prepare_entry_point
     from roadgonio.intercomparison.run import run_study
     from roadgonio.intercomparison.study import Study, load_study
@@ -950,7 +968,8 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
          seed: int = 0, correlation: str = "both", out=None, plots: bool = True) -> list[dict[str, Any]]:
     """EN 13201-3 road-surface luminance metrics of a luminaire layout with one or several r-tables
     side by side (``roadgonio road``). ``u``: the tables' standard uncertainties (r-table files, r x
-    1e4): one for the last table, or one per table (None or ``"-"`` for none); a u file whose header
+    1e4): one (not in a list) for the last table, or a list with one entry per table (None or
+    ``"-"`` for none); a u file whose header
     names another table than the CSV it goes with is an error (:func:`_check_u_belongs`); a Monte Carlo of
     ``trials`` gives u and 95 % intervals of each metric and P(meets ``target_class``), for
     independent and/or fully correlated cells (``correlation``). Without ``luminaire``/``layout``:
@@ -975,16 +994,15 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     from roadgonio.limits import check_size
     trials = check_size(_check_int(trials, "trials", mc.MIN_TRIALS), "trials", "trials")
     seed = check_seed(seed)
-    us = list(u) if isinstance(u, (list, tuple)) else ([] if u is None else [u])
-    if not us:
+    if u is None:
         u_of = [None] * len(items)
-    elif len(us) == 1:
-        u_of = [None] * (len(items) - 1) + [us[0]]
-    elif len(us) == len(items):
-        u_of = [None if x in ("-", "", None) else x for x in us]
-    else:
-        raise InputError(f"give u once (for the last table) or once per table ({len(items)} tables), got {len(us)}",
-                         field="u")
+    elif not isinstance(u, (list, tuple)):      # one u: the last table's
+        u_of = [None] * (len(items) - 1) + [u]
+    elif len(u) == len(items):
+        u_of = [None if x in ("-", "", None) else x for x in u]
+    else:   # trial 11 D11: a one-entry list for two tables was put on the last table
+        raise InputError(f"a list of u has one entry per table (None for none): expected {len(items)}, got {len(u)}; "
+                         "a single u, not in a list, goes with the last table", field="u")
     loaded = [_table(t) for t in items]
     folder_names = [t.name for t in loaded]
     loaded = [_labelled(item, t) for item, t in zip(items, loaded)]
@@ -1058,7 +1076,7 @@ def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
     :data:`AUTO`) writes compare.csv, compare.json and (``plots``) compare.png."""
     from roadgonio.fileio import to_json
     from roadgonio.provenance import provenance
-    from roadgonio.road.compare import compare_csv, compare_png
+    from roadgonio.road.compare import COMPARE_FILES, compare_csv, compare_png
     from roadgonio.road.compare import compare_tables as _compare
     from roadgonio.road.report import write_together
     from roadgonio.provenance import input_record
@@ -1075,7 +1093,7 @@ def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
                  "compare.json": to_json({**summary, "provenance": provenance(inputs=inputs)}) + "\n"}
         if plots:
             files["compare.png"] = compare_png(res, ta, tb)
-        summary["written"] = [str(p) for p in write_together(folder, files)]
+        summary["written"] = [str(p) for p in write_together(folder, files, replaces=COMPARE_FILES)]
         summary["out"] = str(folder)
     summary["a"], summary["b"] = ta.name, tb.name
     return summary

@@ -6,8 +6,9 @@ it expands the file's symmetry ISYM 0-4 to the full C range). Other candidates w
 ``eulumdat`` (Rust bindings) has no wheel for this platform and needs a Rust toolchain to build,
 ``luxpy`` is a large colour-science package with many dependencies. This module adds what a
 calculation needs on top of the parser: checks with one-line errors naming the file and the field
-(the library turns missing numbers into 0 and short files into short lists), absolute intensities,
-and interpolation.
+(the library turns missing numbers into 0 and short files into short lists, and stops reading
+where the header's counts end: a file's numbers are counted against its header), absolute
+intensities, and interpolation.
 
 Conventions (EN 13201-3:2015 clause 6, EULUMDAT): gamma from the downward vertical of the
 luminaire (for an instrument's source: from its axis), C the azimuth. Absolute intensity = file
@@ -122,11 +123,14 @@ def read_ldt(path: str | Path) -> Luminaire:
     if not path.exists():
         raise InputError("no such luminaire file (expected an EULUMDAT .ldt file)", path=path)
     try:
+        text = _text(path.read_bytes())
         ldt = LdtReader.read(path)
     except (ValueError, IndexError, ZeroDivisionError) as err:
         raise InputError(f"not a readable EULUMDAT file ({err})", path=path) from None
     except OSError as err:
         raise InputError(f"cannot read the luminaire file ({err.strerror or err})", path=path) from None
+    if not text.strip():
+        raise InputError("the file is empty: expected an EULUMDAT .ldt file", path=path)
     h = ldt.header
     if h.isym not in (0, 1, 2, 3, 4):
         raise InputError(f"symmetry indicator Isym must be 0 ... 4, got {h.isym}", path=path, field="Isym (line 3)")
@@ -135,13 +139,14 @@ def read_ldt(path: str | Path) -> Luminaire:
                          path=path, field="Mc/Ng (lines 4, 6)")
     if h.isym in (2, 3) and h.mc % 2 or h.isym == 4 and h.mc % 4:
         raise InputError(f"Mc = {h.mc} does not fit symmetry Isym = {h.isym}", path=path, field="Mc (line 4)")
+    _check_count(h, text, path)
     if len(h.c_angles) != h.mc or len(h.g_angles) != h.ng:
-        raise InputError(f"file ends early: expected {h.mc} C angles and {h.ng} gamma angles", path=path,
-                         field="angles")
+        raise InputError(f"expected {h.mc} C angles and {h.ng} gamma angles, one number per line as EULUMDAT "
+                         "lays them out", path=path, field="angles")
     rows = ldt.intensities
     if len(rows) != h.mc or any(len(r) != h.ng for r in rows):
-        raise InputError(f"file ends early: expected the intensities of {h.mc} x {h.ng} (C x gamma) after "
-                         "symmetry expansion", path=path, field="intensities")
+        raise InputError(f"expected the intensities of {h.mc} x {h.ng} (C x gamma) after symmetry expansion, one "
+                         "number per line as EULUMDAT lays them out", path=path, field="intensities")
     if h.n_sets < 1 or not h.lamp_flux:
         raise InputError("no lamp set: expected at least one set with its luminous flux", path=path,
                          field="number of lamp sets (line 26)")
@@ -166,6 +171,51 @@ def read_ldt(path: str | Path) -> Luminaire:
                          source=str(path), meta=meta)
     except InputError as err:
         raise InputError(err.reason, path=path, field=err.field) from None
+
+
+#: C planes stored in the file for each symmetry indicator Isym (EULUMDAT): all Mc, one, the half
+#: plus one (2: C 0 ... 180; 3: C 270 ... 90), the quarter plus one (C 0 ... 90)
+_STORED_PLANES = {0: lambda mc: mc, 1: lambda mc: 1, 2: lambda mc: mc // 2 + 1, 3: lambda mc: mc // 2 + 1,
+                  4: lambda mc: mc // 4 + 1}
+
+
+def _text(raw: bytes) -> str:
+    """The file's text as the parser decodes it (a UTF-8 BOM dropped, Latin-1)."""
+    return (raw[3:] if raw[:3] == b"\xef\xbb\xbf" else raw).decode("latin-1")
+
+
+def _values_after_lamp_sets(text: str, n_sets: int) -> int:
+    """How many values (blank-separated; any text counts) follow the lamp sets (direct ratios, C
+    angles, gamma angles, intensities): lines 1-12 are one line each, lines 13-26 one number each
+    (blank lines skipped), then 6 lines per lamp set, as the parser walks them."""
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    i = 12
+    for _ in range(14):
+        while i < len(lines) and not lines[i].strip():
+            i += 1
+        i += 1
+    i += 6 * max(1, n_sets)
+    return sum(len(line.split()) for line in lines[i:])
+
+
+def _check_count(h, text: str, path: Path) -> None:
+    """The EULUMDAT layout fixes the file's length from Isym, Mc and Ng: 10 direct ratios, Mc C
+    angles, Ng gamma angles and the stored planes' Ng intensities each. A file with fewer values
+    ends early; one with more (a full table labelled Isym 1, an Ng one short) would be read shifted
+    or in part, so both are refused."""
+    planes = _STORED_PLANES[h.isym](h.mc)
+    want = 10 + h.mc + h.ng + planes * h.ng
+    got = _values_after_lamp_sets(text, h.n_sets)
+    layout = (f"10 direct ratios, {h.mc} C angles, {h.ng} gamma angles and the intensities of Isym {h.isym}: "
+              f"{planes} x {h.ng}")
+    if got < want:
+        raise InputError(f"file ends early: {got} values after the lamp sets, the header announces {want} "
+                         f"({layout})", path=path, field="intensities (Isym, Mc, Ng: lines 3, 4, 6)")
+    if got > want:
+        extra = got - want
+        raise InputError(f"{extra} value{'s' if extra > 1 else ''} after the intensities the header announces "
+                         f"({layout}); expected the file to end there", path=path,
+                         field="intensities (Isym, Mc, Ng: lines 3, 4, 6)")
 
 
 def _check_header(h, path: Path) -> None:

@@ -250,10 +250,19 @@ def check_run_folder(out_dir: str | Path, meta_name: str, fingerprint: str, *, w
 
 def check_writable(out_dir: str | Path) -> Path:
     """Fail before the work, not after it: the output folder can be created and written (a
-    staging folder is made and removed). Raises the one-line :class:`InputError` of an output."""
+    staging folder is made and removed). Raises the one-line :class:`InputError` of an output.
+    The folders the check made are removed again (deepest first, while empty), so a run stopped
+    before its outputs (Ctrl-C: "nothing was written") leaves no empty folder behind (trial 11
+    D11); the writer makes them again."""
     out_dir = Path(out_dir)
+    made = [p for p in (out_dir, *out_dir.parents) if not p.exists()]
     with OutputGroup(out_dir):
         pass
+    for p in made:
+        try:
+            p.rmdir()
+        except OSError:
+            break
     return out_dir
 
 

@@ -113,7 +113,7 @@ def _show_note(said: set):
 def _as_option(err: RoadgonioError, parser: argparse.ArgumentParser, args) -> RoadgonioError:
     """An InputError about an API argument (no file) names the command's option for it: the
     argument names are the options' destinations or their names (``rel_se`` -> ``--rel-se``;
-    ``measured/sample`` -> ``--measured/--sample``). The rooms name API arguments, never options
+    ``measured/sample`` -> ``--measured/--sample``; a positional argument: its metavar, ``b`` -> ``B``). The rooms name API arguments, never options
     (trial 10 D11: ``rg.correct`` said field '--instrument'); this is the one place that maps them."""
     if not isinstance(err, InputError):
         return err
@@ -128,6 +128,8 @@ def _as_option(err: RoadgonioError, parser: argparse.ArgumentParser, args) -> Ro
             options.setdefault(a.dest, long[0])
             for o in long:
                 options.setdefault(o[2:].replace("-", "_"), o)
+        elif not a.option_strings and isinstance(a.metavar, str):
+            options.setdefault(a.dest, a.metavar)      # a positional argument as --help shows it (compare's B)
 
     def named(text: str | None) -> str | None:
         if not text:

@@ -11,7 +11,8 @@ def register(sub) -> None:
                        description="Classify an r-table by its specular factor S1 with the CIE 144 class limits "
                                    "(R1 < 0.42 <= R2 < 0.85 <= R3 < 1.35 <= R4; C1 < 0.40 <= C2; N1 < 0.28 <= N2 < "
                                    "0.60 <= N3 < 1.30 <= N4) and give its Q0 against the class standard and the "
-                                   "nearest bundled CIE table in (S1, Q0).")
+                                   "nearest bundled CIE table in (S1, Q0): the distance counts each coordinate in "
+                                   "standard deviations of that coordinate over the six bundled tables (sd).")
     p.add_argument("table", metavar="T", help="bundled name (R1..R4, C1, C2) or .csv/.rtb file")
     add_output_options(p, json_help="print JSON")
     p.set_defaults(func=run)
@@ -33,7 +34,7 @@ def run(args) -> int:
         if res["nearest_bundled"]:
             near = res["nearest_bundled"][0]
             print(f"  nearest bundled table in (S1, Q0): {near['table']} (S1 {near['S1']:.3f}, Q0 {near['Q0']:.4f}; "
-                  f"distance {near['distance']:.2f} spreads)")
+                  f"distance {near['distance']:.2f} sd of the bundled tables' S1 and Q0)")
         if res.get("missing"):
             print(f"  missing: {res['missing']}")
     return 0

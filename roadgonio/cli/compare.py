@@ -12,7 +12,8 @@ def register(sub) -> None:
     p.add_argument("a", metavar="A", help="first table (the reference of the ratio)")
     p.add_argument("b", metavar="B", help="second table")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/compare-A-B)")
-    p.add_argument("--no-plots", action="store_true", help="do not draw the ratio map")
+    p.add_argument("--no-plots", action="store_true", help="do not draw the ratio map (an earlier run's compare.png in --out is "
+                                                                   "removed)")
     add_output_options(p, json_help="print the comparison as JSON")
     p.set_defaults(func=run)
 

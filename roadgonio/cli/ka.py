@@ -24,8 +24,12 @@ from roadgonio.errors import InputError, count
 def register(sub) -> None:
     p = sub.add_parser(
         "ka", help="aperture-effect factor k_A of an instrument (one cell or the whole r-table)",
-        description="Compute k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) for an instrument "
-                    "and a sample (docs/conventions.md section 5). Without --tan-eps/--beta the whole 580-cell grid is "
+        description="Compute k_A = (what the instrument reports as q) / f_road(nominal) for an instrument and a "
+                    "sample (docs/conventions.md section 5), by the instrument's [calibration] mode: lambert (the "
+                    "default) k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert); absolute (the paper's "
+                    "eq. 2) k_A = L_D / (E_0 f_road(nominal)), L_D the meter's reading calibrated on a uniform "
+                    "luminance and E_0 the source's illuminance at the sample centre; reference = SAMPLE k_A = "
+                    "(S[f_road]/S[f_ref]) / (f_road(nominal)/f_ref(nominal)). Without --tan-eps/--beta the whole 580-cell grid is "
                     "computed and written to --out (ka.nc, ka.csv, ka_se.csv or ka_bound.csv, ka.png, ka.json; when "
                     "the scene makes stray light, a reflecting [housing] or [scene] (docs/straylight.md), also "
                     "ka_direct.csv, ka_direct_se.csv, stray_fraction.csv and stray_fraction_se.csv); an "
@@ -104,7 +108,7 @@ def run(args) -> int:
                  f"{count(s['cells'], 'cell')}: ")
     say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {cells}"
         f"k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
-        f"{api.precision_text(s)}, {s['seconds_wall_this_run']:.1f} s."
+        f"{api.precision_text(s)}; computing the cells took {s['seconds_wall_this_run']:.1f} s."
         + (_stray_text(s) if "stray_fraction_max" in s else ""))
     say(f"wrote {ds.attrs['out']}/{ds.attrs['files']}")
     return 0

@@ -52,9 +52,9 @@ def check_cell(tan_eps, beta_deg, field: str = "cells", beta_field: str | None =
             raise InputError(f"expected a number for {what}, got {v!r}", field=f)
     t, b = float(tan_eps), float(beta_deg)
     if not (math.isfinite(t) and t >= 0.0):
-        raise InputError(f"expected tan eps >= 0, got {tan_eps!r}", field=field)
+        raise InputError(f"expected a finite tan eps >= 0, got {tan_eps!r}", field=field)
     if not (math.isfinite(b) and 0.0 <= b <= 180.0):
-        raise InputError(f"expected 0 <= beta <= 180 deg, got {beta_deg!r}", field=beta_field)
+        raise InputError(f"expected a finite beta, 0 <= beta <= 180 deg, got {beta_deg!r}", field=beta_field)
     return t, b
 
 

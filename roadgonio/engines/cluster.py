@@ -259,6 +259,52 @@ def _bootstrapping() -> bool:
     return bool(getattr(multiprocessing.current_process(), "_inheriting", False))
 
 
+def _unguarded_main_call() -> tuple[str, int] | None:
+    """(script, line) when this call comes from a script's top-level code outside ``if __name__ ==
+    "__main__":``, else None. A local cluster's worker processes are spawned: each runs the script
+    again (as ``__mp_main__``), so an unguarded call starts there too and fails there, each worker
+    printing its own traceback before the cluster gives up (trial 11 D8). Looked at before any
+    process is started: the top-level frame of the ``__main__`` module on the stack, and the
+    script's syntax tree for a guard around that frame's line. No judgement (None) without a
+    script file (a notebook, ``python -c``), for what multiprocessing does not run again (a
+    package's ``__main__.py``: ``python -m roadgonio``; the ``ipython`` script), without that frame
+    (the script's code has finished: a thread, a callback) or when the file cannot be read back."""
+    import ast
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    if main is None or not path:
+        return None
+    name = getattr(getattr(main, "__spec__", None), "name", None)
+    if name is not None and (name == "__main__" or name.endswith(".__main__")):
+        return None
+    if name is None and Path(path).stem == "ipython":
+        return None
+    frame, line = sys._getframe(), None
+    while frame is not None:
+        if frame.f_code.co_name == "<module>" and frame.f_globals is vars(main):
+            line = frame.f_lineno
+        frame = frame.f_back
+    if line is None:
+        return None
+    try:
+        tree = ast.parse(Path(path).read_text(encoding="utf-8"))
+    except (OSError, SyntaxError, UnicodeDecodeError, ValueError):
+        return None
+
+    def is_guard(test) -> bool:
+        if not (isinstance(test, ast.Compare) and len(test.ops) == 1 and isinstance(test.ops[0], ast.Eq)):
+            return False
+        sides = [test.left, test.comparators[0]]
+        return (any(isinstance(x, ast.Name) and x.id == "__name__" for x in sides)
+                and any(isinstance(x, ast.Constant) and x.value == "__main__" for x in sides))
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and is_guard(node.test) and node.body:
+            if node.body[0].lineno <= line <= (node.body[-1].end_lineno or node.body[-1].lineno):
+                return None
+    return str(path), line
+
+
 def _check_address(address: str) -> str:
     a = str(address).strip()
     if "://" not in a:
@@ -308,6 +354,10 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
     else:
         if _bootstrapping():
             raise InputError(MAIN_GUARD, field="workers")
+        unguarded = _unguarded_main_call()
+        if unguarded is not None:       # say it here, before each worker process says it in a traceback
+            raise InputError(f"this call is not under 'if __name__ == \"__main__\":'; {MAIN_GUARD}",
+                             path=unguarded[0], line=unguarded[1], field="workers")
         n = workers if workers is not None else (os.cpu_count() or 1)
         # no dashboard; the scheduler's HTTP server (health routes) still starts, on a free loopback
         # port instead of 8787, which another cluster may hold (Dask then warns and leaks a socket)

@@ -41,9 +41,11 @@ input), counted where both state that component.
 
 Idealising a characteristic (the sensitivity ranking) changes only that participant's table in
 the same realisation (common random numbers): a misalignment input, the noise, its calibration
-standard or a shared effect is set to zero; an aperture (source radius, pupil radius, field) or a
-calibration mode other than Lambert multiplies k_A(X) by k_ideal / k_A(0), the nominal k_A of the
-instrument with that aperture zero (or calibrated against a Lambertian) over its own nominal k_A
+standard or a shared effect is set to zero; an aperture (source radius, pupil radius, field), a
+calibration mode other than Lambert or a fixed-height source's distance multiplies k_A(X) by
+k_ideal / k_A(0), the nominal k_A of the instrument with that aperture zero (or calibrated against
+a Lambertian, or its rail :data:`SOURCE_FAR_FACTOR` times farther with an aperture as many times
+larger) over its own nominal k_A
 (the misalignment dependence of k_A is kept from the full instrument: a second-order term); the
 aperture effect as a whole sets k_A(X) = 1 (a collimated instrument);
 for a participant that corrects, the aperture effect is one characteristic, idealised as a perfect
@@ -69,6 +71,11 @@ FROZEN = "all_corrected_frozen"
 APERTURES = {"source_aperture": ("source", "radius_m", "source aperture"),
              "detector_pupil": ("detector", "pupil_radius_m", "detector pupil"),
              "detector_field": ("detector", "field_half_angle_deg", "detector field")}
+#: How many times farther the ranking's ``source_distance`` item moves a fixed-height source, its
+#: aperture scaled alike (:func:`roadgonio.intercomparison.run.idealised_instrument`): the spread of
+#: illumination directions over the footprint falls by as much (the corridor preset's RMS
+#: |k_A - 1| on R3 is the same at 100 and 1000 to 0.001 points).
+SOURCE_FAR_FACTOR = 1000.0
 #: Per-variant metrics of the realisation tasks (summed over the cells of one realisation): against
 #: the truth (the participant's own error) and against the weighted mean.
 METRICS = ("sum_err_rel2", "n_compatible_truth", "sum_d_rel2", "n_compatible", "n_cells")
@@ -147,9 +154,9 @@ class Setup:
                     out.append((key, f"{label} ({_aperture_text(inst, key)})"))
             if inst.calibration.mode != "lambert":
                 out.append(("calibration_mode", f"calibration mode {inst.calibration.mode} (vs lambert)"))
-            if inst.source.path == "fixed_height" and inst.source.radius_m > 0:
-                out.append(("source_path", f"source path at a fixed height {inst.source.height_m:g} m "
-                                           f"(vs an arc of radius {inst.source.height_m:g} m)"))
+            if inst.source.path == "fixed_height":
+                out.append(("source_distance", f"source distance (rail {inst.source.height_m:g} m high; vs "
+                                               f"{SOURCE_FAR_FACTOR:g} x farther at the same angular size)"))
         if not inst.cells.all_cells:
             out.append(("fill", f"cells filled by {inst.cells.fill} ({len(inst.cells.measured)} of {pm.n} measured)"))
         from roadgonio.uncertainty.spec import INPUTS

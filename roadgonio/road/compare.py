@@ -8,6 +8,10 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.surface.rtable import RTable
 
+#: Every file ``roadgonio compare`` writes: a run removes those it does not write (``--no-plots``:
+#: compare.png), so an earlier run's picture of other tables never stays beside the new files.
+COMPARE_FILES = ("compare.csv", "compare.json", "compare.png")
+
 
 def compare_tables(a: RTable, b: RTable) -> dict:
     if not a.same_grid(b):

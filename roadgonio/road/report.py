@@ -14,12 +14,13 @@ from roadgonio.road.metrics import M_CLASSES
 METRICS = (("L_av", "L_av (cd/m²)", "min"), ("U_o", "U_o", "min"), ("U_l", "U_l", "min"), ("TI", "TI (%)", "max"))
 
 
-def write_together(out_dir: Path, files: dict[str, bytes | str]) -> list[Path]:
+def write_together(out_dir: Path, files: dict[str, bytes | str], *, replaces: tuple[str, ...] = ()) -> list[Path]:
     """Write every file or none (:class:`roadgonio.fileio.OutputGroup`); an OSError is the one-line
-    error naming the file."""
+    error naming the file. ``replaces``: the command's own file names; those not in ``files`` (a
+    picture a ``--no-plots`` run does not draw) are removed once the new files are in place."""
     from roadgonio.fileio import OutputGroup
     out_dir = Path(out_dir)
-    with OutputGroup(out_dir) as g:
+    with OutputGroup(out_dir, replaces=replaces) as g:
         for name, content in files.items():
             g.path(name).write_bytes(content.encode("utf-8") if isinstance(content, str) else content)
     return [out_dir / n for n in files]

@@ -92,3 +92,47 @@ def test_help_names_every_output():
         assert f in text["ka"]
     for f in ("stray.png", "stray.exr", "render.json"):
         assert f in text["render"]
+
+
+# -- trial 11 D11: small message and help slips ----------------------------------------------
+
+@pytest.mark.parametrize("argv, must", [
+    # inf and NaN are not tan eps < 0: the message says finite
+    (["ka", "--instrument", "lab", "--sample", "R3", "--tan-eps", "inf", "--beta", "0"],
+     "field '--tan-eps': expected a finite tan eps >= 0, got inf"),
+    (["ka", "--instrument", "lab", "--sample", "R3", "--tan-eps", "1", "--beta", "nan"],
+     "field '--beta': expected a finite beta, 0 <= beta <= 180 deg, got nan"),
+    # a positional argument is named as --help shows it (B, not the API's b)
+    (["compare", "R3", "no_such_table.rtb"], "no_such_table.rtb, B: no such table file"),
+    (["compare", "R9", "R3"], "field 'A': 'R9' is not a bundled table"),
+    (["classify", "R9"], "field 'T': 'R9' is not a bundled table"),
+])
+def test_slips_in_messages(capsys, argv, must):
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and must in err, err
+
+
+def test_classify_says_what_its_distance_counts(capsys):
+    """The nearest bundled table's distance was in 'spreads', a word defined nowhere: it is in
+    standard deviations of S1 and Q0 over the six bundled tables, and --help says so."""
+    assert main(["classify", "R2"]) == 0
+    assert "distance 0.00 sd of the bundled tables' S1 and Q0" in capsys.readouterr().out
+    text = " ".join(_subparsers()["classify"].format_help().split())
+    assert "standard deviations of that coordinate over the six bundled tables (sd)" in text
+
+
+def test_ka_help_gives_k_a_for_every_calibration_mode():
+    text = " ".join(_subparsers()["ka"].format_help().split())
+    for words in ("lambert (the default)", "absolute (the paper's eq. 2) k_A = L_D / (E_0 f_road(nominal))",
+                  "reference = SAMPLE k_A = (S[f_road]/S[f_ref])"):
+        assert words in text, words
+
+
+def test_ka_summary_says_its_time_is_the_cells_computation(tmp_path, capsys):
+    """The table's summary printed the cells' computing time as if it were the command's (0.1 s
+    printed, 3 s taken)."""
+    assert main(["ka", "--instrument", "lab", "--sample", "lambert", "--backend", "quadrature", "--cells", "1:0",
+                 "--out", str(tmp_path)]) == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    assert "; computing the cells took " in line and line.endswith(" s."), line

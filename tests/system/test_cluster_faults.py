@@ -128,9 +128,11 @@ def test_a_script_starting_a_local_cluster_needs_the_main_guard(tmp_path, guarde
         assert r.stdout.startswith("k_a 1.0")              # Lambert sample: k_A = 1
         return
     last = r.stderr.strip().splitlines()[-1]
-    assert r.returncode == 1 and last.startswith("roadgonio.errors.InputError: field 'workers': "), r.stderr
+    assert r.returncode == 1 and last.startswith("roadgonio.errors.InputError: "), r.stderr
+    assert "script.py:2, field 'workers': " in last, last
     assert "if __name__ == \"__main__\":" in last and "workers=0" in last
     assert "An attempt has been made to start a new process" not in r.stderr     # the children stop first
+    assert r.stderr.count("Traceback") == 1, r.stderr       # no worker started (trial 11 D8)
 
 
 @pytest.mark.timeout(300)

@@ -143,7 +143,42 @@ def test_output_under_a_file_is_one_line(tmp_path, capsys, r3_file):
     f = tmp_path / "plain.txt"
     f.write_text("x")
     rc = main(_validate_argv(r3_file, f / "sub"))
-    one_line_error(capsys, rc, "cannot write")
+    one_line_error(capsys, rc, "plain.txt/sub", "field 'out'", f"expected a folder for the results, but {f} is a file")
+
+
+#: One cheap call of every command that takes --out (the check comes before any work).
+OUT_COMMANDS = {
+    "fit": ["fit", "R3"],
+    "ka": ["ka", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature", "--accuracy", "fast"],
+    "render": ["render", "--instrument", "portable", "--sample", "R3", "--tan-eps", "1", "--beta", "0"],
+    "validate": ["validate", "--instrument", "portable", "--sample", "R3"],
+    "uncertainty": ["uncertainty", "--instrument", "portable", "--sample", "R3", "--sigma", "alpha_deg=0.01"],
+    "correct": ["correct", "--measured", "R3", "--instrument", "portable"],
+    "road": ["road", "--table", "R3"],
+    "compare": ["compare", "R3", "R2"],
+    "design": ["design", "--instrument", "portable", "--vary", "source.radius_m=0.01:0.02:2", "--sample", "R3"],
+    "intercompare": ["intercompare", "r3-comparison"],
+}
+
+
+def test_every_command_with_an_out_folder_is_in_the_list():
+    from roadgonio.cli import build_parser
+    sub = next(a for a in build_parser()._actions if hasattr(a, "choices") and isinstance(a.choices, dict))
+    takes_out = {name for name, p in sub.choices.items() if any("--out" in a.option_strings for a in p._actions)}
+    assert takes_out == set(OUT_COMMANDS)
+
+
+@pytest.mark.parametrize("argv", [OUT_COMMANDS[k] for k in sorted(OUT_COMMANDS)] +
+                         [OUT_COMMANDS["ka"] + ["--tan-eps", "1", "--beta", "0"]], ids=lambda a: " ".join(a[:2]))
+def test_out_that_is_a_file_says_a_folder_was_expected(tmp_path, capsys, monkeypatch, argv):
+    """Trial 11 D10: every command but fit said "cannot write this output file (File exists)" about
+    the file or about a file inside it; one check (api._out) now says a folder was expected, as fit
+    did, and nothing is written."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("hi")
+    rc = main(argv + ["--out", "afile"])
+    one_line_error(capsys, rc, "afile, field 'out': expected a folder for the results, but it is a file")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"] and (tmp_path / "afile").read_text() == "hi"
 
 
 def test_output_in_proc_is_one_line(capsys, r3_file):
@@ -227,11 +262,12 @@ def test_ctrl_c_says_truthfully_what_happens(tmp_path, capsys, monkeypatch, argv
     def interrupted(*a, **k):
         raise KeyboardInterrupt
     monkeypatch.setattr(target, interrupted)
-    rc = main(argv + ["--out", str(tmp_path / "o")])
+    rc = main(argv + ["--out", str(tmp_path / "o" / "deeper")])
     err = capsys.readouterr().err
     assert rc == 130 and must in err
-    if must == "starts over":
+    if must == "starts over":       # nothing was written: not even the folders (trial 11 D11)
         assert "run the same command again to resume" not in err
+        assert list(tmp_path.iterdir()) == []
 
 
 # -- messages that name the real cause and the cell ---------------------------------------------

@@ -161,6 +161,20 @@ def test_compare_writes_ratio_map_and_characteristics(tmp_path, capsys):
     assert (tmp_path / "compare.png").stat().st_size > 10_000
 
 
+def test_compare_without_plots_removes_an_earlier_runs_picture(tmp_path, capsys):
+    """Trial 11 D4: `compare --no-plots` into a folder of an earlier comparison left its compare.png
+    (of other tables) beside the new CSV and JSON. The earlier picture is stood in for by a file of
+    that name; a run that fails (an unknown table) leaves the folder as it was."""
+    out = tmp_path / "stale"
+    out.mkdir()
+    (out / "compare.png").write_bytes(b"picture of R3 / R2")
+    (out / "notes.txt").write_text("the user's own file")
+    assert main(["compare", "R1", "nonexistent.rtb", "--no-plots", "--out", str(out), "-q"]) == 2
+    assert (out / "compare.png").exists()
+    assert main(["compare", "R1", "R4", "--no-plots", "--out", str(out), "-q"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["compare.csv", "compare.json", "notes.txt"]
+
+
 @pytest.mark.parametrize("name", BUNDLED)
 def test_classify_bundled_tables_fall_in_their_own_class(capsys, name):
     assert main(["classify", name, "--json"]) == 0
@@ -175,7 +189,8 @@ def test_output_error_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypat
     blocker.write_text("x")
     assert main(["road", "--table", "R3", "--out", str(blocker / "sub"), "--no-plots"]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("roadgonio: error:") and "file/sub" in err and "Not a directory" in err and "\n" not in err
+    assert err.startswith("roadgonio: error:") and "file/sub" in err and "\n" not in err
+    assert f"expected a folder for the results, but {blocker} is a file" in err
     from roadgonio.errors import InputError
     from roadgonio.road import report
     out = tmp_path / "o"

@@ -322,3 +322,13 @@ def test_a_cell_beyond_the_tables_last_row_notes_the_extrapolation(r3like):
         warnings.simplefilter("error", ModelWarning)
         rg.ka_cell("lab", "lambert", 100.0, 0.0, backend="quadrature", accuracy="fast")
         rg.ka_cell("lab", "R3", 12.0, 0.0, backend="quadrature", accuracy="fast")
+
+
+def test_road_metrics_refuses_a_list_of_u_of_another_length_than_the_tables():
+    """Trial 11 D11: u=['corrected_u.csv'] for two tables was put on the last table, while the
+    docs say a list has one entry per table; a list of 1 for 2 tables is refused like one of 3 (before
+    any file is read: the u named here does not exist)."""
+    for us in (["no_such_u.csv"], ["no_such_u.csv"] * 3):
+        with pytest.raises(InputError, match=f"one entry per table .*: expected 2, got {len(us)}") as err:
+            rg.road_metrics(["R3", "R2"], u=us)
+        assert err.value.field == "u"

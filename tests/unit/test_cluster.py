@@ -56,3 +56,66 @@ def test_the_source_digest_covers_the_plugins_folder_by_name_and_content(tmp_pat
     (plug / "a.py").rename(plug / "b.py")
     renamed = digest()
     assert len({first, edited, renamed}) == 3
+
+
+def _run_script(tmp_path, name, text):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import roadgonio
+    script = tmp_path / name
+    script.write_text(text)
+    env = {**os.environ, "PYTHONPATH": str(Path(roadgonio.__file__).parents[1])}
+    return subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, cwd=tmp_path,
+                          timeout=120)
+
+
+UNGUARDED = """\
+from roadgonio.engines.cluster import open_client
+with open_client(workers=1, backend=None):
+    print("cluster started")
+"""
+
+
+def test_an_unguarded_local_cluster_is_refused_before_any_worker_starts(tmp_path):
+    """Trial 11 D8: a script calling the API with workers=N at top level printed a ~25-line traceback
+    from every spawned worker (each imports the script again and fails there) before the script's
+    own error. Now the call is refused before any process starts: the script's one traceback, whose
+    last line names the script's line, the guard and workers=0."""
+    res = _run_script(tmp_path, "noguard.py", UNGUARDED)
+    assert res.returncode == 1 and "cluster started" not in res.stdout
+    assert res.stderr.count("Traceback") == 1, res.stderr
+    last = res.stderr.strip().splitlines()[-1]
+    assert last.startswith("roadgonio.errors.InputError: ") and "noguard.py:2, field 'workers'" in last, last
+    assert "if __name__ == \"__main__\":" in last and "workers=0" in last, last
+
+
+def test_the_guard_check_sees_the_guard_around_the_calls_line(tmp_path):
+    """The check's verdict by where the script's top-level code is: under the guard (either way round,
+    through a function) or after it; nothing is judged in a process without a script (python -c) or
+    from a package's __main__.py (python -m roadgonio), which the workers do not run again."""
+    res = _run_script(tmp_path, "guard.py", """\
+from roadgonio.engines.cluster import _unguarded_main_call as check
+def through_a_function():
+    return check()
+if __name__ == "__main__":
+    print("guarded", check(), through_a_function())
+if "__main__" == __name__:
+    print("reversed", check())
+print("top", check()[1])
+""")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split("\n")[:3] == ["guarded None None", "reversed None", "top 8"]
+    import subprocess
+    import sys
+    code = "from roadgonio.engines.cluster import _unguarded_main_call as c; print(c())"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True).stdout.strip() == "None"
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "__init__.py").write_text("")
+    (tmp_path / "pkg" / "__main__.py").write_text(code.replace("; ", "\n") + "\n")
+    import os
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
+    res = subprocess.run([sys.executable, "-m", "pkg"], capture_output=True, text=True, env=env, cwd=tmp_path)
+    assert res.stdout.strip() == "None", res.stdout + res.stderr

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from helpers import refused_in_one_line
+from helpers import ldt_text, refused_in_one_line
 from roadgonio.eulumdat import Luminaire, read_ldt
 from roadgonio.road.luminaire import bundled_luminaire_path
 
@@ -104,3 +104,52 @@ def test_header_values_outside_what_is_modelled_are_refused(tmp_path, index, val
     lines[index] = value
     p = _write(tmp_path, lines)
     refused_in_one_line(lambda: read_ldt(p), p, words)
+
+
+def _count_case(tmp_path, edit):
+    """A four-plane table (C 0, 90, 180, 270; gamma 0 ... 90 every 30 deg), written with Isym 0, then
+    edited as a bad export would: the file's numbers no longer match what its header announces."""
+    g = np.array([0.0, 30.0, 60.0, 90.0])
+    planes = np.arange(16.0).reshape(4, 4) + 1.0
+    lines = ldt_text(g, planes, c_deg=(0.0, 90.0, 180.0, 270.0), isym=0).split("\r\n")
+    return _write(tmp_path, edit(lines))
+
+
+ISYM, MC, NG = 2, 3, 5   # 0-based line indices of Isym, Mc and Ng
+
+
+def _set(index, value):
+    def edit(lines):
+        lines = list(lines)
+        lines[index] = value
+        return lines
+    return edit
+
+
+def test_a_file_whose_numbers_match_its_header_is_read(tmp_path):
+    lum = read_ldt(_count_case(tmp_path, lambda lines: lines))
+    assert lum.cd_per_klm.shape == (4, 4)
+
+
+@pytest.mark.parametrize("edit,words", [
+    # a full table labelled Isym 1 (a known bad export): 4 x 4 intensities where 1 x 4 are announced
+    (_set(ISYM, "1"), ["12 values after the intensities", "Isym 1: 1 x 4", "expected the file to end"]),
+    # Ng one short: every intensity would be read one place off, the last 4 + 1 numbers left over
+    (_set(NG, "3"), ["5 values after the intensities", "Isym 0: 4 x 3", "expected the file to end"]),
+    # one stray number at the end
+    (lambda lines: lines[:-1] + ["7", ""], ["1 value after the intensities", "expected the file to end"]),
+    # one intensity missing
+    (lambda lines: lines[:-2] + [""], ["file ends early", "33 values", "announces 34", "4 x 4"]),
+])
+def test_a_file_with_more_or_fewer_numbers_than_its_header_announces_is_refused(tmp_path, edit, words):
+    """The EULUMDAT layout fixes how many numbers follow the lamp sets (10 direct ratios, Mc C angles,
+    Ng gamma angles, the stored planes' intensities): trial 11 D2, where the parser read the first Mc
+    x Ng and ignored the rest."""
+    p = _count_case(tmp_path, edit)
+    refused_in_one_line(lambda: read_ldt(p), p, ["intensities (Isym, Mc, Ng: lines 3, 4, 6)"] + words)
+
+
+def test_an_empty_file_is_called_empty(tmp_path):
+    p = tmp_path / "empty.ldt"
+    p.write_bytes(b"\r\n\r\n")
+    refused_in_one_line(lambda: read_ldt(p), p, ["the file is empty", "EULUMDAT"])
