@@ -1014,7 +1014,8 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     folder = _out(out, "road", *folder_names)
     if folder is not None:
         files = report.road_files(results, summaries, target or summaries[0]["class"], plots=plots, inputs=inputs)
-        written = report.write_together(folder, files)
+        # a --no-plots run removes an earlier run's pictures (trial 11 D4: they showed another table)
+        written = report.write_together(folder, files, replaces=report.ROAD_FILES)
         summaries[0]["written"] = [str(p) for p in written]
         summaries[0]["out"] = str(folder)
     summaries[0]["layout"] = inst.layout.describe()

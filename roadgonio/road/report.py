@@ -13,13 +13,17 @@ from roadgonio.road.metrics import M_CLASSES
 
 METRICS = (("L_av", "L_av (cd/m²)", "min"), ("U_o", "U_o", "min"), ("U_l", "U_l", "min"), ("TI", "TI (%)", "max"))
 
+#: Every file ``roadgonio road`` writes (the pictures not with ``--no-plots``).
+ROAD_FILES = ("road.json", "road_metrics.csv", "road_luminance.csv", "road_metrics.png", "road_luminance.png")
 
-def write_together(out_dir: Path, files: dict[str, bytes | str]) -> list[Path]:
+
+def write_together(out_dir: Path, files: dict[str, bytes | str], *, replaces=()) -> list[Path]:
     """Write every file or none (:class:`roadgonio.fileio.OutputGroup`); an OSError is the one-line
-    error naming the file."""
+    error naming the file. ``replaces``: the command's own output names; those not in ``files`` are
+    removed once the new ones are in place (an earlier run's picture never stays beside them)."""
     from roadgonio.fileio import OutputGroup
     out_dir = Path(out_dir)
-    with OutputGroup(out_dir) as g:
+    with OutputGroup(out_dir, replaces=replaces) as g:
         for name, content in files.items():
             g.path(name).write_bytes(content.encode("utf-8") if isinstance(content, str) else content)
     return [out_dir / n for n in files]

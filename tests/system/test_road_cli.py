@@ -260,3 +260,17 @@ def test_a_metric_with_its_u_is_printed_to_the_decimal_place_of_u():
     assert _with_u("L_av", 1.10761, 0.0012, (1.10534, 1.10981)) == "L_av 1.1076 ± 0.0012 [1.1053, 1.1098]"
     assert _with_u("TI", 9.83, 2.3, (5.4, 14.2)) == "TI 9.8 ± 2.3 [5.4, 14.2]"
     assert _with_u("U_o", 0.557, 0.0, (0.557, 0.557)) == "U_o 0.557 ± 0 [0.557, 0.557]"
+
+
+def test_road_without_plots_removes_an_earlier_runs_pictures(tmp_path, capsys):
+    """Trial 11 D4: `road --table R2 --no-plots` into the folder of a `road --table R3` kept R3's
+    road_metrics.png and road_luminance.png beside R2's road.json. The pictures the new run does not
+    write go (the OutputGroup's 'replaces', as render does); a file of the user's stays."""
+    from roadgonio.road.report import ROAD_FILES
+    out = tmp_path / "o"
+    assert main(["road", "--table", "R3", "--out", str(out), "-q"]) == 0
+    assert {p.name for p in out.iterdir()} == set(ROAD_FILES)
+    (out / "notes.txt").write_text("mine")
+    assert main(["road", "--table", "R2", "--out", str(out), "-q", "--no-plots"]) == 0
+    assert {p.name for p in out.iterdir()} == {"road.json", "road_metrics.csv", "road_luminance.csv", "notes.txt"}
+    assert json.loads((out / "road.json").read_text())["tables"][0]["table"] == "R2"
