@@ -51,6 +51,7 @@ folder the command uses (``out/ka-INSTRUMENT-SAMPLE``...; names made safe with
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
@@ -1000,7 +1001,9 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     for item, t, own_name, uf in zip(items, loaded, folder_names, u_of):
         res = inst.evaluate(t)
         if uf is not None:
+            _check_u_file(item, uf)
             ut = _table(uf, "u", quantity="u")
+            _check_u_is_u(uf, ut)
             _check_u_belongs(item, t, uf, ut, own_name)
             inputs.append(input_record("u", uf, f"u of {t.name}"))
             res.uncertainty = {"file": str(uf), **mc.propagate(inst, t, ut, trials=trials, seed=seed,
@@ -1021,6 +1024,47 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     summaries[0]["layout"] = inst.layout.describe()
     summaries[0]["luminaire"] = {"name": inst.luminaire.name, "flux_lm": inst.luminaire.flux_lm}
     return summaries
+
+
+def _u_instead(uf) -> str:
+    """What to give instead of the r-table ``uf`` given as a u: its ``_u.csv`` when one sits beside it."""
+    p = Path(str(uf))
+    beside = p.with_name(p.stem + "_u.csv")
+    return f"give {beside.name} beside it" if beside.is_file() else \
+        "give its standard uncertainty (r x 1e4 in the r-table CSV layout, as correct writes corrected_u.csv)"
+
+
+def _check_u_file(item, uf) -> None:
+    """A u that is an r-table by its name alone (trial 11 D3: `--u corrected.csv` / `corrected.rtb`,
+    tab completion's neighbours of corrected_u.csv, ran with u = 100 % of r): a bundled table, an RTB
+    (a format for r only) or the table file itself is an :class:`InputError` naming the file."""
+    from roadgonio.surface.rtable import BUNDLED
+    if not isinstance(uf, (str, Path)):
+        return
+    p = Path(str(uf))
+    if isinstance(uf, str) and not p.suffix and uf.strip().upper() in BUNDLED:
+        raise InputError(f"'{uf}' is the bundled r-table {uf.strip().upper()}, not a standard uncertainty: give a file "
+                         "of u (r x 1e4 in the r-table CSV layout, as correct writes corrected_u.csv)", field="u")
+    if p.suffix.lower() == ".rtb":
+        raise InputError(f"an RTB file holds an r-table (the format has no standard uncertainties), not a standard "
+                         f"uncertainty: {_u_instead(p.with_suffix('.csv'))}", path=uf, argument="u")
+    if isinstance(item, (str, Path)) and Path(str(item)).suffix and p.is_file() and Path(str(item)).is_file() \
+            and os.path.samefile(p, Path(str(item))):
+        raise InputError(f"is the table file {item} itself, an r-table, not a standard uncertainty: {_u_instead(p)}",
+                         path=uf, argument="u")
+
+
+def _check_u_is_u(uf, ut: "RTable") -> None:
+    """A u file whose header says it is a corrected r-table (``roadgonio correct``'s corrected.csv,
+    :func:`~roadgonio.surface.rtable.corrected_r_header`) is an :class:`InputError` naming the file and
+    its header, as ``roadgonio uncertainty``'s mean table is (:func:`_check_u_belongs`)."""
+    from roadgonio.surface.rtable import corrected_r_header
+    head = corrected_r_header(ut)
+    if head is not None:
+        shown = head if len(head) <= 60 else head[:57] + "..."
+        raise InputError(f"is an r-table ('{shown}'), not a standard uncertainty (its header would start "
+                         f"'standard uncertainty of'): {_u_instead(uf)}",
+                         **({"path": uf, "argument": "u"} if isinstance(uf, (str, Path)) else {"field": "u"}))
 
 
 def _check_u_belongs(item, t: "RTable", uf, ut: "RTable", own_name: str | None = None) -> None:

@@ -60,7 +60,8 @@ def register(sub) -> None:
                         "`roadgonio correct` writes corrected_u.csv), e.g. --table measured.csv --table "
                         "corrected.csv --u corrected_u.csv; at most one per --table. When the file's header "
                         "names its table ('standard uncertainty of ...') and that table's CSV header names "
-                        "another, it is an error")
+                        "another, it is an error; so is an r-table given as u (the table's own file, an RTB, a "
+                        "bundled table, a corrected.csv)")
     p.add_argument("--luminaire", metavar="FILE", help="EULUMDAT .ldt file (default: the bundled illustrative luminaire)")
     p.add_argument("--layout", metavar="FILE", help="layout TOML (default: the bundled default layout)")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/road-TABLES)")

@@ -312,6 +312,20 @@ def u_names_sample(u: "RTable") -> tuple[str, bool] | None:
     return None if m is None else (m["sample"], m["what"].startswith("standard"))
 
 
+#: The words in the header of every table ``roadgonio correct`` corrects (corrected.csv: "R3 corrected
+#: for the aperture effect (r / k_A; reference ...)", and the one table of several instruments):
+#: what tells a corrected r-table from its standard uncertainty, whose header is :data:`U_HEADER`
+#: followed by it (:func:`corrected_r_header`).
+CORRECTED_R = "corrected for the aperture effect (r / k_A"
+
+
+def corrected_r_header(t: "RTable") -> str | None:
+    """The first header line of a table that says it is a corrected r-table (:data:`CORRECTED_R`,
+    not after :data:`U_HEADER`), or None."""
+    first = header_line(t)
+    return first if CORRECTED_R in first and not first.startswith(U_HEADER) else None
+
+
 def u_names_table(u: "RTable") -> str | None:
     """The first header line of the table a table of standard uncertainties says it belongs to (its
     header ``standard uncertainty of <that table's header>``, :data:`U_HEADER`), or None."""

@@ -274,3 +274,33 @@ def test_road_without_plots_removes_an_earlier_runs_pictures(tmp_path, capsys):
     assert main(["road", "--table", "R2", "--out", str(out), "-q", "--no-plots"]) == 0
     assert {p.name for p in out.iterdir()} == {"road.json", "road_metrics.csv", "road_luminance.csv", "notes.txt"}
     assert json.loads((out / "road.json").read_text())["tables"][0]["table"] == "R2"
+
+
+def test_road_refuses_an_r_table_as_its_u(tmp_path, capsys):
+    """Trial 11 D3: `--u corrected.csv` (or corrected.rtb), tab completion's neighbours of
+    corrected_u.csv, ran with u = 100 % of r and P(meets M3) = 0. An r-table given as u is refused in
+    one line naming the file and what to give: the table file itself, an RTB (a format for r only),
+    a CSV whose header says it is a corrected r-table (a copy elsewhere) and a bundled table."""
+    t = bundled_table("R3")
+    head = "R3 corrected for the aperture effect (r / k_A; reference self; instrument portable)"
+    corrected = t.with_values(t.r, source=head).write_csv(tmp_path / "corrected.csv")
+    t.with_values(t.r * 0.01, source="standard uncertainty of " + head).write_csv(tmp_path / "corrected_u.csv")
+    t.write_rtb(tmp_path / "corrected.rtb")
+    (tmp_path / "elsewhere").mkdir()
+    copy = tmp_path / "elsewhere" / "table.csv"
+    copy.write_bytes(corrected.read_bytes())
+    base = ["road", "--trials", "200", "--no-plots", "--out", str(tmp_path / "bad")]
+    for table, u, words in ((corrected, corrected, ["itself", "give corrected_u.csv beside it"]),
+                            (corrected, tmp_path / "corrected.rtb", ["RTB", "give corrected_u.csv beside it"]),
+                            ("R3", copy, ["is an r-table ('R3 corrected for the aperture effect", "corrected_u.csv"]),
+                            (corrected, "R3", ["bundled r-table R3"])):
+        rc = main(base + ["--table", str(table), "--u", str(u)])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and "\n" not in err and "--u" in err and "not a standard uncertainty" in err, err
+        assert str(u) in err or f"'{u}'" in err, err
+        for w in words:
+            assert w in err, (w, err)
+        assert not (tmp_path / "bad").exists()
+    assert main(["road", "--trials", "200", "--no-plots", "--table", str(corrected), "--u",
+                 str(tmp_path / "corrected_u.csv"), "--json"]) == 0
+    assert "uncertainty" in json.loads(capsys.readouterr().out)
