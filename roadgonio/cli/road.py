@@ -136,6 +136,8 @@ def _print(summaries) -> None:
             p = m["P_meets_target"]
             w(f"  {mode:11}: " + "; ".join(parts)
               + (f"; P(meets {u['target_class']}) = {p:.3f}" if p is not None else "; P(meets class): missing") + "\n")
+            if m.get("note"):
+                w(f"  {'':11}  note: {m['note']}\n")
     if any(s["neglected_contributions"] for s in summaries):
         w(f"note: {max(s['neglected_contributions'] for s in summaries)} luminaire contributions fell outside the "
           "CIE standard tables' region (their blank cells or tan > 12) and were neglected, as those tables do\n")

@@ -2,7 +2,9 @@
 
 Every trial draws a table r + u z (z standard normal) and evaluates the road with the same
 luminance operator (luminance is linear in r, so a trial is one matrix product). Trial values
-below 0 are set to 0 (r >= 0; the count is reported). Two correlation assumptions bound the
+below 0 are set to 0 (r >= 0; the count is reported); a trial left without light on the field
+or a lane's centre line has no uniformity and no TI there, and is counted, not dropped silently
+(``undefined_trials``, ``note``). Two correlation assumptions bound the
 truth, since a table's cells share calibration and reference-model errors but also have
 independent noise:
 
@@ -44,6 +46,41 @@ def check_u_table(table: RTable, u: RTable, cells: np.ndarray, path=None) -> np.
 
 #: The fewest Monte Carlo trials that give a 95 % interval at all.
 MIN_TRIALS = 100
+
+
+def _statistics(v: np.ndarray, nominal: float) -> dict | None:
+    """Mean, u and 95 % interval of one metric over the trials in which it has a value: a
+    uniformity of a trial without light on the field or a lane's centre line is 0/0 and its TI
+    infinite (trial 11 D1: one fully correlated trial with z < -1/u_rel clips every cell to 0).
+    Those trials are counted (``undefined_trials``), never a reason to drop the metric; with fewer
+    than :data:`MIN_TRIALS` trials with a value there is no interval: None."""
+    ok = np.isfinite(v)
+    if int(ok.sum()) < MIN_TRIALS:
+        return None
+    w = v[ok]
+    lo, hi = np.quantile(w, [0.025, 0.975])
+    return {"nominal": nominal, "mean": float(w.mean()), "u": float(w.std(ddof=1)),
+            "coverage_interval_95": [float(lo), float(hi)], "undefined_trials": int(v.size - w.size)}
+
+
+def _lane_statistics(v: np.ndarray, nominal: float) -> dict | None:
+    """One lane's U_l: nominal and u over the trials with light on its centre line (:func:`_statistics`)."""
+    st = _statistics(v, nominal)
+    return None if st is None else {"nominal": nominal, "u": st["u"], "undefined_trials": st["undefined_trials"]}
+
+
+def _undefined_note(undefined: dict, trials: int, target: str) -> str | None:
+    """What the trials without a value of some metric mean for the results (None when there are none)."""
+    if not undefined:
+        return None
+    keys = list(undefined)
+    names = keys[0] if len(keys) == 1 else ", ".join(keys[:-1]) + " and " + keys[-1]
+    counts = sorted(set(undefined.values()))
+    n = " to ".join(str(c) for c in (counts[0], counts[-1])) if len(counts) > 1 else str(counts[0])
+    return (f"{names} {'has' if len(undefined) == 1 else 'have'} no value in {n} of {trials} trials (no light on the "
+            f"field or on a lane's centre line: the cells the road uses drawn at or below r = 0): "
+            f"{'its' if len(undefined) == 1 else 'their'} mean, u and interval are of the other trials "
+            f"(none where fewer than {MIN_TRIALS} are left), and P(meets {target}) counts those trials as failing")
 
 
 def propagate(installation, table: RTable, u: RTable, *, trials: int = 20000, seed: int = 0,
@@ -92,19 +129,21 @@ def propagate(installation, table: RTable, u: RTable, *, trials: int = 20000, se
         vals["R_EI"] = installation.edge["R_EI"]
         res = {}
         gone = set((nominal.missing or {}).get("metrics", ()))
+        undefined = {}
         for k in ("L_av", "U_o", "U_l", "TI"):
             v = vals[k]
-            if v is None or k in gone or not np.all(np.isfinite(v)):   # not computable, missing in the nominal
-                # table itself, or (TI) beyond any float in some trial
+            if v is None or k in gone:    # not computable, or missing in the nominal table itself
                 res[k] = None
                 continue
-            lo, hi = np.quantile(v, [0.025, 0.975])
-            res[k] = {"nominal": nominal.values[k], "mean": float(v.mean()), "u": float(v.std(ddof=1)),
-                      "coverage_interval_95": [float(lo), float(hi)]}
+            res[k] = _statistics(v, nominal.values[k])
+            if res[k] is None or res[k]["undefined_trials"]:
+                undefined[k] = int(np.sum(~np.isfinite(v)))
         ul = np.concatenate(lanes)
         res["U_l_per_lane"] = [None if not np.isfinite(nominal.per_observer["U_l_lane"][k]) else
-                               {"nominal": float(nominal.per_observer["U_l_lane"][k]), "u": float(ul[:, k].std(ddof=1))}
+                               _lane_statistics(ul[:, k], float(nominal.per_observer["U_l_lane"][k]))
                                for k in range(ul.shape[1])]
+        res["undefined_trials"] = undefined
+        res["note"] = _undefined_note(undefined, trials, target)
         if gone:          # the class needs every metric: no probability of meeting it
             res["P_meets_target"] = res["P_meets_target_se"] = res["best_class_share"] = None
         else:

@@ -31,7 +31,8 @@ def write_together(out_dir: Path, files: dict[str, bytes | str], *, replaces=())
 
 def metrics_csv(summaries: list[dict]) -> str:
     cols = ["table", "L_av", "U_o", "U_l", "TI", "R_EI", "class", "table_Q0", "table_S1"]
-    extra = ["u_L_av", "cov95_L_av", "u_U_o", "cov95_U_o", "u_U_l", "cov95_U_l", "u_TI", "P_meets"]
+    extra = ["u_L_av", "cov95_L_av", "u_U_o", "cov95_U_o", "u_U_l", "cov95_U_l", "u_TI", "P_meets",
+             "trials_without_value"]
     lines = [",".join(cols + ["correlation"] + extra)]
     for s in summaries:
         base = [s["table"]] + [_f(s[c]) for c in cols[1:]]
@@ -46,7 +47,8 @@ def metrics_csv(summaries: list[dict]) -> str:
             row = []
             for k in ("L_av", "U_o", "U_l"):
                 row += ["", ""] if not m[k] else [_f(m[k]["u"]), f"{_f(m[k]['coverage_interval_95'][0], '.5g')}..{_f(m[k]['coverage_interval_95'][1], '.5g')}"]
-            row += [_f(m["TI"]["u"]) if m["TI"] else "", _f(m["P_meets_target"])]
+            row += [_f(m["TI"]["u"]) if m["TI"] else "", _f(m["P_meets_target"]),
+                    str(max((m.get("undefined_trials") or {}).values(), default=0))]
             lines.append(",".join(base + [mode] + row))
     return "\n".join(lines) + "\n"
 

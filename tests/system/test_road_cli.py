@@ -304,3 +304,20 @@ def test_road_refuses_an_r_table_as_its_u(tmp_path, capsys):
     assert main(["road", "--trials", "200", "--no-plots", "--table", str(corrected), "--u",
                  str(tmp_path / "corrected_u.csv"), "--json"]) == 0
     assert "uncertainty" in json.loads(capsys.readouterr().out)
+
+
+def test_road_says_how_many_trials_had_no_light(tmp_path, capsys):
+    """Trial 11 D1 from the command line: fully correlated u = 60 % of r, so some trials clip every
+    cell to 0; U_o, U_l and TI are still printed, with a note giving the number of trials without a
+    value, and road_metrics.csv has that number (trials_without_value)."""
+    t = bundled_table("R3")
+    t.with_values(0.6 * t.r).write_csv(tmp_path / "u.csv")
+    assert main(["road", "--table", "R3", "--u", str(tmp_path / "u.csv"), "--correlation", "correlated",
+                 "--trials", "2000", "--seed", "3", "--no-plots", "--out", str(tmp_path / "o")]) == 0
+    text = capsys.readouterr().out
+    d = json.loads((tmp_path / "o" / "road.json").read_text())["tables"][0]["uncertainty"]["correlated"]
+    dark = d["U_o"]["undefined_trials"]
+    assert dark > 0 and "U_o 0.5" in text and "U_l 0.6" in text and "; TI " in text, text
+    assert f"note: U_o, U_l and TI have no value in {dark} of 2000 trials" in text, text
+    rows = list(csv.DictReader((tmp_path / "o" / "road_metrics.csv").read_text().splitlines()))
+    assert rows[-1]["trials_without_value"] == str(dark) and rows[-1]["u_U_o"] != ""

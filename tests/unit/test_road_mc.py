@@ -225,3 +225,35 @@ def test_ti_takes_the_initial_l_av(default_installation):
     mf = inst.layout.maintenance_factor
     assert mf == 0.8 and v["L_av"] / mf <= 5.0
     assert v["TI"] == pytest.approx(65.0 * inst.l_v_max / (v["L_av"] / mf) ** 0.8, rel=REL, abs=0.0)
+
+
+def test_trials_without_light_are_counted_not_a_reason_to_drop_the_metric(default_installation):
+    """Trial 11 D1: fully correlated u, a trial with z < -1/u_rel clips every cell to 0: no light, U_o
+    and U_l are 0/0 and TI infinite; that one trial dropped U_o, U_l and TI from the results (null,
+    depending on the seed). With u = 0.6 r in every cell, each trial is max(1 + 0.6 z, 0) x the
+    nominal luminance: U_o and U_l are the nominal ones in every lit trial (u 0), the unlit trials
+    are a fraction Phi(-1/0.6) (binomial), counted per metric and said in a note, and P(meets) counts
+    them as failing."""
+    inst = default_installation
+    t = bundled_table("R3")
+    n = 4000
+    res = propagate(inst, t, t.with_values(0.6 * t.r), trials=n, seed=3, correlations=("correlated",))
+    m = res["correlated"]
+    nominal = inst.evaluate(t)
+    p = NormalDist().cdf(-1.0 / 0.6)
+    dark = m["U_o"]["undefined_trials"]
+    assert abs(dark - n * p) < N_SIGMA * math.sqrt(n * p * (1 - p)), dark
+    assert dark > 0 and m["undefined_trials"] == {"U_o": dark, "U_l": dark, "TI": dark}
+    for k in ("U_o", "U_l"):
+        assert m[k]["undefined_trials"] == dark
+        assert m[k]["mean"] == pytest.approx(nominal.values[k], rel=REL, abs=0.0)
+        assert m[k]["u"] <= REL * nominal.values[k]
+    for k, lane in enumerate(m["U_l_per_lane"]):
+        assert lane["undefined_trials"] == dark and lane["u"] <= REL
+        assert lane["nominal"] == pytest.approx(nominal.per_observer["U_l_lane"][k], rel=REL, abs=0.0)
+    assert m["TI"] is not None and m["TI"]["undefined_trials"] == dark and math.isfinite(m["TI"]["u"])
+    assert m["L_av"]["undefined_trials"] == 0
+    assert m["P_meets_target"] <= 1.0 - dark / n
+    assert f"no value in {dark} of {n} trials" in m["note"] and "U_o, U_l and TI" in m["note"]
+    quiet = propagate(inst, t, t.with_values(0.03 * t.r), trials=500, seed=3, correlations=("correlated",))
+    assert quiet["correlated"]["note"] is None and quiet["correlated"]["undefined_trials"] == {}
