@@ -49,7 +49,8 @@ def register(sub) -> None:
                     "uniformity U_o, longitudinal uniformity U_l per lane, threshold increment TI, edge illuminance "
                     "ratio R_EI) for a luminaire layout, and the EN 13201-2 M class met, with one or several r-tables "
                     "side by side. With --u (the table's standard uncertainty, r x 1e4 in the r-table CSV layout, as "
-                    "`roadgonio correct` writes it) a Monte Carlo gives u(L_av), u(U_o), u(U_l), 95 % intervals and the "
+                    "`roadgonio correct` writes it) a Monte Carlo gives u(L_av), u(U_o), u(U_l), the trials' means "
+                    "(printed beside the nominal value where they differ by more than u/10), 95 % intervals and the "
                     "probability of meeting the class, for independent and for fully correlated cells. Without "
                     "--luminaire/--layout: roadgonio's illustrative cut-off luminaire and its default layout "
                     "(single-sided, 2 x 3.5 m lanes, H 10 m, S 30 m).")
@@ -66,7 +67,7 @@ def register(sub) -> None:
     p.add_argument("--layout", metavar="FILE", help="layout TOML (default: the bundled default layout)")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/road-TABLES)")
     p.add_argument("--class", dest="target_class", metavar="M", help="class to test in the Monte Carlo (default: the class "
-                   "the table meets)")
+                   "the table meets, M6 when it meets none)")
     p.add_argument("--trials", type=int, default=20000, help="Monte Carlo trials (default 20000)")
     p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
     p.add_argument("--correlation", choices=["both", "independent", "correlated"], default="both",
@@ -120,6 +121,7 @@ def _print(summaries) -> None:
     for s in summaries:
         if s.get("missing"):
             w(f"{s['table']}: missing {', '.join(s['missing']['metrics'])}: {s['missing']['reason']}\n")
+    shifted = False
     for s in summaries:
         u = s.get("uncertainty")
         if not u:
@@ -132,12 +134,17 @@ def _print(summaries) -> None:
             parts = []
             for k in ("L_av", "U_o", "U_l", "TI"):
                 if m[k]:
-                    parts.append(_with_u(k, m[k]['nominal'], m[k]['u'], m[k]['coverage_interval_95']))
+                    parts.append(_with_u(k, m[k]['nominal'], m[k]['u'], m[k]['coverage_interval_95'], m[k]['mean']))
+                    shifted = shifted or "nominal" in parts[-1]
             p = m["P_meets_target"]
             w(f"  {mode:11}: " + "; ".join(parts)
               + (f"; P(meets {u['target_class']}) = {p:.3f}" if p is not None else "; P(meets class): missing") + "\n")
             if m.get("note"):
                 w(f"  {'':11}  note: {m['note']}\n")
+    if shifted:
+        w("  (nominal: the table's own value; MC: the trials' mean ± their standard deviation [95 % interval], JCGM "
+          "101's estimate; under noise the min/max ratios U_o and U_l fall below the nominal value, and TI, convex in L_av, "
+          "above it, so an interval can exclude the nominal value)\n")
     if any(s["neglected_contributions"] for s in summaries):
         w(f"note: {max(s['neglected_contributions'] for s in summaries)} luminaire contributions fell outside the "
           "CIE standard tables' region (their blank cells or tan > 12) and were neglected, as those tables do\n")
@@ -146,11 +153,21 @@ def _print(summaries) -> None:
     w(f"wrote {len(first['written'])} files to {first['out']}\n")
 
 
-def _with_u(name: str, value: float, u: float, interval) -> str:
+#: The Monte Carlo mean is printed beside the nominal value when they differ by more than this
+#: fraction of u (and in the digits printed): trial 11 D5 read "U_l 0.619 ± 0.088 [0.241, 0.584]",
+#: the nominal value beside an interval of the trials (mean 0.42) that excludes it.
+MEAN_SHIFT_SHOWN = 0.1
+
+
+def _with_u(name: str, value: float, u: float, interval, mean: float | None = None) -> str:
     """``L_av 1.1076 ± 0.0012 [1.1053, 1.1098]``: u to two significant digits, the value and the
     interval's ends to the same decimal place (three significant digits printed [1.11, 1.11] for an
-    interval of width 0.005, trial 9)."""
+    interval of width 0.005, trial 9). When the trials' ``mean`` differs from the nominal ``value``
+    by more than :data:`MEAN_SHIFT_SHOWN` u: ``U_l 0.619 nominal, MC 0.419 ± 0.088 [0.241, 0.584]``."""
     import math
     decimals = max(0, 1 - math.floor(math.log10(u))) if u > 0 and math.isfinite(u) else 3
     lo, hi = interval
-    return f"{name} {value:.{decimals}f} ± {u:.2g} [{lo:.{decimals}f}, {hi:.{decimals}f}]"
+    est = f"{value:.{decimals}f}"
+    if mean is not None and abs(mean - value) > MEAN_SHIFT_SHOWN * u and f"{mean:.{decimals}f}" != est:
+        est = f"{est} nominal, MC {mean:.{decimals}f}"
+    return f"{name} {est} ± {u:.2g} [{lo:.{decimals}f}, {hi:.{decimals}f}]"

@@ -260,6 +260,35 @@ def test_a_metric_with_its_u_is_printed_to_the_decimal_place_of_u():
     assert _with_u("L_av", 1.10761, 0.0012, (1.10534, 1.10981)) == "L_av 1.1076 ± 0.0012 [1.1053, 1.1098]"
     assert _with_u("TI", 9.83, 2.3, (5.4, 14.2)) == "TI 9.8 ± 2.3 [5.4, 14.2]"
     assert _with_u("U_o", 0.557, 0.0, (0.557, 0.557)) == "U_o 0.557 ± 0 [0.557, 0.557]"
+    # trial 11 D5: the trials' mean beside the nominal value when they differ by more than u / 10
+    assert _with_u("U_l", 0.6186, 0.088, (0.241, 0.584), 0.4187) == "U_l 0.619 nominal, MC 0.419 ± 0.088 [0.241, 0.584]"
+    assert _with_u("L_av", 1.10761, 0.0012, (1.10534, 1.10981), 1.10770) == "L_av 1.1076 ± 0.0012 [1.1053, 1.1098]"
+    assert _with_u("L_av", 1.10761, 0.0012, (1.10534, 1.10981), 1.10761 + 0.00013) == \
+        "L_av 1.1076 nominal, MC 1.1077 ± 0.0012 [1.1053, 1.1098]"
+
+
+def test_road_prints_the_monte_carlo_mean_beside_an_interval_that_excludes_the_nominal(tmp_path, capsys):
+    """Trial 11 D5: with u = 30 % of r in independent cells the trials' U_o and U_l fall far below
+    the nominal values (min/max ratios under noise), and the line read 'U_l 0.619 ± 0.088 [0.241,
+    0.584]'. The line now says which is which (nominal, MC mean), road_metrics.csv has the means, and
+    road_metrics.png draws the interval about the mean (about the nominal value it needed a negative
+    error bar: a traceback)."""
+    t = bundled_table("R3")
+    t.with_values(0.3 * t.r).write_csv(tmp_path / "u.csv")
+    out = tmp_path / "o"
+    assert main(["road", "--table", "R3", "--u", str(tmp_path / "u.csv"), "--correlation", "independent",
+                 "--trials", "500", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    d = json.loads((out / "road.json").read_text())["tables"][0]["uncertainty"]["independent"]
+    for k in ("U_o", "U_l"):
+        m = d[k]
+        assert m["coverage_interval_95"][1] < m["nominal"]          # the case: the interval excludes the nominal
+        assert f"{k} {m['nominal']:.3f} nominal, MC {m['mean']:.3f} ± " in text, text
+    assert "(nominal: the table's own value; MC: the trials' mean" in text
+    row = list(csv.DictReader((out / "road_metrics.csv").read_text().splitlines()))[-1]
+    for k in ("L_av", "U_o", "U_l", "TI"):
+        assert float(row[f"mean_{k}"]) == pytest.approx(d[k]["mean"], rel=1e-5)
+    assert (out / "road_metrics.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_road_without_plots_removes_an_earlier_runs_pictures(tmp_path, capsys):
