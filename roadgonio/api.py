@@ -963,6 +963,7 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     from roadgonio.road.layout import load_layout
     from roadgonio.road.luminaire import load_luminaire
     from roadgonio.road.metrics import M_CLASSES
+    from roadgonio.surface.rtable import header_notes
     items = list(tables) if isinstance(tables, (list, tuple)) else [tables]
     if not items:
         raise InputError("expected at least one table", field="table")
@@ -1006,7 +1007,8 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
             _check_u_is_u(uf, ut)
             _check_u_belongs(item, t, uf, ut, own_name)
             inputs.append(input_record("u", uf, f"u of {t.name}"))
-            res.uncertainty = {"file": str(uf), **mc.propagate(inst, t, ut, trials=trials, seed=seed,
+            # what the u file's header says of it (correct: the data reject the fit), repeated (trial 11 D7)
+            res.uncertainty = {"file": str(uf), "notes": header_notes(ut), **mc.propagate(inst, t, ut, trials=trials, seed=seed,
                                                                correlations=modes, target_class=target,
                                                                u_path=uf if isinstance(uf, (str, Path)) else None)}
         results.append(res)

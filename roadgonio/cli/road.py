@@ -127,6 +127,8 @@ def _print(summaries) -> None:
         if not u:
             continue
         w(f"{s['table']}: Monte Carlo of u from {u['file']} ({u['trials']} trials), class {u['target_class']}:\n")
+        for note in u.get("notes") or ():
+            w(f"  note in {u['file']}: {note}\n")
         for mode in ("independent", "correlated"):
             if mode not in u:
                 continue

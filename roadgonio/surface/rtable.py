@@ -312,6 +312,17 @@ def u_names_sample(u: "RTable") -> tuple[str, bool] | None:
     return None if m is None else (m["sample"], m["what"].startswith("standard"))
 
 
+#: The start of a header line that carries a note for the table's readers, one line each after the
+#: first: corrected_u.csv's "note: the data reject the eq. 4 fit ...", which ``road --u`` repeats.
+NOTE_PREFIX = "note: "
+
+
+def header_notes(t: "RTable") -> list[str]:
+    """The notes (:data:`NOTE_PREFIX` lines after the first) of a table's header, without the prefix."""
+    lines = [x.strip() for x in (t.source or "").splitlines()[1:]]
+    return [x[len(NOTE_PREFIX):] for x in lines if x.startswith(NOTE_PREFIX)]
+
+
 #: The words in the header of every table ``roadgonio correct`` corrects (corrected.csv: "R3 corrected
 #: for the aperture effect (r / k_A; reference ...)", and the one table of several instruments):
 #: what tells a corrected r-table from its standard uncertainty, whose header is :data:`U_HEADER`

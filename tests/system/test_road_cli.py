@@ -350,3 +350,23 @@ def test_road_says_how_many_trials_had_no_light(tmp_path, capsys):
     assert f"note: U_o, U_l and TI have no value in {dark} of 2000 trials" in text, text
     rows = list(csv.DictReader((tmp_path / "o" / "road_metrics.csv").read_text().splitlines()))
     assert rows[-1]["trials_without_value"] == str(dark) and rows[-1]["u_U_o"] != ""
+
+
+def test_road_repeats_the_note_of_its_u_file(tmp_path, capsys):
+    """Trial 11 D7: correct's "the data reject the eq. 4 fit" did not reach road --u. The note
+    corrected_u.csv's header carries (a 'note:' line after the line naming the table) is printed with
+    the Monte Carlo and kept in road.json (uncertainty.notes); a u file without one has none."""
+    t = bundled_table("R3")
+    head = "R3 corrected for the aperture effect (r / k_A; reference self; instrument portable)"
+    note = "the data reject the eq. 4 fit (Birge ratio 17.10, chi^2 113189 on 387 degrees of freedom)"
+    t.with_values(t.r, source=head).write_csv(tmp_path / "corrected.csv")
+    t.with_values(t.r * 0.01, source=f"standard uncertainty of {head}\nnote: {note}").write_csv(tmp_path / "u.csv")
+    assert f"# note: {note}" in (tmp_path / "u.csv").read_text()
+    t.with_values(t.r * 0.01, source=f"standard uncertainty of {head}").write_csv(tmp_path / "plain_u.csv")
+    for u, said in (("u.csv", [note]), ("plain_u.csv", [])):
+        assert main(["road", "--table", str(tmp_path / "corrected.csv"), "--u", str(tmp_path / u), "--trials", "200",
+                     "--no-plots", "--out", str(tmp_path / u[:-4])]) == 0
+        text = capsys.readouterr().out
+        assert (f"note in {tmp_path / u}: {note}" in text) is bool(said), text
+        d = json.loads((tmp_path / u[:-4] / "road.json").read_text())["tables"][0]["uncertainty"]
+        assert d["notes"] == said
