@@ -11,8 +11,8 @@ from roadgonio.errors import InputError
 
 
 class _InOrder(argparse.Action):
-    """Keeps --table and --u in the order they were given (``args.table_u``: (option, value)), so
-    that a --u goes with the --table just before it."""
+    """Keeps --table, --u and --corr in the order they were given (``args.table_u``: (option,
+    value)), so that a --u or --corr goes with the --table just before it."""
 
     def __call__(self, parser, namespace, values, option_string=None):
         order = list(getattr(namespace, "table_u", None) or [])
@@ -22,24 +22,27 @@ class _InOrder(argparse.Action):
             namespace.tables = [v for k, v in order if k == "tables"]
 
 
-def tables_and_u(order) -> tuple[list[str], list[str | None]]:
-    """The tables and, per table, the --u that follows it (None where none does); a --u before any
-    --table, or two after one --table, is an :class:`InputError` naming --u."""
+def tables_and_u(order) -> tuple[list[str], list[str | None], list[str | None]]:
+    """The tables and, per table, the --u and the --corr that follow it (None where none does); a --u
+    or --corr before any --table, or two of one after one --table, is an :class:`InputError` naming
+    the option."""
     tables: list[str] = []
-    us: list[str | None] = []
+    given: dict[str, list[str | None]] = {"u": [], "corr": []}
     for option, value in order:
         if option == "tables":
             tables.append(value)
-            us.append(None)
-        elif not tables:
-            raise InputError(f"--u {value} comes before any --table: give it right after the --table it belongs to",
-                             field="--u")
-        elif us[-1] is not None:
-            raise InputError(f"--u {us[-1]} and --u {value} both follow --table {tables[-1]}: give one --u right after "
-                             "the --table it belongs to", field="--u")
-        else:
-            us[-1] = value
-    return tables, [None if u in ("-", "") else u for u in us]
+            for v in given.values():
+                v.append(None)
+            continue
+        flag, mine = f"--{option}", given[option]
+        if not tables:
+            raise InputError(f"{flag} {value} comes before any --table: give it right after the --table it belongs to",
+                             field=flag)
+        if mine[-1] is not None:
+            raise InputError(f"{flag} {mine[-1]} and {flag} {value} both follow --table {tables[-1]}: give one {flag} "
+                             "right after the --table it belongs to", field=flag)
+        mine[-1] = value
+    return tables, *([None if x in ("-", "") else x for x in given[k]] for k in ("u", "corr"))
 
 
 def register(sub) -> None:
@@ -51,7 +54,9 @@ def register(sub) -> None:
                     "side by side. With --u (the table's standard uncertainty, r x 1e4 in the r-table CSV layout, as "
                     "`roadgonio correct` writes it) a Monte Carlo gives u(L_av), u(U_o), u(U_l), the trials' means "
                     "(printed beside the nominal value where they differ by more than u/10), 95 % intervals and the "
-                    "probability of meeting the class, for independent and for fully correlated cells. Without "
+                    "probability of meeting the class, with the cells' correlation `roadgonio correct` writes (--corr, or "
+                    "corrected_corr.csv beside corrected_u.csv), else for independent and for fully correlated "
+                    "cells. Without "
                     "--luminaire/--layout: roadgonio's illustrative cut-off luminaire and its default layout "
                     "(single-sided, 2 x 3.5 m lanes, H 10 m, S 30 m).")
     p.add_argument("--table", dest="tables", action=_InOrder, required=True, metavar="T",
@@ -63,6 +68,10 @@ def register(sub) -> None:
                         "names its table ('standard uncertainty of ...') and that table's CSV header names "
                         "another, it is an error; so is an r-table given as u (the table's own file, an RTB, a "
                         "bundled table, a corrected.csv)")
+    p.add_argument("--corr", dest="corr", action=_InOrder, metavar="FILE",
+                   help="the correlation between the cells of the --table just before it (as `roadgonio correct` "
+                        "writes corrected_corr.csv), used in the Monte Carlo; without it a --u named corrected_u.csv "
+                        "takes the corrected_corr.csv beside it (a correct folder)")
     p.add_argument("--luminaire", metavar="FILE", help="EULUMDAT .ldt file (default: the bundled illustrative luminaire)")
     p.add_argument("--layout", metavar="FILE", help="layout TOML (default: the bundled default layout)")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/road-TABLES)")
@@ -70,16 +79,21 @@ def register(sub) -> None:
                    "the table meets, M6 when it meets none)")
     p.add_argument("--trials", type=int, default=20000, help="Monte Carlo trials (default 20000)")
     p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
-    p.add_argument("--correlation", choices=["both", "independent", "correlated"], default="both",
-                   help="cell correlation assumed in the Monte Carlo (default both, as bounds)")
+    p.add_argument("--correlation", choices=["auto", "given", "both", "independent", "correlated", "all"],
+                   default="auto",
+                   help="the cells' correlation in the Monte Carlo: auto (default: the given correlation, --corr or "
+                        "found beside corrected_u.csv, else both), given, both (independent and fully correlated "
+                        "cells: limiting cases, not bounds for U_o and U_l), independent, correlated, all (the three)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the pictures")
     add_output_options(p, json_help="print the results as JSON (a list with several tables)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    tables, us = tables_and_u(args.table_u)
-    summaries = api.road_metrics(tables, u=us if any(u is not None for u in us) else None, luminaire=args.luminaire, layout=args.layout,
+    tables, us, corrs = tables_and_u(args.table_u)
+    summaries = api.road_metrics(tables, u=us if any(u is not None for u in us) else None,
+                                 corr=corrs if any(c is not None for c in corrs) else None,
+                                 luminaire=args.luminaire, layout=args.layout,
                          target_class=args.target_class, trials=args.trials, seed=args.seed,
                          correlation=args.correlation, out=out_arg(args), plots=not args.no_plots)
     if args.json:
@@ -126,10 +140,13 @@ def _print(summaries) -> None:
         u = s.get("uncertainty")
         if not u:
             continue
-        w(f"{s['table']}: Monte Carlo of u from {u['file']} ({u['trials']} trials), class {u['target_class']}:\n")
+        cf = u.get("correlation_file")
+        w(f"{s['table']}: Monte Carlo of u from {u['file']} ({u['trials']} trials), class {u['target_class']}"
+          + ("" if cf is None else f", cells' correlation from {cf}"
+             + (" (beside the u file)" if u.get("correlation_found_beside_u") else "")) + ":\n")
         for note in u.get("notes") or ():
             w(f"  note in {u['file']}: {note}\n")
-        for mode in ("independent", "correlated"):
+        for mode in ("given", "independent", "correlated"):
             if mode not in u:
                 continue
             m = u[mode]

@@ -13,6 +13,12 @@ from roadgonio.road.metrics import M_CLASSES
 
 METRICS = (("L_av", "L_av (cd/m²)", "min"), ("U_o", "U_o", "min"), ("U_l", "U_l", "min"), ("TI", "TI (%)", "max"))
 
+#: The Monte Carlo's correlation cases in the order the outputs give them, with the marker and the
+#: offset from the bar of each in road_metrics.png, and the words of its legend.
+MODES = ("given", "independent", "correlated")
+MODE_MARKS = {"given": ("^", 0.0, "△ the cells' correlation given"), "independent": ("o", -0.14, "o independent cells"),
+              "correlated": ("s", 0.14, "□ fully correlated")}
+
 #: Every file ``roadgonio road`` writes (the pictures not with ``--no-plots``).
 ROAD_FILES = ("road.json", "road_metrics.csv", "road_luminance.csv", "road_metrics.png", "road_luminance.png")
 
@@ -40,7 +46,7 @@ def metrics_csv(summaries: list[dict]) -> str:
         if not unc:
             lines.append(",".join(base + [""] * (1 + len(extra))))
             continue
-        for mode in ("independent", "correlated"):
+        for mode in MODES:
             if mode not in unc:
                 continue
             m = unc[mode]
@@ -101,7 +107,8 @@ def metrics_png(summaries: list[dict], target: str | None, layout_text: str) -> 
         ax.bar(x, vals, color=[f"C{k}" for k in range(n)], alpha=0.75, width=0.6)
         for k, s in enumerate(summaries):
             unc = s.get("uncertainty") or {}
-            for off, mode, mk in ((-0.12, "independent", "o"), (0.12, "correlated", "s")):
+            for mode in MODES:
+                mk, off, _ = MODE_MARKS[mode]
                 m = (unc.get(mode) or {}).get(key)
                 if m:
                     # the interval about the trials' mean, which it holds: the nominal value (the bar) can
@@ -126,10 +133,10 @@ def metrics_png(summaries: list[dict], target: str | None, layout_text: str) -> 
         ax.set_title(label)
         ax.grid(axis="y", alpha=0.3)
     classes = ", ".join(f"{s['table']}: {s['class'] or 'none'}" for s in summaries)
+    shown = [MODE_MARKS[m][2] for m in MODES if any(m in (s.get("uncertainty") or {}) for s in summaries)]
     fig.suptitle(f"EN 13201 metrics: {classes}\n{layout_text}"
-                 + ("\nbars: the table's values; markers: the Monte Carlo mean with its 95 % interval, o independent "
-                    "cells, □ fully correlated" if any(s.get('uncertainty') for s in summaries) else ""),
-                 fontsize=9)
+                 + ("\nbars: the table's values; markers: the Monte Carlo mean with its 95 % interval, " + ", ".join(shown)
+                    if shown else ""), fontsize=9)
     fig.tight_layout()
     return _png(fig)
 

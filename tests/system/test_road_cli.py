@@ -370,3 +370,62 @@ def test_road_repeats_the_note_of_its_u_file(tmp_path, capsys):
         assert (f"note in {tmp_path / u}: {note}" in text) is bool(said), text
         d = json.loads((tmp_path / u[:-4] / "road.json").read_text())["tables"][0]["uncertainty"]
         assert d["notes"] == said
+
+
+def test_road_takes_the_cells_correlation_from_correct(tmp_path, capsys):
+    """Trial 11 D6: correct writes the cells' correlation (corrected_corr.csv) beside corrected_u.csv,
+    road could not read it. In a correct folder road takes it (case 'given', said in the terminal and
+    road.json); --corr gives it explicitly (here another file: the one used is the one named);
+    --correlation both keeps the two limiting cases; a --corr the chosen cases do not use, or one
+    before any --table, is refused in one line; a u file not named corrected_u.csv has no
+    correlation found for it."""
+    from roadgonio.surface.rtable import correlation_text
+    t = bundled_table("R3")
+    folder = tmp_path / "correct"
+    folder.mkdir()
+    head = "R3 corrected for the aperture effect (r / k_A; reference self; instrument portable)"
+    table = t.with_values(t.r, source=head).write_csv(folder / "corrected.csv")
+    u = t.with_values(0.03 * t.r, source="standard uncertainty of " + head).write_csv(folder / "corrected_u.csv")
+    n = int(t.mask.sum())
+    (folder / "corrected_corr.csv").write_text(correlation_text(t.cells, np.ones((n, n))))
+    (tmp_path / "indep_corr.csv").write_text(correlation_text(t.cells, np.eye(n)))
+    base = ["road", "--table", str(table), "--u", str(u), "--trials", "500", "--no-plots"]
+
+    def run(*extra, out="o"):
+        rc = main(base + list(extra) + ["--out", str(tmp_path / out)])
+        return rc, capsys.readouterr()
+
+    rc, cap = run()
+    assert rc == 0, cap.err
+    assert f"cells' correlation from {folder / 'corrected_corr.csv'} (beside the u file)" in cap.out, cap.out
+    d = json.loads((tmp_path / "o" / "road.json").read_text())["tables"][0]["uncertainty"]
+    assert "given" in d and "independent" not in d and "correlated" not in d
+    assert d["correlation_file"] == str(folder / "corrected_corr.csv") and d["correlation_found_beside_u"] is True
+    assert d["given"]["U_o"]["u"] < 1e-9                         # all ones: the fully correlated case
+    rc, cap = run("--corr", str(tmp_path / "indep_corr.csv"), out="o2")
+    d = json.loads((tmp_path / "o2" / "road.json").read_text())["tables"][0]["uncertainty"]
+    assert rc == 0 and d["correlation_file"] == str(tmp_path / "indep_corr.csv") and not d["correlation_found_beside_u"]
+    assert d["given"]["U_o"]["u"] > 1e-3                          # the identity: independent cells
+    rc, cap = run("--correlation", "both", out="o3")
+    d = json.loads((tmp_path / "o3" / "road.json").read_text())["tables"][0]["uncertainty"]
+    assert rc == 0 and set(d) >= {"independent", "correlated"} and "given" not in d and d.get("correlation_file") is None
+    rows = list(csv.DictReader((tmp_path / "o" / "road_metrics.csv").read_text().splitlines()))
+    assert [r["correlation"] for r in rows] == ["given"]
+    for extra, words in ((["--corr", str(tmp_path / "indep_corr.csv"), "--correlation", "both"],
+                         ["--corr", "indep_corr.csv", "not used with correlation 'both'"]),
+                         (["--corr", str(tmp_path / "nothere.csv")], ["nothere.csv", "no such correlation file"])):
+        rc, cap = run(*extra, out="bad")
+        err = cap.err.strip()
+        assert rc == 2 and "\n" not in err, err
+        for w in words:
+            assert w in err, (w, err)
+        assert not (tmp_path / "bad").exists()
+    rc = main(["road", "--corr", str(tmp_path / "indep_corr.csv"), "--table", "R3", "--out", str(tmp_path / "bad")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "--corr" in err and "comes before any --table" in err, err
+    other = tmp_path / "u_elsewhere.csv"
+    other.write_bytes(u.read_bytes())
+    assert main(["road", "--table", str(table), "--u", str(other), "--trials", "500", "--no-plots", "--json",
+                 "--out", str(tmp_path / "o4")]) == 0
+    d = json.loads(capsys.readouterr().out)["uncertainty"]
+    assert {"independent", "correlated"} <= set(d) and "given" not in d
