@@ -69,8 +69,9 @@ def main() -> None:
     u_csv = work / "corrected" / "corrected_u.csv"
     u_source = "corrected_u.csv written by roadgonio correct"
     t2 = time.time()
+    # each --u right after its --table (trial 7 D8; the three --u after the three tables are refused)
     out = json.loads(roadgonio("road", "--table", str(work / f"{mname}.csv"), "--table", str(corr_csv),
-                               "--table", "R3", "--u", "-", "--u", str(u_csv), "--u", "-", "--trials", str(a.trials),
+                               "--u", str(u_csv), "--table", "R3", "--trials", str(a.trials),
                                "--correlation", "all",       # correct's corrected_corr.csv and both limiting cases
                                "--out", str(work / "road"), "--json"))
     t_road = time.time() - t2
