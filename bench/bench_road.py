@@ -9,7 +9,9 @@ the default EN 13201 layout (docs/road.md, "Measured vs corrected").
    corrected table and its per-cell relative uncertainty u_rel (backend error and
    reference-model spread over the two nearest CIE tables). Its standard uncertainty in the r-table
    layout is ``corrected_u.csv``, written by `correct`.
-4. ``roadgonio road --table measured --table corrected --table R3 --u corrected_u.csv``.
+4. ``roadgonio road --table measured --table corrected --table R3 --u corrected_u.csv --correlation
+   all``: the cells' correlation correct wrote (corrected_corr.csv, beside the u) and the two
+   limiting cases, independent and fully correlated cells.
 
 Prints the metrics side by side with the machine load; writes bench/results/road_measured_vs_corrected.csv.
 Run: python bench/bench_road.py [--work DIR] [--trials N]
@@ -67,8 +69,10 @@ def main() -> None:
     u_csv = work / "corrected" / "corrected_u.csv"
     u_source = "corrected_u.csv written by roadgonio correct"
     t2 = time.time()
+    # each --u right after its --table (trial 7 D8; the three --u after the three tables are refused)
     out = json.loads(roadgonio("road", "--table", str(work / f"{mname}.csv"), "--table", str(corr_csv),
-                               "--table", "R3", "--u", "-", "--u", str(u_csv), "--u", "-", "--trials", str(a.trials),
+                               "--u", str(u_csv), "--table", "R3", "--trials", str(a.trials),
+                               "--correlation", "all",       # correct's corrected_corr.csv and both limiting cases
                                "--out", str(work / "road"), "--json"))
     t_road = time.time() - t2
     load = os.getloadavg()
@@ -81,7 +85,7 @@ def main() -> None:
         row = {k2: d[k2] for k2 in ("table", "L_av", "U_o", "U_l", "TI", "class")}
         u = d.get("uncertainty")
         if u:
-            for mode in ("independent", "correlated"):
+            for mode in ("given", "independent", "correlated"):
                 for m in ("L_av", "U_o", "U_l", "TI"):
                     row[f"u_{m}_{mode}"] = u[mode][m]["u"]
                     row[f"cov95_{m}_{mode}"] = "{:.4g}..{:.4g}".format(*u[mode][m]["coverage_interval_95"])
@@ -93,7 +97,7 @@ def main() -> None:
     m, c = out[0], out[1]
     print(f"measured -> corrected: L_av {100 * (c['L_av'] / m['L_av'] - 1):+.2f} %, U_o {c['U_o'] - m['U_o']:+.4f}, "
           f"U_l {c['U_l'] - m['U_l']:+.4f}, TI {c['TI'] - m['TI']:+.2f} points")
-    print(f"time: ka {t_ka:.0f} s, correct {t_corr:.0f} s, road (with {a.trials} trials x 2) {t_road:.1f} s; "
+    print(f"time: ka {t_ka:.0f} s, correct {t_corr:.0f} s, road (with {a.trials} trials x 3) {t_road:.1f} s; "
           f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} (2-core AMD EPYC, 24 GiB)")
     res = ROOT / "bench" / "results" / f"road_measured_vs_corrected_{label}.csv"
     keys = sorted({k2 for r in rows for k2 in r}, key=lambda s: (s not in ("table", "L_av", "U_o", "U_l", "TI", "class"), s))

@@ -51,6 +51,7 @@ folder the command uses (``out/ka-INSTRUMENT-SAMPLE``...; names made safe with
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
@@ -964,15 +965,27 @@ def intercomparison_summary(run) -> dict[str, Any]:
 # from the table to the road
 # ----------------------------------------------------------------------------------------------
 
-def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: str | None = None, trials: int = 20_000,
-         seed: int = 0, correlation: str = "both", out=None, plots: bool = True) -> list[dict[str, Any]]:
+#: The cases of ``road_metrics(correlation=...)``: "auto" is "given" when the cells' correlation is
+#: known (``corr``, or corrected_corr.csv beside a corrected_u.csv), else "both".
+ROAD_CORRELATIONS = {"auto": None, "given": ("given",), "both": ("independent", "correlated"),
+                     "independent": ("independent",), "correlated": ("correlated",),
+                     "all": ("independent", "correlated", "given")}
+
+
+def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, target_class: str | None = None,
+                 trials: int = 20_000, seed: int = 0, correlation: str = "auto", out=None,
+                 plots: bool = True) -> list[dict[str, Any]]:
     """EN 13201-3 road-surface luminance metrics of a luminaire layout with one or several r-tables
     side by side (``roadgonio road``). ``u``: the tables' standard uncertainties (r-table files, r x
     1e4): one (not in a list) for the last table, or a list with one entry per table (None or
     ``"-"`` for none); a u file whose header
     names another table than the CSV it goes with is an error (:func:`_check_u_belongs`); a Monte Carlo of
-    ``trials`` gives u and 95 % intervals of each metric and P(meets ``target_class``), for
-    independent and/or fully correlated cells (``correlation``). Without ``luminaire``/``layout``:
+    ``trials`` gives u and 95 % intervals of each metric and P(meets ``target_class``). ``corr``: the
+    correlation of the cells of a table with u (a file as correct writes corrected_corr.csv), given
+    as u is; without it, a u file named corrected_u.csv takes the corrected_corr.csv beside it (a
+    correct folder). ``correlation`` (:data:`ROAD_CORRELATIONS`): "auto" (the given correlation
+    when there is one, else both limiting cases), "given", "both" (independent and fully correlated
+    cells), "independent", "correlated" or "all" (the three). Without ``luminaire``/``layout``:
     the bundled ones. Returns one summary per table; with ``out`` (a folder or :data:`AUTO`) writes
     road.json, the CSVs and the pictures (the first summary's ``written``)."""
     from roadgonio.engines.registry import check_seed
@@ -981,28 +994,29 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     from roadgonio.road.layout import load_layout
     from roadgonio.road.luminaire import load_luminaire
     from roadgonio.road.metrics import M_CLASSES
+    from roadgonio.surface.rtable import header_notes, read_cell_correlation
     items = list(tables) if isinstance(tables, (list, tuple)) else [tables]
     if not items:
         raise InputError("expected at least one table", field="table")
     if target_class is not None and str(target_class).upper() not in M_CLASSES:
         raise InputError(f"unknown class {target_class!r}; expected one of {', '.join(M_CLASSES)}", field="target_class")
     target = str(target_class).upper() if target_class else None
-    if correlation not in ("both", "independent", "correlated"):
-        raise InputError(f"expected both, independent or correlated, got {correlation!r}", field="correlation")
+    if correlation not in ROAD_CORRELATIONS:
+        raise InputError(f"expected {', '.join(ROAD_CORRELATIONS)}, got {correlation!r}", field="correlation")
     if isinstance(trials, int) and not isinstance(trials, bool) and trials < mc.MIN_TRIALS:
         raise InputError(f"expected at least {mc.MIN_TRIALS} trials, got {trials}", field="trials")
     from roadgonio.limits import check_size
     trials = check_size(_check_int(trials, "trials", mc.MIN_TRIALS), "trials", "trials")
     seed = check_seed(seed)
-    if u is None:
-        u_of = [None] * len(items)
-    elif not isinstance(u, (list, tuple)):      # one u: the last table's
-        u_of = [None] * (len(items) - 1) + [u]
-    elif len(u) == len(items):
-        u_of = [None if x in ("-", "", None) else x for x in u]
-    else:   # trial 11 D11: a one-entry list for two tables was put on the last table
-        raise InputError(f"a list of u has one entry per table (None for none): expected {len(items)}, got {len(u)}; "
-                         "a single u, not in a list, goes with the last table", field="u")
+    u_of = _one_per_table(u, len(items), "u")
+    corr_of = _one_per_table(corr, len(items), "corr")
+    for k, (uf, cf) in enumerate(zip(u_of, corr_of)):
+        if cf is not None and uf is None:
+            raise InputError(f"{cf} goes with table {k + 1} ({items[k]}), which has no u: give corr with the u of its "
+                             "table", field="corr")
+        if cf is not None and correlation not in ("auto", "given", "all"):
+            raise InputError(f"{cf} is not used with correlation {correlation!r}: expected auto, given or all with a "
+                             "correlation file", field="corr")
     loaded = [_table(t) for t in items]
     folder_names = [t.name for t in loaded]
     loaded = [_labelled(item, t) for item, t in zip(items, loaded)]
@@ -1013,17 +1027,36 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     from roadgonio.provenance import input_record
     inputs = [input_record("table", item, t.name) for item, t in zip(items, loaded)]
     inst = Installation(load_layout(layout), load_luminaire(luminaire))
-    modes = ("independent", "correlated") if correlation == "both" else (correlation,)
     results, summaries = [], []
-    for item, t, own_name, uf in zip(items, loaded, folder_names, u_of):
+    for item, t, own_name, uf, cf in zip(items, loaded, folder_names, u_of, corr_of):
         res = inst.evaluate(t)
         if uf is not None:
+            _check_u_file(item, uf)
             ut = _table(uf, "u", quantity="u")
+            _check_u_is_u(uf, ut)
             _check_u_belongs(item, t, uf, ut, own_name)
             inputs.append(input_record("u", uf, f"u of {t.name}"))
-            res.uncertainty = {"file": str(uf), **mc.propagate(inst, t, ut, trials=trials, seed=seed,
-                                                               correlations=modes, target_class=target,
-                                                               u_path=uf if isinstance(uf, (str, Path)) else None)}
+            found = False
+            if cf is None and correlation in ("auto", "given", "all"):
+                cf = _correlation_beside(uf)
+                found = cf is not None
+            modes = ROAD_CORRELATIONS[correlation] or (("given",) if cf is not None else ROAD_CORRELATIONS["both"])
+            if "given" in modes and cf is None:
+                raise InputError(f"correlation {correlation!r} needs the cells' correlation of {item}: give corr (a file "
+                                 "as correct writes corrected_corr.csv)", field="correlation")
+            cells_corr = None
+            if cf is not None:
+                try:
+                    cells_corr = read_cell_correlation(cf)
+                except InputError as err:
+                    raise err.with_argument("corr") from None
+                inputs.append(input_record("corr", cf, f"correlation of the cells of {t.name}"))
+            # what the u file's header says of it (correct: the data reject the fit), repeated (trial 11 D7)
+            res.uncertainty = {"file": str(uf), "notes": header_notes(ut),
+                               "correlation_found_beside_u": found,
+                               **mc.propagate(inst, t, ut, trials=trials, seed=seed, correlations=modes,
+                                              target_class=target, u_path=uf if isinstance(uf, (str, Path)) else None,
+                                              corr=cells_corr, corr_path=cf)}
         results.append(res)
         summaries.append(res.summary())
     for argument, value in (("layout", layout), ("luminaire", luminaire)):
@@ -1032,12 +1065,81 @@ def road_metrics(tables, *, u=None, luminaire=None, layout=None, target_class: s
     folder = _out(out, "road", *folder_names)
     if folder is not None:
         files = report.road_files(results, summaries, target or summaries[0]["class"], plots=plots, inputs=inputs)
-        written = report.write_together(folder, files)
+        # a --no-plots run removes an earlier run's pictures (trial 11 D4: they showed another table)
+        written = report.write_together(folder, files, replaces=report.ROAD_FILES)
         summaries[0]["written"] = [str(p) for p in written]
         summaries[0]["out"] = str(folder)
     summaries[0]["layout"] = inst.layout.describe()
     summaries[0]["luminaire"] = {"name": inst.luminaire.name, "flux_lm": inst.luminaire.flux_lm}
     return summaries
+
+
+def _one_per_table(value, n: int, field: str) -> list:
+    """``u`` or ``corr`` of :func:`road_metrics` per table: one value (not in a list) for the last
+    table, or a list with exactly one entry per table (None, "" or "-" for none)."""
+    if value is None:
+        return [None] * n
+    if not isinstance(value, (list, tuple)):      # one value: the last table's
+        return [None] * (n - 1) + [value]
+    if len(value) == n:
+        return [None if x in ("-", "", None) else x for x in value]
+    # trial 11 D11: a one-entry list for two tables was put on the last table
+    raise InputError(f"a list of {field} has one entry per table (None for none): expected {n}, got {len(value)}; "
+                     f"a single {field}, not in a list, goes with the last table", field=field)
+
+
+#: The files of a ``roadgonio correct`` folder that ``road`` pairs: the cells' correlation
+#: (corrected_corr.csv) is taken for the u (corrected_u.csv) it was written with.
+CORRECT_U, CORRECT_CORR = "corrected_u.csv", "corrected_corr.csv"
+
+
+def _correlation_beside(uf) -> Path | None:
+    """corrected_corr.csv beside a u file named corrected_u.csv (a correct folder), or None."""
+    if not isinstance(uf, (str, Path)) or Path(str(uf)).name != CORRECT_U:
+        return None
+    beside = Path(str(uf)).with_name(CORRECT_CORR)
+    return beside if beside.is_file() else None
+
+
+def _u_instead(uf) -> str:
+    """What to give instead of the r-table ``uf`` given as a u: its ``_u.csv`` when one sits beside it."""
+    p = Path(str(uf))
+    beside = p.with_name(p.stem + "_u.csv")
+    return f"give {beside.name} beside it" if beside.is_file() else \
+        "give its standard uncertainty (r x 1e4 in the r-table CSV layout, as correct writes corrected_u.csv)"
+
+
+def _check_u_file(item, uf) -> None:
+    """A u that is an r-table by its name alone (trial 11 D3: `--u corrected.csv` / `corrected.rtb`,
+    tab completion's neighbours of corrected_u.csv, ran with u = 100 % of r): a bundled table, an RTB
+    (a format for r only) or the table file itself is an :class:`InputError` naming the file."""
+    from roadgonio.surface.rtable import BUNDLED
+    if not isinstance(uf, (str, Path)):
+        return
+    p = Path(str(uf))
+    if isinstance(uf, str) and not p.suffix and uf.strip().upper() in BUNDLED:
+        raise InputError(f"'{uf}' is the bundled r-table {uf.strip().upper()}, not a standard uncertainty: give a file "
+                         "of u (r x 1e4 in the r-table CSV layout, as correct writes corrected_u.csv)", field="u")
+    if p.suffix.lower() == ".rtb":
+        raise InputError(f"an RTB file holds an r-table (the format has no standard uncertainties), not a standard "
+                         f"uncertainty: {_u_instead(p.with_suffix('.csv'))}", path=uf, argument="u")
+    if isinstance(item, (str, Path)) and Path(str(item)).suffix and p.is_file() and Path(str(item)).is_file() \
+            and os.path.samefile(p, Path(str(item))):
+        raise InputError(f"is the table file {item} itself, an r-table, not a standard uncertainty: {_u_instead(p)}",
+                         path=uf, argument="u")
+
+
+def _check_u_is_u(uf, ut: "RTable") -> None:
+    """A u file whose header says it is a corrected r-table (``roadgonio correct``'s corrected.csv,
+    :func:`~roadgonio.surface.rtable.corrected_r_header`) is an :class:`InputError` naming the file and
+    its header, as ``roadgonio uncertainty``'s mean table is (:func:`_check_u_belongs`)."""
+    from roadgonio.surface.rtable import corrected_r_header
+    head = corrected_r_header(ut)
+    if head is not None:
+        shown = head if len(head) <= 60 else head[:57] + "..."
+        raise InputError(f"is an r-table ('{shown}'), not a standard uncertainty (its header would start "
+                         f"'standard uncertainty of'): {_u_instead(uf)}",
+                         **({"path": uf, "argument": "u"} if isinstance(uf, (str, Path)) else {"field": "u"}))
 
 
 def _check_u_belongs(item, t: "RTable", uf, ut: "RTable", own_name: str | None = None) -> None:

@@ -124,11 +124,10 @@ def run(args) -> int:
         say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} % "
             f"(largest per component: {comps}); {s['seconds']:.1f} s")
         f = s.get("fit") or {}
-        if f.get("misfit") and "cells_widened" not in f:
-            say(f"  note: the data reject the eq. 4 fit (Birge ratio {f['birge_ratio']:.2f}, chi^2 {f['chi2']:.0f} on "
-                f"{f['dof']} degrees of freedom, p = {f['chi2_p_value']:.1e}, under the stated u): this surface is not "
-                "eq. 4 and k_A inherits the misfit where the table matters; --forward surface fits a model that can "
-                "follow it (docs/correction.md, \"Outside eq. 4\")")
+        note = f.get("misfit_note")
+        if note:
+            say(f"  note: {note}; --forward surface fits a model that can follow it (docs/correction.md, \"Outside "
+                "eq. 4\"); corrected_u.csv's header carries this note, and road --u repeats it")
         if "cells_widened" in f:
             say(f"  fit: {f['variant']} backbone x correction surface, Birge ratio {f['birge_ratio']:.2f} "
                 f"(local max {f['birge_local_max']:.2f}); u widened by the local Birge ratio in {f['cells_widened']} "
@@ -214,7 +213,7 @@ def _json_summary(res) -> dict:
     if s.get("model_estimate"):
         out["model_estimate"] = s["model_estimate"]
     if "fit" in s:
-        out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio", "chi2_p_value", "misfit", "birge_local_max",
+        out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio", "chi2_p_value", "misfit", "misfit_note", "birge_local_max",
                                                "cells_widened", "widening_max") if k in s["fit"]}
     out["resumed_cells"] = _resumed(st.get("backend") for st in (s.get("steps") or []))
     out["resumed_surfaces"] = _resumed_surfaces((s.get("fit") or {}).get("variants"))

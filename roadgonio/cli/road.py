@@ -11,8 +11,8 @@ from roadgonio.errors import InputError
 
 
 class _InOrder(argparse.Action):
-    """Keeps --table and --u in the order they were given (``args.table_u``: (option, value)), so
-    that a --u goes with the --table just before it."""
+    """Keeps --table, --u and --corr in the order they were given (``args.table_u``: (option,
+    value)), so that a --u or --corr goes with the --table just before it."""
 
     def __call__(self, parser, namespace, values, option_string=None):
         order = list(getattr(namespace, "table_u", None) or [])
@@ -22,24 +22,27 @@ class _InOrder(argparse.Action):
             namespace.tables = [v for k, v in order if k == "tables"]
 
 
-def tables_and_u(order) -> tuple[list[str], list[str | None]]:
-    """The tables and, per table, the --u that follows it (None where none does); a --u before any
-    --table, or two after one --table, is an :class:`InputError` naming --u."""
+def tables_and_u(order) -> tuple[list[str], list[str | None], list[str | None]]:
+    """The tables and, per table, the --u and the --corr that follow it (None where none does); a --u
+    or --corr before any --table, or two of one after one --table, is an :class:`InputError` naming
+    the option."""
     tables: list[str] = []
-    us: list[str | None] = []
+    given: dict[str, list[str | None]] = {"u": [], "corr": []}
     for option, value in order:
         if option == "tables":
             tables.append(value)
-            us.append(None)
-        elif not tables:
-            raise InputError(f"--u {value} comes before any --table: give it right after the --table it belongs to",
-                             field="--u")
-        elif us[-1] is not None:
-            raise InputError(f"--u {us[-1]} and --u {value} both follow --table {tables[-1]}: give one --u right after "
-                             "the --table it belongs to", field="--u")
-        else:
-            us[-1] = value
-    return tables, [None if u in ("-", "") else u for u in us]
+            for v in given.values():
+                v.append(None)
+            continue
+        flag, mine = f"--{option}", given[option]
+        if not tables:
+            raise InputError(f"{flag} {value} comes before any --table: give it right after the --table it belongs to",
+                             field=flag)
+        if mine[-1] is not None:
+            raise InputError(f"{flag} {mine[-1]} and {flag} {value} both follow --table {tables[-1]}: give one {flag} "
+                             "right after the --table it belongs to", field=flag)
+        mine[-1] = value
+    return tables, *([None if x in ("-", "") else x for x in given[k]] for k in ("u", "corr"))
 
 
 def register(sub) -> None:
@@ -49,8 +52,11 @@ def register(sub) -> None:
                     "uniformity U_o, longitudinal uniformity U_l per lane, threshold increment TI, edge illuminance "
                     "ratio R_EI) for a luminaire layout, and the EN 13201-2 M class met, with one or several r-tables "
                     "side by side. With --u (the table's standard uncertainty, r x 1e4 in the r-table CSV layout, as "
-                    "`roadgonio correct` writes it) a Monte Carlo gives u(L_av), u(U_o), u(U_l), 95 % intervals and the "
-                    "probability of meeting the class, for independent and for fully correlated cells. Without "
+                    "`roadgonio correct` writes it) a Monte Carlo gives u(L_av), u(U_o), u(U_l), the trials' means "
+                    "(printed beside the nominal value where they differ by more than u/10), 95 % intervals and the "
+                    "probability of meeting the class, with the cells' correlation `roadgonio correct` writes (--corr, or "
+                    "corrected_corr.csv beside corrected_u.csv), else for independent and for fully correlated "
+                    "cells. Without "
                     "--luminaire/--layout: roadgonio's illustrative cut-off luminaire and its default layout "
                     "(single-sided, 2 x 3.5 m lanes, H 10 m, S 30 m).")
     p.add_argument("--table", dest="tables", action=_InOrder, required=True, metavar="T",
@@ -60,24 +66,34 @@ def register(sub) -> None:
                         "`roadgonio correct` writes corrected_u.csv), e.g. --table measured.csv --table "
                         "corrected.csv --u corrected_u.csv; at most one per --table. When the file's header "
                         "names its table ('standard uncertainty of ...') and that table's CSV header names "
-                        "another, it is an error")
+                        "another, it is an error; so is an r-table given as u (the table's own file, an RTB, a "
+                        "bundled table, a corrected.csv)")
+    p.add_argument("--corr", dest="corr", action=_InOrder, metavar="FILE",
+                   help="the correlation between the cells of the --table just before it (as `roadgonio correct` "
+                        "writes corrected_corr.csv), used in the Monte Carlo; without it a --u named corrected_u.csv "
+                        "takes the corrected_corr.csv beside it (a correct folder)")
     p.add_argument("--luminaire", metavar="FILE", help="EULUMDAT .ldt file (default: the bundled illustrative luminaire)")
     p.add_argument("--layout", metavar="FILE", help="layout TOML (default: the bundled default layout)")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/road-TABLES)")
     p.add_argument("--class", dest="target_class", metavar="M", help="class to test in the Monte Carlo (default: the class "
-                   "the table meets)")
+                   "the table meets, M6 when it meets none)")
     p.add_argument("--trials", type=int, default=20000, help="Monte Carlo trials (default 20000)")
     p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
-    p.add_argument("--correlation", choices=["both", "independent", "correlated"], default="both",
-                   help="cell correlation assumed in the Monte Carlo (default both, as bounds)")
+    p.add_argument("--correlation", choices=["auto", "given", "both", "independent", "correlated", "all"],
+                   default="auto",
+                   help="the cells' correlation in the Monte Carlo: auto (default: the given correlation, --corr or "
+                        "found beside corrected_u.csv, else both), given, both (independent and fully correlated "
+                        "cells: limiting cases, not bounds for U_o and U_l), independent, correlated, all (the three)")
     p.add_argument("--no-plots", action="store_true", help="do not draw the pictures")
     add_output_options(p, json_help="print the results as JSON (a list with several tables)")
     p.set_defaults(func=run)
 
 
 def run(args) -> int:
-    tables, us = tables_and_u(args.table_u)
-    summaries = api.road_metrics(tables, u=us if any(u is not None for u in us) else None, luminaire=args.luminaire, layout=args.layout,
+    tables, us, corrs = tables_and_u(args.table_u)
+    summaries = api.road_metrics(tables, u=us if any(u is not None for u in us) else None,
+                                 corr=corrs if any(c is not None for c in corrs) else None,
+                                 luminaire=args.luminaire, layout=args.layout,
                          target_class=args.target_class, trials=args.trials, seed=args.seed,
                          correlation=args.correlation, out=out_arg(args), plots=not args.no_plots)
     if args.json:
@@ -119,22 +135,35 @@ def _print(summaries) -> None:
     for s in summaries:
         if s.get("missing"):
             w(f"{s['table']}: missing {', '.join(s['missing']['metrics'])}: {s['missing']['reason']}\n")
+    shifted = False
     for s in summaries:
         u = s.get("uncertainty")
         if not u:
             continue
-        w(f"{s['table']}: Monte Carlo of u from {u['file']} ({u['trials']} trials), class {u['target_class']}:\n")
-        for mode in ("independent", "correlated"):
+        cf = u.get("correlation_file")
+        w(f"{s['table']}: Monte Carlo of u from {u['file']} ({u['trials']} trials), class {u['target_class']}"
+          + ("" if cf is None else f", cells' correlation from {cf}"
+             + (" (beside the u file)" if u.get("correlation_found_beside_u") else "")) + ":\n")
+        for note in u.get("notes") or ():
+            w(f"  note in {u['file']}: {note}\n")
+        for mode in ("given", "independent", "correlated"):
             if mode not in u:
                 continue
             m = u[mode]
             parts = []
             for k in ("L_av", "U_o", "U_l", "TI"):
                 if m[k]:
-                    parts.append(_with_u(k, m[k]['nominal'], m[k]['u'], m[k]['coverage_interval_95']))
+                    parts.append(_with_u(k, m[k]['nominal'], m[k]['u'], m[k]['coverage_interval_95'], m[k]['mean']))
+                    shifted = shifted or "nominal" in parts[-1]
             p = m["P_meets_target"]
             w(f"  {mode:11}: " + "; ".join(parts)
               + (f"; P(meets {u['target_class']}) = {p:.3f}" if p is not None else "; P(meets class): missing") + "\n")
+            if m.get("note"):
+                w(f"  {'':11}  note: {m['note']}\n")
+    if shifted:
+        w("  (nominal: the table's own value; MC: the trials' mean ± their standard deviation [95 % interval], JCGM "
+          "101's estimate; under noise the min/max ratios U_o and U_l fall below the nominal value, and TI, convex in L_av, "
+          "above it, so an interval can exclude the nominal value)\n")
     if any(s["neglected_contributions"] for s in summaries):
         w(f"note: {max(s['neglected_contributions'] for s in summaries)} luminaire contributions fell outside the "
           "CIE standard tables' region (their blank cells or tan > 12) and were neglected, as those tables do\n")
@@ -143,11 +172,21 @@ def _print(summaries) -> None:
     w(f"wrote {len(first['written'])} files to {first['out']}\n")
 
 
-def _with_u(name: str, value: float, u: float, interval) -> str:
+#: The Monte Carlo mean is printed beside the nominal value when they differ by more than this
+#: fraction of u (and in the digits printed): trial 11 D5 read "U_l 0.619 ± 0.088 [0.241, 0.584]",
+#: the nominal value beside an interval of the trials (mean 0.42) that excludes it.
+MEAN_SHIFT_SHOWN = 0.1
+
+
+def _with_u(name: str, value: float, u: float, interval, mean: float | None = None) -> str:
     """``L_av 1.1076 ± 0.0012 [1.1053, 1.1098]``: u to two significant digits, the value and the
     interval's ends to the same decimal place (three significant digits printed [1.11, 1.11] for an
-    interval of width 0.005, trial 9)."""
+    interval of width 0.005, trial 9). When the trials' ``mean`` differs from the nominal ``value``
+    by more than :data:`MEAN_SHIFT_SHOWN` u: ``U_l 0.619 nominal, MC 0.419 ± 0.088 [0.241, 0.584]``."""
     import math
     decimals = max(0, 1 - math.floor(math.log10(u))) if u > 0 and math.isfinite(u) else 3
     lo, hi = interval
-    return f"{name} {value:.{decimals}f} ± {u:.2g} [{lo:.{decimals}f}, {hi:.{decimals}f}]"
+    est = f"{value:.{decimals}f}"
+    if mean is not None and abs(mean - value) > MEAN_SHIFT_SHOWN * u and f"{mean:.{decimals}f}" != est:
+        est = f"{est} nominal, MC {mean:.{decimals}f}"
+    return f"{name} {est} ± {u:.2g} [{lo:.{decimals}f}, {hi:.{decimals}f}]"

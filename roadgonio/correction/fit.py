@@ -65,6 +65,18 @@ G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
 MISFIT_P = 0.01
 
 
+def misfit_note(fit: dict | None) -> str | None:
+    """The note that the data reject the eq. 4 fit (:attr:`ThroughFit.misfit`), from a fit's
+    summary; None when they do not, or when a correction surface follows the misfit (its summary has
+    ``cells_widened``). ``correct`` prints it and writes it into corrected_u.csv's header, which
+    ``road --u`` repeats (trial 11 D7: the note did not travel with the u)."""
+    if not fit or not fit.get("misfit") or "cells_widened" in fit:
+        return None
+    return (f"the data reject the eq. 4 fit (Birge ratio {fit['birge_ratio']:.2f}, chi^2 {fit['chi2']:.0f} on "
+            f"{fit['dof']} degrees of freedom, p = {fit['chi2_p_value']:.1e}, under the stated u): this surface is "
+            "not eq. 4 and k_A inherits the misfit where the table matters")
+
+
 def _dz_dp(name: str, z: float) -> float:
     """d(natural value)/dz of the transformed coordinate (surface.fit._from_z)."""
     if name in ("n_phong", "n_retro", "mu"):
@@ -118,12 +130,14 @@ class ThroughFit:
         return {n: float(math.sqrt(max(self.cov[i, i], 0.0))) for i, n in enumerate(self.free)}
 
     def summary(self) -> dict[str, Any]:
-        return {"variant": self.model.variant, "chi2": self.chi2, "dof": self.dof, "birge_ratio": self.birge,
-                "chi2_p_value": self.chi2_p_value, "misfit": self.misfit,
-                "rms_normalised_residual": float(math.sqrt(np.mean(self.residual ** 2))),
-                "params": self.model.params.to_dict(), "u_params": self.param_uncertainty(),
-                "free": list(self.free), "starts": self.starts, "nfev": self.nfev, "seconds": self.seconds,
-                "stage_a_minima_chi2": self.stage_a}
+        out = {"variant": self.model.variant, "chi2": self.chi2, "dof": self.dof, "birge_ratio": self.birge,
+               "chi2_p_value": self.chi2_p_value, "misfit": self.misfit,
+               "rms_normalised_residual": float(math.sqrt(np.mean(self.residual ** 2))),
+               "params": self.model.params.to_dict(), "u_params": self.param_uncertainty(),
+               "free": list(self.free), "starts": self.starts, "nfev": self.nfev, "seconds": self.seconds,
+               "stage_a_minima_chi2": self.stage_a}
+        out["misfit_note"] = misfit_note(out)
+        return out
 
 
 class _Problem:

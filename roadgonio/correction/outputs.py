@@ -36,7 +36,7 @@ import numpy as np
 
 from roadgonio.fileio import OutputGroup
 from roadgonio.surface.fit import model_r_on_grid
-from roadgonio.surface.rtable import R_SCALE, U_HEADER, grid_csv_text
+from roadgonio.surface.rtable import NOTE_PREFIX, R_SCALE, U_HEADER, correlation_text, grid_csv_text
 
 PICTURES = ("picture", "map", "residuals", "surface")
 FILES = {"corrected": "corrected.csv", "u": "corrected_u.csv", "rtb": "corrected.rtb", "json": "correct.json",
@@ -52,9 +52,15 @@ def has_rtb(table) -> bool:
 
 
 def u_csv_text(res) -> str:
-    """The corrected table's standard uncertainties in the r-table CSV layout (r x 1e4, 4 digits)."""
+    """The corrected table's standard uncertainties in the r-table CSV layout (r x 1e4, 4 digits); the
+    header names the table and, when the data reject the fit, says so (a ``note:`` line,
+    :func:`~roadgonio.correction.fit.misfit_note`, which ``road --u`` repeats)."""
     table = res.corrected
-    return grid_csv_text(res.u_corrected, U_HEADER + table.source, scale=R_SCALE, digits=4,
+    fit = getattr(res, "fit", None)
+    note = (fit.summary() if fit is not None else {}).get("misfit_note")
+    head = U_HEADER + table.source + ("" if note is None else f"\n{NOTE_PREFIX}{note}, and this u may not cover that "
+                                      "error (roadgonio correct; docs/correction.md, \"Outside eq. 4\")")
+    return grid_csv_text(res.u_corrected, head, scale=R_SCALE, digits=4,
                          tan_eps=table.tan_eps, beta_deg=table.beta_deg)
 
 
@@ -469,13 +475,6 @@ def write_surface_correction(sc, out_dir: str | Path, *, plots: bool = True) -> 
 
 
 def _correlation_text(table, budget) -> str:
-    m = table.mask
-    ii, jj = np.nonzero(m)
-    labels = [f"{table.tan_eps[i]:g}/{table.beta_deg[j]:g}" for i, j in zip(ii, jj)]
-    c = budget.correlation()
-    buf = io.StringIO()
-    buf.write("# correlation of the corrected cells (rows and columns labelled tan eps/beta)\n")
-    buf.write("cell," + ",".join(labels) + "\n")
-    for k, lab in enumerate(labels):
-        buf.write(lab + "," + ",".join(f"{v:.4f}" for v in c[k]) + "\n")
-    return buf.getvalue()
+    """corrected_corr.csv: the format ``road --corr`` reads (:func:`roadgonio.surface.rtable.read_cell_correlation`)."""
+    ii, jj = np.nonzero(table.mask)
+    return correlation_text([(table.tan_eps[i], table.beta_deg[j]) for i, j in zip(ii, jj)], budget.correlation())

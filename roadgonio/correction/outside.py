@@ -54,7 +54,7 @@ from roadgonio.engines.bundle import DEFAULT_RAYS, StackedForward
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import VARIANTS, RoadModel
-from roadgonio.surface.rtable import RTable
+from roadgonio.surface.rtable import CORRECTED_R, RTable
 
 #: The backbone variants fitted and weighed by default.
 DEFAULT_VARIANTS = ("power", "smooth")
@@ -524,7 +524,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             bud.add(name, C[sl, sl], notes[name])
         k_grid = _grid(t, np.exp(lnk[sl]))
         corr = t.with_values(_grid(t, np.exp(lnr[i])), name=f"{t.name}_corrected",
-                             source=f"{t.name} corrected for the aperture effect (r / k_A; eq. 4 x correction surface "
+                             source=f"{t.name} {CORRECTED_R}; eq. 4 x correction surface "
                                     f"fitted through {', '.join(i2.name for i2 in instruments)}; instrument {inst.name})")
         u_abs = _grid(t, np.exp(lnr[i]) * bud.u_rel())
         before_b = Budget(n_i[i])
@@ -554,8 +554,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         grid = np.full(base.r.shape, np.nan)
         for (t_, b_), v in zip(union, lnc):
             grid[int(np.argmin(np.abs(base.tan_eps - t_))), int(np.argmin(np.abs(base.beta_deg - b_)))] = math.exp(v)
-        src = (f"one surface measured by {', '.join(i.name for i in instruments)}, corrected for the aperture effect "
-               f"(r / k_A per instrument{' and the fitted surface at the nominal geometry' if U else ''}, combined "
+        src = (f"one surface measured by {', '.join(i.name for i in instruments)}, {CORRECTED_R} "
+               f"per instrument{' and the fitted surface at the nominal geometry' if U else ''}, combined "
                f"cell by cell with the least-variance non-negative weights)")
         combined = base.with_values(grid, name=f"{label}_corrected", source=src)
         # the combined table's cells in row-major order (= union order sorted like RTable.cells)

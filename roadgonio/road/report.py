@@ -13,11 +13,20 @@ from roadgonio.road.metrics import M_CLASSES
 
 METRICS = (("L_av", "L_av (cd/m²)", "min"), ("U_o", "U_o", "min"), ("U_l", "U_l", "min"), ("TI", "TI (%)", "max"))
 
+#: The Monte Carlo's correlation cases in the order the outputs give them, with the marker and the
+#: offset from the bar of each in road_metrics.png, and the words of its legend.
+MODES = ("given", "independent", "correlated")
+MODE_MARKS = {"given": ("^", 0.0, "△ the cells' correlation given"), "independent": ("o", -0.14, "o independent cells"),
+              "correlated": ("s", 0.14, "□ fully correlated")}
 
-def write_together(out_dir: Path, files: dict[str, bytes | str], *, replaces: tuple[str, ...] = ()) -> list[Path]:
+#: Every file ``roadgonio road`` writes (the pictures not with ``--no-plots``).
+ROAD_FILES = ("road.json", "road_metrics.csv", "road_luminance.csv", "road_metrics.png", "road_luminance.png")
+
+
+def write_together(out_dir: Path, files: dict[str, bytes | str], *, replaces=()) -> list[Path]:
     """Write every file or none (:class:`roadgonio.fileio.OutputGroup`); an OSError is the one-line
-    error naming the file. ``replaces``: the command's own file names; those not in ``files`` (a
-    picture a ``--no-plots`` run does not draw) are removed once the new files are in place."""
+    error naming the file. ``replaces``: the command's own output names; those not in ``files`` are
+    removed once the new ones are in place (an earlier run's picture never stays beside them)."""
     from roadgonio.fileio import OutputGroup
     out_dir = Path(out_dir)
     with OutputGroup(out_dir, replaces=replaces) as g:
@@ -28,7 +37,8 @@ def write_together(out_dir: Path, files: dict[str, bytes | str], *, replaces: tu
 
 def metrics_csv(summaries: list[dict]) -> str:
     cols = ["table", "L_av", "U_o", "U_l", "TI", "R_EI", "class", "table_Q0", "table_S1"]
-    extra = ["u_L_av", "cov95_L_av", "u_U_o", "cov95_U_o", "u_U_l", "cov95_U_l", "u_TI", "P_meets"]
+    extra = ["u_L_av", "cov95_L_av", "u_U_o", "cov95_U_o", "u_U_l", "cov95_U_l", "u_TI", "P_meets",
+             "trials_without_value", "mean_L_av", "mean_U_o", "mean_U_l", "mean_TI"]
     lines = [",".join(cols + ["correlation"] + extra)]
     for s in summaries:
         base = [s["table"]] + [_f(s[c]) for c in cols[1:]]
@@ -36,14 +46,16 @@ def metrics_csv(summaries: list[dict]) -> str:
         if not unc:
             lines.append(",".join(base + [""] * (1 + len(extra))))
             continue
-        for mode in ("independent", "correlated"):
+        for mode in MODES:
             if mode not in unc:
                 continue
             m = unc[mode]
             row = []
             for k in ("L_av", "U_o", "U_l"):
                 row += ["", ""] if not m[k] else [_f(m[k]["u"]), f"{_f(m[k]['coverage_interval_95'][0], '.5g')}..{_f(m[k]['coverage_interval_95'][1], '.5g')}"]
-            row += [_f(m["TI"]["u"]) if m["TI"] else "", _f(m["P_meets_target"])]
+            row += [_f(m["TI"]["u"]) if m["TI"] else "", _f(m["P_meets_target"]),
+                    str(max((m.get("undefined_trials") or {}).values(), default=0))]
+            row += [_f(m[k]["mean"]) if m[k] else "" for k in ("L_av", "U_o", "U_l", "TI")]
             lines.append(",".join(base + [mode] + row))
     return "\n".join(lines) + "\n"
 
@@ -95,11 +107,16 @@ def metrics_png(summaries: list[dict], target: str | None, layout_text: str) -> 
         ax.bar(x, vals, color=[f"C{k}" for k in range(n)], alpha=0.75, width=0.6)
         for k, s in enumerate(summaries):
             unc = s.get("uncertainty") or {}
-            for off, mode, mk in ((-0.12, "independent", "o"), (0.12, "correlated", "s")):
+            for mode in MODES:
+                mk, off, _ = MODE_MARKS[mode]
                 m = (unc.get(mode) or {}).get(key)
                 if m:
+                    # the interval about the trials' mean, which it holds: the nominal value (the bar) can
+                    # lie outside it (trial 11 D5: min/max uniformities are biased down under noise; an
+                    # interval drawn about the nominal value needed a negative error and stopped the run)
                     lo, hi = m["coverage_interval_95"]
-                    ax.errorbar(k + off, m["nominal"], yerr=[[m["nominal"] - lo], [hi - m["nominal"]]], fmt=mk,
+                    mean = min(max(m["mean"], lo), hi)
+                    ax.errorbar(k + off, mean, yerr=[[mean - lo], [hi - mean]], fmt=mk,
                                 color="k", ms=3, capsize=3, lw=1)
             v = s[key]
             if v is not None:
@@ -116,9 +133,10 @@ def metrics_png(summaries: list[dict], target: str | None, layout_text: str) -> 
         ax.set_title(label)
         ax.grid(axis="y", alpha=0.3)
     classes = ", ".join(f"{s['table']}: {s['class'] or 'none'}" for s in summaries)
+    shown = [MODE_MARKS[m][2] for m in MODES if any(m in (s.get("uncertainty") or {}) for s in summaries)]
     fig.suptitle(f"EN 13201 metrics: {classes}\n{layout_text}"
-                 + ("\nerror bars: 95 % intervals, o independent cells, □ fully correlated" if any(s.get('uncertainty') for s in summaries) else ""),
-                 fontsize=9)
+                 + ("\nbars: the table's values; markers: the Monte Carlo mean with its 95 % interval, " + ", ".join(shown)
+                    if shown else ""), fontsize=9)
     fig.tight_layout()
     return _png(fig)
 

@@ -312,6 +312,137 @@ def u_names_sample(u: "RTable") -> tuple[str, bool] | None:
     return None if m is None else (m["sample"], m["what"].startswith("standard"))
 
 
+#: The file of the correlation between a table's cells (``roadgonio correct``'s corrected_corr.csv,
+#: read by ``road --corr``): a comment line, then ``cell,<label>,...`` and one row per cell, labelled
+#: ``tan eps/beta`` (:func:`cell_label`), values to :data:`CORR_DIGITS` decimals.
+CORR_COMMENT = "correlation of the corrected cells (rows and columns labelled tan eps/beta)"
+CORR_DIGITS = 4
+#: The largest error of a stored correlation: half its last decimal.
+CORR_ROUNDING = 0.5 * 10.0 ** -CORR_DIGITS
+
+
+def cell_label(tan_eps: float, beta_deg: float) -> str:
+    """A cell's label in a correlation file: ``tan eps/beta`` (``0.25/10``)."""
+    return f"{tan_eps:g}/{beta_deg:g}"
+
+
+def correlation_text(cells, corr: np.ndarray) -> str:
+    """The correlation matrix ``corr`` of ``cells`` ((tan eps, beta) pairs) as a correlation file."""
+    labels = [cell_label(t, b) for t, b in cells]
+    buf = io.StringIO()
+    buf.write(f"# {CORR_COMMENT}\n")
+    buf.write("cell," + ",".join(labels) + "\n")
+    for k, lab in enumerate(labels):
+        buf.write(lab + "," + ",".join(f"{v:.{CORR_DIGITS}f}" for v in corr[k]) + "\n")
+    return buf.getvalue()
+
+
+def _grid_cell(label: str, path, line: int) -> tuple[float, float]:
+    """(tan eps, beta) of a label ``tan eps/beta`` on the standard grid, or an InputError."""
+    parts = label.strip().split("/")
+    if len(parts) != 2:
+        raise InputError(f"expected a cell label 'tan eps/beta' (e.g. 0.25/10), got {label!r}", path=path, line=line)
+    t = _parse_number(parts[0], path, line, f"cell {label!r}, tan eps")
+    b = _parse_number(parts[1], path, line, f"cell {label!r}, beta")
+    i, j = np.abs(TAN_EPS_GRID - t).argmin(), np.abs(BETA_GRID_DEG - b).argmin()
+    if abs(TAN_EPS_GRID[i] - t) > 1e-6 or abs(BETA_GRID_DEG[j] - b) > 1e-6:
+        raise InputError(f"cell {label!r} is not on the standard grid (tan eps 0 ... 12, beta 0 ... 180)", path=path,
+                         line=line)
+    return float(TAN_EPS_GRID[i]), float(BETA_GRID_DEG[j])
+
+
+def read_cell_correlation(path: str | Path) -> tuple[list[tuple[float, float]], np.ndarray]:
+    """The cells ((tan eps, beta) on the standard grid) and their correlation matrix from a
+    correlation file (:data:`CORR_COMMENT`; corrected_corr.csv). Every mistake is one
+    :class:`InputError` naming the file, the line and what was expected: labels not on the grid or
+    twice, a row not labelled as its column, a value not a number, beyond +-1, a diagonal not 1 or
+    an asymmetry larger than the stored rounding (:data:`CORR_ROUNDING`)."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError("no such correlation file" if not p.exists() else "expected a correlation file, not a folder",
+                         path=p)
+    try:
+        text = p.read_text(encoding="utf-8-sig")
+    except OSError as err:
+        raise InputError(f"cannot read this correlation file ({err.strerror or err})", path=p) from None
+    except UnicodeDecodeError:
+        raise InputError("this correlation file is not a text file", path=p) from None
+    labels: list[str] | None = None
+    cells: list[tuple[float, float]] = []
+    rows: list[list[float]] = []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = next(csv.reader([raw]))
+        if labels is None:
+            if fields[0].strip().lower() != "cell" or len(fields) < 2:
+                raise InputError(f"expected a header 'cell,<tan eps/beta>,...' (as correct writes corrected_corr.csv), "
+                                 f"got {line[:60]!r}", path=p, line=lineno)
+            labels = [f.strip() for f in fields[1:]]
+            cells = [_grid_cell(lab, p, lineno) for lab in labels]
+            if len(set(cells)) != len(cells):
+                dup = next(lab for lab, c in zip(labels, cells) if cells.count(c) > 1)
+                raise InputError(f"cell {dup!r} is labelled twice in the header", path=p, line=lineno)
+            continue
+        k = len(rows)
+        if k >= len(labels):
+            raise InputError(f"expected {len(labels)} rows, one per cell of the header; found more", path=p,
+                             line=lineno)
+        if fields[0].strip() != labels[k]:
+            raise InputError(f"row {k + 1} must be labelled {labels[k]!r} (the header's cell {k + 1}), got "
+                             f"{fields[0].strip()!r}", path=p, line=lineno)
+        if len(fields) != len(labels) + 1:
+            raise InputError(f"expected {len(labels) + 1} fields (the label and one value per cell), found "
+                             f"{len(fields)}", path=p, line=lineno)
+        vals = [_parse_number(f.strip(), p, lineno, f"column {lab!r}") for f, lab in zip(fields[1:], labels)]
+        bad = next((lab for v, lab in zip(vals, labels) if abs(v) > 1.0 + CORR_ROUNDING), None)
+        if bad is not None:
+            raise InputError(f"column {bad!r}: a correlation must be between -1 and 1", path=p, line=lineno)
+        rows.append(vals)
+    if labels is None:
+        raise InputError("empty correlation file: expected a header 'cell,<tan eps/beta>,...' and one row per cell",
+                         path=p)
+    if len(rows) != len(labels):
+        raise InputError(f"expected {len(labels)} rows, one per cell of the header; found {len(rows)}", path=p)
+    c = np.array(rows)
+    k = int(np.argmax(np.abs(np.diag(c) - 1.0)))
+    if abs(c[k, k] - 1.0) > CORR_ROUNDING:
+        raise InputError(f"cell {labels[k]!r}: the diagonal must be 1 (a cell's correlation with itself), got "
+                         f"{c[k, k]:g}", path=p)
+    asym = np.abs(c - c.T)
+    if asym.max() > 2 * CORR_ROUNDING:
+        i, j = np.unravel_index(int(np.argmax(asym)), c.shape)
+        raise InputError(f"cells {labels[i]!r} and {labels[j]!r}: the matrix must be symmetric, got {c[i, j]:g} and "
+                         f"{c[j, i]:g}", path=p)
+    return cells, c
+
+
+#: The start of a header line that carries a note for the table's readers, one line each after the
+#: first: corrected_u.csv's "note: the data reject the eq. 4 fit ...", which ``road --u`` repeats.
+NOTE_PREFIX = "note: "
+
+
+def header_notes(t: "RTable") -> list[str]:
+    """The notes (:data:`NOTE_PREFIX` lines after the first) of a table's header, without the prefix."""
+    lines = [x.strip() for x in (t.source or "").splitlines()[1:]]
+    return [x[len(NOTE_PREFIX):] for x in lines if x.startswith(NOTE_PREFIX)]
+
+
+#: The words in the header of every table ``roadgonio correct`` corrects (corrected.csv: "R3 corrected
+#: for the aperture effect (r / k_A; reference ...)", and the one table of several instruments):
+#: what tells a corrected r-table from its standard uncertainty, whose header is :data:`U_HEADER`
+#: followed by it (:func:`corrected_r_header`).
+CORRECTED_R = "corrected for the aperture effect (r / k_A"
+
+
+def corrected_r_header(t: "RTable") -> str | None:
+    """The first header line of a table that says it is a corrected r-table (:data:`CORRECTED_R`,
+    not after :data:`U_HEADER`), or None."""
+    first = header_line(t)
+    return first if CORRECTED_R in first and not first.startswith(U_HEADER) else None
+
+
 def u_names_table(u: "RTable") -> str | None:
     """The first header line of the table a table of standard uncertainties says it belongs to (its
     header ``standard uncertainty of <that table's header>``, :data:`U_HEADER`), or None."""

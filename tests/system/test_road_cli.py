@@ -275,3 +275,172 @@ def test_a_metric_with_its_u_is_printed_to_the_decimal_place_of_u():
     assert _with_u("L_av", 1.10761, 0.0012, (1.10534, 1.10981)) == "L_av 1.1076 ± 0.0012 [1.1053, 1.1098]"
     assert _with_u("TI", 9.83, 2.3, (5.4, 14.2)) == "TI 9.8 ± 2.3 [5.4, 14.2]"
     assert _with_u("U_o", 0.557, 0.0, (0.557, 0.557)) == "U_o 0.557 ± 0 [0.557, 0.557]"
+    # trial 11 D5: the trials' mean beside the nominal value when they differ by more than u / 10
+    assert _with_u("U_l", 0.6186, 0.088, (0.241, 0.584), 0.4187) == "U_l 0.619 nominal, MC 0.419 ± 0.088 [0.241, 0.584]"
+    assert _with_u("L_av", 1.10761, 0.0012, (1.10534, 1.10981), 1.10770) == "L_av 1.1076 ± 0.0012 [1.1053, 1.1098]"
+    assert _with_u("L_av", 1.10761, 0.0012, (1.10534, 1.10981), 1.10761 + 0.00013) == \
+        "L_av 1.1076 nominal, MC 1.1077 ± 0.0012 [1.1053, 1.1098]"
+
+
+def test_road_prints_the_monte_carlo_mean_beside_an_interval_that_excludes_the_nominal(tmp_path, capsys):
+    """Trial 11 D5: with u = 30 % of r in independent cells the trials' U_o and U_l fall far below
+    the nominal values (min/max ratios under noise), and the line read 'U_l 0.619 ± 0.088 [0.241,
+    0.584]'. The line now says which is which (nominal, MC mean), road_metrics.csv has the means, and
+    road_metrics.png draws the interval about the mean (about the nominal value it needed a negative
+    error bar: a traceback)."""
+    t = bundled_table("R3")
+    t.with_values(0.3 * t.r).write_csv(tmp_path / "u.csv")
+    out = tmp_path / "o"
+    assert main(["road", "--table", "R3", "--u", str(tmp_path / "u.csv"), "--correlation", "independent",
+                 "--trials", "500", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    d = json.loads((out / "road.json").read_text())["tables"][0]["uncertainty"]["independent"]
+    for k in ("U_o", "U_l"):
+        m = d[k]
+        assert m["coverage_interval_95"][1] < m["nominal"]          # the case: the interval excludes the nominal
+        assert f"{k} {m['nominal']:.3f} nominal, MC {m['mean']:.3f} ± " in text, text
+    assert "(nominal: the table's own value; MC: the trials' mean" in text
+    row = list(csv.DictReader((out / "road_metrics.csv").read_text().splitlines()))[-1]
+    for k in ("L_av", "U_o", "U_l", "TI"):
+        assert float(row[f"mean_{k}"]) == pytest.approx(d[k]["mean"], rel=1e-5)
+    assert (out / "road_metrics.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_road_without_plots_removes_an_earlier_runs_pictures(tmp_path, capsys):
+    """Trial 11 D4: `road --table R2 --no-plots` into the folder of a `road --table R3` kept R3's
+    road_metrics.png and road_luminance.png beside R2's road.json. The pictures the new run does not
+    write go (the OutputGroup's 'replaces', as render does); a file of the user's stays."""
+    from roadgonio.road.report import ROAD_FILES
+    out = tmp_path / "o"
+    assert main(["road", "--table", "R3", "--out", str(out), "-q"]) == 0
+    assert {p.name for p in out.iterdir()} == set(ROAD_FILES)
+    (out / "notes.txt").write_text("mine")
+    assert main(["road", "--table", "R2", "--out", str(out), "-q", "--no-plots"]) == 0
+    assert {p.name for p in out.iterdir()} == {"road.json", "road_metrics.csv", "road_luminance.csv", "notes.txt"}
+    assert json.loads((out / "road.json").read_text())["tables"][0]["table"] == "R2"
+
+
+def test_road_refuses_an_r_table_as_its_u(tmp_path, capsys):
+    """Trial 11 D3: `--u corrected.csv` (or corrected.rtb), tab completion's neighbours of
+    corrected_u.csv, ran with u = 100 % of r and P(meets M3) = 0. An r-table given as u is refused in
+    one line naming the file and what to give: the table file itself, an RTB (a format for r only),
+    a CSV whose header says it is a corrected r-table (a copy elsewhere) and a bundled table."""
+    t = bundled_table("R3")
+    head = "R3 corrected for the aperture effect (r / k_A; reference self; instrument portable)"
+    corrected = t.with_values(t.r, source=head).write_csv(tmp_path / "corrected.csv")
+    t.with_values(t.r * 0.01, source="standard uncertainty of " + head).write_csv(tmp_path / "corrected_u.csv")
+    t.write_rtb(tmp_path / "corrected.rtb")
+    (tmp_path / "elsewhere").mkdir()
+    copy = tmp_path / "elsewhere" / "table.csv"
+    copy.write_bytes(corrected.read_bytes())
+    base = ["road", "--trials", "200", "--no-plots", "--out", str(tmp_path / "bad")]
+    for table, u, words in ((corrected, corrected, ["itself", "give corrected_u.csv beside it"]),
+                            (corrected, tmp_path / "corrected.rtb", ["RTB", "give corrected_u.csv beside it"]),
+                            ("R3", copy, ["is an r-table ('R3 corrected for the aperture effect", "corrected_u.csv"]),
+                            (corrected, "R3", ["bundled r-table R3"])):
+        rc = main(base + ["--table", str(table), "--u", str(u)])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and "\n" not in err and "--u" in err and "not a standard uncertainty" in err, err
+        assert str(u) in err or f"'{u}'" in err, err
+        for w in words:
+            assert w in err, (w, err)
+        assert not (tmp_path / "bad").exists()
+    assert main(["road", "--trials", "200", "--no-plots", "--table", str(corrected), "--u",
+                 str(tmp_path / "corrected_u.csv"), "--json"]) == 0
+    assert "uncertainty" in json.loads(capsys.readouterr().out)
+
+
+def test_road_says_how_many_trials_had_no_light(tmp_path, capsys):
+    """Trial 11 D1 from the command line: fully correlated u = 60 % of r, so some trials clip every
+    cell to 0; U_o, U_l and TI are still printed, with a note giving the number of trials without a
+    value, and road_metrics.csv has that number (trials_without_value)."""
+    t = bundled_table("R3")
+    t.with_values(0.6 * t.r).write_csv(tmp_path / "u.csv")
+    assert main(["road", "--table", "R3", "--u", str(tmp_path / "u.csv"), "--correlation", "correlated",
+                 "--trials", "2000", "--seed", "3", "--no-plots", "--out", str(tmp_path / "o")]) == 0
+    text = capsys.readouterr().out
+    d = json.loads((tmp_path / "o" / "road.json").read_text())["tables"][0]["uncertainty"]["correlated"]
+    dark = d["U_o"]["undefined_trials"]
+    assert dark > 0 and "U_o 0.5" in text and "U_l 0.6" in text and "; TI " in text, text
+    assert f"note: U_o, U_l and TI have no value in {dark} of 2000 trials" in text, text
+    rows = list(csv.DictReader((tmp_path / "o" / "road_metrics.csv").read_text().splitlines()))
+    assert rows[-1]["trials_without_value"] == str(dark) and rows[-1]["u_U_o"] != ""
+
+
+def test_road_repeats_the_note_of_its_u_file(tmp_path, capsys):
+    """Trial 11 D7: correct's "the data reject the eq. 4 fit" did not reach road --u. The note
+    corrected_u.csv's header carries (a 'note:' line after the line naming the table) is printed with
+    the Monte Carlo and kept in road.json (uncertainty.notes); a u file without one has none."""
+    t = bundled_table("R3")
+    head = "R3 corrected for the aperture effect (r / k_A; reference self; instrument portable)"
+    note = "the data reject the eq. 4 fit (Birge ratio 17.10, chi^2 113189 on 387 degrees of freedom)"
+    t.with_values(t.r, source=head).write_csv(tmp_path / "corrected.csv")
+    t.with_values(t.r * 0.01, source=f"standard uncertainty of {head}\nnote: {note}").write_csv(tmp_path / "u.csv")
+    assert f"# note: {note}" in (tmp_path / "u.csv").read_text()
+    t.with_values(t.r * 0.01, source=f"standard uncertainty of {head}").write_csv(tmp_path / "plain_u.csv")
+    for u, said in (("u.csv", [note]), ("plain_u.csv", [])):
+        assert main(["road", "--table", str(tmp_path / "corrected.csv"), "--u", str(tmp_path / u), "--trials", "200",
+                     "--no-plots", "--out", str(tmp_path / u[:-4])]) == 0
+        text = capsys.readouterr().out
+        assert (f"note in {tmp_path / u}: {note}" in text) is bool(said), text
+        d = json.loads((tmp_path / u[:-4] / "road.json").read_text())["tables"][0]["uncertainty"]
+        assert d["notes"] == said
+
+
+def test_road_takes_the_cells_correlation_from_correct(tmp_path, capsys):
+    """Trial 11 D6: correct writes the cells' correlation (corrected_corr.csv) beside corrected_u.csv,
+    road could not read it. In a correct folder road takes it (case 'given', said in the terminal and
+    road.json); --corr gives it explicitly (here another file: the one used is the one named);
+    --correlation both keeps the two limiting cases; a --corr the chosen cases do not use, or one
+    before any --table, is refused in one line; a u file not named corrected_u.csv has no
+    correlation found for it."""
+    from roadgonio.surface.rtable import correlation_text
+    t = bundled_table("R3")
+    folder = tmp_path / "correct"
+    folder.mkdir()
+    head = "R3 corrected for the aperture effect (r / k_A; reference self; instrument portable)"
+    table = t.with_values(t.r, source=head).write_csv(folder / "corrected.csv")
+    u = t.with_values(0.03 * t.r, source="standard uncertainty of " + head).write_csv(folder / "corrected_u.csv")
+    n = int(t.mask.sum())
+    (folder / "corrected_corr.csv").write_text(correlation_text(t.cells, np.ones((n, n))))
+    (tmp_path / "indep_corr.csv").write_text(correlation_text(t.cells, np.eye(n)))
+    base = ["road", "--table", str(table), "--u", str(u), "--trials", "500", "--no-plots"]
+
+    def run(*extra, out="o"):
+        rc = main(base + list(extra) + ["--out", str(tmp_path / out)])
+        return rc, capsys.readouterr()
+
+    rc, cap = run()
+    assert rc == 0, cap.err
+    assert f"cells' correlation from {folder / 'corrected_corr.csv'} (beside the u file)" in cap.out, cap.out
+    d = json.loads((tmp_path / "o" / "road.json").read_text())["tables"][0]["uncertainty"]
+    assert "given" in d and "independent" not in d and "correlated" not in d
+    assert d["correlation_file"] == str(folder / "corrected_corr.csv") and d["correlation_found_beside_u"] is True
+    assert d["given"]["U_o"]["u"] < 1e-9                         # all ones: the fully correlated case
+    rc, cap = run("--corr", str(tmp_path / "indep_corr.csv"), out="o2")
+    d = json.loads((tmp_path / "o2" / "road.json").read_text())["tables"][0]["uncertainty"]
+    assert rc == 0 and d["correlation_file"] == str(tmp_path / "indep_corr.csv") and not d["correlation_found_beside_u"]
+    assert d["given"]["U_o"]["u"] > 1e-3                          # the identity: independent cells
+    rc, cap = run("--correlation", "both", out="o3")
+    d = json.loads((tmp_path / "o3" / "road.json").read_text())["tables"][0]["uncertainty"]
+    assert rc == 0 and set(d) >= {"independent", "correlated"} and "given" not in d and d.get("correlation_file") is None
+    rows = list(csv.DictReader((tmp_path / "o" / "road_metrics.csv").read_text().splitlines()))
+    assert [r["correlation"] for r in rows] == ["given"]
+    for extra, words in ((["--corr", str(tmp_path / "indep_corr.csv"), "--correlation", "both"],
+                         ["--corr", "indep_corr.csv", "not used with correlation 'both'"]),
+                         (["--corr", str(tmp_path / "nothere.csv")], ["nothere.csv", "no such correlation file"])):
+        rc, cap = run(*extra, out="bad")
+        err = cap.err.strip()
+        assert rc == 2 and "\n" not in err, err
+        for w in words:
+            assert w in err, (w, err)
+        assert not (tmp_path / "bad").exists()
+    rc = main(["road", "--corr", str(tmp_path / "indep_corr.csv"), "--table", "R3", "--out", str(tmp_path / "bad")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "--corr" in err and "comes before any --table" in err, err
+    other = tmp_path / "u_elsewhere.csv"
+    other.write_bytes(u.read_bytes())
+    assert main(["road", "--table", str(table), "--u", str(other), "--trials", "500", "--no-plots", "--json",
+                 "--out", str(tmp_path / "o4")]) == 0
+    d = json.loads(capsys.readouterr().out)["uncertainty"]
+    assert {"independent", "correlated"} <= set(d) and "given" not in d

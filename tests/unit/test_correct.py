@@ -414,3 +414,40 @@ def test_cie_class_probabilities_use_u_as_a_standard_deviation():
     assert p["R3"] == pytest.approx(phi(11.0) - phi(1.0), rel=1e-9)
     assert p["R2"] == pytest.approx(phi(1.0) - phi(-7.6), rel=1e-9)
     assert p["R1"] == pytest.approx(phi(-7.6), rel=1e-6) and p["R4"] == pytest.approx(1.0 - phi(11.0), abs=1e-15)
+
+
+def test_the_note_that_the_data_reject_the_fit_travels_in_corrected_u_csv(tmp_path, r3like):
+    """Trial 11 D7: correct printed "note: the data reject the eq. 4 fit" but corrected_u.csv, what
+    road --u reads, did not carry it. A fit the data reject (a table 5 % off the model in a pattern:
+    chi^2 / dof ~ 20) has the note in its summary, and the u file's header has it as a 'note:' line
+    after the line naming the table (header_notes reads it back); a fit the data do not reject
+    writes no note."""
+    from types import SimpleNamespace
+
+    from roadgonio.correction.outputs import u_csv_text
+    from roadgonio.surface.rtable import U_HEADER, header_notes, u_names_table
+    inst = load_instrument("portable")
+    cells = bundled_table("R3").cells[::25]
+    fm = ForwardModel(RayBundles.build(inst, cells, rays=64))
+    n = len(cells)
+    exact = fm.r_measured(r3like)
+    g = np.full(bundled_table("R3").r.shape, np.nan)
+    t = bundled_table("R3")
+    for (te, b), v in zip(cells, exact):
+        g[int(np.argmin(abs(t.tan_eps - te))), int(np.argmin(abs(t.beta_deg - b)))] = v
+    table = RTable(g, name="meas_corrected", source="meas corrected for the aperture effect (r / k_A; ...)")
+    for y, rejected in ((exact * (1.0 + 0.05 * np.cos(np.arange(n))), True), (exact, False)):
+        f = assess_fit(fm, y, 0.01 * y, r3like)
+        s = f.summary()
+        assert s["misfit"] is rejected and (s["misfit_note"] is not None) is rejected
+        path = tmp_path / f"u_{rejected}.csv"
+        path.write_text(u_csv_text(SimpleNamespace(corrected=table, u_corrected=0.01 * g, fit=f)))
+        u = read_table(path, "u")
+        assert u_names_table(u) == "meas corrected for the aperture effect (r / k_A; ...)"
+        assert u.source.startswith(U_HEADER)
+        notes = header_notes(u)
+        if rejected:
+            assert len(notes) == 1 and notes[0].startswith(s["misfit_note"]) and "Birge ratio" in notes[0], notes
+            assert "this u may not cover" in notes[0]
+        else:
+            assert notes == []

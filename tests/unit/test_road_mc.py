@@ -225,3 +225,160 @@ def test_ti_takes_the_initial_l_av(default_installation):
     mf = inst.layout.maintenance_factor
     assert mf == 0.8 and v["L_av"] / mf <= 5.0
     assert v["TI"] == pytest.approx(65.0 * inst.l_v_max / (v["L_av"] / mf) ** 0.8, rel=REL, abs=0.0)
+
+
+def test_trials_without_light_are_counted_not_a_reason_to_drop_the_metric(default_installation):
+    """Trial 11 D1: fully correlated u, a trial with z < -1/u_rel clips every cell to 0: no light, U_o
+    and U_l are 0/0 and TI infinite; that one trial dropped U_o, U_l and TI from the results (null,
+    depending on the seed). With u = 0.6 r in every cell, each trial is max(1 + 0.6 z, 0) x the
+    nominal luminance: U_o and U_l are the nominal ones in every lit trial (u 0), the unlit trials
+    are a fraction Phi(-1/0.6) (binomial), counted per metric and said in a note, and P(meets) counts
+    them as failing."""
+    inst = default_installation
+    t = bundled_table("R3")
+    n = 4000
+    res = propagate(inst, t, t.with_values(0.6 * t.r), trials=n, seed=3, correlations=("correlated",))
+    m = res["correlated"]
+    nominal = inst.evaluate(t)
+    p = NormalDist().cdf(-1.0 / 0.6)
+    dark = m["U_o"]["undefined_trials"]
+    assert abs(dark - n * p) < N_SIGMA * math.sqrt(n * p * (1 - p)), dark
+    assert dark > 0 and m["undefined_trials"] == {"U_o": dark, "U_l": dark, "TI": dark}
+    for k in ("U_o", "U_l"):
+        assert m[k]["undefined_trials"] == dark
+        assert m[k]["mean"] == pytest.approx(nominal.values[k], rel=REL, abs=0.0)
+        assert m[k]["u"] <= REL * nominal.values[k]
+    for k, lane in enumerate(m["U_l_per_lane"]):
+        assert lane["undefined_trials"] == dark and lane["u"] <= REL
+        assert lane["nominal"] == pytest.approx(nominal.per_observer["U_l_lane"][k], rel=REL, abs=0.0)
+    assert m["TI"] is not None and m["TI"]["undefined_trials"] == dark and math.isfinite(m["TI"]["u"])
+    assert m["L_av"]["undefined_trials"] == 0
+    assert m["P_meets_target"] <= 1.0 - dark / n
+    assert f"no value in {dark} of {n} trials" in m["note"] and "U_o, U_l and TI" in m["note"]
+    quiet = propagate(inst, t, t.with_values(0.03 * t.r), trials=500, seed=3, correlations=("correlated",))
+    assert quiet["correlated"]["note"] is None and quiet["correlated"]["undefined_trials"] == {}
+
+
+# ----------------------------------------------------------------------------------------------
+# the cells' correlation given (trial 11 D6: correct writes corrected_corr.csv, road could not read it)
+# ----------------------------------------------------------------------------------------------
+
+def _two_groups(t):
+    """The tabulated cells of ``t`` and a correlation of two groups, beta < 15 deg and the rest: fully
+    correlated within a group, fully anti-correlated between them (rank 1: sign_i sign_j)."""
+    ii, jj = np.nonzero(t.mask)
+    cells = [(float(t.tan_eps[i]), float(t.beta_deg[j])) for i, j in zip(ii, jj)]
+    sign = np.where(t.beta_deg[jj] < 15.0, 1.0, -1.0)
+    return cells, np.outer(sign, sign), sign, np.ravel_multi_index((ii, jj), t.r.shape)
+
+
+def test_a_given_correlation_is_propagated_and_the_limiting_cases_are_no_bounds(default_installation):
+    """u = 3 % r, correlation w s s^T + (1 - w) I (s_i the sign of the cell's group in _two_groups,
+    plus independent noise): L_av is (nearly) linear, so u(L_av)^2 = w (sum_i c_i s_i)^2 + (1 - w)
+    sum_i c_i^2 (c_i = a_i u_i, a_i = dL_av / dr_i of the operative observer). With w = 1 that is
+    0.0030: below the independent case's 0.0040 and far below the fully correlated 0.033, and u(U_o)
+    is above both limiting cases (independent 0.0094, fully correlated 0). With w = 0.5 (0.0035) the
+    eigenvalues differ, so a square root of the matrix taken wrongly (no square root of the
+    eigenvalues: 0.0030) fails, as does one that ignores the matrix."""
+    inst = default_installation
+    t = bundled_table("R3")
+    cells, groups, sign, flat = _two_groups(t)
+    op = inst.operator(t)
+    o = int(np.argmin(inst.evaluate(t).per_observer["L_av_obs"]))
+    c = (op.W[o].mean(axis=0) * np.nan_to_num(0.03 * t.r.ravel()))[flat]
+    n = 20000
+    for w, modes in ((1.0, ("independent", "correlated", "given")), (0.5, ("given",))):
+        corr = w * groups + (1 - w) * np.eye(len(cells))
+        res = propagate(inst, t, t.with_values(0.03 * t.r), trials=n, seed=7, corr=(cells, corr), correlations=modes)
+        want = math.sqrt(w * float(c @ sign) ** 2 + (1 - w) * float(c @ c))
+        got = res["given"]["L_av"]["u"]
+        assert abs(got - want) < N_SIGMA * want / math.sqrt(2 * (n - 1)), (w, got, want)
+        if w == 1.0:        # the case: outside both limiting cases
+            assert want < 0.8 * res["independent"]["L_av"]["u"]
+            assert res["given"]["U_o"]["u"] > 1.2 * res["independent"]["U_o"]["u"] > 1.2 * res["correlated"]["U_o"]["u"]
+        else:
+            assert abs(want - abs(float(c @ sign))) > 20 * want / math.sqrt(2 * (n - 1))   # the mutant is told apart
+
+
+def test_a_fully_correlated_matrix_given_is_the_fully_correlated_case(default_installation):
+    """A matrix of ones (every cell fully correlated, all eigenvalues 0 but one) given: every trial
+    scales the table, so U_o and U_l do not move (u below rounding), as in the 'correlated' case."""
+    inst = default_installation
+    t = bundled_table("R3")
+    cells, corr, _, _ = _two_groups(t)
+    res = propagate(inst, t, t.with_values(0.03 * t.r), trials=500, seed=2, corr=(cells, np.abs(corr)),
+                    correlations=("given",))
+    nominal = inst.evaluate(t).values
+    for k in ("U_o", "U_l"):
+        assert res["given"][k]["u"] <= REL * nominal[k]
+    assert res["given"]["L_av"]["u"] > 0.01 * nominal["L_av"]
+
+
+def test_the_correlation_file_correct_writes_is_what_road_reads(tmp_path):
+    """corrected_corr.csv (correct's writer, from a budget with a systematic component) read back by
+    road's reader: the same cells in the same order and the matrix to the stored rounding."""
+    from roadgonio.correction.budget import Budget
+    from roadgonio.correction.outputs import _correlation_text
+    from roadgonio.surface.rtable import CORR_ROUNDING, read_cell_correlation
+    t = bundled_table("R3")
+    n = int(t.mask.sum())
+    b = Budget(n)
+    b.add("measurement", np.full(n, 0.01))
+    b.add_systematic("model", np.linspace(-0.02, 0.03, n))
+    path = tmp_path / "corrected_corr.csv"
+    path.write_text(_correlation_text(t, b))
+    cells, c = read_cell_correlation(path)
+    assert cells == [(float(x), float(y)) for x, y in t.cells]
+    assert np.max(np.abs(c - b.correlation())) <= CORR_ROUNDING * (1 + 1e-9)
+    assert np.min(c) < -0.5                                      # mixed signs survive the round trip
+
+
+@pytest.mark.parametrize("edit,words", [
+    (lambda rows: rows[:1] + [rows[1].replace("cell,", "cells,")] + rows[2:], ["header 'cell,"]),
+    (lambda rows: rows[:1] + [rows[1].replace(",0/2,", ",0/3,")] + rows[2:], ["'0/3' is not on the standard grid"]),
+    (lambda rows: rows[:3] + [rows[3].replace("0/2,", "0/5,", 1)] + rows[4:], ["row 2 must be labelled '0/2'"]),
+    (lambda rows: rows[:2] + [rows[2].replace("1.0000", "0.9000", 1)] + rows[3:], ["'0/0'", "diagonal must be 1"]),
+    (lambda rows: rows[:2] + [rows[2][:-6] + "0.5000"] + rows[3:], ["symmetric"]),
+    (lambda rows: rows[:2] + [rows[2][:-6] + "1.5000"] + rows[3:], ["between -1 and 1"]),
+    (lambda rows: rows[:2] + [rows[2][:-6] + "abc"] + rows[3:], ["expected a number"]),
+    (lambda rows: rows[:-1], ["expected 3 rows"]),
+])
+def test_a_bad_correlation_file_is_refused_in_one_line(tmp_path, edit, words):
+    from helpers import refused_in_one_line
+
+    from roadgonio.surface.rtable import correlation_text, read_cell_correlation
+    rows = correlation_text([(0.0, 0.0), (0.0, 2.0), (0.25, 0.0)], np.eye(3)).splitlines()
+    path = tmp_path / "corr.csv"
+    path.write_text("\n".join(edit(rows)) + "\n")
+    refused_in_one_line(lambda: read_cell_correlation(path), path, words)
+
+
+def test_a_correlation_that_lacks_a_used_cell_or_is_no_correlation_matrix_is_refused(default_installation, tmp_path):
+    """A used cell without a row, and a matrix with an eigenvalue below what the 4-decimal rounding
+    can make (three cells pairwise correlated -0.9): one line naming the file and what was expected."""
+    from helpers import refused_in_one_line
+    inst = default_installation
+    t = bundled_table("R3")
+    u = t.with_values(0.03 * t.r)
+    cells, corr, _, _ = _two_groups(t)
+    path = tmp_path / "corrected_corr.csv"
+    used = inst.operator(t).used_cells
+    at = {c: k for k, c in enumerate(cells)}
+    i, j = np.unravel_index(used[0], t.r.shape)
+    gone = at[(float(t.tan_eps[i]), float(t.beta_deg[j]))]
+    keep = [k for k in range(len(cells)) if k != gone]
+    refused_in_one_line(lambda: propagate(inst, t, u, trials=200, corr=([cells[k] for k in keep], corr[np.ix_(keep, keep)]),
+                                          corr_path=path, correlations=("given",)),
+                        path, [f"no row for tan eps {t.tan_eps[i]:g}, beta {t.beta_deg[j]:g}", "a cell the road uses"])
+    bad = np.eye(len(cells))
+    ii, jj = np.unravel_index(used[:3], t.r.shape)
+    k3 = [at[(float(t.tan_eps[i]), float(t.beta_deg[j]))] for i, j in zip(ii, jj)]
+    for x in k3:
+        for y in k3:
+            if x != y:
+                bad[x, y] = -0.9
+    refused_in_one_line(lambda: propagate(inst, t, u, trials=200, corr=(cells, bad), corr_path=path,
+                                          correlations=("given",)),
+                        path, ["not a correlation matrix", "smallest eigenvalue"])
+    with pytest.raises(InputError, match="needs the cells' correlation"):
+        propagate(inst, t, u, trials=200, correlations=("given",))
