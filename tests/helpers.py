@@ -307,12 +307,14 @@ SE_HONESTY_CELLS = [(12.0, 0.0), (8.0, 0.0), (4.0, 2.0), (4.0, 0.0), (2.0, 0.0),
 def assert_se_is_honest(make_mc, reference, seeds) -> None:
     """``make_mc(seed)`` a Monte Carlo backend, ``reference`` a converged float64 reference backend
     of the same instrument: over every seed x cell of :data:`SE_HONESTY_CELLS`, z = (k_A - k_A,ref) /
-    hypot(SE, SE_ref) must look normal: mean z^2 <= chi2.isf(ALPHA, m) / m (the sum of m squared
-    normal z is chi-square with m degrees of freedom) and no |z| beyond z_family(m). Either side not
-    converged fails (a z of an unconverged side means nothing)."""
+    hypot(SE, SE_ref), mapped through Student's t of that SE's degrees of freedom (the two SEs'
+    ``se_dof`` combined by Welch-Satterthwaite, written here) to a normal quantile, must look normal:
+    mean square <= chi2.isf(ALPHA, m) / m (the sum of m squared normal values is chi-square with m
+    degrees of freedom) and none beyond z_family(m). Either side not converged fails (a z of an
+    unconverged side means nothing)."""
     import math
 
-    from scipy.stats import chi2
+    from scipy.stats import chi2, norm, t as student_t
     from tolerances import ALPHA, z_family
     ref = {(r.tan_eps, r.beta_deg): r for r in reference.compute(SE_HONESTY_CELLS)}
     z = []
@@ -320,7 +322,10 @@ def assert_se_is_honest(make_mc, reference, seeds) -> None:
         for r in make_mc(seed).compute(SE_HONESTY_CELLS):
             c = ref[(r.tan_eps, r.beta_deg)]
             assert r.converged and c.converged, (r, c)
-            z.append((r.k_a - c.k_a) / math.hypot(r.se, c.se))
+            assert r.se_dof >= 1 and c.se_dof >= 1, (r, c)
+            a, b = r.se ** 2, c.se ** 2
+            dof = (a + b) ** 2 / (a * a / r.se_dof + b * b / c.se_dof)
+            z.append(norm.isf(student_t.sf((r.k_a - c.k_a) / math.sqrt(a + b), dof)))
     z = np.array(z)
     m = z.size
     assert float(np.mean(z * z)) <= chi2.isf(ALPHA, m) / m, (float(np.sqrt(np.mean(z * z))), m)

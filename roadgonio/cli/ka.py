@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 from roadgonio import api
 from roadgonio.cli._common import (
@@ -47,7 +48,7 @@ def register(sub) -> None:
                         "e.g. 12:0,12:2,4:0")
     p.add_argument("--out", metavar="DIR", help="output folder for a table (default: out/ka-INSTRUMENT-SAMPLE)")
     p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
-    add_output_options(p, 'one cell: print {"k_a", "se", "error_bound", "confidence_bound", "confidence_level", '
+    add_output_options(p, 'one cell: print {"k_a", "se", "se_dof", "error_bound", "confidence_bound", "confidence_level", '
                           '"converged", "samples", "seconds", ...}; table: print the summary as JSON')
     p.set_defaults(func=run)
 
@@ -67,12 +68,14 @@ def run(args) -> int:
                              if not args.out else "interrupted: run the same command again to resume")
         c = api.ka_cell(args.instrument, args.sample, args.tan_eps, args.beta, out=args.out, **common)
         if args.json:
-            print_json({"k_a": c.k_a, "se": c.se, "error_bound": c.error_bound, "confidence_bound": c.confidence_bound,
+            print_json({"k_a": c.k_a, "se": c.se, "se_dof": c.se_dof, "error_bound": c.error_bound,
+                        "confidence_bound": c.confidence_bound,
                         "confidence_level": c.confidence_level, "converged": c.converged, "samples": c.samples, "seconds": c.seconds,
                         "k_a_direct": c.k_a_direct, "k_a_direct_se": c.k_a_direct_se,
                         "stray_fraction": c.stray_fraction, "stray_fraction_se": c.stray_fraction_se})
         else:
-            prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error")
+            prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error"
+                    + (f" with {c.se_dof:.0f} degrees of freedom" if math.isfinite(c.se_dof) else ""))
             text_output(args)(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
                               f"{c.samples} samples, {c.seconds:.2f} s, {args.backend} backend)"
                               + ("" if c.converged else _not_converged_text(c, args.rel_se))

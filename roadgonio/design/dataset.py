@@ -31,6 +31,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     bi = {float(b): k for k, b in enumerate(betas)}
     k_a = np.full((n, ns, len(tans), len(betas)), np.nan)
     se = np.full_like(k_a, np.nan)
+    dof = np.full_like(k_a, np.nan)          # NaN for tables journaled before it was kept
     bound = np.full_like(k_a, np.nan)
     conf = np.full_like(k_a, np.nan)
     level = np.full_like(k_a, np.nan)
@@ -62,6 +63,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                 a, bb = ti[float(t)], bi[float(b)]
                 k_a[i, j, a, bb] = _f(rec["k_a"][c])
                 se[i, j, a, bb] = _f(rec["se"][c])
+                dof[i, j, a, bb] = _f((rec.get("se_dof") or [None] * len(s.cells))[c])
                 bound[i, j, a, bb] = _f(rec["error_bound"][c])
                 # journals written before the confidence bound was kept have neither field
                 conf[i, j, a, bb] = _f((rec.get("confidence_bound") or [None] * len(s.cells))[c])
@@ -128,6 +130,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     data = {
         "k_a": (cell_dims, grid(k_a), {"long_name": "aperture-effect factor k_A (docs/conventions.md section 5)", "units": "1"}),
         "se": (cell_dims, grid(se), {"long_name": "standard error of k_A (Monte Carlo; NaN for deterministic backends)"}),
+        "se_dof": (cell_dims, grid(dof), field_attrs("se_dof")),          # as in the k_A Dataset
         "error_bound": (cell_dims, grid(bound), {"long_name": "deterministic error bound of k_A (quadrature; NaN for "
                                                               "Monte Carlo)"}),
         "confidence_bound": (cell_dims, grid(conf), {"long_name": "statistical bound of |k_A - true k_A| holding with "

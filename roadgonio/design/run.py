@@ -37,9 +37,10 @@ JOURNAL = "design_points.jsonl"
 DEFAULT_TOLERANCE = 0.05
 #: The per-cell fields kept in the journal (in the order of the task's cells).
 #: The stray-light fields (k_a_direct, stray_fraction and their SEs) are journaled since trial 10
-#: D10; a journal written before has none and resumes with them NaN in design.nc.
+#: D10, the SEs' degrees of freedom (se_dof) since session 12; a journal written before has none and
+#: resumes with them NaN in design.nc.
 _CELL_FIELDS = ("k_a", "se", "error_bound", "confidence_bound", "confidence_level", "converged", "samples",
-                *STRAY_CELL_FIELDS)
+                *STRAY_CELL_FIELDS, "se_dof")
 
 
 @dataclass(frozen=True)

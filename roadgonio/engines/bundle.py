@@ -420,7 +420,7 @@ class BundleBackend:
         out = []
         for i, (t, b) in enumerate(cells):
             c = CellResult(t, b, float(k[i]), float(se[i]), int(bundles.rays_per_cell[i]), dt,
-                           {"ess_fraction": float(bundles.ess_fraction[i])})
+                           {"ess_fraction": float(bundles.ess_fraction[i])}, se_dof=float(self.replicates - 1))
             out.append(c)
             if on_cell is not None:
                 on_cell(c)

@@ -53,7 +53,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from roadgonio.engines.result import CellResult, KaBackend
+from roadgonio.engines.result import CellResult, KaBackend, welch_satterthwaite
 from roadgonio.engines.rules import ORDERS, DetectorNodes, disc_rule, size
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.fileio import fingerprint
@@ -317,18 +317,24 @@ class CalibratedBackend:
             kd = apply_calibration("absolute", c.k_a_direct, eta=eta)
             k = kd / (1.0 - c.stray_fraction)
             se = abs(k) * math.hypot(_rel(c.k_a_direct_se, c.k_a_direct), c.stray_fraction_se / (1.0 - c.stray_fraction))
+            # (two SEs of the same replicates, each with at least se_dof degrees of freedom)
             return CellResult(c.tan_eps, c.beta_deg, k, se, c.samples, c.seconds, extra, error_bound=bound,
                               converged=c.converged and eta_ok, k_a_direct=kd, k_a_direct_se=c.k_a_direct_se * eta,
-                              stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se, **conf)
+                              stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se,
+                              se_dof=c.se_dof, **conf)
+        # eta is computed, not sampled: the SE keeps its degrees of freedom
         return CellResult(c.tan_eps, c.beta_deg, apply_calibration("absolute", c.k_a, eta=eta), c.se * eta,
                           c.samples, c.seconds, extra,
-                          error_bound=bound, converged=c.converged and eta_ok, **conf)
+                          error_bound=bound, converged=c.converged and eta_ok, se_dof=c.se_dof, **conf)
 
     def _reference(self, c: CellResult, r: CellResult) -> CellResult:
         k = apply_calibration("reference", c.k_a, reference_reading=r.k_a)
+        dof = math.nan
         if math.isfinite(c.se) or math.isfinite(r.se):
             rel = math.hypot(_rel(c.se, c.k_a), _rel(r.se, r.k_a))
             se, bound = abs(k) * rel, math.nan
+            # two independent estimates: the effective degrees of freedom of their sum of variances
+            dof = welch_satterthwaite([_rel(c.se, c.k_a) ** 2, _rel(r.se, r.k_a) ** 2], [c.se_dof, r.se_dof])
         else:
             se, bound = math.nan, abs(k) * (_rel(c.error_bound, c.k_a) + _rel(r.error_bound, r.k_a))
         # confidence bounds (the RQMC reference) add like the deterministic bounds; the sum holds
@@ -345,8 +351,11 @@ class CalibratedBackend:
             stray = dict(k_a_direct=kd, k_a_direct_se=abs(kd) * math.hypot(_rel(c.k_a_direct_se, c.k_a_direct),
                                                                           _rel(r.k_a_direct_se, r.k_a_direct)),
                          stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se)
+            dof = float(np.fmin(dof, welch_satterthwaite(
+                [_rel(c.k_a_direct_se, c.k_a_direct) ** 2, _rel(r.k_a_direct_se, r.k_a_direct) ** 2],
+                [c.se_dof, r.se_dof])))
         return CellResult(c.tan_eps, c.beta_deg, k, se, c.samples + r.samples, c.seconds + r.seconds, extra,
-                          error_bound=bound, converged=c.converged and r.converged, **conf, **stray)
+                          error_bound=bound, converged=c.converged and r.converged, se_dof=dof, **conf, **stray)
 
     def _unity(self, tan_eps: float, beta_deg: float, c: CellResult | None = None) -> CellResult:
         """k_A = 1 exactly (the reference is the sample); with stray light the sample's stray fraction

@@ -350,7 +350,8 @@ class MeshMonteCarloBackend(CellByCellBackend):
         converged = bool(se <= self.rel_se * abs(k))
         extra = {"batches": int(road.size), "converged": converged, "rel_se": se / abs(k) if k else math.inf}
         return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), converged=converged,
-                          samples=int(road.size) * self.batch, seconds=time.perf_counter() - t0, extra=extra)
+                          samples=int(road.size) * self.batch, seconds=time.perf_counter() - t0, extra=extra,
+                          se_dof=float(road.size - 1))
 
 
 def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = DEFAULT_REL_SE, seed: int = 0,

@@ -180,7 +180,7 @@ class MonteCarloBackend(CellByCellBackend):
         converged = bool(se <= self.rel_se * abs(k))
         extra = {"batches": len(road), "converged": converged, "rel_se": se / abs(k) if k else math.inf}
         return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), converged=converged, samples=int(n),
-                          seconds=time.perf_counter() - t0, extra=extra)
+                          seconds=time.perf_counter() - t0, extra=extra, se_dof=float(len(road) - 1))
 
 
 

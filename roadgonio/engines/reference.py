@@ -533,7 +533,7 @@ class ReferenceBackend(CellByCellBackend):
         extra["rtol"] = target
         return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), confidence_bound=float(bound),
                           confidence_level=self.confidence, converged=converged, samples=int(evals),
-                          seconds=time.perf_counter() - t0, extra=extra)
+                          seconds=time.perf_counter() - t0, extra=extra, se_dof=float(R - 1))
 
 
 def _number(v, name: str) -> float:

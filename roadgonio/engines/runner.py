@@ -272,6 +272,12 @@ FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
     "stray_fraction_se": ("standard error of stray_fraction", "1",
                           "a standard error, as se; 0 without stray light traced, where the stray fraction is 0 "
                           "exactly (no reflecting parts: not an estimate)"),
+    "se_dof": ("degrees of freedom of the standard errors", "1",
+               "of se, k_a_direct_se and stray_fraction_se as estimates (the smallest of the three): n - 1 for n "
+               "independent replicates or batches, the Welch-Satterthwaite value over the Mitsuba backend's passes "
+               "(15 for a cell that converged in its first pass). An error over such an SE follows Student's t with "
+               "this many degrees of freedom: a coverage interval or a pass/fail takes the t quantile "
+               "(docs/validation.md). NaN where no SE is estimated"),
 }
 #: The stray-light outputs (written when the scene made stray light): field -> file.
 STRAY_FILES = {"k_a_direct": "ka_direct.csv", "k_a_direct_se": "ka_direct_se.csv",

@@ -144,9 +144,9 @@ def batch_terms(instrument: Instrument, model: RoadModel, wall: Wall, tan_eps: f
 def reference(instrument: Instrument, model: RoadModel, wall: Wall, tan_eps: float, beta_deg: float, *,
               samples: int = 1 << 22, batches: int = 64, seed: int = 0) -> dict:
     """k_A with the wall (``k_a``), of the direct light alone (``k_a_direct``) and the stray
-    fraction 1 - S_direct[f] / S_total[f] of the road channel, each with its standard error, and the
-    terms' batch sums (``terms``: batches x 3 x 2), from ``samples`` samples in ``batches``
-    independent batches."""
+    fraction 1 - S_direct[f] / S_total[f] of the road channel, each with its standard error (with
+    ``se_dof`` = batches - 1 degrees of freedom), and the terms' batch sums (``terms``: batches x 3 x
+    2), from ``samples`` samples in ``batches`` independent batches."""
     rng = np.random.default_rng([seed, 0x5EF])
     per = max(1, samples // batches)
     t = np.stack([batch_terms(instrument, model, wall, tan_eps, beta_deg, per, rng) for _ in range(batches)])
@@ -156,4 +156,5 @@ def reference(instrument: Instrument, model: RoadModel, wall: Wall, tan_eps: flo
     kd, kd_se = ratio_se(t[:, 0, 0], t[:, 0, 1])
     q, q_se = ratio_se(t[:, 0, 0], tot[:, 0])
     return {"k_a": k / ideal, "se": k_se / ideal, "k_a_direct": kd / ideal, "k_a_direct_se": kd_se / ideal,
-            "stray_fraction": 1.0 - q, "stray_fraction_se": q_se, "terms": t, "samples": per * batches}
+            "stray_fraction": 1.0 - q, "stray_fraction_se": q_se, "se_dof": float(batches - 1), "terms": t,
+            "samples": per * batches}

@@ -10,15 +10,21 @@ the right statistics for each kind of precision (docs/conventions.md section 5, 
 Standard errors combine in quadrature, a bound is added as a bound, never as an SE::
 
     sigma   = sqrt(se_mc^2 + se_ref^2)                       (se_ref = 0 for a bounded reference)
-    allowed = N_SIGMA * sigma + bound_ref + floor * |k_ref|
+    allowed = n_sigma * sigma + bound_ref + floor * |k_ref|
+    n_sigma = t_equivalent(N_SIGMA, dof)
 
 where ``floor`` is the relative float32 floor of the renderer (:data:`FLOAT32_FLOOR`; 0 for the
-float64 numpy Monte Carlo). Each cell gets one verdict:
+float64 numpy Monte Carlo) and ``n_sigma`` the multiple of sigma that a Student-t error of sigma's
+degrees of freedom ``dof`` exceeds as often as a normal error exceeds N_SIGMA (the SE's ``se_dof``,
+combined by Welch-Satterthwaite with the reference's when its SE enters sigma; N_SIGMA itself for an
+SE without degrees of freedom): an SE from 16 replicates (15 degrees of freedom, the Mitsuba
+backend's first pass) makes z a t_15 variable, beyond 4 in 0.12 % of cells, not 0.006 %, so its
+test is 5.48 sigma (docs/validation.md, "How heavy are the tails"). Each cell gets one verdict:
 
 * **disagree**: ``|k_mc - k_ref| > allowed`` with a reference that converged (the difference is
   real whatever the reference's own error), or a Monte Carlo value that is not finite;
 * **inconclusive**: the reference did not converge (a bound that was not reached says nothing),
-  or its bound takes more than :data:`REF_SHARE` of the test's band (``N_SIGMA sigma + floor |k|``)
+  or its bound takes more than :data:`REF_SHARE` of the test's band (``n_sigma sigma + floor |k|``)
   or its standard error exceeds the tested one - then an agreement would only say the reference is
   too coarse to see the difference; or the Monte Carlo backend stopped at its sample cap before its
   target (its SE is honest, but the test is weaker than asked);
@@ -42,12 +48,14 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from roadgonio.errors import InputError
+from roadgonio.engines.result import t_equivalent, welch_satterthwaite
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
 
-#: Pass threshold in combined standard errors.
+#: Pass threshold in combined standard errors of infinitely many degrees of freedom (a normal z); an SE
+#: of ``dof`` degrees of freedom gets the t quantile of the same probability, t_equivalent(N_SIGMA, dof).
 N_SIGMA = 4.0
-#: The reference's error bound may take at most this share of the test's band (N_SIGMA sigma + floor |k|);
+#: The reference's error bound may take at most this share of the test's band (n_sigma sigma + floor |k|);
 #: a wider bound makes the cell inconclusive (an agreement would only say the reference is too coarse).
 REF_SHARE = 0.25
 #: The tightest relative target the validator asks of the RQMC reference (what the test needs, down to
@@ -71,7 +79,8 @@ FLOAT32_FLOOR: dict[str, float] = {"mitsuba": 1e-5, "numpy-mc": 0.0}
 
 CSV_FIELDS = ("tan_eps", "beta_deg", "verdict", "k_ref", "error_bound_ref", "confidence_bound_ref",
               "confidence_level_ref", "se_ref", "ref_converged", "k_mc", "se_mc",
-              "mc_converged", "diff", "rel_diff", "sigma", "z", "floor", "allowed", "needed_bound", "reason",
+              "mc_converged", "diff", "rel_diff", "sigma", "dof", "z", "n_sigma", "floor", "allowed", "needed_bound",
+              "reason",
               "seconds_ref", "seconds_mc", "samples_ref", "samples_mc")
 
 
@@ -95,10 +104,12 @@ class CellComparison:
     diff: float           # k_mc - k_ref
     rel_diff: float
     sigma: float          # se_mc, or sqrt(se_mc^2 + se_ref^2) for a reference without a bound
+    dof: float            # degrees of freedom of sigma (NaN: none given, a normal z)
     z: float              # diff / sigma
+    n_sigma: float        # the threshold in sigma: t_equivalent(N_SIGMA, dof)
     floor: float          # relative float32 floor applied
-    allowed: float        # N_SIGMA * sigma + the reference's bound (either kind) + floor * |k_ref|
-    needed_bound: float   # the widest reference bound the test accepts: REF_SHARE * (N_SIGMA sigma + floor |k|)
+    allowed: float        # n_sigma * sigma + the reference's bound (either kind) + floor * |k_ref|
+    needed_bound: float   # the widest reference bound the test accepts: REF_SHARE * (n_sigma sigma + floor |k|)
     reason: str
     seconds_ref: float
     seconds_mc: float
@@ -136,8 +147,11 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
     se_ref = float(ref.se) if _finite(ref.se) else math.nan
     bound_term = bound if _finite(bound) else (0.0 if has_se_ref else math.inf)
     sigma = math.sqrt(se_mc ** 2 + (se_ref ** 2 if has_se_ref else 0.0)) if _finite(se_mc) else math.nan
+    dof = (welch_satterthwaite([se_mc ** 2, se_ref ** 2], [mc.se_dof, ref.se_dof]) if has_se_ref
+           else float(mc.se_dof))
+    n_sigma = float(t_equivalent(N_SIGMA, dof))
     d = k_mc - k_ref
-    band = N_SIGMA * sigma + floor * abs(k_ref)
+    band = n_sigma * sigma + floor * abs(k_ref)
     allowed = band + bound_term
     needed = REF_SHARE * band
     z = d / sigma if _finite(sigma) and sigma > 0 else (0.0 if d == 0 else math.copysign(math.inf, d))
@@ -149,7 +163,7 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
         verdict, reason = "inconclusive", f"the reference did not converge ({what}; raise its cap or loosen --rtol)"
     elif abs(d) > allowed:
         verdict, reason = "disagree", (f"|diff| = {abs(d):.3g} > allowed {allowed:.3g} "
-                                       f"({N_SIGMA:g} SE + bound + floor); {z:+.1f} SE")
+                                       f"({n_sigma:.3g} SE + bound + floor); {z:+.1f} SE")
     elif has_se_ref and se_ref > se_mc:
         verdict, reason = "inconclusive", (f"the reference's SE {se_ref:.2g} exceeds the tested SE {se_mc:.2g}: "
                                            "the check is weaker than the renderer")
@@ -165,7 +179,8 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
                           error_bound_ref=err_bound, confidence_bound_ref=conf, confidence_level_ref=level,
                           se_ref=se_ref, ref_converged=bool(ref.converged), k_mc=k_mc, se_mc=se_mc,
                           mc_converged=bool(mc.converged), diff=d, rel_diff=d / k_ref if k_ref else math.nan,
-                          sigma=sigma, z=z, floor=floor, allowed=allowed, needed_bound=needed, reason=reason,
+                          sigma=sigma, dof=dof, z=z, n_sigma=n_sigma, floor=floor, allowed=allowed,
+                          needed_bound=needed, reason=reason,
                           seconds_ref=float(ref.seconds), seconds_mc=float(mc.seconds),
                           samples_ref=int(ref.samples), samples_mc=int(mc.samples))
 
@@ -241,7 +256,8 @@ def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[flo
         m = mc.compute([cell])[0]
         if ref_name == "reference" and rtol is None:
             # ask the reference for half the bound this cell's test accepts
-            band = N_SIGMA * m.se + floor * abs(m.k_a) if _finite(m.se) and _finite(m.k_a) else math.nan
+            band = (t_equivalent(N_SIGMA, m.se_dof) * m.se + floor * abs(m.k_a) if _finite(m.se) and _finite(m.k_a)
+                    else math.nan)
             target = 0.5 * REF_SHARE * band / abs(m.k_a) if _finite(band) and m.k_a else ref.rtol
             q = ref.compute_cell(cell[0], cell[1], rtol=min(max(target, REF_RTOL_MIN), 0.5))
         else:
@@ -269,12 +285,24 @@ def reference_label(name: str) -> str:
     return REFERENCE_LABELS.get(name, f"{name} reference")
 
 
+def band_text(report: dict[str, Any]) -> str:
+    """'4 SE' (SEs without degrees of freedom), or the t quantiles the cells' SEs took for the
+    N_SIGMA test, e.g. '5.48 SE (4 sigma at 15 degrees of freedom)'."""
+    ks = sorted({round(r.n_sigma, 2) for r in report["rows"] if math.isfinite(r.n_sigma)})
+    dofs = sorted({round(r.dof) for r in report["rows"] if math.isfinite(r.dof)})
+    if not dofs or not ks:
+        return f"{report['n_sigma']:g} SE"
+    k = f"{ks[0]:.3g}" if len(ks) == 1 else f"{ks[0]:.3g}-{ks[-1]:.3g}"
+    d = f"{dofs[0]}" if len(dofs) == 1 else f"{dofs[0]}-{dofs[-1]}"
+    return f"{k} SE ({report['n_sigma']:g} sigma at {d} degrees of freedom)"
+
+
 def summary_line(report: dict[str, Any]) -> str:
     c = report["counts"]
     n = sum(c.values())
     return (f"validate: {c['agree']} agree, {c['disagree']} disagree, {c['inconclusive']} inconclusive "
             f"(of {n} cells; {report['against']} against the {reference_label(report['reference'])}, "
-            f"{report['n_sigma']:g} SE + bound"
+            f"{band_text(report)} + bound"
             + (f" + float32 floor {report['floor']:.1e}" if report["floor"] > 0 else "")   # numpy-mc: float64, none
             + f"; {report['seconds']:.1f} s)")
 
@@ -315,7 +343,7 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(max(7.0, 0.6 * len(rows) + 2), 7.5), sharex=True)
     ax1.bar(x, np.clip(np.nan_to_num(z), -3 * N_SIGMA, 3 * N_SIGMA), color=[colour[r.verdict] for r in rows])
     ax1.step(np.r_[x - 0.5, x[-1] + 0.5], np.r_[band, band[-1]], where="post", color="k", ls="--", lw=1,
-             label=f"allowed: {N_SIGMA:g} SE + reference bound + float32 floor")
+             label=f"allowed: {band_text(report)} + reference bound + float32 floor")
     ax1.step(np.r_[x - 0.5, x[-1] + 0.5], -np.r_[band, band[-1]], where="post", color="k", ls="--", lw=1)
     ax1.axhline(0, color="0.5", lw=0.8)
     ax1.set_ylabel(f"(k_{report['against']} - k_ref) / SE")

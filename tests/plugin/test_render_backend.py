@@ -15,7 +15,7 @@ from roadgonio.errors import BackendError, GeometryError, InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
 from helpers import ROAD, preset
-from tolerances import F32_RATIO_TOL, N_SIGMA, z_family
+from tolerances import F32_RATIO_TOL, n_sigma, z_family
 
 
 SCENES = Path(__file__).resolve().parents[2] / "scenes"
@@ -30,7 +30,7 @@ def test_lambertian_sample_gives_one(name):
     for model in (RoadModel.lambert(), RoadModel.lambert(0.3)):
         b = make_backend(preset(name), model, first_pass=256)
         for r in b.compute(CELLS):
-            assert abs(r.k_a - 1.0) <= max(z_family(2 * len(CELLS)) * r.se, F32_RATIO_TOL), r
+            assert abs(r.k_a - 1.0) <= max(z_family(2 * len(CELLS), dof=r.se_dof) * r.se, F32_RATIO_TOL), r
             assert r.extra["converged"]
 
 
@@ -181,7 +181,8 @@ def test_xml_holder_scene_shades_the_footprint():
     shaded, free = b.compute([(12.0, 10.0), (2.0, 90.0)])
     shaded0, free0 = plain.compute([(12.0, 10.0), (2.0, 90.0)])
     assert abs(shaded.k_a - shaded0.k_a) > 5 * math.hypot(shaded.se, shaded0.se)   # a difference, not a tolerance
-    assert abs(free.k_a - free0.k_a) <= N_SIGMA * math.hypot(free.se, free0.se) + F32_RATIO_TOL
+    assert abs(free.k_a - free0.k_a) <= (n_sigma(min(free.se_dof, free0.se_dof)) * math.hypot(free.se, free0.se)
+                                         + F32_RATIO_TOL)
 
 
 def test_field_sensitivity_profile_matches_the_quadrature():
@@ -195,7 +196,8 @@ def test_field_sensitivity_profile_matches_the_quadrature():
     q = make("quadrature", inst, ROAD, rtol=1e-4).compute(cells)      # 1e-6 stops at its cap at tan 4
     for a, b in zip(r, q):
         assert a.converged and b.converged, (a, b)      # a bound that was not reached proves nothing
-        assert abs(a.k_a - b.k_a) <= z_family(len(cells)) * a.se + b.error_bound + FLOAT32_FLOOR["mitsuba"] * abs(b.k_a)
+        assert abs(a.k_a - b.k_a) <= (z_family(len(cells), dof=a.se_dof) * a.se + b.error_bound
+                                      + FLOAT32_FLOOR["mitsuba"] * abs(b.k_a))
 
 
 # -- constructors never change global state ---------------------------------------------------

@@ -50,8 +50,9 @@ def test_single_cell_json_keys(capsys):
     assert main(["ka", "--instrument", "portable", "--sample", "lambert", "--backend", "quadrature",
                  "--tan-eps", "12", "--beta", "0", "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
-    assert set(d) == {"k_a", "se", "error_bound", "confidence_bound", "confidence_level", "converged", "samples",
-                      "seconds", "k_a_direct", "k_a_direct_se", "stray_fraction", "stray_fraction_se"}
+    assert set(d) == {"k_a", "se", "se_dof", "error_bound", "confidence_bound", "confidence_level", "converged",
+                      "samples", "seconds", "k_a_direct", "k_a_direct_se", "stray_fraction", "stray_fraction_se"}
+    assert d["se_dof"] is None                  # a deterministic backend: no SE, no degrees of freedom (null)
     assert abs(d["k_a"] - 1.0) < LAMBERT_TOL and d["samples"] > 0
     # no stray light in this backend: the direct light is everything, the stray fraction 0 exactly
     assert d["k_a_direct"] == d["k_a"] and d["stray_fraction"] == 0.0 and d["stray_fraction_se"] == 0.0
@@ -71,6 +72,11 @@ def test_a_confidence_bound_comes_with_its_level(tmp_path, capsys):
     assert main(args + ["--tan-eps", "12", "--beta", "0", "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["confidence_level"] == level and d["confidence_bound"] > d["se"] > 0
+    # the SE of 10 replicates has 9 degrees of freedom, in the JSON and in ka.nc
+    assert d["se_dof"] == 9.0
+    import xarray as xr
+    with xr.open_dataset(out / "ka.nc") as ds:
+        assert float(ds.se_dof.sel(tan_eps=12.0, beta=0.0)) == 9.0 and "Student" in ds.se_dof.attrs["description"]
 
 
 @pytest.mark.parametrize("extra, needle", [

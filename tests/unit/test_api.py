@@ -26,12 +26,13 @@ def test_ka_table_of_a_lambertian_sample_is_one_within_its_bound():
     assert dict(ds.sizes) == {"tan_eps": 29, "beta": 20}
     assert set(ds.data_vars) == {"k_a", "se", "error_bound", "confidence_bound", "confidence_level", "samples",
                                  "seconds", "converged", "k_a_direct", "k_a_direct_se", "stray_fraction",
-                                 "stray_fraction_se"}
+                                 "stray_fraction_se", "se_dof"}
     assert np.array_equal(ds.tan_eps, TAN_EPS_GRID) and np.array_equal(ds.beta, BETA_GRID_DEG)
     # no stray light: the direct light is everything, the stray fraction 0 exactly
     assert np.array_equal(ds.k_a_direct, ds.k_a) and (ds.stray_fraction.values == 0.0).all()
     bound = ds.error_bound.values
     assert np.isfinite(bound).all() and np.isnan(ds.se).all()          # deterministic: a bound, no SE
+    assert np.isnan(ds.se_dof).all()                                     # ... and no degrees of freedom
     assert (np.abs(ds.k_a.values - 1.0) <= bound + ROUNDOFF).all()
     assert ds.converged.values.all()
     prov = json.loads(ds.attrs["provenance"])

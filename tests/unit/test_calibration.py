@@ -216,6 +216,10 @@ def test_reference_mode_is_the_ratio_of_lambert_k_with_common_random_numbers(tmp
     for f, r, c in zip(k_f, k_r, got):
         assert c.k_a == f.k_a / r.k_a                           # same seed, same numbers: exact
         assert c.se == pytest.approx(c.k_a * math.hypot(f.se / f.k_a, r.se / r.k_a), rel=ROUND_TOL, abs=0.0)
+        # two SEs added in quadrature: Welch-Satterthwaite's degrees of freedom of the sum
+        a, b = (f.se / f.k_a) ** 2, (r.se / r.k_a) ** 2
+        assert c.se_dof == pytest.approx((a + b) ** 2 / (a * a / f.se_dof + b * b / r.se_dof), rel=1e-12)
+        assert min(f.se_dof, r.se_dof) <= c.se_dof <= f.se_dof + r.se_dof
     # a reference proportional to the sample gives 1 up to rounding: the rays are common
     (RoadModel(RoadParams(**{**sample.params.to_dict(), **{k: 2 * getattr(sample.params, k) for k in
                                                            ("k_diff", "k_phong", "k_retro", "k_exp")}}))
@@ -330,4 +334,5 @@ def test_absolute_mode_scales_the_monte_carlo_se_by_eta():
         etas.append(eta)
         assert b.k_a == pytest.approx(a.k_a * eta, rel=ROUND_TOL)
         assert b.se == pytest.approx(a.se * eta, rel=ROUND_TOL, abs=0.0)
+        assert b.se_dof == a.se_dof == a.extra["batches"] - 1       # eta is computed: the SE keeps its dof
     assert max(abs(e - 1.0) for e in etas) > 4e-3           # eta is not 1: the check can fail

@@ -169,14 +169,15 @@ def _ka_dataset(k_a, k_a_direct, stray, stray_se):
     import xarray as xr
     cells = dict(tan_eps=[2.0, 5.0], beta=[0.0, 35.0])
     v = {"k_a": k_a, "se": np.full((2, 2), 0.001), "k_a_direct": k_a_direct, "k_a_direct_se": np.full((2, 2), 0.001),
-         "stray_fraction": stray, "stray_fraction_se": stray_se}
+         "stray_fraction": stray, "stray_fraction_se": stray_se, "se_dof": np.full((2, 2), 15.0)}
     return xr.Dataset({k: (("tan_eps", "beta"), np.asarray(x, dtype=float)) for k, x in v.items()}, coords=cells)
 
 
 def _journal_record(ds, cells, *, stray=True):
     """The design journal's record of a table (roadgonio.design.run._record) from its ka Dataset; without
-    ``stray`` as a journal written before the stray-light fields were kept."""
-    fields = ["k_a", "se", "error_bound", "k_a_direct", "k_a_direct_se", "stray_fraction", "stray_fraction_se"]
+    ``stray`` as a journal written before the stray-light fields (and the SEs' degrees of freedom) were kept."""
+    fields = ["k_a", "se", "error_bound", "k_a_direct", "k_a_direct_se", "stray_fraction", "stray_fraction_se",
+              "se_dof"]
     rec = {"converged": [True] * len(cells), "seconds": 0.1}
     for f in fields[:3] if not stray else fields:
         rec[f] = [float(ds[f].sel(tan_eps=t, beta=b)) if f in ds else None for t, b in cells]
@@ -231,6 +232,9 @@ def test_stray_light_metrics_per_design_point_from_the_ka_tables(tmp_path, monke
     # the cell values are kept too, as in the ka Dataset
     assert float(ds["stray_fraction"].sel({"sample": "B", "tan_eps": 2.0, "beta": 35.0})[0]) == 0.04
     assert float(ds["k_a_direct"].sel({"sample": "A", "tan_eps": 2.0, "beta": 35.0})[0]) == 0.88
+    # ... and the SEs' degrees of freedom (NaN from a journal written before they were kept)
+    dof = ds["se_dof"].sel({"sample": "A", "tan_eps": 2.0, "beta": 35.0}).values
+    assert dof[0] == 15.0 and np.isnan(dof[2])
     # the housing does not change the signal: nothing to draw against it
     assert same_signal(ds) == 1.0 and summary(ds)["same_signal"] == 1.0
     best = summary(ds)["best"]                  # the same signal: the least max |k_A - 1|, point 0 (point 2 ties later)
@@ -245,7 +249,7 @@ def test_stray_light_metrics_per_design_point_from_the_ka_tables(tmp_path, monke
     assert drawn == [1.0] and (tmp_path / "pareto.png").stat().st_size > 10_000
     back = read_design(tmp_path / "design.nc")
     for v in ("max_stray_fraction", "max_stray_tan_eps", "max_stray_beta_deg", "max_stray_sample", "max_stray_u",
-              "max_abs_dev_direct", "stray_fraction", "k_a_direct"):
+              "max_abs_dev_direct", "stray_fraction", "k_a_direct", "se_dof"):
         assert back[v].attrs["long_name"], v
         if v == "max_stray_sample":
             assert [str(x) for x in back[v].values] == ["B", "", ""]

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from roadgonio.engines.mitsuba.passes import (MAX_GROWTH, SAFETY, CellStats, Plan, Planner, add_strata,
-                                              covariance, relative, strata_ratio_se, strata_ratio_se_many,
-                                              stray_ratios)
+                                              covariance, relative, strata_ratio_se, strata_ratio_se_dof_many,
+                                              strata_ratio_se_many, stray_ratios)
 
 
 def synthetic(rng, reps, ratio=0.8, rel=0.05, rho=0.9, n=1024):
@@ -28,6 +28,15 @@ def direct_se(strata):
     r = R.sum() / G.sum()
     var = sum(len(a) * np.var(a - r * b, ddof=1) for a, b in strata)
     return r, math.sqrt(var) / G.sum()
+
+
+def direct_dof(strata):
+    """Welch-Satterthwaite degrees of freedom of direct_se: each stratum's variance term
+    v = B var(A - r B) has B - 1; dof = (sum v)^2 / sum v^2 / (B - 1)."""
+    r = sum(a.sum() for a, _ in strata) / sum(b.sum() for _, b in strata)
+    v = np.array([len(a) * np.var(a - r * b, ddof=1) for a, b in strata])
+    nu = np.array([len(a) - 1.0 for a, _ in strata])
+    return float(v.sum() ** 2 / np.sum(v * v / nu))
 
 
 def test_moment_se_equals_direct_formula():
@@ -118,7 +127,7 @@ def test_stray_ratios_are_the_cells_own():
             stray = np.abs(rng.normal(0.2, 0.05, reps)) * Rd
             add_strata([st], p, 8, np.zeros(reps, dtype=np.int64), np.arange(reps), Rd + stray, Gd + 0.5 * stray, Rd, Gd)
         stats.append(st)
-    rd, rd_se, sf, sf_se = stray_ratios(stats)
+    rd, rd_se, sf, sf_se, dof = stray_ratios(stats)
     for k, st in enumerate(stats):
         keys = sorted(st.strata)
         assert (rd[k], rd_se[k]) == st.direct_ratio_se()
@@ -127,6 +136,78 @@ def test_stray_ratios_are_the_cells_own():
         assert rd[k] == pytest.approx(r2, rel=1e-14, abs=0.0) and rd_se[k] == pytest.approx(se2, rel=1e-12, abs=0.0)
         q2, qse2 = direct_se([(st.direct[q][0], st.strata[q][1]) for q in keys])
         assert sf[k] == pytest.approx(1.0 - q2, rel=1e-13, abs=0.0) and sf_se[k] == pytest.approx(qse2, rel=1e-12, abs=0.0)
+        # one number of degrees of freedom for both SEs: the smaller of the two
+        want = min(direct_dof([st.direct[q] for q in keys]), direct_dof([(st.direct[q][0], st.strata[q][1]) for q in keys]))
+        assert dof[k] == pytest.approx(want, rel=1e-12, abs=0.0)
+
+
+def test_se_dof_is_welch_satterthwaite_over_the_strata():
+    """The SE's degrees of freedom (module docstring): B - 1 for one stratum of B replicates,
+    2 (B - 1) for two strata with the same variance, near the dominant stratum's B - 1 when one
+    stratum carries the variance; the moments of CellStats, the vectorised strata and the formula
+    written here agree; NaN without an SE."""
+    rng = np.random.default_rng(11)
+    R, G = synthetic(rng, 16)
+    one = CellStats()
+    one.add(0, 8, np.arange(16), R, G)
+    assert one.se_dof() == pytest.approx(15.0, rel=1e-12)
+    twice = CellStats()
+    twice.add(0, 8, np.arange(16), R, G)
+    twice.add(1, 8, np.arange(16), R, G)                       # the same sums again: equal variances
+    assert twice.se_dof() == pytest.approx(30.0, rel=1e-12)
+    small, big = synthetic(rng, 40, rel=1e-4), synthetic(rng, 16, rel=0.1)
+    lop = CellStats()
+    lop.add(0, 8, np.arange(40), *small)
+    lop.add(1, 8, np.arange(16), *big)
+    assert 15.0 <= lop.se_dof() < 15.01
+    cells = []
+    for _ in range(30):
+        st = CellStats()
+        strata = []
+        for p in range(int(rng.integers(1, 5))):
+            reps = int(rng.integers(2, 40))
+            A, B = synthetic(rng, reps, ratio=float(rng.uniform(0.3, 3.0)), rel=float(rng.uniform(0.01, 0.2)))
+            st.add(p, 8, np.arange(reps), A, B)
+            strata.append((A, B))
+        assert st.se_dof() == pytest.approx(direct_dof(strata), rel=1e-9)
+        assert min(len(a) - 1 for a, _ in strata) <= st.se_dof() <= sum(len(a) - 1 for a, _ in strata) + 1e-9
+        cells.append(strata)
+    _, _, dof = strata_ratio_se_dof_many(cells)
+    assert np.allclose(dof, [direct_dof(c) for c in cells], rtol=1e-12, atol=0.0)
+    single = CellStats()
+    single.add(0, 8, np.arange(1), np.array([2.0]), np.array([4.0]))
+    assert math.isnan(single.se_dof())
+    assert math.isnan(strata_ratio_se_dof_many([[(np.array([1.0]), np.array([2.0]))]])[2][0])
+
+
+def test_z_of_the_se_follows_student_t_of_its_degrees_of_freedom():
+    """What the degrees of freedom are for: over 6000 synthetic cells (one stratum of 16
+    replicates, or 16 + 24 of unequal variance) z = (r - true r) / SE is heavier-tailed than a
+    normal law (mean z^2 ~ dof / (dof - 2), 1.15 at 15), and mapped through Student's t of the
+    reported dof to a normal quantile it is N(0, 1): mean square within the chi-square band of ALPHA,
+    |z| beyond the t quantile of 3 sigma as often as a normal beyond 3 (binomial band). With the dof
+    taken as infinite (a normal z) the first check fails."""
+    from scipy.stats import chi2, norm, t as student_t
+    from tolerances import ALPHA
+    rng = np.random.default_rng(12)
+    m = 6000
+    cells = []
+    for i in range(m):
+        strata = [synthetic(rng, 16, ratio=0.8, rel=0.05)]
+        if i % 2:
+            strata.append(synthetic(rng, 24, ratio=0.8, rel=0.08))
+        cells.append(strata)
+    r, se, dof = strata_ratio_se_dof_many(cells)
+    z = (r - 0.8) / se
+    assert np.all((dof >= 15.0 - 1e-9) & (dof <= 38.0 + 1e-9))
+    u = norm.isf(student_t.sf(z, dof))                   # z mapped through its own t to N(0, 1)
+    lo, hi = chi2.ppf(ALPHA / 2, m) / m, chi2.isf(ALPHA / 2, m) / m
+    assert lo < float(np.mean(u * u)) < hi, float(np.mean(u * u))
+    assert float(np.mean(z * z)) > hi                    # a normal reading of z: too many large |z|
+    p = 2 * norm.sf(3.0)
+    beyond = int(np.sum(np.abs(z) > student_t.isf(p / 2, dof)))
+    band = 4.0 * math.sqrt(m * p * (1 - p))
+    assert abs(beyond - m * p) <= band, (beyond, m * p)
 
 
 def test_add_strata_vectorised_equals_one_by_one_and_refuses_duplicates():

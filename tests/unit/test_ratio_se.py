@@ -44,3 +44,22 @@ def test_se_squared_is_unbiased_for_the_variance_of_the_ratio():
     sd_var = var_hat * math.sqrt(2.0 / (runs - 1))
     sd_mean = se2.std(ddof=1) / math.sqrt(runs)
     assert abs(mean_se2 - var_hat) <= N_SIGMA * math.hypot(sd_var, sd_mean), (mean_se2, var_hat)
+
+
+def test_welch_satterthwaite_degrees_of_freedom():
+    """The effective degrees of freedom of a sum of independent variance estimates (JCGM 100
+    G.4.1), against closed forms: one term keeps its own; k equal terms of nu add to k nu; a term
+    known exactly (nu infinite) or absent (NaN) adds nothing to the denominator; never below the
+    smallest nu of a term that counts; NaN when nothing is estimated."""
+    from roadgonio.engines.result import welch_satterthwaite
+    assert welch_satterthwaite([2.0], [15.0]) == pytest.approx(15.0, rel=ROUND_TOL)
+    assert welch_satterthwaite([3.0, 3.0, 3.0], [9.0, 9.0, 9.0]) == pytest.approx(27.0, rel=ROUND_TOL)
+    assert welch_satterthwaite([1.0, 4.0], [15.0, 63.0]) == pytest.approx(25.0 / (1 / 15 + 16 / 63), rel=ROUND_TOL)
+    assert welch_satterthwaite([1.0, 1.0], [15.0, math.inf]) == pytest.approx(60.0, rel=ROUND_TOL)
+    assert welch_satterthwaite([1.0, math.nan], [15.0, 9.0]) == pytest.approx(15.0, rel=ROUND_TOL)
+    assert welch_satterthwaite([0.0, 0.0], [15.0, 15.0]) == 30.0            # every estimate 0: the count
+    assert math.isnan(welch_satterthwaite([1.0], [math.nan]))
+    rng = np.random.default_rng(9)
+    for _ in range(100):
+        v, nu = rng.uniform(0, 1, 4), rng.integers(2, 60, 4).astype(float)
+        assert nu.min() - 1e-9 <= welch_satterthwaite(v, nu) <= nu.sum() + 1e-9

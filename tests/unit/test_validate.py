@@ -66,6 +66,34 @@ def test_reference_with_a_standard_error_combines_in_quadrature():
     assert V.compare(ref2, mc_cell(0.5, 4e-4)).verdict == "inconclusive"
 
 
+def test_an_se_of_few_degrees_of_freedom_gets_the_t_quantile():
+    """An SE from 16 replicates (15 degrees of freedom: the Mitsuba backend's first pass) makes z a
+    t_15 variable, beyond 4 in 0.12 % of cells: the band is the t quantile of the probability of
+    4 normal SEs, 5.48 SE (docs/validation.md, "How heavy are the tails"); an SE without degrees of
+    freedom keeps 4; with a reference SE (the mesh Monte Carlo) the combined SE's degrees of freedom
+    are Welch-Satterthwaite's."""
+    from scipy.stats import norm, t as student_t
+    q = ref_cell(0.5, 0.0)
+
+    def mc(k, dof=15.0, se=1e-3):
+        return CellResult(tan_eps=4.0, beta_deg=2.0, k_a=k, se=se, samples=10, seconds=0.1, se_dof=dof)
+    a = V.compare(q, mc(0.5 + 5.4e-3))
+    assert a.verdict == "agree" and a.dof == 15.0
+    assert 2 * student_t.sf(a.n_sigma, 15) == pytest.approx(2 * norm.sf(V.N_SIGMA), rel=1e-9)
+    assert a.n_sigma == pytest.approx(5.4804, abs=1e-4) and a.allowed == pytest.approx(a.n_sigma * 1e-3)
+    assert V.compare(q, mc(0.5 + 5.6e-3)).verdict == "disagree"
+    assert V.compare(q, mc(0.5 + 4.1e-3, dof=math.nan)).verdict == "disagree"       # no dof: a normal z
+    assert V.compare(q, mc(0.5 + 4.1e-3, dof=1e6)).verdict == "disagree"            # many: as good as normal
+    ref = CellResult(tan_eps=4.0, beta_deg=2.0, k_a=0.5, se=3e-4, samples=10, seconds=0.1, se_dof=63.0)
+    r = V.compare(ref, mc(0.5, se=4e-4))
+    want = (4e-4 ** 2 + 3e-4 ** 2) ** 2 / (4e-4 ** 4 / 15 + 3e-4 ** 4 / 63)
+    assert r.dof == pytest.approx(want, rel=1e-12)
+    assert r.allowed == pytest.approx(student_t.isf(norm.sf(V.N_SIGMA), want) * 5e-4, rel=1e-9)
+    report = {"rows": [a], "n_sigma": V.N_SIGMA}
+    assert V.band_text(report) == "5.48 SE (4 sigma at 15 degrees of freedom)"
+    assert V.band_text({"rows": [V.compare(q, mc(0.5, dof=math.nan))], "n_sigma": V.N_SIGMA}) == "4 SE"
+
+
 def test_overall_verdict_and_exit_status():
     a = V.compare(ref_cell(0.5, 0.0), mc_cell(0.5, 1e-3))
     d = V.compare(ref_cell(0.5, 0.0), mc_cell(0.6, 1e-3))

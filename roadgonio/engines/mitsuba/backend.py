@@ -12,7 +12,9 @@ with ``ideal_ratio`` = pi f_road(nominal) in float64 (:func:`roadgonio.engines.i
 rendered.
 
 Standard error: the marginal SE of each cell from independent replicates (randomly shifted lattices)
-by the delta method (:mod:`roadgonio.engines.mitsuba.passes`); cells computed together share rays, so
+by the delta method (:mod:`roadgonio.engines.mitsuba.passes`), with its degrees of freedom
+(``se_dof``: 15 for a cell that converged in its first pass of 16 replicates, more with more
+passes; an error over this SE follows Student's t, docs/validation.md); cells computed together share rays, so
 their errors are correlated: :meth:`MitsubaBackend.covariance` gives the covariance matrix of the last
 ``compute`` call (for the SE of a table functional), estimated from the shared replicates.
 ``tests/plugin/test_engine.py`` checks the SE against the scatter over seeds, for cells batched together too.
@@ -221,6 +223,7 @@ class MitsubaBackend:
         (:func:`~roadgonio.engines.mitsuba.passes.stray_ratios`)."""
         from roadgonio.engines.mitsuba.passes import relative
         ratio, se, _ = st.ratio_se()
+        dof = st.se_dof()
         rel = relative(ratio, se)
         # the model is 0 at the nominal geometry: k_A (with or without stray light) is undefined
         # (divided, not multiplied by 1 / ideal: the same float64 numbers as the engine without stray light)
@@ -234,13 +237,14 @@ class MitsubaBackend:
         stray = {}
         if st.direct:
             # the direct light alone (today's k_A) and the stray fraction, from the same replicates
-            rd, rd_se, sf, sf_se = (float(v) for v in stray_se)
+            rd, rd_se, sf, sf_se, stray_dof = (float(v) for v in stray_se)
             stray = dict(k_a_direct=float(rd / div), k_a_direct_se=float(rd_se / div),
                          stray_fraction=float(sf), stray_fraction_se=float(sf_se))
+            dof = float(np.fmin(dof, stray_dof))     # one se_dof for the cell's three SEs: the smallest
             extra["max_bounces"] = self.engine.max_bounces
         return CellResult(tan_eps=cell[0], beta_deg=cell[1], k_a=float(k_a), se=float(k_se),
                           converged=bool(converged), samples=int(st.samples), seconds=float(seconds), extra=extra,
-                          **stray)
+                          se_dof=float(dof), **stray)
 
     def compute_cell(self, tan_eps: float, beta_deg: float) -> CellResult:
         """One cell (a batch of one)."""

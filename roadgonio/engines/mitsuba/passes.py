@@ -18,7 +18,14 @@ Y = R - r G per replicate and s_q^2 the sample variance of Y over the B_q replic
 
 which is unbiased for the variance of the linearised estimator whatever the lattice does within a
 replicate (the randomisation is only in the shifts). This is the **marginal** standard error of
-each cell.
+each cell. Its degrees of freedom are those of a sum of independent variance estimates, each with
+B_q - 1 (Welch-Satterthwaite, :func:`roadgonio.engines.result.welch_satterthwaite`):
+
+    dof = (sum_q v_q)^2 / sum_q v_q^2 / (B_q - 1),    v_q = B_q s_q^2
+
+at least the smallest B_q - 1 (15 for a cell that converged in its first pass of 16 replicates,
+most cells at every preset) and at most sum_q (B_q - 1). An error divided by this SE follows
+Student's t of that many degrees of freedom (docs/validation.md, "How heavy are the tails").
 
 **Correlation between cells.** Cells in the same launch share the detector rays (and the source
 sample of each lattice point), so the errors of cells computed together are correlated (positively
@@ -55,6 +62,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from roadgonio.engines.mitsuba.lattice import MAX_LOG2, MIN_LOG2
+from roadgonio.engines.result import welch_satterthwaite
 
 #: Safety factor on the 1/N rule (the SE estimate itself is noisy).
 SAFETY = 1.15
@@ -135,6 +143,17 @@ class CellStats:
         var = max(self.b[0] - 2.0 * d * self.b[1] + d * d * self.b[2], 0.0)
         return ratio, math.sqrt(var) / sg, sg / n
 
+    def se_dof(self) -> float:
+        """Degrees of freedom of the SE of :meth:`ratio_se` (module docstring: Welch-Satterthwaite
+        over the strata); NaN without an SE (a stratum of one replicate, no light)."""
+        ratio, se, _ = self.ratio_se()
+        if not (math.isfinite(ratio) and math.isfinite(se)):
+            return math.nan
+        d = ratio - self.r0
+        keys = sorted(self.strata_b)
+        v = [max(float(b[0] - 2.0 * d * b[1] + d * d * b[2]), 0.0) for b in (self.strata_b[k] for k in keys)]
+        return welch_satterthwaite(v, [len(self.strata[k][0]) - 1.0 for k in keys])
+
     def point_variances(self) -> list[tuple[int, float]]:
         """(log2 n, variance per point of Y = R - r G) of each stratum, in pass order: the
         variance of a replicate sum divided by its n points (a lattice's figure of merit)."""
@@ -195,15 +214,23 @@ def strata_ratio_se_many(cells: Sequence[Sequence[tuple[np.ndarray, np.ndarray]]
     their standard errors. Every sum runs in a fixed order (the replicates of a stratum, then the
     strata of a cell, in the order given), the same as :func:`add_strata`'s totals: a stratum's
     sums are those :class:`CellStats` accumulates, so A = R gives exactly its ratio."""
+    ratio, se, _ = strata_ratio_se_dof_many(cells)
+    return ratio, se
+
+
+def strata_ratio_se_dof_many(cells: Sequence[Sequence[tuple[np.ndarray, np.ndarray]]]
+                             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`strata_ratio_se_many` with the degrees of freedom of each SE (module docstring:
+    Welch-Satterthwaite over the strata; NaN where the SE is not finite)."""
     m = len(cells)
-    ratio, se = np.full(m, math.nan), np.full(m, math.inf)
+    ratio, se, dof = np.full(m, math.nan), np.full(m, math.inf), np.full(m, math.nan)
     # a stratum without replicates adds nothing to the sums and leaves no variance estimate (SE inf)
     empty = np.array([any(len(a) == 0 for a, _ in c) for c in cells], dtype=bool)
     kept = [[(np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)) for a, b in c if len(a)]
             for c in cells]
     live = [i for i in range(m) if kept[i]]                          # cells without strata: (nan, inf)
     if not live:
-        return ratio, se
+        return ratio, se, dof
     strata = [ab for i in live for ab in kept[i]]
     per_cell = np.array([len(kept[i]) for i in live], dtype=np.int64)
     m = len(live)
@@ -227,19 +254,26 @@ def strata_ratio_se_many(cells: Sequence[Sequence[tuple[np.ndarray, np.ndarray]]
     var = np.add.reduceat(np.where(counts < 2, 0.0, v), cstarts)
     with np.errstate(divide="ignore", invalid="ignore"):
         s_err = np.sqrt(np.maximum(var, 0.0)) / np.abs(np.where(ok, sb, 1.0))
+    v0 = np.where(counts < 2, 0.0, v)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = np.add.reduceat(np.where(counts < 2, 0.0, v0 * v0 / (counts - 1.0)), cstarts)
+        nominal = np.add.reduceat(np.maximum(counts - 1.0, 0.0), cstarts)
+        d_eff = np.where(den > 0.0, var * var / np.where(den > 0.0, den, 1.0), nominal)
     idx = np.asarray(live)
     ratio[idx[ok]] = r[ok]
-    se[idx[ok & ~single]] = s_err[ok & ~single]
-    return ratio, se
+    good = ok & ~single
+    se[idx[good]] = s_err[good]
+    dof[idx[good]] = d_eff[good]
+    return ratio, se, dof
 
 
-def stray_ratios(stats: Sequence["CellStats"]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(direct ratio, its SE, stray fraction, its SE) of many cells at once
-    (:meth:`CellStats.direct_ratio_se`, :meth:`CellStats.stray_fraction_se`, the same numbers), of
-    cells with stray light traced."""
-    rd, rd_se = strata_ratio_se_many([st.direct_strata() for st in stats])
-    q, q_se = strata_ratio_se_many([st.stray_strata() for st in stats])
-    return rd, rd_se, 1.0 - q, q_se
+def stray_ratios(stats: Sequence["CellStats"]) -> tuple[np.ndarray, ...]:
+    """(direct ratio, its SE, stray fraction, its SE, the smaller of the two SEs' degrees of
+    freedom) of many cells at once (:meth:`CellStats.direct_ratio_se`,
+    :meth:`CellStats.stray_fraction_se`, the same numbers), of cells with stray light traced."""
+    rd, rd_se, rd_dof = strata_ratio_se_dof_many([st.direct_strata() for st in stats])
+    q, q_se, q_dof = strata_ratio_se_dof_many([st.stray_strata() for st in stats])
+    return rd, rd_se, 1.0 - q, q_se, np.fmin(rd_dof, q_dof)
 
 
 def add_strata(stats: Sequence[CellStats], pass_index: int, log2n: int, owner: np.ndarray, reps: np.ndarray,
