@@ -191,9 +191,9 @@ def main() -> int:
                          "of --beta-edges times those of --eps-edges; peak: the peak region and the rest)")
     ap.add_argument("--beta-edges", default="12", help="with --regions grid: band edges of beta (deg)")
     ap.add_argument("--eps-edges", default="45", help="with --regions grid: band edges of eps (deg)")
-    ap.add_argument("--mirror-round", type=float, default=None,
-                    help="the backbone's rounding at the mirror plane (deg; default one knot spacing of the "
-                         "correction surface, 0 keeps the cusp)")
+    ap.add_argument("--mirror-round", default=None,
+                    help="the backbone's rounding at the mirror plane: deg, or knot for the first knot of the "
+                         "correction surface (default the library's: 0, the cusp kept)")
     ap.add_argument("--seeds", type=int, default=1,
                     help="noise realisations per truth (default 1); with more, a summary over them at the end")
     args = ap.parse_args()
@@ -207,7 +207,9 @@ def main() -> int:
         edges = {"grid_beta_edges_deg": tuple(float(e) for e in args.beta_edges.split(",")),
                  "grid_eps_edges_deg": tuple(float(e) for e in args.eps_edges.split(","))}
     surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell, regions=args.regions, **edges,
-                              model_estimate=args.estimate == "combined", mirror_round_deg=args.mirror_round)
+                              model_estimate=args.estimate == "combined",
+                              **({} if args.mirror_round is None else {"mirror_round_deg": None if args.mirror_round
+                                                                       == "knot" else float(args.mirror_round)}))
     from roadgonio import api
     from roadgonio.instrument.config import Instrument
     insts = {w: Instrument.load(p) for w, p in INSTRUMENTS.items()}
@@ -271,7 +273,7 @@ def main() -> int:
         tag = f"{args.regions}-{args.beta_edges.replace(',', '-')}_{args.eps_edges.replace(',', '-')}"
         name = name.replace(".csv", f"_{tag}.csv")
     if args.mirror_round is not None:
-        name = name.replace(".csv", f"_round-{args.mirror_round:g}.csv")
+        name = name.replace(".csv", f"_round-{args.mirror_round}.csv")
     if args.seeds > 1:
         name = name.replace(".csv", f"_seeds-{args.seeds}.csv")
     with open(RESULTS / name, "w", newline="") as f:

@@ -122,8 +122,9 @@ class SurfaceSettings:
     #: covariance, roadgonio.correction.outside); False: the instruments' r / k_A alone
     model_estimate: bool = True
     #: rounding of the backbone's cusp at the mirror plane (beta_round_deg of the road model, deg):
-    #: None = one knot spacing of g_C there (:attr:`backbone_round_deg`), 0 = the cusp kept
-    mirror_round_deg: float | None = None
+    #: 0 = the cusp kept (the default: rounding breaks surfaces that have the cusp, docs/correction.md),
+    #: None = the first knot of g_C off beta = 0 (:attr:`backbone_round_deg`)
+    mirror_round_deg: float | None = 0.0
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
@@ -153,7 +154,7 @@ class SurfaceSettings:
 
     @property
     def backbone_round_deg(self) -> float:
-        """The backbone's rounding at the mirror plane (deg): ``mirror_round_deg``, by default the
+        """The backbone's rounding at the mirror plane (deg): ``mirror_round_deg``, or with None the
         first knot of g_C off beta = 0 (docs/correction.md, "The backbone's cusp at the mirror plane")."""
         if self.mirror_round_deg is not None:
             return float(self.mirror_round_deg)
