@@ -191,6 +191,9 @@ def main() -> int:
                          "of --beta-edges times those of --eps-edges; peak: the peak region and the rest)")
     ap.add_argument("--beta-edges", default="12", help="with --regions grid: band edges of beta (deg)")
     ap.add_argument("--eps-edges", default="45", help="with --regions grid: band edges of eps (deg)")
+    ap.add_argument("--mirror-round", default=None,
+                    help="the backbone's rounding at the mirror plane: deg, or knot for the first knot of the "
+                         "correction surface (default the library's: 0, the cusp kept)")
     ap.add_argument("--seeds", type=int, default=1,
                     help="noise realisations per truth (default 1); with more, a summary over them at the end")
     args = ap.parse_args()
@@ -204,13 +207,16 @@ def main() -> int:
         edges = {"grid_beta_edges_deg": tuple(float(e) for e in args.beta_edges.split(",")),
                  "grid_eps_edges_deg": tuple(float(e) for e in args.eps_edges.split(","))}
     surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell, regions=args.regions, **edges,
-                              model_estimate=args.estimate == "combined")
+                              model_estimate=args.estimate == "combined",
+                              **({} if args.mirror_round is None else {"mirror_round_deg": None if args.mirror_round
+                                                                       == "knot" else float(args.mirror_round)}))
     from roadgonio import api
     from roadgonio.instrument.config import Instrument
     insts = {w: Instrument.load(p) for w, p in INSTRUMENTS.items()}
     print(f"machine: {os.cpu_count()} cores; load average at start {load()}; backend {args.backend}; "
           f"noise {100 * NOISE:g} %; smoothing {args.smoothing}; discrepancy ell {ell}; estimate {args.estimate}; "
-          f"regions {args.regions} {edges or ''}")
+          f"regions {args.regions} {edges or ''}; backbone rounded at the mirror plane over "
+          f"{surface.backbone_round_deg:.3g} deg")
     print("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
     rows: list[dict] = []
     for kind, rep in ((kind, rep) for kind in args.truths.split(",") for rep in range(args.seeds)):
@@ -266,6 +272,8 @@ def main() -> int:
     elif (args.beta_edges, args.eps_edges) != ("12", "45"):
         tag = f"{args.regions}-{args.beta_edges.replace(',', '-')}_{args.eps_edges.replace(',', '-')}"
         name = name.replace(".csv", f"_{tag}.csv")
+    if args.mirror_round is not None:
+        name = name.replace(".csv", f"_round-{args.mirror_round}.csv")
     if args.seeds > 1:
         name = name.replace(".csv", f"_seeds-{args.seeds}.csv")
     with open(RESULTS / name, "w", newline="") as f:

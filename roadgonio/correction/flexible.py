@@ -54,7 +54,7 @@ from roadgonio.errors import InputError
 from roadgonio.surface.correction_surface import SplineGrid, alpha_coordinate, lookup
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.fit import _from_z, _to_z, _z_box, nonlinear_params
-from roadgonio.surface.model import RoadModel
+from roadgonio.surface.model import PARAM_BOUNDS, RoadModel
 
 #: The default knots of g_C (fine: the narrow peak at beta = 0 and grazing incidence) and of g_D.
 C_GRID = SplineGrid(s_beta=24, beta_scale_deg=8.0, s_t=32, eps_step_deg=3.0, sec_gain=3.0, eps_max_deg=89.0)
@@ -121,6 +121,10 @@ class SurfaceSettings:
     #: direction against the instruments' r / k_A (generalised least squares with the full
     #: covariance, roadgonio.correction.outside); False: the instruments' r / k_A alone
     model_estimate: bool = True
+    #: rounding of the backbone's cusp at the mirror plane (beta_round_deg of the road model, deg):
+    #: 0 = the cusp kept (the default: rounding breaks surfaces that have the cusp, docs/correction.md),
+    #: None = the first knot of g_C off beta = 0 (:attr:`backbone_round_deg`)
+    mirror_round_deg: float | None = 0.0
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
@@ -138,9 +142,27 @@ class SurfaceSettings:
         if self.smoothing not in SMOOTHING:
             raise InputError(f"expected the smoothing criterion to be one of {', '.join(SMOOTHING)}, got "
                              f"{self.smoothing!r}", field="smoothing")
+        if self.mirror_round_deg is not None:
+            lo, hi = PARAM_BOUNDS["beta_round_deg"]
+            v = self.mirror_round_deg
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and lo <= v <= hi):
+                raise InputError(f"expected the backbone's rounding at the mirror plane in [{lo:g}, {hi:g}] deg "
+                                 f"(or None for one knot spacing), got {v!r}", field="mirror_round_deg")
         if self.discrepancy_ell is not None and not (self.discrepancy_ell > 0 and math.isfinite(self.discrepancy_ell)):
             raise InputError(f"expected a positive correlation length of the discrepancy (knot spacings), got "
                              f"{self.discrepancy_ell}", field="discrepancy_ell")
+
+    @property
+    def backbone_round_deg(self) -> float:
+        """The backbone's rounding at the mirror plane (deg): ``mirror_round_deg``, or with None the
+        first knot of g_C off beta = 0 (docs/correction.md, "The backbone's cusp at the mirror plane")."""
+        if self.mirror_round_deg is not None:
+            return float(self.mirror_round_deg)
+        return float(self.c_grid.node_coordinates()[0][1])
+
+    def backbone_fixed(self) -> dict[str, float]:
+        """The backbone's parameters these settings hold in its fit through the instruments."""
+        return {"beta_round_deg": self.backbone_round_deg}
 
     @property
     def n_c(self) -> int:
@@ -157,7 +179,7 @@ class SurfaceSettings:
                 "peak_eps_deg": self.peak_eps_deg, "regions": self.regions,
                 "grid_beta_edges_deg": list(self.grid_beta_edges_deg), "grid_eps_edges_deg": list(self.grid_eps_edges_deg),
                 "lam": self.lam, "smoothing": self.smoothing, "discrepancy_ell": self.discrepancy_ell,
-                "model_estimate": self.model_estimate}
+                "model_estimate": self.model_estimate, "mirror_round_deg": self.mirror_round_deg}
 
 
 class FlexPart:

@@ -372,7 +372,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         m = state.get(f"stage-a-{v}")
         if m is None:
             _run._say(progress, f"{label}: fitting the {v} backbone through the instrument(s)")
-            m = _run.fit_self(stacked, y_all, u_all, v, seed=seed, stage_b=False, name=label, **fit_opts).model
+            m = _run.fit_self(stacked, y_all, u_all, v, seed=seed, stage_b=False, name=label,
+                              fixed=settings.backbone_fixed(), **fit_opts).model
             state.put(f"stage-a-{v}", m)
         backbones[v] = m
     chi2 = {v: float(np.sum(((stacked.r_measured(m) - y_all) / u_all) ** 2)) for v, m in backbones.items()}
@@ -380,7 +381,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     polished = state.get(f"fit-{main}")
     if polished is None:
         polished = fit_through_instrument(stacked, y_all, u_all, variant=main, start_models=[backbones[main]],
-                                          stage_a=False, seed=seed, name=label).model
+                                          stage_a=False, seed=seed, name=label, fixed=settings.backbone_fixed()).model
         state.put(f"fit-{main}", polished)
     backbones[main] = polished
     chi2[main] = float(np.sum(((stacked.r_measured(polished) - y_all) / u_all) ** 2))

@@ -303,18 +303,20 @@ def _say(progress: bool, text: str) -> None:
 
 def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rho=None, seed: int = 0,
              starts: int = DEFAULT_STARTS, polish: int = DEFAULT_POLISH, rounds: int = DEFAULT_ROUNDS,
-             stage_b: bool = True, name: str = "fit") -> ThroughFit:
+             stage_b: bool = True, name: str = "fit", fixed: Mapping[str, float] | None = None) -> ThroughFit:
     """The multi-start fit through the instrument in ``rounds`` of stage A: the first freezes k_A
     at 1 (the measured table fitted as if the instrument were ideal), each later one at the previous
     round's k_A (the table that model would correct to), starting also from that model; then
     stage B from the best distinct stage-A minima (``polish``). ``stage_b=False`` stops after stage
-    A (chi^2 through the bundles, no covariance)."""
+    A (chi^2 through the bundles, no covariance). ``fixed``: parameters held (as in
+    :func:`roadgonio.correction.fit.fit_through_instrument`)."""
     k_frozen = np.ones_like(y)
     best = None
     for r in range(int(rounds)):
         res = fit_through_instrument(fm, y, u, variant=variant, rho=rho, polish=polish, seed=seed, restart=r,
                                      starts=starts if best is None else LATER_ROUND_STARTS, k_frozen=k_frozen,
-                                     stage_b=False, name=name, start_models=[] if best is None else [best.model])
+                                     stage_b=False, name=name, start_models=[] if best is None else [best.model],
+                                     fixed=fixed)
         if best is not None and res.chi2 >= best.chi2 * (1.0 - 1e-6):
             break
         best = res
@@ -322,7 +324,7 @@ def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rh
     if not stage_b:
         return best
     return fit_through_instrument(fm, y, u, variant=variant, rho=rho, start_models=[best.model], stage_a=False,
-                                  name=name)
+                                  name=name, fixed=fixed)
 
 
 def _state_key(measured: RTable, u: np.ndarray, instrument: Instrument, settings: Mapping[str, Any]) -> str:

@@ -179,7 +179,8 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     # evidence (the weights are ~0 and ~1 in practice), or the variant asked for
     fits = []
     for variant in ((model_variant,) if model_variant else DEFAULT_VARIANTS):
-        bb = fit_self(fm, y, u, variant, seed=seed, stage_b=False, name=table.name).model
+        bb = fit_self(fm, y, u, variant, seed=seed, stage_b=False, name=table.name,
+                      fixed=settings.backbone_fixed()).model
         pa = FlexPart(fm, bb, settings)
         fits.append((fit_surface([pa], [y], [u]), variant, bb, pa))
     fit, variant, backbone, part_a = max(fits, key=lambda f: f[0].log_evidence)

@@ -52,13 +52,13 @@ from roadgonio.geometry import cos3_eps
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
-from roadgonio.surface.model import RoadModel, road_brdf
+from roadgonio.surface.model import RoadModel, modifier_terms, road_brdf
 
 #: The terms of the model that carry a linear coefficient (the columns of the forward model).
 LINEAR_TERMS = ("k_diff", "k_phong", "k_retro", "k_exp")
 #: Which shape parameters each term's column depends on (the g attenuation enters every column).
 TERM_SHAPE = {"k_diff": (), "k_phong": ("n_phong",), "k_retro": ("n_retro",),
-              "k_exp": ("p", "h", "mu", "n_beta")}
+              "k_exp": ("p", "h", "mu", "n_beta", "beta_round_deg")}
 G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
 DEFAULT_RAYS = 512
 DEFAULT_REPLICATES = 4
@@ -255,10 +255,7 @@ def _ess(wg: np.ndarray) -> float:
 # ----------------------------------------------------------------------------------------------
 
 def _terms_for(term: str, P: Mapping[str, float]) -> frozenset[str]:
-    t = {term}
-    if float(P["theta_l_deg"]) < 90.0:
-        t.add("g")
-    return frozenset(t)
+    return frozenset({term}) | modifier_terms(P)
 
 
 def _unit(P: Mapping[str, float]) -> dict[str, float]:
@@ -335,7 +332,7 @@ class ForwardModel:
     @staticmethod
     def _key(term: str, P: Mapping[str, float], variant: str) -> tuple:
         """What a term's column depends on: the term, the variant, its shape parameters and g."""
-        shape = tuple(float(P[k]) for k in TERM_SHAPE[term] if k != "n_beta" or variant == "smooth")
+        shape = tuple(float(P.get(k, 0.0)) for k in TERM_SHAPE[term] if k != "n_beta" or variant == "smooth")
         return (term, variant, shape, tuple(float(P[k]) for k in G_PARAMS))
 
     def columns(self, P: Mapping[str, float], variant: str,

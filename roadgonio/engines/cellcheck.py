@@ -26,15 +26,22 @@ from roadgonio.surface.model import RoadModel
 from roadgonio.engines.result import ideal_ratio, ideal_ratios
 
 
-def _check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]], models_beam: bool,
-                    backend: str) -> None:
-    optics.check_source_cells(instrument, cells)      # names the first bad cell and how many more
-    clips = np.flatnonzero(optics.beam_clips_cells(instrument, cells)) if not models_beam else ()
+def check_beam(instrument: Instrument, cells: Sequence[tuple[float, float]], backend: str) -> None:
+    """For a backend that does not model a source beam limit: refuse the first cell whose beam limit
+    clips the light reaching the footprint (:func:`roadgonio.instrument.optics.beam_clips_cells`)."""
+    clips = np.flatnonzero(optics.beam_clips_cells(instrument, cells))
     if len(clips):
         t, b = cells[clips[0]]
         raise BackendError(f"the source beam limit ({instrument.source.beam_half_angle_deg:g} deg) clips the "
                            f"light reaching the detector footprint at tan eps = {t:g}, beta = {b:g}; the "
                            f"{backend} backend does not model beam limits: use the quadrature backend")
+
+
+def _check_geometry(instrument: Instrument, cells: Sequence[tuple[float, float]], models_beam: bool,
+                    backend: str) -> None:
+    optics.check_source_cells(instrument, cells)      # names the first bad cell and how many more
+    if not models_beam:
+        check_beam(instrument, cells, backend)
     optics.check_line_of_sight(instrument, cells)
 
 

@@ -45,7 +45,7 @@ from roadgonio.errors import InputError
 from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS,
-                    RoadModel, RoadParams, road_brdf)
+                    RoadModel, RoadParams, modifier_terms, road_brdf)
 from roadgonio.surface.rtable import RTable
 
 #: The coefficients that enter the model linearly (solved by NNLS).
@@ -246,7 +246,9 @@ class _Problem:
         out = {}
         with np.errstate(all="ignore"):
             for k in LINEAR:
-                col = road_brdf(NumpyOps, Q, self.wi, self.wo, self.variant, frozenset({k}))
+                # g is 1 at the table cells; the mirror plane's rounding is not (it moves beta > 0)
+                col = road_brdf(NumpyOps, Q, self.wi, self.wo, self.variant, frozenset({k}) | (
+                    modifier_terms(Q) & {"round"}))
                 out[k] = np.asarray(col, dtype=np.float64) * self.c3 / self.rmax
         return out
 

@@ -49,10 +49,17 @@ Variants:
   R1 4.2/1.55 -> 4.3/1.47, R2 9.1/3.0 -> 5.5/1.85, R3 12.3/4.0 -> 7.2/2.27,
   R4 17.5/5.5 -> 7.7/2.12, C1 3.5/1.17 -> 2.7/0.77, C2 8.8/3.1 -> 7.8/2.21.
 
+Rounding at the mirror plane (roadgonio extension, every variant): ``beta_round_deg`` = b_c > 0
+replaces the empirical term's beta by ``beta^2 / sqrt(beta^2 + b_c^2)`` (:func:`rounded_beta`), so
+its cusp at beta = 0 (the power reading's ``exp(-W beta / pi)``, the smooth one's at n_beta < 1)
+becomes a smooth top of width ~b_c, as the term of any BRDF differentiable in the direction is;
+0 (the default) is the paper's model. The fits of tables never change it; the correction's
+backbone can hold it (docs/correction.md, "The backbone's cusp at the mirror plane").
+
 Parameter bounds (checked by :class:`RoadParams`): every ``k_*`` in [0, 1e6] sr^-1;
 ``n_phong``, ``n_retro`` in [0, 1e5]; ``p`` in [0, 50]; ``h`` in [-1e3, 1e3]; ``mu`` in [0, 1e3];
 ``g_a``, ``g_b``, ``g_c`` finite with ``g_a t^2 + g_b t + g_c > 0`` on [theta_l, pi/2]; ``g_t`` in
-[-100, 100]; ``theta_l_deg`` in (85.3, 90]; ``n_beta`` in [0.5, 4] (dimensionless; below 1/2
+[-100, 100]; ``theta_l_deg`` in (85.3, 90]; ``beta_round_deg`` in [0, 10]; ``n_beta`` in [0.5, 4] (dimensionless; below 1/2
 the profile would be steeper than a cusp at beta = 0, where a rounding-level beta would change E).
 Within these bounds and for directions in the upper hemisphere the model is finite and
 non-negative (tested); below the horizon it is 0.
@@ -84,7 +91,7 @@ VARIANTS = ("power", "product", "smooth")
 DEFAULT_VARIANT = "power"
 
 PARAM_NAMES = ("k_diff", "k_phong", "n_phong", "k_retro", "n_retro", "k_exp", "p", "h", "mu",
-               "g_a", "g_b", "g_c", "g_t", "theta_l_deg", "n_beta")
+               "g_a", "g_b", "g_c", "g_t", "theta_l_deg", "n_beta", "beta_round_deg")
 #: Parameters used only by some variants (the others ignore them, and the fit leaves them alone).
 VARIANT_PARAMS: dict[str, tuple[str, ...]] = {"power": (), "product": (), "smooth": ("n_beta",)}
 #: Lower and upper bounds of each parameter (inclusive unless noted in the module docstring).
@@ -93,6 +100,7 @@ PARAM_BOUNDS: dict[str, tuple[float, float]] = {
     "n_phong": (0.0, 1e5), "n_retro": (0.0, 1e5), "p": (0.0, 50.0), "h": (-1e3, 1e3),
     "mu": (0.0, 1e3), "g_a": (-1e6, 1e6), "g_b": (-1e6, 1e6), "g_c": (-1e6, 1e6),
     "g_t": (-100.0, 100.0), "theta_l_deg": (85.3, 90.0), "n_beta": (0.5, 4.0),
+    "beta_round_deg": (0.0, 10.0),
 }
 
 
@@ -107,9 +115,30 @@ def active_terms(params: Mapping[str, Any]) -> frozenset[str]:
     float values and re-traces when it changes.
     """
     terms = {name for name in ("k_diff", "k_phong", "k_retro", "k_exp") if float(params[name]) != 0.0}
+    return frozenset(terms) | modifier_terms(params)
+
+
+def modifier_terms(params: Mapping[str, Any]) -> frozenset[str]:
+    """The structural terms that shape the others rather than add to them: "g" (the grazing
+    attenuation) if theta_l < 90 deg, "round" (the mirror plane's rounding) if beta_round_deg > 0.
+    A caller evaluating one term at a time (a column of a fit) adds these to it."""
+    terms = set()
     if float(params["theta_l_deg"]) < 90.0:
         terms.add("g")
+    if float(params.get("beta_round_deg", 0.0)) > 0.0:
+        terms.add("round")
     return frozenset(terms)
+
+
+def rounded_beta(xp, beta, beta_round_deg):
+    """The empirical term's beta with its mirror-plane cusp rounded (docs/conventions.md section 3):
+    ``beta^2 / sqrt(beta^2 + b_c^2)``, b_c = ``beta_round_deg`` (radians in, radians out). Quadratic
+    in beta below b_c (so the term is smooth across the mirror plane), beta - b_c^2 / (2 beta) above
+    it; beta itself at b_c = 0 (up to rounding, so :func:`road_brdf` applies it only where
+    ``beta_round_deg > 0``)."""
+    bc = beta_round_deg * (math.pi / 180.0)
+    b2 = beta * beta
+    return b2 / xp.sqrt(xp.maximum(b2 + bc * bc, TINY))
 
 
 def _lobe(xp, h, n):
@@ -137,6 +166,15 @@ def g_attenuation(xp, P: Mapping[str, Any], theta):
     return xp.where(theta > theta_l, xp.exp(P["g_t"] * xp.log(base)), 1.0 + 0.0 * theta)
 
 
+def _positive(v) -> bool:
+    """Whether a parameter value (a number or a float64 array) is positive anywhere; opaque values
+    (the plugin's) say nothing, and the plugin passes its terms explicitly."""
+    try:
+        return bool(np.any(np.asarray(v, dtype=np.float64) > 0.0))
+    except (TypeError, ValueError):
+        return False
+
+
 def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
               terms: frozenset[str] | None = None):
     """The road BRDF f_r (sr^-1) of paper eq. 4, for local unit vectors.
@@ -160,7 +198,8 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
         raise InputError(f"unknown model variant {variant!r}; expected one of {', '.join(VARIANTS)}",
                          field="variant")
     if terms is None:
-        terms = frozenset({"k_diff", "k_phong", "k_retro", "k_exp", "g"})
+        terms = frozenset({"k_diff", "k_phong", "k_retro", "k_exp", "g"} | (
+            {"round"} if _positive(P.get("beta_round_deg", 0.0)) else set()))
     wix, wiy, wiz = wi
     wox, woy, woz = wo
     zero = 0.0 * (wiz + woz)
@@ -177,6 +216,8 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
         # beta = pi where the azimuth is undefined, so E = 0 there (module docstring)
         theta_i, theta_r, beta = pair_angles(xp, wi, wo, pole=math.pi)
     if "k_exp" in terms:
+        if "round" in terms:
+            beta = rounded_beta(xp, beta, P["beta_round_deg"])
         e = theta_i * theta_r * (1.0 / THETA_R_STAR)
         cos_e = xp.cos(e)
         f_e = xp.where(cos_e > 0.0, xp.sin(e) * cos_e / (cos_e * cos_e + P["mu"]), zero)
@@ -229,6 +270,7 @@ class RoadParams:
     g_t: float = 1.0
     theta_l_deg: float = 90.0
     n_beta: float = 1.0
+    beta_round_deg: float = 0.0
 
     def __post_init__(self):
         for f in fields(self):

@@ -29,11 +29,14 @@ def test_smooth_variant_in_plugin_matches_numpy(mi, rng_seed):
     from roadgonio.engines.mitsuba.plugins import register_plugins
     register_plugins()
     rng = np.random.default_rng(rng_seed + 101)
+    rng_round = np.random.default_rng(rng_seed + 102)       # apart, so the directions drawn stay the same
     for trial in range(8):
         P = dict(k_diff=rng.uniform(0, 0.1), k_phong=rng.uniform(0, 1), n_phong=10 ** rng.uniform(0, 2),
                  k_retro=rng.uniform(0, 0.1), n_retro=10 ** rng.uniform(0, 2), k_exp=rng.uniform(0.01, 0.2),
                  p=rng.uniform(1, 3), h=rng.uniform(-2, 3), mu=10 ** rng.uniform(-4, 0),
                  n_beta=float(rng.choice([0.5, 4.0])) if trial < 2 else rng.uniform(0.5, 2.0))
+        if trial % 2:                           # the mirror plane's cusp rounded (beta_round_deg)
+            P["beta_round_deg"] = float(rng_round.uniform(0.2, 5.0))
         bsdf = mi.load_dict({"type": "roadbsdf", "variant": "smooth", **P})
         assert float(mi.traverse(bsdf)["n_beta"][0]) == pytest.approx(P["n_beta"], rel=1e-6)
         n = 6000
@@ -60,3 +63,11 @@ def test_smooth_variant_in_plugin_matches_numpy(mi, rng_seed):
     ref2 = _model("smooth", **{**P, "n_beta": float(params["n_beta"][0])}).brdf(wl, ws)
     assert np.max(np.abs(after - before)) > 0
     np.testing.assert_allclose(after / wl[:, 2].astype(np.float32), ref2, rtol=1e-3, atol=SMOOTH_F32_ABS_TOL)
+    # so does a changed rounding, which switches the "round" term on or off (a re-trace)
+    params["beta_round_deg"] = 0.0 if P.get("beta_round_deg", 0.0) > 0.0 else 3.0
+    params.update()
+    again = np.array(bsdf.eval(mi.BSDFContext(), si, mi.Vector3f(wl[:, 0], wl[:, 1], wl[:, 2])))[0]
+    ref3 = _model("smooth", **{**P, "n_beta": float(params["n_beta"][0]),
+                               "beta_round_deg": float(params["beta_round_deg"][0])}).brdf(wl, ws)
+    assert np.max(np.abs(again - after)) > 0
+    np.testing.assert_allclose(again / wl[:, 2].astype(np.float32), ref3, rtol=1e-3, atol=SMOOTH_F32_ABS_TOL)

@@ -83,6 +83,8 @@ def test_eval_matches_numpy_model(plug, rng_seed):
     for trial in range(16):
         P = rand_params(rng)
         variant = ("power", "product")[trial % 2]
+        if trial % 4 >= 2:                      # the mirror plane's cusp rounded (beta_round_deg)
+            P["beta_round_deg"] = float(rng.uniform(0.2, 5.0))
         model = RoadModel(RoadParams(**P), variant)
         bsdf = plug.make(variant, **P)
         n = 8000

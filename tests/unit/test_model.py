@@ -399,3 +399,49 @@ def test_numpy_model_is_reciprocal(rng_seed):
         m = RoadModel(RoadParams(**rand_params(rng)), variant)
         a, b = rand_dirs(rng, 2000), rand_dirs(rng, 2000)
         np.testing.assert_allclose(m.brdf(a, b), m.brdf(b, a), rtol=1e-10, atol=1e-14)
+
+
+# ----------------------------------------------------------------------------------------------
+# the rounding of the mirror-plane cusp (beta_round_deg)
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("b_c", [0.3, 1.12, 4.0])
+@pytest.mark.parametrize("ti,tr,beta_deg,p,h,mu", [
+    (60.0, 89.0, 0.0, 2.0, 0.5, 0.03), (80.0, 89.0, 0.7, 2.1, 0.5, 0.03), (84.0, 89.0, 2.0, 2.5, 0.02, 0.005),
+    (75.0, 89.0, 5.0, 2.5, 2.5, 0.005), (45.0, 45.0, 170.0, 3.0, 1.0, 1.0)])
+def test_rounded_empirical_term_matches_documented_formula(variant, b_c, ti, tr, beta_deg, p, h, mu):
+    """E with beta_round_deg = b_c is E of the documented formula at beta^2 / sqrt(beta^2 + b_c^2)."""
+    m = _model(variant, k_exp=0.7, p=p, h=h, mu=mu, n_beta=0.5, beta_round_deg=b_c)
+    b, c = math.radians(beta_deg), math.radians(b_c)
+    ref = _E_reference(variant, 0.7, p, h, mu, math.radians(ti), math.radians(tr), b * b / math.hypot(b, c),
+                       n_beta=0.5 if variant == "smooth" else 1.0)
+    assert m.brdf(_dir(ti, 180.0 - beta_deg), _dir(tr, 0.0)) == pytest.approx(ref, rel=RTOL_EXPLOG, abs=1e-300)
+
+
+@pytest.mark.parametrize("variant", ("power", "smooth"))
+def test_rounding_makes_the_mirror_plane_smooth(variant):
+    """The cusp (power reading; smooth at n_beta = 1/2): E(0) - E(beta) ~ beta without rounding, ~ beta^2
+    well inside b_c with it (halving beta quarters the drop); far outside b_c the two agree; the peak
+    value at beta = 0 and the other terms are unchanged; 0 is the paper's model exactly."""
+    kw = dict(k_exp=1.0, p=2.0, h=0.3, mu=0.05, n_beta=0.5, k_diff=0.01, k_phong=0.2, n_phong=30.0)
+    T = np.full(4, 3.0)
+    B = np.array([0.0, 0.005, 0.01, 60.0])
+    cusp = _model(variant, **kw).q(T, B)
+    round_ = _model(variant, **kw, beta_round_deg=2.0).q(T, B)
+    assert round_[0] == pytest.approx(cusp[0], rel=RTOL_EXACT)
+    drop_c, drop_r = cusp[0] - cusp[1:3], round_[0] - round_[1:3]
+    assert drop_c[1] / drop_c[0] == pytest.approx(2.0, rel=1e-2)      # linear: a cusp
+    assert drop_r[1] / drop_r[0] == pytest.approx(4.0, rel=1e-2)      # quadratic: a smooth top
+    assert round_[3] == pytest.approx(cusp[3], rel=1e-2)    # beta 60 deg >> b_c: beta shifted by b_c^2 / 2 beta
+    T2, B2 = np.meshgrid(TAN_EPS_GRID, BETA_GRID_DEG, indexing="ij")
+    np.testing.assert_array_equal(_model(variant, **kw, beta_round_deg=0.0).q(T2, B2), _model(variant, **kw).q(T2, B2))
+    assert "round" in _model(variant, **kw, beta_round_deg=2.0).terms()
+    assert "round" not in _model(variant, **kw).terms()
+
+
+@pytest.mark.parametrize("bad", [-0.1, 10.5, float("nan")])
+def test_beta_round_deg_out_of_bounds_is_refused(bad):
+    with pytest.raises(InputError) as e:
+        RoadParams(k_exp=1.0, beta_round_deg=bad)
+    assert e.value.field == "beta_round_deg"

@@ -391,3 +391,33 @@ def test_the_uncertainty_posterior_uses_the_fits_prior_and_noise_scale(r3like):
     gap = (f.phi - 1.0) * float(np.max(np.abs(d_prior(part.settings))))
     assert float(np.max(np.abs(H[:n, :n] - own))) < 0.1 * gap
     assert f.prior_lam == {k: v / f.phi for k, v in f.lam.items()}
+
+
+def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
+    """SurfaceSettings: the backbone's rounding (beta_round_deg) is by default 0 (the cusp kept),
+    with None the first knot of g_C off beta = 0; bad values are refused naming the field; the fit through
+    the instrument holds it (fixed), and it reaches the forward model (the reading of a beta = 0
+    cell changes with it, one far from the mirror plane hardly)."""
+    from roadgonio.correction.flexible import SurfaceSettings
+    from roadgonio.correction.run import fit_self
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.errors import InputError
+    from roadgonio.instrument.config import load_instrument
+    s = SurfaceSettings(mirror_round_deg=None)
+    first_knot = float(s.c_grid.node_coordinates()[0][1])
+    assert 0.5 < first_knot < 2.0
+    assert s.backbone_round_deg == first_knot and s.backbone_fixed() == {"beta_round_deg": first_knot}
+    assert SurfaceSettings().backbone_round_deg == 0.0 and SurfaceSettings().backbone_fixed() == {"beta_round_deg": 0.0}
+    assert SurfaceSettings(mirror_round_deg=2.5).to_dict()["mirror_round_deg"] == 2.5
+    for bad in (-1.0, 11.0, float("nan"), True, "1"):
+        with pytest.raises(InputError) as e:
+            SurfaceSettings(mirror_round_deg=bad)
+        assert e.value.field == "mirror_round_deg"
+    cells = [(6.0, 0.0), (3.0, 0.0), (6.0, 90.0), (1.0, 30.0)]
+    fm = ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=64))
+    rounded = type(r3like)(r3like.params.replace(beta_round_deg=3.0), variant=r3like.variant)
+    ratio = fm.r_measured(rounded) / fm.r_measured(r3like)
+    assert abs(ratio[0] - 1.0) > 1e-3 and abs(ratio[2] - 1.0) < abs(ratio[0] - 1.0) / 10
+    y = fm.r_measured(r3like)
+    fit = fit_self(fm, y, 0.01 * y, "power", starts=2, rounds=1, stage_b=False, fixed={"beta_round_deg": 3.0})
+    assert fit.model.params.beta_round_deg == 3.0

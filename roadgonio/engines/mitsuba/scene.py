@@ -45,12 +45,12 @@ from typing import Any
 
 import numpy as np
 
+from roadgonio.engines import cellcheck
 from roadgonio.engines.mitsuba import require_variant
-from roadgonio.errors import BackendError, InputError
+from roadgonio.errors import InputError
 from roadgonio.instrument.config import Detector, Instrument, Observation
 from roadgonio.instrument.mesh import sample_triangles
 from roadgonio.instrument.optics import (
-    beam_clips_footprint,
     check_detector,
     check_line_of_sight,
     check_source,
@@ -146,11 +146,8 @@ def source_transform(instrument: Instrument, tan_eps: float, beta_deg: float):
 
 def check_beam(instrument: Instrument, tan_eps: float, beta_deg: float) -> None:
     """The Mitsuba area emitter has no beam limit: accept a beam limit only where it cannot clip
-    (:func:`roadgonio.instrument.optics.beam_clips_footprint`)."""
-    if beam_clips_footprint(instrument, tan_eps, beta_deg):
-        raise BackendError(f"the source beam limit ({instrument.source.beam_half_angle_deg:g} deg) clips the light "
-                           f"reaching the detector footprint at tan eps = {tan_eps:g}, beta = {beta_deg:g}; the "
-                           "mitsuba backend does not model beam limits: use the quadrature backend")
+    (the one check and text of every backend: :func:`roadgonio.engines.cellcheck.check_beam`)."""
+    cellcheck.check_beam(instrument, [(tan_eps, beta_deg)], "mitsuba")
 
 
 @dataclass
