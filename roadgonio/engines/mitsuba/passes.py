@@ -251,11 +251,10 @@ def strata_ratio_se_dof_many(cells: Sequence[Sequence[tuple[np.ndarray, np.ndarr
     with np.errstate(divide="ignore", invalid="ignore"):
         v = counts * np.add.reduceat(dev * dev, starts) / (counts - 1.0)
     single = (np.add.reduceat((counts < 2).astype(np.int64), cstarts) > 0) | empty[live]
-    var = np.add.reduceat(np.where(counts < 2, 0.0, v), cstarts)
+    v0 = np.where(counts < 2, 0.0, v)            # a stratum of one replicate has no variance estimate
+    var = np.add.reduceat(v0, cstarts)
     with np.errstate(divide="ignore", invalid="ignore"):
         s_err = np.sqrt(np.maximum(var, 0.0)) / np.abs(np.where(ok, sb, 1.0))
-    v0 = np.where(counts < 2, 0.0, v)
-    with np.errstate(divide="ignore", invalid="ignore"):
         den = np.add.reduceat(np.where(counts < 2, 0.0, v0 * v0 / (counts - 1.0)), cstarts)
         nominal = np.add.reduceat(np.maximum(counts - 1.0, 0.0), cstarts)
         d_eff = np.where(den > 0.0, var * var / np.where(den > 0.0, den, 1.0), nominal)
