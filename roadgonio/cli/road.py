@@ -79,7 +79,7 @@ def register(sub) -> None:
                    "the table meets, M6 when it meets none)")
     p.add_argument("--trials", type=int, default=20000, help="Monte Carlo trials (default 20000)")
     p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
-    p.add_argument("--correlation", choices=["auto", "given", "both", "independent", "correlated", "all"],
+    p.add_argument("--correlation", choices=list(api.ROAD_CORRELATIONS),
                    default="auto",
                    help="the cells' correlation in the Monte Carlo: auto (default: the given correlation, --corr or "
                         "found beside corrected_u.csv, else both), given, both (independent and fully correlated "
