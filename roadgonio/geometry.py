@@ -27,6 +27,17 @@ BETA_GRID_DEG = np.array([0, 2, 5, 10, 15, 20, 25, 30, 35, 40, 45, 60, 75, 90, 1
 ALPHA_STANDARD_DEG = 1.0
 
 
+def nearest_grid_node(tan_eps: float, beta_deg: float) -> tuple[int, int, float]:
+    """The (row, column) of the standard grid's node nearest to (tan eps, beta), and how far the
+    cell is from it: the larger of |tan eps - the row's| and |beta - the column's| (deg). The one
+    lookup of a cell on the grid; its callers judge the distance with their own tolerance
+    (:func:`roadgonio.engines.cells.grid_index`; the labels of a correlation file,
+    :func:`roadgonio.surface.rtable.read_cell_correlation`)."""
+    i = int(np.argmin(np.abs(TAN_EPS_GRID - tan_eps)))
+    j = int(np.argmin(np.abs(BETA_GRID_DEG - beta_deg)))
+    return i, j, float(max(abs(TAN_EPS_GRID[i] - tan_eps), abs(BETA_GRID_DEG[j] - beta_deg)))
+
+
 def w_detector(alpha_deg, delta_deg=0.0) -> np.ndarray:
     """Unit direction from the sample towards the detector, shape ``(..., 3)``."""
     a = np.radians(np.asarray(alpha_deg, dtype=np.float64))

@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, nearest_grid_node
 
 #: The cells ``roadgonio validate`` checks by default.
 EXTREME_CELLS: tuple[tuple[float, float], ...] = (
@@ -40,7 +40,7 @@ def full_grid_cells() -> list[tuple[float, float]]:
 
 
 def on_the_grid(tan_eps: float, beta_deg: float) -> bool:
-    return bool((np.abs(TAN_EPS_GRID - tan_eps) < CELL_TOL).any() and (np.abs(BETA_GRID_DEG - beta_deg) < CELL_TOL).any())
+    return grid_index(tan_eps, beta_deg) is not None
 
 
 def check_cell(tan_eps, beta_deg, field: str = "cells", beta_field: str | None = None) -> tuple[float, float]:
@@ -117,8 +117,5 @@ def select_cells(selection, table=None, *, on_grid: bool = False, field: str = "
 
 def grid_index(tan_eps: float, beta_deg: float) -> tuple[int, int] | None:
     """The (row, column) of a cell on the CIE grid, None for a cell off the grid."""
-    i = int(np.argmin(np.abs(TAN_EPS_GRID - tan_eps)))
-    j = int(np.argmin(np.abs(BETA_GRID_DEG - beta_deg)))
-    if abs(TAN_EPS_GRID[i] - tan_eps) < CELL_TOL and abs(BETA_GRID_DEG[j] - beta_deg) < CELL_TOL:
-        return i, j
-    return None
+    i, j, off = nearest_grid_node(tan_eps, beta_deg)
+    return (i, j) if off < CELL_TOL else None

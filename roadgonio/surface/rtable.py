@@ -52,7 +52,7 @@ import numpy as np
 
 from roadgonio.errors import InputError
 from roadgonio.fileio import atomic_write_text
-from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, nearest_grid_node
 
 #: Scale of r in files (published tables store r x 10^4).
 R_SCALE = 1e4
@@ -321,6 +321,11 @@ CORR_DIGITS = 4
 CORR_ROUNDING = 0.5 * 10.0 ** -CORR_DIGITS
 
 
+#: How far a grid label written in a file (a tan eps or beta of a table's header or rows, a cell of
+#: a correlation file) may be from the standard grid's value and still be that value (text rounding).
+GRID_LABEL_TOL = 1e-6
+
+
 def cell_label(tan_eps: float, beta_deg: float) -> str:
     """A cell's label in a correlation file: ``tan eps/beta`` (``0.25/10``)."""
     return f"{tan_eps:g}/{beta_deg:g}"
@@ -344,8 +349,8 @@ def _grid_cell(label: str, path, line: int) -> tuple[float, float]:
         raise InputError(f"expected a cell label 'tan eps/beta' (e.g. 0.25/10), got {label!r}", path=path, line=line)
     t = _parse_number(parts[0], path, line, f"cell {label!r}, tan eps")
     b = _parse_number(parts[1], path, line, f"cell {label!r}, beta")
-    i, j = np.abs(TAN_EPS_GRID - t).argmin(), np.abs(BETA_GRID_DEG - b).argmin()
-    if abs(TAN_EPS_GRID[i] - t) > 1e-6 or abs(BETA_GRID_DEG[j] - b) > 1e-6:
+    i, j, off = nearest_grid_node(t, b)
+    if off > GRID_LABEL_TOL:
         raise InputError(f"cell {label!r} is not on the standard grid (tan eps 0 ... 12, beta 0 ... 180)", path=path,
                          line=line)
     return float(TAN_EPS_GRID[i]), float(BETA_GRID_DEG[j])
@@ -539,7 +544,7 @@ def _parse_number(text: str, path, line: int, what: str) -> float:
 
 
 def _check_grid(values: list[float], expected: np.ndarray, what: str, path, line: int) -> None:
-    if len(values) != len(expected) or not np.allclose(values, expected, atol=1e-6, rtol=0):
+    if len(values) != len(expected) or not np.allclose(values, expected, atol=GRID_LABEL_TOL, rtol=0):
         exp = ",".join(_fmt(v, 6) for v in expected)
         got = ",".join(_fmt(v, 6) for v in values)
         raise InputError(f"{what} must be the standard grid ({len(expected)} values: {exp}); got "
@@ -595,7 +600,7 @@ def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = Non
             raise InputError(f"expected {len(BETA_GRID_DEG) + 1} cells (tan_eps and {len(BETA_GRID_DEG)} "
                              f"beta columns), found {len(cells)}", path=path, line=lineno)
         t = _parse_number(cells[0].strip(), path, lineno, "tan_eps")
-        if abs(t - TAN_EPS_GRID[i]) > 1e-6:
+        if abs(t - TAN_EPS_GRID[i]) > GRID_LABEL_TOL:
             raise InputError(f"row {i + 1} must have tan_eps = {TAN_EPS_GRID[i]:g} (standard grid), got {t:g}",
                              path=path, line=lineno)
         for j, c in enumerate(cells[1:]):

@@ -70,6 +70,32 @@ def test_the_grid_index_of_a_cell_is_written_once():
     assert grid_index(0.3, 0.0) is None and grid_index(1.0, 3.0) is None and grid_index(1.0 + 1e-6, 0.0) is None
 
 
+def test_one_grid_lookup_each_caller_with_its_tolerance(tmp_path):
+    """geometry.nearest_grid_node is the one lookup of a cell on the grid (rtable's correlation
+    reader had its own copy of grid_index's): the nearest node and the farther label's distance
+    (tan eps or beta, deg). Each caller keeps its tolerance: grid_index takes a cell closer than
+    CELL_TOL (1e-9, strictly), a correlation file's label within GRID_LABEL_TOL (1e-6, inclusive)."""
+    from helpers import refused_in_one_line
+
+    from roadgonio.engines.cells import CELL_TOL, grid_index, on_the_grid
+    from roadgonio.geometry import nearest_grid_node
+    from roadgonio.surface.rtable import GRID_LABEL_TOL, read_cell_correlation
+    assert nearest_grid_node(0.3, 3.0) == (1, 1, pytest.approx(1.0, abs=1e-12))      # 0.25 (0.05 off), 2 deg (1 off)
+    assert nearest_grid_node(12.2, 178.0) == (28, 19, pytest.approx(2.0, abs=1e-12))
+    assert nearest_grid_node(11.1, 180.0) == (26, 19, pytest.approx(0.1, abs=1e-12))
+    assert grid_index(0.5 * CELL_TOL, 0.0) == (0, 0) and grid_index(CELL_TOL, 0.0) is None
+    assert on_the_grid(0.5 * CELL_TOL, 180.0) and not on_the_grid(12.0, CELL_TOL)
+    path = tmp_path / "corr.csv"
+    for label, ok in ((f"{GRID_LABEL_TOL:.6f}/0", True), ("0/179.999999", True), ("0.000002/0", False),
+                      ("0/179.999998", False)):
+        path.write_text(f"cell,{label}\n{label},1.0000\n")
+        if ok:
+            cells, _ = read_cell_correlation(path)
+            assert cells in ([(0.0, 0.0)], [(0.0, 180.0)]), cells
+        else:
+            refused_in_one_line(lambda: read_cell_correlation(path), path, [f"cell '{label}' is not on the standard grid"])
+
+
 def test_resume_after_interruption_computes_each_cell_once(tmp_path, setup):
     ins, model = setup
     cells = full_grid_cells()[:50]
