@@ -124,13 +124,19 @@ def read_ldt(path: str | Path) -> Luminaire:
         raise InputError("no such luminaire file (expected an EULUMDAT .ldt file)", path=path)
     try:
         text = _text(path.read_bytes())
+    except OSError as err:
+        raise InputError(f"cannot read the luminaire file ({err.strerror or err})", path=path) from None
+    if not text.strip():        # said before the parser, which reads an empty file as a header of zeros
+        raise InputError("the file is empty: expected an EULUMDAT .ldt file", path=path)
+    # The parser reads the file a second time: eulumdat-py's only entry, LdtReader.read, takes a path
+    # and opens it itself (no text or stream), and it does not keep the text, which the count check
+    # (_check_count) walks.
+    try:
         ldt = LdtReader.read(path)
     except (ValueError, IndexError, ZeroDivisionError) as err:
         raise InputError(f"not a readable EULUMDAT file ({err})", path=path) from None
     except OSError as err:
         raise InputError(f"cannot read the luminaire file ({err.strerror or err})", path=path) from None
-    if not text.strip():
-        raise InputError("the file is empty: expected an EULUMDAT .ldt file", path=path)
     h = ldt.header
     if h.isym not in (0, 1, 2, 3, 4):
         raise InputError(f"symmetry indicator Isym must be 0 ... 4, got {h.isym}", path=path, field="Isym (line 3)")

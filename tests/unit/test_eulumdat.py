@@ -149,7 +149,16 @@ def test_a_file_with_more_or_fewer_numbers_than_its_header_announces_is_refused(
     refused_in_one_line(lambda: read_ldt(p), p, ["intensities (Isym, Mc, Ng: lines 3, 4, 6)"] + words)
 
 
-def test_an_empty_file_is_called_empty(tmp_path):
-    p = tmp_path / "empty.ldt"
-    p.write_bytes(b"\r\n\r\n")
-    refused_in_one_line(lambda: read_ldt(p), p, ["the file is empty", "EULUMDAT"])
+def test_an_empty_file_is_called_empty_before_it_is_parsed(tmp_path, monkeypatch):
+    """The empty file is refused before eulumdat-py parses it (the check ran after the parse, which
+    reads an empty file as a header of zeros; a parser that failed on it would have said "not a
+    readable EULUMDAT file" instead)."""
+    import pyldt
+
+    def parse(*args, **kwargs):
+        raise AssertionError("an empty file was given to the parser")
+    monkeypatch.setattr(pyldt.LdtReader, "read", parse)
+    for name, raw in (("empty.ldt", b""), ("blank.ldt", b"\r\n \r\n\t\n")):
+        p = tmp_path / name
+        p.write_bytes(raw)
+        refused_in_one_line(lambda p=p: read_ldt(p), p, ["the file is empty", "EULUMDAT"])
