@@ -972,6 +972,16 @@ ROAD_CORRELATIONS = {"auto": None, "given": ("given",), "both": ("independent", 
                      "all": ("independent", "correlated", "given")}
 
 
+def __getattr__(name: str):
+    """``ROAD_MODES``: the Monte Carlo's correlation cases in the order road's outputs give them
+    (:data:`roadgonio.road.report.MODES`, the one definition), imported when first asked for so that
+    importing the API stays light (as ``roadgonio`` itself does for the API)."""
+    if name == "ROAD_MODES":
+        from roadgonio.road.report import MODES
+        return MODES
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
 def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, target_class: str | None = None,
                  trials: int = 20_000, seed: int = 0, correlation: str = "auto", out=None,
                  plots: bool = True) -> list[dict[str, Any]]:

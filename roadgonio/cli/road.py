@@ -146,7 +146,7 @@ def _print(summaries) -> None:
              + (" (beside the u file)" if u.get("correlation_found_beside_u") else "")) + ":\n")
         for note in u.get("notes") or ():
             w(f"  note in {u['file']}: {note}\n")
-        for mode in ("given", "independent", "correlated"):
+        for mode in api.ROAD_MODES:
             if mode not in u:
                 continue
             m = u[mode]

@@ -282,6 +282,28 @@ def test_a_metric_with_its_u_is_printed_to_the_decimal_place_of_u():
         "L_av 1.1076 nominal, MC 1.1077 ± 0.0012 [1.1053, 1.1098]"
 
 
+def test_road_prints_the_correlation_cases_in_the_order_of_report_modes(monkeypatch, capsys):
+    """The text gives the Monte Carlo's cases in the order of road.report.MODES (the order of
+    road_metrics.csv and the picture's legend), which the CLI reads through api.ROAD_MODES: it had
+    written the order out a second time, so a change of MODES left the terminal in the old order."""
+    from roadgonio import api
+    from roadgonio.cli.road import _print
+    from roadgonio.road import report
+    case = {"L_av": None, "U_o": None, "U_l": None, "TI": None, "P_meets_target": 0.5}
+    summary = {"table": "T", "L_av": 1.0, "U_o": 0.5, "U_l": 0.6, "TI": 5.0, "R_EI": 0.7, "class": "M3",
+               "U_l_per_lane": [0.6], "neglected_contributions": 0, "layout": "a layout", "written": [], "out": "o",
+               "luminaire": {"name": "lum", "flux_lm": 1000.0},
+               "uncertainty": {"file": "u.csv", "trials": 10, "target_class": "M3",
+                               **{mode: dict(case) for mode in report.MODES}}}
+    for order in (report.MODES, report.MODES[::-1], report.MODES[1:] + report.MODES[:1]):
+        monkeypatch.setattr(report, "MODES", order)
+        assert api.ROAD_MODES == order
+        _print([summary])
+        out = capsys.readouterr().out
+        at = [out.index(f"  {mode:11}: ") for mode in order]
+        assert at == sorted(at), out
+
+
 def test_road_prints_the_monte_carlo_mean_beside_an_interval_that_excludes_the_nominal(tmp_path, capsys):
     """Trial 11 D5: with u = 30 % of r in independent cells the trials' U_o and U_l fall far below
     the nominal values (min/max ratios under noise), and the line read 'U_l 0.619 ± 0.088 [0.241,
