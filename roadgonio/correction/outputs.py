@@ -1,7 +1,8 @@
 """What a correction writes: its outputs together or not at all (:class:`roadgonio.fileio.OutputGroup`).
 
-In the output folder (the first eight files are one group: a full disk or a failing picture
-leaves none of them, and the folder's previous set stays as it was)::
+In the output folder (the first ten files are one group: a full disk or a failing picture
+leaves none of them, and the folder's previous set stays as it was; once the new set is in, a file
+of the previous set that this run did not write, e.g. a picture under --no-plots, is removed)::
 
     corrected.csv        corrected r x 1e4, the r-table layout
     corrected_u.csv      its standard uncertainty, r x 1e4, same layout
@@ -42,6 +43,10 @@ PICTURES = ("picture", "map", "residuals", "surface")
 FILES = {"corrected": "corrected.csv", "u": "corrected_u.csv", "rtb": "corrected.rtb", "json": "correct.json",
          "cells": "correct_cells.csv", "correlation": "corrected_corr.csv", "picture": "before_after.png",
          "map": "correction_map.png", "residuals": "residual_map.png", "surface": "correction_surface.png"}
+#: The writers' ``replaces`` (:class:`~roadgonio.fileio.OutputGroup`, as render and road do): an earlier
+#: run's output that this run does not write (a picture under --no-plots, the --forward surface
+#: pictures after an eq. 4 run, an RTB the new table cannot have) is removed once the new files are in.
+REPLACES = tuple(FILES.values())
 
 
 def has_rtb(table) -> bool:
@@ -68,7 +73,7 @@ def write_correction(res, out_dir: str | Path, *, plots: bool = True) -> list[Pa
     """Write every output of a :class:`~roadgonio.correction.run.CorrectionResult` to ``out_dir``,
     together or not at all (module docstring); an OSError is the one-line InputError naming the
     file. Returns the paths (corrected.csv, corrected_u.csv, corrected.rtb, correct.json, ...)."""
-    with OutputGroup(out_dir) as group:
+    with OutputGroup(out_dir, replaces=REPLACES) as group:
         paths = [group.text(FILES["corrected"], res.corrected.to_csv_text()),
                  group.text(FILES["u"], u_csv_text(res)),
                  group.text(FILES["cells"], cells_csv(res)),
@@ -458,7 +463,7 @@ def write_surface_correction(sc, out_dir: str | Path, *, plots: bool = True) -> 
         del files["rtb"]
     if plots:
         files.update({k: FILES[k] for k in PICTURES})
-    with OutputGroup(out_dir) as group:
+    with OutputGroup(out_dir, replaces=REPLACES) as group:
         paths = [group.text(FILES["corrected"], sc.corrected.to_csv_text()),
                  group.text(FILES["u"], u_csv_text(sc)),
                  group.json(FILES["json"], _joint_doc(sc, plots, files)),

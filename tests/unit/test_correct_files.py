@@ -97,3 +97,35 @@ def test_corrected_table_and_its_uncertainty_in_closed_form():
         rc = m / k
         assert res.corrected.r[i, j] == pytest.approx(rc, rel=ROUND_TOL, abs=0.0)
         assert res.u_corrected[i, j] == pytest.approx(rc * math.hypot(0.02, se / k), rel=ROUND_TOL, abs=0.0)
+
+
+def test_a_run_removes_the_earlier_runs_files_it_does_not_write(corrected, tmp_path, monkeypatch):
+    """correct --no-plots into the folder of an earlier run with pictures (and the --forward surface
+    pictures) left them beside the new tables, showing another correction; the writers now give
+    their names to OutputGroup's replaces, as render and road do. The journals and the fit's
+    checkpoint, outside the group, stay. The joint writer (--joint) replaces the same names."""
+    from types import SimpleNamespace
+
+    from roadgonio.correction import outputs
+    _, res = corrected
+    pictures = [outputs.FILES[k] for k in outputs.PICTURES]
+    assert {"before_after.png", "correction_map.png", "residual_map.png", "correction_surface.png"} == set(pictures)
+    for name in pictures + ["fit_state.json"]:
+        (tmp_path / name).write_bytes(b"an earlier run's")
+    (tmp_path / "forward-1").mkdir()
+    (tmp_path / "forward-1" / "ka_cells.jsonl").write_text("{}\n")
+    written = outputs.write_correction(res, tmp_path, plots=False)
+    assert {p.name for p in tmp_path.iterdir()} == {p.name for p in written} | {"fit_state.json", "forward-1"}
+    assert not set(pictures) & {p.name for p in written}
+
+    class Refused(Exception):
+        pass
+
+    class Recorder:
+        def __init__(self, out_dir, *, replaces=()):
+            self.replaces = tuple(replaces)
+            raise Refused(self.replaces)
+    monkeypatch.setattr(outputs, "OutputGroup", Recorder)
+    with pytest.raises(Refused) as got:
+        outputs.write_surface_correction(SimpleNamespace(corrected=res.corrected), tmp_path, plots=False)
+    assert set(got.value.args[0]) == set(outputs.FILES.values())
