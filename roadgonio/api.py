@@ -1057,7 +1057,7 @@ def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, targ
             cells_corr = None
             if cf is not None:
                 try:
-                    cells_corr = read_cell_correlation(cf)
+                    cells_corr = read_cell_correlation(cf, table=_header_for_corr(item, t, ut))
                 except InputError as err:
                     raise err.with_argument("corr") from None
                 inputs.append(input_record("corr", cf, f"correlation of the cells of {t.name}"))
@@ -1180,6 +1180,16 @@ def _check_u_belongs(item, t: "RTable", uf, ut: "RTable", own_name: str | None =
     if own and own != named:
         raise InputError(f"{uf} is the standard uncertainty of '{named}', but it goes with the table {item}, whose "
                          f"header says '{own}': give each --u right after the --table it belongs to", field="u")
+
+
+def _header_for_corr(item, t: "RTable", ut: "RTable") -> str | None:
+    """The header of the table a correlation file (corr) must name when it names one: that of the
+    table's CSV file, else the one its u file names (an RTB or a bundled table has no header to
+    compare, as in :func:`_check_u_belongs`, which has made the two agree when both are there)."""
+    from roadgonio.surface.rtable import header_line, u_names_table
+    if isinstance(item, (str, Path)) and Path(str(item)).suffix.lower() == ".csv" and header_line(t):
+        return header_line(t)
+    return u_names_table(ut)
 
 
 def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:

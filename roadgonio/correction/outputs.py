@@ -37,7 +37,7 @@ import numpy as np
 
 from roadgonio.fileio import OutputGroup
 from roadgonio.surface.fit import model_r_on_grid
-from roadgonio.surface.rtable import NOTE_PREFIX, R_SCALE, U_HEADER, correlation_text, grid_csv_text
+from roadgonio.surface.rtable import NOTE_PREFIX, R_SCALE, U_HEADER, correlation_text, grid_csv_text, header_line
 
 PICTURES = ("picture", "map", "residuals", "surface")
 FILES = {"corrected": "corrected.csv", "u": "corrected_u.csv", "rtb": "corrected.rtb", "json": "correct.json",
@@ -180,7 +180,7 @@ def cells_csv(res) -> str:
 
 
 def correlation_csv(res) -> str:
-    return _correlation_text(res.measured, res.budget)
+    return _correlation_text(res.measured, res.budget, res.corrected)
 
 
 def _fmt_u(v: float | None, u: float | None, digits: int = 3) -> str:
@@ -468,7 +468,7 @@ def write_surface_correction(sc, out_dir: str | Path, *, plots: bool = True) -> 
                  group.text(FILES["u"], u_csv_text(sc)),
                  group.json(FILES["json"], _joint_doc(sc, plots, files)),
                  group.text(FILES["cells"], joint_cells_csv(sc)),
-                 group.text(FILES["correlation"], _correlation_text(sc.corrected, sc.budget))]
+                 group.text(FILES["correlation"], _correlation_text(sc.corrected, sc.budget, sc.corrected))]
         if "rtb" in files:
             paths.insert(2, group.text(FILES["rtb"], sc.corrected.to_rtb_text()))
         if plots:
@@ -479,7 +479,10 @@ def write_surface_correction(sc, out_dir: str | Path, *, plots: bool = True) -> 
     return paths
 
 
-def _correlation_text(table, budget) -> str:
-    """corrected_corr.csv: the format ``road --corr`` reads (:func:`roadgonio.surface.rtable.read_cell_correlation`)."""
+def _correlation_text(table, budget, corrected) -> str:
+    """corrected_corr.csv: the format ``road --corr`` reads (:func:`roadgonio.surface.rtable.read_cell_correlation`),
+    the correlation of ``table``'s cells, its first line naming the ``corrected`` table as corrected_u.csv's does
+    (``road`` checks that it goes with that table)."""
     ii, jj = np.nonzero(table.mask)
-    return correlation_text([(table.tan_eps[i], table.beta_deg[j]) for i, j in zip(ii, jj)], budget.correlation())
+    return correlation_text([(table.tan_eps[i], table.beta_deg[j]) for i, j in zip(ii, jj)], budget.correlation(),
+                            table=header_line(corrected))

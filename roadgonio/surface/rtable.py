@@ -316,6 +316,11 @@ def u_names_sample(u: "RTable") -> tuple[str, bool] | None:
 #: read by ``road --corr``): a comment line, then ``cell,<label>,...`` and one row per cell, labelled
 #: ``tan eps/beta`` (:func:`cell_label`), values to :data:`CORR_DIGITS` decimals.
 CORR_COMMENT = "correlation of the corrected cells (rows and columns labelled tan eps/beta)"
+#: The first words of the first line of a correlation file that names its table (correct's
+#: corrected_corr.csv, as corrected_u.csv's :data:`U_HEADER` does): the rest of the line is the
+#: header of that table; the next line says how the cells are labelled (:data:`CORR_LABELS`).
+CORR_HEADER = "correlation of the cells of "
+CORR_LABELS = "rows and columns labelled tan eps/beta"
 CORR_DIGITS = 4
 #: The largest error of a stored correlation: half its last decimal.
 CORR_ROUNDING = 0.5 * 10.0 ** -CORR_DIGITS
@@ -331,11 +336,13 @@ def cell_label(tan_eps: float, beta_deg: float) -> str:
     return f"{tan_eps:g}/{beta_deg:g}"
 
 
-def correlation_text(cells, corr: np.ndarray) -> str:
-    """The correlation matrix ``corr`` of ``cells`` ((tan eps, beta) pairs) as a correlation file."""
+def correlation_text(cells, corr: np.ndarray, table: str | None = None) -> str:
+    """The correlation matrix ``corr`` of ``cells`` ((tan eps, beta) pairs) as a correlation file;
+    ``table``: the header (first line) of the table the cells are of, named on the file's first line
+    (:data:`CORR_HEADER`; without it, :data:`CORR_COMMENT`)."""
     labels = [cell_label(t, b) for t, b in cells]
     buf = io.StringIO()
-    buf.write(f"# {CORR_COMMENT}\n")
+    buf.write(f"# {CORR_HEADER}{table}\n# {CORR_LABELS}\n" if table else f"# {CORR_COMMENT}\n")
     buf.write("cell," + ",".join(labels) + "\n")
     for k, lab in enumerate(labels):
         buf.write(lab + "," + ",".join(f"{v:.{CORR_DIGITS}f}" for v in corr[k]) + "\n")
@@ -356,12 +363,14 @@ def _grid_cell(label: str, path, line: int) -> tuple[float, float]:
     return float(TAN_EPS_GRID[i]), float(BETA_GRID_DEG[j])
 
 
-def read_cell_correlation(path: str | Path) -> tuple[list[tuple[float, float]], np.ndarray]:
+def read_cell_correlation(path: str | Path, table: str | None = None) -> tuple[list[tuple[float, float]], np.ndarray]:
     """The cells ((tan eps, beta) on the standard grid) and their correlation matrix from a
-    correlation file (:data:`CORR_COMMENT`; corrected_corr.csv). Every mistake is one
-    :class:`InputError` naming the file, the line and what was expected: labels not on the grid or
-    twice, a row not labelled as its column, a value not a number, beyond +-1, a diagonal not 1 or
-    an asymmetry larger than the stored rounding (:data:`CORR_ROUNDING`)."""
+    correlation file (:data:`CORR_COMMENT`; corrected_corr.csv). ``table``: the header (first line)
+    of the table it is used with; a file whose first line names another table (:data:`CORR_HEADER`)
+    is refused (a file that names none, as before the name was written, is not checked). Every
+    mistake is one :class:`InputError` naming the file, the line and what was expected: labels not
+    on the grid or twice, a row not labelled as its column, a value not a number, beyond +-1, a
+    diagonal not 1 or an asymmetry larger than the stored rounding (:data:`CORR_ROUNDING`)."""
     p = Path(path)
     if not p.is_file():
         raise InputError("no such correlation file" if not p.exists() else "expected a correlation file, not a folder",
@@ -377,6 +386,12 @@ def read_cell_correlation(path: str | Path) -> tuple[list[tuple[float, float]], 
     rows: list[list[float]] = []
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
+        if lineno == 1 and table and line.startswith("#") and line[1:].strip().startswith(CORR_HEADER):
+            named = line[1:].strip()[len(CORR_HEADER):].strip()
+            if named != table.strip():
+                raise InputError(f"is the correlation of the cells of '{named}', but it goes with the table whose "
+                                 f"header says '{table.strip()}': give the correlation file written with that table "
+                                 "(correct's corrected_corr.csv beside its corrected_u.csv)", path=p, line=lineno)
         if not line or line.startswith("#"):
             continue
         fields = next(csv.reader([raw]))

@@ -282,6 +282,39 @@ def test_a_metric_with_its_u_is_printed_to_the_decimal_place_of_u():
         "L_av 1.1076 nominal, MC 1.1077 ± 0.0012 [1.1053, 1.1098]"
 
 
+def test_road_refuses_a_correlation_file_that_names_another_table(tmp_path, capsys):
+    """corrected_corr.csv names its table on its first line, as corrected_u.csv's header does: road
+    uses a named file with its own table, and stops in one line naming the file and both tables
+    (exit 2, nothing written) when it goes with another: after a CSV whose header names another
+    table, or after an RTB (no header to compare) whose u names another."""
+    from roadgonio.surface.rtable import correlation_text
+    t = bundled_table("R3")
+    n = int(t.mask.sum())
+    folders = {}
+    for name in ("R3", "R2"):
+        head = f"{name} corrected for the aperture effect (r / k_A; reference self; instrument portable)"
+        f = folders[name] = tmp_path / name
+        f.mkdir()
+        t.with_values(t.r, source=head).write_csv(f / "corrected.csv")
+        t.with_values(t.r, source=head).write_rtb(f / "corrected.rtb")
+        t.with_values(0.03 * t.r, source="standard uncertainty of " + head).write_csv(f / "corrected_u.csv")
+        (f / "corrected_corr.csv").write_text(correlation_text(t.cells, np.eye(n), table=head))
+    r3, r2 = folders["R3"], folders["R2"]
+    assert main(["road", "--table", str(r3 / "corrected.csv"), "--u", str(r3 / "corrected_u.csv"), "--trials", "500",
+                 "--no-plots", "--json", "--out", str(tmp_path / "o")]) == 0
+    d = json.loads(capsys.readouterr().out)["uncertainty"]
+    assert d["correlation_file"] == str(r3 / "corrected_corr.csv") and "given" in d
+    for table in ("corrected.csv", "corrected.rtb"):
+        rc = main(["road", "--table", str(r3 / table), "--u", str(r3 / "corrected_u.csv"), "--corr",
+                   str(r2 / "corrected_corr.csv"), "--trials", "500", "--no-plots", "--out", str(tmp_path / "bad")])
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and "\n" not in err, err
+        for w in (f"{r2 / 'corrected_corr.csv'}:1", "--corr", "correlation of the cells of 'R2 corrected",
+                  "header says 'R3 corrected"):
+            assert w in err, (w, err)
+        assert not (tmp_path / "bad").exists()
+
+
 def test_road_prints_the_correlation_cases_in_the_order_of_report_modes(monkeypatch, capsys):
     """The text gives the Monte Carlo's cases in the order of road.report.MODES (the order of
     road_metrics.csv and the picture's legend), which the CLI reads through api.ROAD_MODES: it had

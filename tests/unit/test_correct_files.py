@@ -12,6 +12,7 @@ import pytest
 from roadgonio.correction.outputs import cells_csv, u_csv_text
 from roadgonio.correction.run import correct_with_reference
 from roadgonio.engines.result import CellResult
+from roadgonio.errors import InputError
 from roadgonio.instrument.config import load_instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.surface.rtable import load_table, parse_csv
@@ -129,3 +130,20 @@ def test_a_run_removes_the_earlier_runs_files_it_does_not_write(corrected, tmp_p
     with pytest.raises(Refused) as got:
         outputs.write_surface_correction(SimpleNamespace(corrected=res.corrected), tmp_path, plots=False)
     assert set(got.value.args[0]) == set(outputs.FILES.values())
+
+
+def test_corrected_corr_csv_names_its_table_as_corrected_u_csv_does(corrected, tmp_path):
+    """The correlation file correct writes names the corrected table on its first line (as the u
+    file's header does), and road's reader takes it for that table and refuses it for another."""
+    from roadgonio.correction.outputs import write_correction
+    from roadgonio.surface.rtable import header_line, read_cell_correlation, read_table, u_names_table
+    _, res = corrected
+    write_correction(res, tmp_path, plots=False)
+    head = header_line(read_table(tmp_path / "corrected.csv"))
+    assert head.startswith("R3 corrected for the aperture effect")
+    assert u_names_table(read_table(tmp_path / "corrected_u.csv", "u")) == head
+    assert (tmp_path / "corrected_corr.csv").read_text().splitlines()[0] == "# correlation of the cells of " + head
+    cells, c = read_cell_correlation(tmp_path / "corrected_corr.csv", table=head)
+    assert len(cells) == int(res.measured.mask.sum()) and c.shape == (len(cells), len(cells))
+    with pytest.raises(InputError, match="header says 'R2 corrected"):
+        read_cell_correlation(tmp_path / "corrected_corr.csv", table=head.replace("R3", "R2"))

@@ -326,11 +326,33 @@ def test_the_correlation_file_correct_writes_is_what_road_reads(tmp_path):
     b.add("measurement", np.full(n, 0.01))
     b.add_systematic("model", np.linspace(-0.02, 0.03, n))
     path = tmp_path / "corrected_corr.csv"
-    path.write_text(_correlation_text(t, b))
-    cells, c = read_cell_correlation(path)
+    head = "R3 corrected for the aperture effect (r / k_A; reference self; instrument portable)"
+    path.write_text(_correlation_text(t, b, t.with_values(t.r, source=head + "\nsecond line")))
+    assert path.read_text().splitlines()[0] == "# correlation of the cells of " + head
+    cells, c = read_cell_correlation(path, table=head)
     assert cells == [(float(x), float(y)) for x, y in t.cells]
     assert np.max(np.abs(c - b.correlation())) <= CORR_ROUNDING * (1 + 1e-9)
     assert np.min(c) < -0.5                                      # mixed signs survive the round trip
+
+
+def test_a_correlation_file_that_names_another_table_is_refused(tmp_path):
+    """corrected_corr.csv names its table on its first line, as corrected_u.csv does; read for
+    another table it is refused in one line naming the file, the line and both tables. A file
+    without the name (before it was written), or read without a table to compare, is read."""
+    from helpers import refused_in_one_line
+
+    from roadgonio.surface.rtable import correlation_text, read_cell_correlation
+    cells = [(0.0, 0.0), (0.0, 2.0), (0.25, 0.0)]
+    named = tmp_path / "named.csv"
+    named.write_text(correlation_text(cells, np.eye(3), table="A corrected for the aperture effect (r / k_A; x)"))
+    refused_in_one_line(lambda: read_cell_correlation(named, table="B corrected for the aperture effect (r / k_A; x)"),
+                        named, [f"{named}:1", "correlation of the cells of 'A corrected", "header says 'B corrected"])
+    assert read_cell_correlation(named, table="A corrected for the aperture effect (r / k_A; x)")[0] == cells
+    assert read_cell_correlation(named)[0] == cells
+    old = tmp_path / "old.csv"
+    old.write_text(correlation_text(cells, np.eye(3)))
+    assert old.read_text().startswith("# correlation of the corrected cells")
+    assert read_cell_correlation(old, table="B corrected for the aperture effect (r / k_A; x)")[0] == cells
 
 
 @pytest.mark.parametrize("edit,words", [
