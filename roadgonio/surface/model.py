@@ -25,7 +25,7 @@ Numerical form (chosen so that float32 is accurate near the lobe peaks and nothi
   accurate near 180 deg), x and x_s floored at :data:`X_FLOOR`; ``W L^n_beta`` is
   ``exp(min(ln W + n_beta ln L, 80))`` (0 where L = 0). Until session 13 x and x_s near 180 deg
   were ``1 - beta/pi`` and ``1 - sin^2(beta/2)``: in float32 they cancelled and their floor
-  ``1 - 1e-7`` became 1.19e-7, so the plugin's E was up to 2 % off there (the float64 values agree
+  ``1 - 1e-7`` became 1.19e-7, so the plugin's E was up to 3 % off there (the float64 values agree
   with today's to 1e-7 relative, today's being the more accurate against 80-bit arithmetic).
 
 Variants:
