@@ -15,6 +15,8 @@ which is written over an array namespace ``xp`` so that the Dr.Jit plugins evalu
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 #: Standard r-table grid (CIE 144): 29 rows of tan(epsilon)...
@@ -92,7 +94,7 @@ def source_cell(w, delta_deg=0.0) -> tuple[np.ndarray, np.ndarray]:
     return tan, beta
 
 
-def pair_angles(xp, wi, wo, *, pole: float):
+def pair_angles(xp, wi, wo, *, pole: float, supplement: bool = False):
     """(theta_i, theta_r, beta) in radians of ray pairs: ``wi``, ``wo`` component triples of unit
     vectors towards the source and the detector in the sample's frame (z the normal), over the
     array namespace ``xp`` (:class:`roadgonio.arrays.NumpyOps` or the Dr.Jit one). The one
@@ -101,7 +103,12 @@ def pair_angles(xp, wi, wo, *, pole: float):
     :func:`source_azimuth_rad`), folded to [0, pi] and formed as
     ``atan2(|w_i x w_o|_z, -(w_i . w_o)_xy)``, exact near 0 and pi. Where the azimuth of either
     direction is undefined (theta_i = 0 or theta_r = 0) beta is ``pole``: each caller says what it
-    needs there (the road BRDF pi, so its empirical term is 0; the correction surface 0)."""
+    needs there (the road BRDF pi, so its empirical term is 0; the correction surface 0).
+
+    ``supplement=True`` adds a fourth array, pi - beta, formed as ``atan2(|w_i x w_o|_z,
+    (w_i . w_o)_xy)`` (pi - ``pole`` where beta is the pole): near beta = pi it keeps the relative
+    precision that ``pi - beta`` loses in float32, whose beta near pi carries an absolute error of
+    half a unit of pi's last place (1.2e-7), i.e. a relative error 1.2e-7 / (pi - beta)."""
     wix, wiy, wiz = wi
     wox, woy, woz = wo
     sin_ti = xp.sqrt(wix * wix + wiy * wiy)
@@ -110,8 +117,11 @@ def pair_angles(xp, wi, wo, *, pole: float):
     theta_r = xp.atan2(sin_tr, woz)
     cross = xp.abs(wix * woy - wiy * wox)
     dot = wix * wox + wiy * woy
-    beta = xp.where(sin_ti * sin_tr > 1e-12, xp.atan2(cross, -dot), pole + 0.0 * (wiz + woz))
-    return theta_i, theta_r, beta
+    defined = sin_ti * sin_tr > 1e-12
+    beta = xp.where(defined, xp.atan2(cross, -dot), pole + 0.0 * (wiz + woz))
+    if not supplement:
+        return theta_i, theta_r, beta
+    return theta_i, theta_r, beta, xp.where(defined, xp.atan2(cross, dot), (math.pi - pole) + 0.0 * (wiz + woz))
 
 
 def eps_from_tan(tan_eps) -> np.ndarray:

@@ -55,7 +55,8 @@ REFERENCES = st.METHODS + ("truth",)
 SENS_STEP = 1e-5
 #: Version of the realisation records (what they hold); records of another version are computed again.
 #: 3: the fixed-height source's item is its distance idealised (trial 11 D9), no longer an arc.
-REALISATION_FORMAT = 3
+#: 4: an arc source's distance is an item too (session 13).
+REALISATION_FORMAT = 4
 
 
 # ----------------------------------------------------------------------------------------------
@@ -140,23 +141,22 @@ def _k_table(ctx: Context, instrument, desc: str = "k_A") -> np.ndarray:
 
 def idealised_instrument(instrument, key: str):
     """The instrument with one characteristic idealised: an aperture zero, Lambert calibration, or
-    (``source_distance``) a fixed-height source's nearness: the rail
-    :data:`~roadgonio.intercomparison.simulate.SOURCE_FAR_FACTOR` times higher with an aperture as
-    many times larger, so every cell sees the source at the same angular size from the same
-    direction, but each point of the footprint is lit from (nearly) that one direction, not from
-    eps +- tens of degrees as by a source 1 m away.
+    (``source_distance``) its source's nearness: the source
+    :data:`~roadgonio.intercomparison.simulate.SOURCE_FAR_M` away with its aperture scaled alike
+    (:func:`~roadgonio.intercomparison.simulate.far_source`; an arc's distance or a rail's height),
+    so every cell sees the source at the same angular size from the same direction, but each point
+    of the footprint is lit from (nearly) that one direction, not from eps +- tens of degrees as by
+    a rail 1 m high (or +- 6 deg by an arc of 5 m).
 
-    Trial 11 D9: this item was an arc of radius the rail's height, the source at its nearest
-    everywhere, a far worse instrument at grazing cells than the rail that reaches 12 m (RMS
+    Trial 11 D9: for a rail this item was an arc of radius the rail's height, the source at its
+    nearest everywhere, a far worse instrument at grazing cells than the rail that reaches 12 m (RMS
     |k_A - 1| of the corridor preset on R3 over the 396 cells: 18.5 % against 3.4 %), so its
     "idealised" error was five times the real one. The nearness is what costs the corridor its
-    error: far away at the same angular size the RMS is 0.22 %, the same at 100 and 1000 times
-    (the rest is the angular size and the detector's), and the source's radius alone barely
-    matters (3.44 % with a point source on the rail)."""
+    error: far away at the same angular size the RMS is 0.22 %, the same at 100 and 1000 m (the rest
+    is the angular size and the detector's), and the source's radius alone barely matters (3.44 %
+    with a point source on the rail). An arc source's distance had no item until session 13."""
     if key == "source_distance":
-        src = instrument.source
-        return instrument.with_changes(source={"height_m": src.height_m * sim.SOURCE_FAR_FACTOR,
-                                               "radius_m": src.radius_m * sim.SOURCE_FAR_FACTOR})
+        return instrument.with_changes(source=sim.far_source(instrument.source))
     if key == "calibration_mode":
         d = instrument.to_dict()
         d.pop("calibration", None)
@@ -501,13 +501,7 @@ def _stages(ctx: Context, journal: _Journal, client, progress: bool, seconds: di
         items1.append(("surrogate", p))
         if part.instrument.is_ideal():
             continue
-        for key, (sec, attr, _) in sim.APERTURES.items():
-            if getattr(getattr(part.instrument, sec), attr) > 0:
-                items1.append(("ideal", p, key))
-        if part.instrument.calibration.mode != "lambert":
-            items1.append(("ideal", p, "calibration_mode"))
-        if part.instrument.source.path == "fixed_height":
-            items1.append(("ideal", p, "source_distance"))
+        items1 += [("ideal", p, key) for key, _ in sim.k_characteristics(part.instrument)]
     todo = [it for it in items1 if it not in journal.done]
     ctx1 = dataclasses.replace(ctx, progress=bool(progress) and client is None)     # cell bars: in this process
     _map(_stage1_task, todo, client, ctx1, journal, _bar(progress, len(items1), "k_A of the participants",

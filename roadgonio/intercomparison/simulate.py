@@ -42,10 +42,10 @@ input), counted where both state that component.
 Idealising a characteristic (the sensitivity ranking) changes only that participant's table in
 the same realisation (common random numbers): a misalignment input, the noise, its calibration
 standard or a shared effect is set to zero; an aperture (source radius, pupil radius, field), a
-calibration mode other than Lambert or a fixed-height source's distance multiplies k_A(X) by
+calibration mode other than Lambert or the source's distance multiplies k_A(X) by
 k_ideal / k_A(0), the nominal k_A of the instrument with that aperture zero (or calibrated against
-a Lambertian, or its rail :data:`SOURCE_FAR_FACTOR` times farther with an aperture as many times
-larger) over its own nominal k_A
+a Lambertian, or its source :data:`SOURCE_FAR_M` away, arc or rail, with its aperture scaled alike:
+:func:`far_source`) over its own nominal k_A
 (the misalignment dependence of k_A is kept from the full instrument: a second-order term); the
 aperture effect as a whole sets k_A(X) = 1 (a collimated instrument);
 for a participant that corrects, the aperture effect is one characteristic, idealised as a perfect
@@ -60,6 +60,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from roadgonio.errors import InputError
+from roadgonio.instrument.config import MAX_LENGTH_M
 from roadgonio.intercomparison import statistics as st
 
 #: Scenarios of a study: as declared, and every participant correcting with roadgonio.
@@ -71,11 +72,12 @@ FROZEN = "all_corrected_frozen"
 APERTURES = {"source_aperture": ("source", "radius_m", "source aperture"),
              "detector_pupil": ("detector", "pupil_radius_m", "detector pupil"),
              "detector_field": ("detector", "field_half_angle_deg", "detector field")}
-#: How many times farther the ranking's ``source_distance`` item moves a fixed-height source, its
-#: aperture scaled alike (:func:`roadgonio.intercomparison.run.idealised_instrument`): the spread of
-#: illumination directions over the footprint falls by as much (the corridor preset's RMS
-#: |k_A - 1| on R3 is the same at 100 and 1000 to 0.001 points).
-SOURCE_FAR_FACTOR = 1000.0
+#: Where the ranking's ``source_distance`` item puts the source (m): an arc's distance or a rail's
+#: height made this length, the aperture scaled alike (:func:`far_source`). 1 km, the longest length
+#: an instrument may have (:data:`roadgonio.instrument.config.MAX_LENGTH_M`): the spread of
+#: illumination directions over a footprint of +-0.5 m is then +-0.03 deg (the corridor preset's RMS
+#: |k_A - 1| on R3 is the same with its rail 100 m and 1000 m high to 0.001 points).
+SOURCE_FAR_M = MAX_LENGTH_M
 #: Per-variant metrics of the realisation tasks (summed over the cells of one realisation): against
 #: the truth (the participant's own error) and against the weighted mean.
 METRICS = ("sum_err_rel2", "n_compatible_truth", "sum_d_rel2", "n_compatible", "n_cells")
@@ -148,15 +150,7 @@ class Setup:
         else:
             if not pm.ideal:
                 out.append(("aperture_effect", "aperture effect as a whole (k_A = 1)"))
-            for key, (sec, attr, label) in APERTURES.items():
-                v = getattr(getattr(inst, sec), attr)
-                if v > 0:
-                    out.append((key, f"{label} ({_aperture_text(inst, key)})"))
-            if inst.calibration.mode != "lambert":
-                out.append(("calibration_mode", f"calibration mode {inst.calibration.mode} (vs lambert)"))
-            if inst.source.path == "fixed_height":
-                out.append(("source_distance", f"source distance (rail {inst.source.height_m:g} m high; vs "
-                                               f"{SOURCE_FAR_FACTOR:g} x farther at the same angular size)"))
+            out += k_characteristics(inst)
         if not inst.cells.all_cells:
             out.append(("fill", f"cells filled by {inst.cells.fill} ({len(inst.cells.measured)} of {pm.n} measured)"))
         from roadgonio.uncertainty.spec import INPUTS
@@ -179,6 +173,36 @@ class Setup:
             corrected = scenario == "all_corrected" or pm.report != "raw"
             out += [(p, key, label) for key, label in self.characteristics(p, corrected)]
         return out
+
+
+def k_characteristics(inst) -> list[tuple[str, str]]:
+    """(key, label) of the characteristics of an instrument that are idealised through the nominal
+    k_A of the instrument without them (:func:`roadgonio.intercomparison.run.idealised_instrument`,
+    one k_A table each): every non-zero aperture, a calibration mode other than Lambert, and the
+    source's distance (:func:`far_source`) of any instrument that is not ideal, whether its source
+    moves on an arc or on a rail."""
+    out = []
+    for key, (sec, attr, label) in APERTURES.items():
+        if getattr(getattr(inst, sec), attr) > 0:
+            out.append((key, f"{label} ({_aperture_text(inst, key)})"))
+    if inst.calibration.mode != "lambert":
+        out.append(("calibration_mode", f"calibration mode {inst.calibration.mode} (vs lambert)"))
+    if not inst.is_ideal():
+        src = inst.source
+        where = f"rail {src.height_m:g} m high" if src.path == "fixed_height" else f"arc {src.distance_m:g} m"
+        out.append(("source_distance", f"source distance ({where}; vs {SOURCE_FAR_M:g} m at the same angular size)"))
+    return out
+
+
+def far_source(source) -> dict[str, float]:
+    """The ``[source]`` changes of the ranking's ``source_distance`` item: the source's one length
+    (an arc's distance, a rail's height: ``Source.length_key``) made :data:`SOURCE_FAR_M` and its
+    aperture radius scaled by the same factor, so every cell sees it at the same angular size and
+    from the same direction at the sample centre (an arc's distance and a rail's distance at every
+    eps scale alike), while each point of the footprint is lit from (nearly) that one direction: the
+    parallax of the footprint seen from the source, and the spread of its illuminance, are gone."""
+    f = SOURCE_FAR_M / source.length_m
+    return {source.length_key: SOURCE_FAR_M, "radius_m": source.radius_m * f}
 
 
 def _aperture_text(inst, key: str) -> str:

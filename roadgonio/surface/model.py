@@ -18,9 +18,15 @@ Numerical form (chosen so that float32 is accurate near the lobe peaks and nothi
   undefined (``theta_i = 0`` or ``theta_r = 0``) beta is taken as 180 deg, so E = 0 there.
 * E in log space: ``E = k_exp exp(p ln f + W ln x)`` with ``W = exp(min(1 + h f^2, 80))`` (power
   reading) or ``W = 1`` and an extra factor ``exp(min(1 + h f^2, 80))`` (product reading);
-  the total exponent is capped at 80, so E never overflows float32. The smooth extension's
-  ``L = -ln x_s = -log1m(sin^2(beta/2))`` is accurate near beta = 0, and ``W L^n_beta`` is
-  ``exp(min(ln W + n_beta ln L, 80))`` (0 where L = 0).
+  the total exponent is capped at 80, so E never overflows float32. ``ln x`` and the smooth
+  extension's ``L = -ln x_s`` are ``log1m(beta/pi)`` and ``-log1m(sin^2(beta/2))`` below beta =
+  90 deg (accurate near 0) and ``ln(beta_s/pi)``, ``-ln sin^2(beta_s/2)`` above it, with ``beta_s =
+  pi - beta`` from :func:`roadgonio.geometry.pair_angles` (``atan2`` of the same cross product,
+  accurate near 180 deg), x and x_s floored at :data:`X_FLOOR`; ``W L^n_beta`` is
+  ``exp(min(ln W + n_beta ln L, 80))`` (0 where L = 0). Until session 13 x and x_s near 180 deg
+  were ``1 - beta/pi`` and ``1 - sin^2(beta/2)``: in float32 they cancelled and their floor
+  ``1 - 1e-7`` became 1.19e-7, so the plugin's E was up to 3 % off there (the float64 values agree
+  with today's to 1e-7 relative, today's being the more accurate against 80-bit arithmetic).
 
 Variants:
 
@@ -86,6 +92,9 @@ THETA_R_STAR = math.radians(THETA_R_STAR_DEG)
 TINY = 1e-30
 #: Cap on exponents, so that exp() never overflows float32 (exp(88.7) does).
 EXP_CAP = 80.0
+#: Floor of the empirical term's x and x_s, which vanish at beta = 180 deg (so ln x, ln x_s stay
+#: finite). 1e-7 is one number in float32 and float64 alike (relative difference 1.2e-8).
+X_FLOOR = 1e-7
 
 VARIANTS = ("power", "product", "smooth")
 DEFAULT_VARIANT = "power"
@@ -130,15 +139,24 @@ def modifier_terms(params: Mapping[str, Any]) -> frozenset[str]:
     return frozenset(terms)
 
 
-def rounded_beta(xp, beta, beta_round_deg):
+def rounded_beta(xp, beta, beta_round_deg, supplement=None):
     """The empirical term's beta with its mirror-plane cusp rounded (docs/conventions.md section 3):
     ``beta^2 / sqrt(beta^2 + b_c^2)``, b_c = ``beta_round_deg`` (radians in, radians out). Quadratic
     in beta below b_c (so the term is smooth across the mirror plane), beta - b_c^2 / (2 beta) above
     it; beta itself at b_c = 0 (up to rounding, so :func:`road_brdf` applies it only where
-    ``beta_round_deg > 0``)."""
+    ``beta_round_deg > 0``).
+
+    With ``supplement`` (pi - beta, :func:`roadgonio.geometry.pair_angles`): the pair (rounded beta,
+    pi - rounded beta), the latter formed as ``(pi - beta) + beta b_c^2 / (s (s + beta))``, s =
+    ``sqrt(beta^2 + b_c^2)``: a sum of two non-negative terms, so it keeps its relative precision
+    near beta = pi, where ``pi - rounded beta`` would cancel."""
     bc = beta_round_deg * (math.pi / 180.0)
     b2 = beta * beta
-    return b2 / xp.sqrt(xp.maximum(b2 + bc * bc, TINY))
+    s = xp.sqrt(xp.maximum(b2 + bc * bc, TINY))
+    rounded = b2 / s
+    if supplement is None:
+        return rounded
+    return rounded, supplement + beta * (bc * bc) / (s * (s + beta))
 
 
 def _lobe(xp, h, n):
@@ -214,24 +232,31 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
         f = f + P["k_retro"] * _lobe(xp, h, P["n_retro"])
     if "k_exp" in terms or "g" in terms:
         # beta = pi where the azimuth is undefined, so E = 0 there (module docstring)
-        theta_i, theta_r, beta = pair_angles(xp, wi, wo, pole=math.pi)
+        theta_i, theta_r, beta, beta_s = pair_angles(xp, wi, wo, pole=math.pi, supplement=True)
     if "k_exp" in terms:
         if "round" in terms:
-            beta = rounded_beta(xp, beta, P["beta_round_deg"])
+            beta, beta_s = rounded_beta(xp, beta, P["beta_round_deg"], beta_s)
+        # x (power, product) and x_s (smooth) vanish at beta = pi: their logarithms take 1 - ... from
+        # beta below pi/2 (log1m, accurate near 0) and from pi - beta above it (beta_s, accurate near
+        # pi), floored at X_FLOOR, a float32 number too (1 - 1e-7 is not: it rounds to 1 - 1.19e-7)
+        near_pi = beta > 0.5 * math.pi
         e = theta_i * theta_r * (1.0 / THETA_R_STAR)
         cos_e = xp.cos(e)
         f_e = xp.where(cos_e > 0.0, xp.sin(e) * cos_e / (cos_e * cos_e + P["mu"]), zero)
         ln_f = xp.log(xp.maximum(f_e, TINY))
         if variant != "smooth":
             # the paper's x = (pi - beta)/pi, ln x = ln(1 - beta/pi), and 1 + h f^2
-            ln_x = xp.log1m(xp.minimum(beta * (1.0 / math.pi), 1.0 - 1e-7))
+            ln_x = xp.where(near_pi, xp.log(xp.maximum(beta_s * (1.0 / math.pi), X_FLOOR)),
+                            xp.log1m(xp.minimum(beta * (1.0 / math.pi), 0.5)))
             arg = xp.minimum(1.0 + P["h"] * f_e * f_e, EXP_CAP)
         if variant == "smooth":
             # extension (module docstring): E = k f^p exp(-W L^n_beta), W = exp(1 + h sqrt f),
             # L = -ln cos^2(beta/2) = -log1m(sin^2(beta/2))
             ln_w = xp.minimum(1.0 + P["h"] * xp.sqrt(f_e), EXP_CAP)
-            s_half = xp.sin(0.5 * beta)
-            L = -xp.log1m(xp.minimum(s_half * s_half, 1.0 - 1e-7))
+            s_half = xp.sin(0.5 * beta)                   # sin(beta/2)
+            c_half = xp.sin(0.5 * beta_s)                 # cos(beta/2)
+            L = xp.where(near_pi, -xp.log(xp.maximum(c_half * c_half, X_FLOOR)),
+                         -xp.log1m(xp.minimum(s_half * s_half, 0.5)))
             ln_wl = xp.minimum(ln_w + P["n_beta"] * xp.log(xp.maximum(L, TINY)), EXP_CAP)
             expo = P["p"] * ln_f - xp.where(L > 0.0, xp.exp(ln_wl), zero)
         elif variant == "power":

@@ -51,6 +51,10 @@ def test_a_participant_with_an_aperture_effect_shows_d_equal_to_its_k_a_bias(tmp
     sens = [r for r in json.loads(ds.attrs["sensitivity_json"]) if r["scenario"] == "declared"
             and r["participant"] == "LAB"]
     assert sens[0]["characteristic"] == "aperture_effect" and sens[0]["drop_pct"] > 0
+    # an arc source's distance is an item too (session 13): 1 km away at the same angular size, the
+    # footprint its field sees is no longer lit from eps +- 6 deg (study: 1.28 % -> 0.74 %)
+    far = {r["characteristic"]: r for r in sens}["source_distance"]
+    assert far["drop_pct"] > 5 * far["drop_se_pct"], far
 
 
 def load_study_instrument():

@@ -24,6 +24,12 @@ def _kappa(model, wi, wo, ref, rng, d=1e-6):
 
 
 def test_smooth_variant_in_plugin_matches_numpy(mi, rng_seed):
+    """The plugin's float32 values within F32_EVAL_RTOL + F32_KAPPA_TOL kappa of the float64 model at
+    the same directions: random ones, a half near beta = 0 (the peak) and a quarter near beta = 180
+    deg, where the formula's x_s = cos^2(beta/2) vanishes (session 13: formed as 1 - sin^2(beta/2),
+    and floored at 1 - 1e-7, which float32 rounds to 1 - 1.19e-7, it was beyond the band in 21 of 160
+    trials of 20 other seeds, up to 156x, where a draw happened to fall there; with this quarter, 280x
+    at this seed; see roadgonio.surface.model's X_FLOOR)."""
     import drjit as dr
 
     from roadgonio.engines.mitsuba.plugins import register_plugins
@@ -43,6 +49,9 @@ def test_smooth_variant_in_plugin_matches_numpy(mi, rng_seed):
         wl = _hemisphere(n, rng, 1e-3).astype(np.float32).astype(np.float64)   # towards the light
         ws = _hemisphere(n, rng, 1e-3)
         ws[: n // 2, :2] = -wl[: n // 2, :2] * rng.uniform(0.9, 1.1, (n // 2, 1))  # near beta = 0
+        k = 3 * n // 4      # the last quarter 1e-7 ... 0.1 rad from beta = 180 deg, where x_s = cos^2(beta/2)
+        phi = np.arctan2(wl[k:, 1], wl[k:, 0]) + 10 ** rng.uniform(-7, -1, n - k) * rng.choice([-1, 1], n - k)
+        ws[k:, :2] = np.sqrt(1 - ws[k:, 2:] ** 2) * np.stack([np.cos(phi), np.sin(phi)], axis=1)   # vanishes
         ws = _unit(ws).astype(np.float32).astype(np.float64)
         si = dr.zeros(mi.SurfaceInteraction3f, n)
         si.wi = mi.Vector3f(ws[:, 0], ws[:, 1], ws[:, 2])

@@ -210,33 +210,86 @@ def test_a_fixed_led_participant_reports_its_measured_cells_and_the_fill_of_them
     assert sens[0]["rms_error_vs_truth_idealised_pct"] < 0.01 * sens[0]["rms_error_vs_truth_pct"]
 
 
-def test_the_source_distance_idealised_is_the_rail_far_away_at_the_same_angular_size():
-    """The ranking's `source_distance` item of a fixed-height source (trial 11 D9): the rail and its
-    aperture scaled alike, so the source has the same angular size at every cell, and an idealised
-    instrument that is better than the corridor, not worse. It was an arc of radius the rail's
-    height: the source at its nearest everywhere, k_A 5x farther from 1 than the corridor's
-    (18.5 % against 3.4 % RMS over R3's cells), an "idealised" item that made the corridor worse.
-    Quadrature: deterministic, every difference below beyond its error bounds."""
+def test_every_instrument_with_an_aperture_effect_has_a_source_distance_item_arc_or_rail():
+    """The ranking's `source_distance` item is one definition for both source paths (session 13):
+    an arc source's distance (the lab's 5 m, the fixed-LED device's 0.6 m) had no item, only a
+    rail's; a collimated instrument (k_A = 1 at any distance) has none. The study's k_A tables and
+    the ranking's rows come from the same list (k_characteristics)."""
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.intercomparison.simulate import k_characteristics
+    keys = {n: [k for k, _ in k_characteristics(load_instrument(n))]
+            for n in ("lab", "fixed-led", "corridor", "collimated")}
+    assert keys["lab"] == ["source_aperture", "detector_pupil", "detector_field", "source_distance"]
+    assert "source_distance" in keys["fixed-led"] and "source_distance" in keys["corridor"]
+    assert keys["collimated"] == []
+
+
+@pytest.mark.parametrize("preset", ["lab", "corridor"])
+def test_the_source_distance_idealised_is_the_source_far_away_at_the_same_angular_size(preset):
+    """The ranking's `source_distance` item (trial 11 D9 for a rail, session 13 for an arc): the
+    source's one length (an arc's distance, a rail's height) made SOURCE_FAR_M and its aperture
+    scaled alike, so the source has the same angular size at every cell, and an idealised instrument
+    that is better than the real one, not worse (for the rail it was an arc of radius its height:
+    the source at its nearest everywhere, k_A 5x farther from 1, 18.5 % against 3.4 % RMS over R3's
+    cells). Quadrature: deterministic, every difference below beyond its error bounds."""
     import roadgonio as rg
     from roadgonio.instrument.config import load_instrument
     from roadgonio.instrument.optics import source_distance_m
     from roadgonio.intercomparison.run import idealised_instrument
-    from roadgonio.intercomparison.simulate import SOURCE_FAR_FACTOR
-    corridor = load_instrument("corridor")
-    far = idealised_instrument(corridor, "source_distance")
-    assert far.source.path == "fixed_height" and far.detector == corridor.detector
-    assert far.calibration == corridor.calibration and far.observation == corridor.observation
+    from roadgonio.intercomparison.simulate import SOURCE_FAR_M
+    inst = load_instrument(preset)
+    far = idealised_instrument(inst, "source_distance")
+    assert far.source.path == inst.source.path and far.detector == inst.detector
+    assert far.calibration == inst.calibration and far.observation == inst.observation
+    assert far.source.length_m == SOURCE_FAR_M
     for t in (0.0, 2.0, 12.0):
-        d0, d1 = source_distance_m(corridor.source, t), source_distance_m(far.source, t)
-        assert d1 == pytest.approx(SOURCE_FAR_FACTOR * d0, rel=1e-12)
-        assert far.source.radius_m / d1 == pytest.approx(corridor.source.radius_m / d0, rel=1e-12)
+        d0, d1 = source_distance_m(inst.source, t), source_distance_m(far.source, t)
+        assert d1 == pytest.approx(SOURCE_FAR_M / inst.source.length_m * d0, rel=1e-12)
+        assert far.source.radius_m / d1 == pytest.approx(inst.source.radius_m / d0, rel=1e-12)
     cells = "0:0,2:0,5:0,1:30"
     k = {n: rg.ka_table(i, "R3", backend="quadrature", accuracy="default", cells=cells)
-         for n, i in (("corridor", corridor), ("far", far))}
+         for n, i in (("near", inst), ("far", far))}
     dev = {n: np.abs(d.k_a.values - 1)[np.isfinite(d.k_a.values)] for n, d in k.items()}
     bound = {n: d.error_bound.values[np.isfinite(d.k_a.values)] for n, d in k.items()}
-    assert np.all(dev["far"] + bound["far"] < dev["corridor"] - bound["corridor"]), (dev, bound)
+    assert np.all(dev["far"] + bound["far"] < dev["near"] - bound["near"]), (dev, bound)
 
+
+@pytest.mark.parametrize("preset", ["lab", "corridor"])
+def test_the_far_source_keeps_the_solid_angle_and_lights_the_footprint_uniformly(preset):
+    """The two limits of the `source_distance` item, arc and rail alike. (1) A single-ray detector
+    sees only the sample centre, which sees the far source's disc exactly as the near one (same
+    direction, same angular size): k_A is the same up to the quadrature's bounds, while a point
+    source there (the aperture not scaled with the distance) gives another k_A. (2) Absolute
+    calibration, Lambertian sample: k_A = <E>/E_0 (conventions section 5), and to first order
+    E(x)/E_0 = 1 + 3 (x . s_hat)/D for a footprint point x and a source D away, so the far source's
+    k_A is 1 within 3 L / D_far (L: the footprint's half-length, (D_D tan gamma + R_D) / sin alpha),
+    where the near source's is not."""
+    import roadgonio as rg
+    from roadgonio.engines.calibration import illuminance_ratio
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.intercomparison.run import idealised_instrument
+    from roadgonio.intercomparison.simulate import SOURCE_FAR_M
+    from tolerances import ROUND_TOL
+    inst = load_instrument(preset)
+    ray = inst.with_changes(detector={"pupil_radius_m": 0.0, "field_half_angle_deg": 0.0})
+    cells = "0:0,5:0,1:30,12:0"
+    k = {n: rg.ka_table(i, "R3", backend="quadrature", accuracy="default", cells=cells)
+         for n, i in (("near", ray), ("far", idealised_instrument(ray, "source_distance")),
+                      ("point", ray.with_changes(source={"radius_m": 0.0})))}
+    val = {n: d.k_a.values[np.isfinite(d.k_a.values)] for n, d in k.items()}
+    bnd = {n: d.error_bound.values[np.isfinite(d.k_a.values)] for n, d in k.items()}
+    assert np.all(np.abs(val["far"] - val["near"]) <= bnd["far"] + bnd["near"] + ROUND_TOL), val
+    assert np.max(np.abs(val["point"] - val["near"]) - bnd["near"]) > 1e-3, val
+    absolute = inst.with_changes(calibration={"mode": "absolute"})
+    far = idealised_instrument(absolute, "source_distance")
+    d, obs = inst.detector, inst.observation
+    half_length = ((d.distance_m * math.tan(math.radians(d.field_half_angle_deg)) + d.pupil_radius_m)
+                   / math.sin(math.radians(obs.alpha_deg)))
+    limit = 3 * half_length / SOURCE_FAR_M
+    for t, b in ((0.0, 0.0), (2.0, 0.0), (5.0, 0.0), (1.0, 30.0), (12.0, 0.0)):
+        eta_far, err_far, _ = illuminance_ratio(far, t, b)
+        eta_near, err_near, _ = illuminance_ratio(absolute, t, b)
+        assert abs(eta_far - 1) + err_far <= limit < abs(eta_near - 1) - err_near, (t, b, eta_near, eta_far)
 
 
 def test_intercompare_shows_tasks_done_over_total_evenon_a_zero_size_terminal(tmp_path, collimated, monkeypatch):

@@ -445,3 +445,43 @@ def test_beta_round_deg_out_of_bounds_is_refused(bad):
     with pytest.raises(InputError) as e:
         RoadParams(k_exp=1.0, beta_round_deg=bad)
     assert e.value.field == "beta_round_deg"
+
+
+# ----------------------------------------------------------------------------------------------
+# float32 near beta = 180 deg (the plugin evaluates the same formula in float32)
+# ----------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("b_c", [0.0, 2.0])
+def test_empirical_term_in_float32_near_beta_180_is_as_good_as_its_conditioning(variant, b_c):
+    """E evaluated in float32 (numpy float32 through the shared formula, as the Dr.Jit plugin does)
+    at float32 directions, against float64 at the same directions, as w_o's azimuth approaches w_i's
+    (beta = 180 deg - gamma, gamma 1e-7 ... 0.3 rad; theta_i 70, theta_r 80 deg; h < 0, so E is
+    not negligible there): within the plugin test's band F32_EVAL_RTOL + F32_KAPPA_TOL kappa, kappa =
+    |d ln E / d angle| (float64 central difference). x = (pi - beta)/pi and x_s = cos^2(beta/2) vanish
+    there: formed as 1 - beta/pi and 1 - sin^2(beta/2) in float32 they cancelled (1.2e-7 / gamma
+    relative from beta itself, 6e-8 / x absolute from the subtraction), and their floor 1 - 1e-7 is
+    1 - 1.19e-7 in float32, so L at the floor was 15.94 instead of 16.12: errors of 1e-3 ... 0.8
+    relative, 50 ... 4e4 times the band (session 13)."""
+    from tolerances import F32_EVAL_RTOL, F32_KAPPA_TOL
+    P = RoadParams(k_exp=0.1, p=2.0, h=-2.0, mu=0.005, n_beta=0.5, beta_round_deg=b_c).to_dict()
+    ti, tr, phi = math.radians(70.0), math.radians(80.0), 0.3
+
+    def dirs(gamma):
+        wi = np.array([math.sin(ti) * math.cos(phi), math.sin(ti) * math.sin(phi), math.cos(ti)])
+        wo = np.stack([math.sin(tr) * np.cos(phi + gamma), math.sin(tr) * np.sin(phi + gamma),
+                       np.full_like(gamma, math.cos(tr))])
+        return tuple(np.broadcast_to(wi[:, None], wo.shape)), tuple(wo)
+
+    gamma = np.concatenate([[0.0], np.logspace(-7, -0.5, 300)])
+    wi32, wo32 = (tuple(c.astype(np.float32) for c in w) for w in dirs(gamma))
+    ref = road_brdf(NumpyOps, P, tuple(c.astype(np.float64) for c in wi32), tuple(c.astype(np.float64) for c in wo32),
+                    variant)
+    with np.errstate(all="ignore"):      # the unselected branch of a where
+        got = road_brdf(NumpyOps, {k: np.float32(v) for k, v in P.items()}, wi32, wo32, variant)
+    assert got.dtype == np.float32 and np.all(ref > 0)
+    d = np.maximum(1e-3 * gamma, 1e-10)
+    kappa = (np.abs(np.log(road_brdf(NumpyOps, P, *dirs(gamma + d), variant))
+                    - np.log(road_brdf(NumpyOps, P, *dirs(np.abs(gamma - d)), variant))) / (2 * d) / math.sin(tr))
+    ratio = np.abs(got / ref - 1) / (F32_EVAL_RTOL + F32_KAPPA_TOL * kappa)
+    assert ratio.max() <= 1.0, (float(ratio.max()), float(gamma[np.argmax(ratio)]))
