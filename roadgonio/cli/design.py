@@ -125,6 +125,12 @@ def run(args) -> int:
         say(f"best: {vals}: signal {b['signal']:.3g} x base, max |k_A - 1| = {b['max_abs_dev']:.4f} "
             f"(+- {b['worst_u']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
             f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
+        if s.get("equally_bright", 1) > 1:
+            say(f"  the least max |k_A - 1| of {s['equally_bright']} feasible designs with the most signal (signals within "
+                f"{s['same_signal_rtol']:.1g} relative count as equal: design.csv has them all)")
+        if b["max_abs_dev"] + b["worst_u"] > s["tolerance"]:
+            say(f"  note: its max |k_A - 1| is within one standard uncertainty ({b['worst_u']:.1g}) of the tolerance: "
+                "recompute the candidates at a finer --accuracy (e.g. default) before building it")
         if (b.get("max_stray_fraction") or 0.0) > 0.0:
             say(f"  its stray light: up to {100 * b['max_stray_fraction']:.2f} % (+- {100 * b['max_stray_u']:.1g}) of the "
                 f"road signal at tan eps {b['max_stray_tan_eps']:g}, beta {b['max_stray_beta_deg']:g} "

@@ -7,7 +7,7 @@
   worst_beta_deg, worst_sample, worst_u, footprint_length_m, seed``, then the stray light
   (:func:`roadgonio.design.metrics.stray_metrics`) ``max_abs_dev_direct, max_stray_fraction,
   max_stray_tan_eps, max_stray_beta_deg, max_stray_sample, max_stray_u``;
-* ``best.toml``: the feasible design with the most signal, a complete instrument file (opens with
+* ``best.toml``: the feasible design with the most signal (:func:`roadgonio.design.dataset.best_point`), a complete instrument file (opens with
   ``roadgonio ka --instrument best.toml``; the header says how to reproduce its row);
 * ``pareto.png``: max |k_A - 1| against the signal, feasible points marked, the Pareto front, the
   best labelled; when every point has the same signal (:func:`roadgonio.design.dataset.same_signal`:
@@ -97,7 +97,7 @@ def write_csv(ds, path: Path) -> Path:
 
 def write_best(ds, path: Path) -> Path | None:
     from roadgonio.engines.cluster import absolute_instrument_dict
-    from roadgonio.design.dataset import best_instrument, point_index, summary
+    from roadgonio.design.dataset import SAME_SIGNAL_RTOL, best_instrument, point_index, summary
     inst = best_instrument(ds)
     if inst is None:
         return None
@@ -110,7 +110,7 @@ def write_best(ds, path: Path) -> Path | None:
     prov = json.loads(ds.attrs.get("provenance", "{}"))
     acc = prov.get("accuracy")
     samples = json.loads(ds.attrs["samples"])
-    header = (f"The feasible design with the most signal (roadgonio design; {ds.attrs.get('created', '')}).\n"
+    header = (f"The feasible design with the most signal, of signals equal within {SAME_SIGNAL_RTOL:g} the least max |k_A - 1| (roadgonio design; {ds.attrs.get('created', '')}).\n"
               f"Varied: {changes}\n"
               f"max |k_A - 1| = {s['max_abs_dev']:.5g} (tolerance {ds.attrs['tolerance']:g}) at tan eps "
               f"{s['worst_tan_eps']:g}, beta {s['worst_beta_deg']:g} ({s['worst_sample']}); rms {s['rms_dev']:.4g}; "

@@ -566,3 +566,35 @@ def test_pareto_front_is_the_set_of_non_dominated_points_with_ties():
         assert sorted({(s[i], d[i]) for i in got}) == sorted({(s[i], d[i]) for i in want})
         assert len(got) == len({(s[i], d[i]) for i in got})
         assert list(s[got]) == sorted(s[got])                      # by increasing signal
+
+
+def test_equally_bright_designs_are_ranked_by_max_deviation():
+    """trial 12 D1: two feasible designs differing only in the detector distance have signals 1e-5
+    apart (the exact disc-to-disc etendue's (R_D / F)^2 terms); the exact comparison made the
+    brighter by 1e-5 the best although it sat on the tolerance's edge and the other was 1.7 points
+    inside it. Signals within SAME_SIGNAL_RTOL are one signal: the least max |k_A - 1| wins, and the
+    summary says there was a choice; a signal larger by more than that still wins."""
+    from roadgonio.design.dataset import SAME_SIGNAL_RTOL, assemble, best_point, same_signal, summary
+    from roadgonio.design.run import SampleSpec
+    base = load_instrument("portable")
+    specs = G.as_vary_specs(["detector.distance_m=0.6,1.0"])
+    points = G.grid_points(specs)
+    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
+    samples = [SampleSpec("A", "A", None, cells)]
+    checked = [check_point(base, p, list(cells)) for p in points]
+    tables = {(0, 0): _ka_dataset([[1.0332, 1.0], [1.0, 1.0]], np.ones((2, 2)), np.zeros((2, 2)), np.zeros((2, 2))),
+              (1, 0): _ka_dataset([[1.04998, 1.0], [1.0, 1.0]], np.ones((2, 2)), np.zeros((2, 2)), np.zeros((2, 2)))}
+    done = {key: _journal_record(t, cells) for key, t in tables.items()}
+    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
+                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
+                  seeds=[1, 2], tol=0.05)
+    sig = ds["signal"].values
+    assert ds["feasible"].values.all() and 1e-6 < sig[1] / sig[0] - 1.0 < SAME_SIGNAL_RTOL   # 1 m: brighter by ~1e-5
+    s = summary(ds)
+    assert s["best"]["index"] == 0 and s["best"]["detector.distance_m"] == 0.6 and s["equally_bright"] == 2
+    # one signal for the picture too (pareto.png point by point, not two points 1e-5 apart)
+    assert same_signal(ds) is not None
+    # a signal larger by more than the tolerance is more signal: it wins whatever its deviation
+    assert best_point([1.0, 1.0 + 3 * SAME_SIGNAL_RTOL], [0.01, 0.049], [True, True]) == 1
+    assert best_point([1.0, 1.0 + 0.5 * SAME_SIGNAL_RTOL], [0.01, 0.049], [True, True]) == 0
+    assert best_point([1.0, 2.0], [0.01, 0.02], [True, False]) == 0 and best_point([1.0], [0.01], [False]) == -1
