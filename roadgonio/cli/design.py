@@ -161,6 +161,10 @@ def _run_second(args) -> int:
     a, t, b = res.baselines[0], res.baselines[1], res.best
     say(f"second aperture for '{res.instrument.name}' (surface from {res.surface_from}; {res.settings['backbone_variant']} "
         f"backbone, {res.settings['backbone_choice']}): {len(res.candidates)} settings, {res.seconds:.1f} s")
+    n = s["counts"]
+    say(f"  ranked {n['ranked']}; not ranked: {n['below_min_signal']} below --min-signal "
+        f"{res.settings['min_signal']:g} of the instrument's signal, {n['not_feasible']} unable to measure every cell"
+        + (", the instrument's own setting (its second measurement is 'measured twice')" if n["own_setting"] else ""))
     extra = res.instrument.extra if hasattr(res.instrument.extra, "get") else {}
     if extra.get("housing") is not None or extra.get("scene"):
         say("  note: the prediction's ray bundles leave out the instrument's housing / scene parts (their shade "

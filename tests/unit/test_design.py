@@ -598,3 +598,25 @@ def test_equally_bright_designs_are_ranked_by_max_deviation():
     assert best_point([1.0, 1.0 + 3 * SAME_SIGNAL_RTOL], [0.01, 0.049], [True, True]) == 1
     assert best_point([1.0, 1.0 + 0.5 * SAME_SIGNAL_RTOL], [0.01, 0.049], [True, True]) == 0
     assert best_point([1.0, 2.0], [0.01, 0.02], [True, False]) == 0 and best_point([1.0], [0.01], [False]) == -1
+
+
+@pytest.mark.slow            # two surface fits and three settings' bundles, ~40 s: in CI by -m slow
+def test_second_aperture_does_not_recommend_the_instrument_itself():
+    """trial 12 D2: a --vary grid that holds the instrument's own setting recommended it as the "best
+    second setting" (its second measurement is the "measured twice" baseline, evaluated again with
+    other bundles: it won by noise). It is the baseline, not a candidate; the counts say how many
+    settings were below --min-signal; when no other setting has the signal, one line says so and
+    names the brightest."""
+    from roadgonio import api
+    own = load_instrument("portable").detector.field_half_angle_deg
+    vary = [f"detector.field_half_angle_deg={own:g},0.1,0.05"]
+    res = api.second_aperture("portable", vary, sample="R3", model_variant="smooth", rays=8, min_signal=0.3,
+                              plots=False)
+    mine = [c for c in res.candidates if c.changes["detector.field_half_angle_deg"] == own]
+    assert len(mine) == 1 and mine[0].own and "measuring it twice" in mine[0].note
+    assert mine[0].u_median == res.baselines[1].u_median          # the twice baseline, not a new estimate
+    assert res.best.changes["detector.field_half_angle_deg"] == 0.1 and not res.best.own
+    assert res.counts() == {"ranked": 1, "own_setting": 1, "not_feasible": 0, "below_min_signal": 1}
+    with pytest.raises(InputError, match=r"other than the instrument's own keeps 0.5 .* keeps 0\.444"):
+        api.second_aperture("portable", [f"detector.field_half_angle_deg={own:g},0.1"], sample="R3", model_variant="smooth", rays=8, min_signal=0.5,
+                            plots=False)
