@@ -4,6 +4,7 @@ from __future__ import annotations
 import sys
 
 from roadgonio import api
+from roadgonio.errors import count
 from roadgonio.cli._common import (
     add_accuracy,
     add_backend,
@@ -49,9 +50,9 @@ def register(sub) -> None:
     p.add_argument("--measured", metavar="FILE", help="with --second-aperture: a table the instrument measured")
     p.add_argument("--u-measured", default=None, metavar="U",
                    help="with --second-aperture: the measurement's relative standard uncertainty (default 1.5%%)")
-    p.add_argument("--min-signal", type=float, default=None, metavar="F",
-                   help="with --second-aperture: least signal of the second setting, relative to the instrument's "
-                        "(default 0.25; smaller apertures always blur less)")
+    p.add_argument("--min-signal", default=None, metavar="F",
+                   help="with --second-aperture: least signal of the second setting, relative to the instrument's: "
+                        "a fraction (0.25) or a percentage (25%%); default 0.25 (smaller apertures always blur less)")
     p.add_argument("--rays", type=int, default=512, metavar="N",
                    help="with --second-aperture: rays per cell of the forward model (default 512)")
     p.add_argument("--tolerance", default="5%", metavar="T",
@@ -110,7 +111,7 @@ def run(args) -> int:
         print_json(s)
         return rc
     say = text_output(args)
-    say(f"design of '{s['instrument']}': {s['points']} points ({' x '.join(s['varied']) or 'base only'}), "
+    say(f"design of '{s['instrument']}': {count(s['points'], 'point')} ({' x '.join(s['varied']) or 'base only'}), "
         f"{s['geometry_ok']} geometrically possible, {s['feasible']} within the tolerance {s['tolerance']:g}; "
         f"{s['tables_computed']} tables computed, {s['tables_resumed']} resumed in {s['wall_s']:.1f} s"
         + (f" (the tables {s['compute_wall_s']:.1f} s{', after the cluster' + chr(39) + 's start' if s.get('on_cluster') else ''}: "

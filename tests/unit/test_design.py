@@ -620,3 +620,15 @@ def test_second_aperture_does_not_recommend_the_instrument_itself():
     with pytest.raises(InputError, match=r"other than the instrument's own keeps 0.5 .* keeps 0\.444"):
         api.second_aperture("portable", [f"detector.field_half_angle_deg={own:g},0.1"], sample="R3", model_variant="smooth", rays=8, min_signal=0.5,
                             plots=False)
+
+
+def test_min_signal_takes_a_percentage_as_tolerance_and_u_measured_do():
+    """trial 12 D8: `design --min-signal 25%` was refused ("invalid float value") while --tolerance and
+    --u-measured take percentages."""
+    from roadgonio.api import _fraction
+    from roadgonio.cli import build_parser
+    args = build_parser().parse_args(["design", "--instrument", "portable", "--second-aperture", "--min-signal", "25%"])
+    assert _fraction(args.min_signal, "min_signal") == 0.25 and _fraction("0.25", "min_signal") == 0.25
+    assert _fraction(0.3, "min_signal") == 0.3
+    with pytest.raises(InputError, match="expected a fraction .* or a percentage .*, got '25 percent'"):
+        _fraction("25 percent", "min_signal")
