@@ -451,3 +451,25 @@ def test_the_note_that_the_data_reject_the_fit_travels_in_corrected_u_csv(tmp_pa
             assert "this u may not cover" in notes[0]
         else:
             assert notes == []
+
+
+README_SPEC = ("alpha_deg=0.01,eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,source_distance_m=0.002,"
+               "detector_distance_m=0.005")
+
+
+@pytest.mark.parametrize("reference", ["self", "R3"])
+def test_correct_checks_the_sigma_spec_against_the_geometry_as_uncertainty_does(tmp_path, reference):
+    """trial 12 D3: `correct --sigma eps_deg=5` ran (a misalignment u of 121 %, exit 0) where
+    `uncertainty` refuses the SPEC; the same check now refuses it before any work (nothing written),
+    with either reference, and the README's SPEC passes."""
+    from roadgonio import api
+    from roadgonio.correction.run import check_sigma
+    from roadgonio.uncertainty import parse_sigma_spec
+    table = bundled_table("R3")
+    out = tmp_path / "out"
+    for spec in ("eps_deg=5", "eps_deg=1"):
+        with pytest.raises(InputError, match=r"sigma eps_deg = \d \(normal\) takes the geometry out of validity"):
+            api.correct(table, "portable", reference=reference, sigma=spec, backend="quadrature", accuracy="fast",
+                        out=out, plots=False)
+        assert not out.exists()
+    check_sigma(parse_sigma_spec(README_SPEC), load_instrument("portable"), table)
