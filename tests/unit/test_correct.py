@@ -440,6 +440,9 @@ def test_the_note_that_the_data_reject_the_fit_travels_in_corrected_u_csv(tmp_pa
         f = assess_fit(fm, y, 0.01 * y, r3like)
         s = f.summary()
         assert s["misfit"] is rejected and (s["misfit_note"] is not None) is rejected
+        # trial 12 D7: the misalignment component is the fitted model's sensitivity: the note says so
+        assert not rejected or "misalignment component (--sigma), whose sensitivities are the fitted model" in \
+            s["misfit_note"]
         path = tmp_path / f"u_{rejected}.csv"
         path.write_text(u_csv_text(SimpleNamespace(corrected=table, u_corrected=0.01 * g, fit=f)))
         u = read_table(path, "u")
