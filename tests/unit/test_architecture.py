@@ -23,7 +23,7 @@ RANK = {"base": 0, "surface": 1, "instrument": 2, "engines": 3, "road": 4, "unce
         "design": 6, "intercomparison": 7, "api": 8, "cli": 9}
 #: The modules of the base layer (everything else at the top of the package is named here too).
 BASE = {"_version", "errors", "arrays", "geometry", "fileio", "provenance", "plots", "plotproc", "data", "seeds",
-        "limits", "eulumdat", "progress", "_checkout"}
+        "limits", "eulumdat", "progress", "_checkout", "interrupts"}
 #: Modules that are entry points above the API: the package's lazy exports and ``python -m roadgonio``.
 TOP = {"roadgonio": "api", "roadgonio.__main__": "cli"}
 
