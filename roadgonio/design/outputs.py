@@ -154,13 +154,6 @@ def plot_pareto(ds, path: Path) -> Path:
         ax.step(sig[front], dev[front], where="pre", color="0.4", lw=1, ls="--",
                 label="Pareto front (least deviation for at least that signal)")
     ax.axhline(tol, color="tab:orange", lw=1.2, label=f"tolerance {tol:g} %")
-    if best >= 0:
-        p = point_index(ds, best)
-        txt = "best: " + ", ".join(f"{k.split('.', 1)[1]}={v:g}" for k, v in p.items())
-        ax.plot([sig[best]], [dev[best]], marker="*", color="gold", mec="k", ms=16, ls="none", zorder=5)
-        ax.annotate(txt + f"\nsignal {sig[best]:.3g} x base, max |k_A-1| {dev[best]:.3g} %", (sig[best], dev[best]),
-                    xytext=(-10, 22), textcoords="offset points", ha="right", fontsize=8,
-                    arrowprops={"arrowstyle": "-", "color": "0.3"})
     finite = sig[ok]
     if finite.size and finite.min() > 0 and finite.max() / finite.min() > 20:
         ax.set_xscale("log")
@@ -169,6 +162,19 @@ def plot_pareto(ds, path: Path) -> Path:
         ax.set_yscale("log")
         ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
         ax.yaxis.set_minor_formatter(ticker.FormatStrFormatter("%g"))
+    if best >= 0:
+        p = point_index(ds, best)
+        txt = "best: " + ", ".join(f"{k.split('.', 1)[1]}={v:g}" for k, v in p.items())
+        ax.plot([sig[best]], [dev[best]], marker="*", color="gold", mec="k", ms=16, ls="none", zorder=5)
+        # the label towards the free side of the axes (trial 12 D6: the best design at the left edge put it
+        # over the y label and squeezed the axes into the right half)
+        ax.autoscale_view()
+        fx, fy = ax.transAxes.inverted().transform(ax.transData.transform((sig[best], dev[best])))
+        right, below = fx < 0.5, fy > 0.6
+        ax.annotate(txt + f"\nsignal {sig[best]:.3g} x base, max |k_A-1| {dev[best]:.3g} %", (sig[best], dev[best]),
+                    xytext=(10 if right else -10, -30 if below else 22), textcoords="offset points",
+                    ha="left" if right else "right", va="top" if below else "bottom", fontsize=8,
+                    arrowprops={"arrowstyle": "-", "color": "0.3"})
     ax.set_xlabel("signal (detected flux for a Lambertian sample, relative to the base design)")
     ax.set_ylabel("max |k_A - 1| over cells and samples (%)")
     n_geo = int((~geo).sum())

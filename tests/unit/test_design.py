@@ -632,3 +632,36 @@ def test_min_signal_takes_a_percentage_as_tolerance_and_u_measured_do():
     assert _fraction(0.3, "min_signal") == 0.3
     with pytest.raises(InputError, match="expected a fraction .* or a percentage .*, got '25 percent'"):
         _fraction("25 percent", "min_signal")
+
+
+@pytest.mark.parametrize("best_small", [True, False])
+def test_pareto_label_of_the_best_design_stays_inside_the_axes(tmp_path, monkeypatch, best_small):
+    """trial 12 D6: when the best design had the least signal (the leftmost point), its label was drawn
+    to the left of the axes, over the y label, and the axes shrank to the right half (title and x
+    label cut). The label goes towards the free side: inside the axes wherever the best is."""
+    from roadgonio.design import outputs as O
+    from roadgonio.design.dataset import assemble
+    from roadgonio.design.run import SampleSpec
+    base = load_instrument("portable")
+    specs = G.as_vary_specs(["source.radius_m=0.003,0.006,0.012"])
+    points = G.grid_points(specs)
+    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
+    samples = [SampleSpec("A", "A", None, cells)]
+    checked = [check_point(base, p, list(cells)) for p in points]
+    devs = (0.02, 0.08, 0.09) if best_small else (0.09, 0.08, 0.02)
+    ones = np.ones((2, 2))
+    done = {(i, 0): _journal_record(_ka_dataset([[1.0 + d, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones), cells)
+            for i, d in enumerate(devs)}
+    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
+                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
+                  seeds=[1, 2, 3], tol=0.05)
+    assert int(ds.attrs["best_index"]) == (0 if best_small else 2)
+    got = {}
+    monkeypatch.setattr(O, "atomic_savefig", lambda fig, path, dpi: got.setdefault("fig", fig) and path)
+    O.plot_pareto(ds, tmp_path / "pareto.png")
+    fig = got["fig"]
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    label = [t for t in ax.texts if t.get_text().startswith("best:")][0]
+    box, axes = label.get_window_extent(), ax.get_window_extent()
+    assert axes.x0 <= box.x0 and box.x1 <= axes.x1 and axes.y0 <= box.y0 and box.y1 <= axes.y1, (box, axes)
