@@ -476,3 +476,24 @@ def test_correct_checks_the_sigma_spec_against_the_geometry_as_uncertainty_does(
                         out=out, plots=False)
         assert not out.exists()
     check_sigma(parse_sigma_spec(README_SPEC), load_instrument("portable"), table)
+
+
+def test_a_mistake_in_the_alternatives_is_one_line_without_the_notes_of_the_others():
+    """trial 12 D8: `correct --reference R3 --alternatives R2,R9` printed R2's spike note, then the
+    one-line error about R9 (two lines for one mistake). The names are all resolved before any note
+    is said; without a mistake the note still comes."""
+    import warnings
+
+    from roadgonio.correction.reference import resolve_alternatives
+    from roadgonio.errors import ModelWarning
+    table = bundled_table("R3")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        with pytest.raises(InputError, match="unknown sample 'R9'"):
+            resolve_alternatives("R2,R9", table, reference_name="R3")
+    assert not [w for w in said if issubclass(w.category, ModelWarning)]
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        got = resolve_alternatives("R2", table, reference_name="R3")
+    assert list(got) == ["R2"] and [str(w.message) for w in said if issubclass(w.category, ModelWarning)][0].startswith(
+        "R2 (power fit): r at beta = 0 is a spike")
