@@ -14,7 +14,8 @@
   a housing's paint and baffles), max |k_A - 1| point by point instead, with max |k_A,direct - 1|
   beside it when there is stray light, and the title says why;
 * ``tolerance_map.png`` (two or more varied keys): max |k_A - 1| over the plane of the first two
-  varied keys (others at the best design's values), with the tolerance contour and iso-signal lines.
+  varied keys, one panel per value of a third of at most MAX_MAP_PANELS values (others at the best
+  design's values), with the tolerance contour and iso-signal lines.
 """
 from __future__ import annotations
 
@@ -287,8 +288,16 @@ def _signal_levels(lo: float, hi: float, n_max: int = 7) -> np.ndarray:
     return lv
 
 
+#: A third varied key with at most this many values gets one tolerance-map panel per value; with more,
+#: the map is the best design's slice (the title says which).
+MAX_MAP_PANELS = 4
+
+
 def plot_tolerance_map(ds, path: Path) -> Path | None:
-    """max |k_A - 1| over the plane of the first two varied keys (None if fewer than two vary)."""
+    """max |k_A - 1| over the plane of the first two varied keys (None if fewer than two vary); a third
+    varied key of at most MAX_MAP_PANELS values gets one panel per value (trial 12 D1: only the best's
+    slice was drawn, and a better point on another slice was in no picture); further keys, or a third
+    of more values, at the best design's values."""
     dims = json.loads(ds.attrs["varied"])
     dims2 = [d for d in dims if ds.sizes[d] > 1]
     if len(dims2) < 2:
@@ -296,12 +305,42 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
     xk, yk = dims2[0], dims2[1]
     best = int(ds.attrs["best_index"])
     from roadgonio.design.dataset import point_index
-    sel: dict[str, int] = {}
-    others = [d for d in dims if d not in (xk, yk)]
     anchor = point_index(ds, best) if best >= 0 else {}
-    for d in others:
-        vals = ds[d].values
-        sel[d] = int(np.argmin(np.abs(vals - anchor[d]))) if d in anchor else 0
+    others = [d for d in dims if d not in (xk, yk)]
+    panel_key = next((d for d in others if 1 < ds.sizes[d] <= MAX_MAP_PANELS), None)
+    sels: list[dict[str, int]] = []
+    for v in (range(ds.sizes[panel_key]) if panel_key else [None]):
+        sel: dict[str, int] = {}
+        for d in others:
+            if d == panel_key:
+                sel[d] = int(v)
+            else:
+                vals = ds[d].values
+                sel[d] = int(np.argmin(np.abs(vals - anchor[d]))) if d in anchor else 0
+        sels.append(sel)
+    plt = _plt()
+    n = len(sels)
+    fig, axes = plt.subplots(1, n, figsize=(8.5 if n == 1 else 6.2 * n, 6.2), squeeze=False)
+    fin_all = ds["max_abs_dev"].values[np.isfinite(ds["max_abs_dev"].values)] * 100
+    for ax, sel in zip(axes[0], sels):
+        is_best = best >= 0 and all(float(ds[d].values[k]) == anchor.get(d) for d, k in sel.items())
+        _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor if is_best else {}, fin_all, title=n == 1)
+    if n > 1:
+        samples = ", ".join(json.loads(ds.attrs["samples"]))
+        fixed = ", ".join(f"{d} = {anchor[d]:g}" for d in others if d != panel_key and d in anchor)
+        fig.suptitle(f"{ds.attrs['title']}: max |k_A - 1| over cells and samples ({samples}), one panel per "
+                     f"{panel_key}" + (f", at {fixed}" if fixed else "")
+                     + "\ngrey letters: geometrically impossible (F footprint, H horizon, L line of sight, I instrument, "
+                       "W housing, B backend); dots: feasible; star: the best design", fontsize=9)
+    fig.tight_layout()
+    out = atomic_savefig(fig, path, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor, fin_all, *, title: bool) -> None:
+    """One tolerance-map panel: the plane (xk, yk) at the indices ``sel`` of the other keys; the star at
+    ``anchor`` when the best design is on it; one colour scale over all panels (``fin_all``)."""
     sub = ds.isel(sel) if sel else ds
     dev = sub["max_abs_dev"].transpose(yk, xk).values * 100
     sig = sub["signal"].transpose(yk, xk).values
@@ -312,8 +351,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
     tol = float(ds.attrs["tolerance"]) * 100
     plt = _plt()
     from matplotlib import colors
-    fig, ax = plt.subplots(figsize=(8.5, 6.2))
-    fin = dev[np.isfinite(dev)]
+    fin = fin_all
     vmax = max(float(fin.max()) if fin.size else 2 * tol, tol * 1.05)
     vmin = min(float(fin.min()) if fin.size else tol / 10, tol * 0.95)
     norm = colors.LogNorm(vmin=max(vmin, 1e-4), vmax=vmax) if vmin > 0 and vmax / max(vmin, 1e-12) > 10 else \
@@ -346,7 +384,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
                 color="0.35")
     feas = sub["feasible"].transpose(yk, xk).values.astype(bool)
     ax.plot(X[feas], Y[feas], ".", color="white", ms=3, ls="none")
-    if best >= 0:
+    if anchor:
         ax.plot([anchor[xk]], [anchor[yk]], marker="*", color="gold", mec="k", ms=18, ls="none", label="best design")
         ax.legend(loc="upper right", fontsize=8)
     if xk in logs:
@@ -357,11 +395,10 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
     ax.set_ylabel(yk)
     fixed = ", ".join(f"{d} = {float(ds[d].values[k]):g}" for d, k in sel.items())
     samples = ", ".join(json.loads(ds.attrs["samples"]))
-    ax.set_title(f"{ds.attrs['title']}: max |k_A - 1| over cells and samples ({samples})"
-                 + (f"\nat {fixed}" if fixed else "")
-                 + "\ngrey letters: geometrically impossible (F footprint, H horizon, L line of sight, I instrument, "
-                   "W housing, B backend); dots: feasible", fontsize=8.5)
-    fig.tight_layout()
-    out = atomic_savefig(fig, path, dpi=120)
-    plt.close(fig)
-    return out
+    if title:
+        ax.set_title(f"{ds.attrs['title']}: max |k_A - 1| over cells and samples ({samples})"
+                     + (f"\nat {fixed}" if fixed else "")
+                     + "\ngrey letters: geometrically impossible (F footprint, H horizon, L line of sight, I instrument, "
+                       "W housing, B backend); dots: feasible", fontsize=8.5)
+    else:
+        ax.set_title(f"at {fixed}", fontsize=9)

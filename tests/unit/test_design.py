@@ -665,3 +665,33 @@ def test_pareto_label_of_the_best_design_stays_inside_the_axes(tmp_path, monkeyp
     label = [t for t in ax.texts if t.get_text().startswith("best:")][0]
     box, axes = label.get_window_extent(), ax.get_window_extent()
     assert axes.x0 <= box.x0 and box.x1 <= axes.x1 and axes.y0 <= box.y0 and box.y1 <= axes.y1, (box, axes)
+
+
+def test_tolerance_map_of_three_keys_has_one_panel_per_value_of_the_third(tmp_path, monkeypatch):
+    """trial 12 D1: a three-key design's tolerance_map.png drew only the best's slice of the third key,
+    so a better point on another slice was in no picture. A third key of few values gets one panel
+    per value, the best starred on its own."""
+    from roadgonio.design import outputs as O
+    from roadgonio.design.dataset import assemble
+    from roadgonio.design.run import SampleSpec
+    base = load_instrument("portable")
+    specs = G.as_vary_specs(["source.radius_m=0.003,0.006", "detector.pupil_radius_m=0.0025,0.005",
+                             "detector.distance_m=0.6,1.0"])
+    points = G.grid_points(specs)
+    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
+    samples = [SampleSpec("A", "A", None, cells)]
+    checked = [check_point(base, p, list(cells)) for p in points]
+    ones = np.ones((2, 2))
+    done = {(i, 0): _journal_record(_ka_dataset([[1.01 + 0.01 * i, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones),
+                                    cells) for i in range(len(points))}
+    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
+                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
+                  seeds=list(range(len(points))), tol=0.05)
+    got = []
+    monkeypatch.setattr(O, "atomic_savefig", lambda fig, path, dpi: got.append(fig) or path)
+    O.plot_tolerance_map(ds, tmp_path / "tolerance_map.png")
+    maps = [a for a in got[0].axes if a.get_xlabel() == "source.radius_m"]
+    assert [a.get_title() for a in maps] == ["at detector.distance_m = 0.6", "at detector.distance_m = 1"]
+    best_d = O.json.loads(ds.attrs["best_point_json"])["detector.distance_m"]
+    starred = [a.get_title() for a in maps if a.get_legend() is not None]
+    assert starred == [f"at detector.distance_m = {best_d:g}"]
