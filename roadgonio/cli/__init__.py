@@ -4,7 +4,8 @@ cells, backend, seed or preset: ``tests/unit/test_layers.py`` holds it to that).
 
 Every module in this package that defines ``register(subparsers)`` adds one or more
 sub-commands; ``register`` must call ``parser.set_defaults(func=run)`` where ``run(args)`` returns
-the exit status. Errors of type :class:`~roadgonio.errors.RoadgonioError` are printed as one
+the exit status. Ctrl-C and SIGTERM stop a command alike (:mod:`roadgonio.interrupts`: its one line
+saying what was kept, exit status 130). Errors of type :class:`~roadgonio.errors.RoadgonioError` are printed as one
 line (``roadgonio: error: ...``) with exit status 2 (4 for work lost on a Dask cluster,
 :class:`~roadgonio.errors.WorkLostError`: not bad input), never as a traceback; an error the API raised
 about an argument names the command's option instead (``rel_se`` -> ``--rel-se``).
@@ -67,6 +68,10 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return 2
+    # Ctrl-C and SIGTERM alike: a KeyboardInterrupt (at the Mitsuba engine's next pass boundary when
+    # one runs), said at once on stderr (roadgonio.interrupts)
+    from roadgonio import interrupts
+    interrupts.install()
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("always", ModelWarning)
@@ -93,6 +98,8 @@ def main(argv: list[str] | None = None) -> int:
         note = getattr(err, "note", None) or getattr(args, "on_interrupt", None) or "interrupted: nothing was written"
         print(f"roadgonio: {note}", file=sys.stderr)
         return 130
+    finally:
+        interrupts.finished()
 
 
 def _show_note(said: set):

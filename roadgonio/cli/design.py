@@ -4,6 +4,7 @@ from __future__ import annotations
 import sys
 
 from roadgonio import api
+from roadgonio.errors import count
 from roadgonio.cli._common import (
     add_accuracy,
     add_backend,
@@ -49,9 +50,9 @@ def register(sub) -> None:
     p.add_argument("--measured", metavar="FILE", help="with --second-aperture: a table the instrument measured")
     p.add_argument("--u-measured", default=None, metavar="U",
                    help="with --second-aperture: the measurement's relative standard uncertainty (default 1.5%%)")
-    p.add_argument("--min-signal", type=float, default=None, metavar="F",
-                   help="with --second-aperture: least signal of the second setting, relative to the instrument's "
-                        "(default 0.25; smaller apertures always blur less)")
+    p.add_argument("--min-signal", default=None, metavar="F",
+                   help="with --second-aperture: least signal of the second setting, relative to the instrument's: "
+                        "a fraction (0.25) or a percentage (25%%); default 0.25 (smaller apertures always blur less)")
     p.add_argument("--rays", type=int, default=512, metavar="N",
                    help="with --second-aperture: rays per cell of the forward model (default 512)")
     p.add_argument("--tolerance", default="5%", metavar="T",
@@ -110,7 +111,7 @@ def run(args) -> int:
         print_json(s)
         return rc
     say = text_output(args)
-    say(f"design of '{s['instrument']}': {s['points']} points ({' x '.join(s['varied']) or 'base only'}), "
+    say(f"design of '{s['instrument']}': {count(s['points'], 'point')} ({' x '.join(s['varied']) or 'base only'}), "
         f"{s['geometry_ok']} geometrically possible, {s['feasible']} within the tolerance {s['tolerance']:g}; "
         f"{s['tables_computed']} tables computed, {s['tables_resumed']} resumed in {s['wall_s']:.1f} s"
         + (f" (the tables {s['compute_wall_s']:.1f} s{', after the cluster' + chr(39) + 's start' if s.get('on_cluster') else ''}: "
@@ -125,6 +126,12 @@ def run(args) -> int:
         say(f"best: {vals}: signal {b['signal']:.3g} x base, max |k_A - 1| = {b['max_abs_dev']:.4f} "
             f"(+- {b['worst_u']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
             f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
+        if s.get("equally_bright", 1) > 1:
+            say(f"  the least max |k_A - 1| of {s['equally_bright']} feasible designs with the most signal (signals within "
+                f"{s['same_signal_rtol']:.1g} relative count as equal: design.csv has them all)")
+        if b["max_abs_dev"] + b["worst_u"] > s["tolerance"]:
+            say(f"  note: its max |k_A - 1| is within one standard uncertainty ({b['worst_u']:.1g}) of the tolerance: "
+                "recompute the candidates at a finer --accuracy (e.g. default) before building it")
         if (b.get("max_stray_fraction") or 0.0) > 0.0:
             say(f"  its stray light: up to {100 * b['max_stray_fraction']:.2f} % (+- {100 * b['max_stray_u']:.1g}) of the "
                 f"road signal at tan eps {b['max_stray_tan_eps']:g}, beta {b['max_stray_beta_deg']:g} "
@@ -155,6 +162,10 @@ def _run_second(args) -> int:
     a, t, b = res.baselines[0], res.baselines[1], res.best
     say(f"second aperture for '{res.instrument.name}' (surface from {res.surface_from}; {res.settings['backbone_variant']} "
         f"backbone, {res.settings['backbone_choice']}): {len(res.candidates)} settings, {res.seconds:.1f} s")
+    n = s["counts"]
+    say(f"  ranked {n['ranked']}; not ranked: {n['below_min_signal']} below --min-signal "
+        f"{res.settings['min_signal']:g} of the instrument's signal, {n['not_feasible']} unable to measure every cell"
+        + (", the instrument's own setting (its second measurement is 'measured twice')" if n["own_setting"] else ""))
     extra = res.instrument.extra if hasattr(res.instrument.extra, "get") else {}
     if extra.get("housing") is not None or extra.get("scene"):
         say("  note: the prediction's ray bundles leave out the instrument's housing / scene parts (their shade "

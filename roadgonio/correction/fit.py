@@ -74,7 +74,8 @@ def misfit_note(fit: dict | None) -> str | None:
         return None
     return (f"the data reject the eq. 4 fit (Birge ratio {fit['birge_ratio']:.2f}, chi^2 {fit['chi2']:.0f} on "
             f"{fit['dof']} degrees of freedom, p = {fit['chi2_p_value']:.1e}, under the stated u): this surface is "
-            "not eq. 4 and k_A inherits the misfit where the table matters")
+            "not eq. 4 and k_A inherits the misfit where the table matters, as does the misalignment component "
+            "(--sigma), whose sensitivities are the fitted model's slopes")
 
 
 def _dz_dp(name: str, z: float) -> float:

@@ -244,22 +244,27 @@ def draw_before_after(res):
 
 
 def draw_correction_map(res):
-    """k_A per cell and the relative standard uncertainty of the corrected table, as maps."""
+    """k_A per cell and the relative standard uncertainty of the corrected table, as maps; laid out as
+    the joint map is (:func:`draw_joint_map`: constrained layout, JOINT_MAP_PANEL_IN panels, cell numbers
+    at JOINT_MAP_CELL_FONT pt; trial 12 D8: the left colour bar's label touched the right panel's axis
+    label and the 5 pt cell numbers were ~5 px high)."""
     from roadgonio.plots import _plt, draw_table_map
     plt = _plt()
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(20, 9))
+    w, h = JOINT_MAP_PANEL_IN
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(2 * w, h), layout="constrained")
+    fs = JOINT_MAP_CELL_FONT
     k = res.k_a[np.isfinite(res.k_a)]
     wide = float(k.max() / k.min()) > 1.5
-    draw_table_map(a1, res.k_a, label="k_A (measured / true; 1 = no aperture effect)", fontsize=5, tick_fontsize=7,
+    draw_table_map(a1, res.k_a, label="k_A (measured / true; 1 = no aperture effect)", fontsize=fs, tick_fontsize=8,
                    log=wide, fmt="{:.2f}" if wide else "{:.3f}")
     a1.set_title(f"{res.measured.name}: k_A used for the correction (corrected = measured / k_A)", fontsize=10)
     u = np.full(res.k_a.shape, np.nan)
     u[res.measured.mask] = 100.0 * res.budget.u_rel()
     draw_table_map(a2, u, label="relative standard uncertainty of the corrected r (%)", centre=None, log=False,
-                   fmt="{:.1f}", fontsize=5, tick_fontsize=7)
+                   fmt="{:.1f}", fontsize=fs, tick_fontsize=8)
     comps = ", ".join(res.budget.components)
     a2.set_title(f"u of the corrected table (%), components: {comps}", fontsize=10)
-    fig.subplots_adjust(left=0.04, right=0.97, bottom=0.07, top=0.95, wspace=0.12)
+    fig.get_layout_engine().set(w_pad=0.15, wspace=0.04)
     return fig
 
 

@@ -35,7 +35,15 @@ def resolve_alternatives(spec: str | Sequence[str] | None, measured: RTable, *, 
         names = [] if text.lower() in ("none", "") else [s.strip() for s in text.split(",") if s.strip()]
     else:
         names = [str(s) for s in spec]
-    return {sample_name(n): resolve_sample(n, model_variant).model for n in names}
+    # every name resolved before any note is said: a mistake in the last is one line, not the notes
+    # of the others before it (trial 12 D8: R2's spike note, then the error about R9)
+    import warnings
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        models = {sample_name(n): resolve_sample(n, model_variant).model for n in names}
+    for w in said:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return models
 
 
 def _auto_alternative(name: str) -> RoadModel:

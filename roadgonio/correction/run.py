@@ -387,7 +387,7 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     t0 = time.perf_counter()
     check_measured(measured)
     _check_fit_cells(measured)
-    sigma = _sigma(sigma)
+    sigma = _sigma(sigma, instrument, measured)
     if variant != "auto" and variant not in VARIANTS:
         raise InputError(f"unknown model variant {variant!r}; expected auto or one of {', '.join(VARIANTS)}",
                          field="model_variant")
@@ -511,7 +511,7 @@ def correct_with_reference(measured: RTable, instrument: Instrument, reference: 
     """r / k_A(reference) with the model dependence from ``alternatives`` (module docstring)."""
     t0 = time.perf_counter()
     check_measured(measured)
-    sigma = _sigma(sigma)
+    sigma = _sigma(sigma, instrument, measured)
     u_grid, u_what = measured_uncertainty(u_measured, measured)
     out = Path(out_dir) if out_dir is not None else None
     cells = measured.cells
@@ -578,9 +578,33 @@ def _assemble(measured: RTable, instrument: Instrument, u_grid, k_b, se_b, budge
                             provenance=prov, seconds=time.perf_counter() - t0)
 
 
-def _sigma(sigma):
-    """A SigmaSpec from a SPEC text, a TOML file, a mapping or a SigmaSpec (None stays None)."""
+def _sigma(sigma, instrument: Instrument | None = None, measured: RTable | None = None):
+    """A SigmaSpec from a SPEC text, a TOML file, a mapping or a SigmaSpec (None stays None); with
+    ``instrument`` and ``measured``, checked against their geometry (:func:`check_sigma`)."""
     if sigma is None:
         return None
     from roadgonio.uncertainty import SigmaSpec, parse_sigma_spec
-    return sigma if isinstance(sigma, SigmaSpec) else parse_sigma_spec(sigma, option="sigma")
+    spec = sigma if isinstance(sigma, SigmaSpec) else parse_sigma_spec(sigma, option="sigma")
+    if instrument is not None and measured is not None:
+        check_sigma(spec, instrument, measured)
+    return spec
+
+
+def check_sigma(spec, instrument: Instrument, measured: RTable, option: str = "sigma") -> None:
+    """The check `uncertainty` makes of a SPEC, before anything runs
+    (:func:`roadgonio.uncertainty.spec.check_spec_geometry`), on the measured table's cells: the
+    misalignment's sensitivities are differences at +- sigma / 2 of the same geometry, and a SPEC that
+    takes it out of validity gave a u of 121 % with exit 0 (trial 12 D3). The check needs no surface
+    (a Lambertian stands in); the cells (0, 0) and (2, 0), which the measurement model normalises
+    with, are added (they never leave the geometry's validity before the others do)."""
+    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+    from roadgonio.uncertainty.cells import CellSet
+    from roadgonio.uncertainty.measurement import MeasurementModel
+    from roadgonio.uncertainty.spec import check_spec_geometry
+    mask = np.array(measured.mask, dtype=bool)
+    for t in (0.0, 2.0):
+        mask[int(np.argmin(np.abs(TAN_EPS_GRID - t))), int(np.argmin(np.abs(BETA_GRID_DEG)))] = True
+    ii, jj = np.nonzero(mask)
+    cells = CellSet(TAN_EPS_GRID[ii].copy(), BETA_GRID_DEG[jj].copy(), ii, jj, "measured")
+    check_spec_geometry(spec, MeasurementModel(RoadModel.lambert(), instrument, cells),
+                        aperture=not instrument.is_ideal(), option=option)

@@ -7,14 +7,15 @@
   worst_beta_deg, worst_sample, worst_u, footprint_length_m, seed``, then the stray light
   (:func:`roadgonio.design.metrics.stray_metrics`) ``max_abs_dev_direct, max_stray_fraction,
   max_stray_tan_eps, max_stray_beta_deg, max_stray_sample, max_stray_u``;
-* ``best.toml``: the feasible design with the most signal, a complete instrument file (opens with
+* ``best.toml``: the feasible design with the most signal (:func:`roadgonio.design.dataset.best_point`), a complete instrument file (opens with
   ``roadgonio ka --instrument best.toml``; the header says how to reproduce its row);
 * ``pareto.png``: max |k_A - 1| against the signal, feasible points marked, the Pareto front, the
   best labelled; when every point has the same signal (:func:`roadgonio.design.dataset.same_signal`:
   a housing's paint and baffles), max |k_A - 1| point by point instead, with max |k_A,direct - 1|
   beside it when there is stray light, and the title says why;
 * ``tolerance_map.png`` (two or more varied keys): max |k_A - 1| over the plane of the first two
-  varied keys (others at the best design's values), with the tolerance contour and iso-signal lines.
+  varied keys, one panel per value of a third of at most MAX_MAP_PANELS values (others at the best
+  design's values), with the tolerance contour and iso-signal lines.
 """
 from __future__ import annotations
 
@@ -97,7 +98,7 @@ def write_csv(ds, path: Path) -> Path:
 
 def write_best(ds, path: Path) -> Path | None:
     from roadgonio.engines.cluster import absolute_instrument_dict
-    from roadgonio.design.dataset import best_instrument, point_index, summary
+    from roadgonio.design.dataset import SAME_SIGNAL_RTOL, best_instrument, point_index, summary
     inst = best_instrument(ds)
     if inst is None:
         return None
@@ -110,7 +111,7 @@ def write_best(ds, path: Path) -> Path | None:
     prov = json.loads(ds.attrs.get("provenance", "{}"))
     acc = prov.get("accuracy")
     samples = json.loads(ds.attrs["samples"])
-    header = (f"The feasible design with the most signal (roadgonio design; {ds.attrs.get('created', '')}).\n"
+    header = (f"The feasible design with the most signal, of signals equal within {SAME_SIGNAL_RTOL:g} the least max |k_A - 1| (roadgonio design; {ds.attrs.get('created', '')}).\n"
               f"Varied: {changes}\n"
               f"max |k_A - 1| = {s['max_abs_dev']:.5g} (tolerance {ds.attrs['tolerance']:g}) at tan eps "
               f"{s['worst_tan_eps']:g}, beta {s['worst_beta_deg']:g} ({s['worst_sample']}); rms {s['rms_dev']:.4g}; "
@@ -154,13 +155,6 @@ def plot_pareto(ds, path: Path) -> Path:
         ax.step(sig[front], dev[front], where="pre", color="0.4", lw=1, ls="--",
                 label="Pareto front (least deviation for at least that signal)")
     ax.axhline(tol, color="tab:orange", lw=1.2, label=f"tolerance {tol:g} %")
-    if best >= 0:
-        p = point_index(ds, best)
-        txt = "best: " + ", ".join(f"{k.split('.', 1)[1]}={v:g}" for k, v in p.items())
-        ax.plot([sig[best]], [dev[best]], marker="*", color="gold", mec="k", ms=16, ls="none", zorder=5)
-        ax.annotate(txt + f"\nsignal {sig[best]:.3g} x base, max |k_A-1| {dev[best]:.3g} %", (sig[best], dev[best]),
-                    xytext=(-10, 22), textcoords="offset points", ha="right", fontsize=8,
-                    arrowprops={"arrowstyle": "-", "color": "0.3"})
     finite = sig[ok]
     if finite.size and finite.min() > 0 and finite.max() / finite.min() > 20:
         ax.set_xscale("log")
@@ -169,6 +163,19 @@ def plot_pareto(ds, path: Path) -> Path:
         ax.set_yscale("log")
         ax.yaxis.set_major_formatter(ticker.FormatStrFormatter("%g"))
         ax.yaxis.set_minor_formatter(ticker.FormatStrFormatter("%g"))
+    if best >= 0:
+        p = point_index(ds, best)
+        txt = "best: " + ", ".join(f"{k.split('.', 1)[1]}={v:g}" for k, v in p.items())
+        ax.plot([sig[best]], [dev[best]], marker="*", color="gold", mec="k", ms=16, ls="none", zorder=5)
+        # the label towards the free side of the axes (trial 12 D6: the best design at the left edge put it
+        # over the y label and squeezed the axes into the right half)
+        ax.autoscale_view()
+        fx, fy = ax.transAxes.inverted().transform(ax.transData.transform((sig[best], dev[best])))
+        right, below = fx < 0.5, fy > 0.6
+        ax.annotate(txt + f"\nsignal {sig[best]:.3g} x base, max |k_A-1| {dev[best]:.3g} %", (sig[best], dev[best]),
+                    xytext=(10 if right else -10, -30 if below else 22), textcoords="offset points",
+                    ha="left" if right else "right", va="top" if below else "bottom", fontsize=8,
+                    arrowprops={"arrowstyle": "-", "color": "0.3"})
     ax.set_xlabel("signal (detected flux for a Lambertian sample, relative to the base design)")
     ax.set_ylabel("max |k_A - 1| over cells and samples (%)")
     n_geo = int((~geo).sum())
@@ -281,8 +288,16 @@ def _signal_levels(lo: float, hi: float, n_max: int = 7) -> np.ndarray:
     return lv
 
 
+#: A third varied key with at most this many values gets one tolerance-map panel per value; with more,
+#: the map is the best design's slice (the title says which).
+MAX_MAP_PANELS = 4
+
+
 def plot_tolerance_map(ds, path: Path) -> Path | None:
-    """max |k_A - 1| over the plane of the first two varied keys (None if fewer than two vary)."""
+    """max |k_A - 1| over the plane of the first two varied keys (None if fewer than two vary); a third
+    varied key of at most MAX_MAP_PANELS values gets one panel per value (trial 12 D1: only the best's
+    slice was drawn, and a better point on another slice was in no picture); further keys, or a third
+    of more values, at the best design's values."""
     dims = json.loads(ds.attrs["varied"])
     dims2 = [d for d in dims if ds.sizes[d] > 1]
     if len(dims2) < 2:
@@ -290,12 +305,42 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
     xk, yk = dims2[0], dims2[1]
     best = int(ds.attrs["best_index"])
     from roadgonio.design.dataset import point_index
-    sel: dict[str, int] = {}
-    others = [d for d in dims if d not in (xk, yk)]
     anchor = point_index(ds, best) if best >= 0 else {}
-    for d in others:
-        vals = ds[d].values
-        sel[d] = int(np.argmin(np.abs(vals - anchor[d]))) if d in anchor else 0
+    others = [d for d in dims if d not in (xk, yk)]
+    panel_key = next((d for d in others if 1 < ds.sizes[d] <= MAX_MAP_PANELS), None)
+    sels: list[dict[str, int]] = []
+    for v in (range(ds.sizes[panel_key]) if panel_key else [None]):
+        sel: dict[str, int] = {}
+        for d in others:
+            if d == panel_key:
+                sel[d] = int(v)
+            else:
+                vals = ds[d].values
+                sel[d] = int(np.argmin(np.abs(vals - anchor[d]))) if d in anchor else 0
+        sels.append(sel)
+    plt = _plt()
+    n = len(sels)
+    fig, axes = plt.subplots(1, n, figsize=(8.5 if n == 1 else 6.2 * n, 6.2), squeeze=False)
+    fin_all = ds["max_abs_dev"].values[np.isfinite(ds["max_abs_dev"].values)] * 100
+    for ax, sel in zip(axes[0], sels):
+        is_best = best >= 0 and all(float(ds[d].values[k]) == anchor.get(d) for d, k in sel.items())
+        _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor if is_best else {}, fin_all, title=n == 1)
+    if n > 1:
+        samples = ", ".join(json.loads(ds.attrs["samples"]))
+        fixed = ", ".join(f"{d} = {anchor[d]:g}" for d in others if d != panel_key and d in anchor)
+        fig.suptitle(f"{ds.attrs['title']}: max |k_A - 1| over cells and samples ({samples}), one panel per "
+                     f"{panel_key}" + (f", at {fixed}" if fixed else "")
+                     + "\ngrey letters: geometrically impossible (F footprint, H horizon, L line of sight, I instrument, "
+                       "W housing, B backend); dots: feasible; star: the best design", fontsize=9)
+    fig.tight_layout()
+    out = atomic_savefig(fig, path, dpi=120)
+    plt.close(fig)
+    return out
+
+
+def _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor, fin_all, *, title: bool) -> None:
+    """One tolerance-map panel: the plane (xk, yk) at the indices ``sel`` of the other keys; the star at
+    ``anchor`` when the best design is on it; one colour scale over all panels (``fin_all``)."""
     sub = ds.isel(sel) if sel else ds
     dev = sub["max_abs_dev"].transpose(yk, xk).values * 100
     sig = sub["signal"].transpose(yk, xk).values
@@ -306,8 +351,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
     tol = float(ds.attrs["tolerance"]) * 100
     plt = _plt()
     from matplotlib import colors
-    fig, ax = plt.subplots(figsize=(8.5, 6.2))
-    fin = dev[np.isfinite(dev)]
+    fin = fin_all
     vmax = max(float(fin.max()) if fin.size else 2 * tol, tol * 1.05)
     vmin = min(float(fin.min()) if fin.size else tol / 10, tol * 0.95)
     norm = colors.LogNorm(vmin=max(vmin, 1e-4), vmax=vmax) if vmin > 0 and vmax / max(vmin, 1e-12) > 10 else \
@@ -340,7 +384,7 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
                 color="0.35")
     feas = sub["feasible"].transpose(yk, xk).values.astype(bool)
     ax.plot(X[feas], Y[feas], ".", color="white", ms=3, ls="none")
-    if best >= 0:
+    if anchor:
         ax.plot([anchor[xk]], [anchor[yk]], marker="*", color="gold", mec="k", ms=18, ls="none", label="best design")
         ax.legend(loc="upper right", fontsize=8)
     if xk in logs:
@@ -351,11 +395,10 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
     ax.set_ylabel(yk)
     fixed = ", ".join(f"{d} = {float(ds[d].values[k]):g}" for d, k in sel.items())
     samples = ", ".join(json.loads(ds.attrs["samples"]))
-    ax.set_title(f"{ds.attrs['title']}: max |k_A - 1| over cells and samples ({samples})"
-                 + (f"\nat {fixed}" if fixed else "")
-                 + "\ngrey letters: geometrically impossible (F footprint, H horizon, L line of sight, I instrument, "
-                   "W housing, B backend); dots: feasible", fontsize=8.5)
-    fig.tight_layout()
-    out = atomic_savefig(fig, path, dpi=120)
-    plt.close(fig)
-    return out
+    if title:
+        ax.set_title(f"{ds.attrs['title']}: max |k_A - 1| over cells and samples ({samples})"
+                     + (f"\nat {fixed}" if fixed else "")
+                     + "\ngrey letters: geometrically impossible (F footprint, H horizon, L line of sight, I instrument, "
+                       "W housing, B backend); dots: feasible", fontsize=8.5)
+    else:
+        ax.set_title(f"at {fixed}", fontsize=9)

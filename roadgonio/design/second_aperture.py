@@ -64,6 +64,12 @@ class Candidate:
     u_s1_rel: float
     signal: float = 1.0
     note: str = ""
+    #: the instrument's own setting: measuring it again is the "twice" baseline, not a second aperture
+    own: bool = False
+
+    def ranked(self, min_signal: float) -> bool:
+        """A second aperture the ranking takes: another setting, with enough signal, that measures every cell."""
+        return not self.own and self.signal >= min_signal and math.isfinite(self.u_median)
 
     def row(self) -> dict[str, Any]:
         return {"candidate": self.label, **{k: v for k, v in self.changes.items()}, "u_median_pct": 100 * self.u_median,
@@ -87,9 +93,17 @@ class SecondApertureResult:
     def best(self) -> Candidate:
         return self.candidates[0]
 
+    def counts(self) -> dict[str, int]:
+        """How many candidates the ranking took, and why the others are not ranked."""
+        floor = float(self.settings.get("min_signal", DEFAULT_MIN_SIGNAL))
+        c = self.candidates
+        return {"ranked": sum(x.ranked(floor) for x in c), "own_setting": sum(x.own for x in c),
+                "not_feasible": sum(not x.own and not math.isfinite(x.u_median) for x in c),
+                "below_min_signal": sum(not x.own and math.isfinite(x.u_median) and not x.signal >= floor for x in c)}
+
     def summary(self) -> dict[str, Any]:
         return {"instrument": self.instrument.name, "surface_from": self.surface_from, "keys": self.keys,
-                "best": self.best.row(), "baselines": [b.row() for b in self.baselines],
+                "best": self.best.row(), "baselines": [b.row() for b in self.baselines], "counts": self.counts(),
                 "candidates": [c.row() for c in self.candidates], "seconds": self.seconds, "settings": self.settings}
 
 
@@ -115,6 +129,10 @@ def _u_of(parts, theta, cov, u_rel, tables, extra=None, nominal=()) -> tuple[np.
     grid[tables[0].mask] = np.exp(lnr)
     f = functionals(tables[0].with_values(grid), C)
     return u, f["u_S1"] / f["S1"], f["S1"]
+
+
+def _changes(changes: dict[str, float]) -> str:
+    return ", ".join(f"{k} = {v:g}" for k, v in changes.items())
 
 
 def check_second_keys(instrument: Instrument, specs) -> None:
@@ -207,6 +225,15 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     points = grid_points(specs)
     for k, point in enumerate(points):
         inst_b = build_instrument(instrument, point)
+        if inst_b.to_dict() == instrument.to_dict():
+            # the grid point is the instrument itself: a second measurement with it is the "twice"
+            # baseline (trial 12 D2: evaluated again with other bundles it won by noise and was
+            # recommended as the "best second setting")
+            t = baselines[1]
+            cands.append(Candidate(f"#{k + 1}", dict(point), inst_b, t.u_median, t.u_rms, t.u_max, t.u_s1_rel,
+                                   note="the instrument's own setting: measuring it twice (a baseline, not ranked)",
+                                   own=True))
+            continue
         try:
             fm_b = ForwardModel(RayBundles.build(inst_b, cells, rays=rays, seed=seed + 1))
         except InputError as err:
@@ -226,10 +253,15 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
         if progress:
             import sys
             print(f"roadgonio design: second aperture {k + 1}/{len(points)}", file=sys.stderr, flush=True)
-    cands.sort(key=lambda c: (not (c.signal >= min_signal and math.isfinite(c.u_median)), c.u_median, c.u_s1_rel))
-    if not (cands and cands[0].signal >= min_signal and math.isfinite(cands[0].u_median)):
-        raise InputError(f"no second setting of the --vary grid keeps {min_signal:g} of the instrument's signal and "
-                         "can measure every cell", field="vary")
+    cands.sort(key=lambda c: (not c.ranked(min_signal), c.u_median, c.u_s1_rel))
+    if not (cands and cands[0].ranked(min_signal)):
+        others = [c for c in cands if not c.own and math.isfinite(c.u_median)]
+        closest = max(others, key=lambda c: c.signal) if others else None
+        raise InputError("no second setting of the --vary grid " + ("other than the instrument's own " if
+                                                                   any(c.own for c in cands) else "")
+                         + f"keeps {min_signal:g} of the instrument's signal and can measure every cell"
+                         + (f" (the brightest, {_changes(closest.changes)}, keeps {closest.signal:.3g}; a lower "
+                            "--min-signal ranks it)" if closest is not None else ""), field="vary")
     return SecondApertureResult(instrument=instrument, surface_from=source, candidates=cands, baselines=baselines,
                                 keys=[s.key for s in specs], seconds=time.perf_counter() - t0,
                                 settings={"u_measured": str(u_measured), "rays": rays, "seed": seed,
@@ -291,7 +323,7 @@ def draw_second_aperture(res: SecondApertureResult):
     """Median u and u(S1) of the corrected table for every candidate, the baselines as lines."""
     from roadgonio.plots import _plt
     plt = _plt()
-    ok = [c for c in res.candidates if math.isfinite(c.u_median)]
+    ok = [c for c in res.candidates if math.isfinite(c.u_median) and not c.own]   # the own setting: the "twice" line
     ok.sort(key=lambda c: tuple(c.changes[k] for k in res.keys))
     labels = [", ".join(f"{k.split('.')[-1]}={c.changes[k]:g}" for k in res.keys) + f"\n(signal {c.signal:.2g})"
               for c in ok]

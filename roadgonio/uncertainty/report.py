@@ -57,9 +57,15 @@ def result_dict(res: UncertaintyResult, *, cells: bool = True) -> dict[str, Any]
     return d
 
 
+#: cells.csv's first line: its units (the r-tables beside it hold r x 1e4; trial 12 D8).
+CELLS_UNITS = ("# r_nominal, mean, u, the intervals and gum_u/low/high in sr^-1 (r itself, not r x 1e4 as in the "
+               "<case>_mean.csv and <case>_u.csv tables); u_rel a fraction; on the Q0 rows in sr^-1, on the S1 rows "
+               "dimensionless")
+
+
 def cells_csv_text(res: UncertaintyResult) -> str:
     n = len(res.cells)
-    lines = ["case,tan_eps,beta_deg,r_nominal,mean,u,u_rel,sym_low,sym_high,short_low,short_high,"
+    lines = [CELLS_UNITS, "case,tan_eps,beta_deg,r_nominal,mean,u,u_rel,sym_low,sym_high,short_low,short_high,"
              "gum_u,gum_low,gum_high,gum_validated,d_low,d_high,delta"]
     labels = [f"{t:g},{b:g}" for t, b in zip(res.cells.tan_eps, res.cells.beta_deg)] + ["Q0,", "S1,"]
     for name, c in res.cases.items():

@@ -31,7 +31,7 @@ def test_cli_runs_lambert(tmp_path):
     assert d["trials"] == 2000 and set(d["cases"]) == {"no_aperture"}
     # Lambert, 5 mm on 5 m: u(r)/r at eps = 0 is 2 u(D)/D = 0.2 % (first order; the eps error is
     # second order there), to the MC standard error of u (1/sqrt(2M))
-    rows = [l.split(",") for l in (tmp_path / "cells.csv").read_text().splitlines()]
+    rows = [l.split(",") for l in (tmp_path / "cells.csv").read_text().splitlines() if not l.startswith("#")]
     row = next(r for r in rows[1:] if r[0] == "no_aperture" and r[1] == "0" and r[2] == "0")
     u_rel = float(row[rows[0].index("u_rel")])
     assert abs(u_rel / 0.002 - 1) < N_SIGMA / math.sqrt(2 * 2000) + 1e-3

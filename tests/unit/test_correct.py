@@ -440,6 +440,9 @@ def test_the_note_that_the_data_reject_the_fit_travels_in_corrected_u_csv(tmp_pa
         f = assess_fit(fm, y, 0.01 * y, r3like)
         s = f.summary()
         assert s["misfit"] is rejected and (s["misfit_note"] is not None) is rejected
+        # trial 12 D7: the misalignment component is the fitted model's sensitivity: the note says so
+        assert not rejected or "misalignment component (--sigma), whose sensitivities are the fitted model" in \
+            s["misfit_note"]
         path = tmp_path / f"u_{rejected}.csv"
         path.write_text(u_csv_text(SimpleNamespace(corrected=table, u_corrected=0.01 * g, fit=f)))
         u = read_table(path, "u")
@@ -451,3 +454,46 @@ def test_the_note_that_the_data_reject_the_fit_travels_in_corrected_u_csv(tmp_pa
             assert "this u may not cover" in notes[0]
         else:
             assert notes == []
+
+
+README_SPEC = ("alpha_deg=0.01,eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02,tilt_y_deg=0.02,source_distance_m=0.002,"
+               "detector_distance_m=0.005")
+
+
+@pytest.mark.parametrize("reference", ["self", "R3"])
+def test_correct_checks_the_sigma_spec_against_the_geometry_as_uncertainty_does(tmp_path, reference):
+    """trial 12 D3: `correct --sigma eps_deg=5` ran (a misalignment u of 121 %, exit 0) where
+    `uncertainty` refuses the SPEC; the same check now refuses it before any work (nothing written),
+    with either reference, and the README's SPEC passes."""
+    from roadgonio import api
+    from roadgonio.correction.run import check_sigma
+    from roadgonio.uncertainty import parse_sigma_spec
+    table = bundled_table("R3")
+    out = tmp_path / "out"
+    for spec in ("eps_deg=5", "eps_deg=1"):
+        with pytest.raises(InputError, match=r"sigma eps_deg = \d \(normal\) takes the geometry out of validity"):
+            api.correct(table, "portable", reference=reference, sigma=spec, backend="quadrature", accuracy="fast",
+                        out=out, plots=False)
+        assert not out.exists()
+    check_sigma(parse_sigma_spec(README_SPEC), load_instrument("portable"), table)
+
+
+def test_a_mistake_in_the_alternatives_is_one_line_without_the_notes_of_the_others():
+    """trial 12 D8: `correct --reference R3 --alternatives R2,R9` printed R2's spike note, then the
+    one-line error about R9 (two lines for one mistake). The names are all resolved before any note
+    is said; without a mistake the note still comes."""
+    import warnings
+
+    from roadgonio.correction.reference import resolve_alternatives
+    from roadgonio.errors import ModelWarning
+    table = bundled_table("R3")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        with pytest.raises(InputError, match="unknown sample 'R9'"):
+            resolve_alternatives("R2,R9", table, reference_name="R3")
+    assert not [w for w in said if issubclass(w.category, ModelWarning)]
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        got = resolve_alternatives("R2", table, reference_name="R3")
+    assert list(got) == ["R2"] and [str(w.message) for w in said if issubclass(w.category, ModelWarning)][0].startswith(
+        "R2 (power fit): r at beta = 0 is a spike")

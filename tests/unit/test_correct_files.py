@@ -5,8 +5,10 @@ k_A and SE columns swapped, passed every test."""
 from __future__ import annotations
 
 import csv
+import io
 import math
 
+import numpy as np
 import pytest
 
 from roadgonio.correction.outputs import cells_csv, u_csv_text
@@ -147,3 +149,33 @@ def test_corrected_corr_csv_names_its_table_as_corrected_u_csv_does(corrected, t
     assert len(cells) == int(res.measured.mask.sum()) and c.shape == (len(cells), len(cells))
     with pytest.raises(InputError, match="header says 'R2 corrected"):
         read_cell_correlation(tmp_path / "corrected_corr.csv", table=head.replace("R3", "R2"))
+
+
+def test_correction_map_colour_bar_label_clears_the_next_panel_and_cells_are_readable():
+    """trial 12 D8: correction_map.png (one instrument, 2000 x 900 px) had the left colour bar's label
+    touching the right panel's "tan eps" and cell numbers ~5 px high. Laid out as the joint map: the
+    label ends left of the right panel's axis label, and the cell numbers are JOINT_MAP_CELL_FONT pt
+    (~10 px at the PNG's 100 dpi)."""
+    from types import SimpleNamespace
+
+    from roadgonio.correction.outputs import JOINT_MAP_CELL_FONT, draw_correction_map
+    from roadgonio.plots import _plt
+    from roadgonio.surface.rtable import bundled_table
+    t = bundled_table("R3")
+    k = np.where(t.mask, 1.0 + 0.05 * np.sin(np.arange(t.r.size).reshape(t.r.shape)), np.nan)
+    n = int(t.mask.sum())
+    res = SimpleNamespace(k_a=k, measured=t, budget=SimpleNamespace(u_rel=lambda: np.full(n, 0.012),
+                                                                    components=["measurement", "backend"]))
+    fig = draw_correction_map(res)
+    try:
+        fig.savefig(io.BytesIO(), format="png", dpi=100)
+        renderer = fig.canvas.get_renderer()
+        a1, a2 = fig.axes[:2]
+        colour_bar = [a for a in fig.axes[2:] if "k_A (measured / true" in a.get_ylabel()][0]
+        left_label = colour_bar.yaxis.label.get_window_extent(renderer)
+        right_label = a2.yaxis.label.get_window_extent(renderer)
+        assert left_label.x1 < right_label.x0, (left_label, right_label)
+        sizes = {t.get_fontsize() for t in a1.texts} | {t.get_fontsize() for t in a2.texts}
+        assert sizes and min(sizes) >= JOINT_MAP_CELL_FONT, sizes
+    finally:
+        _plt().close(fig)

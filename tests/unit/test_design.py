@@ -566,3 +566,132 @@ def test_pareto_front_is_the_set_of_non_dominated_points_with_ties():
         assert sorted({(s[i], d[i]) for i in got}) == sorted({(s[i], d[i]) for i in want})
         assert len(got) == len({(s[i], d[i]) for i in got})
         assert list(s[got]) == sorted(s[got])                      # by increasing signal
+
+
+def test_equally_bright_designs_are_ranked_by_max_deviation():
+    """trial 12 D1: two feasible designs differing only in the detector distance have signals 1e-5
+    apart (the exact disc-to-disc etendue's (R_D / F)^2 terms); the exact comparison made the
+    brighter by 1e-5 the best although it sat on the tolerance's edge and the other was 1.7 points
+    inside it. Signals within SAME_SIGNAL_RTOL are one signal: the least max |k_A - 1| wins, and the
+    summary says there was a choice; a signal larger by more than that still wins."""
+    from roadgonio.design.dataset import SAME_SIGNAL_RTOL, assemble, best_point, same_signal, summary
+    from roadgonio.design.run import SampleSpec
+    base = load_instrument("portable")
+    specs = G.as_vary_specs(["detector.distance_m=0.6,1.0"])
+    points = G.grid_points(specs)
+    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
+    samples = [SampleSpec("A", "A", None, cells)]
+    checked = [check_point(base, p, list(cells)) for p in points]
+    tables = {(0, 0): _ka_dataset([[1.0332, 1.0], [1.0, 1.0]], np.ones((2, 2)), np.zeros((2, 2)), np.zeros((2, 2))),
+              (1, 0): _ka_dataset([[1.04998, 1.0], [1.0, 1.0]], np.ones((2, 2)), np.zeros((2, 2)), np.zeros((2, 2)))}
+    done = {key: _journal_record(t, cells) for key, t in tables.items()}
+    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
+                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
+                  seeds=[1, 2], tol=0.05)
+    sig = ds["signal"].values
+    assert ds["feasible"].values.all() and 1e-6 < sig[1] / sig[0] - 1.0 < SAME_SIGNAL_RTOL   # 1 m: brighter by ~1e-5
+    s = summary(ds)
+    assert s["best"]["index"] == 0 and s["best"]["detector.distance_m"] == 0.6 and s["equally_bright"] == 2
+    # one signal for the picture too (pareto.png point by point, not two points 1e-5 apart)
+    assert same_signal(ds) is not None
+    # a signal larger by more than the tolerance is more signal: it wins whatever its deviation
+    assert best_point([1.0, 1.0 + 3 * SAME_SIGNAL_RTOL], [0.01, 0.049], [True, True]) == 1
+    assert best_point([1.0, 1.0 + 0.5 * SAME_SIGNAL_RTOL], [0.01, 0.049], [True, True]) == 0
+    assert best_point([1.0, 2.0], [0.01, 0.02], [True, False]) == 0 and best_point([1.0], [0.01], [False]) == -1
+
+
+@pytest.mark.slow            # two surface fits and three settings' bundles, ~40 s: in CI by -m slow
+def test_second_aperture_does_not_recommend_the_instrument_itself():
+    """trial 12 D2: a --vary grid that holds the instrument's own setting recommended it as the "best
+    second setting" (its second measurement is the "measured twice" baseline, evaluated again with
+    other bundles: it won by noise). It is the baseline, not a candidate; the counts say how many
+    settings were below --min-signal; when no other setting has the signal, one line says so and
+    names the brightest."""
+    from roadgonio import api
+    own = load_instrument("portable").detector.field_half_angle_deg
+    vary = [f"detector.field_half_angle_deg={own:g},0.1,0.05"]
+    res = api.second_aperture("portable", vary, sample="R3", model_variant="smooth", rays=8, min_signal=0.3,
+                              plots=False)
+    mine = [c for c in res.candidates if c.changes["detector.field_half_angle_deg"] == own]
+    assert len(mine) == 1 and mine[0].own and "measuring it twice" in mine[0].note
+    assert mine[0].u_median == res.baselines[1].u_median          # the twice baseline, not a new estimate
+    assert res.best.changes["detector.field_half_angle_deg"] == 0.1 and not res.best.own
+    assert res.counts() == {"ranked": 1, "own_setting": 1, "not_feasible": 0, "below_min_signal": 1}
+    with pytest.raises(InputError, match=r"other than the instrument's own keeps 0.5 .* keeps 0\.444"):
+        api.second_aperture("portable", [f"detector.field_half_angle_deg={own:g},0.1"], sample="R3", model_variant="smooth", rays=8, min_signal=0.5,
+                            plots=False)
+
+
+def test_min_signal_takes_a_percentage_as_tolerance_and_u_measured_do():
+    """trial 12 D8: `design --min-signal 25%` was refused ("invalid float value") while --tolerance and
+    --u-measured take percentages."""
+    from roadgonio.api import _fraction
+    from roadgonio.cli import build_parser
+    args = build_parser().parse_args(["design", "--instrument", "portable", "--second-aperture", "--min-signal", "25%"])
+    assert _fraction(args.min_signal, "min_signal") == 0.25 and _fraction("0.25", "min_signal") == 0.25
+    assert _fraction(0.3, "min_signal") == 0.3
+    with pytest.raises(InputError, match="expected a fraction .* or a percentage .*, got '25 percent'"):
+        _fraction("25 percent", "min_signal")
+
+
+@pytest.mark.parametrize("best_small", [True, False])
+def test_pareto_label_of_the_best_design_stays_inside_the_axes(tmp_path, monkeypatch, best_small):
+    """trial 12 D6: when the best design had the least signal (the leftmost point), its label was drawn
+    to the left of the axes, over the y label, and the axes shrank to the right half (title and x
+    label cut). The label goes towards the free side: inside the axes wherever the best is."""
+    from roadgonio.design import outputs as O
+    from roadgonio.design.dataset import assemble
+    from roadgonio.design.run import SampleSpec
+    base = load_instrument("portable")
+    specs = G.as_vary_specs(["source.radius_m=0.003,0.006,0.012"])
+    points = G.grid_points(specs)
+    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
+    samples = [SampleSpec("A", "A", None, cells)]
+    checked = [check_point(base, p, list(cells)) for p in points]
+    devs = (0.02, 0.08, 0.09) if best_small else (0.09, 0.08, 0.02)
+    ones = np.ones((2, 2))
+    done = {(i, 0): _journal_record(_ka_dataset([[1.0 + d, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones), cells)
+            for i, d in enumerate(devs)}
+    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
+                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
+                  seeds=[1, 2, 3], tol=0.05)
+    assert int(ds.attrs["best_index"]) == (0 if best_small else 2)
+    got = {}
+    monkeypatch.setattr(O, "atomic_savefig", lambda fig, path, dpi: got.setdefault("fig", fig) and path)
+    O.plot_pareto(ds, tmp_path / "pareto.png")
+    fig = got["fig"]
+    fig.canvas.draw()
+    ax = fig.axes[0]
+    label = [t for t in ax.texts if t.get_text().startswith("best:")][0]
+    box, axes = label.get_window_extent(), ax.get_window_extent()
+    assert axes.x0 <= box.x0 and box.x1 <= axes.x1 and axes.y0 <= box.y0 and box.y1 <= axes.y1, (box, axes)
+
+
+def test_tolerance_map_of_three_keys_has_one_panel_per_value_of_the_third(tmp_path, monkeypatch):
+    """trial 12 D1: a three-key design's tolerance_map.png drew only the best's slice of the third key,
+    so a better point on another slice was in no picture. A third key of few values gets one panel
+    per value, the best starred on its own."""
+    from roadgonio.design import outputs as O
+    from roadgonio.design.dataset import assemble
+    from roadgonio.design.run import SampleSpec
+    base = load_instrument("portable")
+    specs = G.as_vary_specs(["source.radius_m=0.003,0.006", "detector.pupil_radius_m=0.0025,0.005",
+                             "detector.distance_m=0.6,1.0"])
+    points = G.grid_points(specs)
+    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
+    samples = [SampleSpec("A", "A", None, cells)]
+    checked = [check_point(base, p, list(cells)) for p in points]
+    ones = np.ones((2, 2))
+    done = {(i, 0): _journal_record(_ka_dataset([[1.01 + 0.01 * i, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones),
+                                    cells) for i in range(len(points))}
+    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
+                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
+                  seeds=list(range(len(points))), tol=0.05)
+    got = []
+    monkeypatch.setattr(O, "atomic_savefig", lambda fig, path, dpi: got.append(fig) or path)
+    O.plot_tolerance_map(ds, tmp_path / "tolerance_map.png")
+    maps = [a for a in got[0].axes if a.get_xlabel() == "source.radius_m"]
+    assert [a.get_title() for a in maps] == ["at detector.distance_m = 0.6", "at detector.distance_m = 1"]
+    best_d = O.json.loads(ds.attrs["best_point_json"])["detector.distance_m"]
+    starred = [a.get_title() for a in maps if a.get_legend() is not None]
+    assert starred == [f"at detector.distance_m = {best_d:g}"]

@@ -388,7 +388,10 @@ def test_outputs_column_by_column(tmp_path):
     from roadgonio.uncertainty.report import cells_csv_text, summary_lines
     res = known_result()
     cells, n = res.cells, len(res.cells)
-    rows = list(csv.DictReader(io.StringIO(cells_csv_text(res))))
+    text = cells_csv_text(res)
+    # trial 12 D8: the file says its unit (r in sr^-1, beside tables of r x 1e4)
+    assert text.startswith("# r_nominal, mean, u, the intervals and gum_u/low/high in sr^-1 (r itself, not r x 1e4")
+    rows = list(csv.DictReader(io.StringIO(text.split("\n", 1)[1])))
     assert len(rows) == 2 * (n + 2)
     for name, c in res.cases.items():
         mine = [r for r in rows if r["case"] == name]

@@ -20,12 +20,14 @@ a beam limit that clips the footprint is refused); every traced detector ray mus
 from __future__ import annotations
 
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from roadgonio.errors import GeometryError
+from roadgonio.interrupts import deferred
 from roadgonio.engines.mitsuba import lattice as lat
 from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strata, covariance, relative
 from roadgonio.engines.mitsuba.scene import RoadScene, source_radiance
@@ -176,6 +178,14 @@ class BatchEngine:
             stats[:], run.plan, p, requests = restored
             run.stats = stats
             run.info["resumed_from_pass"] = p
+        # a Ctrl-C or SIGTERM on the command line stops after the pass under way, once its state is
+        # saved (roadgonio.interrupts; only when there is a state to save)
+        with deferred("pass of the Mitsuba table") if on_pass is not None and plan is None else nullcontext() as stop:
+            self._passes(cells, planner, plan, seed, stats, run, active, requests, p, on_done, on_pass, stop)
+        run.seconds = time.perf_counter() - t0
+        return run
+
+    def _passes(self, cells, planner, plan, seed, stats, run, active, requests, p, on_done, on_pass, stop) -> None:
         while requests:
             self._pass(p, requests, stats, run, seed)
             p += 1
@@ -201,9 +211,9 @@ class BatchEngine:
                          "stats": [stats[i].to_dict() for i in active],
                          "plan": [[list(e) for e in run.plan.cells[i]] for i in active],
                          "requests": [[k, *requests[i]] for k, i in enumerate(active) if i in requests]})
+                if stop is not None:
+                    stop.check()
         run.passes = p
-        run.seconds = time.perf_counter() - t0
-        return run
 
     @staticmethod
     def _restore(state: dict, cells: list[tuple[float, float]], seed: int):

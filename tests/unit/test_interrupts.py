@@ -1,0 +1,114 @@
+"""Ctrl-C and SIGTERM on the command line (roadgonio.interrupts), each in a child process so that the
+test runner's own signal handling is left alone."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+#: Longest wait for a child's line or its end (its imports included).
+WAIT_S = 60.0
+
+
+def _child(code: str, tmp_path: Path) -> subprocess.Popen:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], cwd=tmp_path, env=env, text=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path):
+    """trial 12 D5: SIGTERM (a batch system's time limit, `timeout`, `kill`) ended every command without a
+    word (exit 143): it is now a Ctrl-C, the command's line saying what was kept and exit status 130."""
+    p = _child(f"""
+        import os, signal, sys, time
+        import roadgonio.api as api
+        from roadgonio.cli import main
+        def work(*a, **k):
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(30)
+            raise SystemExit("SIGTERM was not handled")
+        api.ka_table = work
+        sys.exit(main(["ka", "--instrument", "portable", "--sample", "lambert", "--out", {str(tmp_path / 'o')!r}]))
+    """, tmp_path)
+    out, err = p.communicate(timeout=WAIT_S)
+    assert p.returncode == 130, (p.returncode, err)
+    assert "roadgonio: interrupted: the finished cells are kept in the output folder's journal" in err, err
+
+
+def test_a_deferred_region_says_at_once_that_it_heard_the_signal_and_stops_at_its_boundary(tmp_path):
+    """trial 12 D4: Ctrl-C during a Mitsuba pass was acknowledged only when the pass ended (40 s), in
+    silence. In a deferred region the watcher thread says at once that the signal was received (while
+    the main thread is still busy), the work goes on to its boundary and stops there with a
+    KeyboardInterrupt; outside a CLI run the region changes nothing."""
+    p = _child("""
+        import os, signal, sys, time
+        from roadgonio import interrupts
+        with interrupts.deferred("stretch") as d:      # not installed: a signal-free timer
+            d.check()
+        interrupts.install()
+        with interrupts.deferred("pass of the test") as d:
+            d.check()
+            os.kill(os.getpid(), signal.SIGINT)
+            r, w = os.pipe()
+            os.set_blocking(r, False)
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < 20:             # busy: the line must come before this ends
+                sys.stdout.write("")
+                if os.environ.get("NEVER"):
+                    break
+                try:
+                    os.read(r, 1)
+                except BlockingIOError:
+                    pass
+                if os.path.exists("go"):
+                    break
+            print("went on to the boundary", flush=True)
+            try:
+                d.check()
+            except KeyboardInterrupt:
+                print("stopped at the boundary", flush=True)
+    """, tmp_path)
+    t0 = time.monotonic()
+    line = p.stderr.readline()                # while the child is still busy in its region
+    assert time.monotonic() - t0 < WAIT_S and p.poll() is None
+    assert line.startswith("roadgonio: Ctrl-C received: finishing the current pass of the test"), line
+    (tmp_path / "go").write_text("")
+    out, err = p.communicate(timeout=WAIT_S)
+    assert out.splitlines() == ["went on to the boundary", "stopped at the boundary"], (out, err)
+    assert p.returncode == 0, err
+
+
+@pytest.mark.parametrize("again", [False, True])
+def test_a_signal_ignored_by_the_parent_stays_ignored_and_a_second_one_does_not_wait(tmp_path, again):
+    """A background job started with SIGINT ignored keeps ignoring it (as Python itself does); a second
+    signal in a deferred region interrupts without waiting for the boundary."""
+    p = _child(f"""
+        import os, signal, time
+        from roadgonio import interrupts
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        interrupts.install()
+        assert signal.getsignal(signal.SIGINT) is signal.SIG_IGN
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        interrupts._S.installed = False
+        interrupts.install()
+        with interrupts.deferred("pass") as d:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.2)
+            if {again!r}:
+                try:
+                    os.kill(os.getpid(), signal.SIGINT)
+                    time.sleep(5)
+                except KeyboardInterrupt:
+                    print("second: at once", flush=True)
+            else:
+                print("first: deferred", flush=True)
+    """, tmp_path)
+    out, err = p.communicate(timeout=WAIT_S)
+    assert p.returncode == 0, err
+    assert out.strip() == ("second: at once" if again else "first: deferred")
