@@ -129,7 +129,7 @@ def run(args) -> int:
             say(f"  note: {note}; --forward surface fits a model that can follow it (docs/correction.md, \"Outside "
                 "eq. 4\"); corrected_u.csv's header carries this note, and road --u repeats it")
         if "cells_widened" in f:
-            say(f"  fit: {f['variant']} backbone x correction surface, Birge ratio {f['birge_ratio']:.2f} "
+            say(f"  fit: {f.get('backbone', f['variant'])} backbone x correction surface, Birge ratio {f['birge_ratio']:.2f} "
                 f"(local max {f['birge_local_max']:.2f}); u widened by the local Birge ratio in {f['cells_widened']} "
                 f"cells (at most x{f['widening_max']:.2f})")
         if s.get("model_estimate"):
@@ -165,7 +165,7 @@ def _run_joint(args) -> int:
         say(f"note: {res.provenance['forward_model_limits']}")
     best = max(s["variants"], key=lambda v: v["weight"])
     say(f"one surface through {len(res.parts)} instruments ({', '.join(s['instruments'])}): {s['cells']} cells, "
-        f"{best['variant']} backbone x correction surface, Birge ratio {best['birge_ratio']:.2f}")
+        f"{best.get('label', best['variant'])} backbone x correction surface, Birge ratio {best['birge_ratio']:.2f}")
     for p in s["per_instrument"]:
         b = p["before"]
         say(f"  {p['instrument']}: k_A {p['k_a_min']:.3g} ... {p['k_a_max']:.3g}; as measured S1 "

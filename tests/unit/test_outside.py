@@ -421,3 +421,26 @@ def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
     y = fm.r_measured(r3like)
     fit = fit_self(fm, y, 0.01 * y, "power", starts=2, rounds=1, stage_b=False, fixed={"beta_round_deg": 3.0})
     assert fit.model.params.beta_round_deg == 3.0
+
+
+def test_several_roundings_of_the_backbone_are_weighed_not_chosen():
+    """SurfaceSettings(mirror_round_deg=(0, None)): one backbone per rounding (None the first knot),
+    duplicates refused, an empty set refused, the single-rounding accessor refuses to pick one, and
+    each rounding is held in its own fit (backbone_fixed); the journal keeps the cusp's old names."""
+    from roadgonio.correction.flexible import SurfaceSettings
+    from roadgonio.correction.outside import _state_name, backbone_label
+    from roadgonio.errors import InputError
+    s = SurfaceSettings(mirror_round_deg=[0.0, None])
+    knot = float(s.c_grid.node_coordinates()[0][1])
+    assert s.mirror_round_deg == (0.0, None) and s.backbone_rounds_deg == (0.0, knot)
+    assert s.to_dict()["mirror_round_deg"] == [0.0, None]
+    assert [s.backbone_fixed(r) for r in s.backbone_rounds_deg] == [{"beta_round_deg": 0.0}, {"beta_round_deg": knot}]
+    with pytest.raises(ValueError, match="backbone_rounds_deg"):
+        s.backbone_round_deg
+    assert SurfaceSettings(mirror_round_deg=(None,)).backbone_round_deg == knot
+    for bad in ((), (0.0, 0), (None, knot), (0.0, -1.0), (0.0, "knot")):
+        with pytest.raises(InputError) as e:
+            SurfaceSettings(mirror_round_deg=bad)
+        assert e.value.field == "mirror_round_deg"
+    assert _state_name("power", 0.0) == "power" and _state_name("power", knot) != _state_name("smooth", knot)
+    assert backbone_label("smooth", 0.0) == "smooth" and "rounded 1.12 deg" in backbone_label("smooth", knot)
