@@ -83,6 +83,9 @@ PEAK_BETA_DEG = 12.0
 PEAK_EPS_DEG = 45.0
 #: How the penalties are split into regions (SurfaceSettings.regions, penalty_region).
 REGIONS = ("peak", "grid")
+#: The backbone's shape at the mirror plane by name (``correct --mirror-plane``; SurfaceSettings.mirror_round_deg):
+#: the cusp of eq. 4, rounded over the first knot of g_C, or both weighed by their evidence.
+MIRROR_PLANES = {"cusp": 0.0, "rounded": None, "both": (0.0, None)}
 #: Stop the mode search when the penalised chi^2 changes by less than this (relative).
 MODE_RTOL = 1e-8
 MAX_MODE_STEPS = 60
@@ -186,6 +189,17 @@ class SurfaceSettings:
         """The backbone's parameters held in its fit through the instruments: the rounding
         ``round_deg`` (one of :attr:`backbone_rounds_deg`; default the settings' only one)."""
         return {"beta_round_deg": self.backbone_round_deg if round_deg is None else float(round_deg)}
+
+    def with_mirror_plane(self, name: str | None) -> "SurfaceSettings":
+        """These settings with the backbone's shape at the mirror plane named (:data:`MIRROR_PLANES`;
+        None keeps them)."""
+        if name is None:
+            return self
+        if name not in MIRROR_PLANES:
+            raise InputError(f"expected the backbone's shape at the mirror plane to be one of "
+                             f"{', '.join(MIRROR_PLANES)}, got {name!r}", field="mirror_plane")
+        from dataclasses import replace
+        return replace(self, mirror_round_deg=MIRROR_PLANES[name])
 
     @property
     def n_c(self) -> int:

@@ -444,3 +444,48 @@ def test_several_roundings_of_the_backbone_are_weighed_not_chosen():
         assert e.value.field == "mirror_round_deg"
     assert _state_name("power", 0.0) == "power" and _state_name("power", knot) != _state_name("smooth", knot)
     assert backbone_label("smooth", 0.0) == "smooth" and "rounded 1.12 deg" in backbone_label("smooth", knot)
+
+
+def test_the_mirror_plane_is_named_once_for_the_api_and_the_command_line():
+    """``correct --mirror-plane`` / ``api.correct(mirror_plane=)``: cusp, rounded (one knot) and both
+    map onto the surface's settings; an unknown name, or the option without the correction surface,
+    is one error naming the field before any work."""
+    from roadgonio import api
+    from roadgonio.correction.flexible import MIRROR_PLANES, SurfaceSettings
+    from roadgonio.errors import InputError
+    s = SurfaceSettings(smoothing="gcv")
+    knot = float(s.c_grid.node_coordinates()[0][1])
+    assert s.with_mirror_plane("cusp").backbone_rounds_deg == (0.0,)
+    assert s.with_mirror_plane("rounded").backbone_rounds_deg == (knot,)
+    assert s.with_mirror_plane("both").backbone_rounds_deg == (0.0, knot)
+    assert s.with_mirror_plane("both").smoothing == "gcv" and s.with_mirror_plane(None) is s
+    assert set(MIRROR_PLANES) == {"cusp", "rounded", "both"}
+    with pytest.raises(InputError) as e:
+        s.with_mirror_plane("flat")
+    assert e.value.field == "mirror_plane"
+    with pytest.raises(InputError) as e:
+        api.correct("R3", "portable", mirror_plane="both")          # forward eq4: no surface
+    assert e.value.field == "mirror_plane"
+
+
+@pytest.mark.parametrize("joint", [False, True])
+def test_correct_passes_the_mirror_plane_to_the_api(monkeypatch, joint):
+    """The command line's --mirror-plane reaches api.correct (single and --joint), absent it None."""
+    from roadgonio import api
+    from roadgonio.cli import main
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake(*args, **kwargs):
+        seen.append(kwargs.get("mirror_plane", "missing"))
+        raise Stop
+
+    monkeypatch.setattr(api, "correct", fake)
+    argv = (["correct", "--measured", "a.csv", "--instrument", "A.toml"]
+            + (["--measured", "b.csv", "--instrument", "B.toml", "--joint"] if joint else ["--forward", "surface"]))
+    for extra, want in (([], None), (["--mirror-plane", "cusp"], "cusp"), (["--mirror-plane", "both"], "both")):
+        with pytest.raises(Stop):
+            main(argv + extra)
+        assert seen[-1] == want
