@@ -436,7 +436,7 @@ def test_several_roundings_of_the_backbone_are_weighed_not_chosen():
     assert s.to_dict()["mirror_round_deg"] == [0.0, None]
     assert [s.backbone_fixed(r) for r in s.backbone_rounds_deg] == [{"beta_round_deg": 0.0}, {"beta_round_deg": knot}]
     with pytest.raises(ValueError, match="backbone_rounds_deg"):
-        s.backbone_round_deg
+        _ = s.backbone_round_deg
     assert SurfaceSettings(mirror_round_deg=(None,)).backbone_round_deg == knot
     for bad in ((), (0.0, 0), (None, knot), (0.0, -1.0), (0.0, "knot")):
         with pytest.raises(InputError) as e:
