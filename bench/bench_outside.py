@@ -38,7 +38,7 @@ band of beta (edges ``--beta-edges``, default 12 deg) times band of eps (``--eps
 a truth's seeds do not depend on which other truths run), and ends with a summary per truth and
 method: the median and range of RMS, max and u(S1) / S1 over the seeds, and in how many of them
 every target was met (the maximum error moves with the noise: one realisation's verdict is not the
-method's). The column ``lnev`` is the ln evidence of the best backbone variant (comparable between runs of the
+method's). The column ``wrnd`` is the evidence weight of the rounded backbones (with ``--mirror-round 0,knot``), ``lnev`` the ln evidence of the best backbone variant (comparable between runs of the
 same truth and instruments only).
 """
 from __future__ import annotations
@@ -128,9 +128,14 @@ def verdict(kind: str, s: dict) -> str:
 COLS = [("truth", 10, "s"), ("method", 22, "s"), ("rms_pct", 6, ".2f"), ("max_pct", 6, ".2f"),
         ("within_2u_pct", 6, ".1f"), ("beyond_4u", 4, "d"), ("rms_z", 5, ".2f"), ("S1_true", 6, ".3f"),
         ("S1", 6, ".3f"), ("z_S1", 6, ".2f"), ("u_S1_pct", 6, ".2f"), ("u_median_pct", 6, ".2f"),
-        ("u_disc_median_pct", 6, ".2f"), ("ln_evidence", 8, ".1f"), ("birge", 5, ".2f"), ("k_a_min", 5, ".2f"), ("seconds", 6, ".1f"), ("targets", 8, "s"), ("load", 14, "s")]
+        ("u_disc_median_pct", 6, ".2f"), ("ln_evidence", 8, ".1f"), ("w_round", 5, ".2f"), ("birge", 5, ".2f"), ("k_a_min", 5, ".2f"), ("seconds", 6, ".1f"), ("targets", 8, "s"), ("load", 14, "s")]
 HEAD = {"rms_pct": "RMS%", "max_pct": "max%", "within_2u_pct": "in2u%", "beyond_4u": ">4u", "rms_z": "rmsz",
-        "u_S1_pct": "uS1%", "u_median_pct": "umed%", "u_disc_median_pct": "udisc%", "ln_evidence": "lnev", "k_a_min": "kmin", "seconds": "s"}
+        "u_S1_pct": "uS1%", "u_median_pct": "umed%", "u_disc_median_pct": "udisc%", "ln_evidence": "lnev", "w_round": "wrnd", "k_a_min": "kmin", "seconds": "s"}
+
+
+def _timings(t: dict) -> str:
+    """A correction's seconds by stage (SurfaceCorrection.timings), for the CSV."""
+    return " ".join(f"{k} {v:.1f}" for k, v in t.items())
 
 
 def print_row(r: dict) -> None:
@@ -193,7 +198,8 @@ def main() -> int:
     ap.add_argument("--eps-edges", default="45", help="with --regions grid: band edges of eps (deg)")
     ap.add_argument("--mirror-round", default=None,
                     help="the backbone's rounding at the mirror plane: deg, or knot for the first knot of the "
-                         "correction surface (default the library's: 0, the cusp kept)")
+                         "correction surface, or several separated by commas (e.g. 0,knot: every backbone fitted "
+                         "with each, all weighed by their evidence); default the library's")
     ap.add_argument("--seeds", type=int, default=1,
                     help="noise realisations per truth (default 1); with more, a summary over them at the end")
     args = ap.parse_args()
@@ -208,15 +214,15 @@ def main() -> int:
                  "grid_eps_edges_deg": tuple(float(e) for e in args.eps_edges.split(","))}
     surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell, regions=args.regions, **edges,
                               model_estimate=args.estimate == "combined",
-                              **({} if args.mirror_round is None else {"mirror_round_deg": None if args.mirror_round
-                                                                       == "knot" else float(args.mirror_round)}))
+                              **({} if args.mirror_round is None else {"mirror_round_deg": tuple(
+                                  None if r == "knot" else float(r) for r in args.mirror_round.split(","))}))
     from roadgonio import api
     from roadgonio.instrument.config import Instrument
     insts = {w: Instrument.load(p) for w, p in INSTRUMENTS.items()}
     print(f"machine: {os.cpu_count()} cores; load average at start {load()}; backend {args.backend}; "
           f"noise {100 * NOISE:g} %; smoothing {args.smoothing}; discrepancy ell {ell}; estimate {args.estimate}; "
           f"regions {args.regions} {edges or ''}; backbone rounded at the mirror plane over "
-          f"{surface.backbone_round_deg:.3g} deg")
+          f"{', '.join(f'{r:.3g}' for r in surface.backbone_rounds_deg)} deg")
     print("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
     rows: list[dict] = []
     for kind, rep in ((kind, rep) for kind in args.truths.split(",") for rep in range(args.seeds)):
@@ -241,6 +247,8 @@ def main() -> int:
                 s = scores(res.corrected, res.budget.u_rel(), res.after, truth, res.budget)
                 rows.append({"truth": kind, "method": f"{w} alone (surface)", **s, "birge": res.fit.birge,
                              "ln_evidence": max(v["log_evidence"] for v in res.fit.summary()["variants"]),
+                             "w_round": sum(v["weight"] for v in res.fit.summary()["variants"] if v["mirror_round_deg"]),
+                             "timings": _timings(res.extra["surface"].timings),
                              "k_a_min": float(np.nanmin(res.k_a)), "seconds": sec, "targets": verdict(kind, s),
                              "missed": " ".join(missed_targets(kind, s)),
                              "load": load(), "seed": rep})
@@ -254,6 +262,8 @@ def main() -> int:
             s = scores(res.corrected, res.budget.u_rel(), res.after, truth, res.budget)
             rows.append({"truth": kind, "method": "A + B joint", **s, "birge": res.best.fit.birge,
                          "ln_evidence": max(v.fit.log_evidence for v in res.variants),
+                         "w_round": sum(v.weight for v in res.variants if v.round_deg),
+                         "timings": _timings(res.timings),
                          "k_a_min": float(np.nanmin(res.parts[0].k_a)), "seconds": sec, "targets": verdict(kind, s),
                          "missed": " ".join(missed_targets(kind, s)),
                          "load": load(), "seed": rep})
@@ -273,11 +283,11 @@ def main() -> int:
         tag = f"{args.regions}-{args.beta_edges.replace(',', '-')}_{args.eps_edges.replace(',', '-')}"
         name = name.replace(".csv", f"_{tag}.csv")
     if args.mirror_round is not None:
-        name = name.replace(".csv", f"_round-{args.mirror_round}.csv")
+        name = name.replace(".csv", f"_round-{args.mirror_round.replace(',', '-')}.csv")
     if args.seeds > 1:
         name = name.replace(".csv", f"_seeds-{args.seeds}.csv")
     with open(RESULTS / name, "w", newline="") as f:
-        wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS] + ["missed"] + (["seed"] if args.seeds > 1 else []),
+        wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS] + ["missed", "timings"] + (["seed"] if args.seeds > 1 else []),
                             extrasaction="ignore")
         wr.writeheader()
         wr.writerows(rows)

@@ -708,7 +708,7 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
             rel_se: float | None = None, seed: int = 0, mitsuba_variant: str | None = None,
             model_variant: str | None = None, rays: int = 512, workers: int | None = None,
             scheduler: str | None = None, out=None, plots: bool = True, progress: bool = False,
-            forward: str | None = None, joint: bool = False, **options: Any):
+            forward: str | None = None, joint: bool = False, mirror_plane: str | None = None, **options: Any):
     """Correct measured r-tables for the aperture effect (``roadgonio correct``). ``measured``: one
     table (name, file, RTable or DataArray) or a list of them (they share the instrument's work);
     ``reference="self"`` (default) fits the model through the instrument, a SAMPLE takes the classic
@@ -728,7 +728,12 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     the instruments (or aperture settings); one surface (eq. 4 times the correction surface: ``forward``
     None or ``"surface"``; ``"eq4"`` is refused) is fitted through all of them and one
     corrected table returned (a :class:`~roadgonio.correction.outside.SurfaceCorrection`: ``.corrected``,
-    ``.u_corrected``, ``.budget``, ``.parts[i].k_a`` per instrument, ``.summary()``)."""
+    ``.u_corrected``, ``.budget``, ``.parts[i].k_a`` per instrument, ``.summary()``). ``mirror_plane``
+    (with the surface): the backbone's shape at the mirror plane, ``"cusp"`` (eq. 4's), ``"rounded"``
+    (over one knot of the correction surface) or ``"both"`` weighed by their evidence (None: the
+    default of :class:`~roadgonio.correction.flexible.SurfaceSettings`; docs/correction.md)."""
+    if mirror_plane is not None:
+        options["settings"] = _surface_settings(options.get("settings"), mirror_plane, joint or forward == "surface")
     if joint:
         return _correct_joint(measured, instrument, u_measured=u_measured, sigma=sigma, backend=backend,
                               accuracy=accuracy, rel_se=rel_se, seed=seed, mitsuba_variant=mitsuba_variant,
@@ -803,6 +808,15 @@ def _measured_tables(items) -> list:
         check_measured(t, m if isinstance(m, (str, Path)) else None)
         tables.append(t)
     return tables
+
+
+def _surface_settings(settings, mirror_plane: str, surface: bool):
+    """The correction surface's settings with the backbone's shape at the mirror plane (:func:`correct`)."""
+    if not surface:
+        raise InputError("the backbone's shape at the mirror plane is a setting of the correction surface: give it "
+                         "with the forward model 'surface' or a joint correction", field="mirror_plane")
+    from roadgonio.correction.flexible import SurfaceSettings
+    return (settings or SurfaceSettings()).with_mirror_plane(mirror_plane)
 
 
 def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy, rel_se, seed, mitsuba_variant,

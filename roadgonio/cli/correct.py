@@ -47,6 +47,10 @@ def register(sub) -> None:
                         "choose, for surfaces outside eq. 4 (its u includes the surface's posterior, and is widened "
                         "by the local Birge ratio where the residuals have structure); --joint fits surface (eq4 is refused "
                         "with it)")
+    p.add_argument("--mirror-plane", choices=["cusp", "rounded", "both"], default=None,
+                   help="with --forward surface or --joint: the backbone's shape at the mirror plane (beta 0): cusp "
+                        "(eq. 4's), rounded (over one knot of the correction surface) or both, weighed by their "
+                        "evidence (default: both; cusp alone is about twice as fast)")
     p.add_argument("--joint", action="store_true",
                    help="the --measured tables are ONE surface measured by the --instrument(s) (one per table, or one "
                         "instrument with several aperture settings as several files): one surface is fitted through "
@@ -97,7 +101,7 @@ def run(args) -> int:
                           backend=args.backend, accuracy=args.accuracy, rel_se=args.rel_se, seed=args.seed,
                           mitsuba_variant=args.mitsuba_variant, model_variant=args.model_variant, rays=args.rays,
                           workers=args.workers, scheduler=args.scheduler, out=out_arg(args),
-                          plots=not args.no_plots, progress=show_progress(args))
+                          plots=not args.no_plots, progress=show_progress(args), mirror_plane=args.mirror_plane)
     summaries = []
     for res in results:
         s = _json_summary(res)
@@ -129,7 +133,7 @@ def run(args) -> int:
             say(f"  note: {note}; --forward surface fits a model that can follow it (docs/correction.md, \"Outside "
                 "eq. 4\"); corrected_u.csv's header carries this note, and road --u repeats it")
         if "cells_widened" in f:
-            say(f"  fit: {f['variant']} backbone x correction surface, Birge ratio {f['birge_ratio']:.2f} "
+            say(f"  fit: {f.get('backbone', f['variant'])} backbone x correction surface, Birge ratio {f['birge_ratio']:.2f} "
                 f"(local max {f['birge_local_max']:.2f}); u widened by the local Birge ratio in {f['cells_widened']} "
                 f"cells (at most x{f['widening_max']:.2f})")
         if s.get("model_estimate"):
@@ -151,7 +155,7 @@ def _run_joint(args) -> int:
                       rel_se=args.rel_se, seed=args.seed, mitsuba_variant=args.mitsuba_variant,
                       model_variant=args.model_variant, rays=args.rays, workers=args.workers,
                       scheduler=args.scheduler, out=out_arg(args), plots=not args.no_plots,
-                      progress=show_progress(args))
+                      progress=show_progress(args), mirror_plane=args.mirror_plane)
     s = res.summary()
     s["out"] = str(res.out)
     s["written"] = [str(p) for p in res.written]
@@ -165,7 +169,7 @@ def _run_joint(args) -> int:
         say(f"note: {res.provenance['forward_model_limits']}")
     best = max(s["variants"], key=lambda v: v["weight"])
     say(f"one surface through {len(res.parts)} instruments ({', '.join(s['instruments'])}): {s['cells']} cells, "
-        f"{best['variant']} backbone x correction surface, Birge ratio {best['birge_ratio']:.2f}")
+        f"{best.get('label', best['variant'])} backbone x correction surface, Birge ratio {best['birge_ratio']:.2f}")
     for p in s["per_instrument"]:
         b = p["before"]
         say(f"  {p['instrument']}: k_A {p['k_a_min']:.3g} ... {p['k_a_max']:.3g}; as measured S1 "

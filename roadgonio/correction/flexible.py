@@ -83,6 +83,9 @@ PEAK_BETA_DEG = 12.0
 PEAK_EPS_DEG = 45.0
 #: How the penalties are split into regions (SurfaceSettings.regions, penalty_region).
 REGIONS = ("peak", "grid")
+#: The backbone's shape at the mirror plane by name (``correct --mirror-plane``; SurfaceSettings.mirror_round_deg):
+#: the cusp of eq. 4, rounded over the first knot of g_C, or both weighed by their evidence.
+MIRROR_PLANES = {"cusp": 0.0, "rounded": None, "both": (0.0, None)}
 #: Stop the mode search when the penalised chi^2 changes by less than this (relative).
 MODE_RTOL = 1e-8
 MAX_MODE_STEPS = 60
@@ -122,9 +125,12 @@ class SurfaceSettings:
     #: covariance, roadgonio.correction.outside); False: the instruments' r / k_A alone
     model_estimate: bool = True
     #: rounding of the backbone's cusp at the mirror plane (beta_round_deg of the road model, deg):
-    #: 0 = the cusp kept (the default: rounding breaks surfaces that have the cusp, docs/correction.md),
-    #: None = the first knot of g_C off beta = 0 (:attr:`backbone_round_deg`)
-    mirror_round_deg: float | None = 0.0
+    #: 0 = the cusp kept, None = the first knot of g_C off beta = 0 (:attr:`backbone_rounds_deg`); a
+    #: sequence of them = every backbone variant fitted once with each rounding, all weighed by their
+    #: evidence (roadgonio.correction.outside). The default weighs the cusp and the knot's rounding
+    #: (MIRROR_PLANES["both"]): rounding alone breaks surfaces whose cusp is real, the cusp alone biases
+    #: smooth ones at beta = 0 (docs/correction.md, "The backbone's cusp at the mirror plane")
+    mirror_round_deg: float | None | tuple[float | None, ...] = MIRROR_PLANES["both"]
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
@@ -142,27 +148,59 @@ class SurfaceSettings:
         if self.smoothing not in SMOOTHING:
             raise InputError(f"expected the smoothing criterion to be one of {', '.join(SMOOTHING)}, got "
                              f"{self.smoothing!r}", field="smoothing")
-        if self.mirror_round_deg is not None:
-            lo, hi = PARAM_BOUNDS["beta_round_deg"]
-            v = self.mirror_round_deg
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and lo <= v <= hi):
+        rounds = self.mirror_round_deg
+        if isinstance(rounds, (list, tuple)):
+            if not rounds:
+                raise InputError("expected at least one rounding of the backbone at the mirror plane, got none",
+                                 field="mirror_round_deg")
+            object.__setattr__(self, "mirror_round_deg", tuple(rounds))
+        lo, hi = PARAM_BOUNDS["beta_round_deg"]
+        for v in (rounds if isinstance(rounds, (list, tuple)) else (rounds,)):
+            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))
+                                  or not (math.isfinite(v) and lo <= v <= hi)):
                 raise InputError(f"expected the backbone's rounding at the mirror plane in [{lo:g}, {hi:g}] deg "
                                  f"(or None for one knot spacing), got {v!r}", field="mirror_round_deg")
+        if len(self.backbone_rounds_deg) != len(rounds if isinstance(rounds, (list, tuple)) else (rounds,)):
+            raise InputError(f"expected distinct roundings of the backbone at the mirror plane, got {rounds!r} "
+                             f"(None is the first knot, {self._knot_deg():.3g} deg)", field="mirror_round_deg")
         if self.discrepancy_ell is not None and not (self.discrepancy_ell > 0 and math.isfinite(self.discrepancy_ell)):
             raise InputError(f"expected a positive correlation length of the discrepancy (knot spacings), got "
                              f"{self.discrepancy_ell}", field="discrepancy_ell")
 
-    @property
-    def backbone_round_deg(self) -> float:
-        """The backbone's rounding at the mirror plane (deg): ``mirror_round_deg``, or with None the
-        first knot of g_C off beta = 0 (docs/correction.md, "The backbone's cusp at the mirror plane")."""
-        if self.mirror_round_deg is not None:
-            return float(self.mirror_round_deg)
+    def _knot_deg(self) -> float:
         return float(self.c_grid.node_coordinates()[0][1])
 
-    def backbone_fixed(self) -> dict[str, float]:
-        """The backbone's parameters these settings hold in its fit through the instruments."""
-        return {"beta_round_deg": self.backbone_round_deg}
+    @property
+    def backbone_rounds_deg(self) -> tuple[float, ...]:
+        """The backbone's roundings at the mirror plane (deg), one backbone per rounding and variant:
+        ``mirror_round_deg``, None read as the first knot of g_C off beta = 0 (docs/correction.md,
+        "The backbone's cusp at the mirror plane"); duplicates dropped, order kept."""
+        rounds = self.mirror_round_deg if isinstance(self.mirror_round_deg, tuple) else (self.mirror_round_deg,)
+        return tuple(dict.fromkeys(self._knot_deg() if r is None else float(r) for r in rounds))
+
+    @property
+    def backbone_round_deg(self) -> float:
+        """The one rounding of the backbone (deg); an error when the settings weigh several."""
+        rounds = self.backbone_rounds_deg
+        if len(rounds) != 1:
+            raise ValueError(f"these settings weigh {len(rounds)} roundings of the backbone: use backbone_rounds_deg")
+        return rounds[0]
+
+    def backbone_fixed(self, round_deg: float | None = None) -> dict[str, float]:
+        """The backbone's parameters held in its fit through the instruments: the rounding
+        ``round_deg`` (one of :attr:`backbone_rounds_deg`; default the settings' only one)."""
+        return {"beta_round_deg": self.backbone_round_deg if round_deg is None else float(round_deg)}
+
+    def with_mirror_plane(self, name: str | None) -> "SurfaceSettings":
+        """These settings with the backbone's shape at the mirror plane named (:data:`MIRROR_PLANES`;
+        None keeps them)."""
+        if name is None:
+            return self
+        if name not in MIRROR_PLANES:
+            raise InputError(f"expected the backbone's shape at the mirror plane to be one of "
+                             f"{', '.join(MIRROR_PLANES)}, got {name!r}", field="mirror_plane")
+        from dataclasses import replace
+        return replace(self, mirror_round_deg=MIRROR_PLANES[name])
 
     @property
     def n_c(self) -> int:
@@ -179,7 +217,9 @@ class SurfaceSettings:
                 "peak_eps_deg": self.peak_eps_deg, "regions": self.regions,
                 "grid_beta_edges_deg": list(self.grid_beta_edges_deg), "grid_eps_edges_deg": list(self.grid_eps_edges_deg),
                 "lam": self.lam, "smoothing": self.smoothing, "discrepancy_ell": self.discrepancy_ell,
-                "model_estimate": self.model_estimate, "mirror_round_deg": self.mirror_round_deg}
+                "model_estimate": self.model_estimate,
+                "mirror_round_deg": (list(self.mirror_round_deg) if isinstance(self.mirror_round_deg, tuple)
+                                     else self.mirror_round_deg)}
 
 
 class FlexPart:

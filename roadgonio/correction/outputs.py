@@ -285,7 +285,7 @@ def draw_residual_map(sc):
         draw_table_map(a1, r, label="(simulated - measured) / u  (clipped at +-4)", centre=0.0, log=False,
                        fmt="{:+.1f}", fontsize=5, tick_fontsize=7)
         rms = float(np.sqrt(np.nanmean(p.residual ** 2)))
-        a1.set_title(f"{p.name}: residual of the fit in units of u (RMS {rms:.2f}; {best.variant} backbone x "
+        a1.set_title(f"{p.name}: residual of the fit in units of u (RMS {rms:.2f}; {best.label} backbone x "
                      f"correction surface, Birge ratio {best.fit.birge:.2f})", fontsize=10)
         draw_table_map(a2, p.birge_local, label="local Birge ratio B", centre=1.0, log=False, fmt="{:.2f}",
                        fontsize=5, text=lambda i, j, p=p: f"{p.birge_local[i, j]:.2f}" + ("*" if p.widening[i, j] > 1 else ""),
@@ -312,7 +312,7 @@ def draw_surface_map(sc):
         axes = axes.ravel()
     draw_table_map(axes[0], np.exp(p.surfaces["g_c"]), label="exp(g_C): factor on the backbone at alpha = 1 deg",
                    centre=1.0, log=True, fmt="{:.2f}", fontsize=4.5, tick_fontsize=7)
-    axes[0].set_title(f"correction surface over the {best.variant} backbone (weight {best.weight:.2f})", fontsize=10)
+    axes[0].set_title(f"correction surface over the {best.label} backbone (weight {best.weight:.2f})", fontsize=10)
     draw_table_map(axes[1], 100.0 * p.surfaces.get("sd_g_c", np.full_like(p.k_a, np.nan)),
                    label="posterior standard deviation of g_C (%)", centre=None, log=False, fmt="{:.1f}",
                    fontsize=4.5, tick_fontsize=7)

@@ -64,7 +64,7 @@ BIRGE_WIDTH_CELLS = 2.0
 
 @dataclass
 class VariantFit:
-    """One backbone variant with its correction surface."""
+    """One backbone (a model variant at one rounding of the mirror plane) with its correction surface."""
 
     variant: str
     backbone: RoadModel
@@ -75,10 +75,23 @@ class VariantFit:
     #: posterior covariance over (theta, q), the backbone's coordinates free too
     #: (:func:`roadgonio.correction.flexible.posterior_with_backbone`)
     cov_full: np.ndarray | None = None
+    #: the backbone's rounding at the mirror plane (deg; 0 = the cusp), held in its fit
+    round_deg: float = 0.0
+
+    @property
+    def label(self) -> str:
+        """The variant, and its rounding at the mirror plane where it has one."""
+        return backbone_label(self.variant, self.round_deg)
 
     def summary(self) -> dict[str, Any]:
-        return {"variant": self.variant, "weight": self.weight, "backbone_chi2": self.backbone_chi2,
+        return {"variant": self.variant, "mirror_round_deg": self.round_deg, "label": self.label,
+                "weight": self.weight, "backbone_chi2": self.backbone_chi2,
                 "backbone": self.backbone.to_json_dict(), **self.fit.summary()}
+
+
+def backbone_label(variant: str, round_deg: float) -> str:
+    """A backbone's name: its variant, with its rounding at the mirror plane when it is rounded."""
+    return variant if round_deg == 0 else f"{variant} (rounded {round_deg:.3g} deg)"
 
 
 @dataclass
@@ -198,6 +211,11 @@ def local_birge(table: RTable, residual: np.ndarray, leverage: np.ndarray,
     n_eff = K.sum(axis=1) ** 2 / (K * K).sum(axis=1)
     widen = np.where(b2 > 1.0 + 2.0 * np.sqrt(2.0 / n_eff), np.sqrt(b2), 1.0)
     return np.sqrt(b2), widen
+
+
+def _state_name(variant: str, round_deg: float) -> str:
+    """The journal's name of a backbone (the cusp's as before the roundings, so old journals resume)."""
+    return variant if round_deg == 0 else f"{variant}-round{round_deg:.6g}"
 
 
 def _weights(log_ev: Sequence[float]) -> np.ndarray:
@@ -366,31 +384,36 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     state = _run._FitState(out, _run._state_key(_stack_tables(tables), np.concatenate(
         [g for g, _ in u_grids], axis=1), instruments[0], key_settings))
 
-    # 1. the backbones through every instrument at once
-    backbones: dict[str, RoadModel] = {}
-    for v in variants:
-        m = state.get(f"stage-a-{v}")
-        if m is None:
-            _run._say(progress, f"{label}: fitting the {v} backbone through the instrument(s)")
-            m = _run.fit_self(stacked, y_all, u_all, v, seed=seed, stage_b=False, name=label,
-                              fixed=settings.backbone_fixed(), **fit_opts).model
-            state.put(f"stage-a-{v}", m)
-        backbones[v] = m
-    chi2 = {v: float(np.sum(((stacked.r_measured(m) - y_all) / u_all) ** 2)) for v, m in backbones.items()}
+    # 1. the backbones through every instrument at once: every variant at every rounding of the
+    #    mirror plane (SurfaceSettings.backbone_rounds_deg), each held in its own fit
+    backbones: dict[tuple[str, float], RoadModel] = {}
+    for r in settings.backbone_rounds_deg:
+        for v in variants:
+            key = _state_name(v, r)
+            m = state.get(f"stage-a-{key}")
+            if m is None:
+                _run._say(progress, f"{label}: fitting the {backbone_label(v, r)} backbone through the instrument(s)")
+                m = _run.fit_self(stacked, y_all, u_all, v, seed=seed, stage_b=False, name=label,
+                                  fixed=settings.backbone_fixed(r), **fit_opts).model
+                state.put(f"stage-a-{key}", m)
+            backbones[(v, r)] = m
+    chi2 = {k: float(np.sum(((stacked.r_measured(m) - y_all) / u_all) ** 2)) for k, m in backbones.items()}
     main = min(chi2, key=chi2.get)
-    polished = state.get(f"fit-{main}")
+    polished = state.get(f"fit-{_state_name(*main)}")
     if polished is None:
-        polished = fit_through_instrument(stacked, y_all, u_all, variant=main, start_models=[backbones[main]],
-                                          stage_a=False, seed=seed, name=label, fixed=settings.backbone_fixed()).model
-        state.put(f"fit-{main}", polished)
+        polished = fit_through_instrument(stacked, y_all, u_all, variant=main[0], start_models=[backbones[main]],
+                                          stage_a=False, seed=seed, name=label,
+                                          fixed=settings.backbone_fixed(main[1])).model
+        state.put(f"fit-{_state_name(*main)}", polished)
     backbones[main] = polished
     chi2[main] = float(np.sum(((stacked.r_measured(polished) - y_all) / u_all) ** 2))
+    main_label = backbone_label(*main)
     lap("backbone")
 
     # 2. backend k_A of the best backbone through each instrument; the bundles' error rho
     k_back, se_back, infos, rhos = [], [], [], []
     for i, (inst, t, fm) in enumerate(zip(instruments, tables, fms)):
-        _run._say(progress, f"{label}: k_A of the {main} backbone through {inst.name} ({backend})")
+        _run._say(progress, f"{label}: k_A of the {main_label} backbone through {inst.name} ({backend})")
         jdir = None if out is None else out / (f"forward-{i + 1}" if len(tables) > 1 else "forward-1")
         k_b, se_b, info = _run._backend_k(factory, inst, polished, t.cells, jdir, progress)
         k_back.append(k_b)
@@ -402,11 +425,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     # 3. the correction surface of every variant, and the variants' weights
     vfits: list[VariantFit] = []
     warm: tuple | None = None
-    for v in sorted(variants, key=lambda x: x != main):          # the best backbone first: a warm start
-        _run._say(progress, f"{label}: the correction surface over the {v} backbone")
-        parts = [FlexPart(fm, backbones[v], settings, rho) for fm, rho in zip(fms, rhos)]
+    for v, r in sorted(backbones, key=lambda x: x != main):      # the best backbone first: a warm start
+        _run._say(progress, f"{label}: the correction surface over the {backbone_label(v, r)} backbone")
+        parts = [FlexPart(fm, backbones[(v, r)], settings, rho) for fm, rho in zip(fms, rhos)]
         sf = None
-        journalled = state.get_surface(f"surface-{v}")
+        journalled = state.get_surface(f"surface-{_state_name(v, r)}")
         if journalled is not None:
             try:
                 sf = fit_surface(parts, ys, us, state=journalled)
@@ -415,11 +438,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         if sf is None:
             sf = fit_surface(parts, ys, us, theta0=None if warm is None else warm[0],
                              lam0=None if warm is None else warm[1])
-            state.put_surface(f"surface-{v}", sf.state())
+            state.put_surface(f"surface-{_state_name(v, r)}", sf.state())
         if warm is None:
             warm = (sf.theta, list(sf.lam.values()))
         cov_full = posterior_with_backbone(parts, sf.theta, sf.lam, [1.0 / u ** 2 for u in us], sf.phi)
-        vfits.append(VariantFit(v, backbones[v], chi2[v], sf, parts, cov_full=cov_full))
+        vfits.append(VariantFit(v, backbones[(v, r)], chi2[(v, r)], sf, parts, cov_full=cov_full, round_deg=r))
     for vf, w in zip(vfits, _weights([vf.fit.log_evidence for vf in vfits])):
         vf.weight = float(w)
     lap("surface")
@@ -506,10 +529,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                 M[off[i]:off[i + 1], off[i]:off[i + 1]] = b
         comps["misalignment"] = M
     notes = {"measurement": "the measured tables' own standard uncertainty (--u-measured), independent cells",
-             "backend": f"{backend} k_A of the {main} backbone: its standard uncertainty",
+             "backend": f"{backend} k_A of the {main_label} backbone: its standard uncertainty",
              "surface": "posterior of the correction surface (evidence-weighted over the variants), widened by "
                         "the local Birge ratio where the residuals have structure",
-             "model": "spread of the backbone variants' corrected k_A (and model values) about their evidence-weighted mean",
+             "model": "spread of the backbones' (variants', roundings') corrected k_A (and model values) about their "
+                      "evidence-weighted mean",
              "bundle": "the ray bundles' own error of the change the surface makes to k_A (replicates)",
              "misalignment": "instrument geometric errors (--sigma), first-order GUM",
              "discrepancy": "structure of the surface finer than the correction surface's knots, which the "
@@ -575,7 +599,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     prov = provenance(instrument=instruments[0], model=polished, backend=infos[0]["backend"],
                       settings=infos[0]["settings"], reference="self (eq. 4 backbone x correction surface)",
                       instruments=[i.to_dict() for i in instruments], u_measured=[w for _, w in u_grids],
-                      surface=settings.to_dict(), variants_asked=list(variants), variant_best_backbone=main,
+                      surface=settings.to_dict(), variants_asked=list(variants), variant_best_backbone=main[0],
+                      mirror_round_best_backbone_deg=main[1],
                       bundles=[fm.bundles.summary() for fm in fms], misalignment=mis_info,
                       calibration=[i.calibration.to_dict() for i in instruments],
                       forward_model_limits=_run.forward_model_limits(instruments),
@@ -693,7 +718,7 @@ class _FitView:
         best = self._res.best
         p = self._res.parts[0]
         return {"model": "eq. 4 backbone x correction surface", "variant": best.variant,
-                "chi2": best.fit.chi2, "dof": best.fit.dof, "edf": best.fit.edf, "birge_ratio": best.fit.birge,
+                "mirror_round_deg": best.round_deg, "backbone": best.label, "chi2": best.fit.chi2, "dof": best.fit.dof, "edf": best.fit.edf, "birge_ratio": best.fit.birge,
                 "birge_local_max": float(np.nanmax(p.birge_local)),
                 "cells_widened": int(np.sum(p.widening > 1.0)),
                 "widening_max": float(np.nanmax(p.widening)),

@@ -193,14 +193,15 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
         u = u_grid[table.mask]
         source = f"sample {getattr(model, 'name', sample)} (noise-free, through the instrument)"
     # the backbone the correction would take: correct --forward surface fits every variant of
-    # DEFAULT_VARIANTS and weighs them by their evidence; the prediction takes the one of larger
-    # evidence (the weights are ~0 and ~1 in practice), or the variant asked for
+    # DEFAULT_VARIANTS at every rounding of the mirror plane and weighs them by their evidence; the
+    # prediction takes the one of larger evidence, or the variant asked for
     fits = []
     for variant in ((model_variant,) if model_variant else DEFAULT_VARIANTS):
-        bb = fit_self(fm, y, u, variant, seed=seed, stage_b=False, name=table.name,
-                      fixed=settings.backbone_fixed()).model
-        pa = FlexPart(fm, bb, settings)
-        fits.append((fit_surface([pa], [y], [u]), variant, bb, pa))
+        for r in settings.backbone_rounds_deg:
+            bb = fit_self(fm, y, u, variant, seed=seed, stage_b=False, name=table.name,
+                          fixed=settings.backbone_fixed(r)).model
+            pa = FlexPart(fm, bb, settings)
+            fits.append((fit_surface([pa], [y], [u]), variant, bb, pa))
     fit, variant, backbone, part_a = max(fits, key=lambda f: f[0].log_evidence)
     theta, lam = fit.theta, fit.lam
     u_rel = u / y

@@ -202,12 +202,16 @@ def test_forward_surface_round_trip_inside_eq4_writes_the_diagnostics(tmp_path, 
     np.testing.assert_allclose(res.k_a[mask], cells["k_a"], rtol=FILE_RTOL, atol=0)
     part = res.extra["surface"].parts[0]
     assert_k_a_within_its_u(part.k_a[mask], read_table(TRUE_KA).r[mask] * 1e4, part.budget, TRUE_KA_RTOL)
-    # every variant's backbone has the settings' rounding at the mirror plane (by default none: the
-    # cusp kept), the one the k_A backend then ran with, and correct.json says so in its model
+    # one backbone per variant and rounding at the mirror plane of the settings (by default the cusp
+    # and the first knot's rounding), each carrying its rounding, the weights summing to 1; correct.json
+    # says so in its model
     from roadgonio.correction.flexible import SurfaceSettings
-    knot = SurfaceSettings().backbone_round_deg
-    assert all(v.backbone.params.beta_round_deg == knot for v in res.extra["surface"].variants)
-    assert all(v["backbone"]["params"]["beta_round_deg"] == knot for v in fit["variants"])
+    rounds = SurfaceSettings().backbone_rounds_deg
+    assert len(rounds) == 2
+    got = sorted((v.variant, v.round_deg, v.backbone.params.beta_round_deg) for v in res.extra["surface"].variants)
+    assert got == sorted(("smooth", r, r) for r in rounds)
+    assert sum(v.weight for v in res.extra["surface"].variants) == pytest.approx(1.0, abs=1e-12)
+    assert sorted(v["backbone"]["params"]["beta_round_deg"] for v in fit["variants"]) == sorted(rounds)
 
 
 @pytest.fixture(scope="module")

@@ -394,8 +394,8 @@ def test_the_uncertainty_posterior_uses_the_fits_prior_and_noise_scale(r3like):
 
 
 def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
-    """SurfaceSettings: the backbone's rounding (beta_round_deg) is by default 0 (the cusp kept),
-    with None the first knot of g_C off beta = 0; bad values are refused naming the field; the fit through
+    """SurfaceSettings: the backbone's rounding (beta_round_deg) is by default both 0 (the cusp kept)
+    and the first knot of g_C off beta = 0 (None), weighed; bad values are refused naming the field; the fit through
     the instrument holds it (fixed), and it reaches the forward model (the reading of a beta = 0
     cell changes with it, one far from the mirror plane hardly)."""
     from roadgonio.correction.flexible import SurfaceSettings
@@ -407,7 +407,8 @@ def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
     first_knot = float(s.c_grid.node_coordinates()[0][1])
     assert 0.5 < first_knot < 2.0
     assert s.backbone_round_deg == first_knot and s.backbone_fixed() == {"beta_round_deg": first_knot}
-    assert SurfaceSettings().backbone_round_deg == 0.0 and SurfaceSettings().backbone_fixed() == {"beta_round_deg": 0.0}
+    assert SurfaceSettings().backbone_rounds_deg == (0.0, first_knot)       # the default weighs both
+    assert SurfaceSettings(mirror_round_deg=0).backbone_fixed() == {"beta_round_deg": 0.0}
     assert SurfaceSettings(mirror_round_deg=2.5).to_dict()["mirror_round_deg"] == 2.5
     for bad in (-1.0, 11.0, float("nan"), True, "1"):
         with pytest.raises(InputError) as e:
@@ -421,3 +422,71 @@ def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
     y = fm.r_measured(r3like)
     fit = fit_self(fm, y, 0.01 * y, "power", starts=2, rounds=1, stage_b=False, fixed={"beta_round_deg": 3.0})
     assert fit.model.params.beta_round_deg == 3.0
+
+
+def test_several_roundings_of_the_backbone_are_weighed_not_chosen():
+    """SurfaceSettings(mirror_round_deg=(0, None)): one backbone per rounding (None the first knot),
+    duplicates refused, an empty set refused, the single-rounding accessor refuses to pick one, and
+    each rounding is held in its own fit (backbone_fixed); the journal keeps the cusp's old names."""
+    from roadgonio.correction.flexible import SurfaceSettings
+    from roadgonio.correction.outside import _state_name, backbone_label
+    from roadgonio.errors import InputError
+    s = SurfaceSettings(mirror_round_deg=[0.0, None])
+    knot = float(s.c_grid.node_coordinates()[0][1])
+    assert s.mirror_round_deg == (0.0, None) and s.backbone_rounds_deg == (0.0, knot)
+    assert s.to_dict()["mirror_round_deg"] == [0.0, None]
+    assert [s.backbone_fixed(r) for r in s.backbone_rounds_deg] == [{"beta_round_deg": 0.0}, {"beta_round_deg": knot}]
+    with pytest.raises(ValueError, match="backbone_rounds_deg"):
+        _ = s.backbone_round_deg
+    assert SurfaceSettings(mirror_round_deg=(None,)).backbone_round_deg == knot
+    for bad in ((), (0.0, 0), (None, knot), (0.0, -1.0), (0.0, "knot")):
+        with pytest.raises(InputError) as e:
+            SurfaceSettings(mirror_round_deg=bad)
+        assert e.value.field == "mirror_round_deg"
+    assert _state_name("power", 0.0) == "power" and _state_name("power", knot) != _state_name("smooth", knot)
+    assert backbone_label("smooth", 0.0) == "smooth" and "rounded 1.12 deg" in backbone_label("smooth", knot)
+
+
+def test_the_mirror_plane_is_named_once_for_the_api_and_the_command_line():
+    """``correct --mirror-plane`` / ``api.correct(mirror_plane=)``: cusp, rounded (one knot) and both
+    map onto the surface's settings; an unknown name, or the option without the correction surface,
+    is one error naming the field before any work."""
+    from roadgonio import api
+    from roadgonio.correction.flexible import MIRROR_PLANES, SurfaceSettings
+    from roadgonio.errors import InputError
+    s = SurfaceSettings(smoothing="gcv")
+    knot = float(s.c_grid.node_coordinates()[0][1])
+    assert s.with_mirror_plane("cusp").backbone_rounds_deg == (0.0,)
+    assert s.with_mirror_plane("rounded").backbone_rounds_deg == (knot,)
+    assert s.with_mirror_plane("both").backbone_rounds_deg == (0.0, knot)
+    assert s.with_mirror_plane("both").smoothing == "gcv" and s.with_mirror_plane(None) is s
+    assert set(MIRROR_PLANES) == {"cusp", "rounded", "both"}
+    with pytest.raises(InputError) as e:
+        s.with_mirror_plane("flat")
+    assert e.value.field == "mirror_plane"
+    with pytest.raises(InputError) as e:
+        api.correct("R3", "portable", mirror_plane="both")          # forward eq4: no surface
+    assert e.value.field == "mirror_plane"
+
+
+@pytest.mark.parametrize("joint", [False, True])
+def test_correct_passes_the_mirror_plane_to_the_api(monkeypatch, joint):
+    """The command line's --mirror-plane reaches api.correct (single and --joint), absent it None."""
+    from roadgonio import api
+    from roadgonio.cli import main
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def fake(*args, **kwargs):
+        seen.append(kwargs.get("mirror_plane", "missing"))
+        raise Stop
+
+    monkeypatch.setattr(api, "correct", fake)
+    argv = (["correct", "--measured", "a.csv", "--instrument", "A.toml"]
+            + (["--measured", "b.csv", "--instrument", "B.toml", "--joint"] if joint else ["--forward", "surface"]))
+    for extra, want in (([], None), (["--mirror-plane", "cusp"], "cusp"), (["--mirror-plane", "both"], "both")):
+        with pytest.raises(Stop):
+            main(argv + extra)
+        assert seen[-1] == want
