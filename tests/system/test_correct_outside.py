@@ -312,10 +312,15 @@ def test_a_rerun_resumes_the_correction_surface_and_gives_the_same_table(tmp_pat
     table = (out / "correct_cells.csv").read_bytes()
     assert first["resumed_surfaces"] == 0
     state = json.loads((out / "fit_state.json").read_text())
-    assert list(state["surfaces"]) == ["surface-power"]
+    from roadgonio.correction.flexible import SurfaceSettings
+    from roadgonio.correction.outside import _state_name
+    # one surface per backbone: the variant asked for (FAST), with the cusp and rounded (the default)
+    assert sorted(state["surfaces"]) == sorted(f"surface-{_state_name('power', r)}"
+                                               for r in SurfaceSettings().backbone_rounds_deg)
+    assert len(state["surfaces"]) == 2
     assert main(argv) == 0
     said = capsys.readouterr().out
-    assert "correction surface from the output folder's journals" in said, said
+    assert "2 correction surfaces from the output folder's journals" in said, said
     assert (out / "correct_cells.csv").read_bytes() == table
 
 
