@@ -356,10 +356,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                          f"{', '.join(VARIANTS)}", field="model_variant")
     settings = settings or SurfaceSettings()
     u_specs = _as_list(u_measured, len(tables), "u_measured")
-    sigmas = [_run._sigma(s) for s in _as_list(sigma, len(tables), "sigma")]
     for t in tables:
         _run.check_measured(t)
         _run._check_fit_cells(t)
+    # each instrument's SPEC checked against its geometry on its cells, as `uncertainty` does (trial 12 D3)
+    sigmas = [_run._sigma(s, inst, t) for s, inst, t in zip(_as_list(sigma, len(tables), "sigma"), instruments, tables)]
     u_grids = [_run.measured_uncertainty(s, t) for s, t in zip(u_specs, tables)]
     out = Path(out_dir) if out_dir is not None else None
     arts = list(artefacts) if artefacts is not None else [

@@ -460,7 +460,7 @@ README_SPEC = ("alpha_deg=0.01,eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.02,ti
                "detector_distance_m=0.005")
 
 
-@pytest.mark.parametrize("reference", ["self", "R3"])
+@pytest.mark.parametrize("reference", ["self", "R3", "surface", "joint"])
 def test_correct_checks_the_sigma_spec_against_the_geometry_as_uncertainty_does(tmp_path, reference):
     """trial 12 D3: `correct --sigma eps_deg=5` ran (a misalignment u of 121 %, exit 0) where
     `uncertainty` refuses the SPEC; the same check now refuses it before any work (nothing written),
@@ -471,9 +471,13 @@ def test_correct_checks_the_sigma_spec_against_the_geometry_as_uncertainty_does(
     table = bundled_table("R3")
     out = tmp_path / "out"
     for spec in ("eps_deg=5", "eps_deg=1"):
+        if reference == "joint":
+            how = dict(measured=[table, table], instrument=["portable", "portable"], joint=True)
+        else:
+            how = dict(measured=table, instrument="portable", reference="self" if reference == "surface" else reference,
+                       forward="surface" if reference == "surface" else None)
         with pytest.raises(InputError, match=r"sigma eps_deg = \d \(normal\) takes the geometry out of validity"):
-            api.correct(table, "portable", reference=reference, sigma=spec, backend="quadrature", accuracy="fast",
-                        out=out, plots=False)
+            api.correct(**how, sigma=spec, backend="quadrature", accuracy="fast", out=out, plots=False)
         assert not out.exists()
     check_sigma(parse_sigma_spec(README_SPEC), load_instrument("portable"), table)
 
