@@ -199,7 +199,7 @@ def main() -> int:
     ap.add_argument("--mirror-round", default=None,
                     help="the backbone's rounding at the mirror plane: deg, or knot for the first knot of the "
                          "correction surface, or several separated by commas (e.g. 0,knot: every backbone fitted "
-                         "with each, all weighed by their evidence); default the library's, 0,knot since session 13")
+                         "with each, all weighed by their evidence); default the library's, 0: the cusp)")
     ap.add_argument("--seeds", type=int, default=1,
                     help="noise realisations per truth (default 1); with more, a summary over them at the end")
     args = ap.parse_args()

@@ -127,10 +127,11 @@ class SurfaceSettings:
     #: rounding of the backbone's cusp at the mirror plane (beta_round_deg of the road model, deg):
     #: 0 = the cusp kept, None = the first knot of g_C off beta = 0 (:attr:`backbone_rounds_deg`); a
     #: sequence of them = every backbone variant fitted once with each rounding, all weighed by their
-    #: evidence (roadgonio.correction.outside). The default weighs the cusp and the knot's rounding
-    #: (MIRROR_PLANES["both"]): rounding alone breaks surfaces whose cusp is real, the cusp alone biases
-    #: smooth ones at beta = 0 (docs/correction.md, "The backbone's cusp at the mirror plane")
-    mirror_round_deg: float | None | tuple[float | None, ...] = MIRROR_PLANES["both"]
+    #: evidence (roadgonio.correction.outside). The default keeps the cusp (MIRROR_PLANES["cusp"]):
+    #: rounding alone breaks surfaces whose cusp is real; weighing both ("both") helps the smooth truths
+    #: but chose the rounding on an eq. 4 truth once in four, and doubles the time (docs/correction.md,
+    #: "The backbone's cusp at the mirror plane")
+    mirror_round_deg: float | None | tuple[float | None, ...] = MIRROR_PLANES["cusp"]
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):

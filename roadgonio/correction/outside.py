@@ -399,15 +399,21 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                 state.put(f"stage-a-{key}", m)
             backbones[(v, r)] = m
     chi2 = {k: float(np.sum(((stacked.r_measured(m) - y_all) / u_all) ** 2)) for k, m in backbones.items()}
+    # the best variant of every rounding polished, so that the roundings meet on equal terms (the
+    # evidence of an unpolished backbone's surface is lower: session 13, eq4 through A + B, the
+    # cusp's best unpolished lost to the rounded one polished)
+    for r in settings.backbone_rounds_deg:
+        best_r = min((k for k in chi2 if k[1] == r), key=chi2.get)
+        polished = state.get(f"fit-{_state_name(*best_r)}")
+        if polished is None:
+            polished = fit_through_instrument(stacked, y_all, u_all, variant=best_r[0],
+                                              start_models=[backbones[best_r]], stage_a=False, seed=seed, name=label,
+                                              fixed=settings.backbone_fixed(r)).model
+            state.put(f"fit-{_state_name(*best_r)}", polished)
+        backbones[best_r] = polished
+        chi2[best_r] = float(np.sum(((stacked.r_measured(polished) - y_all) / u_all) ** 2))
     main = min(chi2, key=chi2.get)
-    polished = state.get(f"fit-{_state_name(*main)}")
-    if polished is None:
-        polished = fit_through_instrument(stacked, y_all, u_all, variant=main[0], start_models=[backbones[main]],
-                                          stage_a=False, seed=seed, name=label,
-                                          fixed=settings.backbone_fixed(main[1])).model
-        state.put(f"fit-{_state_name(*main)}", polished)
-    backbones[main] = polished
-    chi2[main] = float(np.sum(((stacked.r_measured(polished) - y_all) / u_all) ** 2))
+    polished = backbones[main]
     main_label = backbone_label(*main)
     lap("backbone")
 
