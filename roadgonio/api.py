@@ -859,20 +859,6 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
                          progress=_show(progress), **options)
 
 
-def _fraction(value, field: str) -> float:
-    """A fraction given as a number, or as text: ``"0.25"`` or a percentage ``"25%"`` (as --tolerance and
-    --u-measured take them)."""
-    if isinstance(value, str):
-        text = value.strip()
-        pct = text.endswith("%")
-        try:
-            v = float(text[:-1] if pct else text)
-        except ValueError:
-            raise InputError(f"expected a fraction (0.25) or a percentage (25%), got {value!r}", field=field) from None
-        return v / 100.0 if pct else v
-    return float(value)
-
-
 def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured: Any = None, rays: int = 512,
                     seed: int = 0, model_variant: str | None = None, min_signal: float | None = None, out=None,
                     plots: bool = True, progress: bool = False):
@@ -900,7 +886,8 @@ def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured:
     smp = sample
     if isinstance(sample, (str, Path)):
         smp = _sample(sample, model_variant, field="sample").model
-    ms = DEFAULT_MIN_SIGNAL if min_signal is None else _fraction(min_signal, "min_signal")
+    from roadgonio.design.grid import parse_fraction
+    ms = DEFAULT_MIN_SIGNAL if min_signal is None else parse_fraction(min_signal, "min_signal", 0.25)[0]
     if not (0.0 <= ms <= 1.0):
         raise InputError(f"expected a least signal between 0 and 1 (of the instrument's), got {min_signal!r}",
                          field="min_signal")

@@ -266,19 +266,25 @@ def build_instrument(base: Instrument, point: Mapping[str, float]) -> Instrument
     return base.with_changes(**point_changes(base, point))
 
 
+def parse_fraction(text: str | float, field: str, example: float) -> tuple[float, bool]:
+    """A fraction given as a number or as text, ``"0.05"`` or a percentage ``"5%"`` (-> 0.05), and
+    whether it was a percentage; anything else is one :class:`InputError` naming ``field`` with
+    ``example`` written both ways."""
+    if isinstance(text, (int, float)) and not isinstance(text, bool):
+        return float(text), False
+    s = str(text).strip()
+    pct = s.endswith("%")
+    try:
+        v = float(s[:-1] if pct else s)
+    except ValueError:
+        raise InputError(f"expected a fraction ({example:g}) or a percentage ({100 * example:g}%), got {text!r}",
+                         field=field) from None
+    return (v / 100.0 if pct else v), pct
+
+
 def parse_tolerance(text: str | float) -> float:
     """``"5%"`` -> 0.05, ``"0.05"`` -> 0.05: a tolerance on |k_A - 1|, a fraction or a percentage."""
-    if isinstance(text, (int, float)) and not isinstance(text, bool):
-        v, pct = float(text), False
-    else:
-        s = str(text).strip()
-        pct = s.endswith("%")
-        try:
-            v = float(s[:-1] if pct else s)
-        except ValueError:
-            raise InputError(f"expected a fraction (0.05) or a percentage (5%), got {text!r}", field="tolerance") from None
-    if pct:
-        v /= 100.0
+    v, pct = parse_fraction(text, "tolerance", 0.05)
     if not (math.isfinite(v) and v > 0):
         raise InputError(f"expected a tolerance > 0, got {text!r}", field="tolerance")
     if v >= 1 and not pct:

@@ -625,8 +625,12 @@ def test_second_aperture_does_not_recommend_the_instrument_itself():
 def test_min_signal_takes_a_percentage_as_tolerance_and_u_measured_do():
     """trial 12 D8: `design --min-signal 25%` was refused ("invalid float value") while --tolerance and
     --u-measured take percentages."""
-    from roadgonio.api import _fraction
     from roadgonio.cli import build_parser
+    from roadgonio.design.grid import parse_fraction
+
+    def _fraction(value, field):            # what api.second_aperture reads --min-signal with
+        return parse_fraction(value, field, 0.25)[0]
+
     args = build_parser().parse_args(["design", "--instrument", "portable", "--second-aperture", "--min-signal", "25%"])
     assert _fraction(args.min_signal, "min_signal") == 0.25 and _fraction("0.25", "min_signal") == 0.25
     assert _fraction(0.3, "min_signal") == 0.3
