@@ -597,13 +597,13 @@ def check_sigma(spec, instrument: Instrument, measured: RTable, option: str = "s
     takes it out of validity gave a u of 121 % with exit 0 (trial 12 D3). The check needs no surface
     (a Lambertian stands in); the cells (0, 0) and (2, 0), which the measurement model normalises
     with, are added (they never leave the geometry's validity before the others do)."""
-    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+    from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, nearest_grid_node
     from roadgonio.uncertainty.cells import CellSet
     from roadgonio.uncertainty.measurement import MeasurementModel
     from roadgonio.uncertainty.spec import check_spec_geometry
     mask = np.array(measured.mask, dtype=bool)
     for t in (0.0, 2.0):
-        mask[int(np.argmin(np.abs(TAN_EPS_GRID - t))), int(np.argmin(np.abs(BETA_GRID_DEG)))] = True
+        mask[nearest_grid_node(t, 0.0)[:2]] = True
     ii, jj = np.nonzero(mask)
     cells = CellSet(TAN_EPS_GRID[ii].copy(), BETA_GRID_DEG[jj].copy(), ii, jj, "measured")
     check_spec_geometry(spec, MeasurementModel(RoadModel.lambert(), instrument, cells),
