@@ -156,12 +156,12 @@ class SurfaceSettings:
                                  field="mirror_round_deg")
             object.__setattr__(self, "mirror_round_deg", tuple(rounds))
         lo, hi = PARAM_BOUNDS["beta_round_deg"]
-        for v in (rounds if isinstance(rounds, (list, tuple)) else (rounds,)):
+        for v in self._rounds_given():
             if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))
                                   or not (math.isfinite(v) and lo <= v <= hi)):
                 raise InputError(f"expected the backbone's rounding at the mirror plane in [{lo:g}, {hi:g}] deg "
                                  f"(or None for one knot spacing), got {v!r}", field="mirror_round_deg")
-        if len(self.backbone_rounds_deg) != len(rounds if isinstance(rounds, (list, tuple)) else (rounds,)):
+        if len(self.backbone_rounds_deg) != len(self._rounds_given()):
             raise InputError(f"expected distinct roundings of the backbone at the mirror plane, got {rounds!r} "
                              f"(None is the first knot, {self._knot_deg():.3g} deg)", field="mirror_round_deg")
         if self.discrepancy_ell is not None and not (self.discrepancy_ell > 0 and math.isfinite(self.discrepancy_ell)):
@@ -171,13 +171,17 @@ class SurfaceSettings:
     def _knot_deg(self) -> float:
         return float(self.c_grid.node_coordinates()[0][1])
 
+    def _rounds_given(self) -> tuple:
+        """``mirror_round_deg`` as a tuple (one value or several, as given)."""
+        rounds = self.mirror_round_deg
+        return rounds if isinstance(rounds, tuple) else (rounds,)
+
     @property
     def backbone_rounds_deg(self) -> tuple[float, ...]:
         """The backbone's roundings at the mirror plane (deg), one backbone per rounding and variant:
         ``mirror_round_deg``, None read as the first knot of g_C off beta = 0 (docs/correction.md,
         "The backbone's cusp at the mirror plane"); duplicates dropped, order kept."""
-        rounds = self.mirror_round_deg if isinstance(self.mirror_round_deg, tuple) else (self.mirror_round_deg,)
-        return tuple(dict.fromkeys(self._knot_deg() if r is None else float(r) for r in rounds))
+        return tuple(dict.fromkeys(self._knot_deg() if r is None else float(r) for r in self._rounds_given()))
 
     @property
     def backbone_round_deg(self) -> float:

@@ -398,7 +398,10 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                                   fixed=settings.backbone_fixed(r), **fit_opts).model
                 state.put(f"stage-a-{key}", m)
             backbones[(v, r)] = m
-    chi2 = {k: float(np.sum(((stacked.r_measured(m) - y_all) / u_all) ** 2)) for k, m in backbones.items()}
+    def chi2_of(m: RoadModel) -> float:
+        return float(np.sum(((stacked.r_measured(m) - y_all) / u_all) ** 2))
+
+    chi2 = {k: chi2_of(m) for k, m in backbones.items()}
     # the best variant of every rounding polished, so that the roundings meet on equal terms (the
     # evidence of an unpolished backbone's surface is lower: session 13, eq4 through A + B, the
     # cusp's best unpolished lost to the rounded one polished)
@@ -411,7 +414,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                                               fixed=settings.backbone_fixed(r)).model
             state.put(f"fit-{_state_name(*best_r)}", polished)
         backbones[best_r] = polished
-        chi2[best_r] = float(np.sum(((stacked.r_measured(polished) - y_all) / u_all) ** 2))
+        chi2[best_r] = chi2_of(polished)
     main = min(chi2, key=chi2.get)
     polished = backbones[main]
     main_label = backbone_label(*main)
