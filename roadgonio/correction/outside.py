@@ -60,6 +60,13 @@ from roadgonio.surface.rtable import CORRECTED_R, RTable
 DEFAULT_VARIANTS = ("power", "smooth")
 #: Width (in grid cells) of the neighbourhood of the local Birge ratio.
 BIRGE_WIDTH_CELLS = 2.0
+#: A backbone whose evidence weight is below this adds nothing a printed digit could show to the
+#: estimates or their covariance (its terms are the weight times ln k_A differences of order 1, and
+#: its posterior covariance times the weight: below 1e-9 of the least u of 1e-3 relative): its
+#: posterior over (theta, q), ln k_A Jacobians and model values are not computed, and it is left out
+#: of the weighted sums (the weights of the rest are not renormalised; they sum to 1 - at most
+#: 1e-9 per backbone left out). Its fit, evidence and weight are reported as every other's.
+NEGLIGIBLE_WEIGHT = 1e-9
 
 
 @dataclass
@@ -222,6 +229,13 @@ def _weights(log_ev: Sequence[float]) -> np.ndarray:
     a = np.asarray(log_ev, dtype=np.float64)
     w = np.exp(a - a.max())
     return w / w.sum()
+
+
+def contributing(vfits: Sequence[VariantFit]) -> list[VariantFit]:
+    """The backbones whose evidence weight reaches :data:`NEGLIGIBLE_WEIGHT`, in their order: the
+    ones whose posterior, ln k_A and model values the estimates and their covariance are built
+    from (the best always: its weight is at least 1 / len(vfits))."""
+    return [vf for vf in vfits if vf.weight >= NEGLIGIBLE_WEIGHT]
 
 
 def cell_key(cell) -> tuple[float, float]:
@@ -451,10 +465,13 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             state.put_surface(f"surface-{_state_name(v, r)}", sf.state())
         if warm is None:
             warm = (sf.theta, list(sf.lam.values()))
-        cov_full = posterior_with_backbone(parts, sf.theta, sf.lam, [1.0 / u ** 2 for u in us], sf.phi)
-        vfits.append(VariantFit(v, backbones[(v, r)], chi2[(v, r)], sf, parts, cov_full=cov_full, round_deg=r))
+        vfits.append(VariantFit(v, backbones[(v, r)], chi2[(v, r)], sf, parts, round_deg=r))
     for vf, w in zip(vfits, _weights([vf.fit.log_evidence for vf in vfits])):
         vf.weight = float(w)
+    live = contributing(vfits)
+    for vf in live:
+        vf.cov_full = posterior_with_backbone(vf.parts, vf.fit.theta, vf.fit.lam, [1.0 / u ** 2 for u in us],
+                                              vf.fit.phi)
     lap("surface")
 
     # 4. ln k_A of every instrument, and the covariance components of the estimates of ln r: every
@@ -468,7 +485,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     U = len(nominal)
     lnk, lnp = np.zeros(N), np.zeros(U)
     lnk_v, jac_v, lnp_v, jp_v = [], [], [], []
-    for vf in vfits:
+    for vf in live:
         lk = np.concatenate([np.log(p.k_a(vf.fit.theta)) for p in vf.parts])
         K = np.vstack([p.lnk_full_jacobian(vf.fit.theta) for p in vf.parts])
         lp, Jp = nominal_estimate(vf.parts, vf.fit.theta, nominal)
@@ -492,7 +509,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     E = N + U
     surf = np.zeros((E, E))
     model = np.zeros((E, E))
-    for vf, lk, K, lp, Jp in zip(vfits, lnk_v, jac_v, lnp_v, jp_v):
+    for vf, lk, K, lp, Jp in zip(live, lnk_v, jac_v, lnp_v, jp_v):
         J = np.vstack([-K, Jp])                   # d (ln r estimate) / d (theta, q): ln y - ln k_A, the model's value
         surf += vf.weight * (J @ vf.cov_full @ J.T)
         d = np.concatenate([-(lk - lnk), lp - lnp])

@@ -489,3 +489,20 @@ def test_correct_passes_the_mirror_plane_to_the_api(monkeypatch, joint):
         with pytest.raises(Stop):
             main(argv + extra)
         assert seen[-1] == want
+
+
+def test_only_backbones_of_non_negligible_weight_enter_the_covariance():
+    """contributing(): the backbones whose evidence weight reaches NEGLIGIBLE_WEIGHT (their posterior,
+    ln k_A and model values are computed), in their order; one just below it is left out, one at it
+    kept, and the best is always kept, however many share the weight."""
+    from types import SimpleNamespace
+
+    from roadgonio.correction.outside import NEGLIGIBLE_WEIGHT, _weights, contributing
+    ev = [3348.83, 3211.95, 3347.77, 3348.83 + math.log(NEGLIGIBLE_WEIGHT) - 1.0]
+    vf = [SimpleNamespace(weight=float(w), name=i) for i, w in enumerate(_weights(ev))]
+    assert [v.name for v in contributing(vf)] == [0, 2]
+    vf = [SimpleNamespace(weight=w, name=i) for i, w in enumerate((0.5, NEGLIGIBLE_WEIGHT, 0.5 - NEGLIGIBLE_WEIGHT,
+                                                                      NEGLIGIBLE_WEIGHT * (1 - 1e-9)))]
+    assert [v.name for v in contributing(vf)] == [0, 1, 2]
+    many = [SimpleNamespace(weight=w, name=i) for i, w in enumerate(_weights([0.0] * 64))]
+    assert len(contributing(many)) == 64
