@@ -32,7 +32,7 @@ import sys
 import threading
 import time
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
 #: The signals handled as Ctrl-C, with the name the messages give them.
 SIGNALS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
@@ -60,7 +60,7 @@ _S = _State()
 class Deferred:
     """A stretch of main-thread work that stops only at its boundaries (:func:`deferred`)."""
 
-    def __init__(self, what: str, kept: str | None = None):
+    def __init__(self, what: str, kept: "str | Callable[[], str] | None" = None):
         self.what = what
         self.kept = kept
         self.last_s: float | None = None
@@ -76,11 +76,11 @@ class Deferred:
 
 
 @contextmanager
-def deferred(what: str, kept: str | None = None) -> Iterator[Deferred]:
+def deferred(what: str, kept: "str | Callable[[], str] | None" = None) -> Iterator[Deferred]:
     """Defer a signal to the region's boundaries (module docstring); ``what`` names a stretch for the
     message ("pass of the Mitsuba table"), ``kept`` says what a stop at once keeps (the line of the
-    second signal). Only in the main thread of a CLI run; elsewhere the region's
-    :meth:`Deferred.check` times its stretches and never raises."""
+    second signal; a function is called then, with no file being written). Only in the main thread
+    of a CLI run; elsewhere the region's :meth:`Deferred.check` times its stretches and never raises."""
     region = Deferred(what, kept)
     if not _S.installed or threading.current_thread() is not threading.main_thread() or _S.region is not None:
         yield region
@@ -133,8 +133,9 @@ def _message(signum: int, count: int, region: "Deferred | None") -> str:
         return (f"{name} received: stopping after the {region.what} under way{took}, which is saved; "
                 f"{again} to stop at once, losing only that one")
     if region is not None:
+        kept = region.kept() if callable(region.kept) else region.kept
         return (f"{name} received again: stopped at once, without finishing the {region.what} under way; "
-                + (region.kept or "what the last finished one saved is kept"))
+                + (kept or "what the last finished one saved is kept"))
     return f"{name} received: stopping (the step under way must end first)"
 
 
@@ -163,9 +164,8 @@ def _stop_now(signum: int, region: Deferred) -> None:
     """A second signal in a deferred region (the watcher thread): once no file is being written
     (:func:`critical`), say what is kept and end the process at once, exit status 130. No cleanup
     runs: the files the work wrote at its last boundary are complete, the stretch under way is lost."""
-    text = _message(signum, 2, region)
     with _S.files:
-        _say(text)
+        _say(_message(signum, 2, region))
         for stream in (sys.stdout, sys.stderr):     # what the command printed before (a pipe buffers it)
             try:
                 stream.flush()

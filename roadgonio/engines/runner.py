@@ -188,10 +188,7 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
     if journal is not None and todo and getattr(backend, "checkpoints_passes", False):
         # the journal is written with every pass's state (the finished cells, then the others'
         # state): a run stopped at once between two passes resumes from both
-        passes = PassCheckpoint(out_dir / PASSES, fp, flush=flush,
-                                kept=f"kept in {out_dir}: the finished cells ({JOURNAL}) and the other cells' "
-                                     f"state after their last completed pass ({PASSES}); run the same command "
-                                     "again to resume")
+        passes = PassCheckpoint(out_dir / PASSES, fp, flush=flush)
     try:
         if todo:
             returned = (backend.compute(todo, on_cell=on_cell) if passes is None
@@ -237,14 +234,15 @@ class PassCheckpoint:
 
     ``flush`` (the runner's journal writer) runs before each state is saved, in the same
     :func:`roadgonio.interrupts.critical` block, so the journal always holds the cells the state
-    left out; ``kept`` says so for the line of a stop at once. The backend reports a state it
+    left out; :meth:`kept` says so for the line of a stop at once. The backend reports a state it
     carried on with :meth:`reused` (``reused_cells`` from pass ``reused_pass``: the summary's
     "continued after their pass N")."""
 
-    def __init__(self, path: Path, fp: str, *, flush: Callable[[], None] | None = None, kept: str | None = None):
+    def __init__(self, path: Path, fp: str, *, flush: Callable[[], None] | None = None):
         self.path, self.fp = Path(path), fp
-        self.flush, self.kept = flush, kept
+        self.flush = flush
         self.reused_cells, self.reused_pass = 0, None
+        self.saved_pass: int | None = None      # the pass of the state on disk, saved or carried on by this run
 
     def load(self) -> dict | None:
         try:
@@ -260,12 +258,23 @@ class PassCheckpoint:
                 self.flush()
             if not state.get("cells"):
                 self.clear()
+                self.saved_pass = None
                 return
             atomic_write_text(self.path, to_json({"fingerprint": self.fp, "state": state}, indent=None))
+            self.saved_pass = int(state["pass"])
 
     def reused(self, cells: int, after_pass: int) -> None:
         """The backend carried ``cells`` cells on from the saved state after pass ``after_pass``."""
         self.reused_cells, self.reused_pass = int(cells), int(after_pass)
+        self.saved_pass = int(after_pass)
+
+    def kept(self) -> str:
+        """What a stop at once keeps (the line of a second Ctrl-C during a pass: roadgonio.interrupts)."""
+        journal = f"the finished cells ({self.path.parent / JOURNAL})"
+        if self.saved_pass is None:
+            return f"kept: {journal}; the other cells had no completed pass; run the same command again to resume"
+        return (f"kept: {journal} and the other cells' state after pass {self.saved_pass} ({self.path.name}); "
+                "run the same command again to resume")
 
     def clear(self) -> None:
         try:

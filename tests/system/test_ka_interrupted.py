@@ -91,8 +91,8 @@ def test_a_second_ctrl_c_stops_a_mitsuba_table_at_once_and_the_rerun_resumes_it_
     assert len(err) == 2 and err[0].startswith(
         "roadgonio: Ctrl-C received: stopping after the pass of the Mitsuba table under way"), err
     assert err[1] == (f"roadgonio: Ctrl-C received again: stopped at once, without finishing the pass of the Mitsuba "
-                      f"table under way; kept in {out}: the finished cells ({JOURNAL}) and the other cells' state "
-                      f"after their last completed pass ({PASSES}); run the same command again to resume"), err
+                      f"table under way; kept: the finished cells ({out / JOURNAL}) and the other cells' state after "
+                      f"pass {CUT_AFTER} ({PASSES}); run the same command again to resume"), err
     assert sorted(f.name for f in out.iterdir()) == sorted([JOURNAL, PASSES])      # nothing half-written
     journalled = [tuple(json.loads(line)[k] for k in ("tan_eps", "beta_deg"))
                   for line in (out / JOURNAL).read_text().splitlines()[1:]]

@@ -129,13 +129,14 @@ def test_a_second_signal_in_a_deferred_region_stops_at_once_once_the_files_being
     compiled code hears no signal). The second signal in a deferred region ends the process from the
     watcher thread, exit status 130 with one line saying what is kept, without waiting for the
     stretch under way; but only once the block of files being written (interrupts.critical, a pass's
-    journal and state) has ended, so nothing is half-written. The old code raised the
+    journal and state) has ended, so nothing is half-written, and the line says what is kept then
+    (the region's ``kept`` function reads the file the block wrote). The old code raised the
     KeyboardInterrupt in the main thread as soon as it ran Python again: inside the block."""
     p = _child(BUSY + f"""
     import os, signal, sys
     from roadgonio import interrupts
     interrupts.install()
-    with interrupts.deferred("pass of the test", "kept: the test's files"):
+    with interrupts.deferred("pass of the test", lambda: "kept: the file " + open("written").read()):
         os.kill(os.getpid(), signal.{signum})
         with interrupts.critical():
             os.kill(os.getpid(), signal.{signum})
@@ -155,4 +156,4 @@ def test_a_second_signal_in_a_deferred_region_stops_at_once_once_the_files_being
         f"roadgonio: {name} received: stopping after the pass of the test under way, which is saved; {again} to stop "
         "at once, losing only that one",
         f"roadgonio: {name} received again: stopped at once, without finishing the pass of the test under way; "
-        "kept: the test's files"], err
+        "kept: the file whole"], err

@@ -160,9 +160,11 @@ class PassesStandIn(StandIn):
         return c
 
     def compute(self, cells, on_cell=None, checkpoint=None):
+        self.kept = [checkpoint.kept()]
         state = checkpoint.load()
         if state is not None and [tuple(c) for c in state["cells"]] == list(cells):
             checkpoint.reused(len(cells), state["pass"])
+            self.kept.append(checkpoint.kept())
             rest = list(cells)
             out = []
         else:
@@ -172,6 +174,7 @@ class PassesStandIn(StandIn):
             checkpoint.save({"pass": 1, "cells": [list(c) for c in rest]})
             self.on_disk = ((checkpoint.path.parent / JOURNAL).read_text().splitlines()[1:],
                             checkpoint.load())
+            self.kept.append(checkpoint.kept())
             if self.stop:
                 raise Interrupted()
         out += [self._cell(t, b, on_cell) for t, b in rest]
@@ -198,9 +201,15 @@ def test_a_pass_state_is_saved_with_the_journal_of_the_cells_it_leaves_out(tmp_p
     journal, state = first.on_disk
     assert [tuple(json.loads(line)[k] for k in ("tan_eps", "beta_deg")) for line in journal] == cells[:5]
     assert state["pass"] == 1 and [tuple(c) for c in state["cells"]] == cells[5:]
+    # the line of a second Ctrl-C says what is on disk at that moment
+    assert first.kept == [f"kept: the finished cells ({tmp_path / JOURNAL}); the other cells had no completed pass; run "
+                          "the same command again to resume",
+                          f"kept: the finished cells ({tmp_path / JOURNAL}) and the other cells' state after pass 1 "
+                          "(ka_passes.json); run the same command again to resume"]
     again = PassesStandIn()
     run = run_cells(again, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
     assert again.calls == cells[5:] and not again.state_after_last
+    assert again.kept[1] == first.kept[1]           # carried on: the state on disk is still pass 1's
     assert (run.resumed, run.resumed_pass_cells, run.resumed_from_pass) == (5, 5, 1)
     s = summary(ka_dataset(run, instrument=ins, model=model, backend=again, sample="s"))
     assert (s["resumed_cells"], s["resumed_pass_cells"], s["resumed_from_pass"]) == (5, 5, 1)

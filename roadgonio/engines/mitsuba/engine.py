@@ -147,7 +147,7 @@ class BatchEngine:
             plan: Plan | dict | None = None,
             on_done: Callable[[list[int], EngineRun], None] | None = None,
             resume: dict | None = None, on_pass: Callable[[dict], None] | None = None,
-            kept: str | None = None) -> EngineRun:
+            kept: str | Callable[[], str] | None = None) -> EngineRun:
         """Compute the statistics of every cell; ``on_done(indices, run)`` is called after each pass
         with the cells that left the active set. With ``plan`` the recorded schedule is replayed
         (no adaptation; a cell is converged if it meets the target at the end).
@@ -160,7 +160,8 @@ class BatchEngine:
         ``seed``, the run continues from that pass, and since a cell's numbers depend only on
         (seed, pass, lattice size, its replicates) it ends with the same numbers, bit for bit, as
         the run that was cut short would have (else ``resume`` is ignored). ``kept`` says what a
-        stop at once keeps (a second Ctrl-C during a pass: roadgonio.interrupts)."""
+        stop at once keeps (a second Ctrl-C during a pass: roadgonio.interrupts; a function is
+        called then)."""
         t0 = time.perf_counter()
         cells = [(float(t), float(b)) for t, b in cells]
         n = len(cells)
