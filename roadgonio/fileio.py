@@ -1,7 +1,9 @@
 """Atomic file output and small I/O helpers.
 
 * One file: :func:`atomic_write` writes to a temporary file in the destination folder and renames it
-  into place, so an interrupted run never leaves a half-written result behind.
+  into place, so an interrupted run never leaves a half-written result behind; a stop at once (a
+  second Ctrl-C during a Mitsuba pass, :func:`roadgonio.interrupts.critical`) waits for it to end,
+  so it leaves no temporary file either.
 * Several files of one command: :class:`OutputGroup` writes them all into a hidden staging folder
   inside the destination and moves them into place only when every one was written, so a command's
   outputs appear together or not at all (a full disk or a failing plot leaves the folder as it was).
@@ -22,6 +24,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
 from roadgonio.errors import InputError
+from roadgonio.interrupts import critical
 
 #: Prefix of temporary files and staging folders (hidden; removed on success and on errors).
 TMP_PREFIX = ".roadgonio-tmp-"
@@ -53,18 +56,19 @@ def atomic_write(path: str | Path, writer: Callable[[Path], None]) -> Path:
     path = Path(path)
     _make_dir(path.parent, path)
     tmp_path = path.parent / f"{TMP_PREFIX}{secrets.token_hex(6)}-{path.name}"
-    try:
-        os.close(_create(tmp_path))
-        writer(tmp_path)
-        os.replace(tmp_path, path)
-    except OSError as err:
-        raise output_error(path, err) from None
-    finally:
+    with critical():
         try:
-            if tmp_path.exists():
-                tmp_path.unlink()
-        except OSError:  # pragma: no cover - best effort
-            pass
+            os.close(_create(tmp_path))
+            writer(tmp_path)
+            os.replace(tmp_path, path)
+        except OSError as err:
+            raise output_error(path, err) from None
+        finally:
+            try:
+                if tmp_path.exists():
+                    tmp_path.unlink()
+            except OSError:  # pragma: no cover - best effort
+                pass
     return path
 
 

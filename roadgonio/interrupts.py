@@ -14,10 +14,15 @@ wakes a watcher thread (``signal.set_wakeup_fd``), which says at once that it wa
 Work that can stop cleanly only at a boundary (the Mitsuba engine between passes, whose state is
 then saved) runs inside :func:`deferred`: there the first signal does not interrupt, it asks the
 work to stop at its next boundary (:meth:`Deferred.check`, which raises the ``KeyboardInterrupt``
-there); the watcher says so with the time the last stretch took; a second signal interrupts as soon
-as the main thread runs Python again, without waiting for the boundary (what was saved at the last
-boundary is kept). Outside a CLI run (the Python API) nothing is
-installed and :func:`deferred` changes nothing.
+there); the watcher says so with the time the last stretch took, and that a second signal stops at
+once. A second signal in the region stops the process at once from the watcher thread
+(``os._exit(130)``, one line saying what is kept): the main thread may be waiting in compiled code
+for the rest of the pass (trial 12: up to 40 s), where no exception reaches it. Nothing is lost but
+the stretch under way: what the region's work writes at a boundary (the journal of the finished
+cells, then the state of the others) is written inside :func:`critical`, as is every
+:func:`roadgonio.fileio.atomic_write`, and the hard stop waits for that lock, so it never leaves a
+file half-written nor a journal and a state of different boundaries. Outside a CLI run (the Python
+API) nothing is installed and :func:`deferred` changes nothing.
 """
 from __future__ import annotations
 
@@ -27,7 +32,7 @@ import sys
 import threading
 import time
 from contextlib import contextmanager
-from typing import Iterator
+from typing import Callable, Iterator
 
 #: The signals handled as Ctrl-C, with the name the messages give them.
 SIGNALS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
@@ -44,6 +49,9 @@ class _State:
         self.stop_asked = False         # a deferred region was asked to stop at its boundary
         self.region: "Deferred | None" = None
         self.done = threading.Event()   # the command ended (no late "received" line)
+        self.watching = False           # the watcher thread runs (it makes the hard stop)
+        self.passed_on: "Deferred | None" = None    # the region whose second signal the handler left to the watcher
+        self.files = threading.RLock()  # held while files are written (critical): a hard stop waits
 
 
 _S = _State()
@@ -52,8 +60,9 @@ _S = _State()
 class Deferred:
     """A stretch of main-thread work that stops only at its boundaries (:func:`deferred`)."""
 
-    def __init__(self, what: str):
+    def __init__(self, what: str, kept: "str | Callable[[], str] | None" = None):
         self.what = what
+        self.kept = kept
         self.last_s: float | None = None
         self._t = time.monotonic()
 
@@ -67,11 +76,12 @@ class Deferred:
 
 
 @contextmanager
-def deferred(what: str) -> Iterator[Deferred]:
+def deferred(what: str, kept: "str | Callable[[], str] | None" = None) -> Iterator[Deferred]:
     """Defer a signal to the region's boundaries (module docstring); ``what`` names a stretch for the
-    message ("pass of the Mitsuba table"). Only in the main thread of a CLI run; elsewhere the
-    region's :meth:`Deferred.check` times its stretches and never raises."""
-    region = Deferred(what)
+    message ("pass of the Mitsuba table"), ``kept`` says what a stop at once keeps (the line of the
+    second signal; a function is called then, with no file being written). Only in the main thread
+    of a CLI run; elsewhere the region's :meth:`Deferred.check` times its stretches and never raises."""
+    region = Deferred(what, kept)
     if not _S.installed or threading.current_thread() is not threading.main_thread() or _S.region is not None:
         yield region
         return
@@ -82,11 +92,27 @@ def deferred(what: str) -> Iterator[Deferred]:
         _S.region = None
 
 
+@contextmanager
+def critical() -> Iterator[None]:
+    """Files being written: a stop at once (a second signal in a :func:`deferred` region) waits until
+    the block ends, so that no file is left half-written and files written together (a journal and
+    its pass state) stay together. Re-entrant; nothing outside a CLI run (the Python API)."""
+    if not _S.installed:
+        yield
+        return
+    with _S.files:
+        yield
+
+
 def _handler(signum, frame) -> None:
     _S.handled += 1
-    if _S.region is not None and _S.handled == 1:
-        _S.stop_asked = True          # the region raises at its next boundary
-        return
+    if _S.region is not None:
+        if _S.handled == 1:
+            _S.stop_asked = True      # the region raises at its next boundary
+            return
+        if _S.watching:
+            _S.passed_on = _S.region  # the watcher stops the process at once (_stop_now)
+            return
     raise KeyboardInterrupt
 
 
@@ -97,17 +123,19 @@ def _say(text: str) -> None:
         pass
 
 
-def _message(signum: int, count: int) -> str:
+def _message(signum: int, count: int, region: "Deferred | None") -> str:
+    """The watcher's line: the first signal in a deferred region, the second (:func:`_stop_now`), or
+    a signal elsewhere."""
     name = SIGNALS.get(signum, f"signal {signum}")
     again = "Ctrl-C again" if signum == signal.SIGINT else "send it again"
-    region = _S.region
     if region is not None and count == 1:
         took = f" (the last took {region.last_s:.0f} s)" if region.last_s is not None and region.last_s >= 1 else ""
-        return (f"{name} received: finishing the current {region.what}{took} to keep it, then stopping; "
-                f"{again} not to finish it (the last finished one is kept)")
+        return (f"{name} received: stopping after the {region.what} under way{took}, which is saved; "
+                f"{again} to stop at once, losing only that one")
     if region is not None:
-        return (f"{name} received again: stopping as soon as the computation under way returns, without "
-                f"finishing the {region.what} (the last finished one is kept)")
+        kept = region.kept() if callable(region.kept) else region.kept
+        return (f"{name} received again: stopped at once, without finishing the {region.what} under way; "
+                + (kept or "what the last finished one saved is kept"))
     return f"{name} received: stopping (the step under way must end first)"
 
 
@@ -123,10 +151,27 @@ def _watch(fd: int) -> None:
             if signum not in SIGNALS:
                 continue
             _S.received += 1
-            if _S.region is not None:
-                _say(_message(signum, _S.received))
+            region = _S.region or _S.passed_on    # (the handler may have run first, the region ended since)
+            if region is not None and _S.received >= 2:
+                _stop_now(signum, region)
+            elif region is not None:
+                _say(_message(signum, _S.received, region))
             elif not _S.done.wait(QUIET_S):
-                _say(_message(signum, _S.received))
+                _say(_message(signum, _S.received, None))
+
+
+def _stop_now(signum: int, region: Deferred) -> None:
+    """A second signal in a deferred region (the watcher thread): once no file is being written
+    (:func:`critical`), say what is kept and end the process at once, exit status 130. No cleanup
+    runs: the files the work wrote at its last boundary are complete, the stretch under way is lost."""
+    with _S.files:
+        _say(_message(signum, 2, region))
+        for stream in (sys.stdout, sys.stderr):     # what the command printed before (a pipe buffers it)
+            try:
+                stream.flush()
+            except (OSError, ValueError, AttributeError):
+                pass
+        os._exit(130)
 
 
 def install() -> None:
@@ -136,6 +181,7 @@ def install() -> None:
     if _S.installed:                    # another command in the same process (tests): a fresh count
         _S.received = _S.handled = 0
         _S.stop_asked = False
+        _S.passed_on = None
         _S.done.clear()
         return
     r, w = os.pipe()
@@ -151,6 +197,7 @@ def install() -> None:
             signal.signal(s, _handler)
     if r >= 0:
         threading.Thread(target=_watch, args=(r,), name="roadgonio-signals", daemon=True).start()
+        _S.watching = True
     _S.installed = True
 
 

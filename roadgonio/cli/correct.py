@@ -138,7 +138,7 @@ def run(args) -> int:
                 f"cells (at most x{f['widening_max']:.2f})")
         if s.get("model_estimate"):
             say(_model_estimate_line(s["model_estimate"]))
-        line = _resumed_line(s["resumed_cells"], s["resumed_surfaces"])
+        line = _resumed_line(s["resumed_cells"], s["resumed_surfaces"], s["resumed_pass_cells"])
         if line:
             say(line)
         say(f"  wrote {len(s['written'])} files to {s['out']}")
@@ -181,7 +181,8 @@ def _run_joint(args) -> int:
         f"{s['seconds']:.1f} s")
     if s.get("model_estimate"):
         say(_model_estimate_line(s["model_estimate"]))
-    line = _resumed_line(_resumed(p.get("backend") for p in s["per_instrument"]), _resumed_surfaces(s["variants"]))
+    backends = [p.get("backend") for p in s["per_instrument"]]
+    line = _resumed_line(_resumed(backends), _resumed_surfaces(s["variants"]), _resumed(backends, "resumed_pass_cells"))
     if line:
         say(line)
     say(f"  wrote {len(s['written'])} files to {s['out']}")
@@ -220,14 +221,16 @@ def _json_summary(res) -> dict:
         out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio", "chi2_p_value", "misfit", "misfit_note", "birge_local_max",
                                                "cells_widened", "widening_max") if k in s["fit"]}
     out["resumed_cells"] = _resumed(st.get("backend") for st in (s.get("steps") or []))
+    out["resumed_pass_cells"] = _resumed((st.get("backend") for st in (s.get("steps") or [])), "resumed_pass_cells")
     out["resumed_surfaces"] = _resumed_surfaces((s.get("fit") or {}).get("variants"))
     out["out"] = str(res.out)
     return out
 
 
-def _resumed(infos) -> int:
-    """k_A cells the backends took from the output folder's journals (a rerun in the same folder)."""
-    return sum(int((i or {}).get("resumed_cells") or 0) for i in infos)
+def _resumed(infos, key: str = "resumed_cells") -> int:
+    """k_A cells the backends took from the output folder's journals (a rerun in the same folder);
+    with ``key="resumed_pass_cells"``, those that went on from their state after a pass."""
+    return sum(int((i or {}).get(key) or 0) for i in infos)
 
 
 def _resumed_surfaces(variants) -> int:
@@ -235,7 +238,13 @@ def _resumed_surfaces(variants) -> int:
     return sum(bool(v.get("resumed")) for v in (variants or []))
 
 
-def _resumed_line(cells: int, surfaces: int = 0) -> str | None:
-    """What a rerun in the same folder took from its journals (None: nothing)."""
+def _resumed_line(cells: int, surfaces: int = 0, pass_cells: int = 0) -> str | None:
+    """What a rerun in the same folder took from its journals (None: nothing): the finished k_A cells
+    and correction surfaces, and the k_A cells that went on from their last completed pass
+    (ka_passes.json) instead of starting over."""
     parts = ([count(cells, "k_A cell")] if cells else []) + ([count(surfaces, "correction surface")] if surfaces else [])
-    return f"  resumed: {' and '.join(parts)} from the output folder's journals" if parts else None
+    line = f"{' and '.join(parts)} from the output folder's journals" if parts else ""
+    if pass_cells:
+        their = "its" if pass_cells == 1 else "their"
+        line += ("; " if line else "") + f"{count(pass_cells, 'k_A cell')} continued after {their} last completed pass"
+    return f"  resumed: {line}" if line else None

@@ -101,10 +101,11 @@ def run(args) -> int:
         print_json({"out": ds.attrs["out"], **s})
         return 0
     say = text_output(args)
+    resumed = _resumed_text(s)
     if s["cells_asked"] == s["cells"]:
-        cells = f"{count(s['cells'], 'cell')} ({s['resumed_cells']} resumed), "
+        cells = f"{count(s['cells'], 'cell')} ({resumed}), "
     else:   # a subset of a larger table in the folder: the files hold the whole table
-        cells = (f"{count(s['cells_asked'], 'cell')} asked ({s['resumed_cells']} resumed); the folder's table holds "
+        cells = (f"{count(s['cells_asked'], 'cell')} asked ({resumed}); the folder's table holds "
                  f"{count(s['cells'], 'cell')}: ")
     say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {cells}"
         f"k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
@@ -112,6 +113,16 @@ def run(args) -> int:
         + (_stray_text(s) if "stray_fraction_max" in s else ""))
     say(f"wrote {ds.attrs['out']}/{ds.attrs['files']}")
     return 0
+
+
+def _resumed_text(s) -> str:
+    """'118 resumed' (finished cells read back from the journal), and when the others went on from
+    their state after a pass (ka_passes.json) instead of starting over, ', 462 continued after their
+    pass 1' (trial 12: the count of finished cells alone hid that the interrupted passes were kept)."""
+    text = f"{s['resumed_cells']} resumed"
+    if s.get("resumed_pass_cells"):
+        text += f", {s['resumed_pass_cells']} continued after their pass {s['resumed_from_pass']}"
+    return text
 
 
 def _stray_text(s) -> str:

@@ -291,7 +291,8 @@ def _backend_k(factory: BackendFactory, instrument: Instrument, model: RoadModel
     if not (np.all(np.isfinite(k)) and np.all(k > 0)):
         raise InputError("the backend returned a non-positive or non-finite k_A; cannot correct", field="k_A")
     info = {"backend": backend.name, "settings": backend.settings(), "seconds": run.seconds,
-            "resumed_cells": run.resumed, "not_converged": int(sum(not c.converged for c in run.results)),
+            "resumed_cells": run.resumed, "resumed_pass_cells": run.resumed_pass_cells,
+            "not_converged": int(sum(not c.converged for c in run.results)),
             "journal": str(out_dir) if out_dir is not None else None}
     return k, se, info
 

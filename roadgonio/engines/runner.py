@@ -23,13 +23,14 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from roadgonio.errors import count
 from roadgonio.fileio import atomic_write, atomic_write_text, check_run_folder, fingerprint as _fingerprint, output_error, read_journal, to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
+from roadgonio.interrupts import critical
 from roadgonio.instrument.config import Instrument
 from roadgonio.provenance import provenance
 from roadgonio.surface.model import RoadModel
@@ -67,6 +68,10 @@ class KaRun:
     seconds: float
     resumed: int
     table: list[CellResult] | None = None
+    #: cells of the rest that went on from their state after pass ``resumed_from_pass`` (a batched
+    #: backend's ``ka_passes.json``) instead of starting over; 0 and None when none did
+    resumed_pass_cells: int = 0
+    resumed_from_pass: int | None = None
 
     @property
     def table_cells(self) -> list[CellResult]:
@@ -181,7 +186,9 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
 
     passes = None
     if journal is not None and todo and getattr(backend, "checkpoints_passes", False):
-        passes = PassCheckpoint(out_dir / PASSES, fp)
+        # the journal is written with every pass's state (the finished cells, then the others'
+        # state): a run stopped at once between two passes resumes from both
+        passes = PassCheckpoint(out_dir / PASSES, fp, flush=flush)
     try:
         if todo:
             returned = (backend.compute(todo, on_cell=on_cell) if passes is None
@@ -203,7 +210,9 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
         passes.clear()
     results = [done[_cell_key(*c)] for c in cells if _cell_key(*c) in done]
     return KaRun(results=results, seconds=time.perf_counter() - t0, resumed=resumed,
-                 table=list(done.values()) if journal is not None else None)
+                 table=list(done.values()) if journal is not None else None,
+                 resumed_pass_cells=passes.reused_cells if passes is not None else 0,
+                 resumed_from_pass=passes.reused_pass if passes is not None else None)
 
 
 def _discard(journal: Path, folder: Path | None) -> None:
@@ -221,10 +230,19 @@ class PassCheckpoint:
     finished yet and their statistics, :meth:`roadgonio.engines.mitsuba.engine.BatchEngine.run`),
     under the run's fingerprint: a table interrupted mid-way resumes from its last completed pass
     with the same numbers. A state of another run, or unreadable, is ignored (the cells are
-    computed again); JSON with every float exact."""
+    computed again); JSON with every float exact.
 
-    def __init__(self, path: Path, fp: str):
+    ``flush`` (the runner's journal writer) runs before each state is saved, in the same
+    :func:`roadgonio.interrupts.critical` block, so the journal always holds the cells the state
+    left out; :meth:`kept` says so for the line of a stop at once. The backend reports a state it
+    carried on with :meth:`reused` (``reused_cells`` from pass ``reused_pass``: the summary's
+    "continued after their pass N")."""
+
+    def __init__(self, path: Path, fp: str, *, flush: Callable[[], None] | None = None):
         self.path, self.fp = Path(path), fp
+        self.flush = flush
+        self.reused_cells, self.reused_pass = 0, None
+        self.saved_pass: int | None = None      # the pass of the state on disk, saved or carried on by this run
 
     def load(self) -> dict | None:
         try:
@@ -234,7 +252,29 @@ class PassCheckpoint:
         return doc.get("state") if isinstance(doc, dict) and doc.get("fingerprint") == self.fp else None
 
     def save(self, state: dict) -> None:
-        atomic_write_text(self.path, to_json({"fingerprint": self.fp, "state": state}, indent=None))
+        """The journal (``flush``), then the state; a state of no cells (the last pass) removes the file."""
+        with critical():
+            if self.flush is not None:
+                self.flush()
+            if not state.get("cells"):
+                self.clear()
+                self.saved_pass = None
+                return
+            atomic_write_text(self.path, to_json({"fingerprint": self.fp, "state": state}, indent=None))
+            self.saved_pass = int(state["pass"])
+
+    def reused(self, cells: int, after_pass: int) -> None:
+        """The backend carried ``cells`` cells on from the saved state after pass ``after_pass``."""
+        self.reused_cells, self.reused_pass = int(cells), int(after_pass)
+        self.saved_pass = int(after_pass)
+
+    def kept(self) -> str:
+        """What a stop at once keeps (the line of a second Ctrl-C during a pass: roadgonio.interrupts)."""
+        journal = f"the finished cells ({self.path.parent / JOURNAL})"
+        if self.saved_pass is None:
+            return f"kept: {journal}; the other cells had no completed pass; run the same command again to resume"
+        return (f"kept: {journal} and the other cells' state after pass {self.saved_pass} ({self.path.name}); "
+                "run the same command again to resume")
 
     def clear(self) -> None:
         try:
@@ -356,6 +396,10 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         "cells_asked": int(cells_asked if cells_asked is not None else len(run.results)),
         "cells_not_converged": int(sum(not c.converged for c in computed)),
         "resumed_cells": int(run.resumed),
+        # of the others, those carried on from their state after a pass (ka_passes.json); the pass
+        # only when there were some (no sentinel)
+        "resumed_pass_cells": int(run.resumed_pass_cells),
+        **({"resumed_from_pass": int(run.resumed_from_pass)} if run.resumed_pass_cells else {}),
         "seconds_wall": float(run.seconds),
         "fingerprint": fingerprint(instrument, model, backend),
         "created": prov["created"],
@@ -367,7 +411,8 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
 def summary(ds) -> dict[str, Any]:
     """The summary of a k_A Dataset (``ka.json``, the command's last line): cells (of the table:
     with an output folder, every cell its journal holds for this run), ``cells_asked`` (this run's
-    selection; ``resumed_cells`` of them were read back), k_A range, the worst relative precision of
+    selection; ``resumed_cells`` of them were read back, ``resumed_pass_cells`` more carried on from
+    their state after pass ``resumed_from_pass``), k_A range, the worst relative precision of
     the kind the backend gives, cells not converged, samples, times (all over the table's cells)."""
     done = np.isfinite(ds["k_a"].values)
     k = ds["k_a"].values[done]
@@ -386,7 +431,10 @@ def summary(ds) -> dict[str, Any]:
                samples=int(np.nansum(ds["samples"].values)),
                seconds_total=float(np.nansum(ds["seconds"].values)),
                seconds_wall_this_run=float(ds.attrs["seconds_wall"]),
-               resumed_cells=int(ds.attrs["resumed_cells"]))
+               resumed_cells=int(ds.attrs["resumed_cells"]),
+               resumed_pass_cells=int(ds.attrs.get("resumed_pass_cells", 0)))
+    if out["resumed_pass_cells"]:
+        out["resumed_from_pass"] = int(ds.attrs["resumed_from_pass"])
     if has_stray_light(ds):
         kd = ds["k_a_direct"].values[done]
         ok = np.isfinite(kd)

@@ -140,6 +140,109 @@ def test_the_runner_hands_a_pass_checkpoint_only_to_a_backend_that_declares_it(t
     assert c.checkpoint is None
 
 
+class PassesStandIn(StandIn):
+    """A batched stand-in as the Mitsuba backend behaves with a checkpoint: half the cells finish in
+    pass 1, whose state (the other half) is saved; pass 2 finishes the rest and saves a state of no
+    cells. A saved state of exactly its cells is carried on (``reused``). ``stop`` stops it right
+    after pass 1's state is saved; ``on_disk`` is what the folder held at that moment, where a
+    second Ctrl-C (os._exit, no cleanup) would leave it."""
+
+    checkpoints_passes = True
+
+    def __init__(self, stop=False):
+        super().__init__()
+        self.stop = stop
+
+    def _cell(self, t, b, on_cell):
+        c = CellResult(t, b, self.value(t, b), 1e-4, 1000, 0.001)
+        self.calls.append((t, b))
+        on_cell(c)
+        return c
+
+    def compute(self, cells, on_cell=None, checkpoint=None):
+        self.kept = [checkpoint.kept()]
+        state = checkpoint.load()
+        if state is not None and [tuple(c) for c in state["cells"]] == list(cells):
+            checkpoint.reused(len(cells), state["pass"])
+            self.kept.append(checkpoint.kept())
+            rest = list(cells)
+            out = []
+        else:
+            half = len(cells) // 2
+            out = [self._cell(t, b, on_cell) for t, b in cells[:half]]
+            rest = list(cells[half:])
+            checkpoint.save({"pass": 1, "cells": [list(c) for c in rest]})
+            self.on_disk = ((checkpoint.path.parent / JOURNAL).read_text().splitlines()[1:],
+                            checkpoint.load())
+            self.kept.append(checkpoint.kept())
+            if self.stop:
+                raise Interrupted()
+        out += [self._cell(t, b, on_cell) for t, b in rest]
+        checkpoint.save({"pass": 2, "cells": []})
+        self.state_after_last = checkpoint.path.exists()
+        return out
+
+
+def test_a_pass_state_is_saved_with_the_journal_of_the_cells_it_leaves_out(tmp_path, setup):
+    """A second Ctrl-C stops a Mitsuba table at once (os._exit: no cleanup, roadgonio.interrupts), so
+    the folder must be whole at every pass boundary: the runner's checkpoint writes the journal of
+    the cells finished so far before the state of the others (the journal alone was written at most
+    once a second, the rest of a pass's cells when the run ended, so the state of the others did
+    not match the cells left to compute and was thrown away). The resumed run carries the state on
+    and says how many cells it continued (trial 12: "(N resumed)" counted finished cells only); the
+    state of no cells after the last pass removes the file."""
+    from roadgonio.cli.ka import _resumed_text
+    from roadgonio.engines.runner import summary
+    ins, model = setup
+    cells = full_grid_cells()[:10]
+    first = PassesStandIn(stop=True)
+    with pytest.raises(Interrupted):
+        run_cells(first, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    journal, state = first.on_disk
+    assert [tuple(json.loads(line)[k] for k in ("tan_eps", "beta_deg")) for line in journal] == cells[:5]
+    assert state["pass"] == 1 and [tuple(c) for c in state["cells"]] == cells[5:]
+    # the line of a second Ctrl-C says what is on disk at that moment
+    assert first.kept == [f"kept: the finished cells ({tmp_path / JOURNAL}); the other cells had no completed pass; run "
+                          "the same command again to resume",
+                          f"kept: the finished cells ({tmp_path / JOURNAL}) and the other cells' state after pass 1 "
+                          "(ka_passes.json); run the same command again to resume"]
+    again = PassesStandIn()
+    run = run_cells(again, cells, instrument=ins, model=model, out_dir=tmp_path, progress=False)
+    assert again.calls == cells[5:] and not again.state_after_last
+    assert again.kept[1] == first.kept[1]           # carried on: the state on disk is still pass 1's
+    assert (run.resumed, run.resumed_pass_cells, run.resumed_from_pass) == (5, 5, 1)
+    s = summary(ka_dataset(run, instrument=ins, model=model, backend=again, sample="s"))
+    assert (s["resumed_cells"], s["resumed_pass_cells"], s["resumed_from_pass"]) == (5, 5, 1)
+    assert _resumed_text(s) == "5 resumed, 5 continued after their pass 1"
+    fresh = PassesStandIn()
+    run = run_cells(fresh, cells, instrument=ins, model=model, out_dir=tmp_path / "b", progress=False)
+    s = summary(ka_dataset(run, instrument=ins, model=model, backend=fresh, sample="s"))
+    assert (run.resumed_pass_cells, run.resumed_from_pass) == (0, None) and "resumed_from_pass" not in s
+    assert _resumed_text(s) == "0 resumed" and not fresh.state_after_last
+
+
+def test_correct_says_how_many_k_a_cells_continued_from_their_pass_state(tmp_path, setup):
+    """correct's k_A tables go through the same runner: each step's backend info counts the cells
+    carried on from a saved pass state beside those read back, and the terminal's "resumed:" line
+    says both (trial 12: the cells of the interrupted passes were kept, and nothing said so)."""
+    from roadgonio.cli.correct import _resumed, _resumed_line
+    from roadgonio.correction.run import _backend_k
+    ins, model = setup
+    cells = full_grid_cells()[:10]
+    with pytest.raises(Interrupted):
+        _backend_k(lambda i, m: PassesStandIn(stop=True), ins, model, cells, tmp_path, progress=False)
+    _, _, info = _backend_k(lambda i, m: PassesStandIn(), ins, model, cells, tmp_path, progress=False)
+    assert (info["resumed_cells"], info["resumed_pass_cells"]) == (5, 5)
+    _, _, done = _backend_k(lambda i, m: PassesStandIn(), ins, model, cells, tmp_path, progress=False)
+    assert (done["resumed_cells"], done["resumed_pass_cells"]) == (10, 0)
+    steps = [info, done]
+    assert _resumed_line(_resumed(steps), 1, _resumed(steps, "resumed_pass_cells")) == (
+        "  resumed: 15 k_A cells and 1 correction surface from the output folder's journals; 5 k_A cells "
+        "continued after their last completed pass")
+    assert _resumed_line(0, 0, 1) == "  resumed: 1 k_A cell continued after its last completed pass"
+    assert _resumed_line(0, 0, 0) is None
+
+
 def test_cut_short_last_line_is_recomputed(tmp_path, setup):
     ins, model = setup
     cells = full_grid_cells()[:5]

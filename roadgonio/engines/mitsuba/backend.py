@@ -158,7 +158,8 @@ class MitsubaBackend:
         """k_A of every cell (one batched run); ``on_cell`` is called for each cell as it finishes,
         in batches (the cells that left the active set after a pass). ``checkpoint``
         (:class:`roadgonio.engines.runner.PassCheckpoint`): the state is saved after every pass and
-        a saved state of these cells is resumed (same numbers as without the interruption)."""
+        a saved state of these cells is resumed (same numbers as without the interruption; the
+        checkpoint is told how many cells it carried on, and from which pass: ``reused``)."""
         from roadgonio.engines.mitsuba.passes import stray_ratios
         t0 = time.perf_counter()
         cells = [(float(t), float(b)) for t, b in cells]
@@ -182,8 +183,11 @@ class MitsubaBackend:
 
         run = self.engine.run(cells, self.planner, seed=self.seed, plan=self.plan, on_done=done,
                               resume=None if checkpoint is None else checkpoint.load(),
-                              on_pass=None if checkpoint is None else checkpoint.save)
+                              on_pass=None if checkpoint is None else checkpoint.save,
+                              kept=getattr(checkpoint, "kept", None))
         self.last_run, self.last_plan = run, run.plan
+        if checkpoint is not None and "resumed_from_pass" in run.info:
+            checkpoint.reused(len(cells), run.info["resumed_from_pass"])
         self._ideal = np.array(ideal)
         return [r for r in results]
 

@@ -27,7 +27,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from roadgonio.errors import GeometryError
-from roadgonio.interrupts import deferred
+from roadgonio.interrupts import critical, deferred
 from roadgonio.engines.mitsuba import lattice as lat
 from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strata, covariance, relative
 from roadgonio.engines.mitsuba.scene import RoadScene, source_radiance
@@ -146,17 +146,22 @@ class BatchEngine:
     def run(self, cells: Sequence[tuple[float, float]], planner: Planner, *, seed: int = 0,
             plan: Plan | dict | None = None,
             on_done: Callable[[list[int], EngineRun], None] | None = None,
-            resume: dict | None = None, on_pass: Callable[[dict], None] | None = None) -> EngineRun:
+            resume: dict | None = None, on_pass: Callable[[dict], None] | None = None,
+            kept: str | Callable[[], str] | None = None) -> EngineRun:
         """Compute the statistics of every cell; ``on_done(indices, run)`` is called after each pass
         with the cells that left the active set. With ``plan`` the recorded schedule is replayed
         (no adaptation; a cell is converged if it meets the target at the end).
 
-        ``on_pass(state)`` (without ``plan``) is called after each pass with the cells still
-        active, their statistics and plan so far and the next pass's requests, plain JSON types;
+        ``on_pass(state)`` (without ``plan``) is called after each pass, after ``on_done``, with the
+        cells still active (none after the last pass), their statistics and plan so far and the
+        next pass's requests, plain JSON types; the two calls of a pass run inside
+        :func:`roadgonio.interrupts.critical` (a stop at once waits for what they write).
         ``resume`` is such a state: when its cells are ``cells`` (same order) and its seed is
         ``seed``, the run continues from that pass, and since a cell's numbers depend only on
         (seed, pass, lattice size, its replicates) it ends with the same numbers, bit for bit, as
-        the run that was cut short would have (else ``resume`` is ignored)."""
+        the run that was cut short would have (else ``resume`` is ignored). ``kept`` says what a
+        stop at once keeps (a second Ctrl-C during a pass: roadgonio.interrupts; a function is
+        called then)."""
         t0 = time.perf_counter()
         cells = [(float(t), float(b)) for t, b in cells]
         n = len(cells)
@@ -179,8 +184,10 @@ class BatchEngine:
             run.stats = stats
             run.info["resumed_from_pass"] = p
         # a Ctrl-C or SIGTERM on the command line stops after the pass under way, once its state is
-        # saved (roadgonio.interrupts; only when there is a state to save)
-        with deferred("pass of the Mitsuba table") if on_pass is not None and plan is None else nullcontext() as stop:
+        # saved; a second one at once, losing that pass (roadgonio.interrupts; only when there is a
+        # state to save)
+        with deferred("pass of the Mitsuba table", kept) if on_pass is not None and plan is None \
+                else nullcontext() as stop:
             self._passes(cells, planner, plan, seed, stats, run, active, requests, p, on_done, on_pass, stop)
         run.seconds = time.perf_counter() - t0
         return run
@@ -204,15 +211,18 @@ class BatchEngine:
             active = [i for i in active if i not in gone]
             for i in left:
                 self._check_lit(cells[i], stats[i])
-            if on_done is not None and left:
-                on_done(sorted(left), run)
-            if on_pass is not None and plan is None and requests:
-                on_pass({"pass": p, "seed": int(seed), "cells": [list(cells[i]) for i in active],
-                         "stats": [stats[i].to_dict() for i in active],
-                         "plan": [[list(e) for e in run.plan.cells[i]] for i in active],
-                         "requests": [[k, *requests[i]] for k, i in enumerate(active) if i in requests]})
-                if stop is not None:
-                    stop.check()
+            # the finished cells and the state of the others are written as one (a second Ctrl-C,
+            # which stops at once, finds both of this pass or both of the one before)
+            with critical():
+                if on_done is not None and left:
+                    on_done(sorted(left), run)
+                if on_pass is not None and plan is None:
+                    on_pass({"pass": p, "seed": int(seed), "cells": [list(cells[i]) for i in active],
+                             "stats": [stats[i].to_dict() for i in active],
+                             "plan": [[list(e) for e in run.plan.cells[i]] for i in active],
+                             "requests": [[k, *requests[i]] for k, i in enumerate(active) if i in requests]})
+            if stop is not None and requests:
+                stop.check()
         run.passes = p
 
     @staticmethod
