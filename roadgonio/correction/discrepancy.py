@@ -201,11 +201,18 @@ def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = C
             out[:, d:d + img.shape[1]] += kern[d] * a
         return out
 
-    def rho_line(x, o, m):                # rho between a coordinate and the lattice lines o .. o + m - 1
-        return se_correlation(np, (x - h * (o + np.arange(m))) ** 2, ell)
-
     active = (g0 != 0.0) | np.array([bool(np.any(im != 0.0)) for im in imgs], dtype=bool)
     close &= active[:, None] & active[None, :]
+    # P[i, j] = g0_i rho(x0_i, X_j) . w_j, the nominal point of i against the image of j, for every
+    # close pair in both orders: per image j, all its partners' points at once (rho is separable)
+    P = np.zeros((n, n))
+    for j in range(n):
+        part = np.nonzero(close[:, j])[0]
+        if part.size == 0 or not np.any(imgs[j]):
+            continue
+        lines = [se_correlation(np, (x0[part, k, None] - h * (org[j, k] + np.arange(ext[j, k]))[None, :]) ** 2, ell)
+                 for k in (0, 1)]
+        P[part, j] = g0[part] * np.sum((lines[0] @ imgs[j]) * lines[1], axis=1)
     R = np.zeros((n, n))
     for j in range(n):
         partners = np.nonzero(close[j, :j + 1])[0]
@@ -214,19 +221,16 @@ def discrepancy_correlation(blurs: list[Blur], ell: float, cutoff_ell: float = C
         Ij = imgs[j]
         Cj = smear(Ij)                    # Cj[a, b] = sum rho(lattice (oj - K + (a, b)), X_j) w_j
         oj = org[j] - K
-        for i in partners.tolist():
+        r00 = g0[partners] * g0[j] * np.exp(-0.5 * np.sum((x0[partners] - x0[j]) ** 2, axis=1) / (ell * ell))
+        for i, r in zip(partners.tolist(), (r00 - P[partners, j] - P[j, partners]).tolist()):
             Ii, oi = imgs[i], org[i]
-            r00 = g0[i] * g0[j] * math.exp(-0.5 * float(np.sum((x0[i] - x0[j]) ** 2)) / (ell * ell))
-            r0j = g0[i] * float(rho_line(x0[i, 0], org[j, 0], ext[j, 0]) @ Ij
-                                @ rho_line(x0[i, 1], org[j, 1], ext[j, 1]))
-            ri0 = g0[j] * float(rho_line(x0[j, 0], oi[0], ext[i, 0]) @ Ii @ rho_line(x0[j, 1], oi[1], ext[i, 1]))
             lo_ = np.maximum(oi, oj)
             hi_ = np.minimum(oi + ext[i], oj + np.array(Cj.shape))
             rij = 0.0
             if np.all(hi_ > lo_):
                 rij = float(np.sum(Ii[lo_[0] - oi[0]:hi_[0] - oi[0], lo_[1] - oi[1]:hi_[1] - oi[1]]
                                    * Cj[lo_[0] - oj[0]:hi_[0] - oj[0], lo_[1] - oj[1]:hi_[1] - oj[1]]))
-            R[i, j] = R[j, i] = r00 - ri0 - r0j + rij
+            R[i, j] = R[j, i] = r + rij
     return R
 
 

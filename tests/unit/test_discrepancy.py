@@ -255,3 +255,58 @@ def test_parts_discrepancy_puts_the_model_values_after_the_cells_in_their_order(
     assert np.allclose(shuffled, ordered[np.ix_(perm, perm)], rtol=0, atol=1e-15)
     # the instrument's error and the model's are positively correlated (both miss delta(x0))
     assert np.all(np.diag(ordered[:n, n:]) > 0)
+
+
+#: A pair beyond the cut-off (CUTOFF_ELL correlation lengths) is set to 0; its bracket is below
+#: 3 exp(-CUTOFF_ELL^2 / 2) < 1.2e-5 in absolute value.
+CUTOFF_TOL = 1.2e-5
+
+
+def test_the_bracket_of_binned_blurs_is_the_plain_double_sum():
+    """discrepancy_correlation over several blurs (weighted nominal points, empty images of the
+    model's own value, images of every shape) against the bracket summed here lattice point by
+    lattice point in float64, without a cut-off: within the cut-off's bound (the truncated kernel and
+    the pairs set to 0) everywhere."""
+    from roadgonio.correction.discrepancy import Blur, CUTOFF_ELL
+    assert 3 * math.exp(-CUTOFF_ELL ** 2 / 2) < CUTOFF_TOL
+    rng = np.random.default_rng(7)
+    ell = 1.0
+    h = BIN_FRACTION * ell
+    blurs = []
+    for b in range(3):
+        n = 9
+        x0 = rng.uniform(0.0, 6.0, size=(n, 2))
+        org = np.rint(x0 / h).astype(np.int64) + rng.integers(-6, 3, size=(n, 2))
+        imgs = []
+        for c in range(n):
+            if b == 2 and c % 3 == 0:
+                imgs.append(np.zeros((1, 1)))            # the model's own value: sees nothing
+                continue
+            img = rng.uniform(0.0, 1.0, size=tuple(rng.integers(1, 9, size=2)))
+            img[rng.uniform(size=img.shape) < 0.3] = 0.0
+            imgs.append(img / max(img.sum(), 1e-300) * rng.uniform(0.5, 1.0))
+        blurs.append(Blur(x0=x0, origins=org, images=tuple(imgs), h=h,
+                          x0_weight=None if b == 0 else rng.uniform(0.0, 1.0, size=n)))
+    R = discrepancy_correlation(blurs, ell)
+
+    pts, g0s = [], []
+    for bl in blurs:
+        for c in range(bl.n):
+            a, bb = np.nonzero(np.ones(bl.images[c].shape))
+            lat = h * (bl.origins[c] + np.stack([a, bb], axis=1))
+            pts.append((bl.x0[c], lat, bl.images[c][a, bb]))
+            g0s.append(1.0 if bl.x0_weight is None else bl.x0_weight[c])
+
+    def rho(p, q):
+        d = p[:, None, :] - q[None, :, :]
+        return np.exp(-0.5 * np.sum(d * d, axis=2) / ell ** 2)
+
+    N = len(pts)
+    ref = np.zeros((N, N))
+    for i, (xi, Xi, wi) in enumerate(pts):
+        for j, (xj, Xj, wj) in enumerate(pts):
+            ref[i, j] = (g0s[i] * g0s[j] * rho(xi[None], xj[None])[0, 0] - g0s[i] * (rho(xi[None], Xj)[0] @ wj)
+                         - g0s[j] * (rho(xj[None], Xi)[0] @ wi) + wi @ rho(Xi, Xj) @ wj)
+    assert R.shape == (N, N) and np.array_equal(R, R.T)
+    assert np.sum(np.abs(ref) > 0.05) > 2 * N            # the cells overlap: the test has pairs to check
+    assert np.max(np.abs(R - ref)) < CUTOFF_TOL
