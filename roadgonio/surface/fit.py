@@ -218,6 +218,8 @@ class _Problem:
         wo = np.broadcast_to(w_detector(ALPHA_STANDARD_DEG), wi.shape)
         self.wi = (wi[:, 0], wi[:, 1], wi[:, 2])
         self.wo = (wo[:, 0], wo[:, 1], wo[:, 2])
+        #: what the model takes from these directions alone, computed once (road_brdf's ``pairs``)
+        self.pairs: dict = {}
         self.c3 = cos3_eps(t)
         self.rmax = table.r_max
         self.y = table.r[m] / self.rmax  # table r in units of max r
@@ -248,7 +250,7 @@ class _Problem:
             for k in LINEAR:
                 # g is 1 at the table cells; the mirror plane's rounding is not (it moves beta > 0)
                 col = road_brdf(NumpyOps, Q, self.wi, self.wo, self.variant, frozenset({k}) | (
-                    modifier_terms(Q) & {"round"}))
+                    modifier_terms(Q) & {"round"}), pairs=self.pairs)
                 out[k] = np.asarray(col, dtype=np.float64) * self.c3 / self.rmax
         return out
 

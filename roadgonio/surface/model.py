@@ -159,10 +159,27 @@ def rounded_beta(xp, beta, beta_round_deg, supplement=None):
     return rounded, supplement + beta * (bc * bc) / (s * (s + beta))
 
 
+def _lobe_base(xp, h):
+    """What a lobe (:func:`_lobe`) takes from its half-chord h alone: (cos Omega > 0, ln cos Omega, a zero)."""
+    hc = xp.minimum(h, 0.9999999)
+    return h < 1.0, xp.log1m(hc), 0.0 * h
+
+
+def _lobe_of(xp, base, n):
+    """(cos Omega)^n from :func:`_lobe_base`."""
+    inside, ln_cos, zero = base
+    return xp.where(inside, xp.exp(n * ln_cos), zero)
+
+
 def _lobe(xp, h, n):
     """(cos Omega)^n with cos Omega = 1 - h; 0 where the cosine is not positive."""
-    hc = xp.minimum(h, 0.9999999)
-    return xp.where(h < 1.0, xp.exp(n * xp.log1m(hc)), 0.0 * h)
+    return _lobe_of(xp, _lobe_base(xp, h), n)
+
+
+def _phong_h(xp, wi, wo):
+    wix, wiy, wiz = wi
+    wox, woy, woz = wo
+    return 0.5 * ((wox + wix) ** 2 + (woy + wiy) ** 2 + (woz - wiz) ** 2)
 
 
 def phong_lobe(xp, wi, wo, n):
@@ -170,10 +187,22 @@ def phong_lobe(xp, wi, wo, n):
     ``cos Omega = 1 - h`` with the half-chord ``h = |w_o - R(w_i)|^2 / 2`` (module docstring);
     ``wi``, ``wo`` component triples. The lobe's shape, once: :func:`road_brdf` and the density
     of the plugin's lobe sampling (``plugins/road_bsdf.py``) both take it from here."""
-    wix, wiy, wiz = wi
-    wox, woy, woz = wo
-    h = 0.5 * ((wox + wix) ** 2 + (woy + wiy) ** 2 + (woz - wiz) ** 2)
-    return _lobe(xp, h, n)
+    return _lobe(xp, _phong_h(xp, wi, wo), n)
+
+
+def _kept(pairs, key, make):
+    """``make()``, kept in ``pairs`` under ``key`` when the caller keeps one (:func:`road_brdf`)."""
+    if pairs is None or key is None:
+        return make()
+    v = pairs.get(key)
+    if v is None:
+        v = pairs[key] = make()
+    return v
+
+
+def _round_key(v):
+    """A parameter as a key of :func:`road_brdf`'s ``pairs``: plain numbers only (None: not kept)."""
+    return float(v) if isinstance(v, (int, float, np.floating)) and not isinstance(v, bool) else None
 
 
 def g_attenuation(xp, P: Mapping[str, Any], theta):
@@ -194,7 +223,7 @@ def _positive(v) -> bool:
 
 
 def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
-              terms: frozenset[str] | None = None):
+              terms: frozenset[str] | None = None, *, pairs: dict | None = None):
     """The road BRDF f_r (sr^-1) of paper eq. 4, for local unit vectors.
 
     Parameters
@@ -211,6 +240,12 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
     terms:
         Which terms to evaluate (see :func:`active_terms`); ``None`` means all. A term left out
         costs nothing.
+    pairs:
+        A dict that a caller evaluating the model many times on the same numpy directions keeps
+        for them (a fit: one per set of directions, never shared between two): what depends on the
+        directions alone (the angles, the lobes' ln cos, ln x or L at each rounding) is computed on
+        the first call and taken from it after, the same arrays, so the same numbers. None (the
+        plugin, single calls): everything computed.
     """
     if variant not in VARIANTS:
         raise InputError(f"unknown model variant {variant!r}; expected one of {', '.join(VARIANTS)}",
@@ -220,43 +255,58 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
             {"round"} if _positive(P.get("beta_round_deg", 0.0)) else set()))
     wix, wiy, wiz = wi
     wox, woy, woz = wo
-    zero = 0.0 * (wiz + woz)
+    zero = _kept(pairs, "zero", lambda: 0.0 * (wiz + woz))
     f = zero
     if "k_diff" in terms:
         f = f + P["k_diff"]
     if "k_phong" in terms:
-        f = f + P["k_phong"] * phong_lobe(xp, wi, wo, P["n_phong"])
+        f = f + P["k_phong"] * _lobe_of(xp, _kept(pairs, "phong", lambda: _lobe_base(xp, _phong_h(xp, wi, wo))),
+                                        P["n_phong"])
     if "k_retro" in terms:
         # half-chord to the source direction: cos Omega' = 1 - h'
-        h = 0.5 * ((wox - wix) ** 2 + (woy - wiy) ** 2 + (woz - wiz) ** 2)
-        f = f + P["k_retro"] * _lobe(xp, h, P["n_retro"])
+        f = f + P["k_retro"] * _lobe_of(xp, _kept(pairs, "retro", lambda: _lobe_base(
+            xp, 0.5 * ((wox - wix) ** 2 + (woy - wiy) ** 2 + (woz - wiz) ** 2))), P["n_retro"])
     if "k_exp" in terms or "g" in terms:
         # beta = pi where the azimuth is undefined, so E = 0 there (module docstring)
-        theta_i, theta_r, beta, beta_s = pair_angles(xp, wi, wo, pole=math.pi, supplement=True)
+        theta_i, theta_r, beta, beta_s = _kept(pairs, "angles", lambda: pair_angles(xp, wi, wo, pole=math.pi,
+                                                                                    supplement=True))
     if "k_exp" in terms:
+        # what follows from beta is kept per rounding of the mirror plane (the cusp's apart)
+        rkey = "cusp"
         if "round" in terms:
-            beta, beta_s = rounded_beta(xp, beta, P["beta_round_deg"], beta_s)
+            rounding = P["beta_round_deg"]
+            rkey = None if _round_key(rounding) is None else ("round", _round_key(rounding))
+            beta, beta_s = _kept(pairs, None if rkey is None else ("beta", rkey),
+                                 lambda: rounded_beta(xp, beta, rounding, beta_s))
         # x (power, product) and x_s (smooth) vanish at beta = pi: their logarithms take 1 - ... from
         # beta below pi/2 (log1m, accurate near 0) and from pi - beta above it (beta_s, accurate near
         # pi), floored at X_FLOOR, a float32 number too (1 - 1e-7 is not: it rounds to 1 - 1.19e-7)
-        near_pi = beta > 0.5 * math.pi
-        e = theta_i * theta_r * (1.0 / THETA_R_STAR)
-        cos_e = xp.cos(e)
-        f_e = xp.where(cos_e > 0.0, xp.sin(e) * cos_e / (cos_e * cos_e + P["mu"]), zero)
+        near_pi = _kept(pairs, None if rkey is None else ("near_pi", rkey), lambda: beta > 0.5 * math.pi)
+
+        def e_terms():
+            e = theta_i * theta_r * (1.0 / THETA_R_STAR)
+            cos_e = xp.cos(e)
+            return cos_e > 0.0, xp.sin(e) * cos_e, cos_e * cos_e
+        lit, sin_cos_e, cos2_e = _kept(pairs, "e", e_terms)
+        f_e = xp.where(lit, sin_cos_e / (cos2_e + P["mu"]), zero)
         ln_f = xp.log(xp.maximum(f_e, TINY))
         if variant != "smooth":
             # the paper's x = (pi - beta)/pi, ln x = ln(1 - beta/pi), and 1 + h f^2
-            ln_x = xp.where(near_pi, xp.log(xp.maximum(beta_s * (1.0 / math.pi), X_FLOOR)),
-                            xp.log1m(xp.minimum(beta * (1.0 / math.pi), 0.5)))
+            ln_x = _kept(pairs, None if rkey is None else ("ln_x", rkey), lambda: xp.where(
+                near_pi, xp.log(xp.maximum(beta_s * (1.0 / math.pi), X_FLOOR)),
+                xp.log1m(xp.minimum(beta * (1.0 / math.pi), 0.5))))
             arg = xp.minimum(1.0 + P["h"] * f_e * f_e, EXP_CAP)
         if variant == "smooth":
             # extension (module docstring): E = k f^p exp(-W L^n_beta), W = exp(1 + h sqrt f),
             # L = -ln cos^2(beta/2) = -log1m(sin^2(beta/2))
             ln_w = xp.minimum(1.0 + P["h"] * xp.sqrt(f_e), EXP_CAP)
-            s_half = xp.sin(0.5 * beta)                   # sin(beta/2)
-            c_half = xp.sin(0.5 * beta_s)                 # cos(beta/2)
-            L = xp.where(near_pi, -xp.log(xp.maximum(c_half * c_half, X_FLOOR)),
-                         -xp.log1m(xp.minimum(s_half * s_half, 0.5)))
+
+            def smooth_L():
+                s_half = xp.sin(0.5 * beta)                   # sin(beta/2)
+                c_half = xp.sin(0.5 * beta_s)                 # cos(beta/2)
+                return xp.where(near_pi, -xp.log(xp.maximum(c_half * c_half, X_FLOOR)),
+                                -xp.log1m(xp.minimum(s_half * s_half, 0.5)))
+            L = _kept(pairs, None if rkey is None else ("L", rkey), smooth_L)
             ln_wl = xp.minimum(ln_w + P["n_beta"] * xp.log(xp.maximum(L, TINY)), EXP_CAP)
             expo = P["p"] * ln_f - xp.where(L > 0.0, xp.exp(ln_wl), zero)
         elif variant == "power":

@@ -1196,6 +1196,29 @@ def _params():
     return out
 
 
+#: Fits made by the probes of this module, by what determines them (fit_table is reproducible for a
+#: seed: tests/unit/test_fit.py), so that R3, fitted by five probes before their second command, is
+#: fitted once: each probe checks what a command does around the fit (folders, names, messages), not
+#: the fit (~9 s each; the fit probes took 75 s, now ~25 s)
+_FITS: dict[tuple, Any] = {}
+
+
+@pytest.fixture(autouse=True)
+def _one_fit_per_table(monkeypatch):
+    import roadgonio.surface.fit as fitmod
+    real = fitmod.fit_table
+
+    def fit_table(table, variant=fitmod.DEFAULT_VARIANT, *, seed=0, fixed=None, progress=None, **kw):
+        key = (fitmod.table_hash(table), table.name, variant, seed, tuple(sorted((fixed or {}).items())),
+               tuple(sorted(kw.items())))
+        if key not in _FITS:
+            _FITS[key] = real(table, variant, seed=seed, fixed=fixed, progress=progress, **kw)
+        elif progress is not None:
+            progress(1, 1)
+        return _FITS[key]
+    monkeypatch.setattr(fitmod, "fit_table", fit_table)
+
+
 @pytest.mark.parametrize("p", _params())
 def test_probe(p: Probe, tmp_path, monkeypatch, request):
     if p.needs_mitsuba:

@@ -14,6 +14,13 @@ from roadgonio.road.luminaire import load_luminaire
 from roadgonio.surface.rtable import BUNDLED, bundled_table
 
 
+@pytest.fixture(autouse=True)
+def _in_tmp(tmp_path, monkeypatch):
+    """Commands run without --out write to their default folder (out/road-TABLES) under the current
+    folder: the test's, not the checkout's (they had left out/road-R3, road-hole, ... in it)."""
+    monkeypatch.chdir(tmp_path)
+
+
 def test_road_out_of_the_box_json(tmp_path, capsys):
     assert main(["road", "--table", "R3", "--out", str(tmp_path), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)

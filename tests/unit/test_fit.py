@@ -227,12 +227,18 @@ def test_resolve_sample_fits_caches_and_refits_corrupt_entries(tmp_path, monkeyp
     monkeypatch.setenv("ROADGONIO_CACHE", str(tmp_path / "cache"))
     assert cache_dir() == tmp_path / "cache"
     table_file = synthetic_table("power", name="mysurface").write(tmp_path / "mysurface.csv")
-    calls = []
+    calls, fits = [], []
     real = fitmod.fit_table
 
     def counting(*a, **kw):
+        # every call counted; the fit itself run once (~9 s): what is tested is when the cache
+        # fits and what it trusts, not the fit (its reproducibility: test_fit_is_reproducible_for_a_seed).
+        # A refit hands back the first fit's result, so a cached junk entry taken for a fit shows as
+        # params other than m1's, and a fit skipped as a count short
         calls.append(1)
-        return real(*a, **kw)
+        if not fits:
+            fits.append(real(*a, **kw))
+        return fits[0]
 
     monkeypatch.setattr(fitmod, "fit_table", counting)
     m1 = resolve_sample(str(table_file)).model

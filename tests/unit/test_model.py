@@ -485,3 +485,29 @@ def test_empirical_term_in_float32_near_beta_180_is_as_good_as_its_conditioning(
                     - np.log(road_brdf(NumpyOps, P, *dirs(np.abs(gamma - d)), variant))) / (2 * d) / math.sin(tr))
     ratio = np.abs(got / ref - 1) / (F32_EVAL_RTOL + F32_KAPPA_TOL * kappa)
     assert ratio.max() <= 1.0, (float(ratio.max()), float(gamma[np.argmax(ratio)]))
+
+
+@pytest.mark.parametrize("variant", VARIANTS)
+def test_what_a_fit_keeps_of_its_directions_gives_the_same_numbers(variant):
+    """road_brdf's ``pairs`` (a fit's dict of what the directions alone determine: the angles, the
+    lobes' ln cos, ln x or L at each rounding) gives bit for bit what a call without it gives, over
+    a fit-like sequence of parameters on the same directions: every term alone and together, three
+    roundings of the mirror plane met in turn and again, g on and off."""
+    rng = np.random.default_rng(11)
+    n = 400
+    wi, wo = rand_dirs(rng, n), rand_dirs(rng, n)
+    wo[:20] = wi[:20] * np.array([-1.0, -1.0, 1.0])          # the mirror direction: beta = 0
+    wo[20:40] = wi[20:40]                                    # the source direction: beta = 180 deg
+    wi[40:45] = (0.0, 0.0, 1.0)                              # azimuth undefined: beta the pole
+    wi_t, wo_t = tuple(wi.T), tuple(wo.T)
+    pairs: dict = {}
+    for rounding in (0.0, 1.12, 0.0, 0.5, 1.12):
+        P = {**rand_params(rng, h_max=5.0), "n_beta": rng.uniform(0.5, 4.0), "beta_round_deg": rounding}
+        terms = [None, *(frozenset({k}) | (frozenset({"round"}) if rounding > 0 else frozenset())
+                         for k in ("k_diff", "k_phong", "k_retro", "k_exp"))]
+        for t in terms:
+            with np.errstate(all="ignore"):
+                kept = road_brdf(NumpyOps, P, wi_t, wo_t, variant, t, pairs=pairs)
+                fresh = road_brdf(NumpyOps, P, wi_t, wo_t, variant, t)
+            np.testing.assert_array_equal(kept, fresh, err_msg=f"rounding {rounding}, terms {t}")
+    assert ("beta", ("round", 0.5)) in pairs and ("beta", ("round", 1.12)) in pairs
