@@ -129,8 +129,8 @@ class SurfaceSettings:
     #: sequence of them = every backbone variant fitted once with each rounding, all weighed by their
     #: evidence (roadgonio.correction.outside). The default keeps the cusp (MIRROR_PLANES["cusp"]):
     #: rounding alone breaks surfaces whose cusp is real; weighing both ("both") helps the smooth truths
-    #: but chose the rounding on an eq. 4 truth once in four, and doubles the time (docs/correction.md,
-    #: "The backbone's cusp at the mirror plane")
+    #: and keeps the eq. 4 truth at 1.4-1.9 times the time; not yet re-timed over four realisations
+    #: (docs/correction.md, "Both, weighed by their evidence")
     mirror_round_deg: float | None | tuple[float | None, ...] = MIRROR_PLANES["cusp"]
 
     def __post_init__(self):

@@ -511,3 +511,41 @@ def test_what_a_fit_keeps_of_its_directions_gives_the_same_numbers(variant):
                 fresh = road_brdf(NumpyOps, P, wi_t, wo_t, variant, t)
             np.testing.assert_array_equal(kept, fresh, err_msg=f"rounding {rounding}, terms {t}")
     assert ("beta", ("round", 0.5)) in pairs and ("beta", ("round", 1.12)) in pairs
+
+
+def test_a_forward_model_keeps_what_its_rays_directions_give_across_fits(monkeypatch):
+    """ForwardModel keeps road_brdf's ``pairs`` for its rays and its nominal directions (the
+    correction's fits evaluate the same rays thousands of times: the pair angles were 10.9 s of a
+    57.6 s correction, two_lobes through A). Its columns are bit for bit those computed afresh,
+    over the three variants in turn, two roundings and g on and off, and the angles of its rays and
+    of its nominal directions are computed once each, not at every new set of parameters."""
+    from roadgonio.engines.bundle import LINEAR_TERMS, ForwardModel, RayBundles, _terms_for
+    from roadgonio.engines.bundle import _unit as unit_coefficients
+    from roadgonio.instrument.config import load_instrument
+    import roadgonio.surface.model as M
+    cells = [(6.0, 0.0), (2.0, 0.0), (1.0, 30.0), (12.0, 5.0), (0.5, 180.0)]
+    fm = ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=64))
+    b = fm.bundles
+    calls = []
+    real = M.pair_angles
+    monkeypatch.setattr(M, "pair_angles", lambda *a, **k: calls.append(1) or real(*a, **k))
+    rng = np.random.default_rng(5)
+    own = 0
+    for variant, rounding, g_t in (("power", 0.0, 0.0), ("smooth", 1.12, -2.0), ("product", 0.0, 0.0),
+                                   ("power", 1.12, -2.0), ("smooth", 0.0, 0.0)):
+        P = {**RoadParams().to_dict(), **rand_params(rng, h_max=5.0), "n_beta": rng.uniform(0.5, 4.0),
+             "beta_round_deg": rounding, "g_t": g_t, "g_c": 1.0, "g_a": 0.1, "g_b": 0.0, "theta_l_deg": 60.0}
+        n0 = len(calls)
+        B, N = fm.columns(P, variant)
+        nominal = fm.nominal_columns(P, variant)
+        own += len(calls) - n0
+        Q = unit_coefficients(P)
+        for j, t in enumerate(LINEAR_TERMS):
+            with np.errstate(all="ignore"):
+                f = M.road_brdf(NumpyOps, Q, b.wi, b.wo, variant, _terms_for(t, P))
+                f0 = M.road_brdf(NumpyOps, Q, fm.wi0, fm.wo0, variant, _terms_for(t, P))
+            np.testing.assert_array_equal(B[:, j], b.cell_sum(np.broadcast_to(f, b.a.shape)),
+                                          err_msg=f"{variant}, rounding {rounding}, {t}")
+            np.testing.assert_array_equal(N[:, j], np.broadcast_to(f0, (b.n_cells,)), err_msg=f"{variant}, {t}")
+            np.testing.assert_array_equal(nominal[:, j], N[:, j])
+    assert own == 2, own                     # once for the rays, once for the nominal directions
