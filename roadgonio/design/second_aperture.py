@@ -235,15 +235,18 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
                                    note="the instrument's own setting: measuring it twice (a baseline, not ranked)",
                                    own=True))
             continue
+        # (the reason by name: given eighth it was taken for the signal, and the ranking's
+        # signal >= min_signal raised a TypeError for any grid with such a setting)
         try:
             fm_b = ForwardModel(RayBundles.build(inst_b, cells, rays=rays, seed=seed + 1))
         except InputError as err:
             cands.append(Candidate(f"#{k + 1}", dict(point), None, math.inf, math.inf, math.inf, math.inf,
-                                   f"not feasible: {err.reason}"))
+                                   signal=float(relative_signal(inst_b, instrument)),
+                                   note=f"not feasible: {err.reason}"))
             continue
         except Exception as err:  # noqa: BLE001 - a geometry the second setting cannot measure
             cands.append(Candidate(f"#{k + 1}", dict(point), None, math.inf, math.inf, math.inf, math.inf,
-                                   f"not feasible: {err}"))
+                                   signal=float(relative_signal(inst_b, instrument)), note=f"not feasible: {err}"))
             continue
         part_b = FlexPart(fm_b, backbone, settings)
         c = evaluate([part_a, part_b], [u_rel, u_rel], [table, table], f"#{k + 1}", dict(point), inst_b)

@@ -600,26 +600,32 @@ def test_equally_bright_designs_are_ranked_by_max_deviation():
     assert best_point([1.0, 2.0], [0.01, 0.02], [True, False]) == 0 and best_point([1.0], [0.01], [False]) == -1
 
 
-@pytest.mark.slow            # two surface fits and three settings' bundles, ~40 s: in CI by -m slow
+@pytest.mark.slow            # two surface fits and four settings' bundles, ~25 s: in CI by -m slow
 def test_second_aperture_does_not_recommend_the_instrument_itself():
     """trial 12 D2: a --vary grid that holds the instrument's own setting recommended it as the "best
     second setting" (its second measurement is the "measured twice" baseline, evaluated again with
     other bundles: it won by noise). It is the baseline, not a candidate; the counts say how many
-    settings were below --min-signal; when no other setting has the signal, one line says so and
-    names the brightest."""
+    settings were below --min-signal (evaluated all the same: the table and the plot show them) and
+    how many cannot measure every cell (0.5 deg: the footprint leaves the sample; its reason was
+    given where the signal goes, and the ranking raised a TypeError comparing it with --min-signal).
+    When no other setting has the signal, one line says so and names the brightest."""
     from roadgonio import api
+    key = "detector.field_half_angle_deg"
     own = load_instrument("portable").detector.field_half_angle_deg
-    vary = [f"detector.field_half_angle_deg={own:g},0.1,0.05"]
+    vary = [f"{key}={own:g},0.1,0.05,0.5"]
     res = api.second_aperture("portable", vary, sample="R3", model_variant="smooth", rays=8, min_signal=0.3,
                               plots=False)
-    mine = [c for c in res.candidates if c.changes["detector.field_half_angle_deg"] == own]
-    assert len(mine) == 1 and mine[0].own and "measuring it twice" in mine[0].note
-    assert mine[0].u_median == res.baselines[1].u_median          # the twice baseline, not a new estimate
-    assert res.best.changes["detector.field_half_angle_deg"] == 0.1 and not res.best.own
-    assert res.counts() == {"ranked": 1, "own_setting": 1, "not_feasible": 0, "below_min_signal": 1}
+    by = {c.changes[key]: c for c in res.candidates}
+    assert [c.changes[key] for c in res.candidates if c.own] == [own] and "measuring it twice" in by[own].note
+    assert by[own].u_median == res.baselines[1].u_median          # the twice baseline, not a new estimate
+    assert res.best.changes[key] == 0.1 and not res.best.own
+    assert res.counts() == {"ranked": 1, "own_setting": 1, "not_feasible": 1, "below_min_signal": 1}
+    assert math.isfinite(by[0.05].u_median) and "below 0.3" in by[0.05].note
+    assert by[0.5].note.startswith("not feasible: ") and "footprint leaves the sample" in by[0.5].note
+    assert by[0.5].u_median == math.inf and by[0.5].signal == pytest.approx(11.11, rel=1e-3)
     with pytest.raises(InputError, match=r"other than the instrument's own keeps 0.5 .* keeps 0\.444"):
-        api.second_aperture("portable", [f"detector.field_half_angle_deg={own:g},0.1"], sample="R3", model_variant="smooth", rays=8, min_signal=0.5,
-                            plots=False)
+        api.second_aperture("portable", [f"{key}={own:g},0.1"], sample="R3", model_variant="smooth", rays=8,
+                            min_signal=0.5, plots=False)
 
 
 def test_min_signal_takes_a_percentage_as_tolerance_and_u_measured_do():
