@@ -220,8 +220,9 @@ def _json_summary(res) -> dict:
     if "fit" in s:
         out["fit"] = {k: s["fit"][k] for k in ("variant", "chi2", "dof", "birge_ratio", "chi2_p_value", "misfit", "misfit_note", "birge_local_max",
                                                "cells_widened", "widening_max") if k in s["fit"]}
-    out["resumed_cells"] = _resumed(st.get("backend") for st in (s.get("steps") or []))
-    out["resumed_pass_cells"] = _resumed((st.get("backend") for st in (s.get("steps") or [])), "resumed_pass_cells")
+    infos = [st.get("backend") for st in (s.get("steps") or [])]
+    out["resumed_cells"] = _resumed(infos)
+    out["resumed_pass_cells"] = _resumed(infos, "resumed_pass_cells")
     out["resumed_surfaces"] = _resumed_surfaces((s.get("fit") or {}).get("variants"))
     out["out"] = str(res.out)
     return out

@@ -654,7 +654,9 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
                       nominal: Sequence[tuple[int, int]] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
     """:func:`discrepancy_covariance` of instrument ``parts`` (:class:`roadgonio.correction.flexible.FlexPart`)
     sharing the surface ``theta``, the amplitude from the (weight, smoothing parameters) pairs.
-    ``blurs`` caches each part's blur by ``id(part)`` (a design evaluates one part against many);
+    ``blurs`` caches each part's blur under the part itself (a design evaluates one part against
+    many; not under ``id(part)``: CPython gives a freed object's id to a later one, so a setting's
+    part freed after its evaluation could hand its blur to the next);
     the same part twice (one setting measured twice) has the same blur, so its discrepancy is fully
     correlated between the two: repetition does not average it away. ``nominal``: further estimates
     after the parts' cells, the fitted model's own value at the nominal direction of cell k of part
@@ -672,9 +674,9 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     sig2 = sum(w * amplitude_from_penalty(lam, region) for w, lam in weighted_lam)
     cache = {} if blurs is None else blurs
     for p in parts:
-        if id(p) not in cache:
-            cache[id(p)] = part_blurs(p, theta, ell)
-    n_comp = len(cache[id(parts[0])])
+        if p not in cache:
+            cache[p] = part_blurs(p, theta, ell)
+    n_comp = len(cache[parts[0]])
     by_part = {}
     for j, (i, k) in enumerate(nominal):
         by_part.setdefault(i, []).append((j, k))
@@ -685,7 +687,7 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     perm = np.concatenate([np.arange(n_par), n_par + order]).astype(np.int64) if nominal else None
     R = 0.0
     for c in range(n_comp):                # the components of delta (discrepancy.pole_components): brackets add
-        bl = [cache[id(p)][c] for p in parts] + [nominal_blur(cache[id(parts[i])][c], [k for _, k in g])
+        bl = [cache[p][c] for p in parts] + [nominal_blur(cache[parts[i]][c], [k for _, k in g])
                                                  for i, g in groups]
         Rc = discrepancy_correlation(bl, ell)
         R = R + (Rc if perm is None else Rc[np.ix_(perm, perm)])

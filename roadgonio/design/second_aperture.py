@@ -41,7 +41,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -135,6 +135,15 @@ def _changes(changes: dict[str, float]) -> str:
     return ", ".join(f"{k} = {v:g}" for k, v in changes.items())
 
 
+def _refuse(min_signal: float, own: bool, closest: tuple[dict[str, float], float] | None) -> NoReturn:
+    """No second setting to rank: one line, naming the brightest that can measure (``closest``:
+    its changes and signal) when there is one."""
+    raise InputError("no second setting of the --vary grid " + ("other than the instrument's own " if own else "")
+                     + f"keeps {min_signal:g} of the instrument's signal and can measure every cell"
+                     + (f" (the brightest, {_changes(closest[0])}, keeps {closest[1]:.3g}; a lower --min-signal "
+                        "ranks it)" if closest is not None else ""), field="vary")
+
+
 def check_second_keys(instrument: Instrument, specs) -> None:
     """Refuse, before any work, a varied key the prediction cannot honour: its ray bundles go through
     the optics alone, so no housing or scene key, and (:func:`roadgonio.design.grid.check_vary`)
@@ -192,6 +201,36 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
         u_grid, _ = measured_uncertainty(u_measured, table)
         u = u_grid[table.mask]
         source = f"sample {getattr(model, 'name', sample)} (noise-free, through the instrument)"
+    # every grid point's instrument and signal, and whether a second setting that would be ranked can
+    # measure every cell, before the surface is fitted (the fits take tens of seconds): none of it needs the
+    # surface, and a grid with no second setting to rank is refused at once
+    points = grid_points(specs)
+    insts = [build_instrument(instrument, point) for point in points]
+    own = [inst_b.to_dict() == instrument.to_dict() for inst_b in insts]
+    signal = [1.0 if own[k] else float(relative_signal(inst_b, instrument)) for k, inst_b in enumerate(insts)]
+    forward: dict[int, Any] = {}
+
+    def forward_of(k: int):
+        """Grid point k's forward model, or why its setting cannot measure every cell (built once)."""
+        if k not in forward:
+            try:
+                forward[k] = ForwardModel(RayBundles.build(insts[k], cells, rays=rays, seed=seed + 1))
+            except InputError as err:
+                forward[k] = f"not feasible: {err.reason}"
+            except Exception as err:  # noqa: BLE001 - a geometry the second setting cannot measure
+                forward[k] = f"not feasible: {err}"
+        return forward[k]
+
+    def feasible(k: int) -> bool:
+        return not isinstance(forward_of(k), str)
+
+    others = [k for k in range(len(points)) if not own[k]]
+    # any() stops at the first that can measure: the others' bundles are built as they are evaluated
+    if not any(feasible(k) for k in others if signal[k] >= min_signal):
+        dim = sorted((k for k in others if not signal[k] >= min_signal), key=lambda k: -signal[k])
+        closest = next((k for k in dim if feasible(k)), None)
+        _refuse(min_signal, any(own), None if closest is None else (dict(points[closest]), signal[closest]))
+
     # the backbone the correction would take: correct --forward surface fits every variant of
     # DEFAULT_VARIANTS at every rounding of the mirror plane and weighs them by their evidence; the
     # prediction takes the one of larger evidence, or the variant asked for
@@ -223,31 +262,30 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
                  evaluate([part_a, part_a], [u_rel, u_rel], [table, table], "twice", {}, instrument,
                           "the same setting measured twice (repetition only)")]
     cands = []
-    points = grid_points(specs)
     for k, point in enumerate(points):
-        inst_b = build_instrument(instrument, point)
-        if inst_b.to_dict() == instrument.to_dict():
+        if own[k]:
             # the grid point is the instrument itself: a second measurement with it is the "twice"
             # baseline (trial 12 D2: evaluated again with other bundles it won by noise and was
             # recommended as the "best second setting")
             t = baselines[1]
-            cands.append(Candidate(f"#{k + 1}", dict(point), inst_b, t.u_median, t.u_rms, t.u_max, t.u_s1_rel,
+            cands.append(Candidate(f"#{k + 1}", dict(point), insts[k], t.u_median, t.u_rms, t.u_max, t.u_s1_rel,
                                    note="the instrument's own setting: measuring it twice (a baseline, not ranked)",
                                    own=True))
             continue
-        try:
-            fm_b = ForwardModel(RayBundles.build(inst_b, cells, rays=rays, seed=seed + 1))
-        except InputError as err:
+        fm_b = forward_of(k)
+        forward.pop(k)                       # evaluated once: its bundles need not outlive it
+        if isinstance(fm_b, str):
+            # (the reason by name: given eighth it was taken for the signal, and the ranking's
+            # signal >= min_signal raised a TypeError for any grid with such a setting)
             cands.append(Candidate(f"#{k + 1}", dict(point), None, math.inf, math.inf, math.inf, math.inf,
-                                   f"not feasible: {err.reason}"))
+                                   signal=signal[k], note=fm_b))
             continue
-        except Exception as err:  # noqa: BLE001 - a geometry the second setting cannot measure
-            cands.append(Candidate(f"#{k + 1}", dict(point), None, math.inf, math.inf, math.inf, math.inf,
-                                   f"not feasible: {err}"))
-            continue
+        # below min_signal it is evaluated all the same: the table and the plot show what the
+        # light given up would buy (what a lower --min-signal would rank)
         part_b = FlexPart(fm_b, backbone, settings)
-        c = evaluate([part_a, part_b], [u_rel, u_rel], [table, table], f"#{k + 1}", dict(point), inst_b)
-        c.signal = float(relative_signal(inst_b, instrument))
+        c = evaluate([part_a, part_b], [u_rel, u_rel], [table, table], f"#{k + 1}", dict(point), insts[k])
+        blurs.pop(part_b, None)
+        c.signal = signal[k]
         if not c.signal >= min_signal:
             c.note = f"signal {c.signal:.3g} below {min_signal:g} of the instrument's"
         cands.append(c)
@@ -256,13 +294,10 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
             print(f"roadgonio design: second aperture {k + 1}/{len(points)}", file=sys.stderr, flush=True)
     cands.sort(key=lambda c: (not c.ranked(min_signal), c.u_median, c.u_s1_rel))
     if not (cands and cands[0].ranked(min_signal)):
-        others = [c for c in cands if not c.own and math.isfinite(c.u_median)]
-        closest = max(others, key=lambda c: c.signal) if others else None
-        raise InputError("no second setting of the --vary grid " + ("other than the instrument's own " if
-                                                                   any(c.own for c in cands) else "")
-                         + f"keeps {min_signal:g} of the instrument's signal and can measure every cell"
-                         + (f" (the brightest, {_changes(closest.changes)}, keeps {closest.signal:.3g}; a lower "
-                            "--min-signal ranks it)" if closest is not None else ""), field="vary")
+        # every setting that could measure gave a u that is not finite (not seen): refused as above
+        measured_ok = [c for c in cands if not c.own and math.isfinite(c.u_median)]
+        closest = max(measured_ok, key=lambda c: c.signal) if measured_ok else None
+        _refuse(min_signal, any(own), None if closest is None else (closest.changes, closest.signal))
     return SecondApertureResult(instrument=instrument, surface_from=source, candidates=cands, baselines=baselines,
                                 keys=[s.key for s in specs], seconds=time.perf_counter() - t0,
                                 settings={"u_measured": str(u_measured), "rays": rays, "seed": seed,

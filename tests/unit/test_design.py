@@ -600,26 +600,82 @@ def test_equally_bright_designs_are_ranked_by_max_deviation():
     assert best_point([1.0, 2.0], [0.01, 0.02], [True, False]) == 0 and best_point([1.0], [0.01], [False]) == -1
 
 
-@pytest.mark.slow            # two surface fits and three settings' bundles, ~40 s: in CI by -m slow
+@pytest.mark.slow            # two surface fits and four settings' bundles, ~13 s: in CI by -m slow
 def test_second_aperture_does_not_recommend_the_instrument_itself():
     """trial 12 D2: a --vary grid that holds the instrument's own setting recommended it as the "best
     second setting" (its second measurement is the "measured twice" baseline, evaluated again with
     other bundles: it won by noise). It is the baseline, not a candidate; the counts say how many
-    settings were below --min-signal; when no other setting has the signal, one line says so and
-    names the brightest."""
+    settings were below --min-signal (evaluated all the same: the table and the plot show them) and
+    how many cannot measure every cell (0.5 deg: the footprint leaves the sample; its reason was
+    given where the signal goes, and the ranking raised a TypeError comparing it with --min-signal).
+    The refusal when no other setting has the signal: the next test."""
     from roadgonio import api
+    key = "detector.field_half_angle_deg"
     own = load_instrument("portable").detector.field_half_angle_deg
-    vary = [f"detector.field_half_angle_deg={own:g},0.1,0.05"]
+    vary = [f"{key}={own:g},0.1,0.05,0.5"]
     res = api.second_aperture("portable", vary, sample="R3", model_variant="smooth", rays=8, min_signal=0.3,
                               plots=False)
-    mine = [c for c in res.candidates if c.changes["detector.field_half_angle_deg"] == own]
-    assert len(mine) == 1 and mine[0].own and "measuring it twice" in mine[0].note
-    assert mine[0].u_median == res.baselines[1].u_median          # the twice baseline, not a new estimate
-    assert res.best.changes["detector.field_half_angle_deg"] == 0.1 and not res.best.own
-    assert res.counts() == {"ranked": 1, "own_setting": 1, "not_feasible": 0, "below_min_signal": 1}
-    with pytest.raises(InputError, match=r"other than the instrument's own keeps 0.5 .* keeps 0\.444"):
-        api.second_aperture("portable", [f"detector.field_half_angle_deg={own:g},0.1"], sample="R3", model_variant="smooth", rays=8, min_signal=0.5,
-                            plots=False)
+    by = {c.changes[key]: c for c in res.candidates}
+    assert [c.changes[key] for c in res.candidates if c.own] == [own] and "measuring it twice" in by[own].note
+    assert by[own].u_median == res.baselines[1].u_median          # the twice baseline, not a new estimate
+    assert res.best.changes[key] == 0.1 and not res.best.own
+    assert res.counts() == {"ranked": 1, "own_setting": 1, "not_feasible": 1, "below_min_signal": 1}
+    assert math.isfinite(by[0.05].u_median) and "below 0.3" in by[0.05].note
+    assert by[0.5].note.startswith("not feasible: ") and "footprint leaves the sample" in by[0.5].note
+    assert by[0.5].u_median == math.inf and by[0.5].signal == pytest.approx(11.11, rel=1e-3)
+
+
+class _Fitted(Exception):
+    """Raised in place of the surface fit: the refusal must come before it."""
+
+
+def test_second_aperture_with_no_second_setting_to_rank_is_refused_before_any_fit(monkeypatch):
+    """When no setting of the grid but the instrument's own keeps --min-signal of its signal and can
+    measure every cell, the command says so in one line naming the brightest that can (trial 12 D2),
+    and it said so only after fitting the surface and evaluating every setting (12 s with 8 rays,
+    ~40 s with the default 512): the signals and the ray bundles' feasibility need no surface. The
+    fits raise here, so a refusal after them fails; a setting that would be ranked has its bundles
+    built before the fit, and only the first of them that can measure (the others as they are
+    evaluated, after the fit)."""
+    from roadgonio import api
+    from roadgonio.correction import flexible, run
+    from roadgonio.engines import bundle
+    from roadgonio.surface.model import RoadModel
+
+    def no_fit(*args, **kwargs):
+        raise _Fitted
+    monkeypatch.setattr(run, "fit_self", no_fit)
+    monkeypatch.setattr(flexible, "fit_surface", no_fit)
+    built = []
+    real = bundle.RayBundles.build.__func__
+    monkeypatch.setattr(bundle.RayBundles, "build", classmethod(
+        lambda cls, inst, *a, **k: built.append(inst.detector.field_half_angle_deg) or real(cls, inst, *a, **k)))
+    key = "detector.field_half_angle_deg"
+    own = load_instrument("portable").detector.field_half_angle_deg
+
+    def second(values, min_signal):
+        built.clear()
+        return api.second_aperture("portable", [f"{key}={','.join(f'{v:g}' for v in values)}"],
+                                   sample=RoadModel.lambert(), rays=8, min_signal=min_signal, plots=False)
+
+    # the own setting and one at 0.444 of the signal
+    with pytest.raises(InputError, match=rf"other than the instrument's own keeps 0.5 of the instrument's signal and "
+                                         rf"can measure every cell \(the brightest, {key} = 0.1, keeps 0\.444; a lower "
+                                         r"--min-signal ranks it\)"):
+        second([own, 0.1], 0.5)
+    # 0.5 deg: 11 times the signal, its footprint leaves the sample (not feasible); the dimmer of 0.1
+    # and 0.05 is not the one named
+    with pytest.raises(InputError, match=rf"grid keeps 0.5 of the instrument's signal and can measure every cell "
+                                         rf"\(the brightest, {key} = 0.1, keeps 0\.444;") as err:
+        second([0.5, 0.05, 0.1], 0.5)
+    assert "other than" not in str(err.value) and built == [own, 0.5, 0.1]   # 0.05 (dimmer than 0.1): not built
+    # nothing feasible at all: nothing to name
+    with pytest.raises(InputError, match=r"can measure every cell$"):
+        second([0.5, 1.0], 0.0)
+    # a setting to rank: on to the fit, with the bundles of the first that can measure only
+    with pytest.raises(_Fitted):
+        second([own, 0.5, 0.1, 0.05], 0.3)
+    assert built == [own, 0.5, 0.1]
 
 
 def test_min_signal_takes_a_percentage_as_tolerance_and_u_measured_do():

@@ -240,6 +240,14 @@ def test_correct_says_how_many_k_a_cells_continued_from_their_pass_state(tmp_pat
         "  resumed: 15 k_A cells and 1 correction surface from the output folder's journals; 5 k_A cells "
         "continued after their last completed pass")
     assert _resumed_line(0, 0, 1) == "  resumed: 1 k_A cell continued after its last completed pass"
+    # correct --json counts both from the same steps (one list: a generator built once and summed
+    # twice would give 0 continued cells the second time)
+    from collections import defaultdict
+    from types import SimpleNamespace
+    from roadgonio.cli.correct import _json_summary
+    res = SimpleNamespace(summary=lambda: defaultdict(float, steps=[{"backend": info}, {"backend": done}]), out=tmp_path)
+    got = _json_summary(res)
+    assert (got["resumed_cells"], got["resumed_pass_cells"], got["resumed_surfaces"]) == (15, 5, 0)
     assert _resumed_line(0, 0, 0) is None
 
 
