@@ -238,7 +238,7 @@ class FlexPart:
         self.forward, self.backbone, self.settings = forward, backbone, settings
         self.n = b.n_cells
         with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-            f0 = np.asarray(backbone.evaluate(NumpyOps, b.wi, b.wo), dtype=np.float64)
+            f0 = forward.ray_brdf(backbone)
             self.f0_nominal = np.asarray(backbone.brdf(b.wi0, b.wo0[None, :]), dtype=np.float64)
         self.af0 = np.broadcast_to(f0, b.a.shape) * b.a
         self.cell_of = np.repeat(np.arange(self.n), b.rays_per_cell)
@@ -341,12 +341,12 @@ class FlexPart:
             steps.append((f"z_{name}", {name: _from_z(name, z + h)}, {name: _from_z(name, z - h)}))
         rays, nom = [], []
         with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-            f_rays = np.asarray(self.backbone.evaluate(NumpyOps, b.wi, b.wo), dtype=np.float64)
+            f_rays = self.forward.ray_brdf(self.backbone)
             for _, up, down in steps:
                 fr, fn = [], []
                 for change in (up, down):
                     m = RoadModel(self.backbone.params.replace(**change), variant=self.backbone.variant)
-                    fr.append(np.asarray(m.evaluate(NumpyOps, b.wi, b.wo), dtype=np.float64))
+                    fr.append(self.forward.ray_brdf(m))
                     fn.append(np.asarray(m.brdf(b.wi0, b.wo0[None, :]), dtype=np.float64))
                 rays.append(np.where(f_rays > 0, (fr[0] - fr[1]) / (2 * h * np.where(f_rays > 0, f_rays, 1.0)), 0.0))
                 nom.append((fn[0] - fn[1]) / (2 * h * self.f0_nominal))

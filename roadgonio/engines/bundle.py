@@ -374,14 +374,18 @@ class ForwardModel:
         r = self.bundles.cos3 * self.kappa * mean
         return r if rho is None else r * rho
 
-    def k_a_se(self, model: RoadModel) -> np.ndarray:
-        """Standard error of the bundle's k_A (spread over the replicates, delta method)."""
-        P = model.params.to_dict()
-        Q = dict(P)
-        terms = model.terms()
+    def ray_brdf(self, model: RoadModel) -> np.ndarray:
+        """f_r of ``model`` at every ray (float64), what the directions alone give taken from the
+        kept ``pairs`` (the same numbers as ``model.evaluate`` at the rays)."""
         b = self.bundles
         with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-            f = np.asarray(road_brdf(NumpyOps, Q, b.wi, b.wo, model.variant, terms), dtype=np.float64)
+            return np.asarray(road_brdf(NumpyOps, model.params.to_dict(), b.wi, b.wo, model.variant, model.terms(),
+                                        pairs=self._pairs_rays), dtype=np.float64)
+
+    def k_a_se(self, model: RoadModel) -> np.ndarray:
+        """Standard error of the bundle's k_A (spread over the replicates, delta method)."""
+        b = self.bundles
+        f = self.ray_brdf(model)
         road = b.segment_sum(np.broadcast_to(f, b.a.shape))
         _, nom = self.model_columns_total(model)
         se = np.array([ratio_se(road[c], b.rep_share[c])[1] for c in range(b.n_cells)])

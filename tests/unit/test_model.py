@@ -516,7 +516,8 @@ def test_what_a_fit_keeps_of_its_directions_gives_the_same_numbers(variant):
 def test_a_forward_model_keeps_what_its_rays_directions_give_across_fits(monkeypatch):
     """ForwardModel keeps road_brdf's ``pairs`` for its rays and its nominal directions (the
     correction's fits evaluate the same rays thousands of times: the pair angles were 10.9 s of a
-    57.6 s correction, two_lobes through A). Its columns are bit for bit those computed afresh,
+    57.6 s correction, two_lobes through A). Its columns and its f_r at the rays (``ray_brdf``,
+    the correction surface's backbone) are bit for bit those computed afresh,
     over the three variants in turn, two roundings and g on and off, and the angles of its rays and
     of its nominal directions are computed once each, not at every new set of parameters."""
     from roadgonio.engines.bundle import LINEAR_TERMS, ForwardModel, RayBundles, _terms_for
@@ -538,7 +539,12 @@ def test_a_forward_model_keeps_what_its_rays_directions_give_across_fits(monkeyp
         n0 = len(calls)
         B, N = fm.columns(P, variant)
         nominal = fm.nominal_columns(P, variant)
+        model = RoadModel(RoadParams(**{**{k: v for k, v in P.items() if k in RoadParams().to_dict()},
+                                        "theta_l_deg": 88.0}), variant=variant)     # (RoadParams: > 85.3 deg)
+        at_rays = fm.ray_brdf(model)
         own += len(calls) - n0
+        with np.errstate(all="ignore"):
+            np.testing.assert_array_equal(at_rays, model.evaluate(NumpyOps, b.wi, b.wo), err_msg=variant)
         Q = unit_coefficients(P)
         for j, t in enumerate(LINEAR_TERMS):
             with np.errstate(all="ignore"):
