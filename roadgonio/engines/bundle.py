@@ -288,6 +288,10 @@ class ForwardModel:
         # of a 57.6 s correction, two_lobes through A, cProfile)
         self._pairs_rays: dict = {}
         self._pairs_nominal: dict = {}
+        #: What callers above derive from the rays' directions alone and keep with the bundles, keyed
+        #: by the caller (the correction surface's sparse operators, :mod:`roadgonio.correction.flexible`:
+        #: one build shared by every backbone's fit through these rays)
+        self.derived: dict = {}
         mean_ref = nom_ref = None
         if self.mode == "absolute" and eta is None:
             eta = np.array([illuminance_ratio(inst, t, b)[0] for t, b in bundles.cells])

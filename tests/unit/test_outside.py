@@ -506,3 +506,44 @@ def test_only_backbones_of_non_negligible_weight_enter_the_covariance():
     assert [v.name for v in contributing(vf)] == [0, 1, 2]
     many = [SimpleNamespace(weight=w, name=i) for i, w in enumerate(_weights([0.0] * 64))]
     assert len(contributing(many)) == 64
+
+
+def test_the_surface_at_the_rays_and_its_jacobian_against_the_spline_and_differences(r3like):
+    """FlexPart's sparse operators (surface_operators, built once per forward model) against the
+    spline evaluated afresh at every ray (g_C + l(alpha) g_D by spline_value) and the Jacobian of
+    the cells' means against central differences in theta (C and D coefficients); a second backbone
+    through the same rays shares the operators, other knots build their own."""
+    from dataclasses import replace
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.correction_surface import alpha_coordinate
+    from roadgonio.surface.model import RoadModel
+    cells = [(12.0, 0.0), (6.0, 5.0), (2.0, 20.0), (0.5, 90.0), (0.0, 0.0)]
+    settings = SurfaceSettings()
+    fm = ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=64))
+    part = FlexPart(fm, r3like, settings)
+    rng = np.random.default_rng(5)
+    theta = rng.normal(0.0, 0.05, part.n_params)
+    b = fm.bundles
+    n_c = settings.n_c
+    g_c = spline_value(NumpyOps, settings.c_grid, settings.c_grid.padded_matrix() @ theta[:n_c], b.wi, b.wo)
+    g_d = spline_value(NumpyOps, settings.d_grid, settings.d_grid.padded_matrix() @ theta[n_c:], b.wi, b.wo)
+    expect = np.asarray(g_c) + np.asarray(alpha_coordinate(NumpyOps, b.wo)) * np.asarray(g_d)
+    assert np.allclose(part.g_rays(theta), np.broadcast_to(expect, b.a.shape), rtol=0, atol=ROUND_OFF)
+    mean, J = part.mean_and_jacobian(theta)
+    h = 1e-5
+    picks = np.concatenate([rng.choice(n_c, 25, replace=False), n_c + rng.choice(settings.n_d, 10, replace=False)])
+    for j in picks:
+        step = np.zeros_like(theta)
+        step[j] = h
+        up, _ = part.mean_and_jacobian(theta + step, jacobian=False)
+        down, _ = part.mean_and_jacobian(theta - step, jacobian=False)
+        # central difference of a sum of exponentials: error h^2 / 6 of the third derivative
+        assert np.allclose(J[:, j], (up - down) / (2 * h), rtol=1e-6, atol=1e-9 * float(np.max(mean))), j
+    assert np.any(J[:, n_c:] != 0.0) and np.any(J[:, :n_c] != 0.0)
+    other = FlexPart(fm, RoadModel(r3like.params.replace(k_diff=r3like.params.k_diff * 1.1), variant=r3like.variant),
+                     settings)
+    assert other._B is part._B and other._K is part._K
+    coarse = replace(settings, d_grid=None)
+    assert FlexPart(fm, r3like, coarse)._B.shape == (b.a.size, coarse.n_c)
