@@ -547,3 +547,18 @@ def test_the_surface_at_the_rays_and_its_jacobian_against_the_spline_and_differe
     assert other._B is part._B and other._K is part._K
     coarse = replace(settings, d_grid=None)
     assert FlexPart(fm, r3like, coarse)._B.shape == (b.a.size, coarse.n_c)
+
+
+def test_the_spd_inverse_is_the_inverse_and_refuses_an_indefinite_matrix():
+    """_spd_inverse (LAPACK potrf/potri, the fit's covariance and evidence) against numpy's solve,
+    symmetric to the bit; a matrix with a negative eigenvalue raises LinAlgError."""
+    from roadgonio.correction.flexible import _spd_inverse
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(80, 60))
+    M = X.T @ X + 0.1 * np.eye(60)
+    inv = _spd_inverse(M)
+    assert np.array_equal(inv, inv.T)
+    assert np.allclose(inv, np.linalg.solve(M, np.eye(60)), rtol=0, atol=1e-10 * float(np.max(np.abs(inv))))
+    bad = M - 2.0 * np.linalg.eigvalsh(M)[0] * np.eye(60) - np.diag(np.r_[np.zeros(59), 1e3])
+    with pytest.raises(np.linalg.LinAlgError):
+        _spd_inverse(bad)
