@@ -127,11 +127,12 @@ class SurfaceSettings:
     #: rounding of the backbone's cusp at the mirror plane (beta_round_deg of the road model, deg):
     #: 0 = the cusp kept, None = the first knot of g_C off beta = 0 (:attr:`backbone_rounds_deg`); a
     #: sequence of them = every backbone variant fitted once with each rounding, all weighed by their
-    #: evidence (roadgonio.correction.outside). The default keeps the cusp (MIRROR_PLANES["cusp"]):
-    #: rounding alone breaks surfaces whose cusp is real; weighing both ("both") helps the smooth truths
-    #: and keeps the eq. 4 truth at 1.4-1.9 times the time; not yet re-timed over four realisations
-    #: (docs/correction.md, "Both, weighed by their evidence")
-    mirror_round_deg: float | None | tuple[float | None, ...] = MIRROR_PLANES["cusp"]
+    #: evidence (roadgonio.correction.outside). The default weighs both (MIRROR_PLANES["both"]):
+    #: rounding alone breaks surfaces whose cusp is real, the cusp alone biases smooth ones; weighed,
+    #: the evidence keeps the eq. 4 truth's cusp and meets more of issue 19's targets on the others,
+    #: within its time targets over four realisations (docs/correction.md, "Both, weighed by their
+    #: evidence"); "cusp" is the faster choice (about half the backbones and surfaces)
+    mirror_round_deg: float | None | tuple[float | None, ...] = MIRROR_PLANES["both"]
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):

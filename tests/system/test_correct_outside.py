@@ -203,7 +203,8 @@ def test_forward_surface_round_trip_inside_eq4_writes_the_diagnostics(tmp_path, 
     part = res.extra["surface"].parts[0]
     assert_k_a_within_its_u(part.k_a[mask], read_table(TRUE_KA).r[mask] * 1e4, part.budget, TRUE_KA_RTOL)
     # one backbone per variant and rounding at the mirror plane of the settings (by default the cusp
-    # alone), each carrying its rounding, the weights summing to 1; correct.json says so in its model
+    # and the rounding over one knot, weighed), each carrying its rounding, the weights summing to 1;
+    # correct.json says so in its model
     from roadgonio.correction.flexible import SurfaceSettings
     rounds = SurfaceSettings().backbone_rounds_deg
     got = sorted((v.variant, v.round_deg, v.backbone.params.beta_round_deg) for v in res.extra["surface"].variants)

@@ -394,8 +394,8 @@ def test_the_uncertainty_posterior_uses_the_fits_prior_and_noise_scale(r3like):
 
 
 def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
-    """SurfaceSettings: the backbone's rounding (beta_round_deg) is by default 0 (the cusp kept),
-    with None the first knot of g_C off beta = 0; bad values are refused naming the field; the fit through
+    """SurfaceSettings: the backbone's rounding (beta_round_deg) is 0 (the cusp kept) or, with None,
+    the first knot of g_C off beta = 0, and by default both, weighed (MIRROR_PLANES["both"]); bad values are refused naming the field; the fit through
     the instrument holds it (fixed), and it reaches the forward model (the reading of a beta = 0
     cell changes with it, one far from the mirror plane hardly)."""
     from roadgonio.correction.flexible import SurfaceSettings
@@ -407,7 +407,8 @@ def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
     first_knot = float(s.c_grid.node_coordinates()[0][1])
     assert 0.5 < first_knot < 2.0
     assert s.backbone_round_deg == first_knot and s.backbone_fixed() == {"beta_round_deg": first_knot}
-    assert SurfaceSettings().backbone_round_deg == 0.0 and SurfaceSettings().backbone_fixed() == {"beta_round_deg": 0.0}
+    assert SurfaceSettings().backbone_rounds_deg == (0.0, first_knot)
+    assert SurfaceSettings().with_mirror_plane("cusp").backbone_fixed() == {"beta_round_deg": 0.0}
     assert SurfaceSettings(mirror_round_deg=2.5).to_dict()["mirror_round_deg"] == 2.5
     for bad in (-1.0, 11.0, float("nan"), True, "1"):
         with pytest.raises(InputError) as e:
