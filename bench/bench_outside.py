@@ -199,7 +199,9 @@ def main() -> int:
     ap.add_argument("--mirror-round", default=None,
                     help="the backbone's rounding at the mirror plane: deg, or knot for the first knot of the "
                          "correction surface, or several separated by commas (e.g. 0,knot: every backbone fitted "
-                         "with each, all weighed by their evidence); default the library's, 0: the cusp)")
+                         "with each, all weighed by their evidence); default 0, the cusp alone: the files "
+                         "without _round in their name, written while the cusp was the library's default; the "
+                         "library's default since session 16 is 0,knot)")
     ap.add_argument("--seeds", type=int, default=1,
                     help="noise realisations per truth (default 1); with more, a summary over them at the end")
     args = ap.parse_args()
@@ -214,8 +216,8 @@ def main() -> int:
                  "grid_eps_edges_deg": tuple(float(e) for e in args.eps_edges.split(","))}
     surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell, regions=args.regions, **edges,
                               model_estimate=args.estimate == "combined",
-                              **({} if args.mirror_round is None else {"mirror_round_deg": tuple(
-                                  None if r == "knot" else float(r) for r in args.mirror_round.split(","))}))
+                              mirror_round_deg=(0.0,) if args.mirror_round is None else tuple(
+                                  None if r == "knot" else float(r) for r in args.mirror_round.split(",")))
     from roadgonio import api
     from roadgonio.instrument.config import Instrument
     insts = {w: Instrument.load(p) for w, p in INSTRUMENTS.items()}
