@@ -284,6 +284,7 @@ class FlexPart:
         self.af0 = np.broadcast_to(f0, b.a.shape) * b.a
         self.cell_of = np.repeat(np.arange(self.n), b.rays_per_cell)
         self._dq = None                                   # backbone_log_derivatives' cache
+        self._last_weights = None                         # ray_weights' cache: (theta, weights)
         self.rho = np.ones(self.n) if rho is None else np.asarray(rho, dtype=np.float64)
         self.scale = b.cos3 * forward.kappa * self.rho
         wo0 = tuple(np.full(self.n, b.wo0[k]) for k in range(3))
@@ -310,8 +311,18 @@ class FlexPart:
         return (self._B @ theta).reshape(self.af0.shape)
 
     def ray_weights(self, theta: np.ndarray) -> np.ndarray:
-        """a_k f_model,k per ray: the bundle's weights times the backbone times exp(g) (g clipped at 50)."""
-        return self.af0 * np.exp(np.minimum(self.g_rays(theta), 50.0))
+        """a_k f_model,k per ray: the bundle's weights times the backbone times exp(g) (g clipped at 50).
+        The last theta's weights are kept (read-only): the fit's line search evaluates a step, then
+        its Jacobian at the same theta, and a finished fit asks k_A, its Jacobian and the bundle's
+        error at one theta (a third of the sparse products of a fit)."""
+        theta = np.asarray(theta, dtype=np.float64)
+        last = self._last_weights
+        if last is not None and np.array_equal(last[0], theta):
+            return last[1]
+        e = self.af0 * np.exp(np.minimum(self.g_rays(theta), 50.0))
+        e.flags.writeable = False
+        self._last_weights = (theta.copy(), e)
+        return e
 
     def mean_and_jacobian(self, theta: np.ndarray, jacobian: bool = True):
         """(<f_0 exp g>_c, d/dtheta of it (cells, n_params) or None)."""

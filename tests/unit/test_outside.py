@@ -543,6 +543,13 @@ def test_the_surface_at_the_rays_and_its_jacobian_against_the_spline_and_differe
         # central difference of a sum of exponentials: error h^2 / 6 of the third derivative
         assert np.allclose(J[:, j], (up - down) / (2 * h), rtol=1e-6, atol=1e-9 * float(np.max(mean))), j
     assert np.any(J[:, n_c:] != 0.0) and np.any(J[:, :n_c] != 0.0)
+    # ray_weights keeps the last theta's weights: a theta changed in place, or another, is computed afresh
+    fresh = part.af0 * np.exp(np.minimum(part.g_rays(theta), 50.0))
+    assert np.array_equal(part.ray_weights(theta), fresh)
+    theta[0] += 0.3
+    moved = part.ray_weights(theta)
+    assert np.array_equal(moved, part.af0 * np.exp(np.minimum(part.g_rays(theta), 50.0)))
+    assert not np.array_equal(moved, fresh) and not moved.flags.writeable
     other = FlexPart(fm, RoadModel(r3like.params.replace(k_diff=r3like.params.k_diff * 1.1), variant=r3like.variant),
                      settings)
     assert other._B is part._B and other._K is part._K
