@@ -240,7 +240,8 @@ def surface_operators(forward: ForwardModel, grids: tuple[SplineGrid, ...]) -> t
       mean of e = a f_0 exp(g) (:meth:`FlexPart.mean_and_jacobian`).
 
     A gather of 16 corners per ray and a scatter into (cell, knot) bins at every evaluation took
-    ~60 % of a surface fit; two sparse products over the same entries take a fifth of that."""
+    ~60 % of a surface fit; the two sparse products take ~21 ms where they took ~136 ms (the
+    readings and their Jacobian, 292k rays, 858 coefficients, one thread)."""
     key = ("correction surface", grids)
     hit = forward.derived.get(key)
     if hit is not None:
