@@ -50,7 +50,7 @@ def register(sub) -> None:
     p.add_argument("--mirror-plane", choices=["cusp", "rounded", "both"], default=None,
                    help="with --forward surface or --joint: the backbone's shape at the mirror plane (beta 0): cusp "
                         "(eq. 4's), rounded (over one knot of the correction surface) or both, weighed by their "
-                        "evidence (default: both; cusp takes about half the time, docs/correction.md)")
+                        "evidence (default: both; cusp takes ~0.6 of the time, docs/correction.md)")
     p.add_argument("--joint", action="store_true",
                    help="the --measured tables are ONE surface measured by the --instrument(s) (one per table, or one "
                         "instrument with several aperture settings as several files): one surface is fitted through "

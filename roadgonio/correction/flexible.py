@@ -131,7 +131,7 @@ class SurfaceSettings:
     #: rounding alone breaks surfaces whose cusp is real, the cusp alone biases smooth ones; weighed,
     #: the evidence keeps the eq. 4 truth's cusp and meets more of issue 19's targets on the others,
     #: within its time targets over four realisations (docs/correction.md, "Both, weighed by their
-    #: evidence"); "cusp" is the faster choice (about half the backbones and surfaces)
+    #: evidence"); "cusp" is the faster choice (half the backbones and surfaces, ~0.6 of the time)
     mirror_round_deg: float | None | tuple[float | None, ...] = MIRROR_PLANES["both"]
 
     def __post_init__(self):
