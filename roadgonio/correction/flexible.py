@@ -228,6 +228,18 @@ class SurfaceSettings:
                                      else self.mirror_round_deg)}
 
 
+def spline_basis(grid: SplineGrid, wi, wo, n: int) -> sparse.csr_matrix:
+    """(n, grid.n_params): the spline's value at n direction pairs as a sparse matrix of its free
+    coefficients, ``g = basis @ theta`` -- the 16 corners of :func:`lookup` times the padded-to-free
+    map (:meth:`SplineGrid.padded_matrix`); wi, wo broadcast to n pairs."""
+    pairs = lookup(NumpyOps, grid, wi, wo)
+    idx = np.stack([np.broadcast_to(np.rint(i).astype(np.int64), (n,)) for i, _ in pairs])
+    w = np.stack([np.broadcast_to(np.asarray(v, dtype=np.float64), (n,)) for _, v in pairs])
+    rows = np.broadcast_to(np.arange(n), idx.shape)
+    A = sparse.csr_matrix((w.ravel(), (rows.ravel(), idx.ravel())), shape=(n, int(np.prod(grid.pad_shape))))
+    return (A @ sparse.csr_matrix(grid.padded_matrix())).tocsr()
+
+
 def surface_operators(forward: ForwardModel, grids: tuple[SplineGrid, ...]) -> tuple[sparse.csr_matrix, sparse.csr_matrix]:
     """The correction surface's basis at the forward model's rays, as two sparse matrices built
     once per forward model and grids (kept in ``forward.derived``: every backbone's fit through
@@ -248,17 +260,10 @@ def surface_operators(forward: ForwardModel, grids: tuple[SplineGrid, ...]) -> t
         return hit
     b = forward.bundles
     n_rays = int(np.prod(b.a.shape))
-    ell = np.broadcast_to(np.asarray(alpha_coordinate(NumpyOps, b.wo), dtype=np.float64), b.a.shape).ravel()
-    blocks = []
-    for k, g in enumerate(grids):
-        pairs = lookup(NumpyOps, g, b.wi, b.wo)
-        idx = np.stack([np.broadcast_to(np.rint(i).astype(np.int64), b.a.shape).ravel() for i, _ in pairs])
-        w = np.stack([np.broadcast_to(np.asarray(v, dtype=np.float64), b.a.shape).ravel() for _, v in pairs])
-        if k == 1:
-            w = w * ell[None, :]                          # g_D enters as l(alpha) g_D
-        rows = np.broadcast_to(np.arange(n_rays), idx.shape)
-        A = sparse.csr_matrix((w.ravel(), (rows.ravel(), idx.ravel())), shape=(n_rays, int(np.prod(g.pad_shape))))
-        blocks.append(A @ sparse.csr_matrix(g.padded_matrix()))
+    blocks = [spline_basis(g, b.wi, b.wo, n_rays) for g in grids]
+    if len(blocks) > 1:                                   # g_D enters as l(alpha) g_D
+        ell = np.broadcast_to(np.asarray(alpha_coordinate(NumpyOps, b.wo), dtype=np.float64), b.a.shape).ravel()
+        blocks[1] = sparse.diags(ell) @ blocks[1]
     B = sparse.hstack(blocks, format="csr")
     B.sort_indices()
     P = B.shape[1]
@@ -291,17 +296,10 @@ class FlexPart:
         wo0 = tuple(np.full(self.n, b.wo0[k]) for k in range(3))
         wi0 = tuple(b.wi0[:, k] for k in range(3))
         self.grids = [settings.c_grid] + ([settings.d_grid] if settings.d_grid is not None else [])
-        self._T = [sparse.csr_matrix(g.padded_matrix()) for g in self.grids]
-        self._G = [int(np.prod(g.pad_shape)) for g in self.grids]
         self._B, self._K = surface_operators(forward, tuple(self.grids))
-        for k, g in enumerate(self.grids):
-            N = np.zeros((self.n, self._G[k]))
-            for i, v in lookup(NumpyOps, g, wi0, wo0):
-                np.add.at(N, (np.arange(self.n), np.rint(i).astype(np.int64)), v)
-            if k == 0:                                    # the nominal value: g_C only (alpha = 1 deg: l = 0)
-                self._nominal = np.asarray(N @ self._T[0])
-            else:                                         # g_D at the nominal directions (diagnostics)
-                self._nominal_d = np.asarray(N @ self._T[1])
+        # the nominal value: g_C only (alpha = 1 deg: l = 0); g_D at the nominal directions for diagnostics
+        self._nominal, *rest = [spline_basis(g, wi0, wo0, self.n).toarray() for g in self.grids]
+        self._nominal_d = rest[0] if rest else None
 
     @property
     def n_params(self) -> int:
