@@ -207,7 +207,7 @@ def main() -> int:
     args = ap.parse_args()
     if args.seeds < 1:
         ap.error("--seeds must be at least 1")
-    from roadgonio.correction.flexible import DISCREPANCY_ELL, SurfaceSettings
+    from roadgonio.correction.flexible import DISCREPANCY_ELL, MIRROR_PLANES, SurfaceSettings
     ell = DISCREPANCY_ELL if args.discrepancy_ell is None else (
         None if args.discrepancy_ell.lower() == "none" else float(args.discrepancy_ell))
     edges = {}
@@ -216,7 +216,7 @@ def main() -> int:
                  "grid_eps_edges_deg": tuple(float(e) for e in args.eps_edges.split(","))}
     surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell, regions=args.regions, **edges,
                               model_estimate=args.estimate == "combined",
-                              mirror_round_deg=(0.0,) if args.mirror_round is None else tuple(
+                              mirror_round_deg=MIRROR_PLANES["cusp"] if args.mirror_round is None else tuple(
                                   None if r == "knot" else float(r) for r in args.mirror_round.split(",")))
     from roadgonio import api
     from roadgonio.instrument.config import Instrument

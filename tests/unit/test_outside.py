@@ -395,8 +395,8 @@ def test_the_uncertainty_posterior_uses_the_fits_prior_and_noise_scale(r3like):
 
 def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
     """SurfaceSettings: the backbone's rounding (beta_round_deg) is 0 (the cusp kept) or, with None,
-    the first knot of g_C off beta = 0, and by default both, weighed (MIRROR_PLANES["both"]); bad values are refused naming the field; the fit through
-    the instrument holds it (fixed), and it reaches the forward model (the reading of a beta = 0
+    the first knot of g_C off beta = 0, and by default both, weighed (MIRROR_PLANES["both"]); bad
+    values are refused naming the field; the fit through the instrument holds it (fixed), and it reaches the forward model (the reading of a beta = 0
     cell changes with it, one far from the mirror plane hardly)."""
     from roadgonio.correction.flexible import SurfaceSettings
     from roadgonio.correction.run import fit_self
