@@ -59,9 +59,10 @@ from roadgonio.surface.model import PARAM_BOUNDS, RoadModel
 #: The default knots of g_C (fine: the narrow peak at beta = 0 and grazing incidence) and of g_D.
 C_GRID = SplineGrid(s_beta=24, beta_scale_deg=8.0, s_t=32, eps_step_deg=3.0, sec_gain=3.0, eps_max_deg=89.0)
 D_GRID = SplineGrid(s_beta=6, beta_scale_deg=8.0, s_t=8, eps_step_deg=12.0, sec_gain=1.0, eps_max_deg=89.0)
-#: The fit's method, in the key of a correction's journal (fit_state.json): 2 chose the smoothing with
-#: the noise scale the residuals show (noise_scale), 1 with the stated u alone.
-SURFACE_FIT_VERSION = 2
+#: The fit's method, in the key of a correction's journal (fit_state.json): 3 keeps every smoothing
+#: parameter at LAM_MIN or above, 2 chose the smoothing with the noise scale the residuals show
+#: (noise_scale), 1 with the stated u alone.
+SURFACE_FIT_VERSION = 3
 #: Prior standard deviation of g_D (d ln f / d ln alpha beyond the backbone's).
 D_PRIOR_SD = 1.0
 #: Finite-difference step of the backbone's coordinates (ln of a term's coefficient, the fit's z of a
@@ -75,6 +76,14 @@ SMOOTHING = ("evidence", "gcv")
 DISCREPANCY_ELL = 1.0 / math.pi
 #: Range of log10(lambda / unit), unit = the data's mean weight per cell, mean(y^2 / u^2).
 LOG_LAM_RANGE = (-8.0, 6.0)
+#: Smallest smoothing parameter (absolute; above LOG_LAM_RANGE's lower end for any u above 0.01 %):
+#: a prior standard deviation of g_C's second difference between neighbouring knots of at most
+#: sqrt(phi), a factor e in the slope of ln f per knot. A roughness beyond it is not one the knots
+#: can follow, and where the evidence is flat (a block whose directions the data hardly see, or
+#: that a stiff block of the other direction already holds) the Fellner-Schall steps drift below
+#: it with no gain in evidence, and the discrepancy read from lambda (discrepancy.amplitude_from_penalty)
+#: would grow without a bound: docs/correction.md, "The smoothing's lower bound".
+LAM_MIN = 1.0
 #: Stop updating the smoothing parameters when none changes by more than this (in ln lambda).
 LAM_TOL = 0.05
 #: The corner of the penalties' peak region (beta <= PEAK_BETA_DEG, eps >= PEAK_EPS_DEG) and of the
@@ -701,7 +710,7 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
             # the generalized Fellner-Schall step, over-relaxed in ln lambda (its steps shrink
             # geometrically in one direction; OVER_RELAX > 1 takes fewer of them)
             new[j] = lam[j] * min(max(ratio, 1e-2), 1e2) ** (OVER_RELAX if outer > 0 else 1.0)
-        lo, hi = unit * 10.0 ** LOG_LAM_RANGE[0], unit * 10.0 ** LOG_LAM_RANGE[1]
+        lo, hi = lam_bounds(unit)
         new = np.clip(new, lo, hi)
         moving = ~(((new >= hi) & (lam >= hi)) | ((new <= lo) & (lam <= lo)))     # not pinned at a bound
         change = float(np.max(np.abs(np.log(new / lam))[moving])) if moving.any() else 0.0
@@ -737,6 +746,12 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
                       seconds=time.perf_counter() - t0, history=history, resumed=state is not None)
 
 
+def lam_bounds(unit: float) -> tuple[float, float]:
+    """The search box of every smoothing parameter: [max(LAM_MIN, unit 10^LOG_LAM_RANGE[0]),
+    unit 10^LOG_LAM_RANGE[1]], unit the data's mean weight per cell."""
+    return max(LAM_MIN, unit * 10.0 ** LOG_LAM_RANGE[0]), unit * 10.0 ** LOG_LAM_RANGE[1]
+
+
 def noise_scale(chi2: float, n: int, edf: float) -> float:
     """phi = max(1, chi2 / (n - edf)): the variance of the residuals in units of the stated u^2 (the
     Birge ratio squared), never below 1 (the stated u is the least noise there is). The smoothing
@@ -752,13 +767,13 @@ def _gcv_step(J: np.ndarray, W: np.ndarray, z: np.ndarray, Ps: list[np.ndarray],
     """The smoothing parameters that minimise the generalised cross-validation score
     ``n chi2(lambda) / (n - edf(lambda))^2`` of the problem linearised at the mode (working data
     ``z = y - s + J theta``; docs/correction.md), searched in ln lambda from ``lam`` (Nelder-Mead
-    within LOG_LAM_RANGE)."""
+    within lam_bounds)."""
     from scipy.optimize import minimize
     A = J.T @ (W[:, None] * J)
     b = J.T @ (W * z)
     n = z.size
     n_d = A.shape[0] - n_c
-    lo, hi = math.log(unit) + LOG_LAM_RANGE[0] * math.log(10), math.log(unit) + LOG_LAM_RANGE[1] * math.log(10)
+    lo, hi = (math.log(b) for b in lam_bounds(unit))
 
     def score(loglam):
         L = np.zeros_like(A)

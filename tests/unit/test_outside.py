@@ -366,6 +366,41 @@ def test_smoothing_is_chosen_with_the_noise_the_residuals_show(r3like, monkeypat
     assert np.array_equal(clean_phi.theta, clean_one.theta) and clean_phi.lam == clean_one.lam
 
 
+def test_a_smoothing_the_evidence_cannot_choose_stays_at_the_floor(r3like, monkeypatch):
+    """A roughness block whose directions the data hardly see (here beta near the pole, eps < 45
+    deg, next to a stiff eps block) has a flat evidence: the Fellner-Schall steps let its lambda
+    drift to the search box's lower end with no gain in evidence, and the discrepancy read from that
+    lambda (its prior's variance beyond the knots) grows without a bound. On an eq. 4 truth (the
+    backbone itself, 1.5 % noise, seed 9: a case found to drift) the fit keeps every lambda at
+    LAM_MIN or above (flexible.lam_bounds); with the floor taken away the same fit has the same
+    evidence to 0.01 while one lambda falls orders of magnitude below it and that region's
+    discrepancy amplitude is many times larger (the runaway that gave an eq. 4 truth through the
+    bench's instrument A u(S1) 11 %: docs/correction.md, "The smoothing's lower bound")."""
+    from roadgonio.correction import flexible
+    from roadgonio.correction.discrepancy import beyond_nyquist_variance
+    from roadgonio.correction.flexible import LAM_MIN, FlexPart, SurfaceSettings, fit_surface
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    cells = [(t, b) for t in (0.0, 0.25, 0.5, 1.0, 2.0, 4.5, 9.0, 12.0) for b in (0.0, 5.0, 15.0, 30.0, 60.0, 120.0, 180.0)]
+    fm = ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=32))
+    y0 = fm.r_measured(r3like)
+    y = y0 * np.exp(np.random.default_rng(9).normal(0.0, 0.015, len(cells)))
+
+    def fit():
+        f = fit_surface([FlexPart(fm, r3like, SurfaceSettings())], [y], [0.015 * y0])
+        pl = f.prior_lam
+        regions = {k.split("_", 1)[1] for k in pl}
+        return f, {r: math.sqrt(beyond_nyquist_variance(pl[f"beta_{r}"], pl[f"eps_{r}"])) for r in regions}
+    floored, sig_floored = fit()
+    assert min(floored.lam.values()) >= LAM_MIN
+    monkeypatch.setattr(flexible, "LAM_MIN", 0.0)
+    free, sig_free = fit()
+    assert min(free.lam.values()) < 1e-3 * LAM_MIN                     # ran down the old box
+    assert abs(free.log_evidence - floored.log_evidence) < 0.01           # for nothing: the evidence is flat
+    worst = max(sig_free, key=lambda r: sig_free[r] / sig_floored[r])
+    assert sig_free[worst] > 5.0 * sig_floored[worst]
+
+
 def test_the_uncertainty_posterior_uses_the_fits_prior_and_noise_scale(r3like):
     """The posterior the uncertainty takes (flexible.posterior_precision, over the surface and the
     backbone's coordinates) has, in its surface block, the Hessian of the fit itself (the inverse of
