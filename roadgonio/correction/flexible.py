@@ -791,7 +791,7 @@ def _gcv_step(J: np.ndarray, W: np.ndarray, z: np.ndarray, Ps: list[np.ndarray],
             return math.inf
         return n * float(np.sum(W * r * r)) / (n - edf) ** 2
 
-    x0 = np.log(lam)
+    x0 = np.clip(np.log(lam), lo, hi)           # a start outside the box (a warm start's lambda) from its edge
     best = minimize(score, x0, method="Nelder-Mead", options={"xatol": 0.05, "fatol": 1e-9, "maxfev": 80})
     return np.exp(np.clip(best.x, lo, hi))
 

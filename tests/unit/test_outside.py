@@ -203,10 +203,12 @@ def test_combine_is_the_gls_mean_with_the_covariance():
 def test_gcv_step_finds_the_minimum_of_the_gcv_score():
     """The GCV update of the smoothing parameter (flexible._gcv_step) for a linear smoothing problem
     (noisy samples of a smooth curve, a second-difference penalty, one block): its lambda must be
-    where the GCV score n chi^2 / (n - edf)^2, computed here directly on a fine grid of lambda, is
-    least: its score within 1e-3 of the grid's best (the score is flat near its minimum), from a
-    start whose score is well above it."""
-    from roadgonio.correction.flexible import _gcv_step
+    where the GCV score n chi^2 / (n - edf)^2, computed here directly on a fine grid of lambda over
+    the whole box the code searches (lam_bounds), is least: its score within 1e-3 of the grid's best
+    (the score is flat near its minimum), the grid's best inside the box, not on its edge; from
+    starts whose scores are well above it, one below the box (a warm start from a fit before the
+    floor LAM_MIN) and one near its top."""
+    from roadgonio.correction.flexible import _gcv_step, lam_bounds
     rng = np.random.default_rng(3)
     n = 120
     x = np.linspace(0.0, 1.0, n)
@@ -225,12 +227,14 @@ def test_gcv_step_finds_the_minimum_of_the_gcv_score():
         return n * np.sum(W * r * r) / (n - edf) ** 2
 
     unit = float(np.mean(W * y * y))
-    grid = np.exp(np.linspace(math.log(unit * 1e-6), math.log(unit * 1e2), 400))
+    lo, hi = lam_bounds(unit)
+    grid = np.exp(np.linspace(math.log(lo), math.log(hi), 600))
     scores = np.array([score(v) for v in grid])
-    start = unit * 1e-6
-    assert score(start) > 1.2 * scores.min()
-    lam = _gcv_step(J, W, y, [P], np.zeros((0, 0)), np.array([start]), n, unit)[0]
-    assert score(lam) <= scores.min() * (1 + 1e-3), (lam, grid[np.argmin(scores)])
+    assert 0 < int(np.argmin(scores)) < grid.size - 1
+    for start in (unit * 1e-6, hi / 10):
+        assert score(start) > 1.2 * scores.min()
+        lam = _gcv_step(J, W, y, [P], np.zeros((0, 0)), np.array([start]), n, unit)[0]
+        assert score(lam) <= scores.min() * (1 + 1e-3), (start, lam, grid[np.argmin(scores)])
 
 
 def test_backbone_jacobians_against_rebuilt_parts(r3like):
