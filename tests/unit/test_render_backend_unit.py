@@ -1,4 +1,5 @@
-"""The Mitsuba k_A backend's checks that run before Mitsuba: the LLVM version, unknown settings."""
+"""The Mitsuba k_A backend's checks that run before Mitsuba: the LLVM version, unknown settings, a
+surface it cannot render."""
 from __future__ import annotations
 
 import pytest
@@ -22,6 +23,15 @@ def test_unknown_setting_is_an_input_error():
         make_backend(preset("portable"), ROAD, samples_per_pixel=3)
     with pytest.raises(InputError, match="per-cell renderer.*first_pass"):
         make_backend(preset("portable"), ROAD, spp=16)
+
+
+def test_a_surface_only_numpy_evaluates_is_refused_by_name():
+    """A surface that is not eq. 4 (the bench's microfacet truth) reached the scene's BSDF and failed
+    with an AttributeError deep in it; it is refused up front, naming it and the backends that can."""
+    from roadgonio.engines.mitsuba.backend import make_backend
+    from roadgonio.surface.truths import make_truth
+    with pytest.raises(InputError, match="'microfacet' is a MicrofacetTruth.*reference, numpy-mc"):
+        make_backend(preset("portable"), make_truth("microfacet"))
 
 
 @pytest.mark.parametrize("name", ["collimated", "portable"])
