@@ -146,6 +146,8 @@ class SurfaceCorrection:
     timings: dict[str, float] = field(default_factory=dict)
     out: Path | None = None            # where the files were written (correction.files.correct_joint)
     written: list = field(default_factory=list)
+    #: the backbone's outer steps (backend k_A, rho, the refit's predicted change; as correct_self's)
+    steps: list = field(default_factory=list)
     #: grid: the weight of the fitted model's own value at the nominal geometry in the combined table
     #: (the rest is the instruments' r / k_A); None without SurfaceSettings.model_estimate
     model_weight: np.ndarray | None = None
@@ -342,22 +344,30 @@ def correct_surface(tables: Sequence[RTable], instruments: Sequence[Instrument],
                     artefacts: Sequence[Any] | None = None, rays: int = DEFAULT_RAYS, seed: int = 0,
                     starts: int | None = None, polish: int | None = None, rounds: int | None = None,
                     variants: Sequence[str] = DEFAULT_VARIANTS, settings: SurfaceSettings | None = None,
-                    misalignment_rays: int = 256, progress: bool = True) -> SurfaceCorrection:
+                    misalignment_rays: int = 256, max_outer: int | None = None, tol: float | None = None,
+                    progress: bool = True) -> SurfaceCorrection:
     """Correct one measured table per instrument with one surface behind them all (module
-    docstring). ``u_measured`` and ``sigma`` may be one value for all or one per table. The dense
+    docstring). ``u_measured`` and ``sigma`` may be one value for all or one per table.
+    ``max_outer`` (backend tables at most) and ``tol`` (in units of the measurement's u) stop the
+    backbone's outer loop of step 2 (None: those of :func:`roadgonio.correction.run.correct_self`). The dense
     algebra runs with one BLAS thread (:func:`roadgonio.correction.flexible.one_blas_thread`)."""
     with one_blas_thread():
         return _correct_surface(tables, instruments, u_measured=u_measured, sigma=sigma, backend=backend,
                                 backend_settings=backend_settings, accuracy=accuracy, factory=factory,
                                 out_dir=out_dir, artefacts=artefacts, rays=rays, seed=seed, starts=starts,
                                 polish=polish, rounds=rounds, variants=variants, settings=settings,
-                                misalignment_rays=misalignment_rays, progress=progress)
+                                misalignment_rays=misalignment_rays, max_outer=max_outer, tol=tol,
+                                progress=progress)
 
 
 def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend_settings, accuracy, factory,
                      out_dir, artefacts, rays, seed, starts, polish, rounds, variants, settings, misalignment_rays,
-                     progress) -> SurfaceCorrection:
+                     max_outer, tol, progress) -> SurfaceCorrection:
     from roadgonio.correction import run as _run
+    max_outer = _run.DEFAULT_MAX_OUTER if max_outer is None else int(max_outer)
+    tol = _run.DEFAULT_TOL if tol is None else float(tol)
+    if max_outer < 1 or not tol > 0:
+        raise InputError(f"max_outer must be 1 or more and tol positive, got {max_outer} and {tol}", field="max_outer")
     t0 = time.perf_counter()
     tables, instruments = list(tables), list(instruments)
     if not tables or len(tables) != len(instruments):
@@ -395,7 +405,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     fit_opts = {k: v for k, v in (("starts", starts), ("polish", polish), ("rounds", rounds)) if v is not None}
     key_settings = {"variants": list(variants), "rays": [a.rays for a in arts], "seed": seed, **fit_opts,
                     "backend": backend, "backend_settings": dict(backend_settings or {}), "accuracy": accuracy,
-                    "surface": settings.to_dict(), "surface_fit": SURFACE_FIT_VERSION, "instruments": [i.to_dict() for i in instruments[1:]]}
+                    "surface": settings.to_dict(), "surface_fit": SURFACE_FIT_VERSION,
+                    "max_outer": max_outer, "tol": tol, "instruments": [i.to_dict() for i in instruments[1:]]}
     state = _run._FitState(out, _run._state_key(_stack_tables(tables), np.concatenate(
         [g for g, _ in u_grids], axis=1), instruments[0], key_settings))
 
@@ -434,17 +445,57 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     main_label = backbone_label(*main)
     lap("backbone")
 
-    # 2. backend k_A of the best backbone through each instrument; the bundles' error rho
-    k_back, se_back, infos, rhos = [], [], [], []
-    for i, (inst, t, fm) in enumerate(zip(instruments, tables, fms)):
-        _run._say(progress, f"{label}: k_A of the {main_label} backbone through {inst.name} ({backend})")
-        jdir = None if out is None else out / (f"forward-{i + 1}" if len(tables) > 1 else "forward-1")
-        k_b, se_b, info = _run._backend_k(factory, inst, polished, t.cells, jdir, progress)
-        k_back.append(k_b)
-        se_back.append(se_b)
-        infos.append(info)
-        rhos.append(k_b / fm.k_a(polished))
-    lap("backend")
+    # 2. backend k_A of the best backbone through each instrument, the bundles' error rho, and the
+    #    best backbone refitted with rho until the k_A it predicts holds still (correct_self's outer
+    #    loop, the same tolerance): rho is far from 1 where the scene has light the bundles leave out
+    #    (a housing's stray light), and k_A of a backbone fitted without it is then off (docs/correction.md,
+    #    "A housed instrument")
+    u_rel_all = u_all / y_all
+    steps: list[dict[str, Any]] = []
+    pred_change = np.zeros_like(y_all)
+    for it in range(1, max_outer + 1):
+        k_back, se_back, infos, rhos = [], [], [], []
+        for i, (inst, t, fm) in enumerate(zip(instruments, tables, fms)):
+            _run._say(progress, f"{label}: k_A of the {main_label} backbone through {inst.name} ({backend})"
+                      + (f", step {it}" if it > 1 else ""))
+            jdir = None if out is None else out / _forward_dir(i, len(tables), it)
+            k_b, se_b, info = _run._backend_k(factory, inst, polished, t.cells, jdir, progress)
+            k_back.append(k_b)
+            se_back.append(se_b)
+            infos.append(info)
+            rhos.append(k_b / fm.k_a(polished))
+        lap("backend")
+        rho_all = np.concatenate(rhos)
+        nxt = state.get(f"refit-{it}")
+        if nxt is None:
+            nxt = fit_through_instrument(stacked, y_all, u_all, variant=main[0], rho=rho_all, start_models=[polished],
+                                         stage_a=False, polish=1, seed=seed, name=label,
+                                         fixed=settings.backbone_fixed(main[1])).model
+            state.put(f"refit-{it}", nxt)
+        pred_change = np.abs(np.log(stacked.k_a(nxt, rho_all)) - np.log(np.concatenate(k_back)))
+        worst = float(np.max(pred_change / u_rel_all))
+        steps.append({"step": it, "model": polished.params.to_dict(), "backend": infos[0],
+                      "rho_min": float(rho_all.min()), "rho_max": float(rho_all.max()),
+                      "refit_change_over_u_max": worst, "converged": worst <= tol})
+        lap("refit")
+        if worst <= tol or it == max_outer:
+            break
+        polished = backbones[main] = nxt
+    # every other backbone refitted with the same rho, so that the variants meet on equal terms
+    # (a backbone fitted without a rho far from 1 loses evidence it would have, and the one that
+    # was refitted wins for that alone)
+    for key in backbones:
+        if key == main:
+            continue
+        m = state.get(f"refit-{_state_name(*key)}")
+        if m is None:
+            m = fit_through_instrument(stacked, y_all, u_all, variant=key[0], rho=rho_all, start_models=[backbones[key]],
+                                       stage_a=False, polish=1, seed=seed, name=label,
+                                       fixed=settings.backbone_fixed(key[1])).model
+            state.put(f"refit-{_state_name(*key)}", m)
+        backbones[key] = m
+    chi2 = {key: float(np.sum(((stacked.r_measured(m, rho_all) - y_all) / u_all) ** 2)) for key, m in backbones.items()}
+    lap("refit")
 
     # 3. the correction surface of every variant, and the variants' weights
     vfits: list[VariantFit] = []
@@ -549,6 +600,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     comps["bundle"] = np.diag(bundle ** 2)
     if disc is not None:
         comps["discrepancy"] = disc
+    if not steps[-1]["converged"]:
+        comps["convergence"] = np.diag(np.concatenate([pred_change / math.sqrt(3.0), pad]) ** 2)
     if any(b is not None for b in mis_blocks):
         M = np.zeros((E, E))
         for i, b in enumerate(mis_blocks):
@@ -562,6 +615,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
              "model": "spread of the backbones' (variants', roundings') corrected k_A (and model values) about their "
                       "evidence-weighted mean",
              "bundle": "the ray bundles' own error of the change the surface makes to k_A (replicates)",
+             "convergence": "change of k_A the backbone's last refit still predicted (rectangular; the fitted "
+                            "model's own value left out)",
              "misalignment": "instrument geometric errors (--sigma), first-order GUM",
              "discrepancy": "structure of the surface finer than the correction surface's knots, which the "
                             "instruments blur: var(delta(c) - (K delta)(c)) of a Gaussian process delta over the "
@@ -634,7 +689,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                       discrepancy=disc_info if disc is not None else None)
     return SurfaceCorrection(parts=parts_out, corrected=combined, u_corrected=u_comb, budget=comb_budget, after=after,
                              variants=vfits, settings=settings, provenance=prov, seconds=time.perf_counter() - t0,
-                             timings=timings, model_weight=model_weight)
+                             timings=timings, model_weight=model_weight, steps=steps)
 
 
 def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit, settings: SurfaceSettings,
@@ -700,6 +755,13 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     return np.outer(s, s) * R, info
 
 
+def _forward_dir(i: int, n_tables: int, step: int) -> str:
+    """The journal folder of the backend's k_A through instrument ``i`` at outer step ``step``
+    (step 1 keeps the names it always had, so such journals resume)."""
+    base = f"forward-{i + 1}" if n_tables > 1 else "forward-1"
+    return base if step == 1 else f"{base}-step{step}"
+
+
 def _stack_tables(tables: Sequence[RTable]) -> RTable:
     """One RTable-like object for the checkpoint key of several tables (their values one after the other)."""
     r = np.concatenate([t.r for t in tables], axis=1)
@@ -717,7 +779,7 @@ def to_correction_result(res: SurfaceCorrection):
     best = res.best
     alternatives = {vf.variant: _grid(p.measured, vf.parts[0].k_a(vf.fit.theta)) for vf in res.variants
                     if vf is not best}
-    steps = [{"step": 1, "model": best.backbone.params.to_dict(), "backend": p.backend_info, "converged": True}]
+    steps = res.steps
     prov = dict(res.provenance)
     prov["calibration"] = p.instrument.calibration.to_dict()
     prov["u_measured"] = p.u_what

@@ -3,6 +3,8 @@ divides the table is the Mitsuba backend's, which models the housing's shade and
 the fit's ray bundles leave them out (and say so)."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -40,3 +42,47 @@ def test_a_housed_instrument_is_corrected_with_its_housing():
     limits = res["portable_housed"].provenance.get("forward_model_limits")
     assert limits is not None and "[housing]" in limits
     assert res["portable"].provenance.get("forward_model_limits") is None
+
+
+#: Targets of issue 19 for the truth inside eq. 4 (RMS and max of the log error, %), and the
+#: cells beyond 4u allowed (none).
+EQ4_RMS_PCT, EQ4_MAX_PCT = 1.5, 6.0
+
+
+@pytest.mark.slow
+def test_a_surface_measured_through_a_bright_housing_is_recovered(mi):
+    """An eq. 4 surface (make_truth('eq4'), R3-like) measured through scenes/portable_housed.toml
+    with walls of reflectance 0.2 (stray light up to 66 % of the road signal, docs/straylight.md),
+    1.5 % noise, corrected with --forward surface: the issue's targets for a truth inside eq. 4
+    (RMS <= 1.5 %, max <= 6 %), no cell beyond 4u, S1 within 2 u(S1), and the backbone's outer
+    loop took more than one backend table. The measurement's k_A is the Mitsuba backend's (the only
+    engine of the stray light, itself checked against the independent float64 integrals of
+    tests/plugin/test_straylight.py) at another seed and 3x its accuracy; the code under test is the
+    correction. Without the loop (rho of a backbone fitted by the bundles alone, which leave the
+    stray light out) this was 2.5 % RMS with 57 cells beyond 4u; with the loop but the other
+    backbones not refitted with the same rho, a rounded backbone won the evidence for that alone
+    and beta 0 was 8 % low (session 18)."""
+    from roadgonio.correction.synthetic import standard_mask, synthesize
+    from roadgonio.fileio import read_toml
+    from roadgonio.instrument.config import Instrument
+    from roadgonio.surface.rtable import RTable
+    from roadgonio.surface.truths import make_truth
+    path = Path(__file__).resolve().parents[2] / "scenes" / "portable_housed.toml"
+    d = read_toml(path, "instrument file")
+    d["housing"]["wall_reflectance"] = 0.2
+    inst = Instrument.from_dict(d, path=path)
+    truth = make_truth("eq4")
+    m = standard_mask()
+    s = synthesize(truth, inst, noise=0.015, seed=5, backend="mitsuba",
+                   backend_settings={"rel_se": 3e-4, "seed": 777}, mask=m)
+    res = api.correct(s.measured, inst, forward="surface", u_measured="1.5%", backend="mitsuba", seed=0, plots=False)
+    c = res.corrected
+    mm = c.mask
+    err = np.log(c.r[mm] / s.truth.r[mm])
+    z = err / (res.u_corrected[mm] / c.r[mm])
+    assert 100 * np.sqrt(np.mean(err ** 2)) <= EQ4_RMS_PCT and 100 * np.max(np.abs(err)) <= EQ4_MAX_PCT, err
+    assert np.max(np.abs(z)) <= 4.0, z
+    s1 = RTable(s.truth.r).s1()
+    assert abs(res.after["S1"] - s1) <= 2 * res.after["u_S1"], (res.after, s1)
+    steps = res.extra["surface"].steps
+    assert len(steps) > 1 and steps[-1]["converged"], steps
