@@ -182,6 +182,8 @@ class SurfaceCorrection:
                "u_rel_max": float(np.max(u)), "budget": self.budget.summary(),
                "variants": [v.summary() for v in self.variants], "discrepancy": self.provenance.get("discrepancy"),
                "model_estimate": self.model_estimate_summary(),
+               "backbone_steps": [{k: st[k] for k in ("step", "rho_min", "rho_max", "refit_change_over_u_max", "converged")}
+                                  for st in self.steps],
                "seconds": self.seconds, "timings": self.timings}
         out["per_instrument"] = [{
             "instrument": p.name, "cells": int(p.measured.mask.sum()),

@@ -86,3 +86,5 @@ def test_a_surface_measured_through_a_bright_housing_is_recovered(mi):
     assert abs(res.after["S1"] - s1) <= 2 * res.after["u_S1"], (res.after, s1)
     steps = res.extra["surface"].steps
     assert len(steps) > 1 and steps[-1]["converged"], steps
+    said = res.extra["surface"].summary()["backbone_steps"]
+    assert [st["refit_change_over_u_max"] for st in said] == [st["refit_change_over_u_max"] for st in steps]
