@@ -93,8 +93,9 @@ def forward_model_limits(instruments) -> str | None:
     if not left:
         return None
     return (f"the fit's ray bundles do not model the instrument's [{'], ['.join(left)}] (their shade and "
-            "stray light): the model's parameters are fitted without them; the k_A that corrects the table is "
-            "the backend's, which models them")
+            "stray light); a model fitted through the instrument (--reference self) has the backend's k_A, which "
+            "models them, in its fit as a factor per cell (rho = k_backend / k_bundle), refitted until the k_A it "
+            "predicts holds still ('steps'), and the k_A that corrects the table is the backend's")
 
 
 def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
