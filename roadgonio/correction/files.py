@@ -34,7 +34,7 @@ def correct_self_surface(measured: RTable, instrument: Instrument, *, model_vari
     evidence; a variant name uses that one alone."""
     variants = DEFAULT_VARIANTS if model_variant in (None, "auto") else (model_variant,)
     res = correct_surface([measured], [instrument], artefacts=None if artefacts is None else [artefacts],
-                          variants=variants, **options)
+                          variants=variants, max_outer=max_outer, tol=tol, **options)
     return to_correction_result(res)
 
 
@@ -258,7 +258,7 @@ def correct_joint(tables: Sequence[RTable], instruments: Sequence[Instrument], o
     variants = DEFAULT_VARIANTS if model_variant in (None, "auto") else (model_variant,)
     options["sigma"] = _sigma(options.get("sigma")) if not isinstance(options.get("sigma"), (list, tuple)) \
         else [_sigma(s) for s in options["sigma"]]
-    for k in ("alternatives", "reference_name", "max_outer", "tol", "forward"):
+    for k in ("alternatives", "reference_name", "forward"):
         options.pop(k, None)
     res = correct_surface(tables, instruments, out_dir=out_dir, variants=variants, **options)
     if measured_files is not None:

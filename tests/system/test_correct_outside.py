@@ -347,3 +347,19 @@ def test_a_real_table_through_a_small_instrument_gives_a_smooth_k_a_and_a_convex
     w = sc.model_weight[np.isfinite(sc.model_weight)]
     assert w.size > 0 and w.min() >= 0.0 and w.max() <= 1.0
     assert sc.best.fit.phi > 1.0
+
+
+def test_an_outer_loop_stopped_before_it_holds_still_puts_its_last_change_into_u():
+    """`max_outer` and `tol` reach the surface route (they were dropped there before the backbone
+    had an outer loop), and a loop stopped before the k_A it predicts holds still (one backend
+    table, a tolerance no refit meets) reports steps[-1] as not converged and adds the
+    `convergence` component: per cell the last refit's predicted change of ln k_A over sqrt(3),
+    whose largest value is the step's refit_change_over_u_max in units of the measured u (1 %)."""
+    res = api.correct(MEASURED, MEDIUM, forward="surface", u_measured="1%", backend="quadrature", accuracy="fast",
+                      rays=256, model_variant="power", plots=False, max_outer=1, tol=1e-9)
+    steps = res.extra["surface"].steps
+    assert len(steps) == 1 and not steps[0]["converged"], steps
+    part = res.extra["surface"].parts[0]
+    conv = np.sqrt(np.diag(part.budget.components["convergence"]))
+    assert conv.max() * math.sqrt(3.0) / 0.01 == pytest.approx(steps[0]["refit_change_over_u_max"], rel=1e-9)
+    assert "convergence" in res.budget.components
