@@ -47,7 +47,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from roadgonio.correction.budget import Budget, functionals, misalignment_covariance
-from roadgonio.correction.fit import fit_through_instrument
+from roadgonio.correction.fit import chi2_of, fit_through_instrument
 from roadgonio.correction.flexible import (SURFACE_FIT_VERSION, FlexPart, SurfaceFit, SurfaceSettings, fit_surface, one_blas_thread,
                                           posterior_with_backbone)
 from roadgonio.engines.bundle import DEFAULT_RAYS, StackedForward
@@ -425,10 +425,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                                   fixed=settings.backbone_fixed(r), **fit_opts).model
                 state.put(f"stage-a-{key}", m)
             backbones[(v, r)] = m
-    def chi2_of(m: RoadModel) -> float:
-        return float(np.sum(((stacked.r_measured(m) - y_all) / u_all) ** 2))
-
-    chi2 = {k: chi2_of(m) for k, m in backbones.items()}
+    chi2 = {k: chi2_of(stacked, y_all, u_all, m) for k, m in backbones.items()}
     # the best variant of every rounding polished, so that the roundings meet on equal terms (the
     # evidence of an unpolished backbone's surface is lower: session 13, eq4 through A + B, the
     # cusp's best unpolished lost to the rounded one polished)
@@ -441,7 +438,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                                               fixed=settings.backbone_fixed(r)).model
             state.put(f"fit-{_state_name(*best_r)}", polished)
         backbones[best_r] = polished
-        chi2[best_r] = chi2_of(polished)
+        chi2[best_r] = chi2_of(stacked, y_all, u_all, polished)
     main = min(chi2, key=chi2.get)
     polished = backbones[main]
     main_label = backbone_label(*main)
@@ -468,13 +465,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             rhos.append(k_b / fm.k_a(polished))
         lap("backend")
         rho_all = np.concatenate(rhos)
-        nxt = state.get(f"refit-{it}")
-        if nxt is None:
-            nxt = fit_through_instrument(stacked, y_all, u_all, variant=main[0], rho=rho_all, start_models=[polished],
-                                         stage_a=False, polish=1, seed=seed, name=label,
-                                         fixed=settings.backbone_fixed(main[1])).model
-            state.put(f"refit-{it}", nxt)
-        pred_change = np.abs(np.log(stacked.k_a(nxt, rho_all)) - np.log(np.concatenate(k_back)))
+        nxt = _run.refit_with_rho(state, f"refit-{it}", stacked, y_all, u_all, polished, rho_all, variant=main[0],
+                                  seed=seed, label=label, fixed=settings.backbone_fixed(main[1]))
+        pred_change = _run.predicted_change(stacked, nxt, rho_all, np.concatenate(k_back))
         worst = float(np.max(pred_change / u_rel_all))
         steps.append({"step": it, "model": polished.params.to_dict(), "backend": infos[0],
                       "rho_min": float(rho_all.min()), "rho_max": float(rho_all.max()),
@@ -487,16 +480,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     # (a backbone fitted without a rho far from 1 loses evidence it would have, and the one that
     # was refitted wins for that alone)
     for key in backbones:
-        if key == main:
-            continue
-        m = state.get(f"refit-{_state_name(*key)}")
-        if m is None:
-            m = fit_through_instrument(stacked, y_all, u_all, variant=key[0], rho=rho_all, start_models=[backbones[key]],
-                                       stage_a=False, polish=1, seed=seed, name=label,
-                                       fixed=settings.backbone_fixed(key[1])).model
-            state.put(f"refit-{_state_name(*key)}", m)
-        backbones[key] = m
-    chi2 = {key: float(np.sum(((stacked.r_measured(m, rho_all) - y_all) / u_all) ** 2)) for key, m in backbones.items()}
+        if key != main:
+            backbones[key] = _run.refit_with_rho(state, f"refit-{_state_name(*key)}", stacked, y_all, u_all,
+                                                 backbones[key], rho_all, variant=key[0], seed=seed, label=label,
+                                                 fixed=settings.backbone_fixed(key[1]))
+    chi2 = {key: chi2_of(stacked, y_all, u_all, m, rho_all) for key, m in backbones.items()}
     lap("refit")
 
     # 3. the correction surface of every variant, and the variants' weights

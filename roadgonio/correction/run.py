@@ -334,6 +334,28 @@ def _state_key(measured: RTable, u: np.ndarray, instrument: Instrument, settings
                         "instrument": instrument.to_dict(), **dict(settings)})
 
 
+def refit_with_rho(state: "_FitState", name: str, forward, y: np.ndarray, u: np.ndarray, start: RoadModel,
+                   rho: np.ndarray, *, variant: str, seed: int, label: str,
+                   fixed: Mapping[str, float] | None = None) -> RoadModel:
+    """``start`` refitted through ``forward`` with the bundles' correction ``rho`` (stage B, one
+    polish), journalled in ``state`` under ``name``: the outer loop's refit and the other
+    variants' refits with the loop's rho, of both routes (:func:`correct_self`,
+    :func:`roadgonio.correction.outside.correct_surface`)."""
+    model = state.get(name)
+    if model is None:
+        model = fit_through_instrument(forward, y, u, variant=variant, rho=rho, start_models=[start], stage_a=False,
+                                       polish=1, seed=seed, name=label, fixed=fixed).model
+        state.put(name, model)
+    return model
+
+
+def predicted_change(forward, model: RoadModel, rho: np.ndarray, k_backend: np.ndarray) -> np.ndarray:
+    """|ln k_A| change per cell that a refitted ``model`` predicts (through ``forward`` with ``rho``)
+    against the backend's ``k_backend``: the outer loop's stopping measure and, when it stops
+    first, its ``convergence`` component (over sqrt 3, rectangular)."""
+    return np.abs(np.log(forward.k_a(model, rho)) - np.log(k_backend))
+
+
 class _FitState:
     """Checkpoint of the fitted models of one correction (``DIR/fit_state.json``): a rerun with the
     same inputs reuses them, so the journalled backend tables (same model, same fingerprint) resume.
@@ -444,14 +466,10 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
                                      None if out is None else out / f"forward-{it}", progress)
         rho = k_b / fm.k_a(model)
         lap("backend")
-        nxt = state.get(f"refit-{it}")
-        if nxt is None:
-            nxt = fit_through_instrument(fm, y, u, variant=main_v, rho=rho, start_models=[model], stage_a=False,
-                                         polish=1, seed=seed, name=measured.name).model
-            state.put(f"refit-{it}", nxt)
-        pred = fm.k_a(nxt, rho)
+        nxt = refit_with_rho(state, f"refit-{it}", fm, y, u, model, rho, variant=main_v, seed=seed,
+                             label=measured.name)
         lap("refit")
-        pred_change = np.abs(np.log(pred) - np.log(k_b))
+        pred_change = predicted_change(fm, nxt, rho, k_b)
         worst = float(np.max(pred_change / u_rel))
         steps.append({"step": it, "model": model.params.to_dict(), "backend": info,
                       "rho_min": float(rho.min()), "rho_max": float(rho.max()),
@@ -467,11 +485,7 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     for v, m in fits.items():
         if v == main_v:
             continue
-        alt = state.get(f"alt-{v}")
-        if alt is None:
-            alt = fit_through_instrument(fm, y, u, variant=v, rho=rho, start_models=[m], stage_a=False, polish=1,
-                                         seed=seed, name=measured.name).model
-            state.put(f"alt-{v}", alt)
+        alt = refit_with_rho(state, f"alt-{v}", fm, y, u, m, rho, variant=v, seed=seed, label=measured.name)
         alternatives[v] = fm.k_a(alt, rho)
     lap("alternative")
 
