@@ -32,6 +32,15 @@ non-differentiable, so changing a value never recompiles the kernel. The variant
 active terms (:func:`roadgonio.surface.model.active_terms`) are structural: they decide which code is
 traced; the term set is recomputed from the values in :meth:`parameters_changed`.
 
+A surface other than eq. 4 (from Python: :meth:`RoadBSDF.set_surface`, structural): any object
+with ``evaluate(xp, wi, wo)`` over an array namespace that is not ``numpy_only`` -- a surface of
+:mod:`roadgonio.surface.truths`, or the fitted backbone times its correction surface
+(:class:`roadgonio.surface.correction_surface.CorrectedSurface`). The BSDF then evaluates that
+surface with :class:`~roadgonio.engines.mitsuba.ops.DrJitOps` (its one definition) and samples the
+mixture above with the surface's ``sampling_lobe_exponent`` in place of n_phong; the model
+parameters are ignored until :meth:`RoadBSDF.set_model`. This is how the Mitsuba backend measures a
+surface outside eq. 4, through a housing too.
+
 Registration: :func:`roadgonio.engines.mitsuba.plugins.register_plugins` after ``set_variant``.
 """
 from __future__ import annotations
@@ -74,6 +83,8 @@ class RoadBSDF(mi.BSDF):
                              field="channels")
         self.variant = variant
         self.channels = channels
+        self.surface = None
+        self._surface_lobe = None
         params = RoadParams.from_dict(values)          # validates the bounds
         self._values = params.to_dict()
         for name in PARAM_NAMES:
@@ -107,9 +118,20 @@ class RoadBSDF(mi.BSDF):
             if variant not in VARIANTS:
                 raise InputError(f"unknown road BSDF variant {variant!r}", field="variant")
             self.variant = variant
+        self.surface, self._surface_lobe = None, None     # eq. 4 again
         for name in PARAM_NAMES:
             setattr(self, name, mi.Float(values[name]))
         self.parameters_changed()
+
+    def set_surface(self, surface) -> None:
+        """Evaluate ``surface`` (a surface of :mod:`roadgonio.surface.truths` that is not numpy-only)
+        instead of eq. 4 (module docstring, ``surface``); structural: the kernels are traced anew."""
+        if getattr(surface, "numpy_only", True) or not hasattr(surface, "evaluate"):
+            raise InputError(f"the surface {getattr(surface, 'name', surface)!r} evaluates in numpy only: the Mitsuba "
+                             "road BSDF cannot render it (the numpy backends can)", field="surface")
+        self.surface = surface
+        n = float(surface.sampling_lobe_exponent)
+        self._surface_lobe = dr.opaque(mi.Float, n) if n > 0.0 else None
 
     def model_values(self) -> dict[str, float]:
         return dict(self._values)
@@ -120,6 +142,9 @@ class RoadBSDF(mi.BSDF):
 
     def _f(self, wi_sensor, wo_light):
         """f_road with the model's convention: wi = towards the light, wo = towards the sensor."""
+        if self.surface is not None:
+            return self.surface.evaluate(DrJitOps, (wo_light.x, wo_light.y, wo_light.z),
+                                         (wi_sensor.x, wi_sensor.y, wi_sensor.z))
         return road_brdf(DrJitOps, self._params(), (wo_light.x, wo_light.y, wo_light.z),
                          (wi_sensor.x, wi_sensor.y, wi_sensor.z), self.variant, self.terms)
 
@@ -139,14 +164,21 @@ class RoadBSDF(mi.BSDF):
 
     @property
     def _lobe_sampling(self) -> bool:
+        if self.surface is not None:
+            return self._surface_lobe is not None
         return "k_phong" in self.terms
 
+    @property
+    def _lobe_n(self):
+        """The sampled lobe's exponent: n_phong, or the surface's ``sampling_lobe_exponent``."""
+        return self._surface_lobe if self.surface is not None else self.n_phong
+
     def _lobe_pdf(self, wi_sensor, wo_light):
-        """(n + 1)/(2 pi) (cos Omega)^n about the mirror direction of ``wi_sensor`` (n = n_phong): the
-        model's own lobe (:func:`roadgonio.surface.model.phong_lobe`; the model's wi is the light)."""
-        lobe = phong_lobe(DrJitOps, (wo_light.x, wo_light.y, wo_light.z), (wi_sensor.x, wi_sensor.y, wi_sensor.z),
-                          self.n_phong)
-        return (self.n_phong + 1.0) * (0.5 * INV_PI) * lobe
+        """(n + 1)/(2 pi) (cos Omega)^n about the mirror direction of ``wi_sensor`` (n = :attr:`_lobe_n`):
+        the model's own lobe (:func:`roadgonio.surface.model.phong_lobe`; the model's wi is the light)."""
+        n = self._lobe_n
+        lobe = phong_lobe(DrJitOps, (wo_light.x, wo_light.y, wo_light.z), (wi_sensor.x, wi_sensor.y, wi_sensor.z), n)
+        return (n + 1.0) * (0.5 * INV_PI) * lobe
 
     def _pdf(self, wi_sensor, wo_light):
         cosine = mi.warp.square_to_cosine_hemisphere_pdf(wo_light)
@@ -169,7 +201,7 @@ class RoadBSDF(mi.BSDF):
         if self._lobe_sampling:
             # the Phong lobe about the mirror direction: cos alpha = u^(1/(n+1)) (sample1 picks the strategy)
             mirror = mi.Vector3f(-si.wi.x, -si.wi.y, si.wi.z)
-            cos_a = dr.power(sample2.x, dr.rcp(self.n_phong + 1.0))
+            cos_a = dr.power(sample2.x, dr.rcp(self._lobe_n + 1.0))
             sin_a = dr.safe_sqrt(1.0 - cos_a * cos_a)
             phi = 2.0 * math.pi * sample2.y
             lobe = mi.Frame3f(mirror).to_world(mi.Vector3f(sin_a * dr.cos(phi), sin_a * dr.sin(phi), cos_a))
@@ -185,5 +217,7 @@ class RoadBSDF(mi.BSDF):
         return bs, self._spectrum(self._f(si.wi, bs.wo), cos_l / dr.maximum(bs.pdf, 1e-30), active)
 
     def to_string(self):
+        if self.surface is not None:
+            return f"RoadBSDF[surface={self.surface.to_json_dict()}, channels={self.channels}]"
         vals = ", ".join(f"{k}={self._values[k]:g}" for k in PARAM_NAMES)
         return f"RoadBSDF[variant={self.variant}, channels={self.channels}, terms={sorted(self.terms)}, {vals}]"

@@ -330,3 +330,23 @@ def assert_se_is_honest(make_mc, reference, seeds) -> None:
     m = z.size
     assert float(np.mean(z * z)) <= chi2.isf(ALPHA, m) / m, (float(np.sqrt(np.mean(z * z))), m)
     assert float(np.max(np.abs(z))) <= z_family(m), (float(np.max(np.abs(z))), m)
+
+
+def _tilt(w, k):
+    th = np.arccos(np.clip(w[:, 2], -1, 1)) * k
+    s = np.maximum(np.hypot(w[:, 0], w[:, 1]), 1e-300)
+    return np.stack([w[:, 0] / s * np.sin(th), w[:, 1] / s * np.sin(th), np.cos(th)], -1)
+
+
+def kappa(model, wl, ws, ref, d=1e-6):
+    """|d ln f / d ln theta_light| of the float64 model (central difference): the conditioning that
+    float32 evaluations of f are judged against (tests/plugin/test_plugin_bsdf.py)."""
+    up, down = model.brdf(_tilt(wl, 1 + d), ws), model.brdf(_tilt(wl, 1 - d), ws)
+    return np.abs(up - down) / (2 * d * np.maximum(ref, 1e-300))
+
+
+def near_mirror(rng, ws, spread):
+    wl = ws * np.array([-1.0, -1.0, 1.0]) + rng.normal(0, spread, ws.shape)
+    wl[:, 2] = np.abs(wl[:, 2]) + 1e-3
+    wl /= np.linalg.norm(wl, axis=1)[:, None]
+    return wl.astype(np.float32).astype(np.float64)

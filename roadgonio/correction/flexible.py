@@ -51,7 +51,7 @@ from scipy.linalg import cho_factor, cho_solve
 from roadgonio.engines.bundle import ForwardModel
 from roadgonio.engines.result import ratio_se
 from roadgonio.errors import InputError
-from roadgonio.surface.correction_surface import SplineGrid, alpha_coordinate, lookup
+from roadgonio.surface.correction_surface import CorrectedSurface, SplineGrid, alpha_coordinate, lookup
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.fit import _from_z, _to_z, _z_box, nonlinear_params
 from roadgonio.surface.model import PARAM_BOUNDS, RoadModel
@@ -432,6 +432,15 @@ class FlexPart:
                                                          self._nominal), 0.0))
         out["g_d"] = (self._nominal_d @ theta[n_c:]) if self.settings.n_d else np.full(self.n, np.nan)
         return out
+
+    def corrected_surface(self, theta: np.ndarray) -> CorrectedSurface:
+        """The fitted model at ``theta`` as a BRDF a backend renders: the backbone times
+        exp(g_C + l(alpha) g_D) (what :meth:`simulate` averages over the rays)."""
+        n_c = self.settings.n_c
+        thetas = [theta[:n_c]] + ([theta[n_c:]] if self.settings.n_d else [])
+        ell = np.asarray(alpha_coordinate(NumpyOps, self.forward.bundles.wo), dtype=np.float64)
+        return CorrectedSurface(self.backbone, self.grids, thetas, name=f"{self.backbone.name} x exp(g)",
+                                alpha_range=(float(ell.min()), float(ell.max())))
 
     def k_a(self, theta: np.ndarray) -> np.ndarray:
         """k_A of the corrected model under the instrument's calibration (times rho)."""

@@ -148,6 +148,10 @@ class SurfaceCorrection:
     written: list = field(default_factory=list)
     #: the backbone's outer steps (backend k_A, rho, the refit's predicted change; as correct_self's)
     steps: list = field(default_factory=list)
+    #: with stray light in the backend: the fitted surface's own renderings, after each of which the
+    #: surfaces were refitted with its rho (the rendered variant, rho, the refit's change of k_A over u,
+    #: converged; empty without stray light)
+    surface_steps: list = field(default_factory=list)
     #: grid: the weight of the fitted model's own value at the nominal geometry in the combined table
     #: (the rest is the instruments' r / k_A); None without SurfaceSettings.model_estimate
     model_weight: np.ndarray | None = None
@@ -184,6 +188,9 @@ class SurfaceCorrection:
                "model_estimate": self.model_estimate_summary(),
                "backbone_steps": [{k: st[k] for k in ("step", "rho_min", "rho_max", "refit_change_over_u_max", "converged")}
                                   for st in self.steps],
+               "surface_steps": [{k: st[k] for k in ("step", "variant", "rho_min", "rho_max",
+                                                     "refit_change_over_u_max", "converged")}
+                                 for st in self.surface_steps],
                "seconds": self.seconds, "timings": self.timings}
         out["per_instrument"] = [{
             "instrument": p.name, "cells": int(p.measured.mask.sum()),
@@ -488,27 +495,74 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     lap("refit")
 
     # 3. the correction surface of every variant, and the variants' weights
-    vfits: list[VariantFit] = []
-    warm: tuple | None = None
-    for v, r in sorted(backbones, key=lambda x: x != main):      # the best backbone first: a warm start
-        _run._say(progress, f"{label}: the correction surface over the {backbone_label(v, r)} backbone")
-        parts = [FlexPart(fm, backbones[(v, r)], settings, rho) for fm, rho in zip(fms, rhos)]
-        sf = None
-        journalled = state.get_surface(f"surface-{_state_name(v, r)}")
-        if journalled is not None:
-            try:
-                sf = fit_surface(parts, ys, us, state=journalled)
-            except (ValueError, KeyError, TypeError):
-                sf = None                          # a journal of other settings: fit again
-        if sf is None:
-            sf = fit_surface(parts, ys, us, theta0=None if warm is None else warm[0],
-                             lam0=None if warm is None else warm[1])
-            state.put_surface(f"surface-{_state_name(v, r)}", sf.state())
-        if warm is None:
-            warm = (sf.theta, list(sf.lam.values()))
-        vfits.append(VariantFit(v, backbones[(v, r)], chi2[(v, r)], sf, parts, round_deg=r))
-    for vf, w in zip(vfits, _weights([vf.fit.log_evidence for vf in vfits])):
-        vf.weight = float(w)
+    def fit_surfaces(rhos: list[np.ndarray], tag: str, starts: dict | None = None) -> list[VariantFit]:
+        out_fits: list[VariantFit] = []
+        warm: tuple | None = None
+        for v, r in sorted(backbones, key=lambda x: x != main):  # the best backbone first: a warm start
+            _run._say(progress, f"{label}: the correction surface over the {backbone_label(v, r)} backbone"
+                      + (f" ({tag.strip('-')})" if tag else ""))
+            parts = [FlexPart(fm, backbones[(v, r)], settings, rho) for fm, rho in zip(fms, rhos)]
+            start = (starts or {}).get((v, r), warm)
+            name = f"surface-{_state_name(v, r)}{tag}"
+            sf = None
+            journalled = state.get_surface(name)
+            if journalled is not None:
+                try:
+                    sf = fit_surface(parts, ys, us, state=journalled)
+                except (ValueError, KeyError, TypeError):
+                    sf = None                      # a journal of other settings: fit again
+            if sf is None:
+                sf = fit_surface(parts, ys, us, theta0=None if start is None else start[0],
+                                 lam0=None if start is None else start[1])
+                state.put_surface(name, sf.state())
+            if warm is None:
+                warm = (sf.theta, list(sf.lam.values()))
+            out_fits.append(VariantFit(v, backbones[(v, r)], chi2[(v, r)], sf, parts, round_deg=r))
+        for vf, w in zip(out_fits, _weights([vf.fit.log_evidence for vf in out_fits])):
+            vf.weight = float(w)
+        return out_fits
+
+    vfits = fit_surfaces(rhos, "")
+    lap("surface")
+    # 3b. where the backend traces light the bundles leave out (a housing's stray light), k_A depends on
+    #     the surface beyond the footprint: the walls light it from every direction, and the road around
+    #     the sample lights the walls. rho of the backbone is then not rho of the fitted surface (a
+    #     surface outside eq. 4 through a bright housing: k_A up to 7 % off, docs/correction.md, "A
+    #     housed instrument"). So the backend renders the best variant's fitted surface itself, rho is
+    #     taken from that rendering, and the surfaces are refitted with it, until a refit moves the
+    #     k_A the fit uses (through the bundles, so that the renderings' noise does not enter the test)
+    #     by at most tol u; at most max_outer renderings, the last change into u if it did not hold still.
+    surface_steps: list[dict[str, Any]] = []
+    surface_change = np.zeros_like(y_all)
+    if any(info.get("stray") for info in infos):
+        for it in range(1, max_outer + 1):
+            cur = max(vfits, key=lambda v: v.weight)
+            k_s, se_s, info_s, rho_s = [], [], [], []
+            for i, (inst, t, p) in enumerate(zip(instruments, tables, cur.parts)):
+                _run._say(progress, f"{label}: k_A of the fitted surface ({cur.label}) through {inst.name} "
+                                    f"({backend}), step {it}")
+                jdir = None if out is None else out / _forward_dir(i, len(tables), it, "surface")
+                k_b, se_b, info = _run._backend_k(factory, inst, p.corrected_surface(cur.fit.theta), t.cells,
+                                                  jdir, progress)
+                kb = p.k_a(cur.fit.theta) / p.rho            # the bundles' k_A of the surface
+                k_s.append(k_b)
+                se_s.append(se_b)
+                info_s.append(info)
+                rho_s.append(k_b / kb)
+            lnk_old = _weighted_lnk_bundles(vfits)
+            lap("surface-backend")
+            rhos, k_back, se_back, infos = rho_s, k_s, se_s, info_s
+            vfits = fit_surfaces(rhos, f"-s{it}", {(vf.variant, vf.round_deg): (vf.fit.theta, list(vf.fit.lam.values()))
+                                                  for vf in vfits})
+            lap("surface")
+            surface_change = np.abs(_weighted_lnk_bundles(vfits) - lnk_old)
+            worst = float(np.max(surface_change / u_rel_all))
+            rr = np.concatenate(rhos)
+            surface_steps.append({"step": it, "variant": cur.label, "backend": info_s[0],
+                                  "rho_min": float(rr.min()), "rho_max": float(rr.max()),
+                                  "refit_change_over_u_max": worst, "converged": worst <= tol})
+            if worst <= tol:
+                break
     live = contributing(vfits)
     for vf in live:
         vf.cov_full = posterior_with_backbone(vf.parts, vf.fit.theta, vf.fit.lam, [1.0 / u ** 2 for u in us],
@@ -590,7 +644,10 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     comps["bundle"] = np.diag(bundle ** 2)
     if disc is not None:
         comps["discrepancy"] = disc
-    if not steps[-1]["converged"]:
+    if surface_steps:                              # the surface's own loop has the last word on k_A
+        if not surface_steps[-1]["converged"]:
+            comps["convergence"] = np.diag(np.concatenate([surface_change / math.sqrt(3.0), pad]) ** 2)
+    elif not steps[-1]["converged"]:
         comps["convergence"] = np.diag(np.concatenate([pred_change / math.sqrt(3.0), pad]) ** 2)
     if any(b is not None for b in mis_blocks):
         M = np.zeros((E, E))
@@ -679,7 +736,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                       discrepancy=disc_info if disc is not None else None)
     return SurfaceCorrection(parts=parts_out, corrected=combined, u_corrected=u_comb, budget=comb_budget, after=after,
                              variants=vfits, settings=settings, provenance=prov, seconds=time.perf_counter() - t0,
-                             timings=timings, model_weight=model_weight, steps=steps)
+                             timings=timings, model_weight=model_weight, steps=steps, surface_steps=surface_steps)
 
 
 def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit, settings: SurfaceSettings,
@@ -745,10 +802,21 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     return np.outer(s, s) * R, info
 
 
-def _forward_dir(i: int, n_tables: int, step: int) -> str:
-    """The journal folder of the backend's k_A through instrument ``i`` at outer step ``step``
-    (step 1 keeps the names it always had, so such journals resume)."""
+def _weighted_lnk_bundles(vfits: Sequence[VariantFit]) -> np.ndarray:
+    """The bundles' ln k_A of the fitted surfaces (without rho), every instrument's cells one after
+    the other, weighed over the variants as the corrected table weighs them: what a refit with
+    another rho moves, free of the backend's noise."""
+    return sum(vf.weight * np.concatenate([np.log(p.k_a(vf.fit.theta) / p.rho) for p in vf.parts])
+               for vf in vfits if vf.weight > 0.0)
+
+
+def _forward_dir(i: int, n_tables: int, step: int, what: str = "backbone") -> str:
+    """The journal folder of the backend's k_A through instrument ``i`` at outer step ``step`` of the
+    backbone (step 1 keeps the names it always had, so such journals resume) or of the fitted
+    surface (``what="surface"``: ``forward-N-surface-stepK``)."""
     base = f"forward-{i + 1}" if n_tables > 1 else "forward-1"
+    if what == "surface":
+        return f"{base}-surface-step{step}"
     return base if step == 1 else f"{base}-step{step}"
 
 

@@ -294,7 +294,9 @@ def _backend_k(factory: BackendFactory, instrument: Instrument, model: RoadModel
     info = {"backend": backend.name, "settings": backend.settings(), "seconds": run.seconds,
             "resumed_cells": run.resumed, "resumed_pass_cells": run.resumed_pass_cells,
             "not_converged": int(sum(not c.converged for c in run.results)),
-            "journal": str(out_dir) if out_dir is not None else None}
+            "journal": str(out_dir) if out_dir is not None else None,
+            # the backend traced light the ray bundles leave out (a housing's stray light)
+            "stray": bool(any((c.stray_fraction or 0.0) > 0.0 for c in run.results))}
     return k, se, info
 
 

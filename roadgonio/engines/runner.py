@@ -49,10 +49,13 @@ FLUSH_SECONDS = 1.0
 
 def fingerprint(instrument: Instrument, model: RoadModel, backend: KaBackend) -> str:
     """Fingerprint of everything that determines the numbers of a run (:func:`roadgonio.fileio.fingerprint`:
-    the instrument, the model's variant and parameters, the backend and its settings, the version)."""
+    the instrument, the model's variant and parameters -- or a surface outside eq. 4 by its
+    ``to_json_dict()`` -- the backend and its settings, the version)."""
     files = instrument.file_digests()        # only when it reads files: other fingerprints stay as they were
+    surface = ({"variant": model.variant, "params": model.params.to_dict()} if isinstance(model, RoadModel)
+               else model.to_json_dict())
     return _fingerprint({"instrument": instrument.to_dict(), **({"files": files} if files else {}),
-                         "model": {"variant": model.variant, "params": model.params.to_dict()},
+                         "model": surface,
                          "backend": backend.name, "settings": backend.settings()})
 
 

@@ -246,3 +246,77 @@ def _differences(grid: SplineGrid):
     Db.setflags(write=False)
     Dt.setflags(write=False)
     return (Db, np.array(cb)), (Dt, np.array(ct))
+
+
+class CorrectedSurface:
+    """The fitted surface as a BRDF: the backbone times ``exp(g_C + l(alpha) g_D)`` (module
+    docstring; the exponent clipped at 50, as the forward model clips it), for the backends that
+    render any surface over an array namespace (the Mitsuba ``roadbsdf``'s ``set_surface``, the
+    float64 reference). It is what the correction hands a backend when k_A depends on the surface
+    beyond the footprint (a housing's stray light: docs/correction.md, "A housed instrument").
+
+    ``grids`` are the surface's spline grids (g_C's, then g_D's if any) and ``thetas`` their free
+    coefficients; the interface is that of :mod:`roadgonio.surface.truths` (``evaluate``, ``brdf``,
+    ``q``, ``r``, ``to_json_dict``, ``numpy_only``, ``sampling_lobe_exponent``, ``mirror_kink``)."""
+
+    kind = "corrected"
+    numpy_only = False
+    is_lambertian = False
+
+    def __init__(self, backbone, grids, thetas, name: str | None = None,
+                 alpha_range: tuple[float, float] | None = None):
+        if len(grids) != len(thetas) or not 1 <= len(grids) <= 2:
+            raise ValueError("a corrected surface has g_C and optionally g_D: one theta per grid")
+        self.backbone = backbone
+        self.grids = tuple(grids)
+        self.thetas = tuple(np.asarray(t, dtype=np.float64).copy() for t in thetas)
+        self.padded = tuple(g.padded_matrix() @ t for g, t in zip(self.grids, self.thetas))
+        self.name = name or f"{backbone.name} x exp(g)"
+        #: l(alpha) is held within this range (the fitted rays' own): beyond the observation
+        #: elevations the instruments saw, the behaviour off alpha = 1 deg is the backbone's
+        #: (issue 19) -- a stray-light path reads the road at any elevation, where l g_D would be an
+        #: extrapolation by a factor up to ln(1 / sin 1 deg) = 4
+        self.alpha_range = None if alpha_range is None else (float(alpha_range[0]), float(alpha_range[1]))
+        self.variant = backbone.variant
+        self.mirror_kink = backbone.mirror_kink
+
+    @property
+    def sampling_lobe_exponent(self) -> float:
+        """The backbone's Phong exponent when it has a Phong lobe (the sampling only)."""
+        p = self.backbone.params
+        return float(p.n_phong) if p.k_phong > 0.0 else 0.0
+
+    def exponent(self, xp, wi, wo):
+        """g_C + l(alpha) g_D at ray pairs (component triples; wi towards the source)."""
+        g = spline_value(xp, self.grids[0], self.padded[0], wi, wo)
+        if len(self.grids) > 1:
+            ell = alpha_coordinate(xp, wo)
+            if self.alpha_range is not None:
+                ell = xp.minimum(xp.maximum(ell, self.alpha_range[0]), self.alpha_range[1])
+            g = g + ell * spline_value(xp, self.grids[1], self.padded[1], wi, wo)
+        return g
+
+    def evaluate(self, xp, wi, wo):
+        return self.backbone.evaluate(xp, wi, wo) * xp.exp(xp.minimum(self.exponent(xp, wi, wo), 50.0))
+
+    def brdf(self, wi, wo) -> np.ndarray:
+        wi = np.asarray(wi, dtype=np.float64)
+        wo = np.asarray(wo, dtype=np.float64)
+        wi, wo = np.broadcast_arrays(wi, wo)
+        trip = (lambda w: (w[..., 0], w[..., 1], w[..., 2]))
+        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            return np.asarray(self.evaluate(NumpyOps, trip(wi), trip(wo)), dtype=np.float64)
+
+    def q(self, tan_eps, beta_deg, alpha_deg=1.0, delta_deg=0.0) -> np.ndarray:
+        from roadgonio.geometry import eps_from_tan, w_detector, w_source
+        return self.brdf(w_source(eps_from_tan(tan_eps), beta_deg, delta_deg), w_detector(alpha_deg, delta_deg))
+
+    def r(self, tan_eps, beta_deg, alpha_deg=1.0, delta_deg=0.0) -> np.ndarray:
+        from roadgonio.geometry import cos3_eps
+        return self.q(tan_eps, beta_deg, alpha_deg, delta_deg) * cos3_eps(tan_eps)
+
+    def to_json_dict(self) -> dict:
+        from dataclasses import asdict
+        return {"surface": self.kind, "name": self.name, "backbone": self.backbone.to_json_dict(),
+                "grids": [asdict(g) for g in self.grids], "thetas": [t.tolist() for t in self.thetas],
+                "alpha_range": None if self.alpha_range is None else list(self.alpha_range)}

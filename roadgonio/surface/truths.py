@@ -11,7 +11,13 @@ The interface is the one the float64 backends evaluate (:mod:`roadgonio.engines.
 * ``brdf(wi, wo)`` -- the same for numpy arrays of shape (..., 3);
 * ``mirror_kink`` -- whether f has a kink on the mirror plane (|beta| = 0) that an integrator should
   split on (none of these does);
-* ``name``, ``to_json_dict()``, ``q(tan_eps, beta_deg)``, ``r(tan_eps, beta_deg)``.
+* ``name``, ``to_json_dict()``, ``q(tan_eps, beta_deg)``, ``r(tan_eps, beta_deg)``;
+* ``numpy_only`` -- whether ``evaluate`` runs in numpy alone; the others run unchanged over the
+  Dr.Jit namespace too, so the Mitsuba backend renders them (the ``roadbsdf`` plugin's
+  ``set_surface``), housings and stray light included;
+* ``sampling_lobe_exponent`` -- the exponent n of the (cos Omega)^n lobe about the mirror direction
+  that the Mitsuba plugin mixes with cosine sampling for this surface (a choice of importance
+  sampling only: any n > 0 gives the same expectation; 0 = cosine sampling alone).
 
 Surfaces (``make_truth(kind)``; angles as in docs/conventions.md section 1):
 
@@ -118,6 +124,11 @@ class TruthBRDF:
     mirror_kink = False
     is_lambertian = False
     variant = "truth"
+    numpy_only = False
+
+    @property
+    def sampling_lobe_exponent(self) -> float:
+        return 0.0
 
     def evaluate(self, xp, wi, wo):  # pragma: no cover - abstract
         raise NotImplementedError
@@ -150,6 +161,13 @@ class MicrofacetTruth(TruthBRDF):
 
     kind = "microfacet"
 
+    @property
+    def sampling_lobe_exponent(self) -> float:
+        """A GGX lobe of roughness a is about a wide in the half vector, 2a about the mirror
+        direction: n ~ 2 / (2a)^2 (the width of (cos Omega)^n is sqrt(2 / n))."""
+        a = float(self.params["a"])
+        return max(1.0, 0.5 / (a * a))
+
     def evaluate(self, xp, wi, wo):
         k_d, k_s, a = self.params["k_d"], self.params["k_s"], self.params["a"]
         ci, co = wi[2], wo[2]
@@ -173,6 +191,12 @@ class TwoLobesTruth(TruthBRDF):
     """Diffuse + Beckmann lobe (half vector) + Cauchy lobe (angle to the mirror direction)."""
 
     kind = "two_lobes"
+
+    @property
+    def sampling_lobe_exponent(self) -> float:
+        """The narrow Cauchy lobe, of half-width w about the mirror direction: n ~ 2 / w^2."""
+        w = float(self.params["w_rad"])
+        return 2.0 / (w * w)
 
     def evaluate(self, xp, wi, wo):
         P = self.params
@@ -198,6 +222,7 @@ class TableTruth(TruthBRDF):
 
     table_name: str = "R3"
     kind = "table"
+    numpy_only = True
 
     def __post_init__(self):
         from scipy.interpolate import RectBivariateSpline

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from roadgonio.surface.model import RoadModel, RoadParams
-from helpers import rand_dirs, rand_params
+from helpers import kappa, near_mirror, rand_dirs, rand_params
 from tolerances import F32_EVAL_ATOL as EVAL_ABS_TOL
 from tolerances import F32_EVAL_RTOL as EVAL_REL_TOL
 from tolerances import F32_KAPPA_TOL as KAPPA_TOL
@@ -22,25 +22,6 @@ from tolerances import F32_KAPPA_TOL as KAPPA_TOL
 #: Tolerance of comparisons between two float32 evaluations of the same quantity in different
 #: orders (reciprocity, weight vs eval/pdf): a few float32 ulps amplified as above.
 F32_PAIR_REL_TOL = 2e-4
-
-
-def _tilt(w, k):
-    th = np.arccos(np.clip(w[:, 2], -1, 1)) * k
-    s = np.maximum(np.hypot(w[:, 0], w[:, 1]), 1e-300)
-    return np.stack([w[:, 0] / s * np.sin(th), w[:, 1] / s * np.sin(th), np.cos(th)], -1)
-
-
-def kappa(model, wl, ws, ref, d=1e-6):
-    """|d ln f / d ln theta_light| of the float64 model (central difference)."""
-    up, down = model.brdf(_tilt(wl, 1 + d), ws), model.brdf(_tilt(wl, 1 - d), ws)
-    return np.abs(up - down) / (2 * d * np.maximum(ref, 1e-300))
-
-
-def near_mirror(rng, ws, spread):
-    wl = ws * np.array([-1.0, -1.0, 1.0]) + rng.normal(0, spread, ws.shape)
-    wl[:, 2] = np.abs(wl[:, 2]) + 1e-3
-    wl /= np.linalg.norm(wl, axis=1)[:, None]
-    return wl.astype(np.float32).astype(np.float64)
 
 
 @pytest.fixture(scope="module")

@@ -88,3 +88,43 @@ def test_a_surface_measured_through_a_bright_housing_is_recovered(mi):
     assert len(steps) > 1 and steps[-1]["converged"], steps
     said = res.extra["surface"].summary()["backbone_steps"]
     assert [st["refit_change_over_u_max"] for st in said] == [st["refit_change_over_u_max"] for st in steps]
+
+
+#: Targets of issue 19 for a truth outside eq. 4 that this test asserts (RMS of the log error, %; the
+#: share of cells within 2u; the RMS of error / u, the honest band's upper end).
+OUTSIDE_RMS_PCT, OUTSIDE_WITHIN_2U, Z_RMS_MAX = 2.5, 0.90, 1.3
+
+
+@pytest.mark.slow
+def test_a_surface_outside_eq4_measured_through_a_bright_housing_is_covered(mi):
+    """The microfacet truth (outside eq. 4; its own BRDF rendered by the Mitsuba plugin's
+    set_surface) measured through scenes/portable_housed.toml with walls of 0.2, 1.5 % noise,
+    corrected with --forward surface. The stray light depends on the surface beyond the footprint, so
+    rho of the backbone is not rho of the fitted surface: the backend renders the fitted surface
+    itself until a refit holds still (surface_steps). Without that (rho of the backbone alone, session
+    18) this case had 12 cells beyond 4u (z down to -6.9 at tan eps 5, beta 75-150, k_A 6 % off) and an
+    RMS of z of 1.54. Asserted: no cell beyond 4u, RMS of z <= 1.3, >= 90 % within 2u, RMS <= 2.5 %,
+    and the surface's loop ran and converged. (The maximum error, 8.8 %, is the microfacet peak that
+    this instrument does not resolve, housed or bare: 8.6 % bare; not asserted.)"""
+    from roadgonio.correction.synthetic import standard_mask, synthesize
+    from roadgonio.fileio import read_toml
+    from roadgonio.instrument.config import Instrument
+    from roadgonio.surface.truths import make_truth
+    path = Path(__file__).resolve().parents[2] / "scenes" / "portable_housed.toml"
+    d = read_toml(path, "instrument file")
+    d["housing"]["wall_reflectance"] = 0.2
+    inst = Instrument.from_dict(d, path=path)
+    m = standard_mask()
+    s = synthesize(make_truth("microfacet"), inst, noise=0.015, seed=5, backend="mitsuba",
+                   backend_settings={"rel_se": 3e-4, "seed": 777}, mask=m)
+    res = api.correct(s.measured, inst, forward="surface", u_measured="1.5%", backend="mitsuba", seed=0, plots=False)
+    c = res.corrected
+    mm = c.mask
+    err = np.log(c.r[mm] / s.truth.r[mm])
+    z = err / (res.u_corrected[mm] / c.r[mm])
+    assert np.max(np.abs(z)) <= 4.0, np.sort(np.abs(z))[-5:]
+    assert np.sqrt(np.mean(z ** 2)) <= Z_RMS_MAX and np.mean(np.abs(z) <= 2.0) >= OUTSIDE_WITHIN_2U, z
+    assert 100 * np.sqrt(np.mean(err ** 2)) <= OUTSIDE_RMS_PCT, err
+    sc = res.extra["surface"]
+    assert sc.surface_steps and sc.surface_steps[-1]["converged"], sc.surface_steps
+    assert [st["step"] for st in sc.summary()["surface_steps"]] == [st["step"] for st in sc.surface_steps]

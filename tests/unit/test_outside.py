@@ -609,3 +609,59 @@ def test_the_spd_inverse_is_the_inverse_and_refuses_an_indefinite_matrix():
     bad = M - 2.0 * np.linalg.eigvalsh(M)[0] * np.eye(60) - np.diag(np.r_[np.zeros(59), 1e3])
     with pytest.raises(np.linalg.LinAlgError):
         _spd_inverse(bad)
+
+
+def test_the_corrected_surface_is_what_the_forward_model_averages(r3like):
+    """CorrectedSurface (the fitted surface as a BRDF a backend renders) at the bundles' own rays is
+    the backbone times exp(g) of FlexPart (the sparse basis of the fit), to float64 round-off; the
+    fingerprint of a k_A run tells two surfaces apart."""
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    cells = [(12.0, 0.0), (6.0, 5.0), (2.0, 20.0), (0.5, 90.0), (0.0, 0.0)]
+    fm = ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=32))
+    part = FlexPart(fm, r3like, SurfaceSettings())
+    theta = np.random.default_rng(3).normal(0.0, 0.1, part.n_params)
+    surf = part.corrected_surface(theta)
+    b = fm.bundles
+    got = np.broadcast_to(np.asarray(surf.evaluate(NumpyOps, b.wi, b.wo), dtype=np.float64), b.a.shape)
+    want = np.broadcast_to(fm.ray_brdf(r3like), b.a.shape) * np.exp(part.g_rays(theta))
+    assert np.allclose(got, want, rtol=ROUND_OFF * 100, atol=0.0)
+    # at the nominal geometry (alpha = 1 deg) the value is the model's own estimate of the table
+    r_nom = surf.r(np.array([c[0] for c in cells]), np.array([c[1] for c in cells]))
+    assert np.allclose(np.log(r_nom), part.ln_r_nominal(theta), rtol=0.0, atol=1e-9)
+    from roadgonio.engines.runner import fingerprint
+
+    class Named:
+        name, settings = "reference", staticmethod(lambda: {})
+    inst = load_instrument("wide")
+    other = part.corrected_surface(theta * 1.01)
+    assert fingerprint(inst, surf, Named()) == fingerprint(inst, part.corrected_surface(theta), Named())
+    assert fingerprint(inst, surf, Named()) != fingerprint(inst, other, Named())
+
+
+def test_the_corrected_surface_holds_its_alpha_dependence_beyond_the_rays(r3like):
+    """Off the observation elevations the instruments saw, l(alpha) g_D is held at the rays' range
+    (the backbone's behaviour beyond it, issue 19): at alpha = 30 deg the value is the backbone times
+    exp(g_C + l_hi g_D), computed here from the spline directly; within the range nothing is held."""
+    from roadgonio.correction.flexible import SurfaceSettings
+    from roadgonio.surface.correction_surface import CorrectedSurface, alpha_coordinate
+    s = SurfaceSettings()
+    rng = np.random.default_rng(5)
+    tc, td = rng.normal(0, 0.1, s.n_c), rng.normal(0, 0.3, s.n_d)
+    lo, hi = -0.3, 0.4
+    held = CorrectedSurface(r3like, [s.c_grid, s.d_grid], [tc, td], alpha_range=(lo, hi))
+    free = CorrectedSurface(r3like, [s.c_grid, s.d_grid], [tc, td])
+    wi, _ = _directions(200, 7)
+    for alpha_deg, ell_used in ((30.0, hi), (1.0, 0.0), (0.8, None), (0.2, lo)):
+        a = math.radians(alpha_deg)
+        wo = (np.full(200, math.cos(a)), np.zeros(200), np.full(200, math.sin(a)))
+        ell = float(np.asarray(alpha_coordinate(NumpyOps, wo))[0])
+        ell_used = ell if ell_used is None else ell_used
+        assert lo <= ell_used <= hi
+        g = (spline_value(NumpyOps, s.c_grid, s.c_grid.padded_matrix() @ tc, wi, wo)
+             + ell_used * spline_value(NumpyOps, s.d_grid, s.d_grid.padded_matrix() @ td, wi, wo))
+        want = r3like.evaluate(NumpyOps, wi, wo) * np.exp(g)
+        assert np.allclose(held.evaluate(NumpyOps, wi, wo), want, rtol=1e-12, atol=0.0), alpha_deg
+        same = np.allclose(free.evaluate(NumpyOps, wi, wo), held.evaluate(NumpyOps, wi, wo), rtol=1e-12, atol=0.0)
+        assert same == (lo <= ell <= hi), alpha_deg

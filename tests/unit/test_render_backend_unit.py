@@ -26,12 +26,14 @@ def test_unknown_setting_is_an_input_error():
 
 
 def test_a_surface_only_numpy_evaluates_is_refused_by_name():
-    """A surface that is not eq. 4 (the bench's microfacet truth) reached the scene's BSDF and failed
-    with an AttributeError deep in it; it is refused up front, naming it and the backends that can."""
+    """A surface that evaluates in numpy only (the bench's table truth) reached the scene's BSDF and
+    failed with an AttributeError deep in it; it is refused up front, naming it and the backends that
+    can. (Surfaces that evaluate over Dr.Jit arrays, the microfacet truth among them, are rendered:
+    tests/plugin/test_surface_bsdf.py.)"""
     from roadgonio.engines.mitsuba.backend import make_backend
     from roadgonio.surface.truths import make_truth
-    with pytest.raises(InputError, match="'microfacet' is a MicrofacetTruth.*reference, numpy-mc"):
-        make_backend(preset("portable"), make_truth("microfacet"))
+    with pytest.raises(InputError, match="'table' is a TableTruth.*reference, numpy-mc"):
+        make_backend(preset("portable"), make_truth("table"))
 
 
 @pytest.mark.parametrize("name", ["collimated", "portable"])

@@ -283,10 +283,11 @@ def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = 1e
     if unknown:
         raise InputError(f"unknown setting(s) {', '.join(sorted(unknown))} for the mitsuba backend; expected "
                          "rel_se, seed, first_pass, min_replicates, min_passes, max_samples, plan, mitsuba_variant")
-    if not isinstance(model, RoadModel):
-        raise InputError(f"the mitsuba backend renders the road BSDF of eq. 4 (a RoadModel); "
-                         f"{getattr(model, 'name', type(model).__name__)!r} is a {type(model).__name__}, which only "
-                         "the numpy backends evaluate (reference, numpy-mc)", field="sample")
+    if not isinstance(model, RoadModel) and (getattr(model, "numpy_only", True) or not hasattr(model, "evaluate")):
+        raise InputError(f"the mitsuba backend renders the road BSDF of eq. 4 (a RoadModel) or a surface that "
+                         f"evaluates over Dr.Jit arrays; {getattr(model, 'name', type(model).__name__)!r} is a "
+                         f"{type(model).__name__}, which only the numpy backends evaluate (reference, numpy-mc)",
+                         field="sample")
     return MitsubaBackend(instrument, model, rel_se=rel_se, seed=seed, first_pass=first_pass,
                           min_replicates=min_replicates, min_passes=min_passes, max_samples=max_samples,
                           plan=plan, mitsuba_variant=mitsuba_variant)

@@ -15,6 +15,7 @@ quantised in steps of 6e-8 there).
 from __future__ import annotations
 
 import drjit as dr
+import numpy as np
 
 #: Below this half-chord, log(1 - h) is evaluated by its series.
 LOG1M_SERIES_BELOW = 0.05
@@ -41,7 +42,10 @@ class DrJitOps:
     @staticmethod
     def take(table, index):
         """``table[index]`` for a Float array ``index`` of whole numbers within the table: a gather
-        from the Dr.Jit array ``table`` (same type as ``index``)."""
+        from ``table``, a Dr.Jit array of the type of ``index`` or a float64 numpy array (made one:
+        the spline coefficients of :class:`roadgonio.surface.correction_surface.CorrectedSurface`)."""
+        if isinstance(table, np.ndarray):
+            table = type(index)(np.ascontiguousarray(table, dtype=np.float32))
         return dr.gather(type(index), table, dr.uint32_array_t(type(index))(index))
 
     @staticmethod

@@ -262,6 +262,18 @@ def _bsdf_dict(model: RoadModel, channels: str) -> dict:
     return d
 
 
+def road_bsdf(model, channels: str):
+    """The sample's ``roadbsdf``: eq. 4 with the model's parameters, or any surface that evaluates
+    over the Dr.Jit namespace (a surface of :mod:`roadgonio.surface.truths`, a
+    :class:`~roadgonio.surface.correction_surface.CorrectedSurface`: the plugin's ``set_surface``)."""
+    mi = _mi()
+    if isinstance(model, RoadModel):
+        return mi.load_dict(_bsdf_dict(model, channels))
+    bsdf = mi.load_dict({"type": "roadbsdf", "channels": channels})
+    bsdf.set_surface(model)
+    return bsdf
+
+
 def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 64, spp: int = 16,
                 mitsuba_variant: str | None = None, sampler: str = "independent", channels: str = "road_lambert",
                 check: bool = True, hit_rays: int = 1 << 16) -> RoadScene:
@@ -313,24 +325,32 @@ def housing_shapes(instrument: Instrument, housing, model: RoadModel) -> dict[st
     out = {}
     shared: dict[str, Any] = {}
     for p in housing_panels(instrument, housing):
-        bsdf = {"type": "diffuse", "reflectance": {"type": "uniform", "value": float(p.reflectance)}}
-        if p.road:
-            bsdf = _bsdf_dict(model, "road")
-        if p.two_sided:
-            bsdf = {"type": "twosided", "bsdf": bsdf}
         # panels with the same BSDF share one instance: every distinct instance is traced (a road BSDF
         # in Python) and compiled once more at each place a path vertex calls its part's BSDF
-        key = repr(bsdf)
-        if key not in shared:
-            shared[key] = mi.load_dict(bsdf)
+        if p.road:                                # the sample's surface, in the road channels
+            key = "road"
+            if key not in shared:
+                shared[key] = road_bsdf(model, "road")
+            bsdf = shared[key]
+        else:
+            bsdf = {"type": "diffuse", "reflectance": {"type": "uniform", "value": float(p.reflectance)}}
+            key = repr(bsdf)
+            if key not in shared:
+                shared[key] = mi.load_dict(bsdf)
+            bsdf = shared[key]
+        if p.two_sided:
+            key = f"two-sided {key}"
+            if key not in shared:
+                shared[key] = mi.load_dict({"type": "twosided", "bsdf": bsdf})
+            bsdf = shared[key]
         out[p.id] = {"type": "rectangle", "to_world": mi.ScalarTransform4f(p.to_world().tolist()),
-                     "bsdf": shared[key]}
+                     "bsdf": bsdf}
     return out
 
 
 def _build_toml(instrument, model, *, resolution, spp, sampler, channels, housing=None) -> RoadScene:
     mi = _mi()
-    bsdf = mi.load_dict(_bsdf_dict(model, channels))
+    bsdf = road_bsdf(model, channels)
     smp = instrument.sample
     shape = to_mitsuba_mesh(sample_triangles(instrument), bsdf)
     film, samp = film_dict(resolution, spp, sampler)
@@ -478,7 +498,10 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
         p[f"{DETECTOR_ID}.film.crop_size"] = mi.ScalarVector2u(resolution, resolution)
         p.update()
     bsdf.channels = channels
-    bsdf.set_model(model.params, model.variant)
+    if isinstance(model, RoadModel):
+        bsdf.set_model(model.params, model.variant)
+    else:
+        bsdf.set_surface(model)
     if source_kind == "disk":
         shapes[SOURCE_ID].emitter()  # present (checked above)
     rs = RoadScene(instrument=instrument, model=model, scene=scene, params=mi.traverse(scene),
