@@ -90,7 +90,10 @@ class OutputGroup:
     Inside the block every file goes to a hidden staging folder in ``out_dir``; when the block ends
     without an error they are renamed into ``out_dir`` (same file system: each rename is atomic and
     allocates nothing, so a full disk fails before any output appears). On an error the staging
-    folder is removed and ``out_dir`` keeps what it had. An ``OSError`` is re-raised as an
+    folder is removed and ``out_dir`` keeps what it had, also when a rename fails half-way (the files
+    an earlier run left are set aside in the staging folder before each rename and put back on a
+    failure; a folder where an output file belongs is an error before anything moves). An
+    ``OSError`` is re-raised as an
     :class:`InputError` naming the output file it concerns.
     """
 
@@ -148,26 +151,41 @@ class OutputGroup:
         try:
             if exc_type is None:
                 moved: list[Path] = []
+                kept: list[tuple[Path, Path]] = []    # (destination, the earlier file set aside in the stage)
                 try:
                     for name in self.names:
                         src = stage / name
                         if not src.exists():
                             raise InputError("the command did not write this output file", path=self.out_dir / name)
+                        dest = self.out_dir / name
+                        if dest.is_dir() and not dest.is_symlink():
+                            raise output_error(dest, IsADirectoryError(21, "Is a directory", str(dest)))
                         with open(src, "rb") as fh:     # on disk before any rename
                             os.fsync(fh.fileno())
+
+                    def set_aside(dest: Path) -> None:
+                        if dest.exists() or dest.is_symlink():
+                            keep = stage / f"{TMP_PREFIX}previous-{dest.name}"
+                            os.replace(dest, keep)
+                            kept.append((dest, keep))
                     for name in self.names:
+                        set_aside(self.out_dir / name)
                         os.replace(stage / name, self.out_dir / name)
                         moved.append(self.out_dir / name)
                     for name in self.replaces:
                         if name not in self.names:
-                            try:
-                                (self.out_dir / name).unlink()
-                            except FileNotFoundError:
-                                pass
+                            set_aside(self.out_dir / name)
                 except OSError as err:
-                    for p in moved:       # not a partial set: take back what was already moved
+                    # not a partial set: take back what was already moved, and put the earlier
+                    # files back where they were (an earlier run's results are never lost)
+                    for p in moved:
                         try:
                             p.unlink()
+                        except OSError:  # pragma: no cover
+                            pass
+                    for dest, keep in reversed(kept):
+                        try:
+                            os.replace(keep, dest)
                         except OSError:  # pragma: no cover
                             pass
                     raise output_error(self._final_of(getattr(err, "filename", None), stage), err) from None

@@ -64,6 +64,54 @@ def test_a_failed_rename_takes_back_the_files_already_moved(tmp_path, monkeypatc
     assert list(out.iterdir()) == []
 
 
+@pytest.mark.parametrize("failing_call", [2, 4, 5])
+def test_a_failed_rename_keeps_the_earlier_runs_outputs_whole(tmp_path, monkeypatch, failing_call):
+    """With an earlier run's files in place, a rename that fails half-way (setting aside the earlier
+    b.txt, moving the new one in, or setting aside a file of ``replaces``) leaves exactly the earlier
+    run's files with their contents (the user audit of session 19: the rollback deleted the new files,
+    which had already overwritten the old ones, so both runs' results were lost)."""
+    out = tmp_path / "o"
+    names = ("a.txt", "b.txt")
+    with OutputGroup(out, replaces=names + ("old.png",)) as g:
+        for name in names:
+            g.text(name, f"old {name}")
+        g.text("old.png", "old picture")
+    real = os.replace
+    calls = []
+
+    def flaky(src, dst):
+        calls.append(dst)
+        if len(calls) == failing_call:
+            raise OSError(28, "No space left on device", str(src))
+        return real(src, dst)
+
+    monkeypatch.setattr(fileio.os, "replace", flaky)
+    with pytest.raises(InputError, match="No space left"):
+        with OutputGroup(out, replaces=names + ("old.png",)) as g:
+            for name in names:
+                g.text(name, f"new {name}")
+    monkeypatch.setattr(fileio.os, "replace", real)
+    assert sorted(p.name for p in out.iterdir()) == ["a.txt", "b.txt", "old.png"]
+    assert all((out / n).read_text() == f"old {n}" for n in names)
+    assert (out / "old.png").read_text() == "old picture"
+
+
+def test_a_folder_where_an_output_belongs_is_an_error_before_anything_moves(tmp_path):
+    out = tmp_path / "o"
+    with OutputGroup(out, replaces=("a.txt", "b.png")) as g:
+        g.text("a.txt", "old")
+        g.text("b.png", "old picture")
+    (out / "b.png").unlink()
+    (out / "b.png").mkdir()
+    (out / "b.png" / "the user's.txt").write_text("keep me")
+    with pytest.raises(InputError, match="b.png"):
+        with OutputGroup(out, replaces=("a.txt", "b.png")) as g:
+            g.text("a.txt", "new")
+            g.text("b.png", "new picture")
+    assert (out / "a.txt").read_text() == "old"
+    assert (out / "b.png" / "the user's.txt").read_text() == "keep me"
+
+
 def test_a_text_line_among_the_numbers_is_an_error(tmp_path):
     p = tmp_path / "t.csv"
     p.write_text("0,1\n5,0.8\nten,0.5\n10,0.5\n")
