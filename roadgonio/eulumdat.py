@@ -21,6 +21,8 @@ calculation that needs it says so.
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -128,6 +130,7 @@ def read_ldt(path: str | Path) -> Luminaire:
         raise InputError(f"cannot read the luminaire file ({err.strerror or err})", path=path) from None
     if not text.strip():        # said before the parser, which reads an empty file as a header of zeros
         raise InputError("the file is empty: expected an EULUMDAT .ldt file", path=path)
+    _precheck_counts(text, path)
     # The parser reads the file a second time: eulumdat-py's only entry, LdtReader.read, takes a path
     # and opens it itself (no text or stream), and it does not keep the text, which the count check
     # (_check_count) walks.
@@ -202,6 +205,30 @@ def _values_after_lamp_sets(text: str, n_sets: int) -> int:
         i += 1
     i += 6 * max(1, n_sets)
     return sum(len(line.split()) for line in lines[i:])
+
+
+#: The header lines (1-based) of the counts the parser sizes its arrays by.
+_COUNT_LINES = {"Isym": 3, "Mc": 4, "Ng": 6}
+
+
+def _precheck_counts(text: str, path: Path) -> None:
+    """Before the parser: Isym, Mc and Ng are whole numbers and no count exceeds the values the
+    file holds (the parser sizes its arrays by them: Ng = 1e11 ran out of memory, a count of 73.9
+    was read as 73)."""
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    total = len(text.split())
+    for name, line in _COUNT_LINES.items():
+        raw = lines[line - 1].strip() if len(lines) >= line else ""
+        field = f"{name} (line {line})"
+        try:
+            v = float(raw)
+        except ValueError:
+            raise InputError(f"expected a whole number, got {raw!r}", path=path, field=field) from None
+        if not math.isfinite(v) or v != int(v):
+            raise InputError(f"expected a whole number, got {raw}", path=path, field=field)
+        if name != "Isym" and v > total:
+            raise InputError(f"the header announces {name} = {int(v)}, but the whole file holds {total} values",
+                             path=path, field=field)
 
 
 def _check_count(h, text: str, path: Path) -> None:

@@ -162,3 +162,23 @@ def test_an_empty_file_is_called_empty_before_it_is_parsed(tmp_path, monkeypatch
         p = tmp_path / name
         p.write_bytes(raw)
         refused_in_one_line(lambda p=p: read_ldt(p), p, ["the file is empty", "EULUMDAT"])
+
+
+@pytest.mark.parametrize("edit,words", [
+    (_set(NG, "100000000000"), ["Ng (line 6)", "Ng = 100000000000", "holds"]),
+    (_set(MC, "100000000000"), ["Mc (line 4)", "Mc = 100000000000", "holds"]),
+    (_set(NG, "73.9"), ["Ng (line 6)", "whole number", "73.9"]),
+    (_set(MC, "4.5"), ["Mc (line 4)", "whole number"]),
+    (_set(ISYM, "x"), ["Isym (line 3)", "whole number"]),
+])
+def test_counts_the_parser_sizes_its_arrays_by_are_checked_before_it_runs(tmp_path, monkeypatch, edit, words):
+    """The user audit of session 19: Ng = 1e11 ended in a MemoryError traceback, Mc = 1e11 in the
+    kernel killing the process (the parser sizes its arrays by them), and Ng = 73.9 was read as 73.
+    Refused before the parser runs."""
+    import pyldt
+
+    def parse(*args, **kwargs):
+        raise AssertionError("the parser ran on a header it cannot size")
+    p = _count_case(tmp_path, edit)
+    monkeypatch.setattr(pyldt.LdtReader, "read", parse)
+    refused_in_one_line(lambda: read_ldt(p), p, words)
