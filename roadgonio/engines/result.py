@@ -68,7 +68,7 @@ class CellResult:
 
     def __post_init__(self):
         # JSON (journal, outputs) carries NaN as null: read it back as NaN
-        for name in ("se", "error_bound", "confidence_bound", "confidence_level", "se_dof"):
+        for name in ("k_a", "se", "error_bound", "confidence_bound", "confidence_level", "se_dof"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, math.nan)
         for name, default in (("k_a_direct", self.k_a), ("k_a_direct_se", self.se), ("stray_fraction", 0.0),

@@ -19,6 +19,7 @@ Output folder (``--out DIR``):
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -99,7 +100,16 @@ def _cell_key(t: float, b: float) -> tuple[float, float]:
 
 
 def _journal_record(d: dict) -> tuple[tuple[float, float], CellResult]:
+    """One journalled cell; a value no backend writes (k_A negative, infinite, or missing without the
+    backend's note that it is undefined; a negative or infinite SE) is not a record, so the journal is
+    refused rather than resumed with it (the user audit of session 19: a k_A of -5 went into ka.csv)."""
     c = CellResult(**d)
+    k, se = c.k_a, c.se
+    if not isinstance(k, (int, float)) or isinstance(k, bool) or not isinstance(se, (int, float)):
+        raise TypeError("k_a and se must be numbers")
+    undefined = isinstance(c.extra, dict) and "undefined" in str(c.extra.get("note", ""))
+    if (math.isnan(k) and not undefined) or math.isinf(k) or k < 0.0 or math.isinf(se) or se < 0.0:
+        raise ValueError(f"k_a {k!r} with se {se!r} is not a result")
     return _cell_key(c.tan_eps, c.beta_deg), c
 
 

@@ -59,3 +59,32 @@ def test_the_intercomparison_journal_gives_every_record_back_under_its_own_key(t
     assert sorted(r["k"] for r in again.done.values()) == [r["k"] for r in recs]
     for r in recs:
         assert r in again.done.values()
+
+
+@pytest.mark.parametrize("k_a,se,note,ok", [
+    (0.93, 1e-3, None, True),
+    (float("nan"), float("nan"), "the model is 0 at the nominal geometry: k_A is undefined", True),
+    (-5.0, 1e-3, None, False),
+    (float("nan"), 1e-3, None, False),
+    (float("inf"), 1e-3, None, False),
+    (0.93, -1e-3, None, False),
+])
+def test_a_ka_journal_with_a_value_no_backend_writes_is_refused(tmp_path, k_a, se, note, ok):
+    """The user audit of session 19: a journal edited to hold k_A = -5 and a NaN was resumed (the -5
+    went into ka.csv; the NaN cell counted as done and stayed blank). Such a line is a bad line of
+    the journal: the one-line error naming it, as for any other (the backend's own undefined k_A, with
+    its note, still reads back)."""
+    from roadgonio.engines.result import CellResult
+    from roadgonio.engines.runner import _read_journal
+    from roadgonio.fileio import to_json
+    extra = {"note": note} if note else {}
+    cells = [CellResult(0.0, 0.0, 1.0, 1e-3, 10, 0.1), CellResult(2.0, 0.0, k_a, se, 10, 0.1, extra=extra),
+             CellResult(3.0, 0.0, 1.0, 1e-3, 10, 0.1)]
+    path = tmp_path / "ka_cells.jsonl"
+    _write(path, [to_json({"fingerprint": "fp"}, indent=None)] + [to_json(c.to_dict(), indent=None) for c in cells])
+    if ok:
+        assert len(_read_journal(path, "fp")) == 3
+    else:
+        with pytest.raises(InputError, match="corrupt journal line") as err:
+            _read_journal(path, "fp")
+        assert err.value.line == 3 and err.value.path == str(path)
