@@ -390,5 +390,26 @@ def read_field_map(path: str | Path, field: str = "detector.field_sensitivity") 
     scale = float(values.max())
     if not scale > 0.0:
         raise _err("the sensitivity is 0 everywhere", p, field)
+    if not _reaches_the_field(values):
+        raise _err("the sensitivity is 0 everywhere inside the field stop (the circle of radius 1 in the middle "
+                   "of the map's square [-1, 1]^2): the detector would see nothing", p, field)
     return FieldMap(values / scale, str(p))
+
+
+def _reaches_the_field(values: np.ndarray) -> bool:
+    """Whether a pixel > 0 of the map reaches inside the field stop (the open unit disc): the map is
+    interpolated between pixel centres, so a pixel's value reaches the square of one pixel spacing
+    about its centre (to the map's edge for a pixel on the border, whose value is extended there)."""
+    ny, nx = values.shape
+    rows, cols = np.nonzero(values > 0.0)
+    cx = -1.0 + (2.0 * cols + 1.0) / nx
+    cy = 1.0 - (2.0 * rows + 1.0) / ny
+    dx, dy = 2.0 / nx, 2.0 / ny
+    x0 = np.where(cols == 0, -1.0, cx - dx)
+    x1 = np.where(cols == nx - 1, 1.0, cx + dx)
+    y0 = np.where(rows == ny - 1, -1.0, cy - dy)
+    y1 = np.where(rows == 0, 1.0, cy + dy)
+    near_x = np.clip(0.0, x0, x1)
+    near_y = np.clip(0.0, y0, y1)
+    return bool(np.any(near_x ** 2 + near_y ** 2 < 1.0))
 

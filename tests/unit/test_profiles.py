@@ -702,6 +702,30 @@ def test_bad_maps_name_the_file_and_field(tmp_path, text, needle):
         Instrument.from_dict(d)
 
 
+def _grid_text(v) -> str:
+    return "".join(",".join(f"{x:g}" for x in row) + "\n" for row in v)
+
+
+def test_a_map_that_is_zero_inside_the_field_stop_is_refused(tmp_path):
+    """The user audit of session 19: a 20 x 20 map whose only pixel > 0 is in a corner (outside the
+    field stop's circle) was accepted; numpy-mc then never finished and the others blamed the beam
+    or the scene. Refused when read. A single pixel > 0 that reaches inside the circle is a map."""
+    d = load_instrument("portable").to_dict()
+    p = tmp_path / "map.csv"
+    d["detector"]["field_sensitivity"] = str(p)
+    corner = np.zeros((20, 20))
+    corner[0, 0] = 1.0
+    p.write_text(_grid_text(corner))
+    with pytest.raises(InputError, match="0 everywhere inside the field stop") as err:
+        Instrument.from_dict(d)
+    assert err.value.path == str(p) and err.value.field == "detector.field_sensitivity"
+    for v in (np.pad(np.ones((1, 1)), ((9, 10), (9, 10))),          # one pixel at the middle
+              np.pad(np.ones((1, 1)), ((2, 17), (9, 10))),          # one pixel whose reach just crosses the rim
+              np.array([[0.0, 0.0], [0.0, 1.0]])):                   # a 2 x 2 map: every pixel reaches the middle
+        p.write_text(_grid_text(v))
+        assert Instrument.from_dict(d).detector.field_map is not None
+
+
 def _map_error(tmp_path, name: str, text: str | None = None) -> InputError:
     p = tmp_path / name
     if text is not None:
