@@ -403,6 +403,10 @@ def check_extra_sections(extra: Mapping[str, Any]) -> None:
             raise InputError(f"expected a file name (text), got {scene['xml']!r}", field="scene.xml")
         if "params" in scene and not isinstance(scene["params"], Mapping):
             raise InputError("expected a table [scene.params]", field="scene.params")
+        for k, v in (scene.get("params") or {}).items():
+            # a number that is not finite reached the XML as "nan" and Mitsuba dropped the part it placed
+            if isinstance(v, float) and not math.isfinite(v):
+                raise InputError(f"expected a finite number, got {v!r}", field=f"scene.params.{k}")
         if "params" in scene and "xml" not in scene:
             # its $parameters would be ignored without the XML file they fill in
             raise InputError('[scene.params] without the Mitsuba XML file they are for; expected xml = "FILE.xml"',

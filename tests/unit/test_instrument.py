@@ -189,6 +189,9 @@ def test_instrument_dict_round_trip(alpha, dist, pupil, field_deg, focus):
     ("[scene]\nxlm = \"holder.xml\"\n", "scene"),                 # a typo of xml: not ignored
     ("[scene.params]\nholder_h_m = 0.1\n", "scene.xml"),          # parameters of no XML file
     ("[scene]\nxml = 5\n", "scene.xml"),
+    # a number that is not finite reached the XML and Mitsuba dropped the part (user audit, session 19)
+    ("[scene]\nxml = \"holder.xml\"\n[scene.params]\nwall_x_m = nan\n", "scene.params.wall_x_m"),
+    ("[scene]\nxml = \"holder.xml\"\n[scene.params]\nwall_x_m = inf\n", "scene.params.wall_x_m"),
     ("[calibration]\nmode = \"lambert\"\n", None),
 ])
 def test_sections_are_checked(tmp_path, extra, field):
