@@ -3,6 +3,7 @@ instrument's angle and position errors, with and without the aperture effect."""
 from __future__ import annotations
 
 from roadgonio import api
+from roadgonio.errors import InputError
 from roadgonio.cli._common import (
     add_backend,
     add_dask_arguments,
@@ -48,9 +49,10 @@ def register(sub) -> None:
                         "output are stable to --digits significant digits of u (at most --max-trials)")
     p.add_argument("--digits", type=int, default=2, choices=[1, 2, 3],
                    help="n_dig, significant digits of u for the adaptive rule and the GUM validation (default 2)")
-    p.add_argument("--max-trials", type=positive_int, default=200_000, metavar="N",
-                   help="cap of the adaptive run (default 200000)")
-    p.add_argument("--batch", type=positive_int, metavar="N", help="adaptive batch size (default max(100/(1-p), 10^4))")
+    p.add_argument("--max-trials", type=positive_int, metavar="N",
+                   help="cap of the adaptive run (default 200000; with --adaptive only)")
+    p.add_argument("--batch", type=positive_int, metavar="N",
+                   help="adaptive batch size (default max(100/(1-p), 10^4); with --adaptive only)")
     p.add_argument("--coverage", type=float, default=0.95, metavar="P", help="coverage probability (default 0.95)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default 1); the same seed repeats the result")
     p.add_argument("--illuminance", choices=["nominal", "measured"], default="nominal",
@@ -87,16 +89,21 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    unused = [o for o, v in (("--max-trials", args.max_trials), ("--batch", args.batch)) if v is not None]
+    if unused and not args.adaptive:
+        # they shape the adaptive rule only: a fixed run would silently ignore them (user audit, session 19)
+        raise InputError(f"{' and '.join(unused)} {'are' if len(unused) > 1 else 'is'} for --adaptive runs; "
+                         "expected --adaptive, or --trials N for a fixed number of trials", field=unused[0])
     # the pictures are drawn by a helper process that loads matplotlib while the trials run
     with api.figure_process(enabled=not args.no_plots) as figures:
         res = api.estimate_uncertainty(
             args.instrument, args.sample, args.sigma, trials=args.trials, adaptive=args.adaptive, digits=args.digits,
-            max_trials=args.max_trials, batch=args.batch, seed=args.seed, coverage=args.coverage, cells=args.cells,
+            batch=args.batch, seed=args.seed, coverage=args.coverage, cells=args.cells,
             aperture=not args.no_aperture, backend=args.backend, rel_se=args.rel_se, illuminance=args.illuminance,
             surrogate=args.surrogate, validation=args.validation, threads=args.threads, workers=args.workers,
             scheduler=args.scheduler, mitsuba_variant=args.mitsuba_variant, model_variant=args.model_variant,
             out=out_arg(args), fresh=args.fresh, plots=not args.no_plots, figures=figures,
-            progress=show_progress(args))
+            progress=show_progress(args), **({} if args.max_trials is None else {"max_trials": args.max_trials}))
     if args.json:
         d = api.uncertainty_result_json(res)
         d["written"] = [str(p) for p in res.written]

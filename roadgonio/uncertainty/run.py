@@ -424,6 +424,11 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
             Mb = int(batch) if batch else max(int(math.ceil(100.0 / (1.0 - coverage))), 10_000)
             if Mb < 100:
                 raise InputError(f"expected a batch of at least 100 trials, got {Mb}", field="batch")
+            if max_trials < 2 * Mb:
+                # the stopping rule compares batches: fewer than two ran one batch and called it capped
+                raise InputError(f"expected at least two batches of {Mb} trials ({2 * Mb}), got {max_trials}: the "
+                                 "adaptive rule compares the batches' results (or give a smaller batch)",
+                                 field="max_trials")
             blocks0, blocks1, per_batch = [], [], {"0": [], "1": []}
             h = 0
             converged = False

@@ -327,6 +327,11 @@ def test_adaptive_rule_stops_and_is_repeatable():
     tight = run_uncertainty(RoadModel.lambert(), load_instrument("lab"), spec, seed=3,
                             **{**kw, "n_dig": 3, "max_trials": 6000})
     assert not tight.adaptive["converged"] and tight.trials == 6000
+    # a cap below two batches cannot be kept (the rule compares batches): refused, not one batch run
+    # and reported as capped (user audit, session 19: --max-trials 10 ran 10,000 trials)
+    with pytest.raises(InputError, match="two batches of 2000") as err:
+        run_uncertainty(RoadModel.lambert(), load_instrument("lab"), spec, seed=3, **{**kw, "max_trials": 3999})
+    assert err.value.field == "max_trials"
 
 
 def test_ideal_instrument_skips_aperture_case():
