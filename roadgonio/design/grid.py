@@ -290,4 +290,8 @@ def parse_tolerance(text: str | float) -> float:
     if v >= 1 and not pct:
         raise InputError(f"a tolerance of {v:g} on |k_A - 1| would accept k_A = 0; for a percentage write "
                          f"'{v:g}%'", field="tolerance")
+    if v >= 1:
+        # the same tolerance written as a percentage accepts k_A = 0 just as well (user audit, session 19)
+        raise InputError(f"a tolerance of {text} on |k_A - 1| would accept k_A = 0; expected less than 100%",
+                         field="tolerance")
     return v

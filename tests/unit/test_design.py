@@ -66,7 +66,9 @@ def test_vary_key_twice_and_grid_order():
 def test_tolerance():
     assert G.parse_tolerance("5%") == pytest.approx(0.05) and G.parse_tolerance("0.02") == 0.02
     assert G.parse_tolerance(0.1) == 0.1
-    for bad in ("5", "abc", "-1%", "0"):
+    # 150% accepts k_A = 0 as 1.5 does (it was accepted: user audit, session 19)
+    assert G.parse_tolerance("99%") == pytest.approx(0.99)
+    for bad in ("5", "abc", "-1%", "0", "150%", "100%"):
         with pytest.raises(InputError) as e:
             G.parse_tolerance(bad)
         assert e.value.field == "tolerance"
