@@ -13,6 +13,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+import numpy as np
+
 from roadgonio.engines.bundle import DEFAULT_RAYS
 from roadgonio.correction.outside import DEFAULT_VARIANTS, SurfaceCorrection, correct_surface, to_correction_result
 from roadgonio.correction.run import (FORWARDS, CorrectionResult, InstrumentArtefacts, _check_fit_cells, _sigma,
@@ -255,6 +257,14 @@ def correct_joint(tables: Sequence[RTable], instruments: Sequence[Instrument], o
     if len(tables) < 2 or len(tables) != len(instruments):
         raise InputError(f"a joint correction takes one --instrument per --measured table, at least two; got "
                          f"{len(tables)} table(s) and {len(instruments)} instrument(s)", field="joint")
+    for i in range(len(tables)):
+        for j in range(i):
+            if instruments[i].to_dict() == instruments[j].to_dict() and \
+                    np.array_equal(tables[i].r, tables[j].r, equal_nan=True):
+                # the same data counted twice would halve its stated noise (user audit, session 19)
+                raise InputError(f"the same table through the same instrument is given twice (pairs {j + 1} and "
+                                 f"{i + 1}: {instruments[i].name}); expected each measurement once",
+                                 field="joint")
     variants = DEFAULT_VARIANTS if model_variant in (None, "auto") else (model_variant,)
     options["sigma"] = _sigma(options.get("sigma")) if not isinstance(options.get("sigma"), (list, tuple)) \
         else [_sigma(s) for s in options["sigma"]]

@@ -50,6 +50,9 @@ def one_line_error(capsys, rc, *must):
     # trial 10 D7: an explicit --forward eq4 was dropped without a word and the surface fitted
     (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--measured", str(MEASURED), "--instrument",
       str(MEDIUM), "--joint", "--forward", "eq4"], ("field '--forward'", "eq4 cannot be used")),
+    # the same data twice was fitted as two instruments, halving its noise (user audit, session 19)
+    (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--measured", str(MEASURED), "--instrument",
+      str(MEDIUM), "--joint"], ("same table through the same instrument", "pairs 1 and 2")),
 ])
 def test_joint_and_forward_bad_inputs(tmp_path, capsys, argv, must):
     rc = main(["correct", *argv, *FAST, "--out", str(tmp_path / "o")])
