@@ -472,7 +472,8 @@ def test_correct_checks_the_sigma_spec_against_the_geometry_as_uncertainty_does(
     out = tmp_path / "out"
     for spec in ("eps_deg=5", "eps_deg=1"):
         if reference == "joint":
-            how = dict(measured=[table, table], instrument=["portable", "portable"], joint=True)
+            again = table.with_values(table.r * 1.01, name="R3_again")    # a second measurement, not the same data
+            how = dict(measured=[table, again], instrument=["portable", "portable"], joint=True)
         else:
             how = dict(measured=table, instrument="portable", reference="self" if reference == "surface" else reference,
                        forward="surface" if reference == "surface" else None)
