@@ -35,9 +35,14 @@ def _parse_fix(items: list[str]) -> dict[str, float]:
         if not sep:
             raise InputError(f"expected NAME=VALUE, got {item!r}", field="--fix")
         try:
-            out[name.strip()] = float(value)
+            v = float(value)
         except ValueError:
             raise InputError(f"expected a number after '=', got {value!r}", field=f"--fix {name.strip()}") from None
+        if name.strip() in out and out[name.strip()] != v:
+            # the last one won without a word (user audit, session 19)
+            raise InputError(f"{name.strip()} is fixed twice, at {out[name.strip()]:g} and {v:g}; expected one value",
+                             field=f"--fix {name.strip()}")
+        out[name.strip()] = v
     return out
 
 

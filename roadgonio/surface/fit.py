@@ -364,6 +364,12 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
     if not table.r_max > 0:
         raise InputError(f"table {table.name!r} has no positive value", field="table")
     fx = _check_fixed(fixed)
+    for k in fx:
+        owners = [v for v, names in VARIANT_PARAMS.items() if k in names]
+        if owners and variant not in owners:
+            # written to model.json but without effect (user audit, session 19)
+            raise InputError(f"{k} belongs to the {' and '.join(owners)} variant; the {variant} variant has no "
+                             f"{k} to hold", field=k)
     t0 = time.perf_counter()
     prob = _Problem(table, variant, fx)
     if objective_weight is not None:

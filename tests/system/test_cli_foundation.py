@@ -106,3 +106,11 @@ def test_bad_table_via_subprocess(tmp_path, bad_tables):
         assert p.stderr.strip().splitlines() == [p.stderr.strip()]
         assert f"{path}:{line}" in p.stderr and "expected a number" in p.stderr
         assert "Traceback" not in p.stderr
+
+
+def test_a_parameter_fixed_twice_at_two_values_is_an_error(tmp_path, capsys):
+    """--fix n_phong=30 --fix n_phong=50: the last one won without a word (user audit, session 19)."""
+    rc = main(["fit", "R3", "--fix", "n_phong=30", "--fix", "n_phong=50", "--out", str(tmp_path / "f")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "fixed twice" in err and "--fix n_phong" in err, err
+    assert not (tmp_path / "f").exists()

@@ -139,7 +139,9 @@ def test_fixed_parameters_are_held():
 
 @pytest.mark.parametrize("kw,field", [
     (dict(variant="nope"), "variant"), (dict(fixed={"n_phongg": 3.0}), "n_phongg"),
-    (dict(fixed={"p": 99.0}), "p"), (dict(fixed={"mu": "x"}), "mu")])
+    (dict(fixed={"p": 99.0}), "p"), (dict(fixed={"mu": "x"}), "mu"),
+    # a parameter of another variant was written to model.json without effect (user audit, session 19)
+    (dict(variant="power", fixed={"n_beta": 2.0}), "n_beta")])
 def test_bad_fit_arguments(kw, field):
     with pytest.raises(InputError) as ei:
         fit_table(bundled_table("R1"), **kw)
