@@ -58,7 +58,7 @@ def register(sub) -> None:
     p.add_argument("--reference", default="self", metavar="self|SAMPLE",
                    help="self (default): fit the model through the instrument; or a reference SAMPLE (bundled table "
                         "R1..R4, C1, C2 fitted on the fly, an r-table file, a model.json, lambert)")
-    p.add_argument("--alternatives", default="auto", metavar="LIST",
+    p.add_argument("--alternatives", default=None, metavar="LIST",
                    help="with --reference SAMPLE: alternative references for the model dependence, 'auto' (default: "
                         "the two CIE tables nearest to the measured one by S1/Q0), 'none', or SAMPLEs separated by commas")
     p.add_argument("--u-measured", default=None, metavar="U",
@@ -90,6 +90,14 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    if args.alternatives is not None and args.reference == "self":
+        from roadgonio.errors import InputError
+        # they were accepted and ignored: the self route has no reference to vary (user audit, session 19)
+        raise InputError("the alternative references are for --reference SAMPLE; --reference self fits the model "
+                         "through the instrument and has none (its model term is the spread of the fitted variants)",
+                         field="--alternatives")
+    if args.alternatives is None:
+        args.alternatives = "auto"
     if args.joint:
         return _run_joint(args)
     if len(args.instrument) != 1:

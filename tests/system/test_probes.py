@@ -1037,7 +1037,7 @@ probe("stderr-one-line-focus-1e300", "extremes", "ka",
       must=("detector.focus_m",))
 probe("correct-u-measured-1e-300", "extremes", "correct",
       lambda t: sub("correct", "--measured", "R3", "--instrument", instrument(t), "--u-measured", "1e-300",
-                    "--backend", "quadrature", "--accuracy", "fast", "--alternatives", "none", "--no-plots",
+                    "--backend", "quadrature", "--accuracy", "fast", "--no-plots",
                     "--out", t / "c", cwd=t), must=("--u-measured",))
 
 
