@@ -76,7 +76,7 @@ def test_bilinear_intensity_between_nodes():
 @pytest.mark.parametrize("edit,words", [
     (lambda L: L[:200], ["file ends early"]),
     (lambda L: L[:28] + ["0"] + L[29:], ["lamp flux", "> 0"]),
-    (lambda L: L[:3] + ["abc"] + L[4:], ["not a readable EULUMDAT"]),
+    (lambda L: L[:3] + ["abc"] + L[4:], ["Mc (line 4)", "whole number"]),
     (lambda L: L[:2] + ["7"] + L[3:], ["Isym"]),
 ])
 def test_bad_luminaire_file(tmp_path, edit, words):
