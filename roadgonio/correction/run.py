@@ -46,6 +46,7 @@ from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
 from roadgonio.errors import InputError
 from roadgonio.fileio import atomic_write_json, fingerprint
 from roadgonio.instrument.config import Instrument
+from roadgonio.surface.fit import check_rows
 from roadgonio.surface.model import VARIANTS, RoadModel
 from roadgonio.surface.rtable import CORRECTED_R, RTable, read_table
 
@@ -187,6 +188,7 @@ def _check_fit_cells(table: RTable) -> None:
     if int(table.mask.sum()) < 12:
         raise InputError(f"the measured table has {int(table.mask.sum())} values; a fit through the instrument "
                          "needs at least 12 (or give --reference SAMPLE)", field="measured")
+    check_rows(table, "measured")
 
 
 # ----------------------------------------------------------------------------------------------

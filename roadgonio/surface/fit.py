@@ -313,6 +313,22 @@ class _Problem:
         return ms + self.max_weight * l8
 
 
+#: A fit of eq. 4 needs cells at this many values of tan eps at least: its terms differ by how they
+#: change with the incidence, which one row (e.g. tan eps 0, where beta does not matter) cannot show.
+MIN_FIT_ROWS = 3
+
+
+def check_rows(table: RTable, field: str) -> None:
+    """The one-line error when ``table`` has cells in fewer than :data:`MIN_FIT_ROWS` rows of tan eps
+    (a table of the tan eps 0 row alone was fitted 'exactly' by nine parameters: user audit, session
+    19)."""
+    rows = int(np.sum(np.any(table.mask, axis=1)))
+    if rows < MIN_FIT_ROWS:
+        raise InputError(f"table {table.name!r} has cells in {rows} row(s) of tan eps; a fit of the model needs "
+                         f"cells in at least {MIN_FIT_ROWS} (its terms differ by how they change with the incidence)",
+                         field=field)
+
+
 def _check_fixed(fixed: Mapping[str, Any] | None) -> dict[str, float]:
     out: dict[str, float] = {}
     for k, v in (fixed or {}).items():
@@ -361,6 +377,7 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
     if int(table.mask.sum()) < 10:
         raise InputError(f"table {table.name!r} has {int(table.mask.sum())} tabulated cells; a fit needs >= 10",
                          field="table")
+    check_rows(table, "table")
     if not table.r_max > 0:
         raise InputError(f"table {table.name!r} has no positive value", field="table")
     fx = _check_fixed(fixed)

@@ -137,6 +137,22 @@ def test_fixed_parameters_are_held():
     assert (mx, rms) == (pytest.approx(res.max_dev_pct, rel=1e-12), pytest.approx(res.rms_dev_pct, rel=1e-12))
 
 
+def test_a_table_of_one_or_two_rows_is_not_fitted():
+    """The tan eps 0 row alone (20 equal values) was fitted by nine parameters with 'max |dev| 0.00 %'
+    and corrected without a word (user audit, session 19); two rows are refused too, three fitted."""
+    t = bundled_table("R3")
+    for rows, ok in ((1, False), (2, False), (3, True)):
+        keep = np.zeros(t.r.shape, dtype=bool)
+        keep[:rows] = True
+        sub = t.with_values(np.where(keep & t.mask, t.r, np.nan), name=f"rows{rows}")
+        if ok:
+            fit_table(sub, "power")
+        else:
+            with pytest.raises(InputError, match=f"cells in {rows} row") as ei:
+                fit_table(sub, "power")
+            assert ei.value.field == "table"
+
+
 @pytest.mark.parametrize("kw,field", [
     (dict(variant="nope"), "variant"), (dict(fixed={"n_phongg": 3.0}), "n_phongg"),
     (dict(fixed={"p": 99.0}), "p"), (dict(fixed={"mu": "x"}), "mu"),
