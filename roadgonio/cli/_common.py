@@ -74,8 +74,14 @@ def print_json(obj) -> None:
 
 
 def out_arg(args):
-    """``--out DIR``, else the command's default folder (:data:`roadgonio.api.AUTO`)."""
-    return args.out if getattr(args, "out", None) else api.AUTO
+    """``--out DIR``, else the command's default folder (:data:`roadgonio.api.AUTO`). An empty
+    ``--out ''`` is an error, not the default folder (user audit, session 19)."""
+    out = getattr(args, "out", None)
+    if out is not None and not str(out).strip():
+        from roadgonio.errors import InputError
+        raise InputError("expected a folder name, got an empty one (leave --out out for the default folder)",
+                         field="--out")
+    return out if out else api.AUTO
 
 
 # -- Dask: --workers N | --scheduler ADDRESS (design, uncertainty, correct) ------------------------

@@ -120,7 +120,8 @@ def run(args) -> int:
         say("not feasible: " + ", ".join(f"{k} {v}" for k, v in sorted(s["not_feasible_by_kind"].items())))
     b = s["best"]
     if b is None:
-        say("no design meets the tolerance: see pareto.png for the closest ones")
+        say("no design meets the tolerance: see " + ("design.csv (max_abs_dev)" if args.no_plots else "pareto.png")
+            + " for the closest ones")
     else:
         vals = ", ".join(f"{k} = {b[k]:g}" for k in s["varied"]) or "the base design"
         say(f"best: {vals}: signal {b['signal']:.3g} x base, max |k_A - 1| = {b['max_abs_dev']:.4f} "

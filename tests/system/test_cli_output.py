@@ -136,3 +136,12 @@ def test_ka_summary_says_its_time_is_the_cells_computation(tmp_path, capsys):
                  "--out", str(tmp_path)]) == 0
     line = capsys.readouterr().out.splitlines()[0]
     assert "; computing the cells took " in line and line.endswith(" s."), line
+
+
+def test_an_empty_out_folder_is_an_error_not_the_default(tmp_path, capsys, monkeypatch):
+    """--out '' wrote to the default folder without a word (user audit, session 19)."""
+    monkeypatch.chdir(tmp_path)
+    rc = main(["compare", "R3", "R2", "--out", ""])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "--out" in err and "empty" in err, err
+    assert list(tmp_path.iterdir()) == []
