@@ -106,6 +106,13 @@ def select_cells(selection, table=None, *, on_grid: bool = False, field: str = "
             cells.append(check_cell(t, b, field))
         if not cells:
             raise InputError("expected at least one cell, got an empty list", field=field)
+    seen: set[tuple[float, float]] = set()
+    for t, b in cells:
+        key = (round(float(t), 9), round(float(b), 9))
+        if key in seen:
+            # it was computed twice and counted twice in the summary (user audit, session 19)
+            raise InputError(f"cell {t:g}:{b:g} is given twice; expected each cell once", field=field)
+        seen.add(key)
     if on_grid:
         off = [c for c in cells if not on_the_grid(*c)]
         if off:

@@ -127,3 +127,8 @@ def test_select_cells_is_the_one_parser():
         select_cells("table", None)
     with pytest.raises(InputError, match="not on the CIE grid"):
         select_cells("4:2.5", on_grid=True)
+    # a cell given twice was computed and counted twice (user audit, session 19)
+    for twice in ("2:0,4:5,2:0", [(2, 0), (2.0, 0.0)]):
+        with pytest.raises(InputError, match="2:0 is given twice") as e:
+            select_cells(twice, field="--cells")
+        assert e.value.field == "--cells"
