@@ -12,7 +12,10 @@ Procedure (:func:`correct_surface`):
 3. for every variant, the correction surface through all the instruments (one surface shared by
    them), its smoothing parameters by the evidence; the variants are then weighed by their
    evidence (posterior model probabilities under equal priors; docs/correction.md), so a variant that fits
-   much worse gets no weight;
+   much worse gets no weight; where the backend traces stray light (a housing), k_A depends on the
+   surface beyond the footprint, so the backend renders the best variant's fitted surface
+   (:class:`roadgonio.surface.correction_surface.CorrectedSurface`), rho is taken from that and the
+   surfaces are refitted until a refit holds still (``surface_steps``);
 4. per instrument, ln k_A and its covariance: the weighted mean over the variants of ln k_A of the
    corrected model (times rho); the covariance is the weighted posterior covariance of the surface
    and the backbone's coordinates (``surface``; :func:`roadgonio.correction.flexible.posterior_with_backbone`)
@@ -528,7 +531,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     #     the surface beyond the footprint: the walls light it from every direction, and the road around
     #     the sample lights the walls. rho of the backbone is then not rho of the fitted surface (a
     #     surface outside eq. 4 through a bright housing: k_A up to 7 % off, docs/correction.md, "A
-    #     housed instrument"). So the backend renders the best variant's fitted surface itself, rho is
+    #     surface outside eq. 4 through a housing"). So the backend renders the best variant's fitted surface itself, rho is
     #     taken from that rendering, and the surfaces are refitted with it, until a refit moves the
     #     k_A the fit uses (through the bundles, so that the renderings' noise does not enter the test)
     #     by at most tol u; at most max_outer renderings, the last change into u if it did not hold still.
