@@ -24,40 +24,6 @@ from tolerances import F32_KAPPA_TOL as KAPPA_TOL
 F32_PAIR_REL_TOL = 2e-4
 
 
-@pytest.fixture(scope="module")
-def plug(mi):
-    from roadgonio.engines.mitsuba.plugins import register_plugins
-    register_plugins()
-    import drjit as dr
-
-    class Plug:
-        def make(self, variant="power", channels="road", **params):
-            return mi.load_dict({"type": "roadbsdf", "variant": variant, "channels": channels, **params})
-
-        def si(self, ws):
-            si = dr.zeros(mi.SurfaceInteraction3f, len(ws))
-            si.wi = mi.Vector3f(ws[:, 0], ws[:, 1], ws[:, 2])
-            si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
-            return si
-
-        def vec(self, w):
-            return mi.Vector3f(w[:, 0], w[:, 1], w[:, 2])
-
-        def eval(self, bsdf, ws, wl):
-            """eval (= f cos theta_light), all channels, shape (3, n)."""
-            return np.array(bsdf.eval(mi.BSDFContext(), self.si(ws), self.vec(wl)), dtype=np.float64)
-
-        def pdf(self, bsdf, ws, wl):
-            return np.array(bsdf.pdf(mi.BSDFContext(), self.si(ws), self.vec(wl)), dtype=np.float64)
-
-        def sample(self, bsdf, ws, u1, u2):
-            bs, w = bsdf.sample(mi.BSDFContext(), self.si(ws), mi.Float(u1), mi.Point2f(u2[:, 0], u2[:, 1]))
-            wo = np.stack([np.array(bs.wo.x), np.array(bs.wo.y), np.array(bs.wo.z)], -1).astype(np.float64)
-            return wo, np.array(bs.pdf, dtype=np.float64), np.array(w, dtype=np.float64)
-
-    return Plug()
-
-
 def test_eval_matches_numpy_model(plug, rng_seed):
     rng = np.random.default_rng(rng_seed)
     worst = 0.0
@@ -118,16 +84,7 @@ def test_lambert_equals_mitsuba_diffuse(mi, plug, rng_seed):
     rho = 0.37
     road = plug.make(k_diff=rho / math.pi)
     diff = mi.load_dict({"type": "diffuse", "reflectance": {"type": "uniform", "value": rho}})
-    n = 5000
-    ws, wl = rand_dirs(rng, n), rand_dirs(rng, n)
-    np.testing.assert_allclose(plug.eval(road, ws, wl), plug.eval(diff, ws, wl), rtol=1e-6, atol=1e-9)
-    np.testing.assert_allclose(plug.pdf(road, ws, wl), plug.pdf(diff, ws, wl), rtol=1e-6, atol=1e-9)
-    u1, u2 = rng.random(n), rng.random((n, 2))
-    wo_r, pdf_r, w_r = plug.sample(road, ws, u1, u2)
-    wo_d, pdf_d, w_d = plug.sample(diff, ws, u1, u2)
-    np.testing.assert_allclose(wo_r, wo_d, atol=1e-6)
-    np.testing.assert_allclose(pdf_r, pdf_d, rtol=1e-6)
-    np.testing.assert_allclose(w_r, w_d, rtol=1e-6)
+    w_r = plug.assert_same(road, diff, rng)
     np.testing.assert_allclose(w_r[0], rho, rtol=1e-6)
 
 
@@ -135,12 +92,7 @@ def test_plugin_reciprocity(plug, rng_seed):
     rng = np.random.default_rng(rng_seed + 4)
     for trial in range(6):
         P = rand_params(rng)
-        b = plug.make(("power", "product")[trial % 2], **P)
-        a, c = rand_dirs(rng, 4000), rand_dirs(rng, 4000)
-        c[:2000] = near_mirror(rng, a[:2000], 0.02)
-        f_ac = plug.eval(b, a, c)[0] / c[:, 2].astype(np.float32)
-        f_ca = plug.eval(b, c, a)[0] / a[:, 2].astype(np.float32)
-        np.testing.assert_allclose(f_ac, f_ca, rtol=F32_PAIR_REL_TOL, atol=EVAL_ABS_TOL)
+        plug.assert_reciprocal(plug.make(("power", "product")[trial % 2], **P), rng, F32_PAIR_REL_TOL, EVAL_ABS_TOL)
 
 
 def test_sample_weight_is_eval_over_pdf(plug, rng_seed):
