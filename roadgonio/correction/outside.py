@@ -659,14 +659,15 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                 M[off[i]:off[i + 1], off[i]:off[i + 1]] = b
         comps["misalignment"] = M
     notes = {"measurement": "the measured tables' own standard uncertainty (--u-measured), independent cells",
-             "backend": f"{backend} k_A of the {main_label} backbone: its standard uncertainty",
+             "backend": f"{backend} k_A of the " + ("fitted surface" if surface_steps else f"{main_label} backbone")
+                        + ": its standard uncertainty",
              "surface": "posterior of the correction surface (evidence-weighted over the variants), widened by "
                         "the local Birge ratio where the residuals have structure",
              "model": "spread of the backbones' (variants', roundings') corrected k_A (and model values) about their "
                       "evidence-weighted mean",
              "bundle": "the ray bundles' own error of the change the surface makes to k_A (replicates)",
-             "convergence": "change of k_A the backbone's last refit still predicted (rectangular; the fitted "
-                            "model's own value left out)",
+             "convergence": "change of k_A the last refit (of the backbone, or with stray light of the surfaces) "
+                            "still made (rectangular; the fitted model's own value left out)",
              "misalignment": "instrument geometric errors (--sigma), first-order GUM",
              "discrepancy": "structure of the surface finer than the correction surface's knots, which the "
                             "instruments blur: var(delta(c) - (K delta)(c)) of a Gaussian process delta over the "
