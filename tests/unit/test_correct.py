@@ -494,8 +494,9 @@ def test_a_mistake_in_the_alternatives_is_one_line_without_the_notes_of_the_othe
     table = bundled_table("R3")
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always")
-        with pytest.raises(InputError, match="unknown sample 'R9'"):
+        with pytest.raises(InputError, match="unknown sample 'R9'") as err:
             resolve_alternatives("R2,R9", table, reference_name="R3")
+    assert err.value.field == "--alternatives"       # not 'sample' (user audit, session 19)
     assert not [w for w in said if issubclass(w.category, ModelWarning)]
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always")
