@@ -536,16 +536,20 @@ def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "
     t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
+    b = _backend(backend, inst, smp.model, accuracy=accuracy, rel_se=rel_se, seed=seed,
+                 mitsuba_variant=mitsuba_variant, settings=settings)
     from roadgonio.geometry import TAN_EPS_GRID
     if t > TAN_EPS_GRID[-1] and (smp.table is not None or (smp.model.meta or {}).get("table")):
         import warnings
 
         from roadgonio.errors import ModelWarning
+        from roadgonio.instrument.optics import check_source_cells
+        # the geometry's refusal comes first: a note and then an error were two lines for one mistake
+        # (user audit, session 19: tan eps 100 puts the source below the horizon)
+        check_source_cells(inst, [(t, bdeg)])
         warnings.warn(ModelWarning(f"tan eps {t:g} is beyond the r-tables' last row (tan eps {TAN_EPS_GRID[-1]:g}): "
                                    f"the model of {smp.name} there is an extrapolation of its fit, not a "
                                    "measured value"), stacklevel=2)
-    b = _backend(backend, inst, smp.model, accuracy=accuracy, rel_se=rel_se, seed=seed,
-                 mitsuba_variant=mitsuba_variant, settings=settings)
     folder = _out(out, "ka", inst.name, smp.name)
     run = run_cells(b, [(t, bdeg)], instrument=inst, model=smp.model, out_dir=folder, fresh=fresh, progress=False)
     cell = run.results[0]

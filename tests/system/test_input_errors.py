@@ -856,3 +856,11 @@ def test_adaptive_options_without_adaptive_are_refused(tmp_path, capsys, opts, m
                "--out", str(tmp_path / "u"), *opts])
     one_line_error(capsys, rc, must, "--adaptive")
     assert not (tmp_path / "u").exists()
+
+
+def test_a_cell_the_geometry_refuses_beyond_the_table_is_one_line(capsys):
+    """ka --tan-eps 100 printed the extrapolation note (tan eps beyond the table's last row) and then
+    the geometry's error: two lines for one mistake (user audit, session 19). The refusal comes first."""
+    rc = main(["ka", "--instrument", "portable", "--sample", "R3", "--tan-eps", "100", "--beta", "0",
+               "--backend", "quadrature"])
+    one_line_error(capsys, rc, "source.radius_m", "below the horizon")
