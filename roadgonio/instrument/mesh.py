@@ -34,18 +34,23 @@ def load_trimesh(path: str | Path):
     except Exception as err:  # trimesh raises many kinds
         raise InputError(f"cannot read the sample mesh ({err})", path=path, field="sample.mesh") from None
     if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
-        raise InputError("the sample mesh has no triangles", path=path, field="sample.mesh")
+        # trimesh drops the faces of vertices that are not finite numbers (a NaN vertex left "no triangles")
+        raise InputError("the sample mesh has no triangles (or none whose vertices are finite numbers)", path=path,
+                         field="sample.mesh")
+
     return mesh
 
 
-def check_mesh_orientation(mesh, where: str = "sample mesh") -> None:
-    """The sample is one-sided (faces must face +z): refuse a mesh facing downwards."""
+def check_mesh_orientation(mesh, where: str = "sample mesh", path=None) -> None:
+    """The sample is one-sided (faces must face +z): refuse a mesh facing downwards (the error names
+    ``path``, the mesh file, when given)."""
     normals = np.asarray(mesh.face_normals, dtype=np.float64)
     area = np.asarray(mesh.area_faces, dtype=np.float64)
     nz = float(np.sum(normals[:, 2] * area) / max(np.sum(area), 1e-300))
     if nz <= 0.0:
         raise InputError(f"the {where}'s faces point downwards (area-weighted mean normal z = {nz:.3g}); "
-                         "the sample surface is one-sided: reverse the face winding so that it faces +z")
+                         "the sample surface is one-sided: reverse the face winding so that it faces +z",
+                         path=path, field=None if path is None else "sample.mesh")
 
 
 @dataclass(frozen=True)
@@ -86,5 +91,5 @@ def sample_trimesh(instrument):
     if smp.mesh is None:
         return rectangle_trimesh(smp.size_x_m, smp.size_y_m, instrument.observation.delta_deg)
     tm = load_trimesh(smp.mesh)
-    check_mesh_orientation(tm)
+    check_mesh_orientation(tm, path=smp.mesh)
     return tm

@@ -142,8 +142,10 @@ def test_footprint_off_mesh_is_an_error_at_render_time(tmp_path):
     flipped = trimesh.Trimesh(big.vertices, big.faces[:, ::-1], process=False)
     flipped.export(tmp_path / "flipped.ply")
     d["sample"] = {"mesh": "flipped.ply"}
-    with pytest.raises(InputError, match="downwards"):
+    with pytest.raises(InputError, match="downwards") as err:
         make_backend(Instrument.from_dict(d, path=tmp_path / "x.toml"), ROAD)
+    # the error names the mesh file (it named none: user audit, session 19)
+    assert err.value.path is not None and err.value.path.endswith("flipped.ply") and err.value.field == "sample.mesh"
 
 
 def test_source_below_horizon_is_an_error():
