@@ -442,8 +442,15 @@ class FlexPart:
         return CorrectedSurface(self.backbone, self.grids, thetas, name=f"{self.backbone.name} x exp(g)",
                                 alpha_range=(float(ell.min()), float(ell.max())))
 
+    def k_bundle(self, theta: np.ndarray) -> np.ndarray:
+        """k_A of the corrected model under the instrument's calibration through the ray bundles alone
+        (without rho: what a backend's k_A of the same surface divided by gives rho)."""
+        mean, _ = self.mean_and_jacobian(theta, jacobian=False)
+        return self.forward.kappa * mean / (self.f0_nominal * np.exp(self.g_nominal(theta)))
+
     def k_a(self, theta: np.ndarray) -> np.ndarray:
-        """k_A of the corrected model under the instrument's calibration (times rho)."""
+        """k_A of the corrected model under the instrument's calibration (times rho; the product in the
+        order it always had, so the numbers stay the same to the last bit)."""
         mean, _ = self.mean_and_jacobian(theta, jacobian=False)
         return self.forward.kappa * self.rho * mean / (self.f0_nominal * np.exp(self.g_nominal(theta)))
 

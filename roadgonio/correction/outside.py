@@ -462,17 +462,25 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     u_rel_all = u_all / y_all
     steps: list[dict[str, Any]] = []
     pred_change = np.zeros_like(y_all)
+    def backend_k(models, k_bundles, step: int, what: str, saying: str):
+        """The backend's k_A of ``models[i]`` through instrument i (journalled in ``_forward_dir``'s
+        folder of ``what`` and ``step``), its SE, the run's info and rho = k_backend / ``k_bundles[i]``,
+        each a list over the instruments."""
+        k_out, se_out, info_out, rho_out = [], [], [], []
+        for i, (inst, t, m, kb) in enumerate(zip(instruments, tables, models, k_bundles)):
+            _run._say(progress, f"{label}: k_A of the {saying} through {inst.name} ({backend})"
+                      + (f", step {step}" if step > 1 or what == "surface" else ""))
+            jdir = None if out is None else out / _forward_dir(i, len(tables), step, what)
+            k_b, se_b, info = _run._backend_k(factory, inst, m, t.cells, jdir, progress)
+            k_out.append(k_b)
+            se_out.append(se_b)
+            info_out.append(info)
+            rho_out.append(k_b / kb)
+        return k_out, se_out, info_out, rho_out
+
     for it in range(1, max_outer + 1):
-        k_back, se_back, infos, rhos = [], [], [], []
-        for i, (inst, t, fm) in enumerate(zip(instruments, tables, fms)):
-            _run._say(progress, f"{label}: k_A of the {main_label} backbone through {inst.name} ({backend})"
-                      + (f", step {it}" if it > 1 else ""))
-            jdir = None if out is None else out / _forward_dir(i, len(tables), it)
-            k_b, se_b, info = _run._backend_k(factory, inst, polished, t.cells, jdir, progress)
-            k_back.append(k_b)
-            se_back.append(se_b)
-            infos.append(info)
-            rhos.append(k_b / fm.k_a(polished))
+        k_back, se_back, infos, rhos = backend_k([polished] * len(fms), [fm.k_a(polished) for fm in fms], it,
+                                                 "backbone", f"{main_label} backbone")
         lap("backend")
         rho_all = np.concatenate(rhos)
         nxt = _run.refit_with_rho(state, f"refit-{it}", stacked, y_all, u_all, polished, rho_all, variant=main[0],
@@ -540,28 +548,18 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     if any(info.get("stray") for info in infos):
         for it in range(1, max_outer + 1):
             cur = max(vfits, key=lambda v: v.weight)
-            k_s, se_s, info_s, rho_s = [], [], [], []
-            for i, (inst, t, p) in enumerate(zip(instruments, tables, cur.parts)):
-                _run._say(progress, f"{label}: k_A of the fitted surface ({cur.label}) through {inst.name} "
-                                    f"({backend}), step {it}")
-                jdir = None if out is None else out / _forward_dir(i, len(tables), it, "surface")
-                k_b, se_b, info = _run._backend_k(factory, inst, p.corrected_surface(cur.fit.theta), t.cells,
-                                                  jdir, progress)
-                kb = p.k_a(cur.fit.theta) / p.rho            # the bundles' k_A of the surface
-                k_s.append(k_b)
-                se_s.append(se_b)
-                info_s.append(info)
-                rho_s.append(k_b / kb)
+            k_back, se_back, infos, rhos = backend_k([p.corrected_surface(cur.fit.theta) for p in cur.parts],
+                                                     [p.k_bundle(cur.fit.theta) for p in cur.parts], it, "surface",
+                                                     f"fitted surface ({cur.label})")
             lnk_old = _weighted_lnk_bundles(vfits)
             lap("surface-backend")
-            rhos, k_back, se_back, infos = rho_s, k_s, se_s, info_s
             vfits = fit_surfaces(rhos, f"-s{it}", {(vf.variant, vf.round_deg): (vf.fit.theta, list(vf.fit.lam.values()))
                                                   for vf in vfits})
             lap("surface")
             surface_change = np.abs(_weighted_lnk_bundles(vfits) - lnk_old)
             worst = float(np.max(surface_change / u_rel_all))
             rr = np.concatenate(rhos)
-            surface_steps.append({"step": it, "variant": cur.label, "backend": info_s[0],
+            surface_steps.append({"step": it, "variant": cur.label, "backend": infos[0],
                                   "rho_min": float(rr.min()), "rho_max": float(rr.max()),
                                   "refit_change_over_u_max": worst, "converged": worst <= tol})
             if worst <= tol:
@@ -810,7 +808,7 @@ def _weighted_lnk_bundles(vfits: Sequence[VariantFit]) -> np.ndarray:
     """The bundles' ln k_A of the fitted surfaces (without rho), every instrument's cells one after
     the other, weighed over the variants as the corrected table weighs them: what a refit with
     another rho moves, free of the backend's noise."""
-    return sum(vf.weight * np.concatenate([np.log(p.k_a(vf.fit.theta) / p.rho) for p in vf.parts])
+    return sum(vf.weight * np.concatenate([np.log(p.k_bundle(vf.fit.theta)) for p in vf.parts])
                for vf in vfits if vf.weight > 0.0)
 
 

@@ -51,6 +51,7 @@ import numpy as np
 
 from roadgonio.arrays import NumpyOps
 from roadgonio.geometry import pair_angles
+from roadgonio.surface.truths import EvaluatedBRDF
 
 #: sin of the r-tables' observation elevation (alpha = 1 deg).
 SIN_ALPHA0 = math.sin(math.radians(1.0))
@@ -248,7 +249,7 @@ def _differences(grid: SplineGrid):
     return (Db, np.array(cb)), (Dt, np.array(ct))
 
 
-class CorrectedSurface:
+class CorrectedSurface(EvaluatedBRDF):
     """The fitted surface as a BRDF: the backbone times ``exp(g_C + l(alpha) g_D)`` (module
     docstring; the exponent clipped at 50, as the forward model clips it), for the backends that
     render any surface over an array namespace (the Mitsuba ``roadbsdf``'s ``set_surface``, the
@@ -256,8 +257,9 @@ class CorrectedSurface:
     beyond the footprint (a housing's stray light: docs/correction.md, "A housed instrument").
 
     ``grids`` are the surface's spline grids (g_C's, then g_D's if any) and ``thetas`` their free
-    coefficients; the interface is that of :mod:`roadgonio.surface.truths` (``evaluate``, ``brdf``,
-    ``q``, ``r``, ``to_json_dict``, ``numpy_only``, ``sampling_lobe_exponent``, ``mirror_kink``)."""
+    coefficients; the interface is that of :mod:`roadgonio.surface.truths` (``evaluate``, and
+    ``brdf``, ``q``, ``r`` from it by :class:`~roadgonio.surface.truths.EvaluatedBRDF`;
+    ``to_json_dict``, ``numpy_only``, ``sampling_lobe_exponent``, ``mirror_kink``)."""
 
     kind = "corrected"
     numpy_only = False
@@ -298,22 +300,6 @@ class CorrectedSurface:
 
     def evaluate(self, xp, wi, wo):
         return self.backbone.evaluate(xp, wi, wo) * xp.exp(xp.minimum(self.exponent(xp, wi, wo), 50.0))
-
-    def brdf(self, wi, wo) -> np.ndarray:
-        wi = np.asarray(wi, dtype=np.float64)
-        wo = np.asarray(wo, dtype=np.float64)
-        wi, wo = np.broadcast_arrays(wi, wo)
-        trip = (lambda w: (w[..., 0], w[..., 1], w[..., 2]))
-        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-            return np.asarray(self.evaluate(NumpyOps, trip(wi), trip(wo)), dtype=np.float64)
-
-    def q(self, tan_eps, beta_deg, alpha_deg=1.0, delta_deg=0.0) -> np.ndarray:
-        from roadgonio.geometry import eps_from_tan, w_detector, w_source
-        return self.brdf(w_source(eps_from_tan(tan_eps), beta_deg, delta_deg), w_detector(alpha_deg, delta_deg))
-
-    def r(self, tan_eps, beta_deg, alpha_deg=1.0, delta_deg=0.0) -> np.ndarray:
-        from roadgonio.geometry import cos3_eps
-        return self.q(tan_eps, beta_deg, alpha_deg, delta_deg) * cos3_eps(tan_eps)
 
     def to_json_dict(self) -> dict:
         from dataclasses import asdict

@@ -113,22 +113,10 @@ def _np_triple(w) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return w[..., 0], w[..., 1], w[..., 2]
 
 
-@dataclass(frozen=True)
-class TruthBRDF:
-    """Base of the surfaces of this module (module docstring): subclasses define :meth:`evaluate`."""
-
-    name: str = "truth"
-    params: Mapping[str, float] = field(default_factory=dict)
-
-    kind = "truth"
-    mirror_kink = False
-    is_lambertian = False
-    variant = "truth"
-    numpy_only = False
-
-    @property
-    def sampling_lobe_exponent(self) -> float:
-        return 0.0
+class EvaluatedBRDF:
+    """``brdf``, ``q`` and ``r`` of a surface from its ``evaluate(xp, wi, wo)`` (module docstring): the
+    truths below and the correction's fitted surface
+    (:class:`roadgonio.surface.correction_surface.CorrectedSurface`) share them."""
 
     def evaluate(self, xp, wi, wo):  # pragma: no cover - abstract
         raise NotImplementedError
@@ -145,6 +133,24 @@ class TruthBRDF:
 
     def r(self, tan_eps, beta_deg, alpha_deg=ALPHA_STANDARD_DEG, delta_deg=0.0) -> np.ndarray:
         return self.q(tan_eps, beta_deg, alpha_deg, delta_deg) * cos3_eps(tan_eps)
+
+
+@dataclass(frozen=True)
+class TruthBRDF(EvaluatedBRDF):
+    """Base of the surfaces of this module (module docstring): subclasses define :meth:`evaluate`."""
+
+    name: str = "truth"
+    params: Mapping[str, float] = field(default_factory=dict)
+
+    kind = "truth"
+    mirror_kink = False
+    is_lambertian = False
+    variant = "truth"
+    numpy_only = False
+
+    @property
+    def sampling_lobe_exponent(self) -> float:
+        return 0.0
 
     def to_json_dict(self) -> dict[str, Any]:
         return {"truth": self.kind, "name": self.name, "params": dict(self.params)}
