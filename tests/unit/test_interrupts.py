@@ -3,6 +3,7 @@ test runner's own signal handling is left alone."""
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import textwrap
@@ -18,8 +19,13 @@ WAIT_S = 60.0
 
 def _child(code: str, tmp_path: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    # a background job's shell ignores SIGINT in its children, and roadgonio rightly keeps an inherited
+    # SIG_IGN (interrupts.install): the tests of a user's Ctrl-C start the child as a terminal would. Without
+    # this the SIGINT cases failed whenever pytest itself ran in the background (session 20: `pytest &`
+    # reproduces it every time; it had looked flaky)
     return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], cwd=tmp_path, env=env, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def test_sigterm_stops_a_command_as_ctrl_c_does(tmp_path):
