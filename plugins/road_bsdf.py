@@ -54,6 +54,7 @@ from roadgonio.errors import InputError
 from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_NAMES, VARIANTS, RoadParams, active_terms, phong_lobe,
                                      road_brdf)
 from roadgonio.engines.mitsuba.ops import DrJitOps
+from roadgonio.surface.truths import renders_in_drjit
 
 CHANNELS = ("road", "road_lambert")
 INV_PI = 1.0 / math.pi
@@ -126,7 +127,7 @@ class RoadBSDF(mi.BSDF):
     def set_surface(self, surface) -> None:
         """Evaluate ``surface`` (a surface of :mod:`roadgonio.surface.truths` that is not numpy-only)
         instead of eq. 4 (module docstring, ``surface``); structural: the kernels are traced anew."""
-        if getattr(surface, "numpy_only", True) or not hasattr(surface, "evaluate"):
+        if not renders_in_drjit(surface):
             raise InputError(f"the surface {getattr(surface, 'name', surface)!r} evaluates in numpy only: the Mitsuba "
                              "road BSDF cannot render it (the numpy backends can)", field="surface")
         self.surface = surface

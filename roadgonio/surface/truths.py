@@ -113,6 +113,13 @@ def _np_triple(w) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return w[..., 0], w[..., 1], w[..., 2]
 
 
+def renders_in_drjit(surface) -> bool:
+    """Whether the Mitsuba ``roadbsdf`` can render ``surface`` through its ``set_surface``: it has
+    ``evaluate(xp, wi, wo)`` and is not ``numpy_only`` (module docstring). Eq. 4 itself (a
+    :class:`~roadgonio.surface.model.RoadModel`) goes through ``set_model`` and is not asked here."""
+    return hasattr(surface, "evaluate") and not getattr(surface, "numpy_only", True)
+
+
 class EvaluatedBRDF:
     """``brdf``, ``q`` and ``r`` of a surface from its ``evaluate(xp, wi, wo)`` (module docstring): the
     truths below and the correction's fitted surface

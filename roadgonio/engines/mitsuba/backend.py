@@ -41,6 +41,7 @@ from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.engines.result import CellResult, ideal_ratios
 from roadgonio.surface.model import RoadModel
+from roadgonio.surface.truths import renders_in_drjit
 from roadgonio.engines.mitsuba.scene import build_scene
 
 NAME = "mitsuba"
@@ -283,7 +284,7 @@ def make_backend(instrument: Instrument, model: RoadModel, *, rel_se: float = 1e
     if unknown:
         raise InputError(f"unknown setting(s) {', '.join(sorted(unknown))} for the mitsuba backend; expected "
                          "rel_se, seed, first_pass, min_replicates, min_passes, max_samples, plan, mitsuba_variant")
-    if not isinstance(model, RoadModel) and (getattr(model, "numpy_only", True) or not hasattr(model, "evaluate")):
+    if not isinstance(model, RoadModel) and not renders_in_drjit(model):
         raise InputError(f"the mitsuba backend renders the road BSDF of eq. 4 (a RoadModel) or a surface that "
                          f"evaluates over Dr.Jit arrays; {getattr(model, 'name', type(model).__name__)!r} is a "
                          f"{type(model).__name__}, which only the numpy backends evaluate (reference, numpy-mc)",

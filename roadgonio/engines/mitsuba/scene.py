@@ -249,7 +249,7 @@ class RoadScene:
                     "it blocks the detector's view of its footprint (a part of the scene must not stand between "
                     "the detector and the sample)")
         return judge_hits(np.array(on_sample, dtype=bool), np.array(si.is_valid(), dtype=bool),
-                          np.array(si.p.x), np.array(si.p.y))
+                          np.array(si.p.x), np.array(si.p.y), self.instrument.sample.mesh)
 
 
 def _integrator():
@@ -270,8 +270,17 @@ def road_bsdf(model, channels: str):
     if isinstance(model, RoadModel):
         return mi.load_dict(_bsdf_dict(model, channels))
     bsdf = mi.load_dict({"type": "roadbsdf", "channels": channels})
-    bsdf.set_surface(model)
+    set_road_surface(bsdf, model)
     return bsdf
+
+
+def set_road_surface(bsdf, model) -> None:
+    """Give a ``roadbsdf`` the sample's surface: eq. 4's parameters and variant (``set_model``) for a
+    :class:`RoadModel`, any other surface through ``set_surface`` (which refuses a numpy-only one)."""
+    if isinstance(model, RoadModel):
+        bsdf.set_model(model.params, model.variant)
+    else:
+        bsdf.set_surface(model)
 
 
 def build_scene(instrument: Instrument, model: RoadModel, *, resolution: int = 64, spp: int = 16,
@@ -498,10 +507,7 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
         p[f"{DETECTOR_ID}.film.crop_size"] = mi.ScalarVector2u(resolution, resolution)
         p.update()
     bsdf.channels = channels
-    if isinstance(model, RoadModel):
-        bsdf.set_model(model.params, model.variant)
-    else:
-        bsdf.set_surface(model)
+    set_road_surface(bsdf, model)
     if source_kind == "disk":
         shapes[SOURCE_ID].emitter()  # present (checked above)
     rs = RoadScene(instrument=instrument, model=model, scene=scene, params=mi.traverse(scene),
