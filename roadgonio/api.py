@@ -538,24 +538,34 @@ def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "
     smp = _sample(sample, model_variant)
     b = _backend(backend, inst, smp.model, accuracy=accuracy, rel_se=rel_se, seed=seed,
                  mitsuba_variant=mitsuba_variant, settings=settings)
-    from roadgonio.geometry import TAN_EPS_GRID
-    if t > TAN_EPS_GRID[-1] and (smp.table is not None or (smp.model.meta or {}).get("table")):
-        import warnings
-
-        from roadgonio.errors import ModelWarning
-        from roadgonio.instrument.optics import check_source_cells
-        # the geometry's refusal comes first: a note and then an error were two lines for one mistake
-        # (user audit, session 19: tan eps 100 puts the source below the horizon)
-        check_source_cells(inst, [(t, bdeg)])
-        warnings.warn(ModelWarning(f"tan eps {t:g} is beyond the r-tables' last row (tan eps {TAN_EPS_GRID[-1]:g}): "
-                                   f"the model of {smp.name} there is an extrapolation of its fit, not a "
-                                   "measured value"), stacklevel=2)
+    _note_beyond_the_table(inst, smp, [(t, bdeg)])
     folder = _out(out, "ka", inst.name, smp.name)
     run = run_cells(b, [(t, bdeg)], instrument=inst, model=smp.model, out_dir=folder, fresh=fresh, progress=False)
     cell = run.results[0]
     if run.resumed:
         object.__setattr__(cell, "extra", {**(cell.extra or {}), "resumed": True})
     return cell
+
+
+def _note_beyond_the_table(inst, smp, cells) -> None:
+    """The note for cells beyond the r-tables' last row (tan eps 12) when the sample's model is a
+    table's fit (its values there are an extrapolation), said once for the farthest cell; one rule
+    for ``ka``, ``render`` and ``validate`` (user audit, session 19). The geometry's refusal comes
+    first: a note and then an error were two lines for one mistake (tan eps 100 puts the source below
+    the horizon)."""
+    from roadgonio.geometry import TAN_EPS_GRID
+    beyond = [c for c in cells if c[0] > TAN_EPS_GRID[-1]]
+    if not beyond or (smp.table is None and not (smp.model.meta or {}).get("table")):
+        return
+    import warnings
+
+    from roadgonio.errors import ModelWarning
+    from roadgonio.instrument.optics import check_source_cells
+    check_source_cells(inst, beyond)
+    t = max(c[0] for c in beyond)
+    warnings.warn(ModelWarning(f"tan eps {t:g} is beyond the r-tables' last row (tan eps {TAN_EPS_GRID[-1]:g}): "
+                               f"the model of {smp.name} there is an extrapolation of its fit, not a "
+                               "measured value"), stacklevel=3)
 
 
 def render(instrument, sample, tan_eps: float, beta: float, out, *, resolution: int = 256, spp: int = 64,
@@ -578,6 +588,7 @@ def render(instrument, sample, tan_eps: float, beta: float, out, *, resolution: 
     seed = check_seed(seed, maximum=MITSUBA_SEED_MAX)
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
+    _note_beyond_the_table(inst, smp, [(t, bdeg)])
     folder = _out(out, "render", inst.name, smp.name)
     if folder is None:
         raise InputError("render writes pictures: give an output folder", field="out")
@@ -610,6 +621,7 @@ def validate(instrument, sample, *, against: str = "mitsuba", reference: str = "
     todo = select_cells(cells, None)
     inst = _instrument(instrument)
     smp = _sample(sample, model_variant)
+    _note_beyond_the_table(inst, smp, todo)
     folder = _out(out, "validate", inst.name, smp.name)
     if folder is not None:
         from roadgonio.fileio import check_writable
@@ -785,8 +797,8 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
             opts["forward"] = forward
         ref: Any = "self"
     else:
-        opts["alternatives"] = alternatives
-        ref_sample = _sample(reference, None if model_variant == "auto" else model_variant, field="reference")
+        ref_sample, opts["alternatives"] = _reference_and_alternatives(reference, alternatives, tables[0],
+                                                                       model_variant)
         ref = ref_sample.model
         opts["reference_name"] = ref_sample.name
     folder = _out(out, "correct", tables[0].name if len(tables) == 1 else "tables")
@@ -800,6 +812,24 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
         res.out, res.written = sub, written
         results.append(res)
     return results if many else results[0]
+
+
+def _reference_and_alternatives(reference, alternatives, measured, model_variant):
+    """The reference SAMPLE and the alternatives of the classic route (:func:`correct`), both resolved
+    before either says a note: a mistake in ``alternatives`` is one line, not the reference's spike
+    note and then the error (user audit, session 19). Named alternatives do not depend on the measured
+    table and are returned resolved; ``"auto"`` (the tables nearest each measured one) stays a spec."""
+    import warnings
+    from roadgonio.correction.reference import resolve_alternatives
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        ref_sample = _sample(reference, model_variant, field="reference")
+        if not (isinstance(alternatives, str) and alternatives.strip().lower() == "auto"):
+            alternatives = resolve_alternatives(alternatives, measured, reference_name=ref_sample.name,
+                                                model_variant=model_variant)
+    for w in said:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return ref_sample, alternatives
 
 
 def _measured_tables(items) -> list:

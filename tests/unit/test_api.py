@@ -324,6 +324,40 @@ def test_a_cell_beyond_the_tables_last_row_notes_the_extrapolation(r3like):
         rg.ka_cell("lab", "R3", 12.0, 0.0, backend="quadrature", accuracy="fast")
 
 
+
+@pytest.mark.parametrize("command", ["validate", "render"])
+def test_validate_and_render_note_a_cell_beyond_the_table_as_ka_does(command, monkeypatch, tmp_path):
+    """User audit, session 19: `validate --cells 13:0` and `render --tan-eps 13` computed a cell beyond
+    the table's last row with no word, while `ka` says it is an extrapolation of the fit. One rule for
+    the three; a cell within the table says nothing. (The computation itself is stopped right after the
+    note: what is checked is what the user is told first.)"""
+    from roadgonio.engines import validate as V
+    from roadgonio.engines.mitsuba import images
+    from roadgonio.errors import ModelWarning
+
+    class Stop(Exception):
+        pass
+
+    def stop(*a, **k):
+        raise Stop
+    monkeypatch.setattr(V, "validate", stop)
+    monkeypatch.setattr(images, "render_cell_images", stop)
+    monkeypatch.setattr("roadgonio.engines.registry.prepare_entry_point", lambda *a, **k: None)
+
+    def run(t):
+        if command == "validate":
+            rg.validate("lab", "R3", cells=f"{t:g}:0,2:0", against="numpy-mc")
+        else:
+            rg.render("lab", "R3", t, 0.0, tmp_path / "r")
+    with pytest.warns(ModelWarning, match="tan eps 13 is beyond the r-tables' last row"), pytest.raises(Stop):
+        run(13.0)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ModelWarning)
+        with pytest.raises(Stop):
+            run(12.0)
+
+
 def test_road_metrics_refuses_a_list_of_u_of_another_length_than_the_tables():
     """Trial 11 D11: u=['corrected_u.csv'] for two tables was put on the last table, while the
     docs say a list has one entry per table; a list of 1 for 2 tables is refused like one of 3 (before

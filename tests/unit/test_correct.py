@@ -503,3 +503,28 @@ def test_a_mistake_in_the_alternatives_is_one_line_without_the_notes_of_the_othe
         got = resolve_alternatives("R2", table, reference_name="R3")
     assert list(got) == ["R2"] and [str(w.message) for w in said if issubclass(w.category, ModelWarning)][0].startswith(
         "R2 (power fit): r at beta = 0 is a spike")
+
+
+def test_a_mistake_in_the_alternatives_comes_before_the_reference_s_note():
+    """User audit, session 19: `correct --reference R2 --alternatives R9` printed the reference R2's
+    spike note and then the error about R9. The reference and named alternatives are resolved
+    together, their notes held until both are; without a mistake the reference's note still comes
+    and the alternatives are returned resolved (``auto`` stays a spec: it depends on each table)."""
+    import warnings
+
+    from roadgonio import api
+    from roadgonio.errors import ModelWarning
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        with pytest.raises(InputError, match="unknown sample 'R9'") as err:
+            api.correct("R3", "portable", reference="R2", alternatives="R9", backend="quadrature", plots=False)
+    assert err.value.field == "--alternatives"
+    assert not [w for w in said if issubclass(w.category, ModelWarning)]
+    table = bundled_table("R3")
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        ref, alts = api._reference_and_alternatives("R2", "R1", table, None)
+    notes = [str(w.message) for w in said if issubclass(w.category, ModelWarning)]
+    assert ref.name == "R2" and list(alts) == ["R1"] and notes[0].startswith("R2 (power fit): r at beta = 0 is a spike")
+    _, auto = api._reference_and_alternatives("R3", "auto", table, None)
+    assert auto == "auto"
