@@ -287,7 +287,8 @@ class MeshMonteCarloBackend(CellByCellBackend):
             if np.any(tri < 0):
                 raise GeometryError(f"{int(np.sum(tri < 0))} of {tri.size} detector rays miss the sample mesh at "
                                     f"tan eps = {cell[0]:g}, beta = {cell[1]:g}: the detector footprint must lie on "
-                                    "the sample; enlarge the mesh or narrow the field")
+                                    "the sample; enlarge the mesh or narrow the field",
+                                    **optics.mesh_location(self.instrument.sample.mesh))
             X = O + t[:, None] * D
             n = self.caster.normal[tri]
             sp = tuple(np.broadcast_to(c, w.shape) for c in optics.source_point(src, sdisc))

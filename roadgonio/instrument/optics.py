@@ -822,11 +822,11 @@ def hit_check_points(n_random: int = 1 << 16, n_rim: int = 128, seed: int = 7) -
     return pu, fu
 
 
-def judge_hits(on_sample, hit_anything, x, y) -> dict:
+def judge_hits(on_sample, hit_anything, x, y, mesh_path=None) -> dict:
     """Verdict of a footprint check over traced rays (boolean arrays: the ray hit the sample / hit
     some part of the scene; x, y the hit points): every detected ray must land on the sample, else
-    a :class:`GeometryError` saying what the missing rays hit. Returns the ray count and the
-    footprint's extent."""
+    a :class:`GeometryError` saying what the missing rays hit (naming ``mesh_path``, the sample's mesh
+    file, when it has one). Returns the ray count and the footprint's extent."""
     on_sample = np.asarray(on_sample, dtype=bool)
     hit_anything = np.asarray(hit_anything, dtype=bool)
     x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
@@ -838,6 +838,13 @@ def judge_hits(on_sample, hit_anything, x, y) -> dict:
         raise GeometryError(
             f"{n_miss} of {on_sample.size} detector rays do not hit the sample ({what}"
             + (f", e.g. at x = {x[miss][elsewhere][0]:.3f} m" if elsewhere.any() else "")
-            + "): the detector footprint must lie on the sample; enlarge the sample or narrow the field")
+            + "): the detector footprint must lie on the sample; enlarge the sample or narrow the field",
+            **mesh_location(mesh_path))
     return {"rays": int(on_sample.size), "x_range": (float(x.min()), float(x.max())),
             "y_range": (float(y.min()), float(y.max()))}
+
+
+def mesh_location(mesh_path) -> dict:
+    """Where an error about the footprint on a sample mesh points: the mesh file and its key
+    (``path``/``field`` of :class:`GeometryError`), nothing for the plain rectangle."""
+    return {} if mesh_path is None else {"path": mesh_path, "field": "sample.mesh"}

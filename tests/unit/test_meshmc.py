@@ -77,8 +77,10 @@ def test_self_shadowing_is_modelled(tmp_path, r3like):
 def test_mesh_off_the_footprint_and_xml_are_errors(tmp_path, r3like):
     inst = load_instrument("lab")
     small = grid_mesh(tmp_path / "small.ply", np.linspace(-0.05, 0.05, 3), np.linspace(-0.05, 0.05, 3))
-    with pytest.raises(GeometryError, match="miss the sample mesh"):
+    with pytest.raises(GeometryError, match="miss the sample mesh") as err:
         make_backend("numpy-mc-mesh", with_mesh(inst, small), r3like, min_batches=2).compute([(2.0, 90.0)])
+    # the error names the mesh file (user audit, session 19)
+    assert (err.value.path, err.value.field) == (str(small), "sample.mesh")
     with pytest.raises(InputError, match="does not model a Mitsuba XML scene"):
         make_backend("numpy-mc-mesh", load_instrument("holder"), r3like)
     with pytest.raises(InputError, match="numpy-mc-mesh"):

@@ -257,6 +257,12 @@ def test_hit_check_points_and_verdict():
         optics.judge_hits(on, np.ones(5, bool), x, y)
     with pytest.raises(GeometryError, match="miss every part"):
         optics.judge_hits(on, on, x, y)
+    with pytest.raises(GeometryError, match="miss every part") as err:     # a mesh sample: its file is named
+        optics.judge_hits(on, on, x, y, "scenes/road.ply")
+    assert (err.value.path, err.value.field) == ("scenes/road.ply", "sample.mesh")
+    with pytest.raises(GeometryError) as err:
+        optics.judge_hits(on, on, x, y)
+    assert err.value.path is None
 
 
 # -- the rectangle's x runs along the observation azimuth (docs/conventions.md section 4) ---------
