@@ -78,7 +78,13 @@ def _number(text: str, spec: str) -> float:
     except ValueError:
         raise InputError(f"expected a number, got {text!r} in {spec!r}; syntax {SYNTAX}", field="vary") from None
     if not math.isfinite(v):
-        raise InputError(f"expected a finite number, got {text!r} in {spec!r}", field="vary")
+        # the instrument file allows focus_m = inf, a design axis cannot: the grid, the surrogate and
+        # the plots interpolate over the values (user audit, session 19)
+        hint = (": a design axis needs finite values (its grid and surrogate interpolate over them); the "
+                "largest focus, 1000 m, approaches the angular field (compare the inf instrument with "
+                "`roadgonio ka`)"
+                if spec.split("=", 1)[0].strip() == "detector.focus_m" else "")
+        raise InputError(f"expected a finite number, got {text!r} in {spec!r}{hint}", field="vary")
     return v
 
 

@@ -46,6 +46,8 @@ def test_parse_vary_linear_log_and_list():
     ("source.radius_m=0.01:0.02:1", "LO = HI"),
     ("source.radius_m=0.01,0.01", "repeated"),
     ("source.radius_m=0.01:nan:3", "finite"),
+    # the instrument file allows focus_m = inf; the error says why a design axis cannot (user audit, s. 19)
+    ("detector.focus_m=inf,1", "largest focus, 1000 m"),
 ])
 def test_parse_vary_errors_name_the_argument(text, words):
     with pytest.raises(InputError) as e:
