@@ -59,6 +59,12 @@ from roadgonio.surface.model import PARAM_BOUNDS, RoadModel
 #: The default knots of g_C (fine: the narrow peak at beta = 0 and grazing incidence) and of g_D.
 C_GRID = SplineGrid(s_beta=24, beta_scale_deg=8.0, s_t=32, eps_step_deg=3.0, sec_gain=3.0, eps_max_deg=89.0)
 D_GRID = SplineGrid(s_beta=6, beta_scale_deg=8.0, s_t=8, eps_step_deg=12.0, sec_gain=1.0, eps_max_deg=89.0)
+#: Standard uncertainty of ln f_r of the road beyond the observation elevations the instruments saw
+#: (SurfaceSettings.unobserved_sd_ln): ln 2, a factor of two. No r-table measures the road there and
+#: eq. 4's (the backbone's) behaviour off alpha = 1 deg is the model's assumption, not a measurement;
+#: for the two_lobes truth the fitted surface is 2.7 times too dark there (flux-weighted over
+#: cosine-distributed directions; docs/correction.md, "The road beyond the observation elevations").
+UNOBSERVED_SD_LN = math.log(2.0)
 #: The fit's method, in the key of a correction's journal (fit_state.json): 3 keeps every smoothing
 #: parameter at LAM_MIN or above, 2 chose the smoothing with the noise scale the residuals show
 #: (noise_scale), 1 with the stated u alone.
@@ -142,6 +148,12 @@ class SurfaceSettings:
     #: within its time targets over four realisations (docs/correction.md, "Both, weighed by their
     #: evidence"); "cusp" is the faster choice (half the backbones and surfaces, ~0.6 of the time)
     mirror_round_deg: float | None | tuple[float | None, ...] = MIRROR_PLANES["both"]
+    #: standard uncertainty of ln f_r of the road beyond the observation elevations the instruments
+    #: saw, one factor common to all of it (UNOBSERVED_SD_LN: a factor of 2), which stray light reads
+    #: and no r-table measures; the budget's "unobserved" component, used only where the backend
+    #: traces stray light (docs/correction.md, "The road beyond the observation elevations"); 0
+    #: leaves it out
+    unobserved_sd_ln: float = UNOBSERVED_SD_LN
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
@@ -174,6 +186,10 @@ class SurfaceSettings:
         if len(self.backbone_rounds_deg) != len(self._rounds_given()):
             raise InputError(f"expected distinct roundings of the backbone at the mirror plane, got {rounds!r} "
                              f"(None is the first knot, {self._knot_deg():.3g} deg)", field="mirror_round_deg")
+        u = self.unobserved_sd_ln
+        if isinstance(u, bool) or not isinstance(u, (int, float)) or not (math.isfinite(u) and u >= 0.0):
+            raise InputError(f"expected a standard uncertainty >= 0 of ln f_r beyond the observation elevations, "
+                             f"got {u!r}", field="unobserved_sd_ln")
         if self.discrepancy_ell is not None and not (self.discrepancy_ell > 0 and math.isfinite(self.discrepancy_ell)):
             raise InputError(f"expected a positive correlation length of the discrepancy (knot spacings), got "
                              f"{self.discrepancy_ell}", field="discrepancy_ell")
@@ -234,7 +250,7 @@ class SurfaceSettings:
                 "lam": self.lam, "smoothing": self.smoothing, "discrepancy_ell": self.discrepancy_ell,
                 "model_estimate": self.model_estimate,
                 "mirror_round_deg": (list(self.mirror_round_deg) if isinstance(self.mirror_round_deg, tuple)
-                                     else self.mirror_round_deg)}
+                                     else self.mirror_round_deg), "unobserved_sd_ln": self.unobserved_sd_ln}
 
 
 def spline_basis(grid: SplineGrid, wi, wo, n: int) -> sparse.csr_matrix:
@@ -433,14 +449,16 @@ class FlexPart:
         out["g_d"] = (self._nominal_d @ theta[n_c:]) if self.settings.n_d else np.full(self.n, np.nan)
         return out
 
-    def corrected_surface(self, theta: np.ndarray) -> CorrectedSurface:
+    def corrected_surface(self, theta: np.ndarray, unobserved_factor: float = 1.0) -> CorrectedSurface:
         """The fitted model at ``theta`` as a BRDF a backend renders: the backbone times
-        exp(g_C + l(alpha) g_D) (what :meth:`simulate` averages over the rays)."""
+        exp(g_C + l(alpha) g_D) (what :meth:`simulate` averages over the rays); with
+        ``unobserved_factor``, times that factor beyond the rays' observation elevations (a probe of
+        k_A's sensitivity to the road there)."""
         n_c = self.settings.n_c
         thetas = [theta[:n_c]] + ([theta[n_c:]] if self.settings.n_d else [])
         ell = np.asarray(alpha_coordinate(NumpyOps, self.forward.bundles.wo), dtype=np.float64)
         return CorrectedSurface(self.backbone, self.grids, thetas, name=f"{self.backbone.name} x exp(g)",
-                                alpha_range=(float(ell.min()), float(ell.max())))
+                                alpha_range=(float(ell.min()), float(ell.max())), unobserved_factor=unobserved_factor)
 
     def k_bundle(self, theta: np.ndarray) -> np.ndarray:
         """k_A of the corrected model under the instrument's calibration through the ray bundles alone

@@ -70,6 +70,11 @@ BIRGE_WIDTH_CELLS = 2.0
 #: of the weighted sums (the weights of the rest are not renormalised; they sum to 1 - at most
 #: 1e-9 per backbone left out). Its fit, evidence and weight are reported as every other's.
 NEGLIGIBLE_WEIGHT = 1e-9
+#: The factor on the fitted surface beyond the observation elevations the instruments saw whose
+#: rendering gives k_A's sensitivity to the road there (d ln k_A / d ln f_r as the secant over ln 2;
+#: single-bounce stray light is linear in it, paths that meet the road twice are not, and a secant
+#: over a factor of 2 is about the range the component's ln 2 describes).
+UNOBSERVED_PROBE = 2.0
 
 
 @dataclass
@@ -127,6 +132,9 @@ class InstrumentPart:
     backend_info: dict[str, Any]
     before: dict[str, Any]
     after: dict[str, Any]
+    #: grid, d ln k_A / d ln f_r of the road beyond the observation elevations the instruments saw
+    #: (rendered; the budget's "unobserved" component); None where the backend traces no stray light
+    unobserved_sensitivity: np.ndarray | None = None
 
     @property
     def name(self) -> str:
@@ -202,7 +210,10 @@ class SurfaceCorrection:
             "birge_local_max": float(np.nanmax(p.birge_local)),
             "before": {k: p.before.get(k) for k in ("S1", "u_S1", "Q0", "u_Q0")},
             "after": {k: p.after.get(k) for k in ("S1", "u_S1", "Q0", "u_Q0")},
-            "u_rel_median": float(np.median(p.budget.u_rel())), "backend": p.backend_info} for p in self.parts]
+            "u_rel_median": float(np.median(p.budget.u_rel())), "backend": p.backend_info,
+            "unobserved_sensitivity_max": (None if p.unobserved_sensitivity is None
+                                           else float(np.nanmax(np.abs(p.unobserved_sensitivity))))}
+            for p in self.parts]
         return out
 
 
@@ -564,6 +575,18 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                                   "refit_change_over_u_max": worst, "converged": worst <= tol})
             if worst <= tol:
                 break
+    # 3c. the road beyond the observation elevations the instruments saw: stray light reads it there,
+    #     no r-table measures it, and the fitted surface holds the backbone's behaviour (issue 19). k_A's
+    #     sensitivity to it is rendered (the last rendered surface times UNOBSERVED_PROBE there, the same
+    #     seed), and a common factor of standard uncertainty settings.unobserved_sd_ln enters the budget
+    #     (docs/correction.md, "The road beyond the observation elevations")
+    unobserved: list[np.ndarray] | None = None
+    if surface_steps and settings.unobserved_sd_ln > 0.0:
+        k_probe, _, _, _ = backend_k([p.corrected_surface(cur.fit.theta, UNOBSERVED_PROBE) for p in cur.parts],
+                                     [p.k_bundle(cur.fit.theta) for p in cur.parts], 1, "unobserved",
+                                     f"fitted surface x {UNOBSERVED_PROBE:g} beyond the observation elevations")
+        unobserved = [np.log(kp / kb) / math.log(UNOBSERVED_PROBE) for kp, kb in zip(k_probe, k_back)]
+        lap("surface-backend")
     live = contributing(vfits)
     for vf in live:
         vf.cov_full = posterior_with_backbone(vf.parts, vf.fit.theta, vf.fit.lam, [1.0 / u ** 2 for u in us],
@@ -605,7 +628,10 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     E = N + U
     surf = np.zeros((E, E))
     model = np.zeros((E, E))
+    unobserved_v = np.zeros(E)
     for vf, lk, K, lp, Jp in zip(live, lnk_v, jac_v, lnp_v, jp_v):
+        if unobserved is not None:
+            unobserved_v += vf.weight * rho_shift_effect(vf, unobserved, [1.0 / u ** 2 for u in us], K, Jp)
         J = np.vstack([-K, Jp])                   # d (ln r estimate) / d (theta, q): ln y - ln k_A, the model's value
         surf += vf.weight * (J @ vf.cov_full @ J.T)
         d = np.concatenate([-(lk - lnk), lp - lnp])
@@ -645,6 +671,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     comps["bundle"] = np.diag(bundle ** 2)
     if disc is not None:
         comps["discrepancy"] = disc
+    if unobserved is not None:
+        comps["unobserved"] = settings.unobserved_sd_ln ** 2 * np.outer(unobserved_v, unobserved_v)
     if surface_steps:                              # the surface's own loop has the last word on k_A
         if not surface_steps[-1]["converged"]:
             comps["convergence"] = np.diag(np.concatenate([surface_change / math.sqrt(3.0), pad]) ** 2)
@@ -667,6 +695,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
              "convergence": "change of k_A the last refit (of the backbone, or with stray light of the surfaces) "
                             "still made (rectangular; the fitted model's own value left out)",
              "misalignment": "instrument geometric errors (--sigma), first-order GUM",
+             "unobserved": f"the road beyond the observation elevations the instruments saw, which stray light "
+                           f"reads and no r-table measures: one factor common to all of it, of standard uncertainty "
+                           f"{settings.unobserved_sd_ln:.3g} in ln f_r, times k_A's rendered sensitivity to it",
              "discrepancy": "structure of the surface finer than the correction surface's knots, which the "
                             "instruments blur: var(delta(c) - (K delta)(c)) of a Gaussian process delta over the "
                             "incident direction, its amplitude what the evidence-chosen roughness prior of the surface puts "
@@ -697,7 +728,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             u_corrected=u_abs,
             budget=bud, residual=_grid(t, resid[sl]), birge_local=_grid(t, birge[sl]),
             widening=_grid(t, widen[sl]), simulated=_grid(t, sim),
-            model_r=model_r, surfaces=surfs, backend_info=infos[i], before=functionals(t, before_b.total()), after=functionals(corr, bud.total())))
+            model_r=model_r, surfaces=surfs, backend_info=infos[i], before=functionals(t, before_b.total()),
+            after=functionals(corr, bud.total()),
+            unobserved_sensitivity=None if unobserved is None else _grid(t, unobserved[i])))
     base = tables[0]
     model_weight = None
     if len(tables) == 1 and not U:
@@ -739,6 +772,25 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     return SurfaceCorrection(parts=parts_out, corrected=combined, u_corrected=u_comb, budget=comb_budget, after=after,
                              variants=vfits, settings=settings, provenance=prov, seconds=time.perf_counter() - t0,
                              timings=timings, model_weight=model_weight, steps=steps, surface_steps=surface_steps)
+
+
+def rho_shift_effect(vf: VariantFit, shift: Sequence[np.ndarray], weights: Sequence[np.ndarray], K: np.ndarray,
+                     Jp: np.ndarray) -> np.ndarray:
+    """d (ln r estimates) / d x when ln rho of part i's cells moves by ``shift[i]`` x (the stray light
+    of a road the tables do not measure: the "unobserved" component), to first order through the fit:
+    the simulated readings move by m s x, the surface and the backbone's coordinates by
+    d = -C J^T W (m s) x (C the posterior covariance over (theta, q), J the readings' Jacobian, W the
+    weights), so ln k_A moves by s + K d and the model's own values by Jp d. Returns the instruments'
+    estimates ln y - ln k_A, -(s + K d), then the model's values, Jp d: the model estimate follows the
+    instruments (a surface fitted with the wrong rho is off by it), so weighing the two does not
+    dilute this error."""
+    g = np.zeros(vf.cov_full.shape[0])
+    for p, s, w in zip(vf.parts, shift, weights):
+        m, J = p.simulate(vf.fit.theta)
+        Jq, _, _ = p.backbone_jacobians(vf.fit.theta)
+        g += np.hstack([J, Jq]).T @ (np.asarray(w) * m * s)
+    d = -(vf.cov_full @ g)
+    return np.concatenate([-(np.concatenate(shift) + K @ d), Jp @ d])
 
 
 def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit, settings: SurfaceSettings,
@@ -815,10 +867,13 @@ def _weighted_lnk_bundles(vfits: Sequence[VariantFit]) -> np.ndarray:
 def _forward_dir(i: int, n_tables: int, step: int, what: str = "backbone") -> str:
     """The journal folder of the backend's k_A through instrument ``i`` at outer step ``step`` of the
     backbone (step 1 keeps the names it always had, so such journals resume) or of the fitted
-    surface (``what="surface"``: ``forward-N-surface-stepK``)."""
+    surface (``what="surface"``: ``forward-N-surface-stepK``) or of its probe beyond the observation
+    elevations (``what="unobserved"``: ``forward-N-unobserved``)."""
     base = f"forward-{i + 1}" if n_tables > 1 else "forward-1"
     if what == "surface":
         return f"{base}-surface-step{step}"
+    if what == "unobserved":
+        return f"{base}-unobserved"
     return base if step == 1 else f"{base}-step{step}"
 
 

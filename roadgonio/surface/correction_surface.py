@@ -266,7 +266,7 @@ class CorrectedSurface(EvaluatedBRDF):
     is_lambertian = False
 
     def __init__(self, backbone, grids, thetas, name: str | None = None,
-                 alpha_range: tuple[float, float] | None = None):
+                 alpha_range: tuple[float, float] | None = None, unobserved_factor: float = 1.0):
         if len(grids) != len(thetas) or not 1 <= len(grids) <= 2:
             raise ValueError("a corrected surface has g_C and optionally g_D: one theta per grid")
         self.backbone = backbone
@@ -279,6 +279,14 @@ class CorrectedSurface(EvaluatedBRDF):
         #: (issue 19) -- a stray-light path reads the road at any elevation, where l g_D would be an
         #: extrapolation by a factor up to ln(1 / sin 1 deg) = 4
         self.alpha_range = None if alpha_range is None else (float(alpha_range[0]), float(alpha_range[1]))
+        #: the surface beyond that range times this factor (1: as fitted): how the correction measures
+        #: k_A's sensitivity to the road no r-table measures (docs/correction.md, "The road beyond the
+        #: observation elevations"); a probe, never a fitted value
+        self.unobserved_factor = float(unobserved_factor)
+        if not (math.isfinite(self.unobserved_factor) and self.unobserved_factor > 0.0):
+            raise ValueError(f"expected a positive factor on the unobserved surface, got {unobserved_factor}")
+        if self.unobserved_factor != 1.0 and self.alpha_range is None:
+            raise ValueError("a factor on the surface beyond the observation elevations needs their range")
         self.variant = backbone.variant
         self.mirror_kink = backbone.mirror_kink
 
@@ -299,10 +307,17 @@ class CorrectedSurface(EvaluatedBRDF):
         return g
 
     def evaluate(self, xp, wi, wo):
-        return self.backbone.evaluate(xp, wi, wo) * xp.exp(xp.minimum(self.exponent(xp, wi, wo), 50.0))
+        f = self.backbone.evaluate(xp, wi, wo) * xp.exp(xp.minimum(self.exponent(xp, wi, wo), 50.0))
+        if self.unobserved_factor != 1.0:
+            ell = alpha_coordinate(xp, wo)
+            beyond = (ell < self.alpha_range[0]) | (ell > self.alpha_range[1])
+            f = f * xp.where(beyond, self.unobserved_factor, 1.0)
+        return f
 
     def to_json_dict(self) -> dict:
         from dataclasses import asdict
         return {"surface": self.kind, "name": self.name, "backbone": self.backbone.to_json_dict(),
                 "grids": [asdict(g) for g in self.grids], "thetas": [t.tolist() for t in self.thetas],
-                "alpha_range": None if self.alpha_range is None else list(self.alpha_range)}
+                "alpha_range": None if self.alpha_range is None else list(self.alpha_range),
+                # only when probed: the fitted surface's fingerprint (its journals) stays what it was
+                **({"unobserved_factor": self.unobserved_factor} if self.unobserved_factor != 1.0 else {})}

@@ -10,6 +10,7 @@ import pytest
 
 from roadgonio.correction.outside import combine, local_birge
 from roadgonio.arrays import NumpyOps
+from roadgonio.errors import InputError
 from roadgonio.surface.correction_surface import SplineGrid, spline_value
 from roadgonio.surface.rtable import RTable, bundled_table
 from roadgonio.surface.truths import make_truth
@@ -665,3 +666,92 @@ def test_the_corrected_surface_holds_its_alpha_dependence_beyond_the_rays(r3like
         assert np.allclose(held.evaluate(NumpyOps, wi, wo), want, rtol=1e-12, atol=0.0), alpha_deg
         same = np.allclose(free.evaluate(NumpyOps, wi, wo), held.evaluate(NumpyOps, wi, wo), rtol=1e-12, atol=0.0)
         assert same == (lo <= ell <= hi), alpha_deg
+
+
+
+def test_the_unobserved_probe_scales_the_surface_beyond_the_rays_only(r3like):
+    """The probe of k_A's sensitivity to the road no r-table measures (CorrectedSurface's
+    unobserved_factor): the surface times the factor where the detector direction's elevation is
+    outside the rays' range, unchanged within it (both edges); its fingerprint differs from the fitted
+    surface's, whose own stays what it was (a factor of 1 adds no key); bad factors are refused."""
+    from roadgonio.correction.flexible import SurfaceSettings
+    from roadgonio.surface.correction_surface import CorrectedSurface
+    s = SurfaceSettings()
+    rng = np.random.default_rng(6)
+    tc, td = rng.normal(0, 0.1, s.n_c), rng.normal(0, 0.3, s.n_d)
+    lo, hi = -0.3, 0.4
+    fitted = CorrectedSurface(r3like, [s.c_grid, s.d_grid], [tc, td], alpha_range=(lo, hi))
+    probe = CorrectedSurface(r3like, [s.c_grid, s.d_grid], [tc, td], alpha_range=(lo, hi), unobserved_factor=2.0)
+    wi, _ = _directions(100, 8)
+    sin1 = math.sin(math.radians(1.0))
+    for ell, factor in ((hi + 0.05, 2.0), (hi - 1e-9, 1.0), (0.0, 1.0), (lo + 1e-9, 1.0), (lo - 0.05, 2.0), (3.5, 2.0)):
+        a = math.asin(min(1.0, sin1 * math.exp(ell)))
+        wo = (np.full(100, math.cos(a)), np.zeros(100), np.full(100, math.sin(a)))
+        got = np.asarray(probe.evaluate(NumpyOps, wi, wo)) / np.asarray(fitted.evaluate(NumpyOps, wi, wo))
+        assert np.allclose(got, factor, rtol=1e-13, atol=0.0), ell
+    assert "unobserved_factor" not in fitted.to_json_dict() and probe.to_json_dict()["unobserved_factor"] == 2.0
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError):
+            CorrectedSurface(r3like, [s.c_grid, s.d_grid], [tc, td], alpha_range=(lo, hi), unobserved_factor=bad)
+    with pytest.raises(ValueError, match="needs their range"):
+        CorrectedSurface(r3like, [s.c_grid, s.d_grid], [tc, td], unobserved_factor=2.0)
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf"), True, "ln 2"])
+def test_the_unobserved_uncertainty_setting_is_checked(bad):
+    from roadgonio.correction.flexible import UNOBSERVED_SD_LN, SurfaceSettings
+    assert SurfaceSettings().unobserved_sd_ln == UNOBSERVED_SD_LN == math.log(2.0)
+    assert SurfaceSettings(unobserved_sd_ln=0.0).to_dict()["unobserved_sd_ln"] == 0.0
+    with pytest.raises(InputError) as err:
+        SurfaceSettings(unobserved_sd_ln=bad)
+    assert err.value.field == "unobserved_sd_ln"
+
+
+#: Largest difference, relative to the change, between the first-order effect of a shift of rho
+#: (rho_shift_effect) and the converged refit (measured: 8 %, the fit's curvature).
+REFIT_CURVATURE = 0.15
+
+
+def test_a_shift_of_rho_moves_the_estimates_as_a_refit_does(r3like):
+    """rho_shift_effect (the "unobserved" component's direction: ln rho of the cells moved by s x, the
+    stray light of a road no table measures) against refitting: the surface fitted again with
+    rho = exp(s) (a 1 % smooth pattern), its smoothing held, moves the instruments' estimates
+    ln y - ln k_A and the model's own values ln r_nominal as the first-order formula says, with the
+    backbone held in both (its block of the posterior covariance zero). And the model's values follow
+    the instruments' (a uniform shift moves both by about -s): weighing the two cannot dilute it."""
+    from types import SimpleNamespace
+
+    from roadgonio.correction.flexible import FlexPart, SurfaceSettings, fit_surface
+    from roadgonio.correction.outside import nominal_estimate, rho_shift_effect
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    cells = [(t, b) for t in (0.0, 1.0, 2.0, 4.5, 9.0, 12.0) for b in (0.0, 10.0, 45.0, 120.0)]
+    fm = ForwardModel(RayBundles.build(load_instrument("wide"), cells, rays=32))
+    settings = SurfaceSettings(lam=1e5)           # held: the refit is then the mode search alone
+    y0 = fm.r_measured(r3like)
+    y = y0 * np.exp(np.random.default_rng(9).normal(0.0, 0.01, len(cells)))
+    u = 0.01 * y0
+    part = FlexPart(fm, r3like, settings)
+    f = fit_surface([part], [y], [u])
+    n, n_q = part.n_params, len(part.backbone_log_derivatives()[0])
+    cov = np.zeros((n + n_q, n + n_q))
+    cov[:n, :n] = f.cov                                   # the backbone held, as the refit holds it
+    vf = SimpleNamespace(parts=[part], fit=f, cov_full=cov)
+    nominal = [(0, k) for k in range(len(cells))]
+    K = part.lnk_full_jacobian(f.theta)
+    _, Jp = nominal_estimate([part], f.theta, nominal)
+    tan = np.array([c[0] for c in cells])
+    for shift in (0.01 * np.ones(len(cells)), 0.01 * np.cos(tan / 4.0)):
+        v = rho_shift_effect(vf, [shift], [1.0 / u ** 2], K, Jp)
+        moved = FlexPart(fm, r3like, settings, np.exp(shift))
+        g = fit_surface([moved], [y], [u], theta0=f.theta, lam0=list(f.lam.values()))
+        d_inst = -(np.log(moved.k_a(g.theta)) - np.log(part.k_a(f.theta)))
+        d_model = part.ln_r_nominal(g.theta) - part.ln_r_nominal(f.theta)
+        got = np.concatenate([d_inst, d_model])
+        # the formula is one Gauss-Newton step (within 1 % of an exact one here); the converged refit
+        # differs by the fit's curvature: 6e-5 of the change for the uniform shift, 8 % for the pattern
+        # (and 5 % at a tenth of its amplitude: not the step's size). A wrong sign or a missing part is
+        # 100-200 % off
+        assert np.max(np.abs(got - v)) < REFIT_CURVATURE * np.max(np.abs(v)), (got, v)
+    uniform = rho_shift_effect(vf, [0.01 * np.ones(len(cells))], [1.0 / u ** 2], K, Jp)
+    assert np.allclose(uniform, -0.01, rtol=0.0, atol=0.002)
