@@ -724,7 +724,8 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
             rel_se: float | None = None, seed: int = 0, mitsuba_variant: str | None = None,
             model_variant: str | None = None, rays: int = 512, workers: int | None = None,
             scheduler: str | None = None, out=None, plots: bool = True, progress: bool = False,
-            forward: str | None = None, joint: bool = False, mirror_plane: str | None = None, **options: Any):
+            forward: str | None = None, joint: bool = False, mirror_plane: str | None = None,
+            unobserved_road: float | None = None, **options: Any):
     """Correct measured r-tables for the aperture effect (``roadgonio correct``). ``measured``: one
     table (name, file, RTable or DataArray) or a list of them (they share the instrument's work);
     ``reference="self"`` (default) fits the model through the instrument, a SAMPLE takes the classic
@@ -747,9 +748,16 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     ``.u_corrected``, ``.budget``, ``.parts[i].k_a`` per instrument, ``.summary()``). ``mirror_plane``
     (with the surface): the backbone's shape at the mirror plane, ``"cusp"`` (eq. 4's), ``"rounded"``
     (over one knot of the correction surface) or ``"both"`` weighed by their evidence (None: the
-    default of :class:`~roadgonio.correction.flexible.SurfaceSettings`; docs/correction.md)."""
+    default of :class:`~roadgonio.correction.flexible.SurfaceSettings`; docs/correction.md).
+    ``unobserved_road`` (with the surface, where the backend traces stray light): the factor F within
+    which the road's BRDF beyond the observation elevations the instruments saw is known, one standard
+    uncertainty of ln F (None: 2; 1 leaves the budget's "unobserved" component out; docs/correction.md,
+    "The road beyond the observation elevations")."""
     if mirror_plane is not None:
         options["settings"] = _surface_settings(options.get("settings"), mirror_plane, joint or forward == "surface")
+    if unobserved_road is not None:
+        options["settings"] = _unobserved_settings(options.get("settings"), unobserved_road,
+                                                   joint or forward == "surface")
     if joint:
         return _correct_joint(measured, instrument, u_measured=u_measured, sigma=sigma, backend=backend,
                               accuracy=accuracy, rel_se=rel_se, seed=seed, mitsuba_variant=mitsuba_variant,
@@ -842,6 +850,21 @@ def _measured_tables(items) -> list:
         check_measured(t, m if isinstance(m, (str, Path)) else None)
         tables.append(t)
     return tables
+
+
+def _unobserved_settings(settings, factor, surface: bool):
+    """The correction surface's settings with the road beyond the observation elevations known within
+    ``factor`` (:func:`correct`'s ``unobserved_road``)."""
+    if not surface:
+        raise InputError("the road beyond the observation elevations is a setting of the correction surface: give "
+                         "it with the forward model 'surface' or a joint correction", field="unobserved_road")
+    if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not (math.isfinite(factor) and factor >= 1.0):
+        raise InputError(f"expected a factor of 1 or more (1: the road there taken as fitted, no component), got "
+                         f"{factor!r}", field="unobserved_road")
+    from dataclasses import replace
+
+    from roadgonio.correction.flexible import SurfaceSettings
+    return replace(settings or SurfaceSettings(), unobserved_sd_ln=math.log(float(factor)))
 
 
 def _surface_settings(settings, mirror_plane: str, surface: bool):

@@ -51,6 +51,11 @@ def register(sub) -> None:
                    help="with --forward surface or --joint: the backbone's shape at the mirror plane (beta 0): cusp "
                         "(eq. 4's), rounded (over one knot of the correction surface) or both, weighed by their "
                         "evidence (default: both; cusp takes ~0.6 of the time, docs/correction.md)")
+    p.add_argument("--unobserved-road", type=float, default=None, metavar="F",
+                   help="with --forward surface or --joint, where the backend traces stray light (a housing): the "
+                        "factor within which the road's BRDF beyond the observation elevations the instruments saw "
+                        "is known, one standard uncertainty (default 2; 1 leaves the 'unobserved' component out): "
+                        "stray light reads the road there and no r-table measures it (docs/correction.md)")
     p.add_argument("--joint", action="store_true",
                    help="the --measured tables are ONE surface measured by the --instrument(s) (one per table, or one "
                         "instrument with several aperture settings as several files): one surface is fitted through "
@@ -109,7 +114,8 @@ def run(args) -> int:
                           backend=args.backend, accuracy=args.accuracy, rel_se=args.rel_se, seed=args.seed,
                           mitsuba_variant=args.mitsuba_variant, model_variant=args.model_variant, rays=args.rays,
                           workers=args.workers, scheduler=args.scheduler, out=out_arg(args),
-                          plots=not args.no_plots, progress=show_progress(args), mirror_plane=args.mirror_plane)
+                          plots=not args.no_plots, progress=show_progress(args), mirror_plane=args.mirror_plane,
+                          unobserved_road=args.unobserved_road)
     summaries = []
     for res in results:
         s = _json_summary(res)
@@ -163,7 +169,8 @@ def _run_joint(args) -> int:
                       rel_se=args.rel_se, seed=args.seed, mitsuba_variant=args.mitsuba_variant,
                       model_variant=args.model_variant, rays=args.rays, workers=args.workers,
                       scheduler=args.scheduler, out=out_arg(args), plots=not args.no_plots,
-                      progress=show_progress(args), mirror_plane=args.mirror_plane)
+                      progress=show_progress(args), mirror_plane=args.mirror_plane,
+                      unobserved_road=args.unobserved_road)
     s = res.summary()
     s["out"] = str(res.out)
     s["written"] = [str(p) for p in res.written]

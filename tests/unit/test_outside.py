@@ -509,9 +509,9 @@ def test_the_mirror_plane_is_named_once_for_the_api_and_the_command_line():
     assert e.value.field == "mirror_plane"
 
 
-@pytest.mark.parametrize("joint", [False, True])
-def test_correct_passes_the_mirror_plane_to_the_api(monkeypatch, joint):
-    """The command line's --mirror-plane reaches api.correct (single and --joint), absent it None."""
+def _cli_passes(monkeypatch, joint: bool, key: str, cases) -> None:
+    """`roadgonio correct` with the correction surface (``--forward surface``, or two tables with
+    ``--joint``) plus each case's extra arguments hands api.correct ``key`` = the case's value."""
     from roadgonio import api
     from roadgonio.cli import main
     seen = []
@@ -520,16 +520,45 @@ def test_correct_passes_the_mirror_plane_to_the_api(monkeypatch, joint):
         pass
 
     def fake(*args, **kwargs):
-        seen.append(kwargs.get("mirror_plane", "missing"))
+        seen.append(kwargs.get(key, "missing"))
         raise Stop
 
-    monkeypatch.setattr(api, "correct", fake)
-    argv = (["correct", "--measured", "a.csv", "--instrument", "A.toml"]
-            + (["--measured", "b.csv", "--instrument", "B.toml", "--joint"] if joint else ["--forward", "surface"]))
-    for extra, want in (([], None), (["--mirror-plane", "cusp"], "cusp"), (["--mirror-plane", "both"], "both")):
-        with pytest.raises(Stop):
-            main(argv + extra)
-        assert seen[-1] == want
+    with monkeypatch.context() as mp:
+        mp.setattr(api, "correct", fake)
+        argv = (["correct", "--measured", "a.csv", "--instrument", "A.toml"]
+                + (["--measured", "b.csv", "--instrument", "B.toml", "--joint"] if joint else ["--forward", "surface"]))
+        for extra, want in cases:
+            with pytest.raises(Stop):
+                main(argv + extra)
+            assert seen[-1] == want, extra
+
+
+@pytest.mark.parametrize("joint", [False, True])
+def test_correct_passes_the_mirror_plane_to_the_api(monkeypatch, joint):
+    """The command line's --mirror-plane reaches api.correct (single and --joint), absent it None."""
+    _cli_passes(monkeypatch, joint, "mirror_plane",
+                (([], None), (["--mirror-plane", "cusp"], "cusp"), (["--mirror-plane", "both"], "both")))
+
+
+@pytest.mark.parametrize("joint", [False, True])
+def test_the_unobserved_road_factor_reaches_the_surface_settings(monkeypatch, joint):
+    """``correct --unobserved-road F`` / ``api.correct(unobserved_road=F)``: the command line passes it
+    (single and --joint, absent None), the API turns it into SurfaceSettings.unobserved_sd_ln = ln F
+    (the other settings kept); F < 1, not a number, or the option without the correction surface is
+    one error naming the field before any work."""
+    from roadgonio import api
+    from roadgonio.correction.flexible import SurfaceSettings
+    _cli_passes(monkeypatch, joint, "unobserved_road", (([], None), (["--unobserved-road", "3"], 3.0)))
+    got = api._unobserved_settings(SurfaceSettings(smoothing="gcv"), 3.0, True)
+    assert got.unobserved_sd_ln == pytest.approx(math.log(3.0), rel=1e-15) and got.smoothing == "gcv"
+    assert api._unobserved_settings(None, 1, True).unobserved_sd_ln == 0.0
+    for bad in (0.5, float("nan"), float("inf"), True, "2"):
+        with pytest.raises(InputError) as e:
+            api._unobserved_settings(None, bad, True)
+        assert e.value.field == "unobserved_road"
+    with pytest.raises(InputError) as e:
+        api.correct("R3", "portable", unobserved_road=2.0)          # forward eq4: no surface
+    assert e.value.field == "unobserved_road"
 
 
 def test_only_backbones_of_non_negligible_weight_enter_the_covariance():
