@@ -161,6 +161,9 @@ def cells_csv(res) -> str:
     weight = sc.model_weight if sc is not None else None
     if weight is not None:
         head += ["r_over_k_a_x1e4", "w_model"]
+    unobserved = sc.parts[0].unobserved_sensitivity if sc is not None else None
+    if unobserved is not None:
+        head += ["dlnk_a_dlnf_unobserved"]
     buf = io.StringIO()
     buf.write("# " + res.corrected.source + "\n")
     buf.write(",".join(head) + "\n")
@@ -175,6 +178,8 @@ def cells_csv(res) -> str:
             row.append(f"{sim[k] * 1e4:.6g}")
         if weight is not None:
             row += [f"{sc.parts[0].corrected.r[i, j] * 1e4:.6g}", f"{weight[i, j]:.4g}"]
+        if unobserved is not None:
+            row.append(f"{unobserved[i, j]:.4g}")
         buf.write(",".join(row) + "\n")
     return buf.getvalue()
 
@@ -430,6 +435,8 @@ def joint_cells_csv(sc) -> str:
     for p in sc.parts:
         n = p.name
         head += [f"r_measured_{n}_x1e4", f"k_a_{n}", f"r_corrected_{n}_x1e4", f"residual_over_u_{n}"]
+        if p.unobserved_sensitivity is not None:
+            head += [f"dlnk_a_dlnf_unobserved_{n}"]
     buf = io.StringIO()
     buf.write("# " + corr.source + "\n")
     buf.write(",".join(head) + "\n")
@@ -441,6 +448,8 @@ def joint_cells_csv(sc) -> str:
         for p in sc.parts:
             row += [f"{p.measured.r[i, j] * 1e4:.6g}", f"{p.k_a[i, j]:.6g}", f"{p.corrected.r[i, j] * 1e4:.6g}",
                     f"{p.residual[i, j]:.3g}"]
+            if p.unobserved_sensitivity is not None:
+                row.append(f"{p.unobserved_sensitivity[i, j]:.4g}")
         buf.write(",".join("" if v == "nan" else v for v in row) + "\n")
     return buf.getvalue()
 

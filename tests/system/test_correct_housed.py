@@ -142,6 +142,12 @@ def test_the_road_beyond_the_observation_elevations_is_in_u(mi):
     assert np.all(np.isfinite(sens)) and np.max(np.abs(sens)) > 0.01, sens
     said = res.extra["surface"].summary()["per_instrument"][0]["unobserved_sensitivity_max"]
     assert said == float(np.max(np.abs(sens)))
+    import csv
+    import io
+
+    from roadgonio.correction.outputs import cells_csv
+    rows = list(csv.DictReader(io.StringIO(cells_csv(res).split("\n", 1)[1])))       # correct_cells.csv
+    assert np.allclose([float(r["dlnk_a_dlnf_unobserved"]) for r in rows], sens, rtol=1e-3, atol=1e-7)
     _, bare, _, z0 = _corrected_through_a_bright_housing("two_lobes", measured=s, unobserved_road=1.0)
     assert "unobserved" not in bare.budget.components
     assert np.mean(np.abs(z0) <= 2.0) < OUTSIDE_WITHIN_2U and np.sqrt(np.mean(z0 ** 2)) > Z_RMS_MAX, z0
