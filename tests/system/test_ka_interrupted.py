@@ -72,6 +72,12 @@ def test_a_second_ctrl_c_stops_a_mitsuba_table_at_once_and_the_rerun_resumes_it_
         t2 = _wait(f"pass {CUT_AFTER}", lambda: (_state_pass(state) or 0) >= CUT_AFTER, p, err)
         assert _state_pass(state) == CUT_AFTER, "the run went past the pass to cut"
         pass_s = t2 - t1            # the pass before the one cut short, which takes 5.5 times longer
+        # into the pass, past its boundary: the state is written just before the boundary's check, so a
+        # signal sent the moment the state appears could land before the check (a loaded machine
+        # descheduling the run there) and stop the run at that boundary, as it should, with no pass
+        # left under way for the second signal (session 20: once in a full run at -n 2)
+        time.sleep(0.25 * pass_s)
+        assert _state_pass(state) == CUT_AFTER, "the run went past the pass to cut"
         p.send_signal(signal.SIGINT)
         _wait("line for the first Ctrl-C", lambda: err, p, err)
         time.sleep(0.5 * pass_s)    # the main thread now waits in Dr.Jit for the pass's sums
