@@ -99,6 +99,21 @@ def forward_model_limits(instruments) -> str | None:
             "predicts holds still ('steps'), and the k_A that corrects the table is the backend's")
 
 
+def note_unobserved_road(name: str) -> None:
+    """The note of an eq. 4 correction through an instrument with stray light: the stray light reads
+    the road beyond the observation elevations the table measures, where the fit assumes eq. 4, and
+    u does not include that (the surface route's "unobserved" component does; docs/correction.md,
+    "The road beyond the observation elevations")."""
+    import warnings
+
+    from roadgonio.errors import ModelWarning
+    warnings.warn(ModelWarning(
+        f"{name}: the instrument's stray light reads the road beyond the observation elevations the table measures; "
+        "the eq. 4 fit assumes eq. 4 there and u does not include that assumption (--forward surface adds it as "
+        "the 'unobserved' component: docs/correction.md, \"The road beyond the observation elevations\")"),
+        stacklevel=3)
+
+
 def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
     """Standard uncertainty (sr^-1, grid of ``table``) of every measured cell from ``spec``:
     ``"1%"`` or a number in (0, 1) (relative), an :class:`RTable`, or the path of an r-table file
@@ -483,6 +498,8 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
         if it < max_outer:
             model = nxt
     final = assess_fit(fm, y, u, model, rho=rho, name=measured.name)
+    if steps[-1]["backend"].get("stray"):
+        note_unobserved_road(measured.name)
 
     # model dependence: the other variant, refitted with the same rho
     alternatives: dict[str, np.ndarray] = {}

@@ -528,3 +528,39 @@ def test_a_mistake_in_the_alternatives_comes_before_the_reference_s_note():
     assert ref.name == "R2" and list(alts) == ["R1"] and notes[0].startswith("R2 (power fit): r at beta = 0 is a spike")
     _, auto = api._reference_and_alternatives("R3", "auto", table, None)
     assert auto == "auto"
+
+
+class StrayBundle(CountingBundle):
+    """CountingBundle whose cells say the backend traced stray light (a housing's), as the Mitsuba
+    backend's do; the numbers are the bundles'."""
+
+    def compute(self, cells, on_cell=None):
+        from dataclasses import replace
+
+        def stray(c):
+            return replace(c, stray_fraction=0.1, stray_fraction_se=0.001)
+        out = [stray(c) for c in super().compute(cells, None)]
+        for c in out if on_cell is not None else ():
+            on_cell(c)
+        return out
+
+
+def test_an_eq4_correction_with_stray_light_notes_the_road_it_assumes():
+    """The eq. 4 route (correct_self) through an instrument whose backend traces stray light says, once,
+    that the stray light reads the road beyond the observation elevations the table measures, where the
+    fit assumes eq. 4 and u does not include it (session 20: the surface route has the 'unobserved'
+    component for it); without stray light it says nothing."""
+    import warnings
+
+    from roadgonio.errors import ModelWarning
+    inst = load_instrument("portable")
+    meas, _ = _measured_r2like(inst)
+    kw = dict(u_measured="1%", variant="power", rays=128, progress=False, starts=4, rounds=1)
+    for factory, said in ((StrayBundle, 1), (CountingBundle, 0)):
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            correct_self(meas, inst, factory=factory, **kw)
+        notes = [str(w.message) for w in got if issubclass(w.category, ModelWarning)
+                 and "beyond the observation elevations" in str(w.message)]
+        assert len(notes) == said, notes
+        assert all(n.startswith("meas: the instrument's stray light") and "--forward surface" in n for n in notes)
