@@ -759,10 +759,11 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
         options["settings"] = _unobserved_settings(options.get("settings"), unobserved_road,
                                                    joint or forward == "surface")
     if joint:
-        return _correct_joint(measured, instrument, u_measured=u_measured, sigma=sigma, backend=backend,
+        return _said_unused(unobserved_road, _correct_joint(
+                              measured, instrument, u_measured=u_measured, sigma=sigma, backend=backend,
                               accuracy=accuracy, rel_se=rel_se, seed=seed, mitsuba_variant=mitsuba_variant,
                               model_variant=model_variant, rays=rays, out=out, plots=plots, progress=progress,
-                              workers=workers, scheduler=scheduler, reference=reference, forward=forward, **options)
+                              workers=workers, scheduler=scheduler, reference=reference, forward=forward, **options))
     forward = "eq4" if forward is None else forward
     if forward not in ("eq4", "surface"):
         raise InputError(f"unknown forward model {forward!r}; expected eq4 or surface", field="forward")
@@ -818,8 +819,22 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     results = []
     for res, sub, written in done:
         res.out, res.written = sub, written
-        results.append(res)
+        results.append(_said_unused(unobserved_road, res))
     return results if many else results[0]
+
+
+def _said_unused(unobserved_road, res):
+    """``res``, after a note when ``unobserved_road`` was given but the backend traced no stray light
+    (the factor then changes nothing: no rendering reads the road beyond the observation elevations)."""
+    if unobserved_road is not None and "unobserved" not in res.budget.components and \
+            float(unobserved_road) != 1.0:
+        import warnings
+
+        from roadgonio.errors import ModelWarning
+        warnings.warn(ModelWarning(f"the factor {float(unobserved_road):g} on the road beyond the observation elevations "
+                                   "(--unobserved-road) changed nothing: the backend traced no stray light, so "
+                                   "nothing read the road there"), stacklevel=3)
+    return res
 
 
 def _reference_and_alternatives(reference, alternatives, measured, model_variant):

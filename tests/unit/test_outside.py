@@ -561,6 +561,36 @@ def test_the_unobserved_road_factor_reaches_the_surface_settings(monkeypatch, jo
     assert e.value.field == "unobserved_road"
 
 
+
+def test_an_unobserved_road_factor_without_stray_light_is_said_to_change_nothing(monkeypatch):
+    """`correct --forward surface --unobserved-road 3` through an instrument without stray light: the
+    factor reaches no rendering, and a note says so rather than leaving the user to think it was used;
+    with the component in the budget, or with the factor 1, no note."""
+    import warnings
+    from types import SimpleNamespace
+
+    from roadgonio import api
+    import roadgonio.correction as correction_pkg
+    from roadgonio.correction.budget import Budget
+    from roadgonio.errors import ModelWarning
+
+    def result(with_component):
+        b = Budget(2)
+        b.add("measurement", np.array([0.01, 0.01]))
+        if with_component:
+            b.add("unobserved", np.array([0.02, 0.01]))
+        return SimpleNamespace(budget=b)
+
+    for with_component, factor, said in ((False, 3.0, 1), (True, 3.0, 0), (False, 1.0, 0), (False, None, 0)):
+        monkeypatch.setattr(correction_pkg, "correct_files",
+                            lambda *a, w=with_component, **k: [(result(w), None, [])])
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            api.correct("R3", "portable", forward="surface", backend="quadrature", unobserved_road=factor, plots=False)
+        notes = [str(w.message) for w in got if issubclass(w.category, ModelWarning) and "changed nothing" in str(w.message)]
+        assert len(notes) == said, (with_component, factor, notes)
+
+
 def test_only_backbones_of_non_negligible_weight_enter_the_covariance():
     """contributing(): the backbones whose evidence weight reaches NEGLIGIBLE_WEIGHT (their posterior,
     ln k_A and model values are computed), in their order; one just below it is left out, one at it
