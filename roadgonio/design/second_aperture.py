@@ -33,7 +33,8 @@ second aperture that resolves more does), of the table the correction gives: the
 r / k_A and the fitted surface's own value combined by generalised least squares. Left out: the
 backend's and the bundles' own errors (small), the spread of the backbone variants (the backbone
 is the variant of larger evidence, the one the correction weighs ~1, or the one asked for), the
-misalignment.
+misalignment, and for an instrument with stray light the ``unobserved`` component (the road beyond
+the observation elevations: the correction renders it, this ranking renders nothing).
 """
 from __future__ import annotations
 
