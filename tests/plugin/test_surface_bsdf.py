@@ -29,19 +29,21 @@ Z_KA = 4.0
 CHI2_IRES = 16
 
 
-def corrected_surface(rng, scale_c=0.1, scale_d=0.2, alpha_range=None):
+def corrected_surface(rng, scale_c=0.1, scale_d=0.2, alpha_range=None, unobserved_factor=1.0):
     from roadgonio.correction.flexible import SurfaceSettings
     from roadgonio.surface.correction_surface import CorrectedSurface
     s = SurfaceSettings()
     grids = [s.c_grid] + ([s.d_grid] if s.d_grid is not None else [])
     thetas = [scale_c * rng.standard_normal(s.n_c)] + ([scale_d * rng.standard_normal(s.n_d)] if s.n_d else [])
     return CorrectedSurface(RoadModel(RoadParams(**R3LIKE), "power", name="r3like"), grids, thetas,
-                            alpha_range=alpha_range)
+                            alpha_range=alpha_range, unobserved_factor=unobserved_factor)
 
 
 def _surfaces(rng):
     return [make_truth("microfacet"), make_truth("two_lobes"), make_truth("microfacet", a=0.08),
-            corrected_surface(rng), corrected_surface(rng, alpha_range=(-0.2, 0.3))]
+            corrected_surface(rng), corrected_surface(rng, alpha_range=(-0.2, 0.3)),
+            # the correction's probe of the road beyond the observation elevations (outside.UNOBSERVED_PROBE)
+            corrected_surface(rng, alpha_range=(-0.2, 0.3), unobserved_factor=2.0)]
 
 
 def test_eval_matches_the_numpy_surface(plug, rng_seed):
