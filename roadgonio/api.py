@@ -842,16 +842,13 @@ def _reference_and_alternatives(reference, alternatives, measured, model_variant
     before either says a note: a mistake in ``alternatives`` is one line, not the reference's spike
     note and then the error (user audit, session 19). Named alternatives do not depend on the measured
     table and are returned resolved; ``"auto"`` (the tables nearest each measured one) stays a spec."""
-    import warnings
     from roadgonio.correction.reference import resolve_alternatives
-    with warnings.catch_warnings(record=True) as said:
-        warnings.simplefilter("always")
+    from roadgonio.errors import notes_held
+    with notes_held():
         ref_sample = _sample(reference, model_variant, field="reference")
         if not (isinstance(alternatives, str) and alternatives.strip().lower() == "auto"):
             alternatives = resolve_alternatives(alternatives, measured, reference_name=ref_sample.name,
                                                 model_variant=model_variant)
-    for w in said:
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return ref_sample, alternatives
 
 

@@ -6,7 +6,10 @@ status 2 (4 for :class:`WorkLostError`: work lost on a cluster, not bad input; `
 """
 from __future__ import annotations
 
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 
 class RoadgonioError(Exception):
@@ -95,6 +98,18 @@ class ModelWarning(UserWarning):
     """Something about an input the user should read although the work goes on (a fitted model whose
     specular peak no instrument can resolve, for instance): a Python warning in the API, printed once
     by the command line as ``roadgonio: note: <message>`` on standard error."""
+
+
+@contextmanager
+def notes_held() -> Iterator[None]:
+    """Hold the warnings (the notes) said inside the block and say them when it ends; an error in the
+    block drops them, so a mistake is one line, not the notes of what was resolved before it (trial 12
+    D8; the reference and alternatives of ``correct``)."""
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        yield
+    for w in said:
+        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 class Interrupted(KeyboardInterrupt):

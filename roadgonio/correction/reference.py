@@ -37,10 +37,8 @@ def resolve_alternatives(spec: str | Sequence[str] | None, measured: RTable, *, 
         names = [str(s) for s in spec]
     # every name resolved before any note is said: a mistake in the last is one line, not the notes
     # of the others before it (trial 12 D8: R2's spike note, then the error about R9)
-    import warnings
-    from roadgonio.errors import InputError
-    with warnings.catch_warnings(record=True) as said:
-        warnings.simplefilter("always")
+    from roadgonio.errors import InputError, notes_held
+    with notes_held():
         try:
             models = {sample_name(n): resolve_sample(n, model_variant).model for n in names}
         except InputError as err:
@@ -48,8 +46,6 @@ def resolve_alternatives(spec: str | Sequence[str] | None, measured: RTable, *, 
                 raise
             # the mistake is in the alternatives, not in --sample (user audit, session 19)
             raise InputError(err.reason, field="--alternatives") from None
-    for w in said:
-        warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     return models
 
 
