@@ -34,6 +34,7 @@ from roadgonio.seeds import cell_key, check_seed, seed_entropy
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
+from roadgonio.instrument.mesh import mesh_location
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
@@ -288,7 +289,7 @@ class MeshMonteCarloBackend(CellByCellBackend):
                 raise GeometryError(f"{int(np.sum(tri < 0))} of {tri.size} detector rays miss the sample mesh at "
                                     f"tan eps = {cell[0]:g}, beta = {cell[1]:g}: the detector footprint must lie on "
                                     "the sample; enlarge the mesh or narrow the field",
-                                    **optics.mesh_location(self.instrument.sample.mesh))
+                                    **mesh_location(self.instrument.sample.mesh))
             X = O + t[:, None] * D
             n = self.caster.normal[tri]
             sp = tuple(np.broadcast_to(c, w.shape) for c in optics.source_point(src, sdisc))

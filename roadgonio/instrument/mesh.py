@@ -41,6 +41,13 @@ def load_trimesh(path: str | Path):
     return mesh
 
 
+def mesh_location(path) -> dict:
+    """Where an error about the sample mesh points: its file and key (``path`` and ``field`` of
+    :class:`~roadgonio.errors.InputError` or :class:`~roadgonio.errors.GeometryError`); nothing
+    without a file (the plain rectangle)."""
+    return {} if path is None else {"path": path, "field": "sample.mesh"}
+
+
 def check_mesh_orientation(mesh, where: str = "sample mesh", path=None) -> None:
     """The sample is one-sided (faces must face +z): refuse a mesh facing downwards (the error names
     ``path``, the mesh file, when given)."""
@@ -50,7 +57,7 @@ def check_mesh_orientation(mesh, where: str = "sample mesh", path=None) -> None:
     if nz <= 0.0:
         raise InputError(f"the {where}'s faces point downwards (area-weighted mean normal z = {nz:.3g}); "
                          "the sample surface is one-sided: reverse the face winding so that it faces +z",
-                         path=path, field=None if path is None else "sample.mesh")
+                         **mesh_location(path))
 
 
 @dataclass(frozen=True)

@@ -32,6 +32,7 @@ import numpy as np
 
 from roadgonio.errors import GeometryError
 from roadgonio.instrument.config import Detector, Instrument, Observation, Source
+from roadgonio.instrument.mesh import mesh_location
 from roadgonio.instrument.profiles import ApertureProfile, BeamProfile, FieldMap, UniformTable
 
 
@@ -842,9 +843,3 @@ def judge_hits(on_sample, hit_anything, x, y, mesh_path=None) -> dict:
             **mesh_location(mesh_path))
     return {"rays": int(on_sample.size), "x_range": (float(x.min()), float(x.max())),
             "y_range": (float(y.min()), float(y.max()))}
-
-
-def mesh_location(mesh_path) -> dict:
-    """Where an error about the footprint on a sample mesh points: the mesh file and its key
-    (``path``/``field`` of :class:`GeometryError`), nothing for the plain rectangle."""
-    return {} if mesh_path is None else {"path": mesh_path, "field": "sample.mesh"}
