@@ -428,7 +428,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     fit_opts = {k: v for k, v in (("starts", starts), ("polish", polish), ("rounds", rounds)) if v is not None}
     key_settings = {"variants": list(variants), "rays": [a.rays for a in arts], "seed": seed, **fit_opts,
                     "backend": backend, "backend_settings": dict(backend_settings or {}), "accuracy": accuracy,
-                    "surface": settings.to_dict(), "surface_fit": SURFACE_FIT_VERSION,
+                    # the factor on the unobserved road enters the budget only, after every journalled
+                    # fit and rendering (its probe's journal has its own fingerprint): another factor
+                    # resumes them all
+                    "surface": {k: v for k, v in settings.to_dict().items() if k != "unobserved_sd_ln"},
+                    "surface_fit": SURFACE_FIT_VERSION,
                     "max_outer": max_outer, "tol": tol, "instruments": [i.to_dict() for i in instruments[1:]]}
     state = _run._FitState(out, _run._state_key(_stack_tables(tables), np.concatenate(
         [g for g, _ in u_grids], axis=1), instruments[0], key_settings))

@@ -308,7 +308,7 @@ def test_second_aperture_takes_the_backbone_the_correction_takes(two_instruments
 def test_a_rerun_resumes_the_correction_surface_and_gives_the_same_table(tmp_path, capsys):
     """A finished `correct --forward surface` rerun in the same folder takes the k_A table and the
     correction surface from the folder's journals (fit_state.json) and writes the same numbers;
-    the terminal and --json say what was resumed."""
+    the terminal and --json say what was resumed; so does a rerun with another --unobserved-road."""
     out = tmp_path / "out"
     argv = ["correct", "--measured", str(MEASURED), "--instrument", str(MEDIUM), "--forward", "surface",
             "--u-measured", "1%", *FAST, "--no-plots", "--out", str(out)]
@@ -326,6 +326,13 @@ def test_a_rerun_resumes_the_correction_surface_and_gives_the_same_table(tmp_pat
     said = capsys.readouterr().out
     n = len(rounds)
     assert f"{n} correction surface{'s' if n > 1 else ''} from the output folder's journals" in said, said
+    assert (out / "correct_cells.csv").read_bytes() == table
+    # the factor on the road beyond the observation elevations enters the budget only: another one
+    # resumes every fit too (session 20), and without stray light it changes nothing and says so
+    assert main(argv + ["--unobserved-road", "3"]) == 0
+    said = capsys.readouterr()
+    assert f"{n} correction surface{'s' if n > 1 else ''} from the output folder's journals" in said.out, said.out
+    assert "changed nothing" in said.err
     assert (out / "correct_cells.csv").read_bytes() == table
 
 
