@@ -492,7 +492,7 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
     import json as _json
 
     from roadgonio.fileio import OutputGroup, write_netcdf
-    from roadgonio.surface.rtable import grid_csv_text
+    from roadgonio.surface.rtable import grid_csv_text, ka_output_header
     out_dir = Path(out_dir)
     label = ds.attrs["title"]
     s = summary(ds)
@@ -505,15 +505,14 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
             v = ds[field].values
             if np.isfinite(v).any():
                 what = ds[field].attrs["long_name"] + (confidence_text(ds) if field == "confidence_bound" else "")
-                group.text(name, grid_csv_text(v, f"{what} (instrument '{ds.attrs['instrument']}', "
-                                                  f"sample '{ds.attrs['sample']}', {ds.attrs['backend']} backend)",
-                                               digits=4))
+                group.text(name, grid_csv_text(v, ka_output_header(what, ds.attrs["instrument"], ds.attrs["sample"],
+                                                                   ds.attrs["backend"]), digits=4))
                 files[field] = name
         if has_stray_light(ds):
             for field, name in STRAY_FILES.items():
-                group.text(name, grid_csv_text(ds[field].values, f"{ds[field].attrs['long_name']} (instrument "
-                                               f"'{ds.attrs['instrument']}', sample '{ds.attrs['sample']}', "
-                                               f"{ds.attrs['backend']} backend)", digits=7 if "se" not in field else 4))
+                group.text(name, grid_csv_text(ds[field].values, ka_output_header(
+                    ds[field].attrs["long_name"], ds.attrs["instrument"], ds.attrs["sample"], ds.attrs["backend"]),
+                    digits=7 if "se" not in field else 4))
                 files[field] = name
         if plot:
             files["map"] = "ka.png"

@@ -489,6 +489,22 @@ def names_ka(t: "RTable") -> bool:
     return header_line(t).startswith(KA_HEADER)
 
 
+def ka_output_header(what: str, instrument: str, sample: str, backend: str) -> str:
+    """The header of a table ``roadgonio ka`` writes beside k_A (``ka_se.csv``, ``ka_bound.csv``,
+    ``stray_fraction.csv``, ...): ``what`` and the run it belongs to. :func:`names_ka_output` knows it."""
+    return f"{what} (instrument '{instrument}', sample '{sample}', {backend} backend)"
+
+
+_KA_OUTPUT = re.compile(r".* \(instrument '.*', sample '.*', \S+ backend\)$")
+
+
+def names_ka_output(t: "RTable") -> bool:
+    """Whether a table read from a file says it is one of a k_A run's tables (k_A, its standard
+    error, bounds, direct light or stray fraction: :func:`names_ka` or :func:`ka_output_header`),
+    none of which holds r or u(r)."""
+    return names_ka(t) or bool(_KA_OUTPUT.match(header_line(t)))
+
+
 def grid_csv_text(values: np.ndarray, source: str, *, scale: float = 1.0, digits: int = 6,
                   tan_eps: np.ndarray = TAN_EPS_GRID, beta_deg: np.ndarray = BETA_GRID_DEG) -> str:
     """Any quantity over the grid (an r-table, k_A, its standard error...) in the r-table CSV layout
@@ -762,12 +778,17 @@ def read_table(path: str | Path, quantity: str = "r") -> RTable:
 
 
 def check_not_ka(table: RTable, path: str | Path) -> None:
-    """Refuse a k_A table (``ka.csv``: its header :data:`KA_HEADER`) read as an r-table: it holds k_A
-    unscaled, which an r-table reader would divide by 1e4 and call r in sr^-1."""
+    """Refuse a k_A table (``ka.csv``: its header :data:`KA_HEADER`) or one of the tables written
+    beside it (``ka_se.csv``, ...: :func:`names_ka_output`) read as an r-table or its uncertainty:
+    they hold k_A or its statistics unscaled, which an r-table reader would divide by 1e4 and call
+    r (or u(r)) in sr^-1."""
     if names_ka(table):
         raise InputError(f"this is a k_A table (its header {header_line(table)[:60]!r}), not an r-table: it holds "
                          "k_A unscaled, not r x 1e4; expected an r-table here (read a k_A table with "
                          "roadgonio.read_ka_table)", path=path)
+    if names_ka_output(table):
+        raise InputError(f"this is a table of a k_A run (its header {header_line(table)[:60]!r}), not an r-table "
+                         "or its uncertainty: it holds a statistic of k_A unscaled, not r x 1e4", path=path)
 
 
 def read_ka_table(path: str | Path):

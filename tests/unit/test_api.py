@@ -140,6 +140,28 @@ def test_a_ka_table_is_not_read_as_an_r_table_but_as_k_a(tmp_path):
     assert err.value.path == str(r3)
 
 
+def test_the_tables_written_beside_k_a_are_not_read_as_r_or_its_uncertainty(tmp_path):
+    """(audit 21, 1) `road --u ka_se.csv` read k_A's standard error (~1e-3, unscaled) as u(r) x 1e4 and
+    reported L_av +- 2e-6: only ka.csv's own header was known. Every table a k_A run writes (its
+    bound, SE, direct light, stray fraction) is now refused as an r-table and as u(r), with one line."""
+    from roadgonio.cli import main
+    from roadgonio.surface.rtable import grid_csv_text, ka_output_header
+    out = tmp_path / "ka"
+    rg.ka_table("portable", "R3", backend="quadrature", accuracy="fast", cells=[(0, 0), (12, 0)], out=out, plot=False)
+    files = [out / "ka_bound.csv"]
+    for what, value in (("standard error of k_A", 1e-3), ("stray fraction of the road signal", 0.2)):
+        f = tmp_path / f"{value}.csv"
+        f.write_text(grid_csv_text(np.full((29, 20), value), ka_output_header(what, "portable", "R3", "mitsuba")))
+        files.append(f)
+    for f in files:
+        assert f.exists()
+        with pytest.raises(InputError, match="this is a table of a k_A run") as err:
+            rg.read_table(f)
+        assert err.value.path == str(f) and "\n" not in str(err.value)
+    rc = main(["road", "--table", "R3", "--u", str(files[1]), "--out", str(tmp_path / "road"), "--no-plots"])
+    assert rc == 2 and not (tmp_path / "road").exists()
+
+
 @pytest.mark.parametrize("largest", [0.0335, 0.999, 1.001])
 def test_write_table_refuses_what_read_table_refuses(tmp_path, largest):
     """(trial 10 D3) rg.write_table wrote a CSV whose largest value (r x 1e4) was 0.0335, which
