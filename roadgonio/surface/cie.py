@@ -31,10 +31,16 @@ CLASS_LIMITS = {
     "N": [("N1", -math.inf, 0.28), ("N2", 0.28, 0.60), ("N3", 0.60, 1.30), ("N4", 1.30, math.inf)],
 }
 STANDARD_Q0 = {**PUBLISHED_Q0, "N1": 0.10, "N2": 0.07, "N3": 0.07, "N4": 0.08}
+#: S1 is judged against the class limits rounded to this many decimals: a table's r x 1e4 has at most
+#: 7 significant digits, while dividing the stored r can land an ulp off a limit (135 / 100 gave
+#: 1.3499999999999999 and R3 where 1.35 <= R4; audit 21)
+S1_CLASS_DECIMALS = 9
 
 
 def class_by_s1(s1: float, system: str) -> tuple[str, float]:
-    """(class, distance of S1 to the nearest class limit) in ``system`` ('R', 'C' or 'N')."""
+    """(class, distance of S1 to the nearest class limit) in ``system`` ('R', 'C' or 'N'); S1 rounded
+    to :data:`S1_CLASS_DECIMALS` decimals first."""
+    s1 = round(s1, S1_CLASS_DECIMALS)
     for name, lo, hi in CLASS_LIMITS[system]:
         if lo <= s1 < hi:
             return name, min(abs(s1 - lo), abs(hi - s1))

@@ -164,6 +164,20 @@ def test_cie_class_boundaries_and_probabilities():
     assert sum(c["p_R"].values()) == pytest.approx(1.0) and c["p_R"]["R2"] == pytest.approx(0.5, abs=1e-9)
 
 
+def test_a_table_on_a_class_limit_is_in_the_class_above():
+    """(audit 21, 2) r(2, 0) = 135 and r(0, 0) = 100 (x 1e4) gave S1 = 1.3499999999999999 after the
+    division of the stored r, and R3 where 1.35 <= R4; 28 / 100 gave N1 where 0.28 <= N2."""
+    from roadgonio.surface.cie import classify
+    t = bundled_table("R3")
+    for r20, system, expect in ((135, "R", "R4"), (28, "N", "N2"), (42, "R", "R2"), (85, "R", "R3"), (40, "C", "C2")):
+        r = t.r.copy()
+        r[0, :] = 100e-4
+        r[list(t.tan_eps).index(2.0), 0] = r20 * 1e-4
+        c = classify(t.with_values(r))
+        assert c["classes"][system]["class"] == expect, (r20, c["S1"])
+    assert cie_class(1.35 - 1e-7)["R"] == "R3"          # a real difference below the limit still counts
+
+
 def test_measured_uncertainty_forms(tmp_path):
     t = bundled_table("C2")
     g, _ = measured_uncertainty("2%", t)
