@@ -14,12 +14,12 @@ rays. The fit maximises the posterior
 * ``P_C`` the squared second differences of g_C's node values along beta and eps (a P-spline
   roughness penalty: the prior "g_C is smooth", null space the constant, so the level is free),
   split into regions with a ``lambda`` each per direction (:func:`penalty_region`: by default the four
-  quadrants about beta 12 deg, eps 45 deg, one the specular peak's; docs/correction.md, "Penalty
+  quadrants about beta 12 deg, eps 45 deg, one the specular peak's; docs/correction-record.md, "Penalty
   regions"); every ``lambda`` is chosen by the data, by maximising the evidence (the marginal likelihood, Laplace
   approximation at the mode; docs/correction.md, "Outside eq. 4", and its sources), or, with
   ``SurfaceSettings(smoothing="gcv")``, by minimising the generalised cross-validation score of the
   problem linearised at the mode (:func:`_gcv_step`; compared with the evidence in
-  docs/correction.md, "Evidence or generalised cross-validation?");
+  docs/correction-record.md, "Evidence or generalised cross-validation?");
 * ``Q_D = (I + P_D) / sd_D^2``: a proper Gaussian prior on g_D, the extra log-derivative of the BRDF
   in ln alpha, of scale ``sd_D`` (default 1: the masking of a rough surface at grazing observation
   gives d ln f / d ln alpha ~ 1, eq. 4 without its g attenuation gives 0). One instrument barely
@@ -88,7 +88,7 @@ LOG_LAM_RANGE = (-8.0, 6.0)
 #: can follow, and where the evidence is flat (a block whose directions the data hardly see, or
 #: that a stiff block of the other direction already holds) the Fellner-Schall steps drift below
 #: it with no gain in evidence, and the discrepancy read from lambda (discrepancy.amplitude_from_penalty)
-#: would grow without a bound: docs/correction.md, "The smoothing's lower bound".
+#: would grow without a bound: docs/correction-record.md, "The smoothing's lower bound".
 LAM_MIN = 1.0
 #: Stop updating the smoothing parameters when none changes by more than this (in ln lambda).
 LAM_TOL = 0.05
@@ -205,7 +205,7 @@ class SurfaceSettings:
     @property
     def backbone_rounds_deg(self) -> tuple[float, ...]:
         """The backbone's roundings at the mirror plane (deg), one backbone per rounding and variant:
-        ``mirror_round_deg``, None read as the first knot of g_C off beta = 0 (docs/correction.md,
+        ``mirror_round_deg``, None read as the first knot of g_C off beta = 0 (docs/correction-record.md,
         "The backbone's cusp at the mirror plane"); duplicates dropped, order kept."""
         return tuple(dict.fromkeys(self._knot_deg() if r is None else float(r) for r in self._rounds_given()))
 

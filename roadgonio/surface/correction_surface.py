@@ -1,6 +1,6 @@
 """The correction surface: a smooth factor over the incident direction that lets the BRDF model
 follow a surface eq. 4 cannot, and its derivative in the observation elevation (docs/correction.md,
-"A forward model outside eq. 4").
+"Outside eq. 4: `--forward surface` and `--joint`").
 
     f(w_i, w_o) = f_0(w_i, w_o) exp( g_C(beta, eps_i) + l(alpha) g_D(beta, eps_i) )
 

@@ -60,7 +60,7 @@ replaces the empirical term's beta by ``beta^2 / sqrt(beta^2 + b_c^2)`` (:func:`
 its cusp at beta = 0 (the power reading's ``exp(-W beta / pi)``, the smooth one's at n_beta < 1)
 becomes a smooth top of width ~b_c, as the term of any BRDF differentiable in the direction is;
 0 (the default) is the paper's model. The fits of tables never change it; the correction's
-backbone can hold it (docs/correction.md, "The backbone's cusp at the mirror plane").
+backbone can hold it (docs/correction-record.md, "The backbone's cusp at the mirror plane").
 
 Parameter bounds (checked by :class:`RoadParams`): every ``k_*`` in [0, 1e6] sr^-1;
 ``n_phong``, ``n_retro`` in [0, 1e5]; ``p`` in [0, 50]; ``h`` in [-1e3, 1e3]; ``mu`` in [0, 1e3];

@@ -1,7 +1,7 @@
 """Road BRDFs *outside* the paper's eq. 4: known surfaces for round trips of the correction
 (``bench/bench_outside.py``, ``tests/system/test_correct_outside.py``). They are not fitted to
 anything and make no claim to describe a real pavement; each is smooth, positive, isotropic and
-differs from eq. 4 in a way the issue names (docs/correction.md, "Surfaces outside eq. 4").
+differs from eq. 4 in a way the issue names (docs/correction.md, "How well it works (outside eq. 4)").
 
 The interface is the one the float64 backends evaluate (:mod:`roadgonio.engines.montecarlo`,
 :mod:`roadgonio.engines.reference`) and :class:`roadgonio.surface.model.RoadModel` provides too:

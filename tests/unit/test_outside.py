@@ -380,7 +380,7 @@ def test_a_smoothing_the_evidence_cannot_choose_stays_at_the_floor(r3like, monke
     LAM_MIN or above (flexible.lam_bounds); with the floor taken away the same fit has the same
     evidence to 0.01 while one lambda falls orders of magnitude below it and that region's
     discrepancy amplitude is many times larger (the runaway that gave an eq. 4 truth through the
-    bench's instrument A u(S1) 11 %: docs/correction.md, "The smoothing's lower bound")."""
+    bench's instrument A u(S1) 11 %: docs/correction-record.md, "The smoothing's lower bound")."""
     from roadgonio.correction import flexible
     from roadgonio.correction.discrepancy import beyond_nyquist_variance
     from roadgonio.correction.flexible import LAM_MIN, FlexPart, SurfaceSettings, fit_surface
