@@ -1066,8 +1066,12 @@ def __getattr__(name: str):
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
+#: ``road``'s Monte Carlo of u, when it runs (a table with u): trials, seed and the cells' correlation
+ROAD_MC_DEFAULTS = {"trials": 20_000, "seed": 0, "correlation": "auto"}
+
+
 def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, target_class: str | None = None,
-                 trials: int = 20_000, seed: int = 0, correlation: str = "auto", out=None,
+                 trials: int | None = None, seed: int | None = None, correlation: str | None = None, out=None,
                  plots: bool = True) -> list[dict[str, Any]]:
     """EN 13201-3 road-surface luminance metrics of a luminaire layout with one or several r-tables
     side by side (``roadgonio road``). ``u``: the tables' standard uncertainties (r-table files, r x
@@ -1081,7 +1085,9 @@ def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, targ
     when there is one, else both limiting cases), "given", "both" (independent and fully correlated
     cells), "independent", "correlated" or "all" (the three). Without ``luminaire``/``layout``:
     the bundled ones. Returns one summary per table; with ``out`` (a folder or :data:`AUTO`) writes
-    road.json, the CSVs and the pictures (the first summary's ``written``)."""
+    road.json, the CSVs and the pictures (the first summary's ``written``). ``trials``, ``seed``,
+    ``correlation`` and ``target_class`` are the Monte Carlo's: given without any u they are an error
+    (nothing would use them); None is :data:`ROAD_MC_DEFAULTS` (the class: the one the table meets)."""
     from roadgonio.engines.registry import check_seed
     from roadgonio.road import mc, report
     from roadgonio.road.evaluate import Installation
@@ -1095,14 +1101,23 @@ def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, targ
     if target_class is not None and str(target_class).upper() not in M_CLASSES:
         raise InputError(f"unknown class {target_class!r}; expected one of {', '.join(M_CLASSES)}", field="target_class")
     target = str(target_class).upper() if target_class else None
-    if correlation not in ROAD_CORRELATIONS:
+    if correlation is not None and correlation not in ROAD_CORRELATIONS:
         raise InputError(f"expected {', '.join(ROAD_CORRELATIONS)}, got {correlation!r}", field="correlation")
+    u_of = _one_per_table(u, len(items), "u")
+    if all(uf is None for uf in u_of):
+        for name, value in (("trials", trials), ("seed", seed), ("correlation", correlation),
+                            ("target_class", target_class)):
+            if value is not None:
+                raise InputError("an option of the Monte Carlo of the tables' uncertainty, which runs only for a "
+                                 "table given with its u (--u FILE): give a u, or leave the option out", field=name)
+    trials = ROAD_MC_DEFAULTS["trials"] if trials is None else trials
+    seed = ROAD_MC_DEFAULTS["seed"] if seed is None else seed
+    correlation = ROAD_MC_DEFAULTS["correlation"] if correlation is None else correlation
     if isinstance(trials, int) and not isinstance(trials, bool) and trials < mc.MIN_TRIALS:
         raise InputError(f"expected at least {mc.MIN_TRIALS} trials, got {trials}", field="trials")
     from roadgonio.limits import check_size
     trials = check_size(_check_int(trials, "trials", mc.MIN_TRIALS), "trials", "trials")
     seed = check_seed(seed)
-    u_of = _one_per_table(u, len(items), "u")
     corr_of = _one_per_table(corr, len(items), "corr")
     for k, (uf, cf) in enumerate(zip(u_of, corr_of)):
         if cf is not None and uf is None:

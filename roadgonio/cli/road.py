@@ -77,10 +77,10 @@ def register(sub) -> None:
     p.add_argument("--out", metavar="DIR", help="output folder (default out/road-TABLES)")
     p.add_argument("--class", dest="target_class", metavar="M", help="class to test in the Monte Carlo (default: the class "
                    "the table meets, M6 when it meets none)")
-    p.add_argument("--trials", type=int, default=20000, help="Monte Carlo trials (default 20000)")
-    p.add_argument("--seed", type=int, default=0, help="Monte Carlo seed (default 0)")
+    p.add_argument("--trials", type=int, help=f"Monte Carlo trials (default {api.ROAD_MC_DEFAULTS['trials']}; "
+                   "with --u only, as --seed, --correlation and --class)")
+    p.add_argument("--seed", type=int, help=f"Monte Carlo seed (default {api.ROAD_MC_DEFAULTS['seed']})")
     p.add_argument("--correlation", choices=list(api.ROAD_CORRELATIONS),
-                   default="auto",
                    help="the cells' correlation in the Monte Carlo: auto (default: the given correlation, --corr or "
                         "found beside corrected_u.csv, else both), given, both (independent and fully correlated "
                         "cells: limiting cases, not bounds for U_o and U_l), independent, correlated, all (the three)")

@@ -506,3 +506,14 @@ def test_road_takes_the_cells_correlation_from_correct(tmp_path, capsys):
                  "--out", str(tmp_path / "o4")]) == 0
     d = json.loads(capsys.readouterr().out)["uncertainty"]
     assert {"independent", "correlated"} <= set(d) and "given" not in d
+
+
+@pytest.mark.parametrize("option", [["--trials", "500"], ["--seed", "5"], ["--correlation", "independent"],
+                                    ["--class", "M1"]])
+def test_monte_carlo_options_without_u_are_errors(tmp_path, capsys, option):
+    """(audit 21, 3) `road --table r3.csv --trials 100 --class M1 --seed 5 --correlation independent`
+    ran without a word: with no --u there is no Monte Carlo, and nothing used them."""
+    rc = main(["road", "--table", "R3", *option, "--no-plots", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and "\n" not in err and option[0] in err and "--u" in err, err
+    assert not (tmp_path / "o").exists()
