@@ -37,7 +37,7 @@ def write_together(out_dir: Path, files: dict[str, bytes | str], *, replaces=())
 
 def metrics_csv(summaries: list[dict]) -> str:
     cols = ["table", "L_av", "U_o", "U_l", "TI", "R_EI", "class", "table_Q0", "table_S1"]
-    extra = ["u_L_av", "cov95_L_av", "u_U_o", "cov95_U_o", "u_U_l", "cov95_U_l", "u_TI", "P_meets",
+    extra = ["u_L_av", "cov95_L_av", "u_U_o", "cov95_U_o", "u_U_l", "cov95_U_l", "u_TI", "cov95_TI", "P_meets",
              "trials_without_value", "mean_L_av", "mean_U_o", "mean_U_l", "mean_TI"]
     lines = [",".join(cols + ["correlation"] + extra)]
     for s in summaries:
@@ -51,9 +51,9 @@ def metrics_csv(summaries: list[dict]) -> str:
                 continue
             m = unc[mode]
             row = []
-            for k in ("L_av", "U_o", "U_l"):
+            for k in ("L_av", "U_o", "U_l", "TI"):
                 row += ["", ""] if not m[k] else [_f(m[k]["u"]), f"{_f(m[k]['coverage_interval_95'][0], '.5g')}..{_f(m[k]['coverage_interval_95'][1], '.5g')}"]
-            row += [_f(m["TI"]["u"]) if m["TI"] else "", _f(m["P_meets_target"]),
+            row += [_f(m["P_meets_target"]),
                     str(max((m.get("undefined_trials") or {}).values(), default=0))]
             row += [_f(m[k]["mean"]) if m[k] else "" for k in ("L_av", "U_o", "U_l", "TI")]
             lines.append(",".join(base + [mode] + row))
