@@ -68,9 +68,10 @@ def run(args) -> int:
             say(f"{'tan eps':>7} {'beta':>5} {'k_ref':>10} {'k_' + args.against:>12} {'diff/SE':>8} {'allowed':>8}  "
                 "verdict", flush=True)
             header[0] = True
-        allowed = r.allowed / r.sigma if r.sigma > 0 else math.inf
-        note = "" if r.verdict == "agree" else f"  ({r.reason})"
-        say(f"{r.tan_eps:7g} {r.beta_deg:5g} {r.k_ref:10.6f} {r.k_mc:12.6f} {r.z:+8.2f} {allowed:8.2f}  "
+        in_se = r.sigma > 0 and math.isfinite(r.z)
+        zs, allowed = (f"{r.z:+8.2f}", f"{r.allowed / r.sigma:8.2f}") if in_se else (f"{'-':>8}", f"{'-':>8}")
+        note = "" if r.verdict == "agree" and in_se else f"  ({r.reason})"
+        say(f"{r.tan_eps:7g} {r.beta_deg:5g} {r.k_ref:10.6f} {r.k_mc:12.6f} {zs} {allowed}  "
             f"{r.verdict}{note}", flush=True)
 
     report = api.validate(args.instrument, args.sample, against=args.against, reference=args.reference,
@@ -85,7 +86,7 @@ def run(args) -> int:
     bad = [r for r in rows if r.verdict == "disagree"]
     unsure = [r for r in rows if r.verdict == "inconclusive"]
     if bad:
-        print("roadgonio validate: FAILED: " + ", ".join(f"({r.tan_eps:g}, {r.beta_deg:g}) {r.z:+.1f} SE"
+        print("roadgonio validate: FAILED: " + ", ".join(f"({r.tan_eps:g}, {r.beta_deg:g}) " + (f"{r.z:+.1f} SE" if math.isfinite(r.z) else f"diff {r.diff:+.2g}, SE 0")
                                                          for r in bad), file=sys.stderr)
     elif unsure:
         print("roadgonio validate: INCONCLUSIVE: " + ", ".join(f"({r.tan_eps:g}, {r.beta_deg:g}) {r.reason}"

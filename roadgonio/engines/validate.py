@@ -154,7 +154,10 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
     band = n_sigma * sigma + floor * abs(k_ref)
     allowed = band + bound_term
     needed = REF_SHARE * band
-    z = d / sigma if _finite(sigma) and sigma > 0 else (0.0 if d == 0 else math.copysign(math.inf, d))
+    # no sampling noise (SE 0: every sample gave the same value, e.g. a zero aperture): a difference in
+    # SE is undefined (NaN), not +-inf, and the verdicts below speak of the difference itself (audit 21)
+    z = d / sigma if _finite(sigma) and sigma > 0 else (0.0 if d == 0 else math.nan)
+    in_se = _finite(sigma) and sigma > 0
     ref_ok = bool(ref.converged) and (_finite(bound) or has_se_ref) and _finite(k_ref)
     if not (_finite(k_mc) and _finite(se_mc)):
         verdict, reason = "disagree", f"the {'Monte Carlo'} value or its SE is not finite (k = {k_mc}, SE = {se_mc})"
@@ -163,7 +166,8 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
         verdict, reason = "inconclusive", f"the reference did not converge ({what}; raise its cap or loosen --rtol)"
     elif abs(d) > allowed:
         verdict, reason = "disagree", (f"|diff| = {abs(d):.3g} > allowed {allowed:.3g} "
-                                       f"({n_sigma:.3g} SE + bound + floor); {z:+.1f} SE")
+                                       f"({n_sigma:.3g} SE + bound + floor); "
+                                       + (f"{z:+.1f} SE" if in_se else "SE 0"))
     elif has_se_ref and se_ref > se_mc:
         verdict, reason = "inconclusive", (f"the reference's SE {se_ref:.2g} exceeds the tested SE {se_mc:.2g}: "
                                            "the check is weaker than the renderer")
@@ -174,7 +178,8 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
         verdict, reason = "inconclusive", (f"the Monte Carlo backend stopped at its sample cap with SE "
                                            f"{se_mc / abs(k_mc) if k_mc else math.inf:.1e} relative, above its target")
     else:
-        verdict, reason = "agree", f"{z:+.2f} SE, within {allowed / sigma if sigma > 0 else math.inf:.2f}"
+        verdict, reason = "agree", (f"{z:+.2f} SE, within {allowed / sigma:.2f}" if in_se else
+                                    f"|diff| = {abs(d):.3g} within allowed {allowed:.3g} (SE 0: no sampling noise)")
     return CellComparison(tan_eps=float(ref.tan_eps), beta_deg=float(ref.beta_deg), verdict=verdict, k_ref=k_ref,
                           error_bound_ref=err_bound, confidence_bound_ref=conf, confidence_level_ref=level,
                           se_ref=se_ref, ref_converged=bool(ref.converged), k_mc=k_mc, se_mc=se_mc,
@@ -341,7 +346,9 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
     band = np.array([r.allowed / r.sigma if r.sigma > 0 and math.isfinite(r.allowed) else N_SIGMA for r in rows])
     colour = {"agree": "tab:blue", "disagree": "tab:red", "inconclusive": "tab:orange"}
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(max(7.0, 0.6 * len(rows) + 2), 7.5), sharex=True)
-    ax1.bar(x, np.clip(np.nan_to_num(z), -3 * N_SIGMA, 3 * N_SIGMA), color=[colour[r.verdict] for r in rows])
+    # a difference with SE 0 (z undefined) is drawn at the axis' end on its side when it fails, at 0 when it agrees
+    z = np.where(np.isfinite(z), z, [3 * N_SIGMA * np.sign(r.diff) if r.verdict == "disagree" else 0.0 for r in rows])
+    ax1.bar(x, np.clip(z, -3 * N_SIGMA, 3 * N_SIGMA), color=[colour[r.verdict] for r in rows])
     ax1.step(np.r_[x - 0.5, x[-1] + 0.5], np.r_[band, band[-1]], where="post", color="k", ls="--", lw=1,
              label=f"allowed: {band_text(report)} + reference bound + float32 floor")
     ax1.step(np.r_[x - 0.5, x[-1] + 0.5], -np.r_[band, band[-1]], where="post", color="k", ls="--", lw=1)

@@ -33,6 +33,18 @@ def test_pass_band_adds_the_bound_as_a_bound():
     assert V.compare(q, mc_cell(math.nan, 1e-3)).verdict == "disagree"
 
 
+def test_a_monte_carlo_without_sampling_noise_is_judged_on_its_difference():
+    """(audit 21, 7) a zero-aperture instrument's Monte Carlo has SE 0: validate printed diff/SE -inf,
+    allowed inf, and the reason "-inf SE, within inf" for a round-off difference. z is undefined
+    (NaN) there and the verdict's reason is the difference against the allowed band."""
+    q = ref_cell(1.0, 1e-9)
+    ok = V.compare(q, mc_cell(1.0 - 8.9e-16, 0.0), floor=1e-5)
+    assert ok.verdict == "agree" and math.isnan(ok.z) and "inf" not in ok.reason and "SE 0" in ok.reason
+    bad = V.compare(q, mc_cell(1.0 + 1e-4, 0.0), floor=1e-5)
+    assert bad.verdict == "disagree" and math.isnan(bad.z) and "inf" not in bad.reason
+    assert V.compare(q, mc_cell(1.0, 0.0)).z == 0.0
+
+
 def test_reference_that_did_not_converge_is_inconclusive_never_agree():
     """The landed defect: a quadrature stopped at its cap with a 13 % error estimate made every
     cell 'agree'. A reference that did not converge says nothing: inconclusive, whatever the values."""
