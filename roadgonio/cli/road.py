@@ -176,6 +176,10 @@ def _print(summaries) -> None:
 #: fraction of u (and in the digits printed): trial 11 D5 read "U_l 0.619 ± 0.088 [0.241, 0.584]",
 #: the nominal value beside an interval of the trials (mean 0.42) that excludes it.
 MEAN_SHIFT_SHOWN = 0.1
+#: a u at or below this fraction of the value is round-off of a metric the trials do not move (U_o
+#: and U_l, ratios of luminances, with every cell's r scaled by one common factor): printed as the
+#: value alone, "unchanged", not to 17 digits beside a "nominal, MC" of round-off (audit 21)
+ROUND_OFF_REL = 1e-12
 
 
 def _with_u(name: str, value: float, u: float, interval, mean: float | None = None) -> str:
@@ -184,6 +188,8 @@ def _with_u(name: str, value: float, u: float, interval, mean: float | None = No
     interval of width 0.005, trial 9). When the trials' ``mean`` differs from the nominal ``value``
     by more than :data:`MEAN_SHIFT_SHOWN` u: ``U_l 0.619 nominal, MC 0.419 ± 0.088 [0.241, 0.584]``."""
     import math
+    if math.isfinite(u) and u <= ROUND_OFF_REL * abs(value):
+        return f"{name} {value:.4g} (unchanged in every trial)"
     decimals = max(0, 1 - math.floor(math.log10(u))) if u > 0 and math.isfinite(u) else 3
     lo, hi = interval
     est = f"{value:.{decimals}f}"

@@ -281,7 +281,11 @@ def test_a_metric_with_its_u_is_printed_to_the_decimal_place_of_u():
     from roadgonio.cli.road import _with_u
     assert _with_u("L_av", 1.10761, 0.0012, (1.10534, 1.10981)) == "L_av 1.1076 ± 0.0012 [1.1053, 1.1098]"
     assert _with_u("TI", 9.83, 2.3, (5.4, 14.2)) == "TI 9.8 ± 2.3 [5.4, 14.2]"
-    assert _with_u("U_o", 0.557, 0.0, (0.557, 0.557)) == "U_o 0.557 ± 0 [0.557, 0.557]"
+    assert _with_u("U_o", 0.557, 0.0, (0.557, 0.557)) == "U_o 0.557 (unchanged in every trial)"
+    # audit 21: fully correlated cells leave U_o unchanged but for round-off, which was printed to 17 digits
+    assert _with_u("U_o", 0.55664775358929475, 1.8e-16, (0.55664775358929430, 0.55664775358929497),
+                   0.55664775358929464) == "U_o 0.5566 (unchanged in every trial)"
+    assert _with_u("U_o", 0.5566, 1e-9, (0.5565, 0.5567)).startswith("U_o 0.5566000000 ± 1e-09")
     # trial 11 D5: the trials' mean beside the nominal value when they differ by more than u / 10
     assert _with_u("U_l", 0.6186, 0.088, (0.241, 0.584), 0.4187) == "U_l 0.619 nominal, MC 0.419 ± 0.088 [0.241, 0.584]"
     assert _with_u("L_av", 1.10761, 0.0012, (1.10534, 1.10981), 1.10770) == "L_av 1.1076 ± 0.0012 [1.1053, 1.1098]"
