@@ -643,11 +643,17 @@ def validate(instrument, sample, *, against: str = "mitsuba", reference: str = "
 # uncertainty, correction, design
 # ----------------------------------------------------------------------------------------------
 
+#: ``estimate_uncertainty``'s options of the case with the aperture effect (the surrogate's exact k_A
+#: tables), with their defaults; given with ``aperture=False`` they are an error (nothing uses them)
+UNCERTAINTY_APERTURE_DEFAULTS = {"backend": "mitsuba", "rel_se": None, "surrogate": "ccd", "validation": 4,
+                                 "workers": None, "scheduler": None, "mitsuba_variant": None}
+
+
 def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, adaptive: bool = False,
                          digits: int = 2, max_trials: int = 200_000, batch: int | None = None, seed: int = 1,
                          coverage: float = 0.95, cells: str = "standard", aperture: bool = True,
-                         backend: str = "mitsuba", rel_se: float | None = None, illuminance: str = "nominal",
-                         surrogate: str = "ccd", validation: int = 4, threads: int | None = None,
+                         backend: str | None = None, rel_se: float | None = None, illuminance: str = "nominal",
+                         surrogate: str | None = None, validation: int | None = None, threads: int | None = None,
                          workers: int | None = None, scheduler: str | None = None,
                          mitsuba_variant: str | None = None, model_variant: str | None = None,
                          out=None, fresh: bool = False, plots: bool = True, figures=None,
@@ -659,8 +665,20 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     :class:`~roadgonio.uncertainty.run.UncertaintyResult`; with ``out`` (a folder or :data:`AUTO`)
     writes uncertainty.json, cells.csv, the r-table CSVs and the pictures (``.written``). A folder
     holding a different run's results (uncertainty.json's fingerprint of the inputs and settings)
-    is refused before the work unless ``fresh``, which replaces them."""
+    is refused before the work unless ``fresh``, which replaces them. The options of the aperture
+    case (:data:`UNCERTAINTY_APERTURE_DEFAULTS`: backend, rel_se, surrogate, validation, workers,
+    scheduler, mitsuba_variant) given with ``aperture=False`` are an error; None is their default."""
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
+    given = {"backend": backend, "rel_se": rel_se, "surrogate": surrogate, "validation": validation,
+             "workers": workers, "scheduler": scheduler, "mitsuba_variant": mitsuba_variant}
+    if not aperture:
+        for name, value in given.items():
+            if value is not None:
+                raise InputError("an option of the case with the aperture effect (the surrogate's exact k_A tables), "
+                                 "which aperture=False (--no-aperture) skips: leave it out, or compute that case",
+                                 field=name)
+    backend, surrogate, validation = (UNCERTAINTY_APERTURE_DEFAULTS[k] if given[k] is None else given[k]
+                                      for k in ("backend", "surrogate", "validation"))
     from roadgonio.uncertainty.run import run_uncertainty
     from roadgonio.uncertainty.spec import SigmaSpec, parse_sigma_spec
     if isinstance(sigma, SigmaSpec):
@@ -669,6 +687,12 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         spec = parse_sigma_spec(str(sigma) if isinstance(sigma, Path) else sigma, option="sigma")
     else:
         raise InputError(f"expected a SPEC text, a TOML file, a mapping or a SigmaSpec, got {type(sigma).__name__}",
+                         field="sigma")
+    if not any(s > 0 for s in spec.sigma):
+        # an empty spec, or only zeros: every trial is the nominal table, and the surrogate's check
+        # printed max/u(r) = inf, 0 / 0 (audit 21)
+        raise InputError("every input error's sigma is 0 (or none is given): there is nothing to propagate; expected "
+                         "at least one positive sigma" + (f" (from {spec.source})" if spec.source else ""),
                          field="sigma")
     seed = check_seed(seed)
     from roadgonio.limits import check_size

@@ -62,19 +62,19 @@ def register(sub) -> None:
     p.add_argument("--cells", choices=["standard", "all"], default="standard",
                    help="standard (default): the tabulated cells of the CIE tables (396); all: the 580-cell grid")
     p.add_argument("--no-aperture", action="store_true", help="skip the case with the aperture effect")
-    add_backend(p, "uncertainty",
+    add_backend(p, "uncertainty", default=None,
                 help_text="k_A backend of the surrogate's exact evaluations (default mitsuba with ONE seed for every "
                           "design point, so the Monte Carlo noise largely cancels in the differences the surrogate "
                           "fits; quadrature: deterministic float64, slower)")
     p.add_argument("--rel-se", type=float, metavar="E",
                    help="backend tolerance (default " + ", ".join(
                        f"{n}: {k} {v:g}" for n, (k, v) in api.study_tolerances().items()) + ")")
-    p.add_argument("--surrogate", choices=["star", "ccd"], default="ccd",
+    p.add_argument("--surrogate", choices=["star", "ccd"],
                    help="design of exact k_A tables: ccd (default: full quadratic with interactions, 27 tables for "
                         "5 coordinates) or star (2d+1 = 11 tables: gradient and curvature per coordinate, about "
                         "half the time; in bench/bench_uncertainty.py its worst-cell error was 0.43 u(r) against 0.07 u(r) "
                         "for ccd)")
-    p.add_argument("--validation", type=int, default=4, metavar="N",
+    p.add_argument("--validation", type=int, metavar="N",
                    help="held-out trials with exact k_A to measure the surrogate's error (default 4)")
     p.add_argument("--threads", type=positive_int, metavar="N", help="worker threads (default: up to 2)")
     add_mitsuba_variant(p)

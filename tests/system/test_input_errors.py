@@ -864,3 +864,27 @@ def test_a_cell_the_geometry_refuses_beyond_the_table_is_one_line(capsys):
     rc = main(["ka", "--instrument", "portable", "--sample", "R3", "--tan-eps", "100", "--beta", "0",
                "--backend", "quadrature"])
     one_line_error(capsys, rc, "source.radius_m", "below the horizon")
+
+
+@pytest.mark.parametrize("option", [["--backend", "quadrature"], ["--rel-se", "0.01"], ["--surrogate", "star"],
+                                    ["--validation", "10"], ["--workers", "2"], ["--variant", "llvm_ad_rgb"]])
+def test_uncertainty_options_of_the_aperture_case_with_no_aperture_are_errors(tmp_path, capsys, option):
+    """(audit 21, 4) `uncertainty --no-aperture --surrogate star --validation 1000 --rel-se 0.9 ...` ran
+    and ignored them all, where --max-trials without --adaptive is refused."""
+    out = tmp_path / "U"
+    rc = main(["uncertainty", "--instrument", "lab", "--sample", "lambert", "--no-aperture", "--trials", "500",
+               "--sigma", "alpha_deg=0.01", *option, "--out", str(out), "-q"])
+    one_line_error(capsys, rc, option[0])
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("sigma", ["alpha_deg=0", "alpha_deg=0,eps_deg=0:rect", "EMPTY"])
+def test_uncertainty_with_nothing_to_propagate_is_an_error(tmp_path, capsys, sigma):
+    """(audit 21, 4) an empty --sigma TOML file or only zeros ran and printed max/u(r) = inf (0 / 0)."""
+    if sigma == "EMPTY":
+        sigma = str(tmp_path / "empty.toml")
+        (tmp_path / "empty.toml").write_text("")
+    rc = main(["uncertainty", "--instrument", "lab", "--sample", "lambert", "--no-aperture", "--trials", "500",
+               "--sigma", sigma, "--out", str(tmp_path / "U"), "-q"])
+    one_line_error(capsys, rc, "--sigma", "nothing to propagate")
+    assert not (tmp_path / "U").exists()
