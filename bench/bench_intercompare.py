@@ -108,11 +108,12 @@ def main(argv=None) -> int:
             if name == "corrected" and r["validation"]:
                 lines.append("  frozen factor against full corrections (same realisations; difference +- its SE):")
                 for v in r["validation"]:
-                    if v["figure"] in ("share_En_le_1_weighted_mean", "share_consistent_cells",
-                                       "share_all_compatible_weighted_mean", "rms_error_vs_truth_pct"):
-                        t = (f"    {v['figure']:<36} {v['participant']:<18} full {v['full']:.4f}  frozen "
-                             f"{v['frozen']:.4f}  diff {v['difference']:+.4f} +- {v['difference_se']:.4f} "
-                             f"(spread of the figure over realisations: SE {v['full_se']:.4f})")
+                    if v["figure"].removesuffix("_per_realisation") in (
+                            "share_En_le_1_weighted_mean", "share_consistent_cells",
+                            "share_all_compatible_weighted_mean", "rms_error_vs_truth_pct"):
+                        t = (f"    {v['figure']:<52} {v['participant']:<18} full {v['full_mean']:.4f}  frozen "
+                             f"{v['frozen_mean']:.4f}  diff {v['difference_mean']:+.4f} +- {v['difference_se']:.4f} "
+                             f"(spread of the figure over realisations: SE {v['full_mean_se']:.4f})")
                         lines.append(t)
                         print(t)
     finally:

@@ -767,10 +767,10 @@ def validation_rows(setup: sim.Setup, xs, stats, full) -> list[dict[str, Any]]:
         cols = [(names[p], va[:, p], vb[:, p]) for p in range(va.shape[1])] if va.ndim == 2 else [("ALL", va, vb)]
         for who, x1, x2 in cols:
             diff = x2 - x1
-            row = {"figure": key, "participant": who, "realisations": R, "full": float(x1.mean()),
-                   "frozen": float(x2.mean()), "difference": float(diff.mean()),
-                   "difference_se": float(diff.std(ddof=1) / math.sqrt(R)),
-                   "full_se": float(x1.std(ddof=1) / math.sqrt(R))}
+            row = {"figure": f"{key}_per_realisation", "participant": who, "realisations": R,
+                   "full_mean": float(x1.mean()), "frozen_mean": float(x2.mean()),
+                   "difference_mean": float(diff.mean()), "difference_se": float(diff.std(ddof=1) / math.sqrt(R)),
+                   "full_mean_se": float(x1.std(ddof=1) / math.sqrt(R))}
             out.append({k: row[k] for k in VALIDATION_COLUMNS})
     return out
 

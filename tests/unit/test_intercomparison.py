@@ -481,7 +481,9 @@ def test_validation_rows_pair_the_full_and_the_frozen_figures():
     over the realisations where every participant has its full correction (realisation 1 lacks one:
     left out), the mean paired difference frozen - full, its SE and the full figure's SE; no rows
     with fewer than two such realisations (mutation audit 11: the difference's sign, full and
-    frozen swapped and full_se as the difference's SE passed every test)."""
+    frozen swapped and full_se as the difference's SE passed every test). The figures are named
+    `_per_realisation` and the columns `*_mean` (audit 21: intercompare.csv's figure of the same name
+    pools the cells of every realisation and differed)."""
     from types import SimpleNamespace
 
     from roadgonio.intercomparison import simulate as sim
@@ -505,19 +507,19 @@ def test_validation_rows_pair_the_full_and_the_frozen_figures():
 
     def check(row, a, b):
         assert row["realisations"] == m
-        want = {"full": a.mean(), "frozen": b.mean(), "difference": (b - a).mean(),
-                "difference_se": (b - a).std(ddof=1) / math.sqrt(m), "full_se": a.std(ddof=1) / math.sqrt(m)}
+        want = {"full_mean": a.mean(), "frozen_mean": b.mean(), "difference_mean": (b - a).mean(),
+                "difference_se": (b - a).std(ddof=1) / math.sqrt(m), "full_mean_se": a.std(ddof=1) / math.sqrt(m)}
         for key, v in want.items():
             assert row[key] == pytest.approx(v, rel=1e-12, abs=1e-15), key
-        assert abs(want["difference"]) > 1e-6                             # the frozen tables are 0.4 % higher
+        assert abs(want["difference_mean"]) > 1e-6                             # the frozen tables are 0.4 % higher
     for p, name in enumerate("ABC"):
         rms = {s: 100 * np.sqrt(np.mean((xs[s][keep, p] / truth - 1.0) ** 2, axis=1)) for s in xs}
-        check(by[("rms_error_vs_truth_pct", name)], rms["all_corrected"], rms[sim.FROZEN])
+        check(by[("rms_error_vs_truth_pct_per_realisation", name)], rms["all_corrected"], rms[sim.FROZEN])
     allc = {s: np.mean(np.all(np.abs(stats[s]["equivalence"]["weighted_mean"]["E_n"][keep]) <= 1.0, axis=1), axis=1)
             for s in xs}
-    row = by[("share_all_compatible_weighted_mean", "ALL")]
-    assert row["full"] == pytest.approx(allc["all_corrected"].mean(), rel=1e-12)
-    assert row["frozen"] == pytest.approx(allc[sim.FROZEN].mean(), rel=1e-12)
+    row = by[("share_all_compatible_weighted_mean_per_realisation", "ALL")]
+    assert row["full_mean"] == pytest.approx(allc["all_corrected"].mean(), rel=1e-12)
+    assert row["frozen_mean"] == pytest.approx(allc[sim.FROZEN].mean(), rel=1e-12)
     full["all_corrected"][3:, 0] = False                                     # two realisations left: rows
     assert validation_rows(setup, xs, stats, full)
     full["all_corrected"][0, 0] = False                                      # one: none
