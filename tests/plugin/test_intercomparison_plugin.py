@@ -84,7 +84,8 @@ def test_participants_correcting_through_roadgonio_and_the_frozen_factor(tmp_pat
     assert big.sum() >= 3
     assert np.mean(np.abs(cor[:, big] / t[big] - 1)) < 0.5 * np.mean(np.abs(raw[:, big] / t[big] - 1))
     valid = json.loads(ds.attrs["validation_json"])
-    assert {r["figure"] for r in valid} >= {"share_En_le_1_weighted_mean", "share_consistent_cells"}
+    assert {r["figure"] for r in valid} >= {"share_En_le_1_weighted_mean_per_realisation",
+                                            "share_consistent_cells_per_realisation"}
     assert all(r["realisations"] == 2 for r in valid)
 
 
