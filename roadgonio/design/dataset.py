@@ -103,13 +103,22 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         for j in range(ns):
             v = np.abs(k_a[i, j] - 1.0)
             max_dev_s[i, j] = np.nanmax(v) if np.isfinite(v).any() else np.nan
-    feasible = geometry_ok & computed & (max_dev <= tol)
+    signal_abs = np.array([signal_product(x) if x is not None else np.nan for x in inst_of])
+    # a design that detects no light (a point source, a zero field or pupil: the paper's ideal
+    # geometry, k_A = 1 by definition) is no instrument to build: it was picked as the best when
+    # nothing else met the tolerance (audit 21)
+    dark = ~(signal_abs > 0)
+    feasible = geometry_ok & computed & (max_dev <= tol) & ~dark
     for i in range(n):
         if geometry_ok[i] and computed[i] and not feasible[i]:
+            if dark[i]:
+                kind[i] = "signal"
+                reason[i] = ("detects no light (signal 0: a zero source radius, field or pupil is the ideal point "
+                             "geometry, not an instrument)")
+                continue
             kind[i] = "tolerance"
             reason[i] = (f"max |k_A - 1| = {max_dev[i]:.4g} > tolerance {tol:g} at tan eps {worst_t[i]:g}, "
                          f"beta {worst_b[i]:g} ({worst_s[i]})")
-    signal_abs = np.array([signal_product(x) if x is not None else np.nan for x in inst_of])
     sb = signal_product(base)
     signal = signal_abs / sb if sb > 0 else np.full(n, np.nan)
     omega = np.array([profiled_solid_angle(x) if x is not None else np.nan
@@ -171,9 +180,9 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "footprint_x_min_m": (dims, grid(fp_min), {}),
         "footprint_x_max_m": (dims, grid(fp_max), {}),
         "geometry_ok": (dims, grid(geometry_ok), {"long_name": "the instrument can measure every requested cell"}),
-        "feasible": (dims, grid(feasible), {"long_name": "geometry_ok and max_abs_dev <= tolerance"}),
+        "feasible": (dims, grid(feasible), {"long_name": "geometry_ok and max_abs_dev <= tolerance and signal > 0"}),
         "kind": (dims, grid(kind.astype(str)), {"long_name": "why not feasible: instrument, footprint, horizon, "
-                                                              "line_of_sight, housing, backend, tolerance, failed"}),
+                                                              "line_of_sight, housing, backend, tolerance, signal, failed"}),
         "reason": (dims, grid(reason.astype(str)), {"long_name": "why not feasible (empty if feasible)"}),
         # 63-bit seeds as decimal text: netCDF-3 has no 64-bit integers (roadgonio.seeds.point_seed)
         "seed": (dims, grid(np.array([str(int(v)) for v in seeds])), {"long_name": "backend seed of the design point "

@@ -759,3 +759,19 @@ def test_tolerance_map_of_three_keys_has_one_panel_per_value_of_the_third(tmp_pa
     best_d = O.json.loads(ds.attrs["best_point_json"])["detector.distance_m"]
     starred = [a.get_title() for a in maps if a.get_legend() is not None]
     assert starred == [f"at detector.distance_m = {best_d:g}"]
+
+
+def test_a_design_that_detects_no_light_is_not_feasible(tmp_path):
+    """(audit 21, 3) varying the field down to 0 with the source radius: the only points within the
+    tolerance had signal 0 (a point source or a zero field) and one was recommended as best.toml.
+    They are kept as infeasible ("signal"), and the best is a design that detects light."""
+    from roadgonio import design_study as run_design
+    vary = ["source.radius_m=0,0.025", "detector.field_half_angle_deg=0,0.15"]
+    ds = run_design("portable", vary, ["R3"], cells=CELLS, tolerance="50%", out=tmp_path, **QUAD)
+    sig, feas, kind, dev = ds["signal"].values, ds["feasible"].values, ds["kind"].values, ds["max_abs_dev"].values
+    dark = sig == 0
+    assert dark.sum() == 3 and (dev[dark] <= 0.5).all()           # within the tolerance: they would qualify
+    assert not feas[dark].any() and (kind[dark] == "signal").all()
+    assert all("detects no light" in r for r in ds["reason"].values[dark])
+    best = int(ds.attrs["best_index"])
+    assert feas.ravel()[best] and sig.ravel()[best] > 0 and feas[~dark].all()
