@@ -118,6 +118,9 @@ def run(args) -> int:
            f"{s['design_points_per_hour']:.0f} design points/hour)" if "design_points_per_hour" in s else ""))
     if s["not_feasible_by_kind"]:
         say("not feasible: " + ", ".join(f"{k} {v}" for k, v in sorted(s["not_feasible_by_kind"].items())))
+    if s.get("points_not_converged"):
+        say(f"not converged: {count(s['points_not_converged'], 'point')} with cells whose backend stopped before its "
+            "target (not_converged in design.nc; their max |k_A - 1| carries the SE or bound they stopped at)")
     b = s["best"]
     if b is None:
         say("no design meets the tolerance: see " + ("design.csv (max_abs_dev)" if args.no_plots else "pareto.png")
@@ -127,6 +130,9 @@ def run(args) -> int:
         say(f"best: {vals}: signal {b['signal']:.3g} x base, max |k_A - 1| = {b['max_abs_dev']:.4f} "
             f"(+- {b['worst_u']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
             f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
+        if b.get("not_converged"):
+            say(f"  {count(int(b['not_converged']), 'cell')} of it did not converge (the +- above comes from the bound "
+                "or SE the backend stopped at)")
         if s.get("equally_bright", 1) > 1:
             say(f"  the least max |k_A - 1| of {s['equally_bright']} feasible designs with the most signal (signals within "
                 f"{s['same_signal_rtol']:.1g} relative count as equal: design.csv has them all)")

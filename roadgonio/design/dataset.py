@@ -286,7 +286,7 @@ def summary(ds) -> dict[str, Any]:
                                                     "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u",
                                                     "seed", "footprint_length_m", "max_stray_fraction",
                                                     "max_stray_tan_eps", "max_stray_beta_deg", "max_stray_sample",
-                                                    "max_stray_u", "max_abs_dev_direct") if v in ds}
+                                                    "max_stray_u", "max_abs_dev_direct", "not_converged") if v in ds}
     kinds: dict[str, int] = {}
     for k in flat["kind"]:
         if k:
@@ -301,6 +301,10 @@ def summary(ds) -> dict[str, Any]:
                          "wall_s": float(ds.attrs.get("wall_s", math.nan)),
                          "compute_wall_s": float(ds.attrs.get("compute_wall_s", math.nan))}
     s["same_signal"] = same_signal(ds)
+    if "not_converged" in flat:
+        # points with cells whose backend stopped before its target (their u is what it stopped at;
+        # audit 21: only design.nc said so)
+        s["points_not_converged"] = int(np.sum(flat["not_converged"] > 0))
     if best >= 0:
         # the feasible points as bright as the best (within SAME_SIGNAL_RTOL): the best is the least
         # max |k_A - 1| of them, which the summary says when there is a choice

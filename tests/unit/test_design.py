@@ -775,3 +775,20 @@ def test_a_design_that_detects_no_light_is_not_feasible(tmp_path):
     assert all("detects no light" in r for r in ds["reason"].values[dark])
     best = int(ds.attrs["best_index"])
     assert feas.ravel()[best] and sig.ravel()[best] > 0 and feas[~dark].all()
+
+
+def test_the_summary_counts_the_points_whose_cells_did_not_converge(tmp_path):
+    """(audit 21, 5) a quadrature design on the wide instrument stopped at its cap in 1-2 cells per
+    point, and only design.nc's not_converged said so: the summary counts those points and gives the
+    best design's count (the command prints both)."""
+    from roadgonio import design_study as run_design
+    from roadgonio.design.dataset import summary
+    ds = run_design("portable", ["source.radius_m=0.01,0.03"], ["R3"], cells=CELLS, tolerance="50%", out=tmp_path,
+                    **QUAD)
+    assert summary(ds)["points_not_converged"] == int((ds["not_converged"].values > 0).sum())
+    best = int(ds.attrs["best_index"])
+    nc = np.zeros(ds["not_converged"].shape, dtype=np.int32)
+    nc.reshape(-1)[best] = 2
+    ds["not_converged"].values[...] = nc
+    s = summary(ds)
+    assert s["points_not_converged"] == 1 and s["best"]["not_converged"] == 2
