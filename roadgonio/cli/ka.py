@@ -76,7 +76,10 @@ def run(args) -> int:
                         "confidence_bound": c.confidence_bound,
                         "confidence_level": c.confidence_level, "converged": c.converged, "samples": c.samples, "seconds": c.seconds,
                         "k_a_direct": c.k_a_direct, "k_a_direct_se": c.k_a_direct_se,
-                        "stray_fraction": c.stray_fraction, "stray_fraction_se": c.stray_fraction_se})
+                        "stray_fraction": c.stray_fraction, "stray_fraction_se": c.stray_fraction_se,
+                        # absolute calibration: eta = <E>/E_0 and its error estimate (deterministic)
+                        **{k: (c.extra or {})[k] for k in ("eta", "eta_error", "eta_converged")
+                           if k in (c.extra or {})}})
         else:
             prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error"
                     + (f" with {c.se_dof:.0f} degrees of freedom" if math.isfinite(c.se_dof) else ""))
@@ -135,11 +138,22 @@ def _stray_text(s) -> str:
 
 
 def _not_converged_text(c, target) -> str:
-    """What a cell that stopped at its cap achieved, against what was asked."""
+    """What a cell that stopped at its cap achieved, against what was asked; under absolute
+    calibration also (or only) eta = <E>/E_0, whose error estimate a standard error does not hold."""
+    extra = c.extra or {}
+    eta_text = ""
+    if extra.get("eta_converged") is False:
+        rel = extra["eta_error"] / extra["eta"] if extra.get("eta") else math.nan
+        eta_text = (f" -- NOT converged: eta = <E>/E_0 of the absolute calibration stopped at its cap with relative "
+                    f"error {rel:.2g}"
+                    + ("" if c.deterministic else " (a deterministic error estimate, not in the standard error above)"))
+        if extra.get("backend_converged", True):
+            return eta_text
     if c.deterministic:
         got = f"relative error bound {c.error_bound / abs(c.k_a):.2g}" if c.k_a else "no bound"
     else:
         got = f"relative SE {c.se / abs(c.k_a):.2g}" if c.k_a else "no SE"
     asked = f" (target {target:g})" if target is not None else ""
-    return (f" -- NOT converged: stopped at the backend's sample/evaluation cap with {got}{asked}; the value above "
-            "carries that larger uncertainty")
+    head = f"{eta_text}; and the backend" if eta_text else " -- NOT converged: the backend"
+    return (f"{head} stopped at its sample/evaluation cap with {got}{asked}; the value above carries that larger "
+            "uncertainty")

@@ -310,8 +310,10 @@ class CalibratedBackend:
         # a confidence bound (the RQMC reference) is scaled like the deterministic bound, at its own level
         conf = dict(confidence_bound=c.confidence_bound * eta + abs(c.k_a) * eta_err
                     if math.isfinite(c.confidence_bound) else math.nan, confidence_level=c.confidence_level)
+        # the backend's own convergence apart from eta's, so that a cell that stopped says which did
+        # (audit 21: "stopped at the sample cap with relative SE 0.0024", the SE at its target, eta not)
         extra = {**(c.extra or {}), "calibration": "absolute", "k_a_lambert": c.k_a, "eta": eta,
-                 "eta_error": eta_err, "eta_converged": eta_ok}
+                 "eta_error": eta_err, "eta_converged": eta_ok, "backend_converged": bool(c.converged)}
         if c.stray_fraction != 0.0:
             # the meter reads the total signal against the source's own E_0 (module docstring)
             kd = apply_calibration("absolute", c.k_a_direct, eta=eta)

@@ -336,3 +336,24 @@ def test_absolute_mode_scales_the_monte_carlo_se_by_eta():
         assert b.se == pytest.approx(a.se * eta, rel=ROUND_TOL, abs=0.0)
         assert b.se_dof == a.se_dof == a.extra["batches"] - 1       # eta is computed: the SE keeps its dof
     assert max(abs(e - 1.0) for e in etas) > 4e-3           # eta is not 1: the check can fail
+
+
+def test_a_cell_whose_eta_did_not_converge_says_so_not_that_its_backend_stopped():
+    """(audit 21, 1) wide, absolute calibration, tan eps 12, beta 0, Mitsuba: the SE met its target
+    but eta (float64 rules) stopped at its cap with a 0.78 % error estimate, and the command said
+    "stopped at the backend's sample/evaluation cap with relative SE 0.0024". The message names eta,
+    its relative error and that an SE does not hold it; the backend's own stop is named apart."""
+    from roadgonio.cli.ka import _not_converged_text
+    from roadgonio.engines import CellResult
+    extra = {"calibration": "absolute", "eta": 6.83, "eta_error": 0.0533, "eta_converged": False,
+             "backend_converged": True}
+    mc = CellResult(12.0, 0.0, 1.75, 0.0042, 10, 0.1, extra, converged=False)
+    text = _not_converged_text(mc, 3e-3)
+    assert "eta = <E>/E_0" in text and "0.0078" in text and "not in the standard error" in text
+    assert "sample/evaluation cap" not in text
+    both = CellResult(12.0, 0.0, 1.75, 0.05, 10, 0.1, {**extra, "backend_converged": False}, converged=False)
+    text = _not_converged_text(both, 3e-3)
+    assert "eta = <E>/E_0" in text and "and the backend stopped at its sample/evaluation cap" in text
+    plain = CellResult(12.0, 0.0, 1.75, 0.05, 10, 0.1, None, converged=False)
+    text = _not_converged_text(plain, 3e-3)
+    assert "eta" not in text and "the backend stopped at its sample/evaluation cap with relative SE 0.029" in text
