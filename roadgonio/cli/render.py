@@ -57,13 +57,14 @@ def run(args) -> int:
         f"beta = {args.beta:g} deg: footprint x = {info['footprint_m']['x'][0]:.3f} ... "
         f"{info['footprint_m']['x'][1]:.3f} m; "
         + (f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (one render; use 'roadgonio ka' for tables)"
-           if ka is not None else "k_A undefined (model is 0 at the nominal geometry)"))
+           if ka is not None else info.get("k_a_note", "k_A undefined (model is 0 at the nominal geometry)")))
     if "stray" in info:
         st = info["stray"]
         top = max(st["parts"], key=lambda k: st["parts"][k]["road"])
         say(f"stray light: {100 * st['stray_fraction_road']:.2f} % of the road signal (most from {top}), "
-            f"{100 * st['stray_fraction_lambert']:.2f} % of the Lambert calibration's; k_A of the direct light alone "
-            f"~ {info['k_a_direct_estimate']:.4f} (stray.png shows where it enters the view)")
+            f"{100 * st['stray_fraction_lambert']:.2f} % of the Lambert calibration's"
+            + (f"; k_A of the direct light alone ~ {info['k_a_direct_estimate']:.4f}"
+               if info.get("k_a_direct_estimate") is not None else "") + " (stray.png shows where it enters the view)")
         # trial 10 D5: the headline k_A and stray.png do not follow --resolution/--spp; say what they used
         say(f"k_A with stray light and stray.png: the stray-light run's {st['resolution']} x {st['resolution']} "
             f"pixels and {st['samples']} samples (fixed; --resolution {args.resolution} and --spp {args.spp} "

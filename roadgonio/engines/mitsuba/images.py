@@ -56,6 +56,12 @@ def _ortho_sensor(mi, x0, x1, y0, y1, nx, ny, spp, z_top=0.0):
                          "sampler": {"type": "multijitter", "sample_count": spp}})
 
 
+#: Fewer detector samples than this (resolution^2 x spp) give no k_A estimate: the ratio of the two
+#: signals and its delta-method SE are unreliable there (audit 21, the wide instrument at tan eps 12,
+#: beta 0: 8 x 8 pixels at 1 spp gave 0.43 on average against 0.256, 6 of 20 seeds beyond 4 SE;
+#: from 32 x 32 x 4 = 4096 on every seed was within 2 SE)
+RENDER_MIN_KA_SAMPLES = 4096
+
 #: Every file ``roadgonio render`` writes (the last two only when the scene makes stray light).
 RENDER_FILES = ("view.exr", "illuminance.exr", "render.png", "render.json", "stray.png", "stray.exr")
 
@@ -158,6 +164,15 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
             "k_a_direct_estimate": "ratio_direct / ideal_ratio: k_A of the direct light alone; k_a_direct_se its "
                                    "standard error",
             "stray": "the stray light of this cell: fractions of each signal and the shares by housing part"}
+    if resolution * resolution * spp < RENDER_MIN_KA_SAMPLES:
+        # the estimate of this render's own samples (with stray light, the stray paths' fixed sample
+        # count gives k_A itself; the direct light's estimate is this render's)
+        keys = ("k_a_direct_estimate", "k_a_direct_se") if stray is not None else ("k_a_estimate", "k_a_se")
+        for key in keys:
+            info[key] = None
+        info["k_a_note"] = (f"no k_A{' of the direct light' if stray is not None else ''} estimate from "
+                            f"{resolution * resolution * spp} samples (resolution^2 x spp): {RENDER_MIN_KA_SAMPLES} "
+                            "or more give one with an SE that holds")
     info["definitions"] = definitions
     info["files"] = files
     # all or none; a render without stray light removes an earlier housed render's stray.png and
@@ -409,7 +424,8 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
     cb = fig.colorbar(im, ax=ax, shrink=0.9)
     cb.set_label("illuminance E$_h$ (lx per lx)")
     ka = info["k_a_estimate"]
-    ka_txt = f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (this render)" if ka is not None else "k_A undefined"
+    ka_txt = (f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (this render)" if ka is not None
+              else "no k_A estimate (too few samples)" if "k_a_note" in info else "k_A undefined")
     fig.suptitle(f"{instrument.name}, sample {info['sample']}: tan eps = {info['tan_eps']:g}, "
                  f"beta = {info['beta_deg']:g} deg, alpha = {instrument.observation.alpha_deg:g} deg\n{ka_txt}",
                  fontsize=11)
