@@ -50,6 +50,10 @@ from roadgonio.surface.rtable import RTable
 
 #: The coefficients that enter the model linearly (solved by NNLS).
 LINEAR = ("k_diff", "k_phong", "k_retro", "k_exp")
+#: a fitted coefficient k_* within this fraction of its upper bound (1e6 sr^-1) sits at it: the fit
+#: wanted more, and the model is a compromise (audit 21: `fit R3 --fix n_phong=1e4` gave k_phong
+#: 999999.9998 without a word)
+AT_BOUND_RTOL = 1e-6
 #: The shape parameters searched globally (every variant) ...
 NONLINEAR = ("n_phong", "n_retro", "p", "h", "mu")
 #: ... plus the variant's own ones (:data:`roadgonio.surface.model.VARIANT_PARAMS`), e.g. n_beta of "smooth".
@@ -483,6 +487,17 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
         "table": {"name": table.name, "source": table.source, "sha256": table_hash(table),
                   "r_max": table.r_max, "cells": int(table.mask.sum())},
     }
+    at_bound = [k for k in prob.free_lin if getattr(params, k) >= PARAM_BOUNDS[k][1] * (1.0 - AT_BOUND_RTOL)]
+    if at_bound:
+        meta["fit"]["at_upper_bound"] = at_bound
+        import warnings
+
+        from roadgonio.errors import ModelWarning
+        warnings.warn(ModelWarning(
+            f"the {variant} fit of {table.name}: " + ", ".join(f"{k} = {getattr(params, k):.6g}" for k in at_bound)
+            + f" at the upper end of the allowed range (0 ... {PARAM_BOUNDS[at_bound[0]][1]:g} sr^-1): the fit wanted "
+            "more, so the model is a compromise there (a parameter held with --fix, or the variant, forces it)"),
+            stacklevel=2)
     model = RoadModel(params, variant, name=table.name, meta=meta)
     if progress is not None:
         progress(total, total)

@@ -136,7 +136,9 @@ SPIKE_DROP = 0.1
 def unresolved_spike(model: RoadModel) -> tuple[np.ndarray, np.ndarray]:
     """The tan eps of the standard grid (> 0) where ``model``'s r(beta, tan eps) at alpha = 1 deg
     falls by more than :data:`SPIKE_DROP` within :data:`SPIKE_WIDTH_DEG` of beta = 0, and the ratio
-    r(SPIKE_WIDTH_DEG) / r(0) there (what an instrument of any aperture sees of r(0), about)."""
+    r(SPIKE_WIDTH_DEG) / r(0) there. (It is not k_A: an aperture averages r over the spike's
+    neighbourhood, which for a narrow lobe off the nominal direction can be far above r(0): k_A 1.8
+    to 730 at tan eps 12 for the Phong lobe of exponent 1e4 at its bound, audit 21.)"""
     t = TAN_EPS_GRID[TAN_EPS_GRID > 0]
     with np.errstate(invalid="ignore", divide="ignore"):
         r0 = np.asarray(model.r(t, 0.0), dtype=np.float64)
@@ -159,8 +161,8 @@ def note_unresolved_spike(model: RoadModel, name: str, *, fitted: bool) -> None:
     warnings.warn(ModelWarning(
         f"{what}: r at beta = 0 is a spike narrower than {SPIKE_WIDTH_DEG:g} deg for tan eps {t.min():g} ... "
         f"{t.max():g} (r falls to {ratio.min():.2f} of its value within {SPIKE_WIDTH_DEG:g} deg), finer than any "
-        f"aperture resolves: k_A and corrections there are artefacts of the fit (k_A about {ratio.min():.2f} for "
-        f"any instrument with an aperture){way} (docs/conventions.md, section 3)"), stacklevel=3)
+        f"aperture resolves: k_A and corrections there are artefacts of the fit (an aperture measures how much of "
+        f"the spike it averages in, not the surface){way} (docs/conventions.md, section 3)"), stacklevel=3)
 
 
 @dataclass(frozen=True)

@@ -320,3 +320,25 @@ def test_api_fit_draws_its_own_bar_on_a_terminal(fit_r3_power, monkeypatch):
     seen = []
     api.fit("R3", progress=lambda d, t: seen.append((d, t)))
     assert seen == [(1, 3), (2, 3), (3, 3)]
+
+
+def test_a_coefficient_fitted_to_its_upper_bound_is_noted():
+    """(audit 21, 4) `fit R3 --fix n_phong=1e4` gave k_phong = 999999.9998, the end of its allowed
+    range, without a word. The fit notes it (ModelWarning) and model.json's meta keeps the names; a
+    fit that stays inside says nothing (every bundled table's fits do)."""
+    from roadgonio.errors import ModelWarning
+    from roadgonio.surface.rtable import bundled_table
+    with pytest.warns(ModelWarning, match=r"k_phong = 1e\+06 at the upper end of the allowed range"):
+        res = fit_table(bundled_table("R3"), "power", fixed={"n_phong": 1e4})
+    assert res.model.meta["fit"]["at_upper_bound"] == ["k_phong"]
+    # the spike note no longer claims a k_A: this model's k_A at tan eps 12 is 1.8 for the portable
+    # preset, far from r(0.01 deg) / r(0) ~ 0
+    from roadgonio.surface.sample import note_unresolved_spike
+    with pytest.warns(ModelWarning, match="spike") as rec2:
+        note_unresolved_spike(res.model, "R3", fitted=True)
+    assert all("k_A about" not in str(w.message) and "averages in" in str(w.message) for w in rec2)
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ModelWarning)
+        inside = fit_table(bundled_table("R3"), "smooth")
+    assert "at_upper_bound" not in inside.model.meta["fit"]
