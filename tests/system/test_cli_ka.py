@@ -93,7 +93,7 @@ def test_bad_options_are_one_line_errors(capsys, extra, needle):
 
 def test_footprint_off_the_sample_is_an_error_not_a_number(tmp_path):
     bad = tmp_path / "small.toml"
-    bad.write_text(Path("scenes/portable.toml").read_text().replace("size_x_m = 1.0", "size_x_m = 0.3"))
+    bad.write_text((Path(__file__).resolve().parents[2] / "scenes" / "portable.toml").read_text().replace("size_x_m = 1.0", "size_x_m = 0.3"))
     r = subprocess.run([sys.executable, "-m", "roadgonio", "ka", "--instrument", str(bad), "--sample", "lambert",
                         "--backend", "quadrature", "--tan-eps", "1", "--beta", "0"], capture_output=True, text=True)
     assert r.returncode == 2 and "leaves the sample" in r.stderr and "Traceback" not in r.stderr

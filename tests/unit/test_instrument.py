@@ -49,7 +49,7 @@ def test_presets_load_by_name_and_path():
     assert {"lab", "portable"} <= set(bundled_instruments())
     lab = load_instrument("lab")
     assert lab.name == "lab" and lab.source.radius_m > 0 and lab.detector.focus_distance_m == lab.detector.distance_m
-    portable = load_instrument("scenes/portable.toml")
+    portable = load_instrument(Path(__file__).resolve().parents[2] / "scenes" / "portable.toml")
     assert portable.name == "portable" and portable.detector.pupil_radius_m > 0 and portable.source.radius_m > 0
 
 
