@@ -408,6 +408,9 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         "cells_computed": len(computed),
         "cells_asked": int(cells_asked if cells_asked is not None else len(run.results)),
         "cells_not_converged": int(sum(not c.converged for c in computed)),
+        # absolute calibration: the cells whose eta = <E>/E_0 stopped at its cap, and eta's largest
+        # relative error estimate (a deterministic estimate an SE does not hold; audit 21)
+        **_eta_attrs(computed),
         "resumed_cells": int(run.resumed),
         # of the others, those carried on from their state after a pass (ka_passes.json); the pass
         # only when there were some (no sentinel)
@@ -440,6 +443,9 @@ def summary(ds) -> dict[str, Any]:
             with np.errstate(divide="ignore", invalid="ignore"):
                 rel = np.where(k != 0, v / np.abs(k), np.inf)
             out[key] = float(rel.max())
+    if "cells_eta_not_converged" in ds.attrs:
+        out.update(eta_not_converged=int(ds.attrs["cells_eta_not_converged"]),
+                   eta_worst_rel_error=float(ds.attrs["eta_worst_rel_error"]))
     out.update(not_converged=int(ds.attrs["cells_not_converged"]),
                samples=int(np.nansum(ds["samples"].values)),
                seconds_total=float(np.nansum(ds["seconds"].values)),
@@ -469,6 +475,17 @@ def confidence_text(ds) -> str:
     return " at confidence levels " + ", ".join(f"{x:g}" for x in levels) + " (per cell: confidence_level in ka.nc)"
 
 
+def _eta_attrs(results) -> dict[str, Any]:
+    """The Dataset attributes of eta (absolute calibration) over ``results``: the cells whose eta did
+    not converge and eta's largest relative error estimate; none without absolute calibration."""
+    ex = [c.extra for c in results if c.extra and "eta_converged" in c.extra]
+    if not ex:
+        return {}
+    rel = [e["eta_error"] / e["eta"] for e in ex if e.get("eta")]
+    return {"cells_eta_not_converged": int(sum(not e["eta_converged"] for e in ex)),
+            "eta_worst_rel_error": float(max(rel)) if rel else float("nan")}
+
+
 def precision_text(summary: dict[str, Any]) -> str:
     """'worst rel. SE 1.5e-04' or 'worst rel. error bound 9.9e-04' (never one for the other)."""
     for key, name in (("worst_rel_se", "worst rel. SE"), ("worst_rel_error_bound", "worst rel. error bound")):
@@ -476,6 +493,10 @@ def precision_text(summary: dict[str, Any]) -> str:
             text = f"{name} {summary[key]:.1e}"
             if summary.get("not_converged"):
                 text += f", {count(summary['not_converged'], 'cell')} NOT converged"
+                if summary.get("eta_not_converged"):
+                    text += (f" (in {summary['eta_not_converged']} of them eta of the absolute calibration stopped at "
+                             f"its cap: relative error up to {summary['eta_worst_rel_error']:.1e}, "
+                             + ("not in the SE)" if key == "worst_rel_se" else "included in the bound)"))
             return text
     return ""
 

@@ -357,3 +357,23 @@ def test_a_cell_whose_eta_did_not_converge_says_so_not_that_its_backend_stopped(
     plain = CellResult(12.0, 0.0, 1.75, 0.05, 10, 0.1, None, converged=False)
     text = _not_converged_text(plain, 3e-3)
     assert "eta" not in text and "the backend stopped at its sample/evaluation cap with relative SE 0.029" in text
+
+
+def test_a_table_says_in_how_many_cells_eta_did_not_converge():
+    """(audit 21, 1) a table under absolute calibration on the wide instrument reported "220 cells NOT
+    converged" without saying that eta, not the backend, had stopped. The Dataset's attributes count
+    the cells and eta's largest relative error, and the summary line says so (not in an SE)."""
+    from roadgonio.engines import CellResult
+    from roadgonio.engines.runner import _eta_attrs, precision_text
+
+    def cell(ok, err):
+        return CellResult(12.0, 0.0, 1.75, 0.004, 10, 0.1, {"eta": 6.83, "eta_error": err, "eta_converged": ok,
+                                                            "backend_converged": True}, converged=ok)
+    attrs = _eta_attrs([cell(True, 1e-7), cell(False, 0.0533), cell(False, 0.01)])
+    assert attrs == {"cells_eta_not_converged": 2, "eta_worst_rel_error": pytest.approx(0.0533 / 6.83)}
+    assert _eta_attrs([CellResult(1.0, 0.0, 1.0, 0.001, 10, 0.1)]) == {}
+    text = precision_text({"worst_rel_se": 0.002, "not_converged": 2, "eta_not_converged": 2,
+                           "eta_worst_rel_error": 0.0078})
+    assert "2 cells NOT converged (in 2 of them eta of the absolute calibration" in text and "not in the SE" in text
+    assert "included in the bound" in precision_text({"worst_rel_error_bound": 0.3, "not_converged": 1,
+                                                      "eta_not_converged": 1, "eta_worst_rel_error": 0.0078})
