@@ -82,7 +82,10 @@ def run(args) -> int:
                            if k in (c.extra or {})}})
         else:
             prec = (f"+- {c.error_bound:.2g} (error bound" if c.deterministic else f"+- {c.se:.2g} (standard error"
-                    + (f" with {c.se_dof:.0f} degrees of freedom" if math.isfinite(c.se_dof) else ""))
+                    + (f" with {c.se_dof:.0f} degrees of freedom" if math.isfinite(c.se_dof) else "")
+                    # absolute calibration: eta's deterministic error beside the SE
+                    + (f", and +- {c.error_bound:.2g} error bound of the calibration's eta"
+                       if math.isfinite(c.error_bound) else ""))
             text_output(args)(f"k_A(tan eps = {c.tan_eps:g}, beta = {c.beta_deg:g}) = {c.k_a:.6f} {prec}; "
                               f"{c.samples} samples, {c.seconds:.2f} s, {args.backend} backend)"
                               + ("" if c.converged else _not_converged_text(c, args.rel_se))
@@ -146,7 +149,7 @@ def _not_converged_text(c, target) -> str:
         rel = extra["eta_error"] / extra["eta"] if extra.get("eta") else math.nan
         eta_text = (f" -- NOT converged: eta = <E>/E_0 of the absolute calibration stopped at its cap with relative "
                     f"error {rel:.2g}"
-                    + ("" if c.deterministic else " (a deterministic error estimate, not in the standard error above)"))
+                    + ("" if c.deterministic else " (the error bound beside the standard error above)"))
         if extra.get("backend_converged", True):
             return eta_text
     if c.deterministic:

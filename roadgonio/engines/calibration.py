@@ -296,7 +296,9 @@ class CalibratedBackend:
         s = dict(self.inner.settings())
         cal: dict[str, Any] = self.calibration.to_dict()
         if self.mode == "absolute":
-            cal.update(eta="<E>/E_0 by float64 product Gauss rules (pupil x field x source)", eta_rtol=self.eta_rtol)
+            cal.update(eta="<E>/E_0 by float64 product Gauss rules (pupil x field x source)", eta_rtol=self.eta_rtol,
+                       # (in the settings, so that journals from before it are not resumed without it)
+                       eta_error="a deterministic bound: added to a bound, beside a standard error")
         if self.mode == "reference":
             cal.update(reference_model=self.reference_model.to_json_dict() if self.reference_model else None,
                        se="independent-errors delta method (conservative under common random numbers)")
@@ -306,7 +308,14 @@ class CalibratedBackend:
     # -- one cell ---------------------------------------------------------------------------
     def _absolute(self, c: CellResult) -> CellResult:
         eta, eta_err, eta_ok = illuminance_ratio(self.instrument, c.tan_eps, c.beta_deg, rtol=self.eta_rtol)
-        bound = c.error_bound * eta + abs(c.k_a) * eta_err if math.isfinite(c.error_bound) else math.nan
+        if math.isfinite(c.error_bound):
+            bound = c.error_bound * eta + abs(c.k_a) * eta_err
+        elif math.isfinite(c.se) and not math.isfinite(c.confidence_bound):
+            # a Monte Carlo result (an SE alone): eta's error is deterministic, so it is a bound beside
+            # the SE, not a part of it (audit 21: it was dropped; 0.78 % at tan 12 on the wide preset)
+            bound = abs(c.k_a) * eta_err
+        else:
+            bound = math.nan
         # a confidence bound (the RQMC reference) is scaled like the deterministic bound, at its own level
         conf = dict(confidence_bound=c.confidence_bound * eta + abs(c.k_a) * eta_err
                     if math.isfinite(c.confidence_bound) else math.nan, confidence_level=c.confidence_level)

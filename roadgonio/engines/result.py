@@ -6,7 +6,9 @@ backends.
 Each precision field has ONE meaning:
 
 * ``se``: a standard error (Monte Carlo and randomised quasi-Monte Carlo backends);
-* ``error_bound``: a deterministic bound on |k_A - true k_A| (the quadrature);
+* ``error_bound``: a deterministic bound on |k_A - true k_A| (the quadrature; under absolute
+  calibration a Monte Carlo result has one beside its ``se``: the error of eta = <E>/E_0, computed
+  by float64 rules, not sampled);
 * ``confidence_bound`` with ``confidence_level``: a statistical bound that holds with that
   probability (the RQMC reference: a Student-t interval of its replicates, beside its ``se``);
 * ``se_dof``: the degrees of freedom of the standard errors as estimates (n - 1 for n independent
@@ -83,8 +85,9 @@ class CellResult:
 
     def standard_uncertainty(self) -> float:
         """The standard uncertainty of k_a for an uncertainty budget: the standard error, or for a
-        deterministic bound b the rectangular-distribution value b / sqrt(3) (GUM, JCGM 100 4.3.7).
-        A confidence bound is not a standard uncertainty: a result that has one also has its SE."""
+        deterministic bound b the rectangular-distribution value b / sqrt(3) (GUM, JCGM 100 4.3.7),
+        or both in quadrature when a result has both (:func:`standard_uncertainty`). A confidence
+        bound is not a standard uncertainty: a result that has one also has its SE."""
         return float(standard_uncertainty(self.se, self.error_bound))
 
     def to_dict(self) -> dict[str, Any]:
@@ -99,9 +102,12 @@ class CellResult:
 
 def standard_uncertainty(se, error_bound) -> np.ndarray:
     """:meth:`CellResult.standard_uncertainty` of arrays of ``se`` and ``error_bound`` (any shape,
-    elementwise): the SE where it is finite, else the rectangular value ``error_bound / sqrt 3``."""
+    elementwise): the SE where it is finite, else the rectangular value ``error_bound / sqrt 3``; where
+    both are finite (a Monte Carlo result under absolute calibration, its bound eta's error) the two
+    in quadrature (GUM, independent components)."""
     se = np.asarray(se, dtype=np.float64)
-    return np.where(np.isfinite(se), se, np.asarray(error_bound, dtype=np.float64) / math.sqrt(3.0))
+    rect = np.asarray(error_bound, dtype=np.float64) / math.sqrt(3.0)
+    return np.where(np.isfinite(se), np.where(np.isfinite(rect), np.hypot(se, rect), se), rect)
 
 
 class KaBackend(Protocol):

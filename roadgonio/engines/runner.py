@@ -487,16 +487,20 @@ def _eta_attrs(results) -> dict[str, Any]:
 
 
 def precision_text(summary: dict[str, Any]) -> str:
-    """'worst rel. SE 1.5e-04' or 'worst rel. error bound 9.9e-04' (never one for the other)."""
+    """'worst rel. SE 1.5e-04' or 'worst rel. error bound 9.9e-04' (never one for the other; a Monte
+    Carlo table under absolute calibration gives its SE and, beside it, eta's bound)."""
     for key, name in (("worst_rel_se", "worst rel. SE"), ("worst_rel_error_bound", "worst rel. error bound")):
         if summary.get(key) is not None:
             text = f"{name} {summary[key]:.1e}"
+            if key == "worst_rel_se" and summary.get("worst_rel_error_bound") is not None:
+                # absolute calibration of a Monte Carlo table: eta's error, a bound beside the SE
+                text += f" (and eta's worst rel. error bound {summary['worst_rel_error_bound']:.1e})"
             if summary.get("not_converged"):
                 text += f", {count(summary['not_converged'], 'cell')} NOT converged"
                 if summary.get("eta_not_converged"):
                     text += (f" (in {summary['eta_not_converged']} of them eta of the absolute calibration stopped at "
                              f"its cap: relative error up to {summary['eta_worst_rel_error']:.1e}, "
-                             + ("not in the SE)" if key == "worst_rel_se" else "included in the bound)"))
+                             + ("the error bound beside the SE)" if key == "worst_rel_se" else "included in the bound)"))
             return text
     return ""
 

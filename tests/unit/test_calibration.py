@@ -342,14 +342,15 @@ def test_a_cell_whose_eta_did_not_converge_says_so_not_that_its_backend_stopped(
     """(audit 21, 1) wide, absolute calibration, tan eps 12, beta 0, Mitsuba: the SE met its target
     but eta (float64 rules) stopped at its cap with a 0.78 % error estimate, and the command said
     "stopped at the backend's sample/evaluation cap with relative SE 0.0024". The message names eta,
-    its relative error and that an SE does not hold it; the backend's own stop is named apart."""
+    its relative error and that it is the error bound beside the SE; the backend's own stop is named
+    apart."""
     from roadgonio.cli.ka import _not_converged_text
     from roadgonio.engines import CellResult
     extra = {"calibration": "absolute", "eta": 6.83, "eta_error": 0.0533, "eta_converged": False,
              "backend_converged": True}
     mc = CellResult(12.0, 0.0, 1.75, 0.0042, 10, 0.1, extra, converged=False)
     text = _not_converged_text(mc, 3e-3)
-    assert "eta = <E>/E_0" in text and "0.0078" in text and "not in the standard error" in text
+    assert "eta = <E>/E_0" in text and "0.0078" in text and "error bound beside the standard error" in text
     assert "sample/evaluation cap" not in text
     both = CellResult(12.0, 0.0, 1.75, 0.05, 10, 0.1, {**extra, "backend_converged": False}, converged=False)
     text = _not_converged_text(both, 3e-3)
@@ -374,6 +375,24 @@ def test_a_table_says_in_how_many_cells_eta_did_not_converge():
     assert _eta_attrs([CellResult(1.0, 0.0, 1.0, 0.001, 10, 0.1)]) == {}
     text = precision_text({"worst_rel_se": 0.002, "not_converged": 2, "eta_not_converged": 2,
                            "eta_worst_rel_error": 0.0078})
-    assert "2 cells NOT converged (in 2 of them eta of the absolute calibration" in text and "not in the SE" in text
+    assert "2 cells NOT converged (in 2 of them eta of the absolute calibration" in text and "beside the SE" in text
     assert "included in the bound" in precision_text({"worst_rel_error_bound": 0.3, "not_converged": 1,
                                                       "eta_not_converged": 1, "eta_worst_rel_error": 0.0078})
+
+
+def test_a_monte_carlo_result_under_absolute_calibration_carries_eta_s_error_as_a_bound():
+    """(audit 21, 1) eta = <E>/E_0 is computed by float64 rules, with an error estimate (0.78 % at tan
+    eps 12 on the wide preset) that a Monte Carlo backend's result dropped: its SE holds only the
+    sampling. The result now has error_bound = |k_A(lambert)| eta_error beside the SE, and its
+    standard uncertainty takes both (in quadrature, the bound as rectangular)."""
+    from roadgonio.engines.result import standard_uncertainty
+    inst = load_instrument("portable").with_changes(calibration={"mode": "absolute"})
+    lam = make_backend("numpy-mc", load_instrument("portable"), r3like(), rel_se=1e-2, seed=3).compute([(4.0, 0.0)])[0]
+    c = make_backend("numpy-mc", inst, r3like(), rel_se=1e-2, seed=3).compute([(4.0, 0.0)])[0]
+    eta, eta_err, _ = illuminance_ratio(inst, 4.0, 0.0)
+    assert math.isfinite(c.se) and not c.deterministic
+    assert c.error_bound == pytest.approx(abs(lam.k_a) * eta_err, rel=ROUND_TOL, abs=0.0) and c.error_bound > 0
+    assert c.standard_uncertainty() == pytest.approx(math.hypot(c.se, c.error_bound / math.sqrt(3)), rel=1e-12)
+    # the three cases of the arrays' rule: SE alone, bound alone, both
+    got = standard_uncertainty([0.3, math.nan, 0.3], [math.nan, math.sqrt(3) * 0.4, math.sqrt(3) * 0.4])
+    assert np.allclose(got, [0.3, 0.4, 0.5], rtol=1e-12, atol=0)
