@@ -282,6 +282,13 @@ class CorrectionResult:
         sc = self.extra.get("surface")
         if sc is not None:
             out["model_estimate"] = sc.model_estimate_summary()
+            # the surface's own loop through a housing and the road beyond the observation elevations,
+            # as the joint summary gives them (audit 21: docs/correction.md names them, correct.json of
+            # one instrument had neither)
+            full = sc.summary()
+            out["surface_steps"] = full["surface_steps"]
+            out["per_instrument"] = [{k: p[k] for k in ("instrument", "unobserved_sensitivity_max")}
+                                     for p in full["per_instrument"]]
         out["steps"] = self.steps
         return out
 

@@ -149,6 +149,11 @@ def test_the_road_beyond_the_observation_elevations_is_in_u(mi):
     assert np.all(np.isfinite(sens)) and np.max(np.abs(sens)) > 0.01, sens
     said = res.extra["surface"].summary()["per_instrument"][0]["unobserved_sensitivity_max"]
     assert said == float(np.max(np.abs(sens)))
+    # correct.json of one instrument (the CorrectionResult's summary) gives them too (audit 21: it had
+    # neither the surface's renderings nor the sensitivity, which docs/correction.md names)
+    top = res.summary()
+    assert top["per_instrument"][0]["unobserved_sensitivity_max"] == said
+    assert top["surface_steps"] and top["surface_steps"] == res.extra["surface"].summary()["surface_steps"]
     import csv
     import io
 
