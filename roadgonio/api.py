@@ -368,6 +368,9 @@ def write_table(da, path) -> Path:
     suffix is an :class:`InputError`). The CSV header is ``attrs["source"]`` (the RTB's name line
     ``attrs["name"]``): a table computed from another keeps that one's attrs (xarray arithmetic),
     so give it its own ``source`` (README's example)."""
+    if not isinstance(path, (str, Path)):
+        # (audit 21: None or 3 gave pathlib's TypeError)
+        raise InputError(f"expected the path of a .csv or .rtb file, got {type(path).__name__}", field="path")
     return _table(da).write(_table_file(path, "path"))
 
 
@@ -743,6 +746,22 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     return res
 
 
+def _without_fresh(f):
+    """``f`` whose errors about a folder of another run say to use another folder or remove it, not
+    --fresh: ``correct`` has none (:func:`roadgonio.fileio.without_fresh`; audit 21)."""
+    import functools
+
+    @functools.wraps(f)
+    def wrapped(*args, **kwargs):
+        from roadgonio.fileio import without_fresh
+        try:
+            return f(*args, **kwargs)
+        except InputError as err:
+            raise without_fresh(err) from None
+    return wrapped
+
+
+@_without_fresh
 def correct(measured, instrument, *, reference="self", alternatives: str | Sequence[str] | None = "auto",
             u_measured: Any = None, sigma: Any = None, backend: str = "mitsuba", accuracy: str | None = None,
             rel_se: float | None = None, seed: int = 0, mitsuba_variant: str | None = None,
@@ -777,6 +796,11 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     which the road's BRDF beyond the observation elevations the instruments saw is known, one standard
     uncertainty of ln F (None: 2; 1 leaves the budget's "unobserved" component out; docs/correction.md,
     "The road beyond the observation elevations")."""
+    _check_correct_options(options)
+    if isinstance(joint, str) or joint not in (True, False):
+        raise InputError(f"expected True or False, got {joint!r}", field="joint")
+    if workers is not None:
+        _check_int(workers, "workers", 0)
     if mirror_plane is not None:
         options["settings"] = _surface_settings(options.get("settings"), mirror_plane, joint or forward == "surface")
     if unobserved_road is not None:
@@ -784,7 +808,7 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
                                                    joint or forward == "surface")
     if joint:
         return _said_unused(unobserved_road, _correct_joint(
-                              measured, instrument, u_measured=u_measured, sigma=sigma, backend=backend,
+                              measured, instrument, u_measured=_u_measured(u_measured), sigma=sigma, backend=backend,
                               accuracy=accuracy, rel_se=rel_se, seed=seed, mitsuba_variant=mitsuba_variant,
                               model_variant=model_variant, rays=rays, out=out, plots=plots, progress=progress,
                               workers=workers, scheduler=scheduler, reference=reference, forward=forward, **options))
@@ -818,7 +842,7 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
                                 fields={"tolerance": "rel_se"})
     if scheduler is None and workers in (None, 0):
         prepare_entry_point(backend, mitsuba_variant)     # in this process: the API is the entry point
-    opts = dict(u_measured="1%" if u_measured is None else u_measured, sigma=sigma, backend=backend,
+    opts = dict(u_measured=_u_measured(u_measured), sigma=sigma, backend=backend,
                 backend_settings=settings, accuracy=accuracy, model_variant=model_variant, seed=seed,
                 progress=_show(progress), **options)
     if forward == "surface" and not self_ref:
@@ -845,6 +869,47 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
         res.out, res.written = sub, written
         results.append(_said_unused(unobserved_road, res))
     return results if many else results[0]
+
+
+def _u_measured(u_measured: Any) -> Any:
+    """``correct``'s ``u_measured`` as :func:`roadgonio.correction.run.measured_uncertainty` takes it:
+    None is "1%"; a number (numpy's too), a text or a path as given; an RTable or a DataArray of u in
+    sr^-1 as an RTable (audit 21: a DataArray was read as a file name, the error several kB long)."""
+    import numbers
+    if u_measured is None:
+        return "1%"
+    if isinstance(u_measured, (list, tuple)):             # one per table of a joint correction
+        return [_u_measured(x) for x in u_measured]
+    if isinstance(u_measured, numbers.Real) and not isinstance(u_measured, bool):
+        return float(u_measured)
+    if isinstance(u_measured, (str, Path)):
+        return u_measured
+    from roadgonio.surface.sample import _as_table
+    t = _as_table(u_measured)
+    if t is None:
+        raise InputError(f"expected '1%', a fraction, an r-table file of standard uncertainties, an RTable or a "
+                         f"DataArray of them, got {type(u_measured).__name__}", field="u_measured")
+    return t
+
+
+def _check_correct_options(options: Mapping[str, Any]) -> None:
+    """The keyword arguments of :func:`correct` beyond its named ones are the expert options of the
+    procedures it calls (``starts``, ``tol``, ``settings``, ...); any other is a misspelling, which
+    was passed on and dropped without a word (audit 21: ``u_measurd='5%'`` gave 1 %)."""
+    import inspect
+
+    from roadgonio.correction.outside import correct_surface
+    from roadgonio.correction.run import correct_self, correct_with_reference
+    allowed: set[str] = set()
+    for f in (correct_self, correct_surface, correct_with_reference):
+        allowed |= set(inspect.signature(f).parameters)
+    allowed -= set(inspect.signature(correct).parameters) | {
+        "measured", "tables", "instruments", "out_dir", "artefacts", "backend_settings", "variant",
+        "reference_name"}
+    bad = sorted(set(options) - allowed)
+    if bad:
+        raise InputError(f"unknown argument {bad[0]!r} of correct; expected its named arguments or one of "
+                         f"{', '.join(sorted(allowed))}", field=bad[0])
 
 
 def _said_unused(unobserved_road, res):
@@ -894,7 +959,8 @@ def _unobserved_settings(settings, factor, surface: bool):
     if not surface:
         raise InputError("the road beyond the observation elevations is a setting of the correction surface: give "
                          "it with the forward model 'surface' or a joint correction", field="unobserved_road")
-    if isinstance(factor, bool) or not isinstance(factor, (int, float)) or not (math.isfinite(factor) and factor >= 1.0):
+    import numbers
+    if isinstance(factor, bool) or not isinstance(factor, numbers.Real) or not (math.isfinite(factor) and factor >= 1.0):
         raise InputError(f"expected a factor of 1 or more (1: the road there taken as fitted, no component), got "
                          f"{factor!r}", field="unobserved_road")
     from dataclasses import replace
@@ -977,7 +1043,9 @@ def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured:
         from roadgonio.correction.run import check_measured
         check_measured(table, measured if isinstance(measured, (str, Path)) else None)
     smp = sample
-    if isinstance(sample, (str, Path)):
+    if sample is not None and not hasattr(sample, "evaluate"):
+        # anything resolve_sample takes (a name, a file, an RTable, a DataArray: audit 21, an RTable
+        # or a DataArray ended in AttributeError 'evaluate')
         smp = _sample(sample, model_variant, field="sample").model
     from roadgonio.design.grid import parse_fraction
     ms = DEFAULT_MIN_SIGNAL if min_signal is None else parse_fraction(min_signal, "min_signal", 0.25)[0]

@@ -30,6 +30,21 @@ from roadgonio.interrupts import critical
 TMP_PREFIX = ".roadgonio-tmp-"
 
 
+
+#: How a journal or results folder of another run is to be dealt with, for the commands that have
+#: --fresh; ``correct`` has none and says :data:`NO_FRESH_HINT` instead (:func:`without_fresh`)
+FRESH_HINT = "use another --out folder, or --fresh to discard it"
+NO_FRESH_HINT = "use another --out folder, or remove this one"
+
+
+def without_fresh(err: InputError) -> InputError:
+    """``err`` with :data:`FRESH_HINT` replaced by :data:`NO_FRESH_HINT`, for a command without
+    --fresh (audit 21: correct said to use --fresh, which it does not have)."""
+    if FRESH_HINT not in err.reason:
+        return err
+    return InputError(err.reason.replace(FRESH_HINT, NO_FRESH_HINT), path=err.path, line=err.line, field=err.field,
+                      argument=err.argument)
+
 def output_error(path: str | Path, err: OSError) -> InputError:
     """The one-line error of a failed output: the file, and the system's reason."""
     reason = err.strerror or str(err)
@@ -227,8 +242,7 @@ def read_journal(path: str | Path, fingerprint: str, *, different: str,
         raise InputError("the journal's first line is not valid JSON; move the folder away or use --fresh",
                          path=path, line=1) from None
     if not isinstance(head, dict) or head.get("fingerprint") != fingerprint:
-        raise InputError(f"this folder holds {different}; use another --out folder, or --fresh to discard it",
-                         path=path, line=1)
+        raise InputError(f"this folder holds {different}; {FRESH_HINT}", path=path, line=1)
     for k, line in enumerate(lines[1:], start=2):
         try:
             key, value = record(json.loads(line))
@@ -261,7 +275,7 @@ def check_run_folder(out_dir: str | Path, meta_name: str, fingerprint: str, *, w
         old = json.loads(meta.read_text(encoding="utf-8")).get("fingerprint")
     except OSError as err:
         raise InputError(f"cannot read this file ({err.strerror or err}) to check which run it belongs to; "
-                         "use another --out folder, or --fresh to discard it", path=meta) from None
+                         f"{FRESH_HINT}", path=meta) from None
     except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
         old = None
     if old != fingerprint:

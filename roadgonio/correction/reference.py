@@ -32,9 +32,18 @@ def resolve_alternatives(spec: str | Sequence[str] | None, measured: RTable, *, 
             return {sample_name(n): _auto_alternative(n) for n in names}
     elif isinstance(spec, str):
         text = spec.strip()
-        names = [] if text.lower() in ("none", "") else [s.strip() for s in text.split(",") if s.strip()]
-    else:
+        names = [] if text.lower() == "none" else [s.strip() for s in text.split(",") if s.strip()]
+        if not names and text.lower() != "none":
+            # "" or "," named none: the model component would vanish without a word (audit 21)
+            from roadgonio.errors import InputError
+            raise InputError(f"no sample named in {spec!r}; expected auto, none, or SAMPLEs separated by commas",
+                             field="--alternatives")
+    elif isinstance(spec, (list, tuple)):
         names = [str(s) for s in spec]
+    else:
+        from roadgonio.errors import InputError
+        raise InputError(f"expected auto, none, a text of SAMPLEs separated by commas or a list of them, got "
+                         f"{type(spec).__name__}", field="--alternatives")
     # every name resolved before any note is said: a mistake in the last is one line, not the notes
     # of the others before it (trial 12 D8: R2's spike note, then the error about R9)
     from roadgonio.errors import InputError, notes_held

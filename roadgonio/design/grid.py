@@ -154,9 +154,15 @@ def as_vary_specs(vary: Sequence[str | VarySpec] | Mapping[str, Sequence[float]]
                 if bad:
                     raise InputError(f"expected numbers as the values of {key}, got {bad[0]!r}", field="vary")
                 specs.append(parse_vary(f"{key}=" + ",".join(repr(float(v)) for v in values)))
-    else:
+    elif isinstance(vary, (list, tuple)):
         for v in vary:
+            if not isinstance(v, (str, VarySpec)):
+                raise InputError(f"expected 'key=values' texts, got {type(v).__name__} {v!r}", field="vary")
             specs.append(v if isinstance(v, VarySpec) else parse_vary(v))
+    else:
+        # (audit 21: an int gave TypeError 'int' object is not iterable)
+        raise InputError(f"expected 'key=values' texts, a list of them or a {{key: values}} mapping, got "
+                         f"{type(vary).__name__}", field="vary")
     seen = set()
     for s in specs:
         if s.key in seen:

@@ -388,3 +388,57 @@ def test_road_metrics_refuses_a_list_of_u_of_another_length_than_the_tables():
         with pytest.raises(InputError, match=f"one entry per table .*: expected 2, got {len(us)}") as err:
             rg.road_metrics(["R3", "R2"], u=us)
         assert err.value.field == "u"
+
+
+def test_correct_refuses_what_it_would_drop_or_misread(tmp_path):
+    """(audit 21, correct and the API) each was accepted, dropped or a traceback: a misspelt keyword
+    (u_measurd='5%' gave 1 %), alternatives 3 or ',' (the model component vanished), joint='no'
+    (truthy), workers=-1 (an error about 'out'), u_measured as an ndarray (read as a file name, a
+    several-kB message). Each is now one InputError naming the argument."""
+    m = rg.read_table("R3")
+    for kwargs, fld in (({"u_measurd": "5%"}, "u_measurd"), ({"alternatives": 3}, "--alternatives"),
+                        ({"alternatives": ","}, "--alternatives"), ({"joint": "no"}, "joint"),
+                        ({"workers": -1}, "workers"), ({"u_measured": np.ones(3)}, "u_measured")):
+        args = {"reference": "R3", "alternatives": "none", "backend": "quadrature", **kwargs}
+        with pytest.raises(InputError) as err:
+            rg.correct(m, "portable", out=tmp_path / "c", **args)
+        assert err.value.field == fld and "\n" not in str(err.value) and len(str(err.value)) < 400, str(err.value)
+    assert not (tmp_path / "c").exists()
+    # a DataArray (or a numpy number) of u is taken as the API takes tables everywhere else
+    res = rg.correct(m, "portable", reference="R3", alternatives="none", u_measured=m * 0.02, backend="quadrature",
+                     accuracy="fast")
+    meas = res.budget.components["measurement"]
+    assert np.allclose(np.sqrt(np.diag(meas)), 0.02, rtol=1e-9)
+
+
+def test_a_correction_folder_of_another_run_says_what_correct_can_do(tmp_path):
+    """(audit 21, 2) a rerun with other alternatives said 'use another --out folder, or --fresh to
+    discard it'; correct has no --fresh (the command and the API refused it)."""
+    from roadgonio.fileio import FRESH_HINT, NO_FRESH_HINT, without_fresh
+    m = rg.read_table("R3")
+    common = dict(reference="R3", backend="quadrature", accuracy="fast", out=tmp_path / "c", plots=False)
+    rg.correct(m, "portable", alternatives="R2", **common)
+    with pytest.raises(InputError) as err:
+        rg.correct(m, "portable", alternatives="R4", **common)
+    assert NO_FRESH_HINT in str(err.value) and "--fresh" not in str(err.value)
+    e = InputError(f"this folder holds x; {FRESH_HINT}", path="p", line=1)
+    assert without_fresh(e).reason == f"this folder holds x; {NO_FRESH_HINT}" and without_fresh(e).path == "p"
+
+
+def test_api_arguments_of_the_wrong_type_are_one_input_error(tmp_path):
+    """(audit 21, 4-5) write_table(da, None), design_study(vary=3) and second_aperture(sample=3) ended
+    in TypeError / AttributeError tracebacks; second_aperture refused the RTable and DataArray its
+    docstring promises (AttributeError 'evaluate')."""
+    da = rg.read_table("R3")
+    for call, fld in ((lambda: rg.write_table(da, None), "path"), (lambda: rg.write_table(da, 3), "path"),
+                      (lambda: rg.design_study("portable", 3, "R3", cells=[(12, 0)], backend="quadrature",
+                                               accuracy="fast", workers=0), "vary"),
+                      (lambda: rg.design_study("portable", [3], "R3", cells=[(12, 0)], backend="quadrature",
+                                               accuracy="fast", workers=0), "vary"),
+                      (lambda: rg.second_aperture("portable", ["detector.field_half_angle_deg=0.05"], sample=3),
+                       "sample")):
+        with pytest.raises(InputError) as err:
+            call()
+        assert err.value.field == fld, str(err.value)
+    res = rg.second_aperture("portable", ["detector.field_half_angle_deg=0.05"], sample=da, rays=64, min_signal=0.05)
+    assert res.best is not None
