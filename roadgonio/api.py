@@ -827,6 +827,8 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     if not items:
         raise InputError("expected at least one measured table", field="measured")
     tables = _measured_tables(items)
+    for item in items:
+        _check_u_file(item, u_measured, "u_measured")
     seed = check_seed(seed)
     inst = _instrument(instrument)
     self_ref = isinstance(reference, str) and reference.strip().lower() == "self"
@@ -1310,24 +1312,26 @@ def _u_instead(uf) -> str:
         "give its standard uncertainty (r x 1e4 in the r-table CSV layout, as correct writes corrected_u.csv)"
 
 
-def _check_u_file(item, uf) -> None:
+def _check_u_file(item, uf, arg: str = "u") -> None:
     """A u that is an r-table by its name alone (trial 11 D3: `--u corrected.csv` / `corrected.rtb`,
     tab completion's neighbours of corrected_u.csv, ran with u = 100 % of r): a bundled table, an RTB
-    (a format for r only) or the table file itself is an :class:`InputError` naming the file."""
+    (a format for r only) or the table file itself is an :class:`InputError` naming the file and the
+    argument ``arg`` (road's ``u``, correct's ``u_measured``: audit 21, the measured file given as its
+    own u ran with u = 100 %)."""
     from roadgonio.surface.rtable import BUNDLED
     if not isinstance(uf, (str, Path)):
         return
     p = Path(str(uf))
     if isinstance(uf, str) and not p.suffix and uf.strip().upper() in BUNDLED:
         raise InputError(f"'{uf}' is the bundled r-table {uf.strip().upper()}, not a standard uncertainty: give a file "
-                         "of u (r x 1e4 in the r-table CSV layout, as correct writes corrected_u.csv)", field="u")
+                         "of u (r x 1e4 in the r-table CSV layout, as correct writes corrected_u.csv)", field=arg)
     if p.suffix.lower() == ".rtb":
         raise InputError(f"an RTB file holds an r-table (the format has no standard uncertainties), not a standard "
-                         f"uncertainty: {_u_instead(p.with_suffix('.csv'))}", path=uf, argument="u")
+                         f"uncertainty: {_u_instead(p.with_suffix('.csv'))}", path=uf, argument=arg)
     if isinstance(item, (str, Path)) and Path(str(item)).suffix and p.is_file() and Path(str(item)).is_file() \
             and os.path.samefile(p, Path(str(item))):
         raise InputError(f"is the table file {item} itself, an r-table, not a standard uncertainty: {_u_instead(p)}",
-                         path=uf, argument="u")
+                         path=uf, argument=arg)
 
 
 def _check_u_is_u(uf, ut: "RTable") -> None:

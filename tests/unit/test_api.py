@@ -442,3 +442,15 @@ def test_api_arguments_of_the_wrong_type_are_one_input_error(tmp_path):
         assert err.value.field == fld, str(err.value)
     res = rg.second_aperture("portable", ["detector.field_half_angle_deg=0.05"], sample=da, rays=64, min_signal=0.05)
     assert res.best is not None
+
+
+def test_the_measured_table_given_as_its_own_u_is_refused(tmp_path):
+    """(audit 21) `correct --u-measured meas.csv` with meas.csv the measured table ran with u = 100 %
+    of r; road --u refuses the same mistake. An RTB (a format for r only) is refused too."""
+    meas = rg.write_table(rg.read_table("R3"), tmp_path / "meas.csv")
+    for u, words in ((meas, "is the table file"), (tmp_path / "u.rtb", "an RTB file holds an r-table")):
+        with pytest.raises(InputError, match=words) as err:
+            rg.correct(str(meas), "portable", reference="R3", alternatives="none", u_measured=str(u),
+                       backend="quadrature", out=tmp_path / "c")
+        assert err.value.argument == "u_measured"
+    assert not (tmp_path / "c").exists()
