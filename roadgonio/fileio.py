@@ -29,21 +29,24 @@ from roadgonio.interrupts import critical
 #: Prefix of temporary files and staging folders (hidden; removed on success and on errors).
 TMP_PREFIX = ".roadgonio-tmp-"
 
-
-
-#: How a journal or results folder of another run is to be dealt with, for the commands that have
-#: --fresh; ``correct`` has none and says :data:`NO_FRESH_HINT` instead (:func:`without_fresh`)
+#: How a journal or results folder of another run (:data:`FRESH_HINT`), or one that cannot be read
+#: (:data:`MOVE_HINT`), is to be dealt with, for the commands that have --fresh; ``correct`` has none
+#: and says the hint of :data:`NO_FRESH_HINTS` instead (:func:`without_fresh`)
 FRESH_HINT = "use another --out folder, or --fresh to discard it"
-NO_FRESH_HINT = "use another --out folder, or remove this one"
+MOVE_HINT = "move the folder away or use --fresh"
+NO_FRESH_HINTS = {FRESH_HINT: "use another --out folder, or remove this one", MOVE_HINT: "move the folder away"}
 
 
 def without_fresh(err: InputError) -> InputError:
-    """``err`` with :data:`FRESH_HINT` replaced by :data:`NO_FRESH_HINT`, for a command without
-    --fresh (audit 21: correct said to use --fresh, which it does not have)."""
-    if FRESH_HINT not in err.reason:
+    """``err`` with its --fresh hint replaced by :data:`NO_FRESH_HINTS`, for a command without --fresh
+    (audit 21: correct said to use --fresh, which it does not have)."""
+    reason = err.reason
+    for hint, instead in NO_FRESH_HINTS.items():
+        reason = reason.replace(hint, instead)
+    if reason == err.reason:
         return err
-    return InputError(err.reason.replace(FRESH_HINT, NO_FRESH_HINT), path=err.path, line=err.line, field=err.field,
-                      argument=err.argument)
+    return InputError(reason, path=err.path, line=err.line, field=err.field, argument=err.argument)
+
 
 def output_error(path: str | Path, err: OSError) -> InputError:
     """The one-line error of a failed output: the file, and the system's reason."""
@@ -230,16 +233,16 @@ def read_journal(path: str | Path, fingerprint: str, *, different: str,
         with path.open(encoding="utf-8") as f:
             lines = f.read().splitlines()
     except OSError as err:
-        raise InputError(f"cannot read this journal ({err.strerror or err}); move the folder away or use --fresh",
+        raise InputError(f"cannot read this journal ({err.strerror or err}); {MOVE_HINT}",
                          path=path) from None
     except UnicodeDecodeError:
-        raise InputError("this journal is not a text file; move the folder away or use --fresh", path=path) from None
+        raise InputError(f"this journal is not a text file; {MOVE_HINT}", path=path) from None
     if not lines:
         return done
     try:
         head = json.loads(lines[0])
     except json.JSONDecodeError:
-        raise InputError("the journal's first line is not valid JSON; move the folder away or use --fresh",
+        raise InputError(f"the journal's first line is not valid JSON; {MOVE_HINT}",
                          path=path, line=1) from None
     if not isinstance(head, dict) or head.get("fingerprint") != fingerprint:
         raise InputError(f"this folder holds {different}; {FRESH_HINT}", path=path, line=1)
@@ -249,7 +252,7 @@ def read_journal(path: str | Path, fingerprint: str, *, different: str,
         except (KeyError, TypeError, ValueError):         # json.JSONDecodeError is a ValueError
             if k == len(lines):     # cut short by an interruption: that work is done again
                 break
-            raise InputError("corrupt journal line; move the folder away or use --fresh", path=path, line=k) from None
+            raise InputError(f"corrupt journal line; {MOVE_HINT}", path=path, line=k) from None
         done[key] = value
     return done
 

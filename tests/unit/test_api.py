@@ -414,7 +414,8 @@ def test_correct_refuses_what_it_would_drop_or_misread(tmp_path):
 def test_a_correction_folder_of_another_run_says_what_correct_can_do(tmp_path):
     """(audit 21, 2) a rerun with other alternatives said 'use another --out folder, or --fresh to
     discard it'; correct has no --fresh (the command and the API refused it)."""
-    from roadgonio.fileio import FRESH_HINT, NO_FRESH_HINT, without_fresh
+    from roadgonio.fileio import FRESH_HINT, MOVE_HINT, NO_FRESH_HINTS, without_fresh
+    NO_FRESH_HINT = NO_FRESH_HINTS[FRESH_HINT]
     m = rg.read_table("R3")
     common = dict(reference="R3", backend="quadrature", accuracy="fast", out=tmp_path / "c", plots=False)
     rg.correct(m, "portable", alternatives="R2", **common)
@@ -423,6 +424,9 @@ def test_a_correction_folder_of_another_run_says_what_correct_can_do(tmp_path):
     assert NO_FRESH_HINT in str(err.value) and "--fresh" not in str(err.value)
     e = InputError(f"this folder holds x; {FRESH_HINT}", path="p", line=1)
     assert without_fresh(e).reason == f"this folder holds x; {NO_FRESH_HINT}" and without_fresh(e).path == "p"
+    # the journal's own troubles (unreadable, corrupt) say what to do without --fresh too
+    e = InputError(f"corrupt journal line; {MOVE_HINT}", path="p", line=3)
+    assert without_fresh(e).reason == "corrupt journal line; move the folder away" and without_fresh(e).line == 3
 
 
 def test_api_arguments_of_the_wrong_type_are_one_input_error(tmp_path):
