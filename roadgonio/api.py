@@ -1003,6 +1003,10 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
         raise InputError(f"a joint correction takes one instrument per measured table, at least two; got "
                          f"{len(items)} table(s) and {len(insts)} instrument(s)", field="instrument")
     tables = _measured_tables(items)
+    # the review of session 21: a measured file (any of them) or an RTB as a u of the joint fit ran with u = 100 %
+    for uf in (u_measured if isinstance(u_measured, list) else [u_measured]):
+        for item in items:
+            _check_u_file(item, uf, "u_measured")
     seed = check_seed(seed)
     instruments = [_instrument(i) for i in insts]
     info = _command_backend("correct", backend)

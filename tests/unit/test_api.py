@@ -458,3 +458,17 @@ def test_the_measured_table_given_as_its_own_u_is_refused(tmp_path):
                        backend="quadrature", out=tmp_path / "c")
         assert err.value.argument == "u_measured"
     assert not (tmp_path / "c").exists()
+
+
+def test_a_measured_table_given_as_a_u_of_the_joint_fit_is_refused(tmp_path):
+    """(session 22) the joint route did not check its u files: either measured table, given as a u of
+    one of them (in a list, one per table), or an RTB, ran with u = 100 % of r."""
+    a = rg.write_table(rg.read_table("R3"), tmp_path / "a.csv")
+    b = rg.write_table(rg.read_table("R3"), tmp_path / "b.csv")
+    for u, words in (([str(a), "1%"], "is the table file"), (["1%", str(a)], "is the table file"),
+                     (str(tmp_path / "u.rtb"), "an RTB file holds an r-table")):
+        with pytest.raises(InputError, match=words) as err:
+            rg.correct([str(a), str(b)], ["portable", "wide"], joint=True, u_measured=u, backend="quadrature",
+                       out=tmp_path / "c")
+        assert err.value.argument == "u_measured"
+    assert not (tmp_path / "c").exists()
