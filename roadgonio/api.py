@@ -1392,9 +1392,10 @@ def _header_for_corr(item, t: "RTable", ut: "RTable") -> str | None:
 
 
 def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
-    """Two r-tables side by side (``roadgonio compare``): the ratio r(B)/r(A) cell by cell with its
-    range and largest change, S1, S2, Q0 and cells of both; with ``out`` (a folder or
-    :data:`AUTO`) writes compare.csv, compare.json and (``plots``) compare.png."""
+    """Two r-tables side by side (``roadgonio compare``): the ratio r(B)/r(A) cell by cell (``ratio``,
+    a DataArray over tan_eps x beta) with its range and largest change, S1, S2, Q0 and cells of both;
+    with ``out`` (a folder or :data:`AUTO`) writes compare.csv, compare.json and (``plots``)
+    compare.png."""
     from roadgonio.fileio import to_json
     from roadgonio.provenance import provenance
     from roadgonio.road.compare import COMPARE_FILES, compare_csv, compare_png
@@ -1417,6 +1418,12 @@ def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
         summary["written"] = [str(p) for p in write_together(folder, files, replaces=COMPARE_FILES)]
         summary["out"] = str(folder)
     summary["a"], summary["b"] = ta.name, tb.name
+    import xarray as xr
+
+    from roadgonio.surface.rtable import grid_coords
+    summary["ratio"] = xr.DataArray(res["ratio"], dims=("tan_eps", "beta"), coords=grid_coords(ta.tan_eps, ta.beta_deg),
+                                    name="ratio", attrs={"units": "1", "long_name": f"r({tb.name}) / r({ta.name})",
+                                                         "note": "NaN: not in both tables or 0 in both; inf: r(A) = 0"})
     return summary
 
 

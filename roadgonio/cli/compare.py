@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from roadgonio import api
 from roadgonio.cli._common import add_output_options, out_arg, print_json
+from roadgonio.errors import count
+from roadgonio.road.compare import largest_change_text
 
 
 def register(sub) -> None:
@@ -21,7 +23,7 @@ def register(sub) -> None:
 def run(args) -> int:
     res = api.compare_tables(args.a, args.b, out=out_arg(args), plots=not args.no_plots)
     if args.json:
-        print_json({k: v for k, v in res.items() if k not in ("a", "b", "out")})
+        print_json({k: v for k, v in res.items() if k not in ("a", "b", "out", "ratio")})
     elif not args.quiet:
         a, b = res["a"], res["b"]
         ca, cb = res["characteristics"][a], res["characteristics"][b]
@@ -30,9 +32,11 @@ def run(args) -> int:
         for key, fmt in (("S1", ".3f"), ("S2", ".3f"), ("Q0", ".4f"), ("cells", "d")):
             print(f"{key:8} " + " ".join("-".rjust(n) if c[key] is None else format(c[key], f"{n}{fmt}")
                                          for c in (ca, cb)))
-        lc = res["largest_change_at"]
         print(f"r({b}) / r({a}) over {res['cells_compared']} cells: {res['ratio_min']:.3g} ... "
-              f"{res['ratio_max']:.3g} (median {res['ratio_median']:.3g}); largest change x{lc['ratio']:.3g} at "
-              f"tan eps {lc['tan_eps']:g}, beta {lc['beta_deg']:g} deg")
+              f"{res['ratio_max']:.3g} (median {res['ratio_median']:.3g}); {largest_change_text(res)}")
+        for key, what in (("cells_zero_in_A", f"r({a}) = 0 < r({b})"), ("cells_zero_in_B", f"r({b}) = 0 < r({a})"),
+                          ("cells_ratio_undefined", "0 in both: no ratio")):
+            if res[key]:
+                print(f"  {count(res[key], 'cell')} with {what}")
         print(f"wrote {len(res['written'])} files to {res['out']}")
     return 0

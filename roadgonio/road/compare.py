@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import io
+import math
 
 import numpy as np
 
@@ -14,27 +15,46 @@ COMPARE_FILES = ("compare.csv", "compare.json", "compare.png")
 
 
 def compare_tables(a: RTable, b: RTable) -> dict:
+    """The ratio r(B)/r(A) over the cells both tables hold and the largest change (|ln ratio|).
+    r(B) = 0 < r(A) gives a ratio of 0 and r(A) = 0 < r(B) an infinite one (in ``ratio``, not in the
+    range, the median nor ``cells_compared``, which are of the finite ratios): both are infinite
+    changes, counted apart (``cells_zero_in_B``, ``cells_zero_in_A``); a cell 0 in both has no ratio
+    (``cells_ratio_undefined``). ``largest_change_at`` is None when every compared cell is equal."""
     if not a.same_grid(b):
         raise InputError(f"tables {a.name} and {b.name} are not on the same grid")
     both = a.mask & b.mask
+    zero_a, zero_b = both & (a.r == 0), both & (b.r == 0)
+    defined = both & ~(zero_a & zero_b)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(both & (a.r > 0), b.r / a.r, np.nan)     # r(A) = 0: the ratio is undefined (blank)
-        change = np.abs(np.log(ratio))                            # r(B) = 0: an infinite change
-    fin = ratio[np.isfinite(ratio)]
-    if fin.size == 0:
+        ratio = np.where(defined, np.where(zero_a, np.inf, b.r / np.where(zero_a, 1.0, a.r)), np.nan)
+        change = np.abs(np.log(ratio))                            # 0 or inf: an infinite change
+    got = ratio[np.isfinite(ratio)]
+    if got.size == 0:
         raise InputError(f"tables {a.name} and {b.name} share no cell with r(A) > 0: there is no ratio to compare; "
                          "expected tables with common tabulated cells", field="b")
     k = np.unravel_index(np.nanargmax(change), ratio.shape)
     char = {}
     for t in (a, b):
         char[t.name] = {"S1": _try(t.s1), "S2": _try(t.s2), "Q0": _try(t.q0), "cells": int(t.mask.sum())}
+    largest = None if change[k] == 0 else {"tan_eps": float(a.tan_eps[k[0]]), "beta_deg": float(a.beta_deg[k[1]]),
+                                           "ratio": float(ratio[k])}
     return {"A": a.name, "B": b.name, "ratio": ratio, "characteristics": char,
-            "ratio_min": float(fin.min()), "ratio_max": float(fin.max()), "ratio_median": float(np.median(fin)),
-            "largest_change_at": {"tan_eps": float(a.tan_eps[k[0]]), "beta_deg": float(a.beta_deg[k[1]]),
-                                  "ratio": float(ratio[k])},
-            "cells_compared": int(np.isfinite(ratio).sum()),
-            "cells_ratio_undefined": int((both & ~(a.r > 0)).sum()),
+            "ratio_min": float(got.min()), "ratio_max": float(got.max()), "ratio_median": float(np.median(got)),
+            "largest_change_at": largest,
+            "cells_compared": int(got.size),
+            "cells_zero_in_A": int((zero_a & ~zero_b).sum()), "cells_zero_in_B": int((zero_b & ~zero_a).sum()),
+            "cells_ratio_undefined": int((zero_a & zero_b).sum()),
             "cells_only_in_A": int((a.mask & ~b.mask).sum()), "cells_only_in_B": int((b.mask & ~a.mask).sum())}
+
+
+def largest_change_text(result: dict) -> str:
+    """'largest change x1.23 at tan eps 0.5, beta 2 deg' (r(A) = 0 < r(B): 'from 0'), or that the
+    compared cells are all equal: one wording for the command's line and the picture."""
+    lc = result["largest_change_at"]
+    if lc is None:
+        return "every compared cell equal"
+    what = "from r(A) = 0" if math.isinf(lc["ratio"]) else f"x{lc['ratio']:.3g}"
+    return f"largest change {what} at tan eps {lc['tan_eps']:g}, beta {lc['beta_deg']:g} deg"
 
 
 def _try(fn):
@@ -52,7 +72,7 @@ def compare_csv(a: RTable, b: RTable, ratio: np.ndarray) -> str:
                 continue
             ra = "" if not a.mask[i, j] else f"{a.r[i, j] * 1e4:.6g}"
             rb = "" if not b.mask[i, j] else f"{b.r[i, j] * 1e4:.6g}"
-            q = "" if not np.isfinite(ratio[i, j]) else f"{ratio[i, j]:.6g}"
+            q = "" if not np.isfinite(ratio[i, j]) else f"{ratio[i, j]:.6g}"     # r(A) = 0: the r columns say
             out.write(f"{t:g},{be:g},{ra},{rb},{q}\n")
     return out.getvalue()
 
@@ -67,9 +87,15 @@ def compare_png(result: dict, a: RTable, b: RTable) -> bytes:
     plt = _plt()
     fig = plt.figure(figsize=(15, 9.5))
     ax = fig.add_axes([0.05, 0.07, 0.66, 0.85])
-    draw_table_map(ax, result["ratio"], label=f"r({b.name}) / r({a.name})", centre=1.0, log=True, fmt="{:.2f}",
-                   fontsize=6.0, tick_fontsize=8, grey_blanks=True)
-    ax.set_title(f"{b.name} / {a.name}: ratio of r, cell by cell (grey: not in both tables)", fontsize=11)
+    ratio = result["ratio"]
+    draw_table_map(ax, np.where(np.isinf(ratio), np.nan, ratio), label=f"r({b.name}) / r({a.name})", centre=1.0,
+                   log=True, fmt="{:.2f}", fontsize=6.0, tick_fontsize=8, grey_blanks=True)
+    for i, j in zip(*np.nonzero(np.isinf(ratio))):       # r(A) = 0 < r(B): no colour, but not a blank
+        ax.text(j, i, "A=0", ha="center", va="center", fontsize=6.0, color="black", fontweight="bold")
+    why = "grey: not in both tables" + (", or 0 in both" if result["cells_ratio_undefined"] else "")
+    if result["cells_zero_in_A"]:
+        why += "; A=0: r(A) = 0 < r(B), an infinite ratio"
+    ax.set_title(f"{b.name} / {a.name}: ratio of r, cell by cell ({why})", fontsize=11)
     tx = fig.add_axes([0.77, 0.35, 0.22, 0.5])
     tx.axis("off")
     rows = [["", _short(a.name), _short(b.name)]]
@@ -79,9 +105,8 @@ def compare_png(result: dict, a: RTable, b: RTable) -> bytes:
     tab = tx.table(cellText=rows, loc="upper center", cellLoc="center")
     tab.scale(1.0, 1.8)
     tab.set_fontsize(11)
-    lc = result["largest_change_at"]
     tx.text(0.0, 0.25, f"ratio {result['ratio_min']:.3g} ... {result['ratio_max']:.3g}\nmedian {result['ratio_median']:.3g}"
-            f"\nlargest change: x{lc['ratio']:.3g}\nat tan eps {lc['tan_eps']:g}, beta {lc['beta_deg']:g} deg",
+            "\n" + largest_change_text(result).replace(" at tan", "\nat tan"),
             fontsize=10, va="top", transform=tx.transAxes)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)

@@ -472,3 +472,13 @@ def test_a_measured_table_given_as_a_u_of_the_joint_fit_is_refused(tmp_path):
                        out=tmp_path / "c")
         assert err.value.argument == "u_measured"
     assert not (tmp_path / "c").exists()
+
+
+def test_compare_tables_returns_the_ratio_map():
+    """(audit 22) the docstring promised the ratio cell by cell; the summary dropped it."""
+    res = rg.compare_tables("R3", "R4")
+    a, b = rg.read_table("R3"), rg.read_table("R4")
+    assert res["ratio"].dims == ("tan_eps", "beta")
+    assert float(res["ratio"].sel(tan_eps=12, beta=0)) == pytest.approx(
+        float(b.sel(tan_eps=12, beta=0) / a.sel(tan_eps=12, beta=0)), rel=1e-12)
+    assert int(np.isfinite(res["ratio"].values).sum()) == res["cells_compared"]

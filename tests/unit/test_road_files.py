@@ -107,6 +107,30 @@ def test_compare_csv_has_each_tables_own_r_and_the_ratio(tmp_path):
     assert (3, 4) in seen and (5, 6) in seen
 
 
+def test_compare_counts_a_zero_in_either_table_as_an_infinite_change():
+    """(audit 22) r(A) = 0 < r(B) was dropped from the ratio: two tables differing there were
+    reported as identical, the 'largest change x1' placed at the first cell. It is now an infinite
+    ratio and the largest change; r(B) = 0 < r(A) a ratio of 0; 0 in both has no ratio; equal
+    tables have no largest change."""
+    a = bundled_table("R3")
+    ra, rb = a.r.copy(), a.r.copy()
+    ra[0, 0] = 0.0                            # r(A) = 0 < r(B)
+    rb[4, 5] = 0.0                            # r(B) = 0 < r(A)
+    ra[7, 2] = rb[7, 2] = 0.0                 # 0 in both
+    A, B = a.with_values(ra, name="A"), a.with_values(rb, name="B")
+    res = compare_tables(A, B)
+    assert np.isinf(res["ratio"][0, 0]) and res["ratio"][4, 5] == 0.0 and np.isnan(res["ratio"][7, 2])
+    assert (res["cells_zero_in_A"], res["cells_zero_in_B"], res["cells_ratio_undefined"]) == (1, 1, 1)
+    assert res["cells_compared"] == int(a.mask.sum()) - 2
+    assert res["ratio_min"] == 0.0 and res["ratio_max"] == pytest.approx(1.0, abs=0.0)
+    assert res["largest_change_at"]["ratio"] in (0.0, np.inf)
+    rows = {(r["tan_eps"], r["beta_deg"]): r["ratio_B_over_A"] for r in _rows(compare_csv(A, B, res["ratio"]))}
+    assert rows[("0", "0")] == "" and float(rows[(f"{a.tan_eps[4]:g}", f"{a.beta_deg[5]:g}")]) == 0.0
+    only_a = compare_tables(A, a.with_values(a.r, name="B"))
+    assert only_a["largest_change_at"] == {"tan_eps": 0.0, "beta_deg": 0.0, "ratio": np.inf}
+    assert compare_tables(a, a.with_values(a.r, name="B"))["largest_change_at"] is None
+
+
 def test_layout_tilt_limits_are_inclusive(tmp_path):
     for v in (-30, 60):
         p = tmp_path / f"t{v}.toml"
