@@ -329,6 +329,8 @@ def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
 def _table_file(path, field: str) -> Path:
     """A file an r-table is written to: .csv or .rtb (the two formats every command reads back;
     'x.xlsx' got CSV text that `ka --sample` then refused)."""
+    if not isinstance(path, (str, Path)):       # audit 22: table_info(to=5) raised a TypeError
+        raise InputError(f"expected the path of a .csv or .rtb file, got {type(path).__name__}", field=field)
     path = Path(path)
     if path.suffix.lower() not in (".csv", ".rtb"):
         raise InputError(f"expected a .csv or .rtb file to write the table to, got '{path.suffix or path.name}'",

@@ -686,8 +686,12 @@ def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
                          path=path, line=first + 1)
     if first + 1 >= len(lines):
         raise InputError("missing surface name on line 2", path=path, line=first + 1)
-    name = lines[first + 1].strip() or Path(str(path)).stem
-    tokens: list[tuple[int, str]] = [(k, tok) for k, l in enumerate(lines[first + 2:], start=first + 3)
+    at = first + 1        # the name's line; blank lines before it are skipped when a name follows (audit 22)
+    nxt = next((k for k in range(first + 1, len(lines)) if lines[k].strip()), None)
+    if not lines[at].strip() and nxt is not None and not _looks_numeric(lines[nxt]):
+        at = nxt
+    name = lines[at].strip() or Path(str(path)).stem
+    tokens: list[tuple[int, str]] = [(k, tok) for k, l in enumerate(lines[at + 1:], start=at + 2)
                                      for tok in l.split()]
     pos = 0
 
@@ -738,11 +742,29 @@ def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
     return RTable(v / scale, name=name, source=src)
 
 
+def _looks_numeric(line: str) -> bool:
+    """A line of an RTB file that starts with a number (a decimal comma allowed), not a name."""
+    tok = line.split()[0].replace(",", ".")
+    try:
+        float(tok)
+    except ValueError:
+        return False
+    return True
+
+
 def _rtb_scale(values: np.ndarray, q0_line: float, path, line: int) -> tuple[float, str]:
     """(divisor turning the file's values into r in sr^-1, note) from the file's q0 line."""
     q0_x1e4 = RTable(values / R_SCALE).q0()  # Q0 of the values read as r x 1e4, sr^-1
-    if not q0_line > 0:
-        return R_SCALE, f"q0 line is {q0_line:g}: scale not checked, values read as r x 1e4"
+    if q0_line < 0:
+        raise InputError(f"expected q0 >= 0 in sr^-1 (0: not given), got {q0_line:g}", path=path, line=line, field="q0")
+    if q0_line == 0:      # no q0 to tell the scale: the values' own, as a CSV's (audit 22: sr^-1 read 1e4 too small)
+        largest = float(np.nanmax(values))
+        if largest < R_X1E4_LARGEST_MIN:
+            raise InputError(f"the q0 line is 0 (not given) and the largest value is {largest:.4g}: this looks like r "
+                             f"in sr^-1, but an RTB's values are r x 1e4 (expected a largest value >= "
+                             f"{R_X1E4_LARGEST_MIN:g}; the CIE tables' largest are 362 to 770): give the file's q0 "
+                             "in sr^-1 on its q0 line or multiply the values by 1e4", path=path, line=line, field="q0")
+        return R_SCALE, "q0 line is 0: scale not checked against it, values read as r x 1e4"
     if q0_line > 1.0:  # no road has Q0 > 1 sr^-1: q0 written at the values' scale (x 1e4)
         candidates = [(R_SCALE, q0_line / R_SCALE, "q0 line read as q0 x 1e4 like the values")]
     else:
@@ -853,6 +875,12 @@ def bundled_table(name: str) -> RTable:
     return parse_csv(res.read_text(encoding="utf-8"), path=f"roadgonio/data/rtables/{key}.csv", name=key)
 
 
+#: Files roadgonio reads or writes that a table argument may be given by mistake (a SAMPLE takes a
+#: model.json, a table argument does not), with what they are.
+NOT_TABLE_SUFFIXES = {".json": "a JSON file (a fitted model or a run's record)", ".toml": "a TOML file (an instrument "
+                      "or a study)", ".nc": "a netCDF file (a run's result)", ".ldt": "an EULUMDAT file (a luminaire)"}
+
+
 def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     """A bundled table by name (``R3``, any case) or a table file: a text with a suffix is a file,
     one without is a bundled name (the rule of :mod:`roadgonio.surface.sample`). A CSV r-table
@@ -866,6 +894,9 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
         raise InputError(f"{s!r} is not a bundled table ({', '.join(BUNDLED)}) nor a table file (.csv/.rtb)",
                          field="table")
     p = Path(s).expanduser()
+    if p.suffix.lower() in NOT_TABLE_SUFFIXES:     # audit 22: model.json was read as CSV ("missing header ... '{'")
+        raise InputError(f"{NOT_TABLE_SUFFIXES[p.suffix.lower()]}, not an r-table: expected a table file (.csv or .rtb)",
+                         path=p)
     if not p.exists():
         raise InputError("no such table file", path=p)
     table = read_table(p, quantity)

@@ -145,3 +145,19 @@ def test_an_empty_out_folder_is_an_error_not_the_default(tmp_path, capsys, monke
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "--out" in err and "empty" in err, err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_table_says_q0_missing_without_a_unit(tmp_path, capsys):
+    """(audit 22) a table without a Q0 printed 'Q0 = missing sr^-1'."""
+    import numpy as np
+
+    from roadgonio.surface.rtable import bundled_table
+    t = bundled_table("R3")
+    r = np.full_like(t.r, np.nan)
+    r[0, 0], r[1, 1] = t.r[0, 0], t.r[1, 1]           # no grid cell with four tabulated corners: no Q0
+    path = t.with_values(r, name="two").write_csv(tmp_path / "two.csv")
+    assert main(["table", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "Q0 = missing," in out and "missing sr^-1" not in out
+    assert main(["table", "R3"]) == 0
+    assert "Q0 = 0.0698 sr^-1," in capsys.readouterr().out

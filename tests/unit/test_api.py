@@ -482,3 +482,14 @@ def test_compare_tables_returns_the_ratio_map():
     assert float(res["ratio"].sel(tan_eps=12, beta=0)) == pytest.approx(
         float(b.sel(tan_eps=12, beta=0) / a.sel(tan_eps=12, beta=0)), rel=1e-12)
     assert int(np.isfinite(res["ratio"].values).sum()) == res["cells_compared"]
+
+
+def test_a_model_or_instrument_file_given_as_a_table_is_named_for_what_it_is(tmp_path):
+    """(audit 22) model.json given where a table goes was read as CSV: "missing header: expected a
+    first row 'tan_eps,...', got '{'". A path that is not a path raised a TypeError."""
+    (tmp_path / "model.json").write_text("{}")
+    with pytest.raises(InputError, match="a JSON file .* not an r-table"):
+        rg.classify_table(str(tmp_path / "model.json"))
+    with pytest.raises(InputError, match="expected the path of a .csv or .rtb file") as err:
+        rg.table_info("R3", to=5)
+    assert err.value.field == "to"

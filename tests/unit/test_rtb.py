@@ -128,3 +128,31 @@ def test_bad_rtb_names_file_and_line(tmp_path, edit, line, words):
     assert f"{path}:{line}" in msg, msg
     for w in words:
         assert w in msg
+
+
+def test_q0_line_0_with_values_in_sr_is_refused_not_read_1e4_too_small(tmp_path):
+    """(audit 22) a q0 line of 0 (not given) skipped every check of the scale: values in sr^-1 were
+    read as r x 1e4, 10^4 too small, without a word. The values' own scale decides then, as a CSV's
+    does; values in r x 1e4 with q0 0 still read. A negative q0 is refused."""
+    t = bundled_table("R3")
+    lines = t.to_rtb_text().splitlines()
+    lines[53] = "0"
+    np.testing.assert_allclose(parse_rtb("\n".join(lines)).r[t.mask], t.r[t.mask])
+    sr = lines[:54] + [f"{float(v) / 1e4:.8g}" for v in lines[54:]]
+    with pytest.raises(InputError, match="looks like r in sr\\^-1") as ei:
+        parse_rtb("\n".join(sr), path=tmp_path / "sr.rtb")
+    assert ei.value.line == 54 and ei.value.field == "q0"
+    lines[53] = "-0.07"
+    with pytest.raises(InputError, match="expected q0 >= 0"):
+        parse_rtb("\n".join(lines))
+
+
+def test_blank_lines_before_the_surface_name_are_skipped():
+    """(audit 22) the docs accept blank lines, but the name was taken from line 2 by position: a
+    blank line 2 made the name the number of tan eps values. A blank name line followed by the
+    numbers still names the table by its file."""
+    lines = bundled_table("R3").to_rtb_text().splitlines()
+    t = parse_rtb("\n".join(lines[:1] + ["", "  "] + lines[1:]), path="x.rtb")
+    assert t.name == "R3"
+    np.testing.assert_allclose(t.r[t.mask], bundled_table("R3").r[t.mask])
+    assert parse_rtb("\n".join(lines[:1] + [""] + lines[2:]), path="dir/x.rtb").name == "x"
