@@ -129,6 +129,7 @@ class KaBatch(mi.SamplingIntegrator):
         self.max_bounces = 1
         self.light_depth = 0
         self.profile = None         # (beam, aperture, 1 / R_S) for Dr.Jit, or None: a uniform source
+        self.cos_beam = None        # cos of the source's beam half-angle (a hard cone), or None: no cone
         #: the light paths' reflection at their first vertex l_1 samples the part's own BSDF (True;
         #: the road's forward lobe) or a cosine-distributed direction (False: the former strategy,
         #: kept so that the tests can compare the two estimators)
@@ -154,6 +155,10 @@ class KaBatch(mi.SamplingIntegrator):
         self.profile = None if not source.profiled else (
             jit_beam(source.beam), jit_aperture(source.aperture),
             dr.opaque(mi.Float, 1.0 / source.radius_m if source.radius_m > 0 else 0.0))
+        # the hard cone (beam_half_angle_deg) on every source sample and light path: the footprint
+        # lies inside it (checked per cell), a housing's walls need not (audit 22: it was ignored there)
+        self.cos_beam = None if source.beam_half_angle_deg is None else \
+            dr.opaque(mi.Float, math.cos(math.radians(source.beam_half_angle_deg)))
 
     def set_cells(self, axes: np.ndarray, distances: np.ndarray) -> None:
         """The cells' sources, float64: unit axes (n_cells, 3), pointing from the source towards the
@@ -189,6 +194,8 @@ class KaBatch(mi.SamplingIntegrator):
         local.wavelengths = si.wavelengths
         ds, weight = self.emitter.sample_direction(local, u, active)
         active = active & (ds.pdf > 0.0)
+        if self.cos_beam is not None:       # emitted along -ds.d: its cosine to the axis (+z) is -ds.d.z
+            active = active & (-ds.d.z >= self.cos_beam)
         if self.profile is not None:
             # the source's relative radiance at the sampled point, in the canonical frame (axis +z)
             beam, aperture, inv_r = self.profile
@@ -631,6 +638,8 @@ class KaBatch(mi.SamplingIntegrator):
         d = s_ax * dl.x + t_ax * dl.y + a * dl.z
         l1 = scene.ray_intersect(mi.Ray3f(mi.Point3f(c + s_ax * disk.x + t_ax * disk.y), d), flags, False, alive)
         alive = alive & l1.is_valid() & self.reflecting(l1.shape) & (dl.z > 0.0)
+        if self.cos_beam is not None:       # the hard cone, as in next-event estimation (:meth:`source_sample`)
+            alive = alive & (dl.z >= self.cos_beam)
         ls = dl.z * INV_PI * dr.abs(dr.dot(l1.n, d)) * dr.rcp(dr.maximum(dr.square(l1.t), MIN_D2))
         flux = mi.Float(0.0) + self.flux
         if self.profile is not None:

@@ -25,7 +25,8 @@ is the etendue-weighted mean over detector rays (weight w, hit x0, towards the d
     wall         f(x0; y -> x0, w_o) G(x0, y) A_W (rho / pi) L G(y, s) A_S               (y on the wall)
     sample_wall  f(x0; y -> x0, w_o) G(x0, y) A_W (rho / pi) f(z; s -> z, z -> y) G(y, z) A_Z L G(z, s) A_S
 
-with G(p, q) = cos_p cos_q / |p - q|^2 and z uniform on the sample (area A_Z); nothing in this
+with G(p, q) = cos_p cos_q / |p - q|^2 and z uniform on the sample (area A_Z), and G(., s) 0 where
+the source's hard cone (``beam_half_angle_deg``) does not emit, cos_s below its cosine; nothing in this
 scene shades another part (the wall faces the sample and every source). The road channel uses
 f = the model at x0 and at z, the Lambert channel f = 1/pi at both (a perfect diffuser in the same
 scene). The estimates are means over independent batches, so their standard errors, and those of
@@ -101,6 +102,15 @@ def batch_terms(instrument: Instrument, model: RoadModel, wall: Wall, tan_eps: f
     wo = -np.stack([np.broadcast_to(c, (n,)) for c in d], -1)      # towards the detector, per ray
     w = np.asarray(w, dtype=np.float64) * np.ones(n)
     area_s = math.pi * src.radius_m ** 2
+    if instrument.source.profiled:
+        raise ValueError("the reference knows the uniform source and its hard cone, not a beam profile")
+    cone = instrument.source.beam_half_angle_deg
+    cos_cone = -1.0 if cone is None else math.cos(math.radians(cone))
+
+    def g_source(p, n_p, s):
+        """G(p, s) towards the source point s, 0 outside the source's cone."""
+        g, u = _g(p, s, n_p, src.axis)
+        return np.where(-(u @ src.axis) >= cos_cone, g, 0.0), u
 
     def source_points():
         sx, sy = _disc(rng, n)
@@ -113,7 +123,7 @@ def batch_terms(instrument: Instrument, model: RoadModel, wall: Wall, tan_eps: f
     out = np.zeros((3, 2))
     # direct
     s = source_points()
-    g, u = _g(x0, s, up, src.axis)
+    g, u = g_source(x0, up, s)
     fr, fl = f_both(u, wo)
     out[0] = [np.sum(w * fr * g) * area_s, np.sum(w * fl * g) * area_s]
     # wall: y uniform on the wall
@@ -122,7 +132,7 @@ def batch_terms(instrument: Instrument, model: RoadModel, wall: Wall, tan_eps: f
     g_xy, u_xy = _g(x0, yw, up, wall_n)
     fr, fl = f_both(u_xy, wo)
     s = source_points()
-    g_ys, _ = _g(yw, s, wall_n, src.axis)
+    g_ys, _ = g_source(yw, wall_n, s)
     k = w * g_xy * wall.area * (wall.reflectance / math.pi)
     out[1] = [np.sum(k * fr * g_ys) * area_s, np.sum(k * fl * g_ys) * area_s]
     # sample -> wall: z uniform on the sample, another wall point and source point
@@ -134,7 +144,7 @@ def batch_terms(instrument: Instrument, model: RoadModel, wall: Wall, tan_eps: f
     z = np.stack([-hx + 2 * hx * rng.random(n), -hy + 2 * hy * rng.random(n), np.zeros(n)], -1)
     g_yz, u_zy = _g(z, yw, up, wall_n)
     s = source_points()
-    g_zs, u_zs = _g(z, s, up, src.axis)
+    g_zs, u_zs = g_source(z, up, s)
     fzr, fzl = f_both(u_zs, u_zy)
     k = w * g_xy * wall.area * (wall.reflectance / math.pi) * g_yz * (4 * hx * hy) * g_zs * area_s
     out[2] = [np.sum(k * fr * fzr), np.sum(k * fl * fzl)]

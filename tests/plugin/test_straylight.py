@@ -96,8 +96,9 @@ def mitsuba(inst, model=R3, **kw):
 # Against the independent float64 reference
 # ----------------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("cell", [(12.0, 0.0), (3.0, 30.0), (8.0, 90.0)])
-def test_one_wall_agrees_with_the_float64_reference(tmp_path, cell):
+@pytest.mark.parametrize("cell,cone_deg", [((12.0, 0.0), None), ((3.0, 30.0), None), ((8.0, 90.0), None),
+                                           ((12.0, 0.0), 15.0), ((3.0, 30.0), 15.0)])
+def test_one_wall_agrees_with_the_float64_reference(tmp_path, cell, cone_deg):
     """k_A with the wall, k_A of the direct light and the stray fraction from the Mitsuba backend
     against the float64 reference (roadgonio/engines/strayref.py), each within 4 combined standard
     errors (plus float32 rounding). With one planar wall and the flat one-sided sample, light reaches
@@ -105,9 +106,18 @@ def test_one_wall_agrees_with_the_float64_reference(tmp_path, cell):
     paths (source -> wall -> x0, source -> sample -> wall -> x0): with max_bounces = 3 both sides hold
     exactly these terms, so the bound of the omitted (second-order, rho^2) terms is 0 by
     construction. The stray light must be far outside the error bars (the test could not pass if the
-    backend ignored the wall or lost a factor)."""
+    backend ignored the wall or lost a factor).
+
+    With a hard emission cone of 15 deg (``beam_half_angle_deg``, inside which the footprint lies)
+    the source lights only part of the wall: the stray fraction falls from 0.0063 to 0.0046 at
+    tan eps 12 and from 0.26 to 0.18 at tan eps 3 (audit 22: the backend ignored the cone on the
+    stray paths, and gave the uncut numbers)."""
     from roadgonio.engines.strayref import Wall, reference
     inst = wall_instrument(tmp_path)
+    if cone_deg is not None:
+        d = inst.to_dict()
+        d["source"]["beam_half_angle_deg"] = cone_deg
+        inst = Instrument.from_dict(d, path=tmp_path / "wall.toml")
     wall = Wall(y_m=-0.15, x0_m=-0.5, x1_m=0.5, height_m=0.2, reflectance=0.8)
     r = mitsuba(inst, rel_se=5e-4, seed=3).compute([cell])[0]
     ref = reference(inst, R3, wall, *cell, samples=1 << 21, batches=32, seed=5)
@@ -374,6 +384,31 @@ def test_scene_keys_are_checked(tmp_path):
     with pytest.raises(InputError) as err:
         Instrument.load(p)
     assert "xlm" in str(err.value) and "typo.toml" in str(err.value)
+
+
+def test_an_xml_scene_with_a_housing_and_other_lights(tmp_path):
+    """(audit 22) An XML scene with a [housing] crashed with a traceback (`Emitter.shape()`), and
+    light sources other than the source in the XML were dropped without a word. The merged scene
+    computes (the black holder in a housing of 0.05 gets stray light from the housing's walls); a
+    constant background or a second lit shape is one InputError naming the XML file."""
+    import shutil
+    shutil.copy(SCENES / "holder.xml", tmp_path / "holder.xml")
+    text = (SCENES / "holder.toml").read_text()
+    (tmp_path / "housed.toml").write_text(text + "\n[housing]\nwall_reflectance = 0.05\n")
+    inst = Instrument.load(tmp_path / "housed.toml")
+    r = mitsuba(inst, rel_se=1e-2, seed=1).compute([(12.0, 0.0)])[0]
+    bare = mitsuba(Instrument.load(SCENES / "holder.toml"), rel_se=1e-2, seed=1).compute([(12.0, 0.0)])[0]
+    assert r.stray_fraction > 10 * r.stray_fraction_se and bare.stray_fraction == 0.0
+    xml = (SCENES / "holder.xml").read_text()
+    for extra, words in (('<emitter type="constant"><rgb name="radiance" value="1.0"/></emitter>',
+                          "ConstantBackgroundEmitter"),
+                         ('<shape type="rectangle" id="lamp"><transform name="to_world"><translate z="2"/></transform>'
+                          '<emitter type="area"><rgb name="radiance" value="100"/></emitter></shape>',
+                          "AreaLight on shape 'lamp'")):
+        (tmp_path / "holder.xml").write_text(xml.replace("</scene>", extra + "\n</scene>"))
+        with pytest.raises(InputError, match="light other than the source") as err:
+            mitsuba(Instrument.load(tmp_path / "housed.toml"))
+        assert words in str(err.value) and "holder.xml" in str(err.value)
 
 
 def test_housing_errors_name_the_cell_and_the_wall():

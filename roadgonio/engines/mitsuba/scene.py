@@ -445,7 +445,8 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
     if housing is not None:
         # the XML scene's objects and the housing's panels in one scene
         objs: dict[str, Any] = {"type": "scene"}
-        for obj in list(scene.shapes()) + [e for e in scene.emitters() if e.shape() is None] + list(scene.sensors()):
+        # (Emitter.get_shape: audit 22, `e.shape()` does not exist and every XML scene with a [housing] crashed)
+        for obj in list(scene.shapes()) + [e for e in scene.emitters() if e.get_shape() is None] + list(scene.sensors()):
             key = obj.id() or f"_part{len(objs)}"
             if key in objs:
                 key = f"{key}_{len(objs)}"
@@ -473,6 +474,15 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
         missing.append(f"a source with id=\"{SOURCE_ID}\" (a disk shape with an area emitter, or a point emitter)")
     if missing:
         raise InputError("the XML scene lacks " + "; ".join(missing), path=path)
+    # audit 22: other emitters (a constant background, a second lit shape) were dropped without a word
+    others = [e for e in scene.emitters()
+              if not ((e.get_shape() is not None and e.get_shape().id() == SOURCE_ID) or e.id() == SOURCE_ID)]
+    if others:
+        names = ", ".join(sorted(f"{e.class_name()}" + (f" on shape {e.get_shape().id()!r}" if e.get_shape() is not None
+                                                        else f" {e.id()!r}" if e.id() else "") for e in others))
+        raise InputError(f"the XML scene holds light other than the source (id=\"{SOURCE_ID}\"): {names}; roadgonio "
+                         "simulates the instrument's source only (ambient light is not part of k_A): remove it",
+                         path=path)
     sample = shapes[SAMPLE_ID]
     sensor = sensors[DETECTOR_ID]
     from roadgonio.engines.mitsuba.plugins import register_plugins
