@@ -160,3 +160,23 @@ def test_the_square_view_is_the_field_as_the_meter_sees_it(mi, tmp_path, dark, r
     img = rs.render(1, 16)[..., LAMBERT]
     flipped = img[::-1, ::-1]
     assert np.all(img[rows, cols] == 0.0) and flipped[rows, cols].mean() > 0.0
+
+
+def test_the_square_views_right_is_plus_y_as_its_label_says(mi):
+    """(audit 22) render.png labelled the view's horizontal axis 'left = +y'; the view's right
+    (film u > 1/2, drawn on the right) looks at the sample's +y side, the map's x to the right as
+    the meter looks (docs/conventions.md)."""
+    import inspect
+
+    from helpers import ROAD, preset
+    from roadgonio.engines.mitsuba import images
+    from roadgonio.engines.mitsuba.scene import build_scene
+    rs = build_scene(preset("portable"), ROAD, resolution=8)
+    rs.sensor.mapping = "square"
+    ys = []
+    for u in (0.1, 0.9):
+        o, d, _ = rs.sensor.rays(mi.Point2f(u, 0.5), mi.Point2f(0.5, 0.5))
+        k = -o[2][0] / d[2][0]                       # the ray's hit on the sample plane z = 0
+        ys.append(o[1][0] + k * d[1][0])
+    assert ys[0] < 0.0 < ys[1], ys
+    assert "right = +y" in inspect.getsource(images) and "left = +y" not in inspect.getsource(images)

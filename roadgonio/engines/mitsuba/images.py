@@ -386,7 +386,7 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
         t = np.linspace(0, 2 * np.pi, 200)
         ax.plot(gamma * np.cos(t), gamma * np.sin(t), color="cyan", lw=1.0, label="field stop")
         ax.set_aspect("equal")
-        ax.set_xlabel("field angle, horizontal (deg; left = +y)")
+        ax.set_xlabel("field angle, horizontal (deg; right = +y, as the meter looks)")
         ax.set_ylabel("field angle, vertical (deg)")
         ax.set_title(f"Detector's view: luminance of the sample (field half-angle {gamma:g} deg)", fontsize=10)
         # the colour bar beside the square view, both centred (fig.colorbar(ax=ax) anchors the square view
