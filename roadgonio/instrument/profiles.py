@@ -46,7 +46,8 @@ square pixels of the square [-1, 1]^2 that circumscribes the field stop (x, y in
 field-stop radius; x horizontal, to the right as the meter looks at the sample, y up). A CSV of n
 lines of n comma-separated numbers and nothing else (no header line: a line that is not numbers
 is an error, so neither a header nor a point list ``x,y,k`` passes as a map), or a greyscale image
-(PNG, TIFF: 8 or 16 bit, or 32-bit float; OpenEXR: one channel, Y, or equal R, G, B). Bilinear between the pixel centres, the border values
+(PNG, TIFF: 8 or 16 bit, or 32-bit float, or 8-bit RGB(A) with equal R, G, B; OpenEXR: one channel, Y, or
+equal R, G, B). Bilinear between the pixel centres, the border values
 extended to the edges. The map is divided by its largest value (only relative sensitivities
 matter), so a uniform map is exactly 1 everywhere: the same instrument as no map.
 """
@@ -332,6 +333,14 @@ def _read_image(p: Path, field: str) -> np.ndarray:
     try:
         with Image.open(p) as img:
             mode = img.mode
+            if mode in ("RGB", "RGBA"):      # audit 22: equal R, G, B (a grey map saved as colour), as for EXR
+                rgb = np.asarray(img, dtype=np.float64)
+                if mode == "RGBA" and np.any(rgb[..., 3] != rgb[..., 3].flat[0]):
+                    raise _err("expected a greyscale image: its alpha channel varies (a transparent map)", p, field)
+                if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2]):
+                    return rgb[..., 0]
+                raise _err(f"expected a greyscale image (8 or 16 bit, or 32-bit float, or {mode} with equal R, G, B), "
+                           f"got {mode} with colour", p, field)
             if mode not in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
                 raise _err(f"expected a greyscale image (8 or 16 bit, or 32-bit float), got mode {mode}", p, field)
             return np.asarray(img, dtype=np.float64)

@@ -776,10 +776,25 @@ def test_an_image_map_reads_like_the_csv(tmp_path):
         d["detector"]["field_sensitivity"] = str(tmp_path / name)
         maps.append(Instrument.from_dict(d).detector.field_map.values)
     assert maps[0].shape == (7, 7) and np.array_equal(maps[0], maps[1])
-    Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(tmp_path / "rgb.png")
-    d["detector"]["field_sensitivity"] = str(tmp_path / "rgb.png")
-    with pytest.raises(InputError, match="greyscale"):
-        Instrument.from_dict(d)
+    # (audit 22) an 8-bit grey map saved as RGB(A) with equal channels, as an EXR's, is the L map;
+    # colour (or a varying alpha) is refused
+    grey = np.round(np.outer(np.linspace(1, 0.5, 5), np.linspace(0.6, 1, 5)) * 255).astype(np.uint8)
+    Image.fromarray(grey).save(tmp_path / "l.png")
+    Image.fromarray(np.stack([grey] * 3, -1)).save(tmp_path / "rgb.png")
+    Image.fromarray(np.stack([grey] * 3 + [np.full_like(grey, 255)], -1)).save(tmp_path / "rgba.png")
+    got = []
+    for name in ("l.png", "rgb.png", "rgba.png"):
+        d["detector"]["field_sensitivity"] = str(tmp_path / name)
+        got.append(Instrument.from_dict(d).detector.field_map.values)
+    assert np.array_equal(got[0], got[1]) and np.array_equal(got[0], got[2])
+    colour = np.stack([grey, grey, np.roll(grey, 1)], -1)
+    alpha = np.stack([grey] * 3 + [np.arange(25, dtype=np.uint8).reshape(5, 5)], -1)
+    for name, img in (("colour.png", colour), ("alpha.png", alpha)):
+        Image.fromarray(img).save(tmp_path / name)
+        d["detector"]["field_sensitivity"] = str(tmp_path / name)
+        with pytest.raises(InputError, match="greyscale") as err:
+            Instrument.from_dict(d)
+        assert name in str(err.value)
 
 
 def test_an_exr_map_reads_like_the_csv(tmp_path):
