@@ -399,7 +399,8 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
                       "to road surface photometry (paper eq. 2-3); roadgonio docs/conventions.md section 5",
         "quantity": "k_A = (S[f_road]/S[f_lambert]) / (f_road(nominal)/f_lambert) (docs/conventions.md section 5)",
         "instrument": instrument.name, "sample": sample, "backend": backend.name,
-        "accuracy": "" if accuracy is None else str(accuracy),
+        # the preset when one was named; none with --rel-se or the backend's default (audit 22: was '')
+        **({"accuracy": str(accuracy)} if accuracy is not None else {}),
         # the seed the backend used (its default when none was given); a deterministic backend takes
         # none and its Dataset has no seed attribute (was -1: a sentinel read as a seed)
         **({"seed": int(settings.get("seed", seed))} if settings.get("seed", seed) is not None else {}),

@@ -42,6 +42,8 @@ def test_ka_table_of_a_lambertian_sample_is_one_within_its_bound():
     for v in ds.attrs.values():                      # netCDF-safe attributes: text and numbers only
         assert isinstance(v, (str, int, float)) and not isinstance(v, bool)
     assert "seed" not in ds.attrs                    # a deterministic backend takes no seed (was -1)
+    assert ds.attrs["accuracy"] == "fast"            # the preset; none without one (audit 22: was '')
+    assert "accuracy" not in rg.ka_table("portable", "lambert", backend="quadrature", cells=[(1.0, 0.0)]).attrs
     # the SE fields without stray light: k_a_direct is k_a with its se (none here: the bound covers it),
     # the stray fraction is 0 exactly; both descriptions say so
     assert np.isnan(ds.k_a_direct_se).all() and (ds.stray_fraction_se.values == 0.0).all()
