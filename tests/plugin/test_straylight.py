@@ -516,4 +516,9 @@ def test_a_part_the_source_cannot_see_sends_no_light(tmp_path):
     op, roofed = results["open"], results["roofed"]
     assert op.stray_fraction > 20 * op.stray_fraction_se
     assert roofed.stray_fraction == 0.0 and roofed.k_a == roofed.k_a_direct
-    assert roofed.k_a_direct == pytest.approx(op.k_a_direct, rel=F32_REL)
+    # a reflecting part that sends no light: the cell looks for it up to STRAY_SEARCH_MAX samples
+    # (session 22: rare stray paths made overconfident SEs), then converges and says so
+    from roadgonio.engines.mitsuba.passes import STRAY_SEARCH_MAX
+    assert roofed.converged and roofed.samples >= STRAY_SEARCH_MAX and "no stray light seen" in roofed.extra["note"]
+    tol = n_sigma(min(op.se_dof, roofed.se_dof)) * math.hypot(op.k_a_direct_se, roofed.k_a_direct_se)
+    assert abs(roofed.k_a_direct - op.k_a_direct) <= tol + F32_REL

@@ -346,3 +346,40 @@ def test_cell_stats_survive_the_checkpoint_round_trip_exactly():
     add_strata(full, 2, 10, np.repeat([0, 1], 16), np.tile(np.arange(16), 2), R, G)
     add_strata(back, 2, 10, np.repeat([0, 1], 16), np.tile(np.arange(16), 2), R, G)
     assert [s.ratio_se() for s in back] == [s.ratio_se() for s in full]
+
+
+def test_with_reflecting_parts_a_cell_converges_only_when_its_stray_light_is_seen():
+    """(audit 22) Rare stray paths (a reflecting holder lit from few directions) left most replicate
+    sums without stray light, so a cell met its SE target on the direct light and stopped with an
+    SE that ignored the stray light (rms z 2.35 over 30 seeds). With ``stray_search`` a cell goes on,
+    growing by MAX_GROWTH, until every replicate sum of its newest lattice carries stray light; at
+    STRAY_SEARCH_MAX samples it stops as not converged (capped), or as converged when no replicate
+    ever saw any (a part that sends nothing). Without reflecting parts nothing changes."""
+    from roadgonio.engines.mitsuba.passes import STRAY_SEARCH_MAX
+    rng = np.random.default_rng(3)
+
+    def cell(seen: int, reps: int = 16, log2n: int = 6, passes: int = 1) -> CellStats:
+        st = CellStats()
+        for p in range(passes):
+            Rd, Gd = synthetic(rng, reps, rel=1e-4, n=1 << log2n)
+            stray = np.where(np.arange(reps) < seen, 1e-3, 0.0)
+            add_strata([st], p, log2n + p, np.zeros(reps, dtype=np.int64), np.arange(reps),
+                       Rd + stray, Gd + stray, Rd, Gd)
+        return st
+
+    planner = Planner(1e-2, first_pass=1024, stray_search=True)
+    stats = [cell(16), cell(4), cell(0)]
+    assert [s.stray_seen() for s in stats] == [1.0, 0.25, 0.0]
+    req, done = planner.next(stats, [0, 1, 2])
+    assert done == {"converged": [0], "capped": []} and set(req) == {1, 2}
+    for i in (1, 2):
+        log2n, reps = req[i]
+        assert reps << log2n == pytest.approx(MAX_GROWTH * stats[i].samples, rel=0.01)
+    # at the search's end: seen rarely, not converged; never seen, converged
+    big = int(math.log2(STRAY_SEARCH_MAX // 16))
+    late = [cell(4, log2n=big), cell(0, log2n=big)]
+    req, done = planner.next(late, [0, 1])
+    assert done == {"converged": [1], "capped": [0]} and not req
+    assert late[1].stray_never_seen() and not late[0].stray_never_seen()
+    # without reflecting parts (stray_search off) the SE alone decides, as before
+    assert Planner(1e-2, first_pass=1024).next(stats, [0, 1, 2])[1]["converged"] == [0, 1, 2]

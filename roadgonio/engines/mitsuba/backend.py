@@ -109,6 +109,7 @@ class MitsubaBackend:
         self.rs = build_scene(instrument, model, mitsuba_variant=mitsuba_variant, hit_rays=1 << 12)
         from roadgonio.engines.mitsuba.engine import BatchEngine
         self.engine = BatchEngine(self.rs)
+        self.planner.stray_search = bool(self.rs.stray)      # reflecting parts (not black ones forced through)
         import mitsuba as mi
         self.variant = mi.variant()
         self.last_run = None
@@ -226,7 +227,7 @@ class MitsubaBackend:
         """The cell's result; ``stray_se``: with stray light traced (``st.direct``), its (direct
         ratio, SE, stray fraction, SE), computed with the pass's other cells
         (:func:`~roadgonio.engines.mitsuba.passes.stray_ratios`)."""
-        from roadgonio.engines.mitsuba.passes import relative
+        from roadgonio.engines.mitsuba.passes import STRAY_SEEN_MIN, relative
         ratio, se, _ = st.ratio_se()
         dof = st.se_dof()
         rel = relative(ratio, se)
@@ -247,6 +248,15 @@ class MitsubaBackend:
                          stray_fraction=float(sf), stray_fraction_se=float(sf_se))
             dof = float(np.fmin(dof, stray_dof))     # one se_dof for the cell's three SEs: the smallest
             extra["max_bounces"] = self.engine.max_bounces
+            seen = st.stray_seen()
+            extra["stray_seen"] = seen
+            if self.planner.stray_search and st.stray_never_seen():
+                extra["note"] = (f"no stray light seen in {st.samples} samples: the reflecting parts send none "
+                                 "to this cell's footprint that the paths could find")
+            elif self.planner.stray_search and seen < STRAY_SEEN_MIN:
+                extra["note"] = (f"stray light seen in only {100 * seen:.0f} % of the replicate sums after "
+                                 f"{st.samples} samples (rare paths through the reflecting parts): its standard "
+                                 "error may understate the error, so the cell counts as not converged")
         return CellResult(tan_eps=cell[0], beta_deg=cell[1], k_a=float(k_a), se=float(k_se),
                           converged=bool(converged), samples=int(st.samples), seconds=float(seconds), extra=extra,
                           se_dof=float(dof), **stray)
