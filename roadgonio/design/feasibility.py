@@ -19,7 +19,7 @@ requested cells it is marked ``geometry_ok = False`` with a one-line reason. The
    (:func:`roadgonio.instrument.enclosure.check_detector_view`, :func:`~roadgonio.instrument.enclosure.check_sources`:
    no baffle in the line of sight, no source disc through a wall, the lid or a baffle);
 6. ``backend`` (on the worker): whatever the backend itself refuses (render-time ray hits of an
-   XML scene or a mesh, a beam limit the renderer cannot model, ...).
+   XML scene or a mesh, an instrument feature the backend cannot model, ...).
 
 The detector's own housing (around its pupil) is not part of the instrument description, so light
 it might block on the way from the source to the sample is not checked (an instrument's [housing]

@@ -26,10 +26,17 @@ def test_line_of_sight_check_agrees_with_the_rendered_ray_hits(mi):
     assert rendered == blocked_cells(inst, cells) == [(9.5, 180.0), (10, 180.0), (12, 180.0)]
 
 
-def test_backend_refusal_is_a_reason_not_a_crash(tmp_path):
-    """A beam limit the renderer cannot model is refused per point by the backend (on the worker);
-    the point is kept, infeasible, with the backend's reason; the other point is computed."""
+def test_backend_refusal_is_a_reason_not_a_crash(tmp_path, monkeypatch):
+    """A beam limit a backend cannot model is refused per point by the backend (on the worker);
+    the point is kept, infeasible, with the backend's reason; the other point is computed. (Every
+    backend models a clipping beam limit since session 22: a backend without that capability is
+    stood in for by the registry's entry of the Mitsuba backend with it switched off.)"""
+    import dataclasses
+
+    import roadgonio.engines.registry as registry
     from roadgonio import design_study as run_design
+    monkeypatch.setitem(registry.BACKENDS, "mitsuba",
+                        dataclasses.replace(registry.BACKENDS["mitsuba"], beam_clipping=False))
     ds = run_design("portable", ["source.beam_half_angle_deg=1,60"], ["R3"], cells="4:2", backend="mitsuba",
                     accuracy="fast", workers=0, progress=False, plots=False)
     kind, reason = ds["kind"].values, ds["reason"].values

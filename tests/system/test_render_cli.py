@@ -44,3 +44,31 @@ def test_render_bad_input_is_one_line(tmp_path, capsys):
     assert rc == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--spp" in err[0]
+
+
+def test_render_of_a_beam_cone_that_clips_the_footprint(mi, tmp_path):
+    """(session 22) A hard cone that clips the footprint was refused by render as by ka; both now
+    light the cell through the kabatch integrator, which applies the cone. The illuminance is 0
+    outside the cone's spot and the render's k_A agrees with the quadrature within its SE."""
+    from pathlib import Path
+
+    from roadgonio.engines import make_backend
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.instrument.optics import beam_clips_cells
+    from roadgonio.surface.sample import resolve_sample
+    from tolerances import n_sigma
+    text = (Path(__file__).resolve().parents[2] / "scenes" / "portable.toml").read_text()
+    path = tmp_path / "cone.toml"
+    path.write_text(text.replace("[source]\n", "[source]\nbeam_half_angle_deg = 5.0\n", 1))
+    inst = load_instrument(str(path))
+    assert inst.source.beam_half_angle_deg == 5.0 and beam_clips_cells(inst, [(1.0, 0.0)]).all()
+    out = tmp_path / "r"
+    assert main(["render", "--instrument", str(path), "--sample", "R3", "--tan-eps", "1", "--beta", "0",
+                 "--out", str(out), "--resolution", "64", "--spp", "16", "-q"]) == 0
+    info = json.loads((out / "render.json").read_text())
+    q = make_backend("quadrature", inst, resolve_sample("R3").model).compute([(1.0, 0.0)])[0]
+    assert abs(info["k_a_estimate"] - q.k_a) <= n_sigma(15) * info["k_a_se"] + q.error_bound
+    import OpenEXR
+    exr = OpenEXR.File(str(out / "illuminance.exr"))
+    E = exr.channels()["E_h"].pixels
+    assert E.max() > 0 and (E == 0).mean() > 0.2        # the spot: lit inside the cone only

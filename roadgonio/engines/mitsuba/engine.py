@@ -13,9 +13,9 @@ variant runs the same code (not tested here: this machine has no GPU).
 
 Geometry checks (errors, not wrong numbers): the preamble of every backend
 (:func:`roadgonio.engines.cellcheck.check_cells`: the source above the horizon, its disc out of the
-detector's view, the model positive at the nominal geometry; the area emitter has no beam limit, so
-a beam limit that clips the footprint is refused); every traced detector ray must hit the sample
-(counted in every launch).
+detector's view, the model positive at the nominal geometry; a beam limit that clips the footprint
+is modelled: the integrator applies the cone to every source sample and light path); every traced
+detector ray must hit the sample (counted in every launch).
 """
 from __future__ import annotations
 
@@ -126,8 +126,8 @@ class BatchEngine:
 
     # -- checks --------------------------------------------------------------------------------
     def check_cells(self, cells: Sequence[tuple[float, float]]) -> None:
-        """The preamble of every backend (:func:`roadgonio.engines.cellcheck.check_cells`); the area
-        emitter has no beam limit, so a clipping one is refused; a housing must hold every cell's
+        """The preamble of every backend (:func:`roadgonio.engines.cellcheck.check_cells`; a clipping
+        beam limit is modelled, the registry's ``beam_clipping``); a housing must hold every cell's
         source (:func:`roadgonio.instrument.enclosure.check_sources`). The scene, the instrument and
         the model are fixed for the engine's life, so cells that passed once are not checked again
         (the housing's check takes 0.065 s for the full table, 3 % of the housed example's table at

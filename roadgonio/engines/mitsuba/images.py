@@ -73,9 +73,11 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     out_dir = Path(out_dir)
     rs = build_scene(instrument, model, resolution=resolution, mitsuba_variant=mitsuba_variant, sampler="multijitter")
     import mitsuba as mi
-    if instrument.source.profiled:
+    if instrument.source.profiled or instrument.source.beam_half_angle_deg is not None:
         from roadgonio.engines.mitsuba.engine import BatchEngine, cell_sources
-        engine = BatchEngine(rs)                 # the profiled source of the cell, lit by the kabatch integrator
+        # the profiled source of the cell, or one with a hard cone, lit by the kabatch integrator
+        # (the scene's own disc emitter has neither)
+        engine = BatchEngine(rs)
         engine.check_cells([(tan_eps, beta_deg)])
         engine.integrator.set_cells(*cell_sources(instrument, [(tan_eps, beta_deg)]))
         rs.integrator = engine.integrator        # its cell 0
