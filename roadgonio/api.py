@@ -1429,6 +1429,13 @@ def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
     return summary
 
 
+def largest_change_text(result: dict) -> str:
+    """The largest change of a :func:`compare_tables` result in words (the wording of the command's
+    line and of compare.png: :func:`roadgonio.road.compare.largest_change_text`)."""
+    from roadgonio.road.compare import largest_change_text as text
+    return text(result)
+
+
 def classify_table(table) -> dict[str, Any]:
     """The CIE class of an r-table by S1 in the R, C and N systems, its Q0 against the class
     standard, and the bundled tables nearest in (S1, Q0) (``roadgonio classify``;

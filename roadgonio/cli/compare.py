@@ -4,7 +4,6 @@ from __future__ import annotations
 from roadgonio import api
 from roadgonio.cli._common import add_output_options, out_arg, print_json
 from roadgonio.errors import count
-from roadgonio.road.compare import largest_change_text
 
 
 def register(sub) -> None:
@@ -33,7 +32,7 @@ def run(args) -> int:
             print(f"{key:8} " + " ".join("-".rjust(n) if c[key] is None else format(c[key], f"{n}{fmt}")
                                          for c in (ca, cb)))
         print(f"r({b}) / r({a}) over {res['cells_compared']} cells: {res['ratio_min']:.3g} ... "
-              f"{res['ratio_max']:.3g} (median {res['ratio_median']:.3g}); {largest_change_text(res)}")
+              f"{res['ratio_max']:.3g} (median {res['ratio_median']:.3g}); {api.largest_change_text(res)}")
         for key, what in (("cells_zero_in_A", f"r({a}) = 0 < r({b})"), ("cells_zero_in_B", f"r({b}) = 0 < r({a})"),
                           ("cells_ratio_undefined", "0 in both: no ratio")):
             if res[key]:
