@@ -263,7 +263,8 @@ def _stage2_task(item: tuple, shared: Mapping[str, Any]) -> dict[str, Any]:
         name, ref = f"{pm.name}_{m + 1}", "self"
     table = RTable(setup.cells.to_grid(raw), name=name, source=f"simulated table of participant {pm.name}")
     res = correct_measured(table, part.instrument, reference=ref, u_measured=part.noise_rel,
-                           backend=shared["backend"], backend_settings=shared["correction_settings"], seed=0,
+                           backend=shared["backend"], backend_settings=shared["correction_settings"],
+                           seed=correction_seed(study.seed, p, None if kind == "reference" else item[2]),
                            progress=False)
     ii, jj = setup.cells.ii, setup.cells.jj
     comp = {k: v for k, v in res.budget.components.items() if k != "measurement"}
@@ -326,7 +327,23 @@ def _fingerprint(study: Study, model, backend: str, settings, correction_setting
     for k in ("realisations", "corrected_realisations", "file", "name", "description"):
         d.pop(k, None)
     return fingerprint({"study": d, "model": {"variant": model.variant, "params": model.params.to_dict()},
-                        "backend": backend, "settings": settings, "correction_settings": correction_settings})
+                        "backend": backend, "settings": settings, "correction_settings": correction_settings,
+                        "correction_seeds": CORRECTION_SEEDS})
+
+
+#: How the simulated corrections are seeded (part of the journal's fingerprint): each its own seed,
+#: from the study's seed, the participant and the realisation (audit 22: every correction ran with
+#: seed 0, so its Monte Carlo k_A error was one stream shared by every realisation and the study's
+#: seed never changed it).
+CORRECTION_SEEDS = ("point_seed(point_seed(study.seed, participant), realisation + 1); its reference sample's "
+                    "correction: point_seed(point_seed(study.seed, participant), 0)")
+
+
+def correction_seed(study_seed: int, p: int, m: int | None) -> int:
+    """The seed of participant ``p``'s correction of realisation ``m`` (None: of its reference
+    sample's correction): :data:`CORRECTION_SEEDS`."""
+    from roadgonio.seeds import point_seed
+    return point_seed(point_seed(study_seed, p), 0 if m is None else m + 1)
 
 
 def _key(rec: Mapping[str, Any]) -> tuple:
@@ -418,6 +435,25 @@ def check_study(study: Study) -> None:
                          "one observation direction", path=study.path, field="participant.instrument")
 
 
+def _check_references(study: Study) -> None:
+    """Each reference sample (``report = "reference"``) names something before any work starts: a
+    bundled table or 'lambert', or a file that exists; errors name the study file and the
+    participant's field (audit 22: they came after the journal was written, naming neither)."""
+    from roadgonio.surface.rtable import BUNDLED
+    for p, part in enumerate(study.participants):
+        ref = part.reference
+        if part.report != "reference" or ref is None:
+            continue
+        fld = f"participant[{p + 1}].reference"
+        rp = Path(str(ref)).expanduser()
+        if rp.suffix:
+            if not rp.is_file():
+                raise InputError(f"no such table or model file: {ref}", path=study.path, field=fld)
+        elif str(ref).strip().upper() not in BUNDLED and str(ref).strip().lower() != "lambert":
+            raise InputError(f"unknown sample {ref!r}; expected a bundled table ({', '.join(BUNDLED)}), 'lambert', or a "
+                             "table or model file", path=study.path, field=fld)
+
+
 def run_study(study: Study | str | Path, out: str | Path | None = None, *, workers: int | None = None,
               scheduler: str | None = None, client=None, fresh: bool = False, progress: bool = True,
               plots: bool = True, mitsuba_variant: str | None = None) -> StudyRun:
@@ -437,6 +473,7 @@ def run_study(study: Study | str | Path, out: str | Path | None = None, *, worke
         model = resolve_sample(study.surface, study.model_variant, field="study.surface").model
     except InputError as err:
         raise InputError(err.reason, path=err.path or study.path, field="study.surface") from None
+    _check_references(study)
     cells = _cells(study.cells)
     for p, part in enumerate(study.participants):
         mm = MeasurementModel(model, part.instrument, cells, part.illuminance)

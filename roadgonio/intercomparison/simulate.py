@@ -234,7 +234,9 @@ class Draws:
 def draws(setup: Setup, m: int) -> Draws:
     """The random numbers of realisation m: ``SeedSequence(seed).spawn(realisations)[m]``, then one
     child per participant and per shared effect in study order, so they depend only on (seed, m)."""
-    ss = np.random.SeedSequence(int(setup.seed)).spawn(int(setup.realisations))[m]
+    # the same SeedSequence as SeedSequence(seed).spawn(realisations)[m], without spawning all the
+    # others first (that made a study quadratic in its realisations, audit 22)
+    ss = np.random.SeedSequence(int(setup.seed), spawn_key=(int(m),))
     kids = ss.spawn(setup.P + len(setup.shared))
     X, zn, zc = [], [], []
     for p, pm in enumerate(setup.participants):

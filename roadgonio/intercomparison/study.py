@@ -9,7 +9,8 @@
     # model_variant = "power"         # when the surface is a table to fit
     cells = "standard"                # the CIE tabulated region (396 cells) or "all" (580)
     realisations = 200                # simulated outcomes of the comparison
-    # corrected_realisations = 200    # of them, how many are corrected by roadgonio (default: all)
+    # corrected_realisations = 200    # of them, how many are corrected by roadgonio (default: all); a
+                                      # participant with report = "self" has a table only in these
     seed = 1
     coverage_factor = 2.0             # k of U(d_i) and E_n
     backend = "mitsuba"               # k_A backend: mitsuba, or quadrature (deterministic, ~50x slower
@@ -64,6 +65,10 @@ CELL_CHOICES = ("standard", "all")
 #: The backends of a study and their default tolerance: the registry's ``study_tolerance``
 #: (:func:`roadgonio.engines.registry.backends_with`), shared with ``uncertainty``.
 
+#: The most realisations a study may ask for: each is a table per participant and per scenario
+#: (200 is the default; 1e12 was accepted and hung, audit 22).
+MAX_REALISATIONS = 100_000
+
 _STUDY_KEYS = {"name", "description", "surface", "model_variant", "cells", "realisations", "corrected_realisations",
                "seed", "coverage_factor", "backend", "rel_se", "correction_rel_se"}
 _PARTICIPANT_KEYS = {"name", "instrument", "calibration", "sigma", "noise_rel", "calibration_u_rel", "illuminance",
@@ -75,8 +80,10 @@ def _number(v: Any, fld: str, path, *, lo: float | None = None, hi: float | None
             integer: bool = False) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise InputError(f"expected a {'whole ' if integer else ''}number, got {v!r}", path=path, field=fld)
-    if integer and (not float(v).is_integer()):
-        raise InputError(f"expected a whole number, got {v!r}", path=path, field=fld)
+    if integer and not isinstance(v, int):      # audit 22: 6.0 passed (the API refuses seed=1.0)
+        raise InputError(f"expected a whole number (without a decimal point), got {v!r}", path=path, field=fld)
+    if integer and v > 2 ** 63 - 1:            # float(v) would round it: compare exactly
+        raise InputError(f"expected a value <= {hi if hi is not None else 2 ** 63 - 1}, got {v}", path=path, field=fld)
     x = float(v)
     if not math.isfinite(x):
         raise InputError(f"expected a finite number, got {v!r}", path=path, field=fld)
@@ -330,11 +337,12 @@ def study_from_dict(d: Mapping[str, Any], *, path: str | Path | None = None) -> 
     if variant is not None:
         variant = _text(variant, "study.model_variant", path, choices=tuple(VARIANTS))
     cells = _text(s.get("cells", "standard"), "study.cells", path, choices=CELL_CHOICES)
-    n = int(_number(s.get("realisations", 200), "study.realisations", path, lo=2, integer=True))
+    n = int(_number(s.get("realisations", 200), "study.realisations", path, lo=2, hi=MAX_REALISATIONS, integer=True))
     nc = s.get("corrected_realisations")
     if nc is not None:
         nc = int(_number(nc, "study.corrected_realisations", path, lo=0, hi=n, integer=True))
-    seed = int(_number(s.get("seed", 1), "study.seed", path, lo=0, integer=True))
+    from roadgonio.seeds import SEED_MAX
+    seed = int(_number(s.get("seed", 1), "study.seed", path, lo=0, hi=SEED_MAX, integer=True))
     k = _number(s.get("coverage_factor", 2.0), "study.coverage_factor", path, lo=0.0, lo_open=True, hi=10.0)
     from roadgonio.engines.registry import backends_with
     backend = _text(s.get("backend", "mitsuba"), "study.backend", path, choices=backends_with(study_tolerance=True))
@@ -351,6 +359,12 @@ def study_from_dict(d: Mapping[str, Any], *, path: str | Path | None = None) -> 
     if len(participants) < 2:
         raise InputError(f"a comparison needs at least two participants, got {len(participants)}", path=path,
                          field="participant")
+    selfs = [p.name for p in participants if p.report == "self"]
+    if selfs and (n if nc is None else nc) < 2:
+        # audit 22: 0 gave a traceback in the pictures, or a study that compared nothing with exit 0
+        raise InputError(f"participant(s) {', '.join(selfs)} report their own correction (report = \"self\"), which "
+                         "exists only in the corrected realisations: expected corrected_realisations >= 2 (or leave "
+                         f"it out: all {n})", path=path, field="study.corrected_realisations")
     names = [p.name for p in participants]
     dup = sorted({x for x in names if names.count(x) > 1})
     if dup:

@@ -37,6 +37,14 @@ def collimated(tmp_path):
      "shared[1].u_rel", "not u_rel"),
     (lambda d: d["study"].update(realisations=1), "study.realisations", ">= 2"),
     (lambda d: d["study"].pop("surface"), "study.surface", "missing"),
+    # audit 22: 0 corrected realisations with a participant reporting "self" crashed or compared nothing
+    (lambda d: (d["participant"][0].update(report="self", noise_rel=0.002), d["study"].update(
+        realisations=4, corrected_realisations=0)), "study.corrected_realisations", "corrected_realisations >= 2"),
+    # audit 22: 1e12 realisations were accepted (and hung), 6.0 taken as 6, 2^63 named no file
+    (lambda d: d["study"].update(realisations=10 ** 12), "study.realisations", "<= 100000"),
+    (lambda d: d["study"].update(realisations=6.0), "study.realisations", "whole number"),
+    (lambda d: d["study"].update(seed=7.0), "study.seed", "whole number"),
+    (lambda d: d["study"].update(seed=2 ** 63), "study.seed", "<= 9223372036854775807"),
 ])
 def test_bad_study_files_are_one_line_errors_naming_file_and_field(tmp_path, collimated, change, field, words):
     d = {"study": {"surface": "R3"}, "participant": [coll("A"), coll("B")], "shared": []}
@@ -524,3 +532,56 @@ def test_validation_rows_pair_the_full_and_the_frozen_figures():
     assert validation_rows(setup, xs, stats, full)
     full["all_corrected"][0, 0] = False                                      # one: none
     assert validation_rows(setup, xs, stats, full) == []
+
+
+def test_a_reference_sample_that_names_nothing_is_refused_before_any_work(tmp_path, collimated):
+    """(audit 22) report = "reference" with reference = "R9" or a missing file failed after the
+    journal was written, naming neither the study file nor the field."""
+    from roadgonio.intercomparison.run import run_study
+    for ref, words in (("R9", "unknown sample 'R9'"), ("nofile.csv", "no such table or model file")):
+        p = coll("B")
+        p.update(report="reference", reference=ref, noise_rel=0.002)
+        study = study_from_dict({"study": {"surface": "R3", "realisations": 2}, "participant": [coll("A"), p]},
+                                path=tmp_path / "study.toml")
+        with pytest.raises(InputError, match=words) as err:
+            run_study(study, tmp_path / "out", workers=0, progress=False, plots=False)
+        assert err.value.field == "participant[2].reference" and str(tmp_path / "study.toml") in str(err.value)
+        assert not (tmp_path / "out").exists()
+
+
+def test_each_simulated_correction_has_its_own_seed(monkeypatch):
+    """(audit 22) every correction of every realisation ran with seed 0: its Monte Carlo error was
+    one stream shared by all realisations, and the study's seed never changed it. The seeds now
+    differ by participant and realisation, follow the study's seed, and stage 2 uses them."""
+    from roadgonio.intercomparison import run as runmod
+    seeds = {(s, p, m): runmod.correction_seed(s, p, m) for s in (1, 2) for p in (0, 1) for m in (None, 0, 1, 7)}
+    assert len(set(seeds.values())) == len(seeds)
+    got = []
+
+    class Stop(Exception):
+        pass
+
+    def fake(*args, seed, **kw):
+        got.append(seed)
+        raise Stop
+
+    import roadgonio.correction.files as files
+    monkeypatch.setattr(files, "correct_measured", fake)
+    monkeypatch.setattr(runmod.sim, "raw_table", lambda setup, d, p: (np.ones(3), None))
+    monkeypatch.setattr(runmod.sim, "draws", lambda setup, m: None)
+
+    class Cells:
+        ii = jj = np.zeros(3, dtype=int)
+
+        @staticmethod
+        def to_grid(raw):
+            return np.full((29, 20), 0.01)
+
+    setup = type("S", (), {"participants": [type("P", (), {"name": "A"})()] * 2, "cells": Cells})()
+    study = type("St", (), {"seed": 5, "participants": [type("Q", (), {"instrument": None, "noise_rel": 0.01,
+                                                                         "reference": None})()] * 2})()
+    for m in (0, 3):
+        with pytest.raises(Stop):
+            runmod._stage2_task(("self", 1, m), {"setup": setup, "study": study, "backend": "quadrature",
+                                                 "correction_settings": {}})
+    assert got == [runmod.correction_seed(5, 1, 0), runmod.correction_seed(5, 1, 3)]
