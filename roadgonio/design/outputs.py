@@ -110,6 +110,16 @@ def write_best(ds, path: Path) -> Path | None:
                        "description": f"best design of a roadgonio design study of '{inst.name}': {changes}"}
     prov = json.loads(ds.attrs.get("provenance", "{}"))
     acc = prov.get("accuracy")
+    # what the row was computed with (audit 22: --rel-se and --cells were left out, and the printed
+    # line gave another k_A, 2.4 of its own SEs away): the preset, or the tolerance given instead
+    from roadgonio.engines.registry import backend_info
+    info = backend_info(prov["backend"]) if prov.get("backend") else None
+    tol_key = info.tolerance if info is not None else None
+    seeded = info is None or info.seeded          # a deterministic backend refuses --seed
+    tol = (prov.get("requested_settings") or {}).get(tol_key) if tol_key else None
+    how = f" --accuracy {acc}" if acc else (f" --rel-se {tol:g}" if tol is not None else "")
+    cells = prov.get("cells")
+    how += f" --cells {cells}" if isinstance(cells, str) and cells != "all" else ""
     samples = json.loads(ds.attrs["samples"])
     header = (f"The feasible design with the most signal, of signals equal within {SAME_SIGNAL_RTOL:g} the least max |k_A - 1| (roadgonio design; {ds.attrs.get('created', '')}).\n"
               f"Varied: {changes}\n"
@@ -117,8 +127,8 @@ def write_best(ds, path: Path) -> Path | None:
               f"{s['worst_tan_eps']:g}, beta {s['worst_beta_deg']:g} ({s['worst_sample']}); rms {s['rms_dev']:.4g}; "
               f"signal {s['signal']:.4g} x base\n"
               f"Reproduce its row: roadgonio ka --instrument best.toml --sample {(prov.get('samples') or {}).get(s['worst_sample'], {}).get('spec') or s['worst_sample']} --backend {prov.get('backend')}"
-              + (f" --accuracy {acc}" if acc else "")
-              + (f" --model-variant {prov['model_variant']}" if prov.get("model_variant") else "") + f" --seed {s['seed']} (the sample of its worst cell; the study's samples: {', '.join(samples)})")
+              + how
+              + (f" --model-variant {prov['model_variant']}" if prov.get("model_variant") else "") + (f" --seed {s['seed']}" if seeded else "") + f" (the sample of its worst cell; the study's samples: {', '.join(samples)})")
     return atomic_write_text(path, toml_text(d, header))
 
 

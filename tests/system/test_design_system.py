@@ -57,6 +57,27 @@ def test_best_design_recomputed_with_ka_matches_its_row(mi, tmp_path, capsys):
     assert any(f"--seed {row['seed']}" in h for h in header)
     # the command to reproduce the row is complete: the sample, no placeholder (trial 8)
     assert any("--sample R3 " in h for h in header) and not any("SAMPLE" in h for h in header)
+    assert any(f"--accuracy fast --cells {cells} " in h for h in header)        # audit 22: --cells was left out
+
+
+def test_best_toml_reproduces_a_row_computed_with_rel_se(tmp_path, capsys):
+    """(audit 22) a design run with --rel-se printed a reproduce line without it: the command gave
+    another k_A (2.4 of its own SEs away). The line carries the tolerance and the cells, and running
+    it gives the row's k_A."""
+    out = tmp_path / "d"
+    assert main(["design", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature", "--cells", "4:0",
+                 "--vary", "source.radius_m=0.004", "--rel-se", "2e-4", "--tolerance", "20%", "--workers", "0", "--out", str(out),
+                 "-q"]) == 0
+    line = next(h for h in (out / "best.toml").read_text().splitlines() if "Reproduce its row" in h)
+    cmd = line.split("Reproduce its row: roadgonio ")[1].split(" (the sample")[0].split()
+    assert "--rel-se" in cmd and cmd[cmd.index("--rel-se") + 1] == "0.0002" and "--cells" in cmd
+    assert "--seed" not in cmd and line.endswith("(the sample of its worst cell; the study's samples: R3)")
+    cmd[cmd.index("best.toml")] = str(out / "best.toml")
+    assert main([*cmd, "--out", str(tmp_path / "k"), "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    import xarray as xr
+    with xr.open_dataset(out / "design.nc") as ds:
+        assert got["k_a_min"] == float(ds["k_a"].values.ravel()[np.isfinite(ds["k_a"].values.ravel())][0])  # one cell
 
 
 @pytest.mark.parametrize("args, words", [
