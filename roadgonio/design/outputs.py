@@ -36,12 +36,18 @@ CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u
              "max_stray_u")
 
 
+#: Every file ``roadgonio design`` writes: a run removes those it does not write this time
+#: (``--no-plots``, no feasible design, no tolerance map), so an earlier run's picture never stays
+#: beside the new results (audit 22: pareto.png of a 5 % run beside a 3 % run's best.toml).
+DESIGN_FILES = ("design.nc", "design.csv", "best.toml", "pareto.png", "tolerance_map.png")
+
+
 def write_outputs(ds, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
     """design.nc, design.csv, best.toml and the pictures, together or not at all
     (:class:`roadgonio.fileio.OutputGroup`; the journal stays outside, so a failed write resumes)."""
-    from roadgonio.fileio import OutputGroup, output_error
+    from roadgonio.fileio import OutputGroup
     out_dir = Path(out_dir)
-    with OutputGroup(out_dir) as g:
+    with OutputGroup(out_dir, replaces=DESIGN_FILES) as g:
         files = [write_netcdf(ds, g.path("design.nc")), write_csv(ds, g.path("design.csv"))]
         best = write_best(ds, g.path("best.toml"))
         if best is None:
@@ -55,11 +61,6 @@ def write_outputs(ds, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
                 g.names.remove("tolerance_map.png")
             else:
                 files.append(tm)
-    if best is None and (out_dir / "best.toml").exists():
-        try:
-            (out_dir / "best.toml").unlink()          # an earlier run's best is not this run's
-        except OSError as err:
-            raise output_error(out_dir / "best.toml", err) from None
     return [out_dir / Path(f).name for f in files]
 
 

@@ -331,7 +331,9 @@ def write_second_aperture(res: SecondApertureResult, out_dir: str | Path, *, plo
     prov = provenance(instrument=res.instrument, settings=res.settings,
                       quantity="roadgonio design --second-aperture: expected u of the corrected table per second "
                                "aperture setting (roadgonio.design.second_aperture)")
-    with OutputGroup(out_dir) as group:
+    # every file it writes: one not written this time (--no-plots, no best setting) is removed (audit 22)
+    with OutputGroup(out_dir, replaces=("second_aperture.csv", "second_aperture.json", "best_second.toml",
+                                        "second_aperture.png")) as group:
         paths = [group.text("second_aperture.csv", buf.getvalue()),
                  group.json("second_aperture.json", {**res.summary(), "provenance": prov})]
         if res.best.instrument is not None:

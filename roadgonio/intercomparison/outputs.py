@@ -48,6 +48,16 @@ CORRELATION_COLUMNS = ("scenario", "participant_a", "participant_b", "realisatio
 SCENARIO_TITLE = {"declared": "as declared", "all_corrected": "every participant corrects (roadgonio correct --reference self)"}
 
 
+def output_files() -> tuple[str, ...]:
+    """Every file ``roadgonio intercompare`` writes: a run removes those it does not write this time
+    (``--no-plots``, a scenario without E_n), so an earlier run's picture never stays beside the new
+    results (audit 22)."""
+    from roadgonio.intercomparison.simulate import FROZEN, SCENARIOS
+    return ("intercompare.nc", "intercompare.csv", "sensitivity.csv", "validation.csv", "correlation.csv",
+            "intercompare.json", *(f"en_map_{s}.png" for s in (*SCENARIOS, FROZEN)), "specular_row.png",
+            "sensitivity.png", "compatibility.png")
+
+
 def write_outputs(run, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
     """intercompare.nc, intercompare.csv, sensitivity.csv, intercompare.json and the pictures,
     together or not at all (:class:`roadgonio.fileio.OutputGroup`; the journal stays outside)."""
@@ -58,7 +68,7 @@ def write_outputs(run, out_dir: str | Path, *, plots: bool = True) -> list[Path]
     sens = json.loads(ds.attrs["sensitivity_json"])
     valid = json.loads(ds.attrs.get("validation_json", "[]"))
     corr = json.loads(ds.attrs.get("correlation_json", "[]"))
-    with OutputGroup(out_dir) as g:
+    with OutputGroup(out_dir, replaces=output_files()) as g:
         files = [write_netcdf(ds, g.path("intercompare.nc")),
                  g.text("intercompare.csv", rows_csv(summ)), g.text("sensitivity.csv", rows_csv(sens)),
                  g.text("validation.csv", rows_csv(valid, VALIDATION_COLUMNS)), g.text("correlation.csv", rows_csv(corr, CORRELATION_COLUMNS)),

@@ -101,3 +101,17 @@ def test_ka_cells_list(mi, tmp_path, capsys):
     assert s["cells"] == 2 and set(_ka_cells(out / "ka_cells.jsonl")) == {(12.0, 0.0), (4.0, 2.0)}
     assert main(["ka", "--instrument", "portable", "--sample", "R3", "--cells", "12:0,4", "--out", str(out)]) == 2
     assert "--cells" in capsys.readouterr().err
+
+
+def test_a_design_rerun_without_pictures_removes_the_earlier_pictures(tmp_path, capsys):
+    """(audit 22) design --no-plots (or a run that draws fewer pictures) into an earlier run's
+    folder left its pareto.png and tolerance_map.png beside the new best.toml; the user's files stay."""
+    out = tmp_path / "d"
+    base = ["design", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature", "--cells", "4:0",
+            "--vary", "source.radius_m=0.004,0.006", "--tolerance", "20%", "--workers", "0", "--out", str(out), "-q"]
+    assert main(base) == 0
+    assert (out / "pareto.png").exists() and (out / "best.toml").exists()
+    (out / "notes.txt").write_text("mine")
+    assert main([*base, "--no-plots", "--tolerance", "1%"]) == 0
+    assert not list(out.glob("*.png")) and not (out / "best.toml").exists()     # no design meets 1 %
+    assert (out / "notes.txt").read_text() == "mine" and (out / "design.csv").exists()

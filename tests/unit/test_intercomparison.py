@@ -585,3 +585,20 @@ def test_each_simulated_correction_has_its_own_seed(monkeypatch):
             runmod._stage2_task(("self", 1, m), {"setup": setup, "study": study, "backend": "quadrature",
                                                  "correction_settings": {}})
     assert got == [runmod.correction_seed(5, 1, 0), runmod.correction_seed(5, 1, 3)]
+
+
+def test_a_rerun_without_pictures_removes_the_earlier_runs_pictures(tmp_path, collimated):
+    """(audit 22) intercompare --no-plots into the folder of an earlier run left that run's
+    pictures (of other realisations) beside the new results; the user's own files stay."""
+    from roadgonio.intercomparison.run import run_study
+    from helpers_intercomparison import make_study
+    out = tmp_path / "out"
+    study = make_study(tmp_path, [coll("A"), coll("B")], realisations=3)
+    run_study(study, out, workers=0, progress=False, plots=True)
+    pngs = sorted(p.name for p in out.glob("*.png"))
+    assert "specular_row.png" in pngs and "compatibility.png" in pngs
+    (out / "notes.txt").write_text("mine")
+    run_study(make_study(tmp_path, [coll("A"), coll("B")], realisations=4), out, workers=0, progress=False,
+              plots=False)
+    assert not list(out.glob("*.png")) and (out / "notes.txt").read_text() == "mine"
+    assert (out / "intercompare.nc").exists()
