@@ -188,6 +188,24 @@ def _show(progress) -> bool:
     return bool(progress)
 
 
+def _check_flags(**flags) -> None:
+    """Each of ``flags`` True or False (a numpy bool too), or an InputError naming it (audit 22:
+    design_study(fresh="no") threw the journal away, plots="no" drew the pictures)."""
+    import numpy as np
+    for name, value in flags.items():
+        if not isinstance(value, (bool, np.bool_)):
+            raise InputError(f"expected True or False, got {value!r}", field=name)
+
+
+def _check_cluster(workers, client) -> None:
+    """``workers`` None or a whole number >= 0, ``client`` None or a Dask client (audit 22:
+    workers=True was taken as one worker, client="x" ended in an AttributeError)."""
+    if workers is not None:
+        _check_int(workers, "workers", 0)
+    if client is not None and not (hasattr(client, "submit") and hasattr(client, "scheduler_info")):
+        raise InputError(f"expected a dask.distributed Client, got {type(client).__name__}", field="client")
+
+
 # ----------------------------------------------------------------------------------------------
 # What there is to choose from (the command line's choices)
 # ----------------------------------------------------------------------------------------------
@@ -1090,6 +1108,8 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
     :class:`~roadgonio.errors.InputError` before any worker starts)."""
     from roadgonio.design.run import run_design
     from roadgonio.engines.registry import check_seed, prepare_entry_point, resolve_settings
+    _check_flags(fresh=fresh, progress=progress, plots=plots)
+    _check_cluster(workers, client)
     seed = check_seed(seed)
     _command_backend("design", backend)
     settings = resolve_settings(backend, tolerance=rel_se, mitsuba_variant=mitsuba_variant, fields={"tolerance": "rel_se"})
@@ -1125,6 +1145,11 @@ def intercompare(study, out=None, *, workers: int | None = None, scheduler: str 
     from roadgonio.engines.registry import prepare_entry_point
     from roadgonio.intercomparison.run import run_study
     from roadgonio.intercomparison.study import Study, load_study
+    _check_flags(fresh=fresh, progress=progress, plots=plots)
+    _check_cluster(workers, client)
+    if not isinstance(study, (Study, str, Path)):
+        raise InputError(f"expected a study file, the name of a bundled study or a Study, got {type(study).__name__}",
+                         field="study")
     st = study if isinstance(study, Study) else load_study(study)
     folder = _out(out, "intercompare", st.name)
     if workers == 0 and scheduler is None and client is None:

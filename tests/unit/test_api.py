@@ -495,3 +495,21 @@ def test_a_model_or_instrument_file_given_as_a_table_is_named_for_what_it_is(tmp
     with pytest.raises(InputError, match="expected the path of a .csv or .rtb file") as err:
         rg.table_info("R3", to=5)
     assert err.value.field == "to"
+
+
+def test_design_and_intercompare_refuse_flags_and_clusters_of_the_wrong_type(tmp_path):
+    """(audit 22) design_study(fresh="no") threw the journal away, plots="no" drew the pictures,
+    workers=True was one worker, and intercompare(5) / client="x" ended in tracebacks."""
+    for kw, field in (({"fresh": "no"}, "fresh"), ({"plots": "no"}, "plots"), ({"progress": "x"}, "progress"),
+                      ({"workers": True}, "workers"), ({"client": "x"}, "client")):
+        with pytest.raises(InputError) as err:
+            rg.design_study("portable", ["source.radius_m=0.005"], "R3", cells="12:0", out=tmp_path / "d", **kw)
+        assert err.value.field == field
+        with pytest.raises(InputError) as err:
+            rg.intercompare("r3-comparison", out=tmp_path / "i", **kw)
+        assert err.value.field == field
+    for study in (5, None, {"study": {}}):
+        with pytest.raises(InputError, match="expected a study file") as err:
+            rg.intercompare(study)
+        assert err.value.field == "study"
+    assert not (tmp_path / "d").exists() and not (tmp_path / "i").exists()
