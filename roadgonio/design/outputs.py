@@ -349,6 +349,23 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
     return out
 
 
+#: At most this many labelled ticks on a log-varied key's axis.
+MAX_VALUE_TICKS = 7
+
+
+def _value_ticks(axis, values) -> None:
+    """A log axis labelled at the design's own values ('0.00431', 3 digits), at most :data:`MAX_VALUE_TICKS`
+    of them, without minor labels: matplotlib's minor labels (2x10^-3, 3x10^-3, ...) ran into each
+    other on a decade-wide axis (audit 22)."""
+    from matplotlib import ticker
+    v = np.asarray(values, dtype=float)
+    if v.size > MAX_VALUE_TICKS:
+        v = v[np.unique(np.round(np.linspace(0, v.size - 1, MAX_VALUE_TICKS)).astype(int))]
+    axis.set_major_locator(ticker.FixedLocator(v))
+    axis.set_major_formatter(ticker.FixedFormatter([f"{x:.3g}" for x in v]))
+    axis.set_minor_locator(ticker.NullLocator())
+
+
 def _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor, fin_all, *, title: bool) -> None:
     """One tolerance-map panel: the plane (xk, yk) at the indices ``sel`` of the other keys; the star at
     ``anchor`` when the best design is on it; one colour scale over all panels (``fin_all``)."""
@@ -400,8 +417,10 @@ def _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor, fin_all, *, title: bool) 
         ax.legend(loc="upper right", fontsize=8)
     if xk in logs:
         ax.set_xscale("log")
+        _value_ticks(ax.xaxis, x)
     if yk in logs:
         ax.set_yscale("log")
+        _value_ticks(ax.yaxis, y)
     ax.set_xlabel(xk)
     ax.set_ylabel(yk)
     fixed = ", ".join(f"{d} = {float(ds[d].values[k]):g}" for d, k in sel.items())

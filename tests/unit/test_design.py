@@ -792,3 +792,21 @@ def test_the_summary_counts_the_points_whose_cells_did_not_converge(tmp_path):
     ds["not_converged"].values[...] = nc
     s = summary(ds)
     assert s["points_not_converged"] == 1 and s["best"]["not_converged"] == 2
+
+
+def test_a_log_varied_key_is_labelled_at_its_values_without_minor_labels():
+    """(audit 22) the tolerance map's log axis carried matplotlib's minor labels (2x10^-3, 3x10^-3,
+    ...) that ran into each other; it is labelled at the design's values, at most MAX_VALUE_TICKS."""
+    from roadgonio.design.outputs import MAX_VALUE_TICKS, _value_ticks
+    from roadgonio.plots import _plt
+    plt = _plt()
+    fig, ax = plt.subplots()
+    ax.set_xscale("log")
+    values = np.geomspace(0.002, 0.02, 4)
+    _value_ticks(ax.xaxis, values)
+    fig.canvas.draw()
+    assert [t.get_text() for t in ax.get_xticklabels()] == ["0.002", "0.00431", "0.00928", "0.02"]
+    assert not any(t.get_text() for t in ax.xaxis.get_minorticklabels())
+    _value_ticks(ax.xaxis, np.geomspace(1e-3, 1, 30))
+    assert len(ax.xaxis.get_major_locator()()) <= MAX_VALUE_TICKS
+    plt.close(fig)
