@@ -48,6 +48,8 @@ def run_table(args) -> int:
     missing = [k for k in ("S1", "Q0", "S2") if info[k] is None]
     if missing:
         say(f"  missing: {', '.join(missing)} ({_why_missing(missing)})")
+    if info.get("reading_note"):
+        say(f"  read: {info['reading_note']}")
     if "written" in info:
         say(f"wrote {info['written']}")
     return 0

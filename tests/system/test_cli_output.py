@@ -161,3 +161,19 @@ def test_table_says_q0_missing_without_a_unit(tmp_path, capsys):
     assert "Q0 = missing," in out and "missing sr^-1" not in out
     assert main(["table", "R3"]) == 0
     assert "Q0 = 0.0698 sr^-1," in capsys.readouterr().out
+
+
+def test_table_says_how_an_rtb_was_read(tmp_path, capsys):
+    """(audit 22) an RTB whose scale its q0 line told (values in sr^-1), or whose q0 line is off the
+    values' Q0, was read with a note only in the table's source; `table` prints it and --json has it."""
+    from roadgonio.surface.rtable import bundled_table
+    lines = bundled_table("R3").to_rtb_text().splitlines()
+    sr = lines[:54] + [f"{float(v) / 1e4:.8g}" for v in lines[54:]]
+    (tmp_path / "sr.rtb").write_text("\n".join(sr))
+    assert main(["table", str(tmp_path / "sr.rtb")]) == 0
+    assert "  read: values read as r in sr^-1" in capsys.readouterr().out
+    assert main(["table", str(tmp_path / "sr.rtb"), "--json"]) == 0
+    assert "values read as r in sr^-1" in json.loads(capsys.readouterr().out)["reading_note"]
+    (tmp_path / "plain.rtb").write_text("\n".join(lines))
+    assert main(["table", str(tmp_path / "plain.rtb")]) == 0
+    assert "read:" not in capsys.readouterr().out
