@@ -29,8 +29,15 @@ def test_study_numbers_out_of_kind_or_range_are_refused(tmp_path, study, field, 
 
 
 def test_study_limits_themselves_are_accepted(tmp_path):
-    s = study_from_dict(_study(tmp_path, realisations=20.0, corrected_realisations=20), path=tmp_path / "study.toml")
+    """The limits themselves pass. A whole number written as 20.0 does not (audit 22: as an
+    instrument file's max_bounces and the API's seed, a TOML float is not a whole number)."""
+    s = study_from_dict(_study(tmp_path, realisations=20, corrected_realisations=20), path=tmp_path / "study.toml")
     assert s.realisations == 20 and s.corrected_realisations == 20
+    from roadgonio.intercomparison.study import MAX_REALISATIONS
+    assert study_from_dict(_study(tmp_path, realisations=MAX_REALISATIONS), path=tmp_path / "s.toml").realisations \
+        == MAX_REALISATIONS
+    with pytest.raises(InputError, match="whole number"):
+        study_from_dict(_study(tmp_path, realisations=20.0), path=tmp_path / "study.toml")
 
 
 def test_csv_rows_must_follow_the_tan_eps_grid(tmp_path):
