@@ -50,7 +50,9 @@ but at most :data:`MAX_GROWTH` N, and the cell gets the largest lattice n with B
 n <= N_more (at most :data:`MAX_LOG2`), but never a smaller one than it had (larger lattices have
 smaller error per point, and the pooled mean weighs every point alike), and ceil(N_more / n)
 replicates of it (at least B_min). Cells reaching ``max_samples`` stop and
-are flagged not converged. A :class:`Plan` records what every cell got; replaying it (uncertainty
+are flagged not converged. With reflecting parts (``stray_search``) a cell that meets the target
+goes on, by MAX_GROWTH, until every replicate sum of its newest lattice carries stray light, up to
+:data:`STRAY_SEARCH_MAX` samples (rare stray paths otherwise gave SEs that ignored them). A :class:`Plan` records what every cell got; replaying it (uncertainty
 design points) gives every table the same random numbers.
 """
 from __future__ import annotations
