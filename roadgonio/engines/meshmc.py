@@ -313,7 +313,15 @@ class MeshMonteCarloBackend(CellByCellBackend):
                 return (np.einsum("ij,ij->i", vec, s), np.einsum("ij,ij->i", vec, tt), np.einsum("ij,ij->i", vec, n))
 
             f = road_brdf(NumpyOps, self._P, local(wi), local(wo), self.model.variant, self._terms)
-            wg = w * g
+            # a back face reflects nothing in either channel (the Lambert one too: audit 22, a mesh
+            # seen from below gave road 0 over Lambert > 0, k_A = 0 +- 0 "converged")
+            front = np.einsum("ij,ij->i", wo, n) > 0.0
+            if not np.any(front):
+                raise GeometryError(f"every detector ray meets the back of the sample mesh at tan eps = {cell[0]:g}, "
+                                    f"beta = {cell[1]:g}: the detector is below the mesh's faces there (a face "
+                                    "reflects towards the side its normal points to)",
+                                    **mesh_location(self.instrument.sample.mesh))
+            wg = w * g * front
             shape = (count, self.batch)
             return np.reshape(wg * f, shape).mean(axis=1), np.reshape(wg, shape).mean(axis=1)
 

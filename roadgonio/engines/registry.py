@@ -231,26 +231,26 @@ def check_capabilities(info: BackendInfo, instrument) -> None:
     for sec, what, part in unmodelled_parts(info, instrument):
         alt = ", ".join(n for n, b in BACKENDS.items() if b.xml_scenes)
         raise InputError(f"the {info.name} backend does not model {what} ({part} would be ignored, giving a "
-                         f"different instrument); use --backend {alt}"
+                         f"different instrument); use a backend that does ({alt})"
                          + (", or an instrument file without [scene]" if sec == "scene" else ""),
                          path=instrument.path, field=sec)
     if instrument.source.profiled and not info.beam_profile:
         key = instrument.source.profile_keys[0]
         alt = ", ".join(n for n, b in BACKENDS.items() if b.beam_profile)
-        raise InputError(f"the {info.name} backend does not model a source radiance profile ({key}); use "
-                         f"--backend {alt}, or a source without it", path=instrument.path, field=key)
+        raise InputError(f"the {info.name} backend does not model a source radiance profile ({key}); use a "
+                         f"backend that does ({alt}), or a source without it", path=instrument.path, field=key)
     if instrument.detector.field_map is not None and not info.field_map:
         alt = ", ".join(n for n, b in BACKENDS.items() if b.field_map)
-        raise InputError(f"the {info.name} backend does not model a detector sensitivity map; use --backend {alt}",
+        raise InputError(f"the {info.name} backend does not model a detector sensitivity map; use a backend that does ({alt})",
                          path=instrument.path, field="detector.field_sensitivity")
     if instrument.sample.mesh is not None and not info.meshes:
         alt = " or ".join(n for n, b in BACKENDS.items() if b.meshes)
         raise InputError(f"the {info.name} backend integrates over a flat rectangular sample only; for a mesh "
-                         f"sample use --backend {alt}", path=instrument.path, field="sample.mesh")
+                         f"sample use a backend that models one ({alt})", path=instrument.path, field="sample.mesh")
     path = instrument.source.path
     if path not in info.source_paths:
         alt = " or ".join(n for n, b in BACKENDS.items() if path in b.source_paths)
-        raise InputError(f"the {info.name} backend does not model source.path = \"{path}\"; use --backend {alt}",
+        raise InputError(f"the {info.name} backend does not model source.path = \"{path}\"; use the {alt} backend",
                          path=instrument.path, field="source.path")
 
 

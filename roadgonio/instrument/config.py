@@ -483,6 +483,12 @@ class Instrument:
         if not isinstance(self.extra, Mapping):
             raise InputError(f"expected a mapping of extra sections, got {self.extra!r}", field="extra")
         object.__setattr__(self, "extra", FrozenDict(self.extra))
+        if self.calibration.mode == "absolute" and self.sample.mesh is not None:
+            # audit 22: eta = <E>/E_0 is computed on the plane z = 0, so a mesh's tilt or reversed
+            # faces never entered: a Lambertian sample gave the flat plane's k_A on every mesh
+            raise InputError("the absolute calibration (eta = <E>/E_0 over the footprint) is computed for the flat "
+                             "sample plane and not for a mesh sample; expected mode = \"lambert\" or \"reference\" "
+                             "with [sample] mesh", path=self.path, field="calibration.mode")
         clash = sorted(set(self.extra) & set(_SECTIONS + ("calibration", "cells")))
         if clash:
             raise InputError(f"section(s) {', '.join(clash)} are fields of the instrument, not extra sections",

@@ -37,7 +37,12 @@ def load_trimesh(path: str | Path):
         # trimesh drops the faces of vertices that are not finite numbers (a NaN vertex left "no triangles")
         raise InputError("the sample mesh has no triangles (or none whose vertices are finite numbers)", path=path,
                          field="sample.mesh")
-
+    from roadgonio.instrument.config import MAX_LENGTH_M
+    span = float(np.max(np.asarray(mesh.bounds[1], dtype=np.float64) - np.asarray(mesh.bounds[0], dtype=np.float64)))
+    if not span <= MAX_LENGTH_M:        # audit 22: a mesh in millimetres passed, the same rectangle did not
+        raise InputError(f"the sample mesh spans {span:.4g} units: expected metres, at most {MAX_LENGTH_M:g} m (no "
+                         "instrument is larger; a mesh drawn in millimetres must be scaled by 0.001)", path=path,
+                         field="sample.mesh")
     return mesh
 
 
@@ -54,6 +59,11 @@ def check_mesh_orientation(mesh, where: str = "sample mesh", path=None) -> None:
     normals = np.asarray(mesh.face_normals, dtype=np.float64)
     area = np.asarray(mesh.area_faces, dtype=np.float64)
     nz = float(np.sum(normals[:, 2] * area) / max(np.sum(area), 1e-300))
+    if nz <= 0.0 and (abs(nz) < 1e-9 or getattr(mesh, "is_watertight", False)):
+        # audit 22: a closed solid or a vertical surface was told to reverse its winding, which cannot help
+        raise InputError(f"the {where}'s face normals average to z = {nz:.3g}: a closed solid or a vertical "
+                         "surface has no side facing up; the sample is one open surface facing +z (its top only)",
+                         **mesh_location(path))
     if nz <= 0.0:
         raise InputError(f"the {where}'s faces point downwards (area-weighted mean normal z = {nz:.3g}); "
                          "the sample surface is one-sided: reverse the face winding so that it faces +z",

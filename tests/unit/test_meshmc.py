@@ -127,3 +127,38 @@ def test_se_is_honest_at_the_fast_preset(tmp_path, r3like):
                                    np.linspace(-half_y, half_y, 3), shuffle_seed=4))
     assert_se_is_honest(lambda seed: make_backend("numpy-mc-mesh", mi, r3like, accuracy="fast", seed=seed),
                         make_backend("reference", inst, r3like, accuracy="precise", seed=5), range(1, 121))
+
+
+def test_a_mesh_seen_from_below_is_an_error_not_k_a_zero(tmp_path, r3like):
+    """(audit 22) a plane rising 2 deg towards a detector at alpha 1 deg is seen from below: the road
+    channel was 0 and the Lambert one not, so k_A = 0 +- 0 'converged'. A back face reflects nothing
+    in either channel; every ray on a back face is one GeometryError naming the mesh file."""
+    inst = load_instrument("portable")
+    mesh = grid_mesh(tmp_path / "rising.ply", np.linspace(-1, 1, 5), np.linspace(-0.3, 0.3, 3),
+                     height=lambda x, y: math.tan(math.radians(2.0)) * x)
+    with pytest.raises(GeometryError, match="back of the sample mesh") as err:
+        make_backend("numpy-mc-mesh", with_mesh(inst, mesh), r3like, rel_se=1e-2, seed=1).compute([(2.0, 0.0)])
+    assert "rising.ply" in str(err.value) and err.value.field == "sample.mesh"
+
+
+def test_mesh_files_out_of_kind_are_named_for_what_they_are(tmp_path):
+    """(audit 22) a mesh in millimetres passed where the same rectangle in metres is refused, and a
+    closed solid was told to reverse its winding; absolute calibration ignored the mesh (eta is
+    computed on the plane z = 0): refused with a mesh."""
+    import trimesh
+    from roadgonio.instrument.config import Instrument
+    inst = load_instrument("portable")
+    mm = grid_mesh(tmp_path / "mm.ply", np.linspace(-1000, 1000, 3), np.linspace(-300, 300, 3))
+    from roadgonio.instrument.mesh import sample_trimesh
+    with pytest.raises(InputError, match="millimetres") as err:
+        sample_trimesh(with_mesh(inst, mm))
+    assert err.value.field == "sample.mesh"
+    trimesh.creation.box(extents=(1.0, 0.5, 0.1)).export(tmp_path / "box.stl")
+    with pytest.raises(InputError, match="closed solid"):
+        sample_trimesh(with_mesh(inst, tmp_path / "box.stl"))
+    flat = grid_mesh(tmp_path / "flat.ply", np.linspace(-1, 1, 3), np.linspace(-0.3, 0.3, 3))
+    d = with_mesh(inst, flat).to_dict()
+    d["calibration"] = {"mode": "absolute"}
+    with pytest.raises(InputError, match="absolute calibration .* not for a mesh sample") as err:
+        Instrument.from_dict(d)
+    assert err.value.field == "calibration.mode"

@@ -245,8 +245,11 @@ class BatchEngine:
     def _check_lit(self, cell, st: CellStats) -> None:
         _, sg = st.totals()
         if not sg > 0.0:
+            mesh = self.instrument.sample.mesh
+            why = ("is it shaded by a part of the scene" + (", or does the detector see the back of the sample mesh "
+                   "(a face reflects towards the side its normal points to)" if mesh is not None else "") + "?")
             raise GeometryError(f"the source lights none of the detector footprint at tan eps = {cell[0]:g}, "
-                                f"beta = {cell[1]:g} (Lambert signal {sg:g}): is it shaded by a part of the scene?")
+                                f"beta = {cell[1]:g} (Lambert signal {sg:g}): {why}")
 
     def _pass(self, p: int, requests: dict[int, tuple[int, int]], stats, run: EngineRun, seed: int) -> None:
         groups: dict[int, list[tuple[int, int]]] = {}
