@@ -26,6 +26,10 @@ from roadgonio.uncertainty.statistics import numerical_tolerance, summarize
 # ----------------------------------------------------------------------------------------------
 
 BackendFactory = Callable[[Instrument, RoadModel], Any]
+#: A coverage interval's tails hold at least this many trials in all (M (1 - p) >= it): with fewer,
+#: its ends are the trials' extremes and the interval covers less than it says.
+MIN_TAIL_TRIALS = 10
+
 #: The backends of the exact k_A evaluations behind the surrogate, and their default tolerance:
 #: the registry's ``study_tolerance`` (:data:`roadgonio.engines.registry.BACKENDS`).
 
@@ -371,6 +375,13 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     trials = int(trials)
     if not adaptive and trials < 100:
         raise InputError(f"expected at least 100 trials, got {trials}", field="trials")
+    if not adaptive and trials * (1.0 - coverage) < MIN_TAIL_TRIALS:
+        # audit 22: 100 trials at 99.9 % gave the trials' minimum and maximum (about 98 %) labelled 99.9 %
+        need = math.ceil(MIN_TAIL_TRIALS / (1.0 - coverage) - 1e-9)
+        raise InputError(f"expected at least {need} trials for a {100 * coverage:g} % coverage interval (M (1 - p) >= "
+                         f"{MIN_TAIL_TRIALS}, so that its ends are order statistics inside the trials, not their "
+                         f"minimum and maximum; JCGM 101 7.2 recommends M >= 10^4 / (1 - p)), got {trials}",
+                         field="trials")
     if threads is None:
         threads = min(2, os.cpu_count() or 1)
     timings: dict[str, float] = {}

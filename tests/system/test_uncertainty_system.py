@@ -54,3 +54,19 @@ def test_cli_mitsuba_tables_on_a_local_cluster(tmp_path):
     d = json.loads((tmp_path / "uncertainty.json").read_text())
     assert any("Dask" in n for n in d["provenance"]["notes"]), d["provenance"]["notes"]
     assert d["surrogate"]["exact_evaluations"] > 0
+
+
+def test_a_coverage_interval_needs_trials_beyond_its_ends(tmp_path, capsys):
+    """(audit 22) 100 trials at --coverage 0.999 printed the trials' minimum and maximum (about a
+    98 % interval) labelled 99.9 %. M (1 - p) must be at least MIN_TAIL_TRIALS: one line, exit 2,
+    nothing written; at the limit the run goes on."""
+    from roadgonio.cli import main
+    from roadgonio.uncertainty.run import MIN_TAIL_TRIALS
+    base = ["uncertainty", "--instrument", "portable", "--sample", "R3", "--sigma", "alpha_deg=0.01", "--no-aperture",
+            "--no-plots"]
+    rc = main([*base, "--trials", "100", "--coverage", "0.999", "--out", str(tmp_path / "a")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "expected at least 10000 trials" in err and err.count("\n") == 1
+    assert not (tmp_path / "a").exists()
+    assert main([*base, "--trials", str(int(MIN_TAIL_TRIALS / 0.05)), "--coverage", "0.95", "--out",
+                 str(tmp_path / "b"), "-q"]) == 0
