@@ -217,6 +217,13 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
         lines.append(f"k_A surrogate: {s['exact_evaluations']} exact evaluations in {s['seconds']:.0f} s; error vs "
                      f"held-out exact k_A: max {100 * s['rel_err_max']:.3g} %, rms {100 * s['rel_err_rms']:.3g} %"
                      + (f", max/u(r) = {s['err_over_u_max']:.2g}" if "err_over_u_max" in s else ""))
+        rel_u = s.get("backend_rel_u_max")
+        if rel_u is not None and rel_u > 0:
+            # audit 22: the exact tables' own Monte Carlo error moved the nominal values, means and
+            # intervals with --seed by up to about one u, and was said only in the JSON
+            lines.append(f"k_A backend: relative standard uncertainty up to {100 * rel_u:.2g} % per cell (its Monte "
+                         "Carlo error, common to every trial: not in u or the intervals; the surrogate's error above "
+                         "is against tables of the same seed; --rel-se lowers it)")
         note = s.get("err_over_u_note")
         if note:
             worst = "; ".join(f"tan eps {w['tan_eps']:g}, beta {w['beta_deg']:g}: {w['err_over_u']:.2g} u(r)"

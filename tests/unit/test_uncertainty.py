@@ -533,6 +533,11 @@ def test_the_backends_standard_uncertainty_is_named_as_such():
     s = result_dict(res)["surrogate"]
     assert "backend_rel_se_max" not in s
     assert s["backend_rel_u_max"] == pytest.approx(rel_bound / math.sqrt(3.0), rel=EXACT_TOL, abs=0.0)
+    # (audit 22) the printed summary says it, and that u and the intervals leave it out: the exact
+    # tables' own error moved the results with --seed by up to about one u, said only in the JSON
+    from roadgonio.uncertainty.report import summary_lines
+    line = next(ln for ln in summary_lines(res) if ln.startswith("k_A backend:"))
+    assert f"up to {100 * rel_bound / math.sqrt(3.0):.2g} %" in line and "not in u or the intervals" in line
 
 
 def test_s1_of_a_trial_follows_the_tables_missing_rule():
