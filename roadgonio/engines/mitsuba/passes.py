@@ -424,25 +424,21 @@ class Planner:
             ratio, se, _ = st.ratio_se()
             rel = relative(ratio, se)
             room = self.max_samples - st.samples
+            last = max((k[1] for k in st.strata), default=self.first_log2)
             if rel <= self.rel_se and st.passes >= self.min_passes:
                 seen = st.stray_seen() if self.stray_search else None
                 if seen is None or seen >= STRAY_SEEN_MIN:
                     done["converged"].append(i)
-                elif st.samples >= STRAY_SEARCH_MAX or room < (1 << MIN_LOG2) * self.min_replicates:
+                    continue
+                if st.samples >= STRAY_SEARCH_MAX or room < (1 << MIN_LOG2) * self.min_replicates:
                     # none ever seen: no stray light to speak of; seen rarely: the SE is not to be trusted
                     done["converged" if st.stray_never_seen() else "capped"].append(i)
-                else:                                 # the SE is met without the stray light seen: look further
-                    last = max(k[1] for k in st.strata)
-                    want = min(self.max_growth * st.samples, room)
-                    log2n = max(self.log2_for(want / self.min_replicates), last)
-                    requests[i] = (log2n, min(max(self.min_replicates, int(math.ceil(want / (1 << log2n)))),
-                                              max(self.min_replicates, room >> log2n)))
-                continue
-            if room < (1 << MIN_LOG2) * self.min_replicates:
+                    continue
+                want = self.max_growth * st.samples      # the SE is met without the stray light seen: look further
+            elif room < (1 << MIN_LOG2) * self.min_replicates:
                 done["capped"].append(i)
                 continue
-            last = max((k[1] for k in st.strata), default=self.first_log2)
-            if math.isfinite(rel) and rel > self.rel_se:
+            elif math.isfinite(rel) and rel > self.rel_se:
                 want = self.more_samples(st, rel, last) * SAFETY
             else:
                 want = st.samples          # min_passes not reached, or no SE yet: as much again
