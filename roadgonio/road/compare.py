@@ -24,9 +24,8 @@ def compare_tables(a: RTable, b: RTable) -> dict:
         raise InputError(f"tables {a.name} and {b.name} are not on the same grid")
     both = a.mask & b.mask
     zero_a, zero_b = both & (a.r == 0), both & (b.r == 0)
-    defined = both & ~(zero_a & zero_b)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(defined, np.where(zero_a, np.inf, b.r / np.where(zero_a, 1.0, a.r)), np.nan)
+        ratio = np.where(both, b.r / a.r, np.nan)                 # x/0 = inf, 0/0 = NaN
         change = np.abs(np.log(ratio))                            # 0 or inf: an infinite change
     got = ratio[np.isfinite(ratio)]
     if got.size == 0:
