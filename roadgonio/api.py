@@ -340,8 +340,9 @@ def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
     info = {"table": t.name, "Q0": _value(t.q0()), "S1": _value(t.s1()), "S2": _value(t.s2()),
             "cells": int(t.mask.sum()), "r_max": _value(t.r_max)}
     # how an RTB file was read, when the reader had something to say (its scale told by the q0 line,
-    # a q0 line off the values' Q0): audit 22, it was only in the table's source
-    if t.source.startswith("read from ") and "; " in t.source:
+    # a q0 line off the values' Q0): audit 22, it was only in the table's source. Of the RTB file
+    # itself only: a CSV converted from it keeps that source as its header, and its values need no note
+    if isinstance(table, (str, Path)) and Path(str(table)).suffix.lower() == ".rtb" and "; " in t.source:
         info["reading_note"] = t.source.split("; ", 1)[1]
     if to is not None:
         info["written"] = str(t.write(_table_file(to, "to")))

@@ -174,6 +174,10 @@ def test_table_says_how_an_rtb_was_read(tmp_path, capsys):
     assert "  read: values read as r in sr^-1" in capsys.readouterr().out
     assert main(["table", str(tmp_path / "sr.rtb"), "--json"]) == 0
     assert "values read as r in sr^-1" in json.loads(capsys.readouterr().out)["reading_note"]
+    # the CSV written from it keeps the RTB's source as its header, but its values are r x 1e4 as read
+    assert main(["table", str(tmp_path / "sr.rtb"), "--to", str(tmp_path / "sr.csv"), "-q"]) == 0
+    assert main(["table", str(tmp_path / "sr.csv")]) == 0
+    assert "read:" not in capsys.readouterr().out
     (tmp_path / "plain.rtb").write_text("\n".join(lines))
     assert main(["table", str(tmp_path / "plain.rtb")]) == 0
     assert "read:" not in capsys.readouterr().out
