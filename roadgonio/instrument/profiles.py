@@ -337,8 +337,9 @@ def _read_image(p: Path, field: str) -> np.ndarray:
                 rgb = np.asarray(img, dtype=np.float64)
                 if mode == "RGBA" and np.any(rgb[..., 3] != rgb[..., 3].flat[0]):
                     raise _err("expected a greyscale image: its alpha channel varies (a transparent map)", p, field)
-                if np.array_equal(rgb[..., 0], rgb[..., 1]) and np.array_equal(rgb[..., 0], rgb[..., 2]):
-                    return rgb[..., 0]
+                grey = _grey_of_rgb(rgb)
+                if grey is not None:
+                    return grey
                 raise _err(f"expected a greyscale image (8 or 16 bit, or 32-bit float, or {mode} with equal R, G, B), "
                            f"got {mode} with colour", p, field)
             if mode not in ("L", "I", "I;16", "I;16B", "I;16L", "F"):
@@ -348,6 +349,13 @@ def _read_image(p: Path, field: str) -> np.ndarray:
         raise _err("not an image that can be read (expected a CSV grid, PNG, TIFF or EXR)", p, field) from None
     except OSError as err:
         raise _err(f"cannot read the image ({err})", p, field) from None
+
+
+def _grey_of_rgb(rgb: np.ndarray) -> np.ndarray | None:
+    """The one channel of an RGB(A) image (rows x columns x 3 or 4) whose R, G and B are equal (a
+    grey map saved as colour, PNG or EXR alike), or None when they differ."""
+    r = rgb[..., 0]
+    return r if np.array_equal(r, rgb[..., 1]) and np.array_equal(r, rgb[..., 2]) else None
 
 
 def _read_exr(p: Path, field: str) -> np.ndarray:
@@ -366,9 +374,9 @@ def _read_exr(p: Path, field: str) -> np.ndarray:
         return grey[0]
     if len(channels) == 1:
         (v,) = channels.values()
-        if v.ndim == 3 and v.shape[2] in (3, 4) and np.array_equal(v[..., 0], v[..., 1]) \
-                and np.array_equal(v[..., 0], v[..., 2]):
-            return v[..., 0]
+        grey = _grey_of_rgb(v) if v.ndim == 3 and v.shape[2] in (3, 4) else None
+        if grey is not None:
+            return grey
     raise _err("expected a greyscale OpenEXR image (one channel, a Y channel, or equal R, G, B), got channels "
                + ", ".join(sorted(channels)), p, field)
 
