@@ -38,8 +38,10 @@ def test_a_clipping_beam_limit_is_modelled_by_the_mitsuba_backend():
     """(session 22) The kabatch integrator applies the hard cone (``beam_half_angle_deg``) to every
     source sample, so a cone that clips the footprint is modelled, no longer refused: on the wide
     instrument with a 10 deg cone, where the cut changes k_A by up to 24 % (0.80 uncut against
-    1.04 at tan eps 1, beta 0), k_A agrees with the float64 quadrature, which integrates the cone
-    (its own statement, roadgonio.instrument.optics.source_coupling), within n_sigma SE + its bound."""
+    1.04 at tan eps 1, beta 0), k_A agrees with the float64 Monte Carlo (numpy-mc, which applies
+    the cone in its own statement, roadgonio.instrument.optics.source_coupling) within the combined
+    SE, both converged. (The quadrature does not converge on the cone's jump at these cells: its
+    estimate is no check here.)"""
     from roadgonio.instrument.optics import beam_clips_cells
     from roadgonio.surface.sample import resolve_sample
     from tolerances import n_sigma
@@ -48,11 +50,11 @@ def test_a_clipping_beam_limit_is_modelled_by_the_mitsuba_backend():
     inst = wide.with_changes(source={"beam_half_angle_deg": 10.0})
     cells = [(0.0, 0.0), (1.0, 0.0), (3.0, 30.0)]
     assert beam_clips_cells(inst, cells).all()
-    quad = make_backend("quadrature", inst, model).compute(cells)
+    ref = make_backend("numpy-mc", inst, model, rel_se=1e-3, seed=2).compute(cells)
     mit = make_backend("mitsuba", inst, model, rel_se=1e-3, seed=1).compute(cells)
     uncut = make_backend("mitsuba", wide, model, rel_se=1e-3, seed=1).compute(cells)
-    for q, m in zip(quad, mit):
-        tol = n_sigma(m.se_dof) * m.se + q.error_bound
+    for q, m in zip(ref, mit):
+        assert m.converged and q.converged
+        tol = n_sigma(min(m.se_dof, q.se_dof)) * math.hypot(m.se, q.se)
         assert abs(m.k_a - q.k_a) <= tol, (q.tan_eps, q.beta_deg, m.k_a, q.k_a, tol)
-        assert m.converged
-    assert abs(uncut[1].k_a - quad[1].k_a) > 20 * (n_sigma(uncut[1].se_dof) * uncut[1].se + quad[1].error_bound)
+    assert abs(uncut[1].k_a - ref[1].k_a) > 20 * n_sigma(uncut[1].se_dof) * math.hypot(uncut[1].se, ref[1].se)

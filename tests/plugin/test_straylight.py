@@ -120,6 +120,7 @@ def test_one_wall_agrees_with_the_float64_reference(tmp_path, cell, cone_deg):
         inst = Instrument.from_dict(d, path=tmp_path / "wall.toml")
     wall = Wall(y_m=-0.15, x0_m=-0.5, x1_m=0.5, height_m=0.2, reflectance=0.8)
     r = mitsuba(inst, rel_se=5e-4, seed=3).compute([cell])[0]
+    assert r.converged, r              # a comparison of an unconverged result is no check
     ref = reference(inst, R3, wall, *cell, samples=1 << 21, batches=32, seed=5)
     for key, se_key in (("k_a", "se"), ("k_a_direct", "k_a_direct_se"), ("stray_fraction", "stray_fraction_se")):
         m, q = getattr(r, key), ref[key]

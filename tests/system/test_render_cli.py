@@ -49,7 +49,9 @@ def test_render_bad_input_is_one_line(tmp_path, capsys):
 def test_render_of_a_beam_cone_that_clips_the_footprint(mi, tmp_path):
     """(session 22) A hard cone that clips the footprint was refused by render as by ka; both now
     light the cell through the kabatch integrator, which applies the cone. The illuminance is 0
-    outside the cone's spot and the render's k_A agrees with the quadrature within its SE."""
+    outside the cone's spot and the render's k_A agrees with the float64 Monte Carlo within the
+    combined SE."""
+    import math
     from pathlib import Path
 
     from roadgonio.engines import make_backend
@@ -66,8 +68,11 @@ def test_render_of_a_beam_cone_that_clips_the_footprint(mi, tmp_path):
     assert main(["render", "--instrument", str(path), "--sample", "R3", "--tan-eps", "1", "--beta", "0",
                  "--out", str(out), "--resolution", "64", "--spp", "16", "-q"]) == 0
     info = json.loads((out / "render.json").read_text())
-    q = make_backend("quadrature", inst, resolve_sample("R3").model).compute([(1.0, 0.0)])[0]
-    assert abs(info["k_a_estimate"] - q.k_a) <= n_sigma(15) * info["k_a_se"] + q.error_bound
+    # the float64 Monte Carlo applies the cone in its own statement (the quadrature does not converge
+    # on the cone's jump here: no check); render's SE has the 15 degrees of freedom of its replicates
+    q = make_backend("numpy-mc", inst, resolve_sample("R3").model, rel_se=1e-3, seed=2).compute([(1.0, 0.0)])[0]
+    assert q.converged and info["k_a_estimate"] is not None
+    assert abs(info["k_a_estimate"] - q.k_a) <= n_sigma(15) * math.hypot(info["k_a_se"], q.se)
     import OpenEXR
     exr = OpenEXR.File(str(out / "illuminance.exr"))
     E = exr.channels()["E_h"].pixels
