@@ -578,3 +578,49 @@ def test_an_eq4_correction_with_stray_light_notes_the_road_it_assumes():
                  and "beyond the observation elevations" in str(w.message)]
         assert len(notes) == said, notes
         assert all(n.startswith("meas: the instrument's stray light") and "--forward surface" in n for n in notes)
+
+
+def test_a_missed_basin_is_searched_again_before_the_misfit_is_believed():
+    """Audit 23: a noise-free eq. 4 table (the portable preset under the absolute calibration, k_A by
+    the float64 quadrature: tests/data/make_noisefree_portable_absolute.py) was fitted at a Birge
+    ratio of 12.8, k_A off by up to 13.5 %, and called a misfit of the model: stage A's 16 starts had
+    missed the basin. The repeated search finds it: chi^2 at the level of the quadrature's own error,
+    and k_A of the fit equal to the exact one within that error."""
+    from pathlib import Path
+
+    from roadgonio.correction.run import _FitState, search_through_instrument
+    data = Path(__file__).resolve().parents[1] / "data"
+    stored = np.load(data / "noisefree_portable_absolute.npz")
+    meas, k_true = RTable(stored["r"]), stored["k_a"]
+    inst = load_instrument("portable").with_changes(calibration={"mode": "absolute"})
+    m = meas.mask
+    fm = ForwardModel(RayBundles.build(inst, meas.cells, rays=512, seed=0))
+    y = meas.r[m]
+    fits, chi2, model, searches = search_through_instrument(fm, y, 0.01 * y, ("power", "smooth"),
+                                                            state=_FitState(None, "test"))
+    assert searches[-1]["chi2_p_value"] > 0.5, searches          # the data do not reject eq. 4
+    assert searches[-1]["chi2"] < 0.05 * y.size, searches         # Birge < 0.22: the bundles' own error
+    # k_A of the fitted model through the bundles against the exact k_A: within the bundles' error
+    # (rays 512: < 0.3 % here), far below the 13.5 % of the missed basin
+    k_fit = fm.k_a(model)
+    assert np.max(np.abs(np.log(k_fit / k_true[m]))) < 0.003
+    # the search is chaotic (the same table to 12 digits leads the first search into the basin): where
+    # another platform's arithmetic found it at once, nothing was repeated
+    assert len(searches) == 1 or searches[0]["chi2_p_value"] < 0.01
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_search_too_weak_for_the_table_is_repeated_until_the_fit_is_found(seed):
+    """One start and one round miss the basin of a table the model reproduces exactly (chi^2 ~ 3e5
+    at every seed tried); the repeated searches (48 starts) find it: chi^2 ~ 0 and the true k_A."""
+    from roadgonio.correction.run import RETRY_STARTS, _FitState, search_through_instrument
+    from roadgonio.correction.synthetic import r2_like_truth
+    inst = load_instrument("portable")
+    fm = ForwardModel(RayBundles.build(inst, bundled_table("R3").cells, rays=64, seed=0))
+    truth = r2_like_truth()
+    y = fm.r_measured(truth)
+    _, _, model, searches = search_through_instrument(fm, y, 0.01 * y, ("smooth",), state=_FitState(None, "t"),
+                                                      starts=1, rounds=1, seed=seed)
+    assert searches[-1]["chi2"] < 1e-6 * y.size, searches
+    assert np.max(np.abs(np.log(fm.k_a(model) / fm.k_a(truth)))) < 1e-6
+    assert all(s["starts"] == RETRY_STARTS for s in searches[1:])
