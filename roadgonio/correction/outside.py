@@ -6,7 +6,7 @@ Procedure (:func:`correct_surface`):
 
 1. the backbone: every variant of ``variants`` fitted through all the instruments at once
    (:class:`roadgonio.engines.bundle.StackedForward`; stage A multi-start, the best by chi^2
-   polished, :func:`roadgonio.correction.run.fit_self`);
+   polished, searched again while the data reject it: :func:`roadgonio.correction.run.search_through_instrument`);
 2. k_A of the best backbone by the chosen backend through each instrument (journalled like
    ``roadgonio ka``), and the bundles' own error of it, ``rho = k_backend / k_bundle``;
 3. for every variant, the correction surface through all the instruments (one surface shared by
@@ -50,7 +50,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from roadgonio.correction.budget import Budget, functionals, misalignment_covariance
-from roadgonio.correction.fit import chi2_of, fit_through_instrument
+from roadgonio.correction.fit import chi2_of
 from roadgonio.correction.flexible import (SURFACE_FIT_VERSION, FlexPart, SurfaceFit, SurfaceSettings, fit_surface, one_blas_thread,
                                           posterior_with_backbone)
 from roadgonio.engines.bundle import DEFAULT_RAYS, StackedForward
@@ -439,31 +439,20 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
 
     # 1. the backbones through every instrument at once: every variant at every rounding of the
     #    mirror plane (SurfaceSettings.backbone_rounds_deg), each held in its own fit
+    #    (stage A of every variant, the best polished, searched again while the data reject it:
+    #    correct_self's search, :func:`roadgonio.correction.run.search_through_instrument`)
     backbones: dict[tuple[str, float], RoadModel] = {}
+    chi2: dict[tuple[str, float], float] = {}
+    backbone_searches: dict[str, list[dict[str, Any]]] = {}
     for r in settings.backbone_rounds_deg:
+        fits_r, chi2_r, _, searches = _run.search_through_instrument(
+            stacked, y_all, u_all, variants, state=state, seed=seed, name=label,
+            say=lambda text: _run._say(progress, text), fixed=settings.backbone_fixed(r),
+            state_name=lambda v, r=r: _state_name(v, r), describe=lambda v, r=r: f"{backbone_label(v, r)} backbone",
+            **fit_opts)
         for v in variants:
-            key = _state_name(v, r)
-            m = state.get(f"stage-a-{key}")
-            if m is None:
-                _run._say(progress, f"{label}: fitting the {backbone_label(v, r)} backbone through the instrument(s)")
-                m = _run.fit_self(stacked, y_all, u_all, v, seed=seed, stage_b=False, name=label,
-                                  fixed=settings.backbone_fixed(r), **fit_opts).model
-                state.put(f"stage-a-{key}", m)
-            backbones[(v, r)] = m
-    chi2 = {k: chi2_of(stacked, y_all, u_all, m) for k, m in backbones.items()}
-    # the best variant of every rounding polished, so that the roundings meet on equal terms (the
-    # evidence of an unpolished backbone's surface is lower: session 13, eq4 through A + B, the
-    # cusp's best unpolished lost to the rounded one polished)
-    for r in settings.backbone_rounds_deg:
-        best_r = min((k for k in chi2 if k[1] == r), key=chi2.get)
-        polished = state.get(f"fit-{_state_name(*best_r)}")
-        if polished is None:
-            polished = fit_through_instrument(stacked, y_all, u_all, variant=best_r[0],
-                                              start_models=[backbones[best_r]], stage_a=False, seed=seed, name=label,
-                                              fixed=settings.backbone_fixed(r)).model
-            state.put(f"fit-{_state_name(*best_r)}", polished)
-        backbones[best_r] = polished
-        chi2[best_r] = chi2_of(stacked, y_all, u_all, polished)
+            backbones[(v, r)], chi2[(v, r)] = fits_r[v], chi2_r[v]
+        backbone_searches[_state_name("backbone", r)] = searches
     main = min(chi2, key=chi2.get)
     polished = backbones[main]
     main_label = backbone_label(*main)
@@ -772,7 +761,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                       bundles=[fm.bundles.summary() for fm in fms], misalignment=mis_info,
                       calibration=[i.calibration.to_dict() for i in instruments],
                       forward_model_limits=_run.forward_model_limits(instruments),
-                      discrepancy=disc_info if disc is not None else None)
+                      discrepancy=disc_info if disc is not None else None,
+                      backbone_searches=backbone_searches)
     return SurfaceCorrection(parts=parts_out, corrected=combined, u_corrected=u_comb, budget=comb_budget, after=after,
                              variants=vfits, settings=settings, provenance=prov, seconds=time.perf_counter() - t0,
                              timings=timings, model_weight=model_weight, steps=steps, surface_steps=surface_steps)

@@ -68,9 +68,10 @@ LATER_ROUND_STARTS = 4
 #: Before a misfit is believed the search runs again, up to ``RETRY_SEARCHES`` times, each with
 #: ``RETRY_STARTS`` fresh starts (another stream of the seed), and the best fit is kept; a repeated
 #: search that finds nothing better ends it (the misfit is then the model's: one repetition for a
-#: surface outside eq. 4) (audit 23).
+#: surface outside eq. 4) (audit 23). 32 rather than 48 starts: the backbones of ``--forward surface``
+#: are searched the same way, once per rounding, and 32 missed none of those 80 searches.
 RETRY_SEARCHES = 2
-RETRY_STARTS = 48
+RETRY_STARTS = 32
 #: Offset of a repeated search's seed streams (its rounds use restarts from attempt x this on).
 _RETRY_STREAM = 1000
 FIT_STATE = "fit_state.json"
@@ -375,13 +376,17 @@ def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rh
 def search_through_instrument(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variants: Sequence[str], *,
                               state: "_FitState", seed: int = 0, starts: int = DEFAULT_STARTS,
                               polish: int = DEFAULT_POLISH, rounds: int = DEFAULT_ROUNDS, name: str = "fit",
-                              say: Callable[[str], None] | None = None
+                              say: Callable[[str], None] | None = None, fixed: Mapping[str, float] | None = None,
+                              state_name: Callable[[str], str] = str,
+                              describe: Callable[[str], str] = lambda v: f"{v} model"
                               ) -> tuple[dict[str, RoadModel], dict[str, float], RoadModel, list[dict[str, Any]]]:
-    """The eq. 4 fit of ``correct --reference self`` through the bundles (no backend yet): stage A of
+    """The eq. 4 fit of ``correct --reference self`` through the bundles (no backend yet), and the
+    backbones of ``--forward surface`` (one call per rounding, ``fixed`` its parameters): stage A of
     every variant (:func:`fit_self`), the best polished (stage B); while the data reject the result
     (:attr:`~roadgonio.correction.fit.ThroughFit.misfit`), the search again with fresh starts
-    (:data:`RETRY_SEARCHES`). Journalled in ``state``. Returns (the best model of each variant, their
-    chi^2 through the bundles, the fitted model, one record per search)."""
+    (:data:`RETRY_SEARCHES`). Journalled in ``state`` under ``stage-a-NAME`` and ``fit-NAME`` (NAME
+    ``state_name(variant)``; ``search-N-`` before them for a repeated search). Returns (the best model of each
+    variant, their chi^2 through the bundles, the fitted model, one record per search)."""
     fits: dict[str, RoadModel] = {}
     chi2: dict[str, float] = {}
     searches: list[dict[str, Any]] = []
@@ -390,29 +395,29 @@ def search_through_instrument(fm: ForwardModel, y: np.ndarray, u: np.ndarray, va
         tag = "" if attempt == 0 else f"search-{attempt}-"
         n_starts = starts if attempt == 0 else RETRY_STARTS
         for v in variants:       # stage A of every variant (cheap), the better one goes on
-            m = state.get(f"{tag}stage-a-{v}")
+            m = state.get(f"{tag}stage-a-{state_name(v)}")
             if m is None:
                 if say is not None:
-                    say(f"{name}: fitting the {v} model through the instrument"
+                    say(f"{name}: fitting the {describe(v)} through the instrument(s)"
                         + ("" if attempt == 0 else f" (search {attempt + 1}: the data rejected the fit)"))
                 m = fit_self(fm, y, u, v, seed=seed, starts=n_starts, polish=polish, rounds=rounds, stage_b=False,
-                             name=name, first_restart=attempt * _RETRY_STREAM).model
-                state.put(f"{tag}stage-a-{v}", m)
+                             name=name, fixed=fixed, first_restart=attempt * _RETRY_STREAM).model
+                state.put(f"{tag}stage-a-{state_name(v)}", m)
             c = chi2_of(fm, y, u, m)
             if v not in fits or c < chi2[v]:
                 fits[v], chi2[v] = m, c
         main_v = min(chi2, key=chi2.get)
-        model = state.get(f"{tag}fit-{main_v}")
+        model = state.get(f"{tag}fit-{state_name(main_v)}")
         if model is None:
             model = fit_through_instrument(fm, y, u, variant=main_v, start_models=[fits[main_v]], stage_a=False,
-                                           seed=seed, name=name).model
-            state.put(f"{tag}fit-{main_v}", model)
-        judged = assess_fit(fm, y, u, model, name=name)
+                                           seed=seed, name=name, fixed=fixed).model
+            state.put(f"{tag}fit-{state_name(main_v)}", model)
+        judged = assess_fit(fm, y, u, model, name=name, fixed=fixed)
         if judged.chi2 < chi2[main_v]:
             fits[main_v], chi2[main_v] = model, judged.chi2
         else:      # a polish that found nothing better keeps the better start
             model = fits[main_v]
-            judged = assess_fit(fm, y, u, model, name=name)
+            judged = assess_fit(fm, y, u, model, name=name, fixed=fixed)
         searches.append({"search": attempt + 1, "starts": n_starts, "variant": main_v, "chi2": judged.chi2,
                          "chi2_p_value": judged.chi2_p_value})
         # a search that found no better fit than the one before says the misfit is the model's
