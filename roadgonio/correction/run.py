@@ -374,7 +374,7 @@ def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rh
 
 
 def search_through_instrument(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variants: Sequence[str], *,
-                              state: "_FitState", seed: int = 0, starts: int = DEFAULT_STARTS,
+                              state: "_FitState | None" = None, seed: int = 0, starts: int = DEFAULT_STARTS,
                               polish: int = DEFAULT_POLISH, rounds: int = DEFAULT_ROUNDS, name: str = "fit",
                               say: Callable[[str], None] | None = None, fixed: Mapping[str, float] | None = None,
                               state_name: Callable[[str], str] = str,
@@ -384,13 +384,14 @@ def search_through_instrument(fm: ForwardModel, y: np.ndarray, u: np.ndarray, va
     backbones of ``--forward surface`` (one call per rounding, ``fixed`` its parameters): stage A of
     every variant (:func:`fit_self`), the best polished (stage B); while the data reject the result
     (:attr:`~roadgonio.correction.fit.ThroughFit.misfit`), the search again with fresh starts
-    (:data:`RETRY_SEARCHES`). Journalled in ``state`` under ``stage-a-NAME`` and ``fit-NAME`` (NAME
+    (:data:`RETRY_SEARCHES`). Journalled in ``state`` (if given) under ``stage-a-NAME`` and ``fit-NAME`` (NAME
     ``state_name(variant)``; ``search-N-`` before them for a repeated search). Returns (the best model of each
     variant, their chi^2 through the bundles, the fitted model, one record per search)."""
     fits: dict[str, RoadModel] = {}
     chi2: dict[str, float] = {}
     searches: list[dict[str, Any]] = []
     model = None
+    state = state if state is not None else _FitState(None, "")
     for attempt in range(RETRY_SEARCHES + 1):
         tag = "" if attempt == 0 else f"search-{attempt}-"
         n_starts = starts if attempt == 0 else RETRY_STARTS

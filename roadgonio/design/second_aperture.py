@@ -166,7 +166,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     from roadgonio.correction.flexible import FlexPart, SurfaceSettings, expected_posterior, fit_surface
     from roadgonio.correction.outside import DEFAULT_VARIANTS, cell_key, model_estimate_cells, parts_discrepancy
     from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
-    from roadgonio.correction.run import fit_self, measured_uncertainty
+    from roadgonio.correction.run import measured_uncertainty, search_through_instrument
     from roadgonio.design.grid import as_vary_specs, build_instrument, grid_points
     from roadgonio.design.metrics import relative_signal
     from roadgonio.surface.rtable import RTable, bundled_table
@@ -235,11 +235,15 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     # the backbone the correction would take: correct --forward surface fits every variant of
     # DEFAULT_VARIANTS at every rounding of the mirror plane and weighs them by their evidence; the
     # prediction takes the one of larger evidence, or the variant asked for
+    # (searched as the correction searches them: the best variant of every rounding polished, and
+    # searched again while the data reject it; audit 23)
     fits = []
-    for variant in ((model_variant,) if model_variant else DEFAULT_VARIANTS):
-        for r in settings.backbone_rounds_deg:
-            bb = fit_self(fm, y, u, variant, seed=seed, stage_b=False, name=table.name,
-                          fixed=settings.backbone_fixed(r)).model
+    variants = (model_variant,) if model_variant else DEFAULT_VARIANTS
+    for r in settings.backbone_rounds_deg:
+        backbones, _, _, _ = search_through_instrument(fm, y, u, variants, seed=seed, name=table.name,
+                                                       fixed=settings.backbone_fixed(r))
+        for variant in variants:
+            bb = backbones[variant]
             pa = FlexPart(fm, bb, settings)
             fits.append((fit_surface([pa], [y], [u]), variant, bb, pa))
     fit, variant, backbone, part_a = max(fits, key=lambda f: f[0].log_evidence)
