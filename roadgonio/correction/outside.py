@@ -440,7 +440,10 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     # 1. the backbones through every instrument at once: every variant at every rounding of the
     #    mirror plane (SurfaceSettings.backbone_rounds_deg), each held in its own fit
     #    (stage A of every variant, the best polished, searched again while the data reject it:
-    #    correct_self's search, :func:`roadgonio.correction.run.search_through_instrument`)
+    #    correct_self's search, :func:`roadgonio.correction.run.search_through_instrument`). The best
+    #    variant of every rounding is polished so that the roundings meet on equal terms (the evidence
+    #    of an unpolished backbone's surface is lower: session 13, eq4 through A + B, the cusp's best
+    #    unpolished lost to the rounded one polished)
     backbones: dict[tuple[str, float], RoadModel] = {}
     chi2: dict[tuple[str, float], float] = {}
     backbone_searches: dict[str, list[dict[str, Any]]] = {}
