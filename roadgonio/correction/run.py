@@ -413,12 +413,12 @@ def search_through_instrument(fm: ForwardModel, y: np.ndarray, u: np.ndarray, va
             model = fit_through_instrument(fm, y, u, variant=main_v, start_models=[fits[main_v]], stage_a=False,
                                            seed=seed, name=name, fixed=fixed).model
             state.put(f"{tag}fit-{state_name(main_v)}", model)
-        judged = assess_fit(fm, y, u, model, name=name, fixed=fixed)
-        if judged.chi2 < chi2[main_v]:
-            fits[main_v], chi2[main_v] = model, judged.chi2
+        c = chi2_of(fm, y, u, model)
+        if c < chi2[main_v]:
+            fits[main_v], chi2[main_v] = model, c
         else:      # a polish that found nothing better keeps the better start
             model = fits[main_v]
-            judged = assess_fit(fm, y, u, model, name=name, fixed=fixed)
+        judged = assess_fit(fm, y, u, model, name=name, fixed=fixed)      # its dof and p-value, once
         searches.append({"search": attempt + 1, "starts": n_starts, "variant": main_v, "chi2": judged.chi2,
                          "chi2_p_value": judged.chi2_p_value})
         # a search that found no better fit than the one before says the misfit is the model's

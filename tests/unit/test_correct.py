@@ -612,7 +612,7 @@ def test_a_missed_basin_is_searched_again_before_the_misfit_is_believed():
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_search_too_weak_for_the_table_is_repeated_until_the_fit_is_found(seed):
     """One start and one round miss the basin of a table the model reproduces exactly (chi^2 ~ 3e5
-    at every seed tried); the repeated searches (48 starts) find it: chi^2 ~ 0 and the true k_A."""
+    at every seed tried); the repeated searches (RETRY_STARTS starts) find it: chi^2 ~ 0 and the true k_A."""
     from roadgonio.correction.run import RETRY_STARTS, _FitState, search_through_instrument
     from roadgonio.correction.synthetic import r2_like_truth
     inst = load_instrument("portable")
