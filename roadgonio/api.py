@@ -575,9 +575,10 @@ def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "
 def _note_beyond_the_table(inst, smp, cells) -> None:
     """The note for cells beyond the r-tables' last row (tan eps 12) when the sample's model is a
     table's fit (its values there are an extrapolation), said once for the farthest cell; one rule
-    for ``ka``, ``render`` and ``validate`` (user audit, session 19). The geometry's refusal comes
+    for ``ka``, ``render``, ``validate`` and ``design`` (user audit, session 19). The geometry's refusal comes
     first: a note and then an error were two lines for one mistake (tan eps 100 puts the source below
-    the horizon)."""
+    the horizon). ``inst`` None (``design``, whose points' geometry is judged point by point)
+    skips the geometry."""
     from roadgonio.geometry import TAN_EPS_GRID
     beyond = [c for c in cells if c[0] > TAN_EPS_GRID[-1]]
     if not beyond or (smp.table is None and not (smp.model.meta or {}).get("table")):
@@ -585,8 +586,9 @@ def _note_beyond_the_table(inst, smp, cells) -> None:
     import warnings
 
     from roadgonio.errors import ModelWarning
-    from roadgonio.instrument.optics import check_source_cells
-    check_source_cells(inst, beyond)
+    if inst is not None:
+        from roadgonio.instrument.optics import check_source_cells
+        check_source_cells(inst, beyond)
     t = max(c[0] for c in beyond)
     warnings.warn(ModelWarning(f"tan eps {t:g} is beyond the r-tables' last row (tan eps {TAN_EPS_GRID[-1]:g}): "
                                f"the model of {smp.name} there is an extrapolation of its fit, not a "
@@ -1120,6 +1122,10 @@ def design_study(instrument, vary=None, samples="R3", *, tolerance: float | str 
     check_vary(base, as_vary_specs(vary))                 # before the samples are fitted
     items = list(samples) if isinstance(samples, (list, tuple)) else [samples]
     resolved = [_sample(s, model_variant) for s in items]
+    if not (isinstance(cells, str) and cells.strip() in ("all", "table")):
+        from roadgonio.engines.cells import select_cells
+        for smp in resolved:      # the note ka gives (user audit, session 24: design gave none)
+            _note_beyond_the_table(None, smp, select_cells(cells, smp.table, on_grid=False))
     folder = _out(out, "design", base.name)
     if workers == 0 and scheduler is None and client is None:
         prepare_entry_point(backend, mitsuba_variant)          # this process computes: it is the entry point

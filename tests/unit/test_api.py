@@ -349,12 +349,14 @@ def test_a_cell_beyond_the_tables_last_row_notes_the_extrapolation(r3like):
 
 
 
-@pytest.mark.parametrize("command", ["validate", "render"])
-def test_validate_and_render_note_a_cell_beyond_the_table_as_ka_does(command, monkeypatch, tmp_path):
-    """User audit, session 19: `validate --cells 13:0` and `render --tan-eps 13` computed a cell beyond
-    the table's last row with no word, while `ka` says it is an extrapolation of the fit. One rule for
-    the three; a cell within the table says nothing. (The computation itself is stopped right after the
-    note: what is checked is what the user is told first.)"""
+@pytest.mark.parametrize("command", ["validate", "render", "design"])
+def test_validate_render_and_design_note_a_cell_beyond_the_table_as_ka_does(command, monkeypatch, tmp_path):
+    """User audits, sessions 19 and 24: `validate --cells 13:0`, `render --tan-eps 13` and `design --cells
+    13:0` computed a cell beyond the table's last row with no word, while `ka` says it is an
+    extrapolation of the fit. One rule for the four; a cell within the table says nothing. (The
+    computation itself is stopped right after the note: what is checked is what the user is told
+    first.)"""
+    from roadgonio.design import run as D
     from roadgonio.engines import validate as V
     from roadgonio.engines.mitsuba import images
     from roadgonio.errors import ModelWarning
@@ -366,11 +368,14 @@ def test_validate_and_render_note_a_cell_beyond_the_table_as_ka_does(command, mo
         raise Stop
     monkeypatch.setattr(V, "validate", stop)
     monkeypatch.setattr(images, "render_cell_images", stop)
+    monkeypatch.setattr(D, "run_design", stop)
     monkeypatch.setattr("roadgonio.engines.registry.prepare_entry_point", lambda *a, **k: None)
 
     def run(t):
         if command == "validate":
             rg.validate("lab", "R3", cells=f"{t:g}:0,2:0", against="numpy-mc")
+        elif command == "design":
+            rg.design_study("lab", ["source.radius_m=0.01,0.02"], "R3", cells=f"2:0,{t:g}:1", workers=0)
         else:
             rg.render("lab", "R3", t, 0.0, tmp_path / "r")
     with pytest.warns(ModelWarning, match="tan eps 13 is beyond the r-tables' last row"), pytest.raises(Stop):
