@@ -392,10 +392,14 @@ def _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor, fin_all, *, title: bool) 
     from roadgonio.plots import plain_colorbar_labels
     plain_colorbar_labels(cb)
     X, Y = np.meshgrid(x, y)
+    handles = []
     if np.isfinite(dev).sum() >= 4 and len(x) > 1 and len(y) > 1:
         try:
-            cs = ax.contour(X, Y, np.ma.masked_invalid(dev), levels=[tol], colors="tab:orange", linewidths=2.2)
-            ax.clabel(cs, fmt={tol: f"tolerance {tol:g} %"}, fontsize=8)
+            ax.contour(X, Y, np.ma.masked_invalid(dev), levels=[tol], colors="tab:orange", linewidths=2.2)
+            # named in the legend, not inline: an inline label cuts the line where it is drawn, which
+            # could be beside the best design (user audit, session 24: the star looked outside)
+            from matplotlib.lines import Line2D
+            handles.append(Line2D([], [], color="tab:orange", lw=2.2, label=f"tolerance {tol:g} %"))
         except (ValueError, TypeError):
             pass
         fs = sig[np.isfinite(sig) & (sig > 0)]
@@ -413,8 +417,10 @@ def _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor, fin_all, *, title: bool) 
     feas = sub["feasible"].transpose(yk, xk).values.astype(bool)
     ax.plot(X[feas], Y[feas], ".", color="white", ms=3, ls="none")
     if anchor:
-        ax.plot([anchor[xk]], [anchor[yk]], marker="*", color="gold", mec="k", ms=18, ls="none", label="best design")
-        ax.legend(loc="upper right", fontsize=8)
+        handles += ax.plot([anchor[xk]], [anchor[yk]], marker="*", color="gold", mec="k", ms=18, ls="none",
+                           label="best design")
+    if handles:
+        ax.legend(handles=handles, loc="upper right", fontsize=8)
     if xk in logs:
         ax.set_xscale("log")
         _value_ticks(ax.xaxis, x)

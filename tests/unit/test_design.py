@@ -757,8 +757,39 @@ def test_tolerance_map_of_three_keys_has_one_panel_per_value_of_the_third(tmp_pa
     maps = [a for a in got[0].axes if a.get_xlabel() == "source.radius_m"]
     assert [a.get_title() for a in maps] == ["at detector.distance_m = 0.6", "at detector.distance_m = 1"]
     best_d = O.json.loads(ds.attrs["best_point_json"])["detector.distance_m"]
-    starred = [a.get_title() for a in maps if a.get_legend() is not None]
+    starred = [a.get_title() for a in maps
+               if a.get_legend() is not None and "best design" in [t.get_text() for t in a.get_legend().get_texts()]]
     assert starred == [f"at detector.distance_m = {best_d:g}"]
+
+
+def test_the_tolerance_contour_is_named_in_the_legend_not_cut_by_an_inline_label(tmp_path, monkeypatch):
+    """User audit, session 24: the contour's inline label ("tolerance 5 %") was drawn where matplotlib
+    found room, which was beside the best design: it cut the line there and ran over the star, so the
+    feasible best looked as if it were outside. The contour is named in the legend, beside the star,
+    and the panel holds no text that says "tolerance"."""
+    from roadgonio.design import outputs as O
+    from roadgonio.design.dataset import assemble
+    from roadgonio.design.run import SampleSpec
+    base = load_instrument("portable")
+    specs = G.as_vary_specs(["source.radius_m=0.003,0.006,0.009", "detector.pupil_radius_m=0.0025,0.005,0.0075"])
+    points = G.grid_points(specs)
+    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
+    samples = [SampleSpec("A", "A", None, cells)]
+    checked = [check_point(base, p, list(cells)) for p in points]
+    ones = np.ones((2, 2))
+    done = {(i, 0): _journal_record(_ka_dataset([[1.02 + 0.01 * i, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones),
+                                    cells) for i in range(len(points))}
+    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
+                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
+                  seeds=list(range(len(points))), tol=0.05)
+    got = []
+    monkeypatch.setattr(O, "atomic_savefig", lambda fig, path, dpi: got.append(fig) or path)
+    O.plot_tolerance_map(ds, tmp_path / "tolerance_map.png")
+    ax = [a for a in got[0].axes if a.get_xlabel() == "source.radius_m"][0]
+    assert ax.collections, "no contour was drawn"
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert legend == ["tolerance 5 %", "best design"], legend
+    assert not [t.get_text() for t in ax.texts if "tolerance" in t.get_text()]
 
 
 def test_a_design_that_detects_no_light_is_not_feasible(tmp_path):
