@@ -469,20 +469,24 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     u_rel_all = u_all / y_all
     steps: list[dict[str, Any]] = []
     pred_change = np.zeros_like(y_all)
+    cov_back: list[np.ndarray] = []
     def backend_k(models, k_bundles, step: int, what: str, saying: str):
         """The backend's k_A of ``models[i]`` through instrument i (journalled in ``_forward_dir``'s
         folder of ``what`` and ``step``), its SE, the run's info and rho = k_backend / ``k_bundles[i]``,
-        each a list over the instruments."""
-        k_out, se_out, info_out, rho_out = [], [], [], []
+        each a list over the instruments; the relative covariance of ln k_A over each instrument's cells
+        is kept in ``cov_back`` (:func:`roadgonio.correction.run.backend_covariance`)."""
+        k_out, se_out, info_out, rho_out, cov_out = [], [], [], [], []
         for i, (inst, t, m, kb) in enumerate(zip(instruments, tables, models, k_bundles)):
             _run._say(progress, f"{label}: k_A of the {saying} through {inst.name} ({backend})"
                       + (f", step {step}" if step > 1 or what == "surface" else ""))
             jdir = None if out is None else out / _forward_dir(i, len(tables), step, what)
-            k_b, se_b, info = _run._backend_k(factory, inst, m, t.cells, jdir, progress)
+            k_b, se_b, info, cov_b = _run._backend_k(factory, inst, m, t.cells, jdir, progress)
+            cov_out.append(cov_b)
             k_out.append(k_b)
             se_out.append(se_b)
             info_out.append(info)
             rho_out.append(k_b / kb)
+        cov_back[:] = cov_out
         return k_out, se_out, info_out, rho_out
 
     for it in range(1, max_outer + 1):
@@ -578,9 +582,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     #     (docs/correction.md, "The road beyond the observation elevations")
     unobserved: list[np.ndarray] | None = None
     if surface_steps and settings.unobserved_sd_ln > 0.0:
+        kept = list(cov_back)
         k_probe, _, _, _ = backend_k([p.corrected_surface(cur.fit.theta, UNOBSERVED_PROBE) for p in cur.parts],
                                      [p.k_bundle(cur.fit.theta) for p in cur.parts], 1, "unobserved",
                                      f"fitted surface x {UNOBSERVED_PROBE:g} beyond the observation elevations")
+        cov_back[:] = kept
         unobserved = [np.log(kp / kb) / math.log(UNOBSERVED_PROBE) for kp, kb in zip(k_probe, k_back)]
         lap("surface-backend")
     live = contributing(vfits)
@@ -624,10 +630,20 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     E = N + U
     surf = np.zeros((E, E))
     model = np.zeros((E, E))
+    backend_cov = np.zeros((E, E))
     unobserved_v = np.zeros(E)
+    # the backend's error of k_A (correlated between the cells of a table: they share its random
+    # numbers) enters every estimate through rho: r / k_A directly, the fitted model's own value through
+    # the fit (user audit, session 24: counted on r / k_A alone and as independent cells, the joint
+    # table's backend u was 0.001 % while the table moved by 0.09 % with the seed)
+    cov_b = np.zeros((N, N))
+    for i, c in enumerate(cov_back):
+        cov_b[off[i]:off[i + 1], off[i]:off[i + 1]] = c
     for vf, lk, K, lp, Jp in zip(live, lnk_v, jac_v, lnp_v, jp_v):
+        A = rho_shift_map(vf, [1.0 / u ** 2 for u in us], K, Jp)
+        backend_cov += vf.weight * (A @ cov_b @ A.T)
         if unobserved is not None:
-            unobserved_v += vf.weight * rho_shift_effect(vf, unobserved, [1.0 / u ** 2 for u in us], K, Jp)
+            unobserved_v += vf.weight * (A @ np.concatenate(unobserved))
         J = np.vstack([-K, Jp])                   # d (ln r estimate) / d (theta, q): ln y - ln k_A, the model's value
         surf += vf.weight * (J @ vf.cov_full @ J.T)
         d = np.concatenate([-(lk - lnk), lp - lnp])
@@ -661,7 +677,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     meas = np.concatenate([u / y for u, y in zip(us, ys)])
     pad = np.zeros(U)                             # the model's own value has no measurement, backend or bundle error
     comps["measurement"] = np.diag(np.concatenate([meas, pad]) ** 2)
-    comps["backend"] = np.diag(np.concatenate([s / k for s, k in zip(se_back, k_back)] + [pad]) ** 2)
+    comps["backend"] = backend_cov
     comps["surface"] = surf
     comps["model"] = model
     comps["bundle"] = np.diag(bundle ** 2)
@@ -682,7 +698,10 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         comps["misalignment"] = M
     notes = {"measurement": "the measured tables' own standard uncertainty (--u-measured), independent cells",
              "backend": f"{backend} k_A of the " + ("fitted surface" if surface_steps else f"{main_label} backbone")
-                        + ": its standard uncertainty",
+                        + ": its standard uncertainty, "
+                        + ("with the correlation between cells the backend measured (they share its random numbers)"
+                           if all(info.get("cells_correlated") for info in infos) else "independent cells")
+                        + ", through rho into r / k_A and through the fit into the model's own value",
              "surface": "posterior of the correction surface (evidence-weighted over the variants), widened by "
                         "the local Birge ratio where the residuals have structure",
              "model": "spread of the backbones' (variants', roundings') corrected k_A (and model values) about their "
@@ -771,23 +790,30 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                              timings=timings, model_weight=model_weight, steps=steps, surface_steps=surface_steps)
 
 
+def rho_shift_map(vf: VariantFit, weights: Sequence[np.ndarray], K: np.ndarray, Jp: np.ndarray) -> np.ndarray:
+    """d (ln r estimates) / d (ln rho of the parts' cells, concatenated), to first order through the
+    fit: when ln rho moves by s (the backend's own error of k_A, or the stray light of a road the
+    tables do not measure), the simulated readings move by m s, the surface and the backbone's
+    coordinates by d = -C J^T W (m s) (C the posterior covariance over (theta, q), J the readings'
+    Jacobian, W the weights), so ln k_A moves by s + K d and the model's own values by Jp d. Returns
+    the (instruments' estimates ln y - ln k_A, then the model's values) x (cells) matrix
+    [-(I + K D); Jp D], D = -C J^T W m: the model estimate follows the instruments (a surface fitted
+    with the wrong rho is off by it), so weighing the two does not dilute this error."""
+    cols = []
+    for p, w in zip(vf.parts, weights):
+        m, J = p.simulate(vf.fit.theta)
+        Jq, _, _ = p.backbone_jacobians(vf.fit.theta)
+        cols.append(np.hstack([J, Jq]).T * (np.asarray(w) * m)[None, :])
+    D = -(vf.cov_full @ np.hstack(cols))
+    return np.vstack([-(np.eye(D.shape[1]) + K @ D), Jp @ D])
+
+
 def rho_shift_effect(vf: VariantFit, shift: Sequence[np.ndarray], weights: Sequence[np.ndarray], K: np.ndarray,
                      Jp: np.ndarray) -> np.ndarray:
     """d (ln r estimates) / d x when ln rho of part i's cells moves by ``shift[i]`` x (the stray light
-    of a road the tables do not measure: the "unobserved" component), to first order through the fit:
-    the simulated readings move by m s x, the surface and the backbone's coordinates by
-    d = -C J^T W (m s) x (C the posterior covariance over (theta, q), J the readings' Jacobian, W the
-    weights), so ln k_A moves by s + K d and the model's own values by Jp d. Returns the instruments'
-    estimates ln y - ln k_A, -(s + K d), then the model's values, Jp d: the model estimate follows the
-    instruments (a surface fitted with the wrong rho is off by it), so weighing the two does not
-    dilute this error."""
-    g = np.zeros(vf.cov_full.shape[0])
-    for p, s, w in zip(vf.parts, shift, weights):
-        m, J = p.simulate(vf.fit.theta)
-        Jq, _, _ = p.backbone_jacobians(vf.fit.theta)
-        g += np.hstack([J, Jq]).T @ (np.asarray(w) * m * s)
-    d = -(vf.cov_full @ g)
-    return np.concatenate([-(np.concatenate(shift) + K @ d), Jp @ d])
+    of a road the tables do not measure: the "unobserved" component): :func:`rho_shift_map` times the
+    shift."""
+    return rho_shift_map(vf, weights, K, Jp) @ np.concatenate(shift)
 
 
 def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit, settings: SurfaceSettings,

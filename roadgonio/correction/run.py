@@ -321,8 +321,69 @@ def default_factory(backend: str, settings: Mapping[str, Any] | None = None,
     return factory
 
 
+#: The backend's correlation between the cells of one k_A table, kept beside the table's journal so
+#: that a resumed correction states the same budget (:func:`backend_covariance`).
+BACKEND_CORRELATION = "k_a_correlation.npz"
+
+
+def backend_covariance(k: np.ndarray, se: np.ndarray, corr: np.ndarray | None) -> np.ndarray:
+    """Relative covariance of ln k_A over the cells of one backend table: the cells' relative standard
+    uncertainties ``se / k`` with the correlation ``corr`` the backend measured between them (the
+    cells of one Mitsuba table share the lattice's random shifts: neighbouring cells correlate ~0.9,
+    the whole table 0.15-0.8, docs/validation.md), or independent cells when it measured none (the
+    float64 backends: numpy Monte Carlo draws each cell apart, a deterministic bound has no
+    correlation to state)."""
+    u = np.asarray(se, dtype=np.float64) / np.asarray(k, dtype=np.float64)
+    if corr is None:
+        return np.diag(u * u)
+    return np.asarray(corr, dtype=np.float64) * np.outer(u, u)
+
+
+def _backend_correlation(backend, run, k: np.ndarray, out_dir: Path | None) -> np.ndarray | None:
+    """The correlation between the cells of this table that the backend measured (its ``covariance()``
+    after computing every cell in one call), journalled in ``out_dir`` with the k_A it belongs to; a
+    resumed table takes the journalled one when its k_A are the same, otherwise None (independent)."""
+    path = None if out_dir is None else Path(out_dir) / BACKEND_CORRELATION
+    corr = None
+    if run.resumed == 0 and callable(getattr(backend, "covariance", None)):
+        try:
+            c = np.asarray(backend.covariance(), dtype=np.float64)
+        except RuntimeError:
+            c = None
+        if c is not None and c.shape == (k.size, k.size):
+            d = np.sqrt(np.clip(np.diag(c), 0.0, None))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                corr = np.where(np.outer(d, d) > 0, c / np.outer(d, d), 0.0)
+            corr = np.clip(0.5 * (corr + corr.T), -1.0, 1.0)
+            np.fill_diagonal(corr, 1.0)
+            if path is not None:
+                from roadgonio.fileio import atomic_write
+                def write(tmp: Path) -> None:
+                    with open(tmp, "wb") as f:
+                        np.savez(f, k_a=k, correlation=corr)
+                atomic_write(path, write)
+    elif path is not None and path.exists():
+        try:
+            with np.load(path) as z:
+                if z["k_a"].shape == k.shape and np.array_equal(z["k_a"], k):
+                    corr = np.array(z["correlation"])
+        except (OSError, ValueError, KeyError):
+            corr = None
+    return corr
+
+
+def _backend_note(backend: str, info: Mapping[str, Any]) -> str:
+    """The budget's note on the ``backend`` component of one table (:func:`backend_covariance`)."""
+    return (f"{backend} k_A standard uncertainty (SE, or bound/sqrt 3), "
+            + ("with the correlation between cells the backend measured (they share its random numbers)"
+               if info.get("cells_correlated") else "independent cells"))
+
+
 def _backend_k(factory: BackendFactory, instrument: Instrument, model: RoadModel, cells, out_dir: Path | None,
-               progress: bool) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+               progress: bool) -> tuple[np.ndarray, np.ndarray, dict[str, Any], np.ndarray]:
+    """The backend's k_A of ``model`` at ``cells`` (journalled in ``out_dir``), its standard
+    uncertainty, the run's info and the relative covariance of ln k_A over the cells
+    (:func:`backend_covariance`)."""
     from roadgonio.engines.runner import run_cells
     backend = factory(instrument, model)
     run = run_cells(backend, cells, instrument=instrument, model=model, out_dir=out_dir, progress=progress)
@@ -330,13 +391,15 @@ def _backend_k(factory: BackendFactory, instrument: Instrument, model: RoadModel
     se = np.array([c.standard_uncertainty() for c in run.results])
     if not (np.all(np.isfinite(k)) and np.all(k > 0)):
         raise InputError("the backend returned a non-positive or non-finite k_A; cannot correct", field="k_A")
+    corr = _backend_correlation(backend, run, k, out_dir)
     info = {"backend": backend.name, "settings": backend.settings(), "seconds": run.seconds,
             "resumed_cells": run.resumed, "resumed_pass_cells": run.resumed_pass_cells,
             "not_converged": int(sum(not c.converged for c in run.results)),
             "journal": str(out_dir) if out_dir is not None else None,
             # the backend traced light the ray bundles leave out (a housing's stray light)
-            "stray": bool(any((c.stray_fraction or 0.0) > 0.0 for c in run.results))}
-    return k, se, info
+            "stray": bool(any((c.stray_fraction or 0.0) > 0.0 for c in run.results)),
+            "cells_correlated": corr is not None}
+    return k, se, info, backend_covariance(k, se, corr)
 
 
 def _say(progress: bool, text: str) -> None:
@@ -546,8 +609,8 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     k_b = se_b = None
     for it in range(1, int(max_outer) + 1):
         _say(progress, f"{measured.name}: k_A of the fitted model ({backend}), step {it}")
-        k_b, se_b, info = _backend_k(factory, instrument, model, cells,
-                                     None if out is None else out / f"forward-{it}", progress)
+        k_b, se_b, info, cov_b = _backend_k(factory, instrument, model, cells,
+                                            None if out is None else out / f"forward-{it}", progress)
         rho = k_b / fm.k_a(model)
         lap("backend")
         nxt = refit_with_rho(state, f"refit-{it}", fm, y, u, model, rho, variant=main_v, seed=seed,
@@ -577,7 +640,7 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
 
     budget = Budget(len(cells))
     budget.add("measurement", u_rel, u_what)
-    budget.add("backend", se_b / k_b, f"{backend} k_A standard uncertainty (SE, or bound/sqrt 3)")
+    budget.add("backend", cov_b, _backend_note(backend, info))
     budget.add("parameters", final.lnk_cov(),
                f"fitted {main_v} parameters (Birge ratio {final.birge:.3g}) through d ln k_A / d p")
     if alternatives:
@@ -620,15 +683,15 @@ def correct_with_reference(measured: RTable, instrument: Instrument, reference: 
     cells = measured.cells
     mask = measured.mask
     factory = factory or default_factory(backend, backend_settings, accuracy)
-    k_b, se_b, info = _backend_k(factory, instrument, reference, cells, None if out is None else out / "forward-1",
-                                 progress)
+    k_b, se_b, info, cov_b = _backend_k(factory, instrument, reference, cells,
+                                        None if out is None else out / "forward-1", progress)
     alts = {}
     for k, (name, m) in enumerate(dict(alternatives or {}).items()):
         alts[name] = _backend_k(factory, instrument, m, cells, None if out is None else out / f"alternative-{k + 1}",
                                 progress)[0]
     budget = Budget(len(cells))
     budget.add("measurement", u_grid[mask] / measured.r[mask], u_what)
-    budget.add("backend", se_b / k_b, f"{backend} k_A standard uncertainty (SE, or bound/sqrt 3)")
+    budget.add("backend", cov_b, _backend_note(backend, info))
     if alts:
         budget.add_systematic("model", systematic_delta(k_b, alts),
                               "alternative references " + ", ".join(alts) + ": rectangular, half-width the largest "

@@ -335,9 +335,55 @@ def test_the_budget_takes_a_confidence_bounded_backend_by_its_se():
 
     cells = [(0.0, 0.0), (2.0, 0.0), (12.0, 0.0)]
     inst, model = load_instrument("portable"), RoadModel.lambert()
-    k1, u1, _ = _backend_k(lambda i, m: Fixed(True), inst, model, cells, None, False)
-    k2, u2, _ = _backend_k(lambda i, m: Fixed(False), inst, model, cells, None, False)
+    k1, u1, _, c1 = _backend_k(lambda i, m: Fixed(True), inst, model, cells, None, False)
+    k2, u2, _, c2 = _backend_k(lambda i, m: Fixed(False), inst, model, cells, None, False)
     assert np.array_equal(k1, k2) and np.array_equal(u1, u2) and np.all(u1 == 0.002)
+    assert np.array_equal(c1, np.diag((u1 / k1) ** 2)) and np.array_equal(c2, c1)     # no covariance: independent
+
+
+def test_the_backends_correlation_between_cells_enters_the_budget_and_survives_a_resume(tmp_path):
+    """User audit, session 24: the cells of one Mitsuba table share its random numbers (their errors
+    correlate 0.7-0.8 at the portable preset), and the budget took them as independent. The
+    correlation the backend measured (its covariance()) goes into the backend component with each
+    cell's own u on the diagonal; it is journalled beside the table, so a resumed correction states
+    the same budget; a journal whose k_A differ (another run in the folder) is not taken."""
+    from roadgonio.correction.run import BACKEND_CORRELATION, _backend_k
+    from roadgonio.engines.result import CellResult
+    from roadgonio.instrument.config import load_instrument
+    corr = np.array([[1.0, 0.8, 0.3], [0.8, 1.0, 0.5], [0.3, 0.5, 1.0]])
+    se = np.array([0.002, 0.003, 0.001])
+
+    class Correlated:
+        name = "correlated"
+        computed = 0
+
+        def settings(self):
+            return {}
+
+        def compute(self, cells, on_cell=None):
+            Correlated.computed += len(cells)
+            out = [CellResult(t, b, 1.0 + 0.01 * t, float(e), 1, 0.0) for (t, b), e in zip(cells, se)]
+            for c in out:
+                if on_cell is not None:
+                    on_cell(c)
+            return out
+
+        def covariance(self):             # of k_A, in the cells' order (MitsubaBackend.covariance)
+            return corr * np.outer(se, se)
+
+    cells = [(0.0, 0.0), (2.0, 0.0), (12.0, 0.0)]
+    inst, model = load_instrument("portable"), RoadModel.lambert()
+    k, u, info, cov = _backend_k(lambda i, m: Correlated(), inst, model, cells, tmp_path, False)
+    rel = se / k
+    assert info["cells_correlated"] and np.allclose(cov, corr * np.outer(rel, rel), rtol=1e-12, atol=0)
+    assert (tmp_path / BACKEND_CORRELATION).exists()
+    k2, u2, info2, cov2 = _backend_k(lambda i, m: Correlated(), inst, model, cells, tmp_path, False)
+    assert Correlated.computed == 3 and info2["resumed_cells"] == 3        # the table came from the journal
+    assert info2["cells_correlated"] and np.array_equal(cov2, cov)
+    with np.load(tmp_path / BACKEND_CORRELATION) as z:          # a journal of other k_A: independent cells
+        np.savez(tmp_path / BACKEND_CORRELATION, k_a=z["k_a"] * 1.01, correlation=z["correlation"])
+    _, _, info3, cov3 = _backend_k(lambda i, m: Correlated(), inst, model, cells, tmp_path, False)
+    assert not info3["cells_correlated"] and np.array_equal(cov3, np.diag(rel ** 2))
 
 
 def test_functionals_of_a_table_without_a_full_grid_cell_are_missing_not_a_traceback():

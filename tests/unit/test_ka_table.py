@@ -231,9 +231,9 @@ def test_correct_says_how_many_k_a_cells_continued_from_their_pass_state(tmp_pat
     cells = full_grid_cells()[:10]
     with pytest.raises(Interrupted):
         _backend_k(lambda i, m: PassesStandIn(stop=True), ins, model, cells, tmp_path, progress=False)
-    _, _, info = _backend_k(lambda i, m: PassesStandIn(), ins, model, cells, tmp_path, progress=False)
+    _, _, info, _ = _backend_k(lambda i, m: PassesStandIn(), ins, model, cells, tmp_path, progress=False)
     assert (info["resumed_cells"], info["resumed_pass_cells"]) == (5, 5)
-    _, _, done = _backend_k(lambda i, m: PassesStandIn(), ins, model, cells, tmp_path, progress=False)
+    _, _, done, _ = _backend_k(lambda i, m: PassesStandIn(), ins, model, cells, tmp_path, progress=False)
     assert (done["resumed_cells"], done["resumed_pass_cells"]) == (10, 0)
     steps = [info, done]
     assert _resumed_line(_resumed(steps), 1, _resumed(steps, "resumed_pass_cells")) == (
