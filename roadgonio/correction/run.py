@@ -182,6 +182,12 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
             raise InputError(f"{err.reason} (expected a relative standard uncertainty like '1%' or 0.01, or an "
                              "r-table file of per-cell standard uncertainties)", path=err.path, line=err.line,
                              field=err.field, argument="u_measured") from None
+        from roadgonio.surface.rtable import check_not_ka
+        try:            # ka.csv (k_A unscaled) read as r x 1e4 (user audit, session 24: it was taken as u)
+            check_not_ka(u_table, path)
+        except InputError as err:
+            raise InputError(f"{err.reason}; expected a table of per-cell standard uncertainties",
+                             path=path, argument="u_measured") from None
         grid, what = u_table.r, f"per-cell standard uncertainties from {path.name} (independent cells)"
     missing = table.mask & ~(np.isfinite(grid) & (grid > 0))
     if missing.any():

@@ -418,6 +418,32 @@ def test_correct_refuses_what_it_would_drop_or_misread(tmp_path):
     assert np.allclose(np.sqrt(np.diag(meas)), 0.02, rtol=1e-9)
 
 
+def test_correct_refuses_a_k_a_table_as_the_measurements_uncertainty(tmp_path):
+    """User audit, session 24: `correct --u-measured ka.csv` read k_A (unscaled) as u x 1e4: u of 1e-4 r
+    and a false misfit note, exit 0, while `road --u ka.csv` refuses it. One line naming the file and
+    the argument, as every other reader of r-tables gives; a table of u is still taken."""
+    from roadgonio.surface.rtable import KA_HEADER, grid_csv_text
+    m = rg.read_table("R3")
+    ka = tmp_path / "ka.csv"
+    ka.write_text(grid_csv_text(np.full((29, 20), 0.97), f"{KA_HEADER}instrument 'portable' for sample 'R3'"))
+    se = tmp_path / "ka_se.csv"
+    from roadgonio.surface.rtable import ka_output_header
+    se.write_text(grid_csv_text(np.full((29, 20), 0.001), ka_output_header("standard error", "portable", "R3",
+                                                                            "mitsuba")))
+    for path in (ka, se):
+        with pytest.raises(InputError) as err:
+            rg.correct(m, "portable", reference="R3", alternatives="none", backend="quadrature", u_measured=str(path),
+                       out=tmp_path / "c")
+        msg = str(err.value)
+        assert err.value.path == str(path) and err.value.argument == "u_measured" and "\n" not in msg, msg
+        assert "k_A" in msg and "expected a table of per-cell standard uncertainties" in msg
+    assert not (tmp_path / "c").exists()
+    u = rg.write_table(m * 0.02, tmp_path / "u.csv")
+    res = rg.correct(m, "portable", reference="R3", alternatives="none", u_measured=str(u), backend="quadrature",
+                     accuracy="fast")
+    assert np.allclose(np.sqrt(np.diag(res.budget.components["measurement"])), 0.02, rtol=1e-5)
+
+
 def test_a_correction_folder_of_another_run_says_what_correct_can_do(tmp_path):
     """(audit 21, 2) a rerun with other alternatives said 'use another --out folder, or --fresh to
     discard it'; correct has no --fresh (the command and the API refused it)."""
