@@ -144,6 +144,8 @@ def _not_converged_text(c, target) -> str:
     """What a cell that stopped at its cap achieved, against what was asked; under absolute
     calibration also (or only) eta = <E>/E_0, whose error estimate a standard error does not hold."""
     extra = c.extra or {}
+    if extra.get("float32_underflow"):
+        return f" -- NOT measured: {extra['note']}"
     eta_text = ""
     if extra.get("eta_converged") is False:
         rel = extra["eta_error"] / extra["eta"] if extra.get("eta") else math.nan

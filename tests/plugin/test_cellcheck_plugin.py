@@ -58,3 +58,15 @@ def test_a_clipping_beam_limit_is_modelled_by_the_mitsuba_backend():
         tol = n_sigma(min(m.se_dof, q.se_dof)) * math.hypot(m.se, q.se)
         assert abs(m.k_a - q.k_a) <= tol, (q.tan_eps, q.beta_deg, m.k_a, q.k_a, tol)
     assert abs(uncut[1].k_a - ref[1].k_a) > 20 * n_sigma(uncut[1].se_dof) * math.hypot(uncut[1].se, ref[1].se)
+
+def test_a_model_that_underflows_float32_is_not_measured_rather_than_zero():
+    """User audit, session 24: pure Phong of exponent 1e4 at tan eps 12, beta 10 through the portable
+    preset is 5e-76 of the Lambertian at the nominal geometry in float64 and 0 in float32 over the whole
+    aperture: the Mitsuba backend printed k_A = 0 +- 0, converged. It is NaN, not converged, with a
+    note naming the underflow; a cell on the lobe of the same model is measured as before."""
+    inst = load_instrument("portable")
+    model = RoadModel(RoadParams(k_phong=1.0, n_phong=1e4))
+    under, on_lobe = make_backend("mitsuba", inst, model, rel_se=1e-2, seed=0).compute([(12.0, 10.0), (12.0, 0.0)])
+    assert math.isnan(under.k_a) and math.isnan(under.se) and not under.converged
+    assert under.extra["float32_underflow"] and "underflow the float32 renderer" in under.extra["note"]
+    assert math.isfinite(on_lobe.k_a) and on_lobe.k_a > 0 and "float32_underflow" not in on_lobe.extra

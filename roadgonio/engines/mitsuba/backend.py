@@ -240,6 +240,16 @@ class MitsubaBackend:
                  "converged": bool(converged)}
         if ideal <= 0.0:
             extra["note"] = "the model is 0 at the nominal geometry: k_A is undefined"
+        elif ratio == 0.0 and se == 0.0:
+            # every sample rendered 0 where the float64 model is positive: its values underflow float32
+            # (a lobe exponent of ~1e4 far off the lobe); 0 +- 0 "converged" was printed (user audit, session 24)
+            k_a = k_se = math.nan
+            converged = False
+            extra["converged"] = False
+            extra["float32_underflow"] = True
+            extra["note"] = (f"the rendered road signal is 0 in every sample while the model is positive at the "
+                             f"nominal geometry ({ideal:.3g} of the Lambertian's): its values underflow the float32 "
+                             "renderer here; k_A is not measured (use a float64 backend: reference, numpy-mc)")
         stray = {}
         if st.direct:
             # the direct light alone (today's k_A) and the stray fraction, from the same replicates
