@@ -762,22 +762,20 @@ def test_pareto_label_of_the_best_design_stays_inside_the_axes(tmp_path, monkeyp
     assert axes.x0 <= box.x0 and box.x1 <= axes.x1 and axes.y0 <= box.y0 and box.y1 <= axes.y1, (box, axes)
 
 
-def test_tolerance_map_of_three_keys_has_one_panel_per_value_of_the_third(tmp_path, monkeypatch):
-    """trial 12 D1: a three-key design's tolerance_map.png drew only the best's slice of the third key,
-    so a better point on another slice was in no picture. A third key of few values gets one panel
-    per value, the best starred on its own."""
+def _drawn_tolerance_map(vary, first_k, tmp_path, monkeypatch):
+    """A design over ``vary`` whose point i has k_A = first_k + 0.01 i at one cell (tolerance 5 %), and the
+    figures plot_tolerance_map drew of it (not saved)."""
     from roadgonio.design import outputs as O
     from roadgonio.design.dataset import assemble
     from roadgonio.design.run import SampleSpec
     base = load_instrument("portable")
-    specs = G.as_vary_specs(["source.radius_m=0.003,0.006", "detector.pupil_radius_m=0.0025,0.005",
-                             "detector.distance_m=0.6,1.0"])
+    specs = G.as_vary_specs(vary)
     points = G.grid_points(specs)
     cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
     samples = [SampleSpec("A", "A", None, cells)]
     checked = [check_point(base, p, list(cells)) for p in points]
     ones = np.ones((2, 2))
-    done = {(i, 0): _journal_record(_ka_dataset([[1.01 + 0.01 * i, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones),
+    done = {(i, 0): _journal_record(_ka_dataset([[first_k + 0.01 * i, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones),
                                     cells) for i in range(len(points))}
     ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
                   union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
@@ -785,6 +783,16 @@ def test_tolerance_map_of_three_keys_has_one_panel_per_value_of_the_third(tmp_pa
     got = []
     monkeypatch.setattr(O, "atomic_savefig", lambda fig, path, dpi: got.append(fig) or path)
     O.plot_tolerance_map(ds, tmp_path / "tolerance_map.png")
+    return ds, got
+
+
+def test_tolerance_map_of_three_keys_has_one_panel_per_value_of_the_third(tmp_path, monkeypatch):
+    """trial 12 D1: a three-key design's tolerance_map.png drew only the best's slice of the third key,
+    so a better point on another slice was in no picture. A third key of few values gets one panel
+    per value, the best starred on its own."""
+    from roadgonio.design import outputs as O
+    ds, got = _drawn_tolerance_map(["source.radius_m=0.003,0.006", "detector.pupil_radius_m=0.0025,0.005",
+                                    "detector.distance_m=0.6,1.0"], 1.01, tmp_path, monkeypatch)
     maps = [a for a in got[0].axes if a.get_xlabel() == "source.radius_m"]
     assert [a.get_title() for a in maps] == ["at detector.distance_m = 0.6", "at detector.distance_m = 1"]
     best_d = O.json.loads(ds.attrs["best_point_json"])["detector.distance_m"]
@@ -798,24 +806,8 @@ def test_the_tolerance_contour_is_named_in_the_legend_not_cut_by_an_inline_label
     found room, which was beside the best design: it cut the line there and ran over the star, so the
     feasible best looked as if it were outside. The contour is named in the legend, beside the star,
     and the panel holds no text that says "tolerance"."""
-    from roadgonio.design import outputs as O
-    from roadgonio.design.dataset import assemble
-    from roadgonio.design.run import SampleSpec
-    base = load_instrument("portable")
-    specs = G.as_vary_specs(["source.radius_m=0.003,0.006,0.009", "detector.pupil_radius_m=0.0025,0.005,0.0075"])
-    points = G.grid_points(specs)
-    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
-    samples = [SampleSpec("A", "A", None, cells)]
-    checked = [check_point(base, p, list(cells)) for p in points]
-    ones = np.ones((2, 2))
-    done = {(i, 0): _journal_record(_ka_dataset([[1.02 + 0.01 * i, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones),
-                                    cells) for i in range(len(points))}
-    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
-                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
-                  seeds=list(range(len(points))), tol=0.05)
-    got = []
-    monkeypatch.setattr(O, "atomic_savefig", lambda fig, path, dpi: got.append(fig) or path)
-    O.plot_tolerance_map(ds, tmp_path / "tolerance_map.png")
+    _, got = _drawn_tolerance_map(["source.radius_m=0.003,0.006,0.009", "detector.pupil_radius_m=0.0025,0.005,0.0075"],
+                                  1.02, tmp_path, monkeypatch)
     ax = [a for a in got[0].axes if a.get_xlabel() == "source.radius_m"][0]
     assert ax.collections, "no contour was drawn"
     legend = [t.get_text() for t in ax.get_legend().get_texts()]
