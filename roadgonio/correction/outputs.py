@@ -262,7 +262,11 @@ def draw_correction_map(res):
     wide = float(k.max() / k.min()) > 1.5
     draw_table_map(a1, res.k_a, label="k_A (measured / true; 1 = no aperture effect)", fontsize=fs, tick_fontsize=8,
                    log=wide, fmt="{:.2f}" if wide else "{:.3f}")
-    a1.set_title(f"{res.measured.name}: k_A used for the correction (corrected = measured / k_A)", fontsize=10)
+    # with --forward surface the table also weighs the fitted surface's own value (user audit, session 24:
+    # the title said corrected = measured / k_A where that value carries most of the table)
+    how = ("corrected: measured / k_A and the fitted surface's own value, weighed by their u"
+           if (getattr(res, "extra", None) or {}).get("surface") is not None else "corrected = measured / k_A")
+    a1.set_title(f"{res.measured.name}: k_A of the instrument ({how})", fontsize=10)
     u = np.full(res.k_a.shape, np.nan)
     u[res.measured.mask] = 100.0 * res.budget.u_rel()
     draw_table_map(a2, u, label="relative standard uncertainty of the corrected r (%)", centre=None, log=False,

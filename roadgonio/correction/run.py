@@ -216,8 +216,13 @@ def check_measured(table: RTable, path: str | Path | None = None) -> None:
     """The measured table's values must be positive (a cell not measured is blank). A table without
     the S1 cells (tan eps 0 and 2 at beta 0) is corrected; S1, S2 and the class are then reported as
     missing (docs/inputs-outputs.md, "Missing values")."""
-    if np.any(table.r[table.mask] <= 0):
-        raise InputError("the measured table has zero values; blank a cell that was not measured", path=path)
+    bad = table.mask & ~(table.r > 0)
+    if bad.any():      # where (user audit, session 24: the message named no cell)
+        i, j = np.argwhere(bad)[0]
+        raise InputError(f"the measured table has {int(bad.sum())} zero value(s), the first at tan eps = "
+                         f"{table.tan_eps[i]:g}, beta = {table.beta_deg[j]:g}; blank a cell that was not measured",
+                         path=path, argument="measured" if path is not None else None,
+                         field=None if path is not None else "measured")
 
 
 def _check_fit_cells(table: RTable) -> None:

@@ -670,3 +670,22 @@ def test_a_search_too_weak_for_the_table_is_repeated_until_the_fit_is_found(seed
     assert searches[-1]["chi2"] < 1e-6 * y.size, searches
     assert np.max(np.abs(np.log(fm.k_a(model) / fm.k_a(truth)))) < 1e-6
     assert all(s["starts"] == RETRY_STARTS for s in searches[1:])
+
+
+def test_a_zero_in_the_measured_table_is_refused_naming_the_cell(tmp_path):
+    """User audit, session 24: a zero cell was refused with "the measured table has zero values" and no
+    cell, while a negative one names its line and column. The message names the first zero cell and
+    the count, the file and the argument."""
+    import roadgonio as rg
+    from roadgonio.errors import InputError
+    from roadgonio.surface.rtable import bundled_table, grid_csv_text
+    r = bundled_table("R3").r * 1e4
+    r[3, 5] = 0.0
+    r[10, 0] = 0.0
+    path = tmp_path / "zero.csv"
+    path.write_text(grid_csv_text(r, "measured with zeros"))
+    with pytest.raises(InputError) as err:
+        rg.correct(str(path), "portable", reference="R3", alternatives="none", backend="quadrature")
+    msg = str(err.value)
+    assert err.value.path == str(path) and err.value.argument == "measured", msg
+    assert "2 zero value(s), the first at tan eps = 0.75, beta = 20" in msg and "\n" not in msg

@@ -179,3 +179,26 @@ def test_correction_map_colour_bar_label_clears_the_next_panel_and_cells_are_rea
         assert sizes and min(sizes) >= JOINT_MAP_CELL_FONT, sizes
     finally:
         _plt().close(fig)
+
+
+def test_correction_map_of_a_surface_correction_says_the_table_weighs_the_surfaces_value():
+    """User audit, session 24: correction_map.png of `--forward surface` was titled "k_A used for the
+    correction (corrected = measured / k_A)", where the fitted surface's own value carries most of the
+    table (before_after.png said so). The title says what the table is for each route."""
+    from types import SimpleNamespace
+
+    from roadgonio.correction.outputs import draw_correction_map
+    from roadgonio.plots import _plt
+    from roadgonio.surface.rtable import bundled_table
+    t = bundled_table("R3")
+    k = np.where(t.mask, 1.02, np.nan)
+    n = int(t.mask.sum())
+    titles = {}
+    for route, extra in (("eq4", {}), ("surface", {"surface": object()})):
+        res = SimpleNamespace(k_a=k, measured=t, extra=extra, budget=SimpleNamespace(
+            u_rel=lambda: np.full(n, 0.012), components=["measurement", "backend"]))
+        fig = draw_correction_map(res)
+        titles[route] = fig.axes[0].get_title()
+        _plt().close(fig)
+    assert "(corrected = measured / k_A)" in titles["eq4"] and "surface" not in titles["eq4"]
+    assert "fitted surface's own value" in titles["surface"] and "corrected = measured / k_A" not in titles["surface"]
