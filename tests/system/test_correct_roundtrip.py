@@ -62,7 +62,9 @@ def test_round_trip_reference_self(mode):
 
 
 def test_synthetic_data_reproduce():
-    """The stored measurements are what their generator makes (five cells, noise removed)."""
+    """The stored measurements are what their generator makes (five cells, noise removed): the true r
+    digit for digit, k_A within the quadrature's error bound and the stored table's (rtol 1e-5, its
+    header): session 24's confirmation one level finer moved the quadrature's k_A within them (3e-7)."""
     from roadgonio.correction.synthetic import r2_like_truth
     from roadgonio.engines import make_backend
     inst = Instrument.load(DATA / "medium.toml")
@@ -73,7 +75,7 @@ def test_synthetic_data_reproduce():
     for c in got:
         i = int(np.argmin(abs(truth.tan_eps - c.tan_eps)))
         j = int(np.argmin(abs(truth.beta_deg - c.beta_deg)))
-        assert c.k_a == pytest.approx(k_true[i, j], rel=1e-8)
+        assert c.converged and abs(c.k_a - k_true[i, j]) <= c.error_bound + 1e-5 * abs(k_true[i, j]), (c, k_true[i, j])
         assert r2_like_truth().r(c.tan_eps, c.beta_deg) == pytest.approx(truth.r[i, j], rel=1e-9, abs=0.0)
     assert math.isfinite(truth.s1())
 
