@@ -485,26 +485,34 @@ class Planner:
 
 
 def covariance(stats: Sequence[CellStats], ratios: Sequence[float]) -> np.ndarray:
-    """Covariance matrix of the ratios of ``stats`` (module docstring), float64."""
+    """Covariance matrix of the ratios of ``stats`` (module docstring), float64: per stratum (pass,
+    lattice size), n_common x the sample covariance of two cells' residuals over the replicates they
+    share. Cells with the same replicates form one block, computed as one matrix product (a correction
+    asks it of a 396-cell table: the pairwise loop took 2.8 s against the table's 0.04 s)."""
     m = len(stats)
     res = [st.residuals(r) for st, r in zip(stats, ratios)]
     sg = np.array([st.totals()[1] for st in stats])
     cov = np.zeros((m, m))
-    keys: dict[tuple[int, int], list[int]] = {}
+    keys: dict[tuple[int, int], dict[bytes, list[int]]] = {}
     for i, r in enumerate(res):
-        for k in r:
-            keys.setdefault(k, []).append(i)
-    for k, members in keys.items():
-        for a_pos, a in enumerate(members):
-            ra, ya = res[a][k]
-            for b in members[a_pos:]:
-                rb, yb = res[b][k]
-                common, ia, ib = np.intersect1d(ra, rb, return_indices=True)
-                if len(common) < 2:
+        for k, (reps, _) in r.items():
+            keys.setdefault(k, {}).setdefault(np.asarray(reps).tobytes(), []).append(i)
+    for k, groups in keys.items():
+        blocks = []
+        for members in groups.values():
+            reps = np.asarray(res[members[0]][k][0])
+            blocks.append((np.array(members), reps, np.vstack([res[a][k][1] for a in members])))
+        for g, (ia, reps_a, ya) in enumerate(blocks):
+            for ib, reps_b, yb in blocks[g:]:
+                common, ca, cb = np.intersect1d(reps_a, reps_b, return_indices=True)
+                n = len(common)
+                if n < 2:
                     continue
-                c = len(common) * float(np.cov(ya[ia], yb[ib], ddof=1)[0, 1])
-                cov[a, b] += c
-                if a != b:
-                    cov[b, a] += c
+                a = ya[:, ca] - ya[:, ca].mean(axis=1, keepdims=True)
+                b = yb[:, cb] - yb[:, cb].mean(axis=1, keepdims=True)
+                block = n * (a @ b.T) / (n - 1)
+                cov[np.ix_(ia, ib)] += block
+                if ib is not ia:
+                    cov[np.ix_(ib, ia)] += block.T
     with np.errstate(divide="ignore", invalid="ignore"):
         return cov / np.outer(sg, sg)
