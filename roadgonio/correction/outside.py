@@ -469,12 +469,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     u_rel_all = u_all / y_all
     steps: list[dict[str, Any]] = []
     pred_change = np.zeros_like(y_all)
-    cov_back: list[np.ndarray] = []
     def backend_k(models, k_bundles, step: int, what: str, saying: str):
         """The backend's k_A of ``models[i]`` through instrument i (journalled in ``_forward_dir``'s
-        folder of ``what`` and ``step``), its SE, the run's info and rho = k_backend / ``k_bundles[i]``,
-        each a list over the instruments; the relative covariance of ln k_A over each instrument's cells
-        is kept in ``cov_back`` (:func:`roadgonio.correction.run.backend_covariance`)."""
+        folder of ``what`` and ``step``), its SE, the run's info, rho = k_backend / ``k_bundles[i]`` and
+        the relative covariance of ln k_A over the cells (:func:`roadgonio.correction.run.backend_covariance`),
+        each a list over the instruments."""
         k_out, se_out, info_out, rho_out, cov_out = [], [], [], [], []
         for i, (inst, t, m, kb) in enumerate(zip(instruments, tables, models, k_bundles)):
             _run._say(progress, f"{label}: k_A of the {saying} through {inst.name} ({backend})"
@@ -486,12 +485,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             se_out.append(se_b)
             info_out.append(info)
             rho_out.append(k_b / kb)
-        cov_back[:] = cov_out
-        return k_out, se_out, info_out, rho_out
+        return k_out, se_out, info_out, rho_out, cov_out
 
     for it in range(1, max_outer + 1):
-        k_back, se_back, infos, rhos = backend_k([polished] * len(fms), [fm.k_a(polished) for fm in fms], it,
-                                                 "backbone", f"{main_label} backbone")
+        k_back, se_back, infos, rhos, cov_back = backend_k([polished] * len(fms), [fm.k_a(polished) for fm in fms],
+                                                           it, "backbone", f"{main_label} backbone")
         lap("backend")
         rho_all = np.concatenate(rhos)
         nxt = _run.refit_with_rho(state, f"refit-{it}", stacked, y_all, u_all, polished, rho_all, variant=main[0],
@@ -559,9 +557,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     if any(info.get("stray") for info in infos):
         for it in range(1, max_outer + 1):
             cur = max(vfits, key=lambda v: v.weight)
-            k_back, se_back, infos, rhos = backend_k([p.corrected_surface(cur.fit.theta) for p in cur.parts],
-                                                     [p.k_bundle(cur.fit.theta) for p in cur.parts], it, "surface",
-                                                     f"fitted surface ({cur.label})")
+            k_back, se_back, infos, rhos, cov_back = backend_k([p.corrected_surface(cur.fit.theta) for p in cur.parts],
+                                                               [p.k_bundle(cur.fit.theta) for p in cur.parts], it,
+                                                               "surface", f"fitted surface ({cur.label})")
             lnk_old = _weighted_lnk_bundles(vfits)
             lap("surface-backend")
             vfits = fit_surfaces(rhos, f"-s{it}", {(vf.variant, vf.round_deg): (vf.fit.theta, list(vf.fit.lam.values()))
@@ -582,11 +580,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     #     (docs/correction.md, "The road beyond the observation elevations")
     unobserved: list[np.ndarray] | None = None
     if surface_steps and settings.unobserved_sd_ln > 0.0:
-        kept = list(cov_back)
-        k_probe, _, _, _ = backend_k([p.corrected_surface(cur.fit.theta, UNOBSERVED_PROBE) for p in cur.parts],
-                                     [p.k_bundle(cur.fit.theta) for p in cur.parts], 1, "unobserved",
-                                     f"fitted surface x {UNOBSERVED_PROBE:g} beyond the observation elevations")
-        cov_back[:] = kept
+        k_probe = backend_k([p.corrected_surface(cur.fit.theta, UNOBSERVED_PROBE) for p in cur.parts],
+                            [p.k_bundle(cur.fit.theta) for p in cur.parts], 1, "unobserved",
+                            f"fitted surface x {UNOBSERVED_PROBE:g} beyond the observation elevations")[0]
         unobserved = [np.log(kp / kb) / math.log(UNOBSERVED_PROBE) for kp, kb in zip(k_probe, k_back)]
         lap("surface-backend")
     live = contributing(vfits)

@@ -146,9 +146,9 @@ def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
     return grid, what
 
 
-def _u_where(path: Path | None) -> dict:
-    """Where an error about ``u_measured`` is: the argument that named the file, or the argument itself."""
-    return {"argument": "u_measured"} if path is not None else {"field": "u_measured"}
+def _u_where(path: Path | None, name: str = "u_measured") -> dict:
+    """Where an error about input ``name`` is: the argument that named the file, or the argument itself."""
+    return {"argument": name} if path is not None else {"field": name}
 
 
 def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Path | None]:
@@ -221,8 +221,7 @@ def check_measured(table: RTable, path: str | Path | None = None) -> None:
         i, j = np.argwhere(bad)[0]
         raise InputError(f"the measured table has {int(bad.sum())} zero value(s), the first at tan eps = "
                          f"{table.tan_eps[i]:g}, beta = {table.beta_deg[j]:g}; blank a cell that was not measured",
-                         path=path, argument="measured" if path is not None else None,
-                         field=None if path is not None else "measured")
+                         path=path, **_u_where(path, "measured"))
 
 
 def _check_fit_cells(table: RTable) -> None:
