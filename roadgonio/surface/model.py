@@ -37,7 +37,8 @@ Variants:
   ``E = k_exp f(e)^p exp(-W L(beta)^n_beta)``, ``W = exp(1 + h sqrt(f(e)))``,
   ``L(beta) = -ln x_s``, ``x_s = cos^2(beta/2) = (1 + cos beta)/2``.
   With ``n_beta = 1`` (its default) this is ``k_exp f^p x_s^W``. It uses one parameter more than
-  the paper's model, ``n_beta``, the exponent of the beta profile; the other variants ignore it.
+  the paper's model, ``n_beta``, the exponent of the beta profile; the other variants ignore it
+  (:class:`RoadModel` holds it at its default there, and their model files refuse another value).
   Why: the paper's model (fitted by roadgonio.surface.fit) misses the paper's own target (max 9 %, RMS
   2.6 % of max r) on R3 and R4. Where its residual sits (``roadgonio fit R3 --variant power``
   prints the worst cells; residuals.csv / fit.png hold the map): ~45 % of the squared residual in
@@ -103,6 +104,15 @@ PARAM_NAMES = ("k_diff", "k_phong", "n_phong", "k_retro", "n_retro", "k_exp", "p
                "g_a", "g_b", "g_c", "g_t", "theta_l_deg", "n_beta", "beta_round_deg")
 #: Parameters used only by some variants (the others ignore them, and the fit leaves them alone).
 VARIANT_PARAMS: dict[str, tuple[str, ...]] = {"power": (), "product": (), "smooth": ("n_beta",)}
+
+
+def variant_param_names(variant: str) -> tuple[str, ...]:
+    """The parameters ``variant`` uses, in :data:`PARAM_NAMES` order: every one but the other
+    variants' own (:data:`VARIANT_PARAMS`), e.g. all but ``n_beta`` for ``power``."""
+    others = {k for v, own in VARIANT_PARAMS.items() if v != variant for k in own}
+    return tuple(k for k in PARAM_NAMES if k not in others or k in VARIANT_PARAMS.get(variant, ()))
+
+
 #: Lower and upper bounds of each parameter (inclusive unless noted in the module docstring).
 PARAM_BOUNDS: dict[str, tuple[float, float]] = {
     "k_diff": (0.0, 1e6), "k_phong": (0.0, 1e6), "k_retro": (0.0, 1e6), "k_exp": (0.0, 1e6),
@@ -395,6 +405,14 @@ class RoadParams:
         return replace(self, **changes)
 
 
+#: Each parameter's default (docs/conventions.md section 3).
+_PARAM_DEFAULTS: dict[str, float] = RoadParams().to_dict()
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+
+
 def _near_key(key: str, known) -> str | None:
     """The known key that ``key`` is a misspelling of (case, one or two letters off), if any."""
     import difflib
@@ -426,6 +444,14 @@ class RoadModel:
         if not isinstance(self.variant, str) or self.variant not in VARIANTS:
             raise InputError(f"unknown model variant {self.variant!r}; expected one of {', '.join(VARIANTS)}",
                              field="variant")
+        # a parameter the variant does not use (n_beta of power) does nothing: it is held at its
+        # default, so that the model's file (which holds only the variant's parameters) reads back as
+        # the model and two models that evaluate alike compare and fingerprint alike
+        used = variant_param_names(self.variant)
+        unused = {k: _PARAM_DEFAULTS[k] for k in PARAM_NAMES
+                  if k not in used and getattr(self.params, k) != _PARAM_DEFAULTS[k]}
+        if unused:
+            object.__setattr__(self, "params", self.params.replace(**unused))
 
     @classmethod
     def lambert(cls, reflectance: float = 1.0) -> "RoadModel":
@@ -474,7 +500,9 @@ class RoadModel:
 
     # -- files -----------------------------------------------------------------------------
     def to_json_dict(self) -> dict[str, Any]:
-        d: dict[str, Any] = {"variant": self.variant, "params": self.params.to_dict(), "name": self.name}
+        P = self.params.to_dict()
+        d: dict[str, Any] = {"variant": self.variant, "params": {k: P[k] for k in variant_param_names(self.variant)},
+                             "name": self.name}
         if self.meta:
             d.update({k: v for k, v in self.meta.items() if k not in d})
         return d
@@ -486,10 +514,23 @@ class RoadModel:
         if "params" not in d or not isinstance(d["params"], Mapping):
             raise InputError("missing or non-object 'params' (expected {\"variant\": ..., \"params\": {...}})",
                              path=path, field="params")
-        variant = d.get("variant", DEFAULT_VARIANT)
+        if "variant" not in d:
+            # every model file roadgonio writes names its variant; a file without one is not read as
+            # the default, which may not be the variant it was fitted with
+            raise InputError(f"missing key 'variant'; expected one of {', '.join(VARIANTS)}", path=path,
+                             field="variant")
+        variant = d["variant"]
         if not isinstance(variant, str) or variant not in VARIANTS:
             raise InputError(f"unknown variant {variant!r}; expected one of {', '.join(VARIANTS)}",
                              path=path, field="variant")
+        used = variant_param_names(variant)
+        for k, v in d["params"].items():
+            # a parameter of another variant does nothing here (n_beta with power): an error, not a
+            # silent no-op; at its default it is what roadgonio wrote into every model file before
+            # it wrote only the variant's parameters, so that is still read
+            if k in PARAM_NAMES and k not in used and not (_is_number(v) and float(v) == _PARAM_DEFAULTS[k]):
+                raise InputError(f"{k!r} is not a parameter of variant {variant!r} (it would do nothing); "
+                                 f"variant {variant!r} takes {', '.join(used)}", path=path, field=f"params.{k}")
         params = RoadParams.from_dict(d["params"], path=path)
         meta = {k: v for k, v in d.items() if k not in ("variant", "params", "name")}
         for k in meta:

@@ -387,6 +387,55 @@ def test_model_json_round_trip(tmp_path):
     assert m2.meta["fit"]["rms_dev_pct"] == 1.0
 
 
+def _model_file(tmp_path, doc):
+    import json
+    path = tmp_path / "m.json"
+    path.write_text(json.dumps(doc))
+    return path
+
+
+def test_model_file_refuses_a_parameter_its_variant_does_not_use(tmp_path, capsys):
+    """(user audit) n_beta in a power model file did nothing without a word: an error naming the
+    file, the key and the variant's parameters, one line and exit status 2 on the command line."""
+    from roadgonio.cli import main
+    path = _model_file(tmp_path, {"variant": "power", "params": {"k_diff": 0.03, "n_beta": 0.6}})
+    with pytest.raises(InputError) as ei:
+        RoadModel.load(path)
+    assert ei.value.field == "params.n_beta" and str(path) in str(ei.value)
+    assert "'power'" in ei.value.reason and "k_diff, k_phong" in ei.value.reason and "n_beta" not in ei.value.reason.split("takes")[1]
+    rc = main(["ka", "--instrument", "lab", "--sample", str(path), "--backend", "reference", "--tan-eps", "2",
+               "--beta", "0", "--json"])
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert rc == 2 and len(err) == 1 and err[0].startswith("roadgonio: error:") and "n_beta" in err[0], err
+    # the same key is smooth's own; at its default it is what roadgonio wrote for every variant before
+    assert RoadModel.load(_model_file(tmp_path, {"variant": "smooth", "params": {"k_diff": 0.03, "n_beta": 0.6}})
+                          ).params.n_beta == 0.6
+    assert RoadModel.load(_model_file(tmp_path, {"variant": "power", "params": {"k_diff": 0.03, "n_beta": 1.0}})
+                          ).params.k_diff == 0.03
+
+
+def test_model_file_holds_only_its_variants_parameters(tmp_path):
+    """What roadgonio writes reads back: a power model's file has no n_beta (an unused n_beta given in
+    Python is held at its default, so the model and its file agree), a smooth model's has."""
+    import json
+    power = RoadModel(RoadParams(k_diff=0.03, n_beta=2.0), "power")
+    assert power.params.n_beta == 1.0
+    assert "n_beta" not in json.loads(power.save(tmp_path / "p.json").read_text())["params"]
+    assert RoadModel.load(tmp_path / "p.json").params == power.params
+    smooth = RoadModel(RoadParams(k_diff=0.03, n_beta=2.0), "smooth")
+    assert json.loads(smooth.save(tmp_path / "s.json").read_text())["params"]["n_beta"] == 2.0
+
+
+def test_model_file_without_a_variant_is_refused(tmp_path):
+    """(user audit) a file without 'variant' was read as power, silently; every model file roadgonio
+    writes names it, so a missing one is an error naming the file and the variants."""
+    path = _model_file(tmp_path, {"params": {"k_diff": 0.03}})
+    with pytest.raises(InputError) as ei:
+        RoadModel.load(path)
+    assert ei.value.field == "variant" and str(path) in str(ei.value)
+    assert all(v in ei.value.reason for v in VARIANTS)
+
+
 # ----------------------------------------------------------------------------------------------
 # reciprocity of the model as written (the plugin's is tests/plugin/test_plugin_bsdf.py)
 # ----------------------------------------------------------------------------------------------
