@@ -536,7 +536,8 @@ def ka_table(instrument, sample, *, backend: str = "mitsuba", accuracy: str | No
     b = _backend(backend, inst, smp.model, accuracy=accuracy, rel_se=rel_se, seed=seed,
                  mitsuba_variant=mitsuba_variant, settings=settings)
     folder = _out(out, "ka", inst.name, smp.name)
-    run = run_cells(b, todo, instrument=inst, model=smp.model, out_dir=folder, fresh=fresh, progress=_show(progress))
+    run = run_cells(b, todo, instrument=inst, model=smp.model, out_dir=folder, fresh=fresh, progress=_show(progress),
+                    field="cells")
     ds = ka_dataset(run, instrument=inst, model=smp.model, backend=b, sample=smp.name, accuracy=accuracy, seed=seed,
                     cells_asked=len(todo))
     if folder is not None:
@@ -565,7 +566,8 @@ def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "
                  mitsuba_variant=mitsuba_variant, settings=settings)
     _note_beyond_the_table(inst, smp, [(t, bdeg)])
     folder = _out(out, "ka", inst.name, smp.name)
-    run = run_cells(b, [(t, bdeg)], instrument=inst, model=smp.model, out_dir=folder, fresh=fresh, progress=False)
+    run = run_cells(b, [(t, bdeg)], instrument=inst, model=smp.model, out_dir=folder, fresh=fresh, progress=False,
+                    field="tan_eps/beta")
     cell = run.results[0]
     if run.resumed:
         object.__setattr__(cell, "extra", {**(cell.extra or {}), "resumed": True})

@@ -11,6 +11,11 @@ After: a cell at which no detected ray receives light has no k_A (:func:`no_ligh
 
 Errors, not wrong numbers: :class:`~roadgonio.errors.GeometryError` (the geometry cannot be measured)
 or :class:`~roadgonio.errors.BackendError` (this backend cannot compute it), naming the cell.
+
+A command asked for a list of cells checks them all with :func:`check_requested` before it computes or
+writes anything: a cell-by-cell backend checks each cell only when it reaches it, so a refused cell
+late in the list failed the run after the cells before it were computed and journalled (user audit,
+session 24: ``ka --backend reference --cells 12:0,0:0`` on a narrow lobe).
 """
 from __future__ import annotations
 
@@ -19,7 +24,7 @@ from typing import Sequence
 
 import numpy as np
 
-from roadgonio.errors import BackendError, GeometryError
+from roadgonio.errors import BackendError, GeometryError, InputError, count
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
@@ -84,3 +89,66 @@ def no_light(tan_eps: float, beta_deg: float, why: str = "") -> GeometryError:
     ``why`` a parenthesised reason, e.g. ``"(the source beam misses the detector footprint)"``."""
     return GeometryError(f"no detected ray receives light from the source at tan eps = {tan_eps:g}, beta = "
                          f"{beta_deg:g}{' ' + why if why else ''}: k_A is undefined")
+
+
+def refused_cells(instrument: Instrument, models: Sequence[RoadModel], cells: Sequence[tuple[float, float]], *,
+                  models_beam: bool = True) -> list[tuple[float, float]]:
+    """The cells of ``cells`` that :func:`check_cells` refuses for some model of ``models`` past the
+    horizon (the source disc in the detector's view, a clipping beam limit the backend does not
+    model, a model value at the nominal geometry that is not positive and finite), in order."""
+    tb = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    bad = optics.source_blocks_view(instrument, tb)
+    if not models_beam:
+        bad |= optics.beam_clips_cells(instrument, cells)
+    for m in models:
+        v = ideal_ratios(m, instrument, cells)
+        bad |= ~(np.isfinite(v) & (v > 0.0))
+    return [cells[i] for i in np.flatnonzero(bad)]
+
+
+def _checked_models(backend, model: RoadModel) -> list[RoadModel]:
+    """The models whose nominal values ``backend`` divides by: the sample's, and under a
+    ``reference`` calibration the reference's too; none when the reference is the sample itself and
+    nothing is computed (k_A = 1 by definition, :class:`~roadgonio.engines.calibration.CalibratedBackend`)."""
+    from roadgonio.engines.calibration import CalibratedBackend
+    if not isinstance(backend, CalibratedBackend) or backend.mode != "reference":
+        return [model]
+    if backend.identical:
+        return [model] if getattr(backend.inner, "stray_light", False) else []
+    return [model, backend.reference_model]
+
+
+#: How many refused cells the message of :func:`check_requested` lists.
+LISTED = 6
+
+
+def check_requested(backend, instrument: Instrument, model: RoadModel, cells: Sequence[tuple[float, float]], *,
+                    models_beam: bool = True, field: str = "cells") -> None:
+    """Check every cell a command asked ``backend`` for, before anything is computed or written: the
+    horizon (:func:`roadgonio.instrument.optics.check_source_cells`, a GeometryError naming the
+    instrument's key), then what the backend refuses at a cell (:func:`check_cells`, for each model
+    it divides by) as one :class:`InputError` naming ``field`` (the argument that chose the cells),
+    the refused cells in ``T:B`` form, the first refusal's reason and what was expected.
+    ``models_beam``: as for :func:`check_cells` (the registry's ``beam_clipping``)."""
+    cells = [(float(t), float(b)) for t, b in cells]
+    if not cells:
+        return
+    optics.check_source_cells(instrument, cells)
+    models = _checked_models(backend, model)
+    if not models:
+        return
+    name = getattr(backend, "name", "this")
+    try:
+        for m in models:
+            check_cells(instrument, m, cells, models_beam=models_beam, backend=name)
+    except (GeometryError, BackendError) as err:
+        reason = getattr(err, "reason", None) or str(err)
+        bad = refused_cells(instrument, models, cells, models_beam=models_beam)
+        if not bad:
+            raise InputError(f"the {name} backend cannot compute a cell asked: {reason}", field=field) from None
+        listed = ", ".join(f"{t:g}:{b:g}" for t, b in bad[:LISTED]) + (", ..." if len(bad) > LISTED else "")
+        which = f"cell {listed}" if len(bad) == 1 else f"cells {listed}"
+        if len(cells) > 1:
+            which += f" ({len(bad)} of the {count(len(cells), 'cell')} asked)"
+        raise InputError(f"the {name} backend cannot compute {which}: {reason}; expected only cells it can compute: "
+                         f"leave {'it' if len(bad) == 1 else 'them'} out (nothing was computed)", field=field) from None

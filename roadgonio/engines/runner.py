@@ -138,10 +138,13 @@ def _write_journal(journal: Path, header: dict, cells: Sequence[CellResult]) -> 
 
 def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instrument: Instrument,
               model: RoadModel, out_dir: str | Path | None = None, fresh: bool = False,
-              progress: bool = True) -> KaRun:
+              progress: bool = True, field: str | None = None) -> KaRun:
     """Compute k_A at ``cells`` with ``backend``; with ``out_dir``, journal the cells (batched atomic
     rewrites, module docstring) and resume. Every OSError on the journal (its folder cannot be
-    made, read-only or full disk, unreadable) is the one-line :class:`InputError` naming the file."""
+    made, read-only or full disk, unreadable) is the one-line :class:`InputError` naming the file.
+    ``field``: the argument that chose the cells; with it every cell still to compute is checked
+    first (:func:`roadgonio.engines.cellcheck.check_requested`), so a cell the backend refuses is an
+    InputError naming it before anything is computed or journalled."""
     t0 = time.perf_counter()
     journal = None
     done: dict[tuple[float, float], CellResult] = {}
@@ -156,8 +159,16 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
             done = _read_journal(journal, fp)
     # the geometry every backend refuses (:func:`roadgonio.engines.cellcheck.check_cells`), for all the
     # cells still to compute at once (the first bad cell and how many more), before the folder is touched
-    from roadgonio.instrument.optics import check_source_cells
-    check_source_cells(instrument, [c for c in cells if _cell_key(*c) not in done])
+    still = [c for c in cells if _cell_key(*c) not in done]
+    if field is None:
+        from roadgonio.instrument.optics import check_source_cells
+        check_source_cells(instrument, still)
+    else:
+        from roadgonio.engines.cellcheck import check_requested
+        from roadgonio.engines.registry import BACKENDS
+        info = BACKENDS.get(backend.name)
+        check_requested(backend, instrument, model, still, models_beam=info.beam_clipping if info else True,
+                        field=field)
     if out_dir is not None:
         made_dir = not out_dir.exists()
         try:
