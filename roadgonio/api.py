@@ -271,6 +271,13 @@ def validation_summary_line(report: Mapping[str, Any]) -> str:
     return summary_line(report)
 
 
+def validation_failed_line(report: Mapping[str, Any]) -> str:
+    """The ``FAILED:`` line of a :func:`validate` report: the cells that disagree, each by its
+    difference in SE, or as not measured (a NaN k_A)."""
+    from roadgonio.engines.validate import failed_line
+    return failed_line(report["rows"])
+
+
 def sigma_spec_help() -> tuple[str, dict[str, str]]:
     """The help text of a misalignment SPEC and of its keys (``roadgonio uncertainty --help``)."""
     from roadgonio.uncertainty.spec import INPUT_HELP, SPEC_HELP

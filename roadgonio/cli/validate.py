@@ -86,8 +86,7 @@ def run(args) -> int:
     bad = [r for r in rows if r.verdict == "disagree"]
     unsure = [r for r in rows if r.verdict == "inconclusive"]
     if bad:
-        print("roadgonio validate: FAILED: " + ", ".join(f"({r.tan_eps:g}, {r.beta_deg:g}) " + (f"{r.z:+.1f} SE" if math.isfinite(r.z) else f"diff {r.diff:+.2g}, SE 0")
-                                                         for r in bad), file=sys.stderr)
+        print("roadgonio validate: " + api.validation_failed_line(report), file=sys.stderr)
     elif unsure:
         print("roadgonio validate: INCONCLUSIVE: " + ", ".join(f"({r.tan_eps:g}, {r.beta_deg:g}) {r.reason}"
                                                                for r in unsure), file=sys.stderr)

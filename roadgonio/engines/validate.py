@@ -318,6 +318,50 @@ def summary_line(report: dict[str, Any]) -> str:
             + f"; {report['seconds']:.1f} s)")
 
 
+def not_measured(r: CellComparison) -> bool:
+    """A cell with no number to compare: a NaN k_A or SE (the Mitsuba backend's where float32
+    underflows, a reference that gave none), not a difference of 0 SE."""
+    return any(math.isnan(v) for v in (r.k_mc, r.se_mc, r.k_ref))
+
+
+def failed_cell_text(r: CellComparison) -> str:
+    """How the FAILED line names a cell that disagrees: its difference in SE, the difference itself
+    when the SE is 0 (no sampling noise), or that it was not measured (a NaN k_A or SE is not 'SE 0')."""
+    cell = f"({r.tan_eps:g}, {r.beta_deg:g})"
+    if not_measured(r):
+        side = "the reference's" if math.isnan(r.k_ref) else "its"
+        return f"{cell} not measured ({side} k_A or SE is NaN)"
+    if not math.isnan(r.z):
+        return f"{cell} {r.z:+.1f} SE"
+    return f"{cell} diff {r.diff:+.2g}, SE 0"
+
+
+def failed_line(rows: Sequence[CellComparison]) -> str:
+    """The command line's ``FAILED:`` line: every cell that disagrees (:func:`failed_cell_text`)."""
+    return "FAILED: " + ", ".join(failed_cell_text(r) for r in rows if r.verdict == "disagree")
+
+
+def z_bars(rows: Sequence[CellComparison], limit: float = 3 * N_SIGMA) -> list[tuple[float, str]]:
+    """What validate.png's upper panel draws for each cell: (bar height, label). A finite z within
+    +-``limit`` is its own bar, unlabelled; one beyond is clipped at the axis and labelled with its
+    value; an infinite z is clipped and labelled '+inf' / '-inf'; a cell without an SE (SE 0: z
+    undefined) is at the axis' end on its side when it disagrees, at 0 when it agrees, labelled 'SE 0';
+    a cell not measured (:func:`not_measured`) has no bar and is labelled 'not measured'."""
+    out = []
+    for r in rows:
+        if not_measured(r):
+            out.append((0.0, "not measured"))
+        elif math.isinf(r.z):
+            out.append((math.copysign(limit, r.z), "+inf" if r.z > 0 else "-inf"))
+        elif math.isnan(r.z):
+            out.append((math.copysign(limit, r.diff) if r.verdict == "disagree" else 0.0, "SE 0"))
+        elif abs(r.z) > limit:
+            out.append((math.copysign(limit, r.z), f"{r.z:+.3g}"))
+        else:
+            out.append((float(r.z), ""))
+    return out
+
+
 def rows_csv(rows: Sequence[CellComparison]) -> str:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=CSV_FIELDS, lineterminator="\n")
@@ -348,16 +392,31 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
     rows = report["rows"]
     labels = [f"{r.tan_eps:g} / {r.beta_deg:g}" for r in rows]
     x = np.arange(len(rows))
-    z = np.array([r.z for r in rows])
     band = np.array([r.allowed / r.sigma if r.sigma > 0 and math.isfinite(r.allowed) else N_SIGMA for r in rows])
     colour = {"agree": "tab:blue", "disagree": "tab:red", "inconclusive": "tab:orange"}
     fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(max(7.0, 0.6 * len(rows) + 2), 7.5), sharex=True)
-    # a difference with SE 0 (z undefined) is drawn at the axis' end on its side when it fails, at 0 when it agrees
-    z = np.where(np.isfinite(z), z, [3 * N_SIGMA * np.sign(r.diff) if r.verdict == "disagree" else 0.0 for r in rows])
-    ax1.bar(x, np.clip(z, -3 * N_SIGMA, 3 * N_SIGMA), color=[colour[r.verdict] for r in rows])
+    # a z beyond the axis, infinite or undefined (SE 0) is clipped at the axis' end, hatched and labelled
+    # there; a cell not measured (NaN k_A) has no bar, a cross at 0 and its label (z_bars)
+    bars = z_bars(rows, 3 * N_SIGMA)
+    ax1.bar(x, [h for h, _ in bars], color=[colour[r.verdict] for r in rows],
+            hatch=["//" if label and label != "not measured" else None for _, label in bars])
+    boxed = dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.85)
+    for i, (h, label) in enumerate(bars):
+        if label == "not measured":
+            ax1.plot(x[i], 0.0, "x", color=colour[rows[i].verdict], ms=9, mew=2)
+            ax1.annotate(label, (x[i], 0.0), xytext=(0, -8), textcoords="offset points", rotation=90, ha="center",
+                         va="top", fontsize=8, bbox=boxed)
+        elif label:
+            up = h >= 0
+            ax1.plot(x[i], h, "^" if up else "v", color="k", ms=7)
+            ax1.annotate(label, (x[i], h), xytext=(0, 7 if up else -7), textcoords="offset points", ha="center",
+                         va="bottom" if up else "top", fontsize=8, fontweight="bold", bbox=boxed)
     ax1.step(np.r_[x - 0.5, x[-1] + 0.5], np.r_[band, band[-1]], where="post", color="k", ls="--", lw=1,
              label=f"allowed: {band_text(report)} + reference bound + float32 floor")
     ax1.step(np.r_[x - 0.5, x[-1] + 0.5], -np.r_[band, band[-1]], where="post", color="k", ls="--", lw=1)
+    lo, hi = ax1.get_ylim()         # room for the labels beyond the clipped bars
+    ax1.set_ylim(min(lo, -1.3 * 3 * N_SIGMA) if any(label and h < 0 for h, label in bars) else lo,
+                 max(hi, 1.3 * 3 * N_SIGMA) if any(label and h > 0 for h, label in bars) else hi)
     ax1.axhline(0, color="0.5", lw=0.8)
     ax1.set_ylabel(f"(k_{report['against']} - k_ref) / SE")
     from matplotlib.patches import Patch

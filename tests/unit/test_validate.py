@@ -116,6 +116,47 @@ def test_overall_verdict_and_exit_status():
     assert V.counts([a, i, d, a]) == {"agree": 2, "disagree": 1, "inconclusive": 1}
 
 
+def test_failed_line_says_a_cell_without_a_value_was_not_measured():
+    """(user audit) a NaN k_A (the Mitsuba backend's where float32 underflows) printed "SE 0" on the
+    FAILED line, as if the backend had measured it without noise; it says the cell was not measured.
+    A real SE 0 and a difference in SE are printed as before."""
+    q = ref_cell(0.5, 0.0)
+    nan = V.compare(q, mc_cell(math.nan, math.nan))
+    se0 = V.compare(q, mc_cell(0.5 + 1e-4, 0.0))
+    far = V.compare(q, mc_cell(0.6, 1e-3))
+    assert [r.verdict for r in (nan, se0, far)] == ["disagree"] * 3
+    assert V.failed_cell_text(nan) == "(4, 2) not measured (its k_A or SE is NaN)"
+    assert V.failed_cell_text(se0) == "(4, 2) diff +0.0001, SE 0"
+    assert V.failed_cell_text(far) == "(4, 2) +100.0 SE"
+    line = V.failed_line([nan, V.compare(q, mc_cell(0.5, 1e-3)), far])
+    assert line == "FAILED: (4, 2) not measured (its k_A or SE is NaN), (4, 2) +100.0 SE"
+
+
+def test_validate_plot_draws_infinite_and_unmeasured_cells_distinctly(tmp_path):
+    """(user audit) validate.png drew a cell of infinite z as a plain bar at the axis' end (-12), like
+    any large difference, and a NaN k_A not at all: z_bars, what the plot draws, clips an infinite z
+    at the axis labelled '-inf', a finite one beyond it labelled with its value, and a cell without a
+    value gets no bar and the label 'not measured'."""
+    from dataclasses import replace
+    limit = 3 * V.N_SIGMA
+    q = ref_cell(0.5, 0.0)
+    near = V.compare(q, mc_cell(0.502, 1e-3))
+    far = V.compare(q, mc_cell(0.45, 1e-3))
+    infinite = replace(far, z=-math.inf)
+    nan = V.compare(q, mc_cell(math.nan, math.nan))
+    se0_bad, se0_ok = V.compare(q, mc_cell(0.5 - 1e-4, 0.0)), V.compare(q, mc_cell(0.5, 0.0))
+    se0_ok = replace(se0_ok, z=math.nan)
+    bars = V.z_bars([near, far, infinite, nan, se0_bad, se0_ok], limit)
+    assert bars[0] == (near.z, "") and abs(near.z) < limit
+    assert bars[1] == (-limit, "-50") and far.z < -limit
+    assert bars[2] == (-limit, "-inf")
+    assert bars[3] == (0.0, "not measured")
+    assert bars[4] == (-limit, "SE 0") and bars[5] == (0.0, "SE 0")
+    V.plot({"rows": [near, far, infinite, nan, se0_bad], "n_sigma": V.N_SIGMA, "against": "mitsuba",
+            "reference": "quadrature", "verdict": "disagree",
+            "counts": V.counts([near, far, infinite, nan, se0_bad])}, tmp_path / "v.png")   # draws them
+
+
 def test_select_cells_is_the_one_parser():
     """engines.cells.select_cells: the named selections, a TAN:BETA list, pairs; an empty selection,
     a malformed item, a cell off the range, 'table' without a table and an off-grid cell where the
