@@ -146,6 +146,13 @@ def _json_doc(res, plots: bool) -> dict[str, Any]:
                 "before": "the measured table as reported, with the measurement's (and misalignment) uncertainty"}}
 
 
+def _k_text(v) -> str:
+    """A k_A in correct_cells.csv: the shortest text that reads back as the same float64 (``repr``). Its
+    SE (u_k_a_backend) goes down to 1e-7 and below (a converged quadrature, a zero aperture: 0), so any
+    fixed number of digits (%.6g rounds by up to 5e-6) could be coarser than the value's uncertainty."""
+    return repr(float(v))
+
+
 def cells_csv(res) -> str:
     m = res.measured.mask
     ii, jj = np.nonzero(m)
@@ -169,10 +176,10 @@ def cells_csv(res) -> str:
     buf.write(",".join(head) + "\n")
     for k, (i, j) in enumerate(zip(ii, jj)):
         row = [f"{res.measured.tan_eps[i]:g}", f"{res.measured.beta_deg[j]:g}", f"{res.measured.r[i, j] * 1e4:.6g}",
-               f"{res.u_measured[i, j] * 1e4:.4g}", f"{res.k_a[i, j]:.6g}", f"{res.k_se[i, j]:.3g}",
+               f"{res.u_measured[i, j] * 1e4:.4g}", _k_text(res.k_a[i, j]), f"{res.k_se[i, j]:.3g}",
                f"{res.corrected.r[i, j] * 1e4:.6g}", f"{res.u_corrected[i, j] * 1e4:.4g}", f"{u_tot[k]:.4g}"]
         row += [f"{u_comp[c][k]:.3g}" for c in comps]
-        row += [f"{a[i, j]:.6g}" for a in res.alternatives.values()]
+        row += [_k_text(a[i, j]) for a in res.alternatives.values()]
         row.append(f"{model_r[i, j] * 1e4:.6g}")
         if sim is not None:
             row.append(f"{sim[k] * 1e4:.6g}")
@@ -450,7 +457,7 @@ def joint_cells_csv(sc) -> str:
         if sc.model_weight is not None:
             row.append(f"{sc.model_weight[i, j]:.4g}")
         for p in sc.parts:
-            row += [f"{p.measured.r[i, j] * 1e4:.6g}", f"{p.k_a[i, j]:.6g}", f"{p.corrected.r[i, j] * 1e4:.6g}",
+            row += [f"{p.measured.r[i, j] * 1e4:.6g}", _k_text(p.k_a[i, j]), f"{p.corrected.r[i, j] * 1e4:.6g}",
                     f"{p.residual[i, j]:.3g}"]
             if p.unobserved_sensitivity is not None:
                 row.append(f"{p.unobserved_sensitivity[i, j]:.4g}")

@@ -77,6 +77,32 @@ def test_cells_csv_columns_in_closed_form(corrected):
         assert float(row["u_rel_total"]) == pytest.approx(u / rc, rel=DIGITS_4, abs=0.0)
 
 
+class Precise(Known):
+    """k_A known to 1e-9 with an SE of 2e-7 (a converged quadrature's size)."""
+    name = "precise"
+
+    def compute(self, cells, on_cell=None):
+        return [CellResult(t, b, k_of(t, b) + 1.234567891e-6 * (1 + t), PRECISE_SE, 1, 0.0) for t, b in cells]
+
+
+PRECISE_SE = 2e-7
+#: how much of its smallest uncertainty the rounding of a k_A written to correct_cells.csv may take
+ROUNDING_SHARE = 0.01
+
+
+def test_cells_csv_k_a_is_written_finer_than_its_uncertainty():
+    """(user audit) k_a was written with 6 significant digits (5 decimals, rounding up to 5e-6), coarser
+    than its own u_k_a_backend column (2e-7 here): the rounding stays far below the smallest u."""
+    res = correct_with_reference(load_table("R3"), load_instrument("portable"), RoadModel.lambert(),
+                                 u_measured="2%", factory=Precise, progress=False)
+    rows = list(csv.DictReader([ln for ln in cells_csv(res).splitlines() if not ln.startswith("#")]))
+    u_min = min(float(row["u_k_a_backend"]) for row in rows)
+    assert u_min == pytest.approx(PRECISE_SE, rel=DIGITS_3, abs=0.0)
+    worst = max(abs(float(row["k_a"]) - (k_of(float(row["tan_eps"]), float(row["beta_deg"]))
+                                         + 1.234567891e-6 * (1 + float(row["tan_eps"])))) for row in rows)
+    assert worst <= ROUNDING_SHARE * u_min, worst
+
+
 def test_corrected_u_csv_is_u_times_1e4_in_the_table_layout(corrected):
     table, res = corrected
     u = parse_csv(u_csv_text(res), path="corrected_u.csv", quantity="u")
