@@ -559,11 +559,13 @@ def ka_table(instrument, sample, *, backend: str = "mitsuba", accuracy: str | No
 def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "mitsuba",
             accuracy: str | None = None, seed: int | None = None, mitsuba_variant: str | None = None,
             rel_se: float | None = None, model_variant: str | None = None,
-            settings: Mapping[str, Any] | None = None, out=None, fresh: bool = False) -> "CellResult":
+            settings: Mapping[str, Any] | None = None, out=None, fresh: bool = False,
+            progress: bool = False) -> "CellResult":
     """k_A at one cell (tan eps, beta in degrees; any cell, not only the grid's) as a
     :class:`~roadgonio.engines.result.CellResult` (``k_a``, ``se``, ``error_bound``,
     ``confidence_bound``, ``converged``, ``samples``, ``seconds``). Arguments as for
-    :func:`ka_table`; with ``out`` the cell is journalled there (run again: read back)."""
+    :func:`ka_table`; with ``out`` the cell is journalled there (run again: read back).
+    ``progress``: a backend that works long on the cell shows its bar (on a terminal)."""
     from roadgonio.engines.cells import check_cell
     from roadgonio.engines.runner import run_cells
     t, bdeg = check_cell(tan_eps, beta, "tan_eps", "beta")
@@ -574,7 +576,7 @@ def ka_cell(instrument, sample, tan_eps: float, beta: float, *, backend: str = "
     _note_beyond_the_table(inst, smp, [(t, bdeg)])
     folder = _out(out, "ka", inst.name, smp.name)
     run = run_cells(b, [(t, bdeg)], instrument=inst, model=smp.model, out_dir=folder, fresh=fresh, progress=False,
-                    field="tan_eps/beta")
+                    field="tan_eps/beta", step_progress=_show(progress))
     cell = run.results[0]
     if run.resumed:
         object.__setattr__(cell, "extra", {**(cell.extra or {}), "resumed": True})

@@ -70,7 +70,8 @@ def run(args) -> int:
     if single:
         args.on_interrupt = ("interrupted: nothing was written (a single cell without --out does not resume)"
                              if not args.out else "interrupted: run the same command again to resume")
-        c = api.ka_cell(args.instrument, args.sample, args.tan_eps, args.beta, out=args.out, **common)
+        c = api.ka_cell(args.instrument, args.sample, args.tan_eps, args.beta, out=args.out,
+                        progress=show_progress(args), **common)
         if args.json:
             print_json({"k_a": c.k_a, "se": c.se, "se_dof": c.se_dof, "error_bound": c.error_bound,
                         "confidence_bound": c.confidence_bound,

@@ -138,13 +138,15 @@ def _write_journal(journal: Path, header: dict, cells: Sequence[CellResult]) -> 
 
 def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instrument: Instrument,
               model: RoadModel, out_dir: str | Path | None = None, fresh: bool = False,
-              progress: bool = True, field: str | None = None) -> KaRun:
+              progress: bool = True, field: str | None = None, step_progress: bool | None = None) -> KaRun:
     """Compute k_A at ``cells`` with ``backend``; with ``out_dir``, journal the cells (batched atomic
     rewrites, module docstring) and resume. Every OSError on the journal (its folder cannot be
     made, read-only or full disk, unreadable) is the one-line :class:`InputError` naming the file.
     ``field``: the argument that chose the cells; with it every cell still to compute is checked
     first (:func:`roadgonio.engines.cellcheck.check_requested`), so a cell the backend refuses is an
-    InputError naming it before anything is computed or journalled."""
+    InputError naming it before anything is computed or journalled. ``progress``: the table's bar of
+    cells; ``step_progress`` (default ``progress``): a backend's bar of one long cell
+    (:func:`roadgonio.progress.steps_shown`), both only on a terminal."""
     t0 = time.perf_counter()
     journal = None
     done: dict[tuple[float, float], CellResult] = {}
@@ -213,10 +215,12 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
         # the journal is written with every pass's state (the finished cells, then the others'
         # state): a run stopped at once between two passes resumes from both
         passes = PassCheckpoint(out_dir / PASSES, fp, flush=flush)
+    from roadgonio.progress import steps_shown
     try:
         if todo:
-            returned = (backend.compute(todo, on_cell=on_cell) if passes is None
-                        else backend.compute(todo, on_cell=on_cell, checkpoint=passes))
+            with steps_shown(progress if step_progress is None else step_progress):
+                returned = (backend.compute(todo, on_cell=on_cell) if passes is None
+                            else backend.compute(todo, on_cell=on_cell, checkpoint=passes))
             for c in returned:   # backends that do not call on_cell
                 if _cell_key(c.tan_eps, c.beta_deg) not in done:
                     on_cell(c)

@@ -166,3 +166,50 @@ def test_k_a_and_its_se_do_not_depend_on_the_scale_of_the_brdf(r3like):
         assert a.samples == b.samples
         assert b.k_a == pytest.approx(a.k_a, rel=1e-12)
         assert b.se == pytest.approx(a.se, rel=1e-9, abs=0.0)
+
+
+# -- a long cell: its note at the cap, its progress (user audit, session 24: a narrow lobe ran one fast
+# cell 45 minutes to the 2e8-sample cap without a word) ---------------------------------------------
+
+def test_a_cell_stopped_at_its_cap_says_so_in_its_note(r3like):
+    b = make_backend("numpy-mc", load_instrument("portable"), r3like, rel_se=1e-7, seed=0, batch=256,
+                     min_batches=4, max_samples=8 * 256)
+    r = b.compute_cell(12.0, 0.0)
+    assert not r.converged and r.samples == 8 * 256
+    note = r.extra["note"]
+    assert note.startswith("stopped at its cap (max_samples = 2048: 2048 samples in 8 batches)"), note
+    assert f"relative standard error {r.se / r.k_a:.2e} exceeds rel_se = 1e-07" in note, note
+    done = make_backend("numpy-mc", load_instrument("portable"), r3like, rel_se=1e-1, seed=0, batch=256,
+                        min_batches=4).compute_cell(12.0, 0.0)
+    assert done.converged and "note" not in done.extra
+
+
+def test_progress_within_a_cell_is_reported_without_changing_it(r3like):
+    """on_progress(samples, rel_se) after every batch: the samples grow by a batch each call up to the
+    cell's count, the rel. SE is NaN before min_batches; the numbers are those of the cell without it."""
+    b = make_backend("numpy-mc", load_instrument("portable"), r3like, rel_se=3e-4, seed=3, batch=144, min_batches=8)
+    calls = []
+    r = b.compute_cell(10.0, 2.0, on_progress=lambda n, rel: calls.append((n, rel)))
+    assert [n for n, _ in calls] == [144 * (i + 1) for i in range(len(calls))] and calls[-1][0] == r.samples
+    assert all(math.isnan(rel) for _, rel in calls[:7]) and all(math.isfinite(rel) for _, rel in calls[7:])
+    assert calls[-1][1] == pytest.approx(r.se / r.k_a) and len(calls) > 8
+    plain = make_backend("numpy-mc", load_instrument("portable"), r3like, rel_se=3e-4, seed=3, batch=144,
+                         min_batches=8).compute_cell(10.0, 2.0)
+    assert (plain.k_a, plain.se, plain.samples) == (r.k_a, r.se, r.samples)
+
+
+def test_a_long_cell_draws_its_bar_on_a_terminal_only_when_asked(monkeypatch, r3like):
+    """Inside steps_shown (the ka command on a terminal), a cell that runs past the delay draws a bar
+    of its samples against the cap with its rel. SE; outside it, nothing."""
+    from helpers import on_a_zero_size_terminal
+    import roadgonio.progress as P
+    monkeypatch.setattr(P, "STEP_BAR_DELAY", 0.0)
+    b = make_backend("numpy-mc", load_instrument("portable"), r3like, rel_se=1e-7, seed=0, batch=256,
+                     min_batches=4, max_samples=64 * 256)
+
+    def shown():
+        with P.steps_shown():
+            b.compute_cell(12.0, 0.0)
+    text = on_a_zero_size_terminal(monkeypatch, shown)
+    assert "numpy-mc 12:0" in text and "/16.4k" in text and "sample/s" in text, text
+    assert on_a_zero_size_terminal(monkeypatch, lambda: b.compute_cell(12.0, 0.0)) == ""
