@@ -98,7 +98,7 @@ def run(args) -> int:
                          correlation=args.correlation, out=out_arg(args), plots=not args.no_plots)
     if args.json:
         keep = ("table", "L_av", "U_o", "U_l", "TI", "R_EI", "class", "U_l_per_lane", "uncertainty",
-                "neglected_contributions", "TI_note", "missing")
+                "neglected_contributions", "TI_note", "missing", "notes")
         rows = [{k: s[k] for k in keep if k in s} for s in summaries]
         print_json(rows[0] if len(rows) == 1 else rows)
     elif not args.quiet:
@@ -132,6 +132,8 @@ def _print(summaries) -> None:
                 parts.append(f"{k} {s[k] - base[k]:+.3f}")
         if parts:
             w(f"  {s['table']} vs {base['table']}: {', '.join(parts)}\n")
+    for note in base.get("notes") or ():        # the layout's, the same for every table
+        w(f"note: {note}\n")
     for s in summaries:
         if s.get("missing"):
             w(f"{s['table']}: missing {', '.join(s['missing']['metrics'])}: {s['missing']['reason']}\n")

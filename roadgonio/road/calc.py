@@ -168,6 +168,29 @@ def _counted(layout: Layout, x_point: float, x_lums: np.ndarray) -> np.ndarray:
     return (x_lums >= x_point - layout.before_h * h - 1e-9) & (x_lums <= x_point + layout.after_h * h + 1e-9)
 
 
+def uncounted_points(layout: Layout, fld: Field) -> np.ndarray:
+    """(n_p,) True where a grid point has no luminaire of any row within the counted range
+    (``luminaires_before_h`` H before it, ``luminaires_after_h`` H beyond: the rule above). Such a
+    point's luminance is 0 by the rule, not by the lighting: a spacing longer than the counted range
+    (S > (5 + 12) H for one row) leaves points unlit and U_o = 0."""
+    return np.array([not np.any(_counted(layout, x, fld.luminaires[:, 0])) for x in fld.x], dtype=bool)
+
+
+def uncounted_note(layout: Layout, fld: Field) -> str | None:
+    """One line saying that the layout leaves grid points without a counted luminaire (None: it
+    leaves none)."""
+    bare = uncounted_points(layout, fld)
+    if not bare.any():
+        return None
+    h = layout.mounting_height_m
+    reach = (layout.before_h + layout.after_h) * h
+    return (f"{int(bare.sum())} of {bare.size} grid points have no luminaire in the counted range "
+            f"(luminaires_before_h {layout.before_h:g} H = {layout.before_h * h:g} m before the point, "
+            f"luminaires_after_h {layout.after_h:g} H = {layout.after_h * h:g} m beyond it; CIE 140's rule as "
+            f"roadgonio reads it): the spacing S = {layout.spacing_m:g} m leaves gaps longer than those "
+            f"{reach:g} m, so their luminance is 0 by the rule and U_o is 0")
+
+
 def contribution(luminaire: Luminaire, lum: np.ndarray, rotation_deg: float, tilt_deg: float, point: np.ndarray,
                  observer: np.ndarray, table: RTable, order: str = "quadratic"):
     """One luminaire's luminance at a road point for an observer (EN 13201-3 7.1.1), without the

@@ -30,6 +30,8 @@ class Installation:
         self.fld = calc.build_field(self.layout)
         self.veiling = calc.veiling_luminance(self.layout, self.luminaire, self.fld)
         self.edge = calc.edge_illuminance_ratio(self.layout, self.luminaire, self.fld)
+        #: what a reader of the metrics must know about the layout (summary()["notes"])
+        self.notes = [n for n in (calc.uncounted_note(self.layout, self.fld),) if n]
 
     def operator(self, table: RTable) -> calc.LuminanceOperator:
         key = (table.r.shape, table.mask.tobytes(), table.tan_eps.tobytes(), table.beta_deg.tobytes())
@@ -127,6 +129,7 @@ class RoadResult:
                "L_min": None if self.missing and self.missing.get("points_unknown") else float(np.nanmin(self.L)),
                "L_max": None if self.missing and self.missing.get("points_unknown") else float(np.nanmax(self.L)),
                "missing": self.missing,
+               "notes": list(inst.notes),
                "TI_note": ti_note,
                "L_v_max": inst.l_v_max, "R_EI_per_edge": inst.edge["per_edge"],
                "failed_criteria_of_next_class": None,

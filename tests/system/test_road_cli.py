@@ -35,6 +35,21 @@ def test_road_out_of_the_box_json(tmp_path, capsys):
     assert len(rows) == 2 * 60 and float(rows[0]["L_cd_m2"]) > 0
 
 
+def test_road_says_when_the_spacing_leaves_points_without_a_counted_luminaire(tmp_path, capsys):
+    """(user audit) S = 300 m printed U_o 0.000 without a word: one note line in the text, and in --json."""
+    lay = tmp_path / "wide.toml"
+    lay.write_text("[installation]\nspacing_m = 300.0\n")
+    assert main(["road", "--table", "R3", "--layout", str(lay), "--no-plots", "--out", str(tmp_path / "o")]) == 0
+    notes = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("note:")]
+    assert len(notes) == 1 and "258 of 600 grid points have no luminaire" in notes[0], notes
+    assert main(["road", "--table", "R3", "--layout", str(lay), "--no-plots", "--out", str(tmp_path / "o"),
+                 "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["U_o"] == 0.0 and len(d["notes"]) == 1 and "258 of 600" in d["notes"][0]
+    assert main(["road", "--table", "R3", "--no-plots", "--out", str(tmp_path / "d"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["notes"] == []
+
+
 def test_road_several_tables_and_uncertainty(tmp_path, capsys):
     t = bundled_table("R3")
     measured = t.with_values(t.r * 1.2, name="R3_measured")

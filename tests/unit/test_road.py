@@ -215,6 +215,24 @@ def test_constant_r_isotropic_luminaire_analytic_metrics():
     np.testing.assert_allclose(res.L, np.broadcast_to(k * np.tile(n, 6), res.L.shape), rtol=REL)
 
 
+def test_a_spacing_beyond_the_counted_range_is_said_not_silent():
+    """(user audit) S = 300 m with H = 10 m gave U_o = 0 without a word: the counting rule (5 H before,
+    12 H beyond) leaves points x in (50, 180) m without a luminaire. The summary (road.json, --json and
+    the text) says how many points and why; a layout whose every point counts a luminaire says nothing."""
+    r0 = 0.05
+    t = bundled_table("R3")
+    const = t.with_values(np.where(t.mask, r0, np.nan))
+    res = Installation(Layout(spacing_m=300.0, mounting_height_m=10.0), _isotropic(800.0)).evaluate(const)
+    xs = (np.arange(100) + 0.5) * 3.0
+    bare = int(np.sum((xs > 50.0) & (xs < 180.0))) * 6                 # 2 lanes x 3 points across
+    assert bare == 258 and res.values["U_o"] == 0.0
+    notes = res.summary()["notes"]
+    assert len(notes) == 1 and f"{bare} of 600 grid points have no luminaire" in notes[0], notes
+    assert "S = 300 m" in notes[0] and "U_o is 0" in notes[0] and "\n" not in notes[0]
+    assert Installation(Layout(spacing_m=170.0, mounting_height_m=10.0), _isotropic(800.0)).notes == []
+    assert Installation(Layout(spacing_m=180.0, mounting_height_m=10.0), _isotropic(800.0)).notes != []
+
+
 def test_l_av_scales_with_the_table_uniformities_do_not():
     inst = Installation(load_layout(), load_luminaire())
     t = bundled_table("R3")
