@@ -17,7 +17,7 @@ from roadgonio.errors import InputError
 from roadgonio.fileio import to_json
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID
 from roadgonio.instrument.config import MAX_LENGTH_M, MIN_APERTURE_M, Detector, Instrument, Observation, SampleGeometry, Source
-from roadgonio.surface.model import PARAM_BOUNDS, PARAM_NAMES, VARIANTS, RoadModel, RoadParams
+from roadgonio.surface.model import PARAM_BOUNDS, PARAM_NAMES, VARIANTS, RoadModel, RoadParams, _near_key
 from roadgonio.surface.rtable import (R_MAX_PLAUSIBLE, R_SCALE, R_X1E4_LARGEST_MIN, RTable, check_csv_table, parse_csv,
                                       parse_rtb)
 
@@ -142,7 +142,10 @@ meta_value = st.recursive(st.one_of(st.none(), st.booleans(), st.integers(-10 **
 
 @settings(max_examples=200, deadline=None)
 @given(p=params(), variant=st.sampled_from(VARIANTS), name=text,
-       meta=st.dictionaries(text.filter(lambda k: k not in ("variant", "params", "name")), meta_value, max_size=3))
+       # metadata keys, not the file's own keys nor near misses of them ("PAAS", "Variants"), which the
+       # reader refuses as misspellings (fa4d8c5; hypothesis found "PAAS" in session 25)
+       meta=st.dictionaries(text.filter(lambda k: _near_key(k, ("variant", "params", "name")) is None),
+                            meta_value, max_size=3))
 def test_a_model_file_reads_back_as_the_model(p, variant, name, meta):
     m = RoadModel(RoadParams(**p), variant, name=name, meta=meta or None)
     doc = to_json(m.to_json_dict())                  # the one JSON writer (NaN and infinity as null)
