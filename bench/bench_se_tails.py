@@ -8,7 +8,11 @@ Over many seeds x the 580 cells of the CIE grid, z = (k_A - k_A,ref) / SE for
   beta 0 cell came out 4.3 SE off), k_a_direct (the direct light, whose float64 value is the bare
   instrument's k_A),
 
-both for the fitted CIE R3 at ``--accuracy fast`` and ``default``. The reference is the float64
+* ``wide``: the wide preset (scenes/wide.toml), k_a, whose beta 180 cells have skewed replicate
+  sums on small lattices (session 25: ``--first-pass`` to compare first passes; the reference is
+  the quadrature at rtol 1e-5, ``se_tails_reference_wide.csv``),
+
+all for the fitted CIE R3 at ``--accuracy fast`` and ``default``. The reference is the float64
 quadrature at rtol 1e-6 (``se_tails_reference.csv``, computed once; its 23 unconverged beta 0 cells
 checked against the RQMC reference at rtol 1e-5: within 5e-6 relative, against relative SEs of
 3e-4 and more).
@@ -19,11 +23,15 @@ formula below) and the cell's passes, so the z distribution is compared with N(0
 Student's t of that many degrees of freedom.
 
     python bench/bench_se_tails.py run --instrument portable --accuracy fast --seeds 0:400
-    python bench/bench_se_tails.py analyse            # every se_tails_*.csv in bench/results
+    python bench/bench_se_tails.py analyse            # every se_tails_*.csv in out/se_tails
+    python bench/bench_se_tails.py analyse --instrument wide     # -> bench/results/se_tails_wide.txt
 
-Writes out/se_tails/se_tails_<instrument>_<accuracy>[_r<min replicates>].csv (one row per cell and
-seed, appending seeds not yet in it; out/ is not kept in git) and, with ``analyse``,
-bench/results/se_tails.txt.
+Writes out/se_tails/se_tails_<instrument>_<accuracy>[_r<min replicates>][_f<first pass>].csv (one
+row per cell and seed, appending seeds not yet in it; out/ is not kept in git; runs with the presets
+before session 25 are to be named with the first pass they had, _f256 at fast and _f1024 at default)
+and, with ``analyse``, bench/results/se_tails.txt (or se_tails_<instrument>.txt): the tails over all
+cells, by passes, the stopping rule's selection, and per cell (the cells whose own mean z^2 over the
+seeds is outside its chi-square band, and their bias in SEMs: what a user of one cell sees).
 """
 from __future__ import annotations
 
@@ -40,6 +48,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
 REFERENCE = RESULTS / "se_tails_reference.csv"
+#: The wide preset's reference (its own geometry; the housed instrument's direct light is the bare
+#: portable one's, so those two share REFERENCE).
+REFERENCES = {"portable": REFERENCE, "housed": REFERENCE, "wide": RESULTS / "se_tails_reference_wide.csv"}
+#: Tolerance of each reference: the wide preset's specular cells reach the quadrature's cap at 1e-6
+#: (more than 20 min for the table); 1e-5 is 20 x below the SE at default's rel SE 1e-3 already.
+REFERENCE_RTOL = {"portable": 1e-6, "housed": 1e-6, "wide": 1e-5}
 #: The per-run rows (~20 MB per 400 tables): out/ is not kept in git; the seeds make them again.
 RAW = ROOT / "out" / "se_tails"
 FIELDS = ("seed", "tan_eps", "beta", "k", "se", "dof", "passes", "replicates", "ref")
@@ -51,8 +65,8 @@ def load() -> str:
 
 def instrument(name: str):
     from roadgonio.api import _instrument
-    if name == "portable":
-        return _instrument("portable")
+    if name in ("portable", "wide"):
+        return _instrument(name)
     base = _instrument("portable_housed_baffle")
     return base.with_changes(housing={"wall_reflectance": 0.02, "baffles": [{"x_m": -0.5, "height_m": 0.01}]})
 
@@ -62,19 +76,21 @@ def grid_cells() -> list[tuple[float, float]]:
     return [(float(t), float(b)) for t in TAN_EPS_GRID for b in BETA_GRID_DEG]
 
 
-def reference(model) -> dict[tuple[float, float], tuple[float, float]]:
-    """(k_A, error bound) of every cell from the float64 quadrature at rtol 1e-6 (cached)."""
-    if not REFERENCE.exists():
+def reference(model, name: str = "portable") -> dict[tuple[float, float], tuple[float, float]]:
+    """(k_A, error bound) of every cell from the float64 quadrature at :data:`REFERENCE_RTOL` (cached)."""
+    path = REFERENCES[name]
+    if not path.exists():
         from roadgonio.engines.registry import make_backend
         t0 = time.perf_counter()
-        res = make_backend("quadrature", instrument("portable"), model, rtol=1e-6).compute(grid_cells())
-        with open(REFERENCE, "w", newline="") as fh:
+        res = make_backend("quadrature", instrument("portable" if name == "housed" else name), model,
+                           rtol=REFERENCE_RTOL[name]).compute(grid_cells())
+        with open(path, "w", newline="") as fh:
             w = csv.writer(fh)
             w.writerow(["tan_eps", "beta", "k_a", "error_bound", "converged"])
             for r in res:
                 w.writerow([r.tan_eps, r.beta_deg, repr(r.k_a), repr(r.error_bound), int(r.converged)])
         print(f"reference: {time.perf_counter() - t0:.0f} s", flush=True)
-    with open(REFERENCE) as fh:
+    with open(path) as fh:
         return {(float(r["tan_eps"]), float(r["beta"])): (float(r["k_a"]), float(r["error_bound"]))
                 for r in csv.DictReader(fh)}
 
@@ -97,10 +113,11 @@ def run(args) -> None:
     from roadgonio.engines.registry import make_backend, prepare_entry_point
     prepare_entry_point("mitsuba")
     model = _sample("R3").model
-    ref = reference(model)
+    ref = reference(model, args.instrument)
     inst = instrument(args.instrument)
     cells = grid_cells()
-    tag = "" if args.min_replicates is None else f"_r{args.min_replicates}"
+    tag = ("" if args.min_replicates is None else f"_r{args.min_replicates}") + \
+          ("" if args.first_pass is None else f"_f{args.first_pass}")
     RAW.mkdir(parents=True, exist_ok=True)
     out = RAW / f"se_tails_{args.instrument}_{args.accuracy}{tag}.csv"
     have = set()
@@ -110,6 +127,8 @@ def run(args) -> None:
     lo, hi = (int(x) for x in args.seeds.split(":"))
     seeds = [s for s in range(lo, hi) if s not in have]
     extra = {} if args.min_replicates is None else {"min_replicates": args.min_replicates}
+    if args.first_pass is not None:
+        extra["first_pass"] = args.first_pass
     b = make_backend("mitsuba", inst, model, accuracy=args.accuracy, seed=0, **extra)
     new = not out.exists()
     t0 = time.perf_counter()
@@ -175,17 +194,22 @@ def kept(a: dict, bound: dict) -> np.ndarray:
 
 
 def analyse(args) -> None:
-    with open(REFERENCE) as fh:
-        bound = {(float(r["tan_eps"]), float(r["beta"])): float(r["error_bound"]) for r in csv.DictReader(fh)}
+    bounds = {}
+    for name, path in REFERENCES.items():
+        if path.exists():
+            with open(path) as fh:
+                bounds[name] = {(float(r["tan_eps"]), float(r["beta"])): float(r["error_bound"])
+                                for r in csv.DictReader(fh)}
     lines = [f"bench/bench_se_tails.py analyse (machine: {os.cpu_count()} cores, load {load()})",
              "group                                    cells  mean z^2 (t expectation)  fractions beyond 2, 3, 4"]
-    for path in sorted(RAW.glob("se_tails_*_*.csv")):
+    for path in sorted(RAW.glob(f"se_tails_{args.instrument}_*.csv")):
         with open(path) as fh:
             rows = list(csv.DictReader(fh))
         if not rows:
             continue
         a = {f: np.array([float(r[f]) for r in rows]) for f in FIELDS}
         m_all = a["k"].size
+        bound = bounds[path.stem.removeprefix("se_tails_").split("_")[0]]
         a = {f: v[kept(a, bound)] for f, v in a.items()}
         z = (a["k"] - a["ref"]) / a["se"]
         name = path.stem.removeprefix("se_tails_")
@@ -203,10 +227,11 @@ def analyse(args) -> None:
         u = norm.isf(student.sf(z, a["dof"]))          # N(0, 1) if z is t_dof
         lines.append(tail_line("  z mapped through its t_dof", u, np.full(z.size, 1e9), a["seed"]))
         lines.extend(selection(z, u, a))
+        lines.extend(per_cell(u, a))
         lines.extend(clumping(z, a))
     text = "\n".join(lines)
     print(text)
-    (RESULTS / "se_tails.txt").write_text(text + "\n")
+    (RESULTS / ("se_tails.txt" if args.instrument == "*" else f"se_tails_{args.instrument}.txt")).write_text(text + "\n")
 
 
 def selection(z: np.ndarray, u: np.ndarray, a: dict) -> list[str]:
@@ -232,6 +257,34 @@ def selection(z: np.ndarray, u: np.ndarray, a: dict) -> list[str]:
         ncell = sum(lo <= v < hi for v in p1.values())
         out.append(f"    share in [{lo:.2f}, {min(hi, 1.0):.2f}) ({ncell:3d} cells): " + "; ".join(parts))
     return out
+
+
+def per_cell(u: np.ndarray, a: dict, worst: int = 6) -> list[str]:
+    """What a user of one cell sees: per cell (at least 50 seeds), the mean square of z mapped
+    through its t_dof (u) over the seeds against the chi-square band of 0.1 % either side, and the
+    mean error in standard errors of the mean (the scatter over the seeds)."""
+    from scipy.stats import chi2
+    cells: dict = {}
+    for i, key in enumerate(zip(a["tan_eps"], a["beta"])):
+        cells.setdefault(key, []).append(i)
+    rows = []
+    for key, idx in cells.items():
+        if len(idx) < 50:
+            continue
+        d = a["k"][idx] - a["ref"][idx]
+        rows.append((float(np.mean(u[idx] ** 2)), key, len(idx),
+                     float(d.mean() / (a["k"][idx].std(ddof=1) / math.sqrt(len(idx)))), float(np.mean(a["passes"][idx] == 1))))
+    if not rows:
+        return ["  per cell: no cell with 50 seeds"]
+    rows.sort(reverse=True)
+    m = int(np.median([r[2] for r in rows]))
+    lo, hi = chi2.ppf(0.001, m) / m, chi2.isf(0.001, m) / m
+    out_hi = sum(r[0] > hi for r in rows)
+    out_lo = sum(r[0] < lo for r in rows)
+    return [f"  per cell ({len(rows)} cells, ~{m} seeds each): mean u^2 above its 0.1 % band ({hi:.2f}) in {out_hi}, "
+            f"below ({lo:.2f}) in {out_lo}; the worst: " + "; ".join(
+                f"{k[0]:g}:{k[1]:g} u2 {v:.2f}, mean error {b:+.1f} SEM, done in pass 1 in {100 * p1:.0f} %"
+                for v, k, _, b, p1 in rows[:worst])]
 
 
 def clumping(z: np.ndarray, a: dict) -> list[str]:
@@ -271,11 +324,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
     r = sub.add_parser("run")
-    r.add_argument("--instrument", choices=("portable", "housed"), required=True)
+    r.add_argument("--instrument", choices=("portable", "housed", "wide"), required=True)
     r.add_argument("--accuracy", choices=("fast", "default"), required=True)
     r.add_argument("--seeds", default="0:100", help="LO:HI")
     r.add_argument("--min-replicates", type=int, default=None, help="the Mitsuba backend's (default: its own, 16)")
-    sub.add_parser("analyse")
+    r.add_argument("--first-pass", type=int, default=None, help="the Mitsuba backend's (default: the preset's)")
+    a = sub.add_parser("analyse")
+    a.add_argument("--instrument", default="*", help="only this instrument's runs, written to se_tails_INSTRUMENT.txt "
+                   "(default: every run, se_tails.txt)")
     args = ap.parse_args()
     (run if args.cmd == "run" else analyse)(args)
 
