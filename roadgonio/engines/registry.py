@@ -19,15 +19,19 @@ specular peak tan 12 / beta 0 and 2, max relative error against quadrature at rt
 ========  ==============================  ==============================  ==============================
 preset    quadrature                      mitsuba (float32, batched)      numpy-mc (float64 oracle)
 ========  ==============================  ==============================  ==============================
-fast      rtol 1e-3: err 6.0e-5           rel_se 3e-3, first pass 256:    rel_se 3e-3, batch 12^2:
+fast      rtol 1e-3: err 6.0e-5           rel_se 3e-3, first pass 256 +:  rel_se 3e-3, batch 12^2:
                                           err 1.3e-3                      err 4.8e-4 *
-default   rtol 1e-4: err 2.3e-5           rel_se 1e-3, first pass 1024:   rel_se 1e-3, batch 45^2:
+default   rtol 1e-4: err 2.3e-5           rel_se 1e-3, first pass 1024 +: rel_se 1e-3, batch 45^2:
                                           err 1.6e-3 (SE 9.3e-4)          err 1.1e-4 *
 precise   rtol 1e-6: err 2.9e-7           rel_se 1e-4, first pass 4096:   rel_se 1e-4, batch 64^2:
                                           err 1.1e-4                      err 1.1e-4 *
 ========  ==============================  ==============================  ==============================
 
-(*) numpy-mc's errors were measured with 8 batches of 32^2, 128^2, 128^2; it now takes at least 64
+(+) Mitsuba's errors were measured with these first passes; every preset now starts with 4096
+samples per cell (16 lattices of 256 points): on the wide preset the smaller lattices gave skewed
+replicate sums and, at the beta 180 cells, SEs 1.4-1.5 times too small with a bias of 6 SEMs
+(docs/validation.md, "Small lattices on the wide preset"); bare tables take the same time.
+numpy-mc's errors were measured with 8 batches of 32^2, 128^2, 128^2; it now takes at least 64
 batches (the SE's degrees of freedom, :data:`roadgonio.engines.montecarlo.DEFAULT_MIN_BATCHES`)
 of about as many samples in all (fast 9216, default 129600, precise >= 262144).
 
@@ -106,7 +110,10 @@ BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
     BackendInfo("mitsuba", "roadgonio.engines.mitsuba.backend:make_backend",
                 "float32 ray tracing with Mitsuba 3 (the default; batched, many cells per launch)",
                 precision="se", seeded=True, tolerance="rel_se",
-                presets={"fast": {"rel_se": 3e-3, "first_pass": 256}, "default": {"rel_se": 1e-3, "first_pass": 1024},
+                # first pass 16 lattices of 256 points at every preset: smaller lattices left the
+                # wide preset's beta 180 cells with skewed replicate sums whose SE, selected by
+                # the stopping rule, was too small (docs/validation.md, session 25)
+                presets={"fast": {"rel_se": 3e-3, "first_pass": 4096}, "default": {"rel_se": 1e-3, "first_pass": 4096},
                          "precise": {"rel_se": 1e-4, "first_pass": 4096}},
                 # beam_clipping: the kabatch integrator applies the hard cone to every source sample
                 # and light path (session 22; agrees with the quadrature where it clips the footprint)

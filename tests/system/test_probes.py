@@ -922,9 +922,13 @@ def _mesh_vs_flat(backend: str, xs, ys, text: str = PINHOLE):
         return api(lambda: rg.ka_cell(str(inst), str(model_file(t)), 1, 0, backend=backend, seed=3, rel_se=3e-3))
 
     def check(r, t):
+        from roadgonio.engines.validate import FLOAT32_FLOOR
         k_ref, bound = quadrature_ka(text, t)
         c = r.value
-        assert abs(c.k_a - k_ref) <= 5 * c.se + bound, f"mesh {c.k_a} +- {c.se} vs flat {k_ref}"
+        # plus the renderer's float32 floor: since the first pass of 4096 samples the SE of this
+        # cell is 1.5e-6, below the float32 differences of a mesh and a flat plane (8e-6)
+        floor = FLOAT32_FLOOR.get(backend, 0.0) * abs(k_ref)
+        assert abs(c.k_a - k_ref) <= 5 * c.se + bound + floor, f"mesh {c.k_a} +- {c.se} vs flat {k_ref}"
     return action, check
 
 
