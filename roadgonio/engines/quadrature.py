@@ -37,8 +37,10 @@ refinement on from there. The reported value is the finest estimate and
 conservative for spectrally converging integrands (bench: true errors 2-10x below it). A cell whose
 integrand has a kink or a jump (the footprint crossing the plane of the source disc, a source beam
 edge, g's kink at theta_l) converges only algebraically; refinement stops at ``max_evals``
-integrand evaluations per estimate and the cell reports the error it achieved with
-``extra["converged"] = False``.
+integrand evaluations per estimate and the cell reports ``extra["converged"] = False`` with the sum
+of the shares at its last levels in ``error_bound``: an estimate, **not a bound** (the rules had not
+settled; on the wide preset at tan eps 6, beta 0, rtol 1e-6 it said 0.0100 where the error was 0.0177,
+user audit of session 24). The note says so; ``validate`` takes such a reference as inconclusive.
 
 Only flat rectangular samples: the footprint check (:func:`roadgonio.instrument.optics.check_detector`) proves
 that every detected ray hits the sample, so the integral runs over the plane z = 0. A mesh sample
@@ -349,7 +351,8 @@ class QuadratureBackend(CellByCellBackend):
                  "focus": {DISCS[k]: [focus[k].real, focus[k].imag] for k in range(3) if self.active[k]}}
         if not converged:
             extra["note"] = (f"stopped at max_evals = {self.max_evals}: the estimated relative error "
-                             f"{err / abs(base):.2e} exceeds rtol = {self.rtol:g}")
+                             f"{err / abs(base):.2e} exceeds rtol = {self.rtol:g}; not converged, so this "
+                             f"estimate is not a bound (the error can be larger)")
         return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(base), se=math.nan,
                           error_bound=float(err), converged=bool(converged),
                           samples=int(evals), seconds=time.perf_counter() - t0, extra=extra)

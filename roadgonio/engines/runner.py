@@ -320,7 +320,8 @@ FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
             "r_true = r_measured / k_A"),
     "se": ("standard error of k_A", "1", "a standard error (Monte Carlo, randomised QMC); NaN where the backend gives none"),
     "error_bound": ("deterministic error bound of k_A", "1",
-                    "a deterministic bound on |k_A - true k_A| (quadrature); NaN otherwise"),
+                    "a deterministic bound on |k_A - true k_A| (quadrature) where converged is true; where it is "
+                    "false (stopped at the evaluation cap) an estimate that can understate the error; NaN otherwise"),
     "confidence_bound": ("confidence bound of k_A", "1",
                          "a statistical bound on |k_A - true k_A| holding with probability confidence_level (RQMC "
                          "reference); NaN otherwise"),
