@@ -76,7 +76,11 @@ def main(argv=None) -> int:
     ref_err = max(precision(r) for r in ref.values())
     print(f"  {time.perf_counter() - t0:.1f} s, reference error <= {ref_err:.1e}", file=sys.stderr)
 
-    from roadgonio.engines.accuracy import ACCURACY
+    # the presets of the backends compared, as the registry holds them (roadgonio.engines.accuracy,
+    # which this script read, became the registry's BackendInfo.presets)
+    from roadgonio.engines.registry import BACKENDS, PRESETS
+    ACCURACY = {p: {name: dict(BACKENDS[name].presets[p]) for name in ("quadrature", "mitsuba", "numpy-mc")}
+                for p in PRESETS}
     # (backend, setting name, value, backend settings); "preset" rows are the accuracy presets
     ladder = [("quadrature", "rtol", v, {"rtol": v})
               for v in ([1e-2, 1e-3, 1e-4, 1e-5] if args.quick else [1e-2, 1e-3, 3e-4, 1e-4, 1e-5, 1e-6])]

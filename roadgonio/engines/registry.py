@@ -14,33 +14,34 @@ the instrument's calibration (:mod:`roadgonio.engines.calibration`).
 
 Accuracy presets, placed on the measured speed-accuracy frontier (bench/bench_accuracy.py,
 bench/results/accuracy.csv and pareto.png; portable preset, R3-like model, 7 cells including the
-specular peak tan 12 / beta 0 and 2, max relative error against quadrature at rtol 1e-7):
+specular peak tan 12 / beta 0 and 2, max relative error against quadrature at rtol 1e-7; session 25):
 
 ========  ==============================  ==============================  ==============================
 preset    quadrature                      mitsuba (float32, batched)      numpy-mc (float64 oracle)
 ========  ==============================  ==============================  ==============================
-fast      rtol 1e-3: err 6.0e-5           rel_se 3e-3, first pass 256 +:  rel_se 3e-3, batch 12^2:
-                                          err 1.3e-3                      err 4.8e-4 *
-default   rtol 1e-4: err 2.3e-5           rel_se 1e-3, first pass 1024 +: rel_se 1e-3, batch 45^2:
-                                          err 1.6e-3 (SE 9.3e-4)          err 1.1e-4 *
+fast      rtol 1e-3: err 5.9e-5           rel_se 3e-3, first pass 4096:   rel_se 3e-3, batch 12^2:
+                                          err 2.0e-4 (SE 3.2e-4)          err 2.6e-4
+default   rtol 1e-4: err 1.8e-5           rel_se 1e-3, first pass 4096:   rel_se 1e-3, batch 45^2:
+                                          err 2.0e-4 (SE 3.2e-4)          err 1.4e-4
 precise   rtol 1e-6: err 2.9e-7           rel_se 1e-4, first pass 4096:   rel_se 1e-4, batch 64^2:
-                                          err 1.1e-4                      err 1.1e-4 *
+                                          err 1.1e-4                      err 9.7e-5
 ========  ==============================  ==============================  ==============================
 
-(+) Mitsuba's errors were measured with these first passes; every preset now starts with 4096
-samples per cell (16 lattices of 256 points): on the wide preset the smaller lattices gave skewed
-replicate sums and, at the beta 180 cells, SEs 1.4-1.5 times too small with a bias of 6 SEMs
-(docs/validation.md, "Small lattices on the wide preset"); bare tables take the same time.
-numpy-mc's errors were measured with 8 batches of 32^2, 128^2, 128^2; it now takes at least 64
-batches (the SE's degrees of freedom, :data:`roadgonio.engines.montecarlo.DEFAULT_MIN_BATCHES`)
-of about as many samples in all (fast 9216, default 129600, precise >= 262144).
+Every Mitsuba preset starts with 16 lattices of 256 points (fast had 256 samples, default 1024 until
+session 25: on the wide preset the smaller lattices gave skewed replicate sums and, at the beta 180
+cells, SEs 1.4-1.5 times too small with a bias of 6 SEMs; docs/validation.md, "Small lattices on the
+wide preset"). On these cells fast and default are then the same run (each cell meets either target
+in its first pass), at the time the smaller first passes took (bare tables: the table's fixed cost
+dominates). numpy-mc takes at least 64 batches (the SE's degrees of freedom,
+:data:`roadgonio.engines.montecarlo.DEFAULT_MIN_BATCHES`), about fast 9216, default 129600, precise
+>= 262144 samples.
 
 The ``bundle`` backend (the correction's fixed ray bundles, 4 replicates) has no stopping rule; its
 presets are rays per cell, measured on the portable table of R3 (396 cells) against the quadrature
 at rtol 1e-6: fast 128 rays, max error 9.3e-3 (max rel SE 6.0e-3); default 512, 2.3e-3 (1.5e-3);
 precise 4096, 2.8e-4 (2.1e-4).
 
-The batched Mitsuba engine stops every cell at its target (a small first pass, then the 1/N rule per
+The batched Mitsuba engine stops every cell at its target (a first pass of 4096 samples, then the 1/N rule per
 cell), so its presets sit on the measured front by construction; ``first_pass`` only matters for
 the easy cells. The reference's presets are the same tolerances as the quadrature's (its ``rtol``
 is the target of its confidence bound), the mesh Monte Carlo's the same ``rel_se`` as numpy-mc's
