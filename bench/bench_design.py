@@ -49,12 +49,14 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "design.csv"))
     args = ap.parse_args(argv)
 
-    from roadgonio.design import run_design
+    from roadgonio.api import design_study as run_design      # the one way in (roadgonio.design exports no run_design)
     from roadgonio.engines.mitsuba import set_variant
     set_variant("llvm_ad_rgb")
     n_r = max(1, args.points // 2)
     n_p = max(1, args.points // n_r)
-    vary = [f"source.radius_m=0.015:0.03:{n_r}", f"detector.pupil_radius_m=0.003:0.005:{n_p}"]
+    # one value of a key is LO = HI (the grid's rule)
+    vary = [f"source.radius_m=0.015:0.03:{n_r}" if n_r > 1 else "source.radius_m=0.02:0.02:1",
+            f"detector.pupil_radius_m=0.003:0.005:{n_p}" if n_p > 1 else "detector.pupil_radius_m=0.004:0.004:1"]
     kw = dict(samples=["R3"], cells=args.cells, backend="mitsuba", accuracy=args.accuracy, seed=1,
               progress=False, plots=False, tolerance="50%")
     print(f"roadgonio design throughput: portable family ({' x '.join(vary)}), sample R3, cells {args.cells}, "

@@ -25,7 +25,7 @@ sys.path.insert(0, str(HERE.parent / "tests"))
 from conftest import R3LIKE  # noqa: E402  (the R3-like model of the tests)
 
 from roadgonio.engines.reference import make_backend  # noqa: E402
-from roadgonio.engines.validate import parse_cells  # noqa: E402
+from roadgonio.engines.cells import select_cells as parse_cells  # noqa: E402
 from roadgonio.instrument.config import load_instrument  # noqa: E402
 from roadgonio.surface.model import RoadModel, RoadParams  # noqa: E402
 
