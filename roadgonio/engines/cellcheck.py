@@ -123,13 +123,17 @@ LISTED = 6
 
 
 def check_requested(backend, instrument: Instrument, model: RoadModel, cells: Sequence[tuple[float, float]], *,
-                    models_beam: bool = True, field: str = "cells") -> None:
+                    field: str = "cells") -> None:
     """Check every cell a command asked ``backend`` for, before anything is computed or written: the
     horizon (:func:`roadgonio.instrument.optics.check_source_cells`, a GeometryError naming the
     instrument's key), then what the backend refuses at a cell (:func:`check_cells`, for each model
     it divides by) as one :class:`InputError` naming ``field`` (the argument that chose the cells),
-    the refused cells in ``T:B`` form, the first refusal's reason and what was expected.
-    ``models_beam``: as for :func:`check_cells` (the registry's ``beam_clipping``)."""
+    the refused cells in ``T:B`` form, the first refusal's reason and what was expected. Whether
+    the backend models a beam limit (``models_beam`` of :func:`check_cells`) is its registry entry's
+    ``beam_clipping`` (a backend the registry does not know is taken to model it)."""
+    from roadgonio.engines.registry import BACKENDS
+    info = BACKENDS.get(getattr(backend, "name", None))
+    models_beam = info.beam_clipping if info is not None else True
     cells = [(float(t), float(b)) for t, b in cells]
     if not cells:
         return

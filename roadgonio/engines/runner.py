@@ -167,10 +167,7 @@ def run_cells(backend: KaBackend, cells: Sequence[tuple[float, float]], *, instr
         check_source_cells(instrument, still)
     else:
         from roadgonio.engines.cellcheck import check_requested
-        from roadgonio.engines.registry import BACKENDS
-        info = BACKENDS.get(backend.name)
-        check_requested(backend, instrument, model, still, models_beam=info.beam_clipping if info else True,
-                        field=field)
+        check_requested(backend, instrument, model, still, field=field)
     if out_dir is not None:
         made_dir = not out_dir.exists()
         try:

@@ -259,9 +259,8 @@ def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[flo
     # every cell either backend refuses, before either computes one (a refusal mid-list printed the
     # rows before it and then failed: user audit, session 24)
     from roadgonio.engines.cellcheck import check_requested
-    from roadgonio.engines.registry import backend_info
-    for name, b in ((against, mc), (ref_name, ref)):
-        check_requested(b, instrument, model, cells, models_beam=backend_info(name).beam_clipping)
+    for b in (mc, ref):
+        check_requested(b, instrument, model, cells)
     rows: list[CellComparison] = []
     for cell in cells:
         m = mc.compute([cell])[0]
