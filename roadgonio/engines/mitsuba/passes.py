@@ -391,9 +391,11 @@ class Plan:
 
 
 class Planner:
-    """Decides each pass's lattice size and replicates per active cell (module docstring)."""
+    """Decides each pass's lattice size and replicates per active cell (module docstring).
+    ``first_pass`` has no default here: the backend's (``DEFAULT_FIRST_PASS``) is the one place that
+    sets it (an own default of 1024 outlived session 25's change to 4096)."""
 
-    def __init__(self, rel_se: float, *, first_pass: int = 1024, min_replicates: int = 16,
+    def __init__(self, rel_se: float, *, first_pass: int, min_replicates: int = 16,
                  max_samples: int = 1 << 28, min_passes: int = 1, max_log2: int = MAX_LOG2,
                  max_growth: float = MAX_GROWTH, stray_search: bool = False):
         self.rel_se = float(rel_se)
