@@ -702,7 +702,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                         "the local Birge ratio where the residuals have structure",
              "model": "spread of the backbones' (variants', roundings') corrected k_A (and model values) about their "
                       "evidence-weighted mean",
-             "bundle": "the ray bundles' own error of the change the surface makes to k_A (replicates)",
+             "bundle": "the ray bundles' own error of the change the surface makes to k_A at the fitted surface "
+                       "(replicates, independent cells); it does not include the fit's response to the bundles' "
+                       "noise, which moves the table more (docs/correction.md, 'What the ray bundles move')",
              "convergence": "change of k_A the last refit (of the backbone, or with stray light of the surfaces) "
                             "still made (rectangular; the fitted model's own value left out)",
              "misalignment": "instrument geometric errors (--sigma), first-order GUM",

@@ -427,3 +427,36 @@ def test_the_stated_backend_u_of_a_surface_correction_is_its_scatter_over_the_ba
     ratio = math.sqrt(np.mean(sd ** 2) / np.mean(ub ** 2))
     assert 0.25 < ratio < 2.0, (ratio, float(np.sqrt(np.mean(sd ** 2))), float(np.sqrt(np.mean(ub ** 2))))
     assert all("correlation between cells the backend measured" in r.budget.notes["backend"] for r in runs)
+
+
+@pytest.mark.slow            # six corrections with Mitsuba, ~1 min: in CI by -m slow
+def test_what_the_ray_bundles_move_stays_well_inside_the_stated_u(monkeypatch):
+    """Session 26: the `bundle` component is the bundles' error of k_A's change at the fitted
+    surface; the fit's response to the bundles' noise is not in the budget (docs/correction.md,
+    "What the ray bundles move"). Six corrections in which only the ray bundles draw other numbers
+    (backend and fit starts at seed 0): the table moved by 0.36 % RMS, the component said 0.014 %,
+    and the scatter was at most 0.27 of a cell's total u. Asserted: the scatter exceeds the stated
+    component (so the note saying it is left out is needed: the day it is propagated, this test must
+    change with it), yet stays below half of the total u at every cell (six draws: a cell's SD may
+    read 1.7x its value at 99 %; fewer rays or a narrower posterior would make the unnamed term
+    matter and fail it), and the component's note says what it leaves out."""
+    from roadgonio.engines.bundle import RayBundles
+    build, bundle_seed = RayBundles.build.__func__, [0]
+
+    def bundles_with_their_own_seed(cls, *a, **k):
+        k["seed"] = bundle_seed[0]
+        return build(cls, *a, **k)
+    monkeypatch.setattr(RayBundles, "build", classmethod(bundles_with_their_own_seed))
+    runs = []
+    for s in range(6):
+        bundle_seed[0] = 1000 + s
+        runs.append(api.correct(MEASURED, MEDIUM, forward="surface", u_measured="1%", backend="mitsuba",
+                                accuracy="fast", rays=512, model_variant="power", seed=0, plots=False,
+                                progress=False))
+    m = runs[0].corrected.mask
+    sd = np.log([r.corrected.r[m] for r in runs]).std(axis=0, ddof=1)
+    u = np.array([r.u_corrected[m] / r.corrected.r[m] for r in runs]).mean(axis=0)
+    stated = np.sqrt(np.mean([np.diag(r.budget.components["bundle"]) for r in runs]))
+    assert np.sqrt(np.mean(sd ** 2)) > 5 * stated, (float(np.sqrt(np.mean(sd ** 2))), float(stated))
+    assert np.max(sd / u) < 0.5, float(np.max(sd / u))
+    assert all("does not include the fit's response" in r.budget.notes["bundle"] for r in runs)
