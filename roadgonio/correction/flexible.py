@@ -479,6 +479,40 @@ class FlexPart:
         K[:, :self.settings.n_c] -= self._nominal
         return K
 
+    def replicate_deviations(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What each replicate b of the ray bundles alone would give, minus what the whole bundle
+        gives, at the surface ``theta``: the deviation of ln of the simulated readings (anchored as
+        rho anchors them, at the backbone: ln(<f_0 exp g>_b / <f_0>_b) - ln(<f_0 exp g> / <f_0>), which is
+        also the deviation of ln k_A at this theta) and of the readings' Jacobian over (theta, q)
+        (:meth:`simulate`'s and :meth:`backbone_jacobians`' first column block). Shapes (R, cells) and
+        (R, cells, n_params + P). The fit's response to them is
+        :func:`roadgonio.correction.outside.bundle_noise_covariance`."""
+        b = self.forward.bundles
+        R = int(b.replicates)
+        e = np.asarray(self.ray_weights(theta)).ravel()
+        af0 = np.asarray(self.af0).ravel()
+        size = np.asarray(b.rays_per_cell)[self.cell_of]
+        rep = (np.arange(e.size) - np.asarray(b.cell_start)[self.cell_of]) // (size // R)
+        _, D, _ = self.backbone_log_derivatives()
+        D = D.reshape(D.shape[0], -1)
+
+        def sums(w):
+            return np.bincount(self.cell_of, weights=w, minlength=self.n)
+
+        num, den = sums(e), sums(af0)
+        s, J = self.simulate(theta)
+        Jq, _, _ = self.backbone_jacobians(theta)
+        Jf = np.hstack([J, Jq])
+        d_ln, d_jac = np.empty((R, self.n)), np.empty((R,) + Jf.shape)
+        for r in range(R):
+            er = np.where(rep == r, e, 0.0)
+            num_r = sums(er)
+            d_ln[r] = np.log(num_r / sums(np.where(rep == r, af0, 0.0))) - np.log(num / den)
+            rel = (self._K @ er).reshape(self.n, self.n_params)
+            rel_q = np.stack([sums(er * d) for d in D], axis=1) if D.shape[0] else np.zeros((self.n, 0))
+            d_jac[r] = (s * np.exp(d_ln[r]) / num_r)[:, None] * np.hstack([rel, rel_q]) - Jf
+        return d_ln, d_jac
+
     def ratio_se(self, theta: np.ndarray) -> np.ndarray:
         """Standard error (relative) of the bundle's estimate of <f_0 exp g> / <f_0> per cell, from
         its replicates: the bundle's own error of what the correction surface changes in k_A."""

@@ -22,7 +22,7 @@ Procedure (:func:`correct_surface`):
    plus the spread of the variants about the mean (``model``); where the normalised residuals have
    structure the two are widened by the local Birge ratio (``max(1, B_c)``, B_c^2 the
    leverage-corrected mean squared normalised residual over the neighbouring cells); plus the
-   bundle's own error of what the surface changes (``bundle``), the backend's (``backend``) and
+   ray bundles' own noise through the fit (``bundle``, :func:`bundle_noise_covariance`), the backend's (``backend``) and
    what the instruments' blur hides below the surface's knots (``discrepancy``,
    :func:`discrepancy_covariance`, :mod:`roadgonio.correction.discrepancy`);
 5. per instrument the corrected table r / k_A, and one table: per cell the generalised least
@@ -635,9 +635,11 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     cov_b = np.zeros((N, N))
     for i, c in enumerate(cov_back):
         cov_b[off[i]:off[i + 1], off[i]:off[i + 1]] = c
+    bundle_cov = np.zeros((E, E))
     for vf, lk, K, lp, Jp in zip(live, lnk_v, jac_v, lnp_v, jp_v):
         A = rho_shift_map(vf, [1.0 / u ** 2 for u in us], K, Jp)
         backend_cov += vf.weight * (A @ cov_b @ A.T)
+        bundle_cov += vf.weight * bundle_noise_covariance(vf, ys, [1.0 / u ** 2 for u in us], K, Jp)
         if unobserved is not None:
             unobserved_v += vf.weight * (A @ np.concatenate(unobserved))
         J = np.vstack([-K, Jp])                   # d (ln r estimate) / d (theta, q): ln y - ln k_A, the model's value
@@ -646,7 +648,6 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         model += vf.weight * np.outer(d, d)
     surf *= np.outer(widen_all, widen_all)
     model *= np.outer(widen_all, widen_all)
-    bundle = np.concatenate([p.ratio_se(best.fit.theta) for p in best.parts] + [np.zeros(U)])
     disc = None
     if settings.discrepancy_ell is not None:
         disc, disc_info = discrepancy_covariance(vfits, best, settings, nominal)
@@ -671,12 +672,12 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     # 5. the corrected tables, per instrument and combined
     comps: dict[str, np.ndarray] = {}
     meas = np.concatenate([u / y for u, y in zip(us, ys)])
-    pad = np.zeros(U)                             # the model's own value has no measurement, backend or bundle error
+    pad = np.zeros(U)                             # the model's own value has no measurement error
     comps["measurement"] = np.diag(np.concatenate([meas, pad]) ** 2)
     comps["backend"] = backend_cov
     comps["surface"] = surf
     comps["model"] = model
-    comps["bundle"] = np.diag(bundle ** 2)
+    comps["bundle"] = bundle_cov
     if disc is not None:
         comps["discrepancy"] = disc
     if unobserved is not None:
@@ -702,9 +703,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                         "the local Birge ratio where the residuals have structure",
              "model": "spread of the backbones' (variants', roundings') corrected k_A (and model values) about their "
                       "evidence-weighted mean",
-             "bundle": "the ray bundles' own error of the change the surface makes to k_A at the fitted surface "
-                       "(replicates, independent cells); it does not include the fit's response to the bundles' "
-                       "noise, which moves the table more (docs/correction.md, 'What the ray bundles move')",
+             "bundle": "the ray bundles' own noise (their replicates), through the fit, to first order: into k_A at "
+                       "the fitted surface and into the surface and backbone the fit finds, and so into both estimates "
+                       "(docs/correction.md, 'What the ray bundles move')",
              "convergence": "change of k_A the last refit (of the backbone, or with stray light of the surfaces) "
                             "still made (rectangular; the fitted model's own value left out)",
              "misalignment": "instrument geometric errors (--sigma), first-order GUM",
@@ -804,6 +805,36 @@ def rho_shift_map(vf: VariantFit, weights: Sequence[np.ndarray], K: np.ndarray, 
         cols.append(np.hstack([J, Jq]).T * (np.asarray(w) * m)[None, :])
     D = -(vf.cov_full @ np.hstack(cols))
     return np.vstack([-(np.eye(D.shape[1]) + K @ D), Jp @ D])
+
+
+def bundle_noise_covariance(vf: VariantFit, measured: Sequence[np.ndarray], weights: Sequence[np.ndarray],
+                            K: np.ndarray, Jp: np.ndarray) -> np.ndarray:
+    """Covariance of the estimates (the instruments' ln y - ln k_A, then the model's values; as
+    :func:`rho_shift_map`) from the ray bundles' own noise, to first order through the fit (session
+    26: only the bundles' seed varied, the table moved 25-50 times more than their error of k_A at a
+    fixed surface, which is all the budget had). Per replicate b of the bundles
+    (:meth:`FlexPart.replicate_deviations`, the same replicate of every instrument together: they share
+    their unit points), the readings' ln deviation m_b and their Jacobian's J_b move the fit's
+    normal equations J^T W (y - s) = Lambda theta, so (theta, q) moves by
+    d_b = C (J_b^T W (y - s) - J^T W (s m_b)), C the posterior covariance over (theta, q); ln k_A moves
+    by m_b + K d_b and the model's values by Jp d_b. The covariance of the whole bundle's estimate is
+    sum_b e_b e_b^T / (R (R - 1)) (the replicates' mean)."""
+    devs = [p.replicate_deviations(vf.fit.theta) for p in vf.parts]
+    R = devs[0][0].shape[0]
+    sims = [p.simulate(vf.fit.theta) for p in vf.parts]
+    Jq = [p.backbone_jacobians(vf.fit.theta)[0] for p in vf.parts]
+    est = []
+    for r in range(R):
+        rhs = 0.0
+        for (d_ln, d_jac), (s, J), jq, y, w in zip(devs, sims, Jq, measured, weights):
+            w = np.asarray(w, dtype=np.float64)
+            Jf = np.hstack([J, jq])
+            rhs = rhs + d_jac[r].T @ (w * (np.asarray(y) - s)) - Jf.T @ (w * s * d_ln[r])
+        d = vf.cov_full @ rhs
+        m = np.concatenate([d_ln[r] for d_ln, _ in devs])
+        est.append(np.concatenate([-(m + K @ d), Jp @ d]))
+    E = np.array(est)
+    return E.T @ E / (R * (R - 1))
 
 
 def rho_shift_effect(vf: VariantFit, shift: Sequence[np.ndarray], weights: Sequence[np.ndarray], K: np.ndarray,

@@ -430,16 +430,15 @@ def test_the_stated_backend_u_of_a_surface_correction_is_its_scatter_over_the_ba
 
 
 @pytest.mark.slow            # six corrections with Mitsuba, ~1 min: in CI by -m slow
-def test_what_the_ray_bundles_move_stays_well_inside_the_stated_u(monkeypatch):
-    """Session 26: the `bundle` component is the bundles' error of k_A's change at the fitted
-    surface; the fit's response to the bundles' noise is not in the budget (docs/correction.md,
-    "What the ray bundles move"). Six corrections in which only the ray bundles draw other numbers
-    (backend and fit starts at seed 0): the table moved by 0.36 % RMS, the component said 0.014 %,
-    and the scatter was at most 0.27 of a cell's total u. Asserted: the scatter exceeds the stated
-    component (so the note saying it is left out is needed: the day it is propagated, this test must
-    change with it), yet stays below half of the total u at every cell (six draws: a cell's SD may
-    read 1.7x its value at 99 %; fewer rays or a narrower posterior would make the unnamed term
-    matter and fail it), and the component's note says what it leaves out."""
+def test_the_stated_bundle_u_of_a_surface_correction_is_its_scatter_over_the_bundles_seeds(monkeypatch):
+    """Session 26: the `bundle` component was the bundles' error of k_A's change at a fixed surface
+    (0.014 % RMS here), while with only the ray bundles drawing other numbers (backend and fit starts
+    at seed 0) the table moved by 0.36 % RMS: their noise reaches the table through the fit. The
+    component now follows it to first order (:func:`roadgonio.correction.outside.bundle_noise_covariance`):
+    0.50 % stated. Six corrections: the RMS over the cells of the per-cell standard deviation against
+    the RMS of the stated component, within what six draws (a common mode dominates: sqrt(chi^2_5 / 5)
+    in [0.29, 1.8] at 99 %) and the first order (0.72 here, 1.42 at 2048 rays) allow: [0.25, 2.5]. The
+    old component fails it (ratio 25)."""
     from roadgonio.engines.bundle import RayBundles
     build, bundle_seed = RayBundles.build.__func__, [0]
 
@@ -455,8 +454,7 @@ def test_what_the_ray_bundles_move_stays_well_inside_the_stated_u(monkeypatch):
                                 progress=False))
     m = runs[0].corrected.mask
     sd = np.log([r.corrected.r[m] for r in runs]).std(axis=0, ddof=1)
-    u = np.array([r.u_corrected[m] / r.corrected.r[m] for r in runs]).mean(axis=0)
     stated = np.sqrt(np.mean([np.diag(r.budget.components["bundle"]) for r in runs]))
-    assert np.sqrt(np.mean(sd ** 2)) > 5 * stated, (float(np.sqrt(np.mean(sd ** 2))), float(stated))
-    assert np.max(sd / u) < 0.5, float(np.max(sd / u))
-    assert all("does not include the fit's response" in r.budget.notes["bundle"] for r in runs)
+    ratio = float(np.sqrt(np.mean(sd ** 2)) / stated)
+    assert 0.25 < ratio < 2.5, (ratio, float(np.sqrt(np.mean(sd ** 2))), float(stated))
+    assert all("through the fit" in r.budget.notes["bundle"] for r in runs)
