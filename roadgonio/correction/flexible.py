@@ -49,7 +49,6 @@ import scipy.sparse as sparse
 from scipy.linalg import cho_factor, cho_solve
 
 from roadgonio.engines.bundle import ForwardModel
-from roadgonio.engines.result import ratio_se
 from roadgonio.errors import InputError
 from roadgonio.surface.correction_surface import CorrectedSurface, SplineGrid, alpha_coordinate, lookup
 from roadgonio.arrays import NumpyOps
@@ -481,9 +480,11 @@ class FlexPart:
 
     def replicate_deviations(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """What each replicate b of the ray bundles alone would give, minus what the whole bundle
-        gives, at the surface ``theta``: the deviation of ln of the simulated readings (anchored as
-        rho anchors them, at the backbone: ln(<f_0 exp g>_b / <f_0>_b) - ln(<f_0 exp g> / <f_0>), which is
-        also the deviation of ln k_A at this theta) and of the readings' Jacobian over (theta, q)
+        gives, at the surface ``theta``: the deviation of ln of the simulated readings relative to the
+        backbone's, ln(<f_0 exp g>_b / <f_0>_b) - ln(<f_0 exp g> / <f_0>) (rho anchors the backbone's
+        reading to the backend's; with stray light it anchors the rendered surface's, near the fitted
+        one, and this small term is still taken from the backbone), which is also the deviation of
+        ln k_A at this theta, and of the readings' Jacobian over (theta, q)
         (:meth:`simulate`'s and :meth:`backbone_jacobians`' first column block). Shapes (R, cells) and
         (R, cells, n_params + P). The fit's response to them is
         :func:`roadgonio.correction.outside.bundle_noise_covariance`."""
@@ -512,19 +513,6 @@ class FlexPart:
             rel_q = np.stack([sums(er * d) for d in D], axis=1) if D.shape[0] else np.zeros((self.n, 0))
             d_jac[r] = (s * np.exp(d_ln[r]) / num_r)[:, None] * np.hstack([rel, rel_q]) - Jf
         return d_ln, d_jac
-
-    def ratio_se(self, theta: np.ndarray) -> np.ndarray:
-        """Standard error (relative) of the bundle's estimate of <f_0 exp g> / <f_0> per cell, from
-        its replicates: the bundle's own error of what the correction surface changes in k_A."""
-        b = self.forward.bundles
-        e = self.ray_weights(theta)
-        num = np.add.reduceat(e, b.seg).reshape(self.n, b.replicates)
-        den = np.add.reduceat(self.af0, b.seg).reshape(self.n, b.replicates)
-        out = np.empty(self.n)
-        for c in range(self.n):
-            r, se = ratio_se(num[c], den[c])
-            out[c] = se / r if r > 0 else math.inf
-        return out
 
 
 @dataclass
