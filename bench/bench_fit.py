@@ -36,8 +36,8 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     rows = []
-    print(f"roadgonio {__version__}, python {platform.python_version()}, {os.cpu_count()} CPUs "
-          f"(shared machine: timings inflated)", file=sys.stderr)
+    print(f"roadgonio {__version__}, python {platform.python_version()}, {os.cpu_count()} CPUs, load average "
+          + ", ".join(f"{x:.2f}" for x in os.getloadavg()), file=sys.stderr)
     hdr = f"{'table':5} {'variant':8} {'max %':>7} {'RMS %':>7} {'sec':>6}  {'paper target':12}  {'beats plain fit':15}"
     print(hdr)
     print("-" * len(hdr))
