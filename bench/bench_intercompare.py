@@ -33,14 +33,10 @@ import tempfile
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import mem_gib  # noqa: E402  (bench/machine.py)
+
 TARGETS = {"raw": 600.0, "corrected": 1800.0}
-
-
-def _mem_gib() -> float:
-    try:
-        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2 ** 30
-    except (ValueError, OSError, AttributeError):
-        return float("nan")
 
 
 def one_run(study, out: Path, workers: int) -> dict:
@@ -69,7 +65,7 @@ def main(argv=None) -> int:
     runs = {"raw": dataclasses.replace(base, realisations=args.realisations, corrected_realisations=0),
             "corrected": dataclasses.replace(base, realisations=args.realisations,
                                              corrected_realisations=min(args.corrected, args.realisations))}
-    machine = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {_mem_gib():.0f} GiB, "
+    machine = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {mem_gib():.0f} GiB, "
                f"Python {platform.python_version()}")
     lines = [f"roadgonio intercompare, bundled study r3-comparison (4 participants, 396 cells, "
              f"{args.realisations} realisations), {args.workers} Dask workers; {machine}"]

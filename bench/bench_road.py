@@ -31,6 +31,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from machine import describe  # noqa: E402  (bench/machine.py)
 
 
 def roadgonio(*args: str) -> str:
@@ -40,23 +42,6 @@ def roadgonio(*args: str) -> str:
         sys.exit(f"failed: {' '.join(cmd)}\n{p.stderr}")
     return p.stdout
 
-
-def _machine() -> str:
-    """This machine as the output quotes it: cores, CPU model, memory (it was a fixed string naming
-    the machine of the run that wrote it)."""
-    model = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    try:
-        mem = f", {os.sysconf('SC_PAGE_SIZE') * os.sysconf('SC_PHYS_PAGES') / 2 ** 30:.0f} GiB"
-    except (ValueError, OSError, AttributeError):
-        mem = ""
-    return f"{os.cpu_count()} cores, {model}{mem}"
 
 def main() -> None:
     ap = argparse.ArgumentParser()
@@ -119,7 +104,7 @@ def main() -> None:
     print(f"measured -> corrected: L_av {100 * (c['L_av'] / m['L_av'] - 1):+.2f} %, U_o {c['U_o'] - m['U_o']:+.4f}, "
           f"U_l {c['U_l'] - m['U_l']:+.4f}, TI {c['TI'] - m['TI']:+.2f} points")
     print(f"time: ka {t_ka:.0f} s, correct {t_corr:.0f} s, road (with {a.trials} trials x 3) {t_road:.1f} s; "
-          f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} ({_machine()})")
+          f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} ({describe()})")
     res = ROOT / "bench" / "results" / f"road_measured_vs_corrected_{label}.csv"
     keys = sorted({k2 for r in rows for k2 in r}, key=lambda s: (s not in ("table", "L_av", "U_o", "U_l", "TI", "class"), s))
     with open(res, "w", newline="") as fh:
