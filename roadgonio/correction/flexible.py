@@ -478,41 +478,38 @@ class FlexPart:
         K[:, :self.settings.n_c] -= self._nominal
         return K
 
-    def replicate_deviations(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """What each replicate b of the ray bundles alone would give, minus what the whole bundle
-        gives, at the surface ``theta``: the deviation of ln of the simulated readings relative to the
-        backbone's, ln(<f_0 exp g>_b / <f_0>_b) - ln(<f_0 exp g> / <f_0>) (rho anchors the backbone's
-        reading to the backend's; with stray light it anchors the rendered surface's, near the fitted
-        one, and this small term is still taken from the backbone), which is also the deviation of
-        ln k_A at this theta, and of the readings' Jacobian over (theta, q)
-        (:meth:`simulate`'s and :meth:`backbone_jacobians`' first column block). Shapes (R, cells) and
+    def replicate_deviations(self, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The whole bundle's simulated readings s and their Jacobian over (theta, q) (:meth:`simulate`
+        and :meth:`backbone_jacobians`' first block side by side), and what each replicate b of the
+        ray bundles alone would give minus what the whole bundle gives, at the surface ``theta``: the
+        deviation of ln of the readings relative to the backbone's,
+        ln(<f_0 exp g>_b / <f_0>_b) - ln(<f_0 exp g> / <f_0>) (rho anchors the backbone's reading to
+        the backend's; with stray light it anchors the rendered surface's, near the fitted one, and
+        this small term is still taken from the backbone), which is also the deviation of ln k_A at
+        this theta, and that of the Jacobian. Shapes (cells,), (cells, n_params + P), (R, cells),
         (R, cells, n_params + P). The fit's response to them is
         :func:`roadgonio.correction.outside.bundle_noise_covariance`."""
         b = self.forward.bundles
         R = int(b.replicates)
         e = np.asarray(self.ray_weights(theta)).ravel()
-        af0 = np.asarray(self.af0).ravel()
-        size = np.asarray(b.rays_per_cell)[self.cell_of]
-        rep = (np.arange(e.size) - np.asarray(b.cell_start)[self.cell_of]) // (size // R)
         _, D, _ = self.backbone_log_derivatives()
-        D = D.reshape(D.shape[0], -1)
 
-        def sums(w):
-            return np.bincount(self.cell_of, weights=w, minlength=self.n)
+        def per_replicate(w):                     # (cells, R) sums over each replicate's segment of rays
+            return np.add.reduceat(w, b.seg).reshape(self.n, R)
 
-        num, den = sums(e), sums(af0)
+        num = per_replicate(e)
+        den = per_replicate(np.asarray(self.af0).ravel())
+        d_ln = (np.log(num / den) - np.log(num.sum(axis=1) / den.sum(axis=1))[:, None]).T
+        num_q = np.stack([per_replicate(e * d.ravel()) for d in D], axis=2) if D.shape[0] \
+            else np.zeros((self.n, R, 0))
         s, J = self.simulate(theta)
-        Jq, _, _ = self.backbone_jacobians(theta)
-        Jf = np.hstack([J, Jq])
-        d_ln, d_jac = np.empty((R, self.n)), np.empty((R,) + Jf.shape)
+        Jf = np.hstack([J, self.backbone_jacobians(theta)[0]])
+        rep = np.repeat(np.tile(np.arange(R), self.n), np.diff(np.append(b.seg, e.size)))
+        d_jac = np.empty((R,) + Jf.shape)
         for r in range(R):
-            er = np.where(rep == r, e, 0.0)
-            num_r = sums(er)
-            d_ln[r] = np.log(num_r / sums(np.where(rep == r, af0, 0.0))) - np.log(num / den)
-            rel = (self._K @ er).reshape(self.n, self.n_params)
-            rel_q = np.stack([sums(er * d) for d in D], axis=1) if D.shape[0] else np.zeros((self.n, 0))
-            d_jac[r] = (s * np.exp(d_ln[r]) / num_r)[:, None] * np.hstack([rel, rel_q]) - Jf
-        return d_ln, d_jac
+            rel = (self._K @ np.where(rep == r, e, 0.0)).reshape(self.n, self.n_params)
+            d_jac[r] = (s * np.exp(d_ln[r]) / num[:, r])[:, None] * np.hstack([rel, num_q[:, r, :]]) - Jf
+        return s, Jf, d_ln, d_jac
 
 
 @dataclass

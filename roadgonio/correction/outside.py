@@ -820,18 +820,15 @@ def bundle_noise_covariance(vf: VariantFit, measured: Sequence[np.ndarray], weig
     by m_b + K d_b and the model's values by Jp d_b. The covariance of the whole bundle's estimate is
     sum_b e_b e_b^T / (R (R - 1)) (the replicates' mean)."""
     devs = [p.replicate_deviations(vf.fit.theta) for p in vf.parts]
-    R = devs[0][0].shape[0]
-    sims = [p.simulate(vf.fit.theta) for p in vf.parts]
-    Jq = [p.backbone_jacobians(vf.fit.theta)[0] for p in vf.parts]
+    R = devs[0][2].shape[0]
     est = []
     for r in range(R):
         rhs = 0.0
-        for (d_ln, d_jac), (s, J), jq, y, w in zip(devs, sims, Jq, measured, weights):
+        for (s, Jf, d_ln, d_jac), y, w in zip(devs, measured, weights):
             w = np.asarray(w, dtype=np.float64)
-            Jf = np.hstack([J, jq])
             rhs = rhs + d_jac[r].T @ (w * (np.asarray(y) - s)) - Jf.T @ (w * s * d_ln[r])
         d = vf.cov_full @ rhs
-        m = np.concatenate([d_ln[r] for d_ln, _ in devs])
+        m = np.concatenate([dev[2][r] for dev in devs])
         est.append(np.concatenate([-(m + K @ d), Jp @ d]))
     E = np.array(est)
     return E.T @ E / (R * (R - 1))
