@@ -586,8 +586,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         unobserved = [np.log(kp / kb) / math.log(UNOBSERVED_PROBE) for kp, kb in zip(k_probe, k_back)]
         lap("surface-backend")
     live = contributing(vfits)
+    weights = [1.0 / u ** 2 for u in us]          # the fit's, per instrument and cell
     for vf in live:
-        vf.cov_full = posterior_with_backbone(vf.parts, vf.fit.theta, vf.fit.lam, [1.0 / u ** 2 for u in us],
+        vf.cov_full = posterior_with_backbone(vf.parts, vf.fit.theta, vf.fit.lam, weights,
                                               vf.fit.phi)
     lap("surface")
 
@@ -637,9 +638,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         cov_b[off[i]:off[i + 1], off[i]:off[i + 1]] = c
     bundle_cov = np.zeros((E, E))
     for vf, lk, K, lp, Jp in zip(live, lnk_v, jac_v, lnp_v, jp_v):
-        A = rho_shift_map(vf, [1.0 / u ** 2 for u in us], K, Jp)
+        A = rho_shift_map(vf, weights, K, Jp)
         backend_cov += vf.weight * (A @ cov_b @ A.T)
-        bundle_cov += vf.weight * bundle_noise_covariance(vf, ys, [1.0 / u ** 2 for u in us], K, Jp)
+        bundle_cov += vf.weight * bundle_noise_covariance(vf, ys, weights, K, Jp)
         if unobserved is not None:
             unobserved_v += vf.weight * (A @ np.concatenate(unobserved))
         J = np.vstack([-K, Jp])                   # d (ln r estimate) / d (theta, q): ln y - ln k_A, the model's value
