@@ -162,17 +162,32 @@ def welch_satterthwaite(variances: Sequence[float], dofs: Sequence[float]) -> fl
     degrees of freedom each (Welch-Satterthwaite, JCGM 100 G.4.1): (sum v_i)^2 / sum v_i^2 / nu_i.
     Terms with v_i = 0, or not finite, or with nu_i infinite (known exactly) add nothing to the
     denominator; NaN when no term has finite degrees of freedom (nothing estimated), and the sum of
-    the nu_i when every estimate is 0. Never below the smallest nu_i of a term that counts."""
+    the nu_i when every estimate is 0. Never below the smallest nu_i of a term that counts. One
+    group of :func:`welch_satterthwaite_many`."""
+    v = np.asarray(variances, dtype=np.float64).ravel()
+    if v.size == 0:
+        return math.nan
+    return float(welch_satterthwaite_many(v, dofs, np.zeros(1, dtype=np.int64))[0])
+
+
+def welch_satterthwaite_many(variances, dofs, starts) -> np.ndarray:
+    """:func:`welch_satterthwaite` of many groups of terms at once: the terms of group g are
+    ``variances[starts[g]:starts[g + 1]]`` (``starts`` increasing, the first 0, every group
+    non-empty), with their ``dofs``; an array of one value per group (a table's cells: their SEs
+    sum independent strata, :func:`roadgonio.engines.mitsuba.passes.ratio_se_dof_many`)."""
     v = np.asarray(variances, dtype=np.float64).ravel()
     nu = np.asarray(dofs, dtype=np.float64).ravel()
-    est = np.isfinite(v) & (v >= 0.0) & np.isfinite(nu) & (nu > 0.0)
-    if not est.any():
-        return math.nan
-    total = float(np.sum(np.where(np.isfinite(v) & (v >= 0.0), v, 0.0)))
-    den = float(np.sum(v[est] ** 2 / nu[est]))
-    if den == 0.0:
-        return float(np.sum(nu[est])) if total == 0.0 else math.inf
-    return total * total / den
+    starts = np.asarray(starts, dtype=np.int64).ravel()
+    ok_v = np.isfinite(v) & (v >= 0.0)
+    est = ok_v & np.isfinite(nu) & (nu > 0.0)
+    v0 = np.where(ok_v, v, 0.0)
+    n_est = np.add.reduceat(est.astype(np.int64), starts)
+    total = np.add.reduceat(v0, starts)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        den = np.add.reduceat(np.where(est, v0 * v0 / np.where(est, nu, 1.0), 0.0), starts)
+        nu_sum = np.add.reduceat(np.where(est, nu, 0.0), starts)
+        out = np.where(den == 0.0, np.where(total == 0.0, nu_sum, math.inf), total * total / np.where(den == 0.0, 1.0, den))
+    return np.where(n_est > 0, out, math.nan)
 
 
 def t_equivalent(n_sigma: float, dof) -> np.ndarray | float:

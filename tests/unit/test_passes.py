@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from roadgonio.engines.mitsuba.passes import (MAX_GROWTH, SAFETY, CellStats, Plan, Planner, add_strata,
+from roadgonio.engines.mitsuba.passes import (MAX_GROWTH, SAFETY, CellStats, Plan, Planner, add_strata, se_dof_many,
                                               covariance, relative, strata_ratio_se, strata_ratio_se_dof_many,
                                               strata_ratio_se_many, stray_ratios)
 
@@ -160,7 +160,7 @@ def test_se_dof_is_welch_satterthwaite_over_the_strata():
     lop.add(0, 8, np.arange(40), *small)
     lop.add(1, 8, np.arange(16), *big)
     assert 15.0 <= lop.se_dof() < 15.01
-    cells = []
+    cells, stats = [], []
     for _ in range(30):
         st = CellStats()
         strata = []
@@ -172,11 +172,18 @@ def test_se_dof_is_welch_satterthwaite_over_the_strata():
         assert st.se_dof() == pytest.approx(direct_dof(strata), rel=1e-9)
         assert min(len(a) - 1 for a, _ in strata) <= st.se_dof() <= sum(len(a) - 1 for a, _ in strata) + 1e-9
         cells.append(strata)
+        stats.append(st)
     _, _, dof = strata_ratio_se_dof_many(cells)
     assert np.allclose(dof, [direct_dof(c) for c in cells], rtol=1e-12, atol=0.0)
     single = CellStats()
     single.add(0, 8, np.arange(1), np.array([2.0]), np.array([4.0]))
     assert math.isnan(single.se_dof())
+    # a table's cells at once (what the backend asks after each pass), a cell without an SE among them
+    many = se_dof_many(stats[:13] + [single] + stats[13:])
+    assert math.isnan(many[13])
+    assert np.allclose(np.delete(many, 13), [direct_dof(c) for c in cells], rtol=1e-9, atol=0.0)
+    assert list(np.delete(many, 13)) == [st.se_dof() for st in stats]
+    assert se_dof_many([]).shape == (0,)
     assert math.isnan(strata_ratio_se_dof_many([[(np.array([1.0]), np.array([2.0]))]])[2][0])
 
 

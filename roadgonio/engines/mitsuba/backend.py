@@ -163,7 +163,7 @@ class MitsubaBackend:
         (:class:`roadgonio.engines.runner.PassCheckpoint`): the state is saved after every pass and
         a saved state of these cells is resumed (same numbers as without the interruption; the
         checkpoint is told how many cells it carried on, and from which pass: ``reused``)."""
-        from roadgonio.engines.mitsuba.passes import stray_ratios
+        from roadgonio.engines.mitsuba.passes import se_dof_many, stray_ratios
         t0 = time.perf_counter()
         cells = [(float(t), float(b)) for t, b in cells]
         if self.is_ideal_geometry:
@@ -179,8 +179,10 @@ class MitsubaBackend:
             # the direct light's ratio and the stray fraction of all these cells at once (vectorised)
             with_stray = [i for i in indices if run.stats[i].direct]
             stray = dict(zip(with_stray, zip(*stray_ratios([run.stats[i] for i in with_stray])))) if with_stray else {}
-            for i in indices:
-                results[i] = self._result(cells[i], ideal[i], run.stats[i], run.converged[i], share, stray.get(i))
+            dofs = se_dof_many([run.stats[i] for i in indices])
+            for i, dof in zip(indices, dofs):
+                results[i] = self._result(cells[i], ideal[i], run.stats[i], run.converged[i], share, stray.get(i),
+                                          dof=float(dof))
                 if on_cell is not None:
                     on_cell(results[i])
 
@@ -224,13 +226,15 @@ class MitsubaBackend:
                 on_cell(r)
         return out
 
-    def _result(self, cell, ideal: float, st, converged: bool, seconds: float, stray_se=None) -> CellResult:
+    def _result(self, cell, ideal: float, st, converged: bool, seconds: float, stray_se=None, *,
+                dof: float | None = None) -> CellResult:
         """The cell's result; ``stray_se``: with stray light traced (``st.direct``), its (direct
-        ratio, SE, stray fraction, SE), computed with the pass's other cells
-        (:func:`~roadgonio.engines.mitsuba.passes.stray_ratios`)."""
+        ratio, SE, stray fraction, SE), and ``dof``, its SE's degrees of freedom, computed with the
+        pass's other cells (:func:`~roadgonio.engines.mitsuba.passes.stray_ratios`,
+        :func:`~roadgonio.engines.mitsuba.passes.se_dof_many`; else of this cell alone)."""
         from roadgonio.engines.mitsuba.passes import STRAY_SEEN_MIN, relative
         ratio, se, _ = st.ratio_se()
-        dof = st.se_dof()
+        dof = st.se_dof() if dof is None else dof
         rel = relative(ratio, se)
         # the model is 0 at the nominal geometry: k_A (with or without stray light) is undefined
         # (divided, not multiplied by 1 / ideal: the same float64 numbers as the engine without stray light)
