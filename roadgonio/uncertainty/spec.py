@@ -232,12 +232,34 @@ def geometry_problems(mm, X: np.ndarray, *, aperture: bool = False) -> tuple[np.
     return bad, why
 
 
+def check_nominal_geometry(mm, *, aperture: bool) -> None:
+    """The instrument of ``mm`` at its nominal geometry on ``mm``'s cells: the checks of
+    :func:`geometry_problems` for no error at all, raised as the instrument's
+    :class:`~roadgonio.errors.GeometryError` (its file, and the field where the check knows it)."""
+    from roadgonio.errors import GeometryError
+    from roadgonio.instrument.optics import check_detector, check_source
+    inst = mm.instrument
+    bad, why = geometry_problems(mm, np.zeros((1, len(INPUTS))), aperture=False)
+    if bad[0]:
+        raise GeometryError(f"the instrument's nominal geometry is not valid: {why[0]}", path=inst.path)
+    if aperture:
+        if inst.sample.mesh is None:
+            check_detector(inst)
+        for t, b in zip(mm.cells.tan_eps, mm.cells.beta_deg):
+            check_source(inst, float(t), float(b))
+
+
 def check_spec_geometry(spec: SigmaSpec, mm, *, aperture: bool, option: str = "sigma") -> None:
     """Validate a SPEC against the instrument up front: every input alone at +- its checked extent
     (:data:`CHECK_SIGMAS` sigma, or the rectangular half-width) and the inputs together at that
     distance in every sign combination must keep the geometry valid (detector and source above
     the tilted horizon, distances larger than the apertures, the footprint on the sample and the
-    source above the plane with the aperture effect). Raises :class:`InputError` naming the key."""
+    source above the plane with the aperture effect). Raises :class:`InputError` naming the key;
+    first the nominal geometry (no error at all) itself, whose problem is the instrument's and not
+    the SPEC's: the instrument's own :class:`~roadgonio.errors.GeometryError` naming its file and
+    field (an instrument whose footprint leaves the sample was reported as a sigma to make smaller,
+    which no sigma could satisfy)."""
+    check_nominal_geometry(mm, aperture=aperture)
     ext = extents(spec)
     active = [i for i in range(len(INPUTS)) if ext[i] > 0]
     if not active:

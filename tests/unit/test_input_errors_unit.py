@@ -33,6 +33,33 @@ def test_spec_out_of_the_footprint_is_refused_for_the_aperture_case(r3like):
         check_spec_geometry(parse_sigma_spec("detector_distance_m=2"), mm, aperture=True)
 
 
+def test_an_instrument_that_cannot_measure_is_its_own_error_not_the_specs(r3like, tmp_path):
+    """A footprint that leaves the sample at the nominal geometry is the instrument's fault: any
+    SPEC, however small, was refused as "expected smaller standard deviations" (audit, session 27);
+    now the instrument's GeometryError names its file and field, with and without the aperture
+    effect."""
+    from roadgonio.errors import GeometryError
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.uncertainty.cells import CellSet
+    from roadgonio.uncertainty.measurement import MeasurementModel
+    from roadgonio.uncertainty.spec import check_spec_geometry, parse_sigma_spec
+    small = load_instrument("lab").with_changes(sample={"size_x_m": 0.5, "size_y_m": 0.5})
+    spec = parse_sigma_spec("eps_deg=0.0001")
+    mm = MeasurementModel(r3like, small, CellSet.make("standard"))
+    for aperture in (True, False):
+        try:
+            check_spec_geometry(spec, mm, aperture=aperture)
+        except GeometryError as err:
+            assert err.field == "sample" and "footprint leaves the sample" in str(err)
+        else:
+            assert not aperture, "the footprint off the sample was not refused"
+    # the nominal detector below the horizon is refused without the aperture effect as well
+    low = MeasurementModel(r3like, load_instrument("lab"), CellSet.make("standard"))
+    low.alpha0 = -1.0
+    with pytest.raises(GeometryError, match="nominal geometry"):
+        check_spec_geometry(spec, low, aperture=False)
+
+
 def test_every_trial_is_checked(r3like):
     from roadgonio.instrument.config import load_instrument
     from roadgonio.uncertainty.cells import CellSet
