@@ -230,6 +230,27 @@ def build_setup(ctx: Context, stage1: Mapping[tuple, dict]) -> sim.Setup:
                      realisations=study.realisations, coverage_factor=study.coverage_factor)
 
 
+def check_stated(setup: sim.Setup, study, cells) -> None:
+    """Every participant that states its raw table's uncertainty alone
+    (:func:`~roadgonio.intercomparison.study.states_raw`) states a positive one at every cell: a
+    stated ``misalignment`` alone whose angles do not move some cells (beta errors at tan eps 0)
+    leaves u = 0 there, which the statistics cannot weigh (audit 27: refused only at the end, by a
+    line naming no file, participant or cell)."""
+    from roadgonio.intercomparison.study import states_raw
+    for p, part in enumerate(study.participants):
+        if not states_raw(part):
+            continue
+        u = sim.stated_rel(setup, p)
+        zero = np.flatnonzero(~(u > 0.0))
+        if zero.size:
+            where = ", ".join(f"{cells.tan_eps[j]:g}:{cells.beta_deg[j]:g}" for j in zero[:6]) + \
+                (f" and {zero.size - 6} more" if zero.size > 6 else "")
+            raise InputError(f"participant {part.name!r} states a standard uncertainty of 0 at {zero.size} of "
+                             f"{u.size} cells (tan eps:beta {where}): its stated components ({', '.join(part.stated)}) "
+                             "do not reach them; expected a component that does ('repeatability', 'calibration' or "
+                             "stated_extra_rel > 0)", path=study.path, field=f"participant[{p + 1}].stated")
+
+
 def truth_table(ctx: Context) -> np.ndarray:
     """r of the surface at the nominal geometry of the comparison's cells (sr^-1): f cos^3 eps with
     the participants' observation direction (the same for all, checked)."""
@@ -545,6 +566,7 @@ def _stages(ctx: Context, journal: _Journal, client, progress: bool, seconds: di
                                                           len(items1) - len(todo)),
          study.backend, mvariant, "intercompare-ka")
     setup = build_setup(ctx, {it: journal.done[it] for it in items1})
+    check_stated(setup, study, ctx.cells)
     seconds["k_a"] = time.perf_counter() - t
     # 2. corrections
     t = time.perf_counter()

@@ -53,7 +53,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
+
+import numpy as np
 
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument, load_instrument
@@ -320,6 +322,26 @@ def _shared(k: int, d: Any, names: list[str], path) -> SharedEffect:
     return SharedEffect(name=name, kind=kind, participants=tuple(who), sigma=sig)
 
 
+def states_raw(part: Participant) -> bool:
+    """The participant states its raw table's uncertainty alone in some scenario (it reports raw,
+    or its instrument is collimated and Lambert-calibrated, so its correction changes nothing):
+    that uncertainty must then be positive at every cell, nothing else adds to it."""
+    return part.report == "raw" or (part.instrument.is_ideal() and part.instrument.calibration.mode == "lambert")
+
+
+def _stated_can_be_positive(part: Participant, shared: Sequence[SharedEffect]) -> bool:
+    """At least one stated component of ``part`` has a positive value (the components of
+    :func:`roadgonio.intercomparison.simulate.stated_rel`)."""
+    mine = [x for x in shared if part.name in x.participants]
+    angles = [part.sigma] + [x.sigma for x in mine if x.kind == "angle_standard"]
+    return bool(part.stated_extra_rel > 0
+                or ("repeatability" in part.stated and part.noise_rel > 0)
+                or ("calibration" in part.stated
+                    and (part.calibration_u_rel > 0 or any(x.u_rel > 0 for x in mine if x.kind == "reference_tile")))
+                or ("misalignment" in part.stated
+                    and any(sp is not None and bool(np.any(np.asarray(sp.sigmas) > 0)) for sp in angles)))
+
+
 def study_from_dict(d: Mapping[str, Any], *, path: str | Path | None = None) -> Study:
     """A :class:`Study` from the dict of a study file (unknown keys are errors naming ``path``)."""
     path = Path(path) if path is not None else None
@@ -376,6 +398,15 @@ def study_from_dict(d: Mapping[str, Any], *, path: str | Path | None = None) -> 
     snames = [x.name for x in shared]
     if len(set(snames)) != len(snames):
         raise InputError("two shared effects have the same name", path=path, field="shared.name")
+    for i, part in enumerate(participants):
+        if states_raw(part) and not _stated_can_be_positive(part, shared):
+            # audit 27: accepted, then refused after the k_A work with a line naming no file or participant
+            raise InputError(f"participant {part.name!r} reports its table raw and states a standard uncertainty that "
+                             f"is 0 (stated = {list(part.stated)}, stated_extra_rel = {part.stated_extra_rel:g}); "
+                             "expected at least one stated component with a positive value: 'repeatability' with "
+                             "noise_rel > 0, 'calibration' with calibration_u_rel > 0 (or a reference tile), "
+                             "'misalignment' with a sigma, or stated_extra_rel > 0", path=path,
+                             field=f"participant[{i + 1}].stated")
     name = _text(s.get("name", path.stem if path is not None else "study"), "study.name", path)
     desc = s.get("description", "")
     if not isinstance(desc, str):

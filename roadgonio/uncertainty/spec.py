@@ -126,7 +126,7 @@ def parse_sigma_spec(spec: str | Path | Mapping[str, Any], *, option: str = "sig
     or a mapping. Unknown keys, bad numbers, negative sigmas and unknown distributions raise
     :class:`InputError` naming the option or file and the key."""
     if isinstance(spec, Mapping):
-        return _spec_from_mapping(spec, path=None, field_prefix="", source="mapping")
+        return _spec_from_mapping(spec, path=None, field_prefix=f"{option}.", source="mapping")
     text = str(spec).strip()
     p = Path(text)
     if text.lower().endswith(".toml") or (p.suffix and p.exists()):

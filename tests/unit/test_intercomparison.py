@@ -45,6 +45,12 @@ def collimated(tmp_path):
     (lambda d: d["study"].update(realisations=6.0), "study.realisations", "whole number"),
     (lambda d: d["study"].update(seed=7.0), "study.seed", "whole number"),
     (lambda d: d["study"].update(seed=2 ** 63), "study.seed", "<= 9223372036854775807"),
+    # audit 27: a raw table stated with u = 0 was accepted and refused after the k_A work, naming nothing
+    (lambda d: d["participant"][0].update(stated=[]), "participant[1].stated", "uncertainty that is 0"),
+    # audit 27: an inline sigma table's error named the key alone ('eps_deg'), not whose
+    (lambda d: d["participant"][1].update(sigma={"eps_deg": "0.02:tri"}), "participant[2].sigma.eps_deg",
+     "unknown distribution"),
+    (lambda d: d["participant"][1].update(noise_rel=0.0), "participant[2].stated", "uncertainty that is 0"),
 ])
 def test_bad_study_files_are_one_line_errors_naming_file_and_field(tmp_path, collimated, change, field, words):
     d = {"study": {"surface": "R3"}, "participant": [coll("A"), coll("B")], "shared": []}
@@ -84,6 +90,22 @@ def test_the_bundled_study_loads_and_participants_must_observe_alike(tmp_path, c
     study = make_study(tmp_path, [coll("A"), coll("B", instrument="other.toml")])
     with pytest.raises(InputError, match="different directions"):
         run_study(study, workers=0, progress=False, plots=False)
+
+
+def test_a_stated_uncertainty_that_misses_some_cells_is_refused_naming_participant_and_cells(tmp_path, collimated):
+    """A participant stating only its misalignment, with a beta error alone: its table does not move
+    with beta at tan eps 0, so it states u = 0 there. Refused after the nominal sensitivities (no
+    realisation run) by a line naming the file, the participant and the cells (audit 27: "every
+    stated standard uncertainty must be positive", naming neither)."""
+    study = make_study(tmp_path, [coll("A", stated=["misalignment"], sigma="beta_deg=0.05"), coll("B")])
+    with pytest.raises(InputError) as err:
+        run_study(study, workers=0, progress=False, plots=False)
+    assert err.value.field == "participant[1].stated"
+    assert str(tmp_path / "study.toml") in str(err.value) and "'A'" in err.value.reason
+    assert "0:0" in err.value.reason and "\n" not in str(err.value)
+    # with its repeatability stated as well, the same study runs
+    ok = make_study(tmp_path, [coll("A", stated=["misalignment", "repeatability"], sigma="beta_deg=0.05"), coll("B")])
+    assert run_study(ok, workers=0, progress=False, plots=False).dataset is not None
 
 
 def test_identical_collimated_participants_are_compatible_as_expected(tmp_path, collimated):
