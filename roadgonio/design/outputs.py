@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from roadgonio.errors import InputError
 from roadgonio.fileio import atomic_savefig, atomic_write_text, read_netcdf, write_netcdf
 from roadgonio.instrument.config import toml_text
 
@@ -121,6 +122,19 @@ def write_best(ds, path: Path) -> Path | None:
     how = f" --accuracy {acc}" if acc else (f" --rel-se {tol:g}" if tol is not None else "")
     cells = prov.get("cells")
     how += f" --cells {cells}" if isinstance(cells, str) and cells != "all" else ""
+    one = ""
+    if isinstance(cells, str) and cells not in ("all", "table"):
+        from roadgonio.engines.cells import on_the_grid, select_cells
+        try:
+            listed = select_cells(cells)
+        except InputError:
+            listed = []
+        if any(not on_the_grid(*c) for c in listed):
+            # `ka --cells` takes grid cells only (its tables are on the CIE grid); design takes any
+            # (audit 27: the line it printed was refused): the worst cell alone, --tan-eps / --beta
+            how = how.replace(f" --cells {cells}", f" --tan-eps {s['worst_tan_eps']:g} --beta {s['worst_beta_deg']:g}")
+            one = (f" (its worst cell alone, by --tan-eps/--beta: the design's cells {cells} are not all on the "
+                   "CIE grid, which ka --cells needs)")
     samples = json.loads(ds.attrs["samples"])
     header = (f"The feasible design with the most signal, of signals equal within {SAME_SIGNAL_RTOL:g} the least max |k_A - 1| (roadgonio design; {ds.attrs.get('created', '')}).\n"
               f"Varied: {changes}\n"
@@ -129,7 +143,7 @@ def write_best(ds, path: Path) -> Path | None:
               f"signal {s['signal']:.4g} x base\n"
               f"Reproduce its row: roadgonio ka --instrument best.toml --sample {(prov.get('samples') or {}).get(s['worst_sample'], {}).get('spec') or s['worst_sample']} --backend {prov.get('backend')}"
               + how
-              + (f" --model-variant {prov['model_variant']}" if prov.get("model_variant") else "") + (f" --seed {s['seed']}" if seeded else "") + f" (the sample of its worst cell; the study's samples: {', '.join(samples)})")
+              + (f" --model-variant {prov['model_variant']}" if prov.get("model_variant") else "") + (f" --seed {s['seed']}" if seeded else "") + f" (the sample of its worst cell; the study's samples: {', '.join(samples)})" + one)
     return atomic_write_text(path, toml_text(d, header))
 
 

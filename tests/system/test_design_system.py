@@ -80,6 +80,25 @@ def test_best_toml_reproduces_a_row_computed_with_rel_se(tmp_path, capsys):
         assert got["k_a_min"] == float(ds["k_a"].values.ravel()[np.isfinite(ds["k_a"].values.ravel())][0])  # one cell
 
 
+def test_best_toml_reproduces_a_row_of_cells_off_the_grid(tmp_path, capsys):
+    """(audit 27) design takes cells off the CIE grid, ka --cells does not: the reproduce line of
+    such a design was refused (exit 2). It gives the worst cell by --tan-eps/--beta, which runs and
+    gives the row's k_A there."""
+    out = tmp_path / "d"
+    assert main(["design", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature",
+                 "--cells", "3.3:7,12:0", "--vary", "source.radius_m=0.004", "--accuracy", "fast", "--tolerance", "20%",
+                 "--workers", "0", "--out", str(out), "-q"]) == 0
+    line = next(h for h in (out / "best.toml").read_text().splitlines() if "Reproduce its row" in h)
+    cmd = line.split("Reproduce its row: roadgonio ")[1].split(" (the sample")[0].split()
+    assert "--cells" not in cmd and "--tan-eps" in cmd and "--beta" in cmd and "not all on the CIE grid" in line
+    cmd[cmd.index("best.toml")] = str(out / "best.toml")
+    assert main([*cmd, "--out", str(tmp_path / "k"), "--json"]) == 0
+    got = json.loads(capsys.readouterr().out)
+    import xarray as xr
+    with xr.open_dataset(out / "design.nc") as ds:
+        assert abs(got["k_a"] - 1.0) == pytest.approx(float(ds["max_abs_dev"].values.ravel()[0]), rel=1e-12)
+
+
 @pytest.mark.parametrize("args, words", [
     (["--vary", "source.radius=1:2:3"], "unknown instrument key"),
     (["--vary", "source.radius_m=0.01:0.02:3", "--tolerance", "5"], "--tolerance"),
