@@ -132,8 +132,12 @@ def _print(summaries) -> None:
                 parts.append(f"{k} {s[k] - base[k]:+.3f}")
         if parts:
             w(f"  {s['table']} vs {base['table']}: {', '.join(parts)}\n")
-    for note in base.get("notes") or ():        # the layout's, the same for every table
-        w(f"note: {note}\n")
+    printed: set = set()
+    for s in summaries:        # the layout's (the same for every table, printed once), then each table's
+        for note in s.get("notes") or ():
+            if note not in printed:
+                printed.add(note)
+                w(f"note: {note}\n")
     for s in summaries:
         if s.get("missing"):
             w(f"{s['table']}: missing {', '.join(s['missing']['metrics'])}: {s['missing']['reason']}\n")

@@ -188,7 +188,8 @@ def uncounted_note(layout: Layout, fld: Field) -> str | None:
             f"(luminaires_before_h {layout.before_h:g} H = {layout.before_h * h:g} m before the point, "
             f"luminaires_after_h {layout.after_h:g} H = {layout.after_h * h:g} m beyond it; CIE 140's rule as "
             f"roadgonio reads it): the spacing S = {layout.spacing_m:g} m leaves gaps longer than those "
-            f"{reach:g} m, so their luminance is 0 by the rule and U_o is 0")
+            f"{reach:g} m, so their luminance is 0 by the rule and "
+            + ("U_o is 0" if not bare.all() else "nothing is lit (the uniformities are undefined)"))
 
 
 def contribution(luminaire: Luminaire, lum: np.ndarray, rotation_deg: float, tilt_deg: float, point: np.ndarray,

@@ -82,8 +82,15 @@ class Installation:
                 ti_why = ("it needs L_av, which is unknown: the table is blank where luminaire contributions fall "
                           "(see missing)")
         elif lost:
-            missing = {"metrics": lost + (["TI"] if ti_overflow else []) + ["class"],
-                       "reason": "no light where a uniformity needs it (L_av or a lane's L_max is 0): undefined"}
+            # audit 27: TI (it needs L_av > 0) and R_EI (no light inside the edge strips) were null
+            # without being listed
+            dark = ti is None and not m["L_av"] > 0
+            missing = {"metrics": lost + (["TI"] if ti_overflow or dark else [])
+                       + (["R_EI"] if not np.isfinite(self.edge["R_EI"]) else []) + ["class"],
+                       "reason": "no light where a uniformity needs it (L_av or a lane's L_max is 0): undefined"
+                                 + ("; TI needs L_av > 0" if dark else "")
+                                 + ("; R_EI needs light on the strips inside the edges" if not np.isfinite(
+                                     self.edge["R_EI"]) else "")}
         elif ti_overflow:
             missing = {"metrics": ["TI", "class"],
                        "reason": f"L_av = {m['L_av']:.3g} cd/m^2 is so small that TI = 65 L_v / L_av^0.8 exceeds any "
@@ -91,9 +98,14 @@ class Installation:
         if ti_why is None and values["TI"] is None:
             ti_why = (f"L_av = {m['L_av']:.3g} cd/m^2 is so small that TI exceeds any float (see missing)" if ti_overflow
                       else "it needs L_av > 0 (no light on the field)" if not m["L_av"] > 0 else None)
+        if missing is None and not np.isfinite(self.edge["R_EI"]):
+            missing = {"metrics": ["R_EI", "class"],
+                       "reason": "R_EI needs light on the strips inside the edges, and they have none"}
+        values["R_EI"] = _known(values["R_EI"])
         cls = None if missing else metrics.best_class(values)
         return RoadResult(table=table, values=values, L=np.where(op.incomplete, np.nan, L), per_observer=m, cls=cls,
-                          installation=self, operator=op, missing=missing, ti_missing=ti_why)
+                          installation=self, operator=op, missing=missing, ti_missing=ti_why,
+                          table_notes=[n for n in (gap_note(table),) if n])
 
 
 @dataclass
@@ -110,6 +122,8 @@ class RoadResult:
     missing: dict | None = None
     #: why TI is missing although the layout's veiling luminance is computable (None: not missing)
     ti_missing: str | None = None
+    #: what a reader of the metrics must know about this table (summary()["notes"], after the layout's)
+    table_notes: list = field(default_factory=list)
 
     def summary(self) -> dict[str, Any]:
         inst = self.installation
@@ -129,7 +143,7 @@ class RoadResult:
                "L_min": None if self.missing and self.missing.get("points_unknown") else float(np.nanmin(self.L)),
                "L_max": None if self.missing and self.missing.get("points_unknown") else float(np.nanmax(self.L)),
                "missing": self.missing,
-               "notes": list(inst.notes),
+               "notes": list(inst.notes) + list(self.table_notes),
                "TI_note": ti_note,
                "L_v_max": inst.l_v_max, "R_EI_per_edge": inst.edge["per_edge"],
                "failed_criteria_of_next_class": None,
@@ -150,6 +164,27 @@ class RoadResult:
 def _safe(fn):
     """A table characteristic, or None when the table lacks its cells (missing)."""
     return _known(fn())
+
+
+def gap_note(table: RTable) -> str | None:
+    """One line when ``table`` leaves blank cells the CIE standard tables tabulate (a hole in a
+    measured table): the interpolation takes its stencil among the tabulated cells
+    (:mod:`roadgonio.road.interp`), so a contribution near the hole is interpolated across it from
+    the neighbours, and only one with no stencil at all makes its point unknown (``missing``);
+    a laboratory should know which of its cells the metrics did without (audit 27: silent)."""
+    from roadgonio.surface.rtable import standard_mask
+    r = np.asarray(table.r)
+    std = standard_mask()
+    if r.shape != std.shape:
+        return None
+    holes = np.argwhere(std & ~np.isfinite(r))
+    if not len(holes):
+        return None
+    cells = ", ".join(f"{table.tan_eps[i]:g}:{table.beta_deg[j]:g}" for i, j in holes[:4]) + \
+        (f" and {len(holes) - 4} more" if len(holes) > 4 else "")
+    return (f"{table.name}: {len(holes)} cell(s) the CIE standard tables tabulate are blank (tan eps:beta {cells}): "
+            "contributions near them are interpolated across the gap from the tabulated neighbours (EN 13201-3 5.5 "
+            "among the cells given); only where no stencil remains is a point's luminance unknown")
 
 
 def _known(v, unknown: bool = False) -> float | None:

@@ -50,6 +50,39 @@ def test_road_says_when_the_spacing_leaves_points_without_a_counted_luminaire(tm
     assert json.loads(capsys.readouterr().out)["notes"] == []
 
 
+def test_road_with_nothing_counted_lists_every_missing_metric_and_says_nothing_is_lit(tmp_path, capsys):
+    """(audit 27) no luminaire counted anywhere: R_EI was null without a reason, `missing` left out
+    TI and R_EI, and the note said "U_o is 0" beside U_o null."""
+    lay = tmp_path / "zero.toml"
+    lay.write_text("[calculation]\nluminaires_before_h = 0\nluminaires_after_h = 0\n")
+    assert main(["road", "--table", "R3", "--layout", str(lay), "--no-plots", "--out", str(tmp_path / "o"),
+                 "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["L_av"] == 0.0 and d["U_o"] is None and d["TI"] is None and d["R_EI"] is None and d["class"] is None
+    assert {"U_o", "U_l", "TI", "R_EI", "class"} <= set(d["missing"]["metrics"])
+    assert "TI needs L_av > 0" in d["missing"]["reason"] and "R_EI needs light" in d["missing"]["reason"]
+    assert len(d["notes"]) == 1 and "nothing is lit" in d["notes"][0] and "U_o is 0" not in d["notes"][0]
+
+
+def test_road_notes_a_hole_in_the_table_that_it_interpolates_across(tmp_path, capsys):
+    """(audit 27) a blank cell inside the region the CIE tables tabulate (tan eps 2, beta 10) is
+    interpolated across from its neighbours (the interpolation's stencil among the cells given):
+    the metrics are given, with a note naming the cell, printed whichever place the table has."""
+    t = bundled_table("R3")
+    r = t.r.copy()
+    i, j = int(np.argmin(abs(t.tan_eps - 2.0))), int(np.argmin(abs(t.beta_deg - 10.0)))
+    r[i, j] = np.nan
+    t.with_values(r).write_csv(tmp_path / "hole.csv")
+    assert main(["road", "--table", "R3", "--table", str(tmp_path / "hole.csv"), "--no-plots",
+                 "--out", str(tmp_path / "o")]) == 0
+    notes = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("note:")]
+    assert len(notes) == 1 and "hole.csv: 1 cell(s)" in notes[0] and "2:10" in notes[0], notes
+    assert main(["road", "--table", str(tmp_path / "hole.csv"), "--no-plots", "--out", str(tmp_path / "p"),
+                 "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["L_av"] is not None and d["missing"] is None and "2:10" in d["notes"][0]
+
+
 def test_road_several_tables_and_uncertainty(tmp_path, capsys):
     t = bundled_table("R3")
     measured = t.with_values(t.r * 1.2, name="R3_measured")
