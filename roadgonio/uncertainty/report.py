@@ -221,9 +221,15 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
         if rel_u is not None and rel_u > 0:
             # audit 22: the exact tables' own Monte Carlo error moved the nominal values, means and
             # intervals with --seed by up to about one u, and was said only in the JSON
-            lines.append(f"k_A backend: relative standard uncertainty up to {100 * rel_u:.2g} % per cell (its Monte "
-                         "Carlo error, common to every trial: not in u or the intervals; the surrogate's error above "
-                         "is against tables of the same seed; --rel-se lowers it)")
+            from roadgonio.engines.registry import BACKENDS
+            info = BACKENDS.get((s.get("backend") or {}).get("backend", ""))
+            # audit 27: a deterministic backend's bound was called "its Monte Carlo error" and its "seed"
+            what = ("its Monte Carlo error, common to every trial: not in u or the intervals; the surrogate's error "
+                    "above is against tables of the same seed" if info is None or info.seeded else
+                    "its error bound / sqrt(3), a rectangular distribution, common to every trial: not in u or the "
+                    "intervals")
+            lines.append(f"k_A backend: relative standard uncertainty up to {100 * rel_u:.2g} % per cell ({what}; "
+                         "--rel-se lowers it)")
         note = s.get("err_over_u_note")
         if note:
             worst = "; ".join(f"tan eps {w['tan_eps']:g}, beta {w['beta_deg']:g}: {w['err_over_u']:.2g} u(r)"

@@ -390,12 +390,16 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
         ax.set_aspect("equal")
         ax.set_xlabel("field angle, horizontal (deg; right = +y, as the meter looks)")
         ax.set_ylabel("field angle, vertical (deg)")
-        ax.set_title(f"Detector's view: luminance of the sample (field half-angle {gamma:g} deg)", fontsize=10)
+        # with a sensitivity over the field the view is what the meter weighs: luminance x k_D (audit 27:
+        # a map darkened half of a view labelled "luminance")
+        weighted = instrument.detector.field_map is not None or instrument.detector.field_edge_sensitivity != 1.0
+        ax.set_title(f"Detector's view: luminance of the sample{' x its sensitivity k_D' if weighted else ''} "
+                     f"(field half-angle {gamma:g} deg)", fontsize=10)
         # the colour bar beside the square view, both centred (fig.colorbar(ax=ax) anchors the square view
         # at the right of its wide slot: a large blank area on its left)
         from mpl_toolkits.axes_grid1 import make_axes_locatable
         cb = fig.colorbar(im, cax=make_axes_locatable(ax).append_axes("right", size="4%", pad=0.15))
-        cb.set_label("luminance (cd/m$^2$ per lx)")
+        cb.set_label("luminance x k_D (cd/m$^2$ per lx)" if weighted else "luminance (cd/m$^2$ per lx)")
         # on a dark box: white text alone vanished on a bright view
         ax.text(0.02, 0.03, "near edge of the footprint at the bottom,\nfar edge at the top", transform=ax.transAxes,
                 color="white", fontsize=8, va="bottom",
