@@ -412,6 +412,37 @@ def test_an_xml_scene_with_a_housing_and_other_lights(tmp_path):
         assert words in str(err.value) and "holder.xml" in str(err.value)
 
 
+def test_a_part_that_reflects_more_than_it_receives_is_refused(tmp_path):
+    """(audit 27) A holder wall with diffuse reflectance 1.5 ran and added a third more stray light
+    without a word ([housing] refuses wall_reflectance > 1). Its directional albedo, estimated from
+    the BSDF's own sampling, is checked: 1.5 is one InputError naming the XML file and the part; a
+    reflectance of 1 (albedo 1 exactly) and other BSDFs of the scene language pass, each albedo
+    where it belongs (a plain Lambertian's is its reflectance)."""
+    import shutil
+
+    from roadgonio.engines.mitsuba import set_variant
+    from roadgonio.engines.mitsuba.scene import ALBEDO_TOL, directional_albedo_max
+    mi = set_variant()
+    shutil.copy(SCENES / "holder.toml", tmp_path / "holder.toml")
+    xml = (SCENES / "holder.xml").read_text()
+    black = '<float name="reflectance" value="0"/>'
+    assert black in xml
+    for value, ok in (("1.5", False), ("1.0", True), ("0.5", True)):
+        (tmp_path / "holder.xml").write_text(xml.replace(black, f'<float name="reflectance" value="{value}"/>'))
+        inst = Instrument.load(tmp_path / "holder.toml")
+        if ok:
+            assert mitsuba(inst, rel_se=1e-2).rs.stray
+        else:
+            with pytest.raises(InputError, match="reflects more light than it receives") as err:
+                mitsuba(inst, rel_se=1e-2)
+            assert "holder.xml" in str(err.value) and "'wall'" in str(err.value) and "1.5" in str(err.value)
+    for d, lo, hi in (({"type": "diffuse", "reflectance": 0.3}, 0.3 - 1e-6, 0.3 + 1e-6),
+                      ({"type": "diffuse", "reflectance": 1.2}, 1.2 - 1e-6, 1.2 + 1e-6),
+                      ({"type": "roughplastic", "alpha": 0.3}, 0.0, 1.0 + ALBEDO_TOL),
+                      ({"type": "roughconductor", "alpha": 0.05}, 0.5, 1.0 + ALBEDO_TOL)):
+        assert lo <= directional_albedo_max(mi.load_dict(d)) <= hi, d
+
+
 def test_housing_errors_name_the_cell_and_the_wall():
     from roadgonio.engines.mitsuba.engine import BatchEngine  # noqa: F401  (the backend runs the checks)
     with pytest.raises(GeometryError, match=r"tan eps = 12, beta = 0.*housing_wall_x_min"):

@@ -554,6 +554,40 @@ def probe_bsdf(bsdf, n: int = PROBE_LANES, seed: int = 1) -> tuple[float, float]
     return float(v.max(initial=0.0)), float(w.max(initial=0.0))
 
 
+#: A part's BSDF may reflect at most 1 + this of the light it receives (its directional albedo,
+#: :func:`directional_albedo_max`; the Monte Carlo estimate's own error is far below it).
+ALBEDO_TOL = 1e-3
+#: Incidence cosines and lanes of that estimate.
+ALBEDO_COS = (1.0, 0.7, 0.3, 0.05)
+ALBEDO_LANES = 1 << 14
+
+
+def directional_albedo_max(bsdf) -> float:
+    """The largest directional albedo of ``bsdf`` (the share of the light from one direction that it
+    reflects, E[f cos / pdf] over its own sampling, largest colour channel) over incidence cosines
+    :data:`ALBEDO_COS`, by Monte Carlo with fixed numbers (a stratified grid of sample points and
+    texture coordinates), in float64 numpy from the renderer's weights. Above 1 the part creates
+    light: an input error (energy conservation), not a stray-light result."""
+    import numpy as np
+    mi = _mi()
+    n = ALBEDO_LANES
+    k = int(round(n ** 0.5))
+    g = (np.arange(k) + 0.5) / k
+    u, v = [np.ascontiguousarray(a.ravel()) for a in np.meshgrid(g, g)]
+    worst = 0.0
+    for c in ALBEDO_COS:
+        si = mi.SurfaceInteraction3f()
+        si.wi = mi.Vector3f(float(np.sqrt(1.0 - c * c)), 0.0, float(c))
+        si.uv = mi.Point2f(mi.Float(np.roll(u, 7)), mi.Float(np.roll(v, 3)))
+        si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
+        si.n = mi.Vector3f(0.0, 0.0, 1.0)
+        _, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(np.roll(u, 11)), mi.Point2f(mi.Float(u), mi.Float(v)))
+        w = np.asarray(w, dtype=np.float64).reshape(-1, n) if np.asarray(w).size >= n else np.asarray(w, dtype=np.float64)
+        w = np.nan_to_num(w, nan=0.0, posinf=0.0)
+        worst = max(worst, float(np.max(np.mean(w.reshape(-1, n), axis=1))))
+    return worst
+
+
 def classify_parts(rs: RoadScene) -> tuple[list, list[str]]:
     """The shapes of the scene other than the sample and the source whose BSDF reflects light
     (:func:`probe_bsdf`), and the ids of those that only shade (black: reflectance 0)."""
@@ -611,6 +645,13 @@ def _light_paths(rs: RoadScene, scene_sec) -> None:
                              "with next-event estimation to the source, which no mirror reflection can reach; use a "
                              "rough BSDF (roughconductor, roughplastic with alpha > 0) or set [scene] max_bounces = 1",
                              path=where)
+        if shape.id() != SAMPLE_ID and not isinstance(bsdf, road_cls):
+            albedo = directional_albedo_max(bsdf)
+            if albedo > 1.0 + ALBEDO_TOL:
+                # audit 27: diffuse reflectance = 1.5 ran, the stray light grew by a third, no word
+                raise InputError(f"the part {name!r} reflects more light than it receives ({bsdf.class_name()}: "
+                                 f"directional albedo up to {albedo:.3g}); expected a reflectance <= 1",
+                                 path=where)
         if shape.id() != SAMPLE_ID and isinstance(bsdf, road_cls) and bsdf.channels != "road":
             raise InputError(f"the part {name!r} carries a road BSDF in the {bsdf.channels!r} channels: only the "
                              "sample has a Lambert channel; give the part channels = \"road\"", path=where)
