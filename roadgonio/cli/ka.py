@@ -149,6 +149,9 @@ def _not_converged_text(c, target) -> str:
     extra = c.extra or {}
     if extra.get("float32_underflow"):
         return f" -- NOT measured: {extra['note']}"
+    if extra.get("map_kink") is not None:
+        # the quadrature across a sensitivity map's kinks: not at a cap, no bound at all (audit 27)
+        return f" -- NOT converged: {extra['note']}"
     eta_text = ""
     if extra.get("eta_converged") is False:
         rel = extra["eta_error"] / extra["eta"] if extra.get("eta") else math.nan

@@ -42,6 +42,13 @@ of the shares at its last levels in ``error_bound``: an estimate, **not a bound*
 settled; on the wide preset at tan eps 6, beta 0, rtol 1e-6 it said 0.0100 where the error was 0.0177,
 user audit of session 24). The note says so; ``validate`` takes such a reference as inconclusive.
 
+A detector sensitivity map (``field_sensitivity``) is bilinear between its pixels: its kinks lie on
+lines across the field disc that no rule here follows, and successive rules can agree there by
+chance (a map stepping from 1 to 0.1 across the field: bounds 2.4-2.8x below the errors, audit of
+session 27). With a map that has kinks inside (:meth:`~roadgonio.instrument.profiles.FieldMap.interior_kink`:
+any but a uniform or linear one) every cell reports ``converged = False`` and its ``error_bound`` is
+an estimate, with a note; ``--backend reference`` gives a confidence bound there.
+
 Only flat rectangular samples: the footprint check (:func:`roadgonio.instrument.optics.check_detector`) proves
 that every detected ray hits the sample, so the integral runs over the plane z = 0. A mesh sample
 needs the Mitsuba backend.
@@ -69,6 +76,10 @@ from roadgonio.engines.rules import ORDERS, DetectorNodes, disc_rule, gauss_lege
 CHUNK = 1 << 18
 #: Default cap on integrand evaluations of one estimate (pupil x field x source nodes).
 MAX_EVALS = 4_000_000
+#: A field map whose largest relative second difference (:meth:`FieldMap.interior_kink`) is at most
+#: this is taken as having no kinks (a linear map sampled in float64 is not exactly linear in its
+#: last digits).
+MAP_KINK_ROUNDOFF = 1e-9
 #: Relative tolerance of the default preset.
 DEFAULT_RTOL = 1e-4
 #: A direction whose error share is at least this fraction of its part of the tolerance
@@ -147,6 +158,10 @@ class QuadratureBackend(CellByCellBackend):
         self.active = (det.pupil_radius_m > 0.0, det.field_half_angle_deg > 0.0,
                        instrument.source.radius_m > 0.0)
         self._nodes = DetectorNodes(self._det)
+        #: the field map's kinks (its largest second difference, relative; 0 without a map or for a
+        #: map without kinks inside): across them the level-to-level control is no bound (below)
+        fmap = det.field_map
+        self._map_kink = fmap.interior_kink() if fmap is not None and self.active[1] else 0.0
         #: chord of the source disc on which this cell's source rule is cut (None: the whole disc)
         self._chord: tuple[float, float, float] | None = None
 
@@ -346,10 +361,23 @@ class QuadratureBackend(CellByCellBackend):
             lv = nxt
             todo = set(refine)
             fresh = set()
+        kinked = self._map_kink > MAP_KINK_ROUNDOFF
+        if kinked and converged:
+            # audit 27: a map stepping from 1 to 0.1 across the field, 12:0 and 11.5:0 reported converged
+            # with bounds 2.4-2.8x below their errors (against the RQMC reference and numpy-mc): the
+            # successive rules agreed by chance across the bilinear kinks. No bound is claimed there.
+            converged = False
         extra = {"levels": {DIRS[i]: lv[i] for i in act}, "converged": converged,
                  "nodes": {DISCS[k]: rule_size(lv[2 * k], lv[2 * k + 1]) for k in range(3) if self.active[k]},
                  "focus": {DISCS[k]: [focus[k].real, focus[k].imag] for k in range(3) if self.active[k]}}
-        if not converged:
+        if kinked:
+            extra["map_kink"] = self._map_kink
+            extra["note"] = (f"the detector's sensitivity map is bilinear between its pixels, with kinks (slope changes "
+                             f"up to {self._map_kink:.2g} of its largest value between neighbouring pixels): across them "
+                             f"successive rules can agree by chance, so the estimated relative error "
+                             f"{err / abs(base):.2e} is not a bound (not converged); --backend reference gives a "
+                             f"confidence bound")
+        elif not converged:
             extra["note"] = (f"stopped at max_evals = {self.max_evals}: the estimated relative error "
                              f"{err / abs(base):.2e} exceeds rtol = {self.rtol:g}; not converged, so this "
                              f"estimate is not a bound (the error can be larger)")

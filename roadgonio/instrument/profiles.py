@@ -159,6 +159,18 @@ class FieldMap:
     def ny(self) -> int:
         return int(self.values.shape[0])
 
+    def interior_kink(self) -> float:
+        """The largest change of slope of the map's bilinear interpolation
+        (:func:`roadgonio.instrument.optics.map_bilinear`) across a line of pixel centres inside the
+        map, relative to its largest value: the largest second difference along x or y. 0 for a map
+        whose interpolation has no kinks inside (uniform, or linear across the field); the flat
+        extension beyond the outermost centres is left out. A product Gauss rule's successive levels
+        can agree by chance across such kinks (:mod:`roadgonio.engines.quadrature`)."""
+        v = self.values
+        d = [np.abs(np.diff(v, 2, axis=a)) for a in (0, 1) if v.shape[a] >= 3]
+        worst = max((float(x.max()) for x in d if x.size), default=0.0)
+        return worst / float(np.max(np.abs(v)))
+
 
 # ----------------------------------------------------------------------------------------------
 # Reading

@@ -64,15 +64,19 @@ def test_the_example_is_the_portable_preset_plus_its_profile():
 
 def test_the_profile_reaches_k_a_in_the_quadrature_and_the_ray_bundles(r3like):
     """The correction's forward model (ray bundles, RQMC with a replicate SE) of the example agrees
-    with the quadrature (error bound), and both differ from the portable preset's k_A: the bundles
+    with the float64 RQMC reference (confidence bound), and both differ from the portable preset's k_A: the bundles
     would miss it if they dropped the profile, the map or the aperture coordinates."""
     beam, plain = load_instrument("portable_beam"), load_instrument("portable")
-    q = make_backend("quadrature", beam, r3like).compute(CELLS)
+    # the example's field map is bilinear between its 33 x 33 pixels: the quadrature claims no bound
+    # across its kinks (audit 27), so the float64 check of the example is the RQMC reference's
+    # confidence bound
+    q = make_backend("reference", beam, r3like, rtol=2e-4, seed=3).compute(CELLS)
+    assert not any(r.converged for r in make_backend("quadrature", beam, r3like, rtol=1e-3).compute(CELLS[:1]))
     q0 = make_backend("quadrature", plain, r3like).compute(CELLS)
     b = BundleBackend(beam, r3like, rays=1024).compute(CELLS)
     z = z_family(len(CELLS))
     for a, c in zip(q, b):
-        assert a.converged and abs(a.k_a - c.k_a) <= z * c.se + a.error_bound, (a.k_a, c.k_a, c.se)
+        assert a.converged and abs(a.k_a - c.k_a) <= z * c.se + a.confidence_bound, (a.k_a, c.k_a, c.se)
     # the same check against the portable preset's k_A fails: the profile is seen, not just carried
     worst = max((abs(c.k_a - p.k_a) - p.error_bound) / c.se for c, p in zip(b, q0))
     assert math.isfinite(worst) and worst > 2 * z, worst

@@ -682,6 +682,30 @@ def test_a_gradient_map_in_the_backends(tmp_path):
         assert abs(a.k_a - c.k_a) > 100 * (a.error_bound + c.error_bound)
 
 
+def test_the_quadrature_claims_no_bound_across_a_maps_kinks(tmp_path):
+    """(audit 27) A map stepping from 1 to 0.1 across the field (9 x 9 pixels): the quadrature
+    reported 12:0 converged at 0.967995 +- 2.9e-5 where the RQMC reference and numpy-mc give
+    0.96807 (error 2.8x the bound). Across a map's kinks the successive rules can agree by chance:
+    such cells are not converged, their error an estimate with a note; here the reference's
+    confidence bound shows the estimate was no bound. A uniform or linear map has no kinks
+    (interior_kink 0 to round-off) and keeps its bound."""
+    from roadgonio.instrument.profiles import read_field_map
+    step = write_map_csv(tmp_path / "step.csv", lambda x, y: np.where(x > 0.05, 0.1, 1.0), 9)
+    lin = write_map_csv(tmp_path / "lin.csv", lambda x, y: 1.0 + 0.3 * x + 0.5 * y, 9)
+    assert read_field_map(step).interior_kink() == pytest.approx(0.9)
+    assert read_field_map(lin).interior_kink() < 1e-12
+    model = _road()
+    base = load_instrument("portable")
+    cell = (12.0, 0.0)
+    q = make_backend("quadrature", base.with_changes(detector={"field_sensitivity": str(step)}), model).compute_cell(*cell)
+    assert not q.converged and "kinks" in q.extra["note"] and q.extra["map_kink"] == pytest.approx(0.9)
+    ref = make_backend("reference", base.with_changes(detector={"field_sensitivity": str(step)}), model, rtol=2e-5,
+                       seed=1).compute_cell(*cell)
+    assert ref.converged and abs(q.k_a - ref.k_a) > q.error_bound + ref.confidence_bound   # the estimate was no bound
+    ok = make_backend("quadrature", base.with_changes(detector={"field_sensitivity": str(lin)}), model).compute_cell(*cell)
+    assert ok.converged and "map_kink" not in ok.extra
+
+
 @pytest.mark.parametrize("text, needle", [
     ("1,2\n3\n", "expected 2 numbers"),
     ("1,2,3\n", "at least 2 x 2"),
