@@ -230,6 +230,10 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
                     "intervals")
             lines.append(f"k_A backend: relative standard uncertainty up to {100 * rel_u:.2g} % per cell ({what}; "
                          "--rel-se lowers it)")
+        if s.get("not_converged"):
+            # audit 27: in the JSON only
+            lines.append(f"note: {s['not_converged']} of the {s['exact_evaluations']} exact k_A evaluations stopped "
+                         "before their backend's target (not converged): the surrogate's error above is against them")
         note = s.get("err_over_u_note")
         if note:
             worst = "; ".join(f"tan eps {w['tan_eps']:g}, beta {w['beta_deg']:g}: {w['err_over_u']:.2g} u(r)"

@@ -514,6 +514,11 @@ def test_uncertainty_notes_a_surrogate_error_large_against_u():
     lines = [ln for ln in summary_lines(rough) if ln.startswith("note:")]
     assert len(lines) == 1 and "tan eps 12, beta 0:" in lines[0] and f"of {n} cells" in lines[0]
     assert f"max/u(r) = {ratio_12_0:.2g}" in summary_lines(rough)[-2]               # the number as before
+    # exact evaluations that stopped before their target were counted in the JSON only (audit 27)
+    import dataclasses
+    capped = dataclasses.replace(smooth, surrogate=dataclasses.replace(smooth.surrogate, not_converged=3))
+    lines = [ln for ln in summary_lines(capped) if ln.startswith("note:")]
+    assert len(lines) == 1 and lines[0].startswith("note: 3 of the ") and "not converged" in lines[0]
 
 
 def test_the_backends_standard_uncertainty_is_named_as_such():
