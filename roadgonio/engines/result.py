@@ -174,7 +174,7 @@ def welch_satterthwaite_many(variances, dofs, starts) -> np.ndarray:
     """:func:`welch_satterthwaite` of many groups of terms at once: the terms of group g are
     ``variances[starts[g]:starts[g + 1]]`` (``starts`` increasing, the first 0, every group
     non-empty), with their ``dofs``; an array of one value per group (a table's cells: their SEs
-    sum independent strata, :func:`roadgonio.engines.mitsuba.passes.ratio_se_dof_many`)."""
+    sum independent strata, :func:`roadgonio.engines.mitsuba.passes.se_dof_many`)."""
     v = np.asarray(variances, dtype=np.float64).ravel()
     nu = np.asarray(dofs, dtype=np.float64).ravel()
     starts = np.asarray(starts, dtype=np.int64).ravel()

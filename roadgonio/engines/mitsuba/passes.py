@@ -307,9 +307,8 @@ def strata_ratio_se_dof_many(cells: Sequence[Sequence[tuple[np.ndarray, np.ndarr
     var = np.add.reduceat(v0, cstarts)
     with np.errstate(divide="ignore", invalid="ignore"):
         s_err = np.sqrt(np.maximum(var, 0.0)) / np.abs(np.where(ok, sb, 1.0))
-        den = np.add.reduceat(np.where(counts < 2, 0.0, v0 * v0 / (counts - 1.0)), cstarts)
-        nominal = np.add.reduceat(np.maximum(counts - 1.0, 0.0), cstarts)
-        d_eff = np.where(den > 0.0, var * var / np.where(den > 0.0, den, 1.0), nominal)
+    # Welch-Satterthwaite over the cell's strata, B_q - 1 each (a stratum of one replicate: none)
+    d_eff = welch_satterthwaite_many(v0, counts - 1.0, cstarts)
     idx = np.asarray(live)
     ratio[idx[ok]] = r[ok]
     good = ok & ~single

@@ -582,9 +582,9 @@ def directional_albedo_max(bsdf) -> float:
         si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
         si.n = mi.Vector3f(0.0, 0.0, 1.0)
         _, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(np.roll(u, 11)), mi.Point2f(mi.Float(u), mi.Float(v)))
-        w = np.asarray(w, dtype=np.float64).reshape(-1, n) if np.asarray(w).size >= n else np.asarray(w, dtype=np.float64)
-        w = np.nan_to_num(w, nan=0.0, posinf=0.0)
-        worst = max(worst, float(np.max(np.mean(w.reshape(-1, n), axis=1))))
+        # (channels, lanes); a monochrome variant's Float is one channel
+        w = np.nan_to_num(np.atleast_2d(np.asarray(w, dtype=np.float64)), nan=0.0, posinf=0.0)
+        worst = max(worst, float(np.max(np.mean(w, axis=1))))
     return worst
 
 
