@@ -50,8 +50,8 @@ def register(sub) -> None:
                         "inconclusive)")
     p.add_argument("--seed", type=int, default=0, help="random seed (>= 0) of the Monte Carlo backend")
     p.add_argument("--floor", type=float, metavar="F",
-                   help="relative float32 floor added to the allowed difference (default: the measured value "
-                        "for the backend, 0 for numpy-mc)")
+                   help="relative floor added to the allowed difference (default: the measured float32 floor "
+                        "for mitsuba, 1e-12, the float64 round-off, for numpy-mc)")
     add_mitsuba_variant(p)
     p.add_argument("--out", metavar="DIR", help="output folder (default out/validate-INSTRUMENT-SAMPLE)")
     add_output_options(p, "print the report (verdict, counts, cells with their verdicts and reasons) as JSON instead "
