@@ -28,6 +28,7 @@ from roadgonio.errors import BackendError, GeometryError, InputError, count
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
+from roadgonio.engines.cells import cells_text
 from roadgonio.engines.result import ideal_ratio, ideal_ratios
 
 
@@ -150,7 +151,7 @@ def check_requested(backend, instrument: Instrument, model: RoadModel, cells: Se
         bad = refused_cells(instrument, models, cells, models_beam=models_beam)
         if not bad:
             raise InputError(f"the {name} backend cannot compute a cell asked: {reason}", field=field) from None
-        listed = ", ".join(f"{t:g}:{b:g}" for t, b in bad[:LISTED]) + (", ..." if len(bad) > LISTED else "")
+        listed = cells_text(bad, LISTED)
         which = f"cell {listed}" if len(bad) == 1 else f"cells {listed}"
         if len(cells) > 1:
             which += f" ({len(bad)} of the {count(len(cells), 'cell')} asked)"

@@ -122,6 +122,13 @@ def select_cells(selection, table=None, *, on_grid: bool = False, field: str = "
     return cells
 
 
+def cells_text(cells, limit: int = 6) -> str:
+    """Cells as a message lists them: 'T:B, T:B, ...' (the ``--cells`` syntax), the first ``limit``
+    of them and ', ...' when there are more (the message says how many)."""
+    cells = list(cells)
+    return ", ".join(f"{t:g}:{b:g}" for t, b in cells[:limit]) + (", ..." if len(cells) > limit else "")
+
+
 def grid_index(tan_eps: float, beta_deg: float) -> tuple[int, int] | None:
     """The (row, column) of a cell on the CIE grid, None for a cell off the grid."""
     i, j, off = nearest_grid_node(tan_eps, beta_deg)

@@ -505,16 +505,17 @@ def precision_text(summary: dict[str, Any]) -> str:
     Carlo table under absolute calibration gives its SE and, beside it, eta's bound)."""
     for key, name in (("worst_rel_se", "worst rel. SE"), ("worst_rel_error_bound", "worst rel. error bound")):
         if summary.get(key) is not None:
-            text = f"{name} {summary[key]:.1e}"
+            estimated = key == "worst_rel_error_bound" and bool(summary.get("not_converged"))
+            # the error_bound of a cell not converged is an estimate (a cell at the cap, or across a
+            # map's kinks): the table's line called the worst of them a bound (audit 27)
+            text = f"{'worst rel. error' if estimated else name} {summary[key]:.1e}"
             if key == "worst_rel_se" and summary.get("worst_rel_error_bound") is not None:
                 # absolute calibration of a Monte Carlo table: eta's error, a bound beside the SE
                 text += f" (and eta's worst rel. error bound {summary['worst_rel_error_bound']:.1e})"
             if summary.get("not_converged"):
                 text += f", {count(summary['not_converged'], 'cell')} NOT converged"
-                if key == "worst_rel_error_bound":
-                    # their error_bound is an estimate (a cell at the cap, or across a map's kinks): the
-                    # table's line called the worst of them a bound (audit 27)
-                    text = text.replace(name, "worst rel. error", 1) + " (there an estimate, not a bound)"
+                if estimated:
+                    text += " (there an estimate, not a bound)"
                 if summary.get("eta_not_converged"):
                     text += (f" (in {summary['eta_not_converged']} of them eta of the absolute calibration stopped at "
                              f"its cap: relative error up to {summary['eta_worst_rel_error']:.1e}, "

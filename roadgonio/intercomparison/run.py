@@ -236,6 +236,7 @@ def check_stated(setup: sim.Setup, study, cells) -> None:
     stated ``misalignment`` alone whose angles do not move some cells (beta errors at tan eps 0)
     leaves u = 0 there, which the statistics cannot weigh (audit 27: refused only at the end, by a
     line naming no file, participant or cell)."""
+    from roadgonio.engines.cells import cells_text
     from roadgonio.intercomparison.study import states_raw
     for p, part in enumerate(study.participants):
         if not states_raw(part):
@@ -243,8 +244,7 @@ def check_stated(setup: sim.Setup, study, cells) -> None:
         u = sim.stated_rel(setup, p)
         zero = np.flatnonzero(~(u > 0.0))
         if zero.size:
-            where = ", ".join(f"{cells.tan_eps[j]:g}:{cells.beta_deg[j]:g}" for j in zero[:6]) + \
-                (f" and {zero.size - 6} more" if zero.size > 6 else "")
+            where = cells_text(zip(cells.tan_eps[zero], cells.beta_deg[zero]))
             raise InputError(f"participant {part.name!r} states a standard uncertainty of 0 at {zero.size} of "
                              f"{u.size} cells (tan eps:beta {where}): its stated components ({', '.join(part.stated)}) "
                              "do not reach them; expected a component that does ('repeatability', 'calibration' or "

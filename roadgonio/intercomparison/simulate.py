@@ -62,6 +62,7 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import MAX_LENGTH_M
 from roadgonio.intercomparison import statistics as st
+from roadgonio.intercomparison.study import corrects_nothing
 
 #: Scenarios of a study: as declared, and every participant correcting with roadgonio.
 SCENARIOS = ("declared", "all_corrected")
@@ -427,9 +428,9 @@ def realisation(setup: Setup, m: int, corrections: dict[tuple[str, int], tuple[n
 
 
 def _identity(setup: Setup, p: int) -> bool:
-    """A collimated (ideal) instrument: k_A = 1, its correction changes nothing."""
-    pm = setup.participants[p]
-    return pm.ideal and pm.mm.instrument.calibration.mode == "lambert"
+    """A collimated (ideal) instrument: k_A = 1, its correction changes nothing
+    (:func:`~roadgonio.intercomparison.study.corrects_nothing` of its instrument)."""
+    return corrects_nothing(setup.participants[p].mm.instrument)
 
 
 def _correction_of(setup: Setup, corrections, p: int, m: int, mode: str):

@@ -322,11 +322,17 @@ def _shared(k: int, d: Any, names: list[str], path) -> SharedEffect:
     return SharedEffect(name=name, kind=kind, participants=tuple(who), sigma=sig)
 
 
+def corrects_nothing(instrument: Instrument) -> bool:
+    """A collimated (ideal) instrument calibrated against a Lambertian standard: k_A = 1, its
+    correction changes nothing (it reports its table raw whatever it is asked)."""
+    return instrument.is_ideal() and instrument.calibration.mode == "lambert"
+
+
 def states_raw(part: Participant) -> bool:
     """The participant states its raw table's uncertainty alone in some scenario (it reports raw,
-    or its instrument is collimated and Lambert-calibrated, so its correction changes nothing):
-    that uncertainty must then be positive at every cell, nothing else adds to it."""
-    return part.report == "raw" or (part.instrument.is_ideal() and part.instrument.calibration.mode == "lambert")
+    or its correction changes nothing, :func:`corrects_nothing`): that uncertainty must then be
+    positive at every cell, nothing else adds to it."""
+    return part.report == "raw" or corrects_nothing(part.instrument)
 
 
 def _stated_can_be_positive(part: Participant, shared: Sequence[SharedEffect]) -> bool:

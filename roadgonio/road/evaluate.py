@@ -63,7 +63,7 @@ class Installation:
             ti = None
         values = {"L_av": _known(m["L_av"], gone["L_av"]), "U_o": _known(m["U_o"], gone["U_o"]),
                   "U_l": _known(m["U_l"], gone["U_l"]),
-                  "TI": None if ti is None or gone["TI"] else float(ti), "R_EI": self.edge["R_EI"]}
+                  "TI": None if ti is None or gone["TI"] else float(ti), "R_EI": _known(self.edge["R_EI"])}
         m = dict(m, L_av_obs=np.where(gone["obs"], np.nan, m["L_av_obs"]),
                  U_o_obs=np.where(gone["obs"], np.nan, m["U_o_obs"]),
                  U_l_lane=np.where(gone["lanes"], np.nan, m["U_l_lane"]))
@@ -82,15 +82,11 @@ class Installation:
                 ti_why = ("it needs L_av, which is unknown: the table is blank where luminaire contributions fall "
                           "(see missing)")
         elif lost:
-            # audit 27: TI (it needs L_av > 0) and R_EI (no light inside the edge strips) were null
-            # without being listed
+            # audit 27: TI (it needs L_av > 0) was null without being listed
             dark = ti is None and not m["L_av"] > 0
-            missing = {"metrics": lost + (["TI"] if ti_overflow or dark else [])
-                       + (["R_EI"] if not np.isfinite(self.edge["R_EI"]) else []) + ["class"],
+            missing = {"metrics": lost + (["TI"] if ti_overflow or dark else []) + ["class"],
                        "reason": "no light where a uniformity needs it (L_av or a lane's L_max is 0): undefined"
-                                 + ("; TI needs L_av > 0" if dark else "")
-                                 + ("; R_EI needs light on the strips inside the edges" if not np.isfinite(
-                                     self.edge["R_EI"]) else "")}
+                                 + ("; TI needs L_av > 0" if dark else "")}
         elif ti_overflow:
             missing = {"metrics": ["TI", "class"],
                        "reason": f"L_av = {m['L_av']:.3g} cd/m^2 is so small that TI = 65 L_v / L_av^0.8 exceeds any "
@@ -101,7 +97,12 @@ class Installation:
         if missing is None and not np.isfinite(self.edge["R_EI"]):
             missing = {"metrics": ["R_EI", "class"],
                        "reason": "R_EI needs light on the strips inside the edges, and they have none"}
-        values["R_EI"] = _known(values["R_EI"])
+        if values["R_EI"] is None:
+            # audit 27: R_EI (no light on the strips inside the edges) was null without being listed
+            why = "R_EI needs light on the strips inside the edges"
+            missing = ({"metrics": ["R_EI", "class"], "reason": why} if missing is None else
+                       dict(missing, metrics=missing["metrics"][:-1] + ["R_EI", "class"],
+                            reason=f"{missing['reason']}; {why}"))
         cls = None if missing else metrics.best_class(values)
         return RoadResult(table=table, values=values, L=np.where(op.incomplete, np.nan, L), per_observer=m, cls=cls,
                           installation=self, operator=op, missing=missing, ti_missing=ti_why,

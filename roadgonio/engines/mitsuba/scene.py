@@ -531,20 +531,30 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
 # Stray light: which parts of the scene reflect, and how many reflections a path follows
 # ----------------------------------------------------------------------------------------------
 
-def probe_bsdf(bsdf, n: int = PROBE_LANES, seed: int = 1) -> tuple[float, float]:
-    """Largest reflected value of a BSDF over ``n`` random (uv, incident, outgoing) triples in the
-    upper hemisphere: (max of eval, max of the sample weight); both 0 for a black BSDF."""
+def local_interaction(n: int, u, v, wi):
+    """``n`` lanes of a surface interaction in a BSDF's local frame (normal +z, at the origin) with
+    texture coordinates (``u``, ``v``) and incident direction ``wi``: what :func:`probe_bsdf` and
+    :func:`directional_albedo_max` hand to the BSDF."""
     mi = _mi()
     import drjit as dr
-    rng = np.random.default_rng(seed)
-    u = rng.random((n, 8)).astype(np.float32)
     si = dr.zeros(mi.SurfaceInteraction3f, n)
     si.t = mi.Float(1.0)
     si.p = mi.Point3f(0.0, 0.0, 0.0)
     si.n = mi.Normal3f(0.0, 0.0, 1.0)
     si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
-    si.uv = mi.Point2f(mi.Float(u[:, 0]), mi.Float(u[:, 1]))
-    si.wi = mi.warp.square_to_cosine_hemisphere(mi.Point2f(mi.Float(u[:, 2]), mi.Float(u[:, 3])))
+    si.uv = mi.Point2f(mi.Float(u), mi.Float(v))
+    si.wi = wi
+    return si
+
+
+def probe_bsdf(bsdf, n: int = PROBE_LANES, seed: int = 1) -> tuple[float, float]:
+    """Largest reflected value of a BSDF over ``n`` random (uv, incident, outgoing) triples in the
+    upper hemisphere: (max of eval, max of the sample weight); both 0 for a black BSDF."""
+    mi = _mi()
+    rng = np.random.default_rng(seed)
+    u = rng.random((n, 8)).astype(np.float32)
+    si = local_interaction(n, u[:, 0], u[:, 1],
+                           mi.warp.square_to_cosine_hemisphere(mi.Point2f(mi.Float(u[:, 2]), mi.Float(u[:, 3]))))
     wo = mi.warp.square_to_cosine_hemisphere(mi.Point2f(mi.Float(u[:, 4]), mi.Float(u[:, 5])))
     ctx = mi.BSDFContext()
     value = bsdf.eval(ctx, si, wo)
@@ -568,7 +578,6 @@ def directional_albedo_max(bsdf) -> float:
     :data:`ALBEDO_COS`, by Monte Carlo with fixed numbers (a stratified grid of sample points and
     texture coordinates), in float64 numpy from the renderer's weights. Above 1 the part creates
     light: an input error (energy conservation), not a stray-light result."""
-    import numpy as np
     mi = _mi()
     n = ALBEDO_LANES
     k = int(round(n ** 0.5))
@@ -576,11 +585,8 @@ def directional_albedo_max(bsdf) -> float:
     u, v = [np.ascontiguousarray(a.ravel()) for a in np.meshgrid(g, g)]
     worst = 0.0
     for c in ALBEDO_COS:
-        si = mi.SurfaceInteraction3f()
-        si.wi = mi.Vector3f(float(np.sqrt(1.0 - c * c)), 0.0, float(c))
-        si.uv = mi.Point2f(mi.Float(np.roll(u, 7)), mi.Float(np.roll(v, 3)))
-        si.sh_frame = mi.Frame3f(mi.Vector3f(0.0, 0.0, 1.0))
-        si.n = mi.Vector3f(0.0, 0.0, 1.0)
+        si = local_interaction(n, np.roll(u, 7), np.roll(v, 3),
+                               mi.Vector3f(float(np.sqrt(1.0 - c * c)), 0.0, float(c)))
         _, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(np.roll(u, 11)), mi.Point2f(mi.Float(u), mi.Float(v)))
         # (channels, lanes); a monochrome variant's Float is one channel
         w = np.nan_to_num(np.atleast_2d(np.asarray(w, dtype=np.float64)), nan=0.0, posinf=0.0)
