@@ -149,8 +149,8 @@ def _not_converged_text(c, target) -> str:
     extra = c.extra or {}
     if extra.get("float32_underflow"):
         return f" -- NOT measured: {extra['note']}"
-    if extra.get("map_kink") is not None:
-        # the quadrature across a sensitivity map's kinks: not at a cap, no bound at all (audit 27)
+    if extra.get("map_pieces") is not None:
+        # the quadrature across the kinks of a map of too many pieces: not at a cap, no bound (audit 27)
         return f" -- NOT converged: {extra['note']}"
     eta_text = ""
     if extra.get("eta_converged") is False:

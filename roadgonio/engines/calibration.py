@@ -54,7 +54,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from roadgonio.engines.result import CellResult, KaBackend, welch_satterthwaite
-from roadgonio.engines.rules import ORDERS, DetectorNodes, disc_rule, size
+from roadgonio.engines.rules import ORDERS, DetectorNodes, disc_rule
 from roadgonio.errors import GeometryError, InputError
 from roadgonio.fileio import fingerprint
 from roadgonio.instrument import optics
@@ -194,11 +194,11 @@ class _EtaIntegrator:
             nxt = list(lv)
             for i in refine:
                 nxt[i] += 1
-            if max(nxt) >= len(ORDERS) or size(nxt) > max_evals:
+            if max(nxt) >= len(ORDERS) or self.detector_nodes.size(nxt) > max_evals:
                 i = max(shares, key=shares.get)
                 nxt = list(lv)
                 nxt[i] += 1
-                if nxt[i] >= len(ORDERS) or size(nxt) > max_evals:
+                if nxt[i] >= len(ORDERS) or self.detector_nodes.size(nxt) > max_evals:
                     converged = False
                     break
             lv = nxt

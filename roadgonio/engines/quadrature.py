@@ -42,12 +42,18 @@ of the shares at its last levels in ``error_bound``: an estimate, **not a bound*
 settled; on the wide preset at tan eps 6, beta 0, rtol 1e-6 it said 0.0100 where the error was 0.0177,
 user audit of session 24). The note says so; ``validate`` takes such a reference as inconclusive.
 
-A detector sensitivity map (``field_sensitivity``) is bilinear between its pixels: its kinks lie on
-lines across the field disc that no rule here follows, and successive rules can agree there by
-chance (a map stepping from 1 to 0.1 across the field: bounds 2.4-2.8x below the errors, audit of
-session 27). With a map that has kinks inside (:meth:`~roadgonio.instrument.profiles.FieldMap.interior_kink`:
-any but a uniform or linear one) every cell reports ``converged = False`` and its ``error_bound`` is
-an estimate, with a note; ``--backend reference`` gives a confidence bound there.
+A detector sensitivity map (``field_sensitivity``) is bilinear between its pixel centres and flat
+beyond the outermost ones: its slope jumps on those lines across the field disc, where a rule over
+the whole disc converges only algebraically and successive rules can agree by chance (a map
+stepping from 1 to 0.1 across the field: bounds 2.4-2.8x below the errors, audit of session 27).
+With a map the field's rule is cut along the lines where it changes slope
+(:func:`roadgonio.engines.rules.map_disc_rule`, no focus; only the outermost ones for a linear map):
+on each piece the map is one bilinear function, the integrand is smooth, and the error control above
+holds as for a uniform field (step, linear and random 9 x 9 maps: true errors 0.01-0.2 of the bound
+against the RQMC reference). Each piece costs at least 2 x 2 nodes, so a map whose lines cut the
+disc into more than :data:`~roadgonio.engines.rules.MAP_PIECES_MAX` pieces (a smooth 33 x 33 map:
+1,472) is integrated over the whole disc as before, and its cells report ``converged = False`` with
+a note: their error is an estimate, not a bound (``--backend reference`` gives a confidence bound).
 
 Only flat rectangular samples: the footprint check (:func:`roadgonio.instrument.optics.check_detector`) proves
 that every detected ray hits the sample, so the integral runs over the plane z = 0. A mesh sample
@@ -70,16 +76,13 @@ from roadgonio.instrument import optics
 from roadgonio.engines.registry import check_relative
 from roadgonio.engines.result import CellByCellBackend, CellResult
 from roadgonio.engines.cellcheck import check_cell, no_light
-from roadgonio.engines.rules import ORDERS, DetectorNodes, disc_rule, gauss_legendre, rule_size, size
+from roadgonio.engines.rules import (MAP_PIECES_MAX, ORDERS, DetectorNodes, disc_rule, field_rule_size, gauss_legendre,
+                                     map_kinks, map_piece_count, map_unsplit, rule_size)
 
 #: Number of integrand evaluations held in memory at once.
 CHUNK = 1 << 18
 #: Default cap on integrand evaluations of one estimate (pupil x field x source nodes).
 MAX_EVALS = 4_000_000
-#: A field map whose largest relative second difference (:meth:`FieldMap.interior_kink`) is at most
-#: this is taken as having no kinks (a linear map sampled in float64 is not exactly linear in its
-#: last digits).
-MAP_KINK_ROUNDOFF = 1e-9
 #: Relative tolerance of the default preset.
 DEFAULT_RTOL = 1e-4
 #: A direction whose error share is at least this fraction of its part of the tolerance
@@ -157,11 +160,12 @@ class QuadratureBackend(CellByCellBackend):
         #: which discs are integrated (radius > 0); a zero disc is a single node
         self.active = (det.pupil_radius_m > 0.0, det.field_half_angle_deg > 0.0,
                        instrument.source.radius_m > 0.0)
+        #: the pupil x field nodes (the field's rule cut along a sensitivity map's lines)
         self._nodes = DetectorNodes(self._det)
-        #: the field map's kinks (its largest second difference, relative; 0 without a map or for a
-        #: map without kinks inside): across them the level-to-level control is no bound (below)
-        fmap = det.field_map
-        self._map_kink = fmap.interior_kink() if fmap is not None and self.active[1] else 0.0
+        #: a map with kinks fixes the field rule's pieces: no focus on the field disc
+        self._field_split = self.active[1] and map_kinks(self._det) is not None
+        #: a map with kinks the field rule does not follow (too many pieces): no bound (below)
+        self._map_unsplit = self.active[1] and map_unsplit(self._det)
         #: chord of the source disc on which this cell's source rule is cut (None: the whole disc)
         self._chord: tuple[float, float, float] | None = None
 
@@ -169,7 +173,8 @@ class QuadratureBackend(CellByCellBackend):
     def settings(self) -> dict[str, Any]:
         return {"backend": self.name, "rtol": self.rtol, "max_evals": self.max_evals,
                 "start_level": self.start_level, "focus": self.focus,
-                "rule": "polar Gauss-Jacobi (r) x trapezoid (angle) per disc, adaptive per disc",
+                "rule": "polar Gauss-Jacobi (r) x trapezoid (angle) per disc, adaptive per disc"
+                        + ("; field cut along the sensitivity map's pixel-centre lines" if self._field_split else ""),
                 "discs": [d for d, a in zip(DISCS, self.active) if a], "precision": "float64"}
 
     # -- integrand ----------------------------------------------------------------------------
@@ -223,11 +228,11 @@ class QuadratureBackend(CellByCellBackend):
         out = []
         for k, m in enumerate(margs):
             lvv, lvh = levels[2 * k], levels[2 * k + 1]
-            x, y, _ = disc_rule(lvv, lvh)
             tot = m.sum()
-            if lvv < 0 or not (tot > 0.0 and math.isfinite(tot)):
+            if lvv < 0 or (k == 1 and self._field_split) or not (tot > 0.0 and math.isfinite(tot)):
                 out.append(0j)
                 continue
+            x, y, _ = disc_rule(lvv, lvh)
             c = complex(float(m @ x) / tot, float(m @ y) / tot)
             r = abs(c)
             if r < FOCUS_MIN:
@@ -275,7 +280,7 @@ class QuadratureBackend(CellByCellBackend):
         if self.focus and act and self._chord is None:
             probe = tuple(FOCUS_PROBE_LEVEL if i in act else -1 for i in range(6))
             focus = self._focus(src, probe)
-            evals += size(probe)
+            evals += self._nodes.size(probe)
         cache: dict[tuple[int, ...], float] = {}
 
         def q(levels):
@@ -283,7 +288,7 @@ class QuadratureBackend(CellByCellBackend):
             levels = tuple(levels)
             if levels not in cache:
                 road, lam = self._estimate(src, levels, focus)
-                evals += size(levels)
+                evals += self._nodes.size(levels)
                 cache[levels] = (road / lam) / nominal if lam > 0.0 else math.nan
             return cache[levels]
 
@@ -306,7 +311,7 @@ class QuadratureBackend(CellByCellBackend):
             if not math.isfinite(base):
                 # no node sees light yet (a narrow source beam): refine every direction
                 nxt = [lvl + 1 if i in act else lvl for i, lvl in enumerate(lv)]
-                if not act or max(nxt) >= len(ORDERS) or size(nxt) > self.max_evals:
+                if not act or max(nxt) >= len(ORDERS) or self._nodes.size(nxt) > self.max_evals:
                     raise no_light(tan_eps, beta_deg, "(the source beam misses the detector footprint)")
                 lv = nxt
                 continue
@@ -330,7 +335,7 @@ class QuadratureBackend(CellByCellBackend):
                     for i in act:
                         if deltas[i] >= CONFIRM_SHARE * self.rtol * abs(base) / len(act):
                             up[i] += 1
-                    if up == lv or max(up) >= len(ORDERS) or size(up) > self.max_evals:
+                    if up == lv or max(up) >= len(ORDERS) or self._nodes.size(up) > self.max_evals:
                         break
                     fine = q(up)
                     jump = abs(fine - base) if math.isfinite(fine) else math.inf
@@ -345,12 +350,12 @@ class QuadratureBackend(CellByCellBackend):
             nxt = list(lv)
             for i in refine:
                 nxt[i] += 1
-            if max(nxt) >= len(ORDERS) or size(nxt) > self.max_evals:
+            if max(nxt) >= len(ORDERS) or self._nodes.size(nxt) > self.max_evals:
                 # within the cap, refine only the direction with the largest share
                 refine = [max(deltas, key=deltas.get)]
                 nxt = list(lv)
                 nxt[refine[0]] += 1
-                if nxt[refine[0]] >= len(ORDERS) or size(nxt) > self.max_evals:
+                if nxt[refine[0]] >= len(ORDERS) or self._nodes.size(nxt) > self.max_evals:
                     for i in set(act) - fresh:
                         deltas[i] = share_of(i)
                     err = sum(deltas.values())
@@ -361,22 +366,22 @@ class QuadratureBackend(CellByCellBackend):
             lv = nxt
             todo = set(refine)
             fresh = set()
-        kinked = self._map_kink > MAP_KINK_ROUNDOFF
-        if kinked and converged:
-            # audit 27: a map stepping from 1 to 0.1 across the field, 12:0 and 11.5:0 reported converged
-            # with bounds 2.4-2.8x below their errors (against the RQMC reference and numpy-mc): the
-            # successive rules agreed by chance across the bilinear kinks. No bound is claimed there.
+        if self._map_unsplit and converged:
+            # audit 27: across a map's kinks successive rules agreed by chance (bounds 2.4-2.8x below
+            # the errors); the rule follows the kinks only up to MAP_PIECES_MAX pieces
             converged = False
         extra = {"levels": {DIRS[i]: lv[i] for i in act}, "converged": converged,
-                 "nodes": {DISCS[k]: rule_size(lv[2 * k], lv[2 * k + 1]) for k in range(3) if self.active[k]},
+                 "nodes": {DISCS[k]: (field_rule_size(self._det, lv[2], lv[3]) if k == 1 else
+                                      rule_size(lv[2 * k], lv[2 * k + 1])) for k in range(3) if self.active[k]},
                  "focus": {DISCS[k]: [focus[k].real, focus[k].imag] for k in range(3) if self.active[k]}}
-        if kinked:
-            extra["map_kink"] = self._map_kink
-            extra["note"] = (f"the detector's sensitivity map is bilinear between its pixels, with kinks (slope changes "
-                             f"up to {self._map_kink:.2g} of its largest value between neighbouring pixels): across them "
-                             f"successive rules can agree by chance, so the estimated relative error "
-                             f"{err / abs(base):.2e} is not a bound (not converged); --backend reference gives a "
-                             f"confidence bound")
+        if self._map_unsplit:
+            xs, ys = self._det.kd_map.kink_lines()
+            extra["map_pieces"] = map_piece_count(xs, ys)
+            extra["note"] = (f"the detector's sensitivity map changes slope along {len(xs) + len(ys)} lines of pixel "
+                             f"centres, more than a field rule cut along them can afford ({extra['map_pieces']} "
+                             f"pieces > {MAP_PIECES_MAX}): across them successive rules can agree by chance, so the "
+                             f"estimated relative error {err / abs(base):.2e} is not a bound (not converged); "
+                             f"--backend reference gives a confidence bound")
         elif not converged:
             extra["note"] = (f"stopped at max_evals = {self.max_evals}: the estimated relative error "
                              f"{err / abs(base):.2e} exceeds rtol = {self.rtol:g}; not converged, so this "

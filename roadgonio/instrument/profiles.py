@@ -134,6 +134,11 @@ class ApertureProfile:
         return self.kind == "uniform"
 
 
+#: A slope change of a field map below this fraction of its largest value is round-off, no kink (a
+#: linear map sampled in float64 is not exactly linear in its last digits).
+MAP_KINK_ROUNDOFF = 1e-9
+
+
 @dataclass(frozen=True, eq=False)
 class FieldMap:
     """The detector's sensitivity map (module docstring): ``values`` (ny, nx) at the pixel centres
@@ -150,6 +155,7 @@ class FieldMap:
         flat = v.ravel().copy()
         flat.setflags(write=False)
         object.__setattr__(self, "flat", flat)
+        object.__setattr__(self, "_kinks", None)
 
     @property
     def nx(self) -> int:
@@ -159,17 +165,33 @@ class FieldMap:
     def ny(self) -> int:
         return int(self.values.shape[0])
 
-    def interior_kink(self) -> float:
-        """The largest change of slope of the map's bilinear interpolation
-        (:func:`roadgonio.instrument.optics.map_bilinear`) across a line of pixel centres inside the
-        map, relative to its largest value: the largest second difference along x or y. 0 for a map
-        whose interpolation has no kinks inside (uniform, or linear across the field); the flat
-        extension beyond the outermost centres is left out. A product Gauss rule's successive levels
-        can agree by chance across such kinks (:mod:`roadgonio.engines.quadrature`)."""
+    def kink_lines(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
+        """The lines ``x = c`` and ``y = d`` (map coordinates, [-1, 1]^2, y up) across which the map's
+        bilinear interpolation (:func:`roadgonio.instrument.optics.map_bilinear`) changes slope: the
+        pixel-centre columns where the second difference along x is not 0 in some row, the outermost
+        ones where the map is not flat there (it is flat beyond them), and the same for the rows.
+        Neither for a uniform map, only the outermost ones for a linear map. A product Gauss rule's
+        successive levels can agree by chance across such lines (:mod:`roadgonio.engines.rules`)."""
+        if self._kinks is None:
+            object.__setattr__(self, "_kinks", self._find_kink_lines())
+        return self._kinks
+
+    def _find_kink_lines(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
         v = self.values
-        d = [np.abs(np.diff(v, 2, axis=a)) for a in (0, 1) if v.shape[a] >= 3]
-        worst = max((float(x.max()) for x in d if x.size), default=0.0)
-        return worst / float(np.max(np.abs(v)))
+        tol = MAP_KINK_ROUNDOFF * float(np.max(np.abs(v)))
+
+        def lines(a: np.ndarray) -> list[int]:     # a: (n along the direction, m across)
+            n = a.shape[0]
+            d = np.diff(a, axis=0)                 # slopes between centres; 0 beyond the outermost
+            padded = np.concatenate([np.zeros((1, a.shape[1])), d, np.zeros((1, a.shape[1]))])
+            jump = np.max(np.abs(np.diff(padded, axis=0)), axis=1)
+            return [i for i in range(n) if jump[i] > tol]
+
+        cols = lines(v.T)
+        rows = lines(v)
+        xs = tuple(float(-1.0 + (2 * i + 1) / self.nx) for i in cols)
+        ys = tuple(sorted(float(1.0 - (2 * j + 1) / self.ny) for j in rows))
+        return xs, ys
 
 
 # ----------------------------------------------------------------------------------------------

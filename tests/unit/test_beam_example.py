@@ -67,9 +67,9 @@ def test_the_profile_reaches_k_a_in_the_quadrature_and_the_ray_bundles(r3like):
     with the float64 RQMC reference (confidence bound), and both differ from the portable preset's k_A: the bundles
     would miss it if they dropped the profile, the map or the aperture coordinates."""
     beam, plain = load_instrument("portable_beam"), load_instrument("portable")
-    # the example's field map is bilinear between its 33 x 33 pixels: the quadrature claims no bound
-    # across its kinks (audit 27), so the float64 check of the example is the RQMC reference's
-    # confidence bound
+    # the example's field map is bilinear between its 33 x 33 pixels, whose kink lines would cut the
+    # field into more pieces than the quadrature's rule follows: it claims no bound across them
+    # (audit 27), so the float64 check of the example is the RQMC reference's confidence bound
     q = make_backend("reference", beam, r3like, rtol=2e-4, seed=3).compute(CELLS)
     assert not any(r.converged for r in make_backend("quadrature", beam, r3like, rtol=1e-3).compute(CELLS[:1]))
     q0 = make_backend("quadrature", plain, r3like).compute(CELLS)
