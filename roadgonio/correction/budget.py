@@ -21,7 +21,12 @@ Components (each a covariance matrix over the measured cells, :class:`Budget`):
 * ``misalignment``: the instrument's geometric errors (``--sigma SPEC``), first-order GUM with
   sensitivities of ln(measured r) by central differences
   (:func:`roadgonio.uncertainty.gum_propagation`), correlated;
-* ``convergence``: what the fit's last outer step still changed in k_A (rectangular, diagonal).
+* ``convergence``: what the fit's last outer step still changed in k_A (rectangular, diagonal);
+* ``misfit`` (eq. 4 fitted through the instrument, when the data reject it:
+  :attr:`roadgonio.correction.fit.ThroughFit.misfit`): where the normalised residuals exceed the
+  noise locally (:func:`local_birge`), the measurement's u times ``sqrt(B_c^2 - 1)``, correlated over
+  the same neighbourhood (:func:`misfit_covariance`): what the model does not follow there, which
+  k_A inherits, or a stated measurement u that is too small.
 
 The measurement noise also enters the fitted parameters; that cross-covariance is left out (it is
 of the order of the number of parameters over the number of cells of the measurement term).
@@ -40,6 +45,10 @@ import numpy as np
 
 from roadgonio.surface.cie import cie_class, nearest_bundled
 from roadgonio.surface.rtable import RTable, q0_weights
+
+#: Width (in grid cells) of the neighbourhood of the local Birge ratio.
+BIRGE_WIDTH_CELLS = 2.0
+
 
 @dataclass
 class Budget:
@@ -95,6 +104,44 @@ class Budget:
         u = self.u_rel()
         out["total"] = {"u_rel_median": float(np.median(u)), "u_rel_max": float(np.max(u))}
         return out
+
+
+def local_birge(table: RTable, residual: np.ndarray, leverage: np.ndarray,
+                width: float = BIRGE_WIDTH_CELLS) -> tuple[np.ndarray, np.ndarray]:
+    """Per measured cell, the local Birge ratio B_c: the square root of the mean over the neighbouring
+    cells (Gaussian weights of ``width`` grid cells) of ``r^2 / (1 - h)``, r the normalised residual
+    and h the cell's leverage (its expected r^2 under the model is 1 - h); and the widening factor:
+    B_c where B_c^2 exceeds what noise alone gives at two standard deviations,
+    ``1 + 2 sqrt(2 / n_eff)`` (n_eff the effective number of cells in the neighbourhood), else 1.
+    Returns (B, widening)."""
+    r2 = residual ** 2 / np.clip(1.0 - leverage, 0.05, 1.0)
+    K = _neighbourhood(table, width)
+    b2 = K @ r2 / K.sum(axis=1)
+    n_eff = K.sum(axis=1) ** 2 / (K * K).sum(axis=1)
+    widen = np.where(b2 > 1.0 + 2.0 * np.sqrt(2.0 / n_eff), np.sqrt(b2), 1.0)
+    return np.sqrt(b2), widen
+
+
+def _neighbourhood(table: RTable, width: float = BIRGE_WIDTH_CELLS) -> np.ndarray:
+    """Gaussian weights of ``width`` grid cells between the measured cells (positive semidefinite)."""
+    ii, jj = np.nonzero(table.mask)
+    d2 = (ii[:, None] - ii[None, :]) ** 2 + (jj[:, None] - jj[None, :]) ** 2
+    return np.exp(-0.5 * d2 / width ** 2)
+
+
+def misfit_covariance(table: RTable, residual: np.ndarray, n_free: int,
+                      u_measured_rel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ``misfit`` component of a fit the data reject (module docstring): per measured cell the
+    local Birge ratio of the normalised ``residual`` (:func:`local_birge`, every cell's leverage
+    taken as the mean, ``n_free`` / cells), and where its widening exceeds 1 the relative u
+    ``u_measured_rel sqrt(widening^2 - 1)``, the excess of the residuals over the stated noise;
+    correlated between cells as their neighbourhoods overlap (the Gaussian weights of
+    :func:`local_birge`, a correlation matrix). Returns (covariance, widening)."""
+    res = np.asarray(residual, dtype=np.float64)
+    lev = np.full(res.shape, min(float(n_free) / max(res.size, 1), 0.95))
+    _, widen = local_birge(table, res, lev)
+    d = np.asarray(u_measured_rel, dtype=np.float64) * np.sqrt(np.maximum(widen ** 2 - 1.0, 0.0))
+    return np.outer(d, d) * _neighbourhood(table), widen
 
 
 def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:

@@ -72,10 +72,16 @@ def misfit_note(fit: dict | None) -> str | None:
     ``road --u`` repeats (trial 11 D7: the note did not travel with the u)."""
     if not fit or not fit.get("misfit") or "cells_widened" in fit:
         return None
-    return (f"the data reject the eq. 4 fit (Birge ratio {fit['birge_ratio']:.2f}, chi^2 {fit['chi2']:.0f} on "
-            f"{fit['dof']} degrees of freedom, p = {fit['chi2_p_value']:.1e}, under the stated u): this surface is "
-            "not eq. 4 and k_A inherits the misfit where the table matters, as does the misalignment component "
-            "(--sigma), whose sensitivities are the fitted model's slopes")
+    text = (f"the data reject the eq. 4 fit (Birge ratio {fit['birge_ratio']:.2f}, chi^2 {fit['chi2']:.0f} on "
+            f"{fit['dof']} degrees of freedom, p = {fit['chi2_p_value']:.1e}, under the stated u): either this surface "
+            "is not eq. 4, and k_A inherits the misfit where the table matters, as does the misalignment component "
+            "(--sigma), whose sensitivities are the fitted model's slopes, or the stated measurement u "
+            "(--u-measured) is too small")
+    if fit.get("misfit_cells_widened") is not None:
+        text += (f"; u includes a misfit component where the residuals exceed that u "
+                 f"({fit['misfit_cells_widened']} cells: u_measured sqrt(B^2 - 1), B the local Birge ratio), "
+                 "conservative for a surface outside eq. 4")
+    return text
 
 
 def _dz_dp(name: str, z: float) -> float:
@@ -105,6 +111,8 @@ class ThroughFit:
     nfev: int
     seconds: float
     stage_a: list[float] = field(default_factory=list)   # chi^2 of the distinct stage-A minima, best first
+    #: cells where the correction's ``misfit`` component widened u (None: no such component)
+    misfit_cells_widened: int | None = None
 
     @property
     def birge(self) -> float:
@@ -137,6 +145,8 @@ class ThroughFit:
                "params": self.model.params.to_dict(), "u_params": self.param_uncertainty(),
                "free": list(self.free), "starts": self.starts, "nfev": self.nfev, "seconds": self.seconds,
                "stage_a_minima_chi2": self.stage_a}
+        if self.misfit_cells_widened is not None:
+            out["misfit_cells_widened"] = self.misfit_cells_widened
         out["misfit_note"] = misfit_note(out)
         return out
 

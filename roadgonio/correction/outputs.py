@@ -63,8 +63,10 @@ def u_csv_text(res) -> str:
     table = res.corrected
     fit = getattr(res, "fit", None)
     note = (fit.summary() if fit is not None else {}).get("misfit_note")
-    head = U_HEADER + table.source + ("" if note is None else f"\n{NOTE_PREFIX}{note}, and this u may not cover that "
-                                      "error (roadgonio correct; docs/correction.md, \"Outside eq. 4\")")
+    if note is not None and (fit.summary().get("misfit_cells_widened") is None):
+        note += ", and this u may not cover that error"
+    head = U_HEADER + table.source + ("" if note is None else f"\n{NOTE_PREFIX}{note} (roadgonio correct; "
+                                      "docs/correction.md, \"Outside eq. 4\")")
     return grid_csv_text(res.u_corrected, head, scale=R_SCALE, digits=4,
                          tan_eps=table.tan_eps, beta_deg=table.beta_deg)
 

@@ -49,7 +49,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from roadgonio.correction.budget import Budget, functionals, misalignment_covariance
+from roadgonio.correction.budget import Budget, functionals, local_birge, misalignment_covariance
 from roadgonio.correction.fit import chi2_of
 from roadgonio.correction.flexible import (SURFACE_FIT_VERSION, FlexPart, SurfaceFit, SurfaceSettings, fit_surface, one_blas_thread,
                                           posterior_with_backbone)
@@ -61,8 +61,6 @@ from roadgonio.surface.rtable import CORRECTED_R, RTable
 
 #: The backbone variants fitted and weighed by default.
 DEFAULT_VARIANTS = ("power", "smooth")
-#: Width (in grid cells) of the neighbourhood of the local Birge ratio.
-BIRGE_WIDTH_CELLS = 2.0
 #: A backbone whose evidence weight is below this adds nothing a printed digit could show to the
 #: estimates or their covariance (its terms are the weight times ln k_A differences of order 1, and
 #: its posterior covariance times the weight: below 1e-9 of the least u of 1e-3 relative): its
@@ -225,24 +223,6 @@ def _grid(table: RTable, values: np.ndarray) -> np.ndarray:
     g = np.full(table.r.shape, np.nan)
     g[table.mask] = values
     return g
-
-
-def local_birge(table: RTable, residual: np.ndarray, leverage: np.ndarray,
-                width: float = BIRGE_WIDTH_CELLS) -> tuple[np.ndarray, np.ndarray]:
-    """Per measured cell, the local Birge ratio B_c: the square root of the mean over the neighbouring
-    cells (Gaussian weights of ``width`` grid cells) of ``r^2 / (1 - h)``, r the normalised residual
-    and h the cell's leverage (its expected r^2 under the model is 1 - h); and the widening factor:
-    B_c where B_c^2 exceeds what noise alone gives at two standard deviations,
-    ``1 + 2 sqrt(2 / n_eff)`` (n_eff the effective number of cells in the neighbourhood), else 1.
-    Returns (B, widening)."""
-    ii, jj = np.nonzero(table.mask)
-    r2 = residual ** 2 / np.clip(1.0 - leverage, 0.05, 1.0)
-    d2 = (ii[:, None] - ii[None, :]) ** 2 + (jj[:, None] - jj[None, :]) ** 2
-    K = np.exp(-0.5 * d2 / width ** 2)
-    b2 = K @ r2 / K.sum(axis=1)
-    n_eff = K.sum(axis=1) ** 2 / (K * K).sum(axis=1)
-    widen = np.where(b2 > 1.0 + 2.0 * np.sqrt(2.0 / n_eff), np.sqrt(b2), 1.0)
-    return np.sqrt(b2), widen
 
 
 def _state_name(variant: str, round_deg: float) -> str:

@@ -40,7 +40,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from roadgonio.correction.budget import Budget, functionals, misalignment_covariance, systematic_delta
+from roadgonio.correction.budget import Budget, functionals, misalignment_covariance, misfit_covariance, systematic_delta
 from roadgonio.correction.fit import (DEFAULT_POLISH, DEFAULT_STARTS, ThroughFit, assess_fit, chi2_of,
                                       fit_through_instrument)
 from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
@@ -667,6 +667,14 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     if not steps[-1]["converged"]:
         budget.add("convergence", pred_change / math.sqrt(3.0),
                    "change of k_A the last refit still predicted (rectangular)")
+    if final.misfit:
+        # audit 28: a surface outside eq. 4 (Birge 15) kept the u of a good fit, errors up to 14 u;
+        # measurement noise stated 3x too small the same (Birge 3, 53 cells beyond 4 u)
+        cov_m, widen = misfit_covariance(measured, final.residual, len(final.free), u_rel)
+        final.misfit_cells_widened = int(np.sum(widen > 1.0))
+        budget.add("misfit", cov_m, "the data reject the fit: where the normalised residuals exceed the noise "
+                   "(local Birge ratio B_c over the neighbouring cells), u_measured sqrt(B_c^2 - 1), correlated "
+                   f"over the neighbourhood ({final.misfit_cells_widened} cells)")
     reference = f"self ({main_v} model fitted through the instrument)"
     res = _assemble(measured, instrument, u_grid, k_b, se_b, budget, reference, model, final,
                     {k: _grid(measured, v) for k, v in alternatives.items()}, steps, t0)

@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from roadgonio.correction.outside import combine, local_birge
+from roadgonio.correction.budget import local_birge
+from roadgonio.correction.outside import combine
 from roadgonio.arrays import NumpyOps
 from roadgonio.errors import InputError
 from roadgonio.surface.correction_surface import SplineGrid, spline_value
