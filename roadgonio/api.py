@@ -435,6 +435,8 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
             raise InputError(f"expected a finite number for {name}, got {value!r}", field="fixed")
     t = _table(table)
+    from roadgonio.surface.rtable import check_positive
+    check_positive(t, table if isinstance(table, (str, Path)) and Path(str(table)).suffix else None, field="table")
     folder = None
     if out is not None:
         folder = _out(out, "fit", auto=Path(f"fit-{_safe(t.name)}-{variant}"))

@@ -49,7 +49,7 @@ from roadgonio.fileio import atomic_write_json, fingerprint
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.fit import check_rows
 from roadgonio.surface.model import VARIANTS, RoadModel
-from roadgonio.surface.rtable import CORRECTED_R, RTable, read_table
+from roadgonio.surface.rtable import CORRECTED_R, RTable, check_positive, read_table
 
 #: Variants fitted by ``variant = "auto"``.
 AUTO_VARIANTS = ("power", "smooth")
@@ -216,12 +216,7 @@ def check_measured(table: RTable, path: str | Path | None = None) -> None:
     """The measured table's values must be positive (a cell not measured is blank). A table without
     the S1 cells (tan eps 0 and 2 at beta 0) is corrected; S1, S2 and the class are then reported as
     missing (docs/inputs-outputs.md, "Missing values")."""
-    bad = table.mask & ~(table.r > 0)
-    if bad.any():      # where (user audit, session 24: the message named no cell)
-        i, j = np.argwhere(bad)[0]
-        raise InputError(f"the measured table has {int(bad.sum())} zero value(s), the first at tan eps = "
-                         f"{table.tan_eps[i]:g}, beta = {table.beta_deg[j]:g}; blank a cell that was not measured",
-                         path=path, **_u_where(path, "measured"))
+    check_positive(table, path, "measured table", **_u_where(path, "measured"))
 
 
 def _check_fit_cells(table: RTable) -> None:

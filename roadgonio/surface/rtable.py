@@ -64,6 +64,11 @@ R_MAX_PLAUSIBLE = 10.0
 #: (C1)), so any table holding even one CIE-like cell passes, while the same tables written in sr^-1
 #: have largest values 0.036 to 0.077. Not applied to tables of standard uncertainties (``quantity="u"``).
 R_X1E4_LARGEST_MIN = 1.0
+#: The largest reflectance over the tabulated incidence directions (:meth:`RTable.reflectance`) an
+#: r-table may have: no surface reflects more light than reaches it. The CIE tables have 0.15
+#: (R3) to 0.27 (C1); the same tables read as r x 1e6 have 15-27 and tables of q = r / cos^3 eps read
+#: as r 5-10 (audit 28: both were accepted, fitted and corrected, and failed when written as RTB).
+REFLECTANCE_MAX = 1.0
 BUNDLED = ("R1", "R2", "R3", "R4", "C1", "C2")
 #: Published CIE values (docs/conventions.md section 2).
 PUBLISHED_S1 = {"R1": 0.25, "R2": 0.58, "R3": 1.11, "R4": 1.55, "C1": 0.24, "C2": 0.97}
@@ -125,6 +130,20 @@ class RTable:
             return math.nan
         return float(np.sum(np.where(w > 0.0, w * self.r, 0.0)))
 
+    def reflectance(self) -> float:
+        """The light the surface reflects towards the observer (alpha = 1 deg) for a uniform radiance
+        from the tabulated incidence directions, by reciprocity its directional reflectance towards
+        the source side: ``int f cos eps d omega`` with f = q = r / cos^3 eps, ``d omega = sin eps
+        d eps d beta``, i.e. ``int int r tan eps cos eps d(tan eps) d beta`` over beta in [0, pi]
+        twice (the table is symmetric), trapezoids over the table's grid with blanks as 0. At most 1
+        for any surface (energy conservation), so above 1 the values are not r (docs/conventions.md
+        section 2)."""
+        t = np.asarray(self.tan_eps, dtype=np.float64)
+        b = np.radians(np.asarray(self.beta_deg, dtype=np.float64))
+        g = np.nan_to_num(self.r, nan=0.0) * (t / np.sqrt(1.0 + t * t))[:, None]
+        inner = 2.0 * np.trapezoid(g, b, axis=1) if b.size > 1 else np.zeros(t.size)
+        return float(np.trapezoid(inner, t)) if t.size > 1 else 0.0
+
     def s2(self) -> float:
         """S2 = Q0 / r(0, 0) (CIE 144); NaN (missing) when Q0 is undefined or r(0, 0) is blank or 0."""
         return missing_ratio(self.q0(), self.value(0.0, 0.0))
@@ -163,7 +182,9 @@ class RTable:
         except (TypeError, ValueError):
             raise InputError(f"expected numbers (r in sr^-1), got values of dtype {da.dtype}", field=what) from None
         check_r_values(r, what)
-        return cls(r, name=name, source=source)
+        table = cls(r, name=name, source=source)
+        check_reflectance(table, field=what)
+        return table
 
     def same_grid(self, other: "RTable") -> bool:
         return (self.r.shape == other.r.shape
@@ -837,11 +858,47 @@ def check_csv_table(table: RTable, path: str | Path, quantity: str = "r") -> RTa
     """The checks of a CSV table file beyond its parsing, once for the reader (:func:`load_table`)
     and the writer's read-back (:meth:`RTable.to_csv_text`), so a table that is written can be read:
     not a k_A table (:func:`check_not_ka`), and for r (not ``quantity="u"``) the scale
-    (:func:`check_csv_scale`). Returns the table."""
+    (:func:`check_csv_scale`), not a table of uncertainties (:func:`check_not_u`) and no more light
+    than reaches it (:func:`check_reflectance`). Returns the table."""
     check_not_ka(table, path)
     if quantity == "r":
         check_csv_scale(table, path)
+        check_not_u(table, path)
+        check_reflectance(table, path)
     return table
+
+
+def check_not_u(table: RTable, path: str | Path | None = None) -> None:
+    """Refuse a table of standard uncertainties (``corrected_u.csv``: its header :data:`U_HEADER`;
+    ``uncertainty``'s ``<case>_u.csv``) read as an r-table (audit 28: one was corrected, fitted and
+    classified as R4)."""
+    first = header_line(table)
+    if first.startswith(U_HEADER) or "standard uncertainty u(r)" in first:
+        raise InputError(f"this is a table of standard uncertainties (its header {first[:60]!r}), not an r-table; "
+                         "expected an r-table here", path=path)
+
+
+def check_reflectance(table: RTable, path: str | Path | None = None, field: str = "r") -> None:
+    """Refuse an r-table that reflects more light than reaches it (:meth:`RTable.reflectance` above
+    :data:`REFLECTANCE_MAX`): its values are not r x 1e4 (r x 1e6, or q = r / cos^3 eps, read as r)."""
+    rho = table.reflectance()
+    if rho > REFLECTANCE_MAX:
+        raise InputError(f"the table reflects more light than reaches it: its reflectance over the tabulated "
+                         f"incidence directions is {rho:.3g} (no surface exceeds {REFLECTANCE_MAX:g}; the CIE tables "
+                         "have 0.15 to 0.27): expected r x 1e4 (a table of q = r / cos^3 eps, or of r in another "
+                         "scale, reads like this)", path=path, field=field)
+
+
+def check_positive(table: RTable, path: str | Path | None = None, what: str = "table", **where) -> None:
+    """Every value of ``table`` is above 0: a cell that was not measured is blank, and a 0 is no road's
+    r (audit 28: ``fit`` took one and fitted h = -1000, max deviation 56 %). ``where``: the
+    InputError's field/line."""
+    bad = table.mask & ~(table.r > 0)
+    if bad.any():      # where (user audit, session 24: the message named no cell)
+        i, j = np.argwhere(bad)[0]
+        raise InputError(f"the {what} has {int(bad.sum())} zero value(s), the first at tan eps = "
+                         f"{table.tan_eps[i]:g}, beta = {table.beta_deg[j]:g}; blank a cell that was not measured",
+                         path=path, **where)
 
 
 def check_csv_scale(table: RTable, path: str | Path) -> None:
@@ -900,4 +957,8 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     if not p.exists():
         raise InputError("no such table file", path=p)
     table = read_table(p, quantity)
-    return table if p.suffix.lower() == ".rtb" else check_csv_table(table, p, quantity)
+    if p.suffix.lower() != ".rtb":
+        return check_csv_table(table, p, quantity)
+    if quantity == "r":
+        check_reflectance(table, p)
+    return table

@@ -204,3 +204,84 @@ def test_an_all_zero_csv_has_no_scale_to_judge(tmp_path):
     t = bundled_table("R3")
     p = t.with_values(np.where(t.mask, 0.0, np.nan)).write_csv(tmp_path / "zeros.csv")
     assert np.nanmax(load_table(p).r) == 0.0
+
+
+#: The trapezoids of RTable.reflectance over the CIE grid against the exact integral of a smooth
+#: table (measured: 0.4 % for the Lambertian below; the grid is coarse at tan eps 0-1).
+REFLECTANCE_RULE_TOL = 0.01
+
+
+@pytest.mark.parametrize("albedo", [0.2, 1.0])
+def test_the_reflectance_of_a_lambertian_table_is_its_albedo(albedo):
+    """A Lambertian surface of albedo rho (f = rho / pi, r = f cos^3 eps) reflects rho sin^2 eps_max
+    of a uniform radiance from the incidence directions up to tan eps_max = 12 (closed form:
+    rho (1 - 1 / 145)); the full grid, no blanks."""
+    r = albedo / np.pi * (1 + TAN_EPS_GRID[:, None] ** 2) ** -1.5 * np.ones((1, BETA_GRID_DEG.size))
+    assert RTable(r).reflectance() == pytest.approx(albedo * 144 / 145, rel=REFLECTANCE_RULE_TOL)
+
+
+@pytest.mark.parametrize("name", BUNDLED)
+def test_a_table_that_reflects_more_light_than_reaches_it_is_refused(tmp_path, name):
+    """(audit 28) A CIE table in r x 1e6 (100 x too large) or a table of q = r / cos^3 eps written as
+    r was accepted by table, classify, fit and correct (which failed only when writing its RTB): a
+    table whose reflectance exceeds 1 breaks energy conservation, so its values are not r x 1e4. The
+    bundled tables reflect 0.15-0.28; both mistakes reflect more than 5."""
+    t = bundled_table(name)
+    assert 0.15 <= t.reflectance() <= 0.28
+    cos3 = (1 + t.tan_eps[:, None] ** 2) ** -1.5
+    for bad, label in ((t.r * 100, "x100"), (t.r / cos3, "q")):
+        for suffix in (".csv", ".rtb"):
+            path = tmp_path / f"{name}_{label}{suffix}"
+            path.write_text(_csv_text(bad) if suffix == ".csv" else _rtb_text(bad))
+            # (R4's q table has a cell beyond the per-cell limit too, which is checked first)
+            with pytest.raises(InputError, match="reflects more light than reaches it|not a plausible road") as err:
+                load_table(path)
+            assert err.value.path is not None and str(path.name) in str(err.value)
+    load_table(_write(tmp_path / "ok.csv", _csv_text(t.r)))           # the table itself passes
+
+
+def _csv_text(r):
+    """The r-table CSV layout (r x 1e4) written by hand, so the writer's own checks are not used."""
+    lines = ["tan_eps," + ",".join(f"{b:g}" for b in BETA_GRID_DEG)]
+    for i, te in enumerate(TAN_EPS_GRID):
+        lines.append(f"{te:g}," + ",".join("" if not np.isfinite(v) else f"{v * 1e4:.6g}" for v in r[i]))
+    return "\n".join(lines) + "\n"
+
+
+def _rtb_text(r):
+    """A DIALux RTB text in the layout of rtable's docstring, by hand, with the q0 line 0 (not given:
+    the values are read as r x 1e4)."""
+    lines = ["RTable.v1", "x", str(TAN_EPS_GRID.size), *(f"{v:g}" for v in TAN_EPS_GRID), str(BETA_GRID_DEG.size),
+             *(f"{v:g}" for v in BETA_GRID_DEG), "0"]
+    for j in range(BETA_GRID_DEG.size):
+        lines.extend("0" if not np.isfinite(v) else f"{v * 1e4:.6g}" for v in r[:, j])
+    return "\n".join(lines) + "\n"
+
+
+def _write(path, text):
+    path.write_text(text)
+    return path
+
+
+def test_a_table_of_uncertainties_is_no_r_table(tmp_path):
+    """(audit 28) corrected_u.csv was corrected, fitted and classified (as R4) when given as a
+    measured table; a k_A table was already refused by its header, a u table is now too."""
+    t = bundled_table("R3")
+    for head in ("standard uncertainty of R3 corrected for the aperture effect (r / k_A; ...)",
+                 "roadgonio uncertainty: aperture, 10000 trials, seed 1, sample R3: standard uncertainty u(r) x 1e4"):
+        path = _write(tmp_path / "u.csv", f"# {head}\n" + _csv_text(0.02 * t.r))
+        with pytest.raises(InputError, match="table of standard uncertainties"):
+            load_table(path)
+        assert load_table(path, "u").r[0, 0] == pytest.approx(0.02 * t.r[0, 0], rel=1e-5)
+
+
+def test_fit_refuses_a_zero_cell_as_correct_does(tmp_path):
+    """(audit 28) fit took a table with one r = 0 cell (not blank) and fitted h = -1000 with a 56 %
+    deviation, where correct refuses it: both name the file and the cell now."""
+    from roadgonio import api
+    r = bundled_table("R3").r.copy()
+    r[3, 2] = 0.0
+    path = _write(tmp_path / "zero.csv", _csv_text(r))
+    with pytest.raises(InputError, match=r"1 zero value\(s\), the first at tan eps = 0.75, beta = 5") as err:
+        api.fit(path)
+    assert "zero.csv" in str(err.value)
