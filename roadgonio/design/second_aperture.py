@@ -302,7 +302,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
             # baseline (trial 12 D2: evaluated again with other bundles it won by noise and was
             # recommended as the "best second setting")
             t = baselines[1]
-            cands.append(Candidate(f"#{k + 1}", dict(point), insts[k], t.u_median, t.u_rms, t.u_max, t.u_s1_rel,
+            cands.append(Candidate(f"setting {k + 1}", dict(point), insts[k], t.u_median, t.u_rms, t.u_max, t.u_s1_rel,
                                    note="the instrument's own setting: measuring it twice (a baseline, not ranked)",
                                    own=True))
             continue
@@ -311,13 +311,13 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
         if isinstance(fm_b, str):
             # (the reason by name: given eighth it was taken for the signal, and the ranking's
             # signal >= min_signal raised a TypeError for any grid with such a setting)
-            cands.append(Candidate(f"#{k + 1}", dict(point), None, math.inf, math.inf, math.inf, math.inf,
+            cands.append(Candidate(f"setting {k + 1}", dict(point), None, math.inf, math.inf, math.inf, math.inf,
                                    signal=signal[k], note=fm_b))
             continue
         # below min_signal it is evaluated all the same: the table and the plot show what the
         # light given up would buy (what a lower --min-signal would rank)
         part_b = FlexPart(fm_b, backbone, settings)
-        c = evaluate([part_a, part_b], [u_rel, u_rel], [table, table], f"#{k + 1}", dict(point), insts[k])
+        c = evaluate([part_a, part_b], [u_rel, u_rel], [table, table], f"setting {k + 1}", dict(point), insts[k])
         blurs.pop(part_b, None)
         c.signal = signal[k]
         if not c.signal >= min_signal:

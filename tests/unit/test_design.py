@@ -491,7 +491,7 @@ def _second_result():
     cands = []
     for k, (f, u, sig) in enumerate([(0.1, 0.012, 0.44), (0.05, 0.010, 0.11), (0.2, 0.016, 1.8)]):
         p = {"detector.field_half_angle_deg": f}
-        cands.append(Candidate(f"#{k + 1}", p, build_instrument(base, p), u, u, 2 * u, u / 3, signal=sig,
+        cands.append(Candidate(f"setting {k + 1}", p, build_instrument(base, p), u, u, 2 * u, u / 3, signal=sig,
                                note="" if sig >= 0.25 else "signal low"))
     bl = [Candidate("alone", {}, base, 0.02, 0.02, 0.03, 0.007, note="the instrument alone"),
           Candidate("twice", {}, base, 0.018, 0.02, 0.03, 0.006, note="measured twice")]
@@ -515,6 +515,10 @@ def test_second_aperture_outputs_say_what_changed_and_where_they_came_from(tmp_p
     prov = json.loads((tmp_path / "second_aperture.json").read_text())["provenance"]
     assert {"versions", "created", "instrument", "instrument_file"} <= set(prov)
     assert prov["instrument_file"] == str(res.instrument.path)
+    # audit 28: the candidates' rows began with '#' ('#1,0.1,...'): a reader that skips comments
+    # (pandas comment='#', numpy.loadtxt, grep -v '^#') kept only the two baselines
+    rows = [ln for ln in (tmp_path / "second_aperture.csv").read_text().splitlines() if not ln.startswith("#")]
+    assert len(rows) == 1 + len(res.baselines) + len(res.candidates)
     fig = draw_second_aperture(res)
     labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert {"best second setting", "candidate"} <= set(labels) and any("signal below 0.25" in t for t in labels)
