@@ -143,8 +143,14 @@ class ThroughFit:
                "chi2_p_value": self.chi2_p_value, "misfit": self.misfit,
                "rms_normalised_residual": float(math.sqrt(np.mean(self.residual ** 2))),
                "params": self.model.params.to_dict(), "u_params": self.param_uncertainty(),
-               "free": list(self.free), "starts": self.starts, "nfev": self.nfev, "seconds": self.seconds,
-               "stage_a_minima_chi2": self.stage_a}
+               "free": list(self.free), "stage_a_minima_chi2": self.stage_a}
+        if self.starts or self.nfev:
+            out.update(starts=self.starts, nfev=self.nfev, seconds=self.seconds)
+        else:
+            # audit 28: "starts: 0, nfev: 0, seconds: 0.0005" read as the fit's cost; this fit is the
+            # final model assessed, not searched
+            out["searched"] = ("no: the final model assessed (chi^2, covariance, k_A); the searches' starts, "
+                               "evaluations and seconds are in provenance.searches")
         if self.misfit_cells_widened is not None:
             out["misfit_cells_widened"] = self.misfit_cells_widened
         out["misfit_note"] = misfit_note(out)
