@@ -138,6 +138,8 @@ def run(args) -> int:
             f"{_classes(b)}, nearest CIE table {b['nearest_table']}")
         say(f"  after:  S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
             f"{_classes(s)}, nearest CIE table {s['nearest_table']}")
+        if s.get("Q0_note"):
+            say(f"  note: {s['Q0_note']}")
         comps = ", ".join(f"{k} {_percent(v['u_rel_max'])}" for k, v in s["budget"].items() if k != "total")
         say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} % "
             f"(largest per component: {comps}); {s['seconds']:.1f} s")
@@ -192,6 +194,8 @@ def _run_joint(args) -> int:
             f"{100 * p['u_rel_median']:.3g} %")
     say(f"  corrected: S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
         f"{_classes(s)}, nearest CIE table {s['nearest_table']}")
+    if s.get("Q0_note"):
+        say(f"  note: {s['Q0_note']}")
     say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} %; "
         f"{s['seconds']:.1f} s")
     if s.get("model_estimate"):

@@ -44,7 +44,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from roadgonio.surface.cie import cie_class, nearest_bundled
-from roadgonio.surface.rtable import RTable, q0_weights
+from roadgonio.surface.rtable import RTable, q0_weights, standard_mask
 
 #: Width (in grid cells) of the neighbourhood of the local Birge ratio.
 BIRGE_WIDTH_CELLS = 2.0
@@ -168,10 +168,28 @@ def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:
             if i00 is not None and math.isfinite(s2):
                 var_lns2 = float(var_lnq0 + cov_rel[i00, i00] - 2 * float(g @ cov_rel[:, i00]))
                 out["u_S2"] = s2 * math.sqrt(max(var_lns2, 0.0))
+    note = q0_blank_note(table)
+    if note is not None:
+        out["Q0_note"] = note
     out["class"] = cie_class(s1, out.get("u_S1"))
     near = nearest_bundled(s1, q0, 1)
     out["nearest_table"], out["nearest_distance"] = near[0] if near else (None, None)
     return out
+
+
+def q0_blank_note(table: RTable) -> str | None:
+    """What Q0 (and S2) of a table with blank cells inside the CIE tables' tabulated region mean: the
+    mean over the tabulated cells' solid angle only (:func:`~roadgonio.surface.rtable.q0_weights`), not
+    the full table's, and their u leaves out what the blank cells would add (audit 28: the tan eps 0
+    row blank moved Q0 by 2 %, 30 times its stated u, without a word). None for a full table, one
+    off the standard grid, or one without Q0."""
+    if table.r.shape != standard_mask().shape or not math.isfinite(table.q0()):
+        return None
+    blank = int(np.sum(standard_mask() & ~table.mask))
+    if not blank:
+        return None
+    return (f"Q0 and S2 are over the tabulated cells only: {blank} of the CIE tables' {int(standard_mask().sum())} "
+            "cells are blank, so they are not the full table's, and their u leaves out what those cells would add")
 
 
 def _cell(table: RTable, ii, jj, t: float, b: float) -> int | None:

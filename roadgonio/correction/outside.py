@@ -191,7 +191,7 @@ class SurfaceCorrection:
         out = {"instruments": [p.name for p in self.parts], "cells": int(m.sum()),
                "S1": a["S1"], "u_S1": a.get("u_S1"), "Q0": a["Q0"], "u_Q0": a.get("u_Q0"), "S2": a["S2"],
                "u_S2": a.get("u_S2"), "class_R": a["class"]["R"], "class_C": a["class"]["C"],
-               "nearest_table": a["nearest_table"], "u_rel_median": float(np.median(u)),
+               "nearest_table": a["nearest_table"], "Q0_note": a.get("Q0_note"), "u_rel_median": float(np.median(u)),
                "u_rel_max": float(np.max(u)), "budget": self.budget.summary(),
                "variants": [v.summary() for v in self.variants], "discrepancy": self.provenance.get("discrepancy"),
                "model_estimate": self.model_estimate_summary(),

@@ -295,6 +295,7 @@ class CorrectionResult:
                "before": {"S1": b["S1"], "u_S1": b.get("u_S1"), "Q0": b["Q0"], "u_Q0": b.get("u_Q0"), "S2": b["S2"],
                           "u_S2": b.get("u_S2"), "class_R": b["class"]["R"], "class_C": b["class"]["C"],
                           "nearest_table": b["nearest_table"]},
+               "Q0_note": a.get("Q0_note"),
                "u_rel_median": float(np.median(self.budget.u_rel())), "u_rel_max": float(np.max(self.budget.u_rel())),
                "budget": self.budget.summary(), "seconds": self.seconds}
         if self.fit is not None:

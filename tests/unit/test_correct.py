@@ -712,3 +712,19 @@ def test_a_zero_in_the_measured_table_is_refused_naming_the_cell(tmp_path):
     msg = str(err.value)
     assert err.value.path == str(path) and err.value.argument == "measured", msg
     assert "2 zero value(s), the first at tan eps = 0.75, beta = 20" in msg and "\n" not in msg
+
+
+def test_q0_of_a_table_with_blank_cells_says_what_it_is():
+    """(audit 28) With the tan eps 0 row blank Q0 moved by 2 %, 30 times its stated u, and nothing
+    said so: Q0 and S2 are then over the tabulated cells only, and a note says how many of the CIE
+    tables' cells are blank. A full table has no note."""
+    from roadgonio.correction.budget import functionals
+    t = bundled_table("R3")
+    n = int(t.mask.sum())
+    assert "Q0_note" not in functionals(t, np.eye(n) * 1e-4)
+    r = t.r.copy()
+    r[0, :] = np.nan
+    blank = RTable(r, name="blank row")
+    out = functionals(blank, np.eye(int(blank.mask.sum())) * 1e-4)
+    assert abs(out["Q0"] / t.q0() - 1) > 10 * out["u_Q0"] / out["Q0"]           # what it did not say
+    assert "20 of the CIE tables' 396 cells are blank" in out["Q0_note"]
