@@ -221,8 +221,9 @@ def read_journal(path: str | Path, fingerprint: str, *, different: str,
     """The finished records of a resumable run's journal (JSON lines: a header with the run's
     ``fingerprint``, then one record per line), as ``{key: value}`` from ``record(line_dict)``.
 
-    A missing or empty journal gives ``{}``. A last line cut short by an interruption is dropped
-    (its work is done again); any other bad line, an unreadable file, or a header of another run
+    A missing or empty journal gives ``{}``, and so does one of another run that finished nothing
+    (its header alone). A last line cut short by an interruption is dropped (its work is done
+    again); any other bad line, an unreadable file, or a header of another run with finished records
     (``different`` says what differs) is the one-line :class:`InputError` naming the journal.
     ``record`` raises KeyError, TypeError or ValueError on a line that is not a record."""
     path = Path(path)
@@ -245,6 +246,10 @@ def read_journal(path: str | Path, fingerprint: str, *, different: str,
         raise InputError(f"the journal's first line is not valid JSON; {MOVE_HINT}",
                          path=path, line=1) from None
     if not isinstance(head, dict) or head.get("fingerprint") != fingerprint:
+        if not any(line.strip() for line in lines[1:]):
+            # nothing finished: nothing to lose (audit 28: a run refused before its first task, e.g. by
+            # an unreachable scheduler, left its header, and the next run was refused for it)
+            return done
         raise InputError(f"this folder holds {different}; {FRESH_HINT}", path=path, line=1)
     for k, line in enumerate(lines[1:], start=2):
         try:

@@ -48,6 +48,9 @@ from roadgonio.errors import BackendError, InputError, RoadgonioError, WorkLostE
 
 #: Seconds to wait for a scheduler to answer and for its first worker to join.
 CONNECT_TIMEOUT_S = 30.0
+#: Seconds beyond that before a connection that has not returned is given up (a service that accepts
+#: and never answers).
+CONNECT_GRACE_S = 5.0
 
 
 @dataclass(frozen=True)
@@ -317,6 +320,36 @@ def _check_address(address: str) -> str:
     return a
 
 
+def _connect(Client, address: str):
+    """A Client of the scheduler at ``address``, or the one-line InputError naming ``--scheduler``.
+    Connecting runs in a thread with a deadline: a service that is no Dask scheduler (its dashboard's
+    port, a web server) can accept the connection and never answer, and Dask then waited without end;
+    one that answers with something else made Dask read its bytes as a frame length and fail with a
+    traceback asking for exbibytes (audit 28)."""
+    box: dict[str, Any] = {}
+
+    def run():
+        try:
+            box["client"] = Client(address, timeout=f"{CONNECT_TIMEOUT_S:g}s")
+        except BaseException as err:  # noqa: BLE001 - reported below as the address's fault
+            box["error"] = err
+    t = threading.Thread(target=run, name="roadgonio-dask-connect", daemon=True)
+    t.start()
+    t.join(CONNECT_TIMEOUT_S + CONNECT_GRACE_S)
+    hint = ("start one with 'dask scheduler' and workers with 'dask worker ADDRESS --nthreads 1', and give the "
+            "address it prints (port 8786 by default; 8787 is its dashboard)")
+    if t.is_alive():
+        raise InputError(f"{address} did not answer as a Dask scheduler within {CONNECT_TIMEOUT_S + CONNECT_GRACE_S:g} s "
+                         f"(another service, or a dashboard?); {hint}", field="scheduler")
+    err = box.get("error")
+    if isinstance(err, (OSError, TimeoutError)):
+        raise InputError(f"cannot connect to the Dask scheduler at {address} ({err}); {hint}", field="scheduler")
+    if err is not None:
+        raise InputError(f"{address} is not a Dask scheduler (connecting failed with {type(err).__name__}: "
+                         f"{str(err)[:100]}); {hint}", field="scheduler")
+    return box["client"]
+
+
 @contextmanager
 def open_client(workers: int | None = None, scheduler: str | None = None, *, backend: str | None = "mitsuba",
                 variant: str | None = None, quiet: bool = True) -> Iterator[Any]:
@@ -339,12 +372,7 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
     cluster = None
     if scheduler is not None:
         address = _check_address(scheduler)
-        try:
-            client = Client(address, timeout=f"{CONNECT_TIMEOUT_S:g}s")
-        except (OSError, TimeoutError) as err:
-            raise InputError(f"cannot connect to the Dask scheduler at {address} ({err}); start one with "
-                             "'dask scheduler' and workers with 'dask worker ADDRESS --nthreads 1'",
-                             field="scheduler") from None
+        client = _connect(Client, address)
         try:
             client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
         except (TimeoutError, OSError):

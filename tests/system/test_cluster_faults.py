@@ -348,3 +348,43 @@ def test_scattering_the_shared_input_waits_for_a_worker():
     assert c.scatters == 3 and c.waits == 3
     with pytest.raises(ValueError, match="something else"):
         scatter_shared(Client([ValueError("something else")]), "shared")
+
+
+@pytest.mark.parametrize("reply", [None, b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n"])
+def test_an_address_that_is_no_dask_scheduler_is_one_line_naming_scheduler(monkeypatch, reply):
+    """(audit 28) --scheduler at a service that is no Dask scheduler: one that accepts and never
+    answers (the dashboard's port, a web server) made Dask wait without end; one that answers read its
+    bytes as a frame length and failed with a traceback allocating 3 EiB. Both are one InputError
+    naming the scheduler now, within the connect timeout and its grace."""
+    import socket
+    import threading
+    import time
+
+    from roadgonio.engines import cluster
+    from roadgonio.errors import InputError
+    srv = socket.socket()
+    srv.bind(("127.0.0.1", 0))
+    srv.listen(4)
+    held = []
+
+    def serve():
+        while True:
+            try:
+                conn, _ = srv.accept()
+            except OSError:
+                return
+            held.append(conn)
+            if reply is not None:
+                conn.sendall(reply)
+    threading.Thread(target=serve, daemon=True).start()
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 2.0)
+    monkeypatch.setattr(cluster, "CONNECT_GRACE_S", 2.0)
+    t0 = time.perf_counter()
+    try:
+        with pytest.raises(InputError) as err:
+            with cluster.open_client(scheduler=f"tcp://127.0.0.1:{srv.getsockname()[1]}"):
+                pass
+    finally:
+        srv.close()
+    assert err.value.field == "scheduler" and "8786" in str(err.value)
+    assert time.perf_counter() - t0 < 30.0

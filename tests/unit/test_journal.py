@@ -37,6 +37,10 @@ def test_a_cut_short_last_line_is_dropped_and_any_other_bad_line_is_an_error(tmp
     _write(path, [json.dumps({"fingerprint": "other"}), *good])
     with pytest.raises(InputError, match="holds another run"):
         read_journal(path, "fp", different="another run", record=_record)
+    # audit 28: a run refused before its first task (an unreachable scheduler) left its header alone,
+    # and the next, different run was refused for it: it finished nothing, so nothing is lost
+    _write(path, [json.dumps({"fingerprint": "other"})])
+    assert read_journal(path, "fp", different="another run", record=_record) == {}
 
 
 def test_the_intercomparison_journal_gives_every_record_back_under_its_own_key(tmp_path):
