@@ -140,8 +140,9 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "k_a": (cell_dims, grid(k_a), {"long_name": "aperture-effect factor k_A (docs/conventions.md section 5)", "units": "1"}),
         "se": (cell_dims, grid(se), {"long_name": "standard error of k_A (Monte Carlo; NaN for deterministic backends)"}),
         "se_dof": (cell_dims, grid(dof), field_attrs("se_dof")),          # as in the k_A Dataset
-        "error_bound": (cell_dims, grid(bound), {"long_name": "deterministic error bound of k_A (quadrature; NaN for "
-                                                              "Monte Carlo)"}),
+        "error_bound": (cell_dims, grid(bound), {"long_name": "deterministic error bound of k_A (quadrature; beside se "
+                                                              "under absolute calibration: eta's part of the error; "
+                                                              "NaN otherwise)"}),
         "confidence_bound": (cell_dims, grid(conf), {"long_name": "statistical bound of |k_A - true k_A| holding with "
                                                                   "probability confidence_level (RQMC reference; NaN "
                                                                   "otherwise)"}),

@@ -6,9 +6,10 @@ backends.
 Each precision field has ONE meaning:
 
 * ``se``: a standard error (Monte Carlo and randomised quasi-Monte Carlo backends);
-* ``error_bound``: a deterministic bound on |k_A - true k_A| (the quadrature; under absolute
-  calibration a Monte Carlo result has one beside its ``se``: the error of eta = <E>/E_0, computed
-  by float64 rules, not sampled);
+* ``error_bound``: a deterministic bound on the part of the error that is not statistical: on
+  |k_A - true k_A| for the quadrature (no ``se``); under absolute calibration a Monte Carlo result
+  has one beside its ``se``, the error of eta = <E>/E_0, computed by float64 rules, not sampled (its
+  files say so: ``runner.FIELD_ATTRS["error_bound_eta"]``);
 * ``confidence_bound`` with ``confidence_level``: a statistical bound that holds with that
   probability (the RQMC reference: a Student-t interval of its replicates, beside its ``se``);
 * ``se_dof``: the degrees of freedom of the standard errors as estimates (n - 1 for n independent

@@ -319,6 +319,12 @@ FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
     "error_bound": ("deterministic error bound of k_A", "1",
                     "a deterministic bound on |k_A - true k_A| (quadrature) where converged is true; where it is "
                     "false (stopped at the evaluation cap) an estimate that can understate the error; NaN otherwise"),
+    # the same field beside a standard error: a Monte Carlo backend under absolute calibration (audit 28:
+    # files called eta's bound a bound on k_A, 200 times smaller than its SE)
+    "error_bound_eta": ("deterministic error bound of the eta part of k_A (beside its standard error)", "1",
+                        "under absolute calibration with a Monte Carlo backend: the part of k_A's error that is not "
+                        "statistical, |k_A| times the error bound of eta = <E>/E_0 (float64 rules, not sampled); the "
+                        "statistical part is se, so |k_A - true k_A| is at most error_bound plus a multiple of se"),
     "confidence_bound": ("confidence bound of k_A", "1",
                          "a statistical bound on |k_A - true k_A| holding with probability confidence_level (RQMC "
                          "reference); NaN otherwise"),
@@ -398,6 +404,8 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         if name == "converged":
             grid = np.nan_to_num(grid, nan=0.0).astype(bool)
         data[name] = (dims, grid, field_attrs(name))
+    if eta_bound_beside_se(data["se"][1], data["error_bound"][1]):
+        data["error_bound"] = (dims, data["error_bound"][1], field_attrs("error_bound_eta"))
     info = BACKENDS.get(backend.name)
     settings = backend.settings()
     prov = provenance(instrument=instrument, model=model, backend=backend.name, settings=settings, sample=sample,
@@ -438,6 +446,14 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
     return xr.Dataset(data, coords=grid_coords(), attrs=attrs)
 
 
+def eta_bound_beside_se(se: np.ndarray, bound: np.ndarray) -> bool:
+    """Whether ``error_bound`` sits beside a standard error (a Monte Carlo backend under absolute
+    calibration: eta's part of the error, :mod:`roadgonio.engines.calibration`), not alone (the
+    quadrature's bound on the whole error)."""
+    both = np.isfinite(np.asarray(se, dtype=np.float64)) & np.isfinite(np.asarray(bound, dtype=np.float64))
+    return bool(both.any())
+
+
 def summary(ds) -> dict[str, Any]:
     """The summary of a k_A Dataset (``ka.json``, the command's last line): cells (of the table:
     with an output folder, every cell its journal holds for this run), ``cells_asked`` (this run's
@@ -457,6 +473,8 @@ def summary(ds) -> dict[str, Any]:
             with np.errstate(divide="ignore", invalid="ignore"):
                 rel = np.where(k != 0, v / np.abs(k), np.inf)
             out[key] = float(rel.max())
+    if "worst_rel_error_bound" in out and eta_bound_beside_se(ds["se"].values, ds["error_bound"].values):
+        out["error_bound_of"] = "eta = <E>/E_0 of the absolute calibration (beside the standard error)"
     if "cells_eta_not_converged" in ds.attrs:
         out.update(eta_not_converged=int(ds.attrs["cells_eta_not_converged"]),
                    eta_worst_rel_error=float(ds.attrs["eta_worst_rel_error"]))

@@ -181,3 +181,23 @@ def test_table_says_how_an_rtb_was_read(tmp_path, capsys):
     (tmp_path / "plain.rtb").write_text("\n".join(lines))
     assert main(["table", str(tmp_path / "plain.rtb")]) == 0
     assert "read:" not in capsys.readouterr().out
+
+
+def test_eta_s_bound_beside_a_standard_error_is_not_called_a_bound_on_k_a(tmp_path):
+    """(audit 28) Mitsuba under absolute calibration: error_bound holds eta's deterministic part of
+    the error (7e-7 beside an SE of 1.5e-4), but ka.nc, ka_bound.csv and ka.json called it 'a
+    deterministic bound on |k_A - true k_A|'. They say what it is now; the quadrature's, alone, is
+    still the bound on k_A."""
+    import xarray as xr
+
+    from roadgonio import api
+    from roadgonio.instrument.config import load_instrument
+    inst = load_instrument("portable").with_changes(calibration={"mode": "absolute"})
+    for backend, eta_part in (("mitsuba", True), ("quadrature", False)):
+        out = tmp_path / backend
+        api.ka_table(inst, "R3", cells=[(12.0, 0.0)], backend=backend, accuracy="fast", out=out, plot=False)
+        attrs = xr.open_dataset(out / "ka.nc")["error_bound"].attrs
+        head = (out / "ka_bound.csv").read_text().splitlines()[0]
+        summary = json.loads((out / "ka.json").read_text())["summary"]
+        assert ("eta" in attrs["long_name"] and "eta" in head and "error_bound_of" in summary) is eta_part
+        assert ("bound on |k_A - true k_A|" in attrs["description"]) is not eta_part
