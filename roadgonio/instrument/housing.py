@@ -55,11 +55,17 @@ SEAM_M = 1e-4
 
 
 def _num(v: Any, name: str) -> float:
+    """A finite number; a length (a name ending in ``_m``) at most the instrument's limit in size
+    (audit 28: margin_m = 1e6 failed later as detector rays meeting a floor, naming no field)."""
     if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
         raise InputError(f"expected a number, got {v!r}", field=name)
     v = float(v)
     if not math.isfinite(v):
         raise InputError(f"expected a finite number, got {v}", field=name)
+    if name.endswith("_m"):
+        from roadgonio.instrument.config import MAX_LENGTH_M
+        if abs(v) > MAX_LENGTH_M:
+            raise InputError(f"expected at most {MAX_LENGTH_M:g} m (no instrument is larger), got {v:g}", field=name)
     return v
 
 

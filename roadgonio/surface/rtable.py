@@ -236,7 +236,7 @@ class RTable:
         for j in range(len(self.beta_deg)):
             lines.extend("0" if np.isnan(v) else _fmt(v, 6) for v in self.r[:, j] * R_SCALE)
         text = "\n".join(lines) + "\n"
-        _reads_back(lambda: parse_rtb(text, path="<table>"), "RTB", None, self.r, 6)
+        _reads_back(lambda: _rtb_as_loaded(parse_rtb(text, path="<table>")), "RTB", None, self.r, 6)
         return text
 
     def write_rtb(self, path: str | Path) -> Path:
@@ -868,6 +868,12 @@ def check_csv_table(table: RTable, path: str | Path, quantity: str = "r") -> RTa
     return table
 
 
+def _rtb_as_loaded(table: RTable) -> RTable:
+    """The checks :func:`load_table` applies to an RTB file beyond its parsing (the writer's read-back)."""
+    check_reflectance(table)
+    return table
+
+
 def check_not_u(table: RTable, path: str | Path | None = None) -> None:
     """Refuse a table of standard uncertainties (``corrected_u.csv``: its header :data:`U_HEADER`;
     ``uncertainty``'s ``<case>_u.csv``) read as an r-table (audit 28: one was corrected, fitted and
@@ -960,5 +966,5 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     if p.suffix.lower() != ".rtb":
         return check_csv_table(table, p, quantity)
     if quantity == "r":
-        check_reflectance(table, p)
+        check_reflectance(table, p)     # (_rtb_as_loaded, which the writer applies)
     return table

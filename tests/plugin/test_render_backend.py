@@ -187,6 +187,20 @@ def test_xml_holder_scene_shades_the_footprint():
                                          + F32_RATIO_TOL)
 
 
+def test_a_truncated_xml_scene_is_named_as_such(tmp_path):
+    """(audit 28) holder.xml cut in half was reported as '[scene.params] key(s) ... are not used as
+    $name' (its $names were cut off): a file that is not well-formed XML is said to be so first."""
+    from roadgonio.engines.mitsuba.backend import make_backend
+    text = (SCENES / "holder.xml").read_text()
+    (tmp_path / "holder.xml").write_text(text[: len(text) // 2])
+    toml = (SCENES / "holder.toml").read_text()
+    (tmp_path / "holder.toml").write_text(toml)
+    inst = Instrument.load(tmp_path / "holder.toml")
+    with pytest.raises(InputError, match="not a well-formed XML scene") as err:
+        make_backend(inst, ROAD, rel_se=1e-2).compute([(4.0, 0.0)])
+    assert err.value.path == str(tmp_path / "holder.xml")
+
+
 def test_field_sensitivity_profile_matches_the_quadrature():
     """The renderer takes k_D from the same optics.detector_ray: with the field edge at 0.3 it agrees
     with the float64 quadrature within z SE (for the cells) plus the float32 floor."""

@@ -45,6 +45,9 @@ def housed(**housing) -> Instrument:
     ({"wall_reflectance": 0.1, "x_m": [-1.0, 0.0, 1.0]}, "housing.x_m"),
     ({"wall_reflectance": 0.1, "baffles": [{"x_m": 0.1}]}, "housing.baffles.0"),
     ({"wall_reflectance": 0.1, "baffles": [{"x_m": 0.1, "height_m": -0.01}]}, "housing.baffles.0.height_m"),
+    # audit 28: lengths beyond an instrument's size (1e6 failed later, naming no field)
+    ({"wall_reflectance": 0.1, "margin_m": 1001.0}, "housing.margin_m"),
+    ({"wall_reflectance": 0.1, "y_m": [-1e6, 1.0]}, "housing.y_m"),
 ])
 def test_bad_housing_is_one_error_naming_the_file_and_field(table, field):
     d = load_instrument("portable").to_dict()

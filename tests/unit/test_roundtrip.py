@@ -47,10 +47,13 @@ def reader_refuses(r: np.ndarray, fmt: str) -> bool:
     R_MAX_PLAUSIBLE, no value at all; for CSV also a largest value, as written (r x 1e4, 6 digits),
     above 0 and below R_X1E4_LARGEST_MIN (it looks like sr^-1: docs/inputs-outputs.md; trial 10 D3,
     the writer's read-back lacked this rule); for RTB also a zero (it would read as a blank), no grid
-    cell with four tabulated corners (no q0 line), or Q0 > 1 sr^-1 (its q0 line would read as x 1e4)."""
+    cell with four tabulated corners (no q0 line), or Q0 > 1 sr^-1 (its q0 line would read as x 1e4);
+    for both a table, as written, that reflects more light than reaches it (session 28)."""
     given = ~np.isnan(r)
     v = r[given]
     if np.isinf(v).any() or (v < 0).any() or (v > R_MAX_PLAUSIBLE).any() or not given.any():
+        return True
+    if _reflectance_as_written(r) > 1.0:
         return True
     if fmt == "csv" and 0.0 < float(f"{np.max(v) * R_SCALE:.6g}") < R_X1E4_LARGEST_MIN:
         return True
@@ -63,6 +66,21 @@ def reader_refuses(r: np.ndarray, fmt: str) -> bool:
         if RTable(r).q0() > 1.0:
             return True
     return False
+
+
+def _reflectance_as_written(r: np.ndarray) -> float:
+    """int f cos eps d omega over the tabulated directions (f = r / cos^3 eps, d omega = sin eps d eps
+    d beta, beta over both sides), written out cell by cell: trapezoids in beta (radians) and in
+    tan eps of r tan eps cos eps, blanks 0, the values as written (6 digits of r x 1e4)."""
+    w = np.array([[0.0 if not np.isfinite(x) else float(f"{x * R_SCALE:.6g}") / R_SCALE for x in row] for row in r])
+    t = TAN_EPS_GRID
+    b = np.radians(BETA_GRID_DEG)
+    total = 0.0
+    for i in range(t.size - 1):
+        for j in range(b.size - 1):
+            corners = [w[i + a, j + c] * t[i + a] / math.sqrt(1.0 + t[i + a] ** 2) for a in (0, 1) for c in (0, 1)]
+            total += 2.0 * sum(corners) / 4.0 * (t[i + 1] - t[i]) * (b[j + 1] - b[j])
+    return total
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -431,7 +431,15 @@ def _build_xml(instrument, model, scene_sec, *, resolution, spp, sampler, channe
     path = xml_path(instrument, scene_sec)
     params = xml_parameters(instrument, scene_sec)
     import re
-    used = set(re.findall(r"\$(\w+)", path.read_text(encoding="utf-8", errors="replace")))
+    import xml.etree.ElementTree as ET
+    text = path.read_text(encoding="utf-8", errors="replace")
+    try:        # audit 28: a truncated file was blamed on [scene.params] (its $names cut off)
+        ET.fromstring(text)
+    except ET.ParseError as err:
+        line = err.position[0] if getattr(err, "position", None) else None
+        raise InputError(f"not a well-formed XML scene ({err}); expected Mitsuba's XML format", path=path,
+                         line=line) from None
+    used = set(re.findall(r"\$(\w+)", text))
     unused = sorted(k for k in scene_sec.get("params", {}) if k not in used)
     if unused:
         raise InputError(f"[scene.params] key(s) {', '.join(unused)} are not used as $name in {path.name}",
