@@ -916,7 +916,8 @@ def _u_measured(u_measured: Any) -> Any:
     sr^-1 as an RTable (audit 21: a DataArray was read as a file name, the error several kB long)."""
     import numbers
     if u_measured is None:
-        return "1%"
+        from roadgonio.correction.budget import DEFAULT_U_MEASURED
+        return DEFAULT_U_MEASURED
     if isinstance(u_measured, (list, tuple)):             # one per table of a joint correction
         return [_u_measured(x) for x in u_measured]
     if isinstance(u_measured, numbers.Real) and not isinstance(u_measured, bool):
@@ -1056,7 +1057,7 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
     folder = _out(out, "correct", "joint", *[t.name for t in tables])
     files = [str(m) if isinstance(m, (str, Path)) else None for m in items]
     return correct_joint(tables, instruments, folder, plots=plots, model_variant=model_variant,
-                         measured_files=files, u_measured="1%" if u_measured is None else u_measured, sigma=sigma,
+                         measured_files=files, u_measured=_u_measured(u_measured), sigma=sigma,
                          backend=backend, backend_settings=settings, accuracy=accuracy, rays=rays, seed=seed,
                          progress=_show(progress), **options)
 

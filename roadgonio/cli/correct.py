@@ -34,7 +34,8 @@ def register(sub) -> None:
                     "(power vs smooth) and the instrument's misalignment (--sigma). Reports S1, S2, Q0 before and "
                     "after with their uncertainties and the CIE class. Writes corrected.csv, corrected_u.csv, "
                     "corrected.rtb, correct.json, correct_cells.csv, corrected_corr.csv, before_after.png and "
-                    "correction_map.png (one sub-folder per file when several are given); the k_A tables are "
+                    "correction_map.png, with --forward surface or --joint also residual_map.png and "
+                    "correction_surface.png (one sub-folder per file when several are given); the k_A tables are "
                     "journalled and an interrupted run resumes.")
     p.add_argument("--measured", required=True, nargs="+", action="extend", metavar="FILE",
                    help="measured r-table(s) (.csv or .rtb, r x 1e4); several files share the instrument's work; "

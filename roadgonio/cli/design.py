@@ -49,7 +49,7 @@ def register(sub) -> None:
                         "--sample; writes second_aperture.csv/.json/.png and best_second.toml")
     p.add_argument("--measured", metavar="FILE", help="with --second-aperture: a table the instrument measured")
     p.add_argument("--u-measured", default=None, metavar="U",
-                   help="with --second-aperture: the measurement's relative standard uncertainty (default 1.5%%)")
+                   help="with --second-aperture: the measurement's relative standard uncertainty (default 1%%, as correct's)")
     p.add_argument("--min-signal", default=None, metavar="F",
                    help="with --second-aperture: least signal of the second setting, relative to the instrument's: "
                         "a fraction (0.25) or a percentage (25%%); default 0.25 (smaller apertures always blur less)")

@@ -16,6 +16,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from roadgonio.engines.bundle import DEFAULT_RAYS
+from roadgonio.correction.budget import DEFAULT_U_MEASURED
 from roadgonio.correction.outside import DEFAULT_VARIANTS, SurfaceCorrection, correct_surface, to_correction_result
 from roadgonio.correction.run import (FORWARDS, CorrectionResult, InstrumentArtefacts, _check_fit_cells, _sigma,
                                       check_measured, correct_self, correct_with_reference, measured_uncertainty)
@@ -162,7 +163,7 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
         check_measured(t)
         if self_ref:
             _check_fit_cells(t)
-        measured_uncertainty(options.get("u_measured", "1%"), t)
+        measured_uncertainty(options.get("u_measured", DEFAULT_U_MEASURED), t)
     options["sigma"] = _sigma(options.get("sigma"))
     model_variant = options.pop("model_variant", None)
     alternatives = options.pop("alternatives", "auto")

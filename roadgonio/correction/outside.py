@@ -49,7 +49,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from roadgonio.correction.budget import Budget, functionals, local_birge, misalignment_covariance
+from roadgonio.correction.budget import DEFAULT_U_MEASURED, Budget, functionals, local_birge, misalignment_covariance
 from roadgonio.correction.fit import chi2_of
 from roadgonio.correction.flexible import (SURFACE_FIT_VERSION, FlexPart, SurfaceFit, SurfaceSettings, fit_surface, one_blas_thread,
                                           posterior_with_backbone)
@@ -341,7 +341,7 @@ def _as_list(value, n: int, what: str) -> list:
 # The procedure
 # ----------------------------------------------------------------------------------------------
 
-def correct_surface(tables: Sequence[RTable], instruments: Sequence[Instrument], *, u_measured: Any = "1%",
+def correct_surface(tables: Sequence[RTable], instruments: Sequence[Instrument], *, u_measured: Any = DEFAULT_U_MEASURED,
                     sigma: Any = None, backend: str = "mitsuba", backend_settings: Mapping[str, Any] | None = None,
                     accuracy: str | None = None, factory=None, out_dir: str | Path | None = None,
                     artefacts: Sequence[Any] | None = None, rays: int = DEFAULT_RAYS, seed: int = 0,

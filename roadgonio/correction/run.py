@@ -40,7 +40,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from roadgonio.correction.budget import Budget, functionals, misalignment_covariance, misfit_covariance, systematic_delta
+from roadgonio.correction.budget import DEFAULT_U_MEASURED, Budget, functionals, misalignment_covariance, misfit_covariance, systematic_delta
 from roadgonio.correction.fit import (DEFAULT_POLISH, DEFAULT_STARTS, ThroughFit, assess_fit, chi2_of,
                                       fit_through_instrument)
 from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
@@ -567,7 +567,7 @@ class _FitState:
             atomic_write_json(self.path, doc)
 
 
-def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = "1%", variant: str = "auto",
+def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = DEFAULT_U_MEASURED, variant: str = "auto",
                  sigma=None, backend: str = "mitsuba", backend_settings: Mapping[str, Any] | None = None,
                  accuracy: str | None = None, factory: BackendFactory | None = None,
                  out_dir: str | Path | None = None, artefacts: InstrumentArtefacts | None = None,
@@ -684,7 +684,7 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
 
 def correct_with_reference(measured: RTable, instrument: Instrument, reference: RoadModel, *,
                            reference_name: str = "reference", alternatives: Mapping[str, RoadModel] | None = None,
-                           u_measured: Any = "1%", sigma=None, backend: str = "mitsuba",
+                           u_measured: Any = DEFAULT_U_MEASURED, sigma=None, backend: str = "mitsuba",
                            backend_settings: Mapping[str, Any] | None = None, accuracy: str | None = None,
                            factory: BackendFactory | None = None, out_dir: str | Path | None = None,
                            misalignment_rays: int = 256, seed: int = 0, progress: bool = True) -> CorrectionResult:

@@ -50,7 +50,7 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 
-DEFAULT_U = "1.5%"
+from roadgonio.correction.budget import DEFAULT_U_MEASURED as DEFAULT_U  # noqa: E402 - one default with correct
 #: Least signal of a second setting, relative to the instrument's (module docstring).
 DEFAULT_MIN_SIGNAL = 0.25
 #: The least relative reduction of the median u against measuring twice that is called a gain. The

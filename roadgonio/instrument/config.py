@@ -589,7 +589,7 @@ class Instrument:
         _check_keys(ob, {"alpha_deg", "delta_deg"}, "observation", None)
         observation = Observation(**ob)
         if "source" not in d:
-            raise InputError("missing table [source]", field="source")
+            raise _missing_section("source", d)
         s = dict(d["source"])
         _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg", "path", "height_m", *BEAM_KEYS,
                         *APERTURE_KEYS}, "source", None)
@@ -599,7 +599,7 @@ class Instrument:
             _resolve_file(s, k, "source", path)
         source = Source(**s)
         if "detector" not in d:
-            raise InputError("missing table [detector]", field="detector")
+            raise _missing_section("detector", d)
         t = dict(d["detector"])
         _check_keys(t, {"distance_m", "pupil_radius_m", "field_half_angle_deg", "focus_m", "field_edge_sensitivity",
                         "field_sensitivity"}, "detector", None)
@@ -744,3 +744,13 @@ def load_instrument(spec: str | Path) -> Instrument:
         res = resources.files("roadgonio.scenes").joinpath(f"{spec}.toml")
         return Instrument.load(Path(str(res)))
     raise InputError(f"no such instrument file, and not a bundled preset ({', '.join(names)})", path=p)
+
+
+def _missing_section(section: str, d: Mapping[str, Any]) -> InputError:
+    """The error for a required table the file lacks, naming a section of a similar name it has
+    instead (audit 28: '[detecter]' gave 'missing table [detector]' without pointing at the typo)."""
+    import difflib
+    unknown = [k for k in d if k not in _SECTIONS and k not in EXTRA_SECTIONS]
+    near = difflib.get_close_matches(section, unknown, n=1, cutoff=0.6)
+    hint = f" (the file has a table [{near[0]}]: a misspelling of [{section}]?)" if near else ""
+    return InputError(f"missing table [{section}]{hint}", field=section)

@@ -228,3 +228,17 @@ def test_relative_mesh_survives_with_changes_and_a_rewrite(tmp_path, monkeypatch
     assert moved.sample.mesh.resolve() == (folder / "m.ply").resolve()
     again = Instrument.from_dict(moved.to_dict(), path=Path("inst") / "x.toml")
     assert again.sample.mesh.resolve() == (folder / "m.ply").resolve()
+
+
+def test_a_misspelt_required_section_is_pointed_at():
+    """(audit 28) '[detecter]' in place of [detector] said 'missing table [detector]' and nothing of
+    the typo: the section of a similar name is named."""
+    d = load_instrument("portable").to_dict()
+    d["detecter"] = d.pop("detector")
+    with pytest.raises(InputError, match=r"missing table \[detector\] \(the file has a table \[detecter\]") as err:
+        Instrument.from_dict(d, path="x.toml")
+    assert err.value.field == "detector"
+    d = load_instrument("portable").to_dict()
+    del d["source"]
+    with pytest.raises(InputError, match=r"missing table \[source\]$"):
+        Instrument.from_dict(d, path="x.toml")
