@@ -19,6 +19,11 @@ import math
 
 import numpy as np
 
+#: The longest length of an instrument (distances, a finite focus, the sample's sides, a housing), m:
+#: no goniophotometer is larger, and beyond it float arithmetic of the ray geometry overflows
+#: (1e300 m) or loses the sample (float32 rays of the renderer).
+MAX_LENGTH_M = 1000.0
+
 #: Standard r-table grid (CIE 144): 29 rows of tan(epsilon)...
 TAN_EPS_GRID = np.array([0, 0.25, 0.5, 0.75, 1, 1.25, 1.5, 1.75, 2, 2.5, 3, 3.5, 4, 4.5, 5, 5.5, 6,
                          6.5, 7, 7.5, 8, 8.5, 9, 9.5, 10, 10.5, 11, 11.5, 12], dtype=np.float64)

@@ -47,14 +47,14 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.fileio import read_toml
 from roadgonio.geometry import w_detector, w_source
+from roadgonio.geometry import MAX_LENGTH_M as _MAX_LENGTH_M
 from roadgonio.instrument.calibration import Calibration
 from roadgonio.instrument.coverage import MeasuredCells
 
 _INF_WORDS = ("inf", "+inf", "infinity")
-#: The longest length of an instrument (distances, a finite focus, the sample's sides), m: no
-#: goniophotometer is larger, and beyond it float arithmetic of the ray geometry overflows
-#: (1e300 m) or loses the sample (float32 rays of the renderer).
-MAX_LENGTH_M = 1000.0
+#: The longest length of an instrument (:data:`roadgonio.geometry.MAX_LENGTH_M`, where the housing
+#: takes it from too).
+MAX_LENGTH_M = _MAX_LENGTH_M
 #: The smallest non-zero aperture radius, m: below a micrometre a disc is no aperture of an
 #: instrument (give 0 for a point source or a pinhole), and its area underflows (1e-300 m).
 MIN_APERTURE_M = 1e-6

@@ -42,6 +42,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from roadgonio.errors import InputError
+from roadgonio.geometry import MAX_LENGTH_M
 
 #: Keys of the [housing] table.
 HOUSING_KEYS = ("wall_reflectance", "baffle_reflectance", "x_m", "y_m", "height_m", "margin_m", "lid", "baffles")
@@ -62,10 +63,8 @@ def _num(v: Any, name: str) -> float:
     v = float(v)
     if not math.isfinite(v):
         raise InputError(f"expected a finite number, got {v}", field=name)
-    if name.endswith("_m"):
-        from roadgonio.instrument.config import MAX_LENGTH_M
-        if abs(v) > MAX_LENGTH_M:
-            raise InputError(f"expected at most {MAX_LENGTH_M:g} m (no instrument is larger), got {v:g}", field=name)
+    if name.endswith("_m") and abs(v) > MAX_LENGTH_M:
+        raise InputError(f"expected at most {MAX_LENGTH_M:g} m (no instrument is larger), got {v:g}", field=name)
     return v
 
 

@@ -183,7 +183,8 @@ class RTable:
             raise InputError(f"expected numbers (r in sr^-1), got values of dtype {da.dtype}", field=what) from None
         check_r_values(r, what)
         table = cls(r, name=name, source=source)
-        check_reflectance(table, field=what)
+        if not (names_ka(table) or names_ka_output(table) or names_u(table)):   # (what they are is said later)
+            check_reflectance(table, field=what)
         return table
 
     def same_grid(self, other: "RTable") -> bool:
@@ -207,8 +208,10 @@ class RTable:
         text = grid_csv_text(self.r, self.source or f"roadgonio table {self.name}", scale=scale, digits=digits,
                              tan_eps=self.tan_eps, beta_deg=self.beta_deg)
         if scale == R_SCALE:
-            _reads_back(lambda: check_csv_table(parse_csv(text, path="<table>", name=self.name), "<table>"), "CSV",
-                        text, self.r, digits)
+            # a table of standard uncertainties (its header says so) is read back as one
+            quantity = "u" if names_u(self) else "r"
+            _reads_back(lambda: check_csv_table(parse_csv(text, path="<table>", name=self.name, quantity=quantity),
+                                                "<table>", quantity), "CSV", text, self.r, digits)
         return text
 
     def write_csv(self, path: str | Path, scale: float = R_SCALE, digits: int = 6) -> Path:
@@ -874,12 +877,19 @@ def _rtb_as_loaded(table: RTable) -> RTable:
     return table
 
 
+def names_u(table: RTable) -> bool:
+    """Whether the table's header says it holds standard uncertainties of r (``correct``'s
+    corrected_u.csv, :data:`U_HEADER`; ``uncertainty``'s ``<case>_u.csv``)."""
+    first = header_line(table)
+    return first.startswith(U_HEADER) or "standard uncertainty u(r)" in first
+
+
 def check_not_u(table: RTable, path: str | Path | None = None) -> None:
     """Refuse a table of standard uncertainties (``corrected_u.csv``: its header :data:`U_HEADER`;
     ``uncertainty``'s ``<case>_u.csv``) read as an r-table (audit 28: one was corrected, fitted and
     classified as R4)."""
     first = header_line(table)
-    if first.startswith(U_HEADER) or "standard uncertainty u(r)" in first:
+    if names_u(table):
         raise InputError(f"this is a table of standard uncertainties (its header {first[:60]!r}), not an r-table; "
                          "expected an r-table here", path=path)
 
