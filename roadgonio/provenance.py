@@ -5,8 +5,9 @@ Every output that carries results (``ka.json`` of a k_A table, ``validate.json``
 :func:`roadgonio.ka_table`) takes its provenance from :func:`provenance`, so they all say the
 same things in the same keys:
 
-* ``versions``: roadgonio, python, platform, numpy, scipy, mitsuba, drjit (and, when a Mitsuba
-  variant is active, the variant and Dr.Jit's LLVM). Package versions come from the installed
+* ``versions``: roadgonio, ``roadgonio_source`` (a digest of the Python source it ran: the version
+  string cannot tell an edited checkout from another, audit 28), python, platform, numpy, scipy,
+  mitsuba, drjit (and, when a Mitsuba variant is active, the variant and Dr.Jit's LLVM). Package versions come from the installed
   distributions' metadata (:func:`importlib.metadata.version`): nothing is imported to learn a
   version, so a numpy-only run never loads mitsuba or drjit;
 * ``instrument`` (the instrument in its file form) and ``instrument_file``;
@@ -40,8 +41,8 @@ def _dist_version(dist: str) -> str | None:
 def versions() -> dict[str, str | None]:
     """Versions of the software that produced a result (None for a package that is not installed)."""
     from roadgonio._version import __version__
-    v: dict[str, str | None] = {"roadgonio": __version__, "python": platform.python_version(),
-                                "platform": platform.platform()}
+    v: dict[str, str | None] = {"roadgonio": __version__, "roadgonio_source": source_digest(),
+                                "python": platform.python_version(), "platform": platform.platform()}
     v.update({name: _dist_version(dist) for name, dist in PACKAGES.items()})
     mi = sys.modules.get("mitsuba")
     if mi is not None:             # only what is already loaded: never import mitsuba to ask
@@ -58,6 +59,29 @@ def versions() -> dict[str, str | None]:
                 except Exception:  # noqa: BLE001 - provenance only
                     pass
     return v
+
+
+_SOURCE_DIGEST: str | None = None
+
+
+def source_digest() -> str:
+    """A digest of the Python source this process's roadgonio runs (the package and the plugins'
+    folder, file names and contents), taken once per process: the version string cannot tell an
+    edited or upgraded checkout from the one a cluster's workers started with."""
+    global _SOURCE_DIGEST
+    if _SOURCE_DIGEST is None:
+        import hashlib
+
+        from roadgonio._checkout import mapped_folders
+        roots = [Path(__file__).resolve().parent]            # the roadgonio package
+        roots += [f for n, f in sorted(mapped_folders().items()) if n.endswith(".plugins")]
+        h = hashlib.sha256()
+        for root in roots:
+            for f in sorted(root.rglob("*.py")):
+                h.update(str(f.relative_to(root)).encode())
+                h.update(f.read_bytes())
+        _SOURCE_DIGEST = h.hexdigest()[:16]
+    return _SOURCE_DIGEST
 
 
 def file_sha256(path: str | Path) -> str:

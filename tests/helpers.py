@@ -70,7 +70,7 @@ UNCERTAINTY_SPEC = ("alpha_deg=0.01,eps_deg=0.05:rect,beta_deg=0.1,tilt_x_deg=0.
 # -- versions ------------------------------------------------------------------------------------
 
 #: What every result says about the software that made it.
-VERSION_KEYS = {"roadgonio", "python", "platform", "numpy", "scipy", "mitsuba", "drjit"}
+VERSION_KEYS = {"roadgonio", "roadgonio_source", "python", "platform", "numpy", "scipy", "mitsuba", "drjit"}
 
 
 # -- random BSDF inputs (tests/plugin/test_plugin_bsdf.py, tests/unit/test_model.py) -------------

@@ -170,31 +170,9 @@ def compute_table(task: TableTask, *, prepare: bool = True) -> TableResult:
                            seconds=time.perf_counter() - t0, worker=_worker_name())
 
 
-_SOURCE_DIGEST: str | None = None
-
-
-def source_digest() -> str:
-    """A digest of the Python source this process's roadgonio runs (the package and the plugins'
-    folder, file names and contents), taken once per process: the version string cannot tell an
-    edited or upgraded checkout from the one a cluster's workers started with."""
-    global _SOURCE_DIGEST
-    if _SOURCE_DIGEST is None:
-        import hashlib
-
-        from roadgonio._checkout import mapped_folders
-        roots = [Path(__file__).resolve().parents[1]]         # the roadgonio package
-        roots += [f for n, f in sorted(mapped_folders().items()) if n.endswith(".plugins")]
-        h = hashlib.sha256()
-        for root in roots:
-            for f in sorted(root.rglob("*.py")):
-                h.update(str(f.relative_to(root)).encode())
-                h.update(f.read_bytes())
-        _SOURCE_DIGEST = h.hexdigest()[:16]
-    return _SOURCE_DIGEST
-
-
 def _worker_versions() -> dict[str, Any]:
     import roadgonio._version as version
+    from roadgonio.provenance import source_digest
     return {"roadgonio": version.__version__, "pid": os.getpid(), "file": version.__file__, "source": source_digest()}
 
 
@@ -460,6 +438,7 @@ def _check_workers(client) -> None:
     if bad:
         raise BackendError(f"Dask workers run another roadgonio version ({', '.join(f'{w}: {v}' for w, v in bad.items())}; "
                            f"this is {version.__version__}): start the workers from the same environment")
+    from roadgonio.provenance import source_digest
     mine = source_digest()
     other = sorted(w for w, v in found.items() if v.get("source") != mine)
     try:

@@ -301,8 +301,8 @@ def test_the_last_worker_gone_is_said_once_and_its_return_too():
 
 
 def _pretend_other_source():
-    import roadgonio.engines.cluster as c
-    c._SOURCE_DIGEST = "0123456789abcdef"
+    import roadgonio.provenance as p
+    p._SOURCE_DIGEST = "0123456789abcdef"
 
 
 @pytest.mark.timeout(300)
