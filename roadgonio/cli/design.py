@@ -46,7 +46,8 @@ def register(sub) -> None:
                    help="instead of the k_A sweep: which second aperture setting (each point of the --vary grid applied "
                         "to the instrument) minimises the u of the table a joint correction (`correct --joint`) of the "
                         "two would give; the surface from --measured (a table this instrument measured) or one "
-                        "--sample; writes second_aperture.csv/.json/.png and best_second.toml")
+                        "--sample; writes second_aperture.csv/.json/.png and best_second.toml (no journal: an interrupted run "
+                        "starts again)")
     p.add_argument("--measured", metavar="FILE", help="with --second-aperture: a table the instrument measured")
     p.add_argument("--u-measured", default=None, metavar="U",
                    help="with --second-aperture: the measurement's relative standard uncertainty (default 1%%, as correct's)")
