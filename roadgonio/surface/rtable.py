@@ -136,8 +136,8 @@ class RTable:
         the source side: ``int f cos eps d omega`` with f = q = r / cos^3 eps, ``d omega = sin eps
         d eps d beta``, i.e. ``int int r tan eps cos eps d(tan eps) d beta`` over beta in [0, pi]
         twice (the table is symmetric), trapezoids over the table's grid with blanks as 0. At most 1
-        for any surface (energy conservation), so above 1 the values are not r (docs/conventions.md
-        section 2)."""
+        for any surface (energy conservation), so above 1 the values are not r (docs/inputs-outputs.md,
+        "r-tables: CSV")."""
         t = np.asarray(self.tan_eps, dtype=np.float64)
         b = np.radians(np.asarray(self.beta_deg, dtype=np.float64))
         g = np.nan_to_num(self.r, nan=0.0) * (t / np.sqrt(1.0 + t * t))[:, None]
