@@ -47,10 +47,12 @@ from typing import Any, NoReturn
 
 import numpy as np
 
+from roadgonio.correction.budget import DEFAULT_U_MEASURED
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 
-from roadgonio.correction.budget import DEFAULT_U_MEASURED as DEFAULT_U  # noqa: E402 - one default with correct
+#: The measurement's relative u when none is given: correct's default (one default, audit 28).
+DEFAULT_U = DEFAULT_U_MEASURED
 #: Least signal of a second setting, relative to the instrument's (module docstring).
 DEFAULT_MIN_SIGNAL = 0.25
 #: The least relative reduction of the median u against measuring twice that is called a gain. The
