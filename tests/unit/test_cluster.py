@@ -46,9 +46,11 @@ def test_the_source_digest_covers_the_plugins_folder_by_name_and_content(tmp_pat
     (plug / "a.py").write_text("x = 1\n")
     monkeypatch.setattr(checkout, "mapped_folders", lambda: {"roadgonio.engines.mitsuba.plugins": plug})
 
+    import roadgonio.provenance as prov
+
     def digest():
-        monkeypatch.setattr(cluster, "_SOURCE_DIGEST", None)
-        return cluster.source_digest()
+        monkeypatch.setattr(prov, "_SOURCE_DIGEST", None)
+        return prov.source_digest()
     first = digest()
     assert digest() == first                               # a function of the files only
     (plug / "a.py").write_text("x = 2\n")

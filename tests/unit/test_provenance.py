@@ -65,20 +65,10 @@ def test_a_fitted_model_file_carries_the_common_provenance(tmp_path):
     assert "roadgonio_version" not in ds.attrs and json.loads(ds.attrs["provenance"])["versions"]["roadgonio"]
 
 
-def test_the_source_digest_names_the_code_that_ran(tmp_path, monkeypatch):
+def test_the_source_digest_names_the_code_that_ran():
     """(audit 28) provenance said only roadgonio 0.1.0, which an edited checkout does not change: it
-    carries a digest of the Python source, the one the Dask check compares, and the digest moves
-    when a file of the package changes."""
-    import roadgonio.provenance as prov_mod
+    carries the digest of the Python source the Dask check compares (which moves with any file:
+    tests/unit/test_cluster.py)."""
     from roadgonio.provenance import source_digest, versions
     d = versions()["roadgonio_source"]
     assert d == source_digest() and len(d) == 16 and int(d, 16) >= 0
-    pkg = tmp_path / "roadgonio"
-    (pkg / "sub").mkdir(parents=True)
-    (pkg / "a.py").write_text("x = 1\n")
-    monkeypatch.setattr(prov_mod, "__file__", str(pkg / "provenance.py"))
-    monkeypatch.setattr(prov_mod, "_SOURCE_DIGEST", None)
-    first = source_digest()
-    monkeypatch.setattr(prov_mod, "_SOURCE_DIGEST", None)
-    (pkg / "sub" / "b.py").write_text("y = 2\n")
-    assert source_digest() != first
