@@ -192,7 +192,7 @@ def check_vary(base: Instrument, specs: Sequence[VarySpec]) -> None:
     """Refuse, before any computation, a varied key the base instrument cannot take: a ``housing.*``
     key when the base has no ``[housing]`` (a design varies a housing, it does not add one: the
     box's size, lid and baffles would be defaults nobody chose), or a baffle the base's
-    ``[housing] baffles`` does not declare; a key whose alternative (:data:`ALTERNATIVES`) the base
+    ``[housing] baffles`` does not declare, or their reflectance when it declares none; a key whose alternative (:data:`ALTERNATIVES`) the base
     gives or the design varies too. ``detector.field_edge_sensitivity`` on a base with a
     ``field_sensitivity`` map is refused for every value, 1 included: the value 1 would silently
     keep the map (1 is the default, read as "not given"), so a point labelled e = 1 would not be
@@ -221,6 +221,12 @@ def check_vary(base: Instrument, specs: Sequence[VarySpec]) -> None:
         if sec is None:
             raise InputError(f"{s.key}: the base instrument{where} has no [housing]; declare one in its file "
                              "(docs/straylight.md) to vary the housing's keys", field="vary")
+        if s.key == "housing.baffle_reflectance" and not (sec.get("baffles", ()) or ()):
+            # audit 28: accepted on a housing without baffles, every point the same instrument, and the
+            # tables' noise read as an effect of the baffles' paint
+            raise InputError(f"{s.key}: the base instrument{where} declares no baffles in [housing], so their "
+                             "reflectance changes nothing; declare them there, e.g. baffles = [{x_m = -0.5, "
+                             "height_m = 0.02}]", field="vary")
         m = BAFFLE_KEY.match(s.key)
         if m:
             n = len(sec.get("baffles", ()) or ())

@@ -541,6 +541,8 @@ def test_design_outputs_appear_together_or_not_at_all(tmp_path, capsys, monkeypa
     ("portable_housed", "housing.baffles.1.height_m=0,0.01", "declares no baffles"),
     ("portable_housed", "housing.baffles.0.x_m=-0.5,-0.4", "declares no baffles"),
     ("portable", "housing.wall_reflectance=0.1,0.2", "has no [housing]"),
+    # audit 28: accepted, every point the same instrument, the tables' noise read as a paint effect
+    ("portable_housed", "housing.baffle_reflectance=0.1,0.5", "their reflectance changes nothing"),
 ])
 @pytest.mark.parametrize("second", [False, True])
 def test_design_key_the_base_cannot_take_is_an_input_error(tmp_path, capsys, instrument, vary, must, second):
