@@ -203,11 +203,6 @@ def rule_size(level_v: int, level_h: int) -> int:
     return 1 if level_v < 0 or level_h < 0 else ORDERS[level_v] * ORDERS[level_h]
 
 
-def size(levels) -> int:
-    """Number of integrand evaluations of the product rule at the six direction ``levels``."""
-    return rule_size(levels[0], levels[1]) * rule_size(levels[2], levels[3]) * rule_size(levels[4], levels[5])
-
-
 def detector_nodes(det: optics.DetectorGeometry, lp: tuple[int, int], lf: tuple[int, int], fp: complex = 0j,
                    ff: complex = 0j) -> dict[str, Any]:
     """The detected rays of the pupil rule ``disc_rule(*lp, fp)`` x the field rule
@@ -248,6 +243,6 @@ class DetectorNodes:
 
     def size(self, levels) -> int:
         """Number of integrand evaluations of the product rule at the six direction ``levels``
-        (pupil, field, source; :func:`size` with this detector's field rule)."""
+        (pupil, field, source: the disc rules' sizes, the field's by this detector's field rule)."""
         return (rule_size(levels[0], levels[1]) * field_rule_size(self.det, levels[2], levels[3])
                 * rule_size(levels[4], levels[5]))
