@@ -31,7 +31,6 @@ def load_trimesh(path: str | Path):
     path = Path(path)
     try:
         raw = trimesh.load(str(path), force="mesh", process=False)
-        mesh = trimesh.load(str(path), force="mesh")
     except Exception as err:  # trimesh raises many kinds
         raise InputError(f"cannot read the sample mesh ({err})", path=path, field="sample.mesh") from None
     if hasattr(raw, "faces") and len(raw.faces):
@@ -44,6 +43,8 @@ def load_trimesh(path: str | Path):
             raise InputError(f"{int(bad.sum())} triangle(s) of the sample mesh have a vertex that is not a finite number "
                              f"(vertex {int(v[0]) + 1}, counting from 1{', ...' if v.size > 1 else ''}); expected "
                              "finite coordinates in metres", path=path, field="sample.mesh")
+    # the file read once: processed as trimesh.load's default would (merged vertices)
+    mesh = trimesh.Trimesh(vertices=raw.vertices, faces=raw.faces, process=True) if hasattr(raw, "faces") else raw
     if not hasattr(mesh, "faces") or len(mesh.faces) == 0:
         # trimesh drops the faces of vertices that are not finite numbers (a NaN vertex left "no triangles")
         raise InputError("the sample mesh has no triangles (or none whose vertices are finite numbers)", path=path,

@@ -239,7 +239,7 @@ class RTable:
         for j in range(len(self.beta_deg)):
             lines.extend("0" if np.isnan(v) else _fmt(v, 6) for v in self.r[:, j] * R_SCALE)
         text = "\n".join(lines) + "\n"
-        _reads_back(lambda: _rtb_as_loaded(parse_rtb(text, path="<table>")), "RTB", None, self.r, 6)
+        _reads_back(lambda: check_rtb_table(parse_rtb(text, path="<table>")), "RTB", None, self.r, 6)
         return text
 
     def write_rtb(self, path: str | Path) -> Path:
@@ -871,9 +871,13 @@ def check_csv_table(table: RTable, path: str | Path, quantity: str = "r") -> RTa
     return table
 
 
-def _rtb_as_loaded(table: RTable) -> RTable:
-    """The checks :func:`load_table` applies to an RTB file beyond its parsing (the writer's read-back)."""
-    check_reflectance(table)
+def check_rtb_table(table: RTable, path: str | Path = "<table>", quantity: str = "r") -> RTable:
+    """The checks of an RTB table file beyond its parsing (its scale is its q0 line's, in
+    :func:`parse_rtb`), once for the reader (:func:`load_table`) and the writer's read-back
+    (:meth:`RTable.to_rtb_text`), as :func:`check_csv_table` for CSV: for r, no more light than
+    reaches it (:func:`check_reflectance`). Returns the table."""
+    if quantity == "r":
+        check_reflectance(table, path)
     return table
 
 
@@ -959,7 +963,8 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     one without is a bundled name (the rule of :mod:`roadgonio.surface.sample`). A CSV r-table
     (``quantity="r"``) is checked for the scale (:func:`check_csv_scale`); ``quantity="u"``: a table
     of standard uncertainties of r (no scale check; messages say u). A k_A table is refused
-    (:func:`check_not_ka`). The CSV checks are :func:`check_csv_table`, which the writer applies too."""
+    (:func:`check_not_ka`). The CSV checks are :func:`check_csv_table`, the RTB ones
+    :func:`check_rtb_table`, which the writers apply too."""
     s = str(spec).strip()
     if isinstance(spec, str) and not Path(s).suffix:
         if s.upper() in BUNDLED:
@@ -973,8 +978,6 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
     if not p.exists():
         raise InputError("no such table file", path=p)
     table = read_table(p, quantity)
-    if p.suffix.lower() != ".rtb":
-        return check_csv_table(table, p, quantity)
-    if quantity == "r":
-        check_reflectance(table, p)     # (_rtb_as_loaded, which the writer applies)
-    return table
+    if p.suffix.lower() == ".rtb":
+        return check_rtb_table(table, p, quantity)
+    return check_csv_table(table, p, quantity)
