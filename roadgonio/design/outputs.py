@@ -15,7 +15,9 @@
   beside it when there is stray light, and the title says why;
 * ``tolerance_map.png`` (two or more varied keys): max |k_A - 1| over the plane of the first two
   varied keys, one panel per value of a third of at most MAX_MAP_PANELS values (others at the best
-  design's values), with the tolerance contour and iso-signal lines.
+  design's values), with the tolerance contour (or, when there is none, the legend says on which
+  side of the tolerance every point is) and iso-signal lines (interpolated as power laws of the
+  keys between the grid values: :func:`_signal_field`); cells as :func:`_edges` draws them.
 """
 from __future__ import annotations
 
@@ -270,13 +272,81 @@ def plot_points(ds, path: Path, signal: float) -> Path:
 
 
 def _edges(v: np.ndarray, log: bool) -> np.ndarray:
+    """The cell edges of a map axis: midpoints between the grid values (geometric on a log axis) and
+    the outer edges half a step beyond the first and last value. On a linear axis of a key whose
+    values are all >= 0 (a radius, a field angle) an outer edge goes no further than half way to 0
+    from its value, so a coarse grid's first cell does not reach radius 0 (user audit: 0.004, 0.012,
+    ... drew the first cell from 0, as if a zero aperture had been computed), and a grid whose value
+    is 0 starts its cell at 0, never below. The map keeps the axis the grid was given on (a log axis
+    for a ``LO:HI:N:log`` key): the cells then read as the computed points."""
     v = np.asarray(v, dtype=np.float64)
     if v.size == 1:
         return np.array([v[0] * 0.9, v[0] * 1.1]) if log else np.array([v[0] - 0.5, v[0] + 0.5])
     x = np.log(v) if log else v
     mid = (x[1:] + x[:-1]) / 2
-    e = np.concatenate([[x[0] - (mid[0] - x[0])], mid, [x[-1] + (x[-1] - mid[-1])]])
+    out_lo, out_hi = x[0] - mid[0], x[-1] - mid[-1]            # half a step outwards (signed)
+    if not log and (v >= 0).all():                             # at most half way to 0
+        out_lo = math.copysign(min(abs(out_lo), x[0] / 2), out_lo)
+        out_hi = math.copysign(min(abs(out_hi), x[-1] / 2), out_hi)
+    e = np.concatenate([[x[0] + out_lo], mid, [x[-1] + out_hi]])
     return np.exp(e) if log else e
+
+
+#: The iso-signal lines are drawn on the design grid cut into at most this many steps per cell and
+#: axis (:func:`_signal_field`; fewer when the axis has many values, so it stays under
+#: SIGNAL_FIELD_MAX points).
+SIGNAL_SUBDIVISIONS = 16
+SIGNAL_FIELD_MAX = 481
+
+
+def _fine_axis(v) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The fine positions along one map axis (:func:`_signal_field`), with the grid cell of each and
+    its fraction t across that cell: in log(value) when both of the cell's values are > 0, in the
+    value otherwise (a cell that starts at 0)."""
+    v = np.asarray(v, dtype=np.float64)
+    n = SIGNAL_SUBDIVISIONS if v.size < 2 else max(2, min(SIGNAL_SUBDIVISIONS, (SIGNAL_FIELD_MAX - 1) // (v.size - 1)))
+    t = np.arange(n) / n
+    pos, cell, frac = [], [], []
+    for i in range(v.size - 1):
+        a, b = v[i], v[i + 1]
+        pos.append(a * (b / a) ** t if a > 0 and b > 0 else a + (b - a) * t)
+        cell.append(np.full(n, i))
+        frac.append(t)
+    pos.append(v[-1:])
+    cell.append(np.array([max(v.size - 2, 0)]))
+    frac.append(np.array([1.0 if v.size > 1 else 0.0]))
+    return np.concatenate(pos), np.concatenate(cell), np.concatenate(frac)
+
+
+def _signal_field(x, y, sig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The signal between the design's grid values, on a grid up to SIGNAL_SUBDIVISIONS times finer
+    (``X, Y, S``, S NaN where a corner of its cell has no signal > 0), to contour the iso-signal lines.
+
+    The signal grows as a power of each key (the square of a source or pupil radius, about the square
+    of a small field angle, the inverse square of a distance: :data:`roadgonio.design.metrics.SIGNAL_FORMULA`),
+    so within each cell log(signal) is interpolated bilinearly over log(key value) (over the value
+    for a cell that starts at 0). A product of power laws comes out exact; the contour of the grid
+    values themselves put each line at the linear interpolation of r^2, too close to the smaller
+    radius on a coarse grid (user audit: x0.2 / x0.1 / x0.05 at 0.0100 / 0.0069 / 0.0053 m where
+    the square law puts them at 0.0112 / 0.0079 / 0.0056 m)."""
+    xf, ix, tx = _fine_axis(x)
+    yf, iy, ty = _fine_axis(y)
+    sig = np.asarray(sig, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ls = np.where(np.isfinite(sig) & (sig > 0), np.log(np.where(sig > 0, sig, 1.0)), np.nan)
+    acc = np.zeros((yf.size, xf.size))
+    bad = np.zeros((yf.size, xf.size), dtype=bool)
+    for dy, wy in ((0, 1 - ty), (1, ty)):
+        for dx, wx in ((0, 1 - tx), (1, tx)):
+            w = wy[:, None] * wx[None, :]
+            jy = np.minimum(iy + dy, sig.shape[0] - 1)[:, None]
+            jx = np.minimum(ix + dx, sig.shape[1] - 1)[None, :]
+            c = ls[jy, jx]
+            used = w > 0                                   # a corner of weight 0 does not mask the point
+            bad |= used & np.isnan(c)
+            acc += np.where(used & ~np.isnan(c), w * np.nan_to_num(c), 0.0)
+    X, Y = np.meshgrid(xf, yf)
+    return X, Y, np.where(bad, np.nan, np.exp(acc))
 
 
 #: An iso-signal line shorter than this fraction of the map's diagonal is left out (a level that
@@ -408,20 +478,30 @@ def _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor, fin_all, *, title: bool) 
     X, Y = np.meshgrid(x, y)
     handles = []
     if np.isfinite(dev).sum() >= 4 and len(x) > 1 and len(y) > 1:
+        from matplotlib.lines import Line2D
         try:
-            ax.contour(X, Y, np.ma.masked_invalid(dev), levels=[tol], colors="tab:orange", linewidths=2.2)
+            cs = ax.contour(X, Y, np.ma.masked_invalid(dev), levels=[tol], colors="tab:orange", linewidths=2.2)
+            drawn = any(len(seg) > 1 for seg in cs.allsegs[0])
+        except (ValueError, TypeError):
+            drawn = False
+        if drawn:
             # named in the legend, not inline: an inline label cuts the line where it is drawn, which
             # could be beside the best design (user audit, session 24: the star looked outside)
-            from matplotlib.lines import Line2D
             handles.append(Line2D([], [], color="tab:orange", lw=2.2, label=f"tolerance {tol:g} %"))
-        except (ValueError, TypeError):
-            pass
+        else:
+            # no line: the legend says why, and names no line that is not drawn (user audit)
+            fd = dev[np.isfinite(dev)]
+            if (fd <= tol).all():
+                handles.append(Line2D([], [], ls="none", label=f"every point within the tolerance {tol:g} %"))
+            elif (fd > tol).all():
+                handles.append(Line2D([], [], ls="none", label=f"no point within the tolerance {tol:g} %"))
         fs = sig[np.isfinite(sig) & (sig > 0)]
         if fs.size >= 4 and fs.max() / fs.min() > 1.5:
             lv = _signal_levels(float(fs.min()), float(fs.max()))
-            lv = _visible_levels(X, Y, np.where(sig > 0, sig, np.nan), lv, xk in logs, yk in logs)
+            SX, SY, SS = _signal_field(x, y, sig)
+            lv = _visible_levels(SX, SY, SS, lv, xk in logs, yk in logs)
             if lv.size:
-                cs2 = ax.contour(X, Y, np.where(sig > 0, sig, np.nan), levels=lv, colors="white", linewidths=0.9,
+                cs2 = ax.contour(SX, SY, np.ma.masked_invalid(SS), levels=lv, colors="white", linewidths=0.9,
                                  linestyles="--")
                 ax.clabel(cs2, fmt=lambda v: f"signal x{v:g}", fontsize=7)
     for (iy, ix) in zip(*np.nonzero(~geo)):

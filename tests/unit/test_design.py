@@ -819,6 +819,69 @@ def test_the_tolerance_contour_is_named_in_the_legend_not_cut_by_an_inline_label
     assert not [t.get_text() for t in ax.texts if "tolerance" in t.get_text()]
 
 
+#: How far (relative) a drawn iso-signal line may be from where the square law puts it.
+ISO_LINE_RTOL = 0.005
+#: The base design's source and pupil radii of the synthetic signal below (signal 1 there).
+R0_SOURCE, R0_PUPIL = 0.025, 0.005
+
+
+@pytest.mark.parametrize("pupil_too", [False, True], ids=["radius^2", "radius^2 x pupil^2"])
+def test_iso_signal_lines_sit_where_the_square_law_puts_them_on_a_coarse_grid(tmp_path, monkeypatch, pupil_too):
+    """User audit: the iso-signal lines were the linear interpolation of the signal between grid
+    values, but the signal grows as a radius squared, so on a coarse grid x0.2 / x0.1 / x0.05 were
+    drawn at a radius 0.0100 / 0.0069 / 0.0053 m where 0.0112 / 0.0079 / 0.0056 m are right. A signal
+    (r / r0)^2 (times (p / p0)^2) on a 4 x 3 grid: every vertex of a line of level s is at
+    r = r0 sqrt(s) (r p = r0 p0 sqrt(s))."""
+    from matplotlib.contour import ContourSet
+    from roadgonio.design import outputs as O
+    ds, got = _drawn_tolerance_map(["source.radius_m=0.004,0.012,0.02,0.028", "detector.pupil_radius_m=0.0025,0.005,0.0075"],
+                                   1.0, tmp_path, monkeypatch)
+    rs, rp = ds["source.radius_m"], ds["detector.pupil_radius_m"]
+    law = (rs / R0_SOURCE) ** 2 * ((rp / R0_PUPIL) ** 2 if pupil_too else 1.0 + 0 * rp)
+    ds["signal"] = law.transpose(*ds["signal"].dims)
+    got.clear()
+    O.plot_tolerance_map(ds, tmp_path / "tolerance_map.png")
+    ax = [a for a in got[0].axes if a.get_xlabel() == "source.radius_m"][0]
+    iso = [c for c in ax.collections if isinstance(c, ContourSet) and c.get_linestyle()[0][1] is not None]
+    assert len(iso) == 1, iso
+    levels = list(iso[0].levels)
+    assert len(levels) >= 3 and (pupil_too or {0.05, 0.1, 0.2} <= set(levels)), levels
+    for level, segs in zip(levels, iso[0].allsegs):
+        v = np.concatenate([seg for seg in segs if len(seg)])
+        drawn = v[:, 0] * (v[:, 1] / R0_PUPIL if pupil_too else 1.0)
+        assert np.abs(drawn / (R0_SOURCE * np.sqrt(level)) - 1).max() < ISO_LINE_RTOL, (level, drawn.min(), drawn.max())
+
+
+def test_the_map_cells_of_a_coarse_radius_grid_do_not_reach_radius_0(tmp_path, monkeypatch):
+    """User audit: the first cell of a coarse radius grid (0.004, 0.012, ...) was drawn from radius 0,
+    half a step below 0.004, as if a zero aperture had been computed. The edges are half way between
+    the values, and an outer edge of a key >= 0 at most half way to 0 (a grid that holds 0 starts at 0)."""
+    from roadgonio.design import outputs as O
+    _, got = _drawn_tolerance_map(["source.radius_m=0.004,0.012,0.02,0.028", "detector.pupil_radius_m=0.0025,0.005,0.0075"],
+                                  1.0, tmp_path, monkeypatch)
+    ax = [a for a in got[0].axes if a.get_xlabel() == "source.radius_m"][0]
+    mesh = ax.collections[0].get_coordinates()
+    assert np.allclose(mesh[0, :, 0], [0.002, 0.008, 0.016, 0.024, 0.032]), mesh[0, :, 0]
+    assert np.allclose(mesh[:, 0, 1], [0.00125, 0.00375, 0.00625, 0.00875]), mesh[:, 0, 1]
+    assert np.allclose(O._edges(np.array([0.0, 0.01, 0.02]), False), [0.0, 0.005, 0.015, 0.025])
+    assert np.allclose(O._edges(np.array([-1.0, 0.0, 1.0]), False), [-1.5, -0.5, 0.5, 1.5])
+
+
+@pytest.mark.parametrize("first_k,said", [(1.0, "every point within the tolerance 5 %"),
+                                          (1.2, "no point within the tolerance 5 %")])
+def test_the_legend_names_no_tolerance_line_that_is_not_drawn(tmp_path, monkeypatch, first_k, said):
+    """User audit: the legend named the tolerance line when max |k_A - 1| never crossed the
+    tolerance on the map, so no line was drawn. The legend then says which side every point is on."""
+    from matplotlib.contour import ContourSet
+    _, got = _drawn_tolerance_map(["source.radius_m=0.003,0.006", "detector.pupil_radius_m=0.0025,0.005"],
+                                  first_k, tmp_path, monkeypatch)
+    ax = [a for a in got[0].axes if a.get_xlabel() == "source.radius_m"][0]
+    tol = [c for c in ax.collections if isinstance(c, ContourSet) and list(c.levels) == [5.0]]
+    assert not any(len(seg) for c in tol for seg in c.allsegs[0])
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert legend[0] == said and "tolerance 5 %" not in legend, legend
+
+
 def test_a_design_that_detects_no_light_is_not_feasible(tmp_path):
     """(audit 21, 3) varying the field down to 0 with the source radius: the only points within the
     tolerance had signal 0 (a point source or a zero field) and one was recommended as best.toml.
