@@ -295,6 +295,14 @@ def uncertainty_summary_lines(res) -> list[str]:
     return list(summary_lines(res))
 
 
+def uncertainty_not_converged(res) -> tuple[int, str | None]:
+    """The exit status of ``roadgonio uncertainty`` for a result (3 when an adaptive run stopped at its
+    cap before its target, else 0) and the one line that says which target and at what cap (None when 0)."""
+    from roadgonio.uncertainty.report import NOT_CONVERGED_EXIT_STATUS, not_converged_line
+    line = not_converged_line(res)
+    return (0, None) if line is None else (NOT_CONVERGED_EXIT_STATUS, line)
+
+
 def design_keys() -> tuple[str, ...]:
     """The instrument keys a design study can vary (``--vary KEY=...``)."""
     from roadgonio.design.grid import ALL_KEYS

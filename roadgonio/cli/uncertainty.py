@@ -2,6 +2,8 @@
 instrument's angle and position errors, with and without the aperture effect."""
 from __future__ import annotations
 
+import sys
+
 from roadgonio import api
 from roadgonio.errors import InputError
 from roadgonio.cli._common import (
@@ -33,7 +35,11 @@ def register(sub) -> None:
                     "(k_A of the perturbed geometry from a validated surrogate over exact backend evaluations). "
                     "Outputs per cell: mean, standard uncertainty, 95 % probabilistically symmetric and shortest "
                     "coverage intervals, GUM u and its validation; distributions of Q0 and S1. "
-                    f"{spec_help}. Input keys: {keys}.")
+                    f"{spec_help}. Input keys: {keys}.",
+        epilog="Exit status 0 when done; 3 when an --adaptive run stopped at --max-trials before every output "
+               "was stable to --digits (inconclusive, as for 'roadgonio validate': the results are written, and one "
+               "line on stderr says which target was not met and at what cap); 2 for bad input, 4 for work lost "
+               "on a Dask cluster.")
     add_instrument_argument(p)
     add_sample_argument(p)
     add_model_variant(p)
@@ -46,7 +52,8 @@ def register(sub) -> None:
                    help="number of Monte Carlo trials (default 50000)")
     g.add_argument("--adaptive", action="store_true",
                    help="adaptive Monte Carlo, JCGM 101 7.9: batches until the mean, u and interval ends of every "
-                        "output are stable to --digits significant digits of u (at most --max-trials)")
+                        "output are stable to --digits significant digits of u (at most --max-trials; stopped there "
+                        "before, exit status 3)")
     p.add_argument("--digits", type=int, default=2, choices=[1, 2, 3],
                    help="n_dig, significant digits of u for the adaptive rule and the GUM validation (default 2)")
     p.add_argument("--max-trials", type=positive_int, metavar="N",
@@ -113,4 +120,8 @@ def run(args) -> int:
         for line in api.uncertainty_summary_lines(res):
             say(line)
         say(f"wrote {len(res.written)} files to {res.out}")
-    return 0
+    status, line = api.uncertainty_not_converged(res)
+    if line:
+        # inconclusive, as validate's 3: a script must not take a capped run for a converged one (user audit)
+        print(f"roadgonio uncertainty: {line}", file=sys.stderr)
+    return status

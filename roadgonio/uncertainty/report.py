@@ -187,6 +187,27 @@ def plot_q0_s1(res: UncertaintyResult, path: Path) -> Path:
     return p
 
 
+#: The exit status of ``roadgonio uncertainty --adaptive`` when the run stopped at --max-trials before
+#: the JCGM 101 7.9 rule was met: inconclusive, as ``roadgonio validate``'s 3 (the results are written).
+NOT_CONVERGED_EXIT_STATUS = 3
+
+
+def not_converged_line(res: UncertaintyResult) -> str | None:
+    """One line saying which target an adaptive run did not meet and at what cap (None when it met it,
+    or was not adaptive): ``roadgonio uncertainty`` prints it on stderr and exits with
+    :data:`NOT_CONVERGED_EXIT_STATUS`."""
+    a = res.adaptive
+    if not a or a["converged"]:
+        return None
+    unstable = sum(a.get("unstable_outputs") or [])
+    outputs = (len(res.cells) + 2) * len(a.get("unstable_outputs") or [])      # the cells, Q0 and S1 per case
+    worst = max(a.get("worst_ratio") or [math.nan])
+    return (f"NOT CONVERGED: the adaptive run stopped at its cap of {a['max_trials']} trials (--max-trials; "
+            f"{a['batches']} batches of {a['batch']}) before the mean, u and {100 * res.coverage:g} % interval ends of "
+            f"every output were stable to {a['n_dig']} significant digits of u (JCGM 101 7.9): {unstable} of "
+            f"{outputs} outputs were not (worst 2s/delta = {worst:.2f}); the results are written; raise --max-trials or lower --digits")
+
+
 def summary_lines(res: UncertaintyResult) -> list[str]:
     n = len(res.cells)
     lines = [f"{res.trials} trials (seed {res.seed}), {n} cells, coverage {100 * res.coverage:g} %"]

@@ -70,3 +70,23 @@ def test_a_coverage_interval_needs_trials_beyond_its_ends(tmp_path, capsys):
     assert not (tmp_path / "a").exists()
     assert main([*base, "--trials", str(int(MIN_TAIL_TRIALS / 0.05)), "--coverage", "0.95", "--out",
                  str(tmp_path / "b"), "-q"]) == 0
+
+
+def test_an_adaptive_run_stopped_at_its_cap_exits_3(tmp_path, capsys):
+    """User audit: `uncertainty --adaptive` exited 0 when it stopped at --max-trials without
+    converging, so a script took it for a result to the digits asked. It exits 3 (inconclusive, as
+    validate does) with one line on stderr naming the target and the cap, the results written; a run
+    that converges exits 0 and says nothing on stderr."""
+    from roadgonio.cli import main
+    base = ["uncertainty", "--instrument", "lab", "--sample", "lambert", "--no-aperture", "--no-plots", "-q",
+            "--sigma", "alpha_deg=0.01,eps_deg=0.02,source_distance_m=0.002", "--adaptive", "--batch", "2000",
+            "--seed", "3"]
+    rc = main([*base, "--digits", "3", "--max-trials", "6000", "--out", str(tmp_path / "capped")])
+    err = capsys.readouterr().err
+    assert rc == 3, err
+    assert err.count("\n") == 1 and err.startswith("roadgonio uncertainty: NOT CONVERGED"), err
+    assert "cap of 6000 trials" in err and "stable to 3 significant digits" in err, err
+    assert {"uncertainty.json", "cells.csv"} <= {f.name for f in (tmp_path / "capped").iterdir()}
+    rc = main([*base, "--digits", "1", "--max-trials", "40000", "--out", str(tmp_path / "converged")])
+    err = capsys.readouterr().err
+    assert rc == 0 and err == "", err
