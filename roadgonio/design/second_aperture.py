@@ -18,7 +18,8 @@ would give, before anything is measured:
    not depend on the measured values), hence each instrument's ln k_A covariance, and the
    generalised-least-squares combination of the two corrected tables
    (:func:`roadgonio.correction.outside.combine`);
-3. the candidates ranked by the median relative u of the combined table (u(S1) beside it), among
+3. the candidates ranked by the median relative u of the combined table (u(S1) beside it, indicative
+   only: :data:`U_S1_PAIR_RATIO`), among
    those whose signal (:func:`roadgonio.design.metrics.relative_signal`, relative to the instrument)
    is at least ``min_signal`` (default 0.25: smaller apertures always blur less, so without a floor
    on the light the answer is "the smallest"; a second field stop that keeps a quarter of the light
@@ -61,6 +62,11 @@ DEFAULT_MIN_SIGNAL = 0.25
 #: how much is not measured, so a best setting within 10 % of a repetition is reported as no better
 #: (user audit, session 24: 0.5 % was called the best second setting without a word).
 MIN_GAIN_OVER_TWICE = 0.10
+#: What a pair's predicted u(S1) is worth: the joint correction's evidence chooses its own smoothing
+#: from both tables, and the u(S1) it gives was 0.57-1.74 times the prediction with a second setting
+#: over eight noise realisations (docs/correction.md, "Its u(S1) for a pair is indicative only"; the
+#: median u 0.87-1.10 times). The ranking is by the median u.
+U_S1_PAIR_RATIO = (0.57, 1.74)
 
 
 @dataclass
@@ -132,10 +138,19 @@ class SecondApertureResult:
                 "not_feasible": sum(not x.own and not math.isfinite(x.u_median) for x in c),
                 "below_min_signal": sum(not x.own and math.isfinite(x.u_median) and not x.signal >= floor for x in c)}
 
+    @staticmethod
+    def u_s1_note() -> str:
+        """What the u(S1) of a pair is worth (:data:`U_S1_PAIR_RATIO`): terminal and JSON."""
+        lo, hi = U_S1_PAIR_RATIO
+        return (f"u(S1) of a pair is indicative: a joint correction's evidence chooses its own smoothing from both "
+                f"tables, and its u(S1) was {lo:g}-{hi:g} x the prediction (measured, docs/correction.md); "
+                "the ranking is by the median u")
+
     def summary(self) -> dict[str, Any]:
         return {"instrument": self.instrument.name, "surface_from": self.surface_from, "keys": self.keys,
                 "best": self.best.row(), "baselines": [b.row() for b in self.baselines], "counts": self.counts(),
                 "gain_over_twice": self.gain_over_twice, "beats_twice": self.beats_twice, "verdict": self.verdict(),
+                "u_S1_note": self.u_s1_note(),
                 "candidates": [c.row() for c in self.candidates], "seconds": self.seconds, "settings": self.settings}
 
 

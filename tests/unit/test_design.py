@@ -550,6 +550,9 @@ def test_a_best_second_setting_no_better_than_measuring_twice_is_said_to_be_so(t
     write_second_aperture(res, out, plots=False)
     summary = json.loads((out / "second_aperture.json").read_text())
     assert summary["beats_twice"] is False and summary["gain_over_twice"] == pytest.approx(0.005)
+    # what a pair's u(S1) is worth, measured (U_S1_PAIR_RATIO), beside the ranking by the median u
+    from roadgonio.design.second_aperture import U_S1_PAIR_RATIO
+    assert f"{U_S1_PAIR_RATIO[0]:g}-{U_S1_PAIR_RATIO[1]:g} x the prediction" in summary["u_S1_note"]
     assert "no better than measuring the instrument's own setting twice (median u only 0.5 % below it" in \
         (out / "best_second.toml").read_text().splitlines()[0]
     assert "no better than measuring" in draw_second_aperture(res)._suptitle.get_text()
