@@ -419,7 +419,8 @@ def draw_second_aperture(res: SecondApertureResult):
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(14, 5.5))
     x = np.arange(len(ok))
     for ax, attr, what in ((a1, "u_median", "median relative u of the corrected table (%)"),
-                           (a2, "u_s1_rel", "u(S1) / S1 (%)")):
+                           (a2, "u_s1_rel", "u(S1) / S1 (%)\n(a pair's is indicative: x{:g}-{:g} measured)".format(
+                               *U_S1_PAIR_RATIO))):
         vals = [100 * getattr(c, attr) for c in ok]
         bars = ax.bar(x, vals, color=["C2" if c is res.best else ("C0" if not c.note else "0.75") for c in ok])
         for b, v in zip(bars, vals):

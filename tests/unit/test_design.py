@@ -555,7 +555,9 @@ def test_a_best_second_setting_no_better_than_measuring_twice_is_said_to_be_so(t
     assert f"{U_S1_PAIR_RATIO[0]:g}-{U_S1_PAIR_RATIO[1]:g} x the prediction" in summary["u_S1_note"]
     assert "no better than measuring the instrument's own setting twice (median u only 0.5 % below it" in \
         (out / "best_second.toml").read_text().splitlines()[0]
-    assert "no better than measuring" in draw_second_aperture(res)._suptitle.get_text()
+    fig = draw_second_aperture(res)
+    assert "no better than measuring" in fig._suptitle.get_text()
+    assert f"x{U_S1_PAIR_RATIO[0]:g}-{U_S1_PAIR_RATIO[1]:g} measured" in fig.axes[1].get_ylabel()
 
 
 def test_iso_signal_lines_that_only_clip_a_corner_are_left_out():
