@@ -12,7 +12,7 @@ the base instrument's ``[housing] baffles`` (index N from 0; a height of 0 is no
 instrument with a ``[housing]``: :func:`check_vary` refuses the others before any computation). Values:
 
 * ``LO:HI:N``      N values evenly spaced from LO to HI (both included);
-* ``LO:HI:N:log``  N values evenly spaced in log(value) (LO, HI > 0);
+* ``LO:HI:N:log``  N values evenly spaced in log(value) (LO, HI > 0); ``LO:HI:N:lin`` (or ``:linear``) is ``LO:HI:N``;
 * ``V1,V2,...``    the listed values.
 
 Values are rounded to 12 significant digits (0.02, not 0.019999999999999997), so the CSV, the
@@ -108,7 +108,7 @@ def parse_vary(spec: str) -> VarySpec:
         elif len(parts) == 4 and parts[3].lower() in ("lin", "linear"):
             parts = parts[:3]
         if len(parts) != 3:
-            raise InputError(f"expected LO:HI:N or LO:HI:N:log for {key}, got {rhs!r}", field="vary")
+            raise InputError(f"expected LO:HI:N, LO:HI:N:log or LO:HI:N:lin for {key}, got {rhs!r}", field="vary")
         lo, hi = _number(parts[0], text), _number(parts[1], text)
         try:
             n = int(parts[2])
@@ -238,6 +238,27 @@ def check_vary(base: Instrument, specs: Sequence[VarySpec]) -> None:
                                  f"{s.key}: the base instrument{where} declares no baffles in [housing]; declare "
                                  "them there, e.g. baffles = [{x_m = -0.5, height_m = 0.0}] (height_m = 0 is no "
                                  "baffle)", field="vary")
+    # a baffle of height 0 is no plate: its position or its paint changes nothing unless the design
+    # varies its height too (user audit, session 29: housing.baffles.0.x_m = -2 and 5 m on the bundled
+    # baffle base, height 0, computed three identical instruments outside the box and showed noise as
+    # an effect)
+    baffles = list((sec.get("baffles", ()) or ()) if sec is not None else ())
+
+    def flat(k: int) -> bool:
+        b = baffles[k] if k < len(baffles) else {}
+        h = b.get("height_m", 0.0) if hasattr(b, "get") else 0.0
+        return float(h or 0.0) == 0.0 and f"housing.baffles.{k}.height_m" not in varied
+
+    for s in specs:
+        m = BAFFLE_KEY.match(s.key)
+        if m and m.group(2) == "x_m" and flat(int(m.group(1))):
+            raise InputError(f"{s.key}: baffle {m.group(1)} of the base instrument{where} has height_m = 0 (no plate), "
+                             f"so its position changes nothing; vary housing.baffles.{m.group(1)}.height_m too, or "
+                             "give it a height in the base file", field="vary")
+        if s.key == "housing.baffle_reflectance" and baffles and all(flat(k) for k in range(len(baffles))):
+            raise InputError(f"{s.key}: every baffle of the base instrument{where} has height_m = 0 (no plate), so "
+                             "their reflectance changes nothing; vary a baffle's height too, or give one a height "
+                             "in the base file", field="vary")
 
 
 def grid_points(specs: Sequence[VarySpec]) -> list[dict[str, float]]:

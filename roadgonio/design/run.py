@@ -102,6 +102,33 @@ def _refuse_same_input_error(base: Instrument, specs, feas) -> None:
                      "the --vary keys", path=base.path, field=fields.pop() or None)
 
 
+#: How a refusal's kind reads in the one line of :func:`_refuse_no_possible_point`.
+_KIND_WORDS = {"instrument": "an invalid instrument", "footprint": "the footprint leaves the sample",
+               "horizon": "the source dips below the sample plane", "line_of_sight": "a line of sight is blocked",
+               "housing": "the housing blocks a source or the detector's view", "backend": "the backend refuses it"}
+
+
+def _refuse_no_possible_point(base: Instrument, specs, feas) -> None:
+    """No point of the grid can measure the requested cells (every one geometrically impossible, for
+    whatever reasons): an input error (exit 2), raised before anything is computed or written, with
+    the reasons counted and the first point's reason quoted (user audit, session 29: such grids
+    -- a housing too low, a sample too small, a source too near -- exited 0 with "no design meets the
+    tolerance" and an empty pareto.png on a meaningless signal axis)."""
+    if not feas or any(f.ok for f in feas):
+        return
+    counts: dict[str, int] = {}
+    for f in feas:
+        counts[f.kind] = counts.get(f.kind, 0) + 1
+    why = "; ".join(f"{n} {_KIND_WORDS.get(k, k or 'impossible')}" for k, n in counts.items())
+    varied = ", ".join(s.key for s in specs) or "nothing"
+    first = feas[0].reason
+    if base.path is not None and first.startswith(f"{base.path}, "):       # the line names the file once
+        first = first[len(f"{base.path}, "):]
+    raise InputError(f"no point of the --vary grid ({varied}) can measure the requested cells: {why} "
+                     f"(the first: {first}); change the --vary values, the base file or --cells",
+                     path=base.path, field="vary")
+
+
 def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFAULT_TOLERANCE,
                cells="all", backend: str = "mitsuba", accuracy: str | None = None,
                settings: Mapping[str, Any] | None = None, seed: int = 0, workers: int | None = None,
@@ -148,6 +175,7 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
         inst_of.append(inst)
         feas.append(f)
     _refuse_same_input_error(base, specs, feas)
+    _refuse_no_possible_point(base, specs, feas)
 
     # -- journal -----------------------------------------------------------------------------
     # what determines the numbers: not the instrument's name and description, nor the model's metadata

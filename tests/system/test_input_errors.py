@@ -810,6 +810,43 @@ def test_design_with_every_point_refused_for_one_reason_is_an_input_error(tmp_pa
     assert not (tmp_path / "d").exists()
 
 
+@pytest.mark.parametrize("instrument, vary, must", [
+    ("portable", "sample.size_x_m=0.1,0.2", ("2 the footprint leaves the sample", "the detector footprint leaves")),
+    ("portable", "source.distance_m=0.03,0.04", ("2 the source dips below the sample plane",)),
+    ("portable_housed", "housing.height_m=0.05,0.06", ("2 the housing blocks", "reaches the lid")),
+])
+def test_design_where_no_point_can_measure_is_an_input_error(tmp_path, capsys, instrument, vary, must):
+    """User audit, session 29: a grid none of whose points can measure the cells (a sample too small,
+    a source too near, a housing too low) exited 0 with 'no design meets the tolerance' and an empty
+    pareto.png on a meaningless signal axis. Now one line naming the base file, --vary, the reasons
+    counted and the first one; exit 2, nothing computed or written."""
+    rc = main(["design", "--instrument", instrument, "--sample", "R3", "--vary", vary, "--workers", "0",
+               "--no-plots", "--out", str(tmp_path / "d")])
+    one_line_error(capsys, rc, "field 'vary'", "no point of the --vary grid", vary.split("=")[0], *must)
+    assert not (tmp_path / "d").exists()
+
+
+@pytest.mark.parametrize("vary, must", [
+    (["housing.baffles.0.x_m=-0.6,-0.4"], "baffle 0 of the base instrument"),
+    (["housing.baffle_reflectance=0.1,0.2"], "every baffle of the base instrument"),
+])
+def test_design_of_a_baffle_of_height_zero_is_an_input_error(tmp_path, capsys, vary, must):
+    """User audit, session 29: the bundled baffle base declares its baffle with height 0 (no plate);
+    varying its position (or the baffles' paint) computed identical instruments and showed the tables'
+    noise as an effect. Refused unless the design varies the height too."""
+    argv = ["design", "--instrument", "portable_housed_baffle", "--sample", "R3", "--workers", "0", "--no-plots",
+            "--cells", "12:0", "--out", str(tmp_path / "d")]
+    for v in vary:
+        argv += ["--vary", v]
+    one_line_error(capsys, main(argv), "--vary", must, "height_m = 0 (no plate)")
+    assert not (tmp_path / "d").exists()
+    # with the height varied too, the position is a design key like any other (checked, not computed here)
+    from roadgonio.design.grid import as_vary_specs, check_vary
+    from roadgonio.api import _instrument
+    check_vary(_instrument("portable_housed_baffle"),
+               as_vary_specs(vary + ["housing.baffles.0.height_m=0,0.01"]))
+
+
 def _files(folder):
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
 
