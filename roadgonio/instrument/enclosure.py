@@ -68,7 +68,7 @@ def housing_panels(instrument, housing: Housing) -> list[Panel]:
             continue
         out.append(Panel(f"housing_baffle_{k}", (bf.x_m, yc, 0.5 * (bf.height_m - e)), (0.0, hy, 0.0),
                          (0.0, 0.0, 0.5 * (bf.height_m + e)), (1.0, 0.0, 0.0), rb, two_sided=True,
-                         label=f"baffle {k} (x = {bf.x_m:.3g} m, {1000 * bf.height_m:.3g} mm high)"))
+                         label=f"baffle {k - 1} (x = {bf.x_m:.3g} m, {1000 * bf.height_m:.3g} mm high)"))
     return out
 
 
@@ -196,11 +196,11 @@ def check_detector_view(instrument, housing: Housing) -> Box:
             continue
         field = f"housing.baffles.{k - 1}"
         if not box.x[0] < bf.x_m < box.x[1]:
-            raise bad(f"baffle {k} (housing_baffle_{k}) at x = {bf.x_m:.10g} m is not inside the housing; expected "
+            raise bad(f"baffle {k - 1} (housing_baffle_{k}) at x = {bf.x_m:.10g} m is not inside the housing; expected "
                       f"x_m strictly between the walls, {box.x[0]:.10g} < x_m < {box.x[1]:.10g} m (a baffle on a "
                       "wall is part of the wall)", f"{field}.x_m")
         if bf.height_m > box.height and housing.lid:
-            raise bad(f"baffle {k} (housing_baffle_{k}) is {bf.height_m:g} m high; expected at most the lid's "
+            raise bad(f"baffle {k - 1} (housing_baffle_{k}) is {bf.height_m:g} m high; expected at most the lid's "
                       f"height ({box.height:.3g} m)", f"{field}.height_m")
         with np.errstate(divide="ignore", invalid="ignore"):
             t = (bf.x_m - o[:, 0]) / d[:, 0]
@@ -210,7 +210,7 @@ def check_detector_view(instrument, housing: Housing) -> Box:
         if blocked.any():
             clear = float(z[meet].min()) if meet.any() else math.nan
             raise bad(
-                f"baffle {k} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm high) blocks the "
+                f"baffle {k - 1} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm high) blocks the "
                 f"detector's view: {int(blocked.sum())} of {blocked.size} checked detector rays meet it before the "
                 f"sample (the lowest detected ray passes {1000 * clear:.3g} mm above the sample plane there); "
                 "expected a lower baffle or another x_m", f"{field}.height_m")
@@ -243,7 +243,7 @@ def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, flo
                         f = np.where(s0 != s1, s0 / (s0 - s1), 0.0)
                     z = rim[:, 2] + f * (nxt[:, 2] - rim[:, 2])
                     if (z[cross] < bf.height_m).any():
-                        wall = f"baffle {k} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm high)"
+                        wall = f"baffle {k - 1} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm high)"
                         key = f"housing.baffles.{k - 1}.height_m"
                         break
                 # the line from the disc's centre to the sample centre (the cell's nominal direction)
@@ -251,7 +251,7 @@ def check_sources(instrument, housing: Housing, cells: Sequence[tuple[float, flo
                 if (c[0] - bf.x_m) * (0.0 - bf.x_m) < 0.0:
                     z_line = c[2] * (bf.x_m / c[0])
                     if z_line < bf.height_m:
-                        wall = (f"baffle {k} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm "
+                        wall = (f"baffle {k - 1} (housing_baffle_{k}: x = {bf.x_m:g} m, {1000 * bf.height_m:.3g} mm "
                                 f"high) stands in the source's line of sight to the sample centre (the line passes "
                                 f"{1000 * z_line:.3g} mm above the floor there); lower or move the baffle, or leave the "
                                 "cell out")

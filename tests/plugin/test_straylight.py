@@ -447,7 +447,7 @@ def test_housing_errors_name_the_cell_and_the_wall():
     from roadgonio.engines.mitsuba.engine import BatchEngine  # noqa: F401  (the backend runs the checks)
     with pytest.raises(GeometryError, match=r"tan eps = 12, beta = 0.*housing_wall_x_min"):
         mitsuba(housed(0.05, x_m=[-0.99, 1.05]), rel_se=1.0, first_pass=256).compute([(1.0, 0.0), (12.0, 0.0)])
-    with pytest.raises(InputError, match=r"baffle 1 .*blocks the detector's view") as err:   # a check of the file
+    with pytest.raises(InputError, match=r"baffle 0 .*blocks the detector's view") as err:   # a check of the file
         mitsuba(housed(0.05, baffles=[{"x_m": 0.5, "height_m": 0.02}]), rel_se=1.0)
     assert err.value.field == "housing.baffles.0.height_m"
     with pytest.raises(InputError, match="housing"):

@@ -133,7 +133,7 @@ def test_a_source_through_a_wall_names_the_cell_and_the_wall():
     check_sources(housed(height_m=1.005), Housing.of(housed(height_m=1.005)), [(0.0, 0.0)])
     check_sources(housed(height_m=0.9, lid=False), Housing.of(housed(height_m=0.9, lid=False)), [(0.0, 0.0)])
     inst = housed(baffles=[{"x_m": -0.97, "height_m": 0.3}])       # through the disc at tan 4 (x = -0.970 m)
-    with pytest.raises(GeometryError, match=r"tan eps = 4, beta = 0: its disc \(radius .*\) reaches baffle 1"):
+    with pytest.raises(GeometryError, match=r"tan eps = 4, beta = 0: its disc \(radius .*\) reaches baffle 0"):
         check_sources(inst, Housing.of(inst), [(4.0, 0.0)])
 
 
@@ -146,7 +146,7 @@ def test_a_baffle_in_the_sources_line_of_sight_to_the_sample_centre_is_an_error(
     the user's report: a 0.5 m baffle gave k_A 0.015 and no direct light)."""
     for h in (0.043, 0.5):
         inst = housed(baffles=[{"x_m": -0.5, "height_m": h}])
-        with pytest.raises(GeometryError, match=r"tan eps = 12, beta = 0.*baffle 1.*line of sight to the sample centre"):
+        with pytest.raises(GeometryError, match=r"tan eps = 12, beta = 0.*baffle 0.*line of sight to the sample centre"):
             check_sources(inst, Housing.of(inst), [(1.0, 0.0), (12.0, 0.0)])
     inst = housed(baffles=[{"x_m": -0.5, "height_m": 0.040}])
     check_sources(inst, Housing.of(inst), [(1.0, 0.0), (12.0, 0.0), (10.0, 0.0)])
@@ -156,7 +156,7 @@ def test_a_baffle_in_the_sources_line_of_sight_to_the_sample_centre_is_an_error(
 def test_a_baffle_in_the_line_of_sight_is_an_error_and_a_low_one_is_not():
     """The lowest detected ray passes about (x - x_near) tan(alpha - field) above the sample at x."""
     inst = housed(baffles=[{"x_m": 0.6, "height_m": 0.01}])
-    with pytest.raises(InputError, match=r"baffle 1 \(housing_baffle_1: x = 0.6 m, 10 mm high\) blocks the "
+    with pytest.raises(InputError, match=r"baffle 0 \(housing_baffle_1: x = 0.6 m, 10 mm high\) blocks the "
                                          r"detector's view") as err:
         check_detector_view(inst, Housing.of(inst))
     assert err.value.field == "housing.baffles.0.height_m" and err.value.path == str(HOUSED)
@@ -235,7 +235,7 @@ def test_housing_design_keys():
     # a point whose baffle blocks the grazing sources' disc is infeasible with kind "housing"
     _, f = check_point(base, {"housing.baffles.0.height_m": 0.3, "housing.baffles.0.x_m": -0.97},
                        [(4.0, 0.0), (1.0, 0.0)])
-    assert not f.ok and f.kind == "housing" and "baffle 1" in f.reason
+    assert not f.ok and f.kind == "housing" and "baffle 0 (housing_baffle_1" in f.reason
 
 
 def test_conventions_list_every_housing_and_scene_key():
