@@ -175,7 +175,23 @@ def draw_table_map(ax, values: np.ndarray, *, label: str, centre: float | None =
     cb = ax.figure.colorbar(im, ax=ax, fraction=0.035, pad=0.02)
     cb.set_label(label)
     plain_colorbar_labels(cb)
+    if centre is not None and finite.size:
+        centre_tick(cb, float(centre))
     return im
+
+
+def centre_tick(cb, centre: float) -> None:
+    """A tick at the diverging scale's centre (k_A = 1, which the label names) when the bar's ticks
+    miss it (user audit, session 29: 0.84, 0.90, 0.96, 1.02 ... and no 1); ticks nearer to it than
+    half their spacing are dropped so the labels do not run into each other."""
+    lo, hi = sorted((float(cb.norm.vmin), float(cb.norm.vmax)))
+    if not lo <= centre <= hi:
+        return
+    ticks = sorted(float(t) for t in cb.get_ticks() if lo <= t <= hi)
+    if any(abs(t - centre) <= 1e-9 * max(1.0, abs(centre)) for t in ticks):
+        return
+    step = min((b - a for a, b in zip(ticks, ticks[1:])), default=hi - lo)
+    cb.set_ticks(sorted([t for t in ticks if abs(t - centre) >= 0.5 * step] + [centre]))
 
 
 def table_map(values: np.ndarray, path: str | Path, *, title: str, label: str, centre: float | None = 1.0,

@@ -13,7 +13,7 @@
   best labelled; when every point has the same signal (:func:`roadgonio.design.dataset.same_signal`:
   a housing's paint and baffles), max |k_A - 1| point by point instead, with max |k_A,direct - 1|
   beside it when there is stray light, and the title says why;
-* ``tolerance_map.png`` (two or more varied keys): max |k_A - 1| over the plane of the first two
+* ``tolerance_map.png`` (two or more varied keys of more than one value): max |k_A - 1| over the plane of the first two
   varied keys, one panel per value of a third of at most MAX_MAP_PANELS values (others at the best
   design's values), with the tolerance contour (or, when there is none, the legend says on which
   side of the tolerance every point is) and iso-signal lines (interpolated as power laws of the
@@ -518,6 +518,13 @@ def _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor, fin_all, *, title: bool) 
     if xk in logs:
         ax.set_xscale("log")
         _value_ticks(ax.xaxis, x)
+    else:
+        # a panel of several is narrow: matplotlib's default of ~8 labels like 0.0025 ran together
+        # into one string there (user audit, session 29)
+        from matplotlib import ticker
+        ax.xaxis.set_major_locator(ticker.MaxNLocator(nbins=6 if title else 4, min_n_ticks=2))
+    if not title:
+        ax.tick_params(axis="x", labelrotation=30)
     if yk in logs:
         ax.set_yscale("log")
         _value_ticks(ax.yaxis, y)

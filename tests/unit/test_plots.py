@@ -23,6 +23,25 @@ def test_a_log_colour_bar_under_a_decade_has_ticks_over_its_whole_range():
     plt.close(fig)
 
 
+def test_a_k_a_colour_bar_has_a_tick_at_1():
+    """User audit, session 29: ka.png of the housed portable (k_A 0.790 ... 1.201) had ticks 0.84, 0.90,
+    0.96, 1.02 ... and none at 1, the value its label names ("1 = no aperture effect"). Now a tick at
+    the centre, and none within half a tick spacing of it (labels that would overlap)."""
+    from roadgonio.plots import _plt, draw_table_map
+    plt = _plt()
+    for v, log in ((np.array([[0.790, 0.95], [1.05, 1.201]]), True), (np.array([[0.79, 0.95], [1.05, 1.23]]), False)):
+        fig, ax = plt.subplots()
+        cb = draw_table_map(ax, v, label="k_A (1 = no aperture effect)", centre=1.0, log=log, tan_eps=[0, 1],
+                            beta_deg=[0, 2]).colorbar
+        ticks = sorted(t for t in cb.get_ticks() if cb.norm.vmin <= t <= cb.norm.vmax)
+        assert any(abs(t - 1.0) < 1e-12 for t in ticks), ticks
+        step = np.median(np.diff(ticks))
+        assert all(abs(t - 1.0) >= 0.45 * step for t in ticks if abs(t - 1.0) > 1e-12), ticks
+        fig.canvas.draw()
+        assert "1" in [t.get_text() for t in cb.ax.yaxis.get_ticklabels()], ticks
+        plt.close(fig)
+
+
 def test_tick_labels_get_the_digits_that_tell_the_ticks_apart():
     """A one-cell k_A map (0.9976 ... 1.0024) had colour-bar labels 1, 1, 1, 1, 0.999, 0.999, 0.998."""
     from roadgonio.plots import tick_labels
