@@ -1299,6 +1299,8 @@ def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, targ
             ut = _table(uf, "u", quantity="u")
             _check_u_is_u(uf, ut)
             _check_u_belongs(item, t, uf, ut, own_name)
+            from roadgonio.surface.rtable import check_u_scale
+            check_u_scale(ut.r, t, **({"path": uf, "argument": "u"} if isinstance(uf, (str, Path)) else {"field": "u"}))
             inputs.append(input_record("u", uf, f"u of {t.name}"))
             found = False
             if cf is None and correlation in ("auto", "given", "all"):

@@ -135,6 +135,9 @@ def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
     (CSV/RTB, r x 1e4) of standard uncertainties. At least :data:`U_REL_MIN` of each
     value. Returns (grid, description)."""
     grid, what, path = _measured_uncertainty(spec, table)
+    if not isinstance(spec, (int, float, str)) or path is not None:       # a table of u, not a percentage
+        from roadgonio.surface.rtable import check_u_scale
+        check_u_scale(grid, table, path, **_u_where(path))
     with np.errstate(invalid="ignore"):
         tiny = table.mask & (grid < U_REL_MIN * table.r)
     if tiny.any():

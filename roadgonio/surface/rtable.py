@@ -898,6 +898,28 @@ def check_not_u(table: RTable, path: str | Path | None = None) -> None:
                          "expected an r-table here", path=path)
 
 
+#: A table of standard uncertainties whose median over the measured cells is at least this fraction
+#: of r is refused as an r-table (:func:`check_u_scale`): a goniophotometer states a few percent (a
+#: u of 60 % still passes: road's tests of extreme u use it).
+U_OVER_R_MAX_MEDIAN = 0.9
+
+
+def check_u_scale(u_grid: np.ndarray, table: RTable, path: str | Path | None = None, **where) -> None:
+    """Refuse a table given as the standard uncertainties of ``table`` whose values are r's own size
+    (median u / r >= :data:`U_OVER_R_MAX_MEDIAN` over the cells both have): an r-table given where its
+    u belongs (user audit, session 29: ``correct --u-measured corrected.csv`` and ``road --u site1.csv``
+    ran with u = 100 % of r, exit 0). ``where``: the InputError's ``field`` or ``argument``."""
+    u = np.asarray(u_grid, dtype=np.float64)
+    both = table.mask & np.isfinite(u) & (table.r > 0)
+    if not both.any():
+        return
+    ratio = float(np.median(u[both] / table.r[both]))
+    if ratio >= U_OVER_R_MAX_MEDIAN:
+        raise InputError(f"its values are {100 * ratio:.0f} % of the table's r at the median: an r-table, not its "
+                         "standard uncertainties (a measurement states a few percent of r); expected u x 1e4 in the "
+                         "r-table layout, as correct writes corrected_u.csv", path=path, **where)
+
+
 def check_reflectance(table: RTable, path: str | Path | None = None, field: str = "r") -> None:
     """Refuse an r-table that reflects more light than reaches it (:meth:`RTable.reflectance` above
     :data:`REFLECTANCE_MAX`): its values are not r x 1e4 (r x 1e6, or q = r / cos^3 eps, read as r)."""

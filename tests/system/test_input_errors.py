@@ -847,6 +847,27 @@ def test_design_of_a_baffle_of_height_zero_is_an_input_error(tmp_path, capsys, v
                as_vary_specs(vary + ["housing.baffles.0.height_m=0,0.01"]))
 
 
+@pytest.mark.parametrize("command", ["correct", "road"])
+def test_an_r_table_given_as_u_is_an_input_error(tmp_path, capsys, command):
+    """User audit, session 29: an r-table CSV given as the u of a table (correct --u-measured, road
+    --u; here another surface's table, R2's, so no header or file identity gives it away) ran with
+    u ~ 100 % of r, exit 0. Its values are r's own size: refused (U_OVER_R_MAX_MEDIAN), one line naming
+    the file and the argument; a u of 5 % passes the same check."""
+    from roadgonio.surface.rtable import U_OVER_R_MAX_MEDIAN, bundled_table, check_u_scale
+    r3, r2 = bundled_table("R3"), bundled_table("R2")
+    r2.write_csv(tmp_path / "site1.csv")
+    r3.write_csv(tmp_path / "site2.csv")
+    arg = "--u-measured" if command == "correct" else "--u"
+    argv = ([command, "--measured", str(tmp_path / "site2.csv"), "--instrument", "portable", "--backend", "quadrature"]
+            if command == "correct" else [command, "--table", str(tmp_path / "site2.csv")])
+    rc = main(argv + [arg, str(tmp_path / "site1.csv"), "--out", str(tmp_path / "o")])
+    one_line_error(capsys, rc, "site1.csv", arg, "% of the table's r at the median", "not its standard uncertainties")
+    assert not (tmp_path / "o").exists()
+    check_u_scale(0.05 * r3.r, r3)                                   # a real u passes
+    with pytest.raises(Exception, match="at the median"):
+        check_u_scale(U_OVER_R_MAX_MEDIAN * r3.r, r3)
+
+
 def _files(folder):
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
 
