@@ -148,6 +148,7 @@ def test_a_second_signal_in_a_deferred_region_stops_at_once_once_the_files_being
     with interrupts.deferred("pass of the test", lambda: "kept: the file " + open("written").read()):
         os.kill(os.getpid(), signal.{signum})
         with interrupts.critical():
+            busy(2 * interrupts.SAME_SIGNAL_S)     # a person's second signal, not timeout's repeat of the first
             os.kill(os.getpid(), signal.{signum})
             busy(1.0)
             with open("written", "w") as f:
@@ -166,3 +167,31 @@ def test_a_second_signal_in_a_deferred_region_stops_at_once_once_the_files_being
         "at once, losing only that one",
         f"roadgonio: {name} received again: stopped at once, without finishing the pass of the test under way; "
         "kept: the file whole"], err
+
+
+@pytest.mark.parametrize("signum", ["SIGINT", "SIGTERM"])
+def test_one_signal_heard_twice_at_once_is_one_request(tmp_path, signum):
+    """User audit, session 29: GNU timeout sends SIGTERM to the command and to its process group, so
+    one request arrives twice within microseconds, and 2 of 3 runs under `timeout` stopped at once
+    ("received again") instead of finishing the pass. Two signals within SAME_SIGNAL_S are one: the
+    region goes on to its boundary and stops there, one line on stderr."""
+    p = _child(BUSY + f"""
+    import os, signal, sys
+    from roadgonio import interrupts
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    interrupts.install()
+    with interrupts.deferred("pass of the test") as d:
+        os.kill(os.getpid(), signal.{signum})
+        os.kill(os.getpid(), signal.{signum})
+        busy(1.0)
+        print("went on to the boundary", flush=True)
+        try:
+            d.check()
+        except KeyboardInterrupt:
+            print("stopped at the boundary", flush=True)
+    """, tmp_path)
+    out, err = p.communicate(timeout=WAIT_S)
+    assert p.returncode == 0, (p.returncode, out, err)
+    assert out.splitlines() == ["went on to the boundary", "stopped at the boundary"], (out, err)
+    name = "Ctrl-C" if signum == "SIGINT" else "SIGTERM"
+    assert len(err.splitlines()) == 1 and err.startswith(f"roadgonio: {name} received: stopping after"), err
