@@ -78,6 +78,10 @@ class CellResult:
                               ("stray_fraction_se", 0.0)):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, float(default))
+        if self.se == 0.0 and self.k_a_direct_se == 0.0 and self.stray_fraction_se == 0.0:
+            # an exact 0 (a Lambertian sample under a Lambert calibration: every replicate the same) is no
+            # estimate, so it has no degrees of freedom (user audit, session 29: se_dof 15 beside se 0)
+            object.__setattr__(self, "se_dof", math.nan)
 
     @property
     def deterministic(self) -> bool:

@@ -92,3 +92,18 @@ def test_a_ka_journal_with_a_value_no_backend_writes_is_refused(tmp_path, k_a, s
         with pytest.raises(InputError, match="corrupt journal line") as err:
             _read_journal(path, "fp")
         assert err.value.line == 3 and err.value.path == str(path)
+
+
+def test_an_exact_zero_se_has_no_degrees_of_freedom():
+    """User audit, session 29: a Lambertian sample under a Lambert calibration gives k_A = 1 with se 0
+    (every replicate the same), and ka --json / ka.nc said se_dof 15 beside it; inputs-outputs.md says
+    NaN where the SE is not an estimate. An SE > 0 keeps its degrees of freedom, also through a journal."""
+    import math
+    from roadgonio.engines.result import CellResult
+    exact = CellResult(12.0, 0.0, 1.0, 0.0, 4096, 0.0, se_dof=15.0)
+    assert math.isnan(exact.se_dof) and "se_dof" not in exact.to_dict()
+    est = CellResult(12.0, 0.0, 0.98, 1e-4, 4096, 0.0, se_dof=15.0)
+    assert est.se_dof == 15.0 and CellResult(**json.loads(json.dumps(est.to_dict()))).se_dof == 15.0
+    stray = CellResult(12.0, 0.0, 1.0, 0.0, 4096, 0.0, k_a_direct=1.0, k_a_direct_se=0.0, stray_fraction=0.01,
+                       stray_fraction_se=1e-4, se_dof=15.0)
+    assert stray.se_dof == 15.0          # the stray fraction's SE is an estimate of those replicates
