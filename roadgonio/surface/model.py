@@ -516,9 +516,11 @@ class RoadModel:
                              path=path, field="params")
         if "variant" not in d:
             # every model file roadgonio writes names its variant; a file without one is not read as
-            # the default, which may not be the variant it was fitted with
-            raise InputError(f"missing key 'variant'; expected one of {', '.join(VARIANTS)}", path=path,
-                             field="variant")
+            # the default, which may not be the variant it was fitted with. A misspelt key is named
+            # (user audit, session 29: "varaint" said only "missing key 'variant'")
+            typo = next((k for k in d if k != "variant" and _near_key(k, ("variant",))), None)
+            raise InputError("missing key 'variant'" + (f" (is {typo!r} meant to be 'variant'?)" if typo else "")
+                             + f"; expected one of {', '.join(VARIANTS)}", path=path, field="variant")
         variant = d["variant"]
         if not isinstance(variant, str) or variant not in VARIANTS:
             raise InputError(f"unknown variant {variant!r}; expected one of {', '.join(VARIANTS)}",

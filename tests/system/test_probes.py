@@ -470,6 +470,19 @@ probe("instrument-scene-params-without-xml", "input", "ka",
 probe("model-variant-misspelt", "input", "ka",
       lambda t: cli(*_ka("--instrument", instrument(t), "--sample", model_file(t, file="m.json", varaint="smooth"))),
       must=("m.json", "varaint", "variant"))
+
+
+def _model_without_variant(tmp: Path) -> Path:
+    """A model file whose only variant key is misspelt (user audit, session 29: the line said only
+    "missing key 'variant'", not which key was meant)."""
+    p = tmp / "m2.json"
+    p.write_text(json.dumps({"varaint": "smooth", "params": dict(R3LIKE)}))
+    return p
+
+
+probe("model-variant-misspelt-alone", "input", "ka",
+      lambda t: cli(*_ka("--instrument", instrument(t), "--sample", _model_without_variant(t))),
+      must=("m2.json", "'varaint'", "missing key 'variant'"))
 probe("sigma-file-sigma-as-text", "input", "uncertainty",
       lambda t: cli("uncertainty", "--instrument", instrument(t), "--sample", model_file(t), "--sigma",
                     instrument(t, '[sigma]\nalpha_deg = {sigma = "0.01"}\n', "spec.toml"), "--no-aperture",
