@@ -68,6 +68,12 @@ def test_a_coverage_interval_needs_trials_beyond_its_ends(tmp_path, capsys):
     err = capsys.readouterr().err
     assert rc == 2 and "expected at least 10000 trials" in err and err.count("\n") == 1
     assert not (tmp_path / "a").exists()
+    # the least number is said once (user audit, session 29: --trials 1 said 'at least 100', then
+    # --trials 100 said 'at least 200')
+    for n in (1, 100):
+        rc = main([*base, "--trials", str(n), "--out", str(tmp_path / "c")])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"expected at least {int(MIN_TAIL_TRIALS / 0.05)} trials for a 95 % coverage" in err, err
     assert main([*base, "--trials", str(int(MIN_TAIL_TRIALS / 0.05)), "--coverage", "0.95", "--out",
                  str(tmp_path / "b"), "-q"]) == 0
 
