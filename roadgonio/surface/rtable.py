@@ -243,7 +243,14 @@ class RTable:
         return text
 
     def write_rtb(self, path: str | Path) -> Path:
-        return atomic_write_text(path, self.to_rtb_text())
+        try:
+            text = self.to_rtb_text()
+        except InputError as err:
+            if err.path is not None:
+                raise
+            # the file being written is named (user audit, session 29: 'field r: cannot write RTB' named none)
+            raise InputError(err.reason, path=path, line=err.line, field=err.field, argument=err.argument) from None
+        return atomic_write_text(path, text)
 
     def write(self, path: str | Path) -> Path:
         """Write by suffix: ``.rtb`` as DIALux RTB, anything else as CSV."""

@@ -107,3 +107,4 @@ def test_an_exact_zero_se_has_no_degrees_of_freedom():
     stray = CellResult(12.0, 0.0, 1.0, 0.0, 4096, 0.0, k_a_direct=1.0, k_a_direct_se=0.0, stray_fraction=0.01,
                        stray_fraction_se=1e-4, se_dof=15.0)
     assert stray.se_dof == 15.0          # the stray fraction's SE is an estimate of those replicates
+

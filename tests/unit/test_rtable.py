@@ -285,3 +285,17 @@ def test_fit_refuses_a_zero_cell_as_correct_does(tmp_path):
     with pytest.raises(InputError, match=r"1 zero value\(s\), the first at tan eps = 0.75, beta = 5") as err:
         api.fit(path)
     assert "zero.csv" in str(err.value)
+
+
+def test_an_rtb_that_cannot_be_written_names_the_file(tmp_path):
+    """User audit, session 29: `roadgonio table with_a_zero.csv --to out.rtb` said "field 'r': cannot
+    write RTB: r = 0 at ..." naming no file; the line names the file being written, and nothing is
+    written."""
+    from roadgonio.surface.rtable import bundled_table
+    t = bundled_table("R3")
+    r = t.r.copy()
+    r[6, 2] = 0.0
+    with pytest.raises(InputError) as err:
+        t.with_values(r).write_rtb(tmp_path / "out.rtb")
+    assert err.value.path == str(tmp_path / "out.rtb") and "r = 0 at tan eps" in str(err.value)
+    assert str(err.value).startswith(f"{tmp_path / 'out.rtb'}, field 'r'") and not (tmp_path / "out.rtb").exists()
