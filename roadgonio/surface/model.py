@@ -526,6 +526,14 @@ class RoadModel:
             raise InputError(f"unknown variant {variant!r}; expected one of {', '.join(VARIANTS)}",
                              path=path, field="variant")
         used = variant_param_names(variant)
+        unknown = sorted(k for k in d["params"] if k not in PARAM_NAMES)
+        if unknown:
+            # the names of this variant, not of all (user audit, session 29: a typo in a power model
+            # listed n_beta, which the next error then called no parameter of power)
+            near = [_near_key(k, used) for k in unknown]
+            hint = "; ".join(f"did you mean {n!r} for {k!r}?" for k, n in zip(unknown, near) if n)
+            raise InputError(f"unknown parameter(s) {', '.join(unknown)}" + (f" ({hint})" if hint else "")
+                             + f"; variant {variant!r} takes {', '.join(used)}", path=path, field="params")
         for k, v in d["params"].items():
             # a parameter of another variant does nothing here (n_beta with power): an error, not a
             # silent no-op; at its default it is what roadgonio wrote into every model file before

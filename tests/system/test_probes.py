@@ -480,6 +480,11 @@ def _model_without_variant(tmp: Path) -> Path:
     return p
 
 
+probe("model-param-misspelt", "input", "ka",
+      lambda t: cli(*_ka("--instrument", instrument(t), "--sample",
+                         model_file(t, {**{k: v for k, v in R3LIKE.items() if k != "k_phong"},
+                                        "k_phng": R3LIKE["k_phong"]}, file="m3.json"))),
+      must=("m3.json", "k_phng", "did you mean 'k_phong'", "variant 'power' takes k_diff"))
 probe("model-variant-misspelt-alone", "input", "ka",
       lambda t: cli(*_ka("--instrument", instrument(t), "--sample", _model_without_variant(t))),
       must=("m2.json", "'varaint'", "missing key 'variant'"))
