@@ -137,9 +137,9 @@ def run(args) -> int:
         say(f"{s['measured']}: {s['cells']} cells corrected (reference {s['reference']}, calibration "
             f"{s['calibration']}; k_A {s['k_a_min']:.3g} ... {s['k_a_max']:.3g})")
         say(f"  before: S1 {_pm(b['S1'], b['u_S1'])}, Q0 {_pm(b['Q0'], b['u_Q0'])}, S2 {_pm(b['S2'], b['u_S2'])}: "
-            f"{_classes(b)}, nearest CIE table {b['nearest_table']}")
+            f"{_classes(b)}, nearest CIE table {_nearest(b)}")
         say(f"  after:  S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
-            f"{_classes(s)}, nearest CIE table {s['nearest_table']}")
+            f"{_classes(s)}, nearest CIE table {_nearest(s)}")
         if s.get("Q0_note"):
             say(f"  note: {s['Q0_note']}")
         comps = ", ".join(f"{k} {_percent(v['u_rel_max'])}" for k, v in s["budget"].items() if k != "total")
@@ -195,7 +195,7 @@ def _run_joint(args) -> int:
             f"{_pm(b['S1'], b['u_S1'])}, Q0 {_pm(b['Q0'], b['u_Q0'])}; its own corrected u median "
             f"{100 * p['u_rel_median']:.3g} %")
     say(f"  corrected: S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
-        f"{_classes(s)}, nearest CIE table {s['nearest_table']}")
+        f"{_classes(s)}, nearest CIE table {_nearest(s)}")
     if s.get("Q0_note"):
         say(f"  note: {s['Q0_note']}")
     say(f"  u of the corrected r: median {100 * s['u_rel_median']:.3g} %, max {100 * s['u_rel_max']:.3g} %; "
@@ -213,6 +213,12 @@ def _run_joint(args) -> int:
 def _model_estimate_line(m: dict) -> str:
     return (f"  the table weighs r / k_A against the fitted surface's own value: its weight median "
             f"{m['weight_median']:.2f} ({m['weight_min']:.2f} ... {m['weight_max']:.2f}; w_model in correct_cells.csv)")
+
+
+def _nearest(s: dict) -> str:
+    """The nearest CIE table, and what it was found by when S1 or Q0 is missing (user audit, session 29)."""
+    basis = s.get("nearest_table_basis")
+    return f"{s['nearest_table']}" + (f" ({basis})" if basis else "")
 
 
 def _classes(s: dict) -> str:
@@ -236,6 +242,8 @@ def _json_summary(res) -> dict:
             "class_C", "nearest_table", "k_a_min", "k_a_max", "u_rel_median", "u_rel_max", "before", "budget",
             "seconds")
     out = {k: s[k] for k in keep}
+    if s.get("nearest_table_basis"):
+        out["nearest_table_basis"] = s["nearest_table_basis"]
     if s.get("model_estimate"):
         out["model_estimate"] = s["model_estimate"]
     if "fit" in s:

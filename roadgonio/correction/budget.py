@@ -43,7 +43,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from roadgonio.surface.cie import cie_class, nearest_bundled
+from roadgonio.surface.cie import cie_class, nearest_basis, nearest_bundled
 from roadgonio.surface.rtable import RTable, q0_weights, standard_mask
 
 #: The measurement's relative standard uncertainty when none is stated (``--u-measured``): the
@@ -178,6 +178,8 @@ def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:
     out["class"] = cie_class(s1, out.get("u_S1"))
     near = nearest_bundled(s1, q0, 1)
     out["nearest_table"], out["nearest_distance"] = near[0] if near else (None, None)
+    if near and nearest_basis(s1, q0):
+        out["nearest_table_basis"] = nearest_basis(s1, q0)
     return out
 
 

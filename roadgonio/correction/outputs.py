@@ -144,7 +144,8 @@ def _json_doc(res, plots: bool) -> dict[str, Any]:
                      "correlations between cells (corrected_corr.csv)",
                 "S1": "r(beta 0, tan 2) / r(beta 0, tan 0)", "Q0": "CIE 144 average luminance coefficient (sr^-1)",
                 "S2": "Q0 / r(0, 0)", "class": "CIE 144 by S1: R1 < 0.42 <= R2 < 0.85 <= R3 < 1.35 <= R4; "
-                                             "C1 < 0.40 <= C2; nearest_table by (S1, Q0)",
+                                             "C1 < 0.40 <= C2; nearest_table by (S1, Q0), or by the one of them the table has "
+                                             "(nearest_table_basis),",
                 "before": "the measured table as reported, with the measurement's (and misalignment) uncertainty"}}
 
 
@@ -206,7 +207,8 @@ def _fmt_u(v: float | None, u: float | None, digits: int = 3) -> str:
 def _functional_text(f: dict[str, Any]) -> str:
     cls = f["class"]
     return (f"S1 = {_fmt_u(f['S1'], f.get('u_S1'))}   Q0 = {_fmt_u(f['Q0'], f.get('u_Q0'))} sr^-1   "
-            f"S2 = {_fmt_u(f['S2'], f.get('u_S2'))}   class {cls['R']} / {cls['C']}, nearest CIE table {f['nearest_table']}")
+            f"S2 = {_fmt_u(f['S2'], f.get('u_S2'))}   class {cls['R']} / {cls['C']}, nearest CIE table {f['nearest_table']}"
+            + (f" ({f['nearest_table_basis']})" if f.get("nearest_table_basis") else ""))
 
 
 def draw_before_after(res):

@@ -294,10 +294,10 @@ class CorrectionResult:
                "cells": int(m.sum()), "k_a_min": float(np.min(k)), "k_a_max": float(np.max(k)),
                "S1": a["S1"], "u_S1": a.get("u_S1"), "Q0": a["Q0"], "u_Q0": a.get("u_Q0"),
                "S2": a["S2"], "u_S2": a.get("u_S2"), "class_R": a["class"]["R"], "class_C": a["class"]["C"],
-               "nearest_table": a["nearest_table"],
+               "nearest_table": a["nearest_table"], "nearest_table_basis": a.get("nearest_table_basis", ""),
                "before": {"S1": b["S1"], "u_S1": b.get("u_S1"), "Q0": b["Q0"], "u_Q0": b.get("u_Q0"), "S2": b["S2"],
                           "u_S2": b.get("u_S2"), "class_R": b["class"]["R"], "class_C": b["class"]["C"],
-                          "nearest_table": b["nearest_table"]},
+                          "nearest_table": b["nearest_table"], "nearest_table_basis": b.get("nearest_table_basis", "")},
                "Q0_note": a.get("Q0_note"),
                "u_rel_median": float(np.median(self.budget.u_rel())), "u_rel_max": float(np.max(self.budget.u_rel())),
                "budget": self.budget.summary(), "seconds": self.seconds}

@@ -91,6 +91,18 @@ def nearest_bundled(s1: float, q0: float, k: int | None = None,
     return out if k is None else out[:k]
 
 
+def nearest_basis(s1: float, q0: float) -> str:
+    """What :func:`nearest_bundled` measured its distance on: "" for S1 and Q0, else which one alone
+    (user audit, session 29: a table without S1 named a nearest table by Q0, whose six values differ
+    by 2 %, and it changed between before and after without a word)."""
+    use_s1, use_q0 = math.isfinite(s1), math.isfinite(q0)
+    if use_s1 and use_q0:
+        return ""
+    if use_q0:
+        return "by Q0 alone: S1 missing"
+    return "by S1 alone: Q0 missing" if use_s1 else ""
+
+
 def classify(table: RTable) -> dict[str, Any]:
     """S1, Q0, S2 of ``table``, its class in each system with the margin of S1 to the nearest class
     limit and the Q0 scale of the class standard, and the bundled tables by distance.

@@ -728,3 +728,20 @@ def test_q0_of_a_table_with_blank_cells_says_what_it_is():
     out = functionals(blank, np.eye(int(blank.mask.sum())) * 1e-4)
     assert abs(out["Q0"] / t.q0() - 1) > 10 * out["u_Q0"] / out["Q0"]           # what it did not say
     assert "20 of the CIE tables' 396 cells are blank" in out["Q0_note"]
+
+
+def test_the_nearest_table_says_what_it_was_found_by():
+    """User audit, session 29: a table without S1 (r(beta 0, tan eps 2) blank) named a nearest CIE table
+    found by Q0 alone (the six tables' Q0 differ by 2 %), and it changed from R3 before to C2 after the
+    correction without a word. functionals() says the basis when S1 or Q0 is missing, not otherwise."""
+    from roadgonio.surface.cie import nearest_basis, nearest_bundled
+    from roadgonio.surface.rtable import bundled_table
+    t = bundled_table("R3")
+    full = functionals(t, None)
+    assert full["nearest_table"] == "R3" and "nearest_table_basis" not in full
+    r = t.r.copy()
+    r[list(t.tan_eps).index(2.0), list(t.beta_deg).index(0.0)] = np.nan
+    no_s1 = functionals(t.with_values(r), None)
+    assert not math.isfinite(no_s1["S1"]) and no_s1["nearest_table_basis"] == "by Q0 alone: S1 missing"
+    assert no_s1["nearest_table"] == nearest_bundled(math.nan, no_s1["Q0"], 1)[0][0]
+    assert nearest_basis(1.0, math.nan) == "by S1 alone: Q0 missing" and nearest_basis(1.0, 0.07) == ""
