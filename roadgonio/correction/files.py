@@ -70,6 +70,14 @@ def correct_measured(measured: RTable, instrument: Instrument, *, reference: Any
     return correct_with_reference(measured, instrument, ref_model, reference_name=name, alternatives=alts, **keep)
 
 
+def folder_names(tables: Sequence[RTable], measured_files: Sequence[str | None] | None = None) -> list[str]:
+    """The name of each table's sub-folder: the file's stem when it was read from a file (an RTB stores
+    a surface name: two files storing "R3" became R3 and R3-2, and site2.rtb's results sat in R3, user
+    audit 29), else the table's name (a bundled table, an object)."""
+    given = list(measured_files or [None] * len(tables))
+    return [Path(str(f)).stem if f is not None else t.name for t, f in zip(tables, given)]
+
+
 def output_folders(names: Sequence[str], out_dir: str | Path) -> list[Path]:
     """One folder per measured table: ``out_dir`` itself for one table, else ``out_dir/NAME``
     (``NAME-2``, ... when two files share a name)."""
@@ -148,7 +156,8 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
     over the tables.
     """
     tables = list(tables)
-    folders = output_folders([t.name for t in tables], out_dir) if out_dir is not None else [None] * len(tables)
+    folders = (output_folders(folder_names(tables, measured_files), out_dir) if out_dir is not None
+               else [None] * len(tables))
     self_ref = _is_self(reference)
     progress = bool(options.get("progress", True))
     distributed = client is not None or scheduler is not None or workers not in (None, 0)

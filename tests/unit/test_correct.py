@@ -745,3 +745,15 @@ def test_the_nearest_table_says_what_it_was_found_by():
     assert not math.isfinite(no_s1["S1"]) and no_s1["nearest_table_basis"] == "by Q0 alone: S1 missing"
     assert no_s1["nearest_table"] == nearest_bundled(math.nan, no_s1["Q0"], 1)[0][0]
     assert nearest_basis(1.0, math.nan) == "by S1 alone: Q0 missing" and nearest_basis(1.0, 0.07) == ""
+
+
+def test_each_measured_file_gets_a_folder_named_by_the_file(tmp_path):
+    """User audit, session 29: `correct --measured site1.csv site2.rtb` wrote site1/ and R3/ (an RTB stores
+    the surface's name), two RTBs storing R3 became R3/ and R3-2/; correction.md says one sub-folder per
+    file. Tables from files are named by the file; a bundled table by its name."""
+    from roadgonio.correction.files import folder_names
+    from roadgonio.surface.rtable import bundled_table
+    t = bundled_table("R3")
+    names = folder_names([t, t, t], [str(tmp_path / "site1.rtb"), str(tmp_path / "site2.rtb"), None])
+    assert names == ["site1", "site2", "R3"]
+    assert [p.name for p in output_folders(names, tmp_path / "o")] == ["site1", "site2", "R3"]
