@@ -1404,7 +1404,8 @@ def _check_u_is_u(uf, ut: "RTable") -> None:
     from roadgonio.surface.rtable import corrected_r_header
     head = corrected_r_header(ut)
     if head is not None:
-        shown = head if len(head) <= 60 else head[:57] + "..."
+        from roadgonio.surface.rtable import shown_header
+        shown = shown_header(head)
         raise InputError(f"is an r-table ('{shown}'), not a standard uncertainty (its header would start "
                          f"'standard uncertainty of'): {_u_instead(uf)}",
                          **({"path": uf, "argument": "u"} if isinstance(uf, (str, Path)) else {"field": "u"}))

@@ -830,17 +830,24 @@ def read_table(path: str | Path, quantity: str = "r") -> RTable:
     return parse_csv(text, path=path, quantity=quantity)
 
 
+def shown_header(text: str, width: int = 60) -> str:
+    """A header line as an error quotes it: whole when short, else cut at a word with " ..." (user
+    audit, session 29: '... (mitsuba backen' cut mid-word)."""
+    import textwrap
+    return textwrap.shorten(" ".join(str(text).split()), width=width, placeholder=" ...")
+
+
 def check_not_ka(table: RTable, path: str | Path) -> None:
     """Refuse a k_A table (``ka.csv``: its header :data:`KA_HEADER`) or one of the tables written
     beside it (``ka_se.csv``, ...: :func:`names_ka_output`) read as an r-table or its uncertainty:
     they hold k_A or its statistics unscaled, which an r-table reader would divide by 1e4 and call
     r (or u(r)) in sr^-1."""
     if names_ka(table):
-        raise InputError(f"this is a k_A table (its header {header_line(table)[:60]!r}), not an r-table: it holds "
+        raise InputError(f"this is a k_A table (its header {shown_header(header_line(table))!r}), not an r-table: it holds "
                          "k_A unscaled, not r x 1e4; expected an r-table here (read a k_A table with "
                          "roadgonio.read_ka_table)", path=path)
     if names_ka_output(table):
-        raise InputError(f"this is a table of a k_A run (its header {header_line(table)[:60]!r}), not an r-table "
+        raise InputError(f"this is a table of a k_A run (its header {shown_header(header_line(table))!r}), not an r-table "
                          "or its uncertainty: it holds a statistic of k_A unscaled, not r x 1e4", path=path)
 
 
@@ -901,7 +908,7 @@ def check_not_u(table: RTable, path: str | Path | None = None) -> None:
     classified as R4)."""
     first = header_line(table)
     if names_u(table):
-        raise InputError(f"this is a table of standard uncertainties (its header {first[:60]!r}), not an r-table; "
+        raise InputError(f"this is a table of standard uncertainties (its header {shown_header(first)!r}), not an r-table; "
                          "expected an r-table here", path=path)
 
 

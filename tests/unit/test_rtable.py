@@ -299,3 +299,15 @@ def test_an_rtb_that_cannot_be_written_names_the_file(tmp_path):
         t.with_values(r).write_rtb(tmp_path / "out.rtb")
     assert err.value.path == str(tmp_path / "out.rtb") and "r = 0 at tan eps" in str(err.value)
     assert str(err.value).startswith(f"{tmp_path / 'out.rtb'}, field 'r'") and not (tmp_path / "out.rtb").exists()
+
+
+def test_an_error_quotes_a_long_header_cut_at_a_word(tmp_path):
+    """User audit, session 29: a k_A table read as r was refused quoting its header cut mid-word
+    ('... (mitsuba backen'); the quote ends at a word with ' ...'."""
+    from roadgonio.surface.rtable import check_not_ka, shown_header
+    head = "k_A of instrument 'portable' for sample 'R3' (mitsuba backend, seed 0, rel_se 1e-3)"
+    assert shown_header(head) == "k_A of instrument 'portable' for sample 'R3' (mitsuba ..."
+    assert shown_header("short header") == "short header"
+    t = bundled_table("R3")
+    with pytest.raises(InputError, match=r'\(mitsuba \.\.\."\)'):
+        check_not_ka(t.with_values(t.r, source=head), tmp_path / "ka.csv")
