@@ -1283,6 +1283,10 @@ def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, targ
                              "correlation file", field="corr")
     loaded = [_table(t) for t in items]
     folder_names = [t.name for t in loaded]
+    # the default folder is named by the files (an RTB stores a surface name: measured.rtb + corrected.csv
+    # went to out/road-R3-corrected, the folder of --table R3 --table corrected.csv; user audit 29)
+    out_names = [Path(str(i)).stem if isinstance(i, (str, Path)) and Path(str(i)).suffix else t.name
+                 for i, t in zip(items, loaded)]
     loaded = [_labelled(item, t) for item, t in zip(items, loaded)]
     names = [t.name for t in loaded]
     if len(set(names)) != len(names):  # same name twice (e.g. two files R3.csv): number them
@@ -1328,7 +1332,7 @@ def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, targ
     for argument, value in (("layout", layout), ("luminaire", luminaire)):
         if value is not None:
             inputs.append(input_record(argument, value))
-    folder = _out(out, "road", *folder_names)
+    folder = _out(out, "road", *out_names)
     if folder is not None:
         files = report.road_files(results, summaries, target or summaries[0]["class"], plots=plots, inputs=inputs)
         # a --no-plots run removes an earlier run's pictures (trial 11 D4: they showed another table)

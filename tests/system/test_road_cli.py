@@ -569,3 +569,16 @@ def test_monte_carlo_options_without_u_are_errors(tmp_path, capsys, option):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and "\n" not in err and option[0] in err and "--u" in err, err
     assert not (tmp_path / "o").exists()
+
+
+def test_the_default_folder_is_named_by_the_files(tmp_path, capsys):
+    """User audit, session 29: an RTB stores its surface's name, so `road --table measured.rtb --table
+    corrected.csv` wrote to out/road-R3-corrected, the folder of `--table R3 --table corrected.csv`, and the
+    second run replaced the first's results. A table from a file names the folder by the file."""
+    t = bundled_table("R3")
+    rtb = t.write_rtb(tmp_path / "measured.rtb")                   # stores the surface name R3
+    t.write_csv(tmp_path / "corrected.csv")
+    assert main(["road", "--table", str(rtb), "--table", str(tmp_path / "corrected.csv"), "--no-plots"]) == 0
+    assert main(["road", "--table", "R3", "--table", str(tmp_path / "corrected.csv"), "--no-plots"]) == 0
+    made = sorted(p.name for p in (tmp_path / "out").iterdir())
+    assert made == ["road-R3-corrected", "road-measured-corrected"], made
