@@ -1282,7 +1282,7 @@ def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, targ
             raise InputError(f"{cf} is not used with correlation {correlation!r}: expected auto, given or all with a "
                              "correlation file", field="corr")
     loaded = [_table(t) for t in items]
-    folder_names = [t.name for t in loaded]
+    read_names = [t.name for t in loaded]     # the names the tables were read under
     # the default folder is named by the files (an RTB stores a surface name: measured.rtb + corrected.csv
     # went to out/road-R3-corrected, the folder of --table R3 --table corrected.csv; user audit 29)
     out_names = [Path(str(i)).stem if isinstance(i, (str, Path)) and Path(str(i)).suffix else t.name
@@ -1296,7 +1296,7 @@ def road_metrics(tables, *, u=None, corr=None, luminaire=None, layout=None, targ
     inputs = [input_record("table", item, t.name) for item, t in zip(items, loaded)]
     inst = Installation(load_layout(layout), load_luminaire(luminaire))
     results, summaries = [], []
-    for item, t, own_name, uf, cf in zip(items, loaded, folder_names, u_of, corr_of):
+    for item, t, own_name, uf, cf in zip(items, loaded, read_names, u_of, corr_of):
         res = inst.evaluate(t)
         if uf is not None:
             _check_u_file(item, uf)
