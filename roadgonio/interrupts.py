@@ -112,17 +112,20 @@ def critical() -> Iterator[None]:
         yield
 
 
-def _repeat(first: "tuple[int, float] | None", signum: int, now: float) -> bool:
-    """Whether a signal is the first one heard again (:data:`SAME_SIGNAL_S`)."""
-    return first is not None and first[0] == signum and now - first[1] < SAME_SIGNAL_S
+def _repeat(first: str, signum: int) -> bool:
+    """Whether a signal is the first one heard again (:data:`SAME_SIGNAL_S`), by the handler
+    (``first="first_handled"``) or the watcher (``"first_received"``); the first one is recorded."""
+    now = time.monotonic()
+    seen = getattr(_S, first)
+    if seen is None:
+        setattr(_S, first, (signum, now))
+        return False
+    return seen[0] == signum and now - seen[1] < SAME_SIGNAL_S
 
 
 def _handler(signum, frame) -> None:
-    now = time.monotonic()
-    if _repeat(_S.first_handled, signum, now):
+    if _repeat("first_handled", signum):
         return                          # the same request twice (timeout's SIGTERM): already acted on
-    if _S.first_handled is None:
-        _S.first_handled = (signum, now)
     _S.handled += 1
     if _S.region is not None:
         if _S.handled == 1:
@@ -168,11 +171,8 @@ def _watch(fd: int) -> None:
         for signum in data:
             if signum not in SIGNALS:
                 continue
-            now = time.monotonic()
-            if _repeat(_S.first_received, signum, now):
+            if _repeat("first_received", signum):
                 continue
-            if _S.first_received is None:
-                _S.first_received = (signum, now)
             _S.received += 1
             region = _S.region or _S.passed_on    # (the handler may have run first, the region ended since)
             if region is not None and _S.received >= 2:

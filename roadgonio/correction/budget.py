@@ -178,8 +178,9 @@ def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:
     out["class"] = cie_class(s1, out.get("u_S1"))
     near = nearest_bundled(s1, q0, 1)
     out["nearest_table"], out["nearest_distance"] = near[0] if near else (None, None)
-    if near and nearest_basis(s1, q0):
-        out["nearest_table_basis"] = nearest_basis(s1, q0)
+    basis = nearest_basis(s1, q0)
+    if near and basis:
+        out["nearest_table_basis"] = basis
     return out
 
 

@@ -135,9 +135,6 @@ def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
     (CSV/RTB, r x 1e4) of standard uncertainties. At least :data:`U_REL_MIN` of each
     value. Returns (grid, description)."""
     grid, what, path = _measured_uncertainty(spec, table)
-    if not isinstance(spec, (int, float, str)) or path is not None:       # a table of u, not a percentage
-        from roadgonio.surface.rtable import check_u_scale
-        check_u_scale(grid, table, path, **_u_where(path))
     with np.errstate(invalid="ignore"):
         tiny = table.mask & (grid < U_REL_MIN * table.r)
     if tiny.any():
@@ -198,6 +195,8 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
         raise InputError(f"no positive standard uncertainty for the measured cell tan eps = {table.tan_eps[i]:g}, "
                          f"beta = {table.beta_deg[j]:g} ({int(missing.sum())} measured cells lack one); expected "
                          "the r-table layout with r x 1e4 values", path=path, **_u_where(path))
+    from roadgonio.surface.rtable import check_u_scale
+    check_u_scale(grid, table, path, **_u_where(path))          # a table of u (a percentage returned above)
     return np.where(table.mask, grid, np.nan), what, path
 
 

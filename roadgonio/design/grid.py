@@ -244,8 +244,8 @@ def check_vary(base: Instrument, specs: Sequence[VarySpec]) -> None:
     # an effect)
     baffles = list((sec.get("baffles", ()) or ()) if sec is not None else ())
 
-    def flat(k: int) -> bool:
-        b = baffles[k] if k < len(baffles) else {}
+    def flat(k: int) -> bool:           # (a baffle the base does not declare was refused above)
+        b = baffles[k]
         h = b.get("height_m", 0.0) if hasattr(b, "get") else 0.0
         return float(h or 0.0) == 0.0 and f"housing.baffles.{k}.height_m" not in varied
 

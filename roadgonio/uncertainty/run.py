@@ -377,7 +377,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     # the least number is the larger of the two floors, said once (user audit, session 29: --trials 1
     # said "at least 100", then --trials 100 said "at least 200")
     need = max(100, math.ceil(MIN_TAIL_TRIALS / (1.0 - coverage) - 1e-9))
-    if not adaptive and trials < 100 and need == 100:
+    if not adaptive and trials < need and need == 100:
         raise InputError(f"expected at least 100 trials, got {trials}", field="trials")
     if not adaptive and trials < need:
         raise InputError(f"expected at least {need} trials for a {100 * coverage:g} % coverage interval (M (1 - p) >= "
