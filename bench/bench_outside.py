@@ -25,7 +25,7 @@ bench/results/outside.csv.
                                   [--backend quadrature] [--only single|joint]
                                   [--smoothing evidence|gcv] [--discrepancy-ell 1.0|none]
                                   [--estimate combined|measured] [--regions grid|peak]
-                                  [--beta-edges 12] [--eps-edges 45] [--seeds 1]
+                                  [--beta-edges 12] [--eps-edges 45] [--seeds 1] [--backbone-retries N]
 
 ``--estimate measured`` makes the corrected table r / k_A alone (combined across instruments), as it was
 before the fitted surface's own value was weighed in. ``--smoothing`` chooses how the data set the surface's smoothing parameters (the evidence, the
@@ -202,6 +202,10 @@ def main() -> int:
                          "with each, all weighed by their evidence); default 0, the cusp alone: the files "
                          "without _round in their name, written while the cusp was the library's default; the "
                          "library's default since session 16 is 0,knot)")
+    ap.add_argument("--backbone-retries", type=int, default=None,
+                    help="how often a backbone is searched again while the data reject it (default the library's, "
+                         "SurfaceSettings.backbone_retries, 0 since session 30; 2 is what it was, the files with "
+                         "_retries-2 in their name)")
     ap.add_argument("--seeds", type=int, default=1,
                     help="noise realisations per truth (default 1); with more, a summary over them at the end")
     args = ap.parse_args()
@@ -216,6 +220,7 @@ def main() -> int:
                  "grid_eps_edges_deg": tuple(float(e) for e in args.eps_edges.split(","))}
     surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell, regions=args.regions, **edges,
                               model_estimate=args.estimate == "combined",
+                              **({} if args.backbone_retries is None else {"backbone_retries": args.backbone_retries}),
                               mirror_round_deg=MIRROR_PLANES["cusp"] if args.mirror_round is None else tuple(
                                   None if r == "knot" else float(r) for r in args.mirror_round.split(",")))
     from roadgonio import api
@@ -224,7 +229,8 @@ def main() -> int:
     print(f"machine: {os.cpu_count()} cores; load average at start {load()}; backend {args.backend}; "
           f"noise {100 * NOISE:g} %; smoothing {args.smoothing}; discrepancy ell {ell}; estimate {args.estimate}; "
           f"regions {args.regions} {edges or ''}; backbone rounded at the mirror plane over "
-          f"{', '.join(f'{r:.3g}' for r in surface.backbone_rounds_deg)} deg")
+          f"{', '.join(f'{r:.3g}' for r in surface.backbone_rounds_deg)} deg; backbones searched again at most "
+          f"{surface.backbone_retries} time(s)")
     print("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
     rows: list[dict] = []
     for kind, rep in ((kind, rep) for kind in args.truths.split(",") for rep in range(args.seeds)):
@@ -288,6 +294,8 @@ def main() -> int:
         name = name.replace(".csv", f"_round-{args.mirror_round.replace(',', '-')}.csv")
     if args.seeds > 1:
         name = name.replace(".csv", f"_seeds-{args.seeds}.csv")
+    if args.backbone_retries is not None:
+        name = name.replace(".csv", f"_retries-{args.backbone_retries}.csv")
     with open(RESULTS / name, "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS] + ["missed", "timings"] + (["seed"] if args.seeds > 1 else []),
                             extrasaction="ignore")

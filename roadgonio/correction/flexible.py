@@ -100,6 +100,13 @@ REGIONS = ("peak", "grid")
 #: The backbone's shape at the mirror plane by name (``correct --mirror-plane``; SurfaceSettings.mirror_round_deg):
 #: the cusp of eq. 4, rounded over the first knot of g_C, or both weighed by their evidence.
 MIRROR_PLANES = {"cusp": 0.0, "rounded": None, "both": (0.0, None)}
+#: Repeated searches of a backbone while the data reject it (SurfaceSettings.backbone_retries; the eq. 4
+#: route's roadgonio.correction.run.RETRY_SEARCHES is 2). A backbone's misfit is what the correction
+#: surface is for, so outside eq. 4 the data always reject it and every backbone was searched three
+#: times (16 + 32 + 32 starts): two thirds of a correction's backbone stage, for chi^2 changes of
+#: 0.001-0.06 % that its surface absorbs (session 30; docs/correction-record.md, "The backbones'
+#: repeated searches").
+BACKBONE_RETRIES = 0
 #: Stop the mode search when the penalised chi^2 changes by less than this (relative).
 MODE_RTOL = 1e-8
 MAX_MODE_STEPS = 60
@@ -153,6 +160,9 @@ class SurfaceSettings:
     #: traces stray light (docs/correction.md, "The road beyond the observation elevations"); 0
     #: leaves it out
     unobserved_sd_ln: float = UNOBSERVED_SD_LN
+    #: how many times a backbone is searched again (fresh starts) while the data reject it
+    #: (BACKBONE_RETRIES; 2 is the eq. 4 route's, what the surface route did until session 30)
+    backbone_retries: int = BACKBONE_RETRIES
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
@@ -185,6 +195,10 @@ class SurfaceSettings:
         if len(self.backbone_rounds_deg) != len(self._rounds_given()):
             raise InputError(f"expected distinct roundings of the backbone at the mirror plane, got {rounds!r} "
                              f"(None is the first knot, {self._knot_deg():.3g} deg)", field="mirror_round_deg")
+        n = self.backbone_retries
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 0 <= n <= 10:
+            raise InputError(f"expected the backbones' repeated searches as a whole number in [0, 10], got {n!r}",
+                             field="backbone_retries")
         u = self.unobserved_sd_ln
         if isinstance(u, bool) or not isinstance(u, (int, float)) or not (math.isfinite(u) and u >= 0.0):
             raise InputError(f"expected a standard uncertainty >= 0 of ln f_r beyond the observation elevations, "
@@ -249,7 +263,8 @@ class SurfaceSettings:
                 "lam": self.lam, "smoothing": self.smoothing, "discrepancy_ell": self.discrepancy_ell,
                 "model_estimate": self.model_estimate,
                 "mirror_round_deg": (list(self.mirror_round_deg) if isinstance(self.mirror_round_deg, tuple)
-                                     else self.mirror_round_deg), "unobserved_sd_ln": self.unobserved_sd_ln}
+                                     else self.mirror_round_deg), "unobserved_sd_ln": self.unobserved_sd_ln,
+                "backbone_retries": int(self.backbone_retries)}
 
 
 def spline_basis(grid: SplineGrid, wi, wo, n: int) -> sparse.csr_matrix:

@@ -6,7 +6,8 @@ Procedure (:func:`correct_surface`):
 
 1. the backbone: every variant of ``variants`` fitted through all the instruments at once
    (:class:`roadgonio.engines.bundle.StackedForward`; stage A multi-start, the best by chi^2
-   polished, searched again while the data reject it: :func:`roadgonio.correction.run.search_through_instrument`);
+   polished (searched again while the data reject it only if ``SurfaceSettings.backbone_retries`` says
+   so: outside eq. 4 they always do): :func:`roadgonio.correction.run.search_through_instrument`);
 2. k_A of the best backbone by the chosen backend through each instrument (journalled like
    ``roadgonio ka``), and the bundles' own error of it, ``rho = k_backend / k_bundle``;
 3. for every variant, the correction surface through all the instruments (one surface shared by
@@ -420,8 +421,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
 
     # 1. the backbones through every instrument at once: every variant at every rounding of the
     #    mirror plane (SurfaceSettings.backbone_rounds_deg), each held in its own fit
-    #    (stage A of every variant, the best polished, searched again while the data reject it:
-    #    correct_self's search, :func:`roadgonio.correction.run.search_through_instrument`). The best
+    #    (stage A of every variant, the best polished, searched again while the data reject it at
+    #    most SurfaceSettings.backbone_retries times, by default never: correct_self's search,
+    #    :func:`roadgonio.correction.run.search_through_instrument`). The best
     #    variant of every rounding is polished so that the roundings meet on equal terms (the evidence
     #    of an unpolished backbone's surface is lower: session 13, eq4 through A + B, the cusp's best
     #    unpolished lost to the rounded one polished)
@@ -433,7 +435,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             stacked, y_all, u_all, variants, state=state, seed=seed, name=label,
             say=lambda text: _run._say(progress, text), fixed=settings.backbone_fixed(r),
             state_name=lambda v, r=r: _state_name(v, r), describe=lambda v, r=r: f"{backbone_label(v, r)} backbone",
-            **fit_opts)
+            retries=settings.backbone_retries, **fit_opts)
         for v in variants:
             backbones[(v, r)], chi2[(v, r)] = fits_r[v], chi2_r[v]
         backbone_searches[_state_name("backbone", r)] = searches

@@ -449,13 +449,14 @@ def search_through_instrument(fm: ForwardModel, y: np.ndarray, u: np.ndarray, va
                               polish: int = DEFAULT_POLISH, rounds: int = DEFAULT_ROUNDS, name: str = "fit",
                               say: Callable[[str], None] | None = None, fixed: Mapping[str, float] | None = None,
                               state_name: Callable[[str], str] = str,
-                              describe: Callable[[str], str] = lambda v: f"{v} model"
+                              describe: Callable[[str], str] = lambda v: f"{v} model",
+                              retries: int = RETRY_SEARCHES
                               ) -> tuple[dict[str, RoadModel], dict[str, float], RoadModel, list[dict[str, Any]]]:
     """The eq. 4 fit of ``correct --reference self`` through the bundles (no backend yet), and the
     backbones of ``--forward surface`` (one call per rounding, ``fixed`` its parameters): stage A of
     every variant (:func:`fit_self`), the best polished (stage B); while the data reject the result
     (:attr:`~roadgonio.correction.fit.ThroughFit.misfit`), the search again with fresh starts
-    (:data:`RETRY_SEARCHES`). Journalled in ``state`` (if given) under ``stage-a-NAME`` and ``fit-NAME`` (NAME
+    (at most ``retries`` times, default :data:`RETRY_SEARCHES`). Journalled in ``state`` (if given) under ``stage-a-NAME`` and ``fit-NAME`` (NAME
     ``state_name(variant)``; ``search-N-`` before them for a repeated search). Returns (the best model of each
     variant, their chi^2 through the bundles, the fitted model, one record per search)."""
     fits: dict[str, RoadModel] = {}
@@ -463,7 +464,7 @@ def search_through_instrument(fm: ForwardModel, y: np.ndarray, u: np.ndarray, va
     searches: list[dict[str, Any]] = []
     model = None
     state = state if state is not None else _FitState(None, "")
-    for attempt in range(RETRY_SEARCHES + 1):
+    for attempt in range(int(retries) + 1):
         tag = "" if attempt == 0 else f"search-{attempt}-"
         n_starts = starts if attempt == 0 else RETRY_STARTS
         for v in variants:       # stage A of every variant (cheap), the better one goes on

@@ -282,12 +282,13 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     # DEFAULT_VARIANTS at every rounding of the mirror plane and weighs them by their evidence; the
     # prediction takes the one of larger evidence, or the variant asked for
     # (searched as the correction searches them: the best variant of every rounding polished, and
-    # searched again while the data reject it; audit 23)
+    # searched again while the data reject it as often as SurfaceSettings.backbone_retries says)
     fits = []
     variants = (model_variant,) if model_variant else DEFAULT_VARIANTS
     for r in settings.backbone_rounds_deg:
         backbones, _, _, _ = search_through_instrument(fm, y, u, variants, seed=seed, name=table.name,
-                                                       fixed=settings.backbone_fixed(r))
+                                                       fixed=settings.backbone_fixed(r),
+                                                       retries=settings.backbone_retries)
         for variant in variants:
             bb = backbones[variant]
             pa = FlexPart(fm, bb, settings)

@@ -831,3 +831,42 @@ def test_a_shift_of_rho_moves_the_estimates_as_a_refit_does(r3like):
         assert np.max(np.abs(got - v)) < REFIT_CURVATURE * np.max(np.abs(v)), (got, v)
     uniform = rho_shift_effect(vf, [0.01 * np.ones(len(cells))], [1.0 / u ** 2], K, Jp)
     assert np.allclose(uniform, -0.01, rtol=0.0, atol=0.002)
+
+
+@pytest.mark.parametrize("bad", [-1, 11, 1.5, True, "2"])
+def test_the_backbones_repeated_searches_setting_is_checked(bad):
+    from roadgonio.correction.flexible import BACKBONE_RETRIES, SurfaceSettings
+    assert SurfaceSettings().backbone_retries == BACKBONE_RETRIES == 0
+    assert SurfaceSettings(backbone_retries=2).to_dict()["backbone_retries"] == 2
+    with pytest.raises(InputError) as err:
+        SurfaceSettings(backbone_retries=bad)
+    assert err.value.field == "backbone_retries"
+
+
+@pytest.mark.parametrize("retries", [None, 2])
+def test_the_surface_route_searches_its_backbones_as_often_as_the_settings_say(monkeypatch, retries):
+    """Session 30: outside eq. 4 the data always reject a backbone (the correction surface carries its
+    misfit), so the eq. 4 route's repeated searches ran every time; the surface route searches each
+    backbone (every rounding) as often as SurfaceSettings.backbone_retries says, once by default."""
+    from roadgonio import api
+    from roadgonio.correction import run as _run
+    from roadgonio.correction.flexible import SurfaceSettings
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def spy(*args, retries=_run.RETRY_SEARCHES, fixed=None, **kwargs):
+        seen.append((retries, fixed["beta_round_deg"]))
+        if len(seen) == 2:
+            raise Stop
+        return real(*args, retries=retries, fixed=fixed, **kwargs)
+    real = _run.search_through_instrument
+    monkeypatch.setattr(_run, "search_through_instrument", spy)
+    settings = None if retries is None else SurfaceSettings(backbone_retries=retries)
+    with pytest.raises(Stop):
+        api.correct(bundled_table("R3"), "portable", forward="surface", backend="quadrature", rays=64,
+                    settings=settings)
+    want = 0 if retries is None else retries
+    assert [r for r, _ in seen] == [want, want] and seen[0][1] == 0.0 < seen[1][1], seen
