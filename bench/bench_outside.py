@@ -204,7 +204,7 @@ def main() -> int:
                          "library's default since session 16 is 0,knot)")
     ap.add_argument("--backbone-retries", type=int, default=None,
                     help="how often a backbone is searched again while the data reject it (default the library's, "
-                         "SurfaceSettings.backbone_retries, 0 since session 30; 2 is what it was, the files with "
+                         "SurfaceSettings.backbone_retries, 1 since session 30; 2 is what it was, the files with "
                          "_retries-2 in their name)")
     ap.add_argument("--seeds", type=int, default=1,
                     help="noise realisations per truth (default 1); with more, a summary over them at the end")

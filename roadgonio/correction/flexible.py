@@ -101,12 +101,14 @@ REGIONS = ("peak", "grid")
 #: the cusp of eq. 4, rounded over the first knot of g_C, or both weighed by their evidence.
 MIRROR_PLANES = {"cusp": 0.0, "rounded": None, "both": (0.0, None)}
 #: Repeated searches of a backbone while the data reject it (SurfaceSettings.backbone_retries; the eq. 4
-#: route's roadgonio.correction.run.RETRY_SEARCHES is 2). A backbone's misfit is what the correction
-#: surface is for, so outside eq. 4 the data always reject it and every backbone was searched three
-#: times (16 + 32 + 32 starts): two thirds of a correction's backbone stage, for chi^2 changes of
-#: 0.001-0.06 % that its surface absorbs (session 30; docs/correction-record.md, "The backbones'
-#: repeated searches").
-BACKBONE_RETRIES = 0
+#: route's roadgonio.correction.run.RETRY_SEARCHES is 2). Outside eq. 4 the data always reject a
+#: backbone (its misfit is what the correction surface carries), so the eq. 4 route's two repeated
+#: searches (16 + 32 + 32 starts) ran every time: the second repetition took ~40 % of a correction's
+#: backbone stage for chi^2 changes of 0.001-0.06 % that its surface absorbed. One repetition keeps
+#: what they are for: a first search that missed the basin (audit 23, a noise-free eq. 4 table: k_A
+#: off by 7.2 % without any) is found by the first repetition's 32 starts (session 30;
+#: docs/correction-record.md, "The backbones' repeated searches").
+BACKBONE_RETRIES = 1
 #: Stop the mode search when the penalised chi^2 changes by less than this (relative).
 MODE_RTOL = 1e-8
 MAX_MODE_STEPS = 60
@@ -161,7 +163,7 @@ class SurfaceSettings:
     #: leaves it out
     unobserved_sd_ln: float = UNOBSERVED_SD_LN
     #: how many times a backbone is searched again (fresh starts) while the data reject it
-    #: (BACKBONE_RETRIES; 2 is the eq. 4 route's, what the surface route did until session 30)
+    #: (BACKBONE_RETRIES, 1; 2 is the eq. 4 route's, what the surface route did until session 30)
     backbone_retries: int = BACKBONE_RETRIES
 
     def __post_init__(self):

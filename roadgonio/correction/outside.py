@@ -6,8 +6,8 @@ Procedure (:func:`correct_surface`):
 
 1. the backbone: every variant of ``variants`` fitted through all the instruments at once
    (:class:`roadgonio.engines.bundle.StackedForward`; stage A multi-start, the best by chi^2
-   polished (searched again while the data reject it only if ``SurfaceSettings.backbone_retries`` says
-   so: outside eq. 4 they always do): :func:`roadgonio.correction.run.search_through_instrument`);
+   polished, searched again while the data reject it (``SurfaceSettings.backbone_retries`` times at
+   most, once by default: outside eq. 4 they always do): :func:`roadgonio.correction.run.search_through_instrument`);
 2. k_A of the best backbone by the chosen backend through each instrument (journalled like
    ``roadgonio ka``), and the bundles' own error of it, ``rho = k_backend / k_bundle``;
 3. for every variant, the correction surface through all the instruments (one surface shared by
@@ -422,7 +422,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     # 1. the backbones through every instrument at once: every variant at every rounding of the
     #    mirror plane (SurfaceSettings.backbone_rounds_deg), each held in its own fit
     #    (stage A of every variant, the best polished, searched again while the data reject it at
-    #    most SurfaceSettings.backbone_retries times, by default never: correct_self's search,
+    #    most SurfaceSettings.backbone_retries times, by default once: correct_self's search,
     #    :func:`roadgonio.correction.run.search_through_instrument`). The best
     #    variant of every rounding is polished so that the roundings meet on equal terms (the evidence
     #    of an unpolished backbone's surface is lower: session 13, eq4 through A + B, the cusp's best
