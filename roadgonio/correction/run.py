@@ -69,7 +69,8 @@ LATER_ROUND_STARTS = 4
 #: ``RETRY_STARTS`` fresh starts (another stream of the seed), and the best fit is kept; a repeated
 #: search that finds nothing better ends it (the misfit is then the model's: one repetition for a
 #: surface outside eq. 4) (audit 23). 32 rather than 48 starts: the backbones of ``--forward surface``
-#: are searched the same way, once per rounding, and 32 missed none of those 80 searches.
+#: are searched the same way, once per rounding (repeated at most once there:
+#: roadgonio.correction.flexible.BACKBONE_RETRIES), and 32 missed none of those 80 searches.
 RETRY_SEARCHES = 2
 RETRY_STARTS = 32
 #: Offset of a repeated search's seed streams (its rounds use restarts from attempt x this on).
