@@ -102,9 +102,10 @@ REGIONS = ("peak", "grid")
 MIRROR_PLANES = {"cusp": 0.0, "rounded": None, "both": (0.0, None)}
 #: Repeated searches of a backbone while the data reject it (SurfaceSettings.backbone_retries; the eq. 4
 #: route's roadgonio.correction.run.RETRY_SEARCHES is 2). Outside eq. 4 the data always reject a
-#: backbone (its misfit is what the correction surface carries), so the eq. 4 route's two repeated
-#: searches (16 + 32 + 32 starts) ran every time: the second repetition took ~40 % of a correction's
-#: backbone stage for chi^2 changes of 0.001-0.06 % that its surface absorbed. One repetition keeps
+#: backbone (its misfit is what the correction surface carries), so the eq. 4 route's repeated
+#: searches ran on every table, twice (16 + 32 + 32 starts) wherever the first repetition found a
+#: slightly better chi^2: the second took 25-45 % of a correction's backbone stage (two_lobes through
+#: A) for chi^2 changes of 0.001-0.06 % that its surface absorbed. One repetition keeps
 #: what they are for: a first search that missed the basin (audit 23, a noise-free eq. 4 table: k_A
 #: off by 7.2 % without any) is found by the first repetition's 32 starts (session 30;
 #: docs/correction-record.md, "The backbones' repeated searches").
