@@ -52,7 +52,7 @@ from roadgonio.geometry import cos3_eps
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
-from roadgonio.surface.model import RoadModel, modifier_terms, road_brdf
+from roadgonio.surface.model import SHAPE_TERM, RoadModel, modifier_terms, road_brdf, road_brdf_with_shape_grad
 
 #: The terms of the model that carry a linear coefficient (the columns of the forward model).
 LINEAR_TERMS = ("k_diff", "k_phong", "k_retro", "k_exp")
@@ -282,6 +282,7 @@ class ForwardModel:
         self.wo0 = tuple(np.full(n, bundles.wo0[k]) for k in range(3))
         self._cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
         self._nominal_cache: dict[tuple, np.ndarray] = {}
+        self._grad_cache: dict[tuple, tuple] = {}
         # what road_brdf computes from the (fixed) directions alone, kept across the fits' many
         # evaluations (its ``pairs``): one dict for the rays, one for the nominal directions. A
         # polish through the bundles re-evaluated the pair angles of every ray ~3600 times (10.9 s
@@ -340,6 +341,64 @@ class ForwardModel:
                 self._nominal_cache[key] = col
             N[:, j] = col
         return N
+
+    def columns_and_shape_derivatives(self, P: Mapping[str, float], variant: str, names: Sequence[str],
+                                      bundle: bool = True) -> tuple[np.ndarray | None, np.ndarray,
+                                                                    np.ndarray | None, np.ndarray]:
+        """(B, N, dB, dN): the unit-coefficient columns of :meth:`columns` (``bundle=False``: the nominal
+        values alone, B and dB None, as :meth:`nominal_columns`) and their derivatives with respect to
+        the shape parameters ``names`` (natural units; (n_cells, len(names)), each the derivative of
+        the column of the term it shapes, :data:`roadgonio.surface.model.SHAPE_TERM`), a term's value
+        and derivatives from one pass of :func:`roadgonio.surface.model.road_brdf_with_shape_grad`
+        (the same values as :meth:`column`). The fits' Jacobians."""
+        n = self.bundles.n_cells
+        B = np.zeros((n, len(LINEAR_TERMS))) if bundle else None
+        dB = np.zeros((n, len(names))) if bundle else None
+        N = np.zeros((n, len(LINEAR_TERMS)))
+        dN = np.zeros((n, len(names)))
+        for j, term in enumerate(LINEAR_TERMS):
+            own = [i for i, name in enumerate(names) if SHAPE_TERM.get(name) == term]
+            if not own:
+                if bundle:
+                    B[:, j], N[:, j] = self.column(term, P, variant)
+                else:
+                    N[:, j] = self.nominal_columns(P, variant)[:, j]
+                continue
+            mean, nom, dmean, dnom = self._column_grad(term, P, variant, tuple(names[i] for i in own), bundle)
+            N[:, j], dN[:, own] = nom, dnom
+            if bundle:
+                B[:, j], dB[:, own] = mean, dmean
+        return B, N, dB, dN
+
+    def _column_grad(self, term: str, P: Mapping[str, float], variant: str, wrt: tuple[str, ...], bundle: bool):
+        """(mean, nominal, d mean, d nominal) of one term's unit-coefficient column and its derivatives
+        with respect to ``wrt`` (:meth:`columns_and_shape_derivatives`), cached."""
+        key = ("grad", bundle, wrt) + self._key(term, P, variant)
+        hit = self._grad_cache.get(key)
+        if hit is not None:
+            return hit
+        Q = _unit(P)
+        terms = _terms_for(term, P)
+        b = self.bundles
+        n = b.n_cells
+        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            f0, g0 = road_brdf_with_shape_grad(NumpyOps, Q, self.wi0, self.wo0, variant, terms, wrt,
+                                               pairs=self._pairs_nominal)
+            nom = np.broadcast_to(f0, (n,)).copy()
+            dnom = np.stack([np.broadcast_to(g, (n,)) for g in g0], axis=1)
+            mean = dmean = None
+            if bundle:
+                f, g = road_brdf_with_shape_grad(NumpyOps, Q, b.wi, b.wo, variant, terms, wrt, pairs=self._pairs_rays)
+                mean = b.cell_sum(np.broadcast_to(np.asarray(f, dtype=np.float64), b.a.shape))
+                dmean = np.stack([b.cell_sum(np.broadcast_to(np.asarray(gk, dtype=np.float64), b.a.shape))
+                                  for gk in g], axis=1)
+                if len(self._cache) > 256:
+                    self._cache.clear()
+                self._cache.setdefault(self._key(term, P, variant), (mean, nom))
+        if len(self._grad_cache) > 256:
+            self._grad_cache.clear()
+        out = self._grad_cache[key] = (mean, nom, dmean, dnom)
+        return out
 
     @staticmethod
     def _key(term: str, P: Mapping[str, float], variant: str) -> tuple:
@@ -481,6 +540,11 @@ class StackedForward:
 
     def nominal_columns(self, P: Mapping[str, float], variant: str) -> np.ndarray:
         return np.vstack([f.nominal_columns(P, variant) for f in self.forwards])
+
+    def columns_and_shape_derivatives(self, P: Mapping[str, float], variant: str, names: Sequence[str],
+                                      bundle: bool = True):
+        parts = [f.columns_and_shape_derivatives(P, variant, names, bundle) for f in self.forwards]
+        return tuple(None if parts[0][k] is None else np.vstack([p[k] for p in parts]) for k in range(4))
 
     def model_columns_total(self, model: RoadModel) -> tuple[np.ndarray, np.ndarray]:
         parts = [f.model_columns_total(model) for f in self.forwards]

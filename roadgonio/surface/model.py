@@ -78,7 +78,7 @@ import math
 import numbers
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -257,6 +257,41 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
         the first call and taken from it after, the same arrays, so the same numbers. None (the
         plugin, single calls): everything computed.
     """
+    return _road_brdf(xp, P, wi, wo, variant, terms, pairs, ())[0]
+
+
+#: The shape parameters :func:`road_brdf_with_shape_grad` differentiates, and the term each one shapes.
+SHAPE_TERM = {"n_phong": "k_phong", "n_retro": "k_retro", "p": "k_exp", "h": "k_exp", "mu": "k_exp",
+              "n_beta": "k_exp"}
+
+
+def road_brdf_with_shape_grad(xp, P: Mapping[str, Any], wi, wo, variant: str, terms: frozenset[str],
+                              wrt: Sequence[str], *, pairs: dict | None = None) -> tuple[Any, list]:
+    """:func:`road_brdf` (same arguments) and its partial derivatives with respect to the shape
+    parameters ``wrt`` (names of :data:`SHAPE_TERM`; natural units), one array each, from the same
+    intermediate values in one pass (one definition of the model: the derivatives are taken inside
+    :func:`road_brdf`'s own body, and the value is exactly :func:`road_brdf`'s):
+
+    * a lobe, ``d/dn (cos Omega)^n = (cos Omega)^n ln cos Omega``;
+    * the empirical term ``E = exp(expo)``, ``dE = E d(expo)``, with ``f = sin e cos e / (cos^2 e + mu)``
+      so ``df/dmu = -f / (cos^2 e + mu)``, and ``d(expo)`` of the variant's exponent (module docstring:
+      ``p ln f + W ln x``, ``W = exp(1 + h f^2)``, power; ``p ln f + ln x + 1 + h f^2``, product;
+      ``p ln f - exp(1 + h sqrt f) L^n_beta``, smooth);
+    * times the grazing attenuation, as the value is.
+
+    Where a cap (:data:`EXP_CAP`) or a floor (:data:`TINY`) holds a quantity constant its derivative
+    is 0, as the capped formula's is. For the fits' Jacobians (numpy, float64); a term not in
+    ``terms`` contributes 0."""
+    unknown = [n for n in wrt if n not in SHAPE_TERM]
+    if unknown:
+        raise InputError(f"no derivative with respect to {', '.join(unknown)}; expected names of "
+                         f"{', '.join(SHAPE_TERM)}", field="wrt")
+    return _road_brdf(xp, P, wi, wo, variant, terms, pairs, tuple(wrt))
+
+
+def _road_brdf(xp, P, wi, wo, variant, terms, pairs, wrt):
+    """(f_r, [d f_r / d name for name in wrt]): :func:`road_brdf`'s body (``wrt`` empty: the value
+    alone, nothing else computed)."""
     if variant not in VARIANTS:
         raise InputError(f"unknown model variant {variant!r}; expected one of {', '.join(VARIANTS)}",
                          field="variant")
@@ -267,15 +302,23 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
     wox, woy, woz = wo
     zero = _kept(pairs, "zero", lambda: 0.0 * (wiz + woz))
     f = zero
+    grad = {name: zero for name in wrt}
     if "k_diff" in terms:
         f = f + P["k_diff"]
     if "k_phong" in terms:
-        f = f + P["k_phong"] * _lobe_of(xp, _kept(pairs, "phong", lambda: _lobe_base(xp, _phong_h(xp, wi, wo))),
-                                        P["n_phong"])
+        base = _kept(pairs, "phong", lambda: _lobe_base(xp, _phong_h(xp, wi, wo)))
+        lobe = _lobe_of(xp, base, P["n_phong"])
+        f = f + P["k_phong"] * lobe
+        if "n_phong" in grad:
+            grad["n_phong"] = P["k_phong"] * (lobe * base[1])          # lobe = 0 where cos Omega <= 0
     if "k_retro" in terms:
         # half-chord to the source direction: cos Omega' = 1 - h'
-        f = f + P["k_retro"] * _lobe_of(xp, _kept(pairs, "retro", lambda: _lobe_base(
-            xp, 0.5 * ((wox - wix) ** 2 + (woy - wiy) ** 2 + (woz - wiz) ** 2))), P["n_retro"])
+        base = _kept(pairs, "retro", lambda: _lobe_base(
+            xp, 0.5 * ((wox - wix) ** 2 + (woy - wiy) ** 2 + (woz - wiz) ** 2)))
+        lobe = _lobe_of(xp, base, P["n_retro"])
+        f = f + P["k_retro"] * lobe
+        if "n_retro" in grad:
+            grad["n_retro"] = P["k_retro"] * (lobe * base[1])          # lobe = 0 where cos Omega <= 0
     if "k_exp" in terms or "g" in terms:
         # beta = pi where the azimuth is undefined, so E = 0 there (module docstring)
         theta_i, theta_r, beta, beta_s = _kept(pairs, "angles", lambda: pair_angles(xp, wi, wo, pole=math.pi,
@@ -309,7 +352,8 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
         if variant == "smooth":
             # extension (module docstring): E = k f^p exp(-W L^n_beta), W = exp(1 + h sqrt f),
             # L = -ln cos^2(beta/2) = -log1m(sin^2(beta/2))
-            ln_w = xp.minimum(1.0 + P["h"] * xp.sqrt(f_e), EXP_CAP)
+            root_f = xp.sqrt(f_e)
+            ln_w = xp.minimum(1.0 + P["h"] * root_f, EXP_CAP)
 
             def smooth_L():
                 s_half = xp.sin(0.5 * beta)                   # sin(beta/2)
@@ -317,19 +361,50 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
                 return xp.where(near_pi, -xp.log(xp.maximum(c_half * c_half, X_FLOOR)),
                                 -xp.log1m(xp.minimum(s_half * s_half, 0.5)))
             L = _kept(pairs, None if rkey is None else ("L", rkey), smooth_L)
-            ln_wl = xp.minimum(ln_w + P["n_beta"] * xp.log(xp.maximum(L, TINY)), EXP_CAP)
-            expo = P["p"] * ln_f - xp.where(L > 0.0, xp.exp(ln_wl), zero)
+            ln_l = xp.log(xp.maximum(L, TINY))
+            ln_wl = xp.minimum(ln_w + P["n_beta"] * ln_l, EXP_CAP)
+            w_l = xp.where(L > 0.0, xp.exp(ln_wl), zero)
+            expo = P["p"] * ln_f - w_l
         elif variant == "power":
-            expo = P["p"] * ln_f + xp.exp(arg) * ln_x
+            w_ln_x = xp.exp(arg) * ln_x
+            expo = P["p"] * ln_f + w_ln_x
         else:  # product
             expo = P["p"] * ln_f + ln_x + arg
-        f = f + P["k_exp"] * xp.exp(xp.minimum(expo, EXP_CAP))
+        E = xp.exp(xp.minimum(expo, EXP_CAP))
+        f = f + P["k_exp"] * E
+        if any(n in grad for n in ("p", "h", "mu", "n_beta")):
+            # dE = E d(expo) (road_brdf_with_shape_grad), 0 where expo is capped; with
+            # df/dmu = -f / (cos^2 e + mu): dE/dmu = -(p E [f > 0] + c h dE/dh) / (cos^2 e + mu),
+            # c = 2 (h f^2 in expo) or 1/2 (h sqrt f, smooth)
+            e_live = xp.where(expo < EXP_CAP, E, zero)
+            if variant == "smooth":
+                d_h = -xp.where((ln_wl < EXP_CAP) & (ln_w < EXP_CAP), e_live * w_l * root_f, zero)
+                if "n_beta" in grad:
+                    grad["n_beta"] = -xp.where(ln_wl < EXP_CAP, e_live * w_l * ln_l, zero)
+                c_h = 0.5
+            else:
+                d_h = xp.where(arg < EXP_CAP, e_live * (w_ln_x if variant == "power" else 1.0) * (f_e * f_e), zero)
+                c_h = 2.0
+            if "p" in grad:
+                grad["p"] = e_live * ln_f
+            if "h" in grad:
+                grad["h"] = d_h
+            if "mu" in grad:
+                grad["mu"] = -(xp.where(f_e > TINY, e_live * P["p"], zero) + (c_h * P["h"]) * d_h) / xp.maximum(
+                    cos2_e + P["mu"], TINY)
+            if not (isinstance(P["k_exp"], float) and P["k_exp"] == 1.0):
+                for n in ("p", "h", "mu", "n_beta"):
+                    if n in grad:
+                        grad[n] = P["k_exp"] * grad[n]
     if "g" in terms:
         g_star = g_attenuation(xp, P, THETA_R_STAR + zero)
         # g(theta_r)/g* first: the ratio stays near 1 at the observation, so the product does not
         # overflow float32 where the result itself is finite (e.g. g_t = -100 in the plugin)
-        f = f * (g_attenuation(xp, P, theta_i) * (g_attenuation(xp, P, theta_r) / g_star))
-    return xp.where((wiz > 0.0) & (woz > 0.0), f, zero)
+        g_factor = g_attenuation(xp, P, theta_i) * (g_attenuation(xp, P, theta_r) / g_star)
+        f = f * g_factor
+        grad = {n: d * g_factor for n, d in grad.items()}
+    seen = (wiz > 0.0) & (woz > 0.0)
+    return xp.where(seen, f, zero), [xp.where(seen, grad[n], zero) for n in wrt]
 
 
 # ----------------------------------------------------------------------------------------------
