@@ -22,8 +22,8 @@ squares solution (:func:`scipy.optimize.nnls`); z is found by :func:`scipy.optim
 * stage B (through the bundles): chi^2 itself, k_A(p) varying with p.
 
 The parameters' covariance is ``s^2 (J^T J)^-1`` over the free parameters (those not at a bound),
-J the Jacobian of the weighted residuals (coefficients analytic, shape parameters by central
-differences through the bundles), ``s^2 = max(1, chi^2 / dof)`` (the Birge ratio squared: when
+J the Jacobian of the weighted residuals (analytic: the coefficients' columns, and the shape
+parameters' derivatives of :func:`roadgonio.surface.model.road_brdf_shape_grad` through the bundles), ``s^2 = max(1, chi^2 / dof)`` (the Birge ratio squared: when
 the model cannot follow the table within its stated uncertainty, the parameters are less certain
 than the noise alone says). The Jacobian of ln k_A over the same parameters propagates it to k_A.
 """
@@ -42,7 +42,7 @@ from roadgonio.engines.bundle import LINEAR_TERMS, ForwardModel
 from roadgonio.errors import InputError
 from roadgonio.seeds import seed_entropy
 from roadgonio.surface.fit import _from_z, _to_z, _z_box, nonlinear_params
-from roadgonio.surface.model import PARAM_BOUNDS, PARAM_NAMES, RoadModel, RoadParams
+from roadgonio.surface.model import PARAM_BOUNDS, PARAM_NAMES, SHAPE_TERM, RoadModel, RoadParams
 
 #: Starts of stage A (Latin hypercube over the search box), in addition to the given models.
 DEFAULT_STARTS = 16
@@ -55,8 +55,9 @@ REFINE = 4
 #: the relative change of chi^2 at which it stops (1e-8 of chi^2 is far below any stated uncertainty).
 STAGE_B_NFEV = 60
 STAGE_B_FTOL = 1e-8
-#: Central-difference step in the transformed shape coordinates (covariance and k_A Jacobian).
-FD_STEP = 1e-4
+#: A shape parameter nearer than this to a bound of its search box (transformed coordinates) is held
+#: there: it is not a free parameter of the covariance.
+AT_BOUND = 2e-4
 G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
 
 
@@ -183,6 +184,9 @@ class _Problem:
         self.lo = np.array([b[0] for b in self.box])
         self.hi = np.array([b[1] for b in self.box])
         self.nfev = 0
+        #: the last solve's (stage, z bytes, coefficients, weighted columns, residual, the coefficients
+        #: the fit moves, the weighted columns' shape derivatives) for :meth:`jacobian` at the same point
+        self._last: tuple | None = None
 
     def params(self, z) -> dict[str, float]:
         P = dict(self.base)
@@ -194,19 +198,31 @@ class _Problem:
         P = model.params.to_dict()
         return np.clip([_to_z(n, P[n]) for n in self.free_nl], self.lo, self.hi)
 
-    def sim_columns(self, P: Mapping[str, float], stage: str) -> np.ndarray:
-        """(cells, 4) simulated-r columns of the unit-coefficient terms."""
+    def scale(self, stage: str) -> np.ndarray:
+        """The factor per cell from a unit-coefficient column to simulated r: ``cos^3 eps k_frozen``
+        (stage A, nominal columns) or ``cos^3 eps kappa rho`` (stage B, bundle means)."""
         fm = self.fm
         if stage == "A":
-            return (fm.bundles.cos3 * self.k_frozen)[:, None] * fm.nominal_columns(P, self.variant)
-        B, _ = fm.columns(P, self.variant)
-        return (fm.bundles.cos3 * fm.kappa * self.rho)[:, None] * B
+            return fm.bundles.cos3 * self.k_frozen
+        return fm.bundles.cos3 * fm.kappa * self.rho
+
+    def sim_columns(self, P: Mapping[str, float], stage: str) -> tuple[np.ndarray, np.ndarray]:
+        """(cells, 4) simulated-r columns of the unit-coefficient terms, and (cells, free shape
+        parameters) their derivatives, each of the column of the term it shapes (natural units)."""
+        if stage == "A":
+            _, cols, _, d = self.fm.columns_and_shape_derivatives(P, self.variant, self.free_nl, bundle=False)
+        else:
+            cols, _, d, _ = self.fm.columns_and_shape_derivatives(P, self.variant, self.free_nl)
+        sc = self.scale(stage)[:, None]
+        return sc * cols, sc * d
 
     def solve(self, z, stage: str) -> tuple[dict[str, float], np.ndarray] | None:
         """NNLS coefficients and the weighted residual vector; None if not evaluable."""
         self.nfev += 1
+        self._last = None
         P = self.params(z)
-        A = self.sim_columns(P, stage) * self.w[:, None]
+        sim, dsim = self.sim_columns(P, stage)
+        A = sim * self.w[:, None]
         target = self.y * self.w
         ks = {k: float(self.fixed[k]) for k in LINEAR_TERMS if k in self.fixed}
         for j, k in enumerate(LINEAR_TERMS):
@@ -243,8 +259,50 @@ class _Problem:
         res = model - self.y * self.w
         if not np.all(np.isfinite(res)):
             return None
+        # the coefficients the least squares moves at this point: free, positive, below their bound
+        moving = [j for k, j, _ in use if 0.0 < ks[k] < PARAM_BOUNDS[k][1]]
+        self._last = (stage, np.asarray(z, dtype=np.float64).tobytes(), dict(ks), A, res, moving,
+                      dsim * self.w[:, None])
         P.update(ks)
         return P, res
+
+    def jacobian(self, z, stage: str) -> np.ndarray:
+        """d(weighted residual)/dz of :meth:`residual` (the coefficients re-solved at every z: variable
+        projection), from the columns' analytic shape derivatives that :meth:`solve` keeps
+        (:meth:`roadgonio.engines.bundle.ForwardModel.columns_and_shape_derivatives`). With ``A_S`` the weighted
+        columns of the coefficients the least squares moves (the others held at 0, a bound or their
+        fixed value), ``x`` all coefficients, ``r`` the residual and ``dA`` a shape parameter's
+        derivative of the columns (Golub and Pereyra's derivative of the projected residual)::
+
+            dr = (I - A_S A_S^+) dA x - (A_S^+)^T dA_S^T r
+
+        the derivative that finite differences of :meth:`residual` approximate wherever the set of
+        moving coefficients does not change within the step. A point the model cannot evaluate
+        (residual 1e6 everywhere) has the derivative 0."""
+        z = np.asarray(z, dtype=np.float64)
+        if self._last is None or self._last[:2] != (stage, z.tobytes()):
+            if self.solve(z, stage) is None:
+                return np.zeros((self.y.size, z.size))
+        _, _, ks, A, res, moving, D = self._last
+        if moving:
+            # columns scaled to unit maximum first (as the solve scales them): the columns' sizes
+            # differ by up to 1e36 where a term is nearly switched off, and A_S^+ = diag(1/sc) pinv_n
+            sc = np.max(np.abs(A[:, moving]), axis=0)
+            A_n = A[:, moving] / sc
+            pinv_n = np.linalg.pinv(A_n)
+        J = np.zeros((self.y.size, z.size))
+        for i, name in enumerate(self.free_nl):
+            term = SHAPE_TERM[name]
+            j = LINEAR_TERMS.index(term)
+            col = D[:, i]
+            d = ks[term] * col
+            if moving:
+                d = d - A_n @ (pinv_n @ d)
+                if j in moving:
+                    k = moving.index(j)
+                    d = d - pinv_n[k] * (float(col @ res) / sc[k])
+            J[:, i] = d * _dz_dp(name, float(z[i]))
+        return J
 
     def residual(self, z, stage: str) -> np.ndarray:
         out = self.solve(z, stage)
@@ -257,7 +315,8 @@ class _Problem:
             return np.zeros(0), float(np.sum(self.residual(np.zeros(0), stage) ** 2))
         z0 = np.clip(np.asarray(z0, dtype=np.float64), self.lo, self.hi)
         tol = 1e-10 if stage == "A" else STAGE_B_FTOL
-        r = least_squares(lambda z: self.residual(z, stage), z0, bounds=(self.lo, self.hi), method="trf",
+        r = least_squares(lambda z: self.residual(z, stage), z0, jac=lambda z: self.jacobian(z, stage),
+                          bounds=(self.lo, self.hi), method="trf",
                           x_scale=np.maximum(self.hi - self.lo, 1e-6) * 0.1, max_nfev=max_nfev,
                           xtol=1e-8, ftol=tol, gtol=1e-8)
         return r.x, float(2.0 * r.cost)
@@ -400,22 +459,19 @@ def _covariance(prob: _Problem, z: np.ndarray, params: RoadParams, res: np.ndarr
         free.append(k)
         J_cols.append(scale * B[:, j])
         K_cols.append(B[:, j] / mean - N[:, j] / nom)
+    inside = []
     for i, name in enumerate(prob.free_nl):
-        lo, hi = prob.lo[i], prob.hi[i]
         zi = _to_z(name, P[name])
-        if zi - lo < 2 * FD_STEP or hi - zi < 2 * FD_STEP:
+        if zi - prob.lo[i] < AT_BOUND or prob.hi[i] - zi < AT_BOUND:
             continue                     # at (or beyond) a bound of the search box: held there
-        sims, lnks = [], []
-        for sgn in (1.0, -1.0):
-            Q = dict(P)
-            Q[name] = _from_z(name, zi + sgn * FD_STEP)
-            Bq, Nq = fm.columns(Q, prob.variant)
-            sims.append(scale * (Bq @ theta))
-            lnks.append(np.log(Bq @ theta) - np.log(Nq @ theta))
-        d = _dz_dp(name, zi) * 2 * FD_STEP
-        free.append(name)
-        J_cols.append((sims[0] - sims[1]) / d)
-        K_cols.append((lnks[0] - lnks[1]) / d)
+        inside.append(name)
+    if inside:
+        _, _, dB, dN = fm.columns_and_shape_derivatives(P, prob.variant, inside)
+        for i, name in enumerate(inside):
+            c = theta[LINEAR_TERMS.index(SHAPE_TERM[name])]
+            free.append(name)
+            J_cols.append(scale * c * dB[:, i])
+            K_cols.append(c * (dB[:, i] / mean - dN[:, i] / nom))
     n_free = len(free)
     if n_free == 0:
         return [], np.zeros((0, 0)), np.zeros((prob.y.size, 0))
