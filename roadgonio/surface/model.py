@@ -403,7 +403,7 @@ def _road_brdf(xp, P, wi, wo, variant, terms, pairs, wrt):
         g_factor = g_attenuation(xp, P, theta_i) * (g_attenuation(xp, P, theta_r) / g_star)
         f = f * g_factor
         grad = {n: d * g_factor for n, d in grad.items()}
-    seen = (wiz > 0.0) & (woz > 0.0)
+    seen = _kept(pairs, "seen", lambda: (wiz > 0.0) & (woz > 0.0))
     return xp.where(seen, f, zero), [xp.where(seen, grad[n], zero) for n in wrt]
 
 
