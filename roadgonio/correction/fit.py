@@ -14,7 +14,9 @@ Method (variable projection, like :mod:`roadgonio.surface.fit`): for given shape
 (``n_phong, n_retro, p, h, mu`` and the variant's own, in the transformed coordinates of
 :mod:`roadgonio.surface.fit`: log10 n, log10 mu, asinh h) the coefficients are the non-negative least
 squares solution (:func:`scipy.optimize.nnls`); z is found by :func:`scipy.optimize.least_squares`
-(trust region reflective, bounded) in two stages:
+(trust region reflective, bounded; its Jacobian the variable-projection derivative of the columns'
+analytic shape derivatives, :meth:`_Problem.jacobian`, since session 31: finite differences before,
+which re-solved the problem once per shape parameter) in two stages:
 
 * stage A, multi-start (cheap): the measured table against ``k_c r_c(p)`` with k frozen at its
   current estimate, from the given starting models and a Latin-hypercube set of starts over the
@@ -23,7 +25,8 @@ squares solution (:func:`scipy.optimize.nnls`); z is found by :func:`scipy.optim
 
 The parameters' covariance is ``s^2 (J^T J)^-1`` over the free parameters (those not at a bound),
 J the Jacobian of the weighted residuals (analytic: the coefficients' columns, and the shape
-parameters' derivatives of :func:`roadgonio.surface.model.road_brdf_shape_grad` through the bundles), ``s^2 = max(1, chi^2 / dof)`` (the Birge ratio squared: when
+parameters' derivatives of :func:`roadgonio.surface.model.road_brdf_with_shape_grad` through the
+bundles), ``s^2 = max(1, chi^2 / dof)`` (the Birge ratio squared: when
 the model cannot follow the table within its stated uncertainty, the parameters are less certain
 than the noise alone says). The Jacobian of ln k_A over the same parameters propagates it to k_A.
 """
