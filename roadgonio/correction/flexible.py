@@ -110,6 +110,9 @@ MIRROR_PLANES = {"cusp": 0.0, "rounded": None, "both": (0.0, None)}
 #: off by 7.2 % without any) is found by the first repetition's 32 starts (session 30;
 #: docs/correction-record.md, "The backbones' repeated searches").
 BACKBONE_RETRIES = 1
+#: Fresh Latin-hypercube starts of a later rounding's backbone search, beside the previous rounding's
+#: fit (SurfaceSettings.warm_round_starts).
+WARM_ROUND_STARTS = 4
 #: Stop the mode search when the penalised chi^2 changes by less than this (relative).
 MODE_RTOL = 1e-8
 MAX_MODE_STEPS = 60
@@ -166,6 +169,11 @@ class SurfaceSettings:
     #: how many times a backbone is searched again (fresh starts) while the data reject it
     #: (BACKBONE_RETRIES, 1; 2 is the eq. 4 route's, what the surface route did until session 30)
     backbone_retries: int = BACKBONE_RETRIES
+    #: the roundings after the first: their search starts from the previous rounding's fit of every
+    #: variant (a rounding moves the backbone only within ~one knot of the mirror plane) and this many
+    #: fresh starts, not searched again (WARM_ROUND_STARTS); None: each rounding searched like the first
+    #: (what it was until session 31)
+    warm_round_starts: int | None = WARM_ROUND_STARTS
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
@@ -202,6 +210,10 @@ class SurfaceSettings:
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 0 <= n <= 10:
             raise InputError(f"expected the backbones' repeated searches as a whole number in [0, 10], got {n!r}",
                              field="backbone_retries")
+        n = self.warm_round_starts
+        if n is not None and (isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 0 <= n <= 256):
+            raise InputError(f"expected the later roundings' fresh starts as a whole number in [0, 256] (or none: "
+                             f"searched like the first), got {n!r}", field="warm_round_starts")
         u = self.unobserved_sd_ln
         if isinstance(u, bool) or not isinstance(u, (int, float)) or not (math.isfinite(u) and u >= 0.0):
             raise InputError(f"expected a standard uncertainty >= 0 of ln f_r beyond the observation elevations, "
@@ -267,7 +279,8 @@ class SurfaceSettings:
                 "model_estimate": self.model_estimate,
                 "mirror_round_deg": (list(self.mirror_round_deg) if isinstance(self.mirror_round_deg, tuple)
                                      else self.mirror_round_deg), "unobserved_sd_ln": self.unobserved_sd_ln,
-                "backbone_retries": int(self.backbone_retries)}
+                "backbone_retries": int(self.backbone_retries),
+                "warm_round_starts": None if self.warm_round_starts is None else int(self.warm_round_starts)}
 
 
 def spline_basis(grid: SplineGrid, wi, wo, n: int) -> sparse.csr_matrix:

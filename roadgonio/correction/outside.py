@@ -46,7 +46,7 @@ import math
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -343,6 +343,38 @@ def _as_list(value, n: int, what: str) -> list:
 # The procedure
 # ----------------------------------------------------------------------------------------------
 
+def search_backbones(forward, y: np.ndarray, u: np.ndarray, variants: Sequence[str], settings: SurfaceSettings, *,
+                     state=None, seed: int = 0, name: str = "fit", say: Callable[[str], None] | None = None,
+                     **fit_opts) -> tuple[dict[tuple[str, float], RoadModel], dict[tuple[str, float], float],
+                                          dict[str, list[dict[str, Any]]]]:
+    """The backbones of the surface route through ``forward`` (one instrument's or several stacked):
+    every variant at every rounding of the mirror plane (``settings.backbone_rounds_deg``), each held
+    in its own fit (:func:`roadgonio.correction.run.search_through_instrument`: stage A of every
+    variant, the best polished). The first rounding is searched again while the data reject it, at
+    most ``settings.backbone_retries`` times; a later one starts from the previous rounding's fit of
+    every variant and ``settings.warm_round_starts`` fresh starts, once (None: searched like the
+    first). Returns the backbones and their chi^2 by (variant, rounding), and the searches' records by
+    rounding. ``fit_opts``: starts, polish, rounds of the search."""
+    from roadgonio.correction import run as _run
+    backbones: dict[tuple[str, float], RoadModel] = {}
+    chi2: dict[tuple[str, float], float] = {}
+    records: dict[str, list[dict[str, Any]]] = {}
+    previous = None
+    for r in settings.backbone_rounds_deg:
+        warm = previous is not None and settings.warm_round_starts is not None
+        opts = dict(fit_opts, starts=settings.warm_round_starts) if warm else dict(fit_opts)
+        fits_r, chi2_r, _, searches = _run.search_through_instrument(
+            forward, y, u, variants, state=state, seed=seed, name=name, say=say, fixed=settings.backbone_fixed(r),
+            state_name=lambda v, r=r: _state_name(v, r), describe=lambda v, r=r: f"{backbone_label(v, r)} backbone",
+            retries=0 if warm else settings.backbone_retries,
+            start_models={v: backbones[(v, previous)] for v in variants} if warm else None, **opts)
+        for v in variants:
+            backbones[(v, r)], chi2[(v, r)] = fits_r[v], chi2_r[v]
+        records[_state_name("backbone", r)] = searches
+        previous = r
+    return backbones, chi2, records
+
+
 def correct_surface(tables: Sequence[RTable], instruments: Sequence[Instrument], *, u_measured: Any = DEFAULT_U_MEASURED,
                     sigma: Any = None, backend: str = "mitsuba", backend_settings: Mapping[str, Any] | None = None,
                     accuracy: str | None = None, factory=None, out_dir: str | Path | None = None,
@@ -421,24 +453,15 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
 
     # 1. the backbones through every instrument at once: every variant at every rounding of the
     #    mirror plane (SurfaceSettings.backbone_rounds_deg), each held in its own fit
-    #    (stage A of every variant, the best polished, searched again while the data reject it at
-    #    most SurfaceSettings.backbone_retries times, by default once: correct_self's search,
-    #    :func:`roadgonio.correction.run.search_through_instrument`). The best
+    #    (search_backbones: stage A of every variant, the best polished; the first rounding searched
+    #    again while the data reject it at most SurfaceSettings.backbone_retries times, by default
+    #    once; a later one started from the previous rounding's fits). The best
     #    variant of every rounding is polished so that the roundings meet on equal terms (the evidence
     #    of an unpolished backbone's surface is lower: session 13, eq4 through A + B, the cusp's best
     #    unpolished lost to the rounded one polished)
-    backbones: dict[tuple[str, float], RoadModel] = {}
-    chi2: dict[tuple[str, float], float] = {}
-    backbone_searches: dict[str, list[dict[str, Any]]] = {}
-    for r in settings.backbone_rounds_deg:
-        fits_r, chi2_r, _, searches = _run.search_through_instrument(
-            stacked, y_all, u_all, variants, state=state, seed=seed, name=label,
-            say=lambda text: _run._say(progress, text), fixed=settings.backbone_fixed(r),
-            state_name=lambda v, r=r: _state_name(v, r), describe=lambda v, r=r: f"{backbone_label(v, r)} backbone",
-            retries=settings.backbone_retries, **fit_opts)
-        for v in variants:
-            backbones[(v, r)], chi2[(v, r)] = fits_r[v], chi2_r[v]
-        backbone_searches[_state_name("backbone", r)] = searches
+    backbones, chi2, backbone_searches = search_backbones(
+        stacked, y_all, u_all, variants, settings, state=state, seed=seed, name=label,
+        say=lambda text: _run._say(progress, text), **fit_opts)
     main = min(chi2, key=chi2.get)
     polished = backbones[main]
     main_label = backbone_label(*main)

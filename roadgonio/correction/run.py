@@ -419,21 +419,23 @@ def _say(progress: bool, text: str) -> None:
 def fit_self(fm: ForwardModel, y: np.ndarray, u: np.ndarray, variant: str, *, rho=None, seed: int = 0,
              starts: int = DEFAULT_STARTS, polish: int = DEFAULT_POLISH, rounds: int = DEFAULT_ROUNDS,
              stage_b: bool = True, name: str = "fit", fixed: Mapping[str, float] | None = None,
-             first_restart: int = 0) -> ThroughFit:
+             first_restart: int = 0, start: RoadModel | None = None) -> ThroughFit:
     """The multi-start fit through the instrument in ``rounds`` of stage A: the first freezes k_A
     at 1 (the measured table fitted as if the instrument were ideal), each later one at the previous
     round's k_A (the table that model would correct to), starting also from that model; then
     stage B from the best distinct stage-A minima (``polish``). ``stage_b=False`` stops after stage
     A (chi^2 through the bundles, no covariance). ``fixed``: parameters held (as in
     :func:`roadgonio.correction.fit.fit_through_instrument`). ``first_restart``: the seed stream of the
-    first round (a repeated search starts another)."""
-    k_frozen = np.ones_like(y)
+    first round (a repeated search starts another). ``start``: a model to start from (a neighbouring
+    fit): the first round starts from it too, with k_A frozen at its k_A instead of 1."""
+    k_frozen = np.ones_like(y) if start is None else fm.k_a(start, rho)
     best = None
     for r in range(int(rounds)):
+        first = [] if start is None else [start]
         res = fit_through_instrument(fm, y, u, variant=variant, rho=rho, polish=polish, seed=seed,
                                      restart=int(first_restart) + r,
                                      starts=starts if best is None else LATER_ROUND_STARTS, k_frozen=k_frozen,
-                                     stage_b=False, name=name, start_models=[] if best is None else [best.model],
+                                     stage_b=False, name=name, start_models=first if best is None else [best.model],
                                      fixed=fixed)
         if best is not None and res.chi2 >= best.chi2 * (1.0 - 1e-6):
             break
@@ -451,13 +453,14 @@ def search_through_instrument(fm: ForwardModel, y: np.ndarray, u: np.ndarray, va
                               say: Callable[[str], None] | None = None, fixed: Mapping[str, float] | None = None,
                               state_name: Callable[[str], str] = str,
                               describe: Callable[[str], str] = lambda v: f"{v} model",
-                              retries: int = RETRY_SEARCHES
+                              retries: int = RETRY_SEARCHES, start_models: Mapping[str, RoadModel] | None = None
                               ) -> tuple[dict[str, RoadModel], dict[str, float], RoadModel, list[dict[str, Any]]]:
     """The eq. 4 fit of ``correct --reference self`` through the bundles (no backend yet), and the
     backbones of ``--forward surface`` (one call per rounding, ``fixed`` its parameters): stage A of
     every variant (:func:`fit_self`), the best polished (stage B); while the data reject the result
     (:attr:`~roadgonio.correction.fit.ThroughFit.misfit`), the search again with fresh starts
-    (at most ``retries`` times, default :data:`RETRY_SEARCHES`). Journalled in ``state`` (if given) under ``stage-a-NAME`` and ``fit-NAME`` (NAME
+    (at most ``retries`` times, default :data:`RETRY_SEARCHES`). ``start_models``: a model per variant
+    that the first search starts from besides its ``starts`` fresh ones (:func:`fit_self`'s ``start``). Journalled in ``state`` (if given) under ``stage-a-NAME`` and ``fit-NAME`` (NAME
     ``state_name(variant)``; ``search-N-`` before them for a repeated search). Returns (the best model of each
     variant, their chi^2 through the bundles, the fitted model, one record per search)."""
     fits: dict[str, RoadModel] = {}
@@ -475,7 +478,8 @@ def search_through_instrument(fm: ForwardModel, y: np.ndarray, u: np.ndarray, va
                     say(f"{name}: fitting the {describe(v)} through the instrument(s)"
                         + ("" if attempt == 0 else f" (search {attempt + 1}: the data rejected the fit)"))
                 m = fit_self(fm, y, u, v, seed=seed, starts=n_starts, polish=polish, rounds=rounds, stage_b=False,
-                             name=name, fixed=fixed, first_restart=attempt * _RETRY_STREAM).model
+                             name=name, fixed=fixed, first_restart=attempt * _RETRY_STREAM,
+                             start=(start_models or {}).get(v) if attempt == 0 else None).model
                 state.put(f"{tag}stage-a-{state_name(v)}", m)
             c = chi2_of(fm, y, u, m)
             if v not in fits or c < chi2[v]:

@@ -210,9 +210,10 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     """Rank the second aperture settings of ``vary`` (module docstring). Exactly one of ``measured``
     (an r-table the instrument measured) and ``sample`` (a SAMPLE or a BRDF model) gives the surface."""
     from roadgonio.correction.flexible import FlexPart, SurfaceSettings, expected_posterior, fit_surface
-    from roadgonio.correction.outside import DEFAULT_VARIANTS, cell_key, model_estimate_cells, parts_discrepancy
+    from roadgonio.correction.outside import (DEFAULT_VARIANTS, cell_key, model_estimate_cells, parts_discrepancy,
+                                              search_backbones)
     from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
-    from roadgonio.correction.run import measured_uncertainty, search_through_instrument
+    from roadgonio.correction.run import measured_uncertainty
     from roadgonio.design.grid import as_vary_specs, build_instrument, grid_points
     from roadgonio.design.metrics import relative_signal
     from roadgonio.surface.rtable import RTable, bundled_table
@@ -281,18 +282,13 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     # the backbone the correction would take: correct --forward surface fits every variant of
     # DEFAULT_VARIANTS at every rounding of the mirror plane and weighs them by their evidence; the
     # prediction takes the one of larger evidence, or the variant asked for
-    # (searched as the correction searches them: the best variant of every rounding polished, and
-    # searched again while the data reject it as often as SurfaceSettings.backbone_retries says)
+    # (searched as the correction searches them: roadgonio.correction.outside.search_backbones)
     fits = []
     variants = (model_variant,) if model_variant else DEFAULT_VARIANTS
-    for r in settings.backbone_rounds_deg:
-        backbones, _, _, _ = search_through_instrument(fm, y, u, variants, seed=seed, name=table.name,
-                                                       fixed=settings.backbone_fixed(r),
-                                                       retries=settings.backbone_retries)
-        for variant in variants:
-            bb = backbones[variant]
-            pa = FlexPart(fm, bb, settings)
-            fits.append((fit_surface([pa], [y], [u]), variant, bb, pa))
+    backbones, _, _ = search_backbones(fm, y, u, variants, settings, seed=seed, name=table.name)
+    for (variant, _r), bb in backbones.items():
+        pa = FlexPart(fm, bb, settings)
+        fits.append((fit_surface([pa], [y], [u]), variant, bb, pa))
     fit, variant, backbone, part_a = max(fits, key=lambda f: f[0].log_evidence)
     theta, lam = fit.theta, fit.lam
     u_rel = u / y

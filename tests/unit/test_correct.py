@@ -690,6 +690,35 @@ def test_an_eq4_correction_with_stray_light_notes_the_road_it_assumes():
         assert all(n.startswith("meas: the instrument's stray light") and "--forward surface" in n for n in notes)
 
 
+def test_a_search_from_a_neighbouring_fit_starts_there_with_its_k_a(monkeypatch, r3like):
+    """Session 31 (fit_self's ``start``, the later roundings' backbones): the first round of stage A starts
+    from the given model besides its fresh starts, with k_A frozen at that model's k_A instead of 1; and
+    from a model near the optimum of a noise-free table with no fresh starts at all it reaches that
+    optimum."""
+    from roadgonio.correction import fit as fit_mod
+    from roadgonio.correction import run as run_mod
+    inst = load_instrument("portable")
+    t = bundled_table("R3")
+    fm = ForwardModel(RayBundles.build(inst, t.cells, rays=64))
+    y = fm.r_measured(r3like)
+    u = 0.01 * y
+    near = RoadModel(r3like.params.replace(p=r3like.params.p * 1.1, mu=r3like.params.mu * 1.3), r3like.variant)
+    calls = []
+    real = fit_mod.fit_through_instrument
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs)
+        return real(*args, **kwargs)
+    monkeypatch.setattr(run_mod, "fit_through_instrument", spy)
+    got = run_mod.fit_self(fm, y, u, "power", starts=0, rounds=1, start=near)
+    assert calls[0]["start_models"] == [near] and calls[0]["starts"] == 0
+    assert np.array_equal(calls[0]["k_frozen"], fm.k_a(near))
+    assert got.chi2 < 1e-6 * len(y) < assess_fit(fm, y, u, near).chi2        # the optimum, not the start
+    calls.clear()
+    run_mod.fit_self(fm, y, u, "power", starts=2, rounds=1, stage_b=False)
+    assert calls[0]["start_models"] == [] and np.all(calls[0]["k_frozen"] == 1.0)
+
+
 def test_a_missed_basin_is_searched_again_before_the_misfit_is_believed():
     """Audit 23: a noise-free eq. 4 table (the portable preset under the absolute calibration, k_A by
     the float64 quadrature: tests/data/make_noisefree_portable_absolute.py) was fitted at a Birge

@@ -843,31 +843,58 @@ def test_the_backbones_repeated_searches_setting_is_checked(bad):
     assert err.value.field == "backbone_retries"
 
 
-@pytest.mark.parametrize("retries", [None, 0, 2])
-def test_the_surface_route_searches_its_backbones_as_often_as_the_settings_say(monkeypatch, retries):
+@pytest.mark.parametrize("retries,warm", [(None, "default"), (0, None), (2, None), (2, 7)])
+def test_the_surface_route_searches_its_backbones_as_the_settings_say(monkeypatch, retries, warm):
     """Session 30: outside eq. 4 the data always reject a backbone (the correction surface carries its
     misfit), so the eq. 4 route's two repeated searches ran every time; the surface route repeats the
-    search of each backbone (every rounding) as often as SurfaceSettings.backbone_retries says, once by
-    default (audit 23's missed basin needs one: tests/system/test_correct_outside.py)."""
+    search of the first rounding's backbones as often as SurfaceSettings.backbone_retries says, once by
+    default (audit 23's missed basin needs one: tests/system/test_correct_outside.py). Session 31: a
+    later rounding starts from the previous rounding's fit of every variant and
+    SurfaceSettings.warm_round_starts fresh starts (4 by default), searched once; with None it is
+    searched like the first, as every rounding was until then."""
     from roadgonio import api
     from roadgonio.correction import run as _run
-    from roadgonio.correction.flexible import SurfaceSettings
+    from roadgonio.correction.flexible import WARM_ROUND_STARTS, SurfaceSettings
 
     seen = []
 
     class Stop(Exception):
         pass
 
-    def spy(*args, retries=_run.RETRY_SEARCHES, fixed=None, **kwargs):
-        seen.append((retries, fixed["beta_round_deg"]))
+    def spy(*args, retries=_run.RETRY_SEARCHES, fixed=None, start_models=None, **kwargs):
+        out = real(*args, retries=retries, fixed=fixed, start_models=start_models, **kwargs)
+        seen.append({"retries": retries, "round": fixed["beta_round_deg"], "starts": kwargs.get("starts"),
+                     "start_models": start_models, "fits": out[0]})
         if len(seen) == 2:
             raise Stop
-        return real(*args, retries=retries, fixed=fixed, **kwargs)
+        return out
     real = _run.search_through_instrument
     monkeypatch.setattr(_run, "search_through_instrument", spy)
-    settings = None if retries is None else SurfaceSettings(backbone_retries=retries)
+    given = {} if retries is None else {"backbone_retries": retries}
+    if warm != "default":
+        given["warm_round_starts"] = warm
     with pytest.raises(Stop):
         api.correct(bundled_table("R3"), "portable", forward="surface", backend="quadrature", rays=64,
-                    settings=settings)
+                    settings=SurfaceSettings(**given) if given else None)
     want = 1 if retries is None else retries
-    assert [r for r, _ in seen] == [want, want] and seen[0][1] == 0.0 < seen[1][1], seen
+    first, second = seen
+    assert first["round"] == 0.0 < second["round"]
+    assert first["retries"] == want and first["start_models"] is None and first["starts"] is None
+    if warm is None:
+        assert second["retries"] == want and second["start_models"] is None and second["starts"] is None
+    else:
+        n = WARM_ROUND_STARTS if warm == "default" else warm
+        assert second["retries"] == 0 and second["starts"] == n
+        # the previous rounding's fit of every variant, the very models it returned
+        assert second["start_models"] == first["fits"] and set(second["start_models"]) == set(first["fits"])
+
+
+@pytest.mark.parametrize("bad", [-1, 257, 1.5, True, "4"])
+def test_the_later_roundings_fresh_starts_setting_is_checked(bad):
+    from roadgonio.correction.flexible import WARM_ROUND_STARTS, SurfaceSettings
+    assert SurfaceSettings().warm_round_starts == WARM_ROUND_STARTS == 4
+    assert SurfaceSettings(warm_round_starts=None).to_dict()["warm_round_starts"] is None
+    assert SurfaceSettings(warm_round_starts=0).to_dict()["warm_round_starts"] == 0
+    with pytest.raises(InputError) as err:
+        SurfaceSettings(warm_round_starts=bad)
+    assert err.value.field == "warm_round_starts"
