@@ -6,8 +6,10 @@ Procedure (:func:`correct_surface`):
 
 1. the backbone: every variant of ``variants`` fitted through all the instruments at once
    (:class:`roadgonio.engines.bundle.StackedForward`; stage A multi-start, the best by chi^2
-   polished, searched again while the data reject it (``SurfaceSettings.backbone_retries`` times at
-   most, once by default: outside eq. 4 they always do): :func:`roadgonio.correction.run.search_through_instrument`);
+   polished, at every rounding of the mirror plane (:func:`search_backbones`): the first rounding
+   searched again while the data reject it (``SurfaceSettings.backbone_retries`` times at most, once
+   by default: outside eq. 4 they always do), a later one started from the previous rounding's fits
+   (``SurfaceSettings.warm_round_starts``);
 2. k_A of the best backbone by the chosen backend through each instrument (journalled like
    ``roadgonio ka``), and the bundles' own error of it, ``rho = k_backend / k_bundle``;
 3. for every variant, the correction surface through all the instruments (one surface shared by
