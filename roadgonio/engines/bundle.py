@@ -307,23 +307,11 @@ class ForwardModel:
     # -- columns -----------------------------------------------------------------------------
     def column(self, term: str, P: Mapping[str, float], variant: str) -> tuple[np.ndarray, np.ndarray]:
         """(bundle mean, nominal value) per cell of one term with unit coefficient."""
-        key = self._key(term, P, variant)
-        hit = self._cache.get(key)
+        hit = self._cache.get(self._key(term, P, variant))
         if hit is not None:
             return hit
-        Q = _unit(P)
-        terms = _terms_for(term, P)
-        b = self.bundles
-        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-            f = np.asarray(road_brdf(NumpyOps, Q, b.wi, b.wo, variant, terms, pairs=self._pairs_rays),
-                           dtype=np.float64)
-            f0 = np.asarray(road_brdf(NumpyOps, Q, self.wi0, self.wo0, variant, terms, pairs=self._pairs_nominal),
-                            dtype=np.float64)
-        out = (b.cell_sum(np.broadcast_to(f, b.a.shape)), np.broadcast_to(f0, (b.n_cells,)).copy())
-        if len(self._cache) > 256:
-            self._cache.clear()
-        self._cache[key] = out
-        return out
+        mean, nom, _, _ = self._column_grad(term, P, variant, (), True)
+        return mean, nom
 
     def nominal_columns(self, P: Mapping[str, float], variant: str) -> np.ndarray:
         """(n_cells, 4) values of the unit-coefficient terms at the nominal geometry only (cheap)."""
@@ -372,9 +360,10 @@ class ForwardModel:
 
     def _column_grad(self, term: str, P: Mapping[str, float], variant: str, wrt: tuple[str, ...], bundle: bool):
         """(mean, nominal, d mean, d nominal) of one term's unit-coefficient column and its derivatives
-        with respect to ``wrt`` (:meth:`columns_and_shape_derivatives`), cached."""
+        with respect to ``wrt`` (:meth:`columns_and_shape_derivatives`; none: the column alone,
+        :meth:`column`), cached."""
         key = ("grad", bundle, wrt) + self._key(term, P, variant)
-        hit = self._grad_cache.get(key)
+        hit = self._grad_cache.get(key) if wrt else None
         if hit is not None:
             return hit
         Q = _unit(P)
@@ -385,19 +374,21 @@ class ForwardModel:
             f0, g0 = road_brdf_with_shape_grad(NumpyOps, Q, self.wi0, self.wo0, variant, terms, wrt,
                                                pairs=self._pairs_nominal)
             nom = np.broadcast_to(f0, (n,)).copy()
-            dnom = np.stack([np.broadcast_to(g, (n,)) for g in g0], axis=1)
+            dnom = np.stack([np.broadcast_to(g, (n,)) for g in g0], axis=1) if wrt else np.zeros((n, 0))
             mean = dmean = None
             if bundle:
                 f, g = road_brdf_with_shape_grad(NumpyOps, Q, b.wi, b.wo, variant, terms, wrt, pairs=self._pairs_rays)
                 mean = b.cell_sum(np.broadcast_to(np.asarray(f, dtype=np.float64), b.a.shape))
                 dmean = np.stack([b.cell_sum(np.broadcast_to(np.asarray(gk, dtype=np.float64), b.a.shape))
-                                  for gk in g], axis=1)
+                                  for gk in g], axis=1) if wrt else np.zeros((n, 0))
                 if len(self._cache) > 256:
                     self._cache.clear()
                 self._cache.setdefault(self._key(term, P, variant), (mean, nom))
-        if len(self._grad_cache) > 256:
-            self._grad_cache.clear()
-        out = self._grad_cache[key] = (mean, nom, dmean, dnom)
+        out = (mean, nom, dmean, dnom)
+        if wrt:
+            if len(self._grad_cache) > 256:
+                self._grad_cache.clear()
+            self._grad_cache[key] = out
         return out
 
     @staticmethod
