@@ -765,6 +765,50 @@ def test_a_search_too_weak_for_the_table_is_repeated_until_the_fit_is_found(seed
     assert all(s["starts"] == RETRY_STARTS for s in searches[1:])
 
 
+def test_a_repeated_search_polishes_its_own_start(monkeypatch):
+    """Session 31: a repeated search polished the best model so far again (already polished) whenever
+    its fresh stage-A start had the larger chi^2 before the polish, so its fresh starts were never
+    polished; with stage A's k_A frozen that chi^2 can rank a basin far below where the polish takes it
+    (tests/system/test_correct_system.py::test_cli_says_when_the_data_reject_eq4 stuck at chi^2 990
+    while the repeated search's start polishes to 372). Every search's polish starts from that
+    search's own stage-A model."""
+    from roadgonio.correction import run as run_mod
+    from roadgonio.correction.fit import chi2_of
+    from roadgonio.correction.synthetic import r2_like_truth
+    inst = load_instrument("portable")
+    fm = ForwardModel(RayBundles.build(inst, bundled_table("R3").cells, rays=64, seed=0))
+    y = fm.r_measured(r2_like_truth())
+    stage_a, polished_from = [], []
+    real_self, real_fit = run_mod.fit_self, run_mod.fit_through_instrument
+
+    def spy_self(*args, **kwargs):
+        out = real_self(*args, **kwargs)
+        if kwargs.get("first_restart", 0) > 0:
+            # a repeated search's start made worse than the best so far before the polish
+            out.model = RoadModel(out.model.params.replace(k_phong=0.0, k_retro=0.0, k_exp=0.0), out.model.variant)
+            assert chi2_of(fm, y, 0.01 * y, out.model) > min(s["chi2"] for s in seen)
+        stage_a.append(out.model)
+        return out
+
+    def spy_fit(*args, **kwargs):
+        if kwargs.get("stage_a") is False:
+            polished_from.append(kwargs["start_models"][0])
+        return real_fit(*args, **kwargs)
+    monkeypatch.setattr(run_mod, "fit_self", spy_self)
+    monkeypatch.setattr(run_mod, "fit_through_instrument", spy_fit)
+    seen = []
+    real_assess = run_mod.assess_fit
+
+    def spy_assess(*args, **kwargs):
+        out = real_assess(*args, **kwargs)
+        seen.append({"chi2": out.chi2})
+        return out
+    monkeypatch.setattr(run_mod, "assess_fit", spy_assess)
+    _, _, _, searches = run_mod.search_through_instrument(fm, y, 0.01 * y, ("smooth",), starts=1, rounds=1, seed=0)
+    assert len(searches) >= 2 and len(polished_from) == len(stage_a) == len(searches)
+    assert all(p is a for p, a in zip(polished_from, stage_a)), "a search polished another search's model"
+
+
 def test_a_zero_in_the_measured_table_is_refused_naming_the_cell(tmp_path):
     """User audit, session 24: a zero cell was refused with "the measured table has zero values" and no
     cell, while a negative one names its line and column. The message names the first zero cell and
