@@ -457,7 +457,7 @@ def search_through_instrument(fm: ForwardModel, y: np.ndarray, u: np.ndarray, va
                               ) -> tuple[dict[str, RoadModel], dict[str, float], RoadModel, list[dict[str, Any]]]:
     """The eq. 4 fit of ``correct --reference self`` through the bundles (no backend yet), and the
     backbones of ``--forward surface`` (one call per rounding, ``fixed`` its parameters): stage A of
-    every variant (:func:`fit_self`), the best polished (stage B); while the data reject the result
+    every variant (:func:`fit_self`), the best variant's start of this search polished (stage B); while the data reject the result
     (:attr:`~roadgonio.correction.fit.ThroughFit.misfit`), the search again with fresh starts
     (at most ``retries`` times, default :data:`RETRY_SEARCHES`). ``start_models``: a model per variant
     that the first search starts from besides its ``starts`` fresh ones (:func:`fit_self`'s ``start``). Journalled in ``state`` (if given) under ``stage-a-NAME`` and ``fit-NAME`` (NAME
