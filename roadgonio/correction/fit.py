@@ -450,7 +450,8 @@ def _covariance(prob: _Problem, z: np.ndarray, params: RoadParams, res: np.ndarr
     fm = prob.fm
     P = params.to_dict()
     theta = np.array([P[k] for k in LINEAR_TERMS])
-    B, N = fm.columns(P, prob.variant)
+    # the columns and their shape derivatives from one pass per term
+    B, N, dB, dN = fm.columns_and_shape_derivatives(P, prob.variant, prob.free_nl)
     mean, nom = B @ theta, N @ theta
     scale = fm.bundles.cos3 * fm.kappa * prob.rho * prob.w
     free: list[str] = []
@@ -462,19 +463,14 @@ def _covariance(prob: _Problem, z: np.ndarray, params: RoadParams, res: np.ndarr
         free.append(k)
         J_cols.append(scale * B[:, j])
         K_cols.append(B[:, j] / mean - N[:, j] / nom)
-    inside = []
     for i, name in enumerate(prob.free_nl):
         zi = _to_z(name, P[name])
         if zi - prob.lo[i] < AT_BOUND or prob.hi[i] - zi < AT_BOUND:
             continue                     # at (or beyond) a bound of the search box: held there
-        inside.append(name)
-    if inside:
-        _, _, dB, dN = fm.columns_and_shape_derivatives(P, prob.variant, inside)
-        for i, name in enumerate(inside):
-            c = theta[LINEAR_TERMS.index(SHAPE_TERM[name])]
-            free.append(name)
-            J_cols.append(scale * c * dB[:, i])
-            K_cols.append(c * (dB[:, i] / mean - dN[:, i] / nom))
+        c = theta[LINEAR_TERMS.index(SHAPE_TERM[name])]
+        free.append(name)
+        J_cols.append(scale * c * dB[:, i])
+        K_cols.append(c * (dB[:, i] / mean - dN[:, i] / nom))
     n_free = len(free)
     if n_free == 0:
         return [], np.zeros((0, 0)), np.zeros((prob.y.size, 0))

@@ -315,20 +315,23 @@ class ForwardModel:
 
     def nominal_columns(self, P: Mapping[str, float], variant: str) -> np.ndarray:
         """(n_cells, 4) values of the unit-coefficient terms at the nominal geometry only (cheap)."""
-        Q = _unit(P)
         N = np.zeros((self.bundles.n_cells, len(LINEAR_TERMS)))
         for j, t in enumerate(LINEAR_TERMS):
-            key = ("nominal",) + self._key(t, P, variant)
-            col = self._nominal_cache.get(key)
-            if col is None:
-                with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-                    col = np.broadcast_to(road_brdf(NumpyOps, Q, self.wi0, self.wo0, variant, _terms_for(t, P),
-                                                    pairs=self._pairs_nominal), (self.bundles.n_cells,)).copy()
-                if len(self._nominal_cache) > 4096:
-                    self._nominal_cache.clear()
-                self._nominal_cache[key] = col
-            N[:, j] = col
+            N[:, j] = self._nominal_column(t, P, variant)
         return N
+
+    def _nominal_column(self, term: str, P: Mapping[str, float], variant: str) -> np.ndarray:
+        """One term's unit-coefficient values at the nominal geometry (:meth:`nominal_columns`), cached."""
+        key = ("nominal",) + self._key(term, P, variant)
+        col = self._nominal_cache.get(key)
+        if col is None:
+            with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+                col = np.broadcast_to(road_brdf(NumpyOps, _unit(P), self.wi0, self.wo0, variant, _terms_for(term, P),
+                                                pairs=self._pairs_nominal), (self.bundles.n_cells,)).copy()
+            if len(self._nominal_cache) > 4096:
+                self._nominal_cache.clear()
+            self._nominal_cache[key] = col
+        return col
 
     def columns_and_shape_derivatives(self, P: Mapping[str, float], variant: str, names: Sequence[str],
                                       bundle: bool = True) -> tuple[np.ndarray | None, np.ndarray,
@@ -350,7 +353,7 @@ class ForwardModel:
                 if bundle:
                     B[:, j], N[:, j] = self.column(term, P, variant)
                 else:
-                    N[:, j] = self.nominal_columns(P, variant)[:, j]
+                    N[:, j] = self._nominal_column(term, P, variant)
                 continue
             mean, nom, dmean, dnom = self._column_grad(term, P, variant, tuple(names[i] for i in own), bundle)
             N[:, j], dN[:, own] = nom, dnom
