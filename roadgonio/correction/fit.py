@@ -44,7 +44,7 @@ from scipy.stats import chi2 as chi2_dist
 from roadgonio.engines.bundle import LINEAR_TERMS, ForwardModel
 from roadgonio.errors import InputError
 from roadgonio.seeds import seed_entropy
-from roadgonio.surface.fit import _from_z, _to_z, _z_box, nonlinear_params
+from roadgonio.surface.fit import AT_BOUND, _dz_dp, _from_z, _to_z, _z_box, nonlinear_params
 from roadgonio.surface.model import PARAM_BOUNDS, PARAM_NAMES, SHAPE_TERM, RoadModel, RoadParams
 
 #: Starts of stage A (Latin hypercube over the search box), in addition to the given models.
@@ -58,9 +58,6 @@ REFINE = 4
 #: the relative change of chi^2 at which it stops (1e-8 of chi^2 is far below any stated uncertainty).
 STAGE_B_NFEV = 60
 STAGE_B_FTOL = 1e-8
-#: A shape parameter nearer than this to a bound of its search box (transformed coordinates) is held
-#: there: it is not a free parameter of the covariance.
-AT_BOUND = 2e-4
 G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
 
 
@@ -86,15 +83,6 @@ def misfit_note(fit: dict | None) -> str | None:
                  f"({fit['misfit_cells_widened']} cells: u_measured sqrt(B^2 - 1), B the local Birge ratio), "
                  "conservative for a surface outside eq. 4")
     return text
-
-
-def _dz_dp(name: str, z: float) -> float:
-    """d(natural value)/dz of the transformed coordinate (surface.fit._from_z)."""
-    if name in ("n_phong", "n_retro", "mu"):
-        return math.log(10.0) * 10.0 ** z
-    if name == "h":
-        return math.cosh(z)
-    return 1.0
 
 
 @dataclass

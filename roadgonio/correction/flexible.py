@@ -52,7 +52,7 @@ from roadgonio.engines.bundle import ForwardModel
 from roadgonio.errors import InputError
 from roadgonio.surface.correction_surface import CorrectedSurface, SplineGrid, alpha_coordinate, lookup
 from roadgonio.arrays import NumpyOps
-from roadgonio.surface.fit import _from_z, _to_z, _z_box, nonlinear_params
+from roadgonio.surface.fit import AT_BOUND, _dz_dp, _to_z, _z_box, nonlinear_params
 from roadgonio.surface.model import PARAM_BOUNDS, RoadModel
 
 #: The default knots of g_C (fine: the narrow peak at beta = 0 and grazing incidence) and of g_D.
@@ -70,10 +70,6 @@ UNOBSERVED_SD_LN = math.log(2.0)
 SURFACE_FIT_VERSION = 3
 #: Prior standard deviation of g_D (d ln f / d ln alpha beyond the backbone's).
 D_PRIOR_SD = 1.0
-#: Finite-difference step of the backbone's coordinates (ln of a term's coefficient, the fit's z of a
-#: shape parameter) for their derivatives (FlexPart.backbone_log_derivatives); a shape parameter this
-#: close to its search box's bound is held there, as the eq. 4 fit holds it.
-BACKBONE_FD_STEP = 1e-4
 #: The criteria that can choose the smoothing parameters (SurfaceSettings.smoothing).
 SMOOTHING = ("evidence", "gcv")
 #: Correlation length of the model discrepancy in knot spacings of g_C (roadgonio.correction.discrepancy).
@@ -408,40 +404,31 @@ class FlexPart:
     def backbone_log_derivatives(self) -> tuple[list[str], np.ndarray, np.ndarray]:
         """The backbone's own coordinates q, free in the posterior beside theta: ln of every active
         term's coefficient and the fit's coordinate z of every shape parameter of the variant (held at
-        a bound of the search box, as the eq. 4 fit holds it). Returns (names, d ln f_0 / d q at the
-        rays (P, *rays), d ln f_0 / d q at the nominal directions (cells, P)), central differences of
-        step :data:`BACKBONE_FD_STEP` (cached: the backbone and the rays are fixed)."""
+        a bound of the search box, as the eq. 4 fit holds it: within
+        :data:`roadgonio.surface.fit.AT_BOUND` of it).
+        Returns (names, d ln f_0 / d q at the rays (P, *rays), d ln f_0 / d q at the nominal
+        directions (cells, P)), the model's analytic derivatives
+        (:meth:`roadgonio.engines.bundle.ForwardModel.log_derivatives`; cached: the backbone and the
+        rays are fixed)."""
         if self._dq is not None:
             return self._dq
-        from roadgonio.engines.bundle import LINEAR_TERMS
-        b = self.forward.bundles
         P0 = self.backbone.params.to_dict()
-        h = BACKBONE_FD_STEP
-        steps = []                                # (name, params at +h, params at -h)
-        for k in LINEAR_TERMS:
-            if P0[k] > 0.0:
-                steps.append((f"ln_{k}", {k: P0[k] * math.exp(h)}, {k: P0[k] * math.exp(-h)}))
+        free = []
         for name in nonlinear_params(self.backbone.variant):
             lo, hi = _z_box(name)
             z = _to_z(name, P0[name])
-            if z - lo < 2 * h or hi - z < 2 * h:
-                continue
-            steps.append((f"z_{name}", {name: _from_z(name, z + h)}, {name: _from_z(name, z - h)}))
-        rays, nom = [], []
-        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-            f_rays = self.forward.ray_brdf(self.backbone)
-            for _, up, down in steps:
-                fr, fn = [], []
-                for change in (up, down):
-                    m = RoadModel(self.backbone.params.replace(**change), variant=self.backbone.variant)
-                    fr.append(self.forward.ray_brdf(m))
-                    fn.append(np.asarray(m.brdf(b.wi0, b.wo0[None, :]), dtype=np.float64))
-                rays.append(np.where(f_rays > 0, (fr[0] - fr[1]) / (2 * h * np.where(f_rays > 0, f_rays, 1.0)), 0.0))
-                nom.append((fn[0] - fn[1]) / (2 * h * self.f0_nominal))
+            if z - lo >= AT_BOUND and hi - z >= AT_BOUND:
+                free.append((name, _dz_dp(name, z)))
+        wrt = [name for name, _ in free]
+        names, rays = self.forward.log_derivatives(self.backbone, wrt)
+        _, nom = self.forward.log_derivatives(self.backbone, wrt, nominal=True)
+        scale = np.ones(len(names))
+        scale[len(names) - len(wrt):] = [d for _, d in free]        # natural units -> z
         shape = self.af0.shape
-        D = np.stack([np.broadcast_to(r, shape) for r in rays]) if rays else np.zeros((0,) + shape)
-        Dn = np.stack(nom, axis=1) if nom else np.zeros((self.n, 0))
-        self._dq = ([n for n, _, _ in steps], D, Dn)
+        D = np.stack([np.broadcast_to(r * s, shape) for r, s in zip(rays, scale)]) if names \
+            else np.zeros((0,) + shape)
+        Dn = (nom * scale[:, None]).T if names else np.zeros((self.n, 0))
+        self._dq = ([n if n.startswith("ln_") else f"z_{n}" for n in names], D, Dn)
         return self._dq
 
     def forget_backbone_derivatives(self) -> None:

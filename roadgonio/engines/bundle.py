@@ -439,6 +439,34 @@ class ForwardModel:
             return np.asarray(road_brdf(NumpyOps, model.params.to_dict(), b.wi, b.wo, model.variant, model.terms(),
                                         pairs=self._pairs_rays), dtype=np.float64)
 
+    def log_derivatives(self, model: RoadModel, wrt: Sequence[str],
+                        nominal: bool = False) -> tuple[list[str], np.ndarray]:
+        """At every ray (``nominal``: at the cells' nominal directions) the derivatives of ln f_r of
+        ``model``: with respect to ln a_k of every active linear term (``a_k f_k / f``, f_k the term at
+        unit coefficient) and to the shape parameters ``wrt`` (natural units, names of
+        :data:`roadgonio.surface.model.SHAPE_TERM`), from :func:`road_brdf_with_shape_grad` (no finite
+        differences); 0 where f_r is 0. Returns (names: ``ln_<term>`` then ``wrt``, an array
+        (len(names), rays) or (len(names), n_cells))."""
+        P = model.params.to_dict()
+        if nominal:
+            wi, wo, pairs = self.wi0, self.wo0, self._pairs_nominal
+        else:
+            wi, wo, pairs = self.bundles.wi, self.bundles.wo, self._pairs_rays
+        active = [k for k in LINEAR_TERMS if P[k] > 0.0]
+        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            f, g = road_brdf_with_shape_grad(NumpyOps, P, wi, wo, model.variant, model.terms(), tuple(wrt),
+                                             pairs=pairs)
+            f = np.asarray(f, dtype=np.float64)
+            if nominal:
+                f = np.broadcast_to(f, (self.bundles.n_cells,))
+            parts = [P[k] * np.asarray(road_brdf(NumpyOps, _unit(P), wi, wo, model.variant, _terms_for(k, P),
+                                                 pairs=pairs), dtype=np.float64) for k in active]
+            parts += [np.asarray(gk, dtype=np.float64) for gk in g]
+            safe = np.where(f > 0, f, 1.0)
+            out = np.stack([np.where(f > 0, np.broadcast_to(d, f.shape) / safe, 0.0) for d in parts]) if parts \
+                else np.zeros((0,) + f.shape)
+        return [f"ln_{k}" for k in active] + list(wrt), out
+
     def k_a_se(self, model: RoadModel) -> np.ndarray:
         """Standard error of the bundle's k_A (spread over the replicates, delta method)."""
         b = self.bundles

@@ -73,6 +73,10 @@ SEARCH_BOX: dict[str, tuple[float, float]] = {
     "n_phong": (1.0, 1e5), "n_retro": (1.0, 1e5), "p": PARAM_BOUNDS["p"], "h": PARAM_BOUNDS["h"],
     "mu": (1e-6, 1e3), "n_beta": PARAM_BOUNDS["n_beta"],
 }
+#: A shape parameter nearer than this to a bound of its search box (its z, :func:`_to_z`) is held
+#: there: not a free coordinate of a covariance (the fits through an instrument and the correction
+#: surface's backbone alike).
+AT_BOUND = 2e-4
 #: Distinct members of the final population that start a least-squares polish (and how many short
 #: runs go on to convergence), after the Nelder-Mead polish of the best.
 POLISH_STARTS = 4
@@ -112,6 +116,15 @@ def _from_z(name: str, z: float) -> float:
     if name == "h":
         return math.sinh(z)
     return z
+
+
+def _dz_dp(name: str, z: float) -> float:
+    """d(natural value)/dz of the transformed coordinate (:func:`_from_z`)."""
+    if name in ("n_phong", "n_retro", "mu"):
+        return math.log(10.0) * 10.0 ** z
+    if name == "h":
+        return math.cosh(z)
+    return 1.0
 
 
 def _z_box(name: str) -> tuple[float, float]:
