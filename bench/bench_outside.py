@@ -149,6 +149,16 @@ def print_row(r: dict) -> None:
     print("  ".join(out), flush=True)
 
 
+def _rounding(word: str) -> float | str | None:
+    """One value of --mirror-round as SurfaceSettings.mirror_round_deg takes it: knot -> None (one
+    knot), <m>knots -> "<m> knots", else degrees."""
+    if word == "knot":
+        return None
+    if word.endswith("knots"):
+        return f"{word[:-len('knots')]} knots"
+    return float(word)
+
+
 def noise_seed(kind: str, which: str, rep: int = 0) -> int:
     """The noise's seed of truth ``kind`` through instrument ``which``, realisation ``rep`` (0: the
     single run's, as it always was for the full list of truths)."""
@@ -198,10 +208,11 @@ def main() -> int:
     ap.add_argument("--eps-edges", default="45", help="with --regions grid: band edges of eps (deg)")
     ap.add_argument("--mirror-round", default=None,
                     help="the backbone's rounding at the mirror plane: deg, or knot for the first knot of the "
-                         "correction surface, or several separated by commas (e.g. 0,knot: every backbone fitted "
-                         "with each, all weighed by their evidence); default 0, the cusp alone: the files "
-                         "without _round in their name, written while the cusp was the library's default; the "
-                         "library's default since session 16 is 0,knot)")
+                         "correction surface, or <m>knots for m times it, or several separated by commas (e.g. "
+                         "0,knot: every backbone fitted with each, all weighed by their evidence); default 0, the "
+                         "cusp alone: the files without _round in their name, written while the cusp was the "
+                         "library's default; the library's default was 0,knot from session 16 and is "
+                         "0,knot,2knots since session 32)")
     ap.add_argument("--backbone-retries", type=int, default=None,
                     help="how often a backbone is searched again while the data reject it (default the library's, "
                          "SurfaceSettings.backbone_retries, 1 since session 30; 2 is what it was, the files with "
@@ -222,7 +233,7 @@ def main() -> int:
                               model_estimate=args.estimate == "combined",
                               **({} if args.backbone_retries is None else {"backbone_retries": args.backbone_retries}),
                               mirror_round_deg=MIRROR_PLANES["cusp"] if args.mirror_round is None else tuple(
-                                  None if r == "knot" else float(r) for r in args.mirror_round.split(",")))
+                                  _rounding(r) for r in args.mirror_round.split(",")))
     from roadgonio import api
     from roadgonio.instrument.config import Instrument
     insts = {w: Instrument.load(p) for w, p in INSTRUMENTS.items()}

@@ -835,8 +835,9 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     corrected table returned (a :class:`~roadgonio.correction.outside.SurfaceCorrection`: ``.corrected``,
     ``.u_corrected``, ``.budget``, ``.parts[i].k_a`` per instrument, ``.summary()``). ``mirror_plane``
     (with the surface): the backbone's shape at the mirror plane, ``"cusp"`` (eq. 4's), ``"rounded"``
-    (over one knot of the correction surface) or ``"both"`` weighed by their evidence (None: the
-    default of :class:`~roadgonio.correction.flexible.SurfaceSettings`; docs/correction.md).
+    (over one knot of the correction surface), ``"both"`` (the two, weighed by their evidence) or
+    ``"three"`` (the cusp and the roundings over one and two knots, weighed; None: the default of
+    :class:`~roadgonio.correction.flexible.SurfaceSettings`, ``"three"``; docs/correction.md).
     ``unobserved_road`` (with the surface, where the backend traces stray light): the factor F within
     which the road's BRDF beyond the observation elevations the instruments saw is known, one standard
     uncertainty of ln F (None: 2; 1 leaves the budget's "unobserved" component out; docs/correction.md,

@@ -49,10 +49,11 @@ def register(sub) -> None:
                         "choose, for surfaces outside eq. 4 (its u includes the surface's posterior, and is widened "
                         "by the local Birge ratio where the residuals have structure); --joint fits surface (eq4 is refused "
                         "with it)")
-    p.add_argument("--mirror-plane", choices=["cusp", "rounded", "both"], default=None,
+    p.add_argument("--mirror-plane", choices=["cusp", "rounded", "both", "three"], default=None,
                    help="with --forward surface or --joint: the backbone's shape at the mirror plane (beta 0): cusp "
-                        "(eq. 4's), rounded (over one knot of the correction surface) or both, weighed by their "
-                        "evidence (default: both; cusp takes ~0.6 of the time, docs/correction.md)")
+                        "(eq. 4's), rounded (over one knot of the correction surface), both (the two, weighed by "
+                        "their evidence) or three (the cusp and the roundings over one and two knots, weighed; the "
+                        "default; both takes ~0.85 of its time, cusp ~0.5, docs/correction.md)")
     p.add_argument("--unobserved-road", type=float, default=None, metavar="F",
                    help="with --forward surface or --joint, where the backend traces stray light (a housing): the "
                         "factor within which the road's BRDF beyond the observation elevations the instruments saw "

@@ -94,8 +94,9 @@ PEAK_EPS_DEG = 45.0
 #: How the penalties are split into regions (SurfaceSettings.regions, penalty_region).
 REGIONS = ("peak", "grid")
 #: The backbone's shape at the mirror plane by name (``correct --mirror-plane``; SurfaceSettings.mirror_round_deg):
-#: the cusp of eq. 4, rounded over the first knot of g_C, or both weighed by their evidence.
-MIRROR_PLANES = {"cusp": 0.0, "rounded": None, "both": (0.0, None)}
+#: the cusp of eq. 4, rounded over the first knot of g_C, both weighed by their evidence, or the cusp and
+#: the roundings over one and over two knots weighed (the default since session 32).
+MIRROR_PLANES = {"cusp": 0.0, "rounded": None, "both": (0.0, None), "three": (0.0, None, "2 knots")}
 #: Repeated searches of a backbone while the data reject it (SurfaceSettings.backbone_retries; the eq. 4
 #: route's roadgonio.correction.run.RETRY_SEARCHES is 2). Outside eq. 4 the data always reject a
 #: backbone (its misfit is what the correction surface carries), so the eq. 4 route's repeated
@@ -148,14 +149,15 @@ class SurfaceSettings:
     #: covariance, roadgonio.correction.outside); False: the instruments' r / k_A alone
     model_estimate: bool = True
     #: rounding of the backbone's cusp at the mirror plane (beta_round_deg of the road model, deg):
-    #: 0 = the cusp kept, None = the first knot of g_C off beta = 0 (:attr:`backbone_rounds_deg`); a
-    #: sequence of them = every backbone variant fitted once with each rounding, all weighed by their
-    #: evidence (roadgonio.correction.outside). The default weighs both (MIRROR_PLANES["both"]):
-    #: rounding alone breaks surfaces whose cusp is real, the cusp alone biases smooth ones; weighed,
-    #: the evidence keeps the eq. 4 truth's cusp and meets more of issue 19's targets on the others,
-    #: within its time targets over four realisations (docs/correction.md, "Both, weighed by their
-    #: evidence"); "cusp" is the faster choice (half the backbones and surfaces, ~0.6 of the time)
-    mirror_round_deg: float | None | tuple[float | None, ...] = MIRROR_PLANES["both"]
+    #: 0 = the cusp kept, None = the first knot of g_C off beta = 0, ``"<m> knots"`` = m times that
+    #: (:attr:`backbone_rounds_deg`); a sequence of them = every backbone variant fitted once with each
+    #: rounding, all weighed by their evidence (roadgonio.correction.outside). The default weighs the
+    #: cusp and the roundings over one and two knots (MIRROR_PLANES["three"]): rounding alone breaks
+    #: surfaces whose cusp is real, the cusp alone biases smooth ones; weighed, the evidence keeps the
+    #: eq. 4 truth's cusp and meets more of issue 19's targets on the others, within its time targets
+    #: over four realisations (docs/correction.md, "The cusp and two roundings, weighed by their
+    #: evidence"); "both" (cusp and one knot) takes ~0.85 of the time, "cusp" ~0.5
+    mirror_round_deg: float | None | str | tuple[float | None | str, ...] = MIRROR_PLANES["three"]
     #: standard uncertainty of ln f_r of the road beyond the observation elevations the instruments
     #: saw, one factor common to all of it (UNOBSERVED_SD_LN: a factor of 2), which stray light reads
     #: and no r-table measures; the budget's "unobserved" component, used only where the backend
@@ -195,10 +197,11 @@ class SurfaceSettings:
             object.__setattr__(self, "mirror_round_deg", tuple(rounds))
         lo, hi = PARAM_BOUNDS["beta_round_deg"]
         for v in self._rounds_given():
-            if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float))
-                                  or not (math.isfinite(v) and lo <= v <= hi)):
+            deg = self._round_deg(v)
+            if deg is None or not (math.isfinite(deg) and lo <= deg <= hi):
                 raise InputError(f"expected the backbone's rounding at the mirror plane in [{lo:g}, {hi:g}] deg "
-                                 f"(or None for one knot spacing), got {v!r}", field="mirror_round_deg")
+                                 f"(a number of degrees, None for one knot spacing of g_C or '<m> knots'), got "
+                                 f"{v!r}", field="mirror_round_deg")
         if len(self.backbone_rounds_deg) != len(self._rounds_given()):
             raise InputError(f"expected distinct roundings of the backbone at the mirror plane, got {rounds!r} "
                              f"(None is the first knot, {self._knot_deg():.3g} deg)", field="mirror_round_deg")
@@ -221,6 +224,24 @@ class SurfaceSettings:
     def _knot_deg(self) -> float:
         return float(self.c_grid.node_coordinates()[0][1])
 
+    def _round_deg(self, v) -> float | None:
+        """One entry of ``mirror_round_deg`` in degrees (None read as one knot, ``"<m> knots"`` as m
+        knots); None for an entry that is none of these."""
+        if v is None:
+            return self._knot_deg()
+        if isinstance(v, str):
+            words = v.split()
+            if len(words) == 2 and words[1] in ("knot", "knots"):
+                try:
+                    m = float(words[0])
+                except ValueError:
+                    return None
+                return m * self._knot_deg() if math.isfinite(m) and m > 0 else None
+            return None
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
+            return None
+        return float(v)
+
     def _rounds_given(self) -> tuple:
         """``mirror_round_deg`` as a tuple (one value or several, as given)."""
         rounds = self.mirror_round_deg
@@ -229,9 +250,10 @@ class SurfaceSettings:
     @property
     def backbone_rounds_deg(self) -> tuple[float, ...]:
         """The backbone's roundings at the mirror plane (deg), one backbone per rounding and variant:
-        ``mirror_round_deg``, None read as the first knot of g_C off beta = 0 (docs/correction-record.md,
-        "The backbone's cusp at the mirror plane"); duplicates dropped, order kept."""
-        return tuple(dict.fromkeys(self._knot_deg() if r is None else float(r) for r in self._rounds_given()))
+        ``mirror_round_deg``, None read as the first knot of g_C off beta = 0 and ``"<m> knots"`` as m
+        times it (docs/correction-record.md, "The backbone's cusp at the mirror plane"); duplicates
+        dropped, order kept."""
+        return tuple(dict.fromkeys(self._round_deg(r) for r in self._rounds_given()))
 
     @property
     def backbone_round_deg(self) -> float:

@@ -446,7 +446,8 @@ def test_the_uncertainty_posterior_uses_the_fits_prior_and_noise_scale(r3like):
 
 def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
     """SurfaceSettings: the backbone's rounding (beta_round_deg) is 0 (the cusp kept) or, with None,
-    the first knot of g_C off beta = 0, and by default both, weighed (MIRROR_PLANES["both"]); bad
+    the first knot of g_C off beta = 0, or "<m> knots", m times it, and by default the cusp and one and
+    two knots, weighed (MIRROR_PLANES["three"]); bad
     values are refused naming the field; the fit through the instrument holds it (fixed), and it reaches the forward model (the reading of a beta = 0
     cell changes with it, one far from the mirror plane hardly)."""
     from roadgonio.correction.flexible import SurfaceSettings
@@ -458,10 +459,13 @@ def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
     first_knot = float(s.c_grid.node_coordinates()[0][1])
     assert 0.5 < first_knot < 2.0
     assert s.backbone_round_deg == first_knot and s.backbone_fixed() == {"beta_round_deg": first_knot}
-    assert SurfaceSettings().backbone_rounds_deg == (0.0, first_knot)
+    assert SurfaceSettings().backbone_rounds_deg == (0.0, first_knot, 2 * first_knot)
+    assert SurfaceSettings(mirror_round_deg="1.5 knots").backbone_round_deg == 1.5 * first_knot
+    assert SurfaceSettings(mirror_round_deg="1 knot").backbone_round_deg == first_knot
     assert SurfaceSettings().with_mirror_plane("cusp").backbone_fixed() == {"beta_round_deg": 0.0}
     assert SurfaceSettings(mirror_round_deg=2.5).to_dict()["mirror_round_deg"] == 2.5
-    for bad in (-1.0, 11.0, float("nan"), True, "1"):
+    for bad in (-1.0, 11.0, float("nan"), True, "1", "knots", "2 knot s", "0 knots", "-1 knots", "nan knots",
+                "20 knots", "2 degrees"):
         with pytest.raises(InputError) as e:
             SurfaceSettings(mirror_round_deg=bad)
         assert e.value.field == "mirror_round_deg"
@@ -499,7 +503,7 @@ def test_several_roundings_of_the_backbone_are_weighed_not_chosen():
 
 
 def test_the_mirror_plane_is_named_once_for_the_api_and_the_command_line():
-    """``correct --mirror-plane`` / ``api.correct(mirror_plane=)``: cusp, rounded (one knot) and both
+    """``correct --mirror-plane`` / ``api.correct(mirror_plane=)``: cusp, rounded (one knot), both and three
     map onto the surface's settings; an unknown name, or the option without the correction surface,
     is one error naming the field before any work."""
     from roadgonio import api
@@ -510,8 +514,10 @@ def test_the_mirror_plane_is_named_once_for_the_api_and_the_command_line():
     assert s.with_mirror_plane("cusp").backbone_rounds_deg == (0.0,)
     assert s.with_mirror_plane("rounded").backbone_rounds_deg == (knot,)
     assert s.with_mirror_plane("both").backbone_rounds_deg == (0.0, knot)
+    assert s.with_mirror_plane("three").backbone_rounds_deg == (0.0, knot, 2 * knot)
+    assert s.with_mirror_plane("three").to_dict()["mirror_round_deg"] == [0.0, None, "2 knots"]
     assert s.with_mirror_plane("both").smoothing == "gcv" and s.with_mirror_plane(None) is s
-    assert set(MIRROR_PLANES) == {"cusp", "rounded", "both"}
+    assert set(MIRROR_PLANES) == {"cusp", "rounded", "both", "three"}
     with pytest.raises(InputError) as e:
         s.with_mirror_plane("flat")
     assert e.value.field == "mirror_plane"
@@ -546,9 +552,11 @@ def _cli_passes(monkeypatch, joint: bool, key: str, cases) -> None:
 
 @pytest.mark.parametrize("joint", [False, True])
 def test_correct_passes_the_mirror_plane_to_the_api(monkeypatch, joint):
-    """The command line's --mirror-plane reaches api.correct (single and --joint), absent it None."""
+    """The command line's --mirror-plane reaches api.correct (single and --joint), every name of
+    MIRROR_PLANES, absent it None."""
+    from roadgonio.correction.flexible import MIRROR_PLANES
     _cli_passes(monkeypatch, joint, "mirror_plane",
-                (([], None), (["--mirror-plane", "cusp"], "cusp"), (["--mirror-plane", "both"], "both")))
+                (([], None),) + tuple((["--mirror-plane", name], name) for name in MIRROR_PLANES))
 
 
 @pytest.mark.parametrize("joint", [False, True])
