@@ -813,7 +813,7 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
             model_variant: str | None = None, rays: int = 512, workers: int | None = None,
             scheduler: str | None = None, out=None, plots: bool = True, progress: bool = False,
             forward: str | None = None, joint: bool = False, mirror_plane: str | None = None,
-            unobserved_road: float | None = None, **options: Any):
+            unobserved_road: float | None = None, gd_prior: str | None = None, **options: Any):
     """Correct measured r-tables for the aperture effect (``roadgonio correct``). ``measured``: one
     table (name, file, RTable or DataArray) or a list of them (they share the instrument's work);
     ``reference="self"`` (default) fits the model through the instrument, a SAMPLE takes the classic
@@ -841,7 +841,11 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     ``unobserved_road`` (with the surface, where the backend traces stray light): the factor F within
     which the road's BRDF beyond the observation elevations the instruments saw is known, one standard
     uncertainty of ln F (None: 2; 1 leaves the budget's "unobserved" component out; docs/correction.md,
-    "The road beyond the observation elevations")."""
+    "The road beyond the observation elevations"). ``gd_prior`` (with the surface): who chooses the
+    scale of the prior of g_D (the BRDF's dependence on alpha beyond the backbone's), ``"joint"`` (the
+    evidence where two or more distinct instruments see the surface, else held; None: the default of
+    :class:`~roadgonio.correction.flexible.SurfaceSettings`), ``"fixed"`` (sd 1) or ``"evidence"``
+    (also through one instrument; measured unsafe there, docs/correction-record.md)."""
     _check_correct_options(options)
     if isinstance(joint, str) or joint not in (True, False):
         raise InputError(f"expected True or False, got {joint!r}", field="joint")
@@ -849,6 +853,8 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
         _check_int(workers, "workers", 0)
     if mirror_plane is not None:
         options["settings"] = _surface_settings(options.get("settings"), mirror_plane, joint or forward == "surface")
+    if gd_prior is not None:
+        options["settings"] = _gd_prior_settings(options.get("settings"), gd_prior, joint or forward == "surface")
     if unobserved_road is not None:
         options["settings"] = _unobserved_settings(options.get("settings"), unobserved_road,
                                                    joint or forward == "surface")
@@ -1016,6 +1022,20 @@ def _unobserved_settings(settings, factor, surface: bool):
 
     from roadgonio.correction.flexible import SurfaceSettings
     return replace(settings or SurfaceSettings(), unobserved_sd_ln=math.log(float(factor)))
+
+
+def _gd_prior_settings(settings, gd_prior: str, surface: bool):
+    """The correction surface's settings with who chooses g_D's prior scale (:func:`correct`'s ``gd_prior``)."""
+    if not surface:
+        raise InputError("the scale of g_D's prior is a setting of the correction surface: give it with the forward "
+                         "model 'surface' or a joint correction", field="gd_prior")
+    from dataclasses import replace
+
+    from roadgonio.correction.flexible import D_PRIOR_SCALES, SurfaceSettings
+    if gd_prior not in D_PRIOR_SCALES:
+        raise InputError(f"expected who chooses g_D's prior scale to be one of {', '.join(D_PRIOR_SCALES)}, got "
+                         f"{gd_prior!r}", field="gd_prior")
+    return replace(settings or SurfaceSettings(), d_prior_scale=gd_prior)
 
 
 def _surface_settings(settings, mirror_plane: str, surface: bool):

@@ -54,6 +54,12 @@ def register(sub) -> None:
                         "(eq. 4's), rounded (over one knot of the correction surface), both (the two, weighed by "
                         "their evidence) or three (the cusp and the roundings over one and two knots, weighed; the "
                         "default; both takes ~0.85 of its time, cusp ~0.5, docs/correction.md)")
+    p.add_argument("--gd-prior", choices=["joint", "fixed", "evidence"], default=None,
+                   help="with --forward surface or --joint: who chooses the scale of the prior of g_D (how much "
+                        "faster than eq. 4 the BRDF changes off alpha = 1 deg): joint (the default) lets the "
+                        "evidence choose it where two or more instruments see the surface and holds sd 1 with one; "
+                        "fixed holds sd 1 (what it was until session 33); evidence frees it through one instrument "
+                        "too (measured unsafe there, docs/correction-record.md)")
     p.add_argument("--unobserved-road", type=float, default=None, metavar="F",
                    help="with --forward surface or --joint, where the backend traces stray light (a housing): the "
                         "factor within which the road's BRDF beyond the observation elevations the instruments saw "
@@ -118,7 +124,7 @@ def run(args) -> int:
                           mitsuba_variant=args.mitsuba_variant, model_variant=args.model_variant, rays=args.rays,
                           workers=args.workers, scheduler=args.scheduler, out=out_arg(args),
                           plots=not args.no_plots, progress=show_progress(args), mirror_plane=args.mirror_plane,
-                          unobserved_road=args.unobserved_road)
+                          unobserved_road=args.unobserved_road, gd_prior=args.gd_prior)
     summaries = []
     for res in results:
         s = _json_summary(res)
@@ -175,7 +181,7 @@ def _run_joint(args) -> int:
                       model_variant=args.model_variant, rays=args.rays, workers=args.workers,
                       scheduler=args.scheduler, out=out_arg(args), plots=not args.no_plots,
                       progress=show_progress(args), mirror_plane=args.mirror_plane,
-                      unobserved_road=args.unobserved_road)
+                      unobserved_road=args.unobserved_road, gd_prior=args.gd_prior)
     s = res.summary()
     s["out"] = str(res.out)
     s["written"] = [str(p) for p in res.written]

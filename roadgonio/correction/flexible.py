@@ -24,7 +24,10 @@ rays. The fit maximises the posterior
   in ln alpha, of scale ``sd_D`` (default 1: the masking of a rough surface at grazing observation
   gives d ln f / d ln alpha ~ 1, eq. 4 without its g attenuation gives 0). One instrument barely
   constrains g_D, so its posterior stays near this prior and widens u where k_A depends on it; two
-  aperture settings measure it.
+  aperture settings measure it, and then the evidence also chooses the prior's scale: a factor
+  tau on Q_D (``SurfaceSettings.d_prior_scale``, "joint" by default: chosen where the fit sees two
+  or more instruments, held at 1 with one, where the evidence cannot tell g_D from g_C and
+  collapses the prior; docs/correction-record.md, "g_D's prior scale").
 
 The mode is found by Levenberg-Marquardt (Gauss-Newton on the penalised sum of squares); lambda
 by alternating the mode with the exact maximum of the evidence of the problem linearised at the
@@ -67,9 +70,20 @@ UNOBSERVED_SD_LN = math.log(2.0)
 #: The fit's method, in the key of a correction's journal (fit_state.json): 3 keeps every smoothing
 #: parameter at LAM_MIN or above, 2 chose the smoothing with the noise scale the residuals show
 #: (noise_scale), 1 with the stated u alone.
-SURFACE_FIT_VERSION = 3
+#: 4 lets the evidence choose g_D's prior scale where two instruments see it (SurfaceSettings.d_prior_scale).
+SURFACE_FIT_VERSION = 4
 #: Prior standard deviation of g_D (d ln f / d ln alpha beyond the backbone's).
 D_PRIOR_SD = 1.0
+#: Who chooses the scale of g_D's prior (SurfaceSettings.d_prior_scale): "fixed" holds sd_D, "evidence"
+#: lets the evidence choose a factor tau on its precision (Q_D -> tau Q_D) in D_SCALE_BOUNDS, "joint"
+#: does so only where the fit sees two or more distinct instruments (:func:`n_apertures`). Through one
+#: wide instrument the evidence collapsed the prior to its bound on some tables and the fit then followed
+#: the wrong alpha dependence (microfacet through the bench's A: max 25 %, eq. 4 through A: u(S1)
+#: 0.43 %, overconfident); with two it gave lower errors on every out-of-family truth
+#: (docs/correction-record.md, "g_D's prior scale").
+D_PRIOR_SCALES = ("fixed", "evidence", "joint")
+#: The range of that factor tau: g_D's prior sd between 2 sd_D and sd_D / 20.
+D_SCALE_BOUNDS = (0.25, 400.0)
 #: The criteria that can choose the smoothing parameters (SurfaceSettings.smoothing).
 SMOOTHING = ("evidence", "gcv")
 #: Correlation length of the model discrepancy in knot spacings of g_C (roadgonio.correction.discrepancy).
@@ -128,6 +142,8 @@ class SurfaceSettings:
     c_grid: SplineGrid = C_GRID
     d_grid: SplineGrid | None = D_GRID
     d_prior_sd: float = D_PRIOR_SD
+    #: who chooses the scale of g_D's prior: "fixed" (sd_D), "evidence" or "joint" (D_PRIOR_SCALES)
+    d_prior_scale: str = "joint"
     peak_beta_deg: float = PEAK_BETA_DEG
     peak_eps_deg: float = PEAK_EPS_DEG
     #: the regions of the penalties, each with its own smoothing parameters (penalty_region):
@@ -177,6 +193,9 @@ class SurfaceSettings:
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
             raise InputError(f"expected a positive prior standard deviation of g_D, got {self.d_prior_sd}",
                              field="d_prior_sd")
+        if self.d_prior_scale not in D_PRIOR_SCALES:
+            raise InputError(f"expected who chooses g_D's prior scale to be one of {', '.join(D_PRIOR_SCALES)}, got "
+                             f"{self.d_prior_scale!r}", field="d_prior_scale")
         for name in ("grid_beta_edges_deg", "grid_eps_edges_deg"):
             edges = tuple(float(e) for e in getattr(self, name))
             if not all(math.isfinite(e) and 0.0 < e < 180.0 for e in edges) or list(edges) != sorted(set(edges)):
@@ -290,7 +309,7 @@ class SurfaceSettings:
     def to_dict(self) -> dict[str, Any]:
         from dataclasses import asdict
         return {"c_grid": asdict(self.c_grid), "d_grid": None if self.d_grid is None else asdict(self.d_grid),
-                "d_prior_sd": self.d_prior_sd, "peak_beta_deg": self.peak_beta_deg,
+                "d_prior_sd": self.d_prior_sd, "d_prior_scale": self.d_prior_scale, "peak_beta_deg": self.peak_beta_deg,
                 "peak_eps_deg": self.peak_eps_deg, "regions": self.regions,
                 "grid_beta_edges_deg": list(self.grid_beta_edges_deg), "grid_eps_edges_deg": list(self.grid_eps_edges_deg),
                 "lam": self.lam, "smoothing": self.smoothing, "discrepancy_ell": self.discrepancy_ell,
@@ -573,13 +592,20 @@ class SurfaceFit:
     phi: float = 1.0
     #: True when the mode and the smoothing parameters came from a journalled fit (:meth:`state`)
     resumed: bool = False
+    #: the factor tau on g_D's prior precision (SurfaceSettings.d_prior_scale; 1 where it is held)
+    d_scale: float = 1.0
 
     def state(self) -> dict[str, Any]:
         """What a rerun needs to rebuild this fit without searching again (:func:`fit_surface`'s
         ``state``): the mode and the smoothing parameters (exact floats; JSON keeps them), and the
         search's own record."""
         return {"theta": [float(v) for v in self.theta], "lam": {k: float(v) for k, v in self.lam.items()},
-                "phi": float(self.phi), "steps": int(self.steps), "seconds": float(self.seconds), "history": list(self.history)}
+                "phi": float(self.phi), "d_scale": float(self.d_scale), "steps": int(self.steps), "seconds": float(self.seconds), "history": list(self.history)}
+
+    @property
+    def d_prior_sd(self) -> float:
+        """The prior standard deviation of g_D the fit took: sd_D / sqrt(tau)."""
+        return self.settings.d_prior_sd / math.sqrt(self.d_scale)
 
     @property
     def prior_lam(self) -> dict:
@@ -603,7 +629,7 @@ class SurfaceFit:
         return Ka @ self.cov @ Kb.T
 
     def summary(self) -> dict[str, Any]:
-        return {"lambda": self.lam, "noise_scale": self.phi, "log_evidence": self.log_evidence, "gcv": self.gcv, "chi2": self.chi2,
+        return {"lambda": self.lam, "noise_scale": self.phi, "g_d_prior_sd": self.d_prior_sd, "log_evidence": self.log_evidence, "gcv": self.gcv, "chi2": self.chi2,
                 "edf": self.edf, "cells": self.n, "birge_ratio": self.birge, "steps": self.steps,
                 "seconds": self.seconds, "resumed": self.resumed, "settings": self.settings.to_dict()}
 
@@ -637,6 +663,22 @@ def penalty_blocks(settings: SurfaceSettings) -> tuple[list[str], list[np.ndarra
             names.append(f"{direction}_{name}")
             mats.append(Ds.T @ Ds)
     return names, mats
+
+
+def n_apertures(parts: Sequence["FlexPart"]) -> int:
+    """How many distinct instruments (optics: observation, source, detector, sample; names and
+    descriptions aside) the parts see: repeated tables of one instrument count once."""
+    import json
+    return len({json.dumps({k: v for k, v in p.forward.bundles.instrument.to_dict().items() if k != "instrument"},
+                           sort_keys=True, default=str) for p in parts})
+
+
+def d_scale_free(settings: SurfaceSettings, parts: Sequence["FlexPart"]) -> bool:
+    """Whether the evidence chooses g_D's prior scale for a fit through ``parts``
+    (SurfaceSettings.d_prior_scale)."""
+    if settings.n_d == 0 or settings.d_prior_scale == "fixed":
+        return False
+    return settings.d_prior_scale == "evidence" or n_apertures(parts) >= 2
 
 
 def d_prior(settings: SurfaceSettings) -> np.ndarray:
@@ -721,15 +763,52 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
     else:
         lam = np.full(len(Ps), unit * 0.1) if lam0 is None else np.array(lam0, dtype=np.float64)
     theta = np.zeros(n_c + n_d) if theta0 is None else np.array(theta0, dtype=np.float64)
+    free_tau = d_scale_free(settings, parts)
+    tau = 1.0                                   # the factor on g_D's prior precision (d_scale_free)
 
-    def prior(lam_, phi_):
+    def prior(lam_, phi_, tau_=None):
         """The prior's precision in units of the stated u: the roughness penalties (lambda already in
-        those units) and g_D's proper prior, scaled by the noise scale phi like the data's weight."""
+        those units) and g_D's proper prior (times its scale tau), scaled by the noise scale phi like the
+        data's weight."""
         L = np.zeros((n_c + n_d, n_c + n_d))
         L[:n_c, :n_c] = sum(l * P for l, P in zip(lam_, Ps))
         if n_d:
-            L[n_c:, n_c:] = phi_ * Q
+            L[n_c:, n_c:] = phi_ * (tau if tau_ is None else tau_) * Q
         return L
+
+    def best_tau(A, J, s, th, lam_, phi_):
+        """g_D's prior scale tau of the largest evidence of the problem linearised at the mode (working
+        data z = y - s + J theta, lambda and phi held; the data's precision W / phi and g_D's prior
+        tau Q_D in ln f itself, as :func:`noise_scale` reads them):
+
+            -2 ln p(y | tau) = -b^T H(tau)^-1 b / phi + ln det H(tau) - n_d ln tau + const,
+
+        b = J^T W z, H(tau) = A + Lambda(tau). Only g_D's block of H depends on tau: with the Schur
+        complement S_0 of g_C's block and the generalised eigenvalues mu_i, vectors v_i of
+        (S_0, phi Q_D), both terms are sums over the n_d eigenvalues (ln(mu_i + tau), (v_i^T r)^2 /
+        (mu_i + tau)), so the exact maximum in D_SCALE_BOUNDS costs one factorisation of g_C's block.
+        Its stationary point is the Fellner-Schall fixed point n_d / tau = theta_D^T Q_D theta_D +
+        phi tr(H^-1_DD Q_D); those steps crept (ratio ~0.9 per update) and stopped 25 % short."""
+        from scipy.linalg import eigh
+        from scipy.optimize import minimize_scalar
+        b = J.T @ (W * (y - s + J @ th))
+        H_cc = A[:n_c, :n_c] + prior(lam_, phi_, 0.0)[:n_c, :n_c]
+        c = cho_factor(H_cc, check_finite=False)
+        X = cho_solve(c, A[:n_c, n_c:], check_finite=False)
+        S0 = A[n_c:, n_c:] - A[n_c:, :n_c] @ X
+        r = b[n_c:] - X.T @ b[:n_c]
+        mu, V = eigh(0.5 * (S0 + S0.T), phi_ * Q)
+        mu = np.maximum(mu, 0.0)                  # S_0 is positive semi-definite; round-off aside
+        w = (V.T @ r) ** 2
+
+        def score(log_t):
+            d = mu + math.exp(log_t)
+            return -float(np.sum(w / d)) / phi_ + float(np.sum(np.log(d))) - n_d * log_t
+        lo, hi = (math.log(v) for v in D_SCALE_BOUNDS)
+        best = minimize_scalar(score, bounds=(lo, hi), method="bounded", options={"xatol": 1e-4})
+        # the bounded search does not evaluate the ends: a maximum at a bound is taken there
+        x = min((lo, hi, float(best.x)), key=score)
+        return math.exp(x)
 
     def simulate(th, jac=True):
         sims = [p.simulate(th, jac) for p in parts]
@@ -776,6 +855,9 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
             raise ValueError("the journalled surface fit does not match these settings")
         lam = np.array([float(state["lam"][k]) for k in names], dtype=np.float64)
         phi = float(state["phi"])
+        tau = float(state["d_scale"])
+        if not free_tau and tau != 1.0:
+            raise ValueError("the journalled surface fit chose g_D's prior scale; these settings hold it")
         s, J = simulate(theta)
         history, steps_total = list(state.get("history", [])), int(state.get("steps", 0))
     for outer in range(0 if state is not None else 1 if fixed else MAX_OUTER):
@@ -805,11 +887,13 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
             new[j] = lam[j] * min(max(ratio, 1e-2), 1e2) ** (OVER_RELAX if outer > 0 else 1.0)
         lo, hi = lam_bounds(unit)
         new = np.clip(new, lo, hi)
+        tau_new = best_tau(A, J, s, theta, lam, phi_new) if free_tau else tau
         moving = ~(((new >= hi) & (lam >= hi)) | ((new <= lo) & (lam <= lo)))     # not pinned at a bound
         change = float(np.max(np.abs(np.log(new / lam))[moving])) if moving.any() else 0.0
-        change = max(change, abs(math.log(phi_new / phi)))
-        history.append({"lambda": dict(zip(names, lam.tolist())), "phi": phi, "steps": steps, "change": change})
-        lam, phi = new, phi_new
+        change = max(change, abs(math.log(phi_new / phi)), abs(math.log(tau_new / tau)))
+        history.append({"lambda": dict(zip(names, lam.tolist())), "phi": phi, "steps": steps, "change": change}
+                       | ({"d_scale": tau} if free_tau else {}))
+        lam, phi, tau = new, phi_new, tau_new
         if change < LAM_TOL or (settings.smoothing == "gcv" and outer + 1 >= MAX_OUTER_GCV):
             Lam = prior(lam, phi)
             theta, s, J, steps = mode(theta, Lam, MAX_MODE_STEPS)
@@ -826,7 +910,7 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
     S = Lam[:n_c, :n_c]
     c = np.trace(S) / n_c ** 2
     logdet_S = float(np.linalg.slogdet(S + c * np.outer(one, one))[1]) - math.log(c * n_c)
-    log_ev = -0.5 * (chi2 + pen + float(np.linalg.slogdet(H)[1]) - logdet_S - logdet_Q - n_d * math.log(phi)) \
+    log_ev = -0.5 * (chi2 + pen + float(np.linalg.slogdet(H)[1]) - logdet_S - logdet_Q - n_d * math.log(phi * tau)) \
         - 0.5 * n * math.log(2 * math.pi) \
         - float(np.sum(np.log(uu)))
     gcv = n * chi2 / max(n - edf, 1.0) ** 2
@@ -836,7 +920,7 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
         start += p.n
     return SurfaceFit(theta=theta, cov=cov, lam=dict(zip(names, lam.tolist())), phi=phi, log_evidence=log_ev, gcv=gcv,
                       chi2=chi2, edf=edf, n=n, settings=settings, residual=res, steps=steps_total,
-                      seconds=time.perf_counter() - t0, history=history, resumed=state is not None)
+                      seconds=time.perf_counter() - t0, history=history, resumed=state is not None, d_scale=tau)
 
 
 def lam_bounds(unit: float) -> tuple[float, float]:
@@ -905,27 +989,28 @@ def _spd_inverse(M: np.ndarray) -> np.ndarray:
 
 
 def posterior_with_backbone(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict,
-                            weights: Sequence[np.ndarray], phi: float = 1.0) -> np.ndarray:
+                            weights: Sequence[np.ndarray], phi: float = 1.0, d_scale: float = 1.0) -> np.ndarray:
     """The Laplace posterior covariance over (theta, q): the surface's coefficients and the
     backbone's own coordinates q (:meth:`FlexPart.backbone_log_derivatives`, flat prior), the inverse
     of ``J^T W J + Lambda`` at the surface ``theta`` with the weights ``W`` (1 / u^2 per part and
     cell) and the roughness prior ``Lambda`` of the smoothing parameters ``lam`` (names of
-    :func:`penalty_blocks`; g_D's proper prior times the noise scale ``phi``, as in the fit: both in
-    units of the stated u, :func:`noise_scale`). The surface was fitted with the backbone held; this
+    :func:`penalty_blocks`; g_D's proper prior times the noise scale ``phi`` and its scale ``d_scale``,
+    as in the fit: both in units of the stated u, :func:`noise_scale`). The surface was fitted with the backbone held; this
     lets the backbone move with it, so what the surface's stiffness forbids (a smooth surface: the
     evidence at its bound) the backbone's parameters still carry. Directions the data cannot see at
     all (a term's coefficient against the level of g_C) are dropped by a scaled pseudo-inverse: no
     reading, model value or k_A depends on them. The parts share one backbone."""
-    H = posterior_precision(parts, theta, lam, weights, phi)
+    H = posterior_precision(parts, theta, lam, weights, phi, d_scale)
     with one_blas_thread():
         d = np.sqrt(np.maximum(np.diag(H), 1e-300))
         return np.linalg.pinv(H / np.outer(d, d), rcond=1e-12, hermitian=True) / np.outer(d, d)
 
 
 def posterior_precision(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict,
-                        weights: Sequence[np.ndarray], phi: float = 1.0) -> np.ndarray:
+                        weights: Sequence[np.ndarray], phi: float = 1.0, d_scale: float = 1.0) -> np.ndarray:
     """``J^T W J + Lambda`` over (theta, q) of :func:`posterior_with_backbone` (its inverse); its
-    (theta, theta) block is the fit's own Hessian when ``lam``, ``weights`` and ``phi`` are the fit's."""
+    (theta, theta) block is the fit's own Hessian when ``lam``, ``weights``, ``phi`` and ``d_scale`` are
+    the fit's."""
     settings = parts[0].settings
     names, Ps = penalty_blocks(settings)
     n_c, n_d = settings.n_c, settings.n_d
@@ -934,7 +1019,7 @@ def posterior_precision(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict,
     H = np.zeros((n + n_q, n + n_q))
     H[:n_c, :n_c] = sum(float(lam[k]) * P for k, P in zip(names, Ps))
     if n_d:
-        H[n_c:n, n_c:n] = phi * d_prior(settings)
+        H[n_c:n, n_c:n] = phi * d_scale * d_prior(settings)
     with one_blas_thread():
         for p, w in zip(parts, weights):
             _, J = p.simulate(theta)
@@ -945,7 +1030,7 @@ def posterior_precision(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict,
 
 
 def expected_posterior(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict, u_rel: Sequence[np.ndarray],
-                       phi: float = 1.0) -> np.ndarray:
+                       phi: float = 1.0, d_scale: float = 1.0) -> np.ndarray:
     """The posterior covariance over (theta, q) (:func:`posterior_with_backbone`) that measurements
     through ``parts`` would give at the surface ``theta`` with smoothing parameters ``lam`` and
     relative standard uncertainties ``u_rel`` (per part and cell), the measured values taken as the
@@ -954,4 +1039,4 @@ def expected_posterior(parts: Sequence[FlexPart], theta: np.ndarray, lam: dict, 
     ranks candidates by it."""
     weights = [1.0 / (np.asarray(ur, dtype=np.float64) * p.simulate(theta, jacobian=False)[0]) ** 2
                for p, ur in zip(parts, u_rel)]
-    return posterior_with_backbone(parts, theta, lam, weights, phi)
+    return posterior_with_backbone(parts, theta, lam, weights, phi, d_scale)

@@ -597,7 +597,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
     weights = [1.0 / u ** 2 for u in us]          # the fit's, per instrument and cell
     for vf in live:
         vf.cov_full = posterior_with_backbone(vf.parts, vf.fit.theta, vf.fit.lam, weights,
-                                              vf.fit.phi)
+                                              vf.fit.phi, vf.fit.d_scale)
     lap("surface")
 
     # 4. ln k_A of every instrument, and the covariance components of the estimates of ln r: every

@@ -444,6 +444,85 @@ def test_the_uncertainty_posterior_uses_the_fits_prior_and_noise_scale(r3like):
     assert f.prior_lam == {k: v / f.phi for k, v in f.lam.items()}
 
 
+#: The evidence's stationarity in g_D's prior scale tau at the end of a fit, n_d / tau = theta_D^T Q_D
+#: theta_D + phi tr(cov_DD Q_D) (relative): the last update moved tau by less than LAM_TOL and the mode
+#: was solved again after it (measured: 4e-4).
+TAU_STATIONARY_TOL = 1e-2
+
+
+def test_gd_prior_scale_is_chosen_by_the_evidence_where_two_instruments_see_it(r3like):
+    """SurfaceSettings.d_prior_scale "joint" (the default): through two instruments (wide and lab, the
+    table truth, whose alpha dependence is not eq. 4's, 1.5 % noise) the fit chooses the factor tau on
+    g_D's prior precision inside its bounds where the evidence is stationary, checked from the fit's
+    own covariance and mode (not the search's eigen-decomposition), and fits with g_D's prior sd held
+    at half or twice the chosen one have lower evidence. The posterior of the uncertainty takes the
+    same prior. Through one instrument, and through two tables of one instrument, tau is held at 1 and
+    the fit is the "fixed" one bit for bit; "evidence" frees it there too. The journal keeps tau: a
+    state without it, or one that chose it read with settings that hold it, is refused (the caller
+    fits again)."""
+    import json
+    from dataclasses import replace
+    from roadgonio.arrays import NumpyOps
+    from roadgonio.correction.flexible import (D_SCALE_BOUNDS, FlexPart, SurfaceSettings, d_prior, fit_surface,
+                                               n_apertures, posterior_precision)
+    from roadgonio.engines.bundle import ForwardModel, RayBundles
+    from roadgonio.instrument.config import load_instrument
+    cells = [(t, b) for t in (0.0, 0.5, 1.0, 2.0, 3.0, 4.5, 6.0, 9.0, 12.0) for b in (0.0, 5.0, 15.0, 30.0, 60.0, 120.0)]
+    fms = [ForwardModel(RayBundles.build(load_instrument(n), cells, rays=32, seed=i)) for i, n in enumerate(("wide", "lab"))]
+    truth = make_truth("table")
+    rng = np.random.default_rng(3)
+    ys = []
+    for fm in fms:
+        b = fm.bundles
+        y0 = b.cell_sum(np.asarray(truth.evaluate(NumpyOps, b.wi, b.wo), dtype=np.float64)) * b.cos3 * fm.kappa
+        ys.append(y0 * np.exp(rng.normal(0.0, 0.015, len(cells))))
+    us = [0.015 * y for y in ys]
+    joint = SurfaceSettings()
+    assert joint.d_prior_scale == "joint"
+
+    def fit(settings, which=(0, 1), data=None, **kw):
+        parts = [FlexPart(fms[i], r3like, settings) for i in which]
+        return parts, fit_surface(parts, data or [ys[i] for i in which], [us[i] for i in which], **kw)
+    parts, f = fit(joint)
+    assert n_apertures(parts) == 2
+    assert D_SCALE_BOUNDS[0] < f.d_scale < D_SCALE_BOUNDS[1] and f.d_scale != 1.0
+    n_c, Q = joint.n_c, d_prior(joint)
+    th = f.theta[n_c:]
+    lhs, rhs = joint.n_d / f.d_scale, float(th @ Q @ th) + f.phi * float(np.sum(f.cov[n_c:, n_c:] * Q))
+    assert abs(rhs / lhs - 1.0) < TAU_STATIONARY_TOL
+    assert f.d_prior_sd == pytest.approx(joint.d_prior_sd / math.sqrt(f.d_scale), rel=ROUND_OFF)
+    for k in (0.5, 2.0):
+        _, g = fit(replace(joint, d_prior_scale="fixed", d_prior_sd=f.d_prior_sd * k))
+        assert g.log_evidence < f.log_evidence - 0.5
+    H = posterior_precision(parts, f.theta, f.lam, [1.0 / u ** 2 for u in us], f.phi, f.d_scale)
+    n = parts[0].n_params
+    gap = abs(f.d_scale - 1.0) * f.phi * float(np.max(np.abs(Q)))
+    assert float(np.max(np.abs(H[:n, :n] - np.linalg.inv(f.cov)))) < 0.1 * gap
+
+    # held where one instrument sees the surface: the fixed fit, bit for bit
+    fixed = replace(joint, d_prior_scale="fixed")
+    for which, data in (((0,), None), ((0, 0), [ys[0], ys[0] * np.exp(rng.normal(0.0, 0.015, len(cells)))])):
+        parts_1, one = fit(joint, which, data)
+        _, held = fit(fixed, which, data)
+        assert n_apertures(parts_1) == 1 and one.d_scale == 1.0
+        assert np.array_equal(one.theta, held.theta) and one.lam == held.lam
+        assert one.log_evidence == held.log_evidence
+    _, free_one = fit(replace(joint, d_prior_scale="evidence"), (0,))
+    assert free_one.d_scale != 1.0
+
+    # the journal
+    state = json.loads(json.dumps(f.state()))
+    _, again = fit(joint, state=state)
+    assert again.resumed and again.d_scale == f.d_scale and again.log_evidence == f.log_evidence
+    with pytest.raises(KeyError):
+        fit(joint, state={k: v for k, v in state.items() if k != "d_scale"})
+    with pytest.raises(ValueError):
+        fit(fixed, state=state)
+    with pytest.raises(InputError) as err:
+        SurfaceSettings(d_prior_scale="auto")
+    assert err.value.field == "d_prior_scale"
+
+
 def test_the_backbone_can_be_rounded_at_the_mirror_plane_over_one_knot(r3like):
     """SurfaceSettings: the backbone's rounding (beta_round_deg) is 0 (the cusp kept) or, with None,
     the first knot of g_C off beta = 0, or "<m> knots", m times it, and by default the cusp and one and
@@ -548,6 +627,27 @@ def _cli_passes(monkeypatch, joint: bool, key: str, cases) -> None:
             with pytest.raises(Stop):
                 main(argv + extra)
             assert seen[-1] == want, extra
+
+
+@pytest.mark.parametrize("joint", [False, True])
+def test_correct_passes_who_chooses_gd_prior_scale_to_the_api(monkeypatch, joint):
+    """`correct --gd-prior` reaches api.correct (single and --joint), every value of D_PRIOR_SCALES,
+    absent it None; the API maps it onto SurfaceSettings.d_prior_scale and refuses an unknown value or
+    the option without the correction surface, naming the field."""
+    from roadgonio import api
+    from roadgonio.correction.flexible import D_PRIOR_SCALES, SurfaceSettings
+    _cli_passes(monkeypatch, joint, "gd_prior", (([], None),) + tuple((["--gd-prior", v], v) for v in D_PRIOR_SCALES))
+    for v in D_PRIOR_SCALES:
+        s = api._gd_prior_settings(SurfaceSettings(smoothing="gcv"), v, True)
+        assert s.d_prior_scale == v and s.smoothing == "gcv"
+    for bad, surface in (("auto", True), ("fixed", False)):
+        with pytest.raises(InputError) as e:
+            api._gd_prior_settings(None, bad, surface)
+        assert e.value.field == "gd_prior"
+    if not joint:
+        with pytest.raises(InputError) as e:
+            api.correct("R3", "portable", gd_prior="fixed")            # forward eq4: no surface
+        assert e.value.field == "gd_prior"
 
 
 @pytest.mark.parametrize("joint", [False, True])
