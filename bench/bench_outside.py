@@ -128,9 +128,9 @@ def verdict(kind: str, s: dict) -> str:
 COLS = [("truth", 10, "s"), ("method", 22, "s"), ("rms_pct", 6, ".2f"), ("max_pct", 6, ".2f"),
         ("within_2u_pct", 6, ".1f"), ("beyond_4u", 4, "d"), ("rms_z", 5, ".2f"), ("S1_true", 6, ".3f"),
         ("S1", 6, ".3f"), ("z_S1", 6, ".2f"), ("u_S1_pct", 6, ".2f"), ("u_median_pct", 6, ".2f"),
-        ("u_disc_median_pct", 6, ".2f"), ("ln_evidence", 8, ".1f"), ("w_round", 5, ".2f"), ("birge", 5, ".2f"), ("k_a_min", 5, ".2f"), ("seconds", 6, ".1f"), ("targets", 8, "s"), ("load", 14, "s")]
+        ("u_disc_median_pct", 6, ".2f"), ("ln_evidence", 8, ".1f"), ("w_round", 5, ".2f"), ("sd_d", 5, ".2f"), ("birge", 5, ".2f"), ("k_a_min", 5, ".2f"), ("seconds", 6, ".1f"), ("targets", 8, "s"), ("load", 14, "s")]
 HEAD = {"rms_pct": "RMS%", "max_pct": "max%", "within_2u_pct": "in2u%", "beyond_4u": ">4u", "rms_z": "rmsz",
-        "u_S1_pct": "uS1%", "u_median_pct": "umed%", "u_disc_median_pct": "udisc%", "ln_evidence": "lnev", "w_round": "wrnd", "k_a_min": "kmin", "seconds": "s"}
+        "u_S1_pct": "uS1%", "u_median_pct": "umed%", "u_disc_median_pct": "udisc%", "ln_evidence": "lnev", "w_round": "wrnd", "sd_d": "sdD", "k_a_min": "kmin", "seconds": "s"}
 
 
 def _timings(t: dict) -> str:
@@ -185,6 +185,29 @@ def print_summary(rows: list[dict], n_seeds: int) -> None:
               + ", ".join(f"{k} {v}" for k, v in counts.items()))
 
 
+def joint_beats_alone(rows: list[dict]) -> tuple[int, int, list[str]]:
+    """Issue 19's comparison of one instrument with two: in how many realisations of the out-of-family
+    truths the joint correction has both a lower RMS and a lower max error than each instrument alone
+    (count, realisations compared, the others named with their scores)."""
+    by = {(r["truth"], r.get("seed", 0), r["method"]): r for r in rows if "targets" in r}
+    won, total, lost = 0, 0, []
+    for truth, seed, method in by:
+        if method != "A + B joint" or truth == "eq4":
+            continue
+        alone = [by.get((truth, seed, f"{w} alone (surface)")) for w in ("A", "B")]
+        if None in alone:
+            continue
+        j = by[(truth, seed, method)]
+        total += 1
+        if all(float(j[k]) < float(a[k]) for a in alone for k in ("rms_pct", "max_pct")):
+            won += 1
+        else:
+            lost.append(f"{truth} seed {seed}: joint {float(j['rms_pct']):.2f} / {float(j['max_pct']):.2f} %, "
+                        + ", ".join(f"{w} {float(a['rms_pct']):.2f} / {float(a['max_pct']):.2f} %"
+                                    for w, a in zip("AB", alone)))
+    return won, total, lost
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--regenerate", action="store_true", help="recompute the cached reference k_A of the truths")
@@ -217,6 +240,10 @@ def main() -> int:
                     help="how often a backbone is searched again while the data reject it (default the library's, "
                          "SurfaceSettings.backbone_retries, 1 since session 30; 2 is what it was, the files with "
                          "_retries-2 in their name)")
+    ap.add_argument("--d-prior-scale", choices=["fixed", "evidence", "joint"], default=None,
+                    help="who chooses the scale of g_D's prior (default the library's, SurfaceSettings.d_prior_scale: "
+                         "joint since session 33, the evidence where two instruments see the surface; fixed is what "
+                         "it was before; the files with _dscale-... in their name)")
     ap.add_argument("--seeds", type=int, default=1,
                     help="noise realisations per truth (default 1); with more, a summary over them at the end")
     args = ap.parse_args()
@@ -232,6 +259,7 @@ def main() -> int:
     surface = SurfaceSettings(smoothing=args.smoothing, discrepancy_ell=ell, regions=args.regions, **edges,
                               model_estimate=args.estimate == "combined",
                               **({} if args.backbone_retries is None else {"backbone_retries": args.backbone_retries}),
+                              **({} if args.d_prior_scale is None else {"d_prior_scale": args.d_prior_scale}),
                               mirror_round_deg=MIRROR_PLANES["cusp"] if args.mirror_round is None else tuple(
                                   _rounding(r) for r in args.mirror_round.split(",")))
     from roadgonio import api
@@ -241,7 +269,7 @@ def main() -> int:
           f"noise {100 * NOISE:g} %; smoothing {args.smoothing}; discrepancy ell {ell}; estimate {args.estimate}; "
           f"regions {args.regions} {edges or ''}; backbone rounded at the mirror plane over "
           f"{', '.join(f'{r:.3g}' for r in surface.backbone_rounds_deg)} deg; backbones searched again at most "
-          f"{surface.backbone_retries} time(s)")
+          f"{surface.backbone_retries} time(s); g_D's prior scale {surface.d_prior_scale}")
     print("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
     rows: list[dict] = []
     for kind, rep in ((kind, rep) for kind in args.truths.split(",") for rep in range(args.seeds)):
@@ -267,6 +295,7 @@ def main() -> int:
                 rows.append({"truth": kind, "method": f"{w} alone (surface)", **s, "birge": res.fit.birge,
                              "ln_evidence": max(v["log_evidence"] for v in res.fit.summary()["variants"]),
                              "w_round": sum(v["weight"] for v in res.fit.summary()["variants"] if v["mirror_round_deg"]),
+                             "sd_d": max(res.fit.summary()["variants"], key=lambda v: v["log_evidence"])["g_d_prior_sd"],
                              "timings": _timings(res.extra["surface"].timings),
                              "k_a_min": float(np.nanmin(res.k_a)), "seconds": sec, "targets": verdict(kind, s),
                              "missed": " ".join(missed_targets(kind, s)),
@@ -282,6 +311,7 @@ def main() -> int:
             rows.append({"truth": kind, "method": "A + B joint", **s, "birge": res.best.fit.birge,
                          "ln_evidence": max(v.fit.log_evidence for v in res.variants),
                          "w_round": sum(v.weight for v in res.variants if v.round_deg),
+                         "sd_d": res.best.fit.d_prior_sd,
                          "timings": _timings(res.timings),
                          "k_a_min": float(np.nanmin(res.parts[0].k_a)), "seconds": sec, "targets": verdict(kind, s),
                          "missed": " ".join(missed_targets(kind, s)),
@@ -289,6 +319,10 @@ def main() -> int:
             print_row(rows[-1])
     if args.seeds > 1:
         print_summary(rows, args.seeds)
+    won, total, lost = joint_beats_alone(rows)
+    if total:
+        print(f"\nthe joint correction beats each instrument alone on both RMS and max in {won} of {total} "
+              f"out-of-family realisations" + "".join(f"\n  not: {line}" for line in lost))
     RESULTS.mkdir(exist_ok=True)
     name = "outside.csv" if (args.smoothing, ell) == ("evidence", DISCREPANCY_ELL) else \
         f"outside_{args.smoothing}_ell-{'none' if ell is None else format(ell, '.3g')}.csv"
@@ -307,6 +341,10 @@ def main() -> int:
         name = name.replace(".csv", f"_seeds-{args.seeds}.csv")
     if args.backbone_retries is not None:
         name = name.replace(".csv", f"_retries-{args.backbone_retries}.csv")
+    if args.d_prior_scale is not None:
+        name = name.replace(".csv", f"_dscale-{args.d_prior_scale}.csv")
+    if args.only is not None:
+        name = name.replace(".csv", f"_only-{args.only}.csv")
     with open(RESULTS / name, "w", newline="") as f:
         wr = csv.DictWriter(f, fieldnames=[k for k, _, _ in COLS] + ["missed", "timings"] + (["seed"] if args.seeds > 1 else []),
                             extrasaction="ignore")
