@@ -668,9 +668,12 @@ def penalty_blocks(settings: SurfaceSettings) -> tuple[list[str], list[np.ndarra
 def n_apertures(parts: Sequence["FlexPart"]) -> int:
     """How many distinct instruments (optics: observation, source, detector, sample; names and
     descriptions aside) the parts see: repeated tables of one instrument count once."""
-    import json
-    return len({json.dumps({k: v for k, v in p.forward.bundles.instrument.to_dict().items() if k != "instrument"},
-                           sort_keys=True, default=str) for p in parts})
+    distinct: list[dict] = []
+    for p in parts:
+        optics = {k: v for k, v in p.forward.bundles.instrument.to_dict().items() if k != "instrument"}
+        if optics not in distinct:
+            distinct.append(optics)
+    return len(distinct)
 
 
 def d_scale_free(settings: SurfaceSettings, parts: Sequence["FlexPart"]) -> bool:
