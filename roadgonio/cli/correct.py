@@ -195,7 +195,8 @@ def _run_joint(args) -> int:
         say(f"note: {res.provenance['forward_model_limits']}")
     best = max(s["variants"], key=lambda v: v["weight"])
     say(f"one surface through {len(res.parts)} instruments ({', '.join(s['instruments'])}): {s['cells']} cells, "
-        f"{best.get('label', best['variant'])} backbone x correction surface, Birge ratio {best['birge_ratio']:.2f}")
+        f"{best.get('label', best['variant'])} backbone x correction surface, Birge ratio {best['birge_ratio']:.2f}, "
+        f"g_D's prior sd {best['g_d_prior_sd']:.2g}" + _gd_prior_how(best))
     for p in s["per_instrument"]:
         b = p["before"]
         say(f"  {p['instrument']}: k_A {p['k_a_min']:.3g} ... {p['k_a_max']:.3g}; as measured S1 "
@@ -215,6 +216,17 @@ def _run_joint(args) -> int:
         say(line)
     say(f"  wrote {len(s['written'])} files to {s['out']}")
     return 0
+
+
+def _gd_prior_how(variant: dict) -> str:
+    """Who chose a variant's g_D prior sd (its summary: SurfaceSettings.d_prior_scale), and whether the
+    evidence's choice sits at a bound of D_SCALE_BOUNDS."""
+    from roadgonio.correction.flexible import D_SCALE_BOUNDS
+    tau = (variant["settings"]["d_prior_sd"] / variant["g_d_prior_sd"]) ** 2
+    if tau == 1.0:
+        return " (held)"
+    at_bound = any(abs(tau / b - 1.0) < 1e-9 for b in D_SCALE_BOUNDS)
+    return " (chosen by the evidence" + (", at its bound)" if at_bound else ")")
 
 
 def _model_estimate_line(m: dict) -> str:

@@ -650,6 +650,21 @@ def test_correct_passes_who_chooses_gd_prior_scale_to_the_api(monkeypatch, joint
         assert e.value.field == "gd_prior"
 
 
+def test_the_joint_terminal_line_says_who_chose_gd_prior_sd():
+    """`correct --joint`'s first line gives g_D's prior sd and who chose it, from the variant's summary:
+    held (tau 1), chosen by the evidence, or chosen at a bound of D_SCALE_BOUNDS (said, since a bound
+    is the search's limit, not the data's)."""
+    from roadgonio.cli.correct import _gd_prior_how
+    from roadgonio.correction.flexible import D_SCALE_BOUNDS
+
+    def variant(tau, how="joint"):
+        return {"settings": {"d_prior_sd": 1.0, "d_prior_scale": how}, "g_d_prior_sd": 1.0 / math.sqrt(tau)}
+    assert _gd_prior_how(variant(1.0, "fixed")) == " (held)" == _gd_prior_how(variant(1.0))
+    assert _gd_prior_how(variant(3.7)) == " (chosen by the evidence)"
+    for b in D_SCALE_BOUNDS:
+        assert _gd_prior_how(variant(b)) == " (chosen by the evidence, at its bound)"
+
+
 @pytest.mark.parametrize("joint", [False, True])
 def test_correct_passes_the_mirror_plane_to_the_api(monkeypatch, joint):
     """The command line's --mirror-plane reaches api.correct (single and --joint), every name of
