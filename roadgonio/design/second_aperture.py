@@ -39,7 +39,7 @@ misalignment, and for an instrument with stray light the ``unobserved`` componen
 the observation elevations: the correction renders it, this ranking renders nothing). g_D's prior
 keeps the scale of the fit through the instrument alone (held there: ``SurfaceSettings.d_prior_scale``
 "joint"); the joint correction lets the evidence of both measurements choose it, which on the bench's
-out-of-family truths narrowed it and lowered u(S1) by up to 5 % of itself (eq. 4: by a third), so the
+out-of-family truths narrowed it and lowered u(S1) by up to 6 % of itself (eq. 4: by a third), so the
 forecast is on the side of caution there.
 """
 from __future__ import annotations
