@@ -219,14 +219,11 @@ def _run_joint(args) -> int:
 
 
 def _gd_prior_how(variant: dict) -> str:
-    """Who chose a variant's g_D prior sd (its summary: SurfaceSettings.d_prior_scale), and whether the
-    evidence's choice sits at a bound of D_SCALE_BOUNDS."""
-    from roadgonio.correction.flexible import D_SCALE_BOUNDS
-    tau = (variant["settings"]["d_prior_sd"] / variant["g_d_prior_sd"]) ** 2
-    if tau == 1.0:
-        return " (held)"
-    at_bound = any(abs(tau / b - 1.0) < 1e-9 for b in D_SCALE_BOUNDS)
-    return " (chosen by the evidence" + (", at its bound)" if at_bound else ")")
+    """Who chose a variant's g_D prior sd (its summary's ``g_d_prior_chosen_by``: held, the evidence,
+    or the evidence stopped at a bound of its search)."""
+    how = variant["g_d_prior_chosen_by"]
+    return {"held": " (held)", "evidence": " (chosen by the evidence)",
+            "evidence at its bound": " (chosen by the evidence, at its bound)"}[how]
 
 
 def _model_estimate_line(m: dict) -> str:

@@ -608,6 +608,15 @@ class SurfaceFit:
         return self.settings.d_prior_sd / math.sqrt(self.d_scale)
 
     @property
+    def d_prior_chosen_by(self) -> str:
+        """Who chose :attr:`d_prior_sd`: "held" (tau 1: SurfaceSettings.d_prior_scale held it),
+        "evidence", or "evidence at its bound" (tau at an end of D_SCALE_BOUNDS: the search's limit,
+        not the data, stopped it)."""
+        if self.d_scale == 1.0:
+            return "held"
+        return "evidence at its bound" if self.d_scale in D_SCALE_BOUNDS else "evidence"
+
+    @property
     def prior_lam(self) -> dict:
         """The roughness prior's precision in ln f itself, lambda / phi: the smoothing parameters
         are in units of the stated u, and the prior of the model with the noise scale phi is
@@ -629,7 +638,8 @@ class SurfaceFit:
         return Ka @ self.cov @ Kb.T
 
     def summary(self) -> dict[str, Any]:
-        return {"lambda": self.lam, "noise_scale": self.phi, "g_d_prior_sd": self.d_prior_sd, "log_evidence": self.log_evidence, "gcv": self.gcv, "chi2": self.chi2,
+        return {"lambda": self.lam, "noise_scale": self.phi, "g_d_prior_sd": self.d_prior_sd,
+                "g_d_prior_chosen_by": self.d_prior_chosen_by, "log_evidence": self.log_evidence, "gcv": self.gcv, "chi2": self.chi2,
                 "edf": self.edf, "cells": self.n, "birge_ratio": self.birge, "steps": self.steps,
                 "seconds": self.seconds, "resumed": self.resumed, "settings": self.settings.to_dict()}
 

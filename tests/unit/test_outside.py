@@ -651,18 +651,19 @@ def test_correct_passes_who_chooses_gd_prior_scale_to_the_api(monkeypatch, joint
 
 
 def test_the_joint_terminal_line_says_who_chose_gd_prior_sd():
-    """`correct --joint`'s first line gives g_D's prior sd and who chose it, from the variant's summary:
-    held (tau 1), chosen by the evidence, or chosen at a bound of D_SCALE_BOUNDS (said, since a bound
-    is the search's limit, not the data's)."""
+    """`correct --joint`'s first line gives g_D's prior sd and who chose it, from the variant's summary
+    (SurfaceFit.summary, ``g_d_prior_chosen_by``): held (tau 1), chosen by the evidence, or chosen at a
+    bound of D_SCALE_BOUNDS (said, since a bound is the search's limit, not the data's)."""
+    from dataclasses import replace
     from roadgonio.cli.correct import _gd_prior_how
-    from roadgonio.correction.flexible import D_SCALE_BOUNDS
-
-    def variant(tau, how="joint"):
-        return {"settings": {"d_prior_sd": 1.0, "d_prior_scale": how}, "g_d_prior_sd": 1.0 / math.sqrt(tau)}
-    assert _gd_prior_how(variant(1.0, "fixed")) == " (held)" == _gd_prior_how(variant(1.0))
-    assert _gd_prior_how(variant(3.7)) == " (chosen by the evidence)"
-    for b in D_SCALE_BOUNDS:
-        assert _gd_prior_how(variant(b)) == " (chosen by the evidence, at its bound)"
+    from roadgonio.correction.flexible import D_SCALE_BOUNDS, SurfaceFit, SurfaceSettings
+    fit = SurfaceFit(theta=np.zeros(1), cov=np.eye(1), lam={}, log_evidence=0.0, gcv=0.0, chi2=1.0, edf=0.5, n=2,
+                     settings=SurfaceSettings(d_prior_sd=2.0), residual=[], steps=0, seconds=0.0)
+    cases = [(1.0, " (held)", 2.0), (4.0, " (chosen by the evidence)", 1.0)] + [
+        (b, " (chosen by the evidence, at its bound)", 2.0 / math.sqrt(b)) for b in D_SCALE_BOUNDS]
+    for tau, said, sd in cases:
+        s = replace(fit, d_scale=tau).summary()
+        assert _gd_prior_how(s) == said and s["g_d_prior_sd"] == pytest.approx(sd, rel=ROUND_OFF)
 
 
 @pytest.mark.parametrize("joint", [False, True])
