@@ -295,7 +295,7 @@ def main() -> int:
                 rows.append({"truth": kind, "method": f"{w} alone (surface)", **s, "birge": res.fit.birge,
                              "ln_evidence": max(v["log_evidence"] for v in res.fit.summary()["variants"]),
                              "w_round": sum(v["weight"] for v in res.fit.summary()["variants"] if v["mirror_round_deg"]),
-                             "sd_d": max(res.fit.summary()["variants"], key=lambda v: v["log_evidence"])["g_d_prior_sd"],
+                             "sd_d": res.extra["surface"].best.fit.d_prior_sd,
                              "timings": _timings(res.extra["surface"].timings),
                              "k_a_min": float(np.nanmin(res.k_a)), "seconds": sec, "targets": verdict(kind, s),
                              "missed": " ".join(missed_targets(kind, s)),

@@ -1008,12 +1008,18 @@ def _measured_tables(items) -> list:
     return tables
 
 
+def _require_surface(surface: bool, what: str, field: str) -> None:
+    """Refuse a setting of the correction surface (``what``, the argument ``field``) given to a correction
+    that fits none (:func:`correct`'s ``mirror_plane``, ``gd_prior``, ``unobserved_road``)."""
+    if not surface:
+        raise InputError(f"{what} is a setting of the correction surface: give it with the forward model 'surface' "
+                         "or a joint correction", field=field)
+
+
 def _unobserved_settings(settings, factor, surface: bool):
     """The correction surface's settings with the road beyond the observation elevations known within
     ``factor`` (:func:`correct`'s ``unobserved_road``)."""
-    if not surface:
-        raise InputError("the road beyond the observation elevations is a setting of the correction surface: give "
-                         "it with the forward model 'surface' or a joint correction", field="unobserved_road")
+    _require_surface(surface, "the road beyond the observation elevations", "unobserved_road")
     import numbers
     if isinstance(factor, bool) or not isinstance(factor, numbers.Real) or not (math.isfinite(factor) and factor >= 1.0):
         raise InputError(f"expected a factor of 1 or more (1: the road there taken as fitted, no component), got "
@@ -1026,9 +1032,7 @@ def _unobserved_settings(settings, factor, surface: bool):
 
 def _gd_prior_settings(settings, gd_prior: str, surface: bool):
     """The correction surface's settings with who chooses g_D's prior scale (:func:`correct`'s ``gd_prior``)."""
-    if not surface:
-        raise InputError("the scale of g_D's prior is a setting of the correction surface: give it with the forward "
-                         "model 'surface' or a joint correction", field="gd_prior")
+    _require_surface(surface, "the scale of g_D's prior", "gd_prior")
     from dataclasses import replace
 
     from roadgonio.correction.flexible import D_PRIOR_SCALES, SurfaceSettings
@@ -1040,9 +1044,7 @@ def _gd_prior_settings(settings, gd_prior: str, surface: bool):
 
 def _surface_settings(settings, mirror_plane: str, surface: bool):
     """The correction surface's settings with the backbone's shape at the mirror plane (:func:`correct`)."""
-    if not surface:
-        raise InputError("the backbone's shape at the mirror plane is a setting of the correction surface: give it "
-                         "with the forward model 'surface' or a joint correction", field="mirror_plane")
+    _require_surface(surface, "the backbone's shape at the mirror plane", "mirror_plane")
     from roadgonio.correction.flexible import SurfaceSettings
     return (settings or SurfaceSettings()).with_mirror_plane(mirror_plane)
 
