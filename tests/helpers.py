@@ -3,10 +3,12 @@ tests/system): plain functions and constants, no fixtures (those are in tests/co
 tests/ is on sys.path (pytest puts the folder of the root conftest.py there): ``from helpers import ...``."""
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
+from roadgonio.arrays import NumpyOps
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel, RoadParams
 
@@ -366,3 +368,59 @@ def near_mirror(rng, ws, spread):
     wl[:, 2] = np.abs(wl[:, 2]) + 1e-3
     wl /= np.linalg.norm(wl, axis=1)[:, None]
     return wl.astype(np.float32).astype(np.float64)
+
+
+# -- the collimated limit of a narrow beam (tests/unit/test_profiles.py, tests/plugin/test_profile_plugin.py)
+
+def basis(a):
+    """Two unit vectors completing the unit vector ``a`` to an orthonormal frame."""
+    helper = np.array([0.0, 1.0, 0.0]) if abs(a[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    u1 = np.cross(a, helper)
+    u1 /= np.linalg.norm(u1)
+    return u1, np.cross(a, u1)
+
+
+def source_direction(inst, tan_eps, beta_deg):
+    """Unit vector from the sample centre towards the nominal source of cell (tan eps, beta)."""
+    eps, phi_i = math.atan(tan_eps), math.radians(inst.observation.delta_deg + 180.0 - beta_deg)
+    return np.array([math.sin(eps) * math.cos(phi_i), math.sin(eps) * math.sin(phi_i), math.cos(eps)])
+
+
+def collimated_limit(inst: Instrument, model, tan_eps, beta_deg, n_batches=16, n=1 << 17, seed=3):
+    """k_A (Lambert calibration) of the sigma -> 0 limit, independent float64 Monte Carlo: every
+    source point emits along the axis only, so a footprint point inside the disc's projection along
+    the axis (|perpendicular offset| <= R_S) is lit from exactly w_i(eps, beta) with E = const, and
+    every other point is dark; k_A = <f(w_i, w_o)>_lit detected rays / f(nominal). Returns (k, se)."""
+    from roadgonio.surface.model import road_brdf
+    rng = np.random.default_rng(seed)
+    alpha = math.radians(inst.observation.alpha_deg)
+    w_o = np.array([math.cos(alpha), 0.0, math.sin(alpha)])
+    det = inst.detector
+    a = -w_o
+    u1, u2 = basis(a)
+    w_i = source_direction(inst, tan_eps, beta_deg)
+    c = inst.source.distance_m * w_i
+    P_ = model.params.to_dict()
+    col = lambda v, m: tuple(np.full(m, x) for x in v)          # noqa: E731
+    f0 = float(road_brdf(NumpyOps, P_, col(w_i, 1), col(w_o, 1), model.variant, model.terms())[0])
+    tg = math.tan(math.radians(det.field_half_angle_deg))
+    num, den = [], []
+    for _ in range(n_batches):
+        r1, p1, r2, p2 = rng.random((4, n))
+        pr, fr = det.pupil_radius_m * np.sqrt(r1), np.sqrt(r2)
+        Pp = det.distance_m * w_o + pr[:, None] * (np.cos(2 * np.pi * p1)[:, None] * u1 + np.sin(2 * np.pi * p1)[:, None] * u2)
+        Q = det.distance_m * w_o + det.distance_m * a + det.distance_m * tg * fr[:, None] * (
+            np.cos(2 * np.pi * p2)[:, None] * u1 + np.sin(2 * np.pi * p2)[:, None] * u2)
+        D = Q - Pp
+        D /= np.linalg.norm(D, axis=1)[:, None]
+        W = (D @ a) ** 4
+        X = Pp + (-Pp[:, 2] / D[:, 2])[:, None] * D
+        off = X - c
+        lit = np.linalg.norm(off - (off @ w_i)[:, None] * w_i[None, :], axis=1) <= inst.source.radius_m
+        f = road_brdf(NumpyOps, P_, col(w_i, n), (-D[:, 0], -D[:, 1], -D[:, 2]), model.variant, model.terms())
+        num.append(np.mean(W * lit * f))
+        den.append(np.mean(W * lit))
+    num, den = np.array(num), np.array(den)
+    k = num.mean() / den.mean()
+    se = np.std(num - k * den, ddof=1) / math.sqrt(n_batches) / den.mean()
+    return k / f0, se / f0

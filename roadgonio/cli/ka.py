@@ -84,7 +84,8 @@ def run(args) -> int:
         else:
             # a deterministic cell that stopped at its cap has an error estimate, not a bound
             bound_name = "error bound" if c.converged else "error estimate, not a bound"
-            prec = (f"+- {c.error_bound:.2g} ({bound_name}" if c.deterministic else f"+- {c.se:.2g} (standard error"
+            stated = f"+- {c.se:.2g} (standard error" if math.isfinite(c.se) else "(no standard error"
+            prec = (f"+- {c.error_bound:.2g} ({bound_name}" if c.deterministic else stated
                     + (f" with {c.se_dof:.0f} degrees of freedom" if math.isfinite(c.se_dof) else "")
                     # absolute calibration: eta's deterministic error beside the SE
                     + (f", and +- {c.error_bound:.2g} error bound of the calibration's eta"
@@ -149,6 +150,8 @@ def _not_converged_text(c, target) -> str:
     extra = c.extra or {}
     if extra.get("float32_underflow"):
         return f" -- NOT measured: {extra['note']}"
+    if extra.get("sparse_light") is not None:
+        return f" -- NOT converged: {extra['note']}"
     if extra.get("map_pieces") is not None:
         # the quadrature across the kinks of a map of too many pieces: not at a cap, no bound (audit 27)
         return f" -- NOT converged: {extra['note']}"

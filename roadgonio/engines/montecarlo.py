@@ -36,7 +36,8 @@ from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel
-from roadgonio.engines.result import CellByCellBackend, CellResult, ratio_se
+from roadgonio.engines.result import (RATIO_DENOMINATOR_REL_SE_MAX, CellByCellBackend, CellResult, mean_rel_se,
+                                      ratio_se, sparse_light_note)
 from roadgonio.engines.cellcheck import check_cell
 
 DEFAULT_REL_SE = 1e-3
@@ -204,12 +205,17 @@ class MonteCarloBackend(CellByCellBackend):
         n = len(road) * self.batch
         converged = bool(se <= self.rel_se * abs(k))
         extra = {"batches": len(road), "converged": converged, "rel_se": se / abs(k) if k else math.inf}
-        if not converged:
+        if not converged and len(road) >= 2 and mean_rel_se(lam) > RATIO_DENOMINATOR_REL_SE_MAX:
+            extra["sparse_light"] = mean_rel_se(lam)
+            extra["note"] = f"stopped at its cap (max_samples = {self.max_samples}): " + \
+                sparse_light_note(extra["sparse_light"])
+        elif not converged:
             extra["note"] = (f"stopped at its cap (max_samples = {self.max_samples}: {n} samples in {len(road)} "
                              f"batches): the relative standard error {extra['rel_se']:.2e} exceeds rel_se = "
                              f"{self.rel_se:g}")
         return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), converged=converged, samples=int(n),
-                          seconds=time.perf_counter() - t0, extra=extra, se_dof=float(len(road) - 1))
+                          seconds=time.perf_counter() - t0, extra=extra,
+                          se_dof=float(len(road) - 1) if math.isfinite(se) else math.nan)
 
 
 

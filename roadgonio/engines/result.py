@@ -210,17 +210,62 @@ def t_equivalent(n_sigma: float, dof) -> np.ndarray | float:
     return float(k) if k.ndim == 0 else k
 
 
+#: The delta method's standard error of a ratio of means is an estimate only while the denominator's
+#: mean is itself known well: at most this relative standard error (docs/validation.md, "When few
+#: samples carry the light"). Beyond it the linearisation fails, and where most batches hold almost
+#: no light (a beam far narrower than the angles at which the source sees the footprint) the
+#: residuals of the dark batches are almost exactly 0 and the SE comes out near 0: k_A 1.0075 +-
+#: 1.5e-16 for one lit replicate of 16 (session 34). Measured (``bench/bench_sparse_light.py``, 200
+#: seeds): a beam of sigma 0.03 deg gave mean z^2 up to 367 without the limit, 1.0-1.2 with 0.05, 0.1
+#: or 0.2; the wide preset's grazing cells reach 0.084 in the first pass (honest there: mean z^2
+#: 1.17), where 0.05 cost 47 % more samples for nothing and 0.1 under 1 %.
+RATIO_DENOMINATOR_REL_SE_MAX = 0.1
+
+
+def denominator_rel_se(sum_sq_dev: float, total: float) -> float:
+    """Relative standard error of a sum of independent batch values (or of their mean) from the
+    unbiased variance estimate of that sum (``sum_sq_dev``) and the sum itself; inf where the sum is
+    not positive. Compared with :data:`RATIO_DENOMINATOR_REL_SE_MAX` by every ratio-of-means SE."""
+    if not total > 0.0:
+        return math.inf
+    return math.sqrt(max(float(sum_sq_dev), 0.0)) / float(total)
+
+
+def mean_rel_se(values: np.ndarray) -> float:
+    """Relative standard error of the mean of independent batch values (:func:`denominator_rel_se`
+    of their |sum|; inf with fewer than 2 values or a mean of 0)."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    n = v.size
+    if n < 2:
+        return math.inf
+    dev = v - v.mean()
+    return denominator_rel_se(n * float(dev @ dev) / (n - 1), abs(float(v.sum())))
+
+
+def sparse_light_note(rel: float) -> str:
+    """What a cell whose Lambert signal is known to worse than :data:`RATIO_DENOMINATOR_REL_SE_MAX`
+    says (every Monte Carlo backend)."""
+    return (f"the source's light reached the detector's footprint in too few samples for a standard error (the "
+            f"Lambert signal itself is known to a relative SE of {rel:.2g}, more than "
+            f"{RATIO_DENOMINATOR_REL_SE_MAX:g}): a beam much narrower than the angles at which the source sees the "
+            "footprint, or a shade that lets light through rarely; no standard error can be stated for the value "
+            "(docs/validation.md, \"When few samples carry the light\")")
+
+
 def ratio_se(road: np.ndarray, lam: np.ndarray) -> tuple[float, float]:
     """Ratio of means <road>/<lam> of paired per-batch (or per-pixel) values and its standard error
-    by the delta method, float64 (inf with fewer than 2 pairs). The one statement for independent
-    batches; :func:`roadgonio.engines.mitsuba.passes.strata_ratio_se` is its generalisation to
-    independent strata of replicates (the Mitsuba engine's passes)."""
+    by the delta method, float64 (inf with fewer than 2 pairs, and inf where <lam> is itself known
+    to worse than :data:`RATIO_DENOMINATOR_REL_SE_MAX`: no standard error can be stated there). The
+    one statement for independent batches; :func:`roadgonio.engines.mitsuba.passes.strata_ratio_se`
+    is its generalisation to independent strata of replicates (the Mitsuba engine's passes)."""
     road = np.asarray(road, dtype=np.float64).ravel()
     lam = np.asarray(lam, dtype=np.float64).ravel()
     n = road.size
     mr, ml = road.mean(), lam.mean()
     ratio = mr / ml
     if n < 2:
+        return float(ratio), float("inf")
+    if not mean_rel_se(lam) <= RATIO_DENOMINATOR_REL_SE_MAX:
         return float(ratio), float("inf")
     resid = road - ratio * lam
     se = math.sqrt(np.sum(resid * resid) / (n - 1) / n) / abs(ml)

@@ -469,10 +469,16 @@ def summary(ds) -> dict[str, Any]:
     for field, key in (("se", "worst_rel_se"), ("error_bound", "worst_rel_error_bound"),
                        ("confidence_bound", "worst_rel_confidence_bound")):
         v = ds[field].values[done]
+        if field == "se" and v.size and not np.isnan(v).any() and np.isinf(v).any():
+            # an SE that could not be stated (too few samples carried the light: engines.result,
+            # RATIO_DENOMINATOR_REL_SE_MAX) is inf; the worst of the others, and how many
+            out["cells_without_se"] = int(np.isinf(v).sum())
+            k, v = k[np.isfinite(v)], v[np.isfinite(v)]
         if v.size and np.isfinite(v).all():
             with np.errstate(divide="ignore", invalid="ignore"):
                 rel = np.where(k != 0, v / np.abs(k), np.inf)
             out[key] = float(rel.max())
+        k = ds["k_a"].values[done]
     if "worst_rel_error_bound" in out and eta_bound_beside_se(ds["se"].values, ds["error_bound"].values):
         out["error_bound_of"] = "eta = <E>/E_0 of the absolute calibration (beside the standard error)"
     if "cells_eta_not_converged" in ds.attrs:
@@ -520,26 +526,38 @@ def _eta_attrs(results) -> dict[str, Any]:
 
 def precision_text(summary: dict[str, Any]) -> str:
     """'worst rel. SE 1.5e-04' or 'worst rel. error bound 9.9e-04' (never one for the other; a Monte
-    Carlo table under absolute calibration gives its SE and, beside it, eta's bound)."""
+    Carlo table under absolute calibration gives its SE and, beside it, eta's bound); cells whose SE
+    could not be stated are counted apart ('(2 cells without one)'; all of them: 'no standard error in
+    any of its 3 cells')."""
+    without = summary.get("cells_without_se") or 0
     for key, name in (("worst_rel_se", "worst rel. SE"), ("worst_rel_error_bound", "worst rel. error bound")):
         if summary.get(key) is not None:
             estimated = key == "worst_rel_error_bound" and bool(summary.get("not_converged"))
             # the error_bound of a cell not converged is an estimate (a cell at the cap, or across a
             # map's kinks): the table's line called the worst of them a bound (audit 27)
             text = f"{'worst rel. error' if estimated else name} {summary[key]:.1e}"
+            if key == "worst_rel_se" and without:
+                text += f" ({count(without, 'cell')} without one)"
             if key == "worst_rel_se" and summary.get("worst_rel_error_bound") is not None:
                 # absolute calibration of a Monte Carlo table: eta's error, a bound beside the SE
                 text += f" (and eta's worst rel. error bound {summary['worst_rel_error_bound']:.1e})"
-            if summary.get("not_converged"):
-                text += f", {count(summary['not_converged'], 'cell')} NOT converged"
-                if estimated:
-                    text += " (there an estimate, not a bound)"
-                if summary.get("eta_not_converged"):
-                    text += (f" (in {summary['eta_not_converged']} of them eta of the absolute calibration stopped at "
-                             f"its cap: relative error up to {summary['eta_worst_rel_error']:.1e}, "
-                             + ("the error bound beside the SE)" if key == "worst_rel_se" else "included in the bound)"))
-            return text
+            return text + _not_converged_part(summary, key, estimated)
+    if without:
+        return f"no standard error in any of its {count(without, 'cell')}" + _not_converged_part(summary, "", False)
     return ""
+
+
+def _not_converged_part(summary: dict[str, Any], key: str, estimated: bool) -> str:
+    if not summary.get("not_converged"):
+        return ""
+    text = f", {count(summary['not_converged'], 'cell')} NOT converged"
+    if estimated:
+        text += " (there an estimate, not a bound)"
+    if summary.get("eta_not_converged"):
+        text += (f" (in {summary['eta_not_converged']} of them eta of the absolute calibration stopped at "
+                 f"its cap: relative error up to {summary['eta_worst_rel_error']:.1e}, "
+                 + ("the error bound beside the SE)" if key == "worst_rel_se" else "included in the bound)"))
+    return text
 
 
 def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -> dict[str, Any]:

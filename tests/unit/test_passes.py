@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 
+from roadgonio.engines.result import RATIO_DENOMINATOR_REL_SE_MAX
 from roadgonio.engines.mitsuba.passes import (MAX_GROWTH, SAFETY, CellStats, Plan, Planner, add_strata, se_dof_many,
                                               covariance, relative, strata_ratio_se, strata_ratio_se_dof_many,
                                               strata_ratio_se_many, stray_ratios)
@@ -81,6 +82,44 @@ def test_single_replicate_has_no_se_and_zero_signal_has_no_ratio():
     st = CellStats()
     st.add(0, 8, np.arange(16), *synthetic(np.random.default_rng(4), 16))
     assert st.direct_ratio_se() == st.ratio_se()[:2] and st.stray_fraction_se() == (0.0, 0.0)
+
+
+def test_a_cell_whose_light_few_replicates_carry_has_no_se_and_grows_by_the_lambert_sums_rule():
+    """One replicate of 16 lit (a beam far narrower than the footprint's angles; session 34's audit:
+    k_A 1.0075 +- 1.5e-16 "converged"): no SE (the Lambert sum known to a relative SE of
+    1 > RATIO_DENOMINATOR_REL_SE_MAX), in the cell's own statistics and the vectorised
+    strata; the planner does not converge it and asks for the samples that bring the Lambert sum to
+    the limit by the 1/N rule (capped at MAX_GROWTH), then converges it on its SE as usual."""
+    R, G = np.zeros(16), np.zeros(16)
+    R[5], G[5] = 4.7e-30, 5.8e-31
+    st = CellStats()
+    st.add(0, 8, np.arange(16), R, G)
+    assert st.lambert_rel_se() == pytest.approx(1.0, rel=1e-12)       # one sum of n: exactly 1
+    r, se, _ = st.ratio_se()
+    assert r == pytest.approx(R[5] / G[5], rel=1e-12) and se == math.inf
+    r2, se2, dof2 = strata_ratio_se_dof_many([[(R, G)]])
+    assert r2[0] == pytest.approx(r, rel=1e-12) and se2[0] == math.inf and math.isnan(dof2[0])
+    pl = Planner(1e-3, first_pass=4096, min_replicates=16)
+    req, done = pl.next([st], [0])
+    assert not done["converged"] and not done["capped"]
+    log2n, reps = req[0]
+    assert (reps << log2n) >= MAX_GROWTH * st.samples - (1 << log2n)    # (1 / 0.1)^2 - 1 = 99: capped
+    # a Lambert sum known to 0.15: (0.15 / 0.1)^2 - 1 = 1.25 times the samples again, with the safety factor
+    z = np.tile([1.0, -1.0], 8)
+    z /= z.std(ddof=1)
+    G = 256.0 * (1.0 + 0.6 * z)                          # rel. SE of the sum: 0.6 sqrt(16) / 16 = 0.15
+    mid = CellStats()
+    mid.add(0, 8, np.arange(16), 0.8 * G, G)
+    assert mid.lambert_rel_se() == pytest.approx(0.15, rel=1e-12) and mid.ratio_se()[1] == math.inf
+    req, done = pl.next([mid], [0])
+    log2n, reps = req[0]
+    want = mid.samples * ((0.15 / RATIO_DENOMINATOR_REL_SE_MAX) ** 2 - 1.0) * SAFETY
+    assert want <= reps << log2n < want + (16 << log2n)
+    # and where the Lambert sum is known, the usual SE (R = 0.8 G exactly: 0, converged)
+    ok = CellStats()
+    ok.add(0, 8, np.arange(16), 0.8 * 256.0 * (1 + 0.01 * z), 256.0 * (1 + 0.01 * z))
+    assert ok.ratio_se()[1] == pytest.approx(0.0, abs=1e-12)
+    assert pl.next([ok], [0])[1]["converged"] == [0]
 
 
 def test_strata_ratio_se_of_many_cells_equals_each_cell_alone():

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from helpers import ldt_text, map_centres, write_map_csv, write_table_csv
+from helpers import basis as _basis, collimated_limit, ldt_text, map_centres, source_direction as _w_source, \
+    write_map_csv, write_table_csv
 from roadgonio.arrays import NumpyOps
 from roadgonio.engines import make_backend
 from roadgonio.engines.calibration import illuminance, illuminance_ratio
@@ -44,18 +45,6 @@ def _polar(n_r: int, n_phi: int):
     R, P = np.meshgrid(rho, phi, indexing="ij")
     W = np.repeat(wr[:, None], n_phi, axis=1) * (2 * np.pi / n_phi)       # sums to pi (unit disc area)
     return (R * np.cos(P)).ravel(), (R * np.sin(P)).ravel(), W.ravel(), R.ravel()
-
-
-def _basis(a):
-    helper = np.array([0.0, 1.0, 0.0]) if abs(a[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    u1 = np.cross(a, helper)
-    u1 /= np.linalg.norm(u1)
-    return u1, np.cross(a, u1)
-
-
-def _w_source(inst, tan_eps, beta_deg):
-    eps, phi_i = math.atan(tan_eps), math.radians(inst.observation.delta_deg + 180.0 - beta_deg)
-    return np.array([math.sin(eps) * math.cos(phi_i), math.sin(eps) * math.sin(phi_i), math.cos(eps)])
 
 
 def independent_E(inst: Instrument, tan_eps, beta_deg, pts, P, A, n: int = 24) -> np.ndarray:
@@ -483,46 +472,6 @@ def test_a_wide_gaussian_converges_to_the_uniform_disc():
         c1, c2 = s1 * s1 * d1, s2 * s2 * d2
         assert abs(c1 / c2 - 1) < 0.03 + (s1 * s1 * e1 + s2 * s2 * e2) / abs(c2), (cell, c1, c2)
         assert all(abs(a[1]) > abs(b[1]) for a, b in zip(devs, devs[1:]))     # monotone towards the uniform disc
-
-
-def collimated_limit(inst: Instrument, model, tan_eps, beta_deg, n_batches=16, n=1 << 17, seed=3):
-    """k_A (Lambert calibration) of the sigma -> 0 limit, independent float64 Monte Carlo: every
-    source point emits along the axis only, so a footprint point inside the disc's projection along
-    the axis (|perpendicular offset| <= R_S) is lit from exactly w_i(eps, beta) with E = const, and
-    every other point is dark; k_A = <f(w_i, w_o)>_lit detected rays / f(nominal). Returns (k, se)."""
-    from roadgonio.surface.model import road_brdf
-    rng = np.random.default_rng(seed)
-    alpha = math.radians(inst.observation.alpha_deg)
-    w_o = np.array([math.cos(alpha), 0.0, math.sin(alpha)])
-    det = inst.detector
-    a = -w_o
-    u1, u2 = _basis(a)
-    w_i = _w_source(inst, tan_eps, beta_deg)
-    c = inst.source.distance_m * w_i
-    P_ = model.params.to_dict()
-    col = lambda v, m: tuple(np.full(m, x) for x in v)          # noqa: E731
-    f0 = float(road_brdf(NumpyOps, P_, col(w_i, 1), col(w_o, 1), model.variant, model.terms())[0])
-    tg = math.tan(math.radians(det.field_half_angle_deg))
-    num, den = [], []
-    for _ in range(n_batches):
-        r1, p1, r2, p2 = rng.random((4, n))
-        pr, fr = det.pupil_radius_m * np.sqrt(r1), np.sqrt(r2)
-        Pp = det.distance_m * w_o + pr[:, None] * (np.cos(2 * np.pi * p1)[:, None] * u1 + np.sin(2 * np.pi * p1)[:, None] * u2)
-        Q = det.distance_m * w_o + det.distance_m * a + det.distance_m * tg * fr[:, None] * (
-            np.cos(2 * np.pi * p2)[:, None] * u1 + np.sin(2 * np.pi * p2)[:, None] * u2)
-        D = Q - Pp
-        D /= np.linalg.norm(D, axis=1)[:, None]
-        W = (D @ a) ** 4
-        X = Pp + (-Pp[:, 2] / D[:, 2])[:, None] * D
-        off = X - c
-        lit = np.linalg.norm(off - (off @ w_i)[:, None] * w_i[None, :], axis=1) <= inst.source.radius_m
-        f = road_brdf(NumpyOps, P_, col(w_i, n), (-D[:, 0], -D[:, 1], -D[:, 2]), model.variant, model.terms())
-        num.append(np.mean(W * lit * f))
-        den.append(np.mean(W * lit))
-    num, den = np.array(num), np.array(den)
-    k = num.mean() / den.mean()
-    se = np.std(num - k * den, ddof=1) / math.sqrt(n_batches) / den.mean()
-    return k / f0, se / f0
 
 
 def test_a_narrow_gaussian_tends_to_the_collimated_beam():

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from roadgonio.engines.result import ratio_se
+from roadgonio.engines.result import RATIO_DENOMINATOR_REL_SE_MAX, mean_rel_se, ratio_se
 from tolerances import N_SIGMA, ROUND_TOL
 
 
@@ -63,3 +63,30 @@ def test_welch_satterthwaite_degrees_of_freedom():
     for _ in range(100):
         v, nu = rng.uniform(0, 1, 4), rng.integers(2, 60, 4).astype(float)
         assert nu.min() - 1e-9 <= welch_satterthwaite(v, nu) <= nu.sum() + 1e-9
+
+
+def test_no_standard_error_where_few_batches_carry_the_denominator():
+    """Session 34's audit: a Gaussian beam of 0.01 deg lit a few lanes of one replicate in 16; the 15
+    empty replicates' residuals are exactly 0, and the delta method gave an SE of 1e-16 ("converged",
+    5000 SE from the truth). Where the denominator's mean is itself known to worse than
+    RATIO_DENOMINATOR_REL_SE_MAX the SE is inf; at the edge it is the plain delta-method SE."""
+    road, lam = np.zeros(16), np.zeros(16)
+    road[3], lam[3] = 4.7e-30, 5.8e-31
+    r, se = ratio_se(road, lam)
+    assert r == pytest.approx(road[3] / lam[3], rel=ROUND_TOL) and se == math.inf
+    assert mean_rel_se(lam) == pytest.approx(1.0, rel=ROUND_TOL)       # one value of n: exactly 1, whatever n
+    # a denominator whose mean is known to just below / above the limit (its rel. SE = c / sqrt(n))
+    rng = np.random.default_rng(5)
+    n = 64
+    z = np.tile([1.0, -1.0], n // 2)
+    z /= z.std(ddof=1)
+    for c, finite in ((0.99, True), (1.01, False)):
+        lam = 1.0 + c * RATIO_DENOMINATOR_REL_SE_MAX * math.sqrt(n) * z
+        road = 0.8 * lam + 0.01 * rng.standard_normal(n)
+        assert mean_rel_se(lam) == pytest.approx(c * RATIO_DENOMINATOR_REL_SE_MAX, rel=ROUND_TOL)
+        r, se = ratio_se(road, lam)
+        if finite:
+            res = road - r * lam
+            assert se == pytest.approx(math.sqrt(res @ res / (n - 1) / n) / lam.mean(), rel=ROUND_TOL)
+        else:
+            assert se == math.inf

@@ -233,6 +233,7 @@ class MitsubaBackend:
         pass's other cells (:func:`~roadgonio.engines.mitsuba.passes.stray_ratios`,
         :func:`~roadgonio.engines.mitsuba.passes.se_dof_many`; else of this cell alone)."""
         from roadgonio.engines.mitsuba.passes import STRAY_SEEN_MIN, relative
+        from roadgonio.engines.result import RATIO_DENOMINATOR_REL_SE_MAX, sparse_light_note
         ratio, se, _ = st.ratio_se()
         dof = st.se_dof() if dof is None else dof
         rel = relative(ratio, se)
@@ -255,6 +256,10 @@ class MitsubaBackend:
             extra["note"] = (f"the rendered road signal is 0 in every sample while the model is positive at the "
                              f"nominal geometry ({ideal:.3g} of the Lambertian's): its values underflow the float32 "
                              "renderer here; k_A is not measured (use a float64 backend: reference, numpy-mc)")
+        elif math.isfinite(ratio) and st.lambert_rel_se() > RATIO_DENOMINATOR_REL_SE_MAX:
+            # one lit replicate of 16 gave k_A 1.0075 +- 1.5e-16, "converged" (user audit, session 34)
+            extra["sparse_light"] = float(st.lambert_rel_se())
+            extra["note"] = sparse_light_note(extra["sparse_light"])
         stray = {}
         if st.direct:
             # the direct light alone (today's k_A) and the stray fraction, from the same replicates

@@ -64,7 +64,7 @@ from typing import Iterable, Sequence
 import numpy as np
 
 from roadgonio.engines.mitsuba.lattice import MAX_LOG2, MIN_LOG2
-from roadgonio.engines.result import welch_satterthwaite_many
+from roadgonio.engines.result import RATIO_DENOMINATOR_REL_SE_MAX, denominator_rel_se, welch_satterthwaite_many
 
 #: Safety factor on the 1/N rule (the SE estimate itself is noisy).
 SAFETY = 1.15
@@ -146,15 +146,22 @@ class CellStats:
         return self.sum_r, self.sum_g
 
     def ratio_se(self) -> tuple[float, float, float]:
-        """(ratio, its standard error, mean Lambert signal per sample)."""
+        """(ratio, its standard error, mean Lambert signal per sample); the SE is inf with a stratum
+        of one replicate and while the Lambert sum is itself known to worse than
+        :data:`~roadgonio.engines.result.RATIO_DENOMINATOR_REL_SE_MAX` (:meth:`lambert_rel_se`)."""
         sr, sg = self.sum_r, self.sum_g
         n = max(self.samples, 1)
         if not sg > 0.0:
             return math.nan, math.inf, sg / n
         ratio = sr / sg
-        if self.single:
+        if self.single or self.lambert_rel_se() > RATIO_DENOMINATOR_REL_SE_MAX:
             return ratio, math.inf, sg / n
         return ratio, math.sqrt(residual_variance(self.b, ratio - self.r0)) / sg, sg / n
+
+    def lambert_rel_se(self) -> float:
+        """Relative standard error of the Lambert sum over all replicates (from the moment ``b2``:
+        the variance of that sum): how well the light reaching the footprint is sampled at all."""
+        return denominator_rel_se(self.b[2], self.sum_g)
 
     def se_dof(self) -> float:
         """Degrees of freedom of the SE of :meth:`ratio_se` (module docstring: Welch-Satterthwaite
@@ -305,6 +312,12 @@ def strata_ratio_se_dof_many(cells: Sequence[Sequence[tuple[np.ndarray, np.ndarr
     single = (np.add.reduceat((counts < 2).astype(np.int64), cstarts) > 0) | empty[live]
     v0 = np.where(counts < 2, 0.0, v)            # a stratum of one replicate has no variance estimate
     var = np.add.reduceat(v0, cstarts)
+    # the denominator's sum must itself be known (RATIO_DENOMINATOR_REL_SE_MAX), else no SE
+    devb = B - (np.add.reduceat(B, starts) / counts)[seg]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vb = np.where(counts < 2, 0.0, counts * np.add.reduceat(devb * devb, starts) / (counts - 1.0))
+        rel_b = np.sqrt(np.add.reduceat(vb, cstarts)) / np.where(ok, sb, 1.0)
+    single = single | ~(rel_b <= RATIO_DENOMINATOR_REL_SE_MAX)
     with np.errstate(divide="ignore", invalid="ignore"):
         s_err = np.sqrt(np.maximum(var, 0.0)) / np.abs(np.where(ok, sb, 1.0))
     # Welch-Satterthwaite over the cell's strata, B_q - 1 each (a stratum of one replicate: none)
@@ -462,6 +475,9 @@ class Planner:
                 continue
             elif math.isfinite(rel) and rel > self.rel_se:
                 want = self.more_samples(st, rel, last) * SAFETY
+            elif math.isfinite(lit := st.lambert_rel_se()) and lit > RATIO_DENOMINATOR_REL_SE_MAX:
+                # too few samples carry the light for an SE: the Lambert sum's 1/N rule
+                want = st.samples * ((lit / RATIO_DENOMINATOR_REL_SE_MAX) ** 2 - 1.0) * SAFETY
             else:
                 want = st.samples          # min_passes not reached, or no SE yet: as much again
             want = min(max(want, (1 << MIN_LOG2) * self.min_replicates), room, self.max_growth * st.samples)
