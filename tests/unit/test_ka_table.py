@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -380,3 +381,41 @@ def test_a_subset_run_keeps_the_folders_whole_table(tmp_path, setup):
     assert (s["cells"], s["cells_asked"], s["resumed_cells"]) == (len(cells), 2, 2)
     assert json.loads((tmp_path / "ka.json").read_text())["summary"]["cells"] == len(cells)
 
+
+
+def test_cells_without_a_standard_error_are_counted_not_hidden(tmp_path, setup):
+    """A Monte Carlo cell whose light too few samples carried has no SE (inf, session 34): the table's
+    worst rel. SE is that of the others, its line counts the cells without one (before, a single inf
+    dropped the worst rel. SE and the NOT converged count from the line: "k_A from 1.000 to 1.004, ;"),
+    ka_se.csv leaves them blank, and a table with no SE at all says so."""
+    from roadgonio.engines.runner import precision_text, summary
+    ins, model = setup
+
+    class Sparse(StandIn):
+        def compute(self, cells, on_cell=None):
+            out = []
+            for t, b in cells:
+                dark = t >= 0.75
+                c = CellResult(t, b, self.value(t, b), math.inf if dark else 2e-4 * (1 + t), 1000, 0.001,
+                               converged=not dark)
+                out.append(c)
+                if on_cell:
+                    on_cell(c)
+            return out
+
+    cells = [c for c in full_grid_cells() if c[0] <= 1.0]
+    b = Sparse()
+    run = run_cells(b, cells, instrument=ins, model=model, progress=False)
+    s = summary(ka_dataset(run, instrument=ins, model=model, backend=b, sample="s"))
+    dark = sum(t >= 0.75 for t, _ in cells)
+    lit = [c for c in cells if c[0] < 0.75]
+    assert s["cells_without_se"] == dark and s["not_converged"] == dark
+    assert s["worst_rel_se"] == pytest.approx(max(2e-4 * (1 + t) / StandIn.value(t, b_) for t, b_ in lit), rel=1e-12)
+    text = precision_text(s)
+    assert text == f"worst rel. SE {s['worst_rel_se']:.1e} ({dark} cells without one), {dark} cells NOT converged"
+    write_outputs(ka_dataset(run, instrument=ins, model=model, backend=b, sample="s"), tmp_path, plot=False)
+    se = read_table(tmp_path / "ka_se.csv")
+    rows = (se.tan_eps >= 0.75) & (se.tan_eps <= 1.0)
+    assert np.all(~np.isfinite(se.r[rows])) and np.all(np.isfinite(se.r[se.tan_eps < 0.75]))
+    none = precision_text({"cells_without_se": 3, "not_converged": 3})
+    assert none == "no standard error in any of its 3 cells, 3 cells NOT converged"
