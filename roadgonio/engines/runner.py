@@ -315,7 +315,9 @@ FIELD_ATTRS: dict[str, tuple[str, str, str]] = {
     "k_a": ("aperture-effect factor k_A", "1",
             "what the instrument reports as q over f(nominal), under its calibration (docs/conventions.md section 5); "
             "r_true = r_measured / k_A"),
-    "se": ("standard error of k_A", "1", "a standard error (Monte Carlo, randomised QMC); NaN where the backend gives none"),
+    "se": ("standard error of k_A", "1", "a standard error (Monte Carlo, randomised QMC); NaN where the backend gives "
+           "none; inf where too few samples carried the light for one (the cell is not converged; ka.json's summary "
+           "counts them as cells_without_se)"),
     "error_bound": ("deterministic error bound of k_A", "1",
                     "a deterministic bound on |k_A - true k_A| (quadrature) where converged is true; where it is "
                     "false (stopped at the evaluation cap) an estimate that can understate the error; NaN otherwise"),
