@@ -10,11 +10,12 @@ below the plain least-squares fit of the paper's model quoted in the task (given
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import platform
 import sys
 from pathlib import Path
+
+from machine import write_rows  # bench/machine.py (the script's folder is on sys.path)
 
 from roadgonio._version import __version__
 from roadgonio.surface.fit import fit_table, max_weight
@@ -63,11 +64,7 @@ def main(argv=None) -> int:
                             ("k_diff", "k_phong", "n_phong", "k_retro", "n_retro", "k_exp", "p", "h", "mu",
                              "n_beta")}})
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
+    write_rows(out, rows)
     print(f"wrote {out}", file=sys.stderr)
     return 0
 

@@ -19,24 +19,17 @@ bench/results/sparse_light.csv and sparse_light.txt.
 from __future__ import annotations
 
 import argparse
-import csv
 import math
-import os
 import sys
 from pathlib import Path
+
+from machine import describe, load_average, write_rows  # bench/machine.py (the script's folder is on sys.path)
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 CELLS = [(12.0, 0.0), (8.0, 0.0), (4.0, 2.0), (1.0, 30.0), (12.0, 30.0), (6.0, 10.0)]
 LIMITS = (math.inf, 0.2, 0.1, 0.05)
-
-
-def _load() -> str:
-    try:
-        return ", ".join(f"{v:.2f}" for v in os.getloadavg())
-    except OSError:  # pragma: no cover
-        return "?"
 
 
 def main(argv=None) -> int:
@@ -65,7 +58,7 @@ def main(argv=None) -> int:
         result_mod.RATIO_DENOMINATOR_REL_SE_MAX = v
         passes_mod.RATIO_DENOMINATOR_REL_SE_MAX = v
 
-    load_before = _load()
+    load_before = load_average()
     rows = []
     for name, inst in instruments:
         set_limit(0.05)
@@ -95,7 +88,8 @@ def main(argv=None) -> int:
             print(f"  {name}, limit {limit:g}: mean z^2 {rows[-1]['mean_z2']:.3f}", file=sys.stderr, flush=True)
     set_limit(0.1)
     lines = [f"bench_sparse_light: {len(CELLS)} cells x {args.seeds} seeds, R3, rel SE 1e-3 against a reference at 5e-5; "
-             f"current limit {result_mod.RATIO_DENOMINATOR_REL_SE_MAX:g}; load average before {load_before}, after {_load()}",
+             f"current limit {result_mod.RATIO_DENOMINATOR_REL_SE_MAX:g}; {describe()}; load average before {load_before}, "
+             f"after {load_average()}",
              f"{'instrument':32s} {'limit':>6s} {'mean z^2':>9s} {'worst cell':>10s} {'|z|>3':>6s} {'expected':>8s} "
              f"{'no SE':>6s} {'samples':>10s} {'ratio':>6s}"]
     for r in rows:
@@ -105,12 +99,7 @@ def main(argv=None) -> int:
     text = "\n".join(lines)
     print(text)
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    out.with_suffix(".txt").write_text(text + "\n")
+    write_rows(out, rows, text)
     return 0
 
 

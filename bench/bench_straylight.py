@@ -23,21 +23,15 @@ questions (the computation itself, the command end to end) and are quoted apart.
 from __future__ import annotations
 
 import argparse
-import csv
 import os
 import statistics
 import sys
 import time
 from pathlib import Path
 
+from machine import load_average, write_rows  # bench/machine.py (the script's folder is on sys.path)
+
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _load() -> str:
-    try:
-        return ", ".join(f"{v:.2f}" for v in os.getloadavg())
-    except OSError:  # pragma: no cover
-        return "?"
 
 
 def main(argv=None) -> int:
@@ -70,7 +64,7 @@ def main(argv=None) -> int:
         d = housed.to_dict()
         d["housing"] = {**d["housing"], "wall_reflectance": rho}
         runs.append((f"portable_housed (walls {rho:g})", Instrument.from_dict(d, path=housed.path)))
-    load_before = _load()
+    load_before = load_average()
     rows = []
     for name, inst in runs:
         b = make_backend(inst, model, rel_se=args.rel_se, seed=0)
@@ -94,7 +88,7 @@ def main(argv=None) -> int:
         r["ratio_to_bare"] = r["wall_s"] / base
     lines = [f"bench_straylight: {len(cells)} cells, {args.sample}, worst rel SE {args.rel_se:g}, "
              f"{dr.thread_count()} Dr.Jit threads on {os.cpu_count()} cores; load average before {load_before}, "
-             f"after {_load()}",
+             f"after {load_average()}",
              f"{'instrument':34s} {'wall s':>8s} {'ratio':>7s} {'cpu/wall':>8s} {'samples':>11s} {'worst rel SE':>12s} "
              f"{'max stray':>9s} {'k_A range':>15s}"]
     for r in rows:
@@ -104,12 +98,7 @@ def main(argv=None) -> int:
     text = "\n".join(lines)
     print(text)
     out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with open(out, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    out.with_suffix(".txt").write_text(text + "\n")
+    write_rows(out, rows, text)
     if args.command:
         _command_rows(args, out)
     return 0
@@ -121,7 +110,7 @@ def _command_rows(args, out: Path) -> None:
     import tempfile
     files = [("portable (no housing)", ROOT / "scenes" / "portable.toml"),
              ("portable_housed (walls 0.05)", ROOT / "scenes" / "portable_housed.toml")]
-    load_before = _load()
+    load_before = load_average()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, f in files:
@@ -138,16 +127,11 @@ def _command_rows(args, out: Path) -> None:
     for r in rows:
         r["ratio_to_bare"] = r["command_wall_s"] / rows[0]["command_wall_s"]
     lines = [f"roadgonio ka end to end (fresh process each, median of {args.repeats}); load average before "
-             f"{load_before}, after {_load()}",
+             f"{load_before}, after {load_average()}",
              f"{'instrument':34s} {'wall s':>8s} {'ratio':>7s}  runs"]
     lines += [f"{r['instrument']:34s} {r['command_wall_s']:8.2f} {r['ratio_to_bare']:7.2f}  {r['walls_s']}" for r in rows]
     print("\n".join(lines))
-    path = out.with_name("straylight_command.csv")
-    with open(path, "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
-    path.with_suffix(".txt").write_text("\n".join(lines) + "\n")
+    write_rows(out.with_name("straylight_command.csv"), rows, "\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
-"""What machine a bench ran on, as its output quotes it (benchmarks are quoted with the machine)."""
+"""What machine a bench ran on, as its output quotes it (benchmarks are quoted with the machine), and
+where a bench writes its rows."""
 from __future__ import annotations
 
 import os
@@ -27,3 +28,24 @@ def cpu_model() -> str:
 def describe() -> str:
     """Cores, CPU model and memory in one phrase."""
     return f"{os.cpu_count()} cores, {cpu_model()}, {mem_gib():.0f} GiB"
+
+
+def write_rows(out: str | Path, rows: list[dict], text: str | None = None) -> None:
+    """A bench's rows as CSV at ``out`` (its folder made), and its printed table beside it as ``.txt``."""
+    import csv
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with open(out, "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    if text is not None:
+        out.with_suffix(".txt").write_text(text + "\n")
+
+
+def load_average() -> str:
+    """The 1, 5 and 15 minute load averages, as a bench prints them before and after its run."""
+    try:
+        return ", ".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:  # pragma: no cover
+        return "?"
