@@ -205,8 +205,8 @@ class MonteCarloBackend(CellByCellBackend):
         n = len(road) * self.batch
         converged = bool(se <= self.rel_se * abs(k))
         extra = {"batches": len(road), "converged": converged, "rel_se": se / abs(k) if k else math.inf}
-        if not converged and len(road) >= 2 and mean_rel_se(lam) > RATIO_DENOMINATOR_REL_SE_MAX:
-            extra["sparse_light"] = mean_rel_se(lam)
+        if not converged and len(road) >= 2 and (lit := mean_rel_se(lam)) > RATIO_DENOMINATOR_REL_SE_MAX:
+            extra["sparse_light"] = lit
             extra["note"] = f"stopped at its cap (max_samples = {self.max_samples}): " + \
                 sparse_light_note(extra["sparse_light"])
         elif not converged:

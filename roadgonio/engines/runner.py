@@ -470,17 +470,16 @@ def summary(ds) -> dict[str, Any]:
                            "k_a_max": float(k.max()) if k.size else None}
     for field, key in (("se", "worst_rel_se"), ("error_bound", "worst_rel_error_bound"),
                        ("confidence_bound", "worst_rel_confidence_bound")):
-        v = ds[field].values[done]
+        v, kv = ds[field].values[done], k
         if field == "se" and v.size and not np.isnan(v).any() and np.isinf(v).any():
             # an SE that could not be stated (too few samples carried the light: engines.result,
             # RATIO_DENOMINATOR_REL_SE_MAX) is inf; the worst of the others, and how many
             out["cells_without_se"] = int(np.isinf(v).sum())
-            k, v = k[np.isfinite(v)], v[np.isfinite(v)]
+            kv, v = k[np.isfinite(v)], v[np.isfinite(v)]
         if v.size and np.isfinite(v).all():
             with np.errstate(divide="ignore", invalid="ignore"):
-                rel = np.where(k != 0, v / np.abs(k), np.inf)
+                rel = np.where(kv != 0, v / np.abs(kv), np.inf)
             out[key] = float(rel.max())
-        k = ds["k_a"].values[done]
     if "worst_rel_error_bound" in out and eta_bound_beside_se(ds["se"].values, ds["error_bound"].values):
         out["error_bound_of"] = "eta = <E>/E_0 of the absolute calibration (beside the standard error)"
     if "cells_eta_not_converged" in ds.attrs:

@@ -256,9 +256,9 @@ class MitsubaBackend:
             extra["note"] = (f"the rendered road signal is 0 in every sample while the model is positive at the "
                              f"nominal geometry ({ideal:.3g} of the Lambertian's): its values underflow the float32 "
                              "renderer here; k_A is not measured (use a float64 backend: reference, numpy-mc)")
-        elif math.isfinite(ratio) and st.lambert_rel_se() > RATIO_DENOMINATOR_REL_SE_MAX:
+        elif math.isfinite(ratio) and (lit := st.lambert_rel_se()) > RATIO_DENOMINATOR_REL_SE_MAX:
             # one lit replicate of 16 gave k_A 1.0075 +- 1.5e-16, "converged" (user audit, session 34)
-            extra["sparse_light"] = float(st.lambert_rel_se())
+            extra["sparse_light"] = float(lit)
             extra["note"] = sparse_light_note(extra["sparse_light"])
         stray = {}
         if st.direct:
