@@ -49,7 +49,7 @@ from roadgonio.fileio import atomic_write_json, fingerprint
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.fit import check_rows
 from roadgonio.surface.model import VARIANTS, RoadModel
-from roadgonio.surface.rtable import CORRECTED_R, RTable, check_positive, read_table
+from roadgonio.surface.rtable import CORRECTED_R, U_REL_MIN, RTable, check_positive, read_table
 
 #: Variants fitted by ``variant = "auto"``.
 AUTO_VARIANTS = ("power", "smooth")
@@ -201,9 +201,6 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
     return np.where(table.mask, grid, np.nan), what, path
 
 
-#: The smallest relative standard uncertainty of a measured cell (0.0001 %): far below any
-#: goniophotometer's, far above where the fit's weights 1/u^2 overflow.
-U_REL_MIN = 1e-6
 
 
 def _relative(v: float, table: RTable, fld: str, given: str | None = None) -> np.ndarray:

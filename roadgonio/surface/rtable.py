@@ -323,6 +323,10 @@ def missing_ratio(num, den):
 #: The first words of the header of a table's standard uncertainties (``corrected_u.csv``): the rest
 #: of the line is the header of the table it belongs to (:func:`u_names_table`).
 U_HEADER = "standard uncertainty of "
+#: The smallest relative standard uncertainty of a measured cell (0.0001 %): far below any
+#: goniophotometer's, far above where a fit's weights 1/u^2 overflow (roadgonio correct's, and the
+#: repeatability of a participant of an intercomparison, whose tables it corrects).
+U_REL_MIN = 1e-6
 
 
 def header_line(t: "RTable") -> str:

@@ -41,14 +41,27 @@ def gum_propagation(func: Callable[[np.ndarray], np.ndarray], sigma: np.ndarray,
             "sensitivity": sens, "contribution": contrib}
 
 
-def gum_validation(gum: Mapping[str, np.ndarray], mc: Mapping[str, np.ndarray], n_dig: int) -> dict[str, np.ndarray]:
+def gum_validation(gum: Mapping[str, np.ndarray], mc: Mapping[str, np.ndarray], n_dig: int,
+                   end_noise: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """JCGM 101 section 8.2: d_low = |y - U_p - y_low|, d_high = |y + U_p - y_high| (GUM interval
     vs the probabilistically symmetric MCM interval); validated where both <= delta, the numerical
-    tolerance of the GUM u(y) with n_dig significant digits."""
+    tolerance of the GUM u(y) with n_dig significant digits.
+
+    A verdict is given only where the Monte Carlo interval's own noise cannot decide it: with
+    ``end_noise`` (:func:`~roadgonio.uncertainty.statistics.interval_end_noise`, 2 s of the ends, the
+    criterion of 7.9.4), **validated** where both differences are within delta and the noise is too,
+    **not validated** where a difference exceeds delta by more than twice the noise (4 s: a GUM result
+    that is valid is then called not validated in about one output in 10^3, s being estimated from 20
+    batches), and **not judged**
+    otherwise (``judged`` False): the verdict there would be the noise's (user audit: one surface under
+    a source-distance error alone, 156, 271 or 168 of 396 cells "validated" with seeds 1, 2 and 3 at
+    50,000 trials). Without ``end_noise`` every output is judged (the bare comparison)."""
     delta = numerical_tolerance(gum["u"], n_dig)
     d_low = np.abs(gum["low"] - mc["sym_low"])
     d_high = np.abs(gum["high"] - mc["sym_high"])
-    return {"delta": delta, "d_low": d_low, "d_high": d_high,
-            "validated": (d_low <= delta) & (d_high <= delta)}
-
-
+    noise = np.zeros_like(delta) if end_noise is None else np.asarray(end_noise, dtype=np.float64)
+    within = (d_low <= delta) & (d_high <= delta)
+    validated = within & (noise <= delta)
+    judged = validated | (np.maximum(d_low, d_high) > delta + 2.0 * noise)
+    return {"delta": delta, "d_low": d_low, "d_high": d_high, "end_noise": noise, "judged": judged,
+            "validated": validated}

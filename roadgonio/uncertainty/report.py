@@ -3,18 +3,42 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
 from roadgonio.uncertainty.run import UncertaintyResult
 from roadgonio.uncertainty.spec import INPUTS
+from roadgonio.uncertainty.statistics import ROUND_OFF_REL
 
 # ----------------------------------------------------------------------------------------------
 # Results: summary, files, pictures
 # ----------------------------------------------------------------------------------------------
 
 OUTPUT_NAMES = ("Q0", "S1")
+
+
+def gum_verdict(validation: Mapping[str, np.ndarray], k: int) -> str:
+    """The JCGM 101 section 8 verdict of output ``k``: "validated", "not validated" or "not judged"
+    (the Monte Carlo interval's ends too noisy to decide: :func:`~roadgonio.uncertainty.gum.gum_validation`)."""
+    if validation["validated"][k]:
+        return "validated"
+    return "not validated" if validation["judged"][k] else "not judged"
+
+
+def _validated_or_none(validation: Mapping[str, np.ndarray], k: int) -> bool | None:
+    """uncertainty.json's ``gum_validated``: true, false, or null where not judged."""
+    return bool(validation["validated"][k]) if validation["judged"][k] else None
+
+
+def verdict_counts(validation: Mapping[str, np.ndarray], n: int) -> str:
+    """``GUM validated in 30, not validated in 12, not judged in 354 of 396 cells``."""
+    ok = int(np.sum(validation["validated"][:n]))
+    judged = int(np.sum(validation["judged"][:n]))
+    text = f"GUM validated in {ok}, not validated in {judged - ok}"
+    if judged < n:
+        text += f", not judged in {n - judged}"
+    return text + f" of {n} cells"
 
 
 def result_dict(res: UncertaintyResult, *, cells: bool = True) -> dict[str, Any]:
@@ -30,14 +54,15 @@ def result_dict(res: UncertaintyResult, *, cells: bool = True) -> dict[str, Any]
                            "symmetric_interval": [c.mc["sym_low"][k], c.mc["sym_high"][k]],
                            "shortest_interval": [c.mc["short_low"][k], c.mc["short_high"][k]],
                            "gum_u": c.gum["u"][k], "gum_interval": [c.gum["low"][k], c.gum["high"][k]],
-                           "gum_validated": bool(c.validation["validated"][k]),
+                           "gum_validated": _validated_or_none(c.validation, k),
                            "d_low": c.validation["d_low"][k], "d_high": c.validation["d_high"][k],
-                           "delta": c.validation["delta"][k],
+                           "delta": c.validation["delta"][k], "mc_end_noise": c.validation["end_noise"][k],
                            "gum_contributions": dict(zip(INPUTS, c.gum["contribution"][:, k].tolist()))}
         with np.errstate(divide="ignore", invalid="ignore"):
             u_rel = c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
         case["cells_summary"] = {"u_rel_max": float(np.nanmax(u_rel)), "u_rel_median": float(np.nanmedian(u_rel)),
                                  "gum_validated_fraction": float(np.mean(c.validation["validated"][:n])),
+                                 "gum_not_judged": int(np.sum(~c.validation["judged"][:n])),
                                  "u_mc_over_u_gum_max": float(np.nanmax(c.mc["u"][:n] / c.gum["u"][:n]))
                                  if np.all(c.gum["u"][:n] > 0) else None}
         if cells:
@@ -45,7 +70,8 @@ def result_dict(res: UncertaintyResult, *, cells: bool = True) -> dict[str, Any]
                              "nominal": c.nominal[:n], "mean": c.mc["mean"][:n], "u": c.mc["u"][:n],
                              "sym_low": c.mc["sym_low"][:n], "sym_high": c.mc["sym_high"][:n],
                              "short_low": c.mc["short_low"][:n], "short_high": c.mc["short_high"][:n],
-                             "gum_u": c.gum["u"][:n], "gum_validated": c.validation["validated"][:n].tolist()}
+                             "gum_u": c.gum["u"][:n],
+                             "gum_validated": [_validated_or_none(c.validation, k) for k in range(n)]}
         d["cases"][name] = case
     if res.surrogate is not None:
         ap = res.cases.get("aperture")
@@ -66,7 +92,7 @@ CELLS_UNITS = ("# r_nominal, mean, u, the intervals and gum_u/low/high in sr^-1 
 def cells_csv_text(res: UncertaintyResult) -> str:
     n = len(res.cells)
     lines = [CELLS_UNITS, "case,tan_eps,beta_deg,r_nominal,mean,u,u_rel,sym_low,sym_high,short_low,short_high,"
-             "gum_u,gum_low,gum_high,gum_validated,d_low,d_high,delta"]
+             "gum_u,gum_low,gum_high,gum_validated,d_low,d_high,delta,mc_end_noise"]
     labels = [f"{t:g},{b:g}" for t, b in zip(res.cells.tan_eps, res.cells.beta_deg)] + ["Q0,", "S1,"]
     for name, c in res.cases.items():
         for k in range(n + 2):
@@ -76,7 +102,8 @@ def cells_csv_text(res: UncertaintyResult) -> str:
                     c.mc["short_low"][k], c.mc["short_high"][k], c.gum["u"][k], c.gum["low"][k], c.gum["high"][k]]
             v = c.validation
             lines.append(f"{name},{labels[k]}," + ",".join(f"{x:.8g}" for x in vals)
-                         + f",{int(bool(v['validated'][k]))},{v['d_low'][k]:.4g},{v['d_high'][k]:.4g},{v['delta'][k]:.4g}")
+                         + f",{int(bool(v['validated'][k])) if v['judged'][k] else ''},{v['d_low'][k]:.4g},"
+                         f"{v['d_high'][k]:.4g},{v['delta'][k]:.4g},{v['end_noise'][k]:.4g}")
     return "\n".join(lines) + "\n"
 
 
@@ -85,9 +112,6 @@ OUTPUT_FILES = ("uncertainty.json", "cells.csv", "no_aperture_mean.csv", "no_ape
                 "aperture_u.csv", "u_rel_no_aperture.png", "u_rel_aperture.png", "q0_s1_hist.png")
 
 
-#: a u below this fraction of the value is round-off of float64 arithmetic, not an uncertainty
-#: (Q0 under errors of the source distance with the illuminance measured in situ: 1e-17)
-ROUND_OFF_REL = 1e-12
 
 
 def table_header(case: str, trials: int, seed: int, sample_name: str, key: str) -> str:
@@ -138,10 +162,9 @@ def plot_uncertainty_maps(res: UncertaintyResult, out: Path) -> list[Path]:
     for name, c in res.cases.items():
         with np.errstate(divide="ignore", invalid="ignore"):
             u_rel = 100.0 * c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
-        ok = c.validation["validated"][:n]
         title = (f"Relative standard uncertainty u(r)/r (%), {name.replace('_', ' ')}: "
                  f"{res.trials} trials, seed {res.seed}")
-        sub = (f"GUM first-order result validated (JCGM 101 s. 8, {res.n_dig} digits) in {int(ok.sum())} of {n} cells; "
+        sub = (f"GUM first-order result (JCGM 101 s. 8, {res.n_dig} digits): {verdict_counts(c.validation, n)[4:]}; "
                f"Q0 = {c.mc['mean'][n]:.4g} +- {c.mc['u'][n]:.2g}, S1 = {c.mc['mean'][n + 1]:.4g} +- {c.mc['u'][n + 1]:.2g}")
         paths.append(table_map(res.cells.to_grid(u_rel), out / f"u_rel_{name}.png", title=title,
                                label="u(r)/r (%)", centre=None, log=False, fmt="{:.2f}", subtitle=sub))
@@ -173,7 +196,7 @@ def plot_q0_s1(res: UncertaintyResult, path: Path) -> Path:
                 ax.plot([lo, hi], [h * top, h * top], style, lw=2.2,
                         label=f"{100 * res.coverage:g} % {lab}: [{lo:.5g}, {hi:.5g}]")
             ax.axvline(c.nominal[k], color="k", lw=0.8, ls=":", label=f"nominal {c.nominal[k]:.5g}")
-            valid = "validated" if c.validation["validated"][k] else "NOT validated"
+            valid = gum_verdict(c.validation, k).replace("not validated", "NOT validated")
             ax.set_title(f"{label.split(' ')[0]}, {name.replace('_', ' ')}: mean {c.mc['mean'][k]:.5g}, "
                          f"u = {c.mc['u'][k]:.3g} (GUM {valid})", fontsize=10)
             ax.set_xlabel(label)
@@ -222,8 +245,11 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
         with np.errstate(divide="ignore", invalid="ignore"):
             u_rel = c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
         lines.append(f"{name.replace('_', ' ')}: u(r)/r median {100 * np.nanmedian(u_rel):.3g} %, max "
-                     f"{100 * np.nanmax(u_rel):.3g} %; GUM validated in {int(c.validation['validated'][:n].sum())}"
-                     f"/{n} cells")
+                     f"{100 * np.nanmax(u_rel):.3g} %; {verdict_counts(c.validation, n)}")
+        if not np.all(c.validation["judged"][:n + 2]):
+            lines.append(f"  not judged: the Monte Carlo interval's ends are not stable to the tolerance of {res.n_dig} "
+                         "digit(s) of u (2 s > delta, JCGM 101 7.9.4), so the comparison would be the noise's: more "
+                         "--trials, --adaptive, or fewer --digits")
         for k, label in ((n, "Q0"), (n + 1, "S1")):
             if abs(c.mc["u"][k]) <= ROUND_OFF_REL * abs(c.mc["mean"][k]):
                 # the errors do not change it: a u of round-off, which the GUM validation would judge
@@ -232,12 +258,13 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
                 continue
             lines.append(f"  {label}: {c.mc['mean'][k]:.5g} u = {c.mc['u'][k]:.3g} "
                          f"[{c.mc['sym_low'][k]:.5g}, {c.mc['sym_high'][k]:.5g}] "
-                         f"(GUM u = {c.gum['u'][k]:.3g}, {'validated' if c.validation['validated'][k] else 'not validated'})")
+                         f"(GUM u = {c.gum['u'][k]:.3g}, {gum_verdict(c.validation, k)})")
     if res.surrogate is not None:
         s = result_dict(res, cells=False).get("surrogate", {})
-        lines.append(f"k_A surrogate: {s['exact_evaluations']} exact evaluations in {s['seconds']:.0f} s; error vs "
-                     f"held-out exact k_A: max {100 * s['rel_err_max']:.3g} %, rms {100 * s['rel_err_rms']:.3g} %"
-                     + (f", max/u(r) = {s['err_over_u_max']:.2g}" if "err_over_u_max" in s else ""))
+        error = ("its error not measured (--validation 0: no held-out exact k_A)" if s["rel_err_max"] is None else
+                 f"error vs held-out exact k_A: max {100 * s['rel_err_max']:.3g} %, rms {100 * s['rel_err_rms']:.3g} %"
+                 + (f", max/u(r) = {s['err_over_u_max']:.2g}" if "err_over_u_max" in s else ""))
+        lines.append(f"k_A surrogate: {s['exact_evaluations']} exact evaluations in {s['seconds']:.0f} s; {error}")
         rel_u = s.get("backend_rel_u_max")
         if rel_u is not None and rel_u > 0:
             # audit 22: the exact tables' own Monte Carlo error moved the nominal values, means and

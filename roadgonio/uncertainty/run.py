@@ -19,7 +19,8 @@ from roadgonio.uncertainty.cells import CellSet
 from roadgonio.uncertainty.gum import gum_propagation, gum_validation
 from roadgonio.uncertainty.measurement import MeasurementModel
 from roadgonio.uncertainty.spec import INPUTS, SigmaSpec, check_spec_geometry, check_trials
-from roadgonio.uncertainty.statistics import numerical_tolerance, summarize
+from roadgonio.uncertainty.statistics import (ROUND_OFF_REL, batch_spread, interval_end_noise, numerical_tolerance,
+                                              summarize)
 
 # ----------------------------------------------------------------------------------------------
 # Running
@@ -61,8 +62,8 @@ class SurrogateReport:
     validation_trials: int
     exact_evaluations: int
     seconds: float
-    rel_err_max: np.ndarray      # (n_cells,) max over validation trials of |k_sur/k_exact - 1|
-    rel_err_rms: np.ndarray
+    rel_err_max: np.ndarray      # (n_cells,) max over validation trials of |k_sur/k_exact - 1|; NaN when there were
+    rel_err_rms: np.ndarray      # none (not measured, not 0), 0 when the errors move no coordinate (one exact table)
     backend_rel_u_max: float     # largest relative standard uncertainty of the backend (CellResult.standard_uncertainty)
     settings: dict[str, Any]
     not_converged: int = 0       # exact evaluations that stopped at the backend's cap before its target
@@ -70,18 +71,21 @@ class SurrogateReport:
     def summary(self, u_rel: np.ndarray | None = None, cells=None) -> dict[str, Any]:
         """The report as JSON-ready numbers; with ``u_rel`` (the aperture case's u(r)/r per cell) the
         error over u (``err_over_u_max``, ``_median``) and, with ``cells`` (a CellSet), the cells where
-        it exceeds :data:`SURROGATE_NOTE_ERR_OVER_U` (``err_over_u_note``)."""
+        it exceeds :data:`SURROGATE_NOTE_ERR_OVER_U` (``err_over_u_note``). Without validation trials
+        (``--validation 0``) the error of a surrogate with active coordinates was not measured: ``rel_err_max``, ``rel_err_rms`` are None and there
+        is no error over u (user audit: it said "max 0 %, max/u(r) = 0", a check that never ran)."""
+        measured = self.rel_err_max.size > 0 and not np.any(np.isnan(self.rel_err_max))
         d = {"design": self.surrogate.kind, "design_points": self.design_points, "validation_trials": self.validation_trials,
              "exact_evaluations": self.exact_evaluations, "seconds": self.seconds,
-             "rel_err_max": float(np.max(self.rel_err_max)) if self.rel_err_max.size else 0.0,
-             "rel_err_rms": float(math.sqrt(np.mean(self.rel_err_rms ** 2))) if self.rel_err_rms.size else 0.0,
+             "rel_err_max": float(np.max(self.rel_err_max)) if measured else None,
+             "rel_err_rms": float(math.sqrt(np.mean(self.rel_err_rms ** 2))) if measured else None,
              "backend_rel_u_max": self.backend_rel_u_max, "not_converged": self.not_converged,
              "fit_rms_log_max": float(np.max(self.surrogate.fit_rms_log)),
              "coordinate_scales": dict(zip(("alpha_loc_deg", "src_eps_offset_deg", "src_phi_offset_deg",
                                             "source_distance_m", "detector_distance_m"),
                                            self.surrogate.scale.tolist())),
              "backend": self.settings}
-        if u_rel is not None:
+        if u_rel is not None and measured:
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio = np.where(u_rel > 0, self.rel_err_max / u_rel, np.inf)
             d["err_over_u_max"] = float(np.max(ratio))
@@ -182,8 +186,9 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
     return SurrogateReport(
         surrogate=sur, design_points=len(pts), validation_trials=len(Xv),
         exact_evaluations=(len(pts) + len(Xv)) * n, seconds=time.perf_counter() - t0,
-        rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else np.zeros(n),
-        rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else np.zeros(n),
+        # no held-out trial: exact where the errors move none of its coordinates (one table), else not measured
+        rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else np.full(n, 0.0 if not len(active) else np.nan),
+        rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else np.full(n, 0.0 if not len(active) else np.nan),
         backend_rel_u_max=rel_u, settings=settings, not_converged=tally.not_converged)
 
 
@@ -490,7 +495,7 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
             continue
         mc = summarize(Y, coverage, threads=threads)
         gum = gum_propagation(funcs[name], spec.sigmas, coverage)
-        val = gum_validation(gum, mc, n_dig)
+        val = gum_validation(gum, mc, n_dig, interval_end_noise(Y, coverage))
         cases[name] = CaseResult(name=name, nominal=gum["y"], mc=mc, gum=gum, validation=val,
                                  q0_samples=Y[-2].copy(), s1_samples=Y[-1].copy())
     timings["statistics"] = time.perf_counter() - t
@@ -527,16 +532,17 @@ def _batch_stats(Y: np.ndarray, p: float) -> dict[str, np.ndarray]:
 def _stability(batches: Sequence[Mapping[str, np.ndarray]], pooled: np.ndarray, n_dig: int) -> dict[str, Any]:
     """JCGM 101 7.9.4 g)-j): 2 s <= delta for the mean, u and both interval ends of every output,
     s the standard deviation of the batch results divided by sqrt(h), delta from the pooled u."""
-    h = len(batches)
     u_pooled = pooled.std(axis=1, ddof=1)
     delta = numerical_tolerance(u_pooled, n_dig)
+    # an output the trials do not move (u at round-off) is stable: its batches differ in the last
+    # bits, and 2 s / delta of round-off over round-off said "not converged, inf x more trials" (audit)
+    constant = u_pooled <= ROUND_OFF_REL * np.abs(pooled.mean(axis=1))
     worst = np.zeros(pooled.shape[0])
     for key in ("mean", "u", "low", "high"):
-        v = np.stack([b[key] for b in batches])
-        s = v.std(axis=0, ddof=1) / math.sqrt(h)
+        s = batch_spread(np.stack([b[key] for b in batches]))
         with np.errstate(divide="ignore", invalid="ignore"):
             ratio = np.where(delta > 0, 2.0 * s / delta, np.where(s > 0, np.inf, 0.0))
-        worst = np.maximum(worst, ratio)
+        worst = np.maximum(worst, np.where(constant, 0.0, ratio))
     return {"stable": bool(np.all(worst <= 1.0)), "unstable": int(np.sum(worst > 1.0)),
             "worst_ratio": float(np.max(worst))}
 

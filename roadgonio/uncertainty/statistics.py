@@ -66,6 +66,43 @@ def summarize(Y: np.ndarray, p: float = 0.95, threads: int = 1, rows: int = 8) -
     return out
 
 
+#: a u below this fraction of the value is round-off of float64 arithmetic, not an uncertainty
+#: (Q0 under errors of the source distance with the illuminance measured in situ: 1e-17)
+ROUND_OFF_REL = 1e-12
+
+#: The batches a run's trials are split into to measure the Monte Carlo noise of its interval ends
+#: (JCGM 101 7.9.4 compares h batches the same way): 20, so that s itself has 19 degrees of freedom
+#: (an adaptive run's own batches can be as few as 2).
+END_NOISE_BATCHES = 20
+
+
+def batch_spread(values: np.ndarray) -> np.ndarray:
+    """s of JCGM 101 7.9.4 f): the standard deviation of h batch results (rows) over sqrt(h), per
+    column; exactly 0 where every batch gave the same number (an output the trials do not move: the
+    standard deviation of equal floats is round-off, 1e-18, not 0, which made a tolerance of 0 fail)."""
+    v = np.asarray(values, dtype=np.float64)
+    h = v.shape[0]
+    s = v.std(axis=0, ddof=1) / math.sqrt(h)
+    return np.where(np.ptp(v, axis=0) == 0, 0.0, s)
+
+
+def interval_end_noise(Y: np.ndarray, p: float, batches: int = END_NOISE_BATCHES) -> np.ndarray:
+    """2 s of the probabilistically symmetric interval's ends, the larger of the two, per row of Y
+    (n_out, M): the ends computed from ``batches`` contiguous equal batches of the trials
+    (:func:`batch_spread`). The comparison of JCGM 101 section 8 is decided by the Monte Carlo's
+    own noise where this exceeds the tolerance delta. Fewer than 2 trials a batch: inf."""
+    Y = np.asarray(Y, dtype=np.float64)
+    M = Y.shape[1]
+    h = min(int(batches), M // 2)
+    if h < 2:
+        return np.full(Y.shape[0], np.inf)
+    m = M // h
+    ends = [summarize(Y[:, b * m:(b + 1) * m], p) for b in range(h)]
+    lo = batch_spread(np.stack([e["sym_low"] for e in ends]))
+    hi = batch_spread(np.stack([e["sym_high"] for e in ends]))
+    return 2.0 * np.maximum(lo, hi)
+
+
 def numerical_tolerance(u: np.ndarray, n_dig: int) -> np.ndarray:
     """delta of JCGM 101 7.9.2: u = c x 10^l with c an n_dig-digit integer, delta = 10^l / 2."""
     u = np.asarray(u, dtype=np.float64)
