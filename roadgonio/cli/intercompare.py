@@ -70,7 +70,12 @@ def run(args) -> int:
                 f"{r['stated_u_median_pct']:.2g} %, RMS error {r['rms_error_vs_truth_pct']:.2f} %, compatible with "
                 f"the truth in {100 * r['share_En_le_1_truth']:.0f} % and with the weighted mean in "
                 f"{100 * r['share_En_le_1_weighted_mean']:.0f} % of the cells" + (f"; most of it: {why}" if why else ""))
-    if not s["validation"]:
+    corrects = any(r["scenario"] == "all_corrected" and r["participant"] != "ALL" and r["reports"] == "self"
+                   for r in summary)
+    if not s["validation"] and not corrects:
+        say("validation.csv has its header only: no participant's correction changes its table (collimated "
+            "instruments under a Lambert calibration, k_A = 1), so there is no frozen correction factor to check")
+    elif not s["validation"]:
         n = next((r.get("realisations") or 0 for r in summary if r["scenario"] == "all_corrected"
                   and r["participant"] == "ALL"), 0)
         say(f"validation.csv has its header only: checking the frozen correction factor against the full corrections "

@@ -811,8 +811,13 @@ def validation_rows(setup: sim.Setup, xs, stats, full) -> list[dict[str, Any]]:
     """The frozen correction factor against the full corrections, on the realisations where every
     participant that corrects has a full correction: each figure of merit (:func:`_figures`) with
     the full corrections and with the frozen factors, their mean paired difference and its standard
-    error over those realisations. Empty when no realisation has both."""
+    error over those realisations. Empty when no realisation has both, and when no participant's
+    correction changes its table (every instrument collimated under a Lambert calibration): the
+    frozen factor is then 1 as the full one, and rows of differences of 0 would look like a check
+    that passed (user audit)."""
     from roadgonio.intercomparison.outputs import VALIDATION_COLUMNS
+    if all(sim.reports_as(setup, p, "all_corrected") == "raw" for p in range(len(setup.participants))):
+        return []
     rows_ok = np.all(full["all_corrected"], axis=1) & stats["all_corrected"]["ok"] & stats[sim.FROZEN]["ok"]
     R = int(rows_ok.sum())
     if R < 2:

@@ -59,6 +59,7 @@ import numpy as np
 
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument, load_instrument
+from roadgonio.surface.rtable import U_REL_MIN
 
 REPORTS = ("raw", "self", "reference")
 STATED = ("repeatability", "misalignment", "calibration")
@@ -272,9 +273,9 @@ def _participant(k: int, d: Any, path) -> Participant:
     elif reference is not None:
         raise InputError(f"reference is only used with report = \"reference\" (report is {report!r})", path=path,
                          field=f"{fld}.reference")
-    if report != "raw" and noise <= 0:
-        raise InputError("a participant that corrects its table needs noise_rel > 0 (its measurement uncertainty "
-                         "weights the correction)", path=path, field=f"{fld}.noise_rel")
+    if report != "raw" and noise < U_REL_MIN:
+        raise InputError(f"a participant that corrects its table needs noise_rel >= {U_REL_MIN:g} (its measurement "
+                         f"uncertainty weights the correction), got {noise:g}", path=path, field=f"{fld}.noise_rel")
     stated = d.get("stated", list(STATED))
     if not isinstance(stated, (list, tuple)) or not all(isinstance(s, str) for s in stated):
         raise InputError(f"expected a list of some of {', '.join(STATED)}", path=path, field=f"{fld}.stated")
@@ -413,6 +414,15 @@ def study_from_dict(d: Mapping[str, Any], *, path: str | Path | None = None) -> 
                              "noise_rel > 0, 'calibration' with calibration_u_rel > 0 (or a reference tile), "
                              "'misalignment' with a sigma, or stated_extra_rel > 0", path=path,
                              field=f"participant[{i + 1}].stated")
+    if (n if nc is None else nc) > 0:
+        for i, part in enumerate(participants):
+            if not corrects_nothing(part.instrument) and part.noise_rel < U_REL_MIN:
+                # user audit: accepted, then refused after the k_A work by the correction, naming u_measured
+                # and neither the study file nor the participant
+                raise InputError(f"participant {part.name!r}: the all-corrected scenario corrects every "
+                                 "participant's table (roadgonio correct --reference self) weighted by its repeatability: "
+                                 f"expected noise_rel >= {U_REL_MIN:g} (or corrected_realisations = 0), got "
+                                 f"{part.noise_rel:g}", path=path, field=f"participant[{i + 1}].noise_rel")
     name = _text(s.get("name", path.stem if path is not None else "study"), "study.name", path)
     desc = s.get("description", "")
     if not isinstance(desc, str):

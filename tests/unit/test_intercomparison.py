@@ -26,7 +26,12 @@ def collimated(tmp_path):
     (lambda d: d["study"].update(realisation=3), "study.realisation", "unknown key"),
     (lambda d: d.update(extra={}), "extra", "unknown key"),
     (lambda d: d["participant"][1].update(report="reference"), "participant[2].reference", "needs reference"),
-    (lambda d: d["participant"][1].update(report="self", noise_rel=0.0), "participant[2].noise_rel", "noise_rel > 0"),
+    (lambda d: d["participant"][1].update(report="self", noise_rel=0.0), "participant[2].noise_rel", "noise_rel >= 1e-06"),
+    (lambda d: d["participant"][1].update(report="self", noise_rel=1e-9), "participant[2].noise_rel", "noise_rel >= 1e-06"),
+    # user audit: a raw participant with an aperture and no repeatability was accepted, then the all-corrected
+    # scenario's correction refused 'u_measured' after the k_A work, naming neither the file nor the participant
+    (lambda d: d["participant"][1].update(instrument="lab", noise_rel=0.0, calibration_u_rel=0.002,
+                                          stated=["calibration"]), "participant[2].noise_rel", "all-corrected scenario"),
     (lambda d: d["participant"][0].update(sigma="alpha=0.1"), "participant[1].sigma alpha", "unknown key"),
     (lambda d: d["participant"][0].update(stated=["aperture"]), "participant[1].stated", "unknown stated"),
     (lambda d: d["participant"][1].update(name="A"), "participant.name", "two participants"),
@@ -61,6 +66,18 @@ def test_bad_study_files_are_one_line_errors_naming_file_and_field(tmp_path, col
     assert str(tmp_path / "study.toml") in str(err.value)
     assert words in err.value.reason
     assert "\n" not in str(err.value)
+
+
+def test_a_participant_without_repeatability_is_accepted_where_nothing_corrects_its_table(tmp_path, collimated):
+    """The all-corrected scenario's need of noise_rel is the only one: without corrected realisations,
+    or for a collimated instrument (nothing to correct), noise_rel = 0 with another stated component is a study."""
+    lab = dict(instrument="lab", noise_rel=0.0, calibration_u_rel=0.002, stated=["calibration"])
+    d = {"study": {"surface": "R3", "realisations": 4, "corrected_realisations": 0},
+         "participant": [coll("A"), coll("B", **lab)], "shared": []}
+    assert study_from_dict(d, path=tmp_path / "study.toml").participants[1].noise_rel == 0.0
+    d = {"study": {"surface": "R3"}, "participant": [coll("A"), coll("B", **{**lab, "instrument": "collimated.toml"})],
+         "shared": []}
+    assert study_from_dict(d, path=tmp_path / "study.toml").participants[1].noise_rel == 0.0
 
 
 def test_a_study_takes_the_backends_and_default_tolerances_of_the_uncertainty_command(tmp_path, collimated):
@@ -344,8 +361,24 @@ def test_the_csv_files_have_their_header_row_even_without_rows(tmp_path, collima
     run_study(make_study(tmp_path, [coll("A"), coll("B")], realisations=2), out, workers=0, progress=False, plots=False)
     corr = pd.read_csv(out / "correlation.csv")                # 2 realisations: no correlation to give
     assert list(corr.columns) == list(CORRELATION_COLUMNS) and len(corr) == 0
-    valid = pd.read_csv(out / "validation.csv")                # collimated: every realisation corrects
-    assert list(valid.columns) == list(VALIDATION_COLUMNS) and len(valid) > 0
+    # collimated under a Lambert calibration: no correction changes a table, so there is nothing to check
+    # (user audit: rows of differences 0 +- 0 looked like a check that passed)
+    valid = pd.read_csv(out / "validation.csv")
+    assert list(valid.columns) == list(VALIDATION_COLUMNS) and len(valid) == 0
+
+
+def test_the_command_says_why_validation_csv_is_empty_when_nothing_is_corrected(tmp_path, collimated, capsys):
+    """Collimated participants under a Lambert calibration: the command says that no correction
+    changes a table (not that too few realisations were corrected, which is not the reason)."""
+    from roadgonio.cli import main
+    study = tmp_path / "study.toml"
+    study.write_text('[study]\nsurface = "R3"\nrealisations = 3\nseed = 7\nbackend = "quadrature"\n' + "".join(
+        f'[[participant]]\nname = "{n}"\ninstrument = "collimated.toml"\nnoise_rel = 0.01\nstated = ["repeatability"]\n'
+        for n in "AB"))
+    assert main(["intercompare", str(study), "--out", str(tmp_path / "o"), "--workers", "0", "--no-plots"]) == 0
+    out = capsys.readouterr().out
+    assert "validation.csv has its header only: no participant's correction changes its table" in out
+    assert "needs at least 2 realisations" not in out
 
 
 def test_a_scenario_no_realisation_compared_gets_no_bars_in_compatibility_png():
@@ -528,7 +561,9 @@ def test_validation_rows_pair_the_full_and_the_frozen_figures():
     stats = {s: comparison(xs[s], urel, np.zeros((0, P, n)), truth, 2.0) for s in xs}
     full = {"all_corrected": np.ones((R, P), dtype=bool)}
     full["all_corrected"][1, 2] = False
-    setup = SimpleNamespace(truth=truth, participants=[SimpleNamespace(name=c) for c in "ABC"])
+    from roadgonio.instrument.config import load_instrument
+    lab = SimpleNamespace(instrument=load_instrument("lab"))                # an instrument whose correction does something
+    setup = SimpleNamespace(truth=truth, participants=[SimpleNamespace(name=c, mm=lab) for c in "ABC"])
     rows = validation_rows(setup, xs, stats, full)
     assert rows and all(list(r) == list(VALIDATION_COLUMNS) for r in rows)
     by = {(r["figure"], r["participant"]): r for r in rows}
