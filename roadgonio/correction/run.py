@@ -201,8 +201,6 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
     return np.where(table.mask, grid, np.nan), what, path
 
 
-
-
 def _relative(v: float, table: RTable, fld: str, given: str | None = None) -> np.ndarray:
     """``v`` x each value; ``given`` is what the user wrote (``"150%"``), echoed by the error."""
     if not (math.isfinite(v) and 0.0 < v < 1.0):

@@ -52,10 +52,10 @@ def gum_validation(gum: Mapping[str, np.ndarray], mc: Mapping[str, np.ndarray], 
     criterion of 7.9.4), **validated** where both differences are within delta and the noise is too,
     **not validated** where a difference exceeds delta by more than twice the noise (4 s: a GUM result
     that is valid is then called not validated in about one output in 10^3, s being estimated from 20
-    batches), and **not judged**
-    otherwise (``judged`` False): the verdict there would be the noise's (user audit: one surface under
-    a source-distance error alone, 156, 271 or 168 of 396 cells "validated" with seeds 1, 2 and 3 at
-    50,000 trials). Without ``end_noise`` every output is judged (the bare comparison)."""
+    batches), and **not judged** otherwise (``judged`` False): the verdict there would be the noise's
+    (user audit: one surface under a source-distance error alone, 72, 263 or 93 of 396 cells
+    "validated" with seeds 1, 2 and 3 at 50,000 trials, the rest "not validated"). Without
+    ``end_noise`` every output is judged (the bare comparison)."""
     delta = numerical_tolerance(gum["u"], n_dig)
     d_low = np.abs(gum["low"] - mc["sym_low"])
     d_high = np.abs(gum["high"] - mc["sym_high"])
