@@ -379,6 +379,28 @@ class CalibratedBackend:
                           {"calibration": "reference", "note": "the reference is the sample: k_A = 1 exactly"},
                           error_bound=0.0 if deterministic else math.nan, converged=True, **stray)
 
+    @property
+    def rtol(self) -> float:
+        """The wrapped backend's target (the RQMC reference's ``rtol``, for the validator)."""
+        return self.inner.rtol
+
+    def compute_cell(self, tan_eps: float, beta_deg: float, rtol: float | None = None) -> CellResult:
+        """One cell with the wrapped backend's target ``rtol`` for this cell (the validator asks the
+        RQMC reference for the bound each cell's test needs); in the reference mode each of the two
+        readings is asked for half of it, since their bounds add. Only a wrapped backend with its own
+        ``compute_cell`` has one (user audit: ``validate`` of an instrument calibrated absolute or
+        against a reference ended in an AttributeError traceback with the exit status of a disagreement)."""
+        t, b = float(tan_eps), float(beta_deg)
+        if self.mode == "lambert":
+            return self.inner.compute_cell(t, b, rtol=rtol)
+        if self.mode == "absolute":
+            return self._absolute(self.inner.compute_cell(t, b, rtol=rtol))
+        if self.identical:
+            return self._unity(t, b)
+        half = None if rtol is None else 0.5 * rtol
+        r = self.reference_inner.compute_cell(t, b, rtol=half)
+        return self._reference(self.inner.compute_cell(t, b, rtol=half), r)
+
     # -- the KaBackend interface --------------------------------------------------------------
     def compute(self, cells: Sequence[tuple[float, float]],
                 on_cell: Callable[[CellResult], None] | None = None) -> list[CellResult]:

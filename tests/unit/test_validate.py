@@ -199,3 +199,18 @@ def test_exact_cases_agree_against_the_float64_monte_carlo(seed):
     assert report["floor"] == V.FLOAT32_FLOOR["numpy-mc"] > 0
     assert [r.verdict for r in report["rows"]] == ["agree"] * 4, [r.reason for r in report["rows"]]
     assert all(abs(r.k_mc - 1.0) < 1e-13 for r in report["rows"])
+
+
+@pytest.mark.parametrize("calibration", [{"mode": "absolute"}, {"mode": "reference", "reference": "R1"}])
+def test_validate_an_instrument_calibrated_absolute_or_against_a_reference(calibration):
+    """The RQMC reference is asked per cell for the bound the test needs, through the calibration's
+    wrapper (user audit: AttributeError 'CalibratedBackend' object has no attribute 'compute_cell',
+    exit status 1 as for a disagreement). numpy-mc against it on the portable preset, both in the same
+    calibration: they agree."""
+    from helpers import UNCERTAINTY_MODEL as model
+    from roadgonio.instrument.config import load_instrument
+    inst = load_instrument("portable").with_changes(calibration=calibration)
+    report = V.validate(inst, model, [(4.0, 0.0)], against="numpy-mc", reference="reference", rel_se=3e-3, seed=1)
+    row = report["rows"][0]
+    assert row.verdict == "agree", row.reason
+    assert row.k_ref != 1.0 and abs(row.k_mc / row.k_ref - 1) < 0.02
