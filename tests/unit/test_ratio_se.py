@@ -90,3 +90,18 @@ def test_no_standard_error_where_few_batches_carry_the_denominator():
             assert se == pytest.approx(math.sqrt(res @ res / (n - 1) / n) / lam.mean(), rel=ROUND_TOL)
         else:
             assert se == math.inf
+
+
+@pytest.mark.parametrize("scale", [1e-170, 1e-300, 1e150])
+def test_the_standard_error_does_not_underflow_for_values_near_the_ends_of_float64(scale):
+    """A BRDF of 1e-170 in a lobe's far tail: the residuals' squares underflowed to 0, and numpy-mc
+    and the RQMC reference stated an SE of exactly 0 for results far from the truth (user audit:
+    4.01e18 +- 0 where the truth is 2.77e18). The ratio's SE scales with the numerator."""
+    rng = np.random.default_rng(4)
+    road = 1.0 + 0.3 * rng.standard_normal(64)
+    lam = 2.0 + 0.1 * rng.standard_normal(64)
+    k1, se1 = ratio_se(road, lam)
+    k, se = ratio_se(scale * road, lam)
+    assert se1 > 0 and k == pytest.approx(scale * k1, rel=1e-13)
+    assert se == pytest.approx(scale * se1, rel=1e-12)
+    assert mean_rel_se(scale * lam) == pytest.approx(mean_rel_se(lam), rel=1e-12)
