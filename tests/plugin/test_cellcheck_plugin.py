@@ -70,3 +70,21 @@ def test_a_model_that_underflows_float32_is_not_measured_rather_than_zero():
     assert math.isnan(under.k_a) and math.isnan(under.se) and not under.converged
     assert under.extra["float32_underflow"] and "underflow the float32 renderer" in under.extra["note"]
     assert math.isfinite(on_lobe.k_a) and on_lobe.k_a > 0 and "float32_underflow" not in on_lobe.extra
+    assert math.isnan(under.se_dof)           # no degrees of freedom without an SE (user audit: 15)
+
+
+def test_a_lobe_whose_tail_float32_loses_in_part_is_not_measured():
+    """User audit, session 35: pure Phong of exponent 1e5 (k_phong 10) with the mirror direction on
+    the cell tan eps 12, beta 0 (the lab preset observing at alpha 4.763642 deg): at beta 2.6 deg the
+    rendered road signal is 4e-41 a sample, below float32's smallest normal number but not 0, and the
+    renderer said 11434 +- 11, converged, where the float64 backends give 30516. Now such a cell is not
+    measured; nearer the lobe (beta 2, 4e-24 a sample) the renderer agrees with the quadrature."""
+    from tolerances import n_sigma
+    inst = load_instrument("lab").with_changes(observation={"alpha_deg": 4.763642})
+    model = RoadModel(RoadParams(k_phong=10.0, n_phong=1e5))
+    near, tail = make_backend("mitsuba", inst, model, rel_se=2e-3, seed=0).compute([(12.0, 2.0), (12.0, 2.6)])
+    assert math.isnan(tail.k_a) and math.isnan(tail.se) and math.isnan(tail.se_dof) and not tail.converged
+    assert tail.extra["float32_underflow"] and "smallest normal number" in tail.extra["note"]
+    q = make_backend("quadrature", inst, model, rtol=1e-3).compute([(12.0, 2.0)])[0]
+    assert near.converged and "float32_underflow" not in near.extra
+    assert abs(near.k_a - q.k_a) <= n_sigma(near.se_dof) * near.se + q.error_bound, (near.k_a, near.se, q.k_a)

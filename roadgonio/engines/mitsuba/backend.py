@@ -80,6 +80,18 @@ def pooled_ratio(passes: Sequence[tuple[int, np.ndarray, np.ndarray]]) -> tuple[
     return ratio, math.sqrt(var) / mg, mg
 
 
+
+#: float32's smallest normal number: below it a value is a denormal (precision lost) or, where the
+#: LLVM backend flushes denormals, 0.
+FLOAT32_TINY = float(np.finfo(np.float32).tiny)
+#: The smallest mean road value a sample that the float32 renderer is trusted with, eight decades above
+#: :data:`FLOAT32_TINY`: the contributions it loses are each below about FLOAT32_TINY (times the few
+#: factors of a path), so below 1e-8 of such a signal. A lobe of exponent 1e5, 2.6 deg off its mirror
+#: direction at tan eps 12, rendered a mean of 1.4e-39 and k_A 11434 +- 11, converged, where the float64
+#: backends give 30516 (user audit, session 35); 0.1 deg nearer, at 4.4e-36, it agreed within 0.2 %:
+#: the limit gives up that cell as well.
+FLOAT32_SIGNAL_MIN = 1e-30
+
 class MitsubaBackend:
     """k_A by Mitsuba 3, all cells of a call batched (see the module docstring)."""
 
@@ -244,13 +256,25 @@ class MitsubaBackend:
         extra = {"ratio": ratio, "ratio_se": se, "ideal_ratio": ideal, "passes": st.passes,
                  "replicates": int(sum(len(v[0]) for v in st.strata.values())), "rel_se": rel,
                  "converged": bool(converged)}
+        mean_road = abs(st.sum_r) / st.samples if st.samples else 0.0
         if ideal <= 0.0:
             extra["note"] = "the model is 0 at the nominal geometry: k_A is undefined"
+            dof = math.nan
+        elif 0.0 < mean_road < FLOAT32_SIGNAL_MIN:
+            # part of the lobe's tail is lost: 11434 +- 11, converged, where the truth is 30516 (user audit)
+            k_a = k_se = math.nan
+            converged = False
+            dof = math.nan
+            extra.update(converged=False, float32_underflow=True, mean_road=mean_road)
+            extra["note"] = (f"the rendered road signal is {mean_road:.2g} a sample, within eight decades of float32's "
+                             f"smallest normal number ({FLOAT32_TINY:.2g}), where the renderer loses the lobe's tail: k_A "
+                             "is not measured (use a float64 backend: reference, quadrature, numpy-mc)")
         elif ratio == 0.0 and se == 0.0:
             # every sample rendered 0 where the float64 model is positive: its values underflow float32
             # (a lobe exponent of ~1e4 far off the lobe); 0 +- 0 "converged" was printed (user audit, session 24)
             k_a = k_se = math.nan
             converged = False
+            dof = math.nan
             extra["converged"] = False
             extra["float32_underflow"] = True
             extra["note"] = (f"the rendered road signal is 0 in every sample while the model is positive at the "
