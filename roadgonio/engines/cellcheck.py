@@ -92,18 +92,33 @@ def no_light(tan_eps: float, beta_deg: float, why: str = "") -> GeometryError:
                          f"{beta_deg:g}{' ' + why if why else ''}: k_A is undefined")
 
 
+def refusals(instrument: Instrument, models: Sequence[RoadModel], cells: Sequence[tuple[float, float]], *,
+             models_beam: bool = True) -> dict[str, np.ndarray]:
+    """Per reason, which of ``cells`` :func:`check_cells` refuses past the horizon: ``"line of sight"``
+    (the source disc in the detector's view), ``"beam"`` (a clipping beam limit the backend does not
+    model), ``"nominal value"`` (a model value at the nominal geometry that is not positive and
+    finite, for some model of ``models``); boolean masks in the cells' order."""
+    tb = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
+    out = {"line of sight": optics.source_blocks_view(instrument, tb),
+           "beam": optics.beam_clips_cells(instrument, cells) if not models_beam else np.zeros(len(cells), dtype=bool),
+           "nominal value": np.zeros(len(cells), dtype=bool)}
+    for m in models:
+        v = ideal_ratios(m, instrument, cells)
+        out["nominal value"] |= ~(np.isfinite(v) & (v > 0.0))
+    return out
+
+
+#: How an error names each reason of :func:`refusals`.
+REFUSAL_TEXT = {"line of sight": "where the source disc is in the detector's view",
+                "beam": "where a beam limit this backend does not model clips the source",
+                "nominal value": "where the model is not positive at the nominal geometry"}
+
+
 def refused_cells(instrument: Instrument, models: Sequence[RoadModel], cells: Sequence[tuple[float, float]], *,
                   models_beam: bool = True) -> list[tuple[float, float]]:
     """The cells of ``cells`` that :func:`check_cells` refuses for some model of ``models`` past the
-    horizon (the source disc in the detector's view, a clipping beam limit the backend does not
-    model, a model value at the nominal geometry that is not positive and finite), in order."""
-    tb = np.asarray(cells, dtype=np.float64).reshape(-1, 2)
-    bad = optics.source_blocks_view(instrument, tb)
-    if not models_beam:
-        bad |= optics.beam_clips_cells(instrument, cells)
-    for m in models:
-        v = ideal_ratios(m, instrument, cells)
-        bad |= ~(np.isfinite(v) & (v > 0.0))
+    horizon (:func:`refusals`, any reason), in order."""
+    bad = np.logical_or.reduce(list(refusals(instrument, models, cells, models_beam=models_beam).values()))
     return [cells[i] for i in np.flatnonzero(bad)]
 
 
@@ -148,6 +163,7 @@ def check_requested(backend, instrument: Instrument, model: RoadModel, cells: Se
             check_cells(instrument, m, cells, models_beam=models_beam, backend=name)
     except (GeometryError, BackendError) as err:
         reason = getattr(err, "reason", None) or str(err)
+        why = refusals(instrument, models, cells, models_beam=models_beam)
         bad = refused_cells(instrument, models, cells, models_beam=models_beam)
         if not bad:
             raise InputError(f"the {name} backend cannot compute a cell asked: {reason}", field=field) from None
@@ -155,5 +171,11 @@ def check_requested(backend, instrument: Instrument, model: RoadModel, cells: Se
         which = f"cell {listed}" if len(bad) == 1 else f"cells {listed}"
         if len(cells) > 1:
             which += f" ({len(bad)} of the {count(len(cells), 'cell')} asked)"
+        kinds = [(int(m.sum()), REFUSAL_TEXT[k]) for k, m in why.items() if m.any()]
+        if len(kinds) > 1:
+            # the cells are refused for different reasons: count each, and quote the first refusal as
+            # such (user audit: 536 cells whose model is 0 were given the reason of the one cell whose
+            # source disc blocks the view)
+            which += ", " + " and ".join(f"{n} {text}" for n, text in kinds) + "; the first checked"
         raise InputError(f"the {name} backend cannot compute {which}: {reason}; expected only cells it can compute: "
                          f"leave {'it' if len(bad) == 1 else 'them'} out (nothing was computed)", field=field) from None
