@@ -80,17 +80,17 @@ def pooled_ratio(passes: Sequence[tuple[int, np.ndarray, np.ndarray]]) -> tuple[
     return ratio, math.sqrt(var) / mg, mg
 
 
-
 #: float32's smallest normal number: below it a value is a denormal (precision lost) or, where the
 #: LLVM backend flushes denormals, 0.
 FLOAT32_TINY = float(np.finfo(np.float32).tiny)
 #: The smallest mean road value a sample that the float32 renderer is trusted with, eight decades above
 #: :data:`FLOAT32_TINY`: the contributions it loses are each below about FLOAT32_TINY (times the few
 #: factors of a path), so below 1e-8 of such a signal. A lobe of exponent 1e5, 2.6 deg off its mirror
-#: direction at tan eps 12, rendered a mean of 1.4e-39 and k_A 11434 +- 11, converged, where the float64
-#: backends give 30516 (user audit, session 35); 0.1 deg nearer, at 4.4e-36, it agreed within 0.2 %:
-#: the limit gives up that cell as well.
+#: direction at tan eps 12, rendered a mean of 3.6e-41 a sample and k_A 11434 +- 11, converged, where the
+#: float64 backends give 30516 (user audit, session 35); 0.1 deg nearer, at 1.2e-37, it agreed within
+#: 0.2 %: the limit gives up that cell as well.
 FLOAT32_SIGNAL_MIN = 1e-30
+
 
 class MitsubaBackend:
     """k_A by Mitsuba 3, all cells of a call batched (see the module docstring)."""
