@@ -118,8 +118,12 @@ def refused_cells(instrument: Instrument, models: Sequence[RoadModel], cells: Se
                   models_beam: bool = True) -> list[tuple[float, float]]:
     """The cells of ``cells`` that :func:`check_cells` refuses for some model of ``models`` past the
     horizon (:func:`refusals`, any reason), in order."""
-    bad = np.logical_or.reduce(list(refusals(instrument, models, cells, models_beam=models_beam).values()))
-    return [cells[i] for i in np.flatnonzero(bad)]
+    return _refused(cells, refusals(instrument, models, cells, models_beam=models_beam))
+
+
+def _refused(cells: Sequence[tuple[float, float]], why: dict[str, np.ndarray]) -> list[tuple[float, float]]:
+    """The cells that some reason of ``why`` (:func:`refusals`) refuses, in order."""
+    return [cells[i] for i in np.flatnonzero(np.logical_or.reduce(list(why.values())))]
 
 
 def _checked_models(backend, model: RoadModel) -> list[RoadModel]:
@@ -164,7 +168,7 @@ def check_requested(backend, instrument: Instrument, model: RoadModel, cells: Se
     except (GeometryError, BackendError) as err:
         reason = getattr(err, "reason", None) or str(err)
         why = refusals(instrument, models, cells, models_beam=models_beam)
-        bad = refused_cells(instrument, models, cells, models_beam=models_beam)
+        bad = _refused(cells, why)
         if not bad:
             raise InputError(f"the {name} backend cannot compute a cell asked: {reason}", field=field) from None
         listed = cells_text(bad, LISTED)

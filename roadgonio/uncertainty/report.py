@@ -32,13 +32,18 @@ def _validated_or_none(validation: Mapping[str, np.ndarray], k: int) -> bool | N
 
 
 def verdict_counts(validation: Mapping[str, np.ndarray], n: int) -> str:
-    """``GUM validated in 30, not validated in 12, not judged in 354 of 396 cells``."""
+    """``validated in 30, not validated in 12, not judged in 354 of 396 cells``."""
     ok = int(np.sum(validation["validated"][:n]))
     judged = int(np.sum(validation["judged"][:n]))
-    text = f"GUM validated in {ok}, not validated in {judged - ok}"
+    text = f"validated in {ok}, not validated in {judged - ok}"
     if judged < n:
         text += f", not judged in {n - judged}"
     return text + f" of {n} cells"
+
+
+def at_round_off(c, k: int) -> bool:
+    """Output ``k`` of case ``c`` is not changed by the errors: its u is round-off (:data:`ROUND_OFF_REL`)."""
+    return bool(abs(c.mc["u"][k]) <= ROUND_OFF_REL * abs(c.mc["mean"][k]))
 
 
 def result_dict(res: UncertaintyResult, *, cells: bool = True) -> dict[str, Any]:
@@ -162,7 +167,7 @@ def plot_uncertainty_maps(res: UncertaintyResult, out: Path) -> list[Path]:
             u_rel = 100.0 * c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
         title = (f"Relative standard uncertainty u(r)/r (%), {name.replace('_', ' ')}: "
                  f"{res.trials} trials, seed {res.seed}")
-        sub = (f"GUM first-order result (JCGM 101 s. 8, {res.n_dig} digits): {verdict_counts(c.validation, n)[4:]}; "
+        sub = (f"GUM first-order result (JCGM 101 s. 8, {res.n_dig} digits): {verdict_counts(c.validation, n)}; "
                f"Q0 = {c.mc['mean'][n]:.4g} +- {c.mc['u'][n]:.2g}, S1 = {c.mc['mean'][n + 1]:.4g} +- {c.mc['u'][n + 1]:.2g}")
         paths.append(table_map(res.cells.to_grid(u_rel), out / f"u_rel_{name}.png", title=title,
                                label="u(r)/r (%)", centre=None, log=False, fmt="{:.2f}", subtitle=sub))
@@ -243,14 +248,14 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
         with np.errstate(divide="ignore", invalid="ignore"):
             u_rel = c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
         lines.append(f"{name.replace('_', ' ')}: u(r)/r median {100 * np.nanmedian(u_rel):.3g} %, max "
-                     f"{100 * np.nanmax(u_rel):.3g} %; {verdict_counts(c.validation, n)}")
-        shown = np.r_[np.ones(n, dtype=bool), np.abs(c.mc["u"][n:n + 2]) > ROUND_OFF_REL * np.abs(c.mc["mean"][n:n + 2])]
-        if np.any(shown & ~c.validation["judged"][:n + 2]):
+                     f"{100 * np.nanmax(u_rel):.3g} %; GUM {verdict_counts(c.validation, n)}")
+        if not np.all(c.validation["judged"][:n]) or any(not c.validation["judged"][k] and not at_round_off(c, k)
+                                                          for k in (n, n + 1)):
             lines.append(f"  not judged: the Monte Carlo interval's ends are too noisy to decide against a tolerance of "
                          f"{res.n_dig} digit(s) of u (their 2 s from 20 batches, JCGM 101 7.9.4): more --trials, "
                          "--adaptive, or fewer --digits")
         for k, label in ((n, "Q0"), (n + 1, "S1")):
-            if abs(c.mc["u"][k]) <= ROUND_OFF_REL * abs(c.mc["mean"][k]):
+            if at_round_off(c, k):
                 # the errors do not change it: a u of round-off, which the GUM validation would judge
                 lines.append(f"  {label}: {c.mc['mean'][k]:.5g}, not changed by these errors (u at round-off, "
                              f"{c.mc['u'][k]:.1g})")

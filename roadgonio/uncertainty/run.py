@@ -183,12 +183,13 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
             bar.close()
     settings: dict[str, Any] = dict(backend_settings or {})
     settings = {**settings, **tally.settings}
+    # no held-out trial: exact where the errors move none of its coordinates (one table), else not measured
+    unmeasured = np.full(n, 0.0 if not len(active) else np.nan)
     return SurrogateReport(
         surrogate=sur, design_points=len(pts), validation_trials=len(Xv),
         exact_evaluations=(len(pts) + len(Xv)) * n, seconds=time.perf_counter() - t0,
-        # no held-out trial: exact where the errors move none of its coordinates (one table), else not measured
-        rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else np.full(n, 0.0 if not len(active) else np.nan),
-        rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else np.full(n, 0.0 if not len(active) else np.nan),
+        rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else unmeasured,
+        rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else unmeasured,
         backend_rel_u_max=rel_u, settings=settings, not_converged=tally.not_converged)
 
 

@@ -260,26 +260,23 @@ class MitsubaBackend:
         if ideal <= 0.0:
             extra["note"] = "the model is 0 at the nominal geometry: k_A is undefined"
             dof = math.nan
-        elif 0.0 < mean_road < FLOAT32_SIGNAL_MIN:
-            # part of the lobe's tail is lost: 11434 +- 11, converged, where the truth is 30516 (user audit)
+        elif (zero := ratio == 0.0 and se == 0.0) or 0.0 < mean_road < FLOAT32_SIGNAL_MIN:
+            # float32 lost the signal: all of it (0 +- 0 "converged", a lobe exponent of ~1e4 far off the
+            # lobe; user audit, session 24), or part of the lobe's tail (11434 +- 11, converged, where the
+            # truth is 30516; user audit, session 35)
             k_a = k_se = math.nan
             converged = False
             dof = math.nan
-            extra.update(converged=False, float32_underflow=True, mean_road=mean_road)
-            extra["note"] = (f"the rendered road signal is {mean_road:.2g} a sample, within eight decades of float32's "
-                             f"smallest normal number ({FLOAT32_TINY:.2g}), where the renderer loses the lobe's tail: k_A "
-                             "is not measured (use a float64 backend: reference, quadrature, numpy-mc)")
-        elif ratio == 0.0 and se == 0.0:
-            # every sample rendered 0 where the float64 model is positive: its values underflow float32
-            # (a lobe exponent of ~1e4 far off the lobe); 0 +- 0 "converged" was printed (user audit, session 24)
-            k_a = k_se = math.nan
-            converged = False
-            dof = math.nan
-            extra["converged"] = False
-            extra["float32_underflow"] = True
-            extra["note"] = (f"the rendered road signal is 0 in every sample while the model is positive at the "
-                             f"nominal geometry ({ideal:.3g} of the Lambertian's): its values underflow the float32 "
-                             "renderer here; k_A is not measured (use a float64 backend: reference, numpy-mc)")
+            extra.update(converged=False, float32_underflow=True)
+            if zero:
+                extra["note"] = (f"the rendered road signal is 0 in every sample while the model is positive at the "
+                                 f"nominal geometry ({ideal:.3g} of the Lambertian's): its values underflow the float32 "
+                                 "renderer here; k_A is not measured (use a float64 backend: reference, numpy-mc)")
+            else:
+                extra["mean_road"] = mean_road
+                extra["note"] = (f"the rendered road signal is {mean_road:.2g} a sample, within eight decades of "
+                                 f"float32's smallest normal number ({FLOAT32_TINY:.2g}), where the renderer loses the "
+                                 "lobe's tail: k_A is not measured (use a float64 backend: reference, quadrature, numpy-mc)")
         elif math.isfinite(ratio) and (lit := st.lambert_rel_se()) > RATIO_DENOMINATOR_REL_SE_MAX:
             # one lit replicate of 16 gave k_A 1.0075 +- 1.5e-16, "converged" (user audit, session 34)
             extra["sparse_light"] = float(lit)
