@@ -22,7 +22,8 @@ L_S at incidence epsilon, seen by the luminance meter of etendue G_D::
 A source with a beam profile (radiance L_0 A(rho) P(theta), docs/conventions.md section 4) has
 ``Omega_S = E_normal / L_0``, the illuminance on its axis at the sample centre per unit on-axis
 radiance, integrated over the disc (float64 Gauss rule): a narrower beam or a darker rim gives
-less signal from the same lamp.
+less signal from the same lamp. A hard beam limit (``beam_half_angle_deg``) lets only the disc's inner
+part of radius min(R_S, D_S tan theta) light the sample centre (R_S there in Omega_S).
 
 For the same lamp (L_S), sample (rho) and cell (eps), the design's ``signal`` is relative to the base
 design::
@@ -31,7 +32,9 @@ design::
 
 It does not depend on the detector distance (etendue is conserved: a farther luminance meter sees a
 larger footprint), and it neglects the illuminance gradient over the footprint (which the Lambert
-calibration removes from k_A anyway). A point source or a pinhole detector has signal 0.
+calibration removes from k_A anyway): it is the light at the footprint's centre, so a beam narrower
+than the footprint, which leaves part of it dark, detects less than it says (``roadgonio design``
+counts the points whose beam limit clips the footprint and says so). A point source or a pinhole detector has signal 0.
 
 Deviations
 ----------
@@ -58,7 +61,7 @@ import numpy as np
 from roadgonio.instrument.config import Instrument
 
 SIGNAL_FORMULA = ("signal = (Omega_S G_D <k_D>) / (Omega_S G_D <k_D>)_base; Omega_S = pi R_S^2/(R_S^2+D_S^2) "
-                  "(projected solid angle of the source disc), G_D = pi^2/2 (X - sqrt(X^2 - 4 R_D^2 r_F^2)), "
+                  "(projected solid angle of the source disc; a beam limit theta: R_S -> min(R_S, D_S tan theta)), G_D = pi^2/2 (X - sqrt(X^2 - 4 R_D^2 r_F^2)), "
                   "X = R_D^2 + r_F^2 + F^2, r_F = F tan gamma_D (etendue of pupil and field discs; pi R_D^2 pi "
                   "sin^2 gamma_D for F = inf), <k_D> = 1 - (1 - e)/2 (roadgonio.design.metrics); a beam profile "
                   "L_0 A(rho) P(theta): Omega_S = E_normal / L_0 integrated over the disc, a sensitivity map: <k_D> "
@@ -113,13 +116,17 @@ def profiled_solid_angle(instrument: Instrument) -> float:
     :func:`source_solid_angle` for the uniform disc, otherwise the mean source coupling over the disc
     (:func:`roadgonio.engines.calibration.centre_coupling`, eta's E_0, profile included) times its
     area, for the source overhead, at the sample centre (a fixed-height source is then at its height, where
-    its signal is largest)."""
+    its signal is largest). A beam limit ``beam_half_angle_deg`` lets only the inner disc of radius
+    min(R_S, D_S tan theta) light the centre (:func:`roadgonio.engines.calibration.beam_cut_fraction`):
+    the closed form of that disc, or the rule over it."""
     src = instrument.source
-    if not src.profiled or src.radius_m == 0.0:
-        return source_solid_angle(src.radius_m, src.length_m)
-    from roadgonio.engines.calibration import centre_coupling
+    if src.radius_m == 0.0:
+        return 0.0
+    from roadgonio.engines.calibration import beam_cut_fraction, centre_coupling
     from roadgonio.instrument import optics
     g = optics.source_geometry(instrument, 0.0, 0.0)
+    if not src.profiled:
+        return source_solid_angle(src.radius_m * beam_cut_fraction(g), src.length_m)
     return centre_coupling(g, PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL) * math.pi * src.radius_m ** 2
 
 

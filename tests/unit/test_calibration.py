@@ -262,6 +262,36 @@ def test_centre_coupling_closed_forms(radius):
         assert g == pytest.approx(math.cos(math.atan(3.0)) / 0.8 ** 2, rel=ROUND_TOL, abs=0.0)
 
 
+@pytest.mark.parametrize("cone_deg", [0.5, 1.0, 1.5, 5.0])
+def test_centre_coupling_under_a_beam_limit_is_the_inner_disc(cone_deg):
+    """A hard beam limit: the sample centre is on the source's axis, so only the concentric disc of
+    radius rc = min(R, D tan theta) lights it, and E_0 / (L A_S) = rc^2 / (rc^2 + D^2) / R^2 on the
+    zenith, times cos(eps) at incidence eps (the vector irradiance of a uniform disc on its axis is
+    along the axis). User audit: the Gauss rule over the whole disc took a 0.5 deg cone for the uncut
+    disc (its nodes all lay in or all out of the cone)."""
+    from roadgonio.engines.calibration import beam_cut_fraction, centre_coupling
+    from roadgonio.instrument import optics
+    R, D = 0.025, 1.0
+    inst = inst_with(source={"radius_m": R, "distance_m": D, "beam_half_angle_deg": cone_deg})
+    rc = min(R, D * math.tan(math.radians(cone_deg)))
+    inner = rc * rc / (rc * rc + D * D) / (R * R)
+    for tan_eps, beta in ((0.0, 0.0), (3.0, 40.0), (12.0, 180.0)):
+        g = optics.source_geometry(inst, tan_eps, beta)
+        assert beam_cut_fraction(g) == pytest.approx(rc / R, rel=ROUND_TOL)
+        assert centre_coupling(g) == pytest.approx(inner * math.cos(math.atan(tan_eps)), rel=ROUND_TOL, abs=0.0)
+
+
+def test_eta_of_a_spot_between_the_nodes_is_not_a_converged_zero():
+    """A 0.5 deg beam limit on the portable's disc lights spots of ~9 mm on a 0.44 m footprint at
+    tan eps 0, which the coarse levels' nodes miss: eta = 0 there with a change of 0 between levels
+    was accepted as converged (user audit: k_A 0.0, converged, error bound 0). A zero is refined in
+    every direction; here the finer levels find the light, and the result is not converged."""
+    from roadgonio.engines.calibration import illuminance_ratio
+    inst = inst_with(source={"beam_half_angle_deg": 0.5})
+    eta, err, converged = illuminance_ratio(inst, 0.0, 0.0)
+    assert eta > 0.0 and not converged and err > 0.0
+
+
 @pytest.mark.parametrize("mode", ["lambert", "absolute", "reference"])
 def test_forward_model_and_wrapper_calibrate_alike(tmp_path, mode):
     """The forward model's k_A in each mode equals the wrapper's rule (apply_calibration) applied to
