@@ -1,6 +1,7 @@
 """``roadgonio design``: sweep instrument parameters on Dask; tolerance map, Pareto front, best design."""
 from __future__ import annotations
 
+import math
 import sys
 
 from roadgonio import api
@@ -123,21 +124,37 @@ def run(args) -> int:
         say(f"not converged: {count(s['points_not_converged'], 'point')} with cells whose backend stopped before its "
             "target (not_converged in design.nc; their max |k_A - 1| carries the SE or bound they stopped at)")
     b = s["best"]
-    if b is None:
+    dark = s["not_feasible_by_kind"].get("signal", 0)
+    if b is None and dark and not s["not_feasible_by_kind"].get("tolerance"):
+        # (user audit: a pinhole base whose points were all refused for no signal, one of them 2.8 % off,
+        # was told that no design meets the tolerance)
+        say(f"no design to build: {count(dark, 'point')} detect no light (signal 0: a zero source radius, field or "
+            "pupil, the ideal point geometry) and no other point is possible; their max |k_A - 1| is in design.csv")
+    elif b is None:
         say("no design meets the tolerance: see " + ("design.csv (max_abs_dev)" if args.no_plots else "pareto.png")
-            + " for the closest ones")
+            + " for the closest ones" + (f" ({count(dark, 'point')} detect no light: signal 0, no design)" if dark else ""))
     else:
         vals = ", ".join(f"{k} = {b[k]:g}" for k in s["varied"]) or "the base design"
         say(f"best: {vals}: signal {b['signal']:.3g} x base, max |k_A - 1| = {b['max_abs_dev']:.4f} "
-            f"(+- {b['worst_u']:.1g}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
+            f"({b['precision']}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
             f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
         if b.get("not_converged"):
-            say(f"  {count(int(b['not_converged']), 'cell')} of it did not converge (the +- above comes from the bound "
+            say(f"  {count(int(b['not_converged']), 'cell')} of it did not converge (the precision above is the bound "
                 "or SE the backend stopped at)")
         if s.get("equally_bright", 1) > 1:
             say(f"  the least max |k_A - 1| of {s['equally_bright']} feasible designs with the most signal (signals within "
                 f"{s['same_signal_rtol']:.1g} relative count as equal: design.csv has them all)")
-        if b["max_abs_dev"] + b["worst_u"] > s["tolerance"]:
+        if s.get("indistinct_from_best"):
+            say(f"  note: {count(s['indistinct_from_best'], 'other design')} as bright within the precision of its max "
+                "|k_A - 1| (2 SE, or the error bounds): the computation does not tell them apart from the best "
+                "(design.csv); a finer --accuracy may")
+        bound, se = b.get("worst_error_bound"), b.get("worst_se")
+        if bound is not None and math.isfinite(bound) and not (se is not None and math.isfinite(se)):
+            if b["max_abs_dev"] + bound > s["tolerance"]:
+                say(f"  note: its max |k_A - 1| is within its error bound ({bound:.1g}) of the tolerance: the bound "
+                    "does not decide that it is within; recompute the candidates at a finer --accuracy before "
+                    "building it")
+        elif b["max_abs_dev"] + b["worst_u"] > s["tolerance"]:
             say(f"  note: its max |k_A - 1| is within one standard uncertainty ({b['worst_u']:.1g}) of the tolerance: "
                 "recompute the candidates at a finer --accuracy (e.g. default) before building it")
         if (b.get("max_stray_fraction") or 0.0) > 0.0:
@@ -145,6 +162,10 @@ def run(args) -> int:
                 f"road signal at tan eps {b['max_stray_tan_eps']:g}, beta {b['max_stray_beta_deg']:g} "
                 f"({b['max_stray_sample']}); without it max |k_A,direct - 1| = {b['max_abs_dev_direct']:.4f} "
                 "(every point's: design.csv)")
+    if s.get("points_beam_clipped"):
+        say(f"note: in {count(s['points_beam_clipped'], 'point')} the source's beam limit clips the light reaching the "
+            "detected footprint: the signal counts the light at the footprint's centre, so there the detected flux "
+            "is less than it says (roadgonio render shows the lit part)")
     if s.get("same_signal") is not None and not args.no_plots:
         say(f"every design point has the same signal ({s['same_signal']:.4g} x base): pareto.png shows max |k_A - 1| "
             "point by point instead of against the signal")

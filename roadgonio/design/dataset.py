@@ -76,6 +76,8 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     worst_t = np.full(n, np.nan)
     worst_b = np.full(n, np.nan)
     worst_u = np.full(n, np.nan)
+    worst_se = np.full(n, np.nan)
+    worst_eb = np.full(n, np.nan)
     worst_s = np.array([""] * n, dtype=object)
     max_dev_s = np.full((n, ns), np.nan)
     max_stray = np.full(n, np.nan)
@@ -95,6 +97,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         max_dev[i], rms[i], worst_u[i] = d["max_abs_dev"], d["rms_dev"], d["worst_u"]
         js, a, bb = np.unravel_index(d["worst"], k_a[i].shape)
         worst_t[i], worst_b[i], worst_s[i] = tans[a], betas[bb], samples[js].name
+        worst_se[i], worst_eb[i] = se[i, js, a, bb], bound[i, js, a, bb]
         st = stray_metrics(stray["stray_fraction"][i], stray["k_a_direct"][i], stray["stray_fraction_se"][i])
         max_stray[i], stray_u[i], max_dev_direct[i] = st["max_stray_fraction"], st["stray_u"], st["max_abs_dev_direct"]
         if st["stray_worst"] >= 0:
@@ -121,6 +124,11 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                          f"beta {worst_b[i]:g} ({worst_s[i]})")
     sb = signal_product(base)
     signal = signal_abs / sb if sb > 0 else np.full(n, np.nan)
+    # the signal is the light at the footprint's centre (metrics): where a beam limit clips the light
+    # reaching the footprint, part of the footprint is dark and the detected flux is less (user audit)
+    from roadgonio.instrument.optics import beam_clips_cells
+    clipped = np.array([x is not None and x.source.beam_half_angle_deg is not None and computed[i]
+                        and bool(beam_clips_cells(x, union).any()) for i, x in enumerate(inst_of)])
     omega = np.array([profiled_solid_angle(x) if x is not None else np.nan
                       for x in inst_of])
     etendue = np.array([detector_etendue(x) if x is not None else np.nan for x in inst_of])
@@ -157,6 +165,11 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "worst_sample": (dims, grid(worst_s.astype(str)), {"long_name": "sample of the worst cell"}),
         "worst_u": (dims, grid(worst_u), {"long_name": "standard uncertainty of k_A at the worst cell (its SE, or its "
                                                       "deterministic error bound / sqrt 3)"}),
+        "worst_se": (dims, grid(worst_se), {"long_name": "standard error of k_A at the worst cell (NaN for a "
+                                                        "deterministic backend)"}),
+        "worst_error_bound": (dims, grid(worst_eb), {"long_name": "deterministic error bound of k_A at the worst cell "
+                                                                  "(quadrature; beside worst_se under absolute "
+                                                                  "calibration: eta's part; NaN otherwise)"}),
         "max_abs_dev_direct": (dims, grid(max_dev_direct), {
             "long_name": "max |k_A,direct - 1| over the cells and samples: the aperture effect without the stray "
                          "light (= max_abs_dev without stray light)", "units": "1"}),
@@ -202,6 +215,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "base_signal_product": float(sb),
         "signal_formula": SIGNAL_FORMULA,
         "points": int(n), "points_geometry_ok": int(geometry_ok.sum()), "points_feasible": int(feasible.sum()),
+        "points_beam_clipped": int(clipped.sum()),
         "best_index": int(best),
         "best_point_json": to_json(points[best] if best >= 0 else None, indent=None),
         "log_axes": to_json([s.key for s in specs if s.log], indent=None),
@@ -279,12 +293,49 @@ def same_signal(ds) -> float | None:
     return float(s[0])
 
 
+def indistinct(flat: Mapping[str, np.ndarray], best: int) -> np.ndarray:
+    """Per point (flat arrays ``max_abs_dev``, ``worst_se``, ``worst_error_bound``), True where its max
+    |k_A - 1| and the best's differ by no more than their precision says: with standard errors,
+    2 x the two SEs in quadrature; with deterministic bounds, the two bounds together (both when a
+    table has both: Monte Carlo under absolute calibration). The best itself is not counted; points
+    without a max |k_A - 1| are not."""
+    dev = np.asarray(flat["max_abs_dev"], dtype=np.float64)
+    missing = np.full(dev.shape, np.nan)             # a design.nc written before these were kept
+    se = np.nan_to_num(np.asarray(flat.get("worst_se", missing), dtype=np.float64))
+    eb = np.nan_to_num(np.asarray(flat.get("worst_error_bound", missing), dtype=np.float64))
+    reach = INDISTINCT_SE * np.hypot(se, se[best]) + eb + eb[best]
+    out = np.isfinite(dev) & (np.abs(dev - dev[best]) <= reach)
+    out[best] = False
+    return out
+
+
+def precision_words(se, error_bound, u) -> str:
+    """What the precision of a max |k_A - 1| is, in words with its value: 'SE 1e-04', 'error bound
+    2e-04' (a deterministic bound, never called a standard error: user audit), 'SE 1e-04 and eta's
+    error bound 3e-06' (Monte Carlo under absolute calibration), or the standard uncertainty 'u 1e-04'
+    of a design.nc written before the kinds were kept."""
+    def finite(v):
+        return v is not None and math.isfinite(float(v))
+    if finite(se) and finite(error_bound):
+        return f"SE {float(se):.1g} and eta's error bound {float(error_bound):.1g}"
+    if finite(error_bound):
+        return f"error bound {float(error_bound):.1g}"
+    if finite(se):
+        return f"SE {float(se):.1g}"
+    return f"u {float(u):.1g}" if finite(u) else "no SE"
+
+
+#: Two max |k_A - 1| within this many standard errors (of their difference) are not told apart.
+INDISTINCT_SE = 2.0
+
+
 def summary(ds) -> dict[str, Any]:
     """A short JSON-able summary of a design Dataset."""
     dims = json.loads(ds.attrs["varied"])
     best = int(ds.attrs["best_index"])
     flat = {v: ds[v].values.reshape(-1) for v in ("max_abs_dev", "rms_dev", "signal", "feasible", "kind",
                                                     "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u",
+                                                    "worst_se", "worst_error_bound",
                                                     "seed", "footprint_length_m", "max_stray_fraction",
                                                     "max_stray_tan_eps", "max_stray_beta_deg", "max_stray_sample",
                                                     "max_stray_u", "max_abs_dev_direct", "not_converged") if v in ds}
@@ -302,6 +353,7 @@ def summary(ds) -> dict[str, Any]:
                          "wall_s": float(ds.attrs.get("wall_s", math.nan)),
                          "compute_wall_s": float(ds.attrs.get("compute_wall_s", math.nan))}
     s["same_signal"] = same_signal(ds)
+    s["points_beam_clipped"] = int(ds.attrs.get("points_beam_clipped", 0))
     if "not_converged" in flat:
         # points with cells whose backend stopped before its target (their u is what it stopped at;
         # audit 21: only design.nc said so)
@@ -312,7 +364,11 @@ def summary(ds) -> dict[str, Any]:
         sig, dev = flat["signal"].astype(np.float64), flat["max_abs_dev"].astype(np.float64)
         feas = flat["feasible"].astype(bool) & np.isfinite(sig) & np.isfinite(dev)
         top = float(np.max(sig[feas]))
-        s["equally_bright"] = int(np.sum(feas & (sig >= top - SAME_SIGNAL_RTOL * abs(top))))
+        bright = feas & (sig >= top - SAME_SIGNAL_RTOL * abs(top))
+        s["equally_bright"] = int(np.sum(bright))
+        # the equally bright designs the computation cannot tell from the best (user audit: of three
+        # lid heights of one black housing, physically one instrument, the seed chose the best)
+        s["indistinct_from_best"] = int(np.sum(bright & indistinct(flat, best)))
     if "design_points_per_hour" in ds.attrs:
         s["design_points_per_hour"] = float(ds.attrs["design_points_per_hour"])
     cluster = json.loads(ds.attrs.get("provenance", "{}")).get("cluster") or {}
@@ -322,6 +378,8 @@ def summary(ds) -> dict[str, Any]:
                      **{k: (v[best].item() if hasattr(v[best], "item") else v[best]) for k, v in flat.items()
                         if k not in ("feasible", "kind")}}
         s["best"]["seed"] = int(s["best"]["seed"])
+        s["best"]["precision"] = precision_words(s["best"].get("worst_se"), s["best"].get("worst_error_bound"),
+                                                 s["best"]["worst_u"])
     else:
         s["best"] = None
     if "out" in ds.attrs:

@@ -15,6 +15,8 @@ instrument with a ``[housing]``: :func:`check_vary` refuses the others before an
 * ``LO:HI:N:log``  N values evenly spaced in log(value) (LO, HI > 0); ``LO:HI:N:lin`` (or ``:linear``) is ``LO:HI:N``;
 * ``V1,V2,...``    the listed values.
 
+Each axis is kept in ascending order, whatever order its values were given in.
+
 Values are rounded to 12 significant digits (0.02, not 0.019999999999999997), so the CSV, the
 instrument file of the best design and ``roadgonio ka`` all see the same numbers.
 
@@ -131,7 +133,10 @@ def parse_vary(spec: str) -> VarySpec:
         values = tuple(_round(_number(v.strip(), text)) for v in rhs.split(",") if v.strip())
     if len(set(values)) != len(values):
         raise InputError(f"repeated values for {key} in {text!r}", field="vary")
-    return VarySpec(key=key, values=values, log=log, text=text)
+    # a grid axis in ascending order whatever order the values were given in: the tolerance map's
+    # cells, contours and iso-signal lines are drawn between neighbouring values (user audit:
+    # 0.02,0.002,0.01 painted 4 of 9 cells and put a point's value at another radius)
+    return VarySpec(key=key, values=tuple(sorted(values)), log=log, text=text)
 
 
 def as_vary_specs(vary: Sequence[str | VarySpec] | Mapping[str, Sequence[float]] | None) -> list[VarySpec]:

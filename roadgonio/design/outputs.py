@@ -6,7 +6,8 @@
   then ``max_abs_dev, rms_dev, signal, feasible, reason``, then ``kind, worst_tan_eps,
   worst_beta_deg, worst_sample, worst_u, footprint_length_m, seed``, then the stray light
   (:func:`roadgonio.design.metrics.stray_metrics`) ``max_abs_dev_direct, max_stray_fraction,
-  max_stray_tan_eps, max_stray_beta_deg, max_stray_sample, max_stray_u``;
+  max_stray_tan_eps, max_stray_beta_deg, max_stray_sample, max_stray_u``, then the worst cell's
+  precision by kind ``worst_se, worst_error_bound`` (``worst_u`` is their standard uncertainty);
 * ``best.toml``: the feasible design with the most signal (:func:`roadgonio.design.dataset.best_point`), a complete instrument file (opens with
   ``roadgonio ka --instrument best.toml``; the header says how to reproduce its row);
 * ``pareto.png``: max |k_A - 1| against the signal, feasible points marked, the Pareto front, the
@@ -36,7 +37,7 @@ from roadgonio.instrument.config import toml_text
 CSV_TAIL = ("max_abs_dev", "rms_dev", "signal", "feasible", "reason")
 CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u", "footprint_length_m", "seed",
              "max_abs_dev_direct", "max_stray_fraction", "max_stray_tan_eps", "max_stray_beta_deg", "max_stray_sample",
-             "max_stray_u")
+             "max_stray_u", "worst_se", "worst_error_bound")
 
 
 #: Every file ``roadgonio design`` writes: a run removes those it does not write this time
@@ -155,6 +156,24 @@ def _plt():
     return p()
 
 
+def _error_bars(ds) -> tuple[np.ndarray, str]:
+    """The half-lengths (%) of the error bars of max |k_A - 1| and what they are, by the kind of
+    precision the backend gave (user audit: a quadrature study's bars, its bound / sqrt 3 x 2, were
+    called '2 SE'): 2 SE, the deterministic error bound, or 2 u where a table has both (a Monte
+    Carlo table under absolute calibration: its SE and eta's bound / sqrt 3 in quadrature)."""
+    se = ds["worst_se"].values.reshape(-1) if "worst_se" in ds else None
+    eb = ds["worst_error_bound"].values.reshape(-1) if "worst_error_bound" in ds else None
+    u = ds["worst_u"].values.reshape(-1)
+    if se is None or eb is None:                       # a design.nc written before these were kept
+        return 2 * np.nan_to_num(u) * 100, "error bars 2 u (standard uncertainty)"
+    has_se, has_eb = np.isfinite(se).any(), np.isfinite(eb).any()
+    if has_se and has_eb:
+        return 2 * np.nan_to_num(u) * 100, "error bars 2 u (the SE and the error bound / sqrt 3)"
+    if has_eb:
+        return np.nan_to_num(eb) * 100, "error bars: the deterministic error bound"
+    return 2 * np.nan_to_num(se) * 100, "error bars 2 SE"
+
+
 def plot_pareto(ds, path: Path) -> Path:
     from roadgonio.design.dataset import same_signal
     same = same_signal(ds)
@@ -165,7 +184,7 @@ def plot_pareto(ds, path: Path) -> Path:
     sig = ds["signal"].values.reshape(-1)
     feas = ds["feasible"].values.reshape(-1).astype(bool)
     geo = ds["geometry_ok"].values.reshape(-1).astype(bool)
-    u = ds["worst_u"].values.reshape(-1) * 100
+    bars, bars_text = _error_bars(ds)
     tol = float(ds.attrs["tolerance"]) * 100
     best = int(ds.attrs["best_index"])
     from roadgonio.design.metrics import pareto_front
@@ -173,9 +192,9 @@ def plot_pareto(ds, path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(8, 5.5))
     ok = np.isfinite(dev) & np.isfinite(sig)
     bad = ok & ~feas
-    ax.errorbar(sig[bad], dev[bad], yerr=2 * np.nan_to_num(u[bad]), fmt="o", mfc="none", color="tab:red",
+    ax.errorbar(sig[bad], dev[bad], yerr=bars[bad], fmt="o", mfc="none", color="tab:red",
                 ms=6, lw=0.8, label=f"over tolerance ({int(bad.sum())})")
-    ax.errorbar(sig[feas & ok], dev[feas & ok], yerr=2 * np.nan_to_num(u[feas & ok]), fmt="o", color="tab:green",
+    ax.errorbar(sig[feas & ok], dev[feas & ok], yerr=bars[feas & ok], fmt="o", color="tab:green",
                 ms=6, lw=0.8, label=f"feasible ({int((feas & ok).sum())})")
     front = pareto_front(sig, dev)
     if front.size > 1:
@@ -208,7 +227,7 @@ def plot_pareto(ds, path: Path) -> Path:
     n_geo = int((~geo).sum())
     samples = ", ".join(json.loads(ds.attrs["samples"]))
     ax.set_title(f"{ds.attrs['title']}\nsamples {samples}; {int(ds.attrs['points'])} points, "
-                 f"{n_geo} geometrically impossible (not shown); error bars 2 SE", fontsize=10)
+                 f"{n_geo} geometrically impossible (not shown); {bars_text}", fontsize=10)
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize=8, loc="best")
     fig.tight_layout()
@@ -222,7 +241,7 @@ MAX_POINT_LABELS = 40
 
 
 def plot_points(ds, path: Path, signal: float) -> Path:
-    """pareto.png of a design whose points all have the same signal: max |k_A - 1| (2 SE bars)
+    """pareto.png of a design whose points all have the same signal: max |k_A - 1| (bars: :func:`_error_bars`)
     point by point, feasible or not, the tolerance, max |k_A,direct - 1| (the aperture effect
     without the stray light) beside it when some point has stray light, the best starred; the
     title says that there is no trade-off of signal to draw."""
@@ -230,7 +249,7 @@ def plot_points(ds, path: Path, signal: float) -> Path:
     from roadgonio.design.dataset import point_index
     dev = ds["max_abs_dev"].values.reshape(-1) * 100
     feas = ds["feasible"].values.reshape(-1).astype(bool)
-    u = ds["worst_u"].values.reshape(-1) * 100
+    bars, bars_text = _error_bars(ds)
     tol = float(ds.attrs["tolerance"]) * 100
     best = int(ds.attrs["best_index"])
     idx = np.nonzero(np.isfinite(dev))[0]
@@ -238,7 +257,7 @@ def plot_points(ds, path: Path, signal: float) -> Path:
     fig, ax = plt.subplots(figsize=(max(8.0, min(16.0, 3.0 + 0.35 * idx.size)), 6.0))
     for sel, style, label in ((~feas[idx], dict(mfc="none", color="tab:red"), "over tolerance"),
                               (feas[idx], dict(color="tab:green"), "feasible")):
-        ax.errorbar(x[sel], dev[idx][sel], yerr=2 * np.nan_to_num(u[idx][sel]), fmt="o", ms=6, lw=0.8,
+        ax.errorbar(x[sel], dev[idx][sel], yerr=bars[idx][sel], fmt="o", ms=6, lw=0.8,
                     label=f"max |k_A - 1|, {label} ({int(sel.sum())})", **style)
     if "max_stray_fraction" in ds and np.nanmax(np.append(ds["max_stray_fraction"].values.reshape(-1)[idx], 0.0)) > 0:
         direct = ds["max_abs_dev_direct"].values.reshape(-1)[idx] * 100
@@ -260,7 +279,7 @@ def plot_points(ds, path: Path, signal: float) -> Path:
     ax.set_title("\n".join(textwrap.wrap(
         f"{ds.attrs['title']}: every point has the same signal ({signal:.4g} x base), so there is no trade-off of "
         f"signal against |k_A - 1| to draw: max |k_A - 1| point by point. Samples {samples}; "
-        f"{int(ds.attrs['points'])} points, {n_geo} geometrically impossible (not shown); error bars 2 SE", width)),
+        f"{int(ds.attrs['points'])} points, {n_geo} geometrically impossible (not shown); {bars_text}", width)),
         fontsize=9)
     ax.set_xlim(-0.5, idx.size - 0.5)
     ax.grid(alpha=0.3)
@@ -433,6 +452,28 @@ def plot_tolerance_map(ds, path: Path) -> Path | None:
     return out
 
 
+def _level_lines(x, y, z, level: float, xlog: bool, ylog: bool) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The iso-line of ``z`` (rows y, columns x; NaN where not computed) at ``level``, as the map draws
+    its axes: interpolated linearly in log(value) along a log axis, where the grid's values are evenly
+    spaced (user audit: interpolated in the value, the tolerance line on a log radius axis was drawn
+    ~25 px from where the points put it). Lines of one point are left out."""
+    import contourpy
+    gx = np.log(np.asarray(x, dtype=float)) if xlog else np.asarray(x, dtype=float)
+    gy = np.log(np.asarray(y, dtype=float)) if ylog else np.asarray(y, dtype=float)
+    try:
+        gx, gy = np.meshgrid(gx, gy)
+        gen = contourpy.contour_generator(gx, gy, np.ma.masked_invalid(np.asarray(z, dtype=float)))
+        lines = gen.lines(float(level))
+    except (ValueError, TypeError):
+        return []
+    out = []
+    for seg in lines:
+        seg = np.asarray(seg, dtype=float)
+        if len(seg) > 1:
+            out.append((np.exp(seg[:, 0]) if xlog else seg[:, 0], np.exp(seg[:, 1]) if ylog else seg[:, 1]))
+    return out
+
+
 #: At most this many labelled ticks on a log-varied key's axis.
 MAX_VALUE_TICKS = 7
 
@@ -479,11 +520,10 @@ def _tolerance_panel(fig, ax, ds, sel, xk, yk, anchor, fin_all, *, title: bool) 
     handles = []
     if np.isfinite(dev).sum() >= 4 and len(x) > 1 and len(y) > 1:
         from matplotlib.lines import Line2D
-        try:
-            cs = ax.contour(X, Y, np.ma.masked_invalid(dev), levels=[tol], colors="tab:orange", linewidths=2.2)
-            drawn = any(len(seg) > 1 for seg in cs.allsegs[0])
-        except (ValueError, TypeError):
-            drawn = False
+        drawn = False
+        for lx, ly in _level_lines(x, y, dev, tol, xk in logs, yk in logs):
+            ax.plot(lx, ly, color="tab:orange", lw=2.2)
+            drawn = True
         if drawn:
             # named in the legend, not inline: an inline label cuts the line where it is drawn, which
             # could be beside the best design (user audit, session 24: the star looked outside)

@@ -32,7 +32,11 @@ def test_parse_vary_linear_log_and_list():
     s = G.parse_vary("detector.field_half_angle_deg=0.05:0.8:5:log")
     assert s.log and s.values[0] == 0.05 and s.values[-1] == 0.8
     assert np.allclose(np.diff(np.log(s.values)), math.log(16) / 4, rtol=1e-9)
-    assert G.parse_vary("observation.alpha_deg=1,0.5, 2").values == (1.0, 0.5, 2.0)
+    # an axis is ascending whatever the order given (user audit: the tolerance map of 0.02,0.002,0.01
+    # painted 4 of its 9 cells, its cells and contours drawn between neighbours in the given order)
+    assert G.parse_vary("observation.alpha_deg=1,0.5, 2").values == (0.5, 1.0, 2.0)
+    assert G.parse_vary("source.radius_m=0.04:0.01:4").values == (0.01, 0.02, 0.03, 0.04)
+    assert G.parse_vary("source.radius_m=0.04:0.01:3:log").values == (0.01, 0.02, 0.04)
     assert G.parse_vary("source.distance_m=1:1:1").values == (1.0,)
 
 
@@ -325,9 +329,19 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
     assert feas.ravel()[best] and sig.ravel()[best] == np.max(sig[feas])
     # the worst cell's standard uncertainty is named u: the quadrature's bound / sqrt 3, not an SE
     i = np.nanargmax(np.abs(k - 1))
-    assert np.isnan(ds["se"].values[1, 1]).all() and "worst_se" not in ds
+    assert np.isnan(ds["se"].values[1, 1]).all() and np.isnan(ds["worst_se"].values).all()
     assert ds["worst_u"].values[1, 1] == pytest.approx(ds["error_bound"].values[1, 1].ravel()[i] / math.sqrt(3),
                                                        rel=1e-12, abs=0.0)
+    # ... and its bound is kept as a bound, and said as one (user audit: '(+- 0.0001)' and pareto.png's
+    # 'error bars 2 SE' for the bound / sqrt 3)
+    assert ds["worst_error_bound"].values[1, 1] == ds["error_bound"].values[1, 1].ravel()[i]
+    from roadgonio.design.dataset import summary
+    from roadgonio.design.outputs import _error_bars
+    b = summary(ds)["best"]
+    assert b["precision"] == f"error bound {b['worst_error_bound']:.1g}"
+    bars, words = _error_bars(ds)
+    assert words == "error bars: the deterministic error bound"
+    assert np.array_equal(bars, np.nan_to_num(ds["worst_error_bound"].values.reshape(-1)) * 100)
     assert np.isnan(ds["confidence_bound"].values).all() and np.isnan(ds["confidence_level"].values).all()
     # the CSV: one row per point, varied keys first, then the metrics; the impossible point keeps its reason
     rows = list(csv.reader((tmp_path / "design.csv").read_text().splitlines()))
@@ -339,7 +353,7 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
     # no housing: no stray light, 0 (not unknown) on every computed point, and k_A,direct is k_A
     # (trial 10 D10: the columns are there for every design)
     assert rows[0][14:] == ["max_abs_dev_direct", "max_stray_fraction", "max_stray_tan_eps", "max_stray_beta_deg",
-                            "max_stray_sample", "max_stray_u"]
+                            "max_stray_sample", "max_stray_u", "worst_se", "worst_error_bound"]
     ok = ds["geometry_ok"].values
     assert (ds["max_stray_fraction"].values[ok] == 0.0).all() and np.isnan(ds["max_stray_tan_eps"].values).all()
     assert np.array_equal(ds["max_abs_dev_direct"].values, ds["max_abs_dev"].values, equal_nan=True)
@@ -719,7 +733,7 @@ def test_second_aperture_with_no_second_setting_to_rank_is_refused_before_any_fi
     # a setting to rank: on to the fit, with the bundles of the first that can measure only
     with pytest.raises(_Fitted):
         second([own, 0.5, 0.1, 0.05], 0.3)
-    assert built == [own, 0.5, 0.1]
+    assert built == [own, 0.1]                  # the grid ascends: 0.05 (too dim, not built), then 0.1
 
 
 def test_min_signal_takes_a_percentage_as_tolerance_and_u_measured_do():
@@ -936,3 +950,38 @@ def test_a_log_varied_key_is_labelled_at_its_values_without_minor_labels():
     _value_ticks(ax.xaxis, np.geomspace(1e-3, 1, 30))
     assert len(ax.xaxis.get_major_locator()()) <= MAX_VALUE_TICKS
     plt.close(fig)
+
+
+def test_tolerance_line_is_interpolated_as_the_axis_is_drawn():
+    """The tolerance line between two grid values lies where the map's axis puts the linear
+    interpolation: in log(value) on a log axis (user audit: interpolated in the value, it was drawn
+    ~25 px off on a log radius axis), in the value on a linear one."""
+    from roadgonio.design.outputs import _level_lines
+    x, y = np.array([0.002, 0.0063, 0.02]), np.array([0.05, 0.1, 0.2])
+    z = np.tile([1.0, 3.0, 9.0], (3, 1))
+    t = (5.0 - 3.0) / (9.0 - 3.0)
+    (lx, ly), = _level_lines(x, y, z, 5.0, True, True)
+    assert np.allclose(lx, 0.0063 * (0.02 / 0.0063) ** t, rtol=1e-12)
+    assert ly.min() == pytest.approx(0.05, rel=1e-12) and ly.max() == pytest.approx(0.2, rel=1e-12)
+    (lx, _), = _level_lines(x, y, z, 5.0, False, False)
+    assert np.allclose(lx, 0.0063 + t * (0.02 - 0.0063), rtol=1e-12)
+    assert _level_lines(x, y, z, 20.0, True, True) == []
+
+
+def test_designs_the_computation_cannot_tell_apart_are_counted():
+    """(user audit) three lid heights of one black housing, physically one instrument, gave max |k_A
+    - 1| 0.16497, 0.16476, 0.16539 with SEs of 3-4e-4, and the seed chose the best: the summary
+    counts the equally bright designs within 2 SE of the difference (or the two bounds) of the best,
+    and the precision is said by kind."""
+    from roadgonio.design.dataset import indistinct, precision_words
+    flat = {"max_abs_dev": np.array([0.16497, 0.16476, 0.16539, 0.17000, np.nan]),
+            "worst_se": np.array([3e-4, 4e-4, 3.5e-4, 3e-4, np.nan]),
+            "worst_error_bound": np.full(5, np.nan)}
+    assert indistinct(flat, 1).tolist() == [True, False, True, False, False]   # 0.17: 10 SE away
+    bounded = {"max_abs_dev": np.array([0.0478, 0.0480, 0.0490]), "worst_se": np.full(3, np.nan),
+               "worst_error_bound": np.array([2e-4, 1e-4, 2e-4])}
+    assert indistinct(bounded, 0).tolist() == [False, True, False]            # 2e-4 <= 3e-4; 1.2e-3 > 4e-4
+    assert precision_words(3e-4, math.nan, 3e-4) == "SE 0.0003"
+    assert precision_words(math.nan, 2e-4, 1.2e-4) == "error bound 0.0002"
+    assert precision_words(3e-4, 1e-6, 3e-4) == "SE 0.0003 and eta's error bound 1e-06"
+    assert precision_words(None, None, 1e-4) == "u 0.0001"
