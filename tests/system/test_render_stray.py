@@ -45,6 +45,14 @@ def test_render_shows_the_stray_light_and_agrees_with_the_engine(mi, tmp_path, c
                                                                                 r.stray_fraction_se)
     assert sum(p["road"] for p in st["parts"].values()) == pytest.approx(st["stray_fraction_road"], rel=1e-9)
     assert st["stray_fraction_road"] > 0.05
+    # render.png's view and illuminance are the direct light, and their titles say so (user audit)
+    words = images.panel_words(inst, info)
+    assert "the direct light only" in words["stray"] and f"{100 * st['stray_fraction_road']:.1f} %" in words["stray"]
+    assert words["illuminance_title"].startswith("Horizontal illuminance on the sample straight from the source")
+    assert images.panel_words(load_instrument("portable"), {})["stray"] == ""
+    turned = load_instrument("portable").with_changes(observation={"delta_deg": 30.0})
+    assert "delta = 30 deg" in images.panel_words(turned, {})["x_label"]
+    assert "towards +x" in images.panel_words(load_instrument("portable"), {})["x_label"]
     # one meaning per field (trial 6): the unsuffixed ratio is the one k_a_estimate is made of (stray
     # light included), the direct integrator's carry _direct, and every field is defined
     assert info["k_a_estimate"] == pytest.approx(info["ratio"] / info["ideal_ratio"], rel=1e-12)

@@ -370,6 +370,25 @@ def _hull(x, y):
     return pts[v, 0], pts[v, 1]
 
 
+def panel_words(instrument: Instrument, info: dict[str, Any]) -> dict[str, str]:
+    """Words of render.png that depend on the scene: ``stray`` (added to both panels' titles in a
+    reflecting housing, where they show the direct light only: user audit, a view and an illuminance
+    1.36 x too low titled as the whole), ``illuminance_title`` and ``x_label`` (the sample's frame: the
+    detector is towards +x only at delta = 0; user audit, at delta 30 the footprint ran along 30 deg
+    under the label 'detector towards +x')."""
+    stray = info.get("stray")
+    words = ("" if stray is None else
+             f"\nthe direct light only: the stray light ({100 * stray['stray_fraction_road']:.1f} % of the road "
+             "signal) is in stray.png")
+    delta = instrument.observation.delta_deg
+    return {"stray": words,
+            "illuminance_title": "Horizontal illuminance on the sample" + (" straight from the source" if stray
+                                                                           is not None else "")
+                                 + f" (not to scale: y stretched){words}",
+            "x_label": ("x on the sample (m; detector towards +x)" if delta == 0 else
+                        f"x on the sample (m; the detector at azimuth delta = {delta:g} deg from +x)")}
+
+
 def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> Path:
     import matplotlib
     matplotlib.use("Agg")
@@ -378,6 +397,8 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
     from roadgonio.fileio import atomic_savefig
     gamma = instrument.detector.field_half_angle_deg
     point = gamma <= 0                      # a zero field: no view to draw, a short top panel saying so
+    words = panel_words(instrument, info)
+    stray_words = words["stray"]
     fig, axes = plt.subplots(2, 1, figsize=(9, 5.8 if point else 8.5),
                              gridspec_kw={"height_ratios": [0.3 if point else 1.25, 1]})
     ax = axes[0]
@@ -393,8 +414,10 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
         # with a sensitivity over the field the view is what the meter weighs: luminance x k_D (audit 27:
         # a map darkened half of a view labelled "luminance")
         weighted = instrument.detector.field_map is not None or instrument.detector.field_edge_sensitivity != 1.0
+        # in a reflecting housing these two panels are the direct light only; the stray light is in
+        # stray.png (user audit: a view and an illuminance 1.36 x too low, titled as the whole)
         ax.set_title(f"Detector's view: luminance of the sample{' x its sensitivity k_D' if weighted else ''} "
-                     f"(field half-angle {gamma:g} deg)", fontsize=10)
+                     f"(field half-angle {gamma:g} deg){stray_words}", fontsize=10)
         # the colour bar beside the square view, both centred (fig.colorbar(ax=ax) anchors the square view
         # at the right of its wide slot: a large blank area on its left)
         from mpl_toolkits.axes_grid1 import make_axes_locatable
@@ -423,9 +446,9 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
         ax.plot(hx, hy, color="red", lw=1.2, label="detector footprint")
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
-    ax.set_xlabel("x on the sample (m; detector towards +x)")
+    ax.set_xlabel(words["x_label"])
     ax.set_ylabel("y (m)")
-    ax.set_title("Horizontal illuminance on the sample (not to scale: y stretched)", fontsize=10)
+    ax.set_title(words["illuminance_title"], fontsize=10)
     ax.legend(loc="upper right", fontsize=8)
     cb = fig.colorbar(im, ax=ax, shrink=0.9)
     cb.set_label("illuminance E$_h$ (lx per lx)")
