@@ -1521,6 +1521,13 @@ def largest_change_text(result: dict) -> str:
     return text(result)
 
 
+def ratio_range_text(result: dict) -> str:
+    """'0.995 ... 1.0034 (median 1)' of a :func:`compare_tables` result, each ratio with the digits it
+    takes to differ from 1 (:func:`roadgonio.road.compare.range_text`)."""
+    from roadgonio.road.compare import range_text
+    return range_text(result)
+
+
 def classify_table(table) -> dict[str, Any]:
     """The CIE class of an r-table by S1 in the R, C and N systems, its Q0 against the class
     standard, and the bundled tables nearest in (S1, Q0) (``roadgonio classify``;

@@ -31,8 +31,8 @@ def run(args) -> int:
         for key, fmt in (("S1", ".3f"), ("S2", ".3f"), ("Q0", ".4f"), ("cells", "d")):
             print(f"{key:8} " + " ".join("-".rjust(n) if c[key] is None else format(c[key], f"{n}{fmt}")
                                          for c in (ca, cb)))
-        print(f"r({b}) / r({a}) over {res['cells_compared']} cells: {res['ratio_min']:.3g} ... "
-              f"{res['ratio_max']:.3g} (median {res['ratio_median']:.3g}); {api.largest_change_text(res)}")
+        print(f"r({b}) / r({a}) over {res['cells_compared']} cells: {api.ratio_range_text(res)}; "
+              f"{api.largest_change_text(res)}")
         for key, what in (("cells_zero_in_A", f"r({a}) = 0 < r({b})"), ("cells_zero_in_B", f"r({b}) = 0 < r({a})"),
                           ("cells_ratio_undefined", "0 in both: no ratio")):
             if res[key]:

@@ -131,6 +131,20 @@ def test_compare_counts_a_zero_in_either_table_as_an_infinite_change():
     assert compare_tables(a, a.with_values(a.r, name="B"))["largest_change_at"] is None
 
 
+def test_a_small_change_is_not_printed_as_x1():
+    """(user audit) one cell of R3 changed by 0.34 % read 'largest change x1' and '1 ... 1': a ratio
+    that is not 1 gets the digits it takes to show it; 3 significant digits otherwise."""
+    from roadgonio.road.compare import largest_change_text, range_text, ratio_text
+    a = bundled_table("R3")
+    rb = a.r.copy()
+    rb[0, 1] *= 295.0 / 294.0
+    res = compare_tables(a, a.with_values(rb, name="B"))
+    assert largest_change_text(res).startswith("largest change x1.003 ")
+    assert range_text(res) == "1 ... 1.003 (median 1)"
+    assert (ratio_text(1.0), ratio_text(0.4286), ratio_text(1.72), ratio_text(0.99996)) == ("1", "0.429", "1.72", "0.99996")
+    assert ratio_text(1.0 + 1e-7) == "1.0000001"
+
+
 def test_layout_tilt_limits_are_inclusive(tmp_path):
     for v in (-30, 60):
         p = tmp_path / f"t{v}.toml"
