@@ -868,6 +868,28 @@ def test_an_r_table_given_as_u_is_an_input_error(tmp_path, capsys, command):
         check_u_scale(U_OVER_R_MAX_MEDIAN * r3.r, r3)
 
 
+def test_a_measured_u_at_or_above_its_value_is_an_input_error(tmp_path, capsys):
+    """User audit: `correct --u-measured` with a file of 1 everywhere (a lab's '1 %' per cell) was read
+    as u x 1e4 = 1, i.e. u up to 604 % of r, and ran, exit 0, while '150%' is refused (here R3 with 5 everywhere: 37 cells). A measured u at
+    or above its value is refused like the relative form, one line naming the file, the argument and
+    the first cell; a cell at 99 % of r passes."""
+    from roadgonio.correction.run import measured_uncertainty
+    from roadgonio.surface.rtable import bundled_table
+    r3 = bundled_table("R3")
+    r3.write_csv(tmp_path / "site.csv")
+    r3.with_values(np.where(r3.mask, 5e-4, np.nan), name="u").write_csv(tmp_path / "percent.csv")   # "5 %"
+    rc = main(["correct", "--measured", str(tmp_path / "site.csv"), "--instrument", "portable", "--backend", "quadrature",
+               "--u-measured", str(tmp_path / "percent.csv"), "--out", str(tmp_path / "o")])
+    over = int(np.sum(r3.mask & (r3.r <= 5e-4)))
+    one_line_error(capsys, rc, "percent.csv", "--u-measured", "at or above the measured value", f"{over} cells like it")
+    assert over > 0 and not (tmp_path / "o").exists()
+    u = 0.05 * r3.r
+    u[0, 0] = 0.99 * r3.r[0, 0]
+    r3.with_values(u, name="u").write_csv(tmp_path / "high.csv")
+    grid, _ = measured_uncertainty(str(tmp_path / "high.csv"), r3)
+    assert grid[0, 0] == pytest.approx(0.99 * r3.r[0, 0], rel=1e-4)
+
+
 def _files(folder):
     return {p.name: p.read_bytes() for p in sorted(folder.iterdir()) if p.is_file()}
 
