@@ -124,9 +124,25 @@ def _correct_task(job: tuple, shared: Mapping[str, Any]) -> tuple[CorrectionResu
         res.provenance["cluster"] = {**shared["cluster"], "computed_by": _worker_name()}
     if measured_file is not None:
         res.provenance["measured_file"] = measured_file
+    if shared.get("inputs") is not None:
+        res.provenance["inputs"] = shared["inputs"][measured_file]
     if folder is None:                      # nothing to write (the Python API without out)
         return res, []
     return res, write_correction(res, folder, plots=shared["plots"])
+
+
+def input_records(measured_file: str | Path | None, u_measured: Any = None) -> list[dict[str, Any]]:
+    """The provenance records (:func:`roadgonio.provenance.input_record`: absolute path and sha256) of a
+    measured table's file and of its ``u_measured`` when that is a file, made where the command runs
+    (user audit: correct.json named 'meas.csv' and 'ok1pct.csv' only, so a finished result could not
+    say which contents it corrected)."""
+    from roadgonio.provenance import input_record
+    out = []
+    if measured_file is not None:
+        out.append(input_record("measured", str(measured_file), "the measured table"))
+    if isinstance(u_measured, (str, Path)) and Path(u_measured).is_file():
+        out.append(input_record("u_measured", str(u_measured), "its per-cell standard uncertainties"))
+    return out
 
 
 def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str | Path | None, *, plots: bool = True,
@@ -199,9 +215,10 @@ def correct_files(tables: Sequence[RTable], instrument: Instrument, out_dir: str
             alternatives, t, reference_name=ref_name, model_variant=model_variant) for t in tables]
         for k in ("rays", "artefacts", "starts", "polish", "rounds", "max_outer", "tol"):
             options.pop(k, None)
-    shared = {"instrument": instrument, "artefacts": artefacts, "reference": reference, "reference_name": ref_name,
-              "plots": plots, "options": options, "cluster": None}
     files = [None if f is None else str(f) for f in (measured_files or [None] * len(tables))]
+    shared = {"instrument": instrument, "artefacts": artefacts, "reference": reference, "reference_name": ref_name,
+              "plots": plots, "options": options, "cluster": None,
+              "inputs": {f: input_records(f, options.get("u_measured")) for f in files}}
     jobs = list(zip(tables, folders, alts, files))
     if not distributed:
         from roadgonio.engines.cluster import map_calls
@@ -280,9 +297,12 @@ def correct_joint(tables: Sequence[RTable], instruments: Sequence[Instrument], o
         else [_sigma(s) for s in options["sigma"]]
     for k in ("alternatives", "reference_name", "forward"):
         options.pop(k, None)
+    u_given = options.get("u_measured")
     res = correct_surface(tables, instruments, out_dir=out_dir, variants=variants, **options)
     if measured_files is not None:
         res.provenance["measured_files"] = [None if f is None else str(f) for f in measured_files]
+        us = u_given if isinstance(u_given, (list, tuple)) else [u_given] * len(measured_files)
+        res.provenance["inputs"] = [r for f, u in zip(measured_files, us) for r in input_records(f, u)]
     res.out = None if out_dir is None else Path(out_dir)
     res.written = [] if out_dir is None else write_surface_correction(res, out_dir, plots=plots)
     return res

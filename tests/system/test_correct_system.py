@@ -7,6 +7,7 @@ import json
 import math
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -95,6 +96,12 @@ def test_cli_reference_route_checks_against_an_independent_backend(tmp_path, r3l
     assert prov["backend"] == "quadrature" and prov["settings"]["rtol"] == 1e-4 and prov["versions"]["numpy"]
     # the file the table came from reaches correct.json (it was set after the file had been written)
     assert prov["measured_file"] == str(measured)
+    # ... with its contents' digest, and a relative u gives no file record (user audit: correct.json named
+    # the bare argument only, so a result could not say which contents it corrected)
+    import hashlib
+    assert prov["inputs"] == [{"argument": "measured", "path": str(Path(measured).absolute()),
+                               "sha256": hashlib.sha256(Path(measured).read_bytes()).hexdigest(),
+                               "label": "the measured table"}]
 
 
 def test_cli_several_files_json_list(tmp_path):
