@@ -906,16 +906,16 @@ def test_a_beam_limit_cuts_the_design_signal():
     from roadgonio.design import metrics as M
     base = load_instrument("portable")
     R, D = base.source.radius_m, base.source.distance_m
+    sig = math.radians(3.0)
+
+    def ring(r):
+        return D * D / (r * r + D * D) ** 2 * math.exp(-math.atan(r / D) ** 2 / (2 * sig * sig)) * 2 * math.pi * r
     for cone in (0.5, 1.0, 2.0):
         rc = min(R, D * math.tan(math.radians(cone)))
         inst = G.build_instrument(base, {"source.beam_half_angle_deg": cone})
         assert M.relative_signal(inst, base) == pytest.approx(
             (rc * rc / (rc * rc + D * D)) / (R * R / (R * R + D * D)), rel=1e-12)
-        sig = math.radians(3.0)
         inst = G.build_instrument(inst, {"source.beam_sigma_deg": 3.0})
-
-        def ring(r):
-            return D * D / (r * r + D * D) ** 2 * math.exp(-math.atan(r / D) ** 2 / (2 * sig * sig)) * 2 * math.pi * r
         assert M.profiled_solid_angle(inst) == pytest.approx(quad(ring, 0.0, rc, epsabs=0.0, epsrel=1e-13)[0],
                                                              rel=1e-9)
     assert M.relative_signal(G.build_instrument(base, {"source.beam_half_angle_deg": 0.5}), base) < 0.13
