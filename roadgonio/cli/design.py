@@ -162,10 +162,10 @@ def run(args) -> int:
                 f"road signal at tan eps {b['max_stray_tan_eps']:g}, beta {b['max_stray_beta_deg']:g} "
                 f"({b['max_stray_sample']}); without it max |k_A,direct - 1| = {b['max_abs_dev_direct']:.4f} "
                 "(every point's: design.csv)")
-    if s.get("points_beam_clipped"):
-        say(f"note: in {count(s['points_beam_clipped'], 'point')} the source's beam limit clips the light reaching the "
-            "detected footprint: the signal counts the light at the footprint's centre, so there the detected flux "
-            "is less than it says (roadgonio render shows the lit part)")
+    if s.get("points_beam_dim"):
+        say(f"note: in {count(s['points_beam_dim'], 'point')} the source's beam lights the detected footprint's edge at "
+            "less than half its centre's radiance (or not at all: a beam limit): the signal counts the light at the "
+            "footprint's centre, so there the detected flux is less than it says (roadgonio render shows the lit part)")
     if s.get("same_signal") is not None and not args.no_plots:
         say(f"every design point has the same signal ({s['same_signal']:.4g} x base): pareto.png shows max |k_A - 1| "
             "point by point instead of against the signal")

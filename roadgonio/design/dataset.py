@@ -17,8 +17,8 @@ from roadgonio.engines import cluster as _cluster
 from roadgonio.engines.result import standard_uncertainty
 from roadgonio.engines.runner import STRAY_FILES, field_attrs
 from roadgonio.design.grid import VarySpec
-from roadgonio.design.metrics import (SIGNAL_FORMULA, deviations, detector_etendue, profiled_solid_angle, signal_product,
-                                      stray_metrics)
+from roadgonio.design.metrics import (DIM_EDGE, SIGNAL_FORMULA, deviations, detector_etendue, footprint_edge_radiance,
+                                      profiled_solid_angle, signal_product, stray_metrics)
 
 def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, ...], points, samples, union,
              feas, inst_of, done: Mapping[tuple[int, int], dict], seeds, tol: float):
@@ -124,11 +124,10 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                          f"beta {worst_b[i]:g} ({worst_s[i]})")
     sb = signal_product(base)
     signal = signal_abs / sb if sb > 0 else np.full(n, np.nan)
-    # the signal is the light at the footprint's centre (metrics): where a beam limit clips the light
-    # reaching the footprint, part of the footprint is dark and the detected flux is less (user audit)
-    from roadgonio.instrument.optics import beam_clips_cells
-    clipped = np.array([x is not None and x.source.beam_half_angle_deg is not None and computed[i]
-                        and bool(beam_clips_cells(x, union).any()) for i, x in enumerate(inst_of)])
+    # the signal is the light at the footprint's centre (metrics): where the beam leaves part of the
+    # footprint dark (a beam limit that clips it, a narrow profile), the detected flux is less (user audit)
+    dim = np.array([x is not None and computed[i] and footprint_edge_radiance(x, union) < DIM_EDGE
+                    for i, x in enumerate(inst_of)])
     omega = np.array([profiled_solid_angle(x) if x is not None else np.nan
                       for x in inst_of])
     etendue = np.array([detector_etendue(x) if x is not None else np.nan for x in inst_of])
@@ -215,7 +214,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "base_signal_product": float(sb),
         "signal_formula": SIGNAL_FORMULA,
         "points": int(n), "points_geometry_ok": int(geometry_ok.sum()), "points_feasible": int(feasible.sum()),
-        "points_beam_clipped": int(clipped.sum()),
+        "points_beam_dim": int(dim.sum()),
         "best_index": int(best),
         "best_point_json": to_json(points[best] if best >= 0 else None, indent=None),
         "log_axes": to_json([s.key for s in specs if s.log], indent=None),
@@ -353,7 +352,7 @@ def summary(ds) -> dict[str, Any]:
                          "wall_s": float(ds.attrs.get("wall_s", math.nan)),
                          "compute_wall_s": float(ds.attrs.get("compute_wall_s", math.nan))}
     s["same_signal"] = same_signal(ds)
-    s["points_beam_clipped"] = int(ds.attrs.get("points_beam_clipped", 0))
+    s["points_beam_dim"] = int(ds.attrs.get("points_beam_dim", 0))
     if "not_converged" in flat:
         # points with cells whose backend stopped before its target (their u is what it stopped at;
         # audit 21: only design.nc said so)

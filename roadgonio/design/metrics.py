@@ -34,7 +34,8 @@ It does not depend on the detector distance (etendue is conserved: a farther lum
 larger footprint), and it neglects the illuminance gradient over the footprint (which the Lambert
 calibration removes from k_A anyway): it is the light at the footprint's centre, so a beam narrower
 than the footprint, which leaves part of it dark, detects less than it says (``roadgonio design``
-counts the points whose beam limit clips the footprint and says so). A point source or a pinhole detector has signal 0.
+counts the points whose beam lights the footprint's edge at less than :data:`DIM_EDGE` of its on-axis
+radiance, :func:`footprint_edge_radiance`, and says so). A point source or a pinhole detector has signal 0.
 
 Deviations
 ----------
@@ -128,6 +129,35 @@ def profiled_solid_angle(instrument: Instrument) -> float:
     if not src.profiled:
         return source_solid_angle(src.radius_m * beam_cut_fraction(g), src.length_m)
     return centre_coupling(g, PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL) * math.pi * src.radius_m ** 2
+
+
+#: A beam whose radiance towards the footprint's far edge is below this fraction of its on-axis
+#: radiance leaves part of the footprint darker than the signal assumes (:func:`footprint_edge_radiance`).
+DIM_EDGE = 0.5
+
+
+def footprint_edge_radiance(instrument: Instrument, cells) -> float:
+    """The source's relative radiance P(theta) / P(0) towards the footprint at the largest emission
+    angle theta over ``cells`` (:func:`roadgonio.instrument.optics.footprint_emission_angles_deg`,
+    from the disc's rim), 0 beyond a beam limit; 1 for a Lambertian disc without one. The signal is
+    the light at the footprint's centre (module docstring): below :data:`DIM_EDGE` part of the
+    footprint is darker than it assumes, and the detected flux is less than the signal says."""
+    src = instrument.source
+    if src.beam_half_angle_deg is None and src.beam.uniform:
+        return 1.0
+    from roadgonio.arrays import NumpyOps
+    from roadgonio.instrument import optics
+    from roadgonio.instrument.profiles import ApertureProfile
+    theta_deg = float(np.max(optics.footprint_emission_angles_deg(instrument, list(cells))))
+    if src.beam_half_angle_deg is not None and theta_deg > src.beam_half_angle_deg:
+        return 0.0
+    if src.beam.uniform:
+        return 1.0
+    t = math.radians(min(theta_deg, 89.999))
+    w = (np.array([math.sin(t)]), np.zeros(1), np.array([math.cos(t)]))      # towards the source
+    f = optics.source_radiance_factor(NumpyOps, src.beam, ApertureProfile(), w, (0.0, 0.0, -1.0),
+                                      (np.zeros(1), np.zeros(1)))
+    return 1.0 if f is None else float(np.asarray(f).reshape(-1)[0])
 
 
 def signal_product(instrument: Instrument) -> float:

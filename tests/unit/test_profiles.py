@@ -921,6 +921,31 @@ def test_a_beam_limit_cuts_the_design_signal():
     assert M.relative_signal(G.build_instrument(base, {"source.beam_half_angle_deg": 0.5}), base) < 0.13
 
 
+def test_a_beam_narrower_than_the_footprint_is_named_by_the_design(tmp_path):
+    """The design's signal is the light at the footprint's centre: a beam that lights the footprint's
+    edge at less than DIM_EDGE of its on-axis radiance (a Gaussian, P = exp(-theta^2 / 2 sigma^2) at
+    the largest emission angle), or not at all (a beam limit below that angle), is counted and named
+    (user audit: a 0.5 deg limit detects 2.6 % of the uncut disc's Lambert flux at tan eps 0 where
+    the signal, the light at the centre, says 12 %)."""
+    from roadgonio import design_study
+    from roadgonio.design import grid as G
+    from roadgonio.design import metrics as M
+    from roadgonio.design.dataset import summary
+    base = load_instrument("portable")
+    cells = [(0.0, 0.0), (4.0, 0.0)]
+    theta = float(np.max(optics.footprint_emission_angles_deg(base, cells)))
+    assert 10.0 < theta < 30.0
+    for sigma in (5.0, 20.0, 60.0):
+        got = M.footprint_edge_radiance(G.build_instrument(base, {"source.beam_sigma_deg": sigma}), cells)
+        assert got == pytest.approx(math.exp(-math.radians(theta) ** 2 / (2 * math.radians(sigma) ** 2)), rel=1e-9)
+    assert M.footprint_edge_radiance(base, cells) == 1.0
+    assert M.footprint_edge_radiance(G.build_instrument(base, {"source.beam_half_angle_deg": theta - 0.5}), cells) == 0.0
+    assert M.footprint_edge_radiance(G.build_instrument(base, {"source.beam_half_angle_deg": theta + 0.5}), cells) == 1.0
+    ds = design_study("portable", [f"source.beam_sigma_deg=5,{theta:.6g},60"], ["R3"], cells="0:0,4:0",
+                      out=tmp_path / "d", backend="quadrature", accuracy="fast", workers=0, progress=False)
+    assert summary(ds)["points_beam_dim"] == 1             # 5 deg: P = 0.0; theta: 0.61; 60: 0.95
+
+
 @pytest.mark.parametrize("key", ["beam_intensity_file", "aperture_radiance_file"])
 def test_a_directory_for_a_table_says_it_is_a_directory(tmp_path, key):
     """(before: "file '...' does not exist" of a folder that exists)"""
