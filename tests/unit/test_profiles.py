@@ -943,7 +943,7 @@ def test_a_beam_narrower_than_the_footprint_is_named_by_the_design(tmp_path):
     assert M.footprint_edge_radiance(G.build_instrument(base, {"source.beam_half_angle_deg": theta + 0.5}), cells) == 1.0
     ds = design_study("portable", [f"source.beam_sigma_deg=5,{theta:.6g},60"], ["R3"], cells="0:0,4:0",
                       out=tmp_path / "d", backend="quadrature", accuracy="fast", workers=0, progress=False)
-    assert summary(ds)["points_beam_dim"] == 1             # 5 deg: P = 0.0; theta: 0.61; 60: 0.95
+    assert summary(ds)["points_beam_dim"] == 1             # 5 deg: P = 0.005; theta: 0.61; 60: 0.95
 
 
 @pytest.mark.parametrize("key", ["beam_intensity_file", "aperture_radiance_file"])
