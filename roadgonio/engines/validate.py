@@ -22,12 +22,14 @@ backend's first pass) makes z a t_15 variable, beyond 4 in 0.12 % of cells, not 
 test is 5.48 sigma (docs/validation.md, "How heavy are the tails"). Each cell gets one verdict:
 
 * **disagree**: ``|k_mc - k_ref| > allowed`` with a reference that converged (the difference is
-  real whatever the reference's own error), or a Monte Carlo value that is not finite;
+  real whatever the reference's own error), or a Monte Carlo value that is not finite although the
+  backend said it converged;
 * **inconclusive**: the reference did not converge (a bound that was not reached says nothing),
   or its bound takes more than :data:`REF_SHARE` of the test's band (``n_sigma sigma + floor |k|``)
   or its standard error exceeds the tested one - then an agreement would only say the reference is
   too coarse to see the difference; or the Monte Carlo backend stopped at its sample cap before its
-  target (its SE is honest, but the test is weaker than asked);
+  target (its SE is honest, but the test is weaker than asked), or stopped with no value or no SE
+  (a cell it says it cannot measure: float32 underflow, too few samples carrying the light);
 * **agree**: otherwise.
 
 ``roadgonio validate`` exits 0 only if every cell agrees, 1 if any disagrees, 3 if none disagrees
@@ -163,7 +165,14 @@ def compare(ref, mc, floor: float = 0.0) -> CellComparison:
     z = d / sigma if _finite(sigma) and sigma > 0 else (0.0 if d == 0 else math.nan)
     in_se = _finite(sigma) and sigma > 0
     ref_ok = bool(ref.converged) and (_finite(bound) or has_se_ref) and _finite(k_ref)
-    if not (_finite(k_mc) and _finite(se_mc)):
+    if not (_finite(k_mc) and _finite(se_mc)) and not bool(mc.converged):
+        # the backend said it could not measure the cell (float32 underflow, too few samples carrying
+        # the light, its cap): nothing to compare, not a difference (user audit: 'disagree', exit 1)
+        note = (mc.extra or {}).get("note") if isinstance(mc.extra, dict) else None
+        verdict, reason = "inconclusive", ("the Monte Carlo backend stated no " + ("value" if not _finite(k_mc) else "SE")
+                                           + f" and stopped before its target (k = {k_mc:.6g}, SE = {se_mc:.2g}"
+                                           + (f": {note}" if note else "") + ")")
+    elif not (_finite(k_mc) and _finite(se_mc)):
         verdict, reason = "disagree", f"the {'Monte Carlo'} value or its SE is not finite (k = {k_mc}, SE = {se_mc})"
     elif not ref_ok:
         what = (f"bound {bound / abs(k_ref):.1e} relative" if _finite(bound) and k_ref else "no usable bound")
@@ -388,6 +397,13 @@ def report_json(report: dict[str, Any]) -> dict[str, Any]:
     return doc
 
 
+def _bar(errors):
+    """Error-bar half-lengths: 0 where an error is not finite (none stated, or inf)."""
+    import numpy as np
+    e = np.asarray(errors, dtype=np.float64)
+    return np.where(np.isfinite(e), e, 0.0)
+
+
 def plot(report: dict[str, Any], path: str | Path) -> Path:
     """Two panels: the difference of each cell in combined standard errors (with its pass band),
     coloured by verdict, and both k_A values with their uncertainties."""
@@ -440,9 +456,11 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
     kq = np.array([r.k_ref for r in rows])
     km = np.array([r.k_mc for r in rows])
     err_ref = [r.bound_ref if math.isfinite(r.bound_ref) else r.se_ref for r in rows]
-    ax2.errorbar(x - 0.12, kq, yerr=np.nan_to_num(err_ref), fmt="o", ms=5,
+    # an error that is not finite (no SE stated: inf) draws no bar (user audit: nan_to_num made inf the
+    # largest float, and matplotlib's layout failed with a singular matrix, writing nothing)
+    ax2.errorbar(x - 0.12, kq, yerr=_bar(err_ref), fmt="o", ms=5,
                  label=f"{reference_label(report['reference'])} (float64)")
-    ax2.errorbar(x + 0.12, km, yerr=np.nan_to_num([r.se_mc for r in rows]), fmt="s", ms=5, mfc="none",
+    ax2.errorbar(x + 0.12, km, yerr=_bar([r.se_mc for r in rows]), fmt="s", ms=5, mfc="none",
                  label=f"{report['against']} (+-1 SE)")
     ax2.axhline(1.0, color="0.5", lw=0.8)
     ax2.set_ylabel("k_A")

@@ -132,6 +132,25 @@ def test_failed_line_says_a_cell_without_a_value_was_not_measured():
     assert line == "FAILED: (4, 2) not measured (its k_A or SE is NaN), (4, 2) +100.0 SE"
 
 
+def test_a_cell_the_backend_says_it_cannot_measure_is_inconclusive(tmp_path):
+    """(user audit) a Mitsuba cell that stopped with no SE (too few samples carried the light: SE inf,
+    not converged) or no value (float32 underflow: NaN, not converged) was 'disagree', exit 1, and
+    with SE inf the plot failed (a singular matrix) and nothing was written. The backend said it could
+    not measure the cell: inconclusive, with its note; a non-finite value it called converged stays a
+    disagreement; the plot draws no bar for an infinite SE."""
+    q = ref_cell(0.5, 0.0)
+    mc = CellResult(tan_eps=4.0, beta_deg=2.0, k_a=0.49, se=math.inf, samples=10, seconds=0.1, converged=False,
+                    extra={"note": "too few samples carried the light"})
+    no_se = V.compare(q, mc)
+    assert no_se.verdict == "inconclusive" and "stated no SE" in no_se.reason and "too few samples" in no_se.reason
+    no_value = V.compare(q, mc_cell(math.nan, math.nan, converged=False))
+    assert no_value.verdict == "inconclusive" and "stated no value" in no_value.reason
+    assert V.compare(q, mc_cell(math.nan, math.nan)).verdict == "disagree"
+    V.plot({"rows": [no_se, no_value], "n_sigma": V.N_SIGMA, "against": "mitsuba", "reference": "quadrature",
+            "verdict": "inconclusive", "counts": V.counts([no_se, no_value])}, tmp_path / "v.png")
+    assert (tmp_path / "v.png").stat().st_size > 10_000
+
+
 def test_validate_plot_draws_infinite_and_unmeasured_cells_distinctly(tmp_path):
     """(user audit) validate.png drew a cell of infinite z as a plain bar at the axis' end (-12), like
     any large difference, and a NaN k_A not at all: z_bars, what the plot draws, clips an infinite z
