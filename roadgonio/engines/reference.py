@@ -531,9 +531,13 @@ class ReferenceBackend(CellByCellBackend):
             extra["note"] = (f"stopped at its cap (max_evals = {self.max_evals}, max_log2 = {self.max_log2}): the "
                              f"relative error bound {bound / abs(k):.2e} exceeds rtol = {target:g}")
         extra["rtol"] = target
+        # no SE, no bound: no degrees of freedom or confidence level either (user audit: se null beside
+        # se_dof 9 and confidence_level 0.999 with a null bound, for a beam the replicates rarely hit)
+        stated = math.isfinite(se)
         return CellResult(tan_eps=tan_eps, beta_deg=beta_deg, k_a=float(k), se=float(se), confidence_bound=float(bound),
-                          confidence_level=self.confidence, converged=converged, samples=int(evals),
-                          seconds=time.perf_counter() - t0, extra=extra, se_dof=float(R - 1))
+                          confidence_level=self.confidence if math.isfinite(bound) else math.nan,
+                          converged=converged, samples=int(evals),
+                          seconds=time.perf_counter() - t0, extra=extra, se_dof=float(R - 1) if stated else math.nan)
 
 
 def _number(v, name: str) -> float:

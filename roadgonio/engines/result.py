@@ -272,7 +272,8 @@ def ratio_se(road: np.ndarray, lam: np.ndarray) -> tuple[float, float]:
     road = np.asarray(road, dtype=np.float64).ravel()
     lam = np.asarray(lam, dtype=np.float64).ravel()
     n = road.size
-    ratio = road.mean() / lam.mean()
+    with np.errstate(invalid="ignore", divide="ignore"):       # 0/0: no light in any batch, NaN said
+        ratio = road.mean() / lam.mean()
     if n < 2:
         return float(ratio), float("inf")
     if not mean_rel_se(lam) <= RATIO_DENOMINATOR_REL_SE_MAX:

@@ -164,3 +164,20 @@ def test_confidence_bound_is_the_two_sided_student_t_interval(lab, r3like, repli
     printed = {(10, 0.999): 4.781, (4, 0.95): 3.182}
     if (replicates, confidence) in printed:
         assert factor == pytest.approx(printed[(replicates, confidence)], abs=5e-4)
+
+
+def test_no_se_means_no_degrees_of_freedom_or_confidence_level():
+    """(user audit) a beam of 0.0003 deg, which the replicates rarely hit, stopped at the cap with se
+    inf (JSON null) beside se_dof 9 and confidence_level 0.999 with an infinite bound: where there is
+    no SE there are no degrees of freedom, and no level for a bound that is not one."""
+    import warnings
+    from roadgonio.engines import make_backend
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.sample import resolve_sample
+    inst = load_instrument("portable").with_changes(source={"beam_sigma_deg": 0.0003})
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                      # nor a numpy warning on the terminal
+        r = make_backend("reference", inst, resolve_sample("R3").model, rtol=1e-3,
+                         max_evals=2_000_000).compute([(12.0, 0.0)])[0]
+    assert not r.converged and math.isinf(r.se) and math.isinf(r.confidence_bound)
+    assert math.isnan(r.se_dof) and math.isnan(r.confidence_level)
