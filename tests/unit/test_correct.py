@@ -224,9 +224,10 @@ def test_measured_uncertainty_forms(tmp_path):
     g, _ = measured_uncertainty("2%", t)
     assert np.allclose(g[t.mask], 0.02 * t.r[t.mask], rtol=ROUND_TOL) and np.isnan(g[~t.mask]).all()
     assert np.allclose(measured_uncertainty(0.02, t)[0][t.mask], g[t.mask], rtol=ROUND_TOL)
-    f = t.with_values(np.where(t.mask, 3e-4, np.nan)).write_csv(tmp_path / "u.csv")
-    assert np.allclose(measured_uncertainty(str(f), t)[0][t.mask], 3e-4, rtol=1e-6)
-    bad = t.with_values(np.where(t.mask, 3e-4, np.nan))
+    # (a u below each value: C2's smallest r x 1e4 is 3, and a u of r itself is refused)
+    f = t.with_values(np.where(t.mask, 2e-4, np.nan)).write_csv(tmp_path / "u.csv")
+    assert np.allclose(measured_uncertainty(str(f), t)[0][t.mask], 2e-4, rtol=1e-6)
+    bad = t.with_values(np.where(t.mask, 2e-4, np.nan))
     bad.r[4, 3] = np.nan
     f2 = bad.write_csv(tmp_path / "u2.csv")
     with pytest.raises(InputError, match="tan eps = 1, beta = 10") as err:
