@@ -988,3 +988,21 @@ def test_uncertainty_with_nothing_to_propagate_is_an_error(tmp_path, capsys, sig
                "--sigma", sigma, "--out", str(tmp_path / "U"), "-q"])
     one_line_error(capsys, rc, "--sigma", "nothing to propagate")
     assert not (tmp_path / "U").exists()
+
+
+def test_a_scene_part_in_the_detectors_view_names_the_files_and_no_cell(mi, tmp_path, capsys):
+    """(user audit) a holder wall moved into the detector's view was refused 'at tan eps = 0, beta = 0'
+    for a table of other cells, naming neither the instrument nor the scene file. The view does not
+    depend on the cell: the message names both files and no cell."""
+    from pathlib import Path
+    xml = Path(__file__).resolve().parents[2] / "scenes" / "holder.xml"
+    inst = tmp_path / "front.toml"
+    inst.write_text(f"""[instrument]\nname = "front"\n\n[observation]\nalpha_deg = 1.0\n
+[source]\ndistance_m = 5.0\nradius_m = 0.005\n
+[detector]\ndistance_m = 10.0\npupil_radius_m = 0.005\nfield_half_angle_deg = 0.05\nfocus_m = 10.0\n
+[sample]\nsize_x_m = 2.0\nsize_y_m = 0.5\n
+[scene]\nxml = "{xml}"\n
+[scene.params]\nwall_x_m = 1.005\nwall_half_height_m = 0.005\nrail_y_m = 0.26\n""")
+    rc = main(["ka", "--instrument", str(inst), "--sample", "R3", "--cells", "12:0,4:0", "--out", str(tmp_path / "o")])
+    line = one_line_error(capsys, rc, "front.toml", "the part 'wall'", "holder.xml", "at every cell")
+    assert "tan eps" not in line

@@ -245,11 +245,16 @@ class RoadScene:
                         f"the source disc blocks the detector's line of sight{cell}: {k} of {dr.width(other)} "
                         "detector rays hit the source before the sample (the source sits between the detector "
                         "and its footprint); this cell cannot be measured with this geometry")
-                # name the part that stands in the detector's view (a housing wall, a baffle, a holder)
+                # name the part that stands in the detector's view (a housing wall, a baffle, a holder) and
+                # where it is declared; no cell: the detector's view is the same at every cell (user audit:
+                # 'at tan eps = 0, beta = 0' for a table of other cells, and no file)
+                sec = self.instrument.extra.get("scene") if isinstance(self.instrument.extra, dict) else None
+                where = (f" of the scene {xml_path(self.instrument, sec)}" if sec is not None and hasattr(sec, "get")
+                         and sec.get("xml") else "")
                 raise GeometryError(
-                    f"{k} of {dr.width(other)} detector rays meet the part {shape.id()!r} before the sample{cell}: "
-                    "it blocks the detector's view of its footprint (a part of the scene must not stand between "
-                    "the detector and the sample)")
+                    f"{k} of {dr.width(other)} detector rays meet the part {shape.id()!r}{where} before the sample: "
+                    "it blocks the detector's view of its footprint at every cell (a part of the scene must not "
+                    "stand between the detector and the sample)", path=self.instrument.path)
         return judge_hits(np.array(on_sample, dtype=bool), np.array(si.is_valid(), dtype=bool),
                           np.array(si.p.x), np.array(si.p.y), self.instrument.sample.mesh)
 
