@@ -660,8 +660,11 @@ def validate(instrument, sample, *, against: str = "mitsuba", reference: str = "
     check_relative(rel_se, "rel_se")
     if rtol is not None:
         check_relative(rtol, "rtol")
-    if floor is not None and not (isinstance(floor, (int, float)) and math.isfinite(floor) and floor >= 0):
-        raise InputError(f"expected a floor >= 0, got {floor}", field="floor")
+    if floor is not None and not (isinstance(floor, (int, float)) and not isinstance(floor, bool)
+                                  and math.isfinite(floor) and floor >= 0):
+        # (user audit: floor='1' said "got 1", as if the value were wrong and not its type)
+        raise InputError(f"expected a number >= 0 (a relative floor), got {type(floor).__name__} {floor!r}",
+                         field="floor")
     ref_settings = {}
     if ref_max_evals is not None:
         ref_settings["max_evals"] = _check_int(ref_max_evals, "ref_max_evals", 1)

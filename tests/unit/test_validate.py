@@ -233,3 +233,14 @@ def test_validate_an_instrument_calibrated_absolute_or_against_a_reference(calib
     row = report["rows"][0]
     assert row.verdict == "agree", row.reason
     assert row.k_ref != 1.0 and abs(row.k_mc / row.k_ref - 1) < 0.02
+
+
+@pytest.mark.parametrize("floor", ["1", -1.0, math.nan, True])
+def test_a_bad_floor_names_its_type_and_value(floor):
+    """(user audit) rg.validate(floor='1') said 'expected a floor >= 0, got 1': a text read as a number.
+    The error names the type and the value as given, before any work."""
+    import roadgonio as rg
+    from roadgonio.errors import InputError
+    with pytest.raises(InputError) as err:
+        rg.validate("portable", "R3", cells="0:0", floor=floor)
+    assert err.value.field == "floor" and f"{type(floor).__name__} {floor!r}" in str(err.value)
