@@ -63,8 +63,8 @@ SHADOW_END_REL = 1e-5
 
 
 def shadow_ray(p_hit, p_src):
-    """The shadow ray between a lit point ``p_hit`` and a source point ``p_src``, traced from the
-    source (which lies on no shape of the scene) and stopped SHADOW_END_REL of the distance short of
+    """The shadow ray between a lit point ``p_hit`` of the sample and a source point ``p_src``, traced
+    from the source (which lies on no shape of the scene) and stopped SHADOW_END_REL of the distance short of
     the point. ``SurfaceInteraction.spawn_ray_to`` instead lifts its origin off the surface by
     Mitsuba's ray epsilon times (1 + |p|), ~1e-4 m: a part shading the footprint stood 0.1 mm
     lower, and k_A was 1-2e-4 low, 12-25 of its SEs at a tight target (user audit: the holder
@@ -489,7 +489,10 @@ class KaBatch(mi.SamplingIntegrator):
         bsdf = si.bsdf()
         value = bsdf.eval(mi.BSDFContext(), si, si.to_local(d), active)
         vr, vg = self.channels(bsdf == self._sample_bsdf_ptr, value)
-        active = active & ~scene.ray_test(shadow_ray(si.p, p_src), active)
+        # a part's vertex keeps Mitsuba's spawned ray (lifted along the part's normal): from the source,
+        # a ray grazing a wall near it (a hood's inside) could meet that wall within the 1e-5 margin
+        # of :func:`shadow_ray`, float32's error of a grazing intersection being larger
+        active = active & ~scene.ray_test(si.spawn_ray_to(mi.Point3f(p_src)), active)
         if mis:
             # against the light paths of the same vertices (:meth:`path_light`): ls = the density
             # with which the source's cosine emission reaches this vertex
