@@ -1,7 +1,6 @@
 """``roadgonio design``: sweep instrument parameters on Dask; tolerance map, Pareto front, best design."""
 from __future__ import annotations
 
-import math
 import sys
 
 from roadgonio import api
@@ -148,8 +147,8 @@ def run(args) -> int:
             say(f"  note: {count(s['indistinct_from_best'], 'other design')} as bright within the precision of its max "
                 "|k_A - 1| (2 SE, or the error bounds): the computation does not tell them apart from the best "
                 "(design.csv); a finer --accuracy may")
-        bound, se = b.get("worst_error_bound"), b.get("worst_se")
-        if bound is not None and math.isfinite(bound) and not (se is not None and math.isfinite(se)):
+        if b["precision_kind"] == "bound":
+            bound = b["worst_error_bound"]
             if b["max_abs_dev"] + bound > s["tolerance"]:
                 say(f"  note: its max |k_A - 1| is within its error bound ({bound:.1g}) of the tolerance: the bound "
                     "does not decide that it is within; recompute the candidates at a finer --accuracy before "

@@ -308,20 +308,30 @@ def indistinct(flat: Mapping[str, np.ndarray], best: int) -> np.ndarray:
     return out
 
 
+def precision_kind(has_se: bool, has_bound: bool) -> str:
+    """The kind of a max |k_A - 1|'s precision, the one decision of the words, the error bars and the
+    tolerance note: ``"se"`` (Monte Carlo), ``"bound"`` (a deterministic bound, never called a
+    standard error: user audit), ``"both"`` (Monte Carlo under absolute calibration: its SE and eta's
+    bound) or ``""`` (neither kept: a design.nc written before they were)."""
+    return {(True, True): "both", (False, True): "bound", (True, False): "se"}.get((bool(has_se), bool(has_bound)), "")
+
+
+def _finite(v) -> bool:
+    return v is not None and math.isfinite(float(v))
+
+
 def precision_words(se, error_bound, u) -> str:
-    """What the precision of a max |k_A - 1| is, in words with its value: 'SE 1e-04', 'error bound
-    2e-04' (a deterministic bound, never called a standard error: user audit), 'SE 1e-04 and eta's
-    error bound 3e-06' (Monte Carlo under absolute calibration), or the standard uncertainty 'u 1e-04'
-    of a design.nc written before the kinds were kept."""
-    def finite(v):
-        return v is not None and math.isfinite(float(v))
-    if finite(se) and finite(error_bound):
+    """What the precision of a max |k_A - 1| is (:func:`precision_kind`), in words with its value:
+    'SE 1e-04', 'error bound 2e-04', 'SE 1e-04 and eta's error bound 3e-06', or the standard
+    uncertainty 'u 1e-04' of a design.nc written before the kinds were kept."""
+    kind = precision_kind(_finite(se), _finite(error_bound))
+    if kind == "both":
         return f"SE {float(se):.1g} and eta's error bound {float(error_bound):.1g}"
-    if finite(error_bound):
+    if kind == "bound":
         return f"error bound {float(error_bound):.1g}"
-    if finite(se):
+    if kind == "se":
         return f"SE {float(se):.1g}"
-    return f"u {float(u):.1g}" if finite(u) else "no SE"
+    return f"u {float(u):.1g}" if _finite(u) else "no SE"
 
 
 #: Two max |k_A - 1| within this many standard errors (of their difference) are not told apart.
@@ -377,8 +387,9 @@ def summary(ds) -> dict[str, Any]:
                      **{k: (v[best].item() if hasattr(v[best], "item") else v[best]) for k, v in flat.items()
                         if k not in ("feasible", "kind")}}
         s["best"]["seed"] = int(s["best"]["seed"])
-        s["best"]["precision"] = precision_words(s["best"].get("worst_se"), s["best"].get("worst_error_bound"),
-                                                 s["best"]["worst_u"])
+        se, bound = s["best"].get("worst_se"), s["best"].get("worst_error_bound")
+        s["best"]["precision"] = precision_words(se, bound, s["best"]["worst_u"])
+        s["best"]["precision_kind"] = precision_kind(_finite(se), _finite(bound))
     else:
         s["best"] = None
     if "out" in ds.attrs:

@@ -166,10 +166,11 @@ def _error_bars(ds) -> tuple[np.ndarray, str]:
     u = ds["worst_u"].values.reshape(-1)
     if se is None or eb is None:                       # a design.nc written before these were kept
         return 2 * np.nan_to_num(u) * 100, "error bars 2 u (standard uncertainty)"
-    has_se, has_eb = np.isfinite(se).any(), np.isfinite(eb).any()
-    if has_se and has_eb:
+    from roadgonio.design.dataset import precision_kind
+    kind = precision_kind(np.isfinite(se).any(), np.isfinite(eb).any())
+    if kind == "both":
         return 2 * np.nan_to_num(u) * 100, "error bars 2 u (the SE and the error bound / sqrt 3)"
-    if has_eb:
+    if kind == "bound":
         return np.nan_to_num(eb) * 100, "error bars: the deterministic error bound"
     return 2 * np.nan_to_num(se) * 100, "error bars 2 SE"
 

@@ -118,7 +118,7 @@ def centre_coupling(src: optics.SourceGeometry, level_v: int = 6, level_h: int =
     if not src.radius_m > 0:
         level_v = level_h = -1
     sx, sy, ws = disc_rule(level_v, level_h)
-    cut = beam_cut_fraction(src) if src.radius_m > 0 else 1.0
+    cut = beam_cut_fraction(src)
     if cut < 1.0:
         sx, sy = sx * cut, sy * cut
     sp = optics.source_point(src, (sx, sy))

@@ -55,9 +55,9 @@ def ratio_text(v: float) -> str:
     return f"{v:.{p}g}"
 
 
-def range_text(result: dict, sep: str = " ") -> str:
+def range_text(result: dict) -> str:
     """'0.995 ... 1.0034 (median 1)' of a comparison (:func:`ratio_text` for each)."""
-    return (f"{ratio_text(result['ratio_min'])} ... {ratio_text(result['ratio_max'])}{sep}"
+    return (f"{ratio_text(result['ratio_min'])} ... {ratio_text(result['ratio_max'])} "
             f"(median {ratio_text(result['ratio_median'])})")
 
 
@@ -119,8 +119,8 @@ def compare_png(result: dict, a: RTable, b: RTable) -> bytes:
     tab = tx.table(cellText=rows, loc="upper center", cellLoc="center")
     tab.scale(1.0, 1.8)
     tab.set_fontsize(11)
-    tx.text(0.0, 0.25, "ratio " + range_text(result, "\n").replace("(median ", "median ").rstrip(")")
-            + "\n" + largest_change_text(result).replace(" at tan", "\nat tan"),
+    tx.text(0.0, 0.25, f"ratio {ratio_text(result['ratio_min'])} ... {ratio_text(result['ratio_max'])}\n"
+            f"median {ratio_text(result['ratio_median'])}\n" + largest_change_text(result).replace(" at tan", "\nat tan"),
             fontsize=10, va="top", transform=tx.transAxes)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
