@@ -200,12 +200,14 @@ def _measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str, Pa
     check_u_scale(grid, table, path, **_u_where(path))          # a table of u (a percentage returned above)
     # a measurement's u is below its value, as the relative form's 0 < u < 100 % (user audit: a file of
     # '1' everywhere, meant as 1 %, was read as 1e-4 and ran with u up to 604 % of r, exit 0)
+    # (the API's RTable of u as well: review, session 36)
     over = table.mask & np.isfinite(grid) & (grid >= table.r)
-    if path is not None and over.any():
+    if over.any():
         i, j = np.argwhere(over)[0]
+        layout = "u x 1e4 in the r-table layout" if path is not None else "an RTable of u in sr^-1"
         raise InputError(f"a standard uncertainty at or above the measured value at tan eps = {table.tan_eps[i]:g}, "
                          f"beta = {table.beta_deg[j]:g} ({1e4 * grid[i, j]:.4g} against r x 1e4 = {1e4 * table.r[i, j]:.4g}; "
-                         f"{int(over.sum())} cells like it): expected u x 1e4 in the r-table layout, below each value "
+                         f"{int(over.sum())} cells like it): expected {layout}, below each value "
                          "(a relative u is given as '1%', not as a table of percentages)", path=path, **_u_where(path))
     return np.where(table.mask, grid, np.nan), what, path
 

@@ -888,6 +888,12 @@ def test_a_measured_u_at_or_above_its_value_is_an_input_error(tmp_path, capsys):
     r3.with_values(u, name="u").write_csv(tmp_path / "high.csv")
     grid, _ = measured_uncertainty(str(tmp_path / "high.csv"), r3)
     assert grid[0, 0] == pytest.approx(0.99 * r3.r[0, 0], rel=1e-4)
+    # the API's RTable form is held to the same (review, session 36: only the file form was)
+    from roadgonio.errors import InputError
+    grid, _ = measured_uncertainty(r3.with_values(u, name="u"), r3)
+    assert grid[0, 0] == pytest.approx(0.99 * r3.r[0, 0], rel=1e-12)
+    with pytest.raises(InputError, match=f"at or above the measured value.*{over} cells like it.*RTable of u in sr"):
+        measured_uncertainty(r3.with_values(np.where(r3.mask, 5e-4, np.nan), name="u"), r3)
 
 
 def _files(folder):
