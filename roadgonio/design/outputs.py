@@ -377,19 +377,29 @@ MIN_CONTOUR_FRACTION = 0.1
 def _visible_levels(X, Y, Z, levels, xlog: bool, ylog: bool) -> np.ndarray:
     """The levels whose iso-lines over the grid are at least MIN_CONTOUR_FRACTION of the map's
     diagonal long (lengths in axis units: log axes in decades of their span)."""
-    import contourpy
-    fx = (lambda v: np.log10(v)) if xlog else (lambda v: v)
-    fy = (lambda v: np.log10(v)) if ylog else (lambda v: v)
-    gx, gy = fx(np.asarray(X, dtype=float)), fy(np.asarray(Y, dtype=float))
+    gx = np.log10(np.asarray(X, dtype=float)) if xlog else np.asarray(X, dtype=float)
+    gy = np.log10(np.asarray(Y, dtype=float)) if ylog else np.asarray(Y, dtype=float)
     sx, sy = float(np.ptp(gx)) or 1.0, float(np.ptp(gy)) or 1.0
-    gen = contourpy.contour_generator(gx / sx, gy / sy, np.ma.masked_invalid(np.asarray(Z, dtype=float)))
     keep = []
     for lv in levels:
-        lines = gen.lines(float(lv))
-        length = sum(float(np.sum(np.hypot(*np.diff(np.asarray(seg), axis=0).T))) for seg in lines if len(seg) > 1)
+        length = sum(float(np.sum(np.hypot(*np.diff(seg, axis=0).T)))
+                     for seg in _contour_segments(gx / sx, gy / sy, Z, float(lv)))
         if length >= MIN_CONTOUR_FRACTION * math.sqrt(2.0):
             keep.append(lv)
     return np.asarray(keep, dtype=float)
+
+
+def _contour_segments(gx, gy, z, level: float) -> list[np.ndarray]:
+    """The iso-line of ``z`` at ``level`` over the coordinates ``gx``, ``gy`` (the axes as drawn: log
+    of the value along a log axis), as (n, 2) segments of at least two points; NaN in ``z`` is not
+    computed. None drawn where contourpy cannot (fewer than 2 x 2 values)."""
+    import contourpy
+    try:
+        gen = contourpy.contour_generator(gx, gy, np.ma.masked_invalid(np.asarray(z, dtype=float)))
+        lines = gen.lines(float(level))
+    except (ValueError, TypeError):
+        return []
+    return [seg for seg in (np.asarray(s, dtype=float) for s in lines) if len(seg) > 1]
 
 
 def _signal_levels(lo: float, hi: float, n_max: int = 7) -> np.ndarray:
@@ -458,21 +468,11 @@ def _level_lines(x, y, z, level: float, xlog: bool, ylog: bool) -> list[tuple[np
     its axes: interpolated linearly in log(value) along a log axis, where the grid's values are evenly
     spaced (user audit: interpolated in the value, the tolerance line on a log radius axis was drawn
     ~25 px from where the points put it). Lines of one point are left out."""
-    import contourpy
     gx = np.log(np.asarray(x, dtype=float)) if xlog else np.asarray(x, dtype=float)
     gy = np.log(np.asarray(y, dtype=float)) if ylog else np.asarray(y, dtype=float)
-    try:
-        gx, gy = np.meshgrid(gx, gy)
-        gen = contourpy.contour_generator(gx, gy, np.ma.masked_invalid(np.asarray(z, dtype=float)))
-        lines = gen.lines(float(level))
-    except (ValueError, TypeError):
-        return []
-    out = []
-    for seg in lines:
-        seg = np.asarray(seg, dtype=float)
-        if len(seg) > 1:
-            out.append((np.exp(seg[:, 0]) if xlog else seg[:, 0], np.exp(seg[:, 1]) if ylog else seg[:, 1]))
-    return out
+    gx, gy = np.meshgrid(gx, gy)
+    return [(np.exp(seg[:, 0]) if xlog else seg[:, 0], np.exp(seg[:, 1]) if ylog else seg[:, 1])
+            for seg in _contour_segments(gx, gy, z, level)]
 
 
 #: At most this many labelled ticks on a log-varied key's axis.
