@@ -66,8 +66,9 @@ def main(argv=None) -> int:
             target_s = ("yes" if target else "NO") + ("" if name in PAPER_TABLES else " (n/a)")
             prms, pmax = PLAIN_FIT[name]
             beats, beats_s = beats_words(r, prms, pmax)
-            own = fits.get("power") if v != "power" else None
-            own_rms, own_max = (own.rms_dev_pct, own.max_dev_pct) if own is not None else (float("nan"),) * 2
+            plain = fits.get("power")                 # this run's plain fit (None: power not among --variants)
+            own = plain if v != "power" else None     # nothing to compare the power row itself with
+            own_rms, own_max = (plain.rms_dev_pct, plain.max_dev_pct) if plain is not None else (float("nan"),) * 2
             beats_own, beats_own_s = beats_words(r, own_rms, own_max) if own is not None else ("", "-")
             say(f"{name:5} {v:8} {r.max_dev_pct:7.2f} {r.rms_dev_pct:7.2f} {r.seconds:6.1f}  {target_s:12}  "
                 f"{beats_s:28}  {beats_own_s:25}")
