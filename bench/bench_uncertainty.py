@@ -90,7 +90,8 @@ def main() -> int:
                      "sur_err_over_u_max": s["err_over_u_max"], "backend_rel_u_max": s["backend_rel_u_max"]})
 
     for r in rows:
-        r["pass"] = "yes" if r["seconds"] < r["target_s"] else "NO"
+        # --quick runs fewer trials than the targets are stated for: no verdict on them
+        r["pass"] = "n/a (--quick)" if args.quick else ("yes" if r["seconds"] < r["target_s"] else "NO")
     hdr = ("case", "cells", "trials", "seconds", "target_s", "target", "pass", "seconds_exact_ka", "seconds_mc",
            "seconds_stats", "u_rel_median_pct", "sur_err_max_pct", "sur_err_rms_pct", "sur_err_over_u_max",
            "backend_rel_u_max")
