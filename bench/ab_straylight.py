@@ -3,7 +3,8 @@
 back at once and computes the direct light's ratio and the stray fraction cell by cell with
 ``np.var`` (what the engine did before launches were deferred and those statistics vectorised),
 B is the engine as it is. Tables alternate (ABBA...), the bare and the housed example, full grid,
-R3, rel. SE 1e-3, seed 0; every table must give the same k_A, SE and samples (checked).
+R3, rel. SE 1e-3, seed 0; every table must give the same k_A, SE and samples (checked). Prints
+its lines under the machine and the load average (bench/machine.py); writes no file.
 
     python bench/ab_straylight.py --pairs 15
 """
@@ -17,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from machine import header, load_after  # bench/machine.py (the script's folder is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCHES = ("block_sums", "stray_sums", "light_sums", "trace_paths", "trace_detector")
@@ -62,6 +64,8 @@ def main(argv=None) -> int:
 
     model = resolve_sample("R3").model
     cells = full_grid_cells()
+    print("\n".join(header(f"ab_straylight: launch pattern A (read at once) vs B (deferred), {args.pairs} pairs, "
+                           f"{len(cells)} cells, R3, rel SE 1e-3")), flush=True)
     launches = {name: getattr(kb.KaBatch, name) for name in LAUNCHES}
     vectorised = passes.stray_ratios
 
@@ -99,12 +103,13 @@ def main(argv=None) -> int:
             rows[name] = times
             d = np.array(times["A"]) - np.array(times["B"])
             print(f"{name:16s} A median {statistics.median(times['A']):.3f} s, B median "
-                  f"{statistics.median(times['B']):.3f} s; A - B paired: mean {d.mean():.3f} +- "
-                  f"{d.std(ddof=1) / math.sqrt(len(d)):.3f} s, median {np.median(d):.3f} s", flush=True)
+                  f"{statistics.median(times['B']):.3f} s; A - B paired: mean {d.mean():.3f} s (SE "
+                  f"{d.std(ddof=1) / math.sqrt(len(d)):.3f} s), median {np.median(d):.3f} s", flush=True)
     finally:
         mode("B")
     ratio = {m: statistics.median(rows["portable_housed"][m]) / statistics.median(rows["portable"][m]) for m in "AB"}
     print(f"housed / bare (medians): A {ratio['A']:.1f}, B {ratio['B']:.1f}; {args.pairs} pairs each")
+    print(load_after())
     return 0
 
 

@@ -3,24 +3,39 @@
 of fixed sample counts per cell (mitsuba, numpy-mc: one pass / a fixed number of batches), plus the
 accuracy presets fast/default/precise of every backend as their own points, on representative cells
 of the portable preset with an R3-like model (the hardest specular cells included), plus the full
-580-cell table for the quadrature. Writes bench/results/accuracy.csv and bench/results/pareto.png and prints the table.
+580-cell table for the quadrature. Writes bench/results/accuracy.csv, the printed table as
+bench/results/accuracy.txt and bench/results/pareto.png.
 
     python bench/bench_accuracy.py [--instrument portable] [--no-mitsuba] [--no-full] [--quick]
 
-Error of a setting = max over the cells of |k - k_ref| / k_ref (and the RMS); "claimed" = the
-largest relative error/SE the backend reported. Errors below the reference's own error estimate
-are not resolved (the column ref_err says how far the reference can be trusted).
+Error of a setting = max over the cells of |k - k_ref| / k_ref (and the RMS). What the backend
+claimed, the largest relative value over the cells, one kind per column (NaN where the backend
+claims none of that kind; the kinds are never mixed):
+
+* ``claimed_se``: a standard error (Monte Carlo backends);
+* ``claimed_estimate``: the quadrature's error estimate (``CellResult.error_bound`` of a result
+  without SE; an estimate of the error of the next coarser rules, not a guaranteed bound:
+  roadgonio/engines/quadrature.py);
+* ``claimed_bound``: a deterministic bound beside a standard error (eta's, under absolute
+  calibration).
+
+The reference is itself a quadrature (rtol 1e-7): ``ref_err`` is its largest relative error
+estimate. A cell's error is resolved only where it exceeds the reference's own estimate at that
+cell; ``resolved`` counts those cells, and the error/claim ratios (``max_err_over_se``, a z;
+``max_err_over_estimate``: below 1 means the estimate held, its inverse how conservative it was)
+are taken over the resolved cells only (NaN where none is resolved: an error that small says
+nothing about the claim).
 """
 from __future__ import annotations
 
 import argparse
-import csv
 import math
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from machine import Printout, load_after, write_rows  # bench/machine.py (the script's folder is on sys.path)
 
 from roadgonio.instrument.config import load_instrument
 from roadgonio.engines import full_grid_cells, make_backend
@@ -37,24 +52,72 @@ CELLS = [(12.0, 0.0), (12.0, 2.0), (8.0, 10.0), (4.0, 2.0), (1.0, 90.0), (0.0, 0
 MITSUBA_BUDGETS = [256, 1024, 4096, 16384, 65536, 262144, 1 << 20, 1 << 22]
 NUMPY_BATCHES = [16 ** 2, 32 ** 2, 64 ** 2, 128 ** 2, 256 ** 2]
 OUT = Path(__file__).resolve().parent / "results"
-FIELDS = ["backend", "setting", "value", "scope", "cells", "seconds", "max_rel_err", "rms_rel_err",
-          "max_claimed", "not_converged", "samples", "ref_err"]
+#: the kinds of claimed precision, one column each (module docstring)
+KINDS = ("se", "estimate", "bound")
 
 
-def precision(r) -> float:
-    """The claimed relative precision of a cell: its error bound (quadrature) or standard error."""
-    return (r.error_bound if r.deterministic else r.se) / abs(r.k_a)
+def claims(r) -> dict[str, float]:
+    """The claimed relative precision of a cell by kind (NaN where it has none of that kind): its
+    standard error, its quadrature error estimate (a result without SE), its deterministic bound
+    beside an SE."""
+    k = abs(r.k_a)
+    has_se, has_eb = math.isfinite(r.se), math.isfinite(r.error_bound)
+    return {"se": r.se / k if has_se else math.nan,
+            "estimate": r.error_bound / k if (has_eb and not has_se) else math.nan,
+            "bound": r.error_bound / k if (has_eb and has_se) else math.nan}
+
+
+def worst_claims(res) -> dict[str, float]:
+    """The largest claim of each kind over the cells (NaN where no cell claims that kind)."""
+    out = {}
+    for kind in KINDS:
+        v = [c[kind] for c in map(claims, res) if math.isfinite(c[kind])]
+        out[f"claimed_{kind}"] = max(v) if v else math.nan
+    return out
+
+
+def ref_estimate(r) -> float:
+    """The reference's relative error estimate at its cell (it is a quadrature)."""
+    return r.error_bound / abs(r.k_a)
 
 
 def run_setting(backend, cells, ref):
     t0 = time.perf_counter()
     res = backend.compute(cells)
     sec = time.perf_counter() - t0
-    rel = np.array([abs(r.k_a - ref[(r.tan_eps, r.beta_deg)].k_a) / ref[(r.tan_eps, r.beta_deg)].k_a
-                    for r in res])
-    claimed = max(precision(r) for r in res)
+    rel, resolved, over = [], 0, {"se": [], "estimate": []}
+    for r in res:
+        rf = ref[(r.tan_eps, r.beta_deg)]
+        e = abs(r.k_a - rf.k_a) / rf.k_a
+        rel.append(e)
+        if e > ref_estimate(rf):         # resolved: the error exceeds the reference's own estimate
+            resolved += 1
+            c = claims(r)
+            for kind in over:
+                if math.isfinite(c[kind]) and c[kind] > 0:
+                    over[kind].append(e / c[kind])
+    rel = np.array(rel)
     notconv = sum(1 for r in res if not r.converged)
-    return sec, float(rel.max()), float(np.sqrt(np.mean(rel ** 2))), claimed, notconv, sum(r.samples for r in res)
+    return dict(seconds=sec, max_rel_err=float(rel.max()), rms_rel_err=float(np.sqrt(np.mean(rel ** 2))),
+                **worst_claims(res), resolved=resolved,
+                max_err_over_se=max(over["se"]) if over["se"] else math.nan,
+                max_err_over_estimate=max(over["estimate"]) if over["estimate"] else math.nan,
+                not_converged=notconv, samples=sum(r.samples for r in res))
+
+
+def claimed_text(r) -> str:
+    """A row's claims for the progress lines, each with its kind."""
+    return ", ".join(f"claimed {kind} {r['claimed_' + kind]:.2e}" for kind in KINDS
+                     if math.isfinite(r["claimed_" + kind])) or "no claim"
+
+
+def full_table_row(backend, setting, value, cells, sec, res) -> dict:
+    """A full-table run: no reference there, so no error and no error/claim ratio (NaN)."""
+    return dict(backend=backend, setting=setting, value=value, scope="full table", cells=len(cells), seconds=sec,
+                max_rel_err=math.nan, rms_rel_err=math.nan, **worst_claims(res), resolved=math.nan,
+                max_err_over_se=math.nan, max_err_over_estimate=math.nan,
+                not_converged=sum(1 for r in res if not r.converged), samples=sum(r.samples for r in res),
+                ref_err=math.nan)
 
 
 def main(argv=None) -> int:
@@ -68,13 +131,15 @@ def main(argv=None) -> int:
     inst = load_instrument(args.instrument)
     model = RoadModel(RoadParams(**R3LIKE), name="R3-like")
     rows = []
+    say = Printout(f"k_A speed-accuracy, {inst.name} preset, R3-like model, {len(CELLS)} cells "
+                   "(bench/bench_accuracy.py)")
 
     print(f"reference: quadrature rtol 1e-7 on {len(CELLS)} cells of {inst.name} ...", file=sys.stderr)
     refb = make_backend("quadrature", inst, model, rtol=1e-7, max_evals=12_000_000)
     t0 = time.perf_counter()
     ref = {(r.tan_eps, r.beta_deg): r for r in refb.compute(CELLS)}
-    ref_err = max(precision(r) for r in ref.values())
-    print(f"  {time.perf_counter() - t0:.1f} s, reference error <= {ref_err:.1e}", file=sys.stderr)
+    ref_err = max(ref_estimate(r) for r in ref.values())
+    print(f"  {time.perf_counter() - t0:.1f} s, reference error estimate <= {ref_err:.1e}", file=sys.stderr)
 
     # the presets of the backends compared, as the registry holds them (roadgonio.engines.accuracy,
     # which this script read, became the registry's BackendInfo.presets)
@@ -104,12 +169,10 @@ def main(argv=None) -> int:
         b = make_backend(name, inst, model, **settings)
         if name == "mitsuba":      # compile outside the timing
             b.compute([CELLS[-1]])
-        sec, mx, rms, claimed, nc, n = run_setting(b, CELLS, ref)
-        rows.append(dict(backend=name, setting=key, value=v, scope="cells", cells=len(CELLS), seconds=sec,
-                         max_rel_err=mx, rms_rel_err=rms, max_claimed=claimed, not_converged=nc, samples=n,
-                         ref_err=ref_err))
-        print(f"  {name:10s} {key}={v!s:<7} {sec:8.2f} s  max err {mx:.2e}  claimed {claimed:.2e}",
-              file=sys.stderr, flush=True)
+        m = run_setting(b, CELLS, ref)
+        rows.append(dict(backend=name, setting=key, value=v, scope="cells", cells=len(CELLS), **m, ref_err=ref_err))
+        print(f"  {name:10s} {key}={v!s:<7} {m['seconds']:8.2f} s  max err {m['max_rel_err']:.2e}  "
+              f"{claimed_text(rows[-1])}", file=sys.stderr, flush=True)
 
     if not args.no_full:
         cells = full_grid_cells()
@@ -120,43 +183,36 @@ def main(argv=None) -> int:
                 t0 = time.perf_counter()
                 res = b.compute(cells)
                 sec = time.perf_counter() - t0
-                claimed = max(precision(r) for r in res)
-                nc = sum(1 for r in res if not r.converged)
-                rows.append(dict(backend="mitsuba", setting="preset", value=preset_name, scope="full table",
-                                 cells=len(cells), seconds=sec, max_rel_err=math.nan, rms_rel_err=math.nan,
-                                 max_claimed=claimed, not_converged=nc, samples=sum(r.samples for r in res),
-                                 ref_err=math.nan))
-                print(f"  mitsuba full table preset={preset_name}: {sec:.2f} s, worst claimed {claimed:.1e}",
+                rows.append(full_table_row("mitsuba", "preset", preset_name, cells, sec, res))
+                print(f"  mitsuba full table preset={preset_name}: {sec:.2f} s, worst {claimed_text(rows[-1])}",
                       file=sys.stderr, flush=True)
         for rtol in ([1e-3] if args.quick else [1e-3, 1e-4]):
             b = make_backend("quadrature", inst, model, rtol=rtol)
             t0 = time.perf_counter()
             res = b.compute(cells)
             sec = time.perf_counter() - t0
-            claimed = max(precision(r) for r in res)
-            nc = sum(1 for r in res if not r.converged)
-            rows.append(dict(backend="quadrature", setting="rtol", value=rtol, scope="full table", cells=len(cells),
-                             seconds=sec, max_rel_err=math.nan, rms_rel_err=math.nan, max_claimed=claimed,
-                             not_converged=nc, samples=sum(r.samples for r in res), ref_err=math.nan))
-            print(f"  full table rtol={rtol:g}: {sec:.1f} s, {nc} cells not converged, worst claimed {claimed:.1e}",
-                  file=sys.stderr, flush=True)
+            rows.append(full_table_row("quadrature", "rtol", rtol, cells, sec, res))
+            print(f"  full table rtol={rtol:g}: {sec:.1f} s, {rows[-1]['not_converged']} cells not converged, "
+                  f"worst {claimed_text(rows[-1])}", file=sys.stderr, flush=True)
 
-    OUT.mkdir(parents=True, exist_ok=True)
-    with open(OUT / "accuracy.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=FIELDS)
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()})
+    say(f"reference: quadrature rtol 1e-7, its relative error estimate <= {ref_err:.1e}; an error is resolved "
+        "where it exceeds the reference's estimate at its cell; err/SE and err/estimate over the resolved cells only")
+    say(f"{'backend':10s} {'setting':>16s} {'scope':>10s} {'seconds':>8s} {'max err':>9s} {'rms err':>9s} "
+        f"{'claim SE':>9s} {'claim est':>9s} {'claim bnd':>9s} {'resolved':>8s} {'err/SE':>7s} {'err/est':>7s} "
+        f"{'not conv':>8s} {'samples':>10s}")
 
-    import os
-    print(f"\nk_A speed-accuracy, {inst.name} preset, R3-like model, {len(CELLS)} cells (reference: quadrature "
-          f"rtol 1e-7, its error <= {ref_err:.1e}); load {os.getloadavg()}")
-    print(f"{'backend':10s} {'setting':>16s} {'scope':>10s} {'seconds':>8s} {'max err':>9s} {'rms err':>9s} "
-          f"{'claimed':>9s} {'not conv':>8s} {'samples':>10s}")
+    def g(v, spec):
+        return format(v, spec) if isinstance(v, (int, float)) and math.isfinite(v) else "-"
     for r in rows:
-        print(f"{r['backend']:10s} {r['setting'] + '=' + format(r['value'], 'g' if not isinstance(r['value'], str) else ''):>16s} {r['scope']:>10s} "
-              f"{r['seconds']:8.2f} {r['max_rel_err']:9.2e} {r['rms_rel_err']:9.2e} {r['max_claimed']:9.2e} "
-              f"{r['not_converged']:8d} {r['samples']:10.3g}")
+        setting = r['setting'] + '=' + format(r['value'], 'g' if not isinstance(r['value'], str) else '')
+        resolved = f"{r['resolved']}/{r['cells']}" if r["scope"] == "cells" else "-"
+        say(f"{r['backend']:10s} {setting:>16s} {r['scope']:>10s} {r['seconds']:8.2f} {g(r['max_rel_err'], '9.2e'):>9s} "
+            f"{g(r['rms_rel_err'], '9.2e'):>9s} {g(r['claimed_se'], '9.2e'):>9s} {g(r['claimed_estimate'], '9.2e'):>9s} "
+            f"{g(r['claimed_bound'], '9.2e'):>9s} {resolved:>8s} {g(r['max_err_over_se'], '7.2f'):>7s} "
+            f"{g(r['max_err_over_estimate'], '7.2f'):>7s} {r['not_converged']:8d} {r['samples']:10.3g}")
+    say(load_after())
+    write_rows(OUT / "accuracy.csv", [{k: (f"{v:.4g}" if isinstance(v, float) else v) for k, v in r.items()}
+                                       for r in rows], say.text())
 
     import matplotlib
     matplotlib.use("Agg")
@@ -179,7 +235,7 @@ def main(argv=None) -> int:
             dy = -10 - 9 * list(ACCURACY).index(r["value"])   # presets on one point stay legible
             ax.annotate(r["value"], (r["seconds"], max(r["max_rel_err"], 1e-9)), fontsize=8, xytext=(5, dy),
                         textcoords="offset points", color=line.get_color(), weight="bold")
-    ax.axhline(ref_err, color="0.6", ls=":", lw=1, label=f"reference error {ref_err:.0e}")
+    ax.axhline(ref_err, color="0.6", ls=":", lw=1, label=f"reference error estimate {ref_err:.0e}")
     ax.set_xlabel(f"seconds for {len(CELLS)} cells (2-core machine)")
     ax.set_ylabel("max relative error of k_A vs reference")
     ax.set_title(f"k_A speed-accuracy: {inst.name} preset, R3-like model, {len(CELLS)} cells\n"
@@ -189,7 +245,7 @@ def main(argv=None) -> int:
     ax.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(OUT / "pareto.png", dpi=120)
-    print(f"wrote {OUT / 'accuracy.csv'} and {OUT / 'pareto.png'}")
+    print(f"wrote {OUT / 'accuracy.csv'}, {OUT / 'accuracy.txt'} and {OUT / 'pareto.png'}")
     return 0
 
 

@@ -15,7 +15,8 @@ as reference (the classic route, its model dependence from the two next nearest 
   <= 60 s), and once more with a misalignment SPEC.
 
 Targets: corrected RMS log error <= 1.5 %, max <= 6 %, >= 90 % of cells within 2 stated u, S1 within
-2 u(S1). Prints a table, writes bench/results/correct.csv; load average beside every row.
+2 u(S1). Prints a table under the machine and the load average (and the load beside every row),
+writes bench/results/correct.csv and the printed table as correct.txt.
 
     python bench/bench_correct.py [--regenerate] [--only wide|portable]
 """
@@ -30,6 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from machine import Printout, load_after  # bench/machine.py (the script's folder is on sys.path)
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
@@ -93,7 +95,7 @@ def row(case, calib, method, s, seconds, k_range=(np.nan, np.nan)) -> dict:
             "seconds": seconds, "load": load()}
 
 
-def run_wide(rows: list, regenerate: bool) -> None:
+def run_wide(rows: list, regenerate: bool, say=print) -> None:
     from roadgonio.correction import correct_files
     from roadgonio.surface.cie import nearest_bundled
     from roadgonio.engines.calibration import illuminance_ratio
@@ -123,10 +125,10 @@ def run_wide(rows: list, regenerate: bool) -> None:
                                       u_measured="1%", backend="mitsuba", progress=False)[0]
             rows.append(row("wide", mode, f"reference {near} (nearest CIE table)", scores(ref, truth),
                             time.perf_counter() - t0, (np.nanmin(ref.k_a), np.nanmax(ref.k_a))))
-        print_rows(rows[-3:])
+        print_rows(rows[-3:], say)
 
 
-def run_portable(rows: list) -> None:
+def run_portable(rows: list, say=print) -> None:
     from roadgonio.correction import correct_files
     from roadgonio.correction.synthetic import r2_like_truth, synthesize
     from roadgonio.engines.mitsuba import set_variant
@@ -145,7 +147,7 @@ def run_portable(rows: list) -> None:
             dt = time.perf_counter() - t0
         rows.append(row("portable", "lambert", label, scores(res, s.truth), dt, (np.nanmin(res.k_a), np.nanmax(res.k_a))))
         rows[-1]["timings"] = " ".join(f"{k}={v:.1f}" for k, v in res.provenance["timings"].items())
-    print_rows(rows[-3:])
+    print_rows(rows[-3:], say)
 
 
 COLS = [("case", 9, "s"), ("calibration", 9, "s"), ("method", 38, "s"), ("rms_pct", 6, ".2f"), ("max_pct", 6, ".2f"),
@@ -157,7 +159,7 @@ HEAD = {"rms_pct": "RMS%", "max_pct": "max%", "within_2u_pct": "in2u%", "S1_true
         "seconds": "sec"}
 
 
-def print_rows(rows) -> None:
+def print_rows(rows, say=print) -> None:
     for r in rows:
         out = []
         for key, w, f in COLS:
@@ -166,7 +168,7 @@ def print_rows(rows) -> None:
                 out.append(" " * w)
             else:
                 out.append(format(v, f).ljust(w) if f == "s" else format(v, f).rjust(w))
-        print("  ".join(out) + (f"   [{r['timings']}]" if r.get("timings") else ""), flush=True)
+        say("  ".join(out) + (f"   [{r['timings']}]" if r.get("timings") else ""))
 
 
 def main() -> int:
@@ -174,20 +176,22 @@ def main() -> int:
     ap.add_argument("--regenerate", action="store_true", help="recompute the cached numpy Monte Carlo k_A of wide")
     ap.add_argument("--only", choices=["wide", "portable"])
     args = ap.parse_args()
-    print(f"machine: {os.cpu_count()} cores; load average at start {load()}")
-    print("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
+    say = Printout(f"bench_correct (issue 11): synthetic round trips{'' if args.only is None else ', ' + args.only + ' only'}")
+    say("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
     rows: list[dict] = []
     if args.only in (None, "portable"):
-        run_portable(rows)
+        run_portable(rows, say=say)
     if args.only in (None, "wide"):
-        run_wide(rows, args.regenerate)
+        run_wide(rows, args.regenerate, say=say)
+    say(load_after())
     RESULTS.mkdir(exist_ok=True)
     keys = [k for k, _, _ in COLS] + ["timings"]
     with open(RESULTS / "correct.csv", "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
         w.writeheader()
         w.writerows(rows)
-    print(f"wrote {RESULTS / 'correct.csv'}")
+    (RESULTS / "correct.txt").write_text(say.text() + "\n")
+    print(f"wrote {RESULTS / 'correct.csv'} and {RESULTS / 'correct.txt'}")
     return 0
 
 

@@ -6,20 +6,21 @@ worker processes, and Dask's per-task overhead.
 
 The design family is the portable preset with the source radius and the pupil varied around it
 (every point a full instrument, sample R3, Mitsuba backend). The three runs compute the same
-tables with the same seeds; the script checks that their k_A are identical. Prints a table and
-writes bench/results/design.csv, with os.getloadavg() beside every row (the machine is shared).
+tables with the same seeds; the script checks that their k_A are identical. Prints a table under
+the machine and the load average, with os.getloadavg() beside every row (the machine is shared),
+and writes bench/results/design.csv and the printed table as design.txt (``--out`` elsewhere).
 """
 from __future__ import annotations
 
 import argparse
 import csv
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+from machine import Printout, load_after  # bench/machine.py (the script's folder is on sys.path)
 
 
 def _noop(x):
@@ -59,8 +60,8 @@ def main(argv=None) -> int:
             f"detector.pupil_radius_m=0.003:0.005:{n_p}" if n_p > 1 else "detector.pupil_radius_m=0.004:0.004:1"]
     kw = dict(samples=["R3"], cells=args.cells, backend="mitsuba", accuracy=args.accuracy, seed=1,
               progress=False, plots=False, tolerance="50%")
-    print(f"roadgonio design throughput: portable family ({' x '.join(vary)}), sample R3, cells {args.cells}, "
-          f"accuracy {args.accuracy}; {platform.processor() or platform.machine()}, {os.cpu_count()} cores")
+    say = Printout(f"roadgonio design throughput: portable family ({' x '.join(vary)}), sample R3, "
+                   f"cells {args.cells}, accuracy {args.accuracy}")
     rows, ref = [], None
     # warm up this process (variant, plugins, first kernel) so the in-process row measures work, not start-up
     run_design("portable", None, workers=0, **{**kw, "cells": "4:2"})
@@ -100,12 +101,13 @@ def main(argv=None) -> int:
     cols = ["run", "tables", "cells_per_table", "wall_s", "startup_s", "tables_per_hour",
             "speedup_vs_1_worker", "overhead_s_per_task", "identical_k_a", "load_before", "load_after"]
     widths = [max(len(c), 14) for c in cols]
-    print("  ".join(c.ljust(w) for c, w in zip(cols, widths)))
+    say("  ".join(c.ljust(w) for c, w in zip(cols, widths)))
     for r in rows:
-        print("  ".join((f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c])).ljust(w) for c, w in zip(cols, widths)))
-    print(f"Dask per-task overhead (no-op tasks, 2 workers): bulk map {ov['bulk_s_per_task'] * 1e3:.2f} ms/task, "
-          f"one-at-a-time round trip {ov['roundtrip_s_per_task'] * 1e3:.2f} ms/task; load "
-          f"{' '.join(f'{v:.2f}' for v in load0)} -> {' '.join(f'{v:.2f}' for v in load1)}")
+        say("  ".join((f"{r[c]:.4g}" if isinstance(r[c], float) else str(r[c])).ljust(w) for c, w in zip(cols, widths)))
+    say(f"Dask per-task overhead (no-op tasks, 2 workers): bulk map {ov['bulk_s_per_task'] * 1e3:.2f} ms/task, "
+        f"one-at-a-time round trip {ov['roundtrip_s_per_task'] * 1e3:.2f} ms/task; load "
+        f"{' '.join(f'{v:.2f}' for v in load0)} -> {' '.join(f'{v:.2f}' for v in load1)}")
+    say(load_after())
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with out.open("w", newline="") as f:
@@ -116,7 +118,8 @@ def main(argv=None) -> int:
             w.writerow({**r, "noop_bulk_ms": ov["bulk_s_per_task"] * 1e3,
                         "noop_roundtrip_ms": ov["roundtrip_s_per_task"] * 1e3, "accuracy": args.accuracy,
                         "cells": args.cells, "created": time.strftime("%Y-%m-%dT%H:%M:%S")})
-    print(f"wrote {out}")
+    out.with_suffix(".txt").write_text(say.text() + "\n")     # the table as printed (design.txt was hand-pasted)
+    print(f"wrote {out} and {out.with_suffix('.txt')}")
     return 0
 
 

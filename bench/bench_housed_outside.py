@@ -9,9 +9,10 @@ stray light exists only there; the backend itself is checked against float64 int
 tests/plugin/test_straylight.py and tests/plugin/test_surface_bsdf.py), and corrected with the
 Mitsuba backend at its defaults (seed 0). Scores are |ln(corrected / true)| and z = error / u.
 
-    python bench/bench_housed_outside.py [--truths microfacet,two_lobes,eq4] [--walls 0.2,0.05,0]
+    python bench/bench_housed_outside.py [--truths microfacet,two_lobes,eq4] [--walls 0.2,0.05,0] [--out CSV]
 
-Prints a table and writes bench/results/housed_outside.csv.
+Prints a table under the machine and the load average and writes bench/results/housed_outside.csv and
+the printed table as housed_outside.txt (``--out`` elsewhere).
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from machine import Printout, load_after  # bench/machine.py (the script's folder is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "results" / "housed_outside.csv"
@@ -75,34 +77,34 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--truths", default="microfacet,two_lobes,eq4")
     ap.add_argument("--walls", default="0.2,0.05,0")
+    ap.add_argument("--out", default=str(OUT))
     a = ap.parse_args(argv)
+    out = Path(a.out)
     from roadgonio.engines.mitsuba import set_variant
     set_variant("llvm_ad_rgb")
     rows = []
-    load = os.getloadavg()
+    say = Printout(f"bench_housed_outside: truths {a.truths} through portable_housed, walls {a.walls}")
     head = (f"{'truth':11s} {'walls':>5s} {'RMS %':>6s} {'max %':>6s} {'2u %':>6s} {'>4u':>4s} {'RMS z':>6s} "
             f"{'S1 (true)':>17s} {'u(S1)':>6s} {'rend.':>5s} {'s':>5s} {'truth SE':>8s}")
-    print(f"bench_housed_outside: load average before {load[0]:.2f}, {load[1]:.2f}, {load[2]:.2f}")
-    print(head)
+    say(head)
     for kind in a.truths.split(","):
         for w in (float(x) for x in a.walls.split(",")):
             r = run(kind, w)
             rows.append(r)
-            print(f"{r['truth']:11s} {r['walls']:5.2f} {r['rms_pct']:6.2f} {r['max_pct']:6.2f} {r['within_2u_pct']:6.1f} "
+            say(f"{r['truth']:11s} {r['walls']:5.2f} {r['rms_pct']:6.2f} {r['max_pct']:6.2f} {r['within_2u_pct']:6.1f} "
                   f"{r['beyond_4u']:4d} {r['rms_z']:6.2f} {r['S1']:7.4f} ({r['S1_true']:.4f}) "
                   f"{100 * r['u_S1'] / r['S1']:5.2f}% {r['renderings']:5d} {r['seconds']:5.0f} {r['truth_worst_rel_se']:8.1e}"
-                  + ("" if r["truth_worst_rel_se"] <= TRUTH_REL_SE * (1 + 1e-9) else "  (truth's k_A above its SE target)"),
-                  flush=True)
-    load = os.getloadavg()
-    print(f"load average after {load[0]:.2f}, {load[1]:.2f}, {load[2]:.2f}")
-    OUT.parent.mkdir(parents=True, exist_ok=True)
-    tmp = OUT.with_suffix(".csv.tmp")
+                  + ("" if r["truth_worst_rel_se"] <= TRUTH_REL_SE * (1 + 1e-9) else "  (truth's k_A above its SE target)"))
+    say(load_after())
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_suffix(".csv.tmp")
     with open(tmp, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=list(rows[0]))
         w.writeheader()
         w.writerows(rows)
-    os.replace(tmp, OUT)
-    print(f"wrote {OUT.relative_to(ROOT)}")
+    os.replace(tmp, out)
+    out.with_suffix(".txt").write_text(say.text() + "\n")
+    print(f"wrote {out} and {out.with_suffix('.txt')}")
     return 0
 
 

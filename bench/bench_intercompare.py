@@ -15,8 +15,8 @@ with a frozen correction factor (the geometric mean of those corrections' k_A) o
 realisations: the check of that linearisation. Target: within 30 minutes on 2 workers.
 
 Both runs start from an empty folder (nothing resumed). Prints a table and writes
-bench/results/intercompare.csv and .txt with os.getloadavg() before and after each run (the machine
-is shared: quote only runs started at a load below 0.5). ``--keep DIR`` keeps the outputs of run B
+bench/results/intercompare.csv and .txt, under the machine (bench/machine.py), with
+os.getloadavg() before and after each run (the machine is shared: quote only runs started at a load below 0.5). ``--keep DIR`` keeps the outputs of run B
 (intercompare.nc, CSVs, pictures) in DIR.
 """
 from __future__ import annotations
@@ -34,7 +34,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import mem_gib  # noqa: E402  (bench/machine.py)
+from machine import Printout, load_after  # noqa: E402  (bench/machine.py)
 
 TARGETS = {"raw": 600.0, "corrected": 1800.0}
 
@@ -65,11 +65,8 @@ def main(argv=None) -> int:
     runs = {"raw": dataclasses.replace(base, realisations=args.realisations, corrected_realisations=0),
             "corrected": dataclasses.replace(base, realisations=args.realisations,
                                              corrected_realisations=min(args.corrected, args.realisations))}
-    machine = (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, {mem_gib():.0f} GiB, "
-               f"Python {platform.python_version()}")
-    lines = [f"roadgonio intercompare, bundled study r3-comparison (4 participants, 396 cells, "
-             f"{args.realisations} realisations), {args.workers} Dask workers; {machine}"]
-    print(lines[0], flush=True)
+    say = Printout(f"roadgonio intercompare, bundled study r3-comparison (4 participants, 396 cells, "
+                   f"{args.realisations} realisations), {args.workers} Dask workers; Python {platform.python_version()}")
     rows = []
     tmp = Path(tempfile.mkdtemp(prefix="bench-intercompare-"))
     try:
@@ -99,10 +96,9 @@ def main(argv=None) -> int:
                     f"k_A {row['k_a_s']} s, corrections {row['corrections_s']} s ({study.n_corrected} per "
                     f"participant), realisations {row['realisations_s']} s, statistics {row['statistics_s']} s; "
                     f"load {row['load_before']} -> {row['load_after']}")
-            print(text, flush=True)
-            lines.append(text)
+            say(text)
             if name == "corrected" and r["validation"]:
-                lines.append("  frozen factor against full corrections (same realisations; difference +- its SE):")
+                say("  frozen factor against full corrections (same realisations; difference +- its SE):")
                 for v in r["validation"]:
                     if v["figure"].removesuffix("_per_realisation") in (
                             "share_En_le_1_weighted_mean", "share_consistent_cells",
@@ -110,8 +106,7 @@ def main(argv=None) -> int:
                         t = (f"    {v['figure']:<52} {v['participant']:<18} full {v['full_mean']:.4f}  frozen "
                              f"{v['frozen_mean']:.4f}  diff {v['difference_mean']:+.4f} +- {v['difference_se']:.4f} "
                              f"(spread of the figure over realisations: SE {v['full_mean_se']:.4f})")
-                        lines.append(t)
-                        print(t)
+                        say(t)
     finally:
         if not args.keep:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -122,7 +117,8 @@ def main(argv=None) -> int:
         w = csv.DictWriter(fh, fieldnames=keys)
         w.writeheader()
         w.writerows(rows)
-    out.with_suffix(".txt").write_text("\n".join(lines) + "\n")
+    say(load_after())
+    out.with_suffix(".txt").write_text(say.text() + "\n")
     print(f"wrote {out} and {out.with_suffix('.txt')}")
     return 0
 

@@ -9,7 +9,8 @@ are its pass times shared out over the cells that finished in them.
     python bench/bench_ka_mitsuba.py --mc-stride 1   # numpy MC on the full table too (slow)
 
 Targets (2-core machine): the Mitsuba table in under 60 s, and at least 5x faster than numpy MC
-at the same error. Prints a table and writes bench/results/ka_mitsuba.csv.
+at the same error. Prints a table under the machine and the load average and writes
+bench/results/ka_mitsuba.csv and the printed table as ka_mitsuba.txt (``--out`` elsewhere).
 """
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from machine import Printout, load_after  # bench/machine.py (the script's folder is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -45,6 +47,8 @@ def main(argv=None) -> int:
     inst = Instrument.load(args.instrument)
     model = resolve_sample(args.sample).model
     cells = full_grid_cells()
+    say = Printout(f"k_A table: instrument {inst.name}, sample {args.sample} ({model.variant}), target rel SE "
+                   f"{args.rel_se:g}; Mitsuba vs numpy-mc on every {args.mc_stride}th cell")
 
     settings = {"rel_se": args.rel_se}
     if args.first_pass:
@@ -99,23 +103,23 @@ def main(argv=None) -> int:
         return sum(r.seconds * (r.se / abs(r.k_a) / args.rel_se) ** 2 for r in results)
     t_np_eq, t_m_eq = at_target(nres), at_target(m_sub)
     speedup_eq = t_np_eq / t_m_eq
-    print(f"k_A table: instrument {inst.name}, sample {args.sample} ({model.variant}), target rel SE {args.rel_se:g}")
     hdr = f"{'backend':22} {'cells':>5} {'seconds':>8} {'samples':>12} {'samples/s':>11} {'worst relSE':>11}"
-    print(hdr)
-    print("-" * len(hdr))
+    say(hdr)
+    say("-" * len(hdr))
     for r in rows:
-        print(f"{r['backend']:22} {r['cells']:5d} {r['seconds']:8.2f} {r['samples']:12d} {r['samples_per_s']:11.3g} "
+        say(f"{r['backend']:22} {r['cells']:5d} {r['seconds']:8.2f} {r['samples']:12d} {r['samples_per_s']:11.3g} "
               f"{r['worst_rel_se']:>11}")
-    print(f"scene build {t_build:.2f} s; Mitsuba passes {sum(passes)} (max {max(passes)} per cell); "
+    say(f"scene build {t_build:.2f} s; Mitsuba passes {sum(passes)} (max {max(passes)} per cell); "
           f"k_A {rows[0]['k_a_min']} ... {rows[0]['k_a_max']}")
-    print(f"speed-up on the same {len(sub)} cells at the same target error: {speedup:.1f}x "
+    say(f"speed-up on the same {len(sub)} cells at the same target error: {speedup:.1f}x "
           f"(numpy full table extrapolated: {t_np * len(cells) / len(sub):.0f} s)")
-    print(f"speed-up at equal error (each cell's time scaled by (achieved rel SE / target)^2): {speedup_eq:.1f}x")
+    say(f"speed-up at equal error (each cell's time scaled by (achieved rel SE / target)^2): {speedup_eq:.1f}x")
     zz = np.array(z)
-    print(f"agreement Mitsuba vs numpy on those cells: fraction |z| > 2: {np.mean(zz > 2):.2f} (expected ~0.05); "
+    say(f"agreement Mitsuba vs numpy on those cells: fraction |z| > 2: {np.mean(zz > 2):.2f} (expected ~0.05); "
           f"cells beyond {N_SIGMA:g} SE + float32 floor {floor:g}: {beyond} of {len(m_sub)} (max |z| {zz.max():.1f})")
-    print(f"targets: table < 60 s: {'yes' if t_table < 60 else 'NO'} ({t_table:.1f} s); "
+    say(f"targets: table < 60 s: {'yes' if t_table < 60 else 'NO'} ({t_table:.1f} s); "
           f">= 5x numpy: {'yes' if speedup >= 5 else 'NO'} ({speedup:.1f}x)")
+    say(load_after())
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     with open(out, "w", newline="") as fh:
@@ -126,7 +130,8 @@ def main(argv=None) -> int:
             w.writerow({**r, "speedup_vs_numpy": f"{speedup:.2f}",
                         "speedup_equal_error": f"{speedup_eq:.2f}", "max_abs_z": f"{max(z):.2f}",
                         "cells_beyond_4se_plus_floor": beyond})
-    print(f"wrote {out}")
+    out.with_suffix(".txt").write_text(say.text() + "\n")
+    print(f"wrote {out} and {out.with_suffix('.txt')}")
     return 0
 
 

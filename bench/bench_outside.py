@@ -18,8 +18,14 @@ RMS and max |ln(corrected / true)|, the share of cells within 2u, cells beyond 4
 Targets (issue 19): outside eq. 4 -- RMS <= 2.5 %, max <= 8 %, >= 90 % within 2u, no cell beyond
 4u, 0.5 <= RMS(err/u) <= 1.3, |z(S1)| <= 2, u(S1) <= 5 % of S1; inside eq. 4 -- RMS <= 1.5 %,
 max <= 6 %; joint better than each instrument alone on the out-of-family truths; time <= 60 s per
-396-cell table, <= 120 s joint. Prints a table (load average beside every row), writes
-bench/results/outside.csv.
+396-cell table, <= 120 s joint. Prints a table under the machine and the load average (and the load
+beside every row), writes it to bench/results/ as CSV and the printed table beside it as .txt:
+``outside.csv`` / ``outside.txt`` with the defaults; other settings name the file after them
+(``main``'s end): ``outside_<smoothing>_ell-<ell>.csv`` for another --smoothing or
+--discrepancy-ell, then a suffix for each option away from its default, in this order:
+``_<backend>`` (``outside_mitsuba.csv``), ``_<estimate>``, ``_peak`` or
+``_grid-<beta edges>_<eps edges>``, ``_round-<list>``, ``_seeds-<N>``, ``_retries-<N>``,
+``_dscale-<scale>``, ``_only-<single|joint>``.
 
     python bench/bench_outside.py [--regenerate] [--truths microfacet,two_lobes,table,eq4]
                                   [--backend quadrature] [--only single|joint]
@@ -51,6 +57,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from machine import Printout, load_after  # bench/machine.py (the script's folder is on sys.path)
 
 HERE = Path(__file__).resolve().parent
 DATA = HERE / "data"
@@ -138,7 +145,7 @@ def _timings(t: dict) -> str:
     return " ".join(f"{k} {v:.1f}" for k, v in t.items())
 
 
-def print_row(r: dict) -> None:
+def print_row(r: dict, say=print) -> None:
     out = []
     for key, w, f in COLS:
         v = r.get(key, "")
@@ -146,7 +153,7 @@ def print_row(r: dict) -> None:
             out.append(" " * w)
         else:
             out.append(format(v, f).ljust(w) if f == "s" else format(v, f).rjust(w))
-    print("  ".join(out), flush=True)
+    say("  ".join(out))
 
 
 def _rounding(word: str) -> float | str | None:
@@ -165,10 +172,10 @@ def noise_seed(kind: str, which: str, rep: int = 0) -> int:
     return 100 + 10 * TRUTHS.index(kind) + (which == "B") + 1000 * rep
 
 
-def print_summary(rows: list[dict], n_seeds: int) -> None:
+def print_summary(rows: list[dict], n_seeds: int, say=print) -> None:
     """Median [min, max] of RMS, max and u(S1)/S1 over the seeds, and how many met every target."""
-    print(f"\nover {n_seeds} noise realisations: median [min, max]; met = every target of issue 19 met")
-    print(f"{'truth':10s}  {'method':22s}  {'RMS %':>20s}  {'max %':>20s}  {'u(S1)/S1 %':>20s}  met  missed (times)")
+    say(f"\nover {n_seeds} noise realisations: median [min, max]; met = every target of issue 19 met")
+    say(f"{'truth':10s}  {'method':22s}  {'RMS %':>20s}  {'max %':>20s}  {'u(S1)/S1 %':>20s}  met  missed (times)")
     keys = dict.fromkeys((r["truth"], r["method"]) for r in rows if "targets" in r)
     for truth, method in keys:
         sel = [r for r in rows if (r["truth"], r["method"]) == (truth, method)]
@@ -181,7 +188,7 @@ def print_summary(rows: list[dict], n_seeds: int) -> None:
         for r in sel:
             for name in r["missed"].split():
                 counts[name] = counts.get(name, 0) + 1
-        print(f"{truth:10s}  {method:22s}  " + "  ".join(f"{c:>20s}" for c in cols) + f"  {met}/{len(sel)}  "
+        say(f"{truth:10s}  {method:22s}  " + "  ".join(f"{c:>20s}" for c in cols) + f"  {met}/{len(sel)}  "
               + ", ".join(f"{k} {v}" for k, v in counts.items()))
 
 
@@ -265,12 +272,12 @@ def main() -> int:
     from roadgonio import api
     from roadgonio.instrument.config import Instrument
     insts = {w: Instrument.load(p) for w, p in INSTRUMENTS.items()}
-    print(f"machine: {os.cpu_count()} cores; load average at start {load()}; backend {args.backend}; "
-          f"noise {100 * NOISE:g} %; smoothing {args.smoothing}; discrepancy ell {ell}; estimate {args.estimate}; "
-          f"regions {args.regions} {edges or ''}; backbone rounded at the mirror plane over "
-          f"{', '.join(f'{r:.3g}' for r in surface.backbone_rounds_deg)} deg; backbones searched again at most "
-          f"{surface.backbone_retries} time(s); g_D's prior scale {surface.d_prior_scale}")
-    print("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
+    say = Printout(f"bench_outside (issue 19): backend {args.backend}; "
+                   f"noise {100 * NOISE:g} %; smoothing {args.smoothing}; discrepancy ell {ell}; estimate {args.estimate}; "
+                   f"regions {args.regions} {edges or ''}; backbone rounded at the mirror plane over "
+                   f"{', '.join(f'{r:.3g}' for r in surface.backbone_rounds_deg)} deg; backbones searched again at most "
+                   f"{surface.backbone_retries} time(s); g_D's prior scale {surface.d_prior_scale}")
+    say("  ".join((HEAD.get(k, k)[:w]).ljust(w) if f == "s" else HEAD.get(k, k)[:w].rjust(w) for k, w, f in COLS))
     rows: list[dict] = []
     for kind, rep in ((kind, rep) for kind in args.truths.split(",") for rep in range(args.seeds)):
         tabs = {}
@@ -283,7 +290,7 @@ def main() -> int:
             rows.append({"truth": kind, "method": f"{w} as measured", "rms_pct": 100 * float(np.sqrt(np.mean(err ** 2))),
                          "max_pct": 100 * float(np.max(np.abs(err))), "S1_true": truth.s1(), "S1": meas.s1(),
                          "k_a_min": float(np.nanmin(k)), "load": load(), "seed": rep})
-            print_row(rows[-1])
+            print_row(rows[-1], say)
         if args.only in (None, "single"):
             for w in INSTRUMENTS:
                 meas, truth = tabs[w]
@@ -300,7 +307,7 @@ def main() -> int:
                              "k_a_min": float(np.nanmin(res.k_a)), "seconds": sec, "targets": verdict(kind, s),
                              "missed": " ".join(missed_targets(kind, s)),
                              "load": load(), "seed": rep})
-                print_row(rows[-1])
+                print_row(rows[-1], say)
         if args.only in (None, "joint"):
             t0 = time.perf_counter()
             res = api.correct([tabs["A"][0], tabs["B"][0]], [insts["A"], insts["B"]], joint=True,
@@ -316,13 +323,14 @@ def main() -> int:
                          "k_a_min": float(np.nanmin(res.parts[0].k_a)), "seconds": sec, "targets": verdict(kind, s),
                          "missed": " ".join(missed_targets(kind, s)),
                          "load": load(), "seed": rep})
-            print_row(rows[-1])
+            print_row(rows[-1], say)
     if args.seeds > 1:
-        print_summary(rows, args.seeds)
+        print_summary(rows, args.seeds, say)
     won, total, lost = joint_beats_alone(rows)
     if total:
-        print(f"\nthe joint correction beats each instrument alone on both RMS and max in {won} of {total} "
+        say(f"\nthe joint correction beats each instrument alone on both RMS and max in {won} of {total} "
               f"out-of-family realisations" + "".join(f"\n  not: {line}" for line in lost))
+    say(load_after())
     RESULTS.mkdir(exist_ok=True)
     name = "outside.csv" if (args.smoothing, ell) == ("evidence", DISCREPANCY_ELL) else \
         f"outside_{args.smoothing}_ell-{'none' if ell is None else format(ell, '.3g')}.csv"
@@ -350,7 +358,8 @@ def main() -> int:
                             extrasaction="ignore")
         wr.writeheader()
         wr.writerows(rows)
-    print(f"wrote {RESULTS / name}")
+    (RESULTS / name).with_suffix(".txt").write_text(say.text() + "\n")
+    print(f"wrote {RESULTS / name} and {(RESULTS / name).with_suffix('.txt')}")
     return 0
 
 

@@ -13,15 +13,17 @@ the default EN 13201 layout (docs/road.md, "Measured vs corrected").
    all``: the cells' correlation correct wrote (corrected_corr.csv, beside the u) and the two
    limiting cases, independent and fully correlated cells.
 
-Prints the metrics side by side with the machine load; writes bench/results/road_measured_vs_corrected.csv.
-Run: python bench/bench_road.py [--work DIR] [--trials N]
+Prints the metrics side by side under the machine and the load average; writes
+bench/results/road_measured_vs_corrected_<instrument>.csv (``_wide.csv`` by default, ``_portable.csv``
+with ``--instrument portable``; the instrument file's stem) and the printed table beside it as .txt
+(``--results DIR`` elsewhere).
+Run: python bench/bench_road.py [--work DIR] [--trials N] [--instrument I] [--backend B] [--results DIR]
 """
 from __future__ import annotations
 
 import argparse
 import csv
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -32,7 +34,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from machine import describe  # noqa: E402  (bench/machine.py)
+from machine import Printout, load_after  # noqa: E402  (bench/machine.py)
 
 
 def roadgonio(*args: str) -> str:
@@ -49,8 +51,11 @@ def main() -> None:
     ap.add_argument("--trials", type=int, default=20000)
     ap.add_argument("--instrument", default=str(ROOT / "scenes" / "wide.toml"))
     ap.add_argument("--backend", default="mitsuba", choices=["mitsuba", "quadrature"])
+    ap.add_argument("--results", default=str(ROOT / "bench" / "results"), help="folder of the CSV and .txt")
     a = ap.parse_args()
     label = Path(a.instrument).stem if Path(a.instrument).suffix else a.instrument
+    say = Printout(f"bench_road: CIE R3 measured by {label} ({a.backend}), corrected, through the default "
+                   f"EN 13201 layout, {a.trials} trials")
     work = Path(a.work) / f"{label}-{a.backend}"
     # from scratch every run: `ka --out` and `correct --out` resume from their journals, so a second
     # run in the same folder timed the resumption (ka 2 s, correct 2 s instead of 3 s and 6 s)
@@ -81,13 +86,12 @@ def main() -> None:
                                "--correlation", "all",       # correct's corrected_corr.csv and both limiting cases
                                "--out", str(work / "road"), "--json"))
     t_road = time.time() - t2
-    load = os.getloadavg()
-    print(f"k_A {label} x R3 ({a.backend}): {np.nanmin(k):.3f} ... {np.nanmax(k):.3f}; uncertainty of the corrected "
-          f"table: {u_source}")
-    print(f"{'table':34} {'L_av':>7} {'U_o':>6} {'U_l':>6} {'TI %':>6} class")
+    say(f"k_A {label} x R3 ({a.backend}): {np.nanmin(k):.3f} ... {np.nanmax(k):.3f}; uncertainty of the corrected "
+        f"table: {u_source}")
+    say(f"{'table':34} {'L_av':>7} {'U_o':>6} {'U_l':>6} {'TI %':>6} class")
     rows = []
     for d in out:
-        print(f"{d['table'][:34]:34} {d['L_av']:7.4f} {d['U_o']:6.4f} {d['U_l']:6.4f} {d['TI']:6.2f} {d['class']}")
+        say(f"{d['table'][:34]:34} {d['L_av']:7.4f} {d['U_o']:6.4f} {d['U_l']:6.4f} {d['TI']:6.2f} {d['class']}")
         row = {k2: d[k2] for k2 in ("table", "L_av", "U_o", "U_l", "TI", "class")}
         u = d.get("uncertainty")
         if u:
@@ -96,22 +100,24 @@ def main() -> None:
                     row[f"u_{m}_{mode}"] = u[mode][m]["u"]
                     row[f"cov95_{m}_{mode}"] = "{:.4g}..{:.4g}".format(*u[mode][m]["coverage_interval_95"])
                 row[f"P_meets_{u['target_class']}_{mode}"] = u[mode]["P_meets_target"]
-                print(f"  {mode:11} u: L_av {u[mode]['L_av']['u']:.4f} [{u[mode]['L_av']['coverage_interval_95'][0]:.4f}, "
+                say(f"  {mode:11} u: L_av {u[mode]['L_av']['u']:.4f} [{u[mode]['L_av']['coverage_interval_95'][0]:.4f}, "
                       f"{u[mode]['L_av']['coverage_interval_95'][1]:.4f}], U_o {u[mode]['U_o']['u']:.4f}, U_l {u[mode]['U_l']['u']:.4f}, "
                       f"TI {u[mode]['TI']['u']:.3f}; P(meets {u['target_class']}) {u[mode]['P_meets_target']:.3f}")
         rows.append(row)
     m, c = out[0], out[1]
-    print(f"measured -> corrected: L_av {100 * (c['L_av'] / m['L_av'] - 1):+.2f} %, U_o {c['U_o'] - m['U_o']:+.4f}, "
-          f"U_l {c['U_l'] - m['U_l']:+.4f}, TI {c['TI'] - m['TI']:+.2f} points")
-    print(f"time: ka {t_ka:.0f} s, correct {t_corr:.0f} s, road (with {a.trials} trials x 3) {t_road:.1f} s; "
-          f"load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f} ({describe()})")
-    res = ROOT / "bench" / "results" / f"road_measured_vs_corrected_{label}.csv"
+    say(f"measured -> corrected: L_av {100 * (c['L_av'] / m['L_av'] - 1):+.2f} %, U_o {c['U_o'] - m['U_o']:+.4f}, "
+        f"U_l {c['U_l'] - m['U_l']:+.4f}, TI {c['TI'] - m['TI']:+.2f} points")
+    say(f"time: ka {t_ka:.0f} s, correct {t_corr:.0f} s, road (with {a.trials} trials x 3) {t_road:.1f} s")
+    say(load_after())
+    res = Path(a.results) / f"road_measured_vs_corrected_{label}.csv"
+    res.parent.mkdir(parents=True, exist_ok=True)
     keys = sorted({k2 for r in rows for k2 in r}, key=lambda s: (s not in ("table", "L_av", "U_o", "U_l", "TI", "class"), s))
     with open(res, "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=keys)
         w.writeheader()
         w.writerows(rows)
-    print(f"wrote {res}")
+    res.with_suffix(".txt").write_text(say.text() + "\n")
+    print(f"wrote {res} and {res.with_suffix('.txt')}")
 
 
 if __name__ == "__main__":

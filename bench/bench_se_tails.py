@@ -44,6 +44,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from machine import header, load_after  # bench/machine.py (the script's folder is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -200,8 +201,8 @@ def analyse(args) -> None:
             with open(path) as fh:
                 bounds[name] = {(float(r["tan_eps"]), float(r["beta"])): float(r["error_bound"])
                                 for r in csv.DictReader(fh)}
-    lines = [f"bench/bench_se_tails.py analyse (machine: {os.cpu_count()} cores, load {load()})",
-             "group                                    cells  mean z^2 (t expectation)  fractions beyond 2, 3, 4"]
+    lines = header(f"bench/bench_se_tails.py analyse --instrument {args.instrument}")
+    lines += ["group                                    cells  mean z^2 (t expectation)  fractions beyond 2, 3, 4"]
     for path in sorted(RAW.glob(f"se_tails_{args.instrument}_*.csv")):
         with open(path) as fh:
             rows = list(csv.DictReader(fh))
@@ -229,6 +230,7 @@ def analyse(args) -> None:
         lines.extend(selection(z, u, a))
         lines.extend(per_cell(u, a))
         lines.extend(clumping(z, a))
+    lines.append(load_after())
     text = "\n".join(lines)
     print(text)
     (RESULTS / ("se_tails.txt" if args.instrument == "*" else f"se_tails_{args.instrument}.txt")).write_text(text + "\n")

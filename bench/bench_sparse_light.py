@@ -23,7 +23,7 @@ import math
 import sys
 from pathlib import Path
 
-from machine import describe, load_average, write_rows  # bench/machine.py (the script's folder is on sys.path)
+from machine import header, load_after, write_rows  # bench/machine.py (the script's folder is on sys.path)
 
 import numpy as np
 
@@ -58,7 +58,8 @@ def main(argv=None) -> int:
         result_mod.RATIO_DENOMINATOR_REL_SE_MAX = v
         passes_mod.RATIO_DENOMINATOR_REL_SE_MAX = v
 
-    load_before = load_average()
+    lines = header(f"bench_sparse_light: {len(CELLS)} cells x {args.seeds} seeds, R3, rel SE 1e-3 against a "
+                   "reference at 5e-5")
     rows = []
     for name, inst in instruments:
         set_limit(0.05)
@@ -87,15 +88,14 @@ def main(argv=None) -> int:
                          "samples_ratio": mean_samples / base_samples})
             print(f"  {name}, limit {limit:g}: mean z^2 {rows[-1]['mean_z2']:.3f}", file=sys.stderr, flush=True)
     set_limit(0.1)
-    lines = [f"bench_sparse_light: {len(CELLS)} cells x {args.seeds} seeds, R3, rel SE 1e-3 against a reference at 5e-5; "
-             f"current limit {result_mod.RATIO_DENOMINATOR_REL_SE_MAX:g}; {describe()}; load average before {load_before}, "
-             f"after {load_average()}",
-             f"{'instrument':32s} {'limit':>6s} {'mean z^2':>9s} {'worst cell':>10s} {'|z|>3':>6s} {'expected':>8s} "
+    lines += [f"current limit {result_mod.RATIO_DENOMINATOR_REL_SE_MAX:g}",
+              f"{'instrument':32s} {'limit':>6s} {'mean z^2':>9s} {'worst cell':>10s} {'|z|>3':>6s} {'expected':>8s} "
              f"{'no SE':>6s} {'samples':>10s} {'ratio':>6s}"]
     for r in rows:
         lines.append(f"{r['instrument']:32s} {r['limit']:6g} {r['mean_z2']:9.3f} {r['worst_cell_mean_z2']:10.2f} "
                      f"{r['beyond_3']:6d} {r['beyond_3_expected']:8.1f} {r['no_se']:6d} {r['mean_samples']:10.3e} "
                      f"{r['samples_ratio']:6.2f}")
+    lines.append(load_after())
     text = "\n".join(lines)
     print(text)
     out = Path(args.out)

@@ -3,33 +3,35 @@ at worst relative SE 1e-3, side by side with the same instrument without the hou
 (scenes/portable.toml: only [housing] differs), both cores used (Dr.Jit's thread pool), R3.
 Target (issue 18): the housed table within 10x the time of the bare one.
 
-    python bench/bench_straylight.py                  # 3 runs each, the median wall time
+    python bench/bench_straylight.py                  # 3 runs each, the median run's wall time
     python bench/bench_straylight.py --reflectance 0.02 0.05 0.2
     python bench/bench_straylight.py --command        # also the command a user runs, end to end
 
 Each instrument is built and run once untimed first (the kernels compile into Dr.Jit's cache),
-then ``--repeats`` times; the table reports the median wall time of the table (compute), its CPU
-time / wall time, the samples, the worst relative SE and the largest stray fraction, and the
+then ``--repeats`` times; the table reports the median run (the low median,
+``statistics.median_low``: with an even ``--repeats`` the faster of the two middle runs, so that the
+row is one run's wall time, CPU time and results, never an average of two): its wall time of the
+table (compute), its CPU time / wall time, the samples, the worst relative SE and the largest stray fraction, and the
 ratio to the bare instrument measured in the same run. Prints the table and the machine's load
-(measure on an idle machine: ``uptime`` load < 0.5) and writes bench/results/straylight.csv and
+(measure on an idle machine: ``uptime`` load < 0.5) under the machine, and writes bench/results/straylight.csv and
 straylight.txt.
 
 ``--command`` adds what a user waits for: ``roadgonio ka --instrument FILE --sample R3 --rel-se E
 --fresh -q`` in a fresh process (start-up, scene build, kernels from Dr.Jit's on-disk cache, the
 table, the files), bare and housed side by side, one untimed run each first, then the median of
-``--repeats``; written to bench/results/straylight_command.csv. The two ratios answer different
+``--repeats`` (the low median, as above); written to bench/results/straylight_command.csv and
+straylight_command.txt. The two ratios answer different
 questions (the computation itself, the command end to end) and are quoted apart.
 """
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 import time
 from pathlib import Path
 
-from machine import load_average, write_rows  # bench/machine.py (the script's folder is on sys.path)
+from machine import header, load_after, write_rows  # bench/machine.py (the script's folder is on sys.path)
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -64,7 +66,8 @@ def main(argv=None) -> int:
         d = housed.to_dict()
         d["housing"] = {**d["housing"], "wall_reflectance": rho}
         runs.append((f"portable_housed (walls {rho:g})", Instrument.from_dict(d, path=housed.path)))
-    load_before = load_average()
+    lines = header(f"bench_straylight: {len(cells)} cells, {args.sample}, worst rel SE {args.rel_se:g}, "
+                   f"{dr.thread_count()} Dr.Jit threads; median_low of {args.repeats} runs each")
     rows = []
     for name, inst in runs:
         b = make_backend(inst, model, rel_se=args.rel_se, seed=0)
@@ -75,7 +78,7 @@ def main(argv=None) -> int:
             res = b.compute(cells)
             walls.append(time.perf_counter() - t0)
             cpus.append(time.process_time() - c0)
-        k = walls.index(statistics.median(walls))
+        k = walls.index(statistics.median_low(walls))   # a run's own time (module docstring), any --repeats
         rows.append({"instrument": name, "wall_s": walls[k], "cpu_s": cpus[k], "cpu_per_wall": cpus[k] / walls[k],
                      "samples": sum(r.samples for r in res),
                      "worst_rel_se": max(r.se / abs(r.k_a) for r in res),
@@ -86,15 +89,13 @@ def main(argv=None) -> int:
     base = rows[0]["wall_s"]
     for r in rows:
         r["ratio_to_bare"] = r["wall_s"] / base
-    lines = [f"bench_straylight: {len(cells)} cells, {args.sample}, worst rel SE {args.rel_se:g}, "
-             f"{dr.thread_count()} Dr.Jit threads on {os.cpu_count()} cores; load average before {load_before}, "
-             f"after {load_average()}",
-             f"{'instrument':34s} {'wall s':>8s} {'ratio':>7s} {'cpu/wall':>8s} {'samples':>11s} {'worst rel SE':>12s} "
+    lines += [f"{'instrument':34s} {'wall s':>8s} {'ratio':>7s} {'cpu/wall':>8s} {'samples':>11s} {'worst rel SE':>12s} "
              f"{'max stray':>9s} {'k_A range':>15s}"]
     for r in rows:
         lines.append(f"{r['instrument']:34s} {r['wall_s']:8.2f} {r['ratio_to_bare']:7.1f} {r['cpu_per_wall']:8.2f} "
                      f"{r['samples']:11.3e} {r['worst_rel_se']:12.2e} {100 * r['stray_fraction_max']:8.1f}% "
                      f"{r['k_a_min']:7.3f}-{r['k_a_max']:.3f}")
+    lines.append(load_after())
     text = "\n".join(lines)
     print(text)
     out = Path(args.out)
@@ -110,7 +111,7 @@ def _command_rows(args, out: Path) -> None:
     import tempfile
     files = [("portable (no housing)", ROOT / "scenes" / "portable.toml"),
              ("portable_housed (walls 0.05)", ROOT / "scenes" / "portable_housed.toml")]
-    load_before = load_average()
+    lines = header(f"roadgonio ka end to end (fresh process each, median_low of {args.repeats})")
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         for name, f in files:
@@ -122,14 +123,13 @@ def _command_rows(args, out: Path) -> None:
                 subprocess.run(cmd, check=True, capture_output=True)
                 if i:
                     walls.append(time.perf_counter() - t0)
-            rows.append({"instrument": name, "command_wall_s": statistics.median(walls),
+            rows.append({"instrument": name, "command_wall_s": statistics.median_low(walls),
                          "walls_s": " ".join(f"{w:.2f}" for w in walls)})
     for r in rows:
         r["ratio_to_bare"] = r["command_wall_s"] / rows[0]["command_wall_s"]
-    lines = [f"roadgonio ka end to end (fresh process each, median of {args.repeats}); load average before "
-             f"{load_before}, after {load_average()}",
-             f"{'instrument':34s} {'wall s':>8s} {'ratio':>7s}  runs"]
+    lines.append(f"{'instrument':34s} {'wall s':>8s} {'ratio':>7s}  runs")
     lines += [f"{r['instrument']:34s} {r['command_wall_s']:8.2f} {r['ratio_to_bare']:7.2f}  {r['walls_s']}" for r in rows]
+    lines.append(load_after())
     print("\n".join(lines))
     write_rows(out.with_name("straylight_command.csv"), rows, "\n".join(lines))
 

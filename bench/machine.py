@@ -1,5 +1,10 @@
 """What machine a bench ran on, as its output quotes it (benchmarks are quoted with the machine), and
-where a bench writes its rows."""
+where a bench writes its rows.
+
+Every bench that prints a results table starts it with :func:`header` (its title, the machine and the
+load average before the run) and, where it prints one, ends it with :func:`load_after`; a
+:class:`Printout` prints those lines and keeps them, so that the table as printed is saved beside
+the CSV (``write_rows(out, rows, printout.text())``)."""
 from __future__ import annotations
 
 import os
@@ -49,3 +54,31 @@ def load_average() -> str:
         return ", ".join(f"{v:.2f}" for v in os.getloadavg())
     except OSError:  # pragma: no cover
         return "?"
+
+
+def header(title: str) -> list[str]:
+    """The first lines of a bench's printed output: its title, then the machine (:func:`describe`) and
+    the load average before the run (call it before the run starts)."""
+    return [title, f"machine: {describe()}; load average before {load_average()}"]
+
+
+def load_after() -> str:
+    """The line a bench prints after its run: the load average then."""
+    return f"load average after {load_average()}"
+
+
+class Printout:
+    """Lines printed to stdout and kept, to be saved beside a bench's CSV as its .txt (the table as
+    printed). Starts with :func:`header` of ``title``, printed at once."""
+
+    def __init__(self, title: str):
+        self.lines: list[str] = []
+        for line in header(title):
+            self(line)
+
+    def __call__(self, line: str = "") -> None:
+        print(line, flush=True)
+        self.lines.extend(str(line).split("\n"))
+
+    def text(self) -> str:
+        return "\n".join(self.lines)

@@ -27,14 +27,13 @@ from __future__ import annotations
 import argparse
 import collections
 import functools
-import os
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-from bench_straylight import _load  # the same load-average line as the bench it profiles
+from machine import header, load_after  # bench/machine.py (bench_straylight's _load moved there and is gone)
 
 ROOT = Path(__file__).resolve().parents[1]
 STEPS = ("trace_paths", "block_sums", "stray_sums", "light_sums")
@@ -77,9 +76,8 @@ def main(argv=None) -> int:
         inst = Instrument.from_dict(d, path=inst.path)
     rho = inst.extra["housing"]["wall_reflectance"]
     cells = full_grid_cells()
-    out = [f"profile_straylight: portable_housed (walls {rho:g}), {args.sample}, {len(cells)} cells, worst rel SE "
-           f"{args.rel_se:g}, {dr.thread_count()} Dr.Jit threads on {os.cpu_count()} cores; load average before "
-           f"{_load()}"]
+    out = header(f"profile_straylight: portable_housed (walls {rho:g}), {args.sample}, {len(cells)} cells, worst "
+                 f"rel SE {args.rel_se:g}, {dr.thread_count()} Dr.Jit threads")
 
     if not args.variance_only:
         # 1. launches
@@ -193,7 +191,7 @@ def main(argv=None) -> int:
             out.append(f"     {name:34s} {a.sum() / rt.sum():7.2%} / {g.sum() / gt.sum():7.2%}   {pv:6.3f} / "
                        f"{float(np.mean(y * y)) / V:6.3f}")
         out.append(f"     second order (eye vertex 2, both 2-reflection light strategies): {second:.2f} of V")
-    text = "\n".join(out + [f"load average after {_load()}"])
+    text = "\n".join(out + [load_after()])
     print(text)
     Path(args.out).write_text(text + "\n")
     return 0
