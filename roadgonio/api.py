@@ -1215,12 +1215,14 @@ def intercompare(study, out=None, *, workers: int | None = None, scheduler: str 
 
 
 def intercomparison_summary(run) -> dict[str, Any]:
-    """The summary of an :func:`intercompare` run: per scenario and participant (and for the
+    """The summary of an :func:`intercompare` run: the notes a reader must see
+    (:func:`roadgonio.intercomparison.run.study_notes`), per scenario and participant (and for the
     comparison) its figures of merit, the ranking of the characteristics, the frozen-factor check,
     the seconds of each stage and the output folder."""
     import json
     ds = run.dataset
-    return {"summary": json.loads(ds.attrs["summary_json"]), "sensitivity": json.loads(ds.attrs["sensitivity_json"]),
+    return {"notes": json.loads(ds.attrs.get("notes_json", "[]")),
+            "summary": json.loads(ds.attrs["summary_json"]), "sensitivity": json.loads(ds.attrs["sensitivity_json"]),
             "validation": json.loads(ds.attrs.get("validation_json", "[]")),
             "seconds": json.loads(ds.attrs.get("seconds", "{}")), "out": ds.attrs.get("out"),
             "files": ds.attrs.get("files", "")}

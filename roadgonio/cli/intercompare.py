@@ -81,6 +81,8 @@ def run(args) -> int:
         say(f"validation.csv has its header only: checking the frozen correction factor against the full corrections "
             f"needs at least 2 realisations in which every participant corrects (here {n}; the study's "
             "corrected_realisations)")
+    for note in s["notes"]:
+        say(f"note: {note}")
     secs = s["seconds"]
     say(f"{secs['total']:.0f} s (k_A {secs.get('k_a', 0):.0f} s, corrections {secs.get('corrections', 0):.0f} s, "
         f"realisations {secs.get('realisations', 0):.0f} s); wrote {s['out']}/" + s["files"])

@@ -72,7 +72,8 @@ def write_outputs(run, out_dir: str | Path, *, plots: bool = True) -> list[Path]
         files = [write_netcdf(ds, g.path("intercompare.nc")),
                  g.text("intercompare.csv", rows_csv(summ)), g.text("sensitivity.csv", rows_csv(sens)),
                  g.text("validation.csv", rows_csv(valid, VALIDATION_COLUMNS)), g.text("correlation.csv", rows_csv(corr, CORRELATION_COLUMNS)),
-                 g.json("intercompare.json", {"summary": summ, "sensitivity": sens, "validation": valid,
+                 g.json("intercompare.json", {"notes": json.loads(ds.attrs.get("notes_json", "[]")),
+                                              "summary": summ, "sensitivity": sens, "validation": valid,
                                               "correlation": corr,
                                               "seconds": json.loads(ds.attrs.get("seconds", "{}")),
                                               "provenance": json.loads(ds.attrs["provenance"])})]
@@ -288,10 +289,13 @@ def plot_compatibility(summary: Sequence[dict[str, Any]], path: Path) -> Path:
         errs = [rows.get(p, {}).get("share_En_le_1_weighted_mean_se", np.nan) for p in parts]
         allr = rows.get("ALL", {})
         vals += [allr.get("share_all_compatible_weighted_mean", np.nan), allr.get("share_consistent_cells", np.nan)]
-        errs += [np.nan, allr.get("share_consistent_cells_se", np.nan)]
+        errs += [allr.get("share_all_compatible_weighted_mean_se", np.nan), allr.get("share_consistent_cells_se", np.nan)]
         x = np.arange(len(labels)) + (a - (len(scen) - 1) / 2) * w
-        ax.bar(x, 100 * np.array(vals, dtype=float), w, yerr=100 * np.nan_to_num(np.array(errs, dtype=float)),
-               color=cols[a % 3], alpha=0.85, capsize=2, label=SCENARIO_TITLE.get(s, s))
+        v, e = 100 * np.array(vals, dtype=float), 100 * np.array(errs, dtype=float)
+        ax.bar(x, v, w, color=cols[a % 3], alpha=0.85, label=SCENARIO_TITLE.get(s, s))
+        has = np.isfinite(v) & np.isfinite(e)            # no SE (one realisation): no bar, not a bar of 0 (audit)
+        if has.any():
+            ax.errorbar(x[has], v[has], yerr=e[has], fmt="none", ecolor="k", elinewidth=1, capsize=2)
     ax.set_xticks(np.arange(len(labels)), labels, fontsize=8)
     ax.set_ylabel("share of cells (%)")
     ax.set_ylim(0, 122)

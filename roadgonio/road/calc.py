@@ -192,6 +192,19 @@ def uncounted_note(layout: Layout, fld: Field) -> str | None:
             + ("U_o is 0" if not bare.all() else "nothing is lit (the uniformities are undefined)"))
 
 
+def range_note(layout: Layout) -> str | None:
+    """One line when the counted range reaches beyond tan epsilon = 12, where r-tables end: those
+    luminaires' light is neglected (no r), so the range above 12 H changes no metric (user audit,
+    session 37: ``luminaires_after_h = 15`` gave the default's numbers digit for digit, the terminal
+    silent). None within 12 H."""
+    far = max(layout.before_h, layout.after_h)
+    if far <= 12.0:
+        return None
+    return (f"luminaires_before_h {layout.before_h:g} H / luminaires_after_h {layout.after_h:g} H reach beyond "
+            "tan eps = 12, the end of the r-table: a luminaire more than 12 H along the road from the point has tan eps "
+            "> 12, no r, and its light is neglected (road.json's neglected_contributions), so the range beyond 12 H changes no metric")
+
+
 def contribution(luminaire: Luminaire, lum: np.ndarray, rotation_deg: float, tilt_deg: float, point: np.ndarray,
                  observer: np.ndarray, table: RTable, order: str = "quadratic"):
     """One luminaire's luminance at a road point for an observer (EN 13201-3 7.1.1), without the

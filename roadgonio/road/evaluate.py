@@ -31,7 +31,7 @@ class Installation:
         self.veiling = calc.veiling_luminance(self.layout, self.luminaire, self.fld)
         self.edge = calc.edge_illuminance_ratio(self.layout, self.luminaire, self.fld)
         #: what a reader of the metrics must know about the layout (summary()["notes"])
-        self.notes = [n for n in (calc.uncounted_note(self.layout, self.fld),) if n]
+        self.notes = [n for n in (calc.uncounted_note(self.layout, self.fld), calc.range_note(self.layout)) if n]
 
     def operator(self, table: RTable) -> calc.LuminanceOperator:
         key = (table.r.shape, table.mask.tobytes(), table.tan_eps.tobytes(), table.beta_deg.tobytes())

@@ -460,7 +460,7 @@ def test_the_csv_summaries_are_the_numbers_of_intercompare_nc(tmp_path, collimat
     not in %, tau^2 for tau, every consensus' error as the weighted mean's, the correlation's
     percentiles mislabelled or its errors not centred, the pair's names swapped, a share of the
     weighted mean's compatibility for the truth's, and ranks all 1 passed every test."""
-    from roadgonio.intercomparison.run import REFERENCES
+    from roadgonio.intercomparison.run import RANDOM_EFFECTS_MIN_PARTICIPANTS, REFERENCES
     from roadgonio.intercomparison.statistics import METHODS
     R, ut = 5, 0.01
     noise = {"A": 0.005, "B": 0.01, "C": 0.004}
@@ -491,6 +491,9 @@ def test_the_csv_summaries_are_the_numbers_of_intercompare_nc(tmp_path, collimat
                 "max_abs_mean_error_vs_truth_pct": 100 * np.max(np.abs(err.mean(axis=0))),
                 "rms_d_weighted_mean_pct": 100 * np.sqrt(np.mean((d / t) ** 2))}
         for ref in REFERENCES:
+            if len(noise) < RANDOM_EFFECTS_MIN_PARTICIPANTS.get(ref, 0):       # 1 by construction: blank
+                assert summary[name][f"share_En_le_1_{ref}"] == summary[name][f"share_En_le_1_{ref}_se"] == ""
+                continue
             share = np.mean(np.abs(dec["E_n"].sel(reference=ref, participant=name).values[:, cell]) <= 1.0, axis=1)
             want[f"share_En_le_1_{ref}"] = share.mean()
             want[f"share_En_le_1_{ref}_se"] = share.std(ddof=1) / math.sqrt(R)
@@ -499,7 +502,9 @@ def test_the_csv_summaries_are_the_numbers_of_intercompare_nc(tmp_path, collimat
     en = dec["E_n"].sel(reference="weighted_mean").values[:, :, cell]
     want = {"birge_ratio_median": np.median(dec["birge_ratio"].values[:, cell]), "share_consistent_cells": cons.mean(),
             "share_consistent_cells_se": cons.std(ddof=1) / math.sqrt(R),
-            "share_all_compatible_weighted_mean": np.mean(np.all(np.abs(en) <= 1.0, axis=0))}
+            "share_all_compatible_weighted_mean": np.mean(np.all(np.abs(en) <= 1.0, axis=0)),
+            "share_all_compatible_weighted_mean_se": np.mean(np.all(np.abs(en) <= 1.0, axis=0), axis=1).std(ddof=1)
+            / math.sqrt(R)}
     for m in METHODS:
         v = dec["reference_value"].sel(consensus=m).values[:, cell]
         want[f"rms_error_{m}_vs_truth_pct"] = 100 * np.sqrt(np.mean((v / t - 1.0) ** 2))
@@ -659,3 +664,69 @@ def test_a_rerun_without_pictures_removes_the_earlier_runs_pictures(tmp_path, co
               plots=False)
     assert not list(out.glob("*.png")) and (out / "notes.txt").read_text() == "mine"
     assert (out / "intercompare.nc").exists()
+
+
+def test_a_random_effects_consensus_cannot_leave_two_or_three_participants_incompatible():
+    """Why RANDOM_EFFECTS_MIN_PARTICIPANTS (user audit, session 37): over random independent results
+    the largest |E_n| against Mandel-Paule is below 1 with 2 and 3 participants and above 1 with 4;
+    against DerSimonian-Laird below 1 with 2 and above with 3. With fewer participants than the
+    constant names, the share of |E_n| <= 1 is 1 by construction."""
+    from roadgonio.intercomparison import statistics as st
+    from roadgonio.intercomparison.run import RANDOM_EFFECTS_MIN_PARTICIPANTS as MIN
+    rng = np.random.default_rng(11)
+    for P in (2, 3, 4):
+        x = rng.normal(size=(5000, P)) * rng.lognormal(0, 1.5, size=(5000, 1))
+        u = 0.3 * rng.lognormal(0, 1, size=(5000, P))
+        V = np.zeros((5000, P, P))
+        V[:, np.arange(P), np.arange(P)] = u ** 2
+        sp = st.Spectral(x, V)
+        for m in MIN:
+            worst = float(np.max(np.abs(st.equivalence_to(x, V, st.consensus(sp, m)).e_n)))
+            assert (worst <= 1.0 + 1e-9) == (P < MIN[m]), (P, m, worst)
+
+
+def test_with_two_participants_the_random_effects_shares_are_blank_and_a_note_says_why(tmp_path, collimated):
+    """User audit, session 37: with 2 or 3 participants share_En_le_1_mandel_paule was 1 with an SE
+    of 0, a check that cannot fail; it is now blank (NaN) and intercompare.json's notes say why;
+    the weighted mean's share, and the SE of 'every participant compatible', are kept."""
+    from roadgonio.intercomparison.outputs import write_outputs
+    study = make_study(tmp_path, [coll("A", 0.01), coll("B", 0.02)], realisations=6)
+    run = run_study(study, workers=0, progress=False, plots=False)
+    rows = json.loads(run.dataset.attrs["summary_json"])
+    parts = [r for r in rows if r["participant"] != "ALL" and r["scenario"] == "declared"]
+    assert len(parts) == 2
+    for r in parts:
+        for m in ("mandel_paule", "dersimonian_laird"):
+            assert r[f"share_En_le_1_{m}"] is None and r[f"share_En_le_1_{m}_se"] is None      # NaN: blank
+        assert 0.0 < r["share_En_le_1_weighted_mean"] <= 1.0 and r["share_En_le_1_weighted_mean_se"] >= 0.0
+    allr = next(r for r in rows if r["participant"] == "ALL" and r["scenario"] == "declared")
+    assert allr["share_all_compatible_weighted_mean_se"] is not None and allr["share_all_compatible_weighted_mean_se"] >= 0
+    notes = json.loads(run.dataset.attrs["notes_json"])
+    assert len(notes) == 1 and "Mandel-Paule or DerSimonian-Laird" in notes[0] and "2 participants" in notes[0]
+    write_outputs(run, tmp_path / "out", plots=False)
+    assert json.loads((tmp_path / "out" / "intercompare.json").read_text())["notes"] == notes
+    # four participants: the shares are numbers, no note
+    study4 = make_study(tmp_path, [coll(n, 0.01) for n in "ABCD"], realisations=4)
+    ds4 = run_study(study4, workers=0, progress=False, plots=False).dataset
+    rows4 = [r for r in json.loads(ds4.attrs["summary_json"]) if r["participant"] != "ALL"]
+    assert all(r["share_En_le_1_mandel_paule"] is not None for r in rows4 if "repeatability_pct" in r)
+    assert json.loads(ds4.attrs["notes_json"]) == []
+
+
+def test_a_reference_sample_with_an_unresolved_spike_is_noted_naming_the_participant(tmp_path, collimated):
+    """User audit, session 37: a participant correcting with R2's power fit (a spike at beta 0 no
+    aperture resolves) was 97-138 % off along beta 0, the warning reached the terminal only; the
+    study's notes keep it, naming the participant. R3 (no spike) gives no note."""
+    from roadgonio.intercomparison.run import study_notes
+    study = make_study(tmp_path, [coll("A"), coll("B"), coll("C"), coll("D"),
+                                  {"name": "LAB", "instrument": "collimated.toml", "noise_rel": 0.01,
+                                   "stated": ["repeatability"], "report": "reference", "reference": "R2"}])
+
+    class _Setup:                                        # study_notes reads the number of participants only
+        P = 5
+    notes = study_notes(study, _Setup())
+    assert len(notes) == 1 and notes[0].startswith("participant LAB (report = reference, R2): ") and "spike" in notes[0]
+    study3 = make_study(tmp_path, [coll(n) for n in "ABCD"] + [{"name": "LAB", "instrument": "collimated.toml",
+                                                                "noise_rel": 0.01, "stated": ["repeatability"],
+                                                                "report": "reference", "reference": "R3"}])
+    assert study_notes(study3, _Setup()) == []

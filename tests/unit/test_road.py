@@ -233,6 +233,24 @@ def test_a_spacing_beyond_the_counted_range_is_said_not_silent():
     assert Installation(Layout(spacing_m=180.0, mounting_height_m=10.0), _isotropic(800.0)).notes != []
 
 
+def test_a_counted_range_beyond_12_h_is_said_to_change_nothing():
+    """User audit, session 37: luminaires_after_h = 15 gave the default layout's metrics digit for
+    digit with nothing said (a luminaire more than 12 H along the road has tan eps > 12, beyond
+    every r-table). The metrics are those of 12 H and a note says why; 12 H says nothing."""
+    t = bundled_table("R3")
+    lum = load_luminaire()
+    base = Installation(load_layout(), lum)
+    import dataclasses
+    far = Installation(dataclasses.replace(load_layout(), after_h=15.0), lum)
+    a, b = base.evaluate(t), far.evaluate(t)
+    for key in ("L_av", "U_o", "U_l", "TI"):
+        assert b.values[key] == a.values[key]
+    assert b.summary()["neglected_contributions"] > a.summary()["neglected_contributions"]
+    assert base.notes == []
+    assert len(far.notes) == 1 and "luminaires_after_h 15 H" in far.notes[0] and "changes no metric" in far.notes[0]
+    assert b.summary()["notes"] == far.notes
+
+
 def test_l_av_scales_with_the_table_uniformities_do_not():
     inst = Installation(load_layout(), load_luminaire())
     t = bundled_table("R3")
