@@ -212,5 +212,12 @@ def table_map(values: np.ndarray, path: str | Path, *, title: str, label: str, c
     n_blank = int(np.sum(~np.isfinite(np.asarray(values, dtype=np.float64))))
     if blank is not None and n_blank:
         subtitle = (subtitle + "; " if subtitle else "") + f"grey: {blank} ({count(n_blank, 'cell')})"
-    ax.set_title(title + (f"\n{subtitle}" if subtitle else ""), fontsize=11)
+    # lines wrapped to the figure's width (user audit, session 37: uncertainty's subtitle ran off the left edge)
+    import textwrap
+    text = "\n".join(textwrap.fill(line, TITLE_WRAP_CHARS) for line in (title, subtitle) if line)
+    ax.set_title(text, fontsize=11)
     return save_figure(fig, path, dpi=110, labels=labels)
+
+
+#: Characters per title line of :func:`table_map` (12 in at fontsize 11).
+TITLE_WRAP_CHARS = 150

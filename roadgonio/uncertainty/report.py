@@ -7,6 +7,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from roadgonio.errors import count
 from roadgonio.uncertainty.run import UncertaintyResult
 from roadgonio.uncertainty.spec import INPUTS
 from roadgonio.uncertainty.statistics import ROUND_OFF_REL
@@ -167,7 +168,7 @@ def plot_uncertainty_maps(res: UncertaintyResult, out: Path) -> list[Path]:
             u_rel = 100.0 * c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
         title = (f"Relative standard uncertainty u(r)/r (%), {name.replace('_', ' ')}: "
                  f"{res.trials} trials, seed {res.seed}")
-        sub = (f"GUM first-order result (JCGM 101 s. 8, {res.n_dig} digits): {verdict_counts(c.validation, n)}; "
+        sub = (f"GUM first-order result (JCGM 101 s. 8, {count(res.n_dig, 'digit')}): {verdict_counts(c.validation, n)}; "
                f"Q0 = {c.mc['mean'][n]:.4g} +- {c.mc['u'][n]:.2g}, S1 = {c.mc['mean'][n + 1]:.4g} +- {c.mc['u'][n + 1]:.2g}")
         paths.append(table_map(res.cells.to_grid(u_rel), out / f"u_rel_{name}.png", title=title,
                                label="u(r)/r (%)", centre=None, log=False, fmt="{:.2f}", subtitle=sub))
@@ -206,6 +207,9 @@ def plot_q0_s1(res: UncertaintyResult, path: Path) -> Path:
             ax.set_ylabel("probability density")
             ax.legend(fontsize=7.5, loc="best", framealpha=0.85)
             ax.ticklabel_format(axis="x", style="sci", scilimits=(-3, 4), useOffset=False)
+            # at most 5 ticks: S1's six-digit labels ran into each other (user audit, session 37)
+            from matplotlib.ticker import MaxNLocator
+            ax.xaxis.set_major_locator(MaxNLocator(nbins=5))
     fig.suptitle(f"Distributions of Q0 and S1 over {res.trials} Monte Carlo trials (seed {res.seed})", fontsize=11)
     fig.tight_layout()
     p = atomic_savefig(fig, path, dpi=110)
@@ -239,7 +243,7 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
     lines = [f"{res.trials} trials (seed {res.seed}), {n} cells, coverage {100 * res.coverage:g} %"]
     if res.adaptive:
         a = res.adaptive
-        lines.append(f"adaptive (JCGM 101 7.9, {a['n_dig']} digits): {a['batches']} batches of {a['batch']}, "
+        lines.append(f"adaptive (JCGM 101 7.9, {count(a['n_dig'], 'digit')}): {a['batches']} batches of {a['batch']}, "
                      + ("converged" if a["converged"] else f"NOT converged at the cap of {a['max_trials']} trials "
                         f"(worst 2s/delta = {max(a['worst_ratio'] or [0]):.2f}; about "
                         f"{max(a['worst_ratio'] or [1]) ** 2:.0f}x more trials would be needed: raise --max-trials "
@@ -276,8 +280,10 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
             from roadgonio.engines.registry import BACKENDS
             info = BACKENDS.get((s.get("backend") or {}).get("backend", ""))
             # audit 27: a deterministic backend's bound was called "its Monte Carlo error" and its "seed"
-            what = ("its Monte Carlo error, common to every trial: not in u or the intervals; the surrogate's error "
-                    "above is against tables of the same seed" if info is None or info.seeded else
+            # (user audit, session 37: "the surrogate's error above" when --validation 0 measured none)
+            what = ("its Monte Carlo error, common to every trial: not in u or the intervals"
+                    + ("; the surrogate's error above is against tables of the same seed" if s["rel_err_max"] is not None
+                       else "") if info is None or info.seeded else
                     "its error bound / sqrt(3), a rectangular distribution, common to every trial: not in u or the "
                     "intervals")
             lines.append(f"k_A backend: relative standard uncertainty up to {100 * rel_u:.2g} % per cell ({what}; "

@@ -217,7 +217,10 @@ def geometry_problems(mm, X: np.ndarray, *, aperture: bool = False) -> tuple[np.
                                                        f"pupil radius ({inst.detector.pupil_radius_m:g} m)")
     if aperture and bool(np.any(~bad)):
         from roadgonio.errors import GeometryError
+        from roadgonio.instrument.enclosure import check_sources
+        from roadgonio.instrument.housing import Housing
         from roadgonio.instrument.optics import check_detector, check_source
+        housing = Housing.of(inst)
         for k in np.nonzero(~bad)[0]:
             try:
                 pert = inst.with_changes(observation={"alpha_deg": float(alpha[k])},
@@ -226,6 +229,12 @@ def geometry_problems(mm, X: np.ndarray, *, aperture: bool = False) -> tuple[np.
                     check_detector(pert)
                 for t, b in zip(cells.tan_eps, cells.beta_deg):
                     check_source(pert, float(t), float(b))
+                if housing is not None:
+                    # the source's perturbed directions, as the surrogate's exact tables place it (user
+                    # audit, session 37: a source pushed behind a baffle by eps_deg was refused after the
+                    # computation, naming the instrument file's baffle and a cell of no table)
+                    _, wr = mm.surrogate_coords(X[k:k + 1])
+                    check_sources(pert, housing, mm.cells_of(wr[0]))
             except (GeometryError, InputError) as err:
                 bad[k] = True
                 why[k] = str(getattr(err, "reason", err))

@@ -33,6 +33,24 @@ def test_spec_out_of_the_footprint_is_refused_for_the_aperture_case(r3like):
         check_spec_geometry(parse_sigma_spec("detector_distance_m=2"), mm, aperture=True)
 
 
+def test_a_spec_that_moves_the_source_behind_a_baffle_is_the_specs_error(r3like):
+    """User audit, session 37: portable_housed_baffle with a 40 mm baffle measures every table cell,
+    but eps_deg = 0.1 moves the grazing source behind the baffle in the surrogate's tables; that was
+    refused after ~5 s of computation as the instrument file's baffle at tan eps 12.672 (no cell of
+    any table). It is a SPEC error naming the key, up front; a SPEC without eps leaves it be."""
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.uncertainty.cells import CellSet
+    from roadgonio.uncertainty.measurement import MeasurementModel
+    from roadgonio.uncertainty.spec import check_spec_geometry, parse_sigma_spec
+    inst = load_instrument("portable_housed_baffle").with_changes(housing={"baffles": [{"x_m": -0.5, "height_m": 0.04}]})
+    mm = MeasurementModel(r3like, inst, CellSet.make("standard"))
+    check_spec_geometry(parse_sigma_spec("eps_deg=0.1"), mm, aperture=False)          # no rebuilt instrument
+    check_spec_geometry(parse_sigma_spec("alpha_deg=0.01"), mm, aperture=True)        # fine
+    with pytest.raises(InputError, match=r"sigma eps_deg = 0\.1.*housing blocks the source") as err:
+        check_spec_geometry(parse_sigma_spec("eps_deg=0.1"), mm, aperture=True)
+    assert err.value.field == "sigma eps_deg"
+
+
 def test_an_instrument_that_cannot_measure_is_its_own_error_not_the_specs(r3like, tmp_path):
     """A footprint that leaves the sample at the nominal geometry is the instrument's fault: any
     SPEC, however small, was refused as "expected smaller standard deviations" (audit, session 27);

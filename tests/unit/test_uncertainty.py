@@ -373,7 +373,7 @@ def test_gum_verdict_is_given_only_where_the_monte_carlo_noise_cannot_decide_it(
     u[4] = 0.0                      # GUM u 0 where the Monte Carlo interval has a width
     delta = numerical_tolerance(u[:1], 2)[0]
     assert delta == pytest.approx(5e-4)
-    gum = {"u": u, "low": np.zeros(5), "high": np.zeros(5) + 1.0}
+    gum = {"y": np.full(5, 0.5), "u": u, "low": np.zeros(5), "high": np.zeros(5) + 1.0}
     d = delta * np.array([0.5, 0.5, 3.0, 1.5, 0.0])
     mc = {"sym_low": gum["low"] + d, "sym_high": gum["high"] - d}
     mc["sym_low"][4], mc["sym_high"][4] = -0.01, 1.01
@@ -384,6 +384,16 @@ def test_gum_verdict_is_given_only_where_the_monte_carlo_noise_cannot_decide_it(
     # without the noise every output is judged (the bare comparison)
     bare = gum_validation(gum, mc, 2)
     assert bare["judged"].all() and bare["validated"].tolist() == [True, True, False, False, False]
+    # user audit, session 37: an output of round-off on both sides (u/y ~ 1e-17) is not judged, with
+    # or without the noise; u at 1e-11 of y is an uncertainty and is judged
+    y = np.array([1.0, 1.0, 1.0])
+    for n_rel, judged in ((1e-17, False), (1e-11, True)):
+        uu = n_rel * y
+        g = {"y": y, "u": uu, "low": y - 1.96 * uu, "high": y + 1.96 * uu}
+        m = {"sym_low": y - 1.96 * uu * np.array([1.0, 1.5, 0.5]), "sym_high": y + 1.96 * uu * np.array([1.0, 0.5, 1.5])}
+        for noise_ in (None, np.zeros(3)):
+            v = gum_validation(g, m, 2, noise_)
+            assert v["judged"].tolist() == [judged] * 3 and v["validated"].tolist() == [judged, False, False]
 
 
 def test_gum_verdict_does_not_change_with_the_seed():
