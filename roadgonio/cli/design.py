@@ -203,6 +203,7 @@ def _run_second(args) -> int:
     say("  best second setting: " + ", ".join(f"{k} = {v:g}" for k, v in b.changes.items())
         + f": median u {100 * b.u_median:.2f} %, u(S1) {100 * b.u_s1_rel:.2f} %, signal {b.signal:.2g} x")
     say(f"  {res.verdict()}")
+    say(f"  note: {res.u_note()}")
     say(f"  note: {res.u_s1_note()}")
     say(f"  wrote {len(s['written'])} files to {s['out']}")
     return 0

@@ -92,6 +92,12 @@ HOUSED = Path(__file__).resolve().parents[2] / "scenes" / "portable_housed.toml"
      ("--backend, --workers", "not used with --second-aperture")),
     (["design", "--second-aperture", "--instrument", str(MEDIUM), "--sample", "R3", "--vary",
       "housing.wall_reflectance=0.1"], ("--vary", "housing.wall_reflectance", "does not model a housing")),
+    # user audit, session 37: the sample's size was ranked as a second aperture (the same blur)
+    (["design", "--second-aperture", "--instrument", str(MEDIUM), "--sample", "R3", "--vary",
+      "sample.size_x_m=2"], ("--vary", "sample.size_x_m", "does not change the instrument's blur")),
+    # ... and a --vary value no instrument can take named the instrument file
+    (["design", "--second-aperture", "--instrument", str(MEDIUM), "--sample", "R3", "--vary",
+      "source.radius_m=-0.01,0.02"], ("--vary", "source.radius_m=-0.01", "is not an instrument")),
     (["design", "--instrument", str(MEDIUM), "--sample", "R3", "--vary", "detector.field_half_angle_deg=0.1",
       "--min-signal", "0.1"], ("--min-signal", "not used without --second-aperture")),
     (["correct", "--measured", str(MEASURED), "--instrument", str(HOUSED), "--forward", "surface", "--backend",

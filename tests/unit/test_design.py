@@ -567,11 +567,19 @@ def test_a_best_second_setting_no_better_than_measuring_twice_is_said_to_be_so(t
     # what a pair's u(S1) is worth, measured (U_S1_PAIR_RATIO), beside the ranking by the median u
     from roadgonio.design.second_aperture import U_S1_PAIR_RATIO
     assert f"{U_S1_PAIR_RATIO[0]:g}-{U_S1_PAIR_RATIO[1]:g} x the prediction" in summary["u_S1_note"]
+    # ... and what its median u is worth against correct --joint's (user audit, session 37)
+    from roadgonio.design.second_aperture import U_MEDIAN_PAIR_RATIO
+    assert f"{U_MEDIAN_PAIR_RATIO[0]:g}-{U_MEDIAN_PAIR_RATIO[1]:g} x this prediction" in summary["u_note"]
     assert "no better than measuring the instrument's own setting twice (median u only 0.5 % below it" in \
         (out / "best_second.toml").read_text().splitlines()[0]
     fig = draw_second_aperture(res)
     assert "no better than measuring" in fig._suptitle.get_text()
     assert f"x{U_S1_PAIR_RATIO[0]:g}-{U_S1_PAIR_RATIO[1]:g} measured" in fig.axes[1].get_ylabel()
+    # the legend names only the kinds of bar drawn (user audit, session 37)
+    drawn = [c for c in res.candidates if math.isfinite(c.u_median) and not c.own]
+    legend = " | ".join(t.get_text() for t in fig.axes[0].get_legend().get_texts())
+    assert ("signal below" in legend) is any(c.note and c is not res.best for c in drawn)
+    assert ("candidate" in legend) is any(not c.note and c is not res.best for c in drawn)
 
 
 def test_iso_signal_lines_that_only_clip_a_corner_are_left_out():
