@@ -132,9 +132,10 @@ def main(argv=None) -> int:
         wall = time.perf_counter() - t0
         worst_b = max(_bound(c) / c.k_a for c in res)
         nc = [(c.tan_eps, c.beta_deg) for c in res if not c.converged]
-        print(f"full table (580 cells, rtol 1e-4): {wall:.0f} s wall, worst relative bound {worst_b:.2e}, "
-              f"{len(nc)} not converged {nc[:6]}; {sum(c.samples for c in res)} evaluations; load average after "
-              f"{load_average()}")
+        say(f"full table (580 cells, rtol 1e-4): {wall:.0f} s wall, worst relative bound {worst_b:.2e}, "
+            f"{len(nc)} not converged {nc[:6]}; {sum(c.samples for c in res)} evaluations; load average after "
+            f"{load_average()}")
+        out.with_suffix(".txt").write_text(say.text() + "\n")    # the printed table with the full table's line
         with out.with_name("reference_full_table.csv").open("w", newline="") as f:
             w = csv.writer(f)
             w.writerow(["tan_eps", "beta_deg", "k_a", "confidence_bound", "converged", "evals", "seconds"])

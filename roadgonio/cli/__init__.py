@@ -15,8 +15,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import pkgutil
+import re
 import sys
 import warnings
+from collections.abc import Sequence
 
 from roadgonio._version import __version__
 from roadgonio.errors import EXIT_WORK_LOST, InputError, ModelWarning, RoadgonioError, WorkLostError, is_interrupt
@@ -56,8 +58,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _negative_values(argv: Sequence[str]) -> list[str]:
+    """``--opt -1%`` as ``--opt=-1%``: argparse takes a value that starts with '-' and is not a plain
+    number ('-1%', '-0.5:rect') for an option and says "expected one argument", never the value's
+    own error (user audit, session 37: ``--u-measured -1%``). The value then reaches the check that
+    names it."""
+    out: list[str] = []
+    for tok in argv:
+        if (out and out[-1].startswith("--") and "=" not in out[-1] and re.match(r"^-\.?\d", tok)
+                and not re.fullmatch(r"-\d+|-\d*\.\d+", tok)):
+            out[-1] = f"{out[-1]}={tok}"
+        else:
+            out.append(tok)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = _negative_values(sys.argv[1:] if argv is None else argv)
     args, extra = parser.parse_known_args(argv)
     if extra:
         # argparse reports unrecognised arguments from the top-level parser; name the command they were

@@ -1012,3 +1012,18 @@ def test_a_scene_part_in_the_detectors_view_names_the_files_and_no_cell(mi, tmp_
     rc = main(["ka", "--instrument", str(inst), "--sample", "R3", "--cells", "12:0,4:0", "--out", str(tmp_path / "o")])
     line = one_line_error(capsys, rc, "front.toml", "the part 'wall'", "holder.xml", "at every cell")
     assert "tan eps" not in line
+
+
+def test_a_value_that_starts_with_a_minus_reaches_its_own_check(tmp_path, capsys):
+    """User audit, session 37: ``--u-measured -1%`` gave argparse's "expected one argument" (it took
+    '-1%' for an option), never the u's own check; it is now the u's error, naming the option. A
+    plain negative number was always taken as a value."""
+    from roadgonio.cli import _negative_values
+    assert _negative_values(["--u-measured", "-1%", "--tan-eps", "-1", "--fresh", "--x", "-0.5:rect"]) == \
+        ["--u-measured=-1%", "--tan-eps", "-1", "--fresh", "--x=-0.5:rect"]
+    from roadgonio.surface.rtable import bundled_table
+    bundled_table("R3").write_csv(tmp_path / "site.csv")
+    rc = main(["correct", "--measured", str(tmp_path / "site.csv"), "--instrument", "portable", "--backend",
+               "quadrature", "--u-measured", "-1%", "--out", str(tmp_path / "o")])
+    one_line_error(capsys, rc, "--u-measured", "between 0 and 100 %", "got -1%")
+    assert not (tmp_path / "o").exists()
