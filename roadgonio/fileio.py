@@ -310,6 +310,29 @@ def check_writable(out_dir: str | Path) -> Path:
     return out_dir
 
 
+def read_user_text(path: str | Path, what: str, *, missing: str | None = None) -> str:
+    """The text of a user's input file, UTF-8 with or without a byte-order mark, or the one-line
+    :class:`InputError` naming the file: ``no such {what}`` (or ``missing``), ``cannot read the
+    {what} (reason)``, or, for text in another encoding, the line of the first byte UTF-8 cannot read
+    (user audit, session 37: a UTF-16 model.json, as Windows PowerShell's ``>`` writes, was a
+    traceback; a BOM made a TOML file "not valid TOML"; a Latin-1 CSV's error was codec jargon)."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise InputError(missing or f"no such {what}", path=path) from None
+    except OSError as err:
+        raise InputError(f"cannot read the {what} ({err.strerror or err})", path=path) from None
+    try:
+        return raw.decode("utf-8-sig")
+    except UnicodeDecodeError as err:
+        line = raw.count(b"\n", 0, err.start) + 1
+        utf16 = raw[:2] in (b"\xff\xfe", b"\xfe\xff")
+        raise InputError(("not UTF-8 text but UTF-16 (as Windows PowerShell's '>' writes)" if utf16 else
+                          f"not UTF-8 text (byte 0x{raw[err.start]:02X} cannot be read)")
+                         + f"; save the {what} as UTF-8", path=path, line=None if utf16 else line) from None
+
+
 def read_toml(path: str | Path, what: str = "TOML file", *, missing: str | None = None) -> dict[str, Any]:
     """The tables of a TOML file, or the one-line :class:`InputError` naming the file: ``no such
     {what}`` (or ``missing``), ``cannot read the {what} (reason)``, or ``not valid TOML: reason``
@@ -317,14 +340,7 @@ def read_toml(path: str | Path, what: str = "TOML file", *, missing: str | None 
     files, road layouts, misalignment SPEC files."""
     import tomllib
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise InputError(missing or f"no such {what}", path=path) from None
-    except UnicodeDecodeError:
-        raise InputError(f"cannot read the {what} (it is not UTF-8 text)", path=path) from None
-    except OSError as err:
-        raise InputError(f"cannot read the {what} ({err.strerror or err})", path=path) from None
+    text = read_user_text(path, what, missing=missing)
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as err:

@@ -37,4 +37,6 @@ def run(args) -> int:
                   f"distance {near['distance']:.2f} sd of the bundled tables' S1 and Q0)")
         if res.get("missing"):
             print(f"  missing: {res['missing']}")
+        for note in res.get("notes", ()):
+            print(f"  note: {note}")
     return 0

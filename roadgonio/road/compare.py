@@ -32,12 +32,14 @@ def compare_tables(a: RTable, b: RTable) -> dict:
         raise InputError(f"tables {a.name} and {b.name} share no cell with r(A) > 0: there is no ratio to compare; "
                          "expected tables with common tabulated cells", field="b")
     k = np.unravel_index(np.nanargmax(change), ratio.shape)
+    from roadgonio.surface.rtable import q0_coverage_note
     char = {}
     for t in (a, b):
         char[t.name] = {"S1": _try(t.s1), "S2": _try(t.s2), "Q0": _try(t.q0), "cells": int(t.mask.sum())}
+    notes = [n for n in (q0_coverage_note(a), q0_coverage_note(b)) if n]
     largest = None if change[k] == 0 else {"tan_eps": float(a.tan_eps[k[0]]), "beta_deg": float(a.beta_deg[k[1]]),
                                            "ratio": float(ratio[k])}
-    return {"A": a.name, "B": b.name, "ratio": ratio, "characteristics": char,
+    return {"A": a.name, "B": b.name, "ratio": ratio, "characteristics": char, "notes": notes,
             "ratio_min": float(got.min()), "ratio_max": float(got.max()), "ratio_median": float(np.median(got)),
             "largest_change_at": largest,
             "cells_compared": int(got.size),

@@ -131,6 +131,9 @@ def classify(table: RTable) -> dict[str, Any]:
                               for n, d in nearest_bundled(s1, q0)] if q0_ok else []
     if not q0_ok:
         out["missing"] = "Q0 (no grid cell with four tabulated corners): no Q0 scale, no nearest bundled table"
+    from roadgonio.surface.rtable import q0_coverage_note
+    note = q0_coverage_note(table) if q0_ok else None
+    out["notes"] = [note] if note else []
     return out
 
 

@@ -633,11 +633,9 @@ class RoadModel:
 
     @classmethod
     def load(cls, path: str | Path) -> "RoadModel":
+        from roadgonio.fileio import read_user_text
         path = Path(path)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as err:
-            raise InputError(f"cannot read model file ({err.strerror})", path=path) from None
+        text = read_user_text(path, "model file")
         try:
             d = json.loads(text)
         except json.JSONDecodeError as err:

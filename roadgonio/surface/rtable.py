@@ -51,7 +51,7 @@ from pathlib import Path
 import numpy as np
 
 from roadgonio.errors import InputError
-from roadgonio.fileio import atomic_write_text
+from roadgonio.fileio import atomic_write_text, read_user_text
 from roadgonio.geometry import BETA_GRID_DEG, TAN_EPS_GRID, nearest_grid_node
 
 #: Scale of r in files (published tables store r x 10^4).
@@ -601,6 +601,8 @@ def _index(grid: np.ndarray, value: float, what: str) -> int:
 
 def _parse_number(text: str, path, line: int, what: str) -> float:
     try:
+        if "_" in text:          # Python's float takes '3_26' as 326 (user audit, session 37): not a number in a table
+            raise ValueError(text)
         v = float(text)
     except ValueError:
         raise InputError(f"{what}: expected a number, got {text!r}", path=path, line=line) from None
@@ -822,12 +824,7 @@ def read_table(path: str | Path, quantity: str = "r") -> RTable:
     No check of the scale nor of the header: :func:`load_table` is the reader of a user's r-table,
     :func:`read_ka_table` of a k_A table."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except FileNotFoundError:
-        raise InputError("no such file", path=path) from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"cannot read the table ({err})", path=path) from None
+    text = read_user_text(path, "table", missing="no such file")
     text = text.replace("\r\n", "\n").replace("\r", "\n")
     if path.suffix.lower() == ".rtb":
         return parse_rtb(text, path=path)
@@ -920,11 +917,16 @@ def check_not_u(table: RTable, path: str | Path | None = None) -> None:
 #: of r is refused as an r-table (:func:`check_u_scale`): a goniophotometer states a few percent (a
 #: u of 60 % still passes: road's tests of extreme u use it).
 U_OVER_R_MAX_MEDIAN = 0.9
+#: ... and one whose median is below this fraction of r as written in sr^-1 where u x 1e4 belongs
+#: (1e-4 of its size: a 2 % u reads as 2e-6 of r; user audit, session 37: road --u took it and
+#: stated u(L_av) 2.7e-7). No goniophotometer states 0.01 %.
+U_OVER_R_MIN_MEDIAN = 1e-4
 
 
 def check_u_scale(u_grid: np.ndarray, table: RTable, path: str | Path | None = None, **where) -> None:
     """Refuse a table given as the standard uncertainties of ``table`` whose values are r's own size
-    (median u / r >= :data:`U_OVER_R_MAX_MEDIAN` over the cells both have): an r-table given where its
+    (median u / r >= :data:`U_OVER_R_MAX_MEDIAN` over the cells both have), or 1e-4 of it (below
+    :data:`U_OVER_R_MIN_MEDIAN`: written in sr^-1, not x 1e4): an r-table given where its
     u belongs (user audit, session 29: ``correct --u-measured corrected.csv`` and ``road --u site1.csv``
     ran with u = 100 % of r, exit 0). ``where``: the InputError's ``field`` or ``argument``."""
     u = np.asarray(u_grid, dtype=np.float64)
@@ -932,6 +934,10 @@ def check_u_scale(u_grid: np.ndarray, table: RTable, path: str | Path | None = N
     if not both.any():
         return
     ratio = float(np.median(u[both] / table.r[both]))
+    if ratio < U_OVER_R_MIN_MEDIAN:
+        raise InputError(f"its values are {ratio:.2g} of the table's r at the median: standard uncertainties in "
+                         "sr^-1, not u x 1e4 (a measurement states a few percent of r, 1e-2 of it); expected u x 1e4 "
+                         "in the r-table layout, as correct writes corrected_u.csv", path=path, **where)
     if ratio >= U_OVER_R_MAX_MEDIAN:
         raise InputError(f"its values are {100 * ratio:.0f} % of the table's r at the median: an r-table, not its "
                          "standard uncertainties (a measurement states a few percent of r); expected u x 1e4 in the "
@@ -981,6 +987,21 @@ def standard_mask() -> np.ndarray:
     if _STANDARD_MASK is None:
         _STANDARD_MASK = bundled_table("R3").mask.copy()
     return _STANDARD_MASK.copy()
+
+
+def q0_coverage_note(table: RTable) -> str | None:
+    """One line when ``table`` lacks cells of the CIE standard tables' 396: its Q0 (and S2) are then
+    the mean over its own, smaller solid angle (:meth:`RTable.q0`), not CIE 144's, and compare
+    with no standard value (user audit, session 37: R3's rows tan eps 0-2 alone gave Q0 0.042
+    against 0.070, "x0.601" of the class standard, without a word). None when it has them all."""
+    std = standard_mask()
+    if table.mask.shape != std.shape:
+        return None
+    lack = int(np.sum(std & ~table.mask))
+    if not lack:
+        return None
+    return (f"{table.name} lacks {lack} of the CIE standard tables' 396 cells: its Q0 and S2 are over its own "
+            "cells' solid angle, not CIE 144's, and are not comparable with a standard Q0")
 
 
 def bundled_table(name: str) -> RTable:

@@ -311,3 +311,76 @@ def test_an_error_quotes_a_long_header_cut_at_a_word(tmp_path):
     t = bundled_table("R3")
     with pytest.raises(InputError, match=r'\(mitsuba \.\.\."\)'):
         check_not_ka(t.with_values(t.r, source=head), tmp_path / "ka.csv")
+
+
+def test_files_not_in_utf8_are_one_line_errors_naming_the_file(tmp_path):
+    """User audit, session 37: a UTF-16 model.json (Windows PowerShell's '>') was a traceback; a TOML
+    file with a byte-order mark "not valid TOML"; a Latin-1 CSV's error codec jargon. Each is one line
+    naming the file (and the line of the first unreadable byte); a BOM is accepted everywhere."""
+    from helpers import refused_in_one_line
+
+    from roadgonio.fileio import read_toml
+    from roadgonio.surface.model import RoadModel
+    from roadgonio.surface.rtable import read_table
+    m = tmp_path / "m.json"
+    m.write_text('{"variant": "power", "params": {}}', encoding="utf-16")
+    refused_in_one_line(lambda: RoadModel.load(m), m, ["not UTF-8 text but UTF-16", "save the model file as UTF-8"])
+    t = tmp_path / "bom.toml"
+    t.write_bytes("\ufeff[instrument]\nname = 'x'\n".encode("utf-8"))
+    assert read_toml(t) == {"instrument": {"name": "x"}}
+    r3 = bundled_table("R3")
+    r3.write_csv(tmp_path / "ok.csv")
+    text = (tmp_path / "ok.csv").read_text(encoding="utf-8")
+    bad = tmp_path / "latin1.csv"
+    bad.write_bytes(("# Stra\u00dfe\n" + text).encode("latin-1"))
+    refused_in_one_line(lambda: read_table(bad), bad, [":1: not UTF-8 text (byte 0xDF", "save the table as UTF-8"])
+    bom = tmp_path / "bom.csv"
+    bom.write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    assert np.array_equal(read_table(bom).r, read_table(tmp_path / "ok.csv").r, equal_nan=True)
+
+
+def test_python_digit_separators_are_not_numbers_in_a_table(tmp_path):
+    """User audit, session 37: '3_26' was read as 326 (Python's float), exit 0."""
+    from helpers import refused_in_one_line
+
+    from roadgonio.surface.rtable import read_table
+    r3 = bundled_table("R3")
+    r3.write_csv(tmp_path / "ok.csv")
+    lines = (tmp_path / "ok.csv").read_text(encoding="utf-8").splitlines()
+    k = next(i for i, ln in enumerate(lines) if ln and not ln.startswith("#") and ln[0].isdigit())
+    cells = lines[k].split(",")
+    cells[1] = cells[1].replace(".", "_", 1) if "." in cells[1] else cells[1][:1] + "_" + cells[1][1:]
+    lines[k] = ",".join(cells)
+    bad = tmp_path / "underscore.csv"
+    bad.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    refused_in_one_line(lambda: read_table(bad), bad, ["expected a number", "_"])
+
+
+def test_a_u_table_in_sr_inverse_is_refused_as_well_as_an_r_table(tmp_path):
+    """User audit, session 37: road --u with a 2 % u written in sr^-1 (1e4 too small) ran, u(L_av)
+    2.7e-7; a u of 1e-4 of r and less at the median is refused naming the scale, 0.05 % passes."""
+    from roadgonio.surface.rtable import U_OVER_R_MIN_MEDIAN, check_u_scale
+    r3 = bundled_table("R3")
+    with pytest.raises(InputError, match="in sr\\^-1, not u x 1e4"):
+        check_u_scale(0.02 * r3.r * 1e-4, r3, "u.csv", argument="u")
+    check_u_scale(0.0005 * r3.r, r3)
+    check_u_scale(1.01 * U_OVER_R_MIN_MEDIAN * r3.r, r3)
+    with pytest.raises(InputError):
+        check_u_scale(0.99 * U_OVER_R_MIN_MEDIAN * r3.r, r3)
+
+
+def test_q0_of_a_table_without_the_standard_cells_is_said_not_cie(tmp_path):
+    """User audit, session 37: R3's rows tan eps 0-2 alone gave Q0 0.042 (0.60 of the class standard)
+    and compare said 'every compared cell equal', nothing else. classify and compare now note that
+    its Q0 and S2 are over its own solid angle; a full standard table gets no note."""
+    from roadgonio.road.compare import compare_tables
+    from roadgonio.surface.cie import classify
+    from roadgonio.surface.rtable import q0_coverage_note
+    r3 = bundled_table("R3")
+    near = r3.with_values(np.where(r3.tan_eps[:, None] <= 2.0, r3.r, np.nan), name="near")
+    lack = int(np.sum(r3.mask & ~near.mask))
+    assert lack > 0 and q0_coverage_note(r3) is None
+    assert classify(r3)["notes"] == []
+    notes = classify(near)["notes"]
+    assert len(notes) == 1 and f"lacks {lack} of the CIE standard tables' 396 cells" in notes[0]
+    assert compare_tables(r3, near)["notes"] == notes
