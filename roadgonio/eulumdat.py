@@ -131,6 +131,7 @@ def read_ldt(path: str | Path) -> Luminaire:
     if not text.strip():        # said before the parser, which reads an empty file as a header of zeros
         raise InputError("the file is empty: expected an EULUMDAT .ldt file", path=path)
     _precheck_counts(text, path)
+    _precheck_header(text, path)
     # The parser reads the file a second time: eulumdat-py's only entry, LdtReader.read, takes a path
     # and opens it itself (no text or stream), and it does not keep the text, which the count check
     # (_check_count) walks.
@@ -209,6 +210,40 @@ def _values_after_lamp_sets(text: str, n_sets: int) -> int:
 
 #: The header lines (1-based) of the counts the parser sizes its arrays by.
 _COUNT_LINES = {"Isym": 3, "Mc": 4, "Ng": 6}
+
+
+#: The numbers of an EULUMDAT header, by line (the lines between are text: company, report number,
+#: luminaire name and number, file name, date/user).
+_HEADER_NUMBERS = {2: "Ityp", 3: "Isym", 4: "Mc", 5: "Dc", 6: "Ng", 7: "Dg", 13: "length/diameter of the luminaire",
+                   14: "width of the luminaire", 15: "height of the luminaire", 16: "length/diameter of the luminous area",
+                   17: "width of the luminous area", 18: "height of the luminous area C0", 19: "... C90", 20: "... C180",
+                   21: "... C270", 22: "downward flux fraction DFF", 23: "light output ratio LORL",
+                   24: "conversion factor", 25: "tilt during measurement", 26: "number of lamp sets"}
+
+
+def _precheck_header(text: str, path: Path) -> None:
+    """Before the parser: every number of the fixed header (lines 2-7, 13-26, and each lamp set's
+    number, flux and wattage) is a number, else the
+    line and its field are named (user audit, session 37: a text line deleted moved the luminaire's
+    name to a number's line, and the parser's "could not convert string to float: 'LED module'"
+    named neither). A decimal comma is a number."""
+    lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")
+    numbers = dict(_HEADER_NUMBERS)
+    try:                             # each lamp set's six lines: number, type, flux, colour, CRI, wattage
+        sets = int(float(lines[25].strip().replace(",", "."))) if len(lines) >= 26 else 0
+    except ValueError:
+        sets = 0
+    for k in range(max(0, min(sets, 20))):
+        base = 27 + 6 * k
+        numbers.update({base: f"number of lamps of set {k + 1}", base + 2: f"luminous flux of set {k + 1}",
+                        base + 5: f"wattage of set {k + 1}"})
+    for line, name in sorted(numbers.items()):
+        raw = lines[line - 1].strip() if len(lines) >= line else ""
+        try:
+            float(raw.replace(",", "."))
+        except ValueError:
+            raise InputError(f"expected a number, got {raw!r} (a text line of the header missing or added above "
+                             "it?)", path=path, field=f"{name} (line {line})") from None
 
 
 def _precheck_counts(text: str, path: Path) -> None:

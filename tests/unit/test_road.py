@@ -78,6 +78,10 @@ def test_bilinear_intensity_between_nodes():
     (lambda L: L[:28] + ["0"] + L[29:], ["lamp flux", "> 0"]),
     (lambda L: L[:3] + ["abc"] + L[4:], ["Mc (line 4)", "whole number"]),
     (lambda L: L[:2] + ["7"] + L[3:], ["Isym"]),
+    # user audit, session 37: a text line of the header deleted gave the parser's "could not convert
+    # string to float: 'LED module'", naming no line
+    (lambda L: L[:8] + L[9:], ["number of lamps of set 1 (line 27)", "expected a number, got 'LED module'",
+                               "text line of the header missing"]),
 ])
 def test_bad_luminaire_file(tmp_path, edit, words):
     lines = bundled_luminaire_path().read_bytes().decode("latin-1").split("\r\n")
