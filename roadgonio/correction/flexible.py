@@ -614,7 +614,9 @@ class SurfaceFit:
         not the data, stopped it)."""
         if self.d_scale == 1.0:
             return "held"
-        return "evidence at its bound" if self.d_scale in D_SCALE_BOUNDS else "evidence"
+        # within round-off: exp(log(400)) is 399.9999999999999 (user audit, session 37: "evidence" at the bound)
+        at_bound = any(math.isclose(self.d_scale, b, rel_tol=1e-9) for b in D_SCALE_BOUNDS)
+        return "evidence at its bound" if at_bound else "evidence"
 
     @property
     def prior_lam(self) -> dict:

@@ -660,7 +660,9 @@ def test_the_joint_terminal_line_says_who_chose_gd_prior_sd():
     fit = SurfaceFit(theta=np.zeros(1), cov=np.eye(1), lam={}, log_evidence=0.0, gcv=0.0, chi2=1.0, edf=0.5, n=2,
                      settings=SurfaceSettings(d_prior_sd=2.0), residual=[], steps=0, seconds=0.0)
     cases = [(1.0, " (held)", 2.0), (4.0, " (chosen by the evidence)", 1.0)] + [
-        (b, " (chosen by the evidence, at its bound)", 2.0 / math.sqrt(b)) for b in D_SCALE_BOUNDS]
+        (b, " (chosen by the evidence, at its bound)", 2.0 / math.sqrt(b)) for b in D_SCALE_BOUNDS] + [
+        # the search ends at exp(log(bound)), which is 399.9999999999999 (user audit, session 37: "evidence")
+        (math.exp(math.log(b)), " (chosen by the evidence, at its bound)", 2.0 / math.sqrt(b)) for b in D_SCALE_BOUNDS]
     for tau, said, sd in cases:
         s = replace(fit, d_scale=tau).summary()
         assert _gd_prior_how(s) == said and s["g_d_prior_sd"] == pytest.approx(sd, rel=ROUND_OFF)

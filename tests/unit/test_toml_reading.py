@@ -56,7 +56,7 @@ def test_missing_and_unreadable_files(tmp_path, kind):
     assert err.value.path == str(tmp_path / "missing.toml")
     latin = tmp_path / "latin.toml"
     latin.write_bytes("# caf\xe9\n".encode("latin-1"))
-    with pytest.raises(InputError, match="cannot read the .* not UTF-8") as err:
+    with pytest.raises(InputError, match=r":1: not UTF-8 text \(byte 0xE9 .*save the .* as UTF-8") as err:
         read(latin)
     assert err.value.path == str(latin)
 
