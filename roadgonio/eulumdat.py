@@ -223,8 +223,7 @@ _HEADER_NUMBERS = {2: "Ityp", 3: "Isym", 4: "Mc", 5: "Dc", 6: "Ng", 7: "Dg", 13:
 
 def _precheck_header(text: str, path: Path) -> None:
     """Before the parser: every number of the fixed header (lines 2-7, 13-26, and each lamp set's
-    number, flux and wattage) is a number, else the
-    line and its field are named (user audit, session 37: a text line deleted moved the luminaire's
+    number, flux and wattage) is a number, else the line and its field are named (user audit, session 37: a text line deleted moved the luminaire's
     name to a number's line, and the parser's "could not convert string to float: 'LED module'"
     named neither). A decimal comma is a number."""
     lines = text.replace("\r\n", "\n").replace("\r", "\n").split("\n")

@@ -990,18 +990,20 @@ def standard_mask() -> np.ndarray:
 
 
 def q0_coverage_note(table: RTable) -> str | None:
-    """One line when ``table`` lacks cells of the CIE standard tables' 396: its Q0 (and S2) are then
-    the mean over its own, smaller solid angle (:meth:`RTable.q0`), not CIE 144's, and compare
-    with no standard value (user audit, session 37: R3's rows tan eps 0-2 alone gave Q0 0.042
+    """One line when ``table``'s cells are not the CIE standard tables' 396 (some lacking, or more):
+    its Q0 (and S2) are then the mean over its own solid angle (:meth:`RTable.q0`), not the standard
+    tables', and compare with no standard value (user audit, session 37: R3's rows tan eps 0-2 alone gave Q0 0.042
     against 0.070, "x0.601" of the class standard, without a word). None when it has them all."""
     std = standard_mask()
     if table.mask.shape != std.shape:
         return None
-    lack = int(np.sum(std & ~table.mask))
-    if not lack:
+    lack, extra = int(np.sum(std & ~table.mask)), int(np.sum(table.mask & ~std))
+    if not lack and not extra:
         return None
-    return (f"{table.name} lacks {lack} of the CIE standard tables' 396 cells: its Q0 and S2 are over its own "
-            "cells' solid angle, not CIE 144's, and are not comparable with a standard Q0")
+    what = (f"lacks {lack} of the CIE standard tables' 396 cells" + (f" and has {extra} beyond them" if extra else "")
+            if lack else f"has {extra} cells beyond the CIE standard tables' 396")
+    return (f"{table.name} {what}: its Q0 and S2 are over its own cells' solid angle, not the standard tables', "
+            "and are not comparable with a standard Q0")
 
 
 def bundled_table(name: str) -> RTable:
