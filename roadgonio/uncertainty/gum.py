@@ -56,7 +56,8 @@ def gum_validation(gum: Mapping[str, np.ndarray], mc: Mapping[str, np.ndarray], 
     (user audit: one surface under a source-distance error alone, 72, 263 or 93 of 396 cells
     "validated" with seeds 1, 2 and 3 at 50,000 trials, the rest "not validated"). Without
     ``end_noise`` every output is judged (the bare comparison), except float64 round-off
-    (:data:`~roadgonio.uncertainty.statistics.ROUND_OFF_REL` of the value on both sides), never judged."""
+    (:data:`~roadgonio.uncertainty.statistics.ROUND_OFF_REL` of the value on both sides: ``round_off``),
+    never judged."""
     delta = numerical_tolerance(gum["u"], n_dig)
     d_low = np.abs(gum["low"] - mc["sym_low"])
     d_high = np.abs(gum["high"] - mc["sym_high"])
@@ -71,4 +72,4 @@ def gum_validation(gum: Mapping[str, np.ndarray], mc: Mapping[str, np.ndarray], 
     roundoff = (gum["u"] <= scale) & (0.5 * np.abs(mc["sym_high"] - mc["sym_low"]) <= scale)
     validated, judged = validated & ~roundoff, judged & ~roundoff
     return {"delta": delta, "d_low": d_low, "d_high": d_high, "end_noise": noise, "judged": judged,
-            "validated": validated}
+            "round_off": roundoff, "validated": validated}

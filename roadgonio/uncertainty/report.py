@@ -253,8 +253,8 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
             u_rel = c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
         lines.append(f"{name.replace('_', ' ')}: u(r)/r median {100 * np.nanmedian(u_rel):.3g} %, max "
                      f"{100 * np.nanmax(u_rel):.3g} %; GUM {verdict_counts(c.validation, n)}")
-        if not np.all(c.validation["judged"][:n]) or any(not c.validation["judged"][k] and not at_round_off(c, k)
-                                                          for k in (n, n + 1)):
+        # outputs of round-off are not judged either, but not for noise: no "more --trials" for them
+        if np.any(~c.validation["judged"][:n + 2] & ~c.validation["round_off"][:n + 2]):
             lines.append(f"  not judged: the Monte Carlo interval's ends are too noisy to decide against a tolerance of "
                          f"{res.n_dig} digit(s) of u (their 2 s from 20 batches, JCGM 101 7.9.4): more --trials, "
                          "--adaptive, or fewer --digits")

@@ -362,6 +362,13 @@ def test_adaptive_rule_stops_where_some_outputs_do_not_move():
     # the case the rule must handle: u of round-off (1.7e-18), not an uncertainty
     assert flat.any() and np.all(c.mc["u"][:n][flat] <= ROUND_OFF_REL * c.mc["mean"][:n][flat])
     assert res.adaptive["converged"], res.adaptive
+    # ... and the GUM validation does not judge them, nor does the summary send the user to more
+    # trials for them (session 37: they were judged by round-off, then called too noisy)
+    from roadgonio.uncertainty.report import summary_lines
+    v = c.validation
+    assert v["round_off"][:n][flat].all() and not v["judged"][:n][flat].any()
+    noisy = bool(np.any(~v["judged"][:n + 2] & ~v["round_off"][:n + 2]))
+    assert any("not judged:" in line for line in summary_lines(res)) is noisy
 
 
 def test_gum_verdict_is_given_only_where_the_monte_carlo_noise_cannot_decide_it():
@@ -394,6 +401,7 @@ def test_gum_verdict_is_given_only_where_the_monte_carlo_noise_cannot_decide_it(
         for noise_ in (None, np.zeros(3)):
             v = gum_validation(g, m, 2, noise_)
             assert v["judged"].tolist() == [judged] * 3 and v["validated"].tolist() == [judged, False, False]
+            assert v["round_off"].tolist() == [not judged] * 3
 
 
 def test_gum_verdict_does_not_change_with_the_seed():
@@ -456,6 +464,7 @@ def known_result():
         gum = {"y": base, "u": 1.05 * u, "low": base - 2.05 * u, "high": base + 2.15 * u,
                "contribution": np.outer(np.arange(1.0, 8.0), u)}
         validation = {"validated": np.arange(n + 2) % 3 == 0, "judged": np.arange(n + 2) % 3 != 1,
+                      "round_off": np.zeros(n + 2, dtype=bool),
                       "d_low": 1e-4 * (1 + np.arange(n + 2)), "d_high": 2e-4 * (1 + np.arange(n + 2)),
                       "delta": 5e-5 * (1 + np.arange(n + 2)), "end_noise": 3e-5 * (1 + np.arange(n + 2))}
         cases[name] = CaseResult(name, base, mc, gum, validation, np.zeros(0), np.zeros(0))
