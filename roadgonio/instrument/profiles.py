@@ -246,10 +246,11 @@ def read_numbers_csv(path: Path, field: str, columns: int | None = None,
     if header is not None:
         columns = len(header)
     want_header = ",".join(header) if header is not None else ""
+    from roadgonio.fileio import read_user_text
     try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as err:
-        raise _err(f"cannot read the file ({err})", path, field) from None
+        text = read_user_text(path, "file")
+    except InputError as err:            # the one reader's words, under this profile's field
+        raise _err(err.reason, path, field, err.line) from None
     rows, lines = [], []
     header_seen = False
     for no, raw in enumerate(text.splitlines(), start=1):

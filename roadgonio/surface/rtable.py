@@ -410,12 +410,7 @@ def read_cell_correlation(path: str | Path, table: str | None = None) -> tuple[l
     if not p.is_file():
         raise InputError("no such correlation file" if not p.exists() else "expected a correlation file, not a folder",
                          path=p)
-    try:
-        text = p.read_text(encoding="utf-8-sig")
-    except OSError as err:
-        raise InputError(f"cannot read this correlation file ({err.strerror or err})", path=p) from None
-    except UnicodeDecodeError:
-        raise InputError("this correlation file is not a text file", path=p) from None
+    text = read_user_text(p, "correlation file")
     labels: list[str] | None = None
     cells: list[tuple[float, float]] = []
     rows: list[list[float]] = []
