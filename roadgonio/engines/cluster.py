@@ -1,7 +1,8 @@
 """Dask for roadgonio: many independent k_A tables over worker processes.
 
-Used by ``roadgonio design`` (one table per design point and sample), by ``roadgonio uncertainty``
-(the exact tables of the surrogate design) and by ``roadgonio correct`` (one task per measured
+Used by ``roadgonio design`` (one table per design point and sample, a few consecutive tables per
+Dask task when every worker still gets enough tasks: :func:`tables_per_task`), by ``roadgonio
+uncertainty`` (the exact tables of the surrogate design) and by ``roadgonio correct`` (one task per measured
 table). :func:`map_calls` is the one piece of Dask plumbing: *call a module-level function for
 every item, one task each, on the client's workers (or here when the client is ``None``)*, with
 an optional object shipped once to every worker, results in order, progress callbacks in
@@ -638,22 +639,62 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
     return results
 
 
+#: Tables per Dask task at most (:func:`tables_per_task`): a portable table at default accuracy is
+#: ~0.07-0.09 s of one core, and each task costs the scheduler, the driver and the other worker a few
+#: ms of the same two cores; bench/bench_design.py measured 1.66-2.05x from 1 to 2 workers with one
+#: table per task and 2.03x twice with three (session 38, docs/benchmarks.md).
+TABLES_PER_TASK_MAX = 4
+#: Tasks per worker at least, so that the tables still balance over the workers (the last task of
+#: one worker is then at most ~1/8 of its share).
+TASKS_PER_WORKER_MIN = 8
+
+
+def tables_per_task(n_tables: int, n_workers: int) -> int:
+    """How many tables one Dask task computes: ``n_tables // (TASKS_PER_WORKER_MIN * n_workers)``,
+    between 1 and :data:`TABLES_PER_TASK_MAX` (60 tables on 2 workers: 3 a task; 10 tables: 1)."""
+    per = int(n_tables) // (TASKS_PER_WORKER_MIN * max(int(n_workers), 1))
+    return max(1, min(TABLES_PER_TASK_MAX, per))
+
+
+def compute_tables(tasks: Sequence[TableTask], *, prepare: bool = True) -> list[TableResult]:
+    """:func:`compute_table` of each task, one after the other (one Dask task of several tables)."""
+    return [compute_table(t, prepare=prepare) for t in tasks]
+
+
+def _n_workers(client) -> int:
+    try:
+        return max(1, len(client.scheduler_info().get("workers", {})))
+    except Exception:  # noqa: BLE001 - a count for the chunk size only
+        return 1
+
+
 def map_tables(tasks: Sequence[TableTask], client=None, *,
                on_result: Callable[[TableResult], None] | None = None) -> list[TableResult]:
     """Compute every task (on the client's workers, or here if ``client`` is None); returns the
     results in the order of ``tasks`` and calls ``on_result`` as each one finishes (in completion
     order). A worker that dies on a task gives that task ``error_kind = "WorkerError"``; exceptions
     that are not a RoadgonioError (bugs) are raised here. Unfinished tasks are cancelled when this
-    returns or raises (Ctrl-C). (:func:`map_calls` of :func:`compute_table`.)"""
+    returns or raises (Ctrl-C). (:func:`map_calls` of :func:`compute_tables`: on a cluster, a Dask
+    task computes :func:`tables_per_task` consecutive tables, and their results arrive together.)"""
     tasks = list(tasks)
+    if client is None:
+        func = partial(compute_table, prepare=False)   # it uses what the entry point chose
+        return map_calls(func, tasks, None, name="table",
+                         on_result=None if on_result is None else (lambda i, r: on_result(r)))
+    per = tables_per_task(len(tasks), _n_workers(client))
+    chunks = [tasks[i:i + per] for i in range(0, len(tasks), per)]
 
-    def lost(i: int, err: BaseException) -> TableResult:
-        return TableResult(key=tasks[i].key, cells=[], error=f"a Dask worker died computing this table ({err})",
-                           error_kind="WorkerError")
-    # compute_table prepares a worker's process itself; in this process it uses what the entry point chose
-    func = compute_table if client is not None else partial(compute_table, prepare=False)
-    return map_calls(func, tasks, client, on_lost=lost, name="table",
-                     on_result=None if on_result is None else (lambda i, r: on_result(r)))
+    def lost(c: int, err: BaseException) -> list[TableResult]:
+        return [TableResult(key=t.key, cells=[], error=f"a Dask worker died computing this table ({err})",
+                            error_kind="WorkerError") for t in chunks[c]]
+
+    def arrived(c: int, rs: list[TableResult]) -> None:
+        for r in rs:
+            on_result(r)
+    # compute_tables prepares a worker's process itself (compute_table's prepare=True)
+    out = map_calls(compute_tables, chunks, client, on_lost=lost, name="table" if per == 1 else "group of tables",
+                    on_result=None if on_result is None else arrived)
+    return [r for rs in out for r in rs]
 
 
 def absolute_instrument_dict(instrument) -> dict[str, Any]:

@@ -55,6 +55,45 @@ def test_dead_worker_is_a_worker_error_and_the_rest_finishes(tmp_path):
         assert np.array_equal([c.k_a for c in r.cells], [c.k_a for c in here.cells])   # deterministic backend
 
 
+@pytest.mark.timeout(300)
+def test_tables_grouped_per_task_keep_order_and_a_dead_worker_loses_only_its_group(tmp_path):
+    """With many tables per worker a Dask task computes several (``tables_per_task``): the results
+    are those of the in-process run, in the order of the tasks; a worker dying on one table loses the
+    tables of its group (each a WorkerError, to be computed again), whole groups only (with
+    allowed-failures 0 Dask also fails a group it had queued on that worker), the rest finish."""
+    import dask
+
+    from roadgonio.engines import cluster
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.model import RoadModel
+    (tmp_path / "rg_crash_backend.py").write_text(CRASH_MODULE)
+    inst = cluster.absolute_instrument_dict(load_instrument("lab"))
+    model = RoadModel.lambert().to_json_dict()
+    n = 2 * cluster.TASKS_PER_WORKER_MIN * 2 + 1                 # 33 tables on 2 workers: 2 a task
+    per = cluster.tables_per_task(n, 2)
+    assert per == 2
+    crash_at = 7                                               # the second table of the group (6, 7)
+    tasks = [cluster.TableTask(instrument=inst, model=model, cells=((1.0 + 0.1 * k, 0.0),),
+                               backend="crash-worker" if k == crash_at else "quadrature", key=k) for k in range(n)]
+    here = cluster.map_tables([t for t in tasks if t.key != crash_at], None)
+    arrived = []
+    with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
+        with cluster.open_client(workers=2, backend=None) as client:
+            client.run(exec, f"import sys; sys.path.insert(0, {str(tmp_path)!r}); import rg_crash_backend")
+            results = cluster.map_tables(tasks, client, on_result=arrived.append)
+    assert [r.key for r in results] == list(range(n))
+    assert sorted(r.key for r in arrived) == list(range(n))     # every table reported once
+    lost = {r.key for r in results if not r.ok}
+    assert {6, 7} <= lost and len(lost) <= 3 * per, lost
+    assert all({k - k % per, k - k % per + 1} <= lost for k in lost if k < n - 1), lost    # whole groups
+    assert all(r.error_kind == "WorkerError" for r in results if not r.ok)
+    ok = [r for r in results if r.ok]
+    ref = {r.key: r for r in here}
+    assert len(ok) >= n - 3 * per
+    for a in ok:
+        assert [c.k_a for c in a.cells] == [c.k_a for c in ref[a.key].cells]          # deterministic backend
+
+
 def test_design_reports_a_worker_error_as_failed_with_a_retry_hint(tmp_path, monkeypatch):
     """The design room's handling of a WorkerError result: the point is 'failed' (not infeasible,
     not a backend refusal), the reason says to run again, and nothing is journalled for it, so

@@ -121,3 +121,17 @@ print("top", check()[1])
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), *sys.path])}
     res = subprocess.run([sys.executable, "-m", "pkg"], capture_output=True, text=True, env=env, cwd=tmp_path)
     assert res.stdout.strip() == "None", res.stdout + res.stderr
+
+
+def test_tables_per_task_groups_only_when_every_worker_keeps_enough_tasks():
+    from roadgonio.engines.cluster import TABLES_PER_TASK_MAX, TASKS_PER_WORKER_MIN, tables_per_task
+    assert tables_per_task(60, 2) == 3                       # bench_design's 60-point design
+    assert tables_per_task(10, 2) == 1
+    assert tables_per_task(0, 2) == 1 and tables_per_task(5, 0) == 1
+    assert tables_per_task(10_000, 1) == TABLES_PER_TASK_MAX
+    for n in range(1, 400):
+        for w in (1, 2, 3, 8):
+            per = tables_per_task(n, w)
+            assert 1 <= per <= TABLES_PER_TASK_MAX
+            if per > 1:                                      # grouping never leaves a worker short of tasks
+                assert -(-n // per) >= TASKS_PER_WORKER_MIN * w
