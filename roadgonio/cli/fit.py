@@ -68,5 +68,7 @@ def run(args) -> int:
         "commands use)")
     say("  worst cells (model - table, % of max r): " + "; ".join(
         f"tan eps {t:g}, beta {b:g} deg: {d:+.2f} %" for t, b, d in result.worst_cells(3)))
+    for note in result.notes():
+        say(f"  note: {note}")
     say("wrote " + ", ".join(str(p) for p in result.written))
     return 0

@@ -54,6 +54,19 @@ LINEAR = ("k_diff", "k_phong", "k_retro", "k_exp")
 #: wanted more, and the model is a compromise (audit 21: `fit R3 --fix n_phong=1e4` gave k_phong
 #: 999999.9998 without a word)
 AT_BOUND_RTOL = 1e-6
+#: A term adding less than this to every tabulated cell (% of max r) is not determined by the table:
+#: its coefficient and shape are no property of the surface (user audit, session 38: a Lambertian
+#: table fitted k_exp 2.04, p 13.9, h -81 and n_phong 1998 without a word; an exact eq. 4 table
+#: left k_exp at its bound 1e6, told "the fit wanted more, so the model is a compromise")
+UNDETERMINED_TERM_PCT = 0.1
+#: The shape parameters of each linear term (:func:`roadgonio.surface.model.road_brdf`).
+TERM_SHAPE = {"k_diff": (), "k_phong": ("n_phong",), "k_retro": ("n_retro",), "k_exp": ("p", "h", "mu", "n_beta")}
+#: The paper's fits of its five reference tables (section 3): maximal deviation within 9 %, RMS
+#: within 2.6 % of the maximal r; a fit beyond either is said to miss the table's shape.
+PAPER_MAX_DEV_PCT = 9.0
+PAPER_RMS_DEV_PCT = 2.6
+#: The model's Q0, S1 or S2 this far (relative) from the table's is said in the fit's notes.
+DESCRIPTOR_NOTE_REL = 0.10
 #: The shape parameters searched globally (every variant) ...
 NONLINEAR = ("n_phong", "n_retro", "p", "h", "mu")
 #: ... plus the variant's own ones (:data:`roadgonio.surface.model.VARIANT_PARAMS`), e.g. n_beta of "smooth".
@@ -193,12 +206,52 @@ class FitResult:
                     (("Q0", t.q0()), ("S1", t.s1()), ("S2", t.s2()))}
         return {"table": of(self.table), "model": of(model_table)}
 
+    def notes(self) -> list[str]:
+        """What a photometrist should read about this fit beyond its numbers: a fit beyond the paper's
+        (max 9 %, RMS 2.6 % of max r), descriptors of the model far from the table's, terms the table
+        does not determine, and a coefficient or shape parameter held at its bound (from the fit's
+        ``meta``; a model fitted before session 38 has only the last)."""
+        fit = (self.model.meta or {}).get("fit", {})
+        out = []
+        if self.max_dev_pct > PAPER_MAX_DEV_PCT or self.rms_dev_pct > PAPER_RMS_DEV_PCT:
+            other = "" if self.variant == "smooth" else ("; the smooth variant (--variant smooth) follows more tables' "
+                                                         "specular peaks")
+            out.append(f"the model misses the table by up to {self.max_dev_pct:.1f} % of max r (RMS "
+                       f"{self.rms_dev_pct:.2f} %), beyond the paper's fits (max {PAPER_MAX_DEV_PCT:g} %, RMS "
+                       f"{PAPER_RMS_DEV_PCT:g} %): its shape is not quite this table's, and a k_A computed with it is "
+                       f"that of the model's surface{other}")
+        d = self.descriptors()
+        far = [f"{k} {100 * (d['model'][k] / d['table'][k] - 1):+.1f} %" for k in ("Q0", "S1", "S2")
+               if d["table"][k] and d["model"][k] is not None
+               and abs(d["model"][k] / d["table"][k] - 1) > DESCRIPTOR_NOTE_REL]
+        if far:
+            out.append(f"the model's {', '.join(far)} of the table's (beyond {100 * DESCRIPTOR_NOTE_REL:g} %), and "
+                       "later commands use the model's")
+        und = fit.get("undetermined") or {}
+        if und:
+            P = self.model.params
+            shapes = [n for k in und for n in TERM_SHAPE.get(k, ()) if n in self.shown_params()]
+            out.append("the table does not determine " + ", ".join(f"{k} = {getattr(P, k):.3g}" for k in und)
+                       + (f" nor {', '.join(shapes)}" if shapes else "") + ": "
+                       + ("its term adds" if len(und) == 1 else "each of these terms adds")
+                       + f" at most {max(und.values()):.2g} % of max r to the table's cells, so these values "
+                       "describe nothing of the surface (k_A at these cells hardly depends on them)")
+        for k in fit.get("at_upper_bound") or []:
+            out.append(f"{k} sits at the upper end of its range ({PARAM_BOUNDS[k][1]:g} sr^-1): the fit wanted more, "
+                       "so the model is a compromise there")
+        sb = fit.get("shape_at_bound") or {}
+        if sb:
+            out.append("shape parameter(s) at an end of the search range: " + ", ".join(
+                f"{n} = {v:.4g} (range {SEARCH_BOX[n][0]:g} ... {SEARCH_BOX[n][1]:g})" for n, v in sb.items())
+                + ": the table would take a value beyond it, or does not determine it")
+        return out
+
     def to_json_dict(self) -> dict[str, Any]:
         """Exactly the keys printed by ``roadgonio fit --json``."""
         return {"table": self.table.name, "variant": self.model.variant,
                 "max_dev_pct": float(self.max_dev_pct), "rms_dev_pct": float(self.rms_dev_pct),
                 "params": self.model.params.to_dict(), "descriptors": self.descriptors(),
-                "seconds": float(self.seconds)}
+                "notes": self.notes(), "seconds": float(self.seconds)}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -220,6 +273,18 @@ def model_r_on_grid(model: RoadModel, table: RTable) -> np.ndarray:
     T, B = np.meshgrid(table.tan_eps, table.beta_deg, indexing="ij")
     r = model.r(T, B)
     return np.where(table.mask, r, np.nan)
+
+
+def term_contributions(model: RoadModel, table: RTable, names=LINEAR) -> dict[str, float]:
+    """For each linear term of ``names`` with a coefficient above 0: the most it adds to a tabulated
+    cell, in % of the table's max r (the model with and without it)."""
+    full = model_r_on_grid(model, table)
+    out = {}
+    for k in names:
+        if getattr(model.params, k) > 0.0:
+            without = model_r_on_grid(RoadModel(model.params.replace(**{k: 0.0}), model.variant), table)
+            out[k] = float(np.nanmax(np.abs(full - without)) / table.r_max * 100.0)
+    return out
 
 
 def deviations(model: RoadModel, table: RTable) -> tuple[np.ndarray, float, float]:
@@ -505,7 +570,25 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
         "table": {"name": table.name, "source": table.source, "sha256": table_hash(table),
                   "r_max": table.r_max, "cells": int(table.mask.sum())},
     }
-    at_bound = [k for k in prob.free_lin if getattr(params, k) >= PARAM_BOUNDS[k][1] * (1.0 - AT_BOUND_RTOL)]
+    contrib = term_contributions(tmp, table, prob.free_lin)
+    undetermined = {k: c for k, c in contrib.items() if c < UNDETERMINED_TERM_PCT}
+    # a coefficient at its bound whose term counts: the fit wanted more (a term that adds nothing to the
+    # table's cells is not determined, wherever it stopped)
+    at_bound = [k for k in prob.free_lin if getattr(params, k) >= PARAM_BOUNDS[k][1] * (1.0 - AT_BOUND_RTOL)
+                and k not in undetermined]
+    if undetermined:
+        meta["fit"]["undetermined"] = undetermined
+    shape_at_bound = {}
+    for k, names in TERM_SHAPE.items():
+        if k in undetermined or getattr(params, k) <= 0.0:
+            continue               # the shape of a term that is absent or not determined is no finding
+        for n in names:
+            if n in prob.free_nl and n in SEARCH_BOX:
+                zv, (zlo, zhi) = _to_z(n, getattr(params, n)), _z_box(n)
+                if min(zv - zlo, zhi - zv) < AT_BOUND:
+                    shape_at_bound[n] = float(getattr(params, n))
+    if shape_at_bound:
+        meta["fit"]["shape_at_bound"] = shape_at_bound
     if at_bound:
         meta["fit"]["at_upper_bound"] = at_bound
         import warnings

@@ -98,7 +98,7 @@ def test_fit_result_api(fit_r3_power, tmp_path):
     assert res.rms_dev_pct == pytest.approx(np.sqrt(np.mean(dev ** 2)), rel=1e-12)
     # JSON keys exactly as documented
     d = res.to_json_dict()
-    assert set(d) == {"table", "variant", "max_dev_pct", "rms_dev_pct", "params", "descriptors", "seconds"}
+    assert set(d) == {"notes", "table", "variant", "max_dev_pct", "rms_dev_pct", "params", "descriptors", "seconds"}
     json.dumps(d)
     # Q0/S1/S2 of the table and of the model's own table on the same cells (trial 9: the fitted R3 has
     # a Q0 5 % below the table's, which nothing said): the model's from its r at the grid, written apart
@@ -329,15 +329,23 @@ def test_a_coefficient_fitted_to_its_upper_bound_is_noted():
     from roadgonio.errors import ModelWarning
     from roadgonio.surface.rtable import bundled_table
     with pytest.warns(ModelWarning, match=r"k_phong = 1e\+06 at the upper end of the allowed range"):
-        res = fit_table(bundled_table("R3"), "power", fixed={"n_phong": 1e4})
+        res = fit_table(bundled_table("R3"), "power", fixed={"n_phong": 7000.0})
     assert res.model.meta["fit"]["at_upper_bound"] == ["k_phong"]
+    assert any("k_phong sits at the upper end" in n for n in res.notes())
+    # session 38: with n_phong 1e4 the lobe adds 0.0007 % of max r to R3's cells: k_phong at its bound
+    # is then 'not determined by the table', not a compromise
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ModelWarning)
+        thin = fit_table(bundled_table("R3"), "power", fixed={"n_phong": 1e4})
+    assert "k_phong" in thin.model.meta["fit"]["undetermined"] and "at_upper_bound" not in thin.model.meta["fit"]
+    res = thin
     # the spike note no longer claims a k_A: this model's k_A at tan eps 12 is 1.8 for the portable
     # preset, far from r(0.01 deg) / r(0) ~ 0
     from roadgonio.surface.sample import note_unresolved_spike
     with pytest.warns(ModelWarning, match="spike") as rec2:
         note_unresolved_spike(res.model, "R3", fitted=True)
     assert all("k_A about" not in str(w.message) and "averages in" in str(w.message) for w in rec2)
-    import warnings
     with warnings.catch_warnings():
         warnings.simplefilter("error", ModelWarning)
         inside = fit_table(bundled_table("R3"), "smooth")
@@ -360,3 +368,56 @@ def test_the_search_reaches_the_whole_range_of_the_shape_parameters(variant, par
     res = fit_table(RTable(np.where(mask, truth.r(T, B), np.nan), name="synthetic"), variant, seed=0)
     assert getattr(res.model.params, param) == pytest.approx(value, rel=1e-3)
     assert res.max_dev_pct < 0.05
+
+
+def _table_of(model: RoadModel, name: str) -> RTable:
+    T, B = np.meshgrid(TAN_EPS_GRID, BETA_GRID_DEG, indexing="ij")
+    return RTable(model.r(T, B), name=name)
+
+
+def test_a_term_the_table_does_not_determine_is_said_so_not_called_a_compromise():
+    """(user audit, session 38) an exact eq. 4 table without an exponential term left k_exp at its
+    bound 1e6 with "the fit wanted more, so the model is a compromise" (its term adds 3.5e-5 % of max
+    r); a Lambertian table fitted k_exp 2.04, p 13.9, h -81 with no word. Both are now 'not
+    determined' notes, and the warning of a coefficient at its bound is kept for a term that counts."""
+    import warnings
+
+    from roadgonio.errors import ModelWarning
+    no_exp = RoadModel(RoadParams(k_diff=0.02, k_phong=50.0, n_phong=500.0, k_retro=0.0, k_exp=0.0), "power")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ModelWarning)       # no "compromise" warning
+        res = fit_table(_table_of(no_exp, "no-exp"), "power")
+    assert res.max_dev_pct < 0.01
+    und = res.model.meta["fit"].get("undetermined", {})
+    assert "k_phong" not in und and "k_diff" not in und                  # the terms that make the table
+    assert all(v < fitmod.UNDETERMINED_TERM_PCT for v in und.values())
+    assert "at_upper_bound" not in res.model.meta["fit"]
+    notes = res.notes()
+    if res.model.params.k_exp > 0:
+        assert "k_exp" in und and any("does not determine" in n and "k_exp" in n for n in notes), notes
+    assert not any("misses the table" in n or "compromise" in n for n in notes), notes
+    lam = fit_table(RTable(np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), 0.08)
+                           * (1.0 + TAN_EPS_GRID[:, None] ** 2) ** -1.5, name="flat"), "power")
+    P = lam.model.params
+    assert abs(P.k_diff - 0.08) < 1e-6
+    spurious = {k for k in ("k_phong", "k_retro", "k_exp") if getattr(P, k) > 0}
+    assert spurious == set(lam.model.meta["fit"].get("undetermined", {})), (spurious, lam.model.meta["fit"])
+    if spurious:
+        assert any("does not determine" in n for n in lam.notes())
+
+
+def test_a_fit_beyond_the_papers_quality_and_far_descriptors_are_noted():
+    """(user audit, session 38) R4 with its specular cells x20 fitted with 40.7 % max deviation and
+    S1 +366 % of the table's without a word; the notes say both, naming the paper's 9 % / 2.6 %."""
+    t = bundled_table("R4")
+    r = t.r.copy()
+    T, B = np.meshgrid(t.tan_eps, t.beta_deg, indexing="ij")
+    r[(B <= 5) & (T >= 1)] *= 20.0
+    res = fit_table(RTable(r, name="R4x20", tan_eps=t.tan_eps, beta_deg=t.beta_deg), "power")
+    notes = res.notes()
+    assert res.max_dev_pct > fitmod.PAPER_MAX_DEV_PCT
+    assert any("misses the table" in n and f"{res.max_dev_pct:.1f} %" in n for n in notes), notes
+    assert any(n.startswith("the model's") and "S1" in n for n in notes), notes
+    assert "notes" in res.to_json_dict()
+    good = fit_table(bundled_table("C1"), "smooth")                 # 2.7 % max, descriptors within 10 %
+    assert good.notes() == []
