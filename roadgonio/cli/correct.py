@@ -223,7 +223,9 @@ def _gd_prior_how(variant: dict) -> str:
     or the evidence stopped at a bound of its search)."""
     how = variant["g_d_prior_chosen_by"]
     return {"held": " (held)", "evidence": " (chosen by the evidence)",
-            "evidence at its bound": " (chosen by the evidence, at its bound)"}[how]
+            "evidence at its bound": " (chosen by the evidence, at its bound)",
+            "held: the evidence wanted it wider than its bound": " (held: the evidence wanted it wider than sd 2, "
+            "where g_D takes up the surface's shape; docs/correction.md)"}[how]
 
 
 def _model_estimate_line(m: dict) -> str:

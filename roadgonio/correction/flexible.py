@@ -84,6 +84,12 @@ D_PRIOR_SD = 1.0
 D_PRIOR_SCALES = ("fixed", "evidence", "joint")
 #: The range of that factor tau: g_D's prior sd between 2 sd_D and sd_D / 20.
 D_SCALE_BOUNDS = (0.25, 400.0)
+#: With "joint", an evidence that takes g_D's prior to its widest (tau at D_SCALE_BOUNDS[0]) is not
+#: taken: g_D then absorbs the surface's shape (user audit, session 38: a smooth bump on R3's fit
+#: through the portable and its 20 mm source setting, 4 realisations of 4 at sd 2: 2.3-2.6 % RMS, 9.5-13.6 %
+#: max, RMS z 1.31-1.60, each setting alone 0.7-1.0 % RMS; with g_D held at sd 1: 0.7-1.0 %, RMS z
+#: 0.69-0.89), and the fit is made again with it held at sd_D.
+D_SCALE_WIDEST_HOLDS = True
 #: The criteria that can choose the smoothing parameters (SurfaceSettings.smoothing).
 SMOOTHING = ("evidence", "gcv")
 #: Correlation length of the model discrepancy in knot spacings of g_C (roadgonio.correction.discrepancy).
@@ -594,13 +600,17 @@ class SurfaceFit:
     resumed: bool = False
     #: the factor tau on g_D's prior precision (SurfaceSettings.d_prior_scale; 1 where it is held)
     d_scale: float = 1.0
+    #: True when the evidence ("joint") took g_D's prior to its widest (sd 2 sd_D) and the fit was
+    #: made again with it held (:data:`D_SCALE_WIDEST_HOLDS`)
+    d_scale_held_at_widest: bool = False
 
     def state(self) -> dict[str, Any]:
         """What a rerun needs to rebuild this fit without searching again (:func:`fit_surface`'s
         ``state``): the mode and the smoothing parameters (exact floats; JSON keeps them), and the
         search's own record."""
         return {"theta": [float(v) for v in self.theta], "lam": {k: float(v) for k, v in self.lam.items()},
-                "phi": float(self.phi), "d_scale": float(self.d_scale), "steps": int(self.steps), "seconds": float(self.seconds), "history": list(self.history)}
+                "phi": float(self.phi), "d_scale": float(self.d_scale), "steps": int(self.steps), "seconds": float(self.seconds), "history": list(self.history)} \
+            | ({"d_scale_held_at_widest": True} if self.d_scale_held_at_widest else {})
 
     @property
     def d_prior_sd(self) -> float:
@@ -612,6 +622,8 @@ class SurfaceFit:
         """Who chose :attr:`d_prior_sd`: "held" (tau 1: SurfaceSettings.d_prior_scale held it),
         "evidence", or "evidence at its bound" (tau at an end of D_SCALE_BOUNDS: the search's limit,
         not the data, stopped it)."""
+        if self.d_scale_held_at_widest:
+            return "held: the evidence wanted it wider than its bound"
         if self.d_scale == 1.0:
             return "held"
         # within round-off: exp(log(400)) is 399.9999999999999 (user audit, session 37: "evidence" at the bound)
@@ -755,10 +767,17 @@ def fit_surface(parts: Sequence[FlexPart], measured: Sequence[np.ndarray], u: Se
     the same numbers as the fit that wrote it. A state that does not fit these settings (another
     number of coefficients or other penalty regions) raises ValueError."""
     with one_blas_thread():
-        return _fit_surface(parts, measured, u, theta0=theta0, lam0=lam0, state=state)
+        settings = parts[0].settings
+        if state is not None and state.get("d_scale_held_at_widest"):
+            return _fit_surface(parts, measured, u, theta0=theta0, lam0=lam0, state=state, hold_d_scale=True)
+        fit = _fit_surface(parts, measured, u, theta0=theta0, lam0=lam0, state=state)
+        if (state is None and D_SCALE_WIDEST_HOLDS and settings.d_prior_scale == "joint" and fit.d_scale != 1.0
+                and math.isclose(fit.d_scale, D_SCALE_BOUNDS[0], rel_tol=1e-9)):
+            return _fit_surface(parts, measured, u, theta0=theta0, lam0=lam0, hold_d_scale=True)
+        return fit
 
 
-def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
+def _fit_surface(parts, measured, u, *, theta0, lam0, state=None, hold_d_scale: bool = False) -> SurfaceFit:
     t0 = time.perf_counter()
     settings = parts[0].settings
     y = np.concatenate([np.asarray(v, dtype=np.float64) for v in measured])
@@ -778,7 +797,7 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
     else:
         lam = np.full(len(Ps), unit * 0.1) if lam0 is None else np.array(lam0, dtype=np.float64)
     theta = np.zeros(n_c + n_d) if theta0 is None else np.array(theta0, dtype=np.float64)
-    free_tau = d_scale_free(settings, parts)
+    free_tau = d_scale_free(settings, parts) and not hold_d_scale
     tau = 1.0                                   # the factor on g_D's prior precision (d_scale_free)
 
     def prior(lam_, phi_, tau_=None):
@@ -935,7 +954,8 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None) -> SurfaceFit:
         start += p.n
     return SurfaceFit(theta=theta, cov=cov, lam=dict(zip(names, lam.tolist())), phi=phi, log_evidence=log_ev, gcv=gcv,
                       chi2=chi2, edf=edf, n=n, settings=settings, residual=res, steps=steps_total,
-                      seconds=time.perf_counter() - t0, history=history, resumed=state is not None, d_scale=tau)
+                      seconds=time.perf_counter() - t0, history=history, resumed=state is not None, d_scale=tau,
+                      d_scale_held_at_widest=hold_d_scale)
 
 
 def lam_bounds(unit: float) -> tuple[float, float]:

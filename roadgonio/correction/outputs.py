@@ -339,7 +339,7 @@ def draw_surface_map(sc):
     axes[1].set_title("how well the data pin the surface down at each cell", fontsize=10)
     how = best.fit.d_prior_chosen_by
     draw_table_map(axes[2], p.surfaces["g_d"], label="g_D: extra d ln f / d ln alpha (prior sd "
-                   f"{best.fit.d_prior_sd:.2g}" + ("" if how == "held" else f", chosen by the {how}") + ")", centre=0.0, log=False, fmt="{:+.2f}", fontsize=4.5, tick_fontsize=7)
+                   f"{best.fit.d_prior_sd:.2g}" + ("" if how.startswith("held") else f", chosen by the {how}") + ")", centre=0.0, log=False, fmt="{:+.2f}", fontsize=4.5, tick_fontsize=7)
     axes[2].set_title("behaviour off alpha = 1 deg beyond the backbone's" + (
         " (measured: several aperture settings)" if sc.joint else " (one aperture: mostly the prior)"), fontsize=10)
     if sc.model_weight is not None:

@@ -450,7 +450,7 @@ def test_the_uncertainty_posterior_uses_the_fits_prior_and_noise_scale(r3like):
 TAU_STATIONARY_TOL = 1e-2
 
 
-def test_gd_prior_scale_is_chosen_by_the_evidence_where_two_instruments_see_it(r3like):
+def test_gd_prior_scale_is_chosen_by_the_evidence_where_two_instruments_see_it(r3like, monkeypatch):
     """SurfaceSettings.d_prior_scale "joint" (the default): through two instruments (wide and lab, the
     table truth, whose alpha dependence is not eq. 4's, 1.5 % noise) the fit chooses the factor tau on
     g_D's prior precision inside its bounds where the evidence is stationary, checked from the fit's
@@ -518,6 +518,25 @@ def test_gd_prior_scale_is_chosen_by_the_evidence_where_two_instruments_see_it(r
         fit(joint, state={k: v for k, v in state.items() if k != "d_scale"})
     with pytest.raises(ValueError):
         fit(fixed, state=state)
+
+    # (user audit, session 38) an evidence that goes to g_D's widest prior is not taken: the fit is the
+    # held one, bit for bit, says so, and its journal keeps it (here the widest allowed is made
+    # narrower than the evidence's choice, so that its maximum lies beyond it)
+    import roadgonio.correction.flexible as flex
+    monkeypatch.setattr(flex, "D_SCALE_BOUNDS", (2.0 * f.d_scale, D_SCALE_BOUNDS[1]))
+    _, wide = fit(joint)
+    _, held2 = fit(fixed)
+    assert wide.d_scale == 1.0 and wide.d_scale_held_at_widest
+    assert np.array_equal(wide.theta, held2.theta) and wide.log_evidence == held2.log_evidence
+    assert wide.d_prior_chosen_by.startswith("held: the evidence wanted it wider")
+    from roadgonio.cli.correct import _gd_prior_how
+    assert "held" in _gd_prior_how(wide.summary())
+    state2 = json.loads(json.dumps(wide.state()))
+    _, again2 = fit(joint, state=state2)
+    assert again2.resumed and again2.d_scale_held_at_widest and again2.log_evidence == wide.log_evidence
+    monkeypatch.setattr(flex, "D_SCALE_WIDEST_HOLDS", False)
+    _, taken = fit(joint)
+    assert taken.d_scale == pytest.approx(2.0 * f.d_scale, rel=1e-9) and not taken.d_scale_held_at_widest
     with pytest.raises(InputError) as err:
         SurfaceSettings(d_prior_scale="auto")
     assert err.value.field == "d_prior_scale"
