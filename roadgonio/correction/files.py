@@ -286,12 +286,18 @@ def correct_joint(tables: Sequence[RTable], instruments: Sequence[Instrument], o
                          f"{len(tables)} table(s) and {len(instruments)} instrument(s)", field="joint")
     for i in range(len(tables)):
         for j in range(i):
-            if instruments[i].to_dict() == instruments[j].to_dict() and \
-                    np.array_equal(tables[i].r, tables[j].r, equal_nan=True):
+            if not np.array_equal(tables[i].r, tables[j].r, equal_nan=True):
+                continue
+            if instruments[i].to_dict() == instruments[j].to_dict():
                 # the same data counted twice would halve its stated noise (user audit, session 19)
                 raise InputError(f"the same table through the same instrument is given twice (pairs {j + 1} and "
                                  f"{i + 1}: {instruments[i].name}); expected each measurement once",
                                  field="joint")
+            # two instruments never measure the same values to the last digit: one file given for both
+            # (user audit, session 38: it was fitted as two measurements)
+            raise InputError(f"pairs {j + 1} and {i + 1} hold the same values through two instruments "
+                             f"({instruments[j].name}, {instruments[i].name}); expected each instrument's own "
+                             "measurement", field="joint")
     variants = DEFAULT_VARIANTS if model_variant in (None, "auto") else (model_variant,)
     options["sigma"] = _sigma(options.get("sigma")) if not isinstance(options.get("sigma"), (list, tuple)) \
         else [_sigma(s) for s in options["sigma"]]

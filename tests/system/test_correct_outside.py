@@ -56,6 +56,9 @@ def one_line_error(capsys, rc, *must):
     # the same data twice was fitted as two instruments, halving its noise (user audit, session 19)
     (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--measured", str(MEASURED), "--instrument",
       str(MEDIUM), "--joint"], ("same table through the same instrument", "pairs 1 and 2")),
+    # one file for two instruments was fitted as two measurements (user audit, session 38)
+    (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--measured", str(MEASURED), "--instrument",
+      "portable", "--joint"], ("same values through two instruments", "pairs 1 and 2")),
 ])
 def test_joint_and_forward_bad_inputs(tmp_path, capsys, argv, must):
     rc = main(["correct", *argv, *FAST, "--out", str(tmp_path / "o")])
