@@ -101,18 +101,26 @@ class Laps:
         self._tick = now
 
 
-def forward_model_limits(instruments) -> str | None:
+def forward_model_limits(instruments, *, fitted: bool = True) -> str | None:
     """What the fit's ray bundles leave out of an instrument and the k_A backend keeps: the parts of
     a ``[scene]`` or a ``[housing]`` (their shade and stray light). None when nothing is left out.
-    Recorded in the provenance (correct.json), never silent."""
+    Recorded in the provenance (correct.json), never silent. ``fitted`` False (``--reference
+    SAMPLE``: no model is fitted through the instrument): only that the backend's k_A models them."""
     left = sorted({sec for inst in instruments for sec in ("scene", "housing")
                    if hasattr(inst.extra, "get") and inst.extra.get(sec)})
     if not left:
         return None
+    # the parts' reflectances are inputs without an uncertainty (user audit, session 38: walls 0.05 +- 0.01
+    # move k_A by 0.4 % (median) and up to 2.5 % at grazing cells; none of it was in u, and nothing said so)
+    exact = (" The reflectances of these parts are taken as exact: their uncertainty is in no component of u "
+             "(docs/correction.md, 'A housed instrument').")
+    if not fitted:       # the fit's note did not apply to the reference route (user audit, session 38)
+        return (f"the instrument's [{'], ['.join(left)}] (their shade and stray light) are in the backend's k_A of the "
+                "reference, which corrects the table." + exact)
     return (f"the fit's ray bundles do not model the instrument's [{'], ['.join(left)}] (their shade and "
             "stray light); a model fitted through the instrument (--reference self) has the backend's k_A, which "
             "models them, in its fit as a factor per cell (rho = k_backend / k_bundle), refitted until the k_A it "
-            "predicts holds still ('steps'), and the k_A that corrects the table is the backend's")
+            "predicts holds still ('steps'), and the k_A that corrects the table is the backend's." + exact)
 
 
 def note_unobserved_road(name: str) -> None:
@@ -768,7 +776,7 @@ def _assemble(measured: RTable, instrument: Instrument, u_grid, k_b, se_b, budge
     info = steps[-1]["backend"]
     prov = provenance(instrument=instrument, model=model, backend=info["backend"], settings=info["settings"],
                       calibration=instrument.calibration.to_dict(), reference=reference,
-                      forward_model_limits=forward_model_limits([instrument]),
+                      forward_model_limits=forward_model_limits([instrument], fitted=fit is not None),
                       before_uncertainty="measurement" + (" and misalignment" if "misalignment" in budget.components
                                                           else "") + " only (the aperture effect is the bias the "
                                                                      "correction removes)")

@@ -455,6 +455,10 @@ def test_what_the_fit_leaves_out_of_a_housed_instrument_is_said():
     assert forward_model_limits([load_instrument("portable")]) is None
     note = forward_model_limits([load_instrument("portable"), load_instrument("portable_housed")])
     assert note is not None and "[housing]" in note and "[scene]" not in note
+    # --reference SAMPLE fits nothing through the instrument: its note says only what the backend's
+    # k_A models (user audit, session 38: it printed the fit's refitting steps)
+    ref = forward_model_limits([load_instrument("portable_housed")], fitted=False)
+    assert "[housing]" in ref and "reference" in ref and "fitted" not in ref and "steps" not in ref
 
 
 def test_parameter_covariance_is_birge_scaled_with_n_minus_p_degrees_of_freedom(r3like):
