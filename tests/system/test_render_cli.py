@@ -77,3 +77,9 @@ def test_render_of_a_beam_cone_that_clips_the_footprint(mi, tmp_path):
     exr = OpenEXR.File(str(out / "illuminance.exr"))
     E = exr.channels()["E_h"].pixels
     assert E.max() > 0 and (E == 0).mean() > 0.2        # the spot: lit inside the cone only
+    # the EXR says what it holds without render.json (user audit, session 38: no window, units, instrument)
+    h = exr.header()
+    assert h["roadgonio_units"] == info["units"] and "lx per lx" in h["roadgonio_units"]
+    assert h["roadgonio_cell"] == "tan eps 1, beta 0 deg" and h["roadgonio_instrument"] == inst.name
+    w = info["illuminance_window_m"]
+    assert np.allclose(h["roadgonio_window_m"], [*w["x"], *w["y"]], rtol=1e-6)

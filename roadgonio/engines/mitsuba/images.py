@@ -31,9 +31,13 @@ from roadgonio.instrument.optics import footprint_boundary
 from roadgonio.engines.mitsuba.scene import LAMBERT, ROAD, build_scene
 
 
-def write_exr(path: Path, channels: dict[str, np.ndarray]) -> Path:
+def write_exr(path: Path, channels: dict[str, np.ndarray], attributes: dict[str, Any] | None = None) -> Path:
+    """Float32 channels into an OpenEXR file; ``attributes``: text (or float lists) kept in its header,
+    so that the file says what it holds without render.json (user audit, session 38)."""
     import OpenEXR
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    for k, v in (attributes or {}).items():
+        header[k] = v if isinstance(v, str) else np.asarray(v, dtype=np.float32)
     data = {k: np.ascontiguousarray(v, dtype=np.float32) for k, v in channels.items()}
     return atomic_write(path, lambda p: OpenEXR.File(header, data).write(str(p)))
 
@@ -55,6 +59,10 @@ def _ortho_sensor(mi, x0, x1, y0, y1, nx, ny, spp, z_top=0.0):
                                   "pixel_format": "rgb"},
                          "sampler": {"type": "multijitter", "sample_count": spp}})
 
+
+#: The units of the rendered images (module docstring), in render.json and the EXR files' headers.
+EXR_UNITS = ("relative to 1 lx normal to the source's axis at the sample centre: illuminance in lx per lx, "
+             "luminance in cd/m^2 per lx")
 
 #: Fewer detector samples than this (resolution^2 x spp) give no k_A estimate: the ratio of the two
 #: signals and its delta-method SE are unreliable there (audit 21, the wide instrument at tan eps 12,
@@ -133,7 +141,7 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
             "k_a_se": se / ideal if ideal > 0 else None,
             "footprint_m": {"x": [x0, x1], "y": [y0, y1]},
             "illuminance_window_m": {"x": [ex0, ex1], "y": [ey0, ey1]},
-            "units": "source gives ~1 lx normal to its axis at the sample centre: E in lx/lx, L in cd/m^2/lx"}
+            "units": EXR_UNITS}
     definitions = {
         "signal_road": "mean detector signal of the road sample over the view (this render, light straight from "
                        "the source), in the units above",
@@ -180,11 +188,20 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     # all or none; a render without stray light removes an earlier housed render's stray.png and
     # stray.exr (trial 10 D4: they stayed beside the new pictures, of another instrument and cell)
     with OutputGroup(out_dir, replaces=RENDER_FILES) as stage:
-        write_exr(stage.path("view.exr"), {"RGB": view, "L_road": view[..., ROAD], "L_lambert": view[..., LAMBERT]})
-        write_exr(stage.path("illuminance.exr"), {"E_h": E, "L_road_top": L_top})
+        what = {"roadgonio_instrument": instrument.name, "roadgonio_sample": str(sample_name),
+                "roadgonio_cell": f"tan eps {tan_eps:g}, beta {beta_deg:g} deg",
+                "roadgonio_units": EXR_UNITS}
+        write_exr(stage.path("view.exr"), {"RGB": view, "L_road": view[..., ROAD], "L_lambert": view[..., LAMBERT]},
+                  {**what, "comments": "the detector's view inside the field stop (square mapping): L_road the road "
+                                       "sample's luminance, L_lambert the calibration's (a perfect diffuser)"})
+        write_exr(stage.path("illuminance.exr"), {"E_h": E, "L_road_top": L_top},
+                  {**what, "roadgonio_window_m": [ex0, ex1, ey0, ey1],
+                   "comments": "seen from above over roadgonio_window_m (x0, x1, y0, y1 in m; image rows from y1 "
+                               "down to y0): E_h the horizontal illuminance, L_road_top the road's luminance "
+                               "towards +z"})
         _png(stage.path("render.png"), instrument, view, E, (ex0, ex1, ey0, ey1), (fx, fy), info)
         if stray is not None:
-            write_exr(stage.path("stray.exr"), stray["images"])
+            write_exr(stage.path("stray.exr"), stray["images"], {**what, "comments": "where the stray light enters the detector's view (stray.png; docs/straylight.md)"})
             _stray_png(stage.path("stray.png"), instrument, stray, info)
         stage.json("render.json", info)
     return info
@@ -451,7 +468,7 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
     ax.set_title(words["illuminance_title"], fontsize=10)
     ax.legend(loc="upper right", fontsize=8)
     cb = fig.colorbar(im, ax=ax, shrink=0.9)
-    cb.set_label("illuminance E$_h$ (lx per lx)")
+    cb.set_label("illuminance E$_h$ (lx per lx normal to the source axis at the sample centre)")
     ka = info["k_a_estimate"]
     ka_txt = (f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (this render)" if ka is not None
               else "no k_A estimate (too few samples)" if "k_a_note" in info else "k_A undefined")
