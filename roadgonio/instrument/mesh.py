@@ -121,4 +121,26 @@ def sample_trimesh(instrument):
         return rectangle_trimesh(smp.size_x_m, smp.size_y_m, instrument.observation.delta_deg)
     tm = load_trimesh(smp.mesh)
     check_mesh_orientation(tm, path=smp.mesh)
+    _note_mesh_scale(tm, instrument)
     return tm
+
+
+#: A sample mesh spanning more than this many times the instrument's largest distance is said in a
+#: note (user audit, session 38: a 0.5 m x 0.2 m sample drawn in millimetres was read as 500 m x 200 m
+#: without a word; under the 1000 m limit, and a flat one gives the same k_A, but not a bumpy one).
+MESH_SPAN_NOTE_RATIO = 50.0
+
+
+def _note_mesh_scale(mesh, instrument) -> None:
+    src, det = instrument.source, instrument.detector
+    scale = max(v for v in (getattr(src, "distance_m", None), getattr(src, "height_m", None),
+                            getattr(det, "distance_m", None), 1e-9) if v is not None)
+    span = float(np.max(np.asarray(mesh.bounds[1], dtype=np.float64) - np.asarray(mesh.bounds[0], dtype=np.float64)))
+    if span > MESH_SPAN_NOTE_RATIO * scale:
+        import warnings
+
+        from roadgonio.errors import ModelWarning
+        warnings.warn(ModelWarning(
+            f"{instrument.sample.mesh}: the sample mesh spans {span:.4g} m, {span / scale:.0f} times the instrument's "
+            f"largest distance ({scale:g} m): drawn in millimetres? (a mesh is in metres; scale it by 0.001)"),
+            stacklevel=2)

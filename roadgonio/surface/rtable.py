@@ -958,7 +958,8 @@ def check_positive(table: RTable, path: str | Path | None = None, what: str = "t
     if bad.any():      # where (user audit, session 24: the message named no cell)
         i, j = np.argwhere(bad)[0]
         raise InputError(f"the {what} has {int(bad.sum())} zero value(s), the first at tan eps = "
-                         f"{table.tan_eps[i]:g}, beta = {table.beta_deg[j]:g}; blank a cell that was not measured",
+                         f"{table.tan_eps[i]:g}, beta = {table.beta_deg[j]:g}; blank a cell that was not measured (a reading "
+                         "below the meter's resolution: give its value, or blank it; no road's r is 0)",
                          path=path, **where)
 
 

@@ -153,6 +153,16 @@ def test_mesh_files_out_of_kind_are_named_for_what_they_are(tmp_path):
     with pytest.raises(InputError, match="millimetres") as err:
         sample_trimesh(with_mesh(inst, mm))
     assert err.value.field == "sample.mesh"
+    # (user audit, session 38) 0.5 m x 0.2 m drawn in mm is under the 1000 m limit: a note, not silence
+    from roadgonio.errors import ModelWarning
+    small_mm = grid_mesh(tmp_path / "small_mm.ply", np.linspace(-250, 250, 3), np.linspace(-100, 100, 3))
+    with pytest.warns(ModelWarning, match=r"spans 500 m, 500 times .* millimetres"):
+        sample_trimesh(with_mesh(inst, small_mm))
+    import warnings
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ModelWarning)        # a sample in metres says nothing
+        sample_trimesh(with_mesh(inst, grid_mesh(tmp_path / "m.ply", np.linspace(-0.5, 0.5, 3),
+                                                 np.linspace(-0.15, 0.15, 3))))
     trimesh.creation.box(extents=(1.0, 0.5, 0.1)).export(tmp_path / "box.stl")
     with pytest.raises(InputError, match="closed solid"):
         sample_trimesh(with_mesh(inst, tmp_path / "box.stl"))

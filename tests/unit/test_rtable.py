@@ -285,6 +285,7 @@ def test_fit_refuses_a_zero_cell_as_correct_does(tmp_path):
     with pytest.raises(InputError, match=r"1 zero value\(s\), the first at tan eps = 0.75, beta = 5") as err:
         api.fit(path)
     assert "zero.csv" in str(err.value)
+    assert "below the meter's resolution: give its value, or blank it" in str(err.value)   # (audit, session 38)
 
 
 def test_an_rtb_that_cannot_be_written_names_the_file(tmp_path):
