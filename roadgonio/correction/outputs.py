@@ -174,6 +174,9 @@ def cells_csv(res) -> str:
     unobserved = sc.parts[0].unobserved_sensitivity if sc is not None else None
     if unobserved is not None:
         head += ["dlnk_a_dlnf_unobserved"]
+    stray = res.extra.get("stray")
+    if stray is not None:
+        head += ["k_a_direct", "stray_fraction"]
     buf = io.StringIO()
     buf.write("# " + res.corrected.source + "\n")
     buf.write(",".join(head) + "\n")
@@ -190,6 +193,8 @@ def cells_csv(res) -> str:
             row += [f"{sc.parts[0].corrected.r[i, j] * 1e4:.6g}", f"{weight[i, j]:.4g}"]
         if unobserved is not None:
             row.append(f"{unobserved[i, j]:.4g}")
+        if stray is not None:
+            row += [_k_text(stray["k_a_direct"][i, j]), f"{stray['stray_fraction'][i, j]:.4g}"]
         buf.write(",".join(row) + "\n")
     return buf.getvalue()
 

@@ -403,13 +403,16 @@ def _backend_note(backend: str, info: Mapping[str, Any]) -> str:
 
 
 def _backend_k(factory: BackendFactory, instrument: Instrument, model: RoadModel, cells, out_dir: Path | None,
-               progress: bool) -> tuple[np.ndarray, np.ndarray, dict[str, Any], np.ndarray]:
+               progress: bool, cell_results: list | None = None) -> tuple[np.ndarray, np.ndarray, dict[str, Any], np.ndarray]:
     """The backend's k_A of ``model`` at ``cells`` (journalled in ``out_dir``), its standard
     uncertainty, the run's info and the relative covariance of ln k_A over the cells
-    (:func:`backend_covariance`)."""
+    (:func:`backend_covariance`). ``cell_results``: a list that receives the cells' results
+    (their k_a_direct and stray_fraction for correct_cells.csv)."""
     from roadgonio.engines.runner import run_cells
     backend = factory(instrument, model)
     run = run_cells(backend, cells, instrument=instrument, model=model, out_dir=out_dir, progress=progress)
+    if cell_results is not None:
+        cell_results[:] = list(run.results)
     k = np.array([c.k_a for c in run.results])
     se = np.array([c.standard_uncertainty() for c in run.results])
     if not (np.all(np.isfinite(k)) and np.all(k > 0)):
@@ -641,10 +644,11 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     rho = None
     pred_change = np.zeros_like(y)
     k_b = se_b = None
+    cell_results: list = []
     for it in range(1, int(max_outer) + 1):
         _say(progress, f"{measured.name}: k_A of the fitted model ({backend}), step {it}")
         k_b, se_b, info, cov_b = _backend_k(factory, instrument, model, cells,
-                                            None if out is None else out / f"forward-{it}", progress)
+                                            None if out is None else out / f"forward-{it}", progress, cell_results)
         rho = k_b / fm.k_a(model)
         lap("backend")
         nxt = refit_with_rho(state, f"refit-{it}", fm, y, u, model, rho, variant=main_v, seed=seed,
@@ -702,6 +706,7 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     reference = f"self ({main_v} model fitted through the instrument)"
     res = _assemble(measured, instrument, u_grid, k_b, se_b, budget, reference, model, final,
                     {k: _grid(measured, v) for k, v in alternatives.items()}, steps, t0)
+    _keep_stray(res, cell_results)
     res.provenance.update({"u_measured": u_what, "variant_asked": variant, "variant_used": main_v,
                            "chi2_by_variant": chi2, "fitted_models": {v: m.to_json_dict() for v, m in fits.items()},
                            "searches": searches,
@@ -725,8 +730,9 @@ def correct_with_reference(measured: RTable, instrument: Instrument, reference: 
     cells = measured.cells
     mask = measured.mask
     factory = factory or default_factory(backend, backend_settings, accuracy)
+    cell_results: list = []
     k_b, se_b, info, cov_b = _backend_k(factory, instrument, reference, cells,
-                                        None if out is None else out / "forward-1", progress)
+                                        None if out is None else out / "forward-1", progress, cell_results)
     alts = {}
     for k, (name, m) in enumerate(dict(alternatives or {}).items()):
         alts[name] = _backend_k(factory, instrument, m, cells, None if out is None else out / f"alternative-{k + 1}",
@@ -746,10 +752,22 @@ def correct_with_reference(measured: RTable, instrument: Instrument, reference: 
     steps = [{"step": 1, "model": reference.params.to_dict(), "backend": info, "converged": True}]
     res = _assemble(measured, instrument, u_grid, k_b, se_b, budget, reference_name, reference, None,
                     {k: _grid(measured, v) for k, v in alts.items()}, steps, t0)
+    _keep_stray(res, cell_results)
     res.provenance.update({"u_measured": u_what, "reference_model": reference.to_json_dict(),
                            "alternatives": {n: m.to_json_dict() for n, m in dict(alternatives or {}).items()},
                            "misalignment": mis_info})
     return res
+
+
+def _keep_stray(res: CorrectionResult, cell_results: list) -> None:
+    """Where the backend traced stray light (a housing), the k_A of the direct light and the stray
+    fraction of each cell of the k_A that corrected the table, on the grid (``res.extra["stray"]``,
+    columns of correct_cells.csv; user audit, session 38: only the journal held them)."""
+    if not cell_results or not any((c.stray_fraction or 0.0) > 0.0 for c in cell_results):
+        return
+    res.extra["stray"] = {
+        "k_a_direct": _grid(res.measured, np.array([c.k_a_direct for c in cell_results], dtype=np.float64)),
+        "stray_fraction": _grid(res.measured, np.array([c.stray_fraction for c in cell_results], dtype=np.float64))}
 
 
 def _grid(table: RTable, values: np.ndarray) -> np.ndarray:

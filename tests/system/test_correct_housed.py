@@ -163,3 +163,27 @@ def test_the_road_beyond_the_observation_elevations_is_in_u(mi):
     _, bare, _, z0 = _corrected_through_a_bright_housing("two_lobes", measured=s, unobserved_road=1.0)
     assert "unobserved" not in bare.budget.components
     assert np.mean(np.abs(z0) <= 2.0) < OUTSIDE_WITHIN_2U and np.sqrt(np.mean(z0 ** 2)) > Z_RMS_MAX, z0
+
+
+def test_correct_cells_carry_the_direct_k_a_and_the_stray_fraction(tmp_path):
+    """(user audit, session 38) correct_cells.csv of a housed instrument had no k_a_direct or
+    stray_fraction (only the journal did): now its columns, where the backend traced stray light. The
+    direct light's k_A is the bare instrument's, bit for bit (same seed, same cells), and the stray
+    fraction is > 0 at grazing cells; the bare instrument's file has neither column."""
+    import csv
+    t = bundled_table("R3")
+    keep = np.zeros(t.r.shape, dtype=bool)
+    keep[:, list(t.beta_deg).index(90.0)] = True
+    meas = t.with_values(np.where(keep & t.mask, t.r, np.nan), name="r3_beta90")
+    opts = dict(reference="R3", u_measured="1%", backend="mitsuba", accuracy="fast", plots=False)
+    rows = {}
+    for name in ("portable_housed", "portable"):
+        api.correct(meas, name, out=tmp_path / name, **opts)
+        with (tmp_path / name / "correct_cells.csv").open() as f:
+            rows[name] = list(csv.DictReader(line for line in f if not line.startswith("#")))
+    housed, bare = rows["portable_housed"], rows["portable"]
+    assert "k_a_direct" not in bare[0] and "stray_fraction" not in bare[0]
+    assert [r["tan_eps"] for r in housed] == [r["tan_eps"] for r in bare]
+    assert [float(r["k_a_direct"]) for r in housed] == [float(r["k_a"]) for r in bare]
+    sf = np.array([float(r["stray_fraction"]) for r in housed])
+    assert np.all((sf >= 0) & (sf < 1)) and sf.max() > 0.05
