@@ -35,7 +35,8 @@ def test_fit_json_and_outputs(tmp_path, capsys):
     out = tmp_path / "res"
     assert main(["fit", "R3", "--out", str(out), "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
-    assert set(d) == {"table", "variant", "max_dev_pct", "rms_dev_pct", "params", "descriptors", "seconds"}
+    assert set(d) == {"table", "variant", "max_dev_pct", "rms_dev_pct", "params", "descriptors", "notes", "seconds"}
+    assert any("misses the table" in n for n in d["notes"])          # R3 power: 12.3 % max, beyond the paper's 9 %
     assert d["table"] == "R3" and d["variant"] == "power"
     assert set(d["descriptors"]) == {"table", "model"} and set(d["descriptors"]["model"]) == {"Q0", "S1", "S2"}
     m = RoadModel.load(out / "model.json")
