@@ -79,7 +79,7 @@ def run(args) -> int:
                         "k_a_direct": c.k_a_direct, "k_a_direct_se": c.k_a_direct_se,
                         "stray_fraction": c.stray_fraction, "stray_fraction_se": c.stray_fraction_se,
                         # absolute calibration: eta = <E>/E_0 and its error estimate (deterministic)
-                        **{k: (c.extra or {})[k] for k in ("eta", "eta_error", "eta_converged")
+                        **{k: (c.extra or {})[k] for k in ("eta", "eta_error", "eta_converged", "max_bounces")
                            if k in (c.extra or {})}})
         else:
             # a deterministic cell that stopped at its cap has an error estimate, not a bound

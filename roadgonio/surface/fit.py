@@ -59,6 +59,9 @@ AT_BOUND_RTOL = 1e-6
 #: table fitted k_exp 2.04, p 13.9, h -81 and n_phong 1998 without a word; an exact eq. 4 table
 #: left k_exp at its bound 1e6, told "the fit wanted more, so the model is a compromise")
 UNDETERMINED_TERM_PCT = 0.1
+#: ... and one adding less than this (% of max r) is absent (a coefficient of 1e-32 is round-off's, not a
+#: fitted term: no note)
+ABSENT_TERM_PCT = 1e-9
 #: The shape parameters of each linear term (:func:`roadgonio.surface.model.road_brdf`).
 TERM_SHAPE = {"k_diff": (), "k_phong": ("n_phong",), "k_retro": ("n_retro",), "k_exp": ("p", "h", "mu", "n_beta")}
 #: The paper's fits of its five reference tables (section 3): maximal deviation within 9 %, RMS
@@ -230,12 +233,15 @@ class FitResult:
         und = fit.get("undetermined") or {}
         if und:
             P = self.model.params
-            shapes = [n for k in und for n in TERM_SHAPE.get(k, ()) if n in self.shown_params()]
+            held = set(fit.get("fixed") or {})
+            shapes = [n for k in und for n in TERM_SHAPE.get(k, ()) if n in self.shown_params() and n not in held]
             out.append("the table does not determine " + ", ".join(f"{k} = {getattr(P, k):.3g}" for k in und)
                        + (f" nor {', '.join(shapes)}" if shapes else "") + ": "
                        + ("its term adds" if len(und) == 1 else "each of these terms adds")
                        + f" at most {max(und.values()):.2g} % of max r to the table's cells, so these values "
-                       "describe nothing of the surface (k_A at these cells hardly depends on them)")
+                       "describe nothing the table shows; between the cells such a term can still be large (a "
+                       "lobe narrower than the grid), and an aperture averages over it: check k_A without it "
+                       "(--fix " + ", --fix ".join(f"{k}=0" for k in und) + ") where it matters")
         for k in fit.get("at_upper_bound") or []:
             out.append(f"{k} sits at the upper end of its range ({PARAM_BOUNDS[k][1]:g} sr^-1): the fit wanted more, "
                        "so the model is a compromise there")
@@ -571,7 +577,7 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
                   "r_max": table.r_max, "cells": int(table.mask.sum())},
     }
     contrib = term_contributions(tmp, table, prob.free_lin)
-    undetermined = {k: c for k, c in contrib.items() if c < UNDETERMINED_TERM_PCT}
+    undetermined = {k: c for k, c in contrib.items() if ABSENT_TERM_PCT <= c < UNDETERMINED_TERM_PCT}
     # a coefficient at its bound whose term counts: the fit wanted more (a term that adds nothing to the
     # table's cells is not determined, wherever it stopped)
     at_bound = [k for k in prob.free_lin if getattr(params, k) >= PARAM_BOUNDS[k][1] * (1.0 - AT_BOUND_RTOL)

@@ -228,7 +228,8 @@ class RTable:
             i, j = zero[0]
             raise InputError(f"cannot write RTB: r = 0 at tan eps = {self.tan_eps[i]:g}, beta = {self.beta_deg[j]:g} "
                              f"({len(zero)} zero cell(s)); RTB stores blanks as 0, so a zero would come back as "
-                             "'not measured'. Write CSV (.csv), which keeps 0 and blank apart", field="r")
+                             "'not measured'. Write CSV (.csv), which keeps 0 and blank apart (fit, correct and the commands "
+                             "that take a sample refuse a 0: no road's r is 0; blank it, or give the reading)", field="r")
         q0 = self.q0()
         if not math.isfinite(q0):
             raise InputError("cannot write RTB: Q0 is undefined (no grid cell has four tabulated corners) and RTB "

@@ -584,7 +584,7 @@ def test_the_default_reflections_follow_the_parts_reflectance(tmp_path):
         b = mitsuba(housed(0.2), rel_se=1.0, first_pass=256)
     assert b.engine.max_bounces == 7
     assert mitsuba(housed(0.05), rel_se=1.0, first_pass=256).engine.max_bounces == 4
-    with pytest.warns(ModelWarning, match=r"max_bounces = 3 cuts .* of order 0\.04 .*default is 7"):
+    with pytest.warns(ModelWarning, match=r"max_bounces = 3 cuts .* bias k_A by a relative amount of order 0\.04.*default is 7"):
         mitsuba(_with_bounces(housed(0.2), 3), rel_se=1.0, first_pass=256)
     with pytest.warns(ModelWarning, match=r"the most reflections followed \(64\)"):
         mitsuba(housed(0.97), rel_se=1.0, first_pass=256)

@@ -60,3 +60,16 @@ def test_render_shows_the_stray_light_and_agrees_with_the_engine(mi, tmp_path, c
     assert info["ratio_direct"] == pytest.approx(info["signal_road_direct"] / info["signal_lambert_direct"], rel=1e-9)
     assert "signal_road" not in info and "signal_lambert" not in info
     assert {"ratio", "k_a_estimate", "ratio_direct", "k_a_direct_estimate"} <= set(info["definitions"])
+
+
+def test_one_cell_json_says_how_many_reflections(capsys):
+    """(user audit, session 38) `ka --tan-eps --beta --json` of a housed instrument did not say how
+    many reflections its paths followed (a table's ka.json did): now ``max_bounces``, the walls'
+    default (4 for the portable housing's 0.05)."""
+    import json
+
+    from roadgonio.cli import main
+    assert main(["ka", "--instrument", "portable_housed", "--sample", "R3", "--tan-eps", "2", "--beta", "0",
+                 "--rel-se", "1e-2", "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["max_bounces"] == 4 and d["stray_fraction"] > 0

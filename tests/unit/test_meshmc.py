@@ -158,6 +158,9 @@ def test_mesh_files_out_of_kind_are_named_for_what_they_are(tmp_path):
     small_mm = grid_mesh(tmp_path / "small_mm.ply", np.linspace(-250, 250, 3), np.linspace(-100, 100, 3))
     with pytest.warns(ModelWarning, match=r"spans 500 m, 500 times .* millimetres"):
         sample_trimesh(with_mesh(inst, small_mm))
+    lab_mm = grid_mesh(tmp_path / "lab_mm.ply", np.linspace(-150, 150, 3), np.linspace(-100, 100, 3))
+    with pytest.warns(ModelWarning, match=r"spans 300 m, 30 times"):      # missed at 50x (audit, session 38)
+        sample_trimesh(with_mesh(load_instrument("lab"), lab_mm))
     import warnings
     with warnings.catch_warnings():
         warnings.simplefilter("error", ModelWarning)        # a sample in metres says nothing

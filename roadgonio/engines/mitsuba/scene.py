@@ -688,8 +688,8 @@ def _light_paths(rs: RoadScene, scene_sec) -> None:
         said = (f"[scene] max_bounces = {k}" if given is not None else
                 f"the most reflections followed ({k})")
         warnings.warn(ModelWarning(
-            f"{said} cuts the light paths among parts reflecting up to {min(rho_max, 1.0):.3g}: the light left out "
-            f"is of order {truncation_share(rho_max, k):.2g} of the stray light and is in no SE"
+            f"{said} cuts the light paths among parts reflecting up to {min(rho_max, 1.0):.3g}: what is left out "
+            f"can bias k_A by a relative amount of order {truncation_share(rho_max, k):.2g}, in no SE"
             + (f" (this scene's default is {default_max_bounces(rho_max)})" if given is not None else "")
             + " (docs/straylight.md, 'How many reflections')"), stacklevel=2)
     rs.stray = k > 1 and (bool(reflecting) or (given is not None and not rs.flat_rectangle))
