@@ -146,7 +146,8 @@ def _json_doc(res, plots: bool) -> dict[str, Any]:
                 "S2": "Q0 / r(0, 0)", "class": "CIE 144 by S1: R1 < 0.42 <= R2 < 0.85 <= R3 < 1.35 <= R4; "
                                              "C1 < 0.40 <= C2; nearest_table by (S1, Q0), or by the one of them the table has "
                                              "(nearest_table_basis),",
-                "before": "the measured table as reported, with the measurement's (and misalignment) uncertainty"}}
+                "before": "the measured table as reported, with the measurement's (and misalignment) uncertainty",
+                "correct_cells.csv": _column_definitions(cells_csv(res).splitlines()[1].split(","))}}
 
 
 def _k_text(v) -> str:
@@ -154,6 +155,36 @@ def _k_text(v) -> str:
     SE (u_k_a_backend) goes down to 1e-7 and below (a converged quadrature, a zero aperture: 0), so any
     fixed number of digits (%.6g rounds by up to 5e-6) could be coarser than the value's uncertainty."""
     return repr(float(v))
+
+
+#: What each column of correct_cells.csv holds (correct.json's ``definitions["correct_cells.csv"]``,
+#: the columns the file has; user audit, session 38: the file's columns were defined nowhere).
+CELL_COLUMNS = {
+    "tan_eps": "tan(epsilon) of the cell", "beta_deg": "beta of the cell (deg)",
+    "r_measured_x1e4": "the measured r x 1e4", "u_measured_x1e4": "its standard uncertainty x 1e4",
+    "k_a": "k_A that corrects the cell (the backend's, under the instrument's calibration; every digit)",
+    "u_k_a_backend": "the backend's standard uncertainty of k_a",
+    "r_corrected_x1e4": "the corrected r x 1e4", "u_corrected_x1e4": "its standard uncertainty x 1e4",
+    "u_rel_total": "relative standard uncertainty of r_corrected",
+    "u_rel_<component>": "one component of it (definitions in docs/correction.md, 'The uncertainty')",
+    "k_a_<alternative>": "k_A of an alternative model or reference (the model component's spread)",
+    "r_model_ideal_x1e4": "the fitted model's (or reference's) ideal r x 1e4 at alpha = 1 deg",
+    "r_simulated_x1e4": "the fitted model's simulated measurement through the instrument x 1e4",
+    "r_over_k_a_x1e4": "r_measured / k_a x 1e4 (the measurement's own estimate)",
+    "w_model": "weight of the fitted surface's own value in r_corrected (the rest: r_over_k_a)",
+    "dlnk_a_dlnf_unobserved": "d ln k_A / d ln f of the road beyond the observation elevations (stray light)",
+    "k_a_direct": "k_A of the light straight from the source alone (without stray light)",
+    "stray_fraction": "1 - S_direct / S_total of the road signal (the stray light's share)",
+}
+
+
+def _column_definitions(head: list[str]) -> dict[str, str]:
+    out = {}
+    for c in head:
+        key = c if c in CELL_COLUMNS else ("u_rel_<component>" if c.startswith("u_rel_")
+                                           else "k_a_<alternative>" if c.startswith("k_a_") else c)
+        out[c] = CELL_COLUMNS.get(key, "")
+    return out
 
 
 def cells_csv(res) -> str:

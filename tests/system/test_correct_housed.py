@@ -187,3 +187,19 @@ def test_correct_cells_carry_the_direct_k_a_and_the_stray_fraction(tmp_path):
     assert [float(r["k_a_direct"]) for r in housed] == [float(r["k_a"]) for r in bare]
     sf = np.array([float(r["stray_fraction"]) for r in housed])
     assert np.all((sf >= 0) & (sf < 1)) and sf.max() > 0.05
+
+
+def test_correct_json_defines_every_column_of_correct_cells(tmp_path):
+    """(user audit, session 38) correct.json's definitions named none of correct_cells.csv's columns."""
+    import json
+    t = bundled_table("R3")
+    keep = np.zeros(t.r.shape, dtype=bool)
+    keep[:, list(t.beta_deg).index(90.0)] = True
+    meas = t.with_values(np.where(keep & t.mask, t.r, np.nan), name="r3_beta90")
+    api.correct(meas, "portable_housed", reference="R3", u_measured="1%", backend="mitsuba", accuracy="fast",
+                plots=False, out=tmp_path / "o")
+    head = next(line for line in (tmp_path / "o" / "correct_cells.csv").read_text().splitlines()
+                if not line.startswith("#")).split(",")
+    defs = json.loads((tmp_path / "o" / "correct.json").read_text())["definitions"]["correct_cells.csv"]
+    assert list(defs) == head and all(defs.values()), [c for c, d in defs.items() if not d]
+    assert "stray_fraction" in defs
