@@ -339,7 +339,14 @@ def _stray_png(path: Path, instrument: Instrument, stray: dict, info) -> Path:
     ax.set_title("Stray fraction over the detector's view", fontsize=10)
     ax = axes[1]
     ax.imshow(rgb, extent=(-ext, ext, -ext, ext), origin="upper")
-    ax.set_title("Stray light by the part it last left\n(colour: part; brightness: stray luminance)", fontsize=10)
+    ax.set_title("The road sample's stray light by the part it last left\n(colour: part, key inside; brightness: "
+                 "its luminance, to the 99th percentile)", fontsize=10)
+    # the key of the colours in the panel itself (user audit, session 38: only the bar chart had them)
+    from matplotlib.patches import Patch
+    lit = [k for k in np.argsort(-parts.reshape(len(ids), -1).sum(axis=1)) if parts[k].sum() > 0][:4]
+    if lit:
+        ax.legend(handles=[Patch(color=colours[k], label=ids[k]) for k in lit], fontsize=7, loc="lower center",
+                  ncol=2, framealpha=0.85)
     for a in axes[:2]:
         t = np.linspace(0, 2 * np.pi, 200)
         a.plot(ext * np.cos(t), ext * np.sin(t), color="cyan", lw=1.0)
