@@ -594,3 +594,31 @@ def _with_bounces(inst, k: int):
     d = inst.to_dict()
     d["scene"] = {**(d.get("scene") or {}), "max_bounces": k}
     return Instrument.from_dict(d, path=inst.path)
+
+
+#: Two parts without ids (an XML scene may leave them unnamed: Mitsuba gives both the id ''), the
+#: brighter one first, above the sample out of every line of sight.
+UNNAMED = """    <shape type="rectangle">
+        <transform name="to_world"><scale x="0.1" y="0.05" z="1"/><translate x="0" y="0.6" z="0.5"/></transform>
+        <bsdf type="diffuse"><float name="reflectance" value="0.9"/></bsdf>
+    </shape>
+    <shape type="rectangle">
+        <transform name="to_world"><scale x="0.1" y="0.05" z="1"/><translate x="0.3" y="0.6" z="0.5"/></transform>
+        <bsdf type="diffuse"><float name="reflectance" value="0.1"/></bsdf>
+    </shape>
+</scene>"""
+
+
+def test_parts_without_ids_each_count_for_the_default_reflections(tmp_path):
+    """The default number of reflections follows the brightest part, also where parts share the id ''
+    (review, session 38: the parts' reflectances were kept by id, so the last unnamed part's 0.1 hid the
+    first one's 0.9)."""
+    from roadgonio.engines.mitsuba.scene import default_max_bounces
+    (tmp_path / "unnamed.xml").write_text(WALL_XML.replace("</scene>", UNNAMED))
+    d = wall_instrument(tmp_path, 0.0, max_bounces=None).to_dict()
+    d["scene"] = {**d["scene"], "xml": "unnamed.xml"}
+    inst = Instrument.from_dict(d, path=tmp_path / "unnamed.toml")
+    with pytest.warns(ModelWarning, match="the most reflections followed"):
+        b = mitsuba(inst, rel_se=1.0, first_pass=256)
+    rho = b.rs.info["part_reflectance_max"]
+    assert abs(rho - 0.9) < 0.01 and b.engine.max_bounces == default_max_bounces(rho) == 64

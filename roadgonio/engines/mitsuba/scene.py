@@ -675,9 +675,9 @@ def _light_paths(rs: RoadScene, scene_sec) -> None:
     # as the sample does; they are checked below)
     from roadgonio.engines.mitsuba.plugins import register_plugins
     road_cls = register_plugins()["roadbsdf"]
-    albedo_of = {s.id(): directional_albedo_max(s.bsdf()) for s in reflecting
-                 if s.bsdf() is not None and not isinstance(s.bsdf(), road_cls)}
-    rho_max = max(albedo_of.values(), default=0.0)
+    # per part, in the order of ``reflecting`` (ids need not be unique: parts of an XML scene may have none)
+    albedos = [None if isinstance(s.bsdf(), road_cls) else directional_albedo_max(s.bsdf()) for s in reflecting]
+    rho_max = max((a for a in albedos if a is not None), default=0.0)
     k = int(given) if given is not None else (default_max_bounces(rho_max) if reflecting else 1)
     rs.max_bounces = k
     rs.info["part_reflectance_max"] = rho_max
@@ -698,7 +698,7 @@ def _light_paths(rs: RoadScene, scene_sec) -> None:
     if not rs.stray:
         return
     where = rs.xml if rs.xml is not None else rs.instrument.path
-    for shape in reflecting + [rs.sample_shape]:
+    for shape, albedo in zip(reflecting + [rs.sample_shape], albedos + [None]):
         bsdf = shape.bsdf()
         flags = int(bsdf.flags())
         name = shape.id() or "(a shape without id)"
@@ -711,13 +711,11 @@ def _light_paths(rs: RoadScene, scene_sec) -> None:
                              "with next-event estimation to the source, which no mirror reflection can reach; use a "
                              "rough BSDF (roughconductor, roughplastic with alpha > 0) or set [scene] max_bounces = 1",
                              path=where)
-        if shape.id() != SAMPLE_ID and not isinstance(bsdf, road_cls):
-            albedo = albedo_of[shape.id()] if shape.id() in albedo_of else directional_albedo_max(bsdf)
-            if albedo > 1.0 + ALBEDO_TOL:
-                # audit 27: diffuse reflectance = 1.5 ran, the stray light grew by a third, no word
-                raise InputError(f"the part {name!r} reflects more light than it receives ({bsdf.class_name()}: "
-                                 f"directional albedo up to {albedo:.3g}); expected a reflectance <= 1",
-                                 path=where)
+        if albedo is not None and albedo > 1.0 + ALBEDO_TOL:      # a part other than the sample, not road
+            # audit 27: diffuse reflectance = 1.5 ran, the stray light grew by a third, no word
+            raise InputError(f"the part {name!r} reflects more light than it receives ({bsdf.class_name()}: "
+                             f"directional albedo up to {albedo:.3g}); expected a reflectance <= 1",
+                             path=where)
         if shape.id() != SAMPLE_ID and isinstance(bsdf, road_cls) and bsdf.channels != "road":
             raise InputError(f"the part {name!r} carries a road BSDF in the {bsdf.channels!r} channels: only the "
                              "sample has a Lambert channel; give the part channels = \"road\"", path=where)
