@@ -147,7 +147,7 @@ def _json_doc(res, plots: bool) -> dict[str, Any]:
                                              "C1 < 0.40 <= C2; nearest_table by (S1, Q0), or by the one of them the table has "
                                              "(nearest_table_basis),",
                 "before": "the measured table as reported, with the measurement's (and misalignment) uncertainty",
-                "correct_cells.csv": _column_definitions(cells_csv(res).splitlines()[1].split(","))}}
+                "correct_cells.csv": _column_definitions(_cells_head(res))}}
 
 
 def _k_text(v) -> str:
@@ -187,6 +187,22 @@ def _column_definitions(head: list[str]) -> dict[str, str]:
     return out
 
 
+def _cells_head(res) -> list[str]:
+    """The columns of correct_cells.csv for ``res`` (:func:`cells_csv`; correct.json defines them)."""
+    sc = res.extra.get("surface")
+    head = ["tan_eps", "beta_deg", "r_measured_x1e4", "u_measured_x1e4", "k_a", "u_k_a_backend",
+            "r_corrected_x1e4", "u_corrected_x1e4", "u_rel_total"] + [f"u_rel_{c}" for c in res.budget.components] \
+        + [f"k_a_{n}" for n in res.alternatives] + ["r_model_ideal_x1e4"] \
+        + (["r_simulated_x1e4"] if res.fit is not None and res.fit.simulated is not None else [])
+    if sc is not None and sc.model_weight is not None:
+        head += ["r_over_k_a_x1e4", "w_model"]
+    if sc is not None and sc.parts[0].unobserved_sensitivity is not None:
+        head += ["dlnk_a_dlnf_unobserved"]
+    if res.extra.get("stray") is not None:
+        head += ["k_a_direct", "stray_fraction"]
+    return head
+
+
 def cells_csv(res) -> str:
     m = res.measured.mask
     ii, jj = np.nonzero(m)
@@ -196,18 +212,10 @@ def cells_csv(res) -> str:
     sc = res.extra.get("surface")
     model_r = sc.parts[0].model_r if sc is not None else model_r_on_grid(res.model, res.measured)
     sim = res.fit.simulated if res.fit is not None else None
-    head = ["tan_eps", "beta_deg", "r_measured_x1e4", "u_measured_x1e4", "k_a", "u_k_a_backend",
-            "r_corrected_x1e4", "u_corrected_x1e4", "u_rel_total"] + [f"u_rel_{c}" for c in comps] \
-        + [f"k_a_{n}" for n in res.alternatives] + ["r_model_ideal_x1e4"] + (["r_simulated_x1e4"] if sim is not None else [])
     weight = sc.model_weight if sc is not None else None
-    if weight is not None:
-        head += ["r_over_k_a_x1e4", "w_model"]
     unobserved = sc.parts[0].unobserved_sensitivity if sc is not None else None
-    if unobserved is not None:
-        head += ["dlnk_a_dlnf_unobserved"]
     stray = res.extra.get("stray")
-    if stray is not None:
-        head += ["k_a_direct", "stray_fraction"]
+    head = _cells_head(res)
     buf = io.StringIO()
     buf.write("# " + res.corrected.source + "\n")
     buf.write(",".join(head) + "\n")
