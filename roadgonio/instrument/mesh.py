@@ -50,12 +50,17 @@ def load_trimesh(path: str | Path):
         raise InputError("the sample mesh has no triangles (or none whose vertices are finite numbers)", path=path,
                          field="sample.mesh")
     from roadgonio.instrument.config import MAX_LENGTH_M
-    span = float(np.max(np.asarray(mesh.bounds[1], dtype=np.float64) - np.asarray(mesh.bounds[0], dtype=np.float64)))
+    span = mesh_span(mesh)
     if not span <= MAX_LENGTH_M:        # audit 22: a mesh in millimetres passed, the same rectangle did not
         raise InputError(f"the sample mesh spans {span:.4g} units: expected metres, at most {MAX_LENGTH_M:g} m (no "
                          "instrument is larger; a mesh drawn in millimetres must be scaled by 0.001)", path=path,
                          field="sample.mesh")
     return mesh
+
+
+def mesh_span(mesh) -> float:
+    """The largest extent of ``mesh`` along x, y or z (its file's units)."""
+    return float(np.max(np.asarray(mesh.bounds[1], dtype=np.float64) - np.asarray(mesh.bounds[0], dtype=np.float64)))
 
 
 def mesh_location(path) -> dict:
@@ -135,7 +140,7 @@ def _note_mesh_scale(mesh, instrument) -> None:
     src, det = instrument.source, instrument.detector
     scale = max(v for v in (getattr(src, "distance_m", None), getattr(src, "height_m", None),
                             getattr(det, "distance_m", None), 1e-9) if v is not None)
-    span = float(np.max(np.asarray(mesh.bounds[1], dtype=np.float64) - np.asarray(mesh.bounds[0], dtype=np.float64)))
+    span = mesh_span(mesh)
     if span > MESH_SPAN_NOTE_RATIO * scale:
         import warnings
 
