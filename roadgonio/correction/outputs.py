@@ -480,6 +480,47 @@ JOINT_MAP_PANEL_IN = (11.5, 12.5)
 JOINT_MAP_CELL_FONT = 7.0
 
 
+#: What each column of a joint correction's correct_cells.csv holds (``<instrument>``: each instrument's
+#: name; user audit, session 39: the joint route's correct.json defined none of its columns).
+JOINT_CELL_COLUMNS = {
+    "tan_eps": CELL_COLUMNS["tan_eps"], "beta_deg": CELL_COLUMNS["beta_deg"],
+    "r_corrected_x1e4": "the one corrected r x 1e4 (all instruments together)",
+    "u_corrected_x1e4": CELL_COLUMNS["u_corrected_x1e4"], "u_rel_total": CELL_COLUMNS["u_rel_total"],
+    "u_rel_<component>": CELL_COLUMNS["u_rel_<component>"], "w_model": CELL_COLUMNS["w_model"],
+    "r_measured_<instrument>_x1e4": "that instrument's measured r x 1e4 (empty where it did not measure)",
+    "k_a_<instrument>": "that instrument's k_A under its calibration (every digit)",
+    "r_corrected_<instrument>_x1e4": "that instrument's r_measured / k_a x 1e4",
+    "residual_over_u_<instrument>": "(simulated - measured) / u of the fit for that instrument",
+    "dlnk_a_dlnf_unobserved_<instrument>": CELL_COLUMNS["dlnk_a_dlnf_unobserved"] + ", for that instrument",
+}
+
+_JOINT_PER_INSTRUMENT = ("r_measured_{}_x1e4", "k_a_{}", "r_corrected_{}_x1e4", "residual_over_u_{}",
+                         "dlnk_a_dlnf_unobserved_{}")
+
+
+def _joint_cells_head(sc) -> list[str]:
+    """The columns of a joint correction's correct_cells.csv (:func:`joint_cells_csv`; correct.json
+    defines them)."""
+    head = ["tan_eps", "beta_deg", "r_corrected_x1e4", "u_corrected_x1e4", "u_rel_total"] \
+        + [f"u_rel_{c}" for c in sc.budget.components]
+    if sc.model_weight is not None:
+        head += ["w_model"]
+    for p in sc.parts:
+        head += [t.format(p.name) for t in _JOINT_PER_INSTRUMENT[:4]]
+        if p.unobserved_sensitivity is not None:
+            head += [_JOINT_PER_INSTRUMENT[4].format(p.name)]
+    return head
+
+
+def _joint_column_definitions(sc) -> dict[str, str]:
+    per = {t.format(p.name): t.format("<instrument>") for p in sc.parts for t in _JOINT_PER_INSTRUMENT}
+    out = {}
+    for c in _joint_cells_head(sc):
+        key = per.get(c, "u_rel_<component>" if c.startswith("u_rel_") and c != "u_rel_total" else c)
+        out[c] = JOINT_CELL_COLUMNS.get(key, "")
+    return out
+
+
 def joint_cells_csv(sc) -> str:
     """Per cell of the corrected table: the corrected r and u, each budget component, and per
     instrument its measured r, k_A, corrected r and residual (NaN where it did not measure)."""
@@ -489,14 +530,7 @@ def joint_cells_csv(sc) -> str:
     comps = list(sc.budget.components)
     u_comp = {c: sc.budget.u_rel(c) for c in comps}
     u_tot = sc.budget.u_rel()
-    head = ["tan_eps", "beta_deg", "r_corrected_x1e4", "u_corrected_x1e4", "u_rel_total"] + [f"u_rel_{c}" for c in comps]
-    if sc.model_weight is not None:
-        head += ["w_model"]
-    for p in sc.parts:
-        n = p.name
-        head += [f"r_measured_{n}_x1e4", f"k_a_{n}", f"r_corrected_{n}_x1e4", f"residual_over_u_{n}"]
-        if p.unobserved_sensitivity is not None:
-            head += [f"dlnk_a_dlnf_unobserved_{n}"]
+    head = _joint_cells_head(sc)
     buf = io.StringIO()
     buf.write("# " + corr.source + "\n")
     buf.write(",".join(head) + "\n")
@@ -522,7 +556,8 @@ def _joint_doc(sc, plots: bool, files: dict[str, str]) -> dict[str, Any]:
                      "(corrected_corr.csv)",
                 "k_a_<instrument>": "each instrument's k_A under its calibration (correct_cells.csv)",
                 "residual_over_u": "(simulated - measured) / u of the fit, per instrument",
-                "S1": "r(beta 0, tan 2) / r(beta 0, tan 0)", "Q0": "CIE 144 average luminance coefficient (sr^-1)"}}
+                "S1": "r(beta 0, tan 2) / r(beta 0, tan 0)", "Q0": "CIE 144 average luminance coefficient (sr^-1)",
+                "correct_cells.csv": _joint_column_definitions(sc)}}
 
 
 def write_surface_correction(sc, out_dir: str | Path, *, plots: bool = True) -> list[Path]:

@@ -228,3 +228,37 @@ def test_correction_map_of_a_surface_correction_says_the_table_weighs_the_surfac
         _plt().close(fig)
     assert "(corrected = measured / k_A)" in titles["eq4"] and "surface" not in titles["eq4"]
     assert "fitted surface's own value" in titles["surface"] and "corrected = measured / k_A" not in titles["surface"]
+
+
+def test_joint_correct_json_defines_every_column_of_its_cells_csv():
+    """(user audit, session 39) the joint route's correct.json defined none of correct_cells.csv's columns:
+    every column the file has is defined, per instrument by its name, the unobserved road's only where the
+    instrument has it, and the file's rows are as long as its header."""
+    from types import SimpleNamespace
+    from roadgonio.correction.outputs import _joint_doc, joint_cells_csv
+    from roadgonio.surface.rtable import bundled_table
+    t = bundled_table("R3")
+    grid = np.where(t.mask, 0.5, np.nan)
+    n = int(t.mask.sum())
+
+    class Budget:
+        components = ("measured", "surface")
+
+        def u_rel(self, c=None):
+            return np.full(n, 0.01)
+
+    def part(name, unobserved):
+        return SimpleNamespace(name=name, measured=t, k_a=grid, corrected=t, residual=grid,
+                               unobserved_sensitivity=grid if unobserved else None)
+
+    sc = SimpleNamespace(corrected=t, budget=Budget(), u_corrected=t.r * 0.01, model_weight=grid,
+                         parts=[part("portable", False), part("portable-20mm", True)],
+                         summary=lambda: {}, provenance={})
+    lines = [ln for ln in joint_cells_csv(sc).splitlines() if not ln.startswith("#")]
+    head = lines[0].split(",")
+    defs = _joint_doc(sc, False, {})["definitions"]["correct_cells.csv"]
+    assert list(defs) == head and all(defs.values()), [c for c, d in defs.items() if not d]
+    assert "k_a_portable-20mm" in defs and "dlnk_a_dlnf_unobserved_portable-20mm" in defs
+    assert "dlnk_a_dlnf_unobserved_portable" not in defs
+    assert defs["u_rel_surface"] == defs["u_rel_measured"] != defs["u_rel_total"]
+    assert all(len(ln.split(",")) == len(head) for ln in lines[1:]) and len(lines) == n + 1
