@@ -83,3 +83,15 @@ def test_the_path_keys_and_the_path_shifts_of_a_replicate_are_independent():
         for j in range(dims):
             r = np.corrcoef(keys[:, i], shifts[:, j])[0, 1]
             assert abs(math.atanh(r)) * math.sqrt(m - 3) < z_lim, (i, j, r)
+
+
+def test_the_paths_of_seeds_apart_by_2_to_the_32_differ_and_smaller_seeds_keep_their_stream():
+    """(review, session 39) the path keys and shifts took the seed's low 32 bits: seeds 5 and 5 + 2^32
+    traced the same stray-light paths. A seed below 2^32 keeps the stream it had (numbers unchanged)."""
+    big = 5 + (1 << 32)
+    assert not np.array_equal(lat.walk_keys(5, 0, 10, 4, 8), lat.walk_keys(big, 0, 10, 4, 8))
+    assert not np.array_equal(lat.walk_shifts(5, 0, 10, 4, 8), lat.walk_shifts(big, 0, 10, 4, 8))
+    old = np.random.default_rng([5, 0, 10, lat.WALK_STREAM]).integers(0, 1 << 32, size=(4, 8), dtype=np.uint64)
+    np.testing.assert_array_equal(lat.walk_keys(5, 0, 10, 4, 8), old.astype(np.uint32))
+    old = np.random.default_rng([2 ** 32 - 1, 1, 11, lat.WALK_STREAM, 1]).random((3, 5))
+    np.testing.assert_array_equal(lat.walk_shifts(2 ** 32 - 1, 1, 11, 3, 5), old)

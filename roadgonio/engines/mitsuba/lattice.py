@@ -28,6 +28,8 @@ import math
 
 import numpy as np
 
+from roadgonio.seeds import seed_entropy
+
 #: Dimensions of one sample: pupil (2), field (2), source (2).
 DIMENSIONS = 6
 #: Product weight of every dimension in the P_2 criterion.
@@ -112,19 +114,30 @@ def shifts(seed: int, pass_index: int, log2n: int, count: int) -> np.ndarray:
 WALK_STREAM = 0x57A7
 
 
+def _walk_rng(seed: int, *keys: int) -> np.random.Generator:
+    """The generator of the path keys' and shifts' streams. A seed below 2^32 keeps the stream it
+    always had (every number computed with such a seed stays bit for bit); a larger one is seeded by
+    :func:`roadgonio.seeds.seed_entropy`, one-to-one: it was cut to its low 32 bits, so seeds s and
+    s + 2^32 traced the same stray-light paths (review, session 39)."""
+    seed = int(seed)
+    if seed < 1 << 32:
+        return np.random.default_rng([seed, *keys])
+    return np.random.default_rng(np.random.SeedSequence(seed_entropy(seed, *keys)))
+
+
 def walk_keys(seed: int, pass_index: int, log2n: int, count: int, dims: int) -> np.ndarray:
     """``count`` rows of ``dims`` uint32 keys, one per replicate and path dimension beyond the
     lattice's six (stray light: the reflections of a path and their next-event estimation, hashed
     with the point index on the device). Like :func:`shifts`, a function of (seed, pass, lattice
     size) only, from a stream of its own: the lattice shifts do not change when paths are traced."""
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(pass_index), int(log2n), WALK_STREAM])
+    rng = _walk_rng(seed, int(pass_index), int(log2n), WALK_STREAM)
     return rng.integers(0, 1 << 32, size=(int(count), int(dims)), dtype=np.uint64).astype(np.uint32)
 
 
 def walk_shifts(seed: int, pass_index: int, log2n: int, count: int, dims: int) -> np.ndarray:
     """Shifts (count, dims) of the lattice dimensions beyond the first six (stray-light paths), from
     a stream of their own: :func:`shifts` gives the same first six whether or not paths are traced."""
-    rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(pass_index), int(log2n), WALK_STREAM, 1])
+    rng = _walk_rng(seed, int(pass_index), int(log2n), WALK_STREAM, 1)
     return rng.random((int(count), int(dims)))
 
 
