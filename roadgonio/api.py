@@ -700,8 +700,12 @@ UNCERTAINTY_APERTURE_DEFAULTS = {"backend": "mitsuba", "rel_se": None, "surrogat
                                  "workers": None, "scheduler": None, "mitsuba_variant": None}
 
 
+#: The adaptive uncertainty run's cap on trials when none is given (``max_trials``).
+MAX_TRIALS_DEFAULT = 200_000
+
+
 def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, adaptive: bool = False,
-                         digits: int = 2, max_trials: int = 200_000, batch: int | None = None, seed: int = 1,
+                         digits: int = 2, max_trials: int | None = None, batch: int | None = None, seed: int = 1,
                          coverage: float = 0.95, cells: str = "standard", aperture: bool = True,
                          backend: str | None = None, rel_se: float | None = None, illuminance: str = "nominal",
                          surrogate: str | None = None, validation: int | None = None, threads: int | None = None,
@@ -745,6 +749,14 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         raise InputError("every input error's sigma is 0 (or none is given): there is nothing to propagate; expected "
                          "at least one positive sigma" + (f" (from {spec.source})" if spec.source else ""),
                          field="sigma")
+    unused = [o for o, v in (("max_trials", max_trials), ("batch", batch)) if v is not None]
+    if unused and not adaptive:
+        # they shape the adaptive rule only: a fixed run ignored them (user audit, session 19; refused by the
+        # command line alone until the review of session 39, and batch entered the run's fingerprint)
+        raise InputError(f"{' and '.join(unused)} {'are' if len(unused) > 1 else 'is'} for adaptive runs; "
+                         "expected adaptive=True, or trials=N for a fixed number of trials", field=unused[0])
+    if max_trials is None:
+        max_trials = MAX_TRIALS_DEFAULT
     seed = check_seed(seed)
     from roadgonio.limits import check_size
     trials = check_size(_check_int(trials, "trials", 1), "trials", "trials")
@@ -810,7 +822,7 @@ def _without_fresh(f):
 
 
 @_without_fresh
-def correct(measured, instrument, *, reference="self", alternatives: str | Sequence[str] | None = "auto",
+def correct(measured, instrument, *, reference="self", alternatives: str | Sequence[str] | None = None,
             u_measured: Any = None, sigma: Any = None, backend: str = "mitsuba", accuracy: str | None = None,
             rel_se: float | None = None, seed: int = 0, mitsuba_variant: str | None = None,
             model_variant: str | None = None, rays: int = 512, workers: int | None = None,
@@ -820,7 +832,8 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     """Correct measured r-tables for the aperture effect (``roadgonio correct``). ``measured``: one
     table (name, file, RTable or DataArray) or a list of them (they share the instrument's work);
     ``reference="self"`` (default) fits the model through the instrument, a SAMPLE takes the classic
-    route with ``alternatives`` (``"auto"``, ``"none"`` or SAMPLEs). ``u_measured`` (``"1%"``, the
+    route with ``alternatives`` (``"auto"``, the default there, ``"none"`` or SAMPLEs; refused with ``"self"``,
+    which has no reference to vary). ``u_measured`` (``"1%"``, the
     default; a fraction; or an r-table file of standard uncertainties) and ``sigma`` (a misalignment
     SPEC) enter the uncertainty. Returns the :class:`~roadgonio.correction.CorrectionResult`
     (``.corrected``, ``.u_corrected``, ``.k_a``, ``.budget``, ``.before`` / ``.after``, ``.summary()``),
@@ -887,6 +900,14 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     seed = check_seed(seed)
     inst = _instrument(instrument)
     self_ref = isinstance(reference, str) and reference.strip().lower() == "self"
+    if alternatives is not None and self_ref:
+        # they were accepted and ignored: the self route has no reference to vary (user audit, session 19;
+        # refused by the command line alone until the review of session 39)
+        raise InputError("the alternative references are for reference SAMPLE; reference 'self' fits the model "
+                         "through the instrument and has none (its model term is the spread of the fitted variants)",
+                         field="alternatives")
+    if alternatives is None:
+        alternatives = "auto"
     if model_variant == "auto" and not self_ref:
         raise InputError("model_variant 'auto' is for reference 'self'; give one variant for fitting a reference "
                          "table", field="model_variant")

@@ -104,14 +104,6 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    if args.alternatives is not None and args.reference == "self":
-        from roadgonio.errors import InputError
-        # they were accepted and ignored: the self route has no reference to vary (user audit, session 19)
-        raise InputError("the alternative references are for --reference SAMPLE; --reference self fits the model "
-                         "through the instrument and has none (its model term is the spread of the fitted variants)",
-                         field="--alternatives")
-    if args.alternatives is None:
-        args.alternatives = "auto"
     if args.joint:
         return _run_joint(args)
     if len(args.instrument) != 1:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import sys
 
 from roadgonio import api
-from roadgonio.errors import InputError
 from roadgonio.cli._common import (
     add_backend,
     add_dask_arguments,
@@ -96,11 +95,6 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    unused = [o for o, v in (("--max-trials", args.max_trials), ("--batch", args.batch)) if v is not None]
-    if unused and not args.adaptive:
-        # they shape the adaptive rule only: a fixed run would silently ignore them (user audit, session 19)
-        raise InputError(f"{' and '.join(unused)} {'are' if len(unused) > 1 else 'is'} for --adaptive runs; "
-                         "expected --adaptive, or --trials N for a fixed number of trials", field=unused[0])
     # the pictures are drawn by a helper process that loads matplotlib while the trials run
     with api.figure_process(enabled=not args.no_plots) as figures:
         res = api.estimate_uncertainty(
@@ -110,7 +104,7 @@ def run(args) -> int:
             surrogate=args.surrogate, validation=args.validation, threads=args.threads, workers=args.workers,
             scheduler=args.scheduler, mitsuba_variant=args.mitsuba_variant, model_variant=args.model_variant,
             out=out_arg(args), fresh=args.fresh, plots=not args.no_plots, figures=figures,
-            progress=show_progress(args), **({} if args.max_trials is None else {"max_trials": args.max_trials}))
+            progress=show_progress(args), max_trials=args.max_trials)
     if args.json:
         d = api.uncertainty_result_json(res)
         d["written"] = [str(p) for p in res.written]

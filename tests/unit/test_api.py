@@ -544,3 +544,18 @@ def test_design_and_intercompare_refuse_flags_and_clusters_of_the_wrong_type(tmp
             rg.intercompare(study)
         assert err.value.field == "study"
     assert not (tmp_path / "d").exists() and not (tmp_path / "i").exists()
+
+
+def test_the_api_refuses_what_only_the_command_line_refused():
+    """(review, session 39) alternatives with reference 'self', and max_trials or batch without adaptive,
+    were refused by the command line but accepted and ignored by the API (batch even entered the run's
+    fingerprint). Refused before any work, naming the argument."""
+    from roadgonio import api
+    with pytest.raises(InputError, match="reference SAMPLE") as err:
+        api.correct("R3", "portable", reference="self", alternatives="R2", backend="quadrature", plots=False)
+    assert err.value.field == "alternatives"
+    for kw, field in ((dict(batch=500), "batch"), (dict(max_trials=1000), "max_trials"),
+                      (dict(max_trials=1000, batch=500), "max_trials")):
+        with pytest.raises(InputError, match="adaptive") as err:
+            api.estimate_uncertainty("portable", "R3", "alpha_deg=0.01", trials=100, aperture=False, **kw)
+        assert err.value.field == field
