@@ -41,11 +41,11 @@ import numpy as np
 from scipy.optimize import least_squares, lsq_linear, nnls
 from scipy.stats import chi2 as chi2_dist
 
-from roadgonio.engines.bundle import LINEAR_TERMS, ForwardModel
+from roadgonio.engines.bundle import ForwardModel
 from roadgonio.errors import InputError
 from roadgonio.seeds import seed_entropy
 from roadgonio.surface.fit import AT_BOUND, _dz_dp, _from_z, _to_z, _z_box, nonlinear_params
-from roadgonio.surface.model import PARAM_BOUNDS, PARAM_NAMES, SHAPE_TERM, RoadModel, RoadParams
+from roadgonio.surface.model import G_PARAMS, LINEAR_TERMS, PARAM_BOUNDS, PARAM_NAMES, SHAPE_TERM, RoadModel, RoadParams
 
 #: Starts of stage A (Latin hypercube over the search box), in addition to the given models.
 DEFAULT_STARTS = 16
@@ -58,7 +58,6 @@ REFINE = 4
 #: the relative change of chi^2 at which it stops (1e-8 of chi^2 is far below any stated uncertainty).
 STAGE_B_NFEV = 60
 STAGE_B_FTOL = 1e-8
-G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
 
 
 #: Significance level at which the fit's chi^2 says the model does not describe the measured table

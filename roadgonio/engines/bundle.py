@@ -52,14 +52,9 @@ from roadgonio.geometry import cos3_eps
 from roadgonio.instrument import optics
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
-from roadgonio.surface.model import SHAPE_TERM, RoadModel, modifier_terms, road_brdf, road_brdf_with_shape_grad
+from roadgonio.surface.model import (G_PARAMS, LINEAR_TERMS, SHAPE_TERM, TERM_SHAPE, RoadModel, modifier_terms,
+                                     road_brdf, road_brdf_with_shape_grad)
 
-#: The terms of the model that carry a linear coefficient (the columns of the forward model).
-LINEAR_TERMS = ("k_diff", "k_phong", "k_retro", "k_exp")
-#: Which shape parameters each term's column depends on (the g attenuation enters every column).
-TERM_SHAPE = {"k_diff": (), "k_phong": ("n_phong",), "k_retro": ("n_retro",),
-              "k_exp": ("p", "h", "mu", "n_beta", "beta_round_deg")}
-G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
 DEFAULT_RAYS = 512
 DEFAULT_REPLICATES = 4
 DEFAULT_MAX_FACTOR = 8

@@ -44,12 +44,10 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.geometry import ALPHA_STANDARD_DEG, cos3_eps, eps_from_tan, w_detector, w_source
 from roadgonio.arrays import NumpyOps
-from roadgonio.surface.model import (DEFAULT_VARIANT, PARAM_BOUNDS, PARAM_NAMES, VARIANT_PARAMS, VARIANTS,
-                    RoadModel, RoadParams, modifier_terms, road_brdf)
+from roadgonio.surface.model import (DEFAULT_VARIANT, G_PARAMS, LINEAR_TERMS, PARAM_BOUNDS, PARAM_NAMES, TERM_SHAPE,
+                                     VARIANT_PARAMS, VARIANTS, RoadModel, RoadParams, modifier_terms, road_brdf)
 from roadgonio.surface.rtable import RTable
 
-#: The coefficients that enter the model linearly (solved by NNLS).
-LINEAR = ("k_diff", "k_phong", "k_retro", "k_exp")
 #: a fitted coefficient k_* within this fraction of its upper bound (1e6 sr^-1) sits at it: the fit
 #: wanted more, and the model is a compromise (audit 21: `fit R3 --fix n_phong=1e4` gave k_phong
 #: 999999.9998 without a word)
@@ -62,8 +60,6 @@ UNDETERMINED_TERM_PCT = 0.1
 #: ... and one adding less than this (% of max r) is absent (a coefficient of 1e-32 is round-off's, not a
 #: fitted term: no note)
 ABSENT_TERM_PCT = 1e-9
-#: The shape parameters of each linear term (:func:`roadgonio.surface.model.road_brdf`).
-TERM_SHAPE = {"k_diff": (), "k_phong": ("n_phong",), "k_retro": ("n_retro",), "k_exp": ("p", "h", "mu", "n_beta")}
 #: The paper's fits of its five reference tables (section 3): maximal deviation within 9 %, RMS
 #: within 2.6 % of the maximal r; a fit beyond either is said to miss the table's shape.
 PAPER_MAX_DEV_PCT = 9.0
@@ -73,8 +69,6 @@ DESCRIPTOR_NOTE_REL = 0.10
 #: The shape parameters searched globally (every variant) ...
 NONLINEAR = ("n_phong", "n_retro", "p", "h", "mu")
 #: ... plus the variant's own ones (:data:`roadgonio.surface.model.VARIANT_PARAMS`), e.g. n_beta of "smooth".
-#: Grazing-attenuation parameters: user inputs, never fitted.
-G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
 #: Weight of the smooth maximum (8-norm) in the objective; 0 = plain least squares ...
 MAX_WEIGHT = 0.3
 #: ... per variant where it differs (module docstring).
@@ -281,7 +275,7 @@ def model_r_on_grid(model: RoadModel, table: RTable) -> np.ndarray:
     return np.where(table.mask, r, np.nan)
 
 
-def term_contributions(model: RoadModel, table: RTable, names=LINEAR) -> dict[str, float]:
+def term_contributions(model: RoadModel, table: RTable, names=LINEAR_TERMS) -> dict[str, float]:
     """For each linear term of ``names`` with a coefficient above 0: the most it adds to a tabulated
     cell, in % of the table's max r (the model with and without it)."""
     full = model_r_on_grid(model, table)
@@ -318,7 +312,7 @@ class _Problem:
         self.y = table.r[m] / self.rmax  # table r in units of max r
         self.variant = variant
         self.fixed = dict(fixed)
-        self.free_lin = [k for k in LINEAR if k not in self.fixed]
+        self.free_lin = [k for k in LINEAR_TERMS if k not in self.fixed]
         self.free_nl = [k for k in nonlinear_params(variant) if k not in self.fixed]
         self.max_weight = max_weight(variant)
         self.base = RoadParams().to_dict()
@@ -336,11 +330,11 @@ class _Problem:
         """r-columns (in units of max r) of each linear term with unit coefficient; g is 1 at
         every table cell so it is left out here (the final statistics include it)."""
         Q = dict(P)
-        for k in LINEAR:
+        for k in LINEAR_TERMS:
             Q[k] = 1.0
         out = {}
         with np.errstate(all="ignore"):
-            for k in LINEAR:
+            for k in LINEAR_TERMS:
                 # g is 1 at the table cells; the mirror plane's rounding is not (it moves beta > 0)
                 col = road_brdf(NumpyOps, Q, self.wi, self.wo, self.variant, frozenset({k}) | (
                     modifier_terms(Q) & {"round"}), pairs=self.pairs)
@@ -353,10 +347,10 @@ class _Problem:
         P = self.shape_params(z)
         cols = self.columns(P)
         target = self.y.copy()
-        for k in LINEAR:
+        for k in LINEAR_TERMS:
             if k in self.fixed:
                 target = target - self.fixed[k] * cols[k]
-        ks = {k: float(self.fixed[k]) for k in LINEAR if k in self.fixed}
+        ks = {k: float(self.fixed[k]) for k in LINEAR_TERMS if k in self.fixed}
         use, A = [], []
         for k in self.free_lin:
             c = cols[k]
@@ -380,7 +374,7 @@ class _Problem:
                 if not math.isfinite(kv) or kv > PARAM_BOUNDS[k][1]:
                     return None
                 ks[k] = kv
-        model = sum(ks[k] * cols[k] for k in LINEAR)
+        model = sum(ks[k] * cols[k] for k in LINEAR_TERMS)
         res = model - self.y
         if not np.all(np.isfinite(res)):
             return None

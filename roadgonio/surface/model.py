@@ -133,7 +133,7 @@ def active_terms(params: Mapping[str, Any]) -> frozenset[str]:
     Only usable with plain-float parameters; the Dr.Jit plugin computes it once from the
     float values and re-traces when it changes.
     """
-    terms = {name for name in ("k_diff", "k_phong", "k_retro", "k_exp") if float(params[name]) != 0.0}
+    terms = {name for name in LINEAR_TERMS if float(params[name]) != 0.0}
     return frozenset(terms) | modifier_terms(params)
 
 
@@ -259,6 +259,15 @@ def road_brdf(xp, P: Mapping[str, Any], wi, wo, variant: str = DEFAULT_VARIANT,
     """
     return _road_brdf(xp, P, wi, wo, variant, terms, pairs, ())[0]
 
+
+#: The terms of eq. 4 that carry a linear coefficient (the fitter's NNLS unknowns, the forward model's
+#: columns), the shape parameters of each, and the grazing attenuation g's parameters (user inputs,
+#: never fitted; g enters every term): written here once for the fitter, the forward model and the
+#: correction (review, session 39: three copies had drifted, beta_round_deg missing from one).
+LINEAR_TERMS = ("k_diff", "k_phong", "k_retro", "k_exp")
+TERM_SHAPE = {"k_diff": (), "k_phong": ("n_phong",), "k_retro": ("n_retro",),
+              "k_exp": ("p", "h", "mu", "n_beta", "beta_round_deg")}
+G_PARAMS = ("g_a", "g_b", "g_c", "g_t", "theta_l_deg")
 
 #: The shape parameters :func:`road_brdf_with_shape_grad` differentiates, and the term each one shapes.
 SHAPE_TERM = {"n_phong": "k_phong", "n_retro": "k_retro", "p": "k_exp", "h": "k_exp", "mu": "k_exp",

@@ -569,7 +569,8 @@ def test_a_forward_model_keeps_what_its_rays_directions_give_across_fits(monkeyp
     the correction surface's backbone) are bit for bit those computed afresh,
     over the three variants in turn, two roundings and g on and off, and the angles of its rays and
     of its nominal directions are computed once each, not at every new set of parameters."""
-    from roadgonio.engines.bundle import LINEAR_TERMS, ForwardModel, RayBundles, _terms_for
+    from roadgonio.engines.bundle import ForwardModel, RayBundles, _terms_for
+    from roadgonio.surface.model import LINEAR_TERMS
     from roadgonio.engines.bundle import _unit as unit_coefficients
     from roadgonio.instrument.config import load_instrument
     import roadgonio.surface.model as M
