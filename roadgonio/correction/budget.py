@@ -44,7 +44,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from roadgonio.surface.cie import cie_class, nearest_basis, nearest_bundled
-from roadgonio.surface.rtable import RTable, q0_weights, standard_mask
+from roadgonio.surface.rtable import S1_CELLS, RTable, q0_weights, standard_mask
 
 #: The measurement's relative standard uncertainty when none is stated (``--u-measured``): the
 #: default of ``correct`` and of ``design --second-aperture``'s forecast alike (audit 28: the forecast
@@ -159,7 +159,7 @@ def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:
     out: dict[str, Any] = {"S1": s1, "Q0": q0, "S2": s2}
     if cov_rel is not None:
         # a functional whose cells are missing is missing (None), never a traceback or NaN as a result
-        i00, i20 = _cell(table, ii, jj, 0.0, 0.0), _cell(table, ii, jj, 2.0, 0.0)
+        i20, i00 = (_cell(table, ii, jj, *c) for c in S1_CELLS)
         w = q0_weights(mask, table.tan_eps, table.beta_deg)
         out.update(u_S1=None, u_Q0=None, u_S2=None)
         if i00 is not None and i20 is not None and math.isfinite(s1):

@@ -50,11 +50,11 @@ from functools import lru_cache
 import numpy as np
 
 from roadgonio.arrays import NumpyOps
-from roadgonio.geometry import pair_angles
+from roadgonio.geometry import ALPHA_STANDARD_DEG, pair_angles
 from roadgonio.surface.truths import EvaluatedBRDF
 
 #: sin of the r-tables' observation elevation (alpha = 1 deg).
-SIN_ALPHA0 = math.sin(math.radians(1.0))
+SIN_ALPHA0 = math.sin(math.radians(ALPHA_STANDARD_DEG))
 
 
 @dataclass(frozen=True)

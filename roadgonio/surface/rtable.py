@@ -76,6 +76,11 @@ PUBLISHED_Q0 = {"R1": 0.10, "R2": 0.07, "R3": 0.07, "R4": 0.08, "C1": 0.10, "C2"
 GRID_TOL = 1e-9
 
 
+#: S1's cells (tan eps, beta deg): numerator r(tan 2, beta 0), denominator r(tan 0, beta 0) (CIE 144),
+#: for every computation of S1 (the table's, the Monte Carlo's vectors, the correction's u(S1)).
+S1_CELLS = ((2.0, 0.0), (0.0, 0.0))
+
+
 @dataclass(frozen=True)
 class RTable:
     """An r-table: ``r[i, j]`` = r(tan_eps[i], beta[j]) in sr^-1, NaN where blank."""
@@ -116,10 +121,11 @@ class RTable:
         return float(self.r[i, j])
 
     def s1(self) -> float:
-        """Specular factor S1 = r(beta=0, tan=2) / r(beta=0, tan=0) (CIE 144); NaN (missing) when
-        r(0, 0) is blank or 0 or r(2, 0) is blank: a quantity that needs a missing value is missing,
-        never a division by zero (:func:`missing_ratio`)."""
-        return missing_ratio(self.value(2.0, 0.0), self.value(0.0, 0.0))
+        """Specular factor S1 = r(beta=0, tan=2) / r(beta=0, tan=0) (CIE 144; :data:`S1_CELLS`); NaN
+        (missing) when r(0, 0) is blank or 0 or r(2, 0) is blank: a quantity that needs a missing value
+        is missing, never a division by zero (:func:`missing_ratio`)."""
+        (tn, bn), (td, bd) = S1_CELLS
+        return missing_ratio(self.value(tn, bn), self.value(td, bd))
 
     def q0(self) -> float:
         """Average luminance coefficient Q0 (sr^-1): mean of q over the solid angle of the

@@ -18,7 +18,7 @@ from roadgonio.geometry import (
 from roadgonio.instrument.config import Instrument
 from roadgonio.arrays import NumpyOps
 from roadgonio.surface.model import RoadModel, road_brdf
-from roadgonio.surface.rtable import missing_ratio
+from roadgonio.surface.rtable import S1_CELLS, missing_ratio
 from roadgonio.uncertainty.surrogate import N_COORDS
 from roadgonio.uncertainty.cells import CellSet, standard_q0_weights
 from roadgonio.uncertainty.spec import ILLUMINANCE
@@ -69,8 +69,7 @@ class MeasurementModel:
         self.e_phi = source_azimuth_tangent(cells.beta_deg, self.delta0)                 # d w / d phi_i
         w = standard_q0_weights()
         self.q0_w = w[cells.ii, cells.jj]
-        self.i_00 = cells.index(0.0, 0.0)
-        self.i_20 = cells.index(2.0, 0.0)
+        self.i_20, self.i_00 = (cells.index(*c) for c in S1_CELLS)
 
     # -- directions ----------------------------------------------------------------------------
     def _directions(self, X: np.ndarray, rows) -> tuple[tuple[np.ndarray, ...], np.ndarray]:
