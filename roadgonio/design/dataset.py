@@ -35,6 +35,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     bound = np.full_like(k_a, np.nan)
     conf = np.full_like(k_a, np.nan)
     level = np.full_like(k_a, np.nan)
+    conv = np.ones(k_a.shape, dtype=bool)    # False where the backend stopped short (its bound an estimate)
     # stray light (CellResult: 0 and k_a without it); NaN for tables journaled before they were kept
     stray = {f: np.full_like(k_a, np.nan) for f in STRAY_CELL_FIELDS}
     not_conv = np.zeros(n, dtype=np.int32)
@@ -71,6 +72,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                 for f, arr in stray.items():
                     arr[i, j, a, bb] = _f((rec.get(f) or [None] * len(s.cells))[c])
                 not_conv[i] += 0 if rec["converged"][c] else 1
+                conv[i, j, a, bb] = bool(rec["converged"][c])
     max_dev = np.full(n, np.nan)
     rms = np.full(n, np.nan)
     worst_t = np.full(n, np.nan)
@@ -90,7 +92,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     for i in range(n):
         if kind[i] in ("failed",) or not geometry_ok[i]:
             continue
-        d = deviations(k_a[i], standard_uncertainty(se[i], bound[i]))
+        d = deviations(k_a[i], standard_uncertainty(se[i], bound[i], conv[i]))
         if d["cells"] == 0:
             continue
         computed[i] = True

@@ -93,7 +93,7 @@ class CellResult:
         deterministic bound b the rectangular-distribution value b / sqrt(3) (GUM, JCGM 100 4.3.7),
         or both in quadrature when a result has both (:func:`standard_uncertainty`). A confidence
         bound is not a standard uncertainty: a result that has one also has its SE."""
-        return float(standard_uncertainty(self.se, self.error_bound))
+        return float(standard_uncertainty(self.se, self.error_bound, self.converged))
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -105,13 +105,18 @@ class CellResult:
         return d
 
 
-def standard_uncertainty(se, error_bound) -> np.ndarray:
+def standard_uncertainty(se, error_bound, converged=True) -> np.ndarray:
     """:meth:`CellResult.standard_uncertainty` of arrays of ``se`` and ``error_bound`` (any shape,
     elementwise): the SE where it is finite, else the rectangular value ``error_bound / sqrt 3``; where
     both are finite (a Monte Carlo result under absolute calibration, its bound eta's error) the two
-    in quadrature (GUM, independent components)."""
+    in quadrature (GUM, independent components). Where a deterministic backend did not converge
+    (``converged`` False, no SE) its ``error_bound`` is an estimate that can understate the error, no
+    bound: it is taken whole, not as a rectangular half-width (review, session 39: divided by sqrt 3,
+    an estimate of 0.0100 for an error of 0.0177 became a u of 0.0058)."""
     se = np.asarray(se, dtype=np.float64)
-    rect = np.asarray(error_bound, dtype=np.float64) / math.sqrt(3.0)
+    bound = np.asarray(error_bound, dtype=np.float64)
+    estimate = ~np.asarray(converged, dtype=bool) & ~np.isfinite(se)
+    rect = np.where(estimate, bound, bound / math.sqrt(3.0))
     return np.where(np.isfinite(se), np.where(np.isfinite(rect), np.hypot(se, rect), se), rect)
 
 

@@ -586,6 +586,13 @@ def write_outputs(ds, out_dir: str | Path, *, plot: bool = True, figures=None) -
             v = ds[field].values
             if np.isfinite(v).any():
                 what = ds[field].attrs["long_name"] + (confidence_text(ds) if field == "confidence_bound" else "")
+                if field == "error_bound" and "converged" in ds:
+                    # the cells that stopped short hold an estimate, not a bound: the file's header said
+                    # "deterministic error bound" of every cell (review, session 39)
+                    short = int((np.isfinite(v) & ~ds["converged"].values.astype(bool)).sum())
+                    if short:
+                        what += (f"; in {count(short, 'cell')} not converged (ka.nc's converged) an estimate "
+                                 "that can understate the error, not a bound")
                 group.text(name, grid_csv_text(v, ka_output_header(what, ds.attrs["instrument"], ds.attrs["sample"],
                                                                    ds.attrs["backend"]), digits=4))
                 files[field] = name

@@ -1027,3 +1027,22 @@ def test_a_value_that_starts_with_a_minus_reaches_its_own_check(tmp_path, capsys
                "quadrature", "--u-measured", "-1%", "--out", str(tmp_path / "o")])
     one_line_error(capsys, rc, "--u-measured", "between 0 and 100 %", "got -1%")
     assert not (tmp_path / "o").exists()
+
+
+def test_a_table_with_a_quadrature_cell_at_its_cap_says_so_in_ka_bound_and_its_u_is_the_estimate(tmp_path, monkeypatch):
+    """(review, session 39) ka_bound.csv was headed "deterministic error bound" for every cell, a cell
+    stopped at its cap included (its value an estimate that can understate the error), and the cell's
+    standard uncertainty divided that estimate by sqrt 3 as if it were a rectangular bound."""
+    import roadgonio.engines.quadrature as Q
+    from roadgonio.engines.result import CellResult
+    real = Q.make_backend
+    monkeypatch.setattr(Q, "make_backend", lambda *a, **k: real(*a, **{**k, "max_evals": 5000}))
+    out = tmp_path / "k"
+    assert main(["ka", "--instrument", "portable", "--sample", "R3", "--backend", "quadrature", "--cells", "12:0,1:0",
+                 "--rel-se", "1e-6", "--out", str(out), "-q"]) == 0
+    head = (out / "ka_bound.csv").read_text().splitlines()[0]
+    assert "not converged" in head and "not a bound" in head, head
+    c = CellResult(12.0, 0.0, 0.9, math.nan, 5000, 1.0, error_bound=0.01, converged=False)
+    assert c.standard_uncertainty() == pytest.approx(0.01, rel=1e-12)
+    ok = CellResult(12.0, 0.0, 0.9, math.nan, 5000, 1.0, error_bound=0.01, converged=True)
+    assert ok.standard_uncertainty() == pytest.approx(0.01 / math.sqrt(3.0), rel=1e-12)
