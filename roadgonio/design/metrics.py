@@ -104,7 +104,8 @@ def mean_field_sensitivity(instrument: Instrument) -> float:
     mean of the sensitivity map (:func:`roadgonio.instrument.optics.field_map_value`)."""
     det = instrument.detector
     if det.field_map is None:
-        return 1.0 - (1.0 - det.field_edge_sensitivity) / 2.0
+        from roadgonio.instrument.profiles import quadratic_edge_mean
+        return quadratic_edge_mean(det.field_edge_sensitivity)
     from roadgonio.arrays import NumpyOps
     from roadgonio.engines.rules import disc_rule
     from roadgonio.instrument.optics import detector_geometry, field_map_value

@@ -33,7 +33,7 @@ import numpy as np
 from roadgonio.errors import GeometryError
 from roadgonio.instrument.config import Detector, Instrument, Observation, Source
 from roadgonio.instrument.mesh import mesh_location
-from roadgonio.instrument.profiles import ApertureProfile, BeamProfile, FieldMap, UniformTable
+from roadgonio.instrument.profiles import ApertureProfile, BeamProfile, FieldMap, UniformTable, quadratic_edge
 
 
 def source_distance_m(source: Source, tan_eps, xp=np):
@@ -220,7 +220,7 @@ def detector_ray(xp, geo: DetectorGeometry, pupil_xy, field_xy):
         weight = cos_t * cos_t * cos_t * cos_t
     if geo.kd_edge != 1.0:
         # field sensitivity k_D(rho) = 1 - (1 - e) rho^2 (paper eq. 3; Detector docstring)
-        weight = weight * (1.0 - (1.0 - geo.kd_edge) * (fx * fx + fy * fy))
+        weight = weight * quadratic_edge(geo.kd_edge, fx * fx + fy * fy)
     if geo.kd_map is not None:
         # field sensitivity k_D(x_D, y_D) from the map (paper eq. 3)
         weight = weight * field_map_value(xp, geo, fx, fy)
@@ -331,7 +331,7 @@ def source_radiance_factor(xp, beam: BeamProfile, aperture: ApertureProfile, w, 
             raise ValueError("an aperture profile needs the source point's disc coordinates (disc_xy)")
         rho2 = disc_xy[0] * disc_xy[0] + disc_xy[1] * disc_xy[1]
         if aperture.kind == "quadratic":
-            a = 1.0 - (1.0 - aperture.edge) * rho2
+            a = quadratic_edge(aperture.edge, rho2)
         elif aperture.kind == "table":
             a = table_value(xp, aperture.table, xp.sqrt(rho2))
         else:

@@ -61,6 +61,19 @@ import numpy as np
 
 from roadgonio.errors import InputError
 
+
+def quadratic_edge(edge, rho2):
+    """The radial law 1 - (1 - e) rho^2 of a quantity that is 1 at the centre and ``edge`` at the rim
+    (rho = 1): the detector's field sensitivity k_D (paper eq. 3) and the source aperture's radiance
+    profile share it. Plain arithmetic: numpy or Dr.Jit arrays, or floats."""
+    return 1.0 - (1.0 - edge) * rho2
+
+
+def quadratic_edge_mean(edge: float) -> float:
+    """The area mean of :func:`quadratic_edge` over the unit disc, int_0^1 (1 - (1 - e) rho^2) 2 rho d rho
+    = 1 - (1 - e) / 2."""
+    return 1.0 - 0.5 * (1.0 - edge)
+
 #: Grid step (deg) of a tabulated intensity distribution, as the formulas evaluate it.
 ANGLE_STEP_DEG = 0.01
 #: Grid step (fraction of the aperture radius) of a tabulated aperture radiance.
@@ -141,7 +154,7 @@ class ApertureProfile:
         if self.kind == "uniform":
             return 1.0
         if self.kind == "quadratic":
-            return 1.0 - 0.5 * (1.0 - self.edge)
+            return quadratic_edge_mean(self.edge)
         t = self.table
         x = t.x0 + t.step * np.arange(t.n)
         r = np.linspace(0.0, 1.0, 20 * max(t.n, 1000) + 1)
