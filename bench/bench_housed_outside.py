@@ -67,7 +67,7 @@ def run(kind: str, walls: float) -> dict:
             "max_pct": 100 * float(np.max(np.abs(err))), "within_2u_pct": 100 * float(np.mean(np.abs(z) <= 2)),
             "beyond_4u": int(np.sum(np.abs(z) > 4)), "rms_z": float(np.sqrt(np.mean(z ** 2))),
             "S1": float(res.after["S1"]), "u_S1": float(res.after["u_S1"]), "S1_true": float(RTable(r_true).s1()),
-            "truth_worst_rel_se": float(np.nanmax(s.k_se / s.k_a)),
+            "truth_worst_rel_se": float(np.nanmax(s.u_k_a_backend / s.k_a)),
             "renderings": len(sc.surface_steps),
             "converged": bool(sc.surface_steps[-1]["converged"]) if sc.surface_steps else None,
             "seconds": seconds}

@@ -152,8 +152,9 @@ def _json_doc(res, plots: bool) -> dict[str, Any]:
 
 def _k_text(v) -> str:
     """A k_A in correct_cells.csv: the shortest text that reads back as the same float64 (``repr``). Its
-    SE (u_k_a_backend) goes down to 1e-7 and below (a converged quadrature, a zero aperture: 0), so any
-    fixed number of digits (%.6g rounds by up to 5e-6) could be coarser than the value's uncertainty."""
+    standard uncertainty (u_k_a_backend: an SE, or a bound / sqrt 3) goes down to 1e-7 and below (a
+    converged quadrature, a zero aperture: 0), so any fixed number of digits (%.6g rounds by up to
+    5e-6) could be coarser than the value's uncertainty."""
     return repr(float(v))
 
 
@@ -221,7 +222,7 @@ def cells_csv(res) -> str:
     buf.write(",".join(head) + "\n")
     for k, (i, j) in enumerate(zip(ii, jj)):
         row = [f"{res.measured.tan_eps[i]:g}", f"{res.measured.beta_deg[j]:g}", f"{res.measured.r[i, j] * 1e4:.6g}",
-               f"{res.u_measured[i, j] * 1e4:.4g}", _k_text(res.k_a[i, j]), f"{res.k_se[i, j]:.3g}",
+               f"{res.u_measured[i, j] * 1e4:.4g}", _k_text(res.k_a[i, j]), f"{res.u_k_a_backend[i, j]:.3g}",
                f"{res.corrected.r[i, j] * 1e4:.6g}", f"{res.u_corrected[i, j] * 1e4:.4g}", f"{u_tot[k]:.4g}"]
         row += [f"{u_comp[c][k]:.3g}" for c in comps]
         row += [_k_text(a[i, j]) for a in res.alternatives.values()]

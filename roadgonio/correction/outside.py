@@ -120,7 +120,7 @@ class InstrumentPart:
     u_what: str
     k_a: np.ndarray                   # grid, k_A of the corrected model (weighted over variants)
     k_backend: np.ndarray             # grid, backend k_A of the best backbone
-    k_se: np.ndarray                  # grid, backend standard uncertainty of that k_A
+    u_k_a_backend: np.ndarray                  # grid, backend standard uncertainty of that k_A
     corrected: RTable
     u_corrected: np.ndarray           # grid (sr^-1), standard uncertainty of ``corrected``
     budget: Budget                    # of this instrument's own corrected table
@@ -747,7 +747,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         model_r = _grid(t, np.exp(bp.ln_r_nominal(best.fit.theta)))
         parts_out.append(InstrumentPart(
             instrument=inst, measured=t, u_measured=u_grids[i][0], u_what=u_grids[i][1], k_a=k_grid,
-            k_backend=_grid(t, k_back[i]), k_se=_grid(t, se_back[i]), corrected=corr,
+            k_backend=_grid(t, k_back[i]), u_k_a_backend=_grid(t, se_back[i]), corrected=corr,
             u_corrected=u_abs,
             budget=bud, residual=_grid(t, resid[sl]), birge_local=_grid(t, birge[sl]),
             widening=_grid(t, widen[sl]), simulated=_grid(t, sim),
@@ -958,7 +958,7 @@ def to_correction_result(res: SurfaceCorrection):
     prov["u_measured"] = p.u_what
     prov["timings"] = res.timings
     out = CorrectionResult(measured=p.measured, corrected=res.corrected, u_corrected=res.u_corrected,
-                           u_measured=p.u_measured, k_a=p.k_a, k_se=p.k_se, budget=res.budget,
+                           u_measured=p.u_measured, k_a=p.k_a, u_k_a_backend=p.u_k_a_backend, budget=res.budget,
                            reference=f"self ({best.variant} backbone x correction surface, fitted through the instrument)",
                            model=best.backbone, fit=_FitView(res), alternatives=alternatives, before=p.before,
                            after=res.after, steps=steps, provenance=prov, seconds=res.seconds)

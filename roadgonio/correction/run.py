@@ -279,7 +279,7 @@ class CorrectionResult:
     u_corrected: np.ndarray          # grid (sr^-1), the corrected table's standard uncertainty
     u_measured: np.ndarray           # grid (sr^-1)
     k_a: np.ndarray                  # grid, backend k_A under the instrument's calibration
-    k_se: np.ndarray                 # grid, backend standard uncertainty of k_A
+    u_k_a_backend: np.ndarray                 # grid, backend standard uncertainty of k_A
     budget: Budget
     reference: str
     model: RoadModel
@@ -799,7 +799,7 @@ def _assemble(measured: RTable, instrument: Instrument, u_grid, k_b, se_b, budge
                                                           else "") + " only (the aperture effect is the bias the "
                                                                      "correction removes)")
     return CorrectionResult(measured=measured, corrected=corrected, u_corrected=u_abs, u_measured=u_grid,
-                            k_a=_grid(measured, k_b), k_se=_grid(measured, se_b), budget=budget, reference=reference,
+                            k_a=_grid(measured, k_b), u_k_a_backend=_grid(measured, se_b), budget=budget, reference=reference,
                             model=model, fit=fit, alternatives=alternatives, before=before, after=after, steps=steps,
                             provenance=prov, seconds=time.perf_counter() - t0)
 

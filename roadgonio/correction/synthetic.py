@@ -34,7 +34,7 @@ class SyntheticMeasurement:
     truth: RTable          # r of the true model at the nominal geometry
     measured: RTable       # what the instrument reports (with noise)
     k_a: np.ndarray        # grid of the exact k_A used
-    k_se: np.ndarray       # its standard uncertainty
+    u_k_a_backend: np.ndarray       # its standard uncertainty
     settings: dict[str, Any]
 
 
@@ -62,4 +62,4 @@ def synthesize(truth: RoadModel, instrument: Instrument, *, noise: float = 0.01,
     return SyntheticMeasurement(truth=RTable(r_true, name=f"{name}-truth", source=f"true r of {truth.name}"),
                                 measured=RTable(meas, name=name, source=f"synthetic measurement of {truth.name} by "
                                                 f"{instrument.name} ({backend}, {100 * noise:g} % noise, seed {seed})"),
-                                k_a=k, k_se=se, settings={"backend": b.settings(), "noise": noise, "seed": seed})
+                                k_a=k, u_k_a_backend=se, settings={"backend": b.settings(), "noise": noise, "seed": seed})

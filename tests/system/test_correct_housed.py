@@ -33,8 +33,8 @@ def test_a_housed_instrument_is_corrected_with_its_housing():
     res = {name: api.correct(meas, name, **opts) for name in ("portable_housed", "portable")}
     parts = {name: r.extra["surface"].parts[0] for name, r in res.items()}
     m = meas.mask
-    k_h, se_h = parts["portable_housed"].k_backend[m], parts["portable_housed"].k_se[m]
-    k_b, se_b = parts["portable"].k_backend[m], parts["portable"].k_se[m]
+    k_h, se_h = parts["portable_housed"].k_backend[m], parts["portable_housed"].u_k_a_backend[m]
+    k_b, se_b = parts["portable"].k_backend[m], parts["portable"].u_k_a_backend[m]
     z = (k_h - k_b) / np.sqrt(se_h ** 2 + se_b ** 2)
     assert np.all(np.isfinite(z)) and np.max(np.abs(z)) > Z_DIFFERENT, z
     for r in res.values():
@@ -67,7 +67,7 @@ def _corrected_through_a_bright_housing(kind: str, measured=None, **options):
         backend_settings={"rel_se": MEASURED_REL_SE, "seed": 777}, mask=standard_mask())
     # the measurement's own k_A converged to its target (else the comparison below would judge a
     # measurement noisier than the one it states)
-    assert np.nanmax(s.k_se / s.k_a) <= MEASURED_REL_SE * (1 + 1e-9), np.nanmax(s.k_se / s.k_a)
+    assert np.nanmax(s.u_k_a_backend / s.k_a) <= MEASURED_REL_SE * (1 + 1e-9), np.nanmax(s.u_k_a_backend / s.k_a)
     res = api.correct(s.measured, inst, forward="surface", u_measured="1.5%", backend="mitsuba", seed=0, plots=False,
                       **options)
     mm = res.corrected.mask
