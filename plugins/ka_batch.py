@@ -140,6 +140,7 @@ class KaBatch(mi.SamplingIntegrator):
         #: the sample is the flat rectangle z = 0 facing +z (no normals stored per ray)
         self.flat = bool(props.get("flat", False)) if "flat" in props else False
         self.emitter = None         # the canonical source (area emitter of a disk, or point emitter)
+        self.point = False          # a point emitter (R_S = 0): see set_source
         self.frames = None          # 12 mi.Float arrays: c, s, t, a of every cell's source
         self.n_cells = 0
         #: the cell shaded by :meth:`sample` (index into the frames)
@@ -168,6 +169,12 @@ class KaBatch(mi.SamplingIntegrator):
         (radius R_S), or a point emitter at the origin (:func:`canonical_source`). An area emitter
         only points back to its disk shape: the caller keeps the shape alive."""
         self.emitter = emitter
+        #: a point source (R_S = 0) is the limit of a small Lambertian disc: intensity I_0 cos theta_s
+        #: about its axis, nothing behind it (docs/conventions.md section 5); Mitsuba's point emitter
+        #: is isotropic, so :meth:`source_sample` applies the cosine (user audit, session 39: the
+        #: isotropic point lit a housing's walls and lid behind the source, stray light 80 % against
+        #: 64 % at R_S = 1 mm)
+        self.point = bool(mi.has_flag(emitter.flags(), mi.EmitterFlags.DeltaPosition))
 
     def set_profile(self, source) -> None:
         """The beam profile of the instrument's ``source`` (:class:`~roadgonio.instrument.config.Source`),
@@ -216,6 +223,9 @@ class KaBatch(mi.SamplingIntegrator):
         local.wavelengths = si.wavelengths
         ds, weight = self.emitter.sample_direction(local, u, active)
         active = active & (ds.pdf > 0.0)
+        if self.point:                      # I_0 cos theta_s (set_source): emitted along -ds.d
+            active = active & (-ds.d.z > 0.0)
+            weight = weight * dr.maximum(-ds.d.z, 0.0)
         if self.cos_beam is not None:       # emitted along -ds.d: its cosine to the axis (+z) is -ds.d.z
             active = active & (-ds.d.z >= self.cos_beam)
         if self.profile is not None:
