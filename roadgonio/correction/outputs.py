@@ -60,13 +60,19 @@ def u_csv_text(res) -> str:
     """The corrected table's standard uncertainties in the r-table CSV layout (r x 1e4, 4 digits); the
     header names the table and, when the data reject the fit, says so (a ``note:`` line,
     :func:`~roadgonio.correction.fit.misfit_note`, which ``road --u`` repeats)."""
+    from roadgonio.correction.run import REFLECTANCES_EXACT_NOTE
     table = res.corrected
     fit = getattr(res, "fit", None)
     note = (fit.summary() if fit is not None else {}).get("misfit_note")
     if note is not None and (fit.summary().get("misfit_cells_widened") is None):
         note += ", and this u may not cover that error"
-    head = U_HEADER + table.source + ("" if note is None else f"\n{NOTE_PREFIX}{note} (roadgonio correct; "
-                                      "docs/correction.md, \"Outside eq. 4\")")
+    notes = [] if note is None else [f"{note} (roadgonio correct; docs/correction.md, \"Outside eq. 4\")"]
+    # what this u leaves out for an instrument with parts (user audit, session 39: said by correct, lost
+    # on the way to road, which repeats these lines)
+    notes += list((getattr(res, "extra", None) or {}).get("u_notes", ()))
+    if (getattr(res, "provenance", None) or {}).get("forward_model_limits"):
+        notes.append(REFLECTANCES_EXACT_NOTE)
+    head = U_HEADER + table.source + "".join(f"\n{NOTE_PREFIX}{n}" for n in notes)
     return grid_csv_text(res.u_corrected, head, scale=R_SCALE, digits=4,
                          tan_eps=table.tan_eps, beta_deg=table.beta_deg)
 

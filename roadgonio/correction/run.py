@@ -131,11 +131,19 @@ def note_unobserved_road(name: str) -> None:
     import warnings
 
     from roadgonio.errors import ModelWarning
-    warnings.warn(ModelWarning(
-        f"{name}: the instrument's stray light reads the road beyond the observation elevations the table measures; "
-        "the eq. 4 fit assumes eq. 4 there and u does not include that assumption (--forward surface adds it as "
-        "the 'unobserved' component: docs/correction.md, \"The road beyond the observation elevations\")"),
-        stacklevel=3)
+    warnings.warn(ModelWarning(f"{name}: {UNOBSERVED_ROAD_NOTE}"), stacklevel=3)
+
+
+#: What an eq. 4 correction through stray light leaves out of u (:func:`note_unobserved_road`; repeated
+#: in corrected_u.csv's header, which ``road --u`` prints).
+UNOBSERVED_ROAD_NOTE = (
+    "the instrument's stray light reads the road beyond the observation elevations the table measures; the eq. 4 "
+    "fit assumes eq. 4 there and u does not include that assumption (--forward surface adds it as the 'unobserved' "
+    "component: docs/correction.md, \"The road beyond the observation elevations\")")
+#: What no u holds for an instrument with reflecting parts (corrected_u.csv's header; user audit, session 39:
+#: the caveat reached correct's terminal and correct.json, but not the u file that ``road`` reads).
+REFLECTANCES_EXACT_NOTE = ("the reflectances of the instrument's [housing] and [scene] parts are taken as exact: "
+                           "their uncertainty is in no component of this u (docs/correction.md, 'A housed instrument')")
 
 
 def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:
@@ -664,7 +672,8 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
         if it < max_outer:
             model = nxt
     final = assess_fit(fm, y, u, model, rho=rho, name=measured.name)
-    if steps[-1]["backend"].get("stray"):
+    unobserved = bool(steps[-1]["backend"].get("stray"))
+    if unobserved:
         note_unobserved_road(measured.name)
 
     # model dependence: the other variant, refitted with the same rho
@@ -707,6 +716,8 @@ def correct_self(measured: RTable, instrument: Instrument, *, u_measured: Any = 
     res = _assemble(measured, instrument, u_grid, k_b, se_b, budget, reference, model, final,
                     {k: _grid(measured, v) for k, v in alternatives.items()}, steps, t0)
     _keep_stray(res, cell_results)
+    if unobserved:
+        res.extra["u_notes"] = [UNOBSERVED_ROAD_NOTE]
     res.provenance.update({"u_measured": u_what, "variant_asked": variant, "variant_used": main_v,
                            "chi2_by_variant": chi2, "fitted_models": {v: m.to_json_dict() for v, m in fits.items()},
                            "searches": searches,

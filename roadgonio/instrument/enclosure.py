@@ -25,6 +25,20 @@ def housing_box(instrument, housing: Housing) -> Box:
     return Box(x=(float(x[0]), float(x[1])), y=(float(y[0]), float(y[1])), height=float(h))
 
 
+def with_fixed_housing(instrument):
+    """``instrument`` with its housing's box written out (``x_m``, ``y_m``, ``height_m`` as
+    :func:`housing_box` resolves them), or itself without a housing or with every bound given. A
+    misaligned part moves inside a housing that stays where it was built; the default box follows the
+    parts, so a perturbed copy of the instrument would carry its walls along with a misplaced source
+    (user audit, session 39: d ln k_A / d D_S 0.07 /m with the box following, 0.35 /m with it fixed, at
+    tan eps 11, beta 40 with walls of 0.2). Same box, so the nominal numbers do not change."""
+    housing = Housing.of(instrument)
+    if housing is None or (housing.x_m is not None and housing.y_m is not None and housing.height_m is not None):
+        return instrument
+    box = housing_box(instrument, housing)
+    return instrument.with_changes(housing={"x_m": list(box.x), "y_m": list(box.y), "height_m": box.height})
+
+
 def housing_panels(instrument, housing: Housing) -> list[Panel]:
     """The panels of the housing (module docstring): walls, lid (if any) and baffles of
     height > 0, reflecting faces turned into the box."""

@@ -63,7 +63,8 @@ SENS_STEP = 1e-5
 #: Version of the realisation records (what they hold); records of another version are computed again.
 #: 3: the fixed-height source's item is its distance idealised (trial 11 D9), no longer an arc.
 #: 4: an arc source's distance is an item too (session 13).
-REALISATION_FORMAT = 4
+#: 5: a [housing]'s stray light is an item, and the misaligned instruments keep the housing's box (session 39).
+REALISATION_FORMAT = 5
 
 
 # ----------------------------------------------------------------------------------------------
@@ -147,8 +148,8 @@ def _k_table(ctx: Context, instrument, desc: str = "k_A") -> np.ndarray:
 
 
 def idealised_instrument(instrument, key: str):
-    """The instrument with one characteristic idealised: an aperture zero, Lambert calibration, or
-    (``source_distance``) its source's nearness: the source
+    """The instrument with one characteristic idealised: an aperture zero, Lambert calibration, no
+    ``housing`` (its stray light), or (``source_distance``) its source's nearness: the source
     :data:`~roadgonio.intercomparison.simulate.SOURCE_FAR_M` away with its aperture scaled alike
     (:func:`~roadgonio.intercomparison.simulate.far_source`; an arc's distance or a rail's height),
     so every cell sees the source at the same angular size from the same direction, but each point
@@ -164,6 +165,16 @@ def idealised_instrument(instrument, key: str):
     with a point source on the rail). An arc source's distance had no item until session 13."""
     if key == "source_distance":
         return instrument.with_changes(source=sim.far_source(instrument.source))
+    if key == "housing":
+        # the instrument without its [housing] (nor the reflections its stray light was followed to)
+        d = instrument.to_dict()
+        d.pop("housing", None)
+        if isinstance(d.get("scene"), dict):
+            d["scene"] = {k: v for k, v in d["scene"].items() if k != "max_bounces"}
+            if not d["scene"]:
+                del d["scene"]
+        from roadgonio.instrument.config import Instrument
+        return Instrument.from_dict(d, path=instrument.path)
     if key == "calibration_mode":
         d = instrument.to_dict()
         d.pop("calibration", None)

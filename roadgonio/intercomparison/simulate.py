@@ -192,6 +192,12 @@ def k_characteristics(inst) -> list[tuple[str, str]]:
         src = inst.source
         where = f"rail {src.height_m:g} m high" if src.path == "fixed_height" else f"arc {src.distance_m:g} m"
         out.append(("source_distance", f"source distance ({where}; vs {SOURCE_FAR_M:g} m at the same angular size)"))
+    from roadgonio.instrument.housing import Housing
+    housing = Housing.of(inst)
+    if housing is not None and (housing.wall_reflectance > 0 or housing.baffle_reflectance_value > 0):
+        # the stray light of a [housing] (user audit, session 39: no item could name it, and at walls of
+        # 0.2 it made 13.8 of a participant's 17.7 points of RMS error)
+        out.append(("housing", f"housing's stray light (walls {housing.wall_reflectance:g}; vs no housing)"))
     return out
 
 

@@ -47,7 +47,10 @@ class MeasurementModel:
             raise InputError(f"unknown illuminance normalisation {illuminance!r}; expected nominal or measured",
                              field="illuminance")
         self.model = model
-        self.instrument = instrument
+        # the perturbed instruments (misalignment) keep the nominal housing's box: the parts move
+        # inside it (:func:`~roadgonio.instrument.enclosure.with_fixed_housing`)
+        from roadgonio.instrument.enclosure import with_fixed_housing
+        self.instrument = with_fixed_housing(instrument)
         self.cells = cells
         self.illuminance = illuminance
         self.alpha0 = instrument.observation.alpha_deg

@@ -107,6 +107,12 @@ def _parse_entry(key: str, value: Any, *, path, field_prefix: str = "") -> tuple
 
 def _spec_from_mapping(d: Mapping[str, Any], *, path, field_prefix: str, source: str) -> SigmaSpec:
     unknown = sorted(set(d) - set(INPUTS))
+    reflectance = [k for k in unknown if "reflectance" in k]
+    if reflectance:
+        # (user audit, session 39) a housing's paint is no input error here: say so, not "unknown key"
+        raise InputError(f"{reflectance[0]}: the reflectance of a housing's parts has no input error in this "
+                         f"Monte Carlo (it is taken as exact; docs/uncertainty.md, 'A housed instrument'); expected "
+                         f"some of {', '.join(INPUTS)}", path=path, field=field_prefix + reflectance[0])
     if unknown:
         raise InputError(f"unknown key(s) {', '.join(unknown)}; expected some of {', '.join(INPUTS)}",
                          path=path, field=field_prefix + unknown[0])

@@ -193,6 +193,12 @@ def test_correct_cells_carry_the_direct_k_a_and_the_stray_fraction(tmp_path):
     assert [float(r["k_a_direct"]) for r in housed] == [float(r["k_a"]) for r in bare]
     sf = np.array([float(r["stray_fraction"]) for r in housed])
     assert np.all((sf >= 0) & (sf < 1)) and sf.max() > 0.05
+    # (user audit, session 39) the caveat that u holds no uncertainty of the walls' reflectance reached
+    # correct's terminal and correct.json but not corrected_u.csv, whose notes `road --u` repeats
+    from roadgonio.correction.run import REFLECTANCES_EXACT_NOTE
+    from roadgonio.surface.rtable import header_notes, load_table
+    assert REFLECTANCES_EXACT_NOTE in header_notes(load_table(tmp_path / "portable_housed" / "corrected_u.csv", quantity="u"))
+    assert REFLECTANCES_EXACT_NOTE not in header_notes(load_table(tmp_path / "portable" / "corrected_u.csv", quantity="u"))
 
 
 def test_correct_json_defines_every_column_of_correct_cells(tmp_path):

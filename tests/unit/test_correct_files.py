@@ -262,3 +262,20 @@ def test_joint_correct_json_defines_every_column_of_its_cells_csv():
     assert "dlnk_a_dlnf_unobserved_portable" not in defs
     assert defs["u_rel_surface"] == defs["u_rel_measured"] != defs["u_rel_total"]
     assert all(len(ln.split(",")) == len(head) for ln in lines[1:]) and len(lines) == n + 1
+
+
+def test_corrected_u_carries_what_its_u_leaves_out_for_road():
+    """(user audit, session 39) an eq. 4 correction through stray light says u leaves out the road beyond
+    the observation elevations, and every instrument with parts that their reflectances are taken as exact:
+    both reach corrected_u.csv's header as notes (which `road --u` repeats), one line each."""
+    from types import SimpleNamespace
+    from roadgonio.correction.run import REFLECTANCES_EXACT_NOTE, UNOBSERVED_ROAD_NOTE
+    from roadgonio.surface.rtable import bundled_table, header_notes
+    t = bundled_table("R3")
+    res = SimpleNamespace(corrected=t, u_corrected=t.r * 0.01, fit=None, extra={"u_notes": [UNOBSERVED_ROAD_NOTE]},
+                          provenance={"forward_model_limits": "the fit's ray bundles do not model ..."})
+    back = parse_csv(u_csv_text(res), quantity="u")
+    assert header_notes(back) == [UNOBSERVED_ROAD_NOTE, REFLECTANCES_EXACT_NOTE]
+    np.testing.assert_allclose(back.r[t.mask], t.r[t.mask] * 0.01, rtol=1e-3)
+    bare = SimpleNamespace(corrected=t, u_corrected=t.r * 0.01, fit=None, extra={}, provenance={})
+    assert header_notes(parse_csv(u_csv_text(bare), quantity="u")) == []

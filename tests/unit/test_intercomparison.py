@@ -730,3 +730,45 @@ def test_a_reference_sample_with_an_unresolved_spike_is_noted_naming_the_partici
                                                                 "noise_rel": 0.01, "stated": ["repeatability"],
                                                                 "report": "reference", "reference": "R3"}])
     assert study_notes(study3, _Setup()) == []
+
+
+def test_a_housing_that_reflects_is_an_item_and_its_idealisation_drops_the_housing_alone():
+    """(user audit, session 39) the ranking could not name a housing's stray light (at walls of 0.2 it
+    made 13.8 of a participant's 17.7 points of RMS error, and the summary blamed the source distance and
+    the detector field). Idealised, the instrument is the same without its [housing]; a black housing
+    (reflectance 0: shadows only) and a bare instrument have no such item."""
+    from roadgonio.instrument.config import Instrument, load_instrument
+    from roadgonio.instrument.housing import Housing
+    from roadgonio.intercomparison.run import idealised_instrument
+    from roadgonio.intercomparison.simulate import k_characteristics
+    housed = load_instrument("scenes/portable_housed.toml")
+    assert [k for k, _ in k_characteristics(housed)][-1] == "housing"
+    assert "housing" not in [k for k, _ in k_characteristics(load_instrument("portable"))]
+    d = housed.to_dict()
+    d["housing"] = {**d["housing"], "wall_reflectance": 0.0}
+    assert "housing" not in [k for k, _ in k_characteristics(Instrument.from_dict(d, path=housed.path))]
+    bare = idealised_instrument(housed, "housing")
+    assert "housing" not in bare.to_dict() and Housing.of(bare) is None
+    assert (bare.source, bare.detector, bare.observation, bare.calibration, bare.sample) == \
+        (housed.source, housed.detector, housed.observation, housed.calibration, housed.sample)
+
+
+def test_a_misaligned_housed_instrument_keeps_its_housing_where_it_was_built():
+    """(user audit, session 39) the default box follows the parts, so the uncertainty's (and the
+    intercomparison's) perturbed instruments carried the walls along with a misplaced source: d ln k_A /
+    d D_S 0.07 /m against 0.35 /m with the box fixed (walls 0.2, tan 11, beta 40). The measurement model's
+    instrument has the nominal box written out; perturbed, the box stays."""
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.instrument.enclosure import housing_box
+    from roadgonio.instrument.housing import Housing
+    from roadgonio.uncertainty.cells import CellSet
+    from roadgonio.uncertainty.measurement import MeasurementModel
+    from roadgonio.surface.sample import resolve_sample
+    housed = load_instrument("scenes/portable_housed.toml")
+    mm = MeasurementModel(resolve_sample("R3").model, housed, CellSet.make("standard"))
+    box = housing_box(housed, Housing.of(housed))
+    moved = mm.instrument.with_changes(source={"distance_m": mm.ds0 + 0.02}, detector={"distance_m": mm.dd0 - 0.01},
+                                       observation={"alpha_deg": mm.alpha0 + 0.05})
+    assert housing_box(moved, Housing.of(moved)) == box == housing_box(mm.instrument, Housing.of(mm.instrument))
+    loose = housed.with_changes(source={"distance_m": mm.ds0 + 0.02})
+    assert housing_box(loose, Housing.of(loose)) != box        # what the default box did
