@@ -242,8 +242,11 @@ def _participant(k: int, d: Any, path) -> Participant:
     try:
         inst = load_instrument(p if p.suffix.lower() == ".toml" else spec)
     except InputError as err:
-        if err.path is not None and err.path != str(p):
-            raise                      # an error inside the instrument file names that file
+        if err.path is not None and Path(err.path).is_file():
+            # an error inside the instrument file names that file and its field (user audit, session 39:
+            # an error in the participant's own file was told as the study's field 'participant[k].instrument')
+            raise InputError(f"{err.reason} ({fld}'s instrument, from {path if path is not None else 'the study'})",
+                             path=err.path, line=err.line, field=err.field) from None
         raise InputError(f"{err.reason} (the participant's instrument)", path=path, field=f"{fld}.instrument") from None
     if "calibration" in d:
         cal = d["calibration"]

@@ -3,6 +3,7 @@ file's one-line errors, the comparison's hand-checkable cases (consistent partic
 tile's correlation), the sensitivity ranking, resume."""
 from __future__ import annotations
 
+from pathlib import Path
 import json
 import math
 
@@ -772,3 +773,20 @@ def test_a_misaligned_housed_instrument_keeps_its_housing_where_it_was_built():
     assert housing_box(moved, Housing.of(moved)) == box == housing_box(mm.instrument, Housing.of(mm.instrument))
     loose = housed.with_changes(source={"distance_m": mm.ds0 + 0.02})
     assert housing_box(loose, Housing.of(loose)) != box        # what the default box did
+
+
+def test_an_error_inside_a_participants_instrument_file_names_that_file_and_its_field(tmp_path, collimated):
+    """(user audit, session 39) a wall reflectance of 1.5 in a participant's own instrument file was told
+    as the study's field 'participant[2].instrument'; `ka` on the same file names the file and
+    'housing.wall_reflectance'. Now the study names them too, and whose instrument it is."""
+    text = (Path(__file__).resolve().parents[2] / "scenes" / "portable_housed.toml").read_text()
+    bad = tmp_path / "inst" / "wr15.toml"
+    bad.parent.mkdir()
+    bad.write_text(text.replace("wall_reflectance = 0.05", "wall_reflectance = 1.5"))
+    assert "wall_reflectance = 1.5" in bad.read_text()
+    d = {"study": {"surface": "R3"}, "participant": [coll("A"), coll("B", instrument=str(bad))], "shared": []}
+    with pytest.raises(InputError) as err:
+        study_from_dict(d, path=tmp_path / "study.toml")
+    assert err.value.field == "housing.wall_reflectance" and err.value.path == str(bad), str(err.value)
+    assert "participant[2]" in str(err.value) and str(tmp_path / "study.toml") in str(err.value)
+    assert "\n" not in str(err.value)
