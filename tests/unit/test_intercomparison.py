@@ -3,9 +3,9 @@ file's one-line errors, the comparison's hand-checkable cases (consistent partic
 tile's correlation), the sensitivity ranking, resume."""
 from __future__ import annotations
 
-from pathlib import Path
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
