@@ -226,6 +226,13 @@ def backends(command: str | None = None) -> dict[str, str]:
     return {n: BACKENDS[n].summary for n in backends_with(**(BACKEND_NEEDS[command] if command else {}))}
 
 
+def validate_backends(role: str) -> tuple[str, ...]:
+    """The backends ``validate`` takes as ``against`` (``role="checked"``) or as its float64
+    ``reference`` (``role="reference"``), from the registry."""
+    from roadgonio.engines.registry import validate_backends as of_role
+    return of_role(role)
+
+
 def study_tolerances() -> dict[str, tuple[str, float]]:
     """The default tolerance of the k_A tables of ``uncertainty`` and ``intercompare``, by backend:
     name -> (its setting, ``rel_se`` or ``rtol``; the value)."""

@@ -33,9 +33,9 @@ def register(sub) -> None:
     add_instrument_argument(p)
     add_sample_argument(p)
     add_model_variant(p)
-    p.add_argument("--against", choices=["mitsuba", "numpy-mc"], default="mitsuba",
+    p.add_argument("--against", choices=list(api.validate_backends("checked")), default="mitsuba",
                    help="Monte Carlo backend to check (default mitsuba)")
-    p.add_argument("--reference", choices=["auto", "reference", "quadrature", "numpy-mc-mesh"], default="auto",
+    p.add_argument("--reference", choices=["auto", *api.validate_backends("reference")], default="auto",
                    help="float64 reference: 'reference' (randomised QMC with a 99.9%% confidence bound, converges on "
                         "wide instruments), 'quadrature' (tensor Gauss rules; may stop short at grazing cells), "
                         "'numpy-mc-mesh' (numpy ray-casting Monte Carlo, for mesh samples); auto (default) = "

@@ -87,6 +87,9 @@ class BackendInfo:
     #: compute; None: those commands do not offer the backend
     study_tolerance: float | None = None
     cell_correlation: str = ("independent: each cell has its own random numbers, seeded by (seed, tan eps, beta)")
+    #: its part in ``roadgonio validate``: "checked" (a float32/Monte Carlo backend it checks, --against),
+    #: "reference" (a float64 reference it checks against, --reference), or None
+    validate_role: str | None = None
 
     @property
     def deterministic(self) -> bool:
@@ -121,7 +124,7 @@ BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
                 meshes=True, xml_scenes=True, beam_clipping=True, mitsuba=True,
                 # one seed for every perturbed instrument: the noise largely cancels in the differences
                 # the uncertainty surrogate fits
-                study_tolerance=3e-3,
+                study_tolerance=3e-3, validate_role="checked",
                 cell_correlation="correlated: the cells computed in one run share the detector rays and replicates, "
                                  "so their errors are positively correlated; each cell's SE is its marginal SE, a "
                                  "table functional needs the covariance (MitsubaBackend.covariance())"),
@@ -129,11 +132,11 @@ BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
                 "deterministic float64 tensor Gauss rules with an error bound (flat samples)",
                 precision="error_bound", seeded=False, tolerance="rtol",
                 presets={"fast": {"rtol": 1e-3}, "default": {"rtol": 1e-4}, "precise": {"rtol": 1e-6}},
-                study_tolerance=1e-4,
+                study_tolerance=1e-4, validate_role="reference",
                 cell_correlation="deterministic: no random error; each cell's error is within its error_bound"),
     BackendInfo("numpy-mc", "roadgonio.engines.montecarlo:make_backend",
                 "plain float64 Monte Carlo (slow; an oracle; flat samples)",
-                precision="se", seeded=True, tolerance="rel_se", presets=NUMPY_MC_PRESETS),
+                precision="se", seeded=True, tolerance="rel_se", presets=NUMPY_MC_PRESETS, validate_role="checked"),
     BackendInfo("bundle", "roadgonio.engines.bundle:make_backend",
                 "float64 fixed ray bundles (randomised QMC, common random numbers): the forward model of `correct` "
                 "(flat samples)",
@@ -145,11 +148,19 @@ BACKENDS: dict[str, BackendInfo] = {b.name: b for b in (
     BackendInfo("reference", "roadgonio.engines.reference:make_backend",
                 "float64 randomised QMC with the kinks split off: SE and a 99.9 % confidence bound (flat samples)",
                 precision="se+confidence_bound", seeded=True, tolerance="rtol",
-                presets={"fast": {"rtol": 1e-3}, "default": {"rtol": 1e-4}, "precise": {"rtol": 1e-5}}),
+                presets={"fast": {"rtol": 1e-3}, "default": {"rtol": 1e-4}, "precise": {"rtol": 1e-5}},
+                validate_role="reference"),
     BackendInfo("numpy-mc-mesh", "roadgonio.engines.meshmc:make_backend",
                 "float64 Monte Carlo with ray casting and shadow rays (mesh samples)",
-                precision="se", seeded=True, tolerance="rel_se", presets=NUMPY_MC_MESH_PRESETS, meshes=True),
+                precision="se", seeded=True, tolerance="rel_se", presets=NUMPY_MC_MESH_PRESETS, meshes=True,
+                validate_role="reference"),
 )}
+
+
+def validate_backends(role: str) -> tuple[str, ...]:
+    """The backends with ``role`` in ``roadgonio validate`` ("checked" or "reference"), in the
+    registry's order."""
+    return tuple(n for n, b in BACKENDS.items() if b.validate_role == role)
 
 
 def backend_info(name: str, field: str = "backend") -> BackendInfo:

@@ -68,7 +68,12 @@ REF_RTOL_MIN = 1e-9
 VERDICTS = ("agree", "disagree", "inconclusive")
 EXIT_STATUS = {"agree": 0, "disagree": 1, "inconclusive": 3}
 #: References: "auto" = the RQMC reference for a flat sample, the mesh Monte Carlo for a mesh sample.
-REFERENCES = ("auto", "reference", "quadrature", "numpy-mc-mesh")
+def _references() -> tuple[str, ...]:
+    from roadgonio.engines.registry import validate_backends
+    return ("auto",) + validate_backends("reference")
+
+
+REFERENCES = _references()
 
 #: Relative float32 floor of the renderer, by backend name: a relative difference from the float64
 #: quadrature that longer renders would not remove. Measured (R3-like model, quadrature rtol 1e-7,
@@ -243,9 +248,10 @@ def validate(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[flo
     report dict with ``rows`` (:class:`CellComparison`), ``counts``, ``verdict``, ``exit_status``,
     ``settings`` and timings. ``rtol`` fixes the reference's target (default: per cell, what the
     test needs)."""
-    from roadgonio.engines.registry import make_backend
-    if against not in ("mitsuba", "numpy-mc"):
-        raise InputError(f"expected --against mitsuba or numpy-mc, got {against!r}", field="against")
+    from roadgonio.engines.registry import make_backend, validate_backends
+    checked = validate_backends("checked")
+    if against not in checked:
+        raise InputError(f"expected --against {' or '.join(checked)}, got {against!r}", field="against")
     ref_name = resolve_reference(instrument, reference)
     _check_modelled(instrument, ref_name)
     if ref_name == "numpy-mc-mesh" and against == "numpy-mc":

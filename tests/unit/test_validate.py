@@ -244,3 +244,21 @@ def test_a_bad_floor_names_its_type_and_value(floor):
     with pytest.raises(InputError) as err:
         rg.validate("portable", "R3", cells="0:0", floor=floor)
     assert err.value.field == "floor" and f"{type(floor).__name__} {floor!r}" in str(err.value)
+
+
+def test_validate_takes_its_backends_from_the_registry(monkeypatch):
+    """(review, session 39) validate, its command line and its reference list named their backends
+    themselves, so a backend added to the registry was not available to validate. A registry entry with
+    a validate role is now offered by the command line and accepted by the API's check."""
+    import dataclasses
+
+    from roadgonio import api
+    from roadgonio.cli import build_parser
+    from roadgonio.engines import registry
+    extra = dataclasses.replace(registry.BACKENDS["numpy-mc"], name="numpy-mc-2")
+    monkeypatch.setitem(registry.BACKENDS, "numpy-mc-2", extra)
+    assert "numpy-mc-2" in api.validate_backends("checked")
+    sub = next(a for a in build_parser()._actions if hasattr(a, "choices") and a.choices and "validate" in a.choices)
+    against = next(a for a in sub.choices["validate"]._actions if "--against" in a.option_strings)
+    assert "numpy-mc-2" in against.choices
+    assert set(api.validate_backends("reference")) == {"reference", "quadrature", "numpy-mc-mesh"}
