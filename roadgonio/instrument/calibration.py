@@ -81,7 +81,7 @@ class Calibration:
         extra = sorted(set(d) - {"mode", "reference"})
         if extra:
             raise InputError(f"unknown key(s) {', '.join(extra)}; expected some of mode, reference",
-                             path=path, field="calibration")
+                             path=path, field=f"calibration.{extra[0]}")
         try:
             cal = cls(mode=d.get("mode", DEFAULT_MODE), reference=d.get("reference"))
         except InputError as err:

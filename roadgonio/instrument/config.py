@@ -97,8 +97,10 @@ def _checked(obj, attr: str, name: str, *, lo=None, hi=None, lo_open=False, hi_o
 def _check_keys(d: Mapping[str, Any], allowed: set[str], section: str, path) -> None:
     extra = sorted(set(d) - allowed)
     if extra:
+        # the field names the first unknown key in its section, as the study and layout files do
+        # (review, session 39: 'detector' alone)
         raise InputError(f"unknown key(s) {', '.join(extra)}; expected some of {', '.join(sorted(allowed))}",
-                         path=path, field=section)
+                         path=path, field=f"{section}.{extra[0]}")
 
 
 @dataclass(frozen=True)

@@ -104,7 +104,8 @@ class MeasuredCells:
             raise InputError("expected a table [cells]", field="cells")
         extra = sorted(set(d) - {"measured", "fill"})
         if extra:
-            raise InputError(f"unknown key(s) {', '.join(extra)}; expected some of fill, measured", field="cells")
+            raise InputError(f"unknown key(s) {', '.join(extra)}; expected some of fill, measured",
+                             field=f"cells.{extra[0]}")
         m = d.get("measured")
         return cls(measured=None if m is None else m, fill=d.get("fill", FILL_RULES[0]))
 

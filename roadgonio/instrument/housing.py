@@ -195,7 +195,7 @@ class Housing:
         extra = sorted(set(d) - set(HOUSING_KEYS))
         if extra:
             raise InputError(f"unknown key(s) {', '.join(extra)}; expected some of {', '.join(HOUSING_KEYS)}",
-                             field="housing")
+                             field=f"housing.{extra[0]}")
         if "wall_reflectance" not in d:
             raise InputError("missing (required): the Lambertian reflectance of the inner walls, 0 ... 1",
                              field="housing.wall_reflectance")

@@ -35,7 +35,7 @@ def housed(**housing) -> Instrument:
     ({"wall_reflectance": 0.1, "baffles": {"x_m": 0.1}}, "housing.baffles"),
     ({"wall_reflectance": 0.1, "baffles": [{"x_m": 0.1, "height": 0.1}]}, "housing.baffles.0"),
     ({"wall_reflectance": 0.1, "baffles": [{"x_m": "a", "height_m": 0.1}]}, "housing.baffles.0.x_m"),
-    ({"wall_reflectance": 0.1, "walls": 0.1}, "housing"),
+    ({"wall_reflectance": 0.1, "walls": 0.1}, "housing.walls"),
     # mutation audit 11: each of these was accepted by a changed reader and passed every test
     ({"wall_reflectance": True}, "housing.wall_reflectance"),
     ({"wall_reflectance": 0.1, "margin_m": -0.01}, "housing.margin_m"),

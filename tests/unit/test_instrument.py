@@ -68,7 +68,7 @@ def test_good_file_round_trips(tmp_path):
     (("alpha_deg = 1.0", "alpha_deg = 95"), "observation.alpha_deg"),
     (("alpha_deg = 1.0", 'alpha_deg = "one"'), "observation.alpha_deg"),
     (('focus_m = "inf"', 'focus_m = "far"'), "detector.focus_m"),
-    (("size_x_m = 6.0", "size_x_m = 6.0\ncolour = 3"), "sample"),
+    (("size_x_m = 6.0", "size_x_m = 6.0\ncolour = 3"), "sample.colour"),
     (("radius_m = 0.02", "radius_m = 3.5"), "source.radius_m"),
 ])
 def test_bad_values_name_file_and_field(tmp_path, edit, field):
@@ -180,13 +180,13 @@ def test_instrument_dict_round_trip(alpha, dist, pupil, field_deg, focus):
 
 @pytest.mark.parametrize("extra, field", [
     ("[colour]\nred = 1\n", "colour"),
-    ("[instrument]\nnmae = \"x\"\n", "instrument"),
+    ("[instrument]\nnmae = \"x\"\n", "instrument.nmae"),
     ("[calibration]\nmode = \"lamber\"\n", "calibration.mode"),
     ("[calibration]\nmode = \"reference\"\n", "calibration.reference"),
     ("[calibration]\nmode = \"absolute\"\n", None),            # computed (roadgonio.engines.calibration)
     ("[calibration]\nmode = \"absolute\"\nreference = \"R3\"\n", "calibration.reference"),
     ("[scene]\n", None),
-    ("[scene]\nxlm = \"holder.xml\"\n", "scene"),                 # a typo of xml: not ignored
+    ("[scene]\nxlm = \"holder.xml\"\n", "scene.xlm"),             # a typo of xml: not ignored
     ("[scene.params]\nholder_h_m = 0.1\n", "scene.xml"),          # parameters of no XML file
     ("[scene]\nxml = 5\n", "scene.xml"),
     # a number that is not finite reached the XML and Mitsuba dropped the part (user audit, session 19)

@@ -198,7 +198,7 @@ def test_a_rewritten_table_is_another_instrument(tmp_path):
     ({"beam_sigma_deg": 5.0, "beam_cos_power": 2.0}, "source.beam_cos_power"),
     ({"aperture_edge_radiance": -0.1}, "source.aperture_edge_radiance"),
     ({"beam_intensity_file": "no/such.csv"}, "source.beam_intensity_file"),
-    ({"beam_width_deg": 5.0}, "source"),                      # unknown key
+    ({"beam_width_deg": 5.0}, "source.beam_width_deg"),       # unknown key
 ])
 def test_bad_source_keys_name_the_field(changes, field):
     d = load_instrument("portable").to_dict()
