@@ -863,6 +863,29 @@ def discrepancy_covariance(vfits: Sequence[VariantFit], best: VariantFit, settin
                              nominal=nominal)
 
 
+def cell_amplitudes(settings: SurfaceSettings, weighted_lam: Sequence[tuple[float, dict]], beta_deg,
+                    eps_deg) -> np.ndarray:
+    """sigma_c^2 of the discrepancy at cells (beta, eps) in degrees: the evidence-weighted amplitude
+    of the cell's penalty region (:func:`roadgonio.correction.discrepancy.amplitude_from_penalty`). At
+    the pole (eps = 0) every beta is the same direction, so those cells take the mean over the regions
+    that meet there (user audit, session 39: with the quadrants' edge at beta 12 deg, the tan eps = 0
+    row of an eq. 4 correction had u 0.07 % up to beta 10 and 1.24 % from beta 15 on)."""
+    from roadgonio.correction.discrepancy import amplitude_from_penalty
+    from roadgonio.correction.flexible import penalty_region
+    from roadgonio.geometry import BETA_GRID_DEG
+    beta = np.asarray(beta_deg, dtype=np.float64)
+    eps = np.asarray(eps_deg, dtype=np.float64)
+    region = penalty_region(settings, beta, eps)
+    sig2 = sum(w * amplitude_from_penalty(lam, region) for w, lam in weighted_lam)
+    pole = eps == 0.0
+    if np.any(pole):
+        ring = np.unique(penalty_region(settings, np.asarray(BETA_GRID_DEG, dtype=np.float64),
+                                        np.zeros(len(BETA_GRID_DEG))))
+        at_pole = sum(w * float(np.mean(amplitude_from_penalty(lam, ring))) for w, lam in weighted_lam)
+        sig2 = np.where(pole, at_pole, sig2)
+    return np.asarray(sig2, dtype=np.float64)
+
+
 def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence[tuple[float, dict]],
                       settings: SurfaceSettings, blurs: dict | None = None,
                       nominal: Sequence[tuple[int, int]] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -875,8 +898,7 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     correlated between the two: repetition does not average it away. ``nominal``: further estimates
     after the parts' cells, the fitted model's own value at the nominal direction of cell k of part
     i for each (i, k) (:func:`roadgonio.correction.discrepancy.nominal_blur`: error -delta(x0))."""
-    from roadgonio.correction.discrepancy import (amplitude_from_penalty, discrepancy_correlation, nominal_blur,
-                                                  part_blurs)
+    from roadgonio.correction.discrepancy import discrepancy_correlation, nominal_blur, part_blurs
     from roadgonio.correction.flexible import penalty_region
     ell = float(settings.discrepancy_ell)
     nominal = list(nominal or [])
@@ -885,7 +907,7 @@ def parts_discrepancy(parts: Sequence, theta: np.ndarray, weighted_lam: Sequence
     eps = np.degrees(np.arctan([t for t, _ in cells]))
     beta = np.array([b for _, b in cells])
     region = penalty_region(settings, beta, eps)
-    sig2 = sum(w * amplitude_from_penalty(lam, region) for w, lam in weighted_lam)
+    sig2 = cell_amplitudes(settings, weighted_lam, beta, eps)
     cache = {} if blurs is None else blurs
     for p in parts:
         if p not in cache:

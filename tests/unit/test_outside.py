@@ -1053,3 +1053,30 @@ def test_the_later_roundings_fresh_starts_setting_is_checked(bad):
     with pytest.raises(InputError) as err:
         SurfaceSettings(warm_round_starts=bad)
     assert err.value.field == "warm_round_starts"
+
+
+def test_the_discrepancy_at_the_pole_is_one_amplitude_whatever_beta():
+    """(user audit, session 39) at tan eps = 0 every beta is the same direction, but the discrepancy took
+    each cell's amplitude from its penalty region, split at beta 12 deg: an eq. 4 correction's tan eps = 0
+    row had u 0.07 % up to beta 10 and 1.24 % from 15 on. The pole's cells take the mean of the regions
+    meeting there; every other cell keeps its region's."""
+    from roadgonio.correction.discrepancy import amplitude_from_penalty
+    from roadgonio.correction.flexible import SurfaceSettings, penalty_region
+    from roadgonio.correction.outside import cell_amplitudes
+    s = SurfaceSettings()
+    names = sorted(set(penalty_region(s, np.array([0.0, 90.0, 0.0, 90.0]), np.array([0.0, 0.0, 60.0, 60.0]))))
+    assert len(names) == 4                                   # the quadrants
+    lam = {}
+    for k, n in enumerate(names):
+        lam[f"beta_{n}"], lam[f"eps_{n}"] = 10.0 ** (k + 1), 10.0 ** (4 - k)
+    beta = np.array([0.0, 5.0, 10.0, 15.0, 90.0, 180.0, 0.0, 90.0])
+    eps = np.array([0.0] * 6 + [30.0, 30.0])
+    got = cell_amplitudes(s, [(0.3, lam), (0.7, lam)], beta, eps)
+    assert np.all(got[:6] == got[0])
+    pole_regions = sorted(set(penalty_region(s, beta[:6], eps[:6])))
+    assert len(pole_regions) == 2
+    want = np.mean(amplitude_from_penalty(lam, np.array(pole_regions)))
+    assert got[0] == pytest.approx(want, rel=1e-12)
+    own = amplitude_from_penalty(lam, penalty_region(s, beta[6:], eps[6:]))
+    np.testing.assert_allclose(got[6:], own, rtol=1e-12)
+    assert own[0] != own[1]                                  # the regions' amplitudes do differ
