@@ -757,12 +757,14 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         raise InputError("every input error's sigma is 0 (or none is given): there is nothing to propagate; expected "
                          "at least one positive sigma" + (f" (from {spec.source})" if spec.source else ""),
                          field="sigma")
+    names = {"max_trials": "cap on trials (--max-trials)", "batch": "batch size (--batch)"}
     unused = [o for o, v in (("max_trials", max_trials), ("batch", batch)) if v is not None]
     if unused and not adaptive:
         # they shape the adaptive rule only: a fixed run ignored them (user audit, session 19; refused by the
         # command line alone until the review of session 39, and batch entered the run's fingerprint)
-        raise InputError(f"{' and '.join(unused)} {'are' if len(unused) > 1 else 'is'} for adaptive runs; "
-                         "expected adaptive=True, or trials=N for a fixed number of trials", field=unused[0])
+        raise InputError(f"the adaptive run's {' and '.join(names[u] for u in unused)} "
+                         f"{'are' if len(unused) > 1 else 'is'} for an adaptive run (--adaptive); expected an adaptive "
+                         "run, or a fixed number of trials (--trials N) without them", field=unused[0])
     if max_trials is None:
         max_trials = MAX_TRIALS_DEFAULT
     seed = check_seed(seed)
@@ -890,6 +892,13 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     if unobserved_road is not None:
         options["settings"] = _unobserved_settings(options.get("settings"), unobserved_road,
                                                    joint or forward == "surface")
+    if alternatives is not None and (joint or (isinstance(reference, str) and reference.strip().lower() == "self")):
+        # they were accepted and ignored: the self route and the joint fit have no reference to vary (user
+        # audit, session 19; refused by the command line alone until session 39's review, which then found
+        # the joint route accepting them)
+        raise InputError("the alternative references are for a correction with a reference sample (--reference "
+                         "SAMPLE); a fit through the instrument (--reference self, --joint) has none: its model term is "
+                         "the spread of the fitted variants", field="alternatives")
     if joint:
         return _said_unused(unobserved_road, _correct_joint(
                               measured, instrument, u_measured=_u_measured(u_measured), sigma=sigma, backend=backend,
@@ -916,12 +925,6 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     seed = check_seed(seed)
     inst = _instrument(instrument)
     self_ref = isinstance(reference, str) and reference.strip().lower() == "self"
-    if alternatives is not None and self_ref:
-        # they were accepted and ignored: the self route has no reference to vary (user audit, session 19;
-        # refused by the command line alone until the review of session 39)
-        raise InputError("the alternative references are for reference SAMPLE; reference 'self' fits the model "
-                         "through the instrument and has none (its model term is the spread of the fitted variants)",
-                         field="alternatives")
     if alternatives is None:
         alternatives = "auto"
     if model_variant == "auto" and not self_ref:

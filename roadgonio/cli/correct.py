@@ -167,6 +167,7 @@ def run(args) -> int:
 
 def _run_joint(args) -> int:
     res = api.correct(list(args.measured), list(args.instrument), joint=True, reference=args.reference,
+                      alternatives=args.alternatives,
                       forward=args.forward,
                       u_measured=args.u_measured, sigma=args.sigma, backend=args.backend, accuracy=args.accuracy,
                       rel_se=args.rel_se, seed=args.seed, mitsuba_variant=args.mitsuba_variant,

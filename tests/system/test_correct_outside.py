@@ -52,7 +52,10 @@ def one_line_error(capsys, rc, *must):
       str(MEDIUM), "--joint", "--forward", "eq4"], ("field '--forward'", "eq4 cannot be used")),
     # --alternatives with the self route was accepted and ignored (user audit, session 19)
     (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--alternatives", "R2"],
-     ("field '--alternatives'", "reference SAMPLE")),
+     ("field '--alternatives'", "--reference SAMPLE")),
+    # ... and with --joint (session 39's review: accepted and ignored after the check moved to the API)
+    (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--measured", str(MEASURED), "--instrument",
+      "portable", "--joint", "--alternatives", "R2"], ("field '--alternatives'", "--reference SAMPLE")),
     # the same data twice was fitted as two instruments, halving its noise (user audit, session 19)
     (["--measured", str(MEASURED), "--instrument", str(MEDIUM), "--measured", str(MEASURED), "--instrument",
       str(MEDIUM), "--joint"], ("same table through the same instrument", "pairs 1 and 2")),

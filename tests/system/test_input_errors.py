@@ -953,14 +953,14 @@ def test_a_table_written_again_keeps_no_file_of_the_earlier_backend(tmp_path):
 @pytest.mark.parametrize("opts, must", [
     (["--max-trials", "1000"], "--max-trials"),
     (["--batch", "500"], "--batch"),
-    (["--trials", "1000", "--max-trials", "1000", "--batch", "500"], "max_trials and batch"),
+    (["--trials", "1000", "--max-trials", "1000", "--batch", "500"], "(--max-trials) and batch size (--batch)"),
 ])
 def test_adaptive_options_without_adaptive_are_refused(tmp_path, capsys, opts, must):
     """--max-trials and --batch shape the adaptive rule only; without --adaptive they were accepted and
     ignored (user audit, session 19). Refused before anything runs."""
     rc = main(["uncertainty", "--instrument", "portable", "--sample", "R3", "--sigma", "alpha_deg=0.01",
                "--out", str(tmp_path / "u"), *opts])
-    one_line_error(capsys, rc, must, "adaptive")
+    one_line_error(capsys, rc, must, "--adaptive")
     assert not (tmp_path / "u").exists()
 
 

@@ -554,6 +554,11 @@ def test_the_api_refuses_what_only_the_command_line_refused():
     with pytest.raises(InputError, match="reference SAMPLE") as err:
         api.correct("R3", "portable", reference="self", alternatives="R2", backend="quadrature", plots=False)
     assert err.value.field == "alternatives"
+    # the joint fit has no reference either (session 39's review: it ran 58 s and ignored them)
+    with pytest.raises(InputError, match="reference SAMPLE") as err:
+        api.correct(["R3", "R2"], ["portable", "wide"], joint=True, alternatives="R4", backend="quadrature",
+                    plots=False)
+    assert err.value.field == "alternatives"
     for kw, field in ((dict(batch=500), "batch"), (dict(max_trials=1000), "max_trials"),
                       (dict(max_trials=1000, batch=500), "max_trials")):
         with pytest.raises(InputError, match="adaptive") as err:
