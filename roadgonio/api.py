@@ -52,7 +52,6 @@ from __future__ import annotations
 
 import math
 import os
-import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
@@ -800,14 +799,6 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         from roadgonio.fileio import check_writable
         check_writable(folder)          # an unwritable folder fails now, not after the Monte Carlo
     if aperture:
-        from roadgonio.instrument.housing import Housing
-        if Housing.of(inst) is not None:
-            # (user audit, session 39) correct said so, uncertainty did not
-            from roadgonio.errors import ModelWarning
-            warnings.warn(ModelWarning(
-                f"{inst.name}: the reflectances of the [housing] parts are taken as exact: their uncertainty is in no "
-                "component of this u, and the misaligned parts move inside the housing as built (docs/uncertainty.md, "
-                "'A housed instrument')"), stacklevel=2)
         # this process computes: every table in one process, and on Dask the Mitsuba engine's first
         # table too (its pass plan goes with the other tables, the common random numbers)
         prepare_entry_point(backend, mitsuba_variant)

@@ -142,8 +142,9 @@ UNOBSERVED_ROAD_NOTE = (
     "component: docs/correction.md, \"The road beyond the observation elevations\")")
 #: What no u holds for an instrument with reflecting parts (corrected_u.csv's header; user audit, session 39:
 #: the caveat reached correct's terminal and correct.json, but not the u file that ``road`` reads).
-REFLECTANCES_EXACT_NOTE = ("the reflectances of the instrument's [housing] and [scene] parts are taken as exact: "
-                           "their uncertainty is in no component of this u (docs/correction.md, 'A housed instrument')")
+REFLECTANCES_EXACT_NOTE = ("the reflectances of the instrument's parts (its [housing], its [scene]) are taken as "
+                           "exact: their uncertainty is in no component of this u (docs/correction.md, 'A housed "
+                           "instrument')")
 
 
 def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:

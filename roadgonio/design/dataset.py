@@ -145,13 +145,17 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         return np.asarray(v).reshape(shape + np.asarray(v).shape[1:])
 
     cell_dims = dims + ["sample", "tan_eps", "beta"]
+    conv_grid = grid(np.where(np.isfinite(k_a), conv.astype(np.float64), np.nan))
     data = {
         "k_a": (cell_dims, grid(k_a), {"long_name": "aperture-effect factor k_A (docs/conventions.md section 5)", "units": "1"}),
         "se": (cell_dims, grid(se), {"long_name": "standard error of k_A (Monte Carlo; NaN for deterministic backends)"}),
         "se_dof": (cell_dims, grid(dof), field_attrs("se_dof")),          # as in the k_A Dataset
         "error_bound": (cell_dims, grid(bound), {"long_name": "deterministic error bound of k_A (quadrature; beside se "
                                                               "under absolute calibration: eta's part of the error; "
-                                                              "NaN otherwise)"}),
+                                                              "where converged is false an estimate that can understate "
+                                                              "the error, not a bound; NaN otherwise)"}),
+        "converged": (cell_dims, conv_grid, {"long_name": "the backend reached its target at the cell (false: stopped at "
+                                                         "its cap; NaN where not computed)"}),
         "confidence_bound": (cell_dims, grid(conf), {"long_name": "statistical bound of |k_A - true k_A| holding with "
                                                                   "probability confidence_level (RQMC reference; NaN "
                                                                   "otherwise)"}),
@@ -165,7 +169,8 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "worst_beta_deg": (dims, grid(worst_b), {"long_name": "beta (deg) of the worst cell"}),
         "worst_sample": (dims, grid(worst_s.astype(str)), {"long_name": "sample of the worst cell"}),
         "worst_u": (dims, grid(worst_u), {"long_name": "standard uncertainty of k_A at the worst cell (its SE, or its "
-                                                      "deterministic error bound / sqrt 3)"}),
+                                                      "deterministic error bound / sqrt 3, or a cell's estimate whole "
+                                                      "where the backend did not converge)"}),
         "worst_se": (dims, grid(worst_se), {"long_name": "standard error of k_A at the worst cell (NaN for a "
                                                         "deterministic backend)"}),
         "worst_error_bound": (dims, grid(worst_eb), {"long_name": "deterministic error bound of k_A at the worst cell "

@@ -169,7 +169,7 @@ def idealised_instrument(instrument, key: str):
         # the instrument without its [housing] (nor the reflections its stray light was followed to)
         d = instrument.to_dict()
         d.pop("housing", None)
-        if isinstance(d.get("scene"), dict):
+        if isinstance(d.get("scene"), dict) and not d["scene"].get("xml"):      # an XML scene keeps its reflections
             d["scene"] = {k: v for k, v in d["scene"].items() if k != "max_bounces"}
             if not d["scene"]:
                 del d["scene"]

@@ -197,7 +197,9 @@ def k_characteristics(inst) -> list[tuple[str, str]]:
     if housing is not None and (housing.wall_reflectance > 0 or housing.baffle_reflectance_value > 0):
         # the stray light of a [housing] (user audit, session 39: no item could name it, and at walls of
         # 0.2 it made 13.8 of a participant's 17.7 points of RMS error)
-        out.append(("housing", f"housing's stray light (walls {housing.wall_reflectance:g}; vs no housing)"))
+        baffles = (f", baffles {housing.baffle_reflectance_value:g}"
+                   if housing.baffles and housing.baffle_reflectance_value != housing.wall_reflectance else "")
+        out.append(("housing", f"housing's stray light (walls {housing.wall_reflectance:g}{baffles}; vs no housing)"))
     return out
 
 

@@ -284,8 +284,8 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
             what = ("its Monte Carlo error, common to every trial: not in u or the intervals"
                     + ("; the surrogate's error above is against tables of the same seed" if s["rel_err_max"] is not None
                        else "") if info is None or info.seeded else
-                    "its error bound / sqrt(3), a rectangular distribution, common to every trial: not in u or the "
-                    "intervals")
+                    "its error bound / sqrt(3), a rectangular distribution (a cell stopped at its cap: its estimate "
+                    "whole), common to every trial: not in u or the intervals")
             lines.append(f"k_A backend: relative standard uncertainty up to {100 * rel_u:.2g} % per cell ({what}; "
                          "--rel-se lowers it)")
         if s.get("not_converged"):

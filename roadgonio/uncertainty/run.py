@@ -407,6 +407,17 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
     # the SPEC against the geometry, before any work (and every trial below as it is drawn)
     check_spec_geometry(spec, mm, aperture=aperture)
     if aperture:
+        from roadgonio.instrument.housing import Housing
+        if Housing.of(instrument) is not None:
+            # (user audit, session 39) correct said so, uncertainty did not; after the checks, so that a
+            # refused SPEC is one line (session 39's review)
+            import warnings
+
+            from roadgonio.errors import ModelWarning
+            warnings.warn(ModelWarning(
+                f"{instrument.name}: the reflectances of the [housing] parts are taken as exact: their uncertainty "
+                "is in no component of this u, and the misaligned parts move inside the housing as built "
+                "(docs/uncertainty.md, 'A housed instrument')"), stacklevel=2)
         factory = backend_factory or default_backend_factory(backend, backend_settings or {})
         distributed = client is not None or scheduler is not None or workers not in (None, 0)
         if distributed and backend_factory is not None:

@@ -223,7 +223,7 @@ def geometry_problems(mm, X: np.ndarray, *, aperture: bool = False) -> tuple[np.
                                                        f"pupil radius ({inst.detector.pupil_radius_m:g} m)")
     if aperture and bool(np.any(~bad)):
         from roadgonio.errors import GeometryError
-        from roadgonio.instrument.enclosure import check_sources
+        from roadgonio.instrument.enclosure import check_detector_view, check_sources
         from roadgonio.instrument.housing import Housing
         from roadgonio.instrument.optics import check_detector, check_source
         housing = Housing.of(inst)
@@ -241,6 +241,9 @@ def geometry_problems(mm, X: np.ndarray, *, aperture: bool = False) -> tuple[np.
                     # computation, naming the instrument file's baffle and a cell of no table)
                     _, wr = mm.surrogate_coords(X[k:k + 1])
                     check_sources(pert, housing, mm.cells_of(wr[0]))
+                    # ... and the detector's, inside the housing as built (session 39's review: a detector
+                    # moved through the wall by detector_distance_m was computed, or refused mid-run)
+                    check_detector_view(pert, housing)
             except (GeometryError, InputError) as err:
                 bad[k] = True
                 why[k] = str(getattr(err, "reason", err))

@@ -566,34 +566,33 @@ def test_the_api_refuses_what_only_the_command_line_refused():
         assert err.value.field == field
 
 
-def test_uncertainty_of_a_housed_instrument_says_what_it_holds_fixed(monkeypatch):
+def test_uncertainty_of_a_housed_instrument_says_what_it_holds_fixed():
     """(user audit, session 39) correct said the housing's reflectances are taken as exact, uncertainty
-    did not; and a reflectance in --sigma was an 'unknown key' without the reason."""
+    did not; and a reflectance in --sigma was an 'unknown key' without the reason. The note comes after
+    the SPEC's checks (a refused SPEC is one line), before any k_A table."""
     import warnings
 
-    import roadgonio.uncertainty.run as U
     from roadgonio import api
     from roadgonio.errors import ModelWarning
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.sample import resolve_sample
+    from roadgonio.uncertainty.run import run_uncertainty
+    from roadgonio.uncertainty.spec import parse_sigma_spec
 
     class Stop(Exception):
         pass
 
-    def stop(*a, **k):
+    def factory(*a, **k):
         raise Stop
-    monkeypatch.setattr(U, "run_uncertainty", stop)
-    import roadgonio.engines.registry as R
-    monkeypatch.setattr(R, "prepare_entry_point", lambda *a, **k: None)       # the unit tier has no Mitsuba
-    with warnings.catch_warnings(record=True) as said:
-        warnings.simplefilter("always")
-        with pytest.raises(Stop):
-            api.estimate_uncertainty("scenes/portable_housed.toml", "R3", "alpha_deg=0.01", trials=100)
-    text = [str(w.message) for w in said if issubclass(w.category, ModelWarning)]
-    assert any("taken as exact" in t and "inside the housing" in t for t in text), text
-    with warnings.catch_warnings(record=True) as said:
-        warnings.simplefilter("always")
-        with pytest.raises(Stop):
-            api.estimate_uncertainty("portable", "R3", "alpha_deg=0.01", trials=100)
-    assert not [w for w in said if "taken as exact" in str(w.message)]
+    model = resolve_sample("R3").model
+    for name, said_it in (("scenes/portable_housed.toml", True), ("portable", False)):
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            with pytest.raises(Stop):
+                run_uncertainty(model, load_instrument(name), parse_sigma_spec("alpha_deg=0.01"), trials=1000,
+                                backend_factory=factory)
+        text = [str(w.message) for w in said if issubclass(w.category, ModelWarning)]
+        assert any("taken as exact" in t and "inside the housing" in t for t in text) == said_it, text
     with pytest.raises(InputError, match="no input error") as err:
         api.estimate_uncertainty("scenes/portable_housed.toml", "R3", "alpha_deg=0.01,wall_reflectance=0.01")
     assert "wall_reflectance" in str(err.value)

@@ -674,3 +674,21 @@ def test_a_quantity_the_errors_cannot_change_is_said_so_not_judged_by_the_gum():
         assert "not changed by these errors" in line and "validated" not in line, line
     q0 = next(ln for ln in nominal if ln.strip().startswith("Q0:"))
     assert " u = " in q0 and "not changed" not in q0, q0
+
+
+def test_a_detector_misaligned_through_the_housing_is_refused_before_the_work():
+    """(session 39's review) the housing as built holds the misaligned parts: a source pushed through a
+    wall was refused up front, a detector was not (detector_distance_m 0.02: 6 sigma put the pupil 7 cm
+    beyond the wall x = 1.05 m, computed silently; 0.03 failed mid-run). Both are refused before any k_A
+    table, naming the wall; a small sigma is accepted."""
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.surface.sample import resolve_sample
+    from roadgonio.uncertainty.cells import CellSet
+    from roadgonio.uncertainty.measurement import MeasurementModel
+    from roadgonio.uncertainty.spec import check_spec_geometry, parse_sigma_spec
+    mm = MeasurementModel(resolve_sample("R3").model, load_instrument("scenes/portable_housed.toml"),
+                          CellSet.make("standard"))
+    with pytest.raises(InputError, match="housing_wall_x_max") as err:
+        check_spec_geometry(parse_sigma_spec("detector_distance_m=0.02"), mm, aperture=True)
+    assert "detector_distance_m" in str(err.value)
+    check_spec_geometry(parse_sigma_spec("detector_distance_m=0.001"), mm, aperture=True)
