@@ -9,7 +9,8 @@ What a cell is made of (docs/conventions.md section 4), all Mitsuba objects:
 * the sample: the scene's ``sample`` shape with its ``roadbsdf`` BSDF (:mod:`.road_bsdf`) in the
   ``road_lambert`` channels, so every contribution carries f_road (R) and 1/pi (G) from the same rays;
 * the source of each cell: a ``disk`` shape with a uniform ``area`` emitter of radius R_S, centred at
-  D_S w_i(eps, beta) and facing the sample centre (a ``point`` emitter when R_S = 0).
+  D_S w_i(eps, beta) and facing the sample centre (a ``point`` emitter when R_S = 0, weighted by
+  cos theta_s about the axis: the limit of a small Lambertian disc, docs/conventions.md section 5).
 
 Every cell's source is one rigid placement of the same disc: the integrator holds **one** area
 emitter at a canonical placement (centre at the origin, normal +z) and, per cell, the axis a and
