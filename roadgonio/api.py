@@ -761,7 +761,7 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
     if unused and not adaptive:
         # they shape the adaptive rule only: a fixed run ignored them (user audit, session 19; refused by the
         # command line alone until the review of session 39, and batch entered the run's fingerprint)
-        raise InputError(f"the adaptive run's {' and '.join(names[u] for u in unused)} "
+        raise InputError(f"the {' and '.join(names[u] for u in unused)} "
                          f"{'are' if len(unused) > 1 else 'is'} for an adaptive run (--adaptive); expected an adaptive "
                          "run, or a fixed number of trials (--trials N) without them", field=unused[0])
     if max_trials is None:
