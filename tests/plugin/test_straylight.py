@@ -378,7 +378,7 @@ def test_reflecting_parts_switch_the_stray_light_on(tmp_path):
 
 def test_scene_keys_are_checked(tmp_path):
     d = load_instrument("portable").to_dict()
-    for scene, field in (({"xlm": "a.xml"}, "scene"), ({"max_bounces": 0}, "scene.max_bounces"),
+    for scene, field in (({"xlm": "a.xml"}, "scene.xlm"), ({"max_bounces": 0}, "scene.max_bounces"),
                          ({"max_bounces": 2.5}, "scene.max_bounces"), ({"params": 3}, "scene.params")):
         with pytest.raises(InputError) as err:
             Instrument.from_dict({**d, "scene": scene}, path=tmp_path / "x.toml")
