@@ -47,6 +47,7 @@ from roadgonio.engines.bundle import DEFAULT_RAYS, ForwardModel, RayBundles
 from roadgonio.errors import InputError
 from roadgonio.fileio import atomic_write_json, fingerprint
 from roadgonio.instrument.config import Instrument
+from roadgonio.instrument.housing import REFLECTANCES_EXACT
 from roadgonio.surface.fit import check_rows
 from roadgonio.surface.model import VARIANTS, RoadModel
 from roadgonio.surface.rtable import CORRECTED_R, U_REL_MIN, RTable, check_positive, read_table
@@ -112,8 +113,7 @@ def forward_model_limits(instruments, *, fitted: bool = True) -> str | None:
         return None
     # the parts' reflectances are inputs without an uncertainty (user audit, session 38: walls 0.05 +- 0.01
     # move k_A by 0.4 % (median) and up to 2.5 % at grazing cells; none of it was in u, and nothing said so)
-    exact = (" The reflectances of these parts are taken as exact: their uncertainty is in no component of u "
-             "(docs/correction.md, 'A housed instrument').")
+    exact = f" {REFLECTANCES_EXACT_NOTE[0].upper()}{REFLECTANCES_EXACT_NOTE[1:]}."
     if not fitted:       # the fit's note did not apply to the reference route (user audit, session 38)
         return (f"the instrument's [{'], ['.join(left)}] (their shade and stray light) are in the backend's k_A of the "
                 "reference, which corrects the table." + exact)
@@ -142,9 +142,7 @@ UNOBSERVED_ROAD_NOTE = (
     "component: docs/correction.md, \"The road beyond the observation elevations\")")
 #: What no u holds for an instrument with reflecting parts (corrected_u.csv's header; user audit, session 39:
 #: the caveat reached correct's terminal and correct.json, but not the u file that ``road`` reads).
-REFLECTANCES_EXACT_NOTE = ("the reflectances of the instrument's parts (its [housing], its [scene]) are taken as "
-                           "exact: their uncertainty is in no component of this u (docs/correction.md, 'A housed "
-                           "instrument')")
+REFLECTANCES_EXACT_NOTE = f"{REFLECTANCES_EXACT} (docs/correction.md, 'A housed instrument')"
 
 
 def measured_uncertainty(spec: Any, table: RTable) -> tuple[np.ndarray, str]:

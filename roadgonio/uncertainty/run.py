@@ -414,9 +414,9 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
             import warnings
 
             from roadgonio.errors import ModelWarning
+            from roadgonio.instrument.housing import REFLECTANCES_EXACT
             warnings.warn(ModelWarning(
-                f"{instrument.name}: the reflectances of the [housing] parts are taken as exact: their uncertainty "
-                "is in no component of this u, and the misaligned parts move inside the housing as built "
+                f"{instrument.name}: {REFLECTANCES_EXACT}, and the misaligned parts move inside the housing as built "
                 "(docs/uncertainty.md, 'A housed instrument')"), stacklevel=2)
         factory = backend_factory or default_backend_factory(backend, backend_settings or {})
         distributed = client is not None or scheduler is not None or workers not in (None, 0)
