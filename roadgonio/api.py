@@ -883,7 +883,8 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
     if unobserved_road is not None:
         options["settings"] = _unobserved_settings(options.get("settings"), unobserved_road,
                                                    joint or forward == "surface")
-    if alternatives is not None and (joint or (isinstance(reference, str) and reference.strip().lower() == "self")):
+    self_ref = isinstance(reference, str) and reference.strip().lower() == "self"
+    if alternatives is not None and (joint or self_ref):
         # they were accepted and ignored: the self route and the joint fit have no reference to vary (user
         # audit, session 19; refused by the command line alone until session 39's review, which then found
         # the joint route accepting them)
@@ -915,7 +916,6 @@ def correct(measured, instrument, *, reference="self", alternatives: str | Seque
         _check_u_file(item, u_measured, "u_measured")
     seed = check_seed(seed)
     inst = _instrument(instrument)
-    self_ref = isinstance(reference, str) and reference.strip().lower() == "self"
     if alternatives is None:
         alternatives = "auto"
     if model_variant == "auto" and not self_ref:
