@@ -38,7 +38,6 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     conv = np.ones(k_a.shape, dtype=bool)    # False where the backend stopped short (its bound an estimate)
     # stray light (CellResult: 0 and k_a without it); NaN for tables journaled before they were kept
     stray = {f: np.full_like(k_a, np.nan) for f in STRAY_CELL_FIELDS}
-    not_conv = np.zeros(n, dtype=np.int32)
     seconds = np.zeros(n)
     geometry_ok = np.array([f.ok for f in feas], dtype=bool)
     kind = np.array([f.kind for f in feas], dtype=object)
@@ -71,7 +70,6 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                 level[i, j, a, bb] = _f((rec.get("confidence_level") or [None] * len(s.cells))[c])
                 for f, arr in stray.items():
                     arr[i, j, a, bb] = _f((rec.get(f) or [None] * len(s.cells))[c])
-                not_conv[i] += 0 if rec["converged"][c] else 1
                 conv[i, j, a, bb] = bool(rec["converged"][c])
     max_dev = np.full(n, np.nan)
     rms = np.full(n, np.nan)
@@ -190,7 +188,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                                                                            "(empty without stray light)"}),
         "max_stray_u": (dims, grid(stray_u), {"long_name": "standard error of max_stray_fraction at its cell",
                                               "units": "1"}),
-        "not_converged": (dims, grid(not_conv), {"long_name": "cells whose backend stopped before its target"}),
+        "not_converged": (dims, grid((~conv).reshape(n, -1).sum(axis=1).astype(np.int32)), {"long_name": "cells whose backend stopped before its target"}),
         "signal": (dims, grid(signal), {"long_name": "detected flux for a Lambertian sample relative to the base design",
                                         "formula": SIGNAL_FORMULA}),
         "source_solid_angle_sr": (dims, grid(omega), {"long_name": "projected solid angle of the source disc at the sample "
