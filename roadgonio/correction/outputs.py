@@ -185,12 +185,16 @@ CELL_COLUMNS = {
 }
 
 
-def _column_definitions(head: list[str]) -> dict[str, str]:
+def _column_definitions(head: list[str], columns: dict[str, str] = CELL_COLUMNS,
+                        named: dict[str, str] | None = None) -> dict[str, str]:
+    """The definition of each column of ``head`` from ``columns``: its own, or its template's
+    (``u_rel_<component>``, ``k_a_<alternative>``, or the template ``named`` gives it: a joint
+    correction's per-instrument columns)."""
     out = {}
     for c in head:
-        key = c if c in CELL_COLUMNS else ("u_rel_<component>" if c.startswith("u_rel_")
-                                           else "k_a_<alternative>" if c.startswith("k_a_") else c)
-        out[c] = CELL_COLUMNS.get(key, "")
+        key = (named or {}).get(c) or (c if c in columns else "u_rel_<component>" if c.startswith("u_rel_")
+                                       else "k_a_<alternative>" if c.startswith("k_a_") else c)
+        out[c] = columns.get(key, "")
     return out
 
 
@@ -521,11 +525,7 @@ def _joint_cells_head(sc) -> list[str]:
 
 def _joint_column_definitions(sc) -> dict[str, str]:
     per = {t.format(p.name): t.format("<instrument>") for p in sc.parts for t in _JOINT_PER_INSTRUMENT}
-    out = {}
-    for c in _joint_cells_head(sc):
-        key = per.get(c, "u_rel_<component>" if c.startswith("u_rel_") and c != "u_rel_total" else c)
-        out[c] = JOINT_CELL_COLUMNS.get(key, "")
-    return out
+    return _column_definitions(_joint_cells_head(sc), JOINT_CELL_COLUMNS, per)
 
 
 def joint_cells_csv(sc) -> str:
