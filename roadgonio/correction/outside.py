@@ -120,7 +120,7 @@ class InstrumentPart:
     u_what: str
     k_a: np.ndarray                   # grid, k_A of the corrected model (weighted over variants)
     k_backend: np.ndarray             # grid, backend k_A of the best backbone
-    u_k_a_backend: np.ndarray                  # grid, backend standard uncertainty of that k_A
+    u_k_a_backend: np.ndarray         # grid, backend standard uncertainty of that k_A
     corrected: RTable
     u_corrected: np.ndarray           # grid (sr^-1), standard uncertainty of ``corrected``
     budget: Budget                    # of this instrument's own corrected table

@@ -286,7 +286,7 @@ class CorrectionResult:
     u_corrected: np.ndarray          # grid (sr^-1), the corrected table's standard uncertainty
     u_measured: np.ndarray           # grid (sr^-1)
     k_a: np.ndarray                  # grid, backend k_A under the instrument's calibration
-    u_k_a_backend: np.ndarray                 # grid, backend standard uncertainty of k_A
+    u_k_a_backend: np.ndarray        # grid, backend standard uncertainty of k_A
     budget: Budget
     reference: str
     model: RoadModel

@@ -34,7 +34,7 @@ class SyntheticMeasurement:
     truth: RTable          # r of the true model at the nominal geometry
     measured: RTable       # what the instrument reports (with noise)
     k_a: np.ndarray        # grid of the exact k_A used
-    u_k_a_backend: np.ndarray       # its standard uncertainty
+    u_k_a_backend: np.ndarray   # its standard uncertainty
     settings: dict[str, Any]
 
 

@@ -131,8 +131,9 @@ def sample_trimesh(instrument):
 
 
 #: A sample mesh spanning more than this many times the instrument's largest distance is said in a
-#: note (10: a 0.3 m sample in mm under the lab's 10 m was missed at 50; user audit, session 38: a 0.5 m x 0.2 m sample drawn in millimetres was read as 500 m x 200 m
-#: without a word; under the 1000 m limit, and a flat one gives the same k_A, but not a bumpy one).
+#: note (user audit, session 38: a 0.5 m x 0.2 m sample drawn in millimetres was read as 500 m x 200 m
+#: without a word; under the 1000 m limit, and a flat one gives the same k_A, but not a bumpy one). 10,
+#: not 50: a 0.3 m sample in millimetres under the lab's 10 m was missed at 50.
 MESH_SPAN_NOTE_RATIO = 10.0
 
 
