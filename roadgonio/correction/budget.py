@@ -11,7 +11,8 @@ Components (each a covariance matrix over the measured cells, :class:`Budget`):
 * ``measurement``: the measurement's own standard uncertainty (``--u-measured``), independent
   between cells (diagonal);
 * ``backend``: the k_A backend's standard uncertainty (``CellResult.standard_uncertainty()``:
-  standard error, or bound / sqrt 3; a quadrature cell's estimate whole where it did not converge) with the correlation between cells the backend measured
+  standard error, or bound / sqrt 3; a quadrature cell's estimate whole where it did not converge)
+  with the correlation between cells the backend measured
   (:func:`roadgonio.correction.run.backend_covariance`; independent cells when it measured none);
 * ``parameters``: the fitted model's parameter covariance through the Jacobian of ln k_A
   (:class:`roadgonio.correction.fit.ThroughFit`), correlated;
