@@ -83,3 +83,32 @@ def test_render_of_a_beam_cone_that_clips_the_footprint(mi, tmp_path):
     assert h["roadgonio_cell"] == "tan eps 1, beta 0 deg" and h["roadgonio_instrument"] == inst.name
     w = info["illuminance_window_m"]
     assert np.allclose(h["roadgonio_window_m"], [*w["x"], *w["y"]], rtol=1e-6)
+
+
+def test_render_of_a_point_source_lights_as_i0_cos_theta(mi, tmp_path):
+    """(session 40) R_S = 0 is the limit of a small Lambertian disc: I_0 cos theta about the source's
+    axis (docs/conventions.md section 5). render lit the cell with Mitsuba's isotropic ``point``
+    emitter (the k_A engine was mended in session 39), so the illuminance picture of a source 0.3 m
+    above the sample was 1 / cos theta too bright off the axis (1.5x at the window's edge). The
+    closed form of a point at height h straight above: E_h = I_0 (h / d) (h / d) / d^2, with render's
+    I_0 = h^2 (~1 lx at the centre): E_h = (h / d)^4."""
+    from pathlib import Path
+    import OpenEXR
+    text = (Path(__file__).resolve().parents[2] / "scenes" / "portable.toml").read_text()
+    text = text.replace("distance_m = 1.0\nradius_m = 0.025", "distance_m = 0.3\nradius_m = 0.0", 1)
+    path = tmp_path / "point.toml"
+    path.write_text(text)
+    out = tmp_path / "r"
+    assert main(["render", "--instrument", str(path), "--sample", "lambert", "--tan-eps", "0", "--beta", "0",
+                 "--out", str(out), "--resolution", "16", "--spp", "4", "-q"]) == 0
+    info = json.loads((out / "render.json").read_text())
+    with OpenEXR.File(str(out / "illuminance.exr")) as f:
+        E = np.asarray(f.channels()["E_h"].pixels, dtype=np.float64)
+    (x0, x1), (y0, y1) = info["illuminance_window_m"]["x"], info["illuminance_window_m"]["y"]
+    ny, nx = E.shape
+    X, Y = np.meshgrid(x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx, y1 - (np.arange(ny) + 0.5) * (y1 - y0) / ny)
+    h = 0.3
+    ref = (h / np.sqrt(X ** 2 + Y ** 2 + h ** 2)) ** 4
+    assert ref.min() < 0.5                      # the window reaches far off the axis: the test can tell
+    assert np.abs(E / ref - 1.0).max() < 2e-3   # float32 and the pixel's own spread of E
+    assert info["provenance"]["settings"]["integrator"] == "kabatch"

@@ -10,11 +10,12 @@ sample centre, so the illuminance is in lx per lx and luminances in cd/m^2 per l
 beam profile: its on-axis radiance is the uniform disc's, so its illuminance is lower where the
 profile is below 1).
 
-A source with a beam profile (docs/conventions.md section 4.1) is rendered with the k_A engine's
-``kabatch`` integrator for this one cell (:class:`~roadgonio.engines.mitsuba.engine.BatchEngine`:
-the scene's uniform disc moved out of the way, the cell's source sampled with its profile), so all
-three pictures and the k_A estimate include the profile; a uniform source with Mitsuba's ``direct``
-integrator and the scene's own disc (the two are the same physics: tests/plugin/test_engine.py).
+A source with a beam profile (docs/conventions.md section 4.1), a hard beam cone or a point source
+(R_S = 0: I_0 cos theta about the axis, section 5) is rendered with the k_A engine's ``kabatch``
+integrator for this one cell (:class:`~roadgonio.engines.mitsuba.engine.BatchEngine`: the scene's
+own source moved out of the way, the cell's source sampled with its profile), so all three pictures
+and the k_A estimate include it; a uniform disc with Mitsuba's ``direct`` integrator and the scene's
+own disc (the two are the same physics: tests/plugin/test_engine.py).
 """
 from __future__ import annotations
 
@@ -74,6 +75,14 @@ RENDER_MIN_KA_SAMPLES = 4096
 RENDER_FILES = ("view.exr", "illuminance.exr", "render.png", "render.json", "stray.png", "stray.exr")
 
 
+def kabatch_lit(instrument: Instrument) -> bool:
+    """Whether the cell's source is lit by the k_A engine's ``kabatch`` integrator: a beam profile, a
+    hard cone, or a point source (R_S = 0 is I_0 cos theta about the axis, docs/conventions.md section 5;
+    Mitsuba's ``point`` emitter of the scene is isotropic and lit a housing behind the source)."""
+    src = instrument.source
+    return bool(src.profiled or src.beam_half_angle_deg is not None or src.is_point)
+
+
 def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float, beta_deg: float, out_dir,
                        *, resolution: int = 256, spp: int = 64, seed: int = 0, mitsuba_variant: str | None = None,
                        sample_name: str = "sample") -> dict[str, Any]:
@@ -81,10 +90,10 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     out_dir = Path(out_dir)
     rs = build_scene(instrument, model, resolution=resolution, mitsuba_variant=mitsuba_variant, sampler="multijitter")
     import mitsuba as mi
-    if instrument.source.profiled or instrument.source.beam_half_angle_deg is not None:
+    if kabatch_lit(instrument):
         from roadgonio.engines.mitsuba.engine import BatchEngine, cell_sources
-        # the profiled source of the cell, or one with a hard cone, lit by the kabatch integrator
-        # (the scene's own disc emitter has neither)
+        # the profiled source of the cell, one with a hard cone or a point source, lit by the kabatch
+        # integrator (the scene's own emitter has no profile, no cone, and its point is isotropic)
         engine = BatchEngine(rs)
         engine.check_cells([(tan_eps, beta_deg)])
         engine.integrator.set_cells(*cell_sources(instrument, [(tan_eps, beta_deg)]))
@@ -129,7 +138,7 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     from roadgonio.provenance import provenance
     prov = provenance(instrument=instrument, model=model, backend="mitsuba",
                       settings={"resolution": resolution, "spp": spp, "seed": seed, "sampler": "multijitter",
-                                "integrator": "kabatch (beam profile)" if instrument.source.profiled else "direct",
+                                "integrator": "kabatch" if kabatch_lit(instrument) else "direct",
                                 "mitsuba_variant": mi.variant(), "illuminance_resolution": [nx, ny],
                                 "illuminance_spp": 16})
     info = {"provenance": prov,
