@@ -314,22 +314,12 @@ class KaBatch(mi.SamplingIntegrator):
         block k is the n lattice points of replicate ``block_rep[k]`` (an index into ``rays``) for
         the source of cell ``block_cell[k]``. With ``defer`` a :class:`_Deferred` (the kernels run
         while Python traces the next ones; calling it waits and returns the array)."""
-        n = lattice["n"]
-        blocks = len(block_cell)
-        lanes = blocks * n
-        if lanes >= 1 << 32:
-            raise BackendError(f"a launch of {lanes} lanes exceeds 2^32; split it")
-        l = dr.arange(mi.UInt32, lanes)
-        k = l >> lattice["shift_log2"]
-        j = l & lattice["mask"]
-        cell = dr.gather(mi.UInt32, _u32(block_cell), k)
-        rep = dr.gather(mi.UInt32, _u32(block_rep), k)
-        r = (rep << lattice["shift_log2"]) + j
+        _, j, cell, rep, r = self._blocks(lattice, block_cell, block_rep)
         si, w = self.vertex0(rays, r)
         active = w > 0.0
         u4, u5 = self._lattice(j, rep, lattice, (4, 5))
         value = self.shade(scene, si, cell, mi.Point2f(u4, u5), active) * w
-        return self._bin_sums(mi.Float(value.x), mi.Float(value.y), blocks, lattice, defer)
+        return self._bin_sums(mi.Float(value.x), mi.Float(value.y), len(block_cell), lattice, defer)
 
     # -- stray light: paths through the reflecting parts of the scene --------------------------
     def set_parts(self, shapes, max_bounces: int, source_radius: float = 0.0, source_radiance: float = 0.0) -> None:
