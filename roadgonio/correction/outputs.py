@@ -124,9 +124,10 @@ def _group_figure(group: OutputGroup, name: str, fig) -> Path:
 
 #: What the corrected table of a surface correction is, when it weighs the model's own value.
 MODEL_ESTIMATE_DEFINITION = (
-    "per cell, the generalised least squares combination (full covariance) of r_measured / k_A (k_A of the eq. 4 "
-    "backbone x correction surface fitted through the instrument(s)) and the fitted surface's own value at the "
-    "nominal geometry; w_model (correct_cells.csv) is the latter's weight")
+    "per cell, the least-variance combination with non-negative weights (generalised least squares with the full "
+    "covariance where no weight is negative) of r_measured / k_A (k_A of the eq. 4 backbone x correction surface "
+    "fitted through the instrument(s)) and the fitted surface's own value at the nominal geometry; w_model "
+    "(correct_cells.csv) is the latter's weight")
 
 
 def _corrected_definition(sc, joint: bool) -> str:
@@ -134,8 +135,9 @@ def _corrected_definition(sc, joint: bool) -> str:
         return MODEL_ESTIMATE_DEFINITION
     if joint:
         return ("one table: per instrument r_measured / k_A (k_A of the eq. 4 backbone x correction surface fitted "
-                "through all instruments), combined cell by cell by generalised least squares with the full "
-                "covariance between the instruments")
+                "through all instruments), combined cell by cell with the least-variance non-negative weights "
+                "(generalised least squares with the full covariance between the instruments where no weight is "
+                "negative)")
     return "r_corrected = r_measured / k_A (k_A of the model under the instrument's calibration)"
 
 
@@ -174,7 +176,10 @@ CELL_COLUMNS = {
     "r_corrected_x1e4": "the corrected r x 1e4", "u_corrected_x1e4": "its standard uncertainty x 1e4",
     "u_rel_total": "relative standard uncertainty of r_corrected",
     "u_rel_<component>": "one component of it (definitions in docs/correction.md, 'The uncertainty')",
-    "k_a_<alternative>": "k_A of an alternative model or reference (the model component's spread)",
+    "k_a_<alternative>": "k_A of an alternative model or reference (the model component's spread); through a "
+                         "fitted surface, k_A of another backbone (variant, and its rounding at the mirror plane when "
+                         "the name says so) with its own correction surface, where k_a is the evidence-weighted k_A "
+                         "of all of them",
     "r_model_ideal_x1e4": "the fitted model's (or reference's) ideal r x 1e4 at alpha = 1 deg",
     "r_simulated_x1e4": "the fitted model's simulated measurement through the instrument x 1e4",
     "r_over_k_a_x1e4": "r_measured / k_a x 1e4 (the measurement's own estimate)",

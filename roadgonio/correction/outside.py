@@ -110,6 +110,12 @@ def backbone_label(variant: str, round_deg: float) -> str:
     return variant if round_deg == 0 else f"{variant} (rounded {round_deg:.3g} deg)"
 
 
+def backbone_column(variant: str, round_deg: float) -> str:
+    """:func:`backbone_label` as a column name (``k_a_<this>`` in correct_cells.csv): ``smooth``,
+    ``smooth_rounded_1.12deg``."""
+    return variant if round_deg == 0 else f"{variant}_rounded_{round_deg:.3g}deg"
+
+
 @dataclass
 class InstrumentPart:
     """One instrument's view: its measured table, k_A and its corrected table."""
@@ -766,7 +772,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         grid = np.full(base.r.shape, np.nan)
         for (t_, b_), v in zip(union, lnc):
             grid[int(np.argmin(np.abs(base.tan_eps - t_))), int(np.argmin(np.abs(base.beta_deg - b_)))] = math.exp(v)
-        src = (f"one surface measured by {', '.join(i.name for i in instruments)}, {CORRECTED_R} "
+        # the measured tables' names first: road matches a u file to its table by this line, and two sites
+        # through one instrument wrote the same one (user audit, session 40)
+        src = (f"{label}: one surface measured by {', '.join(i.name for i in instruments)}, {CORRECTED_R} "
                f"per instrument{' and the fitted surface at the nominal geometry' if U else ''}, combined "
                f"cell by cell with the least-variance non-negative weights)")
         combined = base.with_values(grid, name=f"{label}_corrected", source=src)
@@ -972,8 +980,10 @@ def to_correction_result(res: SurfaceCorrection):
                          "use write_surface_correction", field="joint")
     p = res.parts[0]
     best = res.best
-    alternatives = {vf.variant: _grid(p.measured, vf.parts[0].k_a(vf.fit.theta)) for vf in res.variants
-                    if vf is not best}
+    # one column per other backbone, named by its variant and rounding (keyed by the variant alone, the
+    # roundings of a variant overwrote one another: user audit, session 40)
+    alternatives = {backbone_column(vf.variant, vf.round_deg): _grid(p.measured, vf.parts[0].k_a(vf.fit.theta))
+                    for vf in res.variants if vf is not best}
     steps = res.steps
     prov = dict(res.provenance)
     prov["calibration"] = p.instrument.calibration.to_dict()

@@ -229,6 +229,20 @@ def test_forward_surface_round_trip_inside_eq4_writes_the_diagnostics(tmp_path, 
     assert got == sorted(("smooth", r, r) for r in rounds)
     assert sum(v.weight for v in res.extra["surface"].variants) == pytest.approx(1.0, abs=1e-12)
     assert sorted(v["backbone"]["params"]["beta_round_deg"] for v in fit["variants"]) == sorted(rounds)
+    # (user audit, session 40) every other backbone has its own k_a_ column, named by its rounding (keyed by
+    # the variant alone, the roundings overwrote one another: one k_a_smooth for two backbones)
+    from roadgonio.correction.outside import backbone_column
+    best = res.extra["surface"].best
+    others = {f"k_a_{backbone_column('smooth', r)}" for r in rounds if r != best.round_deg}
+    assert len(others) == len(rounds) - 1 and others <= set(cols)
+    assert all(c in others | {"k_a", "k_a_direct"} for c in cols if c.startswith("k_a"))
+    # the corrected table's header names the measured table (road matches a u file to its table by it: two
+    # sites through one instrument wrote the same header), and the u file names that header
+    from roadgonio.surface.rtable import header_line, u_names_table
+    head = header_line(read_table(out / "corrected.csv"))
+    assert head.startswith(f"{read_table(MEASURED).name}: ") and u_names_table(read_table(out / "corrected_u.csv")) == head
+    # the combination is defined as what it is (non-negative weights; "generalised least squares" alone was wrong)
+    assert "non-negative weights" in doc["definitions"]["corrected"]
 
 
 @pytest.fixture(scope="module")
