@@ -138,8 +138,8 @@ def run(args) -> int:
             f"({b['precision']}) at tan eps {b['worst_tan_eps']:g}, beta {b['worst_beta_deg']:g} "
             f"({b['worst_sample']}), footprint {b['footprint_length_m']:.3f} m")
         if b.get("not_converged"):
-            say(f"  {count(int(b['not_converged']), 'cell')} of it did not converge (the precision above is the bound "
-                "or SE the backend stopped at)")
+            say(f"  {count(int(b['not_converged']), 'cell')} of it did not converge (the precision above is the SE or "
+                "error estimate the backend stopped at)")
         if s.get("equally_bright", 1) > 1:
             say(f"  the least max |k_A - 1| of {s['equally_bright']} feasible designs with the most signal (signals within "
                 f"{s['same_signal_rtol']:.1g} relative count as equal: design.csv has them all)")
@@ -149,8 +149,9 @@ def run(args) -> int:
                 "(design.csv); a finer --accuracy may")
         if b["precision_kind"] == "bound":
             bound = b["worst_error_bound"]
+            what = "error bound" if b.get("worst_converged", 1) else "error estimate"
             if b["max_abs_dev"] + bound > s["tolerance"]:
-                say(f"  note: its max |k_A - 1| is within its error bound ({bound:.1g}) of the tolerance: the bound "
+                say(f"  note: its max |k_A - 1| is within its {what} ({bound:.1g}) of the tolerance: the {what} "
                     "does not decide that it is within; recompute the candidates at a finer --accuracy before "
                     "building it")
         elif b["max_abs_dev"] + b["worst_u"] > s["tolerance"]:

@@ -78,6 +78,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
     worst_u = np.full(n, np.nan)
     worst_se = np.full(n, np.nan)
     worst_eb = np.full(n, np.nan)
+    worst_conv = np.full(n, np.nan)
     worst_s = np.array([""] * n, dtype=object)
     max_dev_s = np.full((n, ns), np.nan)
     max_stray = np.full(n, np.nan)
@@ -98,6 +99,7 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         js, a, bb = np.unravel_index(d["worst"], k_a[i].shape)
         worst_t[i], worst_b[i], worst_s[i] = tans[a], betas[bb], samples[js].name
         worst_se[i], worst_eb[i] = se[i, js, a, bb], bound[i, js, a, bb]
+        worst_conv[i] = float(conv[i, js, a, bb])
         st = stray_metrics(stray["stray_fraction"][i], stray["k_a_direct"][i], stray["stray_fraction_se"][i])
         max_stray[i], stray_u[i], max_dev_direct[i] = st["max_stray_fraction"], st["stray_u"], st["max_abs_dev_direct"]
         if st["stray_worst"] >= 0:
@@ -173,7 +175,11 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
                                                         "deterministic backend)"}),
         "worst_error_bound": (dims, grid(worst_eb), {"long_name": "deterministic error bound of k_A at the worst cell "
                                                                   "(quadrature; beside worst_se under absolute "
-                                                                  "calibration: eta's part; NaN otherwise)"}),
+                                                                  "calibration: eta's part; where worst_converged is 0 "
+                                                                  "an estimate, not a bound; NaN otherwise)"}),
+        "worst_converged": (dims, grid(worst_conv), {"long_name": "the backend reached its target at the worst cell (0: "
+                                                                  "stopped at its cap, its error bound an estimate; NaN "
+                                                                  "where not computed)"}),
         "max_abs_dev_direct": (dims, grid(max_dev_direct), {
             "long_name": "max |k_A,direct - 1| over the cells and samples: the aperture effect without the stray "
                          "light (= max_abs_dev without stray light)", "units": "1"}),
@@ -325,15 +331,17 @@ def _finite(v) -> bool:
     return v is not None and math.isfinite(float(v))
 
 
-def precision_words(se, error_bound, u) -> str:
+def precision_words(se, error_bound, u, converged=None) -> str:
     """What the precision of a max |k_A - 1| is (:func:`precision_kind`), in words with its value:
     'SE 1e-04', 'error bound 2e-04', 'SE 1e-04 and eta's error bound 3e-06', or the standard
-    uncertainty 'u 1e-04' of a design.nc written before the kinds were kept."""
+    uncertainty 'u 1e-04' of a design.nc written before the kinds were kept. Where the worst cell did
+    not converge (``converged`` 0) its bound is an estimate and called so (user audit, session 40)."""
     kind = precision_kind(_finite(se), _finite(error_bound))
+    what = "error estimate" if _finite(converged) and not float(converged) else "error bound"
     if kind == "both":
-        return f"SE {float(se):.1g} and eta's error bound {float(error_bound):.1g}"
+        return f"SE {float(se):.1g} and eta's {what} {float(error_bound):.1g}"
     if kind == "bound":
-        return f"error bound {float(error_bound):.1g}"
+        return f"{what} {float(error_bound):.1g}"
     if kind == "se":
         return f"SE {float(se):.1g}"
     return f"u {float(u):.1g}" if _finite(u) else "no SE"
@@ -349,7 +357,7 @@ def summary(ds) -> dict[str, Any]:
     best = int(ds.attrs["best_index"])
     flat = {v: ds[v].values.reshape(-1) for v in ("max_abs_dev", "rms_dev", "signal", "feasible", "kind",
                                                     "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u",
-                                                    "worst_se", "worst_error_bound",
+                                                    "worst_se", "worst_error_bound", "worst_converged",
                                                     "seed", "footprint_length_m", "max_stray_fraction",
                                                     "max_stray_tan_eps", "max_stray_beta_deg", "max_stray_sample",
                                                     "max_stray_u", "max_abs_dev_direct", "not_converged") if v in ds}
@@ -393,7 +401,7 @@ def summary(ds) -> dict[str, Any]:
                         if k not in ("feasible", "kind")}}
         s["best"]["seed"] = int(s["best"]["seed"])
         se, bound = s["best"].get("worst_se"), s["best"].get("worst_error_bound")
-        s["best"]["precision"] = precision_words(se, bound, s["best"]["worst_u"])
+        s["best"]["precision"] = precision_words(se, bound, s["best"]["worst_u"], s["best"].get("worst_converged"))
         s["best"]["precision_kind"] = precision_kind(_finite(se), _finite(bound))
     else:
         s["best"] = None

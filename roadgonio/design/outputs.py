@@ -7,7 +7,8 @@
   worst_beta_deg, worst_sample, worst_u, footprint_length_m, seed``, then the stray light
   (:func:`roadgonio.design.metrics.stray_metrics`) ``max_abs_dev_direct, max_stray_fraction,
   max_stray_tan_eps, max_stray_beta_deg, max_stray_sample, max_stray_u``, then the worst cell's
-  precision by kind ``worst_se, worst_error_bound`` (``worst_u`` is their standard uncertainty);
+  precision by kind ``worst_se, worst_error_bound`` (``worst_u`` is their standard uncertainty) and
+  ``worst_converged`` (0: the backend stopped at its cap there, the bound is an estimate);
 * ``best.toml``: the feasible design with the most signal (:func:`roadgonio.design.dataset.best_point`), a complete instrument file (opens with
   ``roadgonio ka --instrument best.toml``; the header says how to reproduce its row);
 * ``pareto.png``: max |k_A - 1| against the signal, feasible points marked, the Pareto front, the
@@ -37,7 +38,7 @@ from roadgonio.instrument.config import toml_text
 CSV_TAIL = ("max_abs_dev", "rms_dev", "signal", "feasible", "reason")
 CSV_EXTRA = ("kind", "worst_tan_eps", "worst_beta_deg", "worst_sample", "worst_u", "footprint_length_m", "seed",
              "max_abs_dev_direct", "max_stray_fraction", "max_stray_tan_eps", "max_stray_beta_deg", "max_stray_sample",
-             "max_stray_u", "worst_se", "worst_error_bound")
+             "max_stray_u", "worst_se", "worst_error_bound", "worst_converged")
 
 
 #: Every file ``roadgonio design`` writes: a run removes those it does not write this time
@@ -88,7 +89,8 @@ def write_csv(ds, path: Path) -> Path:
     dims = json.loads(ds.attrs["varied"])
     from roadgonio.design.dataset import point_index
     n = int(ds.attrs["points"])
-    flat = {c: ds[c].values.reshape(-1) for c in CSV_TAIL + CSV_EXTRA}
+    # a design.nc written before a column was kept: the column empty (NaN)
+    flat = {c: ds[c].values.reshape(-1) if c in ds else np.full(n, np.nan) for c in CSV_TAIL + CSV_EXTRA}
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(list(dims) + list(CSV_TAIL) + list(CSV_EXTRA))
@@ -171,7 +173,11 @@ def _error_bars(ds) -> tuple[np.ndarray, str]:
     if kind == "both":
         return 2 * np.nan_to_num(u) * 100, "error bars 2 u (the SE and the error bound / sqrt 3)"
     if kind == "bound":
-        return np.nan_to_num(eb) * 100, "error bars: the deterministic error bound"
+        conv = ds["worst_converged"].values.reshape(-1) if "worst_converged" in ds else np.ones_like(eb)
+        stopped = int(np.sum(np.isfinite(eb) & (conv == 0)))
+        return np.nan_to_num(eb) * 100, ("error bars: the deterministic error bound" if not stopped else
+                                         f"error bars: the error bound (an estimate at {stopped} point(s) whose worst "
+                                         "cell stopped at the cap)")
     return 2 * np.nan_to_num(se) * 100, "error bars 2 SE"
 
 
@@ -192,9 +198,14 @@ def plot_pareto(ds, path: Path) -> Path:
     from roadgonio.design.dataset import point_index
     fig, ax = plt.subplots(figsize=(8, 5.5))
     ok = np.isfinite(dev) & np.isfinite(sig)
-    bad = ok & ~feas
+    kinds = ds["kind"].values.reshape(-1).astype(str)
+    bad = ok & ~feas & (kinds != "signal")
+    dark = ok & ~feas & (kinds == "signal")
     ax.errorbar(sig[bad], dev[bad], yerr=bars[bad], fmt="o", mfc="none", color="tab:red",
                 ms=6, lw=0.8, label=f"over tolerance ({int(bad.sum())})")
+    if dark.any():          # within tolerance or not, it detects no light (user audit, session 40: drawn as over it)
+        ax.errorbar(sig[dark], dev[dark], yerr=bars[dark], fmt="s", mfc="none", color="0.45",
+                    ms=6, lw=0.8, label=f"no signal: not an instrument ({int(dark.sum())})")
     ax.errorbar(sig[feas & ok], dev[feas & ok], yerr=bars[feas & ok], fmt="o", color="tab:green",
                 ms=6, lw=0.8, label=f"feasible ({int((feas & ok).sum())})")
     front = pareto_front(sig, dev)
@@ -256,9 +267,14 @@ def plot_points(ds, path: Path, signal: float) -> Path:
     idx = np.nonzero(np.isfinite(dev))[0]
     x = np.arange(idx.size)
     fig, ax = plt.subplots(figsize=(max(8.0, min(16.0, 3.0 + 0.35 * idx.size)), 6.0))
-    for sel, style, label in ((~feas[idx], dict(mfc="none", color="tab:red"), "over tolerance"),
-                              (feas[idx], dict(color="tab:green"), "feasible")):
-        ax.errorbar(x[sel], dev[idx][sel], yerr=bars[idx][sel], fmt="o", ms=6, lw=0.8,
+    kinds = ds["kind"].values.reshape(-1).astype(str)[idx]
+    for sel, style, label in ((~feas[idx] & (kinds != "signal"), dict(fmt="o", mfc="none", color="tab:red"),
+                               "over tolerance"),
+                              (kinds == "signal", dict(fmt="s", mfc="none", color="0.45"), "no signal: not an instrument"),
+                              (feas[idx], dict(fmt="o", color="tab:green"), "feasible")):
+        if not sel.any() and label.startswith("no signal"):
+            continue
+        ax.errorbar(x[sel], dev[idx][sel], yerr=bars[idx][sel], ms=6, lw=0.8,
                     label=f"max |k_A - 1|, {label} ({int(sel.sum())})", **style)
     if "max_stray_fraction" in ds and np.nanmax(np.append(ds["max_stray_fraction"].values.reshape(-1)[idx], 0.0)) > 0:
         direct = ds["max_abs_dev_direct"].values.reshape(-1)[idx] * 100

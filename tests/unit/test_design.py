@@ -343,6 +343,14 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
     assert words == "error bars: the deterministic error bound"
     assert np.array_equal(bars, np.nan_to_num(ds["worst_error_bound"].values.reshape(-1)) * 100)
     assert np.isnan(ds["confidence_bound"].values).all() and np.isnan(ds["confidence_level"].values).all()
+    # (user audit, session 40) where the worst cell stopped at the quadrature's cap its bound is an estimate:
+    # the words, the best's precision and pareto.png's error bars say so
+    assert ds["worst_converged"].values[1, 1] == ds["converged"].values[1, 1].ravel()[i] == 1.0
+    stopped = ds.copy(deep=True)
+    stopped["worst_converged"].values[...] = np.where(np.isfinite(stopped["worst_converged"].values), 0.0, np.nan)
+    b = summary(stopped)["best"]
+    assert b["precision"] == f"error estimate {b['worst_error_bound']:.1g}"
+    assert "an estimate" in _error_bars(stopped)[1]
     # the CSV: one row per point, varied keys first, then the metrics; the impossible point keeps its reason
     rows = list(csv.reader((tmp_path / "design.csv").read_text().splitlines()))
     assert rows[0][:7] == ["source.distance_m", "source.radius_m", "max_abs_dev", "rms_dev", "signal", "feasible",
@@ -991,5 +999,34 @@ def test_designs_the_computation_cannot_tell_apart_are_counted():
     assert indistinct(bounded, 0).tolist() == [False, True, False]            # 2e-4 <= 3e-4; 1.2e-3 > 4e-4
     assert precision_words(3e-4, math.nan, 3e-4) == "SE 0.0003"
     assert precision_words(math.nan, 2e-4, 1.2e-4) == "error bound 0.0002"
+    assert precision_words(math.nan, 2e-4, 2e-4, 0.0) == "error estimate 0.0002"     # stopped at its cap
+    assert precision_words(math.nan, 2e-4, 1.2e-4, 1.0) == "error bound 0.0002"
     assert precision_words(3e-4, 1e-6, 3e-4) == "SE 0.0003 and eta's error bound 1e-06"
     assert precision_words(None, None, 1e-4) == "u 0.0001"
+
+
+def test_pareto_draws_a_design_without_signal_apart_from_those_over_tolerance(tmp_path, monkeypatch):
+    """(user audit, session 40) a zero source radius within the tolerance (kind 'signal': it detects no
+    light) was drawn as a red open circle under 'over tolerance'. It has its own legend entry, and the
+    over-tolerance count is of the points over it."""
+    from roadgonio.design import outputs as O
+    from roadgonio.design.dataset import assemble
+    from roadgonio.design.run import SampleSpec
+    base = load_instrument("portable")
+    specs = G.as_vary_specs(["source.radius_m=0,0.006,0.012"])
+    points = G.grid_points(specs)
+    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
+    samples = [SampleSpec("A", "A", None, cells)]
+    checked = [check_point(base, p, list(cells)) for p in points]
+    ones = np.ones((2, 2))
+    done = {(i, 0): _journal_record(_ka_dataset([[1.0 + d, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones), cells)
+            for i, d in enumerate((0.01, 0.02, 0.09))}
+    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
+                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
+                  seeds=[1, 2, 3], tol=0.05)
+    assert ds["kind"].values.reshape(-1).tolist()[0] == "signal" and ds["max_abs_dev"].values.reshape(-1)[0] < 0.05
+    got = {}
+    monkeypatch.setattr(O, "atomic_savefig", lambda fig, path, dpi: got.setdefault("fig", fig) and path)
+    O.plot_pareto(ds, tmp_path / "pareto.png")
+    labels = got["fig"].axes[0].get_legend_handles_labels()[1]
+    assert "over tolerance (1)" in labels and "no signal: not an instrument (1)" in labels, labels
