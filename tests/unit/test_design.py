@@ -361,7 +361,7 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
     # no housing: no stray light, 0 (not unknown) on every computed point, and k_A,direct is k_A
     # (trial 10 D10: the columns are there for every design)
     assert rows[0][14:] == ["max_abs_dev_direct", "max_stray_fraction", "max_stray_tan_eps", "max_stray_beta_deg",
-                            "max_stray_sample", "max_stray_u", "worst_se", "worst_error_bound"]
+                            "max_stray_sample", "max_stray_u", "worst_se", "worst_error_bound", "worst_converged"]
     ok = ds["geometry_ok"].values
     assert (ds["max_stray_fraction"].values[ok] == 0.0).all() and np.isnan(ds["max_stray_tan_eps"].values).all()
     assert np.array_equal(ds["max_abs_dev_direct"].values, ds["max_abs_dev"].values, equal_nan=True)
