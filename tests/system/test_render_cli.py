@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from roadgonio.cli import main
 
@@ -112,3 +113,25 @@ def test_render_of_a_point_source_lights_as_i0_cos_theta(mi, tmp_path):
     assert ref.min() < 0.5                      # the window reaches far off the axis: the test can tell
     assert np.abs(E / ref - 1.0).max() < 2e-3   # float32 and the pixel's own spread of E
     assert info["provenance"]["settings"]["integrator"] == "kabatch"
+
+
+def test_render_of_a_fixed_height_source_is_in_the_unit_it_states(mi, tmp_path):
+    """(user audit, session 40) The pictures' unit is 1 lx normal to the source's axis at the sample
+    centre (render.json ``units``); a fixed-height path's source was normalised at its height (tan eps
+    0), so at tan eps 3 on the corridor preset (1 m rail) every picture was (1 / sqrt 10)^2 = 10x too
+    dark. In the stated unit the horizontal illuminance at the sample centre is cos(incidence) =
+    1 / sqrt(1 + tan^2 eps) (the disc's own 1 / (1 + R^2 / D^2) is 1e-5 here)."""
+    import math
+    import OpenEXR
+    out = tmp_path / "r"
+    assert main(["render", "--instrument", "corridor", "--sample", "lambert", "--tan-eps", "3", "--beta", "0",
+                 "--out", str(out), "--resolution", "32", "--spp", "4", "-q"]) == 0
+    info = json.loads((out / "render.json").read_text())
+    with OpenEXR.File(str(out / "illuminance.exr")) as f:
+        E = np.asarray(f.channels()["E_h"].pixels, dtype=np.float64)
+    (x0, x1), (y0, y1) = info["illuminance_window_m"]["x"], info["illuminance_window_m"]["y"]
+    ny, nx = E.shape
+    j = int(np.argmin(np.abs(x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx)))
+    i = int(np.argmin(np.abs(y1 - (np.arange(ny) + 0.5) * (y1 - y0) / ny)))
+    assert E[i, j] == pytest.approx(1.0 / math.sqrt(10.0), rel=0.01)
+    assert abs(info["k_a_estimate"] - 1.0) < 1e-5          # a ratio: the unit does not enter it

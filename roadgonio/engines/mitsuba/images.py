@@ -75,6 +75,15 @@ RENDER_MIN_KA_SAMPLES = 4096
 RENDER_FILES = ("view.exr", "illuminance.exr", "render.png", "render.json", "stray.png", "stray.exr")
 
 
+def unit_scale(instrument: Instrument, tan_eps: float, beta_deg: float) -> float:
+    """The factor that puts a render of this cell in :data:`EXR_UNITS`: (D_S / length)^2, D_S the cell's
+    source distance and length the one :func:`~roadgonio.engines.mitsuba.scene.source_radiance` is
+    normalised at (1 on an arc; a fixed-height path's source is farther than its height off tan eps 0)."""
+    from roadgonio.instrument.optics import source_frames
+    d = float(source_frames(instrument, tan_eps, beta_deg).distance_m)
+    return (d / instrument.source.length_m) ** 2
+
+
 def kabatch_lit(instrument: Instrument) -> bool:
     """Whether the cell's source is lit by the k_A engine's ``kabatch`` integrator: a beam profile, a
     hard cone, or a point source (R_S = 0 is I_0 cos theta about the axis, docs/conventions.md section 5;
@@ -104,13 +113,18 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     # the signal (concentric film) and its k_A estimate
     from roadgonio.engines.result import ideal_ratio
     from roadgonio.engines.mitsuba.backend import pooled_ratio
-    sig = rs.render(seed, spp)
+    # the scene's source gives ~1 lx at its nearest distance (scene.source_radiance); a fixed-height
+    # path's source is farther at this cell: the pictures are scaled to the unit they state, 1 lx normal
+    # to the axis at the sample centre from this cell's source (user audit, session 40: 10x too dark at
+    # tan eps 3 on the corridor preset)
+    unit = unit_scale(instrument, tan_eps, beta_deg)
+    sig = rs.render(seed, spp) * unit
     ratio, se, mg = pooled_ratio([(spp, sig[..., ROAD], sig[..., LAMBERT])])
     ideal = ideal_ratio(model, instrument, tan_eps, beta_deg)
     # picture of the field of view
     rs.sensor.mapping = "square"
     try:
-        view = rs.render(seed, spp)        # the same seed: seed + 1 would be another seed's signal stream
+        view = rs.render(seed, spp) * unit      # the same seed: seed + 1 would be another seed's signal stream
     finally:
         rs.sensor.mapping = "concentric"
     # illuminance around the footprint, seen from above (Lambert channel: L = E_h / pi)
@@ -124,11 +138,14 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     nx, ny = 512, 128
     z_top = float(rs.sample_shape.bbox().max.z)
     cam = _ortho_sensor(mi, ex0, ex1, ey0, ey1, nx, ny, 16, z_top)
-    top = np.array(mi.render(rs.scene, sensor=cam, integrator=rs.integrator, seed=seed, spp=16), dtype=np.float64)
+    top = np.array(mi.render(rs.scene, sensor=cam, integrator=rs.integrator, seed=seed, spp=16), dtype=np.float64) * unit
     E = math.pi * top[..., LAMBERT]
     L_top = top[..., ROAD]
 
     stray = stray_picture(rs, tan_eps, beta_deg, seed=seed) if rs.stray else None
+    if stray is not None:
+        stray["stack"] = stray["stack"] * unit
+        stray["images"] = {k: v * unit for k, v in stray["images"].items()}
 
     from roadgonio.fileio import OutputGroup
     files = {"view_exr": str(out_dir / "view.exr"), "illuminance_exr": str(out_dir / "illuminance.exr"),
