@@ -65,7 +65,9 @@ def run(args) -> int:
         say(f"stray light: {100 * st['stray_fraction_road']:.2f} % of the road signal{most}, "
             f"{100 * st['stray_fraction_lambert']:.2f} % of the Lambert calibration's"
             + (f"; k_A of the direct light alone ~ {info['k_a_direct_estimate']:.4f}"
-               if info.get("k_a_direct_estimate") is not None else "") + " (stray.png shows where it enters the view)")
+               if info.get("k_a_direct_estimate") is not None
+               else f"; {info['k_a_note']}" if info.get("k_a_note") else "")      # why it is missing (user audit)
+            + " (stray.png shows where it enters the view)")
         # trial 10 D5: the headline k_A and stray.png do not follow --resolution/--spp; say what they used
         say(f"k_A with stray light and stray.png: the stray-light run's {st['resolution']} x {st['resolution']} "
             f"pixels and {st['samples']} samples (fixed; --resolution {args.resolution} and --spp {args.spp} "

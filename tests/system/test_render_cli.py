@@ -135,3 +135,27 @@ def test_render_of_a_fixed_height_source_is_in_the_unit_it_states(mi, tmp_path):
     i = int(np.argmin(np.abs(y1 - (np.arange(ny) + 0.5) * (y1 - y0) / ny)))
     assert E[i, j] == pytest.approx(1.0 / math.sqrt(10.0), rel=0.01)
     assert abs(info["k_a_estimate"] - 1.0) < 1e-5          # a ratio: the unit does not enter it
+
+
+def test_render_png_says_which_axis_of_the_illuminance_is_stretched(mi, tmp_path, monkeypatch):
+    """(user audit, session 40) the illuminance panel said "y stretched" whatever the window: a long
+    footprint's window is stretched in y, a point footprint's 2 x 2 mm window in x."""
+    from pathlib import Path
+
+    import roadgonio.fileio as fileio
+    titles = []
+
+    def keep(fig, path, **kw):
+        titles.extend(a.get_title() for a in fig.axes)
+        Path(path).write_bytes(b"png")
+        return Path(path)
+    monkeypatch.setattr(fileio, "atomic_savefig", keep)
+    text = (Path(__file__).resolve().parents[2] / "scenes" / "portable.toml").read_text()
+    point = tmp_path / "point.toml"
+    point.write_text(text.replace("pupil_radius_m = 0.005", "pupil_radius_m = 0.0")
+                     .replace("field_half_angle_deg = 0.15", "field_half_angle_deg = 0.0"))
+    for inst, out in (("portable", "long"), (str(point), "point")):
+        assert main(["render", "--instrument", inst, "--sample", "R3", "--tan-eps", "2", "--beta", "0",
+                     "--out", str(tmp_path / out), "--resolution", "8", "--spp", "4", "-q"]) == 0
+    illum = [t for t in titles if t.startswith("Horizontal illuminance")]
+    assert len(illum) == 2 and "y stretched" in illum[0] and "x stretched" in illum[1], titles

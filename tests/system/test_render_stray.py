@@ -73,3 +73,34 @@ def test_one_cell_json_says_how_many_reflections(capsys):
                  "--rel-se", "1e-2", "--json"]) == 0
     d = json.loads(capsys.readouterr().out)
     assert d["max_bounces"] == 4 and d["stray_fraction"] > 0
+
+
+def test_stray_png_names_the_housing_parts_as_the_instrument_file_does():
+    """(user audit, session 40) stray.png's key showed the shapes' ids (housing_baffle_1 beside errors
+    calling it baffle 0, the field housing.baffles.0): it shows the panels' own words; render.json and
+    stray.exr keep the ids."""
+    from types import SimpleNamespace
+
+    from roadgonio.engines.mitsuba.images import _part_label
+    from roadgonio.instrument.enclosure import housing_panels
+    from roadgonio.instrument.housing import Housing
+    inst = load_instrument(str(SCENES / "portable_housed_baffle.toml"))
+    inst = inst.with_changes(housing={"baffles": [{"x_m": -0.5, "height_m": 0.02}]})     # the declared plate, raised
+    housing = Housing.of(inst)
+    rs = SimpleNamespace(instrument=inst, housing=housing)
+    ids = [p.id for p in housing_panels(inst, housing)]
+    baffle = [i for i in ids if "baffle" in i]
+    assert baffle and _part_label(rs, baffle[0]).startswith("baffle 0 (x = ")
+    assert _part_label(rs, "housing_wall_y_min").startswith("wall y = -")
+    assert _part_label(SimpleNamespace(instrument=inst, housing=None), "holder_post") == "holder_post"
+
+
+def test_render_says_why_the_direct_k_a_is_missing(mi, tmp_path, capsys):
+    """(user audit, session 40) below 4096 samples a housed render has no k_A of the direct light; the
+    printed line dropped it without a word (the reason was in render.json only)."""
+    from roadgonio.cli import main
+    out = tmp_path / "r"
+    assert main(["render", "--instrument", str(SCENES / "portable_housed.toml"), "--sample", "lambert", "--tan-eps",
+                 "12", "--beta", "75", "--out", str(out), "--resolution", "16", "--spp", "4"]) == 0
+    printed = capsys.readouterr().out
+    assert "no k_A of the direct light estimate from 1024 samples" in printed, printed

@@ -264,7 +264,7 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
     shifts = np.concatenate([lat.shifts(seed, 0, log2n, replicates),
                              lat.walk_shifts(seed, 0, log2n, replicates, integ.qmc_dims)], axis=1)
     keys_all = lat.walk_keys(seed, 0, log2n, replicates, integ.walk_dims)
-    ids = [SAMPLE_LABEL] + [_part_label(rs, pid) for pid in rs.part_ids]
+    ids = [SAMPLE_LABEL] + list(rs.part_ids)
     P = len(ids)
     res = int(resolution)
     sums = np.zeros((2 + P, res * res))             # direct road, stray road, stray road by part
@@ -321,7 +321,8 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
                "note": "shares of the whole signal (direct + stray) by the part of the last reflection before the "
                        "footprint; road = the sample's channel, lambert = the calibration's perfect diffuser"}
     images = {"L_direct": img[0], "L_stray": img[1], **{f"L_{ids[p_]}": img[2 + p_] for p_ in range(P)}}
-    return {"summary": summary, "images": images, "ids": ids, "stack": img}
+    return {"summary": summary, "images": images, "ids": ids, "stack": img,
+            "labels": [SAMPLE_LABEL] + [_part_label(rs, pid) for pid in rs.part_ids]}
 
 
 #: Name of the sample in the stray picture (the part of a path's last reflection may be the sample).
@@ -329,6 +330,15 @@ SAMPLE_LABEL = "sample"
 
 
 def _part_label(rs, pid: str) -> str:
+    """The words for a part in stray.png: a housing panel's own label ("wall y = -0.075 m", "baffle 0
+    (x = ...)", numbered as the field housing.baffles.0), an XML part's id (user audit, session 40: the
+    key showed ids such as housing_baffle_1 beside errors that call it baffle 0). render.json and
+    stray.exr keep the ids."""
+    if rs.housing is not None:
+        from roadgonio.instrument.enclosure import housing_panels
+        for p in housing_panels(rs.instrument, rs.housing):
+            if p.id == pid and p.label:
+                return p.label
     return pid
 
 
@@ -342,6 +352,7 @@ def _stray_png(path: Path, instrument: Instrument, stray: dict, info) -> Path:
 
     from roadgonio.fileio import atomic_savefig
     img, ids, summ = stray["stack"], stray["ids"], stray["summary"]
+    names = stray.get("labels", ids)
     gamma = instrument.detector.field_half_angle_deg
     ext = gamma if gamma > 0 else 1.0
     res = img.shape[-1]
@@ -371,12 +382,14 @@ def _stray_png(path: Path, instrument: Instrument, stray: dict, info) -> Path:
     from matplotlib.patches import Patch
     lit = [k for k in np.argsort(-parts.reshape(len(ids), -1).sum(axis=1)) if parts[k].sum() > 0][:4]
     if lit:
-        ax.legend(handles=[Patch(color=colours[k], label=ids[k]) for k in lit], fontsize=7, loc="lower center",
+        ax.legend(handles=[Patch(color=colours[k], label=names[k]) for k in lit], fontsize=7, loc="lower center",
                   ncol=2, framealpha=0.85)
     for a in axes[:2]:
         t = np.linspace(0, 2 * np.pi, 200)
         a.plot(ext * np.cos(t), ext * np.sin(t), color="cyan", lw=1.0)
-        a.set_xlabel("field angle, horizontal (deg)")
+        # oriented as render.png's view (user audit, session 40: no orientation here)
+        a.set_xlabel("field angle, horizontal (deg; right = +y, as the meter looks)\nnear edge of the footprint at the "
+                     "bottom, far edge at the top", fontsize=9)
         a.set_ylabel("field angle, vertical (deg)")
         a.set_aspect("equal")
     ax = axes[2]
@@ -388,7 +401,7 @@ def _stray_png(path: Path, instrument: Instrument, stray: dict, info) -> Path:
     ax.barh(yk - 0.2, road[keep], height=0.4, color=colours[keep], label="road sample")
     ax.barh(yk + 0.2, lam[keep], height=0.4, color=colours[keep], alpha=0.45, hatch="//",
             label="Lambert calibration (perfect diffuser)")
-    ax.set_yticks(yk, [ids[k] for k in keep], fontsize=8)
+    ax.set_yticks(yk, [names[k] for k in keep], fontsize=8)
     ax.invert_yaxis()
     ax.set_xlabel("share of the detector signal (%)")
     ax.legend(fontsize=8, loc="lower right")
@@ -420,6 +433,15 @@ def _hull(x, y):
     return pts[v, 0], pts[v, 1]
 
 
+#: render.png draws E_h on a log scale when its largest value is this many times the footprint's median
+#: E_h (its smallest shown: this many decades below the largest at most)
+E_LOG_SPAN = 20.0
+E_LOG_DECADES_MAX = 1e4
+
+#: The illuminance panel's title says here which axis is stretched, once the panel is laid out (_png).
+STRETCH_WORDS = " (not to scale: y stretched)"
+
+
 def panel_words(instrument: Instrument, info: dict[str, Any]) -> dict[str, str]:
     """Words of render.png that depend on the scene: ``stray`` (added to both panels' titles in a
     reflecting housing, where they show the direct light only: user audit, a view and an illuminance
@@ -434,7 +456,7 @@ def panel_words(instrument: Instrument, info: dict[str, Any]) -> dict[str, str]:
     return {"stray": words,
             "illuminance_title": "Horizontal illuminance on the sample" + (" straight from the source" if stray
                                                                            is not None else "")
-                                 + f" (not to scale: y stretched){words}",
+                                 + f"{STRETCH_WORDS}{words}",
             "x_label": ("x on the sample (m; detector towards +x)" if delta == 0 else
                         f"x on the sample (m; the detector at azimuth delta = {delta:g} deg from +x)")}
 
@@ -486,8 +508,27 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
 
     ax = axes[1]
     x0, x1, y0, y1 = window
-    im = ax.imshow(E, extent=(x0, x1, y0, y1), origin="upper", cmap="viridis", aspect="auto", vmin=0)
     fx, fy = outline
+    # a logarithmic scale where E spans decades over the footprint: at grazing light on the wide preset the
+    # spot under the source's foot (E 56) left the rest of the footprint (0.01-0.6) uniformly dark on a
+    # linear scale (user audit, session 40)
+    ny_, nx_ = E.shape
+    cols = (np.arange(nx_) + 0.5) / nx_ * (x1 - x0) + x0
+    rows = y1 - (np.arange(ny_) + 0.5) / ny_ * (y1 - y0)
+    near = (((cols >= fx.min()) & (cols <= fx.max()))[None, :] & ((rows >= fy.min()) & (rows <= fy.max()))[:, None])
+    lit = E[near & (E > 0)]
+    top_e = float(np.max(E))
+    log = lit.size > 0 and top_e > E_LOG_SPAN * float(np.median(lit))
+    if log:
+        from matplotlib.colors import LogNorm
+        norm = LogNorm(vmin=max(float(np.percentile(lit, 1.0)), top_e / E_LOG_DECADES_MAX), vmax=top_e)
+        from matplotlib import colormaps
+        cmap = colormaps["viridis"].copy()
+        cmap.set_bad(cmap(0.0))                 # unlit (E = 0) drawn as the scale's darkest
+        im = ax.imshow(np.where(E > 0, E, np.nan), extent=(x0, x1, y0, y1), origin="upper", cmap=cmap,
+                       aspect="auto", norm=norm)
+    else:
+        im = ax.imshow(E, extent=(x0, x1, y0, y1), origin="upper", cmap="viridis", aspect="auto", vmin=0)
     if max(np.ptp(fx), np.ptp(fy)) <= 1e-9 * max(x1 - x0, y1 - y0):
         # zero pupil and field: the footprint is a point (a zero-size outline drew nothing but its legend)
         ax.plot([np.mean(fx)], [np.mean(fy)], "r+", ms=12, mew=1.5, ls="none", label="detector footprint (a point)")
@@ -501,14 +542,30 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
     ax.set_title(words["illuminance_title"], fontsize=10)
     ax.legend(loc="upper right", fontsize=8)
     cb = fig.colorbar(im, ax=ax, shrink=0.9)
-    cb.set_label("illuminance E$_h$ (lx per lx normal to the source axis at the sample centre)")
+    # two lines: on one the label ran off the figure at its start (user audit, session 40)
+    cb.set_label("illuminance E$_h$ (lx per lx normal\nto the source axis at the sample centre"
+                 + (")\nlog scale" if log else ")"))
     ka = info["k_a_estimate"]
     ka_txt = (f"k_A ~ {ka:.4f} +- {info['k_a_se']:.1e} (this render)" if ka is not None
               else "no k_A estimate (too few samples)" if "k_a_note" in info else "k_A undefined")
+    if "stray" in info:
+        # the headline is the stray-light run's; the two panels below are the direct light (user audit,
+        # session 40: their own k_A was not in the picture)
+        kd = info.get("k_a_direct_estimate")
+        ka_txt = (ka_txt.replace("(this render)", "with the stray light (stray.png)") + "; the panels: direct light, "
+                  + (f"k_A ~ {kd:.4f} +- {info['k_a_direct_se']:.1e}" if kd is not None
+                     else "no k_A of it (too few samples)"))
     fig.suptitle(f"{instrument.name}, sample {info['sample']}: tan eps = {info['tan_eps']:g}, "
                  f"beta = {info['beta_deg']:g} deg, alpha = {instrument.observation.alpha_deg:g} deg\n{ka_txt}",
                  fontsize=11)
     fig.tight_layout()
+    # which axis the window's stretch is along, from the laid-out panel (user audit, session 40: "y
+    # stretched" over a point footprint's 2 x 2 mm window, stretched in x)
+    box = ax.get_window_extent()
+    shown, data = box.width / max(box.height, 1e-9), (x1 - x0) / max(y1 - y0, 1e-300)
+    stretch = "y" if data > 1.05 * shown else "x" if data < shown / 1.05 else None
+    ax.set_title(words["illuminance_title"].replace(STRETCH_WORDS, "" if stretch is None else
+                                                    f" (not to scale: {stretch} stretched)"), fontsize=10)
     atomic_savefig(fig, path, dpi=110)
     plt.close(fig)
     return path
