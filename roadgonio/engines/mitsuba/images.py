@@ -523,8 +523,8 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
         from matplotlib.colors import LogNorm
         norm = LogNorm(vmin=max(float(np.percentile(lit, 1.0)), top_e / E_LOG_DECADES_MAX), vmax=top_e)
         from matplotlib import colormaps
-        cmap = colormaps["viridis"].copy()
-        cmap.set_bad(cmap(0.0))                 # unlit (E = 0) drawn as the scale's darkest
+        base = colormaps["viridis"]
+        cmap = base.with_extremes(bad=base(0.0))        # unlit (E = 0) drawn as the scale's darkest
         im = ax.imshow(np.where(E > 0, E, np.nan), extent=(x0, x1, y0, y1), origin="upper", cmap=cmap,
                        aspect="auto", norm=norm)
     else:
