@@ -152,7 +152,24 @@ def misfit_covariance(table: RTable, residual: np.ndarray, n_free: int,
     lev = np.full(res.shape, min(float(n_free) / max(res.size, 1), 0.95))
     _, widen = local_birge(table, res, lev)
     d = np.asarray(u_measured_rel, dtype=np.float64) * np.sqrt(np.maximum(widen ** 2 - 1.0, 0.0))
-    return np.outer(d, d) * _neighbourhood(table), widen
+    return np.outer(d, d) * pole_as_one(table, _neighbourhood(table)), widen
+
+
+def pole_as_one(table: RTable, K: np.ndarray) -> np.ndarray:
+    """The correlation matrix ``K`` (over the measured cells) with the pole's cells (tan eps = 0: one
+    direction whatever beta) made one: T K T^T, T replacing each pole cell by the normalised mean of
+    them, so they correlate 1 with one another and alike with every other cell, and the matrix stays
+    positive semidefinite with a unit diagonal (user review, session 40: one direction's misfit, one
+    error, correlated 1e-18 between beta 0 and 180)."""
+    pole = np.asarray(table.tan_eps, dtype=np.float64)[np.nonzero(table.mask)[0]] == 0.0
+    n_pole = int(pole.sum())
+    if n_pole < 2:
+        return K
+    T = np.eye(K.shape[0])
+    mean = pole / n_pole
+    norm = math.sqrt(float(mean @ K @ mean))
+    T[pole] = mean / norm
+    return T @ K @ T.T
 
 
 def functionals(table: RTable, cov_rel: np.ndarray | None) -> dict[str, Any]:

@@ -112,8 +112,9 @@ def backbone_label(variant: str, round_deg: float) -> str:
 
 def backbone_column(variant: str, round_deg: float) -> str:
     """:func:`backbone_label` as a column name (``k_a_<this>`` in correct_cells.csv): ``smooth``,
-    ``smooth_rounded_1.12deg``."""
-    return variant if round_deg == 0 else f"{variant}_rounded_{round_deg:.3g}deg"
+    ``smooth_rounded_1.12455deg`` (six digits: roundings 1.121 and 1.124 deg gave one name at three,
+    one column overwriting the other)."""
+    return variant if round_deg == 0 else f"{variant}_rounded_{round_deg:.6g}deg"
 
 
 @dataclass

@@ -176,10 +176,11 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "worst_error_bound": (dims, grid(worst_eb), {"long_name": "deterministic error bound of k_A at the worst cell "
                                                                   "(quadrature; beside worst_se under absolute "
                                                                   "calibration: eta's part; where worst_converged is 0 "
-                                                                  "an estimate, not a bound; NaN otherwise)"}),
+                                                                  "without worst_se an estimate, not a bound; NaN "
+                                                                  "otherwise)"}),
         "worst_converged": (dims, grid(worst_conv), {"long_name": "the backend reached its target at the worst cell (0: "
-                                                                  "stopped at its cap, its error bound an estimate; NaN "
-                                                                  "where not computed)"}),
+                                                                  "stopped at its cap; a deterministic backend's error "
+                                                                  "bound is then an estimate; NaN where not computed)"}),
         "max_abs_dev_direct": (dims, grid(max_dev_direct), {
             "long_name": "max |k_A,direct - 1| over the cells and samples: the aperture effect without the stray "
                          "light (= max_abs_dev without stray light)", "units": "1"}),
@@ -337,9 +338,11 @@ def precision_words(se, error_bound, u, converged=None) -> str:
     uncertainty 'u 1e-04' of a design.nc written before the kinds were kept. Where the worst cell did
     not converge (``converged`` 0) its bound is an estimate and called so (user audit, session 40)."""
     kind = precision_kind(_finite(se), _finite(error_bound))
-    what = "error estimate" if _finite(converged) and not float(converged) else "error bound"
+    # only a deterministic backend's bound becomes an estimate at its cap: under absolute calibration a
+    # Monte Carlo cell stopped at its cap keeps eta's bound (engines.result.standard_uncertainty)
+    what = "error estimate" if kind == "bound" and _finite(converged) and not float(converged) else "error bound"
     if kind == "both":
-        return f"SE {float(se):.1g} and eta's {what} {float(error_bound):.1g}"
+        return f"SE {float(se):.1g} and eta's error bound {float(error_bound):.1g}"
     if kind == "bound":
         return f"{what} {float(error_bound):.1g}"
     if kind == "se":

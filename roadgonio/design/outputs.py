@@ -208,7 +208,7 @@ def plot_pareto(ds, path: Path) -> Path:
                     ms=6, lw=0.8, label=f"no signal: not an instrument ({int(dark.sum())})")
     ax.errorbar(sig[feas & ok], dev[feas & ok], yerr=bars[feas & ok], fmt="o", color="tab:green",
                 ms=6, lw=0.8, label=f"feasible ({int((feas & ok).sum())})")
-    front = pareto_front(sig, dev)
+    front = pareto_front(np.where(dark, np.nan, sig), dev)       # a design that detects no light is on no front
     if front.size > 1:
         ax.step(sig[front], dev[front], where="pre", color="0.4", lw=1, ls="--",
                 label="Pareto front (least deviation for at least that signal)")

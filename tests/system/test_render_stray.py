@@ -27,6 +27,8 @@ def test_render_shows_the_stray_light_and_agrees_with_the_engine(mi, tmp_path, c
                "--beta", "45", "--out", str(out), "--resolution", "32", "--spp", "4"])
     printed = capsys.readouterr().out
     assert rc == 0 and "stray light:" in printed
+    # the part named as stray.png names it, not by its shape's id (review, session 40)
+    assert "(most from " in printed and "(most from housing_" not in printed, printed
     info = json.loads((out / "render.json").read_text())
     st = info["stray"]
     # trial 10 D5: the stray part does not follow --resolution 32 / --spp 4, and the output says so

@@ -1000,6 +1000,8 @@ def test_designs_the_computation_cannot_tell_apart_are_counted():
     assert precision_words(3e-4, math.nan, 3e-4) == "SE 0.0003"
     assert precision_words(math.nan, 2e-4, 1.2e-4) == "error bound 0.0002"
     assert precision_words(math.nan, 2e-4, 2e-4, 0.0) == "error estimate 0.0002"     # stopped at its cap
+    # a Monte Carlo cell at its cap under absolute calibration keeps eta's bound a bound (review, session 40)
+    assert precision_words(1e-4, 3e-6, 1e-4, 0.0) == "SE 0.0001 and eta's error bound 3e-06"
     assert precision_words(math.nan, 2e-4, 1.2e-4, 1.0) == "error bound 0.0002"
     assert precision_words(3e-4, 1e-6, 3e-4) == "SE 0.0003 and eta's error bound 1e-06"
     assert precision_words(None, None, 1e-4) == "u 0.0001"
@@ -1030,3 +1032,6 @@ def test_pareto_draws_a_design_without_signal_apart_from_those_over_tolerance(tm
     O.plot_pareto(ds, tmp_path / "pareto.png")
     labels = got["fig"].axes[0].get_legend_handles_labels()[1]
     assert "over tolerance (1)" in labels and "no signal: not an instrument (1)" in labels, labels
+    # ... and is on no Pareto front (the front ended at it, review session 40): the front is the other two
+    front = [ln for ln in got["fig"].axes[0].get_lines() if ln.get_label().startswith("Pareto front")]
+    assert len(front) == 1 and min(front[0].get_xdata()) > 0 and len(set(front[0].get_xdata())) == 2

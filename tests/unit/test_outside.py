@@ -188,6 +188,28 @@ def test_local_birge_does_not_widen_on_noise_but_on_structure():
     assert widen2[pole][0] > 1.0        # the structure next to it widens the pole as a whole
 
 
+def test_the_misfit_of_the_pole_is_one_error():
+    """(review, session 40) the misfit component correlated the pole's cells by their grid distance
+    (1e-18 between beta 0 and 180): one direction's misfit is one error. They correlate 1 with one
+    another, the matrix stays a correlation matrix (unit diagonal, positive semidefinite), and the
+    cells off the pole keep their grid correlation."""
+    from roadgonio.correction.budget import _neighbourhood, misfit_covariance, pole_as_one
+    t = _r3_table()
+    ii, _ = np.nonzero(t.mask)
+    n = ii.size
+    rng = np.random.default_rng(3)
+    resid = rng.standard_normal(n) * 4.0            # a misfit everywhere: every cell widened
+    cov, widen = misfit_covariance(t, resid, 10, np.full(n, 0.01))
+    pole = ii == 0
+    u = np.sqrt(np.diag(cov))
+    corr = cov / np.outer(u, u)
+    assert np.all(widen > 1.0) and np.allclose(corr[np.ix_(pole, pole)], 1.0, rtol=0, atol=1e-12)
+    K = _neighbourhood(t)
+    C = pole_as_one(t, K)
+    assert np.allclose(np.diag(C), 1.0, rtol=0, atol=1e-12) and np.linalg.eigvalsh(C).min() > -1e-9
+    assert np.array_equal(C[np.ix_(~pole, ~pole)], K[np.ix_(~pole, ~pole)])
+
+
 def test_combine_is_the_gls_mean_with_the_covariance():
     """Two instruments, three cells, the second measuring two of them: the combination of a
     shared cell is (1^T S^-1 x) / (1^T S^-1 1) with S the 2x2 covariance of the two readings;
@@ -1086,3 +1108,11 @@ def test_the_discrepancy_at_the_pole_is_one_amplitude_whatever_beta():
     own = amplitude_from_penalty(lam, penalty_region(s, beta[6:], eps[6:]))
     np.testing.assert_allclose(got[6:], own, rtol=1e-12)
     assert own[0] != own[1]                                  # the regions' amplitudes do differ
+
+
+def test_backbone_columns_are_distinct_for_distinct_roundings():
+    """(review, session 40) roundings 1.121 and 1.124 deg gave one column name at three digits (one
+    backbone's k_A overwrote the other's in correct_cells.csv)."""
+    from roadgonio.correction.outside import backbone_column
+    assert backbone_column("smooth", 1.121) != backbone_column("smooth", 1.124)
+    assert backbone_column("smooth", 0.0) == "smooth" and backbone_column("power", 2.25) == "power_rounded_2.25deg"

@@ -5,8 +5,10 @@ outline). When the scene makes stray light (reflecting parts: an XML scene's wal
 [housing]), also where the stray light enters the detector's view and which part it comes from
 (:func:`stray_picture`: ``stray.png``, ``stray.exr``).
 
-Units follow :mod:`roadgonio.engines.mitsuba.scene`: the source gives ~1 lx normal to its axis at the
-sample centre, so the illuminance is in lx per lx and luminances in cd/m^2 per lx (a source with a
+Units: 1 lx normal to the source's axis at the sample centre from the cell's source, so the
+illuminance is in lx per lx and luminances in cd/m^2 per lx (the scene's source gives that at the
+distance :func:`~roadgonio.engines.mitsuba.scene.source_radiance` takes; a fixed-height path's farther
+cells are scaled to it, :func:`unit_scale`; a source with a
 beam profile: its on-axis radiance is the uniform disc's, so its illuminance is lower where the
 profile is below 1).
 
@@ -321,8 +323,9 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
                "note": "shares of the whole signal (direct + stray) by the part of the last reflection before the "
                        "footprint; road = the sample's channel, lambert = the calibration's perfect diffuser"}
     images = {"L_direct": img[0], "L_stray": img[1], **{f"L_{ids[p_]}": img[2 + p_] for p_ in range(P)}}
-    return {"summary": summary, "images": images, "ids": ids, "stack": img,
-            "labels": [SAMPLE_LABEL] + [_part_label(rs, pid) for pid in rs.part_ids]}
+    labels = [SAMPLE_LABEL] + [_part_label(rs, pid) for pid in rs.part_ids]
+    summary["part_labels"] = dict(zip(ids, labels))       # the words stray.png and the printout use
+    return {"summary": summary, "images": images, "ids": ids, "stack": img, "labels": labels}
 
 
 #: Name of the sample in the stray picture (the part of a path's last reflection may be the sample).
@@ -433,8 +436,8 @@ def _hull(x, y):
     return pts[v, 0], pts[v, 1]
 
 
-#: render.png draws E_h on a log scale when its largest value is this many times the footprint's median
-#: E_h (its smallest shown: this many decades below the largest at most)
+#: render.png draws E_h on a log scale when its largest value is E_LOG_SPAN times the footprint's median
+#: E_h; the smallest value it shows is at least the largest / E_LOG_DECADES_MAX (1e4: four decades)
 E_LOG_SPAN = 20.0
 E_LOG_DECADES_MAX = 1e4
 
@@ -554,7 +557,7 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
         kd = info.get("k_a_direct_estimate")
         ka_txt = (ka_txt.replace("(this render)", "with the stray light (stray.png)") + "; the panels: direct light, "
                   + (f"k_A ~ {kd:.4f} +- {info['k_a_direct_se']:.1e}" if kd is not None
-                     else "no k_A of it (too few samples)"))
+                     else "no k_A of it (too few samples)" if "k_a_note" in info else "k_A of it undefined"))
     fig.suptitle(f"{instrument.name}, sample {info['sample']}: tan eps = {info['tan_eps']:g}, "
                  f"beta = {info['beta_deg']:g} deg, alpha = {instrument.observation.alpha_deg:g} deg\n{ka_txt}",
                  fontsize=11)
