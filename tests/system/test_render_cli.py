@@ -86,6 +86,18 @@ def test_render_of_a_beam_cone_that_clips_the_footprint(mi, tmp_path):
     assert np.allclose(h["roadgonio_window_m"], [*w["x"], *w["y"]], rtol=1e-6)
 
 
+def _illuminance(out):
+    """render.json, illuminance.exr's E_h (float64) and its pixels' centres (x along the columns, y down
+    the rows from the window's y1) from the window render.json records."""
+    import OpenEXR
+    info = json.loads((out / "render.json").read_text())
+    with OpenEXR.File(str(out / "illuminance.exr")) as f:
+        E = np.asarray(f.channels()["E_h"].pixels, dtype=np.float64)
+    (x0, x1), (y0, y1) = info["illuminance_window_m"]["x"], info["illuminance_window_m"]["y"]
+    ny, nx = E.shape
+    return info, E, (x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx, y1 - (np.arange(ny) + 0.5) * (y1 - y0) / ny)
+
+
 def test_render_of_a_point_source_lights_as_i0_cos_theta(mi, tmp_path):
     """(session 40) R_S = 0 is the limit of a small Lambertian disc: I_0 cos theta about the source's
     axis (docs/conventions.md section 5). render lit the cell with Mitsuba's isotropic ``point``
@@ -94,7 +106,6 @@ def test_render_of_a_point_source_lights_as_i0_cos_theta(mi, tmp_path):
     closed form of a point at height h straight above: E_h = I_0 (h / d) (h / d) / d^2, with render's
     I_0 = h^2 (~1 lx at the centre): E_h = (h / d)^4."""
     from pathlib import Path
-    import OpenEXR
     text = (Path(__file__).resolve().parents[2] / "scenes" / "portable.toml").read_text()
     text = text.replace("distance_m = 1.0\nradius_m = 0.025", "distance_m = 0.3\nradius_m = 0.0", 1)
     path = tmp_path / "point.toml"
@@ -102,12 +113,8 @@ def test_render_of_a_point_source_lights_as_i0_cos_theta(mi, tmp_path):
     out = tmp_path / "r"
     assert main(["render", "--instrument", str(path), "--sample", "lambert", "--tan-eps", "0", "--beta", "0",
                  "--out", str(out), "--resolution", "16", "--spp", "4", "-q"]) == 0
-    info = json.loads((out / "render.json").read_text())
-    with OpenEXR.File(str(out / "illuminance.exr")) as f:
-        E = np.asarray(f.channels()["E_h"].pixels, dtype=np.float64)
-    (x0, x1), (y0, y1) = info["illuminance_window_m"]["x"], info["illuminance_window_m"]["y"]
-    ny, nx = E.shape
-    X, Y = np.meshgrid(x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx, y1 - (np.arange(ny) + 0.5) * (y1 - y0) / ny)
+    info, E, (x, y) = _illuminance(out)
+    X, Y = np.meshgrid(x, y)
     h = 0.3
     ref = (h / np.sqrt(X ** 2 + Y ** 2 + h ** 2)) ** 4
     assert ref.min() < 0.5                      # the window reaches far off the axis: the test can tell
@@ -122,17 +129,11 @@ def test_render_of_a_fixed_height_source_is_in_the_unit_it_states(mi, tmp_path):
     dark. In the stated unit the horizontal illuminance at the sample centre is cos(incidence) =
     1 / sqrt(1 + tan^2 eps) (the disc's own 1 / (1 + R^2 / D^2) is 1e-5 here)."""
     import math
-    import OpenEXR
     out = tmp_path / "r"
     assert main(["render", "--instrument", "corridor", "--sample", "lambert", "--tan-eps", "3", "--beta", "0",
                  "--out", str(out), "--resolution", "32", "--spp", "4", "-q"]) == 0
-    info = json.loads((out / "render.json").read_text())
-    with OpenEXR.File(str(out / "illuminance.exr")) as f:
-        E = np.asarray(f.channels()["E_h"].pixels, dtype=np.float64)
-    (x0, x1), (y0, y1) = info["illuminance_window_m"]["x"], info["illuminance_window_m"]["y"]
-    ny, nx = E.shape
-    j = int(np.argmin(np.abs(x0 + (np.arange(nx) + 0.5) * (x1 - x0) / nx)))
-    i = int(np.argmin(np.abs(y1 - (np.arange(ny) + 0.5) * (y1 - y0) / ny)))
+    info, E, (x, y) = _illuminance(out)
+    j, i = int(np.argmin(np.abs(x))), int(np.argmin(np.abs(y)))
     assert E[i, j] == pytest.approx(1.0 / math.sqrt(10.0), rel=0.01)
     assert abs(info["k_a_estimate"] - 1.0) < 1e-5          # a ratio: the unit does not enter it
 
