@@ -8,7 +8,8 @@
   (:func:`roadgonio.design.metrics.stray_metrics`) ``max_abs_dev_direct, max_stray_fraction,
   max_stray_tan_eps, max_stray_beta_deg, max_stray_sample, max_stray_u``, then the worst cell's
   precision by kind ``worst_se, worst_error_bound`` (``worst_u`` is their standard uncertainty) and
-  ``worst_converged`` (0: the backend stopped at its cap there, the bound is an estimate);
+  ``worst_converged`` (0: the backend stopped at its cap there; a deterministic backend's bound is
+  then an estimate);
 * ``best.toml``: the feasible design with the most signal (:func:`roadgonio.design.dataset.best_point`), a complete instrument file (opens with
   ``roadgonio ka --instrument best.toml``; the header says how to reproduce its row);
 * ``pareto.png``: max |k_A - 1| against the signal, feasible points marked, the Pareto front, the
