@@ -126,11 +126,16 @@ def local_birge(table: RTable, residual: np.ndarray, leverage: np.ndarray,
     K = _neighbourhood(table, width)
     b2 = K @ r2 / K.sum(axis=1)
     n_eff = K.sum(axis=1) ** 2 / (K * K).sum(axis=1)
-    pole = np.asarray(table.tan_eps, dtype=np.float64)[np.nonzero(table.mask)[0]] == 0.0
+    pole = _pole_cells(table)
     if pole.sum() > 1:
         b2[pole], n_eff[pole] = b2[pole].mean(), n_eff[pole].mean()
     widen = np.where(b2 > 1.0 + 2.0 * np.sqrt(2.0 / n_eff), np.sqrt(b2), 1.0)
     return np.sqrt(b2), widen
+
+
+def _pole_cells(table: RTable) -> np.ndarray:
+    """Which measured cells (row-major, as :func:`_neighbourhood`) are at the pole, tan eps = 0."""
+    return np.asarray(table.tan_eps, dtype=np.float64)[np.nonzero(table.mask)[0]] == 0.0
 
 
 def _neighbourhood(table: RTable, width: float = BIRGE_WIDTH_CELLS) -> np.ndarray:
@@ -161,7 +166,7 @@ def pole_as_one(table: RTable, K: np.ndarray) -> np.ndarray:
     them, so they correlate 1 with one another and alike with every other cell, and the matrix stays
     positive semidefinite with a unit diagonal (user review, session 40: one direction's misfit, one
     error, correlated 1e-18 between beta 0 and 180)."""
-    pole = np.asarray(table.tan_eps, dtype=np.float64)[np.nonzero(table.mask)[0]] == 0.0
+    pole = _pole_cells(table)
     n_pole = int(pole.sum())
     if n_pole < 2:
         return K

@@ -44,11 +44,11 @@ import numpy as np
 from roadgonio.errors import InputError
 from roadgonio.geometry import MAX_LENGTH_M
 
-#: Keys of the [housing] table.
 #: What no uncertainty holds of an instrument with reflecting parts: the caveat `correct` (its note and
 #: corrected_u.csv, which `road` repeats) and `uncertainty` state, each with its docs page.
 REFLECTANCES_EXACT = ("the reflectances of the instrument's parts are taken as exact: their uncertainty is in no "
                       "component of this u")
+#: Keys of the [housing] table.
 HOUSING_KEYS = ("wall_reflectance", "baffle_reflectance", "x_m", "y_m", "height_m", "margin_m", "lid", "baffles")
 #: Keys of one baffle.
 BAFFLE_KEYS = ("x_m", "height_m")
