@@ -83,18 +83,18 @@ def test_stray_png_names_the_housing_parts_as_the_instrument_file_does():
     stray.exr keep the ids."""
     from types import SimpleNamespace
 
-    from roadgonio.engines.mitsuba.images import _part_label
+    from roadgonio.engines.mitsuba.images import _part_labels
     from roadgonio.instrument.enclosure import housing_panels
     from roadgonio.instrument.housing import Housing
     inst = load_instrument(str(SCENES / "portable_housed_baffle.toml"))
     inst = inst.with_changes(housing={"baffles": [{"x_m": -0.5, "height_m": 0.02}]})     # the declared plate, raised
     housing = Housing.of(inst)
-    rs = SimpleNamespace(instrument=inst, housing=housing)
+    words = _part_labels(SimpleNamespace(instrument=inst, housing=housing))
     ids = [p.id for p in housing_panels(inst, housing)]
     baffle = [i for i in ids if "baffle" in i]
-    assert baffle and _part_label(rs, baffle[0]).startswith("baffle 0 (x = ")
-    assert _part_label(rs, "housing_wall_y_min").startswith("wall y = -")
-    assert _part_label(SimpleNamespace(instrument=inst, housing=None), "holder_post") == "holder_post"
+    assert baffle and words[baffle[0]].startswith("baffle 0 (x = ")
+    assert words["housing_wall_y_min"].startswith("wall y = -") and set(words) == set(ids)
+    assert _part_labels(SimpleNamespace(instrument=inst, housing=None)) == {}       # XML parts keep their ids
 
 
 def test_render_says_why_the_direct_k_a_is_missing(mi, tmp_path, capsys):

@@ -144,10 +144,7 @@ def render_cell_images(instrument: Instrument, model: RoadModel, tan_eps: float,
     E = math.pi * top[..., LAMBERT]
     L_top = top[..., ROAD]
 
-    stray = stray_picture(rs, tan_eps, beta_deg, seed=seed) if rs.stray else None
-    if stray is not None:
-        stray["stack"] = stray["stack"] * unit
-        stray["images"] = {k: v * unit for k, v in stray["images"].items()}
+    stray = stray_picture(rs, tan_eps, beta_deg, seed=seed, scale=unit) if rs.stray else None
 
     from roadgonio.fileio import OutputGroup
     files = {"view_exr": str(out_dir / "view.exr"), "illuminance_exr": str(out_dir / "illuminance.exr"),
@@ -245,7 +242,8 @@ STRAY_PICTURE_RESOLUTION = 96
 
 
 def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: int = STRAY_PICTURE_LOG2,
-                  replicates: int = STRAY_PICTURE_REPLICATES, resolution: int = STRAY_PICTURE_RESOLUTION) -> dict:
+                  replicates: int = STRAY_PICTURE_REPLICATES, resolution: int = STRAY_PICTURE_RESOLUTION,
+                  scale: float = 1.0) -> dict:
     """Where the stray light enters the detector's view and which part it comes from: the view of the
     field stop (square mapping, as view.exr) sampled with the batched engine's paths for this one
     cell (:meth:`KaBatch.picture_lanes`): per pixel the direct and the stray road luminance, the
@@ -305,7 +303,8 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
     finally:
         rs.sensor.mapping = "concentric"
     with np.errstate(invalid="ignore", divide="ignore"):
-        img = (sums / np.maximum(counts, 1.0)).reshape(2 + P, res, res)
+        # ``scale``: the luminances in the render's unit (:func:`unit_scale`); the summary's ratios need none
+        img = (sums / np.maximum(counts, 1.0)).reshape(2 + P, res, res) * scale
     from roadgonio.engines.mitsuba.passes import strata_ratio_se
     R, G = reps[:, 0] + reps[:, 2], reps[:, 1] + reps[:, 3]
     # the engine's ratio estimator over the independent replicates (one stratum)
@@ -323,26 +322,24 @@ def stray_picture(rs, tan_eps: float, beta_deg: float, *, seed: int = 0, log2n: 
                "note": "shares of the whole signal (direct + stray) by the part of the last reflection before the "
                        "footprint; road = the sample's channel, lambert = the calibration's perfect diffuser"}
     images = {"L_direct": img[0], "L_stray": img[1], **{f"L_{ids[p_]}": img[2 + p_] for p_ in range(P)}}
-    labels = [SAMPLE_LABEL] + [_part_label(rs, pid) for pid in rs.part_ids]
-    summary["part_labels"] = dict(zip(ids, labels))       # the words stray.png and the printout use
-    return {"summary": summary, "images": images, "ids": ids, "stack": img, "labels": labels}
+    words = _part_labels(rs)
+    summary["part_labels"] = {i: words.get(i, i) for i in ids}       # the words stray.png and the printout use
+    return {"summary": summary, "images": images, "ids": ids, "stack": img}
 
 
 #: Name of the sample in the stray picture (the part of a path's last reflection may be the sample).
 SAMPLE_LABEL = "sample"
 
 
-def _part_label(rs, pid: str) -> str:
-    """The words for a part in stray.png: a housing panel's own label ("wall y = -0.075 m", "baffle 0
-    (x = ...)", numbered as the field housing.baffles.0), an XML part's id (user audit, session 40: the
-    key showed ids such as housing_baffle_1 beside errors that call it baffle 0). render.json and
-    stray.exr keep the ids."""
-    if rs.housing is not None:
-        from roadgonio.instrument.enclosure import housing_panels
-        for p in housing_panels(rs.instrument, rs.housing):
-            if p.id == pid and p.label:
-                return p.label
-    return pid
+def _part_labels(rs) -> dict[str, str]:
+    """The words for the housing's parts in stray.png by id: each panel's own label ("wall y = -0.075 m",
+    "baffle 0 (x = ...)", numbered as the field housing.baffles.0); an XML part has none and keeps its id
+    (user audit, session 40: the key showed ids such as housing_baffle_1 beside errors that call it
+    baffle 0). render.json and stray.exr keep the ids. The panels are built once."""
+    if rs.housing is None:
+        return {}
+    from roadgonio.instrument.enclosure import housing_panels
+    return {p.id: p.label for p in housing_panels(rs.instrument, rs.housing) if p.label}
 
 
 def _stray_png(path: Path, instrument: Instrument, stray: dict, info) -> Path:
@@ -355,7 +352,7 @@ def _stray_png(path: Path, instrument: Instrument, stray: dict, info) -> Path:
 
     from roadgonio.fileio import atomic_savefig
     img, ids, summ = stray["stack"], stray["ids"], stray["summary"]
-    names = stray.get("labels", ids)
+    names = [summ["part_labels"][i] for i in ids]
     gamma = instrument.detector.field_half_angle_deg
     ext = gamma if gamma > 0 else 1.0
     res = img.shape[-1]
