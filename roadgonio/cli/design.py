@@ -149,7 +149,7 @@ def run(args) -> int:
                 "(design.csv); a finer --accuracy may")
         if b["precision_kind"] == "bound":
             bound = b["worst_error_bound"]
-            what = "error bound" if b.get("worst_converged", 1) else "error estimate"
+            what = b["bound_words"]
             if b["max_abs_dev"] + bound > s["tolerance"]:
                 say(f"  note: its max |k_A - 1| is within its {what} ({bound:.1g}) of the tolerance: the {what} "
                     "does not decide that it is within; recompute the candidates at a finer --accuracy before "

@@ -332,15 +332,21 @@ def _finite(v) -> bool:
     return v is not None and math.isfinite(float(v))
 
 
+def bound_words(kind: str, converged) -> str:
+    """What a deterministic error bound of precision ``kind`` is called: "error estimate" where the
+    backend stopped at its cap (``converged`` 0) and the bound stands alone; "error bound" otherwise
+    (under absolute calibration a Monte Carlo cell stopped at its cap keeps eta's bound a bound,
+    engines.result.standard_uncertainty)."""
+    return "error estimate" if kind == "bound" and _finite(converged) and not float(converged) else "error bound"
+
+
 def precision_words(se, error_bound, u, converged=None) -> str:
     """What the precision of a max |k_A - 1| is (:func:`precision_kind`), in words with its value:
     'SE 1e-04', 'error bound 2e-04', 'SE 1e-04 and eta's error bound 3e-06', or the standard
     uncertainty 'u 1e-04' of a design.nc written before the kinds were kept. Where the worst cell did
     not converge (``converged`` 0) its bound is an estimate and called so (user audit, session 40)."""
     kind = precision_kind(_finite(se), _finite(error_bound))
-    # only a deterministic backend's bound becomes an estimate at its cap: under absolute calibration a
-    # Monte Carlo cell stopped at its cap keeps eta's bound (engines.result.standard_uncertainty)
-    what = "error estimate" if kind == "bound" and _finite(converged) and not float(converged) else "error bound"
+    what = bound_words(kind, converged)
     if kind == "both":
         return f"SE {float(se):.1g} and eta's error bound {float(error_bound):.1g}"
     if kind == "bound":
@@ -406,6 +412,7 @@ def summary(ds) -> dict[str, Any]:
         se, bound = s["best"].get("worst_se"), s["best"].get("worst_error_bound")
         s["best"]["precision"] = precision_words(se, bound, s["best"]["worst_u"], s["best"].get("worst_converged"))
         s["best"]["precision_kind"] = precision_kind(_finite(se), _finite(bound))
+        s["best"]["bound_words"] = bound_words(s["best"]["precision_kind"], s["best"].get("worst_converged"))
     else:
         s["best"] = None
     if "out" in ds.attrs:

@@ -349,7 +349,8 @@ def test_design_keeps_impossible_points_and_picks_the_best(tmp_path):
     stopped = ds.copy(deep=True)
     stopped["worst_converged"].values[...] = np.where(np.isfinite(stopped["worst_converged"].values), 0.0, np.nan)
     b = summary(stopped)["best"]
-    assert b["precision"] == f"error estimate {b['worst_error_bound']:.1g}"
+    assert b["precision"] == f"error estimate {b['worst_error_bound']:.1g}" and b["bound_words"] == "error estimate"
+    assert summary(ds)["best"]["bound_words"] == "error bound"
     assert "an estimate" in _error_bars(stopped)[1]
     # the CSV: one row per point, varied keys first, then the metrics; the impossible point keeps its reason
     rows = list(csv.reader((tmp_path / "design.csv").read_text().splitlines()))
