@@ -61,7 +61,7 @@ def run(args) -> int:
     if "stray" in info:
         st = info["stray"]
         top = max(st["parts"], key=lambda k: st["parts"][k]["road"])
-        name = (st.get("part_labels") or {}).get(top, top)       # as stray.png names it (review, session 40)
+        name = st["part_labels"][top]        # as stray.png names it (review, session 40)
         most = f" (most from {name})" if st["parts"][top]["road"] > 0 else ""      # none at 0 % (audit 22)
         say(f"stray light: {100 * st['stray_fraction_road']:.2f} % of the road signal{most}, "
             f"{100 * st['stray_fraction_lambert']:.2f} % of the Lambert calibration's"

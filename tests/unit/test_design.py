@@ -769,27 +769,32 @@ def test_min_signal_takes_a_percentage_as_tolerance_and_u_measured_do():
         _fraction("25 percent", "min_signal")
 
 
+def _radius_design(radii: str, devs, tol: float = 0.05):
+    """The design Dataset of the portable preset over source.radius_m = ``radii`` whose point i has
+    k_A = 1 + devs[i] at one of four cells (1 elsewhere), without stray light."""
+    from roadgonio.design.dataset import assemble
+    from roadgonio.design.run import SampleSpec
+    base = load_instrument("portable")
+    specs = G.as_vary_specs([f"source.radius_m={radii}"])
+    points = G.grid_points(specs)
+    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
+    samples = [SampleSpec("A", "A", None, cells)]
+    checked = [check_point(base, p, list(cells)) for p in points]
+    ones = np.ones((2, 2))
+    done = {(i, 0): _journal_record(_ka_dataset([[1.0 + d, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones), cells)
+            for i, d in enumerate(devs)}
+    return assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
+                    union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
+                    seeds=list(range(1, len(points) + 1)), tol=tol)
+
+
 @pytest.mark.parametrize("best_small", [True, False])
 def test_pareto_label_of_the_best_design_stays_inside_the_axes(tmp_path, monkeypatch, best_small):
     """trial 12 D6: when the best design had the least signal (the leftmost point), its label was drawn
     to the left of the axes, over the y label, and the axes shrank to the right half (title and x
     label cut). The label goes towards the free side: inside the axes wherever the best is."""
     from roadgonio.design import outputs as O
-    from roadgonio.design.dataset import assemble
-    from roadgonio.design.run import SampleSpec
-    base = load_instrument("portable")
-    specs = G.as_vary_specs(["source.radius_m=0.003,0.006,0.012"])
-    points = G.grid_points(specs)
-    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
-    samples = [SampleSpec("A", "A", None, cells)]
-    checked = [check_point(base, p, list(cells)) for p in points]
-    devs = (0.02, 0.08, 0.09) if best_small else (0.09, 0.08, 0.02)
-    ones = np.ones((2, 2))
-    done = {(i, 0): _journal_record(_ka_dataset([[1.0 + d, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones), cells)
-            for i, d in enumerate(devs)}
-    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
-                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
-                  seeds=[1, 2, 3], tol=0.05)
+    ds = _radius_design("0.003,0.006,0.012", (0.02, 0.08, 0.09) if best_small else (0.09, 0.08, 0.02))
     assert int(ds.attrs["best_index"]) == (0 if best_small else 2)
     got = {}
     monkeypatch.setattr(O, "atomic_savefig", lambda fig, path, dpi: got.setdefault("fig", fig) and path)
@@ -1013,20 +1018,7 @@ def test_pareto_draws_a_design_without_signal_apart_from_those_over_tolerance(tm
     light) was drawn as a red open circle under 'over tolerance'. It has its own legend entry, and the
     over-tolerance count is of the points over it."""
     from roadgonio.design import outputs as O
-    from roadgonio.design.dataset import assemble
-    from roadgonio.design.run import SampleSpec
-    base = load_instrument("portable")
-    specs = G.as_vary_specs(["source.radius_m=0,0.006,0.012"])
-    points = G.grid_points(specs)
-    cells = ((2.0, 0.0), (2.0, 35.0), (5.0, 0.0), (5.0, 35.0))
-    samples = [SampleSpec("A", "A", None, cells)]
-    checked = [check_point(base, p, list(cells)) for p in points]
-    ones = np.ones((2, 2))
-    done = {(i, 0): _journal_record(_ka_dataset([[1.0 + d, 1.0], [1.0, 1.0]], ones, 0 * ones, 0 * ones), cells)
-            for i, d in enumerate((0.01, 0.02, 0.09))}
-    ds = assemble(base=base, specs=specs, shape=G.grid_shape(specs), points=points, samples=samples,
-                  union=sorted(cells), feas=[f for _, f in checked], inst_of=[i for i, _ in checked], done=done,
-                  seeds=[1, 2, 3], tol=0.05)
+    ds = _radius_design("0,0.006,0.012", (0.01, 0.02, 0.09))
     assert ds["kind"].values.reshape(-1).tolist()[0] == "signal" and ds["max_abs_dev"].values.reshape(-1)[0] < 0.05
     got = {}
     monkeypatch.setattr(O, "atomic_savefig", lambda fig, path, dpi: got.setdefault("fig", fig) and path)
