@@ -60,7 +60,7 @@ from roadgonio.engines.bundle import DEFAULT_RAYS, StackedForward
 from roadgonio.errors import InputError
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import VARIANTS, RoadModel
-from roadgonio.surface.rtable import CORRECTED_R, RTable
+from roadgonio.surface.rtable import CORRECTED_R, RTable, measured_label
 
 #: The backbone variants fitted and weighed by default.
 DEFAULT_VARIANTS = ("power", "smooth")
@@ -741,7 +741,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             bud.add(name, C[sl, sl], notes[name])
         k_grid = _grid(t, np.exp(lnk[sl]))
         corr = t.with_values(_grid(t, np.exp(lnr[i])), name=f"{t.name}_corrected",
-                             source=f"{t.name} {CORRECTED_R}; eq. 4 x correction surface "
+                             source=f"{measured_label(t)} {CORRECTED_R}; eq. 4 x correction surface "
                                     f"fitted through {', '.join(i2.name for i2 in instruments)}; instrument {inst.name})")
         u_abs = _grid(t, np.exp(lnr[i]) * bud.u_rel())
         before_b = Budget(n_i[i])
@@ -773,9 +773,9 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
         grid = np.full(base.r.shape, np.nan)
         for (t_, b_), v in zip(union, lnc):
             grid[int(np.argmin(np.abs(base.tan_eps - t_))), int(np.argmin(np.abs(base.beta_deg - b_)))] = math.exp(v)
-        # the measured tables' names first: road matches a u file to its table by this line, and two sites
-        # through one instrument wrote the same one (user audit, session 40)
-        src = (f"{label}: one surface measured by {', '.join(i.name for i in instruments)}, {CORRECTED_R} "
+        # the measured tables first (name and digest): road matches a u file to its table by this line, and
+        # two sites' files of one name through one instrument wrote the same one (user audit, session 40)
+        src = (f"{' + '.join(measured_label(t) for t in tables)}: one surface measured by {', '.join(i.name for i in instruments)}, {CORRECTED_R} "
                f"per instrument{' and the fitted surface at the nominal geometry' if U else ''}, combined "
                f"cell by cell with the least-variance non-negative weights)")
         combined = base.with_values(grid, name=f"{label}_corrected", source=src)

@@ -50,7 +50,7 @@ from roadgonio.instrument.config import Instrument
 from roadgonio.instrument.housing import REFLECTANCES_EXACT
 from roadgonio.surface.fit import check_rows
 from roadgonio.surface.model import VARIANTS, RoadModel
-from roadgonio.surface.rtable import CORRECTED_R, U_REL_MIN, RTable, check_positive, read_table
+from roadgonio.surface.rtable import CORRECTED_R, U_REL_MIN, RTable, check_positive, measured_label, read_table
 
 #: Variants fitted by ``variant = "auto"``.
 AUTO_VARIANTS = ("power", "smooth")
@@ -790,7 +790,7 @@ def _assemble(measured: RTable, instrument: Instrument, u_grid, k_b, se_b, budge
               model: RoadModel, fit: ThroughFit | None, alternatives, steps, t0) -> CorrectionResult:
     mask = measured.mask
     corrected_r = _grid(measured, measured.r[mask] / k_b)
-    label = f"{measured.name} {CORRECTED_R}; reference {reference}; instrument {instrument.name})"
+    label = f"{measured_label(measured)} {CORRECTED_R}; reference {reference}; instrument {instrument.name})"
     corrected = measured.with_values(corrected_r, name=f"{measured.name}_corrected", source=label)
     cov = budget.total()
     u_abs = _grid(measured, corrected_r[mask] * np.sqrt(np.diag(cov)))

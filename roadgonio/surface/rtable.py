@@ -198,6 +198,16 @@ class RTable:
                 and np.allclose(self.tan_eps, other.tan_eps, atol=GRID_TOL, rtol=0)
                 and np.allclose(self.beta_deg, other.beta_deg, atol=GRID_TOL, rtol=0))
 
+    def digest(self) -> str:
+        """Eight hex digits of SHA-256 over the grid and the values (float64 bytes, every missing cell
+        one NaN): what tells two tables of one name apart, e.g. two sites' measured.csv in the header
+        ``roadgonio correct`` writes (:func:`measured_label`)."""
+        import hashlib
+        h = hashlib.sha256()
+        for a in (self.tan_eps, self.beta_deg, np.where(np.isfinite(self.r), self.r, np.nan)):
+            h.update(np.ascontiguousarray(a, dtype="<f8").tobytes())
+        return h.hexdigest()[:8]
+
     def with_values(self, r: np.ndarray, name: str | None = None, source: str | None = None) -> "RTable":
         return RTable(np.asarray(r, dtype=np.float64), name=self.name if name is None else name,
                       source=self.source if source is None else source,
@@ -491,6 +501,14 @@ def header_notes(t: "RTable") -> list[str]:
 #: what tells a corrected r-table from its standard uncertainty, whose header is :data:`U_HEADER`
 #: followed by it (:func:`corrected_r_header`).
 CORRECTED_R = "corrected for the aperture effect (r / k_A"
+
+
+def measured_label(t: "RTable") -> str:
+    """A measured table as the header of its correction names it: its name and :meth:`RTable.digest`
+    in brackets (``measured [1f03a2c7]``). The name alone let two sites' files of one name (both
+    measured.csv) write one header, so ``road --u`` took one site's u for the other's table (user
+    audit, session 40)."""
+    return f"{t.name} [{t.digest()}]"
 
 
 def corrected_r_header(t: "RTable") -> str | None:

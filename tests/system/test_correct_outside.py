@@ -238,9 +238,9 @@ def test_forward_surface_round_trip_inside_eq4_writes_the_diagnostics(tmp_path, 
     assert all(c in others | {"k_a", "k_a_direct"} for c in cols if c.startswith("k_a"))
     # the corrected table's header names the measured table (road matches a u file to its table by it: two
     # sites through one instrument wrote the same header), and the u file names that header
-    from roadgonio.surface.rtable import header_line, u_names_table
+    from roadgonio.surface.rtable import header_line, measured_label, u_names_table
     head = header_line(read_table(out / "corrected.csv"))
-    assert head.startswith(f"{read_table(MEASURED).name}: ") and u_names_table(read_table(out / "corrected_u.csv")) == head
+    assert head.startswith(f"{measured_label(read_table(MEASURED))}: ") and u_names_table(read_table(out / "corrected_u.csv")) == head
     # the combination is defined as what it is (non-negative weights; "generalised least squares" alone was wrong)
     assert "non-negative weights" in doc["definitions"]["corrected"]
 

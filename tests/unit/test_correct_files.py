@@ -164,16 +164,18 @@ def test_corrected_corr_csv_names_its_table_as_corrected_u_csv_does(corrected, t
     """The correlation file correct writes names the corrected table on its first line (as the u
     file's header does), and road's reader takes it for that table and refuses it for another."""
     from roadgonio.correction.outputs import write_correction
-    from roadgonio.surface.rtable import header_line, read_cell_correlation, read_table, u_names_table
+    from roadgonio.surface.rtable import header_line, measured_label, read_cell_correlation, read_table, u_names_table
     _, res = corrected
     write_correction(res, tmp_path, plots=False)
     head = header_line(read_table(tmp_path / "corrected.csv"))
-    assert head.startswith("R3 corrected for the aperture effect")
+    # the measured table by name and digest (two sites' files of one name wrote one header: user audit, session 40)
+    assert head.startswith(f"R3 [{res.measured.digest()}] corrected for the aperture effect")
+    assert measured_label(res.measured) == f"R3 [{res.measured.digest()}]"
     assert u_names_table(read_table(tmp_path / "corrected_u.csv", "u")) == head
     assert (tmp_path / "corrected_corr.csv").read_text().splitlines()[0] == "# correlation of the cells of " + head
     cells, c = read_cell_correlation(tmp_path / "corrected_corr.csv", table=head)
     assert len(cells) == int(res.measured.mask.sum()) and c.shape == (len(cells), len(cells))
-    with pytest.raises(InputError, match="header says 'R2 corrected"):
+    with pytest.raises(InputError, match=r"header says 'R2 \["):
         read_cell_correlation(tmp_path / "corrected_corr.csv", table=head.replace("R3", "R2"))
 
 

@@ -388,3 +388,26 @@ def test_q0_of_a_table_without_the_standard_cells_is_said_not_cie(tmp_path):
     # a table with more cells than the standard ones: its Q0 is over a larger solid angle
     full = r3.with_values(np.where(np.isfinite(r3.r), r3.r, 1e-4), name="full")
     assert f"has {int(np.sum(~r3.mask))} cells beyond the CIE standard tables' 396" in q0_coverage_note(full)
+
+
+def test_two_tables_of_one_name_are_told_apart_by_their_digest(tmp_path):
+    """measured_label names a table by its name and a digest of its values: two sites' files both called
+    measured.csv gave one header to their corrections, and road matched a u file by that header (user
+    audit, session 40); the same values read twice give the same label."""
+    from roadgonio.surface.rtable import measured_label
+    t = bundled_table("R3")
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    t.write_csv(tmp_path / "a" / "measured.csv")
+    r = t.r.copy()
+    r[5, 3] *= 1.01
+    t.with_values(r).write_csv(tmp_path / "b" / "measured.csv")
+    a, b = read_table(tmp_path / "a" / "measured.csv"), read_table(tmp_path / "b" / "measured.csv")
+    assert a.name == b.name == "measured"
+    assert measured_label(a) != measured_label(b)
+    assert measured_label(a) == measured_label(read_table(tmp_path / "a" / "measured.csv"))
+    assert measured_label(a) == f"measured [{a.digest()}]" and len(a.digest()) == 8
+    # a missing cell is part of what a table is
+    r = a.r.copy()
+    r[5, 3] = np.nan
+    assert a.with_values(r).digest() != a.digest()
