@@ -7,7 +7,7 @@ vectors point away from the surface.
   ``w_o = (cos a cos d, cos a sin d, sin a)``.
 * Illumination: polar angle ``epsilon`` from the zenith and ``beta``, the angle between the
   vertical planes of observation and illumination; beta = 0 is the far (forward, specular) side.
-  Source azimuth ``phi_i = delta + 180 deg - beta`` (:func:`source_azimuth_rad`, written only there):
+  Source azimuth ``phi_i = delta + 180 deg - beta`` (:func:`source_azimuth_deg`, written only there):
   ``w_i = (sin e cos phi_i, sin e sin phi_i, cos e)``.
 
 All functions are float64 numpy and broadcast over their arguments, except :func:`pair_angles`,
@@ -60,23 +60,43 @@ def w_source(eps_rad, beta_deg, delta_deg=0.0) -> np.ndarray:
     grid); beta in degrees as in the r-tables.
     """
     e = np.asarray(eps_rad, dtype=np.float64)
-    phi = source_azimuth_rad(beta_deg, delta_deg)
-    e, phi = np.broadcast_arrays(e, phi)
+    cos_phi, sin_phi = cos_sin_deg(source_azimuth_deg(beta_deg, delta_deg))
+    e, cos_phi, sin_phi = np.broadcast_arrays(e, cos_phi, sin_phi)
     s = np.sin(e)
-    return np.stack([s * np.cos(phi), s * np.sin(phi), np.cos(e)], axis=-1)
+    return np.stack([s * cos_phi, s * sin_phi, np.cos(e)], axis=-1)
+
+
+def cos_sin_deg(angle_deg) -> tuple[np.ndarray, np.ndarray]:
+    """(cos, sin) of an angle in degrees, exact (0, +-1) at the multiples of 90 deg: the azimuth of
+    the beta = 0 column, 180 deg, gave sin = 1.2e-16 through radians, so that column's beta came out
+    1.2e-16 rad, not 0, and eq. 4's empirical term x^W with W ~ 1e15 at grazing incidence (R2, R4) lost
+    8 % there (user audit, session 41)."""
+    d = np.mod(np.asarray(angle_deg, dtype=np.float64), 360.0)
+    q = np.round(d / 90.0)
+    exact = d == 90.0 * q
+    quarter = q.astype(np.int64) % 4
+    rad = np.radians(d)
+    c = np.where(exact, np.array([1.0, 0.0, -1.0, 0.0])[quarter], np.cos(rad))
+    s = np.where(exact, np.array([0.0, 1.0, 0.0, -1.0])[quarter], np.sin(rad))
+    return c, s
+
+
+def source_azimuth_deg(beta_deg, delta_deg=0.0) -> np.ndarray:
+    """Azimuth of the source direction, ``phi_i = delta + 180 deg - beta`` (deg): the one
+    statement of the road-photometry azimuth convention (beta = 0 is the far side)."""
+    return np.asarray(delta_deg, dtype=np.float64) + 180.0 - np.asarray(beta_deg, dtype=np.float64)
 
 
 def source_azimuth_rad(beta_deg, delta_deg=0.0) -> np.ndarray:
-    """Azimuth of the source direction, ``phi_i = delta + 180 deg - beta`` (rad): the one
-    statement of the road-photometry azimuth convention (beta = 0 is the far side)."""
-    return np.radians(np.asarray(delta_deg, dtype=np.float64) + 180.0 - np.asarray(beta_deg, dtype=np.float64))
+    """:func:`source_azimuth_deg` in radians."""
+    return np.radians(source_azimuth_deg(beta_deg, delta_deg))
 
 
 def source_azimuth_tangent(beta_deg, delta_deg=0.0) -> np.ndarray:
     """Unit horizontal vector along which the source direction moves as its azimuth phi_i grows
     (i.e. as beta shrinks): ``d w_source / d phi_i / sin(eps)``, shape ``(..., 3)``."""
-    phi = source_azimuth_rad(beta_deg, delta_deg)
-    return np.stack([-np.sin(phi), np.cos(phi), np.zeros_like(phi)], -1)
+    cos_phi, sin_phi = cos_sin_deg(source_azimuth_deg(beta_deg, delta_deg))
+    return np.stack([-sin_phi, cos_phi, np.zeros_like(cos_phi)], -1)
 
 
 def beta_rotation(d_beta_deg) -> np.ndarray:

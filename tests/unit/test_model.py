@@ -674,3 +674,21 @@ def test_shape_derivatives_are_finite_at_the_extremes(variant):
             _, grads = road_brdf_with_shape_grad(NumpyOps, P, wi, wo, variant, terms, names)
         for name, g in zip(names, grads):
             assert np.all(np.isfinite(g)), (name, dict(zip(names, combo)))
+
+
+def test_the_mirror_plane_column_is_at_beta_zero_exactly():
+    """The beta = 0 and 180 deg columns' source directions lie in the plane of observation exactly
+    (pair_angles gives 0 and pi), so eq. 4's x^W is 1 at beta = 0 however large W is. Through radians,
+    phi_i = 180 deg had sin 1.2e-16: beta 1.2e-16 rad, and with W = exp(1 + h f^2) ~ 1e16 at tan eps 12
+    x^W lost 8-32 % (the fits of R2 and R4 wrote values that were not eq. 4 there: user audit, session 41)."""
+    eps = np.arctan(TAN_EPS_GRID)
+    wo = np.broadcast_to(w_detector(1.0), (eps.size, 3))
+    for beta_deg, expected in ((0.0, 0.0), (180.0, math.pi)):
+        wi = w_source(eps, np.full(eps.size, beta_deg))
+        _, _, beta, _ = pair_angles(NumpyOps, tuple(wi.T), tuple(wo.T), pole=math.pi, supplement=True)
+        assert np.all(np.asarray(beta)[1:] == expected)
+    # r at beta = 0 does not depend on h (x = 1), where W reaches ~1e16 at tan eps 12 with h = 0.25
+    steep, flat = (RoadModel(RoadParams(k_diff=0.01, k_exp=0.1, p=1.0, h=h), "power") for h in (0.25, 0.0))
+    assert math.exp(1 + 0.25 * 12.0 ** 2) > 1e15
+    np.testing.assert_allclose(steep.q(TAN_EPS_GRID, np.zeros_like(TAN_EPS_GRID)),
+                               flat.q(TAN_EPS_GRID, np.zeros_like(TAN_EPS_GRID)), rtol=RTOL_EXACT)

@@ -19,7 +19,7 @@ from roadgonio.uncertainty.measurement import _rotations
 from roadgonio.uncertainty import (CellSet, MeasurementModel, coverage_indices,
                                    numerical_tolerance, parse_sigma_spec, run_uncertainty, standard_q0_weights,
                                    summarize, write_results)
-from helpers import UNCERTAINTY_MODEL as MODEL, UNCERTAINTY_SPEC as SPEC
+from helpers import SCENES, UNCERTAINTY_MODEL as MODEL, UNCERTAINTY_SPEC as SPEC
 from tolerances import N_SIGMA, z_family
 from roadgonio.uncertainty.statistics import ROUND_OFF_REL
 from tolerances import ROUND_TOL as EXACT_TOL  # exact rewrites of the same geometry
@@ -686,7 +686,7 @@ def test_a_detector_misaligned_through_the_housing_is_refused_before_the_work():
     from roadgonio.uncertainty.cells import CellSet
     from roadgonio.uncertainty.measurement import MeasurementModel
     from roadgonio.uncertainty.spec import check_spec_geometry, parse_sigma_spec
-    mm = MeasurementModel(resolve_sample("R3").model, load_instrument("scenes/portable_housed.toml"),
+    mm = MeasurementModel(resolve_sample("R3").model, load_instrument(SCENES / "portable_housed.toml"),
                           CellSet.make("standard"))
     with pytest.raises(InputError, match="housing_wall_x_max") as err:
         check_spec_geometry(parse_sigma_spec("detector_distance_m=0.02"), mm, aperture=True)
