@@ -465,7 +465,7 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
         check_writable(folder)          # an unwritable folder fails now, not after the fit
     result = _fit_with_progress(t, variant, seed, fixed, progress)
     check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
-    note_unresolved_spike(result.model, t.name, fitted=True)
+    note_unresolved_spike(result.model, t.name, fitted=True, option="--variant")   # fit's own option (audit, session 41)
     if folder is not None:
         import dataclasses
 

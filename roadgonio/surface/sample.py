@@ -147,17 +147,17 @@ def unresolved_spike(model: RoadModel) -> tuple[np.ndarray, np.ndarray]:
     return t[bad], ratio[bad]
 
 
-def note_unresolved_spike(model: RoadModel, name: str, *, fitted: bool) -> None:
+def note_unresolved_spike(model: RoadModel, name: str, *, fitted: bool, option: str = "--model-variant") -> None:
     """Warn (:class:`ModelWarning`) when ``model`` has a spike at beta = 0 no aperture resolves
     (:func:`unresolved_spike`); ``fitted``: the model was fitted to a table here, so another
-    variant is the way out."""
+    variant is the way out, by the command's ``option`` (``fit``'s is ``--variant``)."""
     t, ratio = unresolved_spike(model)
     if not t.size:
         return
     # a model file's name is the table it was fitted to (model.json's "name"), not the file's stem
     own = getattr(model, "name", None) or name
     what = f"{name} ({model.variant} fit)" if fitted else f"the model of {own} ({model.variant})"
-    way = (f"; --model-variant smooth fits {name} without it" if fitted and model.variant != "smooth" else "")
+    way = (f"; {option} smooth fits {name} without it" if fitted and model.variant != "smooth" else "")
     warnings.warn(ModelWarning(
         f"{what}: r at beta = 0 is a spike narrower than {SPIKE_WIDTH_DEG:g} deg for tan eps {t.min():g} ... "
         f"{t.max():g} (r falls to {ratio.min():.2f} of its value within {SPIKE_WIDTH_DEG:g} deg), finer than any "

@@ -115,3 +115,14 @@ def test_a_parameter_fixed_twice_at_two_values_is_an_error(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1 and "fixed twice" in err and "--fix n_phong" in err, err
     assert not (tmp_path / "f").exists()
+
+
+def test_fits_spike_note_names_fits_own_option(tmp_path, capsys):
+    """(user audit, session 41) fit's note on a spike no aperture resolves told to run
+    '--model-variant smooth', an option fit does not have (its own is --variant)."""
+    import warnings
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        assert main(["fit", "R2", "--out", str(tmp_path / "f")]) == 0
+    text = " ".join(str(w.message) for w in said) + capsys.readouterr().err
+    assert "spike" in text and "--variant smooth fits R2" in text and "--model-variant" not in text
