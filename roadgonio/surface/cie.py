@@ -31,9 +31,10 @@ CLASS_LIMITS = {
     "N": [("N1", -math.inf, 0.28), ("N2", 0.28, 0.60), ("N3", 0.60, 1.30), ("N4", 1.30, math.inf)],
 }
 STANDARD_Q0 = {**PUBLISHED_Q0, "N1": 0.10, "N2": 0.07, "N3": 0.07, "N4": 0.08}
-#: S1 is judged against the class limits rounded to this many decimals: a table's r x 1e4 has at most
-#: 7 significant digits, while dividing the stored r can land an ulp off a limit (135 / 100 gave
-#: 1.3499999999999999 and R3 where 1.35 <= R4; audit 21)
+#: S1 is judged against the class limits rounded to this many decimals: dividing the stored r can land
+#: an ulp off a limit (135 / 100 gave 1.3499999999999999 and R3 where 1.35 <= R4; audit 21). So an S1
+#: within 5e-10 below a limit (r(2, 0) given to 10 significant digits, 123.4799999 / 294) takes the
+#: class above it, a difference no measurement of r resolves (user audit, session 41)
 S1_CLASS_DECIMALS = 9
 
 
@@ -43,7 +44,8 @@ def class_by_s1(s1: float, system: str) -> tuple[str, float]:
     s1 = round(s1, S1_CLASS_DECIMALS)
     for name, lo, hi in CLASS_LIMITS[system]:
         if lo <= s1 < hi:
-            return name, min(abs(s1 - lo), abs(hi - s1))
+            # the margin to the same decimals as S1 (0.24115646300000004 was its float noise)
+            return name, round(min(abs(s1 - lo), abs(hi - s1)), S1_CLASS_DECIMALS)
     raise ValueError(f"S1 = {s1} outside every class")  # pragma: no cover (limits cover the line)
 
 
@@ -111,6 +113,12 @@ def classify(table: RTable) -> dict[str, Any]:
     tan 2) blank) is an :class:`InputError` naming what is missing. Without Q0 (no grid cell with
     four tabulated corners) Q0, the Q0 scale and the nearest tables are None / empty (missing)."""
     s1, q0 = table.s1(), table.q0()
+    if s1 == 0.0:
+        # a 0 is not a reading (docs/inputs-outputs.md): S1 = 0 gave R1 / C1 / N1 from it, where fit refuses
+        # the same file (user audit, session 41)
+        raise InputError("cannot classify: r(beta 0, tan eps 2) is 0, and S1 = r(beta 0, tan eps 2) / r(beta 0, "
+                         "tan eps 0) defines the class; a 0 is not a reading: expected r > 0 there (blank it, or give "
+                         "the reading)", field="S1")
     if not math.isfinite(s1):
         r00, r20 = table.value(0.0, 0.0), table.value(2.0, 0.0)
         lack = [f"r(beta 0, tan eps 0) is {'blank' if math.isnan(r00) else f'{r00:g}'}"] if not r00 > 0 else []

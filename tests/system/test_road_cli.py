@@ -239,6 +239,30 @@ def test_classify_bundled_tables_fall_in_their_own_class(capsys, name):
     assert d["nearest_bundled"][0]["table"] == name and d["nearest_bundled"][0]["distance"] == pytest.approx(0)
 
 
+
+def test_classify_refuses_a_zero_r_at_tan_2_and_prints_s1_on_its_side_of_a_limit(tmp_path, capsys):
+    """(user audit, session 41) r(beta 0, tan eps 2) = 0 gave S1 = 0 and the classes R1 / C1 / N1, where fit
+    refuses the same file (a 0 is not a reading); S1 = 0.4199966 printed as 0.420 beside R1 (whose limit is
+    S1 < 0.42) with a margin of 0.000, and the JSON margin carried float noise."""
+    from roadgonio.surface.rtable import bundled_table
+    t = bundled_table("R3")
+    i, j = int(np.argmin(np.abs(t.tan_eps - 2.0))), 0
+    r = t.r.copy()
+    r[i, j] = 0.0
+    t.with_values(r).write_csv(tmp_path / "zero.csv")
+    assert main(["classify", str(tmp_path / "zero.csv")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "r(beta 0, tan eps 2) is 0" in err
+    r = t.r.copy()
+    r[i, j] = 0.419996599 * t.r[0, 0]
+    t.with_values(r).write_csv(tmp_path / "edge.csv")
+    assert main(["classify", str(tmp_path / "edge.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "S1 = 0.419997" in out and "R system: R1 (S1 0.000 (3.4e-06) from the nearest class limit)" in out
+    assert main(["classify", str(tmp_path / "edge.csv"), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["classes"]["R"]["S1_margin_to_limit"] == round(d["classes"]["R"]["S1_margin_to_limit"], 9) > 0
+
 def test_output_error_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch):
     blocker = tmp_path / "file"
     blocker.write_text("x")
