@@ -361,6 +361,11 @@ def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
     t = _table(table)
     info = {"table": t.name, "Q0": _value(t.q0()), "S1": _value(t.s1()), "S2": _value(t.s2()),
             "cells": int(t.mask.sum()), "r_max": _value(t.r_max)}
+    # a Q0 over other cells than the standard tables' is said here too, as classify and compare say it
+    # (user audit, session 41: two blank cells gave Q0 2.9 % low without a word)
+    from roadgonio.surface.rtable import q0_coverage_note
+    note = q0_coverage_note(t)
+    info["notes"] = [note] if note else []
     # how an RTB file was read, when the reader had something to say (its scale told by the q0 line,
     # a q0 line off the values' Q0): audit 22, it was only in the table's source. Of the RTB file
     # itself only: a CSV converted from it keeps that source as its header, and its values need no note

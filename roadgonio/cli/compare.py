@@ -34,11 +34,11 @@ def run(args) -> int:
         print(f"r({b}) / r({a}) over {res['cells_compared']} cells: {api.ratio_range_text(res)}; "
               f"{api.largest_change_text(res)}")
         # cells one table has and the other lacks (user audit, session 37: in the JSON only)
-        for key, what in (("cells_zero_in_A", f"r({a}) = 0 < r({b})"), ("cells_zero_in_B", f"r({b}) = 0 < r({a})"),
-                          ("cells_ratio_undefined", "0 in both: no ratio"), ("cells_only_in_A", f"only in {a}"),
+        for key, what in (("cells_zero_in_A", f"with r({a}) = 0 < r({b})"), ("cells_zero_in_B", f"with r({b}) = 0 < r({a})"),
+                          ("cells_ratio_undefined", "with 0 in both: no ratio"), ("cells_only_in_A", f"only in {a}"),
                           ("cells_only_in_B", f"only in {b}")):
             if res[key]:
-                print(f"  {count(res[key], 'cell')} with {what}")
+                print(f"  {count(res[key], 'cell')} {what}")
         for note in res.get("notes", ()):
             print(f"  note: {note}")
         print(f"wrote {len(res['written'])} files to {res['out']}")

@@ -44,10 +44,12 @@ def run_table(args) -> int:
     q0 = "missing" if info["Q0"] is None else f"{info['Q0']:.4f} sr^-1"      # not 'missing sr^-1' (audit 22)
     say(f"{info['table']}: Q0 = {q0}, S1 = {_f(info['S1'], '.3f')}, S2 = {_f(info['S2'], '.2f')}, "
         f"{info['cells']} tabulated cells, max r = {_f(None if info['r_max'] is None else info['r_max'] * 1e4, '.4g')} "
-        "x 1e-4")
+        "x 1e-4 sr^-1")
     missing = [k for k in ("S1", "Q0", "S2") if info[k] is None]
     if missing:
         say(f"  missing: {', '.join(missing)} ({_why_missing(missing)})")
+    for note in info["notes"]:
+        say(f"  note: {note}")
     if info.get("reading_note"):
         say(f"  read: {info['reading_note']}")
     if "written" in info:

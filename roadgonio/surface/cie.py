@@ -140,7 +140,7 @@ def classify(table: RTable) -> dict[str, Any]:
     if not q0_ok:
         out["missing"] = "Q0 (no grid cell with four tabulated corners): no Q0 scale, no nearest bundled table"
     from roadgonio.surface.rtable import q0_coverage_note
-    note = q0_coverage_note(table) if q0_ok else None
+    note = q0_coverage_note(table)
     out["notes"] = [note] if note else []
     return out
 

@@ -1014,9 +1014,10 @@ def q0_coverage_note(table: RTable) -> str | None:
     """One line when ``table``'s cells are not the CIE standard tables' 396 (some lacking, or more):
     its Q0 (and S2) are then the mean over its own solid angle (:meth:`RTable.q0`), not the standard
     tables', and compare with no standard value (user audit, session 37: R3's rows tan eps 0-2 alone gave Q0 0.042
-    against 0.070, "x0.601" of the class standard, without a word). None when it has them all."""
+    against 0.070, "x0.601" of the class standard, without a word). None when it has them all, and when
+    it has no Q0 (and no S2) to speak of (user audit, session 41: compare said it of a missing Q0)."""
     std = standard_mask()
-    if table.mask.shape != std.shape:
+    if table.mask.shape != std.shape or not math.isfinite(table.q0()):
         return None
     lack, extra = int(np.sum(std & ~table.mask)), int(np.sum(table.mask & ~std))
     if not lack and not extra:

@@ -126,3 +126,23 @@ def test_fits_spike_note_names_fits_own_option(tmp_path, capsys):
         assert main(["fit", "R2", "--out", str(tmp_path / "f")]) == 0
     text = " ".join(str(w.message) for w in said) + capsys.readouterr().err
     assert "spike" in text and "--variant smooth fits R2" in text and "--model-variant" not in text
+
+
+def test_table_says_when_its_q0_is_not_over_the_standard_cells(tmp_path, capsys):
+    """(user audit, session 41) a table with two blank cells printed Q0 2.9 % below the full table's
+    without the note classify and compare give; a table without Q0 gets no such note (compare gave it)."""
+    t = bundled_table("R3")
+    r = t.r.copy()
+    r[3, 4] = r[10, 2] = np.nan
+    t.with_values(r).write_csv(tmp_path / "hole.csv")
+    assert main(["table", str(tmp_path / "hole.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "note: hole lacks 2 of the CIE standard tables' 396 cells" in out and "x 1e-4 sr^-1" in out
+    assert main(["table", str(tmp_path / "hole.csv"), "--json"]) == 0
+    assert "not comparable with a standard Q0" in json.loads(capsys.readouterr().out)["notes"][0]
+    r = np.full_like(t.r, np.nan)
+    r[:, 0] = t.r[:, 0]                       # the beta = 0 column alone: no Q0
+    t.with_values(r).write_csv(tmp_path / "column.csv")
+    assert main(["compare", "R3", str(tmp_path / "column.csv"), "--no-plots", "--out", str(tmp_path / "c")]) == 0
+    out = capsys.readouterr().out
+    assert "not comparable with a standard Q0" not in out and "367 cells only in R3" in out

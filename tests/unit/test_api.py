@@ -585,7 +585,7 @@ def test_uncertainty_of_a_housed_instrument_says_what_it_holds_fixed():
     def factory(*a, **k):
         raise Stop
     model = resolve_sample("R3").model
-    for name, said_it in (("scenes/portable_housed.toml", True), ("portable", False)):
+    for name, said_it in (("portable_housed", True), ("portable", False)):
         with warnings.catch_warnings(record=True) as said:
             warnings.simplefilter("always")
             with pytest.raises(Stop):
@@ -594,5 +594,5 @@ def test_uncertainty_of_a_housed_instrument_says_what_it_holds_fixed():
         text = [str(w.message) for w in said if issubclass(w.category, ModelWarning)]
         assert any("taken as exact" in t and "inside the housing" in t for t in text) == said_it, text
     with pytest.raises(InputError, match="no input error") as err:
-        api.estimate_uncertainty("scenes/portable_housed.toml", "R3", "alpha_deg=0.01,wall_reflectance=0.01")
+        api.estimate_uncertainty("portable_housed", "R3", "alpha_deg=0.01,wall_reflectance=0.01")
     assert "wall_reflectance" in str(err.value)

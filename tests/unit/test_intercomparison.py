@@ -742,7 +742,7 @@ def test_a_housing_that_reflects_is_an_item_and_its_idealisation_drops_the_housi
     from roadgonio.instrument.housing import Housing
     from roadgonio.intercomparison.run import idealised_instrument
     from roadgonio.intercomparison.simulate import k_characteristics
-    housed = load_instrument("scenes/portable_housed.toml")
+    housed = load_instrument("portable_housed")
     assert [k for k, _ in k_characteristics(housed)][-1] == "housing"
     assert "housing" not in [k for k, _ in k_characteristics(load_instrument("portable"))]
     d = housed.to_dict()
@@ -765,7 +765,7 @@ def test_a_misaligned_housed_instrument_keeps_its_housing_where_it_was_built():
     from roadgonio.uncertainty.cells import CellSet
     from roadgonio.uncertainty.measurement import MeasurementModel
     from roadgonio.surface.sample import resolve_sample
-    housed = load_instrument("scenes/portable_housed.toml")
+    housed = load_instrument("portable_housed")
     mm = MeasurementModel(resolve_sample("R3").model, housed, CellSet.make("standard"))
     box = housing_box(housed, Housing.of(housed))
     moved = mm.instrument.with_changes(source={"distance_m": mm.ds0 + 0.02}, detector={"distance_m": mm.dd0 - 0.01},
