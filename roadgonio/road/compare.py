@@ -117,7 +117,8 @@ def compare_png(result: dict, a: RTable, b: RTable) -> bytes:
     rows = [["", _short(a.name), _short(b.name)]]
     ca, cb = result["characteristics"][a.name], result["characteristics"][b.name]
     for key, fmt in (("S1", "{:.3f}"), ("S2", "{:.3f}"), ("Q0", "{:.4f}"), ("cells", "{:d}")):
-        rows.append([key] + [("-" if c[key] is None else fmt.format(c[key])) for c in (ca, cb)])
+        label = "Q0 (sr^-1)" if key == "Q0" else key                 # its unit (user audit, session 41)
+        rows.append([label] + [("-" if c[key] is None else fmt.format(c[key])) for c in (ca, cb)])
     tab = tx.table(cellText=rows, loc="upper center", cellLoc="center")
     tab.scale(1.0, 1.8)
     tab.set_fontsize(11)

@@ -795,7 +795,9 @@ def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
         raise InputError(f"r = {v[i, j] / scale:g} sr^-1 at tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g} "
                          f"is not a plausible road value (expected r <= {R_MAX_PLAUSIBLE:g} sr^-1; the CIE tables peak "
                          "below 0.08): a typo, or a table in another scale?", path=path, field="r")
-    src = f"read from {Path(str(path)).name}" + (f"; {note}" if note else "")
+    # the surface's stored name kept in the source, so a CSV converted from it names it in its header
+    # (user audit, session 41: '# read from r3.rtb' lost 'R3')
+    src = f"{name} read from {Path(str(path)).name}" + (f"; {note}" if note else "")
     return RTable(v / scale, name=name, source=src)
 
 

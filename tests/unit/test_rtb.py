@@ -85,7 +85,7 @@ def test_scale_checked_against_q0_line():
     # values r x 1e4 and q0 in sr^-1: the documented case, no note
     ok = parse_rtb(_with_q0(t.q0()))
     np.testing.assert_allclose(ok.r[t.mask], t.r[t.mask])
-    assert ok.source == "read from <table>"
+    assert ok.source == "R3 read from <table>"          # the stored name kept (session 41)
     # values in sr^-1 (another writer), q0 in sr^-1: read at that scale, said so
     plain = parse_rtb(_with_q0(t.q0(), values_scale=1.0))
     np.testing.assert_allclose(plain.r[t.mask], t.r[t.mask], rtol=1e-5)
