@@ -54,7 +54,7 @@ Variants:
   ``x`` is), so E is ~0 there unless W is tiny.
   Measured fits (bench/bench_fit.py), max / RMS in % of max r, power -> smooth:
   R1 4.2/1.55 -> 4.3/1.47, R2 9.1/3.0 -> 5.5/1.85, R3 12.3/4.0 -> 7.2/2.27,
-  R4 17.5/5.5 -> 7.7/2.12, C1 3.5/1.17 -> 2.7/0.77, C2 8.8/3.1 -> 7.8/2.21.
+  R4 16.6/5.4 -> 7.7/2.12, C1 3.5/1.17 -> 2.7/0.77, C2 8.8/3.1 -> 7.8/2.21.
 
 Rounding at the mirror plane (roadgonio extension, every variant): ``beta_round_deg`` = b_c > 0
 replaces the empirical term's beta by ``beta^2 / sqrt(beta^2 + b_c^2)`` (:func:`rounded_beta`), so

@@ -136,13 +136,15 @@ def test_the_fits_jacobian_is_the_derivative_of_its_re_solved_residual(r3like, v
 def test_fit_through_an_ideal_instrument_reaches_the_plain_least_squares_optimum():
     """Through the ideal instrument and with a constant u the fit is the plain least squares in % of
     max r; its multi-start must find the global optimum of the power model on R4, which a long
-    differential evolution (surface.fit with weight 0, three seeds, wide box) puts at 5.4904 %."""
+    differential evolution (surface.fit with weight 0, three seeds, maxiter 600, popsize 30) puts at
+    5.262866 % (all three; 5.4904 % until session 41, when the beta = 0 column lay at beta 1.2e-16 rad
+    and eq. 4's x^W lost up to 8 % at grazing incidence there)."""
     t = bundled_table("R4")
     fm = ForwardModel(RayBundles.build(ideal(), t.cells, rays=8, replicates=2))
     y = t.r[t.mask]
     f = fit_through_instrument(fm, y, np.full(y.size, 0.01 * t.r_max), variant="power")
     rms = math.sqrt(f.chi2 / y.size)
-    assert rms == pytest.approx(5.49044, abs=2e-4), rms
+    assert rms == pytest.approx(5.262866, abs=2e-4), rms
     assert f.stage_a[0] < f.stage_a[-1]                            # stage A saw distinct minima (a real landscape)
 
 
@@ -809,7 +811,10 @@ def test_a_repeated_search_polishes_its_own_start(monkeypatch):
         seen.append({"chi2": out.chi2})
         return out
     monkeypatch.setattr(run_mod, "assess_fit", spy_assess)
-    _, _, _, searches = run_mod.search_through_instrument(fm, y, 0.01 * y, ("smooth",), starts=1, rounds=1, seed=0)
+    # the power variant cannot follow the smooth variant's truth, so the data reject every search and it
+    # is repeated whatever the first start finds (with ("smooth",) a lucky first start reached chi^2 1e-25
+    # once the beta = 0 column lay at beta = 0 exactly, session 41, and nothing was repeated)
+    _, _, _, searches = run_mod.search_through_instrument(fm, y, 0.01 * y, ("power",), starts=1, rounds=1, seed=0)
     assert len(searches) >= 2 and len(polished_from) == len(stage_a) == len(searches)
     assert all(p is a for p, a in zip(polished_from, stage_a)), "a search polished another search's model"
 
