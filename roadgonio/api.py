@@ -1562,6 +1562,12 @@ def largest_change_text(result: dict) -> str:
     return text(result)
 
 
+def s1_text(s1: float) -> str:
+    """S1 as ``roadgonio classify`` prints it (:func:`roadgonio.surface.cie.s1_text`)."""
+    from roadgonio.surface.cie import s1_text as text
+    return text(s1)
+
+
 def ratio_range_text(result: dict) -> str:
     """'0.995 ... 1.0034 (median 1)' of a :func:`compare_tables` result, each ratio with the digits it
     takes to differ from 1 (:func:`roadgonio.road.compare.range_text`)."""

@@ -18,18 +18,6 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
-def s1_text(s1: float) -> str:
-    """S1 to three decimals, or to as many as show its side of a class limit it would round onto:
-    "S1 = 0.420" beside R1, whose limit is S1 < 0.42, read as a contradiction (user audit, session 41)."""
-    from roadgonio.surface.cie import CLASS_LIMITS, S1_CLASS_DECIMALS
-    limits = {hi for rows in CLASS_LIMITS.values() for _, _, hi in rows if hi != float("inf")}
-    for decimals in range(3, S1_CLASS_DECIMALS + 1):
-        text = f"{s1:.{decimals}f}"
-        if not any(float(text) == lim and s1 != lim for lim in limits):
-            return text
-    return text
-
-
 def run(args) -> int:
     res = api.classify_table(args.table)
     if args.json:
@@ -37,7 +25,7 @@ def run(args) -> int:
     elif not args.quiet:
         q0 = "missing" if res["Q0"] is None else f"{res['Q0']:.4f} sr^-1"
         s2 = "missing" if res["S2"] is None else f"{res['S2']:.2f}"
-        print(f"{res['table']}: S1 = {s1_text(res['S1'])}, Q0 = {q0}, S2 = {s2}")
+        print(f"{res['table']}: S1 = {api.s1_text(res['S1'])}, Q0 = {q0}, S2 = {s2}")
         for system, c in res["classes"].items():
             scale = "missing" if c["Q0_scale"] is None else f"x{c['Q0_scale']:.3f}"
             margin = c["S1_margin_to_limit"]

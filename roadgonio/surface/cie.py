@@ -49,6 +49,17 @@ def class_by_s1(s1: float, system: str) -> tuple[str, float]:
     raise ValueError(f"S1 = {s1} outside every class")  # pragma: no cover (limits cover the line)
 
 
+def s1_text(s1: float) -> str:
+    """S1 to three decimals, or to as many as show its side of a class limit it would round onto:
+    "S1 = 0.420" beside R1, whose limit is S1 < 0.42, read as a contradiction (user audit, session 41)."""
+    limits = {hi for rows in CLASS_LIMITS.values() for _, _, hi in rows if hi != float("inf")}
+    for decimals in range(3, S1_CLASS_DECIMALS + 1):
+        text = f"{s1:.{decimals}f}"
+        if not any(float(text) == lim and s1 != lim for lim in limits):
+            return text
+    return text
+
+
 def class_probabilities(s1: float, u_s1: float, system: str) -> dict[str, float]:
     """The probability of each class of ``system`` for S1 distributed as N(s1, u_s1^2)."""
     from scipy.stats import norm
