@@ -71,7 +71,8 @@ UNOBSERVED_SD_LN = math.log(2.0)
 #: parameter at LAM_MIN or above, 2 chose the smoothing with the noise scale the residuals show
 #: (noise_scale), 1 with the stated u alone.
 #: 4 lets the evidence choose g_D's prior scale where two instruments see it (SurfaceSettings.d_prior_scale).
-SURFACE_FIT_VERSION = 4
+#: 5 penalises ln f through the pole, not g_C alone (pole_offsets).
+SURFACE_FIT_VERSION = 5
 #: Prior standard deviation of g_D (d ln f / d ln alpha beyond the backbone's).
 D_PRIOR_SD = 1.0
 #: Who chooses the scale of g_D's prior (SurfaceSettings.d_prior_scale): "fixed" holds sd_D, "evidence"
@@ -194,6 +195,11 @@ class SurfaceSettings:
     #: fresh starts, not searched again (WARM_ROUND_STARTS); None: each rounding searched like the first
     #: (what it was until session 31)
     warm_round_starts: int | None = WARM_ROUND_STARTS
+    #: the roughness penalty's differences through the pole act on the surface's whole ln f (backbone
+    #: plus g_C), not on g_C alone (:func:`pole_offsets`): the road BRDF is smooth in the incident
+    #: direction at normal incidence, eq. 4's empirical term has a cone there, and a smooth g_C kept it
+    #: (docs/correction.md, "Smooth through the pole"); False: g_C alone, as until session 41
+    smooth_through_pole: bool = True
 
     def __post_init__(self):
         if not (self.d_prior_sd > 0 and math.isfinite(self.d_prior_sd)):
@@ -242,6 +248,8 @@ class SurfaceSettings:
         if isinstance(u, bool) or not isinstance(u, (int, float)) or not (math.isfinite(u) and u >= 0.0):
             raise InputError(f"expected a standard uncertainty >= 0 of ln f_r beyond the observation elevations, "
                              f"got {u!r}", field="unobserved_sd_ln")
+        if not isinstance(self.smooth_through_pole, (bool, np.bool_)):
+            raise InputError(f"expected true or false, got {self.smooth_through_pole!r}", field="smooth_through_pole")
         if self.discrepancy_ell is not None and not (self.discrepancy_ell > 0 and math.isfinite(self.discrepancy_ell)):
             raise InputError(f"expected a positive correlation length of the discrepancy (knot spacings), got "
                              f"{self.discrepancy_ell}", field="discrepancy_ell")
@@ -322,7 +330,7 @@ class SurfaceSettings:
                 "model_estimate": self.model_estimate,
                 "mirror_round_deg": (list(self.mirror_round_deg) if isinstance(self.mirror_round_deg, tuple)
                                      else self.mirror_round_deg), "unobserved_sd_ln": self.unobserved_sd_ln,
-                "backbone_retries": int(self.backbone_retries),
+                "backbone_retries": int(self.backbone_retries), "smooth_through_pole": bool(self.smooth_through_pole),
                 "warm_round_starts": None if self.warm_round_starts is None else int(self.warm_round_starts)}
 
 
@@ -689,6 +697,49 @@ def penalty_blocks(settings: SurfaceSettings) -> tuple[list[str], list[np.ndarra
     return names, mats
 
 
+def pole_offsets(settings: SurfaceSettings, backbone: RoadModel | None) -> list[tuple[np.ndarray, float]]:
+    """The roughness penalty of each block of :func:`penalty_blocks` as ``||D_k theta + d_k||^2 =
+    theta^T P_k theta + 2 b_k^T theta + c_k``: per block (b_k, c_k). d_k is nonzero only on the
+    differences through the pole (g_C's a_1(beta) - 2 c + a_1(180 deg - beta),
+    :mod:`roadgonio.surface.correction_surface`), where it is the same difference of the backbone's
+    ln f at the nodes (the pole and the first ring, observation at alpha = 1 deg): so those rows
+    penalise the roughness of ln f = ln f_0 + g_C through the pole, not of g_C alone.
+
+    Why: a road BRDF is smooth in the incident direction at normal incidence (nothing physical
+    happens at the pole of the polar coordinates), so its first-order change there is odd (up
+    towards beta = 0, down towards 180 deg) and averages out over the detector's footprint, which
+    meets theta_i up to ~8.5 deg on both sides of the pole (``portable``). Eq. 4's empirical term
+    is never negative and grows as theta_i^p on the beta = 0 side alone: a cone, whose footprint mean
+    exceeds its value at the pole. A g_C smooth on its own kept the cone (user audit, session 40: the
+    tan eps = 0 row 16 % low through ``portable``, z -3); smooth as a whole, g_C takes it away where
+    the data do not say otherwise. All zero with ``settings.smooth_through_pole`` False or no
+    backbone."""
+    g = settings.c_grid
+    beta, eps = g.node_coordinates()
+    v = np.zeros(g.n_params)
+    if settings.smooth_through_pole and backbone is not None:
+        from roadgonio.surface.correction_surface import _theta_index
+        q = np.asarray(backbone.q(np.r_[0.0, np.full(beta.size, math.tan(math.radians(eps[1])))], np.r_[0.0, beta]),
+                       dtype=np.float64)
+        # ln f where the backbone is positive; a backbone 0 at a node (no diffuse term, E = 0 at the pole)
+        # is floored at 1e-12 of its largest value there, so the difference stays finite
+        ln_q = np.log(np.maximum(q, 1e-12 * max(float(np.max(q)), 1e-300)))
+        v[0] = ln_q[0]
+        for i in range(g.s_beta + 1):
+            v[_theta_index(g, i, 1)] = ln_q[1 + i]
+    out = []
+    for direction, (D, centre) in zip(("beta", "eps"), g.differences()):
+        region = penalty_region(settings, beta[centre[:, 0]], eps[centre[:, 1]])
+        through_pole = np.zeros(D.shape[0], bool)
+        if direction == "eps":
+            through_pole[-(g.s_beta + 1):] = True       # appended last (correction_surface._differences)
+        for name in sorted(set(region.tolist()), key=lambda n: (n == "rest", n)):
+            rows = region == name
+            d = np.where(through_pole[rows], D[rows] @ v, 0.0)
+            out.append((D[rows].T @ d, float(d @ d)))
+    return out
+
+
 def n_apertures(parts: Sequence["FlexPart"]) -> int:
     """How many distinct instruments (optics: observation, source, detector, sample; names and
     descriptions aside) the parts see: repeated tables of one instrument count once."""
@@ -788,6 +839,14 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None, hold_d_scale: 
     n = y.size
     n_c, n_d = settings.n_c, settings.n_d
     names, Ps = penalty_blocks(settings)
+    offsets = pole_offsets(settings, parts[0].backbone)    # one surface: every part has the same backbone
+
+    def linear(lam_) -> tuple[np.ndarray, float]:
+        """(sum lambda_k b_k, sum lambda_k c_k) of :func:`pole_offsets`: the penalty is
+        theta^T Lambda theta + 2 lin^T theta + const."""
+        lin = np.zeros(n_c + n_d)
+        lin[:n_c] = sum(l * b for l, (b, _) in zip(lam_, offsets))
+        return lin, float(sum(l * c for l, (_, c) in zip(lam_, offsets)))
     Q = d_prior(settings)
     logdet_Q = float(np.linalg.slogdet(Q)[1]) if n_d else 0.0
     one = np.ones(n_c)                          # theta_C of a constant g_C: the null space of every block
@@ -848,24 +907,25 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None, hold_d_scale: 
         sims = [p.simulate(th, jac) for p in parts]
         return np.concatenate([a for a, _ in sims]), (np.vstack([b for _, b in sims]) if jac else None)
 
-    def mode(th, Lam, max_steps=MAX_MODE_STEPS):
-        """Gauss-Newton on the penalised sum of squares with a backtracking line search (H is
-        positive definite: the direction always descends); one Cholesky factorisation a step."""
+    def mode(th, Lam, lin, max_steps=MAX_MODE_STEPS):
+        """Gauss-Newton on the penalised sum of squares (the penalty theta^T Lam theta + 2 lin^T
+        theta: :func:`linear`) with a backtracking line search (H is positive definite: the
+        direction always descends); one Cholesky factorisation a step."""
         s, J = simulate(th)
         r = s - y
-        obj = float(np.sum(W * r * r)) + float(th @ Lam @ th)
+        obj = float(np.sum(W * r * r)) + float(th @ Lam @ th) + 2.0 * float(lin @ th)
         steps = 0
         for step in range(1, max_steps + 1):
             steps = step
             H = J.T @ (W[:, None] * J) + Lam
-            grad = J.T @ (W * (y - s)) - Lam @ th
+            grad = J.T @ (W * (y - s)) - Lam @ th - lin
             d = cho_solve(cho_factor(H, check_finite=False), grad, check_finite=False)
             t, accepted = 1.0, False
             while t > 1e-4:
                 cand = th + t * d
                 s2, _ = simulate(cand, jac=False)
                 r2 = s2 - y
-                obj2 = float(np.sum(W * r2 * r2)) + float(cand @ Lam @ cand)
+                obj2 = float(np.sum(W * r2 * r2)) + float(cand @ Lam @ cand) + 2.0 * float(lin @ cand)
                 if obj2 < obj:
                     accepted = True
                     break
@@ -896,7 +956,7 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None, hold_d_scale: 
         history, steps_total = list(state.get("history", [])), int(state.get("steps", 0))
     for outer in range(0 if state is not None else 1 if fixed else MAX_OUTER):
         Lam = prior(lam, phi)
-        theta, s, J, steps = mode(theta, Lam, MAX_MODE_STEPS if outer == 0 else INNER_STEPS)
+        theta, s, J, steps = mode(theta, Lam, linear(lam)[0], MAX_MODE_STEPS if outer == 0 else INNER_STEPS)
         steps_total += steps
         if fixed:
             break
@@ -911,10 +971,11 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None, hold_d_scale: 
         phi_new = noise_scale(float(np.sum(W * r_now * r_now)), n, float(np.sum(Hinv * A)))
         new = lam.copy()
         if settings.smoothing == "gcv":
-            new = _gcv_step(J, W, y - s + J @ theta, Ps, Q, lam, n_c, unit)
+            new = _gcv_step(J, W, y - s + J @ theta, Ps, Q, lam, n_c, unit, offsets)
         for j, P in enumerate(Ps if settings.smoothing == "evidence" else []):
             num = float(np.sum(Sinv * P)) - float(np.sum(Hinv[:n_c, :n_c] * P))
-            den = float(th_c @ P @ th_c)
+            b_j, c_j = offsets[j]
+            den = float(th_c @ P @ th_c) + 2.0 * float(b_j @ th_c) + c_j        # ||D_j theta + d_j||^2
             ratio = phi_new * num / den if den > 0 and num > 0 else 0.1
             # the generalized Fellner-Schall step, over-relaxed in ln lambda (its steps shrink
             # geometrically in one direction; OVER_RELAX > 1 takes fewer of them)
@@ -930,7 +991,7 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None, hold_d_scale: 
         lam, phi, tau = new, phi_new, tau_new
         if change < LAM_TOL or (settings.smoothing == "gcv" and outer + 1 >= MAX_OUTER_GCV):
             Lam = prior(lam, phi)
-            theta, s, J, steps = mode(theta, Lam, MAX_MODE_STEPS)
+            theta, s, J, steps = mode(theta, Lam, linear(lam)[0], MAX_MODE_STEPS)
             steps_total += steps
             break
     Lam = prior(lam, phi)
@@ -940,7 +1001,8 @@ def _fit_surface(parts, measured, u, *, theta0, lam0, state=None, hold_d_scale: 
     edf = float(np.sum(cov * A))
     r = s - y
     chi2 = float(np.sum(W * r * r))
-    pen = float(theta @ Lam @ theta)
+    lin, const = linear(lam)
+    pen = float(theta @ Lam @ theta) + 2.0 * float(lin @ theta) + const
     S = Lam[:n_c, :n_c]
     c = np.trace(S) / n_c ** 2
     logdet_S = float(np.linalg.slogdet(S + c * np.outer(one, one))[1]) - math.log(c * n_c)
@@ -975,7 +1037,7 @@ def noise_scale(chi2: float, n: int, edf: float) -> float:
 
 
 def _gcv_step(J: np.ndarray, W: np.ndarray, z: np.ndarray, Ps: list[np.ndarray], Q: np.ndarray, lam: np.ndarray,
-              n_c: int, unit: float) -> np.ndarray:
+              n_c: int, unit: float, offsets=None) -> np.ndarray:
     """The smoothing parameters that minimise the generalised cross-validation score
     ``n chi2(lambda) / (n - edf(lambda))^2`` of the problem linearised at the mode (working data
     ``z = y - s + J theta``; docs/correction.md), searched in ln lambda from ``lam`` (Nelder-Mead
@@ -996,7 +1058,11 @@ def _gcv_step(J: np.ndarray, W: np.ndarray, z: np.ndarray, Ps: list[np.ndarray],
             c = cho_factor(A + L, check_finite=False)
         except np.linalg.LinAlgError:
             return math.inf
-        th = cho_solve(c, b, check_finite=False)
+        rhs = b
+        if offsets is not None:          # the penalty's linear part (pole_offsets)
+            rhs = b.copy()
+            rhs[:n_c] -= sum(math.exp(min(max(v, lo), hi)) * o for v, (o, _) in zip(loglam, offsets))
+        th = cho_solve(c, rhs, check_finite=False)
         r = z - J @ th
         edf = float(np.trace(cho_solve(c, A, check_finite=False)))
         if n - edf <= 1e-9 * n:             # interpolation: the score is 0 / 0 there, not a minimum

@@ -484,3 +484,22 @@ def test_the_stated_bundle_u_of_a_surface_correction_is_its_scatter_over_the_bun
     ratio = float(np.sqrt(np.mean(sd ** 2)) / stated)
     assert 0.25 < ratio < 2.5, (ratio, float(np.sqrt(np.mean(sd ** 2))), float(stated))
     assert all("through the fit" in r.budget.notes["bundle"] for r in runs)
+
+
+def test_a_smooth_surface_is_right_at_the_pole():
+    """A user audit's surface outside eq. 4, smooth in the incident direction at normal incidence (its
+    k_A at the pole 1.003), measured through `portable` by the auditor's own float64 integrator (tests/
+    data/pole_audit, written apart from roadgonio), corrected with the defaults. Before session 41 the
+    fitted backbone's cone at the pole (eq. 4's empirical term, one-sided over the detector's footprint)
+    put the tan eps = 0 row 16 % low (z about -3 in all 20 cells, k_A used 1.18) and S1 2.1 u(S1) high;
+    with the penalty through the pole on the whole ln f (pole_offsets) the row is within its u, and so
+    is S1 (docs/correction.md, "Smooth through the pole")."""
+    folder = DATA / "pole_audit"
+    measured, truth = read_table(folder / "measured_portable.csv"), read_table(folder / "truth.csv")
+    res = api.correct(measured, load_instrument("portable"), forward="surface", u_measured="1%", seed=0)
+    m = res.corrected.mask
+    z = np.full(m.shape, np.nan)
+    z[m] = np.log(res.corrected.r[m] / truth.r[m]) / res.budget.u_rel()
+    assert np.all(np.abs(z[0][m[0]]) <= 2.0), z[0][m[0]]             # one direction: its 20 cells, one error
+    s1_true = truth.s1()
+    assert abs(res.after["S1"] - s1_true) <= 2.0 * res.after["u_S1"], (res.after["S1"], res.after["u_S1"], s1_true)

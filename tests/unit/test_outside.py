@@ -71,6 +71,52 @@ def test_roughness_penalty_leaves_only_the_constant_free():
 
 
 
+
+def test_the_penalty_through_the_pole_is_on_the_whole_ln_f():
+    """pole_offsets (session 41): the roughness penalty's differences through the pole act on ln f_0 + g_C.
+    - A Lambertian backbone (ln f_0 constant) has no offset: the penalty is g_C's own.
+    - For the R3-like eq. 4 backbone (a cone at the pole: its empirical term grows as theta_i^p towards
+      beta = 0 and stays ~0 towards 180 deg) the offset of the difference from beta = 0 to 180 deg is
+      ln f_0(eps_1, 0) - 2 ln f_0(pole) + ln f_0(eps_1, 180 deg), by the model itself, and positive.
+    - A g_C that cancels ln f_0 at the pole and the first ring (the whole ln f flat there) costs
+      nothing through the pole, while g_C = 0 costs the backbone's cone; without smooth_through_pole
+      every offset is 0 (g_C alone, as until session 41).
+    - The blocks' quadratic plus linear parts are ||D_k theta + d_k||^2 for any theta."""
+    from roadgonio.correction.flexible import SurfaceSettings, penalty_blocks, pole_offsets
+    from roadgonio.surface.correction_surface import _theta_index
+    from roadgonio.surface.model import RoadModel, RoadParams
+    from roadgonio.surface.truths import make_truth
+    settings = SurfaceSettings(c_grid=GRID)
+    names, Ps = penalty_blocks(settings)
+    lambert = RoadModel(RoadParams(k_diff=0.02), "power")
+    assert all(np.max(np.abs(b)) < ROUND_OFF and c < ROUND_OFF ** 2 for b, c in pole_offsets(settings, lambert))
+    cone = make_truth("eq4")
+    offsets = pole_offsets(settings, cone)
+    assert len(offsets) == len(Ps)
+    beta, eps = GRID.node_coordinates()
+    t1 = math.tan(math.radians(eps[1]))
+    ln = lambda t, b: math.log(float(cone.q(np.array([t]), np.array([b]))[0]))
+    d0 = ln(t1, 0.0) - 2.0 * ln(0.0, 0.0) + ln(t1, 180.0)
+    assert d0 > 0.05
+    v = np.zeros(GRID.n_params)
+    v[0] = ln(0.0, 0.0)
+    for i, b in enumerate(beta):
+        v[_theta_index(GRID, i, 1)] = ln(t1, float(b))
+    (_, (Dt, _)) = GRID.differences()
+    pole_rows = Dt[-(GRID.s_beta + 1):]
+    assert pole_rows[0] @ v == pytest.approx(d0, rel=1e-12)
+    total = lambda th: sum(th @ P @ th + 2.0 * bk @ th + ck for P, (bk, ck) in zip(Ps, offsets))
+    own = lambda th: sum(th @ P @ th for P in Ps)
+    flat = -v
+    # the whole ln f flat at the pole and the first ring: the through-pole rows cost nothing
+    assert total(flat) == pytest.approx(own(flat) - float(np.sum((pole_rows @ flat) ** 2)), rel=1e-9, abs=1e-12)
+    assert total(np.zeros(GRID.n_params)) == pytest.approx(float(np.sum((pole_rows @ v) ** 2)), rel=1e-12)
+    theta = np.random.default_rng(3).standard_normal(GRID.n_params)
+    assert total(theta) == pytest.approx(own(theta) + float(np.sum((pole_rows @ (theta + v)) ** 2))
+                                         - float(np.sum((pole_rows @ theta) ** 2)), rel=1e-9)
+    off = SurfaceSettings(c_grid=GRID, smooth_through_pole=False)
+    assert all(np.all(b == 0.0) and c == 0.0 for b, c in pole_offsets(off, cone))
+
 @pytest.mark.parametrize("regions", ["peak", "grid"])
 def test_penalty_regions_split_the_roughness_penalty(regions):
     """penalty_blocks: every second difference lies in exactly one region's block (the blocks sum to
