@@ -1,3 +1,4 @@
+# ruff: noqa  (kept as the user-auditor wrote it, session 40; only this line added)
 """Independent float64 truth (outside eq. 4) and instrument integrator (Lambert calibration).
 No roadgonio import. Conventions from docs/conventions.md sections 1, 2, 4, 5."""
 import numpy as np
