@@ -96,3 +96,17 @@ def test_an_adaptive_run_stopped_at_its_cap_exits_3(tmp_path, capsys):
     rc = main([*base, "--digits", "1", "--max-trials", "40000", "--out", str(tmp_path / "converged")])
     err = capsys.readouterr().err
     assert rc == 0 and err == "", err
+
+
+def test_an_output_the_errors_do_not_change_is_drawn_in_words(tmp_path, capsys):
+    """(user audit, session 41) a source-distance error alone scales r(0, 0) and r(2, 0) alike, so S1's
+    trials spread over round-off (1e-16), where the histogram's 80 bins cannot be drawn: the run crashed
+    after all its work (exit 1) and wrote nothing. Now its results are written and the S1 panel says
+    why it has no histogram."""
+    from roadgonio.cli import main
+    out = tmp_path / "u"
+    rc = main(["uncertainty", "--instrument", "portable", "--sample", "R3", "--sigma", "source_distance_m=0.002",
+               "--trials", "1000", "--no-aperture", "--out", str(out)])
+    text = capsys.readouterr().out
+    assert rc == 0 and "S1: 1.116, not changed by these errors" in text
+    assert {"q0_s1_hist.png", "uncertainty.json", "cells.csv"} <= {p.name for p in out.iterdir()}
