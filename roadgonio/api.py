@@ -742,7 +742,7 @@ def estimate_uncertainty(instrument, sample, sigma, *, trials: int = 50_000, ada
         for name, value in given.items():
             if value is not None:
                 raise InputError("an option of the case with the aperture effect (the surrogate's exact k_A tables), "
-                                 "which aperture=False (--no-aperture) skips: leave it out, or compute that case",
+                                 "which --no-aperture skips: leave it out, or compute that case",
                                  field=name)
     backend, surrogate, validation = (UNCERTAINTY_APERTURE_DEFAULTS[k] if given[k] is None else given[k]
                                       for k in ("backend", "surrogate", "validation"))

@@ -267,9 +267,17 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
                      f"{100 * np.nanmax(u_rel):.3g} %; GUM {verdict_counts(c.validation, n)}")
         # outputs of round-off are not judged either, but not for noise: no "more --trials" for them
         if np.any(~c.validation["judged"][:n + 2] & ~c.validation["round_off"][:n + 2]):
+            # what can still be done: an adaptive run is on already, and 1 digit is the fewest (user audit,
+            # session 41: the advice named both after an adaptive run at --digits 1)
+            # (an adaptive run stops once the ends' 2 s is within the tolerance, where a GUM difference
+            # near the tolerance still cannot be decided: a longer fixed run narrows the ends' noise)
+            ways = (["more --trials", "--adaptive"] if not res.adaptive else
+                    ["a longer run without --adaptive (more --trials than its " + f"{res.trials})"])
+            if res.n_dig > 1:
+                ways.append("fewer --digits")
             lines.append(f"  not judged: the Monte Carlo interval's ends are too noisy to decide against a tolerance of "
-                         f"{res.n_dig} digit(s) of u (their 2 s from 20 batches, JCGM 101 7.9.4): more --trials, "
-                         "--adaptive, or fewer --digits")
+                         f"{res.n_dig} digit(s) of u (their 2 s from 20 batches, JCGM 101 7.9.4): "
+                         + (", ".join(ways[:-1]) + ", or " + ways[-1] if len(ways) > 1 else ways[0]))
         for k, label in ((n, "Q0"), (n + 1, "S1")):
             if at_round_off(c, k):
                 # the errors do not change it: a u of round-off, which the GUM validation would judge

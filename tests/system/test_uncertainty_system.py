@@ -110,3 +110,20 @@ def test_an_output_the_errors_do_not_change_is_drawn_in_words(tmp_path, capsys):
     text = capsys.readouterr().out
     assert rc == 0 and "S1: 1.116, not changed by these errors" in text
     assert {"q0_s1_hist.png", "uncertainty.json", "cells.csv"} <= {p.name for p in out.iterdir()}
+
+
+def test_advice_after_an_adaptive_run_names_what_can_still_be_done(tmp_path, capsys):
+    """(user audit, session 41) after an adaptive run at --digits 1 with cells not judged, the advice
+    was 'more --trials, --adaptive, or fewer --digits': --adaptive was on, --trials is refused with it
+    and 1 digit is the fewest. And a case option with --no-aperture was refused in the API's words
+    ('aperture=False'); the command line's own option is named."""
+    from roadgonio.cli import main
+    rc = main(["uncertainty", "--instrument", "portable", "--sample", "R3", "--sigma", "alpha_deg=0.05", "--no-aperture",
+               "--adaptive", "--digits", "1", "--no-plots", "--out", str(tmp_path / "a")])
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "not judged:" in ln]
+    assert rc == 0 and lines, "expected cells not judged at 1 digit"
+    assert all("--adaptive, or" not in ln and "--digits" not in ln and "a longer run without --adaptive" in ln for ln in lines)
+    rc = main(["uncertainty", "--instrument", "portable", "--sample", "R3", "--sigma", "alpha_deg=0.05", "--no-aperture",
+               "--rel-se", "0.001", "--out", str(tmp_path / "b")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--no-aperture skips" in err and "aperture=False" not in err
