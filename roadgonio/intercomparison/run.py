@@ -734,11 +734,15 @@ def assemble(study: Study, setup: sim.Setup, records: Mapping[tuple, dict], *, m
                                             for s in S])),
                           {"long_name": "1 where Cox's chi-squared consistency check passes at the 5 % level",
                            "units": "1"})
+    # NaN where the participant reported no table in that realisation (a scenario that corrects only the
+    # first ones): 0 said "divided by the frozen factor" of a table that is not there (user audit, session 41)
     data["full_correction"] = (("scenario", "participant", "realisation"),
-                               np.stack([full[s].T for s in S]).astype(np.int8),
+                               np.stack([np.where(np.isnan(xs[s]).all(axis=2), np.nan, full[s]).T
+                                         for s in S]).astype(np.float32),
                                {"long_name": "1: the reported table is the participant's own (raw, or corrected by a "
                                              "full roadgonio correction of this realisation); 0: divided by the "
-                                             "participant's frozen correction factor", "units": "1"})
+                                             "participant's frozen correction factor; NaN: no table reported",
+                                "units": "1"})
     dims6 = ("scenario", "reference", "participant", "realisation", "tan_eps", "beta")
     for f, long, units in (("d", "degree of equivalence d_i = x_i - x_ref", "sr-1"),
                            ("U_d", "expanded uncertainty U(d_i) = k u(d_i)", "sr-1"),

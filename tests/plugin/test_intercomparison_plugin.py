@@ -73,7 +73,9 @@ def test_participants_correcting_through_roadgonio_and_the_frozen_factor(tmp_pat
                    realisations=4, corrected_realisations=2)
     run = run_study(study, tmp_path / "out", workers=0, progress=False, plots=False)
     ds = run.dataset
-    assert ds["full_correction"].sel(scenario="all_corrected", participant="LAB").values.tolist() == [1, 1, 0, 0]
+    # NaN where no table was reported: 0 said "divided by the frozen factor" there (user audit, session 41)
+    full = ds["full_correction"].sel(scenario="all_corrected", participant="LAB").values
+    assert full[:2].tolist() == [1, 1] and np.isnan(full[2:]).all()
     raw = ds["r_reported"].sel(scenario="declared", participant="LAB").values
     cor = ds["r_reported"].sel(scenario="all_corrected", participant="LAB").values
     t = ds["truth"].values
