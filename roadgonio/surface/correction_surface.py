@@ -25,9 +25,12 @@ Each of g_C, g_D is a tensor-product cubic B-spline on unit-spaced knots in two 
 Boundary conditions, by reflecting the coefficients: even in beta at 0 and 180 deg (the surface is
 mirror symmetric about the plane of observation, so g is smooth across it); even at eps_max; at the
 pole (eps = 0, where beta is undefined) the row of coefficients is one value ``c`` and the row beyond
-it is ``2c - a_1``, so g takes one value at the pole whatever beta and grows from it linearly, as a
-smooth function of the direction does; the roughness penalty includes the second difference through
-the pole (from beta to 180 deg - beta), so the slopes at opposite azimuths agree.
+it is ``2c - a_1``, so g takes one value at the pole whatever beta and grows from it linearly; the
+roughness penalty includes the second difference through the pole (from beta to 180 deg - beta), so
+the slopes at opposite azimuths agree, as those of a function smooth over the sphere do (a slope
+the same way on both sides is a cone). The correction penalises that difference of the whole ln f,
+backbone and g together (:func:`roadgonio.correction.flexible.pole_offsets`), since eq. 4's backbone
+has a cone there.
 
 The free coefficients theta (``c``, then the rows 1..S_t of S_beta + 1 nodes each) enter g
 linearly, ``g = sum_p theta_p phi_p``: the simulated measurement through fixed ray bundles is
