@@ -42,6 +42,13 @@ def verdict_counts(validation: Mapping[str, np.ndarray], n: int) -> str:
     return text + f" of {n} cells"
 
 
+def _mc_se(c, key: str, k: int) -> float:
+    """The Monte Carlo's standard error ``key`` (mean_se, u_se: run.py's batch_noise) of output ``k``;
+    NaN where the case was not given one."""
+    v = c.mc.get(key)
+    return float("nan") if v is None else float(v[k])
+
+
 def at_round_off(c, k: int) -> bool:
     """Output ``k`` of case ``c`` is not changed by the errors: its u is round-off (:data:`ROUND_OFF_REL`)."""
     return bool(abs(c.mc["u"][k]) <= ROUND_OFF_REL * abs(c.mc["mean"][k]))
@@ -63,6 +70,7 @@ def result_dict(res: UncertaintyResult, *, cells: bool = True) -> dict[str, Any]
                            "gum_validated": _validated_or_none(c.validation, k),
                            "d_low": c.validation["d_low"][k], "d_high": c.validation["d_high"][k],
                            "delta": c.validation["delta"][k], "mc_end_noise": c.validation["end_noise"][k],
+                           "mc_mean_se": _mc_se(c, "mean_se", k), "mc_u_se": _mc_se(c, "u_se", k),
                            "gum_contributions": dict(zip(INPUTS, c.gum["contribution"][:, k].tolist()))}
         with np.errstate(divide="ignore", invalid="ignore"):
             u_rel = c.mc["u"][:n] / np.abs(c.mc["mean"][:n])
@@ -92,13 +100,14 @@ def result_dict(res: UncertaintyResult, *, cells: bool = True) -> dict[str, Any]
 #: cells.csv's first line: its units (the r-tables beside it hold r x 1e4; trial 12 D8).
 CELLS_UNITS = ("# r_nominal, mean, u, the intervals and gum_u/low/high in sr^-1 (r itself, not r x 1e4 as in the "
                "<case>_mean.csv and <case>_u.csv tables); u_rel a fraction; on the Q0 rows in sr^-1, on the S1 rows "
-               "dimensionless")
+               "dimensionless; mc_mean_se and mc_u_se the Monte Carlo's standard errors of mean and u (from 20 "
+               "batches of the trials), in the unit of mean")
 
 
 def cells_csv_text(res: UncertaintyResult) -> str:
     n = len(res.cells)
     lines = [CELLS_UNITS, "case,tan_eps,beta_deg,r_nominal,mean,u,u_rel,sym_low,sym_high,short_low,short_high,"
-             "gum_u,gum_low,gum_high,gum_validated,d_low,d_high,delta,mc_end_noise"]
+             "gum_u,gum_low,gum_high,gum_validated,d_low,d_high,delta,mc_end_noise,mc_mean_se,mc_u_se"]
     labels = [f"{t:g},{b:g}" for t, b in zip(res.cells.tan_eps, res.cells.beta_deg)] + ["Q0,", "S1,"]
     for name, c in res.cases.items():
         for k in range(n + 2):
@@ -109,7 +118,8 @@ def cells_csv_text(res: UncertaintyResult) -> str:
             v = c.validation
             lines.append(f"{name},{labels[k]}," + ",".join(f"{x:.8g}" for x in vals)
                          + f",{int(bool(v['validated'][k])) if v['judged'][k] else ''},{v['d_low'][k]:.4g},"
-                         f"{v['d_high'][k]:.4g},{v['delta'][k]:.4g},{v['end_noise'][k]:.4g}")
+                         f"{v['d_high'][k]:.4g},{v['delta'][k]:.4g},{v['end_noise'][k]:.4g},"
+                         f"{_mc_se(c, 'mean_se', k):.4g},{_mc_se(c, 'u_se', k):.4g}")
     return "\n".join(lines) + "\n"
 
 
@@ -284,8 +294,9 @@ def summary_lines(res: UncertaintyResult) -> list[str]:
                 lines.append(f"  {label}: {c.mc['mean'][k]:.5g}, not changed by these errors (u at round-off, "
                              f"{c.mc['u'][k]:.1g})")
                 continue
-            lines.append(f"  {label}: {c.mc['mean'][k]:.5g} u = {c.mc['u'][k]:.3g} "
-                         f"[{c.mc['sym_low'][k]:.5g}, {c.mc['sym_high'][k]:.5g}] "
+            u_se = _mc_se(c, "u_se", k) / c.mc["u"][k] if c.mc["u"][k] > 0 else float("nan")
+            lines.append(f"  {label}: {c.mc['mean'][k]:.5g} u = {c.mc['u'][k]:.3g} (Monte Carlo SE of u "
+                         f"{100 * u_se:.2g} %) [{c.mc['sym_low'][k]:.5g}, {c.mc['sym_high'][k]:.5g}] "
                          f"(GUM u = {c.gum['u'][k]:.3g}, {gum_verdict(c.validation, k)})")
     if res.surrogate is not None:
         s = result_dict(res, cells=False).get("surrogate", {})

@@ -19,7 +19,7 @@ from roadgonio.uncertainty.cells import CellSet
 from roadgonio.uncertainty.gum import gum_propagation, gum_validation
 from roadgonio.uncertainty.measurement import MeasurementModel
 from roadgonio.uncertainty.spec import INPUTS, SigmaSpec, check_spec_geometry, check_trials
-from roadgonio.uncertainty.statistics import (ROUND_OFF_REL, batch_spread, interval_end_noise, numerical_tolerance,
+from roadgonio.uncertainty.statistics import (ROUND_OFF_REL, batch_noise, batch_spread, numerical_tolerance,
                                               summarize)
 
 # ----------------------------------------------------------------------------------------------
@@ -507,7 +507,9 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
             continue
         mc = summarize(Y, coverage, threads=threads)
         gum = gum_propagation(funcs[name], spec.sigmas, coverage)
-        val = gum_validation(gum, mc, n_dig, interval_end_noise(Y, coverage))
+        noise = batch_noise(Y, coverage)
+        mc["mean_se"], mc["u_se"] = noise["mean_se"], noise["u_se"]       # the Monte Carlo's own SEs
+        val = gum_validation(gum, mc, n_dig, noise["end_noise"])
         cases[name] = CaseResult(name=name, nominal=gum["y"], mc=mc, gum=gum, validation=val,
                                  q0_samples=Y[-2].copy(), s1_samples=Y[-1].copy())
     timings["statistics"] = time.perf_counter() - t

@@ -86,21 +86,30 @@ def batch_spread(values: np.ndarray) -> np.ndarray:
     return np.where(np.ptp(v, axis=0) == 0, 0.0, s)
 
 
-def interval_end_noise(Y: np.ndarray, p: float, batches: int = END_NOISE_BATCHES) -> np.ndarray:
-    """2 s of the probabilistically symmetric interval's ends, the larger of the two, per row of Y
-    (n_out, M): the ends computed from ``batches`` contiguous equal batches of the trials
-    (:func:`batch_spread`). The comparison of JCGM 101 section 8 is decided by the Monte Carlo's
-    own noise where this exceeds the tolerance delta. Fewer than 2 trials a batch: inf."""
+def batch_noise(Y: np.ndarray, p: float, batches: int = END_NOISE_BATCHES) -> dict[str, np.ndarray]:
+    """The Monte Carlo's own noise per row of Y (n_out, M), from ``batches`` contiguous equal batches
+    of the trials (:func:`batch_spread`, JCGM 101 7.9.4): ``end_noise``, 2 s of the probabilistically
+    symmetric interval's ends, the larger of the two (the comparison of JCGM 101 section 8 is decided
+    by it where it exceeds the tolerance delta); ``mean_se`` and ``u_se``, s of the mean and of u, their
+    standard errors (user audit, session 41: no output gave the standard error of u). Fewer than 2
+    trials a batch: inf."""
     Y = np.asarray(Y, dtype=np.float64)
     M = Y.shape[1]
     h = min(int(batches), M // 2)
     if h < 2:
-        return np.full(Y.shape[0], np.inf)
+        inf = np.full(Y.shape[0], np.inf)
+        return {"end_noise": inf, "mean_se": inf.copy(), "u_se": inf.copy()}
     m = M // h
-    ends = [summarize(Y[:, b * m:(b + 1) * m], p) for b in range(h)]
-    lo = batch_spread(np.stack([e["sym_low"] for e in ends]))
-    hi = batch_spread(np.stack([e["sym_high"] for e in ends]))
-    return 2.0 * np.maximum(lo, hi)
+    parts = [summarize(Y[:, b * m:(b + 1) * m], p) for b in range(h)]
+    lo = batch_spread(np.stack([e["sym_low"] for e in parts]))
+    hi = batch_spread(np.stack([e["sym_high"] for e in parts]))
+    return {"end_noise": 2.0 * np.maximum(lo, hi), "mean_se": batch_spread(np.stack([e["mean"] for e in parts])),
+            "u_se": batch_spread(np.stack([e["u"] for e in parts]))}
+
+
+def interval_end_noise(Y: np.ndarray, p: float, batches: int = END_NOISE_BATCHES) -> np.ndarray:
+    """``end_noise`` of :func:`batch_noise`."""
+    return batch_noise(Y, p, batches)["end_noise"]
 
 
 def numerical_tolerance(u: np.ndarray, n_dig: int) -> np.ndarray:

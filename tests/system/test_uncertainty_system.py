@@ -110,6 +110,11 @@ def test_an_output_the_errors_do_not_change_is_drawn_in_words(tmp_path, capsys):
     text = capsys.readouterr().out
     assert rc == 0 and "S1: 1.116, not changed by these errors" in text
     assert {"q0_s1_hist.png", "uncertainty.json", "cells.csv"} <= {p.name for p in out.iterdir()}
+    # the Monte Carlo's own standard error of u is given (session 41): for Q0, moved by the distance,
+    # about u / sqrt(2 M), its estimate from 20 batches within 16 % x 4 of that
+    import json
+    q0 = json.loads((out / "uncertainty.json").read_text())["cases"]["no_aperture"]["Q0"]
+    assert abs(q0["mc_u_se"] / (q0["u"] / math.sqrt(2 * 999)) - 1.0) <= N_SIGMA * 0.162
 
 
 def test_advice_after_an_adaptive_run_names_what_can_still_be_done(tmp_path, capsys):

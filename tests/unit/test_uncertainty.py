@@ -692,3 +692,19 @@ def test_a_detector_misaligned_through_the_housing_is_refused_before_the_work():
         check_spec_geometry(parse_sigma_spec("detector_distance_m=0.02"), mm, aperture=True)
     assert "detector_distance_m" in str(err.value)
     check_spec_geometry(parse_sigma_spec("detector_distance_m=0.001"), mm, aperture=True)
+
+
+def test_the_monte_carlos_standard_errors_of_mean_and_u():
+    """batch_noise (user audit, session 41: no output gave the standard error of u): for normal trials of
+    unit u, the SE of the mean is 1 / sqrt(M) and that of u 1 / sqrt(2 (M - 1)). Each row's estimate from
+    20 batches scatters by 1 / sqrt(2 x 19) = 16 % relative; over 200 independent rows their mean is
+    judged within 4 of its standard errors."""
+    from roadgonio.uncertainty.statistics import END_NOISE_BATCHES, batch_noise
+    rng = np.random.default_rng(41)
+    rows, M = 200, 20000
+    noise = batch_noise(rng.standard_normal((rows, M)), 0.95)
+    spread = 1.0 / math.sqrt(2 * (END_NOISE_BATCHES - 1))
+    for key, expected in (("mean_se", 1.0 / math.sqrt(M)), ("u_se", 1.0 / math.sqrt(2 * (M - 1)))):
+        got = noise[key]
+        assert got.shape == (rows,)
+        assert abs(np.mean(got) / expected - 1.0) <= N_SIGMA * spread / math.sqrt(rows), (key, np.mean(got), expected)
