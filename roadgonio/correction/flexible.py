@@ -697,13 +697,22 @@ def penalty_blocks(settings: SurfaceSettings) -> tuple[list[str], list[np.ndarra
     return names, mats
 
 
+#: Where :func:`pole_offsets` reads the backbone's cone: this fraction of the first ring's eps (3 deg by
+#: default). Read at the ring itself, the offset took the backbone's curvature for a cone too, and the
+#: evidence paid for the curvature of a surface that is eq. 4 (a noise-free eq. 4 table lost 51 in ln
+#: evidence, its cusp backbone its weight, and k_A at beta = 0 7 %: session 41).
+CONE_PROBE = 0.01
+
+
 def pole_offsets(settings: SurfaceSettings, backbone: RoadModel | None) -> list[tuple[np.ndarray, float]]:
     """The roughness penalty of each block of :func:`penalty_blocks` as ``||D_k theta + d_k||^2 =
     theta^T P_k theta + 2 b_k^T theta + c_k``: per block (b_k, c_k). d_k is nonzero only on the
     differences through the pole (g_C's a_1(beta) - 2 c + a_1(180 deg - beta),
-    :mod:`roadgonio.surface.correction_surface`), where it is the same difference of the backbone's
-    ln f at the nodes (the pole and the first ring, observation at alpha = 1 deg): so those rows
-    penalise the roughness of ln f = ln f_0 + g_C through the pole, not of g_C alone.
+    :mod:`roadgonio.surface.correction_surface`), where it is the backbone's cone there: the same
+    difference of its ln f (observation at alpha = 1 deg) read at :data:`CONE_PROBE` of the first
+    ring's eps and scaled to the ring, (ln f_0(e, beta) + ln f_0(e, 180 deg - beta) - 2 ln f_0(pole))
+    / CONE_PROBE. So those rows penalise the cone of ln f = ln f_0 + g_C through the pole, not g_C's
+    alone, and leave the backbone's curvature free, as it is everywhere else.
 
     Why: a road BRDF is smooth in the incident direction at normal incidence (nothing physical
     happens at the pole of the polar coordinates), so its first-order change there is odd (up
@@ -719,14 +728,17 @@ def pole_offsets(settings: SurfaceSettings, backbone: RoadModel | None) -> list[
     v = np.zeros(g.n_params)
     if settings.smooth_through_pole and backbone is not None:
         from roadgonio.surface.correction_surface import _theta_index
-        q = np.asarray(backbone.q(np.r_[0.0, np.full(beta.size, math.tan(math.radians(eps[1])))], np.r_[0.0, beta]),
+        # the cone alone: ln f_0's change over CONE_PROBE of the first ring's eps, scaled to that ring.
+        # A backbone smooth at the pole changes there as eps^2 at most (its curvature, which stays free,
+        # as everywhere else); a cone (eq. 4's empirical term with p ~ 1) as eps, which keeps its size
+        eps_probe = CONE_PROBE * eps[1]
+        q = np.asarray(backbone.q(np.r_[0.0, np.full(beta.size, math.tan(math.radians(eps_probe)))], np.r_[0.0, beta]),
                        dtype=np.float64)
         # ln f where the backbone is positive; a backbone 0 at a node (no diffuse term, E = 0 at the pole)
         # is floored at 1e-12 of its largest value there, so the difference stays finite
         ln_q = np.log(np.maximum(q, 1e-12 * max(float(np.max(q)), 1e-300)))
-        v[0] = ln_q[0]
         for i in range(g.s_beta + 1):
-            v[_theta_index(g, i, 1)] = ln_q[1 + i]
+            v[_theta_index(g, i, 1)] = (ln_q[1 + i] - ln_q[0]) / CONE_PROBE
     out = []
     for direction, (D, centre) in zip(("beta", "eps"), g.differences()):
         region = penalty_region(settings, beta[centre[:, 0]], eps[centre[:, 1]])

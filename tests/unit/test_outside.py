@@ -73,16 +73,19 @@ def test_roughness_penalty_leaves_only_the_constant_free():
 
 
 def test_the_penalty_through_the_pole_is_on_the_whole_ln_f():
-    """pole_offsets (session 41): the roughness penalty's differences through the pole act on ln f_0 + g_C.
+    """pole_offsets (session 41): the roughness penalty's differences through the pole act on the cone of
+    ln f_0 + g_C there.
     - A Lambertian backbone (ln f_0 constant) has no offset: the penalty is g_C's own.
-    - For the R3-like eq. 4 backbone (a cone at the pole: its empirical term grows as theta_i^p towards
-      beta = 0 and stays ~0 towards 180 deg) the offset of the difference from beta = 0 to 180 deg is
-      ln f_0(eps_1, 0) - 2 ln f_0(pole) + ln f_0(eps_1, 180 deg), by the model itself, and positive.
-    - A g_C that cancels ln f_0 at the pole and the first ring (the whole ln f flat there) costs
-      nothing through the pole, while g_C = 0 costs the backbone's cone; without smooth_through_pole
-      every offset is 0 (g_C alone, as until session 41).
+    - An eq. 4 backbone with p = 1 (its empirical term grows as theta_i towards beta = 0 and stays ~0
+      towards 180 deg: a cone) has, on the difference from beta = 0 to 180 deg, the backbone's
+      (ln f_0(e, 0) + ln f_0(e, 180 deg) - 2 ln f_0(pole)) / CONE_PROBE, e = CONE_PROBE x the first ring's
+      eps, by the model itself; with p = 2.5 (smooth enough at the pole: its change there is
+      curvature, which stays free) that offset is at least 20 times smaller.
+    - A g_C that cancels the backbone's cone at the first ring costs nothing through the pole, while
+      g_C = 0 costs the cone; without smooth_through_pole every offset is 0 (g_C alone, as until
+      session 41).
     - The blocks' quadratic plus linear parts are ||D_k theta + d_k||^2 for any theta."""
-    from roadgonio.correction.flexible import SurfaceSettings, penalty_blocks, pole_offsets
+    from roadgonio.correction.flexible import CONE_PROBE, SurfaceSettings, penalty_blocks, pole_offsets
     from roadgonio.surface.correction_surface import _theta_index
     from roadgonio.surface.model import RoadModel, RoadParams
     from roadgonio.surface.truths import make_truth
@@ -90,25 +93,29 @@ def test_the_penalty_through_the_pole_is_on_the_whole_ln_f():
     names, Ps = penalty_blocks(settings)
     lambert = RoadModel(RoadParams(k_diff=0.02), "power")
     assert all(np.max(np.abs(b)) < ROUND_OFF and c < ROUND_OFF ** 2 for b, c in pole_offsets(settings, lambert))
-    cone = make_truth("eq4")
-    offsets = pole_offsets(settings, cone)
-    assert len(offsets) == len(Ps)
     beta, eps = GRID.node_coordinates()
-    t1 = math.tan(math.radians(eps[1]))
-    ln = lambda t, b: math.log(float(cone.q(np.array([t]), np.array([b]))[0]))
-    d0 = ln(t1, 0.0) - 2.0 * ln(0.0, 0.0) + ln(t1, 180.0)
-    assert d0 > 0.05
-    v = np.zeros(GRID.n_params)
-    v[0] = ln(0.0, 0.0)
-    for i, b in enumerate(beta):
-        v[_theta_index(GRID, i, 1)] = ln(t1, float(b))
+    probe = math.tan(math.radians(CONE_PROBE * eps[1]))
     (_, (Dt, _)) = GRID.differences()
     pole_rows = Dt[-(GRID.s_beta + 1):]
-    assert pole_rows[0] @ v == pytest.approx(d0, rel=1e-12)
+
+    def cone_of(model):
+        ln = lambda t, b: math.log(float(model.q(np.array([t]), np.array([b]))[0]))
+        v = np.zeros(GRID.n_params)
+        for i, b in enumerate(beta):
+            v[_theta_index(GRID, i, 1)] = (ln(probe, float(b)) - ln(0.0, 0.0)) / CONE_PROBE
+        d0 = (ln(probe, 0.0) + ln(probe, 180.0) - 2.0 * ln(0.0, 0.0)) / CONE_PROBE
+        return v, d0
+    cone = make_truth("eq4", p=1.0)
+    v, d0 = cone_of(cone)
+    assert d0 > 0.05 and pole_rows[0] @ v == pytest.approx(d0, rel=1e-9)
+    smooth_d0 = cone_of(make_truth("eq4", p=2.5))[1]
+    assert 0.0 <= smooth_d0 < d0 / 20.0, (smooth_d0, d0)
+    offsets = pole_offsets(settings, cone)
+    assert len(offsets) == len(Ps)
     total = lambda th: sum(th @ P @ th + 2.0 * bk @ th + ck for P, (bk, ck) in zip(Ps, offsets))
     own = lambda th: sum(th @ P @ th for P in Ps)
     flat = -v
-    # the whole ln f flat at the pole and the first ring: the through-pole rows cost nothing
+    # the backbone's cone cancelled at the first ring: the through-pole rows cost nothing
     assert total(flat) == pytest.approx(own(flat) - float(np.sum((pole_rows @ flat) ** 2)), rel=1e-9, abs=1e-12)
     assert total(np.zeros(GRID.n_params)) == pytest.approx(float(np.sum((pole_rows @ v) ** 2)), rel=1e-12)
     theta = np.random.default_rng(3).standard_normal(GRID.n_params)
@@ -116,6 +123,7 @@ def test_the_penalty_through_the_pole_is_on_the_whole_ln_f():
                                          - float(np.sum((pole_rows @ theta) ** 2)), rel=1e-9)
     off = SurfaceSettings(c_grid=GRID, smooth_through_pole=False)
     assert all(np.all(b == 0.0) and c == 0.0 for b, c in pole_offsets(off, cone))
+
 
 @pytest.mark.parametrize("regions", ["peak", "grid"])
 def test_penalty_regions_split_the_roughness_penalty(regions):
@@ -1007,11 +1015,16 @@ MODE_GRADIENT_RTOL = 1e-6
 def _stationary(part, fit, y, u) -> bool:
     """Whether ``fit`` (of ``part`` to ``y`` with u) sits at a mode: its penalised gradient, with the
     prior read back from its own covariance (the inverse of J^T W J + Lambda), vanishes."""
+    from roadgonio.correction.flexible import penalty_blocks, pole_offsets
     s, J = part.simulate(fit.theta)
     W = 1.0 / u ** 2
     A = J.T @ (W[:, None] * J)
     Lam = np.linalg.inv(fit.cov) - A
-    grad = J.T @ (W * (y - s)) - Lam @ fit.theta
+    # the penalty's linear part through the pole (pole_offsets, session 41): lambda_k b_k
+    names, _ = penalty_blocks(fit.settings)
+    lin = np.zeros_like(fit.theta)
+    lin[:fit.settings.n_c] = sum(fit.lam[n] * b for n, (b, _) in zip(names, pole_offsets(fit.settings, part.backbone)))
+    grad = J.T @ (W * (y - s)) - Lam @ fit.theta - lin
     return float(np.max(np.abs(grad))) <= MODE_GRADIENT_RTOL * float(np.max(np.abs(J.T @ (W * s))))
 
 
