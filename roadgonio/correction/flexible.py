@@ -71,7 +71,7 @@ UNOBSERVED_SD_LN = math.log(2.0)
 #: parameter at LAM_MIN or above, 2 chose the smoothing with the noise scale the residuals show
 #: (noise_scale), 1 with the stated u alone.
 #: 4 lets the evidence choose g_D's prior scale where two instruments see it (SurfaceSettings.d_prior_scale).
-#: 5 penalises ln f through the pole, not g_C alone (pole_offsets).
+#: 5 penalises the cone of ln f through the pole, not g_C's alone (pole_offsets).
 SURFACE_FIT_VERSION = 5
 #: Prior standard deviation of g_D (d ln f / d ln alpha beyond the backbone's).
 D_PRIOR_SD = 1.0
