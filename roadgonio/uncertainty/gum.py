@@ -48,7 +48,7 @@ def gum_validation(gum: Mapping[str, np.ndarray], mc: Mapping[str, np.ndarray], 
     tolerance of the GUM u(y) with n_dig significant digits.
 
     A verdict is given only where the Monte Carlo interval's own noise cannot decide it: with
-    ``end_noise`` (:func:`~roadgonio.uncertainty.statistics.interval_end_noise`, 2 s of the ends, the
+    ``end_noise`` (:func:`~roadgonio.uncertainty.statistics.batch_noise`, 2 s of the ends, the
     criterion of 7.9.4), **validated** where both differences are within delta and the noise is too,
     **not validated** where a difference exceeds delta by more than twice the noise (4 s: a GUM result
     that is valid is then called not validated in about one output in 10^3, s being estimated from 20

@@ -107,11 +107,6 @@ def batch_noise(Y: np.ndarray, p: float, batches: int = END_NOISE_BATCHES) -> di
             "u_se": batch_spread(np.stack([e["u"] for e in parts]))}
 
 
-def interval_end_noise(Y: np.ndarray, p: float, batches: int = END_NOISE_BATCHES) -> np.ndarray:
-    """``end_noise`` of :func:`batch_noise`."""
-    return batch_noise(Y, p, batches)["end_noise"]
-
-
 def numerical_tolerance(u: np.ndarray, n_dig: int) -> np.ndarray:
     """delta of JCGM 101 7.9.2: u = c x 10^l with c an n_dig-digit integer, delta = 10^l / 2."""
     u = np.asarray(u, dtype=np.float64)
