@@ -680,21 +680,30 @@ def penalty_region(settings: SurfaceSettings, beta_deg, eps_deg) -> np.ndarray:
     return np.char.add(np.char.add("b", i.astype(str)), np.char.add("e", j.astype(str)))
 
 
+def _penalty_rows(settings: SurfaceSettings) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """Each block of the roughness penalty of g_C (:func:`penalty_blocks`, in its order): its name
+    ``{direction}_{region}``, its rows of second differences over theta_C (along beta or along eps, by
+    the region of the difference's centre, :func:`penalty_region`), and which of them go through the
+    pole (:meth:`SplineGrid.through_pole_rows`; :func:`pole_offsets`)."""
+    g = settings.c_grid
+    beta, eps = g.node_coordinates()
+    out = []
+    for direction, (D, centre) in zip(("beta", "eps"), g.differences()):
+        region = penalty_region(settings, beta[centre[:, 0]], eps[centre[:, 1]])
+        pole = g.through_pole_rows() if direction == "eps" else np.zeros(D.shape[0], dtype=bool)
+        for name in sorted(set(region.tolist()), key=lambda n: (n == "rest", n)):
+            rows = region == name
+            out.append((f"{direction}_{name}", D[rows], pole[rows]))
+    return out
+
+
 def penalty_blocks(settings: SurfaceSettings) -> tuple[list[str], list[np.ndarray]]:
     """The roughness penalties of g_C, one smoothing parameter each: the squared second
     differences of the node values along beta and along eps, each split by the region of the
     difference's centre (:func:`penalty_region`). Returns (names ``{direction}_{region}``,
     matrices over theta_C)."""
-    g = settings.c_grid
-    beta, eps = g.node_coordinates()
-    names, mats = [], []
-    for direction, (D, centre) in zip(("beta", "eps"), g.differences()):
-        region = penalty_region(settings, beta[centre[:, 0]], eps[centre[:, 1]])
-        for name in sorted(set(region.tolist()), key=lambda n: (n == "rest", n)):
-            Ds = D[region == name]
-            names.append(f"{direction}_{name}")
-            mats.append(Ds.T @ Ds)
-    return names, mats
+    blocks = _penalty_rows(settings)
+    return [name for name, _, _ in blocks], [D.T @ D for _, D, _ in blocks]
 
 
 #: Where :func:`pole_offsets` reads the backbone's cone: this fraction of the first ring's eps (3 deg by
@@ -727,7 +736,6 @@ def pole_offsets(settings: SurfaceSettings, backbone: RoadModel | None) -> list[
     beta, eps = g.node_coordinates()
     v = np.zeros(g.n_params)
     if settings.smooth_through_pole and backbone is not None:
-        from roadgonio.surface.correction_surface import _theta_index
         # the cone alone: ln f_0's change over CONE_PROBE of the first ring's eps, scaled to that ring.
         # A backbone smooth at the pole changes there as eps^2 at most (its curvature, which stays free,
         # as everywhere else); a cone (eq. 4's empirical term with p ~ 1) as eps, which keeps its size
@@ -738,17 +746,11 @@ def pole_offsets(settings: SurfaceSettings, backbone: RoadModel | None) -> list[
         # is floored at 1e-12 of its largest value there, so the difference stays finite
         ln_q = np.log(np.maximum(q, 1e-12 * max(float(np.max(q)), 1e-300)))
         for i in range(g.s_beta + 1):
-            v[_theta_index(g, i, 1)] = (ln_q[1 + i] - ln_q[0]) / CONE_PROBE
+            v[g.coefficient_index(i, 1)] = (ln_q[1 + i] - ln_q[0]) / CONE_PROBE
     out = []
-    for direction, (D, centre) in zip(("beta", "eps"), g.differences()):
-        region = penalty_region(settings, beta[centre[:, 0]], eps[centre[:, 1]])
-        through_pole = np.zeros(D.shape[0], bool)
-        if direction == "eps":
-            through_pole[-(g.s_beta + 1):] = True       # appended last (correction_surface._differences)
-        for name in sorted(set(region.tolist()), key=lambda n: (n == "rest", n)):
-            rows = region == name
-            d = np.where(through_pole[rows], D[rows] @ v, 0.0)
-            out.append((D[rows].T @ d, float(d @ d)))
+    for _, D, pole in _penalty_rows(settings):
+        d = np.where(pole, D @ v, 0.0)
+        out.append((D.T @ d, float(d @ d)))
     return out
 
 

@@ -110,6 +110,19 @@ class SplineGrid:
         row per difference, and the (beta index, eps index) of each difference's centre node."""
         return _differences(self)
 
+    def through_pole_rows(self) -> np.ndarray:
+        """Which rows of D_t (:meth:`differences`) are the differences through the pole,
+        a_1(beta) - 2 c + a_1(180 deg - beta): the last S_beta + 1, as :func:`_differences` appends them."""
+        (_, _), (Dt, _) = _differences(self)
+        rows = np.zeros(Dt.shape[0], dtype=bool)
+        rows[-(self.s_beta + 1):] = True
+        return rows
+
+    def coefficient_index(self, i: int, j: int) -> int:
+        """The index in theta of the node at beta index ``i`` and eps index ``j`` >= 1 (0 is the
+        pole's one value ``c``)."""
+        return _theta_index(self, i, j)
+
     def node_coordinates(self) -> tuple[np.ndarray, np.ndarray]:
         """(beta_deg, eps_deg) of the node lines (inverse of the coordinate maps)."""
         sb = np.arange(self.s_beta + 1, dtype=np.float64)
