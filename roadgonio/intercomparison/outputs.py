@@ -5,7 +5,9 @@
 * ``truth`` (tan_eps, beta): r of the surface at the nominal geometry, sr^-1;
 * ``r_reported``, ``u_stated`` (scenario, participant, realisation, tan_eps, beta): what each
   participant reports and the standard uncertainty it states;
-* ``k_a_nominal`` (participant, tan_eps, beta): its instrument's k_A at the nominal geometry;
+* ``k_a_nominal`` (participant, tan_eps, beta): its instrument's k_A at the nominal geometry, and
+  ``k_a_nominal_u``: that value's standard uncertainty from the k_A backend (the standard error, or a
+  quadrature's error bound / sqrt 3);
 * ``reference_value``, ``u_reference_value``, ``tau2`` (scenario, consensus, realisation, tan_eps,
   beta): the weighted mean, Mandel-Paule and DerSimonian-Laird consensus;
 * ``birge_ratio``, ``consistent`` (scenario, realisation, tan_eps, beta);

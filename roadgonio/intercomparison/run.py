@@ -127,11 +127,13 @@ def _measurement_model(ctx: Context, p: int):
     return MeasurementModel(ctx.model, part.instrument, ctx.cells, part.illuminance)
 
 
-def _k_table(ctx: Context, instrument, desc: str = "k_A") -> np.ndarray:
+def _k_table(ctx: Context, instrument, desc: str = "k_A") -> tuple[np.ndarray, np.ndarray]:
+    """k_A of ``instrument`` over the study's cells and its standard uncertainty from the backend
+    (:meth:`~roadgonio.engines.result.CellResult.standard_uncertainty`; 0 for an ideal instrument)."""
     from roadgonio.engines import make_backend
     from roadgonio.progress import bar as progress_bar
     if instrument.is_ideal():
-        return np.ones(len(ctx.cells))
+        return np.ones(len(ctx.cells)), np.zeros(len(ctx.cells))
     be = make_backend(ctx.backend, instrument, ctx.model, **ctx.settings)
     bar = progress_bar(len(ctx.cells), desc, unit="cell", enabled=ctx.progress, leave=False)
     try:
@@ -144,7 +146,7 @@ def _k_table(ctx: Context, instrument, desc: str = "k_A") -> np.ndarray:
     if not (np.all(np.isfinite(k)) and np.all(k > 0)):
         raise InputError(f"the k_A backend returned a non-positive or non-finite value for {instrument.name}",
                          field="k_A")
-    return k
+    return k, np.array([c.standard_uncertainty() for c in res])
 
 
 def idealised_instrument(instrument, key: str):
@@ -190,16 +192,17 @@ def _stage1_task(item: tuple, ctx: Context) -> dict[str, Any]:
     part = ctx.study.participants[p]
     t0 = time.perf_counter()
     if kind == "ideal":
-        k = _k_table(ctx, idealised_instrument(part.instrument, item[2]), f"k_A of {part.name}, {item[2]} idealised")
+        k, _u = _k_table(ctx, idealised_instrument(part.instrument, item[2]), f"k_A of {part.name}, {item[2]} idealised")
         return {"kind": "ideal", "key": [p, item[2]], "k": pack(k), "seconds": time.perf_counter() - t0}
     inst = part.instrument
     if inst.is_ideal():
-        return {"kind": "surrogate", "key": [p], "k_nominal": pack(np.ones(len(ctx.cells))), "surrogate": None,
+        return {"kind": "surrogate", "key": [p], "k_nominal": pack(np.ones(len(ctx.cells))),
+                "k_nominal_u": pack(np.zeros(len(ctx.cells))), "surrogate": None,
                 "note": "ideal (collimated) instrument: k_A = 1", "seconds": time.perf_counter() - t0}
     spec = total_spec(ctx.study, p)
     if not any(s > 0 for s in spec.sigma):
-        k = _k_table(ctx, inst, f"k_A of {part.name}")
-        return {"kind": "surrogate", "key": [p], "k_nominal": pack(k), "surrogate": None,
+        k, u = _k_table(ctx, inst, f"k_A of {part.name}")
+        return {"kind": "surrogate", "key": [p], "k_nominal": pack(k), "k_nominal_u": pack(u), "surrogate": None,
                 "note": "no misalignment: nominal k_A table", "seconds": time.perf_counter() - t0}
     from roadgonio.uncertainty.run import build_surrogate, default_backend_factory
     mm = _measurement_model(ctx, p)
@@ -210,7 +213,8 @@ def _stage1_task(item: tuple, ctx: Context) -> dict[str, Any]:
     sur = {"scale": pack(s.scale), "active": [int(a) for a in s.active], "coef": pack(s.coef),
            "ka_nominal": pack(s.ka_nominal), "fit_rms_log": pack(s.fit_rms_log), "kind": s.kind,
            "fold": None if s.fold is None else [bool(f) for f in s.fold]}
-    return {"kind": "surrogate", "key": [p], "k_nominal": pack(s.ka_nominal), "surrogate": sur,
+    return {"kind": "surrogate", "key": [p], "k_nominal": pack(s.ka_nominal), "k_nominal_u": pack(rep.ka_nominal_u),
+            "surrogate": sur,
             "summary": rep.summary(), "seconds": time.perf_counter() - t0}
 
 
@@ -712,6 +716,16 @@ def assemble(study: Study, setup: sim.Setup, records: Mapping[tuple, dict], *, m
                            {"long_name": "aperture-effect factor k_A of the participant's instrument at the nominal "
                                          "geometry, under its calibration mode (docs/conventions.md section 5)",
                             "units": "1"})
+    # its standard uncertainty from the backend (user audit, session 41: the value came without one); NaN
+    # where the stage-1 record predates it (a journal written before session 42)
+    data["k_a_nominal_u"] = (("participant", "tan_eps", "beta"),
+                             to_grid(np.array([unpack(records[("surrogate", p)]["k_nominal_u"])
+                                               if records[("surrogate", p)].get("k_nominal_u") is not None
+                                               else np.full(n, np.nan) for p in range(P)])),
+                             {"long_name": "standard uncertainty of k_a_nominal from the k_A backend (its standard "
+                                           "error, or a deterministic error bound taken as a rectangular "
+                                           "distribution, bound / sqrt 3); 0 for an ideal instrument",
+                              "units": "1"})
     meth = list(st.METHODS)
     data["reference_value"] = (("scenario", "consensus", "realisation", "tan_eps", "beta"),
                                to_grid(np.stack([np.stack([stats[s]["consensus"][m]["value"] for m in meth])

@@ -67,6 +67,9 @@ class SurrogateReport:
     backend_rel_u_max: float     # largest relative standard uncertainty of the backend (CellResult.standard_uncertainty)
     settings: dict[str, Any]
     not_converged: int = 0       # exact evaluations that stopped at the backend's cap before its target
+    #: (n_cells,) standard uncertainty of ``surrogate.ka_nominal`` from the backend
+    #: (CellResult.standard_uncertainty: its SE, or a deterministic bound as rectangular); NaN: not kept
+    ka_nominal_u: np.ndarray | None = None
 
     def summary(self, u_rel: np.ndarray | None = None, cells=None) -> dict[str, Any]:
         """The report as JSON-ready numbers; with ``u_rel`` (the aperture case's u(r)/r per cell) the
@@ -190,7 +193,8 @@ def build_surrogate(mm: MeasurementModel, spec: SigmaSpec, factory: BackendFacto
         exact_evaluations=(len(pts) + len(Xv)) * n, seconds=time.perf_counter() - t0,
         rel_err_max=np.max(np.abs(err), axis=0) if len(Xv) else unmeasured,
         rel_err_rms=np.sqrt(np.mean(err ** 2, axis=0)) if len(Xv) else unmeasured,
-        backend_rel_u_max=rel_u, settings=settings, not_converged=tally.not_converged)
+        backend_rel_u_max=rel_u, settings=settings, not_converged=tally.not_converged,
+        ka_nominal_u=np.asarray(exact[0][1], dtype=np.float64).copy())
 
 
 @dataclass

@@ -149,6 +149,7 @@ def test_identical_collimated_participants_are_compatible_as_expected(tmp_path, 
     assert abs(cons.mean() - 0.95) < 4 * cons.std(ddof=1) / math.sqrt(R) + 1e-3
     # the truth is what an ideal instrument measures without error
     assert np.nanmax(np.abs(ds["k_a_nominal"].values - 1.0)) == 0.0
+    assert np.nanmax(np.abs(ds["k_a_nominal_u"].values)) == 0.0 and np.isfinite(ds["k_a_nominal_u"].values).sum() > 0
     # the all-corrected scenario of collimated instruments is the same comparison (nothing to correct)
     a = ds["r_reported"].sel(scenario="declared").values
     b = ds["r_reported"].sel(scenario="all_corrected").values
