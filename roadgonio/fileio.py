@@ -7,6 +7,10 @@
 * Several files of one command: :class:`OutputGroup` writes them all into a hidden staging folder
   inside the destination and moves them into place only when every one was written, so a command's
   outputs appear together or not at all (a full disk or a failing plot leaves the folder as it was).
+* A run killed outright (SIGKILL, a power cut) cannot clean up: its temporary files and staging
+  folder carry the process id and host that made them, and the next :class:`OutputGroup` in that
+  folder removes those of processes of this host that no longer run (:func:`remove_stale`), after
+  putting back an earlier output the killed run had set aside and not replaced.
 * Files get the permissions of any file the user creates (``0666`` less the umask, typically
   ``0644``), not the ``0600`` of :func:`tempfile.mkstemp`.
 * Every ``OSError`` on an output (read-only folder, missing or unwritable parent, ``/proc``, disk
@@ -18,8 +22,10 @@ import hashlib
 import json
 import math
 import os
+import re
 import secrets
 import shutil
+import socket
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -28,6 +34,63 @@ from roadgonio.interrupts import critical
 
 #: Prefix of temporary files and staging folders (hidden; removed on success and on errors).
 TMP_PREFIX = ".roadgonio-tmp-"
+#: The name of one temporary file or staging folder: the prefix, ``<pid>@<host>-<12 hex>``, and for a
+#: file ``-<its final name>``; set-aside earlier outputs inside a staging folder are ``previous-<name>``
+_TMP_NAME = re.compile(re.escape(TMP_PREFIX) + r"(\d+)@([A-Za-z0-9.]*)-[0-9a-f]{12}(?:-.+)?$")
+
+
+def _host() -> str:
+    return re.sub(r"[^A-Za-z0-9.]", "", socket.gethostname())[:40]
+
+
+def _tmp_token() -> str:
+    """``<pid>@<host>-<12 hex>``: whose temporary file it is (:func:`remove_stale`) and a unique part."""
+    return f"{os.getpid()}@{_host()}-{secrets.token_hex(6)}"
+
+
+def _running(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:        # another user's process (EPERM): it runs
+        return True
+    return True
+
+
+def remove_stale(folder: str | Path) -> list[str]:
+    """Remove the temporary files and staging folders in ``folder`` left by a roadgonio process of this
+    host that no longer runs (one killed outright; user audit, session 42: a SIGKILL during the writing
+    left ``.roadgonio-tmp-.../`` with half an output set beside the next run's complete one). An earlier
+    output the killed run had set aside (``previous-<name>``) and not replaced goes back in place. Those
+    of running processes, of other hosts and of names of another form stay. Returns the names removed."""
+    folder = Path(folder)
+    removed: list[str] = []
+    try:
+        entries = list(os.scandir(folder))
+    except OSError:
+        return removed
+    host = _host()
+    for e in entries:
+        m = _TMP_NAME.match(e.name)
+        if m is None or m.group(2) != host or _running(int(m.group(1))):
+            continue
+        path = Path(e.path)
+        try:
+            if path.is_dir() and not path.is_symlink():
+                for kept in path.glob(f"{TMP_PREFIX}previous-*"):
+                    dest = folder / kept.name[len(f"{TMP_PREFIX}previous-"):]
+                    if not (dest.exists() or dest.is_symlink()):
+                        os.replace(kept, dest)
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+            removed.append(e.name)
+        except OSError:  # pragma: no cover - best effort
+            pass
+    return removed
 
 #: How a journal or results folder of another run (:data:`FRESH_HINT`), or one that cannot be read
 #: (:data:`MOVE_HINT`), is to be dealt with, for the commands that have --fresh; ``correct`` has none
@@ -73,7 +136,7 @@ def atomic_write(path: str | Path, writer: Callable[[Path], None]) -> Path:
     created if needed; an ``OSError`` becomes an :class:`InputError` naming ``path``."""
     path = Path(path)
     _make_dir(path.parent, path)
-    tmp_path = path.parent / f"{TMP_PREFIX}{secrets.token_hex(6)}-{path.name}"
+    tmp_path = path.parent / f"{TMP_PREFIX}{_tmp_token()}-{path.name}"
     with critical():
         try:
             os.close(_create(tmp_path))
@@ -126,7 +189,8 @@ class OutputGroup:
 
     def __enter__(self) -> "OutputGroup":
         _make_dir(self.out_dir, self.out_dir)
-        stage = self.out_dir / f"{TMP_PREFIX}{secrets.token_hex(6)}"
+        remove_stale(self.out_dir)
+        stage = self.out_dir / f"{TMP_PREFIX}{_tmp_token()}"
         try:
             stage.mkdir()
         except OSError as err:

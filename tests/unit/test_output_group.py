@@ -122,3 +122,42 @@ def test_a_text_line_among_the_numbers_is_an_error(tmp_path):
     with pytest.raises(InputError) as err:
         read_numbers_csv(p, "source.beam_intensity_file", header=("theta_deg", "I"))
     assert err.value.line == 4
+
+
+_KILLED_WRITER = """
+import os, signal, sys
+from roadgonio.fileio import OutputGroup, atomic_write_text
+out = sys.argv[1]
+atomic_write_text(os.path.join(out, "journal.jsonl"), "kept")     # complete: renamed into place
+g = OutputGroup(out, replaces=("a.txt", "b.txt")).__enter__()
+g.text("a.txt", "new a")
+os.replace(os.path.join(out, "b.txt"), g.stage / ".roadgonio-tmp-previous-b.txt")   # set aside, as __exit__ does
+open(os.path.join(out, ".roadgonio-tmp-%d@x-0123456789ab-c.txt" % os.getpid()), "w").close()  # another host's form
+os.kill(os.getpid(), signal.SIGKILL)
+"""
+
+
+def test_a_killed_runs_staging_folder_goes_with_the_next_run(tmp_path):
+    """A SIGKILL leaves its staging folder (user audit, session 42: half an output set stayed hidden in
+    --out beside the rerun's complete one): the next group in that folder removes it and puts back the
+    earlier output the killed run had set aside; a running process's staging folder stays."""
+    import subprocess
+    import sys
+    out = tmp_path / "o"
+    with OutputGroup(out, replaces=("a.txt", "b.txt")) as g:
+        g.text("a.txt", "old a")
+        g.text("b.txt", "old b")
+    p = subprocess.run([sys.executable, "-c", _KILLED_WRITER, str(out)], capture_output=True, text=True)
+    assert p.returncode == -9, p.stderr
+    stale = [e.name for e in out.iterdir() if e.name.startswith(fileio.TMP_PREFIX)]
+    assert any(e.is_dir() for e in out.iterdir() if e.name.startswith(fileio.TMP_PREFIX)), stale
+    assert not (out / "b.txt").exists()
+    # a live process's staging folder (this one's parent) and another host's file are not touched
+    live = out / f"{fileio.TMP_PREFIX}{os.getppid()}@{fileio._host()}-abcdefabcdef"
+    live.mkdir()
+    with OutputGroup(out, replaces=("a.txt",)) as g:
+        g.text("a.txt", "newest a")
+    names = sorted(e.name for e in out.iterdir())
+    other_host = [n for n in names if n.endswith("@x-0123456789ab-c.txt")]
+    assert names == sorted(["a.txt", "b.txt", "journal.jsonl", live.name] + other_host) and len(other_host) == 1
+    assert (out / "b.txt").read_text() == "old b" and (out / "a.txt").read_text() == "newest a"
