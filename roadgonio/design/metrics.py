@@ -59,6 +59,8 @@ from typing import Sequence
 
 import numpy as np
 
+# the source's solid angle lives with the calibration's E_0 (render's unit needs it too); re-exported here
+from roadgonio.engines.calibration import PROFILE_RULE_LEVEL, profiled_solid_angle, source_solid_angle  # noqa: F401
 from roadgonio.instrument.config import Instrument
 
 SIGNAL_FORMULA = ("signal = (Omega_S G_D <k_D>) / (Omega_S G_D <k_D>)_base; Omega_S = pi R_S^2/(R_S^2+D_S^2) "
@@ -67,12 +69,6 @@ SIGNAL_FORMULA = ("signal = (Omega_S G_D <k_D>) / (Omega_S G_D <k_D>)_base; Omeg
                   "sin^2 gamma_D for F = inf), <k_D> = 1 - (1 - e)/2 (roadgonio.design.metrics); a beam profile "
                   "L_0 A(rho) P(theta): Omega_S = E_normal / L_0 integrated over the disc, a sensitivity map: <k_D> "
                   "its mean over the field")
-
-
-def source_solid_angle(radius_m: float, distance_m: float) -> float:
-    """Projected solid angle (sr) of a Lambertian disc seen on its axis: E_normal / L_S."""
-    r2 = radius_m * radius_m
-    return math.pi * r2 / (r2 + distance_m * distance_m)
 
 
 def coaxial_disc_etendue(r1: float, r2: float, d: float) -> float:
@@ -95,8 +91,6 @@ def detector_etendue(instrument: Instrument) -> float:
     return coaxial_disc_etendue(det.pupil_radius_m, f * math.tan(gamma), f)
 
 
-#: Level of the Gauss disc rules of the profiled source's Omega_S and the map's mean (45 x 45 nodes).
-PROFILE_RULE_LEVEL = 10
 
 
 def mean_field_sensitivity(instrument: Instrument) -> float:
@@ -111,25 +105,6 @@ def mean_field_sensitivity(instrument: Instrument) -> float:
     from roadgonio.instrument.optics import detector_geometry, field_map_value
     fx, fy, w = disc_rule(PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL)
     return float(field_map_value(NumpyOps, detector_geometry(instrument), fx, fy) @ w)
-
-
-def profiled_solid_angle(instrument: Instrument) -> float:
-    """Omega_S = E_normal / L_0 of the instrument's source (module docstring): the closed form of
-    :func:`source_solid_angle` for the uniform disc, otherwise the mean source coupling over the disc
-    (:func:`roadgonio.engines.calibration.centre_coupling`, eta's E_0, profile included) times its
-    area, for the source overhead, at the sample centre (a fixed-height source is then at its height, where
-    its signal is largest). A beam limit ``beam_half_angle_deg`` lets only the inner disc of radius
-    min(R_S, D_S tan theta) light the centre (:func:`roadgonio.engines.calibration.beam_cut_fraction`):
-    the closed form of that disc, or the rule over it."""
-    src = instrument.source
-    if src.radius_m == 0.0:
-        return 0.0
-    from roadgonio.engines.calibration import beam_cut_fraction, centre_coupling
-    from roadgonio.instrument import optics
-    g = optics.source_geometry(instrument, 0.0, 0.0)
-    if not src.profiled:
-        return source_solid_angle(src.radius_m * beam_cut_fraction(g), src.length_m)
-    return centre_coupling(g, PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL) * math.pi * src.radius_m ** 2
 
 
 #: A beam whose radiance towards the footprint's far edge is below this fraction of its on-axis

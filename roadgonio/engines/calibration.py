@@ -128,6 +128,34 @@ def centre_coupling(src: optics.SourceGeometry, level_v: int = 6, level_h: int =
     return float(np.asarray(g) @ ws) * cut * cut
 
 
+def source_solid_angle(radius_m: float, distance_m: float) -> float:
+    """Projected solid angle (sr) of a Lambertian disc seen on its axis: E_normal / L_S (exact)."""
+    r2 = radius_m * radius_m
+    return math.pi * r2 / (r2 + distance_m * distance_m)
+
+
+#: Level of the Gauss disc rules of the profiled source's Omega_S and a sensitivity map's mean (45 x 45 nodes).
+PROFILE_RULE_LEVEL = 10
+
+
+def profiled_solid_angle(instrument: Instrument) -> float:
+    """Omega_S = E_normal / L_0 of the instrument's source, the illuminance on its axis at the sample
+    centre per unit on-axis radiance: the closed form of :func:`source_solid_angle` for the uniform
+    disc, otherwise the mean source coupling over the disc (:func:`centre_coupling`, eta's E_0,
+    profile included, docs/conventions.md section 4.1) times its area, for the source overhead at its
+    ``length_m`` (a fixed-height source is then at its height, where its signal is largest; for another
+    distance pass the instrument with that length). A beam limit ``beam_half_angle_deg`` lets only the
+    inner disc of radius min(R_S, D_S tan theta) light the centre (:func:`beam_cut_fraction`): the
+    closed form of that disc, or the rule over it. 0 for a point source (no disc)."""
+    src = instrument.source
+    if src.radius_m == 0.0:
+        return 0.0
+    g = optics.source_geometry(instrument, 0.0, 0.0)
+    if not src.profiled:
+        return source_solid_angle(src.radius_m * beam_cut_fraction(g), src.length_m)
+    return centre_coupling(g, PROFILE_RULE_LEVEL, PROFILE_RULE_LEVEL) * math.pi * src.radius_m ** 2
+
+
 def beam_cut_fraction(src: optics.SourceGeometry) -> float:
     """The radius, as a fraction of the disc's, of the part of the source disc whose light reaches
     the sample centre inside the beam limit: min(1, D tan(theta_beam) / R_S), D the distance of the

@@ -10,6 +10,8 @@ import pytest
 
 from helpers import ROAD, collimated_limit, preset, write_map_csv, write_table_csv
 from roadgonio.engines import make_backend
+from roadgonio.errors import GeometryError
+from roadgonio.surface.sample import resolve_sample
 from tolerances import z_family
 
 CELLS = [(12.0, 0.0), (4.0, 2.0), (1.0, 30.0)]
@@ -90,8 +92,17 @@ def test_render_shows_the_profiled_illuminance(mi, tmp_path):
     (x0, x1), (y0, y1) = info["illuminance_window_m"]["x"], info["illuminance_window_m"]["y"]
     ny, nx = E.shape
     X, Y = np.meshgrid(x0 + (np.arange(nx) + 0.5) / nx * (x1 - x0), y1 - (np.arange(ny) + 0.5) / ny * (y1 - y0))
-    ref = illuminance(inst, 1.0, 30.0, X, Y) * source_radiance(inst)
-    uni = illuminance(preset("portable"), 1.0, 30.0, X, Y) * source_radiance(inst)
+    # the unit, 1 lx normal to the axis at the sample centre (user audit, session 42: the picture was
+    # scaled by the uniform disc's small-angle solid angle, 12 % dark for a 2 deg Gaussian): E_normal / L_0
+    # of this disc (R 25 mm at 1 m, A = 1 - 0.5 rho^2, P = exp(-theta^2 / 2 (5 deg)^2)) by a midpoint rule
+    R, D, sig = inst.source.radius_m, inst.source.length_m, math.radians(5.0)
+    s = (np.arange(4000) + 0.5) / 4000 * R
+    cos = D / np.sqrt(D * D + s * s)
+    e_normal = float(np.sum((1 - 0.5 * (s / R) ** 2) * np.exp(-np.arccos(cos) ** 2 / (2 * sig ** 2)) * cos * cos
+                            / (D * D + s * s) * 2 * np.pi * s) * (R / 4000))
+    ref = illuminance(inst, 1.0, 30.0, X, Y) / e_normal
+    old = illuminance(inst, 1.0, 30.0, X, Y) * source_radiance(inst)
+    uni = illuminance(preset("portable"), 1.0, 30.0, X, Y) * source_radiance(preset("portable"))
 
     # blocks of 16 x 16 pixels: the mean of E_render / E and its SE from the pixels' scatter (each pixel
     # an independent 16-sample estimate)
@@ -101,6 +112,7 @@ def test_render_shows_the_profiled_illuminance(mi, tmp_path):
     assert np.all(np.abs(mean - 1) <= z_family(mean.size) * se + PIXEL_AREA_RTOL), np.max(np.abs(mean - 1) / se)
     assert np.max(se) < 3e-3                          # the check is tight enough to see the profile ...
     assert np.max(np.abs(uni / ref - 1)) > 0.1        # ... which changes E over the picture by > 10 %
+    assert np.min(np.abs(old / ref - 1)) > 5 * np.max(se)   # ... and the unit's old scale (1.9 % off here)
 
 
 def test_a_beam_far_narrower_than_the_footprint_is_sampled_until_its_light_is_known(mi):
@@ -112,7 +124,6 @@ def test_a_beam_far_narrower_than_the_footprint_is_sampled_until_its_light_is_kn
     numpy Monte Carlo of the same beam, and with the collimated limit (independent float64 Monte
     Carlo, tests/helpers.py) within the beam's own distance to it (about sigma / 0.25 deg x 0.0039 =
     1.6e-4, docs/beam.md; allowed 3e-4)."""
-    from roadgonio.surface.sample import resolve_sample
     model = resolve_sample("R3").model
     cell = (12.0, 0.0)
     inst = preset("portable").with_changes(source={"beam_sigma_deg": 0.01})
@@ -124,3 +135,13 @@ def test_a_beam_far_narrower_than_the_footprint_is_sampled_until_its_light_is_kn
     z = z_family(2, dof=m.se_dof)
     assert abs(m.k_a - n.k_a) <= z * math.hypot(m.se, n.se), (m.k_a, m.se, n.k_a, n.se)
     assert abs(m.k_a - k_coll) <= z * math.hypot(m.se, se_coll) + 3e-4, (m.k_a, m.se, k_coll, se_coll)
+
+
+def test_a_beam_no_sample_meets_is_said_to_be_too_narrow_not_shaded(mi):
+    """(user audit, session 42) sigma 1e-6 deg on the portable preset, which has no scene parts: the
+    Mitsuba backend asked whether "a part of the scene" shaded the footprint. It names the beam's key
+    and says it is too narrow to be met."""
+    inst = preset("portable").with_changes(source={"beam_sigma_deg": 1e-6})
+    with pytest.raises(GeometryError) as e:
+        make_backend("mitsuba", inst, resolve_sample("R3").model, rel_se=1e-3, seed=0).compute_cell(1.0, 30.0)
+    assert e.value.field == "source.beam_sigma_deg" and "too narrow" in str(e.value) and "part of the scene" not in str(e.value)

@@ -103,3 +103,48 @@ def test_the_render_units_hold_for_a_profiled_aperture():
     dA = (src.radius_m / n) * (2 * np.pi / n) * R
     E = float(np.sum(L0 * (1.0 - 0.35 * (R / src.radius_m) ** 4) * cos * cos / (d * d + R * R) * dA))
     assert abs(E - 1.0) < 0.01, E
+
+
+def _normal_illuminance_per_radiance(R, D, A, P, n=1200):
+    """E_normal / L_0 on the axis at distance D of a disc of radius R with radiance L_0 A(rho) P(theta):
+    float64 midpoint rule in rho (the integrand is axisymmetric), written out apart from the code."""
+    rho = (np.arange(n) + 0.5) / n
+    s = rho * R
+    r2 = D * D + s * s
+    cos = D / np.sqrt(r2)                               # at the disc point and at the centre alike
+    theta = np.arccos(cos)
+    return float(np.sum(A(rho) * P(theta) * cos * cos / r2 * 2 * np.pi * s) * (R / n))
+
+
+@pytest.mark.parametrize("case", ["uniform", "gauss2", "gauss05", "edge05", "cone", "corridor12"])
+def test_the_render_unit_is_the_profiled_sources_illuminance(case):
+    """(user audit, session 42) `render` states its E in lx per lx normal to the source's axis at the
+    sample centre from the cell's source; a Gaussian beam's picture was 12 % (sigma 2 deg) and 4.1 times
+    (0.5 deg) too dark, a uniform disc's 6e-4 (pi R^2 / D^2 for the exact solid angle): the scale times
+    the scene's radiance times the disc's E_normal / L_0 integrated here is 1."""
+    from roadgonio.engines.mitsuba.images import unit_scale
+    from roadgonio.engines.mitsuba.scene import source_radiance
+    one = lambda x: np.ones_like(x)                      # noqa: E731
+    base = load_instrument("corridor" if case == "corridor12" else "portable")
+    change, A, P, cell = {}, one, one, (1.0, 30.0)
+    if case.startswith("gauss"):
+        sig = math.radians(2.0 if case == "gauss2" else 0.5)
+        change = {"beam_sigma_deg": math.degrees(sig)}
+        P = lambda t: np.exp(-t ** 2 / (2 * sig ** 2))   # noqa: E731
+    elif case == "edge05":
+        change = {"aperture_edge_radiance": 0.5}
+        A = lambda r: 1 - 0.5 * r ** 2                   # noqa: E731
+    elif case == "cone":                                  # a hard cone of 1 deg: the inner 17.5 mm of the 25 mm disc
+        change = {"beam_half_angle_deg": 1.0}
+        P = lambda t: (t <= math.radians(1.0)).astype(float)   # noqa: E731
+    elif case == "corridor12":
+        cell = (12.0, 0.0)
+    inst = base.with_changes(source=change) if change else base
+    src = inst.source
+    D = src.length_m * (math.hypot(1.0, cell[0]) if case == "corridor12" else 1.0)
+    E = _normal_illuminance_per_radiance(src.radius_m, D, A, P, n=200000 if case == "cone" else 1200)
+    assert unit_scale(inst, *cell) * source_radiance(inst) * E == pytest.approx(1.0, rel=RENDER_UNIT_RTOL), case
+
+
+#: The midpoint rule's error (~h^2; the cone's jump ~h: 2e5 rings) and the 45 x 45 Gauss rule of Omega_S.
+RENDER_UNIT_RTOL = 2e-5

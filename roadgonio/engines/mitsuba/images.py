@@ -8,9 +8,8 @@ outline). When the scene makes stray light (reflecting parts: an XML scene's wal
 Units: 1 lx normal to the source's axis at the sample centre from the cell's source, so the
 illuminance is in lx per lx and luminances in cd/m^2 per lx (the scene's source gives that at the
 distance :func:`~roadgonio.engines.mitsuba.scene.source_radiance` takes; a fixed-height path's farther
-cells are scaled to it, :func:`unit_scale`; a source with a
-beam profile: its on-axis radiance is the uniform disc's, so its illuminance is lower where the
-profile is below 1).
+cells are scaled to it, :func:`unit_scale`, with the exact solid angle of the disc and its beam
+profile, so E_h is 1 at the centre of a cell at tan eps 0).
 
 A source with a beam profile (docs/conventions.md section 4.1), a hard beam cone or a point source
 (R_S = 0: I_0 cos theta about the axis, section 5) is rendered with the k_A engine's ``kabatch``
@@ -78,12 +77,24 @@ RENDER_FILES = ("view.exr", "illuminance.exr", "render.png", "render.json", "str
 
 
 def unit_scale(instrument: Instrument, tan_eps: float, beta_deg: float) -> float:
-    """The factor that puts a render of this cell in :data:`EXR_UNITS`: (D_S / length)^2, D_S the cell's
-    source distance and length the one :func:`~roadgonio.engines.mitsuba.scene.source_radiance` is
-    normalised at (1 on an arc; a fixed-height path's source is farther than its height off tan eps 0)."""
+    """The factor that puts a render of this cell in :data:`EXR_UNITS`: 1 / E_normal, E_normal the
+    illuminance normal to the axis at the sample centre from this cell's source at the scene's radiance
+    :func:`~roadgonio.engines.mitsuba.scene.source_radiance`: L_0 Omega_S(D_S), D_S the cell's source
+    distance (a fixed-height path's source is farther than its height off tan eps 0) and Omega_S the
+    exact projected solid angle with the beam profile
+    (:func:`~roadgonio.engines.calibration.profiled_solid_angle`). User audit, session 42: the scale was
+    (D_S / length)^2 alone, as if every source point sent its on-axis radiance to the centre: a Gaussian
+    beam of 2 deg on the portable's disc rendered E 12 % low, of 0.5 deg 4.1 times low, and a uniform
+    disc 6e-4 low (pi R^2 / D^2 for pi R^2 / (R^2 + D^2)). A point source: I_0 / D_S^2."""
+    from roadgonio.engines.calibration import profiled_solid_angle
+    from roadgonio.engines.mitsuba.scene import source_radiance
     from roadgonio.instrument.optics import source_frames
+    src = instrument.source
     d = float(source_frames(instrument, tan_eps, beta_deg).distance_m)
-    return (d / instrument.source.length_m) ** 2
+    if src.is_point:
+        return (d / src.length_m) ** 2
+    at_d = instrument if d == src.length_m else instrument.with_changes(source={src.length_key: d})
+    return 1.0 / (source_radiance(instrument) * profiled_solid_angle(at_d))
 
 
 def kabatch_lit(instrument: Instrument) -> bool:
