@@ -85,6 +85,33 @@ def check_cells(instrument: Instrument, model: RoadModel, cells: Sequence[tuple[
     return nominal
 
 
+def beam_key(instrument: Instrument) -> str | None:
+    """The instrument's key that narrows its source's beam (an angular profile or a hard cone), as
+    ``source.<key>``, or None for a disc that emits into the whole hemisphere."""
+    src = instrument.source
+    for key in ("beam_sigma_deg", "beam_cos_power", "beam_intensity_file", "beam_half_angle_deg"):
+        if getattr(src, key, None) is not None:
+            return f"source.{key}"
+    return None
+
+
+def unsampled_beam(instrument: Instrument, tan_eps: float, beta_deg: float, backend: str) -> GeometryError | None:
+    """The error of a cell where no sample met the source's light although its beam does light the
+    footprint: a beam's axis points at the sample centre, so a narrow beam lights the footprint along
+    it, only in directions too few for ``backend`` to meet (user audit, session 42: sigma 1e-4 deg was
+    said to "miss the detector footprint", and the Mitsuba backend asked whether a part of the scene
+    shaded it, in a scene without parts). None for a source without a beam key."""
+    key = beam_key(instrument)
+    if key is None:
+        return None
+    value = getattr(instrument.source, key.split(".")[1])
+    return GeometryError(f"no sample of the {backend} backend met the source's light at tan eps = {tan_eps:g}, beta = "
+                         f"{beta_deg:g}: the beam ({key} = {value}) is too narrow for it to find; it does light the "
+                         "footprint along its axis, so k_A is near its collimated limit there (docs/beam.md): "
+                         "widen the beam, or leave the key out for the uniform disc",
+                         path=instrument.path, field=key)
+
+
 def no_light(tan_eps: float, beta_deg: float, why: str = "") -> GeometryError:
     """The error of a cell at which no detected ray receives light from the source (k_A undefined);
     ``why`` a parenthesised reason, e.g. ``"(the source beam misses the detector footprint)"``."""

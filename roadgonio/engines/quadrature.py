@@ -78,7 +78,7 @@ from roadgonio.surface.model import RoadModel, road_brdf
 from roadgonio.instrument import optics
 from roadgonio.engines.registry import check_relative
 from roadgonio.engines.result import CellByCellBackend, CellResult
-from roadgonio.engines.cellcheck import check_cell, no_light
+from roadgonio.engines.cellcheck import check_cell, no_light, unsampled_beam
 from roadgonio.engines.rules import (MAP_PIECES_MAX, ORDERS, DetectorNodes, disc_rule, field_rule_size, gauss_legendre,
                                      map_kinks, map_piece_count, map_unsplit, rule_size)
 
@@ -315,7 +315,9 @@ class QuadratureBackend(CellByCellBackend):
                 # no node sees light yet (a narrow source beam): refine every direction
                 nxt = [lvl + 1 if i in act else lvl for i, lvl in enumerate(lv)]
                 if not act or max(nxt) >= len(ORDERS) or self._nodes.size(nxt) > self.max_evals:
-                    raise no_light(tan_eps, beta_deg, "(the source beam misses the detector footprint)")
+                    # a beam's axis points at the sample centre: it lights the footprint, too narrowly
+                    raise (unsampled_beam(self.instrument, tan_eps, beta_deg, "quadrature")
+                           or no_light(tan_eps, beta_deg, "(the source beam misses the detector footprint)"))
                 lv = nxt
                 continue
             for i in todo:

@@ -960,3 +960,19 @@ def test_an_aperture_table_needs_its_header(tmp_path):
     with pytest.raises(InputError, match="expected the header rho,relative_radiance") as err:
         Source(distance_m=1.0, radius_m=0.01, aperture_radiance_file=p)
     assert err.value.path == str(p) and err.value.line == 1
+
+
+def test_a_beam_too_narrow_to_find_is_said_to_be_so_not_to_miss_the_footprint():
+    """(user audit, session 42) sigma 1e-4 deg: the quadrature said the beam "misses the detector
+    footprint", which it does not (its axis points at the sample centre: k_A is near the collimated
+    limit, 1.00008 by the auditor's own integral). The error names the key and says the beam is too
+    narrow for the backend; a source without a beam key keeps the other wording."""
+    inst = load_instrument("portable").with_changes(source={"beam_sigma_deg": 1e-4})
+    with pytest.raises(GeometryError) as e:
+        make_backend("quadrature", inst, _road(), rtol=1e-4).compute_cell(1.0, 30.0)
+    assert e.value.field == "source.beam_sigma_deg" and "too narrow" in str(e.value)
+    assert "misses" not in str(e.value) and "beam_sigma_deg = 0.0001" in str(e.value)
+    from roadgonio.engines.cellcheck import unsampled_beam
+    assert unsampled_beam(load_instrument("portable"), 1.0, 30.0, "quadrature") is None
+    cone = load_instrument("portable").with_changes(source={"beam_half_angle_deg": 0.01})
+    assert unsampled_beam(cone, 1.0, 30.0, "mitsuba").field == "source.beam_half_angle_deg"

@@ -33,7 +33,7 @@ from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strat
 from roadgonio.engines.mitsuba.scene import RoadScene, source_radiance
 from roadgonio.instrument.config import Instrument
 from roadgonio.instrument.optics import source_frames
-from roadgonio.engines.cellcheck import check_cells
+from roadgonio.engines.cellcheck import check_cells, unsampled_beam
 from roadgonio.engines.registry import backend_info
 
 #: Largest number of detector rays traced (and stored: 13 floats each) per launch.
@@ -245,6 +245,12 @@ class BatchEngine:
     def _check_lit(self, cell, st: CellStats) -> None:
         _, sg = st.totals()
         if not sg > 0.0:
+            if not self.can_occlude():
+                # nothing in the scene can shade the footprint: a beam too narrow to be met (user audit,
+                # session 42: it asked whether a part of the scene shaded it, in a scene without parts)
+                err = unsampled_beam(self.instrument, cell[0], cell[1], "mitsuba")
+                if err is not None:
+                    raise err
             mesh = self.instrument.sample.mesh
             why = ("is it shaded by a part of the scene" + (", or does the detector see the back of the sample mesh "
                    "(a face reflects towards the side its normal points to)" if mesh is not None else "") + "?")
