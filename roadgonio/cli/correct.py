@@ -134,7 +134,7 @@ def run(args) -> int:
     for s in summaries:
         b = s["before"]
         say(f"{s['measured']}: {s['cells']} cells corrected (reference {s['reference']}, calibration "
-            f"{s['calibration']}; k_A {s['k_a_min']:.3g} ... {s['k_a_max']:.3g})")
+            f"{s['calibration']}; k_A {s['k_a_min']:.3f} ... {s['k_a_max']:.3f})")
         say(f"  before: S1 {_pm(b['S1'], b['u_S1'])}, Q0 {_pm(b['Q0'], b['u_Q0'])}, S2 {_pm(b['S2'], b['u_S2'])}: "
             f"{_classes(b)}, nearest CIE table {_nearest(b)}")
         say(f"  after:  S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
@@ -192,9 +192,11 @@ def _run_joint(args) -> int:
         f"g_D's prior sd {best['g_d_prior_sd']:.2g}" + _gd_prior_how(best))
     for p in s["per_instrument"]:
         b = p["before"]
-        say(f"  {p['instrument']}: k_A {p['k_a_min']:.3g} ... {p['k_a_max']:.3g}; as measured S1 "
+        say(f"  {p['instrument']} ({p['measured']}): k_A {p['k_a_min']:.3f} ... {p['k_a_max']:.3f}; as measured S1 "
             f"{_pm(b['S1'], b['u_S1'])}, Q0 {_pm(b['Q0'], b['u_Q0'])}; its own corrected u median "
             f"{100 * p['u_rel_median']:.3g} %")
+        if p.get("Q0_note"):
+            say(f"    note: its {p['Q0_note']}")
     say(f"  corrected: S1 {_pm(s['S1'], s['u_S1'])}, Q0 {_pm(s['Q0'], s['u_Q0'])}, S2 {_pm(s['S2'], s['u_S2'])}: "
         f"{_classes(s)}, nearest CIE table {_nearest(s)}")
     if s.get("Q0_note"):

@@ -502,7 +502,10 @@ JOINT_CELL_COLUMNS = {
     "tan_eps": CELL_COLUMNS["tan_eps"], "beta_deg": CELL_COLUMNS["beta_deg"],
     "r_corrected_x1e4": "the one corrected r x 1e4 (all instruments together)",
     "u_corrected_x1e4": CELL_COLUMNS["u_corrected_x1e4"], "u_rel_total": CELL_COLUMNS["u_rel_total"],
-    "u_rel_<component>": CELL_COLUMNS["u_rel_<component>"], "w_model": CELL_COLUMNS["w_model"],
+    "u_rel_<component>": CELL_COLUMNS["u_rel_<component>"],
+    # not CELL_COLUMNS' "(the rest: r_over_k_a)": a joint file has no such column (user audit, session 42)
+    "w_model": "weight of the fitted surface's own value in r_corrected (the rest: the instruments' "
+               "r_corrected_<instrument>)",
     "r_measured_<instrument>_x1e4": "that instrument's measured r x 1e4 (empty where it did not measure)",
     "k_a_<instrument>": "that instrument's k_A under its calibration (every digit)",
     "r_corrected_<instrument>_x1e4": "that instrument's r_measured / k_a x 1e4",

@@ -143,10 +143,25 @@ class InstrumentPart:
     #: grid, d ln k_A / d ln f_r of the road beyond the observation elevations the instruments saw
     #: (rendered; the budget's "unobserved" component); None where the backend traces no stray light
     unobserved_sensitivity: np.ndarray | None = None
+    #: the part's name in the outputs when it is not its instrument's own (:func:`part_names`)
+    label: str | None = None
 
     @property
     def name(self) -> str:
-        return self.instrument.name
+        """The instrument's name, unique among the parts of one correction (:func:`part_names`)."""
+        return self.label or self.instrument.name
+
+
+def part_names(instruments: Sequence[Instrument]) -> list[str]:
+    """The name of each instrument of a correction in its outputs: its own, or where two share one (one
+    instrument measuring twice, the case ``design --second-aperture`` compares against) the name and
+    the measured table's place on the command line, ``portable_1``, ``portable_2`` (user audit, session
+    42: correct_cells.csv had each of their columns twice, and a CSV reader kept the second only)."""
+    names = [i.name for i in instruments]
+    out = [f"{n}_{k + 1}" if names.count(n) > 1 else n for k, n in enumerate(names)]
+    while len(set(out)) < len(out):          # a suffixed name that is another instrument's own
+        out = [f"{n}_" if out.count(n) > 1 else n for n in out]
+    return out
 
 
 @dataclass
@@ -213,11 +228,13 @@ class SurfaceCorrection:
                                  for st in self.surface_steps],
                "seconds": self.seconds, "timings": self.timings}
         out["per_instrument"] = [{
-            "instrument": p.name, "cells": int(p.measured.mask.sum()),
+            "instrument": p.name, "measured": measured_label(p.measured), "cells": int(p.measured.mask.sum()),
             "k_a_min": float(np.nanmin(p.k_a)), "k_a_max": float(np.nanmax(p.k_a)),
             "birge_ratio": float(math.sqrt(np.nanmean(p.residual ** 2))),
             "birge_local_max": float(np.nanmax(p.birge_local)),
             "before": {k: p.before.get(k) for k in ("S1", "u_S1", "Q0", "u_Q0")},
+            # its Q0 over its own cells only, when it measured part of the table (user audit, session 42)
+            "Q0_note": p.before.get("Q0_note"),
             "after": {k: p.after.get(k) for k in ("S1", "u_S1", "Q0", "u_Q0")},
             "u_rel_median": float(np.median(p.budget.u_rel())), "backend": p.backend_info,
             "unobserved_sensitivity_max": (None if p.unobserved_sensitivity is None
@@ -734,6 +751,7 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
                             "beyond the knots' Nyquist wavenumber"}
     lnr = [np.log(y) - lnk[off[i]:off[i + 1]] for i, y in enumerate(ys)]
     parts_out: list[InstrumentPart] = []
+    labels = part_names(instruments)
     for i, (inst, t) in enumerate(zip(instruments, tables)):
         sl = slice(off[i], off[i + 1])
         bud = Budget(n_i[i])
@@ -760,7 +778,8 @@ def _correct_surface(tables, instruments, *, u_measured, sigma, backend, backend
             widening=_grid(t, widen[sl]), simulated=_grid(t, sim),
             model_r=model_r, surfaces=surfs, backend_info=infos[i], before=functionals(t, before_b.total()),
             after=functionals(corr, bud.total()),
-            unobserved_sensitivity=None if unobserved is None else _grid(t, unobserved[i])))
+            unobserved_sensitivity=None if unobserved is None else _grid(t, unobserved[i]),
+            label=None if labels[i] == inst.name else labels[i]))
     base = tables[0]
     model_weight = None
     if len(tables) == 1 and not U:

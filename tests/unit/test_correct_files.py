@@ -266,6 +266,26 @@ def test_joint_correct_json_defines_every_column_of_its_cells_csv():
     assert all(len(ln.split(",")) == len(head) for ln in lines[1:]) and len(lines) == n + 1
 
 
+def test_one_instrument_measuring_twice_gets_a_column_set_each():
+    """(user audit, session 42) the same instrument given twice to a joint correction (the measuring-twice
+    case design --second-aperture compares against) wrote each of its columns twice in correct_cells.csv
+    and two per_instrument entries of one name: the parts are named apart by their place on the command
+    line, an instrument with its own name keeps it, and a joint w_model is defined by columns it has."""
+    from types import SimpleNamespace
+    from roadgonio.correction.outputs import JOINT_CELL_COLUMNS, _joint_cells_head
+    from roadgonio.correction.outside import part_names
+    inst = [SimpleNamespace(name=n) for n in ("portable", "wide", "portable")]
+    names = part_names(inst)
+    assert names == ["portable_1", "wide", "portable_3"]
+    assert part_names([SimpleNamespace(name=n) for n in ("a", "a", "a_1")]) == ["a_1_", "a_2", "a_1"]
+    parts = [SimpleNamespace(name=n, unobserved_sensitivity=None) for n in names]
+    head = _joint_cells_head(SimpleNamespace(budget=SimpleNamespace(components=("measurement",)),
+                                             model_weight=None, parts=parts))
+    assert len(head) == len(set(head)) and "k_a_portable_3" in head
+    rest = JOINT_CELL_COLUMNS["w_model"].split("the rest:")[1]
+    assert "r_over_k_a" not in rest and "r_corrected_<instrument>" in rest
+
+
 def test_corrected_u_carries_what_its_u_leaves_out_for_road():
     """(user audit, session 39) an eq. 4 correction through stray light says u leaves out the road beyond
     the observation elevations, and every instrument with parts that their reflectances are taken as exact:
