@@ -190,7 +190,8 @@ def _run_second(args) -> int:
     say = text_output(args)
     a, t, b = res.baselines[0], res.baselines[1], res.best
     say(f"second aperture for '{res.instrument.name}' (surface from {res.surface_from}; {res.settings['backbone_variant']} "
-        f"backbone, {res.settings['backbone_choice']}): {len(res.candidates)} settings, {res.seconds:.1f} s")
+        f"backbone, {res.settings['backbone_choice']}): {len(res.candidates)} setting"
+        f"{'' if len(res.candidates) == 1 else 's'}, {res.seconds:.1f} s")
     n = s["counts"]
     say(f"  ranked {n['ranked']}; not ranked: {n['below_min_signal']} below --min-signal "
         f"{res.settings['min_signal']:g} of the instrument's signal, {n['not_feasible']} unable to measure every cell"

@@ -202,11 +202,14 @@ def _changes(changes: dict[str, float]) -> str:
     return ", ".join(f"{k} = {v:g}" for k, v in changes.items())
 
 
-def _refuse(min_signal: float, own: bool, closest: tuple[dict[str, float], float] | None) -> NoReturn:
+def _refuse(min_signal: float, own: bool, closest: tuple[dict[str, float], float] | None,
+            why: tuple[dict[str, float], str] | None = None) -> NoReturn:
     """No second setting to rank: one line, naming the brightest that can measure (``closest``:
-    its changes and signal) when there is one."""
+    its changes and signal) when there is one, and why the first that keeps the signal cannot
+    (``why``: its changes and the reason)."""
     raise InputError("no second setting of the --vary grid " + ("other than the instrument's own " if own else "")
                      + f"keeps {min_signal:g} of the instrument's signal and can measure every cell"
+                     + (f" ({_changes(why[0])} keeps it but is {why[1]})" if why is not None else "")
                      + (f" (the brightest, {_changes(closest[0])}, keeps {closest[1]:.3g}; a lower --min-signal "
                         "ranks it)" if closest is not None else ""), field="vary")
 
@@ -299,7 +302,8 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
             except InputError as err:
                 forward[k] = f"not feasible: {err.reason}"
             except Exception as err:  # noqa: BLE001 - a geometry the second setting cannot measure
-                forward[k] = f"not feasible: {err}"
+                # the reason without the base instrument's file: the setting is the --vary point's
+                forward[k] = f"not feasible: {getattr(err, 'reason', None) or err}"
         return forward[k]
 
     def feasible(k: int) -> bool:
@@ -310,7 +314,11 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     if not any(feasible(k) for k in others if signal[k] >= min_signal):
         dim = sorted((k for k in others if not signal[k] >= min_signal), key=lambda k: -signal[k])
         closest = next((k for k in dim if feasible(k)), None)
-        _refuse(min_signal, any(own), None if closest is None else (dict(points[closest]), signal[closest]))
+        # why the bright ones cannot measure (user audit, session 42: a 0.3 deg field, 4x the signal, was
+        # refused in words that spoke of the signal only; its footprint leaves the sample)
+        bright = [k for k in others if signal[k] >= min_signal]
+        why = None if not bright else (dict(points[bright[0]]), forward_of(bright[0]))
+        _refuse(min_signal, any(own), None if closest is None else (dict(points[closest]), signal[closest]), why)
 
     # the backbone the correction would take: correct --forward surface fits every variant of
     # DEFAULT_VARIANTS at every rounding of the mirror plane and weighs them by their evidence; the

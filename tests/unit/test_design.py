@@ -740,13 +740,17 @@ def test_second_aperture_with_no_second_setting_to_rank_is_refused_before_any_fi
         second([own, 0.1], 0.5)
     # 0.5 deg: 11 times the signal, its footprint leaves the sample (not feasible); the dimmer of 0.1
     # and 0.05 is not the one named
+    # and the 0.5 deg setting is said why it is not ranked (user audit, session 42: only the signal was named)
     with pytest.raises(InputError, match=rf"grid keeps 0.5 of the instrument's signal and can measure every cell "
+                                         rf"\({key} = 0.5 keeps it but is not feasible: .*sample.*\) "
                                          rf"\(the brightest, {key} = 0.1, keeps 0\.444;") as err:
         second([0.5, 0.05, 0.1], 0.5)
     assert "other than" not in str(err.value) and built == [own, 0.5, 0.1]   # 0.05 (dimmer than 0.1): not built
-    # nothing feasible at all: nothing to name
-    with pytest.raises(InputError, match=r"can measure every cell$"):
+    # nothing feasible at all: no brightest to name, the first's reason
+    with pytest.raises(InputError, match=rf"can measure every cell \({key} = 0.5 keeps it but is not feasible: the "
+                                         r"detector footprint leaves the sample: .*\)$") as err:
         second([0.5, 1.0], 0.0)
+    assert "portable.toml" not in str(err.value)      # the point is the --vary grid's, not the file's
     # a setting to rank: on to the fit, with the bundles of the first that can measure only
     with pytest.raises(_Fitted):
         second([own, 0.5, 0.1, 0.05], 0.3)
