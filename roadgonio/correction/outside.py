@@ -158,9 +158,15 @@ def part_names(instruments: Sequence[Instrument]) -> list[str]:
     the measured table's place on the command line, ``portable_1``, ``portable_2`` (user audit, session
     42: correct_cells.csv had each of their columns twice, and a CSV reader kept the second only)."""
     names = [i.name for i in instruments]
-    out = [f"{n}_{k + 1}" if names.count(n) > 1 else n for k, n in enumerate(names)]
-    while len(set(out)) < len(out):          # a suffixed name that is another instrument's own
-        out = [f"{n}_" if out.count(n) > 1 else n for n in out]
+    taken = {n for n in names if names.count(n) == 1}
+    out = []
+    for k, n in enumerate(names):
+        if names.count(n) > 1:
+            n = f"{n}_{k + 1}"
+            while n in taken:                # the suffixed name is another instrument's own
+                n += "_"
+        taken.add(n)
+        out.append(n)
     return out
 
 
