@@ -91,8 +91,6 @@ def detector_etendue(instrument: Instrument) -> float:
     return coaxial_disc_etendue(det.pupil_radius_m, f * math.tan(gamma), f)
 
 
-
-
 def mean_field_sensitivity(instrument: Instrument) -> float:
     """Area mean of k_D over the field disc: 1 - (1 - e)/2 for k_D(rho) = 1 - (1 - e) rho^2, or the
     mean of the sensitivity map (:func:`roadgonio.instrument.optics.field_map_value`)."""
