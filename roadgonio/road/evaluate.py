@@ -103,6 +103,13 @@ class Installation:
             missing = ({"metrics": ["R_EI", "class"], "reason": why} if missing is None else
                        dict(missing, metrics=missing["metrics"][:-1] + ["R_EI", "class"],
                             reason=f"{missing['reason']}; {why}"))
+        if not self.veiling["computable"]:
+            # user audit, session 42: a class was given (M3, whose limit f_TI <= 15 % was never checked) and
+            # `missing` was null when the luminaire data stop before the angles TI needs
+            why = self.veiling['reason']          # it names TI
+            missing = ({"metrics": ["TI", "class"], "reason": why} if missing is None else
+                       dict(missing, metrics=[k for k in missing["metrics"] if k not in ("TI", "class")] + ["TI", "class"],
+                            reason=f"{missing['reason']}; {why}"))
         cls = None if missing else metrics.best_class(values)
         return RoadResult(table=table, values=values, L=np.where(op.incomplete, np.nan, L), per_observer=m, cls=cls,
                           installation=self, operator=op, missing=missing, ti_missing=ti_why,

@@ -311,6 +311,23 @@ def test_ti_not_computable_without_luminaire_data_above_70_deg():
     assert not v["computable"] and "70" in v["reason"]
 
 
+def test_a_class_is_not_given_when_ti_cannot_be_computed():
+    """(user audit, session 42) luminaire data that stop at gamma 87.5 deg: TI was null, `missing` null and
+    the class given (M-class limits on TI never checked). TI and the class are listed as missing, with
+    the reason; the other metrics are still given."""
+    short = Luminaire([0.0], [0.0, 30.0, 60.0, 87.5], [[800.0] * 4], 1000.0)
+    lay = Layout(spacing_m=30.0, mounting_height_m=10.0, overhang_m=1.0)
+    t = bundled_table("R3")
+    const = t.with_values(np.where(t.mask, 0.05, np.nan))
+    res = Installation(lay, short).evaluate(const)
+    s = res.summary()
+    assert s["TI"] is None and s["class"] is None and s["L_av"] > 0 and s["R_EI"] is not None
+    assert s["missing"]["metrics"] == ["TI", "class"] and "87.5" in s["missing"]["reason"]
+    # the same layout with data to 90 deg has a class and nothing missing
+    full = Installation(lay, _isotropic(800.0)).evaluate(const).summary()
+    assert full["missing"] is None and full["TI"] is not None
+
+
 def test_horizontal_illuminance_by_hand():
     lay = Layout(spacing_m=30.0, mounting_height_m=10.0, overhang_m=1.0, maintenance_factor=0.9)
     fld = calc.build_field(lay)
