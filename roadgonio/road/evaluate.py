@@ -94,22 +94,13 @@ class Installation:
         if ti_why is None and values["TI"] is None:
             ti_why = (f"L_av = {m['L_av']:.3g} cd/m^2 is so small that TI exceeds any float (see missing)" if ti_overflow
                       else "it needs L_av > 0 (no light on the field)" if not m["L_av"] > 0 else None)
-        if missing is None and not np.isfinite(self.edge["R_EI"]):
-            missing = {"metrics": ["R_EI", "class"],
-                       "reason": "R_EI needs light on the strips inside the edges, and they have none"}
         if values["R_EI"] is None:
             # audit 27: R_EI (no light on the strips inside the edges) was null without being listed
-            why = "R_EI needs light on the strips inside the edges"
-            missing = ({"metrics": ["R_EI", "class"], "reason": why} if missing is None else
-                       dict(missing, metrics=missing["metrics"][:-1] + ["R_EI", "class"],
-                            reason=f"{missing['reason']}; {why}"))
+            missing = with_missing(missing, "R_EI", "R_EI needs light on the strips inside the edges, and they have none")
         if not self.veiling["computable"]:
             # user audit, session 42: a class was given (M3, whose limit f_TI <= 15 % was never checked) and
             # `missing` was null when the luminaire data stop before the angles TI needs
-            why = self.veiling['reason']          # it names TI
-            missing = ({"metrics": ["TI", "class"], "reason": why} if missing is None else
-                       dict(missing, metrics=[k for k in missing["metrics"] if k not in ("TI", "class")] + ["TI", "class"],
-                            reason=f"{missing['reason']}; {why}"))
+            missing = with_missing(missing, "TI", self.veiling["reason"])          # the reason names TI
         cls = None if missing else metrics.best_class(values)
         return RoadResult(table=table, values=values, L=np.where(op.incomplete, np.nan, L), per_observer=m, cls=cls,
                           installation=self, operator=op, missing=missing, ti_missing=ti_why,
@@ -193,6 +184,17 @@ def gap_note(table: RTable) -> str | None:
     return (f"{table.name}: {len(holes)} cell(s) the CIE standard tables tabulate are blank (tan eps:beta {cells}): "
             "contributions near them are interpolated across the gap from the tabulated neighbours (EN 13201-3 5.5 "
             "among the cells given); only where no stencil remains is a point's luminance unknown")
+
+
+def with_missing(missing: dict | None, metric: str, why: str) -> dict:
+    """``missing`` (a result's ``missing``: metrics and reason, or None) with ``metric`` listed once,
+    before ``class``, and ``why`` in its reason once. (It was written twice beside each other for R_EI,
+    which then listed R_EI twice and said its reason twice when both fired.)"""
+    if missing is None:
+        return {"metrics": [metric, "class"], "reason": why}
+    listed = [k for k in missing["metrics"] if k not in (metric, "class")] + [metric, "class"]
+    reason = missing["reason"] if why in missing["reason"] else f"{missing['reason']}; {why}"
+    return dict(missing, metrics=listed, reason=reason)
 
 
 def _known(v, unknown: bool = False) -> float | None:

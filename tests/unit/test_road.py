@@ -328,6 +328,17 @@ def test_a_class_is_not_given_when_ti_cannot_be_computed():
     assert full["missing"] is None and full["TI"] is not None
 
 
+def test_a_missing_metric_is_listed_once_with_its_reason_once():
+    """`missing` lists a metric once, before "class", and its reason once, whichever check adds it first
+    (the two R_EI checks, one beside the other, listed R_EI twice and its reason twice when both fired)."""
+    from roadgonio.road.evaluate import with_missing
+    a = with_missing(None, "R_EI", "R_EI needs light")
+    assert a == {"metrics": ["R_EI", "class"], "reason": "R_EI needs light"}
+    assert with_missing(a, "R_EI", "R_EI needs light") == a
+    b = with_missing({"metrics": ["U_o", "TI", "class"], "reason": "dark", "points_unknown": 3}, "TI", "TI: no data")
+    assert b == {"metrics": ["U_o", "TI", "class"], "reason": "dark; TI: no data", "points_unknown": 3}
+
+
 def test_horizontal_illuminance_by_hand():
     lay = Layout(spacing_m=30.0, mounting_height_m=10.0, overhang_m=1.0, maintenance_factor=0.9)
     fld = calc.build_field(lay)
