@@ -718,10 +718,9 @@ def assemble(study: Study, setup: sim.Setup, records: Mapping[tuple, dict], *, m
                             "units": "1"})
     # its standard uncertainty from the backend (user audit, session 41: the value came without one); NaN
     # where the stage-1 record predates it (a journal written before session 42)
+    k_u = [unpack(records[("surrogate", p)].get("k_nominal_u")) for p in range(P)]
     data["k_a_nominal_u"] = (("participant", "tan_eps", "beta"),
-                             to_grid(np.array([unpack(records[("surrogate", p)]["k_nominal_u"])
-                                               if records[("surrogate", p)].get("k_nominal_u") is not None
-                                               else np.full(n, np.nan) for p in range(P)])),
+                             to_grid(np.array([np.full(n, np.nan) if u is None else u for u in k_u])),
                              {"long_name": "standard uncertainty of k_a_nominal from the k_A backend (its standard "
                                            "error, or a deterministic error bound taken as a rectangular "
                                            "distribution, bound / sqrt 3); 0 for an ideal instrument",
