@@ -26,7 +26,7 @@ import numpy as np
 
 from roadgonio.errors import BackendError, GeometryError, InputError, count
 from roadgonio.instrument import optics
-from roadgonio.instrument.config import Instrument
+from roadgonio.instrument.config import BEAM_KEYS, Instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.engines.cells import cells_text
 from roadgonio.engines.result import ideal_ratio, ideal_ratios
@@ -89,7 +89,7 @@ def beam_key(instrument: Instrument) -> str | None:
     """The instrument's key that narrows its source's beam (an angular profile or a hard cone), as
     ``source.<key>``, or None for a disc that emits into the whole hemisphere."""
     src = instrument.source
-    for key in ("beam_sigma_deg", "beam_cos_power", "beam_intensity_file", "beam_half_angle_deg"):
+    for key in BEAM_KEYS + ("beam_half_angle_deg",):
         if getattr(src, key, None) is not None:
             return f"source.{key}"
     return None
