@@ -79,7 +79,7 @@ def run(args) -> int:
                         "k_a_direct": c.k_a_direct, "k_a_direct_se": c.k_a_direct_se,
                         "stray_fraction": c.stray_fraction, "stray_fraction_se": c.stray_fraction_se,
                         # absolute calibration: eta = <E>/E_0 and its error estimate (deterministic)
-                        **{k: (c.extra or {})[k] for k in ("eta", "eta_error", "eta_converged", "max_bounces")
+                        **{k: (c.extra or {})[k] for k in ("eta", "eta_error", "eta_converged", "max_bounces", "note")
                            if k in (c.extra or {})}})
         else:
             # a deterministic cell that stopped at its cap has an error estimate, not a bound
@@ -95,7 +95,9 @@ def run(args) -> int:
                               + ("" if c.converged else _not_converged_text(c, args.rel_se))
                               + (f"; stray light {100 * c.stray_fraction:.2f} % +- {100 * c.stray_fraction_se:.2g} % of "
                                  f"the signal, direct light alone k_A = {c.k_a_direct:.6f} +- {c.k_a_direct_se:.2g}"
-                                 if c.stray_fraction != 0.0 else ""))
+                                 if c.stray_fraction != 0.0 else "")
+                              # a converged cell's note (a not converged one says it above)
+                              + (f". Note: {c.extra['note']}" if c.converged and (c.extra or {}).get("note") else ""))
         return 0
 
     args.on_interrupt = ("interrupted: the finished cells are kept in the output folder's journal (with the Mitsuba "

@@ -28,8 +28,10 @@ the instrument's ``[calibration] mode`` (:mod:`roadgonio.instrument.calibration`
   Stray light (a backend that reports ``stray_fraction`` > 0): the meter reads the total signal,
   S_total[f] = S_direct[f] / (1 - stray_fraction), against the source's E_0 (no housing in its
   calibration), so ``k_abs = k_lam_direct * eta / (1 - stray_fraction)``, and ``k_a_direct`` is
-  k_lam_direct * eta; its relative standard error combines those of k_lam_direct and of
-  1 - stray_fraction as if independent.
+  k_lam_direct * eta. That is k_abs = eta (S_total[f] / S_direct[f_lambert]) / (f(nominal) pi): a
+  backend that can (Mitsuba: ``converge_on("absolute")``) converges each cell on this ratio and gives
+  its standard error by the delta method over its replicates; otherwise the relative standard errors
+  of k_lam_direct and 1 - stray_fraction are combined as if independent.
 * ``reference`` (reference = SAMPLE with BRDF f_ref): q = (S[f] / S[f_ref]) f_ref(nominal), so::
 
       k_ref = k_lam[f] / k_lam[f_ref]
@@ -349,6 +351,9 @@ class CalibratedBackend:
         self.identical = False
         if self.mode == "absolute":
             optics.check_detector(instrument)
+            if hasattr(self.inner, "converge_on"):
+                # with stray light the reported k_A is not the Lambert ratio the backend would stop on
+                self.inner.converge_on("absolute")
         elif self.mode == "reference":
             self.reference_model = self.calibration.reference_model()
             self.identical = same_model(model, self.reference_model)
@@ -390,8 +395,13 @@ class CalibratedBackend:
             # the meter reads the total signal against the source's own E_0 (module docstring)
             kd = apply_calibration("absolute", c.k_a_direct, eta=eta)
             k = kd / (1.0 - c.stray_fraction)
-            se = abs(k) * math.hypot(_rel(c.k_a_direct_se, c.k_a_direct), c.stray_fraction_se / (1.0 - c.stray_fraction))
-            # (two SEs of the same replicates, each with at least se_dof degrees of freedom)
+            if "absolute_ratio_se" in extra:
+                # = eta R / G_d / ideal: its SE by the delta method over the replicates (the backend's)
+                se = abs(k) * _rel(extra["absolute_ratio_se"], extra["absolute_ratio"])
+            else:
+                se = abs(k) * math.hypot(_rel(c.k_a_direct_se, c.k_a_direct),
+                                         c.stray_fraction_se / (1.0 - c.stray_fraction))
+            # (SEs of the same replicates, each with at least se_dof degrees of freedom)
             return CellResult(c.tan_eps, c.beta_deg, k, se, c.samples, c.seconds, extra, error_bound=bound,
                               converged=c.converged and eta_ok, k_a_direct=kd, k_a_direct_se=c.k_a_direct_se * eta,
                               stray_fraction=c.stray_fraction, stray_fraction_se=c.stray_fraction_se,

@@ -136,6 +136,14 @@ class MitsubaBackend:
         ``k_a_direct`` and ``stray_fraction``)."""
         return bool(self.engine.stray)
 
+    def converge_on(self, statistic: str) -> None:
+        """The statistic each cell converges on (:attr:`Planner.statistic`): ``"absolute"`` when the
+        absolute calibration wraps this backend (with stray light it reports eta R / G_d, not the
+        Lambert ratio R / G; :class:`roadgonio.engines.calibration.CalibratedBackend`)."""
+        if statistic not in ("lambert", "absolute"):
+            raise ValueError(f"unknown statistic {statistic!r}")
+        self.planner.statistic = statistic
+
     def settings(self) -> dict[str, Any]:
         import drjit as dr
         import mitsuba as mi
@@ -164,6 +172,9 @@ class MitsubaBackend:
                          f"the source (up to {self.engine.integrator.light_depth} reflections, connected to the "
                          "footprint), balance-heuristic MIS",
                 "se_estimator": "replicates, delta method (k_a, k_a_direct, stray_fraction)"}
+            if self.planner.statistic == "absolute":
+                s["stray_light"]["converges_on"] = ("R / G_d: the road's total over the Lambert sample's direct "
+                                                    "light (the absolute calibration's k_A)")
         if self.rs.housing is not None:
             s["housing"] = self.rs.housing.to_dict()
         return s
@@ -289,6 +300,17 @@ class MitsubaBackend:
                          stray_fraction=float(sf), stray_fraction_se=float(sf_se))
             dof = float(np.fmin(dof, stray_dof))     # one se_dof for the cell's three SEs: the smallest
             extra["max_bounces"] = self.engine.max_bounces
+            if self.planner.statistic == "absolute":
+                # the absolute calibration's statistic, R / G_d, with its SE from the same replicates
+                # (calibration.py reports k_A = eta R / G_d / ideal with this relative SE)
+                ra, ra_se = st.absolute_ratio_se()
+                extra.update(absolute_ratio=float(ra), absolute_ratio_se=float(ra_se))
+            elif k_se == 0.0 and math.isfinite(k_a):
+                # a Lambertian sample under the Lambert calibration: k_A = 1 exactly, nothing for
+                # --rel-se to reach (user audit, session 43: 1e-4 asked, the first pass's 4096 samples)
+                extra["note"] = ("k_A is exact here (the sample reflects like the calibration's Lambertian), so the "
+                                 "target SE has nothing to reach and the stray fraction's SE is the first pass's; the "
+                                 "absolute calibration's k_A carries the stray light and converges on it")
             seen = st.stray_seen()
             extra["stray_seen"] = seen
             if self.planner.stray_search and st.stray_never_seen():

@@ -29,7 +29,7 @@ import numpy as np
 from roadgonio.errors import GeometryError
 from roadgonio.interrupts import critical, deferred
 from roadgonio.engines.mitsuba import lattice as lat
-from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strata, covariance, relative
+from roadgonio.engines.mitsuba.passes import CellStats, Plan, Planner, add_strata, covariance
 from roadgonio.engines.mitsuba.scene import RoadScene, source_radiance
 from roadgonio.instrument.config import Instrument
 from roadgonio.instrument.optics import source_frames
@@ -205,8 +205,7 @@ class BatchEngine:
                 requests = plan.pass_requests(p) if p < plan.passes else {}
                 left = [i for i in active if i not in requests]
                 for i in left:
-                    ratio, se, _ = stats[i].ratio_se()
-                    run.converged[i] = relative(ratio, se) <= planner.rel_se
+                    run.converged[i] = planner.cell_rel(stats[i]) <= planner.rel_se
             gone = set(left)
             active = [i for i in active if i not in gone]
             for i in left:

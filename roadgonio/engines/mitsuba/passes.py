@@ -203,6 +203,16 @@ class CellStats:
             return r, se
         return strata_ratio_se(self.direct_strata())
 
+    def absolute_ratio_se(self) -> tuple[float, float]:
+        """Ratio R / G_d of the road's total signal (direct + stray) over the Lambert sample's direct
+        light, and its standard error (delta method over the same replicates): with stray light, the
+        absolute calibration's k_A is eta R / G_d / ideal (:mod:`roadgonio.engines.calibration`: the
+        meter reads the total against the source's own E_0). :meth:`ratio_se` without stray light."""
+        if not self.direct:
+            r, se, _ = self.ratio_se()
+            return r, se
+        return strata_ratio_se([(self.strata[k][1], self.direct[k][1]) for k in sorted(self.strata)])
+
     def stray_seen(self) -> float | None:
         """The fraction of the replicate sums of the newest lattice (the largest stratum of the
         last pass) that carry stray light in the road or the Lambert channel (their total differs
@@ -432,6 +442,9 @@ class Planner:
                  max_samples: int = 1 << 28, min_passes: int = 1, max_log2: int = MAX_LOG2,
                  max_growth: float = MAX_GROWTH, stray_search: bool = False):
         self.rel_se = float(rel_se)
+        #: the statistic a cell converges on: "lambert" (R / G, the Lambert calibration's) or
+        #: "absolute" (R / G_d with stray light: :meth:`CellStats.absolute_ratio_se`)
+        self.statistic = "lambert"
         #: the scene holds reflecting parts: a cell's stray light must be seen (:data:`STRAY_SEEN_MIN`)
         self.stray_search = bool(stray_search)
         self.max_growth = float(max_growth)
@@ -446,6 +459,16 @@ class Planner:
         k = int(math.floor(math.log2(max(points, 1.0))))
         return int(min(max(k, MIN_LOG2), self.max_log2))
 
+    def cell_rel(self, st: CellStats) -> float:
+        """The relative SE of the statistic the cell reports (:attr:`statistic`); inf while the
+        Lambert sum itself is not yet known well enough for an SE (:meth:`CellStats.ratio_se`).
+        (User audit, session 43: an absolute-calibrated housed cell stopped on the Lambert ratio and
+        said "converged" at twice the SE asked for, ten times for a Lambertian sample.)"""
+        ratio, se, _ = st.ratio_se()
+        if self.statistic == "absolute" and st.direct and math.isfinite(se):
+            ratio, se = st.absolute_ratio_se()
+        return relative(ratio, se)
+
     def first(self, n_cells: int) -> dict[int, tuple[int, int]]:
         return {i: (self.first_log2, self.min_replicates) for i in range(n_cells)}
 
@@ -456,8 +479,7 @@ class Planner:
         done = {"converged": [], "capped": []}
         for i in active:
             st = stats[i]
-            ratio, se, _ = st.ratio_se()
-            rel = relative(ratio, se)
+            rel = self.cell_rel(st)
             room = self.max_samples - st.samples
             last = max((k[1] for k in st.strata), default=self.first_log2)
             if rel <= self.rel_se and st.passes >= self.min_passes:
