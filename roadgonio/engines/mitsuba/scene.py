@@ -571,7 +571,8 @@ def local_interaction(n: int, u, v, wi):
 
 def probe_bsdf(bsdf, n: int = PROBE_LANES, seed: int = 1) -> tuple[float, float]:
     """Largest reflected value of a BSDF over ``n`` random (uv, incident, outgoing) triples in the
-    upper hemisphere: (max of eval, max of the sample weight); both 0 for a black BSDF."""
+    upper hemisphere: (max of eval, max of the sample weight, min of eval); the first two 0 for a
+    black BSDF, the last negative for a reflectance below 0 (an input error, :func:`classify_parts`)."""
     mi = _mi()
     rng = np.random.default_rng(seed)
     u = rng.random((n, 8)).astype(np.float32)
@@ -583,7 +584,7 @@ def probe_bsdf(bsdf, n: int = PROBE_LANES, seed: int = 1) -> tuple[float, float]
     _, weight = bsdf.sample(ctx, si, mi.Float(u[:, 6]), mi.Point2f(mi.Float(u[:, 7]), mi.Float(u[:, 2])))
     v = np.nan_to_num(np.array(value, dtype=np.float64))
     w = np.nan_to_num(np.array(weight, dtype=np.float64))
-    return float(v.max(initial=0.0)), float(w.max(initial=0.0))
+    return float(v.max(initial=0.0)), float(w.max(initial=0.0)), float(v.min(initial=0.0))
 
 
 #: A part's BSDF may reflect at most 1 + this of the light it receives (its directional albedo,
@@ -645,7 +646,15 @@ def classify_parts(rs: RoadScene) -> tuple[list, list[str]]:
         if shape.id() in (SAMPLE_ID, SOURCE_ID):
             continue
         bsdf = shape.bsdf()
-        if bsdf is None or max(probe_bsdf(bsdf)) <= 0.0:
+        value, weight, lowest = (0.0, 0.0, 0.0) if bsdf is None else probe_bsdf(bsdf)
+        if lowest < 0.0:
+            # user audit, session 43: <float name="reflectance" value="-0.5"/> was taken for a black part
+            # (stray light silently off); Mitsuba's own parser refuses only a negative RGB
+            raise InputError(f"the part {shape.id() or '(a shape without id)'!r} reflects a negative amount of "
+                             f"light ({bsdf.class_name()}: BSDF values down to {lowest:.3g}); expected a "
+                             "reflectance >= 0 (0 for a part that only shades)",
+                             path=rs.xml if rs.xml is not None else rs.instrument.path)
+        if max(value, weight) <= 0.0:
             black.append(shape.id())
         else:
             reflecting.append(shape)
@@ -681,17 +690,6 @@ def _light_paths(rs: RoadScene, scene_sec) -> None:
     k = int(given) if given is not None else (default_max_bounces(rho_max) if reflecting else 1)
     rs.max_bounces = k
     rs.info["part_reflectance_max"] = rho_max
-    if reflecting and k > 1 and truncation_share(rho_max, k) > STRAY_TAIL:
-        import warnings
-
-        from roadgonio.errors import ModelWarning
-        said = (f"[scene] max_bounces = {k}" if given is not None else
-                f"the most reflections followed ({k})")
-        warnings.warn(ModelWarning(
-            f"{said} cuts the light paths among parts reflecting up to {min(rho_max, 1.0):.3g}: what is left out "
-            f"can bias k_A by a relative amount of order {truncation_share(rho_max, k):.2g}, in no SE"
-            + (f" (this scene's default is {default_max_bounces(rho_max)})" if given is not None else "")
-            + " (docs/straylight.md, 'How many reflections')"), stacklevel=2)
     rs.stray = k > 1 and (bool(reflecting) or (given is not None and not rs.flat_rectangle))
     rs.info["black_parts"] = black
     rs.info["reflecting_parts"] = [s.id() for s in reflecting]
@@ -721,3 +719,16 @@ def _light_paths(rs: RoadScene, scene_sec) -> None:
                              "sample has a Lambert channel; give the part channels = \"road\"", path=where)
     rs.parts = reflecting
     rs.part_ids = [s.id() for s in reflecting]
+    if reflecting and k > 1 and truncation_share(rho_max, k) > STRAY_TAIL:
+        # after the checks above (user audit, session 43: a part then refused for reflecting 1.5 was
+        # first warned about as "reflecting up to 1")
+        import warnings
+
+        from roadgonio.errors import ModelWarning
+        said = (f"[scene] max_bounces = {k}" if given is not None else
+                f"the most reflections followed ({k})")
+        warnings.warn(ModelWarning(
+            f"{said} cuts the light paths among parts reflecting up to {min(rho_max, 1.0):.3g}: what is left out "
+            f"can bias k_A by a relative amount of order {truncation_share(rho_max, k):.2g}, in no SE"
+            + (f" (this scene's default is {default_max_bounces(rho_max)})" if given is not None else "")
+            + " (docs/straylight.md, 'How many reflections')"), stacklevel=2)
