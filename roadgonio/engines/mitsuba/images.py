@@ -387,14 +387,16 @@ def _stray_png(path: Path, instrument: Instrument, stray: dict, info) -> Path:
     ax.set_title("Stray fraction over the detector's view", fontsize=10)
     ax = axes[1]
     ax.imshow(rgb, extent=(-ext, ext, -ext, ext), origin="upper")
-    ax.set_title("The road sample's stray light by the part it last left\n(colour: part, key inside; brightness: "
+    ax.set_title("The road sample's stray light by the part it last left\n(colour: part, key below; brightness: "
                  "its luminance, to the 99th percentile)", fontsize=10)
     # the key of the colours in the panel itself (user audit, session 38: only the bar chart had them)
     from matplotlib.patches import Patch
-    lit = [k for k in np.argsort(-parts.reshape(len(ids), -1).sum(axis=1)) if parts[k].sum() > 0][:4]
+    # every part coloured in the panel, below it (user audit, session 43: the four brightest only, inside
+    # the view over its near edge, while a fifth part's colour was in the mix)
+    lit = [k for k in np.argsort(-parts.reshape(len(ids), -1).sum(axis=1)) if parts[k].sum() > 0]
     if lit:
-        ax.legend(handles=[Patch(color=colours[k], label=names[k]) for k in lit], fontsize=7, loc="lower center",
-                  ncol=2, framealpha=0.85)
+        ax.legend(handles=[Patch(color=colours[k], label=names[k]) for k in lit], fontsize=7, loc="upper center",
+                  bbox_to_anchor=(0.5, -0.2), ncol=3, frameon=False)
     for a in axes[:2]:
         t = np.linspace(0, 2 * np.pi, 200)
         a.plot(ext * np.cos(t), ext * np.sin(t), color="cyan", lw=1.0)
@@ -425,7 +427,7 @@ def _stray_png(path: Path, instrument: Instrument, stray: dict, info) -> Path:
                  + (f"\nk_A ~ {ka:.4f} with the stray light, {kd:.4f} of the direct light (this render)"
                     if ka is not None and kd is not None else ""), fontsize=11)
     fig.tight_layout()
-    atomic_savefig(fig, path, dpi=100)
+    atomic_savefig(fig, path, dpi=100, bbox_inches="tight")      # the key below the middle panel
     plt.close(fig)
     return path
 
