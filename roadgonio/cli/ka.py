@@ -154,7 +154,7 @@ def _not_converged_text(c, target) -> str:
         return f" -- NOT measured: {extra['note']}"
     if extra.get("sparse_light") is not None:
         return f" -- NOT converged: {extra['note']}"
-    if extra.get("map_pieces") is not None:
+    if extra.get("map_pieces") is not None or extra.get("narrow_beam_deg") is not None:
         # the quadrature across the kinks of a map of too many pieces: not at a cap, no bound (audit 27)
         return f" -- NOT converged: {extra['note']}"
     eta_text = ""

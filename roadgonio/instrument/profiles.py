@@ -132,6 +132,30 @@ class BeamProfile:
         return self.kind == "lambertian"
 
 
+def beam_half_width_rad(beam: BeamProfile) -> float:
+    """The smallest emission angle at which the angular profile P(theta) falls to exp(-1/2) of P(0):
+    a Gaussian's sigma, acos(exp(-1 / 2n)) for cos^n, for a table its first crossing (linear between
+    its samples; its last angle if it never falls that far); inf for the Lambertian disc (P = 1).
+    What a backend's rules must resolve (the quadrature's narrow-beam note)."""
+    if beam.kind == "gaussian":
+        return float(beam.sigma_rad)
+    if beam.kind == "cos_power":
+        return math.acos(math.exp(-0.5 / beam.power)) if beam.power > 0 else math.inf
+    if beam.kind == "table" and beam.table is not None:
+        t = beam.table
+        v = t.values
+        below = np.flatnonzero(v <= v[0] * math.exp(-0.5))
+        if below.size == 0:
+            return float(min(beam.theta_end_rad, t.x0 + t.step * (t.n - 1)))
+        k = int(below[0])
+        if k == 0:
+            return float(t.x0)
+        lvl = v[0] * math.exp(-0.5)
+        frac = (v[k - 1] - lvl) / (v[k - 1] - v[k]) if v[k - 1] != v[k] else 0.0
+        return float(t.x0 + t.step * (k - 1 + frac))
+    return math.inf
+
+
 @dataclass(frozen=True, eq=False)
 class ApertureProfile:
     """The factor A(rho) of the source radiance over the exit aperture (module docstring): ``kind``
