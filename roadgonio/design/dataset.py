@@ -18,7 +18,7 @@ from roadgonio.engines.result import standard_uncertainty
 from roadgonio.engines.runner import STRAY_FILES, field_attrs
 from roadgonio.design.grid import VarySpec
 from roadgonio.design.metrics import (DIM_EDGE, SIGNAL_FORMULA, deviations, detector_etendue, footprint_edge_radiance,
-                                      profiled_solid_angle, signal_product, stray_metrics)
+                                      signal_product, signal_solid_angle, stray_metrics)
 
 def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, ...], points, samples, union,
              feas, inst_of, done: Mapping[tuple[int, int], dict], seeds, tol: float):
@@ -108,7 +108,8 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         for j in range(ns):
             v = np.abs(k_a[i, j] - 1.0)
             max_dev_s[i, j] = np.nanmax(v) if np.isfinite(v).any() else np.nan
-    signal_abs = np.array([signal_product(x) if x is not None else np.nan for x in inst_of])
+    # at the requested cells' source distances (a fixed-height path: D_S = height / cos eps)
+    signal_abs = np.array([signal_product(x, union) if x is not None else np.nan for x in inst_of])
     # a design that detects no light (a point source, a zero field or pupil: the paper's ideal
     # geometry, k_A = 1 by definition) is no instrument to build: it was picked as the best when
     # nothing else met the tolerance (audit 21)
@@ -124,13 +125,13 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
             kind[i] = "tolerance"
             reason[i] = (f"max |k_A - 1| = {max_dev[i]:.4g} > tolerance {tol:g} at tan eps {worst_t[i]:g}, "
                          f"beta {worst_b[i]:g} ({worst_s[i]})")
-    sb = signal_product(base)
+    sb = signal_product(base, union)
     signal = signal_abs / sb if sb > 0 else np.full(n, np.nan)
     # the signal is the light at the footprint's centre (metrics): where the beam leaves part of the
     # footprint dark (a beam limit that clips it, a narrow profile), the detected flux is less (user audit)
     dim = np.array([x is not None and computed[i] and footprint_edge_radiance(x, union) < DIM_EDGE
                     for i, x in enumerate(inst_of)])
-    omega = np.array([profiled_solid_angle(x) if x is not None else np.nan
+    omega = np.array([signal_solid_angle(x, union) if x is not None else np.nan
                       for x in inst_of])
     etendue = np.array([detector_etendue(x) if x is not None else np.nan for x in inst_of])
     fp_len = np.array([f.footprint_length_m for f in feas])
@@ -199,7 +200,8 @@ def assemble(*, base: Instrument, specs: Sequence[VarySpec], shape: tuple[int, .
         "signal": (dims, grid(signal), {"long_name": "detected flux for a Lambertian sample relative to the base design",
                                         "formula": SIGNAL_FORMULA}),
         "source_solid_angle_sr": (dims, grid(omega), {"long_name": "projected solid angle of the source disc at the sample "
-                                                                               "(E_normal / L_0 with its beam profile)"}),
+                                                                               "(E_normal / L_0 with its beam profile), at the "
+                                                                               "requested cells' source distances, the smallest"}),
         "detector_etendue_m2sr": (dims, grid(etendue), {"long_name": "etendue of the luminance meter (pupil x field)"}),
         "footprint_length_m": (dims, grid(fp_len), {"long_name": "length of the detector footprint along the observation azimuth"}),
         "footprint_x_min_m": (dims, grid(fp_min), {}),

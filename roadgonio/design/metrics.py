@@ -30,6 +30,10 @@ design::
 
     signal = (Omega_S G_D <k_D>) / (Omega_S G_D <k_D>)_base
 
+with each Omega_S at the source distance D_S of the requested cells, the smallest over them
+(:func:`signal_solid_angle`): on an arc D_S is the same for every cell, on a fixed-height path it is
+height / cos eps, and the weakest requested cell sets the design's signal (and the base's).
+
 It does not depend on the detector distance (etendue is conserved: a farther luminance meter sees a
 larger footprint), and it neglects the illuminance gradient over the footprint (which the Lambert
 calibration removes from k_A anyway): it is the light at the footprint's centre, so a beam narrower
@@ -64,7 +68,7 @@ from roadgonio.engines.calibration import PROFILE_RULE_LEVEL, profiled_solid_ang
 from roadgonio.instrument.config import Instrument
 
 SIGNAL_FORMULA = ("signal = (Omega_S G_D <k_D>) / (Omega_S G_D <k_D>)_base; Omega_S = pi R_S^2/(R_S^2+D_S^2) "
-                  "(projected solid angle of the source disc; a beam limit theta: R_S -> min(R_S, D_S tan theta)), G_D = pi^2/2 (X - sqrt(X^2 - 4 R_D^2 r_F^2)), "
+                  "(projected solid angle of the source disc at the requested cells' D_S, the smallest; a beam limit theta: R_S -> min(R_S, D_S tan theta)), G_D = pi^2/2 (X - sqrt(X^2 - 4 R_D^2 r_F^2)), "
                   "X = R_D^2 + r_F^2 + F^2, r_F = F tan gamma_D (etendue of pupil and field discs; pi R_D^2 pi "
                   "sin^2 gamma_D for F = inf), <k_D> = 1 - (1 - e)/2 (roadgonio.design.metrics); a beam profile "
                   "L_0 A(rho) P(theta): Omega_S = E_normal / L_0 integrated over the disc, a sensitivity map: <k_D> "
@@ -134,15 +138,34 @@ def footprint_edge_radiance(instrument: Instrument, cells) -> float:
     return 1.0 if f is None else float(np.asarray(f).reshape(-1)[0])
 
 
-def signal_product(instrument: Instrument) -> float:
-    """Omega_S G_D <k_D> (sr m^2 sr): the design's signal up to L_S rho cos(eps) / pi."""
-    return profiled_solid_angle(instrument) * detector_etendue(instrument) * mean_field_sensitivity(instrument)
+def signal_solid_angle(instrument: Instrument, cells=None) -> float:
+    """Omega_S of the signal (module docstring): :func:`profiled_solid_angle` at the source distance
+    D_S of each of ``cells`` ((tan eps, beta) pairs), the smallest. On an arc D_S is the same for every
+    cell; on a fixed-height path D_S = height / cos eps, so Omega_S changes from cell to cell (and a
+    narrow beam, which cuts a near disc more than a far one, need not be weakest at the farthest cell).
+    Without cells: at ``length_m`` (the source overhead). User audit, session 43: a corridor design's
+    signal was always that of tan eps 0 (0.51 x base where the cells asked, tan eps 10 and 12, got
+    1.54 x)."""
+    from roadgonio.instrument.optics import source_frames
+    src = instrument.source
+    if cells is None or src.radius_m == 0.0:
+        return profiled_solid_angle(instrument)
+    distances = sorted({float(source_frames(instrument, float(t), float(b)).distance_m) for t, b in cells})
+    return min(profiled_solid_angle(instrument if d == src.length_m else
+                                    instrument.with_changes(source={src.length_key: d})) for d in distances)
 
 
-def relative_signal(instrument: Instrument, base: Instrument) -> float:
-    """The design's signal relative to the base design (NaN if the base has none)."""
-    b = signal_product(base)
-    return signal_product(instrument) / b if b > 0 else math.nan
+def signal_product(instrument: Instrument, cells=None) -> float:
+    """Omega_S G_D <k_D> (sr m^2 sr): the design's signal up to L_S rho cos(eps) / pi, Omega_S that of
+    :func:`signal_solid_angle` over ``cells``."""
+    return signal_solid_angle(instrument, cells) * detector_etendue(instrument) * mean_field_sensitivity(instrument)
+
+
+def relative_signal(instrument: Instrument, base: Instrument, cells=None) -> float:
+    """The design's signal relative to the base design's over the same ``cells`` (NaN if the base
+    has none)."""
+    b = signal_product(base, cells)
+    return signal_product(instrument, cells) / b if b > 0 else math.nan
 
 
 def deviations(k_a: np.ndarray, u: np.ndarray) -> dict[str, float | int]:

@@ -295,7 +295,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
             given = ", ".join(f"{k}={v:g}" for k, v in point.items())
             raise InputError(f"the --vary point {given} is not an instrument: {err.reason}", field="vary") from None
     own = [inst_b.to_dict() == instrument.to_dict() for inst_b in insts]
-    signal = [1.0 if own[k] else float(relative_signal(inst_b, instrument)) for k, inst_b in enumerate(insts)]
+    signal = [1.0 if own[k] else float(relative_signal(inst_b, instrument, cells)) for k, inst_b in enumerate(insts)]
     forward: dict[int, Any] = {}
 
     def forward_of(k: int):

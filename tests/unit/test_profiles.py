@@ -710,6 +710,39 @@ def test_the_quadrature_claims_no_bound_with_a_map_of_too_many_pieces(tmp_path):
     assert q.extra["nodes"]["field"] < 1000
 
 
+def test_the_quadrature_claims_no_bound_for_a_beam_its_rules_do_not_resolve(tmp_path):
+    """(Session 39's review; user audit, session 43) A beam narrower than the rules' first levels
+    resolve: on the corridor with sigma 0.1 deg at tan eps 12, beta 2 the quadrature said 0.999992
+    with a bound of 7.7e-5, converged, where the RQMC reference gives 0.999822. Cells of a beam whose
+    profile falls to exp(-1/2) within NARROW_BEAM_DEG are not converged, with a note; at 2 deg the
+    bound stands (checked against the reference's confidence bound). The half-width of each kind of
+    profile is checked apart: a Gaussian's sigma, cos^n where cos^n = exp(-1/2), a table's crossing."""
+    from roadgonio.engines.quadrature import NARROW_BEAM_DEG
+    from roadgonio.instrument.profiles import beam_half_width_rad, intensity_profile
+    base = load_instrument("corridor")
+    model = _road()
+    narrow = base.with_changes(source={"beam_sigma_deg": 0.1})
+    q = make_backend("quadrature", narrow, model).compute_cell(12.0, 2.0)
+    assert not q.converged and q.extra["narrow_beam_deg"] == pytest.approx(0.1, rel=1e-12)
+    assert "not a bound" in q.extra["note"]
+    wide = base.with_changes(source={"beam_sigma_deg": NARROW_BEAM_DEG})
+    q = make_backend("quadrature", wide, model).compute_cell(12.0, 2.0)
+    r = make_backend("reference", wide, model, rtol=1e-5).compute_cell(12.0, 2.0)
+    assert q.converged and "narrow_beam_deg" not in q.extra
+    assert abs(q.k_a - r.k_a) <= q.error_bound + r.confidence_bound
+    # the half-widths
+    for n in (3.0, 50.0, 2000.0):
+        w = beam_half_width_rad(base.with_changes(source={"beam_cos_power": n}).source.beam)
+        assert math.cos(w) ** n == pytest.approx(math.exp(-0.5), rel=1e-12)
+    sig = math.radians(1.5)
+    th = np.linspace(0.0, 30.0, 3001)
+    p = write_table_csv(tmp_path / "gauss.csv", "theta_deg,I", th,
+                        np.exp(-0.5 * (np.radians(th) / sig) ** 2) * np.cos(np.radians(th)))
+    w = beam_half_width_rad(intensity_profile(p))
+    assert w == pytest.approx(sig, abs=math.radians(0.02))      # the table's resampling grid
+    assert beam_half_width_rad(base.source.beam) == math.inf
+
+
 @pytest.mark.parametrize("text, needle", [
     ("1,2\n3\n", "expected 2 numbers"),
     ("1,2,3\n", "at least 2 x 2"),
@@ -976,3 +1009,34 @@ def test_a_beam_too_narrow_to_find_is_said_to_be_so_not_to_miss_the_footprint():
     assert unsampled_beam(load_instrument("portable"), 1.0, 30.0, "quadrature") is None
     cone = load_instrument("portable").with_changes(source={"beam_half_angle_deg": 0.01})
     assert unsampled_beam(cone, 1.0, 30.0, "mitsuba").field == "source.beam_half_angle_deg"
+
+
+def test_a_fixed_height_design_signal_is_taken_at_the_cells_asked():
+    """(User audit, session 43) On a fixed-height path D_S = height / cos eps: the design's signal
+    was always that of tan eps 0 (a 0.25 deg Gaussian beam on the corridor's 10 mm disc 0.8 m
+    overhead: 0.51 x base, where the cells asked, tan eps 10 and 12, got 1.54 x). Omega_S is now the
+    smallest over the cells' source distances, for the design and the base, each checked against an
+    independent radial integral (scipy quad) of the Gaussian beam at D = h / cos eps."""
+    from roadgonio.design import grid as G
+    from roadgonio.design import metrics as M
+    base = G.build_instrument(load_instrument("corridor"), {"source.beam_sigma_deg": 0.25})
+    design = G.build_instrument(base, {"source.height_m": 0.8})
+    R, sig = base.source.radius_m, math.radians(0.25)
+
+    def omega(D):
+        def ring(r):
+            return D * D / (r * r + D * D) ** 2 * math.exp(-math.atan(r / D) ** 2 / (2 * sig * sig)) * 2 * math.pi * r
+        return quad(ring, 0.0, R, epsabs=0.0, epsrel=1e-13)[0]
+    cells = [(10.0, 0.0), (12.0, 0.0)]
+    want = {}
+    for name, inst in (("base", base), ("design", design)):
+        h = inst.source.height_m
+        want[name] = min(omega(h * math.hypot(1.0, t)) for t, _ in cells)
+        assert M.signal_solid_angle(inst, cells) == pytest.approx(want[name], rel=1e-9)
+        assert M.signal_solid_angle(inst) == pytest.approx(omega(h), rel=1e-9)      # no cells: overhead
+    got = M.relative_signal(design, base, cells)
+    assert got == pytest.approx(want["design"] / want["base"], rel=1e-9)
+    overhead = M.relative_signal(design, base)                        # what was reported for any cells
+    assert overhead == pytest.approx(omega(0.8) / omega(1.0), rel=1e-9) and got > 1.4 * overhead
+    arc = load_instrument("portable")                                 # an arc: the same at every cell
+    assert M.signal_solid_angle(arc, cells + [(0.0, 0.0)]) == M.profiled_solid_angle(arc)
