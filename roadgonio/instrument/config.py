@@ -596,6 +596,11 @@ class Instrument:
         _check_keys(s, {"distance_m", "radius_m", "beam_half_angle_deg", "path", "height_m", *BEAM_KEYS,
                         *APERTURE_KEYS}, "source", None)
         if "distance_m" not in s and s.get("path", "arc") == "arc":
+            if "height_m" in s:
+                # user audit, session 43: a corridor file without its path was told to add a distance
+                raise InputError('missing (required); height_m belongs to path = "fixed_height": add path = '
+                                 '"fixed_height" for a source on a rail at that height, or give distance_m for an arc',
+                                 field="source.distance_m")
             raise InputError("missing (required)", field="source.distance_m")
         for k in ("beam_intensity_file", "aperture_radiance_file"):
             _resolve_file(s, k, "source", path)

@@ -75,6 +75,16 @@ def test_bad_source_paths_are_one_line_errors(source, field):
     assert e.value.field == field and "x.toml" in str(e.value) and "\n" not in str(e.value)
 
 
+def test_a_rail_height_without_its_path_says_which_path_it_belongs_to():
+    """(User audit, session 43) The corridor's file without ``path`` but with ``height_m`` was told
+    only that source.distance_m is missing: the error now names the path height_m belongs to."""
+    d = preset("lab").to_dict()
+    d["source"] = {"height_m": 1.0, "radius_m": 0.01}
+    with pytest.raises(InputError) as e:
+        Instrument.from_dict(d, path="x.toml")
+    assert e.value.field == "source.distance_m" and 'path = "fixed_height"' in str(e.value)
+
+
 def test_quadrature_of_a_fixed_height_cell_is_the_arc_at_its_distance():
     inst = corridor()
     q = make_backend("quadrature", inst, ROAD, rtol=1e-4).compute(CELLS)
