@@ -70,7 +70,11 @@ def test_correct_with_the_true_surface_as_reference_gives_the_truth(kind):
 
 @pytest.mark.parametrize("kind,key,values", [("corridor", "source.height_m", [0.8, 1.6]),
                                              ("fixed-led", "source.radius_m", [0.0025, 0.005])])
-def test_design_signal_follows_the_solid_angle_at_the_source_length(kind, key, values):
+def test_design_signal_follows_the_solid_angle_at_the_cells_source_distance(kind, key, values):
+    """The signal's Omega_S at the requested cells' source distances, the smallest (the design's
+    metrics): an arc's (fixed-led) is the same at every cell; on the corridor's fixed-height path
+    D_S = height / cos eps, farthest (smallest Omega_S of the uniform disc) at tan eps 4 (session 43:
+    it was the height's, tan eps 0's, whatever the cells)."""
     ds = rg.design_study(kind, vary={key: values}, samples="R3", cells="0:0,4:10", backend="quadrature",
                          accuracy="fast", workers=0, plots=False)
     inst = load_instrument(kind)
@@ -78,7 +82,8 @@ def test_design_signal_follows_the_solid_angle_at_the_source_length(kind, key, v
     for v in values:
         x = inst.with_changes(source={key.split(".")[1]: v})
         R, L = x.source.radius_m, x.source.length_m
-        omega.append(math.pi * R * R / (R * R + L * L))
+        D = [L * math.hypot(1.0, t) if x.source.path == "fixed_height" else L for t in (0.0, 4.0)]
+        omega.append(min(math.pi * R * R / (R * R + d * d) for d in D))
     sig = np.asarray(ds["signal"]).ravel()
     assert bool(np.all(np.asarray(ds["geometry_ok"]))), ds["reason"].values
     assert sig[1] / sig[0] == pytest.approx(omega[1] / omega[0], rel=1e-9)
