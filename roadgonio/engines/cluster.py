@@ -287,6 +287,16 @@ def _unguarded_main_call() -> tuple[str, int] | None:
     return str(path), line
 
 
+#: A local cluster of more worker processes than this many a core is refused (user audit, session 43:
+#: --workers 1000000 built Nanny objects for minutes without a word, then a traceback on Ctrl-C).
+LOCAL_WORKERS_PER_CORE = 8
+
+
+def max_local_workers() -> int:
+    """The most worker processes :func:`open_client` starts on this machine."""
+    return LOCAL_WORKERS_PER_CORE * (os.cpu_count() or 1)
+
+
 def _check_address(address: str) -> str:
     a = str(address).strip()
     if "://" not in a:
@@ -296,6 +306,10 @@ def _check_address(address: str) -> str:
     if proto not in ("tcp", "tls", "inproc", "ws", "wss") or not host or not port.isdigit():
         raise InputError(f"expected a scheduler address tcp://HOST:PORT (as printed by 'dask scheduler'), got "
                          f"{address!r}", field="scheduler")
+    if not 0 < int(port) <= 65535:
+        # user audit, session 43: :99999 waited 30 s for a connection no port can take
+        raise InputError(f"expected a port from 1 to 65535 in the scheduler address, got {port} in {address!r}",
+                         field="scheduler")
     return a
 
 
@@ -344,6 +358,10 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
         return
     if workers is not None and (not isinstance(workers, int) or workers < 0):
         raise InputError(f"expected a number of workers >= 0, got {workers!r}", field="workers")
+    if workers is not None and workers > max_local_workers():
+        raise InputError(f"expected at most {max_local_workers()} worker processes on this machine "
+                         f"({os.cpu_count() or 1} cores; {LOCAL_WORKERS_PER_CORE} a core at most), got {workers}; "
+                         "for more machines start a cluster and give --scheduler", field="workers")
     try:
         from distributed import Client, LocalCluster
     except ImportError:  # pragma: no cover
