@@ -190,9 +190,11 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
     done: dict[tuple[int, int], dict] = {}
     fh = None
     out_dir = Path(out) if out is not None else None
+    new_dir = new_journal = False
     if out_dir is not None:
         journal = out_dir / JOURNAL
         try:                  # an OSError here is the one-line error naming the journal (exit 2)
+            new_dir, new_journal = not out_dir.exists(), not journal.exists() or fresh
             out_dir.mkdir(parents=True, exist_ok=True)
             if fresh and journal.exists():
                 journal.unlink()
@@ -256,6 +258,19 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
                     cluster_info = _cluster.describe(c)
                     t_compute = time.perf_counter()
                     _cluster.map_tables(tasks, c, on_result=on_result)
+    except InputError:
+        # the cluster could not be had (no scheduler at --scheduler, no worker joined): exit 2 leaves
+        # nothing behind, not a journal of no table (user audit, session 43)
+        if fh is not None and new_journal and not done:
+            fh.close()
+            fh = None
+            journal.unlink(missing_ok=True)
+            if new_dir:
+                try:
+                    out_dir.rmdir()
+                except OSError:
+                    pass
+        raise
     except (KeyboardInterrupt, RuntimeError) as err:
         if not is_interrupt(err) or out_dir is None:
             raise
