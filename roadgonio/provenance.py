@@ -129,6 +129,14 @@ def provenance(*, instrument=None, model=None, backend: str | None = None,
         out["backend"] = backend
     if settings is not None:
         out["settings"] = dict(settings)
+        v = out["versions"]
+        if "mitsuba_variant" not in v and settings.get("mitsuba_variant"):
+            # computed in other processes (Dask workers; user audit, session 43: a design on Dask said
+            # which mitsuba but not which variant nor LLVM): the backend's own record of them
+            v["mitsuba_variant"] = settings["mitsuba_variant"]
+            if settings.get("llvm"):
+                v["llvm"] = settings["llvm"]
+            v["renderer_from"] = "the backend's settings (computed in another process)"
     if inputs is not None:
         out["inputs"] = [dict(r) for r in inputs]
     out.update(extra)

@@ -72,3 +72,17 @@ def test_the_source_digest_names_the_code_that_ran():
     from roadgonio.provenance import source_digest, versions
     d = versions()["roadgonio_source"]
     assert d == source_digest() and len(d) == 16 and int(d, 16) >= 0
+
+
+def test_a_renderer_that_ran_elsewhere_is_named_from_the_backend_settings(monkeypatch):
+    """(User audit, session 43) A design computed on Dask workers said which mitsuba but not which
+    variant nor LLVM (the calling process never loads the renderer): the backend's settings, recorded
+    by the worker, name them; a process that rendered itself keeps its own."""
+    import roadgonio.provenance as P
+    monkeypatch.setattr(P, "versions", lambda: {"roadgonio": "x", "mitsuba": "3.x"})
+    v = P.provenance(settings={"backend": "mitsuba", "mitsuba_variant": "llvm_ad_rgb", "llvm": "19.1.7"})["versions"]
+    assert v["mitsuba_variant"] == "llvm_ad_rgb" and v["llvm"] == "19.1.7" and "another process" in v["renderer_from"]
+    assert "mitsuba_variant" not in P.provenance(settings={"backend": "quadrature"})["versions"]
+    monkeypatch.setattr(P, "versions", lambda: {"roadgonio": "x", "mitsuba_variant": "cuda_ad_rgb"})
+    v = P.provenance(settings={"mitsuba_variant": "llvm_ad_rgb"})["versions"]
+    assert v["mitsuba_variant"] == "cuda_ad_rgb" and "renderer_from" not in v
