@@ -3,9 +3,12 @@ a traceback), the other tasks finish, and `design` reports the point as failed w
 from __future__ import annotations
 
 import textwrap
+import time
 
 import numpy as np
 import pytest
+
+from roadgonio.errors import InputError
 
 
 CRASH_MODULE = textwrap.dedent('''
@@ -433,3 +436,51 @@ def test_an_address_that_is_no_dask_scheduler_is_one_line_naming_scheduler(tmp_p
                          timeout=120)
     assert out.stdout.startswith("FIELD=scheduler"), (out.stdout, out.stderr[-2000:])
     assert "8786" in out.stdout and float(out.stdout.split("SECONDS=")[1].split()[0]) < 30.0
+
+
+def test_out_of_range_workers_and_ports_are_one_line_at_once(tmp_path, monkeypatch, capsys):
+    """(User audit, session 43) --workers 1000000 built Nanny objects for minutes without a word
+    (a traceback on Ctrl-C); --scheduler tcp://127.0.0.1:99999 waited 30 s for a port that cannot
+    exist. Both are exit 2 with one line naming the option, before anything starts or is written."""
+    from roadgonio.cli import main
+    from roadgonio.engines import cluster
+    base = ["design", "--instrument", "portable", "--sample", "R3", "--cells", "12:0",
+            "--vary", "source.radius_m=0.005,0.01", "--backend", "quadrature", "-q"]
+    for extra, words in ((["--workers", str(cluster.max_local_workers() + 1)], "--workers"),
+                         (["--scheduler", "tcp://127.0.0.1:99999"], "65535")):
+        out = tmp_path / extra[0].strip("-")
+        t0 = time.perf_counter()
+        try:
+            rc = main(base + extra + ["--out", str(out)])
+        except SystemExit as e:                  # argparse's own exit
+            rc = e.code
+        err = capsys.readouterr().err.strip()
+        assert rc == 2 and words in err and "\n" not in err, err
+        assert time.perf_counter() - t0 < 10.0 and not out.exists()
+    with pytest.raises(InputError, match="at most"):
+        with cluster.open_client(workers=cluster.max_local_workers() + 1):
+            pass
+
+
+def test_a_design_whose_cluster_cannot_be_had_leaves_nothing(tmp_path, monkeypatch):
+    """(User audit, session 43) A design given a scheduler nobody listens on exited 2 with its one
+    line but left a new folder holding a journal of no table; nothing is left now (a folder that
+    existed stays, a journal of earlier tables too)."""
+    import socket
+
+    from roadgonio import api as rg
+    from roadgonio.engines import cluster
+    monkeypatch.setattr(cluster, "CONNECT_TIMEOUT_S", 2.0)
+    monkeypatch.setattr(cluster, "CONNECT_GRACE_S", 1.0)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]            # free once closed: nobody listens there
+    for existed in (False, True):
+        out = tmp_path / f"design-{existed}"
+        if existed:
+            out.mkdir()
+        with pytest.raises(InputError) as err:
+            rg.design_study("portable", vary={"source.radius_m": [0.005, 0.01]}, samples="R3", cells="12:0",
+                            backend="quadrature", scheduler=f"tcp://127.0.0.1:{port}", out=out, plots=False)
+        assert err.value.field == "scheduler"
+        assert out.exists() == existed and (not existed or not any(out.iterdir()))
