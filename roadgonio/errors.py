@@ -112,6 +112,12 @@ def notes_held() -> Iterator[None]:
         warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
+class StoppedByCaller(RoadgonioError):
+    """Work on a Dask worker stopped at a boundary because the command that asked for it was
+    interrupted (:func:`roadgonio.engines.cluster.stop_requested`): what it had written at its last
+    boundary is kept (journals, a pass's state) and nothing more is written."""
+
+
 class Interrupted(KeyboardInterrupt):
     """A Ctrl-C that says what the interrupted work kept: the CLI prints ``roadgonio: <note>`` and
     exits with status 130 (``note``: e.g. how many finished points a journal keeps)."""

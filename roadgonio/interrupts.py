@@ -63,6 +63,30 @@ class _State:
 
 
 _S = _State()
+#: per thread: a function saying whether the work's caller asked it to stop (a Dask task whose command
+#: was interrupted: :func:`roadgonio.engines.cluster.stop_requested`), consulted at the boundaries
+_EXTERNAL = threading.local()
+
+
+@contextmanager
+def external_stop(asked: Callable[[], bool]) -> Iterator[None]:
+    """In this thread, :meth:`Deferred.check` also stops (raising
+    :class:`~roadgonio.errors.StoppedByCaller`) when ``asked()`` is true: a task on a Dask worker
+    stops at its next boundary when the command on the other end was interrupted (user audit,
+    session 43: `correct --scheduler` said "interrupted" and exited while its tasks went on writing
+    the output folder)."""
+    before = getattr(_EXTERNAL, "asked", None)
+    _EXTERNAL.asked = asked
+    try:
+        yield
+    finally:
+        _EXTERNAL.asked = before
+
+
+def stop_asked_by_caller() -> bool:
+    """The caller of this thread's work asked it to stop (:func:`external_stop`)."""
+    asked = getattr(_EXTERNAL, "asked", None)
+    return bool(asked is not None and asked())
 
 
 class Deferred:
@@ -81,6 +105,9 @@ class Deferred:
         if _S.stop_asked:
             _S.stop_asked = False
             raise KeyboardInterrupt
+        if stop_asked_by_caller():
+            from roadgonio.errors import StoppedByCaller
+            raise StoppedByCaller(f"stopped after a {self.what}: the command that asked for it was interrupted")
 
 
 @contextmanager

@@ -528,13 +528,40 @@ class WorkerWatch:
         self._stop.set()
 
 
+#: per task thread: the name of the Dask Event its map_calls sets when its caller stops early
+_TASK = threading.local()
+
+
+def stop_requested() -> bool:
+    """On a Dask worker, inside a task of :func:`map_calls`: the command that submitted it was
+    interrupted (or failed) and cancelled its work; False elsewhere. Dask cannot stop a task that is
+    running, and on an existing cluster (``--scheduler``) the workers outlive the command: a task that
+    writes files (``correct``'s) checks this at its boundaries (:func:`roadgonio.interrupts.external_stop`)
+    and before it writes its results."""
+    name = getattr(_TASK, "stop_event", None)
+    if name is None:
+        return False
+    try:
+        from distributed import Event, get_client
+        return bool(Event(name, client=get_client()).is_set())
+    except Exception:  # noqa: BLE001 - no scheduler to ask: the task goes on as before
+        return False
+
+
 def _call_task(item: Any, *, call: Callable, shared: Any = None, with_shared: bool = False,
-               backend: str | None = None, variant: str | None = None) -> Any:
+               backend: str | None = None, variant: str | None = None, stop_event: str | None = None) -> Any:
     """One task of :func:`map_calls` on a worker: prepare the process for ``backend`` (idempotent),
-    then ``call(item)`` or ``call(item, shared)``."""
+    then ``call(item)`` or ``call(item, shared)``, stopping at a boundary when ``stop_event`` is set
+    (:func:`stop_requested`)."""
+    from roadgonio.interrupts import external_stop
     if backend is not None:
         _ensure_engine(backend, variant)
-    return call(item, shared) if with_shared else call(item)
+    _TASK.stop_event = stop_event
+    try:
+        with external_stop(stop_requested):
+            return call(item, shared) if with_shared else call(item)
+    finally:
+        _TASK.stop_event = None
 
 
 _NO_SHARED = object()
@@ -605,9 +632,11 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
 
     shared_future = scatter()
 
+    stop_event = f"roadgonio-stop-{token}"
+
     def submit(i: int, key: str):
         return client.submit(_call_task, items[i], key=key, pure=False, call=func, shared=shared_future,
-                             with_shared=with_shared, backend=backend, variant=variant)
+                             with_shared=with_shared, backend=backend, variant=variant, stop_event=stop_event)
 
     futures = [submit(i, keys[i]) for i in range(len(items))]
     index = {f.key: i for i, f in enumerate(futures)}
@@ -651,6 +680,12 @@ def map_calls(func: Callable, items: Sequence[Any], client=None, *, shared: Any 
         watch.stop()
         pending = [f for f in live if not f.done()]
         if pending:
+            # the running ones stop at their next boundary (Dask cancels only those not yet started)
+            try:
+                from distributed import Event
+                Event(stop_event, client=client).set()
+            except Exception:  # noqa: BLE001 - a scheduler gone: its workers went with it or will not write
+                pass
             client.cancel(pending)
         if shared_future is not None:
             shared_future.release()

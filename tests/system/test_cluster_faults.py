@@ -3,6 +3,7 @@ a traceback), the other tasks finish, and `design` reports the point as failed w
 from __future__ import annotations
 
 import textwrap
+from pathlib import Path
 import time
 
 import numpy as np
@@ -484,3 +485,55 @@ def test_a_design_whose_cluster_cannot_be_had_leaves_nothing(tmp_path, monkeypat
                             backend="quadrature", scheduler=f"tcp://127.0.0.1:{port}", out=out, plots=False)
         assert err.value.field == "scheduler"
         assert out.exists() == existed and (not existed or not any(out.iterdir()))
+
+
+def _wait_for_stop(item, shared=None):
+    """A task of the test below: item (0, path) returns at once; item (1, path) waits at boundaries
+    (an interrupts region's check, as the Mitsuba engine's passes) until its caller stops, and writes
+    to ``path`` how it ended."""
+    from roadgonio.errors import StoppedByCaller
+    from roadgonio.interrupts import deferred
+    k, path = item
+    if k == 0:
+        return "done"
+    t0 = time.monotonic()
+    try:
+        with deferred("test stretch") as region:
+            while time.monotonic() - t0 < 30.0:
+                time.sleep(0.05)
+                region.check()                   # raises StoppedByCaller once the caller stopped
+    except StoppedByCaller:
+        Path(path).write_text(f"stopped after {time.monotonic() - t0:.2f} s")
+        raise
+    Path(path).write_text("never stopped")
+    return "never stopped"
+
+
+@pytest.mark.timeout(120)
+def test_a_running_task_stops_at_its_boundary_when_its_caller_stops(tmp_path):
+    """(User audit, session 43) On an existing cluster the workers outlive the command: after
+    `correct --scheduler` said "interrupted" and exited, its running tasks went on and wrote the
+    output folder for seconds. map_calls now sets a Dask Event when it leaves with work unfinished;
+    a running task sees it at its next boundary (interrupts.Deferred.check) and stops with
+    StoppedByCaller, writing nothing more. Checked on an in-process cluster that outlives the call
+    (Dask itself does not stop a running task: without the Event it ran its 30 s)."""
+    from distributed import Client, LocalCluster
+
+    from roadgonio.engines import cluster
+    log = tmp_path / "task.txt"
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as lc, \
+            Client(lc) as client:
+        class Stop(Exception):
+            pass
+
+        def first_done(i, r):
+            time.sleep(0.5)                  # the other task is running by now
+            raise Stop                       # the caller stops (as a Ctrl-C would) after the first result
+        with pytest.raises(Stop):
+            cluster.map_calls(_wait_for_stop, [(0, str(log)), (1, str(log))], client, on_result=first_done,
+                              name="probe")
+        for _ in range(200):
+            if log.exists():
+                break
+            time.sleep(0.05)
+        assert log.exists() and log.read_text().startswith("stopped after"), log.read_text() if log.exists() else None
