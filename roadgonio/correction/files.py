@@ -129,7 +129,7 @@ def _correct_task(job: tuple, shared: Mapping[str, Any]) -> tuple[CorrectionResu
     if folder is None:                      # nothing to write (the Python API without out)
         return res, []
     from roadgonio.engines.cluster import stop_requested
-    if stop_requested():
+    if stop_requested(fresh=True):
         # on a Dask worker whose command was interrupted meanwhile: its journals are kept, no results
         from roadgonio.errors import StoppedByCaller
         raise StoppedByCaller("stopped before writing the results: the command that asked for them was interrupted")

@@ -33,6 +33,7 @@ seeding is per cell (``tests/system/test_design_cluster.py`` compares a 2-worker
 from __future__ import annotations
 
 import logging
+import math
 import os
 import socket
 import sys
@@ -530,17 +531,23 @@ class WorkerWatch:
 
 #: per task thread: the name of the Dask Event its map_calls sets when its caller stops early
 _TASK = threading.local()
+#: A task asks the scheduler whether its caller stopped at most this often (each asking is a round trip)
+STOP_POLL_S = 0.5
 
 
-def stop_requested() -> bool:
+def stop_requested(*, fresh: bool = False) -> bool:
     """On a Dask worker, inside a task of :func:`map_calls`: the command that submitted it was
     interrupted (or failed) and cancelled its work; False elsewhere. Dask cannot stop a task that is
     running, and on an existing cluster (``--scheduler``) the workers outlive the command: a task that
     writes files (``correct``'s) checks this at its boundaries (:func:`roadgonio.interrupts.external_stop`)
-    and before it writes its results."""
+    and before it writes its results (``fresh``: ask even if it asked less than :data:`STOP_POLL_S` ago)."""
     name = getattr(_TASK, "stop_event", None)
     if name is None:
         return False
+    now = time.monotonic()
+    if not fresh and now - getattr(_TASK, "asked_at", -math.inf) < STOP_POLL_S:
+        return False                      # asked a moment ago (a pass of a small table is ~10 ms)
+    _TASK.asked_at = now
     try:
         from distributed import Event, get_client
         return bool(Event(name, client=get_client()).is_set())
@@ -556,7 +563,7 @@ def _call_task(item: Any, *, call: Callable, shared: Any = None, with_shared: bo
     from roadgonio.interrupts import external_stop
     if backend is not None:
         _ensure_engine(backend, variant)
-    _TASK.stop_event = stop_event
+    _TASK.stop_event, _TASK.asked_at = stop_event, -math.inf
     try:
         with external_stop(stop_requested):
             return call(item, shared) if with_shared else call(item)
