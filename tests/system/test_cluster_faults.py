@@ -497,6 +497,7 @@ def _wait_for_stop(item, shared=None):
     if k == 0:
         return "done"
     t0 = time.monotonic()
+    Path(path + ".started").write_text("")
     try:
         with deferred("test stretch") as region:
             while time.monotonic() - t0 < 30.0:
@@ -527,7 +528,10 @@ def test_a_running_task_stops_at_its_boundary_when_its_caller_stops(tmp_path):
             pass
 
         def first_done(i, r):
-            time.sleep(0.5)                  # the other task is running by now
+            for _ in range(400):             # the other task is running (on a loaded machine it may start late)
+                if Path(str(log) + ".started").exists():
+                    break
+                time.sleep(0.05)
             raise Stop                       # the caller stops (as a Ctrl-C would) after the first result
         with pytest.raises(Stop):
             cluster.map_calls(_wait_for_stop, [(0, str(log)), (1, str(log))], client, on_result=first_done,
