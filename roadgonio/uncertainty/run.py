@@ -437,7 +437,10 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
         elif distributed:
             from roadgonio.engines.cluster import describe, open_client
             with open_client(workers, scheduler, backend=backend, variant=(backend_settings or {}).get("variant")) as c:
-                notes.append(f"exact k_A tables on Dask: {describe(c)}")
+                d = describe(c)
+                # words, not a dict's repr (user audit, session 43)
+                notes.append(f"exact k_A tables on Dask: {d['workers']} worker{'s' if d['workers'] != 1 else ''}, "
+                             f"{d['threads']} thread{'s' if d['threads'] != 1 else ''}, scheduler {d['scheduler']}")
                 sur_report = build_surrogate(mm, spec, factory, client=c, **kw)
         else:
             sur_report = build_surrogate(mm, spec, factory, **kw)
