@@ -210,6 +210,13 @@ def _check_cluster(workers, client) -> None:
 # What there is to choose from (the command line's choices)
 # ----------------------------------------------------------------------------------------------
 
+def max_local_workers() -> int:
+    """The most worker processes a local Dask cluster may have on this machine (``--workers``):
+    :func:`roadgonio.engines.cluster.max_local_workers`."""
+    from roadgonio.engines.cluster import max_local_workers as most
+    return most()
+
+
 #: What a command needs of its k_A backend, as capabilities of the registry
 #: (:func:`roadgonio.engines.registry.backends_with`): the command line's ``--backend`` choices
 #: (:func:`backends`) and this module's check (:func:`_command_backend`) are the same query.
