@@ -148,11 +148,15 @@ def signal_solid_angle(instrument: Instrument, cells=None) -> float:
     1.54 x)."""
     from roadgonio.instrument.optics import source_frames
     src = instrument.source
-    if cells is None or src.radius_m == 0.0:
-        return profiled_solid_angle(instrument)
-    distances = sorted({float(source_frames(instrument, float(t), float(b)).distance_m) for t, b in cells})
+    if cells is None or src.radius_m == 0.0 or src.path == "arc":
+        return profiled_solid_angle(instrument)         # an arc: the same D_S at every cell
+    # D_S depends on eps alone: one placement per distinct tan eps, all at once (a 580-cell table has 29;
+    # cell by cell this made a 60-point design 2.2x slower, bench/bench_design.py)
+    tans = np.unique(np.asarray([t for t, _ in cells], dtype=np.float64))
+    distances = np.unique(np.asarray(source_frames(instrument, tans, np.zeros_like(tans)).distance_m,
+                                     dtype=np.float64).ravel())
     return min(profiled_solid_angle(instrument if d == src.length_m else
-                                    instrument.with_changes(source={src.length_key: d})) for d in distances)
+                                    instrument.with_changes(source={src.length_key: float(d)})) for d in distances)
 
 
 def signal_product(instrument: Instrument, cells=None) -> float:
