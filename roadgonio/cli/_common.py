@@ -94,8 +94,9 @@ def _workers(text: str) -> int:
         raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
     if v < 0:
         raise argparse.ArgumentTypeError(f"expected a number >= 0, got {v}")
-    if v > api.max_local_workers():
-        raise argparse.ArgumentTypeError(f"expected at most {api.max_local_workers()} on this machine (8 a core), got {v}; "
+    most = api.max_local_workers()
+    if v > most:
+        raise argparse.ArgumentTypeError(f"expected at most {most} on this machine (8 a core), got {v}; "
                                          "for more machines give --scheduler")
     return v
 

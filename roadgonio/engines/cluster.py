@@ -359,8 +359,8 @@ def open_client(workers: int | None = None, scheduler: str | None = None, *, bac
         return
     if workers is not None and (not isinstance(workers, int) or workers < 0):
         raise InputError(f"expected a number of workers >= 0, got {workers!r}", field="workers")
-    if workers is not None and workers > max_local_workers():
-        raise InputError(f"expected at most {max_local_workers()} worker processes on this machine "
+    if workers is not None and workers > (most := max_local_workers()):
+        raise InputError(f"expected at most {most} worker processes on this machine "
                          f"({os.cpu_count() or 1} cores; {LOCAL_WORKERS_PER_CORE} a core at most), got {workers}; "
                          "for more machines start a cluster and give --scheduler", field="workers")
     try:

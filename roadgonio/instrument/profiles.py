@@ -144,13 +144,13 @@ def beam_half_width_rad(beam: BeamProfile) -> float:
     if beam.kind == "table" and beam.table is not None:
         t = beam.table
         v = t.values
-        below = np.flatnonzero(v <= v[0] * math.exp(-0.5))
+        lvl = v[0] * math.exp(-0.5)
+        below = np.flatnonzero(v <= lvl)
         if below.size == 0:
             return float(min(beam.theta_end_rad, t.x0 + t.step * (t.n - 1)))
         k = int(below[0])
         if k == 0:
             return float(t.x0)
-        lvl = v[0] * math.exp(-0.5)
         frac = (v[k - 1] - lvl) / (v[k - 1] - v[k]) if v[k - 1] != v[k] else 0.0
         return float(t.x0 + t.step * (k - 1 + frac))
     return math.inf

@@ -11,7 +11,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from roadgonio.errors import InputError
+from roadgonio.errors import InputError, count
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
 from roadgonio.uncertainty.surrogate import DESIGNS, N_COORDS, KaSurrogate, design_points
@@ -439,8 +439,8 @@ def run_uncertainty(model: RoadModel, instrument: Instrument, spec: SigmaSpec, *
             with open_client(workers, scheduler, backend=backend, variant=(backend_settings or {}).get("variant")) as c:
                 d = describe(c)
                 # words, not a dict's repr (user audit, session 43)
-                notes.append(f"exact k_A tables on Dask: {d['workers']} worker{'s' if d['workers'] != 1 else ''}, "
-                             f"{d['threads']} thread{'s' if d['threads'] != 1 else ''}, scheduler {d['scheduler']}")
+                notes.append(f"exact k_A tables on Dask: {count(d['workers'], 'worker')}, "
+                             f"{count(d['threads'], 'thread')}, scheduler {d['scheduler']}")
                 sur_report = build_surrogate(mm, spec, factory, client=c, **kw)
         else:
             sur_report = build_surrogate(mm, spec, factory, **kw)

@@ -569,7 +569,7 @@ def local_interaction(n: int, u, v, wi):
     return si
 
 
-def probe_bsdf(bsdf, n: int = PROBE_LANES, seed: int = 1) -> tuple[float, float]:
+def probe_bsdf(bsdf, n: int = PROBE_LANES, seed: int = 1) -> tuple[float, float, float]:
     """Largest reflected value of a BSDF over ``n`` random (uv, incident, outgoing) triples in the
     upper hemisphere: (max of eval, max of the sample weight, min of eval); the first two 0 for a
     black BSDF, the last negative for a reflectance below 0 (an input error, :func:`classify_parts`)."""
