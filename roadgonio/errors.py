@@ -114,7 +114,7 @@ def notes_held() -> Iterator[None]:
 
 class StoppedByCaller(RoadgonioError):
     """Work on a Dask worker stopped at a boundary because the command that asked for it was
-    interrupted (:func:`roadgonio.engines.cluster.stop_requested`): what it had written at its last
+    interrupted (:class:`roadgonio.engines.cluster.CallerStop`): what it had written at its last
     boundary is kept (journals, a pass's state) and nothing more is written."""
 
 

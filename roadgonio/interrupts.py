@@ -64,14 +64,15 @@ class _State:
 
 _S = _State()
 #: per thread: a function saying whether the work's caller asked it to stop (a Dask task whose command
-#: was interrupted: :func:`roadgonio.engines.cluster.stop_requested`), consulted at the boundaries
+#: was interrupted: :class:`roadgonio.engines.cluster.CallerStop`), consulted at the boundaries
 _EXTERNAL = threading.local()
 
 
 @contextmanager
-def external_stop(asked: Callable[[], bool]) -> Iterator[None]:
+def external_stop(asked: Callable[..., bool]) -> Iterator[None]:
     """In this thread, :meth:`Deferred.check` also stops (raising
-    :class:`~roadgonio.errors.StoppedByCaller`) when ``asked()`` is true: a task on a Dask worker
+    :class:`~roadgonio.errors.StoppedByCaller`) when ``asked()`` is true (``asked(fresh=True)``: ask
+    now, see :func:`stop_asked_by_caller`): a task on a Dask worker
     stops at its next boundary when the command on the other end was interrupted (user audit,
     session 43: `correct --scheduler` said "interrupted" and exited while its tasks went on writing
     the output folder)."""
@@ -83,10 +84,12 @@ def external_stop(asked: Callable[[], bool]) -> Iterator[None]:
         _EXTERNAL.asked = before
 
 
-def stop_asked_by_caller() -> bool:
-    """The caller of this thread's work asked it to stop (:func:`external_stop`)."""
+def stop_asked_by_caller(*, fresh: bool = False) -> bool:
+    """The caller of this thread's work asked it to stop (:func:`external_stop`); False where no caller
+    can ask (this process's own work). ``fresh``: ask now, even if the function may answer from its
+    last asking (before results are written)."""
     asked = getattr(_EXTERNAL, "asked", None)
-    return bool(asked is not None and asked())
+    return bool(asked is not None and asked(fresh=fresh))
 
 
 class Deferred:

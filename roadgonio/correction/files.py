@@ -128,8 +128,8 @@ def _correct_task(job: tuple, shared: Mapping[str, Any]) -> tuple[CorrectionResu
         res.provenance["inputs"] = shared["inputs"][measured_file]
     if folder is None:                      # nothing to write (the Python API without out)
         return res, []
-    from roadgonio.engines.cluster import stop_requested
-    if stop_requested(fresh=True):
+    from roadgonio.interrupts import stop_asked_by_caller
+    if stop_asked_by_caller(fresh=True):
         # on a Dask worker whose command was interrupted meanwhile: its journals are kept, no results
         from roadgonio.errors import StoppedByCaller
         raise StoppedByCaller("stopped before writing the results: the command that asked for them was interrupted")

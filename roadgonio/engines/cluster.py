@@ -529,46 +529,47 @@ class WorkerWatch:
         self._stop.set()
 
 
-#: per task thread: the name of the Dask Event its map_calls sets when its caller stops early
-_TASK = threading.local()
 #: A task asks the scheduler whether its caller stopped at most this often (each asking is a round trip)
 STOP_POLL_S = 0.5
 
 
-def stop_requested(*, fresh: bool = False) -> bool:
-    """On a Dask worker, inside a task of :func:`map_calls`: the command that submitted it was
-    interrupted (or failed) and cancelled its work; False elsewhere. Dask cannot stop a task that is
-    running, and on an existing cluster (``--scheduler``) the workers outlive the command: a task that
-    writes files (``correct``'s) checks this at its boundaries (:func:`roadgonio.interrupts.external_stop`)
-    and before it writes its results (``fresh``: ask even if it asked less than :data:`STOP_POLL_S` ago)."""
-    name = getattr(_TASK, "stop_event", None)
-    if name is None:
-        return False
-    now = time.monotonic()
-    if not fresh and now - getattr(_TASK, "asked_at", -math.inf) < STOP_POLL_S:
-        return False                      # asked a moment ago (a pass of a small table is ~10 ms)
-    _TASK.asked_at = now
-    try:
-        from distributed import Event, get_client
-        return bool(Event(name, client=get_client()).is_set())
-    except Exception:  # noqa: BLE001 - no scheduler to ask: the task goes on as before
-        return False
+class CallerStop:
+    """Whether the command that submitted a task of :func:`map_calls` stopped early (interrupted, or
+    failed) and cancelled its work: the Dask Event ``name`` that map_calls then sets. Dask cannot stop
+    a task that is running, and on an existing cluster (``--scheduler``) the workers outlive the
+    command, so a task asks this, through :func:`roadgonio.interrupts.external_stop`, at its boundaries
+    (:meth:`roadgonio.interrupts.Deferred.check`) and, afresh, before it writes results
+    (``correct``'s). Between boundaries it asks the scheduler at most every :data:`STOP_POLL_S`
+    (``fresh``: ask anyway)."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.asked_at = -math.inf
+
+    def __call__(self, *, fresh: bool = False) -> bool:
+        now = time.monotonic()
+        if not fresh and now - self.asked_at < STOP_POLL_S:
+            return False                  # asked a moment ago (a pass of a small table is ~10 ms)
+        self.asked_at = now
+        try:
+            from distributed import Event, get_client
+            return bool(Event(self.name, client=get_client()).is_set())
+        except Exception:  # noqa: BLE001 - no scheduler to ask: the task goes on as before
+            return False
 
 
 def _call_task(item: Any, *, call: Callable, shared: Any = None, with_shared: bool = False,
                backend: str | None = None, variant: str | None = None, stop_event: str | None = None) -> Any:
     """One task of :func:`map_calls` on a worker: prepare the process for ``backend`` (idempotent),
     then ``call(item)`` or ``call(item, shared)``, stopping at a boundary when ``stop_event`` is set
-    (:func:`stop_requested`)."""
+    (:class:`CallerStop`)."""
     from roadgonio.interrupts import external_stop
     if backend is not None:
         _ensure_engine(backend, variant)
-    _TASK.stop_event, _TASK.asked_at = stop_event, -math.inf
-    try:
-        with external_stop(stop_requested):
-            return call(item, shared) if with_shared else call(item)
-    finally:
-        _TASK.stop_event = None
+    if stop_event is None:
+        return call(item, shared) if with_shared else call(item)
+    with external_stop(CallerStop(stop_event)):
+        return call(item, shared) if with_shared else call(item)
 
 
 _NO_SHARED = object()
