@@ -331,25 +331,23 @@ def test_stray_standard_errors_are_honest():
         assert np.all((ratio > lo) & (ratio < hi)), (key, ratio, lo, hi)
 
 
+def _absolute(inst: Instrument) -> Instrument:
+    d = inst.to_dict()
+    d["calibration"] = {"mode": "absolute"}
+    return Instrument.from_dict(d, path=inst.path)
+
+
 def test_calibration_modes_carry_the_stray_light(tmp_path):
     """absolute: k_a = k_a_direct / (1 - stray fraction) with k_a_direct = k_lam_direct eta; a
     reference equal to the sample: k_A = 1 exactly, with the sample's stray fraction."""
     from roadgonio.engines.calibration import illuminance_ratio
     inst = housed(0.1)
     lam = mitsuba(inst, rel_se=3e-3, seed=1).compute([(3.0, 20.0)])[0]
-    d = inst.to_dict()
-    d["calibration"] = {"mode": "absolute"}
-    absolute = mitsuba(Instrument.from_dict(d, path=inst.path), rel_se=3e-3, seed=1).compute([(3.0, 20.0)])[0]
+    absolute = mitsuba(_absolute(inst), rel_se=3e-3, seed=1).compute([(3.0, 20.0)])[0]
     eta = illuminance_ratio(inst, 3.0, 20.0)[0]
     assert absolute.k_a_direct == pytest.approx(lam.k_a_direct * eta, rel=1e-12)
     assert absolute.k_a == pytest.approx(lam.k_a_direct * eta / (1.0 - lam.stray_fraction), rel=1e-12)
     assert absolute.stray_fraction == lam.stray_fraction > 0.0
-
-
-def _absolute(inst: Instrument) -> Instrument:
-    d = inst.to_dict()
-    d["calibration"] = {"mode": "absolute"}
-    return Instrument.from_dict(d, path=inst.path)
 
 
 @pytest.mark.parametrize("model,cell,target", [(R3, (12.0, 90.0), 5e-4),

@@ -929,6 +929,17 @@ def test_beam_widths_are_design_keys(tmp_path):
     assert sig[0] < sig[1] < 1.0                  # a narrower beam of the same peak radiance: less light
 
 
+def _gaussian_disc_omega(R: float, D: float, sigma_deg: float) -> float:
+    """E_normal / L_0 on the axis of a disc of radius R at distance D whose radiance is the Gaussian
+    beam exp(-theta^2 / 2 sigma^2), theta = atan(r / D) the emission angle towards the axis point: the
+    ring integral int_0^R D^2 / (r^2 + D^2)^2 P(theta) 2 pi r dr (scipy quad, written apart from roadgonio)."""
+    sig = math.radians(sigma_deg)
+
+    def ring(r):
+        return D * D / (r * r + D * D) ** 2 * math.exp(-math.atan(r / D) ** 2 / (2 * sig * sig)) * 2 * math.pi * r
+    return quad(ring, 0.0, R, epsabs=0.0, epsrel=1e-13)[0]
+
+
 def test_a_beam_limit_cuts_the_design_signal():
     """source.beam_half_angle_deg: only the inner disc of radius min(R, D tan theta) lights the
     sample centre, so the signal is that disc's (user audit: a 0.5 deg cone on the portable's 25 mm
@@ -939,18 +950,13 @@ def test_a_beam_limit_cuts_the_design_signal():
     from roadgonio.design import metrics as M
     base = load_instrument("portable")
     R, D = base.source.radius_m, base.source.distance_m
-    sig = math.radians(3.0)
-
-    def ring(r):
-        return D * D / (r * r + D * D) ** 2 * math.exp(-math.atan(r / D) ** 2 / (2 * sig * sig)) * 2 * math.pi * r
     for cone in (0.5, 1.0, 2.0):
         rc = min(R, D * math.tan(math.radians(cone)))
         inst = G.build_instrument(base, {"source.beam_half_angle_deg": cone})
         assert M.relative_signal(inst, base) == pytest.approx(
             (rc * rc / (rc * rc + D * D)) / (R * R / (R * R + D * D)), rel=1e-12)
         inst = G.build_instrument(inst, {"source.beam_sigma_deg": 3.0})
-        assert M.profiled_solid_angle(inst) == pytest.approx(quad(ring, 0.0, rc, epsabs=0.0, epsrel=1e-13)[0],
-                                                             rel=1e-9)
+        assert M.profiled_solid_angle(inst) == pytest.approx(_gaussian_disc_omega(rc, D, 3.0), rel=1e-9)
     assert M.relative_signal(G.build_instrument(base, {"source.beam_half_angle_deg": 0.5}), base) < 0.13
 
 
@@ -1021,12 +1027,10 @@ def test_a_fixed_height_design_signal_is_taken_at_the_cells_asked():
     from roadgonio.design import metrics as M
     base = G.build_instrument(load_instrument("corridor"), {"source.beam_sigma_deg": 0.25})
     design = G.build_instrument(base, {"source.height_m": 0.8})
-    R, sig = base.source.radius_m, math.radians(0.25)
+    R = base.source.radius_m
 
     def omega(D):
-        def ring(r):
-            return D * D / (r * r + D * D) ** 2 * math.exp(-math.atan(r / D) ** 2 / (2 * sig * sig)) * 2 * math.pi * r
-        return quad(ring, 0.0, R, epsabs=0.0, epsrel=1e-13)[0]
+        return _gaussian_disc_omega(R, D, 0.25)
     cells = [(10.0, 0.0), (12.0, 0.0)]
     want = {}
     for name, inst in (("base", base), ("design", design)):
