@@ -27,16 +27,19 @@ def run(args) -> int:
         s2 = "missing" if res["S2"] is None else f"{res['S2']:.2f}"
         print(f"{res['table']}: S1 = {api.s1_text(res['S1'])}, Q0 = {q0}, S2 = {s2}")
         for system, c in res["classes"].items():
-            scale = "missing" if c["Q0_scale"] is None else f"x{c['Q0_scale']:.3f}"
+            scale = (f"x{c['Q0_scale']:.3f}" if c["Q0_scale"] is not None
+                     else "missing" if res["Q0"] is None else "not comparable (note)")
             margin = c["S1_margin_to_limit"]
             print(f"  {system} system: {c['class']} (S1 {margin:.3f}{'' if margin >= 5e-4 else f' ({margin:.2g})'} "
                   "from the nearest class limit); "
-                  f"standard Q0 {c['standard_Q0']:.2f}, this table {scale}"
-                  + ("" if c["bundled"] else " (standard table not bundled)"))
+                  f"standard Q0 {c['standard_Q0']:.4f}" + ("" if c["bundled"] else " (published; table not bundled)")
+                  + f", this table {scale}")
         if res["nearest_bundled"]:
             near = res["nearest_bundled"][0]
-            print(f"  nearest bundled table in (S1, Q0): {near['table']} (S1 {near['S1']:.3f}, Q0 {near['Q0']:.4f}; "
-                  f"distance {near['distance']:.2f} sd of the bundled tables' S1 and Q0)")
+            basis = res["nearest_basis"]
+            print(f"  nearest bundled table {basis + ',' if basis else 'in (S1, Q0):'} {near['table']} (S1 "
+                  f"{near['S1']:.3f}, Q0 {near['Q0']:.4f}; distance {near['distance']:.2f} sd of the bundled tables' "
+                  f"{'S1' if basis else 'S1 and Q0'})")
         if res.get("missing"):
             print(f"  missing: {res['missing']}")
         for note in res.get("notes", ()):

@@ -9,9 +9,13 @@ Class limits (CIE 144:2001 and CIE 66:1984):
     N1  S1 < 0.28          N2  0.28 <= S1 < 0.60   N3  0.60 <= S1 < 1.30   N4  1.30 <= S1
 
 with class-standard Q0: R1 0.10, R2 0.07, R3 0.07, R4 0.08, C1 0.10, C2 0.07, N1 0.10, N2 0.07,
-N3 0.07, N4 0.08 sr^-1 (the published Q0 of the bundled tables, roadgonio/data/rtables/SOURCES.md).
-A surface of class X is represented by the standard table X scaled by Q0 / Q0_standard. The N
-standard tables are not bundled (no public source, SOURCES.md). The "nearest" bundled table is the
+N3 0.07, N4 0.08 sr^-1 (the published Q0 of the standard tables, roadgonio/data/rtables/SOURCES.md).
+A surface of class X is represented by the standard table X scaled by Q0 / Q0_standard, both Q0 by
+one rule: for the bundled standards (R1-R4, C1, C2) Q0_standard is the bundled table's own Q0 by
+:meth:`RTable.q0` (the published values come from the CIE's weights and differ from it by up to
+3.5 %, R1's 0.1035 against 0.10; user audit, session 44: R1 classified as "x1.035" of itself); the
+N standard tables are not bundled (no public source, SOURCES.md), so theirs is the published value,
+said so. The "nearest" bundled table is the
 one closest in (S1, Q0), each coordinate scaled by its spread (population standard deviation) over
 the six bundled tables.
 """
@@ -83,6 +87,16 @@ def _bundled_s1_q0() -> dict[str, tuple[float, float]]:
     return {n: (bundled_table(n).s1(), bundled_table(n).q0()) for n in BUNDLED}
 
 
+def standard_q0(name: str) -> tuple[float, str]:
+    """(Q0 of the class standard ``name``, where it comes from): the bundled table's own Q0 by
+    :meth:`RTable.q0`, the rule a table's Q0 is computed by, or for a standard not bundled its
+    published value (module docstring)."""
+    if name in BUNDLED:
+        return _bundled_s1_q0()[name][1], "the bundled standard table, by the same Q0 rule"
+    return STANDARD_Q0[name], ("published (the standard table is not bundled; the CIE's weights, another Q0 rule, "
+                               "up to ~3.5 % apart)")
+
+
 def nearest_bundled(s1: float, q0: float, k: int | None = None,
                     exclude: Sequence[str] = ()) -> list[tuple[str, float]]:
     """The bundled CIE tables ordered by their distance to (S1, Q0), each coordinate scaled by its
@@ -137,22 +151,30 @@ def classify(table: RTable) -> dict[str, Any]:
             lack.append("r(beta 0, tan eps 2) is blank")
         raise InputError("cannot classify: the CIE class is defined by S1 = r(beta 0, tan eps 2) / r(beta 0, tan eps 0), "
                          f"and {' and '.join(lack)}; expected both cells, r(0, 0) > 0", field="S1")
+    from roadgonio.surface.rtable import q0_coverage_note
+    note = q0_coverage_note(table)
     q0_ok = math.isfinite(q0)
+    # a Q0 over other cells than the standard tables' is no standard's Q0 (the note says so): no scale
+    # from it, and the nearest table by S1 alone (user audit, session 44: R3's cells tan eps <= 2,
+    # beta <= 5 alone, S1 R3's exactly, were "nearest R1" by that Q0, "x1.753")
+    comparable = q0_ok and note is None
     out: dict[str, Any] = {"table": table.name, "S1": s1, "Q0": q0 if q0_ok else None,
                            "S2": table.s2() if q0_ok else None, "classes": {}}
     for system in CLASS_LIMITS:
         name, margin = class_by_s1(s1, system)
+        q0_std, q0_from = standard_q0(name)
         out["classes"][system] = {"class": name, "S1_margin_to_limit": margin,
-                                  "standard_Q0": STANDARD_Q0[name], "Q0_scale": q0 / STANDARD_Q0[name] if q0_ok else None,
+                                  "standard_Q0": q0_std, "standard_Q0_from": q0_from,
+                                  "Q0_scale": q0 / q0_std if comparable else None,
                                   "bundled": name in BUNDLED}
     stats = _bundled_s1_q0()
     out["nearest_bundled"] = [{"table": n, "distance": d, "S1": stats[n][0], "Q0": stats[n][1]}
-                              for n, d in nearest_bundled(s1, q0)] if q0_ok else []
+                              for n, d in nearest_bundled(s1, q0 if comparable else math.nan)]
+    out["nearest_basis"] = "" if comparable else "by S1 alone: " + (
+        "Q0 missing" if not q0_ok else "Q0 over other cells than the standard tables'")
     if not q0_ok:
-        out["missing"] = "Q0 (no grid cell with four tabulated corners): no Q0 scale, no nearest bundled table"
-    from roadgonio.surface.rtable import q0_coverage_note
-    note = q0_coverage_note(table)
-    out["notes"] = [note] if note else []
+        out["missing"] = "Q0 (no grid cell with four tabulated corners): no Q0 scale, nearest bundled table by S1 alone"
+    out["notes"] = [note + "; no Q0 scale, nearest bundled table by S1 alone"] if note else []
     return out
 
 

@@ -237,6 +237,33 @@ def test_classify_bundled_tables_fall_in_their_own_class(capsys, name):
     system = name[0]
     assert d["classes"][system]["class"] == name
     assert d["nearest_bundled"][0]["table"] == name and d["nearest_bundled"][0]["distance"] == pytest.approx(0)
+    # the class standard's Q0 by the same rule as the table's: a standard table is x1 of itself (user audit,
+    # session 44: R1 was "x1.035", its Q0 by roadgonio's rule over the published 0.10 of the CIE's weights)
+    assert d["classes"][system]["Q0_scale"] == pytest.approx(1.0, rel=1e-12)
+
+
+def test_classify_q0_scale_is_the_ratio_of_q0s_by_one_rule_and_a_partial_table_gets_none(tmp_path, capsys):
+    """A table 0.8 times C2 is "x0.8" of C2 in the C system, N3's (not bundled) standard is its published
+    Q0, said so; R3's cells tan eps <= 2, beta <= 5 alone (S1 R3's) have a Q0 no standard's is comparable
+    with: no scale, and the nearest table by S1 alone is R3 (user audit, session 44: "nearest R1", "x1.753")."""
+    from roadgonio.surface.rtable import bundled_table
+    c2 = bundled_table("C2")
+    c2.with_values(0.8 * c2.r).write_csv(tmp_path / "dark.csv")
+    assert main(["classify", str(tmp_path / "dark.csv"), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["classes"]["C"]["Q0_scale"] == pytest.approx(0.8, rel=1e-9)
+    assert d["classes"]["N"]["standard_Q0"] == 0.07 and "published" in d["classes"]["N"]["standard_Q0_from"]
+    t = bundled_table("R3")
+    keep = (t.tan_eps[:, None] <= 2.0) & (t.beta_deg[None, :] <= 5.0)
+    t.with_values(np.where(keep, t.r, np.nan)).write_csv(tmp_path / "corner.csv")
+    assert main(["classify", str(tmp_path / "corner.csv"), "--json"]) == 0
+    d = json.loads(capsys.readouterr().out)
+    assert d["S1"] == pytest.approx(t.s1(), rel=1e-12) and d["Q0"] is not None
+    assert all(c["Q0_scale"] is None for c in d["classes"].values())
+    assert d["nearest_bundled"][0]["table"] == "R3" and d["nearest_basis"].startswith("by S1 alone")
+    assert main(["classify", str(tmp_path / "corner.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "not comparable (note)" in out and "nearest bundled table by S1 alone" in out
 
 
 
