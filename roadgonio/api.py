@@ -124,6 +124,24 @@ def _table(table, field: str = "table", quantity: str = "r") -> "RTable":
                      f"{type(table).__name__}", field=field)
 
 
+def _table_and_notes(table, field: str = "table") -> "tuple[RTable, list[str]]":
+    """:func:`_table` and how the file was read (:class:`~roadgonio.errors.ReadingNote`s, kept for a
+    command that lists its notes in its result instead of saying them; other notes are said)."""
+    import warnings
+
+    from roadgonio.errors import ReadingNote
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        t = _table(table, field)
+    notes = []
+    for w in said:
+        if issubclass(w.category, ReadingNote):
+            notes.append(str(w.message))
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return t, notes
+
+
 def _labelled(table, t: "RTable") -> "RTable":
     """A table read from a file, named by the file (``measured.rtb (R3)`` when the file stores another
     name, as an RTB does; ``r3.csv``): the results of road and compare say which file they compared."""
@@ -365,7 +383,7 @@ def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
     there (``.rtb``: DIALux RTB, ``.csv``: CSV) and ``written`` names the file. A characteristic the
     table lacks the cells for (S1 without r(0, 0) > 0 and r(2, 0); Q0 without a grid cell with four
     tabulated corners; S2 without both) is None (missing), never NaN or infinity."""
-    t = _table(table)
+    t, read = _table_and_notes(table)
     info = {"table": t.name, "Q0": _value(t.q0()), "S1": _value(t.s1()), "S2": _value(t.s2()),
             "cells": int(t.mask.sum()), "r_max": _value(t.r_max)}
     # a Q0 over other cells than the standard tables' is said here too, as classify and compare say it
@@ -376,8 +394,8 @@ def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
     # how an RTB file was read, when the reader had something to say (its scale told by the q0 line,
     # a q0 line off the values' Q0): audit 22, it was only in the table's source. Of the RTB file
     # itself only: a CSV converted from it keeps that source as its header, and its values need no note
-    if isinstance(table, (str, Path)) and Path(str(table)).suffix.lower() == ".rtb" and "; " in t.source:
-        info["reading_note"] = t.source.split("; ", 1)[1]
+    if read:
+        info["reading_note"] = read[0].split(": read: ", 1)[1]
     if to is not None:
         info["written"] = str(t.write(_table_file(to, "to")))
     return info
@@ -1537,12 +1555,13 @@ def compare_tables(a, b, *, out=None, plots: bool = True) -> dict[str, Any]:
     from roadgonio.road.compare import compare_tables as _compare
     from roadgonio.road.report import write_together
     from roadgonio.provenance import input_record
-    ta, tb = _table(a, "a"), _table(b, "b")
+    (ta, read_a), (tb, read_b) = _table_and_notes(a, "a"), _table_and_notes(b, "b")
     folder = _out(out, "compare", ta.name, tb.name)
     ta, tb = _labelled(a, ta), _labelled(b, tb)
     if ta.name == tb.name:
         tb = tb.with_values(tb.r, name=tb.name + "#2")
     res = _compare(ta, tb)
+    res["notes"] = read_a + read_b + res["notes"]
     summary = {k: v for k, v in res.items() if k != "ratio"}
     if folder is not None:
         inputs = [input_record("a", a, ta.name), input_record("b", b, tb.name)]
@@ -1588,7 +1607,10 @@ def classify_table(table) -> dict[str, Any]:
     :func:`roadgonio.surface.cie.classify`)."""
     from roadgonio.surface.cie import classify
     try:
-        return classify(_table(table))
+        t, read = _table_and_notes(table)
+        res = classify(t)
+        res["notes"] = read + res["notes"]
+        return res
     except InputError as err:
         if isinstance(table, (str, Path)) and Path(str(table)).suffix and err.path is None:
             raise InputError(err.reason, path=table, field=err.field) from None

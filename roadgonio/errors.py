@@ -100,6 +100,12 @@ class ModelWarning(UserWarning):
     by the command line as ``roadgonio: note: <message>`` on standard error."""
 
 
+class ReadingNote(ModelWarning):
+    """How an input file was read, when the reader had to decide something (an RTB file's scale told
+    by its q0 line): a note like any other, which the commands that list their notes in their results
+    (``classify``, ``compare``) also put there."""
+
+
 @contextmanager
 def notes_held() -> Iterator[None]:
     """Hold the warnings (the notes) said inside the block and say them when it ends; an error in the

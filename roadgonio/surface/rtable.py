@@ -827,7 +827,8 @@ def _rtb_scale(values: np.ndarray, q0_line: float, path, line: int) -> tuple[flo
     if q0_line > 1.0:  # no road has Q0 > 1 sr^-1: q0 written at the values' scale (x 1e4)
         candidates = [(R_SCALE, q0_line / R_SCALE, "q0 line read as q0 x 1e4 like the values")]
     else:
-        candidates = [(R_SCALE, q0_line, ""), (1.0, q0_line, "values read as r in sr^-1 (their Q0 matches the q0 line)")]
+        candidates = [(R_SCALE, q0_line, ""), (1.0, q0_line, "values read as r in sr^-1 (the scale the q0 line points to, "
+                                                 "not r x 1e4)")]
     for scale, q0_ref, note in candidates:
         q0_values = q0_x1e4 * R_SCALE / scale
         ratio = q0_values / q0_ref
@@ -1066,5 +1067,22 @@ def load_table(spec: str | Path, quantity: str = "r") -> RTable:
         raise InputError("no such table file", path=p)
     table = read_table(p, quantity)
     if p.suffix.lower() == ".rtb":
-        return check_rtb_table(table, p, quantity)
+        table = check_rtb_table(table, p, quantity)
+        note = rtb_reading_note(table, p)
+        if note:
+            # every command that reads the file says it (user audit, session 44: only `table`'s text did;
+            # classify, compare and fit read a q0 line 29 % off the values' Q0 without a word)
+            import warnings
+
+            from roadgonio.errors import ReadingNote
+            warnings.warn(ReadingNote(f"{p.name}: read: {note}"), stacklevel=2)
+        return table
     return check_csv_table(table, p, quantity)
+
+
+def rtb_reading_note(table: RTable, path: str | Path) -> str:
+    """How :func:`parse_rtb` read the RTB file ``path`` when it had something to say (the values'
+    scale told by the q0 line, a q0 line off the values' Q0), else "": kept in the table's source
+    after its name and file."""
+    head = f"{table.name} read from {Path(str(path)).name}; "
+    return table.source[len(head):] if table.source.startswith(head) else ""

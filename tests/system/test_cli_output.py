@@ -183,6 +183,24 @@ def test_table_says_how_an_rtb_was_read(tmp_path, capsys):
     assert "read:" not in capsys.readouterr().out
 
 
+def test_every_command_reading_an_rtb_says_how_it_was_read(tmp_path, capsys):
+    """(user audit, session 44) an RTB whose q0 line is 29 % off its values' Q0 was said so by
+    `table`'s text alone: classify and compare (whose JSON lists notes) and fit read it silently."""
+    from roadgonio.surface.rtable import bundled_table
+    lines = bundled_table("R3").to_rtb_text().splitlines()
+    lines[53] = "0.09"                      # the q0 line (line 54)
+    (tmp_path / "off.rtb").write_text("\n".join(lines))
+    said = "off.rtb: read: q0 line 0.09 sr^-1 differs from the values' Q0 0.06979 sr^-1 by +29 %"
+    assert main(["classify", str(tmp_path / "off.rtb"), "--json"]) == 0
+    assert said in json.loads(capsys.readouterr().out)["notes"]
+    assert main(["compare", "R3", str(tmp_path / "off.rtb"), "--json", "--no-plots"]) == 0
+    assert said in json.loads(capsys.readouterr().out)["notes"]
+    assert main(["classify", str(tmp_path / "off.rtb")]) == 0
+    assert capsys.readouterr().out.count(said) == 1
+    assert main(["fit", str(tmp_path / "off.rtb"), "--out", str(tmp_path / "fit"), "--no-plot", "-q"]) == 0
+    assert said in capsys.readouterr().err
+
+
 def test_eta_s_bound_beside_a_standard_error_is_not_called_a_bound_on_k_a(tmp_path):
     """(audit 28) Mitsuba under absolute calibration: error_bound holds eta's deterministic part of
     the error (7e-7 beside an SE of 1.5e-4), but ka.nc, ka_bound.csv and ka.json called it 'a
