@@ -798,6 +798,12 @@ def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
     # the surface's stored name kept in the source, so a CSV converted from it names it in its header
     # (user audit, session 41: '# read from r3.rtb' lost 'R3')
     src = f"{name} read from {Path(str(path)).name}" + (f"; {note}" if note else "")
+    probe = RTable(v / scale, name=name, source=src)
+    if names_u(probe) or names_ka(probe):
+        # a stored name that reads like another table's header ("standard uncertainty of road", "k_A of R3")
+        # would make the CSV converted from it a u or k_A table to every reader (user audit, session 44:
+        # `table x.rtb --to x.csv` wrote a file `table x.csv` then refused): the source says r-table first
+        src = "r-table " + src
     return RTable(v / scale, name=name, source=src)
 
 
@@ -1085,4 +1091,5 @@ def rtb_reading_note(table: RTable, path: str | Path) -> str:
     scale told by the q0 line, a q0 line off the values' Q0), else "": kept in the table's source
     after its name and file."""
     head = f"{table.name} read from {Path(str(path)).name}; "
-    return table.source[len(head):] if table.source.startswith(head) else ""
+    at = table.source.find(head)
+    return table.source[at + len(head):] if at in (0, len("r-table ")) else ""

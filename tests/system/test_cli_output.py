@@ -183,6 +183,20 @@ def test_table_says_how_an_rtb_was_read(tmp_path, capsys):
     assert "read:" not in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("stored", ["standard uncertainty of road", "k_A of R3"])
+def test_an_rtb_whose_name_reads_like_another_tables_header_converts_to_a_csv_that_reads_back(tmp_path, capsys, stored):
+    """(user audit, session 44) an RTB surface named "standard uncertainty of road" was written to a CSV
+    whose header made every reader take it for a table of uncertainties (`table` refused the file it had
+    just written); "k_A of R3" could not be converted at all."""
+    from roadgonio.surface.rtable import bundled_table
+    lines = bundled_table("R3").to_rtb_text().splitlines()
+    lines[1] = stored
+    (tmp_path / "named.rtb").write_text("\n".join(lines))
+    assert main(["table", str(tmp_path / "named.rtb"), "--to", str(tmp_path / "named.csv"), "-q"]) == 0
+    assert main(["table", str(tmp_path / "named.csv"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["Q0"] == pytest.approx(bundled_table("R3").q0(), rel=1e-5)
+
+
 def test_every_command_reading_an_rtb_says_how_it_was_read(tmp_path, capsys):
     """(user audit, session 44) an RTB whose q0 line is 29 % off its values' Q0 was said so by
     `table`'s text alone: classify and compare (whose JSON lists notes) and fit read it silently."""
