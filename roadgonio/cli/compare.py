@@ -29,8 +29,11 @@ def run(args) -> int:
         n = max(16, len(a), len(b))        # a file's name in full (measured.rtb (R3))
         print(f"{'':8} {a:>{n}} {b:>{n}}")
         for key, fmt in (("S1", ".3f"), ("S2", ".3f"), ("Q0", ".4f"), ("cells", "d")):
-            print(f"{key:8} " + " ".join("-".rjust(n) if c[key] is None else format(c[key], f"{n}{fmt}")
-                                         for c in (ca, cb)))
+            # S1 to the digits that show its side of a class limit, as classify prints it; a missing one
+            # in words (user audit, session 44: S1 0.84997, class R2, printed 0.850; '-' for missing)
+            print(f"{key:8} " + " ".join("missing".rjust(n) if c[key] is None
+                                         else api.s1_text(c[key]).rjust(n) if key == "S1"
+                                         else format(c[key], f"{n}{fmt}") for c in (ca, cb)))
         print(f"r({b}) / r({a}) over {res['cells_compared']} cells: {api.ratio_range_text(res)}; "
               f"{api.largest_change_text(res)}")
         # cells one table has and the other lacks (user audit, session 37: in the JSON only)

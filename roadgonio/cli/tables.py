@@ -42,7 +42,7 @@ def run_table(args) -> int:
         return 0
     say = text_output(args)
     q0 = "missing" if info["Q0"] is None else f"{info['Q0']:.4f} sr^-1"      # not 'missing sr^-1' (audit 22)
-    say(f"{info['table']}: Q0 = {q0}, S1 = {_f(info['S1'], '.3f')}, S2 = {_f(info['S2'], '.2f')}, "
+    say(f"{info['table']}: Q0 = {q0}, S1 = {'missing' if info['S1'] is None else api.s1_text(info['S1'])}, S2 = {_f(info['S2'], '.2f')}, "
         f"{info['cells']} tabulated cells, max r = {_f(None if info['r_max'] is None else info['r_max'] * 1e4, '.4g')} "
         "x 1e-4 sr^-1")
     missing = [k for k in ("S1", "Q0", "S2") if info[k] is None]

@@ -7,11 +7,16 @@ import math
 import numpy as np
 
 from roadgonio.errors import InputError
+from roadgonio.surface.cie import s1_text
 from roadgonio.surface.rtable import RTable
 
 #: Every file ``roadgonio compare`` writes: a run removes those it does not write (``--no-plots``:
 #: compare.png), so an earlier run's picture of other tables never stays beside the new files.
 COMPARE_FILES = ("compare.csv", "compare.json", "compare.png")
+#: A largest |ln ratio| at or below this is no change: the float noise of one table read at two
+#: scales (user audit, session 44: the same R3 from an RTB in sr^-1 and one in r x 1e4 had a
+#: "largest change x1" of 1 - 2.2e-16); a stored table has 6 significant digits.
+RATIO_EQUAL_REL = 1e-12
 
 
 def compare_tables(a: RTable, b: RTable) -> dict:
@@ -19,7 +24,8 @@ def compare_tables(a: RTable, b: RTable) -> dict:
     r(B) = 0 < r(A) gives a ratio of 0 and r(A) = 0 < r(B) an infinite one (in ``ratio``, not in the
     range, the median nor ``cells_compared``, which are of the finite ratios): both are infinite
     changes, counted apart (``cells_zero_in_B``, ``cells_zero_in_A``); a cell 0 in both has no ratio
-    (``cells_ratio_undefined``). ``largest_change_at`` is None when every compared cell is equal."""
+    (``cells_ratio_undefined``). ``largest_change_at`` is None when every compared cell is equal (within
+    :data:`RATIO_EQUAL_REL`)."""
     if not a.same_grid(b):
         raise InputError(f"tables {a.name} and {b.name} are not on the same grid")
     both = a.mask & b.mask
@@ -37,7 +43,7 @@ def compare_tables(a: RTable, b: RTable) -> dict:
     for t in (a, b):
         char[t.name] = {"S1": _try(t.s1), "S2": _try(t.s2), "Q0": _try(t.q0), "cells": int(t.mask.sum())}
     notes = [n for n in (q0_coverage_note(a), q0_coverage_note(b)) if n]
-    largest = None if change[k] == 0 else {"tan_eps": float(a.tan_eps[k[0]]), "beta_deg": float(a.beta_deg[k[1]]),
+    largest = None if change[k] <= RATIO_EQUAL_REL else {"tan_eps": float(a.tan_eps[k[0]]), "beta_deg": float(a.beta_deg[k[1]]),
                                            "ratio": float(ratio[k])}
     return {"A": a.name, "B": b.name, "ratio": ratio, "characteristics": char, "notes": notes,
             "ratio_min": float(got.min()), "ratio_max": float(got.max()), "ratio_median": float(np.median(got)),
@@ -118,7 +124,8 @@ def compare_png(result: dict, a: RTable, b: RTable) -> bytes:
     ca, cb = result["characteristics"][a.name], result["characteristics"][b.name]
     for key, fmt in (("S1", "{:.3f}"), ("S2", "{:.3f}"), ("Q0", "{:.4f}"), ("cells", "{:d}")):
         label = "Q0 (sr^-1)" if key == "Q0" else key                 # its unit (user audit, session 41)
-        rows.append([label] + [("-" if c[key] is None else fmt.format(c[key])) for c in (ca, cb)])
+        rows.append([label] + [("missing" if c[key] is None else s1_text(c[key]) if key == "S1" else fmt.format(c[key]))
+                               for c in (ca, cb)])
     tab = tx.table(cellText=rows, loc="upper center", cellLoc="center")
     tab.scale(1.0, 1.8)
     tab.set_fontsize(11)

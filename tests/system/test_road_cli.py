@@ -230,6 +230,28 @@ def test_compare_without_plots_removes_an_earlier_runs_picture(tmp_path, capsys)
     assert sorted(p.name for p in out.iterdir()) == ["compare.csv", "compare.json", "notes.txt"]
 
 
+def test_table_and_compare_print_s1_on_its_side_of_a_class_limit_and_missing_in_words(tmp_path, capsys):
+    """(user audit, session 44) S1 = 0.84997, class R2 (R3 from 0.85), printed "0.850" by table and
+    compare (classify's digits were mended in session 41 alone); compare printed "-" for a missing S1
+    where the docs and the other commands say "missing"; the same table read at two scales (a ratio
+    1 - 2.2e-16) had a "largest change x1"."""
+    from roadgonio.road.compare import compare_tables
+    t = bundled_table("R3")
+    r = t.r.copy()
+    r[0, 0], r[list(t.tan_eps).index(2.0), 0] = 300e-4, 254.99e-4
+    t.with_values(r, name="edge").write_csv(tmp_path / "edge.csv")
+    assert main(["table", str(tmp_path / "edge.csv")]) == 0
+    assert "S1 = 0.84997," in capsys.readouterr().out
+    assert main(["compare", "R3", str(tmp_path / "edge.csv"), "--no-plots", "--out", str(tmp_path / "c")]) == 0
+    assert " 0.84997" in capsys.readouterr().out.splitlines()[1]
+    r[0, 0] = np.nan
+    t.with_values(r, name="no00").write_csv(tmp_path / "no00.csv")
+    assert main(["compare", "R3", str(tmp_path / "no00.csv"), "--no-plots", "--out", str(tmp_path / "d")]) == 0
+    assert capsys.readouterr().out.splitlines()[1].split()[-1] == "missing"
+    assert compare_tables(t, t.with_values(t.r * (1 - 2.2e-16), name="again"))["largest_change_at"] is None
+    assert compare_tables(t, t.with_values(t.r * (1 + 1e-6), name="scaled"))["largest_change_at"] is not None
+
+
 @pytest.mark.parametrize("name", BUNDLED)
 def test_classify_bundled_tables_fall_in_their_own_class(capsys, name):
     assert main(["classify", name, "--json"]) == 0
