@@ -639,6 +639,26 @@ def _check_grid(values: list[float], expected: np.ndarray, what: str, path, line
                          f"{len(values)} values: {got}", path=path, line=line)
 
 
+def _row_count_hint(rows: list[tuple[int, list[str]]]) -> tuple[str, int]:
+    """Which row of a CSV table with the wrong number of rows breaks the tan eps grid, and its line
+    (user audit, session 44: "expected 29 data rows, found 28" pointed at the file's end, not at the
+    missing tan eps 1.25)."""
+    fewer = len(rows) < len(TAN_EPS_GRID)
+    for k, (lineno, cells) in enumerate(rows):
+        if k >= len(TAN_EPS_GRID):
+            return f"a row beyond tan eps = {TAN_EPS_GRID[-1]:g} ({cells[0].strip()!r})", lineno
+        try:
+            t = float(cells[0].strip())
+        except ValueError:
+            t = math.nan
+        if not abs(t - TAN_EPS_GRID[k]) <= GRID_LABEL_TOL:
+            if fewer:
+                return f"tan eps = {TAN_EPS_GRID[k]:g} is missing (this row is {cells[0].strip()!r})", lineno
+            return (f"tan eps = {cells[0].strip()} where {TAN_EPS_GRID[k]:g} belongs (a repeated or extra row)",
+                    lineno)
+    return (f"tan eps = {', '.join(f'{t:g}' for t in TAN_EPS_GRID[len(rows):])} is missing at the end", rows[-1][0])
+
+
 def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = None, quantity: str = "r") -> RTable:
     """Parse the CSV r-table layout; errors name the file and the line. ``quantity`` is what the values
     are: ``"r"``, or ``"u"`` for a table of standard uncertainties of r (both written x 1e4), or
@@ -680,8 +700,9 @@ def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = Non
         raise InputError(f"no data rows after the header: expected 29 rows of tan_eps and {scaled}",
                          path=path, line=header_line)
     if len(rows) != len(TAN_EPS_GRID):
-        raise InputError(f"expected {len(TAN_EPS_GRID)} data rows (tan eps = 0 ... 12), found {len(rows)}",
-                         path=path, line=rows[-1][0])
+        hint, line = _row_count_hint(rows)
+        raise InputError(f"expected {len(TAN_EPS_GRID)} data rows (tan eps = 0 ... 12), found {len(rows)}: {hint}",
+                         path=path, line=line)
     r = np.full((len(TAN_EPS_GRID), len(BETA_GRID_DEG)), np.nan)
     for i, (lineno, cells) in enumerate(rows):
         if len(cells) != len(BETA_GRID_DEG) + 1:

@@ -411,3 +411,19 @@ def test_two_tables_of_one_name_are_told_apart_by_their_digest(tmp_path):
     r = a.r.copy()
     r[5, 3] = np.nan
     assert a.with_values(r).digest() != a.digest()
+
+
+@pytest.mark.parametrize("edit, said, line", [
+    (lambda rows: rows[:5] + rows[6:], "found 28: tan eps = 1.25 is missing (this row is '1.5')", 8),
+    (lambda rows: rows[:4] + [rows[3]] + rows[4:], "found 30: tan eps = 0.75 where 1 belongs (a repeated or extra row)", 7),
+    (lambda rows: rows[:-1], "found 28: tan eps = 12 is missing at the end", 30),
+])
+def test_a_csv_with_a_row_too_few_or_too_many_names_the_tan_eps_and_its_line(edit, said, line):
+    """(user audit, session 44) 'expected 29 data rows, found 28' pointed at the file's last line and
+    named no tan eps."""
+    from roadgonio.surface.rtable import parse_csv
+    head, *rows = bundled_table("R3").to_csv_text().splitlines()[1:]
+    text = "\n".join(["# R3", head, *edit(rows)])
+    with pytest.raises(InputError) as err:
+        parse_csv(text, path="t.csv")
+    assert said in err.value.reason and err.value.line == line
