@@ -742,6 +742,12 @@ RTB_Q0_SCALE_FACTOR = 2.0
 
 def _rtb_number(text: str, path, line: int, what: str) -> float:
     if "," in text and "." not in text:  # decimal comma (German locale files)
+        if text.count(",") > 1:
+            # values separated by commas on one line (user audit, session 44: the message quoted them
+            # with the commas turned into points, '294.326.344...', text the file does not hold)
+            raise InputError(f"{what}: expected a number, got {text[:40]!r}{'...' if len(text) > 40 else ''}: values "
+                             "separated by commas; an RTB file separates its values by line breaks or spaces "
+                             "(a comma is a decimal comma)", path=path, line=line)
         text = text.replace(",", ".")
     return _parse_number(text, path, line, what)
 
@@ -777,7 +783,12 @@ def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
         nonlocal pos
         if pos >= len(tokens):
             last = tokens[-1][0] if tokens else first + 2
-            raise InputError(f"file ends early: expected {what}", path=path, line=last)
+            # one value short at the end: every value after a missing line moved up by one, and the
+            # likeliest missing line is the q0 line, which then reads as the first r value (user
+            # audit, session 44: "file ends early at line 633" named no cause)
+            short = (" (one value short: is a line missing? without its q0 line the first r value reads "
+                     "as q0)" if what.startswith("r value (tan eps = 12, beta = 180") else "")
+            raise InputError(f"file ends early: expected {what}{short}", path=path, line=last)
         k, tok = tokens[pos]
         pos += 1
         return k, _rtb_number(tok, path, k, what)
@@ -788,9 +799,18 @@ def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
             raise InputError(f"{what}: expected a whole number >= 1, got {v:g}", path=path, line=k)
         return k, int(v)
 
-    k, n_t = count("the number of tan eps values")
-    tans = [take(f"tan eps value {i + 1}")[1] for i in range(n_t)]
-    _check_grid(tans, TAN_EPS_GRID, "the tan eps values", path, k)
+    try:
+        k, n_t = count("the number of tan eps values")
+        tans = [take(f"tan eps value {i + 1}")[1] for i in range(n_t)]
+        _check_grid(tans, TAN_EPS_GRID, "the tan eps values", path, k)
+    except InputError:
+        if _looks_numeric(lines[at]):
+            # the name line missing: the count took its place as the name (user audit, session 44: "the
+            # number of tan eps values: expected a whole number >= 1, got 0")
+            raise InputError(f"line {at + 1} is {lines[at].strip()!r}, a number where the surface's name belongs "
+                             "(line 1 RTable.v1, line 2 the name, then the number of tan eps values): is the name "
+                             "line missing?", path=path, line=at + 1) from None
+        raise
     k, n_b = count("the number of beta values")
     betas = [take(f"beta value {i + 1}")[1] for i in range(n_b)]
     _check_grid(betas, BETA_GRID_DEG, "the beta values", path, k)

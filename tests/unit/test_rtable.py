@@ -427,3 +427,19 @@ def test_a_csv_with_a_row_too_few_or_too_many_names_the_tan_eps_and_its_line(edi
     with pytest.raises(InputError) as err:
         parse_csv(text, path="t.csv")
     assert said in err.value.reason and err.value.line == line
+
+
+@pytest.mark.parametrize("edit, said, line", [
+    (lambda ls: ls[:1] + ls[2:], "line 2 is '29', a number where the surface's name belongs", 2),
+    (lambda ls: ls[:53] + ls[54:], "(one value short: is a line missing? without its q0 line the first r value reads as q0)",
+     633),
+    (lambda ls: ls[:54] + [",".join(ls[54:83])] + ls[83:], "got '294,326,344,357,", 55),
+])
+def test_an_rtb_missing_its_name_or_q0_line_or_with_comma_separated_values_says_so(edit, said, line):
+    """(user audit, session 44) a missing name line was 'the number of tan eps values: ... got 0', a
+    missing q0 line 'file ends early', and values separated by commas were quoted with points."""
+    from roadgonio.surface.rtable import parse_rtb
+    lines = bundled_table("R3").to_rtb_text().splitlines()
+    with pytest.raises(InputError) as err:
+        parse_rtb("\n".join(edit(lines)), path="t.rtb")
+    assert said in err.value.reason and err.value.line == line
