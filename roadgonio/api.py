@@ -406,6 +406,9 @@ def _table_file(path, field: str) -> Path:
     'x.xlsx' got CSV text that `ka --sample` then refused)."""
     if not isinstance(path, (str, Path)):       # audit 22: table_info(to=5) raised a TypeError
         raise InputError(f"expected the path of a .csv or .rtb file, got {type(path).__name__}", field=field)
+    if not str(path).strip():       # Path("") is "." (user audit, session 44: the error named the file ".")
+        raise InputError("expected the path of a .csv or .rtb file to write the table to, got an empty text",
+                         field=field)
     path = Path(path)
     if path.suffix.lower() not in (".csv", ".rtb"):
         raise InputError(f"expected a .csv or .rtb file to write the table to, got '{path.suffix or path.name}'",

@@ -121,6 +121,10 @@ def _make_dir(folder: Path, target: Path) -> None:
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as err:
+        # a file where a folder of the path belongs: say which (user audit, session 44: "File exists")
+        blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+        if blocker is not None:
+            raise InputError(f"cannot write this output file: {blocker} is a file, not a folder", path=target) from None
         raise output_error(target, err) from None
     if not folder.is_dir():
         raise InputError("cannot write this output file (its folder is not a directory)", path=target)

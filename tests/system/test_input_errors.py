@@ -181,6 +181,19 @@ def test_out_that_is_a_file_says_a_folder_was_expected(tmp_path, capsys, monkeyp
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"] and (tmp_path / "afile").read_text() == "hi"
 
 
+def test_table_to_a_file_under_a_file_or_to_nothing_says_what_is_wrong(tmp_path, capsys, monkeypatch):
+    """(user audit, session 44) `table R3 --to afile/x.csv` said "cannot write this output file (File
+    exists)" where afile is a file; `--to ""` named the file "."."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("hi")
+    rc = main(["table", "R3", "--to", "afile/sub/x.csv"])
+    one_line_error(capsys, rc, "afile/sub/x.csv: cannot write this output file: afile is a file, not a folder")
+    rc = main(["table", "R3", "--to", ""])
+    one_line_error(capsys, rc, "field '--to': expected the path of a .csv or .rtb file to write the table to, got an "
+                               "empty text")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"] and (tmp_path / "afile").read_text() == "hi"
+
+
 def test_output_in_proc_is_one_line(capsys, r3_file):
     rc = main(_validate_argv(r3_file, "/proc/roadgonio-no-such-dir"))
     one_line_error(capsys, rc, "/proc/roadgonio-no-such-dir", "cannot write")
