@@ -398,6 +398,15 @@ def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
         info["reading_note"] = read[0].split(": read: ", 1)[1]
     if to is not None:
         info["written"] = str(t.write(_table_file(to, "to")))
+        # 6 significant digits can move S1 across a class limit it sits on (user audit, session 44:
+        # S1 3.3e-7 below 0.85 was R2, the file written R3): said, not silently changed
+        from roadgonio.surface.cie import cie_class
+        back, _ = _table_and_notes(info["written"], "to")
+        before, after = cie_class(t.s1()), cie_class(back.s1())
+        moved = [f"{before[k]} -> {after[k]}" for k in before if before[k] != after[k]]
+        if moved:
+            info["notes"].append(f"the file written has S1 {back.s1():.9g} for {t.s1():.9g} (values to 6 significant "
+                                 f"digits), across a class limit: {', '.join(moved)}")
     return info
 
 

@@ -252,6 +252,20 @@ def test_table_and_compare_print_s1_on_its_side_of_a_class_limit_and_missing_in_
     assert compare_tables(t, t.with_values(t.r * (1 + 1e-6), name="scaled"))["largest_change_at"] is not None
 
 
+def test_table_to_says_when_the_written_values_move_s1_across_a_class_limit(tmp_path, capsys):
+    """(user audit, session 44) S1 3.3e-7 below 0.85 (R2) became 0.85 (R3) in the file `table --to`
+    wrote (6 significant digits), without a word."""
+    t = bundled_table("R3")
+    r = t.r.copy()
+    r[0, 0], r[list(t.tan_eps).index(2.0), 0] = 300e-4, 254.9999e-4
+    t.with_values(r, name="edge").write_csv(tmp_path / "edge.csv", digits=9)
+    assert main(["table", str(tmp_path / "edge.csv"), "--to", str(tmp_path / "edge.rtb"), "--json"]) == 0
+    notes = json.loads(capsys.readouterr().out)["notes"]
+    assert len(notes) == 1 and "across a class limit: R2 -> R3" in notes[0] and "N3" not in notes[0]
+    assert main(["table", "R3", "--to", str(tmp_path / "r3.rtb"), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["notes"] == []
+
+
 @pytest.mark.parametrize("name", BUNDLED)
 def test_classify_bundled_tables_fall_in_their_own_class(capsys, name):
     assert main(["classify", name, "--json"]) == 0
