@@ -1171,7 +1171,7 @@ def _correct_joint(measured, instrument, *, u_measured, sigma, backend, accuracy
 
 def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured: Any = None, rays: int = 512,
                     seed: int = 0, model_variant: str | None = None, min_signal: float | None = None, out=None,
-                    plots: bool = True, progress: bool = False):
+                    plots: bool = True, progress: bool = False, fresh: bool = False):
     """Which second aperture setting should the instrument have (``roadgonio design --second-aperture``;
     docs/design.md, "Which second aperture?")? Ranks every point of the ``vary`` grid (applied to ``instrument``) by the median
     relative u of the one corrected table that a joint correction of the instrument and that
@@ -1181,7 +1181,8 @@ def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured:
     measured) or ``sample`` (anything :func:`roadgonio.surface.sample.resolve_sample` takes, or a
     BRDF model). Returns the :class:`~roadgonio.design.second_aperture.SecondApertureResult`
     (``.best``, ``.candidates``, ``.baselines``, ``.summary()``); with ``out`` second_aperture.csv,
-    .json, best_second.toml and second_aperture.png are written (``.out``, ``.written``)."""
+    .json, best_second.toml and second_aperture.png are written (``.out``, ``.written``); a folder
+    holding another second-aperture study's results is refused before the work unless ``fresh``."""
     from roadgonio.design.second_aperture import DEFAULT_MIN_SIGNAL, DEFAULT_U, second_aperture as _second
     from roadgonio.design.second_aperture import write_second_aperture
     from roadgonio.engines.registry import check_seed
@@ -1203,14 +1204,28 @@ def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured:
     if not (0.0 <= ms <= 1.0):
         raise InputError(f"expected a least signal between 0 and 1 (of the instrument's), got {min_signal!r}",
                          field="min_signal")
-    res = _second(inst, vary, measured=table, sample=smp, u_measured=DEFAULT_U if u_measured is None else u_measured,
-                  rays=_check_int(rays, "rays", 8), seed=check_seed(seed),
-                  model_variant=None if model_variant == "auto" else model_variant, min_signal=ms,
-                  progress=_show(progress))
+    rays, seed = _check_int(rays, "rays", 8), check_seed(seed)
+    # the folder before the work (user audit, session 44: a file as --out was said after 35 s, and a
+    # folder of another study's results was overwritten without a word)
     folder = _out(out, "design", inst.name, "second")
+    fp = None
+    if folder is not None:
+        from roadgonio.fileio import check_run_folder, check_writable, fingerprint
+        from roadgonio.surface.fit import table_hash
+        fp = fingerprint({"instrument": inst.to_dict(), "vary": [str(v) for v in as_vary_specs(vary)],
+                          "measured": None if table is None else table_hash(table),
+                          "sample": None if smp is None else (smp.to_json_dict() if hasattr(smp, "to_json_dict")
+                                                              else repr(smp)),
+                          "u_measured": str(u_measured), "rays": rays, "seed": seed,
+                          "model_variant": model_variant, "min_signal": ms})
+        check_run_folder(folder, "second_aperture.json", fp, what="second-aperture study", fresh=bool(fresh))
+        check_writable(folder)
+    res = _second(inst, vary, measured=table, sample=smp, u_measured=DEFAULT_U if u_measured is None else u_measured,
+                  rays=rays, seed=seed, model_variant=None if model_variant == "auto" else model_variant, min_signal=ms,
+                  progress=_show(progress))
     res.out, res.written = folder, []
     if folder is not None:
-        res.written = write_second_aperture(res, folder, plots=plots)
+        res.written = write_second_aperture(res, folder, plots=plots, fingerprint=fp)
     return res
 
 

@@ -68,7 +68,8 @@ def register(sub) -> None:
     add_mitsuba_variant(p)
     add_dask_arguments(p, "default: a local cluster with one worker per core")
     p.add_argument("--out", metavar="DIR", help="output folder (default out/design-INSTRUMENT)")
-    p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
+    p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming (with "
+                   "--second-aperture: replace another second-aperture study's results there)")
     p.add_argument("--no-plots", action="store_true", help="do not draw pareto.png / tolerance_map.png")
     add_output_options(p, "print the summary as JSON")
     p.set_defaults(func=run, _defaults={d: p.get_default(d) for d in _SWEEP_ONLY + _SECOND_ONLY})
@@ -76,8 +77,7 @@ def register(sub) -> None:
 
 #: options of the k_A sweep that --second-aperture does not use (it predicts u from ray bundles of
 #: the whole table, no k_A backend, no tolerance) and the other way round
-_SWEEP_ONLY = ("tolerance", "cells", "backend", "accuracy", "rel_se", "workers", "scheduler", "fresh",
-               "mitsuba_variant")
+_SWEEP_ONLY = ("tolerance", "cells", "backend", "accuracy", "rel_se", "workers", "scheduler", "mitsuba_variant")
 _SECOND_ONLY = ("measured", "u_measured", "min_signal", "rays")
 
 
@@ -181,7 +181,7 @@ def _run_second(args) -> int:
                               sample=args.samples[0] if args.samples else None, u_measured=args.u_measured,
                               rays=args.rays, seed=args.seed, model_variant=args.model_variant,
                               min_signal=args.min_signal, out=out_arg(args), plots=not args.no_plots,
-                              progress=show_progress(args))
+                              progress=show_progress(args), fresh=args.fresh)
     s = res.summary()
     s["out"], s["written"] = str(res.out), [str(p) for p in res.written]
     if args.json:

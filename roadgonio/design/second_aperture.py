@@ -402,9 +402,11 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
                                           "surface": settings.to_dict()})
 
 
-def write_second_aperture(res: SecondApertureResult, out_dir: str | Path, *, plots: bool = True) -> list[Path]:
-    """second_aperture.csv (every candidate and the baselines), second_aperture.json, best_second.toml
-    (the instrument file of the best second setting) and second_aperture.png, together or not at all."""
+def write_second_aperture(res: SecondApertureResult, out_dir: str | Path, *, plots: bool = True,
+                          fingerprint: str | None = None) -> list[Path]:
+    """second_aperture.csv (every candidate and the baselines), second_aperture.json (with the run's
+    ``fingerprint``, which a later run into the folder is checked against), best_second.toml (the
+    instrument file of the best second setting) and second_aperture.png, together or not at all."""
     import csv
     import io
 
@@ -427,7 +429,8 @@ def write_second_aperture(res: SecondApertureResult, out_dir: str | Path, *, plo
     with OutputGroup(out_dir, replaces=("second_aperture.csv", "second_aperture.json", "best_second.toml",
                                         "second_aperture.png")) as group:
         paths = [group.text("second_aperture.csv", buf.getvalue()),
-                 group.json("second_aperture.json", {**res.summary(), "provenance": prov})]
+                 group.json("second_aperture.json", {**res.summary(), "provenance": prov,
+                                                     **({"fingerprint": fingerprint} if fingerprint else {})})]
         if res.best.instrument is not None:
             d = res.best.instrument.to_dict()
             changes = ", ".join(f"{k} = {v:g}" for k, v in res.best.changes.items())

@@ -1032,3 +1032,32 @@ def test_pareto_draws_a_design_without_signal_apart_from_those_over_tolerance(tm
     # ... and is on no Pareto front (the front ended at it, review session 40): the front is the other two
     front = [ln for ln in got["fig"].axes[0].get_lines() if ln.get_label().startswith("Pareto front")]
     assert len(front) == 1 and min(front[0].get_xdata()) > 0 and len(set(front[0].get_xdata())) == 2
+
+
+def test_second_aperture_checks_its_folder_before_the_work(tmp_path, monkeypatch):
+    """(user audit, session 44) `design --second-aperture --out afile` said 'it is a file' after 35 s of
+    work, and a folder of another second-aperture study's results was overwritten without a word. Now
+    both before the work (the ranking, here a stand-in that counts its calls); --fresh replaces."""
+    import json
+
+    import roadgonio.design.second_aperture as sa
+    from roadgonio.cli import main
+    calls = []
+
+    def ranked(*args, **kwargs):
+        calls.append(1)
+        return _second_result()
+    monkeypatch.setattr(sa, "second_aperture", ranked)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("hi")
+    argv = ["design", "--second-aperture", "--instrument", "portable", "--sample", "lambert", "--vary",
+            "detector.field_half_angle_deg=0.1,0.2", "--no-plots", "--json", "--out"]
+    assert main(argv + ["afile"]) == 2 and calls == []
+    assert main(argv + ["s"]) == 0 and len(calls) == 1
+    fp = json.loads((tmp_path / "s" / "second_aperture.json").read_text())["fingerprint"]
+    assert main(argv + ["s"]) == 0 and len(calls) == 2               # the same study again: its own folder
+    other = [a.replace("0.1,0.2", "0.1,0.3") for a in argv]
+    assert main(other + ["s"]) == 2 and len(calls) == 2              # another study: refused, nothing done
+    assert json.loads((tmp_path / "s" / "second_aperture.json").read_text())["fingerprint"] == fp
+    assert main(other + ["s", "--fresh"]) == 0 and len(calls) == 3
+    assert json.loads((tmp_path / "s" / "second_aperture.json").read_text())["fingerprint"] != fp
