@@ -265,6 +265,14 @@ def check_nominal_geometry(mm, *, aperture: bool) -> None:
             check_detector(inst)
         for t, b in zip(mm.cells.tan_eps, mm.cells.beta_deg):
             check_source(inst, float(t), float(b))
+        from roadgonio.instrument.housing import Housing
+        housing = Housing.of(inst)
+        if housing is not None:
+            # the housing as built, at no error (user audit, session 44: a lid that blocks the nominal
+            # source was blamed on the smallest sigma of the SPEC, which no sigma could satisfy)
+            from roadgonio.instrument.enclosure import check_detector_view, check_sources
+            check_detector_view(inst, housing)
+            check_sources(inst, housing, [(float(t), float(b)) for t, b in zip(mm.cells.tan_eps, mm.cells.beta_deg)])
 
 
 def check_spec_geometry(spec: SigmaSpec, mm, *, aperture: bool, option: str = "sigma") -> None:

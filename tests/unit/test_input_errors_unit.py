@@ -78,6 +78,24 @@ def test_an_instrument_that_cannot_measure_is_its_own_error_not_the_specs(r3like
         check_spec_geometry(spec, low, aperture=False)
 
 
+def test_a_housing_that_blocks_the_nominal_source_is_the_instruments_error_not_the_specs(r3like):
+    """(user audit, session 44) a lid of 0.3 m over the portable's sources blocks them at no error at
+    all; intercompare and uncertainty blamed the smallest sigma ("expected smaller standard
+    deviations", sigma eps_deg = 0.0001 too). Now the instrument's error, naming housing.height_m."""
+    from roadgonio.errors import GeometryError
+    from roadgonio.instrument.config import load_instrument
+    from roadgonio.uncertainty.cells import CellSet
+    from roadgonio.uncertainty.measurement import MeasurementModel
+    from roadgonio.uncertainty.spec import check_spec_geometry, parse_sigma_spec
+    low = load_instrument("portable_housed").with_changes(housing={"height_m": 0.3})
+    mm = MeasurementModel(r3like, low, CellSet.make("standard"))
+    with pytest.raises((GeometryError, InputError), match="housing blocks the source") as err:
+        check_spec_geometry(parse_sigma_spec("eps_deg=0.0001"), mm, aperture=True)
+    assert err.value.field == "housing.height_m"
+    check_spec_geometry(parse_sigma_spec("eps_deg=0.0001"), MeasurementModel(
+        r3like, load_instrument("portable_housed"), CellSet.make("standard")), aperture=True)
+
+
 def test_every_trial_is_checked(r3like):
     from roadgonio.instrument.config import load_instrument
     from roadgonio.uncertainty.cells import CellSet
