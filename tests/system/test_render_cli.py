@@ -160,3 +160,21 @@ def test_render_png_says_which_axis_of_the_illuminance_is_stretched(mi, tmp_path
                      "--out", str(tmp_path / out), "--resolution", "8", "--spp", "4", "-q"]) == 0
     illum = [t for t in titles if t.startswith("Horizontal illuminance")]
     assert len(illum) == 2 and "y stretched" in illum[0] and "x stretched" in illum[1], titles
+
+
+def test_render_of_parts_that_shade_the_footprint_has_the_k_a_engines_shadow_edge(mi, tmp_path):
+    """(user audit, session 44) the holder's wall shades the footprint at tan eps 12: render lit it
+    with Mitsuba's `direct` integrator, whose shadow rays start lifted off the sample, so its k_A at
+    12 / 2 was 1.0100789 +- 4.6e-7 where the auditor's float64 integral gives 1.0101046 +- 3.8e-7
+    (2.6e-5, ~50 SE; the engine's shadow ray is checked at its edge in tests/plugin/test_shadow_ray.py).
+    A shaded scene is now lit by the k_A engine's integrator: render and `ka` agree within their SEs."""
+    from roadgonio import api
+    out = tmp_path / "r"
+    assert main(["render", "--instrument", "holder", "--sample", "R3", "--tan-eps", "12", "--beta", "2",
+                 "--out", str(out), "--resolution", "128", "--spp", "64", "-q"]) == 0
+    info = json.loads((out / "render.json").read_text())
+    cell = api.ka_cell("holder", "R3", 12.0, 2.0, rel_se=3e-6)
+    se = float(np.hypot(info["k_a_se"], cell.se))
+    assert se < 5e-6                              # the old render's 2.6e-5 would be beyond 5 of these
+    assert abs(info["k_a_estimate"] - cell.k_a) < 5.0 * se, (info["k_a_estimate"], cell.k_a, se)
+    assert info["provenance"]["settings"]["integrator"] == "kabatch"
