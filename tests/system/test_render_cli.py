@@ -178,3 +178,18 @@ def test_render_of_parts_that_shade_the_footprint_has_the_k_a_engines_shadow_edg
     assert se < 5e-6                              # the old render's 2.6e-5 would be beyond 5 of these
     assert abs(info["k_a_estimate"] - cell.k_a) < 5.0 * se, (info["k_a_estimate"], cell.k_a, se)
     assert info["provenance"]["settings"]["integrator"] == "kabatch"
+
+
+def test_render_png_draws_unlit_ground_apart_from_the_log_scale(mi, tmp_path):
+    """(user audit, session 44) on the log-scale illuminance panel, unlit ground (E_h = 0: the wide preset
+    at tan eps 12, behind the source disc's plane, 60 % of the window) was drawn in the scale's darkest
+    colour, which stands for ~0.02 lx/lx: it looked dimly lit. It is grey now, with a legend entry."""
+    import matplotlib.image as mpimg
+    from roadgonio.engines.mitsuba.images import UNLIT_GREY
+    out = tmp_path / "w"
+    assert main(["render", "--instrument", "wide", "--sample", "lambert", "--tan-eps", "12", "--beta", "0",
+                 "--out", str(out), "--resolution", "16", "--spp", "4", "-q"]) == 0
+    png = mpimg.imread(out / "render.png")[..., :3]
+    grey = np.all(np.abs(png - float(UNLIT_GREY)) < 0.01, axis=-1)
+    lower = grey[png.shape[0] // 2:]             # the illuminance panel
+    assert lower.mean() > 0.2, lower.mean()      # the unlit part of the window, and the legend's patch

@@ -452,6 +452,8 @@ def _hull(x, y):
     return pts[v, 0], pts[v, 1]
 
 
+#: render.png's colour of unlit ground (E_h = 0) on its log-scale illuminance panel: outside the scale
+UNLIT_GREY = "0.75"
 #: render.png draws E_h on a log scale when its largest value is E_LOG_SPAN times the footprint's median
 #: E_h; the smallest value it shows is at least the largest / E_LOG_DECADES_MAX (1e4: four decades)
 E_LOG_SPAN = 20.0
@@ -527,6 +529,7 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
 
     ax = axes[1]
     x0, x1, y0, y1 = window
+    unlit: list = []          # a legend entry for unlit ground on the log scale
     fx, fy = outline
     # a logarithmic scale where E spans decades over the footprint: at grazing light on the wide preset the
     # spot under the source's foot (E 56) left the rest of the footprint (0.01-0.6) uniformly dark on a
@@ -543,9 +546,16 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
         norm = LogNorm(vmin=max(float(np.percentile(lit, 1.0)), top_e / E_LOG_DECADES_MAX), vmax=top_e)
         from matplotlib import colormaps
         base = colormaps["viridis"]
-        cmap = base.with_extremes(bad=base(0.0))        # unlit (E = 0) drawn as the scale's darkest
+        # unlit (E = 0) in grey, apart from the scale, and E below its bottom as the bar's extension: both
+        # were the scale's darkest colour, which stands for light (user audit, session 44: 60 % of the
+        # wide preset's window, behind the source disc's plane, looked dimly lit)
+        cmap = base.with_extremes(bad=UNLIT_GREY, under=base(0.0))
         im = ax.imshow(np.where(E > 0, E, np.nan), extent=(x0, x1, y0, y1), origin="upper", cmap=cmap,
                        aspect="auto", norm=norm)
+        if np.any(E <= 0):
+            from matplotlib.patches import Patch
+            unlit = [Patch(facecolor=UNLIT_GREY, edgecolor="0.4", label="unlit (E$_h$ = 0)")]
+        below = bool(np.any((E > 0) & (E < norm.vmin)))
     else:
         im = ax.imshow(E, extent=(x0, x1, y0, y1), origin="upper", cmap="viridis", aspect="auto", vmin=0)
     if max(np.ptp(fx), np.ptp(fy)) <= 1e-9 * max(x1 - x0, y1 - y0):
@@ -559,8 +569,8 @@ def _png(path: Path, instrument: Instrument, view, E, window, outline, info) -> 
     ax.set_xlabel(words["x_label"])
     ax.set_ylabel("y (m)")
     ax.set_title(words["illuminance_title"], fontsize=10)
-    ax.legend(loc="upper right", fontsize=8)
-    cb = fig.colorbar(im, ax=ax, shrink=0.9)
+    ax.legend(handles=ax.get_legend_handles_labels()[0] + unlit, loc="upper right", fontsize=8)
+    cb = fig.colorbar(im, ax=ax, shrink=0.9, extend="min" if log and below else "neither")
     # two lines: on one the label ran off the figure at its start (user audit, session 40)
     cb.set_label("illuminance E$_h$ (lx per lx normal\nto the source axis at the sample centre"
                  + (")\nlog scale" if log else ")"))
