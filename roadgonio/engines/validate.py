@@ -403,6 +403,10 @@ def report_json(report: dict[str, Any]) -> dict[str, Any]:
     return doc
 
 
+#: validate.png draws k_A on a log axis when the values span more than this factor
+K_A_LOG_SPAN = 10.0
+
+
 def _bar(errors):
     """Error-bar half-lengths: 0 where an error is not finite (none stated, or inf)."""
     import numpy as np
@@ -434,8 +438,10 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
     for i, (h, label) in enumerate(bars):
         if label == "not measured":
             ax1.plot(x[i], 0.0, "x", color=colour[rows[i].verdict], ms=9, mew=2)
-            ax1.annotate(label, (x[i], 0.0), xytext=(0, -8), textcoords="offset points", rotation=90, ha="center",
-                         va="top", fontsize=8, bbox=boxed)
+            # upwards, inside the panel (user audit, session 44: downwards it ran across the axis into
+            # the panel below)
+            ax1.annotate(label, (x[i], 0.0), xytext=(0, 8), textcoords="offset points", rotation=90, ha="center",
+                         va="bottom", fontsize=8, bbox=boxed)
         elif label:
             up = h >= 0
             ax1.plot(x[i], h, "^" if up else "v", color="k", ms=7)
@@ -470,6 +476,15 @@ def plot(report: dict[str, Any], path: str | Path) -> Path:
                  label=f"{report['against']} (+-1 SE)")
     ax2.axhline(1.0, color="0.5", lw=0.8)
     ax2.set_ylabel("k_A")
+    # k_A over decades (a lobe far narrower than the apertures: 0.8 and 926 in one report) on a log axis,
+    # limited to the values with a margin: on a linear one the cells near 1 sat on zero and an error bar
+    # of an unresolved cell stretched it to 1e12 (user audit, session 44)
+    shown = np.r_[kq, km]
+    shown = shown[np.isfinite(shown) & (shown > 0)]
+    if shown.size and shown.max() > K_A_LOG_SPAN * shown.min():
+        ax2.set_yscale("log")
+        ax2.set_ylim(shown.min() / 2.0, shown.max() * 2.0)
+        ax2.set_ylabel("k_A (log scale)")
     ax2.set_xticks(x)
     ax2.set_xticklabels(labels, rotation=45, ha="right")
     ax2.set_xlabel("cell: tan eps / beta (deg)")

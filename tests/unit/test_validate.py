@@ -262,3 +262,20 @@ def test_validate_takes_its_backends_from_the_registry(monkeypatch):
     against = next(a for a in sub.choices["validate"]._actions if "--against" in a.option_strings)
     assert "numpy-mc-2" in against.choices
     assert set(api.validate_backends("reference")) == {"reference", "quadrature", "numpy-mc-mesh"}
+
+
+def test_validate_plot_draws_k_a_over_decades_on_a_log_axis(tmp_path, monkeypatch):
+    """(user audit, session 44) k_A 0.82 and 926 in one report (a lobe far narrower than the apertures)
+    on a linear axis put the cells near 1 on zero; the axis is logarithmic there, linear otherwise."""
+    import roadgonio.fileio as F
+    drawn = {}
+
+    def keep(fig, path, **kw):
+        drawn["scale"] = fig.axes[1].get_yscale()
+        return path
+    monkeypatch.setattr(F, "atomic_savefig", keep)
+    for ks, scale in (((0.82, 926.0), "log"), ((0.82, 1.05), "linear")):
+        rows = [V.compare(ref_cell(k, 1e-4 * k), mc_cell(k, 1e-4 * k)) for k in ks]
+        V.plot({"rows": rows, "n_sigma": V.N_SIGMA, "against": "mitsuba", "reference": "quadrature",
+                "verdict": "agree", "counts": V.counts(rows)}, tmp_path / "v.png")
+        assert drawn["scale"] == scale
