@@ -755,6 +755,29 @@ def test_a_housing_that_reflects_is_an_item_and_its_idealisation_drops_the_housi
         (housed.source, housed.detector, housed.observation, housed.calibration, housed.sample)
 
 
+def test_the_aperture_effect_item_of_a_housed_participant_says_it_holds_the_stray_light():
+    """(user audit, session 44) "aperture effect as a whole (k_A = 1)" took most of a bright housing's
+    +19 pp under the apertures' name: a housed participant's k_A carries its stray light (a black
+    housing, which only shades, does not)."""
+    from types import SimpleNamespace
+
+    from roadgonio.instrument.config import Instrument, load_instrument
+    from roadgonio.intercomparison.simulate import ParticipantModel, Setup
+    from roadgonio.uncertainty.spec import parse_sigma_spec
+    housed = load_instrument("portable_housed")
+    d = housed.to_dict()
+    d["housing"] = {**d["housing"], "wall_reflectance": 0.0}
+    black = Instrument.from_dict(d, path=housed.path)
+
+    def pm(inst):
+        return ParticipantModel("X", "raw", SimpleNamespace(instrument=inst, cells=[0]), parse_sigma_spec("alpha_deg=0"),
+                                0.01, 0.0, ("repeatability",), 0.0)
+    setup = Setup(None, None, [pm(i) for i in (housed, load_instrument("portable"), black)], [], 0, 1, 2.0)
+    labels = [dict(setup.characteristics(k, corrected=False))["aperture_effect"] for k in range(3)]
+    assert labels == ["aperture effect and the housing's stray light as a whole (k_A = 1)",
+                      "aperture effect as a whole (k_A = 1)", "aperture effect as a whole (k_A = 1)"]
+
+
 def test_a_misaligned_housed_instrument_keeps_its_housing_where_it_was_built():
     """(user audit, session 39) the default box follows the parts, so the uncertainty's (and the
     intercomparison's) perturbed instruments carried the walls along with a misplaced source: d ln k_A /
