@@ -196,10 +196,8 @@ def _run_second(args) -> int:
     say(f"  ranked {n['ranked']}; not ranked: {n['below_min_signal']} below --min-signal "
         f"{res.settings['min_signal']:g} of the instrument's signal, {n['not_feasible']} unable to measure every cell"
         + (", the instrument's own setting (its second measurement is 'measured twice')" if n["own_setting"] else ""))
-    extra = res.instrument.extra if hasattr(res.instrument.extra, "get") else {}
-    if extra.get("housing") is not None or extra.get("scene"):
-        say("  note: the prediction's ray bundles leave out the instrument's housing / scene parts (their shade "
-            "and stray light), as the surface fit of `correct` does")
+    for note in res.scope_notes():
+        say(f"  note: {note}")
     say(f"  alone: median u {100 * a.u_median:.2f} %, u(S1) {100 * a.u_s1_rel:.2f} %; measured twice: "
         f"{100 * t.u_median:.2f} %, {100 * t.u_s1_rel:.2f} %")
     say("  best second setting: " + ", ".join(f"{k} = {v:g}" for k, v in b.changes.items())

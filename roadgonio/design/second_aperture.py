@@ -81,6 +81,10 @@ U_S1_PAIR_RATIO = (0.32, 1.95)
 #: audit's own truth and forward model, a 0.08 deg field as the second setting) 0.89-0.98 over three.
 #: The ranking is by the predicted u.
 U_MEDIAN_PAIR_RATIO = (0.42, 1.72)
+#: Predicted median u within this fraction of the lowest are not told apart: the ray bundles' seed
+#: moved the "measured twice" baseline by 6e-4 of itself (user audit, session 44: 0.13196 against
+#: 0.13202 % for 16 times the light); the brightest of them is the best (:func:`prefer_brightest`).
+U_SAME_REL = 1e-3
 
 
 @dataclass
@@ -170,8 +174,25 @@ class SecondApertureResult:
                 "that u was calibrated; 0.9-1.0 x on a surface outside eq. 4; 0.9-1.7 x for measuring twice, "
                 "where it was conservative; measured, docs/correction.md)")
 
+    def scope_notes(self) -> list[str]:
+        """What the prediction leaves out of this instrument (terminal and JSON ``notes``)."""
+        notes = []
+        cells = self.instrument.cells
+        if not cells.all_cells:
+            # user audit, session 44: fixed-led measures 27 cells and fills the rest, and the prediction
+            # spoke for a table measured in every cell without a word
+            notes.append(f"the prediction assumes every cell of the table is measured; '{self.instrument.name}' "
+                         f"measures {len(cells.measured)} and fills the rest ({cells.fill}), so its corrected table's "
+                         "u is larger than predicted")
+        extra = self.instrument.extra if hasattr(self.instrument.extra, "get") else {}
+        if extra.get("housing") is not None or extra.get("scene"):
+            notes.append("the prediction's ray bundles leave out the instrument's housing / scene parts (their shade "
+                         "and stray light), as the surface fit of `correct` does")
+        return notes
+
     def summary(self) -> dict[str, Any]:
         return {"instrument": self.instrument.name, "surface_from": self.surface_from, "keys": self.keys,
+                "notes": self.scope_notes(),
                 "best": self.best.row(), "baselines": [b.row() for b in self.baselines], "counts": self.counts(),
                 "gain_over_twice": self.gain_over_twice, "beats_twice": self.beats_twice, "verdict": self.verdict(),
                 "u_S1_note": self.u_s1_note(), "u_note": self.u_note(),
@@ -200,6 +221,24 @@ def _u_of(parts, theta, cov, u_rel, tables, extra=None, nominal=()) -> tuple[np.
     grid[tables[0].mask] = np.exp(lnr)
     f = functionals(tables[0].with_values(grid), C)
     return u, f["u_S1"] / f["S1"], f["S1"]
+
+
+def prefer_brightest(cands: list[Candidate], min_signal: float) -> None:
+    """Among the ranked settings whose median u is within :data:`U_SAME_REL` of the lowest (sorted
+    first), put the one with the most signal first, with a note: the prediction does not tell them
+    apart (user audit, session 44: 5 mm over 20 mm, u 0.131961 against 0.132020 %, 16x less light)."""
+    ranked = [c for c in cands if c.ranked(min_signal)]
+    if not ranked:
+        return
+    same = [c for c in ranked if c.u_median <= ranked[0].u_median * (1.0 + U_SAME_REL)]
+    bright = max(same, key=lambda c: c.signal)
+    if bright is ranked[0]:
+        return
+    bright.note = ((bright.note + "; ") if bright.note else "") + (
+        f"median u within {100 * U_SAME_REL:g} % of the lowest ({100 * ranked[0].u_median:.4g} %, "
+        f"{_changes(ranked[0].changes)}), which the prediction does not tell apart: the one with the most signal")
+    cands.remove(bright)
+    cands.insert(0, bright)
 
 
 def _changes(changes: dict[str, float]) -> str:
@@ -258,6 +297,11 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
     if not specs:
         raise InputError("expected at least one --vary KEY=... for the second aperture", field="vary")
     check_second_keys(instrument, specs)
+    if instrument.is_ideal():
+        # user audit, session 44: the collimated preset's signal is 0, every relative signal NaN, and the
+        # refusal advised a lower --min-signal, which ranks nothing
+        raise InputError(f"'{instrument.name}' is an ideal instrument (point source and pinhole: k_A = 1, no signal "
+                         "to compare): it has no aperture effect for a second setting to help", field="instrument")
     rays = int(rays or DEFAULT_RAYS)
     settings = SurfaceSettings()
     if measured is not None:
@@ -386,6 +430,7 @@ def second_aperture(instrument: Instrument, vary, *, measured=None, sample=None,
             import sys
             print(f"roadgonio design: second aperture {k + 1}/{len(points)}", file=sys.stderr, flush=True)
     cands.sort(key=lambda c: (not c.ranked(min_signal), c.u_median, c.u_s1_rel))
+    prefer_brightest(cands, min_signal)
     if not (cands and cands[0].ranked(min_signal)):
         # every setting that could measure gave a u that is not finite (not seen): refused as above
         measured_ok = [c for c in cands if not c.own and math.isfinite(c.u_median)]

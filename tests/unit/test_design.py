@@ -1061,3 +1061,39 @@ def test_second_aperture_checks_its_folder_before_the_work(tmp_path, monkeypatch
     assert json.loads((tmp_path / "s" / "second_aperture.json").read_text())["fingerprint"] == fp
     assert main(other + ["s", "--fresh"]) == 0 and len(calls) == 3
     assert json.loads((tmp_path / "s" / "second_aperture.json").read_text())["fingerprint"] != fp
+
+
+def test_second_aperture_prefers_the_brightest_among_settings_the_prediction_cannot_tell_apart():
+    """(user audit, session 44) the best second setting threw away 16x the light for a median u 0.045 %
+    lower (0.131961 against 0.132020 %), below what the ray bundles' seed moves: among settings within
+    U_SAME_REL of the lowest u, the brightest is first, said so; a clearly lower u still wins."""
+    from roadgonio.design.second_aperture import U_SAME_REL, Candidate, prefer_brightest
+
+    def cand(u, sig):
+        return Candidate(f"u {u}", {"source.radius_m": sig}, None, u, u, u, u, signal=sig)
+    dim, bright, far = cand(0.00131961, 0.25), cand(0.00131961 * (1 + 0.5 * U_SAME_REL), 4.0), cand(0.0014, 16.0)
+    cands = [dim, bright, far]
+    prefer_brightest(cands, 0.25)
+    assert cands[0] is bright and "does not tell apart" in bright.note and cands[1:] == [dim, far]
+    clear = cand(0.00131961 * (1 + 3 * U_SAME_REL), 4.0)
+    cands = [dim, clear, far]
+    prefer_brightest(cands, 0.25)
+    assert cands == [dim, clear, far]
+
+
+def test_second_aperture_says_what_its_prediction_leaves_out_and_refuses_an_ideal_instrument():
+    """(user audit, session 44) for fixed-led, which measures 27 cells and fills the rest, the prediction
+    spoke for a table measured everywhere without a word; the collimated preset (signal 0, every relative
+    signal NaN) was told to lower --min-signal, which ranks nothing."""
+    from dataclasses import replace
+
+    from roadgonio import api
+    res = _second_result()
+    assert any("housing" in n for n in res.scope_notes()) and res.summary()["notes"] == res.scope_notes()
+    led = replace(res, instrument=load_instrument("fixed-led"))
+    n = len(load_instrument("fixed-led").cells.measured)
+    assert [note for note in led.scope_notes() if f"measures {n} and fills the rest" in note]
+    assert replace(res, instrument=load_instrument("portable")).scope_notes() == []
+    with pytest.raises(InputError, match="ideal instrument .* no aperture effect") as err:
+        api.second_aperture("collimated", ["source.radius_m=0.01"], sample="R3", min_signal=0)
+    assert err.value.field == "instrument"
