@@ -247,7 +247,10 @@ def _participant(k: int, d: Any, path) -> Participant:
             # an error in the participant's own file was told as the study's field 'participant[k].instrument')
             raise InputError(f"{err.reason} ({fld}'s instrument, from {path if path is not None else 'the study'})",
                              path=err.path, line=err.line, field=err.field) from None
-        raise InputError(f"{err.reason} (the participant's instrument)", path=path, field=f"{fld}.instrument") from None
+        # the file looked for, by its path (user audit, session 44: 'no such instrument file' named none)
+        looked = f" {err.path}:" if err.path is not None else ""
+        raise InputError(f"{looked} {err.reason} (the participant's instrument)".lstrip(), path=path,
+                         field=f"{fld}.instrument") from None
     if "calibration" in d:
         cal = d["calibration"]
         if not isinstance(cal, Mapping):

@@ -36,7 +36,9 @@ def collimated(tmp_path):
     (lambda d: d["participant"][0].update(sigma="alpha=0.1"), "participant[1].sigma alpha", "unknown key"),
     (lambda d: d["participant"][0].update(stated=["aperture"]), "participant[1].stated", "unknown stated"),
     (lambda d: d["participant"][1].update(name="A"), "participant.name", "two participants"),
-    (lambda d: d["participant"][0].update(instrument="nope.toml"), "participant[1].instrument", "no such"),
+    # the file looked for named (user audit, session 44)
+    (lambda d: d["participant"][0].update(instrument="nope.toml"), "participant[1].instrument",
+     "nope.toml: no such instrument file"),
     (lambda d: d["shared"].append({"name": "t", "kind": "reference_tile", "u_rel": 0.01, "participants": ["A", "Z"]}),
      "shared[1].participants", "no participant named"),
     (lambda d: d["shared"].append({"name": "t", "kind": "angle_standard", "u_rel": 0.01, "participants": ["A", "B"]}),
