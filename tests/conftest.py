@@ -134,13 +134,13 @@ def _bad_table_cases():
         ("missing header", ".csv", no_header, 2, ["header", "tan_eps"]),
         ("non-numeric cell", ".csv", "\n".join(non_numeric), 7, ["expected a number", "abc"]),
         ("wrong grid", ".csv", "\n".join(wrong_grid), 2, ["standard grid"]),
-        ("negative value", ".csv", "\n".join(negative), 11, [">= 0", "-12"]),
+        ("negative value", ".csv", "\n".join(negative), 11, ["must not be negative", "-12"]),
         ("empty file", ".csv", "", None, ["empty"]),
         ("comments only", ".csv", "# nothing\n", None, ["empty"]),
         ("semicolons", ".csv", "\n".join(ln.replace(",", ";") for ln in lines), 2, ["separator", "comma",
                                                                                    "semicolons"]),
         ("rtb missing header", ".rtb", "\n".join(rtb[1:]), 1, ["RTable.v1"]),
-        ("rtb negative", ".rtb", "\n".join(rtb_neg), 55, [">= 0"]),
+        ("rtb negative", ".rtb", "\n".join(rtb_neg), 55, ["must not be negative", "0 is a blank in RTB"]),
         ("rtb empty", ".rtb", "", None, ["empty"]),
     ]
 

@@ -286,7 +286,8 @@ def check_r_values(r: np.ndarray, field: str = "table") -> None:
     if np.isinf(r).any():
         raise InputError(f"expected finite r (NaN = blank), got {r[np.isinf(r)][0]} {where(np.isinf(r))}", field=field)
     if (r < 0).any():
-        raise InputError(f"r must be >= 0, got {r[r < 0][0]:g} {where(r < 0)}", field=field)
+        raise InputError(f"r must not be negative, got {r[r < 0][0]:g} {where(r < 0)} (a cell not measured is blank, "
+                         "NaN; fit and correct refuse a 0 too)", field=field)
     if (r > R_MAX_PLAUSIBLE).any():
         raise InputError(f"r = {r[r > R_MAX_PLAUSIBLE][0]:g} sr^-1 {where(r > R_MAX_PLAUSIBLE)} is not a plausible road "
                          f"value (expected r <= {R_MAX_PLAUSIBLE:g} sr^-1; r itself, not r x 1e4)", field=field)
@@ -718,7 +719,10 @@ def parse_csv(text: str, *, path: str | Path = "<table>", name: str | None = Non
                 continue
             v = _parse_number(c, path, lineno, f"beta = {BETA_GRID_DEG[j]:g} column")
             if v < 0:
-                raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: {quantity} must be >= 0, got {c}",
+                # (the wide audit, session 43: ">= 0" read as if a 0 were a reading; fit and correct refuse it)
+                raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: {quantity} must not be negative, got {c}"
+                                 + (" (a cell not measured is left empty; fit and correct refuse a 0 too)"
+                                    if quantity == "r" else ""),
                                  path=path, line=lineno)
             if scale == R_SCALE and v / R_SCALE > R_MAX_PLAUSIBLE:
                 raise InputError(f"beta = {BETA_GRID_DEG[j]:g} column: {quantity} x 1e4 = {c} is not a plausible road "
@@ -820,7 +824,8 @@ def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
         for i in range(len(TAN_EPS_GRID)):
             k, x = take(f"r value (tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g})")
             if x < 0:
-                raise InputError(f"r must be >= 0 (tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g}), "
+                raise InputError(f"r must not be negative (tan eps = {TAN_EPS_GRID[i]:g}, beta = {BETA_GRID_DEG[j]:g}; "
+                                 "0 is a blank in RTB), "
                                  f"got {x:g}", path=path, line=k)
             if x > 0:
                 v[i, j] = x

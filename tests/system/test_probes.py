@@ -890,8 +890,8 @@ def _diag_only(v):
     return out
 
 
-probe("write-negative", "writers", "api", _write(_neg), must=(">= 0",), expect="either", check=_readable())
-probe("write-negative-rtb", "writers", "api", _write(_neg, ".rtb"), must=(">= 0",), expect="either", check=_readable())
+probe("write-negative", "writers", "api", _write(_neg), must=("must not be negative",), expect="either", check=_readable())
+probe("write-negative-rtb", "writers", "api", _write(_neg, ".rtb"), must=("must not be negative",), expect="either", check=_readable())
 probe("write-inf", "writers", "api", _write(_inf), must=("finite",), expect="either", check=_readable())
 probe("write-all-nan", "writers", "api", _write(lambda v: v * np.nan), must=("no values",), expect="either",
       check=_readable())

@@ -377,7 +377,7 @@ def test_road_says_why_ti_is_missing_and_u_files_speak_of_u(tmp_path, capsys):
     assert ",-" in (tmp_path / "u.csv").read_text()
     rc = main(["road", "--table", "R3", "--u", str(tmp_path / "u.csv"), "--trials", "2000"])
     err = capsys.readouterr().err
-    assert rc == 2 and "u must be >= 0" in err and "r must" not in err
+    assert rc == 2 and "u must not be negative" in err and "r must" not in err
 
 
 def test_road_and_compare_record_their_input_files(tmp_path, capsys):

@@ -193,10 +193,10 @@ def test_negative_u_says_u(tmp_path):
     p = bundled_table("R3").write_csv(tmp_path / "u.csv")
     text = p.read_text().replace("\n5,", "\n5,-", 1)
     p.write_text(text)
-    with pytest.raises(InputError, match=r"u must be >= 0, got -") as ei:
+    with pytest.raises(InputError, match=r"u must not be negative, got -") as ei:
         load_table(p, quantity="u")
     assert "r must" not in str(ei.value)
-    with pytest.raises(InputError, match=r"r must be >= 0, got -"):
+    with pytest.raises(InputError, match=r"r must not be negative, got -.*fit and correct refuse a 0 too"):
         load_table(p)
 
 
