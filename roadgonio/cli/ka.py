@@ -48,8 +48,8 @@ def register(sub) -> None:
     p.add_argument("--beta", type=float, metavar="B", help="one cell: beta in degrees")
     p.add_argument("--cells", default="all", metavar="all|table|LIST",
                    help="all = the full 580-cell grid (default); table = only the cells tabulated in the "
-                        "sample's r-table (blank cells stay blank); LIST = T:B,T:B,... (tan eps : beta deg), "
-                        "e.g. 12:0,12:2,4:0")
+                        "sample's r-table (blank cells stay blank); LIST = T:B,T:B,... (tan eps : beta deg) "
+                        "on the CIE grid, e.g. 12:0,12:2,4:0 (--tan-eps/--beta take any one cell)")
     p.add_argument("--out", metavar="DIR", help="output folder for a table (default: out/ka-INSTRUMENT-SAMPLE)")
     p.add_argument("--fresh", action="store_true", help="discard the partial results in --out instead of resuming")
     add_output_options(p, 'one cell: print {"k_a", "se", "se_dof", "error_bound", "confidence_bound", "confidence_level", '
@@ -98,7 +98,9 @@ def run(args) -> int:
                                  if c.stray_fraction != 0.0 else "")
                               # a converged cell's note (a not converged one says it above)
                               + (f". Note: {c.extra['note']}" if c.converged and (c.extra or {}).get("note") else ""))
-        return 0
+        # a cell the backend could not measure is no result: exit 3, as validate's inconclusive (user
+        # audit, session 44: under -q a NaN k_A exited 0, and -q says the exit status tells the result)
+        return 0 if math.isfinite(c.k_a) else EXIT_NOT_MEASURED
 
     args.on_interrupt = ("interrupted: the finished cells are kept in the output folder's journal (with the Mitsuba "
                          "backend also the other cells' last completed pass, ka_passes.json); run the same command "
@@ -109,9 +111,10 @@ def run(args) -> int:
         ds = api.ka_table(args.instrument, args.sample, cells=args.cells, out=out_arg(args),
                           progress=show_progress(args), figures=figures, **common)
     s = json.loads(ds.attrs["summary"])
+    rc = EXIT_NOT_MEASURED if s.get("not_measured") else 0
     if args.json:
         print_json({"out": ds.attrs["out"], **s})
-        return 0
+        return rc
     say = text_output(args)
     resumed = _resumed_text(s)
     if s["cells_asked"] == s["cells"]:
@@ -119,12 +122,28 @@ def run(args) -> int:
     else:   # a subset of a larger table in the folder: the files hold the whole table
         cells = (f"{count(s['cells_asked'], 'cell')} asked ({resumed}); the folder's table holds "
                  f"{count(s['cells'], 'cell')}: ")
+    # k_A over decades (a lobe far narrower than the apertures) in exponent form (user audit, session 44: a
+    # 71-digit fixed-point number)
+    k_range = ("no cell measured" if s["k_a_min"] is None else
+               f"k_A from {_k_text(s['k_a_min'])} to {_k_text(s['k_a_max'])}, {api.precision_text(s)}")
     say(f"k_A for {ds.attrs['instrument']} x {ds.attrs['sample']} ({ds.attrs['backend']}): {cells}"
-        f"k_A from {s['k_a_min']:.3f} to {s['k_a_max']:.3f}, "
-        f"{api.precision_text(s)}; computing the cells took {s['seconds_wall_this_run']:.1f} s."
+        f"{k_range}; computing the cells took {s['seconds_wall_this_run']:.1f} s."
         + (_stray_text(s) if "stray_fraction_max" in s else ""))
+    if s.get("not_measured"):
+        say(f"  {count(s['not_measured'], 'cell')} NOT measured (k_A blank in the files; exit status "
+            f"{EXIT_NOT_MEASURED}), the first at {s['not_measured_note']}")
     say(f"wrote {ds.attrs['out']}/{ds.attrs['files']}")
-    return 0
+    return rc
+
+
+#: ``ka``'s exit status when a cell asked for has no value (the backend could not measure it):
+#: the results are written, as ``validate``'s inconclusive (3)
+EXIT_NOT_MEASURED = 3
+
+
+def _k_text(k: float) -> str:
+    """k_A to three decimals, or in exponent form beyond 1e4 (a lobe far narrower than the apertures)."""
+    return f"{k:.3f}" if abs(k) < 1e4 else f"{k:.4g}"
 
 
 def _resumed_text(s) -> str:

@@ -432,6 +432,10 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         "cells_computed": len(computed),
         "cells_asked": int(cells_asked if cells_asked is not None else len(run.results)),
         "cells_not_converged": int(sum(not c.converged for c in computed)),
+        # cells the backend could not measure (k_A NaN: a float32 renderer that loses the lobe), with the
+        # first one's reason (user audit, session 44: the reason was in the journal alone, and a table of
+        # no measured cell crashed the command's summary)
+        **_not_measured_attrs(computed),
         # absolute calibration: the cells whose eta = <E>/E_0 stopped at its cap, and eta's largest
         # relative error estimate (a deterministic estimate an SE does not hold; audit 21)
         **_eta_attrs(computed),
@@ -446,6 +450,17 @@ def ka_dataset(run: KaRun, *, instrument: Instrument, model: RoadModel, backend:
         "provenance": to_json(prov, indent=None),
     }
     return xr.Dataset(data, coords=grid_coords(), attrs=attrs)
+
+
+def _not_measured_attrs(cells) -> dict[str, Any]:
+    """``cells_not_measured`` and, when there are some, the first one's cell and reason."""
+    bad = [c for c in cells if not np.isfinite(c.k_a)]
+    if not bad:
+        return {"cells_not_measured": 0}
+    first = bad[0]
+    why = (first.extra or {}).get("note", "no value")
+    return {"cells_not_measured": len(bad),
+            "not_measured_note": f"tan eps = {first.tan_eps:g}, beta = {first.beta_deg:g}: {why}"}
 
 
 def eta_bound_beside_se(se: np.ndarray, bound: np.ndarray) -> bool:
@@ -485,6 +500,8 @@ def summary(ds) -> dict[str, Any]:
     if "cells_eta_not_converged" in ds.attrs:
         out.update(eta_not_converged=int(ds.attrs["cells_eta_not_converged"]),
                    eta_worst_rel_error=float(ds.attrs["eta_worst_rel_error"]))
+    if int(ds.attrs.get("cells_not_measured", 0)):
+        out.update(not_measured=int(ds.attrs["cells_not_measured"]), not_measured_note=ds.attrs["not_measured_note"])
     out.update(not_converged=int(ds.attrs["cells_not_converged"]),
                samples=int(np.nansum(ds["samples"].values)),
                seconds_total=float(np.nansum(ds["seconds"].values)),

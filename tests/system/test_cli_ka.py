@@ -116,3 +116,27 @@ def test_a_subset_into_a_folder_with_a_larger_table_says_so_and_keeps_it(tmp_pat
     ds = api.ka_table("portable", "R3", backend="quadrature", accuracy="fast", cells="12:0", out=out, plot=False)
     assert int(np.isfinite(ds["k_a"].values).sum()) == 4
     assert (ds.attrs["cells_asked"], ds.attrs["resumed_cells"], ds.attrs["cells_computed"]) == (1, 1, 4)
+
+
+def test_a_cell_the_renderer_cannot_measure_is_said_and_exits_3(mi, tmp_path, capsys):
+    """(user audit, session 44) a Phong lobe of exponent 1e5 at tan eps 12, beta 2 seen by a point detector
+    underflows the float32 renderer: the table of that one cell crashed the summary (a TypeError formatting
+    a k_A range of no cell, exit 1, after the files were written); with a measured cell beside it the
+    reason was in the journal alone; one cell under -q exited 0 with k_A NaN. Now the summary says which
+    cell and why, ka.json has it, and the exit status is 3 (results written, a cell not measured)."""
+    from roadgonio.instrument.config import load_instrument
+    d = load_instrument("portable").to_dict()
+    d["detector"].update(pupil_radius_m=0.0, field_half_angle_deg=0.0)
+    d["instrument"]["name"] = "pointdet"
+    from roadgonio.design.outputs import toml_text
+    (tmp_path / "pointdet.toml").write_text(toml_text(d))
+    (tmp_path / "lobe.json").write_text(json.dumps({"variant": "power", "params": {"k_phong": 1.0, "n_phong": 1e5}}))
+    argv = ["ka", "--instrument", str(tmp_path / "pointdet.toml"), "--sample", str(tmp_path / "lobe.json")]
+    assert main(argv + ["--cells", "12:2", "--out", str(tmp_path / "t")]) == 3
+    out = capsys.readouterr().out
+    assert "no cell measured" in out and "1 cell NOT measured" in out and "tan eps = 12, beta = 2: " in out
+    assert "quadrature or reference" in out
+    summary = json.loads((tmp_path / "t" / "ka.json").read_text())["summary"]
+    assert summary["not_measured"] == 1 and summary["k_a_min"] is None
+    assert main(argv + ["--tan-eps", "12", "--beta", "2", "-q"]) == 3
+    assert capsys.readouterr().out == ""

@@ -282,12 +282,13 @@ class MitsubaBackend:
             if zero:
                 extra["note"] = (f"the rendered road signal is 0 in every sample while the model is positive at the "
                                  f"nominal geometry ({ideal:.3g} of the Lambertian's): its values underflow the float32 "
-                                 "renderer here; k_A is not measured (use a float64 backend: reference, numpy-mc)")
+                                 "renderer here; k_A is not measured (use a float64 backend: quadrature or reference; numpy-mc samples "
+                                 "the same lobe and may not finish)")
             else:
                 extra["mean_road"] = mean_road
                 extra["note"] = (f"the rendered road signal is {mean_road:.2g} a sample, within eight decades of "
                                  f"float32's smallest normal number ({FLOAT32_TINY:.2g}), where the renderer loses the "
-                                 "lobe's tail: k_A is not measured (use a float64 backend: reference, quadrature, numpy-mc)")
+                                 "lobe's tail: k_A is not measured (use a float64 backend: quadrature or reference)")
         elif math.isfinite(ratio) and (lit := st.lambert_rel_se()) > RATIO_DENOMINATOR_REL_SE_MAX:
             # one lit replicate of 16 gave k_A 1.0075 +- 1.5e-16, "converged" (user audit, session 34)
             extra["sparse_light"] = float(lit)
