@@ -394,8 +394,9 @@ def table_info(table, to: str | Path | None = None) -> dict[str, Any]:
     # how an RTB file was read, when the reader had something to say (its scale told by the q0 line,
     # a q0 line off the values' Q0): audit 22, it was only in the table's source. Of the RTB file
     # itself only: a CSV converted from it keeps that source as its header, and its values need no note
-    if read:
-        info["reading_note"] = read[0].split(": read: ", 1)[1]
+    if read:        # the RTB reader's own words, without the file's name the note adds
+        from roadgonio.surface.rtable import rtb_reading_note
+        info["reading_note"] = rtb_reading_note(t, Path(str(table)))
     if to is not None:
         info["written"] = str(t.write(_table_file(to, "to")))
         # 6 significant digits can move S1 across a class limit it sits on (user audit, session 44:
@@ -1189,7 +1190,8 @@ def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured:
     inst = _instrument(instrument)
     from roadgonio.design.grid import as_vary_specs
     from roadgonio.design.second_aperture import check_second_keys
-    check_second_keys(inst, as_vary_specs(vary))          # before the sample's model is fitted
+    specs = as_vary_specs(vary)
+    check_second_keys(inst, specs)                        # before the sample's model is fitted
     table = None if measured is None else _table(measured, "measured")
     if table is not None:
         from roadgonio.correction.run import check_measured
@@ -1212,7 +1214,7 @@ def second_aperture(instrument, vary, *, measured=None, sample=None, u_measured:
     if folder is not None:
         from roadgonio.fileio import check_run_folder, check_writable, fingerprint
         from roadgonio.surface.fit import table_hash
-        fp = fingerprint({"instrument": inst.to_dict(), "vary": [str(v) for v in as_vary_specs(vary)],
+        fp = fingerprint({"instrument": inst.to_dict(), "vary": [str(v) for v in specs],
                           "measured": None if table is None else table_hash(table),
                           "sample": None if smp is None else (smp.to_json_dict() if hasattr(smp, "to_json_dict")
                                                               else repr(smp)),

@@ -92,6 +92,10 @@ class WorkLostError(BackendError):
 
 #: the command line's exit status for :class:`WorkLostError` (2 is bad input, 130 an interruption)
 EXIT_WORK_LOST = 4
+#: the command line's exit status when the results are written but not every one was reached:
+#: ``validate``'s inconclusive verdict, ``uncertainty --adaptive`` stopped at its cap, a cell ``ka``
+#: could not measure
+EXIT_INCONCLUSIVE = 3
 
 
 class ModelWarning(UserWarning):

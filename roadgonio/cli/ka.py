@@ -18,7 +18,7 @@ from roadgonio.cli._common import (
     show_progress,
     text_output,
 )
-from roadgonio.errors import InputError, count
+from roadgonio.errors import EXIT_INCONCLUSIVE, InputError, count
 
 
 def register(sub) -> None:
@@ -100,7 +100,7 @@ def run(args) -> int:
                               + (f". Note: {c.extra['note']}" if c.converged and (c.extra or {}).get("note") else ""))
         # a cell the backend could not measure is no result: exit 3, as validate's inconclusive (user
         # audit, session 44: under -q a NaN k_A exited 0, and -q says the exit status tells the result)
-        return 0 if math.isfinite(c.k_a) else EXIT_NOT_MEASURED
+        return 0 if math.isfinite(c.k_a) else EXIT_INCONCLUSIVE
 
     args.on_interrupt = ("interrupted: the finished cells are kept in the output folder's journal (with the Mitsuba "
                          "backend also the other cells' last completed pass, ka_passes.json); run the same command "
@@ -111,7 +111,7 @@ def run(args) -> int:
         ds = api.ka_table(args.instrument, args.sample, cells=args.cells, out=out_arg(args),
                           progress=show_progress(args), figures=figures, **common)
     s = json.loads(ds.attrs["summary"])
-    rc = EXIT_NOT_MEASURED if s.get("not_measured") else 0
+    rc = EXIT_INCONCLUSIVE if s.get("not_measured") else 0
     if args.json:
         print_json({"out": ds.attrs["out"], **s})
         return rc
@@ -131,14 +131,9 @@ def run(args) -> int:
         + (_stray_text(s) if "stray_fraction_max" in s else ""))
     if s.get("not_measured"):
         say(f"  {count(s['not_measured'], 'cell')} NOT measured (k_A blank in the files; exit status "
-            f"{EXIT_NOT_MEASURED}), the first at {s['not_measured_note']}")
+            f"{EXIT_INCONCLUSIVE}), the first at {s['not_measured_note']}")
     say(f"wrote {ds.attrs['out']}/{ds.attrs['files']}")
     return rc
-
-
-#: ``ka``'s exit status when a cell asked for has no value (the backend could not measure it):
-#: the results are written, as ``validate``'s inconclusive (3)
-EXIT_NOT_MEASURED = 3
 
 
 def _k_text(k: float) -> str:

@@ -184,8 +184,7 @@ class SecondApertureResult:
             notes.append(f"the prediction assumes every cell of the table is measured; '{self.instrument.name}' "
                          f"measures {len(cells.measured)} and fills the rest ({cells.fill}), so its corrected table's "
                          "u is larger than predicted")
-        extra = self.instrument.extra if hasattr(self.instrument.extra, "get") else {}
-        if extra.get("housing") is not None or extra.get("scene"):
+        if self.instrument.scene_parts():
             notes.append("the prediction's ray bundles leave out the instrument's housing / scene parts (their shade "
                          "and stray light), as the surface fit of `correct` does")
         return notes

@@ -228,17 +228,7 @@ def unmodelled_parts(info: BackendInfo, instrument) -> list[tuple[str, str, str]
     as (section, what it is, what of it matters): a ``[scene]`` (its extra geometry) and a ``[housing]`` (its walls' shade
     and stray light) need a backend that models XML scenes. One rule for :func:`check_capabilities`
     and for ``validate``'s refusal (which gives its own advice)."""
-    extra = instrument.extra if hasattr(instrument.extra, "get") else {}
-    if info.xml_scenes:
-        return []
-    out = []
-    scene = extra.get("scene")
-    if scene:
-        out.append(("scene", "a Mitsuba XML scene" if hasattr(scene, "get") and "xml" in scene
-                    else "a [scene] section", "its extra geometry"))
-    if extra.get("housing") is not None:
-        out.append(("housing", "a [housing]", "its walls' shade and stray light"))
-    return out
+    return [] if info.xml_scenes else instrument.scene_parts()
 
 
 def check_capabilities(info: BackendInfo, instrument) -> None:

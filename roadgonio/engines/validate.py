@@ -49,7 +49,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from roadgonio.errors import InputError
+from roadgonio.errors import EXIT_INCONCLUSIVE, InputError
 from roadgonio.engines.result import t_equivalent, welch_satterthwaite
 from roadgonio.instrument.config import Instrument
 from roadgonio.surface.model import RoadModel
@@ -66,7 +66,7 @@ REF_SHARE = 0.25
 REF_RTOL_MIN = 1e-9
 #: Verdicts, and the exit status of ``roadgonio validate`` for the worst one present.
 VERDICTS = ("agree", "disagree", "inconclusive")
-EXIT_STATUS = {"agree": 0, "disagree": 1, "inconclusive": 3}
+EXIT_STATUS = {"agree": 0, "disagree": 1, "inconclusive": EXIT_INCONCLUSIVE}
 #: References: "auto" = the RQMC reference for a flat sample, the mesh Monte Carlo for a mesh sample.
 def _references() -> tuple[str, ...]:
     from roadgonio.engines.registry import validate_backends

@@ -513,6 +513,22 @@ class Instrument:
         """True if every aperture is zero (point source, single-ray detector)."""
         return self.source.is_point and self.detector.is_single_ray
 
+    def scene_parts(self) -> list[tuple[str, str, str]]:
+        """The parts beyond the sample and the apertures, as (section, what it is, what of it
+        matters): a ``[scene]`` (its extra geometry) and a ``[housing]`` (its walls' shade and stray
+        light); an empty [scene] is none. One rule for the backends that cannot model them
+        (:func:`roadgonio.engines.registry.unmodelled_parts`), ``render``'s integrator and what the
+        second aperture's prediction leaves out."""
+        extra = self.extra if hasattr(self.extra, "get") else {}
+        out = []
+        scene = extra.get("scene")
+        if scene:
+            out.append(("scene", "a Mitsuba XML scene" if hasattr(scene, "get") and "xml" in scene
+                        else "a [scene] section", "its extra geometry"))
+        if extra.get("housing") is not None:
+            out.append(("housing", "a [housing]", "its walls' shade and stray light"))
+        return out
+
     def file_digests(self) -> dict[str, str]:
         """sha256 of the content of every file the instrument reads numbers from (the source's and
         the detector's tables, the sample mesh), by key: what a fingerprint of "what determines the

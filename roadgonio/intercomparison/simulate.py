@@ -149,13 +149,14 @@ class Setup:
             if not pm.ideal or inst.calibration.mode != "lambert":
                 out.append(("correction", "aperture effect left by the correction"))
         else:
+            apertures = k_characteristics(inst)
             if not pm.ideal:
                 # a housed instrument's k_A carries its stray light (user audit, session 44: this label
                 # took most of a bright housing's +19 pp under the apertures' name)
-                housed = any(k == "housing" for k, _ in k_characteristics(inst))
+                housed = any(k == "housing" for k, _ in apertures)
                 out.append(("aperture_effect", "aperture effect and the housing's stray light as a whole (k_A = 1)"
                             if housed else "aperture effect as a whole (k_A = 1)"))
-            out += k_characteristics(inst)
+            out += apertures
         if not inst.cells.all_cells:
             out.append(("fill", f"cells filled by {inst.cells.fill} ({len(inst.cells.measured)} of {pm.n} measured)"))
         from roadgonio.uncertainty.spec import INPUTS

@@ -756,6 +756,11 @@ def _rtb_number(text: str, path, line: int, what: str) -> float:
     return _parse_number(text, path, line, what)
 
 
+#: What an RTB table's source starts with when its stored name would read as a u or k_A table's
+#: header (:func:`parse_rtb`).
+RTB_R_TABLE = "r-table "
+
+
 def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
     """Parse a DIALux RTB file (module docstring): R values r x 1e4, 0 = blank.
 
@@ -844,13 +849,13 @@ def parse_rtb(text: str, *, path: str | Path = "<table>") -> RTable:
     # the surface's stored name kept in the source, so a CSV converted from it names it in its header
     # (user audit, session 41: '# read from r3.rtb' lost 'R3')
     src = f"{name} read from {Path(str(path)).name}" + (f"; {note}" if note else "")
-    probe = RTable(v / scale, name=name, source=src)
-    if names_u(probe) or names_ka(probe):
+    table = RTable(v / scale, name=name, source=src)
+    if names_u(table) or names_ka(table):
         # a stored name that reads like another table's header ("standard uncertainty of road", "k_A of R3")
         # would make the CSV converted from it a u or k_A table to every reader (user audit, session 44:
         # `table x.rtb --to x.csv` wrote a file `table x.csv` then refused): the source says r-table first
-        src = "r-table " + src
-    return RTable(v / scale, name=name, source=src)
+        table = table.with_values(table.r, source=RTB_R_TABLE + src)
+    return table
 
 
 def _looks_numeric(line: str) -> bool:
@@ -1138,4 +1143,4 @@ def rtb_reading_note(table: RTable, path: str | Path) -> str:
     after its name and file."""
     head = f"{table.name} read from {Path(str(path)).name}; "
     at = table.source.find(head)
-    return table.source[at + len(head):] if at in (0, len("r-table ")) else ""
+    return table.source[at + len(head):] if at in (0, len(RTB_R_TABLE)) else ""

@@ -7,7 +7,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from roadgonio.errors import count
+from roadgonio.errors import EXIT_INCONCLUSIVE, count
 from roadgonio.uncertainty.run import UncertaintyResult
 from roadgonio.uncertainty.spec import INPUTS
 from roadgonio.uncertainty.statistics import ROUND_OFF_REL
@@ -241,7 +241,7 @@ def plot_q0_s1(res: UncertaintyResult, path: Path) -> Path:
 
 #: The exit status of ``roadgonio uncertainty --adaptive`` when the run stopped at --max-trials before
 #: the JCGM 101 7.9 rule was met: inconclusive, as ``roadgonio validate``'s 3 (the results are written).
-NOT_CONVERGED_EXIT_STATUS = 3
+NOT_CONVERGED_EXIT_STATUS = EXIT_INCONCLUSIVE
 
 
 def not_converged_line(res: UncertaintyResult) -> str | None:

@@ -106,8 +106,7 @@ def kabatch_lit(instrument: Instrument) -> bool:
     shadow edge by ~0.1 mm and its k_A by 2.5e-5, 50 of its stated SEs (user audit, session 44; the
     kabatch integrator's shadow ray, validation.md "Parts that shade the footprint")."""
     src = instrument.source
-    extra = instrument.extra if hasattr(instrument.extra, "get") else {}
-    shaded = bool(extra.get("scene")) or extra.get("housing") is not None or instrument.sample.mesh is not None
+    shaded = bool(instrument.scene_parts()) or instrument.sample.mesh is not None
     return bool(src.profiled or src.beam_half_angle_deg is not None or src.is_point or shaded)
 
 
