@@ -174,6 +174,7 @@ def test_render_of_parts_that_shade_the_footprint_has_the_k_a_engines_shadow_edg
                  "--out", str(out), "--resolution", "128", "--spp", "64", "-q"]) == 0
     info = json.loads((out / "render.json").read_text())
     cell = api.ka_cell("holder", "R3", 12.0, 2.0, rel_se=3e-6)
+    assert cell.converged and info["k_a_se"] is not None      # both sides reached their precision
     se = float(np.hypot(info["k_a_se"], cell.se))
     assert se < 5e-6                              # the old render's 2.6e-5 would be beyond 5 of these
     assert abs(info["k_a_estimate"] - cell.k_a) < 5.0 * se, (info["k_a_estimate"], cell.k_a, se)
