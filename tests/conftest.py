@@ -115,30 +115,31 @@ def _bad_table_cases():
     """(label, suffix, text, expected line or None, words the message must contain): broken
     r-table files, each made from the bundled R3."""
     from roadgonio.surface.rtable import bundled_table
-    lines = bundled_table("R3").to_csv_text().splitlines()  # line 1: '# ...', line 2: header, line 3.. data
-    no_header = "\n".join(lines[:1] + lines[2:])
+    lines = bundled_table("R3").to_csv_text().splitlines()  # '# ...' comment lines, the header, data
+    h = next(k for k, ln in enumerate(lines) if ln.startswith("tan_eps"))  # the header's index
+    no_header = "\n".join(lines[:h] + lines[h + 1:])
     non_numeric = list(lines)
-    cells = non_numeric[6].split(",")
+    cells = non_numeric[h + 5].split(",")
     cells[3] = "abc"
-    non_numeric[6] = ",".join(cells)
+    non_numeric[h + 5] = ",".join(cells)
     wrong_grid = list(lines)
-    wrong_grid[1] = wrong_grid[1].replace(",45,", ",50,")
+    wrong_grid[h] = wrong_grid[h].replace(",45,", ",50,")
     negative = list(lines)
-    cells = negative[10].split(",")
+    cells = negative[h + 9].split(",")
     cells[5] = "-12"
-    negative[10] = ",".join(cells)
+    negative[h + 9] = ",".join(cells)
     rtb = bundled_table("R3").to_rtb_text().splitlines()
     rtb_neg = list(rtb)
     rtb_neg[54] = "-5"  # line 55: the first r value (DIALux layout, one value per line)
     return [
-        ("missing header", ".csv", no_header, 2, ["header", "tan_eps"]),
-        ("non-numeric cell", ".csv", "\n".join(non_numeric), 7, ["expected a number", "abc"]),
-        ("wrong grid", ".csv", "\n".join(wrong_grid), 2, ["standard grid"]),
-        ("negative value", ".csv", "\n".join(negative), 11, ["must not be negative", "-12"]),
+        ("missing header", ".csv", no_header, h + 1, ["header", "tan_eps"]),
+        ("non-numeric cell", ".csv", "\n".join(non_numeric), h + 6, ["expected a number", "abc"]),
+        ("wrong grid", ".csv", "\n".join(wrong_grid), h + 1, ["standard grid"]),
+        ("negative value", ".csv", "\n".join(negative), h + 10, ["must not be negative", "-12"]),
         ("empty file", ".csv", "", None, ["empty"]),
         ("comments only", ".csv", "# nothing\n", None, ["empty"]),
-        ("semicolons", ".csv", "\n".join(ln.replace(",", ";") for ln in lines), 2, ["separator", "comma",
-                                                                                   "semicolons"]),
+        ("semicolons", ".csv", "\n".join(ln.replace(",", ";") for ln in lines), h + 1, ["separator", "comma",
+                                                                                       "semicolons"]),
         ("rtb missing header", ".rtb", "\n".join(rtb[1:]), 1, ["RTable.v1"]),
         ("rtb negative", ".rtb", "\n".join(rtb_neg), 55, ["must not be negative", "0 is a blank in RTB"]),
         ("rtb empty", ".rtb", "", None, ["empty"]),

@@ -221,11 +221,17 @@ class RTable:
         at all, a largest value that looks like sr^-1, a k_A header) raises the reader's reason as an
         :class:`InputError` instead of being written."""
         _check_finite(self.r, self.tan_eps, self.beta_deg, "CSV")
-        text = grid_csv_text(self.r, self.source or f"roadgonio table {self.name}", scale=scale, digits=digits,
+        source = self.source or f"roadgonio table {self.name}"
+        # a table of standard uncertainties (its header says so) is read back as one
+        quantity = "u" if names_u(self) else "r"
+        if scale == R_SCALE and not any(line.lstrip("# ").startswith(UNITS_LINE_START)
+                                        for line in source.splitlines()):
+            # the scale said in the file itself, for a reader with a spreadsheet (session 44's open item:
+            # a CSV from `table --to` did not say its values are r x 1e4); read back as a comment
+            source = f"{source}\n{units_line(quantity)}"
+        text = grid_csv_text(self.r, source, scale=scale, digits=digits,
                              tan_eps=self.tan_eps, beta_deg=self.beta_deg)
         if scale == R_SCALE:
-            # a table of standard uncertainties (its header says so) is read back as one
-            quantity = "u" if names_u(self) else "r"
             _reads_back(lambda: check_csv_table(parse_csv(text, path="<table>", name=self.name, quantity=quantity),
                                                 "<table>", quantity), "CSV", text, self.r, digits)
         return text
@@ -559,6 +565,17 @@ def names_ka_output(t: "RTable") -> bool:
     error, bounds, direct light or stray fraction: :func:`names_ka` or :func:`ka_output_header`),
     none of which holds r or u(r)."""
     return names_ka(t) or bool(_KA_OUTPUT.match(header_line(t)))
+
+
+#: The comment line a written r-table (or u table) CSV carries after its source: its values' scale.
+UNITS_LINE_START = "values:"
+
+
+def units_line(quantity: str = "r") -> str:
+    """The scale line of a written CSV (:meth:`RTable.to_csv_text`): r (or u(r)) x 1e4, in sr^-1."""
+    if quantity == "u":
+        return f"{UNITS_LINE_START} u(r) x 1e4 (u(r) in sr^-1: 12 is 0.0012 sr^-1); blank = none given"
+    return f"{UNITS_LINE_START} r x 1e4 (r in sr^-1: 294 is r = 0.0294 sr^-1); blank = not measured"
 
 
 def grid_csv_text(values: np.ndarray, source: str, *, scale: float = 1.0, digits: int = 6,

@@ -422,7 +422,8 @@ def test_a_csv_with_a_row_too_few_or_too_many_names_the_tan_eps_and_its_line(edi
     """(user audit, session 44) 'expected 29 data rows, found 28' pointed at the file's last line and
     named no tan eps."""
     from roadgonio.surface.rtable import parse_csv
-    head, *rows = bundled_table("R3").to_csv_text().splitlines()[1:]
+    lines = bundled_table("R3").to_csv_text().splitlines()
+    head, *rows = lines[next(k for k, ln in enumerate(lines) if ln.startswith("tan_eps")):]
     text = "\n".join(["# R3", head, *edit(rows)])
     with pytest.raises(InputError) as err:
         parse_csv(text, path="t.csv")
@@ -443,3 +444,18 @@ def test_an_rtb_missing_its_name_or_q0_line_or_with_comma_separated_values_says_
     with pytest.raises(InputError) as err:
         parse_rtb("\n".join(edit(lines)), path="t.rtb")
     assert said in err.value.reason and err.value.line == line
+
+
+def test_a_written_csv_says_its_scale_once():
+    """(session 44's open item) a CSV from `table --to` said nothing of its scale: a reader with a
+    spreadsheet saw 294 and had to know it is r x 1e4. The line is a comment, read back into the
+    source and not written twice."""
+    from roadgonio.surface.rtable import parse_csv, units_line
+    t = bundled_table("R3")
+    text = t.to_csv_text()
+    comments = [ln for ln in text.splitlines() if ln.startswith("#")]
+    assert comments[-1] == "# " + units_line("r") and "r x 1e4" in comments[-1] and "0.0294" in comments[-1]
+    again = parse_csv(text, path="t.csv").to_csv_text()
+    assert again == text  # read back and written again: one scale line, the same values
+    u = t.with_values(t.r * 0.05, source="standard uncertainty of R3")
+    assert "u(r) x 1e4" in [ln for ln in u.to_csv_text().splitlines() if ln.startswith("#")][-1]
