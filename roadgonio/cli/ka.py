@@ -117,11 +117,12 @@ def run(args) -> int:
         return rc
     say = text_output(args)
     resumed = _resumed_text(s)
-    if s["cells_asked"] == s["cells"]:
-        cells = f"{count(s['cells'], 'cell')} ({resumed}), "
+    held = s["cells"] + s.get("not_measured", 0)  # the cells measured and those said not measured
+    if s["cells_asked"] == held:
+        cells = f"{count(held, 'cell')} ({resumed}), "
     else:   # a subset of a larger table in the folder: the files hold the whole table
         cells = (f"{count(s['cells_asked'], 'cell')} asked ({resumed}); the folder's table holds "
-                 f"{count(s['cells'], 'cell')}: ")
+                 f"{count(held, 'cell')}: ")
     # k_A over decades (a lobe far narrower than the apertures) in exponent form (user audit, session 44: a
     # 71-digit fixed-point number)
     k_range = ("no cell measured" if s["k_a_min"] is None else

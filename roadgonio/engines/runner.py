@@ -103,14 +103,26 @@ def _journal_record(d: dict) -> tuple[tuple[float, float], CellResult]:
     """One journalled cell; a value no backend writes (k_A negative, infinite, or missing without the
     backend's note that it is undefined; a negative or infinite SE) is not a record, so the journal is
     refused rather than resumed with it (the user audit of session 19: a k_A of -5 went into ka.csv)."""
+    if d.get("k_a", 0.0) is None and _not_measured(d.get("extra")):
+        # strict JSON writes a NaN as null: a cell the backend could not measure (k_A NaN with its
+        # reason) is a result of this run, resumed as it was (session 45: the run after such a table
+        # refused its own journal as corrupt)
+        d = {**d, "k_a": math.nan, "se": math.nan if d.get("se") is None else d["se"]}
     c = CellResult(**d)
     k, se = c.k_a, c.se
     if not isinstance(k, (int, float)) or isinstance(k, bool) or not isinstance(se, (int, float)):
         raise TypeError("k_a and se must be numbers")
     undefined = isinstance(c.extra, dict) and "undefined" in str(c.extra.get("note", ""))
-    if (math.isnan(k) and not undefined) or math.isinf(k) or k < 0.0 or math.isinf(se) or se < 0.0:
+    if (math.isnan(k) and not (undefined or _not_measured(c.extra))) or math.isinf(k) or k < 0.0 \
+            or math.isinf(se) or se < 0.0:
         raise ValueError(f"k_a {k!r} with se {se!r} is not a result")
     return _cell_key(c.tan_eps, c.beta_deg), c
+
+
+def _not_measured(extra) -> bool:
+    """Whether a journalled cell is one its backend said it could not measure (the float32 renderer
+    losing a lobe: ``float32_underflow`` with the reason in ``note``)."""
+    return isinstance(extra, dict) and bool(extra.get("float32_underflow")) and bool(extra.get("note"))
 
 
 def _read_journal(path: Path, fp: str) -> dict[tuple[float, float], CellResult]:

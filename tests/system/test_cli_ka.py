@@ -138,5 +138,10 @@ def test_a_cell_the_renderer_cannot_measure_is_said_and_exits_3(mi, tmp_path, ca
     assert "quadrature or reference" in out
     summary = json.loads((tmp_path / "t" / "ka.json").read_text())["summary"]
     assert summary["not_measured"] == 1 and summary["k_a_min"] is None
+    # the same command again resumes the cell as it was (session 45: its journal was refused as
+    # corrupt, exit 2, since strict JSON wrote its NaN as null)
+    assert main(argv + ["--cells", "12:2", "--out", str(tmp_path / "t")]) == 3
+    out = capsys.readouterr().out
+    assert "1 cell (1 resumed), no cell measured" in out and "1 cell NOT measured" in out, out
     assert main(argv + ["--tan-eps", "12", "--beta", "2", "-q"]) == 3
     assert capsys.readouterr().out == ""
