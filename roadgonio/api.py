@@ -479,7 +479,7 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
     ``progress(done, total)`` called as the global search advances."""
     from roadgonio.engines.registry import check_seed
     from roadgonio.surface.model import DEFAULT_VARIANT, PARAM_NAMES, VARIANTS
-    from roadgonio.surface.sample import check_not_degenerate, note_unresolved_spike
+    from roadgonio.surface.sample import check_not_degenerate, note_capped_exponent, note_unresolved_spike
     variant = model_variant or DEFAULT_VARIANT
     if variant not in VARIANTS:
         raise InputError(f"unknown model variant {variant!r}; expected one of {', '.join(VARIANTS)}",
@@ -509,6 +509,7 @@ def fit(table, model_variant: str | None = None, *, seed: int = 0, fixed: Mappin
     result = _fit_with_progress(t, variant, seed, fixed, progress)
     check_not_degenerate(result.model, path=table if isinstance(table, (str, Path)) and Path(table).suffix else None)
     note_unresolved_spike(result.model, t.name, fitted=True, option="--variant")   # fit's own option (audit, session 41)
+    note_capped_exponent(result.model, t.name, fitted=True)
     if folder is not None:
         import dataclasses
 

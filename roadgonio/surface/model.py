@@ -93,6 +93,9 @@ THETA_R_STAR = math.radians(THETA_R_STAR_DEG)
 TINY = 1e-30
 #: Cap on exponents, so that exp() never overflows float32 (exp(88.7) does).
 EXP_CAP = 80.0
+#: An exponent within this of :data:`EXP_CAP` counts as reaching it (:meth:`RoadModel.exponent_capped`):
+#: a fit pressed against the cap sits there to ~1e-7.
+EXP_CAP_REACHED = 1e-4
 #: Floor of the empirical term's x and x_s, which vanish at beta = 180 deg (so ln x, ln x_s stay
 #: finite). 1e-7 is one number in float32 and float64 alike (relative difference 1.2e-8).
 X_FLOOR = 1e-7
@@ -581,6 +584,27 @@ class RoadModel:
     def r(self, tan_eps, beta_deg, alpha_deg=ALPHA_STANDARD_DEG, delta_deg=0.0) -> np.ndarray:
         """Reduced luminance coefficient r = q cos^3(eps) (sr^-1, not x 1e4)."""
         return self.q(tan_eps, beta_deg, alpha_deg, delta_deg) * cos3_eps(tan_eps)
+
+    def exponent_capped(self, tan_eps, beta_deg, alpha_deg=ALPHA_STANDARD_DEG) -> np.ndarray:
+        """Where the empirical term's exponent reaches :data:`EXP_CAP` (module docstring; within
+        :data:`EXP_CAP_REACHED`), so that E is ``k_exp exp(EXP_CAP)`` there and not eq. 4's value (a
+        user audit of session 45: a model p = 40, mu = 0 gave r 49,000 times below the formula at tan
+        eps 12, beta 0; a fit to a table made with p = 35 settled on the cap, exponent 80 - 2e-7, its
+        parameters not the table's). Boolean, over the broadcast ``tan_eps`` x ``beta_deg``; False
+        everywhere without the term. The inner caps (on ``1 + h f^2``, ``ln W + n_beta ln L``) act
+        only where ``ln x`` or ``L`` is far from 0, where E underflows to 0 either way."""
+        P = self.params.to_dict()
+        if not (P["k_exp"] > 0.0):
+            return np.zeros(np.broadcast_shapes(np.shape(tan_eps), np.shape(beta_deg)), dtype=bool)
+        P["k_exp"] = 1.0
+        terms = frozenset({"k_exp"}) | (self.terms() & {"round"})
+        wi = w_source(eps_from_tan(tan_eps), beta_deg)
+        wo = w_detector(alpha_deg)
+        wi, wo = np.broadcast_arrays(wi, wo)
+        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
+            e = np.asarray(road_brdf(NumpyOps, P, (wi[..., 0], wi[..., 1], wi[..., 2]),
+                                     (wo[..., 0], wo[..., 1], wo[..., 2]), self.variant, terms), dtype=np.float64)
+        return e >= math.exp(EXP_CAP - EXP_CAP_REACHED)
 
     # -- files -----------------------------------------------------------------------------
     def to_json_dict(self) -> dict[str, Any]:

@@ -165,6 +165,35 @@ def note_unresolved_spike(model: RoadModel, name: str, *, fitted: bool, option: 
         f"the spike it averages in, not the surface){way} (docs/conventions.md, section 3)"), stacklevel=3)
 
 
+def capped_cells(model: RoadModel) -> list[tuple[float, float]]:
+    """The cells (tan eps, beta) of the standard grid where ``model``'s empirical term is held at the
+    exponent's cap (:meth:`RoadModel.exponent_capped`)."""
+    from roadgonio.geometry import BETA_GRID_DEG
+    t, b = np.meshgrid(TAN_EPS_GRID, BETA_GRID_DEG, indexing="ij")
+    hit = model.exponent_capped(t, b)
+    return [(float(x), float(y)) for x, y in zip(t[hit], b[hit])]
+
+
+def note_capped_exponent(model: RoadModel, name: str, *, fitted: bool) -> None:
+    """Warn (:class:`ModelWarning`) when ``model``'s empirical term reaches the exponent's cap at a cell
+    of the grid (:func:`capped_cells`): there every command computes with the capped value, and the
+    parameters evaluated by eq. 4 as written (conventions.md section 3) give another r."""
+    cells = capped_cells(model)
+    if not cells:
+        return
+    from roadgonio.surface.model import EXP_CAP
+    own = getattr(model, "name", None) or name
+    what = f"{name} ({model.variant} fit)" if fitted else f"the model of {own} ({model.variant})"
+    first = ", ".join(f"{t:g}/{b:g}" for t, b in cells[:3]) + (" ..." if len(cells) > 3 else "")
+    warnings.warn(ModelWarning(
+        f"{what}: the empirical term's exponent reaches roadgonio's cap ({EXP_CAP:g}) at {len(cells)} cell"
+        f"{'s' if len(cells) != 1 else ''} of the grid (tan eps/beta {first}): E is held at k_exp exp({EXP_CAP:g}) "
+        "there, every command computes with the capped model, and its parameters (k_exp = "
+        f"{model.params.k_exp:.3g}, p = {model.params.p:.4g}) evaluated by eq. 4 as written give another r"
+        + ("; the fit stopped where the cap held it, so they are not the table's own" if fitted else "")
+        + " (docs/conventions.md, section 3)"), stacklevel=3)
+
+
 @dataclass(frozen=True)
 class ResolvedSample:
     """A SAMPLE resolved once: ``name`` (for outputs and folders), the road BRDF ``model``, and the
@@ -232,6 +261,7 @@ def resolve_sample(sample, model_variant: str | None = None, *, field: str = "sa
 
 def _noted(smp: ResolvedSample, *, fitted: bool) -> ResolvedSample:
     note_unresolved_spike(smp.model, smp.name, fitted=fitted)
+    note_capped_exponent(smp.model, smp.name, fitted=fitted)
     return smp
 
 

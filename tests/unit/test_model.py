@@ -692,3 +692,28 @@ def test_the_mirror_plane_column_is_at_beta_zero_exactly():
     assert math.exp(1 + 0.25 * 12.0 ** 2) > 1e15
     np.testing.assert_allclose(steep.q(TAN_EPS_GRID, np.zeros_like(TAN_EPS_GRID)),
                                flat.q(TAN_EPS_GRID, np.zeros_like(TAN_EPS_GRID)), rtol=RTOL_EXACT)
+
+
+def test_where_the_empirical_exponent_is_capped_and_the_note_says_so():
+    """(user audit, session 45) roadgonio caps the empirical term's exponent at 80 (float32), so a model
+    of tiny k_exp and large p is not eq. 4 where the cap binds, and nothing said so. Independently: at
+    alpha = 1 deg and beta = 0, e = theta_i (theta_r = theta_r*), f = tan e with mu = 0, ln x = 0, so the
+    exponent is p ln(tan eps); the cells with p ln(tan eps) >= 80 are the capped ones at beta = 0."""
+    import warnings
+
+    from roadgonio.errors import ModelWarning
+    from roadgonio.surface.model import EXP_CAP, RoadModel, RoadParams
+    from roadgonio.surface.sample import note_capped_exponent
+    t = np.array([5.0, 7.0, 7.5, 10.0, 12.0])
+    m = RoadModel(RoadParams(k_diff=0.03, k_exp=1e-40, p=40.0, h=0.01, mu=0.0), "power")
+    assert list(m.exponent_capped(t, 0.0)) == list(40.0 * np.log(t) >= EXP_CAP)   # 7.5 and beyond
+    # below the cap the value is the formula's: r = k_diff + k_exp tan^40 (no g, beta 0), q = r/cos^3 not needed
+    q = m.q(7.0, 0.0)
+    assert abs(q / (0.03 + 1e-40 * 7.0 ** 40) - 1.0) < 1e-12
+    with warnings.catch_warnings(record=True) as w:
+        warnings.simplefilter("always")
+        note_capped_exponent(m, "m", fitted=False)
+        note_capped_exponent(RoadModel(RoadParams(k_diff=0.03, k_exp=1.0, p=2.0, h=0.01, mu=0.0), "power"), "ok",
+                             fitted=False)
+    said = [str(x.message) for x in w if issubclass(x.category, ModelWarning)]
+    assert len(said) == 1 and "cap (80)" in said[0] and "7.5/0" in said[0], said
