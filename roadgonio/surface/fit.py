@@ -95,7 +95,7 @@ LHS_STARTS = 24
 #: Rungs of the ladder of each lobe exponent (n_phong, n_retro) over its search range.
 LADDER = 6
 #: Version of the fitting procedure (part of the cache key of :mod:`roadgonio.surface.sample`).
-FIT_METHOD_VERSION = 4
+FIT_METHOD_VERSION = 5   # 5: undetermined terms set to 0 (session 45)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -239,6 +239,14 @@ class FitResult:
                        "describe nothing the table shows; between the cells such a term can still be large (a "
                        "lobe narrower than the grid), and an aperture averages over it: check k_A without it "
                        "(--fix " + ", --fix ".join(f"{k}=0" for k in und) + ") where it matters")
+        zeroed = fit.get("set_to_zero") or {}
+        if zeroed:
+            out.append("the table does not determine " + ", ".join(zeroed) + " (each term added at most "
+                       f"{max(v['contribution_pct'] for v in zeroed.values()):.2g} % of max r to the table's cells, "
+                       "at " + ", ".join(f"{k} = {v['was']:.3g}" for k, v in zeroed.items()) + "): "
+                       + ("it is" if len(zeroed) == 1 else "they are") + " set to 0 and the rest fitted again; a "
+                       "surface may still have such a term between the cells, which the table cannot show (--fix "
+                       "NAME=VALUE holds one)")
         for k in fit.get("at_upper_bound") or []:
             out.append(f"{k} sits at the upper end of its range ({PARAM_BOUNDS[k][1]:g} sr^-1): the fit wanted more, "
                        "so the model is a compromise there")
@@ -438,7 +446,8 @@ def _check_fixed(fixed: Mapping[str, Any] | None) -> dict[str, float]:
 def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
               fixed: dict | None = None,
               progress: Callable[[int, int], None] | None = None,
-              maxiter: int = 120, popsize: int = 12, objective_weight: float | None = None) -> FitResult:
+              maxiter: int = 120, popsize: int = 12, objective_weight: float | None = None,
+              _prune: bool = True) -> FitResult:
     """Fit the road BRDF ``variant`` to ``table`` (blank cells skipped).
 
     Parameters
@@ -605,6 +614,31 @@ def fit_table(table: RTable, variant: str = DEFAULT_VARIANT, *, seed: int = 0,
             "more, so the model is a compromise there (a parameter held with --fix, or the variant, forces it)"),
             stacklevel=2)
     model = RoadModel(params, variant, name=table.name, meta=meta)
+    if undetermined and _prune:
+        # a term the table does not determine is set to 0 and the rest fitted again (user audit, session
+        # 45: a noise-free Lambertian table kept k_phong 4.3e5, k_retro 8.2e5 and k_exp 1.0e3 whose lobes,
+        # between the cells, made the model 3.7e5 times the diffuse value at the table's blank corner;
+        # zero lobes fit it as well). Kept when the table's max and RMS deviations grow by at most what
+        # such a term adds (UNDETERMINED_TERM_PCT); else the note says what the table leaves open.
+        # (their shape parameters held at their defaults: they shape nothing)
+        defaults = RoadParams().to_dict()
+        zero = {**{n: defaults[n] for k in undetermined for n in TERM_SHAPE.get(k, ())
+                   if n in nonlinear_params(variant)}, **{k: 0.0 for k in undetermined}}
+        pruned = fit_table(table, variant, seed=seed, fixed={**zero, **fx},
+                           maxiter=maxiter, popsize=popsize, objective_weight=objective_weight, _prune=False)
+        if (pruned.max_dev_pct <= mx + UNDETERMINED_TERM_PCT
+                and pruned.rms_dev_pct <= rms + UNDETERMINED_TERM_PCT):
+            pmeta = dict(pruned.model.meta or {})
+            pfit = dict(pmeta["fit"], fixed=fx, set_to_zero={k: {"contribution_pct": c, "was": float(getattr(params, k))}
+                                                           for k, c in undetermined.items()},
+                        seconds=seconds + pruned.seconds, nfev=prob.nfev + pruned.nfev)
+            pmeta["fit"] = pfit
+            pmodel = RoadModel(pruned.model.params, variant, name=table.name, meta=pmeta)
+            if progress is not None:
+                progress(total, total)
+            return FitResult(model=pmodel, table=table, max_dev_pct=pruned.max_dev_pct,
+                             rms_dev_pct=pruned.rms_dev_pct, seconds=seconds + pruned.seconds,
+                             residual_pct=pruned.residual_pct, seed=seed, nfev=prob.nfev + pruned.nfev)
     if progress is not None:
         progress(total, total)
     return FitResult(model=model, table=table, max_dev_pct=mx, rms_dev_pct=rms, seconds=seconds,
