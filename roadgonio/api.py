@@ -1556,7 +1556,17 @@ def _check_u_belongs(item, t: "RTable", uf, ut: "RTable", own_name: str | None =
                              "it belongs to", field="u")
         return
     named = u_names_table(ut)
-    if named is None or not isinstance(item, (str, Path)) or Path(str(item)).suffix.lower() != ".csv":
+    if named is None or not isinstance(item, (str, Path)):
+        return
+    from roadgonio.surface.rtable import BUNDLED
+    bundled = str(item).strip().upper()
+    first_word = (named.split() or [""])[0].strip(",;:").upper()     # 'R3 (3 % of r)' names R3
+    if bundled in BUNDLED and first_word in BUNDLED and first_word != bundled:
+        # a bundled table has no header of its own, but a u naming another bundled table is not its u
+        # (user audit, session 45: R1 with a u 'of R3' passed, while uncertainty's u of sample R3 was refused)
+        raise InputError(f"{uf} is the standard uncertainty of '{named}', but it goes with the bundled table "
+                         f"{bundled}: give each --u right after the --table it belongs to", field="u")
+    if Path(str(item)).suffix.lower() != ".csv":
         return
     own = header_line(t)
     if own and own != named:

@@ -146,6 +146,20 @@ def test_road_u_naming_another_table_is_an_error(tmp_path, capsys):
     assert "uncertainty" in json.loads(capsys.readouterr().out)[1]
 
 
+def test_road_u_naming_another_bundled_table_is_an_error(tmp_path, capsys):
+    """(user audit, session 45) a u whose header names bundled R3 passed after bundled R1 (a bundled table
+    has no header to compare), while uncertainty's u of sample R3 was refused there; its own table takes it."""
+    t = bundled_table("R3")
+    t.with_values(t.r * 0.03, source="standard uncertainty of R3 (3 % of r)").write_csv(tmp_path / "u3.csv")
+    base = ["road", "--trials", "500", "--no-plots", "--json"]
+    assert main(base + ["--table", "R1", "--u", str(tmp_path / "u3.csv"), "--out", str(tmp_path / "bad")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "u3.csv" in err and "'R3 (3 % of r)'" in err and "bundled table R1" in err, err
+    assert not (tmp_path / "bad").exists()
+    assert main(base + ["--table", "R3", "--u", str(tmp_path / "u3.csv"), "--out", str(tmp_path / "good")]) == 0
+    assert "uncertainty" in json.dumps(json.loads(capsys.readouterr().out))
+
+
 def test_road_u_written_by_uncertainty_must_go_with_its_sample(tmp_path, capsys):
     """A u file as `roadgonio uncertainty` writes it names its sample (trial 9: R3's u put on R2
     passed without a word): after the table of another name it is an error naming both, after its
