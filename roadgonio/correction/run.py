@@ -576,11 +576,18 @@ class _FitState:
         if self.path is not None and self.path.exists():
             try:
                 d = json.loads(self.path.read_text(encoding="utf-8"))
-                if d.get("key") == key:
-                    self.models = dict(d.get("models", {}))
-                    self.surfaces = dict(d.get("surfaces", {}))
             except (OSError, ValueError):
-                self.models, self.surfaces = {}, {}
+                d = None
+            if isinstance(d, dict) and d.get("key") == key:
+                self.models = dict(d.get("models", {}))
+                self.surfaces = dict(d.get("surfaces", {}))
+            elif isinstance(d, dict) and d.get("key"):
+                # another correction's folder: said now, not after the fit, when its k_A journals refused
+                # the new model as 'a different run (instrument, model, backend or settings differ)'
+                # (user audit, session 45: a table measured again, corrected into the same folder)
+                raise InputError("this folder holds the correction of other inputs (the measured table(s), their "
+                                 "uncertainty, the instrument(s) or the settings differ); use another --out folder, "
+                                 "or remove this one", path=self.path)
 
     def get(self, name: str) -> RoadModel | None:
         d = self.models.get(name)

@@ -147,6 +147,29 @@ def test_cli_reference_self_end_to_end(tmp_path):
         assert float(x["r_corrected_x1e4"]) == pytest.approx(float(x["r_measured_x1e4"]) / float(x["k_a"]), rel=FILE_RATIO_RTOL)
 
 
+def test_cli_a_folder_of_another_correction_is_refused_before_the_work(tmp_path):
+    """(user audit, session 45) a table measured again and corrected into the same folder failed after the
+    fit (16 s) with the k_A journal's 'a different run (instrument, model, backend or settings differ)',
+    and left the folder's fit_state.json rewritten for the new inputs beside the old results. Now it is
+    refused from fit_state.json before the fit, naming the inputs, and the folder is left as it was;
+    the same inputs again resume."""
+    data = Path(__file__).resolve().parents[1] / "data"
+    meas = read_table(data / "synthetic_medium_lambert.csv")
+    keep = meas.r.copy()
+    keep[:, 6:] = np.nan
+    f1 = meas.with_values(keep, name="small").write_csv(tmp_path / "m1.csv")
+    f2 = meas.with_values(keep * 1.02, name="small").write_csv(tmp_path / "m2.csv")
+    args = ["--instrument", str(data / "medium.toml"), "--backend", "quadrature", "--accuracy", "fast", "--rays", "64",
+            "--model-variant", "power", "--out", str(tmp_path / "o"), "-q"]
+    assert _run("--measured", str(f1), *args).returncode == 0
+    before = {p.name: p.read_bytes() for p in (tmp_path / "o").iterdir() if p.is_file()}
+    p = _run("--measured", str(f2), *args)
+    assert p.returncode == 2 and p.stderr.count("\n") == 1, p.stderr
+    assert "fit_state.json" in p.stderr and "other inputs" in p.stderr and "measured table" in p.stderr, p.stderr
+    assert {q.name: q.read_bytes() for q in (tmp_path / "o").iterdir() if q.is_file()} == before
+    assert _run("--measured", str(f1), *args).returncode == 0
+
+
 @pytest.mark.slow            # moved to the slow tier (CI runs it by -m slow): the default run must stay under 15 min
 def test_cli_says_when_the_data_reject_eq4(tmp_path):
     """The eq. 4 route judges its own fit: the synthetic table (an eq. 4 surface, 1 % noise) fitted
