@@ -232,7 +232,6 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
         if r.error_kind == "WorkerError":
             failed[(i, j)] = rec
         else:
-            done[(i, j)] = rec
             if fh is not None:
                 try:
                     fh.write(to_json(rec, indent=None) + "\n")
@@ -240,6 +239,7 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
                     os.fsync(fh.fileno())
                 except OSError as err:
                     raise output_error(journal, err) from None
+            done[(i, j)] = rec
         remaining[i] -= 1
         if bar is not None and remaining[i] == 0:
             bar.update(1)
@@ -274,8 +274,17 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
     except (KeyboardInterrupt, RuntimeError) as err:
         if not is_interrupt(err) or out_dir is None:
             raise
+        if fh is not None:
+            # what the journal holds, which a resume reads (user audit, session 45: an interrupt between a
+            # table's entry in `done` and its line in the journal said one table more than was kept)
+            fh.close()
+            fh = None
+            try:
+                done = _read_journal(journal, fp)
+            except (InputError, OSError):
+                pass
         complete = sum(1 for i in range(n) if feas[i].ok and all((i, j) in done for j in range(len(smp))))
-        raise Interrupted(f"interrupted: {len(done)} finished tables ({complete} of {sum(f.ok for f in feas)} "
+        raise Interrupted(f"interrupted: {len(done)} finished table{'' if len(done) == 1 else 's'} ({complete} of {sum(f.ok for f in feas)} "
                           f"geometrically possible design points complete) are kept in {out_dir / JOURNAL}; run the same "
                           "command again to resume them") from None
     finally:

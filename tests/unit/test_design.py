@@ -435,6 +435,32 @@ def test_resume_reads_finished_tables_and_refuses_another_design(tmp_path):
                    plots=False, **QUAD)
 
 
+def test_an_interrupt_says_the_tables_the_journal_holds(tmp_path, monkeypatch):
+    """(user audit, session 45) Ctrl-C between a table's entry among the finished ones and its line in the
+    journal said one table more than the journal held (and the resume read). An interrupt while the
+    third table's line is made durable: the message counts what the journal holds, the resume agrees."""
+    import roadgonio.design.run as design_run
+    from roadgonio import design_study as run_design
+    from roadgonio.errors import Interrupted
+    vary = ["source.radius_m=0.01,0.025"]
+    calls = [0]
+    real = design_run.to_json
+
+    def to_json(obj, *a, **kw):
+        calls[0] += 1
+        if calls[0] == 3:          # the journal's header, the first table's line, then the second's
+            raise KeyboardInterrupt
+        return real(obj, *a, **kw)
+    monkeypatch.setattr(design_run, "to_json", to_json)
+    with pytest.raises(Interrupted) as err:
+        run_design("portable", vary, ["R3", "lambert"], cells="12:0,4:2", out=tmp_path, plots=False, **QUAD)
+    monkeypatch.setattr(design_run, "to_json", real)
+    held = len((tmp_path / "design_points.jsonl").read_text().splitlines()) - 1
+    assert f"interrupted: {held} finished table{'' if held == 1 else 's'} (" in str(err.value), (held, str(err.value))
+    b = run_design("portable", vary, ["R3", "lambert"], cells="12:0,4:2", out=tmp_path, plots=False, **QUAD)
+    assert b.attrs["tables_resumed"] == held
+
+
 def test_seeds_depend_only_on_the_root_and_the_point():
     from roadgonio.engines.cluster import seeds_for
     a, b = seeds_for(7, 3), seeds_for(7, 10)
