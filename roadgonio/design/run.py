@@ -285,7 +285,7 @@ def run_design(base: Instrument, vary, samples, *, tolerance: float | str = DEFA
                 pass
         complete = sum(1 for i in range(n) if feas[i].ok and all((i, j) in done for j in range(len(smp))))
         raise Interrupted(f"interrupted: {len(done)} finished table{'' if len(done) == 1 else 's'} ({complete} of {sum(f.ok for f in feas)} "
-                          f"geometrically possible design points complete) are kept in {out_dir / JOURNAL}; run the same "
+                          f"geometrically possible design points complete) {'is' if len(done) == 1 else 'are'} kept in {out_dir / JOURNAL}; run the same "
                           "command again to resume them") from None
     finally:
         if fh is not None:

@@ -611,7 +611,7 @@ def test_ctrl_c_of_design_says_what_is_kept_and_resumes(tmp_path, capsys, monkey
     rc = main(argv)
     err = capsys.readouterr().err
     assert rc == 130 and err.startswith("roadgonio: interrupted: 1 finished table (1 of 3 geometrically possible design points "
-                                        "complete) are kept in") and "run the same command again to resume" in err
+                                        "complete) is kept in") and "run the same command again to resume" in err
     assert "Traceback" not in err and "nothing was written" not in err
     monkeypatch.setattr(CL, "map_tables", real)
     assert main(argv) == 0
