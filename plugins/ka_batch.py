@@ -104,11 +104,25 @@ def intersect_sample(scene, ray, flags, sample_shape, active=True):
     hit = si.is_valid() & (si.shape == sample)
     retry = active & ~hit
     s, t = mi.coordinate_system(ray.d)
-    nudge = RETRY_NUDGE * dr.maximum(dr.norm(mi.Vector3f(ray.o)), 1.0)
+    # the crack is as wide as a few ulps of the triangles' coordinates: for a sample mesh larger than the
+    # distance to the origin (400 m, a 2x2 grid with a vertex at the centre: user audit, session 45) the
+    # nudge scales with the sample's extent (0.4 mm there, against a footprint of centimetres)
+    extent = _extent(sample_shape)
+    scale = dr.maximum(dr.norm(mi.Vector3f(ray.o)), 1.0)
+    nudge = RETRY_NUDGE * (dr.maximum(scale, extent) if extent > 1.0 else scale)
     ray2 = mi.Ray3f(ray.o + (s + t) * nudge, ray.d)
     si2 = scene.ray_intersect(ray2, flags, False, retry)
     hit2 = retry & si2.is_valid() & (si2.shape == sample)
     return dr.select(hit2, si2, si), hit | hit2
+
+
+def _extent(shape) -> float:
+    """The diagonal of ``shape``'s bounding box (m; 0 when it has none)."""
+    try:
+        bb = shape.bbox()
+        return float(dr.norm(bb.max - bb.min))
+    except Exception:       # a shape without a finite box
+        return 0.0
 
 
 class _Deferred:
