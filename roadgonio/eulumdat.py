@@ -117,8 +117,11 @@ class Luminaire:
         return float(np.sum(per_plane * dc) * self.scale_cd)
 
 
-def read_ldt(path: str | Path) -> Luminaire:
-    """Read an EULUMDAT file through ``pyldt`` (eulumdat-py) and check it."""
+def read_ldt(path: str | Path, *, shape_only: bool = False) -> Luminaire:
+    """Read an EULUMDAT file through ``pyldt`` (eulumdat-py) and check it. ``shape_only``: only the
+    distribution's shape is used (an instrument's beam profile), so absolute photometry (a negative
+    number of lamps) is read too (user audit, session 45: common in LED files, and refused); the
+    intensities are then the file's, unscaled."""
     from pyldt import LdtReader
 
     path = Path(path)
@@ -160,8 +163,10 @@ def read_ldt(path: str | Path) -> Luminaire:
     if h.n_sets < 1 or not h.lamp_flux:
         raise InputError("no lamp set: expected at least one set with its luminous flux", path=path,
                          field="number of lamp sets (line 26)")
-    _check_header(h, path)
+    _check_header(h, path, absolute_ok=shape_only)
     flux = float(h.lamp_flux[0])
+    if shape_only and not (math.isfinite(flux) and flux > 0.0):
+        flux = 1000.0         # the scale is not used
     conv = float(h.conv_factor) if h.conv_factor else 1.0
     c = np.asarray(h.c_angles, dtype=np.float64)
     i = np.asarray(rows, dtype=np.float64)
@@ -285,7 +290,7 @@ def _check_count(h, text: str, path: Path) -> None:
                          field="intensities (Isym, Mc, Ng: lines 3, 4, 6)")
 
 
-def _check_header(h, path: Path) -> None:
+def _check_header(h, path: Path, *, absolute_ok: bool = False) -> None:
     """Header values a road calculation depends on and that can be impossible or say something
     this module does not model: one-line errors naming the file and the EULUMDAT line."""
     if h.ityp not in (0, 1, 2, 3):
@@ -299,7 +304,7 @@ def _check_header(h, path: Path) -> None:
                          "turned back, which is not modelled: expected a tilt of 0 (a road luminaire's tilt goes in "
                          "the layout file; an instrument's source is aimed by the instrument's geometry)", path=path, field="tilt during measurement (line 25)")
     lamps = list(h.num_lamps or [])
-    if lamps and lamps[0] < 0:
+    if lamps and lamps[0] < 0 and not absolute_ok:
         raise InputError(f"number of lamps {lamps[0]} < 0 marks absolute photometry (intensities in cd, not cd per "
                          "1000 lm of lamp flux), which is not supported: expected relative photometry (a number of "
                          "lamps >= 1)", path=path, field="number of lamps (line 27)")

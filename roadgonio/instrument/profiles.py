@@ -356,7 +356,7 @@ def read_intensity_distribution(path: str | Path, field: str = "source.beam_inte
     if p.suffix.lower() == ".ldt":
         from roadgonio.eulumdat import read_ldt
         try:
-            lum = read_ldt(p)
+            lum = read_ldt(p, shape_only=True)      # the beam's shape: absolute photometry too
         except InputError as err:
             raise _err(err.reason, p, f"{field} ({err.field})" if err.field else field) from None
         table = lum.cd_per_klm

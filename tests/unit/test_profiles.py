@@ -1044,3 +1044,20 @@ def test_a_fixed_height_design_signal_is_taken_at_the_cells_asked():
     assert overhead == pytest.approx(omega(0.8) / omega(1.0), rel=1e-9) and got > 1.4 * overhead
     arc = load_instrument("portable")                                 # an arc: the same at every cell
     assert M.signal_solid_angle(arc, cells + [(0.0, 0.0)]) == M.profiled_solid_angle(arc)
+
+
+def test_an_ldt_of_absolute_photometry_gives_a_beam_its_shape(tmp_path, tables):
+    """(user audit, session 45) an EULUMDAT file of absolute photometry (number of lamps -1, common for
+    LEDs) was refused as a beam file, where only the distribution's shape is used; a road calculation,
+    which needs cd per klm, still refuses it."""
+    from roadgonio.eulumdat import read_ldt
+    lines = tables["ldt"].read_bytes().decode().split("\r\n")
+    assert lines[26] == "1"                 # line 27: the first lamp set's number of lamps
+    lines[26] = "-1"
+    p = tmp_path / "absolute.ldt"
+    p.write_bytes("\r\n".join(lines).encode())
+    a = Source(distance_m=1.0, radius_m=0.01, beam_intensity_file=p).beam.table.values
+    b = Source(distance_m=1.0, radius_m=0.01, beam_intensity_file=tables["ldt"]).beam.table.values
+    assert np.max(np.abs(a - b)) < 1e-11
+    with pytest.raises(InputError, match="absolute photometry"):
+        read_ldt(p)
