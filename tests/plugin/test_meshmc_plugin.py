@@ -54,3 +54,23 @@ def test_a_flat_mesh_of_huge_triangles_meeting_at_the_centre_is_measured(tmp_pat
     for a, b in zip(got, ref):
         assert a.converged and math.isfinite(a.se)
         assert abs(a.k_a - b.k_a) <= z_family(len(cells)) * a.se + b.error_bound, (a, b)
+
+
+@pytest.mark.slow       # the Mitsuba backend samples to its cap (18 s) before it concludes that no light arrives
+def test_a_mesh_the_detector_sees_from_behind_is_named_by_both_backends(tmp_path, mi, r3like):
+    """(user audit, session 45) a sample mesh tilted towards the detector beyond its elevation (2 deg at
+    alpha 1 deg: the detector sees its back): numpy-mc-mesh named the mesh file and `sample.mesh`, Mitsuba
+    neither."""
+    from roadgonio.errors import GeometryError
+    d = load_instrument("portable").to_dict()
+    d["source"]["radius_m"] = 0.0
+    d["detector"].update(pupil_radius_m=0.0, field_half_angle_deg=0.0)
+    from roadgonio.instrument.config import Instrument
+    tilt = math.tan(math.radians(2.0))
+    mesh = grid_mesh(tmp_path / "tilt.obj", np.linspace(-0.5, 0.5, 3), np.linspace(-0.15, 0.15, 3),
+                     height=lambda x, y: tilt * x)
+    inst = with_mesh(Instrument.from_dict(d), mesh)
+    for backend in ("numpy-mc-mesh", "mitsuba"):
+        with pytest.raises(GeometryError) as err:
+            make_backend(backend, inst, r3like, seed=0).compute([(1.0, 30.0)])
+        assert err.value.path == str(mesh) and err.value.field == "sample.mesh", (backend, str(err.value))

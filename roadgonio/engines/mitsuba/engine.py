@@ -253,8 +253,11 @@ class BatchEngine:
             mesh = self.instrument.sample.mesh
             why = ("is it shaded by a part of the scene" + (", or does the detector see the back of the sample mesh "
                    "(a face reflects towards the side its normal points to)" if mesh is not None else "") + "?")
+            # the mesh named, where it is the likely cause (user audit, session 45: numpy-mc-mesh named it)
+            from roadgonio.instrument.mesh import mesh_location
             raise GeometryError(f"the source lights none of the detector footprint at tan eps = {cell[0]:g}, "
-                                f"beta = {cell[1]:g} (Lambert signal {sg:g}): {why}")
+                                f"beta = {cell[1]:g} (Lambert signal {sg:g}): {why}",
+                                **(mesh_location(mesh) if mesh is not None else {}))
 
     def _pass(self, p: int, requests: dict[int, tuple[int, int]], stats, run: EngineRun, seed: int) -> None:
         groups: dict[int, list[tuple[int, int]]] = {}
