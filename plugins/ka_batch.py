@@ -117,12 +117,9 @@ def intersect_sample(scene, ray, flags, sample_shape, active=True):
 
 
 def _extent(shape) -> float:
-    """The diagonal of ``shape``'s bounding box (m; 0 when it has none)."""
-    try:
-        bb = shape.bbox()
-        return float(dr.norm(bb.max - bb.min))
-    except Exception:       # a shape without a finite box
-        return 0.0
+    """The diagonal of ``shape``'s bounding box (m)."""
+    bb = shape.bbox()
+    return float(dr.norm(bb.max - bb.min))
 
 
 class _Deferred:

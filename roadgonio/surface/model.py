@@ -593,18 +593,12 @@ class RoadModel:
         parameters not the table's). Boolean, over the broadcast ``tan_eps`` x ``beta_deg``; False
         everywhere without the term. The inner caps (on ``1 + h f^2``, ``ln W + n_beta ln L``) act
         only where ``ln x`` or ``L`` is far from 0, where E underflows to 0 either way."""
-        P = self.params.to_dict()
-        if not (P["k_exp"] > 0.0):
+        if not (self.params.k_exp > 0.0):
             return np.zeros(np.broadcast_shapes(np.shape(tan_eps), np.shape(beta_deg)), dtype=bool)
-        P["k_exp"] = 1.0
-        terms = frozenset({"k_exp"}) | (self.terms() & {"round"})
-        wi = w_source(eps_from_tan(tan_eps), beta_deg)
-        wo = w_detector(alpha_deg)
-        wi, wo = np.broadcast_arrays(wi, wo)
-        with np.errstate(over="ignore", under="ignore", invalid="ignore", divide="ignore"):
-            e = np.asarray(road_brdf(NumpyOps, P, (wi[..., 0], wi[..., 1], wi[..., 2]),
-                                     (wo[..., 0], wo[..., 1], wo[..., 2]), self.variant, terms), dtype=np.float64)
-        return e >= math.exp(EXP_CAP - EXP_CAP_REACHED)
+        # E alone, of unit coefficient: the other terms and g (theta_l 90 deg) left out
+        unit = RoadModel(self.params.replace(k_diff=0.0, k_phong=0.0, k_retro=0.0, k_exp=1.0, theta_l_deg=90.0),
+                         self.variant)
+        return unit.q(tan_eps, beta_deg, alpha_deg) >= math.exp(EXP_CAP - EXP_CAP_REACHED)
 
     # -- files -----------------------------------------------------------------------------
     def to_json_dict(self) -> dict[str, Any]:
